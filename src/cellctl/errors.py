@@ -1,0 +1,83 @@
+"""One exception tree for cellctl.
+
+Catch :class:`CellctlError` to handle every failure cellctl raises; catch a subclass to
+handle one kind::
+
+    try:
+        await robot.go(3)
+    except DeviceError as e:        # the machine refused: e.code, e.message
+        ...
+    except LinkError:               # nothing came back in time, or the line closed
+        ...
+
+Every error's ``str()`` is a one-line sentence in the user's words (the source's messages).
+Protocol errors carry the raw bytes that broke the protocol in ``raw``.
+"""
+
+from __future__ import annotations
+
+
+class CellctlError(Exception):
+    """Base of every error cellctl raises."""
+
+
+class LinkError(CellctlError):
+    """The byte link failed: could not open, closed under us, or a wait ran out."""
+
+
+class LinkTimeout(LinkError):
+    """A wait on the link passed its deadline."""
+
+
+class LinkClosed(LinkError):
+    """The other end closed the link (or the link was closed locally)."""
+
+
+class ProtocolError(CellctlError):
+    """The bytes on the line do not follow the protocol; ``raw`` holds them."""
+
+    def __init__(self, message: str, raw: bytes = b"") -> None:
+        self.raw = bytes(raw)
+        super().__init__(message)
+
+    def __str__(self) -> str:
+        base = super().__str__()
+        if not self.raw:
+            return base
+        return f"{base} (raw: {format_raw(self.raw)})"
+
+
+class ChecksumError(ProtocolError):
+    """A record's checksum does not match its data."""
+
+
+class FramingError(ProtocolError):
+    """A record is malformed: bad hex, wrong byte count, missing CR LF."""
+
+
+class UnexpectedReply(ProtocolError):
+    """The machine answered something the protocol does not allow at this point."""
+
+
+class DeviceError(CellctlError):
+    """The machine itself reported a failure: ``code`` and the source's ``message``."""
+
+    def __init__(self, code: int, message: str, *, detail: str = "") -> None:
+        self.code = code
+        self.message = message
+        self.detail = detail
+        text = f"{message} (code {code})"
+        super().__init__(f"{text}: {detail}" if detail else text)
+
+
+class UsageError(CellctlError):
+    """Bad input from the caller, refused before any byte went out."""
+
+
+def format_raw(raw: bytes, limit: int = 64) -> str:
+    """Show bytes as hex plus printable text, e.g. ``13 11 44 30 |..D0|``."""
+    shown = raw[:limit]
+    hexpart = " ".join(f"{b:02X}" for b in shown)
+    text = "".join(chr(b) if 32 <= b < 127 else "." for b in shown)
+    more = f" … +{len(raw) - limit} bytes" if len(raw) > limit else ""
+    return f"{hexpart} |{text}|{more}"

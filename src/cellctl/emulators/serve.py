@@ -1,0 +1,552 @@
+"""Serve an emulated machine over a pty, raw TCP or RFC 2217, with the line paced.
+
+An emulator implements :class:`EmulatedDevice` (one method, ``session``) and talks to the
+host through a :class:`DeviceLine`; this module does the rest::
+
+    server = await serve(MyEmulator(), "rfc2217://127.0.0.1:0", ROBOT_LINE)
+    print(server.url)            # rfc2217://127.0.0.1:40123, what a driver passes to open_link
+    ...
+    await server.close()
+
+``listen`` is ``"pty"`` (a new pseudo-terminal; ``"pty:/some/path"`` also keeps a symlink
+there, re-pointed when a dropped connection makes a new pty), ``"socket://HOST:PORT"`` or
+``"rfc2217://HOST:PORT"`` (port 0 picks a free one). Over RFC 2217 the emulator's RTS reaches
+the host as CTS, and line settings the host sets change the pacing; a pty or raw TCP carries
+no modem lines. One host at a time: a new TCP connection replaces the previous one, as a
+device server does when a controller restarts and reconnects.
+
+Pacing: with ``pacing=True`` (the default) the emulator receives each host byte no sooner than
+it would have crossed the wire at the line's rate, and its own bytes reach the host at that
+rate too, so timings match the real line. ``pacing=False`` moves bytes as fast as they come.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import tty
+from abc import ABC, abstractmethod
+from collections import deque
+from collections.abc import Callable, Coroutine
+from dataclasses import dataclass, field
+from pathlib import Path
+from urllib.parse import urlsplit
+
+from serial import rfc2217
+
+from cellctl.errors import LinkClosed, UsageError
+from cellctl.link import LineSettings, parse_host_port
+
+# Bytes of emulator output handed to the host at once when paced: about 10 ms of line,
+# like a UART FIFO; finer costs a wake-up per byte, coarser delays first bytes.
+_PACE_SLICE_S = 0.010
+
+
+class DeviceLine:
+    """The emulator's end of one host connection.
+
+    ``read``/``read_until`` return host bytes once they have (virtually) crossed the line;
+    ``write`` returns once its bytes have. ``set_rts`` drives the host's CTS where the
+    transport carries modem lines. Raises :class:`LinkClosed` once the host has gone.
+    """
+
+    def __init__(
+        self,
+        settings: LineSettings,
+        *,
+        pacing: bool,
+        send: Callable[[bytes], None],
+        has_modem_lines: bool = False,
+        on_rts: Callable[[bool], None] | None = None,
+        on_drop: Callable[[], None] | None = None,
+    ) -> None:
+        self.settings = settings
+        self.pacing = pacing
+        self.has_modem_lines = has_modem_lines
+        self.rts = False
+        self._send_raw = send
+        self._on_rts = on_rts
+        self._on_drop = on_drop
+        self._loop = asyncio.get_running_loop()
+        self._pending = bytearray()
+        # (time the chunk's last byte is through the line, chunk length), oldest first
+        self._chunks: deque[tuple[float, int]] = deque()
+        self._rx_clock = 0.0
+        self._tx_clock = 0.0
+        self._waiter: asyncio.Future[None] | None = None
+        self._closed = False
+        self.bytes_in = 0
+        self.bytes_out = 0
+
+    # -- fed by the transport ----------------------------------------------------------------
+
+    def feed(self, data: bytes) -> None:
+        """Bytes from the host arrived (called by the transport)."""
+        if not data or self._closed:
+            return
+        now = self._loop.time()
+        if self.pacing:
+            self._rx_clock = max(now, self._rx_clock) + len(data) * self.settings.char_time
+            ready = self._rx_clock
+        else:
+            ready = now
+        self._pending += data
+        self._chunks.append((ready, len(data)))
+        self.bytes_in += len(data)
+        self._wake()
+
+    def feed_closed(self) -> None:
+        """The host went away (called by the transport)."""
+        self._closed = True
+        self._wake()
+
+    def _wake(self) -> None:
+        if self._waiter is not None and not self._waiter.done():
+            self._waiter.set_result(None)
+
+    # -- for the emulator ----------------------------------------------------------------------
+
+    @property
+    def closed(self) -> bool:
+        """True once the host has gone (or the line was dropped)."""
+        return self._closed
+
+    def _ready_time(self, index: int) -> float:
+        """When pending byte ``index`` is through the line."""
+        start = 0
+        for end_time, length in self._chunks:
+            if index < start + length:
+                return end_time - (start + length - 1 - index) * self.settings.char_time * (
+                    1 if self.pacing else 0
+                )
+            start += length
+        raise IndexError(index)
+
+    def _take(self, n: int) -> bytes:
+        data = bytes(self._pending[:n])
+        del self._pending[:n]
+        while n and self._chunks:
+            end_time, length = self._chunks[0]
+            if length <= n:
+                self._chunks.popleft()
+                n -= length
+            else:
+                self._chunks[0] = (end_time, length - n)
+                n = 0
+        return data
+
+    async def _wait_data(self, timeout: float | None) -> None:
+        if self._closed:
+            raise LinkClosed("the host closed the line")
+        fut: asyncio.Future[None] = self._loop.create_future()
+        self._waiter = fut
+        timer = self._loop.call_later(timeout, _done, fut) if timeout is not None else None
+        try:
+            await fut
+        finally:
+            self._waiter = None
+            if timer is not None:
+                timer.cancel()
+        if self._closed:
+            raise LinkClosed("the host closed the line")
+
+    async def _until_ready(self, index: int) -> None:
+        delay = self._ready_time(index) - self._loop.time()
+        if delay > 0:
+            await asyncio.sleep(delay)
+
+    async def read(self, max_bytes: int = 4096, timeout: float | None = None) -> bytes:
+        """Host bytes that are through the line (at least one); b"" if ``timeout`` passes."""
+        deadline = None if timeout is None else self._loop.time() + timeout
+        while not self._pending:
+            left = None if deadline is None else deadline - self._loop.time()
+            if left is not None and left <= 0:
+                return b""
+            await self._wait_data(left)
+        await self._until_ready(0)
+        now = self._loop.time()
+        n = 1
+        limit = min(max_bytes, len(self._pending))
+        while n < limit and self._ready_time(n) <= now:
+            n += 1
+        return self._take(n)
+
+    async def read_until(self, terminator: bytes, timeout: float | None = None) -> bytes:
+        """Host bytes up to and including ``terminator``; b"" if ``timeout`` passes first."""
+        deadline = None if timeout is None else self._loop.time() + timeout
+        while True:
+            i = self._pending.find(terminator)
+            if i >= 0:
+                end = i + len(terminator)
+                await self._until_ready(end - 1)
+                return self._take(end)
+            left = None if deadline is None else deadline - self._loop.time()
+            if left is not None and left <= 0:
+                return b""
+            await self._wait_data(left)
+
+    def pending(self) -> bytes:
+        """Host bytes received, whether or not through the line yet (not consumed)."""
+        return bytes(self._pending)
+
+    async def write(self, data: bytes) -> None:
+        """Send ``data`` to the host, paced at the line's rate."""
+        if self._closed:
+            raise LinkClosed("the host closed the line")
+        if not self.pacing:
+            self.bytes_out += len(data)
+            self._send_raw(data)
+            return
+        ct = self.settings.char_time
+        step = max(1, int(_PACE_SLICE_S / ct))
+        for i in range(0, len(data), step):
+            piece = data[i : i + step]
+            self._tx_clock = max(self._loop.time(), self._tx_clock) + len(piece) * ct
+            delay = self._tx_clock - self._loop.time()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            if self._closed:
+                raise LinkClosed("the host closed the line")
+            self.bytes_out += len(piece)
+            self._send_raw(piece)
+
+    def set_rts(self, level: bool) -> None:
+        """Drive the emulator's RTS (the host's CTS). No effect where modem lines don't travel."""
+        if level == self.rts:
+            return
+        self.rts = level
+        if self._on_rts is not None:
+            self._on_rts(level)
+
+    def drop(self) -> None:
+        """Fault: cut the connection now, as a pulled cable or a crashed server would."""
+        self.feed_closed()
+        if self._on_drop is not None:
+            self._on_drop()
+
+
+def _done(fut: asyncio.Future[None]) -> None:
+    if not fut.done():
+        fut.set_result(None)
+
+
+class EmulatedDevice(ABC):
+    """A machine emulator: its state lives on the object and survives reconnects."""
+
+    @abstractmethod
+    async def session(self, line: DeviceLine) -> None:
+        """Serve one host connection until it closes (return, or let LinkClosed out)."""
+
+    def line_changed(self, line: DeviceLine) -> None:  # noqa: B027 - optional hook
+        """Called when the host changed the line settings (RFC 2217)."""
+
+
+def parse_fault(text: str) -> tuple[str, str | None]:
+    """``"corrupt-checksum=3"`` → ``("corrupt-checksum", "3")``; ``"drop"`` → ``("drop", None)``."""
+    name, sep, arg = text.partition("=")
+    name = name.strip()
+    if not name:
+        raise UsageError(f"fault {text!r}: write NAME or NAME=VALUE")
+    return name, (arg.strip() if sep else None)
+
+
+@dataclass
+class Server:
+    """A running emulator server: ``url`` is what a driver opens; ``close()`` stops it."""
+
+    url: str
+    device: EmulatedDevice
+    _closers: list[Callable[[], None]] = field(default_factory=list)
+    _tasks: set[asyncio.Task[None]] = field(default_factory=set)
+    _stopped: asyncio.Event = field(default_factory=asyncio.Event)
+    current_line: DeviceLine | None = None
+
+    async def close(self) -> None:
+        """Stop serving: close the connection and the listening endpoint."""
+        for closer in reversed(self._closers):
+            with contextlib.suppress(Exception):
+                closer()
+        for task in list(self._tasks):
+            task.cancel()
+        for task in list(self._tasks):
+            with contextlib.suppress(BaseException):
+                await task
+        self._stopped.set()
+
+    async def serve_forever(self) -> None:
+        """Wait until ``close()`` is called (or the task is cancelled)."""
+        await self._stopped.wait()
+
+
+async def _run_session(server: Server, line: DeviceLine, on_end: Callable[[], None]) -> None:
+    server.current_line = line
+    try:
+        await server.device.session(line)
+    except LinkClosed:
+        pass
+    finally:
+        line.feed_closed()
+        on_end()
+
+
+def _spawn(server: Server, coro: Coroutine[object, object, None]) -> asyncio.Task[None]:
+    task = asyncio.ensure_future(coro)
+    server._tasks.add(task)
+    task.add_done_callback(server._tasks.discard)
+    return task
+
+
+async def serve(
+    device: EmulatedDevice, listen: str, settings: LineSettings, *, pacing: bool = True
+) -> Server:
+    """Start serving ``device`` at ``listen``; see the module docstring."""
+    if listen == "pty" or listen.startswith("pty:"):
+        link_path = listen[4:] or None
+        return await _serve_pty(device, settings, pacing, Path(link_path) if link_path else None)
+    scheme = urlsplit(listen).scheme
+    if scheme in ("socket", "tcp"):
+        return await _serve_tcp(device, listen, settings, pacing, rfc=False)
+    if scheme == "rfc2217":
+        return await _serve_tcp(device, listen, settings, pacing, rfc=True)
+    raise UsageError(
+        f"cannot listen on {listen!r}: use pty, pty:PATH, socket://HOST:PORT or rfc2217://HOST:PORT"
+    )
+
+
+async def _serve_pty(
+    device: EmulatedDevice, settings: LineSettings, pacing: bool, link_path: Path | None
+) -> Server:
+    loop = asyncio.get_running_loop()
+    server = Server(url="", device=device)
+
+    def open_pty() -> str:
+        master, slave = os.openpty()
+        tty.setraw(slave)  # no echo, no CR/LF translation: bytes as they are
+        os.set_blocking(master, False)
+        name = os.ttyname(slave)
+        holder = {"closed": False}
+
+        def send(data: bytes) -> None:
+            # The host side is a tty buffer of a few KiB; records are far smaller.
+            with contextlib.suppress(BlockingIOError, OSError):
+                os.write(master, data)
+
+        def close_fds() -> None:
+            if holder["closed"]:
+                return
+            holder["closed"] = True
+            loop.remove_reader(master)
+            os.close(master)
+            # The emulator holds the slave too, so a host closing it doesn't EIO the master.
+            os.close(slave)
+
+        def on_drop() -> None:
+            close_fds()
+            # A dropped pty is gone for good, as an unplugged cable; a new one takes its place.
+            loop.call_soon(start)
+
+        line = DeviceLine(settings, pacing=pacing, send=send, on_drop=on_drop)
+
+        def readable() -> None:
+            try:
+                data = os.read(master, 65536)
+            except BlockingIOError:
+                return
+            except OSError:
+                data = b""
+            if data:
+                line.feed(data)
+
+        loop.add_reader(master, readable)
+        server._closers.append(close_fds)
+        _spawn(server, _run_session(server, line, lambda: None))
+        return name
+
+    def start() -> None:
+        if server._stopped.is_set():
+            return
+        name = open_pty()
+        if link_path is not None:
+            tmp = link_path.with_name(link_path.name + ".new")
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
+            tmp.symlink_to(name)
+            tmp.replace(link_path)
+            server.url = str(link_path)
+        else:
+            server.url = name
+
+    start()
+    if link_path is not None:
+        server._closers.insert(0, lambda: link_path.unlink(missing_ok=True))
+    return server
+
+
+class _VirtualPort:
+    """The serial-port face pyserial's RFC 2217 PortManager expects, backed by a DeviceLine."""
+
+    def __init__(self, settings: LineSettings, on_change: Callable[[LineSettings], None]):
+        self._settings = settings
+        self._on_change = on_change
+        self.xonxoff = False
+        self.dtr = True
+        self.rts = True
+        self.break_condition = False
+        self.cts = False
+        self.dsr = True
+        self.ri = False
+        self.cd = True
+
+    def _set(self, **kw: object) -> None:
+        try:
+            self._settings = self._settings.with_(**kw)
+        except UsageError as e:
+            raise ValueError(str(e)) from e
+        self._on_change(self._settings)
+
+    @property
+    def baudrate(self) -> int:
+        return self._settings.baudrate
+
+    @baudrate.setter
+    def baudrate(self, v: int) -> None:
+        self._set(baudrate=v)
+
+    @property
+    def bytesize(self) -> int:
+        return self._settings.bytesize
+
+    @bytesize.setter
+    def bytesize(self, v: int) -> None:
+        self._set(bytesize=v)
+
+    @property
+    def parity(self) -> str:
+        return self._settings.parity
+
+    @parity.setter
+    def parity(self, v: str) -> None:
+        self._set(parity=v)
+
+    @property
+    def stopbits(self) -> float:
+        return self._settings.stopbits
+
+    @stopbits.setter
+    def stopbits(self, v: float) -> None:
+        self._set(stopbits=v)
+
+    @property
+    def rtscts(self) -> bool:
+        return self._settings.rtscts
+
+    @rtscts.setter
+    def rtscts(self, v: bool) -> None:
+        self._set(rtscts=v)
+
+    def reset_input_buffer(self) -> None:
+        pass
+
+    def reset_output_buffer(self) -> None:
+        pass
+
+
+class _TcpConnection(asyncio.Protocol):
+    def __init__(self, server: Server, settings: LineSettings, pacing: bool, rfc: bool):
+        self.server = server
+        self.settings = settings
+        self.pacing = pacing
+        self.rfc = rfc
+        self.transport: asyncio.Transport | None = None
+        self.line: DeviceLine | None = None
+        self.manager: rfc2217.PortManager | None = None
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.transport = transport
+        sock = transport.get_extra_info("socket")
+        if sock is not None:
+            import socket
+
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        previous = self.server.current_line
+        if previous is not None and not previous.closed:
+            previous.drop()  # one host at a time: the newest connection wins
+        send: Callable[[bytes], None] = transport.write
+        on_rts = None
+        if self.rfc:
+            port = _VirtualPort(self.settings, self._settings_changed)
+            self.port = port
+            # PortManager only needs attribute access and write(): duck-typed stand-ins.
+            self.manager = rfc2217.PortManager(port, _Writer(transport))  # type: ignore[arg-type]
+            mgr = self.manager
+
+            def escaped_send(data: bytes) -> None:
+                transport.write(b"".join(mgr.escape(data)))
+
+            send = escaped_send
+
+            def on_rts(level: bool) -> None:
+                port.cts = level
+                mgr.check_modem_lines()
+
+        line = DeviceLine(
+            self.settings,
+            pacing=self.pacing,
+            send=send,
+            has_modem_lines=self.rfc,
+            on_rts=on_rts,
+            on_drop=transport.abort,
+        )
+        self.line = line
+        _spawn(self.server, _run_session(self.server, line, transport.close))
+
+    def _settings_changed(self, settings: LineSettings) -> None:
+        if self.line is not None:
+            self.line.settings = settings
+            self.server.device.line_changed(self.line)
+
+    def data_received(self, data: bytes) -> None:
+        assert self.line is not None
+        if self.manager is not None:
+            data = b"".join(self.manager.filter(data))
+        self.line.feed(data)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self.line is not None:
+            self.line.feed_closed()
+
+
+class _Writer:
+    def __init__(self, transport: asyncio.Transport) -> None:
+        self.transport = transport
+
+    def write(self, data: bytes) -> None:
+        if not self.transport.is_closing():
+            self.transport.write(data)
+
+
+async def _serve_tcp(
+    device: EmulatedDevice, listen: str, settings: LineSettings, pacing: bool, *, rfc: bool
+) -> Server:
+    host, port = parse_host_port(listen)
+    loop = asyncio.get_running_loop()
+    server = Server(url="", device=device)
+    try:
+        tcp = await loop.create_server(
+            lambda: _TcpConnection(server, settings, pacing, rfc), host, port
+        )
+    except OSError as e:
+        raise UsageError(f"cannot listen on {listen}: {e.strerror or e}") from e
+    bound = tcp.sockets[0].getsockname()
+    server.url = f"{'rfc2217' if rfc else 'socket'}://{host}:{bound[1]}"
+
+    def close() -> None:
+        tcp.close()
+        line = server.current_line
+        if line is not None and not line.closed:
+            line.drop()
+
+    server._closers.append(close)
+    return server

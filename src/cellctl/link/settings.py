@@ -1,0 +1,91 @@
+"""Line settings of a serial link: baud, data bits, parity, stop bits, RTS/CTS.
+
+``LineSettings.parse("4800,7E2")`` reads the compact form used in ``cell.toml`` and on the
+command line; ``str(settings)`` writes it back. ``char_time`` is how long one character takes
+on the wire, which drivers add to their deadlines and emulators use to pace the line.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, replace
+
+from cellctl.errors import UsageError
+
+PARITIES = {"N": "none", "E": "even", "O": "odd", "M": "mark", "S": "space"}
+
+_COMPACT = re.compile(r"^\s*(\d+)\s*[,:/ ]\s*([5-8])([NEOMSneoms])(1|1\.5|2)\s*(,\s*rtscts)?\s*$")
+
+
+@dataclass(frozen=True)
+class LineSettings:
+    """How characters are framed on the line. The default is the robot's 4800 7E2."""
+
+    baudrate: int = 4800
+    bytesize: int = 7
+    parity: str = "E"
+    stopbits: float = 2
+    rtscts: bool = False
+
+    def __post_init__(self) -> None:
+        if self.baudrate <= 0:
+            raise UsageError(f"baud rate must be positive, not {self.baudrate}")
+        if self.bytesize not in (5, 6, 7, 8):
+            raise UsageError(f"data bits must be 5 to 8, not {self.bytesize}")
+        if self.parity not in PARITIES:
+            raise UsageError(f"parity must be one of {''.join(PARITIES)}, not {self.parity!r}")
+        if self.stopbits not in (1, 1.5, 2):
+            raise UsageError(f"stop bits must be 1, 1.5 or 2, not {self.stopbits}")
+
+    @property
+    def bits_per_char(self) -> float:
+        """Start bit + data bits + parity bit + stop bits."""
+        return 1 + self.bytesize + (0 if self.parity == "N" else 1) + self.stopbits
+
+    @property
+    def char_time(self) -> float:
+        """Seconds one character takes on the wire (11/4800 s at 4800 7E2)."""
+        return self.bits_per_char / self.baudrate
+
+    @property
+    def chars_per_second(self) -> float:
+        """The line rate: the most characters per second the line can carry."""
+        return self.baudrate / self.bits_per_char
+
+    def wire_time(self, nbytes: int) -> float:
+        """Seconds ``nbytes`` characters take on the wire."""
+        return nbytes * self.char_time
+
+    def with_(self, **changes: object) -> LineSettings:
+        """A copy with some fields changed, e.g. ``s.with_(rtscts=True)``."""
+        return replace(self, **changes)  # type: ignore[arg-type]
+
+    @classmethod
+    def parse(cls, text: str) -> LineSettings:
+        """Read ``"4800,7E2"``, ``"2400,8N1"`` or ``"9600,8N1,rtscts"``."""
+        m = _COMPACT.match(text)
+        if not m:
+            raise UsageError(
+                f"line settings {text!r} not understood: write baud,bits parity stop "
+                "like 4800,7E2 (optionally ,rtscts)"
+            )
+        stop = float(m.group(4))
+        return cls(
+            baudrate=int(m.group(1)),
+            bytesize=int(m.group(2)),
+            parity=m.group(3).upper(),
+            stopbits=int(stop) if stop.is_integer() else stop,
+            rtscts=bool(m.group(5)),
+        )
+
+    def __str__(self) -> str:
+        stop = int(self.stopbits) if float(self.stopbits).is_integer() else self.stopbits
+        text = f"{self.baudrate},{self.bytesize}{self.parity}{stop}"
+        return text + (",rtscts" if self.rtscts else "")
+
+
+ROBOT_LINE = LineSettings(4800, 7, "E", 2)
+"""The IBM 7545/7547 controller's line: 4800 baud, 7 data bits, even parity, 2 stop bits."""
+
+MILL_LINE = LineSettings(4800, 7, "E", 2)
+"""The Dyna 2400 line as the source's cell controller set it (other shops use 2400,8N1)."""

@@ -1,0 +1,68 @@
+"""Per-machine state the host keeps between runs: one small JSON file per machine.
+
+The source's controllers could not tell the host which partitions hold programs or whether
+a mill's reference zero was set: the host keeps that itself. ``StateStore`` keeps it on disk
+in the cell directory so a CLI call, a restart or a second process sees the same view::
+
+    store = StateStore(Path("cell"))
+    state = store.load("robot1")          # {} the first time
+    state["partitions"] = {"3": "LOADCNC1"}
+    store.save("robot1", state)
+
+Writes are atomic (write a temporary file, then rename), so a crash never leaves half a file.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from cellctl.errors import UsageError
+
+_SAFE = re.compile(r"[^A-Za-z0-9_.-]+")
+
+
+def machine_key(name_or_url: str) -> str:
+    """A file-safe key for a machine name or URL: ``rfc2217://h:7001`` → ``rfc2217_h_7001``."""
+    key = _SAFE.sub("_", name_or_url).strip("_.")
+    if not key:
+        raise UsageError(f"cannot make a state key from {name_or_url!r}")
+    return key
+
+
+class StateStore:
+    """JSON state files under ``<cell_dir>/state/``."""
+
+    def __init__(self, cell_dir: Path | str) -> None:
+        self.dir = Path(cell_dir) / "state"
+
+    def path(self, key: str) -> Path:
+        """The file that holds machine ``key``'s state."""
+        return self.dir / f"{machine_key(key)}.json"
+
+    def load(self, key: str) -> dict[str, Any]:
+        """The saved state of ``key``, or ``{}`` if none was saved (or the file is unreadable)."""
+        try:
+            data = json.loads(self.path(key).read_text(encoding="utf-8"))
+        except (FileNotFoundError, json.JSONDecodeError):
+            return {}
+        return data if isinstance(data, dict) else {}
+
+    def save(self, key: str, state: dict[str, Any]) -> None:
+        """Replace the saved state of ``key`` atomically."""
+        self.dir.mkdir(parents=True, exist_ok=True)
+        target = self.path(key)
+        fd, tmp = tempfile.mkstemp(dir=self.dir, prefix=target.name, suffix=".tmp")
+        try:
+            with os.fdopen(fd, "w", encoding="utf-8") as f:
+                json.dump(state, f, indent=2, sort_keys=True)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, target)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise

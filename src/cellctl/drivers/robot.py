@@ -1,0 +1,490 @@
+"""IBM 7545 / 7547 SCARA robot controller driver.
+
+One :class:`Ibm7545Robot` per controller; it owns its link and its host-kept state (robot
+state 0/1/2 and which partition holds which program), saved in the cell directory::
+
+    robot = await Ibm7545Robot.connect("rfc2217://cellhost:7001", name="robot1",
+                                       store=StateStore("cell"))
+    await robot.initialize()                   # return home (11), then auto mode (20)
+    await robot.download(3, "loadcnc1.rec")    # N record, D records, end record, Ack each
+    await robot.go(3)                          # select application 33, start cycle 22
+    print(await robot.status())
+    await robot.close()
+
+Transactions (host controls every one; spec ``ibm7545-robot.md``)::
+
+    X  -> Xoff [Xoff ...] Xon   operand CR LF -> Ack    (or Xoff [Xoff ...] Xon: 11, 23)
+    R  -> Xoff [Xoff ...] Xon   operand CR LF -> D record, Ack -> EG, Ack
+    N  -> Ack   rest of N record -> Ack   each record -> Ack   end record -> Ack
+
+Every wait has a deadline: the first reply must come within ``reply_timeout`` (plus the wire
+time of what was sent); while the controller is busy it repeats Xoff about every 25 s, and
+each Xoff extends the wait, up to ``busy_ceiling`` in all; silence longer than
+``busy_silence`` raises :class:`LinkTimeout`. EOT means the controller rejected the request:
+the driver reads the reject status and raises :class:`DeviceError` with the source's words.
+A D record with a bad checksum is acknowledged (so the controller finishes its transaction)
+and the read is repeated, up to ``checksum_retries`` times; then :class:`ChecksumError`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NoReturn
+
+from cellctl.errors import (
+    ChecksumError,
+    DeviceError,
+    FramingError,
+    LinkTimeout,
+    UnexpectedReply,
+    UsageError,
+    format_raw,
+)
+from cellctl.link import ROBOT_LINE, LineSettings, Link, TrafficLog, open_link
+from cellctl.protocol.robot import (
+    ACK,
+    EOT,
+    PARTITIONS,
+    XOFF,
+    XON,
+    DiDo,
+    ExecuteOperand,
+    MachineStatus,
+    ProgramFile,
+    ReadOperand,
+    Record,
+    decode_record,
+    encode_operand,
+    encode_record,
+    reject_message,
+    resync,
+    select_application_operand,
+)
+
+from .state import StateStore, machine_key
+
+#: Robot states the host keeps (spec: "Robot states (kept by the host)").
+ROBOT_STATES = {
+    0: "uninitialized",
+    1: "initialized (auto mode)",
+    2: "executing",
+}
+
+#: Reject codes after which the controller is known to be uninitialized (partitions gone).
+_COLD_REJECTS = {48}
+#: Reject code the controller gives for selecting an empty partition.
+_EMPTY_PARTITION = 83
+
+ProgressCallback = Callable[[int, int, int], None]
+"""``progress(records_done, records_total, bytes_sent)``, called after every Ack."""
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    """Deadlines and assumed values; every one can be set per robot (``cell.toml``)."""
+
+    reply_timeout: float = 2.0
+    """Seconds the controller may take to start answering (beyond the wire time)."""
+    busy_silence: float = 30.0
+    """Seconds of silence tolerated while the controller is busy (it repeats Xoff every ~25 s)."""
+    busy_ceiling: float = 300.0
+    """Seconds a busy controller may keep the host waiting in all (return home, a long stop)."""
+    checksum_retries: int = 3
+    """Times a read with a bad D-record checksum is repeated before the error is raised."""
+    erreset_operand: int = int(ExecuteOperand.ERRESET)
+    """ERRESET's operand: not in the source, **assumed** 24."""
+
+
+@dataclass
+class RobotStatus:
+    """What ``status()`` reports: host state, controller status bytes, partitions."""
+
+    state: int
+    machine: MachineStatus
+    partitions: dict[int, str | None]
+
+    @property
+    def state_text(self) -> str:
+        """The robot state in words."""
+        return ROBOT_STATES.get(self.state, f"state {self.state}")
+
+    def lines(self) -> list[str]:
+        """Human-readable lines, as the operator console shows them."""
+        out = [f"robot state: {self.state} ({self.state_text})"]
+        out.append(
+            f"machine status: {self.machine} "
+            f"(bytes {self.machine.flags:02X} {self.machine.data_error:02X})"
+        )
+        for p, prog in self.partitions.items():
+            out.append(f"partition {p}: {'Full (' + prog + ')' if prog else 'Empty'}")
+        return out
+
+
+@dataclass
+class RobotCounters:
+    """Counts a user or a benchmark may want: retries, transactions, records."""
+
+    transactions: int = 0
+    checksum_retries: int = 0
+    records_downloaded: int = 0
+    rejects: list[int] = field(default_factory=list)
+
+
+class Ibm7545Robot:
+    """Driver for one IBM 7545/7547 controller over any :class:`Link`."""
+
+    def __init__(
+        self,
+        link: Link,
+        *,
+        name: str | None = None,
+        store: StateStore | None = None,
+        config: RobotConfig | None = None,
+    ) -> None:
+        self.link = link
+        self.name = name or link.url
+        self.config = config or RobotConfig()
+        self.counters = RobotCounters()
+        self._store = store
+        self._key = machine_key(self.name)
+        saved: dict[str, Any] = store.load(self._key) if store else {}
+        self.state: int = int(saved.get("state", 0))
+        self.partitions: dict[int, str | None] = {p: None for p in PARTITIONS}
+        for p, prog in saved.get("partitions", {}).items():
+            if int(p) in PARTITIONS:
+                self.partitions[int(p)] = prog
+        self.digests: dict[int, str] = {int(p): d for p, d in saved.get("digests", {}).items()}
+        self._in_reject_read = False
+
+    @classmethod
+    async def connect(
+        cls,
+        url: str,
+        *,
+        name: str | None = None,
+        settings: LineSettings = ROBOT_LINE,
+        store: StateStore | None = None,
+        config: RobotConfig | None = None,
+        trace: TrafficLog | str | Path | None = None,
+    ) -> Ibm7545Robot:
+        """Open ``url`` and return a driver on it (the robot's name keys its saved state)."""
+        link = await open_link(url, settings, trace=trace, label=name)
+        return cls(link, name=name or url, store=store, config=config)
+
+    async def close(self) -> None:
+        """Close the link."""
+        await self.link.close()
+
+    async def __aenter__(self) -> Ibm7545Robot:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    # -- host-kept state --------------------------------------------------------------------------
+
+    def _save(self) -> None:
+        if self._store is None:
+            return
+        self._store.save(
+            self._key,
+            {
+                "state": self.state,
+                "partitions": {str(p): prog for p, prog in self.partitions.items() if prog},
+                "digests": {str(p): d for p, d in self.digests.items()},
+            },
+        )
+
+    def _set_state(self, state: int, *, flush: bool = False) -> None:
+        self.state = state
+        if flush:
+            self.partitions = {p: None for p in PARTITIONS}
+            self.digests = {}
+        self._save()
+
+    def holds(self, partition: int, program: ProgramFile) -> bool:
+        """True if the host's view says ``partition`` holds exactly ``program``."""
+        return self.digests.get(partition) == _digest(program.with_partition(partition))
+
+    # -- low-level pieces --------------------------------------------------------------------------
+
+    def _timeout(self, sent: int = 0, expect: int = 1) -> float:
+        """Deadline for a reply: controller latency plus wire time both ways."""
+        return self.config.reply_timeout + self.link.settings.wire_time(sent + expect)
+
+    async def _byte(self, timeout: float) -> int:
+        return (await self.link.read(1, timeout=timeout))[0]
+
+    async def _await_ready(self, what: str, first: int) -> None:
+        """Having read ``first`` after an identifier, wait through Xoffs for Xon."""
+        loop_time = self.link._loop.time
+        ceiling = loop_time() + self.config.busy_ceiling
+        byte = first
+        while True:
+            if byte == XON:
+                return
+            if byte == EOT:
+                await self._rejected(what)
+            if byte != XOFF:
+                raise UnexpectedReply(
+                    f"{self.name}: {what}: expected Xoff or Xon, got {byte:02X}", bytes([byte])
+                )
+            left = ceiling - loop_time()
+            if left <= 0:
+                raise LinkTimeout(
+                    f"{self.name}: {what}: controller stayed busy (Xoff) longer than "
+                    f"{self.config.busy_ceiling:g} s"
+                )
+            try:
+                byte = await self._byte(min(self.config.busy_silence, left))
+            except LinkTimeout as e:
+                raise LinkTimeout(
+                    f"{self.name}: {what}: controller sent Xoff, then nothing for "
+                    f"{min(self.config.busy_silence, left):g} s"
+                ) from e
+
+    async def _open_transaction(self, ident: bytes, what: str) -> None:
+        """Send X or R and wait until the controller is ready (Xoff ... Xon)."""
+        self.link.reset_input()
+        await self.link.write(ident)
+        self.counters.transactions += 1
+        try:
+            first = await self._byte(self._timeout(1))
+        except LinkTimeout as e:
+            raise LinkTimeout(f"{self.name}: {what}: no answer from the robot controller") from e
+        if first not in (XOFF, EOT):
+            raise UnexpectedReply(
+                f"{self.name}: {what}: expected Xoff after {ident.decode()}, got {first:02X}",
+                bytes([first]),
+            )
+        await self._await_ready(what, first)
+
+    async def _execute(self, operand: int, what: str) -> None:
+        """An X transaction: completes on Ack, or on Xoff ... Xon (return home, stop)."""
+        await self._open_transaction(b"X", what)
+        record = encode_operand(operand)
+        await self.link.write(record)
+        try:
+            byte = await self._byte(self._timeout(len(record)))
+        except LinkTimeout as e:
+            raise LinkTimeout(f"{self.name}: {what}: no Ack for operand {operand:02d}") from e
+        if byte == ACK:
+            return
+        # Return home and stop answer Xoff at once, Xoff again while moving, Xon when done.
+        await self._await_ready(what, byte)
+
+    async def _read(self, operand: int, what: str, size: int) -> bytes:
+        """An R transaction returning the D record's data (checksum verified, retried)."""
+        attempt = 0
+        while True:
+            await self._open_transaction(b"R", what)
+            await self.link.write(encode_operand(operand))
+            record, raw_error = await self._read_data_record(what, size)
+            await self.link.write(bytes([ACK]))
+            await self._read_end_good(what)
+            await self.link.write(bytes([ACK]))
+            if raw_error is None:
+                assert record is not None
+                if len(record.data) != size:
+                    raise UnexpectedReply(
+                        f"{self.name}: {what}: expected {size} data bytes, got {len(record.data)}",
+                        encode_record(record),
+                    )
+                return record.data
+            attempt += 1
+            self.counters.checksum_retries += 1
+            if attempt > self.config.checksum_retries:
+                raise ChecksumError(
+                    f"{self.name}: {what}: transmission error, bad D-record checksum "
+                    f"{attempt} times in a row",
+                    raw_error.raw,
+                )
+
+    async def _read_data_record(
+        self, what: str, size: int
+    ) -> tuple[Record | None, ChecksumError | None]:
+        buf = bytearray()
+        timeout = self._timeout(4, 7 + 2 * size)
+        deadline = self.link._loop.time() + timeout
+        while True:
+            try:
+                record, used = decode_record(buf)
+            except ChecksumError as e:
+                del buf[: resync(buf)]
+                return None, e
+            except FramingError as e:
+                raise FramingError(f"{self.name}: {what}: malformed D record", e.raw) from e
+            if used:
+                skipped = bytes(buf[:used])
+                del buf[:used]
+                if record is None:
+                    if EOT in skipped:
+                        await self._rejected(what)
+                    continue
+                if record.ident != "D":
+                    raise UnexpectedReply(
+                        f"{self.name}: {what}: expected a D record", encode_record(record)
+                    )
+                return record, None
+            left = deadline - self.link._loop.time()
+            try:
+                buf += await self.link.read(timeout=max(left, 0.0))
+            except LinkTimeout as e:
+                got = f" (had {format_raw(bytes(buf))})" if buf else ""
+                msg = f"{self.name}: {what}: no D record from the controller{got}"
+                raise LinkTimeout(msg) from e
+
+    async def _read_end_good(self, what: str) -> None:
+        try:
+            raw = await self.link.read_until(b"\n", timeout=self._timeout(1, 4))
+        except LinkTimeout as e:
+            raise LinkTimeout(f"{self.name}: {what}: no EG end record") from e
+        record, _ = decode_record(raw.lstrip(b"\x00"))
+        if record is None or not record.is_end_good:
+            raise UnexpectedReply(f"{self.name}: {what}: expected EG (end, data good)", raw)
+
+    async def _rejected(self, what: str) -> NoReturn:
+        """The controller sent EOT: read the reject status and raise it."""
+        if self._in_reject_read:
+            raise DeviceError(0, "rejected while reading the reject status", detail=what)
+        self._in_reject_read = True
+        try:
+            code = (await self._read(ReadOperand.REJECT_STATUS, "read reject status", 1))[0]
+        finally:
+            self._in_reject_read = False
+        self.counters.rejects.append(code)
+        if code in _COLD_REJECTS:
+            self._set_state(0, flush=True)
+        raise DeviceError(code, reject_message(code), detail=f"{self.name}: {what}")
+
+    # -- what a user wants done -------------------------------------------------------------------
+
+    async def return_home(self) -> None:
+        """Move the arm home (X 11): Xoff at once, Xoff while moving, Xon when home."""
+        await self._execute(ExecuteOperand.RETURN_HOME, "return home")
+
+    async def auto_mode(self) -> None:
+        """Auto-execution mode (X 20); the robot is then initialized (state 1)."""
+        await self._execute(ExecuteOperand.AUTO, "auto mode")
+        self._set_state(1)
+
+    async def initialize(self) -> None:
+        """Return home, then auto mode: state 1, ready for downloads."""
+        await self.return_home()
+        await self.auto_mode()
+
+    async def download(
+        self,
+        partition: int,
+        program: ProgramFile | str | Path,
+        *,
+        progress: ProgressCallback | None = None,
+    ) -> None:
+        """Download a compiled program (``.rec`` file or ProgramFile) into ``partition`` 1..5.
+
+        The file is read and checked, and the partition checked, before any byte is sent. On a
+        reject the download stops, the partition counts as empty and DeviceError says why.
+        """
+        if partition not in PARTITIONS:
+            raise UsageError(f"partition must be 1 to 5, not {partition} (partition error)")
+        prog = program if isinstance(program, ProgramFile) else ProgramFile.load(program)
+        prog = prog.with_partition(partition)
+        wire = [encode_record(r) for r in prog.records]
+        total = len(wire)
+        # Until the last Ack the partition's content is unknown: never trust a half download.
+        self.partitions[partition] = None
+        self.digests.pop(partition, None)
+        self._save()
+        sent = 0
+        # The identifier goes alone and is acknowledged, then the rest of the N record.
+        pieces = [wire[0][:1], wire[0][1:], *wire[1:]]
+        for i, piece in enumerate(pieces):
+            await self.link.write(piece)
+            sent += len(piece)
+            await self._expect_ack(piece, f"download to partition {partition}")
+            if i >= 1:
+                self.counters.records_downloaded += 1
+                if progress is not None:
+                    progress(i, total, sent)
+        self.partitions[partition] = prog.name
+        self.digests[partition] = _digest(prog)
+        if self.state == 0:
+            self.state = 1  # the controller took a download: it is initialized
+        self._save()
+
+    async def _expect_ack(self, piece: bytes, what: str) -> None:
+        try:
+            byte = await self._byte(self._timeout(len(piece)))
+        except LinkTimeout as e:
+            raise LinkTimeout(f"{self.name}: {what}: no Ack for record {piece[:24]!r}") from e
+        if byte == ACK:
+            return
+        if byte == EOT:
+            await self._rejected(what)
+        raise UnexpectedReply(f"{self.name}: {what}: expected Ack, got {byte:02X}", bytes([byte]))
+
+    async def select_application(self, partition: int) -> None:
+        """Select the program in ``partition`` (X 3n); reject 83 means the partition is empty."""
+        operand = select_application_operand(partition)
+        try:
+            await self._execute(operand, f"select application {partition}")
+        except DeviceError as e:
+            if e.code == _EMPTY_PARTITION:
+                self.partitions[partition] = None
+                self.digests.pop(partition, None)
+                self._save()
+                raise DeviceError(e.code, "partition empty", detail=e.detail) from e
+            raise
+
+    async def start_cycle(self) -> None:
+        """Run the selected application (X 22): state 2."""
+        await self._execute(ExecuteOperand.START_CYCLE, "start cycle")
+        self._set_state(2)
+
+    async def go(self, partition: int) -> None:
+        """Run the program in ``partition``: select application, then start cycle."""
+        if partition not in PARTITIONS:
+            raise UsageError(f"partition must be 1 to 5, not {partition} (starting function error)")
+        await self.select_application(partition)
+        await self.start_cycle()
+
+    async def stop(self) -> None:
+        """Stop the cycle (X 23): state 1. Accepts Ack or Xoff ... Xon as completion."""
+        await self._execute(ExecuteOperand.STOP_CYCLE, "stop cycle")
+        self._set_state(1)
+
+    async def halt(self) -> None:
+        """Stop the cycle and treat the robot as uninitialized: state 0, partitions flushed."""
+        await self._execute(ExecuteOperand.STOP_CYCLE, "halt")
+        self._set_state(0, flush=True)
+
+    async def reset_errors(self) -> None:
+        """ERRESET: clear machine-status and reject-status errors (operand configurable)."""
+        await self._execute(self.config.erreset_operand, "error reset")
+
+    async def machine_status(self) -> MachineStatus:
+        """The controller's 2 status bytes (R 01), decoded."""
+        return MachineStatus.from_bytes(
+            await self._read(ReadOperand.MACHINE_STATUS, "machine status", 2)
+        )
+
+    async def status(self) -> RobotStatus:
+        """Host state, decoded controller status and which partitions are full."""
+        machine = await self.machine_status()
+        return RobotStatus(self.state, machine, dict(self.partitions))
+
+    async def reject_status(self) -> tuple[int, str]:
+        """The reject status (R 02): code and the source's message."""
+        code = (await self._read(ReadOperand.REJECT_STATUS, "reject status", 1))[0]
+        return code, reject_message(code)
+
+    async def io(self) -> DiDo:
+        """Digital inputs and outputs (R 10): 16 each."""
+        return DiDo.from_bytes(await self._read(ReadOperand.DIDO, "DI/DO status", 4))
+
+
+def _digest(program: ProgramFile) -> str:
+    return hashlib.sha256(program.to_text().encode("ascii")).hexdigest()[:16]

@@ -1,0 +1,27 @@
+"""The ``cellctl`` command line: ``cellctl --help`` lists the commands."""
+
+from __future__ import annotations
+
+import click
+
+from cellctl import __version__
+from cellctl.ui.emulate_cli import emulate
+from cellctl.ui.robot_cli import robot
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.option(
+    "--cell",
+    envvar="CELLCTL_CELL",
+    default="cell",
+    show_default=True,
+    type=click.Path(file_okay=False),
+    help="Cell directory: cell.toml, saved machine state, journal.",
+)
+@click.version_option(__version__, prog_name="cellctl")
+def main(cell: str) -> None:
+    """cellctl: drive, emulate and run a machining cell of serial-protocol machines."""
+
+
+main.add_command(robot)
+main.add_command(emulate)

@@ -1,0 +1,80 @@
+"""Pieces every command shares: running a coroutine, one-line errors, exit codes."""
+
+from __future__ import annotations
+
+import asyncio
+import sys
+from collections.abc import Callable, Coroutine
+from pathlib import Path
+from typing import Any, TypeVar
+
+import click
+from rich.console import Console
+
+from cellctl.errors import CellctlError, DeviceError, LinkError, ProtocolError, UsageError
+
+T = TypeVar("T")
+
+console = Console(highlight=False)
+err_console = Console(stderr=True, highlight=False)
+
+#: Exit codes: 0 success; the others say what kind of failure it was.
+EXIT_CODES: dict[type[CellctlError], int] = {
+    UsageError: 2,
+    LinkError: 3,
+    ProtocolError: 4,
+    DeviceError: 5,
+}
+
+
+def exit_code(error: CellctlError) -> int:
+    """The exit code for ``error`` (1 for anything without its own)."""
+    for kind, code in EXIT_CODES.items():
+        if isinstance(error, kind):
+            return code
+    return 1
+
+
+def run(coro_fn: Callable[[], Coroutine[Any, Any, T]]) -> T:
+    """Run a command's coroutine; a CellctlError becomes one line on stderr and an exit code."""
+    try:
+        return asyncio.run(coro_fn())
+    except CellctlError as e:
+        err_console.print(f"[red]error:[/red] {e}", markup=True, soft_wrap=True)
+        sys.exit(exit_code(e))
+    except KeyboardInterrupt:
+        err_console.print("interrupted")
+        sys.exit(130)
+
+
+def cell_dir(ctx: click.Context) -> Path:
+    """The cell directory chosen with ``--cell`` (or its default)."""
+    root = ctx.find_root()
+    return Path(root.params.get("cell") or "cell")
+
+
+class MachineGroup(click.Group):
+    """A group that takes an optional machine NAME before its command: ``robot r1 status``."""
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        rest = list(args)
+        # Options come first; the first bare word that is not a command is the machine NAME.
+        i = 0
+        while i < len(rest):
+            word = rest[i]
+            if word.startswith("-"):
+                opt = self._option_for(ctx, word)
+                i += 1 if opt is None or opt.is_flag or "=" in word else 2
+                continue
+            if word not in self.commands:
+                ctx.meta["machine_name"] = word
+                del rest[i]
+            break
+        return super().parse_args(ctx, rest)
+
+    def _option_for(self, ctx: click.Context, word: str) -> click.Option | None:
+        name = word.split("=", 1)[0]
+        for param in self.get_params(ctx):
+            if isinstance(param, click.Option) and name in param.opts + param.secondary_opts:
+                return param
+        return None

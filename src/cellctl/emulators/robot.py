@@ -51,12 +51,14 @@ from cellctl.protocol.aml import Instruction, Op, decode_program
 from cellctl.protocol.robot import (
     ACK,
     CR,
+    DATA_ERROR_FLAG,
     END_GOOD,
     END_RECORD,
     EOT,
     LF,
     N_RECORD_LENGTH,
     PARTITIONS,
+    SERVO_ERROR_FLAG,
     XOFF,
     XON,
     DiDo,
@@ -92,9 +94,7 @@ INVALID_APPLICATION = 83
 INVALID_IDENTIFIER = 96
 XOFF_TIME_OUT = 112
 MANIPULATOR_POWER_OFF = 128
-# Machine status.
-SERVO_ERROR_FLAG = 128
-DATA_ERROR_FLAG = 4
+# Data error codes used here (messages in cellctl.protocol.robot.DATA_ERRORS).
 POINT_OUT_OF_WORKSPACE = 64
 PROGRAMMING_ERROR = 18
 

@@ -411,8 +411,6 @@ class Ibm7545Robot:
                     progress(i, total, sent)
         self.partitions[partition] = prog.name
         self.digests[partition] = _digest(prog)
-        if self.state == 0:
-            self.state = 1  # the controller took a download: it is initialized
         self._save()
 
     async def _expect_ack(self, piece: bytes, what: str) -> None:

@@ -14,6 +14,7 @@ import errno
 import fcntl
 import os
 import resource
+import stat
 import struct
 import termios
 
@@ -47,6 +48,15 @@ def raise_fd_limit() -> int:
     return soft
 
 
+def is_pty(path: str) -> bool:
+    """True for a pseudo-terminal slave (Unix98 ptys: major device numbers 136-143)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return False
+    return stat.S_ISCHR(st.st_mode) and 136 <= os.major(st.st_rdev) <= 143
+
+
 def open_pyserial(path: str, settings: LineSettings) -> serial.Serial:
     """Open ``path`` with ``settings`` through pyserial (Xon/Xoff in the OS always off)."""
     return serial.Serial(
@@ -66,8 +76,13 @@ class SerialLink(Link):
 
     def __init__(self, path: str, settings: LineSettings, trace: TrafficLog | None, label: str):
         super().__init__(path, settings, trace, label)
+        framing = settings
+        if is_pty(path):
+            # A pty has no framing: Linux forces CS8 without parity on it and then refuses
+            # 7E2 with EINVAL. The settings still govern pacing; only the termios differ.
+            framing = settings.with_(bytesize=8, parity="N")
         try:
-            self._port = open_pyserial(path, settings)
+            self._port = open_pyserial(path, framing)
         except (serial.SerialException, OSError, ValueError) as e:
             raise LinkError(f"cannot open serial port {path}: {e}") from e
         fd = self._port.fd

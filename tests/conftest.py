@@ -1,0 +1,97 @@
+"""Shared fixtures: emulators served over real ptys, TCP and RFC 2217, and ser2net."""
+
+from __future__ import annotations
+
+import asyncio
+import shutil
+import socket
+import subprocess
+from collections.abc import AsyncIterator, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from cellctl.emulators.robot import Ibm7545Emulator
+from cellctl.emulators.serve import Server, serve
+from cellctl.link import ROBOT_LINE
+
+TRANSPORTS = ["pty", "socket", "rfc2217"]
+
+
+def listen_url(transport: str) -> str:
+    """Where to serve an emulator for ``transport``: a new pty or a free loopback port."""
+    return "pty" if transport == "pty" else f"{transport}://127.0.0.1:0"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class Served:
+    emulator: Ibm7545Emulator
+    server: Server
+
+    @property
+    def url(self) -> str:
+        return self.server.url
+
+
+@pytest.fixture(params=TRANSPORTS)
+async def robot_served(request: pytest.FixtureRequest) -> AsyncIterator[Served]:
+    """A fast robot emulator (no pacing, time x200) over each transport in turn."""
+    emulator = Ibm7545Emulator(time_scale=200.0)
+    server = await serve(emulator, listen_url(request.param), ROBOT_LINE, pacing=False)
+    yield Served(emulator, server)
+    await server.close()
+
+
+class Ser2net:
+    """A real ser2net in RFC 2217 mode in front of a serial device (here: a pty)."""
+
+    def __init__(self, device: str, line: str, tmp: Path) -> None:
+        self.port = free_port()
+        conf = tmp / "ser2net.yaml"
+        conf.write_text(
+            "connection: &con1\n"
+            f"  accepter: telnet(rfc2217),tcp,127.0.0.1,{self.port}\n"
+            f"  connector: serialdev,{device},{line},local\n"
+            "  options:\n"
+            "    kickolduser: true\n"
+        )
+        self.proc = subprocess.Popen(
+            ["ser2net", "-n", "-d", "-c", str(conf), "-P", str(tmp / "ser2net.pid")],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        self.url = f"rfc2217://127.0.0.1:{self.port}"
+
+    async def wait_listening(self, timeout: float = 10.0) -> None:
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while True:
+            try:
+                _, w = await asyncio.open_connection("127.0.0.1", self.port)
+                w.close()
+                return
+            except OSError:
+                if loop.time() > deadline or self.proc.poll() is not None:
+                    raise RuntimeError("ser2net did not start listening") from None
+                await asyncio.sleep(0.05)
+
+    def stop(self) -> None:
+        self.proc.terminate()
+        try:
+            self.proc.wait(5)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+
+
+@pytest.fixture
+def ser2net_available() -> Iterator[None]:
+    if shutil.which("ser2net") is None:
+        pytest.skip("ser2net is not installed (make test installs it)")
+    yield

@@ -78,7 +78,8 @@ async def test_go_on_empty_partition_reads_reject_and_says_partition_empty() -> 
 
 
 async def test_start_before_initialize_is_improper_startup_sequence() -> None:
-    script = [*execute_script(b"31"), (b"X", READY), (b"22\r\n", EOT), *reject_script(b"D013030\r\n")]
+    start = [(b"X", READY), (b"22\r\n", EOT)]
+    script = [*execute_script(b"31"), *start, *reject_script(b"D013030\r\n")]
     async with expected_exchange(script) as link:
         with pytest.raises(DeviceError, match="improper startup sequence"):
             await Ibm7545Robot(link).go(1)

@@ -1,0 +1,75 @@
+"""Helpers the benchmarks share: emulators in a child process, the test program, output."""
+
+from __future__ import annotations
+
+import asyncio
+import multiprocessing as mp
+import os
+import signal
+from collections.abc import Callable
+from typing import Any
+
+from cellctl.link import LineSettings
+from cellctl.protocol.aml import compile_source
+from cellctl.protocol.robot import ProgramFile
+
+
+def robot_program(records: int, name: str = "BENCH") -> ProgramFile:
+    """A program of exactly ``records`` records (N record, moves and delays, end record)."""
+    lines = []
+    for i in range(records - 3):
+        if i % 4 == 3:
+            lines.append("DELAY(0)")
+        else:
+            lines.append(f"PMOVE(PT({300 + i % 50}, {i % 40 - 20}, 0, 0))")
+    lines.append("END")
+    program = compile_source("\n".join(lines), name, 1)
+    assert len(program.records) == records, len(program.records)
+    return program
+
+
+def _child(target: Callable[..., Any], args: tuple[Any, ...], conn: Any) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    asyncio.run(target(conn, *args))
+
+
+class ChildEmulators:
+    """Run ``target(conn, *args)`` (an async function) in another process.
+
+    The target sends the URLs it serves through ``conn`` and serves until the parent closes.
+    """
+
+    def __init__(self, target: Callable[..., Any], *args: Any) -> None:
+        ctx = mp.get_context("fork")
+        self.parent, child = ctx.Pipe()
+        self.proc = ctx.Process(target=_child, args=(target, args, child), daemon=True)
+        self.proc.start()
+
+    def receive(self, timeout: float = 120.0) -> Any:
+        if not self.parent.poll(timeout):
+            raise RuntimeError("emulator process did not start")
+        return self.parent.recv()
+
+    def close(self) -> None:
+        self.parent.send("stop")
+        self.proc.join(10)
+        if self.proc.is_alive():
+            os.kill(self.proc.pid or 0, signal.SIGKILL)
+
+
+async def wait_for_stop(conn: Any) -> None:
+    """In the child: wait (without blocking the loop) until the parent says stop."""
+    loop = asyncio.get_running_loop()
+    await loop.run_in_executor(None, conn.recv)
+
+
+def line_settings() -> LineSettings:
+    return LineSettings.parse("4800,7E2")
+
+
+def machine_line(**pairs: object) -> str:
+    """The last, machine-readable line: ``key=value`` pairs."""
+    out = []
+    for k, v in pairs.items():
+        out.append(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}")
+    return " ".join(out)

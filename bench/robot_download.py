@@ -1,0 +1,97 @@
+"""Download a 200-record program to the robot emulator paced at 4800 7E2.
+
+Prints records/s achieved and the ratio to the limit
+
+    limit time = sum over records (wire time of the record + wire time of its Ack)
+                 + records x emulator reply latency
+
+where the emulator's reply latency is measured first, on the same link with pacing off (the
+time from the host's last byte of a record to the Ack, less nothing: no wire time then).
+The emulator runs in its own process, over a real pty. Goal: ratio >= 0.95.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import time
+from typing import Any
+
+from _common import ChildEmulators, line_settings, machine_line, robot_program, wait_for_stop
+
+from cellctl.drivers.robot import Ibm7545Robot
+from cellctl.emulators.robot import Ibm7545Emulator
+from cellctl.emulators.serve import serve
+from cellctl.protocol.robot import encode_record
+
+
+async def emulators(conn: Any, transport: str) -> None:
+    settings = line_settings()
+    servers = []
+    for pacing in (False, True):
+        listen = "pty" if transport == "pty" else f"{transport}://127.0.0.1:0"
+        servers.append(
+            await serve(Ibm7545Emulator(time_scale=20.0), listen, settings, pacing=pacing)
+        )
+    conn.send([s.url for s in servers])
+    await wait_for_stop(conn)
+    for s in servers:
+        await s.close()
+
+
+async def download_time(url: str, records: int, rounds: int) -> list[float]:
+    settings = line_settings()
+    program = robot_program(records)
+    times = []
+    async with await Ibm7545Robot.connect(url, settings=settings) as robot:
+        await robot.initialize()
+        for _ in range(rounds):
+            start = time.perf_counter()
+            await robot.download(1, program)
+            times.append(time.perf_counter() - start)
+    return times
+
+
+async def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--records", type=int, default=200)
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--transport", choices=["pty", "socket", "rfc2217"], default="pty")
+    args = parser.parse_args()
+    settings = line_settings()
+    child = ChildEmulators(emulators, args.transport)
+    try:
+        fast_url, paced_url = child.receive()
+        unpaced = await download_time(fast_url, args.records, 5)
+        # Per record exchange with no wire time: the emulator's (and driver's) turnaround.
+        latency = min(unpaced) / (args.records + 1)
+        paced = await download_time(paced_url, args.records, args.rounds)
+    finally:
+        child.close()
+    program = robot_program(args.records)
+    wire = [encode_record(r) for r in program.records]
+    chars = sum(len(w) for w in wire) + len(wire) + 1  # records, one Ack each, N alone + Ack
+    exchanges = len(wire) + 1
+    limit_s = settings.wire_time(chars) + exchanges * latency
+    best = min(paced)
+    rate = args.records / best
+    limit_rate = args.records / limit_s
+    ratio = limit_s / best
+    print(f"program: {args.records} records, {chars} characters on the wire incl. Acks")
+    print(f"line: {settings} = {settings.chars_per_second:.2f} chars/s; transport {args.transport}")
+    print(f"emulator reply latency (unpaced, per exchange): {latency * 1e3:.3f} ms")
+    print(f"paced downloads: {', '.join(f'{t:.3f} s' for t in paced)}")
+    print(f"achieved: {rate:.2f} records/s; limit: {limit_rate:.2f} records/s")
+    print(
+        machine_line(
+            records=args.records,
+            records_per_s=rate,
+            limit_records_per_s=limit_rate,
+            latency_ms=latency * 1e3,
+            ratio=ratio,
+        )
+    )
+
+
+if __name__ == "__main__":
+    asyncio.run(main())

@@ -1,0 +1,227 @@
+"""The SQLite mailbox: ``<cell_dir>/mailbox.sqlite3``, shared by the controller and the CLI.
+
+Every call is one short transaction that is committed (and, with ``synchronous=FULL``,
+on disk) before the call returns. Writers take the write lock up front (``BEGIN
+IMMEDIATE``) so a read-modify-write cannot interleave with another process, and wait up to
+``busy_timeout`` seconds for it rather than failing with "database is locked".
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from cellctl.errors import UsageError
+from cellctl.mailbox.base import (
+    POSTED,
+    Mailbox,
+    Order,
+    Report,
+    check_new_order,
+    check_report_kind,
+    check_transition,
+)
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS orders (
+    id TEXT PRIMARY KEY,
+    part_type TEXT NOT NULL,
+    qty INTEGER NOT NULL,
+    priority INTEGER NOT NULL,
+    state TEXT NOT NULL,
+    created REAL NOT NULL,
+    updated REAL NOT NULL,
+    note TEXT NOT NULL DEFAULT ''
+);
+CREATE TABLE IF NOT EXISTS reports (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT,
+    time REAL NOT NULL,
+    kind TEXT NOT NULL,
+    order_id TEXT,
+    part_id TEXT,
+    text TEXT NOT NULL,
+    data TEXT NOT NULL DEFAULT '{}'
+);
+CREATE INDEX IF NOT EXISTS orders_by_state ON orders (state);
+"""
+
+#: Seconds a writer waits for another process's write lock before giving up.
+BUSY_TIMEOUT = 30.0
+
+
+def connect(path: Path, schema: str, busy_timeout: float = BUSY_TIMEOUT) -> sqlite3.Connection:
+    """Open ``path`` in WAL mode, autocommit, ``synchronous=FULL``, and create ``schema``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # isolation_level=None: no implicit transactions; each method says BEGIN itself.
+    conn = sqlite3.connect(
+        path, timeout=busy_timeout, isolation_level=None, check_same_thread=False
+    )
+    conn.row_factory = sqlite3.Row
+    conn.execute(f"PRAGMA busy_timeout = {int(busy_timeout * 1000)}")
+    conn.execute("PRAGMA journal_mode = WAL")
+    # FULL: in WAL mode NORMAL may lose the last commits on power loss; FULL syncs each one.
+    conn.execute("PRAGMA synchronous = FULL")
+    conn.execute("BEGIN IMMEDIATE")
+    try:
+        for statement in schema.split(";"):
+            if statement.strip():
+                conn.execute(statement)
+        conn.execute("COMMIT")
+    except BaseException:
+        conn.execute("ROLLBACK")
+        conn.close()
+        raise
+    return conn
+
+
+class SqliteMailbox(Mailbox):
+    """The default mailbox. ``SqliteMailbox(path)``; ``clock`` gives the times it records."""
+
+    def __init__(self, path: Path, *, clock: Callable[[], float] = time.time) -> None:
+        self.path = Path(path)
+        self._clock = clock
+        self._conn = connect(self.path, SCHEMA)
+        # One connection, possibly used from worker threads: one transaction at a time.
+        self._lock = threading.Lock()
+
+    @contextmanager
+    def _write(self) -> Iterator[sqlite3.Connection]:
+        with self._lock:
+            self._conn.execute("BEGIN IMMEDIATE")
+            try:
+                yield self._conn
+            except BaseException:
+                self._conn.execute("ROLLBACK")
+                raise
+            self._conn.execute("COMMIT")
+
+    def _read(self, sql: str, args: Iterable[Any] = ()) -> list[sqlite3.Row]:
+        with self._lock:
+            return self._conn.execute(sql, tuple(args)).fetchall()
+
+    def post_order(
+        self, part_type: str, qty: int = 1, priority: int = 0, order_id: str | None = None
+    ) -> tuple[Order, bool]:
+        oid = check_new_order(part_type, qty, priority, order_id)
+        now = self._clock()
+        with self._write() as db:
+            row = db.execute("SELECT * FROM orders WHERE id = ?", (oid,)).fetchone()
+            if row is not None:
+                return _order(row), False
+            db.execute(
+                "INSERT INTO orders (id, part_type, qty, priority, state, created, updated)"
+                " VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (oid, part_type, qty, priority, POSTED, now, now),
+            )
+        return Order(oid, part_type, qty, priority, POSTED, now, now), True
+
+    def get_order(self, order_id: str) -> Order:
+        rows = self._read("SELECT * FROM orders WHERE id = ?", (order_id,))
+        if not rows:
+            raise UsageError(f"no order {order_id!r}")
+        return _order(rows[0])
+
+    def orders(self, states: Iterable[str] | None = None) -> list[Order]:
+        sql = "SELECT * FROM orders"
+        args: list[str] = []
+        if states is not None:
+            args = list(states)
+            sql += f" WHERE state IN ({', '.join('?' for _ in args)})" if args else " WHERE 0"
+        # rowid breaks ties between orders posted within the clock's resolution.
+        sql += " ORDER BY priority DESC, created ASC, rowid ASC"
+        return [_order(r) for r in self._read(sql, args)]
+
+    def set_order_state(self, order_id: str, state: str, note: str = "") -> Order:
+        with self._write() as db:
+            row = db.execute("SELECT * FROM orders WHERE id = ?", (order_id,)).fetchone()
+            if row is None:
+                raise UsageError(f"no order {order_id!r}")
+            order = _order(row)
+            check_transition(order, state)
+            if state == order.state and not note:
+                return order
+            now = self._clock()
+            new_note = note or order.note
+            db.execute(
+                "UPDATE orders SET state = ?, updated = ?, note = ? WHERE id = ?",
+                (state, now, new_note, order_id),
+            )
+        return Order(
+            order.id,
+            order.part_type,
+            order.qty,
+            order.priority,
+            state,
+            order.created,
+            now,
+            new_note,
+        )
+
+    def post_report(
+        self,
+        kind: str,
+        text: str,
+        *,
+        order_id: str | None = None,
+        part_id: str | None = None,
+        data: dict[str, Any] | None = None,
+    ) -> Report:
+        check_report_kind(kind)
+        payload = dict(data or {})
+        try:
+            encoded = json.dumps(payload, sort_keys=True)
+        except (TypeError, ValueError) as e:
+            raise UsageError(f"report data must be JSON: {e}") from None
+        now = self._clock()
+        with self._write() as db:
+            cur = db.execute(
+                "INSERT INTO reports (time, kind, order_id, part_id, text, data)"
+                " VALUES (?, ?, ?, ?, ?, ?)",
+                (now, kind, order_id, part_id, text, encoded),
+            )
+            seq = cur.lastrowid
+        assert seq is not None
+        return Report(seq, now, kind, order_id, part_id, text, payload)
+
+    def reports(self, since_seq: int = 0, limit: int | None = None) -> list[Report]:
+        sql = "SELECT * FROM reports WHERE seq > ? ORDER BY seq"
+        args: list[int] = [since_seq]
+        if limit is not None:
+            sql += " LIMIT ?"
+            args.append(limit)
+        return [_report(r) for r in self._read(sql, args)]
+
+    def close(self) -> None:
+        with self._lock:
+            self._conn.close()
+
+
+def _order(row: sqlite3.Row) -> Order:
+    return Order(
+        row["id"],
+        row["part_type"],
+        row["qty"],
+        row["priority"],
+        row["state"],
+        row["created"],
+        row["updated"],
+        row["note"],
+    )
+
+
+def _report(row: sqlite3.Row) -> Report:
+    return Report(
+        row["seq"],
+        row["time"],
+        row["kind"],
+        row["order_id"],
+        row["part_id"],
+        row["text"],
+        json.loads(row["data"]),
+    )

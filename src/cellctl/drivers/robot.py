@@ -28,6 +28,7 @@ and the read is repeated, up to ``checksum_retries`` times; then :class:`Checksu
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -158,6 +159,9 @@ class Ibm7545Robot:
                 self.partitions[int(p)] = prog
         self.digests: dict[int, str] = {int(p): d for p, d in saved.get("digests", {}).items()}
         self._in_reject_read = False
+        # One transaction at a time on the line: a monitor polling status and a scheduler
+        # starting programs may share one driver.
+        self._lock = asyncio.Lock()
 
     @classmethod
     async def connect(
@@ -264,6 +268,10 @@ class Ibm7545Robot:
 
     async def _execute(self, operand: int, what: str) -> None:
         """An X transaction: completes on Ack, or on Xoff ... Xon (return home, stop)."""
+        async with self._lock:
+            await self._execute_unlocked(operand, what)
+
+    async def _execute_unlocked(self, operand: int, what: str) -> None:
         await self._open_transaction(b"X", what)
         record = encode_operand(operand)
         await self.link.write(record)
@@ -278,6 +286,10 @@ class Ibm7545Robot:
 
     async def _read(self, operand: int, what: str, size: int) -> bytes:
         """An R transaction returning the D record's data (checksum verified, retried)."""
+        async with self._lock:
+            return await self._read_unlocked(operand, what, size)
+
+    async def _read_unlocked(self, operand: int, what: str, size: int) -> bytes:
         attempt = 0
         while True:
             await self._open_transaction(b"R", what)
@@ -352,7 +364,8 @@ class Ibm7545Robot:
             raise DeviceError(0, "rejected while reading the reject status", detail=what)
         self._in_reject_read = True
         try:
-            code = (await self._read(ReadOperand.REJECT_STATUS, "read reject status", 1))[0]
+            data = await self._read_unlocked(ReadOperand.REJECT_STATUS, "read reject status", 1)
+            code = data[0]
         finally:
             self._in_reject_read = False
         self.counters.rejects.append(code)
@@ -401,14 +414,16 @@ class Ibm7545Robot:
         sent = 0
         # The identifier goes alone and is acknowledged, then the rest of the N record.
         pieces = [wire[0][:1], wire[0][1:], *wire[1:]]
-        for i, piece in enumerate(pieces):
-            await self.link.write(piece)
-            sent += len(piece)
-            await self._expect_ack(piece, f"download to partition {partition}")
-            if i >= 1:
-                self.counters.records_downloaded += 1
-                if progress is not None:
-                    progress(i, total, sent)
+        async with self._lock:
+            self.link.reset_input()
+            for i, piece in enumerate(pieces):
+                await self.link.write(piece)
+                sent += len(piece)
+                await self._expect_ack(piece, f"download to partition {partition}")
+                if i >= 1:
+                    self.counters.records_downloaded += 1
+                    if progress is not None:
+                        progress(i, total, sent)
         self.partitions[partition] = prog.name
         self.digests[partition] = _digest(prog)
         self._save()

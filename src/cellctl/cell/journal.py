@@ -1,0 +1,750 @@
+"""The cell controller's durable memory: parts, steps, alarms, machines in service.
+
+``<cell_dir>/journal.sqlite3`` (SQLite, WAL). Every method is one short transaction,
+committed and synced before it returns, so the controller may be killed at any instant and
+the journal still tells the truth about everything that returned. The CLI opens the same
+file at the same time for the operator's actions (release, scrap, clear an alarm); those
+are journal facts the controller sees on its next read.
+
+How the controller uses it::
+
+    journal = open_journal(cell_dir)
+    report = journal.recover()               # first thing at start: what a crash left
+    parts = journal.create_parts(order)      # idempotent per order
+    step = journal.begin_step(part.id, "machine", "cnc1", "ROUGH1")   # committed first,
+    ...                                                                # then run the step
+    journal.end_step(step.id, "finished", route_index=part.route_index + 1)
+
+Rules that keep a restart from losing or repeating work:
+
+* A part has at most one step in flight: ``begin_step`` makes it ``active``, ``end_step``
+  makes it ``waiting`` again (or ``held``, with ``hold=``) in the same transaction, together
+  with the new ``location``/``route_index`` the step produced.
+* ``recover()`` marks every step still ``started`` as ``interrupted`` and holds its part:
+  an interrupted machining step may have cut half a part, an interrupted transfer may have
+  left it in the gripper. Nothing in flight is ever restarted automatically.
+* The operator releases a held part (the step counts as done, unless ``redo_step``) or
+  scraps it. :meth:`Journal.step_done` is what the controller asks before running a step.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Final, Protocol, Self
+
+from cellctl.errors import UsageError
+
+#: The journal's file name inside the cell directory.
+JOURNAL_FILE = "journal.sqlite3"
+
+#: Where a part can be.
+LOCATIONS: Final = ("conveyor", "robot", "cnc1", "cnc2", "out")
+#: Part statuses: ``waiting`` (no step in flight), ``active`` (one step in flight), ``done``,
+#: ``held`` (needs the operator: inspection after an interrupted or failed step), ``scrapped``.
+PART_STATUSES: Final = ("waiting", "active", "done", "held", "scrapped")
+#: Step kinds: the robot moving a part between two places, or a mill cutting it.
+STEP_KINDS: Final = ("transfer", "machine")
+#: Step states: ``started`` (in flight), ``finished``, ``failed``, ``interrupted`` (was in
+#: flight when the controller stopped; set by :meth:`Journal.recover`).
+STEP_STATES: Final = ("started", "finished", "failed", "interrupted")
+#: What the operator decided about an interrupted or failed step of a held part.
+RESOLUTIONS: Final = ("", "accepted", "redo")
+
+INTERRUPTED_MACHINING = "needs inspection: machining step {program} on {machine} was interrupted"
+INTERRUPTED_TRANSFER = "interrupted transfer: check the gripper and both stations"
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS parts (
+    id TEXT PRIMARY KEY,
+    order_id TEXT NOT NULL,
+    part_type TEXT NOT NULL,
+    seq_in_order INTEGER NOT NULL,
+    route_index INTEGER NOT NULL DEFAULT 0,
+    location TEXT NOT NULL,
+    status TEXT NOT NULL,
+    updated REAL NOT NULL,
+    note TEXT NOT NULL DEFAULT '',
+    held_step INTEGER
+);
+CREATE INDEX IF NOT EXISTS parts_by_order ON parts (order_id);
+CREATE TABLE IF NOT EXISTS steps (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    part_id TEXT NOT NULL,
+    kind TEXT NOT NULL,
+    machine TEXT NOT NULL,
+    program TEXT NOT NULL,
+    route_index INTEGER NOT NULL,
+    state TEXT NOT NULL,
+    started REAL NOT NULL,
+    ended REAL,
+    outcome TEXT NOT NULL DEFAULT '',
+    attempt INTEGER NOT NULL,
+    resolution TEXT NOT NULL DEFAULT ''
+);
+CREATE INDEX IF NOT EXISTS steps_by_part ON steps (part_id);
+CREATE INDEX IF NOT EXISTS steps_by_state ON steps (state);
+CREATE TABLE IF NOT EXISTS alarms (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    raised REAL NOT NULL,
+    machine TEXT NOT NULL,
+    code TEXT NOT NULL,
+    text TEXT NOT NULL,
+    state TEXT NOT NULL,
+    cleared REAL,
+    cleared_by TEXT NOT NULL DEFAULT ''
+);
+CREATE TABLE IF NOT EXISTS machines (
+    name TEXT PRIMARY KEY,
+    in_service INTEGER NOT NULL,
+    reason TEXT NOT NULL,
+    updated REAL NOT NULL
+);
+"""
+
+#: Seconds a writer waits for another process's write lock before giving up.
+BUSY_TIMEOUT = 30.0
+
+
+class OrderLike(Protocol):
+    """What :meth:`Journal.create_parts` needs of an order (``cellctl.mailbox.Order`` fits)."""
+
+    @property
+    def id(self) -> str: ...
+    @property
+    def part_type(self) -> str: ...
+    @property
+    def qty(self) -> int: ...
+
+
+@dataclass(frozen=True)
+class Part:
+    """One workpiece. ``route_index`` counts the route operations the controller completed;
+    ``note`` says why a part is held or scrapped."""
+
+    id: str
+    order_id: str
+    part_type: str
+    seq_in_order: int
+    route_index: int
+    location: str
+    status: str
+    updated: float
+    note: str = ""
+
+
+@dataclass(frozen=True)
+class Step:
+    """One step on one part; ``route_index`` is the part's route index when it began.
+
+    ``attempt`` counts steps with the same part, kind, machine, program and route index.
+    ``resolution`` is the operator's word on an interrupted or failed step: ``accepted``
+    (counts as done) or ``redo`` (run it again).
+    """
+
+    id: int
+    part_id: str
+    kind: str
+    machine: str
+    program: str
+    state: str
+    started: float
+    ended: float | None
+    outcome: str
+    attempt: int
+    route_index: int = 0
+    resolution: str = ""
+
+
+@dataclass(frozen=True)
+class Alarm:
+    """An alarm: ``state`` is ``active`` until cleared (``cleared`` time, ``cleared_by``)."""
+
+    id: int
+    raised: float
+    machine: str
+    code: str
+    text: str
+    state: str
+    cleared: float | None
+    cleared_by: str = ""
+
+
+@dataclass(frozen=True)
+class RecoveryReport:
+    """What :meth:`Journal.recover` did: steps it marked interrupted, parts it held.
+
+    Each held part's ``note`` says why; post a ``part-held`` report and an alarm for each.
+    """
+
+    interrupted: list[Step] = field(default_factory=list)
+    held: list[Part] = field(default_factory=list)
+
+    @property
+    def clean(self) -> bool:
+        """True when nothing was in flight: the last run ended cleanly."""
+        return not self.interrupted
+
+
+def open_journal(cell_dir: Path, *, clock: Callable[[], float] = time.time) -> Journal:
+    """Open (creating if needed) ``<cell_dir>/journal.sqlite3``."""
+    return Journal(Path(cell_dir) / JOURNAL_FILE, clock=clock)
+
+
+class Journal:
+    """The journal in one SQLite file; use as a context manager or call :meth:`close`.
+
+    Every method raises :class:`UsageError` for an unknown id or an action the part's state
+    does not allow, and changes nothing then. ``clock`` gives the times it records.
+    """
+
+    def __init__(self, path: Path, *, clock: Callable[[], float] = time.time) -> None:
+        self.path = Path(path)
+        self._clock = clock
+        self._conn = _connect(self.path)
+        # One connection, possibly used from worker threads: one transaction at a time.
+        self._lock = threading.Lock()
+
+    # -- plumbing ----------------------------------------------------------------------------
+
+    @contextmanager
+    def _write(self) -> Iterator[sqlite3.Connection]:
+        with self._lock:
+            self._conn.execute("BEGIN IMMEDIATE")
+            try:
+                yield self._conn
+            except BaseException:
+                self._conn.execute("ROLLBACK")
+                raise
+            self._conn.execute("COMMIT")
+
+    def _read(self, sql: str, args: Iterable[Any] = ()) -> list[sqlite3.Row]:
+        with self._lock:
+            return self._conn.execute(sql, tuple(args)).fetchall()
+
+    def close(self) -> None:
+        """Close the file; the journal is unusable afterwards."""
+        with self._lock:
+            self._conn.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    # -- parts -------------------------------------------------------------------------------
+
+    def create_parts(self, order: OrderLike) -> list[Part]:
+        """The parts of ``order`` (``<order id>-1`` .. ``-qty``), waiting on the conveyor.
+
+        Idempotent: an order whose parts exist gets the same parts back, whatever they did.
+        """
+        if order.qty < 1:
+            raise UsageError(f"order {order.id} has no parts to make (qty {order.qty})")
+        now = self._clock()
+        with self._write() as db:
+            rows = db.execute(
+                "SELECT * FROM parts WHERE order_id = ? ORDER BY seq_in_order", (order.id,)
+            ).fetchall()
+            if rows:
+                return [_part(r) for r in rows]
+            parts = [
+                Part(f"{order.id}-{n}", order.id, order.part_type, n, 0, "conveyor", "waiting", now)
+                for n in range(1, order.qty + 1)
+            ]
+            db.executemany(
+                "INSERT INTO parts (id, order_id, part_type, seq_in_order, route_index,"
+                " location, status, updated) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                [
+                    (p.id, p.order_id, p.part_type, p.seq_in_order, 0, p.location, p.status, now)
+                    for p in parts
+                ],
+            )
+        return parts
+
+    def parts(
+        self, statuses: Iterable[str] | None = None, order_id: str | None = None
+    ) -> list[Part]:
+        """Parts in creation order, only those in ``statuses`` / of ``order_id`` if given."""
+        sql = "SELECT * FROM parts WHERE 1"
+        args: list[str] = []
+        if statuses is not None:
+            wanted = list(statuses)
+            sql += f" AND status IN ({', '.join('?' for _ in wanted)})" if wanted else " AND 0"
+            args += wanted
+        if order_id is not None:
+            sql += " AND order_id = ?"
+            args.append(order_id)
+        return [_part(r) for r in self._read(sql + " ORDER BY rowid", args)]
+
+    def get_part(self, part_id: str) -> Part:
+        """The part ``part_id``."""
+        rows = self._read("SELECT * FROM parts WHERE id = ?", (part_id,))
+        if not rows:
+            raise UsageError(f"no part {part_id!r}")
+        return _part(rows[0])
+
+    def move_part(self, part_id: str, location: str, route_index: int | None = None) -> Part:
+        """Record that a waiting or active part is now at ``location`` (and ``route_index``).
+
+        A step's own result is better recorded by :meth:`end_step` (same transaction).
+        """
+        _check_location(location)
+        with self._write() as db:
+            part = _get_part(db, part_id)
+            _require(part, ("waiting", "active"), "be moved")
+            new_index = part.route_index if route_index is None else route_index
+            return _update_part(db, part, self._clock(), location=location, route_index=new_index)
+
+    def hold_part(self, part_id: str, reason: str) -> Part:
+        """Hold a waiting part for the operator (already held: changes nothing).
+
+        To hold a part because its step went wrong, pass ``hold=`` to :meth:`end_step`.
+        """
+        with self._write() as db:
+            part = _get_part(db, part_id)
+            if part.status == "held":
+                return part
+            if part.status == "active":
+                raise UsageError(f"part {part_id} has a step in flight: end it with hold=")
+            _require(part, ("waiting",), "be held")
+            return _update_part(db, part, self._clock(), status="held", note=reason)
+
+    def release_part(
+        self, part_id: str, redo_step: bool = False, location: str | None = None
+    ) -> Part:
+        """The operator releases a held part: it waits again at its location (or ``location``).
+
+        The step that got it held (interrupted or failed) then counts as done for
+        :meth:`step_done`, so it is not run again, unless ``redo_step``. A part held after
+        an interrupted transfer needs ``location``: only the operator knows where it is.
+        """
+        if location is not None:
+            _check_location(location)
+        with self._write() as db:
+            part = _get_part(db, part_id)
+            _require(part, ("held",), "be released")
+            step = _held_step(db, part_id)
+            if step is None and redo_step:
+                raise UsageError(f"part {part_id} was held by hand: it has no step to redo")
+            if step is not None and step.kind == "transfer" and location is None:
+                raise UsageError(
+                    f"part {part_id} was held after an interrupted transfer: "
+                    f"say where it is now ({', '.join(LOCATIONS)})"
+                )
+            if step is not None:
+                db.execute(
+                    "UPDATE steps SET resolution = ? WHERE id = ?",
+                    ("redo" if redo_step else "accepted", step.id),
+                )
+            return _update_part(
+                db,
+                part,
+                self._clock(),
+                status="waiting",
+                location=location or part.location,
+                note="",
+                held_step=None,
+            )
+
+    def scrap_part(self, part_id: str, reason: str) -> Part:
+        """Scrap a waiting or held part (already scrapped: changes nothing)."""
+        with self._write() as db:
+            part = _get_part(db, part_id)
+            if part.status == "scrapped":
+                return part
+            _require(part, ("waiting", "held"), "be scrapped")
+            return _update_part(
+                db, part, self._clock(), status="scrapped", note=reason, held_step=None
+            )
+
+    def finish_part(self, part_id: str) -> Part:
+        """Mark a waiting part done (already done: changes nothing)."""
+        with self._write() as db:
+            part = _get_part(db, part_id)
+            if part.status == "done":
+                return part
+            _require(part, ("waiting",), "be finished")
+            return _update_part(db, part, self._clock(), status="done", note="")
+
+    # -- steps -------------------------------------------------------------------------------
+
+    def begin_step(self, part_id: str, kind: str, machine: str, program: str) -> Step:
+        """Journal a step on a waiting part, before it starts; the part becomes active.
+
+        Returns when the step is on disk: start the machine only after that.
+        """
+        if kind not in STEP_KINDS:
+            raise UsageError(f"unknown step kind {kind!r} (known: {', '.join(STEP_KINDS)})")
+        now = self._clock()
+        with self._write() as db:
+            part = _get_part(db, part_id)
+            _require(part, ("waiting",), "start a step")
+            (earlier,) = db.execute(
+                "SELECT COUNT(*) FROM steps WHERE part_id = ? AND kind = ? AND machine = ?"
+                " AND program = ? AND route_index = ?",
+                (part_id, kind, machine, program, part.route_index),
+            ).fetchone()
+            cur = db.execute(
+                "INSERT INTO steps (part_id, kind, machine, program, route_index, state,"
+                " started, attempt) VALUES (?, ?, ?, ?, ?, 'started', ?, ?)",
+                (part_id, kind, machine, program, part.route_index, now, earlier + 1),
+            )
+            _update_part(db, part, now, status="active")
+            step_id = cur.lastrowid
+        assert step_id is not None
+        return Step(
+            step_id,
+            part_id,
+            kind,
+            machine,
+            program,
+            "started",
+            now,
+            None,
+            "",
+            earlier + 1,
+            part.route_index,
+        )
+
+    def end_step(
+        self,
+        step_id: int,
+        state: str,
+        outcome: str = "",
+        *,
+        location: str | None = None,
+        route_index: int | None = None,
+        hold: str | None = None,
+    ) -> Step:
+        """Journal the end of a step (``finished`` or ``failed``), after it ended.
+
+        In the same transaction the part becomes waiting again, at ``location`` and
+        ``route_index`` when given, or held with the reason ``hold``. Ending a step again
+        with the same state changes nothing.
+        """
+        if state not in ("finished", "failed"):
+            raise UsageError(f"a step ends finished or failed, not {state!r}")
+        if location is not None:
+            _check_location(location)
+        now = self._clock()
+        with self._write() as db:
+            step = _get_step(db, step_id)
+            if step.state == state:
+                return step
+            if step.state != "started":
+                raise UsageError(f"step {step_id} is already {step.state}")
+            db.execute(
+                "UPDATE steps SET state = ?, ended = ?, outcome = ? WHERE id = ?",
+                (state, now, outcome, step_id),
+            )
+            part = _get_part(db, step.part_id)
+            changes: dict[str, Any] = {"status": "waiting"}
+            if hold is not None:
+                changes.update(status="held", note=hold, held_step=step_id)
+            if location is not None:
+                changes["location"] = location
+            if route_index is not None:
+                changes["route_index"] = route_index
+            _update_part(db, part, now, **changes)
+            return _get_step(db, step_id)
+
+    def open_steps(self) -> list[Step]:
+        """Steps started and never ended: while running, those in flight; after a crash,
+        what :meth:`recover` will mark interrupted."""
+        return [_step(r) for r in self._read("SELECT * FROM steps WHERE state = 'started'")]
+
+    def steps(self, part_id: str | None = None) -> list[Step]:
+        """Every step (of ``part_id`` if given), oldest first."""
+        if part_id is None:
+            return [_step(r) for r in self._read("SELECT * FROM steps ORDER BY id")]
+        rows = self._read("SELECT * FROM steps WHERE part_id = ? ORDER BY id", (part_id,))
+        return [_step(r) for r in rows]
+
+    def step_done(
+        self, part_id: str, kind: str, machine: str, program: str, route_index: int
+    ) -> bool:
+        """Whether this step needs no running: it finished, or the operator accepted it
+        (released its part without ``redo_step`` after it was interrupted or failed)."""
+        rows = self._read(
+            "SELECT 1 FROM steps WHERE part_id = ? AND kind = ? AND machine = ? AND program = ?"
+            " AND route_index = ? AND (state = 'finished' OR resolution = 'accepted') LIMIT 1",
+            (part_id, kind, machine, program, route_index),
+        )
+        return bool(rows)
+
+    def recover(self) -> RecoveryReport:
+        """Call once at start, before anything else: settle what a crash left in flight.
+
+        Every open step becomes ``interrupted``; its part is held, with the note
+        "needs inspection: machining step ..." for a machining step (the cut may be half
+        done: never restarted automatically) or "interrupted transfer: check the gripper
+        and both stations" for a transfer (the part may be at either end or in the gripper,
+        so its location is unknown). Calling it again finds nothing more to do.
+        """
+        now = self._clock()
+        interrupted: list[Step] = []
+        held: list[Part] = []
+        with self._write() as db:
+            rows = db.execute("SELECT * FROM steps WHERE state = 'started' ORDER BY id")
+            for step in [_step(r) for r in rows.fetchall()]:
+                db.execute(
+                    "UPDATE steps SET state = 'interrupted', outcome = ? WHERE id = ?",
+                    ("in flight when the controller stopped", step.id),
+                )
+                interrupted.append(_get_step(db, step.id))
+                if step.kind == "machine":
+                    reason = INTERRUPTED_MACHINING.format(
+                        program=step.program, machine=step.machine
+                    )
+                else:
+                    reason = INTERRUPTED_TRANSFER
+                part = _get_part(db, step.part_id)
+                if part.status in ("done", "scrapped"):
+                    continue
+                held.append(
+                    _update_part(db, part, now, status="held", note=reason, held_step=step.id)
+                )
+        return RecoveryReport(interrupted, held)
+
+    # -- alarms ------------------------------------------------------------------------------
+
+    def raise_alarm(self, machine: str, code: str, text: str) -> tuple[Alarm, bool]:
+        """Raise an alarm; return it and whether it is new (an identical active alarm,
+        same machine, code and text, is returned instead of raising a second one)."""
+        now = self._clock()
+        with self._write() as db:
+            row = db.execute(
+                "SELECT * FROM alarms WHERE state = 'active' AND machine = ? AND code = ?"
+                " AND text = ? ORDER BY id LIMIT 1",
+                (machine, code, text),
+            ).fetchone()
+            if row is not None:
+                return _alarm(row), False
+            cur = db.execute(
+                "INSERT INTO alarms (raised, machine, code, text, state)"
+                " VALUES (?, ?, ?, ?, 'active')",
+                (now, machine, code, text),
+            )
+            alarm_id = cur.lastrowid
+        assert alarm_id is not None
+        return Alarm(alarm_id, now, machine, code, text, "active", None), True
+
+    def clear_alarm(self, alarm_id: int, by: str = "operator") -> Alarm:
+        """Clear an alarm (already cleared: changes nothing)."""
+        with self._write() as db:
+            alarm = _get_alarm(db, alarm_id)
+            if alarm.state == "cleared":
+                return alarm
+            db.execute(
+                "UPDATE alarms SET state = 'cleared', cleared = ?, cleared_by = ? WHERE id = ?",
+                (self._clock(), by, alarm_id),
+            )
+            return _get_alarm(db, alarm_id)
+
+    def get_alarm(self, alarm_id: int) -> Alarm:
+        """The alarm ``alarm_id``."""
+        rows = self._read("SELECT * FROM alarms WHERE id = ?", (alarm_id,))
+        if not rows:
+            raise UsageError(f"no alarm {alarm_id}")
+        return _alarm(rows[0])
+
+    def active_alarms(self) -> list[Alarm]:
+        """Alarms not cleared yet, oldest first."""
+        return [_alarm(r) for r in self._read("SELECT * FROM alarms WHERE state = 'active'")]
+
+    def alarms(self) -> list[Alarm]:
+        """Every alarm, oldest first."""
+        return [_alarm(r) for r in self._read("SELECT * FROM alarms ORDER BY id")]
+
+    # -- machines ----------------------------------------------------------------------------
+
+    def set_machine_service(self, name: str, in_service: bool, reason: str = "") -> None:
+        """Take a machine out of service (with the reason) or put it back."""
+        with self._write() as db:
+            db.execute(
+                "INSERT INTO machines (name, in_service, reason, updated) VALUES (?, ?, ?, ?)"
+                " ON CONFLICT (name) DO UPDATE SET in_service = excluded.in_service,"
+                " reason = excluded.reason, updated = excluded.updated",
+                (name, int(in_service), reason, self._clock()),
+            )
+
+    def machines_out_of_service(self) -> dict[str, str]:
+        """``machine name -> reason`` for every machine out of service."""
+        rows = self._read("SELECT name, reason FROM machines WHERE in_service = 0 ORDER BY name")
+        return {r["name"]: r["reason"] for r in rows}
+
+    # -- figures -----------------------------------------------------------------------------
+
+    def busy_time(
+        self, machine: str, since: float | None = None, until: float | None = None
+    ) -> float:
+        """Seconds ``machine`` spent in steps between ``since`` and ``until`` (default: all).
+
+        Steps in flight count up to ``until`` (or now); interrupted steps, whose end is not
+        known, do not count.
+        """
+        end_of_open = until if until is not None else self._clock()
+        total = 0.0
+        rows = self._read(
+            "SELECT started, ended, state FROM steps WHERE machine = ?"
+            " AND state IN ('started', 'finished', 'failed')",
+            (machine,),
+        )
+        for r in rows:
+            start = float(r["started"])
+            end = float(r["ended"]) if r["ended"] is not None else end_of_open
+            if since is not None:
+                start = max(start, since)
+            if until is not None:
+                end = min(end, until)
+            total += max(0.0, end - start)
+        return total
+
+    def makespan(self, order_id: str | None = None) -> float | None:
+        """Seconds from the first step's start to the last step's end (of ``order_id``'s
+        parts if given); None before any step ended."""
+        sql = "SELECT MIN(s.started), MAX(s.ended) FROM steps s JOIN parts p ON p.id = s.part_id"
+        args: tuple[str, ...] = ()
+        if order_id is not None:
+            sql += " WHERE p.order_id = ?"
+            args = (order_id,)
+        (first, last) = self._read(sql, args)[0]
+        if first is None or last is None:
+            return None
+        return float(last) - float(first)
+
+
+# -- helpers -----------------------------------------------------------------------------------
+
+
+def _connect(path: Path) -> sqlite3.Connection:
+    # The same settings as the SQLite mailbox; kept here so the cell does not depend on a
+    # mailbox backend.
+    path.parent.mkdir(parents=True, exist_ok=True)
+    conn = sqlite3.connect(
+        path, timeout=BUSY_TIMEOUT, isolation_level=None, check_same_thread=False
+    )
+    conn.row_factory = sqlite3.Row
+    conn.execute(f"PRAGMA busy_timeout = {int(BUSY_TIMEOUT * 1000)}")
+    conn.execute("PRAGMA journal_mode = WAL")
+    # FULL: in WAL mode NORMAL may lose the last commits on power loss; FULL syncs each one.
+    conn.execute("PRAGMA synchronous = FULL")
+    conn.execute("BEGIN IMMEDIATE")
+    try:
+        for statement in SCHEMA.split(";"):
+            if statement.strip():
+                conn.execute(statement)
+        conn.execute("COMMIT")
+    except BaseException:
+        conn.execute("ROLLBACK")
+        conn.close()
+        raise
+    return conn
+
+
+def _check_location(location: str) -> None:
+    if location not in LOCATIONS:
+        raise UsageError(f"unknown location {location!r} (known: {', '.join(LOCATIONS)})")
+
+
+def _require(part: Part, statuses: tuple[str, ...], action: str) -> None:
+    if part.status not in statuses:
+        raise UsageError(f"part {part.id} is {part.status}: it cannot {action}")
+
+
+def _get_part(db: sqlite3.Connection, part_id: str) -> Part:
+    row = db.execute("SELECT * FROM parts WHERE id = ?", (part_id,)).fetchone()
+    if row is None:
+        raise UsageError(f"no part {part_id!r}")
+    return _part(row)
+
+
+def _get_step(db: sqlite3.Connection, step_id: int) -> Step:
+    row = db.execute("SELECT * FROM steps WHERE id = ?", (step_id,)).fetchone()
+    if row is None:
+        raise UsageError(f"no step {step_id}")
+    return _step(row)
+
+
+def _get_alarm(db: sqlite3.Connection, alarm_id: int) -> Alarm:
+    row = db.execute("SELECT * FROM alarms WHERE id = ?", (alarm_id,)).fetchone()
+    if row is None:
+        raise UsageError(f"no alarm {alarm_id}")
+    return _alarm(row)
+
+
+def _held_step(db: sqlite3.Connection, part_id: str) -> Step | None:
+    row = db.execute(
+        "SELECT s.* FROM steps s JOIN parts p ON p.held_step = s.id WHERE p.id = ?", (part_id,)
+    ).fetchone()
+    return None if row is None else _step(row)
+
+
+_PART_COLUMNS = ("status", "location", "route_index", "note", "held_step")
+
+
+def _update_part(db: sqlite3.Connection, part: Part, now: float, **changes: Any) -> Part:
+    assert set(changes) <= set(_PART_COLUMNS), changes
+    sets = ", ".join(f"{column} = ?" for column in changes)
+    db.execute(
+        f"UPDATE parts SET {sets}, updated = ? WHERE id = ?",
+        (*changes.values(), now, part.id),
+    )
+    return _get_part(db, part.id)
+
+
+def _part(row: sqlite3.Row) -> Part:
+    return Part(
+        row["id"],
+        row["order_id"],
+        row["part_type"],
+        row["seq_in_order"],
+        row["route_index"],
+        row["location"],
+        row["status"],
+        row["updated"],
+        row["note"],
+    )
+
+
+def _step(row: sqlite3.Row) -> Step:
+    return Step(
+        row["id"],
+        row["part_id"],
+        row["kind"],
+        row["machine"],
+        row["program"],
+        row["state"],
+        row["started"],
+        row["ended"],
+        row["outcome"],
+        row["attempt"],
+        row["route_index"],
+        row["resolution"],
+    )
+
+
+def _alarm(row: sqlite3.Row) -> Alarm:
+    return Alarm(
+        row["id"],
+        row["raised"],
+        row["machine"],
+        row["code"],
+        row["text"],
+        row["state"],
+        row["cleared"],
+        row["cleared_by"],
+    )

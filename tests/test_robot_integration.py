@@ -242,3 +242,16 @@ async def test_through_real_ser2net_rfc2217(ser2net_available: None, tmp_path: P
         proxy.stop()
         await server.close()
     assert [r.outcome for r in emulator.runs] == ["completed"]
+
+
+async def test_wait_cycle_end_sees_the_done_output(robot_served: Served) -> None:
+    done = "WRITEO(6, 0)\nPMOVE(PT(300, 0, 0, 0))\nWRITEO(6, 1)\nEND\n"
+    async with await connect(robot_served) as robot:
+        await robot.initialize()
+        await robot.download(1, program(done))
+        await robot.go(1)
+        assert robot.state == 2
+        await robot.wait_cycle_end(6, timeout=10, poll=0.01)
+        assert robot.state == 1
+        with pytest.raises(LinkTimeout, match="output 7 did not go 1"):
+            await robot.wait_output(7, True, timeout=0.05, poll=0.01)

@@ -498,6 +498,31 @@ class Ibm7545Robot:
         """Digital inputs and outputs (R 10): 16 each."""
         return DiDo.from_bytes(await self._read(ReadOperand.DIDO, "DI/DO status", 4))
 
+    async def wait_output(
+        self, line: int, value: bool, *, timeout: float, poll: float = 0.1
+    ) -> DiDo:
+        """Poll DI/DO until output ``line`` (1-16) is ``value``; LinkTimeout after ``timeout``.
+
+        The controller tells nothing unasked, so a program signals progress on an output
+        (the cell's programs raise a "cycle done" output before END) and the host polls.
+        """
+        loop = self.link._loop
+        deadline = loop.time() + timeout
+        while True:
+            dido = await self.io()
+            if dido.output(line) == value:
+                return dido
+            if loop.time() >= deadline:
+                raise LinkTimeout(
+                    f"{self.name}: output {line} did not go {int(value)} within {timeout:g} s"
+                )
+            await asyncio.sleep(min(poll, max(0.0, deadline - loop.time())))
+
+    async def wait_cycle_end(self, done_output: int, *, timeout: float, poll: float = 0.1) -> None:
+        """Wait for the running program's "cycle done" output; the robot is then state 1."""
+        await self.wait_output(done_output, True, timeout=timeout, poll=poll)
+        self._set_state(1)
+
 
 def _digest(program: ProgramFile) -> str:
     return hashlib.sha256(program.to_text().encode("ascii")).hexdigest()[:16]

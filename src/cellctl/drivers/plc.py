@@ -1,0 +1,256 @@
+"""The cell PLC over Modbus/TCP: read its sensors, switch its actuators, wait for a signal.
+
+One :class:`ModbusPlc` per PLC; signal names and addresses come from a
+:class:`~cellctl.protocol.plc.PlcMap` (``[plc]`` in ``cell.toml``)::
+
+    plc = await ModbusPlc.connect("modbus://10.0.0.9:502", plc_map, timeout=1.0)
+    inputs = await plc.read_inputs()            # {"pallet_present": True, ...}: one request
+    await plc.write("door_1", True)             # open the door of CNC 1
+    await plc.wait_for("door_open_1", True, timeout=5)
+    await plc.pulse("go_1", 0.5)                # start the program loaded in CNC 1
+    await plc.close()
+
+Requests used (Modbus application protocol): 02 Read Discrete Inputs (all mapped inputs in
+one request, from the lowest to the highest address), 01 Read Coils, 05 Write Single Coil.
+
+Every call has a deadline (``timeout``, for connecting and answering together). Failures are
+typed: no connection or a connection closed under us -> :class:`LinkError`
+(:class:`LinkClosed`), no answer in time -> :class:`LinkTimeout` (the connection is then
+closed so a late answer cannot be taken for the next one; the next call reconnects), a Modbus
+exception response -> :class:`DeviceError` with the exception code and its name, an unknown
+or unwired signal name or a write to an input -> :class:`UsageError` before anything is sent.
+A wait for an input that runs out says what did not happen: "door of CNC 1 did not close
+within 5 s".
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+from cellctl.errors import DeviceError, LinkClosed, LinkError, LinkTimeout, UsageError
+from cellctl.protocol.plc import (
+    COIL,
+    INPUT,
+    MODBUS_EXCEPTIONS,
+    SIGNALS,
+    PlcMap,
+    canonical,
+    parse_modbus_url,
+)
+
+__all__ = ["ModbusPlc"]
+
+
+class ModbusPlc:
+    """Driver for the cell's PLC; build it with :meth:`connect`."""
+
+    def __init__(self, url: str, plc_map: PlcMap, *, timeout: float) -> None:
+        from pymodbus.client import AsyncModbusTcpClient
+
+        if timeout <= 0:
+            raise UsageError(f"timeout must be > 0 s, not {timeout}")
+        self.url = url
+        self.map = plc_map
+        self.timeout = timeout
+        self.requests = 0
+        self.last_inputs: dict[str, bool] = {}
+        host, port = parse_modbus_url(url)
+        self._lost = asyncio.Event()
+        self._closed = False
+        # No retries and no background reconnects: every call has one deadline, and the
+        # driver reconnects itself on the next call after a failure.
+        self._client: Any = AsyncModbusTcpClient(
+            host,
+            port=port,
+            timeout=timeout,
+            retries=0,
+            reconnect_delay=0,
+            trace_connect=self._connection_changed,
+        )
+
+    @classmethod
+    async def connect(
+        cls, url: str | None = None, plc_map: PlcMap | None = None, *, timeout: float | None = None
+    ) -> ModbusPlc:
+        """Connect to the PLC at ``url`` (default: the map's) and return a driver.
+
+        ``timeout`` (default: the map's) bounds every request. Raises :class:`LinkError` if
+        the PLC cannot be reached.
+        """
+        plc_map = plc_map or PlcMap()
+        plc = cls(url or plc_map.url, plc_map, timeout=timeout or plc_map.timeout)
+        try:
+            async with asyncio.timeout(plc.timeout):
+                await plc._ensure_connected()
+        except TimeoutError:
+            plc._client.close()
+            raise LinkTimeout(f"PLC at {plc.url}: no connection within {plc.timeout:g} s") from None
+        return plc
+
+    async def close(self) -> None:
+        """Close the connection (calls after this raise :class:`LinkClosed`)."""
+        self._closed = True
+        self._client.close()
+
+    async def __aenter__(self) -> ModbusPlc:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    # -- the connection -------------------------------------------------------------------------
+
+    def _connection_changed(self, connected: bool) -> None:
+        if connected:
+            self._lost.clear()
+        else:
+            self._lost.set()
+
+    async def _ensure_connected(self) -> None:
+        if self._closed:
+            raise LinkClosed(f"PLC at {self.url}: the connection was closed")
+        if self._client.connected:
+            return
+        if not await self._client.connect():
+            raise LinkError(
+                f"cannot reach the PLC at {self.url}: connection refused, or no PLC there"
+            )
+        self._lost.clear()
+
+    async def _request(self, what: str, call: Callable[[], Awaitable[Any]]) -> Any:
+        """Send one request with a deadline; map every failure to a typed error."""
+        from pymodbus.exceptions import ConnectionException, ModbusException
+
+        try:
+            async with asyncio.timeout(self.timeout):
+                await self._ensure_connected()
+                self.requests += 1
+                answer = asyncio.ensure_future(call())
+                lost = asyncio.ensure_future(self._lost.wait())
+                try:
+                    await asyncio.wait({answer, lost}, return_when=asyncio.FIRST_COMPLETED)
+                finally:
+                    lost.cancel()
+                if not answer.done():
+                    answer.cancel()
+                    with contextlib.suppress(BaseException):
+                        await answer
+                    raise LinkClosed(f"PLC at {self.url} closed the connection ({what})")
+                response = answer.result()
+        except TimeoutError:
+            self._client.close()  # a late answer must not pass for the next request's
+            raise LinkTimeout(
+                f"PLC at {self.url}: no answer to {what} within {self.timeout:g} s"
+            ) from None
+        except ConnectionException:
+            self._client.close()
+            raise LinkClosed(f"PLC at {self.url}: connection lost ({what})") from None
+        except ModbusException as e:
+            self._client.close()
+            if not self._client.connected and self._lost.is_set():
+                raise LinkClosed(f"PLC at {self.url} closed the connection ({what})") from None
+            raise LinkTimeout(f"PLC at {self.url}: no valid answer to {what}: {e}") from None
+        if response.isError():
+            code = int(getattr(response, "exception_code", 0))
+            name = MODBUS_EXCEPTIONS.get(code, "unknown Modbus exception")
+            raise DeviceError(code, name, detail=f"PLC at {self.url} refused {what}")
+        return response
+
+    # -- signals --------------------------------------------------------------------------------
+
+    def _signal(self, name: str, kind: str | None = None) -> str:
+        """Canonical name of a mapped signal; :class:`UsageError` if unknown or the wrong kind."""
+        name = canonical(name)
+        actual = self.map.kind_of(name)
+        if kind == COIL and actual != COIL:
+            raise UsageError(f"{name} is an input the PLC reads; only coils can be written")
+        if kind == INPUT and actual != INPUT:
+            raise UsageError(f"{name} is a coil the controller writes; wait for an input")
+        return name
+
+    async def read_inputs(self) -> dict[str, bool]:
+        """Every mapped discrete input, by name, read in one request."""
+        first, count = self.map.input_block
+        if not count:
+            return {}
+        response = await self._request(
+            f"reading inputs {first}..{first + count - 1}",
+            lambda: self._client.read_discrete_inputs(first, count=count, device_id=self.map.unit),
+        )
+        bits = list(response.bits)
+        self.last_inputs = {
+            name: bool(bits[address - first]) for name, address in self.map.inputs.items()
+        }
+        return dict(self.last_inputs)
+
+    async def read_coils(self) -> dict[str, bool]:
+        """Every mapped coil, by name, as the PLC holds it (one request)."""
+        first, count = self.map.coil_block
+        if not count:
+            return {}
+        response = await self._request(
+            f"reading coils {first}..{first + count - 1}",
+            lambda: self._client.read_coils(first, count=count, device_id=self.map.unit),
+        )
+        bits = list(response.bits)
+        return {name: bool(bits[address - first]) for name, address in self.map.coils.items()}
+
+    async def read(self, name: str) -> bool:
+        """One signal's level: an input (from a read of all inputs) or a coil."""
+        name = self._signal(name)
+        if self.map.kind_of(name) == INPUT:
+            return (await self.read_inputs())[name]
+        return (await self.read_coils())[name]
+
+    async def write(self, name: str, value: bool) -> None:
+        """Set coil ``name`` to ``value`` (e.g. ``write("clamp_2", True)`` clamps CNC 2's vise)."""
+        name = self._signal(name, COIL)
+        address = self.map.coils[name]
+        await self._request(
+            f"setting {name} (coil {address}) to {int(bool(value))}",
+            lambda: self._client.write_coil(address, bool(value), device_id=self.map.unit),
+        )
+
+    async def pulse(self, name: str, seconds: float = 0.5) -> None:
+        """Set coil ``name`` to 1 for ``seconds``, then back to 0 (GO of a mill, a release).
+
+        The coil is lowered even if the caller is cancelled during the pulse.
+        """
+        if seconds <= 0:
+            raise UsageError(f"pulse length must be > 0 s, not {seconds}")
+        name = self._signal(name, COIL)
+        await self.write(name, True)
+        try:
+            await asyncio.sleep(seconds)  # the pulse width itself, not a wait for an event
+        finally:
+            await asyncio.shield(self.write(name, False))
+
+    async def wait_for(
+        self, name: str, value: bool, *, timeout: float, poll: float | None = None
+    ) -> dict[str, bool]:
+        """Read the inputs every ``poll`` s until input ``name`` is ``value``; return them.
+
+        Raises :class:`LinkTimeout` in words once ``timeout`` passes ("door of CNC 1 did not
+        close within 5 s"); a read under way at the deadline is finished first, so the wait
+        ends at most one request timeout late. Link failures while reading pass through.
+        """
+        name = self._signal(name, INPUT)
+        poll = self.map.poll if poll is None else poll
+        if timeout < 0 or poll <= 0:
+            raise UsageError("wait_for needs timeout >= 0 and poll > 0")
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        want = bool(value)
+        while True:
+            inputs = await self.read_inputs()
+            if inputs[name] == want:
+                return inputs
+            left = deadline - loop.time()
+            if left <= 0:
+                sig = SIGNALS[name]
+                phrase = sig.not_true if want else sig.not_false
+                raise LinkTimeout(f"{phrase} within {timeout:g} s")
+            await asyncio.sleep(min(poll, left))  # the poll period between reads

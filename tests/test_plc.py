@@ -1,0 +1,378 @@
+"""The cell PLC: IO map parsing, and the driver against the emulator over Modbus/TCP on loopback."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+from typing import Any
+
+import pytest
+
+from cellctl.drivers.plc import ModbusPlc
+from cellctl.emulators.plc import FAULTS, PlcEmulator, PlcTiming
+from cellctl.errors import DeviceError, LinkClosed, LinkError, LinkTimeout, UsageError
+from cellctl.protocol.plc import (
+    DEFAULT_COILS,
+    DEFAULT_INPUTS,
+    SIGNALS,
+    PlcMap,
+    canonical,
+    describe,
+    parse_modbus_url,
+)
+
+from .conftest import free_port
+
+TIME_SCALE = 200.0  # conveyor 8 s -> 40 ms, door 2 s -> 10 ms
+WAIT = 5.0  # generous deadline for events that do happen
+
+
+# -- the IO map ---------------------------------------------------------------------------------
+
+
+def full_table() -> dict[str, Any]:
+    return {
+        "url": "modbus://10.0.0.9",
+        "unit": 3,
+        "coils": {name: 100 + a for name, a in DEFAULT_COILS.items()},
+        "inputs": {name: 200 + a for name, a in DEFAULT_INPUTS.items()},
+    }
+
+
+def test_default_map_names_every_signal_once() -> None:
+    plc_map = PlcMap()
+    assert set(plc_map.coils) | set(plc_map.inputs) == set(SIGNALS)
+    assert len(set(plc_map.coils.values())) == len(plc_map.coils)
+    assert len(set(plc_map.inputs.values())) == len(plc_map.inputs)
+    assert describe("door[1]") == "door of CNC 1: 1 = open, 0 = close"
+    assert PlcMap.from_toml({}) == plc_map
+
+
+def test_map_from_toml_reads_addresses_url_and_unit() -> None:
+    plc_map = PlcMap.from_toml(full_table())
+    assert plc_map.coils["go_2"] == 100 + DEFAULT_COILS["go_2"]
+    assert plc_map.inputs["estop_ok"] == 200 + DEFAULT_INPUTS["estop_ok"]
+    assert plc_map.unit == 3
+    assert parse_modbus_url(plc_map.url) == ("10.0.0.9", 502)
+    assert plc_map.input_block == (200, len(DEFAULT_INPUTS))
+
+
+def test_map_accepts_indexed_names() -> None:
+    table = full_table()
+    table["coils"]["clamp[1]"] = table["coils"].pop("clamp_1")
+    assert PlcMap.from_toml(table).coils["clamp_1"] == 100 + DEFAULT_COILS["clamp_1"]
+    assert canonical("door_open[2]") == "door_open_2"
+    assert canonical("go1") == "go_1"
+
+
+def test_map_optional_inputs_may_be_left_out() -> None:
+    table = full_table()
+    del table["inputs"]["part_present_1"]
+    plc_map = PlcMap.from_toml(table)
+    assert "part_present_1" not in plc_map.inputs
+    with pytest.raises(UsageError, match="not wired"):
+        plc_map.address("part_present_1")
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        (lambda t: t["coils"].update(conveyor_speed=20), r"coils\.conveyor_speed: unknown coil"),
+        (lambda t: t["inputs"].update(door_1=40), r"inputs\.door_1: unknown input \(that is a"),
+        (lambda t: t["coils"].update(go_2=100), r"coils\.go_2: address 100 is already"),
+        (lambda t: t["inputs"].pop("door_closed_2"), r"inputs: missing door_closed_2"),
+        (lambda t: t["coils"].pop("pallet_request"), r"coils: missing pallet_request"),
+        (lambda t: t["coils"].update(go_1=-1), r"coils\.go_1: address must be 0\.\.65535"),
+        (lambda t: t["coils"].update(go_1="7"), r"coils\.go_1: address must be"),
+        (lambda t: t.update(url="http://plc"), r"PLC address 'http://plc'"),
+        (lambda t: t.update(unit=300), r"unit: must be 0\.\.255"),
+        (lambda t: t.update(timeout=0), r"timeout: must be seconds > 0"),
+        (lambda t: t.update(adress="x"), r"\[plc\] adress: unknown key"),
+        (lambda t: t["inputs"].update(estop_ok=5000), r"span more than 2000"),
+    ],
+)
+def test_map_refuses_bad_tables_naming_the_key(change: Any, words: str) -> None:
+    table = full_table()
+    change(table)
+    with pytest.raises(UsageError, match=words):
+        PlcMap.from_toml(table)
+
+
+# -- driver against the emulator ----------------------------------------------------------------
+
+
+@pytest.fixture
+async def emulator() -> AsyncIterator[PlcEmulator]:
+    plc = PlcEmulator(time_scale=TIME_SCALE)
+    await plc.start("modbus://127.0.0.1:0")
+    yield plc
+    await plc.close()
+
+
+@pytest.fixture
+async def plc(emulator: PlcEmulator) -> AsyncIterator[ModbusPlc]:
+    driver = await ModbusPlc.connect(emulator.url, emulator.map, timeout=1.0)
+    yield driver
+    await driver.close()
+
+
+async def test_emulator_reports_the_bound_port(emulator: PlcEmulator) -> None:
+    host, port = parse_modbus_url(emulator.url)
+    assert host == "127.0.0.1"
+    assert port != 0
+
+
+async def test_inputs_at_power_up(plc: ModbusPlc) -> None:
+    inputs = await plc.read_inputs()
+    assert set(inputs) == set(DEFAULT_INPUTS)
+    on = {name for name, level in inputs.items() if level}
+    assert on == {"outfeed_clear", "door_closed_1", "door_closed_2", "estop_ok"}
+    assert await plc.read_coils() == dict.fromkeys(DEFAULT_COILS, False)
+
+
+@pytest.mark.parametrize("name", list(DEFAULT_COILS))
+async def test_every_coil_reaches_the_plc(emulator: PlcEmulator, plc: ModbusPlc, name: str) -> None:
+    changes: list[tuple[str, bool]] = []
+    emulator.hooks.coil.append(lambda n, v: changes.append((n, v)))
+    await plc.write(name, True)
+    assert (await plc.read_coils())[name] is True
+    assert emulator.coils[name] is True
+    await plc.write(f"{name[:-2]}[{name[-1]}]" if name[-1].isdigit() else name, False)
+    assert await plc.read(name) is False
+    assert changes == [(name, True), (name, False)]
+
+
+@pytest.mark.parametrize("name", list(DEFAULT_INPUTS))
+async def test_every_input_reaches_the_driver(
+    emulator: PlcEmulator, plc: ModbusPlc, name: str
+) -> None:
+    before = (await plc.read_inputs())[name]
+    emulator.set_input(name, not before)
+    inputs = await plc.wait_for(name, not before, timeout=WAIT)
+    assert inputs[name] is (not before)
+    assert await plc.read(name) is (not before)
+
+
+async def test_conveyor_delivers_on_request_and_takes_the_pallet_away(
+    emulator: PlcEmulator, plc: ModbusPlc
+) -> None:
+    seen: list[tuple[str, bool]] = []
+    emulator.hooks.input.append(lambda n, v: seen.append((n, v)))
+    await plc.write("pallet_request", True)
+    await plc.wait_for("pallet_present", True, timeout=WAIT)
+    await plc.write("pallet_request", False)
+    assert emulator.pallets_delivered == 1
+
+    await plc.pulse("pallet_release", 0.01)
+    await plc.wait_for("pallet_present", False, timeout=WAIT)
+    await plc.wait_for("outfeed_clear", True, timeout=WAIT)
+    assert seen == [
+        ("pallet_present", True),
+        ("pallet_present", False),
+        ("outfeed_clear", False),
+        ("outfeed_clear", True),
+    ]
+    assert emulator.pallets_released == 1
+
+
+async def test_robot_taking_the_pallet_clears_the_pickup(
+    emulator: PlcEmulator, plc: ModbusPlc
+) -> None:
+    await plc.pulse("pallet_request", 0.01)
+    await plc.wait_for("pallet_present", True, timeout=WAIT)
+    emulator.take_pallet()
+    await plc.wait_for("pallet_present", False, timeout=WAIT)
+    # A second request brings the next pallet.
+    await plc.pulse("pallet_request", 0.01)
+    await plc.wait_for("pallet_present", True, timeout=WAIT)
+    assert emulator.pallets_delivered == 2
+
+
+@pytest.mark.parametrize("mill", [1, 2])
+async def test_vise_clamps_and_unclamps(plc: ModbusPlc, mill: int) -> None:
+    await plc.write(f"clamp_{mill}", True)
+    await plc.wait_for(f"clamp_closed_{mill}", True, timeout=WAIT)
+    await plc.write(f"clamp_{mill}", False)
+    inputs = await plc.wait_for(f"clamp_closed_{mill}", False, timeout=WAIT)
+    assert inputs[f"clamp_closed_{mill}"] is False
+
+
+@pytest.mark.parametrize("mill", [1, 2])
+async def test_door_opens_and_closes_never_reporting_both(
+    emulator: PlcEmulator, plc: ModbusPlc, mill: int
+) -> None:
+    both: list[bool] = []
+    emulator.hooks.input.append(
+        lambda n, v: both.append(
+            emulator.inputs[f"door_open_{mill}"] and emulator.inputs[f"door_closed_{mill}"]
+        )
+    )
+    await plc.write(f"door_{mill}", True)
+    inputs = await plc.wait_for(f"door_open_{mill}", True, timeout=WAIT)
+    assert inputs[f"door_closed_{mill}"] is False
+    await plc.write(f"door_{mill}", False)
+    inputs = await plc.wait_for(f"door_closed_{mill}", True, timeout=WAIT)
+    assert inputs[f"door_open_{mill}"] is False
+    assert both and not any(both)
+
+
+@pytest.mark.parametrize("mill", [1, 2])
+async def test_go_pulse_reaches_on_go(mill: int) -> None:
+    got: asyncio.Queue[int] = asyncio.Queue()
+    async with PlcEmulator(time_scale=TIME_SCALE, on_go=got.put_nowait) as emulator:
+        await emulator.start()
+        async with await ModbusPlc.connect(emulator.url, timeout=1.0) as plc:
+            await plc.pulse(f"go_{mill}", 0.01)
+            assert await asyncio.wait_for(got.get(), WAIT) == mill
+            assert (await plc.read_coils())[f"go_{mill}"] is False
+    assert emulator.go_count == {mill: 1, 3 - mill: 0}
+
+
+# -- fault switches -----------------------------------------------------------------------------
+
+
+async def test_drop_cuts_the_line_and_refuses_until_cleared(
+    emulator: PlcEmulator, plc: ModbusPlc
+) -> None:
+    await plc.read_inputs()
+    emulator.set_fault("drop")
+    with pytest.raises(LinkError):
+        await plc.read_inputs()
+    with pytest.raises(LinkError):
+        await plc.read_inputs()  # reconnecting is refused too
+    emulator.clear_fault("drop")
+    assert (await plc.read_inputs())["estop_ok"] is True
+
+
+async def test_drop_refuses_a_new_connection(emulator: PlcEmulator) -> None:
+    emulator.set_fault("drop")
+    driver = await ModbusPlc.connect(emulator.url, timeout=0.5)
+    with pytest.raises(LinkClosed, match="closed the connection"):
+        await driver.read_inputs()
+    await driver.close()
+
+
+async def test_silent_gives_a_timeout_then_recovers(emulator: PlcEmulator) -> None:
+    async with await ModbusPlc.connect(emulator.url, timeout=0.2) as plc:
+        emulator.set_fault("silent")
+        with pytest.raises(LinkTimeout, match=r"no answer to reading inputs 0\.\.10 within 0\.2 s"):
+            await plc.read_inputs()
+        emulator.clear_fault("silent")
+        assert (await plc.read_inputs())["estop_ok"] is True
+
+
+async def test_stuck_door_times_out_in_words(emulator: PlcEmulator, plc: ModbusPlc) -> None:
+    emulator.set_fault("stuck-door", "1")
+    await plc.write("door_1", True)
+    with pytest.raises(LinkTimeout, match=r"^door of CNC 1 did not open within 0\.3 s$"):
+        await plc.wait_for("door_open_1", True, timeout=0.3)
+    await plc.write("door_2", True)
+    await plc.wait_for("door_open_2", True, timeout=WAIT)  # the other door still moves
+    emulator.clear_fault("stuck-door")
+    await plc.wait_for("door_open_1", True, timeout=WAIT)
+
+
+async def test_stuck_door_mid_way_reports_neither_end(
+    emulator: PlcEmulator, plc: ModbusPlc
+) -> None:
+    await plc.write("door_2", True)
+    emulator.set_fault("stuck-door", "2")  # stops at once, before it reaches open
+    with pytest.raises(LinkTimeout, match="door of CNC 2 did not close"):
+        await plc.wait_for("door_closed_2", True, timeout=0.1)
+    inputs = await plc.read_inputs()
+    assert (inputs["door_open_2"], inputs["door_closed_2"]) == (False, False)
+
+
+async def test_no_pallet_times_out_then_delivers_once_cleared(
+    emulator: PlcEmulator, plc: ModbusPlc
+) -> None:
+    emulator.set_fault("no-pallet")
+    await plc.write("pallet_request", True)
+    with pytest.raises(LinkTimeout, match="no pallet arrived at the conveyor pick-up within"):
+        await plc.wait_for("pallet_present", True, timeout=0.3)
+    emulator.clear_fault("no-pallet")
+    await plc.write("pallet_request", False)
+    await plc.write("pallet_request", True)
+    await plc.wait_for("pallet_present", True, timeout=WAIT)
+
+
+async def test_estop_drops_estop_ok_freezes_actuators_and_blocks_go(
+    emulator: PlcEmulator, plc: ModbusPlc
+) -> None:
+    emulator.set_fault("estop")
+    inputs = await plc.wait_for("estop_ok", False, timeout=WAIT)
+    assert inputs["estop_ok"] is False
+    await plc.pulse("go_1", 0.01)
+    assert emulator.go_count[1] == 0
+    await plc.write("clamp_1", True)
+    with pytest.raises(LinkTimeout, match="vise of CNC 1 did not clamp"):
+        await plc.wait_for("clamp_closed_1", True, timeout=0.2)
+    emulator.clear_fault("estop")
+    await plc.wait_for("estop_ok", True, timeout=WAIT)
+    await plc.wait_for("clamp_closed_1", True, timeout=WAIT)
+
+
+def test_fault_switches_are_checked() -> None:
+    plc = PlcEmulator()
+    assert set(FAULTS) == {"drop", "silent", "stuck-door", "no-pallet", "estop"}
+    with pytest.raises(UsageError, match="unknown fault"):
+        plc.set_fault("flood")
+    with pytest.raises(UsageError, match="stuck-door needs a mill number"):
+        plc.set_fault("stuck-door", "3")
+
+
+# -- typed errors -------------------------------------------------------------------------------
+
+
+async def test_unknown_names_refused_before_any_request(
+    emulator: PlcEmulator, plc: ModbusPlc
+) -> None:
+    await plc.read_inputs()
+    served, sent = emulator.requests_served, plc.requests
+    with pytest.raises(UsageError, match="no PLC signal 'conveyor'"):
+        await plc.write("conveyor", True)
+    with pytest.raises(UsageError, match="pallet_present is an input"):
+        await plc.write("pallet_present", True)
+    with pytest.raises(UsageError, match="door_1 is a coil"):
+        await plc.wait_for("door_1", True, timeout=1)
+    with pytest.raises(UsageError, match="no PLC signal"):
+        await plc.read("door_3")
+    with pytest.raises(UsageError, match="pulse length"):
+        await plc.pulse("go_1", 0)
+    assert (emulator.requests_served, plc.requests) == (served, sent)
+
+
+async def test_modbus_exception_is_a_device_error(emulator: PlcEmulator) -> None:
+    table = full_table()
+    table["coils"] = dict(DEFAULT_COILS)
+    table["inputs"] = {**DEFAULT_INPUTS, "part_present_2": 300}  # beyond the PLC's inputs
+    wrong = PlcMap.from_toml(table)
+    async with await ModbusPlc.connect(emulator.url, wrong, timeout=1.0) as plc:
+        with pytest.raises(DeviceError, match="illegal data address") as info:
+            await plc.read_inputs()
+        assert info.value.code == 2
+        await plc.write("go_1", True)  # the coils are where the PLC has them: still fine
+        assert emulator.coils["go_1"] is True
+
+
+async def test_connection_refused_is_a_link_error() -> None:
+    with pytest.raises(LinkError, match="cannot reach the PLC"):
+        await ModbusPlc.connect(f"modbus://127.0.0.1:{free_port()}", timeout=1.0)
+
+
+async def test_closed_driver_says_so(plc: ModbusPlc) -> None:
+    await plc.close()
+    with pytest.raises(LinkClosed, match="closed"):
+        await plc.read_inputs()
+
+
+async def test_custom_map_serves_and_drives_the_same_signals() -> None:
+    plc_map = PlcMap.from_toml(full_table())
+    timing = PlcTiming(clamp_s=0.1)
+    async with PlcEmulator(plc_map, time_scale=TIME_SCALE, timing=timing) as emulator:
+        await emulator.start()
+        async with await ModbusPlc.connect(emulator.url, plc_map, timeout=1.0) as plc:
+            await plc.write("clamp_2", True)
+            inputs = await plc.wait_for("clamp_closed_2", True, timeout=WAIT)
+            assert inputs["estop_ok"] is True
+            assert emulator.coils["clamp_2"] is True

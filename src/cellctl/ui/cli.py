@@ -6,6 +6,7 @@ import click
 
 from cellctl import __version__
 from cellctl.ui.emulate_cli import emulate
+from cellctl.ui.orders_cli import alarm, orders, part, reports, submit
 from cellctl.ui.robot_cli import robot
 
 
@@ -25,3 +26,8 @@ def main(cell: str) -> None:
 
 main.add_command(robot)
 main.add_command(emulate)
+main.add_command(submit)
+main.add_command(orders)
+main.add_command(reports)
+main.add_command(alarm)
+main.add_command(part)

@@ -1,0 +1,217 @@
+"""``cellctl submit|orders|reports|alarm|part`` on a temporary cell directory."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner, Result
+
+from cellctl.cell.journal import open_journal
+from cellctl.mailbox import open_mailbox
+from cellctl.ui.cli import main
+
+CELL_TOML = """
+[parts.wax-robot]
+route = ["cnc1", "cnc2"]
+
+[parts.toy-mill]
+route = ["cnc1"]
+"""
+
+
+@dataclass(frozen=True)
+class AnOrder:
+    id: str
+    part_type: str
+    qty: int
+
+
+@pytest.fixture
+def cell(tmp_path: Path) -> Path:
+    directory = tmp_path / "cell"
+    directory.mkdir()
+    (directory / "cell.toml").write_text(CELL_TOML)
+    return directory
+
+
+def cellctl(cell: Path, *args: str) -> Result:
+    # A wide terminal, so rich tables keep each row on one line.
+    return CliRunner().invoke(main, ["--cell", str(cell), *args], env={"COLUMNS": "200"})
+
+
+def test_submit_posts_an_order_once(cell: Path) -> None:
+    result = cellctl(cell, "submit", "wax-robot", "--qty", "3", "--priority", "2", "--id", "A17")
+    assert result.exit_code == 0, result.output
+    assert "order A17 posted: 3 × wax-robot, priority 2" in result.stdout
+
+    again = cellctl(cell, "submit", "wax-robot", "--qty", "5", "--id", "A17")
+    assert again.exit_code == 0
+    assert "order A17 was posted before (posted): nothing changed" in again.stdout
+
+    with open_mailbox(cell) as mailbox:
+        order = mailbox.get_order("A17")
+        assert (order.part_type, order.qty, order.priority, order.state) == (
+            "wax-robot",
+            3,
+            2,
+            "posted",
+        )
+
+
+def test_submit_refuses_a_part_type_the_cell_does_not_know(cell: Path) -> None:
+    result = cellctl(cell, "submit", "teapot")
+    assert result.exit_code == 2
+    assert "unknown part type 'teapot' (known in cell.toml: toy-mill, wax-robot)" in result.stderr
+    assert not (cell / "mailbox.sqlite3").exists()
+
+
+def test_submit_without_cell_toml_warns_and_posts(tmp_path: Path) -> None:
+    result = cellctl(tmp_path / "bare", "submit", "anything", "--id", "x1")
+    assert result.exit_code == 0, result.output
+    assert "warning" in result.stderr and "not checked" in result.stderr
+    with open_mailbox(tmp_path / "bare") as mailbox:
+        assert mailbox.get_order("x1").part_type == "anything"
+
+
+def test_submit_refuses_zero_quantity(cell: Path) -> None:
+    assert cellctl(cell, "submit", "wax-robot", "--qty", "0").exit_code == 2
+
+
+def test_orders_lists_by_priority_with_states(cell: Path) -> None:
+    assert cellctl(cell, "orders").stdout.startswith("no orders")
+    for oid, prio in [("low", "0"), ("high", "5")]:
+        assert cellctl(cell, "submit", "toy-mill", "--id", oid, "--priority", prio).exit_code == 0
+    with open_mailbox(cell) as mailbox:
+        mailbox.set_order_state("low", "accepted")
+
+    result = cellctl(cell, "orders")
+    assert result.exit_code == 0, result.output
+    rows = [line for line in result.stdout.splitlines() if "toy-mill" in line]
+    assert "high" in rows[0] and "posted" in rows[0]
+    assert "low" in rows[1] and "accepted" in rows[1]
+
+    only = cellctl(cell, "orders", "--state", "accepted")
+    assert "low" in only.stdout and "high" not in only.stdout
+
+
+def test_reports_lists_what_the_cell_posted(cell: Path) -> None:
+    assert cellctl(cell, "reports").stdout.startswith("no reports")
+    with open_mailbox(cell) as mailbox:
+        mailbox.post_report("order-accepted", "order A17 accepted", order_id="A17")
+        mailbox.post_report("step-started", "cnc1 ROUGH on A17-1", order_id="A17", part_id="A17-1")
+    result = cellctl(cell, "reports")
+    assert result.exit_code == 0
+    assert "order-accepted" in result.stdout and "step-started" in result.stdout
+    later = cellctl(cell, "reports", "--since", "1")
+    assert "order-accepted" not in later.stdout and "A17-1" in later.stdout
+
+
+def held_after_crash(cell: Path, kind: str = "machine") -> str:
+    """A part held because a step was in flight when the controller died."""
+    with open_journal(cell) as journal:
+        (part, *_) = journal.create_parts(AnOrder("A17", "wax-robot", 2))
+        if kind == "machine":
+            journal.begin_step(part.id, "machine", "cnc1", "ROUGH")
+        else:
+            journal.begin_step(part.id, "transfer", "robot", "conveyor-to-cnc1")
+        journal.recover()
+    return part.id
+
+
+def test_release_a_held_part(cell: Path) -> None:
+    part_id = held_after_crash(cell)
+    listed = cellctl(cell, "part", "list", "--status", "held")
+    assert part_id in listed.stdout and "needs inspection" in listed.stdout
+    assert "A17-2" not in listed.stdout
+
+    result = cellctl(cell, "part", "release", part_id)
+    assert result.exit_code == 0, result.output
+    assert "counts as done" in result.stdout
+    with open_journal(cell) as journal:
+        assert journal.get_part(part_id).status == "waiting"
+        assert journal.step_done(part_id, "machine", "cnc1", "ROUGH", 0)
+    with open_mailbox(cell) as mailbox:
+        (report,) = mailbox.reports()
+        assert (report.kind, report.part_id, report.order_id) == ("part-released", part_id, "A17")
+        assert report.data["redo"] is False
+
+    again = cellctl(cell, "part", "release", part_id)
+    assert again.exit_code == 2
+    assert "is waiting: it cannot be released" in again.stderr
+
+
+def test_release_with_redo(cell: Path) -> None:
+    part_id = held_after_crash(cell)
+    result = cellctl(cell, "part", "release", part_id, "--redo")
+    assert result.exit_code == 0, result.output
+    with open_journal(cell) as journal:
+        assert not journal.step_done(part_id, "machine", "cnc1", "ROUGH", 0)
+
+
+def test_release_after_interrupted_transfer_asks_where_the_part_is(cell: Path) -> None:
+    part_id = held_after_crash(cell, kind="transfer")
+    refused = cellctl(cell, "part", "release", part_id)
+    assert refused.exit_code == 2
+    assert "say where it is now" in refused.stderr
+    result = cellctl(cell, "part", "release", part_id, "--at", "cnc1")
+    assert result.exit_code == 0, result.output
+    with open_journal(cell) as journal:
+        assert journal.get_part(part_id).location == "cnc1"
+
+
+def test_scrap_a_held_part(cell: Path) -> None:
+    part_id = held_after_crash(cell)
+    result = cellctl(cell, "part", "scrap", part_id, "--reason", "gouged by the cutter")
+    assert result.exit_code == 0, result.output
+    with open_journal(cell) as journal:
+        part = journal.get_part(part_id)
+        assert (part.status, part.note) == ("scrapped", "gouged by the cutter")
+    with open_mailbox(cell) as mailbox:
+        (report,) = mailbox.reports()
+        assert report.kind == "part-scrapped"
+        assert report.data["reason"] == "gouged by the cutter"
+
+
+def test_part_commands_on_a_cell_that_never_ran(cell: Path) -> None:
+    assert cellctl(cell, "part", "list").stdout.startswith("no parts")
+    result = cellctl(cell, "part", "release", "A17-1")
+    assert result.exit_code == 2
+    assert "no journal" in result.stderr
+
+
+def test_unknown_part(cell: Path) -> None:
+    held_after_crash(cell)
+    result = cellctl(cell, "part", "scrap", "nope")
+    assert result.exit_code == 2
+    assert result.stderr.strip() == "error: no part 'nope'"
+
+
+def test_alarm_list_and_clear_while_the_controller_holds_the_journal(cell: Path) -> None:
+    # The controller keeps its journal open; the operator's clear is a fact it reads next poll.
+    with open_journal(cell) as controller:
+        alarm, _ = controller.raise_alarm("cnc1", "64", "door open")
+        listed = cellctl(cell, "alarm", "list")
+        assert "door open" in listed.stdout and "active" in listed.stdout
+
+        result = cellctl(cell, "alarm", "clear", str(alarm.id))
+        assert result.exit_code == 0, result.output
+        assert f"alarm {alarm.id} cleared" in result.stdout
+        assert controller.active_alarms() == []
+        assert controller.get_alarm(alarm.id).cleared_by == "operator"
+
+        assert "no active alarms" in cellctl(cell, "alarm", "list").stdout
+        assert "door open" in cellctl(cell, "alarm", "list", "--all").stdout
+        again = cellctl(cell, "alarm", "clear", str(alarm.id))
+        assert again.exit_code == 0
+        assert "already cleared" in again.stdout
+
+    with open_mailbox(cell) as mailbox:
+        (report,) = mailbox.reports()
+        assert report.kind == "alarm-cleared"
+        assert report.data == {"alarm": alarm.id, "machine": "cnc1", "code": "64", "by": "operator"}
+
+    missing = cellctl(cell, "alarm", "clear", "99")
+    assert missing.exit_code == 2
+    assert "no alarm 99" in missing.stderr

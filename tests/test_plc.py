@@ -3,10 +3,17 @@
 from __future__ import annotations
 
 import asyncio
+import os
+import re
+import signal
+import subprocess
+import sys
 from collections.abc import AsyncIterator
+from pathlib import Path
 from typing import Any
 
 import pytest
+from click.testing import CliRunner
 
 from cellctl.drivers.plc import ModbusPlc
 from cellctl.emulators.plc import FAULTS, PlcEmulator, PlcTiming
@@ -20,6 +27,7 @@ from cellctl.protocol.plc import (
     describe,
     parse_modbus_url,
 )
+from cellctl.ui.cli import main
 
 from .conftest import free_port
 
@@ -376,3 +384,53 @@ async def test_custom_map_serves_and_drives_the_same_signals() -> None:
             inputs = await plc.wait_for("clamp_closed_2", True, timeout=WAIT)
             assert inputs["estop_ok"] is True
             assert emulator.coils["clamp_2"] is True
+
+
+# -- command line -------------------------------------------------------------------------------
+
+
+def test_cli_emulate_plc_then_status_set_and_pulse(tmp_path: Path) -> None:
+    url = f"modbus://127.0.0.1:{free_port()}"
+    cellctl = [sys.executable, "-c", "from cellctl.ui.cli import main; main()"]
+    proc = subprocess.Popen(
+        [*cellctl, "--cell", str(tmp_path), "emulate", "plc", "--listen", url, "--time-scale", "9"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    try:
+        assert proc.stdout is not None
+        assert f"listening on {url}" in proc.stdout.readline()
+        runner = CliRunner()
+        base = ["--cell", str(tmp_path), "plc", "--url", url]
+        done = runner.invoke(main, [*base, "set", "door[2]", "1"])
+        assert done.exit_code == 0, done.output
+        done = runner.invoke(main, [*base, "pulse", "go_1", "--seconds", "0.05"])
+        assert done.exit_code == 0, done.output
+        done = runner.invoke(main, [*base, "status"])
+        assert done.exit_code == 0, done.output
+        assert re.search(r"door_2 +1 +@5 +door of CNC 2: 1 = open", done.output)
+        assert re.search(r"go_1 +0 ", done.output)
+        refused = runner.invoke(main, [*base, "set", "pallet_present", "1"])
+        assert refused.exit_code == 2
+        assert "pallet_present is an input" in refused.output
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=10)
+    assert "PLC emulator stopped" in out
+
+
+def test_cli_reads_the_map_from_cell_toml(tmp_path: Path) -> None:
+    port = free_port()
+    (tmp_path / "cell.toml").write_text(
+        f'[plc]\nurl = "modbus://127.0.0.1:{port}"\ntimeout = 0.5\n'
+        "coils = { pallet_request = 0, door_1 = 1 }\n"
+    )
+    done = CliRunner().invoke(main, ["--cell", str(tmp_path), "plc", "status"])
+    assert done.exit_code == 2
+    assert "coils: missing pallet_release" in done.output
+    (tmp_path / "cell.toml").write_text(f'[plc]\nurl = "modbus://127.0.0.1:{port}"\n')
+    done = CliRunner().invoke(main, ["--cell", str(tmp_path), "plc", "status"])
+    assert done.exit_code == 3  # nothing listens there: a link error, said once
+    assert f"cannot reach the PLC at modbus://127.0.0.1:{port}" in done.output

@@ -7,6 +7,7 @@ import click
 from cellctl import __version__
 from cellctl.ui.emulate_cli import emulate
 from cellctl.ui.orders_cli import alarm, orders, part, reports, submit
+from cellctl.ui.plc_cli import plc
 from cellctl.ui.robot_cli import robot
 
 
@@ -31,3 +32,4 @@ main.add_command(orders)
 main.add_command(reports)
 main.add_command(alarm)
 main.add_command(part)
+main.add_command(plc)

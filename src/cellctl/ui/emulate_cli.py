@@ -11,6 +11,7 @@ from cellctl.emulators.serve import EmulatedDevice, parse_fault, serve
 from cellctl.errors import UsageError
 from cellctl.link import ROBOT_LINE, LineSettings
 from cellctl.ui.common import console, run
+from cellctl.ui.plc_cli import emulate_plc
 
 
 @click.group()
@@ -89,3 +90,4 @@ def _robot_command() -> click.Command:
 
 
 emulate.add_command(_robot_command())
+emulate.add_command(emulate_plc)

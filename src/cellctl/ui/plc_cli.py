@@ -1,0 +1,169 @@
+"""``cellctl plc`` (read and switch the cell PLC's signals) and ``cellctl emulate plc``.
+
+The PLC and its IO map come from ``[plc]`` in the cell's ``cell.toml`` (assumed defaults if
+there is none); ``--url`` overrides where it is::
+
+    cellctl plc status                          # every input and coil, with its meaning
+    cellctl plc --url modbus://10.0.0.9 set door_1 1
+    cellctl plc pulse go_2 --seconds 0.5
+    cellctl emulate plc --listen modbus://127.0.0.1:5020 --time-scale 10 --fault no-pallet
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import signal
+
+import click
+
+from cellctl.emulators.plc import FAULTS, PlcEmulator
+from cellctl.emulators.serve import parse_fault
+from cellctl.errors import UsageError
+from cellctl.protocol.plc import SIGNALS, PlcMap
+from cellctl.ui.common import cell_dir, console, run
+from cellctl.ui.machines import load_cell_file
+
+
+def _quiet_pymodbus() -> None:
+    # pymodbus logs each failure it hands back; the command prints it once, as a typed error.
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+
+
+def plc_map_for(ctx: click.Context, url: str | None) -> PlcMap:
+    """The ``[plc]`` map of the cell's ``cell.toml`` (defaults if none), at ``url`` if given."""
+    _quiet_pymodbus()
+    table = dict(load_cell_file(cell_dir(ctx)).get("plc", {}))
+    if url:
+        table["url"] = url
+    return PlcMap.from_toml(table)
+
+
+@click.group()
+@click.option("--url", help="PLC address, modbus://HOST[:PORT] (default: [plc] in cell.toml).")
+@click.option("--timeout", type=float, help="Seconds each request may take.")
+@click.pass_context
+def plc(ctx: click.Context, url: str | None, timeout: float | None) -> None:
+    """The cell PLC over Modbus/TCP: sensors (inputs) and actuators (coils)."""
+    ctx.ensure_object(dict)
+    ctx.obj["plc_url"] = url
+    ctx.obj["plc_timeout"] = timeout
+
+
+def _target(ctx: click.Context) -> tuple[PlcMap, float | None]:
+    obj = ctx.find_object(dict) or {}
+    return plc_map_for(ctx, obj.get("plc_url")), obj.get("plc_timeout")
+
+
+@plc.command()
+@click.pass_context
+def status(ctx: click.Context) -> None:
+    """Show every input and coil: level, address, meaning."""
+
+    async def main() -> None:
+        from cellctl.drivers.plc import ModbusPlc
+
+        plc_map, timeout = _target(ctx)  # inside run(): a bad [plc] table is a usage error
+
+        async with await ModbusPlc.connect(plc_map.url, plc_map, timeout=timeout) as driver:
+            inputs = await driver.read_inputs()
+            coils = await driver.read_coils()
+        console.print(f"PLC at {plc_map.url} (unit {plc_map.unit})")
+        for title, levels, addresses in (
+            ("inputs", inputs, plc_map.inputs),
+            ("coils", coils, plc_map.coils),
+        ):
+            console.print(f"{title}:")
+            for name, level in levels.items():
+                console.print(
+                    f"  {name:<16} {int(level)}  @{addresses[name]:<5} {SIGNALS[name].meaning}"
+                )
+
+    run(main)
+
+
+@plc.command("set")
+@click.argument("name")
+@click.argument("value", type=click.Choice(["0", "1"]))
+@click.pass_context
+def set_coil(ctx: click.Context, name: str, value: str) -> None:
+    """Set coil NAME to 0 or 1 (e.g. ``set door_1 1`` opens the door of CNC 1)."""
+
+    async def main() -> None:
+        from cellctl.drivers.plc import ModbusPlc
+
+        plc_map, timeout = _target(ctx)  # inside run(): a bad [plc] table is a usage error
+
+        plc_map.kind_of(name)  # an unknown name is refused before connecting
+        async with await ModbusPlc.connect(plc_map.url, plc_map, timeout=timeout) as driver:
+            await driver.write(name, value == "1")
+        console.print(f"{name} = {value}")
+
+    run(main)
+
+
+@plc.command()
+@click.argument("name")
+@click.option("--seconds", type=float, default=0.5, show_default=True, help="Pulse length.")
+@click.pass_context
+def pulse(ctx: click.Context, name: str, seconds: float) -> None:
+    """Set coil NAME to 1 for a moment, then 0 (e.g. ``pulse go_1`` starts CNC 1)."""
+
+    async def main() -> None:
+        from cellctl.drivers.plc import ModbusPlc
+
+        plc_map, timeout = _target(ctx)  # inside run(): a bad [plc] table is a usage error
+
+        plc_map.kind_of(name)
+        async with await ModbusPlc.connect(plc_map.url, plc_map, timeout=timeout) as driver:
+            await driver.pulse(name, seconds)
+        console.print(f"{name} pulsed for {seconds:g} s")
+
+    run(main)
+
+
+_FAULT_HELP = "; ".join(f"{k}: {v}" for k, v in FAULTS.items())
+
+
+@click.command("plc", help=f"Emulate the cell PLC (Modbus/TCP). Faults: {_FAULT_HELP}")
+@click.option(
+    "--listen",
+    default=None,
+    help="modbus://HOST:PORT (port 0: a free one). Default: [plc] url in cell.toml.",
+)
+@click.option(
+    "--time-scale",
+    type=float,
+    default=1.0,
+    show_default=True,
+    help="Machine times divided by this (10 = ten times faster).",
+)
+@click.option("--fault", multiple=True, metavar="NAME[=ARG]", help="Fault switch.")
+@click.pass_context
+def emulate_plc(
+    ctx: click.Context, listen: str | None, time_scale: float, fault: tuple[str, ...]
+) -> None:
+    """Serve an emulated PLC until Ctrl-C or SIGTERM."""
+
+    async def main() -> None:
+        plc_map = plc_map_for(ctx, listen)
+        device = PlcEmulator(plc_map, time_scale=time_scale)
+        for text in fault:
+            name, arg = parse_fault(text)
+            if name not in FAULTS:
+                raise UsageError(f"unknown fault {name!r}; known: {', '.join(FAULTS)}")
+            device.set_fault(name, arg)
+        url = await device.start(plc_map.url)
+        console.print(f"PLC emulator listening on {url}  (unit any, time x{time_scale:g})")
+        console.print(f"  drive it with: cellctl plc --url {url} status")
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        try:
+            await stop.wait()
+        finally:
+            await device.close()
+            console.print("PLC emulator stopped")
+
+    run(main)

@@ -109,8 +109,8 @@ def test_bad_arguments_are_refused(journal: Journal) -> None:
     journal.create_parts(AnOrder("o", "p", 1))
     with pytest.raises(UsageError, match="unknown step kind"):
         journal.begin_step("o-1", "polish", "cnc1", "X")
-    with pytest.raises(UsageError, match="unknown location"):
-        journal.move_part("o-1", "floor")
+    with pytest.raises(UsageError, match="one word"):
+        journal.move_part("o-1", "the floor")
     with pytest.raises(UsageError, match="no part"):
         journal.begin_step("nope", "machine", "cnc1", "X")
     step = journal.begin_step("o-1", "machine", "cnc1", "X")

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -215,3 +218,27 @@ def test_alarm_list_and_clear_while_the_controller_holds_the_journal(cell: Path)
     missing = cellctl(cell, "alarm", "clear", "99")
     assert missing.exit_code == 2
     assert "no alarm 99" in missing.stderr
+
+
+RUN_CLI = "import sys; from cellctl.ui.cli import main; sys.exit(main())"
+
+
+def test_reports_follow_prints_new_reports_as_they_come(cell: Path) -> None:
+    with open_mailbox(cell) as mailbox:
+        mailbox.post_report("order-accepted", "order A17 accepted", order_id="A17")
+        follower = subprocess.Popen(
+            [sys.executable, "-c", RUN_CLI, "--cell", str(cell), "reports", "--follow"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env={**os.environ, "COLUMNS": "200"},
+        )
+        try:
+            assert follower.stdout is not None
+            assert "order A17 accepted" in follower.stdout.readline()
+            mailbox.post_report("order-done", "order A17 done", order_id="A17")
+            line = follower.stdout.readline()
+            assert "order-done" in line and "order A17 done" in line
+        finally:
+            follower.terminate()
+            follower.communicate(timeout=30)

@@ -44,7 +44,8 @@ from cellctl.errors import UsageError
 #: The journal's file name inside the cell directory.
 JOURNAL_FILE = "journal.sqlite3"
 
-#: Where a part can be.
+#: Where a part usually is. Any one-word name is accepted (the cell's machine names come from
+#: ``cell.toml``); these are the names of the laboratory cell.
 LOCATIONS: Final = ("conveyor", "robot", "cnc1", "cnc2", "out")
 #: Part statuses: ``waiting`` (no step in flight), ``active`` (one step in flight), ``done``,
 #: ``held`` (needs the operator: inspection after an interrupted or failed step), ``scrapped``.
@@ -342,7 +343,7 @@ class Journal:
             if step is not None and step.kind == "transfer" and location is None:
                 raise UsageError(
                     f"part {part_id} was held after an interrupted transfer: "
-                    f"say where it is now ({', '.join(LOCATIONS)})"
+                    f"say where it is now (e.g. {', '.join(LOCATIONS)})"
                 )
             if step is not None:
                 db.execute(
@@ -656,8 +657,8 @@ def _connect(path: Path) -> sqlite3.Connection:
 
 
 def _check_location(location: str) -> None:
-    if location not in LOCATIONS:
-        raise UsageError(f"unknown location {location!r} (known: {', '.join(LOCATIONS)})")
+    if not location or any(c.isspace() for c in location):
+        raise UsageError(f"a location is one word, e.g. {', '.join(LOCATIONS)}; not {location!r}")
 
 
 def _require(part: Part, statuses: tuple[str, ...], action: str) -> None:

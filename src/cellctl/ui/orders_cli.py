@@ -328,8 +328,8 @@ def part_list(ctx: click.Context, statuses: Sequence[str], order_id: str | None)
 @click.option(
     "--at",
     "location",
-    type=click.Choice(LOCATIONS),
-    help="Where the part is now (needed after an interrupted transfer).",
+    metavar="LOCATION",
+    help=f"Where the part is now ({', '.join(LOCATIONS)}); needed after an interrupted transfer.",
 )
 @click.pass_context
 def part_release(ctx: click.Context, part_id: str, redo: bool, location: str | None) -> None:

@@ -10,6 +10,7 @@ from typing import Any, TypeVar
 
 import click
 from rich.console import Console
+from rich.markup import escape
 
 from cellctl.errors import CellctlError, DeviceError, LinkError, ProtocolError, UsageError
 
@@ -40,7 +41,7 @@ def run(coro_fn: Callable[[], Coroutine[Any, Any, T]]) -> T:
     try:
         return asyncio.run(coro_fn())
     except CellctlError as e:
-        err_console.print(f"[red]error:[/red] {e}", markup=True, soft_wrap=True)
+        err_console.print(f"[red]error:[/red] {escape(str(e))}", markup=True, soft_wrap=True)
         sys.exit(exit_code(e))
     except KeyboardInterrupt:
         err_console.print("interrupted")

@@ -27,6 +27,7 @@ LF = 0x0A
 CTRL_Z = 0x1A  # end of a transmission
 DC1 = 0x11  # in-band readiness: the controller's RTS went high (project's fallback)
 DC3 = 0x13  # in-band readiness: the controller's RTS went low (project's fallback)
+ENQ = 0x05  # in-band readiness: the host asks for the current level (project's fallback)
 LINE_END = b"\r\n"  # what cellctl sends; the controller accepts CR LF, LF CR or LF
 
 # --- memory and blocks --------------------------------------------------------------------------

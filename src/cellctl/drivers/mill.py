@@ -1,0 +1,786 @@
+"""Dyna 2400 CNC mill driver.
+
+One :class:`Dyna2400Mill` per mill; it owns its link and its host-kept state (the spec's
+states 0-4, whether it was initialized, the units and feeds of its setup program), saved in
+the cell directory like the robot's::
+
+    mill = await Dyna2400Mill.connect("rfc2217://cellhost:7002", name="cnc1",
+                                      store=StateStore("cell"))
+    await mill.initialize("cnc1_setup.dyn")      # operator jogs to the reference zero, NEXT
+    print(await mill.status())                   # state 1 "reference zero not set" ... 2
+    await mill.download("base_rough.dyn")        # validated, split, streamed block by block
+    await mill.end()                             # the END program: back to manual, state 0
+    await mill.close()
+
+The link (spec ``dyna2400-cnc.md``): DYNALAN lines ending CR LF, Ctrl-Z ends a transmission.
+The controller says it is ready on its RTS, seen by the host as CTS: high = ready for a block;
+low = the reference zero is not set yet, or a block is executing. Over a serial port or RFC
+2217 the driver reads CTS from the line. Links that cannot carry modem lines (a pty, raw TCP)
+are refused at connect time unless ``readiness="inband"`` is chosen: the project's fallback, in
+which the controller (or a device server in front of it) also sends DC1 when RTS goes high and
+DC3 when it goes low, and answers ENQ with the current one (the mill emulator does with
+``readiness="inband"``).
+
+Program execute: each block (at most 900 lines, closed by ``SKIP TO 900`` / ``900``) is sent
+once CTS is high; the controller takes it (CTS goes low), runs it, and raises CTS for the next.
+Every wait has a deadline: ``ready_wait`` for READY, ``accept_timeout`` (plus the wire time) for
+a block to be taken, the block's estimated machining time times ``block_margin`` plus
+``block_extra`` for it to finish. Programs are validated before a byte goes out.
+
+Results: success returns a :class:`Result` with the source's message (code 0); a refusal
+raises :class:`DeviceError` (the machine's state) or :class:`MillInputError` (the file),
+both carrying the spec's result code and message.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+from cellctl.drivers.state import StateStore, machine_key
+from cellctl.errors import DeviceError, LinkTimeout, UsageError
+from cellctl.link import MILL_LINE, LineSettings, Link, TrafficLog, open_link
+from cellctl.protocol.dynalan import (
+    Block,
+    Kind,
+    MachineConfig,
+    MachineState,
+    Program,
+    ProgramRole,
+    Travel,
+    Units,
+    Validation,
+    ValidationContext,
+    parse_program,
+    validate,
+)
+from cellctl.protocol.dynalan.table import AXES, CTRL_Z, DC1, DC3, ENQ, LINE_END
+
+#: Machine states, as the source's STATUS() prints them.
+MILL_STATES = {
+    0: "Uninitialized, not ready",
+    1: "Uninitialized, Ready",
+    2: "Initialized",
+    3: "Downloaded, active",
+    4: "Go, active",
+}
+INITIALIZE_RESULTS = {
+    0: "Initializing was correct",
+    1: "Machine already initialized",
+    2: "Machine code error",
+    3: "Forcing function error",
+    4: "Machine not ready",
+    5: "Initializing file error",
+}
+DOWNLOAD_RESULTS = {
+    0: "Download was correct",
+    1: "Machine not initialized",
+    2: "Absolute zero not set / Machine executing program",
+    3: "Machine code error",
+    4: "File not found",
+    5: "Not a valid program",
+}
+END_RESULTS = {0: "Ending was correct", 1: "Machine code error", 2: "Could not open file"}
+REFERENCE_ZERO_NOT_SET = "reference zero not set"
+EXECUTING = "executing"
+END_PROGRAM = "000 END"
+
+#: How far ahead of the wire the driver lets its writes run (seconds of line time).
+_WRITE_AHEAD_S = 0.25
+
+
+class MillInputError(UsageError):
+    """A program or setup file refused before any byte went out: ``code`` is the spec's result
+    (download 4 file not found, 5 not a valid program; initialize 5 file error), ``problems``
+    the validator's findings."""
+
+    def __init__(
+        self, code: int, message: str, detail: str, problems: Sequence[object] = ()
+    ) -> None:
+        self.code = code
+        self.message = message
+        self.problems = list(problems)
+        super().__init__(f"{message} (code {code}): {detail}")
+
+
+@dataclass(frozen=True)
+class Result:
+    """A successful call: code 0 and the source's message."""
+
+    code: int
+    message: str
+
+
+@dataclass(frozen=True)
+class MillStatus:
+    """What ``status()`` reports: the state, its special condition, and CTS."""
+
+    state: int
+    ready: bool  # CTS high
+    condition: str | None = None  # REFERENCE_ZERO_NOT_SET or EXECUTING
+
+    @property
+    def state_text(self) -> str:
+        return MILL_STATES.get(self.state, f"state {self.state}")
+
+    def __str__(self) -> str:
+        extra = f", {self.condition}" if self.condition else ""
+        cts = "high" if self.ready else "low"
+        return f"state {self.state} ({self.state_text}{extra}; CTS {cts})"
+
+
+@dataclass(frozen=True)
+class MillConfig:
+    """Deadlines and per-machine facts; every one can be set per mill (``cell.toml`` options)."""
+
+    readiness: str = "modem"
+    """``modem``: CTS from the line (serial, RFC 2217). ``inband``: DC1/DC3 (project's own)."""
+    ready_wait: float = 2.0
+    """Seconds the controller may take to show READY before "Machine not ready"."""
+    accept_timeout: float = 5.0
+    """Seconds after a block's last byte for the controller to take it (CTS low)."""
+    block_margin: float = 2.0
+    """A block may run this many times its estimated machining time ..."""
+    block_extra: float = 60.0
+    """... plus this many seconds, before the driver gives up on it."""
+    setup_timeout: float = 1800.0
+    """Seconds the operator may take to jog to the reference zero and press NEXT."""
+    upload_timeout: float = 120.0
+    """Seconds to wait for an upload to start and end (the operator starts it)."""
+    pace_writes: bool = True
+    """Write no faster than the line carries (honest progress, bounded buffers)."""
+    go_pulse: float = 0.5
+    """Seconds the start output stays on for GO."""
+    travel: Travel = field(default_factory=Travel)
+    rapid_rate: float = 50.0
+    end_program: str | None = None
+    """Path of the END program; the built-in ``000 END`` if None."""
+
+    @classmethod
+    def from_options(cls, options: dict[str, Any]) -> MillConfig:
+        """From ``cell.toml`` options; ``travel`` is a table of x_min ... z_max."""
+        fields = set(cls.__dataclass_fields__)
+        unknown = set(options) - fields
+        if unknown:
+            raise UsageError(f"unknown mill option(s): {', '.join(sorted(unknown))}")
+        values = dict(options)
+        if "travel" in values:
+            values["travel"] = Travel(**values["travel"])
+        return cls(**values)
+
+    def machine(self) -> MachineConfig:
+        return MachineConfig(travel=self.travel, rapid_rate=self.rapid_rate)
+
+
+class StartOutput(Protocol):
+    """A digital output wired to the controller's cycle-start input (through the cell's PLC)."""
+
+    async def pulse(self, seconds: float) -> None: ...
+
+
+class CallbackOutput:
+    """A start output that calls ``fn`` (e.g. a PLC client's coil write, or an emulator's
+    ``cycle_start``)."""
+
+    def __init__(self, fn: Callable[[], object]) -> None:
+        self._fn = fn
+
+    async def pulse(self, seconds: float) -> None:
+        result = self._fn()
+        if asyncio.iscoroutine(result):
+            await result
+
+
+@dataclass
+class Progress:
+    """Where a download stands; passed to the progress callback after every line."""
+
+    block: int
+    blocks: int
+    lines_sent: int
+    lines_total: int
+    bytes_sent: int
+    bytes_total: int
+    phase: str  # "waiting" (for CTS), "sending", "machining", "done"
+
+
+@dataclass
+class BlockTiming:
+    """One block of a download: bytes, when sending began, when taken (CTS low), when done."""
+
+    block: int
+    bytes: int
+    lines: int
+    started: float
+    taken: float = 0.0
+    done: float = 0.0
+
+    @property
+    def transfer_s(self) -> float:
+        return self.taken - self.started
+
+    @property
+    def machining_s(self) -> float:
+        return self.done - self.taken if self.done else 0.0
+
+
+ProgressCallback = Callable[[Progress], None]
+
+
+class _Readiness:
+    """The controller's RTS as the host sees it: CTS, or DC1/DC3 in the data (inband)."""
+
+    def __init__(self, link: Link, inband: bool) -> None:
+        self.link = link
+        self.inband = inband
+        self._level: bool | None = None
+        self.lows = 0  # inband: DC3 seen so far (a low we might otherwise miss)
+
+    def _scan(self, data: bytes) -> None:
+        for byte in data:
+            if byte == DC1:
+                self._level = True
+            elif byte == DC3:
+                self._level = False
+                self.lows += 1
+
+    async def level(self, timeout: float = 2.0) -> bool:
+        if not self.inband:
+            return await self.link.cts()
+        self._scan(self.link.reset_input())
+        if self._level is None:
+            await self.link.write(bytes([ENQ]))
+            deadline = time.monotonic() + timeout
+            while self._level is None:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise LinkTimeout(f"{self.link.url}: no DC1/DC3 readiness from the controller")
+                self._scan(await self.link.read(timeout=left))
+        return self._level
+
+    async def wait(self, level: bool, timeout: float, *, lows_before: int | None = None) -> None:
+        """Wait until the level is ``level`` (or, for low, a DC3 came after ``lows_before``)."""
+        if not self.inband:
+            await self.link.wait_cts(level, timeout=timeout)
+            return
+        deadline = time.monotonic() + timeout
+        while True:
+            current = await self.level(timeout=max(0.0, deadline - time.monotonic()))
+            if current == level or (
+                not level and lows_before is not None and self.lows > lows_before
+            ):
+                return
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise LinkTimeout(
+                    f"{self.link.url}: readiness did not go {'high' if level else 'low'} in time"
+                )
+            self._scan(await self.link.read(timeout=left))
+
+
+class Dyna2400Mill:
+    """Driver for one Dyna 2400 mill over any :class:`Link` (see module docstring)."""
+
+    def __init__(
+        self,
+        link: Link,
+        *,
+        name: str | None = None,
+        store: StateStore | None = None,
+        config: MillConfig | None = None,
+        start_output: StartOutput | None = None,
+    ) -> None:
+        self.config = config or MillConfig()
+        if self.config.readiness not in ("modem", "inband"):
+            raise UsageError(f"readiness is 'modem' or 'inband', not {self.config.readiness!r}")
+        if not link.has_modem_lines and self.config.readiness != "inband":
+            raise UsageError(
+                f"{link.url} cannot carry modem lines, and the Dyna 2400 says it is ready on "
+                "RTS/CTS: use a serial port or rfc2217://, or choose the in-band fallback "
+                '(readiness = "inband": DC1/DC3 from the controller side)'
+            )
+        self.link = link
+        self.name = name or link.url
+        self.start_output = start_output
+        self._ready = _Readiness(link, self.config.readiness == "inband")
+        self._store = store
+        self._key = machine_key(self.name)
+        saved: dict[str, Any] = store.load(self._key) if store else {}
+        self.state: int = int(saved.get("state", 0))
+        self.initialized: bool = bool(saved.get("initialized", False))
+        self.units = Units(saved["units"]) if saved.get("units") else None
+        self.feed: dict[str, float] = dict(saved.get("feed", {}))
+        self.tool_diameter: float | None = saved.get("tool_diameter")
+        self.loaded: str | None = saved.get("loaded")
+        self.last_download: list[BlockTiming] = []
+
+    @classmethod
+    async def connect(
+        cls,
+        url: str,
+        *,
+        name: str | None = None,
+        settings: LineSettings = MILL_LINE,
+        store: StateStore | None = None,
+        config: MillConfig | None = None,
+        start_output: StartOutput | None = None,
+        trace: TrafficLog | str | Path | None = None,
+    ) -> Dyna2400Mill:
+        """Open ``url``; refuses (UsageError) a link without modem lines unless inband."""
+        link = await open_link(url, settings, trace=trace, label=name)
+        try:
+            return cls(link, name=name, store=store, config=config, start_output=start_output)
+        except BaseException:
+            await link.close()
+            raise
+
+    async def close(self) -> None:
+        """Close the link."""
+        await self.link.close()
+
+    async def __aenter__(self) -> Dyna2400Mill:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    # -- host-kept state --------------------------------------------------------------------------
+
+    def _save(self) -> None:
+        if self._store is None:
+            return
+        self._store.save(
+            self._key,
+            {
+                "state": self.state,
+                "initialized": self.initialized,
+                "units": self.units.value if self.units else None,
+                "feed": self.feed,
+                "tool_diameter": self.tool_diameter,
+                "loaded": self.loaded,
+            },
+        )
+
+    def _set_state(self, state: int) -> None:
+        self.state = state
+        self._save()
+
+    def context(self, role: ProgramRole = ProgramRole.MILLING) -> ValidationContext:
+        """What the validator should assume for this mill: its setup's units and feeds."""
+        initial = None
+        if self.units is not None:
+            initial = MachineState.initial(self.units)
+            initial.feed.update({a: v for a, v in self.feed.items() if a in AXES})
+            if self.tool_diameter:
+                initial.tool_diameter = self.tool_diameter
+        return ValidationContext(
+            role=role, units=self.units, config=self.config.machine(), initial=initial
+        )
+
+    # -- programs ------------------------------------------------------------------------------
+
+    def check(
+        self, program: str | Path | Program, role: ProgramRole = ProgramRole.MILLING
+    ) -> Validation:
+        """Validate ``program`` (a path or a parsed program) for this mill; nothing is sent."""
+        parsed = program if isinstance(program, Program) else _read(program)
+        return validate(parsed, self.context(role))
+
+    def _valid(
+        self,
+        program: str | Path | Program,
+        role: ProgramRole,
+        results: dict[int, str],
+        missing: int,
+        invalid: int,
+    ) -> Validation:
+        if not isinstance(program, Program) and not Path(program).is_file():
+            raise MillInputError(missing, results[missing], f"{program}: no such file")
+        result = self.check(program, role)
+        if not result.ok or result.blocks is None:
+            first = result.errors[0] if result.errors else None
+            detail = first.format(result.program.name) if first else "it does not split"
+            more = f" (and {len(result.errors) - 1} more)" if len(result.errors) > 1 else ""
+            raise MillInputError(invalid, results[invalid], detail + more, result.errors)
+        return result
+
+    # -- the link --------------------------------------------------------------------------------
+
+    async def _send(
+        self,
+        data: bytes,
+        *,
+        lines: int = 0,
+        progress: Callable[[int, int], None] | None = None,
+        chunks: Sequence[bytes] | None = None,
+    ) -> None:
+        loop = asyncio.get_running_loop()
+        start = loop.time()
+        sent = 0
+        char_time = self.link.settings.char_time
+        for n, piece in enumerate(chunks or [data], start=1):
+            await self.link.write(piece)
+            sent += len(piece)
+            if progress:
+                progress(n, sent)
+            if self.config.pace_writes:
+                ahead = start + sent * char_time - loop.time() - _WRITE_AHEAD_S
+                if ahead > 0:
+                    await asyncio.sleep(ahead)
+
+    def _wire_time(self, nbytes: int) -> float:
+        return self.link.settings.wire_time(nbytes)
+
+    async def _cts(self) -> bool:
+        return await self._ready.level(self.config.ready_wait)
+
+    async def _wait_ready(self, timeout: float) -> bool:
+        try:
+            await self._ready.wait(True, timeout)
+        except LinkTimeout:
+            return False
+        return True
+
+    async def _send_block(
+        self,
+        block: Block,
+        timing: BlockTiming,
+        progress: Callable[[int, int], None] | None,
+    ) -> None:
+        lines = [line.render().encode("ascii") + LINE_END for line in block.lines]
+        lines[-1] += bytes([CTRL_Z])
+        lows = self._ready.lows
+        await self._send(b"", chunks=lines, progress=progress)
+        timeout = self.config.accept_timeout + self._wire_time(len(lines[-1])) + _WRITE_AHEAD_S
+        try:
+            await self._ready.wait(False, timeout, lows_before=lows)
+        except LinkTimeout:
+            raise LinkTimeout(
+                f"{self.name}: the controller did not take block {block.index} of "
+                f"{block.count} (CTS stayed high {timeout:.1f} s after its last line)"
+            ) from None
+        timing.taken = time.monotonic()
+
+    # -- the library functions ---------------------------------------------------------------------
+
+    async def initialize(self, setup_program: str | Path | Program, force: bool = False) -> Result:
+        """INITIALIZE: send the setup program; the operator then sets the reference zero.
+
+        Refusals: 1 already initialized (unless ``force``, after a machine failure), 4 machine
+        not ready (CTS low), 5 initialization file error (missing or not valid). State 1 after.
+        """
+        result = self._valid(setup_program, ProgramRole.SETUP, INITIALIZE_RESULTS, 5, 5)
+        assert result.blocks is not None
+        if len(result.blocks) != 1:
+            raise MillInputError(5, INITIALIZE_RESULTS[5], "a setup program is one block")
+        if self.initialized and not force:
+            raise DeviceError(1, INITIALIZE_RESULTS[1])
+        if not await self._wait_ready(self.config.ready_wait):
+            raise DeviceError(4, INITIALIZE_RESULTS[4], detail="CTS is low: is it READY?")
+        block = result.blocks[0]
+        timing = BlockTiming(1, len(block.wire()) + 1, len(block.lines), time.monotonic())
+        await self._send_block(block, timing, None)
+        self._remember_setup(result)
+        self.initialized = True
+        self._set_state(1)
+        return Result(0, INITIALIZE_RESULTS[0])
+
+    def _remember_setup(self, result: Validation) -> None:
+        units = result.program.units or Units.INS
+        machine = MachineState.initial(units)
+        for line in result.program.lines:
+            stmt = line.statement
+            if stmt is None:
+                continue
+            if stmt.kind is Kind.FEED:
+                for axis in stmt.text["axes"]:
+                    machine.feed[axis] = stmt.value("rate")
+            elif stmt.kind is Kind.TD:
+                machine.tool_diameter = stmt.value("diameter")
+        self.units = units
+        self.feed = dict(machine.feed)
+        self.tool_diameter = machine.tool_diameter
+
+    async def status(self) -> MillStatus:
+        """STATUS: the state (0-4) with "reference zero not set" / "executing" and CTS.
+
+        Reading CTS also moves the host's view on: the operator pressed NEXT (1 -> 2), a block
+        or a started program finished (3/4 -> 2).
+        """
+        ready = await self._cts()
+        if ready and self.state in (1, 3, 4) and self.initialized:
+            self._set_state(2)
+        elif ready and self.state == 0:
+            self._set_state(1)
+        elif not ready and self.state == 1 and not self.initialized:
+            self._set_state(0)
+        condition = None
+        if not ready and self.state == 1:
+            condition = REFERENCE_ZERO_NOT_SET
+        elif not ready and self.state in (2, 3, 4):
+            condition = EXECUTING
+        return MillStatus(self.state, ready, condition)
+
+    async def _ready_for_program(self) -> None:
+        if not self.initialized or self.state == 0:
+            raise DeviceError(1, DOWNLOAD_RESULTS[1])
+        ready = await self._cts()
+        if not ready:
+            if self.state == 1:
+                raise DeviceError(2, "Absolute zero not set")
+            raise DeviceError(2, "Machine executing program")
+        if self.state != 2:
+            self._set_state(2)
+
+    async def download(
+        self,
+        program: str | Path | Program,
+        *,
+        wait: bool = True,
+        progress: ProgressCallback | None = None,
+    ) -> Result:
+        """DOWNLOAD: validate, split into blocks, stream them as the controller asks.
+
+        Refusals before a byte goes out: 1 not initialized, 2 absolute zero not set / machine
+        executing (CTS low), 4 file not found, 5 not a valid program (the validator's first
+        error; all of them in ``problems``). Each block waits for CTS high; the last one leaves
+        the mill in state 3 unless ``wait``, which waits for it to finish (state 2).
+        """
+        result = self._valid(program, ProgramRole.MILLING, DOWNLOAD_RESULTS, 4, 5)
+        assert result.blocks is not None and result.toolpath is not None
+        if any(line.kind is Kind.END for line in result.program.lines):
+            raise MillInputError(
+                5, DOWNLOAD_RESULTS[5], "END belongs in the end program: use end()"
+            )
+        await self._ready_for_program()
+        blocks = result.blocks
+        estimates = result.toolpath.block_seconds
+        bytes_total = sum(len(b.wire()) + 1 for b in blocks)
+        lines_total = sum(len(b.lines) for b in blocks)
+        done_bytes = done_lines = 0
+        self.last_download = []
+        report = progress or (lambda p: None)
+        for block in blocks:
+            k = block.index
+            if k > 1:
+                report(
+                    Progress(
+                        k,
+                        len(blocks),
+                        done_lines,
+                        lines_total,
+                        done_bytes,
+                        bytes_total,
+                        "machining",
+                    )
+                )
+                await self._wait_block_done(blocks[k - 2], estimates[k - 2])
+                self._set_state(2)
+            wire = len(block.wire()) + 1
+            timing = BlockTiming(k, wire, len(block.lines), time.monotonic())
+            self.last_download.append(timing)
+            base_bytes, base_lines = done_bytes, done_lines
+
+            def on_line(
+                n: int, sent: int, k: int = k, b: int = base_bytes, l0: int = base_lines
+            ) -> None:
+                report(
+                    Progress(k, len(blocks), l0 + n, lines_total, b + sent, bytes_total, "sending")
+                )
+
+            await self._send_block(block, timing, on_line)
+            self._set_state(3)
+            done_bytes += wire
+            done_lines += len(block.lines)
+        if wait:
+            report(
+                Progress(
+                    len(blocks),
+                    len(blocks),
+                    lines_total,
+                    lines_total,
+                    bytes_total,
+                    bytes_total,
+                    "machining",
+                )
+            )
+            await self._wait_block_done(blocks[-1], estimates[-1])
+            self._set_state(2)
+        report(
+            Progress(
+                len(blocks), len(blocks), lines_total, lines_total, bytes_total, bytes_total, "done"
+            )
+        )
+        return Result(0, DOWNLOAD_RESULTS[0])
+
+    async def _wait_block_done(self, block: Block, estimate: float) -> None:
+        timeout = estimate * self.config.block_margin + self.config.block_extra
+        if not await self._wait_ready(timeout):
+            raise DeviceError(
+                2,
+                "Machine executing program",
+                detail=f"block {block.index} of {block.count} still running after "
+                f"{timeout:.0f} s (CTS low)",
+            )
+        if self.last_download and self.last_download[-1].block == block.index:
+            self.last_download[-1].done = time.monotonic()
+
+    async def end(self) -> Result:
+        """ENDLOAD / HALT: send the END program; the controller returns to manual, state 0.
+
+        Refusals: 2 could not open the end program; DeviceError 2 while a block executes.
+        """
+        text = self._end_program_text()
+        program = parse_program(text, name="END")
+        result = validate(program, ValidationContext(role=ProgramRole.END))
+        if not result.ok:
+            raise MillInputError(2, END_RESULTS[2], result.errors[0].format("END"))
+        if self.state in (3, 4) and not await self._cts():
+            raise DeviceError(2, "Machine executing program", detail="END would be lost")
+        data = b"".join(line.raw.encode("ascii") + LINE_END for line in program.lines)
+        lows = self._ready.lows
+        await self._send(data + bytes([CTRL_Z]))
+        try:
+            # Back in manual mode the controller drops RTS.
+            timeout = self.config.accept_timeout + self._wire_time(len(data) + 1)
+            await self._ready.wait(False, timeout, lows_before=lows)
+        except LinkTimeout:
+            raise LinkTimeout(
+                f"{self.name}: the controller did not return to manual (CTS stayed high)"
+            ) from None
+        self.initialized = False
+        self.loaded = None
+        self._set_state(0)
+        return Result(0, END_RESULTS[0])
+
+    def _end_program_text(self) -> str:
+        if not self.config.end_program:
+            return END_PROGRAM
+        path = Path(self.config.end_program)
+        if not path.is_file():
+            raise MillInputError(2, END_RESULTS[2], f"{path}: no such file")
+        return path.read_text()
+
+    async def upload(self, *, timeout: float | None = None) -> str:
+        """Receive the controller's program (the operator starts UPLOAD on the panel).
+
+        Returns the text, one line per row; raises LinkTimeout if it does not end in time.
+        """
+        deadline = timeout if timeout is not None else self.config.upload_timeout
+        raw = await self.link.read_until(bytes([CTRL_Z]), timeout=deadline)
+        text = raw[:-1].replace(bytes([DC1]), b"").replace(bytes([DC3]), b"")
+        self._ready._scan(raw.replace(text, b""))
+        rows = [r.strip() for r in text.decode("ascii", "replace").replace("\r", "\n").split("\n")]
+        return "".join(r + "\n" for r in rows if r)
+
+    async def line_execute(
+        self, program: str | Path | Program, *, progress: ProgressCallback | None = None
+    ) -> Result:
+        """LINE EXECUTE: send one line at a time, each once CTS is high (any length, slow).
+
+        SKIP TO and REPEAT cannot work a line at a time and are refused (code 5).
+        """
+        result = self._valid(program, ProgramRole.MILLING, DOWNLOAD_RESULTS, 4, 5)
+        assert result.blocks is not None
+        lines = [line for block in result.blocks for line in block.lines[:-2]]
+        flow = [
+            line
+            for line in lines
+            if line.statement and line.statement.kind in (Kind.SKIP, Kind.REPEAT, Kind.REPEAT_END)
+        ]
+        if flow:
+            raise MillInputError(
+                5, DOWNLOAD_RESULTS[5], "line execute cannot SKIP TO or REPEAT: use download"
+            )
+        total_bytes = sum(len(line.render()) + 2 for line in lines)
+        sent = 0
+        for n, line in enumerate(lines, start=1):
+            if not await self._wait_ready(
+                self.config.ready_wait if n == 1 else self.config.block_extra
+            ):
+                raise DeviceError(4, "Machine not ready", detail=f"before line {n}")
+            data = line.render().encode("ascii") + LINE_END
+            lows = self._ready.lows
+            await self._send(data)
+            sent += len(data)
+            if line.statement is not None and line.statement.kind not in (
+                Kind.COMMENT,
+                Kind.BLANK,
+            ):
+                try:
+                    await self._ready.wait(
+                        False,
+                        self.config.accept_timeout + self._wire_time(len(data)),
+                        lows_before=lows,
+                    )
+                except LinkTimeout:
+                    raise LinkTimeout(
+                        f"{self.name}: the controller did not take line {n}"
+                    ) from None
+            if progress:
+                progress(Progress(1, 1, n, len(lines), sent, total_bytes, "sending"))
+        await self._wait_ready(self.config.block_extra)
+        return Result(0, DOWNLOAD_RESULTS[0])
+
+    async def load(self, program: str | Path | Program) -> Result:
+        """PROGRAM LOAD: store a program of at most 900 lines without running it (see go())."""
+        result = self._valid(program, ProgramRole.MILLING, DOWNLOAD_RESULTS, 4, 5)
+        assert result.blocks is not None
+        if len(result.blocks) != 1:
+            raise MillInputError(
+                5,
+                DOWNLOAD_RESULTS[5],
+                f"program load holds at most 900 lines; this is {len(result.blocks)} blocks: "
+                "use download",
+            )
+        if not await self._wait_ready(self.config.ready_wait):
+            raise DeviceError(4, "Machine not ready", detail="CTS is low")
+        block = result.blocks[0]
+        data = block.wire() + bytes([CTRL_Z])
+        started = asyncio.get_running_loop().time()
+        await self._send(data)
+        # No answer comes for a load: at least let the bytes cross the line before returning.
+        left = started + self._wire_time(len(data)) - asyncio.get_running_loop().time()
+        if left > 0:
+            await asyncio.sleep(left)
+        self.loaded = result.program.name
+        self._save()
+        return Result(0, "Load was correct")
+
+    async def go(self) -> Result:
+        """GO: start the loaded program through the start output (state 4).
+
+        Needs a ``start_output`` (the cell wires it to the PLC) and a loaded program.
+        """
+        if self.start_output is None:
+            raise UsageError(
+                f"{self.name}: no start output configured: GO pulses a digital output wired "
+                "to the controller's start input (start_output=...)"
+            )
+        if self.loaded is None:
+            raise UsageError(f"{self.name}: nothing loaded: load a program first")
+        if not await self._wait_ready(self.config.ready_wait):
+            raise DeviceError(2, "Machine executing program")
+        lows = self._ready.lows
+        await self.start_output.pulse(self.config.go_pulse)
+        try:
+            await self._ready.wait(False, self.config.accept_timeout, lows_before=lows)
+        except LinkTimeout:
+            raise LinkTimeout(
+                f"{self.name}: the controller did not start (CTS stayed high after GO)"
+            ) from None
+        self._set_state(4)
+        return Result(0, "Go was correct")
+
+
+def _read(path: str | Path) -> Program:
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="ascii", errors="replace")
+    except OSError as e:
+        raise MillInputError(4, DOWNLOAD_RESULTS[4], f"{p}: {e.strerror}") from None
+    return parse_program(text, name=p.name)

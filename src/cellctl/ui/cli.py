@@ -6,6 +6,7 @@ import click
 
 from cellctl import __version__
 from cellctl.ui.emulate_cli import emulate
+from cellctl.ui.mill_cli import emulate_mill, mill
 from cellctl.ui.orders_cli import alarm, orders, part, reports, submit
 from cellctl.ui.plc_cli import plc
 from cellctl.ui.robot_cli import robot
@@ -27,6 +28,8 @@ def main(cell: str) -> None:
 
 main.add_command(robot)
 main.add_command(emulate)
+main.add_command(mill)
+emulate.add_command(emulate_mill)
 main.add_command(submit)
 main.add_command(orders)
 main.add_command(reports)

@@ -1,0 +1,439 @@
+"""``cellctl mill``: drive a Dyna 2400 mill from the shell; ``cellctl emulate mill``: serve one.
+
+``cellctl mill [--link URL | NAME] COMMAND``; outcomes are printed in the source's words,
+failures as one line on stderr with a non-zero exit code. ``check`` and ``preview`` need no
+link: they read the machine's travel from ``cell.toml`` when a NAME is given.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import sys
+import time
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+import click
+from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+from cellctl.drivers.mill import Dyna2400Mill, MillConfig
+from cellctl.drivers.mill import Progress as DownloadProgress
+from cellctl.drivers.state import StateStore
+from cellctl.errors import UsageError
+from cellctl.protocol.dynalan import ProgramRole, Severity, ValidationContext, parse_program
+from cellctl.protocol.dynalan import validate as validate_program
+from cellctl.ui.common import MachineGroup, cell_dir, console, err_console, run
+from cellctl.ui.emulate_cli import listen_options, serve_until_stopped
+from cellctl.ui.machines import load_cell_file, resolve_machine
+
+Action = Callable[[Dyna2400Mill], Awaitable[None]]
+
+
+def _options(ctx: click.Context) -> dict[str, Any]:
+    return ctx.find_object(dict) or {}
+
+
+def _config(options: dict[str, Any], readiness: str | None) -> MillConfig:
+    values = dict(options)
+    if readiness:
+        values["readiness"] = readiness
+    return MillConfig.from_options(values)
+
+
+def _with_mill(ctx: click.Context, action: Action) -> None:
+    params = _options(ctx)
+
+    async def main() -> None:
+        directory = cell_dir(ctx)
+        ref = resolve_machine(
+            directory,
+            "mill",
+            name=ctx.meta.get("machine_name"),
+            link=params.get("link"),
+            line=params.get("line"),
+        )
+        mill = await Dyna2400Mill.connect(
+            ref.url,
+            name=ref.name,
+            settings=ref.settings,
+            store=StateStore(directory),
+            config=_config(ref.options, params.get("readiness")),
+            trace=params.get("trace"),
+        )
+        async with mill:
+            await action(mill)
+
+    run(main)
+
+
+def _offline_config(ctx: click.Context) -> MillConfig:
+    """The named machine's config from cell.toml (travel ...), without opening its link."""
+    name = ctx.meta.get("machine_name")
+    if name is None:
+        return MillConfig()
+    machines = load_cell_file(cell_dir(ctx)).get("machines", {})
+    entry = machines.get(name)
+    if not isinstance(entry, dict) or entry.get("kind") != "dyna2400":
+        raise UsageError(f"unknown mill {name!r}")
+    return MillConfig.from_options(dict(entry.get("options", {})))
+
+
+def _program_file(path: Path) -> Path:
+    if not path.is_file():
+        raise click.BadParameter(f"{path}: file not found", param_hint="PROGRAM")
+    return path
+
+
+@click.group(cls=MachineGroup)
+@click.option("--link", metavar="URL", help="Device path, socket://, rfc2217:// or loop://.")
+@click.option("--line", metavar="SETTINGS", help="Line settings, e.g. 4800,7E2 (the default).")
+@click.option(
+    "--trace", type=click.Path(dir_okay=False), help="Write every byte both ways to this file."
+)
+@click.option(
+    "--readiness",
+    type=click.Choice(["modem", "inband"]),
+    help="Where readiness comes from: CTS (modem, the default) or DC1/DC3 in the data (inband, "
+    "for links without modem lines).",
+)
+@click.pass_context
+def mill(
+    ctx: click.Context,
+    link: str | None,
+    line: str | None,
+    trace: str | None,
+    readiness: str | None,
+) -> None:
+    """Dyna 2400 CNC mill: [--link URL | NAME] COMMAND."""
+    ctx.obj = {"link": link, "line": line, "trace": trace, "readiness": readiness}
+
+
+@mill.command()
+@click.argument("setup", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--force", is_flag=True, help="Initialize even if already initialized (failure).")
+@click.pass_context
+def init(ctx: click.Context, setup: Path, force: bool) -> None:
+    """INITIALIZE with the SETUP program; then jog to the reference zero and press NEXT."""
+
+    async def action(m: Dyna2400Mill) -> None:
+        result = await m.initialize(setup, force=force)
+        console.print(result.message)
+        console.print("operator: jog the axes to the reference zero, then press NEXT")
+
+    _with_mill(ctx, action)
+
+
+def _progress_columns() -> tuple[Any, ...]:
+    return (
+        TextColumn("[bold]block {task.fields[block]}/{task.fields[blocks]}"),
+        BarColumn(),
+        TextColumn("{task.fields[lines]}/{task.fields[lines_total]} lines"),
+        TextColumn("{task.completed:.0f}/{task.total:.0f} B"),
+        TextColumn("{task.fields[rate]:>6.1f} chars/s"),
+        TextColumn("{task.fields[phase]}"),
+        TimeRemainingColumn(),
+    )
+
+
+@mill.command()
+@click.argument("program", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--no-wait", is_flag=True, help="Return once the last block is taken (state 3).")
+@click.pass_context
+def download(ctx: click.Context, program: Path, no_wait: bool) -> None:
+    """DOWNLOAD: validate, split into blocks, stream them as the controller asks."""
+    _program_file(program)
+
+    async def action(m: Dyna2400Mill) -> None:
+        start = time.monotonic()
+        sending_time = 0.0
+        mark: list[float] = [start]
+        with Progress(*_progress_columns(), console=console) as bar:
+            task = bar.add_task(
+                program.name,
+                total=1,
+                block=1,
+                blocks=1,
+                lines=0,
+                lines_total=0,
+                rate=0.0,
+                phase="waiting",
+            )
+
+            def progress(p: DownloadProgress) -> None:
+                nonlocal sending_time
+                now = time.monotonic()
+                if p.phase == "sending":
+                    sending_time += now - mark[0]
+                mark[0] = now
+                rate = p.bytes_sent / sending_time if sending_time > 0 else 0.0
+                bar.update(
+                    task,
+                    total=p.bytes_total,
+                    completed=p.bytes_sent,
+                    block=p.block,
+                    blocks=p.blocks,
+                    lines=p.lines_sent,
+                    lines_total=p.lines_total,
+                    rate=rate,
+                    phase=p.phase,
+                )
+
+            result = await m.download(program, wait=not no_wait, progress=progress)
+        console.print(result.message)
+
+    _with_mill(ctx, action)
+
+
+@mill.command()
+@click.argument("program", type=click.Path(dir_okay=False, path_type=Path))
+@click.pass_context
+def load(ctx: click.Context, program: Path) -> None:
+    """PROGRAM LOAD (at most 900 lines), to start later with GO."""
+    _program_file(program)
+
+    async def action(m: Dyna2400Mill) -> None:
+        console.print((await m.load(program)).message)
+
+    _with_mill(ctx, action)
+
+
+@mill.command()
+@click.pass_context
+def go(ctx: click.Context) -> None:
+    """GO: start the loaded program through the start output wired to the PLC."""
+
+    async def action(m: Dyna2400Mill) -> None:
+        console.print((await m.go()).message)
+
+    _with_mill(ctx, action)
+
+
+@mill.command()
+@click.pass_context
+def end(ctx: click.Context) -> None:
+    """ENDLOAD / HALT: the END program; the controller returns to manual (state 0)."""
+
+    async def action(m: Dyna2400Mill) -> None:
+        console.print((await m.end()).message)
+
+    _with_mill(ctx, action)
+
+
+@mill.command()
+@click.pass_context
+def status(ctx: click.Context) -> None:
+    """STATUS: state 0-4, "reference zero not set" / "executing", CTS."""
+
+    async def action(m: Dyna2400Mill) -> None:
+        st = await m.status()
+        console.print(f"{m.name}: state {st.state} ({st.state_text})")
+        if st.condition:
+            console.print(f"  {st.condition}")
+        console.print(f"  CTS {'high (ready)' if st.ready else 'low'}")
+
+    _with_mill(ctx, action)
+
+
+@mill.command()
+@click.argument("file", required=False, type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--timeout", type=float, default=120.0, show_default=True, help="Seconds to wait.")
+@click.pass_context
+def upload(ctx: click.Context, file: Path | None, timeout: float) -> None:
+    """Receive the controller's program (start UPLOAD on the panel); to FILE or stdout."""
+
+    async def action(m: Dyna2400Mill) -> None:
+        err_console.print("waiting for the controller: select UPLOAD on its panel")
+        text = await m.upload(timeout=timeout)
+        if file is None:
+            sys.stdout.write(text)
+        else:
+            await asyncio.to_thread(file.write_text, text)
+            console.print(f"{len(text.splitlines())} lines written to {file}")
+
+    _with_mill(ctx, action)
+
+
+@mill.command()
+@click.argument("program", type=click.Path(dir_okay=False, path_type=Path))
+@click.option(
+    "--role",
+    type=click.Choice([r.value for r in ProgramRole]),
+    default="auto",
+    show_default=True,
+    help="Rules to apply: setup, milling or end program.",
+)
+@click.pass_context
+def check(ctx: click.Context, program: Path, role: str) -> None:
+    """Validate PROGRAM like a linter: every problem, exit 1 on errors."""
+    _program_file(program)
+    config = _offline_config(ctx)
+    parsed = parse_program(program.read_text(errors="replace"), name=program.name)
+    context = ValidationContext(role=ProgramRole(role), config=config.machine())
+    result = validate_program(parsed, context)
+    for problem in result.problems:
+        colour = "red" if problem.severity is Severity.ERROR else "yellow"
+        console.print(problem.format(str(program)), style=colour, markup=False, soft_wrap=True)
+    summary = f"{len(result.errors)} error(s), {len(result.warnings)} warning(s)"
+    if result.ok and result.blocks is not None and result.toolpath is not None:
+        minutes = result.toolpath.machining_seconds / 60
+        summary += f"; {len(result.blocks)} block(s), est. {minutes:.1f} min machining"
+    console.print(summary)
+    if not result.ok:
+        sys.exit(1)
+
+
+@mill.command()
+@click.argument("program", type=click.Path(dir_okay=False, path_type=Path))
+@click.option(
+    "-o",
+    "--output",
+    required=True,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Where to draw it: .svg or .png.",
+)
+@click.pass_context
+def preview(ctx: click.Context, program: Path, output: Path) -> None:
+    """Draw PROGRAM's toolpath (XY view, Z profile, block boundaries) to an SVG or PNG."""
+    from cellctl.protocol.preview import render_png, render_svg
+
+    _program_file(program)
+    suffix = output.suffix.lower()
+    if suffix not in (".svg", ".png"):
+        raise click.BadParameter("the output must end in .svg or .png", param_hint="-o")
+    config = _offline_config(ctx)
+    parsed = parse_program(program.read_text(errors="replace"), name=program.name)
+    result = validate_program(parsed, ValidationContext(config=config.machine()))
+    if result.toolpath is None:
+        first = result.errors[0].format(str(program)) if result.errors else "no toolpath"
+        err_console.print(f"error: cannot trace {program}: {first}", markup=False)
+        sys.exit(1)
+    if suffix == ".svg":
+        output.write_text(render_svg(result.toolpath, title=program.name))
+    else:
+        output.write_bytes(render_png(result.toolpath, title=program.name))
+    path = result.toolpath
+    console.print(
+        f"{output}: {path.blocks} block(s), {len(path.moves)} moves, "
+        f"est. {path.machining_seconds / 60:.1f} min machining"
+    )
+    for problem in result.errors:
+        err_console.print(problem.format(str(program)), markup=False)
+
+
+# -- cellctl emulate mill ------------------------------------------------------------------------
+
+_PANEL_HELP = (
+    "panel keys: power, off, clear, select execute|line|load|upload|manual, jog, next, start, show"
+)
+
+
+async def _panel(device: Any) -> None:
+    """Manual mode: operator keys from stdin, one a line."""
+    from cellctl.emulators.mill import LinkMode
+
+    modes = {
+        "execute": LinkMode.PROGRAM_EXECUTE,
+        "line": LinkMode.LINE_EXECUTE,
+        "load": LinkMode.PROGRAM_LOAD,
+        "upload": LinkMode.UPLOAD,
+        "manual": LinkMode.MANUAL,
+    }
+    console.print(_PANEL_HELP)
+    while True:
+        text = await asyncio.to_thread(sys.stdin.readline)
+        if not text:
+            return
+        words = text.split()
+        if not words:
+            continue
+        try:
+            if words[0] == "power":
+                device.power_on()
+            elif words[0] == "off":
+                device.power_off()
+            elif words[0] == "clear":
+                device.clear_memory()
+            elif words[0] == "select" and len(words) == 2 and words[1] in modes:
+                device.select(modes[words[1]])
+            elif words[0] == "jog":
+                device.jog_to_reference()
+            elif words[0] == "next":
+                device.press_next()
+            elif words[0] == "start":
+                device.cycle_start()
+            elif words[0] != "show":
+                console.print(_PANEL_HELP)
+                continue
+        except UsageError as e:
+            console.print(f"panel: {e}")
+        cts = "high" if device.rts else "low"
+        console.print(f"display: {device.display}  (RTS {cts}, {len(device.memory)} lines)")
+
+
+def _emulate_mill_command() -> click.Command:
+    from cellctl.emulators.mill import FAULTS, Dyna2400Emulator, LinkMode, OperatorDelays
+    from cellctl.emulators.serve import parse_fault
+    from cellctl.link import MILL_LINE
+
+    def callback(
+        listen: str,
+        time_scale: float,
+        no_pacing: bool,
+        line: str,
+        fault: tuple[str, ...],
+        readiness: str,
+        manual: bool,
+        setup_delay: float,
+    ) -> None:
+        async def main() -> None:
+            device = Dyna2400Emulator(
+                time_scale=time_scale,
+                automatic=not manual,
+                readiness=readiness,
+                delays=OperatorDelays(setup=setup_delay),
+                mode=LinkMode.PROGRAM_EXECUTE,
+            )
+            for text in fault:
+                name, arg = parse_fault(text)
+                device.set_fault(name, arg)
+            device.start()
+            panel = asyncio.ensure_future(_panel(device)) if manual else None
+            try:
+                await serve_until_stopped(
+                    device, listen, line, not no_pacing, "Dyna 2400 mill emulator"
+                )
+            finally:
+                if panel is not None:
+                    panel.cancel()
+
+        run(main)
+
+    faults = "; ".join(f"{k}: {v}" for k, v in FAULTS.items())
+    params = [
+        *listen_options(MILL_LINE),
+        click.Option(
+            ["--readiness"],
+            type=click.Choice(["modem", "inband"]),
+            default="modem",
+            show_default=True,
+            help="inband also sends DC1/DC3 when RTS changes (for pty and raw TCP).",
+        ),
+        click.Option(["--manual"], is_flag=True, help="Play the operator yourself (stdin)."),
+        click.Option(
+            ["--setup-delay"],
+            type=float,
+            default=20.0,
+            show_default=True,
+            help="Machine seconds the automatic operator takes to set the reference zero.",
+        ),
+    ]
+    return click.Command(
+        "mill",
+        callback=callback,
+        params=params,
+        help=f"Emulate a Dyna 2400 CNC mill controller. Faults: {faults}",
+    )
+
+
+emulate_mill = _emulate_mill_command()

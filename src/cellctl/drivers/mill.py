@@ -155,6 +155,8 @@ class MillConfig:
     """Write no faster than the line carries (honest progress, bounded buffers)."""
     go_pulse: float = 0.5
     """Seconds the start output stays on for GO."""
+    start_signal: str | None = None
+    """The PLC coil wired to the controller's start input (e.g. ``go_1``), for the CLI's GO."""
     travel: Travel = field(default_factory=Travel)
     rapid_rate: float = 50.0
     end_program: str | None = None

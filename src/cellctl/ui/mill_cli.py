@@ -17,7 +17,7 @@ from typing import Any
 import click
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
-from cellctl.drivers.mill import Dyna2400Mill, MillConfig
+from cellctl.drivers.mill import CallbackOutput, Dyna2400Mill, MillConfig
 from cellctl.drivers.mill import Progress as DownloadProgress
 from cellctl.drivers.state import StateStore
 from cellctl.errors import UsageError
@@ -199,12 +199,27 @@ def load(ctx: click.Context, program: Path) -> None:
 
 
 @mill.command()
+@click.option(
+    "--start-signal",
+    metavar="COIL",
+    help="PLC coil wired to the controller's start input (default: options.start_signal).",
+)
 @click.pass_context
-def go(ctx: click.Context) -> None:
-    """GO: start the loaded program through the start output wired to the PLC."""
+def go(ctx: click.Context, start_signal: str | None) -> None:
+    """GO: start the loaded program by pulsing the PLC coil wired to the start input."""
+    from cellctl.drivers.plc import ModbusPlc
+    from cellctl.ui.plc_cli import plc_map_for
 
     async def action(m: Dyna2400Mill) -> None:
-        console.print((await m.go()).message)
+        signal = start_signal or m.config.start_signal
+        if not signal:
+            raise UsageError(
+                "no start signal: give --start-signal go_N or options.start_signal in cell.toml"
+            )
+        plc_map = plc_map_for(ctx, None)
+        async with await ModbusPlc.connect(plc_map.url, plc_map) as plc:
+            m.start_output = CallbackOutput(lambda: plc.pulse(signal, m.config.go_pulse))
+            console.print((await m.go()).message)
 
     _with_mill(ctx, action)
 

@@ -69,9 +69,7 @@ async def bench(time_scale: float) -> None:
     print(
         f"line {MILL_LINE}: {line_rate:.2f} chars/s; time scale {time_scale:g}; wall {wall:.1f} s"
     )
-    print(
-        f"chars/s (transfer time only): {rate:.2f}  ratio {rate / line_rate:.4f} (goal 0.98)"
-    )
+    print(f"chars/s (transfer time only): {rate:.2f}  ratio {rate / line_rate:.4f} (goal 0.98)")
     print(
         f"program_lines={lines} blocks={len(timings)} chars={chars} chars_per_s={rate:.2f} "
         f"transfer_s={transfer:.2f} machining_s={machining:.2f} ratio={rate / line_rate:.4f}"

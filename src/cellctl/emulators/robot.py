@@ -197,6 +197,9 @@ class Ibm7545Emulator(EmulatedDevice):
         self.host_timeout_s = host_timeout_s
         self.max_instructions = max_instructions
         self.runs: list[ProgramRun] = []
+        self.output_hooks: list[Callable[[int, bool], None]] = []
+        """Called with (port, value) on every change of a digital output made by a program:
+        how a cell emulator wires the robot's outputs to the PLC."""
         self.faults: dict[str, str | None] = {}
         self.position: tuple[float, float, float, float] = self.arm.home
         self._corrupt_left = 0
@@ -502,7 +505,11 @@ class Ibm7545Emulator(EmulatedDevice):
 
     def _set_output(self, port: int, value: bool) -> None:
         bit = 1 << (port - 1)
+        before = self.outputs
         self.outputs = self.outputs | bit if value else self.outputs & ~bit
+        if self.outputs != before:
+            for hook in list(self.output_hooks):
+                hook(port, value)
 
     async def _wait_input(self, port: int, value: bool) -> None:
         while DiDo(self.inputs, self.outputs).input(port) != value:

@@ -1,0 +1,702 @@
+"""The cell controller: orders in, robot and mill tasks out, every machine watched.
+
+::
+
+    controller = CellController(load_cell("cell"), open_journal("cell"), open_mailbox("cell"))
+    await controller.connect()
+    await controller.run(stop_event)          # until stop_event is set: then finishes steps
+
+Parts of the reference model (spec ``cell.md``):
+
+- **M, the world model**: :attr:`CellController.machines` (each machine's state, its current
+  step, whether it is in service), the journal's parts (where each part is, how far along its
+  route), the robot's partitions (which program where, on the driver), the PLC's inputs.
+- **H, task decomposition and scheduling**: an accepted order becomes parts in the journal;
+  :mod:`cellctl.cell.scheduler` picks the robot's next transfer, and a part that reaches a mill
+  is machined there at once. Robot programs stay in the 5 partitions and are downloaded again
+  only when evicted (least recently used first).
+- **G, monitoring**: every ``poll_period`` the PLC inputs, the idle robot's status and each
+  idle mill's readiness are read; a fault becomes an alarm (journal + report) within one poll
+  period. A busy machine is watched by its own step's deadlines.
+- **Recovery**: a robot reject is read (the driver does), reset and retried ``retries``
+  times; a mill that loses readiness is re-initialized with force; a machine that keeps
+  failing (``fail_limit`` in a row) is taken out of service and its parts are held, never
+  lost; clearing its alarm (``cellctl alarm clear ID``) returns it to service.
+- **Journal**: every step is written before it starts and after it ends. At start
+  :meth:`Journal.recover` holds every part whose step was in flight: a machining step is
+  never restarted automatically ("needs inspection"), and neither is a transfer.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from cellctl.cell.config import CONVEYOR, CellConfig, MachineConfig, transfer_name
+from cellctl.cell.journal import Journal, Part
+from cellctl.cell.scheduler import PartState, Transfer, next_transfer, ready_to_leave
+from cellctl.drivers.mill import CallbackOutput, Dyna2400Mill, MillConfig
+from cellctl.drivers.plc import ModbusPlc
+from cellctl.drivers.robot import Ibm7545Robot, RobotConfig
+from cellctl.drivers.state import StateStore
+from cellctl.errors import CellctlError, DeviceError, LinkError, UsageError
+from cellctl.mailbox import Mailbox, Order
+from cellctl.protocol.plc import PlcMap, canonical
+from cellctl.protocol.robot import PARTITIONS, ProgramFile
+
+#: Robot output a cell program raises when its cycle is done (the example cell's wiring).
+DEFAULT_DONE_OUTPUT = 6
+OUT = "out"
+
+
+@dataclass
+class MachineView:
+    """What the controller knows of one machine, for the live view and the summary."""
+
+    name: str
+    kind: str
+    state: str = "not connected"
+    step: str = ""
+    in_service: bool = True
+    failures: int = 0
+    busy_s: float = 0.0
+
+
+@dataclass
+class Event:
+    """One line of the controller's log (also posted as a report where it matters)."""
+
+    time: float
+    text: str
+
+
+@dataclass
+class ControllerOptions:
+    """Knobs of the controller, from ``[cell]`` in cell.toml."""
+
+    poll_period: float = 0.5
+    retries: int = 2
+    fail_limit: int = 3
+    done_output: int = DEFAULT_DONE_OUTPUT
+    transfer_timeout: float = 120.0
+    interlock_timeout: float = 30.0
+    one_at_a_time: bool = False
+
+    @classmethod
+    def from_config(cls, config: CellConfig, **overrides: Any) -> ControllerOptions:
+        cell = config.raw.get("cell", {})
+        values: dict[str, Any] = {"poll_period": config.poll_period}
+        for key in ("retries", "fail_limit", "done_output", "transfer_timeout"):
+            if key in cell:
+                values[key] = cell[key]
+        if "interlock_timeout" in cell:
+            values["interlock_timeout"] = float(cell["interlock_timeout"])
+        values.update(overrides)
+        return cls(**values)
+
+
+@dataclass
+class _Partition:
+    program: str
+    used: float
+
+
+class CellController:
+    """Runs a cell from its ``cell.toml``, journal and mailbox (see module docstring)."""
+
+    def __init__(
+        self,
+        config: CellConfig,
+        journal: Journal,
+        mailbox: Mailbox,
+        *,
+        options: ControllerOptions | None = None,
+        on_event: Callable[[Event], None] | None = None,
+    ) -> None:
+        self.config = config
+        self.journal = journal
+        self.mailbox = mailbox
+        self.options = options or ControllerOptions.from_config(config)
+        self.on_event = on_event
+        self.robot: Ibm7545Robot | None = None
+        self.mills: dict[str, Dyna2400Mill] = {}
+        self.plc: ModbusPlc | None = None
+        self.plc_map = PlcMap.from_toml(config.plc)
+        self.machines: dict[str, MachineView] = {
+            m.name: MachineView(m.name, m.kind) for m in [config.robot, *config.mills]
+        }
+        self.events: list[Event] = []
+        self.inputs: dict[str, bool] = {}
+        self._wake = asyncio.Event()
+        self._robot_task: asyncio.Task[None] | None = None
+        self._mill_tasks: dict[str, asyncio.Task[None]] = {}
+        self._partitions: dict[int, _Partition] = {}
+        self._pallet_requested = False
+        self._stopping = False
+        self.started_at = time.time()
+
+    # -- plumbing ---------------------------------------------------------------------------------
+
+    def log(self, text: str) -> None:
+        """Note an event (kept for the live view, passed to ``on_event``)."""
+        event = Event(time.time(), text)
+        self.events.append(event)
+        del self.events[:-200]
+        if self.on_event is not None:
+            self.on_event(event)
+
+    def _mill_index(self, name: str) -> int:
+        return [m.name for m in self.config.mills].index(name) + 1
+
+    def _alarm(self, machine: str, code: str, text: str) -> None:
+        alarm, new = self.journal.raise_alarm(machine, code, text)
+        if new:
+            self.mailbox.post_report("alarm-raised", f"{machine}: {text}", data={"alarm": alarm.id})
+            self.log(f"ALARM {alarm.id} {machine}: {text}")
+
+    def _failed(self, machine: str, code: str, text: str) -> None:
+        """A machine failed a step: alarm, and out of service after ``fail_limit`` in a row."""
+        view = self.machines[machine]
+        view.failures += 1
+        self._alarm(machine, code, text)
+        if view.failures >= self.options.fail_limit and view.in_service:
+            view.in_service = False
+            reason = f"failed {view.failures} times in a row: {text}"
+            self.journal.set_machine_service(machine, False, reason)
+            self._alarm(machine, "out-of-service", f"taken out of service: {reason}")
+
+    def _succeeded(self, machine: str) -> None:
+        self.machines[machine].failures = 0
+
+    # -- connecting -------------------------------------------------------------------------------
+
+    async def connect(self) -> None:
+        """Open every machine's link and bring each to a known state; recover the journal."""
+        store = StateStore(self.config.directory)
+        recovery = self.journal.recover()
+        for step in recovery.interrupted:
+            self.log(f"restart: {step.kind} {step.program} of part {step.part_id} was in flight")
+        for part in recovery.held:
+            self.mailbox.post_report(
+                "part-held", part.note, order_id=part.order_id, part_id=part.id
+            )
+            self.log(f"part {part.id} held: {part.note}")
+        for name in self.journal.machines_out_of_service():
+            if name in self.machines:
+                self.machines[name].in_service = False
+        self.plc = await ModbusPlc.connect(self.plc_map.url, self.plc_map)
+        r = self.config.robot
+        self.robot = await Ibm7545Robot.connect(
+            r.link, name=r.name, settings=r.line, store=store, config=RobotConfig(**r.options)
+        )
+        for m in self.config.mills:
+            self.mills[m.name] = await Dyna2400Mill.connect(
+                m.link,
+                name=m.name,
+                settings=m.line,
+                store=store,
+                config=MillConfig.from_options(m.options),
+                start_output=CallbackOutput(self._go_pulser(m)),
+            )
+        await self._prepare_robot()
+        for m in self.config.mills:
+            await self._prepare_mill(m, force=False)
+
+    def _go_pulser(self, m: MachineConfig) -> Callable[[], Any]:
+        coil = canonical(m.go_output or f"go_{self._mill_index(m.name)}")
+
+        async def pulse() -> None:
+            assert self.plc is not None
+            await self.plc.pulse(coil, 0.05)
+
+        return pulse
+
+    async def _prepare_robot(self) -> None:
+        robot = self.robot
+        assert robot is not None
+        view = self.machines[robot.name]
+        try:
+            if robot.state == 2:
+                await robot.stop()
+            if robot.state != 1:
+                await robot.initialize()
+            view.state = "initialized"
+            self._succeeded(robot.name)
+        except CellctlError as e:
+            view.state = f"error: {e}"
+            self._failed(robot.name, "initialize", f"robot initialize failed: {e}")
+
+    async def _prepare_mill(self, m: MachineConfig, *, force: bool) -> bool:
+        mill = self.mills[m.name]
+        view = self.machines[m.name]
+        try:
+            if mill.state in (3, 4):
+                status = await mill.status()  # a block still running finishes first
+                if not status.ready:
+                    view.state = "executing (left running)"
+                    return False
+            if force or not mill.initialized:
+                assert m.setup is not None
+                await mill.initialize(m.setup, force=True)
+                self.log(f"{m.name}: initialized with {m.setup.name}")
+            status = await mill.status()
+            view.state = status.state_text + (f", {status.condition}" if status.condition else "")
+            return True
+        except CellctlError as e:
+            view.state = f"error: {e}"
+            self._failed(m.name, "initialize", f"initialize failed: {e}")
+            return False
+
+    async def close(self) -> None:
+        """Close every link (running steps must have ended)."""
+        for mill in self.mills.values():
+            await mill.close()
+        if self.robot is not None:
+            await self.robot.close()
+        if self.plc is not None:
+            await self.plc.close()
+
+    # -- the loop ---------------------------------------------------------------------------------
+
+    async def run(self, stop: asyncio.Event, *, until_idle: bool = False) -> None:
+        """Run until ``stop`` is set (or, with ``until_idle``, until no order is open).
+
+        On stop no new step starts; steps in flight finish, then it returns.
+        """
+        monitor = asyncio.create_task(self._monitor(stop))
+        try:
+            while True:
+                self._stopping = stop.is_set()
+                self._intake()
+                self._sync_operator()
+                if not self._stopping:
+                    await self._dispatch()
+                busy = self._busy()
+                if self._stopping and not busy:
+                    break
+                if until_idle and not busy and self._all_orders_closed():
+                    break
+                self._wake.clear()
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(self.options.poll_period):
+                        await self._wake.wait()
+        finally:
+            monitor.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await monitor
+
+    def _busy(self) -> bool:
+        tasks = [self._robot_task, *self._mill_tasks.values()]
+        return any(t is not None and not t.done() for t in tasks)
+
+    def _all_orders_closed(self) -> bool:
+        open_orders = self.mailbox.orders(states=["posted", "accepted", "in-progress"])
+        if not open_orders:
+            return True
+        # Orders whose remaining parts are all held wait for the operator, not for us.
+        for order in open_orders:
+            parts = self.journal.parts(order_id=order.id)
+            if not parts or any(p.status in ("waiting", "active") for p in parts):
+                return False
+        return True
+
+    # -- intake: orders into parts ---------------------------------------------------------------
+
+    def _intake(self) -> None:
+        for order in self.mailbox.pending_orders():
+            if order.part_type not in self.config.parts:
+                self.mailbox.set_order_state(order.id, "failed", f"unknown part {order.part_type}")
+                self.mailbox.post_report(
+                    "order-rejected",
+                    f"order {order.id}: no part type {order.part_type!r} in this cell",
+                    order_id=order.id,
+                )
+                continue
+            self.journal.create_parts(order)
+            self.mailbox.set_order_state(order.id, "accepted")
+            self.mailbox.post_report(
+                "order-accepted",
+                f"order {order.id}: {order.qty} x {order.part_type}",
+                order_id=order.id,
+            )
+            self.log(f"order {order.id} accepted: {order.qty} x {order.part_type}")
+
+    def _sync_operator(self) -> None:
+        """Alarms the operator cleared put their machine back in service."""
+        out = self.journal.machines_out_of_service()
+        active = {a.machine for a in self.journal.active_alarms()}
+        for name, view in self.machines.items():
+            if name in out and name not in active:
+                self.journal.set_machine_service(name, True, "alarm cleared by the operator")
+                view.in_service = True
+                view.failures = 0
+                self.log(f"{name}: back in service")
+            elif name not in out:
+                view.in_service = True
+        self._update_orders()
+
+    def _update_orders(self) -> None:
+        for order in self.mailbox.orders(states=["accepted", "in-progress", "held"]):
+            parts = self.journal.parts(order_id=order.id)
+            if not parts:
+                continue
+            statuses = [p.status for p in parts]
+            if all(s in ("done", "scrapped") for s in statuses):
+                made = statuses.count("done")
+                if made:
+                    note = f"{made} made" + (
+                        f", {statuses.count('scrapped')} scrapped" if "scrapped" in statuses else ""
+                    )
+                    self.mailbox.set_order_state(order.id, "done", note)
+                    self.mailbox.post_report(
+                        "order-done", f"order {order.id} done: {note}", order_id=order.id
+                    )
+                    self.log(f"order {order.id} done ({note})")
+                else:
+                    self.mailbox.set_order_state(order.id, "failed", "every part scrapped")
+                    self.mailbox.post_report(
+                        "order-failed", f"order {order.id}: every part scrapped", order_id=order.id
+                    )
+            elif "held" in statuses and order.state != "held":
+                self.mailbox.set_order_state(order.id, "held", "a part needs the operator")
+            elif ("held" not in statuses and order.state == "held") or (
+                order.state == "accepted"
+                and any(p.status != "waiting" or p.route_index for p in parts)
+            ):
+                self.mailbox.set_order_state(order.id, "in-progress")
+
+    # -- dispatch ---------------------------------------------------------------------------------
+
+    def _part_states(self) -> tuple[list[PartState], list[Part]]:
+        orders = {o.id: o for o in self.mailbox.orders()}
+        parts = self.journal.parts(statuses=["waiting", "active", "held"])
+        states = []
+        for p in parts:
+            order = orders.get(p.order_id)
+            route_index = p.route_index
+            route = self.config.parts[p.part_type].route
+            # A step the operator accepted after an interruption counts as done.
+            if (
+                route_index < len(route)
+                and p.location == route[route_index].mill
+                and self.journal.step_done(
+                    p.id, "machine", p.location, route[route_index].name, route_index
+                )
+            ):
+                route_index += 1
+            states.append(
+                PartState(
+                    p.id,
+                    p.part_type,
+                    p.location,
+                    route_index,
+                    p.status,
+                    priority=order.priority if order else 0,
+                    order_seq=int(order.created * 1e6) if order else 0,
+                )
+            )
+        return states, parts
+
+    def _blocked_locations(self, parts: list[Part]) -> set[str]:
+        """Places a held part may physically occupy: after an interrupted transfer, both ends."""
+        blocked = set()
+        for p in parts:
+            if p.status != "held":
+                continue
+            blocked.add(p.location)
+            steps = self.journal.steps(p.id)
+            if steps and steps[-1].kind == "transfer" and steps[-1].state != "finished":
+                target = steps[-1].program.split("_to_")[-1]
+                blocked.add(target)
+        blocked.discard(CONVEYOR)
+        return blocked
+
+    async def _dispatch(self) -> None:
+        states, parts = self._part_states()
+        types = self.config.parts
+        in_service = {n for n, v in self.machines.items() if v.in_service}
+        blocked = self._blocked_locations(parts)
+        # Mills: a part at a mill not yet machined there is cut now.
+        for ps in states:
+            if ps.status != "waiting" or ps.location == CONVEYOR or ready_to_leave(ps, types):
+                continue
+            mill = ps.location
+            task = self._mill_tasks.get(mill)
+            if mill in in_service and (task is None or task.done()):
+                step = types[ps.part_type].route[ps.route_index]
+                self._mill_tasks[mill] = asyncio.create_task(self._machine(ps.id, step.mill))
+        robot_name = self.config.robot.name
+        if robot_name not in in_service:
+            return
+        if self._robot_task is not None and not self._robot_task.done():
+            return
+        try:
+            await self._read_inputs()
+        except CellctlError:
+            return
+        pallet = self.inputs.get("pallet_present", False)
+        outfeed = self.inputs.get("outfeed_clear", True)
+        usable_mills = (in_service - blocked) | {CONVEYOR}
+        fake_blockers = [PartState(f"blocked-{loc}", "", loc, 0, "held") for loc in blocked]
+        transfer = next_transfer(
+            [*states, *fake_blockers],
+            types,
+            mills_in_service=usable_mills,
+            pallet_present=pallet,
+            outfeed_clear=outfeed,
+            one_at_a_time=self.options.one_at_a_time,
+        )
+        if transfer is None:
+            await self._request_pallet(states, pallet)
+            return
+        self._robot_task = asyncio.create_task(self._transfer(transfer))
+
+    async def _read_inputs(self) -> dict[str, bool]:
+        assert self.plc is not None
+        self.inputs = await self.plc.read_inputs()
+        return self.inputs
+
+    async def _request_pallet(self, states: list[PartState], present: bool) -> None:
+        """Ask the conveyor for a pallet when a part waits to start and none is there."""
+        if present:
+            self._pallet_requested = False
+            return
+        waiting = [s for s in states if s.location == CONVEYOR and s.status == "waiting"]
+        if waiting and not self._pallet_requested and self.plc is not None:
+            try:
+                await self.plc.pulse("pallet_request", 0.05)
+                self._pallet_requested = True
+            except CellctlError as e:
+                self._alarm("plc", "conveyor", f"cannot request a pallet: {e}")
+
+    # -- the robot's steps ------------------------------------------------------------------------
+
+    async def _ensure_program(self, name: str) -> int:
+        """The partition holding robot program ``name``, downloading it if it was evicted."""
+        robot = self.robot
+        assert robot is not None
+        program = self.config.robot_programs[name]
+        for p in PARTITIONS:
+            if robot.holds(p, program):
+                self._partitions[p] = _Partition(name, time.monotonic())
+                return p
+        empty = [p for p in PARTITIONS if robot.partitions.get(p) is None]
+        if empty:
+            target = empty[0]
+        else:
+            target = min(
+                PARTITIONS, key=lambda p: self._partitions.get(p, _Partition("", 0.0)).used
+            )
+        self.log(f"robot: downloading {name} into partition {target}")
+        await robot.download(target, program)
+        self._partitions[target] = _Partition(name, time.monotonic())
+        return target
+
+    async def _doors(self, places: list[str], open_: bool) -> None:
+        assert self.plc is not None
+        for place in places:
+            if place == CONVEYOR:
+                continue
+            await self.plc.write(f"door_{self._mill_index(place)}", open_)
+
+    async def _transfer(self, t: Transfer) -> None:
+        robot = self.robot
+        assert robot is not None
+        view = self.machines[robot.name]
+        part = self.journal.get_part(t.part_id)
+        step = self.journal.begin_step(part.id, "transfer", robot.name, t.program)
+        self.mailbox.post_report(
+            "step-started", f"{t.program} {part.id}", order_id=part.order_id, part_id=part.id
+        )
+        view.step = f"{t.program} ({part.id})"
+        started = time.monotonic()
+        places = [t.source, t.target]
+        attempt = 0
+        try:
+            while True:
+                try:
+                    partition = await self._ensure_program(t.program)
+                    await self._doors(places, True)
+                    await robot.go(partition)
+                    break
+                except DeviceError as e:
+                    # Rejected before the arm moved: read (done), reset, retry a bounded time.
+                    attempt += 1
+                    self.log(f"robot rejected {t.program}: {e}; reset and retry {attempt}")
+                    if attempt > self.options.retries:
+                        raise
+                    await robot.reset_errors()
+                    if robot.state == 0 or e.code == 48:
+                        await robot.initialize()
+            await robot.wait_cycle_end(
+                self.options.done_output, timeout=self.options.transfer_timeout, poll=0.02
+            )
+            await self._doors(places, False)
+        except (CellctlError, OSError) as e:
+            view.step = ""
+            reason = f"transfer {t.program} failed: {e}"
+            self.journal.end_step(step.id, "failed", str(e), hold=reason)
+            self.mailbox.post_report("step-failed", reason, order_id=part.order_id, part_id=part.id)
+            self.mailbox.post_report("part-held", reason, order_id=part.order_id, part_id=part.id)
+            self._failed(robot.name, "transfer", reason)
+            self._wake.set()
+            return
+        view.busy_s += time.monotonic() - started
+        view.step = ""
+        self._succeeded(robot.name)
+        if t.source == CONVEYOR:
+            self._pallet_requested = False
+        if t.target == CONVEYOR:
+            self.journal.end_step(step.id, "finished", location=OUT)
+            self.journal.finish_part(part.id)
+        else:
+            self.journal.end_step(step.id, "finished", location=t.target)
+        self.mailbox.post_report(
+            "step-finished", f"{t.program} {part.id}", order_id=part.order_id, part_id=part.id
+        )
+        self._wake.set()
+
+    # -- the mills' steps -------------------------------------------------------------------------
+
+    async def _machine(self, part_id: str, mill_name: str) -> None:
+        mill = self.mills[mill_name]
+        view = self.machines[mill_name]
+        part = self.journal.get_part(part_id)
+        route = self.config.parts[part.part_type].route
+        route_step = route[part.route_index]
+        step = self.journal.begin_step(part.id, "machine", mill_name, route_step.name)
+        self.mailbox.post_report(
+            "step-started",
+            f"{mill_name} {route_step.name} {part.id}",
+            order_id=part.order_id,
+            part_id=part.id,
+        )
+        view.step = f"{route_step.name} ({part.id})"
+        view.state = "machining"
+        started = time.monotonic()
+        index = self._mill_index(mill_name)
+        assert self.plc is not None
+        try:
+            await self.plc.wait_for(
+                f"door_closed_{index}", True, timeout=self.options.interlock_timeout
+            )
+            await self.plc.wait_for(
+                f"clamp_closed_{index}", True, timeout=self.options.interlock_timeout
+            )
+            await self._mill_ready(mill)
+            await mill.download(route_step.program)
+        except (CellctlError, OSError) as e:
+            view.step = ""
+            reason = f"needs inspection: machining {route_step.name} on {mill_name} failed: {e}"
+            self.journal.end_step(step.id, "failed", str(e), hold=reason)
+            self.mailbox.post_report("step-failed", reason, order_id=part.order_id, part_id=part.id)
+            self.mailbox.post_report("part-held", reason, order_id=part.order_id, part_id=part.id)
+            self._failed(mill_name, "machining", reason)
+            # A mill that lost readiness is initialized again (with force) before its next part.
+            if self.machines[mill_name].in_service:
+                await self._prepare_mill(self.config.machine(mill_name), force=True)
+            self._wake.set()
+            return
+        view.busy_s += time.monotonic() - started
+        view.step = ""
+        view.state = "Initialized"
+        self._succeeded(mill_name)
+        self.journal.end_step(step.id, "finished", route_index=part.route_index + 1)
+        self.mailbox.post_report(
+            "step-finished",
+            f"{mill_name} {route_step.name} {part.id}",
+            order_id=part.order_id,
+            part_id=part.id,
+        )
+        self._wake.set()
+
+    async def _mill_ready(self, mill: Dyna2400Mill) -> None:
+        """Wait until the mill is READY for a program (its operator may still be at setup)."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + mill.config.setup_timeout
+        while True:
+            status = await mill.status()
+            if status.ready and status.state == 2:
+                return
+            if loop.time() >= deadline:
+                raise DeviceError(2, "Absolute zero not set", detail=f"{mill.name}: {status}")
+            await asyncio.sleep(min(self.options.poll_period, 0.05))
+
+    # -- monitoring -------------------------------------------------------------------------------
+
+    async def _monitor(self, stop: asyncio.Event) -> None:
+        """G: read every idle machine and the PLC once a poll period; faults become alarms."""
+        while True:
+            await self._monitor_once()
+            await asyncio.sleep(self.options.poll_period)
+
+    async def _monitor_once(self) -> None:
+        try:
+            inputs = await self._read_inputs()
+            if not inputs.get("estop_ok", True):
+                self._alarm("plc", "estop", "emergency stop: the cell is stopped")
+            self.machines.setdefault("plc", MachineView("plc", "plc")).state = "ok"
+        except CellctlError as e:
+            self.machines.setdefault("plc", MachineView("plc", "plc")).state = f"error: {e}"
+            self._alarm("plc", "link", f"PLC not answering: {e}")
+        robot = self.robot
+        if robot is not None and (self._robot_task is None or self._robot_task.done()):
+            view = self.machines[robot.name]
+            try:
+                status = await robot.machine_status()
+                if not status.ok:
+                    self._alarm(robot.name, "status", str(status))
+                    view.state = str(status)
+                else:
+                    view.state = {0: "uninitialized", 1: "initialized", 2: "executing"}.get(
+                        robot.state, str(robot.state)
+                    )
+            except CellctlError as e:
+                view.state = f"error: {e}"
+                self._alarm(robot.name, "link", f"robot not answering: {e}")
+        for m in self.config.mills:
+            task = self._mill_tasks.get(m.name)
+            if task is not None and not task.done():
+                continue
+            view = self.machines[m.name]
+            mill = self.mills.get(m.name)
+            if mill is None:
+                continue
+            try:
+                mstatus = await mill.status()
+                view.state = mstatus.state_text + (
+                    f", {mstatus.condition}" if mstatus.condition else ""
+                )
+                # CTS low on an idle, initialized mill that is not waiting for its operator
+                # (reference zero) means it lost readiness.
+                lost = mstatus.state == 2 and not mstatus.ready and mstatus.condition is not None
+                if mill.initialized and lost and view.in_service:
+                    self._alarm(m.name, "readiness", "lost readiness (CTS low while idle)")
+                    if await self._prepare_mill(m, force=True):
+                        self.log(f"{m.name}: readiness recovered")
+            except (CellctlError, UsageError) as e:
+                view.state = f"error: {e}"
+                self._alarm(m.name, "link", f"mill not answering: {e}")
+        self._wake.set()
+
+
+def order_summary(order: Order) -> str:
+    """One line for an order."""
+    return f"{order.id} {order.qty} x {order.part_type} [{order.state}]"
+
+
+__all__ = [
+    "CellController",
+    "ControllerOptions",
+    "Event",
+    "LinkError",
+    "MachineView",
+    "ProgramFile",
+    "field",
+    "order_summary",
+    "transfer_name",
+]

@@ -1,0 +1,266 @@
+"""The whole cell, emulated: robot, two mills and the PLC, wired as the example cell is.
+
+::
+
+    cell = EmulatedCell(time_scale=100.0)
+    await cell.start(Path("cell"))          # copies examples/cell there, writes its cell.toml
+    ...                                     # a controller runs the cell from Path("cell")
+    cell.runs_per_part()                    # {"P1": {"cnc1": 1, "cnc2": 1}, ...}
+    await cell.close()
+
+Serving: the robot on a pty (or any ``robot_listen``), the mills over RFC 2217 (their
+readiness is the CTS modem line), the PLC over Modbus/TCP, all on this machine. Every
+machine time is divided by ``time_scale`` and so is every character's time on the line
+(the baud rate written to ``cell.toml`` is multiplied by it), so transfer and machining keep
+their real proportions.
+
+Wiring (the PLC's own logic, as the example cell's programs expect it; **assumed**):
+
+- PLC inputs drive robot inputs 1-8: pallet at the pick-up, CNC 1 door open, CNC 1 vise open,
+  CNC 1 vise closed, CNC 2 door open, CNC 2 vise open, CNC 2 vise closed, outfeed clear.
+- Robot outputs 1 and 2 drive the vise coils of CNC 1 and CNC 2; output 7 (blank taken)
+  lifts the blank off its pallet; output 5 (part placed) fills the outfeed, which clears
+  after the PLC's outfeed time.
+- The PLC's GO coils start the loaded program of each mill.
+
+The cell also tracks each physical part — the blank a pallet brings, the gripper, each vise,
+the outfeed — so the mills' execution log says which part each program cut
+(:attr:`EmulatedCell.cuts`): the record a test checks "no program ran twice for one part"
+against, independent of the controller's journal.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import shutil
+import time
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+
+from cellctl.emulators.mill import Dyna2400Emulator, OperatorDelays
+from cellctl.emulators.plc import PlcEmulator
+from cellctl.emulators.robot import Ibm7545Emulator
+from cellctl.emulators.serve import Server, serve
+from cellctl.errors import UsageError
+from cellctl.link import LineSettings
+
+#: The example cell shipped with the project (copied by :meth:`EmulatedCell.start`).
+EXAMPLE_CELL = Path(__file__).resolve().parents[3] / "examples" / "cell"
+
+BASE_LINE = LineSettings(4800, 7, "E", 2)
+
+#: PLC input -> robot input line (the example cell's wiring).
+ROBOT_INPUTS = {
+    "pallet_present": 1,
+    "door_open_1": 2,
+    "clamp_closed_1": 4,
+    "door_open_2": 5,
+    "clamp_closed_2": 7,
+    "outfeed_clear": 8,
+}
+#: Inverted signals: robot input line <- not PLC input.
+ROBOT_INPUTS_INVERTED = {"clamp_closed_1": 3, "clamp_closed_2": 6}
+VISE_OUTPUTS = {1: 1, 2: 2}  # robot output -> mill whose vise it closes
+BLANK_TAKEN_OUTPUT = 7
+PART_PLACED_OUTPUT = 5
+
+
+@dataclass(frozen=True)
+class Cut:
+    """One program a mill ran, and the physical part that was in its vise."""
+
+    mill: str
+    part: str | None
+    time: float
+
+
+class EmulatedCell:
+    """Robot, two mills and a PLC wired together (see module docstring)."""
+
+    def __init__(
+        self,
+        *,
+        time_scale: float = 50.0,
+        pacing: bool = True,
+        robot_listen: str = "pty",
+        host: str = "127.0.0.1",
+        mill_names: tuple[str, str] = ("cnc1", "cnc2"),
+    ) -> None:
+        if time_scale <= 0:
+            raise UsageError(f"time scale must be positive, not {time_scale}")
+        self.time_scale = time_scale
+        self.pacing = pacing
+        self.robot_listen = robot_listen
+        self.host = host
+        self.mill_names = mill_names
+        self.line = LineSettings(
+            int(BASE_LINE.baudrate * time_scale), BASE_LINE.bytesize, BASE_LINE.parity, 2
+        )
+        self.robot = Ibm7545Emulator(time_scale=time_scale)
+        delays = OperatorDelays(power_on=3.0, keys=2.0, setup=20.0)
+        self.mills = {
+            name: Dyna2400Emulator(time_scale=time_scale, delays=delays) for name in mill_names
+        }
+        self.plc = PlcEmulator(time_scale=time_scale, on_go=self._go)
+        self.servers: dict[str, Server] = {}
+        self.plc_url = ""
+        # physical parts
+        self._next_blank = 0
+        self.pallet_part: str | None = None
+        self.gripper: str | None = None
+        self.vise: dict[int, str | None] = {1: None, 2: None}
+        self.outfeed: list[str] = []
+        self.cuts: list[Cut] = []
+        self._runs_seen: dict[str, int] = {name: 0 for name in mill_names}
+        self._tasks: set[asyncio.Task[None]] = set()
+
+    # -- wiring -----------------------------------------------------------------------------------
+
+    def _go(self, n: int) -> None:
+        self.mills[self.mill_names[n - 1]].cycle_start()
+
+    def _plc_input(self, name: str, value: bool) -> None:
+        if name in ROBOT_INPUTS:
+            self.robot.set_input(ROBOT_INPUTS[name], value)
+        if name in ROBOT_INPUTS_INVERTED:
+            self.robot.set_input(ROBOT_INPUTS_INVERTED[name], not value)
+        if name == "pallet_present" and value:
+            self._next_blank += 1
+            self.pallet_part = f"P{self._next_blank}"
+
+    def _robot_output(self, port: int, value: bool) -> None:
+        if port in VISE_OUTPUTS:
+            n = VISE_OUTPUTS[port]
+            self.plc.set_coil(f"clamp_{n}", value)
+            if value and self.gripper is not None:
+                self.vise[n], self.gripper = self.gripper, None
+            elif not value and self.vise[n] is not None:
+                self.gripper, self.vise[n] = self.vise[n], None
+        elif port == BLANK_TAKEN_OUTPUT and value:
+            self.gripper, self.pallet_part = self.pallet_part, None
+            self.plc.take_pallet()
+        elif port == PART_PLACED_OUTPUT and value:
+            if self.gripper is not None:
+                self.outfeed.append(self.gripper)
+                self.gripper = None
+            self.plc.set_input("outfeed_clear", False)
+            self._spawn(self._clear_outfeed())
+
+    async def _clear_outfeed(self) -> None:
+        await asyncio.sleep(self.plc.timing.outfeed_s / self.time_scale)
+        self.plc.set_input("outfeed_clear", True)
+
+    def _spawn(self, coro: object) -> None:
+        task = asyncio.ensure_future(coro)  # type: ignore[call-overload]
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _watch_mills(self) -> None:
+        # A block starting shows as a new entry in the mill's run log: note whose part it cut.
+        while True:
+            for index, name in enumerate(self.mill_names, start=1):
+                runs = self.mills[name].runs
+                while self._runs_seen[name] < len(runs):
+                    self._runs_seen[name] += 1
+                    self.cuts.append(Cut(name, self.vise[index], time.time()))
+            await asyncio.sleep(0.002)
+
+    # -- serving ----------------------------------------------------------------------------------
+
+    async def start(self, cell_dir: Path, template: Path | None = None) -> Path:
+        """Serve every machine and write ``cell_dir/cell.toml`` pointing at them."""
+        template = template or EXAMPLE_CELL
+        copy_template(template, cell_dir)
+        self.plc.hooks.input.append(self._plc_input)
+        self.robot.output_hooks.append(self._robot_output)
+        self.plc_url = await self.plc.start(f"modbus://{self.host}:0")
+        for name, value in self.plc.inputs.items():
+            self._plc_input(name, value)
+        self.servers["robot"] = await serve(
+            self.robot, self.robot_listen, self.line, pacing=self.pacing
+        )
+        for name, mill in self.mills.items():
+            self.servers[name] = await serve(
+                mill, f"rfc2217://{self.host}:0", self.line, pacing=self.pacing
+            )
+            mill.start()
+        self._spawn(self._watch_mills())
+        return write_text(cell_dir / "cell.toml", self._cell_toml(template / "cell.toml"))
+
+    def _cell_toml(self, template: Path) -> str:
+        """The template's cell.toml with links, line and timeouts for this emulated cell."""
+        import tomllib
+
+        raw = tomllib.loads(template.read_text(encoding="utf-8"))
+        lines = [
+            f"# Emulated cell (time scale {self.time_scale:g}); written by cellctl emulate cell.",
+            "",
+        ]
+        out = template.read_text(encoding="utf-8").splitlines()
+        section = ""
+        for text in out:
+            stripped = text.strip()
+            if stripped.startswith("["):
+                section = stripped.strip("[]")
+            key = stripped.split("=", 1)[0].strip() if "=" in stripped else ""
+            if section.startswith("machines.") and key == "link":
+                name = section.split(".", 1)[1]
+                text = f'link = "{self.servers[name].url}"'
+            elif section.startswith("machines.") and key == "line":
+                text = f'line = "{self.line}"'
+            elif section == "plc" and key == "url":
+                text = f'url = "{self.plc_url}"'
+            lines.append(text)
+        scale = self.time_scale
+        # Deadlines scale with the machines' time; a real cell keeps the template's.
+        for name in raw.get("machines", {}):
+            kind = raw["machines"][name].get("kind")
+            if kind == "dyna2400":
+                lines += [
+                    "",
+                    f"[machines.{name}.options]",
+                    f"setup_timeout = {max(5.0, 120.0 / scale):g}",
+                    f"block_extra = {max(5.0, 60.0 / scale):g}",
+                    "ready_wait = 2.0",
+                ]
+        return "\n".join(lines) + "\n"
+
+    def runs_per_part(self) -> dict[str, dict[str, int]]:
+        """How many programs each mill ran per physical part (from the emulators' logs).
+
+        Runs with an empty vise (setup programs) are not counted.
+        """
+        out: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
+        for cut in self.cuts:
+            if cut.part is not None:
+                out[cut.part][cut.mill] += 1
+        return {k: dict(v) for k, v in out.items()}
+
+    async def close(self) -> None:
+        """Stop every server and the PLC."""
+        for task in list(self._tasks):
+            task.cancel()
+        for task in list(self._tasks):
+            with contextlib.suppress(BaseException):
+                await task
+        for server in self.servers.values():
+            await server.close()
+        await self.plc.close()
+
+
+def copy_template(template: Path, cell_dir: Path) -> None:
+    """Copy a cell's programs (``robot/``, ``programs/``) from ``template`` to ``cell_dir``."""
+    if not (template / "cell.toml").exists():
+        raise UsageError(f"{template}: no cell.toml to copy")
+    cell_dir.mkdir(parents=True, exist_ok=True)
+    for sub in ("robot", "programs"):
+        if (template / sub).is_dir():
+            shutil.copytree(template / sub, cell_dir / sub, dirs_exist_ok=True)
+
+
+def write_text(path: Path, text: str) -> Path:
+    """Write ``text`` to ``path`` and return the path."""
+    path.write_text(text, encoding="utf-8")
+    return path

@@ -132,6 +132,7 @@ class CellController:
         self.events: list[Event] = []
         self.inputs: dict[str, bool] = {}
         self._wake = asyncio.Event()
+        self._monitor_done = asyncio.Event()
         self._robot_task: asyncio.Task[None] | None = None
         self._mill_tasks: dict[str, asyncio.Task[None]] = {}
         self._partitions: dict[int, _Partition] = {}
@@ -285,9 +286,16 @@ class CellController:
                     async with asyncio.timeout(self.options.poll_period):
                         await self._wake.wait()
         finally:
-            monitor.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await monitor
+            # Let the monitor finish its round: cancelling it mid-request would strand a
+            # Modbus or serial transaction.
+            self._monitor_done.set()
+            try:
+                async with asyncio.timeout(10):
+                    await monitor
+            except TimeoutError:
+                monitor.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await monitor
 
     def _busy(self) -> bool:
         tasks = [self._robot_task, *self._mill_tasks.values()]
@@ -630,9 +638,11 @@ class CellController:
 
     async def _monitor(self, stop: asyncio.Event) -> None:
         """G: read every idle machine and the PLC once a poll period; faults become alarms."""
-        while True:
+        while not self._monitor_done.is_set():
             await self._monitor_once()
-            await asyncio.sleep(self.options.poll_period)
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(self.options.poll_period):
+                    await self._monitor_done.wait()
 
     async def _monitor_once(self) -> None:
         try:

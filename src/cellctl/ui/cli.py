@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from cellctl import __version__
+from cellctl.ui.cell_cli import cell_group, demo, emulate_cell, run_command
 from cellctl.ui.emulate_cli import emulate
 from cellctl.ui.mill_cli import emulate_mill, mill
 from cellctl.ui.orders_cli import alarm, orders, part, reports, submit
@@ -36,3 +37,7 @@ main.add_command(reports)
 main.add_command(alarm)
 main.add_command(part)
 main.add_command(plc)
+main.add_command(cell_group)
+main.add_command(run_command)
+main.add_command(demo)
+emulate.add_command(emulate_cell)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 import sys
 from collections.abc import Callable, Coroutine
 from pathlib import Path
@@ -38,6 +39,9 @@ def exit_code(error: CellctlError) -> int:
 
 def run(coro_fn: Callable[[], Coroutine[Any, Any, T]]) -> T:
     """Run a command's coroutine; a CellctlError becomes one line on stderr and an exit code."""
+    # The PLC driver turns pymodbus failures into typed errors; pymodbus's own error log
+    # (with frame dumps) would only repeat them on the operator's screen.
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     try:
         return asyncio.run(coro_fn())
     except CellctlError as e:

@@ -1,0 +1,289 @@
+"""``cellctl cell check``, ``cellctl run``, ``cellctl emulate cell`` and ``cellctl demo``."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import shutil
+import signal
+import time
+from pathlib import Path
+
+import click
+from rich.console import Group
+from rich.live import Live
+from rich.table import Table
+
+from cellctl.cell.config import check_cell, load_cell
+from cellctl.cell.controller import CellController, ControllerOptions, Event
+from cellctl.cell.journal import open_journal
+from cellctl.cell.report import Summary, summarize, write_gantt
+from cellctl.emulators.serve import parse_fault
+from cellctl.errors import UsageError
+from cellctl.mailbox import open_mailbox
+from cellctl.ui.common import cell_dir, console, err_console, run
+
+
+@click.group("cell")
+def cell_group() -> None:
+    """The cell as a whole: its cell.toml."""
+
+
+@cell_group.command("check")
+@click.pass_context
+def check(ctx: click.Context) -> None:
+    """Check cell.toml and every program it names; print every problem."""
+    directory = cell_dir(ctx)
+    config, problems = check_cell(directory)
+    for p in problems:
+        console.print(p, markup=False)
+    if config is None or problems:
+        err_console.print(f"{len(problems)} problem(s) in {directory / 'cell.toml'}")
+        raise SystemExit(1)
+    mills = ", ".join(m.name for m in config.mills)
+    console.print(
+        f"{directory / 'cell.toml'}: ok: robot {config.robot.name}, mills {mills}, "
+        f"{len(config.robot_programs)} robot programs, part types {', '.join(config.parts)}"
+    )
+
+
+def live_view(controller: CellController) -> Group:
+    """The live view: orders, machines and their steps, alarms, recent events."""
+    orders = Table(title="orders", expand=True)
+    for col in ("order", "part", "qty", "state", "done", "held"):
+        orders.add_column(col)
+    for o in controller.mailbox.orders()[:12]:
+        parts = controller.journal.parts(order_id=o.id)
+        done = sum(p.status == "done" for p in parts)
+        held = sum(p.status == "held" for p in parts)
+        orders.add_row(o.id, o.part_type, str(o.qty), o.state, str(done), str(held))
+    machines = Table(title="machines", expand=True)
+    for col in ("machine", "state", "current step", "service"):
+        machines.add_column(col)
+    for view in controller.machines.values():
+        service = "in service" if view.in_service else "[red]OUT OF SERVICE[/red]"
+        machines.add_row(view.name, view.state, view.step, service)
+    alarms = Table(title="active alarms", expand=True)
+    for col in ("id", "machine", "alarm"):
+        alarms.add_column(col)
+    for a in controller.journal.active_alarms()[-6:]:
+        alarms.add_row(str(a.id), a.machine, a.text)
+    events = Table(title="events", expand=True, show_header=False)
+    events.add_column("time", width=10)
+    events.add_column("event")
+    for e in controller.events[-6:]:
+        events.add_row(time.strftime("%H:%M:%S", time.localtime(e.time)), e.text)
+    return Group(orders, machines, alarms, events)
+
+
+async def run_controller(
+    directory: Path,
+    *,
+    live: bool,
+    until_idle: bool,
+    options: ControllerOptions | None = None,
+    stop: asyncio.Event | None = None,
+) -> CellController:
+    """Connect and run the controller of ``directory`` until stopped (or idle)."""
+    config = load_cell(directory)
+    journal = open_journal(directory)
+    mailbox = open_mailbox(directory)
+    stop = stop or asyncio.Event()
+    printer = None if live else (lambda e: console.print(_event_line(e), markup=False))
+    controller = CellController(config, journal, mailbox, options=options, on_event=printer)
+    loop = asyncio.get_running_loop()
+    presses = 0
+
+    def on_signal() -> None:
+        nonlocal presses
+        presses += 1
+        if presses == 1:
+            controller.log("stopping: steps in flight finish first (Ctrl-C again to abort)")
+            stop.set()
+        else:
+            raise KeyboardInterrupt
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, on_signal)
+    try:
+        await controller.connect()
+        if live:
+            with Live(live_view(controller), console=console, refresh_per_second=4) as screen:
+                task = asyncio.create_task(controller.run(stop, until_idle=until_idle))
+                while not task.done():
+                    screen.update(live_view(controller))
+                    await asyncio.wait({task}, timeout=0.25)
+                screen.update(live_view(controller))
+                await task
+        else:
+            await controller.run(stop, until_idle=until_idle)
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)
+        await controller.close()
+    return controller
+
+
+def _event_line(e: Event) -> str:
+    return f"{time.strftime('%H:%M:%S', time.localtime(e.time))} {e.text}"
+
+
+@click.command("run")
+@click.option("--live/--no-live", default=True, help="Live view (default) or a plain event log.")
+@click.option("--until-idle", is_flag=True, help="Return once every order is done or held.")
+@click.pass_context
+def run_command(ctx: click.Context, live: bool, until_idle: bool) -> None:
+    """Run the cell controller in the foreground; Ctrl-C stops it cleanly."""
+    directory = cell_dir(ctx)
+    run(lambda: _run(directory, live, until_idle))
+
+
+async def _run(directory: Path, live: bool, until_idle: bool) -> None:
+    await run_controller(directory, live=live, until_idle=until_idle)
+
+
+def _emulate_cell_command() -> click.Command:
+    from cellctl.emulators.cell import EmulatedCell
+
+    def callback(
+        time_scale: float,
+        no_pacing: bool,
+        robot_listen: str,
+        fault: tuple[str, ...],
+        template: str | None,
+    ) -> None:
+        ctx = click.get_current_context()
+        directory = cell_dir(ctx)
+
+        async def main() -> None:
+            cell = EmulatedCell(
+                time_scale=time_scale, pacing=not no_pacing, robot_listen=robot_listen
+            )
+            toml = await cell.start(directory, Path(template) if template else None)
+            for text in fault:
+                apply_fault(cell, text)
+            console.print(f"emulated cell (time scale {time_scale:g}) wrote {toml}")
+            for name, server in cell.servers.items():
+                console.print(f"  {name:6s} {server.url}")
+            console.print(f"  plc    {cell.plc_url}")
+            stop = asyncio.Event()
+            loop = asyncio.get_running_loop()
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                loop.add_signal_handler(sig, stop.set)
+            try:
+                await stop.wait()
+            finally:
+                await cell.close()
+                console.print("emulated cell stopped")
+
+        run(main)
+
+    return click.Command(
+        "cell",
+        callback=callback,
+        params=[
+            click.Option(["--time-scale"], type=float, default=50.0, show_default=True),
+            click.Option(["--no-pacing"], is_flag=True, help="Move bytes as fast as they come."),
+            click.Option(["--robot-listen"], default="pty", show_default=True),
+            click.Option(
+                ["--fault"], multiple=True, metavar="MACHINE:NAME[=ARG]", help="e.g. cnc1:stall"
+            ),
+            click.Option(["--template"], help="Cell directory to copy (default: examples/cell)."),
+        ],
+        help="Start the robot, both mills and the PLC, and write cell.toml pointing at them.",
+    )
+
+
+emulate_cell = _emulate_cell_command()
+
+
+def apply_fault(cell: object, text: str) -> None:
+    """Switch a fault on one machine of an emulated cell: ``cnc1:stall``, ``robot:drop``."""
+    machine, sep, rest = text.partition(":")
+    if not sep:
+        raise UsageError(f"fault {text!r}: write MACHINE:NAME[=ARG], e.g. cnc1:stall")
+    name, arg = parse_fault(rest)
+    target = {"robot": cell.robot, "plc": cell.plc, **cell.mills}.get(machine)  # type: ignore[attr-defined]
+    if target is None:
+        raise UsageError(f"fault {text!r}: no machine {machine!r} (robot, cnc1, cnc2, plc)")
+    target.set_fault(name, arg)
+
+
+@click.command("demo")
+@click.option("--time-scale", type=float, default=200.0, show_default=True)
+@click.option(
+    "--parts", "count", type=int, default=6, show_default=True, help="Parts in the batch."
+)
+@click.option("--out", type=click.Path(file_okay=False), default="demo-out", show_default=True)
+@click.option("--compare/--no-compare", default=True, help="Also run one part at a time.")
+def demo(time_scale: float, count: int, out: str, compare: bool) -> None:
+    """Start an emulated cell, run a mixed batch through it, and summarize (under 2 minutes)."""
+    Path(out).mkdir(parents=True, exist_ok=True)
+    run(lambda: _demo(time_scale, count, Path(out), compare))
+
+
+async def run_batch(
+    directory: Path,
+    time_scale: float,
+    batch: list[tuple[str, int]],
+    *,
+    one_at_a_time: bool,
+    live: bool,
+) -> Summary:
+    """Emulate the cell in ``directory``, run ``batch`` [(part type, qty)], return figures."""
+    from cellctl.emulators.cell import EmulatedCell
+
+    shutil.rmtree(directory, ignore_errors=True)
+    cell = EmulatedCell(time_scale=time_scale)
+    try:
+        await cell.start(directory)
+        mailbox = open_mailbox(directory)
+        for i, (part, qty) in enumerate(batch, start=1):
+            mailbox.post_order(part, qty, order_id=f"{'S' if one_at_a_time else 'O'}{i}")
+        mailbox.close()
+        started = time.time()
+        options = ControllerOptions.from_config(load_cell(directory), one_at_a_time=one_at_a_time)
+        controller = await run_controller(directory, live=live, until_idle=True, options=options)
+        machines = [controller.config.robot.name, *(m.name for m in controller.config.mills)]
+        summary = summarize(controller.journal, machines, since=started)
+        title = "one part at a time" if one_at_a_time else "cellctl schedule"
+        write_gantt(
+            controller.journal,
+            machines,
+            directory / "gantt.svg",
+            since=started,
+            title=f"{title}: makespan {summary.makespan_s:.1f} s (time scale {time_scale:g})",
+        )
+        twice = {p: r for p, r in cell.runs_per_part().items() if any(n > 1 for n in r.values())}
+        summary.extra["parts_cut_twice"] = len(twice)
+        return summary
+    finally:
+        await cell.close()
+
+
+async def _demo(time_scale: float, count: int, out: Path, compare: bool) -> None:
+    half = max(1, count // 2)
+    batch = [("wax-robot-base", half), ("wax-toy-mill-table", count - half)]
+    console.print(
+        f"[bold]cellctl demo[/bold]: an emulated cell (robot, 2 mills, PLC) at time scale "
+        f"{time_scale:g}; batch: {half} wax-robot-base + {count - half} wax-toy-mill-table"
+    )
+    summary = await run_batch(out / "cell", time_scale, batch, one_at_a_time=False, live=True)
+    console.print("\n".join(summary.lines("[bold]cellctl schedule[/bold]")))
+    console.print(f"Gantt chart: {out / 'cell' / 'gantt.svg'}")
+    if compare:
+        console.print("\nthe source's way: one part through its whole route before the next ...")
+        base = await run_batch(
+            out / "one-at-a-time", time_scale, batch, one_at_a_time=True, live=False
+        )
+        console.print("\n".join(base.lines("[bold]one part at a time[/bold]")))
+        console.print(f"Gantt chart: {out / 'one-at-a-time' / 'gantt.svg'}")
+        if summary.makespan_s > 0:
+            console.print(
+                f"\nspeed-up over one part at a time: "
+                f"{base.makespan_s / summary.makespan_s:.2f}x "
+                f"(machine time x{time_scale:g}: {summary.makespan_s * time_scale / 60:.0f} min "
+                f"vs {base.makespan_s * time_scale / 60:.0f} min in the real cell)"
+            )
+    with contextlib.suppress(OSError):
+        shutil.copy(out / "cell" / "gantt.svg", out / "gantt.svg")

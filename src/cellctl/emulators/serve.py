@@ -75,6 +75,8 @@ class DeviceLine:
         self._rx_clock = 0.0
         self._tx_clock = 0.0
         self._waiter: asyncio.Future[None] | None = None
+        self._deadline: float | None = None
+        self._timer: asyncio.TimerHandle | None = None
         self._closed = False
         self.bytes_in = 0
         self.bytes_out = 0
@@ -141,15 +143,27 @@ class DeviceLine:
             raise LinkClosed("the host closed the line")
         fut: asyncio.Future[None] = self._loop.create_future()
         self._waiter = fut
-        timer = self._loop.call_later(timeout, _done, fut) if timeout is not None else None
+        self._deadline = None if timeout is None else self._loop.time() + timeout
+        if self._deadline is not None and self._timer is None:
+            self._timer = self._loop.call_at(self._deadline, self._on_timer)
         try:
             await fut
         finally:
             self._waiter = None
-            if timer is not None:
-                timer.cancel()
         if self._closed:
             raise LinkClosed("the host closed the line")
+
+    def _on_timer(self) -> None:
+        # One timer per line, re-armed only when it fires: a timer per wait (cancelled as
+        # soon as bytes come) would pile up in the loop's heap with a thousand lines.
+        self._timer = None
+        waiter, deadline = self._waiter, self._deadline
+        if waiter is None or waiter.done() or deadline is None:
+            return
+        if self._loop.time() >= deadline:
+            waiter.set_result(None)
+        else:
+            self._timer = self._loop.call_at(deadline, self._on_timer)
 
     async def _until_ready(self, index: int) -> None:
         delay = self._ready_time(index) - self._loop.time()

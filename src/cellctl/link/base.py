@@ -35,6 +35,8 @@ class Link(ABC):
         self._trace = trace
         self._buf = bytearray()
         self._waiter: asyncio.Future[None] | None = None
+        self._wait_until = 0.0
+        self._timer: asyncio.TimerHandle | None = None
         self._closed_exc: LinkError | None = None
         self._loop = asyncio.get_running_loop()
         self.bytes_sent = 0
@@ -91,20 +93,33 @@ class Link(ABC):
         """Wait for more bytes until ``deadline`` (loop time)."""
         if self._closed_exc is not None:
             raise self._closed_exc
-        remaining = deadline - self._loop.time()
-        if remaining <= 0:
+        if deadline - self._loop.time() <= 0:
             raise LinkTimeout(self._timeout_message(wanted))
         waiter: asyncio.Future[None] = self._loop.create_future()
         self._waiter = waiter
-        # A timer handle is far cheaper than asyncio.wait_for when hundreds of links wait.
-        timer = self._loop.call_at(deadline, _expire, waiter)
+        self._wait_until = deadline
+        # One timer per link, re-armed only when it fires early: a timer per wait, cancelled
+        # as soon as a byte comes, would pile up in the loop's heap with hundreds of links.
+        if self._timer is None or self._timer.when() > deadline:
+            if self._timer is not None:
+                self._timer.cancel()
+            self._timer = self._loop.call_at(deadline, self._on_timer)
         try:
             await waiter
         finally:
-            timer.cancel()
             self._waiter = None
         if self._closed_exc is not None and not self._buf:
             raise self._closed_exc
+
+    def _on_timer(self) -> None:
+        self._timer = None
+        waiter = self._waiter
+        if waiter is None or waiter.done():
+            return
+        if self._loop.time() >= self._wait_until:
+            waiter.set_result(None)
+        else:
+            self._timer = self._loop.call_at(self._wait_until, self._on_timer)
 
     def _timeout_message(self, wanted: str) -> str:
         got = f"; had received {format_raw(bytes(self._buf))}" if self._buf else ""
@@ -196,8 +211,3 @@ class Link(ABC):
 
     def __repr__(self) -> str:
         return f"<{type(self).__name__} {self.url} {self.settings}>"
-
-
-def _expire(waiter: asyncio.Future[None]) -> None:
-    if not waiter.done():
-        waiter.set_result(None)

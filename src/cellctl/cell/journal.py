@@ -30,15 +30,13 @@ Rules that keep a restart from losing or repeating work:
 from __future__ import annotations
 
 import sqlite3
-import threading
 import time
-from collections.abc import Callable, Iterable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import TracebackType
-from typing import Any, Final, Protocol, Self
+from typing import Any, Final, Protocol
 
+from cellctl.cell.sqlitedb import SqliteStore
 from cellctl.errors import UsageError
 
 #: The journal's file name inside the cell directory.
@@ -108,9 +106,6 @@ CREATE TABLE IF NOT EXISTS machines (
     updated REAL NOT NULL
 );
 """
-
-#: Seconds a writer waits for another process's write lock before giving up.
-BUSY_TIMEOUT = 30.0
 
 
 class OrderLike(Protocol):
@@ -198,7 +193,7 @@ def open_journal(cell_dir: Path, *, clock: Callable[[], float] = time.time) -> J
     return Journal(Path(cell_dir) / JOURNAL_FILE, clock=clock)
 
 
-class Journal:
+class Journal(SqliteStore):
     """The journal in one SQLite file; use as a context manager or call :meth:`close`.
 
     Every method raises :class:`UsageError` for an unknown id or an action the part's state
@@ -206,44 +201,8 @@ class Journal:
     """
 
     def __init__(self, path: Path, *, clock: Callable[[], float] = time.time) -> None:
-        self.path = Path(path)
+        super().__init__(path, SCHEMA)
         self._clock = clock
-        self._conn = _connect(self.path)
-        # One connection, possibly used from worker threads: one transaction at a time.
-        self._lock = threading.Lock()
-
-    # -- plumbing ----------------------------------------------------------------------------
-
-    @contextmanager
-    def _write(self) -> Iterator[sqlite3.Connection]:
-        with self._lock:
-            self._conn.execute("BEGIN IMMEDIATE")
-            try:
-                yield self._conn
-            except BaseException:
-                self._conn.execute("ROLLBACK")
-                raise
-            self._conn.execute("COMMIT")
-
-    def _read(self, sql: str, args: Iterable[Any] = ()) -> list[sqlite3.Row]:
-        with self._lock:
-            return self._conn.execute(sql, tuple(args)).fetchall()
-
-    def close(self) -> None:
-        """Close the file; the journal is unusable afterwards."""
-        with self._lock:
-            self._conn.close()
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
     # -- parts -------------------------------------------------------------------------------
 
@@ -629,31 +588,6 @@ class Journal:
 
 
 # -- helpers -----------------------------------------------------------------------------------
-
-
-def _connect(path: Path) -> sqlite3.Connection:
-    # The same settings as the SQLite mailbox; kept here so the cell does not depend on a
-    # mailbox backend.
-    path.parent.mkdir(parents=True, exist_ok=True)
-    conn = sqlite3.connect(
-        path, timeout=BUSY_TIMEOUT, isolation_level=None, check_same_thread=False
-    )
-    conn.row_factory = sqlite3.Row
-    conn.execute(f"PRAGMA busy_timeout = {int(BUSY_TIMEOUT * 1000)}")
-    conn.execute("PRAGMA journal_mode = WAL")
-    # FULL: in WAL mode NORMAL may lose the last commits on power loss; FULL syncs each one.
-    conn.execute("PRAGMA synchronous = FULL")
-    conn.execute("BEGIN IMMEDIATE")
-    try:
-        for statement in SCHEMA.split(";"):
-            if statement.strip():
-                conn.execute(statement)
-        conn.execute("COMMIT")
-    except BaseException:
-        conn.execute("ROLLBACK")
-        conn.close()
-        raise
-    return conn
 
 
 def _check_location(location: str) -> None:

@@ -10,13 +10,12 @@ from __future__ import annotations
 
 import json
 import sqlite3
-import threading
 import time
-from collections.abc import Callable, Iterable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
+from cellctl.cell.sqlitedb import SqliteStore
 from cellctl.errors import UsageError
 from cellctl.mailbox.base import (
     POSTED,
@@ -51,59 +50,13 @@ CREATE TABLE IF NOT EXISTS reports (
 CREATE INDEX IF NOT EXISTS orders_by_state ON orders (state);
 """
 
-#: Seconds a writer waits for another process's write lock before giving up.
-BUSY_TIMEOUT = 30.0
 
-
-def connect(path: Path, schema: str, busy_timeout: float = BUSY_TIMEOUT) -> sqlite3.Connection:
-    """Open ``path`` in WAL mode, autocommit, ``synchronous=FULL``, and create ``schema``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    # isolation_level=None: no implicit transactions; each method says BEGIN itself.
-    conn = sqlite3.connect(
-        path, timeout=busy_timeout, isolation_level=None, check_same_thread=False
-    )
-    conn.row_factory = sqlite3.Row
-    conn.execute(f"PRAGMA busy_timeout = {int(busy_timeout * 1000)}")
-    conn.execute("PRAGMA journal_mode = WAL")
-    # FULL: in WAL mode NORMAL may lose the last commits on power loss; FULL syncs each one.
-    conn.execute("PRAGMA synchronous = FULL")
-    conn.execute("BEGIN IMMEDIATE")
-    try:
-        for statement in schema.split(";"):
-            if statement.strip():
-                conn.execute(statement)
-        conn.execute("COMMIT")
-    except BaseException:
-        conn.execute("ROLLBACK")
-        conn.close()
-        raise
-    return conn
-
-
-class SqliteMailbox(Mailbox):
+class SqliteMailbox(SqliteStore, Mailbox):
     """The default mailbox. ``SqliteMailbox(path)``; ``clock`` gives the times it records."""
 
     def __init__(self, path: Path, *, clock: Callable[[], float] = time.time) -> None:
-        self.path = Path(path)
+        SqliteStore.__init__(self, path, SCHEMA)
         self._clock = clock
-        self._conn = connect(self.path, SCHEMA)
-        # One connection, possibly used from worker threads: one transaction at a time.
-        self._lock = threading.Lock()
-
-    @contextmanager
-    def _write(self) -> Iterator[sqlite3.Connection]:
-        with self._lock:
-            self._conn.execute("BEGIN IMMEDIATE")
-            try:
-                yield self._conn
-            except BaseException:
-                self._conn.execute("ROLLBACK")
-                raise
-            self._conn.execute("COMMIT")
-
-    def _read(self, sql: str, args: Iterable[Any] = ()) -> list[sqlite3.Row]:
-        with self._lock:
-            return self._conn.execute(sql, tuple(args)).fetchall()
 
     def post_order(
         self, part_type: str, qty: int = 1, priority: int = 0, order_id: str | None = None
@@ -198,8 +151,7 @@ class SqliteMailbox(Mailbox):
         return [_report(r) for r in self._read(sql, args)]
 
     def close(self) -> None:
-        with self._lock:
-            self._conn.close()
+        SqliteStore.close(self)
 
 
 def _order(row: sqlite3.Row) -> Order:

@@ -1,0 +1,94 @@
+"""SQLite files shared by the controller and the CLI: the journal and the SQLite mailbox.
+
+:class:`SqliteStore` opens a file in WAL mode with ``synchronous=FULL`` (every commit is on
+disk before the call returns, so a kill -9 loses nothing that returned) and gives its
+subclasses one-transaction helpers::
+
+    class Notes(SqliteStore):
+        def add(self, text: str) -> None:
+            with self._write() as db:                     # BEGIN IMMEDIATE ... COMMIT
+                db.execute("INSERT INTO notes (text) VALUES (?)", (text,))
+
+Writers take the write lock up front (``BEGIN IMMEDIATE``) so a read-modify-write cannot
+interleave with another process, and wait up to ``busy_timeout`` seconds for it rather than
+failing with "database is locked".
+"""
+
+from __future__ import annotations
+
+import sqlite3
+import threading
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Self
+
+#: Seconds a writer waits for another process's write lock before giving up.
+BUSY_TIMEOUT = 30.0
+
+
+def connect(path: Path, schema: str, busy_timeout: float = BUSY_TIMEOUT) -> sqlite3.Connection:
+    """Open ``path`` in WAL mode, autocommit, ``synchronous=FULL``, and create ``schema``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # isolation_level=None: no implicit transactions; each method says BEGIN itself.
+    conn = sqlite3.connect(
+        path, timeout=busy_timeout, isolation_level=None, check_same_thread=False
+    )
+    conn.row_factory = sqlite3.Row
+    conn.execute(f"PRAGMA busy_timeout = {int(busy_timeout * 1000)}")
+    conn.execute("PRAGMA journal_mode = WAL")
+    # FULL: in WAL mode NORMAL may lose the last commits on power loss; FULL syncs each one.
+    conn.execute("PRAGMA synchronous = FULL")
+    conn.execute("BEGIN IMMEDIATE")
+    try:
+        for statement in schema.split(";"):
+            if statement.strip():
+                conn.execute(statement)
+        conn.execute("COMMIT")
+    except BaseException:
+        conn.execute("ROLLBACK")
+        conn.close()
+        raise
+    return conn
+
+
+class SqliteStore:
+    """One SQLite file with a schema; use as a context manager or call :meth:`close`."""
+
+    def __init__(self, path: Path, schema: str) -> None:
+        self.path = Path(path)
+        self._conn = connect(self.path, schema)
+        # One connection, possibly used from worker threads: one transaction at a time.
+        self._lock = threading.Lock()
+
+    @contextmanager
+    def _write(self) -> Iterator[sqlite3.Connection]:
+        with self._lock:
+            self._conn.execute("BEGIN IMMEDIATE")
+            try:
+                yield self._conn
+            except BaseException:
+                self._conn.execute("ROLLBACK")
+                raise
+            self._conn.execute("COMMIT")
+
+    def _read(self, sql: str, args: Iterable[Any] = ()) -> list[sqlite3.Row]:
+        with self._lock:
+            return self._conn.execute(sql, tuple(args)).fetchall()
+
+    def close(self) -> None:
+        """Close the file; the store is unusable afterwards."""
+        with self._lock:
+            self._conn.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()

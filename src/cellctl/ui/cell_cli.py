@@ -21,7 +21,7 @@ from cellctl.cell.report import Summary, summarize, write_gantt
 from cellctl.emulators.serve import parse_fault
 from cellctl.errors import UsageError
 from cellctl.mailbox import open_mailbox
-from cellctl.ui.common import cell_dir, console, err_console, run
+from cellctl.ui.common import cell_dir, console, err_console, run, until_stopped
 
 
 @click.group("cell")
@@ -166,12 +166,8 @@ def _emulate_cell_command() -> click.Command:
             for name, server in cell.servers.items():
                 console.print(f"  {name:6s} {server.url}")
             console.print(f"  plc    {cell.plc_url}")
-            stop = asyncio.Event()
-            loop = asyncio.get_running_loop()
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                loop.add_signal_handler(sig, stop.set)
             try:
-                await stop.wait()
+                await until_stopped()
             finally:
                 await cell.close()
                 console.print("emulated cell stopped")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import signal
 import sys
 from collections.abc import Callable, Coroutine
 from pathlib import Path
@@ -83,3 +84,16 @@ class MachineGroup(click.Group):
             if isinstance(param, click.Option) and name in param.opts + param.secondary_opts:
                 return param
         return None
+
+
+async def until_stopped() -> None:
+    """Wait until Ctrl-C or SIGTERM (what every ``cellctl emulate`` command serves until)."""
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        await stop.wait()
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)

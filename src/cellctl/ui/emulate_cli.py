@@ -2,15 +2,12 @@
 
 from __future__ import annotations
 
-import asyncio
-import signal
-
 import click
 
 from cellctl.emulators.serve import EmulatedDevice, parse_fault, serve
 from cellctl.errors import UsageError
 from cellctl.link import ROBOT_LINE, LineSettings
-from cellctl.ui.common import console, run
+from cellctl.ui.common import console, run, until_stopped
 from cellctl.ui.plc_cli import emulate_plc
 
 
@@ -52,12 +49,8 @@ async def serve_until_stopped(
     paced = "on" if pacing else "off"
     console.print(f"{what} listening on {server.url}  ({settings}, pacing {paced})")
     console.print(f"  drive it with: --link {server.url}")
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
     try:
-        await stop.wait()
+        await until_stopped()
     finally:
         await server.close()
         console.print(f"{what} stopped")

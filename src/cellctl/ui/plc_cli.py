@@ -11,9 +11,7 @@ there is none); ``--url`` overrides where it is::
 
 from __future__ import annotations
 
-import asyncio
 import logging
-import signal
 
 import click
 
@@ -21,7 +19,7 @@ from cellctl.emulators.plc import FAULTS, PlcEmulator
 from cellctl.emulators.serve import parse_fault
 from cellctl.errors import UsageError
 from cellctl.protocol.plc import SIGNALS, PlcMap
-from cellctl.ui.common import cell_dir, console, run
+from cellctl.ui.common import cell_dir, console, run, until_stopped
 from cellctl.ui.machines import load_cell_file
 
 
@@ -156,12 +154,8 @@ def emulate_plc(
         url = await device.start(plc_map.url)
         console.print(f"PLC emulator listening on {url}  (unit any, time x{time_scale:g})")
         console.print(f"  drive it with: cellctl plc --url {url} status")
-        stop = asyncio.Event()
-        loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, stop.set)
         try:
-            await stop.wait()
+            await until_stopped()
         finally:
             await device.close()
             console.print("PLC emulator stopped")

@@ -15,6 +15,7 @@ from rich.console import Console
 from rich.markup import escape
 
 from cellctl.errors import CellctlError, DeviceError, LinkError, ProtocolError, UsageError
+from cellctl.ui.machines import MachineRef, resolve_machine
 
 T = TypeVar("T")
 
@@ -97,3 +98,17 @@ async def until_stopped() -> None:
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
+
+
+def machine_ref(ctx: click.Context, family: str) -> tuple[Path, MachineRef]:
+    """The cell directory and the machine a ``robot``/``mill`` command means (NAME or --link)."""
+    params = ctx.find_object(dict) or {}
+    directory = cell_dir(ctx)
+    ref = resolve_machine(
+        directory,
+        family,
+        name=ctx.meta.get("machine_name"),
+        link=params.get("link"),
+        line=params.get("line"),
+    )
+    return directory, ref

@@ -23,9 +23,9 @@ from cellctl.drivers.state import StateStore
 from cellctl.errors import UsageError
 from cellctl.protocol.dynalan import ProgramRole, Severity, ValidationContext, parse_program
 from cellctl.protocol.dynalan import validate as validate_program
-from cellctl.ui.common import MachineGroup, cell_dir, console, err_console, run
+from cellctl.ui.common import MachineGroup, cell_dir, console, err_console, machine_ref, run
 from cellctl.ui.emulate_cli import listen_options, serve_until_stopped
-from cellctl.ui.machines import load_cell_file, resolve_machine
+from cellctl.ui.machines import load_cell_file
 
 Action = Callable[[Dyna2400Mill], Awaitable[None]]
 
@@ -45,14 +45,7 @@ def _with_mill(ctx: click.Context, action: Action) -> None:
     params = _options(ctx)
 
     async def main() -> None:
-        directory = cell_dir(ctx)
-        ref = resolve_machine(
-            directory,
-            "mill",
-            name=ctx.meta.get("machine_name"),
-            link=params.get("link"),
-            line=params.get("line"),
-        )
+        directory, ref = machine_ref(ctx, "mill")
         mill = await Dyna2400Mill.connect(
             ref.url,
             name=ref.name,

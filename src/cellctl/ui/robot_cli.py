@@ -25,8 +25,7 @@ from cellctl.drivers.robot import Ibm7545Robot, RobotConfig
 from cellctl.drivers.state import StateStore
 from cellctl.errors import UsageError
 from cellctl.protocol.aml import compile_source
-from cellctl.ui.common import MachineGroup, cell_dir, console, run
-from cellctl.ui.machines import resolve_machine
+from cellctl.ui.common import MachineGroup, console, machine_ref, run
 
 Action = Callable[[Ibm7545Robot], Awaitable[None]]
 
@@ -43,14 +42,7 @@ def _with_robot(ctx: click.Context, action: Action) -> None:
     params = ctx.find_object(dict) or {}
 
     async def main() -> None:
-        directory = cell_dir(ctx)
-        ref = resolve_machine(
-            directory,
-            "robot",
-            name=ctx.meta.get("machine_name"),
-            link=params.get("link"),
-            line=params.get("line"),
-        )
+        directory, ref = machine_ref(ctx, "robot")
         robot = await Ibm7545Robot.connect(
             ref.url,
             name=ref.name,

@@ -134,6 +134,16 @@ def lower_bound(
     ``transfer_s[program]`` is a transfer's duration, ``machining_s[(mill, program)]`` a
     machining step's duration (both measured).
     """
+    return max(resource_bounds(parts, types, transfer_s, machining_s).values())
+
+
+def resource_bounds(
+    parts: Sequence[str],
+    types: Mapping[str, PartType],
+    transfer_s: Mapping[str, float],
+    machining_s: Mapping[tuple[str, str], float],
+) -> dict[str, float]:
+    """Each resource's term of :func:`lower_bound`: ``{"robot": ..., mill: ...}``."""
     robot = 0.0
     mill_work: dict[str, float] = {}
     head: dict[str, float] = {}
@@ -149,5 +159,6 @@ def lower_bound(
             after = sum(legs[i + 2 :]) + sum(cuts[i + 1 :])
             head[step.mill] = min(head.get(step.mill, before), before)
             tail[step.mill] = min(tail.get(step.mill, after), after)
-    bounds = [robot] + [head[m] + w + tail[m] for m, w in mill_work.items()]
-    return max(bounds)
+    bounds = {"robot": robot}
+    bounds.update({m: head[m] + w + tail[m] for m, w in mill_work.items()})
+    return bounds

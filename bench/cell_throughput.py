@@ -1,0 +1,327 @@
+"""A 50-part mixed batch through the emulated example cell: makespan against its lower bound.
+
+The example cell (robot, CNC 1 roughing, CNC 2 finishing, PLC) is emulated in a second
+process at one fixed time factor (``--time-scale``, default 250: every machine time and every
+character's time on the line is divided by it, so transfer and machining keep their real
+proportions). The real controller runs the batch, in lots of ``--lot`` parts alternating
+between the cell's part types, twice: with the cellctl schedule, and one part at a time (the
+source's way, ``ControllerOptions(one_at_a_time=True)``).
+
+The limit is the bottleneck bound of :func:`cellctl.cell.scheduler.lower_bound`, computed from
+the durations measured in this run's journal (mean per robot program, mean per mill and mill
+program; a step's duration runs from its journal entry before it starts to its entry after it
+ends, so door and vise waits, program downloads and GO are inside it):
+
+    makespan >= max( robot: sum over parts of all its transfers,
+                     each mill M: head(M) + sum over parts routed through M of
+                              (load transfer into M + machining on M + unload transfer out of M)
+                              + tail(M) )
+
+head(M) is the least time before a first part can reach M (transfers and machining ahead of
+M on the shortest route through it), tail(M) the least time after the last part leaves M. A
+mill is occupied while the robot loads and unloads it. The sums over parts with mean
+durations are exactly the measured totals. The makespan runs from the first step's start to
+the last step's end.
+
+Printed: the measured means, the bound, the makespan, ratio = makespan / bound (goal <=
+1.03), the one-at-a-time makespan and speed-up = one-at-a-time / cellctl makespan (goal >=
+1.8), each machine's utilization, each mill's idle time between its first load and last
+unload, the largest gaps between steps, and, from the emulated mills' own execution logs,
+that every physical part was cut exactly once on every mill of its route. Gantt charts go to
+``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import itertools
+import multiprocessing as mp
+import os
+import shutil
+import signal
+import statistics
+import tempfile
+import time
+from collections import Counter, defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from _common import machine_line
+from cellctl.cell.config import CellConfig, load_cell
+from cellctl.cell.controller import CellController, ControllerOptions
+from cellctl.cell.journal import Step, open_journal
+from cellctl.cell.report import Summary, summarize, write_gantt
+from cellctl.cell.scheduler import lower_bound, resource_bounds
+from cellctl.emulators.cell import EXAMPLE_CELL, EmulatedCell
+from cellctl.mailbox import open_mailbox
+
+RATIO_GOAL = 1.03
+SPEEDUP_GOAL = 1.8
+
+
+def _cell_child(conn: Any, directory: str, time_scale: float) -> None:
+    """In the child: serve the emulated cell until told to stop, then send its cut log."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    def quiet(loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
+        # Python 3.11's stream server reports a client task cancelled at close as an error.
+        if not isinstance(context.get("exception"), asyncio.CancelledError):
+            loop.default_exception_handler(context)
+
+    async def serve() -> None:
+        asyncio.get_running_loop().set_exception_handler(quiet)
+        cell = EmulatedCell(time_scale=time_scale)
+        try:
+            await cell.start(Path(directory))
+            conn.send("ready")
+            loop = asyncio.get_running_loop()
+            await loop.run_in_executor(None, conn.recv)
+            conn.send(cell.runs_per_part())
+        finally:
+            await cell.close()
+
+    asyncio.run(serve())
+
+
+class CellProcess:
+    """The emulated cell in another process (its own core, as a real cell's machines are)."""
+
+    def __init__(self, directory: Path, time_scale: float) -> None:
+        ctx = mp.get_context("fork")
+        self.conn, child = ctx.Pipe()
+        self.proc = ctx.Process(
+            target=_cell_child, args=(child, str(directory), time_scale), daemon=True
+        )
+        self.proc.start()
+        if not self.conn.poll(60) or self.conn.recv() != "ready":
+            raise RuntimeError("the emulated cell did not start")
+
+    def stop(self) -> dict[str, dict[str, int]]:
+        """Stop the cell; return how many programs each mill ran per physical part."""
+        self.conn.send("stop")
+        runs: dict[str, dict[str, int]] = self.conn.recv() if self.conn.poll(30) else {}
+        self.proc.join(10)
+        if self.proc.is_alive():
+            os.kill(self.proc.pid or 0, signal.SIGKILL)
+        return runs
+
+
+@dataclass
+class Run:
+    """One batch run: figures, finished steps, and the emulated mills' cut log."""
+
+    summary: Summary
+    steps: list[Step]
+    runs_per_part: dict[str, dict[str, int]]
+    config: CellConfig
+    gantt: Path
+
+
+def batch_orders(types: list[str], parts: int, lot: int) -> list[tuple[str, int]]:
+    """``parts`` parts in lots of ``lot``, the part types taking turns."""
+    orders = []
+    left = parts
+    i = 0
+    while left > 0:
+        qty = min(lot, left)
+        orders.append((types[i % len(types)], qty))
+        left -= qty
+        i += 1
+    return orders
+
+
+async def run_batch(
+    directory: Path, time_scale: float, orders: list[tuple[str, int]], one_at_a_time: bool
+) -> Run:
+    """Emulate the cell in ``directory`` (emptied first) and run ``orders`` through it."""
+    shutil.rmtree(directory, ignore_errors=True)
+    cell = CellProcess(directory, time_scale)
+    runs: dict[str, dict[str, int]] = {}
+    try:
+        mailbox = open_mailbox(directory)
+        prefix = "S" if one_at_a_time else "O"
+        for i, (part, qty) in enumerate(orders, start=1):
+            mailbox.post_order(part, qty, order_id=f"{prefix}{i}")
+        mailbox.close()
+        config = load_cell(directory)
+        options = ControllerOptions.from_config(config, one_at_a_time=one_at_a_time)
+        controller = CellController(
+            config, open_journal(directory), open_mailbox(directory), options=options
+        )
+        started = time.time()
+        try:
+            await controller.connect()
+            await controller.run(asyncio.Event(), until_idle=True)
+        finally:
+            await controller.close()
+    finally:
+        runs = cell.stop()
+    machines = [config.robot.name, *(m.name for m in config.mills)]
+    journal = controller.journal
+    summary = summarize(journal, machines, since=started)
+    title = "one part at a time" if one_at_a_time else "cellctl schedule"
+    gantt = write_gantt(
+        journal,
+        machines,
+        directory / "gantt.svg",
+        since=started,
+        title=f"{title}: makespan {summary.makespan_s:.1f} s (time scale {time_scale:g})",
+    )
+    steps = [s for s in journal.steps() if s.started >= started and s.ended is not None]
+    return Run(summary, steps, runs, config, gantt)
+
+
+def measured_means(
+    steps: list[Step],
+) -> tuple[dict[str, float], dict[tuple[str, str], float], dict[str, list[float]]]:
+    """Mean duration per robot program and per (mill, mill program), from finished steps."""
+    durations: dict[str, list[float]] = defaultdict(list)
+    cuts: dict[tuple[str, str], list[float]] = defaultdict(list)
+    for s in steps:
+        if s.state != "finished" or s.ended is None:
+            continue
+        if s.kind == "transfer":
+            durations[s.program].append(s.ended - s.started)
+        else:
+            cuts[(s.machine, s.program)].append(s.ended - s.started)
+    transfer_s = {k: statistics.fmean(v) for k, v in durations.items()}
+    machining_s = {k: statistics.fmean(v) for k, v in cuts.items()}
+    samples = {k: v for k, v in durations.items()}
+    samples.update({f"{m} {p}": v for (m, p), v in cuts.items()})
+    return transfer_s, machining_s, samples
+
+
+def mill_idle(steps: list[Step], mill: str) -> tuple[float, list[float]]:
+    """Time ``mill`` was neither loaded, machining nor unloaded between its first and last step.
+
+    Returns the total and the gaps, longest first.
+    """
+    spans = []
+    for s in steps:
+        if s.ended is None:
+            continue
+        ends = s.program.split("_to_") if s.kind == "transfer" else []
+        if s.machine == mill or mill in ends:
+            spans.append((s.started, s.ended))
+    spans.sort()
+    gaps = []
+    reach = spans[0][1] if spans else 0.0
+    for start, end in spans[1:]:
+        if start > reach:
+            gaps.append(start - reach)
+        reach = max(reach, end)
+    gaps.sort(reverse=True)
+    return sum(gaps), gaps
+
+
+def robot_wait(steps: list[Step], robot: str) -> float:
+    """Sum of gaps between consecutive robot steps (dispatch latency plus real waits)."""
+    spans = sorted((s.started, s.ended) for s in steps if s.machine == robot and s.ended)
+    return sum(max(0.0, b[0] - a[1]) for a, b in itertools.pairwise(spans))
+
+
+def cut_check(run: Run, part_list: list[str]) -> tuple[bool, str]:
+    """Every physical part cut exactly once on each mill of its route (emulators' own logs)."""
+    expected = Counter(
+        frozenset(Counter(s.mill for s in run.config.parts[t].route).items()) for t in part_list
+    )
+    seen = Counter(frozenset(r.items()) for r in run.runs_per_part.values())
+    per_mill = Counter(
+        m for r in run.runs_per_part.values() for m, n in r.items() for _ in range(n)
+    )
+    text = (
+        f"{len(run.runs_per_part)} physical parts; programs run on them: "
+        + ", ".join(f"{m} {n}" for m, n in sorted(per_mill.items()))
+        + f"; cut exactly once per mill of the route: {'yes' if seen == expected else 'NO'}"
+    )
+    return seen == expected, text
+
+
+async def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--parts", type=int, default=50)
+    parser.add_argument("--time-scale", type=float, default=250.0)
+    parser.add_argument("--lot", type=int, default=5, help="Parts per order (types alternate).")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path(tempfile.gettempdir()) / "cellctl-cell-throughput",
+        help="Where the emulated cells, journals and Gantt charts go.",
+    )
+    args = parser.parse_args()
+    scale = args.time_scale
+    types = list(load_cell(EXAMPLE_CELL).parts)
+    orders = batch_orders(types, args.parts, args.lot)
+    part_list = [t for t, qty in orders for _ in range(qty)]
+    print(
+        f"batch: {args.parts} parts ("
+        + ", ".join(f"{n} x {t}" for t, n in Counter(part_list).items())
+        + f") in {len(orders)} orders of <= {args.lot}, types alternating; time scale {scale:g}"
+    )
+    sched = await run_batch(args.out / "cellctl", scale, orders, one_at_a_time=False)
+    base = await run_batch(args.out / "one-at-a-time", scale, orders, one_at_a_time=True)
+
+    transfer_s, machining_s, samples = measured_means(sched.steps)
+    if not transfer_s or not machining_s:
+        raise SystemExit(f"no finished steps in {args.out / 'cellctl'}: see its journal")
+    print("measured step durations (cellctl run; mean, min-max, n):")
+    for name, values in samples.items():
+        print(
+            f"  {name:44s} {statistics.fmean(values):7.3f} s  "
+            f"{min(values):.3f}-{max(values):.3f}  n={len(values)}"
+        )
+    bound = lower_bound(part_list, sched.config.parts, transfer_s, machining_s)
+    terms = resource_bounds(part_list, sched.config.parts, transfer_s, machining_s)
+    print(
+        "bound terms (robot: all transfers; mill: head + loads, cuts, unloads + tail): "
+        + ", ".join(f"{k} {v:.2f} s" for k, v in terms.items())
+    )
+    robot = sched.config.robot.name
+    s, b = sched.summary, base.summary
+    best = b.makespan_s / bound if bound > 0 else 0.0
+    made = sum(s.parts_made.values())
+    print(f"lower bound: {bound:.2f} s (bottleneck bound from the measured means)")
+    print(f"makespan, cellctl schedule: {s.makespan_s:.2f} s  ({made} parts made)")
+    ratio = s.makespan_s / bound if bound > 0 else float("inf")
+    verdict = "meets" if ratio <= RATIO_GOAL else "MISSES"
+    print(f"ratio makespan / bound: {ratio:.4f} (goal <= {RATIO_GOAL}: {verdict})")
+    print(
+        f"makespan, one part at a time: {b.makespan_s:.2f} s  ({sum(b.parts_made.values())} made)"
+    )
+    speedup = b.makespan_s / s.makespan_s if s.makespan_s > 0 else 0.0
+    verdict = "meets" if speedup >= SPEEDUP_GOAL else "MISSES"
+    print(f"speed-up over one part at a time: {speedup:.3f}x (goal >= {SPEEDUP_GOAL}: {verdict})")
+    print(f"  the most any schedule could reach: one-at-a-time / bound = {best:.3f}x")
+    for label, run in (("cellctl", sched), ("one-at-a-time", base)):
+        util = ", ".join(f"{m} {run.summary.utilization(m):.1%}" for m in run.summary.busy_s)
+        print(f"utilization ({label}): {util}")
+    for m in sched.config.mills:
+        idle, gaps = mill_idle(sched.steps, m.name)
+        top = ", ".join(f"{g * 1e3:.0f}" for g in gaps[:3])
+        print(
+            f"{m.name} idle between its first load and last unload: {idle:.3f} s "
+            f"({len(gaps)} gaps; longest {top} ms)"
+        )
+    print(f"{robot} gaps between its steps: {robot_wait(sched.steps, robot):.2f} s")
+    print(
+        f"failed steps: {s.steps_failed} / {b.steps_failed}; "
+        f"alarms: {s.alarms_raised} / {b.alarms_raised}; held parts: {s.parts_held} / "
+        f"{b.parts_held} (cellctl / one at a time)"
+    )
+    for label, run in (("cellctl", sched), ("one-at-a-time", base)):
+        _, text = cut_check(run, part_list)
+        print(f"emulated mills' logs ({label}): {text}")
+        print(f"Gantt chart ({label}): {run.gantt}")
+    real = s.makespan_s * scale / 3600
+    print(f"in the real cell (x{scale:g}): {real:.1f} h vs {b.makespan_s * scale / 3600:.1f} h")
+    print(
+        machine_line(
+            parts=args.parts, makespan_s=s.makespan_s, bound_s=bound, ratio=ratio, speedup=speedup
+        )
+    )
+
+
+if __name__ == "__main__":
+    asyncio.run(main())

@@ -29,7 +29,9 @@ where head(M) is the least time before the first part can reach M (the transfers
 machining before M on the shortest route through it) and tail(M) the least time after the
 last part leaves M. A mill is occupied while the robot loads and unloads it, so those
 transfers count for it too. Durations are the measured means of each robot program and each
-mill program.
+mill program: a sum over the batch's parts of means is then exactly the measured total. Given
+the least measured durations too, head and tail use them, so the bound holds for the very run
+measured, not only on average.
 """
 
 from __future__ import annotations
@@ -128,13 +130,25 @@ def lower_bound(
     types: Mapping[str, PartType],
     transfer_s: Mapping[str, float],
     machining_s: Mapping[tuple[str, str], float],
+    *,
+    least_transfer_s: Mapping[str, float] | None = None,
+    least_machining_s: Mapping[tuple[str, str], float] | None = None,
 ) -> float:
     """The bottleneck bound of the module docstring for ``parts`` (a list of part types).
 
     ``transfer_s[program]`` is a transfer's duration, ``machining_s[(mill, program)]`` a
-    machining step's duration (both measured).
+    machining step's duration (both measured means); ``least_*``, if given, the least
+    measured durations, used for head and tail.
     """
-    return max(resource_bounds(parts, types, transfer_s, machining_s).values())
+    terms = resource_bounds(
+        parts,
+        types,
+        transfer_s,
+        machining_s,
+        least_transfer_s=least_transfer_s,
+        least_machining_s=least_machining_s,
+    )
+    return max(terms.values())
 
 
 def resource_bounds(
@@ -142,8 +156,13 @@ def resource_bounds(
     types: Mapping[str, PartType],
     transfer_s: Mapping[str, float],
     machining_s: Mapping[tuple[str, str], float],
+    *,
+    least_transfer_s: Mapping[str, float] | None = None,
+    least_machining_s: Mapping[tuple[str, str], float] | None = None,
 ) -> dict[str, float]:
     """Each resource's term of :func:`lower_bound`: ``{"robot": ..., mill: ...}``."""
+    least_t = least_transfer_s or transfer_s
+    least_m = least_machining_s or machining_s
     robot = 0.0
     mill_work: dict[str, float] = {}
     head: dict[str, float] = {}
@@ -152,11 +171,13 @@ def resource_bounds(
         route = types[name].route
         legs = [transfer_s[t] for t in types[name].transfers()]
         cuts = [machining_s[(s.mill, s.name)] for s in route]
+        least_legs = [least_t[t] for t in types[name].transfers()]
+        least_cuts = [least_m[(s.mill, s.name)] for s in route]
         robot += sum(legs)
         for i, step in enumerate(route):
             mill_work[step.mill] = mill_work.get(step.mill, 0.0) + legs[i] + cuts[i] + legs[i + 1]
-            before = sum(legs[:i]) + sum(cuts[:i])
-            after = sum(legs[i + 2 :]) + sum(cuts[i + 1 :])
+            before = sum(least_legs[:i]) + sum(least_cuts[:i])
+            after = sum(least_legs[i + 2 :]) + sum(least_cuts[i + 1 :])
             head[step.mill] = min(head.get(step.mill, before), before)
             tail[step.mill] = min(tail.get(step.mill, after), after)
     bounds = {"robot": robot}

@@ -177,7 +177,6 @@ class CellController:
 
     async def connect(self) -> None:
         """Open every machine's link and bring each to a known state; recover the journal."""
-        store = StateStore(self.config.directory)
         recovery = self.journal.recover()
         for step in recovery.interrupted:
             self.log(f"restart: {step.kind} {step.program} of part {step.part_id} was in flight")
@@ -190,22 +189,67 @@ class CellController:
             if name in self.machines:
                 self.machines[name].in_service = False
         self.plc = await ModbusPlc.connect(self.plc_map.url, self.plc_map)
-        r = self.config.robot
-        self.robot = await Ibm7545Robot.connect(
-            r.link, name=r.name, settings=r.line, store=store, config=RobotConfig(**r.options)
-        )
+        self.robot = await self._open_robot()
         for m in self.config.mills:
-            self.mills[m.name] = await Dyna2400Mill.connect(
-                m.link,
-                name=m.name,
-                settings=m.line,
-                store=store,
-                config=MillConfig.from_options(m.options),
-                start_output=CallbackOutput(self._go_pulser(m)),
-            )
+            self.mills[m.name] = await self._open_mill(m)
         await self._prepare_robot()
         for m in self.config.mills:
             await self._prepare_mill(m, force=False)
+
+    async def _open_robot(self) -> Ibm7545Robot:
+        r = self.config.robot
+        return await Ibm7545Robot.connect(
+            r.link,
+            name=r.name,
+            settings=r.line,
+            store=StateStore(self.config.directory),
+            config=RobotConfig(**r.options),
+        )
+
+    async def _open_mill(self, m: MachineConfig) -> Dyna2400Mill:
+        return await Dyna2400Mill.connect(
+            m.link,
+            name=m.name,
+            settings=m.line,
+            store=StateStore(self.config.directory),
+            config=MillConfig.from_options(m.options),
+            start_output=CallbackOutput(self._go_pulser(m)),
+        )
+
+    async def _reopen_closed_links(self) -> None:
+        """Reopen the link of an idle machine that closed under us (a dropped connection,
+        a restarted device server): its driver comes back with the host state it saved."""
+        robot = self.robot
+        if robot is not None and robot.link.closed and not self._robot_busy():
+            with contextlib.suppress(CellctlError, OSError):
+                await robot.close()
+            try:
+                self.robot = await self._open_robot()
+                self.log(f"{robot.name}: link reopened")
+            except (CellctlError, OSError) as e:
+                self._alarm(robot.name, "link", f"cannot reopen the link: {e}")
+        for m in self.config.mills:
+            task = self._mill_tasks.get(m.name)
+            if task is None or task.done():
+                await self._reopen_mill(m)
+
+    async def _reopen_mill(self, m: MachineConfig) -> bool:
+        """Reopen ``m``'s link if it closed; False if it is closed and could not be reopened."""
+        mill = self.mills.get(m.name)
+        if mill is None or not mill.link.closed:
+            return True
+        with contextlib.suppress(CellctlError, OSError):
+            await mill.close()
+        try:
+            self.mills[m.name] = await self._open_mill(m)
+        except (CellctlError, OSError) as e:
+            self._alarm(m.name, "link", f"cannot reopen the link: {e}")
+            return False
+        self.log(f"{m.name}: link reopened")
+        return True
+
+    def _robot_busy(self) -> bool:
+        return self._robot_task is not None and not self._robot_task.done()
 
     def _go_pulser(self, m: MachineConfig) -> Callable[[], Any]:
         coil = canonical(m.go_output or f"go_{self._mill_index(m.name)}")
@@ -275,6 +319,7 @@ class CellController:
                 self._intake()
                 self._sync_operator()
                 if not self._stopping:
+                    await self._reopen_closed_links()
                     await self._dispatch()
                 busy = self._busy()
                 if self._stopping and not busy:
@@ -448,10 +493,10 @@ class CellController:
             return
         pallet = self.inputs.get("pallet_present", False)
         outfeed = self.inputs.get("outfeed_clear", True)
+        # A place a held part may occupy takes no part: it counts as out of service here.
         usable_mills = (in_service - blocked) | {CONVEYOR}
-        fake_blockers = [PartState(f"blocked-{loc}", "", loc, 0, "held") for loc in blocked]
         transfer = next_transfer(
-            [*states, *fake_blockers],
+            states,
             types,
             mills_in_service=usable_mills,
             pallet_present=pallet,
@@ -525,21 +570,27 @@ class CellController:
         places = [t.source, t.target]
         attempt = 0
         try:
+            rejected: DeviceError | None = None
             while True:
                 try:
+                    if rejected is not None:
+                        # Rejected before the arm moved: the reject was read (the driver
+                        # does), now reset; a robot that lost its start-up is initialized.
+                        await robot.reset_errors()
+                        if robot.state != 1 or rejected.code in (48, 128):
+                            await robot.initialize()
                     partition = await self._ensure_program(t.program)
                     await self._doors(places, True)
                     await robot.go(partition)
                     break
                 except DeviceError as e:
-                    # Rejected before the arm moved: read (done), reset, retry a bounded time.
+                    # The reset and the initialize may be rejected too (power still off):
+                    # every attempt counts, so the retries stay bounded.
                     attempt += 1
-                    self.log(f"robot rejected {t.program}: {e}; reset and retry {attempt}")
+                    rejected = e
                     if attempt > self.options.retries:
                         raise
-                    await robot.reset_errors()
-                    if robot.state == 0 or e.code == 48:
-                        await robot.initialize()
+                    self.log(f"robot rejected {t.program}: {e}; reset and retry {attempt}")
             await robot.wait_cycle_end(
                 self.options.done_output, timeout=self.options.transfer_timeout, poll=0.02
             )
@@ -604,9 +655,11 @@ class CellController:
             self.mailbox.post_report("step-failed", reason, order_id=part.order_id, part_id=part.id)
             self.mailbox.post_report("part-held", reason, order_id=part.order_id, part_id=part.id)
             self._failed(mill_name, "machining", reason)
-            # A mill that lost readiness is initialized again (with force) before its next part.
-            if self.machines[mill_name].in_service:
-                await self._prepare_mill(self.config.machine(mill_name), force=True)
+            # A mill that lost readiness (or its link) is initialized again, with force,
+            # before its next part.
+            config = self.config.machine(mill_name)
+            if self.machines[mill_name].in_service and await self._reopen_mill(config):
+                await self._prepare_mill(config, force=True)
             self._wake.set()
             return
         view.busy_s += time.monotonic() - started

@@ -8,7 +8,8 @@
     cell.runs_per_part()                    # {"P1": {"cnc1": 1, "cnc2": 1}, ...}
     await cell.close()
 
-Serving: the robot on a pty (or any ``robot_listen``), the mills over RFC 2217 (their
+Serving: the robot on a pty (``robot.pty`` in the cell directory, a symlink that follows a
+new pty after a dropped connection; or any ``robot_listen``), the mills over RFC 2217 (their
 readiness is the CTS modem line), the PLC over Modbus/TCP, all on this machine. Every
 machine time is divided by ``time_scale`` and so is every character's time on the line
 (the baud rate written to ``cell.toml`` is multiplied by it), so transfer and machining keep
@@ -178,9 +179,12 @@ class EmulatedCell:
         self.plc_url = await self.plc.start(f"modbus://{self.host}:0")
         for name, value in self.plc.inputs.items():
             self._plc_input(name, value)
-        self.servers["robot"] = await serve(
-            self.robot, self.robot_listen, self.line, pacing=self.pacing
-        )
+        # A bare pty gets a stable name in the cell directory, as a serial port has: a
+        # dropped connection makes a new pty, and the controller reopens the same path.
+        listen = self.robot_listen
+        if listen == "pty":
+            listen = f"pty:{(cell_dir / 'robot.pty').resolve()}"
+        self.servers["robot"] = await serve(self.robot, listen, self.line, pacing=self.pacing)
         for name, mill in self.mills.items():
             self.servers[name] = await serve(
                 mill, f"rfc2217://{self.host}:0", self.line, pacing=self.pacing

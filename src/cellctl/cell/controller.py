@@ -390,6 +390,12 @@ class CellController:
                 self.log(f"{name}: back in service")
             elif name not in out:
                 view.in_service = True
+        # A part the operator found on the outfeed (released there after an interrupted
+        # unload) with its whole route machined is done.
+        for p in self.journal.parts(statuses=["waiting"]):
+            if p.location == OUT and p.route_index >= len(self.config.parts[p.part_type].route):
+                self.journal.finish_part(p.id)
+                self.log(f"part {p.id} done (released on the outfeed)")
         self._update_orders()
 
     def _update_orders(self) -> None:

@@ -227,6 +227,8 @@ class EmulatedCell:
                     f"[machines.{name}.options]",
                     f"setup_timeout = {max(5.0, 120.0 / scale):g}",
                     f"block_extra = {max(5.0, 60.0 / scale):g}",
+                    # The estimate a block's deadline multiplies is in the real cell's time.
+                    f"block_margin = {2.0 / scale:g}",
                     "ready_wait = 2.0",
                 ]
         return "\n".join(lines) + "\n"

@@ -6,6 +6,7 @@ import asyncio
 import multiprocessing as mp
 import os
 import signal
+from pathlib import Path
 from collections.abc import Callable
 from typing import Any
 
@@ -49,6 +50,14 @@ class ChildEmulators:
         if not self.parent.poll(timeout):
             raise RuntimeError("emulator process did not start")
         return self.parent.recv()
+
+    def cpu_seconds(self) -> float:
+        """CPU time (user + system) the emulator process has used so far."""
+        try:
+            fields = Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            return float("nan")
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
     def close(self) -> None:
         self.parent.send("stop")

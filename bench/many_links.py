@@ -17,6 +17,7 @@ polls in time and downloads >= 0.95 of the limit.
 from __future__ import annotations
 
 import argparse
+import gc
 import asyncio
 import random
 import time
@@ -43,6 +44,7 @@ async def emulators(conn: Any, count: int, transport: str, pacing: bool) -> None
         await serve(Ibm7545Emulator(time_scale=20.0), listen, settings, pacing=pacing)
         for _ in range(count)
     ]
+    gc.freeze()
     conn.send([s.url for s in servers])
     await wait_for_stop(conn)
     for s in servers:
@@ -66,6 +68,7 @@ async def run_links(urls: list[str], duration: float, downloaders: int, stats: S
         for i, u in enumerate(urls)
     ]
     await asyncio.gather(*(r.initialize() for r in robots))
+    gc.freeze()
     locks = [asyncio.Lock() for _ in robots]
     loop = asyncio.get_running_loop()
     end = loop.time() + duration
@@ -125,8 +128,12 @@ async def one_size(count: int, duration: float, transport: str, latency: float) 
     try:
         urls = child.receive(timeout=300)
         cpu0 = time.process_time()
+        child_cpu0 = child.cpu_seconds()
+        wall0 = time.monotonic()
         await run_links(urls, duration, max(1, count // 4), stats)
         cpu = time.process_time() - cpu0
+        wall = time.monotonic() - wall0
+        child_cpu = child.cpu_seconds() - child_cpu0
     finally:
         child.close()
     poll_limit = settings.wire_time(POLL_CHARS) + POLL_TURNAROUNDS * latency
@@ -140,7 +147,13 @@ async def one_size(count: int, duration: float, transport: str, latency: float) 
         else 0.0
     )
     transactions = len(stats.poll_times) + stats.records
+    times = sorted(stats.poll_times) or [0.0]
+    pct = {q: times[min(len(times) - 1, int(q / 100 * len(times)))] for q in (50, 90, 99)}
     return {
+        "poll_limit_ms": 1.5 * poll_limit * 1e3,
+        "poll_p50_ms": pct[50] * 1e3,
+        "poll_p90_ms": pct[90] * 1e3,
+        "poll_p99_ms": pct[99] * 1e3,
         "links": count,
         "polls": len(stats.poll_times),
         "polls_in_time": in_time,
@@ -148,6 +161,8 @@ async def one_size(count: int, duration: float, transport: str, latency: float) 
         "download_ratio": dl_ratio,
         "cpu_us_per_txn": cpu / max(1, transactions) * 1e6,
         "errors": len(stats.errors),
+        "controller_load": cpu / wall,
+        "emulator_load": child_cpu / wall,
         "first_error": stats.errors[0] if stats.errors else "",
     }
 
@@ -167,7 +182,13 @@ async def main() -> None:
         print(
             f"links={r['links']:5d} polls={r['polls']:6d} in time {r['polls_in_time']:.4f}  "
             f"downloads={r['downloads']:4d} ratio {r['download_ratio']:.4f}  "
-            f"cpu {r['cpu_us_per_txn']:.0f} us/txn  errors {r['errors']}"
+            f"cpu {r['cpu_us_per_txn']:.0f} us/txn  errors {r['errors']}  "
+            f"(controller process {r['controller_load']:.0%} of a core, "
+            f"emulators {r['emulator_load']:.0%})"
+        )
+        print(
+            f"  poll times p50 {r['poll_p50_ms']:.1f} ms, p90 {r['poll_p90_ms']:.1f} ms, "
+            f"p99 {r['poll_p99_ms']:.1f} ms; in time means <= {r['poll_limit_ms']:.1f} ms"
         )
         if r["first_error"]:
             print(f"  first error: {r['first_error']}")

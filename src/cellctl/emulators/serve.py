@@ -38,9 +38,12 @@ from serial import rfc2217
 from cellctl.errors import LinkClosed, UsageError
 from cellctl.link import LineSettings, parse_host_port
 
-# Bytes of emulator output handed to the host at once when paced: about 10 ms of line,
-# like a UART FIFO; finer costs a wake-up per byte, coarser delays first bytes.
-_PACE_SLICE_S = 0.010
+# Emulator output is handed to the host in slices of at most this much line time, each when
+# its last character has crossed, like a UART FIFO: a record arrives whole at the moment it
+# would have ended on the wire. Finer slices cost a wake-up per few bytes on both ends,
+# which a thousand lines in one process feel; coarser ones delay the first bytes of long
+# transmissions (uploads).
+_PACE_SLICE_S = 0.050
 
 
 class DeviceLine:

@@ -315,6 +315,9 @@ class CellController:
         monitor = asyncio.create_task(self._monitor(stop))
         try:
             while True:
+                # Cleared before the round, not after: a step that ends while dispatch awaits
+                # the PLC must wake the next round, not wait out a poll period.
+                self._wake.clear()
                 self._stopping = stop.is_set()
                 self._intake()
                 self._sync_operator()
@@ -326,7 +329,6 @@ class CellController:
                     break
                 if until_idle and not busy and self._all_orders_closed():
                     break
-                self._wake.clear()
                 with contextlib.suppress(TimeoutError):
                     async with asyncio.timeout(self.options.poll_period):
                         await self._wake.wait()

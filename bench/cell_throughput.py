@@ -29,7 +29,9 @@ Printed: the measured means, the bound, the makespan, ratio = makespan / bound (
 1.8), each machine's utilization, each mill's idle time between its first load and last
 unload, the largest gaps between steps, and, from the emulated mills' own execution logs,
 that every physical part was cut exactly once on every mill of its route. Gantt charts go to
-``--out``.
+``--out``. No schedule's speed-up can exceed one-at-a-time / bound, printed as the ceiling:
+in the example cell the finishing mill's cuts take longer than the roughing mill's, so the
+ceiling sits just above the goal. At the defaults the bench takes about 9 minutes.
 """
 
 from __future__ import annotations
@@ -304,10 +306,11 @@ async def main() -> None:
         idle, gaps = mill_idle(sched.steps, m.name)
         top = ", ".join(f"{g * 1e3:.0f}" for g in gaps[:3])
         print(
-            f"{m.name} idle between its first load and last unload: {idle:.3f} s "
+            f"{m.name} neither loaded, cutting nor unloaded (idle, or holding a cut part "
+            f"until the next mill is free) between its first load and last unload: {idle:.3f} s "
             f"({len(gaps)} gaps; longest {top} ms)"
         )
-    print(f"{robot} gaps between its steps: {robot_wait(sched.steps, robot):.2f} s")
+    print(f"{robot} idle between its steps: {robot_wait(sched.steps, robot):.2f} s")
     print(
         f"failed steps: {s.steps_failed} / {b.steps_failed}; "
         f"alarms: {s.alarms_raised} / {b.alarms_raised}; held parts: {s.parts_held} / "

@@ -6,8 +6,8 @@ import asyncio
 import multiprocessing as mp
 import os
 import signal
-from pathlib import Path
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from cellctl.link import LineSettings

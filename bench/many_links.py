@@ -17,15 +17,14 @@ polls in time and downloads >= 0.95 of the limit.
 from __future__ import annotations
 
 import argparse
-import gc
 import asyncio
+import gc
 import random
 import time
 from dataclasses import dataclass, field
 from typing import Any
 
 from _common import ChildEmulators, line_settings, machine_line, robot_program, wait_for_stop
-
 from cellctl.drivers.robot import Ibm7545Robot, RobotConfig
 from cellctl.emulators.robot import Ibm7545Emulator
 from cellctl.emulators.serve import serve

@@ -18,7 +18,6 @@ import time
 from typing import Any
 
 from _common import ChildEmulators, line_settings, machine_line, robot_program, wait_for_stop
-
 from cellctl.drivers.robot import Ibm7545Robot
 from cellctl.emulators.robot import Ibm7545Emulator
 from cellctl.emulators.serve import serve

@@ -84,6 +84,7 @@ class ControllerOptions:
     done_output: int = DEFAULT_DONE_OUTPUT
     transfer_timeout: float = 120.0
     interlock_timeout: float = 30.0
+    pallet_timeout: float = 60.0
     one_at_a_time: bool = False
 
     @classmethod
@@ -93,8 +94,9 @@ class ControllerOptions:
         for key in ("retries", "fail_limit", "done_output", "transfer_timeout"):
             if key in cell:
                 values[key] = cell[key]
-        if "interlock_timeout" in cell:
-            values["interlock_timeout"] = float(cell["interlock_timeout"])
+        for key in ("interlock_timeout", "pallet_timeout"):
+            if key in cell:
+                values[key] = float(cell[key])
         values.update(overrides)
         return cls(**values)
 
@@ -137,6 +139,7 @@ class CellController:
         self._mill_tasks: dict[str, asyncio.Task[None]] = {}
         self._partitions: dict[int, _Partition] = {}
         self._pallet_requested = False
+        self._pallet_requested_at = 0.0
         self._stopping = False
         self.started_at = time.time()
 
@@ -527,10 +530,22 @@ class CellController:
             self._pallet_requested = False
             return
         waiting = [s for s in states if s.location == CONVEYOR and s.status == "waiting"]
-        if waiting and not self._pallet_requested and self.plc is not None:
+        if not waiting or self.plc is None:
+            return
+        overdue = time.monotonic() - self._pallet_requested_at > self.options.pallet_timeout
+        if self._pallet_requested and overdue:
+            # The conveyor lost the request or is stuck: say so, and ask again.
+            self._alarm(
+                "plc",
+                "conveyor",
+                f"no pallet within {self.options.pallet_timeout:g} s of the request",
+            )
+            self._pallet_requested = False
+        if not self._pallet_requested:
             try:
                 await self.plc.pulse("pallet_request", 0.05)
                 self._pallet_requested = True
+                self._pallet_requested_at = time.monotonic()
             except CellctlError as e:
                 self._alarm("plc", "conveyor", f"cannot request a pallet: {e}")
 

@@ -44,6 +44,7 @@ def fast_options(**overrides: Any) -> dict[str, Any]:
         "poll_period": 0.1,
         "transfer_timeout": 3.0,
         "interlock_timeout": 1.5,
+        "pallet_timeout": 1.0,
     }
     values.update(overrides)
     return values

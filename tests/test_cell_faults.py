@@ -1,0 +1,233 @@
+"""Every fault switch of every emulator, switched on in the middle of a run.
+
+Each ends in recovery (the step retried, the machine re-initialized) or in a held part and an
+alarm; then the operator switches the fault off, clears the alarms with ``cellctl alarm clear``,
+releases what is held with ``cellctl part release`` after looking at the part, and the run
+completes: every order done, no part lost, no part cut twice by one mill.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from cellctl.ui.cell_cli import apply_fault
+from tests.cell_rig import CellRig
+
+MILL_INDEX = {"cnc1": 1, "cnc2": 2}
+
+
+@dataclass(frozen=True)
+class Case:
+    fault: str  # MACHINE:NAME[=ARG], as `cellctl emulate cell --fault` takes it
+    alarm_machine: str
+    alarm_text: str  # regular expression an alarm of alarm_machine must match
+    held: bool  # the fault holds a part (else the controller recovers on its own)
+    out_of_service: bool = False  # the machine keeps failing: taken out of service
+    also: str | None = None  # a second fault that makes the first one matter
+
+
+CASES = [
+    Case("robot:power-off", "robot", r"transfer cnc1_to_cnc2 failed: manipulator power off", True),
+    Case("robot:servo-error", "robot", r"servo error", True),
+    Case("robot:drop", "robot", r"transfer cnc1_to_cnc2 failed: .*closed", True),
+    Case("robot:silent", "robot", r"no answer|no Ack", True),
+    Case("cnc2:never-ready", "cnc2", r"lost readiness", False, out_of_service=True),
+    # no-next matters when the mill is set up again: after a dropped block it is.
+    Case("cnc2:no-next", "cnc2", r"needs inspection", True, also="cnc2:drop=3"),
+    Case("cnc2:drop=3", "cnc2", r"needs inspection: machining .* on cnc2 failed", True),
+    Case("cnc2:stall", "cnc2", r"needs inspection: .* still running", True),
+    Case("plc:drop", "plc", r"PLC not answering", False),
+    Case("plc:silent", "plc", r"PLC not answering", False),
+    # The transfer program waits for the door: the transfer times out, its part is held.
+    Case("plc:stuck-door=2", "robot", r"transfer cnc1_to_cnc2 failed: .*output 6", True),
+    Case("plc:no-pallet", "plc", r"no pallet", False),
+    Case("plc:estop", "plc", r"emergency stop", False),
+]
+
+
+def switch_off(rig: CellRig, fault: str) -> None:
+    machine, _, rest = fault.partition(":")
+    name = rest.partition("=")[0]
+    target = {"robot": rig.cell.robot, "plc": rig.cell.plc, **rig.cell.mills}[machine]
+    target.clear_fault(name)
+    if name == "no-next":
+        rig.cell.mills[machine].press_next()  # the operator finishes the setup stop
+    elif name in ("never-ready", "stall"):
+        # The operator selects the link mode again on the panel: READY comes back.
+        mill = rig.cell.mills[machine]
+        mill.select(mill.auto_mode)
+
+
+def physical_part(rig: CellRig, mill: str) -> str | None:
+    return rig.cell.vise[MILL_INDEX[mill]]
+
+
+async def operator_resolves(rig: CellRig) -> None:
+    """Clear every alarm; release each held part where it physically is (inspected)."""
+    await rig.clear_alarms()
+    for part in rig.held_parts():
+        step = rig.journal.steps(part.id)[-1]
+        if step.kind == "transfer":
+            # The operator waits for the arm to stop, then finds the part: where the arm
+            # left it, or (still in the gripper) puts it back where it came from.
+            await rig.wait_for(lambda: not rig.cell.robot.running, "the arm at rest")
+            source, target = step.program.split("_to_")
+            if rig.cell.gripper is not None and source in MILL_INDEX:
+                rig.cell.vise[MILL_INDEX[source]], rig.cell.gripper = rig.cell.gripper, None
+            assert rig.cell.gripper is None
+            where = source
+            if target in MILL_INDEX and rig.cell.vise[MILL_INDEX[target]] is not None:
+                where = target
+            result = await rig.cli("part", "release", part.id, "--at", where)
+        else:
+            # Inspect the part in the vise: cut already (the mill's log says so), or not.
+            blank = physical_part(rig, step.machine)
+            assert blank is not None, f"{part.id} should be in {step.machine}'s vise"
+            cut = rig.cell.runs_per_part().get(blank, {}).get(step.machine, 0)
+            args = ["part", "release", part.id] + ([] if cut else ["--redo"])
+            result = await rig.cli(*args)
+        assert result.exit_code == 0, result.output
+
+
+def ids(case: Case) -> str:
+    return case.fault
+
+
+@pytest.mark.parametrize("case", CASES, ids=ids)
+async def test_fault_during_a_run_ends_in_recovery_or_a_held_part(
+    tmp_path: Path, case: Case
+) -> None:
+    async with CellRig(tmp_path / "cell") as rig:
+        rig.post("wax-robot-base", 2, "A")
+        controller = await rig.start_controller(fail_limit=3, retries=2)
+        # Some steps done: the first part has been roughed on cnc1.
+        await rig.wait_for(lambda: rig.finished_steps("machine") >= 1, "first cut done")
+        apply_fault(rig.cell, case.fault)
+        if case.also:
+            apply_fault(rig.cell, case.also)
+        if case.fault == "plc:no-pallet":
+            rig.post("wax-toy-mill-table", 1, "B")  # more work: a pallet is asked for
+
+        def alarmed() -> list[object]:
+            return [
+                a
+                for a in rig.journal.alarms()
+                if a.machine == case.alarm_machine and re.search(case.alarm_text, a.text)
+            ]
+
+        await rig.wait_for(alarmed, f"an alarm on {case.alarm_machine}: {case.alarm_text}")
+        assert rig.reports("alarm-raised")
+        if case.held:
+            held = await rig.wait_for(rig.held_parts, "a part held")
+            assert all(p.note for p in held)
+            await rig.wait_for(lambda: rig.order_state("A") == "held", "order A held")
+        if case.out_of_service:
+            await rig.wait_for(
+                lambda: not controller.machines[case.alarm_machine].in_service,
+                f"{case.alarm_machine} out of service",
+            )
+            assert case.alarm_machine in rig.journal.machines_out_of_service()
+            assert rig.alarms(case.alarm_machine, "out-of-service")
+        # Nothing is lost while the fault lasts.
+        parts = len(rig.journal.parts())
+        assert parts == 2 + (case.fault == "plc:no-pallet")
+        assert all(p.status != "scrapped" for p in rig.journal.parts())
+
+        switch_off(rig, case.fault)
+
+        loop_guard = 0
+        while not rig.all_done():
+            loop_guard += 1
+            assert loop_guard < 20, rig.describe()
+            await operator_resolves(rig)
+            await rig.wait_for(
+                lambda: rig.all_done() or rig.held_parts() or rig.journal.active_alarms(),
+                "the run to complete or to need the operator again",
+                timeout=30,
+            )
+        await rig.stop_controller()
+
+        assert all(p.status == "done" for p in rig.journal.parts()), rig.describe()
+        assert rig.journal.machines_out_of_service() == {}
+        assert rig.cut_twice() == {}, rig.describe()
+        # Every part made: as many blanks, each cut by both mills.
+        made = [r for r in rig.cell.runs_per_part().values() if r == {"cnc1": 1, "cnc2": 1}]
+        assert len(made) == parts, rig.describe()
+
+
+async def test_corrupt_checksums_are_read_again_without_holding_anything(tmp_path: Path) -> None:
+    async with CellRig(tmp_path / "cell") as rig:
+        rig.post("wax-robot-base", 2, "A")
+        controller = await rig.start_controller()
+        await rig.wait_for(lambda: rig.finished_steps("machine") >= 1, "first cut done")
+        apply_fault(rig.cell, "robot:corrupt-checksum=2")
+        await rig.wait_for(lambda: "corrupt-checksum" not in rig.cell.robot.faults, "2 bad reads")
+        await rig.wait_for(rig.all_done, "order A done", timeout=60)
+        await rig.stop_controller()
+        assert rig.held_parts() == []
+        assert rig.journal.alarms() == []
+        assert all(s.state == "finished" for s in rig.journal.steps())
+        assert controller.machines["robot"].failures == 0
+        assert rig.cut_twice() == {}
+
+
+async def test_a_robot_reject_is_reset_and_retried_a_bounded_number_of_times(
+    tmp_path: Path,
+) -> None:
+    async with CellRig(tmp_path / "cell") as rig:
+        rig.post("wax-robot-base", 1, "A")
+        controller = await rig.start_controller(retries=2)
+        await rig.wait_for(lambda: rig.finished_steps("machine") >= 1, "first cut done")
+        apply_fault(rig.cell, "robot:power-off")
+        await rig.wait_for(rig.held_parts, "the part held")
+        retries = [e.text for e in controller.events if "reset and retry" in e.text]
+        assert len(retries) == 2, retries
+        assert all("manipulator power off" in text for text in retries)
+        # The arm never moved: the part is still in cnc1's vise, and the next transfer
+        # was not started (nothing else can move).
+        assert rig.cell.vise[1] == "P1"
+        failed = [s for s in rig.journal.steps() if s.state == "failed"]
+        assert [(s.kind, s.program) for s in failed] == [("transfer", "cnc1_to_cnc2")]
+        switch_off(rig, "robot:power-off")
+        await operator_resolves(rig)
+        await rig.wait_for(rig.all_done, "order A done", timeout=60)
+        await rig.stop_controller()
+        assert rig.cell.runs_per_part() == {"P1": {"cnc1": 1, "cnc2": 1}}
+
+
+async def test_a_mill_out_of_service_returns_when_its_alarm_is_cleared(tmp_path: Path) -> None:
+    async with CellRig(tmp_path / "cell") as rig:
+        rig.post("wax-robot-base", 2, "A")
+        controller = await rig.start_controller(fail_limit=2)
+        await rig.wait_for(lambda: rig.finished_steps("machine") >= 1, "first cut done")
+        apply_fault(rig.cell, "cnc2:never-ready")
+        await rig.wait_for(
+            lambda: rig.alarms("cnc2", "out-of-service"), "cnc2 taken out of service"
+        )
+        out = rig.alarms("cnc2", "out-of-service")[0]
+        assert "failed 2 times in a row" in out.text
+        assert not controller.machines["cnc2"].in_service
+        # Out of service: no step starts on cnc2; no part is lost (one may be held).
+        assert all(s.machine != "cnc2" for s in rig.open_steps("machine"))
+        assert {p.status for p in rig.journal.parts()} <= {"waiting", "active", "held"}
+        switch_off(rig, "cnc2:never-ready")
+        result = await rig.cli("alarm", "clear", str(out.id))
+        assert result.exit_code == 0 and f"alarm {out.id} cleared" in result.output
+        # The machine returns to service once none of its alarms is active.
+        await rig.clear_alarms()
+        await rig.wait_for(lambda: controller.machines["cnc2"].in_service, "cnc2 back in service")
+        assert rig.journal.machines_out_of_service() == {}
+        while not rig.all_done():
+            await operator_resolves(rig)
+            await rig.wait_for(
+                lambda: rig.all_done() or rig.held_parts() or rig.journal.active_alarms(),
+                "the run to complete or to need the operator again",
+            )
+        await rig.stop_controller()
+        assert rig.journal.machines_out_of_service() == {}
+        assert rig.cut_twice() == {}
+        assert any("cleared by operator" in r.text for r in rig.reports("alarm-cleared"))

@@ -69,6 +69,7 @@ async def run_links(urls: list[str], duration: float, downloaders: int, stats: S
     await asyncio.gather(*(r.initialize() for r in robots))
     gc.freeze()
     locks = [asyncio.Lock() for _ in robots]
+    download_s = settings.wire_time(sum(len(encode_record(r)) + 1 for r in program.records))
     loop = asyncio.get_running_loop()
     end = loop.time() + duration
 
@@ -87,6 +88,9 @@ async def run_links(urls: list[str], duration: float, downloaders: int, stats: S
             await asyncio.sleep(max(0.0, next_at - loop.time()))
 
     async def downloader(i: int) -> None:
+        # Downloads start at random moments over one download's length, as a DNC server's
+        # do; started together they would also finish together, every time.
+        await asyncio.sleep(random.random() * download_s)
         while loop.time() < end:
             async with locks[i]:
                 start = loop.time()

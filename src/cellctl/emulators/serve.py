@@ -44,6 +44,8 @@ from cellctl.link import LineSettings, parse_host_port
 # which a thousand lines in one process feel; coarser ones delay the first bytes of long
 # transmissions (uploads).
 _PACE_SLICE_S = 0.050
+# How much of this process's own scheduling delay a paced reply may take back (see write).
+_CATCH_UP_S = 0.005
 
 
 class DeviceLine:
@@ -77,6 +79,7 @@ class DeviceLine:
         self._chunks: deque[tuple[float, int]] = deque()
         self._rx_clock = 0.0
         self._tx_clock = 0.0
+        self._rx_last_ready = 0.0
         self._waiter: asyncio.Future[None] | None = None
         self._deadline: float | None = None
         self._timer: asyncio.TimerHandle | None = None
@@ -129,6 +132,8 @@ class DeviceLine:
         raise IndexError(index)
 
     def _take(self, n: int) -> bytes:
+        if n and self._chunks:
+            self._rx_last_ready = self._ready_time(n - 1)
         data = bytes(self._pending[:n])
         del self._pending[:n]
         while n and self._chunks:
@@ -230,9 +235,15 @@ class DeviceLine:
             return
         ct = self.settings.char_time
         step = max(1, int(_PACE_SLICE_S / ct))
+        now = self._loop.time()
+        # An answer to bytes just received starts when they ended on the line, not when this
+        # process got round to it: a real controller's reply does not carry the emulator's
+        # scheduling delay (up to _CATCH_UP_S of it is taken back).
+        start = self._rx_last_ready if 0 <= now - self._rx_last_ready < _CATCH_UP_S else now
+        self._tx_clock = max(start, self._tx_clock)
         for i in range(0, len(data), step):
             piece = data[i : i + step]
-            self._tx_clock = max(self._loop.time(), self._tx_clock) + len(piece) * ct
+            self._tx_clock += len(piece) * ct
             self._loop.call_at(self._tx_clock, self._deliver, piece)
 
     def _deliver(self, piece: bytes) -> None:

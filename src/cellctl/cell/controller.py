@@ -198,6 +198,7 @@ class CellController:
         await self._prepare_robot()
         for m in self.config.mills:
             await self._prepare_mill(m, force=False)
+        self.log(f"connected to {', '.join(self.machines)} and the PLC: running")
 
     async def _open_robot(self) -> Ibm7545Robot:
         r = self.config.robot
@@ -443,15 +444,20 @@ class CellController:
             order = orders.get(p.order_id)
             route_index = p.route_index
             route = self.config.parts[p.part_type].route
-            # A step the operator accepted after an interruption counts as done.
+            # A step the operator accepted after an interruption counts as done. The journal
+            # says so at once: every later step (and the next transfer) starts from the
+            # advanced index, also once the part has left this mill.
             if (
-                route_index < len(route)
+                p.status == "waiting"
+                and route_index < len(route)
                 and p.location == route[route_index].mill
                 and self.journal.step_done(
                     p.id, "machine", p.location, route[route_index].name, route_index
                 )
             ):
                 route_index += 1
+                self.journal.move_part(p.id, p.location, route_index)
+                self.log(f"part {p.id}: {route[route_index - 1].name} accepted by the operator")
             states.append(
                 PartState(
                     p.id,
@@ -490,9 +496,11 @@ class CellController:
                 continue
             mill = ps.location
             task = self._mill_tasks.get(mill)
+            step = types[ps.part_type].route[ps.route_index]
+            if step.mill != mill:
+                continue  # not where its route says: the operator decides (never cut here)
             if mill in in_service and (task is None or task.done()):
-                step = types[ps.part_type].route[ps.route_index]
-                self._mill_tasks[mill] = asyncio.create_task(self._machine(ps.id, step.mill))
+                self._mill_tasks[mill] = asyncio.create_task(self._machine(ps.id, mill))
         robot_name = self.config.robot.name
         if robot_name not in in_service:
             return
@@ -663,6 +671,8 @@ class CellController:
         index = self._mill_index(mill_name)
         assert self.plc is not None
         try:
+            # Close the door (a transfer cut short by a restart may have left it open).
+            await self.plc.write(f"door_{index}", False)
             await self.plc.wait_for(
                 f"door_closed_{index}", True, timeout=self.options.interlock_timeout
             )

@@ -37,10 +37,11 @@ import contextlib
 import shutil
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from cellctl.emulators.mill import Dyna2400Emulator, OperatorDelays
+from cellctl.emulators.mill import BlockRun, Dyna2400Emulator, OperatorDelays
 from cellctl.emulators.plc import PlcEmulator
 from cellctl.emulators.robot import Ibm7545Emulator
 from cellctl.emulators.serve import Server, serve
@@ -114,7 +115,6 @@ class EmulatedCell:
         self.vise: dict[int, str | None] = {1: None, 2: None}
         self.outfeed: list[str] = []
         self.cuts: list[Cut] = []
-        self._runs_seen: dict[str, int] = {name: 0 for name in mill_names}
         self._tasks: set[asyncio.Task[None]] = set()
 
     # -- wiring -----------------------------------------------------------------------------------
@@ -158,15 +158,12 @@ class EmulatedCell:
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
-    async def _watch_mills(self) -> None:
-        # A block starting shows as a new entry in the mill's run log: note whose part it cut.
-        while True:
-            for index, name in enumerate(self.mill_names, start=1):
-                runs = self.mills[name].runs
-                while self._runs_seen[name] < len(runs):
-                    self._runs_seen[name] += 1
-                    self.cuts.append(Cut(name, self.vise[index], time.time()))
-            await asyncio.sleep(0.002)
+    def _noting_cuts(self, index: int, name: str) -> Callable[[BlockRun], None]:
+        def note(run: BlockRun) -> None:
+            # A run starting on a mill cut whatever part sits in its vise.
+            self.cuts.append(Cut(name, self.vise[index], time.time()))
+
+        return note
 
     # -- serving ----------------------------------------------------------------------------------
 
@@ -174,6 +171,8 @@ class EmulatedCell:
         """Serve every machine and write ``cell_dir/cell.toml`` pointing at them."""
         template = template or EXAMPLE_CELL
         copy_template(template, cell_dir)
+        for index, (name, mill) in enumerate(self.mills.items(), start=1):
+            mill.run_hooks.append(self._noting_cuts(index, name))
         self.plc.hooks.input.append(self._plc_input)
         self.robot.output_hooks.append(self._robot_output)
         self.plc_url = await self.plc.start(f"modbus://{self.host}:0")
@@ -190,7 +189,6 @@ class EmulatedCell:
                 mill, f"rfc2217://{self.host}:0", self.line, pacing=self.pacing
             )
             mill.start()
-        self._spawn(self._watch_mills())
         return write_text(cell_dir / "cell.toml", self._cell_toml(template / "cell.toml"))
 
     def _cell_toml(self, template: Path) -> str:

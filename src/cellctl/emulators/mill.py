@@ -43,7 +43,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import enum
-from collections.abc import Coroutine
+from collections.abc import Callable, Coroutine
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -154,6 +154,8 @@ class Dyna2400Emulator(EmulatedDevice):
         self.error: str | None = None
         self.errors: list[str] = []
         self.runs: list[BlockRun] = []
+        self.run_hooks: list[Callable[[BlockRun], None]] = []
+        """Called with each run as it starts (a cell emulator notes which part was cut)."""
         self.overruns = 0
         self.rts = False
         self._line: DeviceLine | None = None
@@ -391,11 +393,16 @@ class Dyna2400Emulator(EmulatedDevice):
         if body.replace(" ", "") == f"SKIPTO{BLOCK_END_LINE}":
             self._rx.saw_skip_900 = True
 
+    def _log_run(self, run: BlockRun) -> None:
+        self.runs.append(run)
+        for hook in list(self.run_hooks):
+            hook(run)
+
     def _end_program(self) -> None:
         self.mode = LinkMode.MANUAL
         self.display = "MANUAL"
         self._set_rts(False)
-        self.runs.append(BlockRun(1, 0.0, "END"))
+        self._log_run(BlockRun(1, 0.0, "END"))
 
     def _start_execution(self, entries: dict[int, Entry], *, load_run: bool) -> None:
         self.executing = True
@@ -406,7 +413,7 @@ class Dyna2400Emulator(EmulatedDevice):
         loop = asyncio.get_running_loop()
         started = loop.time()
         run = BlockRun()
-        self.runs.append(run)
+        self._log_run(run)
         self.display = "RUN"
         outcome = Outcome.BLOCK_END
         try:
@@ -471,7 +478,7 @@ class Dyna2400Emulator(EmulatedDevice):
         loop = asyncio.get_running_loop()
         started = loop.time()
         run = BlockRun()
-        self.runs.append(run)
+        self._log_run(run)
         try:
             if statement.kind is Kind.SETUP:
                 await self._setup_stop()

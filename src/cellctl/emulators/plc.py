@@ -106,6 +106,7 @@ class PlcEmulator:
             raise UsageError(f"time scale must be > 0, not {time_scale}")
         self.map = plc_map or PlcMap()
         self.time_scale = time_scale
+        self._closing = False
         self.timing = timing or PlcTiming()
         self.hooks = PlcHooks()
         if on_go is not None:
@@ -382,6 +383,7 @@ class PlcEmulator:
 
     async def close(self) -> None:
         """Stop serving: cut every connection, close the listener and pymodbus, stop timers."""
+        self._closing = True
         for key in list(self._timers):
             self._cancel(key)
         if self._front is not None:
@@ -427,6 +429,11 @@ class PlcEmulator:
                 await self._carry(reader, writer, up_reader, up_writer)
             finally:
                 up_writer.transport.abort()
+        except asyncio.CancelledError:
+            # close() cancels client tasks; asyncio's stream server would report a cancelled
+            # handler as an error, so a cancellation on the way out ends it quietly.
+            if not self._closing:
+                raise
         finally:
             self._clients.discard(writer)
             self._client_tasks.discard(task)

@@ -68,13 +68,7 @@ def _cell_child(conn: Any, directory: str, time_scale: float) -> None:
     """In the child: serve the emulated cell until told to stop, then send its cut log."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
-    def quiet(loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
-        # Python 3.11's stream server reports a client task cancelled at close as an error.
-        if not isinstance(context.get("exception"), asyncio.CancelledError):
-            loop.default_exception_handler(context)
-
     async def serve() -> None:
-        asyncio.get_running_loop().set_exception_handler(quiet)
         cell = EmulatedCell(time_scale=time_scale)
         try:
             await cell.start(Path(directory))

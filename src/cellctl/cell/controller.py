@@ -33,20 +33,20 @@ import asyncio
 import contextlib
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
-from cellctl.cell.config import CONVEYOR, CellConfig, MachineConfig, transfer_name
+from cellctl.cell.config import CONVEYOR, CellConfig, MachineConfig
 from cellctl.cell.journal import Journal, Part
+from cellctl.cell.orders import OrderBox
 from cellctl.cell.scheduler import PartState, Transfer, next_transfer, ready_to_leave
 from cellctl.drivers.mill import CallbackOutput, Dyna2400Mill, MillConfig
 from cellctl.drivers.plc import ModbusPlc
 from cellctl.drivers.robot import Ibm7545Robot, RobotConfig
 from cellctl.drivers.state import StateStore
-from cellctl.errors import CellctlError, DeviceError, LinkError, UsageError
-from cellctl.mailbox import Mailbox, Order
+from cellctl.errors import CellctlError, DeviceError, UsageError
 from cellctl.protocol.plc import PlcMap, canonical
-from cellctl.protocol.robot import PARTITIONS, ProgramFile
+from cellctl.protocol.robot import PARTITIONS
 
 #: Robot output a cell program raises when its cycle is done (the example cell's wiring).
 DEFAULT_DONE_OUTPUT = 6
@@ -114,7 +114,7 @@ class CellController:
         self,
         config: CellConfig,
         journal: Journal,
-        mailbox: Mailbox,
+        mailbox: OrderBox,
         *,
         options: ControllerOptions | None = None,
         on_event: Callable[[Event], None] | None = None,
@@ -780,19 +780,4 @@ class CellController:
         self._wake.set()
 
 
-def order_summary(order: Order) -> str:
-    """One line for an order."""
-    return f"{order.id} {order.qty} x {order.part_type} [{order.state}]"
-
-
-__all__ = [
-    "CellController",
-    "ControllerOptions",
-    "Event",
-    "LinkError",
-    "MachineView",
-    "ProgramFile",
-    "field",
-    "order_summary",
-    "transfer_name",
-]
+__all__ = ["CellController", "ControllerOptions", "Event", "MachineView"]

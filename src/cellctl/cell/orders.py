@@ -1,0 +1,44 @@
+"""What the controller needs of a mailbox, said here so the cell does not depend on one.
+
+The layers run errors → link → protocol → drivers/emulators → cell → mailbox → ui: a mailbox
+backend (``cellctl.mailbox``) fits these protocols, the cell never imports it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from typing import Any, Protocol
+
+
+class OrderView(Protocol):
+    """An order as the controller reads it (``cellctl.mailbox.Order`` fits)."""
+
+    @property
+    def id(self) -> str: ...
+    @property
+    def part_type(self) -> str: ...
+    @property
+    def qty(self) -> int: ...
+    @property
+    def priority(self) -> int: ...
+    @property
+    def state(self) -> str: ...
+    @property
+    def created(self) -> float: ...
+
+
+class OrderBox(Protocol):
+    """Orders in, reports out (``cellctl.mailbox.Mailbox`` fits)."""
+
+    def orders(self, states: Iterable[str] | None = None) -> Sequence[OrderView]: ...
+    def pending_orders(self) -> Sequence[OrderView]: ...
+    def set_order_state(self, order_id: str, state: str, note: str = "") -> Any: ...
+    def post_report(
+        self,
+        kind: str,
+        text: str,
+        *,
+        order_id: str | None = None,
+        part_id: str | None = None,
+        data: dict[str, Any] | None = None,
+    ) -> Any: ...

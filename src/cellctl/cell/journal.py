@@ -34,8 +34,9 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Final, Protocol
+from typing import Any, Final
 
+from cellctl.cell.orders import OrderLike
 from cellctl.cell.sqlitedb import SqliteStore
 from cellctl.errors import UsageError
 
@@ -106,17 +107,6 @@ CREATE TABLE IF NOT EXISTS machines (
     updated REAL NOT NULL
 );
 """
-
-
-class OrderLike(Protocol):
-    """What :meth:`Journal.create_parts` needs of an order (``cellctl.mailbox.Order`` fits)."""
-
-    @property
-    def id(self) -> str: ...
-    @property
-    def part_type(self) -> str: ...
-    @property
-    def qty(self) -> int: ...
 
 
 @dataclass(frozen=True)

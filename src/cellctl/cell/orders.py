@@ -10,8 +10,8 @@ from collections.abc import Iterable, Sequence
 from typing import Any, Protocol
 
 
-class OrderView(Protocol):
-    """An order as the controller reads it (``cellctl.mailbox.Order`` fits)."""
+class OrderLike(Protocol):
+    """What the journal needs of an order to make its parts."""
 
     @property
     def id(self) -> str: ...
@@ -19,6 +19,11 @@ class OrderView(Protocol):
     def part_type(self) -> str: ...
     @property
     def qty(self) -> int: ...
+
+
+class OrderView(OrderLike, Protocol):
+    """An order as the controller reads it (``cellctl.mailbox.Order`` fits)."""
+
     @property
     def priority(self) -> int: ...
     @property

@@ -41,6 +41,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
+from cellctl.drivers.base import LinkDriver
 from cellctl.drivers.state import StateStore, machine_key
 from cellctl.errors import DeviceError, LinkTimeout, UsageError
 from cellctl.link import MILL_LINE, LineSettings, Link, TrafficLog, open_link
@@ -284,7 +285,7 @@ class _Readiness:
             self._scan(await self.link.read(timeout=left))
 
 
-class Dyna2400Mill:
+class Dyna2400Mill(LinkDriver):
     """Driver for one Dyna 2400 mill over any :class:`Link` (see module docstring)."""
 
     def __init__(
@@ -339,16 +340,6 @@ class Dyna2400Mill:
         except BaseException:
             await link.close()
             raise
-
-    async def close(self) -> None:
-        """Close the link."""
-        await self.link.close()
-
-    async def __aenter__(self) -> Dyna2400Mill:
-        return self
-
-    async def __aexit__(self, *exc: object) -> None:
-        await self.close()
 
     # -- host-kept state --------------------------------------------------------------------------
 

@@ -65,6 +65,7 @@ from cellctl.protocol.robot import (
     select_application_operand,
 )
 
+from .base import LinkDriver
 from .state import StateStore, machine_key
 
 #: Robot states the host keeps (spec: "Robot states (kept by the host)").
@@ -134,7 +135,7 @@ class RobotCounters:
     rejects: list[int] = field(default_factory=list)
 
 
-class Ibm7545Robot:
+class Ibm7545Robot(LinkDriver):
     """Driver for one IBM 7545/7547 controller over any :class:`Link`."""
 
     def __init__(
@@ -177,16 +178,6 @@ class Ibm7545Robot:
         """Open ``url`` and return a driver on it (the robot's name keys its saved state)."""
         link = await open_link(url, settings, trace=trace, label=name)
         return cls(link, name=name or url, store=store, config=config)
-
-    async def close(self) -> None:
-        """Close the link."""
-        await self.link.close()
-
-    async def __aenter__(self) -> Ibm7545Robot:
-        return self
-
-    async def __aexit__(self, *exc: object) -> None:
-        await self.close()
 
     # -- host-kept state --------------------------------------------------------------------------
 

@@ -42,7 +42,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from cellctl.drivers.base import LinkDriver
-from cellctl.drivers.state import StateStore, machine_key
+from cellctl.drivers.state import StateStore
 from cellctl.errors import DeviceError, LinkTimeout, UsageError
 from cellctl.link import MILL_LINE, LineSettings, Link, TrafficLog, open_link
 from cellctl.protocol.dynalan import (
@@ -306,13 +306,9 @@ class Dyna2400Mill(LinkDriver):
                 "RTS/CTS: use a serial port or rfc2217://, or choose the in-band fallback "
                 '(readiness = "inband": DC1/DC3 from the controller side)'
             )
-        self.link = link
-        self.name = name or link.url
+        saved = self._attach(link, name, store)
         self.start_output = start_output
         self._ready = _Readiness(link, self.config.readiness == "inband")
-        self._store = store
-        self._key = machine_key(self.name)
-        saved: dict[str, Any] = store.load(self._key) if store else {}
         self.state: int = int(saved.get("state", 0))
         self.initialized: bool = bool(saved.get("initialized", False))
         self.units = Units(saved["units"]) if saved.get("units") else None
@@ -344,10 +340,7 @@ class Dyna2400Mill(LinkDriver):
     # -- host-kept state --------------------------------------------------------------------------
 
     def _save(self) -> None:
-        if self._store is None:
-            return
-        self._store.save(
-            self._key,
+        self._persist(
             {
                 "state": self.state,
                 "initialized": self.initialized,
@@ -355,7 +348,7 @@ class Dyna2400Mill(LinkDriver):
                 "feed": self.feed,
                 "tool_diameter": self.tool_diameter,
                 "loaded": self.loaded,
-            },
+            }
         )
 
     def _set_state(self, state: int) -> None:

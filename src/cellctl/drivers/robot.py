@@ -33,7 +33,7 @@ import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import NoReturn
 
 from cellctl.errors import (
     ChecksumError,
@@ -66,7 +66,7 @@ from cellctl.protocol.robot import (
 )
 
 from .base import LinkDriver
-from .state import StateStore, machine_key
+from .state import StateStore
 
 #: Robot states the host keeps (spec: "Robot states (kept by the host)").
 ROBOT_STATES = {
@@ -146,13 +146,9 @@ class Ibm7545Robot(LinkDriver):
         store: StateStore | None = None,
         config: RobotConfig | None = None,
     ) -> None:
-        self.link = link
-        self.name = name or link.url
+        saved = self._attach(link, name, store)
         self.config = config or RobotConfig()
         self.counters = RobotCounters()
-        self._store = store
-        self._key = machine_key(self.name)
-        saved: dict[str, Any] = store.load(self._key) if store else {}
         self.state: int = int(saved.get("state", 0))
         self.partitions: dict[int, str | None] = {p: None for p in PARTITIONS}
         for p, prog in saved.get("partitions", {}).items():
@@ -182,15 +178,12 @@ class Ibm7545Robot(LinkDriver):
     # -- host-kept state --------------------------------------------------------------------------
 
     def _save(self) -> None:
-        if self._store is None:
-            return
-        self._store.save(
-            self._key,
+        self._persist(
             {
                 "state": self.state,
                 "partitions": {str(p): prog for p, prog in self.partitions.items() if prog},
                 "digests": {str(p): d for p, d in self.digests.items()},
-            },
+            }
         )
 
     def _set_state(self, state: int, *, flush: bool = False) -> None:
@@ -263,8 +256,8 @@ class Ibm7545Robot(LinkDriver):
             await self._execute_unlocked(operand, what)
 
     async def _execute_unlocked(self, operand: int, what: str) -> None:
+        record = encode_operand(operand)  # a bad operand is refused before X goes out
         await self._open_transaction(b"X", what)
-        record = encode_operand(operand)
         await self.link.write(record)
         try:
             byte = await self._byte(self._timeout(len(record)))
@@ -281,10 +274,11 @@ class Ibm7545Robot(LinkDriver):
             return await self._read_unlocked(operand, what, size)
 
     async def _read_unlocked(self, operand: int, what: str, size: int) -> bytes:
+        record_out = encode_operand(operand)  # a bad operand is refused before R goes out
         attempt = 0
         while True:
             await self._open_transaction(b"R", what)
-            await self.link.write(encode_operand(operand))
+            await self.link.write(record_out)
             record, raw_error = await self._read_data_record(what, size)
             await self.link.write(bytes([ACK]))
             await self._read_end_good(what)

@@ -6,7 +6,9 @@ import asyncio
 import shutil
 import socket
 import subprocess
+import sys
 from collections.abc import AsyncIterator, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -95,3 +97,24 @@ def ser2net_available() -> Iterator[None]:
     if shutil.which("ser2net") is None:
         pytest.skip("ser2net is not installed (make test installs it)")
     yield
+
+
+CELLCTL = [str(Path(sys.executable).parent / "cellctl")]
+
+
+@contextmanager
+def emulator_process(*args: str) -> Iterator[str]:
+    """``cellctl emulate ARGS`` in its own process; yields the URL it says to drive it with."""
+    proc = subprocess.Popen([*CELLCTL, "emulate", *args], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        url = ""
+        for row in proc.stdout:
+            if "--link" in row:
+                url = row.split("--link", 1)[1].strip()
+                break
+        assert url, "the emulator did not say where it listens"
+        yield url
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)

@@ -4,7 +4,6 @@ RFC 2217 socket between them."""
 from __future__ import annotations
 
 import subprocess
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -13,8 +12,9 @@ from click.testing import CliRunner
 
 from cellctl.ui.cli import main
 
+from .conftest import CELLCTL, emulator_process
+
 PROGRAMS = Path(__file__).resolve().parent.parent / "examples" / "programs"
-CELLCTL = [str(Path(sys.executable).parent / "cellctl")]
 
 
 def test_check_lists_every_problem_and_fails_on_errors() -> None:
@@ -55,34 +55,10 @@ def test_missing_program_is_refused_with_one_line() -> None:
 @pytest.fixture
 def emulator() -> Iterator[str]:
     """``cellctl emulate mill`` in its own process over RFC 2217; yields its URL."""
-    proc = subprocess.Popen(
-        [
-            *CELLCTL,
-            "emulate",
-            "mill",
-            "--listen",
-            "rfc2217://127.0.0.1:0",
-            "--time-scale",
-            "2000",
-            "--no-pacing",
-            "--line",
-            "115200,8N1",
-            "--setup-delay",
-            "400",
-        ],
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    assert proc.stdout is not None
-    url = ""
-    for row in proc.stdout:
-        if "--link" in row:
-            url = row.split("--link", 1)[1].strip()
-            break
-    assert url.startswith("rfc2217://")
-    yield url
-    proc.terminate()
-    proc.wait(timeout=10)
+    args = ["mill", "--listen", "rfc2217://127.0.0.1:0", "--time-scale", "2000", "--no-pacing"]
+    with emulator_process(*args, "--line", "115200,8N1", "--setup-delay", "400") as url:
+        assert url.startswith("rfc2217://")
+        yield url
 
 
 def _mill(url: str, cell: Path, *args: str) -> subprocess.CompletedProcess[str]:

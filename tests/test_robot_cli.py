@@ -4,7 +4,6 @@ pty between them; machine NAMEs from cell.toml; exit codes and the source's mess
 from __future__ import annotations
 
 import subprocess
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -13,28 +12,17 @@ from click.testing import CliRunner
 
 from cellctl.ui.cli import main
 
+from .conftest import CELLCTL, emulator_process
+
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
-CELLCTL = [str(Path(sys.executable).parent / "cellctl")]
 
 
 @pytest.fixture
 def emulator() -> Iterator[str]:
     """``cellctl emulate robot`` in its own process on a pty; yields the pty path."""
-    proc = subprocess.Popen(
-        [*CELLCTL, "emulate", "robot", "--listen", "pty", "--time-scale", "500", "--no-pacing"],
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    assert proc.stdout is not None
-    url = ""
-    for row in proc.stdout:
-        if "--link" in row:
-            url = row.split("--link", 1)[1].strip()
-            break
-    assert url.startswith("/dev/")
-    yield url
-    proc.terminate()
-    proc.wait(timeout=10)
+    with emulator_process("robot", "--listen", "pty", "--time-scale", "500", "--no-pacing") as url:
+        assert url.startswith("/dev/")
+        yield url
 
 
 def robot(cell: Path, *args: str) -> subprocess.CompletedProcess[str]:
@@ -95,18 +83,8 @@ def test_bad_input_is_refused_before_anything_is_sent(args: list[str], message: 
 
 
 def test_silent_link_is_exit_3_with_one_line(tmp_path: Path) -> None:
-    proc = subprocess.Popen(
-        [*CELLCTL, "emulate", "robot", "--listen", "socket://127.0.0.1:0", "--fault", "silent"],
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        assert proc.stdout is not None
-        url = next(r for r in proc.stdout if "--link" in r).split("--link", 1)[1].strip()
+    with emulator_process("robot", "--listen", "socket://127.0.0.1:0", "--fault", "silent") as url:
         result = robot(tmp_path, "--link", url, "status")
-        assert result.returncode == 3
-        assert "no answer from the robot controller" in result.stderr
-        assert len(result.stderr.strip().splitlines()) == 1
-    finally:
-        proc.terminate()
-        proc.wait(timeout=10)
+    assert result.returncode == 3
+    assert "no answer from the robot controller" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1

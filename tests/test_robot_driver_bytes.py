@@ -217,6 +217,6 @@ async def test_garbage_instead_of_xoff_is_unexpected_reply_with_raw() -> None:
 async def test_bad_erreset_operand_is_refused_before_any_byte() -> None:
     async with expected_exchange([]) as link:
         robot = Ibm7545Robot(link, config=RobotConfig(erreset_operand=100))
-        with pytest.raises(UsageError, match="operand must be 0..99"):
+        with pytest.raises(UsageError, match=r"operand must be 0\.\.99"):
             await robot.reset_errors()
     assert link.bytes_sent == 0

@@ -61,7 +61,18 @@ DEFAULT_LINES = {"ibm7545": "4800,7E2", "ibm7547": "4800,7E2", "dyna2400": "4800
 
 def transfer_name(source: str, target: str) -> str:
     """The robot program that moves a part from ``source`` to ``target``: ``cnc1_to_cnc2``."""
-    return f"{source}_to_{target}"
+    return f"{source}{_TO}{target}"
+
+
+def transfer_ends(program: str) -> tuple[str, str]:
+    """The two places a transfer program joins: ``cnc1_to_cnc2`` → ``("cnc1", "cnc2")``."""
+    source, sep, target = program.partition(_TO)
+    if not sep:
+        raise UsageError(f"{program!r} is not a transfer program name (SOURCE_to_TARGET)")
+    return source, target
+
+
+_TO = "_to_"
 
 
 @dataclass(frozen=True)

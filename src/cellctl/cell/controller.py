@@ -36,7 +36,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from cellctl.cell.config import CONVEYOR, CellConfig, MachineConfig
+from cellctl.cell.config import CONVEYOR, CellConfig, MachineConfig, transfer_ends
 from cellctl.cell.journal import Journal, Part
 from cellctl.cell.orders import OrderBox
 from cellctl.cell.scheduler import PartState, Transfer, next_transfer, ready_to_leave
@@ -480,7 +480,7 @@ class CellController:
             blocked.add(p.location)
             steps = self.journal.steps(p.id)
             if steps and steps[-1].kind == "transfer" and steps[-1].state != "finished":
-                target = steps[-1].program.split("_to_")[-1]
+                target = transfer_ends(steps[-1].program)[1]
                 blocked.add(target)
         blocked.discard(CONVEYOR)
         return blocked

@@ -74,6 +74,15 @@ class UsageError(CellctlError):
     """Bad input from the caller, refused before any byte went out."""
 
 
+class MachineInUse(CellctlError):
+    """The machine (or the cell) is held by another owner, or is in automatic service:
+    refused before any byte went out. The message names the holder and what to do instead."""
+
+
+class AccessDenied(CellctlError):
+    """The control API refused the caller: a missing or wrong token, or a foreign origin."""
+
+
 def format_raw(raw: bytes, limit: int = 64) -> str:
     """Show bytes as hex plus printable text, e.g. ``13 11 44 30 |..D0|``."""
     shown = raw[:limit]

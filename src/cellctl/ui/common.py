@@ -14,7 +14,15 @@ import click
 from rich.console import Console
 from rich.markup import escape
 
-from cellctl.errors import CellctlError, DeviceError, LinkError, ProtocolError, UsageError
+from cellctl.errors import (
+    AccessDenied,
+    CellctlError,
+    DeviceError,
+    LinkError,
+    MachineInUse,
+    ProtocolError,
+    UsageError,
+)
 from cellctl.ui.machines import MachineRef, resolve_machine
 
 T = TypeVar("T")
@@ -28,6 +36,8 @@ EXIT_CODES: dict[type[CellctlError], int] = {
     LinkError: 3,
     ProtocolError: 4,
     DeviceError: 5,
+    MachineInUse: 6,
+    AccessDenied: 7,
 }
 
 

@@ -83,6 +83,25 @@ class AccessDenied(CellctlError):
     """The control API refused the caller: a missing or wrong token, or a foreign origin."""
 
 
+#: Exit codes of the command line, one per kind of failure (1 for anything without its own).
+EXIT_CODES: dict[type[CellctlError], int] = {
+    UsageError: 2,
+    LinkError: 3,
+    ProtocolError: 4,
+    DeviceError: 5,
+    MachineInUse: 6,
+    AccessDenied: 7,
+}
+
+
+def exit_code(error: CellctlError) -> int:
+    """The exit code for ``error``."""
+    for kind, code in EXIT_CODES.items():
+        if isinstance(error, kind):
+            return code
+    return 1
+
+
 def format_raw(raw: bytes, limit: int = 64) -> str:
     """Show bytes as hex plus printable text, e.g. ``13 11 44 30 |..D0|``."""
     shown = raw[:limit]

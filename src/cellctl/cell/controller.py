@@ -36,15 +36,18 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from cellctl.cell.commands import OPERATOR_OUT, OperatorCommands
 from cellctl.cell.config import CONVEYOR, CellConfig, MachineConfig, transfer_ends
 from cellctl.cell.journal import Journal, Part
 from cellctl.cell.orders import OrderBox
 from cellctl.cell.scheduler import PartState, Transfer, next_transfer, ready_to_leave
 from cellctl.drivers.mill import CallbackOutput, Dyna2400Mill, MillConfig
+from cellctl.drivers.mill import Progress as MillProgress
 from cellctl.drivers.plc import ModbusPlc
 from cellctl.drivers.robot import Ibm7545Robot, RobotConfig
 from cellctl.drivers.state import StateStore
 from cellctl.errors import CellctlError, DeviceError, UsageError
+from cellctl.link import TrafficLog
 from cellctl.protocol.plc import PlcMap, canonical
 from cellctl.protocol.robot import PARTITIONS
 
@@ -64,6 +67,16 @@ class MachineView:
     in_service: bool = True
     failures: int = 0
     busy_s: float = 0.0
+    progress: dict[str, Any] | None = None
+    """A download or cut in progress: ``done``/``total`` and what they count, ``phase``."""
+
+    def report_progress(self, done: int, total: int, unit: str, phase: str) -> bool:
+        """Note progress; True when it moved by a percent or changed phase (worth telling)."""
+        old = self.progress
+        self.progress = {"done": done, "total": total, "unit": unit, "phase": phase}
+        if old is None or old["phase"] != phase or old["unit"] != unit:
+            return True
+        return int(100 * done / max(total, 1)) != int(100 * old["done"] / max(old["total"], 1))
 
 
 @dataclass
@@ -107,8 +120,37 @@ class _Partition:
     used: float
 
 
-class CellController:
-    """Runs a cell from its ``cell.toml``, journal and mailbox (see module docstring)."""
+#: Chunks of traffic the controller keeps in memory (all machines), for the API's tail.
+TRAFFIC_KEPT = 4000
+
+
+class _Notifying:
+    """The mailbox, telling the controller's listeners of every order change and report."""
+
+    def __init__(self, mailbox: OrderBox, touch: Callable[[], None]) -> None:
+        self._mailbox = mailbox
+        self._touch = touch
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._mailbox, name)
+
+    def set_order_state(self, order_id: str, state: str, note: str = "") -> Any:
+        result = self._mailbox.set_order_state(order_id, state, note)
+        self._touch()
+        return result
+
+    def post_report(self, kind: str, text: str, **fields: Any) -> Any:
+        result = self._mailbox.post_report(kind, text, **fields)
+        self._touch()
+        return result
+
+
+class CellController(OperatorCommands):
+    """Runs a cell from its ``cell.toml``, journal and mailbox (see module docstring).
+
+    The operator's commands (pause, service, manual use, emergency stop) are in
+    :class:`~cellctl.cell.commands.OperatorCommands`.
+    """
 
     def __init__(
         self,
@@ -119,9 +161,11 @@ class CellController:
         options: ControllerOptions | None = None,
         on_event: Callable[[Event], None] | None = None,
     ) -> None:
+        self._init_commands()
         self.config = config
         self.journal = journal
-        self.mailbox = mailbox
+        self.mailbox: OrderBox = _Notifying(mailbox, self._touch)
+        self.traffic = TrafficLog(None, keep=TRAFFIC_KEPT)
         self.options = options or ControllerOptions.from_config(config)
         self.on_event = on_event
         self.robot: Ibm7545Robot | None = None
@@ -152,6 +196,7 @@ class CellController:
         del self.events[:-200]
         if self.on_event is not None:
             self.on_event(event)
+        self._touch()
 
     def _mill_index(self, name: str) -> int:
         return [m.name for m in self.config.mills].index(name) + 1
@@ -208,6 +253,7 @@ class CellController:
             settings=r.line,
             store=StateStore(self.config.directory),
             config=RobotConfig(**r.options),
+            trace=self.traffic,
         )
 
     async def _open_mill(self, m: MachineConfig) -> Dyna2400Mill:
@@ -218,6 +264,7 @@ class CellController:
             store=StateStore(self.config.directory),
             config=MillConfig.from_options(m.options),
             start_output=CallbackOutput(self._go_pulser(m)),
+            trace=self.traffic,
         )
 
     async def _reopen_closed_links(self) -> None:
@@ -325,7 +372,7 @@ class CellController:
                 self._stopping = stop.is_set()
                 self._intake()
                 self._sync_operator()
-                if not self._stopping:
+                if not self._stopping and not self.paused:
                     await self._reopen_closed_links()
                     await self._dispatch()
                 busy = self._busy()
@@ -385,11 +432,14 @@ class CellController:
             self.log(f"order {order.id} accepted: {order.qty} x {order.part_type}")
 
     def _sync_operator(self) -> None:
-        """Alarms the operator cleared put their machine back in service."""
+        """Alarms the operator cleared put their machine back in service (not one the
+        operator took out: only the operator returns that)."""
         out = self.journal.machines_out_of_service()
         active = {a.machine for a in self.journal.active_alarms()}
         for name, view in self.machines.items():
-            if name in out and name not in active:
+            if name in out and out[name].startswith(OPERATOR_OUT):
+                view.in_service = False
+            elif name in out and name not in active:
                 self.journal.set_machine_service(name, True, "alarm cleared by the operator")
                 view.in_service = True
                 view.failures = 0
@@ -576,7 +626,16 @@ class CellController:
                 PARTITIONS, key=lambda p: self._partitions.get(p, _Partition("", 0.0)).used
             )
         self.log(f"robot: downloading {name} into partition {target}")
-        await robot.download(target, program)
+        view = self.machines[robot.name]
+
+        def progress(done: int, total: int, sent: int) -> None:
+            if view.report_progress(done, total, "records", "downloading"):
+                self._touch()
+
+        try:
+            await robot.download(target, program, progress=progress)
+        finally:
+            view.progress = None
         self._partitions[target] = _Partition(name, time.monotonic())
         return target
 
@@ -592,7 +651,11 @@ class CellController:
         assert robot is not None
         view = self.machines[robot.name]
         part = self.journal.get_part(t.part_id)
-        step = self.journal.begin_step(part.id, "transfer", robot.name, t.program)
+        try:
+            step = self.journal.begin_step(part.id, "transfer", robot.name, t.program)
+        except UsageError as e:  # cancelled or scrapped by the operator meanwhile
+            self.log(f"part {part.id}: transfer {t.program} not started: {e}")
+            return
         self.mailbox.post_report(
             "step-started", f"{t.program} {part.id}", order_id=part.order_id, part_id=part.id
         )
@@ -626,14 +689,18 @@ class CellController:
                 self.options.done_output, timeout=self.options.transfer_timeout, poll=0.02
             )
             await self._doors(places, False)
-        except (CellctlError, OSError) as e:
+        except (CellctlError, OSError, asyncio.CancelledError) as e:
             view.step = ""
-            reason = f"transfer {t.program} failed: {e}"
-            self.journal.end_step(step.id, "failed", str(e), hold=reason)
+            stopped = isinstance(e, asyncio.CancelledError)
+            what = "cut short by an emergency stop" if stopped else f"failed: {e}"
+            reason = f"transfer {t.program} {what}"
+            self.journal.end_step(step.id, "failed", str(e) or what, hold=reason)
             self.mailbox.post_report("step-failed", reason, order_id=part.order_id, part_id=part.id)
             self.mailbox.post_report("part-held", reason, order_id=part.order_id, part_id=part.id)
-            self._failed(robot.name, "transfer", reason)
             self._wake.set()
+            if stopped:
+                raise
+            self._failed(robot.name, "transfer", reason)
             return
         view.busy_s += time.monotonic() - started
         view.step = ""
@@ -680,13 +747,24 @@ class CellController:
                 f"clamp_closed_{index}", True, timeout=self.options.interlock_timeout
             )
             await self._mill_ready(mill)
-            await mill.download(route_step.program)
-        except (CellctlError, OSError) as e:
+
+            def progress(p: MillProgress) -> None:
+                if view.report_progress(p.bytes_sent, p.bytes_total, "bytes", p.phase):
+                    self._touch()
+
+            await mill.download(route_step.program, progress=progress)
+        except (CellctlError, OSError, asyncio.CancelledError) as e:
             view.step = ""
-            reason = f"needs inspection: machining {route_step.name} on {mill_name} failed: {e}"
-            self.journal.end_step(step.id, "failed", str(e), hold=reason)
+            view.progress = None
+            stopped = isinstance(e, asyncio.CancelledError)
+            what = "cut short by an emergency stop" if stopped else f"failed: {e}"
+            reason = f"needs inspection: machining {route_step.name} on {mill_name} {what}"
+            self.journal.end_step(step.id, "failed", str(e) or what, hold=reason)
             self.mailbox.post_report("step-failed", reason, order_id=part.order_id, part_id=part.id)
             self.mailbox.post_report("part-held", reason, order_id=part.order_id, part_id=part.id)
+            if stopped:
+                self._wake.set()
+                raise
             self._failed(mill_name, "machining", reason)
             # A mill that lost readiness (or its link) is initialized again, with force,
             # before its next part.
@@ -695,6 +773,7 @@ class CellController:
                 await self._prepare_mill(config, force=True)
             self._wake.set()
             return
+        view.progress = None
         view.busy_s += time.monotonic() - started
         view.step = ""
         view.state = "Initialized"
@@ -740,7 +819,8 @@ class CellController:
             self.machines.setdefault("plc", MachineView("plc", "plc")).state = f"error: {e}"
             self._alarm("plc", "link", f"PLC not answering: {e}")
         robot = self.robot
-        if robot is not None and (self._robot_task is None or self._robot_task.done()):
+        idle = self._robot_task is None or self._robot_task.done()
+        if robot is not None and idle and robot.name not in self.manual_use:
             view = self.machines[robot.name]
             try:
                 status = await robot.machine_status()
@@ -756,7 +836,7 @@ class CellController:
                 self._alarm(robot.name, "link", f"robot not answering: {e}")
         for m in self.config.mills:
             task = self._mill_tasks.get(m.name)
-            if task is not None and not task.done():
+            if (task is not None and not task.done()) or m.name in self.manual_use:
                 continue
             view = self.machines[m.name]
             mill = self.mills.get(m.name)
@@ -778,6 +858,7 @@ class CellController:
                 view.state = f"error: {e}"
                 self._alarm(m.name, "link", f"mill not answering: {e}")
         self._wake.set()
+        self._touch()
 
 
 __all__ = ["CellController", "ControllerOptions", "Event", "MachineView"]

@@ -47,8 +47,9 @@ JOURNAL_FILE = "journal.sqlite3"
 #: ``cell.toml``); these are the names of the laboratory cell.
 LOCATIONS: Final = ("conveyor", "robot", "cnc1", "cnc2", "out")
 #: Part statuses: ``waiting`` (no step in flight), ``active`` (one step in flight), ``done``,
-#: ``held`` (needs the operator: inspection after an interrupted or failed step), ``scrapped``.
-PART_STATUSES: Final = ("waiting", "active", "done", "held", "scrapped")
+#: ``held`` (needs the operator: inspection after an interrupted or failed step), ``scrapped``,
+#: ``cancelled`` (its order was cancelled before the part left the conveyor).
+PART_STATUSES: Final = ("waiting", "active", "done", "held", "scrapped", "cancelled")
 #: Step kinds: the robot moving a part between two places, or a mill cutting it.
 STEP_KINDS: Final = ("transfer", "machine")
 #: Step states: ``started`` (in flight), ``finished``, ``failed``, ``interrupted`` (was in
@@ -319,6 +320,31 @@ class Journal(SqliteStore):
             return _update_part(
                 db, part, self._clock(), status="scrapped", note=reason, held_step=None
             )
+
+    def cancel_parts(self, order_id: str) -> list[Part]:
+        """Cancel every part of an order that has not started (one transaction, all or none).
+
+        Refused (UsageError) once any part of the order has had a step: a started order is
+        finished, or its parts are scrapped one by one.
+        """
+        with self._write() as db:
+            rows = db.execute("SELECT * FROM parts WHERE order_id = ?", (order_id,)).fetchall()
+            parts = [_part(r) for r in rows]
+            (steps,) = db.execute(
+                "SELECT COUNT(*) FROM steps WHERE part_id IN"
+                " (SELECT id FROM parts WHERE order_id = ?)",
+                (order_id,),
+            ).fetchone()
+            started = [p for p in parts if p.status != "waiting" or p.route_index]
+            if steps or started:
+                raise UsageError(
+                    f"order {order_id} has started ({steps} step(s) run): it cannot be "
+                    "cancelled; scrap its waiting parts one by one instead"
+                )
+            now = self._clock()
+            return [
+                _update_part(db, p, now, status="cancelled", note="order cancelled") for p in parts
+            ]
 
     def finish_part(self, part_id: str) -> Part:
         """Mark a waiting part done (already done: changes nothing)."""

@@ -7,13 +7,15 @@ after a failure to see exactly what went over the wire::
     2026-11-21 23:59:01.125801  robot1 <<  13 11                    |..|
 
 ``>>`` is host to machine, ``<<`` machine to host. Several links may share one log; each line
-names its link.
+names its link. ``TrafficLog(None, keep=2000)`` writes no file and keeps only the last 2,000
+chunks in memory: what a running controller holds for the API's traffic tail.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
 import threading
+from collections import deque
 from pathlib import Path
 from typing import IO
 
@@ -24,21 +26,33 @@ RECEIVED = "<<"
 class TrafficLog:
     """Append-only log of link traffic; safe to share between links and threads."""
 
-    def __init__(self, target: str | Path | IO[str], *, bytes_per_line: int = 16) -> None:
+    def __init__(
+        self,
+        target: str | Path | IO[str] | None,
+        *,
+        bytes_per_line: int = 16,
+        keep: int | None = None,
+    ) -> None:
+        self._stream: IO[str] | None
         if isinstance(target, str | Path):
-            self._stream: IO[str] = open(target, "a", encoding="utf-8")  # noqa: SIM115
+            self._stream = open(target, "a", encoding="utf-8")  # noqa: SIM115
             self._owns = True
         else:
             self._stream = target
             self._owns = False
         self._per_line = bytes_per_line
         self._lock = threading.Lock()
-        self.entries: list[tuple[float, str, str, bytes]] = []
-        """Everything logged, as (unix time, link label, direction, bytes), for tests and tools."""
+        self.entries: deque[tuple[float, str, str, bytes]] = deque(maxlen=keep)
+        """What was logged (the last ``keep`` chunks, or all), as (unix time, link label,
+        direction, bytes), for tests and tools."""
 
     def record(self, label: str, direction: str, data: bytes, when: float) -> None:
         """Log ``data`` that went ``direction`` (SENT or RECEIVED) on link ``label``."""
         if not data:
+            return
+        if self._stream is None:
+            with self._lock:
+                self.entries.append((when, label, direction, bytes(data)))
             return
         stamp = _dt.datetime.fromtimestamp(when).strftime("%Y-%m-%d %H:%M:%S.%f")
         with self._lock:
@@ -61,7 +75,13 @@ class TrafficLog:
             d for _, lab, dr, d in self.entries if dr == RECEIVED and label in (None, lab)
         )
 
+    def tail(self, label: str | None = None, limit: int = 100) -> list[tuple[float, str, bytes]]:
+        """The last ``limit`` chunks (on one link, or on all) as (time, direction, bytes)."""
+        with self._lock:
+            chosen = [(t, d, b) for t, lab, d, b in self.entries if label in (None, lab)]
+        return chosen[-limit:] if limit > 0 else []
+
     def close(self) -> None:
         """Close the file if the log opened it."""
-        if self._owns:
+        if self._owns and self._stream is not None:
             self._stream.close()

@@ -54,6 +54,7 @@ REPORT_KINDS: Final = (
     "part-scrapped",
     "order-done",
     "order-failed",
+    "order-cancelled",
 )
 
 

@@ -14,39 +14,13 @@ import click
 from rich.console import Console
 from rich.markup import escape
 
-from cellctl.errors import (
-    AccessDenied,
-    CellctlError,
-    DeviceError,
-    LinkError,
-    MachineInUse,
-    ProtocolError,
-    UsageError,
-)
-from cellctl.ui.machines import MachineRef, resolve_machine
+from cellctl.errors import CellctlError, exit_code
+from cellctl.service.machines import MachineRef, resolve_machine
 
 T = TypeVar("T")
 
 console = Console(highlight=False)
 err_console = Console(stderr=True, highlight=False)
-
-#: Exit codes: 0 success; the others say what kind of failure it was.
-EXIT_CODES: dict[type[CellctlError], int] = {
-    UsageError: 2,
-    LinkError: 3,
-    ProtocolError: 4,
-    DeviceError: 5,
-    MachineInUse: 6,
-    AccessDenied: 7,
-}
-
-
-def exit_code(error: CellctlError) -> int:
-    """The exit code for ``error`` (1 for anything without its own)."""
-    for kind, code in EXIT_CODES.items():
-        if isinstance(error, kind):
-            return code
-    return 1
 
 
 def run(coro_fn: Callable[[], Coroutine[Any, Any, T]]) -> T:

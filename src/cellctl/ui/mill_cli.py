@@ -23,9 +23,9 @@ from cellctl.drivers.state import StateStore
 from cellctl.errors import UsageError
 from cellctl.protocol.dynalan import ProgramRole, Severity, ValidationContext, parse_program
 from cellctl.protocol.dynalan import validate as validate_program
+from cellctl.service.machines import load_cell_file
 from cellctl.ui.common import MachineGroup, cell_dir, console, err_console, machine_ref, run
 from cellctl.ui.emulate_cli import listen_options, serve_until_stopped
-from cellctl.ui.machines import load_cell_file
 
 Action = Callable[[Dyna2400Mill], Awaitable[None]]
 

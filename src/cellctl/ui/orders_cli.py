@@ -24,8 +24,8 @@ from rich.table import Table
 from cellctl.cell.journal import JOURNAL_FILE, LOCATIONS, PART_STATUSES, Journal, open_journal
 from cellctl.errors import UsageError
 from cellctl.mailbox import MAILBOX_FILE, ORDER_STATES, Report, open_mailbox
+from cellctl.service.machines import load_cell_file
 from cellctl.ui.common import cell_dir, console, err_console, run
-from cellctl.ui.machines import load_cell_file
 
 T = TypeVar("T")
 

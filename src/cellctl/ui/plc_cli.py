@@ -19,8 +19,8 @@ from cellctl.emulators.plc import FAULTS, PlcEmulator
 from cellctl.emulators.serve import parse_fault
 from cellctl.errors import UsageError
 from cellctl.protocol.plc import SIGNALS, PlcMap
+from cellctl.service.machines import load_cell_file
 from cellctl.ui.common import cell_dir, console, run, until_stopped
-from cellctl.ui.machines import load_cell_file
 
 
 def _quiet_pymodbus() -> None:

@@ -1,0 +1,384 @@
+"""A cell as the control API sees it: attached to the running controller, or standalone.
+
+:class:`AttachedCell` wraps a running :class:`~cellctl.cell.controller.CellController`: manual
+functions go through its command interface (only on a machine out of automatic service).
+:class:`LocalCell` is the cell without a controller: it opens each machine's link itself on
+first use (holding its locks) and keeps it until closed, as the source's tool-kit did::
+
+    async with LocalCell(Path("cell"), refs) as cell:
+        async with cell.driver("robot") as robot:
+            await robot.status()
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import time
+from abc import ABC, abstractmethod
+from collections.abc import AsyncIterator
+from dataclasses import asdict
+from pathlib import Path
+from types import TracebackType
+from typing import TYPE_CHECKING, Any, Self, cast
+
+from cellctl.cell.journal import JOURNAL_FILE, Journal, open_journal
+from cellctl.drivers.mill import CallbackOutput, Dyna2400Mill, MillConfig
+from cellctl.drivers.plc import ModbusPlc
+from cellctl.drivers.robot import Ibm7545Robot, RobotConfig
+from cellctl.drivers.state import StateStore
+from cellctl.errors import CellctlError, UsageError
+from cellctl.link import TrafficLog
+from cellctl.mailbox import MAILBOX_FILE, Mailbox, open_mailbox
+from cellctl.protocol.plc import PlcMap, canonical
+from cellctl.service.functions import FAMILY_OF_KIND
+from cellctl.service.machines import MachineRef, load_cell_file
+from cellctl.service.operator import as_dict, list_orders
+
+if TYPE_CHECKING:
+    from cellctl.cell.controller import CellController
+
+#: Events and orders a status snapshot carries.
+SNAPSHOT_EVENTS = 30
+SNAPSHOT_ORDERS = 30
+#: Chunks of traffic a standalone cell keeps per process.
+TRAFFIC_KEPT = 4000
+
+
+def _records(journal: Journal | None, mailbox: Mailbox | None) -> dict[str, Any]:
+    """Orders (open ones and the latest), parts in work or held, and active alarms."""
+    orders = list_orders(mailbox, journal) if mailbox is not None else []
+    open_states = {"posted", "accepted", "in-progress", "held"}
+    shown = [o for o in orders if o["state"] in open_states]
+    shown += [o for o in orders if o["state"] not in open_states][:SNAPSHOT_ORDERS]
+    parts = journal.parts(["waiting", "active", "held"]) if journal is not None else []
+    alarms = journal.active_alarms() if journal is not None else []
+    return {
+        "orders": shown[: SNAPSHOT_ORDERS * 2],
+        "parts": [as_dict(p) for p in parts],
+        "alarms": [as_dict(a) for a in alarms],
+    }
+
+
+class CellAccess(ABC):
+    """What the API's methods need of a cell (see the module docstring)."""
+
+    mode: str
+    directory: Path
+
+    @abstractmethod
+    def journal(self) -> Journal | None:
+        """The cell's journal (None if the cell never ran)."""
+
+    @abstractmethod
+    def mailbox(self) -> Mailbox:
+        """The cell's mailbox."""
+
+    @abstractmethod
+    def machines(self) -> dict[str, str]:
+        """Machine name -> family (``robot`` or ``mill``)."""
+
+    @abstractmethod
+    def driver(self, name: str) -> contextlib.AbstractAsyncContextManager[Any]:
+        """The driver of ``name`` for a manual function (refused if not allowed now)."""
+
+    @abstractmethod
+    def snapshot(self) -> dict[str, Any]:
+        """The cell status: cell, machines, orders, parts, alarms, events."""
+
+    @abstractmethod
+    def traffic(self, name: str, limit: int) -> list[dict[str, Any]]:
+        """The last bytes of machine ``name``'s link, both ways."""
+
+    def controller(self) -> CellController:
+        """The running controller: UsageError when none runs."""
+        raise UsageError(f"no controller runs on {self.directory}: start `cellctl run` for that")
+
+    def poke(self) -> None:  # noqa: B027 - nothing to wake without a controller
+        """Something the operator did changed the journal or mailbox (wake the controller)."""
+
+    async def close(self) -> None:  # noqa: B027 - an attached cell holds nothing of its own
+        """Release what the access holds (links, files)."""
+
+    async def __aenter__(self) -> Self:
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()
+
+
+def traffic_rows(log: TrafficLog, label: str, limit: int) -> list[dict[str, Any]]:
+    """A traffic tail as JSON rows: time, direction (``>>`` sent, ``<<`` received), hex, text."""
+    return [
+        {
+            "time": t,
+            "dir": d,
+            "hex": data.hex(" ").upper(),
+            "text": "".join(chr(b) if 32 <= b < 127 else "." for b in data),
+        }
+        for t, d, data in log.tail(label, limit)
+    ]
+
+
+class AttachedCell(CellAccess):
+    """The cell of a controller running in this process."""
+
+    mode = "attached"
+
+    def __init__(self, controller: CellController) -> None:
+        self._controller = controller
+        self.directory = controller.config.directory
+
+    def controller(self) -> CellController:
+        return self._controller
+
+    def journal(self) -> Journal:
+        return self._controller.journal
+
+    def mailbox(self) -> Mailbox:
+        return cast(Mailbox, self._controller.mailbox)
+
+    def machines(self) -> dict[str, str]:
+        c = self._controller.config
+        return {c.robot.name: "robot", **{m.name: "mill" for m in c.mills}}
+
+    def driver(self, name: str) -> contextlib.AbstractAsyncContextManager[Any]:
+        return self._controller.manual(name)
+
+    def poke(self) -> None:
+        self._controller.poke()
+
+    def snapshot(self) -> dict[str, Any]:
+        c = self._controller
+        out = c.journal.machines_out_of_service()
+        machines = {
+            name: {
+                **asdict(view),
+                "family": "plc" if name == "plc" else FAMILY_OF_KIND.get(view.kind, view.kind),
+                "out_reason": out.get(name, ""),
+                "manual": name in c.manual_use,
+            }
+            for name, view in c.machines.items()
+        }
+        return {
+            "cell": {
+                "directory": str(self.directory),
+                "mode": self.mode,
+                "paused": c.paused,
+                "started_at": c.started_at,
+                "pid": os.getpid(),
+                "time": time.time(),
+            },
+            "machines": machines,
+            **_records(c.journal, self.mailbox()),
+            "events": [{"time": e.time, "text": e.text} for e in c.events[-SNAPSHOT_EVENTS:]],
+        }
+
+    def traffic(self, name: str, limit: int) -> list[dict[str, Any]]:
+        if name not in self.machines():
+            raise UsageError(f"unknown machine {name!r} (known: {', '.join(self.machines())})")
+        return traffic_rows(self._controller.traffic, name, limit)
+
+
+class LocalCell(CellAccess):
+    """A cell (or one ad-hoc machine) driven from this process, no controller running.
+
+    ``refs`` are the machines it may open; ``trace`` logs every byte to a file too.
+    """
+
+    mode = "standalone"
+
+    def __init__(
+        self,
+        directory: Path,
+        refs: dict[str, MachineRef],
+        *,
+        trace: str | Path | None = None,
+        readiness: str | None = None,
+    ) -> None:
+        self.directory = directory
+        self.refs = refs
+        self._trace_file = TrafficLog(trace) if trace else None
+        self.traffic_log = TrafficLog(None, keep=TRAFFIC_KEPT)
+        self._readiness = readiness
+        self._drivers: dict[str, Any] = {}
+        self._locks: dict[str, asyncio.Lock] = {}
+        self._journal: Journal | None = None
+        self._mailbox: Mailbox | None = None
+        self.states: dict[str, str] = {}
+        self.steps: dict[str, str] = {}
+        self.events: list[dict[str, Any]] = []
+        self.started_at = time.time()
+
+    def journal(self) -> Journal | None:
+        if self._journal is None and (self.directory / JOURNAL_FILE).exists():
+            self._journal = open_journal(self.directory)
+        return self._journal
+
+    def mailbox(self) -> Mailbox:
+        if self._mailbox is None:
+            self._mailbox = open_mailbox(self.directory)
+        return self._mailbox
+
+    def machines(self) -> dict[str, str]:
+        return {name: FAMILY_OF_KIND[ref.kind] for name, ref in self.refs.items()}
+
+    def note(self, text: str) -> None:
+        """An event for the snapshot (what a function did)."""
+        self.events.append({"time": time.time(), "text": text})
+        del self.events[:-SNAPSHOT_EVENTS]
+
+    @contextlib.asynccontextmanager
+    async def driver(self, name: str) -> AsyncIterator[Any]:
+        if name not in self.refs:
+            known = ", ".join(self.refs) or "none"
+            raise UsageError(f"unknown machine {name!r} (known: {known})")
+        lock = self._locks.setdefault(name, asyncio.Lock())
+        async with lock:
+            driver = self._drivers.get(name)
+            if driver is not None and driver.link.closed:
+                with contextlib.suppress(CellctlError, OSError):
+                    await driver.close()
+                driver = None
+            if driver is None:
+                driver = await self._open(self.refs[name])
+                self._drivers[name] = driver
+            self.steps[name] = "manual"
+            try:
+                yield driver
+            finally:
+                self.steps[name] = ""
+                self.states[name] = _state_of(driver)
+
+    async def _open(self, ref: MachineRef) -> Any:
+        store = StateStore(self.directory)
+        trace = _Tee(self.traffic_log, self._trace_file)
+        if FAMILY_OF_KIND[ref.kind] == "robot":
+            fields = set(RobotConfig.__dataclass_fields__)
+            unknown = set(ref.options) - fields
+            if unknown:
+                raise UsageError(
+                    f"unknown robot option(s) in cell.toml: {', '.join(sorted(unknown))}"
+                )
+            return await Ibm7545Robot.connect(
+                ref.url,
+                name=ref.name,
+                settings=ref.settings,
+                store=store,
+                config=RobotConfig(**ref.options),
+                trace=trace,
+            )
+        options = dict(ref.options)
+        if self._readiness:
+            options["readiness"] = self._readiness
+        config = MillConfig.from_options(options)
+        return await Dyna2400Mill.connect(
+            ref.url,
+            name=ref.name,
+            settings=ref.settings,
+            store=store,
+            config=config,
+            start_output=self._start_output(ref, config),
+            trace=trace,
+        )
+
+    def _start_output(self, ref: MachineRef, config: MillConfig) -> CallbackOutput | None:
+        """GO pulses the PLC coil wired to the mill's start input (a connection per pulse)."""
+        table = load_cell_file(self.directory).get("plc")
+        names = [n for n, r in self.refs.items() if FAMILY_OF_KIND[r.kind] == "mill"]
+        signal = config.start_signal
+        if signal is None and isinstance(table, dict) and ref.name in names:
+            signal = f"go_{names.index(ref.name) + 1}"
+        if signal is None or not isinstance(table, dict):
+            return None
+        plc_map = PlcMap.from_toml(table)
+        coil = canonical(signal)
+
+        async def pulse() -> None:
+            async with await ModbusPlc.connect(plc_map.url, plc_map) as plc:
+                await plc.pulse(coil, config.go_pulse)
+
+        return CallbackOutput(pulse)
+
+    def snapshot(self) -> dict[str, Any]:
+        machines = {
+            name: {
+                "name": name,
+                "kind": ref.kind,
+                "family": FAMILY_OF_KIND[ref.kind],
+                "state": self.states.get(
+                    name, "connected" if name in self._drivers else "not connected"
+                ),
+                "step": self.steps.get(name, ""),
+                "in_service": False,
+                "out_reason": "standalone: no controller runs",
+                "manual": True,
+                "failures": 0,
+                "busy_s": 0.0,
+                "progress": None,
+            }
+            for name, ref in self.refs.items()
+        }
+        mailbox = self.mailbox() if (self.directory / MAILBOX_FILE).exists() else None
+        return {
+            "cell": {
+                "directory": str(self.directory),
+                "mode": self.mode,
+                "paused": False,
+                "started_at": self.started_at,
+                "pid": os.getpid(),
+                "time": time.time(),
+            },
+            "machines": machines,
+            **_records(self.journal(), mailbox),
+            "events": list(self.events),
+        }
+
+    def traffic(self, name: str, limit: int) -> list[dict[str, Any]]:
+        if name not in self.refs:
+            raise UsageError(f"unknown machine {name!r} (known: {', '.join(self.refs)})")
+        return traffic_rows(self.traffic_log, name, limit)
+
+    async def close(self) -> None:
+        for driver in self._drivers.values():
+            with contextlib.suppress(CellctlError, OSError):
+                await driver.close()
+        self._drivers.clear()
+        for store in (self._journal, self._mailbox):
+            if store is not None:
+                store.close()
+        self._journal = self._mailbox = None
+        if self._trace_file is not None:
+            self._trace_file.close()
+
+
+class _Tee(TrafficLog):
+    """The in-memory tail, and the user's trace file when one was asked for."""
+
+    def __init__(self, memory: TrafficLog, file: TrafficLog | None) -> None:
+        super().__init__(None, keep=1)
+        self._memory = memory
+        self._file = file
+
+    def record(self, label: str, direction: str, data: bytes, when: float) -> None:
+        self._memory.record(label, direction, data, when)
+        if self._file is not None:
+            self._file.record(label, direction, data, when)
+
+
+def _state_of(driver: Any) -> str:
+    if isinstance(driver, Ibm7545Robot):
+        return {0: "uninitialized", 1: "initialized", 2: "executing"}.get(
+            driver.state, str(driver.state)
+        )
+    if isinstance(driver, Dyna2400Mill):
+        from cellctl.drivers.mill import MILL_STATES
+
+        return MILL_STATES.get(driver.state, f"state {driver.state}")
+    return "connected"

@@ -1,0 +1,357 @@
+"""The control API's methods: JSON-RPC 2.0 names, their parameters, what they answer.
+
+One :class:`Dispatcher` serves every transport (the WebSocket server, and in-process for the
+CLI and the console without a controller)::
+
+    dispatcher = Dispatcher(AttachedCell(controller))
+    status = await dispatcher.call("cell.status", {})
+    await dispatcher.call("robot.status", {"machine": "robot"})
+
+Parameters are validated (unknown keys refused) and every failure is a typed
+:class:`~cellctl.errors.CellctlError` with the CLI's message; :func:`error_object` turns it
+into a JSON-RPC error whose ``data`` names the type, so a client raises the same error.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from cellctl import __version__
+from cellctl import errors as errors_module
+from cellctl.errors import CellctlError, DeviceError, ProtocolError, UsageError, exit_code
+from cellctl.mailbox import ORDER_STATES
+from cellctl.service import operator
+from cellctl.service.access import CellAccess
+from cellctl.service.functions import FUNCTIONS, MachineFunction, Progress, describe
+
+#: JSON-RPC 2.0's own error codes.
+PARSE_ERROR = -32700
+INVALID_REQUEST = -32600
+METHOD_NOT_FOUND = -32601
+INVALID_PARAMS = -32602
+INTERNAL_ERROR = -32603
+#: A typed cellctl error: -32000 minus the CLI's exit code for it (UsageError -32002 ...).
+APP_ERROR_BASE = -32000
+
+
+class P(BaseModel):
+    """Base of the methods' parameters: unknown keys are refused."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class NoParams(P):
+    pass
+
+
+class EstopParams(P):
+    reason: str = Field(default="", max_length=500)
+
+
+class SubmitParams(P):
+    part_type: str = Field(min_length=1, max_length=100)
+    qty: int = Field(default=1, ge=1, le=10_000)
+    priority: int = Field(default=0, ge=-1_000_000, le=1_000_000)
+    id: str | None = Field(default=None, min_length=1, max_length=100)
+
+
+class OrdersParams(P):
+    states: list[Literal[ORDER_STATES]] | None = None  # type: ignore[valid-type]
+
+
+class IdParams(P):
+    id: str = Field(min_length=1, max_length=100)
+
+
+class AlarmsParams(P):
+    all: bool = False
+
+
+class AlarmParams(P):
+    id: int = Field(ge=1)
+
+
+class PartsParams(P):
+    statuses: list[str] | None = None
+    order: str | None = None
+
+
+class ReleaseParams(P):
+    id: str = Field(min_length=1, max_length=100)
+    redo: bool = False
+    at: str | None = Field(default=None, min_length=1, max_length=50)
+
+
+class ScrapParams(P):
+    id: str = Field(min_length=1, max_length=100)
+    reason: str = Field(default="scrapped by operator", min_length=1, max_length=500)
+
+
+class MachineParams(P):
+    machine: str = Field(min_length=1, max_length=100)
+    reason: str = Field(default="", max_length=500)
+
+
+class TrafficParams(P):
+    machine: str = Field(min_length=1, max_length=100)
+    limit: int = Field(default=100, ge=1, le=2000)
+
+
+class MachineCallParams(BaseModel):
+    """A manual function: ``machine`` (optional when the cell has one of the family), and
+    the function's own parameters beside it."""
+
+    model_config = ConfigDict(extra="allow", frozen=True)
+    machine: str | None = Field(default=None, min_length=1, max_length=100)
+
+
+Handler = Callable[[CellAccess, Any, Progress | None], Awaitable[Any]]
+
+
+@dataclass(frozen=True)
+class Method:
+    name: str
+    params: type[BaseModel]
+    handler: Handler
+    doc: str
+    acts: bool  # changes something (a read-only GET never calls one of these)
+
+
+async def _info(access: CellAccess, p: NoParams, progress: Progress | None) -> Any:
+    return {
+        "version": __version__,
+        "mode": access.mode,
+        "directory": str(access.directory),
+        "methods": {m.name: m.doc for m in METHODS.values()},
+    }
+
+
+async def _status(access: CellAccess, p: NoParams, progress: Progress | None) -> Any:
+    return access.snapshot()
+
+
+async def _pause(access: CellAccess, p: NoParams, progress: Progress | None) -> Any:
+    access.controller().pause()
+    return {"message": "paused: steps in flight finish, no new step starts"}
+
+
+async def _resume(access: CellAccess, p: NoParams, progress: Progress | None) -> Any:
+    access.controller().resume()
+    return {"message": "resumed"}
+
+
+async def _estop(access: CellAccess, p: EstopParams, progress: Progress | None) -> Any:
+    return {"message": await access.controller().emergency_stop(p.reason)}
+
+
+async def _submit(access: CellAccess, p: SubmitParams, progress: Progress | None) -> Any:
+    from cellctl.service.machines import load_cell_file
+
+    parts = load_cell_file(access.directory).get("parts")
+    types = list(parts) if isinstance(parts, dict) else None
+    result = operator.submit_order(access.mailbox(), types, p.part_type, p.qty, p.priority, p.id)
+    access.poke()
+    return result
+
+
+async def _orders(access: CellAccess, p: OrdersParams, progress: Progress | None) -> Any:
+    return operator.list_orders(access.mailbox(), access.journal(), p.states)
+
+
+async def _cancel(access: CellAccess, p: IdParams, progress: Progress | None) -> Any:
+    result = operator.cancel_order(access.mailbox(), access.journal(), p.id)
+    access.poke()
+    return result
+
+
+def _journal(access: CellAccess) -> Any:
+    journal = access.journal()
+    if journal is None:
+        raise UsageError(f"no journal in {access.directory}: the cell has not run yet")
+    return journal
+
+
+async def _alarms(access: CellAccess, p: AlarmsParams, progress: Progress | None) -> Any:
+    journal = access.journal()
+    if journal is None:
+        return []
+    found = journal.alarms() if p.all else journal.active_alarms()
+    return [operator.as_dict(a) for a in found]
+
+
+async def _clear(access: CellAccess, p: AlarmParams, progress: Progress | None) -> Any:
+    result = operator.clear_alarm(_journal(access), access.mailbox(), p.id)
+    access.poke()
+    return result
+
+
+async def _parts(access: CellAccess, p: PartsParams, progress: Progress | None) -> Any:
+    journal = access.journal()
+    if journal is None:
+        return []
+    return [operator.as_dict(x) for x in journal.parts(p.statuses or None, p.order)]
+
+
+async def _release(access: CellAccess, p: ReleaseParams, progress: Progress | None) -> Any:
+    result = operator.release_part(
+        _journal(access), access.mailbox(), p.id, redo=p.redo, location=p.at
+    )
+    access.poke()
+    return result
+
+
+async def _scrap(access: CellAccess, p: ScrapParams, progress: Progress | None) -> Any:
+    result = operator.scrap_part(_journal(access), access.mailbox(), p.id, p.reason)
+    access.poke()
+    return result
+
+
+async def _machines(access: CellAccess, p: NoParams, progress: Progress | None) -> Any:
+    return access.snapshot()["machines"]
+
+
+async def _out(access: CellAccess, p: MachineParams, progress: Progress | None) -> Any:
+    message = await access.controller().set_service(p.machine, False, p.reason)
+    return {"message": message}
+
+
+async def _in(access: CellAccess, p: MachineParams, progress: Progress | None) -> Any:
+    message = await access.controller().set_service(p.machine, True, p.reason)
+    return {"message": message}
+
+
+async def _traffic(access: CellAccess, p: TrafficParams, progress: Progress | None) -> Any:
+    return access.traffic(p.machine, p.limit)
+
+
+def _machine_handler(fn: MachineFunction) -> Handler:
+    async def handler(access: CellAccess, p: MachineCallParams, progress: Progress | None) -> Any:
+        name = _machine_name(access, fn.family, p.machine)
+        prepared = fn.check(dict(p.model_extra or {}))  # refused here: no byte went out
+        async with access.driver(name) as driver:
+            result = await fn.run(driver, prepared, progress)
+        note = getattr(access, "note", None)
+        if note is not None:
+            note(f"{name}: {fn.label}: {result.get('message', '')}")
+        return {"machine": name, **result}
+
+    return handler
+
+
+def _machine_name(access: CellAccess, family: str, name: str | None) -> str:
+    machines = access.machines()
+    mine = [n for n, fam in machines.items() if fam == family]
+    if name is None:
+        if len(mine) == 1:
+            return mine[0]
+        raise UsageError(f"which {family}? (known: {', '.join(mine) or 'none'})")
+    if name not in machines:
+        raise UsageError(f"unknown {family} {name!r} (known: {', '.join(mine) or 'none'})")
+    if machines[name] != family:
+        raise UsageError(f"machine {name!r} is a {machines[name]}, not a {family}")
+    return name
+
+
+_TABLE: list[Method] = [
+    Method("server.info", NoParams, _info, "Version, mode and the methods served.", False),
+    Method("cell.status", NoParams, _status, "Machines, orders, parts, alarms, events.", False),
+    Method("cell.pause", NoParams, _pause, "Finish the steps in flight, start no new one.", True),
+    Method("cell.resume", NoParams, _resume, "Start dispatching again.", True),
+    Method("cell.estop", EstopParams, _estop, "Stop the robot, halt the mills, alarm.", True),
+    Method("orders.submit", SubmitParams, _submit, "Post an order.", True),
+    Method("orders.list", OrdersParams, _orders, "Orders with their parts' statuses.", False),
+    Method("orders.cancel", IdParams, _cancel, "Cancel an order that has not started.", True),
+    Method("alarms.list", AlarmsParams, _alarms, "Active alarms (all with all=true).", False),
+    Method("alarms.clear", AlarmParams, _clear, "Clear an alarm.", True),
+    Method("parts.list", PartsParams, _parts, "Parts, by status or order.", False),
+    Method("parts.release", ReleaseParams, _release, "Release a held part.", True),
+    Method("parts.scrap", ScrapParams, _scrap, "Scrap a held or waiting part.", True),
+    Method("machines.list", NoParams, _machines, "Every machine's state and service.", False),
+    Method("machines.out_of_service", MachineParams, _out, "Out of automatic service.", True),
+    Method("machines.return_to_service", MachineParams, _in, "Back in automatic service.", True),
+    Method("traffic.tail", TrafficParams, _traffic, "A machine's last bytes both ways.", False),
+]
+_TABLE += [
+    Method(
+        f"{fn.family}.{fn.name}",
+        MachineCallParams,
+        _machine_handler(fn),
+        f"{fn.label}: {fn.doc} (manual: out of automatic service only)",
+        fn.name not in ("status", "reject", "io"),
+    )
+    for fn in FUNCTIONS
+]
+METHODS: dict[str, Method] = {m.name: m for m in _TABLE}
+
+
+class MethodNotFound(UsageError):
+    """No such method."""
+
+
+class Dispatcher:
+    """Calls methods on one cell (see module docstring)."""
+
+    def __init__(self, access: CellAccess) -> None:
+        self.access = access
+
+    async def call(self, method: str, params: Any = None, progress: Progress | None = None) -> Any:
+        """Run ``method`` with ``params`` (a dict or None); typed errors on failure."""
+        entry = METHODS.get(method)
+        if entry is None:
+            raise MethodNotFound(f"no method {method!r} (server.info lists them)")
+        if params is None:
+            params = {}
+        if not isinstance(params, dict):
+            raise UsageError(f"{method}: parameters must be an object with names")
+        try:
+            checked = entry.params.model_validate(params)
+        except ValidationError as e:
+            raise UsageError(f"{method}: {describe(e)}") from None
+        return await entry.handler(self.access, checked, progress)
+
+
+def error_object(error: BaseException) -> dict[str, Any]:
+    """The JSON-RPC error object for ``error`` (a typed one keeps its type and message)."""
+    if isinstance(error, MethodNotFound):
+        return {"code": METHOD_NOT_FOUND, "message": str(error), "data": _data(error, 2)}
+    if isinstance(error, CellctlError):
+        code = exit_code(error)
+        return {"code": APP_ERROR_BASE - code, "message": str(error), "data": _data(error, code)}
+    return {"code": INTERNAL_ERROR, "message": f"internal error: {type(error).__name__}: {error}"}
+
+
+def _data(error: CellctlError, code: int) -> dict[str, Any]:
+    data: dict[str, Any] = {"type": type(error).__name__, "exit_code": code}
+    if isinstance(error, DeviceError):
+        data.update(device_code=error.code, device_message=error.message, detail=error.detail)
+    if isinstance(error, ProtocolError):
+        data["raw"] = error.raw.hex()
+    return data
+
+
+def error_from_object(obj: Any) -> CellctlError:
+    """The typed error a JSON-RPC error object describes (for clients)."""
+    if not isinstance(obj, dict):
+        return errors_module.ProtocolError(f"the API answered a malformed error: {obj!r}")
+    message = str(obj.get("message", "error"))
+    found = obj.get("data")
+    data: dict[str, Any] = found if isinstance(found, dict) else {}
+    kind = getattr(errors_module, str(data.get("type", "")), None)
+    if kind is errors_module.DeviceError:
+        return errors_module.DeviceError(
+            int(data.get("device_code", 0)),
+            str(data.get("device_message", message)),
+            detail=str(data.get("detail", "")),
+        )
+    if isinstance(kind, type) and issubclass(kind, ProtocolError):
+        # The message already shows the raw bytes: keep them as bytes, not twice in the text.
+        return kind(message.split(" (raw: ")[0], bytes.fromhex(str(data.get("raw", ""))))
+    if isinstance(kind, type) and issubclass(kind, CellctlError):
+        return kind(message)
+    if obj.get("code") in (METHOD_NOT_FOUND, INVALID_PARAMS, INVALID_REQUEST):
+        return UsageError(message)
+    return CellctlError(message)

@@ -1,0 +1,148 @@
+"""The operator's actions on a cell's orders, alarms and parts: one implementation for every
+surface (the CLI without a controller, the control API, the console).
+
+Each action writes the journal or the mailbox, posts the report the system level expects, and
+returns a JSON-ready dict (what the API answers and the CLI prints)::
+
+    with open_journal(cell) as journal, open_mailbox(cell) as mailbox:
+        result = clear_alarm(journal, mailbox, 3)       # {"alarm": {...}, "message": "..."}
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import Counter
+from typing import Any
+
+from cellctl.cell.journal import Alarm, Journal, Part
+from cellctl.errors import UsageError
+from cellctl.mailbox import Mailbox, Order, Report
+
+#: Order states in which an order may still be cancelled (no part has started).
+CANCELLABLE = ("posted", "accepted")
+
+
+def as_dict(item: Order | Part | Alarm | Report) -> dict[str, Any]:
+    """A journal or mailbox record as JSON-ready values."""
+    return dataclasses.asdict(item)
+
+
+def resolve_part_id(journal: Journal, text: str) -> str:
+    """A part id from the id itself or a unique prefix of it, as git takes commit ids."""
+    parts = journal.parts()
+    if any(p.id == text for p in parts):
+        return text
+    matches = [p.id for p in parts if p.id.startswith(text)] if text else []
+    if len(matches) == 1:
+        return matches[0]
+    if not matches:
+        raise UsageError(f"no part {text!r}")
+    raise UsageError(f"part id {text!r} is ambiguous: {', '.join(sorted(matches)[:5])} ...")
+
+
+def submit_order(
+    mailbox: Mailbox,
+    part_types: list[str] | None,
+    part_type: str,
+    qty: int,
+    priority: int = 0,
+    order_id: str | None = None,
+) -> dict[str, Any]:
+    """Post an order; ``part_types`` (from cell.toml) refuses unknown types when given."""
+    if part_types is not None and part_type not in part_types:
+        known = ", ".join(sorted(part_types)) or "none"
+        raise UsageError(f"unknown part type {part_type!r} (known in cell.toml: {known})")
+    order, new = mailbox.post_order(part_type, qty, priority, order_id)
+    if new:
+        message = (
+            f"order {order.id} posted: {order.qty} × {order.part_type}, priority {order.priority}"
+        )
+    else:
+        message = f"order {order.id} was posted before ({order.state}): nothing changed"
+    return {"order": as_dict(order), "new": new, "message": message}
+
+
+def list_orders(
+    mailbox: Mailbox, journal: Journal | None, states: list[str] | None = None
+) -> list[dict[str, Any]]:
+    """Orders with their parts counted by status, highest priority first, then oldest."""
+    progress: dict[str, Counter[str]] = {}
+    if journal is not None:
+        for part in journal.parts():
+            progress.setdefault(part.order_id, Counter())[part.status] += 1
+    return [
+        {**as_dict(o), "parts": dict(sorted(progress.get(o.id, Counter()).items()))}
+        for o in mailbox.orders(states or None)
+    ]
+
+
+def cancel_order(mailbox: Mailbox, journal: Journal | None, order_id: str) -> dict[str, Any]:
+    """Cancel an order that has not started: posted, or accepted with no part moved yet."""
+    order = mailbox.get_order(order_id)
+    if order.state not in CANCELLABLE:
+        raise UsageError(
+            f"order {order_id} is {order.state}: only an order that has not started "
+            "can be cancelled"
+        )
+    parts = journal.cancel_parts(order_id) if journal is not None else []
+    order = mailbox.set_order_state(order_id, "cancelled", "cancelled by the operator")
+    mailbox.post_report("order-cancelled", f"order {order_id} cancelled", order_id=order_id)
+    return {
+        "order": as_dict(order),
+        "message": f"order {order_id} cancelled ({len(parts)} part(s) not started)",
+    }
+
+
+def clear_alarm(
+    journal: Journal, mailbox: Mailbox, alarm_id: int, by: str = "operator"
+) -> dict[str, Any]:
+    """Clear an alarm once its cause is dealt with; clearing it again changes nothing."""
+    before = journal.get_alarm(alarm_id)
+    if before.state == "cleared":
+        return {"alarm": as_dict(before), "message": f"alarm {alarm_id} was already cleared"}
+    a = journal.clear_alarm(alarm_id, by=by)
+    mailbox.post_report(
+        "alarm-cleared",
+        f"alarm {a.id} cleared by {by}: {a.machine} {a.code} {a.text}",
+        data={"alarm": a.id, "machine": a.machine, "code": a.code, "by": by},
+    )
+    return {
+        "alarm": as_dict(a),
+        "message": f"alarm {a.id} cleared ({a.machine} {a.code}: {a.text})",
+    }
+
+
+def release_part(
+    journal: Journal,
+    mailbox: Mailbox,
+    part_id: str,
+    *,
+    redo: bool = False,
+    location: str | None = None,
+) -> dict[str, Any]:
+    """Release a held part after inspection: the cell carries on with it."""
+    p = journal.release_part(resolve_part_id(journal, part_id), redo_step=redo, location=location)
+    what = "its interrupted step will run again" if redo else "its interrupted step counts as done"
+    mailbox.post_report(
+        "part-released",
+        f"part {p.id} released by operator at {p.location}: {what}",
+        order_id=p.order_id,
+        part_id=p.id,
+        data={"redo": redo, "location": p.location},
+    )
+    return {"part": as_dict(p), "message": f"part {p.id} released at {p.location}: {what}"}
+
+
+def scrap_part(
+    journal: Journal, mailbox: Mailbox, part_id: str, reason: str = "scrapped by operator"
+) -> dict[str, Any]:
+    """Scrap a held or waiting part: the cell will not work on it again."""
+    p = journal.scrap_part(resolve_part_id(journal, part_id), reason)
+    mailbox.post_report(
+        "part-scrapped",
+        f"part {p.id} scrapped: {reason}",
+        order_id=p.order_id,
+        part_id=p.id,
+        data={"reason": reason, "location": p.location},
+    )
+    return {"part": as_dict(p), "message": f"part {p.id} scrapped"}

@@ -152,6 +152,24 @@ class OperatorCommands:
             view.step = ""
             self._touch()
 
+    @contextlib.asynccontextmanager
+    async def observe(self, name: str) -> AsyncIterator[Any]:
+        """The driver of ``name`` for a function that only reads it (status, DI/DO), in
+        automatic service too. The robot's driver takes one transaction at a time, so a read
+        slips in between the controller's own; a mill in the middle of a step answers from
+        the host's state without touching its line."""
+        self._known(name)
+        if name == self.config.robot.name:
+            if self.robot is None:
+                raise MachineInUse(f"{name} is not connected")
+            yield self.robot
+            return
+        mill = self.mills.get(name)
+        if mill is None:
+            raise MachineInUse(f"{name} is not connected")
+        busy = self.step_task(name) is not None or name in self.manual_use
+        yield _HostView(mill) if busy else mill
+
     async def emergency_stop(self, reason: str = "") -> str:
         """Stop the robot, halt the mills, raise an alarm, and pause the cell.
 
@@ -183,3 +201,17 @@ class OperatorCommands:
         self._alarm("cell", "estop", text + (f" ({'; '.join(problems)})" if problems else ""))
         self.log(f"{text}: cell paused; resume once the cause is dealt with")
         return text + ("; " + "; ".join(problems) if problems else "") + ": cell paused"
+
+
+class _HostView:
+    """A busy mill as the host sees it: its status from the host's state, no byte sent."""
+
+    def __init__(self, mill: Dyna2400Mill) -> None:
+        self.name = mill.name
+        self.state = mill.state
+        self.initialized = mill.initialized
+
+    async def status(self) -> Any:
+        from cellctl.drivers.mill import EXECUTING, MillStatus
+
+        return MillStatus(self.state, False, EXECUTING if self.state in (2, 3, 4) else None)

@@ -80,8 +80,11 @@ class CellAccess(ABC):
         """Machine name -> family (``robot`` or ``mill``)."""
 
     @abstractmethod
-    def driver(self, name: str) -> contextlib.AbstractAsyncContextManager[Any]:
-        """The driver of ``name`` for a manual function (refused if not allowed now)."""
+    def driver(
+        self, name: str, *, observe: bool = False
+    ) -> contextlib.AbstractAsyncContextManager[Any]:
+        """The driver of ``name`` for a manual function (refused if not allowed now);
+        ``observe``: the function only reads the machine (allowed in automatic service)."""
 
     @abstractmethod
     def snapshot(self) -> dict[str, Any]:
@@ -148,7 +151,11 @@ class AttachedCell(CellAccess):
         c = self._controller.config
         return {c.robot.name: "robot", **{m.name: "mill" for m in c.mills}}
 
-    def driver(self, name: str) -> contextlib.AbstractAsyncContextManager[Any]:
+    def driver(
+        self, name: str, *, observe: bool = False
+    ) -> contextlib.AbstractAsyncContextManager[Any]:
+        if observe:
+            return self._controller.observe(name)
         return self._controller.manual(name)
 
     def poke(self) -> None:
@@ -235,7 +242,7 @@ class LocalCell(CellAccess):
         del self.events[:-SNAPSHOT_EVENTS]
 
     @contextlib.asynccontextmanager
-    async def driver(self, name: str) -> AsyncIterator[Any]:
+    async def driver(self, name: str, *, observe: bool = False) -> AsyncIterator[Any]:
         if name not in self.refs:
             known = ", ".join(self.refs) or "none"
             raise UsageError(f"unknown machine {name!r} (known: {known})")
@@ -289,13 +296,15 @@ class LocalCell(CellAccess):
         )
 
     def _start_output(self, ref: MachineRef, config: MillConfig) -> CallbackOutput | None:
-        """GO pulses the PLC coil wired to the mill's start input (a connection per pulse)."""
-        table = load_cell_file(self.directory).get("plc")
-        names = [n for n, r in self.refs.items() if FAMILY_OF_KIND[r.kind] == "mill"]
+        """GO pulses the PLC coil wired to the mill's start input (a connection per pulse):
+        ``options.start_signal``, else ``go_N`` for the cell's N-th mill."""
+        raw = load_cell_file(self.directory).get("plc")
+        table = raw if isinstance(raw, dict) else {}
         signal = config.start_signal
-        if signal is None and isinstance(table, dict) and ref.name in names:
-            signal = f"go_{names.index(ref.name) + 1}"
-        if signal is None or not isinstance(table, dict):
+        if signal is None and raw is not None:
+            mills = [n for n, r in self.refs.items() if FAMILY_OF_KIND[r.kind] == "mill"]
+            signal = f"go_{mills.index(ref.name) + 1}"
+        if signal is None:
             return None
         plc_map = PlcMap.from_toml(table)
         coil = canonical(signal)

@@ -88,6 +88,8 @@ class MachineFunction:
     doc: str
     params: type[Params]
     runner: Runner
+    observes: bool = False
+    """Only reads the machine: allowed while it is in automatic service."""
 
     def check(self, raw: dict[str, Any] | None) -> Any:
         """Validated parameters (programs parsed): UsageError, with the reason, otherwise."""
@@ -303,14 +305,15 @@ FUNCTIONS: tuple[MachineFunction, ...] = (
     MachineFunction("robot", "go", "GO", 3, "Run the program in a partition.",
                     PartitionParams, _robot_go),
     MachineFunction("robot", "status", "STATUS", 4,
-                    "Robot state, status bytes, partitions Full/Empty.", NoParams, _robot_status),
+                    "Robot state, status bytes, partitions Full/Empty.", NoParams, _robot_status,
+                    observes=True),
     MachineFunction("robot", "stop", "STOP", 5, "Stop the cycle.", NoParams, _robot_stop),
     MachineFunction("robot", "halt", "HALT", 6,
                     "Stop and treat the robot as uninitialized.", NoParams, _robot_halt),
     MachineFunction("robot", "reject", "REJECT STATUS", None,
                     "Why the controller last refused a request.", NoParams, _robot_reject),
     MachineFunction("robot", "io", "DI/DO", None, "The 16 inputs and 16 outputs.",
-                    NoParams, _robot_io),
+                    NoParams, _robot_io, observes=True),
     MachineFunction("robot", "reset", "ERROR RESET", None,
                     "Clear machine-status and reject-status errors.", NoParams, _robot_reset),
     MachineFunction("robot", "home", "RETURN HOME", None, "Return the arm home.",
@@ -324,7 +327,7 @@ FUNCTIONS: tuple[MachineFunction, ...] = (
     MachineFunction("mill", "go", "GO", 3, "Start the loaded program (PLC start signal).",
                     NoParams, _mill_go),
     MachineFunction("mill", "status", "STATUS", 4, "State 0-4, its condition, CTS.",
-                    NoParams, _mill_status),
+                    NoParams, _mill_status, observes=True),
     MachineFunction("mill", "end", "HALT", 5,
                     "ENDLOAD: the end program; the mill returns to manual.", NoParams, _mill_end),
     MachineFunction("mill", "load", "PROGRAM LOAD", None,

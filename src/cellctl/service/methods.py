@@ -232,7 +232,7 @@ def _machine_handler(fn: MachineFunction) -> Handler:
     async def handler(access: CellAccess, p: MachineCallParams, progress: Progress | None) -> Any:
         name = _machine_name(access, fn.family, p.machine)
         prepared = fn.check(dict(p.model_extra or {}))  # refused here: no byte went out
-        async with access.driver(name) as driver:
+        async with access.driver(name, observe=fn.observes) as driver:
             result = await fn.run(driver, prepared, progress)
         note = getattr(access, "note", None)
         if note is not None:
@@ -281,7 +281,7 @@ _TABLE += [
         MachineCallParams,
         _machine_handler(fn),
         f"{fn.label}: {fn.doc} (manual: out of automatic service only)",
-        fn.name not in ("status", "reject", "io"),
+        not fn.observes,
     )
     for fn in FUNCTIONS
 ]

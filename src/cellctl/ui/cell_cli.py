@@ -21,6 +21,8 @@ from cellctl.cell.report import Summary, summarize, write_gantt
 from cellctl.emulators.serve import parse_fault
 from cellctl.errors import UsageError
 from cellctl.mailbox import open_mailbox
+from cellctl.service.access import AttachedCell
+from cellctl.service.server import ApiServer
 from cellctl.ui.common import cell_dir, console, err_console, run, until_stopped
 
 
@@ -105,7 +107,15 @@ async def run_controller(
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, on_signal)
+    server = ApiServer(
+        AttachedCell(controller),
+        directory,
+        listen=api_listen(config),
+        allow_remote=api_allow_remote(config),
+    )
     try:
+        await server.start()
+        controller.log(f"control API on {server.url}")
         await controller.connect()
         if live:
             with Live(live_view(controller), console=console, refresh_per_second=4) as screen:
@@ -120,8 +130,24 @@ async def run_controller(
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
+        await server.close()
         await controller.close()
     return controller
+
+
+def api_listen(config: object) -> str | None:
+    """``[api] listen`` of cell.toml (None: the Unix socket only)."""
+    api = getattr(config, "raw", {}).get("api", {})
+    listen = api.get("listen") if isinstance(api, dict) else None
+    if listen is not None and not isinstance(listen, str):
+        raise UsageError('[api] listen must be a string "HOST:PORT"')
+    return listen
+
+
+def api_allow_remote(config: object) -> bool:
+    """``[api] allow_remote`` of cell.toml."""
+    api = getattr(config, "raw", {}).get("api", {})
+    return isinstance(api, dict) and api.get("allow_remote") is True
 
 
 def _event_line(e: Event) -> str:

@@ -6,14 +6,19 @@ import click
 
 from cellctl import __version__
 from cellctl.ui.cell_cli import cell_group, demo, emulate_cell, run_command
+from cellctl.ui.common import CellctlGroup
 from cellctl.ui.emulate_cli import emulate
 from cellctl.ui.mill_cli import emulate_mill, mill
 from cellctl.ui.orders_cli import alarm, orders, part, reports, submit
 from cellctl.ui.plc_cli import plc
 from cellctl.ui.robot_cli import robot
+from cellctl.ui.service_cli import estop, machine, pause, resume, traffic
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.group(
+    cls=CellctlGroup,
+    context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100},
+)
 @click.option(
     "--cell",
     envvar="CELLCTL_CELL",
@@ -41,3 +46,5 @@ main.add_command(cell_group)
 main.add_command(run_command)
 main.add_command(demo)
 emulate.add_command(emulate_cell)
+for command in (pause, resume, estop, machine, traffic):
+    main.add_command(command)

@@ -8,7 +8,7 @@ import signal
 import sys
 from collections.abc import Callable, Coroutine
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, NoReturn, TypeVar
 
 import click
 from rich.console import Console
@@ -31,11 +31,27 @@ def run(coro_fn: Callable[[], Coroutine[Any, Any, T]]) -> T:
     try:
         return asyncio.run(coro_fn())
     except CellctlError as e:
-        err_console.print(f"[red]error:[/red] {escape(str(e))}", markup=True, soft_wrap=True)
-        sys.exit(exit_code(e))
+        fail(e)
     except KeyboardInterrupt:
         err_console.print("interrupted")
         sys.exit(130)
+
+
+def fail(error: CellctlError) -> NoReturn:
+    """Print ``error`` as one line on stderr and exit with its code."""
+    err_console.print(f"[red]error:[/red] {escape(str(error))}", markup=True, soft_wrap=True)
+    sys.exit(exit_code(error))
+
+
+class CellctlGroup(click.Group):
+    """The top group: a typed error raised outside a command's coroutine (reading a file,
+    checking an option) is one line and an exit code too, never a traceback."""
+
+    def invoke(self, ctx: click.Context) -> Any:
+        try:
+            return super().invoke(ctx)
+        except CellctlError as e:
+            fail(e)
 
 
 def cell_dir(ctx: click.Context) -> Path:

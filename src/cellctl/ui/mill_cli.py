@@ -9,55 +9,36 @@ from __future__ import annotations
 
 import asyncio
 import sys
-import time
-from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
 import click
-from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.progress import BarColumn, TextColumn, TimeRemainingColumn
 
-from cellctl.drivers.mill import CallbackOutput, Dyna2400Mill, MillConfig
-from cellctl.drivers.mill import Progress as DownloadProgress
-from cellctl.drivers.state import StateStore
+from cellctl.drivers.mill import MillConfig
 from cellctl.errors import UsageError
 from cellctl.protocol.dynalan import ProgramRole, Severity, ValidationContext, parse_program
 from cellctl.protocol.dynalan import validate as validate_program
 from cellctl.service.machines import load_cell_file
-from cellctl.ui.common import MachineGroup, cell_dir, console, err_console, machine_ref, run
+from cellctl.ui.calls import LazyBar, machine_call, read_program
+from cellctl.ui.common import MachineGroup, cell_dir, console, err_console, run
 from cellctl.ui.emulate_cli import listen_options, serve_until_stopped
 
-Action = Callable[[Dyna2400Mill], Awaitable[None]]
+
+def _call(ctx: click.Context, function: str, **params: Any) -> dict[str, Any]:
+    """Run a mill function (see :func:`cellctl.ui.calls.machine_call`); print its outcome."""
+    result = machine_call(ctx, "mill", function, params)
+    _print(result)
+    return result
 
 
-def _options(ctx: click.Context) -> dict[str, Any]:
-    return ctx.find_object(dict) or {}
-
-
-def _config(options: dict[str, Any], readiness: str | None) -> MillConfig:
-    values = dict(options)
-    if readiness:
-        values["readiness"] = readiness
-    return MillConfig.from_options(values)
-
-
-def _with_mill(ctx: click.Context, action: Action) -> None:
-    params = _options(ctx)
-
-    async def main() -> None:
-        directory, ref = machine_ref(ctx, "mill")
-        mill = await Dyna2400Mill.connect(
-            ref.url,
-            name=ref.name,
-            settings=ref.settings,
-            store=StateStore(directory),
-            config=_config(ref.options, params.get("readiness")),
-            trace=params.get("trace"),
-        )
-        async with mill:
-            await action(mill)
-
-    run(main)
+def _print(result: dict[str, Any]) -> None:
+    for line in result.get("lines", []):
+        console.print(line, markup=False)
+    if "lines" not in result or result["lines"] == []:
+        console.print(result["message"], markup=False)
+    for line in result.get("after", []):
+        console.print(line, markup=False)
 
 
 def _offline_config(ctx: click.Context) -> MillConfig:
@@ -108,13 +89,7 @@ def mill(
 @click.pass_context
 def init(ctx: click.Context, setup: Path, force: bool) -> None:
     """INITIALIZE with the SETUP program; then jog to the reference zero and press NEXT."""
-
-    async def action(m: Dyna2400Mill) -> None:
-        result = await m.initialize(setup, force=force)
-        console.print(result.message)
-        console.print("operator: jog the axes to the reference zero, then press NEXT")
-
-    _with_mill(ctx, action)
+    _call(ctx, "init", force=force, **read_program(setup))
 
 
 def _progress_columns() -> tuple[Any, ...]:
@@ -135,47 +110,27 @@ def _progress_columns() -> tuple[Any, ...]:
 @click.pass_context
 def download(ctx: click.Context, program: Path, no_wait: bool) -> None:
     """DOWNLOAD: validate, split into blocks, stream them as the controller asks."""
-    _program_file(program)
+    text = read_program(program)
+    sending = {"time": 0.0, "mark": 0.0}
 
-    async def action(m: Dyna2400Mill) -> None:
-        start = time.monotonic()
-        sending_time = 0.0
-        mark: list[float] = [start]
-        with Progress(*_progress_columns(), console=console) as bar:
-            task = bar.add_task(
-                program.name,
-                total=1,
-                block=1,
-                blocks=1,
-                lines=0,
-                lines_total=0,
-                rate=0.0,
-                phase="waiting",
-            )
+    def fields(p: dict[str, Any], elapsed: float) -> dict[str, Any]:
+        if p["phase"] == "sending":
+            sending["time"] += elapsed - sending["mark"]
+        sending["mark"] = elapsed
+        return {
+            "total": p["bytes_total"],
+            "completed": p["bytes_sent"],
+            "block": p["block"],
+            "blocks": p["blocks"],
+            "lines": p["lines"],
+            "lines_total": p["lines_total"],
+            "rate": p["bytes_sent"] / sending["time"] if sending["time"] > 0 else 0.0,
+            "phase": p["phase"],
+        }
 
-            def progress(p: DownloadProgress) -> None:
-                nonlocal sending_time
-                now = time.monotonic()
-                if p.phase == "sending":
-                    sending_time += now - mark[0]
-                mark[0] = now
-                rate = p.bytes_sent / sending_time if sending_time > 0 else 0.0
-                bar.update(
-                    task,
-                    total=p.bytes_total,
-                    completed=p.bytes_sent,
-                    block=p.block,
-                    blocks=p.blocks,
-                    lines=p.lines_sent,
-                    lines_total=p.lines_total,
-                    rate=rate,
-                    phase=p.phase,
-                )
-
-            result = await m.download(program, wait=not no_wait, progress=progress)
-        console.print(result.message)
-
-    _with_mill(ctx, action)
+    with LazyBar(_progress_columns(), program.name, fields) as bar:
+        result = machine_call(ctx, "mill", "download", {"wait": not no_wait, **text}, bar.update)
+    _print(result)
 
 
 @mill.command()
@@ -183,12 +138,7 @@ def download(ctx: click.Context, program: Path, no_wait: bool) -> None:
 @click.pass_context
 def load(ctx: click.Context, program: Path) -> None:
     """PROGRAM LOAD (at most 900 lines), to start later with GO."""
-    _program_file(program)
-
-    async def action(m: Dyna2400Mill) -> None:
-        console.print((await m.load(program)).message)
-
-    _with_mill(ctx, action)
+    _call(ctx, "load", **read_program(program))
 
 
 @mill.command()
@@ -200,47 +150,22 @@ def load(ctx: click.Context, program: Path) -> None:
 @click.pass_context
 def go(ctx: click.Context, start_signal: str | None) -> None:
     """GO: start the loaded program by pulsing the PLC coil wired to the start input."""
-    from cellctl.drivers.plc import ModbusPlc
-    from cellctl.ui.plc_cli import plc_map_for
-
-    async def action(m: Dyna2400Mill) -> None:
-        signal = start_signal or m.config.start_signal
-        if not signal:
-            raise UsageError(
-                "no start signal: give --start-signal go_N or options.start_signal in cell.toml"
-            )
-        plc_map = plc_map_for(ctx, None)
-        async with await ModbusPlc.connect(plc_map.url, plc_map) as plc:
-            m.start_output = CallbackOutput(lambda: plc.pulse(signal, m.config.go_pulse))
-            console.print((await m.go()).message)
-
-    _with_mill(ctx, action)
+    options = {"start_signal": start_signal} if start_signal else None
+    _print(machine_call(ctx, "mill", "go", {}, options=options))
 
 
 @mill.command()
 @click.pass_context
 def end(ctx: click.Context) -> None:
     """ENDLOAD / HALT: the END program; the controller returns to manual (state 0)."""
-
-    async def action(m: Dyna2400Mill) -> None:
-        console.print((await m.end()).message)
-
-    _with_mill(ctx, action)
+    _call(ctx, "end")
 
 
 @mill.command()
 @click.pass_context
 def status(ctx: click.Context) -> None:
     """STATUS: state 0-4, "reference zero not set" / "executing", CTS."""
-
-    async def action(m: Dyna2400Mill) -> None:
-        st = await m.status()
-        console.print(f"{m.name}: state {st.state} ({st.state_text})")
-        if st.condition:
-            console.print(f"  {st.condition}")
-        console.print(f"  CTS {'high (ready)' if st.ready else 'low'}")
-
-    _with_mill(ctx, action)
+    _call(ctx, "status")
 
 
 @mill.command()
@@ -248,18 +173,17 @@ def status(ctx: click.Context) -> None:
 @click.option("--timeout", type=float, default=120.0, show_default=True, help="Seconds to wait.")
 @click.pass_context
 def upload(ctx: click.Context, file: Path | None, timeout: float) -> None:
-    """Receive the controller's program (start UPLOAD on the panel); to FILE or stdout."""
-
-    async def action(m: Dyna2400Mill) -> None:
-        err_console.print("waiting for the controller: select UPLOAD on its panel")
-        text = await m.upload(timeout=timeout)
-        if file is None:
-            sys.stdout.write(text)
-        else:
-            await asyncio.to_thread(file.write_text, text)
-            console.print(f"{len(text.splitlines())} lines written to {file}")
-
-    _with_mill(ctx, action)
+    """Receive the controller's program (start UPLOAD on its panel); to FILE or stdout."""
+    err_console.print("waiting for the controller: select UPLOAD on its panel")
+    text = machine_call(ctx, "mill", "upload", {"timeout": timeout})["text"]
+    if file is None:
+        sys.stdout.write(text)
+    else:
+        try:
+            file.write_text(text)
+        except OSError as e:
+            raise UsageError(f"{file}: cannot write: {e.strerror}") from None
+        console.print(f"{len(text.splitlines())} lines written to {file}")
 
 
 @mill.command()

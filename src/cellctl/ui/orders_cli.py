@@ -4,15 +4,14 @@ side of the cell controller.
 ``cellctl submit PART [--qty N] [--priority P] [--id ID]`` posts an order; ``cellctl orders``
 and ``cellctl reports [--follow]`` show what the cell did with it. ``cellctl alarm clear ID``,
 ``cellctl part release ID [--redo] [--at LOCATION]`` and ``cellctl part scrap ID`` are the
-operator's answers. They write the cell directory's mailbox and journal directly, whether the
-controller runs or not: a running controller sees them on its next poll. Each operator
-action also posts a report.
+operator's answers. While `cellctl run` runs the cell they go through its control API;
+otherwise they write the cell directory's mailbox and journal directly. Either way the same
+code (:mod:`cellctl.service.operator`) does the work and posts the report.
 """
 
 from __future__ import annotations
 
 import asyncio
-from collections import Counter
 from collections.abc import Callable, Sequence
 from datetime import datetime
 from pathlib import Path
@@ -21,10 +20,9 @@ from typing import TypeVar
 import click
 from rich.table import Table
 
-from cellctl.cell.journal import JOURNAL_FILE, LOCATIONS, PART_STATUSES, Journal, open_journal
-from cellctl.errors import UsageError
+from cellctl.cell.journal import LOCATIONS, PART_STATUSES
 from cellctl.mailbox import MAILBOX_FILE, ORDER_STATES, Report, open_mailbox
-from cellctl.service.machines import load_cell_file
+from cellctl.ui.calls import cell_call
 from cellctl.ui.common import cell_dir, console, err_console, run
 
 T = TypeVar("T")
@@ -61,25 +59,10 @@ def _styled(state: str) -> str:
     return f"[{style}]{state}[/{style}]" if style else state
 
 
-def _journal(directory: Path) -> Journal:
-    """The cell's journal, for an operator action: refuses a cell that never ran."""
-    if not (directory / JOURNAL_FILE).exists():
-        raise UsageError(f"no journal in {directory}: the cell has not run yet")
-    return open_journal(directory)
+def _controller_runs(directory: Path) -> bool:
+    from cellctl.cell.owner import controller_holder
 
-
-def check_part_type(directory: Path, part_type: str) -> None:
-    """Refuse a part type the cell's ``cell.toml`` does not define; warn if there is none."""
-    if not (directory / "cell.toml").exists():
-        err_console.print(
-            f"[yellow]warning:[/yellow] no {directory / 'cell.toml'}: "
-            f"part type {part_type!r} not checked"
-        )
-        return
-    parts = load_cell_file(directory).get("parts", {})
-    if part_type not in parts:
-        known = ", ".join(sorted(parts)) or "none"
-        raise UsageError(f"unknown part type {part_type!r} (known in cell.toml: {known})")
+    return controller_holder(directory) is not None
 
 
 # -- orders and reports --------------------------------------------------------------------------
@@ -102,19 +85,15 @@ def submit(
     """Post an order for QTY parts of type PART, as the system level would."""
     directory = cell_dir(ctx)
 
-    def action() -> None:
-        check_part_type(directory, part_type)
-        with open_mailbox(directory) as mailbox:
-            order, new = mailbox.post_order(part_type, qty, priority, order_id)
-        if new:
-            console.print(
-                f"order {order.id} posted: {order.qty} × {order.part_type}, "
-                f"priority {order.priority}"
-            )
-        else:
-            console.print(f"order {order.id} was posted before ({order.state}): nothing changed")
-
-    _run(action)
+    if not (directory / "cell.toml").exists():
+        err_console.print(
+            f"[yellow]warning:[/yellow] no {directory / 'cell.toml'}: "
+            f"part type {part_type!r} not checked"
+        )
+    params: dict[str, object] = {"part_type": part_type, "qty": qty, "priority": priority}
+    if order_id is not None:
+        params["id"] = order_id
+    console.print(cell_call(ctx, "orders.submit", params)["message"])
 
 
 @click.command()
@@ -130,39 +109,29 @@ def orders(ctx: click.Context, states: Sequence[str]) -> None:
     """List orders and their state, highest priority first, then oldest."""
     directory = cell_dir(ctx)
 
-    def action() -> None:
-        if not (directory / MAILBOX_FILE).exists():
-            console.print(f"no orders (no mailbox in {directory})")
-            return
-        with open_mailbox(directory) as mailbox:
-            found = mailbox.orders(states or None)
-        progress: dict[str, Counter[str]] = {}
-        if (directory / JOURNAL_FILE).exists():
-            with open_journal(directory) as journal:
-                for part in journal.parts():
-                    progress.setdefault(part.order_id, Counter())[part.status] += 1
-        if not found:
-            console.print("no orders")
-            return
-        table = Table(title="Orders")
-        for column in ("Order", "Part", "Qty", "Priority", "State", "Parts", "Posted", "Note"):
-            table.add_column(column, justify="right" if column in ("Qty", "Priority") else "left")
-        for o in found:
-            counts = progress.get(o.id, Counter())
-            parts = ", ".join(f"{n} {s}" for s, n in sorted(counts.items()))
-            table.add_row(
-                o.id,
-                o.part_type,
-                str(o.qty),
-                str(o.priority),
-                _styled(o.state),
-                parts,
-                _when(o.created),
-                o.note,
-            )
-        console.print(table)
-
-    _run(action)
+    if not (directory / MAILBOX_FILE).exists() and not _controller_runs(directory):
+        console.print(f"no orders (no mailbox in {directory})")
+        return
+    found = cell_call(ctx, "orders.list", {"states": list(states) or None})
+    if not found:
+        console.print("no orders")
+        return
+    table = Table(title="Orders")
+    for column in ("Order", "Part", "Qty", "Priority", "State", "Parts", "Posted", "Note"):
+        table.add_column(column, justify="right" if column in ("Qty", "Priority") else "left")
+    for o in found:
+        parts = ", ".join(f"{n} {s}" for s, n in o["parts"].items())
+        table.add_row(
+            o["id"],
+            o["part_type"],
+            str(o["qty"]),
+            str(o["priority"]),
+            _styled(o["state"]),
+            parts,
+            _when(o["created"]),
+            o["note"],
+        )
+    console.print(table)
 
 
 def _report_row(r: Report) -> tuple[str, ...]:
@@ -225,27 +194,20 @@ def alarm() -> None:
 @click.pass_context
 def alarm_list(ctx: click.Context, show_all: bool) -> None:
     """List active alarms (all of them with --all)."""
-    directory = cell_dir(ctx)
-
-    def action() -> None:
-        if not (directory / JOURNAL_FILE).exists():
-            console.print("no alarms")
-            return
-        with open_journal(directory) as journal:
-            found = journal.alarms() if show_all else journal.active_alarms()
-        if not found:
-            console.print("no alarms" if show_all else "no active alarms")
-            return
-        table = Table(title="Alarms")
-        for column in ("Id", "Raised", "Machine", "Code", "Text", "State", "Cleared"):
-            table.add_column(column, justify="right" if column == "Id" else "left")
-        for a in found:
-            state = "[red]active[/red]" if a.state == "active" else a.state
-            cleared = f"{_when(a.cleared)} by {a.cleared_by}" if a.cleared else ""
-            table.add_row(str(a.id), _when(a.raised), a.machine, a.code, a.text, state, cleared)
-        console.print(table)
-
-    _run(action)
+    found = cell_call(ctx, "alarms.list", {"all": show_all})
+    if not found:
+        console.print("no alarms" if show_all else "no active alarms")
+        return
+    table = Table(title="Alarms")
+    for column in ("Id", "Raised", "Machine", "Code", "Text", "State", "Cleared"):
+        table.add_column(column, justify="right" if column == "Id" else "left")
+    for a in found:
+        state = "[red]active[/red]" if a["state"] == "active" else a["state"]
+        cleared = f"{_when(a['cleared'])} by {a['cleared_by']}" if a["cleared"] else ""
+        table.add_row(
+            str(a["id"]), _when(a["raised"]), a["machine"], a["code"], a["text"], state, cleared
+        )
+    console.print(table)
 
 
 @alarm.command("clear")
@@ -253,24 +215,7 @@ def alarm_list(ctx: click.Context, show_all: bool) -> None:
 @click.pass_context
 def alarm_clear(ctx: click.Context, alarm_id: int) -> None:
     """Clear alarm ID once its cause is dealt with."""
-    directory = cell_dir(ctx)
-
-    def action() -> None:
-        with _journal(directory) as journal:
-            before = journal.get_alarm(alarm_id)
-            if before.state == "cleared":
-                console.print(f"alarm {alarm_id} was already cleared")
-                return
-            a = journal.clear_alarm(alarm_id, by="operator")
-        with open_mailbox(directory) as mailbox:
-            mailbox.post_report(
-                "alarm-cleared",
-                f"alarm {a.id} cleared by operator: {a.machine} {a.code} {a.text}",
-                data={"alarm": a.id, "machine": a.machine, "code": a.code, "by": "operator"},
-            )
-        console.print(f"alarm {a.id} cleared ({a.machine} {a.code}: {a.text})")
-
-    _run(action)
+    console.print(cell_call(ctx, "alarms.clear", {"id": alarm_id})["message"])
 
 
 # -- parts ----------------------------------------------------------------------------------------
@@ -293,33 +238,35 @@ def part() -> None:
 @click.pass_context
 def part_list(ctx: click.Context, statuses: Sequence[str], order_id: str | None) -> None:
     """List parts: where each is, how far along its route, and why it is held."""
-    directory = cell_dir(ctx)
+    found = cell_call(ctx, "parts.list", {"statuses": list(statuses) or None, "order": order_id})
+    if not found:
+        console.print("no parts")
+        return
+    ids = [p["id"] for p in found]
+    table = Table(title="Parts")
+    for column in ("Part", "Order", "Type", "Location", "Route", "Status", "Note"):
+        table.add_column(column, justify="right" if column == "Route" else "left")
+    for p in found:
+        table.add_row(
+            short_id(p["id"], ids),
+            p["order_id"],
+            p["part_type"],
+            p["location"],
+            str(p["route_index"]),
+            _styled(p["status"]),
+            p["note"],
+        )
+    console.print(table)
 
-    def action() -> None:
-        if not (directory / JOURNAL_FILE).exists():
-            console.print("no parts")
-            return
-        with open_journal(directory) as journal:
-            found = journal.parts(statuses or None, order_id)
-        if not found:
-            console.print("no parts")
-            return
-        table = Table(title="Parts")
-        for column in ("Part", "Order", "Type", "Location", "Route", "Status", "Note"):
-            table.add_column(column, justify="right" if column == "Route" else "left")
-        for p in found:
-            table.add_row(
-                p.id,
-                p.order_id,
-                p.part_type,
-                p.location,
-                str(p.route_index),
-                _styled(p.status),
-                p.note,
-            )
-        console.print(table)
 
-    _run(action)
+def short_id(part_id: str, ids: list[str], least: int = 8) -> str:
+    """The shortest prefix (at least ``least`` characters) that no other id starts with:
+    what ``part release`` and ``part scrap`` accept, as git takes commit ids."""
+    for n in range(least, len(part_id)):
+        prefix = part_id[:n]
+        if not any(other != part_id and other.startswith(prefix) for other in ids):
+            return prefix
+    return part_id
 
 
 @part.command("release")
@@ -334,25 +281,10 @@ def part_list(ctx: click.Context, statuses: Sequence[str], order_id: str | None)
 @click.pass_context
 def part_release(ctx: click.Context, part_id: str, redo: bool, location: str | None) -> None:
     """Release held part ID after inspection: the cell carries on with it."""
-    directory = cell_dir(ctx)
-
-    def action() -> None:
-        with _journal(directory) as journal:
-            p = journal.release_part(part_id, redo_step=redo, location=location)
-        what = (
-            "its interrupted step will run again" if redo else "its interrupted step counts as done"
-        )
-        with open_mailbox(directory) as mailbox:
-            mailbox.post_report(
-                "part-released",
-                f"part {p.id} released by operator at {p.location}: {what}",
-                order_id=p.order_id,
-                part_id=p.id,
-                data={"redo": redo, "location": p.location},
-            )
-        console.print(f"part {p.id} released at {p.location}: {what}")
-
-    _run(action)
+    params: dict[str, object] = {"id": part_id, "redo": redo}
+    if location is not None:
+        params["at"] = location
+    console.print(cell_call(ctx, "parts.release", params)["message"])
 
 
 @part.command("scrap")
@@ -361,22 +293,7 @@ def part_release(ctx: click.Context, part_id: str, redo: bool, location: str | N
 @click.pass_context
 def part_scrap(ctx: click.Context, part_id: str, reason: str) -> None:
     """Scrap part ID (held or waiting): the cell will not work on it again."""
-    directory = cell_dir(ctx)
-
-    def action() -> None:
-        with _journal(directory) as journal:
-            p = journal.scrap_part(part_id, reason)
-        with open_mailbox(directory) as mailbox:
-            mailbox.post_report(
-                "part-scrapped",
-                f"part {p.id} scrapped: {reason}",
-                order_id=p.order_id,
-                part_id=p.id,
-                data={"reason": reason, "location": p.location},
-            )
-        console.print(f"part {p.id} scrapped")
-
-    _run(action)
+    console.print(cell_call(ctx, "parts.scrap", {"id": part_id, "reason": reason})["message"])
 
 
-__all__ = ["alarm", "check_part_type", "orders", "part", "reports", "submit"]
+__all__ = ["alarm", "orders", "part", "reports", "short_id", "submit"]

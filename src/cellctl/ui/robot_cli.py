@@ -6,8 +6,6 @@ words, failures as one line on stderr with a non-zero exit code.
 
 from __future__ import annotations
 
-import time
-from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
@@ -15,46 +13,29 @@ import click
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
-    Progress,
     TextColumn,
     TimeRemainingColumn,
 )
 from rich.table import Table
 
-from cellctl.drivers.robot import Ibm7545Robot, RobotConfig
-from cellctl.drivers.state import StateStore
 from cellctl.errors import UsageError
 from cellctl.protocol.aml import compile_source
-from cellctl.ui.common import MachineGroup, console, machine_ref, run
-
-Action = Callable[[Ibm7545Robot], Awaitable[None]]
-
-
-def _config(options: dict[str, Any]) -> RobotConfig:
-    fields = set(RobotConfig.__dataclass_fields__)
-    unknown = set(options) - fields
-    if unknown:
-        raise UsageError(f"unknown robot option(s) in cell.toml: {', '.join(sorted(unknown))}")
-    return RobotConfig(**options)
+from cellctl.ui.calls import LazyBar, machine_call, read_program
+from cellctl.ui.common import MachineGroup, console, run
 
 
-def _with_robot(ctx: click.Context, action: Action) -> None:
-    params = ctx.find_object(dict) or {}
+def _call(ctx: click.Context, function: str, **params: Any) -> dict[str, Any]:
+    """Run a robot function (see :func:`cellctl.ui.calls.machine_call`) and print its outcome
+    in the source's words."""
+    result = machine_call(ctx, "robot", function, params)
+    _print(result)
+    return result
 
-    async def main() -> None:
-        directory, ref = machine_ref(ctx, "robot")
-        robot = await Ibm7545Robot.connect(
-            ref.url,
-            name=ref.name,
-            settings=ref.settings,
-            store=StateStore(directory),
-            config=_config(ref.options),
-            trace=params.get("trace"),
-        )
-        async with robot:
-            await action(robot)
 
-    run(main)
+def _print(result: dict[str, Any]) -> None:
+    for line in result.get("lines", []):
+        console.print(line, markup=False)
+    console.print(result["message"], markup=False)
 
 
 @click.group(cls=MachineGroup)
@@ -65,7 +46,11 @@ def _with_robot(ctx: click.Context, action: Action) -> None:
 )
 @click.pass_context
 def robot(ctx: click.Context, link: str | None, line: str | None, trace: str | None) -> None:
-    """IBM 7545/7547 robot controller: [--link URL | NAME] COMMAND."""
+    """IBM 7545/7547 robot controller: [--link URL | NAME] COMMAND.
+
+    While `cellctl run` runs the cell, a command on one of its machines goes through the
+    controller's API (the machine must be out of automatic service for anything but status).
+    """
     ctx.obj = {"link": link, "line": line, "trace": trace}
 
 
@@ -73,15 +58,16 @@ def robot(ctx: click.Context, link: str | None, line: str | None, trace: str | N
 @click.pass_context
 def init(ctx: click.Context) -> None:
     """Return home, then auto mode (robot state 1)."""
+    _call(ctx, "init")
 
-    async def action(r: Ibm7545Robot) -> None:
-        console.print("returning home")
-        await r.return_home()
-        await r.auto_mode()
-        console.print("Set on Auto mode")
-        console.print("Initializing was correct")
 
-    _with_robot(ctx, action)
+def _download_fields(data: dict[str, Any], elapsed: float) -> dict[str, Any]:
+    return {
+        "completed": data["records"],
+        "total": data["records_total"],
+        "sent": data["bytes_sent"],
+        "rate": data["bytes_sent"] / max(elapsed, 1e-6),
+    }
 
 
 @robot.command()
@@ -90,42 +76,22 @@ def init(ctx: click.Context) -> None:
 @click.pass_context
 def download(ctx: click.Context, partition: int, file: Path) -> None:
     """Download a compiled program file (.rec) into PARTITION 1-5."""
-    from cellctl.protocol.robot import ProgramFile, encode_record
-
     if not 1 <= partition <= 5:
         raise click.BadParameter("partition must be 1 to 5 (partition error)")
-    program = ProgramFile.load(file) if file.exists() else None
-    if program is None:
-        raise click.BadParameter(f"{file}: could not open file")
-    total_bytes = sum(len(encode_record(r)) for r in program.records)
-
-    async def action(r: Ibm7545Robot) -> None:
-        columns = (
-            TextColumn("[bold]{task.description}"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TextColumn("records  {task.fields[sent]}/{task.fields[total_bytes]} B"),
-            TextColumn("{task.fields[rate]:>6.1f} chars/s"),
-            TimeRemainingColumn(),
+    program = read_program(file)
+    columns = (
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("records  {task.fields[sent]} B"),
+        TextColumn("{task.fields[rate]:>6.1f} chars/s"),
+        TimeRemainingColumn(),
+    )
+    with LazyBar(columns, f"{file.name} -> partition {partition}", _download_fields) as bar:
+        result = machine_call(
+            ctx, "robot", "download", {"partition": partition, **program}, bar.update
         )
-        start = time.monotonic()
-        with Progress(*columns, console=console, transient=False) as bar:
-            task = bar.add_task(
-                f"{program.name} -> partition {partition}",
-                total=len(program.records),
-                sent=0,
-                total_bytes=total_bytes,
-                rate=0.0,
-            )
-
-            def progress(done: int, total: int, sent: int) -> None:
-                rate = sent / max(time.monotonic() - start, 1e-6)
-                bar.update(task, completed=done, sent=sent, rate=rate)
-
-            await r.download(partition, program, progress=progress)
-        console.print("Download was correct")
-
-    _with_robot(ctx, action)
+    _print(result)
 
 
 @robot.command()
@@ -135,112 +101,69 @@ def go(ctx: click.Context, partition: int) -> None:
     """Run the program in PARTITION 1-5 (select application, start cycle)."""
     if not 1 <= partition <= 5:
         raise click.BadParameter("partition must be 1 to 5 (starting function error)")
-
-    async def action(r: Ibm7545Robot) -> None:
-        await r.go(partition)
-        console.print("Started Cycle")
-
-    _with_robot(ctx, action)
+    _call(ctx, "go", partition=partition)
 
 
 @robot.command()
 @click.pass_context
 def stop(ctx: click.Context) -> None:
     """Stop the cycle (robot state 1)."""
-
-    async def action(r: Ibm7545Robot) -> None:
-        console.print("Stopping Cycle")
-        await r.stop()
-        console.print("Cycle stopped")
-
-    _with_robot(ctx, action)
+    _call(ctx, "stop")
 
 
 @robot.command()
 @click.pass_context
 def halt(ctx: click.Context) -> None:
     """Stop the cycle and treat the robot as uninitialized (partitions flushed)."""
-
-    async def action(r: Ibm7545Robot) -> None:
-        await r.halt()
-        console.print("Halted: robot uninitialized, every partition must be downloaded again")
-
-    _with_robot(ctx, action)
+    _call(ctx, "halt")
 
 
 @robot.command()
 @click.pass_context
 def status(ctx: click.Context) -> None:
     """Robot state, decoded status bytes, partitions Full/Empty."""
-
-    async def action(r: Ibm7545Robot) -> None:
-        st = await r.status()
-        table = Table(title=f"{r.name}", show_header=False)
-        table.add_row("Robot state", f"{st.state} ({st.state_text})")
-        table.add_row(
-            "Machine status",
-            f"{st.machine} (bytes {st.machine.flags:02X} {st.machine.data_error:02X})",
-        )
-        for p, prog in st.partitions.items():
-            table.add_row(f"Partition {p}", f"Full ({prog})" if prog else "Empty")
-        console.print(table)
-
-    _with_robot(ctx, action)
+    st = machine_call(ctx, "robot", "status", {})
+    table = Table(title=st["name"], show_header=False)
+    table.add_row("Robot state", f"{st['state']} ({st['state_text']})")
+    table.add_row("Machine status", f"{st['machine_status']} (bytes {st['status_bytes']})")
+    for p, prog in st["partitions"].items():
+        table.add_row(f"Partition {p}", f"Full ({prog})" if prog else "Empty")
+    console.print(table)
 
 
 @robot.command()
 @click.pass_context
 def reject(ctx: click.Context) -> None:
     """The reject status: why the controller last refused a request."""
-
-    async def action(r: Ibm7545Robot) -> None:
-        code, message = await r.reject_status()
-        console.print(f"Reject status {code}: {message}")
-
-    _with_robot(ctx, action)
+    _call(ctx, "reject")
 
 
 @robot.command()
 @click.pass_context
 def io(ctx: click.Context) -> None:
     """The 16 digital inputs and 16 outputs."""
-
-    async def action(r: Ibm7545Robot) -> None:
-        dido = await r.io()
-        table = Table(title=f"{r.name} DI/DO")
-        table.add_column("line", justify="right")
-        for n in range(1, 17):
-            table.add_column(str(n), justify="center")
-        table.add_row("DI", *("1" if dido.input(n) else "." for n in range(1, 17)))
-        table.add_row("DO", *("1" if dido.output(n) else "." for n in range(1, 17)))
-        console.print(table)
-
-    _with_robot(ctx, action)
+    dido = machine_call(ctx, "robot", "io", {})
+    table = Table(title=f"{dido['name']} DI/DO")
+    table.add_column("line", justify="right")
+    for n in range(1, 17):
+        table.add_column(str(n), justify="center")
+    table.add_row("DI", *("1" if x else "." for x in dido["inputs"]))
+    table.add_row("DO", *("1" if x else "." for x in dido["outputs"]))
+    console.print(table)
 
 
 @robot.command()
 @click.pass_context
 def reset(ctx: click.Context) -> None:
     """Error reset (ERRESET): clear machine-status and reject-status errors."""
-
-    async def action(r: Ibm7545Robot) -> None:
-        await r.reset_errors()
-        console.print("Errors reset")
-
-    _with_robot(ctx, action)
+    _call(ctx, "reset")
 
 
 @robot.command()
 @click.pass_context
 def home(ctx: click.Context) -> None:
     """Return the arm home."""
-
-    async def action(r: Ibm7545Robot) -> None:
-        console.print("returning home")
-        await r.return_home()
-        console.print("Home")
-
-    _with_robot(ctx, action)
+    _call(ctx, "home")
 
 
 @robot.command()

@@ -1,0 +1,290 @@
+"""How the CLI and the console reach a cell: through the API of the controller that runs it,
+or, when none runs, straight to the machines (standalone). Both answer the same calls::
+
+    async with await open_cell(Path("cell"), refs) as cell:   # refs: machines it may open
+        print(cell.mode)                                       # "attached" or "standalone"
+        status = await cell.call("robot.status", {"machine": "robot"})
+        snapshot = await cell.subscribe(on_update)             # on_update(changes)
+
+Every call has a deadline; a refused call raises the same typed error the CLI would.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import json
+import os
+from collections.abc import Callable
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Self
+
+from websockets.asyncio.client import ClientConnection, connect, unix_connect
+from websockets.exceptions import ConnectionClosed, InvalidStatus, WebSocketException
+
+from cellctl.errors import AccessDenied, CellctlError, LinkClosed, LinkError, LinkTimeout
+from cellctl.service.access import LocalCell
+from cellctl.service.machines import MachineRef
+from cellctl.service.methods import Dispatcher, error_from_object
+from cellctl.service.server import SOCKET_FILE, TOKEN_FILE, _difference
+
+Update = Callable[[dict[str, Any]], None]
+Progress = Callable[[dict[str, Any]], None]
+
+#: Seconds a call may take: reads, and manual functions (a mill download waits for the cut).
+CALL_TIMEOUT = 30.0
+MACHINE_CALL_TIMEOUT = 3600.0
+CONNECT_TIMEOUT = 5.0
+#: How often a standalone cell's status is looked at for subscribers.
+LOCAL_POLL = 0.5
+
+
+def call_timeout(method: str) -> float:
+    """The deadline for ``method``."""
+    family = method.split(".", 1)[0]
+    return MACHINE_CALL_TIMEOUT if family in ("robot", "mill") else CALL_TIMEOUT
+
+
+class RemoteCell:
+    """A JSON-RPC client on a running controller's API (Unix socket or TCP)."""
+
+    mode = "attached"
+
+    def __init__(self, ws: ClientConnection) -> None:
+        self._ws = ws
+        self._ids = itertools.count(1)
+        self._pending: dict[int, asyncio.Future[Any]] = {}
+        self._progress: dict[int, Progress] = {}
+        self._updates: list[Update] = []
+        self._reader = asyncio.create_task(self._read())
+        self.closed = asyncio.Event()
+
+    @classmethod
+    async def connect(
+        cls, *, token: str, socket_path: Path | None = None, url: str | None = None
+    ) -> RemoteCell:
+        """Connect to ``socket_path`` (a cell's ``api.sock``) or ``url`` (``ws://host:port``)."""
+        headers = {"Authorization": f"Bearer {token}"}
+        try:
+            if socket_path is not None:
+                ws = await unix_connect(
+                    os.path.realpath(socket_path),  # noqa: ASYNC240 - a local lookup, no I/O wait
+                    "ws://localhost/websocket",
+                    additional_headers=headers,
+                    open_timeout=CONNECT_TIMEOUT,
+                    max_size=None,
+                    proxy=None,
+                )
+            else:
+                assert url is not None
+                ws = await connect(
+                    url.rstrip("/") + "/websocket",
+                    additional_headers=headers,
+                    open_timeout=CONNECT_TIMEOUT,
+                    max_size=None,
+                    proxy=None,
+                )
+        except InvalidStatus as e:
+            if e.response.status_code in (401, 403):
+                raise AccessDenied("the control API refused the token") from None
+            raise LinkError(f"the control API refused the connection: {e}") from None
+        except TimeoutError:
+            raise LinkTimeout("the control API did not answer within 5 s") from None
+        except (OSError, WebSocketException) as e:
+            raise LinkError(f"cannot reach the control API: {e}") from None
+        return cls(ws)
+
+    async def _read(self) -> None:
+        try:
+            async for text in self._ws:
+                message = json.loads(text)
+                if "id" in message and message.get("id") in self._pending:
+                    future = self._pending.pop(message["id"])
+                    self._progress.pop(message["id"], None)
+                    if future.done():
+                        continue
+                    if "error" in message:
+                        future.set_exception(error_from_object(message["error"]))
+                    else:
+                        future.set_result(message.get("result"))
+                elif message.get("method") == "notify_progress":
+                    params = message.get("params", {})
+                    callback = self._progress.get(params.get("id"))
+                    if callback is not None:
+                        callback(params)
+                elif message.get("method") == "notify_status_update":
+                    for update in list(self._updates):
+                        update(message.get("params", {}))
+        except (ConnectionClosed, ValueError):
+            pass
+        finally:
+            self.closed.set()
+            for future in self._pending.values():
+                if not future.done():
+                    future.set_exception(LinkClosed("the control API closed the connection"))
+            self._pending.clear()
+
+    async def call(
+        self,
+        method: str,
+        params: dict[str, Any] | None = None,
+        progress: Progress | None = None,
+        *,
+        timeout: float | None = None,
+    ) -> Any:
+        """Call ``method``; its result, or the typed error it raised."""
+        if self.closed.is_set():
+            raise LinkClosed("the control API closed the connection")
+        rid = next(self._ids)
+        future: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
+        self._pending[rid] = future
+        if progress is not None:
+            self._progress[rid] = progress
+        request = {"jsonrpc": "2.0", "id": rid, "method": method, "params": params or {}}
+        try:
+            await self._ws.send(json.dumps(request))
+        except ConnectionClosed:
+            self._pending.pop(rid, None)
+            raise LinkClosed("the control API closed the connection") from None
+        limit = timeout if timeout is not None else call_timeout(method)
+        try:
+            async with asyncio.timeout(limit):
+                return await future
+        except TimeoutError:
+            raise LinkTimeout(
+                f"{method}: no answer from the control API within {limit:g} s"
+            ) from None
+        finally:
+            self._pending.pop(rid, None)
+            self._progress.pop(rid, None)
+
+    async def subscribe(self, update: Update) -> dict[str, Any]:
+        """The status now; ``update(changes)`` is called with every change pushed after it."""
+        self._updates.append(update)
+        result: dict[str, Any] = await self.call("cell.subscribe")
+        return result
+
+    async def close(self) -> None:
+        with contextlib.suppress(Exception):
+            await self._ws.close()
+        self._reader.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await self._reader
+
+    async def __aenter__(self) -> Self:
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()
+
+
+class StandaloneCell:
+    """The same calls, served in this process on links it opens itself (holding their locks)."""
+
+    mode = "standalone"
+
+    def __init__(self, access: LocalCell) -> None:
+        self.access = access
+        self.dispatcher = Dispatcher(access)
+        self._updates: list[Update] = []
+        self._poller: asyncio.Task[None] | None = None
+
+    async def call(
+        self,
+        method: str,
+        params: dict[str, Any] | None = None,
+        progress: Progress | None = None,
+        *,
+        timeout: float | None = None,
+    ) -> Any:
+        limit = timeout if timeout is not None else call_timeout(method)
+        try:
+            async with asyncio.timeout(limit):
+                return await self.dispatcher.call(method, params or {}, progress)
+        except TimeoutError:
+            raise LinkTimeout(f"{method}: not done within {limit:g} s") from None
+
+    async def subscribe(self, update: Update) -> dict[str, Any]:
+        self._updates.append(update)
+        snapshot = self.access.snapshot()
+        if self._poller is None:
+            self._poller = asyncio.create_task(self._poll(snapshot))
+        return snapshot
+
+    async def _poll(self, last: dict[str, Any]) -> None:
+        while True:
+            await asyncio.sleep(LOCAL_POLL)
+            try:
+                snap = self.access.snapshot()
+            except CellctlError:
+                continue
+            changes = _difference(last, snap)
+            last = snap
+            if changes:
+                for update in list(self._updates):
+                    update(changes)
+
+    async def close(self) -> None:
+        if self._poller is not None:
+            self._poller.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._poller
+        await self.access.close()
+
+    async def __aenter__(self) -> Self:
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()
+
+
+CellClient = RemoteCell | StandaloneCell
+
+
+def read_token(directory: Path) -> str:
+    """The cell's API token (AccessDenied if it cannot be read)."""
+    try:
+        return (directory / TOKEN_FILE).read_text(encoding="ascii").strip()
+    except OSError as e:
+        raise AccessDenied(f"cannot read the API token {directory / TOKEN_FILE}: {e}") from None
+
+
+async def attach(directory: Path) -> RemoteCell:
+    """Connect to the API of the controller running ``directory``."""
+    return await RemoteCell.connect(
+        token=read_token(directory), socket_path=directory / SOCKET_FILE
+    )
+
+
+async def open_cell(
+    directory: Path,
+    refs: dict[str, MachineRef],
+    *,
+    trace: str | Path | None = None,
+    readiness: str | None = None,
+) -> CellClient:
+    """The running controller's API if one runs on ``directory``; otherwise the machines in
+    ``refs`` straight from this process."""
+    from cellctl.cell.owner import controller_holder
+
+    holder = controller_holder(directory)
+    if holder is None:
+        return StandaloneCell(LocalCell(directory, refs, trace=trace, readiness=readiness))
+    try:
+        return await attach(directory)
+    except LinkError as e:
+        raise LinkError(
+            f"a controller runs on {directory} ({holder}) but its API does not answer: {e}"
+        ) from None

@@ -1,0 +1,483 @@
+"""The control API server that ``cellctl run`` starts: JSON-RPC 2.0 over WebSocket, and plain
+HTTP GET for read-only state, on Starlette/uvicorn.
+
+::
+
+    server = ApiServer(AttachedCell(controller), directory)
+    await server.start()        # <cell>/api.sock (0600); [api] listen = "127.0.0.1:7125" too
+    ...
+    await server.close()
+
+- ``ws://…/websocket``: requests ``{"jsonrpc": "2.0", "id": 1, "method": "cell.status"}``;
+  ``cell.subscribe`` answers the status, then pushes ``notify_status_update`` with what changed;
+  a long call pushes ``notify_progress`` (``{"id": <call id>, ...}``).
+- ``GET /api/status`` (and ``/api/orders``, ``/api/alarms``, ``/api/parts``, ``/api/machines``,
+  ``/api/traffic/{machine}``, ``/server/info``).
+
+Every request needs ``Authorization: Bearer <token>`` (``<cell>/api-token``, 0600, made at the
+first run): a missing or wrong one gets 401 (HTTP) or a refused handshake (WebSocket). A call
+runs to its end even if its client goes away, so no machine is left half-commanded.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hashlib
+import hmac
+import ipaddress
+import json
+import logging
+import os
+import secrets
+import socket
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import uvicorn
+from starlette.applications import Starlette
+from starlette.requests import Request
+from starlette.responses import JSONResponse, Response
+from starlette.routing import Route, WebSocketRoute
+from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
+
+from cellctl.errors import UsageError
+from cellctl.service.access import CellAccess
+from cellctl.service.methods import (
+    INVALID_REQUEST,
+    PARSE_ERROR,
+    Dispatcher,
+    error_object,
+)
+
+log = logging.getLogger(__name__)
+
+TOKEN_FILE = "api-token"
+SOCKET_FILE = "api.sock"
+#: The largest WebSocket frame accepted (a program text fits; more closes the connection).
+MAX_FRAME = 8 * 1024 * 1024
+#: Messages waiting for a slow client before it is dropped.
+MAX_QUEUED = 2000
+#: Shortest gap between two pushed updates (bursts of changes are coalesced).
+PUSH_GAP = 0.01
+#: Updates are looked for at least this often, signalled or not.
+PUSH_TICK = 1.0
+#: Where Unix socket paths must fit (sun_path is 108 bytes on Linux).
+MAX_SOCKET_PATH = 100
+
+
+def ensure_token(directory: Path) -> str:
+    """The cell's API token, made (0600) on first use."""
+    path = directory / TOKEN_FILE
+    with contextlib.suppress(FileNotFoundError):
+        token = path.read_text(encoding="ascii").strip()
+        if token:
+            os.chmod(path, 0o600)
+            return token
+    directory.mkdir(parents=True, exist_ok=True)
+    token = secrets.token_urlsafe(32)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w", encoding="ascii") as f:
+        f.write(token + "\n")
+    os.chmod(path, 0o600)
+    return token
+
+
+def socket_target(directory: Path) -> Path:
+    """Where the cell's socket really is: ``<cell>/api.sock``, or (a path too long for a Unix
+    socket) a short one in the runtime directory that ``<cell>/api.sock`` links to."""
+    path = (directory / SOCKET_FILE).absolute()
+    if len(os.fsencode(path)) <= MAX_SOCKET_PATH:
+        return path
+    from cellctl.link.lock import runtime_dir
+
+    digest = hashlib.sha256(os.fsencode(path)).hexdigest()[:16]
+    return Path(runtime_dir()) / f"api-{digest}.sock"
+
+
+def parse_listen(text: str, allow_remote: bool) -> tuple[str, int]:
+    """``"127.0.0.1:7125"`` → (host, port); a non-loopback host only with ``allow_remote``."""
+    host, sep, port_text = text.rpartition(":")
+    host = host.strip("[]")
+    if not sep or not host or not port_text.isdigit() or not 0 < int(port_text) < 65536:
+        raise UsageError(f'[api] listen = "{text}": write "HOST:PORT", e.g. "127.0.0.1:7125"')
+    try:
+        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        loopback = False
+    if not loopback and not allow_remote:
+        raise UsageError(
+            f'[api] listen = "{text}" is not a loopback address: the API answers there only '
+            "with allow_remote = true in [api]"
+        )
+    return host, int(port_text)
+
+
+class _Session:
+    """One WebSocket client: its send queue and whether it subscribed."""
+
+    def __init__(self, ws: WebSocket) -> None:
+        self.ws = ws
+        self.queue: asyncio.Queue[str | None] = asyncio.Queue(MAX_QUEUED)
+        self.subscribed = False
+        self.open = True
+
+    def send(self, message: dict[str, Any]) -> None:
+        if not self.open:
+            return
+        try:
+            self.queue.put_nowait(json.dumps(message, default=str))
+        except asyncio.QueueFull:
+            self.open = False  # too slow to keep up: it is dropped, the cell is not slowed
+            self.queue = asyncio.Queue(1)
+            self.queue.put_nowait(None)
+
+    async def writer(self) -> None:
+        while True:
+            text = await self.queue.get()
+            if text is None:
+                with contextlib.suppress(Exception):
+                    await self.ws.close(1013)
+                return
+            await self.ws.send_text(text)
+
+
+class _Server(uvicorn.Server):
+    """uvicorn without its signal handlers: the controller's own handle Ctrl-C."""
+
+    @contextlib.contextmanager
+    def capture_signals(self) -> Iterator[None]:
+        yield
+
+
+class ApiServer:
+    """Serves one cell's API on its Unix socket and, if configured, on TCP."""
+
+    def __init__(
+        self,
+        access: CellAccess,
+        directory: Path,
+        *,
+        listen: str | None = None,
+        allow_remote: bool = False,
+    ) -> None:
+        self.access = access
+        self.directory = Path(directory)
+        self.dispatcher = Dispatcher(access)
+        self.token = ensure_token(self.directory)
+        self.tcp = parse_listen(listen, allow_remote) if listen else None
+        self.socket_path = self.directory / SOCKET_FILE
+        self.sessions: set[_Session] = set()
+        self.calls: set[asyncio.Task[None]] = set()
+        self._changed = asyncio.Event()
+        self._server: _Server | None = None
+        self._tasks: list[asyncio.Task[None]] = []
+        self._last: dict[str, Any] = {}
+        self.push_count = 0
+        self.app = Starlette(
+            routes=[
+                WebSocketRoute("/websocket", self._websocket),
+                Route("/api/status", self._get("cell.status")),
+                Route("/api/orders", self._get("orders.list")),
+                Route("/api/alarms", self._get("alarms.list")),
+                Route("/api/parts", self._get("parts.list")),
+                Route("/api/machines", self._get("machines.list")),
+                Route("/api/traffic/{machine}", self._traffic),
+                Route("/server/info", self._get("server.info")),
+            ]
+        )
+
+    # -- life -------------------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        """Bind the socket(s) and serve in the background."""
+        sockets = [self._unix_socket()]
+        if self.tcp is not None:
+            host, port = self.tcp
+            family = socket.AF_INET6 if ":" in host else socket.AF_INET
+            tcp = socket.socket(family, socket.SOCK_STREAM)
+            tcp.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                tcp.bind((host, port))
+            except OSError as e:
+                tcp.close()
+                raise UsageError(f"[api] listen: cannot listen on {host}:{port}: {e}") from None
+            tcp.listen(128)
+            tcp.setblocking(False)
+            sockets.append(tcp)
+        config = uvicorn.Config(
+            self.app,
+            log_level="warning",
+            access_log=False,
+            lifespan="off",
+            ws="websockets-sansio",
+            ws_max_size=MAX_FRAME,
+            ws_ping_interval=20.0,
+            ws_ping_timeout=20.0,
+            timeout_graceful_shutdown=2,
+        )
+        self._server = _Server(config)
+        self._tasks.append(asyncio.create_task(self._server.serve(sockets=sockets)))
+        self._tasks.append(asyncio.create_task(self._publisher()))
+        with contextlib.suppress(UsageError):
+            self.access.controller().listeners.append(self.changed)
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + 10
+        while not self._server.started:
+            if self._tasks[0].done():
+                await self._tasks[0]
+                raise UsageError("the API server stopped at start")
+            if loop.time() > deadline:
+                raise UsageError("the API server did not start within 10 s")
+            await asyncio.sleep(0.01)
+
+    def _unix_socket(self) -> socket.socket:
+        target = socket_target(self.directory)
+        for path in {target, self.socket_path}:
+            if path.is_symlink() or path.exists():
+                path.unlink()
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        old = os.umask(0o177)  # the socket is born 0600: no moment where others may connect
+        try:
+            sock.bind(str(target))
+        finally:
+            os.umask(old)
+        os.chmod(target, 0o600)
+        if target != self.socket_path.absolute():
+            self.socket_path.symlink_to(target)
+        sock.listen(128)
+        sock.setblocking(False)
+        return sock
+
+    @property
+    def url(self) -> str:
+        """The TCP address (``http://host:port``) or the socket path."""
+        if self.tcp is not None:
+            return f"http://{self.tcp[0]}:{self.tcp[1]}"
+        return str(self.socket_path)
+
+    async def close(self) -> None:
+        """Stop serving; calls in flight finish first (bounded)."""
+        with contextlib.suppress(UsageError):
+            listeners = self.access.controller().listeners
+            if self.changed in listeners:
+                listeners.remove(self.changed)
+        if self.calls:
+            await asyncio.wait(self.calls, timeout=10)
+        for session in list(self.sessions):
+            session.open = False
+            with contextlib.suppress(Exception):
+                await session.ws.close(1001)
+        if self._server is not None:
+            self._server.should_exit = True
+        for task in self._tasks[1:]:
+            task.cancel()
+        for task in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                async with asyncio.timeout(5):
+                    await task
+        target = socket_target(self.directory)
+        for path in {target, self.socket_path}:
+            with contextlib.suppress(OSError):
+                path.unlink()
+
+    # -- auth ---------------------------------------------------------------------------------
+
+    def _authorized(self, headers: Any) -> bool:
+        given = headers.get("authorization", "")
+        scheme, _, token = given.partition(" ")
+        return bool(
+            scheme.lower() == "bearer"
+            and hmac.compare_digest(token.strip().encode(), self.token.encode())
+        )
+
+    def _foreign_origin(self, headers: Any) -> bool:
+        """A browser page from another site (clients that are not browsers send no Origin)."""
+        origin = headers.get("origin")
+        if origin is None:
+            return False
+        host = str(headers.get("host", ""))
+        return str(origin).split("://", 1)[-1] != host
+
+    # -- HTTP ---------------------------------------------------------------------------------
+
+    def _get(self, method: str) -> Any:
+        async def endpoint(request: Request) -> Response:
+            if not self._authorized(request.headers):
+                return _unauthorized()
+            params = {}
+            if method == "alarms.list" and request.query_params.get("all") in ("1", "true"):
+                params["all"] = True
+            return await self._answer(method, params)
+
+        return endpoint
+
+    async def _traffic(self, request: Request) -> Response:
+        if not self._authorized(request.headers):
+            return _unauthorized()
+        limit = request.query_params.get("limit", "100")
+        params = {"machine": request.path_params["machine"], "limit": limit}
+        return await self._answer("traffic.tail", params)
+
+    async def _answer(self, method: str, params: dict[str, Any]) -> Response:
+        try:
+            result = await self.dispatcher.call(method, params)
+        except Exception as e:
+            error = error_object(e)
+            return JSONResponse(
+                {"error": error}, status_code=400 if error["code"] > -32603 else 500
+            )
+        return JSONResponse(result)
+
+    # -- WebSocket ----------------------------------------------------------------------------
+
+    async def _websocket(self, ws: WebSocket) -> None:
+        if not self._authorized(ws.headers) or self._foreign_origin(ws.headers):
+            await ws.close(code=1008)  # before accept: the handshake is refused (HTTP 403)
+            return
+        await ws.accept()
+        session = _Session(ws)
+        self.sessions.add(session)
+        writer = asyncio.create_task(session.writer())
+        try:
+            while session.open:
+                message = await ws.receive()
+                if message["type"] == "websocket.disconnect":
+                    break
+                text = message.get("text")
+                if text is None:
+                    session.send(_error(None, INVALID_REQUEST, "binary frames are not JSON-RPC"))
+                    continue
+                self._handle(session, text)
+        except WebSocketDisconnect:
+            pass
+        finally:
+            session.open = False
+            self.sessions.discard(session)
+            writer.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await writer
+            if ws.client_state is not WebSocketState.DISCONNECTED:
+                with contextlib.suppress(Exception):
+                    await ws.close()
+
+    def _handle(self, session: _Session, text: str) -> None:
+        try:
+            request = json.loads(text)
+        except (ValueError, RecursionError):
+            session.send(_error(None, PARSE_ERROR, "parse error: not JSON"))
+            return
+        requests = request if isinstance(request, list) and request else [request]
+        for item in requests:
+            self._start_call(session, item)
+
+    def _start_call(self, session: _Session, request: Any) -> None:
+        if (
+            not isinstance(request, dict)
+            or request.get("jsonrpc") != "2.0"
+            or not isinstance(request.get("method"), str)
+        ):
+            rid = request.get("id") if isinstance(request, dict) else None
+            session.send(_error(rid, INVALID_REQUEST, "invalid request: not JSON-RPC 2.0"))
+            return
+        # The call runs in its own task, kept by the server: a client that goes away does
+        # not cancel it halfway through a machine's transaction.
+        task = asyncio.create_task(self._call(session, request))
+        self.calls.add(task)
+        task.add_done_callback(self.calls.discard)
+
+    async def _call(self, session: _Session, request: dict[str, Any]) -> None:
+        rid = request.get("id")
+        method = request["method"]
+        params = request.get("params")
+
+        def progress(data: dict[str, Any]) -> None:
+            if rid is not None:
+                session.send(
+                    {"jsonrpc": "2.0", "method": "notify_progress", "params": {"id": rid, **data}}
+                )
+
+        try:
+            if method == "cell.subscribe":
+                session.subscribed = True
+                result: Any = self.access.snapshot()
+            elif method == "cell.unsubscribe":
+                session.subscribed = False
+                result = {"message": "unsubscribed"}
+            else:
+                result = await self.dispatcher.call(method, params, progress)
+        except Exception as e:
+            if rid is None:
+                return
+            if error_object(e)["code"] == -32603:
+                log.exception("API method %s failed", method)
+            session.send({"jsonrpc": "2.0", "id": rid, "error": error_object(e)})
+            return
+        if rid is not None:
+            session.send({"jsonrpc": "2.0", "id": rid, "result": result})
+
+    # -- pushing changes ----------------------------------------------------------------------
+
+    def changed(self) -> None:
+        """The cell's state changed (called by the controller)."""
+        self._changed.set()
+
+    async def _publisher(self) -> None:
+        while True:
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(PUSH_TICK):
+                    await self._changed.wait()
+            self._changed.clear()
+            subscribers = [s for s in self.sessions if s.subscribed and s.open]
+            if not subscribers:
+                self._last = {}
+                continue
+            try:
+                snap = self.access.snapshot()
+            except Exception:
+                log.exception("status snapshot failed")
+                continue
+            update = _difference(self._last, snap)
+            self._last = snap
+            if update:
+                message = {"jsonrpc": "2.0", "method": "notify_status_update", "params": update}
+                self.push_count += 1
+                for session in subscribers:
+                    session.send(message)
+            await asyncio.sleep(PUSH_GAP)
+
+
+def _difference(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
+    """What changed between two snapshots: whole top-level objects, and only new events."""
+    update: dict[str, Any] = {}
+    for key, value in new.items():
+        if key == "cell":
+            if {k: v for k, v in value.items() if k != "time"} != {
+                k: v for k, v in old.get("cell", {}).items() if k != "time"
+            }:
+                update[key] = value
+        elif key == "events":
+            seen = old.get("events", [])
+            last = seen[-1]["time"] if seen else 0.0
+            fresh = [e for e in value if e["time"] > last]
+            if fresh:
+                update[key] = fresh
+        elif old.get(key) != value:
+            update[key] = value
+    if update:
+        update["time"] = time.time()
+    return update
+
+
+def _error(rid: Any, code: int, message: str) -> dict[str, Any]:
+    return {"jsonrpc": "2.0", "id": rid, "error": {"code": code, "message": message}}
+
+
+def _unauthorized() -> Response:
+    return JSONResponse(
+        {"error": {"code": -32007, "message": "missing or wrong API token"}},
+        status_code=401,
+        headers={"WWW-Authenticate": "Bearer"},
+    )

@@ -1,0 +1,134 @@
+"""How a machine command of the CLI runs: through the running controller's API, or straight
+to the machine when none runs, with the same output either way.
+
+::
+
+    result = machine_call(ctx, "robot", "status", {})    # a dict: "message", "lines", data
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import click
+from rich.progress import Progress, ProgressColumn
+
+from cellctl.errors import UsageError
+from cellctl.service.access import LocalCell
+from cellctl.service.client import StandaloneCell, open_cell
+from cellctl.ui.common import cell_dir, err_console, machine_ref, run
+
+
+def read_program(path: Path) -> dict[str, str]:
+    """A program file as the API takes it: its name and text (refused if it cannot be read)."""
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise UsageError(f"{path}: could not open file: no such file") from None
+    except OSError as e:
+        raise UsageError(f"{path}: could not open file: {e.strerror}") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise UsageError(f"{path}: not a text file (byte {e.start + 1} is not UTF-8)") from None
+    return {"program": path.name, "text": text}
+
+
+def machine_call(
+    ctx: click.Context,
+    family: str,
+    function: str,
+    params: dict[str, Any],
+    progress: Callable[[dict[str, Any]], None] | None = None,
+    *,
+    options: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Run ``family.function`` on the machine the command names; print nothing, return the
+    result (a refusal or failure exits with its one-line reason)."""
+    given = ctx.find_object(dict) or {}
+    directory = cell_dir(ctx)
+
+    async def main() -> dict[str, Any]:
+        _, ref = machine_ref(ctx, family)
+        if options:
+            ref = dataclasses.replace(ref, options={**ref.options, **options})
+        trace = given.get("trace")
+        readiness = given.get("readiness")
+        if given.get("link"):
+            cell: Any = StandaloneCell(
+                LocalCell(directory, {ref.name: ref}, trace=trace, readiness=readiness)
+            )
+        else:
+            cell = await open_cell(directory, {ref.name: ref}, trace=trace, readiness=readiness)
+            if cell.mode == "attached" and (trace or readiness or options):
+                err_console.print(
+                    "note: the running controller holds the link: --trace, --readiness and "
+                    "--start-signal do not "
+                    f"apply (its traffic: cellctl traffic {ref.name})"
+                )
+        async with cell:
+            result: dict[str, Any] = await cell.call(
+                f"{family}.{function}", {"machine": ref.name, **params}, progress
+            )
+            return result
+
+    return run(main)
+
+
+def cell_call(ctx: click.Context, method: str, params: dict[str, Any] | None = None) -> Any:
+    """Call an API method on the cell: through the running controller, or in this process on
+    the cell's files when none runs (the same code either way)."""
+    directory = cell_dir(ctx)
+
+    async def main() -> Any:
+        async with await open_cell(directory, {}) as cell:
+            return await cell.call(method, params or {})
+
+    return run(main)
+
+
+class LazyBar:
+    """A Rich progress bar drawn only once there is progress to show (a refusal draws none).
+
+    ``update(fields)`` takes the API's progress dicts; ``fields_of`` maps one to the task's
+    ``completed``/``total`` and the columns' fields.
+    """
+
+    def __init__(
+        self,
+        columns: tuple[str | ProgressColumn, ...],
+        description: str,
+        fields_of: Callable[[dict[str, Any], float], dict[str, Any]],
+    ) -> None:
+        from cellctl.ui.common import console
+
+        self._progress = Progress(*columns, console=console, transient=False)
+        self._description = description
+        self._fields_of = fields_of
+        self._task: Any = None
+        self.start = time.monotonic()
+
+    def update(self, data: dict[str, Any]) -> None:
+        fields = self._fields_of(data, time.monotonic() - self.start)
+        if self._task is None:
+            self._progress.start()
+            self._task = self._progress.add_task(self._description, **fields)
+        else:
+            self._progress.update(self._task, **fields)
+
+    def __enter__(self) -> LazyBar:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        if self._task is not None:
+            self._progress.stop()

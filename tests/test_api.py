@@ -1,0 +1,352 @@
+"""The control API against the emulated cell, through real WebSocket and HTTP clients: every
+method, bad parameters and frames, tokens, and a client that leaves in the middle of a call."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import stat
+import urllib.error
+import urllib.request
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+from websockets.asyncio.client import connect, unix_connect
+from websockets.exceptions import ConnectionClosed, InvalidStatus
+
+from cellctl.errors import AccessDenied, DeviceError, MachineInUse, UsageError
+from cellctl.protocol.aml import compile_source
+from cellctl.service.access import AttachedCell
+from cellctl.service.client import RemoteCell, attach
+from cellctl.service.server import ApiServer
+from tests.cell_rig import CellRig
+from tests.conftest import free_port
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+
+
+@dataclass
+class Api:
+    rig: CellRig
+    server: ApiServer
+    client: RemoteCell
+    port: int
+
+    @property
+    def directory(self) -> Path:
+        return self.rig.directory
+
+    async def call(self, method: str, params: dict[str, Any] | None = None) -> Any:
+        return await self.client.call(method, params or {})
+
+
+@pytest.fixture
+async def api(tmp_path: Path) -> AsyncIterator[Api]:
+    async with CellRig(tmp_path / "cell") as rig:
+        await rig.start_controller()
+        assert rig.controller is not None
+        port = free_port()
+        server = ApiServer(AttachedCell(rig.controller), rig.directory, listen=f"127.0.0.1:{port}")
+        await server.start()
+        client = await attach(rig.directory)
+        try:
+            yield Api(rig, server, client, port)
+        finally:
+            await client.close()
+            await server.close()
+
+
+def robot_program(partition: int = 1) -> dict[str, str]:
+    source = (EXAMPLES / "robot" / "conveyor_to_cnc1.aml").read_text()
+    text = compile_source(source, "LOAD1", partition).to_text()
+    return {"program": "load1.rec", "text": text}
+
+
+async def test_status_info_and_private_files(api: Api) -> None:
+    info = await api.call("server.info")
+    assert info["mode"] == "attached" and "robot.download" in info["methods"]
+    status = await api.call("cell.status")
+    assert set(status) >= {"cell", "machines", "orders", "parts", "alarms", "events"}
+    assert set(status["machines"]) >= {"robot", "cnc1", "cnc2"}
+    for name in ("api-token", "api.sock", "journal.sqlite3", "mailbox.sqlite3"):
+        mode = stat.S_IMODE(os.stat((api.directory / name).resolve()).st_mode)
+        assert mode == 0o600, f"{name} is {oct(mode)}"
+
+
+async def test_orders_submit_list_cancel(api: Api) -> None:
+    await api.call("cell.pause")
+    posted = await api.call("orders.submit", {"part_type": "wax-robot-base", "qty": 2, "id": "C1"})
+    assert posted["new"] and "order C1 posted" in posted["message"]
+    again = await api.call("orders.submit", {"part_type": "wax-robot-base", "id": "C1"})
+    assert not again["new"]
+    with pytest.raises(UsageError, match="unknown part type 'nope'"):
+        await api.call("orders.submit", {"part_type": "nope"})
+    await api.rig.wait_for(lambda: api.rig.order_state("C1") == "accepted", "C1 accepted")
+    listed = await api.call("orders.list", {"states": ["accepted"]})
+    assert [o["id"] for o in listed] == ["C1"] and listed[0]["parts"] == {"waiting": 2}
+    cancelled = await api.call("orders.cancel", {"id": "C1"})
+    assert "cancelled" in cancelled["message"]
+    assert api.rig.order_state("C1") == "cancelled"
+    assert {p.status for p in api.rig.journal.parts(order_id="C1")} == {"cancelled"}
+    with pytest.raises(UsageError, match="only an order that has not started"):
+        await api.call("orders.cancel", {"id": "C1"})
+    await api.call("cell.resume")
+
+
+async def test_a_started_order_cannot_be_cancelled(api: Api) -> None:
+    api.rig.post("wax-robot-base", 1, "S1")
+    await api.rig.wait_for(lambda: api.rig.journal.steps(), "a step started")
+    with pytest.raises(UsageError, match="has started"):
+        await api.call("orders.cancel", {"id": "S1"})
+
+
+async def test_pause_holds_new_work_and_resume_runs_it(api: Api) -> None:
+    paused = await api.call("cell.pause")
+    assert "paused" in paused["message"]
+    await api.call("orders.submit", {"part_type": "wax-robot-base", "id": "P1"})
+    await api.rig.wait_for(lambda: api.rig.order_state("P1") == "accepted", "P1 accepted")
+    # Ten monitor rounds go by (each tells the listeners): nothing starts.
+    controller = api.rig.controller
+    assert controller is not None
+    rounds: list[int] = []
+    controller.listeners.append(lambda: rounds.append(1))
+    await api.rig.wait_for(lambda: len(rounds) >= 10, "ten rounds while paused")
+    assert (await api.call("cell.status"))["cell"]["paused"] is True
+    assert not api.rig.journal.steps()
+    await api.call("cell.resume")
+    await api.rig.wait_for(lambda: api.rig.journal.steps(), "a step after resume")
+
+
+async def test_alarms_list_and_clear(api: Api) -> None:
+    api.rig.cell.plc.set_fault("estop", None)
+    alarm = await api.rig.wait_for(lambda: api.rig.alarms("plc", "estop"), "estop alarm")
+    api.rig.cell.plc.clear_fault("estop")
+    listed = await api.call("alarms.list")
+    assert alarm[0].id in [a["id"] for a in listed]
+    cleared = await api.call("alarms.clear", {"id": alarm[0].id})
+    assert f"alarm {alarm[0].id} cleared" in cleared["message"]
+    assert alarm[0].id not in [a["id"] for a in await api.call("alarms.list")]
+    assert alarm[0].id in [a["id"] for a in await api.call("alarms.list", {"all": True})]
+    with pytest.raises(UsageError):
+        await api.call("alarms.clear", {"id": 9999})
+
+
+async def test_parts_release_and_scrap(api: Api) -> None:
+    await api.call("cell.pause")
+    api.rig.post("wax-robot-base", 2, "H1")
+    await api.rig.wait_for(lambda: len(api.rig.journal.parts(order_id="H1")) == 2, "parts")
+    first, second = api.rig.journal.parts(order_id="H1")
+    api.rig.journal.hold_part(first.id, "looked damaged")
+    api.rig.journal.hold_part(second.id, "looked damaged")
+    held = await api.call("parts.list", {"statuses": ["held"]})
+    assert {p["id"] for p in held} == {first.id, second.id}
+    released = await api.call("parts.release", {"id": first.id})
+    assert f"part {first.id} released" in released["message"]
+    scrapped = await api.call("parts.scrap", {"id": second.id, "reason": "cracked"})
+    assert scrapped["message"] == f"part {second.id} scrapped"
+    statuses = {p.id: p.status for p in api.rig.journal.parts(order_id="H1")}
+    assert statuses == {first.id: "waiting", second.id: "scrapped"}
+    await api.call("cell.resume")
+
+
+async def test_manual_functions_only_out_of_automatic_service(api: Api) -> None:
+    # Status is an observation: allowed in automatic service.
+    status = await api.call("robot.status", {"machine": "robot"})
+    assert status["state_text"] and "partitions" in status
+    with pytest.raises(MachineInUse, match="in automatic service: take it out first"):
+        await api.call("robot.home", {"machine": "robot"})
+    out = await api.call("machines.out_of_service", {"machine": "robot", "reason": "teach"})
+    assert "out of automatic service" in out["message"]
+    await api.rig.wait_for(lambda: api.rig.controller and not api.rig.controller._busy(), "idle")
+    assert (await api.call("robot.home"))["message"] == "Home"
+    down = await api.call("robot.download", {"machine": "robot", "partition": 4, **robot_program()})
+    assert down["message"] == "Download was correct"
+    status = await api.call("robot.status", {"machine": "robot"})
+    assert status["partitions"]["4"] == "LOAD1"
+    with pytest.raises(DeviceError, match="partition empty"):
+        await api.call("robot.go", {"machine": "robot", "partition": 5})
+    io = await api.call("robot.io")
+    assert len(io["inputs"]) == 16
+    assert "Reject status" in (await api.call("robot.reject"))["message"]
+    assert (await api.call("robot.reset"))["message"] == "Errors reset"
+    back = await api.call("machines.return_to_service", {"machine": "robot"})
+    assert "back in automatic service" in back["message"]
+    rows = await api.call("traffic.tail", {"machine": "robot", "limit": 5})
+    assert len(rows) == 5 and {r["dir"] for r in rows} <= {">>", "<<"}
+
+
+async def test_mill_menu_by_hand_while_the_cell_runs(api: Api) -> None:
+    await api.call("machines.out_of_service", {"machine": "cnc2"})
+    api.rig.post("wax-robot-base", 1, "M1")
+    await api.rig.wait_for(
+        lambda: any(s.machine == "cnc1" and s.state == "finished" for s in api.rig.journal.steps()),
+        "cnc1 cut while cnc2 is out",
+    )
+    assert (await api.call("mill.status", {"machine": "cnc2"}))["state"] == 2
+    ended = await api.call("mill.end", {"machine": "cnc2"})
+    assert ended["message"] == "Ending was correct"
+    mill = api.rig.cell.mills["cnc2"]
+    mill.select(mill.auto_mode)  # the operator selects the link mode on the panel: READY
+    setup = api.directory / "programs" / "cnc2_setup.dyn"
+    params = {"machine": "cnc2", "program": setup.name, "text": setup.read_text(), "force": True}
+    init = await api.call("mill.init", params)
+    assert init["message"] == "Initializing was correct"
+    back = await api.call("machines.return_to_service", {"machine": "cnc2"})
+    assert "back in automatic service" in back["message"]
+    await api.rig.wait_for(lambda: api.rig.order_state("M1") == "done", "M1 done", timeout=60)
+    assert not api.rig.alarms() and not api.rig.cut_twice()
+
+
+async def test_emergency_stop_halts_and_holds(api: Api) -> None:
+    api.rig.post("wax-robot-base", 1, "E1")
+    await api.rig.wait_for(lambda: api.rig.open_steps("machine"), "a cut in flight", timeout=60)
+    stopped = await api.call("cell.estop", {"reason": "guard opened"})
+    assert "emergency stop: guard opened" in stopped["message"]
+    status = await api.call("cell.status")
+    assert status["cell"]["paused"] is True
+    assert any(a["code"] == "estop" and a["machine"] == "cell" for a in status["alarms"])
+    held = api.rig.held_parts()
+    assert held and "emergency stop" in held[0].note
+    halted = await api.call("mill.status", {"machine": "cnc1"})  # an observation: allowed
+    assert halted["state"] == 0  # halted: back in manual
+
+
+async def test_subscription_pushes_changes(api: Api) -> None:
+    updates: list[dict[str, Any]] = []
+    snapshot = await api.client.subscribe(updates.append)
+    assert "machines" in snapshot
+    await api.call("orders.submit", {"part_type": "wax-robot-base", "id": "U1"})
+    await api.rig.wait_for(
+        lambda: any(any(o["id"] == "U1" for o in u.get("orders", [])) for u in updates),
+        "an update with order U1",
+    )
+    events = [e["text"] for u in updates for e in u.get("events", [])]
+    await api.rig.wait_for(lambda: events or updates, "events")
+
+
+@pytest.mark.parametrize(
+    ("method", "params", "error", "message"),
+    [
+        ("nope.nothing", {}, UsageError, "no method 'nope.nothing'"),
+        ("orders.submit", {"part_type": "wax-robot-base", "qty": 0}, UsageError, "qty"),
+        ("orders.submit", {"part_type": "x", "colour": "red"}, UsageError, "colour"),
+        ("alarms.clear", {"id": "three"}, UsageError, "id"),
+        ("robot.go", {"machine": "robot", "partition": 6}, UsageError, "1 to 5"),
+        ("robot.status", {"machine": "cnc1"}, UsageError, "is a mill, not a robot"),
+        ("mill.status", {"machine": "cnc9"}, UsageError, "unknown mill 'cnc9'"),
+        ("robot.download", {"partition": 1, "program": "x.rec", "text": "NOT A RECORD"},
+         UsageError, "x.rec, line 1: bad hex digit"),
+        ("traffic.tail", {"machine": "robot", "limit": -1}, UsageError, "limit"),
+    ],
+)  # fmt: skip
+async def test_bad_parameters_are_refused_with_the_cli_error(
+    api: Api, method: str, params: dict[str, Any], error: type[Exception], message: str
+) -> None:
+    before = len(api.rig.controller.traffic.entries) if api.rig.controller else 0
+    with pytest.raises(error, match=message):
+        await api.call(method, params)
+    if method.startswith("robot."):  # nothing reached the machine for the refused call
+        after = [e for e in list(api.rig.controller.traffic.entries)[before:]]  # type: ignore[union-attr]
+        assert all(e[3] != b"X" for e in after if e[2] == ">>")
+
+
+async def raw(api: Api, **kwargs: Any) -> Any:
+    token = (api.directory / "api-token").read_text().strip()
+    headers = {"Authorization": f"Bearer {token}"}
+    return await unix_connect(
+        (api.directory / "api.sock").resolve(),
+        "ws://localhost/websocket",
+        additional_headers=headers,
+        **kwargs,
+    )
+
+
+async def test_malformed_and_oversized_frames(api: Api) -> None:
+    async with await raw(api, max_size=None) as ws:
+        await ws.send("{not json")
+        assert json.loads(await ws.recv())["error"]["code"] == -32700
+        await ws.send(json.dumps({"id": 1, "method": "cell.status"}))
+        assert json.loads(await ws.recv())["error"]["code"] == -32600
+        await ws.send(b"\x00\x01")
+        assert json.loads(await ws.recv())["error"]["code"] == -32600
+        await ws.send(
+            json.dumps({"jsonrpc": "2.0", "id": 2, "method": "cell.status", "params": [1]})
+        )
+        reply = json.loads(await ws.recv())
+        assert reply["id"] == 2 and reply["error"]["data"]["type"] == "UsageError"
+        await ws.send(json.dumps({"jsonrpc": "2.0", "id": 3, "method": "server.info"}))
+        assert json.loads(await ws.recv())["result"]["mode"] == "attached"
+        with pytest.raises(ConnectionClosed):
+            await ws.send("x" * (9 * 1024 * 1024))
+            await ws.recv()
+    assert (await api.call("server.info"))["mode"] == "attached"  # the server lives on
+
+
+async def test_tokens_on_tcp_and_the_socket(api: Api) -> None:
+    url = f"http://127.0.0.1:{api.port}"
+    token = (api.directory / "api-token").read_text().strip()
+
+    def get(path: str, token: str | None) -> tuple[int, Any]:
+        request = urllib.request.Request(url + path)
+        if token is not None:
+            request.add_header("Authorization", f"Bearer {token}")
+        try:
+            with urllib.request.urlopen(request, timeout=10) as response:
+                return response.status, json.loads(response.read())
+        except urllib.error.HTTPError as e:
+            return e.code, json.loads(e.read() or b"null")
+
+    status, body = await asyncio.to_thread(get, "/api/status", token)
+    assert status == 200 and "robot" in body["machines"]
+    for wrong in (None, "wrong", token + "x"):
+        status, body = await asyncio.to_thread(get, "/api/status", wrong)
+        assert status == 401 and "machines" not in json.dumps(body)
+    status, body = await asyncio.to_thread(get, "/api/traffic/robot?limit=3", token)
+    assert status == 200 and len(body) <= 3
+    for headers in ({}, {"Authorization": "Bearer wrong"}):
+        with pytest.raises(InvalidStatus):
+            async with connect(f"ws://127.0.0.1:{api.port}/websocket", additional_headers=headers):
+                pass
+    with pytest.raises(InvalidStatus):  # a page of another site cannot drive the cell
+        async with connect(
+            f"ws://127.0.0.1:{api.port}/websocket",
+            additional_headers={"Authorization": f"Bearer {token}"},
+            origin="http://evil.example",  # type: ignore[arg-type]
+        ):
+            pass
+    with pytest.raises(AccessDenied):
+        await RemoteCell.connect(token="wrong", socket_path=api.directory / "api.sock")
+    async with await RemoteCell.connect(token=token, url=f"ws://127.0.0.1:{api.port}") as c:
+        assert (await c.call("server.info"))["mode"] == "attached"
+
+
+async def test_listen_on_a_foreign_address_is_refused(api: Api) -> None:
+    assert api.rig.controller is not None
+    with pytest.raises(UsageError, match="not a loopback address"):
+        ApiServer(AttachedCell(api.rig.controller), api.directory, listen="192.0.2.1:7125")
+
+
+async def test_a_client_leaving_mid_download_leaves_the_machine_consistent(api: Api) -> None:
+    await api.call("machines.out_of_service", {"machine": "robot"})
+    await api.rig.wait_for(lambda: api.rig.controller and not api.rig.controller._busy(), "idle")
+    ws = await raw(api)
+    request = {
+        "jsonrpc": "2.0",
+        "id": 7,
+        "method": "robot.download",
+        "params": {"machine": "robot", "partition": 5, **robot_program()},
+    }
+    await ws.send(json.dumps(request))
+    await ws.recv()  # the first progress notification: the download is under way
+    await ws.close()
+    # The call runs to its end: the partition holds the program, and the robot answers.
+    await api.rig.wait_for(
+        lambda: api.rig.controller and "robot" not in api.rig.controller.manual_use, "done"
+    )
+    status = await api.call("robot.status")
+    assert status["partitions"]["5"] == "LOAD1"
+    assert (await api.call("robot.go", {"partition": 5}))["message"] == "Started Cycle"

@@ -8,13 +8,17 @@ STAMP := $(VENV)/.installed
 
 test: deps lint typecheck pytest
 
-# Debian packages the tests need: ser2net (a real RFC 2217 server for the link tests).
+# Debian packages the tests need: ser2net (a real RFC 2217 server for the link tests) and tmux
+# (the console is checked in a real terminal).
+DEBS := ser2net tmux
 deps: $(STAMP)
-	@command -v ser2net >/dev/null 2>&1 || { \
+	@missing=""; for tool in $(DEBS); do command -v $$tool >/dev/null 2>&1 || missing="$$missing $$tool"; done; \
+	if [ -n "$$missing" ]; then \
 	  if [ "$$(id -u)" = 0 ]; then \
-	    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq ser2net >/dev/null) \
-	      || echo "warning: could not install ser2net; its tests will be skipped"; \
-	  else echo "note: ser2net missing and not root; its tests will be skipped"; fi; }
+	    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing >/dev/null) \
+	      || echo "warning: could not install$$missing"; \
+	  else echo "note:$$missing missing and not root: install them (the tests that need them fail)"; fi; \
+	fi
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -29,15 +33,16 @@ lint: $(STAMP)
 typecheck: $(STAMP)
 	$(BIN)/mypy
 
+# Independent tests run in parallel (each has its own ports and directories).
 pytest: $(STAMP)
-	$(BIN)/pytest -q
+	$(BIN)/pytest -q -n 2
 
 demo: $(STAMP)
 	$(BIN)/cellctl demo
 
 bench: $(STAMP)
-	$(BIN)/python bench/robot_download.py
-	$(BIN)/python bench/many_links.py
+	cd bench && for b in robot_download many_links mill_download cell_throughput api_push; do \
+	  ../$(BIN)/python $$b.py || exit 1; done
 
 clean:
 	rm -rf $(VENV) .mypy_cache .ruff_cache .pytest_cache

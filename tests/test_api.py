@@ -350,3 +350,37 @@ async def test_a_client_leaving_mid_download_leaves_the_machine_consistent(api: 
     status = await api.call("robot.status")
     assert status["partitions"]["5"] == "LOAD1"
     assert (await api.call("robot.go", {"partition": 5}))["message"] == "Started Cycle"
+
+
+def test_the_docs_list_every_method_as_served() -> None:
+    from cellctl.service.methods import reference_table
+
+    docs = (Path(__file__).resolve().parent.parent / "docs" / "api.md").read_text()
+    assert reference_table() in docs
+
+
+async def test_a_browser_gets_a_oneshot_token_and_every_answer_a_csp(api: Api) -> None:
+    url = f"http://127.0.0.1:{api.port}"
+    token = (api.directory / "api-token").read_text().strip()
+
+    def get(path: str, auth: str | None) -> tuple[int, Any, Any]:
+        request = urllib.request.Request(url + path)
+        if auth:
+            request.add_header("Authorization", f"Bearer {auth}")
+        try:
+            with urllib.request.urlopen(request, timeout=10) as response:
+                return response.status, response.headers, json.loads(response.read())
+        except urllib.error.HTTPError as e:
+            return e.code, e.headers, None
+
+    status, headers, _ = await asyncio.to_thread(get, "/access/oneshot_token", None)
+    assert status == 401 and "default-src 'none'" in headers["Content-Security-Policy"]
+    status, headers, body = await asyncio.to_thread(get, "/access/oneshot_token", token)
+    assert status == 200 and "script-src 'self'" in headers["Content-Security-Policy"]
+    oneshot = body["token"]
+    async with connect(f"ws://127.0.0.1:{api.port}/websocket?token={oneshot}") as ws:
+        await ws.send(json.dumps({"jsonrpc": "2.0", "id": 1, "method": "server.info"}))
+        assert json.loads(await ws.recv())["result"]["mode"] == "attached"
+    with pytest.raises(InvalidStatus):  # used once: gone
+        async with connect(f"ws://127.0.0.1:{api.port}/websocket?token={oneshot}"):
+            pass

@@ -280,12 +280,28 @@ _TABLE += [
         f"{fn.family}.{fn.name}",
         MachineCallParams,
         _machine_handler(fn),
-        f"{fn.label}: {fn.doc} (manual: out of automatic service only)",
+        f"{fn.label}: {fn.doc}"
+        + (" Also in automatic service." if fn.observes else " Out of automatic service only."),
         not fn.observes,
     )
     for fn in FUNCTIONS
 ]
 METHODS: dict[str, Method] = {m.name: m for m in _TABLE}
+
+
+def reference_table() -> str:
+    """The methods as a Markdown table (docs/api.md holds exactly this)."""
+    from cellctl.service.functions import function
+
+    rows = ["| method | parameters (? optional) | what it does | acts |", "|---|---|---|---|"]
+    for m in METHODS.values():
+        fields = dict(m.params.model_fields)
+        if m.params is MachineCallParams:
+            family, name = m.name.split(".")
+            fields.update(function(family, name).params.model_fields)
+        names = ", ".join(k + ("" if f.is_required() else "?") for k, f in fields.items())
+        rows.append(f"| `{m.name}` | {names or '-'} | {m.doc} | {'yes' if m.acts else 'no'} |")
+    return "\n".join(rows) + "\n"
 
 
 class MethodNotFound(UsageError):

@@ -15,8 +15,12 @@ HTTP GET for read-only state, on Starlette/uvicorn.
   ``/api/traffic/{machine}``, ``/server/info``).
 
 Every request needs ``Authorization: Bearer <token>`` (``<cell>/api-token``, 0600, made at the
-first run): a missing or wrong one gets 401 (HTTP) or a refused handshake (WebSocket). A call
-runs to its end even if its client goes away, so no machine is left half-commanded.
+first run): a missing or wrong one gets 401 (HTTP) or a refused handshake (WebSocket). A
+browser, which cannot set that header on a WebSocket, fetches ``/access/oneshot_token`` (with
+the header) and opens ``/websocket?token=ONESHOT`` within 10 s. A handshake from a page of
+another origin is refused. A call runs to its end even if its client goes away, so no machine
+is left half-commanded. Every HTTP answer carries a Content-Security-Policy that allows only
+the server's own assets.
 """
 
 from __future__ import annotations
@@ -32,15 +36,18 @@ import os
 import secrets
 import socket
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import uvicorn
 from starlette.applications import Starlette
+from starlette.datastructures import MutableHeaders
+from starlette.middleware import Middleware
 from starlette.requests import Request
 from starlette.responses import JSONResponse, Response
-from starlette.routing import Route, WebSocketRoute
+from starlette.routing import BaseRoute, Route, WebSocketRoute
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
 from cellctl.errors import UsageError
@@ -64,6 +71,14 @@ MAX_QUEUED = 2000
 PUSH_GAP = 0.01
 #: Updates are looked for at least this often, signalled or not.
 PUSH_TICK = 1.0
+#: Seconds a one-shot WebSocket token stays good.
+ONESHOT_TTL = 10.0
+#: What a page served here may load: its own assets only.
+CSP = (
+    "default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' data: blob:; "
+    "connect-src 'self'; font-src 'self'; base-uri 'none'; form-action 'self'; "
+    "frame-ancestors 'none'"
+)
 #: Where Unix socket paths must fit (sun_path is 108 bytes on Linux).
 MAX_SOCKET_PATH = 100
 
@@ -124,11 +139,13 @@ class _Session:
         self.subscribed = False
         self.open = True
 
-    def send(self, message: dict[str, Any]) -> None:
+    def send(self, message: dict[str, Any] | str) -> None:
+        """Queue ``message`` (a dict, or JSON text already made once for every client)."""
         if not self.open:
             return
+        text = message if isinstance(message, str) else json.dumps(message, default=str)
         try:
-            self.queue.put_nowait(json.dumps(message, default=str))
+            self.queue.put_nowait(text)
         except asyncio.QueueFull:
             self.open = False  # too slow to keep up: it is dropped, the cell is not slowed
             self.queue = asyncio.Queue(1)
@@ -142,6 +159,31 @@ class _Session:
                     await self.ws.close(1013)
                 return
             await self.ws.send_text(text)
+
+
+class _SecurityHeaders:
+    """Every HTTP answer: the Content-Security-Policy, no sniffing, no framing, no caching of
+    cell data."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+
+        async def with_headers(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                headers = MutableHeaders(scope=message)
+                headers.setdefault("Content-Security-Policy", CSP)
+                headers.setdefault("X-Content-Type-Options", "nosniff")
+                headers.setdefault("X-Frame-Options", "DENY")
+                headers.setdefault("Referrer-Policy", "no-referrer")
+                headers.setdefault("Cache-Control", "no-store")
+            await send(message)
+
+        await self.app(scope, receive, with_headers)
 
 
 class _Server(uvicorn.Server):
@@ -162,6 +204,7 @@ class ApiServer:
         *,
         listen: str | None = None,
         allow_remote: bool = False,
+        extra_routes: Callable[[ApiServer], list[BaseRoute]] | None = None,
     ) -> None:
         self.access = access
         self.directory = Path(directory)
@@ -176,8 +219,11 @@ class ApiServer:
         self._tasks: list[asyncio.Task[None]] = []
         self._last: dict[str, Any] = {}
         self.push_count = 0
+        self._oneshot: dict[str, float] = {}
         self.app = Starlette(
+            middleware=[Middleware(_SecurityHeaders)],
             routes=[
+                Route("/access/oneshot_token", self._oneshot_token),
                 WebSocketRoute("/websocket", self._websocket),
                 Route("/api/status", self._get("cell.status")),
                 Route("/api/orders", self._get("orders.list")),
@@ -186,7 +232,8 @@ class ApiServer:
                 Route("/api/machines", self._get("machines.list")),
                 Route("/api/traffic/{machine}", self._traffic),
                 Route("/server/info", self._get("server.info")),
-            ]
+                *(extra_routes(self) if extra_routes else []),
+            ],
         )
 
     # -- life -------------------------------------------------------------------------------------
@@ -285,7 +332,8 @@ class ApiServer:
 
     # -- auth ---------------------------------------------------------------------------------
 
-    def _authorized(self, headers: Any) -> bool:
+    def authorized(self, headers: Any) -> bool:
+        """Whether a request carries the cell's token (``Authorization: Bearer``)."""
         given = headers.get("authorization", "")
         scheme, _, token = given.partition(" ")
         return bool(
@@ -293,7 +341,23 @@ class ApiServer:
             and hmac.compare_digest(token.strip().encode(), self.token.encode())
         )
 
-    def _foreign_origin(self, headers: Any) -> bool:
+    async def _oneshot_token(self, request: Request) -> Response:
+        """A token for one WebSocket handshake within ``ONESHOT_TTL`` s: a browser cannot set
+        the Authorization header on a WebSocket, so it fetches one of these (with the header)
+        and hands it over as ``?token=``."""
+        if not self.authorized(request.headers):
+            return _unauthorized()
+        now = time.monotonic()
+        self._oneshot = {t: exp for t, exp in self._oneshot.items() if exp > now}
+        token = secrets.token_urlsafe(24)
+        self._oneshot[token] = now + ONESHOT_TTL
+        return JSONResponse({"token": token, "expires_in": ONESHOT_TTL})
+
+    def _oneshot_ok(self, token: str | None) -> bool:
+        expires = self._oneshot.pop(token, None) if token else None
+        return expires is not None and expires > time.monotonic()
+
+    def foreign_origin(self, headers: Any) -> bool:
         """A browser page from another site (clients that are not browsers send no Origin)."""
         origin = headers.get("origin")
         if origin is None:
@@ -305,7 +369,7 @@ class ApiServer:
 
     def _get(self, method: str) -> Any:
         async def endpoint(request: Request) -> Response:
-            if not self._authorized(request.headers):
+            if not self.authorized(request.headers):
                 return _unauthorized()
             params = {}
             if method == "alarms.list" and request.query_params.get("all") in ("1", "true"):
@@ -315,7 +379,7 @@ class ApiServer:
         return endpoint
 
     async def _traffic(self, request: Request) -> Response:
-        if not self._authorized(request.headers):
+        if not self.authorized(request.headers):
             return _unauthorized()
         limit = request.query_params.get("limit", "100")
         params = {"machine": request.path_params["machine"], "limit": limit}
@@ -334,7 +398,8 @@ class ApiServer:
     # -- WebSocket ----------------------------------------------------------------------------
 
     async def _websocket(self, ws: WebSocket) -> None:
-        if not self._authorized(ws.headers) or self._foreign_origin(ws.headers):
+        allowed = self.authorized(ws.headers) or self._oneshot_ok(ws.query_params.get("token"))
+        if not allowed or self.foreign_origin(ws.headers):
             await ws.close(code=1008)  # before accept: the handshake is refused (HTTP 403)
             return
         await ws.accept()
@@ -442,7 +507,10 @@ class ApiServer:
             update = _difference(self._last, snap)
             self._last = snap
             if update:
-                message = {"jsonrpc": "2.0", "method": "notify_status_update", "params": update}
+                message = json.dumps(
+                    {"jsonrpc": "2.0", "method": "notify_status_update", "params": update},
+                    default=str,
+                )
                 self.push_count += 1
                 for session in subscribers:
                     session.send(message)

@@ -1,0 +1,129 @@
+"""The running cell as a service, as a user meets it: ``cellctl run`` cutting an order while a
+second shell asks the robot and a mill for their status, tries a manual function, and starts
+a second controller. Every process is a real ``cellctl``; the API is the cell's Unix socket."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from cellctl.cell.journal import open_journal
+from cellctl.mailbox import open_mailbox
+
+from .conftest import CELLCTL
+
+TIME_SCALE = "200"
+
+
+def cellctl(cell: Path, *args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [*CELLCTL, "--cell", str(cell), *args], capture_output=True, text=True, timeout=timeout
+    )
+
+
+def wait_until(condition: object, what: str, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():  # type: ignore[operator]
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.05)
+
+
+@pytest.fixture
+def running_cell(tmp_path: Path) -> Iterator[tuple[Path, subprocess.Popen[str]]]:
+    """An emulated cell and ``cellctl run`` on it, each in its own process."""
+    cell = tmp_path / "cell"
+    emulated = subprocess.Popen(
+        [*CELLCTL, "--cell", str(cell), "emulate", "cell", "--time-scale", TIME_SCALE],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    run: subprocess.Popen[str] | None = None
+    try:
+        assert emulated.stdout is not None
+        for line in emulated.stdout:
+            if line.strip().startswith("plc"):
+                break
+        toml = cell / "cell.toml"
+        toml.write_text(re.sub(r"poll_period = [0-9.]+", "poll_period = 0.1", toml.read_text()))
+        with open_mailbox(cell) as mailbox:
+            mailbox.post_order("wax-robot-base", 4, order_id="A")
+        run = subprocess.Popen(
+            [*CELLCTL, "--cell", str(cell), "run", "--no-live"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        wait_until(lambda: (cell / "api.sock").exists(), "the API socket")
+        yield cell, run
+    finally:
+        if run is not None and run.poll() is None:
+            run.send_signal(signal.SIGINT)
+            try:
+                run.wait(60)
+            except subprocess.TimeoutExpired:
+                run.kill()
+        emulated.terminate()
+        emulated.wait(10)
+
+
+def cuts(cell: Path) -> list[str]:
+    with open_journal(cell) as journal:
+        return [s.state for s in journal.steps() if s.kind == "machine"]
+
+
+def test_status_from_a_second_shell_does_not_disturb_the_cut(
+    running_cell: tuple[Path, subprocess.Popen[str]],
+) -> None:
+    cell, run = running_cell
+    wait_until(lambda: "started" in cuts(cell), "a cut in flight")
+    for _ in range(3):
+        robot = cellctl(cell, "robot", "robot", "status")
+        assert robot.returncode == 0, robot.stderr
+        assert "Robot state" in robot.stdout and "Partition 1" in robot.stdout
+        mill = cellctl(cell, "mill", "cnc1", "status")
+        assert mill.returncode == 0, mill.stderr
+        assert "cnc1: state" in mill.stdout
+    manual = cellctl(cell, "robot", "robot", "home")
+    assert manual.returncode == 6
+    assert "in automatic service: take it out first" in manual.stderr
+    second = cellctl(cell, "run", "--no-live")
+    assert second.returncode == 6
+    assert f"cellctl run (pid {run.pid})" in second.stderr
+    with open_mailbox(cell) as mailbox:
+        wait_until(lambda: mailbox.get_order("A").state == "done", "order A done", timeout=120)
+    with open_journal(cell) as journal:
+        assert not journal.alarms(), [a.text for a in journal.alarms()]
+        assert not journal.parts(statuses=["held"])
+        machine_steps = [s for s in journal.steps() if s.kind == "machine"]
+        assert len(machine_steps) == 8 and all(s.state == "finished" for s in machine_steps)
+    assert run.poll() is None  # still running, nothing wedged
+
+
+def test_operator_takes_cnc2_out_runs_it_by_hand_and_returns_it(
+    running_cell: tuple[Path, subprocess.Popen[str]],
+) -> None:
+    cell, run = running_cell
+    out = cellctl(cell, "machine", "cnc2", "out", "--reason", "check the tool")
+    assert out.returncode == 0 and "cnc2 out of automatic service" in out.stdout
+    wait_until(lambda: any(s == "finished" for s in cuts(cell)), "cnc1 cuts while cnc2 is out")
+    wait_until(lambda: cellctl(cell, "mill", "cnc2", "status").returncode == 0, "cnc2 answers")
+    status = cellctl(cell, "mill", "cnc2", "status")
+    assert "state 2 (Initialized)" in status.stdout
+    traffic = cellctl(cell, "traffic", "cnc2")
+    assert traffic.returncode == 0 and (">>" in traffic.stdout or "<<" in traffic.stdout)
+    back = cellctl(cell, "machine", "cnc2", "in")
+    assert back.returncode == 0 and "back in automatic service" in back.stdout
+    with open_mailbox(cell) as mailbox:
+        wait_until(lambda: mailbox.get_order("A").state == "done", "order A done", timeout=120)
+    listed = cellctl(cell, "orders")
+    assert listed.returncode == 0 and "done" in listed.stdout
+    os.kill(run.pid, signal.SIGINT)
+    assert run.wait(60) == 0

@@ -17,6 +17,7 @@ from rich.table import Table
 from cellctl.cell.config import check_cell, load_cell
 from cellctl.cell.controller import CellController, ControllerOptions, Event
 from cellctl.cell.journal import open_journal
+from cellctl.cell.owner import acquire_controller_lock
 from cellctl.cell.report import Summary, summarize, write_gantt
 from cellctl.emulators.serve import parse_fault
 from cellctl.errors import UsageError
@@ -87,9 +88,14 @@ async def run_controller(
     stop: asyncio.Event | None = None,
 ) -> CellController:
     """Connect and run the controller of ``directory`` until stopped (or idle)."""
-    config = load_cell(directory)
-    journal = open_journal(directory)
-    mailbox = open_mailbox(directory)
+    owner = acquire_controller_lock(directory)  # first: a refused one reads and writes nothing
+    try:
+        config = load_cell(directory)
+        journal = open_journal(directory)
+        mailbox = open_mailbox(directory)
+    except BaseException:
+        owner.release()
+        raise
     stop = stop or asyncio.Event()
     printer = None if live else (lambda e: console.print(_event_line(e), markup=False))
     controller = CellController(config, journal, mailbox, options=options, on_event=printer)
@@ -132,6 +138,7 @@ async def run_controller(
             loop.remove_signal_handler(sig)
         await server.close()
         await controller.close()
+        owner.release()
     return controller
 
 

@@ -70,10 +70,11 @@ class MachineView:
     progress: dict[str, Any] | None = None
     """A download or cut in progress: ``done``/``total`` and what they count, ``phase``."""
 
-    def report_progress(self, done: int, total: int, unit: str, phase: str) -> bool:
-        """Note progress; True when it moved by a percent or changed phase (worth telling)."""
+    def report_progress(self, done: int, total: int, unit: str, phase: str, **more: Any) -> bool:
+        """Note progress (``more``: e.g. the program, block n of m); True when it moved by a
+        percent or changed phase (worth telling)."""
         old = self.progress
-        self.progress = {"done": done, "total": total, "unit": unit, "phase": phase}
+        self.progress = {"done": done, "total": total, "unit": unit, "phase": phase, **more}
         if old is None or old["phase"] != phase or old["unit"] != unit:
             return True
         return int(100 * done / max(total, 1)) != int(100 * old["done"] / max(old["total"], 1))
@@ -629,7 +630,7 @@ class CellController(OperatorCommands):
         view = self.machines[robot.name]
 
         def progress(done: int, total: int, sent: int) -> None:
-            if view.report_progress(done, total, "records", "downloading"):
+            if view.report_progress(done, total, "records", "downloading", program=name):
                 self._touch()
 
         try:
@@ -735,6 +736,7 @@ class CellController(OperatorCommands):
         view.step = f"{route_step.name} ({part.id})"
         view.state = "machining"
         started = time.monotonic()
+        since = time.time()
         index = self._mill_index(mill_name)
         assert self.plc is not None
         try:
@@ -749,7 +751,16 @@ class CellController(OperatorCommands):
             await self._mill_ready(mill)
 
             def progress(p: MillProgress) -> None:
-                if view.report_progress(p.bytes_sent, p.bytes_total, "bytes", p.phase):
+                if view.report_progress(
+                    p.bytes_sent,
+                    p.bytes_total,
+                    "bytes",
+                    p.phase,
+                    program=route_step.name,
+                    block=p.block,
+                    blocks=p.blocks,
+                    since=since,
+                ):
                     self._touch()
 
             await mill.download(route_step.program, progress=progress)

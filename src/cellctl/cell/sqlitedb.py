@@ -16,6 +16,8 @@ failing with "database is locked".
 
 from __future__ import annotations
 
+import contextlib
+import os
 import sqlite3
 import threading
 from collections.abc import Iterable, Iterator
@@ -28,9 +30,25 @@ from typing import Any, Self
 BUSY_TIMEOUT = 30.0
 
 
+def make_private(path: Path) -> None:
+    """Create ``path`` mode 0600 if missing, and tighten it (and its -wal/-shm) if looser.
+
+    SQLite gives the -wal and -shm files it creates the database file's permissions, so a
+    private database keeps its journal private too.
+    """
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
+    os.close(fd)
+    for file in (path, path.with_name(path.name + "-wal"), path.with_name(path.name + "-shm")):
+        with contextlib.suppress(FileNotFoundError, PermissionError):
+            if file.stat().st_mode & 0o077:
+                os.chmod(file, 0o600)
+
+
 def connect(path: Path, schema: str, busy_timeout: float = BUSY_TIMEOUT) -> sqlite3.Connection:
-    """Open ``path`` in WAL mode, autocommit, ``synchronous=FULL``, and create ``schema``."""
+    """Open ``path`` (private: 0600) in WAL mode, autocommit, ``synchronous=FULL``, and create
+    ``schema``."""
     path.parent.mkdir(parents=True, exist_ok=True)
+    make_private(path)
     # isolation_level=None: no implicit transactions; each method says BEGIN itself.
     conn = sqlite3.connect(
         path, timeout=busy_timeout, isolation_level=None, check_same_thread=False

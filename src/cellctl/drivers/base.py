@@ -2,14 +2,63 @@
 
 Use a driver as an async context manager (``async with await Driver.connect(url) as d:``)
 or call ``close()``. A driver's name keys its state in the cell directory's store.
+
+One owner per machine: ``connect()`` takes the machine's owner locks before it opens the link
+(see :func:`take_link_locks`), so a second opener, in another process or in this one, is
+refused with MachineInUse before it opens the device or sends a byte; ``close()`` gives them
+back after the link is closed.
 """
 
 from __future__ import annotations
 
+import os
+from collections.abc import Callable
+from pathlib import Path
 from typing import Any, Self
 
 from cellctl.drivers.state import StateStore, machine_key
-from cellctl.link import Link
+from cellctl.link import LineSettings, Link, TrafficLog, open_link
+from cellctl.link.lock import OwnerLock, runtime_dir
+
+
+def link_lock_path(url: str) -> Path:
+    """The lock of link ``url`` in this user's runtime directory: ``link-<key>.lock``.
+
+    A device path is resolved first, so a symlink and its target (``pty:PATH``, udev names)
+    share one lock.
+    """
+    if "://" not in url or url.startswith("serial://"):
+        url = os.path.realpath(url.split("://", 1)[1] if "://" in url else url)
+    return runtime_dir() / f"link-{machine_key(url)}.lock"
+
+
+def take_link_locks(url: str, name: str | None, store: StateStore | None) -> list[OwnerLock]:
+    """The owner locks of a machine, taken now (MachineInUse if another owner holds one).
+
+    - by name in the cell, ``<cell>/state/machine-<key>.lock``, when there is a store and a
+      name of its own (an ad-hoc ``--link URL`` is named after its URL: the next lock does);
+    - by URL, ``<runtime dir>/link-<key>.lock``, always but for ``loop://``: two ``--link``
+      commands exclude each other, and one cannot open a link a controller opened by name.
+    """
+    wanted: list[tuple[Path, str]] = []
+    if store is not None and name and name != url:
+        wanted.append((store.lock_path(name), name))
+    if not url.startswith("loop://"):
+        wanted.append((link_lock_path(url), url))
+    locks: list[OwnerLock] = []
+    try:
+        for path, what in wanted:
+            locks.append(OwnerLock.acquire(path, what))
+    except BaseException:
+        release_locks(locks)
+        raise
+    return locks
+
+
+def release_locks(locks: list[OwnerLock]) -> None:
+    """Give back ``locks``, last taken first."""
+    for lock in reversed(locks):
+        lock.release()
 
 
 class LinkDriver:
@@ -17,6 +66,35 @@ class LinkDriver:
 
     link: Link
     name: str
+    #: Owner locks taken by connect(), released by close(); none for a driver built on a link.
+    _owner_locks: list[OwnerLock] = []  # noqa: RUF012 - replaced per instance, never mutated
+
+    @classmethod
+    async def _connect_owned(
+        cls,
+        url: str,
+        settings: LineSettings,
+        *,
+        name: str | None,
+        store: StateStore | None,
+        trace: TrafficLog | str | Path | None,
+        build: Callable[[Link], Self],
+    ) -> Self:
+        """Take the machine's locks, open ``url``, and ``build`` the driver on the link; on a
+        failure close what was opened and give the locks back."""
+        locks = take_link_locks(url, name, store)
+        try:
+            link = await open_link(url, settings, trace=trace, label=name)
+            try:
+                driver = build(link)
+            except BaseException:
+                await link.close()
+                raise
+        except BaseException:
+            release_locks(locks)
+            raise
+        driver._owner_locks = locks
+        return driver
 
     def _attach(self, link: Link, name: str | None, store: StateStore | None) -> dict[str, Any]:
         """Take ``link``; return the state saved for this machine (``{}`` if none)."""
@@ -32,8 +110,12 @@ class LinkDriver:
             self._store.save(self._key, state)
 
     async def close(self) -> None:
-        """Close the link."""
-        await self.link.close()
+        """Close the link, then give back the machine's owner locks."""
+        try:
+            await self.link.close()
+        finally:
+            locks, self._owner_locks = self._owner_locks, []
+            release_locks(locks)
 
     async def __aenter__(self) -> Self:
         return self

@@ -44,7 +44,7 @@ from typing import Any, Protocol
 from cellctl.drivers.base import LinkDriver
 from cellctl.drivers.state import StateStore
 from cellctl.errors import DeviceError, LinkTimeout, UsageError
-from cellctl.link import MILL_LINE, LineSettings, Link, TrafficLog, open_link
+from cellctl.link import MILL_LINE, LineSettings, Link, TrafficLog
 from cellctl.protocol.dynalan import (
     Block,
     Kind,
@@ -329,13 +329,18 @@ class Dyna2400Mill(LinkDriver):
         start_output: StartOutput | None = None,
         trace: TrafficLog | str | Path | None = None,
     ) -> Dyna2400Mill:
-        """Open ``url``; refuses (UsageError) a link without modem lines unless inband."""
-        link = await open_link(url, settings, trace=trace, label=name)
-        try:
-            return cls(link, name=name, store=store, config=config, start_output=start_output)
-        except BaseException:
-            await link.close()
-            raise
+        """Open ``url``; refuses (UsageError) a link without modem lines unless inband, and
+        (MachineInUse, before opening anything) a mill another owner holds."""
+        return await cls._connect_owned(
+            url,
+            settings,
+            name=name,
+            store=store,
+            trace=trace,
+            build=lambda link: cls(
+                link, name=name, store=store, config=config, start_output=start_output
+            ),
+        )
 
     # -- host-kept state --------------------------------------------------------------------------
 

@@ -44,7 +44,7 @@ from cellctl.errors import (
     UsageError,
     format_raw,
 )
-from cellctl.link import ROBOT_LINE, LineSettings, Link, TrafficLog, open_link
+from cellctl.link import ROBOT_LINE, LineSettings, Link, TrafficLog
 from cellctl.protocol.robot import (
     ACK,
     EOT,
@@ -171,9 +171,18 @@ class Ibm7545Robot(LinkDriver):
         config: RobotConfig | None = None,
         trace: TrafficLog | str | Path | None = None,
     ) -> Ibm7545Robot:
-        """Open ``url`` and return a driver on it (the robot's name keys its saved state)."""
-        link = await open_link(url, settings, trace=trace, label=name)
-        return cls(link, name=name or url, store=store, config=config)
+        """Open ``url`` and return a driver on it (the robot's name keys its saved state).
+
+        Raises MachineInUse, before opening anything, when another owner holds the robot.
+        """
+        return await cls._connect_owned(
+            url,
+            settings,
+            name=name,
+            store=store,
+            trace=trace,
+            build=lambda link: cls(link, name=name or url, store=store, config=config),
+        )
 
     # -- host-kept state --------------------------------------------------------------------------
 

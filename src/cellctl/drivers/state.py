@@ -10,10 +10,14 @@ in the cell directory so a CLI call, a restart or a second process sees the same
     store.save("robot1", state)
 
 Writes are atomic (write a temporary file, then rename), so a crash never leaves half a file.
+The files are private: the directory is 0700, each file 0600 (mkstemp's mode, kept by rename).
+The directory also holds each machine's owner lock (``machine-<key>.lock``, see
+:func:`cellctl.drivers.base.take_link_locks`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -44,6 +48,18 @@ class StateStore:
         """The file that holds machine ``key``'s state."""
         return self.dir / f"{machine_key(key)}.json"
 
+    def lock_path(self, name: str) -> Path:
+        """The owner lock of machine ``name`` (held while a driver has its link open)."""
+        return self.dir / f"machine-{machine_key(name)}.lock"
+
+    def ensure_dir(self) -> Path:
+        """Create the directory (0700) if missing; tighten one that is looser."""
+        self.dir.mkdir(mode=0o700, parents=True, exist_ok=True)
+        if self.dir.stat().st_mode & 0o077:
+            with contextlib.suppress(PermissionError):
+                os.chmod(self.dir, 0o700)
+        return self.dir
+
     def load(self, key: str) -> dict[str, Any]:
         """The saved state of ``key``, or ``{}`` if none was saved (or the file is unreadable)."""
         try:
@@ -54,7 +70,7 @@ class StateStore:
 
     def save(self, key: str, state: dict[str, Any]) -> None:
         """Replace the saved state of ``key`` atomically."""
-        self.dir.mkdir(parents=True, exist_ok=True)
+        self.ensure_dir()
         target = self.path(key)
         fd, tmp = tempfile.mkstemp(dir=self.dir, prefix=target.name, suffix=".tmp")
         try:

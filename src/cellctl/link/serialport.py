@@ -20,7 +20,7 @@ import termios
 
 import serial
 
-from cellctl.errors import LinkClosed, LinkError
+from cellctl.errors import LinkClosed, LinkError, MachineInUse
 from cellctl.link.base import Link
 from cellctl.link.settings import LineSettings
 from cellctl.link.trace import TrafficLog
@@ -68,6 +68,9 @@ def open_pyserial(path: str, settings: LineSettings) -> serial.Serial:
         rtscts=settings.rtscts,
         xonxoff=False,  # Xon, Xoff and Ack are protocol bytes: the codec must see them
         timeout=0,
+        # flock on the device: a second opener (another cellctl, minicom -o, ...) is refused.
+        # It works on a pty slave too: the emulator holds the slave open but never locks it.
+        exclusive=True,
     )
 
 
@@ -77,17 +80,28 @@ class SerialLink(Link):
     def __init__(self, path: str, settings: LineSettings, trace: TrafficLog | None, label: str):
         super().__init__(path, settings, trace, label)
         framing = settings
-        if is_pty(path):
+        pty = is_pty(path)
+        if pty:
             # A pty has no framing: Linux forces CS8 without parity on it and then refuses
             # 7E2 with EINVAL. The settings still govern pacing; only the termios differ.
             framing = settings.with_(bytesize=8, parity="N")
         try:
             self._port = open_pyserial(path, framing)
         except (serial.SerialException, OSError, ValueError) as e:
+            # EAGAIN: another opener holds the device's flock; EBUSY: another program set
+            # TIOCEXCL on it (or the driver allows one open).
+            if getattr(e, "errno", None) in (errno.EAGAIN, errno.EWOULDBLOCK, errno.EBUSY):
+                raise MachineInUse(
+                    f"{path} is in use: another program holds the device exclusively"
+                ) from None
             raise LinkError(f"cannot open serial port {path}: {e}") from e
         fd = self._port.fd
         assert fd is not None
         self._fd: int = fd
+        # TIOCEXCL also refuses programs that take no flock (cat, screen) until we close. Not
+        # on a pty: the emulator keeps the slave open, so the flag would outlive our close
+        # and refuse our own reopen after a dropped link (the flock above covers ptys).
+        self._tiocexcl = not pty and _set_exclusive(self._fd, termios.TIOCEXCL)
         # pyserial leaves the descriptor non-blocking; make sure, since we read it directly.
         flags = fcntl.fcntl(self._fd, fcntl.F_GETFL)
         fcntl.fcntl(self._fd, fcntl.F_SETFL, flags | os.O_NONBLOCK)
@@ -162,8 +176,19 @@ class SerialLink(Link):
     async def _shutdown(self) -> None:
         if self._fd >= 0:
             self._stop_reading()
+            if self._tiocexcl:
+                _set_exclusive(self._fd, termios.TIOCNXCL)
             self._fd = -1
             self._port.close()
+
+
+def _set_exclusive(fd: int, request: int) -> bool:
+    """TIOCEXCL / TIOCNXCL on ``fd``; False where the device does not take it."""
+    try:
+        fcntl.ioctl(fd, request)
+    except OSError:
+        return False
+    return True
 
 
 def _resolve(fut: asyncio.Future[None]) -> None:

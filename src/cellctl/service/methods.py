@@ -153,6 +153,7 @@ async def _submit(access: CellAccess, p: SubmitParams, progress: Progress | None
 
     parts = load_cell_file(access.directory).get("parts")
     types = list(parts) if isinstance(parts, dict) else None
+    operator.check_part_type(types, p.part_type)  # before the mailbox file is made
     result = operator.submit_order(access.mailbox(), types, p.part_type, p.qty, p.priority, p.id)
     access.poke()
     return result

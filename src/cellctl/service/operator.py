@@ -40,6 +40,13 @@ def resolve_part_id(journal: Journal, text: str) -> str:
     raise UsageError(f"part id {text!r} is ambiguous: {', '.join(sorted(matches)[:5])} ...")
 
 
+def check_part_type(part_types: list[str] | None, part_type: str) -> None:
+    """Refuse a part type that cell.toml does not define (None: no cell.toml, not checked)."""
+    if part_types is not None and part_type not in part_types:
+        known = ", ".join(sorted(part_types)) or "none"
+        raise UsageError(f"unknown part type {part_type!r} (known in cell.toml: {known})")
+
+
 def submit_order(
     mailbox: Mailbox,
     part_types: list[str] | None,
@@ -49,9 +56,7 @@ def submit_order(
     order_id: str | None = None,
 ) -> dict[str, Any]:
     """Post an order; ``part_types`` (from cell.toml) refuses unknown types when given."""
-    if part_types is not None and part_type not in part_types:
-        known = ", ".join(sorted(part_types)) or "none"
-        raise UsageError(f"unknown part type {part_type!r} (known in cell.toml: {known})")
+    check_part_type(part_types, part_type)
     order, new = mailbox.post_order(part_type, qty, priority, order_id)
     if new:
         message = (

@@ -105,8 +105,12 @@ def process_label() -> str:
 
 def _ensure_private_dir(path: Path) -> Path:
     """Create ``path`` mode 0700 if missing; refuse one that is not ours or not a directory."""
-    with contextlib.suppress(FileExistsError):
+    try:
         path.mkdir(mode=0o700)
+    except FileExistsError:
+        pass
+    except OSError as e:
+        raise UsageError(f"cannot create cellctl's directory {path}: {e.strerror}") from None
     st = path.lstat()
     if not stat.S_ISDIR(st.st_mode):
         raise UsageError(f"{path} should be a directory of cellctl's, and is not one")
@@ -203,7 +207,10 @@ class OwnerLock:
         """
         path = Path(path)
         if not path.parent.is_dir():
-            path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+            try:
+                path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+            except OSError as e:
+                raise UsageError(f"cannot create {path.parent} for a lock: {e.strerror}") from None
         fd = _open(path, os.O_RDWR | os.O_CREAT)
         try:
             try:

@@ -44,7 +44,7 @@ from cellctl.cell.scheduler import PartState, Transfer, next_transfer, ready_to_
 from cellctl.drivers.mill import CallbackOutput, Dyna2400Mill, MillConfig
 from cellctl.drivers.mill import Progress as MillProgress
 from cellctl.drivers.plc import ModbusPlc
-from cellctl.drivers.robot import Ibm7545Robot, RobotConfig
+from cellctl.drivers.robot import ROBOT_STATES, Ibm7545Robot, RobotConfig
 from cellctl.drivers.state import StateStore
 from cellctl.errors import CellctlError, DeviceError, UsageError
 from cellctl.link import TrafficLog
@@ -321,7 +321,7 @@ class CellController(OperatorCommands):
                 await robot.stop()
             if robot.state != 1:
                 await robot.initialize()
-            view.state = "initialized"
+            view.state = ROBOT_STATES[1]
             self._succeeded(robot.name)
         except CellctlError as e:
             view.state = f"error: {e}"
@@ -839,9 +839,7 @@ class CellController(OperatorCommands):
                     self._alarm(robot.name, "status", str(status))
                     view.state = str(status)
                 else:
-                    view.state = {0: "uninitialized", 1: "initialized", 2: "executing"}.get(
-                        robot.state, str(robot.state)
-                    )
+                    view.state = ROBOT_STATES.get(robot.state, str(robot.state))
             except CellctlError as e:
                 view.state = f"error: {e}"
                 self._alarm(robot.name, "link", f"robot not answering: {e}")

@@ -70,9 +70,9 @@ from .state import StateStore
 
 #: Robot states the host keeps (spec: "Robot states (kept by the host)").
 ROBOT_STATES = {
-    0: "uninitialized",
-    1: "initialized (auto mode)",
-    2: "executing",
+    0: "Uninitialized",
+    1: "Initialized (auto mode)",
+    2: "Executing",
 }
 
 #: Reject codes after which the controller is known to be uninitialized (partitions gone).

@@ -382,12 +382,10 @@ class _Tee(TrafficLog):
 
 
 def _state_of(driver: Any) -> str:
-    if isinstance(driver, Ibm7545Robot):
-        return {0: "uninitialized", 1: "initialized", 2: "executing"}.get(
-            driver.state, str(driver.state)
-        )
-    if isinstance(driver, Dyna2400Mill):
-        from cellctl.drivers.mill import MILL_STATES
+    from cellctl.service.functions import state_text
 
-        return MILL_STATES.get(driver.state, f"state {driver.state}")
+    if isinstance(driver, Ibm7545Robot):
+        return state_text("robot", driver.state)
+    if isinstance(driver, Dyna2400Mill):
+        return state_text("mill", driver.state)
     return "connected"

@@ -20,7 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from cellctl.drivers.mill import MILL_STATES, Dyna2400Mill
 from cellctl.drivers.mill import Progress as MillProgress
-from cellctl.drivers.robot import Ibm7545Robot
+from cellctl.drivers.robot import ROBOT_STATES, Ibm7545Robot
 from cellctl.errors import UsageError
 from cellctl.protocol.dynalan import parse_program
 from cellctl.protocol.robot import PARTITIONS, ProgramFile
@@ -362,4 +362,4 @@ def state_text(family: str, state: int) -> str:
     """A machine state in words."""
     if family == "mill":
         return MILL_STATES.get(state, f"state {state}")
-    return {0: "uninitialized", 1: "initialized", 2: "executing"}.get(state, f"state {state}")
+    return ROBOT_STATES.get(state, f"state {state}")

@@ -67,6 +67,11 @@ def resolve_machine(
     if link:
         settings = LineSettings.parse(line) if line else KINDS[kinds[0]]
         return MachineRef(name or link, kinds[0], link, settings)
+    if not (cell_dir / "cell.toml").exists():
+        raise UsageError(
+            f"no {cell_dir / 'cell.toml'}: give --link URL, or --cell DIR of a cell "
+            "(`cellctl emulate cell` writes one)"
+        )
     machines: dict[str, Any] = load_cell_file(cell_dir).get("machines", {})
     mine = {n: m for n, m in machines.items() if isinstance(m, dict) and m.get("kind") in kinds}
     if name is None:

@@ -9,6 +9,7 @@ to the machine when none runs, with the same output either way.
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -22,6 +23,13 @@ from cellctl.errors import UsageError
 from cellctl.service.access import LocalCell
 from cellctl.service.client import StandaloneCell, open_cell
 from cellctl.ui.common import cell_dir, err_console, machine_ref, run
+
+
+def state_home() -> Path:
+    """Where machines driven by ``--link`` outside a cell keep their host state:
+    ``$XDG_STATE_HOME/cellctl`` (default ``~/.local/state/cellctl``)."""
+    base = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+    return Path(base) / "cellctl"
 
 
 def read_program(path: Path) -> dict[str, str]:
@@ -60,8 +68,11 @@ def machine_call(
         trace = given.get("trace")
         readiness = given.get("readiness")
         if given.get("link"):
+            # An ad-hoc link outside any cell keeps its host state per user, not in a
+            # ./cell/state/ it would leave behind in whatever directory this runs in.
+            home = directory if directory.is_dir() else state_home()
             cell: Any = StandaloneCell(
-                LocalCell(directory, {ref.name: ref}, trace=trace, readiness=readiness)
+                LocalCell(home, {ref.name: ref}, trace=trace, readiness=readiness)
             )
         else:
             cell = await open_cell(directory, {ref.name: ref}, trace=trace, readiness=readiness)

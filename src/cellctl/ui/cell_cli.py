@@ -97,7 +97,7 @@ async def run_controller(
         owner.release()
         raise
     stop = stop or asyncio.Event()
-    printer = None if live else (lambda e: console.print(_event_line(e), markup=False))
+    printer = None if live else _print_event
     controller = CellController(config, journal, mailbox, options=options, on_event=printer)
     loop = asyncio.get_running_loop()
     presses = 0
@@ -157,18 +157,34 @@ def api_allow_remote(config: object) -> bool:
     return isinstance(api, dict) and api.get("allow_remote") is True
 
 
+def _print_event(e: Event) -> None:
+    """One event a line, at once (also when the output is a file or a pipe)."""
+    console.print(_event_line(e), markup=False, soft_wrap=True)
+    console.file.flush()
+
+
 def _event_line(e: Event) -> str:
     return f"{time.strftime('%H:%M:%S', time.localtime(e.time))} {e.text}"
 
 
 @click.command("run")
-@click.option("--live/--no-live", default=True, help="Live view (default) or a plain event log.")
+@click.option(
+    "--live/--no-live",
+    default=None,
+    help="Live view, or a plain event log a line at a time (the default when the output is "
+    "not a terminal).",
+)
 @click.option("--until-idle", is_flag=True, help="Return once every order is done or held.")
 @click.pass_context
-def run_command(ctx: click.Context, live: bool, until_idle: bool) -> None:
-    """Run the cell controller in the foreground; Ctrl-C stops it cleanly."""
+def run_command(ctx: click.Context, live: bool | None, until_idle: bool) -> None:
+    """Run the cell controller in the foreground; Ctrl-C stops it cleanly.
+
+    It is the one owner of the cell's machines, and serves the control API on the cell's
+    socket (and on [api] listen): `cellctl console` and every other command go through it.
+    """
     directory = cell_dir(ctx)
-    run(lambda: _run(directory, live, until_idle))
+    live_view_on = console.is_terminal if live is None else live
+    run(lambda: _run(directory, live_view_on, until_idle))
 
 
 async def _run(directory: Path, live: bool, until_idle: bool) -> None:
@@ -177,6 +193,9 @@ async def _run(directory: Path, live: bool, until_idle: bool) -> None:
 
 def _emulate_cell_command() -> click.Command:
     from cellctl.emulators.cell import EmulatedCell
+    from cellctl.emulators.mill import FAULTS as MILL_FAULTS
+    from cellctl.emulators.plc import FAULTS as PLC_FAULTS
+    from cellctl.emulators.robot import FAULTS as ROBOT_FAULTS
 
     def callback(
         time_scale: float,
@@ -219,7 +238,15 @@ def _emulate_cell_command() -> click.Command:
             ),
             click.Option(["--template"], help="Cell directory to copy (default: examples/cell)."),
         ],
-        help="Start the robot, both mills and the PLC, and write cell.toml pointing at them.",
+        help="Start the robot, both mills and the PLC, and write cell.toml pointing at them."
+        + "\n\nFaults (--fault MACHINE:NAME[=ARG], MACHINE robot, cnc1, cnc2 or plc): "
+        + "robot: "
+        + ", ".join(ROBOT_FAULTS)
+        + "; mills: "
+        + ", ".join(MILL_FAULTS)
+        + "; plc: "
+        + ", ".join(PLC_FAULTS)
+        + ". `cellctl emulate robot|mill|plc --help` says what each does.",
     )
 
 

@@ -112,3 +112,10 @@ def machine_ref(ctx: click.Context, family: str) -> tuple[Path, MachineRef]:
         line=params.get("line"),
     )
     return directory, ref
+
+
+def fault_help(faults: dict[str, str]) -> str:
+    """The fault switches as a help paragraph, one a line (click keeps ``\\b`` blocks)."""
+    return "\b\nFaults (--fault NAME[=ARG]):\n" + "\n".join(
+        f"  {name}: {text}" for name, text in faults.items()
+    )

@@ -7,7 +7,7 @@ import click
 from cellctl.emulators.serve import EmulatedDevice, parse_fault, serve
 from cellctl.errors import UsageError
 from cellctl.link import ROBOT_LINE, LineSettings
-from cellctl.ui.common import console, run, until_stopped
+from cellctl.ui.common import console, fault_help, run, until_stopped
 from cellctl.ui.plc_cli import emulate_plc
 
 
@@ -16,8 +16,11 @@ def emulate() -> None:
     """Emulated machines that speak the real bytes: serve one, point a driver at it."""
 
 
-def listen_options(default_line: LineSettings) -> list[click.Parameter]:
+def listen_options(
+    default_line: LineSettings, faults: dict[str, str] | None = None
+) -> list[click.Parameter]:
     """The options every ``emulate`` command takes."""
+    names = ", ".join(faults) if faults else "see above"
     return [
         click.Option(
             ["--listen"],
@@ -36,7 +39,9 @@ def listen_options(default_line: LineSettings) -> list[click.Parameter]:
         click.Option(
             ["--line"], default=str(default_line), show_default=True, help="Line settings."
         ),
-        click.Option(["--fault"], multiple=True, metavar="NAME[=ARG]", help="Fault switch."),
+        click.Option(
+            ["--fault"], multiple=True, metavar="NAME[=ARG]", help=f"Fault switch: {names}."
+        ),
     ]
 
 
@@ -73,12 +78,11 @@ def _robot_command() -> click.Command:
 
         run(main)
 
-    faults = "; ".join(f"{k}: {v}" for k, v in FAULTS.items())
     return click.Command(
         "robot",
         callback=callback,
-        params=listen_options(ROBOT_LINE),
-        help=f"Emulate an IBM 7545/7547 robot controller. Faults: {faults}",
+        params=listen_options(ROBOT_LINE, FAULTS),
+        help="Emulate an IBM 7545/7547 robot controller.\n\n" + fault_help(FAULTS),
     )
 
 

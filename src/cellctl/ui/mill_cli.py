@@ -21,7 +21,7 @@ from cellctl.protocol.dynalan import ProgramRole, Severity, ValidationContext, p
 from cellctl.protocol.dynalan import validate as validate_program
 from cellctl.service.machines import load_cell_file
 from cellctl.ui.calls import LazyBar, machine_call, read_program
-from cellctl.ui.common import MachineGroup, cell_dir, console, err_console, run
+from cellctl.ui.common import MachineGroup, cell_dir, console, err_console, fault_help, run
 from cellctl.ui.emulate_cli import listen_options, serve_until_stopped
 
 
@@ -200,7 +200,7 @@ def check(ctx: click.Context, program: Path, role: str) -> None:
     """Validate PROGRAM like a linter: every problem, exit 1 on errors."""
     _program_file(program)
     config = _offline_config(ctx)
-    parsed = parse_program(program.read_text(errors="replace"), name=program.name)
+    parsed = parse_program(read_program(program)["text"], name=program.name)
     context = ValidationContext(role=ProgramRole(role), config=config.machine())
     result = validate_program(parsed, context)
     for problem in result.problems:
@@ -234,16 +234,19 @@ def preview(ctx: click.Context, program: Path, output: Path) -> None:
     if suffix not in (".svg", ".png"):
         raise click.BadParameter("the output must end in .svg or .png", param_hint="-o")
     config = _offline_config(ctx)
-    parsed = parse_program(program.read_text(errors="replace"), name=program.name)
+    parsed = parse_program(read_program(program)["text"], name=program.name)
     result = validate_program(parsed, ValidationContext(config=config.machine()))
     if result.toolpath is None:
         first = result.errors[0].format(str(program)) if result.errors else "no toolpath"
         err_console.print(f"error: cannot trace {program}: {first}", markup=False)
         sys.exit(1)
-    if suffix == ".svg":
-        output.write_text(render_svg(result.toolpath, title=program.name))
-    else:
-        output.write_bytes(render_png(result.toolpath, title=program.name))
+    try:
+        if suffix == ".svg":
+            output.write_text(render_svg(result.toolpath, title=program.name))
+        else:
+            output.write_bytes(render_png(result.toolpath, title=program.name))
+    except OSError as e:
+        raise UsageError(f"{output}: cannot write: {e.strerror}") from None
     path = result.toolpath
     console.print(
         f"{output}: {path.blocks} block(s), {len(path.moves)} moves, "
@@ -251,6 +254,8 @@ def preview(ctx: click.Context, program: Path, output: Path) -> None:
     )
     for problem in result.errors:
         err_console.print(problem.format(str(program)), markup=False)
+    if result.errors:
+        sys.exit(1)  # drawn as far as it goes, but the program has errors, as `check` says
 
 
 # -- cellctl emulate mill ------------------------------------------------------------------------
@@ -341,9 +346,8 @@ def _emulate_mill_command() -> click.Command:
 
         run(main)
 
-    faults = "; ".join(f"{k}: {v}" for k, v in FAULTS.items())
     params = [
-        *listen_options(MILL_LINE),
+        *listen_options(MILL_LINE, FAULTS),
         click.Option(
             ["--readiness"],
             type=click.Choice(["modem", "inband"]),
@@ -364,7 +368,7 @@ def _emulate_mill_command() -> click.Command:
         "mill",
         callback=callback,
         params=params,
-        help=f"Emulate a Dyna 2400 CNC mill controller. Faults: {faults}",
+        help="Emulate a Dyna 2400 CNC mill controller.\n\n" + fault_help(FAULTS),
     )
 
 

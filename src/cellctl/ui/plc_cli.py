@@ -20,7 +20,7 @@ from cellctl.emulators.serve import parse_fault
 from cellctl.errors import UsageError
 from cellctl.protocol.plc import SIGNALS, PlcMap
 from cellctl.service.machines import load_cell_file
-from cellctl.ui.common import cell_dir, console, run, until_stopped
+from cellctl.ui.common import cell_dir, console, fault_help, run, until_stopped
 
 
 def _quiet_pymodbus() -> None:
@@ -120,10 +120,7 @@ def pulse(ctx: click.Context, name: str, seconds: float) -> None:
     run(main)
 
 
-_FAULT_HELP = "; ".join(f"{k}: {v}" for k, v in FAULTS.items())
-
-
-@click.command("plc", help=f"Emulate the cell PLC (Modbus/TCP). Faults: {_FAULT_HELP}")
+@click.command("plc", help="Emulate the cell PLC (Modbus/TCP).\n\n" + fault_help(FAULTS))
 @click.option(
     "--listen",
     default=None,

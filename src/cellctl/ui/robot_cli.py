@@ -177,14 +177,14 @@ def compile(source: Path, output: Path | None, partition: int, name: str | None)
     """Compile an AML/E source file into a program file of records (.rec)."""
 
     def main() -> None:
-        try:
-            text = source.read_text(encoding="utf-8")
-        except OSError as e:
-            raise UsageError(f"{source}: could not open file: {e.strerror}") from None
+        text = read_program(source)["text"]
         app = (name or source.stem).upper().replace("-", "").replace("_", "")[:8]
         program = compile_source(text, app, partition, source=str(source))
         target = output or source.with_suffix(".rec")
-        target.write_text(program.to_text(), encoding="ascii")
+        try:
+            target.write_text(program.to_text(), encoding="ascii")
+        except OSError as e:
+            raise UsageError(f"{target}: cannot write: {e.strerror}") from None
         console.print(f"{source} -> {target}: {len(program.body)} instructions, name {app}")
 
     async def amain() -> None:

@@ -1,0 +1,436 @@
+"""``cellctl console``: the source's menu program on a live screen.
+
+Three levels as in the source: the main menu (one entry per machine, then the cell, then
+EXIT), a machine's menu (the source's functions by number, the tool-kit's extras by letter,
+the service toggle on ``s``) and the parameter dialogs. The board (machines, alarms,
+orders), the last result and the selected machine's traffic stay on screen, updated live::
+
+    app = ConsoleApp(Path("cell"), client)   # client from open_console_cell, or None
+    await app.run_async()                    # the app opens the cell itself when None
+
+Every action goes through the client (the controller's API when one runs, the machines'
+own links otherwise); calls run in workers so the screen stays live during a download.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar, TypeVar, cast
+
+from textual import events, on
+from textual.app import App, ComposeResult
+from textual.binding import Binding, BindingType
+from textual.containers import Horizontal
+from textual.screen import ModalScreen, Screen
+from textual.widgets import Footer, OptionList, Static
+from textual.widgets.option_list import Option
+
+from cellctl.errors import CellctlError
+from cellctl.service.client import CellClient
+from cellctl.service.functions import MachineFunction, menu
+from cellctl.ui.console.cellmenu import CellActions
+from cellctl.ui.console.dialogs import ConfirmDialog, Dialog, ParamsDialog
+from cellctl.ui.console.session import (
+    PROGRAM_SUFFIXES,
+    ConsoleMachine,
+    cell_machines,
+    check_params,
+    open_console_cell,
+)
+from cellctl.ui.console.widgets import Board, ResultPane, TrafficPane
+
+#: Seconds between two looks at the selected machine's traffic.
+TRAFFIC_PERIOD = 0.5
+#: Parameters a dialog asks for (the rest keep their defaults).
+DIALOG_FIELDS = ("partition", "program", "force")
+#: Progress fields of the functions' progress dicts: (done, total).
+PROGRESS_FIELDS = (("records", "records_total"), ("lines", "lines_total"))
+
+Action = Callable[[], Awaitable[None]]
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One menu line: its key (a number as in the source, or a letter), label, action."""
+
+    key: str
+    label: str
+    action: Action | None  # None: shown as unavailable
+    note: str = ""
+
+    def prompt(self) -> str:
+        text = f"{self.key}. {self.label}"
+        return f"{text} ({self.note})" if self.note else text
+
+
+class ConsoleApp(App[None]):
+    """The operator console (see the module docstring)."""
+
+    TITLE = "cellctl console"
+    CSS = """
+    #header { height: 1; background: $primary; color: $text; padding: 0 1; }
+    #body { height: 1fr; }
+    #menu { width: 36; height: 100%; border: none; border-top: solid $accent; padding: 0; }
+    #board { width: 1fr; height: 100%; border: none; border-top: solid $secondary;
+             border-left: vkey $secondary; padding: 0 1; }
+    ResultPane { height: auto; max-height: 7; padding: 0 1; }
+    #result-text { height: auto; }
+    TrafficPane { height: 5; border-top: solid $secondary; padding: 0 1; }
+    """
+    BINDINGS: ClassVar[list[BindingType]] = [
+        Binding("escape", "up", "Back"),
+        Binding("q", "quit", "Quit"),
+    ]
+
+    def __init__(
+        self,
+        directory: Path,
+        client: CellClient | None = None,
+        *,
+        traffic_period: float = TRAFFIC_PERIOD,
+    ) -> None:
+        super().__init__()
+        self.directory = directory
+        self.client: CellClient | None = client
+        self.traffic_period = traffic_period
+        self.machines: list[ConsoleMachine] = []
+        self.snapshot: dict[str, Any] = {}
+        self.level: str = "main"  # "main", "cell" or a machine's name
+        self.selected: str = ""  # whose traffic is shown
+        self.entries: list[Entry] = []
+        self.cell_actions = CellActions(self)
+        self._traffic_busy = False
+        self._closed = False
+        self.startup_error: CellctlError | None = None
+
+    # -- layout and start ------------------------------------------------------------------
+
+    def compose(self) -> ComposeResult:
+        yield Static("cellctl console", id="header")
+        with Horizontal(id="body"):
+            yield OptionList(id="menu", markup=False)
+            yield Board(id="board")
+        yield ResultPane()
+        yield TrafficPane()
+        yield Footer()
+
+    async def on_mount(self) -> None:
+        self.query_one("#board", Board).border_title = "cell"
+        try:
+            self.machines = cell_machines(self.directory)
+            if self.client is None:
+                self.client = await open_console_cell(self.directory)
+            self.snapshot = await self.client.subscribe(self._cell_changed)
+        except CellctlError as e:
+            self.startup_error = e
+            await self.action_quit()
+            return
+        self.selected = self.machines[0].name
+        self._show_snapshot()
+        self.show_menu("main")
+        self.say(["Choose with the number keys, or the arrows and Enter."])
+        self.set_interval(self.traffic_period, self._poll_traffic)
+
+    @property
+    def mode(self) -> str:
+        return self.client.mode if self.client is not None else ""
+
+    def mode_text(self) -> str:
+        """What the header says of the console's mode."""
+        if self.mode == "attached":
+            pid = self.snapshot.get("cell", {}).get("pid", "?")
+            return f"attached to cellctl run (pid {pid})"
+        return "standalone: links held by this console"
+
+    # -- live status ------------------------------------------------------------------------
+
+    def _cell_changed(self, changes: dict[str, Any]) -> None:
+        for key, value in changes.items():
+            if key == "events":
+                self.snapshot["events"] = [*self.snapshot.get("events", []), *value][-30:]
+            else:
+                self.snapshot[key] = value
+        self._show_snapshot()
+        if self.level != "main":
+            self.show_menu(self.level, keep=True)
+
+    def _show_snapshot(self) -> None:
+        paused = "  CELL PAUSED" if self.snapshot.get("cell", {}).get("paused") else ""
+        header = f"cellctl console  {self.directory}  {self.mode_text()}{paused}"
+        self.query_one("#header", Static).update(header)
+        self.query_one("#board", Board).show(self.snapshot)
+
+    def in_service(self, name: str) -> bool:
+        machine = self.snapshot.get("machines", {}).get(name, {})
+        return self.mode == "attached" and bool(machine.get("in_service"))
+
+    def _poll_traffic(self) -> None:
+        if self._traffic_busy or self.client is None or not self.selected:
+            return
+        self._traffic_busy = True
+        self.run_worker(self._traffic(self.selected), group="traffic", exit_on_error=False)
+
+    async def _traffic(self, name: str) -> None:
+        pane = self.query_one(TrafficPane)
+        try:
+            assert self.client is not None
+            rows = await self.client.call("traffic.tail", {"machine": name, "limit": 4})
+            pane.show(name, rows)
+        except CellctlError as e:
+            pane.border_title = f"traffic: {name}"
+            pane.update(str(e))
+        finally:
+            self._traffic_busy = False
+
+    # -- menus ------------------------------------------------------------------------------
+
+    def main_entries(self) -> list[Entry]:
+        entries = [
+            Entry(str(i), f"{m.title} ({m.name})", self._open(m.name))
+            for i, m in enumerate(self.machines, start=1)
+        ]
+        n = len(entries)
+        entries.append(Entry(str(n + 1), "CELL (orders, parts, alarms)", self._open("cell")))
+        entries.append(Entry(str(n + 2), "EXIT", self._exit_action))
+        return entries
+
+    def machine_entries(self, machine: ConsoleMachine) -> list[Entry]:
+        entries: list[Entry] = []
+        letters = iter("abcdefgh")
+        functions = menu(machine.family)
+        for fn in functions:
+            key = str(fn.menu) if fn.menu is not None else next(letters)
+            entries.append(Entry(key, fn.label, self._function(machine, fn)))
+        last = max(fn.menu or 0 for fn in functions) + 1
+        entries.insert(last - 1, Entry(str(last), "EXIT", self._back_action))
+        if self.mode == "attached":
+            if self.in_service(machine.name):
+                entries.append(Entry("s", "OUT OF SERVICE", self._service(machine.name, False)))
+            else:
+                entries.append(Entry("s", "RETURN TO SERVICE", self._service(machine.name, True)))
+        else:
+            entries.append(Entry("s", "SERVICE", None, "unavailable: no controller runs"))
+        return entries
+
+    def machine(self, name: str) -> ConsoleMachine:
+        return next(m for m in self.machines if m.name == name)
+
+    def show_menu(self, level: str, *, keep: bool = False) -> None:
+        """Show the main menu, the cell menu or a machine's menu."""
+        if level == "main":
+            entries, title = self.main_entries(), "MAIN MENU"
+        elif level == "cell":
+            entries, title = self.cell_actions.entries(), "CELL"
+        else:
+            machine = self.machine(level)
+            entries, title = self.machine_entries(machine), f"{machine.title} ({machine.name})"
+            self.selected = machine.name
+        option_list = self.query_one("#menu", OptionList)
+        if keep and [e.prompt() for e in entries] == [e.prompt() for e in self.entries]:
+            self.entries = entries
+            return
+        highlighted = option_list.highlighted if keep else 0
+        self.level = level
+        self.entries = entries
+        option_list.clear_options()
+        option_list.add_options(
+            Option(e.prompt(), id=e.key, disabled=e.action is None) for e in entries
+        )
+        option_list.border_title = title
+        option_list.highlighted = highlighted
+        option_list.focus()
+
+    def _open(self, level: str) -> Action:
+        async def action() -> None:
+            self.show_menu(level)
+
+        return action
+
+    async def _back_action(self) -> None:
+        self.action_up()
+
+    async def _exit_action(self) -> None:
+        await self.action_quit()
+
+    def action_up(self) -> None:
+        """Escape: up one level."""
+        if self.level != "main" and isinstance(self.screen, Screen):
+            self.show_menu("main")
+
+    async def action_quit(self) -> None:
+        """Quit, closing the client (a standalone console releases its links)."""
+        if not self._closed:
+            self._closed = True
+            self.workers.cancel_all()
+            if self.client is not None:
+                with contextlib.suppress(CellctlError, OSError):
+                    await self.client.close()
+        self.exit()
+
+    def check_action(self, action: str, parameters: tuple[object, ...]) -> bool | None:
+        # A dialog's own keys (y/n, typing a name with a q) must not quit the console.
+        return not (action in ("quit", "up") and isinstance(self.screen, ModalScreen))
+
+    def on_key(self, event: events.Key) -> None:
+        if isinstance(self.screen, ModalScreen) or event.character is None:
+            return
+        key = event.character
+        if key == "0" and self.level == "main":
+            key = self.entries[-1].key  # 0 also leaves, as in the source
+        for entry in self.entries:
+            if entry.key == key:
+                event.stop()
+                self.choose(entry)
+                return
+
+    @on(OptionList.OptionSelected, "#menu")
+    def _selected(self, event: OptionList.OptionSelected) -> None:
+        for entry in self.entries:
+            if entry.key == event.option.id:
+                self.choose(entry)
+
+    @on(OptionList.OptionHighlighted, "#menu")
+    def _highlighted(self, event: OptionList.OptionHighlighted) -> None:
+        if self.level == "main" and any(m.name == event.option.id for m in self.machines):
+            self.selected = str(event.option.id)
+        elif self.level == "main" and event.option.id is not None:
+            index = int(event.option.id) - 1
+            if 0 <= index < len(self.machines):
+                self.selected = self.machines[index].name
+
+    def choose(self, entry: Entry) -> None:
+        """Run a menu entry's action in a worker (it may wait for dialogs and long calls)."""
+        if entry.action is None:
+            self.say([f"{entry.label}: {entry.note}"], "yellow")
+            return
+        self.run_worker(self._guarded(entry.action), group="action")
+
+    async def _guarded(self, action: Action) -> None:
+        try:
+            await action()
+        except CellctlError as e:
+            self.say([f"error: {e}"], "red")
+            self.query_one(ResultPane).progress(None, None)
+
+    # -- results ----------------------------------------------------------------------------
+
+    def say(self, lines: list[str], style: str = "") -> None:
+        """Show the outcome of the last action."""
+        self.query_one(ResultPane).say(lines, style)
+
+    async def call(self, method: str, params: dict[str, Any]) -> Any:
+        """A cell-level call; its result (a CellctlError is shown by the caller's guard)."""
+        assert self.client is not None
+        return await self.client.call(method, params)
+
+    async def ask(self, dialog: Dialog[T]) -> T | None:
+        """Show ``dialog`` and wait for its answer (None: cancelled); from a worker only."""
+        return cast("T | None", await self.push_screen_wait(cast(Screen[Any], dialog)))
+
+    async def confirm(self, question: str) -> bool:
+        answer: bool | None = await self.ask(ConfirmDialog(question))
+        return answer is True
+
+    def _service(self, name: str, back: bool) -> Action:
+        async def action() -> None:
+            if back:
+                question = f"Return {name} to automatic service? (initialized first if needed)"
+                method = "machines.return_to_service"
+            else:
+                question = (
+                    f"Take {name} out of automatic service? No new work goes to it (its step "
+                    "in flight finishes first); manual functions become possible."
+                )
+                method = "machines.out_of_service"
+            if not await self.confirm(question):
+                self.say([f"{name}: service unchanged"])
+                return
+            params = {"machine": name} if back else {"machine": name, "reason": "console"}
+            self.say([f"{name}: ..."])
+            result = await self.call(method, params)
+            self.say([result["message"]], "green")
+            machine = self.snapshot.get("machines", {}).get(name)
+            if machine is not None:
+                machine["in_service"] = back  # until the next update says so
+                self.show_menu(self.level, keep=True)
+
+        return action
+
+    # -- machine functions ------------------------------------------------------------------
+
+    def _function(self, machine: ConsoleMachine, fn: MachineFunction) -> Action:
+        async def action() -> None:
+            await self.run_function(machine, fn)
+
+        return action
+
+    async def run_function(self, machine: ConsoleMachine, fn: MachineFunction) -> None:
+        """Ask for the function's parameters, check them, take the machine out of automatic
+        service if it must be (asking first), run it and show its outcome."""
+        assert self.client is not None
+        params: dict[str, Any] = {}
+        fields = [f for f in DIALOG_FIELDS if f in fn.params.model_fields]
+        if fields:
+            dialog = ParamsDialog(
+                f"{machine.title} ({machine.name}): {fn.label}",
+                fields,
+                lambda raw: check_params(machine, fn, raw, self.directory),
+                directory=self.directory,
+                suffixes=PROGRAM_SUFFIXES[machine.family],
+                program=machine.setup or "" if fn.name == "init" else "",
+            )
+            answer = await self.ask(dialog)
+            if answer is None:
+                self.say([f"{machine.name}: {fn.label} cancelled"])
+                return
+            params = answer
+        if not fn.observes and self.in_service(machine.name):
+            question = (
+                f"{machine.name} is in automatic service. Take it out of automatic service "
+                f"to run {fn.label} by hand? (its step in flight finishes first)"
+            )
+            if not await self.confirm(question):
+                self.say([f"{machine.name}: {fn.label} not run: it stays in automatic service"])
+                return
+            out = await self.call(
+                "machines.out_of_service", {"machine": machine.name, "reason": "console"}
+            )
+            self.say([out["message"]])
+        pane = self.query_one(ResultPane)
+        self.say([f"{machine.name}: {fn.label} ..."])
+
+        def progress(data: dict[str, Any]) -> None:
+            for done, total in PROGRESS_FIELDS:
+                if done in data and total in data:
+                    pane.progress(data[done], data[total])
+                    phase = data.get("phase", "")
+                    self.say([f"{machine.name}: {fn.label} {phase} {data[done]}/{data[total]}"])
+
+        try:
+            result = await self.client.call(
+                f"{machine.family}.{fn.name}", {"machine": machine.name, **params}, progress
+            )
+        finally:
+            pane.progress(None, None)
+        self.say(result_lines(machine.name, fn, result), "green")
+
+
+def result_lines(name: str, fn: MachineFunction, result: dict[str, Any]) -> list[str]:
+    """A function's outcome as the console shows it: the source's message, then details."""
+    message = str(result.get("message", ""))
+    lines = [f"{name}: {fn.label}: {message}"]
+    details = [str(x) for x in result.get("lines", []) if str(x) != message]
+    partitions = result.get("partitions")
+    if isinstance(partitions, dict):
+        details = [d for d in details if not d.startswith("partition ")]
+        details.append(
+            "partitions: "
+            + "  ".join(f"{n} {f'Full ({p})' if p else 'Empty'}" for n, p in partitions.items())
+        )
+    if "text" in result and fn.name == "upload":
+        details.append(str(result["text"])[:200])
+    return lines + details + [str(x) for x in result.get("after", [])]

@@ -1,0 +1,208 @@
+"""The console's CELL menu: orders (list, submit, cancel), alarms (list, clear), held parts
+(release, release with redo, scrap), pause/resume and the emergency stop.
+
+Orders, alarms and parts work in both modes (on the cell's files when no controller runs);
+pause, resume and the emergency stop need the controller and are shown as unavailable
+without one.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from cellctl.errors import UsageError
+from cellctl.service.machines import load_cell_file
+from cellctl.ui.console.dialogs import FormDialog, PickDialog
+
+if TYPE_CHECKING:
+    from cellctl.ui.console.app import ConsoleApp, Entry
+
+#: Order states an order may still be cancelled in.
+NOT_STARTED = ["posted", "accepted"]
+NO_CONTROLLER = "unavailable: no controller runs"
+
+
+class CellActions:
+    """The CELL menu's entries and what they do, on a :class:`ConsoleApp`."""
+
+    def __init__(self, app: ConsoleApp) -> None:
+        self.app = app
+
+    def entries(self) -> list[Entry]:
+        from cellctl.ui.console.app import Entry
+
+        attached = self.app.mode == "attached"
+        paused = bool(self.app.snapshot.get("cell", {}).get("paused"))
+        note = "" if attached else NO_CONTROLLER
+        return [
+            Entry("1", "ORDERS", self.orders),
+            Entry("2", "SUBMIT ORDER", self.submit),
+            Entry("3", "CANCEL ORDER", self.cancel),
+            Entry("4", "ALARMS", self.alarms),
+            Entry("5", "HELD PARTS", self.held_parts),
+            Entry(
+                "6",
+                "RESUME" if paused else "PAUSE",
+                (self.resume if paused else self.pause) if attached else None,
+                note,
+            ),
+            Entry("7", "EMERGENCY STOP", self.estop if attached else None, note),
+            Entry("8", "EXIT", self.back),
+        ]
+
+    async def back(self) -> None:
+        self.app.action_up()
+
+    # -- orders -----------------------------------------------------------------------------
+
+    async def orders(self) -> None:
+        found: list[dict[str, Any]] = await self.app.call("orders.list", {})
+        if not found:
+            self.app.say(["no orders"])
+            return
+        rows = [(o["id"], order_line(o)) for o in found]
+        picked = await self.app.ask(
+            PickDialog("ORDERS", rows, "Enter on an order not started offers to cancel it")
+        )
+        order = next((o for o in found if o["id"] == picked), None)
+        if order is not None and order["state"] in NOT_STARTED:
+            await self._cancel(order["id"])
+        elif order is not None:
+            self.app.say([order_line(order)])
+
+    async def submit(self) -> None:
+        parts = load_cell_file(self.app.directory).get("parts")
+        types = list(parts) if isinstance(parts, dict) else []
+
+        def check(raw: dict[str, str]) -> dict[str, Any]:
+            problems = []
+            part_type = raw["part_type"].strip()
+            if types and part_type not in types:
+                problems.append(f"unknown part type {part_type!r} (known: {', '.join(types)})")
+            for key in ("qty", "priority"):
+                try:
+                    int(raw[key])
+                except ValueError:
+                    problems.append(f"{key} must be a whole number, not {raw[key]!r}")
+            if not problems and int(raw["qty"]) < 1:
+                problems.append("qty must be at least 1")
+            if problems:
+                raise UsageError("\n".join(problems))
+            params: dict[str, Any] = {
+                "part_type": part_type,
+                "qty": int(raw["qty"]),
+                "priority": int(raw["priority"]),
+            }
+            if raw["id"].strip():
+                params["id"] = raw["id"].strip()
+            return params
+
+        fields = [
+            ("part_type", "Part type:", types[0] if types else ""),
+            ("qty", "Quantity:", "1"),
+            ("priority", "Priority:", "0"),
+            ("id", "Order id (optional):", ""),
+        ]
+        known = f" ({', '.join(types)})" if types else ""
+        answer = await self.app.ask(FormDialog(f"SUBMIT ORDER{known}", fields, check))
+        if answer is None:
+            self.app.say(["order not submitted"])
+            return
+        result = await self.app.call("orders.submit", answer)
+        self.app.say([result["message"]], "green")
+
+    async def cancel(self) -> None:
+        found: list[dict[str, Any]] = await self.app.call("orders.list", {"states": NOT_STARTED})
+        if not found:
+            self.app.say(["no order that has not started"])
+            return
+        picked = await self.app.ask(
+            PickDialog("CANCEL ORDER", [(o["id"], order_line(o)) for o in found])
+        )
+        if picked is not None:
+            await self._cancel(picked)
+
+    async def _cancel(self, order_id: str) -> None:
+        if not await self.app.confirm(f"Cancel order {order_id}?"):
+            self.app.say([f"order {order_id} not cancelled"])
+            return
+        result = await self.app.call("orders.cancel", {"id": order_id})
+        self.app.say([result["message"]], "green")
+
+    # -- alarms and parts -------------------------------------------------------------------
+
+    async def alarms(self) -> None:
+        found: list[dict[str, Any]] = await self.app.call("alarms.list", {})
+        if not found:
+            self.app.say(["no open alarm"])
+            return
+        rows = [(str(a["id"]), f"{a['id']} {a['machine']} {a['code']}: {a['text']}") for a in found]
+        picked = await self.app.ask(
+            PickDialog("ALARMS", rows, "Enter on an alarm offers to clear it")
+        )
+        if picked is None:
+            return
+        if not await self.app.confirm(f"Clear alarm {picked}? (its cause is dealt with)"):
+            self.app.say([f"alarm {picked} not cleared"])
+            return
+        result = await self.app.call("alarms.clear", {"id": int(picked)})
+        self.app.say([result["message"]], "green")
+
+    async def held_parts(self) -> None:
+        found: list[dict[str, Any]] = await self.app.call("parts.list", {"statuses": ["held"]})
+        if not found:
+            self.app.say(["no held part"])
+            return
+        rows = [
+            (p["id"], f"{p['id']} {p['part_type']} at {p['location']}: {p.get('note', '')}")
+            for p in found
+        ]
+        picked = await self.app.ask(PickDialog("HELD PARTS", rows))
+        if picked is None:
+            return
+        what = await self.app.ask(
+            PickDialog(
+                f"PART {picked}",
+                [
+                    ("release", "1. RELEASE (continue its route)"),
+                    ("redo", "2. RELEASE WITH REDO (cut its step again)"),
+                    ("scrap", "3. SCRAP"),
+                ],
+            )
+        )
+        if what == "scrap":
+            if not await self.app.confirm(f"Scrap part {picked}?"):
+                self.app.say([f"part {picked} kept"])
+                return
+            result = await self.app.call("parts.scrap", {"id": picked})
+        elif what in ("release", "redo"):
+            result = await self.app.call("parts.release", {"id": picked, "redo": what == "redo"})
+        else:
+            return
+        self.app.say([result["message"]], "green")
+
+    # -- the controller ---------------------------------------------------------------------
+
+    async def pause(self) -> None:
+        result = await self.app.call("cell.pause", {})
+        self.app.say([result["message"]], "green")
+
+    async def resume(self) -> None:
+        result = await self.app.call("cell.resume", {})
+        self.app.say([result["message"]], "green")
+
+    async def estop(self) -> None:
+        question = "EMERGENCY STOP: stop the robot, halt the mills, hold the parts in work?"
+        if not await self.app.confirm(question):
+            self.app.say(["no emergency stop"])
+            return
+        result = await self.app.call("cell.estop", {"reason": "operator console"})
+        self.app.say([result["message"]], "red")
+
+
+def order_line(order: dict[str, Any]) -> str:
+    parts = " ".join(f"{k} {v}" for k, v in sorted(order.get("parts", {}).items()))
+    return (
+        f"{order['id']} {order['part_type']} x{order['qty']} p{order['priority']} "
+        f"{order['state']} {parts}".rstrip()
+    )

@@ -1,0 +1,255 @@
+"""The console's dialogs (modal screens): a yes/no question, a pick from a list, a function's
+parameters (partition, program file with a picker, forced init) and a small form.
+
+Each dismisses with its answer (None when cancelled with Escape); the app awaits them with
+``push_screen_wait`` from a worker.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import Any, ClassVar, Generic, TypeVar
+
+from textual import on
+from textual.app import ComposeResult
+from textual.binding import Binding, BindingType
+from textual.containers import Horizontal, Vertical
+from textual.screen import ModalScreen
+from textual.widgets import Button, Checkbox, DirectoryTree, Input, Label, OptionList, Static
+from textual.widgets.option_list import Option
+
+from cellctl.errors import UsageError
+
+T = TypeVar("T")
+
+
+class Dialog(ModalScreen[T | None], Generic[T]):
+    """A dialog box in the middle of the screen; Escape cancels."""
+
+    BINDINGS: ClassVar[list[BindingType]] = [Binding("escape", "cancel", "Cancel")]
+    DEFAULT_CSS = """
+    Dialog { align: center middle; }
+    Dialog > Vertical {
+        width: 76; max-width: 100%; height: auto; max-height: 100%;
+        border: thick $accent; background: $surface; padding: 0 1;
+    }
+    Dialog .title { text-style: bold; width: 100%; }
+    Dialog .errors { color: $error; height: auto; max-height: 8; }
+    Dialog Horizontal { height: auto; }
+    Dialog .field-label { width: 22; padding: 0 1 0 0; }
+    Dialog Input { width: 1fr; }
+    Dialog .buttons { height: auto; align: right middle; margin-top: 1; }
+    Dialog Button { margin: 0 0 0 2; }
+    """
+
+    def action_cancel(self) -> None:
+        self.dismiss(None)
+
+
+class ConfirmDialog(Dialog[bool]):
+    """A yes/no question: ``y`` / ``n`` (or Enter on a button)."""
+
+    BINDINGS: ClassVar[list[BindingType]] = [
+        Binding("y", "answer(True)", "Yes"),
+        Binding("n", "answer(False)", "No"),
+    ]
+
+    def __init__(self, question: str) -> None:
+        super().__init__()
+        self.question = question
+
+    def compose(self) -> ComposeResult:
+        with Vertical():
+            yield Static(self.question, classes="title")
+            with Horizontal(classes="buttons"):
+                yield Button("Yes (y)", id="yes", variant="warning", compact=True)
+                yield Button("No (n)", id="no", compact=True)
+
+    def on_mount(self) -> None:
+        self.query_one("#no", Button).focus()
+
+    def action_answer(self, value: bool) -> None:
+        self.dismiss(value)
+
+    @on(Button.Pressed)
+    def _pressed(self, event: Button.Pressed) -> None:
+        self.dismiss(event.button.id == "yes")
+
+
+class PickDialog(Dialog[str]):
+    """Pick one row (Enter, or its number); rows are ``(key, label)``."""
+
+    def __init__(self, title: str, rows: Iterable[tuple[str, str]], hint: str = "") -> None:
+        super().__init__()
+        self.title_text = title
+        self.rows = list(rows)
+        self.hint = hint or "Enter picks, Escape goes back"
+
+    def compose(self) -> ComposeResult:
+        with Vertical():
+            yield Static(self.title_text, classes="title")
+            yield OptionList(
+                *(Option(label, id=key) for key, label in self.rows), id="pick", markup=False
+            )
+            yield Static(self.hint, classes="hint")
+
+    def on_mount(self) -> None:
+        self.query_one(OptionList).focus()
+
+    @on(OptionList.OptionSelected)
+    def _picked(self, event: OptionList.OptionSelected) -> None:
+        self.dismiss(event.option.id)
+
+
+class ProgramTree(DirectoryTree):
+    """The cell directory, showing only folders and the family's program files."""
+
+    def __init__(self, path: Path, suffixes: tuple[str, ...], **kwargs: Any) -> None:
+        super().__init__(path, **kwargs)
+        self.suffixes = suffixes
+
+    def filter_paths(self, paths: Iterable[Path]) -> Iterable[Path]:
+        return [
+            p
+            for p in paths
+            if not p.name.startswith(".")
+            and (p.is_dir() or p.suffix.lower() in self.suffixes)
+            and p.name != "state"
+        ]
+
+
+class ParamsDialog(Dialog[dict[str, Any]]):
+    """A machine function's parameters. ``check(raw)`` turns the answers into the call's
+    parameters or raises UsageError; its problems are shown here and nothing is sent."""
+
+    DEFAULT_CSS = """
+    ParamsDialog ProgramTree { height: 8; }
+    """
+
+    def __init__(
+        self,
+        title: str,
+        fields: Iterable[str],
+        check: Callable[[dict[str, Any]], dict[str, Any]],
+        *,
+        directory: Path,
+        suffixes: tuple[str, ...] = (),
+        program: str = "",
+    ) -> None:
+        super().__init__()
+        self.title_text = title
+        self.fields = set(fields)
+        self.check = check
+        self.directory = directory
+        self.suffixes = suffixes
+        self.program = program
+
+    def compose(self) -> ComposeResult:
+        with Vertical():
+            yield Static(self.title_text, classes="title")
+            if "partition" in self.fields:
+                with Horizontal():
+                    yield Label("Partition (1-5):", classes="field-label")
+                    yield Input(id="partition", restrict=r"[0-9]*", max_length=3, compact=True)
+            if "program" in self.fields:
+                with Horizontal():
+                    yield Label("Program file:", classes="field-label")
+                    yield Input(self.program, id="program", compact=True)
+                yield ProgramTree(self.directory, self.suffixes, id="tree")
+            if "force" in self.fields:
+                yield Checkbox("Force (initialize again)", id="force", compact=True)
+            yield Static("", id="errors", classes="errors")
+            with Horizontal(classes="buttons"):
+                yield Button("OK", id="ok", variant="primary", compact=True)
+                yield Button("Cancel", id="cancel", compact=True)
+
+    def on_mount(self) -> None:
+        first = self.query(Input).first() if self.query(Input) else None
+        if first is not None:
+            first.focus()
+
+    @on(DirectoryTree.FileSelected)
+    def _file(self, event: DirectoryTree.FileSelected) -> None:
+        path = event.path
+        try:
+            shown = str(path.relative_to(self.directory))
+        except ValueError:
+            shown = str(path)
+        self.query_one("#program", Input).value = shown
+
+    @on(Input.Submitted)
+    def _submitted(self) -> None:
+        self.submit()
+
+    @on(Button.Pressed, "#ok")
+    def _ok(self) -> None:
+        self.submit()
+
+    @on(Button.Pressed, "#cancel")
+    def _cancel(self) -> None:
+        self.dismiss(None)
+
+    def answers(self) -> dict[str, Any]:
+        raw: dict[str, Any] = {}
+        for field in ("partition", "program"):
+            if field in self.fields:
+                raw[field] = self.query_one(f"#{field}", Input).value
+        if "force" in self.fields:
+            raw["force"] = self.query_one("#force", Checkbox).value
+        return raw
+
+    def submit(self) -> None:
+        """Check the answers: dismiss with the parameters, or show every problem."""
+        try:
+            params = self.check(self.answers())
+        except UsageError as e:
+            self.query_one("#errors", Static).update(str(e))
+            return
+        self.dismiss(params)
+
+
+class FormDialog(Dialog[dict[str, Any]]):
+    """A few labelled text fields, e.g. an order's part type, quantity and priority."""
+
+    def __init__(
+        self,
+        title: str,
+        fields: list[tuple[str, str, str]],
+        check: Callable[[dict[str, str]], dict[str, Any]],
+    ) -> None:
+        """``fields``: (id, label, default); ``check`` refuses bad answers (UsageError)."""
+        super().__init__()
+        self.title_text = title
+        self.form = fields
+        self.check = check
+
+    def compose(self) -> ComposeResult:
+        with Vertical():
+            yield Static(self.title_text, classes="title")
+            for key, label, default in self.form:
+                with Horizontal():
+                    yield Label(label, classes="field-label")
+                    yield Input(default, id=key, compact=True)
+            yield Static("", id="errors", classes="errors")
+            with Horizontal(classes="buttons"):
+                yield Button("OK", id="ok", variant="primary", compact=True)
+                yield Button("Cancel", id="cancel", compact=True)
+
+    def on_mount(self) -> None:
+        self.query(Input).first().focus()
+
+    @on(Input.Submitted)
+    @on(Button.Pressed, "#ok")
+    def _ok(self) -> None:
+        raw = {key: self.query_one(f"#{key}", Input).value for key, _, _ in self.form}
+        try:
+            checked = self.check(raw)
+        except UsageError as e:
+            self.query_one("#errors", Static).update(str(e))
+            return
+        self.dismiss(checked)
+
+    @on(Button.Pressed, "#cancel")
+    def _cancel(self) -> None:
+        self.dismiss(None)

@@ -28,16 +28,35 @@ def as_dict(item: Order | Part | Alarm | Report) -> dict[str, Any]:
 
 
 def resolve_part_id(journal: Journal, text: str) -> str:
-    """A part id from the id itself or a unique prefix of it, as git takes commit ids."""
+    """A part id from the id itself, a unique prefix of it, or a unique prefix of its order's
+    id with the part's number (``9227-2`` for ``9227175d00c...-2``), as git takes commit ids."""
     parts = journal.parts()
     if any(p.id == text for p in parts):
         return text
     matches = [p.id for p in parts if p.id.startswith(text)] if text else []
+    order, sep, number = text.rpartition("-")
+    if not matches and sep and order and number.isdigit():
+        matches = [
+            p.id for p in parts if p.order_id.startswith(order) and p.seq_in_order == int(number)
+        ]
     if len(matches) == 1:
         return matches[0]
     if not matches:
         raise UsageError(f"no part {text!r}")
     raise UsageError(f"part id {text!r} is ambiguous: {', '.join(sorted(matches)[:5])} ...")
+
+
+def short_part_id(part_id: str, order_id: str, order_ids: list[str], least: int = 4) -> str:
+    """The shortest name :func:`resolve_part_id` takes for a part: its order id cut to the
+    shortest unique prefix (at least ``least`` characters), then ``-N``."""
+    suffix = part_id[len(order_id) :] if part_id.startswith(order_id) else ""
+    if not suffix:
+        return part_id
+    for n in range(least, len(order_id)):
+        prefix = order_id[:n]
+        if not any(o != order_id and o.startswith(prefix) for o in order_ids):
+            return prefix + suffix
+    return part_id
 
 
 def check_part_type(part_types: list[str] | None, part_type: str) -> None:

@@ -22,6 +22,7 @@ from rich.table import Table
 
 from cellctl.cell.journal import LOCATIONS, PART_STATUSES
 from cellctl.mailbox import MAILBOX_FILE, ORDER_STATES, Report, open_mailbox
+from cellctl.service.operator import short_part_id
 from cellctl.ui.calls import cell_call
 from cellctl.ui.common import cell_dir, console, err_console, run
 
@@ -242,13 +243,19 @@ def part_list(ctx: click.Context, statuses: Sequence[str], order_id: str | None)
     if not found:
         console.print("no parts")
         return
-    ids = [p["id"] for p in found]
-    table = Table(title="Parts")
+    orders = sorted({p["order_id"] for p in found})
+    names = [short_part_id(p["id"], p["order_id"], orders) for p in found]
+    table = Table(title="Parts (an id, or the short one shown, is what release and scrap take)")
     for column in ("Part", "Order", "Type", "Location", "Route", "Status", "Note"):
-        table.add_column(column, justify="right" if column == "Route" else "left")
-    for p in found:
+        table.add_column(
+            column,
+            justify="right" if column == "Route" else "left",
+            no_wrap=column == "Part",
+            min_width=max(map(len, names)) if column == "Part" else None,
+        )
+    for p, name in zip(found, names, strict=True):
         table.add_row(
-            short_id(p["id"], ids),
+            name,
             p["order_id"],
             p["part_type"],
             p["location"],
@@ -257,16 +264,6 @@ def part_list(ctx: click.Context, statuses: Sequence[str], order_id: str | None)
             p["note"],
         )
     console.print(table)
-
-
-def short_id(part_id: str, ids: list[str], least: int = 8) -> str:
-    """The shortest prefix (at least ``least`` characters) that no other id starts with:
-    what ``part release`` and ``part scrap`` accept, as git takes commit ids."""
-    for n in range(least, len(part_id)):
-        prefix = part_id[:n]
-        if not any(other != part_id and other.startswith(prefix) for other in ids):
-            return prefix
-    return part_id
 
 
 @part.command("release")
@@ -296,4 +293,4 @@ def part_scrap(ctx: click.Context, part_id: str, reason: str) -> None:
     console.print(cell_call(ctx, "parts.scrap", {"id": part_id, "reason": reason})["message"])
 
 
-__all__ = ["alarm", "orders", "part", "reports", "short_id", "submit"]
+__all__ = ["alarm", "orders", "part", "reports", "submit"]

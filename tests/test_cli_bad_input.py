@@ -1,0 +1,178 @@
+"""Bad input on the command line: a one-line reason and exit 2, never a traceback, nothing sent;
+and the frictions a new user met. Each case is a defect seen in the field."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import pytest
+from click.testing import CliRunner
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from cellctl.ui.cli import main
+
+from .conftest import CELLCTL, emulator_process
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def cellctl(*args: str, cwd: Path | None = None, env: dict[str, str] | None = None) -> Any:
+    return subprocess.run(
+        [*CELLCTL, *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=cwd,
+        env={**os.environ, **(env or {})},
+    )
+
+
+def one_line_refusal(result: subprocess.CompletedProcess[str], code: int = 2) -> str:
+    assert result.returncode == code, (result.returncode, result.stdout, result.stderr)
+    assert "Traceback" not in result.stderr + result.stdout
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert 1 <= len(lines) <= 3, result.stderr
+    return result.stderr
+
+
+@pytest.fixture
+def compiled(tmp_path: Path) -> Path:
+    rec = tmp_path / "load1.rec"
+    done = cellctl(
+        "robot",
+        "compile",
+        str(ROOT / "examples" / "robot" / "conveyor_to_cnc1.aml"),
+        "-o",
+        str(rec),
+    )
+    assert done.returncode == 0, done.stderr
+    return rec
+
+
+def test_a_record_with_a_bad_hex_digit(tmp_path: Path, compiled: Path) -> None:
+    lines = compiled.read_text().splitlines()
+    lines[1] = "D09ZZ012C00C800000000F6"
+    bad = tmp_path / "bad.rec"
+    bad.write_text("\n".join(lines) + "\n")
+    err = one_line_refusal(cellctl("robot", "--link", "loop://", "download", "2", str(bad)))
+    assert "bad.rec, line 2: bad hex digit" in err
+
+
+def test_a_file_whose_first_line_is_not_a_record(tmp_path: Path) -> None:
+    bad = tmp_path / "notes.rec"
+    bad.write_text("these are my notes\n")
+    err = one_line_refusal(cellctl("robot", "--link", "loop://", "download", "1", str(bad)))
+    assert "notes.rec, line 1" in err
+
+
+@pytest.mark.parametrize(
+    "path", [ROOT / "examples" / "robot" / "conveyor_to_cnc1.aml", ROOT / "README.md"]
+)
+def test_downloading_a_source_or_a_text_file(path: Path) -> None:
+    err = one_line_refusal(cellctl("robot", "--link", "loop://", "download", "1", str(path)))
+    assert path.name in err
+
+
+def test_an_aml_file_that_is_not_utf8(tmp_path: Path) -> None:
+    latin = tmp_path / "latin1.aml"
+    latin.write_bytes(b"GRASP\n\xff\xfe END\n")
+    err = one_line_refusal(cellctl("robot", "compile", str(latin), "-o", str(tmp_path / "o.rec")))
+    assert "latin1.aml: not a text file" in err
+
+
+def test_writing_into_a_missing_directory(tmp_path: Path) -> None:
+    aml = ROOT / "examples" / "robot" / "conveyor_to_cnc1.aml"
+    err = one_line_refusal(cellctl("robot", "compile", str(aml), "-o", "/nonexistent/dir/x.rec"))
+    assert "/nonexistent/dir/x.rec: cannot write" in err
+    dyn = ROOT / "examples" / "programs" / "robot_base_rough_cnc1.dyn"
+    err = one_line_refusal(cellctl("mill", "preview", str(dyn), "-o", "/nonexistent/dir/x.svg"))
+    assert "/nonexistent/dir/x.svg: cannot write" in err
+
+
+def test_preview_of_a_program_with_errors_exits_1(tmp_path: Path) -> None:
+    broken = ROOT / "examples" / "programs" / "broken"
+    for program in sorted(broken.glob("*.dyn")):
+        check = cellctl("mill", "check", str(program))
+        preview = cellctl("mill", "preview", str(program), "-o", str(tmp_path / "p.svg"))
+        assert "Traceback" not in preview.stderr
+        if check.returncode == 1:
+            assert preview.returncode == 1, program.name
+
+
+@pytest.mark.parametrize(
+    ("kind", "faults"),
+    [
+        ("robot", ["power-off", "servo-error", "corrupt-checksum", "drop", "silent"]),
+        ("mill", ["never-ready", "no-next", "drop", "stall"]),
+        ("plc", ["drop", "silent", "stuck-door", "no-pallet", "estop"]),
+    ],
+)
+def test_emulate_help_lists_the_faults(kind: str, faults: list[str]) -> None:
+    result = CliRunner().invoke(main, ["emulate", kind, "--help"])
+    assert result.exit_code == 0
+    for name in faults:
+        assert f"  {name}: " in result.output
+
+
+def test_no_cell_toml_says_so(tmp_path: Path) -> None:
+    err = one_line_refusal(cellctl("--cell", str(tmp_path / "cell"), "robot", "status"))
+    assert "no " in err and "cell.toml" in err and "known: none" not in err
+
+
+def test_a_link_command_leaves_no_state_in_the_working_directory(tmp_path: Path) -> None:
+    with emulator_process("robot", "--listen", "pty", "--time-scale", "500", "--no-pacing") as url:
+        home = tmp_path / "state-home"
+        result = cellctl(
+            "robot", "--link", url, "init", cwd=tmp_path, env={"XDG_STATE_HOME": str(home)}
+        )
+    assert result.returncode == 0, result.stderr
+    assert not (tmp_path / "cell").exists()
+    assert list((home / "cellctl" / "state").glob("*.json"))
+
+
+def test_part_ids_are_shown_and_taken_as_unique_prefixes(tmp_path: Path) -> None:
+    from cellctl.cell.journal import open_journal
+    from cellctl.mailbox import open_mailbox
+
+    cell = tmp_path / "cell"
+    cell.mkdir()
+    with open_mailbox(cell) as mailbox, open_journal(cell) as journal:
+        order, _ = mailbox.post_order("wax-robot-base", 2, order_id="9227175d00c7a1b2c3d4e5")
+        parts = journal.create_parts(order)
+        journal.hold_part(parts[0].id, "inspect")
+    listed = CliRunner().invoke(main, ["--cell", str(cell), "part", "list"], terminal_width=80)
+    assert listed.exit_code == 0
+    assert "9227-1 " in listed.output and "9227-2 " in listed.output  # whole, at 80 columns
+    released = CliRunner().invoke(main, ["--cell", str(cell), "part", "release", "9227-1"])
+    assert released.exit_code == 0, released.output
+    assert f"part {parts[0].id} released" in released.output
+    ambiguous = CliRunner().invoke(main, ["--cell", str(cell), "part", "scrap", "9227"])
+    assert ambiguous.exit_code == 2 and "ambiguous" in ambiguous.output
+
+
+FILES = st.sampled_from(["README.md", "examples/cell/cell.toml", "/dev/null", "nowhere.rec"])
+WORDS = st.sampled_from(
+    ["robot", "mill", "compile", "download", "check", "preview", "status", "go", "part",
+     "alarm", "submit", "orders", "release", "clear", "--link", "loop://", "-o", "1", "6",
+     "x", "--qty", "0", "--cell", "/nonexistent", "cell", "traffic", "machine", "out"]
+)  # fmt: skip
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(argv=st.lists(st.one_of(WORDS, FILES, st.text(max_size=8)), min_size=1, max_size=6))
+def test_generated_command_lines_end_in_a_reason_never_a_crash(
+    argv: list[str], tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    cwd = tmp_path_factory.mktemp("argv")
+    os.chdir(cwd)
+    try:
+        argv = [str(ROOT / a) if a in ("README.md", "examples/cell/cell.toml") else a for a in argv]
+        result = CliRunner().invoke(main, ["--cell", str(cwd / "cell"), *argv])
+    finally:
+        os.chdir(ROOT)
+    if result.exception is not None and not isinstance(result.exception, SystemExit):
+        raise AssertionError(f"cellctl {' '.join(argv)} crashed") from result.exception

@@ -381,6 +381,12 @@ class PlcEmulator:
         self.url = f"modbus://{bound[0]}:{bound[1]}"
         return self.url
 
+    @property
+    def backend_url(self) -> str:
+        """pymodbus itself, behind the front door (loopback only). No fault switch acts
+        there: it is announced so that nothing listens unsaid, not to be driven."""
+        return f"modbus://{self._backend[0]}:{self._backend[1]}"
+
     async def close(self) -> None:
         """Stop serving: cut every connection, close the listener and pymodbus, stop timers."""
         self._closing = True

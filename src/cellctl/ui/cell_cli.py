@@ -218,6 +218,8 @@ def _emulate_cell_command() -> click.Command:
             for name, server in cell.servers.items():
                 console.print(f"  {name:6s} {server.url}")
             console.print(f"  plc    {cell.plc_url}")
+            backend = cell.plc.backend_url
+            console.print(f"         behind it, pymodbus on {backend} (no fault switch acts there)")
             try:
                 await until_stopped()
             finally:

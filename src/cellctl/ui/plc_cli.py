@@ -151,6 +151,7 @@ def emulate_plc(
         url = await device.start(plc_map.url)
         console.print(f"PLC emulator listening on {url}  (unit any, time x{time_scale:g})")
         console.print(f"  drive it with: cellctl plc --url {url} status")
+        console.print(f"  behind it, pymodbus on {device.backend_url} (no fault switch acts there)")
         try:
             await until_stopped()
         finally:

@@ -74,6 +74,9 @@ from cellctl.protocol.dynalan.table import (
     Units,
 )
 
+#: Lines run without motion between two yields to the event loop.
+_YIELD_EVERY = 1000
+
 FAULTS = {
     "never-ready": "the controller never shows READY: RTS stays low",
     "no-next": "the operator never presses NEXT after SETUP: RTS stays low",
@@ -423,7 +426,12 @@ class Dyna2400Emulator(EmulatedDevice):
                     await self._setup_stop()
                 seconds = sum(move.seconds for move in step.moves)
                 run.machining_s += seconds
-                await self._machine_sleep(seconds)
+                if seconds > 0:
+                    await self._machine_sleep(seconds)
+                elif run.lines_executed % _YIELD_EVERY == 0:
+                    # Lines without motion take no machine time, but a REPEAT of them must not
+                    # hold the event loop (the link and the other machines go on meanwhile).
+                    await asyncio.sleep(0)
                 if step.outcome is not None:
                     outcome = step.outcome
         except ProgramFault as fault:

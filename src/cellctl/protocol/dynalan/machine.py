@@ -16,6 +16,12 @@ real controller only finds out then.
 
 Times: each move takes the longest of its axes' times (each axis runs at most at its feed rate;
 rapid moves at the configured rapid rate); arcs take their length at the XY feed rate.
+
+Cost: a statement's motion is counted before it is made. A canned cycle or a drill hole that
+would make more than :data:`~cellctl.protocol.dynalan.table.PASSES_MAX` passes (rings, rows,
+pecks) or more than :data:`~cellctl.protocol.dynalan.table.STATEMENT_POINTS_MAX` points is a
+:class:`ProgramFault`, as is a value whose arithmetic cannot end (a feed rate, tool diameter,
+pass depth or peck of 0 or below), so no program costs more than its size allows.
 """
 
 from __future__ import annotations
@@ -36,8 +42,10 @@ from cellctl.protocol.dynalan.table import (
     CYCLE_KINDS,
     FEED_DEFAULT,
     MOTION_KINDS,
+    PASSES_MAX,
     RAPID_RATE,
     RUNAWAY_STEPS,
+    STATEMENT_POINTS_MAX,
     STEP_OVER,
     TOOL_DIAMETER_DEFAULT,
     Kind,
@@ -70,7 +78,7 @@ class MoveKind(enum.Enum):
     DWELL = "dwell"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Move:
     """One motion: its path (polyline, reference coordinates, program units) and its time."""
 
@@ -155,13 +163,45 @@ def _mul(v: Vec, k: float) -> Vec:
     return (v[0] * k, v[1] * k, v[2] * k)
 
 
+def _usable_rate(rate: float, axis: str) -> float:
+    """``rate`` when a move can be timed with it; a fault for 0, a negative rate or NaN."""
+    if not (rate > 0 and math.isfinite(rate)):
+        raise ProgramFault("feed", f"feed rate {rate:g} for {axis}: a move needs a rate above 0")
+    return rate
+
+
+def _positive(value: float, what: str, code: str = "range") -> float:
+    """``value`` when it is above 0 and finite; a fault naming ``what`` otherwise."""
+    if not (value > 0 and math.isfinite(value)):
+        raise ProgramFault(code, f"{what} {value:g}: must be above 0")
+    return value
+
+
+def _count(what: str, total: float, step: float, *, unit: str = "passes") -> int:
+    """How many steps of ``step`` cover ``total``, refused beyond :data:`PASSES_MAX`."""
+    ratio = total / step if total > 0 else 1.0
+    if not ratio <= PASSES_MAX:  # NaN and inf included
+        many = f"{math.ceil(ratio - 1e-6):,}" if math.isfinite(ratio) else "endless"
+        raise ProgramFault("cycle", f"{what} {step:g} gives {many} {unit}; at most {PASSES_MAX:,}")
+    return max(1, math.ceil(ratio - 1e-9))
+
+
+def _check_points(name: str, points: int) -> None:
+    if points > STATEMENT_POINTS_MAX:
+        raise ProgramFault(
+            "cycle",
+            f"{name} makes {points:,} points of motion; at most {STATEMENT_POINTS_MAX:,} "
+            "(a larger DP=, TD= or fewer passes)",
+        )
+
+
 class Outcome(enum.Enum):
     BLOCK_END = "block end"  # reached the 900 line (or ran past the last line)
     HALT = "HALT"
     END = "END"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Step:
     """One executed statement: its moves, whether it waits for the operator, how it ended."""
 
@@ -182,11 +222,16 @@ class _Motion:
     def __init__(self, state: MachineState, config: MachineConfig, number: int) -> None:
         self.state = state
         self.number = number
-        self.rapid = scale(config.rapid_rate, state.units)
+        self.rapid = scale(_usable_rate(config.rapid_rate, "rapid moves"), state.units)
         self.moves: list[Move] = []
 
     def _axis_seconds(self, a: Vec, b: Vec, rates: Mapping[str, float]) -> float:
-        return max(abs(b[i] - a[i]) / rates[ax] for i, ax in enumerate(AXES)) * 60.0
+        seconds = 0.0
+        for i, ax in enumerate(AXES):
+            distance = abs(b[i] - a[i])
+            if distance > 0:
+                seconds = max(seconds, distance / _usable_rate(rates[ax], ax))
+        return seconds * 60.0
 
     def to(self, target: Vec, *, rapid: bool = False) -> None:
         start = self.state.position
@@ -221,7 +266,7 @@ class _Motion:
         for i in range(1, steps + 1):
             a = a0 + math.radians(degrees) * i / steps
             path.append((cx + radius * math.cos(a), cy + radius * math.sin(a), z))
-        rate = min(self.state.feed["X"], self.state.feed["Y"])
+        rate = min(_usable_rate(self.state.feed["X"], "X"), _usable_rate(self.state.feed["Y"], "Y"))
         length = radius * math.radians(abs(degrees))
         seconds = length / rate * 60.0
         self.moves.append(Move(MoveKind.FEED, tuple(path), rate, seconds, self.number))
@@ -233,10 +278,12 @@ class _Motion:
 
 
 def _levels(top: float, bottom: float, per_pass: float | None) -> list[float]:
-    if bottom >= top - 1e-12:
+    if not bottom < top - 1e-12:
         raise ProgramFault("cycle", f"ZD= {bottom:g} is not below the start Z {top:g}")
-    if not per_pass or per_pass <= 0:
+    if per_pass is None:
         return [bottom]
+    _positive(per_pass, "DP= (depth a pass)", "cycle")
+    _count("pass depth", top - bottom, per_pass)
     levels = []
     z = top
     while z - per_pass > bottom + 1e-9:
@@ -252,9 +299,11 @@ def _cycle(stmt: Statement, state: MachineState, config: MachineConfig, m: _Moti
     fx, fy, fz = state.frame()
     bottom = stmt.value("ZD") + fz
     levels = _levels(z0, bottom, stmt.values.get("DP"))
-    radius = state.tool_diameter / 2
+    radius = _positive(state.tool_diameter, "tool diameter (TD)") / 2
     kind = stmt.kind
+    passes = len(levels)
     if kind is Kind.MILL:
+        _check_points(kind.value, passes * 2)
         ends = [(x0, y0), (stmt.value("X") + fx, stmt.value("Y") + fy)]
         for i, z in enumerate(levels):
             m.to_z(z)
@@ -265,6 +314,7 @@ def _cycle(stmt: Statement, state: MachineState, config: MachineConfig, m: _Moti
         if kind is Kind.RFRAME:
             xs, ys = [xs[0] - radius, xs[1] + radius], [ys[0] - radius, ys[1] + radius]
         corners = [(xs[0], ys[0]), (xs[1], ys[0]), (xs[1], ys[1]), (xs[0], ys[1]), (xs[0], ys[0])]
+        _check_points(kind.value, passes * 5)
         m.to_xy(*corners[0], rapid=True)
         for z in levels:
             m.to_z(z)
@@ -276,8 +326,9 @@ def _cycle(stmt: Statement, state: MachineState, config: MachineConfig, m: _Moti
         if xs[1] - xs[0] <= 2 * radius or ys[1] - ys[0] <= 2 * radius:
             raise ProgramFault("cycle", "RPOCKET is not wider than the tool (TD)")
         lo_x, hi_x, lo_y, hi_y = xs[0] + radius, xs[1] - radius, ys[0] + radius, ys[1] - radius
-        step = config.step_over * state.tool_diameter
-        rows = max(1, math.ceil((hi_y - lo_y) / step))
+        step = _positive(config.step_over, "step over") * state.tool_diameter
+        rows = _count("step over", hi_y - lo_y, step, unit="rows")
+        _check_points(kind.value, passes * (2 * rows + 10))
         m.to_xy(lo_x, lo_y, rapid=True)
         for z in levels:
             m.to_z(z)
@@ -293,8 +344,10 @@ def _cycle(stmt: Statement, state: MachineState, config: MachineConfig, m: _Moti
         outer = stmt.value("R") - radius
         if outer <= 0:
             raise ProgramFault("cycle", "CPOCKET radius is not larger than the tool radius")
-        step = config.step_over * state.tool_diameter
-        rings = max(1, math.ceil(outer / step))
+        step = _positive(config.step_over, "step over") * state.tool_diameter
+        rings = _count("step over", outer, step, unit="rings")
+        arc_points = 2 * math.ceil(180.0 / ARC_STEP_DEGREES)
+        _check_points(kind.value, passes * (rings * (arc_points + 1) + 3))
         for z in levels:
             m.to_xy(x0, y0, rapid=True)
             m.to_z(z)
@@ -311,6 +364,7 @@ def _cycle(stmt: Statement, state: MachineState, config: MachineConfig, m: _Moti
         if arc_radius <= 0:
             raise ProgramFault("cycle", "ARCFRAME needs R= above 0")
         a = math.radians(stmt.values.get("AS", 0.0))
+        _check_points(kind.value, passes * (math.ceil(abs(sweep) / ARC_STEP_DEGREES) + 3))
         m.to_xy(x0 + arc_radius * math.cos(a), y0 + arc_radius * math.sin(a), rapid=True)
         for i, z in enumerate(levels):
             m.to_z(z)
@@ -327,6 +381,11 @@ def _drill_hole(state: MachineState, m: _Motion, x: float, y: float) -> None:
     top, bottom = top + fz, bottom + fz
     if bottom >= top:
         raise ProgramFault("drill", "ZD= must be below ZH=")
+    if peck is not None and peck < 0:
+        raise ProgramFault("drill", f"PECK= {peck:g}: 0 (one plunge) or a positive depth")
+    if peck:
+        pecks = _count("peck", top - bottom, peck, unit="pecks")
+        _check_points("drill hole", pecks * 3)
     m.to_z(top, rapid=True)
     m.to_xy(x, y, rapid=True)
     depth = top
@@ -361,10 +420,11 @@ def execute(
         elif kind is Kind.TOOL:
             state.tool = int(stmt.value("tool"))
         elif kind is Kind.TD:
-            state.tool_diameter = stmt.value("diameter")
+            state.tool_diameter = _positive(stmt.value("diameter"), "tool diameter (TD)")
         elif kind is Kind.FEED:
+            rate = stmt.value("rate")
             for axis in stmt.text["axes"]:
-                state.feed[axis] = stmt.value("rate")
+                state.feed[axis] = _usable_rate(rate, axis)
         elif kind in (Kind.GO, Kind.GR, Kind.GO_FAST, Kind.GR_FAST):
             if len(stmt.words) != 1:
                 raise ProgramFault("axis-words", f"{kind.value} takes one axis word a line")
@@ -400,9 +460,15 @@ def execute(
         elif kind is Kind.COOLANT_OFF:
             state.coolant_on = False
         elif kind is Kind.DWELL:
-            m.dwell(stmt.value("seconds"))
+            seconds = stmt.value("seconds")
+            if not (seconds >= 0 and math.isfinite(seconds)):
+                raise ProgramFault("range", f"DWELL {seconds:g}: a time of 0 seconds or more")
+            m.dwell(seconds)
         elif kind is Kind.DRILL:
-            state.drill_peck = stmt.value("peck")
+            peck = stmt.value("peck")
+            if not (peck >= 0 and math.isfinite(peck)):
+                raise ProgramFault("drill", f"PECK= {peck:g}: 0 (one plunge) or a positive depth")
+            state.drill_peck = peck
         elif kind is Kind.DRILL_TOP:
             state.drill_top = stmt.value("z")
         elif kind is Kind.DRILL_BOTTOM:
@@ -478,24 +544,30 @@ def run_block(
     start: int | None = None,
     check_travel: bool = True,
     skip_malformed: bool = False,
+    max_steps: int = RUNAWAY_STEPS,
 ) -> Iterator[Step]:
     """Execute numbered ``memory`` from ``start`` (its lowest line by default), one step a line.
 
     Follows SKIP TO, REPEAT / REPEAT END and stops at the blank ``900`` line, HALT or END (the
     last step says which in ``outcome``). Raises :class:`ProgramFault` at a line that cannot run:
     malformed text (unless ``skip_malformed``), a SKIP TO to a missing line, a move outside the
-    travel (with ``check_travel``), a loop that never ends.
+    travel (with ``check_travel``), a loop that never ends (more than ``max_steps`` lines run).
     """
     numbers = sorted(memory)
     if not numbers:
         return
+    position = {number: i for i, number in enumerate(numbers)}
     index = 0 if start is None else bisect_right(numbers, start - 1)
     repeats: list[tuple[int, int]] = []  # (index of the first body line, passes left)
     steps = 0
     while index < len(numbers):
         steps += 1
-        if steps > RUNAWAY_STEPS:
-            raise ProgramFault("runaway", "the block never ends (a loop)", numbers[index])
+        if steps > max_steps:
+            raise ProgramFault(
+                "runaway",
+                f"the block runs more than {max_steps:,} lines (a loop, or REPEATs nested deep)",
+                numbers[index],
+            )
         number = numbers[index]
         entry = memory[number]
         if isinstance(entry, str):
@@ -512,7 +584,7 @@ def run_block(
             if target not in memory:
                 raise ProgramFault("skip-target", f"SKIP TO {target:03d}: no such line", number)
             yield Step(number, entry)
-            index = numbers.index(target)
+            index = position[target]
             continue
         if kind is Kind.REPEAT:
             repeats.append((index + 1, int(entry.value("count"))))

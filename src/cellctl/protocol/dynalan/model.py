@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from cellctl.protocol.dynalan.table import Kind, Units
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Statement:
     """One parsed statement.
 
@@ -42,7 +42,7 @@ class Severity(enum.Enum):
     WARNING = "warning"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Problem:
     """One finding: where (file row, column, line number as written, file block) and what."""
 
@@ -68,7 +68,7 @@ class Problem:
         )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Line:
     """One line of the file. ``statement`` is None when it could not be parsed."""
 

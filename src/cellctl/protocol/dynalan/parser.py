@@ -30,16 +30,19 @@ from cellctl.protocol.dynalan.table import (
     CR,
     CTRL_Z,
     CYCLE_KINDS,
+    INTEGER_DIGITS_MAX,
     INTEGER_RE,
     LF,
     LINE_NUMBER_DIGITS,
     LINE_NUMBER_RE,
+    NUMBER_MAX,
     NUMBER_RE,
     SETUP_AXES,
     SPECS,
     STATEMENTS,
     FieldType,
     Kind,
+    StatementSpec,
     Units,
 )
 
@@ -83,7 +86,21 @@ def encode_line(text: str) -> bytes:
 
 
 def _number(token: str) -> float | None:
-    return float(token) if NUMBER_RE.fullmatch(token) else None
+    """The value of a number token; None when it is not one or lies beyond ±NUMBER_MAX."""
+    if not NUMBER_RE.fullmatch(token):
+        return None
+    value = float(token)
+    return value if abs(value) <= NUMBER_MAX else None
+
+
+def _bad_number(token: str) -> str:
+    if NUMBER_RE.fullmatch(token):
+        return f"number {_short(token)} is too large: at most {NUMBER_MAX:,} either way"
+    return f"bad number {_short(token)!r}"
+
+
+def _short(token: str) -> str:
+    return token if len(token) <= 24 else f"{token[:20]}..."
 
 
 def _field(
@@ -92,18 +109,28 @@ def _field(
     if ftype is FieldType.NUMBER:
         value = _number(token)
         if value is None:
-            return None, (column, "bad-number", f"bad number {token!r}")
+            return None, (column, "bad-number", _bad_number(token))
         return value, None
     if ftype is FieldType.INTEGER:
         if not INTEGER_RE.fullmatch(token):
-            return None, (column, "bad-number", f"bad whole number {token!r} for {spec_kind.value}")
+            return None, (
+                column,
+                "bad-number",
+                f"bad whole number {_short(token)!r} for {spec_kind.value}",
+            )
+        if len(token.lstrip("0")) > INTEGER_DIGITS_MAX:
+            return None, (
+                column,
+                "bad-number",
+                f"whole number {_short(token)} is too large for {spec_kind.value}",
+            )
         return float(int(token)), None
     if ftype is FieldType.LINE:
         if not LINE_NUMBER_RE.fullmatch(token):
             return None, (
                 column,
                 "bad-number",
-                f"bad line number {token!r}: three digits, 000-999",
+                f"bad line number {_short(token)!r}: three digits, 000-999",
             )
         return float(int(token)), None
     return token, None
@@ -127,7 +154,9 @@ def _axis_words(
     for i in range(0, len(tokens), 2):
         axis, col = tokens[i]
         if axis not in AXES:
-            findings.append((col, "axis-words", f"{axis!r} is not an axis word (X, Y or Z)"))
+            findings.append(
+                (col, "axis-words", f"{_short(axis)!r} is not an axis word (X, Y or Z)")
+            )
             return tuple(words), findings
         if i + 1 >= len(tokens):
             findings.append((col, "axis-words", f"axis {axis} has no value"))
@@ -135,7 +164,7 @@ def _axis_words(
         value_token, value_col = tokens[i + 1]
         value = _number(value_token)
         if value is None:
-            findings.append((value_col, "bad-number", f"bad number {value_token!r}"))
+            findings.append((value_col, "bad-number", _bad_number(value_token)))
             return tuple(words), findings
         if axis in seen:
             findings.append((col, "axis-words", f"axis {axis} given twice"))
@@ -152,13 +181,14 @@ def _cycle_params(
     values: dict[str, float] = {}
     findings: list[Finding] = []
     pos = start
-    pattern = re.compile(r"\s*([A-Z]+)\s*=\s*(\S+)")
     while pos < len(text):
-        if not text[pos:].strip():
+        blank = _SPACES.match(text, pos)
+        assert blank is not None
+        if blank.end() == len(text):
             break
-        match = pattern.match(text, pos)
+        match = _KEY_VALUE.match(text, pos)
         if match is None:
-            col = pos + offset + len(text[pos:]) - len(text[pos:].lstrip())
+            col = blank.end() + offset
             findings.append((col, "syntax", f"{kind.value} takes KEY= value pairs: {spec.syntax}"))
             return values, findings
         key, token = match.group(1), match.group(2)
@@ -171,7 +201,7 @@ def _cycle_params(
         else:
             value = _number(token)
             if value is None:
-                findings.append((value_col, "bad-number", f"bad number {token!r}"))
+                findings.append((value_col, "bad-number", _bad_number(token)))
             else:
                 values[key] = value
         pos = match.end()
@@ -182,13 +212,29 @@ def _cycle_params(
     return values, findings
 
 
+def _first_chars(pattern: str) -> str:
+    """The characters a statement's head can start with (every head starts with a literal)."""
+    return "XYZ" if pattern.startswith("[XYZ]") else pattern[0]
+
+
+#: The statements whose head may start with a given character, in the table's order.
+_CANDIDATES: dict[str, tuple[StatementSpec, ...]] = {
+    char: tuple(s for s in STATEMENTS if char in _first_chars(s.head.pattern))
+    for spec in STATEMENTS
+    for char in _first_chars(spec.head.pattern)
+}
+
+_SPACES = re.compile(r"\s*")
+_KEY_VALUE = re.compile(r"\s*([A-Z]+)\s*=\s*(\S+)")
+
+
 def _check_words(kind: Kind, text: dict[str, str], columns: dict[str, int]) -> list[Finding]:
     findings: list[Finding] = []
     if kind is Kind.START:
         units = text["units"]
         if units not in {u.value for u in Units}:
             findings.append(
-                (columns["units"], "syntax", f"START units are INS or MM, not {units!r}")
+                (columns["units"], "syntax", f"START units are INS or MM, not {_short(units)!r}")
             )
     elif kind is Kind.SETUP:
         bad = sorted(set(text["axes"]) - SETUP_AXES)
@@ -200,7 +246,11 @@ def _check_words(kind: Kind, text: dict[str, str], columns: dict[str, int]) -> l
         axes = text["axes"]
         if any(a not in AXES for a in axes) or len(set(axes)) != len(axes):
             findings.append(
-                (columns["axes"], "syntax", f"FR names axes X, Y and Z (e.g. FR XY), not {axes!r}")
+                (
+                    columns["axes"],
+                    "syntax",
+                    f"FR names axes X, Y and Z (e.g. FR XY), not {_short(axes)!r}",
+                )
             )
     elif kind is Kind.COMMENT:
         body = text["text"].strip()
@@ -228,7 +278,7 @@ def parse_statement(text: str, offset: int = 1) -> tuple[Statement | None, list[
     if not stripped.strip():
         return Statement(Kind.BLANK), []
     lead = len(stripped) - len(stripped.lstrip())
-    for spec in STATEMENTS:
+    for spec in _CANDIDATES.get(stripped[lead], ()):
         head = spec.head.match(stripped, lead)
         if head is None:
             continue
@@ -273,9 +323,13 @@ def parse_statement(text: str, offset: int = 1) -> tuple[Statement | None, list[
     upper = stripped.upper()
     if upper != stripped and any(s.head.match(upper, lead) for s in STATEMENTS):
         return None, [
-            (lead + offset, "unknown-statement", f"{token!r}: statements are written in capitals")
+            (
+                lead + offset,
+                "unknown-statement",
+                f"{_short(token)!r}: statements are written in capitals",
+            )
         ]
-    return None, [(lead + offset, "unknown-statement", f"unknown statement {token!r}")]
+    return None, [(lead + offset, "unknown-statement", f"unknown statement {_short(token)!r}")]
 
 
 def parse_line(raw: str) -> tuple[int | None, Statement | None, list[Finding]]:

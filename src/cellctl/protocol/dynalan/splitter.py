@@ -22,6 +22,7 @@ Rules (spec, "Program execute mode: blocks" and the project's conventions):
 
 from __future__ import annotations
 
+from bisect import bisect_right
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -49,7 +50,7 @@ class SplitError(UsageError):
         super().__init__(message)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class BlockLine:
     """A line of a block as sent: its new number, its statement text, where it came from."""
 
@@ -124,6 +125,9 @@ def resolve_jumps(items: Sequence[Line]) -> dict[int, int]:
     block's end. Raises :class:`SplitError` for a missing or backward target.
     """
     jumps: dict[int, int] = {}
+    places: dict[int, list[int]] = {}
+    for i, line in enumerate(items):
+        places.setdefault(line.number, []).append(i)
     for i, line in enumerate(items):
         if line.kind is not Kind.SKIP:
             continue
@@ -131,9 +135,11 @@ def resolve_jumps(items: Sequence[Line]) -> dict[int, int]:
         if target == BLOCK_END_LINE:
             jumps[i] = len(items)
             continue
-        found = next((j for j in range(i + 1, len(items)) if items[j].number == target), None)
+        rows = places.get(target, [])
+        after = bisect_right(rows, i)
+        found = rows[after] if after < len(rows) else None
         if found is None:
-            back = any(items[j].number == target for j in range(i))
+            back = after > 0
             why = "jumps backwards (the block would never end)" if back else "has no such line"
             raise SplitError(f"SKIP TO {target:03d} at {_where(line)} {why}", line.row)
         jumps[i] = found
@@ -157,47 +163,68 @@ def repeat_spans(items: Sequence[Line]) -> list[tuple[int, int]]:
     return spans
 
 
-def _forbidden_cuts(items: Sequence[Line]) -> dict[int, str]:
-    """``{cut position p: why not}``; a cut at p puts items[p] first in the next block."""
-    why: dict[int, str] = {}
-    spans: list[tuple[int, int, str]] = []
-    for o, c in repeat_spans(items):
-        spans.append(
-            (o, c + 1, f"REPEAT at {_where(items[o])} .. REPEAT END at {_where(items[c])}")
-        )
-    for i, t in resolve_jumps(items).items():
-        what = items[t].label if t < len(items) else "900"
-        spans.append((i, t, f"SKIP TO {what} at {_where(items[i])} and its target"))
-    # Longest first, so a message names the outermost structure.
-    for start, stop, text in sorted(spans, key=lambda s: s[0] - s[1]):
-        for p in range(start + 1, stop):
-            why.setdefault(p, f"{text} span {stop - start} lines")
-    attached = False
-    for p in range(len(items) - 1, 0, -1):
-        kind = items[p].kind
-        if kind in _ATTACHED:
-            attached = True
-        elif kind not in (Kind.COMMENT, Kind.BLANK):
-            attached = False
-        if attached:
-            why.setdefault(p, f"{_where(items[p])} belongs with the line before it")
-    return why
+class _Cuts:
+    """Where a cut may fall; a cut at p puts items[p] first in the next block.
+
+    Built in time linear in the lines (a running count of open structures), so a file of any
+    size is cut in time proportional to it; the reason a cut is refused is found only when asked.
+    """
+
+    def __init__(self, items: Sequence[Line]) -> None:
+        self.items = items
+        self.spans: list[tuple[int, int, str]] = []
+        for o, c in repeat_spans(items):
+            self.spans.append(
+                (o, c + 1, f"REPEAT at {_where(items[o])} .. REPEAT END at {_where(items[c])}")
+            )
+        for i, t in resolve_jumps(items).items():
+            what = items[t].label if t < len(items) else "900"
+            self.spans.append((i, t, f"SKIP TO {what} at {_where(items[i])} and its target"))
+        opened = [0] * (len(items) + 2)
+        for start, stop, _ in self.spans:
+            opened[start + 1] += 1
+            opened[stop] -= 1
+        self.attached = [False] * (len(items) + 1)
+        attached = False
+        for p in range(len(items) - 1, 0, -1):
+            kind = items[p].kind
+            if kind in _ATTACHED:
+                attached = True
+            elif kind not in (Kind.COMMENT, Kind.BLANK):
+                attached = False
+            self.attached[p] = attached
+        self.inside = [False] * (len(items) + 1)
+        depth = 0
+        for p in range(len(items) + 1):
+            depth += opened[p]
+            self.inside[p] = depth > 0
+
+    def allowed(self, p: int) -> bool:
+        return not (self.inside[p] or self.attached[p])
+
+    def why(self, p: int) -> str:
+        """Why no cut may fall at ``p``: the outermost structure around it."""
+        around = [s for s in self.spans if s[0] < p < s[1]]
+        if around:
+            start, stop, text = max(around, key=lambda s: s[1] - s[0])
+            return f"{text} span {stop - start} lines"
+        return f"{_where(self.items[p])} belongs with the line before it"
 
 
 def _chunks(items: Sequence[Line]) -> list[tuple[int, int]]:
     if len(items) <= BLOCK_BODY_MAX:
         return [(0, len(items))]
-    forbidden = _forbidden_cuts(items)
+    cuts = _Cuts(items)
     chunks: list[tuple[int, int]] = []
     start = 0
     while len(items) - start > BLOCK_BODY_MAX:
         limit = start + BLOCK_BODY_MAX
-        cut = next((p for p in range(limit, start, -1) if p not in forbidden), None)
+        cut = next((p for p in range(limit, start, -1) if cuts.allowed(p)), None)
         if cut is None:
             culprit = items[limit]
             raise SplitError(
                 f"cannot cut this program into blocks of {BLOCK_BODY_MAX} statements: "
-                f"{forbidden[limit]}, more than one block holds",
+                f"{cuts.why(limit)}, more than one block holds",
                 culprit.row,
             )
         chunks.append((start, cut))

@@ -58,6 +58,12 @@ SETUP_AXES = frozenset("zcxyu")  # letters allowed after SETUP >
 COMMENT_CHARS = frozenset("ABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789 .,=_-")
 AXES = ("X", "Y", "Z")
 RUNAWAY_STEPS = 2_000_000  # executing more statements than this in one block is a loop
+NUMBER_MAX = 1_000_000  # largest magnitude a number may have (assumed): keeps arithmetic finite
+INTEGER_DIGITS_MAX = 9  # a whole number (tool, RPM, REPEAT count ...) has at most this many digits
+PASSES_MAX = 100_000  # passes, rings, rows or pecks one statement may make (project's cap)
+STATEMENT_POINTS_MAX = 200_000  # points of motion one statement may make (project's cap)
+TOOLPATH_POINTS_MAX = 250_000  # points of motion a program's toolpath may hold (project's cap)
+TOOLPATH_STEPS_MAX = 500_000  # statements a toolpath executes at most, REPEATs unrolled (project's)
 
 
 class Units(enum.Enum):

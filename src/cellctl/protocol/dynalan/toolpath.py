@@ -9,6 +9,12 @@ Usage::
 Coordinates are the machine's reference coordinates in the program's units. Problems met on the
 way (a move outside the travel, a statement that cannot run) are collected in ``faults``, not
 raised, so one run reports them all; the validator turns them into problems.
+
+Cost: the trace holds at most :data:`~cellctl.protocol.dynalan.table.TOOLPATH_POINTS_MAX`
+points and executes at most :data:`~cellctl.protocol.dynalan.table.TOOLPATH_STEPS_MAX`
+statements (REPEATs unrolled); a program that goes past either gets a ``size`` fault at the
+line where it did and is traced no further, so memory and time stay bounded whatever motion
+the program describes.
 """
 
 from __future__ import annotations
@@ -27,16 +33,16 @@ from cellctl.protocol.dynalan.machine import (
     travel_fault,
 )
 from cellctl.protocol.dynalan.splitter import Block, BlockLine
-from cellctl.protocol.dynalan.table import Units
+from cellctl.protocol.dynalan.table import TOOLPATH_POINTS_MAX, TOOLPATH_STEPS_MAX, Units
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class ToolpathMove:
     move: Move
     block: int  # 1-based block index
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Fault:
     """Something the controller would stop on, placed in the block and the file."""
 
@@ -82,21 +88,45 @@ def build_toolpath(
     blocks: Sequence[Block],
     state: MachineState,
     config: MachineConfig | None = None,
+    *,
+    max_points: int = TOOLPATH_POINTS_MAX,
+    max_steps: int = TOOLPATH_STEPS_MAX,
 ) -> Toolpath:
-    """Run ``blocks`` one after the other from ``state`` (changed in place) and trace them."""
+    """Run ``blocks`` one after the other from ``state`` (changed in place) and trace them.
+
+    Stops with a ``size`` fault once the trace passes ``max_points`` points or ``max_steps``
+    executed statements (see the module docstring).
+    """
     config = config or MachineConfig()
     path = Toolpath(state.units, blocks=len(blocks))
+    points = 0
+    steps_left = max_steps
     for block in blocks:
         by_number = {line.number: line for line in block.lines}
         path.block_starts.append(state.position)
         before = len(path.moves)
         reported: set[int] = set()
+        steps = 0
         try:
             for step in run_block(
-                block.memory(), state, config, check_travel=False, skip_malformed=True
+                block.memory(),
+                state,
+                config,
+                check_travel=False,
+                skip_malformed=True,
+                max_steps=steps_left,
             ):
+                steps += 1
                 if step.operator:
                     path.operator_stops += 1
+                points += sum(len(move.path) for move in step.moves)
+                if points > max_points:
+                    raise ProgramFault(
+                        "size",
+                        f"the program's motion passes {max_points:,} points here: too much "
+                        "to trace (REPEATs nested deep, or passes too fine?)",
+                        step.number,
+                    )
                 for move in step.moves:
                     path.moves.append(ToolpathMove(move, block.index))
                 fault = travel_fault(step.moves, state.units, config.travel)
@@ -107,6 +137,17 @@ def build_toolpath(
         except ProgramFault as fault:
             number = fault.number if fault.number is not None else 0
             origin = by_number.get(number)
-            path.faults.append(Fault(block.index, number, origin, fault.code, fault.message))
+            code, message = fault.code, fault.message
+            if code == "runaway":
+                code = "size"
+                message = (
+                    f"the program runs more than {max_steps:,} lines (REPEATs unrolled): "
+                    "a loop, or too much to trace"
+                )
+            path.faults.append(Fault(block.index, number, origin, code, message))
+            if code == "size":
+                path.block_seconds.append(sum(tm.move.seconds for tm in path.moves[before:]))
+                break
+        steps_left -= steps
         path.block_seconds.append(sum(tm.move.seconds for tm in path.moves[before:]))
     return path

@@ -19,6 +19,7 @@ is run from the tool at the reference zero), INS/MM mix-ups, and whether it spli
 from __future__ import annotations
 
 import re
+from bisect import bisect_right
 from dataclasses import dataclass, field, replace
 
 from cellctl.protocol.dynalan.machine import MachineConfig, MachineState
@@ -104,6 +105,9 @@ class _Checker:
         self.role = role
         self.units = program.units or context.units or Units.INS
         self.problems: list[Problem] = list(program.problems)
+        self.drill_seen = False  # a DRIL line came before the current one
+        self.opener: Line | None = None  # the last line of the segment that axis lines follow
+        self.local_zero = False  # ZERO AT is in effect in the segment (no >REF COORD since)
 
     def add(
         self, severity: Severity, code: str, line: Line, message: str, token: str | None = None
@@ -131,6 +135,8 @@ class _Checker:
             if is_block_end(line):
                 self.close_segment(segment[:-1], closed=True)
                 segment = []
+                self.opener = None
+                self.local_zero = False
         if segment:
             self.close_segment(segment, closed=False)
         self.role_checks()
@@ -150,6 +156,14 @@ class _Checker:
         if stmt is None:
             return
         kind = stmt.kind
+        opener, self.opener = self.opener, self.opener if kind in _TRANSPARENT else line
+        local_zero = self.local_zero
+        if kind is Kind.ZERO_AT:
+            self.local_zero = True
+        elif kind is Kind.REF_COORD:
+            self.local_zero = False
+        if kind is Kind.DRILL:
+            self.drill_seen = True
         self.precision(line)
         if is_block_end(line) and (prev is None or not _is_skip_900(prev)):
             self.error(
@@ -198,7 +212,7 @@ class _Checker:
                 axis,
             )
         elif kind is Kind.AXIS:
-            self.axis_line(line, segment)
+            self.axis_line(line, opener)
         elif kind is Kind.ARC:
             degrees = stmt.value("degrees")
             if abs(degrees) > ARC_MAX_DEGREES:
@@ -210,7 +224,7 @@ class _Checker:
                 )
             elif degrees == 0:
                 self.warn("arc", line, "arc of 0 degrees does nothing")
-            if not _local_zero_in_effect(segment):
+            if not local_zero:
                 self.warn("arc", line, "arc about the reference zero: no ZERO AT before it")
         elif kind is Kind.SPINDLE_SPEED and stmt.value("rpm") > SPINDLE_MAX_RPM:
             self.error("range", line, f"spindle {stmt.value('rpm'):g} RPM above 10,000 RPM")
@@ -219,7 +233,7 @@ class _Checker:
         elif kind is Kind.DRILL and stmt.value("peck") < 0:
             self.error("range", line, "PECK= takes 0 (one plunge) or a positive depth")
         elif kind in (Kind.DRILL_TOP, Kind.DRILL_BOTTOM):
-            if not any(seen.kind is Kind.DRILL for seen in self.program.lines[:index]):
+            if not self.drill_seen:
                 self.error("drill", line, f"{kind.value} without DRIL PECK= before it")
         elif kind is Kind.REPEAT and not 1 <= stmt.value("count") <= REPEAT_MAX:
             self.error("range", line, f"REPEAT count {stmt.value('count'):g} outside 1-99")
@@ -234,8 +248,8 @@ class _Checker:
                 self.error("cycle", line, f"{kind.value} needs XL= and YL= other than 0")
         elif kind is Kind.ARCFRAME and abs(stmt.value("A")) > 360:
             self.error("cycle", line, "ARCFRAME sweeps at most 360 degrees")
-        if stmt.values.get("DP", 0.0) < 0:
-            self.error("cycle", line, "DP= (depth a pass) must be above 0")
+        if "DP" in stmt.values and not stmt.values["DP"] > 0:
+            self.error("cycle", line, "DP= (depth a pass) must be above 0", "DP")
 
     def feed(self, line: Line, rate: float) -> None:
         low, high = scale(FEED_MIN, self.units), scale(FEED_MAX, self.units)
@@ -269,12 +283,8 @@ class _Checker:
                 )
                 return
 
-    def axis_line(self, line: Line, segment: list[Line]) -> None:
+    def axis_line(self, line: Line, opener: Line | None) -> None:
         assert line.statement is not None
-        opener = next(
-            (s for s in reversed(segment) if s.kind not in (Kind.AXIS, Kind.COMMENT, Kind.BLANK)),
-            None,
-        )
         words = line.statement.words
         kind = opener.kind if opener else None
         if kind in MOTION_KINDS or kind is Kind.ZERO_AT:
@@ -307,30 +317,35 @@ class _Checker:
                 "sending)",
             )
         stack: list[int] = []
-        frames: list[tuple[int, ...]] = []
+        frames: list[int] = []  # the innermost REPEAT around each line (-1: none)
         for i, line in enumerate(items):
             if line.kind is Kind.REPEAT_END:
                 if stack:
                     stack.pop()
                 else:
                     self.error("repeat", line, "REPEAT END without a REPEAT before it")
-            frames.append(tuple(stack))
+            frames.append(stack[-1] if stack else -1)
             if line.kind is Kind.REPEAT:
                 stack.append(i)
         for i in stack:
             self.error("repeat", items[i], "REPEAT without a REPEAT END in its block")
+        rows: dict[int, list[int]] = {}
+        for i, line in enumerate(items):
+            rows.setdefault(line.number, []).append(i)
         for i, line in enumerate(items):
             if line.kind is not Kind.SKIP:
                 continue
             assert line.statement is not None
             target = int(line.statement.value("target"))
             if target == BLOCK_END_LINE:
-                if frames[i] and items[frames[i][-1]].kind is Kind.REPEAT:
+                if frames[i] >= 0:
                     self.error("skip", line, "SKIP TO 900 from inside a REPEAT leaves it open")
                 continue
-            found = next((j for j in range(i + 1, len(items)) if items[j].number == target), None)
+            places = rows.get(target, [])
+            after = bisect_right(places, i)
+            found = places[after] if after < len(places) else None
             if found is None:
-                if any(items[j].number == target for j in range(i)):
+                if after > 0:
                     self.error(
                         "skip",
                         line,
@@ -424,13 +439,8 @@ def _is_skip_900(line: Line) -> bool:
     )
 
 
-def _local_zero_in_effect(segment: list[Line]) -> bool:
-    for line in reversed(segment):
-        if line.kind is Kind.ZERO_AT:
-            return True
-        if line.kind is Kind.REF_COORD:
-            return False
-    return False
+#: Lines that axis-only lines look through to find what they continue.
+_TRANSPARENT = frozenset({Kind.AXIS, Kind.COMMENT, Kind.BLANK})
 
 
 def validate(program: Program, context: ValidationContext | None = None) -> Validation:

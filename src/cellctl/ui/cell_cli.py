@@ -326,7 +326,10 @@ async def _demo(time_scale: float, count: int, out: Path, compare: bool) -> None
         f"[bold]cellctl demo[/bold]: an emulated cell (robot, 2 mills, PLC) at time scale "
         f"{time_scale:g}; batch: {half} wax-robot-base + {count - half} wax-toy-mill-table"
     )
-    summary = await run_batch(out / "cell", time_scale, batch, one_at_a_time=False, live=True)
+    # A live view on a terminal; elsewhere (a file, a pipe) every event a line as it happens.
+    live = console.is_terminal
+    summary = await run_batch(out / "cell", time_scale, batch, one_at_a_time=False, live=live)
+    console.print()
     console.print("\n".join(summary.lines("[bold]cellctl schedule[/bold]")))
     console.print(f"Gantt chart: {out / 'cell' / 'gantt.svg'}")
     if compare:
@@ -334,6 +337,7 @@ async def _demo(time_scale: float, count: int, out: Path, compare: bool) -> None
         base = await run_batch(
             out / "one-at-a-time", time_scale, batch, one_at_a_time=True, live=False
         )
+        console.print()
         console.print("\n".join(base.lines("[bold]one part at a time[/bold]")))
         console.print(f"Gantt chart: {out / 'one-at-a-time' / 'gantt.svg'}")
         if summary.makespan_s > 0:

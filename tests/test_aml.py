@@ -138,3 +138,69 @@ def test_example_programs_compile(path: Path) -> None:
 
 def test_there_are_three_transfer_examples() -> None:
     assert len(list(EXAMPLES.glob("*.aml"))) == 3
+
+
+def test_aml_as_it_is_written_compiles() -> None:
+    # Several statements on one line, a label and a statement together, a trailing comment.
+    text = "START: PMOVE(PT(300, 100, 0, 0)); DOWN; GRASP; UP;  -- pick\nBRANCH(START); END\n"
+    assert [(i.op, i.operands, i.line) for i in compile_program(text)] == [
+        (Op.PMOVE, (3000, 1000, 0, 0), 1),
+        (Op.DOWN, (), 1),
+        (Op.GRASP, (), 1),
+        (Op.UP, (), 1),
+        (Op.BRANCH, (0,), 2),
+        (Op.END, (), 2),
+    ]
+
+
+def test_speed_zmove_and_testi_encode_and_decode() -> None:
+    text = "SPEED(25)\nZMOVE(-12.5)\nL: TESTI(4, 0, L); TESTI(16, 1, out)\nOUT: END\n"
+    ops = compile_program(text)
+    assert [(i.op, i.operands) for i in ops] == [
+        (Op.SPEED, (25,)),
+        (Op.ZMOVE, (-125,)),
+        (Op.TESTI, (4, 0, 2)),
+        (Op.TESTI, (16, 1, 4)),
+        (Op.END, ()),
+    ]
+    records = [encode_instruction(i) for i in ops]
+    assert records[0] == Record("D", bytes.fromhex("0B 19"))
+    assert records[1] == Record("D", bytes.fromhex("0C FF83"))
+    assert records[2] == Record("D", bytes.fromhex("0D 04 00 0002"))
+    assert [(i.op, i.operands) for i in decode_program(records)] == [
+        (i.op, i.operands) for i in ops
+    ]
+
+
+@pytest.mark.parametrize(
+    ("text", "where", "message"),
+    [
+        ("SPEED(0)\nEND\n", "line 1, column 7", "speed \\(percent\\) 0 out of range"),
+        ("SPEED(50.5)\nEND\n", "line 1, column 7", "whole number"),
+        ("ZMOVE(5000)\nEND\n", "line 1, column 7", "out of range"),
+        ("TESTI(3, 1)\nEND\n", "line 1, column 11", "expected ','"),
+        ("TESTI(3, 1, 7)\nEND\n", "line 1, column 13", "TESTI needs a label"),
+        ("TESTI(3, 1, nowhere)\nEND\n", "line 1, column 13", "undefined label NOWHERE"),
+        ("GRASP; UP DOWN\nEND\n", "line 1, column 11", "separate statements with ';'"),
+        ("GRASP;; UP; -- x\nEND; GRASP\n", "line 2, column 6", "statement after END"),
+    ],
+)
+def test_new_statement_errors_say_line_and_column(text: str, where: str, message: str) -> None:
+    with pytest.raises(UsageError, match=message) as info:
+        compile_program(text)
+    assert where in str(info.value)
+
+
+@pytest.mark.parametrize(
+    "record",
+    [
+        Record("D", b"\x0b\x00"),  # SPEED 0
+        Record("D", b"\x0b\x65"),  # SPEED 101
+        Record("D", b"\x0d\x03\x01\x00\x09"),  # TESTI past the end
+        Record("D", b"\x0d\x00\x01\x00\x00"),  # TESTI port 0
+        Record("D", b"\x0c\x00"),  # ZMOVE too short
+    ],
+)
+def test_decode_program_refuses_bad_new_records(record: Record) -> None:
+    with pytest.raises(FramingError):
+        decode_program([record, encode_instruction(Instruction(Op.END))])

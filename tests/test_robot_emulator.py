@@ -505,3 +505,38 @@ async def test_paced_line_answers_the_same_bytes() -> None:
     await host.read(b"01", b"D0200000" + b"0")
     await host.close()
     await srv.close()
+
+
+AML_AS_WRITTEN = """\
+START: PMOVE(PT(500, -300, 0, 0)); SPEED(50); ZMOVE(120.5);  -- several statements, one line
+       TESTI(3, 1, DONE); WRITEO(7, 1);
+DONE:  END
+"""
+
+
+@pytest.mark.parametrize(("input_3", "output_7"), [(False, True), (True, False)])
+async def test_speed_zmove_and_testi_run(
+    host: RawHost, robot: Ibm7545Emulator, input_3: bool, output_7: bool
+) -> None:
+    robot.set_input(3, input_3)
+    await host.initialize()
+    await host.download(AML_AS_WRITTEN, "TESTI", 1)
+    await host.execute(b"31", ACK)
+    await host.execute(b"22", ACK)
+    await poll(lambda: robot.runs[-1].outcome != "running")
+    assert robot.runs[-1].outcome == "completed"
+    assert robot.position == (500.0, -300.0, 120.5, 0.0)
+    assert robot.speed_percent == 50
+    assert robot.output(7) is output_7  # TESTI jumped over WRITEO when input 3 was on
+
+
+async def test_a_jump_to_itself_keeps_the_controller_answering(
+    host: RawHost, robot: Ibm7545Emulator
+) -> None:
+    await host.initialize()
+    await host.download("HERE: BRANCH(HERE); END\n", "SPIN", 1)
+    await host.execute(b"31", ACK)
+    await host.execute(b"22", ACK)
+    await host.read(b"01", b"D0200000" + b"0")  # answered while the program spins
+    await host.execute(b"23", XOFF + XON)
+    assert robot.runs[-1].outcome == "stopped"

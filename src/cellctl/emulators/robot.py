@@ -20,9 +20,10 @@ What it models:
   while a record is expected (30 s) -> 112, manipulator power off -> 128.
 - Programs compiled by :mod:`cellctl.protocol.aml` run in the background while state is 2: SCARA
   inverse kinematics (link lengths assumed 400 + 250 mm), moves timed from Cartesian distance
-  and speed (assumed 500 mm/s), workspace check (data error 64, point out of workspace), gripper
-  and Z on outputs 16 and 15, WRITEO, WAITI blocking until :meth:`set_input`, DELAY. Each run is
-  logged in :attr:`runs`.
+  and speed (assumed 500 mm/s, scaled by SPEED), workspace check (data error 64, point out of
+  workspace), gripper and Z on outputs 16 and 15, WRITEO, WAITI blocking until
+  :meth:`set_input`, TESTI branching on an input, ZMOVE (Z only), DELAY. A loop of jumps yields
+  to the event loop at each jump. Each run is logged in :attr:`runs`.
 - Machine times (moves, return home, the 25 s Xoff repeat, the 30 s host timeout) are divided by
   ``time_scale``. Line pacing is the serving layer's (``DeviceLine``).
 - Fault switches, :data:`FAULTS`: ``power-off``, ``servo-error``, ``corrupt-checksum=N``,
@@ -202,6 +203,7 @@ class Ibm7545Emulator(EmulatedDevice):
         how a cell emulator wires the robot's outputs to the PLC."""
         self.faults: dict[str, str | None] = {}
         self.position: tuple[float, float, float, float] = self.arm.home
+        self.speed_percent = 100  # SPEED(percent) of the running program; each run starts at 100
         self._corrupt_left = 0
         self._input_waiters: list[asyncio.Future[None]] = []
         self._cycle: asyncio.Task[None] | None = None
@@ -496,7 +498,7 @@ class Ibm7545Emulator(EmulatedDevice):
     def _move_time(
         self, a: tuple[float, float, float, float], b: tuple[float, float, float, float]
     ) -> float:
-        return math.dist(a[:3], b[:3]) / self.speed_mm_s
+        return math.dist(a[:3], b[:3]) / (self.speed_mm_s * self.speed_percent / 100)
 
     def _abort(self, reason: str) -> None:
         if self._cycle is not None and not self._cycle.done():
@@ -524,17 +526,22 @@ class Ibm7545Emulator(EmulatedDevice):
     async def _run(self, program: LoadedProgram, run: ProgramRun) -> None:
         """Execute ``program`` until END, an error, or a stop; then state 1 (0 on power loss)."""
         pc = 0
+        self.speed_percent = 100
         try:
             while True:
                 ins = program.instructions[pc]
                 pc += 1
-                if ins.op is Op.PMOVE:
-                    point = (
-                        ins.operands[0] / 10,
-                        ins.operands[1] / 10,
-                        ins.operands[2] / 10,
-                        ins.operands[3] / 10,
-                    )
+                if ins.op in (Op.PMOVE, Op.ZMOVE):
+                    if ins.op is Op.PMOVE:
+                        point = (
+                            ins.operands[0] / 10,
+                            ins.operands[1] / 10,
+                            ins.operands[2] / 10,
+                            ins.operands[3] / 10,
+                        )
+                    else:
+                        x, y, _, roll = self.position
+                        point = (x, y, ins.operands[0] / 10, roll)
                     if not self.arm.reachable(point):
                         self._data_error(POINT_OUT_OF_WORKSPACE)
                         run.outcome = "point out of workspace"
@@ -553,8 +560,16 @@ class Ibm7545Emulator(EmulatedDevice):
                     self._set_output(ins.operands[0], bool(ins.operands[1]))
                 elif ins.op is Op.WAITI:
                     await self._wait_input(ins.operands[0], bool(ins.operands[1]))
-                elif ins.op is Op.BRANCH:
-                    pc = ins.operands[0]
+                elif ins.op is Op.SPEED:
+                    self.speed_percent = ins.operands[0]
+                elif ins.op is Op.BRANCH or (
+                    ins.op is Op.TESTI
+                    and DiDo(self.inputs, self.outputs).input(ins.operands[0])
+                    == bool(ins.operands[1])
+                ):
+                    pc = ins.operands[-1]
+                    # A loop of jumps takes no machine time: let the link and the I/O go on.
+                    await asyncio.sleep(0)
                 elif ins.op is Op.END:
                     run.outcome = "completed"
                     break

@@ -4,15 +4,17 @@ The real AML/E compiler is not available, so cellctl defines its own instruction
 D record of a program file carries one instruction, an opcode byte followed by big-endian
 operands (:data:`OPCODES`, the one table that the emulator's interpreter reads too).
 
-Source language (one statement per line, keywords in any case, ``--`` starts a comment, an
-optional ``;`` ends a statement)::
+Source language (statements end at ``;`` or at the end of the line, so several may share a
+line; ``name:`` labels the statement after it, on the same line or the next; keywords in any
+case; ``--`` starts a comment, also after statements)::
 
     -- conveyor to CNC 1
     START:  PMOVE(PT(500.0, 100.0, 50.0, 90.0))   -- x, y, z in mm; roll in degrees
-            DOWN
-            GRASP
-            UP
+            DOWN; GRASP; UP;
+            SPEED(50)                              -- half the arm's speed from here on
             WAITI(3, 1)                            -- wait until input 3 is on
+            TESTI(4, 1, START)                     -- back to START if input 4 is on
+            ZMOVE(120.5)                           -- Z axis only, mm
             WRITEO(5, 0)                           -- switch output 5 off
             DELAY(1.5)                             -- seconds
             RELEASE
@@ -25,6 +27,8 @@ Units and ranges (what the encoding can carry; the controller checks the workspa
   tenths as signed 16 bits: -3276.8 .. 3276.7 mm; roll -360.0 .. 360.0 degrees.
 - ``DELAY(s)``: seconds, at most one decimal, 0 .. 6553.5.
 - ``WAITI(port, value)`` / ``WRITEO(port, value)``: port 1..16, value 0 or 1.
+- ``TESTI(port, value, label)``: branch to ``label`` if input ``port`` has ``value``.
+- ``SPEED(percent)``: 1..100, whole; ``ZMOVE(z)``: z in mm like a point's.
 - ``BRANCH(label)``: a label defined anywhere in the program (``name:`` at the start of a line).
 - ``END`` must be the last statement; a program without it is refused.
 
@@ -74,6 +78,9 @@ class Op(enum.IntEnum):
     WRITEO = 0x08
     BRANCH = 0x09
     END = 0x0A
+    SPEED = 0x0B
+    ZMOVE = 0x0C
+    TESTI = 0x0D
 
 
 @dataclass(frozen=True)
@@ -96,6 +103,13 @@ OPCODES: dict[Op, OpSpec] = {
     Op.WRITEO: OpSpec(">BB", "output port 1..16, value 0/1"),
     Op.BRANCH: OpSpec(">H", "index of the target instruction (0 = first)"),
     Op.END: OpSpec(">", "end of the program: the cycle completes"),
+    Op.SPEED: OpSpec(">B", "speed in percent of the arm's full speed, 1..100"),
+    Op.ZMOVE: OpSpec(">h", "z in 0.1 mm: move the Z axis only"),
+    Op.TESTI: OpSpec(
+        ">BBH",
+        "input port 1..16, value 0/1, index of the target instruction: branch if the input "
+        "has the value",
+    ),
 }
 
 PORTS = range(1, 17)
@@ -142,9 +156,13 @@ def decode_program(records: Iterable[Record]) -> list[Instruction]:
             raise FramingError(f"{op.name} record has the wrong length", rec.data)
         out.append(Instruction(op, struct.unpack(fmt, rec.data[1:])))
     for ins in out:
-        if ins.op is Op.BRANCH and ins.operands[0] >= len(out):
-            raise FramingError(f"BRANCH to instruction {ins.operands[0]} outside the program")
-        if ins.op in (Op.WAITI, Op.WRITEO) and (
+        if ins.op in (Op.BRANCH, Op.TESTI) and ins.operands[-1] >= len(out):
+            raise FramingError(
+                f"{ins.op.name} to instruction {ins.operands[-1]} outside the program"
+            )
+        if ins.op is Op.SPEED and not 1 <= ins.operands[0] <= 100:
+            raise FramingError(f"SPEED {ins.operands[0]} outside 1..100 percent")
+        if ins.op in (Op.WAITI, Op.WRITEO, Op.TESTI) and (
             ins.operands[0] not in PORTS or ins.operands[1] not in (0, 1)
         ):
             raise FramingError(f"{ins.op.name} with port/value {ins.operands} out of range")
@@ -240,83 +258,133 @@ def compile_program(text: str, source: str = "<aml>") -> list[Instruction]:
     for lineno, raw in enumerate(text.splitlines(), start=1):
         code = raw.split("--", 1)[0]
         line = _Line(code, lineno, source)
-        # labels: NAME ':' (several allowed on one line)
-        while (
-            line.peek().kind == "name"
-            and line.toks[line.i + 1].text == ":"
-            and line.peek().text.upper() not in _NO_ARGS
-        ):
+        while line.peek().kind != "end":
+            if line.peek().text == ";":  # an empty statement
+                line.take()
+                continue
+            _labels(line, labels, len(instructions), end_seen)
             tok = line.take()
-            line.take()
-            key = tok.text.upper()
+            if tok.kind == "end":
+                break
             if end_seen is not None:
-                raise line.error(tok.col, f"label {tok.text} after END (line {end_seen.lineno})")
-            if key in labels:
-                raise line.error(tok.col, f"label {tok.text} defined twice")
-            labels[key] = len(instructions)
-        tok = line.take()
-        if tok.kind == "end":
-            continue
-        if end_seen is not None:
-            raise line.error(tok.col, f"statement after END (line {end_seen.lineno})")
-        if tok.kind != "name":
-            raise line.error(tok.col, f"expected a statement, found {tok.text!r}")
-        word = tok.text.upper()
-        ins: Instruction
-        if word in _NO_ARGS:
-            ins = Instruction(_NO_ARGS[word], (), lineno)
-            if word == "END":
+                raise line.error(tok.col, f"statement after END (line {end_seen.lineno})")
+            if tok.kind != "name":
+                raise line.error(tok.col, f"expected a statement, found {tok.text!r}")
+            ins, target = _statement(line, tok)
+            if target is not None:
+                branches.append((len(instructions), target.text.upper(), line, target.col))
+            if ins.op is Op.END:
                 end_seen = line
-        elif word == "PMOVE":
-            line.expect("(")
-            pt = line.take()
-            if pt.text.upper() != "PT":
-                raise line.error(pt.col, "PMOVE needs a point: PMOVE(PT(x, y, z, roll))")
-            line.expect("(")
-            coords: list[int] = []
-            for axis in ("x", "y", "z"):
-                coords.append(line.number(f"{axis} (mm)", *_MM))
-                line.expect(",")
-            coords.append(line.number("roll (degrees)", *_DEG))
-            line.expect(")")
-            line.expect(")")
-            ins = Instruction(Op.PMOVE, tuple(coords), lineno)
-        elif word == "DELAY":
-            line.expect("(")
-            tenths = line.number("delay (s)", Decimal(0), Decimal("6553.5"))
-            line.expect(")")
-            ins = Instruction(Op.DELAY, (tenths,), lineno)
-        elif word in ("WAITI", "WRITEO"):
-            line.expect("(")
-            port = line.number("port", Decimal(1), Decimal(16), integer=True)
-            line.expect(",")
-            value = line.number("value", Decimal(0), Decimal(1), integer=True)
-            line.expect(")")
-            ins = Instruction(Op[word], (port, value), lineno)
-        elif word == "BRANCH":
-            line.expect("(")
-            target = line.take()
-            if target.kind != "name":
-                raise line.error(target.col, "BRANCH needs a label: BRANCH(name)")
-            line.expect(")")
-            branches.append((len(instructions), target.text.upper(), line, target.col))
-            ins = Instruction(Op.BRANCH, (0,), lineno)
-        else:
-            raise line.error(tok.col, f"unknown statement {tok.text}")
-        if line.peek().text == ";":
-            line.take()
-        rest = line.peek()
-        if rest.kind != "end":
-            raise line.error(rest.col, f"unexpected {rest.text!r} after {word}")
-        instructions.append(ins)
+            instructions.append(ins)
+            rest = line.peek()
+            if rest.text == ";":
+                line.take()
+            elif rest.kind != "end":
+                raise line.error(
+                    rest.col,
+                    f"unexpected {rest.text!r} after {tok.text.upper()}: separate statements "
+                    "with ';'",
+                )
     if end_seen is None:
         raise UsageError(f"{source}: missing END (the program's last statement)")
     for index, label, line, col in branches:
         if label not in labels:
             raise line.error(col, f"undefined label {label}")
         old = instructions[index]
-        instructions[index] = Instruction(Op.BRANCH, (labels[label],), old.line)
+        instructions[index] = Instruction(old.op, (*old.operands[:-1], labels[label]), old.line)
     return instructions
+
+
+def _labels(line: _Line, labels: dict[str, int], here: int, end_seen: _Line | None) -> None:
+    """Take the ``name:`` labels in front of a statement (several may stand together)."""
+    while (
+        line.peek().kind == "name"
+        and line.toks[line.i + 1].text == ":"
+        and line.peek().text.upper() not in _NO_ARGS
+    ):
+        tok = line.take()
+        line.take()
+        key = tok.text.upper()
+        if end_seen is not None:
+            raise line.error(tok.col, f"label {tok.text} after END (line {end_seen.lineno})")
+        if key in labels:
+            raise line.error(tok.col, f"label {tok.text} defined twice")
+        labels[key] = here
+
+
+def _port_value(line: _Line) -> tuple[int, int]:
+    port = line.number("port", Decimal(1), Decimal(16), integer=True)
+    line.expect(",")
+    value = line.number("value", Decimal(0), Decimal(1), integer=True)
+    return port, value
+
+
+def _label_operand(line: _Line, word: str) -> _Tok:
+    target = line.take()
+    if target.kind != "name":
+        raise line.error(target.col, f"{word} needs a label: {_SYNTAX[word]}")
+    return target
+
+
+_SYNTAX = {
+    "BRANCH": "BRANCH(name)",
+    "TESTI": "TESTI(port, value, name)",
+}
+
+
+def _statement(line: _Line, tok: _Tok) -> tuple[Instruction, _Tok | None]:
+    """One statement after its keyword ``tok``: the instruction, and the label it jumps to."""
+    lineno = line.lineno
+    word = tok.text.upper()
+    if word in _NO_ARGS:
+        return Instruction(_NO_ARGS[word], (), lineno), None
+    if word not in _WITH_ARGS:
+        raise line.error(tok.col, f"unknown statement {tok.text}")
+    line.expect("(")
+    target: _Tok | None = None
+    operands: tuple[int, ...]
+    if word == "PMOVE":
+        pt = line.take()
+        if pt.text.upper() != "PT":
+            raise line.error(pt.col, "PMOVE needs a point: PMOVE(PT(x, y, z, roll))")
+        line.expect("(")
+        coords: list[int] = []
+        for axis in ("x", "y", "z"):
+            coords.append(line.number(f"{axis} (mm)", *_MM))
+            line.expect(",")
+        coords.append(line.number("roll (degrees)", *_DEG))
+        line.expect(")")
+        operands = tuple(coords)
+    elif word == "DELAY":
+        operands = (line.number("delay (s)", Decimal(0), Decimal("6553.5")),)
+    elif word == "SPEED":
+        operands = (line.number("speed (percent)", Decimal(1), Decimal(100), integer=True),)
+    elif word == "ZMOVE":
+        operands = (line.number("z (mm)", *_MM),)
+    elif word in ("WAITI", "WRITEO"):
+        operands = _port_value(line)
+    elif word == "TESTI":
+        port, value = _port_value(line)
+        line.expect(",")
+        target = _label_operand(line, word)
+        operands = (port, value, 0)
+    else:  # BRANCH
+        target = _label_operand(line, word)
+        operands = (0,)
+    line.expect(")")
+    return Instruction(_WITH_ARGS[word], operands, lineno), target
+
+
+_WITH_ARGS = {
+    "PMOVE": Op.PMOVE,
+    "DELAY": Op.DELAY,
+    "SPEED": Op.SPEED,
+    "ZMOVE": Op.ZMOVE,
+    "WAITI": Op.WAITI,
+    "WRITEO": Op.WRITEO,
+    "TESTI": Op.TESTI,
+    "BRANCH": Op.BRANCH,
+}
 
 
 def compile_source(text: str, name: str, partition: int = 1, source: str = "<aml>") -> ProgramFile:

@@ -55,11 +55,10 @@ def running_cell(tmp_path: Path) -> Iterator[tuple[Path, subprocess.Popen[str]]]
         toml.write_text(re.sub(r"poll_period = [0-9.]+", "poll_period = 0.1", toml.read_text()))
         with open_mailbox(cell) as mailbox:
             mailbox.post_order("wax-robot-base", 4, order_id="A")
+        log = (tmp_path / "run.log").open("w")
+        # Output to a file: the plain event log, a line at a time, is the default there.
         run = subprocess.Popen(
-            [*CELLCTL, "--cell", str(cell), "run", "--no-live"],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
+            [*CELLCTL, "--cell", str(cell), "run"], stdout=log, stderr=subprocess.STDOUT, text=True
         )
         wait_until(lambda: (cell / "api.sock").exists(), "the API socket")
         yield cell, run
@@ -83,6 +82,9 @@ def test_status_from_a_second_shell_does_not_disturb_the_cut(
     running_cell: tuple[Path, subprocess.Popen[str]],
 ) -> None:
     cell, run = running_cell
+    log = cell.parent / "run.log"
+    wait_until(lambda: "order A accepted" in log.read_text(), "the event log, as it happens")
+    assert "control API on" in log.read_text() and run.poll() is None
     wait_until(lambda: "started" in cuts(cell), "a cut in flight")
     for _ in range(3):
         robot = cellctl(cell, "robot", "robot", "status")

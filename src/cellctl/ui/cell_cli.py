@@ -88,14 +88,24 @@ async def run_controller(
     stop: asyncio.Event | None = None,
 ) -> CellController:
     """Connect and run the controller of ``directory`` until stopped (or idle)."""
-    owner = acquire_controller_lock(directory)  # first: a refused one reads and writes nothing
-    try:
-        config = load_cell(directory)
-        journal = open_journal(directory)
-        mailbox = open_mailbox(directory)
-    except BaseException:
-        owner.release()
-        raise
+    # First: a refused controller reads and writes nothing. Held until every link is closed.
+    with acquire_controller_lock(directory):
+        return await _run_owned(
+            directory, live=live, until_idle=until_idle, options=options, stop=stop
+        )
+
+
+async def _run_owned(
+    directory: Path,
+    *,
+    live: bool,
+    until_idle: bool,
+    options: ControllerOptions | None,
+    stop: asyncio.Event | None,
+) -> CellController:
+    config = load_cell(directory)
+    journal = open_journal(directory)
+    mailbox = open_mailbox(directory)
     stop = stop or asyncio.Event()
     printer = None if live else _print_event
     controller = CellController(config, journal, mailbox, options=options, on_event=printer)
@@ -111,14 +121,14 @@ async def run_controller(
         else:
             raise KeyboardInterrupt
 
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, on_signal)
     server = ApiServer(
         AttachedCell(controller),
         directory,
         listen=api_listen(config),
         allow_remote=api_allow_remote(config),
     )
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, on_signal)
     try:
         await server.start()
         controller.log(f"control API on {server.url}")
@@ -138,7 +148,6 @@ async def run_controller(
             loop.remove_signal_handler(sig)
         await server.close()
         await controller.close()
-        owner.release()
     return controller
 
 

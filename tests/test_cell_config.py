@@ -69,9 +69,9 @@ def test_every_problem_is_printed(tmp_path: Path) -> None:
         "[cell] robot: no robot machine 'robot'",
         "[machines.cnc2] setup: a mill needs its setup program",
         "[machines.cnc1] go_output: no PLC coil 'go_9'",
-        "[cell] poll_period must be positive",
+        "[cell] poll_period: Input should be greater than 0, not 0 (line 12)",
         "[robot_programs] cnc1_to_cnc2:",
-        "[parts.wax-toy-mill-table] route step 2: unknown mill 'cnc3'",
+        "[parts.wax-toy-mill-table] route[2].mill: unknown mill 'cnc3'",
         "problem(s) in",
     ]
     for text in expected:

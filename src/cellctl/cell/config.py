@@ -40,10 +40,22 @@ and the AML/E compiler — and returns every problem; :func:`load_cell` returns 
 
 from __future__ import annotations
 
+import ipaddress
 import itertools
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from types import UnionType
+from typing import Annotated, Any, Literal, TypeVar, Union, get_args, get_origin
+
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from cellctl.errors import CellctlError, UsageError
 from cellctl.link import LineSettings
@@ -125,6 +137,8 @@ class CellConfig:
     parts: dict[str, PartType]
     poll_period: float = 0.5
     raw: dict[str, Any] = field(default_factory=dict)
+    api_listen: str | None = None  # [api] listen: "HOST:PORT"; None = the Unix socket only
+    api_allow_remote: bool = False  # [api] allow_remote: a non-loopback listen is allowed
 
     def machine(self, name: str) -> MachineConfig:
         """The robot or mill called ``name``."""
@@ -134,100 +148,473 @@ class CellConfig:
         raise UsageError(f"unknown machine {name!r}")
 
 
-def _load_toml(directory: Path) -> dict[str, Any]:
+# --- the schema: cell.toml described once -------------------------------------------------------
+
+Seconds = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+Text = Annotated[str, Field(min_length=1)]
+
+
+class _Table(BaseModel):
+    model_config = ConfigDict(strict=True, extra="forbid", frozen=True)
+
+
+class CellTable(_Table):
+    """``[cell]``: what the cell is and how the controller paces itself."""
+
+    name: Text | None = Field(
+        default=None, description="the cell's name (default: the directory's)"
+    )
+    robot: Text | None = Field(
+        default=None, description="the machine that tends the mills (default: the first robot)"
+    )
+    mills: list[Text] | None = Field(
+        default=None, description="the mills, in route order (default: every dyna2400)"
+    )
+    poll_period: Seconds = Field(
+        default=0.5, description="s: a fault is noticed within one poll period"
+    )
+    retries: Annotated[int, Field(ge=0, le=100)] = Field(
+        default=2, description="a rejected robot start is reset and retried this many times"
+    )
+    fail_limit: Annotated[int, Field(ge=1, le=1000)] = Field(
+        default=3, description="failures in a row before a machine is taken out of service"
+    )
+    done_output: Annotated[int, Field(ge=1, le=16)] = Field(
+        default=6, description="the robot output the transfer programs raise when done"
+    )
+    transfer_timeout: Seconds = Field(default=120.0, description="s a transfer may take")
+    interlock_timeout: Seconds = Field(
+        default=30.0, description="s for a door or vise to reach its position"
+    )
+    pallet_timeout: Seconds = Field(
+        default=60.0,
+        description="s for the conveyor to bring a pallet once asked (then alarm, ask again)",
+    )
+
+
+class MachineTable(_Table):
+    """``[machines.NAME]``: one robot or mill and how to reach it."""
+
+    kind: Literal["ibm7545", "ibm7547", "dyna2400"] = Field(description="the machine's kind")
+    link: Text = Field(
+        description="a serial device, rfc2217://HOST:PORT, socket://HOST:PORT or loop://"
+    )
+    line: Text | None = Field(
+        default=None, description='line settings, e.g. "4800,7E2" (default: the kind\'s)'
+    )
+    setup: Text | None = Field(
+        default=None,
+        description="a mill's setup program (required for a mill), relative to the cell",
+    )
+    go_output: Text | None = Field(
+        default=None, description="the PLC coil wired to the mill's GO input"
+    )
+    options: dict[str, Any] = Field(
+        default_factory=dict, description="driver options (a table, free-form per driver)"
+    )
+
+    @field_validator("line")
+    @classmethod
+    def _line(cls, value: str | None) -> str | None:
+        if value is not None:
+            try:
+                LineSettings.parse(value)
+            except CellctlError as e:
+                raise ValueError(str(e)) from None
+        return value
+
+
+class RouteStepTable(_Table):
+    """One entry of ``[parts.NAME] route``: which mill runs which program."""
+
+    mill: Text = Field(description="a mill of [cell] mills")
+    program: Text = Field(description="the DYNALAN program, relative to the cell (must exist)")
+
+
+class PartTable(_Table):
+    """``[parts.NAME]``: a product and its route through the mills."""
+
+    route: Annotated[list[RouteStepTable], Field(min_length=1)] = Field(
+        description="a list of { mill, program }, in order"
+    )
+
+
+class ApiTable(_Table):
+    """``[api]``: where the control API listens besides the cell's Unix socket."""
+
+    listen: Text | None = Field(
+        default=None,
+        description='"HOST:PORT", e.g. "127.0.0.1:7125" (default: the Unix socket only)',
+    )
+    allow_remote: bool = Field(
+        default=False, description="a listen address that is not loopback is refused unless true"
+    )
+
+    @model_validator(mode="after")
+    def _listen(self) -> ApiTable:
+        if self.listen is not None:
+            loopback = _is_loopback(self.listen)
+            if not loopback and not self.allow_remote:
+                raise ValueError(
+                    f"listen = {self.listen!r} is not a loopback address: set "
+                    "allow_remote = true to answer there"
+                )
+        return self
+
+
+def _is_loopback(text: str) -> bool:
+    """Whether ``HOST:PORT`` names a loopback host; ValueError when it is not HOST:PORT."""
+    host, sep, port = text.rpartition(":")
+    host = host.strip("[]")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f'listen = {text!r}: write "HOST:PORT", e.g. "127.0.0.1:7125"')
+    try:
+        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        loopback = False
+    return loopback
+
+
+class CellFile(BaseModel):
+    """The whole of ``cell.toml``. :func:`check_cell` checks each table (and each machine, part
+    and robot program) on its own, so one wrong value never hides the others' problems."""
+
+    model_config = ConfigDict(strict=True, extra="forbid")
+
+    cell: CellTable = Field(default_factory=lambda: CellTable(), description="the cell")
+    machines: dict[str, MachineTable] = Field(
+        default_factory=dict, description="[machines.NAME]: the robot and the mills"
+    )
+    plc: dict[str, Any] = Field(
+        description="the cell's Modbus/TCP PLC: url, unit, timeout, poll, coils, inputs "
+        "(see cellctl.protocol.plc)"
+    )
+    robot_programs: dict[str, Text] = Field(
+        default_factory=dict, description="AML/E source of each transfer, SOURCE_to_TARGET = path"
+    )
+    parts: dict[str, PartTable] = Field(
+        default_factory=dict, description="[parts.NAME]: the products and their routes"
+    )
+    api: ApiTable = Field(default_factory=lambda: ApiTable(), description="the control API")
+
+
+#: The tables of :class:`CellFile` whose entries each have their own schema.
+_PER_ENTRY: dict[str, type[_Table]] = {"machines": MachineTable, "parts": PartTable}
+_TABLES: dict[str, type[_Table]] = {"cell": CellTable, "api": ApiTable}
+
+
+def reference_table() -> str:
+    """The reference of ``cell.toml`` in docs/cell.md, rendered from the schema."""
+    out = ["| key | type | default | meaning |", "|---|---|---|---|"]
+    sections: list[tuple[str, type[BaseModel]]] = [
+        ("[cell]", CellTable),
+        ("[machines.NAME]", MachineTable),
+        ("[parts.NAME] route[n]", RouteStepTable),
+        ("[api]", ApiTable),
+    ]
+    for title, model in sections:
+        for key, info in model.model_fields.items():
+            default = (
+                "required"
+                if info.is_required()
+                else _shown(info.get_default(call_default_factory=True))
+            )
+            out.append(
+                f"| `{title} {key}` | {_type_name(info.annotation, info.metadata)} | "
+                f"{default} | {info.description or ''} |"
+            )
+    for key in ("plc", "robot_programs"):
+        info = CellFile.model_fields[key]
+        out.append(
+            f"| `[{key}]` | table | {'required' if info.is_required() else '{}'} | "
+            f"{info.description or ''} |"
+        )
+    return "\n".join(out) + "\n"
+
+
+def _shown(value: Any) -> str:
+    if value is None:
+        return "none"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, dict):
+        return "{}"
+    return (
+        f"`{value!r}`"
+        if isinstance(value, str)
+        else f"{value:g}"
+        if isinstance(value, float)
+        else str(value)
+    )
+
+
+def _type_name(annotation: Any, metadata: list[Any]) -> str:
+    args = [a for a in get_args(annotation) if a is not type(None)]
+    origin = get_origin(annotation)
+    if origin is Annotated:
+        return _type_name(args[0], [*metadata, *annotation.__metadata__])
+    if origin in (Union, UnionType):
+        return _type_name(args[0], metadata)
+    if origin is Literal:
+        return "one of " + ", ".join(f"`{a}`" for a in get_args(annotation))
+    if origin is list:
+        return f"list of {_type_name(args[0], [])}s"
+    if origin is dict:
+        return "table"
+    names = {float: "number", int: "integer", str: "string", bool: "boolean"}
+    name = names.get(annotation, getattr(annotation, "__name__", str(annotation)))
+    bounds = []
+    for item in metadata:
+        for attr, sign in (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<=")):
+            if getattr(item, attr, None) is not None:
+                bounds.append(f"{sign} {getattr(item, attr)}")
+    return f"{name} {' and '.join(bounds)}" if bounds else name
+
+
+# --- reading and checking -----------------------------------------------------------------------
+
+
+def _load_toml(directory: Path) -> tuple[dict[str, Any], str]:
     import tomllib
 
     path = directory / "cell.toml"
     try:
-        with path.open("rb") as f:
-            return tomllib.load(f)
+        text = path.read_text(encoding="utf-8")
+        return tomllib.loads(text), text
     except FileNotFoundError:
         raise UsageError(
             f"{path}: no such file (create it, or run 'cellctl emulate cell')"
         ) from None
+    except OSError as e:
+        raise UsageError(f"{path}: cannot read: {e.strerror}") from None
+    except UnicodeDecodeError as e:
+        raise UsageError(f"{path}: not UTF-8 text: {e.reason}") from None
     except tomllib.TOMLDecodeError as e:
         raise UsageError(f"{path}: not valid TOML: {e}") from None
 
 
-def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
-    """Read and check ``<directory>/cell.toml``; return the config (if usable) and problems."""
-    directory = Path(directory)
-    problems: list[str] = []
+class _Problems:
+    """Problems found so far, each with its TOML path and, where found, its line."""
+
+    def __init__(self, text: str) -> None:
+        self.lines = text.splitlines()
+        self.items: list[str] = []
+
+    def add(self, message: str) -> None:
+        self.items.append(message)
+
+    def at(self, loc: tuple[str | int, ...], message: str) -> None:
+        self.items.append(f"{_path(loc)}: {message}{self._line(loc)}")
+
+    def schema(self, loc: tuple[str | int, ...], error: ValidationError) -> None:
+        for item in error.errors(include_url=False):
+            where = loc + tuple(item["loc"])
+            self.at(where, _message(item))
+
+    def _line(self, loc: tuple[str | int, ...]) -> str:
+        keys = [k for k in loc if isinstance(k, str)]
+        if not keys:
+            return ""
+        found = None
+        for depth in range(len(keys), 0, -1):
+            header = _header(keys[:depth])
+            start = next((i for i, t in enumerate(self.lines) if _header_of(t) == header), None)
+            if start is None:
+                continue
+            found = start
+            rest = keys[depth:]
+            if rest:
+                key = re.compile(rf"^\s*\"?{re.escape(rest[0])}\"?\s*=")
+                for i in range(start + 1, len(self.lines)):
+                    if _header_of(self.lines[i]) is not None:
+                        break
+                    if key.match(self.lines[i]):
+                        found = i
+                        break
+            break
+        return f" (line {found + 1})" if found is not None else ""
+
+
+def _header(keys: list[str]) -> str:
+    return ".".join(keys)
+
+
+def _header_of(line: str) -> str | None:
+    match = re.match(r"^\s*\[+\s*([^\]]+?)\s*\]+\s*(?:#.*)?$", line)
+    if match is None:
+        return None
+    return ".".join(part.strip().strip("\"'") for part in match.group(1).split("."))
+
+
+def _path(loc: tuple[str | int, ...]) -> str:
+    """``("machines", "cnc1", "kind")`` → ``[machines.cnc1] kind``."""
+    depth = 2 if loc and loc[0] in _PER_ENTRY else 1
+    table = ".".join(str(k) for k in loc[:depth])
+    rest = ""
+    for key in loc[depth:]:
+        rest += f"[{key + 1}]" if isinstance(key, int) else (f".{key}" if rest else key)
+    return f"[{table}] {rest}".rstrip() if rest else f"[{table}]"
+
+
+def _message(item: Any) -> str:
+    kind = item["type"]
+    if kind == "missing":
+        return "missing"
+    if kind == "extra_forbidden":
+        return "unknown key"
+    shown = repr(item.get("input"))
+    shown = shown if len(shown) <= 60 else shown[:57] + "..."
+    if kind == "literal_error":
+        return f"{shown} is not {item['ctx']['expected']}"
+    message = str(item["msg"])
+    if message.startswith("Value error, "):
+        message = message[len("Value error, ") :]
+    return f"{message}, not {shown}"
+
+
+def _checked(
+    model: type[_T], data: Any, loc: tuple[str | int, ...], problems: _Problems
+) -> _T | None:
     try:
-        raw = _load_toml(directory)
+        return model.model_validate(data)
+    except ValidationError as e:
+        problems.schema(loc, e)
+        return None
+
+
+_T = TypeVar("_T", bound=BaseModel)
+
+
+def _entries(raw: dict[str, Any], key: str, problems: _Problems) -> dict[str, Any]:
+    """A table of tables (``[machines]``, ``[parts]``...), or {} after reporting it is not one."""
+    value = raw.get(key, {})
+    if not isinstance(value, dict):
+        problems.at((key,), f"must be a table, not {type(value).__name__}")
+        return {}
+    return value
+
+
+def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
+    """Read and check ``<directory>/cell.toml``; return the config (if usable) and problems.
+
+    The file is checked against :class:`CellFile` table by table, then the cross-references
+    (robot and mills, routes, program files, PLC coils); every problem is returned at once,
+    each with its TOML path and, where it can be found, its line.
+    """
+    directory = Path(directory)
+    try:
+        raw, text = _load_toml(directory)
     except UsageError as e:
         return None, [str(e)]
-    cell = raw.get("cell", {})
-    machines_raw: dict[str, Any] = raw.get("machines", {})
+    problems = _Problems(text)
+    for key in raw:
+        if key not in CellFile.model_fields:
+            problems.at((key,), f"unknown table; known: {', '.join(CellFile.model_fields)}")
+    cell = _checked(CellTable, raw.get("cell", {}), ("cell",), problems)
+    api = _checked(ApiTable, raw.get("api", {}), ("api",), problems)
     machines: dict[str, MachineConfig] = {}
-    for name, entry in machines_raw.items():
-        m = _machine(directory, name, entry, problems)
-        if m is not None:
-            machines[name] = m
-    robot_name = cell.get("robot") or next(
-        (n for n, m in machines.items() if m.kind in ROBOT_KINDS), None
-    )
-    mill_names: list[str] = cell.get("mills") or [
-        n for n, m in machines.items() if m.kind in MILL_KINDS
-    ]
+    for name, entry in _entries(raw, "machines", problems).items():
+        table = _checked(MachineTable, entry, ("machines", name), problems)
+        if table is None:
+            continue
+        if table.kind in MILL_KINDS and table.setup is None:
+            problems.at(("machines", name, "setup"), "a mill needs its setup program")
+            continue
+        machines[name] = MachineConfig(
+            name=name,
+            kind=table.kind,
+            link=table.link,
+            line=LineSettings.parse(table.line or DEFAULT_LINES[table.kind]),
+            options=dict(table.options),
+            setup=directory / table.setup if table.setup else None,
+            go_output=table.go_output,
+        )
+    cell_value = raw.get("cell")
+    cell_raw: dict[str, Any] = cell_value if isinstance(cell_value, dict) else {}
+    robot_name = cell.robot if cell else _text(cell_raw.get("robot"))
+    robot_name = robot_name or next((n for n, m in machines.items() if m.kind in ROBOT_KINDS), None)
     robot = machines.get(robot_name or "")
     if robot is None or robot.kind not in ROBOT_KINDS:
-        problems.append(f"[cell] robot: no robot machine {robot_name!r} of kind ibm7545/ibm7547")
+        problems.at(("cell", "robot"), f"no robot machine {robot_name!r} of kind ibm7545/ibm7547")
+    mill_names = (cell.mills if cell else _texts(cell_raw.get("mills"))) or [
+        n for n, m in machines.items() if m.kind in MILL_KINDS
+    ]
     mills = []
     for n in mill_names:
         m = machines.get(n)
         if m is None or m.kind not in MILL_KINDS:
-            problems.append(f"[cell] mills: {n!r} is not a dyna2400 machine")
+            problems.at(("cell", "mills"), f"{n!r} is not a dyna2400 machine")
         else:
             mills.append(m)
     for m in mills:
         if m.setup is not None:
-            _check_dynalan(m.setup, problems, role=dynalan.ProgramRole.SETUP)
-    plc = raw.get("plc", {})
-    _check_plc(plc, mills, problems)
+            _check_dynalan(m.setup, problems.items, role=dynalan.ProgramRole.SETUP)
+    plc_raw = raw.get("plc", {})
+    plc: dict[str, Any] = {}
+    if not isinstance(plc_raw, dict):
+        problems.at(("plc",), f"must be a table, not {type(plc_raw).__name__}")
+    else:
+        plc = plc_raw
+        _check_plc(plc, mills, problems.items)
     robot_programs: dict[str, ProgramFile] = {}
-    for prog_name, rel in raw.get("robot_programs", {}).items():
+    sources = _entries(raw, "robot_programs", problems)
+    for prog_name, rel in sources.items():
+        if not isinstance(rel, str) or not rel:
+            problems.at(("robot_programs", prog_name), f"must be a file path, not {rel!r}")
+            continue
         path = directory / rel
         try:
-            text = path.read_text(encoding="utf-8")
+            source = path.read_text(encoding="utf-8")
             app = prog_name.upper().replace("_", "")[:8]
-            robot_programs[prog_name] = compile_source(text, app, 1, source=str(path))
+            robot_programs[prog_name] = compile_source(source, app, 1, source=str(path))
         except OSError as e:
-            problems.append(f"[robot_programs] {prog_name}: {path}: {e.strerror}")
+            problems.add(f"[robot_programs] {prog_name}: {path}: {e.strerror}")
+        except UnicodeDecodeError as e:
+            problems.add(f"[robot_programs] {prog_name}: {path}: not UTF-8 text: {e.reason}")
         except CellctlError as e:
-            problems.append(f"[robot_programs] {prog_name}: {e}")
+            problems.add(f"[robot_programs] {prog_name}: {e}")
     parts: dict[str, PartType] = {}
-    for part_name, entry in raw.get("parts", {}).items():
-        part = _part(directory, part_name, entry, {m.name for m in mills}, problems)
+    for part_name, entry in _entries(raw, "parts", problems).items():
+        part_table = _checked(PartTable, entry, ("parts", part_name), problems)
+        if part_table is None:
+            continue
+        part = _part(directory, part_name, part_table, {m.name for m in mills}, problems)
         if part is None:
             continue
         parts[part_name] = part
         for t in part.transfers():
-            if t not in raw.get("robot_programs", {}):
-                problems.append(
-                    f"[parts.{part_name}] needs robot program {t!r} in [robot_programs]"
-                )
+            if t not in sources:
+                problems.add(f"[parts.{part_name}] needs robot program {t!r} in [robot_programs]")
     if not parts:
-        problems.append("[parts]: no part types: the cell has nothing to make")
-    poll = float(cell.get("poll_period", 0.5))
-    if poll <= 0:
-        problems.append("[cell] poll_period must be positive")
-    if robot is None or problems:
-        return None, problems
+        problems.add("[parts]: no part types: the cell has nothing to make")
+    if robot is None or cell is None or api is None or problems.items:
+        return None, problems.items
     return (
         CellConfig(
             directory=directory,
-            name=str(cell.get("name", directory.name)),
+            name=cell.name or directory.name,
             robot=robot,
             mills=mills,
             plc=plc,
             robot_programs=robot_programs,
             parts=parts,
-            poll_period=poll,
+            poll_period=cell.poll_period,
             raw=raw,
+            api_listen=api.listen,
+            api_allow_remote=api.allow_remote,
         ),
-        problems,
+        problems.items,
     )
+
+
+def _text(value: Any) -> str | None:
+    return value if isinstance(value, str) and value else None
+
+
+def _texts(value: Any) -> list[str] | None:
+    if isinstance(value, list) and all(isinstance(v, str) for v in value):
+        return value
+    return None
 
 
 def load_cell(directory: Path | str) -> CellConfig:
@@ -236,41 +623,6 @@ def load_cell(directory: Path | str) -> CellConfig:
     if config is None:
         raise UsageError(f"{Path(directory) / 'cell.toml'}: " + "; ".join(problems))
     return config
-
-
-def _machine(directory: Path, name: str, entry: Any, problems: list[str]) -> MachineConfig | None:
-    where = f"[machines.{name}]"
-    if not isinstance(entry, dict):
-        problems.append(f"{where}: must be a table")
-        return None
-    kind = entry.get("kind")
-    if kind not in DEFAULT_LINES:
-        problems.append(f"{where} kind: {kind!r} is not one of {', '.join(DEFAULT_LINES)}")
-        return None
-    link = entry.get("link")
-    if not link:
-        problems.append(f"{where} link: missing (a device path, socket://, rfc2217://)")
-        return None
-    try:
-        line = LineSettings.parse(str(entry.get("line", DEFAULT_LINES[kind])))
-    except UsageError as e:
-        problems.append(f"{where} line: {e}")
-        return None
-    setup = None
-    if kind in MILL_KINDS:
-        if entry.get("setup"):
-            setup = directory / str(entry["setup"])
-        else:
-            problems.append(f"{where} setup: a mill needs its setup program")
-    return MachineConfig(
-        name=name,
-        kind=kind,
-        link=str(link),
-        line=line,
-        options=dict(entry.get("options", {})),
-        setup=setup,
-        go_output=entry.get("go_output"),
-    )
 
 
 def _check_dynalan(
@@ -306,28 +658,22 @@ def _check_plc(plc: dict[str, Any], mills: list[MachineConfig], problems: list[s
 
 
 def _part(
-    directory: Path, name: str, entry: Any, mills: set[str], problems: list[str]
+    directory: Path, name: str, table: PartTable, mills: set[str], problems: _Problems
 ) -> PartType | None:
-    where = f"[parts.{name}]"
-    route_raw = entry.get("route") if isinstance(entry, dict) else None
-    if not route_raw:
-        problems.append(f"{where} route: missing (a list of {{ mill, program }})")
-        return None
     route: list[RouteStep] = []
-    for i, step in enumerate(route_raw, start=1):
-        mill = step.get("mill")
-        if mill not in mills:
-            problems.append(f"{where} route step {i}: unknown mill {mill!r}")
+    for i, step in enumerate(table.route):
+        if step.mill not in mills:
+            problems.at(("parts", name, "route", i, "mill"), f"unknown mill {step.mill!r}")
             continue
-        if not step.get("program"):
-            problems.append(f"{where} route step {i}: missing program")
+        path = directory / step.program
+        if not path.is_file():
+            problems.at(("parts", name, "route", i, "program"), f"{path}: no such file")
             continue
-        path = directory / str(step["program"])
-        result = _check_dynalan(path, problems, role=dynalan.ProgramRole.MILLING)
+        result = _check_dynalan(path, problems.items, role=dynalan.ProgramRole.MILLING)
         if result is None or not result.ok:
             continue
         seconds = result.toolpath.machining_seconds if result.toolpath else 0.0
-        route.append(RouteStep(mill, path, path.stem, len(result.program.lines), seconds))
-    if len(route) != len(route_raw):
+        route.append(RouteStep(step.mill, path, path.stem, len(result.program.lines), seconds))
+    if len(route) != len(table.route):
         return None
     return PartType(name, tuple(route))

@@ -124,8 +124,8 @@ async def _run_owned(
     server = ApiServer(
         AttachedCell(controller),
         directory,
-        listen=api_listen(config),
-        allow_remote=api_allow_remote(config),
+        listen=config.api_listen,
+        allow_remote=config.api_allow_remote,
     )
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, on_signal)
@@ -149,21 +149,6 @@ async def _run_owned(
         await server.close()
         await controller.close()
     return controller
-
-
-def api_listen(config: object) -> str | None:
-    """``[api] listen`` of cell.toml (None: the Unix socket only)."""
-    api = getattr(config, "raw", {}).get("api", {})
-    listen = api.get("listen") if isinstance(api, dict) else None
-    if listen is not None and not isinstance(listen, str):
-        raise UsageError('[api] listen must be a string "HOST:PORT"')
-    return listen
-
-
-def api_allow_remote(config: object) -> bool:
-    """``[api] allow_remote`` of cell.toml."""
-    api = getattr(config, "raw", {}).get("api", {})
-    return isinstance(api, dict) and api.get("allow_remote") is True
 
 
 def _print_event(e: Event) -> None:

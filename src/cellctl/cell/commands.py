@@ -195,9 +195,18 @@ class OperatorCommands:
                 continue  # in manual: nothing of ours runs there
             try:
                 async with asyncio.timeout(ESTOP_TIMEOUT):
+                    # The mill refuses END while a block runs: no more blocks go out, and
+                    # the END follows the moment it is ready.
+                    while mill.state in (3, 4) and not (await mill.status()).ready:  # noqa: ASYNC110 - CTS is read, not signalled
+                        await asyncio.sleep(0.05)
                     await mill.end()
-            except (CellctlError, OSError, TimeoutError) as e:
-                problems.append(f"{name} halt failed: {e or 'no answer'}")
+            except TimeoutError:
+                problems.append(
+                    f"{name} still executes a block after {ESTOP_TIMEOUT:g} s: "
+                    "stop it at the machine (END is refused while a block runs)"
+                )
+            except (CellctlError, OSError) as e:
+                problems.append(f"{name} halt failed: {e}")
         self._alarm("cell", "estop", text + (f" ({'; '.join(problems)})" if problems else ""))
         self.log(f"{text}: cell paused; resume once the cause is dealt with")
         return text + ("; " + "; ".join(problems) if problems else "") + ": cell paused"

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar, cast
 
+from rich.text import Text
 from textual import events, on
 from textual.app import App, ComposeResult
 from textual.binding import Binding, BindingType
@@ -49,6 +50,10 @@ DIALOG_FIELDS = ("partition", "program", "force")
 #: Progress fields of the functions' progress dicts: (done, total).
 PROGRESS_FIELDS = (("records", "records_total"), ("lines", "lines_total"))
 
+#: How the menus show what needs a controller when none runs.
+UNAVAILABLE = "unavailable"
+NO_CONTROLLER = "no controller runs on this cell (start `cellctl run` for that)"
+
 Action = Callable[[], Awaitable[None]]
 T = TypeVar("T")
 
@@ -76,7 +81,7 @@ class ConsoleApp(App[None]):
     #body { height: 1fr; }
     #menu { width: 36; height: 100%; border: none; border-top: solid $accent; padding: 0; }
     #board { width: 1fr; height: 100%; border: none; border-top: solid $secondary;
-             border-left: vkey $secondary; padding: 0 1; }
+             border-left: solid $secondary; padding: 0 1; }
     ResultPane { height: auto; max-height: 7; padding: 0 1; }
     #result-text { height: auto; }
     TrafficPane { height: 5; border-top: solid $secondary; padding: 0 1; }
@@ -149,6 +154,13 @@ class ConsoleApp(App[None]):
     # -- live status ------------------------------------------------------------------------
 
     def _cell_changed(self, changes: dict[str, Any]) -> None:
+        # Called from the client's own task: apply the changes in the app's.
+        if not self._closed:
+            self.call_later(self._apply_changes, changes)
+
+    def _apply_changes(self, changes: dict[str, Any]) -> None:
+        if self._closed:
+            return
         for key, value in changes.items():
             if key == "events":
                 self.snapshot["events"] = [*self.snapshot.get("events", []), *value][-30:]
@@ -160,8 +172,8 @@ class ConsoleApp(App[None]):
 
     def _show_snapshot(self) -> None:
         paused = "  CELL PAUSED" if self.snapshot.get("cell", {}).get("paused") else ""
-        header = f"cellctl console  {self.directory}  {self.mode_text()}{paused}"
-        self.query_one("#header", Static).update(header)
+        header = f"{self.mode_text()}{paused}  cell {self.directory}"
+        self.query_one("#header", Static).update(Text(header))
         self.query_one("#board", Board).show(self.snapshot)
 
     def in_service(self, name: str) -> bool:
@@ -182,7 +194,7 @@ class ConsoleApp(App[None]):
             pane.show(name, rows)
         except CellctlError as e:
             pane.border_title = f"traffic: {name}"
-            pane.update(str(e))
+            pane.update(Text(str(e)))
         finally:
             self._traffic_busy = False
 
@@ -213,7 +225,7 @@ class ConsoleApp(App[None]):
             else:
                 entries.append(Entry("s", "RETURN TO SERVICE", self._service(machine.name, True)))
         else:
-            entries.append(Entry("s", "SERVICE", None, "unavailable: no controller runs"))
+            entries.append(Entry("s", "SERVICE", None, UNAVAILABLE))
         return entries
 
     def machine(self, name: str) -> ConsoleMachine:
@@ -254,7 +266,7 @@ class ConsoleApp(App[None]):
         self.action_up()
 
     async def _exit_action(self) -> None:
-        await self.action_quit()
+        self.call_later(self.action_quit)  # from the app's own task, not this worker
 
     def action_up(self) -> None:
         """Escape: up one level."""
@@ -305,7 +317,7 @@ class ConsoleApp(App[None]):
     def choose(self, entry: Entry) -> None:
         """Run a menu entry's action in a worker (it may wait for dialogs and long calls)."""
         if entry.action is None:
-            self.say([f"{entry.label}: {entry.note}"], "yellow")
+            self.say([f"{entry.label}: {entry.note}: {NO_CONTROLLER}"], "yellow")
             return
         self.run_worker(self._guarded(entry.action), group="action")
 
@@ -414,6 +426,9 @@ class ConsoleApp(App[None]):
             result = await self.client.call(
                 f"{machine.family}.{fn.name}", {"machine": machine.name, **params}, progress
             )
+        except CellctlError as e:
+            self.say([f"{machine.name}: {fn.label}: {e}"], "red")
+            return
         finally:
             pane.progress(None, None)
         self.say(result_lines(machine.name, fn, result), "green")

@@ -19,7 +19,7 @@ if TYPE_CHECKING:
 
 #: Order states an order may still be cancelled in.
 NOT_STARTED = ["posted", "accepted"]
-NO_CONTROLLER = "unavailable: no controller runs"
+NO_CONTROLLER = "unavailable"
 
 
 class CellActions:

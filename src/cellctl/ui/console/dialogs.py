@@ -11,6 +11,7 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any, ClassVar, Generic, TypeVar
 
+from rich.text import Text
 from textual import on
 from textual.app import ComposeResult
 from textual.binding import Binding, BindingType
@@ -61,7 +62,7 @@ class ConfirmDialog(Dialog[bool]):
 
     def compose(self) -> ComposeResult:
         with Vertical():
-            yield Static(self.question, classes="title")
+            yield Static(Text(self.question), classes="title")
             with Horizontal(classes="buttons"):
                 yield Button("Yes (y)", id="yes", variant="warning", compact=True)
                 yield Button("No (n)", id="no", compact=True)
@@ -88,7 +89,7 @@ class PickDialog(Dialog[str]):
 
     def compose(self) -> ComposeResult:
         with Vertical():
-            yield Static(self.title_text, classes="title")
+            yield Static(Text(self.title_text), classes="title")
             yield OptionList(
                 *(Option(label, id=key) for key, label in self.rows), id="pick", markup=False
             )
@@ -147,7 +148,7 @@ class ParamsDialog(Dialog[dict[str, Any]]):
 
     def compose(self) -> ComposeResult:
         with Vertical():
-            yield Static(self.title_text, classes="title")
+            yield Static(Text(self.title_text), classes="title")
             if "partition" in self.fields:
                 with Horizontal():
                     yield Label("Partition (1-5):", classes="field-label")
@@ -204,7 +205,7 @@ class ParamsDialog(Dialog[dict[str, Any]]):
         try:
             params = self.check(self.answers())
         except UsageError as e:
-            self.query_one("#errors", Static).update(str(e))
+            self.query_one("#errors", Static).update(Text(str(e)))
             return
         self.dismiss(params)
 
@@ -226,7 +227,7 @@ class FormDialog(Dialog[dict[str, Any]]):
 
     def compose(self) -> ComposeResult:
         with Vertical():
-            yield Static(self.title_text, classes="title")
+            yield Static(Text(self.title_text), classes="title")
             for key, label, default in self.form:
                 with Horizontal():
                     yield Label(label, classes="field-label")
@@ -246,7 +247,7 @@ class FormDialog(Dialog[dict[str, Any]]):
         try:
             checked = self.check(raw)
         except UsageError as e:
-            self.query_one("#errors", Static).update(str(e))
+            self.query_one("#errors", Static).update(Text(str(e)))
             return
         self.dismiss(checked)
 

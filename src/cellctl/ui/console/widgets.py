@@ -41,14 +41,14 @@ def board_text(snapshot: dict[str, Any], width: int = 48) -> Text:
     out.append(title + "\n", style="bold")
     for name, m in machines.items():
         out.append(f"{name:<6} ", style="bold")
-        out.append(f"{_clip(str(m.get('state', '')), 14):<14} ")
+        out.append(f"{_clip(str(m.get('state', '')), 18):<18} ")
         if cell.get("mode") == "attached":
             if m.get("in_service"):
                 out.append("in  ", style="green")
             else:
                 out.append("OUT ", style="yellow")
         step = str(m.get("step") or "")
-        out.append(_clip(step, max(width - 26, 4)) + "\n")
+        out.append(_clip(step, max(width - 30, 4)) + "\n")
         progress = m.get("progress")
         last = [a for a in alarms if a.get("machine") == name]
         if progress:

@@ -1,0 +1,396 @@
+"""The operator console (``cellctl console``) driven with Textual's Pilot at 80x24, against
+the emulated cell: every menu path, standalone (the console holds the links) and attached
+(everything through a running controller's API).
+
+Assertions are on what the screen shows (the source's messages) and on the cell (journal,
+emulators, traffic), never on the console's internals.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import shutil
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from textual.pilot import Pilot
+
+from cellctl.emulators.mill import LinkMode
+from cellctl.protocol.aml import compile_source
+from cellctl.service.access import AttachedCell, LocalCell
+from cellctl.service.client import CellClient, StandaloneCell, attach
+from cellctl.service.server import ApiServer
+from cellctl.ui.console.app import ConsoleApp
+from cellctl.ui.console.session import cell_refs
+from tests.cell_rig import CellRig
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+SIZE = (80, 24)
+
+
+def screen_text(app: ConsoleApp) -> str:
+    """What the terminal shows now (the top screen, dialogs included), as plain text."""
+    return "\n".join(strip.text for strip in app.screen._compositor.render_strips())
+
+
+async def wait_text(pilot: Pilot[Any], *texts: str, timeout: float = 15.0) -> str:
+    """Wait until every one of ``texts`` is on the screen; fail with the screen otherwise."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    while True:
+        await pilot.pause(0.02)
+        shown = screen_text(pilot.app)  # type: ignore[arg-type]
+        if all(t in shown for t in texts):
+            return shown
+        if loop.time() > deadline:
+            raise AssertionError(f"not on screen: {texts}\n{shown}")
+
+
+async def type_text(pilot: Pilot[Any], text: str) -> None:
+    await pilot.press(*[{" ": "space", ".": "full_stop", "/": "slash"}.get(c, c) for c in text])
+
+
+async def fill(pilot: Pilot[Any], selector: str, text: str) -> None:
+    """Replace the text of a dialog's input."""
+    field = pilot.app.screen.query_one(selector)
+    field.value = text  # type: ignore[attr-defined]
+    await pilot.pause()
+
+
+#: A short milling program (a few moves: the cut takes little machine time).
+SHORT_MILLING = """\
+000 ; CONSOLE TEST - A SHORT CUT
+001 TOOL 01
+002 TD = .500
+003 SP= 4000 RPM
+004 SPINDLE ON
+005 FR XY = 12.0
+006 FR Z = 4.0
+007 GOf X 1.000
+008   Y 1.125
+009 GO Z -.050
+010 GR X 1.500
+011 Z>C
+012 SPINDLE OFF
+013 SKIP TO 900
+900
+"""
+
+
+def write_robot_program(directory: Path, name: str = "load1.rec") -> Path:
+    """A compiled examples/robot program in the cell directory (what DOWNLOAD sends)."""
+    source = (EXAMPLES / "robot" / "conveyor_to_cnc1.aml").read_text()
+    path = directory / name
+    path.write_text(compile_source(source, "LOAD1", 1).to_text())
+    return path
+
+
+async def traffic_rows(client: CellClient, machine: str) -> int:
+    rows = await client.call("traffic.tail", {"machine": machine, "limit": 2000})
+    return len(rows)
+
+
+@pytest.fixture
+async def rig(tmp_path: Path) -> AsyncIterator[CellRig]:
+    async with CellRig(tmp_path / "cell") as rig:
+        yield rig
+
+
+def standalone_client(rig: CellRig) -> StandaloneCell:
+    return StandaloneCell(LocalCell(rig.directory, cell_refs(rig.directory)))
+
+
+@pytest.fixture
+async def attached(rig: CellRig) -> AsyncIterator[CellClient]:
+    """A controller runs the cell in this process, its API on the cell's socket."""
+    await rig.start_controller()
+    assert rig.controller is not None
+    server = ApiServer(AttachedCell(rig.controller), rig.directory)
+    await server.start()
+    client = await attach(rig.directory)
+    try:
+        yield client
+    finally:
+        await client.close()
+        await server.close()
+
+
+# -- standalone --------------------------------------------------------------------------------
+
+
+async def test_standalone_robot_menu_every_function(rig: CellRig) -> None:
+    write_robot_program(rig.directory)
+    bad = rig.directory / "bad.rec"
+    bad.write_text("N1LOAD1   99\nthis is not a record\n")
+    client = standalone_client(rig)
+    app = ConsoleApp(rig.directory, client, traffic_period=0.1)
+    async with app.run_test(size=SIZE) as pilot:
+        shown = await wait_text(pilot, "standalone: links held by this console")
+        for entry in ("1. ROBOT", "2. NC MACHINE #1", "3. NC MACHINE #2", "4. CELL", "5. EXIT"):
+            assert entry in shown
+        await pilot.press("1")
+        shown = await wait_text(pilot, "ROBOT (robot)", "7. EXIT")
+        for entry in ("1. INITIALIZE", "2. DOWNLOAD", "3. GO", "4. STATUS", "5. STOP"):
+            assert entry in shown
+        assert "6. HALT" in shown and "d. RETURN HOME" in shown
+        await pilot.press("1")
+        await wait_text(pilot, "robot: INITIALIZE: Initializing was correct")
+
+        # Bad input is refused in the dialog, with nothing sent.
+        before = await traffic_rows(client, "robot")
+        await pilot.press("2")
+        await wait_text(pilot, "Partition (1-5):")
+        await fill(pilot, "#partition", "6")
+        await fill(pilot, "#program", "load1.rec")
+        await pilot.press("enter")
+        await wait_text(pilot, "partition must be 1 to 5, not 6")
+        await fill(pilot, "#partition", "3")
+        await fill(pilot, "#program", "bad.rec")
+        await pilot.press("enter")
+        await wait_text(pilot, "bad.rec, line 1")
+        await fill(pilot, "#program", "missing.rec")
+        await pilot.press("enter")
+        await wait_text(pilot, "could not open file")
+        assert await traffic_rows(client, "robot") == before
+        await fill(pilot, "#program", "load1.rec")
+        await pilot.press("enter")
+        await wait_text(pilot, "robot: DOWNLOAD: Download was correct")
+        assert rig.cell.robot.partitions[3] is not None
+
+        await pilot.press("3")
+        await wait_text(pilot, "Partition (1-5):")
+        await type_text(pilot, "5")
+        await pilot.press("enter")
+        await wait_text(pilot, "partition empty")  # the machine's refusal, in its words
+        await pilot.press("3")
+        await wait_text(pilot, "Partition (1-5):")
+        await type_text(pilot, "3")
+        await pilot.press("enter")
+        await wait_text(pilot, "robot: GO: Started Cycle")
+        await pilot.press("5")
+        await wait_text(pilot, "robot: STOP:")
+        await pilot.press("4")
+        await wait_text(pilot, "robot: STATUS: robot state", "3 Full (LOAD1)", "5 Empty")
+        await pilot.press("a")
+        await wait_text(pilot, "Reject status")
+        await pilot.press("b")
+        await wait_text(pilot, "robot: DI/DO: DI ")
+        await pilot.press("c")
+        await wait_text(pilot, "Errors reset")
+        await pilot.press("d")
+        await wait_text(pilot, "robot: RETURN HOME: Home")
+        await pilot.press("6")
+        await wait_text(pilot, "robot: HALT: Halted")
+        await wait_text(pilot, ">>", "<<")  # the traffic pane shows both ways
+        await pilot.press("7")
+        await wait_text(pilot, "MAIN MENU")
+        await pilot.press("q")
+    assert app.return_code == 0
+    # Quitting released the links: a new standalone client opens the robot at once.
+    async with standalone_client(rig) as again:
+        status = await again.call("robot.status", {"machine": "robot"})
+        assert status["state_text"] == "Uninitialized"
+
+
+async def test_standalone_mill_menu_every_function(rig: CellRig) -> None:
+    (rig.directory / "short.dyn").write_text(SHORT_MILLING)
+    broken = rig.directory / "broken.dyn"
+    shutil.copy(EXAMPLES / "programs" / "broken" / "feed_too_fast.dyn", broken)
+    client = standalone_client(rig)
+    app = ConsoleApp(rig.directory, client, traffic_period=0.1)
+    mill = rig.cell.mills["cnc1"]
+    async with app.run_test(size=SIZE) as pilot:
+        await wait_text(pilot, "MAIN MENU")
+        await pilot.press("2")
+        shown = await wait_text(pilot, "NC MACHINE #1 (cnc1)", "6. EXIT")
+        for entry in ("1. INITIALIZE", "2. DOWNLOAD", "3. GO", "4. STATUS", "5. HALT"):
+            assert entry in shown
+        assert "a. PROGRAM LOAD" in shown and "b. UPLOAD" in shown
+        assert "s. SERVICE (unavailable)" in shown
+        await pilot.press("4")
+        await wait_text(pilot, "cnc1: STATUS: state")
+        # INITIALIZE offers the setup program cell.toml names.
+        await pilot.press("1")
+        await wait_text(pilot, "Force (initialize again)")
+        assert pilot.app.screen.query_one("#program").value == "programs/cnc1_setup.dyn"  # type: ignore[attr-defined]
+        await pilot.press("enter")
+        await wait_text(pilot, "cnc1: INITIALIZE: Initializing was correct", timeout=20)
+        # A malformed program: every error with file:line:column, nothing sent.
+        before = await traffic_rows(client, "cnc1")
+        await pilot.press("2")
+        await wait_text(pilot, "Program file:")
+        await fill(pilot, "#program", "broken.dyn")
+        await pilot.press("enter")
+        await wait_text(pilot, "broken.dyn:2:14: error [feed-range] line 001: feed rate 40")
+        assert await traffic_rows(client, "cnc1") == before
+        await fill(pilot, "#program", "short.dyn")
+        await pilot.press("enter")
+        await wait_text(pilot, "cnc1: DOWNLOAD: Download was correct", timeout=30)
+        assert mill.runs  # the emulator cut it
+        await rig.wait_for(lambda: not mill.executing, "the cut done")
+        await pilot.press("5")
+        await wait_text(pilot, "cnc1: HALT: Ending was correct")
+        mill.select(LinkMode.PROGRAM_LOAD)  # the operator's panel: ready to load
+        await pilot.press("a")
+        await wait_text(pilot, "Program file:")
+        await fill(pilot, "#program", "short.dyn")
+        await pilot.press("enter")
+        await wait_text(pilot, "cnc1: PROGRAM LOAD: Load was correct")
+        await pilot.press("3")
+        # The source's message, or the driver's reason when the start signal did not start it.
+        await wait_text(pilot, "cnc1: GO: ", timeout=20)
+        await pilot.press("escape")
+        await wait_text(pilot, "MAIN MENU")
+        await pilot.press("0")
+    assert app.return_code == 0
+
+
+async def test_standalone_cell_menu(rig: CellRig) -> None:
+    app = ConsoleApp(rig.directory, standalone_client(rig), traffic_period=0.1)
+    async with app.run_test(size=SIZE) as pilot:
+        await wait_text(pilot, "MAIN MENU")
+        await pilot.press("4")
+        shown = await wait_text(pilot, "1. ORDERS", "8. EXIT")
+        assert "6. PAUSE (unavailable)" in shown
+        assert "7. EMERGENCY STOP (unavailable)" in shown
+        await pilot.press("7")
+        await wait_text(pilot, "EMERGENCY STOP: unavailable: no controller runs on this cell")
+        await pilot.press("2")
+        await wait_text(pilot, "SUBMIT ORDER")
+        await fill(pilot, "#part_type", "no-such-part")
+        await pilot.press("enter")
+        await wait_text(pilot, "unknown part type 'no-such-part'")
+        await fill(pilot, "#part_type", "wax-robot-base")
+        await fill(pilot, "#qty", "2")
+        await fill(pilot, "#id", "S1")
+        await pilot.press("enter")
+        await wait_text(pilot, "order S1 posted")
+        assert rig.order_state("S1") == "posted"
+        await pilot.press("1")
+        await wait_text(pilot, "S1 wax-robot-base x2")
+        await pilot.press("enter")
+        await wait_text(pilot, "Cancel order S1?")
+        await pilot.press("y")
+        await wait_text(pilot, "cancelled")
+        assert rig.order_state("S1") == "cancelled"
+        await pilot.press("4")
+        await wait_text(pilot, "no open alarm")
+        await pilot.press("8")
+        await wait_text(pilot, "MAIN MENU")
+        await pilot.press("5")
+    assert app.return_code == 0
+
+
+# -- attached ----------------------------------------------------------------------------------
+
+
+async def test_attached_cell_menu(rig: CellRig, attached: CellClient) -> None:
+    app = ConsoleApp(rig.directory, attached, traffic_period=0.1)
+    async with app.run_test(size=SIZE) as pilot:
+        await wait_text(pilot, "attached to cellctl run (pid")
+        await pilot.press("4")
+        await wait_text(pilot, "6. PAUSE", "7. EMERGENCY STOP")
+        await pilot.press("6")
+        await wait_text(pilot, "paused: steps in flight finish", "6. RESUME", "CELL PAUSED")
+        assert rig.controller is not None and rig.controller.paused
+        # An order, submitted from the console.
+        await pilot.press("2")
+        await wait_text(pilot, "SUBMIT ORDER")
+        await fill(pilot, "#qty", "2")
+        await fill(pilot, "#id", "C1")
+        await pilot.press("enter")
+        await wait_text(pilot, "order C1 posted")
+        await rig.wait_for(lambda: len(rig.journal.parts(order_id="C1")) == 2, "C1's parts")
+        first, second = rig.journal.parts(order_id="C1")
+        rig.journal.hold_part(first.id, "looked damaged")
+        rig.journal.hold_part(second.id, "looked damaged")
+        # Held parts: release one, scrap the other.
+        await pilot.press("5")
+        await wait_text(pilot, "HELD PARTS", f"{first.id} wax-robot-base")
+        await pilot.press("enter")
+        await wait_text(pilot, f"PART {first.id}", "2. RELEASE WITH REDO")
+        await pilot.press("enter")
+        await wait_text(pilot, f"part {first.id} released")
+        await pilot.press("5")
+        await wait_text(pilot, f"{second.id} wax-robot-base")
+        await pilot.press("enter")
+        await wait_text(pilot, "3. SCRAP")
+        await pilot.press("down", "down", "enter")
+        await wait_text(pilot, f"Scrap part {second.id}?")
+        await pilot.press("y")
+        await wait_text(pilot, f"part {second.id} scrapped")
+        statuses = {p.id: p.status for p in rig.journal.parts(order_id="C1")}
+        assert statuses == {first.id: "waiting", second.id: "scrapped"}
+        # An alarm raised by a fault switch, cleared from the console.
+        rig.cell.plc.set_fault("estop", None)
+        alarm = (await rig.wait_for(lambda: rig.alarms("plc", "estop"), "estop alarm"))[0]
+        rig.cell.plc.clear_fault("estop")
+        await wait_text(pilot, "ALARMS 1 open", "plc estop")
+        await pilot.press("4")
+        await wait_text(pilot, f"{alarm.id} plc estop")
+        await pilot.press("enter")
+        await pilot.press("y")
+        await wait_text(pilot, f"alarm {alarm.id} cleared", "ALARMS 0 open")
+        assert not rig.alarms()
+        await pilot.press("6")
+        await wait_text(pilot, "resumed", "6. PAUSE")
+        await rig.wait_for(lambda: rig.order_state("C1") == "done", "C1 done", timeout=60)
+        await wait_text(pilot, "C1 wax-robot-base x2 p0 done")
+        # The emergency stop asks first.
+        await pilot.press("7")
+        await wait_text(pilot, "EMERGENCY STOP: stop the robot")
+        await pilot.press("n")
+        await wait_text(pilot, "no emergency stop")
+        await pilot.press("7")
+        await pilot.press("y")
+        await wait_text(pilot, "emergency stop: operator console")
+        assert rig.controller.paused
+        await pilot.press("escape", "q")
+    assert app.return_code == 0
+
+
+async def test_attached_cnc2_by_hand_while_the_cell_works(
+    rig: CellRig, attached: CellClient
+) -> None:
+    app = ConsoleApp(rig.directory, attached, traffic_period=0.1)
+    async with app.run_test(size=SIZE) as pilot:
+        await wait_text(pilot, "attached to cellctl run")
+        await pilot.press("3")
+        await wait_text(pilot, "NC MACHINE #2 (cnc2)", "s. OUT OF SERVICE")
+        # A manual function on a machine in automatic service asks to take it out first.
+        await pilot.press("5")
+        await wait_text(pilot, "cnc2 is in automatic service")
+        await pilot.press("n")
+        await wait_text(pilot, "not run: it stays in automatic service")
+        await pilot.press("s")
+        await wait_text(pilot, "Take cnc2 out of automatic service?")
+        await pilot.press("y")
+        await wait_text(pilot, "cnc2 out of automatic service", "s. RETURN TO SERVICE", "OUT")
+        rig.post("wax-robot-base", 1, "M1")
+        await rig.wait_for(
+            lambda: any(s.machine == "cnc1" and s.state == "finished" for s in rig.journal.steps()),
+            "cnc1 cut while cnc2 is out",
+            timeout=60,
+        )
+        await pilot.press("4")
+        await wait_text(pilot, "cnc2: STATUS: state 2")
+        await pilot.press("5")
+        await wait_text(pilot, "cnc2: HALT: Ending was correct")
+        mill = rig.cell.mills["cnc2"]
+        mill.select(mill.auto_mode)  # the operator selects the link mode on the panel
+        await pilot.press("1")
+        await wait_text(pilot, "Force (initialize again)")
+        await pilot.click("#force")
+        await pilot.click("#ok")
+        await wait_text(pilot, "cnc2: INITIALIZE: Initializing was correct", timeout=20)
+        await pilot.press("s")
+        await wait_text(pilot, "Return cnc2 to automatic service?")
+        await pilot.press("y")
+        await wait_text(pilot, "cnc2 back in automatic service", "s. OUT OF SERVICE", timeout=20)
+        await rig.wait_for(lambda: rig.order_state("M1") == "done", "M1 done", timeout=60)
+        await wait_text(pilot, "M1 wax-robot-base x1 p0 done")
+        assert not rig.alarms() and not rig.cut_twice()
+        await pilot.press("q")
+    assert app.return_code == 0

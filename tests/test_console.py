@@ -251,7 +251,7 @@ async def test_standalone_cell_menu(rig: CellRig) -> None:
     app = ConsoleApp(rig.directory, standalone_client(rig), traffic_period=0.1)
     async with app.run_test(size=SIZE) as pilot:
         await wait_text(pilot, "MAIN MENU")
-        await pilot.press("4")
+        await pilot.press("down", "down", "down", "enter")  # the arrows work as the numbers
         shown = await wait_text(pilot, "1. ORDERS", "8. EXIT")
         assert "6. PAUSE (unavailable)" in shown
         assert "7. EMERGENCY STOP (unavailable)" in shown
@@ -394,3 +394,13 @@ async def test_attached_cnc2_by_hand_while_the_cell_works(
         assert not rig.alarms() and not rig.cut_twice()
         await pilot.press("q")
     assert app.return_code == 0
+
+
+def test_console_command_without_a_cell_is_one_line_and_an_exit_code(tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from cellctl.ui.cli import main
+
+    result = CliRunner().invoke(main, ["--cell", str(tmp_path / "nowhere"), "console"])
+    assert result.exit_code == 2
+    assert "error: no cell in" in result.output and "Traceback" not in result.output

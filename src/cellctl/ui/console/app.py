@@ -172,7 +172,7 @@ class ConsoleApp(App[None]):
 
     def _show_snapshot(self) -> None:
         paused = "  CELL PAUSED" if self.snapshot.get("cell", {}).get("paused") else ""
-        header = f"{self.mode_text()}{paused}  cell {self.directory}"
+        header = f"{self.mode_text()}{paused}  cell: {self.directory}"
         self.query_one("#header", Static).update(Text(header))
         self.query_one("#board", Board).show(self.snapshot)
 
@@ -438,7 +438,9 @@ def result_lines(name: str, fn: MachineFunction, result: dict[str, Any]) -> list
     """A function's outcome as the console shows it: the source's message, then details."""
     message = str(result.get("message", ""))
     lines = [f"{name}: {fn.label}: {message}"]
-    details = [str(x) for x in result.get("lines", []) if str(x) != message]
+    details = [
+        str(x) for x in result.get("lines", []) if str(x) not in (message, f"{name}: {message}")
+    ]
     partitions = result.get("partitions")
     if isinstance(partitions, dict):
         details = [d for d in details if not d.startswith("partition ")]

@@ -30,7 +30,7 @@ def _clip(text: str, width: int) -> str:
     return text if len(text) <= width else text[: max(width - 1, 0)] + "…"
 
 
-def board_text(snapshot: dict[str, Any], width: int = 48) -> Text:
+def board_text(snapshot: dict[str, Any], width: int = 48, height: int = 0) -> Text:
     """The board: one line per machine (a second one for progress or trouble), open alarms,
     the order queue."""
     out = Text(no_wrap=True, overflow="ellipsis")
@@ -41,25 +41,22 @@ def board_text(snapshot: dict[str, Any], width: int = 48) -> Text:
     out.append(title + "\n", style="bold")
     for name, m in machines.items():
         out.append(f"{name:<6} ", style="bold")
-        out.append(f"{_clip(str(m.get('state', '')), 18):<18} ")
         if cell.get("mode") == "attached":
             if m.get("in_service"):
                 out.append("in  ", style="green")
             else:
                 out.append("OUT ", style="yellow")
+        out.append(_clip(str(m.get("state", "")), width - 11) + "\n")
         step = str(m.get("step") or "")
-        out.append(_clip(step, max(width - 30, 4)) + "\n")
         progress = m.get("progress")
-        last = [a for a in alarms if a.get("machine") == name]
         if progress:
-            unit = progress.get("unit", "")
-            line = (
-                f"       {text_bar(progress.get('done', 0), progress.get('total', 0))} "
-                f"{progress.get('phase', '')} {progress.get('done', 0)}/"
-                f"{progress.get('total', 0)} {unit}"
-            )
+            bar = text_bar(progress.get("done", 0), progress.get("total", 0), 8)
+            line = f"       {bar} {progress.get('phase', '')} {step}"
             out.append(_clip(line, width) + "\n", style="cyan")
-        elif last:
+        elif step:
+            out.append(_clip(f"       {step}", width) + "\n")
+        last = [a for a in alarms if a.get("machine") == name]
+        if last:
             out.append(_clip(f"       ! {last[-1].get('text', '')}", width) + "\n", style="red")
         elif not m.get("in_service") and m.get("out_reason") and cell.get("mode") == "attached":
             out.append(_clip(f"       {m['out_reason']}", width) + "\n", style="yellow")
@@ -71,12 +68,19 @@ def board_text(snapshot: dict[str, Any], width: int = 48) -> Text:
     open_orders = [o for o in orders if o.get("state") not in ("done", "cancelled", "failed")]
     out.append(f"ORDERS {len(open_orders)} open\n", style="bold")
     for o in (open_orders or orders[:3])[:6]:
-        parts = " ".join(f"{k} {v}" for k, v in sorted(o.get("parts", {}).items()))
+        done = o.get("parts", {}).get("done", 0)
         line = (
             f" {o.get('id')} {o.get('part_type')} x{o.get('qty')} p{o.get('priority')} "
-            f"{o.get('state')} {parts}"
+            f"{o.get('state')} {done}/{o.get('qty')}"
         )
         out.append(_clip(line, width) + "\n")
+    events: list[dict[str, Any]] = snapshot.get("events", [])
+    room = height - len(out.plain.splitlines()) - 1
+    if events and room > 0:
+        out.append("EVENTS\n", style="bold")
+        for e in events[-room:]:
+            stamp = dt.datetime.fromtimestamp(float(e.get("time", 0))).strftime("%H:%M:%S")
+            out.append(_clip(f" {stamp} {e.get('text', '')}", width) + "\n", style="dim")
     out.rstrip()
     return out
 
@@ -103,15 +107,23 @@ def traffic_text(machine: str, rows: list[dict[str, Any]], width: int = 78) -> T
 class Board(Static):
     """Every machine, the open alarms and the order queue (from the status snapshot)."""
 
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.snapshot: dict[str, Any] = {}
+
     def show(self, snapshot: dict[str, Any]) -> None:
-        self.update(board_text(snapshot, max(self.size.width, 30)))
+        self.snapshot = snapshot
+        self.update(board_text(snapshot, max(self.size.width, 30), self.size.height))
+
+    def on_resize(self) -> None:
+        self.show(self.snapshot)
 
 
 class TrafficPane(Static):
     """The selected machine's bytes both ways (``>>`` sent, ``<<`` received)."""
 
     def show(self, machine: str, rows: list[dict[str, Any]]) -> None:
-        self.border_title = f"traffic: {machine}"
+        self.border_title = f"traffic: {machine} (>> sent, << received)"
         self.update(traffic_text(machine, rows, max(self.size.width, 40)))
 
 

@@ -1,0 +1,142 @@
+"""``cellctl console`` in a real terminal: tmux (80x24) runs the installed binary against an
+emulated cell in its own process and a controller (``cellctl run``) in another; the test
+reads the screen as an operator would.
+
+A missing tmux fails the test with a clear message (``make test`` installs it).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import time
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+CELLCTL = str(Path(sys.executable).parent / "cellctl")
+DEADLINE = 30.0
+
+
+def wait_until(condition: object, what: str, timeout: float = DEADLINE) -> None:
+    """Poll ``condition()`` until true; fail naming ``what`` after ``timeout`` seconds."""
+    assert callable(condition)
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.05)
+
+
+class Tmux:
+    """A tmux server of its own (``-L``), one detached 80x24 session."""
+
+    def __init__(self, tmux: str) -> None:
+        self.tmux = tmux
+        self.socket = f"cellctl-console-{uuid.uuid4().hex[:12]}"
+        self.session = "console"
+
+    def run(self, *args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [self.tmux, "-L", self.socket, *args],
+            capture_output=True,
+            text=True,
+            check=check,
+            timeout=10,
+        )
+
+    def start(self, command: list[str], env: dict[str, str]) -> None:
+        self.run(
+            "new-session", "-d", "-s", self.session, "-x", "80", "-y", "24",
+            *[f"-e{k}={v}" for k, v in env.items()],
+            " ".join(command),
+        )  # fmt: skip
+        self.run("set-option", "-t", self.session, "remain-on-exit", "on")
+
+    def screen(self) -> str:
+        result = self.run("capture-pane", "-p", "-t", self.session, check=False)
+        return result.stdout
+
+    def wait_for(self, *texts: str, timeout: float = DEADLINE) -> str:
+        deadline = time.monotonic() + timeout
+        while True:
+            shown = self.screen()
+            if all(t in shown for t in texts):
+                return shown
+            if time.monotonic() > deadline:
+                raise AssertionError(f"not on the terminal: {texts}\n{shown}")
+            time.sleep(0.1)
+
+    def keys(self, *keys: str) -> None:
+        self.run("send-keys", "-t", self.session, *keys)
+
+    def pane_dead(self) -> bool:
+        result = self.run("display-message", "-p", "-t", self.session, "#{pane_dead}", check=False)
+        return result.stdout.strip() == "1"
+
+    def kill(self) -> None:
+        self.run("kill-server", check=False)
+
+
+@pytest.fixture
+def tmux() -> Iterator[Tmux]:
+    found = shutil.which("tmux") or ("/usr/bin/tmux" if os.path.exists("/usr/bin/tmux") else None)
+    if found is None:
+        pytest.fail("tmux is not installed: the console's terminal test needs it (make test)")
+    session = Tmux(found)
+    try:
+        yield session
+    finally:
+        session.kill()
+
+
+def stop(proc: subprocess.Popen[bytes]) -> None:
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=5)
+
+
+def test_console_in_a_terminal_attached_to_a_running_cell(tmux: Tmux, tmp_path: Path) -> None:
+    cell = tmp_path / "cell"
+    env = {**os.environ, "NO_COLOR": "1"}
+    emulator = subprocess.Popen(
+        [CELLCTL, "--cell", str(cell), "emulate", "cell", "--time-scale", "100"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env=env,
+    )
+    controller: subprocess.Popen[bytes] | None = None
+    try:
+        wait_until(lambda: (cell / "cell.toml").exists(), "the emulated cell's cell.toml")
+        controller = subprocess.Popen(
+            [CELLCTL, "--cell", str(cell), "run", "--no-live"],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            env=env,
+        )
+        wait_until(lambda: (cell / "api.sock").exists(), "the controller's API socket")
+        tmux.start([CELLCTL, "--cell", str(cell), "console"], {"TERM": "xterm-256color"})
+        shown = tmux.wait_for("MAIN MENU", "attached to cellctl run (pid", "5. EXIT")
+        assert "1. ROBOT (robot)" in shown and "3. NC MACHINE #2 (cnc2)" in shown
+        tmux.keys("1")
+        tmux.wait_for("ROBOT (robot)", "7. EXIT", "s. OUT OF SERVICE")
+        tmux.keys("4")  # STATUS: an observation, allowed in automatic service
+        tmux.wait_for("robot: STATUS: robot state", "partitions: 1 ")
+        shown = tmux.wait_for(">> ", "<< ")  # the robot's traffic, both ways
+        print(shown)
+        tmux.keys("Escape")
+        tmux.wait_for("MAIN MENU")
+        tmux.keys("q")
+        wait_until(tmux.pane_dead, "the console to quit")
+    finally:
+        if controller is not None:
+            stop(controller)
+        stop(emulator)

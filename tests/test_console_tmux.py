@@ -130,8 +130,7 @@ def test_console_in_a_terminal_attached_to_a_running_cell(tmux: Tmux, tmp_path: 
         tmux.wait_for("ROBOT (robot)", "7. EXIT", "s. OUT OF SERVICE")
         tmux.keys("4")  # STATUS: an observation, allowed in automatic service
         tmux.wait_for("robot: STATUS: robot state", "partitions: 1 ")
-        shown = tmux.wait_for(">> ", "<< ")  # the robot's traffic, both ways
-        print(shown)
+        tmux.wait_for("traffic: robot", ">> ", "<< ")  # the robot's traffic, both ways
         tmux.keys("Escape")
         tmux.wait_for("MAIN MENU")
         tmux.keys("q")

@@ -404,3 +404,23 @@ def test_console_command_without_a_cell_is_one_line_and_an_exit_code(tmp_path: P
     result = CliRunner().invoke(main, ["--cell", str(tmp_path / "nowhere"), "console"])
     assert result.exit_code == 2
     assert "error: no cell in" in result.output and "Traceback" not in result.output
+
+
+async def test_attached_console_says_when_the_controller_goes(rig: CellRig) -> None:
+    await rig.start_controller()
+    assert rig.controller is not None
+    server = ApiServer(AttachedCell(rig.controller), rig.directory)
+    await server.start()
+    client = await attach(rig.directory)
+    app = ConsoleApp(rig.directory, client, traffic_period=0.1)
+    try:
+        async with app.run_test(size=SIZE) as pilot:
+            await wait_text(pilot, "attached to cellctl run")
+            await server.close()
+            await wait_text(pilot, "DISCONNECTED: the controller's API closed (q quits)")
+            await pilot.press("1", "4")
+            await wait_text(pilot, "robot: STATUS: the control API closed the connection")
+            await pilot.press("q")
+    finally:
+        await client.close()
+        await server.close()

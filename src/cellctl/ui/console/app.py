@@ -30,7 +30,7 @@ from textual.widgets import Footer, OptionList, Static
 from textual.widgets.option_list import Option
 
 from cellctl.errors import CellctlError
-from cellctl.service.client import CellClient
+from cellctl.service.client import CellClient, RemoteCell
 from cellctl.service.functions import MachineFunction, menu
 from cellctl.ui.console.cellmenu import CellActions
 from cellctl.ui.console.dialogs import ConfirmDialog, Dialog, ParamsDialog
@@ -146,6 +146,8 @@ class ConsoleApp(App[None]):
 
     def mode_text(self) -> str:
         """What the header says of the console's mode."""
+        if isinstance(self.client, RemoteCell) and self.client.closed.is_set():
+            return "DISCONNECTED: the controller's API closed (q quits)"
         if self.mode == "attached":
             pid = self.snapshot.get("cell", {}).get("pid", "?")
             return f"attached to cellctl run (pid {pid})"
@@ -181,6 +183,9 @@ class ConsoleApp(App[None]):
         return self.mode == "attached" and bool(machine.get("in_service"))
 
     def _poll_traffic(self) -> None:
+        if isinstance(self.client, RemoteCell) and self.client.closed.is_set():
+            self._show_snapshot()  # the header says so
+            return
         if self._traffic_busy or self.client is None or not self.selected:
             return
         self._traffic_busy = True
@@ -307,9 +312,8 @@ class ConsoleApp(App[None]):
 
     @on(OptionList.OptionHighlighted, "#menu")
     def _highlighted(self, event: OptionList.OptionHighlighted) -> None:
-        if self.level == "main" and any(m.name == event.option.id for m in self.machines):
-            self.selected = str(event.option.id)
-        elif self.level == "main" and event.option.id is not None:
+        # In the main menu, the highlighted machine's traffic is shown.
+        if self.level == "main" and event.option.id is not None:
             index = int(event.option.id) - 1
             if 0 <= index < len(self.machines):
                 self.selected = self.machines[index].name

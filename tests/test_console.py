@@ -152,10 +152,15 @@ async def test_standalone_robot_menu_every_function(rig: CellRig) -> None:
         await wait_text(pilot, "bad.rec, line 1")
         await fill(pilot, "#program", "missing.rec")
         await pilot.press("enter")
-        await wait_text(pilot, "could not open file")
+        await wait_text(pilot, "missing.rec: could not open file: no such file")
         assert await traffic_rows(client, "robot") == before
-        await fill(pilot, "#program", "load1.rec")
-        await pilot.press("enter")
+        # The picker: the cell directory's folders and .rec files (bad.rec, load1.rec).
+        pilot.app.screen.query_one("#tree").focus()
+        await wait_text(pilot, "load1.rec", "bad.rec")
+        await pilot.press("down", "down", "down", "down", "enter")
+        program = pilot.app.screen.query_one("#program")
+        await rig.wait_for(lambda: program.value == "load1.rec", "load1.rec picked")  # type: ignore[attr-defined]
+        await pilot.click("#ok")
         await wait_text(pilot, "robot: DOWNLOAD: Download was correct")
         assert rig.cell.robot.partitions[3] is not None
 

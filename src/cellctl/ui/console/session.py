@@ -95,10 +95,14 @@ def read_program_file(path_text: str, directory: Path) -> tuple[Path, dict[str, 
     """The program a dialog names (relative to the cell directory) as the API takes it."""
     if not path_text.strip():
         raise UsageError("give a program file")
-    path = Path(path_text.strip()).expanduser()
+    given = path_text.strip()
+    path = Path(given).expanduser()
     if not path.is_absolute():
         path = directory / path
-    return path, read_program(path)
+    try:
+        return path, read_program(path)
+    except UsageError as e:  # named as the operator typed it, not the absolute path
+        raise UsageError(str(e).replace(str(path), given, 1)) from None
 
 
 def check_program(

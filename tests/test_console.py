@@ -10,20 +10,25 @@ from __future__ import annotations
 
 import asyncio
 import shutil
+import tempfile
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from textual.pilot import Pilot
 
 from cellctl.emulators.mill import LinkMode
+from cellctl.errors import UsageError
 from cellctl.protocol.aml import compile_source
 from cellctl.service.access import AttachedCell, LocalCell
 from cellctl.service.client import CellClient, StandaloneCell, attach
+from cellctl.service.functions import function
 from cellctl.service.server import ApiServer
 from cellctl.ui.console.app import ConsoleApp
-from cellctl.ui.console.session import cell_refs
+from cellctl.ui.console.session import ConsoleMachine, cell_refs, check_params
 from tests.cell_rig import CellRig
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
@@ -429,3 +434,37 @@ async def test_attached_console_says_when_the_controller_goes(rig: CellRig) -> N
     finally:
         await client.close()
         await server.close()
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    which=st.sampled_from(
+        [
+            ("robot", "download"),
+            ("robot", "go"),
+            ("mill", "init"),
+            ("mill", "download"),
+            ("mill", "load"),
+        ]
+    ),
+    partition=st.text(max_size=6),
+    text=st.text(max_size=300),
+    force=st.booleans(),
+)
+def test_dialog_answers_give_parameters_or_a_usage_error(
+    which: tuple[str, str], partition: str, text: str, force: bool
+) -> None:
+    """Whatever the operator types or picks, the dialog's check says what is wrong (a
+    UsageError) or gives parameters the function accepts: nothing else comes out."""
+    family, name = which
+    fn = function(family, name)
+    with tempfile.TemporaryDirectory() as folder:
+        directory = Path(folder)
+        (directory / "prog.txt").write_text(text, encoding="utf-8")
+        raw = {"partition": partition, "program": "prog.txt", "force": force}
+        try:
+            params = check_params(ConsoleMachine("m", family, "M"), fn, raw, directory)
+        except UsageError as e:
+            assert str(e)
+        else:
+            fn.check(params)  # accepted as it will be sent

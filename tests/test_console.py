@@ -416,6 +416,29 @@ def test_console_command_without_a_cell_is_one_line_and_an_exit_code(tmp_path: P
     assert "error: no cell in" in result.output and "Traceback" not in result.output
 
 
+async def test_attached_robot_by_hand_after_its_step_in_flight(
+    rig: CellRig, attached: CellClient
+) -> None:
+    app = ConsoleApp(rig.directory, attached, traffic_period=0.1)
+    async with app.run_test(size=SIZE) as pilot:
+        await wait_text(pilot, "attached to cellctl run")
+        rig.post("wax-robot-base", 1, "R1")
+        await rig.wait_for(lambda: rig.open_steps("transfer"), "a transfer in flight", 60)
+        await pilot.press("1")
+        await wait_text(pilot, "ROBOT (robot)", "s. OUT OF SERVICE")
+        await pilot.press("d")  # RETURN HOME acts: the robot must leave automatic service
+        await wait_text(pilot, "robot is in automatic service")
+        await pilot.press("y")
+        await wait_text(pilot, "robot: RETURN HOME: Home", "s. RETURN TO SERVICE", timeout=30)
+        steps = [s for s in rig.journal.steps() if s.kind == "transfer"]
+        assert steps and steps[0].state == "finished"  # the step in flight ended first
+        await pilot.press("s", "y")
+        await wait_text(pilot, "robot back in automatic service", timeout=20)
+        await rig.wait_for(lambda: rig.order_state("R1") == "done", "R1 done", timeout=60)
+        assert not rig.alarms()
+        await pilot.press("q")
+
+
 async def test_attached_console_says_when_the_controller_goes(rig: CellRig) -> None:
     await rig.start_controller()
     assert rig.controller is not None

@@ -14,6 +14,7 @@ own links otherwise); calls run in workers so the screen stays live during a dow
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
@@ -45,6 +46,9 @@ from cellctl.ui.console.widgets import Board, ResultPane, TrafficPane
 
 #: Seconds between two looks at the selected machine's traffic.
 TRAFFIC_PERIOD = 0.5
+#: Seconds a manual function waits for the step in flight on a machine just taken out of
+#: automatic service (then the controller's refusal is shown).
+STEP_WAIT = 300.0
 #: Parameters a dialog asks for (the rest keep their defaults).
 DIALOG_FIELDS = ("partition", "program", "force")
 #: Progress fields of the functions' progress dicts: (done, total).
@@ -376,6 +380,17 @@ class ConsoleApp(App[None]):
 
         return action
 
+    async def step_ended(self, name: str, timeout: float = STEP_WAIT) -> None:
+        """Wait (live) until the step in flight on ``name`` has ended, up to ``timeout``."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while True:
+            step = self.snapshot.get("machines", {}).get(name, {}).get("step") or ""
+            if not step or step == "manual" or loop.time() > deadline:
+                return
+            self.say([f"{name}: waiting for its step in flight to end ({step})"], "yellow")
+            await asyncio.sleep(0.1)
+
     # -- machine functions ------------------------------------------------------------------
 
     def _function(self, machine: ConsoleMachine, fn: MachineFunction) -> Action:
@@ -397,7 +412,7 @@ class ConsoleApp(App[None]):
                 lambda raw: check_params(machine, fn, raw, self.directory),
                 directory=self.directory,
                 suffixes=PROGRAM_SUFFIXES[machine.family],
-                program=machine.setup or "" if fn.name == "init" else "",
+                program=(machine.setup or "") if fn.name == "init" else "",
             )
             answer = await self.ask(dialog)
             if answer is None:
@@ -416,6 +431,7 @@ class ConsoleApp(App[None]):
                 "machines.out_of_service", {"machine": machine.name, "reason": "console"}
             )
             self.say([out["message"]])
+            await self.step_ended(machine.name)
         pane = self.query_one(ResultPane)
         self.say([f"{machine.name}: {fn.label} ..."])
 

@@ -206,6 +206,10 @@ async def test_standalone_robot_menu_every_function(rig: CellRig) -> None:
 
 async def test_standalone_mill_menu_every_function(rig: CellRig) -> None:
     (rig.directory / "short.dyn").write_text(SHORT_MILLING)
+    toml = rig.directory / "cell.toml"  # a GO the mill does not take is told within 1.5 s
+    toml.write_text(
+        toml.read_text().replace("ready_wait = 1\n", "ready_wait = 1\naccept_timeout = 1.5\n")
+    )
     broken = rig.directory / "broken.dyn"
     shutil.copy(EXAMPLES / "programs" / "broken" / "feed_too_fast.dyn", broken)
     client = standalone_client(rig)

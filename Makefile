@@ -8,9 +8,9 @@ STAMP := $(VENV)/.installed
 
 test: deps lint typecheck pytest
 
-# Debian packages the tests need: ser2net (a real RFC 2217 server for the link tests) and tmux
-# (the console is checked in a real terminal).
-DEBS := ser2net tmux
+# Debian packages the tests need: ser2net (a real RFC 2217 server for the link tests), tmux
+# (the console is checked in a real terminal) and chromium (the dashboard, through Playwright).
+DEBS := ser2net tmux chromium
 deps: $(STAMP)
 	@missing=""; for tool in $(DEBS); do command -v $$tool >/dev/null 2>&1 || missing="$$missing $$tool"; done; \
 	if [ -n "$$missing" ]; then \
@@ -37,8 +37,9 @@ typecheck: $(STAMP)
 pytest: $(STAMP)
 	$(BIN)/pytest -q -n 2
 
+# `make demo DEMO_ARGS=--dashboard` leaves the dashboard up after the batch (Ctrl-C stops).
 demo: $(STAMP)
-	$(BIN)/cellctl demo
+	$(BIN)/cellctl demo $(DEMO_ARGS)
 
 bench: $(STAMP)
 	cd bench && for b in robot_download many_links mill_download cell_throughput api_push; do \

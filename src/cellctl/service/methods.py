@@ -101,6 +101,15 @@ class TrafficParams(P):
     limit: int = Field(default=100, ge=1, le=2000)
 
 
+class StepsParams(P):
+    since: float | None = Field(default=None, allow_inf_nan=False)
+
+
+class PreviewParams(P):
+    machine: str = Field(min_length=1, max_length=100)
+    program: str = Field(min_length=1, max_length=500)
+
+
 class MachineCallParams(BaseModel):
     """A manual function: ``machine`` (optional when the cell has one of the family), and
     the function's own parameters beside it."""
@@ -229,6 +238,24 @@ async def _traffic(access: CellAccess, p: TrafficParams, progress: Progress | No
     return access.traffic(p.machine, p.limit)
 
 
+async def _layout(access: CellAccess, p: NoParams, progress: Progress | None) -> Any:
+    from cellctl.service.layout import cell_layout
+
+    return cell_layout(access)
+
+
+async def _steps(access: CellAccess, p: StepsParams, progress: Progress | None) -> Any:
+    from cellctl.service.layout import journal_steps
+
+    return journal_steps(access, p.since)
+
+
+async def _preview(access: CellAccess, p: PreviewParams, progress: Progress | None) -> Any:
+    from cellctl.service.layout import program_preview
+
+    return program_preview(access, p.machine, p.program)
+
+
 def _machine_handler(fn: MachineFunction) -> Handler:
     async def handler(access: CellAccess, p: MachineCallParams, progress: Progress | None) -> Any:
         name = _machine_name(access, fn.family, p.machine)
@@ -275,6 +302,11 @@ _TABLE: list[Method] = [
     Method("machines.out_of_service", MachineParams, _out, "Out of automatic service.", True),
     Method("machines.return_to_service", MachineParams, _in, "Back in automatic service.", True),
     Method("traffic.tail", TrafficParams, _traffic, "A machine's last bytes both ways.", False),
+    Method("cell.layout", NoParams, _layout, "Machines, places and part routes.", False),
+    Method("steps.list", StepsParams, _steps, "Journal steps started since a time.", False),
+    Method(
+        "programs.preview", PreviewParams, _preview, "Toolpath SVG of a route's program.", False
+    ),
 ]
 _TABLE += [
     Method(

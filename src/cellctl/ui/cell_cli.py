@@ -25,6 +25,7 @@ from cellctl.mailbox import open_mailbox
 from cellctl.service.access import AttachedCell
 from cellctl.service.server import ApiServer
 from cellctl.ui.common import cell_dir, console, err_console, run, until_stopped
+from cellctl.ui.dashboard.routes import dashboard_routes
 
 
 @click.group("cell")
@@ -126,6 +127,7 @@ async def _run_owned(
         directory,
         listen=config.api_listen,
         allow_remote=config.api_allow_remote,
+        extra_routes=dashboard_routes,
     )
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, on_signal)

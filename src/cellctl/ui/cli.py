@@ -8,6 +8,7 @@ from cellctl import __version__
 from cellctl.ui.cell_cli import cell_group, demo, emulate_cell, run_command
 from cellctl.ui.common import CellctlGroup
 from cellctl.ui.console import console_command
+from cellctl.ui.dashboard import dashboard_command
 from cellctl.ui.emulate_cli import emulate
 from cellctl.ui.mill_cli import emulate_mill, mill
 from cellctl.ui.orders_cli import alarm, orders, part, reports, submit
@@ -47,6 +48,7 @@ main.add_command(cell_group)
 main.add_command(run_command)
 main.add_command(demo)
 main.add_command(console_command)
+main.add_command(dashboard_command)
 emulate.add_command(emulate_cell)
 for command in (pause, resume, estop, machine, traffic):
     main.add_command(command)

@@ -1,0 +1,86 @@
+"""``cellctl dashboard``: open the running cell's dashboard in a browser.
+
+The page is at ``[api] listen`` of cell.toml; the token (``<cell>/api-token``) travels in the
+URL's fragment (``http://127.0.0.1:7125/#token=...``), which a browser never sends to a server
+or writes to a log. ``--print`` prints that URL instead.
+"""
+
+from __future__ import annotations
+
+import json
+import urllib.error
+import urllib.request
+import webbrowser
+from pathlib import Path
+
+import click
+
+from cellctl.errors import AccessDenied, UsageError
+from cellctl.service.machines import load_cell_file
+from cellctl.service.server import TOKEN_FILE, parse_listen
+from cellctl.ui.common import cell_dir, console
+
+#: Seconds to wait for the controller to answer.
+ANSWER_TIMEOUT = 3.0
+
+
+def dashboard_url(directory: Path) -> str:
+    """The dashboard's URL with the token in its fragment; refused clearly when the cell has
+    no TCP listener, no token, or no controller answering there."""
+    api = load_cell_file(directory).get("api")
+    listen = api.get("listen") if isinstance(api, dict) else None
+    if not isinstance(listen, str) or not listen:
+        raise UsageError(
+            f"{directory / 'cell.toml'} names no [api] listen address: add "
+            '[api] listen = "127.0.0.1:7125" and restart `cellctl run` to serve the dashboard'
+        )
+    remote = isinstance(api, dict) and api.get("allow_remote") is True
+    host, port = parse_listen(listen, allow_remote=remote)
+    if host in ("0.0.0.0", "::"):
+        host = "127.0.0.1"
+    base = f"http://[{host}]:{port}" if ":" in host else f"http://{host}:{port}"
+    try:
+        token = (directory / TOKEN_FILE).read_text(encoding="ascii").strip()
+    except OSError:
+        token = ""
+    if not token:
+        raise UsageError(
+            f"no API token in {directory / TOKEN_FILE}: start the controller (`cellctl run`) first"
+        )
+    request = urllib.request.Request(
+        f"{base}/server/info", headers={"Authorization": f"Bearer {token}"}
+    )
+    try:
+        with urllib.request.urlopen(request, timeout=ANSWER_TIMEOUT) as answer:
+            info = json.loads(answer.read())
+    except urllib.error.HTTPError as e:
+        if e.code == 401:
+            raise AccessDenied(
+                f"the API on {base} refused the token in {directory / TOKEN_FILE}: "
+                "is it another cell's controller?"
+            ) from None
+        raise UsageError(f"the API on {base} answered HTTP {e.code}") from None
+    except (OSError, ValueError):
+        raise UsageError(
+            f"no controller answers on {base}: start `cellctl --cell {directory} run` first"
+        ) from None
+    if not isinstance(info, dict) or info.get("mode") != "attached":
+        raise UsageError(f"no controller runs behind {base}: start `cellctl run` first")
+    return f"{base}/#token={token}"
+
+
+@click.command("dashboard")
+@click.option("--print", "print_only", is_flag=True, help="Print the URL; open no browser.")
+@click.pass_context
+def dashboard_command(ctx: click.Context, print_only: bool) -> None:
+    """Open the running cell's dashboard in a browser (the token goes in the URL's fragment).
+
+    The controller (`cellctl run`) serves it on [api] listen of cell.toml.
+    """
+    url = dashboard_url(cell_dir(ctx))
+    if print_only:
+        console.print(url, markup=False, soft_wrap=True)
+        return
+    if not webbrowser.open(url):
+        raise UsageError("no browser could be started here: use `cellctl dashboard --print`")
+    console.print(f"dashboard opened in your browser ({url.split('#')[0]})", markup=False)

@@ -1,0 +1,130 @@
+"""The dashboard's routes on the API server: the page, its assets, and the calls it makes.
+
+::
+
+    server = ApiServer(access, directory, listen="127.0.0.1:7125", extra_routes=dashboard_routes)
+
+- ``GET /``: the page, a static shell with no cell data in it. It takes the token from the
+  URL's fragment (``#token=...``), keeps it in sessionStorage, and sends it as
+  ``Authorization: Bearer`` with every request.
+- ``GET /static/NAME``: the page's scripts and stylesheet (only the files shipped here).
+- ``POST /dashboard/call`` ``{"method": ..., "params": {...}}``: one of the API's methods the
+  dashboard uses (:data:`DASHBOARD_METHODS`), answered as ``{"result": ...}`` or
+  ``{"error": {code, message, data}}`` (HTTP 400). It needs the token in the header (never a
+  cookie), a JSON body, and no page of another origin (403): another site cannot drive the cell.
+
+Live updates come from the API's WebSocket (``/websocket`` with a one-shot token).
+"""
+
+from __future__ import annotations
+
+import json
+from importlib import resources
+from typing import TYPE_CHECKING, Any
+
+from starlette.requests import Request
+from starlette.responses import JSONResponse, Response
+from starlette.routing import BaseRoute, Route
+
+from cellctl.service.methods import error_object
+
+if TYPE_CHECKING:
+    from cellctl.service.server import ApiServer
+
+#: What the page may call through ``POST /dashboard/call``.
+DASHBOARD_METHODS = frozenset(
+    {
+        "cell.status",
+        "cell.layout",
+        "steps.list",
+        "programs.preview",
+        "traffic.tail",
+        "orders.list",
+        "orders.submit",
+        "orders.cancel",
+        "alarms.list",
+        "alarms.clear",
+        "parts.list",
+        "parts.release",
+        "parts.scrap",
+    }
+)
+#: The largest request body taken.
+MAX_BODY = 64 * 1024
+_TYPES = {
+    ".html": "text/html; charset=utf-8",
+    ".js": "text/javascript; charset=utf-8",
+    ".css": "text/css; charset=utf-8",
+    ".svg": "image/svg+xml",
+    ".png": "image/png",
+}
+
+
+def _assets() -> dict[str, tuple[bytes, str]]:
+    """The shipped files by name, read once: nothing else is ever served."""
+    folder = resources.files("cellctl.ui.dashboard") / "static"
+    found: dict[str, tuple[bytes, str]] = {}
+    for entry in folder.iterdir():
+        suffix = "." + entry.name.rpartition(".")[2]
+        if entry.is_file() and suffix in _TYPES:
+            found[entry.name] = (entry.read_bytes(), _TYPES[suffix])
+    return found
+
+
+def dashboard_routes(server: ApiServer) -> list[BaseRoute]:
+    """The page, its assets and its call endpoint, for ``ApiServer(extra_routes=...)``."""
+    assets = _assets()
+
+    async def page(request: Request) -> Response:
+        body, kind = assets["index.html"]
+        return Response(body, media_type=kind)
+
+    async def asset(request: Request) -> Response:
+        found = assets.get(request.path_params["name"])
+        if found is None or found[1].startswith("text/html"):
+            return JSONResponse({"error": {"message": "no such file"}}, status_code=404)
+        return Response(found[0], media_type=found[1])
+
+    async def call(request: Request) -> Response:
+        if server.foreign_origin(request.headers) or request.headers.get(
+            "sec-fetch-site", "same-origin"
+        ) not in ("same-origin", "none"):
+            return _refused(403, "refused: a page of another origin may not drive the cell")
+        if not server.authorized(request.headers):
+            return _refused(401, "missing or wrong API token")
+        if request.headers.get("content-type", "").split(";")[0].strip() != "application/json":
+            return _refused(415, "send the call as JSON (Content-Type: application/json)")
+        body = await request.body()
+        if len(body) > MAX_BODY:
+            return _refused(413, "request too large")
+        try:
+            data: Any = json.loads(body)
+        except (ValueError, RecursionError):
+            return _refused(400, "not JSON")
+        method = data.get("method") if isinstance(data, dict) else None
+        if not isinstance(method, str) or method not in DASHBOARD_METHODS:
+            return _refused(400, f"the dashboard does not call {method!r}")
+        try:
+            result = await server.dispatcher.call(method, data.get("params") or {})
+        except Exception as e:
+            error = error_object(e)
+            return _json({"error": error}, 400 if error["code"] > -32603 else 500)
+        return _json({"result": result}, 200)
+
+    return [
+        Route("/", page),
+        Route("/static/{name}", asset),
+        Route("/dashboard/call", call, methods=["POST"]),
+    ]
+
+
+def _json(content: Any, status: int) -> Response:
+    text = json.dumps(content, default=str, allow_nan=False)
+    return Response(text, status_code=status, media_type="application/json")
+
+
+def _refused(status: int, message: str) -> Response:
+    headers = {"WWW-Authenticate": "Bearer"} if status == 401 else None
+    return JSONResponse(
+        {"error": {"code": -32007, "message": message}}, status_code=status, headers=headers
+    )

@@ -1,0 +1,336 @@
+// cellctl dashboard: the token, the API, the live subscription, and the views' refresh.
+//
+// The token comes in the URL's fragment (#token=...), is kept in sessionStorage and is sent
+// as "Authorization: Bearer" with every request. Live updates come from the API's WebSocket
+// (a one-shot token fetched with the header); calls that act go through POST /dashboard/call.
+import { drawFloor, updateFloor } from "./floor.js";
+import { renderGantt, exportGantt } from "./gantt.js";
+import {
+  renderCards, renderOrders, renderAlarms, renderHeld, renderEvents, renderTraffic, fillSelect,
+} from "./views.js";
+
+const TOKEN_KEY = "cellctl.token";
+const RETRY_MAX_MS = 5000;
+
+export const state = {
+  snapshot: null,   // the status object (docs/api.md), kept up to date by the subscription
+  layout: null,     // cell.layout
+  steps: [],        // steps.list for the Gantt chart
+  previews: {},     // "mill/program" -> {svg, blocks} or {error}
+  connected: false,
+};
+
+// -- the token ------------------------------------------------------------------------------
+
+function takeToken() {
+  const hash = new URLSearchParams(window.location.hash.slice(1));
+  const given = hash.get("token");
+  if (given) {
+    sessionStorage.setItem(TOKEN_KEY, given);
+    // Out of the address bar (and of the history): the fragment has done its work.
+    history.replaceState(null, "", window.location.pathname + window.location.search);
+  }
+  return sessionStorage.getItem(TOKEN_KEY) || "";
+}
+
+const token = takeToken();
+
+// -- the API --------------------------------------------------------------------------------
+
+export class ApiError extends Error {
+  constructor(message, status) {
+    super(message);
+    this.status = status;
+  }
+}
+
+function headers(extra = {}) {
+  return { Authorization: `Bearer ${token}`, ...extra };
+}
+
+async function answer(response) {
+  let body = null;
+  try {
+    body = await response.json();
+  } catch {
+    body = null;
+  }
+  if (response.status === 401) {
+    refused("The controller refused this page: the API token is missing or wrong.");
+    throw new ApiError("refused: the API token is missing or wrong", 401);
+  }
+  if (!response.ok || (body && body.error)) {
+    const message = body && body.error && body.error.message
+      ? body.error.message : `the controller answered HTTP ${response.status}`;
+    throw new ApiError(message, response.status);
+  }
+  return body;
+}
+
+export async function get(path) {
+  return answer(await fetch(path, { headers: headers(), cache: "no-store" }));
+}
+
+export async function call(method, params = {}) {
+  const response = await fetch("/dashboard/call", {
+    method: "POST",
+    headers: headers({ "Content-Type": "application/json" }),
+    body: JSON.stringify({ method, params }),
+    cache: "no-store",
+  });
+  return (await answer(response)).result;
+}
+
+// -- what the page says ---------------------------------------------------------------------
+
+function byId(id) {
+  return document.getElementById(id);
+}
+
+let wasRefused = false;
+
+function refused(text) {
+  wasRefused = true;
+  state.snapshot = null;
+  byId("content").classList.add("hidden");
+  byId("content").replaceChildren();
+  byId("refused-text").textContent = text;
+  byId("refused").classList.remove("hidden");
+  setConnection("refused", "bad");
+}
+
+function setConnection(text, kind) {
+  const el = byId("connection");
+  el.textContent = text;
+  el.className = `connection ${kind || ""}`;
+}
+
+export function notice(text) {
+  const el = byId("notice");
+  if (!text) {
+    el.classList.add("hidden");
+    el.textContent = "";
+    return;
+  }
+  el.textContent = text;
+  el.classList.remove("hidden");
+}
+
+// -- confirmation ---------------------------------------------------------------------------
+
+export function confirmAction(text) {
+  const dialog = byId("confirm");
+  byId("confirm-text").textContent = text;
+  return new Promise((resolve) => {
+    dialog.addEventListener("close", () => resolve(dialog.returnValue === "ok"), { once: true });
+    dialog.returnValue = "";
+    dialog.showModal();
+  });
+}
+
+// An action from a button: confirmed, called, its answer (or the refusal) shown in `where`.
+export async function act(question, method, params, where) {
+  if (!(await confirmAction(question))) {
+    return;
+  }
+  const out = byId(where);
+  out.className = "message";
+  out.textContent = "…";
+  try {
+    const result = await call(method, params);
+    out.textContent = (result && result.message) || "done";
+    out.classList.add("ok");
+  } catch (e) {
+    out.textContent = e.message;
+    out.classList.add("error");
+  }
+  await refresh();
+}
+
+// -- rendering ------------------------------------------------------------------------------
+
+export function render() {
+  const snap = state.snapshot;
+  if (!snap || !state.layout) {
+    return;
+  }
+  updateFloor(state.layout, snap);
+  renderCards(state, snap);
+  renderOrders(snap);
+  renderAlarms(snap);
+  renderHeld(snap);
+  renderEvents(snap);
+  const cellState = byId("cell-state");
+  cellState.textContent = snap.cell.paused ? "paused" : "running";
+  cellState.className = `badge ${snap.cell.paused ? "warn" : "good"}`;
+}
+
+async function refresh() {
+  try {
+    state.snapshot = await get("/api/status");
+    render();
+  } catch (e) {
+    if (e.status !== 401) {
+      notice(`could not read the cell's status: ${e.message}`);
+    }
+  }
+}
+
+async function refreshSteps() {
+  if (!state.connected) {
+    return;
+  }
+  const span = Number(byId("gantt-window").value);
+  const since = Date.now() / 1000 - span;
+  try {
+    state.steps = await call("steps.list", { since });
+    renderGantt(byId("gantt-chart"), state.layout, state.steps, since);
+  } catch (e) {
+    byId("gantt-chart").textContent = e.message;
+  }
+}
+
+async function refreshTraffic() {
+  const machine = byId("traffic-machine").value;
+  if (!machine || !state.connected || !byId("traffic-follow").checked) {
+    return;
+  }
+  try {
+    renderTraffic(await call("traffic.tail", { machine, limit: 40 }));
+    byId("traffic-message").textContent = "";
+  } catch (e) {
+    byId("traffic-message").textContent = e.message;
+  }
+}
+
+// -- the live subscription ------------------------------------------------------------------
+
+let retryMs = 500;
+let lostAt = null;
+
+async function connect() {
+  if (wasRefused) {
+    return;
+  }
+  let ws;
+  try {
+    const oneshot = await get("/access/oneshot_token");
+    const scheme = window.location.protocol === "https:" ? "wss" : "ws";
+    ws = new WebSocket(`${scheme}://${window.location.host}/websocket?token=${oneshot.token}`);
+  } catch (e) {
+    if (e.status === 401) {
+      return;
+    }
+    lost(`cannot reach the controller (${e.message})`);
+    return;
+  }
+  let subscribed = false;
+  ws.addEventListener("open", () => {
+    ws.send(JSON.stringify({ jsonrpc: "2.0", id: 1, method: "cell.subscribe" }));
+  });
+  ws.addEventListener("message", async (event) => {
+    const message = JSON.parse(event.data);
+    if (message.id === 1 && message.result) {
+      subscribed = true;
+      const again = lostAt !== null;
+      retryMs = 500;
+      state.snapshot = message.result;
+      if (!state.layout || again) {
+        await loadLayout();
+      }
+      state.connected = true;
+      byId("content").classList.remove("hidden");
+      const at = new Date().toLocaleTimeString();
+      setConnection(again ? `live · reconnected at ${at}` : "live", "good");
+      if (again) {
+        notice("");
+      }
+      lostAt = null;
+      render();
+      refreshSteps();
+      refreshTraffic();
+    } else if (message.method === "notify_status_update" && state.snapshot) {
+      const update = message.params;
+      for (const key of ["cell", "machines", "orders", "parts", "alarms"]) {
+        if (key in update) {
+          state.snapshot[key] = update[key];
+        }
+      }
+      if (update.events) {
+        state.snapshot.events = [...state.snapshot.events, ...update.events].slice(-30);
+      }
+      render();
+    }
+  });
+  ws.addEventListener("close", () => {
+    state.connected = false;
+    lost(subscribed ? "the controller went away" : "the controller refused the live connection");
+  });
+}
+
+function lost(why) {
+  if (wasRefused) {
+    return;
+  }
+  if (lostAt === null) {
+    lostAt = Date.now();
+  }
+  const since = new Date(lostAt).toLocaleTimeString();
+  setConnection(`offline since ${since}: reconnecting…`, "bad");
+  notice(`${why}: reconnecting by itself (the view shows what was last known).`);
+  setTimeout(connect, retryMs);
+  retryMs = Math.min(RETRY_MAX_MS, retryMs * 2);
+}
+
+async function loadLayout() {
+  state.layout = await call("cell.layout");
+  state.previews = {};
+  byId("cell-name").textContent = state.layout.name;
+  document.title = `${state.layout.name} · cellctl`;
+  drawFloor(byId("floor-plan"), state.layout);
+  fillSelect(byId("order-type"), Object.keys(state.layout.part_types));
+  fillSelect(byId("traffic-machine"), state.layout.machines.map((m) => m.name));
+}
+
+// -- the order form and toolbars -------------------------------------------------------------
+
+function wire() {
+  byId("order-form").addEventListener("submit", async (event) => {
+    event.preventDefault();
+    const out = byId("order-message");
+    out.className = "message";
+    const params = {
+      part_type: byId("order-type").value,
+      qty: Number(byId("order-qty").value),
+      priority: Number(byId("order-priority").value || 0),
+    };
+    try {
+      const result = await call("orders.submit", params);
+      out.textContent = result.message;
+      out.classList.add("ok");
+      await refresh();
+    } catch (e) {
+      out.textContent = e.message;
+      out.classList.add("error");
+    }
+  });
+  byId("gantt-window").addEventListener("change", refreshSteps);
+  byId("gantt-svg").addEventListener("click", () => exportGantt(byId("gantt-chart"), "svg"));
+  byId("gantt-png").addEventListener("click", () => exportGantt(byId("gantt-chart"), "png"));
+  byId("traffic-machine").addEventListener("change", refreshTraffic);
+}
+
+function start() {
+  wire();
+  if (!token) {
+    refused("No API token: this page was opened without one.");
+    return;
+  }
+  connect();
+  setInterval(refreshSteps, 2000);
+  setInterval(refreshTraffic, 1000);
+  // Progress (chars/s, ETA) and utilization move with the clock too.
+  setInterval(() => state.connected && render(), 1000);
+}
+
+start();

@@ -1,0 +1,257 @@
+// The dashboard's lists and cards: machines, orders, alarms, held parts, events, traffic.
+import { act, call } from "./app.js";
+import { machineState, STATE_LABELS } from "./floor.js";
+
+function byId(id) {
+  return document.getElementById(id);
+}
+
+function h(tag, attrs = {}, ...children) {
+  const node = document.createElement(tag);
+  for (const [key, value] of Object.entries(attrs)) {
+    if (key === "class") {
+      node.className = value;
+    } else if (key === "onclick") {
+      node.addEventListener("click", value);
+    } else {
+      node.setAttribute(key, String(value));
+    }
+  }
+  for (const child of children) {
+    if (child !== null && child !== undefined) {
+      node.append(child instanceof Node ? child : String(child));
+    }
+  }
+  return node;
+}
+
+function clock(seconds) {
+  return seconds ? new Date(seconds * 1000).toLocaleTimeString() : "";
+}
+
+function duration(seconds) {
+  if (!Number.isFinite(seconds) || seconds < 0) {
+    return "–";
+  }
+  if (seconds < 60) {
+    return `${seconds.toFixed(seconds < 10 ? 1 : 0)} s`;
+  }
+  const s = Math.round(seconds);
+  if (s < 3600) {
+    return `${Math.floor(s / 60)} min ${s % 60} s`;
+  }
+  return `${Math.floor(s / 3600)} h ${Math.floor((s % 3600) / 60)} min`;
+}
+
+export function fillSelect(select, values) {
+  const keep = select.value;
+  select.replaceChildren(...values.map((v) => h("option", { value: v }, v)));
+  if (values.includes(keep)) {
+    select.value = keep;
+  }
+}
+
+// -- machine cards --------------------------------------------------------------------------
+
+function progressText(p, now) {
+  const parts = [p.phase];
+  if (p.program) {
+    parts.push(p.program);
+  }
+  if (p.blocks) {
+    parts.push(`block ${p.block} of ${p.blocks}`);
+  }
+  parts.push(`${p.done} / ${p.total} ${p.unit}`);
+  if (p.since && now > p.since && p.done > 0) {
+    const rate = p.done / (now - p.since);
+    const what = p.unit === "bytes" ? "chars/s" : `${p.unit}/s`;
+    parts.push(`${rate.toFixed(rate < 10 ? 1 : 0)} ${what}`);
+    parts.push(`ETA ${duration((p.total - p.done) / rate)}`);
+  }
+  return parts.join(" · ");
+}
+
+function card(name) {
+  const found = document.querySelector(`.card[data-machine="${CSS.escape(name)}"]`);
+  if (found) {
+    return found;
+  }
+  const node = h("article", { class: "card", "data-machine": name },
+    h("header", {}, h("h3", {}, name), h("span", { class: "badge state" })),
+    h("dl", {},
+      h("dt", {}, "state"), h("dd", { class: "machine-state" }),
+      h("dt", {}, "step"), h("dd", { class: "step" }),
+      h("dt", {}, "part"), h("dd", { class: "part" }),
+      h("dt", {}, "utilization"), h("dd", { class: "utilization" }),
+      h("dt", {}, "last error"), h("dd", { class: "last-error" })),
+    h("div", { class: "progress hidden" },
+      h("div", { class: "bar" }, h("div", { class: "fill" })),
+      h("p", { class: "progress-text small" })),
+    h("div", { class: "preview hidden" }));
+  byId("machine-cards").append(node);
+  return node;
+}
+
+export function renderCards(state, snap) {
+  const now = Date.now() / 1000;
+  const started = snap.cell.started_at || now;
+  for (const m of state.layout.machines) {
+    const machine = snap.machines[m.name];
+    if (!machine) {
+      continue;
+    }
+    const node = card(m.name);
+    const kind = machineState(machine, snap);
+    const badge = node.querySelector(".state");
+    badge.textContent = STATE_LABELS[kind];
+    badge.className = `badge state state-${kind}`;
+    node.querySelector(".machine-state").textContent =
+      machine.in_service ? machine.state : `${machine.state} (out: ${machine.out_reason || "—"})`;
+    const match = /^(.*) \(([^)]*)\)$/.exec(machine.step || "");
+    node.querySelector(".step").textContent = match ? match[1] : machine.step || "—";
+    node.querySelector(".part").textContent = match ? match[2] : "—";
+    const busy = Math.min(1, machine.busy_s / Math.max(now - started, 1e-6));
+    node.querySelector(".utilization").textContent =
+      `${(100 * busy).toFixed(1)} % (${duration(machine.busy_s)} busy since ${clock(started)})`;
+    const alarms = snap.alarms.filter((a) => a.machine === m.name);
+    const last = alarms.length ? alarms[alarms.length - 1].text
+      : machine.failures ? `${machine.failures} failure(s) in a row` : "none";
+    node.querySelector(".last-error").textContent = last;
+    const box = node.querySelector(".progress");
+    const p = machine.progress;
+    box.classList.toggle("hidden", !p);
+    if (p) {
+      const fill = node.querySelector(".fill");
+      fill.style.width = `${(100 * p.done / Math.max(p.total, 1)).toFixed(1)}%`;
+      node.querySelector(".progress-text").textContent = progressText(p, now);
+    }
+    if (m.role === "mill") {
+      showPreview(state, node, m.name, p);
+    }
+  }
+}
+
+function showPreview(state, node, mill, progress) {
+  const box = node.querySelector(".preview");
+  const program = progress && progress.program;
+  if (!program) {
+    box.classList.add("hidden");
+    return;
+  }
+  box.classList.remove("hidden");
+  const key = `${mill}/${program}`;
+  const found = state.previews[key];
+  if (found === undefined) {
+    state.previews[key] = null;  // asked for
+    call("programs.preview", { machine: mill, program })
+      .then((r) => { state.previews[key] = r; })
+      .catch((e) => { state.previews[key] = { error: e.message }; });
+    return;
+  }
+  if (found === null) {
+    return;
+  }
+  if (box.dataset.program !== key) {
+    box.dataset.program = key;
+    if (found.error) {
+      box.replaceChildren(h("p", { class: "small error" }, found.error));
+    } else {
+      const doc = new DOMParser().parseFromString(found.svg, "image/svg+xml");
+      const svg = document.importNode(doc.documentElement, true);
+      svg.removeAttribute("width");
+      svg.removeAttribute("height");
+      svg.setAttribute("class", "toolpath");
+      box.replaceChildren(svg);
+    }
+  }
+  for (const g of box.querySelectorAll(".block-start")) {
+    g.classList.toggle("current", Number(g.dataset.block) === Number(progress.block));
+  }
+}
+
+// -- orders -----------------------------------------------------------------------------------
+
+const NOT_STARTED = new Set(["posted", "accepted"]);
+
+export function renderOrders(snap) {
+  const rows = snap.orders.map((o) => {
+    const parts = Object.entries(o.parts || {}).map(([k, v]) => `${v} ${k}`).join(", ");
+    const started = Object.keys(o.parts || {}).some((k) => k !== "waiting");
+    const cancel = NOT_STARTED.has(o.state) && !started
+      ? h("button", {
+        class: "small-button",
+        onclick: () => act(`Cancel order ${o.id} (${o.qty} × ${o.part_type})?`,
+          "orders.cancel", { id: o.id }, "order-message"),
+      }, "Cancel")
+      : null;
+    return h("tr", { "data-order": o.id, class: `order-${o.state}` },
+      h("td", {}, o.id), h("td", {}, o.part_type), h("td", {}, o.qty), h("td", {}, o.priority),
+      h("td", {}, o.state), h("td", {}, parts || "—"), h("td", {}, cancel));
+  });
+  replaceRows("order-table", rows, "no orders", 7);
+}
+
+// -- alarms and held parts ------------------------------------------------------------------
+
+export function renderAlarms(snap) {
+  const rows = snap.alarms.map((a) => h("tr", { "data-alarm": a.id },
+    h("td", {}, a.id), h("td", {}, clock(a.raised)), h("td", {}, a.machine),
+    h("td", {}, a.text),
+    h("td", {}, h("button", {
+      class: "small-button",
+      onclick: () => act(`Clear alarm ${a.id} (${a.machine}: ${a.text})?`,
+        "alarms.clear", { id: a.id }, "alarm-message"),
+    }, "Clear"))));
+  replaceRows("alarm-table", rows, "no active alarm", 5);
+}
+
+export function renderHeld(snap) {
+  const held = snap.parts.filter((p) => p.status === "held");
+  const rows = held.map((p) => h("tr", { "data-part": p.id },
+    h("td", {}, p.id), h("td", {}, p.part_type), h("td", {}, p.location), h("td", {}, p.note),
+    h("td", { class: "actions" },
+      h("button", {
+        class: "small-button",
+        onclick: () => act(`Release part ${p.id}? Its last step counts as done.`,
+          "parts.release", { id: p.id, redo: false }, "part-message"),
+      }, "Release"),
+      h("button", {
+        class: "small-button",
+        onclick: () => act(`Release part ${p.id} and run its last step again?`,
+          "parts.release", { id: p.id, redo: true }, "part-message"),
+      }, "Release & redo"),
+      h("button", {
+        class: "small-button danger",
+        onclick: () => act(`Scrap part ${p.id}? This cannot be undone.`,
+          "parts.scrap", { id: p.id }, "part-message"),
+      }, "Scrap"))));
+  replaceRows("held-table", rows, "no held part", 5);
+}
+
+function replaceRows(tableId, rows, empty, columns) {
+  const body = byId(tableId).querySelector("tbody");
+  // Rebuilding while a dialog is open would be harmless; rebuilding under the pointer is not
+  // (a click would land on a new button): skip identical content.
+  const html = rows.map((r) => r.outerHTML).join("");
+  if (body.dataset.shown === html && rows.length) {
+    return;
+  }
+  body.dataset.shown = html;
+  body.replaceChildren(...(rows.length ? rows
+    : [h("tr", { class: "empty" }, h("td", { colspan: columns }, empty))]));
+}
+
+// -- events and traffic ---------------------------------------------------------------------
+
+export function renderEvents(snap) {
+  const items = snap.events.slice(-15).reverse()
+    .map((e) => h("li", {}, h("time", {}, clock(e.time)), " ", e.text));
+  byId("event-list").replaceChildren(...items);
+}
+
+export function renderTraffic(rows) {
+  const items = rows.slice(-40).map((r) => h("tr", { class: r.dir === ">>" ? "sent" : "received" },
+    h("td", {}, clock(r.time)), h("td", {}, r.dir === ">>" ? "→" : "←"),
+    h("td", { class: "hex" }, r.hex), h("td", { class: "text" }, r.text)));
+  replaceRows("traffic-table", items, "no traffic yet", 4);
+}

@@ -1,0 +1,372 @@
+"""The dashboard in a real browser (Debian's Chromium through Playwright) against the emulated
+cell and the real controller: the token, the live floor, orders, alarms, held parts, and
+requests from another origin. A screenshot of each view lands in the test's tmp dir
+(``CELLCTL_SCREENSHOT=docs/dashboard.png`` also writes the floor with a batch running there)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import shutil
+import time
+import urllib.error
+import urllib.request
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+from playwright.async_api import Browser, Page, async_playwright
+from playwright.async_api import Error as PlaywrightError
+from websockets.asyncio.client import connect
+from websockets.exceptions import InvalidStatus
+
+from cellctl.service.access import AttachedCell
+from cellctl.service.server import ApiServer
+from cellctl.ui.dashboard import dashboard_routes
+from tests.cell_rig import CellRig
+from tests.conftest import free_port
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-dev-shm-usage",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+
+
+@dataclass
+class Dash:
+    rig: CellRig
+    server: ApiServer
+    base: str
+    page: Page
+    shots: Path
+
+    @property
+    def token(self) -> str:
+        return self.server.token
+
+    async def open(self, fragment: str | None = None) -> None:
+        tail = f"#token={self.token}" if fragment is None else fragment
+        await self.page.goto("about:blank")  # a new fragment alone would not load the page
+        await self.page.goto(f"{self.base}/{tail}")
+
+    async def shot(self, name: str, selector: str | None = None) -> Path:
+        path = self.shots / f"{name}.png"
+        if selector is None:
+            await self.page.screenshot(path=str(path))
+        else:
+            await self.page.locator(selector).screenshot(path=str(path))
+        return path
+
+    async def confirm(self) -> None:
+        await self.page.locator("#confirm-yes").click()
+
+    async def api(self, method: str, params: dict[str, Any] | None = None) -> Any:
+        return await self.server.dispatcher.call(method, params or {})
+
+
+async def http(
+    url: str, *, token: str | None = None, body: Any = None, headers: dict[str, str] | None = None
+) -> tuple[int, Any]:
+    """One request (GET, or POST with a JSON ``body``) from another thread (the server runs in
+    this one): status and decoded JSON."""
+    return await asyncio.to_thread(_http, url, token, body, headers)
+
+
+def _http(
+    url: str, token: str | None, body: Any, headers: dict[str, str] | None
+) -> tuple[int, Any]:
+    sent = dict(headers or {})
+    if token is not None:
+        sent["Authorization"] = f"Bearer {token}"
+    data = None
+    if body is not None:
+        data = json.dumps(body).encode()
+        sent.setdefault("Content-Type", "application/json")
+    request = urllib.request.Request(url, data=data, headers=sent)
+    try:
+        with urllib.request.urlopen(request, timeout=5) as answer:
+            return answer.status, json.loads(answer.read() or b"null")
+    except urllib.error.HTTPError as e:
+        return e.code, json.loads(e.read() or b"null")
+
+
+@pytest.fixture
+async def browser() -> AsyncIterator[Browser]:
+    if shutil.which(CHROMIUM) is None:
+        pytest.fail(
+            f"Chromium is not installed at {CHROMIUM}: `make test` installs Debian's chromium "
+            "(as root), or run `apt-get install chromium`"
+        )
+    async with async_playwright() as p:
+        try:
+            found = await p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        except PlaywrightError as e:
+            pytest.fail(f"Chromium ({CHROMIUM}) did not start: {e}")
+        try:
+            yield found
+        finally:
+            await found.close()
+
+
+@pytest.fixture
+async def dash(tmp_path: Path, browser: Browser) -> AsyncIterator[Dash]:
+    async with CellRig(tmp_path / "cell") as rig:
+        await rig.start_controller()
+        assert rig.controller is not None
+        port = free_port()
+        server = ApiServer(
+            AttachedCell(rig.controller),
+            rig.directory,
+            listen=f"127.0.0.1:{port}",
+            extra_routes=dashboard_routes,
+        )
+        await server.start()
+        context = await browser.new_context(viewport={"width": 1400, "height": 1000})
+        page = await context.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.on(
+            "console",
+            lambda m: errors.append(m.text) if "Content Security Policy" in m.text else None,
+        )
+        shots = tmp_path / "screenshots"
+        shots.mkdir()
+        try:
+            yield Dash(rig, server, f"http://127.0.0.1:{port}", page, shots)
+            assert not errors, f"the page reported errors: {errors}"
+        finally:
+            await context.close()
+            await server.close()
+
+
+def _shell(base: str) -> tuple[str, str]:
+    with urllib.request.urlopen(base + "/", timeout=5) as answer:
+        return answer.read().decode(), answer.headers["Content-Security-Policy"]
+
+
+async def live(dash: Dash) -> None:
+    """Open the dashboard and wait until it shows the live cell."""
+    await dash.open()
+    await dash.page.locator("#connection.good").wait_for(timeout=10_000)
+    await dash.page.locator("#floor-plan svg .machine.mill").first.wait_for(timeout=5_000)
+
+
+async def test_the_token_is_needed_for_the_page_and_the_api(dash: Dash) -> None:
+    for fragment in ("", "#token=wrong-token"):
+        await dash.open(fragment)
+        await dash.page.locator("#refused").wait_for(state="visible", timeout=5_000)
+        assert await dash.page.locator("#content").is_hidden()
+        assert await dash.page.locator("#content > *").count() == 0  # no cell data at all
+        assert "refused" in (await dash.page.locator("#connection").inner_text()).lower()
+    await dash.shot("refused")
+    for token in (None, "wrong-token"):
+        for path in ("/api/status", "/api/parts", "/access/oneshot_token"):
+            status, body = await http(dash.base + path, token=token)
+            assert status == 401 and "cell" not in body, path
+        status, body = await http(
+            dash.base + "/dashboard/call", token=token, body={"method": "cell.status"}
+        )
+        assert status == 401 and "result" not in body
+    # The shell itself carries no cell data, and the token never appears in the address bar.
+    shell, csp = await asyncio.to_thread(_shell, dash.base)
+    assert "script-src 'self'" in csp and "wax-robot-base" not in shell
+    await live(dash)
+    assert "token" not in dash.page.url
+    assert await dash.page.locator("#refused").is_hidden()
+    assert await dash.page.locator("#cell-name").inner_text() != "cellctl"
+
+
+async def test_the_floor_follows_the_batch(dash: Dash) -> None:
+    rig = dash.rig
+    await live(dash)
+    rig.post("wax-robot-base", 2, "F1")
+    rig.post("wax-toy-mill-table", 1, "F2")
+    page = dash.page
+    moves_seen = 0
+    last: dict[str, str] = {}
+    deadline = time.monotonic() + 40
+    shot_taken = False
+    while moves_seen < 3 and time.monotonic() < deadline:
+        rig.check_running()
+        for part in rig.journal.parts(["waiting", "active", "held"]):
+            if last.get(part.id, "conveyor") != part.location:
+                seen_at = time.monotonic()
+                marker = page.locator(
+                    f'[data-part-id="{part.id}"][data-location="{part.location}"]'
+                )
+                try:
+                    await marker.wait_for(state="attached", timeout=2_000)
+                except PlaywrightError:
+                    now = rig.journal.get_part(part.id).location
+                    if now == part.location:
+                        raise AssertionError(
+                            f"part {part.id} at {part.location} in the journal, not on the page "
+                            "within 2 s"
+                        ) from None
+                    continue  # it moved on again before we looked
+                assert time.monotonic() - seen_at < 2.0
+                moves_seen += 1
+            last[part.id] = part.location
+        machines = rig.controller.machines if rig.controller else {}
+        if not shot_taken and any(
+            (v.progress or {}).get("block") for v in machines.values() if v.name != "robot"
+        ):
+            await page.locator(".preview svg .block-start.current").first.wait_for(timeout=3_000)
+            await asyncio.sleep(0.6)  # the parts' moves on the floor are animated (0.5 s)
+            await dash.shot("machines", "#machines")
+            target = os.environ.get("CELLCTL_SCREENSHOT")
+            await dash.shot("floor")
+            if target:
+                await page.screenshot(path=target)
+            shot_taken = True
+        await asyncio.sleep(0.02)
+    assert moves_seen >= 3, f"saw {moves_seen} moves on the page\n{rig.describe()}"
+    assert shot_taken, "no mill showed its cut's progress"
+    await dash.shot("floor-panel", "#floor")
+    # The Gantt chart draws the journal's steps; exported as SVG it is a file of its own.
+    await page.locator("#gantt-chart svg rect.step").first.wait_for(timeout=5_000)
+    await dash.shot("gantt", "#gantt")
+    async with page.expect_download() as download:
+        await page.locator("#gantt-svg").click()
+    saved = dash.shots / "gantt.svg"
+    await (await download.value).save_as(saved)
+    assert saved.read_text().startswith("<svg") and "rect" in saved.read_text()
+    # Traffic: the robot's last bytes, both ways.
+    await page.select_option("#traffic-machine", "robot")
+    await page.locator("#traffic-table tr.received").first.wait_for(timeout=5_000)
+    await page.locator("#traffic-table tr.sent").first.wait_for(timeout=5_000)
+    await dash.shot("traffic", "#traffic")
+
+
+async def test_an_order_from_the_form(dash: Dash) -> None:
+    await dash.api("cell.pause")
+    await live(dash)
+    page = dash.page
+    await page.select_option("#order-type", "wax-toy-mill-table")
+    await page.fill("#order-qty", "2")
+    await page.fill("#order-priority", "5")
+    await page.click("#order-submit")
+    message = page.locator("#order-message.ok")
+    await message.wait_for(timeout=5_000)
+    assert "posted" in await message.inner_text()
+    row = page.locator("#order-table tbody tr", has_text="wax-toy-mill-table")
+    await row.wait_for(timeout=5_000)
+    orders = await dash.api("orders.list")
+    assert [(o["part_type"], o["qty"], o["priority"]) for o in orders] == [
+        ("wax-toy-mill-table", 2, 5)
+    ]
+    await page.fill("#order-qty", "0")
+    await page.click("#order-submit")
+    refused = page.locator("#order-message.error")
+    await refused.wait_for(timeout=5_000)
+    text = await refused.inner_text()
+    assert "qty" in text and "greater than or equal to 1" in text, text
+    assert len(await dash.api("orders.list")) == 1
+    await dash.shot("orders", "#orders")
+    # Cancel it (it has not started): confirmed first.
+    await row.locator("button", has_text="Cancel").click()
+    assert "Cancel order" in await page.locator("#confirm-text").inner_text()
+    await dash.confirm()
+    await page.locator("#order-table tbody tr.order-cancelled").wait_for(timeout=5_000)
+    assert (await dash.api("orders.list"))[0]["state"] == "cancelled"
+
+
+async def test_an_alarm_is_cleared_from_the_page(dash: Dash) -> None:
+    await live(dash)
+    rig = dash.rig
+    rig.cell.plc.set_fault("estop", None)
+    row = dash.page.locator("#alarm-table tbody tr[data-alarm]").first
+    await row.wait_for(timeout=5_000)
+    assert "stop" in (await row.inner_text()).lower()
+    await dash.shot("alarms", "#attention")
+    rig.cell.plc.clear_fault("estop")
+    alarm_id = int(await row.get_attribute("data-alarm") or 0)
+    await row.locator("button", has_text="Clear").click()
+    await dash.confirm()
+    await dash.page.locator(f'#alarm-table tr[data-alarm="{alarm_id}"]').wait_for(
+        state="detached", timeout=5_000
+    )
+    status, alarms = await http(dash.base + "/api/alarms", token=dash.token)
+    assert status == 200 and alarm_id not in [a["id"] for a in alarms]
+    assert "cleared" in await dash.page.locator("#alarm-message").inner_text()
+
+
+async def test_a_held_part_is_released_from_the_page(dash: Dash) -> None:
+    await dash.api("cell.pause")
+    rig = dash.rig
+    rig.post("wax-robot-base", 1, "H1")
+    await live(dash)
+    parts = await rig.wait_for(lambda: rig.journal.parts(order_id="H1"), "H1's part")
+    rig.journal.hold_part(parts[0].id, "inspect the blank")
+    rig.controller.poke()  # type: ignore[union-attr]
+    row = dash.page.locator(f'#held-table tr[data-part="{parts[0].id}"]')
+    await row.wait_for(timeout=5_000)
+    assert "inspect the blank" in await row.inner_text()
+    await dash.shot("held", "#attention")
+    await row.locator("button", has_text="Release").first.click()
+    await dash.confirm()
+    await row.wait_for(state="detached", timeout=5_000)
+    assert rig.journal.get_part(parts[0].id).status == "waiting"
+    assert "released" in (await dash.page.locator("#part-message").inner_text()).lower()
+
+
+async def test_another_origin_cannot_drive_the_cell(dash: Dash) -> None:
+    evil = {"Origin": "http://evil.example"}
+    call = {"method": "orders.submit", "params": {"part_type": "wax-robot-base"}}
+    status, body = await http(
+        dash.base + "/dashboard/call", token=dash.token, body=call, headers=evil
+    )
+    assert status == 403 and "another origin" in body["error"]["message"]
+    status, _ = await http(dash.base + "/dashboard/call", body=call)
+    assert status == 401
+    assert await dash.api("orders.list") == []
+    # A WebSocket from another site is refused even with a good one-shot token.
+    status, oneshot = await http(dash.base + "/access/oneshot_token", token=dash.token)
+    assert status == 200
+    url = f"ws://127.0.0.1:{dash.base.rsplit(':', 1)[1]}/websocket?token={oneshot['token']}"
+    with pytest.raises(InvalidStatus) as refused:
+        async with connect(url, additional_headers=evil):
+            pass
+    assert refused.value.response.status_code == 403
+    # ... and its own page's origin gets through.
+    status, body = await http(
+        dash.base + "/dashboard/call",
+        token=dash.token,
+        body={"method": "cell.layout"},
+        headers={"Origin": dash.base},
+    )
+    assert status == 200 and body["result"]["mills"] == ["cnc1", "cnc2"]
+
+
+async def test_a_preview_is_drawn_only_for_a_program_of_the_routes(dash: Dash) -> None:
+    drawn = await dash.api(
+        "programs.preview", {"machine": "cnc1", "program": "robot_base_rough_cnc1"}
+    )
+    assert drawn["svg"].startswith("<svg") and 'class="block-start"' in drawn["svg"]
+    again = await dash.api(
+        "programs.preview", {"machine": "cnc1", "program": "programs/robot_base_rough_cnc1.dyn"}
+    )
+    assert again == drawn
+    for machine, program in [
+        ("cnc1", "../../etc/passwd"),
+        ("cnc1", "programs/cnc1_setup.dyn"),
+        ("cnc2", "robot_base_rough_cnc1"),  # cnc1's, not cnc2's
+        ("robot", "robot_base_rough_cnc1"),
+    ]:
+        status, body = await http(
+            dash.base + "/dashboard/call",
+            token=dash.token,
+            body={"method": "programs.preview", "params": {"machine": machine, "program": program}},
+        )
+        assert status == 400 and "svg" not in json.dumps(body), (machine, program)
+        assert body["error"]["data"]["type"] == "UsageError"

@@ -25,6 +25,7 @@ from cellctl.mailbox import open_mailbox
 from cellctl.service.access import AttachedCell
 from cellctl.service.server import ApiServer
 from cellctl.ui.common import cell_dir, console, err_console, run, until_stopped
+from cellctl.ui.dashboard.command import serve_dashboard_in
 from cellctl.ui.dashboard.routes import dashboard_routes
 
 
@@ -270,10 +271,16 @@ def apply_fault(cell: object, text: str) -> None:
 )
 @click.option("--out", type=click.Path(file_okay=False), default="demo-out", show_default=True)
 @click.option("--compare/--no-compare", default=True, help="Also run one part at a time.")
-def demo(time_scale: float, count: int, out: str, compare: bool) -> None:
+@click.option(
+    "--dashboard",
+    is_flag=True,
+    help="Serve the web dashboard (its URL is printed) and keep the cell up after the batch "
+    "until Ctrl-C.",
+)
+def demo(time_scale: float, count: int, out: str, compare: bool, dashboard: bool) -> None:
     """Start an emulated cell, run a mixed batch through it, and summarize (under 2 minutes)."""
     Path(out).mkdir(parents=True, exist_ok=True)
-    run(lambda: _demo(time_scale, count, Path(out), compare))
+    run(lambda: _demo(time_scale, count, Path(out), compare, dashboard))
 
 
 async def run_batch(
@@ -283,21 +290,31 @@ async def run_batch(
     *,
     one_at_a_time: bool,
     live: bool,
+    dashboard: bool = False,
 ) -> Summary:
-    """Emulate the cell in ``directory``, run ``batch`` [(part type, qty)], return figures."""
+    """Emulate the cell in ``directory``, run ``batch`` [(part type, qty)], return figures.
+
+    ``dashboard``: serve the dashboard (URL printed), and after the batch print the figures and
+    keep the cell and a controller up until Ctrl-C."""
     from cellctl.emulators.cell import EmulatedCell
 
     shutil.rmtree(directory, ignore_errors=True)
     cell = EmulatedCell(time_scale=time_scale)
     try:
         await cell.start(directory)
+        url = serve_dashboard_in(directory) if dashboard else ""
+        if url:
+            console.print(f"dashboard: {url}", markup=False, soft_wrap=True)
+        stop = asyncio.Event()
         mailbox = open_mailbox(directory)
         for i, (part, qty) in enumerate(batch, start=1):
             mailbox.post_order(part, qty, order_id=f"{'S' if one_at_a_time else 'O'}{i}")
         mailbox.close()
         started = time.time()
         options = ControllerOptions.from_config(load_cell(directory), one_at_a_time=one_at_a_time)
-        controller = await run_controller(directory, live=live, until_idle=True, options=options)
+        controller = await run_controller(
+            directory, live=live, until_idle=True, options=options, stop=stop
+        )
         machines = [controller.config.robot.name, *(m.name for m in controller.config.mills)]
         summary = summarize(controller.journal, machines, since=started)
         title = "one part at a time" if one_at_a_time else "cellctl schedule"
@@ -310,18 +327,31 @@ async def run_batch(
         )
         twice = {p: r for p, r in cell.runs_per_part().items() if any(n > 1 for n in r.values())}
         summary.extra["parts_cut_twice"] = len(twice)
+        if url and not stop.is_set():
+            console.print()
+            console.print("\n".join(summary.lines(f"[bold]{title}[/bold]")))
+            console.print(f"\nthe batch is done; the cell and the dashboard stay up: {url}")
+            console.print("(submit orders there or with `cellctl submit`; Ctrl-C stops)")
+            await run_controller(directory, live=False, until_idle=False, options=options)
         return summary
     finally:
         await cell.close()
 
 
-async def _demo(time_scale: float, count: int, out: Path, compare: bool) -> None:
+async def _demo(
+    time_scale: float, count: int, out: Path, compare: bool, dashboard: bool = False
+) -> None:
     half = max(1, count // 2)
     batch = [("wax-robot-base", half), ("wax-toy-mill-table", count - half)]
     console.print(
         f"[bold]cellctl demo[/bold]: an emulated cell (robot, 2 mills, PLC) at time scale "
         f"{time_scale:g}; batch: {half} wax-robot-base + {count - half} wax-toy-mill-table"
     )
+    if dashboard:
+        await run_batch(
+            out / "cell", time_scale, batch, one_at_a_time=False, live=False, dashboard=True
+        )
+        return
     # A live view on a terminal; elsewhere (a file, a pipe) every event a line as it happens.
     live = console.is_terminal
     summary = await run_batch(out / "cell", time_scale, batch, one_at_a_time=False, live=live)

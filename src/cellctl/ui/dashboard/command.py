@@ -84,3 +84,21 @@ def dashboard_command(ctx: click.Context, print_only: bool) -> None:
     if not webbrowser.open(url):
         raise UsageError("no browser could be started here: use `cellctl dashboard --print`")
     console.print(f"dashboard opened in your browser ({url.split('#')[0]})", markup=False)
+
+
+def serve_dashboard_in(directory: Path) -> str:
+    """Give a cell (the demo's emulated one) an ``[api] listen`` on a free loopback port and
+    a token; the dashboard's URL (with the token in its fragment) once its controller runs."""
+    import socket
+
+    from cellctl.service.server import ensure_token
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = int(probe.getsockname()[1])
+    toml = directory / "cell.toml"
+    text = toml.read_text(encoding="utf-8")
+    if "[api]" in text:
+        raise UsageError(f"{toml} already has an [api] table")
+    toml.write_text(text.rstrip("\n") + f'\n\n[api]\nlisten = "127.0.0.1:{port}"\n', "utf-8")
+    return f"http://127.0.0.1:{port}/#token={ensure_token(directory)}"

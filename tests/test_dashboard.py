@@ -26,7 +26,7 @@ from websockets.exceptions import InvalidStatus
 from cellctl.service.access import AttachedCell
 from cellctl.service.server import ApiServer
 from cellctl.ui.dashboard import dashboard_routes
-from tests.cell_rig import CellRig
+from tests.cell_rig import CellRig, cli
 from tests.conftest import free_port
 
 CHROMIUM = "/usr/bin/chromium"
@@ -49,6 +49,7 @@ class Dash:
     base: str
     page: Page
     shots: Path
+    server_routes: Any = dashboard_routes
 
     @property
     def token(self) -> str:
@@ -141,12 +142,14 @@ async def dash(tmp_path: Path, browser: Browser) -> AsyncIterator[Dash]:
         )
         shots = tmp_path / "screenshots"
         shots.mkdir()
+        dash: Dash | None = None
         try:
-            yield Dash(rig, server, f"http://127.0.0.1:{port}", page, shots)
+            dash = Dash(rig, server, f"http://127.0.0.1:{port}", page, shots)
+            yield dash
             assert not errors, f"the page reported errors: {errors}"
         finally:
             await context.close()
-            await server.close()
+            await (dash.server if dash is not None else server).close()
 
 
 def _shell(base: str) -> tuple[str, str]:
@@ -370,3 +373,40 @@ async def test_a_preview_is_drawn_only_for_a_program_of_the_routes(dash: Dash) -
         )
         assert status == 400 and "svg" not in json.dumps(body), (machine, program)
         assert body["error"]["data"]["type"] == "UsageError"
+
+
+async def test_the_page_reconnects_after_the_controller_restarts(dash: Dash) -> None:
+    await live(dash)
+    port = int(dash.base.rsplit(":", 1)[1])
+    await dash.server.close()
+    connection = dash.page.locator("#connection")
+    await dash.page.locator("#connection.bad").wait_for(timeout=5_000)
+    assert "reconnecting" in await connection.inner_text()
+    assert dash.rig.controller is not None
+    dash.server = ApiServer(
+        AttachedCell(dash.rig.controller),
+        dash.rig.directory,
+        listen=f"127.0.0.1:{port}",
+        extra_routes=dash.server_routes,
+    )
+    await dash.server.start()
+    await dash.page.locator("#connection.good").wait_for(timeout=10_000)
+    assert "reconnected" in await connection.inner_text()
+    assert await dash.page.locator("#notice").is_hidden()
+
+
+async def test_cellctl_dashboard_refuses_clearly_and_prints_the_url(dash: Dash) -> None:
+    directory = dash.rig.directory
+    toml = directory / "cell.toml"
+    text = toml.read_text()
+    result = await cli(directory, "dashboard", "--print")
+    assert result.exit_code == 2 and "names no [api] listen" in result.output
+    port = int(dash.base.rsplit(":", 1)[1])
+    toml.write_text(text + f'\n[api]\nlisten = "127.0.0.1:{port}"\n')
+    result = await cli(directory, "dashboard", "--print")
+    assert result.exit_code == 0, result.output
+    assert result.output.strip() == f"{dash.base}/#token={dash.token}"
+    toml.write_text(text + f'\n[api]\nlisten = "127.0.0.1:{free_port()}"\n')
+    result = await cli(directory, "dashboard", "--print")
+    assert result.exit_code == 2 and "no controller answers" in result.output
+    assert dash.token not in result.output

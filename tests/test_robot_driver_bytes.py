@@ -59,6 +59,7 @@ async def test_io_decodes_inputs_and_outputs() -> None:
 
 async def test_go_selects_application_then_starts_cycle(tmp_path: Path) -> None:
     store = StateStore(tmp_path)
+    store.save("r1", {"state": 1, "partitions": {"3": "LOADCNC1"}})
     async with expected_exchange(execute_script(b"33") + execute_script(b"22")) as link:
         robot = Ibm7545Robot(link, name="r1", store=store)
         await robot.go(3)
@@ -67,22 +68,27 @@ async def test_go_selects_application_then_starts_cycle(tmp_path: Path) -> None:
 
 
 async def test_go_on_empty_partition_reads_reject_and_says_partition_empty() -> None:
+    # The host thought partition 4 full (the controller lost it): reject 83 says otherwise.
     script = [(b"X", READY), (b"34\r\n", EOT), *reject_script(b"D015353\r\n")]
     async with expected_exchange(script) as link:
         robot = Ibm7545Robot(link)
+        robot.state, robot.partitions[4] = 1, "LOADCNC1"
         with pytest.raises(DeviceError) as err:
             await robot.go(4)
     assert err.value.code == 83
     assert "partition empty" in str(err.value)
-    assert robot.state == 0
+    assert robot.partitions[4] is None
 
 
 async def test_start_before_initialize_is_improper_startup_sequence() -> None:
     start = [(b"X", READY), (b"22\r\n", EOT)]
     script = [*execute_script(b"31"), *start, *reject_script(b"D013030\r\n")]
     async with expected_exchange(script) as link:
+        robot = Ibm7545Robot(link)
+        robot.state, robot.partitions[1] = 1, "LOADCNC1"  # the host's view, the controller cold
         with pytest.raises(DeviceError, match="improper startup sequence"):
-            await Ibm7545Robot(link).go(1)
+            await robot.go(1)
+    assert robot.state == 0
 
 
 async def test_initialize_return_home_waits_through_xoffs_for_xon() -> None:
@@ -133,6 +139,7 @@ async def test_download_sends_n_alone_then_each_record_with_ack() -> None:
     seen: list[tuple[int, int]] = []
     async with expected_exchange(script) as link:
         robot = Ibm7545Robot(link)
+        robot.state = 1
         await robot.download(3, prog, progress=lambda done, total, _b: seen.append((done, total)))
     assert robot.partitions[3] == "DEMO"
     assert robot.holds(3, prog)
@@ -149,6 +156,7 @@ async def test_download_rejected_mid_way_leaves_partition_empty() -> None:
     ]
     async with expected_exchange(script) as link:
         robot = Ibm7545Robot(link)
+        robot.state = 1
         with pytest.raises(DeviceError, match="insufficient memory"):
             await robot.download(2, _program())
     assert robot.partitions[2] is None
@@ -207,11 +215,24 @@ async def test_xoff_then_silence_raises_after_busy_silence() -> None:
             await robot.auto_mode()
 
 
-async def test_garbage_instead_of_xoff_is_unexpected_reply_with_raw() -> None:
-    async with expected_exchange([(b"X", b"?")]) as link:
+QUICK = RobotConfig(reply_timeout=0.05, retry_settle=0.01, checksum_retries=1)
+BREAK = b"E\r\n"  # ends what the controller was receiving; its EOT is discarded
+
+
+async def test_garbage_instead_of_xoff_every_time_is_unexpected_reply_with_raw() -> None:
+    script = [(b"X", b"?"), (BREAK, EOT), (b"X", b"?")]
+    async with expected_exchange(script) as link:
         with pytest.raises(UnexpectedReply) as err:
-            await Ibm7545Robot(link).auto_mode()
+            await Ibm7545Robot(link, config=QUICK).auto_mode()
     assert err.value.raw == b"?"
+
+
+async def test_a_garbled_handshake_is_tried_again_and_counted() -> None:
+    script = [(b"R", XOFF + b"\x15"), (BREAK, EOT), *read_script(b"01", b"D02000000\r\n")]
+    async with expected_exchange(script) as link:
+        robot = Ibm7545Robot(link, config=QUICK)
+        assert (await robot.machine_status()).ok
+    assert robot.counters.handshake_retries == 1
 
 
 async def test_bad_erreset_operand_is_refused_before_any_byte() -> None:

@@ -29,7 +29,10 @@ a block to be taken, the block's estimated machining time times ``block_margin``
 
 Results: success returns a :class:`Result` with the source's message (code 0); a refusal
 raises :class:`DeviceError` (the machine's state) or :class:`MillInputError` (the file),
-both carrying the spec's result code and message.
+both carrying the spec's result code and message. The host's state guards every function
+(:data:`cellctl.protocol.states.MILL_TABLE`): read after CTS has moved it on, before any byte
+of the function goes out. A forced INITIALIZE is allowed in every state: the way out of one
+that is stuck.
 """
 
 from __future__ import annotations
@@ -60,6 +63,7 @@ from cellctl.protocol.dynalan import (
     validate,
 )
 from cellctl.protocol.dynalan.table import AXES, CTRL_Z, DC1, DC3, ENQ, LINE_END
+from cellctl.protocol.states import MillFunction, mill_host_state, mill_refusal
 
 #: Machine states, as the source's STATUS() prints them.
 MILL_STATES = {
@@ -360,6 +364,19 @@ class Dyna2400Mill(LinkDriver):
         self.state = state
         self._save()
 
+    async def _guard(self, function: MillFunction, *, refresh: bool = True) -> None:
+        """Refuse ``function`` if the host's state says so (after CTS moved the view on)."""
+        if refresh and self.initialized and self.state in (1, 3, 4):
+            await self.status()  # NEXT pressed (1 -> 2), a block or a GO done (3/4 -> 2)
+        refusal = mill_refusal(function, self.state, self.initialized)
+        if refusal is not None:
+            raise DeviceError(
+                refusal.code,
+                refusal.message,
+                detail=f"{self.name}: {function.value} refused by the host's state "
+                f"(state {mill_host_state(self.state, self.initialized)}): {refusal.why}",
+            )
+
     def context(self, role: ProgramRole = ProgramRole.MILLING) -> ValidationContext:
         """What the validator should assume for this mill: its setup's units and feeds."""
         initial = None
@@ -468,8 +485,8 @@ class Dyna2400Mill(LinkDriver):
         assert result.blocks is not None
         if len(result.blocks) != 1:
             raise MillInputError(5, INITIALIZE_RESULTS[5], "a setup program is one block")
-        if self.initialized and not force:
-            raise DeviceError(1, INITIALIZE_RESULTS[1])
+        function = MillFunction.INITIALIZE_FORCE if force else MillFunction.INITIALIZE
+        await self._guard(function, refresh=False)
         if not await self._wait_ready(self.config.ready_wait):
             raise DeviceError(4, INITIALIZE_RESULTS[4], detail="CTS is low: is it READY?")
         block = result.blocks[0]
@@ -517,13 +534,9 @@ class Dyna2400Mill(LinkDriver):
         return MillStatus(self.state, ready, condition)
 
     async def _ready_for_program(self) -> None:
-        if not self.initialized or self.state == 0:
-            raise DeviceError(1, DOWNLOAD_RESULTS[1])
-        ready = await self._cts()
-        if not ready:
-            if self.state == 1:
-                raise DeviceError(2, "Absolute zero not set")
-            raise DeviceError(2, "Machine executing program")
+        await self._guard(MillFunction.DOWNLOAD)
+        if not await self._cts():
+            raise DeviceError(2, "Machine executing program", detail=f"{self.name}: CTS low")
         if self.state != 2:
             self._set_state(2)
 
@@ -630,8 +643,7 @@ class Dyna2400Mill(LinkDriver):
         result = validate(program, ValidationContext(role=ProgramRole.END))
         if not result.ok:
             raise MillInputError(2, END_RESULTS[2], result.errors[0].format("END"))
-        if self.state in (3, 4) and not await self._cts():
-            raise DeviceError(2, "Machine executing program", detail="END would be lost")
+        await self._guard(MillFunction.ENDLOAD)
         data = b"".join(line.raw.encode("ascii") + LINE_END for line in program.lines)
         lows = self._ready.lows
         await self._send(data + bytes([CTRL_Z]))
@@ -677,6 +689,7 @@ class Dyna2400Mill(LinkDriver):
         """
         result = self._valid(program, ProgramRole.MILLING, DOWNLOAD_RESULTS, 4, 5)
         assert result.blocks is not None
+        await self._guard(MillFunction.LINE_EXECUTE)
         lines = [line for block in result.blocks for line in block.lines[:-2]]
         flow = [
             line
@@ -728,6 +741,7 @@ class Dyna2400Mill(LinkDriver):
                 f"program load holds at most 900 lines; this is {len(result.blocks)} blocks: "
                 "use download",
             )
+        await self._guard(MillFunction.LOAD)
         if not await self._wait_ready(self.config.ready_wait):
             raise DeviceError(4, "Machine not ready", detail="CTS is low")
         block = result.blocks[0]
@@ -754,6 +768,7 @@ class Dyna2400Mill(LinkDriver):
             )
         if self.loaded is None:
             raise UsageError(f"{self.name}: nothing loaded: load a program first")
+        await self._guard(MillFunction.GO)
         if not await self._wait_ready(self.config.ready_wait):
             raise DeviceError(2, "Machine executing program")
         lows = self._ready.lows

@@ -23,12 +23,26 @@ each Xoff extends the wait, up to ``busy_ceiling`` in all; silence longer than
 ``busy_silence`` raises :class:`LinkTimeout`. EOT means the controller rejected the request:
 the driver reads the reject status and raises :class:`DeviceError` with the source's words.
 A D record with a bad checksum is acknowledged (so the controller finishes its transaction)
-and the read is repeated, up to ``checksum_retries`` times; then :class:`ChecksumError`.
+and the read is repeated, up to ``checksum_retries`` times; then :class:`ChecksumError`. A
+garbled handshake (a byte other than Xoff, Xon or EOT where one belongs, before the operand
+went out) is repeated the same way.
+
+The host's state guards every function: :mod:`cellctl.protocol.states` says which function
+the source's library answered itself in which state (GO after HALT: "partition empty", code
+3), and such a refusal raises :class:`DeviceError` before any byte goes out.
+
+A download the controller refused for a transmission error (reject 16 "record format error",
+96, 112, an EOT that was a garbled Ack, a stray byte where an Ack belongs, or no Ack after the
+controller had already acknowledged part of this download) is sent again from its N record,
+up to ``download_retries`` times; any other reject (48, 83, ...) is raised at once. Before a
+retry the host sends a record the controller cannot take (``E`` CR LF), so whatever it was
+receiving ends in a reject, and discards what comes back until the line is quiet.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -36,6 +50,7 @@ from pathlib import Path
 from typing import NoReturn
 
 from cellctl.errors import (
+    CellctlError,
     ChecksumError,
     DeviceError,
     FramingError,
@@ -64,6 +79,7 @@ from cellctl.protocol.robot import (
     resync,
     select_application_operand,
 )
+from cellctl.protocol.states import RobotFunction, robot_refusal
 
 from .base import LinkDriver
 from .state import StateStore
@@ -79,6 +95,17 @@ ROBOT_STATES = {
 _COLD_REJECTS = {48}
 #: Reject code the controller gives for selecting an empty partition.
 _EMPTY_PARTITION = 83
+#: Rejects that say the line garbled a download, not that the controller cannot take it:
+#: 16 record format error (bad checksum, hex, count or terminator), 96 invalid identifier
+#: (a garbled N), 112 Xoff time out (a lost terminator left it waiting), 0 no reject status
+#: (the "EOT" was a garbled Ack). Only these are retried.
+TRANSMISSION_REJECTS = frozenset({0, 16, 96, 112})
+#: Sent before a retry: a record no controller state accepts, so a half-received record or
+#: operand ends in a reject (EOT, discarded) and the controller waits for an identifier again.
+_BREAK = b"E\r\n"
+
+RetryCallback = Callable[[int, int, CellctlError], None]
+"""``on_retry(attempt, limit, error)``, called before a download is sent again."""
 
 ProgressCallback = Callable[[int, int, int], None]
 """``progress(records_done, records_total, bytes_sent)``, called after every Ack."""
@@ -95,7 +122,11 @@ class RobotConfig:
     busy_ceiling: float = 300.0
     """Seconds a busy controller may keep the host waiting in all (return home, a long stop)."""
     checksum_retries: int = 3
-    """Times a read with a bad D-record checksum is repeated before the error is raised."""
+    """Times a read with a bad D-record checksum (or a garbled handshake) is repeated."""
+    download_retries: int = 3
+    """Times a download refused for a transmission error is sent again from its N record."""
+    retry_settle: float = 0.2
+    """Seconds of quiet line awaited (input discarded) before a retry."""
     erreset_operand: int = int(ExecuteOperand.ERRESET)
     """ERRESET's operand: not in the source, **assumed** 24."""
 
@@ -131,6 +162,8 @@ class RobotCounters:
 
     transactions: int = 0
     checksum_retries: int = 0
+    handshake_retries: int = 0
+    download_retries: int = 0
     records_downloaded: int = 0
     rejects: list[int] = field(default_factory=list)
 
@@ -202,6 +235,19 @@ class Ibm7545Robot(LinkDriver):
             self.digests = {}
         self._save()
 
+    def _guard(self, function: RobotFunction, partition: int | None = None) -> None:
+        """Refuse ``function`` before any byte goes out if the host's state says so."""
+        full = None if partition is None else self.partitions.get(partition) is not None
+        refusal = robot_refusal(function, self.state, full)
+        if refusal is not None:
+            where = f" {partition}" if partition is not None else ""
+            raise DeviceError(
+                refusal.code,
+                refusal.message,
+                detail=f"{self.name}: {function.value}{where} refused by the host's state "
+                f"(robot state {self.state}): {refusal.why}",
+            )
+
     def holds(self, partition: int, program: ProgramFile) -> bool:
         """True if the host's view says ``partition`` holds exactly ``program``."""
         return self.digests.get(partition) == _digest(program.with_partition(partition))
@@ -264,9 +310,34 @@ class Ibm7545Robot(LinkDriver):
         async with self._lock:
             await self._execute_unlocked(operand, what)
 
+    async def _open_retrying(self, ident: bytes, what: str) -> None:
+        """Open a transaction; a garbled handshake (before the operand) is tried again."""
+        attempt = 0
+        while True:
+            try:
+                await self._open_transaction(ident, what)
+                return
+            except UnexpectedReply:
+                attempt += 1
+                self.counters.handshake_retries += 1
+                if attempt > self.config.checksum_retries:
+                    raise
+                await self._resync()
+
+    async def _resync(self) -> None:
+        """End whatever the controller was receiving and discard its answer (see module
+        docstring): wait for its first byte, then for ``retry_settle`` of quiet."""
+        await self.link.write(_BREAK)
+        timeout = self._timeout(len(_BREAK))
+        with contextlib.suppress(LinkTimeout):
+            while True:
+                await self.link.read(timeout=timeout)
+                timeout = self.config.retry_settle
+        self.link.reset_input()
+
     async def _execute_unlocked(self, operand: int, what: str) -> None:
         record = encode_operand(operand)  # a bad operand is refused before X goes out
-        await self._open_transaction(b"X", what)
+        await self._open_retrying(b"X", what)
         await self.link.write(record)
         try:
             byte = await self._byte(self._timeout(len(record)))
@@ -286,7 +357,7 @@ class Ibm7545Robot(LinkDriver):
         record_out = encode_operand(operand)  # a bad operand is refused before R goes out
         attempt = 0
         while True:
-            await self._open_transaction(b"R", what)
+            await self._open_retrying(b"R", what)
             await self.link.write(record_out)
             record, raw_error = await self._read_data_record(what, size)
             await self.link.write(bytes([ACK]))
@@ -389,11 +460,14 @@ class Ibm7545Robot(LinkDriver):
         program: ProgramFile | str | Path,
         *,
         progress: ProgressCallback | None = None,
+        on_retry: RetryCallback | None = None,
     ) -> None:
         """Download a compiled program (``.rec`` file or ProgramFile) into ``partition`` 1..5.
 
-        The file is read and checked, and the partition checked, before any byte is sent. On a
-        reject the download stops, the partition counts as empty and DeviceError says why.
+        The file is read and checked, the partition checked, and the host's state consulted
+        before any byte is sent. A transmission error sends it again from the N record (up to
+        ``download_retries`` times, ``on_retry`` told first); any other reject stops it. A
+        failed or refused download leaves the partition Empty; DeviceError says why.
         """
         if partition not in PARTITIONS:
             raise UsageError(f"partition must be 1 to 5, not {partition} (partition error)")
@@ -405,22 +479,46 @@ class Ibm7545Robot(LinkDriver):
         self.partitions[partition] = None
         self.digests.pop(partition, None)
         self._save()
-        sent = 0
+        self._guard(RobotFunction.DOWNLOAD)
         # The identifier goes alone and is acknowledged, then the rest of the N record.
         pieces = [wire[0][:1], wire[0][1:], *wire[1:]]
+        what = f"download to partition {partition}"
         async with self._lock:
-            self.link.reset_input()
-            for i, piece in enumerate(pieces):
-                await self.link.write(piece)
-                sent += len(piece)
-                await self._expect_ack(piece, f"download to partition {partition}")
-                if i >= 1:
-                    self.counters.records_downloaded += 1
-                    if progress is not None:
-                        progress(i, total, sent)
+            attempt = 0
+            while True:
+                try:
+                    await self._send_program(pieces, total, what, progress)
+                    break
+                except CellctlError as e:
+                    if not _garbled(e) or attempt >= self.config.download_retries:
+                        raise
+                    attempt += 1
+                    self.counters.download_retries += 1
+                    if on_retry is not None:
+                        on_retry(attempt, self.config.download_retries, e)
+                    await self._resync()
         self.partitions[partition] = prog.name
         self.digests[partition] = _digest(prog)
         self._save()
+
+    async def _send_program(
+        self, pieces: list[bytes], total: int, what: str, progress: ProgressCallback | None
+    ) -> None:
+        self.link.reset_input()
+        sent = 0
+        for i, piece in enumerate(pieces):
+            await self.link.write(piece)
+            sent += len(piece)
+            try:
+                await self._expect_ack(piece, what)
+            except LinkTimeout as e:
+                if i == 0:
+                    raise  # no answer at all: a silent controller, not a garbled line
+                raise _AckLost(str(e)) from e
+            if i >= 1:
+                self.counters.records_downloaded += 1
+                if progress is not None:
+                    progress(i, total, sent)
 
     async def _expect_ack(self, piece: bytes, what: str) -> None:
         try:
@@ -436,6 +534,7 @@ class Ibm7545Robot(LinkDriver):
     async def select_application(self, partition: int) -> None:
         """Select the program in ``partition`` (X 3n); reject 83 means the partition is empty."""
         operand = select_application_operand(partition)
+        self._guard(RobotFunction.APPLICATION, partition)
         try:
             await self._execute(operand, f"select application {partition}")
         except DeviceError as e:
@@ -448,6 +547,7 @@ class Ibm7545Robot(LinkDriver):
 
     async def start_cycle(self) -> None:
         """Run the selected application (X 22): state 2."""
+        self._guard(RobotFunction.START_CYCLE)
         await self._execute(ExecuteOperand.START_CYCLE, "start cycle")
         self._set_state(2)
 
@@ -455,6 +555,7 @@ class Ibm7545Robot(LinkDriver):
         """Run the program in ``partition``: select application, then start cycle."""
         if partition not in PARTITIONS:
             raise UsageError(f"partition must be 1 to 5, not {partition} (starting function error)")
+        self._guard(RobotFunction.GO, partition)
         await self.select_application(partition)
         await self.start_cycle()
 
@@ -516,6 +617,18 @@ class Ibm7545Robot(LinkDriver):
         """Wait for the running program's "cycle done" output; the robot is then state 1."""
         await self.wait_output(done_output, True, timeout=timeout, poll=poll)
         self._set_state(1)
+
+
+class _AckLost(LinkTimeout):
+    """No Ack for a record after the controller had acknowledged earlier ones in the same
+    download: a byte lost on the line, most likely (retried like a garbled one)."""
+
+
+def _garbled(error: CellctlError) -> bool:
+    """True if ``error`` says the line garbled a download (worth sending it again)."""
+    if isinstance(error, DeviceError):
+        return error.code in TRANSMISSION_REJECTS
+    return isinstance(error, UnexpectedReply | _AckLost)
 
 
 def _digest(program: ProgramFile) -> str:

@@ -35,7 +35,8 @@ What it models:
   with the current level.
 - RTS stays low at least ``min_busy_s`` (real seconds, **assumed** 0.2) once a block or a line
   is taken: the controller's own processing time, and long enough for a host to see it.
-- Fault switches, :data:`FAULTS`: ``never-ready``, ``no-next``, ``drop[=N]``, ``stall``.
+- Fault switches, :data:`FAULTS`: ``never-ready``, ``no-next``, ``drop[=N]``, ``stall``,
+  ``noise=RATE[,SEED]``.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ from collections.abc import Callable, Coroutine
 from dataclasses import dataclass, field
 from typing import Any
 
-from cellctl.emulators.serve import DeviceLine, EmulatedDevice
+from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
 from cellctl.errors import LinkClosed, UsageError
 from cellctl.protocol.dynalan.machine import (
     Entry,
@@ -82,6 +83,8 @@ FAULTS = {
     "no-next": "the operator never presses NEXT after SETUP: RTS stays low",
     "drop": "drop the connection N lines into the next block (default 5)",
     "stall": "CTS stuck low: after the next block RTS never rises again",
+    "noise": "=RATE[,SEED]: every byte, each way, flipped in one bit or dropped with "
+    "probability RATE (e.g. 3e-4,7)",
 }
 
 
@@ -239,6 +242,8 @@ class Dyna2400Emulator(EmulatedDevice):
             raise UsageError(f"unknown fault {name!r}; known: {', '.join(FAULTS)}")
         if name == "drop" and arg is not None and not arg.isdigit():
             raise UsageError(f"drop takes a line count, not {arg!r}")
+        if name == "noise":
+            self.noise = LineNoise.parse(arg)
         self.faults[name] = arg
         if name == "never-ready":
             self._set_rts(False)
@@ -246,6 +251,8 @@ class Dyna2400Emulator(EmulatedDevice):
     def clear_fault(self, name: str) -> None:
         """Switch a fault off."""
         self.faults.pop(name, None)
+        if name == "noise":
+            self.noise = None
 
     # -- automatic operator ---------------------------------------------------------------------
 

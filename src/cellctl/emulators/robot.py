@@ -27,7 +27,7 @@ What it models:
 - Machine times (moves, return home, the 25 s Xoff repeat, the 30 s host timeout) are divided by
   ``time_scale``. Line pacing is the serving layer's (``DeviceLine``).
 - Fault switches, :data:`FAULTS`: ``power-off``, ``servo-error``, ``corrupt-checksum=N``,
-  ``drop``, ``silent``.
+  ``drop``, ``silent``, ``noise=RATE[,SEED]`` (line noise, in the serving layer).
 
 Assumptions beyond the source (all constructor arguments): ERRESET operand 24; with the
 manipulator powered off the controller still answers reads (so the host can read reject 128) but
@@ -46,7 +46,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import NoReturn, TypeVar
 
-from cellctl.emulators.serve import DeviceLine, EmulatedDevice
+from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
 from cellctl.errors import ProtocolError, UsageError
 from cellctl.protocol.aml import Instruction, Op, decode_program
 from cellctl.protocol.robot import (
@@ -84,6 +84,8 @@ FAULTS: dict[str, str] = {
     "corrupt-checksum": "=N: the next N D records sent carry a wrong checksum (default 1)",
     "drop": "close the connection at the next request",
     "silent": "stop answering: read every byte, send nothing",
+    "noise": "=RATE[,SEED]: every byte, each way, flipped in one bit or dropped with "
+    "probability RATE (e.g. 3e-4,7)",
 }
 
 # Reject codes used here (messages in cellctl.protocol.robot.REJECT_CODES).
@@ -252,6 +254,8 @@ class Ibm7545Emulator(EmulatedDevice):
                 raise UsageError(f"corrupt-checksum needs a count, not {arg!r}") from None
             if self._corrupt_left < 0:
                 raise UsageError("corrupt-checksum needs a count >= 0")
+        if name == "noise":
+            self.noise = LineNoise.parse(arg)
         self.faults[name] = arg
         if name == "power-off":
             self._abort("manipulator power off")
@@ -267,6 +271,8 @@ class Ibm7545Emulator(EmulatedDevice):
         self.faults.pop(name, None)
         if name == "corrupt-checksum":
             self._corrupt_left = 0
+        elif name == "noise":
+            self.noise = None
 
     @property
     def machine_status(self) -> MachineStatus:

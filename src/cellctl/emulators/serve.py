@@ -18,13 +18,20 @@ device server does when a controller restarts and reconnects.
 Pacing: with ``pacing=True`` (the default) the emulator receives each host byte no sooner than
 it would have crossed the wire at the line's rate, and its own bytes reach the host at that
 rate too, so timings match the real line. ``pacing=False`` moves bytes as fast as they come.
+
+Line noise (the ``noise=RATE[,SEED]`` fault every serial emulator takes): with a
+:class:`LineNoise` on the device, every byte, each way, is flipped in one bit or dropped with
+probability RATE (half and half), as a noisy cable would; each direction draws from its own
+generator seeded from SEED, so a run can be repeated.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import os
+import random
 import tty
 from abc import ABC, abstractmethod
 from collections import deque
@@ -46,6 +53,45 @@ from cellctl.link import LineSettings, parse_host_port
 _PACE_SLICE_S = 0.050
 # How much of this process's own scheduling delay a paced reply may take back (see write).
 _CATCH_UP_S = 0.005
+
+
+class LineNoise:
+    """Flip one bit of, or drop, each byte with probability ``rate`` (see module docstring)."""
+
+    def __init__(self, rate: float, seed: int | None = None) -> None:
+        if not (0.0 <= rate <= 1.0) or math.isnan(rate):
+            raise UsageError(f"noise rate must be between 0 and 1, not {rate}")
+        self.rate = rate
+        self.seed = seed
+        self._rng = {d: random.Random(f"{seed}:{d}") for d in ("in", "out")}
+        self.flipped = 0
+        self.dropped = 0
+
+    @classmethod
+    def parse(cls, arg: str | None) -> LineNoise:
+        """``"3e-4"`` or ``"3e-4,7"`` (rate, seed), as ``--fault noise=RATE[,SEED]`` gives it."""
+        rate_text, _, seed_text = (arg or "").partition(",")
+        try:
+            rate = float(rate_text)
+            seed = int(seed_text) if seed_text.strip() else None
+        except ValueError:
+            raise UsageError(f"noise takes RATE[,SEED], e.g. noise=3e-4,7, not {arg!r}") from None
+        return cls(rate, seed)
+
+    def garble(self, data: bytes, direction: str) -> bytes:
+        """``data`` as it comes out of the noisy line (``direction`` "in" or "out")."""
+        rng = self._rng[direction]
+        rate = self.rate
+        out = bytearray()
+        for byte in data:
+            if rng.random() >= rate:
+                out.append(byte)
+            elif rng.random() < 0.5:
+                self.dropped += 1
+            else:
+                self.flipped += 1
+                out.append(byte ^ (1 << rng.randrange(8)))
+        return bytes(out)
 
 
 class DeviceLine:
@@ -86,12 +132,20 @@ class DeviceLine:
         self._closed = False
         self.bytes_in = 0
         self.bytes_out = 0
+        self.device: EmulatedDevice | None = None  # its ``noise`` garbles both ways
+
+    def _noisy(self, data: bytes, direction: str) -> bytes:
+        noise = self.device.noise if self.device is not None else None
+        return noise.garble(data, direction) if noise is not None else data
 
     # -- fed by the transport ----------------------------------------------------------------
 
     def feed(self, data: bytes) -> None:
         """Bytes from the host arrived (called by the transport)."""
         if not data or self._closed:
+            return
+        data = self._noisy(data, "in")
+        if not data:
             return
         now = self._loop.time()
         if self.pacing:
@@ -229,6 +283,7 @@ class DeviceLine:
         """
         if self._closed:
             raise LinkClosed("the host closed the line")
+        data = self._noisy(data, "out")
         if not self.pacing:
             self.bytes_out += len(data)
             self._send_raw(data)
@@ -280,6 +335,9 @@ def _done(fut: asyncio.Future[None]) -> None:
 class EmulatedDevice(ABC):
     """A machine emulator: its state lives on the object and survives reconnects."""
 
+    #: Line noise on every connection (the ``noise`` fault), or None.
+    noise: LineNoise | None = None
+
     @abstractmethod
     async def session(self, line: DeviceLine) -> None:
         """Serve one host connection until it closes (return, or let LinkClosed out)."""
@@ -327,6 +385,7 @@ class Server:
 
 async def _run_session(server: Server, line: DeviceLine, on_end: Callable[[], None]) -> None:
     server.current_line = line
+    line.device = server.device
     try:
         await server.device.session(line)
     except LinkClosed:
@@ -393,6 +452,7 @@ async def _serve_pty(
             loop.call_soon(start)
 
         line = DeviceLine(settings, pacing=pacing, send=send, on_drop=on_drop)
+        line.device = device
 
         def readable() -> None:
             try:
@@ -545,6 +605,7 @@ class _TcpConnection(asyncio.Protocol):
             on_rts=on_rts,
             on_drop=transport.abort,
         )
+        line.device = self.server.device
         self.line = line
         _spawn(self.server, _run_session(self.server, line, transport.close))
 

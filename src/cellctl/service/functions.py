@@ -148,12 +148,25 @@ async def _robot_download(
     r: Ibm7545Robot, p: Prepared, progress: Progress | None
 ) -> dict[str, Any]:
     program: ProgramFile = p.parsed
+    # "retry 2/3" once a transmission error made the driver send the program again.
+    retry = {"text": ""}
 
     def report(done: int, total: int, sent: int) -> None:
         if progress is not None:
-            progress({"records": done, "records_total": total, "bytes_sent": sent})
+            progress(
+                {
+                    "records": done,
+                    "records_total": total,
+                    "bytes_sent": sent,
+                    "retry": retry["text"],
+                }
+            )
 
-    await r.download(p.params.partition, program, progress=report)
+    def on_retry(attempt: int, limit: int, error: Exception) -> None:
+        retry["text"] = f"{attempt}/{limit}"
+        report(0, len(program.records), 0)
+
+    await r.download(p.params.partition, program, progress=report, on_retry=on_retry)
     return _ok(
         "Download was correct",
         partition=p.params.partition,

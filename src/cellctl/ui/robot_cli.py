@@ -67,6 +67,7 @@ def _download_fields(data: dict[str, Any], elapsed: float) -> dict[str, Any]:
         "total": data["records_total"],
         "sent": data["bytes_sent"],
         "rate": data["bytes_sent"] / max(elapsed, 1e-6),
+        "retry": f"retry {data['retry']}" if data.get("retry") else "",
     }
 
 
@@ -86,6 +87,7 @@ def download(ctx: click.Context, partition: int, file: Path) -> None:
         TextColumn("records  {task.fields[sent]} B"),
         TextColumn("{task.fields[rate]:>6.1f} chars/s"),
         TimeRemainingColumn(),
+        TextColumn("[yellow]{task.fields[retry]}"),
     )
     with LazyBar(columns, f"{file.name} -> partition {partition}", _download_fields) as bar:
         result = machine_call(

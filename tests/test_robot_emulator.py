@@ -414,7 +414,14 @@ async def test_state_survives_a_reconnect(server: Server, robot: Ibm7545Emulator
 
 
 def test_fault_table_names_every_switch() -> None:
-    assert set(FAULTS) == {"power-off", "servo-error", "corrupt-checksum", "drop", "silent"}
+    assert set(FAULTS) == {
+        "power-off",
+        "servo-error",
+        "corrupt-checksum",
+        "drop",
+        "silent",
+        "noise",
+    }
     robot = Ibm7545Emulator()
     with pytest.raises(UsageError, match="unknown fault"):
         robot.set_fault("melt")

@@ -15,13 +15,17 @@ Parts of the reference model (spec ``cell.md``):
   :mod:`cellctl.cell.scheduler` picks the robot's next transfer, and a part that reaches a mill
   is machined there at once. Robot programs stay in the 5 partitions and are downloaded again
   only when evicted (least recently used first).
-- **G, monitoring**: every ``poll_period`` the PLC inputs, the idle robot's status and each
-  idle mill's readiness are read; a fault becomes an alarm (journal + report) within one poll
-  period. A busy machine is watched by its own step's deadlines.
-- **Recovery**: a robot reject is read (the driver does), reset and retried ``retries``
-  times; a mill that loses readiness is re-initialized with force; a machine that keeps
-  failing (``fail_limit`` in a row) is taken out of service and its parts are held, never
-  lost; clearing its alarm (``cellctl alarm clear ID``) returns it to service.
+- **G, monitoring** (:mod:`cellctl.cell.monitor`): every ``poll_period`` the PLC inputs, the
+  idle robot's status and each idle mill's readiness are read; a fault becomes an alarm
+  (journal + report) within one poll period. A busy machine is watched by its own step's
+  deadlines.
+- **Recovery** (:mod:`cellctl.cell.recovery`): work goes only to a mill whose setup succeeded
+  since its last initialization or fault and whose last poll said ready; a failed setup, a lost
+  readiness or a stall takes it out of the plan at once, and it is initialized again with force
+  until it can take work. A robot reject is read (the driver does), reset and retried
+  ``retries`` times. A machine that keeps failing (``fail_limit`` in a row) is taken out of
+  service; clearing its alarm (``cellctl alarm clear ID``) returns it to service. A part a
+  mill never started cutting stays where it is, waiting, never held as "needs inspection".
 - **Journal**: every step is written before it starts and after it ends. At start
   :meth:`Journal.recover` holds every part whose step was in flight: a machining step is
   never restarted automatically ("needs inspection"), and neither is a transfer.
@@ -39,12 +43,14 @@ from typing import Any
 from cellctl.cell.commands import OPERATOR_OUT, OperatorCommands
 from cellctl.cell.config import CONVEYOR, CellConfig, MachineConfig, transfer_ends
 from cellctl.cell.journal import Journal, Part
+from cellctl.cell.monitor import Monitor
 from cellctl.cell.orders import OrderBox
+from cellctl.cell.recovery import Recovery
 from cellctl.cell.scheduler import PartState, Transfer, next_transfer, ready_to_leave
 from cellctl.drivers.mill import CallbackOutput, Dyna2400Mill, MillConfig
 from cellctl.drivers.mill import Progress as MillProgress
 from cellctl.drivers.plc import ModbusPlc
-from cellctl.drivers.robot import ROBOT_STATES, Ibm7545Robot, RobotConfig
+from cellctl.drivers.robot import Ibm7545Robot, RobotConfig
 from cellctl.drivers.state import StateStore
 from cellctl.errors import CellctlError, DeviceError, UsageError
 from cellctl.link import TrafficLog
@@ -179,7 +185,8 @@ class CellController(OperatorCommands):
         self.events: list[Event] = []
         self.inputs: dict[str, bool] = {}
         self._wake = asyncio.Event()
-        self._monitor_done = asyncio.Event()
+        self.recovery = Recovery(self)
+        self.monitor = Monitor(self)
         self._robot_task: asyncio.Task[None] | None = None
         self._mill_tasks: dict[str, asyncio.Task[None]] = {}
         self._partitions: dict[int, _Partition] = {}
@@ -208,11 +215,12 @@ class CellController(OperatorCommands):
             self.mailbox.post_report("alarm-raised", f"{machine}: {text}", data={"alarm": alarm.id})
             self.log(f"ALARM {alarm.id} {machine}: {text}")
 
-    def _failed(self, machine: str, code: str, text: str) -> None:
+    def _failed(self, machine: str, code: str, text: str, *, alarm: bool = True) -> None:
         """A machine failed a step: alarm, and out of service after ``fail_limit`` in a row."""
         view = self.machines[machine]
         view.failures += 1
-        self._alarm(machine, code, text)
+        if alarm:
+            self._alarm(machine, code, text)
         if view.failures >= self.options.fail_limit and view.in_service:
             view.in_service = False
             reason = f"failed {view.failures} times in a row: {text}"
@@ -221,6 +229,10 @@ class CellController(OperatorCommands):
 
     def _succeeded(self, machine: str) -> None:
         self.machines[machine].failures = 0
+
+    def plc_view(self) -> MachineView:
+        """The PLC's line in the live view (added on the first poll)."""
+        return self.machines.setdefault("plc", MachineView("plc", "plc"))
 
     # -- connecting -------------------------------------------------------------------------------
 
@@ -268,38 +280,6 @@ class CellController(OperatorCommands):
             trace=self.traffic,
         )
 
-    async def _reopen_closed_links(self) -> None:
-        """Reopen the link of an idle machine that closed under us (a dropped connection,
-        a restarted device server): its driver comes back with the host state it saved."""
-        robot = self.robot
-        if robot is not None and robot.link.closed and not self._robot_busy():
-            with contextlib.suppress(CellctlError, OSError):
-                await robot.close()
-            try:
-                self.robot = await self._open_robot()
-                self.log(f"{robot.name}: link reopened")
-            except (CellctlError, OSError) as e:
-                self._alarm(robot.name, "link", f"cannot reopen the link: {e}")
-        for m in self.config.mills:
-            task = self._mill_tasks.get(m.name)
-            if task is None or task.done():
-                await self._reopen_mill(m)
-
-    async def _reopen_mill(self, m: MachineConfig) -> bool:
-        """Reopen ``m``'s link if it closed; False if it is closed and could not be reopened."""
-        mill = self.mills.get(m.name)
-        if mill is None or not mill.link.closed:
-            return True
-        with contextlib.suppress(CellctlError, OSError):
-            await mill.close()
-        try:
-            self.mills[m.name] = await self._open_mill(m)
-        except (CellctlError, OSError) as e:
-            self._alarm(m.name, "link", f"cannot reopen the link: {e}")
-            return False
-        self.log(f"{m.name}: link reopened")
-        return True
-
     def _robot_busy(self) -> bool:
         return self._robot_task is not None and not self._robot_task.done()
 
@@ -313,43 +293,14 @@ class CellController(OperatorCommands):
         return pulse
 
     async def _prepare_robot(self) -> None:
-        robot = self.robot
-        assert robot is not None
-        view = self.machines[robot.name]
-        try:
-            if robot.state == 2:
-                await robot.stop()
-            if robot.state != 1:
-                await robot.initialize()
-            view.state = ROBOT_STATES[1]
-            self._succeeded(robot.name)
-        except CellctlError as e:
-            view.state = f"error: {e}"
-            self._failed(robot.name, "initialize", f"robot initialize failed: {e}")
+        await self.recovery.prepare_robot()
 
     async def _prepare_mill(self, m: MachineConfig, *, force: bool) -> bool:
-        mill = self.mills[m.name]
-        view = self.machines[m.name]
-        try:
-            if mill.state in (3, 4):
-                status = await mill.status()  # a block still running finishes first
-                if not status.ready:
-                    view.state = "executing (left running)"
-                    return False
-            if force or not mill.initialized:
-                assert m.setup is not None
-                await mill.initialize(m.setup, force=True)
-                self.log(f"{m.name}: initialized with {m.setup.name}")
-            status = await mill.status()
-            view.state = status.state_text + (f", {status.condition}" if status.condition else "")
-            return True
-        except CellctlError as e:
-            view.state = f"error: {e}"
-            self._failed(m.name, "initialize", f"initialize failed: {e}")
-            return False
+        return await self.recovery.prepare_mill(m, force=force)
 
     async def close(self) -> None:
         """Close every link (running steps must have ended)."""
+        await self.recovery.close()
         for mill in self.mills.values():
             await mill.close()
         if self.robot is not None:
@@ -364,7 +315,7 @@ class CellController(OperatorCommands):
 
         On stop no new step starts; steps in flight finish, then it returns.
         """
-        monitor = asyncio.create_task(self._monitor(stop))
+        monitor = asyncio.create_task(self.monitor.run())
         try:
             while True:
                 # Cleared before the round, not after: a step that ends while dispatch awaits
@@ -374,7 +325,7 @@ class CellController(OperatorCommands):
                 self._intake()
                 self._sync_operator()
                 if not self._stopping and not self.paused:
-                    await self._reopen_closed_links()
+                    await self.recovery.reopen_closed_links()
                     await self._dispatch()
                 busy = self._busy()
                 if self._stopping and not busy:
@@ -387,7 +338,7 @@ class CellController(OperatorCommands):
         finally:
             # Let the monitor finish its round: cancelling it mid-request would strand a
             # Modbus or serial transaction.
-            self._monitor_done.set()
+            self.monitor.done.set()
             try:
                 async with asyncio.timeout(10):
                     await monitor
@@ -550,7 +501,11 @@ class CellController(OperatorCommands):
             step = types[ps.part_type].route[ps.route_index]
             if step.mill != mill:
                 continue  # not where its route says: the operator decides (never cut here)
-            if mill in in_service and (task is None or task.done()):
+            if (
+                mill in in_service
+                and (task is None or task.done())
+                and self.recovery.usable(mill)
+            ):
                 self._mill_tasks[mill] = asyncio.create_task(self._machine(ps.id, mill))
         robot_name = self.config.robot.name
         if robot_name not in in_service:
@@ -563,8 +518,9 @@ class CellController(OperatorCommands):
             return
         pallet = self.inputs.get("pallet_present", False)
         outfeed = self.inputs.get("outfeed_clear", True)
-        # A place a held part may occupy takes no part: it counts as out of service here.
-        usable_mills = (in_service - blocked) | {CONVEYOR}
+        # A place a held part may occupy takes no part: it counts as out of service here; so
+        # does a mill whose setup failed or whose last poll did not say ready.
+        usable_mills = (in_service - blocked - self.recovery.unusable()) | {CONVEYOR}
         transfer = next_transfer(
             states,
             types,
@@ -739,6 +695,7 @@ class CellController(OperatorCommands):
         since = time.time()
         index = self._mill_index(mill_name)
         assert self.plc is not None
+        cutting = False  # the first line of the program went out: the part may be cut
         try:
             # Close the door (a transfer cut short by a restart may have left it open).
             await self.plc.write(f"door_{index}", False)
@@ -748,9 +705,10 @@ class CellController(OperatorCommands):
             await self.plc.wait_for(
                 f"clamp_closed_{index}", True, timeout=self.options.interlock_timeout
             )
-            await self._mill_ready(mill)
 
             def progress(p: MillProgress) -> None:
+                nonlocal cutting
+                cutting = cutting or p.phase == "sending"
                 if view.report_progress(
                     p.bytes_sent,
                     p.bytes_total,
@@ -769,25 +727,29 @@ class CellController(OperatorCommands):
             view.progress = None
             stopped = isinstance(e, asyncio.CancelledError)
             what = "cut short by an emergency stop" if stopped else f"failed: {e}"
-            reason = f"needs inspection: machining {route_step.name} on {mill_name} {what}"
-            self.journal.end_step(step.id, "failed", str(e) or what, hold=reason)
+            if cutting:
+                reason = f"needs inspection: machining {route_step.name} on {mill_name} {what}"
+                self.journal.end_step(step.id, "failed", str(e) or what, hold=reason)
+                self.mailbox.post_report(
+                    "part-held", reason, order_id=part.order_id, part_id=part.id
+                )
+            else:
+                # Nothing of the program went out: the part is as it was, and waits there.
+                reason = f"machining {route_step.name} on {mill_name} not started: {what}"
+                self.journal.end_step(step.id, "failed", str(e) or what)
             self.mailbox.post_report("step-failed", reason, order_id=part.order_id, part_id=part.id)
-            self.mailbox.post_report("part-held", reason, order_id=part.order_id, part_id=part.id)
             if stopped:
                 self._wake.set()
                 raise
-            self._failed(mill_name, "machining", reason)
-            # A mill that lost readiness (or its link) is initialized again, with force,
-            # before its next part.
-            config = self.config.machine(mill_name)
-            if self.machines[mill_name].in_service and await self._reopen_mill(config):
-                await self._prepare_mill(config, force=True)
+            # Out of the plan at once; recovery sets it up again (reopening its link).
+            self.recovery.fault(mill_name, "machining", reason)
             self._wake.set()
             return
         view.progress = None
         view.busy_s += time.monotonic() - started
         view.step = ""
         view.state = "Initialized"
+        self.recovery.ready[mill_name] = True  # the last block ended with CTS high
         self._succeeded(mill_name)
         self.journal.end_step(step.id, "finished", route_index=part.route_index + 1)
         self.mailbox.post_report(
@@ -797,77 +759,6 @@ class CellController(OperatorCommands):
             part_id=part.id,
         )
         self._wake.set()
-
-    async def _mill_ready(self, mill: Dyna2400Mill) -> None:
-        """Wait until the mill is READY for a program (its operator may still be at setup)."""
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + mill.config.setup_timeout
-        while True:
-            status = await mill.status()
-            if status.ready and status.state == 2:
-                return
-            if loop.time() >= deadline:
-                raise DeviceError(2, "Absolute zero not set", detail=f"{mill.name}: {status}")
-            await asyncio.sleep(min(self.options.poll_period, 0.05))
-
-    # -- monitoring -------------------------------------------------------------------------------
-
-    async def _monitor(self, stop: asyncio.Event) -> None:
-        """G: read every idle machine and the PLC once a poll period; faults become alarms."""
-        while not self._monitor_done.is_set():
-            await self._monitor_once()
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(self.options.poll_period):
-                    await self._monitor_done.wait()
-
-    async def _monitor_once(self) -> None:
-        try:
-            inputs = await self._read_inputs()
-            if not inputs.get("estop_ok", True):
-                self._alarm("plc", "estop", "emergency stop: the cell is stopped")
-            self.machines.setdefault("plc", MachineView("plc", "plc")).state = "ok"
-        except CellctlError as e:
-            self.machines.setdefault("plc", MachineView("plc", "plc")).state = f"error: {e}"
-            self._alarm("plc", "link", f"PLC not answering: {e}")
-        robot = self.robot
-        idle = self._robot_task is None or self._robot_task.done()
-        if robot is not None and idle and robot.name not in self.manual_use:
-            view = self.machines[robot.name]
-            try:
-                status = await robot.machine_status()
-                if not status.ok:
-                    self._alarm(robot.name, "status", str(status))
-                    view.state = str(status)
-                else:
-                    view.state = ROBOT_STATES.get(robot.state, str(robot.state))
-            except CellctlError as e:
-                view.state = f"error: {e}"
-                self._alarm(robot.name, "link", f"robot not answering: {e}")
-        for m in self.config.mills:
-            task = self._mill_tasks.get(m.name)
-            if (task is not None and not task.done()) or m.name in self.manual_use:
-                continue
-            view = self.machines[m.name]
-            mill = self.mills.get(m.name)
-            if mill is None:
-                continue
-            try:
-                mstatus = await mill.status()
-                view.state = mstatus.state_text + (
-                    f", {mstatus.condition}" if mstatus.condition else ""
-                )
-                # CTS low on an idle, initialized mill that is not waiting for its operator
-                # (reference zero) means it lost readiness.
-                lost = mstatus.state == 2 and not mstatus.ready and mstatus.condition is not None
-                if mill.initialized and lost and view.in_service:
-                    self._alarm(m.name, "readiness", "lost readiness (CTS low while idle)")
-                    if await self._prepare_mill(m, force=True):
-                        self.log(f"{m.name}: readiness recovered")
-            except (CellctlError, UsageError) as e:
-                view.state = f"error: {e}"
-                self._alarm(m.name, "link", f"mill not answering: {e}")
-        self._wake.set()
-        self._touch()
 
 
 __all__ = ["CellController", "ControllerOptions", "Event", "MachineView"]

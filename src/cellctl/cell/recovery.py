@@ -1,0 +1,202 @@
+"""Recovery: which machines may take work, and bringing back the ones that may not.
+
+A mill may take work (:meth:`Recovery.usable`) only when its setup succeeded since its last
+initialization or fault (*fit*) and the last poll saw it ready (CTS high, state 2). A failed
+setup, a lost readiness, a stall or a failed step makes it unfit at once, with one alarm in
+the machine's words (:meth:`Recovery.fault`); the scheduler then plans without it, and a
+recovery task per machine brings it back: reopen its link if it closed, initialize it again
+with force (the documented way out of a stuck state), every poll period until that succeeds
+or the machine is out of service (``fail_limit`` failures in a row). The next poll that sees
+it ready puts it back in the plan.
+
+The controller owns this object and calls it; it needs of the controller only its machines,
+drivers, options, alarms and log (typed below as :class:`~cellctl.cell.controller.CellController`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from typing import TYPE_CHECKING
+
+from cellctl.drivers.robot import ROBOT_STATES
+from cellctl.errors import CellctlError
+
+if TYPE_CHECKING:
+    from cellctl.cell.config import MachineConfig
+    from cellctl.cell.controller import CellController
+
+
+class Recovery:
+    """Fitness of every mill, and the tasks that bring unfit machines back."""
+
+    def __init__(self, controller: CellController) -> None:
+        self.ctl = controller
+        self.fit: dict[str, bool] = {m.name: False for m in controller.config.mills}
+        self.ready: dict[str, bool] = {m.name: False for m in controller.config.mills}
+        self.setup_at: dict[str, float] = {}
+        self.faulted: set[str] = set()
+        self._tasks: dict[str, asyncio.Task[None]] = {}
+
+    # -- what the scheduler asks ----------------------------------------------------------------
+
+    def usable(self, name: str) -> bool:
+        """True if mill ``name`` may be given work now."""
+        return self.fit.get(name, False) and self.ready.get(name, False)
+
+    def unusable(self) -> set[str]:
+        return {name for name in self.fit if not self.usable(name)}
+
+    # -- faults -------------------------------------------------------------------------------
+
+    def fault(self, name: str, code: str, text: str, *, count: bool = True) -> None:
+        """Mill ``name`` cannot take work: out of the plan at once, one alarm, recovery.
+
+        Further faults while it recovers (the forced setup failing again) raise no new alarm:
+        they only count towards ``fail_limit``.
+        """
+        alarm = name not in self.faulted
+        self.faulted.add(name)
+        self.fit[name] = False
+        self.ready[name] = False
+        if count:
+            self.ctl._failed(name, code, text, alarm=alarm)
+        elif alarm:
+            self.ctl._alarm(name, code, text)
+        self._start(name)
+
+    def _start(self, name: str) -> None:
+        task = self._tasks.get(name)
+        if task is None or task.done():
+            self._tasks[name] = asyncio.create_task(self._recover(name))
+
+    async def _recover(self, name: str) -> None:
+        ctl = self.ctl
+        config = ctl.config.machine(name)
+        while not self.fit[name] and not ctl._stopping:
+            await asyncio.sleep(ctl.options.poll_period)
+            view = ctl.machines[name]
+            if not view.in_service or name in ctl.manual_use or ctl.step_task(name):
+                continue
+            if not await self.reopen_mill(config):
+                continue
+            if self._occupied(name):
+                await self._await_readiness(config)
+            else:
+                await self.prepare_mill(config, force=True)
+
+    def _occupied(self, name: str) -> bool:
+        """A part is in the mill's vise: its setup program does not run over it."""
+        parts = self.ctl.journal.parts(statuses=["waiting", "active", "held"])
+        return any(p.location == name for p in parts)
+
+    async def _await_readiness(self, m: MachineConfig) -> None:
+        """With a part in the vise: back in the plan once it shows ready with its setup kept
+        (state 2, CTS high); each look that finds it not ready counts as a failure."""
+        ctl = self.ctl
+        mill = ctl.mills[m.name]
+        try:
+            status = await mill.status()
+        except CellctlError as e:
+            ctl._failed(m.name, "readiness", f"not ready: {e}", alarm=False)
+            return
+        if status.ready and status.state == 2 and mill.initialized:
+            self.fit[m.name] = self.ready[m.name] = True
+            self.faulted.discard(m.name)
+            ctl.log(f"{m.name}: ready again, its setup kept (a part is in its vise)")
+            return
+        ctl._failed(m.name, "readiness", f"not ready: {status}", alarm=False)
+        await asyncio.sleep(mill.config.ready_wait)
+
+    async def close(self) -> None:
+        for task in self._tasks.values():
+            task.cancel()
+        for task in self._tasks.values():
+            with contextlib.suppress(BaseException):
+                await task
+
+    # -- links --------------------------------------------------------------------------------
+
+    async def reopen_closed_links(self) -> None:
+        """Reopen the link of an idle machine that closed under us (a dropped connection, a
+        restarted device server): its driver comes back with the host state it saved."""
+        ctl = self.ctl
+        robot = ctl.robot
+        if robot is not None and robot.link.closed and not ctl._robot_busy():
+            with contextlib.suppress(CellctlError, OSError):
+                await robot.close()
+            try:
+                ctl.robot = await ctl._open_robot()
+                ctl.log(f"{robot.name}: link reopened")
+            except (CellctlError, OSError) as e:
+                ctl._alarm(robot.name, "link", f"cannot reopen the link: {e}")
+        for m in ctl.config.mills:
+            task = ctl._mill_tasks.get(m.name)
+            if (task is None or task.done()) and not await self.reopen_mill(m):
+                self.fit[m.name] = False
+
+    async def reopen_mill(self, m: MachineConfig) -> bool:
+        """Reopen ``m``'s link if it closed; False if it is closed and could not be reopened."""
+        ctl = self.ctl
+        mill = ctl.mills.get(m.name)
+        if mill is None or not mill.link.closed:
+            return True
+        with contextlib.suppress(CellctlError, OSError):
+            await mill.close()
+        try:
+            ctl.mills[m.name] = await ctl._open_mill(m)
+        except (CellctlError, OSError) as e:
+            ctl._alarm(m.name, "link", f"cannot reopen the link: {e}")
+            return False
+        ctl.log(f"{m.name}: link reopened")
+        return True
+
+    # -- bringing machines to a known state -----------------------------------------------------
+
+    async def prepare_robot(self) -> None:
+        ctl = self.ctl
+        robot = ctl.robot
+        assert robot is not None
+        view = ctl.machines[robot.name]
+        try:
+            if robot.state == 2:
+                await robot.stop()
+            if robot.state != 1:
+                await robot.initialize()
+            view.state = ROBOT_STATES[1]
+            ctl._succeeded(robot.name)
+        except CellctlError as e:
+            view.state = f"error: {e}"
+            ctl._failed(robot.name, "initialize", f"robot initialize failed: {e}")
+
+    async def prepare_mill(self, m: MachineConfig, *, force: bool) -> bool:
+        """Initialize mill ``m`` (with its setup) unless it kept its setup; True on success.
+
+        A failure is a fault: the mill leaves the plan, with an alarm, until a setup succeeds.
+        """
+        ctl = self.ctl
+        mill = ctl.mills[m.name]
+        view = ctl.machines[m.name]
+        try:
+            if mill.state in (3, 4):
+                status = await mill.status()  # a block still running finishes first
+                if not status.ready:
+                    view.state = "executing (left running)"
+                    return False
+            if force or not mill.initialized:
+                assert m.setup is not None
+                await mill.initialize(m.setup, force=True)
+                self.setup_at[m.name] = time.monotonic()
+                ctl.log(f"{m.name}: initialized with {m.setup.name}")
+            status = await mill.status()
+        except CellctlError as e:
+            view.state = f"error: {e}"
+            self.fault(m.name, "initialize", f"setup failed: {e}")
+            return False
+        self.fit[m.name] = True
+        self.faulted.discard(m.name)
+        self.ready[m.name] = status.ready and status.state == 2
+        self.setup_at.setdefault(m.name, time.monotonic())
+        view.state = status.state_text + (f", {status.condition}" if status.condition else "")
+        return True

@@ -1,0 +1,65 @@
+"""No machine gets work it cannot take: a mill whose setup failed, or that never said ready,
+gets no part; the alarm comes before any transfer to it; the part stays unharmed (never held
+as "needs inspection"); once the fault is gone the batch finishes without a restart."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from cellctl.ui.cell_cli import apply_fault
+from tests.cell_rig import CellRig
+from tests.test_cell_faults import switch_off
+
+
+def transfers_into(rig: CellRig, mill: str) -> list[float]:
+    return [
+        s.started
+        for s in rig.journal.steps()
+        if s.kind == "transfer" and s.program.endswith(f"_to_{mill}")
+    ]
+
+
+def check_every_part_cut_once_by_each_mill(rig: CellRig, parts: int) -> None:
+    assert rig.held_parts() == [], rig.describe()
+    assert all("needs inspection" not in s.outcome for s in rig.journal.steps())
+    assert all(s.state == "finished" for s in rig.journal.steps() if s.kind == "machine"), (
+        rig.describe()
+    )
+    made = [r for r in rig.cell.runs_per_part().values() if r == {"cnc1": 1, "cnc2": 1}]
+    assert len(made) == parts, rig.describe()
+
+
+async def test_a_mill_whose_setup_failed_gets_no_part_until_it_is_set_up(tmp_path: Path) -> None:
+    async with CellRig(tmp_path / "cell") as rig:
+        rig.post("wax-robot-base", 2, "A")
+        apply_fault(rig.cell, "cnc1:drop=5")  # the setup block is cut 5 lines in
+        await rig.start_controller()
+        alarms = await rig.wait_for(lambda: rig.alarms("cnc1"), "an alarm on cnc1")
+        assert "setup failed" in alarms[0].text, alarms[0].text
+        # The drop happened once: recovery sets cnc1 up again and the batch runs through.
+        await rig.wait_for(rig.all_done, "order A done", timeout=60)
+        await rig.stop_controller()
+        assert transfers_into(rig, "cnc1")
+        assert min(transfers_into(rig, "cnc1")) > alarms[0].raised
+        check_every_part_cut_once_by_each_mill(rig, 2)
+        assert rig.cut_twice() == {}
+
+
+async def test_a_stalled_mill_gets_no_part_and_the_batch_finishes_after(tmp_path: Path) -> None:
+    async with CellRig(tmp_path / "cell") as rig:
+        rig.post("wax-robot-base", 1, "A")
+        apply_fault(rig.cell, "cnc2:stall")  # after its setup block, RTS never rises
+        controller = await rig.start_controller()
+        alarms = await rig.wait_for(lambda: rig.alarms("cnc2", "readiness"), "cnc2 not ready")
+        assert "not ready" in alarms[0].text, alarms[0].text
+        # The part is roughed on cnc1 and waits there: cnc2 cannot take it.
+        await rig.wait_for(lambda: rig.finished_steps("machine") >= 1, "the cut on cnc1")
+        await rig.wait_for(lambda: not controller._busy(), "the cell idle")
+        assert transfers_into(rig, "cnc2") == []
+        assert rig.cell.vise[2] is None and rig.cell.vise[1] == "P1"
+        switch_off(rig, "cnc2:stall")
+        await rig.clear_alarms()  # out of service after its failed setups: the operator's word
+        await rig.wait_for(rig.all_done, "order A done", timeout=60)
+        await rig.stop_controller()
+        assert min(transfers_into(rig, "cnc2")) > alarms[0].raised
+        check_every_part_cut_once_by_each_mill(rig, 1)

@@ -37,122 +37,37 @@ import asyncio
 import contextlib
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
-from cellctl.cell.commands import OPERATOR_OUT, OperatorCommands
+from cellctl.cell.commands import OperatorCommands
 from cellctl.cell.config import CONVEYOR, CellConfig, MachineConfig, transfer_ends
 from cellctl.cell.journal import Journal, Part
+from cellctl.cell.model import (
+    DEFAULT_DONE_OUTPUT,
+    TRAFFIC_KEPT,
+    ControllerOptions,
+    Event,
+    MachineView,
+    NotifyingMailbox,
+    PartitionUse,
+)
 from cellctl.cell.monitor import Monitor
+from cellctl.cell.orderflow import OUT, OrderFlow
 from cellctl.cell.orders import OrderBox
 from cellctl.cell.recovery import Recovery
-from cellctl.cell.scheduler import PartState, Transfer, next_transfer, ready_to_leave
+from cellctl.cell.robotsteps import RobotSteps
+from cellctl.cell.scheduler import PartState, next_transfer, ready_to_leave
 from cellctl.drivers.mill import CallbackOutput, Dyna2400Mill, MillConfig
 from cellctl.drivers.mill import Progress as MillProgress
 from cellctl.drivers.plc import ModbusPlc
 from cellctl.drivers.robot import Ibm7545Robot, RobotConfig
 from cellctl.drivers.state import StateStore
-from cellctl.errors import CellctlError, DeviceError, UsageError
+from cellctl.errors import CellctlError
 from cellctl.link import TrafficLog
 from cellctl.protocol.plc import PlcMap, canonical
-from cellctl.protocol.robot import PARTITIONS
-
-#: Robot output a cell program raises when its cycle is done (the example cell's wiring).
-DEFAULT_DONE_OUTPUT = 6
-OUT = "out"
 
 
-@dataclass
-class MachineView:
-    """What the controller knows of one machine, for the live view and the summary."""
-
-    name: str
-    kind: str
-    state: str = "not connected"
-    step: str = ""
-    in_service: bool = True
-    failures: int = 0
-    busy_s: float = 0.0
-    progress: dict[str, Any] | None = None
-    """A download or cut in progress: ``done``/``total`` and what they count, ``phase``."""
-
-    def report_progress(self, done: int, total: int, unit: str, phase: str, **more: Any) -> bool:
-        """Note progress (``more``: e.g. the program, block n of m); True when it moved by a
-        percent or changed phase (worth telling)."""
-        old = self.progress
-        self.progress = {"done": done, "total": total, "unit": unit, "phase": phase, **more}
-        if old is None or old["phase"] != phase or old["unit"] != unit:
-            return True
-        return int(100 * done / max(total, 1)) != int(100 * old["done"] / max(old["total"], 1))
-
-
-@dataclass
-class Event:
-    """One line of the controller's log (also posted as a report where it matters)."""
-
-    time: float
-    text: str
-
-
-@dataclass
-class ControllerOptions:
-    """Knobs of the controller, from ``[cell]`` in cell.toml."""
-
-    poll_period: float = 0.5
-    retries: int = 2
-    fail_limit: int = 3
-    done_output: int = DEFAULT_DONE_OUTPUT
-    transfer_timeout: float = 120.0
-    interlock_timeout: float = 30.0
-    pallet_timeout: float = 60.0
-    one_at_a_time: bool = False
-
-    @classmethod
-    def from_config(cls, config: CellConfig, **overrides: Any) -> ControllerOptions:
-        cell = config.raw.get("cell", {})
-        values: dict[str, Any] = {"poll_period": config.poll_period}
-        for key in ("retries", "fail_limit", "done_output", "transfer_timeout"):
-            if key in cell:
-                values[key] = cell[key]
-        for key in ("interlock_timeout", "pallet_timeout"):
-            if key in cell:
-                values[key] = float(cell[key])
-        values.update(overrides)
-        return cls(**values)
-
-
-@dataclass
-class _Partition:
-    program: str
-    used: float
-
-
-#: Chunks of traffic the controller keeps in memory (all machines), for the API's tail.
-TRAFFIC_KEPT = 4000
-
-
-class _Notifying:
-    """The mailbox, telling the controller's listeners of every order change and report."""
-
-    def __init__(self, mailbox: OrderBox, touch: Callable[[], None]) -> None:
-        self._mailbox = mailbox
-        self._touch = touch
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._mailbox, name)
-
-    def set_order_state(self, order_id: str, state: str, note: str = "") -> Any:
-        result = self._mailbox.set_order_state(order_id, state, note)
-        self._touch()
-        return result
-
-    def post_report(self, kind: str, text: str, **fields: Any) -> Any:
-        result = self._mailbox.post_report(kind, text, **fields)
-        self._touch()
-        return result
-
-
-class CellController(OperatorCommands):
+class CellController(OperatorCommands, OrderFlow, RobotSteps):
     """Runs a cell from its ``cell.toml``, journal and mailbox (see module docstring).
 
     The operator's commands (pause, service, manual use, emergency stop) are in
@@ -171,7 +86,7 @@ class CellController(OperatorCommands):
         self._init_commands()
         self.config = config
         self.journal = journal
-        self.mailbox: OrderBox = _Notifying(mailbox, self._touch)
+        self.mailbox: OrderBox = NotifyingMailbox(mailbox, self._touch)
         self.traffic = TrafficLog(None, keep=TRAFFIC_KEPT)
         self.options = options or ControllerOptions.from_config(config)
         self.on_event = on_event
@@ -189,7 +104,7 @@ class CellController(OperatorCommands):
         self.monitor = Monitor(self)
         self._robot_task: asyncio.Task[None] | None = None
         self._mill_tasks: dict[str, asyncio.Task[None]] = {}
-        self._partitions: dict[int, _Partition] = {}
+        self._partitions: dict[int, PartitionUse] = {}
         self._pallet_requested = False
         self._pallet_requested_at = 0.0
         self._stopping = False
@@ -351,91 +266,6 @@ class CellController(OperatorCommands):
         tasks = [self._robot_task, *self._mill_tasks.values()]
         return any(t is not None and not t.done() for t in tasks)
 
-    def _all_orders_closed(self) -> bool:
-        open_orders = self.mailbox.orders(states=["posted", "accepted", "in-progress"])
-        if not open_orders:
-            return True
-        # Orders whose remaining parts are all held wait for the operator, not for us.
-        for order in open_orders:
-            parts = self.journal.parts(order_id=order.id)
-            if not parts or any(p.status in ("waiting", "active") for p in parts):
-                return False
-        return True
-
-    # -- intake: orders into parts ---------------------------------------------------------------
-
-    def _intake(self) -> None:
-        for order in self.mailbox.pending_orders():
-            if order.part_type not in self.config.parts:
-                self.mailbox.set_order_state(order.id, "failed", f"unknown part {order.part_type}")
-                self.mailbox.post_report(
-                    "order-rejected",
-                    f"order {order.id}: no part type {order.part_type!r} in this cell",
-                    order_id=order.id,
-                )
-                continue
-            self.journal.create_parts(order)
-            self.mailbox.set_order_state(order.id, "accepted")
-            self.mailbox.post_report(
-                "order-accepted",
-                f"order {order.id}: {order.qty} x {order.part_type}",
-                order_id=order.id,
-            )
-            self.log(f"order {order.id} accepted: {order.qty} x {order.part_type}")
-
-    def _sync_operator(self) -> None:
-        """Alarms the operator cleared put their machine back in service (not one the
-        operator took out: only the operator returns that)."""
-        out = self.journal.machines_out_of_service()
-        active = {a.machine for a in self.journal.active_alarms()}
-        for name, view in self.machines.items():
-            if name in out and out[name].startswith(OPERATOR_OUT):
-                view.in_service = False
-            elif name in out and name not in active:
-                self.journal.set_machine_service(name, True, "alarm cleared by the operator")
-                view.in_service = True
-                view.failures = 0
-                self.log(f"{name}: back in service")
-            elif name not in out:
-                view.in_service = True
-        # A part the operator found on the outfeed (released there after an interrupted
-        # unload) with its whole route machined is done.
-        for p in self.journal.parts(statuses=["waiting"]):
-            if p.location == OUT and p.route_index >= len(self.config.parts[p.part_type].route):
-                self.journal.finish_part(p.id)
-                self.log(f"part {p.id} done (released on the outfeed)")
-        self._update_orders()
-
-    def _update_orders(self) -> None:
-        for order in self.mailbox.orders(states=["accepted", "in-progress", "held"]):
-            parts = self.journal.parts(order_id=order.id)
-            if not parts:
-                continue
-            statuses = [p.status for p in parts]
-            if all(s in ("done", "scrapped") for s in statuses):
-                made = statuses.count("done")
-                if made:
-                    note = f"{made} made" + (
-                        f", {statuses.count('scrapped')} scrapped" if "scrapped" in statuses else ""
-                    )
-                    self.mailbox.set_order_state(order.id, "done", note)
-                    self.mailbox.post_report(
-                        "order-done", f"order {order.id} done: {note}", order_id=order.id
-                    )
-                    self.log(f"order {order.id} done ({note})")
-                else:
-                    self.mailbox.set_order_state(order.id, "failed", "every part scrapped")
-                    self.mailbox.post_report(
-                        "order-failed", f"order {order.id}: every part scrapped", order_id=order.id
-                    )
-            elif "held" in statuses and order.state != "held":
-                self.mailbox.set_order_state(order.id, "held", "a part needs the operator")
-            elif ("held" not in statuses and order.state == "held") or (
-                order.state == "accepted"
-                and any(p.status != "waiting" or p.route_index for p in parts)
-            ):
-                self.mailbox.set_order_state(order.id, "in-progress")
-
     # -- dispatch ---------------------------------------------------------------------------------
 
     def _part_states(self) -> tuple[list[PartState], list[Part]]:
@@ -501,11 +331,7 @@ class CellController(OperatorCommands):
             step = types[ps.part_type].route[ps.route_index]
             if step.mill != mill:
                 continue  # not where its route says: the operator decides (never cut here)
-            if (
-                mill in in_service
-                and (task is None or task.done())
-                and self.recovery.usable(mill)
-            ):
+            if mill in in_service and (task is None or task.done()) and self.recovery.usable(mill):
                 self._mill_tasks[mill] = asyncio.create_task(self._machine(ps.id, mill))
         robot_name = self.config.robot.name
         if robot_name not in in_service:
@@ -563,116 +389,6 @@ class CellController(OperatorCommands):
                 self._pallet_requested_at = time.monotonic()
             except CellctlError as e:
                 self._alarm("plc", "conveyor", f"cannot request a pallet: {e}")
-
-    # -- the robot's steps ------------------------------------------------------------------------
-
-    async def _ensure_program(self, name: str) -> int:
-        """The partition holding robot program ``name``, downloading it if it was evicted."""
-        robot = self.robot
-        assert robot is not None
-        program = self.config.robot_programs[name]
-        for p in PARTITIONS:
-            if robot.holds(p, program):
-                self._partitions[p] = _Partition(name, time.monotonic())
-                return p
-        empty = [p for p in PARTITIONS if robot.partitions.get(p) is None]
-        if empty:
-            target = empty[0]
-        else:
-            target = min(
-                PARTITIONS, key=lambda p: self._partitions.get(p, _Partition("", 0.0)).used
-            )
-        self.log(f"robot: downloading {name} into partition {target}")
-        view = self.machines[robot.name]
-
-        def progress(done: int, total: int, sent: int) -> None:
-            if view.report_progress(done, total, "records", "downloading", program=name):
-                self._touch()
-
-        try:
-            await robot.download(target, program, progress=progress)
-        finally:
-            view.progress = None
-        self._partitions[target] = _Partition(name, time.monotonic())
-        return target
-
-    async def _doors(self, places: list[str], open_: bool) -> None:
-        assert self.plc is not None
-        for place in places:
-            if place == CONVEYOR:
-                continue
-            await self.plc.write(f"door_{self._mill_index(place)}", open_)
-
-    async def _transfer(self, t: Transfer) -> None:
-        robot = self.robot
-        assert robot is not None
-        view = self.machines[robot.name]
-        part = self.journal.get_part(t.part_id)
-        try:
-            step = self.journal.begin_step(part.id, "transfer", robot.name, t.program)
-        except UsageError as e:  # cancelled or scrapped by the operator meanwhile
-            self.log(f"part {part.id}: transfer {t.program} not started: {e}")
-            return
-        self.mailbox.post_report(
-            "step-started", f"{t.program} {part.id}", order_id=part.order_id, part_id=part.id
-        )
-        view.step = f"{t.program} ({part.id})"
-        started = time.monotonic()
-        places = [t.source, t.target]
-        attempt = 0
-        try:
-            rejected: DeviceError | None = None
-            while True:
-                try:
-                    if rejected is not None:
-                        # Rejected before the arm moved: the reject was read (the driver
-                        # does), now reset; a robot that lost its start-up is initialized.
-                        await robot.reset_errors()
-                        if robot.state != 1 or rejected.code in (48, 128):
-                            await robot.initialize()
-                    partition = await self._ensure_program(t.program)
-                    await self._doors(places, True)
-                    await robot.go(partition)
-                    break
-                except DeviceError as e:
-                    # The reset and the initialize may be rejected too (power still off):
-                    # every attempt counts, so the retries stay bounded.
-                    attempt += 1
-                    rejected = e
-                    if attempt > self.options.retries:
-                        raise
-                    self.log(f"robot rejected {t.program}: {e}; reset and retry {attempt}")
-            await robot.wait_cycle_end(
-                self.options.done_output, timeout=self.options.transfer_timeout, poll=0.02
-            )
-            await self._doors(places, False)
-        except (CellctlError, OSError, asyncio.CancelledError) as e:
-            view.step = ""
-            stopped = isinstance(e, asyncio.CancelledError)
-            what = "cut short by an emergency stop" if stopped else f"failed: {e}"
-            reason = f"transfer {t.program} {what}"
-            self.journal.end_step(step.id, "failed", str(e) or what, hold=reason)
-            self.mailbox.post_report("step-failed", reason, order_id=part.order_id, part_id=part.id)
-            self.mailbox.post_report("part-held", reason, order_id=part.order_id, part_id=part.id)
-            self._wake.set()
-            if stopped:
-                raise
-            self._failed(robot.name, "transfer", reason)
-            return
-        view.busy_s += time.monotonic() - started
-        view.step = ""
-        self._succeeded(robot.name)
-        if t.source == CONVEYOR:
-            self._pallet_requested = False
-        if t.target == CONVEYOR:
-            self.journal.end_step(step.id, "finished", location=OUT)
-            self.journal.finish_part(part.id)
-        else:
-            self.journal.end_step(step.id, "finished", location=t.target)
-        self.mailbox.post_report(
-            "step-finished", f"{t.program} {part.id}", order_id=part.order_id, part_id=part.id
-        )
-        self._wake.set()
 
     # -- the mills' steps -------------------------------------------------------------------------
 
@@ -733,6 +449,14 @@ class CellController(OperatorCommands):
                 self.mailbox.post_report(
                     "part-held", reason, order_id=part.order_id, part_id=part.id
                 )
+            elif stopped:
+                # An emergency stop holds every part in flight for the operator; this one
+                # was not cut (nothing of the program went out).
+                reason = f"emergency stop before machining {route_step.name} on {mill_name}"
+                self.journal.end_step(step.id, "failed", what, hold=reason)
+                self.mailbox.post_report(
+                    "part-held", reason, order_id=part.order_id, part_id=part.id
+                )
             else:
                 # Nothing of the program went out: the part is as it was, and waits there.
                 reason = f"machining {route_step.name} on {mill_name} not started: {what}"
@@ -761,4 +485,11 @@ class CellController(OperatorCommands):
         self._wake.set()
 
 
-__all__ = ["CellController", "ControllerOptions", "Event", "MachineView"]
+__all__ = [
+    "DEFAULT_DONE_OUTPUT",
+    "OUT",
+    "CellController",
+    "ControllerOptions",
+    "Event",
+    "MachineView",
+]

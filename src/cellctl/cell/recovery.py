@@ -197,6 +197,8 @@ class Recovery:
         self.fit[m.name] = True
         self.faulted.discard(m.name)
         self.ready[m.name] = status.ready and status.state == 2
-        self.setup_at.setdefault(m.name, time.monotonic())
+        # Its operator's time for the reference zero runs from now (also after a setup sent by
+        # hand while it was out of automatic service).
+        self.setup_at[m.name] = time.monotonic()
         view.state = status.state_text + (f", {status.condition}" if status.condition else "")
         return True

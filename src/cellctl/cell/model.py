@@ -1,0 +1,109 @@
+"""What the controller knows and is told: each machine's view, its events, its options.
+
+Part of M, the world model (spec ``cell.md``): :class:`MachineView` per machine (state, step,
+service, failures, progress), :class:`Event` lines of the log, :class:`ControllerOptions`
+from ``[cell]`` in cell.toml, and the mailbox wrapper that tells the controller's listeners
+of every order change and report.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from cellctl.cell.config import CellConfig
+from cellctl.cell.orders import OrderBox
+
+#: Robot output a cell program raises when its cycle is done (the example cell's wiring).
+DEFAULT_DONE_OUTPUT = 6
+
+
+@dataclass
+class MachineView:
+    """What the controller knows of one machine, for the live view and the summary."""
+
+    name: str
+    kind: str
+    state: str = "not connected"
+    step: str = ""
+    in_service: bool = True
+    failures: int = 0
+    busy_s: float = 0.0
+    progress: dict[str, Any] | None = None
+    """A download or cut in progress: ``done``/``total`` and what they count, ``phase``."""
+
+    def report_progress(self, done: int, total: int, unit: str, phase: str, **more: Any) -> bool:
+        """Note progress (``more``: e.g. the program, block n of m); True when it moved by a
+        percent or changed phase (worth telling)."""
+        old = self.progress
+        self.progress = {"done": done, "total": total, "unit": unit, "phase": phase, **more}
+        if old is None or old["phase"] != phase or old["unit"] != unit:
+            return True
+        return int(100 * done / max(total, 1)) != int(100 * old["done"] / max(old["total"], 1))
+
+
+@dataclass
+class Event:
+    """One line of the controller's log (also posted as a report where it matters)."""
+
+    time: float
+    text: str
+
+
+@dataclass
+class ControllerOptions:
+    """Knobs of the controller, from ``[cell]`` in cell.toml."""
+
+    poll_period: float = 0.5
+    retries: int = 2
+    fail_limit: int = 3
+    done_output: int = DEFAULT_DONE_OUTPUT
+    transfer_timeout: float = 120.0
+    interlock_timeout: float = 30.0
+    pallet_timeout: float = 60.0
+    one_at_a_time: bool = False
+
+    @classmethod
+    def from_config(cls, config: CellConfig, **overrides: Any) -> ControllerOptions:
+        cell = config.raw.get("cell", {})
+        values: dict[str, Any] = {"poll_period": config.poll_period}
+        for key in ("retries", "fail_limit", "done_output", "transfer_timeout"):
+            if key in cell:
+                values[key] = cell[key]
+        for key in ("interlock_timeout", "pallet_timeout"):
+            if key in cell:
+                values[key] = float(cell[key])
+        values.update(overrides)
+        return cls(**values)
+
+
+@dataclass
+class PartitionUse:
+    program: str
+    used: float
+
+
+#: Chunks of traffic the controller keeps in memory (all machines), for the API's tail.
+TRAFFIC_KEPT = 4000
+
+
+class NotifyingMailbox:
+    """The mailbox, telling the controller's listeners of every order change and report."""
+
+    def __init__(self, mailbox: OrderBox, touch: Callable[[], None]) -> None:
+        self._mailbox = mailbox
+        self._touch = touch
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._mailbox, name)
+
+    def set_order_state(self, order_id: str, state: str, note: str = "") -> Any:
+        result = self._mailbox.set_order_state(order_id, state, note)
+        self._touch()
+        return result
+
+    def post_report(self, kind: str, text: str, **fields: Any) -> Any:
+        result = self._mailbox.post_report(kind, text, **fields)
+        self._touch()
+        return result

@@ -1,0 +1,161 @@
+"""The robot's steps: a transfer between two places, and the programs in its partitions.
+
+A transfer journals its step, makes sure the program is in a partition (downloading it again
+only when it was evicted, least recently used first), opens the doors on its way, runs the
+program and waits for its "cycle done" output. A reject before the arm moved is read, reset
+and retried ``retries`` times; a failure holds the part (a transfer is never restarted
+automatically). Mixed into :class:`~cellctl.cell.controller.CellController`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from typing import TYPE_CHECKING, Any
+
+from cellctl.cell.config import CONVEYOR
+from cellctl.cell.model import PartitionUse
+from cellctl.cell.orderflow import OUT
+from cellctl.errors import CellctlError, DeviceError, UsageError
+from cellctl.protocol.robot import PARTITIONS
+
+if TYPE_CHECKING:
+    from cellctl.cell.config import CellConfig
+    from cellctl.cell.journal import Journal
+    from cellctl.cell.model import ControllerOptions
+    from cellctl.cell.orders import OrderBox
+    from cellctl.cell.scheduler import Transfer
+    from cellctl.drivers.plc import ModbusPlc
+    from cellctl.drivers.robot import Ibm7545Robot
+
+
+class RobotSteps:
+    """The robot's transfers and partitions (see module docstring)."""
+
+    if TYPE_CHECKING:
+        config: CellConfig
+        journal: Journal
+        mailbox: OrderBox
+        machines: dict[str, Any]
+        options: ControllerOptions
+        robot: Ibm7545Robot | None
+        plc: ModbusPlc | None
+        _partitions: dict[int, PartitionUse]
+        _pallet_requested: bool
+        _wake: asyncio.Event
+
+        def log(self, text: str) -> None: ...
+        def _touch(self) -> None: ...
+        def _mill_index(self, name: str) -> int: ...
+        def _failed(self, machine: str, code: str, text: str, *, alarm: bool = True) -> None: ...
+        def _succeeded(self, machine: str) -> None: ...
+
+    # -- the robot's steps ------------------------------------------------------------------------
+
+    async def _ensure_program(self, name: str) -> int:
+        """The partition holding robot program ``name``, downloading it if it was evicted."""
+        robot = self.robot
+        assert robot is not None
+        program = self.config.robot_programs[name]
+        for p in PARTITIONS:
+            if robot.holds(p, program):
+                self._partitions[p] = PartitionUse(name, time.monotonic())
+                return p
+        empty = [p for p in PARTITIONS if robot.partitions.get(p) is None]
+        if empty:
+            target = empty[0]
+        else:
+            target = min(
+                PARTITIONS, key=lambda p: self._partitions.get(p, PartitionUse("", 0.0)).used
+            )
+        self.log(f"robot: downloading {name} into partition {target}")
+        view = self.machines[robot.name]
+
+        def progress(done: int, total: int, sent: int) -> None:
+            if view.report_progress(done, total, "records", "downloading", program=name):
+                self._touch()
+
+        try:
+            await robot.download(target, program, progress=progress)
+        finally:
+            view.progress = None
+        self._partitions[target] = PartitionUse(name, time.monotonic())
+        return target
+
+    async def _doors(self, places: list[str], open_: bool) -> None:
+        assert self.plc is not None
+        for place in places:
+            if place == CONVEYOR:
+                continue
+            await self.plc.write(f"door_{self._mill_index(place)}", open_)
+
+    async def _transfer(self, t: Transfer) -> None:
+        robot = self.robot
+        assert robot is not None
+        view = self.machines[robot.name]
+        part = self.journal.get_part(t.part_id)
+        try:
+            step = self.journal.begin_step(part.id, "transfer", robot.name, t.program)
+        except UsageError as e:  # cancelled or scrapped by the operator meanwhile
+            self.log(f"part {part.id}: transfer {t.program} not started: {e}")
+            return
+        self.mailbox.post_report(
+            "step-started", f"{t.program} {part.id}", order_id=part.order_id, part_id=part.id
+        )
+        view.step = f"{t.program} ({part.id})"
+        started = time.monotonic()
+        places = [t.source, t.target]
+        attempt = 0
+        try:
+            rejected: DeviceError | None = None
+            while True:
+                try:
+                    if rejected is not None:
+                        # Rejected before the arm moved: the reject was read (the driver
+                        # does), now reset; a robot that lost its start-up is initialized.
+                        await robot.reset_errors()
+                        if robot.state != 1 or rejected.code in (48, 128):
+                            await robot.initialize()
+                    partition = await self._ensure_program(t.program)
+                    await self._doors(places, True)
+                    await robot.go(partition)
+                    break
+                except DeviceError as e:
+                    # The reset and the initialize may be rejected too (power still off):
+                    # every attempt counts, so the retries stay bounded.
+                    attempt += 1
+                    rejected = e
+                    if attempt > self.options.retries:
+                        raise
+                    self.log(f"robot rejected {t.program}: {e}; reset and retry {attempt}")
+            await robot.wait_cycle_end(
+                self.options.done_output, timeout=self.options.transfer_timeout, poll=0.02
+            )
+            await self._doors(places, False)
+        except (CellctlError, OSError, asyncio.CancelledError) as e:
+            view.step = ""
+            stopped = isinstance(e, asyncio.CancelledError)
+            what = "cut short by an emergency stop" if stopped else f"failed: {e}"
+            reason = f"transfer {t.program} {what}"
+            self.journal.end_step(step.id, "failed", str(e) or what, hold=reason)
+            self.mailbox.post_report("step-failed", reason, order_id=part.order_id, part_id=part.id)
+            self.mailbox.post_report("part-held", reason, order_id=part.order_id, part_id=part.id)
+            self._wake.set()
+            if stopped:
+                raise
+            self._failed(robot.name, "transfer", reason)
+            return
+        view.busy_s += time.monotonic() - started
+        view.step = ""
+        self._succeeded(robot.name)
+        if t.source == CONVEYOR:
+            self._pallet_requested = False
+        if t.target == CONVEYOR:
+            self.journal.end_step(step.id, "finished", location=OUT)
+            self.journal.finish_part(part.id)
+        else:
+            self.journal.end_step(step.id, "finished", location=t.target)
+        self.mailbox.post_report(
+            "step-finished", f"{t.program} {part.id}", order_id=part.order_id, part_id=part.id
+        )
+        self._wake.set()

@@ -71,8 +71,16 @@ class Monitor:
         if robot is None or ctl._robot_busy() or robot.name in ctl.manual_use:
             return
         view = ctl.machines[robot.name]
+        period = ctl.options.poll_period
         try:
-            status = await robot.machine_status()
+            # A status read takes a few tens of ms: one that outlasts a poll period is a
+            # silent controller, told now rather than at the driver's own deadline.
+            async with asyncio.timeout(period):
+                status = await robot.machine_status()
+        except TimeoutError:
+            view.state = "not answering"
+            ctl._alarm(robot.name, "link", f"robot not answering within {period:g} s")
+            return
         except CellctlError as e:
             view.state = f"error: {e}"
             ctl._alarm(robot.name, "link", f"robot not answering: {e}")

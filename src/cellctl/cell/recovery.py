@@ -126,6 +126,9 @@ class Recovery:
         if robot is not None and robot.link.closed and not ctl._robot_busy():
             with contextlib.suppress(CellctlError, OSError):
                 await robot.close()
+            if not any(a.machine == robot.name for a in ctl.journal.active_alarms()):
+                # One alarm a fault: a step the cut failed has said so already.
+                ctl._alarm(robot.name, "link", "link closed by the other end")
             try:
                 ctl.robot = await ctl._open_robot()
                 ctl.log(f"{robot.name}: link reopened")
@@ -144,6 +147,8 @@ class Recovery:
             return True
         with contextlib.suppress(CellctlError, OSError):
             await mill.close()
+        if m.name not in self.faulted:  # a cut line is a fault of its own: one alarm
+            self.fault(m.name, "link", "link closed by the other end", count=False)
         try:
             ctl.mills[m.name] = await ctl._open_mill(m)
         except (CellctlError, OSError) as e:

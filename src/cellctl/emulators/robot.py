@@ -59,6 +59,7 @@ from cellctl.protocol.robot import (
     LF,
     N_RECORD_LENGTH,
     PARTITIONS,
+    POWER_FAILURE_FLAG,
     SERVO_ERROR_FLAG,
     XOFF,
     XON,
@@ -79,7 +80,8 @@ T = TypeVar("T")
 
 #: Fault switches: name -> what it does (``--fault NAME[=ARG]`` on the command line).
 FAULTS: dict[str, str] = {
-    "power-off": "manipulator power off: X and N requests answered EOT, reject 128",
+    "power-off": "manipulator power off: X and N requests answered EOT, reject 128; "
+    "machine status power failure (64)",
     "servo-error": "servo error: status byte 128, motion refused (reject 128), cycle aborted",
     "corrupt-checksum": "=N: the next N D records sent carry a wrong checksum (default 1)",
     "drop": "close the connection at the next request",
@@ -278,6 +280,8 @@ class Ibm7545Emulator(EmulatedDevice):
     def machine_status(self) -> MachineStatus:
         """What R 01 answers now."""
         flags = self.status_flags | (SERVO_ERROR_FLAG if "servo-error" in self.faults else 0)
+        if "power-off" in self.faults:
+            flags |= POWER_FAILURE_FLAG  # the manipulator's power is gone: status says so
         return MachineStatus(flags, self.data_error)
 
     @property

@@ -197,6 +197,7 @@ def data_error_message(code: int) -> str:
 
 DATA_ERROR_FLAG = 4
 SERVO_ERROR_FLAG = 128
+POWER_FAILURE_FLAG = 64
 
 
 @dataclass(frozen=True)

@@ -4,6 +4,7 @@ as "needs inspection"); once the fault is gone the batch finishes without a rest
 
 from __future__ import annotations
 
+import asyncio
 import re
 from pathlib import Path
 
@@ -63,4 +64,29 @@ async def test_a_stalled_mill_gets_no_part_and_the_batch_finishes_after(tmp_path
         await rig.wait_for(rig.all_done, "order A done", timeout=60)
         await rig.stop_controller()
         assert min(transfers_into(rig, "cnc2")) > alarms[0].raised
+        check_every_part_cut_once_by_each_mill(rig, 1)
+
+
+async def test_a_mill_left_cutting_at_start_takes_work_once_its_block_ends(tmp_path: Path) -> None:
+    """A controller that starts while a mill still runs a block (its last owner was killed)
+    leaves it out of the plan, raises nothing, and uses it as soon as the block ends."""
+    async with CellRig(tmp_path / "cell") as rig:
+        programs = rig.directory / "programs"
+        result = await rig.cli("mill", "cnc1", "init", str(programs / "cnc1_setup.dyn"))
+        assert result.exit_code == 0, result.output
+        for _ in range(100):  # the emulated operator sets the reference zero, then NEXT
+            result = await rig.cli("mill", "cnc1", "status")
+            if "CTS high" in result.output and "state 2" in result.output:
+                break
+            await asyncio.sleep(0.1)
+        program = programs / "robot_base_rough_cnc1.dyn"
+        result = await rig.cli("mill", "cnc1", "download", "--no-wait", str(program))
+        assert result.exit_code == 0, result.output
+        controller = await rig.start_controller()
+        assert controller.machines["cnc1"].state == "executing (left running)"
+        assert not controller.recovery.usable("cnc1")
+        rig.post("wax-robot-base", 1, "A")
+        await rig.wait_for(rig.all_done, "order A done", timeout=60)
+        await rig.stop_controller()
+        assert rig.alarms("cnc1") == [], rig.describe()
         check_every_part_cut_once_by_each_mill(rig, 1)

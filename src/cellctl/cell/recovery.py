@@ -106,7 +106,8 @@ class Recovery:
             self.faulted.discard(m.name)
             ctl.log(f"{m.name}: ready again, its setup kept (a part is in its vise)")
             return
-        ctl._failed(m.name, "readiness", f"not ready: {status}", alarm=False)
+        if mill.state not in (3, 4):  # a block still running is no failure: it ends
+            ctl._failed(m.name, "readiness", f"not ready: {status}", alarm=False)
         await asyncio.sleep(mill.config.ready_wait)
 
     async def close(self) -> None:
@@ -187,7 +188,11 @@ class Recovery:
             if mill.state in (3, 4):
                 status = await mill.status()  # a block still running finishes first
                 if not status.ready:
+                    # Left running (by a controller that was killed): no fault, but it is
+                    # not in the plan until recovery sees the block end.
                     view.state = "executing (left running)"
+                    self.fit[m.name] = False
+                    self._start(m.name)
                     return False
             if force or not mill.initialized:
                 assert m.setup is not None

@@ -9,8 +9,9 @@ STAMP := $(VENV)/.installed
 test: deps lint typecheck pytest
 
 # Debian packages the tests need: ser2net (a real RFC 2217 server for the link tests), tmux
-# (the console is checked in a real terminal) and chromium (the dashboard, through Playwright).
-DEBS := ser2net tmux chromium
+# (the console is checked in a real terminal), chromium (the dashboard, through Playwright) and
+# mosquitto (the factory's broker; the tests start their own, never the system service).
+DEBS := ser2net tmux chromium mosquitto
 deps: $(STAMP)
 	@missing=""; for tool in $(DEBS); do command -v $$tool >/dev/null 2>&1 || missing="$$missing $$tool"; done; \
 	if [ -n "$$missing" ]; then \

@@ -32,7 +32,7 @@ from cellctl.mailbox import Mailbox, open_mailbox
 from cellctl.ui.cli import main as cli_main
 
 #: Machine time runs this many times faster than in the real cell.
-TIME_SCALE = 300.0
+TIME_SCALE = 1000.0
 
 #: Deadlines short enough that a fault is found in well under a second of test time.
 FAST_MILL_OPTIONS = {"setup_timeout": 1.5, "block_extra": 1.5, "ready_wait": 1.0}

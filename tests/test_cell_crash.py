@@ -104,7 +104,7 @@ async def test_kill_9_and_restart_never_cuts_a_part_twice(tmp_path: Path, seed: 
     rng = random.Random(seed)
     directory = tmp_path / "cell"
     log = tmp_path / "controller.log"
-    async with CellRig(directory, time_scale=150.0) as rig:
+    async with CellRig(directory, time_scale=300.0) as rig:
         rig.post("wax-robot-base", 2, "A")
         rig.post("wax-toy-mill-table", 1, "B")
         kills = []

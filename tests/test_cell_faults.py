@@ -35,7 +35,8 @@ CASES = [
     Case("robot:servo-error", "robot", r"servo error", True),
     Case("robot:drop", "robot", r"transfer cnc1_to_cnc2 failed: .*closed", True),
     Case("robot:silent", "robot", r"no answer|no Ack", True),
-    Case("cnc2:never-ready", "cnc2", r"lost readiness", False, out_of_service=True),
+    # Seen idle (lost readiness) or as a cut is sent (CTS low): whichever comes first.
+    Case("cnc2:never-ready", "cnc2", r"lost readiness|CTS low", False, out_of_service=True),
     # no-next matters when the mill is set up again: after a dropped block it is.
     Case("cnc2:no-next", "cnc2", r"needs inspection", True, also="cnc2:drop=3"),
     Case("cnc2:drop=3", "cnc2", r"needs inspection: machining .* on cnc2 failed", True),

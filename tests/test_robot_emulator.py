@@ -186,7 +186,7 @@ async def test_unknown_identifier_is_rejected(host: RawHost) -> None:
 async def test_silent_host_times_out_with_reject_112(server: Server) -> None:
     robot = server.device
     assert isinstance(robot, Ibm7545Emulator)
-    robot.host_timeout_s = 10.0  # 50 ms at time scale 200
+    robot.host_timeout_s = 10.0  # 50 ms at time scale 200: the 1 s floor
     host = await connect(server)
     await host.send(b"X")
     await host.expect(XOFF + XON + EOT)

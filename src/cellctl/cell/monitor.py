@@ -14,7 +14,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from cellctl.drivers.robot import ROBOT_STATES
 from cellctl.errors import CellctlError, UsageError
@@ -24,12 +24,23 @@ if TYPE_CHECKING:
     from cellctl.cell.controller import CellController
 
 
+#: The least time an idle robot's status read is given before it counts as not answering.
+READ_FLOOR_S = 1.0
+
+
+def _consume(task: asyncio.Future[Any]) -> None:
+    """Retrieve a late read's outcome (its failure was told as an alarm already)."""
+    if not task.cancelled():
+        task.exception()
+
+
 class Monitor:
     """The controller's monitoring rounds (see module docstring)."""
 
     def __init__(self, controller: CellController) -> None:
         self.ctl = controller
         self.done = asyncio.Event()
+        self._robot_read: asyncio.Future[Any] | None = None
 
     async def run(self) -> None:
         """Rounds until :attr:`done` is set (a round in progress finishes first)."""
@@ -71,15 +82,21 @@ class Monitor:
         if robot is None or ctl._robot_busy() or robot.name in ctl.manual_use:
             return
         view = ctl.machines[robot.name]
-        period = ctl.options.poll_period
+        if self._robot_read is not None and not self._robot_read.done():
+            return  # the last read is still out (and already told as not answering)
+        # A status read takes a few tens of ms: one that outlasts a poll period (but never
+        # less than READ_FLOOR_S, below which a late answer is the host's scheduling, not the
+        # robot) is a silent controller, told now rather than at the driver's own deadline.
+        # The read is not cancelled: cut mid-exchange, it would leave the line out of step.
+        limit = max(ctl.options.poll_period, READ_FLOOR_S)
+        read = asyncio.ensure_future(robot.machine_status())
+        self._robot_read = read
         try:
-            # A status read takes a few tens of ms: one that outlasts a poll period is a
-            # silent controller, told now rather than at the driver's own deadline.
-            async with asyncio.timeout(period):
-                status = await robot.machine_status()
+            status = await asyncio.wait_for(asyncio.shield(read), limit)
         except TimeoutError:
+            read.add_done_callback(_consume)
             view.state = "not answering"
-            ctl._alarm(robot.name, "link", f"robot not answering within {period:g} s")
+            ctl._alarm(robot.name, "link", f"robot not answering within {limit:g} s")
             return
         except CellctlError as e:
             view.state = f"error: {e}"

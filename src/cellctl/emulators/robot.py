@@ -25,7 +25,8 @@ What it models:
   :meth:`set_input`, TESTI branching on an input, ZMOVE (Z only), DELAY. A loop of jumps yields
   to the event loop at each jump. Each run is logged in :attr:`runs`.
 - Machine times (moves, return home, the 25 s Xoff repeat, the 30 s host timeout) are divided by
-  ``time_scale``. Line pacing is the serving layer's (``DeviceLine``).
+  ``time_scale``; the host timeout never below :data:`HOST_TIMEOUT_FLOOR_S` of wall time.
+  Line pacing is the serving layer's (``DeviceLine``).
 - Fault switches, :data:`FAULTS`: ``power-off``, ``servo-error``, ``corrupt-checksum=N``,
   ``drop``, ``silent``, ``noise=RATE[,SEED]`` (line noise, in the serving layer).
 
@@ -77,6 +78,11 @@ from cellctl.protocol.robot import (
 __all__ = ["FAULTS", "Ibm7545Emulator", "LoadedProgram", "ProgramRun", "ScaraArm"]
 
 T = TypeVar("T")
+
+#: The least wall time the emulator waits for the host's next byte, whatever the time scale:
+#: at x1000 the 30 s host timeout would be 30 ms, and a host process that is merely not
+#: scheduled on a loaded machine would be answered as if it had gone silent.
+HOST_TIMEOUT_FLOOR_S = 1.0
 
 #: Fault switches: name -> what it does (``--fault NAME[=ARG]`` on the command line).
 FAULTS: dict[str, str] = {
@@ -329,7 +335,7 @@ class Ibm7545Emulator(EmulatedDevice):
     async def _expect(self, host: _Host, decode: Callable[[bytearray], tuple[T | None, int]]) -> T:
         """Wait (host timeout, scaled) for what ``decode`` recognises; reject on bad bytes."""
         loop = asyncio.get_running_loop()
-        deadline = loop.time() + self.host_timeout_s / self.time_scale
+        deadline = loop.time() + max(self.host_timeout_s / self.time_scale, HOST_TIMEOUT_FLOOR_S)
         while True:
             try:
                 value, used = decode(host.buf)

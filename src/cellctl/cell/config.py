@@ -190,6 +190,11 @@ class CellTable(_Table):
         default=60.0,
         description="s for the conveyor to bring a pallet once asked (then alarm, ask again)",
     )
+    read_limit: Seconds = Field(
+        default=1.0,
+        description="s an idle robot's or the PLC's status read may take before it counts "
+        "as not answering",
+    )
 
 
 class MachineTable(_Table):

@@ -62,6 +62,7 @@ class ControllerOptions:
     transfer_timeout: float = 120.0
     interlock_timeout: float = 30.0
     pallet_timeout: float = 60.0
+    read_limit: float = 1.0
     one_at_a_time: bool = False
 
     @classmethod
@@ -71,7 +72,7 @@ class ControllerOptions:
         for key in ("retries", "fail_limit", "done_output", "transfer_timeout"):
             if key in cell:
                 values[key] = cell[key]
-        for key in ("interlock_timeout", "pallet_timeout"):
+        for key in ("interlock_timeout", "pallet_timeout", "read_limit"):
             if key in cell:
                 values[key] = float(cell[key])
         values.update(overrides)

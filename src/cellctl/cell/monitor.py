@@ -14,7 +14,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from typing import TYPE_CHECKING, Any
+from collections.abc import Awaitable, Callable
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from cellctl.drivers.robot import ROBOT_STATES
 from cellctl.errors import CellctlError, UsageError
@@ -24,8 +25,11 @@ if TYPE_CHECKING:
     from cellctl.cell.controller import CellController
 
 
-#: The least time an idle robot's status read is given before it counts as not answering.
-READ_FLOOR_S = 1.0
+T = TypeVar("T")
+
+
+class _StillOut(Exception):
+    """The machine's last read has not ended yet: this round does not ask again."""
 
 
 def _consume(task: asyncio.Future[Any]) -> None:
@@ -40,7 +44,26 @@ class Monitor:
     def __init__(self, controller: CellController) -> None:
         self.ctl = controller
         self.done = asyncio.Event()
-        self._robot_read: asyncio.Future[Any] | None = None
+        self._reads: dict[str, asyncio.Future[Any]] = {}
+
+    async def _bounded(self, key: str, read: Callable[[], Awaitable[T]]) -> T:
+        """``read()`` of an idle machine, awaited at most ``read_limit`` (TimeoutError after).
+
+        A status exchange takes tens of milliseconds: one that outlasts the limit is a silent
+        machine, told now rather than at the driver's own deadline. The read is not cancelled
+        (cut mid-exchange it would leave the line out of step): it ends by itself, and until
+        it has, the next rounds raise :class:`_StillOut` instead of asking again.
+        """
+        pending = self._reads.get(key)
+        if pending is not None and not pending.done():
+            raise _StillOut
+        future = asyncio.ensure_future(read())
+        self._reads[key] = future
+        try:
+            return await asyncio.wait_for(asyncio.shield(future), self.ctl.options.read_limit)
+        except TimeoutError:
+            future.add_done_callback(_consume)
+            raise
 
     async def run(self) -> None:
         """Rounds until :attr:`done` is set (a round in progress finishes first)."""
@@ -66,7 +89,13 @@ class Monitor:
         ctl = self.ctl
         view = ctl.plc_view()
         try:
-            inputs = await ctl._read_inputs()
+            inputs = await self._bounded("plc", ctl._read_inputs)
+        except _StillOut:
+            return
+        except TimeoutError:
+            view.state = "not answering"
+            ctl._alarm("plc", "link", f"PLC not answering within {ctl.options.read_limit:g} s")
+            return
         except CellctlError as e:
             view.state = f"error: {e}"
             ctl._alarm("plc", "link", "PLC not answering")
@@ -82,20 +111,13 @@ class Monitor:
         if robot is None or ctl._robot_busy() or robot.name in ctl.manual_use:
             return
         view = ctl.machines[robot.name]
-        if self._robot_read is not None and not self._robot_read.done():
-            return  # the last read is still out (and already told as not answering)
-        # A status read takes a few tens of ms: one that outlasts a poll period (but never
-        # less than READ_FLOOR_S, below which a late answer is the host's scheduling, not the
-        # robot) is a silent controller, told now rather than at the driver's own deadline.
-        # The read is not cancelled: cut mid-exchange, it would leave the line out of step.
-        limit = max(ctl.options.poll_period, READ_FLOOR_S)
-        read = asyncio.ensure_future(robot.machine_status())
-        self._robot_read = read
         try:
-            status = await asyncio.wait_for(asyncio.shield(read), limit)
+            status = await self._bounded(robot.name, robot.machine_status)
+        except _StillOut:
+            return  # the last read is still out (and already told as not answering)
         except TimeoutError:
-            read.add_done_callback(_consume)
             view.state = "not answering"
+            limit = ctl.options.read_limit
             ctl._alarm(robot.name, "link", f"robot not answering within {limit:g} s")
             return
         except CellctlError as e:

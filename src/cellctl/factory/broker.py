@@ -1,0 +1,300 @@
+"""A private Mosquitto broker for tests, ``cellctl emulate factory`` and ``cellctl demo --factory``.
+
+::
+
+    async with MosquittoBroker(tmp / "broker", [("cell1", "cellctl/cell1")]) as broker:
+        broker.url                      # "mqtt://127.0.0.1:PORT"
+        broker.credentials("cell1")     # a 0600 TOML file: username = "cell1", password = "..."
+        broker.credentials("factory")
+        await broker.restart()          # same port, persisted sessions and messages kept
+
+The broker gets its own ``mosquitto.conf`` in ``directory``: one listener on ``host:port``
+only, persistence on (in ``directory/data``), no anonymous clients, a password file made with
+``mosquitto_passwd`` and an ACL file. A cell user may read only ``PREFIX/orders`` and write
+only ``PREFIX/reports``, ``PREFIX/state`` and ``PREFIX/status`` of its own prefix; the factory
+user reads every configured prefix's reports, state and status and writes every
+``PREFIX/orders``: one explicit line per prefix, no wildcard over other prefixes.
+Passwords are made once and kept in the credentials files, so a second broker over the same
+directory accepts the same clients. It never touches a system service.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import pwd
+import re
+import secrets
+import shutil
+import signal
+import socket
+import time
+import tomllib
+from collections.abc import Sequence
+from pathlib import Path
+from types import TracebackType
+from typing import Self
+
+from cellctl.errors import LinkError, UsageError
+
+#: Where Debian puts the broker and its password tool.
+MOSQUITTO = "/usr/sbin/mosquitto"
+MOSQUITTO_PASSWD = "/usr/bin/mosquitto_passwd"
+#: The factory's user name in the broker.
+FACTORY_USER = "factory"
+#: How long start() waits for the broker to accept connections.
+START_TIMEOUT_S = 10.0
+#: How long stop() waits for the broker to exit after SIGTERM before killing it.
+STOP_TIMEOUT_S = 10.0
+
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
+_PREFIX = re.compile(r"[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*")
+
+
+def _tool(path: str, name: str) -> str:
+    if os.access(path, os.X_OK):
+        return path
+    found = shutil.which(name)
+    if found is None:
+        raise UsageError(
+            f"{name} is not installed (looked for {path}): install Debian's mosquitto package"
+        )
+    return found
+
+
+def _free_port(host: str) -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind((host, 0))
+        port: int = sock.getsockname()[1]
+        return port
+
+
+def _write_private(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` with mode 0600 from the first byte on."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w", encoding="utf-8") as f:
+        f.write(text)
+    os.chmod(path, 0o600)
+
+
+class MosquittoBroker:
+    """A Mosquitto process with a generated configuration; see the module docstring."""
+
+    def __init__(
+        self,
+        directory: Path,
+        cells: Sequence[tuple[str, str]],
+        *,
+        host: str = "127.0.0.1",
+        port: int = 0,
+    ) -> None:
+        names = [name for name, _ in cells]
+        for name, prefix in cells:
+            if not _NAME.fullmatch(name) or name == FACTORY_USER:
+                raise UsageError(f"cell name {name!r} cannot be a broker user name")
+            if not _PREFIX.fullmatch(prefix):
+                raise UsageError(
+                    f"topic prefix {prefix!r} must be words joined by '/' (no wildcards)"
+                )
+        if len(set(names)) != len(names):
+            raise UsageError("two cells have the same name")
+        if len({p for _, p in cells}) != len(cells):
+            raise UsageError("two cells have the same topic prefix")
+        self.directory = Path(directory)
+        self.cells = list(cells)
+        self.host = host
+        self.port = port
+        self._process: asyncio.subprocess.Process | None = None
+
+    @property
+    def url(self) -> str:
+        """``mqtt://HOST:PORT`` (the port is known once started)."""
+        return f"mqtt://{self.host}:{self.port}"
+
+    @property
+    def running(self) -> bool:
+        """Whether the broker process is alive."""
+        return self._process is not None and self._process.returncode is None
+
+    @property
+    def log_path(self) -> Path:
+        """The broker's own log file."""
+        return self.directory / "mosquitto.log"
+
+    def credentials(self, user: str) -> Path:
+        """The credentials file of ``user`` ("factory" or a cell name), made if missing."""
+        if user != FACTORY_USER and user not in {name for name, _ in self.cells}:
+            raise UsageError(f"no broker user {user!r} (known: factory and the cells' names)")
+        self.directory.mkdir(parents=True, exist_ok=True, mode=0o700)
+        path = self.directory / f"{user}.credentials"
+        if not path.exists():
+            password = secrets.token_urlsafe(18)
+            _write_private(path, f'username = "{user}"\npassword = "{password}"\n')
+        return path
+
+    def _password(self, user: str) -> str:
+        data = tomllib.loads(self.credentials(user).read_text(encoding="utf-8"))
+        return str(data["password"])
+
+    def _acl(self) -> str:
+        lines = [f"user {FACTORY_USER}"]
+        for _, prefix in self.cells:
+            lines += [
+                f"topic write {prefix}/orders",
+                f"topic read {prefix}/reports",
+                f"topic read {prefix}/state",
+                f"topic read {prefix}/status",
+            ]
+        for name, prefix in self.cells:
+            lines += [
+                "",
+                f"user {name}",
+                f"topic read {prefix}/orders",
+                f"topic write {prefix}/reports",
+                f"topic write {prefix}/state",
+                f"topic write {prefix}/status",
+            ]
+        return "\n".join(lines) + "\n"
+
+    async def _write_passwords(self, path: Path) -> None:
+        tool = _tool(MOSQUITTO_PASSWD, "mosquitto_passwd")
+        _write_private(path, "")
+        for user in [FACTORY_USER, *(name for name, _ in self.cells)]:
+            # -b takes the password on the command line: fine for a private, generated one.
+            proc = await asyncio.create_subprocess_exec(
+                tool,
+                "-b",
+                str(path),
+                user,
+                self._password(user),
+                stdout=asyncio.subprocess.PIPE,
+                stderr=asyncio.subprocess.STDOUT,
+            )
+            out, _ = await proc.communicate()
+            if proc.returncode != 0:
+                raise UsageError(f"mosquitto_passwd failed for {user}: {out.decode().strip()}")
+        os.chmod(path, 0o600)
+
+    async def _configure(self) -> Path:
+        self.directory.mkdir(parents=True, exist_ok=True, mode=0o700)
+        data = self.directory / "data"
+        data.mkdir(exist_ok=True, mode=0o700)
+        passwords = self.directory / "passwd"
+        acl = self.directory / "acl"
+        await self._write_passwords(passwords)
+        _write_private(acl, self._acl())
+        conf = self.directory / "mosquitto.conf"
+        _write_private(
+            conf,
+            "\n".join(
+                [
+                    "# Generated by cellctl.factory.broker: a private broker, loopback only.",
+                    # Run as whoever started us: as root, Mosquitto would otherwise switch to
+                    # the 'mosquitto' user, who cannot read these 0600 files.
+                    f"user {pwd.getpwuid(os.getuid()).pw_name}",
+                    "per_listener_settings false",
+                    "allow_anonymous false",
+                    f"password_file {passwords}",
+                    f"acl_file {acl}",
+                    "persistence true",
+                    f"persistence_location {data}/",
+                    # Saved each second too, so a broker killed -9 loses at most one second.
+                    "autosave_interval 1",
+                    f"log_dest file {self.log_path}",
+                    "log_type error",
+                    "log_type warning",
+                    "log_type notice",
+                    "log_type information",
+                    "connection_messages true",
+                    "log_timestamp true",
+                    f"listener {self.port} {self.host}",
+                    "",
+                ]
+            ),
+        )
+        return conf
+
+    async def start(self) -> None:
+        """Write the configuration, start Mosquitto and wait until it accepts connections."""
+        if self.running:
+            return
+        tool = _tool(MOSQUITTO, "mosquitto")
+        if self.port == 0:
+            self.port = _free_port(self.host)
+        conf = await self._configure()
+        self._process = await asyncio.create_subprocess_exec(
+            tool,
+            "-c",
+            str(conf),
+            stdin=asyncio.subprocess.DEVNULL,
+            stdout=asyncio.subprocess.DEVNULL,
+            stderr=asyncio.subprocess.DEVNULL,
+            start_new_session=True,  # a Ctrl-C on the terminal is ours to handle
+        )
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while True:
+            if self._process.returncode is not None:
+                raise LinkError(f"Mosquitto exited at start (code {self._process.returncode})")
+            try:
+                _, writer = await asyncio.wait_for(
+                    asyncio.open_connection(self.host, self.port), timeout=1.0
+                )
+            except (OSError, TimeoutError):
+                if time.monotonic() > deadline:
+                    await self.kill()
+                    raise LinkError(
+                        f"Mosquitto did not accept connections on {self.host}:{self.port} "
+                        f"within {START_TIMEOUT_S:g} s{self._log_tail()}"
+                    ) from None
+                await asyncio.sleep(0.02)
+                continue
+            writer.close()
+            with contextlib.suppress(OSError):
+                await writer.wait_closed()
+            return
+
+    def _log_tail(self) -> str:
+        try:
+            lines = self.log_path.read_text(encoding="utf-8", errors="replace").splitlines()
+        except OSError:
+            return ""
+        return ": " + " | ".join(lines[-3:]) if lines else ""
+
+    async def stop(self) -> None:
+        """SIGTERM the broker (it saves its persistence file) and wait for it to exit."""
+        proc = self._process
+        if proc is None or proc.returncode is not None:
+            return
+        with contextlib.suppress(ProcessLookupError):
+            proc.send_signal(signal.SIGTERM)
+        try:
+            await asyncio.wait_for(proc.wait(), timeout=STOP_TIMEOUT_S)
+        except TimeoutError:
+            await self.kill()
+
+    async def kill(self) -> None:
+        """SIGKILL the broker (tests: a broker that dies without saving)."""
+        proc = self._process
+        if proc is None or proc.returncode is not None:
+            return
+        with contextlib.suppress(ProcessLookupError):
+            proc.kill()
+        await proc.wait()
+
+    async def restart(self) -> None:
+        """Stop and start again on the same port; persisted sessions and messages survive."""
+        await self.stop()
+        await self.start()
+
+    async def __aenter__(self) -> Self:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.stop()

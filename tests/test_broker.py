@@ -1,0 +1,154 @@
+"""The private Mosquitto broker: passwords, per-cell ACLs, persistence across a restart.
+
+Every check runs against the real /usr/sbin/mosquitto on a free loopback port. "Nothing
+arrives" is shown without sleeping: the same subscriber also listens on a topic it may read,
+and the message published there after the forbidden one must be the first it gets.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import stat
+import tomllib
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager, suppress
+from pathlib import Path
+
+import aiomqtt
+import pytest
+from paho.mqtt.packettypes import PacketTypes
+from paho.mqtt.properties import Properties
+
+from cellctl.factory.broker import MosquittoBroker
+
+CELLS = [("cell1", "cellctl/cell1"), ("cell2", "cellctl/cell2")]
+DEADLINE_S = 5.0
+
+
+def login(broker: MosquittoBroker, user: str) -> tuple[str, str]:
+    data = tomllib.loads(broker.credentials(user).read_text())
+    return data["username"], data["password"]
+
+
+@asynccontextmanager
+async def client(
+    broker: MosquittoBroker, user: str, *, client_id: str | None = None, persistent: bool = False
+) -> AsyncIterator[aiomqtt.Client]:
+    username, password = login(broker, user)
+    props = None
+    if persistent:
+        props = Properties(PacketTypes.CONNECT)
+        props.SessionExpiryInterval = 3600
+    async with aiomqtt.Client(
+        "127.0.0.1",
+        broker.port,
+        username=username,
+        password=password,
+        identifier=client_id,
+        protocol=aiomqtt.ProtocolVersion.V5,
+        clean_start=not persistent,
+        properties=props,
+        timeout=DEADLINE_S,
+    ) as c:
+        yield c
+
+
+async def first_message(c: aiomqtt.Client) -> aiomqtt.Message:
+    async def first() -> aiomqtt.Message:
+        async for message in c.messages:
+            return message
+        raise AssertionError("the client's message stream ended")
+
+    return await asyncio.wait_for(first(), timeout=DEADLINE_S)
+
+
+@pytest.fixture
+async def broker(tmp_path: Path) -> AsyncIterator[MosquittoBroker]:
+    async with MosquittoBroker(tmp_path / "broker", CELLS) as b:
+        yield b
+
+
+async def test_broker_starts_on_loopback_with_private_files(broker: MosquittoBroker) -> None:
+    assert broker.url == f"mqtt://127.0.0.1:{broker.port}"
+    for user in ("factory", "cell1", "cell2"):
+        path = broker.credentials(user)
+        assert stat.S_IMODE(os.stat(path).st_mode) == 0o600
+        assert login(broker, user)[0] == user
+    for name in ("passwd", "acl", "mosquitto.conf"):
+        assert stat.S_IMODE(os.stat(broker.directory / name).st_mode) == 0o600
+    async with client(broker, "factory") as factory:
+        await factory.subscribe("cellctl/cell1/status", qos=1)
+        async with client(broker, "cell1") as cell:
+            await cell.publish("cellctl/cell1/status", b"online", qos=1)
+        assert (await first_message(factory)).payload == b"online"
+
+
+async def test_wrong_password_and_unknown_user_refused(broker: MosquittoBroker) -> None:
+    for username, password in (("cell1", "not-the-password"), ("nobody", "x"), ("cell1", "")):
+        with pytest.raises(aiomqtt.MqttError):
+            async with aiomqtt.Client(
+                "127.0.0.1", broker.port, username=username, password=password, timeout=3
+            ):
+                pass
+
+
+async def test_a_cell_cannot_read_another_cells_orders(broker: MosquittoBroker) -> None:
+    async with client(broker, "factory") as factory, client(broker, "cell2") as cell2:
+        # The broker refuses the subscription outright, or accepts it and never delivers.
+        with suppress(aiomqtt.MqttError):
+            await cell2.subscribe("cellctl/cell1/orders", qos=1)
+        await cell2.subscribe("cellctl/cell2/orders", qos=1)
+        await factory.publish("cellctl/cell1/orders", b'{"v":1,"id":"secret"}', qos=1)
+        await factory.publish("cellctl/cell2/orders", b'{"v":1,"id":"mine"}', qos=1)
+        message = await first_message(cell2)
+        assert message.topic.value == "cellctl/cell2/orders"
+        assert message.payload == b'{"v":1,"id":"mine"}'
+
+
+async def test_a_cell_cannot_post_another_cells_reports(broker: MosquittoBroker) -> None:
+    async with (
+        client(broker, "factory") as factory,
+        client(broker, "cell1") as cell1,
+        client(broker, "cell2") as cell2,
+    ):
+        await factory.subscribe("cellctl/cell1/reports", qos=1)
+        await factory.subscribe("cellctl/cell1/state", qos=1)
+        for topic in ("cellctl/cell1/reports", "cellctl/cell1/state"):
+            # Under MQTT 5 the PUBACK says "not authorized"; either way nothing goes out.
+            with suppress(aiomqtt.MqttError):
+                await cell2.publish(topic, b'{"v":1,"cell":"cell1","forged":true}', qos=1)
+        await cell1.publish("cellctl/cell1/reports", b'{"v":1,"cell":"cell1","seq":1}', qos=1)
+        message = await first_message(factory)
+        assert message.payload == b'{"v":1,"cell":"cell1","seq":1}'
+        # A cell cannot write orders either, not even its own.
+        await cell1.subscribe("cellctl/cell1/orders", qos=1)
+        with suppress(aiomqtt.MqttError):
+            await cell1.publish("cellctl/cell1/orders", b'{"v":1,"id":"self"}', qos=1)
+        await factory.publish("cellctl/cell1/orders", b'{"v":1,"id":"real"}', qos=1)
+        assert (await first_message(cell1)).payload == b'{"v":1,"id":"real"}'
+
+
+async def test_restart_keeps_a_queued_message_for_a_persistent_session(
+    broker: MosquittoBroker,
+) -> None:
+    async with client(broker, "cell1", client_id="cellctl-cell-cell1", persistent=True) as cell:
+        await cell.subscribe("cellctl/cell1/orders", qos=1)
+    async with client(broker, "factory") as factory:
+        await factory.publish("cellctl/cell1/orders", b'{"v":1,"id":"while-away"}', qos=1)
+    port = broker.port
+    await broker.restart()
+    assert broker.port == port
+    async with client(broker, "cell1", client_id="cellctl-cell-cell1", persistent=True) as cell:
+        # No new subscription: the session and its queued message came back from disk.
+        message = await first_message(cell)
+    assert message.payload == b'{"v":1,"id":"while-away"}'
+
+
+async def test_two_cells_with_one_prefix_refused(tmp_path: Path) -> None:
+    from cellctl.errors import UsageError
+
+    with pytest.raises(UsageError, match="same topic prefix"):
+        MosquittoBroker(tmp_path, [("a", "x/y"), ("b", "x/y")])
+    with pytest.raises(UsageError, match="wildcards"):
+        MosquittoBroker(tmp_path, [("a", "x/#")])

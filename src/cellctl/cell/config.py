@@ -139,6 +139,7 @@ class CellConfig:
     raw: dict[str, Any] = field(default_factory=dict)
     api_listen: str | None = None  # [api] listen: "HOST:PORT"; None = the Unix socket only
     api_allow_remote: bool = False  # [api] allow_remote: a non-loopback listen is allowed
+    mailbox: MailboxTable | None = None  # [mailbox]: url None = the SQLite mailbox
 
     def machine(self, name: str) -> MachineConfig:
         """The robot or mill called ``name``."""
@@ -267,6 +268,28 @@ class ApiTable(_Table):
         return self
 
 
+class MailboxTable(_Table):
+    """``[mailbox]``: orders from an MQTT broker instead of the local one (docs/factory.md)."""
+
+    url: Text | None = Field(
+        default=None,
+        description='"mqtt://HOST:PORT/PREFIX" or "mqtts://..." (default: the SQLite mailbox)',
+    )
+    credentials: Text | None = Field(
+        default=None, description="file with username and password (TOML, mode 0600)"
+    )
+    ca: Text | None = Field(default=None, description="CA certificate file for mqtts://")
+
+    @model_validator(mode="after")
+    def _url(self) -> MailboxTable:
+        if self.url is not None:
+            if not re.fullmatch(r"mqtts?://[^/:]+(:\d+)?/[\w.\-/]+", self.url):
+                raise ValueError(f"url = {self.url!r}: expected mqtt://HOST:PORT/PREFIX")
+            if self.credentials is None:
+                raise ValueError("an MQTT mailbox needs credentials = FILE")
+        return self
+
+
 def _is_loopback(text: str) -> bool:
     """Whether ``HOST:PORT`` names a loopback host; ValueError when it is not HOST:PORT."""
     host, sep, port = text.rpartition(":")
@@ -301,11 +324,14 @@ class CellFile(BaseModel):
         default_factory=dict, description="[parts.NAME]: the products and their routes"
     )
     api: ApiTable = Field(default_factory=lambda: ApiTable(), description="the control API")
+    mailbox: MailboxTable = Field(
+        default_factory=lambda: MailboxTable(), description="where orders come from"
+    )
 
 
 #: The tables of :class:`CellFile` whose entries each have their own schema.
 _PER_ENTRY: dict[str, type[_Table]] = {"machines": MachineTable, "parts": PartTable}
-_TABLES: dict[str, type[_Table]] = {"cell": CellTable, "api": ApiTable}
+_TABLES: dict[str, type[_Table]] = {"cell": CellTable, "api": ApiTable, "mailbox": MailboxTable}
 
 
 def reference_table() -> str:
@@ -316,6 +342,7 @@ def reference_table() -> str:
         ("[machines.NAME]", MachineTable),
         ("[parts.NAME] route[n]", RouteStepTable),
         ("[api]", ApiTable),
+        ("[mailbox]", MailboxTable),
     ]
     for title, model in sections:
         for key, info in model.model_fields.items():
@@ -517,6 +544,11 @@ def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
             problems.at((key,), f"unknown table; known: {', '.join(CellFile.model_fields)}")
     cell = _checked(CellTable, raw.get("cell", {}), ("cell",), problems)
     api = _checked(ApiTable, raw.get("api", {}), ("api",), problems)
+    mailbox = _checked(MailboxTable, raw.get("mailbox", {}), ("mailbox",), problems)
+    for key in ("credentials", "ca"):
+        named = getattr(mailbox, key, None)
+        if named is not None and not (directory / named).is_file():
+            problems.at(("mailbox", key), f"no such file: {named}")
     machines: dict[str, MachineConfig] = {}
     for name, entry in _entries(raw, "machines", problems).items():
         table = _checked(MachineTable, entry, ("machines", name), problems)
@@ -592,7 +624,7 @@ def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
                 problems.add(f"[parts.{part_name}] needs robot program {t!r} in [robot_programs]")
     if not parts:
         problems.add("[parts]: no part types: the cell has nothing to make")
-    if robot is None or cell is None or api is None or problems.items:
+    if robot is None or cell is None or api is None or mailbox is None or problems.items:
         return None, problems.items
     return (
         CellConfig(
@@ -607,6 +639,7 @@ def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
             raw=raw,
             api_listen=api.listen,
             api_allow_remote=api.allow_remote,
+            mailbox=mailbox,
         ),
         problems.items,
     )

@@ -14,14 +14,15 @@ from rich.console import Group
 from rich.live import Live
 from rich.table import Table
 
-from cellctl.cell.config import check_cell, load_cell
+from cellctl.cell.config import CellConfig, check_cell, load_cell
 from cellctl.cell.controller import CellController, ControllerOptions, Event
-from cellctl.cell.journal import open_journal
+from cellctl.cell.journal import Journal, open_journal
 from cellctl.cell.owner import acquire_controller_lock
 from cellctl.cell.report import Summary, summarize, write_gantt
 from cellctl.emulators.serve import parse_fault
 from cellctl.errors import UsageError
-from cellctl.mailbox import open_mailbox
+from cellctl.mailbox import Mailbox, open_mailbox
+from cellctl.mailbox.mqtt import MqttBridge, MqttSettings
 from cellctl.service.access import AttachedCell
 from cellctl.service.server import ApiServer
 from cellctl.ui.common import cell_dir, console, err_console, run, until_stopped
@@ -132,10 +133,14 @@ async def _run_owned(
     )
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, on_signal)
+    bridge = _mqtt_bridge(config, controller, mailbox, journal)
+    bridge_task = None
     try:
         await server.start()
         controller.log(f"control API on {server.url}")
         await controller.connect()
+        if bridge is not None:
+            bridge_task = asyncio.create_task(bridge.run())
         if live:
             with Live(live_view(controller), console=console, refresh_per_second=4) as screen:
                 task = asyncio.create_task(controller.run(stop, until_idle=until_idle))
@@ -149,9 +154,27 @@ async def _run_owned(
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
+        if bridge is not None and bridge_task is not None:
+            await bridge.stop()  # the last reports and "offline" go out first
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(5):
+                    await bridge_task
+            bridge_task.cancel()
         await server.close()
         await controller.close()
     return controller
+
+
+def _mqtt_bridge(
+    config: CellConfig, controller: CellController, mailbox: Mailbox, journal: Journal
+) -> MqttBridge | None:
+    """The MQTT side of the mailbox when ``[mailbox] url`` names a broker."""
+    box = config.mailbox
+    if box is None or box.url is None or box.credentials is None:
+        return None
+    ca = config.directory / box.ca if box.ca else None
+    settings = MqttSettings.load(box.url, config.directory / box.credentials, ca)
+    return MqttBridge(settings, controller, mailbox, journal, log=controller.log)
 
 
 def _print_event(e: Event) -> None:

@@ -232,7 +232,9 @@ class MqttBridge:
 
     async def _session(self) -> None:
         will = aiomqtt.Will(self.topic["status"], "offline", qos=1, retain=True)
-        async with self.settings.client(f"cellctl-cell-{self.name}", will) as client:
+        # The session is the prefix's: one cell a prefix, whatever the cell is called.
+        ident = "cellctl-cell-" + self.settings.prefix.replace("/", "-")
+        async with self.settings.client(ident, will) as client:
             await client.subscribe(self.topic["orders"], qos=1)
             await client.publish(self.topic["status"], "online", qos=1, retain=True)
             self.connected.set()

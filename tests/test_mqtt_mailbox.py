@@ -11,6 +11,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -108,6 +109,12 @@ async def test_orders_in_reports_out_a_repeated_id_and_the_retained_state(
                 await f.publish("cellctl/cell1/orders", json.dumps(order), qos=1)
                 again = json.loads((await next_message(f)).payload)  # type: ignore[arg-type]
                 assert again == accepted[0]
+                assert [o.id for o in mailbox.orders()] == ["F1"]
+                # Past its expiry (the factory gave it to another cell): refused, not made.
+                late = {**order, "id": "F0", "expires": time.time() - 1}
+                await f.publish("cellctl/cell1/orders", json.dumps(late), qos=1)
+                refused = json.loads((await next_message(f)).payload)  # type: ignore[arg-type]
+                assert refused["kind"] == "order-rejected" and "expired" in refused["text"]
                 assert [o.id for o in mailbox.orders()] == ["F1"]
             # A newcomer reads the retained state and status.
             retained: dict[str, Any] = {}

@@ -75,6 +75,11 @@ class MqttSettings:
             ca=ca,
         )
 
+    @property
+    def url(self) -> str:
+        scheme = "mqtts" if self.tls else "mqtt"
+        return f"{scheme}://{self.host}:{self.port}/{self.prefix}"
+
     def client(self, identifier: str, will: aiomqtt.Will | None = None) -> aiomqtt.Client:
         """An aiomqtt client with these settings and a persistent session."""
         context = None
@@ -89,7 +94,8 @@ class MqttSettings:
             clean_session=False,
             will=will,
             tls_context=context,
-            timeout=5.0,
+            # A QoS 1 publish caught by a dropped connection fails only at this deadline.
+            timeout=2.0,
         )
 
 
@@ -137,7 +143,10 @@ def parse_order(payload: bytes) -> dict[str, Any]:
         value = data.get(key, 0 if key == "priority" else None)
         if not isinstance(value, kind) or isinstance(value, bool):
             raise UsageError(f"order field {key!r} must be {kind.__name__}, not {value!r}")
-    return {k: data.get(k, 0) for k in fields}
+    expires = data.get("expires")
+    if expires is not None and (not isinstance(expires, int | float) or isinstance(expires, bool)):
+        raise UsageError(f"order field 'expires' must be a time, not {expires!r}")
+    return {**{k: data.get(k, 0) for k in fields}, "expires": expires}
 
 
 class _Cell(Protocol):
@@ -214,7 +223,7 @@ class MqttBridge:
                 except aiomqtt.MqttError as e:
                     self.connected.clear()
                     if not told:
-                        self.log(f"mailbox: broker {self.settings.host}:{self.settings.port}: {e}")
+                        self.log(f"mailbox: {self.settings.url}: {e} (trying again)")
                         told = True
                     with contextlib.suppress(TimeoutError):
                         async with asyncio.timeout(delay):
@@ -238,7 +247,7 @@ class MqttBridge:
             await client.subscribe(self.topic["orders"], qos=1)
             await client.publish(self.topic["status"], "online", qos=1, retain=True)
             self.connected.set()
-            self.log(f"mailbox: {self.settings.host}:{self.settings.port}/{self.settings.prefix}")
+            self.log(f"mailbox: {self.settings.url}")
             receiver = asyncio.create_task(self._receive(client))
             try:
                 while not self._stopping.is_set():
@@ -272,12 +281,17 @@ class MqttBridge:
         except UsageError as e:
             self.log(f"mailbox: order refused: {e}")
             return
+        oid = fields["id"]
+        expires = fields["expires"]
+        if expires is not None and time.time() > expires and not self._known(oid):
+            # Sent to this cell, then not taken in time: the factory has given it to another.
+            self.mailbox.post_report("order-rejected", f"order {oid}: expired", order_id=oid)
+            return
         try:
             order, new = self.mailbox.post_order(
                 fields["part_type"], fields["qty"], fields["priority"], fields["id"]
             )
         except UsageError as e:
-            oid = fields["id"]
             self.mailbox.post_report("order-rejected", f"order {oid}: {e}", order_id=oid)
             return
         if new:
@@ -287,6 +301,12 @@ class MqttBridge:
         answers = [r for r in answers if r.kind in ANSWERS]
         if answers and answers[-1].seq <= self.sent_seq:
             self._resend.append(answers[-1])  # sent before: the factory asks again
+
+    def _known(self, order_id: str) -> bool:
+        with contextlib.suppress(UsageError):
+            self.mailbox.get_order(order_id)
+            return True
+        return False
 
     # -- reports, state out ----------------------------------------------------------------------
 

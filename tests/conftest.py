@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import re
 import shutil
 import socket
 import subprocess
@@ -118,3 +119,26 @@ def emulator_process(*args: str) -> Iterator[str]:
     finally:
         proc.terminate()
         proc.wait(timeout=10)
+
+
+@contextmanager
+def emulated_cell_process(cell: Path, time_scale: str, poll_period: float = 0.1) -> Iterator[Path]:
+    """``cellctl emulate cell`` writing ``cell`` in its own process, its poll period set for
+    tests; yields ``cell`` once every machine listens."""
+    proc = subprocess.Popen(
+        [*CELLCTL, "--cell", str(cell), "emulate", "cell", "--time-scale", time_scale],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            if line.strip().startswith("plc"):
+                break
+        toml = cell / "cell.toml"
+        text = toml.read_text()
+        toml.write_text(re.sub(r"poll_period = [0-9.]+", f"poll_period = {poll_period}", text))
+        yield cell
+    finally:
+        proc.terminate()
+        proc.wait(10)

@@ -5,7 +5,6 @@ a second controller. Every process is a real ``cellctl``; the API is the cell's 
 from __future__ import annotations
 
 import os
-import re
 import signal
 import subprocess
 import time
@@ -17,7 +16,7 @@ import pytest
 from cellctl.cell.journal import open_journal
 from cellctl.mailbox import open_mailbox
 
-from .conftest import CELLCTL
+from .conftest import CELLCTL, emulated_cell_process
 
 TIME_SCALE = "400"
 
@@ -39,20 +38,7 @@ def wait_until(condition: object, what: str, timeout: float = 60.0) -> None:
 @pytest.fixture
 def running_cell(tmp_path: Path) -> Iterator[tuple[Path, subprocess.Popen[str]]]:
     """An emulated cell and ``cellctl run`` on it, each in its own process."""
-    cell = tmp_path / "cell"
-    emulated = subprocess.Popen(
-        [*CELLCTL, "--cell", str(cell), "emulate", "cell", "--time-scale", TIME_SCALE],
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    run: subprocess.Popen[str] | None = None
-    try:
-        assert emulated.stdout is not None
-        for line in emulated.stdout:
-            if line.strip().startswith("plc"):
-                break
-        toml = cell / "cell.toml"
-        toml.write_text(re.sub(r"poll_period = [0-9.]+", "poll_period = 0.1", toml.read_text()))
+    with emulated_cell_process(tmp_path / "cell", TIME_SCALE) as cell:
         with open_mailbox(cell) as mailbox:
             mailbox.post_order("wax-robot-base", 2, order_id="A")
         log = (tmp_path / "run.log").open("w")
@@ -60,17 +46,16 @@ def running_cell(tmp_path: Path) -> Iterator[tuple[Path, subprocess.Popen[str]]]
         run = subprocess.Popen(
             [*CELLCTL, "--cell", str(cell), "run"], stdout=log, stderr=subprocess.STDOUT, text=True
         )
-        wait_until(lambda: (cell / "api.sock").exists(), "the API socket")
-        yield cell, run
-    finally:
-        if run is not None and run.poll() is None:
-            run.send_signal(signal.SIGINT)
-            try:
-                run.wait(60)
-            except subprocess.TimeoutExpired:
-                run.kill()
-        emulated.terminate()
-        emulated.wait(10)
+        try:
+            wait_until(lambda: (cell / "api.sock").exists(), "the API socket")
+            yield cell, run
+        finally:
+            if run.poll() is None:
+                run.send_signal(signal.SIGINT)
+                try:
+                    run.wait(60)
+                except subprocess.TimeoutExpired:
+                    run.kill()
 
 
 def cuts(cell: Path) -> list[str]:

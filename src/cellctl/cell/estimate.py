@@ -18,27 +18,14 @@ from __future__ import annotations
 from collections import defaultdict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
 
 from cellctl.cell.config import PartType
+from cellctl.cell.journal import Journal
 from cellctl.cell.scheduler import resource_bounds
 
 #: Seconds a robot transfer or a cut counts for before the cell has measured one.
 UNMEASURED_TRANSFER_S = 30.0
 UNMEASURED_MACHINING_S = 600.0
-
-
-class _Step(Protocol):
-    kind: str
-    machine: str
-    program: str
-    state: str
-    started: float
-    ended: float | None
-
-
-class _Steps(Protocol):
-    def steps(self) -> Sequence[_Step]: ...
 
 
 @dataclass
@@ -49,7 +36,7 @@ class Durations:
     machining_s: dict[tuple[str, str], float] = field(default_factory=dict)
 
 
-def measured(journal: _Steps) -> Durations:
+def measured(journal: Journal) -> Durations:
     """The means of the journal's finished steps."""
     sums: dict[tuple[str, str, str], list[float]] = defaultdict(list)
     for s in journal.steps():

@@ -34,6 +34,7 @@ from urllib.parse import urlsplit
 import aiomqtt
 
 from cellctl.cell.estimate import finish_estimate, measured, part_bounds
+from cellctl.cell.journal import Journal
 from cellctl.errors import UsageError
 from cellctl.mailbox.base import Mailbox, Report
 
@@ -160,11 +161,6 @@ class _Cell(Protocol):
     def poke(self) -> None: ...
 
 
-class _Journal(Protocol):
-    def steps(self) -> Any: ...
-    def parts(self, statuses: Any = None, order_id: str | None = None) -> Any: ...
-
-
 class MqttBridge:
     """The cell's side of the factory's broker (see module docstring)."""
 
@@ -173,7 +169,7 @@ class MqttBridge:
         settings: MqttSettings,
         cell: _Cell,
         mailbox: Mailbox,
-        journal: _Journal,
+        journal: Journal,
         *,
         log: Callable[[str], None] = lambda text: None,
     ) -> None:

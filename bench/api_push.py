@@ -26,6 +26,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -80,13 +81,19 @@ async def run_batch(
                     await asyncio.sleep(0.05)
             clients = [first, *[await attach(directory) for _ in range(subscribers - 1)]]
 
-            def note(update: dict[str, Any]) -> None:
-                now = time.time()
-                for event in update.get("events", []):
-                    latencies.append((now - event["time"]) * 1000)
+            def noter(since: float) -> Callable[[dict[str, Any]], None]:
+                def note(update: dict[str, Any]) -> None:
+                    now = time.time()
+                    for event in update.get("events", []):
+                        # Events from before the subscription come with its first snapshot:
+                        # not a change pushed, so not counted.
+                        if event["time"] >= since:
+                            latencies.append((now - event["time"]) * 1000)
+
+                return note
 
             for client in clients:
-                await client.subscribe(note)
+                await client.subscribe(noter(time.time()))
         loop = asyncio.get_running_loop()
         _, status, usage = await loop.run_in_executor(None, os.wait4, run.pid, 0)
         wall = time.monotonic() - started

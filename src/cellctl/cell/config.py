@@ -140,6 +140,7 @@ class CellConfig:
     api_listen: str | None = None  # [api] listen: "HOST:PORT"; None = the Unix socket only
     api_allow_remote: bool = False  # [api] allow_remote: a non-loopback listen is allowed
     mailbox: MailboxTable | None = None  # [mailbox]: url None = the SQLite mailbox
+    opcua: OpcuaTable | None = None  # [opcua]: listen None = no OPC UA server
 
     def machine(self, name: str) -> MachineConfig:
         """The robot or mill called ``name``."""
@@ -290,6 +291,43 @@ class MailboxTable(_Table):
         return self
 
 
+class OpcuaTable(_Table):
+    """``[opcua]``: the cell's OPC UA server (docs/opcua.md)."""
+
+    listen: Text | None = Field(
+        default=None,
+        description='"opc.tcp://HOST:PORT", e.g. "opc.tcp://127.0.0.1:4840" (default: no server)',
+    )
+    users: Text | None = Field(
+        default=None,
+        description="file of users and salted password hashes (`cellctl opcua adduser NAME`)",
+    )
+    anonymous_read: bool = Field(
+        default=False, description="sessions without a user may read (never call or write)"
+    )
+    allow_remote: bool = Field(
+        default=False, description="a listen address that is not loopback is refused unless true"
+    )
+
+    @model_validator(mode="after")
+    def _listen(self) -> OpcuaTable:
+        if self.listen is not None:
+            match = re.fullmatch(r"opc\.tcp://(\[[^\]]+\]|[^/:\[\]]+):(\d+)/?", self.listen)
+            if match is None:
+                raise ValueError(
+                    f'listen = {self.listen!r}: write "opc.tcp://HOST:PORT", '
+                    'e.g. "opc.tcp://127.0.0.1:4840"'
+                )
+            if not _is_loopback(f"{match[1]}:{match[2]}") and not self.allow_remote:
+                raise ValueError(
+                    f"listen = {self.listen!r} is not a loopback address: set "
+                    "allow_remote = true to answer there"
+                )
+            if self.users is None and not self.anonymous_read:
+                raise ValueError("nobody could log in: name a users file, or anonymous_read")
+        return self
+
+
 def _is_loopback(text: str) -> bool:
     """Whether ``HOST:PORT`` names a loopback host; ValueError when it is not HOST:PORT."""
     host, sep, port = text.rpartition(":")
@@ -327,11 +365,17 @@ class CellFile(BaseModel):
     mailbox: MailboxTable = Field(
         default_factory=lambda: MailboxTable(), description="where orders come from"
     )
+    opcua: OpcuaTable = Field(default_factory=lambda: OpcuaTable(), description="the OPC UA server")
 
 
 #: The tables of :class:`CellFile` whose entries each have their own schema.
 _PER_ENTRY: dict[str, type[_Table]] = {"machines": MachineTable, "parts": PartTable}
-_TABLES: dict[str, type[_Table]] = {"cell": CellTable, "api": ApiTable, "mailbox": MailboxTable}
+_TABLES: dict[str, type[_Table]] = {
+    "cell": CellTable,
+    "api": ApiTable,
+    "mailbox": MailboxTable,
+    "opcua": OpcuaTable,
+}
 
 
 def reference_table() -> str:
@@ -343,6 +387,7 @@ def reference_table() -> str:
         ("[parts.NAME] route[n]", RouteStepTable),
         ("[api]", ApiTable),
         ("[mailbox]", MailboxTable),
+        ("[opcua]", OpcuaTable),
     ]
     for title, model in sections:
         for key, info in model.model_fields.items():
@@ -549,6 +594,12 @@ def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
         named = getattr(mailbox, key, None)
         if named is not None and not (directory / named).is_file():
             problems.at(("mailbox", key), f"no such file: {named}")
+    opcua = _checked(OpcuaTable, raw.get("opcua", {}), ("opcua",), problems)
+    users = opcua.users if opcua is not None and opcua.listen else None
+    if users is not None and not (directory / users).is_file():
+        problems.at(
+            ("opcua", "users"), f"no such file: {users} (add a user: cellctl opcua adduser NAME)"
+        )
     machines: dict[str, MachineConfig] = {}
     for name, entry in _entries(raw, "machines", problems).items():
         table = _checked(MachineTable, entry, ("machines", name), problems)
@@ -624,7 +675,14 @@ def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
                 problems.add(f"[parts.{part_name}] needs robot program {t!r} in [robot_programs]")
     if not parts:
         problems.add("[parts]: no part types: the cell has nothing to make")
-    if robot is None or cell is None or api is None or mailbox is None or problems.items:
+    if (
+        robot is None
+        or cell is None
+        or api is None
+        or mailbox is None
+        or opcua is None
+        or problems.items
+    ):
         return None, problems.items
     return (
         CellConfig(
@@ -640,6 +698,7 @@ def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
             api_listen=api.listen,
             api_allow_remote=api.allow_remote,
             mailbox=mailbox,
+            opcua=opcua,
         ),
         problems.items,
     )

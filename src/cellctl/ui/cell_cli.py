@@ -8,6 +8,7 @@ import shutil
 import signal
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 from rich.console import Group
@@ -28,6 +29,9 @@ from cellctl.service.server import ApiServer
 from cellctl.ui.common import cell_dir, console, err_console, run, until_stopped
 from cellctl.ui.dashboard.command import serve_dashboard_in
 from cellctl.ui.dashboard.routes import dashboard_routes
+
+if TYPE_CHECKING:
+    from cellctl.factory.opcua import OpcuaServer
 
 
 @click.group("cell")
@@ -135,9 +139,13 @@ async def _run_owned(
         loop.add_signal_handler(sig, on_signal)
     bridge = _mqtt_bridge(config, controller, mailbox, journal)
     bridge_task = None
+    opcua = _opcua_server(config, controller)
     try:
         await server.start()
         controller.log(f"control API on {server.url}")
+        if opcua is not None:
+            await opcua.start()
+            controller.log(opcua.describe())
         await controller.connect()
         if bridge is not None:
             bridge_task = asyncio.create_task(bridge.run())
@@ -160,9 +168,20 @@ async def _run_owned(
                 async with asyncio.timeout(5):
                     await bridge_task
             bridge_task.cancel()
+        if opcua is not None:
+            await opcua.close()
         await server.close()
         await controller.close()
     return controller
+
+
+def _opcua_server(config: CellConfig, controller: CellController) -> OpcuaServer | None:
+    """The OPC UA server when ``[opcua] listen`` is set (asyncua is imported only then)."""
+    if config.opcua is None or config.opcua.listen is None:
+        return None
+    from cellctl.factory.opcua import OpcuaServer
+
+    return OpcuaServer(AttachedCell(controller), config.opcua, name=config.name, log=controller.log)
 
 
 def _mqtt_bridge(

@@ -11,6 +11,7 @@ from cellctl.ui.console import console_command
 from cellctl.ui.dashboard import dashboard_command
 from cellctl.ui.emulate_cli import emulate
 from cellctl.ui.mill_cli import emulate_mill, mill
+from cellctl.ui.opcua_cli import opcua_group
 from cellctl.ui.orders_cli import alarm, orders, part, reports, submit
 from cellctl.ui.plc_cli import plc
 from cellctl.ui.robot_cli import robot
@@ -49,6 +50,7 @@ main.add_command(run_command)
 main.add_command(demo)
 main.add_command(console_command)
 main.add_command(dashboard_command)
+main.add_command(opcua_group)
 emulate.add_command(emulate_cell)
 for command in (pause, resume, estop, machine, traffic):
     main.add_command(command)

@@ -1,0 +1,184 @@
+"""Who may use a cell's OPC UA server: users with salted password hashes in a TOML file, and
+what each kind of session may do.
+
+::
+
+    add_user(Path("cell/opcua-users.toml"), "alice", "s3cret")   # the file is made 0600
+    manager = FileUserManager(Path("cell/opcua-users.toml"), anonymous_read=True)
+    server = Server(user_manager=manager)
+    server.set_security_policy(POLICIES, permission_ruleset=CellRuleset())
+
+The file (written by ``cellctl opcua adduser NAME``)::
+
+    [users.alice]
+    password = "scrypt$16384$8$1$<salt, base64>$<hash, base64>"
+
+It is read again at each login, so a user added while the cell runs may log in at once. A
+file that others may read is refused, as an SSH key would be.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import hmac
+import os
+import re
+import secrets
+import tomllib
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from asyncua import ua
+from asyncua.crypto.permission_rules import SimpleRoleRuleset, User, UserRole
+from asyncua.ua.object_ids import ObjectIds
+
+from cellctl.errors import UsageError
+
+#: scrypt's cost: about 16 MiB and a few tens of ms a check (slow for a guesser, fine for
+#: a login).
+SCRYPT_N, SCRYPT_R, SCRYPT_P = 2**14, 8, 1
+SALT_BYTES = 16
+HASH_BYTES = 32
+#: User names: what a client can type, nothing that needs quoting in TOML.
+NAME = re.compile(r"[A-Za-z0-9_.-]{1,64}")
+#: Requests an anonymous session may not make: it reads, browses and subscribes only.
+ANONYMOUS_REFUSED = frozenset(
+    ua.NodeId(ua.Int32(i))
+    for i in (
+        ObjectIds.WriteRequest_Encoding_DefaultBinary,
+        ObjectIds.CallRequest_Encoding_DefaultBinary,
+        ObjectIds.HistoryUpdateRequest_Encoding_DefaultBinary,
+    )
+)
+
+
+def hash_password(password: str, *, salt: bytes | None = None) -> str:
+    """The stored form of ``password``: ``scrypt$N$r$p$salt$hash`` (base64 parts)."""
+    salt = salt if salt is not None else secrets.token_bytes(SALT_BYTES)
+    digest = _scrypt(password, salt, SCRYPT_N, SCRYPT_R, SCRYPT_P)
+    return "$".join(
+        ["scrypt", str(SCRYPT_N), str(SCRYPT_R), str(SCRYPT_P), _b64(salt), _b64(digest)]
+    )
+
+
+def check_password(stored: str, password: str) -> bool:
+    """Whether ``password`` matches ``stored`` (a form :func:`hash_password` made)."""
+    try:
+        scheme, n, r, p, salt, digest = stored.split("$")
+        if scheme != "scrypt":
+            return False
+        expected = base64.b64decode(digest, validate=True)
+        found = _scrypt(password, base64.b64decode(salt, validate=True), int(n), int(r), int(p))
+    except (ValueError, TypeError, MemoryError):
+        return False
+    return hmac.compare_digest(found, expected)
+
+
+def _scrypt(password: str, salt: bytes, n: int, r: int, p: int) -> bytes:
+    if not (2 <= n <= 2**20 and 1 <= r <= 32 and 1 <= p <= 16):
+        raise ValueError("scrypt cost out of range")  # a hand-edited file cannot stall a login
+    return hashlib.scrypt(
+        password.encode("utf-8"), salt=salt, n=n, r=r, p=p, maxmem=256 * 1024**2, dklen=HASH_BYTES
+    )
+
+
+def _b64(data: bytes) -> str:
+    return base64.b64encode(data).decode("ascii")
+
+
+def load_users(path: Path) -> dict[str, str]:
+    """``name -> stored password`` from the users file; UsageError naming what is wrong."""
+    try:
+        mode = path.stat().st_mode
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise UsageError(f"{path}: no such file (add a user: cellctl opcua adduser NAME)") from None
+    except OSError as e:
+        raise UsageError(f"{path}: cannot read the OPC UA users: {e.strerror}") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise UsageError(f"{path}: not a users file (TOML): {e}") from None
+    if mode & 0o077:
+        raise UsageError(f"{path}: others may read it: chmod 600 {path}")
+    table = data.get("users", {})
+    if not isinstance(table, dict) or set(data) - {"users"}:
+        raise UsageError(f'{path}: expected only [users.NAME] tables with password = "..."')
+    users: dict[str, str] = {}
+    for name, entry in table.items():
+        stored = entry.get("password") if isinstance(entry, dict) else None
+        if not NAME.fullmatch(name) or not isinstance(stored, str):
+            raise UsageError(f'{path}: [users.{name}] needs a plain name and password = "..."')
+        users[name] = stored
+    return users
+
+
+def add_user(path: Path, name: str, password: str) -> bool:
+    """Add ``name`` (or set its password) in the users file, made 0600; True if it is new."""
+    if not NAME.fullmatch(name):
+        raise UsageError(f"user name {name!r}: use 1 to 64 letters, digits, '_', '.' or '-'")
+    if not password:
+        raise UsageError("an empty password is not a password")
+    users = load_users(path) if path.exists() else {}
+    new = name not in users
+    users[name] = hash_password(password)
+    text = "# OPC UA users of this cell: cellctl opcua adduser NAME (salted scrypt hashes)\n"
+    text += "".join(f'\n[users.{n}]\npassword = "{stored}"\n' for n, stored in users.items())
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w", encoding="utf-8") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)  # a reader sees the old file or the new one, never half of it
+    return new
+
+
+class FileUserManager:
+    """asyncua's user manager: users from the file (read at each login); anonymous sessions
+    only with ``anonymous_read`` (the server also offers the anonymous token only then).
+    ``refused`` is told the name of each login refused."""
+
+    def __init__(
+        self,
+        path: Path | None,
+        *,
+        anonymous_read: bool,
+        refused: Callable[[str], None] | None = None,
+    ) -> None:
+        self.path = path
+        self.anonymous_read = anonymous_read
+        self.refused = refused
+        self._dummy = hash_password(secrets.token_urlsafe(12))
+
+    def get_user(
+        self,
+        iserver: Any,
+        username: str | None = None,
+        password: str | None = None,
+        certificate: Any = None,
+    ) -> User | None:
+        """The session's user, or None (the login is refused: BadUserAccessDenied)."""
+        if username is None:  # ``certificate`` is the client application's, not a user's
+            return User(role=UserRole.Anonymous) if self.anonymous_read else None
+        try:
+            users = load_users(self.path) if self.path is not None else {}
+        except UsageError:
+            users = {}  # told at start; a broken file lets nobody in rather than anyone
+        # An unknown name costs the same hash as a known one: timing does not tell names.
+        stored = users.get(username, self._dummy)
+        if check_password(stored, password or "") and username in users:
+            return User(role=UserRole.User, name=username)
+        if self.refused is not None:
+            self.refused(username)
+        return None
+
+
+class CellRuleset(SimpleRoleRuleset):
+    """Users may do what asyncua's users may (read, browse, subscribe, call); anonymous
+    sessions the same minus writing, calling methods and updating history."""
+
+    def __init__(self) -> None:
+        super().__init__()  # type: ignore[no-untyped-call]
+        rules = self._permission_dict
+        rules[UserRole.Anonymous] = set(rules[UserRole.User]) - ANONYMOUS_REFUSED

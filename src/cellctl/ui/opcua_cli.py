@@ -1,0 +1,42 @@
+"""``cellctl opcua adduser NAME``: a user of the cell's OPC UA server (docs/opcua.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from cellctl.service.machines import load_cell_file
+from cellctl.ui.common import cell_dir, console
+
+#: The users file when cell.toml names none yet.
+DEFAULT_USERS = "opcua-users.toml"
+
+
+@click.group("opcua")
+def opcua_group() -> None:
+    """The cell's OPC UA server ([opcua] in cell.toml)."""
+
+
+@opcua_group.command("adduser")
+@click.argument("name")
+@click.pass_context
+def adduser(ctx: click.Context, name: str) -> None:
+    """Add user NAME (or set a new password) in the file [opcua] users names.
+
+    The password is asked twice and stored as a salted scrypt hash; the file is made mode
+    0600. A running server reads it at the next login: no restart.
+    """
+    from cellctl.factory.opcua.users import add_user
+
+    directory = cell_dir(ctx)
+    table = load_cell_file(directory).get("opcua")
+    named = table.get("users") if isinstance(table, dict) else None
+    path = directory / (named if isinstance(named, str) and named else DEFAULT_USERS)
+    password = click.prompt(
+        f"password for {name}", hide_input=True, confirmation_prompt=True, err=True
+    )
+    new = add_user(Path(path), name, password)
+    console.print(f"{path}: user {name} {'added' if new else 'has a new password'}", markup=False)
+    if not named:
+        console.print(f'name it in cell.toml: [opcua] users = "{DEFAULT_USERS}"', markup=False)

@@ -181,6 +181,8 @@ class MqttBridge:
         self.name: str = cell.config.name
         self.topic = {t: f"{settings.prefix}/{t}" for t in ("orders", "reports", "state", "status")}
         self._mark = cell.config.directory / "state" / "mqtt.json"
+        #: Orders taken with an ``expires`` whose answer the broker has not yet acknowledged.
+        self.expiring: dict[str, float] = {}
         self.sent_seq = self._load_mark()
         self.connected = asyncio.Event()
         self._changed = asyncio.Event()
@@ -192,8 +194,10 @@ class MqttBridge:
     # -- the last report sent ------------------------------------------------------------------
 
     def _load_mark(self) -> int:
-        with contextlib.suppress(OSError, ValueError, TypeError):
-            return int(json.loads(self._mark.read_text())["seq"])
+        with contextlib.suppress(OSError, ValueError, TypeError, AttributeError):
+            mark = json.loads(self._mark.read_text())
+            self.expiring = {str(k): float(v) for k, v in mark.get("expiring", {}).items()}
+            return int(mark["seq"])
         return 0
 
     def _save_mark(self) -> None:
@@ -201,8 +205,36 @@ class MqttBridge:
         tmp = self._mark.with_suffix(".tmp")
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         with os.fdopen(fd, "w") as f:
-            json.dump({"seq": self.sent_seq}, f)
+            json.dump({"seq": self.sent_seq, "expiring": self.expiring}, f)
         os.replace(tmp, self._mark)
+
+    def drop_expired(self) -> None:
+        """Cancel each order taken before its ``expires`` whose acceptance the factory has not
+        heard by then, if none of its parts has started: the factory may have given it to
+        another cell. ``cellctl run`` calls it before the controller starts."""
+        now = time.time()
+        for oid, expires in list(self.expiring.items()):
+            if now <= expires:
+                continue
+            unsent = [
+                r
+                for r in self.mailbox.reports(since_seq=self.sent_seq)
+                if r.order_id == oid and r.kind in ANSWERS
+            ]
+            if not self._known(oid) or not unsent or unsent[0].kind != "order-accepted":
+                continue  # not taken, or refused: its answer goes out as it is
+            try:
+                self.journal.cancel_parts(oid)
+                self.mailbox.set_order_state(oid, "cancelled", "expired before it was reported")
+            except UsageError:
+                continue  # a part has started: the order stays here and is reported
+            self.mailbox.post_report(
+                "order-rejected",
+                f"order {oid}: expired before the factory heard it was accepted; cancelled here",
+                order_id=oid,
+                data={"expired": True},
+            )
+            self.log(f"mailbox: order {oid} cancelled: its acceptance was not reported in time")
 
     # -- running -------------------------------------------------------------------------------
 
@@ -281,8 +313,13 @@ class MqttBridge:
         expires = fields["expires"]
         if expires is not None and time.time() > expires and not self._known(oid):
             # Sent to this cell, then not taken in time: the factory has given it to another.
-            self.mailbox.post_report("order-rejected", f"order {oid}: expired", order_id=oid)
+            self.mailbox.post_report(
+                "order-rejected", f"order {oid}: expired", order_id=oid, data={"expired": True}
+            )
             return
+        if expires is not None and not self._known(oid):
+            self.expiring[oid] = float(expires)  # written before the order is committed
+            self._save_mark()
         try:
             order, new = self.mailbox.post_order(
                 fields["part_type"], fields["qty"], fields["priority"], fields["id"]
@@ -298,6 +335,13 @@ class MqttBridge:
         if answers and answers[-1].seq <= self.sent_seq:
             self._resend.append(answers[-1])  # sent before: the factory asks again
 
+    def _cancelled(self, order_id: str | None) -> bool:
+        if order_id is None or order_id not in self.expiring:
+            return False
+        with contextlib.suppress(UsageError):
+            return self.mailbox.get_order(order_id).state == "cancelled"
+        return False
+
     def _known(self, order_id: str) -> bool:
         with contextlib.suppress(UsageError):
             self.mailbox.get_order(order_id)
@@ -310,9 +354,14 @@ class MqttBridge:
         resend, self._resend = self._resend, []
         for r in resend:
             await self._publish_report(client, r)
+        self.drop_expired()
         for r in self.mailbox.reports(since_seq=self.sent_seq):
-            await self._publish_report(client, r)
+            cancelled = r.kind == "order-accepted" and self._cancelled(r.order_id)
+            if not cancelled:  # an acceptance taken back by drop_expired is never told
+                await self._publish_report(client, r)
             self.sent_seq = r.seq
+            if r.kind in ANSWERS and not cancelled and r.order_id is not None:
+                self.expiring.pop(r.order_id, None)  # the factory knows now
             self._save_mark()
 
     async def _publish_report(self, client: aiomqtt.Client, r: Report) -> None:

@@ -138,6 +138,8 @@ async def _run_owned(
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, on_signal)
     bridge = _mqtt_bridge(config, controller, mailbox, journal)
+    if bridge is not None:
+        bridge.drop_expired()  # before the controller can start a part of such an order
     bridge_task = None
     opcua = _opcua_server(config, controller)
     try:

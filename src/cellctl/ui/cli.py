@@ -10,6 +10,7 @@ from cellctl.ui.common import CellctlGroup
 from cellctl.ui.console import console_command
 from cellctl.ui.dashboard import dashboard_command
 from cellctl.ui.emulate_cli import emulate
+from cellctl.ui.factory_cli import emulate_factory, factory
 from cellctl.ui.mill_cli import emulate_mill, mill
 from cellctl.ui.opcua_cli import opcua_group
 from cellctl.ui.orders_cli import alarm, orders, part, reports, submit
@@ -51,6 +52,8 @@ main.add_command(demo)
 main.add_command(console_command)
 main.add_command(dashboard_command)
 main.add_command(opcua_group)
+main.add_command(factory)
 emulate.add_command(emulate_cell)
+emulate.add_command(emulate_factory)
 for command in (pause, resume, estop, machine, traffic):
     main.add_command(command)

@@ -1,0 +1,241 @@
+"""The system controller: orders from the factory's store to the cells over MQTT, and back.
+
+::
+
+    with FactoryStore(config.state_path) as store:
+        factory = FactoryController(config, store, log=print)
+        await factory.run(stop, until_idle=True)      # until stop is set, or every order ends
+
+``cellctl factory run`` runs it. Each tick it gives every queued order to the online cell
+that makes its part type with the earliest estimated finish (:mod:`cellctl.factory.dispatch`),
+committing the choice before the order goes out; re-sends every order its cell has not
+answered each ``resend`` seconds (orders are idempotent by id at the cell); and puts back in
+the queue an order its cell refused, or one a cell that went offline did not take before the
+order's ``expires`` (``accept_timeout`` after it was sent: the cell refuses it after that, so it
+is made by one cell). Reports, state and status come in on a persistent session and are
+acknowledged to the broker only after they are committed to the store.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import time
+from collections.abc import Callable
+from typing import Any
+
+import aiomqtt
+
+from cellctl.factory.config import FactoryConfig
+from cellctl.factory.dispatch import choose, every_cell_refused
+from cellctl.factory.store import (
+    OPEN_STATES,
+    QUEUED,
+    SENT,
+    FactoryOrder,
+    FactoryStore,
+)
+from cellctl.mailbox.mqtt import BACKOFF_S, VERSION, MqttSettings
+
+#: How long the factory must have been connected before it moves an unanswered order from an
+#: offline cell: reports the broker kept for it arrive first (a cell reconnects within the
+#: longest backoff).
+SETTLE_S = BACKOFF_S[1] + 1.0
+#: How often the store is looked at for orders submitted by another process.
+SUBMIT_CHECK_S = 0.02
+
+
+class FactoryController:
+    """The factory's controller (see module docstring)."""
+
+    def __init__(
+        self,
+        config: FactoryConfig,
+        store: FactoryStore,
+        *,
+        log: Callable[[str], None] = lambda text: None,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        self.config = config
+        self.store = store
+        self._log = log
+        self._clock = clock
+        self.connected_since: float | None = None
+        self.listeners: list[Callable[[], None]] = []
+        self._wake = asyncio.Event()
+        self._prefix = {prefix: name for name, prefix in config.cells.items()}
+        self._data_version = -1
+
+    def log(self, text: str, cell: str | None = None, order_id: str | None = None) -> None:
+        self.store.log(text, cell, order_id)
+        self._log(text)
+
+    def poke(self) -> None:
+        """Look at the store now (an order was submitted in this process)."""
+        self._wake.set()
+
+    # -- running --------------------------------------------------------------------------------
+
+    async def run(self, stop: asyncio.Event, *, until_idle: bool = False) -> None:
+        """Serve until ``stop`` is set (or, with ``until_idle``, every order has ended)."""
+        settings = MqttSettings.load(
+            self.config.broker_url.rstrip("/") + "/factory", self.config.credentials, self.config.ca
+        )
+        delay = BACKOFF_S[0]
+        told = False
+        while not stop.is_set():
+            try:
+                await self._session(settings, stop, until_idle)
+                return
+            except aiomqtt.MqttError as e:
+                self.connected_since = None
+                if not told:
+                    self.log(f"broker {self.config.broker_url}: {e} (trying again)")
+                    told = True
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(delay):
+                        await stop.wait()
+                delay = min(delay * 2, BACKOFF_S[1])
+            else:
+                told = False
+
+    async def _session(self, settings: MqttSettings, stop: asyncio.Event, until_idle: bool) -> None:
+        ident = "cellctl-factory-" + "".join(
+            c if c.isalnum() or c in "-_" else "-" for c in self.config.name
+        )
+        client = settings.client(ident)
+        # Acknowledge a report only once it is committed: a factory killed between the two
+        # gets it again from its persistent session.
+        client._client.manual_ack_set(True)
+        async with client:
+            for prefix in self.config.cells.values():
+                for topic in ("reports", "state", "status"):
+                    await client.subscribe(f"{prefix}/{topic}", qos=1)
+            self.connected_since = self._clock()
+            self.log(f"factory {self.config.name}: broker {self.config.broker_url}")
+            receiver = asyncio.create_task(self._receive(client))
+            try:
+                while not stop.is_set():
+                    await self.tick(client)
+                    if receiver.done():
+                        receiver.result()  # the connection broke: raises its MqttError
+                    if until_idle and self.idle():
+                        return
+                    await self._wait()
+            finally:
+                receiver.cancel()
+                with contextlib.suppress(BaseException):
+                    await receiver
+                self.connected_since = None
+
+    async def _wait(self) -> None:
+        """Until poked, an order submitted elsewhere, or the poll period is over."""
+        deadline = time.monotonic() + self.config.poll_period
+        while time.monotonic() < deadline:
+            version = self.store.data_version()
+            if version != self._data_version:
+                self._data_version = version
+                return
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(min(SUBMIT_CHECK_S, deadline - time.monotonic())):
+                    await self._wake.wait()
+            if self._wake.is_set():
+                self._wake.clear()
+                return
+
+    def idle(self) -> bool:
+        """No order is open (every one is done, failed or cancelled)."""
+        return not self.store.orders(OPEN_STATES)
+
+    # -- in: reports, state, status -------------------------------------------------------------
+
+    async def _receive(self, client: aiomqtt.Client) -> None:
+        async for message in client.messages:
+            try:
+                self.take(message.topic.value, bytes(message.payload or b""))
+            finally:
+                if message.qos > 0:
+                    client._client.ack(message.mid, message.qos)
+
+    def take(self, topic: str, payload: bytes) -> None:
+        """One message from a cell, committed to the store."""
+        prefix, _, kind = topic.rpartition("/")
+        cell = self._prefix.get(prefix)
+        if cell is None:
+            return
+        if kind == "status":
+            status = payload.decode("utf-8", "replace").strip()
+            if status in ("online", "offline") and self.store.set_status(cell, status):
+                self._log(f"{cell} {status}")
+                self._changed()
+            return
+        try:
+            data = json.loads(payload)
+        except ValueError:
+            self.log(f"{cell}: a {kind} message that is not JSON ignored", cell)
+            return
+        if not isinstance(data, dict) or data.get("v") != VERSION:
+            self.log(f"{cell}: a {kind} message not of version {VERSION} ignored", cell)
+            return
+        if kind == "state":
+            self.store.set_state(cell, data)
+        elif kind == "reports":
+            text = self.store.take_report(cell, data)
+            if text:
+                self._log(text)
+        self._changed()
+
+    def _changed(self) -> None:
+        self._wake.set()
+        for listener in list(self.listeners):
+            listener()
+
+    # -- out: dispatch, re-send, redirect -------------------------------------------------------
+
+    async def tick(self, client: aiomqtt.Client) -> None:
+        """Dispatch queued orders, re-send unanswered ones, move those that cannot stay."""
+        now = self._clock()
+        cells = self.store.cells()
+        for order in self.store.orders([SENT]):
+            assert order.cell is not None
+            seen = cells.get(order.cell)
+            offline = seen is None or seen.status != "online"
+            settled = self.connected_since is not None and now - self.connected_since >= SETTLE_S
+            if offline and settled and order.expires is not None and now > order.expires:
+                self.store.requeue(
+                    order.id,
+                    order.cell,
+                    f"went offline and did not take it within {self.config.accept_timeout:g} s",
+                )
+                self._log(f"order {order.id}: {order.cell} offline, not taken: sent elsewhere")
+            elif order.last_send is None or now - order.last_send >= self.config.resend:
+                await self._publish(client, order)
+                self.store.resent(order.id)
+        open_orders = self.store.orders(OPEN_STATES)
+        for order in [o for o in open_orders if o.state == QUEUED]:
+            cell, why = choose(order, cells, open_orders)
+            if cell is None:
+                if every_cell_refused(order, self.config.cells):
+                    self.store.fail(order.id, f"refused by every cell ({order.note})")
+                    self._log(f"order {order.id} failed: refused by every cell")
+                else:
+                    self.store.note(order.id, why)
+                continue
+            sent = self.store.send(order.id, cell, now + self.config.accept_timeout)
+            await self._publish(client, sent)
+            self._log(f"order {order.id} sent to {cell}")
+            open_orders = self.store.orders(OPEN_STATES)  # the next choice counts this one
+
+    async def _publish(self, client: aiomqtt.Client, order: FactoryOrder) -> None:
+        assert order.cell is not None
+        payload: dict[str, Any] = {
+            "v": VERSION,
+            "id": order.id,
+            "part_type": order.part_type,
+            "qty": order.qty,
+            "priority": order.priority,
+            "expires": order.expires,
+        }
+        topic = f"{self.config.cells[order.cell]}/orders"
+        await client.publish(topic, json.dumps(payload), qos=1)

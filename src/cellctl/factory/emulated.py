@@ -1,0 +1,136 @@
+"""A factory without hardware: a private Mosquitto, N emulated cells, their cell directories
+and a ``factory.toml``, all in one directory (``cellctl emulate factory``, the factory demo,
+the tests and ``bench/factory_throughput.py``).
+
+::
+
+    async with EmulatedFactory(Path("plant"), cells=3, time_scale=200) as plant:
+        plant.cell_dirs      # [plant/cell1, plant/cell2, plant/cell3]: run each: cellctl run
+        plant.directory      # plant/factory.toml: cellctl factory --dir plant run
+        plant.cells[0].runs_per_part()   # what the emulated mills of cell1 cut
+
+Each cell's ``cell.toml`` names the cell ``cellN`` and takes its orders from the broker
+(``[mailbox] url = "mqtt://127.0.0.1:PORT/cellctl/cellN"``, its own 0600 credentials in
+``mqtt.toml``). The broker lets each cell read only its orders and write only its reports,
+state and status (:mod:`cellctl.factory.broker`).
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+from pathlib import Path
+from types import TracebackType
+from typing import Self
+
+from cellctl.emulators.cell import EmulatedCell
+from cellctl.factory.broker import FACTORY_USER, MosquittoBroker
+from cellctl.factory.config import FACTORY_FILE
+
+#: The topic prefix of cell ``name``.
+PREFIX = "cellctl/{name}"
+
+
+def _copy_private(source: Path, target: Path) -> None:
+    shutil.copyfile(source, target)
+    target.chmod(0o600)
+
+
+class EmulatedFactory:
+    """See the module docstring; ``poll_period`` (s) replaces the cells' own when given."""
+
+    def __init__(
+        self,
+        directory: Path,
+        *,
+        cells: int = 3,
+        time_scale: float = 50.0,
+        pacing: bool = True,
+        poll_period: float | None = None,
+        accept_timeout: float = 30.0,
+        factory_poll: float = 0.5,
+    ) -> None:
+        if not 1 <= cells <= 32:
+            raise ValueError(f"an emulated factory has 1 to 32 cells, not {cells}")
+        self.directory = Path(directory)
+        self.names = [f"cell{i}" for i in range(1, cells + 1)]
+        self.time_scale = time_scale
+        self.pacing = pacing
+        self.poll_period = poll_period
+        self.accept_timeout = accept_timeout
+        self.factory_poll = factory_poll
+        self.broker = MosquittoBroker(
+            self.directory / "broker", [(n, PREFIX.format(name=n)) for n in self.names]
+        )
+        self.cells: list[EmulatedCell] = []
+
+    @property
+    def cell_dirs(self) -> list[Path]:
+        return [self.directory / name for name in self.names]
+
+    @property
+    def factory_toml(self) -> Path:
+        return self.directory / FACTORY_FILE
+
+    async def start(self) -> Path:
+        """Start the broker and the cells; write the cell directories and factory.toml."""
+        self.directory.mkdir(parents=True, exist_ok=True)
+        await self.broker.start()
+        try:
+            for name, cell_dir in zip(self.names, self.cell_dirs, strict=True):
+                cell = EmulatedCell(time_scale=self.time_scale, pacing=self.pacing)
+                self.cells.append(cell)
+                toml = await cell.start(cell_dir)
+                _copy_private(self.broker.credentials(name), cell_dir / "mqtt.toml")
+                text = toml.read_text(encoding="utf-8")
+                text = re.sub(r'(?m)^name = ".*"$', f'name = "{name}"', text, count=1)
+                if self.poll_period is not None:
+                    text = re.sub(
+                        r"poll_period = [0-9.]+", f"poll_period = {self.poll_period:g}", text
+                    )
+                url = f"{self.broker.url}/{PREFIX.format(name=name)}"
+                text += f'\n[mailbox]\nurl = "{url}"\ncredentials = "mqtt.toml"\n'
+                toml.write_text(text, encoding="utf-8")
+            _copy_private(
+                self.broker.credentials(FACTORY_USER), self.directory / "factory.credentials"
+            )
+            self.factory_toml.write_text(self._factory_toml(), encoding="utf-8")
+        except BaseException:
+            await self.close()
+            raise
+        return self.factory_toml
+
+    def _factory_toml(self) -> str:
+        lines = [
+            f"# Emulated factory of {len(self.names)} cells (time scale {self.time_scale:g});"
+            " written by cellctl emulate factory.",
+            "[factory]",
+            'name = "factory"',
+            f"accept_timeout = {self.accept_timeout:g}",
+            f"poll_period = {self.factory_poll:g}",
+            "",
+            "[broker]",
+            f'url = "{self.broker.url}"',
+            'credentials = "factory.credentials"',
+        ]
+        for name in self.names:
+            lines += ["", f"[cells.{name}]", f'prefix = "{PREFIX.format(name=name)}"']
+        return "\n".join(lines) + "\n"
+
+    async def close(self) -> None:
+        """Stop the cells' machines and the broker."""
+        for cell in self.cells:
+            await cell.close()
+        await self.broker.stop()
+
+    async def __aenter__(self) -> Self:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()

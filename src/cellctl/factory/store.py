@@ -1,0 +1,400 @@
+"""The factory's own state: ``<factory>/state/factory.db`` (SQLite, 0600, every call one
+committed transaction, so a factory killed with -9 and started again loses nothing).
+
+::
+
+    store = FactoryStore(config.state_path)
+    store.submit("wax-robot-base", 2, priority=0)          # queued
+    store.send(order_id, "cell1", now, expires)            # sent: before the publish
+    store.take_report("cell1", report)                     # accepted, done ... (idempotent)
+    store.orders(); store.cells(); store.events()
+
+An order is ``queued`` (at no cell), ``sent`` (to one cell, not yet answered), then as its
+cell reports it: ``accepted``, ``in-progress``, ``held`` (a part waits for the cell's
+operator), and at last ``done``, ``failed`` or ``cancelled``. A refusal, or a cell that went
+offline without taking it before its deadline, puts it back to ``queued`` with that cell
+remembered, so it goes elsewhere.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from cellctl.cell.sqlitedb import SqliteStore
+from cellctl.errors import UsageError
+from cellctl.mailbox.base import check_new_order
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS orders (
+    id TEXT PRIMARY KEY,
+    part_type TEXT NOT NULL,
+    qty INTEGER NOT NULL,
+    priority INTEGER NOT NULL,
+    state TEXT NOT NULL,
+    cell TEXT,
+    note TEXT NOT NULL DEFAULT '',
+    submitted REAL NOT NULL,
+    updated REAL NOT NULL,
+    sent REAL,
+    last_send REAL,
+    sends INTEGER NOT NULL DEFAULT 0,
+    expires REAL,
+    accepted REAL,
+    accepted_seen REAL,
+    finished REAL,
+    refused TEXT NOT NULL DEFAULT '[]',
+    done INTEGER NOT NULL DEFAULT 0,
+    held INTEGER NOT NULL DEFAULT 0,
+    scrapped INTEGER NOT NULL DEFAULT 0
+);
+CREATE TABLE IF NOT EXISTS cells (
+    name TEXT PRIMARY KEY,
+    status TEXT NOT NULL DEFAULT 'unknown',
+    status_time REAL,
+    state TEXT,
+    state_time REAL,
+    seq INTEGER NOT NULL DEFAULT 0
+);
+CREATE TABLE IF NOT EXISTS events (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    time REAL NOT NULL,
+    cell TEXT,
+    order_id TEXT,
+    text TEXT NOT NULL
+);
+CREATE INDEX IF NOT EXISTS orders_by_state ON orders (state)
+"""
+
+#: Order states: at no cell yet, sent, and as the cell's reports say.
+QUEUED, SENT, ACCEPTED, IN_PROGRESS, HELD = "queued", "sent", "accepted", "in-progress", "held"
+DONE, FAILED, CANCELLED = "done", "failed", "cancelled"
+OPEN_STATES = (QUEUED, SENT, ACCEPTED, IN_PROGRESS, HELD)
+AT_CELL_STATES = (ACCEPTED, IN_PROGRESS, HELD)
+FINAL_STATES = (DONE, FAILED, CANCELLED)
+#: Most parts one order may ask for (as the cell's mailbox).
+MAX_QTY = 10_000
+
+
+@dataclass(frozen=True)
+class FactoryOrder:
+    """One order as the factory follows it."""
+
+    id: str
+    part_type: str
+    qty: int
+    priority: int
+    state: str
+    cell: str | None
+    note: str
+    submitted: float
+    updated: float
+    sent: float | None
+    last_send: float | None
+    sends: int
+    expires: float | None
+    accepted: float | None  # the cell's time of its order-accepted report
+    accepted_seen: float | None  # when the factory got it
+    finished: float | None
+    refused: tuple[str, ...]
+    done: int
+    held: int
+    scrapped: int
+
+    def as_dict(self) -> dict[str, Any]:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in self.__dict__.items()}
+
+
+@dataclass(frozen=True)
+class CellSeen:
+    """What the factory last heard from a cell."""
+
+    name: str
+    status: str  # online, offline, unknown
+    status_time: float | None
+    state: dict[str, Any] = field(default_factory=dict)
+    state_time: float | None = None
+    seq: int = 0
+
+    @property
+    def part_types(self) -> dict[str, float]:
+        """Part types the cell makes, each with what one more part adds to its bound (s)."""
+        types = self.state.get("part_types") or {}
+        return {str(k): float((v or {}).get("bound_s", 0.0)) for k, v in types.items()}
+
+
+@dataclass(frozen=True)
+class FactoryEvent:
+    id: int
+    time: float
+    cell: str | None
+    order_id: str | None
+    text: str
+
+
+def _order(row: sqlite3.Row) -> FactoryOrder:
+    data = dict(row)
+    data["refused"] = tuple(json.loads(data["refused"]))
+    return FactoryOrder(**data)
+
+
+def _cell(row: sqlite3.Row) -> CellSeen:
+    state = json.loads(row["state"]) if row["state"] else {}
+    return CellSeen(
+        row["name"], row["status"], row["status_time"], state, row["state_time"], row["seq"]
+    )
+
+
+class FactoryStore(SqliteStore):
+    """The factory's SQLite file (see module docstring); ``clock`` gives the times recorded."""
+
+    def __init__(self, path: Path, *, clock: Callable[[], float] = time.time) -> None:
+        super().__init__(path, SCHEMA)
+        self._clock = clock
+
+    # -- orders in ----------------------------------------------------------------------------
+
+    def submit(
+        self, part_type: str, qty: int, priority: int = 0, order_id: str | None = None
+    ) -> tuple[FactoryOrder, bool]:
+        """Queue an order; the same id again returns the first one unchanged (new=False)."""
+        oid = check_new_order(part_type, qty, priority, order_id)
+        if qty > MAX_QTY:
+            raise UsageError(f"order quantity must be at most {MAX_QTY}, not {qty}")
+        now = self._clock()
+        with self._write() as db:
+            row = db.execute("SELECT * FROM orders WHERE id = ?", (oid,)).fetchone()
+            if row is not None:
+                return _order(row), False
+            db.execute(
+                "INSERT INTO orders (id, part_type, qty, priority, state, submitted, updated)"
+                " VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (oid, part_type, qty, priority, QUEUED, now, now),
+            )
+            _event(db, now, None, oid, f"order {oid} submitted: {qty} x {part_type}")
+            row = db.execute("SELECT * FROM orders WHERE id = ?", (oid,)).fetchone()
+        return _order(row), True
+
+    def get(self, order_id: str) -> FactoryOrder:
+        rows = self._read("SELECT * FROM orders WHERE id = ?", (order_id,))
+        if not rows:
+            raise UsageError(f"no order {order_id!r} in the factory")
+        return _order(rows[0])
+
+    def orders(self, states: Sequence[str] | None = None) -> list[FactoryOrder]:
+        """Orders, highest priority first, then oldest first."""
+        sql = "SELECT * FROM orders"
+        args: list[Any] = []
+        if states:
+            sql += f" WHERE state IN ({','.join('?' * len(states))})"
+            args = list(states)
+        sql += " ORDER BY priority DESC, submitted, id"
+        return [_order(r) for r in self._read(sql, args)]
+
+    # -- dispatch -----------------------------------------------------------------------------
+
+    def send(self, order_id: str, cell: str, expires: float) -> FactoryOrder:
+        """Give a queued order to ``cell``: committed before the order goes out."""
+        now = self._clock()
+        with self._write() as db:
+            order = _order(db.execute("SELECT * FROM orders WHERE id = ?", (order_id,)).fetchone())
+            if order.state != QUEUED:
+                raise UsageError(f"order {order_id} is {order.state}, not queued")
+            db.execute(
+                "UPDATE orders SET state = ?, cell = ?, sent = COALESCE(sent, ?), last_send = ?,"
+                " sends = sends + 1, expires = ?, updated = ?, note = ? WHERE id = ?",
+                (SENT, cell, now, now, expires, now, f"sent to {cell}", order_id),
+            )
+            _event(db, now, cell, order_id, f"order {order_id} sent to {cell}")
+            return _order(db.execute("SELECT * FROM orders WHERE id = ?", (order_id,)).fetchone())
+
+    def resent(self, order_id: str) -> None:
+        """Count one more send of an order still waiting for its cell's answer."""
+        with self._write() as db:
+            db.execute(
+                "UPDATE orders SET last_send = ?, sends = sends + 1 WHERE id = ? AND state = ?",
+                (self._clock(), order_id, SENT),
+            )
+
+    def requeue(self, order_id: str, cell: str, why: str) -> None:
+        """The order is not at ``cell`` (refused, or never taken): queue it for another."""
+        now = self._clock()
+        with self._write() as db:
+            row = db.execute("SELECT * FROM orders WHERE id = ?", (order_id,)).fetchone()
+            if row is None:
+                return
+            order = _order(row)
+            if order.state != SENT or order.cell != cell:
+                return  # a late or repeated answer: the order has moved on
+            refused = [*order.refused, cell] if cell not in order.refused else list(order.refused)
+            db.execute(
+                "UPDATE orders SET state = ?, cell = NULL, expires = NULL, refused = ?,"
+                " updated = ?, note = ? WHERE id = ?",
+                (QUEUED, json.dumps(refused), now, f"{cell}: {why}", order_id),
+            )
+            _event(db, now, cell, order_id, f"order {order_id} back from {cell}: {why}")
+
+    def fail(self, order_id: str, why: str) -> None:
+        """No cell can make it: the order fails with ``why``."""
+        now = self._clock()
+        with self._write() as db:
+            db.execute(
+                "UPDATE orders SET state = ?, note = ?, updated = ?, finished = ? WHERE id = ?"
+                " AND state = ?",
+                (FAILED, why, now, now, order_id, QUEUED),
+            )
+            _event(db, now, None, order_id, f"order {order_id} failed: {why}")
+
+    def note(self, order_id: str, text: str) -> None:
+        """Say why a queued order waits (shown by `cellctl factory orders`)."""
+        with self._write() as db:
+            db.execute(
+                "UPDATE orders SET note = ? WHERE id = ? AND note != ?", (text, order_id, text)
+            )
+
+    # -- what cells say -----------------------------------------------------------------------
+
+    def cells(self) -> dict[str, CellSeen]:
+        return {r["name"]: _cell(r) for r in self._read("SELECT * FROM cells ORDER BY name")}
+
+    def set_status(self, cell: str, status: str) -> bool:
+        """Record a cell's online/offline; True when it changed."""
+        now = self._clock()
+        with self._write() as db:
+            row = db.execute("SELECT status FROM cells WHERE name = ?", (cell,)).fetchone()
+            if row is not None and row["status"] == status:
+                return False
+            db.execute(
+                "INSERT INTO cells (name, status, status_time) VALUES (?, ?, ?) ON CONFLICT(name)"
+                " DO UPDATE SET status = excluded.status, status_time = excluded.status_time",
+                (cell, status, now),
+            )
+            _event(db, now, cell, None, f"{cell} {status}")
+            return True
+
+    def set_state(self, cell: str, state: dict[str, Any]) -> None:
+        with self._write() as db:
+            db.execute(
+                "INSERT INTO cells (name, state, state_time) VALUES (?, ?, ?) ON CONFLICT(name)"
+                " DO UPDATE SET state = excluded.state, state_time = excluded.state_time",
+                (cell, json.dumps(state), float(state.get("time", self._clock()))),
+            )
+
+    def take_report(self, cell: str, report: dict[str, Any]) -> str | None:
+        """Follow an order through one of ``cell``'s reports; return what changed, in words.
+
+        Reports come at least once and in ``seq`` order: one at or below the last seen seq
+        changes nothing, except an answer (accepted, rejected) sent again for a re-sent order.
+        """
+        seq = int(report.get("seq") or 0)
+        kind = str(report.get("kind", ""))
+        oid = report.get("order_id")
+        now = self._clock()
+        with self._write() as db:
+            row = db.execute("SELECT seq FROM cells WHERE name = ?", (cell,)).fetchone()
+            last = row["seq"] if row is not None else 0
+            if seq <= last and kind not in ("order-accepted", "order-rejected"):
+                return None
+            if seq > last:
+                db.execute(
+                    "INSERT INTO cells (name, seq) VALUES (?, ?) ON CONFLICT(name)"
+                    " DO UPDATE SET seq = excluded.seq",
+                    (cell, seq),
+                )
+            if not isinstance(oid, str):
+                return None
+            found = db.execute("SELECT * FROM orders WHERE id = ?", (oid,)).fetchone()
+            if found is None:
+                return None  # an order the cell had from elsewhere (its own mailbox)
+            text = _apply(db, _order(found), cell, kind, report, now)
+            if text:
+                _event(db, now, cell, oid, text)
+            return text
+
+    def data_version(self) -> int:
+        """Changes when another process commits (an order submitted from the CLI)."""
+        return int(self._read("PRAGMA data_version")[0][0])
+
+    # -- the log ------------------------------------------------------------------------------
+
+    def log(self, text: str, cell: str | None = None, order_id: str | None = None) -> None:
+        with self._write() as db:
+            _event(db, self._clock(), cell, order_id, text)
+
+    def events(self, after: int = 0, limit: int = 200) -> list[FactoryEvent]:
+        rows = self._read(
+            "SELECT * FROM events WHERE id > ? ORDER BY id DESC LIMIT ?", (after, limit)
+        )
+        return [FactoryEvent(**dict(r)) for r in reversed(rows)]
+
+
+def _event(
+    db: sqlite3.Connection, now: float, cell: str | None, oid: str | None, text: str
+) -> None:
+    db.execute(
+        "INSERT INTO events (time, cell, order_id, text) VALUES (?, ?, ?, ?)",
+        (now, cell, oid, text),
+    )
+
+
+def _apply(
+    db: sqlite3.Connection,
+    order: FactoryOrder,
+    cell: str,
+    kind: str,
+    report: dict[str, Any],
+    now: float,
+) -> str | None:
+    """One report's effect on the order (one transaction with the seq it came with)."""
+    oid = order.id
+    words = str(report.get("text", ""))
+
+    def update(sql: str, *args: Any) -> None:
+        db.execute(f"UPDATE orders SET {sql}, updated = ? WHERE id = ?", (*args, now, oid))
+
+    if order.cell != cell:
+        if kind == "order-accepted":
+            # What the accept deadline exists to prevent: said loudly, nothing changed.
+            where = order.cell or "the queue"
+            return f"order {oid} accepted by {cell} too, after it went to {where}"
+        return None
+    if kind == "order-accepted" and order.state == SENT:
+        t = float(report.get("time") or now)
+        update("state = ?, accepted = ?, accepted_seen = ?, note = ?", ACCEPTED, t, now, words)
+        return f"order {oid} accepted by {cell}"
+    if kind == "order-rejected" and order.state == SENT:
+        # Refused for good, unless only too late: that cell may take it when sent again.
+        late = bool((report.get("data") or {}).get("expired"))
+        refused = list(order.refused) + ([] if late or cell in order.refused else [cell])
+        update(
+            "state = ?, cell = NULL, expires = NULL, refused = ?, note = ?",
+            QUEUED,
+            json.dumps(refused),
+            f"{cell}: {words}",
+        )
+        return f"order {oid} refused by {cell}: {words}"
+    if order.state not in (SENT, *AT_CELL_STATES):
+        return None  # a report after the end, or one sent again
+    if kind == "step-started" and order.state in (SENT, ACCEPTED):
+        update("state = ?", IN_PROGRESS)
+        return None
+    if kind == "part-held":
+        update("state = ?, held = held + 1, note = ?", HELD, words)
+        return f"{cell}: {words}"
+    if kind == "part-released":
+        update("state = ?, held = MAX(held - 1, 0), note = ?", IN_PROGRESS, words)
+        return f"{cell}: {words}"
+    if kind == "part-scrapped":
+        update("scrapped = scrapped + 1, held = MAX(held - 1, 0), note = ?", words)
+        return f"{cell}: {words}"
+    if kind in ("order-done", "order-failed", "order-cancelled"):
+        state = {"order-done": DONE, "order-failed": FAILED, "order-cancelled": CANCELLED}[kind]
+        done = order.qty - order.scrapped if kind == "order-done" else 0
+        update("state = ?, finished = ?, done = ?, note = ?", state, now, done, words)
+        return f"order {oid} {state} at {cell}: {words}"
+    return None

@@ -1,0 +1,262 @@
+"""The system controller from the shell: ``cellctl factory [--dir DIR] submit|orders|cells|run``,
+the cell's commands one level up, and ``cellctl emulate factory --cells N DIR``.
+
+``submit`` and ``orders`` read and write the factory's store (``DIR/state/factory.db``) whether
+or not ``run`` runs: ``run`` picks a new order up within 20 ms. ``run`` is the one factory
+controller of DIR (a second one is refused, naming the first).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import signal
+import time
+from datetime import datetime
+from pathlib import Path
+
+import click
+from rich.console import Group
+from rich.live import Live
+from rich.table import Table
+
+from cellctl.errors import UsageError
+from cellctl.factory.config import FactoryConfig, load_factory
+from cellctl.factory.controller import FactoryController
+from cellctl.factory.dispatch import load_s
+from cellctl.factory.store import OPEN_STATES, FactoryStore
+from cellctl.link.lock import OwnerLock
+from cellctl.ui.common import console, run, until_stopped
+from cellctl.ui.orders_cli import STATE_STYLE
+
+#: What a second factory controller is told.
+ALREADY_RUN = "the factory in {what} is already run by {holder}"
+
+
+def _styled(state: str) -> str:
+    style = STATE_STYLE.get(state, "cyan" if state == "sent" else None)
+    return f"[{style}]{state}[/{style}]" if style else state
+
+
+def _config(ctx: click.Context) -> FactoryConfig:
+    return load_factory(Path(ctx.obj["factory_dir"]))
+
+
+@click.group("factory")
+@click.option(
+    "--dir",
+    "directory",
+    type=click.Path(file_okay=False),
+    default="factory",
+    show_default=True,
+    help="Factory directory: factory.toml and the factory's state.",
+)
+@click.pass_context
+def factory(ctx: click.Context, directory: str) -> None:
+    """The system controller: orders spread over the cells through an MQTT broker."""
+    ctx.obj = {**(ctx.obj or {}), "factory_dir": directory}
+
+
+@factory.command("submit")
+@click.argument("part_type", metavar="PART")
+@click.option("--qty", type=click.IntRange(min=1), default=1, show_default=True)
+@click.option("--priority", type=int, default=0, show_default=True, help="Higher goes first.")
+@click.option("--id", "order_id", metavar="ID", help="The order's id (the same id again: no-op).")
+@click.pass_context
+def submit(
+    ctx: click.Context, part_type: str, qty: int, priority: int, order_id: str | None
+) -> None:
+    """Submit an order for QTY parts of type PART; the factory gives it to a cell."""
+
+    async def main() -> None:
+        config = _config(ctx)
+        with FactoryStore(config.state_path) as store:
+            made = {t for c in store.cells().values() for t in c.part_types}
+            if made and part_type not in made:
+                raise UsageError(
+                    f"no cell makes {part_type!r} (the cells make: {', '.join(sorted(made))})"
+                )
+            order, new = store.submit(part_type, qty, priority, order_id)
+        what = "submitted" if new else "already submitted (unchanged)"
+        console.print(f"order {order.id} {what}: {order.qty} x {order.part_type}", markup=False)
+
+    run(main)
+
+
+def orders_table(store: FactoryStore, everything: bool = True, limit: int = 200) -> Table:
+    table = Table(title="orders", expand=True)
+    for col in ("order", "part", "qty", "state", "cell", "done", "held", "note"):
+        table.add_column(col, overflow="fold")
+    rows = store.orders(None if everything else OPEN_STATES)
+    for o in rows[:limit]:
+        table.add_row(
+            o.id,
+            o.part_type,
+            str(o.qty),
+            _styled(o.state),
+            o.cell or "",
+            str(o.done),
+            str(o.held),
+            o.note,
+        )
+    return table
+
+
+def cells_table(store: FactoryStore, config: FactoryConfig) -> Table:
+    table = Table(title="cells", expand=True)
+    for col in ("cell", "status", "makes", "open orders", "parts", "work left", "machines"):
+        table.add_column(col, overflow="fold")
+    seen = store.cells()
+    open_orders = store.orders(OPEN_STATES)
+    for name in config.cells:
+        c = seen.get(name)
+        if c is None:
+            table.add_row(name, "never heard", "", "", "", "", "")
+            continue
+        status = f"[green]{c.status}[/green]" if c.status == "online" else f"[red]{c.status}[/red]"
+        if c.state.get("paused"):
+            status += " (paused)"
+        machines = ", ".join(
+            f"{m}: {v.get('state', '?')}" + ("" if v.get("in_service", True) else " OUT")
+            for m, v in (c.state.get("machines") or {}).items()
+        )
+        table.add_row(
+            name,
+            status,
+            ", ".join(c.part_types),
+            str(sum(1 for o in open_orders if o.cell == name)),
+            str(c.state.get("parts_open", "")),
+            f"{load_s(c, open_orders):.1f} s" if c.state else "",
+            machines,
+        )
+    return table
+
+
+@factory.command("orders")
+@click.option("--open", "only_open", is_flag=True, help="Only orders not yet ended.")
+@click.pass_context
+def orders(ctx: click.Context, only_open: bool) -> None:
+    """The factory's orders: where each went and how far it is."""
+
+    async def main() -> None:
+        config = _config(ctx)
+        with FactoryStore(config.state_path) as store:
+            console.print(orders_table(store, everything=not only_open))
+
+    run(main)
+
+
+@factory.command("cells")
+@click.pass_context
+def cells(ctx: click.Context) -> None:
+    """The cells as the factory last heard them: online, what they make, their work left."""
+
+    async def main() -> None:
+        config = _config(ctx)
+        with FactoryStore(config.state_path) as store:
+            console.print(cells_table(store, config))
+
+    run(main)
+
+
+def live_view(store: FactoryStore, config: FactoryConfig) -> Group:
+    events = Table(title="events", expand=True, show_header=False)
+    events.add_column("time", width=10)
+    events.add_column("event")
+    for e in store.events(limit=8):
+        events.add_row(datetime.fromtimestamp(e.time).strftime("%H:%M:%S"), e.text)
+    return Group(cells_table(store, config), orders_table(store, limit=15), events)
+
+
+async def run_factory(
+    directory: Path,
+    *,
+    live: bool,
+    until_idle: bool,
+    stop: asyncio.Event | None = None,
+    on_controller: list[FactoryController] | None = None,
+) -> None:
+    """Run the factory controller of ``directory`` until stopped (or every order ended)."""
+    config = load_factory(directory)
+    lock_path = config.directory / "state" / "factory.lock"
+    lock_path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
+    with (
+        OwnerLock.acquire(lock_path, str(directory), refusal=ALREADY_RUN),
+        FactoryStore(config.state_path) as store,
+    ):
+        stop = stop or asyncio.Event()
+        printer = None if live else _print
+        controller = FactoryController(config, store, log=printer or (lambda text: None))
+        if on_controller is not None:
+            on_controller.append(controller)
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        try:
+            task = asyncio.create_task(controller.run(stop, until_idle=until_idle))
+            if live:
+                with Live(live_view(store, config), console=console, refresh_per_second=4) as s:
+                    while not task.done():
+                        s.update(live_view(store, config))
+                        await asyncio.wait({task}, timeout=0.25)
+                    s.update(live_view(store, config))
+            await task
+        finally:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                loop.remove_signal_handler(sig)
+
+
+def _print(text: str) -> None:
+    console.print(f"{time.strftime('%H:%M:%S')} {text}", markup=False, soft_wrap=True)
+    console.file.flush()
+
+
+@factory.command("run")
+@click.option(
+    "--live/--no-live",
+    default=None,
+    help="Live view of cells and orders, or an event a line (the default off a terminal).",
+)
+@click.option("--until-idle", is_flag=True, help="Return once every order has ended.")
+@click.pass_context
+def run_command(ctx: click.Context, live: bool | None, until_idle: bool) -> None:
+    """Run the factory controller: dispatch orders, follow them, show cells and orders live."""
+    directory = Path(ctx.obj["factory_dir"])
+    live_on = console.is_terminal if live is None else live
+    run(lambda: run_factory(directory, live=live_on, until_idle=until_idle))
+
+
+@click.command("factory")
+@click.option("--cells", "count", type=click.IntRange(1, 32), default=3, show_default=True)
+@click.option("--time-scale", type=float, default=50.0, show_default=True)
+@click.option("--accept-timeout", type=float, default=30.0, show_default=True)
+@click.argument("directory", type=click.Path(file_okay=False))
+def emulate_factory(count: int, time_scale: float, accept_timeout: float, directory: str) -> None:
+    """Start a private Mosquitto and COUNT emulated cells; write their cell directories and
+    DIRECTORY/factory.toml. Serves until Ctrl-C."""
+    from cellctl.factory.emulated import EmulatedFactory
+
+    async def main() -> None:
+        plant = EmulatedFactory(
+            Path(directory), cells=count, time_scale=time_scale, accept_timeout=accept_timeout
+        )
+        await plant.start()
+        try:
+            console.print(
+                f"emulated factory: {count} cells (time scale {time_scale:g}), "
+                f"Mosquitto on {plant.broker.url} (its files in {plant.broker.directory})",
+                markup=False,
+            )
+            for cell_dir in plant.cell_dirs:
+                console.print(f"  cellctl --cell {cell_dir} run", markup=False)
+            console.print(f"  cellctl factory --dir {directory} run", markup=False)
+            console.print(
+                f"  cellctl factory --dir {directory} submit wax-robot-base --qty 2", markup=False
+            )
+            with contextlib.suppress(asyncio.CancelledError):
+                await until_stopped()
+        finally:
+            await plant.close()
+            console.print("emulated factory stopped")
+
+    run(main)

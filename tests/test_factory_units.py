@@ -1,0 +1,227 @@
+"""The factory's parts without a broker: factory.toml, the store following an order through
+its cell's reports, the choice of a cell, and a cell that takes back an acceptance it could
+not report before the order expired (the end-to-end runs are in tests/test_factory.py)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from cellctl.cell.config import CellConfig, load_cell
+from cellctl.cell.journal import open_journal
+from cellctl.errors import UsageError
+from cellctl.factory.config import load_factory
+from cellctl.factory.dispatch import choose, every_cell_refused, load_s
+from cellctl.factory.store import FactoryStore
+from cellctl.mailbox import open_mailbox
+from cellctl.mailbox.mqtt import MqttBridge, MqttSettings
+
+EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "cell"
+FACTORY_TOML = """
+[factory]
+name = "lab"
+accept_timeout = 12
+
+[broker]
+url = "mqtt://127.0.0.1:1883"
+credentials = "factory.credentials"
+
+[cells.cell1]
+prefix = "cellctl/cell1"
+
+[cells.cell2]
+prefix = "cellctl/cell2"
+"""
+
+
+def state(bounds: dict[str, float], finish: float = 0.0, **more: Any) -> dict[str, Any]:
+    types = {name: {"bound_s": b} for name, b in bounds.items()}
+    return {"v": 1, "part_types": types, "finish_estimate_s": finish, "time": 100.0, **more}
+
+
+def report(seq: int, kind: str, order_id: str, **more: Any) -> dict[str, Any]:
+    return {"v": 1, "seq": seq, "kind": kind, "order_id": order_id, "text": kind, **more}
+
+
+@pytest.fixture
+def store(tmp_path: Path) -> FactoryStore:
+    return FactoryStore(tmp_path / "state" / "factory.db")
+
+
+def test_factory_toml_is_read_and_its_problems_named(tmp_path: Path) -> None:
+    (tmp_path / "factory.toml").write_text(FACTORY_TOML)
+    config = load_factory(tmp_path)
+    assert config.cells == {"cell1": "cellctl/cell1", "cell2": "cellctl/cell2"}
+    assert config.accept_timeout == 12 and config.resend == 2.0
+    assert config.cell_url("cell2") == "mqtt://127.0.0.1:1883/cellctl/cell2"
+    assert config.state_path == tmp_path / "state" / "factory.db"
+    with pytest.raises(UsageError, match="no such file.*cellctl emulate factory"):
+        load_factory(tmp_path / "nowhere")
+    broken = FACTORY_TOML.replace('"cellctl/cell2"', '"cellctl/#"').replace("= 12", "= -1")
+    (tmp_path / "factory.toml").write_text(broken)
+    with pytest.raises(UsageError) as e:
+        load_factory(tmp_path)
+    assert "cells.cell2.prefix" in str(e.value) and "factory.accept_timeout" in str(e.value)
+    (tmp_path / "factory.toml").write_text(FACTORY_TOML.replace("cellctl/cell2", "cellctl/cell1"))
+    with pytest.raises(UsageError, match="same prefix"):
+        load_factory(tmp_path)
+
+
+def test_an_order_followed_through_its_cells_reports(store: FactoryStore) -> None:
+    order, new = store.submit("wax-robot-base", 2, order_id="A")
+    assert new and order.state == "queued"
+    again, new = store.submit("wax-toy-mill-table", 5, order_id="A")
+    assert not new and again.part_type == "wax-robot-base"  # the same id changes nothing
+    with pytest.raises(UsageError, match="at least 1"):
+        store.submit("wax-robot-base", 0)
+    store.send("A", "cell1", expires=time.time() + 30)
+    with pytest.raises(UsageError, match="is sent, not queued"):
+        store.send("A", "cell2", expires=time.time() + 30)  # never dispatched twice
+    steps = [
+        (report(1, "order-accepted", "A", time=5.0), "accepted"),
+        (report(2, "step-started", "A"), "in-progress"),
+        (report(3, "part-held", "A"), "held"),
+        (report(3, "part-held", "A"), "held"),  # the same report again: once
+        (report(4, "part-released", "A"), "in-progress"),
+        (report(5, "order-done", "A"), "done"),
+    ]
+    for r, expected in steps:
+        store.take_report("cell1", r)
+        assert store.get("A").state == expected, r
+    done = store.get("A")
+    assert (done.held, done.done, done.accepted) == (0, 2, 5.0)
+    assert store.cells()["cell1"].seq == 5
+
+
+def test_a_refusal_sends_the_order_elsewhere_a_late_one_may_come_back(store: FactoryStore) -> None:
+    store.submit("wax-robot-base", 1, order_id="B")
+    store.send("B", "cell1", expires=time.time() + 30)
+    store.take_report("cell1", report(1, "order-rejected", "B", text="no such part"))
+    back = store.get("B")
+    assert (back.state, back.cell, back.refused) == ("queued", None, ("cell1",))
+    assert every_cell_refused(back, ["cell1"]) and not every_cell_refused(back, ["cell1", "c2"])
+    store.send("B", "cell2", expires=time.time() + 30)
+    store.take_report("cell2", report(1, "order-rejected", "B", data={"expired": True}))
+    assert store.get("B").refused == ("cell1",)  # too late is not "never"
+    # An answer for an order that has moved on changes nothing, and is said when it accepts.
+    store.send("B", "cell2", expires=time.time() + 30)
+    store.take_report("cell2", report(2, "order-accepted", "B"))
+    said = store.take_report("cell1", report(2, "order-accepted", "B"))
+    assert said == "order B accepted by cell1 too, after it went to cell2"
+    assert store.get("B").cell == "cell2"
+
+
+def test_the_earliest_estimated_finish_gets_the_order(store: FactoryStore) -> None:
+    both = {"wax-robot-base": 10.0, "wax-toy-mill-table": 20.0}
+    for name, finish in (("cell1", 50.0), ("cell2", 30.0), ("cell3", 0.0)):
+        store.set_status(name, "online")
+        store.set_state(name, state(both, finish))
+    store.set_state("cell3", state({"wax-robot-base": 10.0}))  # makes one type only
+    store.set_status("cell3", "offline")
+    order, _ = store.submit("wax-robot-base", 3, order_id="C")
+    cells = store.cells()
+    assert choose(order, cells, []) == ("cell2", "")  # cell3 is offline
+    # Orders sent and not yet in a cell's own estimate count against it.
+    store.submit("wax-toy-mill-table", 2, order_id="D")
+    store.send("D", "cell2", expires=time.time() + 30)
+    open_orders = store.orders()
+    assert load_s(cells["cell2"], open_orders) == 30.0 + 2 * 20.0
+    assert choose(order, cells, open_orders) == ("cell1", "")
+    table, _ = store.submit("wax-toy-mill-table", 1, order_id="E")
+    store.set_status("cell1", "offline")
+    store.set_status("cell2", "offline")
+    assert choose(table, store.cells(), open_orders) == (
+        None,
+        "waiting for a cell that makes wax-toy-mill-table to come online",
+    )
+    odd, _ = store.submit("gear", 1, order_id="F")
+    assert choose(odd, store.cells(), open_orders) == (None, "no cell makes gear")
+
+
+def test_a_paused_cell_gets_an_order_only_when_no_other_can(store: FactoryStore) -> None:
+    bounds = {"wax-robot-base": 10.0}
+    store.set_status("cell1", "online")
+    store.set_state("cell1", state(bounds, 0.0, paused=True))
+    store.set_status("cell2", "online")
+    store.set_state("cell2", state(bounds, 500.0))
+    order, _ = store.submit("wax-robot-base", 1, order_id="G")
+    assert choose(order, store.cells(), []) == ("cell2", "")
+    store.set_status("cell2", "offline")
+    assert choose(order, store.cells(), []) == ("cell1", "")
+
+
+# -- a cell takes back an acceptance it could not report in time -------------------------------
+
+
+@dataclass
+class RunningCell:
+    """What the bridge reads of a running controller (here: none runs)."""
+
+    config: CellConfig
+    machines: dict[str, Any] = field(default_factory=dict)
+    paused: bool = False
+    listeners: list[Any] = field(default_factory=list)
+    pokes: int = 0
+
+    def poke(self) -> None:
+        self.pokes += 1
+
+
+def bridge_of(cell_dir: Path) -> tuple[MqttBridge, Any, Any]:
+    (cell_dir / "mqtt.toml").write_text('username = "cell1"\npassword = "x"\n')
+    (cell_dir / "mqtt.toml").chmod(0o600)
+    settings = MqttSettings.load("mqtt://127.0.0.1:1/cellctl/cell1", cell_dir / "mqtt.toml")
+    mailbox, journal = open_mailbox(cell_dir), open_journal(cell_dir)
+    cell = RunningCell(load_cell(cell_dir))
+    return MqttBridge(settings, cell, mailbox, journal), mailbox, journal
+
+
+def take(bridge: MqttBridge, mailbox: Any, journal: Any, oid: str, expires: float) -> None:
+    """The order arrives, and the controller takes it in (as its intake does)."""
+    payload = {"v": 1, "id": oid, "part_type": "wax-robot-base", "qty": 1, "expires": expires}
+    bridge.take_order(json.dumps(payload).encode())
+    journal.create_parts(mailbox.get_order(oid))
+    mailbox.set_order_state(oid, "accepted")
+    mailbox.post_report("order-accepted", f"order {oid} accepted", order_id=oid)
+
+
+def test_an_acceptance_not_reported_before_expiry_is_taken_back_unless_started(
+    tmp_path: Path,
+) -> None:
+    cell_dir = tmp_path / "cell"
+    shutil.copytree(EXAMPLE, cell_dir)
+    bridge, mailbox, journal = bridge_of(cell_dir)
+    soon = time.time() + 0.3
+    take(bridge, mailbox, journal, "X", soon)
+    take(bridge, mailbox, journal, "Y", soon)
+    (part,) = journal.parts(order_id="Y")
+    journal.begin_step(part.id, "transfer", "robot", "conveyor_to_cnc1")  # Y has started
+    take(bridge, mailbox, journal, "Z", time.time() + 60)
+    assert set(bridge.expiring) == {"X", "Y", "Z"}
+    time.sleep(0.4)
+    # The cell is killed here and started again: the marks were saved with the orders.
+    mailbox.close()
+    journal.close()
+    bridge, mailbox, journal = bridge_of(cell_dir)
+    assert set(bridge.expiring) == {"X", "Y", "Z"}
+    bridge.drop_expired()
+    assert mailbox.get_order("X").state == "cancelled"
+    assert [p.status for p in journal.parts(order_id="X")] == ["cancelled"]
+    (taken_back,) = [
+        r for r in mailbox.reports() if r.order_id == "X" and r.kind != "order-accepted"
+    ]
+    assert taken_back.kind == "order-rejected" and taken_back.data == {"expired": True}
+    assert "expired before the factory heard it was accepted" in taken_back.text
+    assert mailbox.get_order("Y").state == "accepted"  # started: it stays and is reported
+    assert mailbox.get_order("Z").state == "accepted"  # not expired
+    # Sent again by the factory: X is answered with the refusal, not the acceptance.
+    bridge.sent_seq = max(r.seq for r in mailbox.reports())
+    payload = {"v": 1, "id": "X", "part_type": "wax-robot-base", "qty": 1, "expires": soon}
+    bridge.take_order(json.dumps(payload).encode())
+    assert [r.kind for r in bridge._resend] == ["order-rejected"]

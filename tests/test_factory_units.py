@@ -61,7 +61,7 @@ def test_factory_toml_is_read_and_its_problems_named(tmp_path: Path) -> None:
     assert config.accept_timeout == 12 and config.resend == 2.0
     assert config.cell_url("cell2") == "mqtt://127.0.0.1:1883/cellctl/cell2"
     assert config.state_path == tmp_path / "state" / "factory.db"
-    with pytest.raises(UsageError, match="no such file.*cellctl emulate factory"):
+    with pytest.raises(UsageError, match=r"no such file.*cellctl emulate factory"):
         load_factory(tmp_path / "nowhere")
     broken = FACTORY_TOML.replace('"cellctl/cell2"', '"cellctl/#"').replace("= 12", "= -1")
     (tmp_path / "factory.toml").write_text(broken)

@@ -85,8 +85,9 @@ def submit(
 
 def orders_table(store: FactoryStore, everything: bool = True, limit: int = 200) -> Table:
     table = Table(title="orders", expand=True)
-    for col in ("order", "part", "qty", "state", "cell", "done", "held", "note"):
-        table.add_column(col, overflow="fold")
+    for col in ("order", "part", "qty", "state", "cell", "done", "held"):
+        table.add_column(col, no_wrap=True)
+    table.add_column("note", overflow="fold", ratio=1)
     rows = store.orders(None if everything else OPEN_STATES)
     for o in rows[:limit]:
         table.add_row(
@@ -104,14 +105,16 @@ def orders_table(store: FactoryStore, everything: bool = True, limit: int = 200)
 
 def cells_table(store: FactoryStore, config: FactoryConfig) -> Table:
     table = Table(title="cells", expand=True)
-    for col in ("cell", "status", "makes", "open orders", "parts", "work left", "machines"):
-        table.add_column(col, overflow="fold")
+    for col in ("cell", "status", "open orders", "parts", "work left"):
+        table.add_column(col, no_wrap=True)
+    table.add_column("makes", overflow="fold")
+    table.add_column("machines", overflow="fold", ratio=1)
     seen = store.cells()
     open_orders = store.orders(OPEN_STATES)
     for name in config.cells:
         c = seen.get(name)
         if c is None:
-            table.add_row(name, "never heard", "", "", "", "", "")
+            table.add_row(name, "never heard", "", "", "", "", "")  # no state yet
             continue
         status = f"[green]{c.status}[/green]" if c.status == "online" else f"[red]{c.status}[/red]"
         if c.state.get("paused"):
@@ -123,10 +126,10 @@ def cells_table(store: FactoryStore, config: FactoryConfig) -> Table:
         table.add_row(
             name,
             status,
-            ", ".join(c.part_types),
             str(sum(1 for o in open_orders if o.cell == name)),
             str(c.state.get("parts_open", "")),
             f"{load_s(c, open_orders):.1f} s" if c.state else "",
+            ", ".join(c.part_types),
             machines,
         )
     return table

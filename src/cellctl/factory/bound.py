@@ -1,0 +1,140 @@
+"""The least makespan of any split of a batch over a factory's cells: the factory's bound.
+
+::
+
+    d = measured_durations(s for s in journal.steps() if s.started >= t0)
+    bounds = {"cell1": cell_bound(config.parts, d), ...}       # counts per type -> s
+    best, split = split_bound(bounds, {"wax-robot-base": 60, "wax-toy-mill-table": 60})
+    # best: s; split: {"cell1": {"wax-robot-base": 15, "wax-toy-mill-table": 15}, ...}
+
+A cell's bound is :func:`cellctl.cell.scheduler.lower_bound` (the bottleneck bound) of the
+parts it is given, from the durations that cell measured: the mean of each robot program and
+each (mill, program), the least of each for head and tail. No split of the batch can finish
+before its busiest cell's bound, so the least, over every way of dividing each type's count
+among the cells, of the largest cell bound is a bound on the factory's makespan. It is found
+exactly, by a dynamic program over count vectors (cell by cell: the least largest bound of
+the first cells for every sub-batch), not by assuming the cells alike or the bound linear.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections import defaultdict
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+
+from cellctl.cell.config import PartType
+from cellctl.cell.journal import Step
+from cellctl.cell.scheduler import lower_bound
+
+#: A cell's bound (s) of a batch given as parts per type.
+CellBound = Callable[[Mapping[str, int]], float]
+
+
+@dataclass
+class Durations:
+    """Measured seconds: the mean and the least of each robot program and (mill, program)."""
+
+    transfer_s: dict[str, float] = field(default_factory=dict)
+    machining_s: dict[tuple[str, str], float] = field(default_factory=dict)
+    least_transfer_s: dict[str, float] = field(default_factory=dict)
+    least_machining_s: dict[tuple[str, str], float] = field(default_factory=dict)
+
+    def filled(self, other: Durations) -> Durations:
+        """These durations, with ``other``'s for every step not measured here."""
+        return Durations(
+            {**other.transfer_s, **self.transfer_s},
+            {**other.machining_s, **self.machining_s},
+            {**other.least_transfer_s, **self.least_transfer_s},
+            {**other.least_machining_s, **self.least_machining_s},
+        )
+
+
+def measured_durations(steps: Iterable[Step]) -> Durations:
+    """Durations of the finished steps given (a step runs from its start to its end entry)."""
+    transfers: dict[str, list[float]] = defaultdict(list)
+    cuts: dict[tuple[str, str], list[float]] = defaultdict(list)
+    for s in steps:
+        if s.state != "finished" or s.ended is None:
+            continue
+        if s.kind == "transfer":
+            transfers[s.program].append(s.ended - s.started)
+        else:
+            cuts[(s.machine, s.program)].append(s.ended - s.started)
+    return Durations(
+        {k: sum(v) / len(v) for k, v in transfers.items()},
+        {k: sum(v) / len(v) for k, v in cuts.items()},
+        {k: min(v) for k, v in transfers.items()},
+        {k: min(v) for k, v in cuts.items()},
+    )
+
+
+def cell_bound(types: Mapping[str, PartType], d: Durations) -> CellBound:
+    """The bottleneck bound of a cell making ``types`` with durations ``d``, per batch."""
+
+    def bound(counts: Mapping[str, int]) -> float:
+        parts = [t for t, n in counts.items() for _ in range(n)]
+        if not parts:
+            return 0.0
+        return lower_bound(
+            parts,
+            types,
+            d.transfer_s,
+            d.machining_s,
+            least_transfer_s=d.least_transfer_s,
+            least_machining_s=d.least_machining_s,
+        )
+
+    return bound
+
+
+def split_bound(
+    bounds: Mapping[str, CellBound], counts: Mapping[str, int]
+) -> tuple[float, dict[str, dict[str, int]]]:
+    """The least largest cell bound over every split of ``counts`` among the cells of
+    ``bounds``, and one split that reaches it (parts per type per cell)."""
+    if not bounds:
+        raise ValueError("a split needs at least one cell")
+    names = [t for t, n in counts.items() if n > 0]
+    full = tuple(counts[t] for t in names)
+    # Count vectors as flat indices (mixed radix), so s - t is one subtraction.
+    vectors = list(itertools.product(*(range(n + 1) for n in full)))
+    strides = [math.prod(n + 1 for n in full[j + 1 :]) for j in range(len(full))]
+    cells = list(bounds)
+    tables = {c: [bounds[c](dict(zip(names, v, strict=True))) for v in vectors] for c in cells}
+    # best[i]: the least largest bound of the cells so far making vectors[i]; picks[k][i]:
+    # what cell k makes then.
+    best = tables[cells[0]][:]
+    picks: list[list[int]] = [list(range(len(vectors)))]
+    for k, cell in enumerate(cells[1:], start=1):
+        own = tables[cell]
+        # Cheapest first: once a cell's own bound reaches the best found, nothing beats it.
+        order = sorted(range(len(vectors)), key=own.__getitem__)
+        last = k == len(cells) - 1
+        wanted = [len(vectors) - 1] if last else range(len(vectors))
+        new = [math.inf] * len(vectors)
+        pick = [0] * len(vectors)
+        for i in wanted:
+            s = vectors[i]
+            top, choice = math.inf, 0
+            for t in order:
+                if own[t] >= top:
+                    break
+                v = vectors[t]
+                if any(a > b for a, b in zip(v, s, strict=True)):
+                    continue
+                value = max(best[i - sum(a * w for a, w in zip(v, strides, strict=True))], own[t])
+                if value < top:
+                    top, choice = value, t
+            new[i], pick[i] = top, choice
+        best = new
+        picks.append(pick)
+    # Walk back from the whole batch to what each cell makes.
+    split: dict[str, dict[str, int]] = {}
+    i = len(vectors) - 1
+    for k in range(len(cells) - 1, -1, -1):
+        t = picks[k][i]
+        split[cells[k]] = dict(zip(names, vectors[t], strict=True))
+        i -= sum(a * w for a, w in zip(vectors[t], strides, strict=True))
+    return best[-1], {c: split[c] for c in cells}

@@ -311,7 +311,11 @@ def apply_fault(cell: object, text: str) -> None:
 @click.command("demo")
 @click.option("--time-scale", type=float, default=200.0, show_default=True)
 @click.option(
-    "--parts", "count", type=int, default=6, show_default=True, help="Parts in the batch."
+    "--parts",
+    "count",
+    type=int,
+    default=None,
+    help="Parts in the batch.  [default: 6; with --factory N: 3 per cell]",
 )
 @click.option("--out", type=click.Path(file_okay=False), default="demo-out", show_default=True)
 @click.option("--compare/--no-compare", default=True, help="Also run one part at a time.")
@@ -321,10 +325,33 @@ def apply_fault(cell: object, text: str) -> None:
     help="Serve the web dashboard (its URL is printed) and keep the cell up after the batch "
     "until Ctrl-C.",
 )
-def demo(time_scale: float, count: int, out: str, compare: bool, dashboard: bool) -> None:
-    """Start an emulated cell, run a mixed batch through it, and summarize (under 2 minutes)."""
+@click.option(
+    "--factory",
+    "cells",
+    type=click.IntRange(2, 32),
+    default=None,
+    metavar="N",
+    help="Instead: N emulated cells, each run by its own `cellctl run`, and the factory "
+    "spreading the batch over them through a private Mosquitto.",
+)
+def demo(
+    time_scale: float,
+    count: int | None,
+    out: str,
+    compare: bool,
+    dashboard: bool,
+    cells: int | None,
+) -> None:
+    """Start an emulated cell (or a factory of them), run a mixed batch through it, and
+    summarize (under 2 minutes)."""
+    if cells is not None and dashboard:
+        raise click.UsageError("--dashboard is for one cell, not with --factory")
     Path(out).mkdir(parents=True, exist_ok=True)
-    run(lambda: _demo(time_scale, count, Path(out), compare, dashboard))
+    if cells is not None:
+        from cellctl.ui.factory_demo import run_factory_demo
+
+        raise SystemExit(run(lambda: run_factory_demo(cells, count, time_scale, Path(out))))
+    run(lambda: _demo(time_scale, 6 if count is None else count, Path(out), compare, dashboard))
 
 
 async def run_batch(

@@ -1,0 +1,350 @@
+"""``cellctl demo --factory N``: a mixed batch spread over N emulated cells by the factory.
+
+::
+
+    cellctl demo --factory 3                 # 9 parts over 3 cells, figures at the end
+    cellctl demo --factory 2 --parts 4 --time-scale 1000 --out /tmp/demo
+
+Everything is started for you, in ``OUT/factory`` (``--out``, default ``demo-out``):
+
+- a private Mosquitto and N emulated cells (robot, two mills and a PLC each), in this process
+  (:class:`cellctl.factory.emulated.EmulatedFactory`);
+- each cell's controller in its own process, ``cellctl --cell OUT/factory/cellN run --no-live``,
+  its events in ``OUT/factory/cellN/run.log``: a cell is its own program on the shop floor,
+  and a controller takes its process's signals, so one process holds one;
+- the factory's controller in this process, printing its events a line at a time.
+
+Once every cell is online (the factory dispatches only to a cell that said so, and would give
+the whole batch to the first one otherwise) the orders are submitted at once, alternating the
+two part types in orders of 1 or 2 parts. When every order has ended, the cells' controllers
+get SIGTERM (each finishes the step it is in) and the figures are printed: per cell the parts
+made, makespan, the busiest machine's utilization and the parts cut twice according to the
+emulated mills' own logs (must be 0); in total the orders, parts, the makespan from the submit
+to the last step's end, and the bound of the best split of the batch over the cells
+(:mod:`cellctl.factory.bound`, from the durations each cell measured).
+
+Ctrl-C stops it the same way (the cells' controllers are in their own session, so the terminal
+signals only this process, which stops them in order); a second Ctrl-C kills them at once.
+Exit status: 0 when every part was made once, 1 otherwise, 130 after Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import shutil
+import signal
+import sys
+import time
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from cellctl.cell.config import load_cell
+from cellctl.cell.journal import open_journal
+from cellctl.cell.report import Summary, summarize, write_gantt
+from cellctl.emulators.cell import EXAMPLE_CELL
+from cellctl.errors import CellctlError, UsageError
+from cellctl.factory.bound import Durations, cell_bound, measured_durations, split_bound
+from cellctl.factory.config import load_factory
+from cellctl.factory.controller import FactoryController
+from cellctl.factory.emulated import EmulatedFactory
+from cellctl.factory.store import DONE, OPEN_STATES, FactoryOrder, FactoryStore
+from cellctl.ui.common import console
+
+#: Parts per cell when ``--parts`` is not given.
+PARTS_PER_CELL = 3
+#: How long the cells' controllers have to come online (connect to their machines).
+ONLINE_TIMEOUT_S = 60.0
+#: How long a cell's controller has to finish its step and exit after SIGTERM.
+STOP_TIMEOUT_S = 30.0
+
+
+def mixed_batch(count: int, types: Sequence[str]) -> list[tuple[str, int]]:
+    """``count`` parts as orders of 1 or 2, the types taking turns and sharing the count."""
+    share = [count // len(types) + (i < count % len(types)) for i in range(len(types))]
+    lots: list[list[int]] = []
+    for n in share:
+        sizes: list[int] = []
+        while n > 0:
+            sizes.append(min(n, 1 + len(sizes) % 2))
+            n -= sizes[-1]
+        lots.append(sizes)
+    orders = []
+    for i in range(max(len(s) for s in lots)):
+        orders += [(t, s[i]) for t, s in zip(types, lots, strict=True) if i < len(s)]
+    return orders
+
+
+@dataclass
+class CellFigures:
+    """One cell's share of the run."""
+
+    name: str
+    orders: int
+    summary: Summary
+    cut_twice: int
+    durations: Durations
+    last_end: float
+
+    @property
+    def made(self) -> int:
+        return sum(self.summary.parts_made.values())
+
+    def line(self) -> str:
+        s = self.summary
+        made = ", ".join(f"{n} x {t}" for t, n in sorted(s.parts_made.items())) or "none"
+        busiest = max(s.busy_s, key=s.busy_s.__getitem__) if s.busy_s else ""
+        return (
+            f"{self.name}: {self.orders} orders, parts made {self.made} ({made}); makespan "
+            f"{s.makespan_s:.2f} s; busiest {busiest} {s.utilization(busiest):.1%}; "
+            f"parts cut twice {self.cut_twice}"
+        )
+
+
+def _say(text: str) -> None:
+    console.print(f"{time.strftime('%H:%M:%S')} {text}", markup=False, soft_wrap=True)
+    console.file.flush()
+
+
+async def run_factory_demo(cells: int, count: int | None, time_scale: float, out: Path) -> int:
+    """Run the demo of the module docstring; return its exit status."""
+    if cells < 2:
+        raise UsageError(f"--factory takes 2 cells or more, not {cells}")
+    count = cells * PARTS_PER_CELL if count is None else count
+    if count < 1:
+        raise UsageError(f"--parts must be at least 1, not {count}")
+    types = list(load_cell(EXAMPLE_CELL).parts)
+    batch = mixed_batch(count, types)
+    directory = out / "factory"
+    shutil.rmtree(directory, ignore_errors=True)
+    console.print(
+        f"[bold]cellctl demo --factory {cells}[/bold]: a private Mosquitto, {cells} emulated "
+        f"cells (time scale {time_scale:g}) each run by its own `cellctl run`, and the "
+        f"factory; batch: {count} parts in {len(batch)} orders ("
+        + ", ".join(f"{n} x {t}" for t, n in _per_type(batch).items())
+        + ")",
+        soft_wrap=True,
+    )
+    stop, hurry = asyncio.Event(), asyncio.Event()
+    loop = asyncio.get_running_loop()
+
+    def on_signal() -> None:
+        if stop.is_set():
+            hurry.set()
+            return
+        _say("stopping: the cells finish their steps (Ctrl-C again to kill them)")
+        stop.set()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, on_signal)
+    plant = EmulatedFactory(directory, cells=cells, time_scale=time_scale)
+    procs: list[asyncio.subprocess.Process] = []
+    try:
+        await plant.start()
+        console.print(
+            f"Mosquitto on {plant.broker.url}; files in {directory}", markup=False, soft_wrap=True
+        )
+        for cell_dir in plant.cell_dirs:
+            procs.append(await _start_controller(cell_dir))
+            console.print(
+                f"  cellctl --cell {cell_dir} run --no-live  (log: {cell_dir / 'run.log'})",
+                markup=False,
+                soft_wrap=True,
+            )
+        config = load_factory(directory)
+        with FactoryStore(config.state_path) as store:
+            factory = FactoryController(config, store, log=_say)
+            factory_stop = asyncio.Event()
+            task = asyncio.create_task(factory.run(factory_stop))
+            try:
+                started = await _batch(store, factory, plant, procs, batch, stop)
+                await _stop_controllers(procs, hurry)
+            finally:
+                factory_stop.set()
+                await task
+            orders = store.orders()
+    finally:
+        with contextlib.suppress(CellctlError):
+            await _stop_controllers(procs, hurry)
+        await plant.close()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)
+    if stop.is_set():
+        console.print("interrupted")
+        return 130
+    figures = [
+        _cell_figures(name, cell_dir, started, plant.cells[i].runs_per_part(), orders)
+        for i, (name, cell_dir) in enumerate(zip(plant.names, plant.cell_dirs, strict=True))
+    ]
+    return _report(figures, orders, batch, started, out)
+
+
+def _per_type(batch: Sequence[tuple[str, int]]) -> dict[str, int]:
+    counts: Counter[str] = Counter()
+    for t, n in batch:
+        counts[t] += n
+    return dict(counts)
+
+
+async def _start_controller(cell_dir: Path) -> asyncio.subprocess.Process:
+    """``cellctl --cell DIR run --no-live`` in its own session, its output in DIR/run.log."""
+    with (cell_dir / "run.log").open("wb") as log:
+        return await asyncio.create_subprocess_exec(
+            sys.executable,
+            "-m",
+            "cellctl",
+            "--cell",
+            str(cell_dir),
+            "run",
+            "--no-live",
+            stdin=asyncio.subprocess.DEVNULL,
+            stdout=log,
+            stderr=asyncio.subprocess.STDOUT,
+            start_new_session=True,
+        )
+
+
+def _check_alive(plant: EmulatedFactory, procs: Sequence[asyncio.subprocess.Process]) -> None:
+    for cell_dir, proc in zip(plant.cell_dirs, procs, strict=True):
+        if proc.returncode is not None:
+            log = cell_dir / "run.log"
+            tail = log.read_text(errors="replace").strip().splitlines()[-3:]
+            raise UsageError(
+                f"the controller of {cell_dir} exited ({proc.returncode}): " + " | ".join(tail)
+            )
+
+
+async def _batch(
+    store: FactoryStore,
+    factory: FactoryController,
+    plant: EmulatedFactory,
+    procs: Sequence[asyncio.subprocess.Process],
+    batch: Sequence[tuple[str, int]],
+    stop: asyncio.Event,
+) -> float:
+    """Submit ``batch`` once every cell is online; return when every order has ended (or
+    ``stop``). Returns the time of the submit."""
+    deadline = time.monotonic() + ONLINE_TIMEOUT_S
+    while not stop.is_set():
+        _check_alive(plant, procs)
+        seen = store.cells()
+        if all(
+            n in seen and seen[n].status == "online" and seen[n].part_types for n in plant.names
+        ):
+            break
+        if time.monotonic() > deadline:
+            raise UsageError(
+                f"the cells did not come online within {ONLINE_TIMEOUT_S:g} s "
+                f"(see each cell's run.log in {plant.directory})"
+            )
+        await asyncio.sleep(0.05)
+    started = time.time()
+    if stop.is_set():
+        return started
+    for i, (part_type, qty) in enumerate(batch, start=1):
+        store.submit(part_type, qty, order_id=f"F{i}")
+    factory.poke()
+    _say(f"{len(batch)} orders submitted")
+    while not stop.is_set() and store.orders(OPEN_STATES):
+        _check_alive(plant, procs)
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(0.1):
+                await stop.wait()
+    return started
+
+
+async def _stop_controllers(
+    procs: Sequence[asyncio.subprocess.Process], hurry: asyncio.Event
+) -> None:
+    """SIGTERM each cell's controller and wait for it; kill what is left after
+    :data:`STOP_TIMEOUT_S` or on ``hurry``."""
+    running = [p for p in procs if p.returncode is None]
+    for p in running:
+        with contextlib.suppress(ProcessLookupError):
+            p.send_signal(signal.SIGTERM)
+    if not running:
+        return
+    exited: asyncio.Future[Any] = asyncio.gather(*(p.wait() for p in running))
+    hurried: asyncio.Future[Any] = asyncio.ensure_future(hurry.wait())
+    try:
+        await asyncio.wait(
+            {exited, hurried}, timeout=STOP_TIMEOUT_S, return_when=asyncio.FIRST_COMPLETED
+        )
+    finally:
+        hurried.cancel()
+        for p in running:
+            if p.returncode is None:
+                with contextlib.suppress(ProcessLookupError):
+                    p.kill()
+        await exited
+
+
+def _cell_figures(
+    name: str,
+    cell_dir: Path,
+    since: float,
+    runs: dict[str, dict[str, int]],
+    orders: Sequence[FactoryOrder],
+) -> CellFigures:
+    config = load_cell(cell_dir)
+    machines = [config.robot.name, *(m.name for m in config.mills)]
+    with open_journal(cell_dir) as journal:
+        summary = summarize(journal, machines, since=since)
+        steps = [s for s in journal.steps() if s.started >= since]
+        write_gantt(
+            journal,
+            machines,
+            cell_dir / "gantt.svg",
+            since=since,
+            title=f"{name}: makespan {summary.makespan_s:.1f} s",
+        )
+    twice = sum(1 for r in runs.values() if any(n > 1 for n in r.values()))
+    ends = [s.ended for s in steps if s.ended is not None]
+    return CellFigures(
+        name,
+        sum(1 for o in orders if o.cell == name),
+        summary,
+        twice,
+        measured_durations(steps),
+        max(ends, default=since),
+    )
+
+
+def _report(
+    figures: Sequence[CellFigures],
+    orders: Sequence[FactoryOrder],
+    batch: Sequence[tuple[str, int]],
+    started: float,
+    out: Path,
+) -> int:
+    console.print()
+    for f in figures:
+        console.print(f.line(), markup=False, soft_wrap=True)
+    wanted = sum(n for _, n in batch)
+    made = sum(f.made for f in figures)
+    twice = sum(f.cut_twice for f in figures)
+    done = sum(1 for o in orders if o.state == DONE)
+    makespan = max(f.last_end for f in figures) - started
+    types = load_cell(EXAMPLE_CELL).parts
+    pooled = Durations()
+    for f in figures:
+        pooled = pooled.filled(f.durations)
+    try:
+        bounds = {f.name: cell_bound(types, f.durations.filled(pooled)) for f in figures}
+        bound, _ = split_bound(bounds, _per_type(batch))
+        versus = f"; bound of the best split {bound:.2f} s (makespan/bound {makespan / bound:.3f})"
+    except (KeyError, ZeroDivisionError):
+        versus = ""  # a step no cell finished: no measured duration to bound it with
+    console.print(
+        f"total: {len(orders)} orders ({done} done), parts made {made} of {wanted}; makespan "
+        f"{makespan:.2f} s from the submit{versus}; parts cut twice {twice}",
+        markup=False,
+        soft_wrap=True,
+    )
+    console.print(
+        f"Gantt charts: {out / 'factory' / 'cellN' / 'gantt.svg'}", markup=False, soft_wrap=True
+    )
+    return 0 if made == wanted and done == len(orders) and twice == 0 else 1

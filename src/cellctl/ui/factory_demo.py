@@ -46,7 +46,7 @@ from cellctl.cell.config import load_cell
 from cellctl.cell.journal import open_journal
 from cellctl.cell.report import Summary, summarize, write_gantt
 from cellctl.emulators.cell import EXAMPLE_CELL
-from cellctl.errors import CellctlError, UsageError
+from cellctl.errors import UsageError
 from cellctl.factory.bound import Durations, cell_bound, measured_durations, split_bound
 from cellctl.factory.config import load_factory
 from cellctl.factory.controller import FactoryController
@@ -141,14 +141,14 @@ async def run_factory_demo(cells: int, count: int | None, time_scale: float, out
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, on_signal)
     plant = EmulatedFactory(directory, cells=cells, time_scale=time_scale)
-    procs: list[asyncio.subprocess.Process] = []
+    controllers = CellControllers(plant.cell_dirs)
     try:
         await plant.start()
         console.print(
             f"Mosquitto on {plant.broker.url}; files in {directory}", markup=False, soft_wrap=True
         )
+        await controllers.start()
         for cell_dir in plant.cell_dirs:
-            procs.append(await _start_controller(cell_dir))
             console.print(
                 f"  cellctl --cell {cell_dir} run --no-live  (log: {cell_dir / 'run.log'})",
                 markup=False,
@@ -160,15 +160,14 @@ async def run_factory_demo(cells: int, count: int | None, time_scale: float, out
             factory_stop = asyncio.Event()
             task = asyncio.create_task(factory.run(factory_stop))
             try:
-                started = await _batch(store, factory, plant, procs, batch, stop)
-                await _stop_controllers(procs, hurry)
+                started = await _batch(store, factory, plant.names, controllers, batch, stop)
+                await controllers.stop(hurry)  # the factory hears them go offline
             finally:
                 factory_stop.set()
                 await task
             orders = store.orders()
     finally:
-        with contextlib.suppress(CellctlError):
-            await _stop_controllers(procs, hurry)
+        await controllers.stop(hurry)
         await plant.close()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
@@ -189,58 +188,105 @@ def _per_type(batch: Sequence[tuple[str, int]]) -> dict[str, int]:
     return dict(counts)
 
 
-async def _start_controller(cell_dir: Path) -> asyncio.subprocess.Process:
-    """``cellctl --cell DIR run --no-live`` in its own session, its output in DIR/run.log."""
-    with (cell_dir / "run.log").open("wb") as log:
-        return await asyncio.create_subprocess_exec(
-            sys.executable,
-            "-m",
-            "cellctl",
-            "--cell",
-            str(cell_dir),
-            "run",
-            "--no-live",
-            stdin=asyncio.subprocess.DEVNULL,
-            stdout=log,
-            stderr=asyncio.subprocess.STDOUT,
-            start_new_session=True,
-        )
+class CellControllers:
+    """``cellctl --cell DIR run --no-live`` for each cell directory, each in its own session
+    (so a terminal's Ctrl-C reaches only us), its output in ``DIR/run.log``::
 
+        controllers = CellControllers(plant.cell_dirs)
+        await controllers.start()
+        controllers.check()            # UsageError when one has exited, with its last lines
+        await controllers.stop()       # SIGTERM, wait; kill after STOP_TIMEOUT_S or on hurry
+    """
 
-def _check_alive(plant: EmulatedFactory, procs: Sequence[asyncio.subprocess.Process]) -> None:
-    for cell_dir, proc in zip(plant.cell_dirs, procs, strict=True):
-        if proc.returncode is not None:
-            log = cell_dir / "run.log"
-            tail = log.read_text(errors="replace").strip().splitlines()[-3:]
-            raise UsageError(
-                f"the controller of {cell_dir} exited ({proc.returncode}): " + " | ".join(tail)
+    def __init__(self, cell_dirs: Sequence[Path]) -> None:
+        self.cell_dirs = list(cell_dirs)
+        self.procs: list[asyncio.subprocess.Process] = []
+
+    async def start(self) -> None:
+        for cell_dir in self.cell_dirs:
+            with (cell_dir / "run.log").open("wb") as log:
+                proc = await asyncio.create_subprocess_exec(
+                    sys.executable,
+                    "-m",
+                    "cellctl",
+                    "--cell",
+                    str(cell_dir),
+                    "run",
+                    "--no-live",
+                    stdin=asyncio.subprocess.DEVNULL,
+                    stdout=log,
+                    stderr=asyncio.subprocess.STDOUT,
+                    start_new_session=True,
+                )
+            self.procs.append(proc)
+
+    def check(self) -> None:
+        """Raise UsageError if a controller has exited (it should run until stopped)."""
+        for cell_dir, proc in zip(self.cell_dirs, self.procs, strict=False):
+            if proc.returncode is not None:
+                log = cell_dir / "run.log"
+                tail = log.read_text(errors="replace").strip().splitlines()[-3:]
+                raise UsageError(
+                    f"the controller of {cell_dir} exited ({proc.returncode}): " + " | ".join(tail)
+                )
+
+    async def stop(self, hurry: asyncio.Event | None = None) -> None:
+        """SIGTERM each controller (it finishes its steps) and wait; kill what is left after
+        :data:`STOP_TIMEOUT_S`, or at once when ``hurry`` is set."""
+        running = [p for p in self.procs if p.returncode is None]
+        if not running:
+            return
+        for p in running:
+            with contextlib.suppress(ProcessLookupError):
+                p.send_signal(signal.SIGTERM)
+        exited: asyncio.Future[Any] = asyncio.gather(*(p.wait() for p in running))
+        hurried: asyncio.Future[Any] = asyncio.ensure_future((hurry or asyncio.Event()).wait())
+        try:
+            await asyncio.wait(
+                {exited, hurried}, timeout=STOP_TIMEOUT_S, return_when=asyncio.FIRST_COMPLETED
             )
+        finally:
+            hurried.cancel()
+            for p in running:
+                if p.returncode is None:
+                    with contextlib.suppress(ProcessLookupError):
+                        p.kill()
+            await exited
+
+
+async def wait_online(
+    store: FactoryStore,
+    names: Sequence[str],
+    controllers: CellControllers,
+    stop: asyncio.Event,
+    timeout: float = ONLINE_TIMEOUT_S,
+) -> None:
+    """Until the factory has heard every cell of ``names`` say it is online, with the part
+    types it makes (or ``stop``); UsageError after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while not stop.is_set():
+        controllers.check()
+        seen = store.cells()
+        if all(n in seen and seen[n].status == "online" and seen[n].part_types for n in names):
+            return
+        if time.monotonic() > deadline:
+            raise UsageError(
+                f"the cells did not come online within {timeout:g} s (see each cell's run.log)"
+            )
+        await asyncio.sleep(0.05)
 
 
 async def _batch(
     store: FactoryStore,
     factory: FactoryController,
-    plant: EmulatedFactory,
-    procs: Sequence[asyncio.subprocess.Process],
+    names: Sequence[str],
+    controllers: CellControllers,
     batch: Sequence[tuple[str, int]],
     stop: asyncio.Event,
 ) -> float:
     """Submit ``batch`` once every cell is online; return when every order has ended (or
     ``stop``). Returns the time of the submit."""
-    deadline = time.monotonic() + ONLINE_TIMEOUT_S
-    while not stop.is_set():
-        _check_alive(plant, procs)
-        seen = store.cells()
-        if all(
-            n in seen and seen[n].status == "online" and seen[n].part_types for n in plant.names
-        ):
-            break
-        if time.monotonic() > deadline:
-            raise UsageError(
-                f"the cells did not come online within {ONLINE_TIMEOUT_S:g} s "
-                f"(see each cell's run.log in {plant.directory})"
-            )
-        await asyncio.sleep(0.05)
+    await wait_online(store, names, controllers, stop)
     started = time.time()
     if stop.is_set():
         return started
@@ -249,37 +295,11 @@ async def _batch(
     factory.poke()
     _say(f"{len(batch)} orders submitted")
     while not stop.is_set() and store.orders(OPEN_STATES):
-        _check_alive(plant, procs)
+        controllers.check()
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(0.1):
                 await stop.wait()
     return started
-
-
-async def _stop_controllers(
-    procs: Sequence[asyncio.subprocess.Process], hurry: asyncio.Event
-) -> None:
-    """SIGTERM each cell's controller and wait for it; kill what is left after
-    :data:`STOP_TIMEOUT_S` or on ``hurry``."""
-    running = [p for p in procs if p.returncode is None]
-    for p in running:
-        with contextlib.suppress(ProcessLookupError):
-            p.send_signal(signal.SIGTERM)
-    if not running:
-        return
-    exited: asyncio.Future[Any] = asyncio.gather(*(p.wait() for p in running))
-    hurried: asyncio.Future[Any] = asyncio.ensure_future(hurry.wait())
-    try:
-        await asyncio.wait(
-            {exited, hurried}, timeout=STOP_TIMEOUT_S, return_when=asyncio.FIRST_COMPLETED
-        )
-    finally:
-        hurried.cancel()
-        for p in running:
-            if p.returncode is None:
-                with contextlib.suppress(ProcessLookupError):
-                    p.kill()
-        await exited
 
 
 def _cell_figures(

@@ -1,0 +1,600 @@
+"""The factory end to end: a real Mosquitto on loopback, three emulated cells with their
+``cellctl run`` controllers and ``cellctl factory run``, each its own process, and 30 orders
+of both part types. Three faults, each in its own test: a cell controller killed with -9
+mid-cut and started again, the broker stopped mid-batch and started again, the factory
+controller killed with -9 and started again. After each, every order's parts were made once:
+
+- from the mills' own logs (``EmulatedCell.runs_per_part``): every physical part cut once on
+  each mill of its route, and as many parts cut as were ordered;
+- from the reports: each order done in the factory's store, and in exactly one cell's
+  SQLite mailbox (not cancelled), done there with its quantity of parts.
+
+The emulated machines and the broker live in the test process (so the mills' logs can be
+read); the controllers are subprocesses whose output goes to log files shown on failure.
+Then the broker's ACLs with the credentials ``EmulatedFactory`` hands out, and the factory's
+command line (an unknown part type, a second ``run``, a broken factory.toml).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import signal
+import stat
+import subprocess
+from collections.abc import AsyncIterator, Callable
+from pathlib import Path
+from typing import Any
+
+import aiomqtt
+import pytest
+
+from cellctl.cell.config import load_cell
+from cellctl.cell.journal import Journal, open_journal
+from cellctl.emulators.cell import EmulatedCell
+from cellctl.factory.config import load_factory
+from cellctl.factory.emulated import EmulatedFactory
+from cellctl.factory.store import DONE, FactoryStore
+from cellctl.mailbox import CANCELLED, Mailbox, open_mailbox
+from cellctl.mailbox.mqtt import read_credentials
+from tests.cell_rig import TIME_SCALE, cli
+
+from .conftest import CELLCTL
+
+PART_TYPES = ("wax-robot-base", "wax-toy-mill-table")
+#: The batch: 30 orders of both types, every fifth for two parts; the last ten are submitted
+#: while the fault is on (an order comes in while a cell, the broker or the factory is away).
+BATCH = [
+    (f"F{n:02d}", PART_TYPES[n % 2 if n % 3 else 0], 2 if n % 5 == 0 else 1) for n in range(1, 31)
+]
+FIRST, DURING = BATCH[:20], BATCH[20:]
+#: Deadline of one wait for the plant (the whole batch takes about 12 s on an idle box).
+WAIT_S = 60.0
+MILL_INDEX = {"cnc1": 1, "cnc2": 2}
+
+
+class Plant:
+    """An :class:`EmulatedFactory` in this process; its cells' controllers and the factory
+    controller as ``cellctl`` subprocesses, started and killed by name (``cell2``, ``factory``).
+    """
+
+    def __init__(self, directory: Path, *, cells: int = 3) -> None:
+        self.directory = directory
+        self.emulated = EmulatedFactory(
+            directory, cells=cells, time_scale=TIME_SCALE, poll_period=0.1, factory_poll=0.1
+        )
+        self.logs = directory / "logs"
+        self.procs: dict[str, asyncio.subprocess.Process] = {}
+        self.store: FactoryStore
+        self.journals: dict[str, Journal] = {}
+        self.mailboxes: dict[str, Mailbox] = {}
+
+    @property
+    def names(self) -> list[str]:
+        return self.emulated.names
+
+    def cell(self, name: str) -> EmulatedCell:
+        return self.emulated.cells[self.names.index(name)]
+
+    def cell_dir(self, name: str) -> Path:
+        return self.directory / name
+
+    async def __aenter__(self) -> Plant:
+        await self.emulated.start()
+        self.logs.mkdir()
+        self.store = FactoryStore(load_factory(self.directory).state_path)
+        for name in self.names:
+            self.journals[name] = open_journal(self.cell_dir(name))
+            self.mailboxes[name] = open_mailbox(self.cell_dir(name))
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        try:
+            for name in list(self.procs):
+                await self.stop(name)
+        finally:
+            for journal in self.journals.values():
+                journal.close()
+            for mailbox in self.mailboxes.values():
+                mailbox.close()
+            self.store.close()
+            await self.emulated.close()
+
+    # -- the controllers ---------------------------------------------------------------------
+
+    async def start(self, name: str) -> asyncio.subprocess.Process:
+        """Start ``cellctl run`` of cell ``name``, or ``cellctl factory run`` for "factory"."""
+        assert name not in self.procs, f"{name} is running"
+        if name == "factory":
+            args = ["factory", "--dir", str(self.directory), "run", "--no-live"]
+        else:
+            args = ["--cell", str(self.cell_dir(name)), "run", "--no-live"]
+        with (self.logs / f"{name}.log").open("ab") as log:
+            log.write(f"---- started {' '.join(args)}\n".encode())
+            log.flush()
+            proc = await asyncio.create_subprocess_exec(
+                *CELLCTL,
+                *args,
+                stdin=asyncio.subprocess.DEVNULL,
+                stdout=log,
+                stderr=asyncio.subprocess.STDOUT,
+                env={**os.environ, "PYTHONUNBUFFERED": "1"},
+            )
+        self.procs[name] = proc
+        return proc
+
+    async def kill(self, name: str) -> None:
+        """kill -9 ``name``'s process."""
+        proc = self.procs.pop(name)
+        assert proc.returncode is None, f"{name} had already exited\n{self.describe()}"
+        proc.send_signal(signal.SIGKILL)
+        await proc.wait()
+
+    async def stop(self, name: str) -> None:
+        """SIGTERM ``name``'s process (killed if it does not exit within 15 s)."""
+        proc = self.procs.pop(name)
+        if proc.returncode is None:
+            proc.send_signal(signal.SIGTERM)
+        try:
+            await asyncio.wait_for(proc.wait(), 15)
+        except TimeoutError:
+            proc.kill()
+            await proc.wait()
+
+    async def start_all(self) -> None:
+        """Every cell's controller and the factory's; returns once the factory knows what
+        each cell makes."""
+        for name in [*self.names, "factory"]:
+            await self.start(name)
+        await self.wait_for(
+            lambda: (
+                all(
+                    set(PART_TYPES) <= set(c.part_types) and c.status == "online"
+                    for c in self.store.cells().values()
+                )
+                and set(self.store.cells()) == set(self.names)
+            ),
+            "the factory hears every cell online with its part types",
+        )
+
+    # -- orders --------------------------------------------------------------------------------
+
+    def submit(self, batch: list[tuple[str, str, int]]) -> None:
+        """What ``cellctl factory submit`` does, for each order of ``batch``."""
+        for oid, part_type, qty in batch:
+            _, new = self.store.submit(part_type, qty, priority=0, order_id=oid)
+            assert new
+
+    def done(self) -> set[str]:
+        return {o.id for o in self.store.orders([DONE])}
+
+    def cells_done(self) -> set[str]:
+        """Orders some cell's own mailbox says are done."""
+        return {o.id for mb in self.mailboxes.values() for o in mb.orders() if o.state == DONE}
+
+    def finished_steps(self) -> int:
+        return sum(1 for j in self.journals.values() for s in j.steps() if s.state == "finished")
+
+    def cutting(self) -> str | None:
+        """A cell whose journal has a cut in flight that its emulated mill is running on a
+        part (and more work to do after it), or None."""
+        for name, journal in self.journals.items():
+            for step in journal.open_steps():
+                mill = self.cell(name).mills.get(step.machine)
+                if step.kind != "machine" or mill is None or not mill.executing:
+                    continue
+                if self.cell(name).vise[MILL_INDEX[step.machine]] is None:
+                    continue
+                if len(self.journals[name].parts(statuses=["waiting"])) > 0:
+                    return name
+        return None
+
+    def held(self) -> dict[str, list[str]]:
+        return {
+            name: [p.id for p in j.parts(statuses=["held"])]
+            for name, j in self.journals.items()
+            if j.parts(statuses=["held"])
+        }
+
+    def reports_caught_up(self) -> bool:
+        """The factory has every report each cell made (their seqs are 1, 2, 3 ...)."""
+        seen = self.store.cells()
+        for name, mailbox in self.mailboxes.items():
+            reports = mailbox.reports()
+            if reports and (name not in seen or seen[name].seq < reports[-1].seq):
+                return False
+        return True
+
+    # -- waiting -------------------------------------------------------------------------------
+
+    async def wait_for(
+        self, condition: Callable[[], Any], what: str, timeout: float = WAIT_S
+    ) -> Any:
+        """Poll ``condition`` until it is true; fail at once if a controller died, or with
+        the plant's state after ``timeout``."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while True:
+            value = condition()
+            if value:
+                return value
+            for name, proc in self.procs.items():
+                if proc.returncode is not None:
+                    raise AssertionError(
+                        f"{name} exited ({proc.returncode}) while waiting for: {what}\n"
+                        + self.describe()
+                    )
+            if loop.time() > deadline:
+                raise AssertionError(
+                    f"timed out after {timeout:g} s waiting for: {what}\n{self.describe()}"
+                )
+            await asyncio.sleep(0.05)
+
+    async def finish(self, *, operator: bool = False) -> None:
+        """Until every order is done and the factory has every report. With ``operator``
+        the operator inspects each held part as it comes; without, a held part fails."""
+        for _ in range(10):
+            await self.wait_for(
+                lambda: (
+                    (len(self.done()) == len(BATCH) and self.reports_caught_up()) or self.held()
+                ),
+                "every order done, the factory up to date with every cell's reports",
+            )
+            held = self.held()
+            if not held:
+                return
+            assert operator, f"parts held: {held}\n{self.describe()}"
+            for name in held:
+                await operator_inspects(self.cell_dir(name), self.cell(name), self.journals[name])
+        raise AssertionError(f"still parts held after 10 inspections\n{self.describe()}")
+
+    def describe(self) -> str:
+        """The factory's orders and events, each cell's open work, the processes' logs."""
+        lines = ["factory orders:"]
+        lines += [
+            f"  {o.id} {o.part_type} x{o.qty} {o.state} cell={o.cell} done={o.done}"
+            f" held={o.held} sends={o.sends} refused={list(o.refused)} {o.note}"
+            for o in self.store.orders()
+        ]
+        lines.append("factory cells:")
+        lines += [
+            f"  {c.name} {c.status} seq={c.seq} orders_open={c.state.get('orders_open')}"
+            for c in self.store.cells().values()
+        ]
+        lines.append("factory events (last 30):")
+        lines += [f"  {e.cell or '-'} {e.text}" for e in self.store.events(limit=30)]
+        for name in self.names:
+            journal, mailbox = self.journals[name], self.mailboxes[name]
+            lines.append(f"{name}: last report {mailbox.reports()[-1:]}")
+            lines += [f"  order {o.id} {o.state} {o.note}" for o in mailbox.orders()]
+            lines += [
+                f"  part {p.id} {p.order_id} {p.location} r{p.route_index} {p.status} {p.note}"
+                for p in journal.parts()
+                if p.status != "done"
+            ]
+            lines += [
+                f"  open step {s.id} {s.part_id} {s.kind} {s.machine} {s.program}"
+                for s in journal.open_steps()
+            ]
+            lines += [
+                f"  alarm {a.id} {a.machine} {a.code} {a.text}" for a in journal.active_alarms()
+            ]
+            lines.append(f"  mills cut: {self.cell(name).runs_per_part()}")
+        for log in sorted(self.logs.glob("*.log")):
+            tail = log.read_text(errors="replace").splitlines()[-40:]
+            lines += [f"---- {log.name} (last 40 lines)", *tail]
+        broker_log = self.emulated.broker.log_path
+        if broker_log.exists():
+            lines += ["---- broker (last 15 lines)"]
+            lines += broker_log.read_text(errors="replace").splitlines()[-15:]
+        return "\n".join(lines)
+
+    # -- the checks ----------------------------------------------------------------------------
+
+    def check_made_once(self) -> None:
+        """Every order done, by one cell, with its parts cut once on each mill of its route."""
+        state = self.describe()
+        orders = {o.id: o for o in self.store.orders()}
+        assert set(orders) == {oid for oid, _, _ in BATCH}, state
+        for oid, part_type, qty in BATCH:
+            o = orders[oid]
+            assert (o.part_type, o.qty, o.state, o.done) == (part_type, qty, DONE, qty), state
+            # The cells' own records: taken by exactly one cell, the one the factory says.
+            holders = [
+                name
+                for name, mailbox in self.mailboxes.items()
+                if any(c.id == oid and c.state != CANCELLED for c in mailbox.orders())
+            ]
+            assert holders == [o.cell], f"order {oid} at {holders}, factory says {o.cell}\n{state}"
+            at = self.mailboxes[o.cell].get_order(oid)
+            assert (at.state, at.qty, at.part_type) == (DONE, qty, part_type), state
+            parts = self.journals[o.cell].parts(order_id=oid)
+            assert [p.status for p in parts] == ["done"] * qty, state
+        # No cell has an order the factory did not give it.
+        for mailbox in self.mailboxes.values():
+            assert {c.id for c in mailbox.orders()} <= set(orders), state
+        # The accept deadline's alarm bell: an order accepted by a second cell.
+        assert not [e.text for e in self.store.events(limit=10_000) if " too, after " in e.text]
+        # The mills' own logs: each part cut once on each mill of its route, as many parts
+        # as ordered from each cell, and every one of them out on the conveyor.
+        for name in self.names:
+            cell = self.cell(name)
+            routes = load_cell(self.cell_dir(name)).parts
+            mills = {t: sorted(step.mill for step in routes[t].route) for t in PART_TYPES}
+            assert mills[PART_TYPES[0]] == mills[PART_TYPES[1]], "the check below needs one route"
+            runs = cell.runs_per_part()
+            ordered = sum(o.qty for o in orders.values() if o.cell == name)
+            assert len(runs) == ordered, (
+                f"{name}: {len(runs)} parts cut, {ordered} ordered\n{state}"
+            )
+            once = dict.fromkeys(mills[PART_TYPES[0]], 1)
+            assert {p: r for p, r in runs.items() if r != once} == {}, f"{name}\n{state}"
+            assert sorted(cell.outfeed) == sorted(runs), f"{name}\n{state}"
+        total = sum(len(self.cell(n).runs_per_part()) for n in self.names)
+        assert total == sum(qty for _, _, qty in BATCH), state
+        # The factory spread the batch over every cell.
+        assert {o.cell for o in orders.values()} == set(self.names), state
+
+
+async def operator_inspects(cell_dir: Path, cell: EmulatedCell, journal: Journal) -> None:
+    """The operator clears the cell's alarms, looks at each held part in the cell (the
+    emulators' physical state) and releases it as it is: a part in a vise whose mill's log
+    shows its cut counts as cut; a transfer's part is where the robot left it."""
+    for alarm in journal.active_alarms():
+        result = await cli(cell_dir, "alarm", "clear", str(alarm.id))
+        assert result.exit_code == 0, result.output
+    for part in journal.parts(statuses=["held"]):
+        step = journal.steps(part.id)[-1]
+        if step.kind == "transfer":
+            source, target = step.program.split("_to_")
+            assert cell.gripper is None
+            if target == "conveyor":
+                made = sum(p.status == "done" for p in journal.parts())
+                where = "out" if len(cell.outfeed) > made else source
+            else:
+                where = target if cell.vise[MILL_INDEX[target]] is not None else source
+            result = await cli(cell_dir, "part", "release", part.id, "--at", where)
+        else:
+            blank = cell.vise[MILL_INDEX[step.machine]]
+            assert blank is not None, f"held part {part.id}: nothing in {step.machine}'s vise"
+            cut = cell.runs_per_part().get(blank, {}).get(step.machine, 0)
+            result = await cli(cell_dir, "part", "release", part.id, *([] if cut else ["--redo"]))
+        assert result.exit_code == 0, result.output
+
+
+@pytest.fixture
+async def plant(tmp_path: Path) -> AsyncIterator[Plant]:
+    """Broker, three emulated cells, their controllers and the factory's, all running."""
+    async with Plant(tmp_path / "plant") as p:
+        await p.start_all()
+        yield p
+
+
+# -- the batch through a fault ---------------------------------------------------------------
+
+
+@pytest.mark.timeout(240)  # beyond the plant's own deadlines: they say more
+async def test_a_cell_controller_killed_mid_cut_and_restarted(plant: Plant) -> None:
+    plant.submit(FIRST)
+    victim = await plant.wait_for(
+        lambda: len(plant.done()) >= 3 and plant.cutting(), "a cell cutting, 3 orders done"
+    )
+    await plant.kill(victim)
+    journal = plant.journals[victim]
+    in_flight = {s.part_id: s for s in journal.open_steps()}
+    assert any(s.kind == "machine" for s in in_flight.values()), plant.describe()
+    plant.submit(DURING)  # they go to the cells still there
+    await plant.wait_for(
+        lambda: plant.store.cells()[victim].status == "offline", f"the factory sees {victim} gone"
+    )
+    # Its accepted orders wait for it: never sent elsewhere.
+    waiting = {o.id for o in plant.store.orders() if o.cell == victim and o.state != DONE}
+    assert waiting, plant.describe()
+    await plant.start(victim)
+    # The restart holds every part whose step was in flight: a cut is never run again by itself.
+    await plant.wait_for(
+        lambda: set(in_flight) <= {p.id for p in journal.parts(statuses=["held"])},
+        "the interrupted parts held after the restart",
+    )
+    for part_id, step in in_flight.items():
+        if step.kind == "machine":
+            assert journal.get_part(part_id).note.startswith("needs inspection")
+    await plant.finish(operator=True)
+    plant.check_made_once()
+    assert {o.id for o in plant.store.orders() if o.cell == victim} >= waiting
+    held = [r for r in plant.mailboxes[victim].reports() if r.kind == "part-held"]
+    assert {r.part_id for r in held} >= set(in_flight)
+
+
+@pytest.mark.timeout(240)  # beyond the plant's own deadlines: they say more
+async def test_the_broker_stopped_mid_batch_and_restarted(plant: Plant) -> None:
+    plant.submit(FIRST)
+    await plant.wait_for(
+        lambda: len(plant.done()) >= 3 and plant.cutting(), "a cell cutting, 3 orders done"
+    )
+    await plant.emulated.broker.stop()
+    plant.submit(DURING)  # queued: no cell can be told now
+    # The cells go on working without the broker; their reports wait in their mailboxes.
+    known = plant.cells_done()
+    await plant.wait_for(
+        lambda: len(plant.cells_done() - known) >= 2, "cells finish orders while the broker is away"
+    )
+    await plant.emulated.broker.start()
+    await plant.finish()
+    plant.check_made_once()
+
+
+@pytest.mark.timeout(240)  # beyond the plant's own deadlines: they say more
+async def test_the_factory_controller_killed_and_restarted(plant: Plant) -> None:
+    plant.submit(FIRST)
+    await plant.wait_for(
+        lambda: len(plant.done()) >= 3 and plant.cutting(), "a cell cutting, 3 orders done"
+    )
+    await plant.kill("factory")
+    plant.submit(DURING)  # in the store, for the factory to send once it is back
+    # The cells go on, and their reports wait at the broker for the factory's session.
+    known = plant.cells_done()
+    await plant.wait_for(
+        lambda: len(plant.cells_done() - known) >= 2,
+        "cells finish orders while the factory is away",
+    )
+    assert {o.id for o in plant.store.orders() if o.cell is None} >= {o for o, _, _ in DURING}
+    await plant.start("factory")
+    await plant.finish()
+    plant.check_made_once()
+
+
+# -- the broker's ACLs, with the credentials the plant hands out -------------------------------
+
+
+@contextlib.asynccontextmanager
+async def logged_in(port: int, credentials: Path) -> AsyncIterator[aiomqtt.Client]:
+    username, password = read_credentials(credentials)
+    async with aiomqtt.Client(
+        "127.0.0.1", port, username=username, password=password, timeout=5
+    ) as client:
+        yield client
+
+
+async def first_message(client: aiomqtt.Client) -> aiomqtt.Message:
+    async with asyncio.timeout(10):
+        return await anext(aiter(client.messages))
+
+
+async def publish_forbidden(client: aiomqtt.Client, topic: str, payload: bytes) -> None:
+    # Mosquitto drops a forbidden publish without a word (MQTT 3.1.1): it simply never arrives.
+    with contextlib.suppress(aiomqtt.MqttError):
+        await client.publish(topic, payload, qos=1, retain=True)
+
+
+async def test_a_cell_cannot_order_for_or_speak_for_or_listen_to_another_cell(
+    tmp_path: Path,
+) -> None:
+    """What tests/test_broker.py does not cover: a cell's own credentials file, as
+    EmulatedFactory writes it into the cell directory, cannot give another cell orders,
+    cannot post another cell's state or status (retained: what the factory dispatches on),
+    and reads nothing but its own orders, even with a wildcard."""
+    async with EmulatedFactory(tmp_path / "plant", cells=2, time_scale=TIME_SCALE) as plant:
+        port = plant.broker.port
+        files = {
+            name: d / "mqtt.toml" for name, d in zip(plant.names, plant.cell_dirs, strict=True)
+        }
+        files["factory"] = plant.directory / "factory.credentials"
+        for path in files.values():
+            assert stat.S_IMODE(path.stat().st_mode) == 0o600, path
+        assert {read_credentials(p)[0] for p in files.values()} == {"cell1", "cell2", "factory"}
+        # One cell's password is not another's.
+        with pytest.raises(aiomqtt.MqttError):
+            password = read_credentials(files["cell1"])[1]
+            async with aiomqtt.Client(
+                "127.0.0.1", port, username="cell2", password=password, timeout=5
+            ):
+                pass
+        async with (
+            logged_in(port, files["cell1"]) as cell1,
+            logged_in(port, files["cell2"]) as cell2,
+            logged_in(port, files["factory"]) as factory,
+        ):
+            # cell1 cannot give cell2 an order: cell2 gets the factory's only.
+            await cell2.subscribe("cellctl/cell2/orders", qos=1)
+            forged = b'{"v":1,"id":"forged","part_type":"wax-robot-base","qty":5}'
+            await publish_forbidden(cell1, "cellctl/cell2/orders", forged)
+            real = b'{"v":1,"id":"real","part_type":"wax-robot-base","qty":1}'
+            await factory.publish("cellctl/cell2/orders", real, qos=1)
+            assert (await first_message(cell2)).payload == real
+            # cell1 cannot speak for cell2 (its state says it is idle, its status offline).
+            await factory.subscribe("cellctl/cell2/state", qos=1)
+            await factory.subscribe("cellctl/cell2/status", qos=1)
+            await publish_forbidden(cell1, "cellctl/cell2/state", b'{"v":1,"cell":"cell2"}')
+            await publish_forbidden(cell1, "cellctl/cell2/status", b"offline")
+            await cell2.publish("cellctl/cell2/status", b"online", qos=1, retain=True)
+            message = await first_message(factory)
+            assert (message.topic.value, message.payload) == ("cellctl/cell2/status", b"online")
+            # cell1 reads nothing of cell2's, not even with a wildcard: only its own orders.
+            await cell1.subscribe("cellctl/#", qos=1)
+            await cell2.publish("cellctl/cell2/reports", b'{"v":1,"seq":1}', qos=1)
+            await cell2.publish("cellctl/cell2/state", b'{"v":1,"cell":"cell2"}', qos=1)
+            await factory.publish("cellctl/cell2/orders", b'{"v":1,"id":"theirs"}', qos=1)
+            await factory.publish("cellctl/cell1/orders", b'{"v":1,"id":"mine"}', qos=1)
+            message = await first_message(cell1)
+            assert (message.topic.value, message.payload) == (
+                "cellctl/cell1/orders",
+                b'{"v":1,"id":"mine"}',
+            )
+        # Nothing forged was retained: a newcomer gets no state (it subscribes to that first:
+        # retained messages come in the order of the subscriptions), and cell2's own status.
+        async with logged_in(port, files["factory"]) as late:
+            await late.subscribe("cellctl/cell2/state", qos=1)
+            await late.subscribe("cellctl/cell2/status", qos=1)
+            message = await first_message(late)
+            assert (message.topic.value, message.payload) == ("cellctl/cell2/status", b"online")
+
+
+# -- the command line ------------------------------------------------------------------------
+
+
+async def cellctl(*args: str) -> tuple[int, str]:
+    """``cellctl ARGS`` in its own process (the plant's emulators keep running meanwhile):
+    its exit code and what it printed."""
+    proc = await asyncio.create_subprocess_exec(
+        *CELLCTL, *args, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT
+    )
+    try:
+        out, _ = await asyncio.wait_for(proc.communicate(), 60)
+    except TimeoutError:
+        proc.kill()
+        await proc.wait()
+        raise AssertionError(f"cellctl {' '.join(args)} did not return within 60 s") from None
+    assert proc.returncode is not None
+    return proc.returncode, out.decode(errors="replace")
+
+
+async def test_the_factory_command_line_on_a_running_plant(tmp_path: Path) -> None:
+    async with Plant(tmp_path / "plant", cells=1) as plant:
+        await plant.start_all()
+        where = ["factory", "--dir", str(plant.directory)]
+        # A part type no cell makes, once the cells have said what they make.
+        code, out = await cellctl(*where, "submit", "wax-robot-arm", "--qty", "2")
+        assert code != 0, out
+        assert "wax-robot-arm" in out and all(t in out for t in PART_TYPES), out
+        assert "Traceback" not in out and plant.store.orders() == []
+        # A second controller for the same directory, while the first runs.
+        code, out = await cellctl(*where, "run", "--no-live")
+        assert code != 0, out
+        assert "already run by" in out and f"pid {plant.procs['factory'].pid}" in out, out
+        assert plant.procs["factory"].returncode is None
+        # A good order from the command line is made.
+        code, out = await cellctl(
+            *where, "submit", "wax-toy-mill-table", "--qty", "2", "--id", "C1"
+        )
+        assert code == 0, out
+        await plant.wait_for(lambda: plant.done() == {"C1"}, "order C1 done")
+        code, out = await cellctl(*where, "orders")
+        assert code == 0 and "C1" in out and "done" in out, out
+        assert plant.store.get("C1").done == 2
+        assert len(plant.cell("cell1").runs_per_part()) == 2
+
+
+BROKEN = {
+    "not TOML": "[factory\nname = 1\n",
+    "no broker": '[cells.cell1]\nprefix = "cellctl/cell1"\n',
+    "a bad url": '[broker]\nurl = "http://x"\ncredentials = "c"\n[cells.a]\nprefix = "p"\n',
+}
+
+
+@pytest.mark.parametrize("broken", list(BROKEN))
+def test_a_broken_factory_toml_is_one_line(tmp_path: Path, broken: str) -> None:
+    (tmp_path / "factory.toml").write_text(BROKEN[broken])
+    for command in (["run", "--no-live"], ["submit", "wax-robot-base"], ["orders"]):
+        done = subprocess.run(
+            [*CELLCTL, "factory", "--dir", str(tmp_path), *command],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert done.returncode != 0, (command, done.stdout)
+        lines = (done.stdout + done.stderr).strip().splitlines()
+        assert len(lines) == 1, (command, lines)
+        assert "factory.toml" in lines[0] and "Traceback" not in lines[0], lines
+    assert not (tmp_path / "state").exists()

@@ -21,6 +21,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import math
 import time
 from collections.abc import Callable
 from typing import Any
@@ -44,6 +45,48 @@ from cellctl.mailbox.mqtt import BACKOFF_S, VERSION, MqttSettings
 SETTLE_S = BACKOFF_S[1] + 1.0
 #: How often the store is looked at for orders submitted by another process.
 SUBMIT_CHECK_S = 0.02
+
+
+def _number(value: object) -> bool:
+    if not isinstance(value, int | float) or isinstance(value, bool):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # an integer beyond any float
+        return False
+
+
+def malformed(kind: str, data: dict[str, Any]) -> str | None:
+    """What makes a cell's ``state`` or ``reports`` message unusable (a field of the wrong
+    kind: docs/factory.md), or None. Such a message is ignored, never stored: the store and
+    the dispatch read these fields as numbers and tables."""
+    fields: tuple[str, ...]
+    if kind == "state":
+        types = data.get("part_types") or {}
+        if not isinstance(types, dict) or not all(
+            isinstance(t, dict) and _number(t.get("bound_s", 0.0)) for t in types.values()
+        ):
+            return 'part_types is not {NAME: {"bound_s": seconds}}'
+        machines = data.get("machines") or {}
+        if not isinstance(machines, dict) or not all(
+            isinstance(m, dict) for m in machines.values()
+        ):
+            return "machines is not {NAME: {...}}"
+        fields = ("time", "finish_estimate_s", "orders_open", "parts_open")
+    elif kind == "reports":
+        seq = data.get("seq")
+        if not isinstance(seq, int) or isinstance(seq, bool) or not 0 <= seq < 2**63:
+            return f"seq is not an integer from 0 to 2**63 - 1: {seq!r}"[:120]
+        for key, kinds in (("kind", str), ("order_id", str), ("data", dict)):
+            if data.get(key) is not None and not isinstance(data[key], kinds):
+                return f"{key} is not a {kinds.__name__}"
+        fields = ("time",)
+    else:
+        return None
+    for key in fields:
+        if key in data and not _number(data[key]):
+            return f"{key} is not a number"
+    return None
 
 
 class FactoryController:
@@ -177,6 +220,10 @@ class FactoryController:
             return
         if not isinstance(data, dict) or data.get("v") != VERSION:
             self.log(f"{cell}: a {kind} message not of version {VERSION} ignored", cell)
+            return
+        problem = malformed(kind, data)
+        if problem:
+            self.log(f"{cell}: a {kind} message ignored: {problem}", cell)
             return
         if kind == "state":
             self.store.set_state(cell, data)

@@ -166,6 +166,8 @@ class FactoryStore(SqliteStore):
         oid = check_new_order(part_type, qty, priority, order_id)
         if qty > MAX_QTY:
             raise UsageError(f"order quantity must be at most {MAX_QTY}, not {qty}")
+        if not -(2**63) <= priority < 2**63:  # what SQLite can store
+            raise UsageError(f"order priority must fit in 64 bits, not {priority}")
         now = self._clock()
         with self._write() as db:
             row = db.execute("SELECT * FROM orders WHERE id = ?", (oid,)).fetchone()

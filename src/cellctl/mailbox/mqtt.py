@@ -21,6 +21,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import math
 import os
 import ssl
 import time
@@ -131,6 +132,13 @@ def report_payload(cell: str, r: Report) -> dict[str, Any]:
     }
 
 
+def _finite(value: float) -> bool:
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # an integer beyond any float
+        return False
+
+
 def parse_order(payload: bytes) -> dict[str, Any]:
     """An order message's fields, checked; UsageError says what is wrong."""
     try:
@@ -144,8 +152,12 @@ def parse_order(payload: bytes) -> dict[str, Any]:
         value = data.get(key, 0 if key == "priority" else None)
         if not isinstance(value, kind) or isinstance(value, bool):
             raise UsageError(f"order field {key!r} must be {kind.__name__}, not {value!r}")
+        if isinstance(value, int) and not -(2**63) <= value < 2**63:  # what SQLite can store
+            raise UsageError(f"order field {key!r} must fit in 64 bits, not {value}")
     expires = data.get("expires")
-    if expires is not None and (not isinstance(expires, int | float) or isinstance(expires, bool)):
+    if expires is not None and (
+        not isinstance(expires, int | float) or isinstance(expires, bool) or not _finite(expires)
+    ):
         raise UsageError(f"order field 'expires' must be a time, not {expires!r}")
     return {**{k: data.get(k, 0) for k in fields}, "expires": expires}
 

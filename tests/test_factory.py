@@ -19,25 +19,35 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import io
+import json
 import os
 import signal
 import stat
 import subprocess
+import tempfile
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import Any
 
 import aiomqtt
 import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
+from rich.console import Console
 
 from cellctl.cell.config import load_cell
 from cellctl.cell.journal import Journal, open_journal
 from cellctl.emulators.cell import EmulatedCell
-from cellctl.factory.config import load_factory
+from cellctl.errors import UsageError
+from cellctl.factory.config import FactoryConfig, load_factory
+from cellctl.factory.controller import FactoryController
+from cellctl.factory.dispatch import choose
 from cellctl.factory.emulated import EmulatedFactory
-from cellctl.factory.store import DONE, FactoryStore
+from cellctl.factory.store import DONE, FINAL_STATES, OPEN_STATES, FactoryStore
 from cellctl.mailbox import CANCELLED, Mailbox, open_mailbox
-from cellctl.mailbox.mqtt import read_credentials
+from cellctl.mailbox.mqtt import parse_order, read_credentials
+from cellctl.ui.factory_cli import cells_table
 from tests.cell_rig import TIME_SCALE, cli
 
 from .conftest import CELLCTL
@@ -531,6 +541,155 @@ async def test_a_cell_cannot_order_for_or_speak_for_or_listen_to_another_cell(
             assert (message.topic.value, message.payload) == ("cellctl/cell2/status", b"online")
 
 
+#: Messages a cell may send about itself that no cellctl would: JSON of the right version with
+#: fields of the wrong kind. The factory says it ignores each, and goes on.
+MALFORMED = {
+    "reports": [
+        {"v": 1, "cell": "cell1", "seq": "7", "kind": "order-done", "order_id": "M1"},
+        {"v": 1, "cell": "cell1", "seq": [7], "kind": "order-done", "order_id": "M1"},
+        {"v": 1, "cell": "cell1", "seq": 10**6, "kind": "order-accepted", "time": "now"},
+        {"v": 1, "cell": "cell1", "seq": 10**6, "kind": "order-rejected", "data": [True]},
+    ],
+    "state": [
+        {"v": 1, "cell": "cell1", "time": "now"},
+        {"v": 1, "cell": "cell1", "part_types": ["wax-robot-base"]},
+        {"v": 1, "cell": "cell1", "part_types": {"wax-robot-base": 1.0}},
+        {"v": 1, "cell": "cell1", "part_types": {"wax-robot-base": {"bound_s": "1"}}},
+        {"v": 1, "cell": "cell1", "part_types": {}, "finish_estimate_s": "soon"},
+        {"v": 1, "cell": "cell1", "part_types": {}, "orders_open": "none"},
+        {"v": 1, "cell": "cell1", "part_types": {}, "machines": ["robot"]},
+    ],
+}
+
+
+#: Orders no factory of cellctl sends (its store refuses them): numbers SQLite cannot keep.
+POISONED_ORDERS = [
+    {"v": 1, "id": "X1", "part_type": "wax-robot-base", "qty": 1, "priority": 2**70},
+    {"v": 1, "id": "X2", "part_type": "wax-robot-base", "qty": 2**64},
+    {"v": 1, "id": "X3", "part_type": "wax-robot-base", "qty": 1, "expires": float("nan")},
+]
+
+
+async def test_malformed_messages_stop_neither_the_factory_nor_a_cell(tmp_path: Path) -> None:
+    async with Plant(tmp_path / "plant", cells=1) as plant:
+        await plant.start_all()
+        before = len(plant.store.events(limit=10_000))
+        port = plant.emulated.broker.port
+        async with logged_in(port, plant.cell_dir("cell1") / "mqtt.toml") as cell1:
+            for topic, payloads in MALFORMED.items():
+                for payload in payloads:
+                    await cell1.publish(f"cellctl/cell1/{topic}", json.dumps(payload), qos=1)
+        async with logged_in(port, plant.directory / "factory.credentials") as factory:
+            for order in POISONED_ORDERS:
+                await factory.publish("cellctl/cell1/orders", json.dumps(order), qos=1)
+        count = sum(len(p) for p in MALFORMED.values())
+
+        def ignored() -> list[str]:
+            events = plant.store.events(limit=10_000)[before:]
+            return [e.text for e in events if e.cell == "cell1" and "ignored" in e.text]
+
+        await plant.wait_for(lambda: len(ignored()) >= count, "the factory ignores each of them")
+        assert len(ignored()) == count, ignored()
+        log = plant.logs / "cell1.log"
+        await plant.wait_for(
+            lambda: log.read_text().count("order refused") == len(POISONED_ORDERS),
+            "the cell refuses each poisoned order",
+        )
+        assert plant.mailboxes["cell1"].orders() == []
+        # Both still run: the factory knows what the cell makes, and has an order made there.
+        plant.submit([("M1", "wax-robot-base", 1)])
+        await plant.wait_for(lambda: plant.done() == {"M1"}, "order M1 done")
+        assert plant.store.get("M1").done == 1
+        assert set(PART_TYPES) <= set(plant.store.cells()["cell1"].part_types)
+        assert len(plant.cell("cell1").runs_per_part()) == 1
+        code, out = await cellctl("factory", "--dir", str(plant.directory), "cells")
+        assert code == 0 and "cell1" in out, out
+
+
+_JSON = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=6),
+    lambda inner: (
+        st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=6), inner, max_size=3)
+    ),
+    max_leaves=8,
+)
+_MESSAGE = st.fixed_dictionaries(
+    {"v": st.just(1)},
+    optional={
+        "seq": st.integers(min_value=-2, max_value=2**64) | _JSON,
+        "kind": st.sampled_from(["order-accepted", "order-rejected", "order-done"]) | _JSON,
+        "order_id": st.sampled_from(["Q", "S", None]) | _JSON,
+        "time": _JSON,
+        "data": st.fixed_dictionaries({}, optional={"expired": _JSON}) | _JSON,
+        "part_types": st.dictionaries(
+            st.sampled_from(PART_TYPES),
+            st.fixed_dictionaries({}, optional={"bound_s": _JSON}) | _JSON,
+            max_size=2,
+        )
+        | _JSON,
+        "machines": st.dictionaries(st.text(max_size=4), _JSON, max_size=2) | _JSON,
+        "finish_estimate_s": _JSON,
+        "orders_open": _JSON,
+        "parts_open": _JSON,
+        "paused": _JSON,
+    },
+)
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from(["state", "reports", "status"]), _MESSAGE | _JSON)))
+@example([("state", {"v": 1, "part_types": {"wax-robot-base": 1.0}})])
+@example([("reports", {"v": 1, "seq": [7], "kind": "order-done", "order_id": "S"})])
+@example([("reports", {"v": 1, "seq": 3, "kind": "order-rejected", "order_id": "S", "data": [1]})])
+def test_the_factory_takes_any_message_a_cell_can_send(messages: list[tuple[str, Any]]) -> None:
+    """Whatever a cell publishes on its own topics, the factory stores it or ignores it, and
+    can go on dispatching and showing its cells (the process test above, for any payload)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        directory = Path(tmp)
+        config = FactoryConfig(
+            directory, "f", 2.0, 30.0, 0.5, "mqtt://127.0.0.1:1", directory / "c", None,
+            {"cell1": "cellctl/cell1"},
+        )  # fmt: skip
+        with FactoryStore(config.state_path) as store:
+            factory = FactoryController(config, store)
+            store.submit("wax-robot-base", 1, order_id="Q")
+            store.submit("wax-robot-base", 1, order_id="S")
+            store.send("S", "cell1", 1e12)
+            for topic, payload in messages:
+                factory.take(f"cellctl/cell1/{topic}", json.dumps(payload).encode())
+            factory.take("cellctl/cell1/status", b"online")
+            cells, open_orders = store.cells(), store.orders(OPEN_STATES)
+            for order in open_orders:
+                choose(order, cells, open_orders)
+            Console(file=io.StringIO()).print(cells_table(store, config))
+            assert {o.state for o in store.orders()} <= {*OPEN_STATES, *FINAL_STATES}
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    st.fixed_dictionaries(
+        {"v": st.just(1), "id": st.text(max_size=4) | _JSON},
+        optional={
+            "part_type": st.sampled_from(PART_TYPES) | _JSON,
+            "qty": st.integers() | _JSON,
+            "priority": st.integers() | _JSON,
+            "expires": _JSON,
+        },
+    )
+    | _JSON
+)
+@example({"v": 1, "id": "A", "part_type": "wax-robot-base", "qty": 1, "priority": 2**70})
+def test_a_cell_takes_or_refuses_any_order_message(order: Any) -> None:
+    """An order message either goes into the cell's mailbox or is refused with a UsageError."""
+    with tempfile.TemporaryDirectory() as tmp, open_mailbox(Path(tmp)) as mailbox:
+        try:
+            fields = parse_order(json.dumps(order).encode())
+            mailbox.post_order(fields["part_type"], fields["qty"], fields["priority"], fields["id"])
+        except UsageError:
+            return
+        assert [o.id for o in mailbox.orders()] == [order["id"]]
+
+
 # -- the command line ------------------------------------------------------------------------
 
 
@@ -559,6 +718,10 @@ async def test_the_factory_command_line_on_a_running_plant(tmp_path: Path) -> No
         assert code != 0, out
         assert "wax-robot-arm" in out and all(t in out for t in PART_TYPES), out
         assert "Traceback" not in out and plant.store.orders() == []
+        # A priority beyond what the store can keep.
+        code, out = await cellctl(*where, "submit", PART_TYPES[0], "--priority", str(2**70))
+        assert code != 0 and "priority" in out and "Traceback" not in out, out
+        assert plant.store.orders() == []
         # A second controller for the same directory, while the first runs.
         code, out = await cellctl(*where, "run", "--no-live")
         assert code != 0, out

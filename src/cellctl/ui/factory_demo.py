@@ -97,8 +97,9 @@ class CellFigures:
         s = self.summary
         made = ", ".join(f"{n} x {t}" for t, n in sorted(s.parts_made.items())) or "none"
         busiest = max(s.busy_s, key=s.busy_s.__getitem__) if s.busy_s else ""
+        orders = f"{self.orders} order" + ("" if self.orders == 1 else "s")
         return (
-            f"{self.name}: {self.orders} orders, parts made {self.made} ({made}); makespan "
+            f"{self.name}: {orders}, parts made {self.made} ({made}); makespan "
             f"{s.makespan_s:.2f} s; busiest {busiest} {s.utilization(busiest):.1%}; "
             f"parts cut twice {self.cut_twice}"
         )

@@ -144,6 +144,20 @@ def test_the_earliest_estimated_finish_gets_the_order(store: FactoryStore) -> No
     assert choose(odd, store.cells(), open_orders) == (None, "no cell makes gear")
 
 
+def test_cells_alike_get_a_burst_of_mixed_orders_evenly(store: FactoryStore) -> None:
+    bounds = {"wax-robot-base": 10.0, "wax-toy-mill-table": 10.0}
+    for name in ("cell1", "cell2"):
+        store.set_status(name, "online")
+        store.set_state(name, state(bounds))
+    for i, part in enumerate(["wax-robot-base", "wax-toy-mill-table"] * 2):
+        order, _ = store.submit(part, 1, order_id=f"M{i}")
+        cell, _ = choose(order, store.cells(), store.orders())
+        assert cell is not None
+        store.send(order.id, cell, expires=time.time() + 30)
+    mix = {(o.cell, o.part_type) for o in store.orders()}
+    assert len(mix) == 4  # each cell got one of each type, not two of one
+
+
 def test_a_paused_cell_gets_an_order_only_when_no_other_can(store: FactoryStore) -> None:
     bounds = {"wax-robot-base": 10.0}
     store.set_status("cell1", "online")

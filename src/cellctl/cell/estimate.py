@@ -9,8 +9,9 @@
 Both use the scheduler's bottleneck bound (:func:`cellctl.cell.scheduler.resource_bounds`):
 ``part_bounds`` is what one more part of a type adds to the busiest resource, and
 ``finish_estimate`` the bound of the parts still open. A step never measured yet counts
-:data:`UNMEASURED_TRANSFER_S` / :data:`UNMEASURED_MACHINING_S` (a real cell's orders of
-magnitude); each finished step replaces the guess with the cell's own figure.
+:data:`UNMEASURED_TRANSFER_S` for a transfer and the program's own estimate for a cut
+(from its toolpath; :data:`UNMEASURED_MACHINING_S` when it has none); each finished step
+replaces the guess with the cell's own figure.
 """
 
 from __future__ import annotations
@@ -59,7 +60,8 @@ def _complete(types: Mapping[str, PartType], d: Durations) -> Durations:
         for name in t.transfers():
             full.transfer_s.setdefault(name, UNMEASURED_TRANSFER_S)
         for step in t.route:
-            full.machining_s.setdefault((step.mill, step.name), UNMEASURED_MACHINING_S)
+            guess = step.machining_s if step.machining_s > 0 else UNMEASURED_MACHINING_S
+            full.machining_s.setdefault((step.mill, step.name), guess)
     return full
 
 

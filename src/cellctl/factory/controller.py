@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import json
 import math
 import time
@@ -34,6 +35,7 @@ from cellctl.factory.store import (
     OPEN_STATES,
     QUEUED,
     SENT,
+    CellSeen,
     FactoryOrder,
     FactoryStore,
 )
@@ -156,7 +158,7 @@ class FactoryController:
                 for topic in ("reports", "state", "status"):
                     await client.subscribe(f"{prefix}/{topic}", qos=1)
             self.connected_since = self._clock()
-            self.log(f"factory {self.config.name}: broker {self.config.broker_url}")
+            self.log(f"{self.config.name}: connected to the broker {self.config.broker_url}")
             receiver = asyncio.create_task(self._receive(client))
             try:
                 while not stop.is_set():
@@ -259,9 +261,25 @@ class FactoryController:
             elif order.last_send is None or now - order.last_send >= self.config.resend:
                 await self._publish(client, order)
                 self.store.resent(order.id)
-        open_orders = self.store.orders(OPEN_STATES)
-        for order in [o for o in open_orders if o.state == QUEUED]:
-            cell, why = choose(order, cells, open_orders)
+        await self._dispatch(client, cells, now)
+
+    async def _dispatch(
+        self, client: aiomqtt.Client, cells: dict[str, CellSeen], now: float
+    ) -> None:
+        """Choose a cell for every queued order, commit all choices at once, then send."""
+        planned = {o.id: o for o in self.store.orders(OPEN_STATES)}
+        queued = [o for o in planned.values() if o.state == QUEUED]
+
+        def work(o: FactoryOrder) -> float:
+            return o.qty * max(
+                (c.part_types.get(o.part_type, 0.0) for c in cells.values()), default=0
+            )
+
+        # Higher priority first; within one priority the largest first, so the small ones
+        # even out what the large ones leave (a balanced split of the burst).
+        choices: list[tuple[str, str]] = []
+        for order in sorted(queued, key=lambda o: (-o.priority, -work(o))):
+            cell, why = choose(order, cells, list(planned.values()))
             if cell is None:
                 if every_cell_refused(order, self.config.cells):
                     self.store.fail(order.id, f"refused by every cell ({order.note})")
@@ -269,10 +287,14 @@ class FactoryController:
                 else:
                     self.store.note(order.id, why)
                 continue
-            sent = self.store.send(order.id, cell, now + self.config.accept_timeout)
-            await self._publish(client, sent)
-            self._log(f"order {order.id} sent to {cell}")
-            open_orders = self.store.orders(OPEN_STATES)  # the next choice counts this one
+            choices.append((order.id, cell))
+            planned[order.id] = dataclasses.replace(order, state=SENT, cell=cell)
+        if not choices:
+            return
+        sent = self.store.send_many(choices, now + self.config.accept_timeout)
+        for order in sorted(sent, key=lambda o: (o.submitted, o.id)):  # the cells' FIFO
+            await self._publish(client, order)
+            self._log(f"order {order.id} sent to {order.cell}")
 
     async def _publish(self, client: aiomqtt.Client, order: FactoryOrder) -> None:
         assert order.cell is not None

@@ -49,9 +49,13 @@ def choose(
     # A paused cell takes orders but starts nothing: only when no other can.
     running = [c for c in online if not c.state.get("paused")] or online
 
-    def finish(c: CellSeen) -> tuple[float, int, str]:
+    def finish(c: CellSeen) -> tuple[float, int, int, str]:
         total = load_s(c, open_orders) + order.qty * c.part_types[order.part_type]
-        return (total, int(c.state.get("orders_open") or 0), c.name)
+        # Ties (cells alike, none measured yet): fewer parts of this type, then fewer parts,
+        # as the factory itself knows them (a cell's own count lags a burst of orders).
+        mine = [o for o in open_orders if o.cell == c.name]
+        alike = sum(o.qty for o in mine if o.part_type == order.part_type)
+        return (round(total, 6), alike, sum(o.qty for o in mine), c.name)
 
     best = min(running, key=finish)
     return best.name, ""

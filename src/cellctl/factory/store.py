@@ -202,18 +202,30 @@ class FactoryStore(SqliteStore):
 
     def send(self, order_id: str, cell: str, expires: float) -> FactoryOrder:
         """Give a queued order to ``cell``: committed before the order goes out."""
+        return self.send_many([(order_id, cell)], expires)[0]
+
+    def send_many(self, choices: Sequence[tuple[str, str]], expires: float) -> list[FactoryOrder]:
+        """Give each queued order of ``choices`` (order id, cell) to its cell, in one commit."""
         now = self._clock()
+        out = []
         with self._write() as db:
-            order = _order(db.execute("SELECT * FROM orders WHERE id = ?", (order_id,)).fetchone())
-            if order.state != QUEUED:
-                raise UsageError(f"order {order_id} is {order.state}, not queued")
-            db.execute(
-                "UPDATE orders SET state = ?, cell = ?, sent = COALESCE(sent, ?), last_send = ?,"
-                " sends = sends + 1, expires = ?, updated = ?, note = ? WHERE id = ?",
-                (SENT, cell, now, now, expires, now, f"sent to {cell}", order_id),
-            )
-            _event(db, now, cell, order_id, f"order {order_id} sent to {cell}")
-            return _order(db.execute("SELECT * FROM orders WHERE id = ?", (order_id,)).fetchone())
+            for order_id, cell in choices:
+                row = db.execute("SELECT * FROM orders WHERE id = ?", (order_id,)).fetchone()
+                if row is None:
+                    raise UsageError(f"no order {order_id!r} in the factory")
+                order = _order(row)
+                if order.state != QUEUED:
+                    raise UsageError(f"order {order_id} is {order.state}, not queued")
+                db.execute(
+                    "UPDATE orders SET state = ?, cell = ?, sent = COALESCE(sent, ?),"
+                    " last_send = ?, sends = sends + 1, expires = ?, updated = ?, note = ?"
+                    " WHERE id = ?",
+                    (SENT, cell, now, now, expires, now, f"sent to {cell}", order_id),
+                )
+                _event(db, now, cell, order_id, f"order {order_id} sent to {cell}")
+                row = db.execute("SELECT * FROM orders WHERE id = ?", (order_id,)).fetchone()
+                out.append(_order(row))
+        return out
 
     def resent(self, order_id: str) -> None:
         """Count one more send of an order still waiting for its cell's answer."""

@@ -43,7 +43,7 @@ demo: $(STAMP)
 	$(BIN)/cellctl demo $(DEMO_ARGS)
 
 bench: $(STAMP)
-	cd bench && for b in robot_download many_links mill_download cell_throughput api_push; do \
+	cd bench && for b in robot_download many_links mill_download cell_throughput api_push factory_throughput; do \
 	  ../$(BIN)/python $$b.py || exit 1; done
 
 clean:

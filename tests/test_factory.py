@@ -50,7 +50,7 @@ from cellctl.factory.store import DONE, FINAL_STATES, OPEN_STATES, FactoryStore
 from cellctl.mailbox import CANCELLED, Mailbox, open_mailbox
 from cellctl.mailbox.mqtt import parse_order, read_credentials
 from cellctl.ui.factory_cli import cells_table
-from tests.cell_rig import TIME_SCALE, cli
+from tests.cell_rig import TIME_SCALE, cli, write_cell_options
 
 from .conftest import CELLCTL
 
@@ -63,6 +63,11 @@ FIRST, DURING = BATCH[:20], BATCH[20:]
 WAIT_S = 60.0
 #: Deadline of one operator command.
 CLI_S = 30.0
+#: A pallet asked for comes within milliseconds here: ask again after 2 s, not the example
+#: cell's 60. (A controller killed between the two writes of its pallet_request pulse leaves
+#: the coil high, so its successor's first pulse makes no rising edge and the conveyor never
+#: hears it: only this timeout's alarm and second request get the cell going again.)
+CELL_OPTIONS = {"pallet_timeout": 2.0}
 MILL_INDEX = {"cnc1": 1, "cnc2": 2}
 
 
@@ -95,6 +100,8 @@ class Plant:
     async def __aenter__(self) -> Plant:
         await self.emulated.start()
         try:
+            for name in self.names:
+                write_cell_options(self.cell_dir(name) / "cell.toml", CELL_OPTIONS, {})
             self.logs.mkdir()
             self.store = FactoryStore(load_factory(self.directory).state_path)
             for name in self.names:
@@ -298,6 +305,24 @@ class Plant:
                 cut = cell.runs_per_part().get(blank, {}).get(step.machine, 0)
                 await operator("part", "release", part.id, *([] if cut else ["--redo"]))
 
+    def _physical(self, name: str) -> list[str]:
+        """What the emulators of cell ``name`` say: where the parts are, the PLC's signals."""
+        cell = self.cell(name)
+        plc = cell.plc
+        on = [n for n, v in {**plc.inputs, **plc.coils}.items() if v]
+        return [
+            f"  mills cut: {cell.runs_per_part()}",
+            f"  pallet {cell.pallet_part} gripper {cell.gripper} vises {cell.vise}"
+            f" outfeed {cell.outfeed}",
+            f"  plc on: {on} pallets delivered {plc.pallets_delivered}"
+            f" timers {sorted(plc._timers)}",
+            "  mills: "
+            + ", ".join(
+                f"{m}: {mill.display} executing={mill.executing}" for m, mill in cell.mills.items()
+            ),
+            f"  robot state {cell.robot.state}",
+        ]
+
     def describe(self) -> str:
         """The factory's orders and events, each cell's open work, the processes' logs."""
         lines = ["factory orders:"]
@@ -329,7 +354,7 @@ class Plant:
             lines += [
                 f"  alarm {a.id} {a.machine} {a.code} {a.text}" for a in journal.active_alarms()
             ]
-            lines.append(f"  mills cut: {self.cell(name).runs_per_part()}")
+            lines += self._physical(name)
         for log in sorted(self.logs.glob("*.log")):
             tail = log.read_text(errors="replace").splitlines()[-40:]
             lines += [f"---- {log.name} (last 40 lines)", *tail]

@@ -173,3 +173,20 @@ async def test_kill_9_and_restart_never_cuts_a_part_twice(tmp_path: Path, seed: 
         assert all(r == {"cnc1": 1, "cnc2": 1} for r in rig.cell.runs_per_part().values())
         held = {r.part_id for r in rig.reports("part-held")}
         assert held, f"no kill landed in a step: {kills}"
+
+
+async def test_a_pulse_left_high_by_a_killed_controller_is_lowered_at_start(
+    tmp_path: Path,
+) -> None:
+    """Killed between the two writes of a pulse, a controller leaves its coil high; the next
+    one lowers it first, so its own first pulse is a rising edge the conveyor hears."""
+    async with CellRig(tmp_path / "cell") as rig:
+        plc = rig.cell.plc
+        plc.coils["pallet_request"] = True  # as the dead controller left it: no pallet came
+        plc.coils["go_1"] = True
+        rig.post("wax-robot-base", 1, "A")
+        await rig.start_controller()
+        await rig.wait_for(rig.all_done, "order A done")
+        assert [a.text for a in rig.journal.alarms()] == [], rig.describe()
+        assert plc.pallets_delivered == 1 and plc.coils["go_1"] is False
+        assert rig.cut_twice() == {}

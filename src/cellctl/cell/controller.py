@@ -165,6 +165,10 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
             if name in self.machines:
                 self.machines[name].in_service = False
         self.plc = await ModbusPlc.connect(self.plc_map.url, self.plc_map)
+        # A controller killed mid-pulse leaves that coil high: this one's first pulse would
+        # make no rising edge, and the conveyor or the mill would never hear it.
+        for coil in ["pallet_request", *(self._go_coil(m) for m in self.config.mills)]:
+            await self.plc.write(coil, False)
         self.robot = await self._open_robot()
         for m in self.config.mills:
             self.mills[m.name] = await self._open_mill(m)
@@ -198,8 +202,11 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
     def _robot_busy(self) -> bool:
         return self._robot_task is not None and not self._robot_task.done()
 
+    def _go_coil(self, m: MachineConfig) -> str:
+        return canonical(m.go_output or f"go_{self._mill_index(m.name)}")
+
     def _go_pulser(self, m: MachineConfig) -> Callable[[], Any]:
-        coil = canonical(m.go_output or f"go_{self._mill_index(m.name)}")
+        coil = self._go_coil(m)
 
         async def pulse() -> None:
             assert self.plc is not None

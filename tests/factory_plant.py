@@ -33,10 +33,8 @@ FIRST, DURING = BATCH[:20], BATCH[20:]
 WAIT_S = 60.0
 #: Deadline of one operator command.
 CLI_S = 30.0
-#: A pallet asked for comes within milliseconds here: ask again after 2 s, not the example
-#: cell's 60. (A controller killed between the two writes of its pallet_request pulse leaves
-#: the coil high, so its successor's first pulse makes no rising edge and the conveyor never
-#: hears it: only this timeout's alarm and second request get the cell going again.)
+#: A pallet asked for comes within milliseconds here: one that does not come is an alarm
+#: after 2 s, not after the example cell's 60 (a failure then says so within the deadlines).
 CELL_OPTIONS = {"pallet_timeout": 2.0}
 MILL_INDEX = {"cnc1": 1, "cnc2": 2}
 

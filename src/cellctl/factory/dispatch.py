@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
 
-from cellctl.factory.store import ACCEPTED, SENT, CellSeen, FactoryOrder
+from cellctl.factory.store import AT_CELL_STATES, SENT, CellSeen, FactoryOrder
 
 
 def load_s(cell: CellSeen, orders: Iterable[FactoryOrder]) -> float:
@@ -28,7 +28,7 @@ def load_s(cell: CellSeen, orders: Iterable[FactoryOrder]) -> float:
         if o.cell != cell.name:
             continue
         # Sent and not yet answered, or accepted after the state: not in its estimate yet.
-        if o.state == SENT or (o.state == ACCEPTED and (o.accepted or 0.0) > since):
+        if o.state == SENT or (o.state in AT_CELL_STATES and (o.accepted or 0.0) > since):
             pending += o.qty * bounds.get(o.part_type, 0.0)
     return base + pending
 

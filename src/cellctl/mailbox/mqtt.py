@@ -260,7 +260,10 @@ class MqttBridge:
                 try:
                     await self._session()
                     delay = BACKOFF_S[0]
-                except aiomqtt.MqttError as e:
+                except (aiomqtt.MqttError, OSError, ValueError) as e:
+                    # ValueError, OSError: a message or a file the session could not handle
+                    # (a mark that cannot be written, say). Never end silently: the cell
+                    # would go on without a mailbox and the factory would think it online.
                     self.connected.clear()
                     if not told:
                         self.log(f"mailbox: {self.settings.url}: {e} (trying again)")

@@ -151,6 +151,7 @@ async def _run_owned(
         await controller.connect()
         if bridge is not None:
             bridge_task = asyncio.create_task(bridge.run())
+            bridge_task.add_done_callback(lambda t: _bridge_ended(t, controller))
         if live:
             with Live(live_view(controller), console=console, refresh_per_second=4) as screen:
                 task = asyncio.create_task(controller.run(stop, until_idle=until_idle))
@@ -196,6 +197,16 @@ def _mqtt_bridge(
     ca = config.directory / box.ca if box.ca else None
     settings = MqttSettings.load(box.url, config.directory / box.credentials, ca)
     return MqttBridge(settings, controller, mailbox, journal, log=controller.log)
+
+
+def _bridge_ended(task: asyncio.Task[None], controller: CellController) -> None:
+    """Say so when the MQTT side of the mailbox ends on an error it could not handle."""
+    if task.cancelled() or task.exception() is None:
+        return
+    controller.log(
+        f"mailbox: the broker link stopped on an error: {task.exception()!r}; orders from the "
+        "broker wait until `cellctl run` is started again"
+    )
 
 
 def _print_event(e: Event) -> None:

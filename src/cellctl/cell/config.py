@@ -332,7 +332,7 @@ def _is_loopback(text: str) -> bool:
     """Whether ``HOST:PORT`` names a loopback host; ValueError when it is not HOST:PORT."""
     host, sep, port = text.rpartition(":")
     host = host.strip("[]")
-    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+    if not sep or not host or not port.isdecimal() or not 0 < int(port) < 65536:
         raise ValueError(f'listen = {text!r}: write "HOST:PORT", e.g. "127.0.0.1:7125"')
     try:
         loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback

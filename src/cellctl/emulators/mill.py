@@ -240,7 +240,7 @@ class Dyna2400Emulator(EmulatedDevice):
         """Switch a fault on (names in :data:`FAULTS`)."""
         if name not in FAULTS:
             raise UsageError(f"unknown fault {name!r}; known: {', '.join(FAULTS)}")
-        if name == "drop" and arg is not None and not arg.isdigit():
+        if name == "drop" and arg is not None and not arg.isdecimal():
             raise UsageError(f"drop takes a line count, not {arg!r}")
         if name == "noise":
             self.noise = LineNoise.parse(arg)
@@ -373,7 +373,7 @@ class Dyna2400Emulator(EmulatedDevice):
             await self._line_execute(text)
             return
         number_text = text[:3]
-        if not number_text.isdigit() or (len(text) > 3 and not text[3].isspace()):
+        if not number_text.isdecimal() or (len(text) > 3 and not text[3].isspace()):
             self._fail("LINE NO")
             return
         number = int(number_text)

@@ -35,7 +35,7 @@ def resolve_part_id(journal: Journal, text: str) -> str:
         return text
     matches = [p.id for p in parts if p.id.startswith(text)] if text else []
     order, sep, number = text.rpartition("-")
-    if not matches and sep and order and number.isdigit():
+    if not matches and sep and order and number.isdecimal():
         matches = [
             p.id for p in parts if p.order_id.startswith(order) and p.seq_in_order == int(number)
         ]

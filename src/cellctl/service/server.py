@@ -116,7 +116,7 @@ def parse_listen(text: str, allow_remote: bool) -> tuple[str, int]:
     """``"127.0.0.1:7125"`` → (host, port); a non-loopback host only with ``allow_remote``."""
     host, sep, port_text = text.rpartition(":")
     host = host.strip("[]")
-    if not sep or not host or not port_text.isdigit() or not 0 < int(port_text) < 65536:
+    if not sep or not host or not port_text.isdecimal() or not 0 < int(port_text) < 65536:
         raise UsageError(f'[api] listen = "{text}": write "HOST:PORT", e.g. "127.0.0.1:7125"')
     try:
         loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback

@@ -134,7 +134,7 @@ def check_params(
     problems: list[str] = []
     if "partition" in fields:
         text = str(raw.get("partition", "")).strip()
-        if not text.isdigit() or int(text) not in PARTITIONS:
+        if not text.isdecimal() or int(text) not in PARTITIONS:
             problems.append(f"partition must be 1 to 5, not {text or 'nothing'} (partition error)")
         else:
             params["partition"] = int(text)

@@ -102,6 +102,9 @@ async def test_orders_in_reports_out_a_repeated_id_and_the_retained_state(
         with open_mailbox(rig.directory) as mailbox:
             bridge = MqttBridge(settings, controller, mailbox, rig.journal)
             task = asyncio.create_task(bridge.run())
+            # The cell's session is new: an order published before it subscribed is not its.
+            async with asyncio.timeout(20):
+                await bridge.connected.wait()
             async with client(broker, FACTORY_USER, identifier="f", clean_session=False) as f:
                 await f.subscribe("cellctl/cell1/reports", qos=1)
                 order = {"v": 1, "id": "F1", "part_type": "wax-robot-base", "qty": 1}

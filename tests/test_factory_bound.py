@@ -11,9 +11,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cellctl.cell.config import PartType, RouteStep
+from cellctl.cell.estimate import measured_durations
 from cellctl.cell.journal import Step
 from cellctl.cell.scheduler import lower_bound
-from cellctl.factory.bound import CellBound, cell_bound, measured_durations, split_bound
+from cellctl.factory.bound import CellBound, cell_bound, split_bound
 
 BASE = PartType(
     "base",

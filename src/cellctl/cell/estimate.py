@@ -17,11 +17,11 @@ replaces the guess with the cell's own figure.
 from __future__ import annotations
 
 from collections import defaultdict
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 from cellctl.cell.config import PartType
-from cellctl.cell.journal import Journal
+from cellctl.cell.journal import Journal, Step
 from cellctl.cell.scheduler import resource_bounds
 
 #: Seconds a robot transfer or a cut counts for before the cell has measured one.
@@ -31,31 +31,50 @@ UNMEASURED_MACHINING_S = 600.0
 
 @dataclass
 class Durations:
-    """Mean measured seconds per robot program and per (mill, program)."""
+    """Measured seconds: the mean and the least of each robot program and (mill, program)."""
 
     transfer_s: dict[str, float] = field(default_factory=dict)
     machining_s: dict[tuple[str, str], float] = field(default_factory=dict)
+    least_transfer_s: dict[str, float] = field(default_factory=dict)
+    least_machining_s: dict[tuple[str, str], float] = field(default_factory=dict)
+
+    def filled(self, other: Durations) -> Durations:
+        """These durations, with ``other``'s for every step not measured here."""
+        return Durations(
+            {**other.transfer_s, **self.transfer_s},
+            {**other.machining_s, **self.machining_s},
+            {**other.least_transfer_s, **self.least_transfer_s},
+            {**other.least_machining_s, **self.least_machining_s},
+        )
+
+
+def measured_durations(steps: Iterable[Step]) -> Durations:
+    """Durations of the finished steps given (a step runs from its start to its end entry)."""
+    transfers: dict[str, list[float]] = defaultdict(list)
+    cuts: dict[tuple[str, str], list[float]] = defaultdict(list)
+    for s in steps:
+        if s.state != "finished" or s.ended is None:
+            continue
+        if s.kind == "transfer":
+            transfers[s.program].append(s.ended - s.started)
+        else:
+            cuts[(s.machine, s.program)].append(s.ended - s.started)
+    return Durations(
+        {k: sum(v) / len(v) for k, v in transfers.items()},
+        {k: sum(v) / len(v) for k, v in cuts.items()},
+        {k: min(v) for k, v in transfers.items()},
+        {k: min(v) for k, v in cuts.items()},
+    )
 
 
 def measured(journal: Journal) -> Durations:
-    """The means of the journal's finished steps."""
-    sums: dict[tuple[str, str, str], list[float]] = defaultdict(list)
-    for s in journal.steps():
-        if s.state == "finished" and s.ended is not None:
-            sums[(s.kind, s.machine, s.program)].append(s.ended - s.started)
-    out = Durations()
-    for (kind, machine, program), values in sums.items():
-        mean = sum(values) / len(values)
-        if kind == "transfer":
-            out.transfer_s[program] = mean
-        else:
-            out.machining_s[(machine, program)] = mean
-    return out
+    """The durations of the journal's finished steps."""
+    return measured_durations(journal.steps())
 
 
 def _complete(types: Mapping[str, PartType], d: Durations) -> Durations:
     """``d`` with a guess for every step of ``types`` it has not measured."""
-    full = Durations(dict(d.transfer_s), dict(d.machining_s))
+    full = Durations(dict(d.transfer_s), dict(d.machining_s))  # means only: the bound's terms
     for t in types.values():
         for name in t.transfers():
             full.transfer_s.setdefault(name, UNMEASURED_TRANSFER_S)

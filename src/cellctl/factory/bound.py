@@ -2,7 +2,7 @@
 
 ::
 
-    d = measured_durations(s for s in journal.steps() if s.started >= t0)
+    d = measured_durations(s for s in journal.steps() if s.started >= t0)  # cell.estimate
     bounds = {"cell1": cell_bound(config.parts, d), ...}       # counts per type -> s
     best, split = split_bound(bounds, {"wax-robot-base": 60, "wax-toy-mill-table": 60})
     # best: s; split: {"cell1": {"wax-robot-base": 15, "wax-toy-mill-table": 15}, ...}
@@ -20,54 +20,14 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections import defaultdict
-from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass, field
+from collections.abc import Callable, Mapping
 
 from cellctl.cell.config import PartType
-from cellctl.cell.journal import Step
+from cellctl.cell.estimate import Durations
 from cellctl.cell.scheduler import lower_bound
 
 #: A cell's bound (s) of a batch given as parts per type.
 CellBound = Callable[[Mapping[str, int]], float]
-
-
-@dataclass
-class Durations:
-    """Measured seconds: the mean and the least of each robot program and (mill, program)."""
-
-    transfer_s: dict[str, float] = field(default_factory=dict)
-    machining_s: dict[tuple[str, str], float] = field(default_factory=dict)
-    least_transfer_s: dict[str, float] = field(default_factory=dict)
-    least_machining_s: dict[tuple[str, str], float] = field(default_factory=dict)
-
-    def filled(self, other: Durations) -> Durations:
-        """These durations, with ``other``'s for every step not measured here."""
-        return Durations(
-            {**other.transfer_s, **self.transfer_s},
-            {**other.machining_s, **self.machining_s},
-            {**other.least_transfer_s, **self.least_transfer_s},
-            {**other.least_machining_s, **self.least_machining_s},
-        )
-
-
-def measured_durations(steps: Iterable[Step]) -> Durations:
-    """Durations of the finished steps given (a step runs from its start to its end entry)."""
-    transfers: dict[str, list[float]] = defaultdict(list)
-    cuts: dict[tuple[str, str], list[float]] = defaultdict(list)
-    for s in steps:
-        if s.state != "finished" or s.ended is None:
-            continue
-        if s.kind == "transfer":
-            transfers[s.program].append(s.ended - s.started)
-        else:
-            cuts[(s.machine, s.program)].append(s.ended - s.started)
-    return Durations(
-        {k: sum(v) / len(v) for k, v in transfers.items()},
-        {k: sum(v) / len(v) for k, v in cuts.items()},
-        {k: min(v) for k, v in transfers.items()},
-        {k: min(v) for k, v in cuts.items()},
-    )
 
 
 def cell_bound(types: Mapping[str, PartType], d: Durations) -> CellBound:

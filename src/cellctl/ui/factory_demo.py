@@ -43,11 +43,12 @@ from pathlib import Path
 from typing import Any
 
 from cellctl.cell.config import load_cell
+from cellctl.cell.estimate import Durations, measured_durations
 from cellctl.cell.journal import open_journal
 from cellctl.cell.report import Summary, summarize, write_gantt
 from cellctl.emulators.cell import EXAMPLE_CELL
 from cellctl.errors import UsageError
-from cellctl.factory.bound import Durations, cell_bound, measured_durations, split_bound
+from cellctl.factory.bound import cell_bound, split_bound
 from cellctl.factory.config import load_factory
 from cellctl.factory.controller import FactoryController
 from cellctl.factory.emulated import EmulatedFactory

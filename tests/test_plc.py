@@ -119,7 +119,8 @@ async def emulator() -> AsyncIterator[PlcEmulator]:
 
 @pytest.fixture
 async def plc(emulator: PlcEmulator) -> AsyncIterator[ModbusPlc]:
-    driver = await ModbusPlc.connect(emulator.url, emulator.map, timeout=1.0)
+    # Loopback answers in milliseconds: the deadline leaves room for a loaded test box.
+    driver = await ModbusPlc.connect(emulator.url, emulator.map, timeout=3.0)
     yield driver
     await driver.close()
 

@@ -22,7 +22,6 @@ import asyncio
 import contextlib
 import dataclasses
 import json
-import math
 import time
 from collections.abc import Callable
 from typing import Any
@@ -39,7 +38,7 @@ from cellctl.factory.store import (
     FactoryOrder,
     FactoryStore,
 )
-from cellctl.mailbox.mqtt import BACKOFF_S, VERSION, MqttSettings
+from cellctl.mailbox.mqtt import BACKOFF_S, VERSION, MqttSettings, finite_number
 
 #: How long the factory must have been connected before it moves an unanswered order from an
 #: offline cell: reports the broker kept for it arrive first (a cell reconnects within the
@@ -47,15 +46,6 @@ from cellctl.mailbox.mqtt import BACKOFF_S, VERSION, MqttSettings
 SETTLE_S = BACKOFF_S[1] + 1.0
 #: How often the store is looked at for orders submitted by another process.
 SUBMIT_CHECK_S = 0.02
-
-
-def _number(value: object) -> bool:
-    if not isinstance(value, int | float) or isinstance(value, bool):
-        return False
-    try:
-        return math.isfinite(value)
-    except OverflowError:  # an integer beyond any float
-        return False
 
 
 def malformed(kind: str, data: dict[str, Any]) -> str | None:
@@ -66,7 +56,7 @@ def malformed(kind: str, data: dict[str, Any]) -> str | None:
     if kind == "state":
         types = data.get("part_types") or {}
         if not isinstance(types, dict) or not all(
-            isinstance(t, dict) and _number(t.get("bound_s", 0.0)) for t in types.values()
+            isinstance(t, dict) and finite_number(t.get("bound_s", 0.0)) for t in types.values()
         ):
             return 'part_types is not {NAME: {"bound_s": seconds}}'
         machines = data.get("machines") or {}
@@ -86,7 +76,7 @@ def malformed(kind: str, data: dict[str, Any]) -> str | None:
     else:
         return None
     for key in fields:
-        if key in data and not _number(data[key]):
+        if key in data and not finite_number(data[key]):
             return f"{key} is not a number"
     return None
 
@@ -124,6 +114,7 @@ class FactoryController:
 
     async def run(self, stop: asyncio.Event, *, until_idle: bool = False) -> None:
         """Serve until ``stop`` is set (or, with ``until_idle``, every order has ended)."""
+        # The factory has no prefix of its own: it speaks on the cells' (factory.toml).
         settings = MqttSettings.load(
             self.config.broker_url.rstrip("/") + "/factory", self.config.credentials, self.config.ca
         )

@@ -28,7 +28,7 @@ from typing import Any
 
 from cellctl.cell.sqlitedb import SqliteStore
 from cellctl.errors import UsageError
-from cellctl.mailbox.base import check_new_order
+from cellctl.mailbox.base import MAX_QTY, check_new_order
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS orders (
@@ -77,8 +77,6 @@ DONE, FAILED, CANCELLED = "done", "failed", "cancelled"
 OPEN_STATES = (QUEUED, SENT, ACCEPTED, IN_PROGRESS, HELD)
 AT_CELL_STATES = (ACCEPTED, IN_PROGRESS, HELD)
 FINAL_STATES = (DONE, FAILED, CANCELLED)
-#: Most parts one order may ask for (as the cell's mailbox).
-MAX_QTY = 10_000
 
 
 @dataclass(frozen=True)
@@ -166,8 +164,6 @@ class FactoryStore(SqliteStore):
         oid = check_new_order(part_type, qty, priority, order_id)
         if qty > MAX_QTY:
             raise UsageError(f"order quantity must be at most {MAX_QTY}, not {qty}")
-        if not -(2**63) <= priority < 2**63:  # what SQLite can store
-            raise UsageError(f"order priority must fit in 64 bits, not {priority}")
         now = self._clock()
         with self._write() as db:
             row = db.execute("SELECT * FROM orders WHERE id = ?", (oid,)).fetchone()

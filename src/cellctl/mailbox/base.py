@@ -93,6 +93,12 @@ def check_transition(order: Order, state: str) -> None:
         raise UsageError(f"order {order.id} is {order.state}: it cannot become {state}")
 
 
+#: Most parts one order may ask for.
+MAX_QTY: Final = 10_000
+#: The integers SQLite stores (a larger one would fail at the write, not at the check).
+INT64 = range(-(2**63), 2**63)
+
+
 def check_new_order(part_type: str, qty: int, priority: int, order_id: str | None) -> str:
     """Validate a new order's fields; return its id (a fresh one if ``order_id`` is None)."""
     if not part_type.strip():
@@ -101,6 +107,8 @@ def check_new_order(part_type: str, qty: int, priority: int, order_id: str | Non
         raise UsageError(f"order quantity must be at least 1, not {qty}")
     if isinstance(priority, bool) or not isinstance(priority, int):
         raise UsageError(f"order priority must be a whole number, not {priority!r}")
+    if priority not in INT64 or qty not in INT64:
+        raise UsageError(f"order quantity and priority must fit in 64 bits: {qty}, {priority}")
     if order_id is None:
         return uuid.uuid4().hex[:12]
     if not order_id.strip() or order_id != order_id.strip() or any(c.isspace() for c in order_id):

@@ -37,7 +37,7 @@ import aiomqtt
 from cellctl.cell.estimate import finish_estimate, measured, part_bounds
 from cellctl.cell.journal import Journal
 from cellctl.errors import UsageError
-from cellctl.mailbox.base import Mailbox, Report
+from cellctl.mailbox.base import INT64, Mailbox, Report
 
 #: The payloads' format version (docs/factory.md).
 VERSION = 1
@@ -132,7 +132,10 @@ def report_payload(cell: str, r: Report) -> dict[str, Any]:
     }
 
 
-def _finite(value: float) -> bool:
+def finite_number(value: object) -> bool:
+    """A JSON number that is finite (not a bool, NaN, an infinity, or beyond any float)."""
+    if not isinstance(value, int | float) or isinstance(value, bool):
+        return False
     try:
         return math.isfinite(value)
     except OverflowError:  # an integer beyond any float
@@ -152,12 +155,10 @@ def parse_order(payload: bytes) -> dict[str, Any]:
         value = data.get(key, 0 if key == "priority" else None)
         if not isinstance(value, kind) or isinstance(value, bool):
             raise UsageError(f"order field {key!r} must be {kind.__name__}, not {value!r}")
-        if isinstance(value, int) and not -(2**63) <= value < 2**63:  # what SQLite can store
+        if isinstance(value, int) and value not in INT64:
             raise UsageError(f"order field {key!r} must fit in 64 bits, not {value}")
     expires = data.get("expires")
-    if expires is not None and (
-        not isinstance(expires, int | float) or isinstance(expires, bool) or not _finite(expires)
-    ):
+    if expires is not None and not finite_number(expires):
         raise UsageError(f"order field 'expires' must be a time, not {expires!r}")
     return {**{k: data.get(k, 0) for k in fields}, "expires": expires}
 
@@ -233,7 +234,7 @@ class MqttBridge:
                 for r in self.mailbox.reports(since_seq=self.sent_seq)
                 if r.order_id == oid and r.kind in ANSWERS
             ]
-            if not self._known(oid) or not unsent or unsent[0].kind != "order-accepted":
+            if not unsent or unsent[0].kind != "order-accepted":
                 continue  # not taken, or refused: its answer goes out as it is
             try:
                 self.journal.cancel_parts(oid)

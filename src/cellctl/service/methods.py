@@ -24,6 +24,7 @@ from cellctl import __version__
 from cellctl import errors as errors_module
 from cellctl.errors import CellctlError, DeviceError, ProtocolError, UsageError, exit_code
 from cellctl.mailbox import ORDER_STATES
+from cellctl.mailbox.base import MAX_QTY
 from cellctl.service import operator
 from cellctl.service.access import CellAccess
 from cellctl.service.functions import FUNCTIONS, MachineFunction, Progress, describe
@@ -54,7 +55,7 @@ class EstopParams(P):
 
 class SubmitParams(P):
     part_type: str = Field(min_length=1, max_length=100)
-    qty: int = Field(default=1, ge=1, le=10_000)
+    qty: int = Field(default=1, ge=1, le=MAX_QTY)
     priority: int = Field(default=0, ge=-1_000_000, le=1_000_000)
     id: str | None = Field(default=None, min_length=1, max_length=100)
 

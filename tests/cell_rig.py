@@ -45,6 +45,9 @@ def fast_options(**overrides: Any) -> dict[str, Any]:
         "transfer_timeout": 3.0,
         "interlock_timeout": 1.5,
         "pallet_timeout": 1.0,
+        # Half the short poll (the default) is too little for a loaded test box: a slow
+        # read would be told as a silent machine.
+        "read_limit": 1.0,
     }
     values.update(overrides)
     return values

@@ -8,6 +8,7 @@ completes: every order done, no part lost, no part cut twice by one mill.
 
 from __future__ import annotations
 
+import asyncio
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,27 +25,31 @@ MILL_INDEX = {"cnc1": 1, "cnc2": 2}
 class Case:
     fault: str  # MACHINE:NAME[=ARG], as `cellctl emulate cell --fault` takes it
     alarm_machine: str
-    alarm_text: str  # regular expression an alarm of alarm_machine must match
-    held: bool  # the fault holds a part (else the controller recovers on its own)
+    alarm_text: str  # regular expression an alarm of alarm_machine must match: the cause
+    held: bool | None  # the fault holds a part (False: it never does; None: if the arm moved)
     out_of_service: bool = False  # the machine keeps failing: taken out of service
     also: str | None = None  # a second fault that makes the first one matter
 
 
 CASES = [
-    Case("robot:power-off", "robot", r"transfer cnc1_to_cnc2 failed: manipulator power off", True),
-    Case("robot:servo-error", "robot", r"servo error", True),
-    Case("robot:drop", "robot", r"transfer cnc1_to_cnc2 failed: .*closed", True),
-    Case("robot:silent", "robot", r"no answer|no Ack", True),
+    # A robot fault is alarmed as its cause (its status, its link), whether the monitor or
+    # a transfer sees it first; a transfer it cut short holds its part, one it stopped
+    # before the arm moved leaves the part where it was.
+    Case("robot:power-off", "robot", r"^power failure$", None),
+    Case("robot:servo-error", "robot", r"^servo error$", None),
+    Case("robot:drop", "robot", r"^link closed by the other end$", None),
+    Case("robot:silent", "robot", r"^robot not answering$", None),
     # Seen idle (lost readiness) or as a cut is sent (CTS low): whichever comes first.
     Case("cnc2:never-ready", "cnc2", r"lost readiness|CTS low", False, out_of_service=True),
     # no-next matters when the mill is set up again: after a dropped block it is.
-    Case("cnc2:no-next", "cnc2", r"needs inspection", True, also="cnc2:drop=3"),
-    Case("cnc2:drop=3", "cnc2", r"needs inspection: machining .* on cnc2 failed", True),
+    Case("cnc2:no-next", "cnc2", r"^link closed by the other end$", True, also="cnc2:drop=3"),
+    Case("cnc2:drop=3", "cnc2", r"^link closed by the other end$", True),
     Case("cnc2:stall", "cnc2", r"needs inspection: .* still running", True),
-    Case("plc:drop", "plc", r"PLC not answering", False),
-    Case("plc:silent", "plc", r"PLC not answering", False),
-    # The transfer program waits for the door: the transfer times out, its part is held.
-    Case("plc:stuck-door=2", "robot", r"transfer cnc1_to_cnc2 failed: .*output 6", True),
+    Case("plc:drop", "plc", r"PLC not answering|link closed by the other end", False),
+    Case("plc:silent", "plc", r"^PLC not answering$", False),
+    # A door that does not leave its end position is stuck: caught before the arm moves
+    # or the cut starts, so no part is held.
+    Case("plc:stuck-door=2", "plc", r"door of CNC 2 did not leave its (closed|open) position", False),
     Case("plc:no-pallet", "plc", r"no pallet", False),
     Case("plc:estop", "plc", r"emergency stop", False),
 ]
@@ -184,13 +189,20 @@ async def test_a_robot_reject_is_reset_and_retried_a_bounded_number_of_times(
         controller = await rig.start_controller(retries=2)
         await rig.wait_for(lambda: rig.finished_steps("machine") >= 1, "first cut done")
         apply_fault(rig.cell, "robot:power-off")
-        await rig.wait_for(rig.held_parts, "the part held")
+        await rig.wait_for(
+            lambda: [s for s in rig.journal.steps() if s.state == "failed"], "a failed transfer"
+        )
         retries = [e.text for e in controller.events if "reset and retry" in e.text]
         assert len(retries) == 2, retries
         assert all("manipulator power off" in text for text in retries)
-        # The arm never moved: the part is still in cnc1's vise, and the next transfer
-        # was not started (nothing else can move).
+        # The arm never moved: the part is still in cnc1's vise, not held (nothing to
+        # inspect), and no transfer starts while the robot's status says power failure.
         assert rig.cell.vise[1] == "P1"
+        assert rig.held_parts() == []
+        assert [(a.machine, a.text) for a in rig.journal.active_alarms()] == [
+            ("robot", "power failure")
+        ]
+        await asyncio.sleep(controller.options.poll_period * 3)
         failed = [s for s in rig.journal.steps() if s.state == "failed"]
         assert [(s.kind, s.program) for s in failed] == [("transfer", "cnc1_to_cnc2")]
         switch_off(rig, "robot:power-off")

@@ -29,6 +29,11 @@ class LinkTimeout(LinkError):
     """A wait on the link passed its deadline."""
 
 
+class SignalTimeout(LinkTimeout):
+    """A signal (a PLC input, a robot output) did not reach its value in time: the machine
+    answered every read, it just did not do the thing (a stuck door, a cycle not done)."""
+
+
 class LinkClosed(LinkError):
     """The other end closed the link (or the link was closed locally)."""
 

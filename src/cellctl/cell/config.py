@@ -192,10 +192,15 @@ class CellTable(_Table):
         default=60.0,
         description="s for the conveyor to bring a pallet once asked (then alarm, ask again)",
     )
-    read_limit: Seconds = Field(
-        default=1.0,
+    read_limit: Seconds | None = Field(
+        default=None,
         description="s an idle robot's or the PLC's status read may take before it counts "
-        "as not answering",
+        "as not answering (default: half the poll period)",
+    )
+    door_start_timeout: Seconds | None = Field(
+        default=None,
+        description="s a commanded door may take to leave its end position before it counts "
+        "as stuck (default: half the poll period)",
     )
 
 

@@ -39,6 +39,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from cellctl.cell.causes import Blamed, Cause, blame, link_cause
 from cellctl.cell.commands import OperatorCommands
 from cellctl.cell.config import CONVEYOR, CellConfig, MachineConfig, transfer_ends
 from cellctl.cell.journal import Journal, Part
@@ -125,10 +126,18 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
         return [m.name for m in self.config.mills].index(name) + 1
 
     def _alarm(self, machine: str, code: str, text: str) -> None:
+        """Raise an alarm, unless ``machine`` has an active one with this ``code``: a fault
+        seen again, or seen through its effects, adds nothing (see :mod:`cellctl.cell.causes`);
+        once the operator clears it, a fault still there is raised again."""
+        if any(a.machine == machine and a.code == code for a in self.journal.active_alarms()):
+            return
         alarm, new = self.journal.raise_alarm(machine, code, text)
         if new:
             self.mailbox.post_report("alarm-raised", f"{machine}: {text}", data={"alarm": alarm.id})
             self.log(f"ALARM {alarm.id} {machine}: {text}")
+
+    def _cause_alarm(self, cause: Cause) -> None:
+        self._alarm(cause.machine, cause.code, cause.text)
 
     def _failed(self, machine: str, code: str, text: str, *, alarm: bool = True) -> None:
         """A machine failed a step: alarm, and out of service after ``fail_limit`` in a row."""
@@ -345,6 +354,8 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
             return
         if self._robot_task is not None and not self._robot_task.done():
             return
+        if not self.recovery.robot_ok:
+            return  # a robot fault: no transfer until the monitor finds it well
         try:
             await self._read_inputs()
         except CellctlError:
@@ -380,15 +391,6 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
         waiting = [s for s in states if s.location == CONVEYOR and s.status == "waiting"]
         if not waiting or self.plc is None:
             return
-        overdue = time.monotonic() - self._pallet_requested_at > self.options.pallet_timeout
-        if self._pallet_requested and overdue:
-            # The conveyor lost the request or is stuck: say so, and ask again.
-            self._alarm(
-                "plc",
-                "conveyor",
-                f"no pallet within {self.options.pallet_timeout:g} s of the request",
-            )
-            self._pallet_requested = False
         if not self._pallet_requested:
             try:
                 await self.plc.pulse("pallet_request", 0.05)
@@ -396,6 +398,20 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
                 self._pallet_requested_at = time.monotonic()
             except CellctlError as e:
                 self._alarm("plc", "conveyor", f"cannot request a pallet: {e}")
+
+    def _pallet_overdue(self) -> None:
+        """The monitor's look at a requested pallet: none there ``pallet_timeout`` after the
+        request means the conveyor lost it or is stuck: say so, and let dispatch ask again."""
+        if not self._pallet_requested or self.inputs.get("pallet_present", False):
+            return
+        if time.monotonic() - self._pallet_requested_at > self.options.pallet_timeout:
+            self._alarm(
+                "plc",
+                "conveyor",
+                f"no pallet within {self.options.pallet_timeout:g} s of the request",
+            )
+            self._pallet_requested = False
+            self._wake.set()
 
     # -- the mills' steps -------------------------------------------------------------------------
 
@@ -420,14 +436,15 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
         assert self.plc is not None
         cutting = False  # the first line of the program went out: the part may be cut
         try:
-            # Close the door (a transfer cut short by a restart may have left it open).
-            await self.plc.write(f"door_{index}", False)
-            await self.plc.wait_for(
-                f"door_closed_{index}", True, timeout=self.options.interlock_timeout
-            )
-            await self.plc.wait_for(
-                f"clamp_closed_{index}", True, timeout=self.options.interlock_timeout
-            )
+            with blame("plc", "PLC"):
+                # Close the door (a transfer cut short by a restart may have left it open).
+                await self._doors([mill_name], False)
+                await self.plc.wait_for(
+                    f"door_closed_{index}", True, timeout=self.options.interlock_timeout
+                )
+                await self.plc.wait_for(
+                    f"clamp_closed_{index}", True, timeout=self.options.interlock_timeout
+                )
 
             def progress(p: MillProgress) -> None:
                 nonlocal cutting
@@ -472,8 +489,10 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
             if stopped:
                 self._wake.set()
                 raise
-            # Out of the plan at once; recovery sets it up again (reopening its link).
-            self.recovery.fault(mill_name, "machining", reason)
+            # Out of the plan at once; recovery sets it up again (reopening its link). The
+            # alarm names the cause: the PLC, the mill's link, or the step itself.
+            cause = e.cause if isinstance(e, Blamed) else link_cause(mill_name, "mill", e)
+            self.recovery.fault(mill_name, "machining", reason, cause=cause)
             self._wake.set()
             return
         view.progress = None

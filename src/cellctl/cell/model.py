@@ -62,8 +62,17 @@ class ControllerOptions:
     transfer_timeout: float = 120.0
     interlock_timeout: float = 30.0
     pallet_timeout: float = 60.0
-    read_limit: float = 1.0
+    read_limit: float = 0.0
+    """0: half the poll period (a silent machine is then told within one period)."""
+    door_start_timeout: float = 0.0
+    """0: half the poll period. A commanded door still at its end position then is stuck."""
     one_at_a_time: bool = False
+
+    def __post_init__(self) -> None:
+        if self.read_limit <= 0:
+            self.read_limit = self.poll_period / 2
+        if self.door_start_timeout <= 0:
+            self.door_start_timeout = self.poll_period / 2
 
     @classmethod
     def from_config(cls, config: CellConfig, **overrides: Any) -> ControllerOptions:
@@ -72,7 +81,7 @@ class ControllerOptions:
         for key in ("retries", "fail_limit", "done_output", "transfer_timeout"):
             if key in cell:
                 values[key] = cell[key]
-        for key in ("interlock_timeout", "pallet_timeout", "read_limit"):
+        for key in ("interlock_timeout", "pallet_timeout", "read_limit", "door_start_timeout"):
             if key in cell:
                 values[key] = float(cell[key])
         values.update(overrides)

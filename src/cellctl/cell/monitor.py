@@ -1,12 +1,17 @@
-"""G, monitoring: every poll period, read what is idle and turn what matters into alarms.
+"""G, monitoring: read what is idle, several times a poll period, and turn faults into alarms.
 
-One round reads the PLC's inputs (emergency stop, a PLC that stopped answering), the idle
-robot's machine status (servo error, power failure, a silent or closed line) and each idle
-mill's readiness (CTS): the last poll of a mill is what the scheduler trusts (see
+A fault is to be caught within one poll period, so the monitor reads ``SAMPLES`` times a
+period (never more often than every ``MIN_SAMPLE`` s): the PLC's inputs (emergency stop, a
+PLC that stopped answering, a pallet overdue), the idle robot's machine status (servo error,
+power failure, a silent or closed line) and each idle mill's readiness (CTS, no byte sent):
+the last look at a mill is what the scheduler trusts (see
 :class:`~cellctl.cell.recovery.Recovery`). A mill that lost readiness while idle, or that was
 not ready ``setup_timeout`` after its setup, or whose line fails, is a fault: out of the plan
-at once, one alarm. A busy machine is watched by its own step's deadlines; a machine in the
-operator's manual use is left alone. Every round ends with the controller's ``_touch()``.
+at once, one alarm. A read that takes longer than ``read_limit`` is a silent machine. A busy
+machine is watched by its own step (the robot's status is read while its cycle runs, a
+mill's block has its deadline); a machine in the operator's manual use is left alone. Every
+round ends with the controller's ``_touch()``. Alarms name the cause
+(:mod:`cellctl.cell.causes`).
 """
 
 from __future__ import annotations
@@ -17,8 +22,9 @@ import time
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from cellctl.drivers.robot import ROBOT_STATES
-from cellctl.errors import CellctlError, UsageError
+from cellctl.cell.causes import Blamed, Cause, link_cause, status_cause
+from cellctl.drivers.robot import ROBOT_STATES, RobotHalted
+from cellctl.errors import CellctlError, DeviceError, UsageError
 
 if TYPE_CHECKING:
     from cellctl.cell.config import MachineConfig
@@ -26,6 +32,11 @@ if TYPE_CHECKING:
 
 
 T = TypeVar("T")
+
+#: Looks per poll period: a fault is seen at most a quarter period after it shows.
+SAMPLES = 4
+#: The shortest time between two looks, s (short poll periods in tests stay cheap).
+MIN_SAMPLE = 0.05
 
 
 class _StillOut(Exception):
@@ -65,12 +76,22 @@ class Monitor:
             future.add_done_callback(_consume)
             raise
 
+    @property
+    def sample_period(self) -> float:
+        """Seconds between two rounds."""
+        return max(self.ctl.options.poll_period / SAMPLES, MIN_SAMPLE)
+
     async def run(self) -> None:
         """Rounds until :attr:`done` is set (a round in progress finishes first)."""
+        loop = asyncio.get_running_loop()
         while not self.done.is_set():
+            started = loop.time()
             await self.round()
+            # Rounds start every sample period (a round's own time included), not a period
+            # after the last one ended: that bounds how late a fault is seen.
+            left = self.sample_period - (loop.time() - started)
             with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(self.ctl.options.poll_period):
+                async with asyncio.timeout(max(left, 0.0)):
                     await self.done.wait()
 
     async def round(self) -> None:
@@ -85,6 +106,27 @@ class Monitor:
         ctl._wake.set()
         ctl._touch()
 
+    async def robot_cause(self, error: BaseException) -> Cause | None:
+        """What made a robot step fail, if not the step itself: the PLC (a :class:`Blamed`
+        error), the robot's link, or a machine status that says the arm cannot move (read
+        now, within ``read_limit``, after a reject)."""
+        ctl = self.ctl
+        robot = ctl.robot
+        if robot is None:
+            return None
+        if isinstance(error, Blamed):
+            return error.cause
+        if isinstance(error, RobotHalted):
+            return status_cause(robot.name, error.status)
+        cause = link_cause(robot.name, "robot", error)
+        if cause is not None or not isinstance(error, DeviceError):
+            return cause
+        try:
+            status = await self._bounded("robot-cause", robot.machine_status)
+        except (_StillOut, TimeoutError, CellctlError):
+            return None
+        return None if status.ok else status_cause(robot.name, status)
+
     async def _plc(self) -> None:
         ctl = self.ctl
         view = ctl.plc_view()
@@ -92,18 +134,16 @@ class Monitor:
             inputs = await self._bounded("plc", ctl._read_inputs)
         except _StillOut:
             return
-        except TimeoutError:
-            view.state = "not answering"
-            ctl._alarm("plc", "link", f"PLC not answering within {ctl.options.read_limit:g} s")
-            return
-        except CellctlError as e:
-            view.state = f"error: {e}"
-            ctl._alarm("plc", "link", "PLC not answering")
+        except (TimeoutError, CellctlError) as e:
+            cause = link_cause("plc", "PLC", e) or Cause("plc", "link", f"PLC failed: {e}")
+            view.state = cause.text
+            ctl._cause_alarm(cause)
             return
         view.state = "ok"
         if not inputs.get("estop_ok", True):
             ctl._alarm("plc", "estop", "emergency stop: the cell is stopped")
             view.state = "emergency stop"
+        ctl._pallet_overdue()
 
     async def _robot(self) -> None:
         ctl = self.ctl
@@ -115,17 +155,19 @@ class Monitor:
             status = await self._bounded(robot.name, robot.machine_status)
         except _StillOut:
             return  # the last read is still out (and already told as not answering)
-        except TimeoutError:
-            view.state = "not answering"
-            limit = ctl.options.read_limit
-            ctl._alarm(robot.name, "link", f"robot not answering within {limit:g} s")
+        except (TimeoutError, CellctlError) as e:
+            cause = link_cause(robot.name, "robot", e) or Cause(
+                robot.name, "link", f"robot failed: {e}"
+            )
+            view.state = cause.text
+            ctl.recovery.robot_ok = False
+            ctl._cause_alarm(cause)
             return
-        except CellctlError as e:
-            view.state = f"error: {e}"
-            ctl._alarm(robot.name, "link", f"robot not answering: {e}")
-            return
+        # The robot takes work again once a look finds it well (a transfer then initializes
+        # it if the fault cost it its start-up).
+        ctl.recovery.robot_ok = status.ok
         if not status.ok:
-            ctl._alarm(robot.name, "status", str(status))
+            ctl._cause_alarm(status_cause(robot.name, status))
             view.state = str(status)
         else:
             view.state = ROBOT_STATES.get(robot.state, str(robot.state))
@@ -142,7 +184,8 @@ class Monitor:
         except (CellctlError, UsageError) as e:
             view.state = f"error: {e}"
             if view.in_service:
-                recovery.fault(m.name, "link", f"mill not answering: {e}", count=False)
+                cause = link_cause(m.name, "mill", e) or Cause(m.name, "link", f"mill failed: {e}")
+                recovery.fault(m.name, "link", cause.text, count=False, cause=cause)
             return
         view.state = status.state_text + (f", {status.condition}" if status.condition else "")
         was_ready = recovery.ready.get(m.name, False)

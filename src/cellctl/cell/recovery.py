@@ -20,6 +20,7 @@ import contextlib
 import time
 from typing import TYPE_CHECKING
 
+from cellctl.cell.causes import LINK_CLOSED, Cause
 from cellctl.drivers.robot import ROBOT_STATES
 from cellctl.errors import CellctlError
 
@@ -37,6 +38,8 @@ class Recovery:
         self.ready: dict[str, bool] = {m.name: False for m in controller.config.mills}
         self.setup_at: dict[str, float] = {}
         self.faulted: set[str] = set()
+        self.robot_ok = True
+        """False from a robot fault (its status, its link) until the monitor's next good look."""
         self._tasks: dict[str, asyncio.Task[None]] = {}
 
     # -- what the scheduler asks ----------------------------------------------------------------
@@ -50,19 +53,25 @@ class Recovery:
 
     # -- faults -------------------------------------------------------------------------------
 
-    def fault(self, name: str, code: str, text: str, *, count: bool = True) -> None:
+    def fault(
+        self, name: str, code: str, text: str, *, count: bool = True, cause: Cause | None = None
+    ) -> None:
         """Mill ``name`` cannot take work: out of the plan at once, one alarm, recovery.
 
-        Further faults while it recovers (the forced setup failing again) raise no new alarm:
-        they only count towards ``fail_limit``.
+        The alarm is ``cause``'s when one is given (its link, the PLC), else ``code`` and
+        ``text``. A fault another machine caused does not count towards this one's
+        ``fail_limit``. Further faults while it recovers (the forced setup failing again)
+        raise no new alarm: they only count.
         """
         alarm = name not in self.faulted
         self.faulted.add(name)
         self.fit[name] = False
         self.ready[name] = False
-        if count:
-            self.ctl._failed(name, code, text, alarm=alarm)
-        elif alarm:
+        if cause is not None and alarm:
+            self.ctl._cause_alarm(cause)
+        if count and (cause is None or cause.machine == name):
+            self.ctl._failed(name, code, text, alarm=alarm and cause is None)
+        elif alarm and cause is None:
             self.ctl._alarm(name, code, text)
         self._start(name)
 
@@ -127,9 +136,7 @@ class Recovery:
         if robot is not None and robot.link.closed and not ctl._robot_busy():
             with contextlib.suppress(CellctlError, OSError):
                 await robot.close()
-            if not any(a.machine == robot.name for a in ctl.journal.active_alarms()):
-                # One alarm a fault: a step the cut failed has said so already.
-                ctl._alarm(robot.name, "link", "link closed by the other end")
+            ctl._alarm(robot.name, "link", LINK_CLOSED)  # once: a failed step may have said so
             try:
                 ctl.robot = await ctl._open_robot()
                 ctl.log(f"{robot.name}: link reopened")
@@ -149,7 +156,7 @@ class Recovery:
         with contextlib.suppress(CellctlError, OSError):
             await mill.close()
         if m.name not in self.faulted:  # a cut line is a fault of its own: one alarm
-            self.fault(m.name, "link", "link closed by the other end", count=False)
+            self.fault(m.name, "link", LINK_CLOSED, count=False)
         try:
             ctl.mills[m.name] = await ctl._open_mill(m)
         except (CellctlError, OSError) as e:

@@ -13,6 +13,7 @@ import asyncio
 import time
 from typing import TYPE_CHECKING, Any
 
+from cellctl.cell.causes import blame
 from cellctl.cell.config import CONVEYOR
 from cellctl.cell.model import PartitionUse
 from cellctl.cell.orderflow import OUT
@@ -20,10 +21,13 @@ from cellctl.errors import CellctlError, DeviceError, UsageError
 from cellctl.protocol.robot import PARTITIONS
 
 if TYPE_CHECKING:
+    from cellctl.cell.causes import Cause
     from cellctl.cell.config import CellConfig
     from cellctl.cell.journal import Journal
     from cellctl.cell.model import ControllerOptions
+    from cellctl.cell.monitor import Monitor
     from cellctl.cell.orders import OrderBox
+    from cellctl.cell.recovery import Recovery
     from cellctl.cell.scheduler import Transfer
     from cellctl.drivers.plc import ModbusPlc
     from cellctl.drivers.robot import Ibm7545Robot
@@ -49,6 +53,10 @@ class RobotSteps:
         def _mill_index(self, name: str) -> int: ...
         def _failed(self, machine: str, code: str, text: str, *, alarm: bool = True) -> None: ...
         def _succeeded(self, machine: str) -> None: ...
+        def _cause_alarm(self, cause: Cause) -> None: ...
+
+        monitor: Monitor
+        recovery: Recovery
 
     # -- the robot's steps ------------------------------------------------------------------------
 
@@ -83,11 +91,16 @@ class RobotSteps:
         return target
 
     async def _doors(self, places: list[str], open_: bool) -> None:
+        """Open or close the doors of ``places`` (the conveyor has none). Each must leave its
+        other end position within ``door_start_timeout``: one that does not is stuck
+        (SignalTimeout in the PLC's words), told now rather than at the interlock's deadline."""
         assert self.plc is not None
-        for place in places:
-            if place == CONVEYOR:
-                continue
-            await self.plc.write(f"door_{self._mill_index(place)}", open_)
+        doors = [self._mill_index(p) for p in places if p != CONVEYOR]
+        for n in doors:
+            await self.plc.write(f"door_{n}", open_)
+        for n in doors:
+            away_from = f"door_closed_{n}" if open_ else f"door_open_{n}"
+            await self.plc.wait_for(away_from, False, timeout=self.options.door_start_timeout)
 
     async def _transfer(self, t: Transfer) -> None:
         robot = self.robot
@@ -106,10 +119,13 @@ class RobotSteps:
         started = time.monotonic()
         places = [t.source, t.target]
         attempt = 0
+        moved = False  # the arm may have moved: a failure from here on holds the part
         try:
             rejected: DeviceError | None = None
             while True:
                 try:
+                    if rejected is None and robot.state == 0:
+                        await robot.initialize()  # a fault since the last cycle cost it
                     if rejected is not None:
                         # Rejected before the arm moved: the reject was read (the driver
                         # does), now reset; a robot that lost its start-up is initialized.
@@ -117,33 +133,63 @@ class RobotSteps:
                         if robot.state != 1 or rejected.code in (48, 128):
                             await robot.initialize()
                     partition = await self._ensure_program(t.program)
-                    await self._doors(places, True)
+                    with blame("plc", "PLC"):
+                        await self._doors(places, True)
+                    moved = True
                     await robot.go(partition)
                     break
                 except DeviceError as e:
+                    moved = False  # rejected: the cycle did not start
                     # The reset and the initialize may be rejected too (power still off):
                     # every attempt counts, so the retries stay bounded.
                     attempt += 1
                     rejected = e
+                    # A reject because the arm cannot move (power off, servo error) is
+                    # alarmed now, not after the retries.
+                    cause = await self.monitor.robot_cause(e)
+                    if cause is not None:
+                        self._cause_alarm(cause)
                     if attempt > self.options.retries:
                         raise
                     self.log(f"robot rejected {t.program}: {e}; reset and retry {attempt}")
             await robot.wait_cycle_end(
                 self.options.done_output, timeout=self.options.transfer_timeout, poll=0.02
             )
-            await self._doors(places, False)
+            with blame("plc", "PLC"):
+                await self._doors(places, False)
         except (CellctlError, OSError, asyncio.CancelledError) as e:
             view.step = ""
             stopped = isinstance(e, asyncio.CancelledError)
             what = "cut short by an emergency stop" if stopped else f"failed: {e}"
             reason = f"transfer {t.program} {what}"
-            self.journal.end_step(step.id, "failed", str(e) or what, hold=reason)
-            self.mailbox.post_report("step-failed", reason, order_id=part.order_id, part_id=part.id)
-            self.mailbox.post_report("part-held", reason, order_id=part.order_id, part_id=part.id)
+            if moved or stopped:
+                self.journal.end_step(step.id, "failed", str(e) or what, hold=reason)
+                self.mailbox.post_report(
+                    "step-failed", reason, order_id=part.order_id, part_id=part.id
+                )
+                self.mailbox.post_report(
+                    "part-held", reason, order_id=part.order_id, part_id=part.id
+                )
+            else:
+                # The arm never started: the part is where it was, and waits there.
+                reason = f"transfer {t.program} not started: {e}"
+                self.journal.end_step(step.id, "failed", str(e) or what)
+                self.mailbox.post_report(
+                    "step-failed", reason, order_id=part.order_id, part_id=part.id
+                )
             self._wake.set()
             if stopped:
                 raise
-            self._failed(robot.name, "transfer", reason)
+            # One alarm, the cause's: the PLC, the robot's link or status, or the transfer.
+            # A fault of the robot's own keeps it out of the plan until the monitor finds
+            # it well; only a failure nothing else explains counts towards fail_limit.
+            cause = await self.monitor.robot_cause(e)
+            if cause is None:
+                self._failed(robot.name, "transfer", reason)
+            else:
+                self._cause_alarm(cause)
+                if cause.machine == robot.name:
+                    self.recovery.robot_ok = False
             return
         view.busy_s += time.monotonic() - started
         view.step = ""

@@ -30,7 +30,14 @@ import contextlib
 from collections.abc import Awaitable, Callable
 from typing import Any
 
-from cellctl.errors import DeviceError, LinkClosed, LinkError, LinkTimeout, UsageError
+from cellctl.errors import (
+    DeviceError,
+    LinkClosed,
+    LinkError,
+    LinkTimeout,
+    SignalTimeout,
+    UsageError,
+)
 from cellctl.protocol.plc import (
     COIL,
     INPUT,
@@ -233,7 +240,7 @@ class ModbusPlc:
     ) -> dict[str, bool]:
         """Read the inputs every ``poll`` s until input ``name`` is ``value``; return them.
 
-        Raises :class:`LinkTimeout` in words once ``timeout`` passes ("door of CNC 1 did not
+        Raises :class:`SignalTimeout` in words once ``timeout`` passes ("door of CNC 1 did not
         close within 5 s"); a read under way at the deadline is finished first, so the wait
         ends at most one request timeout late. Link failures while reading pass through.
         """
@@ -252,5 +259,5 @@ class ModbusPlc:
             if left <= 0:
                 sig = SIGNALS[name]
                 phrase = sig.not_true if want else sig.not_false
-                raise LinkTimeout(f"{phrase} within {timeout:g} s")
+                raise SignalTimeout(f"{phrase} within {timeout:g} s")
             await asyncio.sleep(min(poll, left))  # the poll period between reads

@@ -55,6 +55,7 @@ from cellctl.errors import (
     DeviceError,
     FramingError,
     LinkTimeout,
+    SignalTimeout,
     UnexpectedReply,
     UsageError,
     format_raw,
@@ -63,6 +64,7 @@ from cellctl.link import ROBOT_LINE, LineSettings, Link, TrafficLog
 from cellctl.protocol.robot import (
     ACK,
     EOT,
+    HALTING_FLAGS,
     PARTITIONS,
     XOFF,
     XON,
@@ -594,12 +596,15 @@ class Ibm7545Robot(LinkDriver):
         return DiDo.from_bytes(await self._read(ReadOperand.DIDO, "DI/DO status", 4))
 
     async def wait_output(
-        self, line: int, value: bool, *, timeout: float, poll: float = 0.1
+        self, line: int, value: bool, *, timeout: float, poll: float = 0.1, watch: bool = False
     ) -> DiDo:
-        """Poll DI/DO until output ``line`` (1-16) is ``value``; LinkTimeout after ``timeout``.
+        """Poll DI/DO until output ``line`` (1-16) is ``value``; SignalTimeout after ``timeout``.
 
         The controller tells nothing unasked, so a program signals progress on an output
         (the cell's programs raise a "cycle done" output before END) and the host polls.
+        With ``watch`` the machine status is read on every poll too: a servo error or a
+        power failure that aborted the cycle raises :class:`RobotHalted` at once instead of
+        the timeout.
         """
         loop = self.link._loop
         deadline = loop.time() + timeout
@@ -607,16 +612,30 @@ class Ibm7545Robot(LinkDriver):
             dido = await self.io()
             if dido.output(line) == value:
                 return dido
+            if watch:
+                status = await self.machine_status()
+                if status.flags & HALTING_FLAGS:
+                    self._set_state(0)  # the cycle was aborted; the controller needs INIT
+                    raise RobotHalted(status, f"{self.name}: cycle aborted")
             if loop.time() >= deadline:
-                raise LinkTimeout(
+                raise SignalTimeout(
                     f"{self.name}: output {line} did not go {int(value)} within {timeout:g} s"
                 )
             await asyncio.sleep(min(poll, max(0.0, deadline - loop.time())))
 
     async def wait_cycle_end(self, done_output: int, *, timeout: float, poll: float = 0.1) -> None:
-        """Wait for the running program's "cycle done" output; the robot is then state 1."""
-        await self.wait_output(done_output, True, timeout=timeout, poll=poll)
+        """Wait for the running program's "cycle done" output (watching the machine status,
+        see :meth:`wait_output`); the robot is then state 1."""
+        await self.wait_output(done_output, True, timeout=timeout, poll=poll, watch=True)
         self._set_state(1)
+
+
+class RobotHalted(DeviceError):
+    """The machine status says the arm stopped (servo error, power failure); ``status``."""
+
+    def __init__(self, status: MachineStatus, detail: str) -> None:
+        super().__init__(status.flags, str(status), detail=detail)
+        self.status = status
 
 
 class _AckLost(LinkTimeout):

@@ -198,6 +198,8 @@ def data_error_message(code: int) -> str:
 DATA_ERROR_FLAG = 4
 SERVO_ERROR_FLAG = 128
 POWER_FAILURE_FLAG = 64
+#: Flags with which the arm cannot move: a running cycle was aborted.
+HALTING_FLAGS = SERVO_ERROR_FLAG | POWER_FAILURE_FLAG
 
 
 @dataclass(frozen=True)

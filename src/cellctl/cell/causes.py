@@ -1,0 +1,76 @@
+"""What a fault is, in the machine's words: one alarm per fault, whoever sees it first.
+
+A fault shows in several places: the monitor's read of an idle machine, the step that was
+running on it, a step on another machine that needed it (a transfer opens doors through the
+PLC). Each of them names the fault by its cause -- :func:`link_cause` for a link that closed
+or went quiet, :func:`status_cause` for a robot whose status says it cannot move -- and the
+controller raises the cause's alarm, keeping one active alarm per machine and code
+(:meth:`~cellctl.cell.controller.CellController._alarm`): the second sighting adds nothing.
+A step's failure is an alarm of its own only when no cause explains it.
+
+Inside ``with blame("plc", "PLC"):`` a link failure is re-raised as :class:`Blamed`, so the
+step that called the PLC knows the fault is not its machine's.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+from cellctl.errors import CellctlError, LinkClosed, LinkError, SignalTimeout
+from cellctl.protocol.robot import MachineStatus
+
+#: The alarm of a link the other end closed (a dropped connection, a restarted server).
+LINK_CLOSED = "link closed by the other end"
+
+
+@dataclass(frozen=True)
+class Cause:
+    """A fault: the machine it is on, its alarm code and its text."""
+
+    machine: str
+    code: str
+    text: str
+
+
+def link_cause(machine: str, label: str, error: BaseException) -> Cause | None:
+    """The link fault behind ``error`` (``label`` names the machine in the text: "robot",
+    "PLC"); None when the machine answered and the failure is about what it did."""
+    if isinstance(error, SignalTimeout):
+        return None
+    if isinstance(error, LinkClosed):
+        return Cause(machine, "link", LINK_CLOSED)
+    if isinstance(error, LinkError | TimeoutError | OSError):
+        return Cause(machine, "link", f"{label} not answering")
+    return None
+
+
+def status_cause(machine: str, status: MachineStatus) -> Cause:
+    """A robot whose machine status shows an error (servo error, power failure, ...)."""
+    return Cause(machine, "status", str(status))
+
+
+class Blamed(CellctlError):
+    """A step failed because another machine did: :attr:`cause` says which and how."""
+
+    def __init__(self, cause: Cause, error: BaseException) -> None:
+        super().__init__(f"{cause.machine}: {cause.text} ({error})")
+        self.cause = cause
+
+
+@contextmanager
+def blame(machine: str, label: str) -> Iterator[None]:
+    """Inside, a link failure or a signal that did not come (a stuck door: code
+    ``interlock``) is ``machine``'s: raised again as :class:`Blamed`."""
+    try:
+        yield
+    except Blamed:
+        raise
+    except SignalTimeout as e:
+        raise Blamed(Cause(machine, "interlock", str(e)), e) from e
+    except (CellctlError, OSError) as e:
+        cause = link_cause(machine, label, e)
+        if cause is None:
+            raise
+        raise Blamed(cause, e) from e

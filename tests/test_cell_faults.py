@@ -49,7 +49,9 @@ CASES = [
     Case("plc:silent", "plc", r"^PLC not answering$", False),
     # A door that does not leave its end position is stuck: caught before the arm moves
     # or the cut starts, so no part is held.
-    Case("plc:stuck-door=2", "plc", r"door of CNC 2 did not leave its (closed|open) position", False),
+    Case(
+        "plc:stuck-door=2", "plc", r"door of CNC 2 did not leave its (closed|open) position", False
+    ),
     Case("plc:no-pallet", "plc", r"no pallet", False),
     Case("plc:estop", "plc", r"emergency stop", False),
 ]
@@ -138,6 +140,11 @@ async def test_fault_during_a_run_ends_in_recovery_or_a_held_part(
             )
             assert case.alarm_machine in rig.journal.machines_out_of_service()
             assert rig.alarms(case.alarm_machine, "out-of-service")
+        # One alarm for the fault, the cause's, however many steps met it (taken out of
+        # service is told on its own).
+        await asyncio.sleep(controller.options.poll_period * 5)
+        raised = [a for a in rig.journal.alarms() if a.code != "out-of-service"]
+        assert len(raised) == 1, rig.describe()
         # Nothing is lost while the fault lasts.
         parts = len(rig.journal.parts())
         assert parts == 2 + (case.fault == "plc:no-pallet")

@@ -15,10 +15,10 @@ Parts of the reference model (spec ``cell.md``):
   :mod:`cellctl.cell.scheduler` picks the robot's next transfer, and a part that reaches a mill
   is machined there at once. Robot programs stay in the 5 partitions and are downloaded again
   only when evicted (least recently used first).
-- **G, monitoring** (:mod:`cellctl.cell.monitor`): every ``poll_period`` the PLC inputs, the
-  idle robot's status and each idle mill's readiness are read; a fault becomes an alarm
-  (journal + report) within one poll period. A busy machine is watched by its own step's
-  deadlines.
+- **G, monitoring** (:mod:`cellctl.cell.monitor`): four times a ``poll_period`` the PLC
+  inputs, the idle robot's status and each idle mill's readiness are read; a fault becomes an
+  alarm (journal + report) within one poll period, named by its cause whoever sees it first
+  (:mod:`cellctl.cell.causes`). A busy machine is watched by its own step.
 - **Recovery** (:mod:`cellctl.cell.recovery`): work goes only to a mill whose setup succeeded
   since its last initialization or fault and whose last poll said ready; a failed setup, a lost
   readiness or a stall takes it out of the plan at once, and it is initialized again with force
@@ -39,7 +39,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from cellctl.cell.causes import Blamed, Cause, blame, link_cause
+from cellctl.cell.causes import Cause, blame
 from cellctl.cell.commands import OperatorCommands
 from cellctl.cell.config import CONVEYOR, CellConfig, MachineConfig, transfer_ends
 from cellctl.cell.journal import Journal, Part
@@ -334,6 +334,8 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
         return blocked
 
     async def _dispatch(self) -> None:
+        if not self.inputs.get("estop_ok", True):
+            return  # the PLC's emergency stop: nothing starts until it is released
         states, parts = self._part_states()
         types = self.config.parts
         in_service = {n for n, v in self.machines.items() if v.in_service}
@@ -359,6 +361,8 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
         try:
             await self._read_inputs()
         except CellctlError:
+            return
+        if not self.inputs.get("estop_ok", True):
             return
         pallet = self.inputs.get("pallet_present", False)
         outfeed = self.inputs.get("outfeed_clear", True)
@@ -393,9 +397,10 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
             return
         if not self._pallet_requested:
             try:
+                asked = time.monotonic()  # the edge is at the start of the pulse
                 await self.plc.pulse("pallet_request", 0.05)
                 self._pallet_requested = True
-                self._pallet_requested_at = time.monotonic()
+                self._pallet_requested_at = asked
             except CellctlError as e:
                 self._alarm("plc", "conveyor", f"cannot request a pallet: {e}")
 
@@ -491,7 +496,7 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
                 raise
             # Out of the plan at once; recovery sets it up again (reopening its link). The
             # alarm names the cause: the PLC, the mill's link, or the step itself.
-            cause = e.cause if isinstance(e, Blamed) else link_cause(mill_name, "mill", e)
+            cause = await self.monitor.cause_of(mill_name, e)
             self.recovery.fault(mill_name, "machining", reason, cause=cause)
             self._wake.set()
             return

@@ -33,6 +33,9 @@ if TYPE_CHECKING:
 
 T = TypeVar("T")
 
+#: The PLC's emergency stop input is low.
+ESTOP = Cause("plc", "estop", "emergency stop: the cell is stopped")
+
 #: Looks per poll period: a fault is seen at most a quarter period after it shows.
 SAMPLES = 4
 #: The shortest time between two looks, s (short poll periods in tests stay cheap).
@@ -106,26 +109,37 @@ class Monitor:
         ctl._wake.set()
         ctl._touch()
 
-    async def robot_cause(self, error: BaseException) -> Cause | None:
-        """What made a robot step fail, if not the step itself: the PLC (a :class:`Blamed`
-        error), the robot's link, or a machine status that says the arm cannot move (read
+    async def cause_of(self, machine: str, error: BaseException) -> Cause | None:
+        """What made a step on ``machine`` fail, if not the step itself: the PLC (a
+        :class:`Blamed` error; a door that did not move under an emergency stop is the
+        stop), the machine's link, or a robot status that says the arm cannot move (read
         now, within ``read_limit``, after a reject)."""
         ctl = self.ctl
-        robot = ctl.robot
-        if robot is None:
-            return None
         if isinstance(error, Blamed):
+            if error.cause.code == "interlock" and await self._estop():
+                return ESTOP
             return error.cause
         if isinstance(error, RobotHalted):
-            return status_cause(robot.name, error.status)
-        cause = link_cause(robot.name, "robot", error)
-        if cause is not None or not isinstance(error, DeviceError):
+            return status_cause(machine, error.status)
+        label = "robot" if ctl.robot is not None and machine == ctl.robot.name else "mill"
+        cause = link_cause(machine, label, error)
+        if cause is not None or label != "robot" or not isinstance(error, DeviceError):
             return cause
+        robot = ctl.robot
+        assert robot is not None
         try:
             status = await self._bounded("robot-cause", robot.machine_status)
         except (_StillOut, TimeoutError, CellctlError):
             return None
-        return None if status.ok else status_cause(robot.name, status)
+        return None if status.ok else status_cause(machine, status)
+
+    async def _estop(self) -> bool:
+        """True if the PLC's inputs say emergency stop (read now)."""
+        try:
+            inputs = await self._bounded("plc-cause", self.ctl._read_inputs)
+        except (_StillOut, TimeoutError, CellctlError):
+            return False
+        return not inputs.get("estop_ok", True)
 
     async def _plc(self) -> None:
         ctl = self.ctl
@@ -141,7 +155,7 @@ class Monitor:
             return
         view.state = "ok"
         if not inputs.get("estop_ok", True):
-            ctl._alarm("plc", "estop", "emergency stop: the cell is stopped")
+            ctl._cause_alarm(ESTOP)
             view.state = "emergency stop"
         ctl._pallet_overdue()
 

@@ -61,9 +61,13 @@ class Recovery:
         The alarm is ``cause``'s when one is given (its link, the PLC), else ``code`` and
         ``text``. A fault another machine caused does not count towards this one's
         ``fail_limit``. Further faults while it recovers (the forced setup failing again)
-        raise no new alarm: they only count.
+        raise no new alarm while its alarm is active: they only count. Once the operator
+        cleared it, a mill that still fails (a setup nobody finishes) says so again.
         """
-        alarm = name not in self.faulted
+        blamed = cause.machine if cause is not None else name
+        alarm = name not in self.faulted or not any(
+            a.machine in (name, blamed) for a in self.ctl.journal.active_alarms()
+        )
         self.faulted.add(name)
         self.fit[name] = False
         self.ready[name] = False

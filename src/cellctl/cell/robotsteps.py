@@ -146,7 +146,7 @@ class RobotSteps:
                     rejected = e
                     # A reject because the arm cannot move (power off, servo error) is
                     # alarmed now, not after the retries.
-                    cause = await self.monitor.robot_cause(e)
+                    cause = await self.monitor.cause_of(robot.name, e)
                     if cause is not None:
                         self._cause_alarm(cause)
                     if attempt > self.options.retries:
@@ -183,7 +183,7 @@ class RobotSteps:
             # One alarm, the cause's: the PLC, the robot's link or status, or the transfer.
             # A fault of the robot's own keeps it out of the plan until the monitor finds
             # it well; only a failure nothing else explains counts towards fail_limit.
-            cause = await self.monitor.robot_cause(e)
+            cause = await self.monitor.cause_of(robot.name, e)
             if cause is None:
                 self._failed(robot.name, "transfer", reason)
             else:

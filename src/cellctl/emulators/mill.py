@@ -48,6 +48,7 @@ from collections.abc import Callable, Coroutine
 from dataclasses import dataclass, field
 from typing import Any
 
+from cellctl.emulators.onsets import FaultOnsets
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
 from cellctl.errors import LinkClosed, UsageError
 from cellctl.protocol.dynalan.machine import (
@@ -150,6 +151,7 @@ class Dyna2400Emulator(EmulatedDevice):
         self.auto_mode = mode
         self.min_busy_s = min_busy_s
         self.faults: dict[str, str | None] = {}
+        self.onsets = FaultOnsets()
         self.powered = False
         self.mode = LinkMode.MANUAL
         self.display = "OFF"
@@ -245,6 +247,7 @@ class Dyna2400Emulator(EmulatedDevice):
         if name == "noise":
             self.noise = LineNoise.parse(arg)
         self.faults[name] = arg
+        self.onsets.arm(name)
         if name == "never-ready":
             self._set_rts(False)
 
@@ -286,6 +289,8 @@ class Dyna2400Emulator(EmulatedDevice):
             await asyncio.sleep(machine_s / self.time_scale)
 
     def _set_rts(self, level: bool) -> None:
+        if "never-ready" in self.faults and (level or self.rts):
+            self.onsets.act("never-ready")  # READY withheld, or taken away now
         if level and ("never-ready" in self.faults or self.error):
             level = False
         if level == self.rts:
@@ -391,6 +396,7 @@ class Dyna2400Emulator(EmulatedDevice):
         drop = self.faults.get("drop", "absent")
         if drop != "absent" and self._rx.block_lines >= int(drop or 5):
             self.faults.pop("drop")
+            self.onsets.act("drop")
             line.drop()
             raise LinkClosed("fault: connection dropped mid-block")
         if body == "END":
@@ -456,6 +462,7 @@ class Dyna2400Emulator(EmulatedDevice):
             self._end_program()
             return
         if "stall" in self.faults:
+            self.onsets.act("stall")  # the block ended; READY does not come
             self.display = "RUN"
             return
         self.display = "LOADED" if load_run else "READY"
@@ -466,6 +473,8 @@ class Dyna2400Emulator(EmulatedDevice):
         self.display = "setup >zcxyu"
         self.reference_zero_set = False
         self._next.clear()
+        if "no-next" in self.faults:
+            self.onsets.act("no-next")  # the setup stop that nobody will finish
         if self.automatic and "no-next" not in self.faults:
             await self._machine_sleep(self.delays.setup)
             self.jog_to_reference()

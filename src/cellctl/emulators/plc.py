@@ -45,6 +45,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from cellctl.emulators.onsets import FaultOnsets
 from cellctl.errors import UsageError
 from cellctl.protocol.plc import (
     COIL,
@@ -119,6 +120,7 @@ class PlcEmulator:
             if sig.kind == INPUT:
                 self.inputs.setdefault(name, _INITIAL_INPUTS.get(name, False))
         self.faults: dict[str, str | None] = {}
+        self.onsets = FaultOnsets()
         self.go_count: dict[int, int] = {n: 0 for n in MILLS}
         self.pallets_delivered = 0
         self.pallets_released = 0
@@ -170,10 +172,15 @@ class PlcEmulator:
             arg = ",".join(str(n) for n in sorted(stuck))
             self._cancel(f"door_{mill}")
         self.faults[name] = arg
+        self.onsets.arm(name)
+        if name in ("drop", "estop"):
+            self.onsets.act(name)
         if name == "drop":
             for writer in list(self._clients):
                 writer.transport.abort()
         elif name == "no-pallet":
+            if self._pallet_coming:
+                self.onsets.act(name)  # the pallet on its way never comes
             self._cancel("pallet_request")
             self._pallet_coming = False
         elif name == "estop":
@@ -254,6 +261,8 @@ class PlcEmulator:
                 go_hook(mill)
 
     def _request_pallet(self) -> None:
+        if "no-pallet" in self.faults and not self._estop:
+            self.onsets.act("no-pallet")  # a request the conveyor ignores
         if (
             self._estop
             or "no-pallet" in self.faults
@@ -300,9 +309,11 @@ class PlcEmulator:
     def _follow_door(self, mill: int) -> None:
         want_open = self.coils.get(f"door_{mill}", False)
         key = f"door_{mill}"
+        there = f"door_open_{mill}" if want_open else f"door_closed_{mill}"
+        if mill in self._stuck_doors() and not self.inputs[there]:
+            self.onsets.act("stuck-door")  # told to move, it does not
         if self._estop or mill in self._stuck_doors():
             return
-        there = f"door_open_{mill}" if want_open else f"door_closed_{mill}"
         if self.inputs[there]:
             self._cancel(key)
             return
@@ -463,6 +474,7 @@ class PlcEmulator:
         try:
             while data := await reader.read(4096):
                 if "silent" in self.faults:
+                    self.onsets.act("silent")
                     continue  # read and never answer: the request goes nowhere
                 up_writer.write(data)
                 await up_writer.drain()

@@ -47,6 +47,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import NoReturn, TypeVar
 
+from cellctl.emulators.onsets import FaultOnsets
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
 from cellctl.errors import ProtocolError, UsageError
 from cellctl.protocol.aml import Instruction, Op, decode_program
@@ -212,6 +213,7 @@ class Ibm7545Emulator(EmulatedDevice):
         """Called with (port, value) on every change of a digital output made by a program:
         how a cell emulator wires the robot's outputs to the PLC."""
         self.faults: dict[str, str | None] = {}
+        self.onsets = FaultOnsets()
         self.position: tuple[float, float, float, float] = self.arm.home
         self.speed_percent = 100  # SPEED(percent) of the running program; each run starts at 100
         self._corrupt_left = 0
@@ -265,6 +267,9 @@ class Ibm7545Emulator(EmulatedDevice):
         if name == "noise":
             self.noise = LineNoise.parse(arg)
         self.faults[name] = arg
+        self.onsets.arm(name)
+        if name in ("power-off", "servo-error"):
+            self.onsets.act(name)  # the status says so at once
         if name == "power-off":
             self._abort("manipulator power off")
             self.state = 0
@@ -305,11 +310,13 @@ class Ibm7545Emulator(EmulatedDevice):
                 host.buf += await line.read()
             byte = host.buf.pop(0)
             if "silent" in self.faults:
+                self.onsets.act("silent")
                 continue
             if byte in (CR, LF, ACK, XON, XOFF, 0):
                 continue  # line noise and stray handshakes between transactions
             if "drop" in self.faults:
                 self.faults.pop("drop")
+                self.onsets.act("drop")
                 line.drop()
                 return
             with contextlib.suppress(_RequestDone):

@@ -17,7 +17,14 @@ from click.testing import CliRunner
 
 from cellctl.drivers.plc import ModbusPlc
 from cellctl.emulators.plc import FAULTS, PlcEmulator, PlcTiming
-from cellctl.errors import DeviceError, LinkClosed, LinkError, LinkTimeout, UsageError
+from cellctl.errors import (
+    DeviceError,
+    LinkClosed,
+    LinkError,
+    LinkTimeout,
+    SignalTimeout,
+    UsageError,
+)
 from cellctl.protocol.plc import (
     DEFAULT_COILS,
     DEFAULT_INPUTS,
@@ -272,7 +279,11 @@ async def test_silent_gives_a_timeout_then_recovers(emulator: PlcEmulator) -> No
 
 async def test_stuck_door_times_out_in_words(emulator: PlcEmulator, plc: ModbusPlc) -> None:
     emulator.set_fault("stuck-door", "1")
+    assert emulator.onsets.get("stuck-door") is None  # armed: nothing shows until it is told
     await plc.write("door_1", True)
+    assert emulator.onsets.get("stuck-door") is not None
+    with pytest.raises(SignalTimeout, match=r"^door of CNC 1 did not leave its closed position"):
+        await plc.wait_for("door_closed_1", False, timeout=0.1)
     with pytest.raises(LinkTimeout, match=r"^door of CNC 1 did not open within 0\.3 s$"):
         await plc.wait_for("door_open_1", True, timeout=0.3)
     await plc.write("door_2", True)
@@ -296,7 +307,9 @@ async def test_no_pallet_times_out_then_delivers_once_cleared(
     emulator: PlcEmulator, plc: ModbusPlc
 ) -> None:
     emulator.set_fault("no-pallet")
+    assert emulator.onsets.get("no-pallet") is None
     await plc.write("pallet_request", True)
+    assert emulator.onsets.get("no-pallet") is not None  # the request it ignores
     with pytest.raises(LinkTimeout, match="no pallet arrived at the conveyor pick-up within"):
         await plc.wait_for("pallet_present", True, timeout=0.3)
     emulator.clear_fault("no-pallet")

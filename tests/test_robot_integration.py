@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import asyncio
 from pathlib import Path
 
 import pytest
 
-from cellctl.drivers.robot import Ibm7545Robot, RobotConfig
+from cellctl.drivers.robot import Ibm7545Robot, RobotConfig, RobotHalted
 from cellctl.drivers.state import StateStore
 from cellctl.emulators.robot import Ibm7545Emulator
 from cellctl.emulators.serve import serve
@@ -255,3 +256,22 @@ async def test_wait_cycle_end_sees_the_done_output(robot_served: Served) -> None
         assert robot.state == 1
         with pytest.raises(LinkTimeout, match="output 7 did not go 1"):
             await robot.wait_output(7, True, timeout=0.05, poll=0.01)
+
+
+async def test_wait_cycle_end_is_cut_short_by_a_servo_error(robot_served: Served) -> None:
+    """The cycle waits for input 5 (it never comes); a servo error aborts it, and the wait
+    says so at its next poll instead of running out its timeout."""
+    async with await connect(robot_served) as robot:
+        await robot.initialize()
+        await robot.download(1, program(WAITS))
+        await robot.go(1)
+        waiting = asyncio.ensure_future(robot.wait_cycle_end(7, timeout=30, poll=0.01))
+        await asyncio.sleep(0.1)
+        assert not waiting.done()
+        robot_served.emulator.set_fault("servo-error")
+        async with asyncio.timeout(5):
+            with pytest.raises(RobotHalted, match="servo error") as caught:
+                await waiting
+        assert caught.value.status.flags & 128
+        assert robot.state == 0  # the controller needs INIT again
+        assert robot_served.emulator.onsets.get("servo-error") is not None

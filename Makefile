@@ -45,7 +45,8 @@ demo: $(STAMP)
 	$(BIN)/cellctl demo $(DEMO_ARGS)
 
 bench: $(STAMP)
-	cd bench && for b in robot_download many_links mill_download cell_throughput api_push factory_throughput; do \
+	cd bench && for b in robot_download many_links mill_download cell_throughput api_push factory_throughput \
+	    line_noise fault_reaction; do \
 	  ../$(BIN)/python $$b.py || exit 1; done
 
 clean:

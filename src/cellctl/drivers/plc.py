@@ -55,8 +55,6 @@ class ModbusPlc:
     """Driver for the cell's PLC; build it with :meth:`connect`."""
 
     def __init__(self, url: str, plc_map: PlcMap, *, timeout: float) -> None:
-        from pymodbus.client import AsyncModbusTcpClient
-
         if timeout <= 0:
             raise UsageError(f"timeout must be > 0 s, not {timeout}")
         self.url = url
@@ -67,16 +65,40 @@ class ModbusPlc:
         host, port = parse_modbus_url(url)
         self._lost = asyncio.Event()
         self._closed = False
-        # No retries and no background reconnects: every call has one deadline, and the
-        # driver reconnects itself on the next call after a failure.
-        self._client: Any = AsyncModbusTcpClient(
+        self._address = (host, port)
+        self._client: Any = self._new_client()
+
+    def _new_client(self) -> Any:
+        """A fresh pymodbus client. No retries and no background reconnects: every call has
+        one deadline, and the driver reconnects itself on the next call after a failure."""
+        from pymodbus.client import AsyncModbusTcpClient
+
+        host, port = self._address
+        client: Any = None
+
+        def changed(connected: bool) -> None:
+            if client is self._client:  # a replaced client's late news is not ours
+                self._connection_changed(connected)
+
+        client = AsyncModbusTcpClient(
             host,
             port=port,
-            timeout=timeout,
+            timeout=self.timeout,
             retries=0,
             reconnect_delay=0,
-            trace_connect=self._connection_changed,
+            trace_connect=changed,
         )
+        return client
+
+    def _drop_client(self) -> None:
+        """Close the connection after a failure and start the next call on a new client.
+
+        pymodbus keeps state across a reconnect (after three unanswered requests it gives up
+        on a connection by itself and could go on sending into the closed one): a failed
+        connection's client is never used again.
+        """
+        self._client.close()
+        self._client = self._new_client()
 
     @classmethod
     async def connect(
@@ -148,16 +170,17 @@ class ModbusPlc:
                     raise LinkClosed(f"PLC at {self.url} closed the connection ({what})")
                 response = answer.result()
         except TimeoutError:
-            self._client.close()  # a late answer must not pass for the next request's
+            self._drop_client()  # a late answer must not pass for the next request's
             raise LinkTimeout(
                 f"PLC at {self.url}: no answer to {what} within {self.timeout:g} s"
             ) from None
         except ConnectionException:
-            self._client.close()
+            self._drop_client()
             raise LinkClosed(f"PLC at {self.url}: connection lost ({what})") from None
         except ModbusException as e:
-            self._client.close()
-            if not self._client.connected and self._lost.is_set():
+            was_lost = self._lost.is_set()
+            self._drop_client()
+            if was_lost:
                 raise LinkClosed(f"PLC at {self.url} closed the connection ({what})") from None
             raise LinkTimeout(f"PLC at {self.url}: no valid answer to {what}: {e}") from None
         if response.isError():

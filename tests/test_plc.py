@@ -277,6 +277,19 @@ async def test_silent_gives_a_timeout_then_recovers(emulator: PlcEmulator) -> No
         assert (await plc.read_inputs())["estop_ok"] is True
 
 
+async def test_a_long_silence_then_the_plc_answers_again(emulator: PlcEmulator) -> None:
+    """More unanswered requests than pymodbus tolerates on one connection (it gives up on it
+    by itself after three): once the PLC answers again, so does the driver."""
+    async with await ModbusPlc.connect(emulator.url, timeout=0.2) as plc:
+        emulator.set_fault("silent")
+        for _ in range(6):
+            with pytest.raises(LinkTimeout):
+                await plc.read_inputs()
+        emulator.clear_fault("silent")
+        for _ in range(3):
+            assert (await plc.read_inputs())["estop_ok"] is True
+
+
 async def test_stuck_door_times_out_in_words(emulator: PlcEmulator, plc: ModbusPlc) -> None:
     emulator.set_fault("stuck-door", "1")
     assert emulator.onsets.get("stuck-door") is None  # armed: nothing shows until it is told

@@ -249,6 +249,10 @@ async def main() -> None:
                     first = await first_alarm(rig, before, kind, onset)
                     if first is None:
                         missed[kind] += 1
+                        if args.verbose:
+                            print(f"# {kind}: acted, no alarm within {WINDOW_S:g} s")
+                            for event in controller.events[-8:]:
+                                print(f"#   {event.text}")
                     else:
                         latencies[kind].append(max(0.0, first.raised - onset))
                         await asyncio.sleep(args.poll * 2)  # let the fault play out

@@ -36,6 +36,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 # The emulated cell, its controller and the operator of the tests (tests/cell_rig.py).
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -98,7 +99,8 @@ def inject(rig: CellRig, kind: str, rng: random.Random) -> Injection:
     machine, _, name = kind.partition(":")
     if machine == "mill":
         machine = rng.choice(["cnc1", "cnc2"])
-    emulator = {"robot": rig.cell.robot, "plc": rig.cell.plc, **rig.cell.mills}[machine]
+    emulators: dict[str, Any] = {"robot": rig.cell.robot, "plc": rig.cell.plc, **rig.cell.mills}
+    emulator = emulators[machine]
     switch = name
     if name == "stuck-door":
         switch = f"stuck-door={rng.choice([1, 2])}"
@@ -145,6 +147,13 @@ async def settle(rig: CellRig) -> None:
         await asyncio.sleep(0.5)
         if not rig.journal.active_alarms() and not rig.held_parts():
             return
+
+
+def show(controller: CellController, heading: str) -> None:
+    """``heading`` and the controller's last events (``--verbose``)."""
+    print(f"# {heading}")
+    for event in controller.events[-8:]:
+        print(f"#   {event.text}")
 
 
 async def plc_answers(controller: CellController, previous: str) -> None:
@@ -242,17 +251,13 @@ async def main() -> None:
                 if onset is None:
                     not_shown[kind] += 1
                     if args.verbose:
-                        print(f"# {kind}: did not act within {WINDOW_S:g} s")
-                        for event in controller.events[-8:]:
-                            print(f"#   {event.text}")
+                        show(controller, f"{kind}: did not act within {WINDOW_S:g} s")
                 else:
                     first = await first_alarm(rig, before, kind, onset)
                     if first is None:
                         missed[kind] += 1
                         if args.verbose:
-                            print(f"# {kind}: acted, no alarm within {WINDOW_S:g} s")
-                            for event in controller.events[-8:]:
-                                print(f"#   {event.text}")
+                            show(controller, f"{kind}: acted, no alarm within {WINDOW_S:g} s")
                     else:
                         latencies[kind].append(max(0.0, first.raised - onset))
                         await asyncio.sleep(args.poll * 2)  # let the fault play out

@@ -4,7 +4,15 @@ from __future__ import annotations
 
 import pytest
 
-from cellctl.cell.causes import LINK_CLOSED, Blamed, Cause, blame, link_cause, status_cause
+from cellctl.cell.causes import (
+    LINK_CLOSED,
+    Blamed,
+    Cause,
+    blame,
+    link_cause,
+    read_cause,
+    status_cause,
+)
 from cellctl.errors import DeviceError, LinkClosed, LinkTimeout, SignalTimeout
 from cellctl.protocol.robot import MachineStatus
 
@@ -50,3 +58,9 @@ def test_blame_lets_other_failures_through_unchanged() -> None:
     with pytest.raises(Blamed) as again, blame("plc", "PLC"):
         raise inner
     assert again.value is inner
+
+
+def test_a_failed_look_names_the_link_or_says_what_failed() -> None:
+    assert read_cause("plc", "PLC", TimeoutError()) == Cause("plc", "link", "PLC not answering")
+    error = DeviceError(2, "Illegal Data Address")
+    assert read_cause("plc", "PLC", error) == Cause("plc", "link", f"PLC failed: {error}")

@@ -46,6 +46,11 @@ def link_cause(machine: str, label: str, error: BaseException) -> Cause | None:
     return None
 
 
+def read_cause(machine: str, label: str, error: BaseException) -> Cause:
+    """A look at an idle machine that failed: its link's fault, or the failure itself."""
+    return link_cause(machine, label, error) or Cause(machine, "link", f"{label} failed: {error}")
+
+
 def status_cause(machine: str, status: MachineStatus) -> Cause:
     """A robot whose machine status shows an error (servo error, power failure, ...)."""
     return Cause(machine, "status", str(status))

@@ -22,7 +22,7 @@ import time
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from cellctl.cell.causes import Blamed, Cause, link_cause, status_cause
+from cellctl.cell.causes import Blamed, Cause, link_cause, read_cause, status_cause
 from cellctl.drivers.robot import ROBOT_STATES, RobotHalted
 from cellctl.errors import CellctlError, DeviceError, UsageError
 
@@ -149,7 +149,7 @@ class Monitor:
         except _StillOut:
             return
         except (TimeoutError, CellctlError) as e:
-            cause = link_cause("plc", "PLC", e) or Cause("plc", "link", f"PLC failed: {e}")
+            cause = read_cause("plc", "PLC", e)
             view.state = cause.text
             ctl._cause_alarm(cause)
             return
@@ -170,9 +170,7 @@ class Monitor:
         except _StillOut:
             return  # the last read is still out (and already told as not answering)
         except (TimeoutError, CellctlError) as e:
-            cause = link_cause(robot.name, "robot", e) or Cause(
-                robot.name, "link", f"robot failed: {e}"
-            )
+            cause = read_cause(robot.name, "robot", e)
             view.state = cause.text
             ctl.recovery.robot_ok = False
             ctl._cause_alarm(cause)
@@ -198,7 +196,7 @@ class Monitor:
         except (CellctlError, UsageError) as e:
             view.state = f"error: {e}"
             if view.in_service:
-                cause = link_cause(m.name, "mill", e) or Cause(m.name, "link", f"mill failed: {e}")
+                cause = read_cause(m.name, "mill", e)
                 recovery.fault(m.name, "link", cause.text, count=False, cause=cause)
             return
         view.state = status.state_text + (f", {status.condition}" if status.condition else "")

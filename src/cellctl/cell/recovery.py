@@ -71,12 +71,10 @@ class Recovery:
         self.faulted.add(name)
         self.fit[name] = False
         self.ready[name] = False
-        if cause is not None and alarm:
-            self.ctl._cause_alarm(cause)
+        if alarm:
+            self.ctl._cause_alarm(cause or Cause(name, code, text))
         if count and (cause is None or cause.machine == name):
-            self.ctl._failed(name, code, text, alarm=alarm and cause is None)
-        elif alarm and cause is None:
-            self.ctl._alarm(name, code, text)
+            self.ctl._failed(name, code, text, alarm=False)
         self._start(name)
 
     def _start(self, name: str) -> None:

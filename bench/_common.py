@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import math
 import multiprocessing as mp
 import os
 import signal
@@ -82,3 +83,26 @@ def machine_line(**pairs: object) -> str:
     for k, v in pairs.items():
         out.append(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}")
     return " ".join(out)
+
+
+def percentile(values: list[float], q: float) -> float:
+    """The nearest-rank percentile (``q`` in 0..100): the smallest value with at least q % of
+    the samples at or below it (rank = ceil(q/100 * n)), so the worst samples are never dropped.
+
+    A failed or missed sample belongs in ``values`` as ``math.inf`` (or as the window length,
+    said so by the caller): it stays in the count and can become the percentile.
+    """
+    if not values:
+        return float("nan")
+    ordered = sorted(values)
+    rank = max(1, math.ceil(q / 100 * len(ordered)))
+    return ordered[rank - 1]
+
+
+def median_run(figures: list[float]) -> tuple[float, float, float]:
+    """(median, min, max) of repeated runs' figures: benches print the median, never the best."""
+    if not figures:
+        nan = float("nan")
+        return nan, nan, nan
+    ordered = sorted(figures)
+    return ordered[(len(ordered) - 1) // 2], ordered[0], ordered[-1]

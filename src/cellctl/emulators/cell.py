@@ -3,7 +3,7 @@
 ::
 
     cell = EmulatedCell(time_scale=100.0)
-    await cell.start(Path("cell"))          # copies examples/cell there, writes its cell.toml
+    await cell.start(Path("cell"))          # copies the example cell there, writes its cell.toml
     ...                                     # a controller runs the cell from Path("cell")
     cell.runs_per_part()                    # {"P1": {"cnc1": 1, "cnc2": 1}, ...}
     await cell.close()
@@ -39,6 +39,7 @@ import time
 from collections import defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass
+from importlib import resources
 from pathlib import Path
 
 from cellctl.emulators.mill import BlockRun, Dyna2400Emulator, OperatorDelays
@@ -48,8 +49,11 @@ from cellctl.emulators.serve import Server, serve
 from cellctl.errors import UsageError
 from cellctl.link import LineSettings
 
-#: The example cell shipped with the project (copied by :meth:`EmulatedCell.start`).
-EXAMPLE_CELL = Path(__file__).resolve().parents[3] / "examples" / "cell"
+#: The example cell (cell.toml, robot/, programs/): package data, so an installed cellctl has
+#: it wherever it runs; examples/cell in the repository links to it. Copied by
+#: :meth:`EmulatedCell.start`. cellctl is installed unpacked (a wheel, pipx, a checkout), where
+#: the package's files are a directory on disk.
+EXAMPLE_CELL = Path(str(resources.files("cellctl").joinpath("examples", "cell")))
 
 BASE_LINE = LineSettings(4800, 7, "E", 2)
 
@@ -168,7 +172,9 @@ class EmulatedCell:
     # -- serving ----------------------------------------------------------------------------------
 
     async def start(self, cell_dir: Path, template: Path | None = None) -> Path:
-        """Serve every machine and write ``cell_dir/cell.toml`` pointing at them."""
+        """Serve every machine and write ``cell_dir/cell.toml`` pointing at them.
+
+        ``template``: the cell directory to copy (default: the example cell)."""
         template = template or EXAMPLE_CELL
         copy_template(template, cell_dir)
         for index, (name, mill) in enumerate(self.mills.items(), start=1):
@@ -256,7 +262,7 @@ class EmulatedCell:
 
 def copy_template(template: Path, cell_dir: Path) -> None:
     """Copy a cell's programs (``robot/``, ``programs/``) from ``template`` to ``cell_dir``."""
-    if not (template / "cell.toml").exists():
+    if not (template / "cell.toml").is_file():
         raise UsageError(f"{template}: no cell.toml to copy")
     cell_dir.mkdir(parents=True, exist_ok=True)
     for sub in ("robot", "programs"):

@@ -290,7 +290,10 @@ def _emulate_cell_command() -> click.Command:
             click.Option(
                 ["--fault"], multiple=True, metavar="MACHINE:NAME[=ARG]", help="e.g. cnc1:stall"
             ),
-            click.Option(["--template"], help="Cell directory to copy (default: examples/cell)."),
+            click.Option(
+                ["--template"],
+                help="Cell directory to copy (default: the example cell shipped with cellctl).",
+            ),
         ],
         help="Start the robot, both mills and the PLC, and write cell.toml pointing at them."
         + "\n\nFaults (--fault MACHINE:NAME[=ARG], MACHINE robot, cnc1, cnc2 or plc): "
@@ -324,7 +327,7 @@ def apply_fault(cell: object, text: str) -> None:
 @click.option(
     "--parts",
     "count",
-    type=int,
+    type=click.IntRange(min=1),
     default=None,
     help="Parts in the batch.  [default: 6; with --factory N: 3 per cell]",
 )
@@ -425,6 +428,7 @@ async def _demo(
 ) -> None:
     half = max(1, count // 2)
     batch = [("wax-robot-base", half), ("wax-toy-mill-table", count - half)]
+    batch = [(part, qty) for part, qty in batch if qty > 0]  # --parts 1: no order for 0
     console.print(
         f"[bold]cellctl demo[/bold]: an emulated cell (robot, 2 mills, PLC) at time scale "
         f"{time_scale:g}; batch: {half} wax-robot-base + {count - half} wax-toy-mill-table"

@@ -16,7 +16,7 @@ from cellctl.ui.opcua_cli import opcua_group
 from cellctl.ui.orders_cli import alarm, orders, part, reports, submit
 from cellctl.ui.plc_cli import plc
 from cellctl.ui.robot_cli import robot
-from cellctl.ui.service_cli import estop, machine, pause, resume, traffic
+from cellctl.ui.service_cli import estop, machine, pause, resume, service_group, traffic
 
 
 @click.group(
@@ -55,5 +55,5 @@ main.add_command(opcua_group)
 main.add_command(factory)
 emulate.add_command(emulate_cell)
 emulate.add_command(emulate_factory)
-for command in (pause, resume, estop, machine, traffic):
+for command in (pause, resume, estop, machine, traffic, service_group):
     main.add_command(command)

@@ -9,11 +9,13 @@ STAMP := $(VENV)/.installed
 test: deps lint typecheck pytest
 
 # Debian packages the tests need: ser2net (a real RFC 2217 server for the link tests), tmux
-# (the console is checked in a real terminal), chromium (the dashboard, through Playwright) and
-# mosquitto (the factory's broker; the tests start their own, never the system service).
-DEBS := ser2net tmux chromium mosquitto
+# (the console is checked in a real terminal), chromium (the dashboard, through Playwright),
+# mosquitto (the factory's broker; the tests start their own, never the system service) and
+# systemd (its systemd-analyze verifies the unit of `cellctl service install`). TOOL:PACKAGE
+# where the two names differ.
+DEBS := ser2net tmux chromium mosquitto systemd-analyze:systemd
 deps: $(STAMP)
-	@missing=""; for tool in $(DEBS); do command -v $$tool >/dev/null 2>&1 || missing="$$missing $$tool"; done; \
+	@missing=""; for dep in $(DEBS); do command -v $${dep%%:*} >/dev/null 2>&1 || missing="$$missing $${dep##*:}"; done; \
 	if [ -n "$$missing" ]; then \
 	  if [ "$$(id -u)" = 0 ]; then \
 	    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing >/dev/null) \

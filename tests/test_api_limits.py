@@ -19,12 +19,13 @@ import pytest
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import InvalidStatus
 
+from cellctl.cell.config import check_cell
 from cellctl.cell.journal import open_journal
 from cellctl.errors import UsageError
 from cellctl.mailbox import open_mailbox
 from cellctl.service.access import LocalCell
 from cellctl.service.client import RemoteCell
-from cellctl.service.server import ApiLimits, ApiServer, ensure_token
+from cellctl.service.server import ApiLimits, ApiServer, api_limits, ensure_token
 from cellctl.ui.dashboard.routes import dashboard_routes
 from tests.conftest import CELLCTL, free_port
 
@@ -336,3 +337,20 @@ async def test_a_foreign_host_name_is_refused_even_with_the_token(served: Served
         ):
             pass
     assert foreign.value.response.status_code == 403
+
+
+def test_the_limits_come_from_the_api_table_of_cell_toml(cell: Path) -> None:
+    with (cell / "cell.toml").open("a") as f:
+        f.write(
+            '\n[api]\nlisten = "127.0.0.1:7125"\nhosts = ["cell7.lab"]\nheader_timeout = 2.5\n'
+            "idle_timeout = 30\nmax_connections = 8\n"
+        )
+    config, problems = check_cell(cell)
+    assert config is not None, problems
+    assert api_limits(config.api) == ApiLimits(
+        header_timeout=2.5, idle_timeout=30.0, max_connections=8, hosts=("cell7.lab",)
+    )
+    text = (cell / "cell.toml").read_text().replace("max_connections = 8", "max_connections = 0")
+    (cell / "cell.toml").write_text(text)
+    _, problems = check_cell(cell)
+    assert any("max_connections" in p for p in problems), problems

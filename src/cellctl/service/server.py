@@ -18,9 +18,11 @@ Every request needs ``Authorization: Bearer <token>`` (``<cell>/api-token``, 060
 first run): a missing or wrong one gets 401 (HTTP) or a refused handshake (WebSocket). A
 browser, which cannot set that header on a WebSocket, fetches ``/access/oneshot_token`` (with
 the header) and opens ``/websocket?token=ONESHOT`` within 10 s. A handshake from a page of
-another origin is refused. A call runs to its end even if its client goes away, so no machine
-is left half-commanded. Every HTTP answer carries a Content-Security-Policy that allows only
-the server's own assets.
+another origin, or naming a host the server does not answer to, is refused. A call runs to
+its end even if its client goes away, so no machine is left half-commanded; a batch (at most
+:data:`MAX_BATCH` requests, answered as one array) runs its calls one after the other and
+stops when its client leaves. Every HTTP answer carries a Content-Security-Policy that allows
+only the server's own assets. The connections' limits are in :mod:`cellctl.service.limits`.
 """
 
 from __future__ import annotations

@@ -19,10 +19,12 @@ from websockets.asyncio.client import connect, unix_connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
 from cellctl.errors import AccessDenied, DeviceError, MachineInUse, UsageError
+from cellctl.link.trace import SENT
 from cellctl.protocol.aml import compile_source
-from cellctl.service.access import AttachedCell
+from cellctl.service.access import AttachedCell, LocalCell
 from cellctl.service.client import RemoteCell, attach
 from cellctl.service.server import ApiServer
+from cellctl.ui.console.session import cell_refs
 from tests.cell_rig import CellRig
 from tests.conftest import free_port
 
@@ -224,8 +226,14 @@ async def test_subscription_pushes_changes(api: Api) -> None:
         lambda: any(any(o["id"] == "U1" for o in u.get("orders", [])) for u in updates),
         "an update with order U1",
     )
-    events = [e["text"] for u in updates for e in u.get("events", [])]
-    await api.rig.wait_for(lambda: events or updates, "events")
+    # The controller's event for the order is pushed too, as a new event (not the snapshot).
+    assert not any("order U1 accepted" in e["text"] for e in snapshot["events"])
+    await api.rig.wait_for(
+        lambda: any(
+            e["text"].startswith("order U1 accepted") for u in updates for e in u.get("events", [])
+        ),
+        "the event 'order U1 accepted', pushed",
+    )
 
 
 @pytest.mark.parametrize(
@@ -244,14 +252,42 @@ async def test_subscription_pushes_changes(api: Api) -> None:
     ],
 )  # fmt: skip
 async def test_bad_parameters_are_refused_with_the_cli_error(
-    api: Api, method: str, params: dict[str, Any], error: type[Exception], message: str
+    standalone: tuple[RemoteCell, LocalCell],
+    method: str,
+    params: dict[str, Any],
+    error: type[Exception],
+    message: str,
 ) -> None:
-    before = len(api.rig.controller.traffic.entries) if api.rig.controller else 0
+    client, access = standalone
+    # Each machine's link is open (a mill's status is read from its lines, no byte sent) and
+    # nothing else talks to them (no controller polls): the trace shows any byte a refused
+    # call sends.
+    await client.call("robot.status", {"machine": "robot"})
+    for mill in ("cnc1", "cnc2"):
+        await client.call("mill.status", {"machine": mill})
+    sent_before = [e for e in access.traffic_log.entries if e[2] == SENT]
+    assert "robot" in {e[1] for e in sent_before}
     with pytest.raises(error, match=message):
-        await api.call(method, params)
-    if method.startswith("robot."):  # nothing reached the machine for the refused call
-        after = [e for e in list(api.rig.controller.traffic.entries)[before:]]  # type: ignore[union-attr]
-        assert all(e[3] != b"X" for e in after if e[2] == ">>")
+        await client.call(method, params)
+    sent_after = [e for e in access.traffic_log.entries if e[2] == SENT]
+    assert sent_after == sent_before, f"bytes reached a machine: {sent_after[len(sent_before) :]}"
+
+
+@pytest.fixture
+async def standalone(tmp_path: Path) -> AsyncIterator[tuple[RemoteCell, LocalCell]]:
+    """The API served without a controller, on the emulated cell's machines."""
+    async with (
+        CellRig(tmp_path / "cell") as rig,
+        LocalCell(rig.directory, cell_refs(rig.directory)) as access,
+    ):
+        server = ApiServer(access, rig.directory)
+        await server.start()
+        client = await attach(rig.directory)
+        try:
+            yield client, access
+        finally:
+            await client.close()
+            await server.close()
 
 
 async def raw(api: Api, **kwargs: Any) -> Any:

@@ -14,6 +14,7 @@ from typing import Any
 
 import pytest
 from asyncua import Client, ua
+from asyncua.common.node import Node
 from asyncua.crypto import cert_gen
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from asyncua.ua.uaerrors import BadIdentityTokenRejected, BadUserAccessDenied, UaError
@@ -36,6 +37,7 @@ from .cell_rig import CellRig
 
 CLIENT_URI = "urn:cellctl:tests:client"
 SIGN_AND_ENCRYPT = ua.MessageSecurityMode.SignAndEncrypt
+UINT32 = ua.VariantType.UInt32
 
 
 def free_port() -> int:
@@ -206,8 +208,12 @@ async def _scenario(rig: CellRig, url: str, cert: tuple[str, str], run: asyncio.
         await subscription.subscribe_data_change(state)
         await until(_async(lambda: seen.values), "the first value of cnc1's state")
 
+        await _methods_take_only_their_declared_arguments(alice, cell_node, submit, clear, rig)
         order_id = await cell_node.call_method(
-            submit, "wax-robot-base", ua.Variant(1, ua.VariantType.UInt32), 0
+            submit,
+            "wax-robot-base",
+            ua.Variant(1, ua.VariantType.UInt32),
+            ua.Variant(0, ua.VariantType.Int32),
         )
         assert rig.mailbox.get_order(order_id).part_type == "wax-robot-base"
         await until(_async(lambda: "machining" in seen.values), "cnc1 machining, pushed")
@@ -218,7 +224,9 @@ async def _scenario(rig: CellRig, url: str, cert: tuple[str, str], run: asyncio.
         )
         await until(lambda: _equals(order_state, "done"), "the order done, as the Orders node says")
 
-        refused = await call_raw(alice, cell_node.nodeid, submit.nodeid, "no-such-part", 1, 0)
+        refused = await call_raw(
+            alice, cell_node.nodeid, submit.nodeid, "no-such-part", ua.Variant(1, UINT32)
+        )
         assert refused.StatusCode.value == ua.StatusCodes.BadInvalidArgument
         assert (
             "unknown part type 'no-such-part'"
@@ -256,13 +264,36 @@ async def _scenario(rig: CellRig, url: str, cert: tuple[str, str], run: asyncio.
         submit = anonymous.get_node(ua.NodeId("Cell/SubmitOrder", idx))
         orders = len(rig.mailbox.orders())
         with pytest.raises(BadUserAccessDenied):
-            await cell_node.call_method(
-                submit, "wax-robot-base", ua.Variant(1, ua.VariantType.UInt32), 0
-            )
+            await cell_node.call_method(submit, "wax-robot-base", ua.Variant(1, UINT32))
         with pytest.raises(BadUserAccessDenied):
             await state.write_value("hacked")
         assert len(rig.mailbox.orders()) == orders
         assert await state.read_value() != "hacked"
+
+
+async def _methods_take_only_their_declared_arguments(
+    client: Client, cell_node: Node, submit: Node, clear: Node, rig: CellRig
+) -> None:
+    """A quantity as text, a fourth argument, an array, and the Cell's method called on the
+    Server object: each refused with its own status and words, and no order posted."""
+    orders = len(rig.mailbox.orders())
+    cell, server = cell_node.nodeid, client.nodes.server.nodeid
+    text_qty = await call_raw(client, cell, submit.nodeid, "wax-robot-base", "2")
+    assert text_qty.StatusCode.value == ua.StatusCodes.BadInvalidArgument
+    assert [r.value for r in text_qty.InputArgumentResults] == [0, ua.StatusCodes.BadTypeMismatch]
+    words = text_qty.InputArgumentDiagnosticInfos[1].AdditionalInfo
+    assert "Quantity must be UInt32, not String" in words
+    four = [ua.Variant(1, UINT32), ua.Variant(0, ua.VariantType.Int32), "extra"]
+    too_many = await call_raw(client, cell, submit.nodeid, "wax-robot-base", *four)
+    assert too_many.StatusCode.value == ua.StatusCodes.BadTooManyArguments
+    wide = await call_raw(client, cell, clear.nodeid, ua.Variant(1, ua.VariantType.Int64))
+    assert wide.StatusCode.value == ua.StatusCodes.BadInvalidArgument
+    array = await call_raw(client, cell, clear.nodeid, ua.Variant([1, 2], UINT32))
+    assert array.StatusCode.value == ua.StatusCodes.BadInvalidArgument
+    qty = ua.Variant(1, UINT32)
+    elsewhere = await call_raw(client, server, submit.nodeid, "wax-robot-base", qty)
+    assert elsewhere.StatusCode.value == ua.StatusCodes.BadMethodInvalid
+    assert len(rig.mailbox.orders()) == orders
 
 
 def _async(fn: Callable[[], Any]) -> Callable[[], Awaitable[Any]]:
@@ -389,6 +420,7 @@ def test_method_arguments_from_a_client_give_answers_or_refusals_in_words(
             assert result.StatusCode.value in (
                 ua.StatusCodes.BadInvalidArgument,
                 ua.StatusCodes.BadArgumentsMissing,
+                ua.StatusCodes.BadTooManyArguments,
             ), result
             assert result.InputArgumentDiagnosticInfos[0].AdditionalInfo
         else:

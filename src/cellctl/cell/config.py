@@ -139,6 +139,7 @@ class CellConfig:
     raw: dict[str, Any] = field(default_factory=dict)
     api_listen: str | None = None  # [api] listen: "HOST:PORT"; None = the Unix socket only
     api_allow_remote: bool = False  # [api] allow_remote: a non-loopback listen is allowed
+    api: ApiTable | None = None  # [api]: hosts, timeouts, connections
     mailbox: MailboxTable | None = None  # [mailbox]: url None = the SQLite mailbox
     opcua: OpcuaTable | None = None  # [opcua]: listen None = no OPC UA server
 
@@ -260,6 +261,22 @@ class ApiTable(_Table):
     )
     allow_remote: bool = Field(
         default=False, description="a listen address that is not loopback is refused unless true"
+    )
+    hosts: Annotated[
+        list[Annotated[str, Field(min_length=1, max_length=253)]], Field(max_length=32)
+    ] = Field(
+        default_factory=list,
+        description="host names the API answers to besides its address and localhost "
+        "(any other Host header gets 421)",
+    )
+    header_timeout: Annotated[float, Field(gt=0, le=300, allow_inf_nan=False)] = Field(
+        default=10.0, description="s a request's head may take before the connection is closed"
+    )
+    idle_timeout: Annotated[float, Field(ge=1, le=3600, allow_inf_nan=False)] = Field(
+        default=60.0, description="s an HTTP connection may sit idle between requests"
+    )
+    max_connections: Annotated[int, Field(ge=1, le=10_000)] = Field(
+        default=100, description="open connections per listener; the next one gets 503"
     )
 
     @model_validator(mode="after")
@@ -702,6 +719,7 @@ def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
             raw=raw,
             api_listen=api.listen,
             api_allow_remote=api.allow_remote,
+            api=api,
             mailbox=mailbox,
             opcua=opcua,
         ),

@@ -28,7 +28,8 @@ from cellctl.errors import AccessDenied, CellctlError, LinkClosed, LinkError, Li
 from cellctl.service.access import LocalCell
 from cellctl.service.machines import MachineRef
 from cellctl.service.methods import Dispatcher, error_from_object
-from cellctl.service.server import SOCKET_FILE, TOKEN_FILE, _difference
+from cellctl.service.server import SOCKET_FILE, _difference
+from cellctl.service.token import read_token
 
 Update = Callable[[dict[str, Any]], None]
 Progress = Callable[[dict[str, Any]], None]
@@ -99,24 +100,11 @@ class RemoteCell:
     async def _read(self) -> None:
         try:
             async for text in self._ws:
-                message = json.loads(text)
-                if "id" in message and message.get("id") in self._pending:
-                    future = self._pending.pop(message["id"])
-                    self._progress.pop(message["id"], None)
-                    if future.done():
-                        continue
-                    if "error" in message:
-                        future.set_exception(error_from_object(message["error"]))
-                    else:
-                        future.set_result(message.get("result"))
-                elif message.get("method") == "notify_progress":
-                    params = message.get("params", {})
-                    callback = self._progress.get(params.get("id"))
-                    if callback is not None:
-                        callback(params)
-                elif message.get("method") == "notify_status_update":
-                    for update in list(self._updates):
-                        update(message.get("params", {}))
+                found = json.loads(text)
+                # A batch's answers come as one array (JSON-RPC 2.0).
+                for message in found if isinstance(found, list) else [found]:
+                    if isinstance(message, dict):
+                        self._take(message)
         except (ConnectionClosed, ValueError):
             pass
         finally:
@@ -125,6 +113,26 @@ class RemoteCell:
                 if not future.done():
                     future.set_exception(LinkClosed("the control API closed the connection"))
             self._pending.clear()
+
+    def _take(self, message: dict[str, Any]) -> None:
+        """One answer or notification from the server."""
+        if "id" in message and message.get("id") in self._pending:
+            future = self._pending.pop(message["id"])
+            self._progress.pop(message["id"], None)
+            if future.done():
+                return
+            if "error" in message:
+                future.set_exception(error_from_object(message["error"]))
+            else:
+                future.set_result(message.get("result"))
+        elif message.get("method") == "notify_progress":
+            params = message.get("params", {})
+            callback = self._progress.get(params.get("id"))
+            if callback is not None:
+                callback(params)
+        elif message.get("method") == "notify_status_update":
+            for update in list(self._updates):
+                update(message.get("params", {}))
 
     async def call(
         self,
@@ -251,14 +259,6 @@ class StandaloneCell:
 
 
 CellClient = RemoteCell | StandaloneCell
-
-
-def read_token(directory: Path) -> str:
-    """The cell's API token (AccessDenied if it cannot be read)."""
-    try:
-        return (directory / TOKEN_FILE).read_text(encoding="ascii").strip()
-    except OSError as e:
-        raise AccessDenied(f"cannot read the API token {directory / TOKEN_FILE}: {e}") from None
 
 
 async def attach(directory: Path) -> RemoteCell:

@@ -32,6 +32,17 @@ Progress = Callable[[dict[str, Any]], None]
 MAX_PROGRAM_CHARS = 4_000_000
 
 
+class InvalidParams(UsageError):
+    """Parameters that do not fit their schema (a JSON-RPC -32602): the message names the
+    field and says why."""
+
+
+#: How many of a validation's problems a message lists.
+SHOWN_PROBLEMS = 5
+#: How much of a field's name a message shows (a peer picks the names).
+SHOWN_NAME = 60
+
+
 class Params(BaseModel):
     """Base of the functions' parameters: unknown keys are refused."""
 
@@ -96,7 +107,7 @@ class MachineFunction:
         try:
             params = self.params.model_validate(raw or {})
         except ValidationError as e:
-            raise UsageError(f"{self.family} {self.name}: {describe(e)}") from None
+            raise InvalidParams(f"{self.family} {self.name}: {describe(e)}") from None
         return _prepare(self, params)
 
     async def run(self, driver: Any, params: Any, progress: Progress | None = None) -> Any:
@@ -107,10 +118,15 @@ class MachineFunction:
 def describe(error: ValidationError) -> str:
     """A pydantic error in one line: ``partition: partition must be 1 to 5 ...``."""
     parts = []
-    for item in error.errors():
+    problems = error.errors(include_url=False, include_input=False)
+    for item in problems[:SHOWN_PROBLEMS]:
         where = ".".join(str(x) for x in item["loc"]) or "parameters"
+        if len(where) > SHOWN_NAME:
+            where = where[:SHOWN_NAME] + "…"
         message = str(item["msg"]).removeprefix("Value error, ")
         parts.append(f"{where}: {message}")
+    if len(problems) > SHOWN_PROBLEMS:
+        parts.append(f"and {len(problems) - SHOWN_PROBLEMS} more")
     return "; ".join(parts)
 
 

@@ -22,12 +22,19 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from cellctl import __version__
 from cellctl import errors as errors_module
+from cellctl.cell.journal import PART_STATUSES
 from cellctl.errors import CellctlError, DeviceError, ProtocolError, UsageError, exit_code
 from cellctl.mailbox import ORDER_STATES
 from cellctl.mailbox.base import MAX_QTY
 from cellctl.service import operator
 from cellctl.service.access import CellAccess
-from cellctl.service.functions import FUNCTIONS, MachineFunction, Progress, describe
+from cellctl.service.functions import (
+    FUNCTIONS,
+    InvalidParams,
+    MachineFunction,
+    Progress,
+    describe,
+)
 
 #: JSON-RPC 2.0's own error codes.
 PARSE_ERROR = -32700
@@ -37,6 +44,12 @@ INVALID_PARAMS = -32602
 INTERNAL_ERROR = -32603
 #: A typed cellctl error: -32000 minus the CLI's exit code for it (UsageError -32002 ...).
 APP_ERROR_BASE = -32000
+#: The most requests one JSON-RPC batch may hold.
+MAX_BATCH = 100
+#: Integers a parameter may hold: 64 bits, signed (SQLite's and most clients' limit).
+INT64_MAX = 2**63 - 1
+#: The most entries a list parameter may hold.
+MAX_LIST = 20
 
 
 class P(BaseModel):
@@ -61,7 +74,9 @@ class SubmitParams(P):
 
 
 class OrdersParams(P):
-    states: list[Literal[ORDER_STATES]] | None = None  # type: ignore[valid-type]
+    states: list[Literal[ORDER_STATES]] | None = Field(  # type: ignore[valid-type]
+        default=None, max_length=MAX_LIST
+    )
 
 
 class IdParams(P):
@@ -73,12 +88,14 @@ class AlarmsParams(P):
 
 
 class AlarmParams(P):
-    id: int = Field(ge=1)
+    id: int = Field(ge=1, le=INT64_MAX)
 
 
 class PartsParams(P):
-    statuses: list[str] | None = None
-    order: str | None = None
+    statuses: list[Literal[PART_STATUSES]] | None = Field(  # type: ignore[valid-type]
+        default=None, max_length=MAX_LIST
+    )
+    order: str | None = Field(default=None, min_length=1, max_length=100)
 
 
 class ReleaseParams(P):
@@ -103,7 +120,7 @@ class TrafficParams(P):
 
 
 class StepsParams(P):
-    since: float | None = Field(default=None, allow_inf_nan=False)
+    since: float | None = Field(default=None, allow_inf_nan=False, ge=0, le=1e11)
 
 
 class PreviewParams(P):
@@ -356,11 +373,11 @@ class Dispatcher:
         if params is None:
             params = {}
         if not isinstance(params, dict):
-            raise UsageError(f"{method}: parameters must be an object with names")
+            raise InvalidParams(f"{method}: params: parameters must be an object with names")
         try:
             checked = entry.params.model_validate(params)
         except ValidationError as e:
-            raise UsageError(f"{method}: {describe(e)}") from None
+            raise InvalidParams(f"{method}: {describe(e)}") from None
         return await entry.handler(self.access, checked, progress)
 
 
@@ -368,6 +385,8 @@ def error_object(error: BaseException) -> dict[str, Any]:
     """The JSON-RPC error object for ``error`` (a typed one keeps its type and message)."""
     if isinstance(error, MethodNotFound):
         return {"code": METHOD_NOT_FOUND, "message": str(error), "data": _data(error, 2)}
+    if isinstance(error, InvalidParams):  # a client raises it as the UsageError it is
+        return {"code": INVALID_PARAMS, "message": str(error), "data": _data(error, 2)}
     if isinstance(error, CellctlError):
         code = exit_code(error)
         return {"code": APP_ERROR_BASE - code, "message": str(error), "data": _data(error, code)}
@@ -375,7 +394,8 @@ def error_object(error: BaseException) -> dict[str, Any]:
 
 
 def _data(error: CellctlError, code: int) -> dict[str, Any]:
-    data: dict[str, Any] = {"type": type(error).__name__, "exit_code": code}
+    kind = "UsageError" if isinstance(error, InvalidParams) else None
+    data: dict[str, Any] = {"type": kind or type(error).__name__, "exit_code": code}
     if isinstance(error, DeviceError):
         data.update(device_code=error.code, device_message=error.message, detail=error.detail)
     if isinstance(error, ProtocolError):

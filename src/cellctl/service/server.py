@@ -18,9 +18,11 @@ Every request needs ``Authorization: Bearer <token>`` (``<cell>/api-token``, 060
 first run): a missing or wrong one gets 401 (HTTP) or a refused handshake (WebSocket). A
 browser, which cannot set that header on a WebSocket, fetches ``/access/oneshot_token`` (with
 the header) and opens ``/websocket?token=ONESHOT`` within 10 s. A handshake from a page of
-another origin is refused. A call runs to its end even if its client goes away, so no machine
-is left half-commanded. Every HTTP answer carries a Content-Security-Policy that allows only
-the server's own assets.
+another origin, or naming a host the server does not answer to, is refused. A call runs to
+its end even if its client goes away, so no machine is left half-commanded; a batch (at most
+:data:`MAX_BATCH` requests, answered as one array) runs its calls one after the other and
+stops when its client leaves. Every HTTP answer carries a Content-Security-Policy that allows
+only the server's own assets. The connections' limits are in :mod:`cellctl.service.limits`.
 """
 
 from __future__ import annotations
@@ -36,32 +38,49 @@ import os
 import secrets
 import socket
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Coroutine
 from pathlib import Path
 from typing import Any
 
 import uvicorn
 from starlette.applications import Starlette
-from starlette.datastructures import MutableHeaders
 from starlette.middleware import Middleware
 from starlette.requests import Request
 from starlette.responses import JSONResponse, Response
 from starlette.routing import BaseRoute, Route, WebSocketRoute
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
 from cellctl.errors import UsageError
 from cellctl.service.access import CellAccess
+from cellctl.service.limits import (
+    ApiLimits,
+    GuardedServer,
+    HostCheck,
+    SecurityHeaders,
+    api_limits,
+)
 from cellctl.service.methods import (
+    INTERNAL_ERROR,
     INVALID_REQUEST,
+    MAX_BATCH,
     PARSE_ERROR,
     Dispatcher,
     error_object,
 )
+from cellctl.service.token import TOKEN_FILE, ensure_token
+
+__all__ = [
+    "SOCKET_FILE",
+    "TOKEN_FILE",
+    "ApiLimits",
+    "ApiServer",
+    "api_limits",
+    "ensure_token",
+    "parse_listen",
+]
 
 log = logging.getLogger(__name__)
 
-TOKEN_FILE = "api-token"
 SOCKET_FILE = "api.sock"
 #: The largest WebSocket frame accepted (a program text fits; more closes the connection).
 MAX_FRAME = 8 * 1024 * 1024
@@ -73,31 +92,8 @@ PUSH_GAP = 0.01
 PUSH_TICK = 1.0
 #: Seconds a one-shot WebSocket token stays good.
 ONESHOT_TTL = 10.0
-#: What a page served here may load: its own assets only.
-CSP = (
-    "default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' data: blob:; "
-    "connect-src 'self'; font-src 'self'; base-uri 'none'; form-action 'self'; "
-    "frame-ancestors 'none'"
-)
 #: Where Unix socket paths must fit (sun_path is 108 bytes on Linux).
 MAX_SOCKET_PATH = 100
-
-
-def ensure_token(directory: Path) -> str:
-    """The cell's API token, made (0600) on first use."""
-    path = directory / TOKEN_FILE
-    with contextlib.suppress(FileNotFoundError):
-        token = path.read_text(encoding="ascii").strip()
-        if token:
-            os.chmod(path, 0o600)
-            return token
-    directory.mkdir(parents=True, exist_ok=True)
-    token = secrets.token_urlsafe(32)
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w", encoding="ascii") as f:
-        f.write(token + "\n")
-    os.chmod(path, 0o600)
-    return token
 
 
 def socket_target(directory: Path) -> Path:
@@ -139,8 +135,8 @@ class _Session:
         self.subscribed = False
         self.open = True
 
-    def send(self, message: dict[str, Any] | str) -> None:
-        """Queue ``message`` (a dict, or JSON text already made once for every client)."""
+    def send(self, message: dict[str, Any] | list[Any] | str) -> None:
+        """Queue ``message`` (a dict, a batch's answers, or JSON text made once for all)."""
         if not self.open:
             return
         text = message if isinstance(message, str) else json.dumps(message, default=str)
@@ -161,39 +157,6 @@ class _Session:
             await self.ws.send_text(text)
 
 
-class _SecurityHeaders:
-    """Every HTTP answer: the Content-Security-Policy, no sniffing, no framing, no caching of
-    cell data."""
-
-    def __init__(self, app: ASGIApp) -> None:
-        self.app = app
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
-
-        async def with_headers(message: Message) -> None:
-            if message["type"] == "http.response.start":
-                headers = MutableHeaders(scope=message)
-                headers.setdefault("Content-Security-Policy", CSP)
-                headers.setdefault("X-Content-Type-Options", "nosniff")
-                headers.setdefault("X-Frame-Options", "DENY")
-                headers.setdefault("Referrer-Policy", "no-referrer")
-                headers.setdefault("Cache-Control", "no-store")
-            await send(message)
-
-        await self.app(scope, receive, with_headers)
-
-
-class _Server(uvicorn.Server):
-    """uvicorn without its signal handlers: the controller's own handle Ctrl-C."""
-
-    @contextlib.contextmanager
-    def capture_signals(self) -> Iterator[None]:
-        yield
-
-
 class ApiServer:
     """Serves one cell's API on its Unix socket and, if configured, on TCP."""
 
@@ -205,23 +168,30 @@ class ApiServer:
         listen: str | None = None,
         allow_remote: bool = False,
         extra_routes: Callable[[ApiServer], list[BaseRoute]] | None = None,
+        limits: ApiLimits | None = None,
     ) -> None:
         self.access = access
         self.directory = Path(directory)
         self.dispatcher = Dispatcher(access)
         self.token = ensure_token(self.directory)
         self.tcp = parse_listen(listen, allow_remote) if listen else None
+        self.limits = limits or ApiLimits()
         self.socket_path = self.directory / SOCKET_FILE
         self.sessions: set[_Session] = set()
         self.calls: set[asyncio.Task[None]] = set()
         self._changed = asyncio.Event()
-        self._server: _Server | None = None
+        self._server: GuardedServer | None = None
         self._tasks: list[asyncio.Task[None]] = []
         self._last: dict[str, Any] = {}
         self.push_count = 0
         self._oneshot: dict[str, float] = {}
         self.app = Starlette(
-            middleware=[Middleware(_SecurityHeaders)],
+            middleware=[
+                Middleware(SecurityHeaders),
+                Middleware(
+                    HostCheck, listen=self.tcp[0] if self.tcp else None, hosts=self.limits.hosts
+                ),
+            ],
             routes=[
                 Route("/access/oneshot_token", self._oneshot_token),
                 WebSocketRoute("/websocket", self._websocket),
@@ -264,8 +234,10 @@ class ApiServer:
             ws_ping_interval=20.0,
             ws_ping_timeout=20.0,
             timeout_graceful_shutdown=2,
+            timeout_keep_alive=max(1, round(self.limits.idle_timeout)),
+            h11_max_incomplete_event_size=16 * 1024,
         )
-        self._server = _Server(config)
+        self._server = GuardedServer(config, self.limits)
         self._tasks.append(asyncio.create_task(self._server.serve(sockets=sockets)))
         self._tasks.append(asyncio.create_task(self._publisher()))
         with contextlib.suppress(UsageError):
@@ -434,27 +406,58 @@ class ApiServer:
         except (ValueError, RecursionError):
             session.send(_error(None, PARSE_ERROR, "parse error: not JSON"))
             return
-        requests = request if isinstance(request, list) and request else [request]
-        for item in requests:
-            self._start_call(session, item)
+        if not isinstance(request, list):
+            self._spawn(self._single(session, request))
+        elif not request:
+            session.send(_error(None, INVALID_REQUEST, "invalid request: an empty batch"))
+        elif len(request) > MAX_BATCH:
+            session.send(
+                _error(
+                    None,
+                    INVALID_REQUEST,
+                    f"invalid request: a batch of {len(request)} requests; "
+                    f"at most {MAX_BATCH} in one batch",
+                )
+            )
+        else:
+            self._spawn(self._batch(session, request))
 
-    def _start_call(self, session: _Session, request: Any) -> None:
+    def _spawn(self, work: Coroutine[Any, Any, None]) -> None:
+        # The calls run in a task kept by the server: a client that goes away does not cancel
+        # one halfway through a machine's transaction.
+        task = asyncio.create_task(work)
+        self.calls.add(task)
+        task.add_done_callback(self.calls.discard)
+
+    async def _single(self, session: _Session, request: Any) -> None:
+        answer = await self._call(session, request)
+        if answer is not None:
+            session.send(answer)
+
+    async def _batch(self, session: _Session, requests: list[Any]) -> None:
+        """A batch's calls one after the other, answered as one array (JSON-RPC 2.0)."""
+        answers = []
+        for request in requests:
+            if not session.open:
+                return  # the client left: the call in flight ended, the others do not start
+            answer = await self._call(session, request)
+            if answer is not None:
+                answers.append(answer)
+            await asyncio.sleep(0)  # the monitor and the other clients go on between calls
+        if answers:
+            session.send(answers)
+
+    async def _call(self, session: _Session, request: Any) -> dict[str, Any] | None:
+        """The answer to one request (None for a notification: a request without an id)."""
+        rid = request.get("id") if isinstance(request, dict) else None
         if (
             not isinstance(request, dict)
             or request.get("jsonrpc") != "2.0"
             or not isinstance(request.get("method"), str)
+            or not isinstance(rid, str | int | float | None)
         ):
-            rid = request.get("id") if isinstance(request, dict) else None
-            session.send(_error(rid, INVALID_REQUEST, "invalid request: not JSON-RPC 2.0"))
-            return
-        # The call runs in its own task, kept by the server: a client that goes away does
-        # not cancel it halfway through a machine's transaction.
-        task = asyncio.create_task(self._call(session, request))
-        self.calls.add(task)
-        task.add_done_callback(self.calls.discard)
-
-    async def _call(self, session: _Session, request: dict[str, Any]) -> None:
-        rid = request.get("id")
+            rid = rid if isinstance(rid, str | int | float) else None
+            return _error(rid, INVALID_REQUEST, "invalid request: not JSON-RPC 2.0")
         method = request["method"]
         params = request.get("params")
 
@@ -474,14 +477,11 @@ class ApiServer:
             else:
                 result = await self.dispatcher.call(method, params, progress)
         except Exception as e:
-            if rid is None:
-                return
-            if error_object(e)["code"] == -32603:
-                log.exception("API method %s failed", method)
-            session.send({"jsonrpc": "2.0", "id": rid, "error": error_object(e)})
-            return
-        if rid is not None:
-            session.send({"jsonrpc": "2.0", "id": rid, "result": result})
+            error = error_object(e)
+            if error["code"] == INTERNAL_ERROR:
+                log.exception("API method %s failed", method[:100])
+            return None if rid is None else {"jsonrpc": "2.0", "id": rid, "error": error}
+        return None if rid is None else {"jsonrpc": "2.0", "id": rid, "result": result}
 
     # -- pushing changes ----------------------------------------------------------------------
 

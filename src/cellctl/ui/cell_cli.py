@@ -25,7 +25,7 @@ from cellctl.errors import UsageError
 from cellctl.mailbox import Mailbox, open_mailbox
 from cellctl.mailbox.mqtt import MqttBridge, MqttSettings
 from cellctl.service.access import AttachedCell
-from cellctl.service.server import ApiServer
+from cellctl.service.server import ApiServer, api_limits
 from cellctl.ui.common import cell_dir, console, err_console, run, until_stopped
 from cellctl.ui.dashboard.command import serve_dashboard_in
 from cellctl.ui.dashboard.routes import dashboard_routes
@@ -134,6 +134,7 @@ async def _run_owned(
         listen=config.api_listen,
         allow_remote=config.api_allow_remote,
         extra_routes=dashboard_routes,
+        limits=api_limits(config.api),
     )
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, on_signal)

@@ -39,7 +39,12 @@ from cellctl.cell.config import OpcuaTable
 from cellctl.errors import CellctlError, DeviceError, UsageError
 from cellctl.factory.opcua.certs import ensure_certificate, thumbprint
 from cellctl.factory.opcua.figures import StepBook, machine_values
-from cellctl.factory.opcua.space import CellSpace, machine_path
+from cellctl.factory.opcua.space import (
+    CLEAR_ALARM_ARGUMENTS,
+    SUBMIT_ORDER_ARGUMENTS,
+    CellSpace,
+    machine_path,
+)
 from cellctl.factory.opcua.users import CellRuleset, FileUserManager, load_users
 from cellctl.service.access import CellAccess
 from cellctl.service.methods import Dispatcher
@@ -266,29 +271,69 @@ class OpcuaServer:
 
     async def submit_order(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
         """The method SubmitOrder(PartType, Quantity, Priority) → OrderId (``orders.submit``)."""
-        values = [a.Value for a in args]
-        if len(values) < 2:
-            return _refused(StatusCodes.BadArgumentsMissing, "give PartType and Quantity")
-        params = dict(zip(("part_type", "qty", "priority"), values, strict=False))
-        if params.get("priority") is None:
-            params.pop("priority", None)
+        refused = self._check(parent, args, SUBMIT_ORDER_ARGUMENTS, required=2)
+        if refused is not None:
+            return refused
+        names = ("part_type", "qty", "priority")
+        params = {name: a.Value for name, a in zip(names, args, strict=False)}
         try:
             result = await self.dispatcher.call("orders.submit", params)
         except Exception as e:
-            return _error(e, len(values))
+            return _error(e, len(args))
         self._log(f"OPC UA: {result['message']}")
         return [ua.Variant(str(result["order"]["id"]), ua.VariantType.String)]
 
     async def clear_alarm(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
         """The method ClearAlarm(AlarmId) → Message (``alarms.clear``)."""
-        if not args:
-            return _refused(StatusCodes.BadArgumentsMissing, "give AlarmId")
+        refused = self._check(parent, args, CLEAR_ALARM_ARGUMENTS, required=1)
+        if refused is not None:
+            return refused
         try:
             result = await self.dispatcher.call("alarms.clear", {"id": args[0].Value})
         except Exception as e:
             return _error(e, len(args))
         self._log(f"OPC UA: {result['message']}")
         return [ua.Variant(str(result["message"]), ua.VariantType.String)]
+
+    def _check(
+        self,
+        parent: ua.NodeId,
+        args: tuple[ua.Variant, ...],
+        declared: list[tuple[str, ua.VariantType, str]],
+        required: int,
+    ) -> ua.CallMethodResult | None:
+        """A refusal unless the call is on the Cell object with the declared arguments: as
+        many as declared (the last ones may be left out down to ``required``), each a scalar
+        of its declared type."""
+        cell = self._space.cell if self._space is not None else None
+        if cell is not None and parent != cell.nodeid:
+            return _refused(
+                StatusCodes.BadMethodInvalid, "the method belongs to the Cell object", len(args)
+            )
+        names = ", ".join(name for name, _, _ in declared)
+        if len(args) > len(declared):
+            return _refused(
+                StatusCodes.BadTooManyArguments,
+                f"{len(args)} arguments given; the method takes {names}",
+                len(args),
+            )
+        if len(args) < required:
+            return _refused(StatusCodes.BadArgumentsMissing, f"give {names}", len(args))
+        results = []
+        words = []
+        for (name, vtype, _), arg in zip(declared, args, strict=False):
+            if not isinstance(arg, ua.Variant) or arg.VariantType != vtype or arg.is_array:
+                given = arg.VariantType.name if isinstance(arg, ua.Variant) else type(arg).__name__
+                kind = f"an array of {given}" if getattr(arg, "is_array", False) else given
+                results.append(ua.StatusCode(ua.UInt32(StatusCodes.BadTypeMismatch)))
+                words.append(f"{name} must be {vtype.name}, not {kind}")
+            else:
+                results.append(ua.StatusCode())
+        if not words:
+            return None
+        result = _refused(StatusCodes.BadInvalidArgument, "; ".join(words), len(args))
+        result.InputArgumentResults = results  # BadTypeMismatch where the type is wrong
+        return result
 
     @property
     def space(self) -> CellSpace | None:

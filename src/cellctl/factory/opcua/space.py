@@ -95,6 +95,15 @@ ALARM_EVENT_FIELDS = [
     ("Active", V.Boolean),
 ]
 Method = Callable[..., Awaitable[Any]]
+#: The methods' input arguments: name, type, description (the server checks calls by these).
+SUBMIT_ORDER_ARGUMENTS: list[tuple[str, ua.VariantType, str]] = [
+    ("PartType", V.String, "a part type of the cell"),
+    ("Quantity", V.UInt32, "parts to make (1 to 10000)"),
+    ("Priority", V.Int32, "higher first (default 0)"),
+]
+CLEAR_ALARM_ARGUMENTS: list[tuple[str, ua.VariantType, str]] = [
+    ("AlarmId", V.UInt32, "the alarm's id (Cell/Alarms)"),
+]
 
 
 def machine_path(name: str) -> str:
@@ -160,18 +169,14 @@ class CellSpace:
             self.node_id("Cell/SubmitOrder"),
             ua.QualifiedName("SubmitOrder", idx),
             submit,
-            [
-                _argument("PartType", V.String, "a part type of the cell"),
-                _argument("Quantity", V.UInt32, "parts to make (1 to 10000)"),
-                _argument("Priority", V.Int32, "higher first (default 0)"),
-            ],
+            [_argument(*a) for a in SUBMIT_ORDER_ARGUMENTS],
             [_argument("OrderId", V.String, "the order's id")],
         )
         await cell.add_method(
             self.node_id("Cell/ClearAlarm"),
             ua.QualifiedName("ClearAlarm", idx),
             clear,
-            [_argument("AlarmId", V.UInt32, "the alarm's id (Cell/Alarms)")],
+            [_argument(*a) for a in CLEAR_ALARM_ARGUMENTS],
             [_argument("Message", V.String, "what was done")],
         )
         # Events: each Messages object, the cell and the Server object (where a generic

@@ -17,7 +17,8 @@ import click
 
 from cellctl.errors import AccessDenied, UsageError
 from cellctl.service.machines import load_cell_file
-from cellctl.service.server import TOKEN_FILE, parse_listen
+from cellctl.service.server import parse_listen
+from cellctl.service.token import TOKEN_FILE, read_token
 from cellctl.ui.common import cell_dir, console
 
 #: Seconds to wait for the controller to answer.
@@ -40,8 +41,8 @@ def dashboard_url(directory: Path) -> str:
         host = "127.0.0.1"
     base = f"http://[{host}]:{port}" if ":" in host else f"http://{host}:{port}"
     try:
-        token = (directory / TOKEN_FILE).read_text(encoding="ascii").strip()
-    except OSError:
+        token = read_token(directory)  # a link or a short token: UsageError, what to do
+    except AccessDenied:
         token = ""
     if not token:
         raise UsageError(
@@ -91,7 +92,7 @@ def serve_dashboard_in(directory: Path) -> str:
     a token; the dashboard's URL (with the token in its fragment) once its controller runs."""
     import socket
 
-    from cellctl.service.server import ensure_token
+    from cellctl.service.token import ensure_token
 
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))

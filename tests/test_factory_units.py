@@ -21,6 +21,7 @@ from cellctl.factory.dispatch import choose, every_cell_refused, load_s
 from cellctl.factory.store import FactoryStore
 from cellctl.mailbox import open_mailbox
 from cellctl.mailbox.mqtt import MqttBridge, MqttSettings
+from cellctl.mailbox.wire import ReportMessage, parse_report
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "cell"
 FACTORY_TOML = """
@@ -45,8 +46,12 @@ def state(bounds: dict[str, float], finish: float = 0.0, **more: Any) -> dict[st
     return {"v": 1, "part_types": types, "finish_estimate_s": finish, "time": 100.0, **more}
 
 
-def report(seq: int, kind: str, order_id: str, **more: Any) -> dict[str, Any]:
-    return {"v": 1, "seq": seq, "kind": kind, "order_id": order_id, "text": kind, **more}
+EPOCH = "0123456789abcdef"
+
+
+def report(seq: int, kind: str, order_id: str, **more: Any) -> ReportMessage:
+    fields = {"cell": "c", "epoch": EPOCH, "seq": seq, "kind": kind, "order_id": order_id}
+    return parse_report(json.dumps({"v": 1, "text": kind, "time": 1.0, **fields, **more}).encode())
 
 
 @pytest.fixture
@@ -112,7 +117,7 @@ def test_a_refusal_sends_the_order_elsewhere_a_late_one_may_come_back(store: Fac
     # An answer for an order that has moved on changes nothing, and is said when it accepts.
     store.send("B", "cell2", expires=time.time() + 30)
     store.take_report("cell2", report(2, "order-accepted", "B"))
-    said = store.take_report("cell1", report(2, "order-accepted", "B"))
+    said = store.take_report("cell1", report(1, "order-accepted", "B")).text
     assert said == "order B accepted by cell1 too, after it went to cell2"
     assert store.get("B").cell == "cell2"
 

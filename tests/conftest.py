@@ -148,7 +148,7 @@ def emulated_cell_process(cell: Path, time_scale: str, poll_period: float = 0.1)
 
 
 @dataclass(frozen=True)
-class TestCa:
+class CaFiles:
     """A CA made for one test, and a broker certificate it signed for 127.0.0.1/localhost."""
 
     ca: Path  # the CA's certificate (PEM): what a client trusts
@@ -156,7 +156,7 @@ class TestCa:
     keyfile: Path  # the broker's key (PEM, 0600)
 
 
-def make_ca(directory: Path, name: str = "cellctl test CA") -> TestCa:
+def make_ca(directory: Path, name: str = "cellctl test CA") -> CaFiles:
     """A fresh CA in ``directory`` and a broker certificate signed by it (``cryptography``)."""
     import datetime
     import ipaddress
@@ -215,7 +215,7 @@ def make_ca(directory: Path, name: str = "cellctl test CA") -> TestCa:
         .sign(ca_key, hashes.SHA256())
     )
     pem = serialization.Encoding.PEM
-    out = TestCa(directory / "ca.crt", directory / "broker.crt", directory / "broker.key")
+    out = CaFiles(directory / "ca.crt", directory / "broker.crt", directory / "broker.key")
     out.ca.write_bytes(ca_cert.public_bytes(pem))
     out.certfile.write_bytes(cert.public_bytes(pem))
     out.keyfile.touch(mode=0o600)

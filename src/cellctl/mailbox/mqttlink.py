@@ -125,30 +125,52 @@ class MqttSettings:
             )
         if isinstance(cause, ConnectionRefusedError) or "authori" in str(error).lower():
             return error  # nothing listens there, or a wrong password: said as it is
-        speaks_tls = await _speaks_tls(self.host, self.port)
-        if speaks_tls and not self.tls:
+        if not self.tls and await _speaks_tls(self.host, self.port):
             return WrongScheme(f"the broker at {where} speaks TLS: use mqtts://{where}/...")
-        if speaks_tls is False and self.tls:
+        if self.tls and await _speaks_plain_mqtt(self.host, self.port):
             return WrongScheme(f"the broker at {where} does not speak TLS: use mqtt://{where}/...")
         return error
 
 
-async def _speaks_tls(host: str, port: int) -> bool | None:
-    """Whether ``host:port`` completes a TLS handshake (None: cannot tell, it did not answer)."""
+#: An MQTT 3.1.1 CONNECT without a user or client id: any broker answers it with a CONNACK
+#: (refusing it), which tells a plain MQTT port.
+_CONNECT = bytes.fromhex("100c00044d5154540402003c0000")
+_CONNACK = 0x20
+
+
+async def _speaks_tls(host: str, port: int) -> bool:
+    """Whether ``host:port`` completes a TLS handshake (certificates unchecked: it only asks
+    whether the port speaks TLS at all)."""
     context = ssl.create_default_context()
     context.check_hostname = False
-    context.verify_mode = ssl.CERT_NONE  # only asks whether it speaks TLS at all
+    context.verify_mode = ssl.CERT_NONE
     try:
         async with asyncio.timeout(PROBE_S):
             _, writer = await asyncio.open_connection(host, port, ssl=context)
-    except ssl.SSLError:
+    except (OSError, TimeoutError):  # ssl.SSLError is an OSError
         return False
-    except (OSError, TimeoutError):
-        return None
     writer.close()
-    with contextlib.suppress(OSError, ssl.SSLError):
+    with contextlib.suppress(OSError):
         await writer.wait_closed()
     return True
+
+
+async def _speaks_plain_mqtt(host: str, port: int) -> bool:
+    """Whether ``host:port`` answers a plain MQTT CONNECT with a CONNACK."""
+    try:
+        async with asyncio.timeout(PROBE_S):
+            reader, writer = await asyncio.open_connection(host, port)
+            try:
+                writer.write(_CONNECT)
+                await writer.drain()
+                first = await reader.read(1)
+            finally:
+                writer.close()
+                with contextlib.suppress(OSError):
+                    await writer.wait_closed()
+    except (OSError, TimeoutError):
+        return False
+    return first == bytes([_CONNACK])
 
 
 def read_credentials(path: Path) -> tuple[str, str]:

@@ -23,6 +23,7 @@ from cellctl.errors import UsageError
 from cellctl.factory.broker import FACTORY_USER, MosquittoBroker
 from cellctl.mailbox import open_mailbox
 from cellctl.mailbox.mqtt import MqttBridge, MqttSettings, read_credentials
+from cellctl.mailbox.wire import AskMessage
 from tests.cell_rig import CellRig
 
 from .conftest import emulated_cell_process
@@ -120,6 +121,12 @@ async def test_orders_in_reports_out_a_repeated_id_and_the_retained_state(
                 await f.publish("cellctl/cell1/orders", json.dumps(order), qos=1)
                 assert await next_answer(f) == accepted[0]
                 assert [o.id for o in mailbox.orders()] == ["F1"]
+                # The factory asks for every report after 0 again: each comes again, as it was.
+                ask = AskMessage(ask="reports", epoch=mailbox.epoch, after=0)
+                await f.publish("cellctl/cell1/orders", ask.model_dump_json(), qos=1)
+                again = [json.loads((await next_message(f)).payload) for _ in seen]  # type: ignore[arg-type]
+                assert again == seen
+                assert {r["epoch"] for r in again} == {mailbox.epoch}
                 # Past its expiry (the factory gave it to another cell): refused, not made.
                 late = {**order, "id": "F0", "expires": time.time() - 1}
                 await f.publish("cellctl/cell1/orders", json.dumps(late), qos=1)

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any, Final, Self
 
-from cellctl.cell.orders import ReportKind
+from cellctl.cell.orders import ReportKind as ReportKind
 from cellctl.errors import UsageError
 
 # Order states. An order moves forward only (see TRANSITIONS); ``held`` is the one state an

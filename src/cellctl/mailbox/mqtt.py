@@ -6,14 +6,17 @@
     bridge = MqttBridge(settings, controller, mailbox, journal)
     task = asyncio.create_task(bridge.run())        # until bridge.stop()
 
-Topics and payloads are in docs/factory.md. In short: an order arriving on ``PREFIX/orders``
-is committed to the SQLite mailbox before anything else (an id seen before changes nothing
-and has its accepted or rejected report published again, so the factory's re-sends are
-answered); reports go out on ``PREFIX/reports`` in their mailbox order, each after the
-broker's PUBACK, the last one sent kept in ``<cell>/state/mqtt.json`` (0600) so a restarted
-cell sends what it had not; ``PREFIX/state`` (retained) on change; ``PREFIX/status`` is
-``online``, and ``offline`` through the retained last will or a clean stop. A broker that goes
-away is tried again with backoff; the cell keeps working meanwhile.
+Topics and payloads are in docs/factory.md, their models in :mod:`cellctl.mailbox.wire`. In
+short: an order arriving on ``PREFIX/orders`` is committed to the SQLite mailbox before
+anything else (an id seen before changes nothing and has its accepted or rejected report
+published again, so the factory's re-sends are answered); reports go out on
+``PREFIX/reports`` in their mailbox order with the mailbox's epoch, each after the broker's
+PUBACK, the last one sent kept with that epoch in ``<cell>/state/mqtt.json`` (0600) so a
+restarted cell sends what it had not; the factory's ask on ``PREFIX/orders`` has the reports
+after a seq sent again; ``PREFIX/state`` (retained) on change; ``PREFIX/status`` is
+``online``, and ``offline`` through the retained last will or a clean stop. A message that
+fails its model is logged and dropped. A broker that goes away is tried again with backoff
+(:class:`~cellctl.mailbox.mqttlink.Reconnect`); the cell keeps working meanwhile.
 """
 
 from __future__ import annotations
@@ -219,10 +222,9 @@ class MqttBridge:
             self.log(f"mailbox: the factory asks for reports of a mailbox gone ({ask.epoch})")
             return
         if ask.after < self.sent_seq:
-            after = min(
-                ask.after, self._replay_after if self._replay_after is not None else ask.after
-            )
-            self._replay_after = after
+            # Two asks before the next batch of reports: the earlier seq covers both.
+            if self._replay_after is None or ask.after < self._replay_after:
+                self._replay_after = ask.after
             self.log(f"mailbox: the factory asks again for the reports after {ask.after}")
 
     def _take(self, order: OrderMessage) -> None:

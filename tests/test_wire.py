@@ -117,6 +117,12 @@ def test_a_mailbox_report_becomes_its_message(tmp_path: Any) -> None:
         assert message.kind is ReportKind.ALARM_RAISED and len(message.text) == 2000
         assert parse_report(message.model_dump_json().encode()) == message
         assert message.epoch == mailbox.epoch and message.seq == r.seq == 1
+        # Beyond the wire's limits (a local order's id, many data keys): it goes out without.
+        long = mailbox.post_report(
+            "order-accepted", "ok", order_id="L" * 200, data={f"k{i}": i for i in range(40)}
+        )
+        cut = report_message("cell1", mailbox.epoch, long)
+        assert (cut.seq, cut.order_id, cut.data, cut.text) == (2, None, {}, "ok")
 
 
 def test_the_documented_report_kinds_are_the_enums() -> None:

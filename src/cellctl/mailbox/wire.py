@@ -249,16 +249,27 @@ def parse_status(payload: bytes) -> Status:
 def report_message(
     cell: str, epoch: str, report: Report, *, withdrawn: bool = False
 ) -> ReportMessage:
-    """The message of a mailbox's report (its text cut to :data:`MAX_TEXT` characters)."""
-    return ReportMessage(
-        cell=cell,
-        epoch=epoch,
-        seq=report.seq,
-        kind=ReportKind(report.kind),
-        order_id=report.order_id,
-        part_id=report.part_id,
-        text=report.text[:MAX_TEXT],
-        time=report.time,
-        data=report.data,
-        withdrawn=withdrawn,
-    )
+    """The message of a mailbox's report (its text cut to :data:`MAX_TEXT` characters).
+
+    A report made in the cell beyond the wire's limits (an order id of 200 characters posted
+    from the command line, say) still goes out, so the numbering stays whole: without the
+    ids and data that do not fit."""
+    fields: dict[str, Any] = {
+        "cell": cell,
+        "epoch": epoch,
+        "seq": report.seq,
+        "kind": ReportKind(report.kind),
+        "order_id": report.order_id,
+        "part_id": report.part_id,
+        "text": report.text[:MAX_TEXT],
+        "time": report.time,
+        "data": report.data,
+        "withdrawn": withdrawn,
+    }
+    try:
+        return ReportMessage(**fields)
+    except ValidationError:
+        for key in ("order_id", "part_id"):
+            if not 1 <= len(fields[key] or "x") <= MAX_NAME:
+                fields[key] = None
+        return ReportMessage(**{**fields, "data": {}})

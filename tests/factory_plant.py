@@ -186,11 +186,16 @@ class Plant:
         }
 
     def reports_caught_up(self) -> bool:
-        """The factory has every report each cell made (their seqs are 1, 2, 3 ...)."""
+        """The factory has every report each cell's mailbox made (seq 1, 2, 3 ... of its
+        epoch), and no other."""
         seen = self.store.cells()
         for name, mailbox in self.mailboxes.items():
             reports = mailbox.reports()
-            if reports and (name not in seen or seen[name].seq < reports[-1].seq):
+            if not reports:
+                continue
+            if name not in seen or seen[name].epoch != mailbox.epoch:
+                return False
+            if seen[name].seq != reports[-1].seq:
                 return False
         return True
 
@@ -301,7 +306,8 @@ class Plant:
         ]
         lines.append("factory cells:")
         lines += [
-            f"  {c.name} {c.status} seq={c.seq} orders_open={c.state.get('orders_open')}"
+            f"  {c.name} {c.status} epoch={c.epoch} seq={c.seq}"
+            f" orders_open={c.state.get('orders_open')}"
             for c in self.store.cells().values()
         ]
         lines.append("factory events (last 30):")

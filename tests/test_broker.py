@@ -152,3 +152,43 @@ async def test_two_cells_with_one_prefix_refused(tmp_path: Path) -> None:
         MosquittoBroker(tmp_path, [("a", "x/y"), ("b", "x/y")])
     with pytest.raises(UsageError, match="wildcards"):
         MosquittoBroker(tmp_path, [("a", "x/#")])
+
+
+def _block_after(text: str, marker: str) -> str:
+    """The fenced block that follows ``marker`` in ``text``."""
+    rest = text[text.index(marker) :]
+    start = rest.index("```\n") + 4
+    return rest[start : rest.index("```", start)]
+
+
+def test_the_documented_production_configuration_is_the_one_the_tests_run() -> None:
+    """docs/factory.md's broker configuration and ACL are what MosquittoBroker runs (its
+    global and listener lines come from the same functions, with its own paths)."""
+    from cellctl.factory.broker import acl, production_conf
+
+    docs = (Path(__file__).resolve().parent.parent / "docs" / "factory.md").read_text()
+    assert _block_after(docs, "`/etc/mosquitto/conf.d/cellctl.conf`:") == production_conf()
+    assert _block_after(docs, "`/etc/mosquitto/acl`:") == acl([("cell1", "cellctl/cell1")])
+    # Client ids are bound to users on the documented listener: the option follows it.
+    lines = production_conf().splitlines()
+    listener = next(i for i, line in enumerate(lines) if line.startswith("listener "))
+    assert "use_username_as_clientid true" in lines[listener:]
+
+
+async def test_every_listener_binds_client_ids_to_users(broker: MosquittoBroker) -> None:
+    conf = (broker.directory / "mosquitto.conf").read_text().splitlines()
+    listeners = [i for i, line in enumerate(conf) if line.startswith("listener ")]
+    assert listeners and all(conf[i + 1] == "use_username_as_clientid true" for i in listeners)
+    # cell2 with the factory's client id takes only its own session: the factory stays on.
+    async with client(broker, "factory", client_id="cellctl-factory-factory") as factory:
+        await factory.subscribe("cellctl/cell1/status", qos=1)
+        async with client(broker, "cell2", client_id="cellctl-factory-factory"):
+            pass
+        async with client(broker, "cell1") as cell1:
+            await cell1.publish("cellctl/cell1/status", b"online", qos=1)
+        assert (await first_message(factory)).payload == b"online"
+    log = broker.log_path.read_text()
+    assert "New client connected from" in log and "Client factory already connected" not in log
+    # Only the listeners configured: no default listener on 1883 beside them.
+    opened = [line for line in log.splitlines() if "listen socket on port" in line]
+    assert {line.rsplit(" ", 1)[1].rstrip(".") for line in opened} == {str(broker.port)}

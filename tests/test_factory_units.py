@@ -21,6 +21,7 @@ from cellctl.factory.dispatch import choose, every_cell_refused, load_s
 from cellctl.factory.store import FactoryStore
 from cellctl.mailbox import open_mailbox
 from cellctl.mailbox.mqtt import MqttBridge, MqttSettings
+from cellctl.mailbox.wire import ReportMessage, parse_report
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "cell"
 FACTORY_TOML = """
@@ -45,8 +46,12 @@ def state(bounds: dict[str, float], finish: float = 0.0, **more: Any) -> dict[st
     return {"v": 1, "part_types": types, "finish_estimate_s": finish, "time": 100.0, **more}
 
 
-def report(seq: int, kind: str, order_id: str, **more: Any) -> dict[str, Any]:
-    return {"v": 1, "seq": seq, "kind": kind, "order_id": order_id, "text": kind, **more}
+EPOCH = "0123456789abcdef"
+
+
+def report(seq: int, kind: str, order_id: str, **more: Any) -> ReportMessage:
+    fields = {"cell": "c", "epoch": EPOCH, "seq": seq, "kind": kind, "order_id": order_id}
+    return parse_report(json.dumps({"v": 1, "text": kind, "time": 1.0, **fields, **more}).encode())
 
 
 @pytest.fixture
@@ -112,7 +117,7 @@ def test_a_refusal_sends_the_order_elsewhere_a_late_one_may_come_back(store: Fac
     # An answer for an order that has moved on changes nothing, and is said when it accepts.
     store.send("B", "cell2", expires=time.time() + 30)
     store.take_report("cell2", report(2, "order-accepted", "B"))
-    said = store.take_report("cell1", report(2, "order-accepted", "B"))
+    said = store.take_report("cell1", report(1, "order-accepted", "B")).text
     assert said == "order B accepted by cell1 too, after it went to cell2"
     assert store.get("B").cell == "cell2"
 
@@ -239,3 +244,34 @@ def test_an_acceptance_not_reported_before_expiry_is_taken_back_unless_started(
     payload = {"v": 1, "id": "X", "part_type": "wax-robot-base", "qty": 1, "expires": soon}
     bridge.take_order(json.dumps(payload).encode())
     assert [r.kind for r in bridge._resend] == ["order-rejected"]
+
+
+def test_reports_are_taken_in_order_per_mailbox_epoch(store: FactoryStore) -> None:
+    store.submit("wax-robot-base", 1, order_id="E")
+    store.send("E", "cell1", expires=time.time() + 30)
+    assert store.take_report("cell1", report(1, "order-accepted", "E")).text
+    # A seq far ahead is refused, not trusted; the factory asks for what follows seq 1.
+    ahead = store.take_report("cell1", report(99998, "step-started", "E"))
+    assert ahead.ask_after == 1 and ahead.refused and "the next one is 2" in ahead.refused
+    assert store.cells()["cell1"].seq == 1 and store.get("E").state == "accepted"
+    assert store.take_report("cell1", report(2, "step-started", "E")).ask_after is None
+    assert store.get("E").state == "in-progress"
+    assert store.take_report("cell1", report(2, "step-started", "E")) == ((None, None, None))
+    # A new mailbox (its epoch new): followed from its seq 1; one from its middle is refused
+    # and the factory asks for its reports from the start.
+    other = "fedcba9876543210"
+    middle = store.take_report("cell1", report(5, "order-done", "E", epoch=other))
+    assert middle.ask_after == 0 and store.get("E").state == "in-progress"
+    assert store.cells()["cell1"].epoch == other and store.cells()["cell1"].seq == 0
+    for seq in range(1, 5):
+        assert store.take_report("cell1", report(seq, "step-finished", "E", epoch=other))[1:] == (
+            None,
+            None,
+        )
+    store.take_report("cell1", report(5, "order-done", "E", epoch=other))
+    assert store.get("E").state == "done" and store.cells()["cell1"].seq == 5
+    # A withdrawn acceptance keeps the numbering and changes nothing.
+    store.submit("wax-robot-base", 1, order_id="W")
+    store.send("W", "cell1", expires=time.time() + 30)
+    store.take_report("cell1", report(6, "order-accepted", "W", epoch=other, withdrawn=True))
+    assert store.get("W").state == "sent" and store.cells()["cell1"].seq == 6

@@ -12,7 +12,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +23,7 @@ from cellctl.errors import UsageError
 from cellctl.factory.broker import FACTORY_USER, MosquittoBroker
 from cellctl.mailbox import open_mailbox
 from cellctl.mailbox.mqtt import MqttBridge, MqttSettings, read_credentials
+from cellctl.mailbox.wire import AskMessage
 from tests.cell_rig import CellRig
 
 from .conftest import emulated_cell_process
@@ -120,6 +121,12 @@ async def test_orders_in_reports_out_a_repeated_id_and_the_retained_state(
                 await f.publish("cellctl/cell1/orders", json.dumps(order), qos=1)
                 assert await next_answer(f) == accepted[0]
                 assert [o.id for o in mailbox.orders()] == ["F1"]
+                # The factory asks for every report after 0 again: each comes again, as it was.
+                ask = AskMessage(ask="reports", epoch=mailbox.epoch, after=0)
+                await f.publish("cellctl/cell1/orders", ask.model_dump_json(), qos=1)
+                again = [json.loads((await next_message(f)).payload) for _ in seen]  # type: ignore[arg-type]
+                assert again == seen
+                assert {r["epoch"] for r in again} == {mailbox.epoch}
                 # Past its expiry (the factory gave it to another cell): refused, not made.
                 late = {**order, "id": "F0", "expires": time.time() - 1}
                 await f.publish("cellctl/cell1/orders", json.dumps(late), qos=1)
@@ -164,29 +171,33 @@ async def test_broker_restart_mid_batch_and_the_last_will(
             stdout=log,
             stderr=subprocess.STDOUT,
         )
-        # The factory's persistent session takes every report, also while it is away.
+        # The factory's persistent session takes every report, also while the broker is
+        # away (the broker binds a session to its user: one factory client at a time).
+        seqs: list[int] = []
+        done: set[str] = set()
+
+        async def follow(f: aiomqtt.Client, until: Callable[[], bool]) -> None:
+            while not until():
+                message = await next_message(f, 60)
+                if message.topic.value.endswith("/reports"):
+                    report = json.loads(message.payload)  # type: ignore[arg-type]
+                    seqs.append(report["seq"])
+                    if report["kind"] == "order-done":
+                        done.add(report["order_id"])
+
         async with client(broker, FACTORY_USER, identifier="f", clean_session=False) as f:
             await f.subscribe("cellctl/cell1/reports", qos=1)
-        async with client(broker, FACTORY_USER) as g:
-            await g.subscribe("cellctl/cell1/status", qos=1)
-            while (await next_message(g, 30)).payload != b"online":
+            await f.subscribe("cellctl/cell1/status", qos=1)
+            while (await next_message(f, 30)).payload != b"online":
                 pass
-            await g.subscribe("cellctl/cell1/reports", qos=1)
             for oid in ("F1", "F2"):
                 order = {"v": 1, "id": oid, "part_type": "wax-robot-base", "qty": 2}
-                await g.publish("cellctl/cell1/orders", json.dumps(order), qos=1)
-            while not (await next_message(g)).topic.value.endswith("/reports"):
-                pass
+                await f.publish("cellctl/cell1/orders", json.dumps(order), qos=1)
+            await follow(f, lambda: bool(seqs))
         # The broker goes away mid-batch and comes back; the cell reconnects by itself.
         await broker.restart()
-        seqs: list[int] = []
         async with client(broker, FACTORY_USER, identifier="f", clean_session=False) as f:
-            done: set[str] = set()
-            while done != {"F1", "F2"}:
-                report = json.loads((await next_message(f, 60)).payload)  # type: ignore[arg-type]
-                seqs.append(report["seq"])
-                if report["kind"] == "order-done":
-                    done.add(report["order_id"])
+            await follow(f, lambda: done == {"F1", "F2"})
         # Every report arrived, in order, none lost while the broker was down.
         assert sorted(set(seqs)) == list(range(1, max(seqs) + 1)), seqs
         assert run.poll() is None

@@ -54,7 +54,7 @@ from cellctl.cell.model import (
 )
 from cellctl.cell.monitor import Monitor
 from cellctl.cell.orderflow import OUT, OrderFlow
-from cellctl.cell.orders import OrderBox
+from cellctl.cell.orders import OrderBox, ReportKind
 from cellctl.cell.recovery import Recovery
 from cellctl.cell.robotsteps import RobotSteps
 from cellctl.cell.scheduler import PartState, next_transfer, ready_to_leave
@@ -133,7 +133,9 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
             return
         alarm, new = self.journal.raise_alarm(machine, code, text)
         if new:
-            self.mailbox.post_report("alarm-raised", f"{machine}: {text}", data={"alarm": alarm.id})
+            self.mailbox.post_report(
+                ReportKind.ALARM_RAISED, f"{machine}: {text}", data={"alarm": alarm.id}
+            )
             self.log(f"ALARM {alarm.id} {machine}: {text}")
 
     def _cause_alarm(self, cause: Cause) -> None:
@@ -167,7 +169,7 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
             self.log(f"restart: {step.kind} {step.program} of part {step.part_id} was in flight")
         for part in recovery.held:
             self.mailbox.post_report(
-                "part-held", part.note, order_id=part.order_id, part_id=part.id
+                ReportKind.PART_HELD, part.note, order_id=part.order_id, part_id=part.id
             )
             self.log(f"part {part.id} held: {part.note}")
         for name in self.journal.machines_out_of_service():
@@ -428,7 +430,7 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
         route_step = route[part.route_index]
         step = self.journal.begin_step(part.id, "machine", mill_name, route_step.name)
         self.mailbox.post_report(
-            "step-started",
+            ReportKind.STEP_STARTED,
             f"{mill_name} {route_step.name} {part.id}",
             order_id=part.order_id,
             part_id=part.id,
@@ -476,7 +478,7 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
                 reason = f"needs inspection: machining {route_step.name} on {mill_name} {what}"
                 self.journal.end_step(step.id, "failed", str(e) or what, hold=reason)
                 self.mailbox.post_report(
-                    "part-held", reason, order_id=part.order_id, part_id=part.id
+                    ReportKind.PART_HELD, reason, order_id=part.order_id, part_id=part.id
                 )
             elif stopped:
                 # An emergency stop holds every part in flight for the operator; this one
@@ -484,13 +486,15 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
                 reason = f"emergency stop before machining {route_step.name} on {mill_name}"
                 self.journal.end_step(step.id, "failed", what, hold=reason)
                 self.mailbox.post_report(
-                    "part-held", reason, order_id=part.order_id, part_id=part.id
+                    ReportKind.PART_HELD, reason, order_id=part.order_id, part_id=part.id
                 )
             else:
                 # Nothing of the program went out: the part is as it was, and waits there.
                 reason = f"machining {route_step.name} on {mill_name} not started: {what}"
                 self.journal.end_step(step.id, "failed", str(e) or what)
-            self.mailbox.post_report("step-failed", reason, order_id=part.order_id, part_id=part.id)
+            self.mailbox.post_report(
+                ReportKind.STEP_FAILED, reason, order_id=part.order_id, part_id=part.id
+            )
             if stopped:
                 self._wake.set()
                 raise
@@ -508,7 +512,7 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
         self._succeeded(mill_name)
         self.journal.end_step(step.id, "finished", route_index=part.route_index + 1)
         self.mailbox.post_report(
-            "step-finished",
+            ReportKind.STEP_FINISHED,
             f"{mill_name} {route_step.name} {part.id}",
             order_id=part.order_id,
             part_id=part.id,

@@ -11,6 +11,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 from cellctl.cell.commands import OPERATOR_OUT
+from cellctl.cell.orders import ReportKind
 
 if TYPE_CHECKING:
     from cellctl.cell.config import CellConfig
@@ -50,7 +51,7 @@ class OrderFlow:
             if order.part_type not in self.config.parts:
                 self.mailbox.set_order_state(order.id, "failed", f"unknown part {order.part_type}")
                 self.mailbox.post_report(
-                    "order-rejected",
+                    ReportKind.ORDER_REJECTED,
                     f"order {order.id}: no part type {order.part_type!r} in this cell",
                     order_id=order.id,
                 )
@@ -58,7 +59,7 @@ class OrderFlow:
             self.journal.create_parts(order)
             self.mailbox.set_order_state(order.id, "accepted")
             self.mailbox.post_report(
-                "order-accepted",
+                ReportKind.ORDER_ACCEPTED,
                 f"order {order.id}: {order.qty} x {order.part_type}",
                 order_id=order.id,
             )
@@ -101,13 +102,15 @@ class OrderFlow:
                     )
                     self.mailbox.set_order_state(order.id, "done", note)
                     self.mailbox.post_report(
-                        "order-done", f"order {order.id} done: {note}", order_id=order.id
+                        ReportKind.ORDER_DONE, f"order {order.id} done: {note}", order_id=order.id
                     )
                     self.log(f"order {order.id} done ({note})")
                 else:
                     self.mailbox.set_order_state(order.id, "failed", "every part scrapped")
                     self.mailbox.post_report(
-                        "order-failed", f"order {order.id}: every part scrapped", order_id=order.id
+                        ReportKind.ORDER_FAILED,
+                        f"order {order.id}: every part scrapped",
+                        order_id=order.id,
                     )
             elif "held" in statuses and order.state != "held":
                 self.mailbox.set_order_state(order.id, "held", "a part needs the operator")

@@ -7,7 +7,27 @@ backend (``cellctl.mailbox``) fits these protocols, the cell never imports it.
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
+from enum import StrEnum
 from typing import Any, Protocol
+
+
+class ReportKind(StrEnum):
+    """What a report says happened, in the order reports typically occur. A member is its
+    text (``ReportKind.ORDER_DONE == "order-done"``): the mailbox stores and sends the text."""
+
+    ORDER_ACCEPTED = "order-accepted"
+    ORDER_REJECTED = "order-rejected"
+    STEP_STARTED = "step-started"
+    STEP_FINISHED = "step-finished"
+    STEP_FAILED = "step-failed"
+    ALARM_RAISED = "alarm-raised"
+    ALARM_CLEARED = "alarm-cleared"
+    PART_HELD = "part-held"
+    PART_RELEASED = "part-released"
+    PART_SCRAPPED = "part-scrapped"
+    ORDER_DONE = "order-done"
+    ORDER_FAILED = "order-failed"
+    ORDER_CANCELLED = "order-cancelled"
 
 
 class OrderLike(Protocol):

@@ -17,6 +17,7 @@ from cellctl.cell.causes import blame
 from cellctl.cell.config import CONVEYOR
 from cellctl.cell.model import PartitionUse
 from cellctl.cell.orderflow import OUT
+from cellctl.cell.orders import ReportKind
 from cellctl.errors import CellctlError, DeviceError, UsageError
 from cellctl.protocol.robot import PARTITIONS
 
@@ -113,7 +114,10 @@ class RobotSteps:
             self.log(f"part {part.id}: transfer {t.program} not started: {e}")
             return
         self.mailbox.post_report(
-            "step-started", f"{t.program} {part.id}", order_id=part.order_id, part_id=part.id
+            ReportKind.STEP_STARTED,
+            f"{t.program} {part.id}",
+            order_id=part.order_id,
+            part_id=part.id,
         )
         view.step = f"{t.program} ({part.id})"
         started = time.monotonic()
@@ -165,17 +169,17 @@ class RobotSteps:
             if moved or stopped:
                 self.journal.end_step(step.id, "failed", str(e) or what, hold=reason)
                 self.mailbox.post_report(
-                    "step-failed", reason, order_id=part.order_id, part_id=part.id
+                    ReportKind.STEP_FAILED, reason, order_id=part.order_id, part_id=part.id
                 )
                 self.mailbox.post_report(
-                    "part-held", reason, order_id=part.order_id, part_id=part.id
+                    ReportKind.PART_HELD, reason, order_id=part.order_id, part_id=part.id
                 )
             else:
                 # The arm never started: the part is where it was, and waits there.
                 reason = f"transfer {t.program} not started: {e}"
                 self.journal.end_step(step.id, "failed", str(e) or what)
                 self.mailbox.post_report(
-                    "step-failed", reason, order_id=part.order_id, part_id=part.id
+                    ReportKind.STEP_FAILED, reason, order_id=part.order_id, part_id=part.id
                 )
             self._wake.set()
             if stopped:
@@ -202,6 +206,9 @@ class RobotSteps:
         else:
             self.journal.end_step(step.id, "finished", location=t.target)
         self.mailbox.post_report(
-            "step-finished", f"{t.program} {part.id}", order_id=part.order_id, part_id=part.id
+            ReportKind.STEP_FINISHED,
+            f"{t.program} {part.id}",
+            order_id=part.order_id,
+            part_id=part.id,
         )
         self._wake.set()

@@ -8,12 +8,17 @@
         broker.credentials("factory")
         await broker.restart()          # same port, persisted sessions and messages kept
 
-The broker gets its own ``mosquitto.conf`` in ``directory``: one listener on ``host:port``
-only, persistence on (in ``directory/data``), no anonymous clients, a password file made with
-``mosquitto_passwd`` and an ACL file. A cell user may read only ``PREFIX/orders`` and write
-only ``PREFIX/reports``, ``PREFIX/state`` and ``PREFIX/status`` of its own prefix; the factory
-user reads every configured prefix's reports, state and status and writes every
-``PREFIX/orders``: one explicit line per prefix, no wildcard over other prefixes.
+The broker gets its own ``mosquitto.conf`` in ``directory``: the lines of
+:func:`production_conf` (the configuration docs/factory.md gives for production) with the
+directory's paths, a plain listener on ``host:port``, and a log file. With
+``tls=TlsFiles(...)`` it also has a TLS listener on ``host:tls_port`` (``broker.tls_url``).
+No anonymous clients, a password file made with ``mosquitto_passwd``, an ACL file,
+persistence on (in ``directory/data``), and on every listener each user's client id is its
+user name (``use_username_as_clientid``): one user cannot take another's
+session, nor disconnect it by connecting with its client id. A cell user may read only
+``PREFIX/orders`` and write only ``PREFIX/reports``, ``PREFIX/state`` and ``PREFIX/status``
+of its own prefix; the factory user reads every configured prefix's reports, state and status
+and writes every ``PREFIX/orders``: one explicit line per prefix, no wildcard over other prefixes.
 Passwords are made once and kept in the credentials files, so a second broker over the same
 directory accepts the same clients. It never touches a system service.
 """
@@ -32,6 +37,7 @@ import socket
 import time
 import tomllib
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import Self
@@ -50,6 +56,80 @@ STOP_TIMEOUT_S = 10.0
 
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
 _PREFIX = re.compile(r"[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*")
+
+
+@dataclass(frozen=True)
+class TlsFiles:
+    """The broker's certificate chain and key (PEM) for its TLS listener."""
+
+    certfile: Path
+    keyfile: Path
+
+
+#: Where the production broker's files are (docs/factory.md).
+ETC = Path("/etc/mosquitto")
+VAR = Path("/var/lib/mosquitto")
+
+
+def global_lines(*, etc: Path = ETC, var: Path = VAR) -> list[str]:
+    """The broker's options for every listener: passwords, ACLs, persistence."""
+    # per_listener_settings comes first: Mosquitto reads it before any other option.
+    return [
+        "per_listener_settings false",
+        "allow_anonymous false",
+        f"password_file {etc / 'passwd'}",
+        f"acl_file {etc / 'acl'}",
+        "persistence true",
+        f"persistence_location {var}/",
+    ]
+
+
+def listener_lines(port: int, host: str, tls: TlsFiles | None) -> list[str]:
+    """One listener; with ``tls``, one that speaks TLS only."""
+    lines = [
+        f"listener {port} {host}",
+        # A client's id is its user name: nobody can take the factory's or a cell's session
+        # (and disconnect it) by connecting with its client id. A listener's own option:
+        # before any listener line it would open a second, default listener without it.
+        "use_username_as_clientid true",
+    ]
+    if tls is not None:
+        lines += [f"certfile {tls.certfile}", f"keyfile {tls.keyfile}", "tls_version tlsv1.2"]
+    return lines
+
+
+def production_conf() -> str:
+    """The broker configuration docs/factory.md gives for production.
+
+    The private broker runs the same lines (:func:`global_lines`, :func:`listener_lines`)
+    with its own paths, so the tests check what the documentation says.
+    """
+    tls = TlsFiles(ETC / "certs" / "broker.crt", ETC / "certs" / "broker.key")
+    return "\n".join([*global_lines(), *listener_lines(8883, "0.0.0.0", tls)]) + "\n"
+
+
+def acl(cells: Sequence[tuple[str, str]]) -> str:
+    """The ACL file: the factory writes each cell's orders and reads its reports, state and
+    status; a cell reads its own orders and writes its own reports, state and status. One line
+    per prefix, never a wildcard over other prefixes."""
+    lines = [f"user {FACTORY_USER}"]
+    for _, prefix in cells:
+        lines += [
+            f"topic write {prefix}/orders",
+            f"topic read {prefix}/reports",
+            f"topic read {prefix}/state",
+            f"topic read {prefix}/status",
+        ]
+    for name, prefix in cells:
+        lines += [
+            "",
+            f"user {name}",
+            f"topic read {prefix}/orders",
+            f"topic write {prefix}/reports",
+            f"topic write {prefix}/state",
+            f"topic write {prefix}/status",
+        ]
+    return "\n".join(lines) + "\n"
 
 
 def _tool(path: str, name: str) -> str:
@@ -88,6 +168,8 @@ class MosquittoBroker:
         *,
         host: str = "127.0.0.1",
         port: int = 0,
+        tls: TlsFiles | None = None,
+        tls_port: int = 0,
     ) -> None:
         names = [name for name, _ in cells]
         for name, prefix in cells:
@@ -105,12 +187,19 @@ class MosquittoBroker:
         self.cells = list(cells)
         self.host = host
         self.port = port
+        self.tls = tls
+        self.tls_port = tls_port
         self._process: asyncio.subprocess.Process | None = None
 
     @property
     def url(self) -> str:
         """``mqtt://HOST:PORT`` (the port is known once started)."""
         return f"mqtt://{self.host}:{self.port}"
+
+    @property
+    def tls_url(self) -> str:
+        """``mqtts://HOST:TLS_PORT`` (with ``tls``, once started)."""
+        return f"mqtts://{self.host}:{self.tls_port}"
 
     @property
     def running(self) -> bool:
@@ -137,26 +226,6 @@ class MosquittoBroker:
         data = tomllib.loads(self.credentials(user).read_text(encoding="utf-8"))
         return str(data["password"])
 
-    def _acl(self) -> str:
-        lines = [f"user {FACTORY_USER}"]
-        for _, prefix in self.cells:
-            lines += [
-                f"topic write {prefix}/orders",
-                f"topic read {prefix}/reports",
-                f"topic read {prefix}/state",
-                f"topic read {prefix}/status",
-            ]
-        for name, prefix in self.cells:
-            lines += [
-                "",
-                f"user {name}",
-                f"topic read {prefix}/orders",
-                f"topic write {prefix}/reports",
-                f"topic write {prefix}/state",
-                f"topic write {prefix}/status",
-            ]
-        return "\n".join(lines) + "\n"
-
     async def _write_passwords(self, path: Path) -> None:
         tool = _tool(MOSQUITTO_PASSWD, "mosquitto_passwd")
         _write_private(path, "")
@@ -180,25 +249,24 @@ class MosquittoBroker:
         self.directory.mkdir(parents=True, exist_ok=True, mode=0o700)
         data = self.directory / "data"
         data.mkdir(exist_ok=True, mode=0o700)
-        passwords = self.directory / "passwd"
-        acl = self.directory / "acl"
-        await self._write_passwords(passwords)
-        _write_private(acl, self._acl())
+        await self._write_passwords(self.directory / "passwd")
+        _write_private(self.directory / "acl", acl(self.cells))
         conf = self.directory / "mosquitto.conf"
+        listeners = listener_lines(self.port, self.host, None)
+        if self.tls is not None:
+            listeners += listener_lines(self.tls_port, self.host, self.tls)
         _write_private(
             conf,
             "\n".join(
                 [
                     "# Generated by cellctl.factory.broker: a private broker, loopback only.",
+                    "# docs/factory.md's production configuration, with this directory's paths",
+                    "# and its listeners on loopback (a plain one for tests and demos):",
+                    *global_lines(etc=self.directory, var=data),
+                    *listeners,
                     # Run as whoever started us: as root, Mosquitto would otherwise switch to
                     # the 'mosquitto' user, who cannot read these 0600 files.
                     f"user {pwd.getpwuid(os.getuid()).pw_name}",
-                    "per_listener_settings false",
-                    "allow_anonymous false",
-                    f"password_file {passwords}",
-                    f"acl_file {acl}",
-                    "persistence true",
-                    f"persistence_location {data}/",
                     # Saved each second too, so a broker killed -9 loses at most one second.
                     "autosave_interval 1",
                     f"log_dest file {self.log_path}",
@@ -208,7 +276,6 @@ class MosquittoBroker:
                     "log_type information",
                     "connection_messages true",
                     "log_timestamp true",
-                    f"listener {self.port} {self.host}",
                     "",
                 ]
             ),
@@ -222,6 +289,8 @@ class MosquittoBroker:
         tool = _tool(MOSQUITTO, "mosquitto")
         if self.port == 0:
             self.port = _free_port(self.host)
+        if self.tls is not None and self.tls_port == 0:
+            self.tls_port = _free_port(self.host)
         conf = await self._configure()
         self._process = await asyncio.create_subprocess_exec(
             tool,

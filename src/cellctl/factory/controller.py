@@ -13,7 +13,11 @@ answered each ``resend`` seconds (orders are idempotent by id at the cell); and 
 the queue an order its cell refused, or one a cell that went offline did not take before the
 order's ``expires`` (``accept_timeout`` after it was sent: the cell refuses it after that, so it
 is made by one cell). Reports, state and status come in on a persistent session and are
-acknowledged to the broker only after they are committed to the store.
+acknowledged to the broker only after they are committed to the store. A cell's reports are
+taken in order (:mod:`cellctl.factory.store`); when some are missing the cell is asked for
+them again (an :class:`~cellctl.mailbox.wire.AskMessage` on its orders topic). A message that
+fails its model (:mod:`cellctl.mailbox.wire`) is logged with its topic and dropped: nothing
+that arrives on a topic ends the controller.
 """
 
 from __future__ import annotations
@@ -21,10 +25,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
-import json
 import time
 from collections.abc import Callable
-from typing import Any
 
 import aiomqtt
 
@@ -38,7 +40,15 @@ from cellctl.factory.store import (
     FactoryOrder,
     FactoryStore,
 )
-from cellctl.mailbox.mqtt import BACKOFF_S, VERSION, MqttSettings, finite_number
+from cellctl.mailbox.mqttlink import BACKOFF_S, MqttSettings, Reconnect
+from cellctl.mailbox.wire import (
+    AskMessage,
+    OrderMessage,
+    WireError,
+    parse_report,
+    parse_state,
+    parse_status,
+)
 
 #: How long the factory must have been connected before it moves an unanswered order from an
 #: offline cell: reports the broker kept for it arrive first (a cell reconnects within the
@@ -46,39 +56,6 @@ from cellctl.mailbox.mqtt import BACKOFF_S, VERSION, MqttSettings, finite_number
 SETTLE_S = BACKOFF_S[1] + 1.0
 #: How often the store is looked at for orders submitted by another process.
 SUBMIT_CHECK_S = 0.02
-
-
-def malformed(kind: str, data: dict[str, Any]) -> str | None:
-    """What makes a cell's ``state`` or ``reports`` message unusable (a field of the wrong
-    kind: docs/factory.md), or None. Such a message is ignored, never stored: the store and
-    the dispatch read these fields as numbers and tables."""
-    fields: tuple[str, ...]
-    if kind == "state":
-        types = data.get("part_types") or {}
-        if not isinstance(types, dict) or not all(
-            isinstance(t, dict) and finite_number(t.get("bound_s", 0.0)) for t in types.values()
-        ):
-            return 'part_types is not {NAME: {"bound_s": seconds}}'
-        machines = data.get("machines") or {}
-        if not isinstance(machines, dict) or not all(
-            isinstance(m, dict) for m in machines.values()
-        ):
-            return "machines is not {NAME: {...}}"
-        fields = ("time", "finish_estimate_s", "orders_open", "parts_open")
-    elif kind == "reports":
-        seq = data.get("seq")
-        if not isinstance(seq, int) or isinstance(seq, bool) or not 0 <= seq < 2**63:
-            return f"seq is not an integer from 0 to 2**63 - 1: {seq!r}"[:120]
-        for key, kinds in (("kind", str), ("order_id", str), ("data", dict)):
-            if data.get(key) is not None and not isinstance(data[key], kinds):
-                return f"{key} is not a {kinds.__name__}"
-        fields = ("time",)
-    else:
-        return None
-    for key in fields:
-        if key in data and not finite_number(data[key]):
-            return f"{key} is not a number"
-    return None
 
 
 class FactoryController:
@@ -101,6 +78,9 @@ class FactoryController:
         self._wake = asyncio.Event()
         self._prefix = {prefix: name for name, prefix in config.cells.items()}
         self._data_version = -1
+        #: Per cell: (epoch, seq) after which its reports are missing, and when last asked.
+        self._missing: dict[str, tuple[str, int]] = {}
+        self._asked: dict[str, tuple[tuple[str, int], float]] = {}
 
     def log(self, text: str, cell: str | None = None, order_id: str | None = None) -> None:
         self.store.log(text, cell, order_id)
@@ -118,23 +98,15 @@ class FactoryController:
         settings = MqttSettings.load(
             self.config.broker_url.rstrip("/") + "/factory", self.config.credentials, self.config.ca
         )
-        delay = BACKOFF_S[0]
-        told = False
-        while not stop.is_set():
-            try:
-                await self._session(settings, stop, until_idle)
-                return
-            except aiomqtt.MqttError as e:
-                self.connected_since = None
-                if not told:
-                    self.log(f"broker {self.config.broker_url}: {e} (trying again)")
-                    told = True
-                with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(delay):
-                        await stop.wait()
-                delay = min(delay * 2, BACKOFF_S[1])
-            else:
-                told = False
+        self._reconnect = Reconnect(
+            settings, stop, log=self.log, what="broker", errors=(aiomqtt.MqttError,)
+        )
+        await self._reconnect.run(
+            lambda: self._session(settings, stop, until_idle), on_drop=self._dropped
+        )
+
+    def _dropped(self) -> None:
+        self.connected_since = None
 
     async def _session(self, settings: MqttSettings, stop: asyncio.Event, until_idle: bool) -> None:
         ident = "cellctl-factory-" + "".join(
@@ -149,6 +121,7 @@ class FactoryController:
                 for topic in ("reports", "state", "status"):
                     await client.subscribe(f"{prefix}/{topic}", qos=1)
             self.connected_since = self._clock()
+            self._reconnect.connected()
             self.log(f"{self.config.name}: connected to the broker {self.config.broker_url}")
             receiver = asyncio.create_task(self._receive(client))
             try:
@@ -188,42 +161,50 @@ class FactoryController:
 
     async def _receive(self, client: aiomqtt.Client) -> None:
         async for message in client.messages:
+            topic = message.topic.value
             try:
-                self.take(message.topic.value, bytes(message.payload or b""))
+                payload = message.payload if isinstance(message.payload, bytes) else b""
+                self.take(topic, payload)
+            except Exception as e:  # nothing that arrives on a topic ends the controller
+                self.log(f"{topic}: a message dropped: {e!r}"[:300])
             finally:
                 if message.qos > 0:
                     client._client.ack(message.mid, message.qos)
 
     def take(self, topic: str, payload: bytes) -> None:
-        """One message from a cell, committed to the store."""
+        """One message from a cell, committed to the store; one that fails its model is
+        logged with its topic and why, and dropped."""
         prefix, _, kind = topic.rpartition("/")
         cell = self._prefix.get(prefix)
         if cell is None:
             return
-        if kind == "status":
-            status = payload.decode("utf-8", "replace").strip()
-            if status in ("online", "offline") and self.store.set_status(cell, status):
-                self._log(f"{cell} {status}")
-                self._changed()
-            return
         try:
-            data = json.loads(payload)
-        except ValueError:
-            self.log(f"{cell}: a {kind} message that is not JSON ignored", cell)
-            return
-        if not isinstance(data, dict) or data.get("v") != VERSION:
-            self.log(f"{cell}: a {kind} message not of version {VERSION} ignored", cell)
-            return
-        problem = malformed(kind, data)
-        if problem:
-            self.log(f"{cell}: a {kind} message ignored: {problem}", cell)
-            return
-        if kind == "state":
-            self.store.set_state(cell, data)
-        elif kind == "reports":
-            text = self.store.take_report(cell, data)
-            if text:
-                self._log(text)
+            if kind == "status":
+                status = parse_status(payload)
+                if self.store.set_status(cell, status):
+                    self._log(f"{cell} {status}")
+                    self._changed()
+            elif kind == "state":
+                self.store.set_state(cell, parse_state(payload).model_dump(mode="json"))
+                self._changed()
+            elif kind == "reports":
+                self._take_report(cell, topic, payload)
+        except WireError as e:
+            self.log(f"{cell}: a {kind} message ignored ({topic}): {e.reason}", cell)
+
+    def _take_report(self, cell: str, topic: str, payload: bytes) -> None:
+        report = parse_report(payload)
+        taken = self.store.take_report(cell, report)
+        if taken.text:
+            self._log(taken.text)
+        if taken.ask_after is not None:
+            self._missing[cell] = (report.epoch, taken.ask_after)
+            if taken.refused:
+                self.log(f"{cell}: {taken.refused} ({topic}): asking again", cell)
+        elif self._missing.get(cell, ("", 0))[0] != report.epoch or (
+            report.seq > self._missing[cell][1]
+        ):
+            self._missing.pop(cell, None)
         self._changed()
 
     def _changed(self) -> None:
@@ -234,8 +215,10 @@ class FactoryController:
     # -- out: dispatch, re-send, redirect -------------------------------------------------------
 
     async def tick(self, client: aiomqtt.Client) -> None:
-        """Dispatch queued orders, re-send unanswered ones, move those that cannot stay."""
+        """Dispatch queued orders, re-send unanswered ones, move those that cannot stay, ask
+        cells for the reports that are missing."""
         now = self._clock()
+        await self._ask(client, now)
         cells = self.store.cells()
         for order in self.store.orders([SENT]):
             assert order.cell is not None
@@ -289,13 +272,26 @@ class FactoryController:
 
     async def _publish(self, client: aiomqtt.Client, order: FactoryOrder) -> None:
         assert order.cell is not None
-        payload: dict[str, Any] = {
-            "v": VERSION,
-            "id": order.id,
-            "part_type": order.part_type,
-            "qty": order.qty,
-            "priority": order.priority,
-            "expires": order.expires,
-        }
+        message = OrderMessage(
+            id=order.id,
+            part_type=order.part_type,
+            qty=order.qty,
+            priority=order.priority,
+            expires=order.expires,
+        )
         topic = f"{self.config.cells[order.cell]}/orders"
-        await client.publish(topic, json.dumps(payload), qos=1)
+        await client.publish(topic, message.model_dump_json(), qos=1)
+
+    async def _ask(self, client: aiomqtt.Client, now: float) -> None:
+        """Ask each cell whose reports are missing to send them again, once a ``resend``."""
+        for cell, (epoch, after) in list(self._missing.items()):
+            asked = self._asked.get(cell)
+            if (
+                asked is not None
+                and asked[0] == (epoch, after)
+                and now - asked[1] < self.config.resend
+            ):
+                continue
+            self._asked[cell] = ((epoch, after), now)
+            ask = AskMessage(ask="reports", epoch=epoch, after=after)
+            await client.publish(f"{self.config.cells[cell]}/orders", ask.model_dump_json(), qos=1)

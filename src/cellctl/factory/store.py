@@ -14,6 +14,11 @@ cell reports it: ``accepted``, ``in-progress``, ``held`` (a part waits for the c
 operator), and at last ``done``, ``failed`` or ``cancelled``. A refusal, or a cell that went
 offline without taking it before its deadline, puts it back to ``queued`` with that cell
 remembered, so it goes elsewhere.
+
+A cell's reports are taken in order, per mailbox: the next ``seq`` of the epoch the factory
+follows. A report of a new epoch (the cell's mailbox was made anew) starts that epoch; one
+past a gap, or from the middle of a new epoch, is refused, and :meth:`take_report` says which
+seq to ask the cell for again.
 """
 
 from __future__ import annotations
@@ -24,11 +29,12 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from cellctl.cell.sqlitedb import SqliteStore
 from cellctl.errors import UsageError
 from cellctl.mailbox.base import MAX_QTY, check_new_order
+from cellctl.mailbox.wire import MAX_NAME, ReportKind, ReportMessage
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS orders (
@@ -59,7 +65,8 @@ CREATE TABLE IF NOT EXISTS cells (
     status_time REAL,
     state TEXT,
     state_time REAL,
-    seq INTEGER NOT NULL DEFAULT 0
+    seq INTEGER NOT NULL DEFAULT 0,
+    epoch TEXT
 );
 CREATE TABLE IF NOT EXISTS events (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -77,6 +84,14 @@ DONE, FAILED, CANCELLED = "done", "failed", "cancelled"
 OPEN_STATES = (QUEUED, SENT, ACCEPTED, IN_PROGRESS, HELD)
 AT_CELL_STATES = (ACCEPTED, IN_PROGRESS, HELD)
 FINAL_STATES = (DONE, FAILED, CANCELLED)
+#: Reports that answer an order: taken again when a re-sent order is answered again.
+ANSWER_KINDS = (ReportKind.ORDER_ACCEPTED, ReportKind.ORDER_REJECTED)
+#: Reports that end an order, and the state each ends it in.
+ENDS = {
+    ReportKind.ORDER_DONE: DONE,
+    ReportKind.ORDER_FAILED: FAILED,
+    ReportKind.ORDER_CANCELLED: CANCELLED,
+}
 
 
 @dataclass(frozen=True)
@@ -118,6 +133,7 @@ class CellSeen:
     state: dict[str, Any] = field(default_factory=dict)
     state_time: float | None = None
     seq: int = 0
+    epoch: str | None = None  # the mailbox whose reports seq counts
 
     @property
     def part_types(self) -> dict[str, float]:
@@ -144,8 +160,24 @@ def _order(row: sqlite3.Row) -> FactoryOrder:
 def _cell(row: sqlite3.Row) -> CellSeen:
     state = json.loads(row["state"]) if row["state"] else {}
     return CellSeen(
-        row["name"], row["status"], row["status_time"], state, row["state_time"], row["seq"]
+        row["name"],
+        row["status"],
+        row["status_time"],
+        state,
+        row["state_time"],
+        row["seq"],
+        row["epoch"],
     )
+
+
+class Taken(NamedTuple):
+    """What one report did: ``text`` what changed, in words (or None); ``ask_after`` the seq
+    after which the cell should send its reports again (None: nothing is missing); ``refused``
+    why the report was not taken (or None)."""
+
+    text: str | None = None
+    ask_after: int | None = None
+    refused: str | None = None
 
 
 class FactoryStore(SqliteStore):
@@ -154,6 +186,10 @@ class FactoryStore(SqliteStore):
     def __init__(self, path: Path, *, clock: Callable[[], float] = time.time) -> None:
         super().__init__(path, SCHEMA)
         self._clock = clock
+        with self._write() as db:  # a store from before epochs
+            columns = {row["name"] for row in db.execute("PRAGMA table_info(cells)")}
+            if "epoch" not in columns:
+                db.execute("ALTER TABLE cells ADD COLUMN epoch TEXT")
 
     # -- orders in ----------------------------------------------------------------------------
 
@@ -162,6 +198,8 @@ class FactoryStore(SqliteStore):
     ) -> tuple[FactoryOrder, bool]:
         """Queue an order; the same id again returns the first one unchanged (new=False)."""
         oid = check_new_order(part_type, qty, priority, order_id)
+        if len(oid) > MAX_NAME or len(part_type) > MAX_NAME:
+            raise UsageError(f"an order id and a part type have at most {MAX_NAME} characters")
         if qty > MAX_QTY:
             raise UsageError(f"order quantity must be at most {MAX_QTY}, not {qty}")
         now = self._clock()
@@ -295,36 +333,43 @@ class FactoryStore(SqliteStore):
                 (cell, json.dumps(state), float(state.get("time", self._clock()))),
             )
 
-    def take_report(self, cell: str, report: dict[str, Any]) -> str | None:
-        """Follow an order through one of ``cell``'s reports; return what changed, in words.
+    def take_report(self, cell: str, report: ReportMessage) -> Taken:
+        """Follow an order through one of ``cell``'s reports (see the module docstring).
 
-        Reports come at least once and in ``seq`` order: one at or below the last seen seq
-        changes nothing, except an answer (accepted, rejected) sent again for a re-sent order.
+        Reports come at least once: one at or below the last seen seq changes nothing, except
+        an answer (accepted, rejected) sent again for a re-sent order.
         """
-        seq = int(report.get("seq") or 0)
-        kind = str(report.get("kind", ""))
-        oid = report.get("order_id")
         now = self._clock()
         with self._write() as db:
-            row = db.execute("SELECT seq FROM cells WHERE name = ?", (cell,)).fetchone()
-            last = row["seq"] if row is not None else 0
-            if seq <= last and kind not in ("order-accepted", "order-rejected"):
-                return None
-            if seq > last:
+            row = db.execute("SELECT seq, epoch FROM cells WHERE name = ?", (cell,)).fetchone()
+            last, epoch = (row["seq"], row["epoch"]) if row is not None else (0, None)
+            if report.epoch != epoch:
+                # The cell's mailbox was made anew (or this is the first report heard):
+                # follow the new one from its start.
+                last = 0
                 db.execute(
-                    "INSERT INTO cells (name, seq) VALUES (?, ?) ON CONFLICT(name)"
-                    " DO UPDATE SET seq = excluded.seq",
-                    (cell, seq),
+                    "INSERT INTO cells (name, seq, epoch) VALUES (?, 0, ?) ON CONFLICT(name)"
+                    " DO UPDATE SET seq = 0, epoch = excluded.epoch",
+                    (cell, report.epoch),
                 )
-            if not isinstance(oid, str):
-                return None
+                _event(db, now, cell, None, f"{cell}: reports of mailbox {report.epoch} from now")
+            if report.seq > last + 1:
+                why = f"report {report.seq} refused: the next one is {last + 1}"
+                return Taken(ask_after=last, refused=why)
+            if report.seq <= last and report.kind not in ANSWER_KINDS:
+                return Taken()
+            if report.seq == last + 1:
+                db.execute("UPDATE cells SET seq = ? WHERE name = ?", (report.seq, cell))
+            oid = report.order_id
+            if oid is None or report.withdrawn:
+                return Taken()
             found = db.execute("SELECT * FROM orders WHERE id = ?", (oid,)).fetchone()
             if found is None:
-                return None  # an order the cell had from elsewhere (its own mailbox)
-            text = _apply(db, _order(found), cell, kind, report, now)
+                return Taken()  # an order the cell had from elsewhere (its own mailbox)
+            text = _apply(db, _order(found), cell, report, now)
             if text:
                 _event(db, now, cell, oid, text)
-            return text
+            return Taken(text)
 
     def data_version(self) -> int:
         """Changes when another process commits (an order submitted from the CLI)."""
@@ -356,30 +401,30 @@ def _apply(
     db: sqlite3.Connection,
     order: FactoryOrder,
     cell: str,
-    kind: str,
-    report: dict[str, Any],
+    report: ReportMessage,
     now: float,
 ) -> str | None:
     """One report's effect on the order (one transaction with the seq it came with)."""
     oid = order.id
-    words = str(report.get("text", ""))
+    kind = report.kind
+    words = report.text
 
     def update(sql: str, *args: Any) -> None:
         db.execute(f"UPDATE orders SET {sql}, updated = ? WHERE id = ?", (*args, now, oid))
 
     if order.cell != cell:
-        if kind == "order-accepted":
+        if kind == ReportKind.ORDER_ACCEPTED:
             # What the accept deadline exists to prevent: said loudly, nothing changed.
             where = order.cell or "the queue"
             return f"order {oid} accepted by {cell} too, after it went to {where}"
         return None
-    if kind == "order-accepted" and order.state == SENT:
-        t = float(report.get("time") or now)
+    if kind == ReportKind.ORDER_ACCEPTED and order.state == SENT:
+        t = report.time or now
         update("state = ?, accepted = ?, accepted_seen = ?, note = ?", ACCEPTED, t, now, words)
         return f"order {oid} accepted by {cell}"
-    if kind == "order-rejected" and order.state == SENT:
+    if kind == ReportKind.ORDER_REJECTED and order.state == SENT:
         # Refused for good, unless only too late: that cell may take it when sent again.
-        late = bool((report.get("data") or {}).get("expired"))
+        late = report.data.get("expired") is True
         refused = list(order.refused) + ([] if late or cell in order.refused else [cell])
         update(
             "state = ?, cell = NULL, expires = NULL, refused = ?, note = ?",
@@ -390,21 +435,21 @@ def _apply(
         return f"order {oid} refused by {cell}: {words}"
     if order.state not in (SENT, *AT_CELL_STATES):
         return None  # a report after the end, or one sent again
-    if kind == "step-started" and order.state in (SENT, ACCEPTED):
+    if kind == ReportKind.STEP_STARTED and order.state in (SENT, ACCEPTED):
         update("state = ?", IN_PROGRESS)
         return None
-    if kind == "part-held":
+    if kind == ReportKind.PART_HELD:
         update("state = ?, held = held + 1, note = ?", HELD, words)
         return f"{cell}: {words}"
-    if kind == "part-released":
+    if kind == ReportKind.PART_RELEASED:
         update("state = ?, held = MAX(held - 1, 0), note = ?", IN_PROGRESS, words)
         return f"{cell}: {words}"
-    if kind == "part-scrapped":
+    if kind == ReportKind.PART_SCRAPPED:
         update("scrapped = scrapped + 1, held = MAX(held - 1, 0), note = ?", words)
         return f"{cell}: {words}"
-    if kind in ("order-done", "order-failed", "order-cancelled"):
-        state = {"order-done": DONE, "order-failed": FAILED, "order-cancelled": CANCELLED}[kind]
-        done = order.qty - order.scrapped if kind == "order-done" else 0
+    if kind in ENDS:
+        state = ENDS[kind]
+        done = order.qty - order.scrapped if kind == ReportKind.ORDER_DONE else 0
         update("state = ?, finished = ?, done = ?, note = ?", state, now, done, words)
         return f"order {oid} {state} at {cell}: {words}"
     return None

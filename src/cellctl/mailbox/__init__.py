@@ -2,13 +2,13 @@
 
 ::
 
-    from cellctl.mailbox import open_mailbox
+    from cellctl.mailbox import ReportKind, open_mailbox
 
     with open_mailbox(cell_dir) as mailbox:          # <cell_dir>/mailbox.sqlite3
         order, new = mailbox.post_order("wax-robot", qty=2, order_id="A17")
         for order in mailbox.pending_orders():
             mailbox.set_order_state(order.id, "accepted")
-            mailbox.post_report("order-accepted", f"order {order.id} accepted",
+            mailbox.post_report(ReportKind.ORDER_ACCEPTED, f"order {order.id} accepted",
                                 order_id=order.id)
 
 Order states: ``posted -> accepted -> in-progress -> done | failed | cancelled``, and
@@ -35,6 +35,7 @@ from cellctl.mailbox.base import (
     Mailbox,
     Order,
     Report,
+    ReportKind,
 )
 from cellctl.mailbox.sqlite import SqliteMailbox
 
@@ -54,6 +55,7 @@ __all__ = [
     "Mailbox",
     "Order",
     "Report",
+    "ReportKind",
     "SqliteMailbox",
     "open_mailbox",
 ]

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any, Final, Self
 
+from cellctl.cell.orders import ReportKind as ReportKind
 from cellctl.errors import UsageError
 
 # Order states. An order moves forward only (see TRANSITIONS); ``held`` is the one state an
@@ -40,22 +41,8 @@ TRANSITIONS: Final[dict[str, frozenset[str]]] = {
     CANCELLED: frozenset(),
 }
 
-#: Report kinds, in the order they typically occur.
-REPORT_KINDS: Final = (
-    "order-accepted",
-    "order-rejected",
-    "step-started",
-    "step-finished",
-    "step-failed",
-    "alarm-raised",
-    "alarm-cleared",
-    "part-held",
-    "part-released",
-    "part-scrapped",
-    "order-done",
-    "order-failed",
-    "order-cancelled",
-)
+#: Report kinds, in the order they typically occur (the texts of :class:`ReportKind`).
+REPORT_KINDS: Final = tuple(kind.value for kind in ReportKind)
 
 
 @dataclass(frozen=True)
@@ -128,6 +115,12 @@ class Mailbox(ABC):
     The poster chooses order ids, so posting the same order twice (after a lost
     acknowledgement, say) is harmless: the second post returns the first order unchanged.
     """
+
+    @property
+    @abstractmethod
+    def epoch(self) -> str:
+        """This mailbox's identity, made once when it was created: its reports' ``seq`` count
+        from 1 within it, so a mailbox made anew is told apart from the one before."""
 
     @abstractmethod
     def post_order(

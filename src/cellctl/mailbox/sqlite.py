@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import sqlite3
 import time
+import uuid
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
@@ -48,6 +49,10 @@ CREATE TABLE IF NOT EXISTS reports (
     data TEXT NOT NULL DEFAULT '{}'
 );
 CREATE INDEX IF NOT EXISTS orders_by_state ON orders (state);
+CREATE TABLE IF NOT EXISTS meta (
+    key TEXT PRIMARY KEY,
+    value TEXT NOT NULL
+);
 """
 
 
@@ -57,6 +62,16 @@ class SqliteMailbox(SqliteStore, Mailbox):
     def __init__(self, path: Path, *, clock: Callable[[], float] = time.time) -> None:
         SqliteStore.__init__(self, path, SCHEMA)
         self._clock = clock
+        with self._write() as db:
+            # Made once, with the file (or on the first open of a file from before epochs).
+            db.execute(
+                "INSERT OR IGNORE INTO meta (key, value) VALUES ('epoch', ?)", (uuid.uuid4().hex,)
+            )
+        self._epoch = str(self._read("SELECT value FROM meta WHERE key = 'epoch'")[0][0])
+
+    @property
+    def epoch(self) -> str:
+        return self._epoch
 
     def post_order(
         self, part_type: str, qty: int = 1, priority: int = 0, order_id: str | None = None

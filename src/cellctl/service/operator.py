@@ -16,7 +16,7 @@ from typing import Any
 
 from cellctl.cell.journal import Alarm, Journal, Part
 from cellctl.errors import UsageError
-from cellctl.mailbox import Mailbox, Order, Report
+from cellctl.mailbox import Mailbox, Order, Report, ReportKind
 
 #: Order states in which an order may still be cancelled (no part has started).
 CANCELLABLE = ("posted", "accepted")
@@ -110,7 +110,9 @@ def cancel_order(mailbox: Mailbox, journal: Journal | None, order_id: str) -> di
         )
     parts = journal.cancel_parts(order_id) if journal is not None else []
     order = mailbox.set_order_state(order_id, "cancelled", "cancelled by the operator")
-    mailbox.post_report("order-cancelled", f"order {order_id} cancelled", order_id=order_id)
+    mailbox.post_report(
+        ReportKind.ORDER_CANCELLED, f"order {order_id} cancelled", order_id=order_id
+    )
     return {
         "order": as_dict(order),
         "message": f"order {order_id} cancelled ({len(parts)} part(s) not started)",
@@ -126,7 +128,7 @@ def clear_alarm(
         return {"alarm": as_dict(before), "message": f"alarm {alarm_id} was already cleared"}
     a = journal.clear_alarm(alarm_id, by=by)
     mailbox.post_report(
-        "alarm-cleared",
+        ReportKind.ALARM_CLEARED,
         f"alarm {a.id} cleared by {by}: {a.machine} {a.code} {a.text}",
         data={"alarm": a.id, "machine": a.machine, "code": a.code, "by": by},
     )
@@ -148,7 +150,7 @@ def release_part(
     p = journal.release_part(resolve_part_id(journal, part_id), redo_step=redo, location=location)
     what = "its interrupted step will run again" if redo else "its interrupted step counts as done"
     mailbox.post_report(
-        "part-released",
+        ReportKind.PART_RELEASED,
         f"part {p.id} released by operator at {p.location}: {what}",
         order_id=p.order_id,
         part_id=p.id,
@@ -163,7 +165,7 @@ def scrap_part(
     """Scrap a held or waiting part: the cell will not work on it again."""
     p = journal.scrap_part(resolve_part_id(journal, part_id), reason)
     mailbox.post_report(
-        "part-scrapped",
+        ReportKind.PART_SCRAPPED,
         f"part {p.id} scrapped: {reason}",
         order_id=p.order_id,
         part_id=p.id,

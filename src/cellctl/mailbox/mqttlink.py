@@ -1,0 +1,245 @@
+"""Reaching the broker: where it is and how to log in, what went wrong, and trying again.
+
+Both ends of the factory's broker (a cell's :class:`~cellctl.mailbox.mqtt.MqttBridge` and the
+:class:`~cellctl.factory.controller.FactoryController`) connect through this module::
+
+    settings = MqttSettings.load("mqtts://broker:8883/cellctl/cell1", creds, ca=Path("ca.crt"))
+    reconnect = Reconnect(settings, stop, log=print, what="mailbox")
+    await reconnect.run(session)     # session() connects with settings.client(...), calls
+                                     # reconnect.connected() once in, returns when done
+
+A broker that goes away is tried again with backoff (:data:`BACKOFF_S`); the log says once
+what is wrong, in words: a wrong password, a certificate not signed by the CA given
+(:class:`TlsRefused`), or ``mqtt://`` to a TLS port and the other way round
+(:class:`WrongScheme`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import ssl
+import tomllib
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from pathlib import Path
+from urllib.parse import urlsplit
+
+import aiomqtt
+
+from cellctl.errors import CellctlError, LinkError, UsageError
+
+#: Seconds between attempts to reach a broker that went away: from the first to the last.
+BACKOFF_S = (0.2, 5.0)
+#: How long the look at a port that would not speak MQTT may take (is it TLS or not?).
+PROBE_S = 2.0
+
+
+class TlsRefused(LinkError):
+    """The broker's certificate is not one the client may trust (another CA, another name)."""
+
+
+class WrongScheme(LinkError):
+    """``mqtt://`` to a port that speaks TLS, or ``mqtts://`` to one that does not."""
+
+
+@dataclass(frozen=True)
+class MqttSettings:
+    """Where the broker is, the topics' prefix and how to log in."""
+
+    host: str
+    port: int
+    prefix: str
+    username: str
+    password: str
+    tls: bool = False
+    ca: Path | None = None
+
+    @classmethod
+    def load(cls, url: str, credentials: Path, ca: Path | None = None) -> MqttSettings:
+        """From ``mqtt[s]://HOST:PORT/PREFIX`` and a credentials file (TOML, 0600); ``ca`` is
+        the CA certificate (PEM) an ``mqtts://`` broker's certificate must be signed by
+        (default: the system's CAs)."""
+        parts = urlsplit(url)
+        if parts.scheme not in ("mqtt", "mqtts") or not parts.hostname:
+            raise UsageError(f"{url}: expected mqtt://HOST:PORT/PREFIX or mqtts://...")
+        tls = parts.scheme == "mqtts"
+        if ca is not None and not tls:
+            raise UsageError(f"{url}: a CA is given ({ca}): use mqtts:// to speak TLS")
+        if ca is not None and not ca.is_file():
+            raise UsageError(f"{ca}: no such CA certificate file")
+        username, password = read_credentials(credentials)
+        return cls(
+            host=parts.hostname,
+            port=parts.port or (8883 if tls else 1883),
+            prefix=parts.path.strip("/"),
+            username=username,
+            password=password,
+            tls=tls,
+            ca=ca,
+        )
+
+    @property
+    def url(self) -> str:
+        scheme = "mqtts" if self.tls else "mqtt"
+        return f"{scheme}://{self.host}:{self.port}/{self.prefix}"
+
+    def client(self, identifier: str, will: aiomqtt.Will | None = None) -> aiomqtt.Client:
+        """An aiomqtt client with these settings and a persistent session.
+
+        A broker that binds client ids to users (docs/factory.md) replaces ``identifier``
+        with the user name: the session is the user's."""
+        context = None
+        if self.tls:
+            try:
+                context = ssl.create_default_context(cafile=str(self.ca) if self.ca else None)
+            except (ssl.SSLError, OSError) as e:
+                raise UsageError(f"{self.ca}: not a CA certificate (PEM): {e}") from None
+        return aiomqtt.Client(
+            self.host,
+            self.port,
+            username=self.username,
+            password=self.password,
+            identifier=identifier,
+            clean_session=False,
+            will=will,
+            tls_context=context,
+            # A QoS 1 publish caught by a dropped connection fails only at this deadline.
+            timeout=2.0,
+        )
+
+    async def explain(self, error: BaseException) -> CellctlError | BaseException:
+        """``error`` from a connection attempt, in words when the cause is TLS: a certificate
+        the CA does not vouch for, or a scheme the port does not speak (it looks once)."""
+        where = f"{self.host}:{self.port}"
+        cause = error.__context__ or error.__cause__
+        if isinstance(cause, ssl.SSLCertVerificationError):
+            trusted = f"the CA in {self.ca}" if self.ca else "a CA this system trusts"
+            if cause.verify_code == 62:  # X509_V_ERR_HOSTNAME_MISMATCH
+                return TlsRefused(
+                    f"TLS: the broker's certificate at {where} is not for {self.host}"
+                )
+            return TlsRefused(
+                f"TLS: the broker's certificate at {where} is not signed by {trusted}"
+                f" ({cause.verify_message})"
+            )
+        if isinstance(cause, ConnectionRefusedError) or "authori" in str(error).lower():
+            return error  # nothing listens there, or a wrong password: said as it is
+        if not self.tls and await _speaks_tls(self.host, self.port):
+            return WrongScheme(f"the broker at {where} speaks TLS: use mqtts://{where}/...")
+        if self.tls and await _speaks_plain_mqtt(self.host, self.port):
+            return WrongScheme(f"the broker at {where} does not speak TLS: use mqtt://{where}/...")
+        return error
+
+
+#: An MQTT 3.1.1 CONNECT without a user or client id: any broker answers it with a CONNACK
+#: (refusing it), which tells a plain MQTT port.
+_CONNECT = bytes.fromhex("100c00044d5154540402003c0000")
+_CONNACK = 0x20
+
+
+async def _speaks_tls(host: str, port: int) -> bool:
+    """Whether ``host:port`` completes a TLS handshake (certificates unchecked: it only asks
+    whether the port speaks TLS at all)."""
+    context = ssl.create_default_context()
+    context.check_hostname = False
+    context.verify_mode = ssl.CERT_NONE
+    try:
+        async with asyncio.timeout(PROBE_S):
+            _, writer = await asyncio.open_connection(host, port, ssl=context)
+    except (OSError, TimeoutError):  # ssl.SSLError is an OSError
+        return False
+    writer.close()
+    with contextlib.suppress(OSError):
+        await writer.wait_closed()
+    return True
+
+
+async def _speaks_plain_mqtt(host: str, port: int) -> bool:
+    """Whether ``host:port`` answers a plain MQTT CONNECT with a CONNACK."""
+    try:
+        async with asyncio.timeout(PROBE_S):
+            reader, writer = await asyncio.open_connection(host, port)
+            try:
+                writer.write(_CONNECT)
+                await writer.drain()
+                first = await reader.read(1)
+            finally:
+                writer.close()
+                with contextlib.suppress(OSError):
+                    await writer.wait_closed()
+    except (OSError, TimeoutError):
+        return False
+    return first == bytes([_CONNACK])
+
+
+def read_credentials(path: Path) -> tuple[str, str]:
+    """``username`` and ``password`` from a TOML file that only its owner may read."""
+    try:
+        mode = path.stat().st_mode
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as e:
+        raise UsageError(f"{path}: cannot read the credentials: {e.strerror}") from e
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise UsageError(f"{path}: not a credentials file (TOML): {e}") from e
+    if mode & 0o077:
+        raise UsageError(f"{path}: others may read it: chmod 600 {path}")
+    user, password = data.get("username"), data.get("password")
+    if not isinstance(user, str) or not isinstance(password, str):
+        raise UsageError(f'{path}: needs username = "..." and password = "..."')
+    return user, password
+
+
+class Reconnect:
+    """Run a session on the broker until it returns or ``stop`` is set; a session that ends on
+    an error is started again after a backoff (0.2 s doubling up to 5 s, back to 0.2 s once
+    a session is in). Each new problem is logged once: ``WHAT: URL: problem (trying again)``.
+    """
+
+    def __init__(
+        self,
+        settings: MqttSettings,
+        stop: asyncio.Event,
+        *,
+        log: Callable[[str], None],
+        what: str,
+        errors: tuple[type[BaseException], ...] = (aiomqtt.MqttError, OSError, ValueError),
+    ) -> None:
+        self.settings = settings
+        self.stop = stop
+        self.log = log
+        self.what = what
+        self.errors = errors
+        #: The last problem, typed (TlsRefused, WrongScheme, ...); None once connected.
+        self.problem: BaseException | None = None
+        self._delay = BACKOFF_S[0]
+        self._told: str | None = None
+        self._in = False
+
+    def connected(self) -> None:
+        """The session is in: the next problem is told, and tried again soon."""
+        self._delay = BACKOFF_S[0]
+        self._told = None
+        self.problem = None
+        self._in = True
+
+    async def run(
+        self, session: Callable[[], Awaitable[None]], on_drop: Callable[[], None] = lambda: None
+    ) -> None:
+        while not self.stop.is_set():
+            self._in = False
+            try:
+                await session()
+                return
+            except self.errors as e:
+                on_drop()
+                # A connection that was in and broke needs no look at TLS.
+                self.problem = e if self._in else await self.settings.explain(e)
+                text = f"{self.what}: {self.settings.url}: {self.problem} (trying again)"
+                if text != self._told:
+                    self.log(text)
+                    self._told = text
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(self._delay):
+                        await self.stop.wait()
+                self._delay = min(self._delay * 2, BACKOFF_S[1])

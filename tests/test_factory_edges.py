@@ -32,8 +32,8 @@ from cellctl.factory.emulated import EmulatedFactory
 from cellctl.factory.store import FINAL_STATES, OPEN_STATES, FactoryStore
 from cellctl.mailbox import open_mailbox
 from cellctl.mailbox.mqtt import parse_order, read_credentials
+from cellctl.testing.rig import TIME_SCALE
 from cellctl.ui.factory_cli import cells_table
-from tests.cell_rig import TIME_SCALE
 from tests.factory_plant import PART_TYPES, Plant
 
 from .conftest import CELLCTL

@@ -356,8 +356,8 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
             return
         if self._robot_task is not None and not self._robot_task.done():
             return
-        if not self.recovery.robot_ok:
-            return  # a robot fault: no transfer until the monitor finds it well
+        if not self.recovery.robot_may_move():
+            return  # a robot fault, a stuck door: no transfer until found well or cleared
         try:
             await self._read_inputs()
         except CellctlError:

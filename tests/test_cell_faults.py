@@ -15,6 +15,10 @@ from pathlib import Path
 
 import pytest
 
+from cellctl.cell.config import load_cell
+from cellctl.cell.model import ControllerOptions
+from cellctl.drivers.mill import MillConfig
+from cellctl.emulators.cell import EXAMPLE_CELL, EmulatedCell
 from cellctl.testing.rig import CellRig
 
 
@@ -205,3 +209,28 @@ async def test_a_mill_out_of_service_returns_when_its_alarm_is_cleared(tmp_path:
         assert rig.journal.machines_out_of_service() == {}
         assert rig.cut_twice() == {}
         assert any("cleared by operator" in r.text for r in rig.reports("alarm-cleared"))
+
+
+@pytest.mark.parametrize("time_scale", [1.0, 50.0, 1000.0])
+async def test_the_emulated_cell_writes_the_real_deadlines_scaled(
+    tmp_path: Path, time_scale: float
+) -> None:
+    """What `cellctl emulate cell` writes: the real cell's deadlines for the machines' work,
+    divided by the time scale, never below 5 s; the poll period stays the real cell's."""
+    cell = EmulatedCell(time_scale=time_scale)
+    try:
+        await cell.start(tmp_path / "cell")
+        config = load_cell(tmp_path / "cell")
+    finally:
+        await cell.close()
+    options = ControllerOptions.from_config(config)
+    real = load_cell(EXAMPLE_CELL)
+    real_options = ControllerOptions.from_config(real)
+    assert options.poll_period == real_options.poll_period
+    for key in ("transfer_timeout", "interlock_timeout", "pallet_timeout"):
+        want = max(5.0, getattr(real_options, key) / time_scale)
+        assert getattr(options, key) == pytest.approx(want), key
+    for mill in config.mills:
+        mc = MillConfig.from_options(mill.options)
+        assert mc.setup_timeout == pytest.approx(max(5.0, 120.0 / time_scale))
+        assert mc.block_extra == pytest.approx(max(5.0, 60.0 / time_scale))

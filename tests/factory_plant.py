@@ -20,7 +20,7 @@ from cellctl.factory.config import load_factory
 from cellctl.factory.emulated import EmulatedFactory
 from cellctl.factory.store import DONE, FactoryStore
 from cellctl.mailbox import CANCELLED, Mailbox, open_mailbox
-from tests.cell_rig import TIME_SCALE, cli, write_cell_options
+from cellctl.testing.rig import TIME_SCALE, cli, write_cell_options
 
 from .conftest import CELLCTL
 

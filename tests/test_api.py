@@ -24,8 +24,8 @@ from cellctl.protocol.aml import compile_source
 from cellctl.service.access import AttachedCell, LocalCell
 from cellctl.service.client import RemoteCell, attach
 from cellctl.service.server import ApiServer
+from cellctl.testing.rig import CellRig
 from cellctl.ui.console.session import cell_refs
-from tests.cell_rig import CellRig
 from tests.conftest import free_port
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"

@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 from cellctl.cell.journal import INTERRUPTED_TRANSFER
-from tests.cell_rig import CellRig
+from cellctl.testing.rig import CellRig
 
 
 async def spawn_controller(directory: Path, log: Path) -> asyncio.subprocess.Process:

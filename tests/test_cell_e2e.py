@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from tests.cell_rig import CellRig
+from cellctl.testing.rig import CellRig
 
 
 async def test_a_batch_of_orders_completes(tmp_path: Path) -> None:

@@ -15,10 +15,11 @@ from pathlib import Path
 
 import pytest
 
-from cellctl.ui.cell_cli import apply_fault
-from tests.cell_rig import CellRig
-
-MILL_INDEX = {"cnc1": 1, "cnc2": 2}
+from cellctl.cell.config import load_cell
+from cellctl.cell.model import ControllerOptions
+from cellctl.drivers.mill import MillConfig
+from cellctl.emulators.cell import EXAMPLE_CELL, EmulatedCell
+from cellctl.testing.rig import CellRig
 
 
 @dataclass(frozen=True)
@@ -57,50 +58,6 @@ CASES = [
 ]
 
 
-def switch_off(rig: CellRig, fault: str) -> None:
-    machine, _, rest = fault.partition(":")
-    name = rest.partition("=")[0]
-    target = {"robot": rig.cell.robot, "plc": rig.cell.plc, **rig.cell.mills}[machine]
-    target.clear_fault(name)
-    if name == "no-next":
-        rig.cell.mills[machine].press_next()  # the operator finishes the setup stop
-    elif name in ("never-ready", "stall"):
-        # The operator selects the link mode again on the panel: READY comes back.
-        mill = rig.cell.mills[machine]
-        mill.select(mill.auto_mode)
-
-
-def physical_part(rig: CellRig, mill: str) -> str | None:
-    return rig.cell.vise[MILL_INDEX[mill]]
-
-
-async def operator_resolves(rig: CellRig) -> None:
-    """Clear every alarm; release each held part where it physically is (inspected)."""
-    await rig.clear_alarms()
-    for part in rig.held_parts():
-        step = rig.journal.steps(part.id)[-1]
-        if step.kind == "transfer":
-            # The operator waits for the arm to stop, then finds the part: where the arm
-            # left it, or (still in the gripper) puts it back where it came from.
-            await rig.wait_for(lambda: not rig.cell.robot.running, "the arm at rest")
-            source, target = step.program.split("_to_")
-            if rig.cell.gripper is not None and source in MILL_INDEX:
-                rig.cell.vise[MILL_INDEX[source]], rig.cell.gripper = rig.cell.gripper, None
-            assert rig.cell.gripper is None
-            where = source
-            if target in MILL_INDEX and rig.cell.vise[MILL_INDEX[target]] is not None:
-                where = target
-            result = await rig.cli("part", "release", part.id, "--at", where)
-        else:
-            # Inspect the part in the vise: cut already (the mill's log says so), or not.
-            blank = physical_part(rig, step.machine)
-            assert blank is not None, f"{part.id} should be in {step.machine}'s vise"
-            cut = rig.cell.runs_per_part().get(blank, {}).get(step.machine, 0)
-            args = ["part", "release", part.id] + ([] if cut else ["--redo"])
-            result = await rig.cli(*args)
-        assert result.exit_code == 0, result.output
-
-
 def ids(case: Case) -> str:
     return case.fault
 
@@ -114,9 +71,9 @@ async def test_fault_during_a_run_ends_in_recovery_or_a_held_part(
         controller = await rig.start_controller(fail_limit=3, retries=2)
         # Some steps done: the first part has been roughed on cnc1.
         await rig.wait_for(lambda: rig.finished_steps("machine") >= 1, "first cut done")
-        apply_fault(rig.cell, case.fault)
+        rig.switch_on(case.fault)
         if case.also:
-            apply_fault(rig.cell, case.also)
+            rig.switch_on(case.also)
         if case.fault == "plc:no-pallet":
             rig.post("wax-toy-mill-table", 1, "B")  # more work: a pallet is asked for
 
@@ -141,8 +98,9 @@ async def test_fault_during_a_run_ends_in_recovery_or_a_held_part(
             assert case.alarm_machine in rig.journal.machines_out_of_service()
             assert rig.alarms(case.alarm_machine, "out-of-service")
         # One alarm for the fault, the cause's, however many steps met it (taken out of
-        # service is told on its own).
-        await asyncio.sleep(controller.options.poll_period * 5)
+        # service is told on its own): counted once the cell is at rest, so an alarm that
+        # any later look, retry, recovery or deadline would still raise is in the count.
+        await rig.wait_quiet()
         raised = [a for a in rig.journal.alarms() if a.code != "out-of-service"]
         assert len(raised) == 1, rig.describe()
         # Nothing is lost while the fault lasts.
@@ -150,13 +108,13 @@ async def test_fault_during_a_run_ends_in_recovery_or_a_held_part(
         assert parts == 2 + (case.fault == "plc:no-pallet")
         assert all(p.status != "scrapped" for p in rig.journal.parts())
 
-        switch_off(rig, case.fault)
+        rig.switch_off(case.fault)
 
         loop_guard = 0
         while not rig.all_done():
             loop_guard += 1
             assert loop_guard < 20, rig.describe()
-            await operator_resolves(rig)
+            await rig.operator_resolves()
             await rig.wait_for(
                 lambda: rig.all_done() or rig.held_parts() or rig.journal.active_alarms(),
                 "the run to complete or to need the operator again",
@@ -177,7 +135,7 @@ async def test_corrupt_checksums_are_read_again_without_holding_anything(tmp_pat
         rig.post("wax-robot-base", 2, "A")
         controller = await rig.start_controller()
         await rig.wait_for(lambda: rig.finished_steps("machine") >= 1, "first cut done")
-        apply_fault(rig.cell, "robot:corrupt-checksum=2")
+        rig.switch_on("robot:corrupt-checksum=2")
         await rig.wait_for(lambda: "corrupt-checksum" not in rig.cell.robot.faults, "2 bad reads")
         await rig.wait_for(rig.all_done, "order A done", timeout=60)
         await rig.stop_controller()
@@ -195,7 +153,7 @@ async def test_a_robot_reject_is_reset_and_retried_a_bounded_number_of_times(
         rig.post("wax-robot-base", 1, "A")
         controller = await rig.start_controller(retries=2)
         await rig.wait_for(lambda: rig.finished_steps("machine") >= 1, "first cut done")
-        apply_fault(rig.cell, "robot:power-off")
+        rig.switch_on("robot:power-off")
         await rig.wait_for(
             lambda: [s for s in rig.journal.steps() if s.state == "failed"], "a failed transfer"
         )
@@ -212,8 +170,8 @@ async def test_a_robot_reject_is_reset_and_retried_a_bounded_number_of_times(
         await asyncio.sleep(controller.options.poll_period * 3)
         failed = [s for s in rig.journal.steps() if s.state == "failed"]
         assert [(s.kind, s.program) for s in failed] == [("transfer", "cnc1_to_cnc2")]
-        switch_off(rig, "robot:power-off")
-        await operator_resolves(rig)
+        rig.switch_off("robot:power-off")
+        await rig.operator_resolves()
         await rig.wait_for(rig.all_done, "order A done", timeout=60)
         await rig.stop_controller()
         assert rig.cell.runs_per_part() == {"P1": {"cnc1": 1, "cnc2": 1}}
@@ -224,7 +182,7 @@ async def test_a_mill_out_of_service_returns_when_its_alarm_is_cleared(tmp_path:
         rig.post("wax-robot-base", 2, "A")
         controller = await rig.start_controller(fail_limit=2)
         await rig.wait_for(lambda: rig.finished_steps("machine") >= 1, "first cut done")
-        apply_fault(rig.cell, "cnc2:never-ready")
+        rig.switch_on("cnc2:never-ready")
         await rig.wait_for(
             lambda: rig.alarms("cnc2", "out-of-service"), "cnc2 taken out of service"
         )
@@ -234,7 +192,7 @@ async def test_a_mill_out_of_service_returns_when_its_alarm_is_cleared(tmp_path:
         # Out of service: no step starts on cnc2; no part is lost (one may be held).
         assert all(s.machine != "cnc2" for s in rig.open_steps("machine"))
         assert {p.status for p in rig.journal.parts()} <= {"waiting", "active", "held"}
-        switch_off(rig, "cnc2:never-ready")
+        rig.switch_off("cnc2:never-ready")
         result = await rig.cli("alarm", "clear", str(out.id))
         assert result.exit_code == 0 and f"alarm {out.id} cleared" in result.output
         # The machine returns to service once none of its alarms is active.
@@ -242,7 +200,7 @@ async def test_a_mill_out_of_service_returns_when_its_alarm_is_cleared(tmp_path:
         await rig.wait_for(lambda: controller.machines["cnc2"].in_service, "cnc2 back in service")
         assert rig.journal.machines_out_of_service() == {}
         while not rig.all_done():
-            await operator_resolves(rig)
+            await rig.operator_resolves()
             await rig.wait_for(
                 lambda: rig.all_done() or rig.held_parts() or rig.journal.active_alarms(),
                 "the run to complete or to need the operator again",
@@ -251,3 +209,28 @@ async def test_a_mill_out_of_service_returns_when_its_alarm_is_cleared(tmp_path:
         assert rig.journal.machines_out_of_service() == {}
         assert rig.cut_twice() == {}
         assert any("cleared by operator" in r.text for r in rig.reports("alarm-cleared"))
+
+
+@pytest.mark.parametrize("time_scale", [1.0, 50.0, 1000.0])
+async def test_the_emulated_cell_writes_the_real_deadlines_scaled(
+    tmp_path: Path, time_scale: float
+) -> None:
+    """What `cellctl emulate cell` writes: the real cell's deadlines for the machines' work,
+    divided by the time scale, never below 5 s; the poll period stays the real cell's."""
+    cell = EmulatedCell(time_scale=time_scale)
+    try:
+        await cell.start(tmp_path / "cell")
+        config = load_cell(tmp_path / "cell")
+    finally:
+        await cell.close()
+    options = ControllerOptions.from_config(config)
+    real = load_cell(EXAMPLE_CELL)
+    real_options = ControllerOptions.from_config(real)
+    assert options.poll_period == real_options.poll_period
+    for key in ("transfer_timeout", "interlock_timeout", "pallet_timeout"):
+        want = max(5.0, getattr(real_options, key) / time_scale)
+        assert getattr(options, key) == pytest.approx(want), key
+    for mill in config.mills:
+        mc = MillConfig.from_options(mill.options)
+        assert mc.setup_timeout == pytest.approx(max(5.0, 120.0 / time_scale))
+        assert mc.block_extra == pytest.approx(max(5.0, 60.0 / time_scale))

@@ -27,9 +27,9 @@ from cellctl.service.access import AttachedCell, LocalCell
 from cellctl.service.client import CellClient, StandaloneCell, attach
 from cellctl.service.functions import function
 from cellctl.service.server import ApiServer
+from cellctl.testing.rig import CellRig
 from cellctl.ui.console.app import ConsoleApp
 from cellctl.ui.console.session import ConsoleMachine, cell_refs, check_params
-from tests.cell_rig import CellRig
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 SIZE = (80, 24)

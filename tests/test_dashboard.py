@@ -25,8 +25,8 @@ from websockets.exceptions import InvalidStatus
 
 from cellctl.service.access import AttachedCell
 from cellctl.service.server import ApiServer
+from cellctl.testing.rig import CellRig, cli
 from cellctl.ui.dashboard import dashboard_routes
-from tests.cell_rig import CellRig, cli
 from tests.conftest import free_port
 
 CHROMIUM = "/usr/bin/chromium"

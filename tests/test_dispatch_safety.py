@@ -8,9 +8,7 @@ import asyncio
 import re
 from pathlib import Path
 
-from cellctl.ui.cell_cli import apply_fault
-from tests.cell_rig import CellRig
-from tests.test_cell_faults import switch_off
+from cellctl.testing.rig import CellRig
 
 
 def transfers_into(rig: CellRig, mill: str) -> list[float]:
@@ -34,7 +32,7 @@ def check_every_part_cut_once_by_each_mill(rig: CellRig, parts: int) -> None:
 async def test_a_mill_whose_setup_failed_gets_no_part_until_it_is_set_up(tmp_path: Path) -> None:
     async with CellRig(tmp_path / "cell") as rig:
         rig.post("wax-robot-base", 2, "A")
-        apply_fault(rig.cell, "cnc1:drop=5")  # the setup block is cut 5 lines in
+        rig.switch_on("cnc1:drop=5")  # the setup block is cut 5 lines in
         await rig.start_controller()
         alarms = await rig.wait_for(lambda: rig.alarms("cnc1"), "an alarm on cnc1")
         assert re.search(r"(setup|initialize) failed", alarms[0].text), alarms[0].text
@@ -50,7 +48,7 @@ async def test_a_mill_whose_setup_failed_gets_no_part_until_it_is_set_up(tmp_pat
 async def test_a_stalled_mill_gets_no_part_and_the_batch_finishes_after(tmp_path: Path) -> None:
     async with CellRig(tmp_path / "cell") as rig:
         rig.post("wax-robot-base", 1, "A")
-        apply_fault(rig.cell, "cnc2:stall")  # after its setup block, RTS never rises
+        rig.switch_on("cnc2:stall")  # after its setup block, RTS never rises
         controller = await rig.start_controller()
         alarms = await rig.wait_for(lambda: rig.alarms("cnc2", "readiness"), "cnc2 not ready")
         assert "not ready" in alarms[0].text, alarms[0].text
@@ -59,7 +57,7 @@ async def test_a_stalled_mill_gets_no_part_and_the_batch_finishes_after(tmp_path
         await rig.wait_for(lambda: not controller._busy(), "the cell idle")
         assert transfers_into(rig, "cnc2") == []
         assert rig.cell.vise[2] is None and rig.cell.vise[1] == "P1"
-        switch_off(rig, "cnc2:stall")
+        rig.switch_off("cnc2:stall")
         await rig.clear_alarms()  # out of service after its failed setups: the operator's word
         await rig.wait_for(rig.all_done, "order A done", timeout=60)
         await rig.stop_controller()
@@ -74,10 +72,17 @@ async def test_a_mill_left_cutting_at_start_takes_work_once_its_block_ends(tmp_p
         programs = rig.directory / "programs"
         result = await rig.cli("mill", "cnc1", "init", str(programs / "cnc1_setup.dyn"))
         assert result.exit_code == 0, result.output
-        for _ in range(100):  # the emulated operator sets the reference zero, then NEXT
+        # The emulated operator sets the reference zero, then presses NEXT: the mill is set
+        # up (state 2) and ready (CTS high). It must be, or the block below is refused.
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + 10.0
+        while True:
             result = await rig.cli("mill", "cnc1", "status")
             if "CTS high" in result.output and "state 2" in result.output:
                 break
+            assert loop.time() < deadline, (
+                f"cnc1 not set up and ready 10 s after its setup; last status:\n{result.output}"
+            )
             await asyncio.sleep(0.1)
         program = programs / "robot_base_rough_cnc1.dyn"
         result = await rig.cli("mill", "cnc1", "download", "--no-wait", str(program))

@@ -33,8 +33,8 @@ from cellctl.factory.store import FINAL_STATES, OPEN_STATES, FactoryStore
 from cellctl.mailbox import REPORT_KINDS, open_mailbox
 from cellctl.mailbox.mqtt import read_credentials
 from cellctl.mailbox.wire import OrderMessage, WireError, parse_to_cell
+from cellctl.testing.rig import TIME_SCALE
 from cellctl.ui.factory_cli import cells_table
-from tests.cell_rig import TIME_SCALE
 from tests.factory_plant import PART_TYPES, Plant
 
 from .conftest import CELLCTL

@@ -24,7 +24,7 @@ from cellctl.factory.broker import FACTORY_USER, MosquittoBroker
 from cellctl.mailbox import open_mailbox
 from cellctl.mailbox.mqtt import MqttBridge, MqttSettings, read_credentials
 from cellctl.mailbox.wire import AskMessage
-from tests.cell_rig import CellRig
+from cellctl.testing.rig import CellRig
 
 from .conftest import emulated_cell_process
 

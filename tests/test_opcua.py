@@ -30,10 +30,9 @@ from cellctl.errors import UsageError
 from cellctl.factory.opcua import NAMESPACE, OpcuaServer
 from cellctl.factory.opcua.users import check_password, hash_password, load_users
 from cellctl.service.access import LocalCell
+from cellctl.testing.rig import CellRig
 from cellctl.ui.cell_cli import run_controller
 from cellctl.ui.cli import main as cli_main
-
-from .cell_rig import CellRig
 
 CLIENT_URI = "urn:cellctl:tests:client"
 SIGN_AND_ENCRYPT = ua.MessageSecurityMode.SignAndEncrypt

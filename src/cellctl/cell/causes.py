@@ -9,11 +9,14 @@ controller raises the cause's alarm, keeping one active alarm per machine and co
 A step's failure is an alarm of its own only when no cause explains it.
 
 Inside ``with blame("plc", "PLC"):`` a link failure is re-raised as :class:`Blamed`, so the
-step that called the PLC knows the fault is not its machine's.
+step that called the PLC knows the fault is not its machine's. A request that was under way
+when the operator cleared that fault's alarm (a late answer's deadline running out after the
+PLC came back) is the same fault: its cause is marked :attr:`Cause.told`, and not raised again.
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -32,6 +35,10 @@ class Cause:
     machine: str
     code: str
     text: str
+    told: bool = False
+    """The fault was alarmed, and the alarm cleared, while the failed operation was under
+    way: a late sighting of a fault the operator already knows of, not a new one (logged,
+    not alarmed again)."""
 
 
 def link_cause(machine: str, label: str, error: BaseException) -> Cause | None:
@@ -59,23 +66,26 @@ def status_cause(machine: str, status: MachineStatus) -> Cause:
 class Blamed(CellctlError):
     """A step failed because another machine did: :attr:`cause` says which and how."""
 
-    def __init__(self, cause: Cause, error: BaseException) -> None:
+    def __init__(self, cause: Cause, error: BaseException, since: float = 0.0) -> None:
         super().__init__(f"{cause.machine}: {cause.text} ({error})")
         self.cause = cause
+        self.since = since
+        """When the operation that failed began (``time.time()``)."""
 
 
 @contextmanager
 def blame(machine: str, label: str) -> Iterator[None]:
     """Inside, a link failure or a signal that did not come (a stuck door: code
     ``interlock``) is ``machine``'s: raised again as :class:`Blamed`."""
+    since = time.time()
     try:
         yield
     except Blamed:
         raise
     except SignalTimeout as e:
-        raise Blamed(Cause(machine, "interlock", str(e)), e) from e
+        raise Blamed(Cause(machine, "interlock", str(e)), e, since) from e
     except (CellctlError, OSError) as e:
         cause = link_cause(machine, label, e)
         if cause is None:
             raise
-        raise Blamed(cause, e) from e
+        raise Blamed(cause, e, since) from e

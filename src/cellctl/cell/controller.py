@@ -39,7 +39,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from cellctl.cell.causes import Cause, blame
+from cellctl.cell.causes import Cause, blame, link_cause
 from cellctl.cell.commands import OperatorCommands
 from cellctl.cell.config import CONVEYOR, CellConfig, MachineConfig, transfer_ends
 from cellctl.cell.journal import Journal, Part
@@ -139,6 +139,9 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
             self.log(f"ALARM {alarm.id} {machine}: {text}")
 
     def _cause_alarm(self, cause: Cause) -> None:
+        if cause.told:  # a step under way when the operator cleared this fault's alarm
+            self.log(f"{cause.machine}: {cause.text} (its alarm already cleared)")
+            return
         self._alarm(cause.machine, cause.code, cause.text)
 
     def _failed(self, machine: str, code: str, text: str, *, alarm: bool = True) -> None:
@@ -358,8 +361,8 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
             return
         if self._robot_task is not None and not self._robot_task.done():
             return
-        if not self.recovery.robot_ok:
-            return  # a robot fault: no transfer until the monitor finds it well
+        if not self.recovery.robot_may_move():
+            return  # a robot fault, a stuck door: no transfer until found well or cleared
         try:
             await self._read_inputs()
         except CellctlError:
@@ -404,7 +407,12 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
                 self._pallet_requested = True
                 self._pallet_requested_at = asked
             except CellctlError as e:
-                self._alarm("plc", "conveyor", f"cannot request a pallet: {e}")
+                # A PLC that does not answer is that fault's one alarm, not a conveyor's.
+                cause = link_cause("plc", "PLC", e)
+                if cause is not None:
+                    self._cause_alarm(cause)
+                else:
+                    self._alarm("plc", "conveyor", f"cannot request a pallet: {e}")
 
     def _pallet_overdue(self) -> None:
         """The monitor's look at a requested pallet: none there ``pallet_timeout`` after the

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import time
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -59,6 +60,7 @@ class Monitor:
         self.ctl = controller
         self.done = asyncio.Event()
         self._reads: dict[str, asyncio.Future[Any]] = {}
+        self._since: dict[str, float] = {}  # when each key's last read was sent
 
     async def _bounded(self, key: str, read: Callable[[], Awaitable[T]]) -> T:
         """``read()`` of an idle machine, awaited at most ``read_limit`` (TimeoutError after).
@@ -73,6 +75,7 @@ class Monitor:
             raise _StillOut
         future = asyncio.ensure_future(read())
         self._reads[key] = future
+        self._since[key] = time.time()
         try:
             return await asyncio.wait_for(asyncio.shield(future), self.ctl.options.read_limit)
         except TimeoutError:
@@ -118,6 +121,8 @@ class Monitor:
         if isinstance(error, Blamed):
             if error.cause.code == "interlock" and await self._estop():
                 return ESTOP
+            if self._cleared_since(error.cause, error.since):
+                return dataclasses.replace(error.cause, told=True)
             return error.cause
         if isinstance(error, RobotHalted):
             return status_cause(machine, error.status)
@@ -132,6 +137,24 @@ class Monitor:
         except (_StillOut, TimeoutError, CellctlError):
             return None
         return None if status.ok else status_cause(machine, status)
+
+    def _told(self, cause: Cause, key: str) -> Cause:
+        """``cause`` of a failed read, marked told if its alarm was cleared while the read
+        was out (sent before the operator acknowledged the fault: the same fault)."""
+        if self._cleared_since(cause, self._since.get(key, time.time())):
+            return dataclasses.replace(cause, told=True)
+        return cause
+
+    def _cleared_since(self, cause: Cause, since: float) -> bool:
+        """True if an alarm of ``cause`` was cleared after ``since``: the operation that
+        failed began before the operator acknowledged the fault (see :attr:`Cause.told`)."""
+        return any(
+            a.machine == cause.machine
+            and a.code == cause.code
+            and a.cleared is not None
+            and a.cleared >= since
+            for a in self.ctl.journal.alarms()
+        )
 
     async def _estop(self) -> bool:
         """True if the PLC's inputs say emergency stop (read now)."""
@@ -149,7 +172,7 @@ class Monitor:
         except _StillOut:
             return
         except (TimeoutError, CellctlError) as e:
-            cause = read_cause("plc", "PLC", e)
+            cause = self._told(read_cause("plc", "PLC", e), "plc")
             view.state = cause.text
             ctl._cause_alarm(cause)
             return
@@ -170,7 +193,7 @@ class Monitor:
         except _StillOut:
             return  # the last read is still out (and already told as not answering)
         except (TimeoutError, CellctlError) as e:
-            cause = read_cause(robot.name, "robot", e)
+            cause = self._told(read_cause(robot.name, "robot", e), robot.name)
             view.state = cause.text
             ctl.recovery.robot_ok = False
             ctl._cause_alarm(cause)

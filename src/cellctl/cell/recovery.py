@@ -51,6 +51,18 @@ class Recovery:
     def unusable(self) -> set[str]:
         return {name for name in self.fit if not self.usable(name)}
 
+    def robot_may_move(self) -> bool:
+        """True if the robot may start a transfer: no fault of its own since the monitor's
+        last good look (:attr:`robot_ok`), and no door or vise the PLC failed to move still
+        alarmed. A stuck door is a physical fault: transfers wait for the operator's clear
+        rather than fail through it again at once (each retry a failed step, round after
+        round)."""
+        if not self.robot_ok:
+            return False
+        return not any(
+            a.machine == "plc" and a.code == "interlock" for a in self.ctl.journal.active_alarms()
+        )
+
     # -- faults -------------------------------------------------------------------------------
 
     def fault(

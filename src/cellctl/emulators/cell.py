@@ -57,6 +57,18 @@ EXAMPLE_CELL = Path(str(resources.files("cellctl").joinpath("examples", "cell"))
 
 BASE_LINE = LineSettings(4800, 7, "E", 2)
 
+#: ``[cell]`` deadlines for the machines' work, scaled in the emulated cell's cell.toml.
+CELL_DEADLINES = ("transfer_timeout", "interlock_timeout", "pallet_timeout")
+#: The shortest deadline the emulated cell writes, s: the controller runs in wall time, and a
+#: deadline scaled below this would tell a busy host as a fault.
+MIN_DEADLINE_S = 5.0
+
+
+def scaled_deadline(real_s: float, time_scale: float) -> float:
+    """A deadline of the real cell (``real_s``) for machines ``time_scale`` times faster."""
+    return max(MIN_DEADLINE_S, real_s / time_scale)
+
+
 #: PLC input -> robot input line (the example cell's wiring).
 ROBOT_INPUTS = {
     "pallet_present": 1,
@@ -220,6 +232,12 @@ class EmulatedCell:
                 text = f'line = "{self.line}"'
             elif section == "plc" and key == "url":
                 text = f'url = "{self.plc_url}"'
+            elif section == "cell" and key in CELL_DEADLINES:
+                # A deadline for a machine's work (a pallet, a door, a transfer) scales with
+                # the machines' time as the mills' do below.
+                value = float(raw["cell"][key])
+                scaled = scaled_deadline(value, self.time_scale)
+                text = f"{key} = {scaled:g}  # s (the real cell's {value:g} s, scaled)"
             lines.append(text)
         scale = self.time_scale
         # Deadlines scale with the machines' time; a real cell keeps the template's.
@@ -229,8 +247,8 @@ class EmulatedCell:
                 lines += [
                     "",
                     f"[machines.{name}.options]",
-                    f"setup_timeout = {max(5.0, 120.0 / scale):g}",
-                    f"block_extra = {max(5.0, 60.0 / scale):g}",
+                    f"setup_timeout = {scaled_deadline(120.0, scale):g}",
+                    f"block_extra = {scaled_deadline(60.0, scale):g}",
                     # The estimate a block's deadline multiplies is in the real cell's time.
                     f"block_margin = {2.0 / scale:g}",
                     "ready_wait = 2.0",

@@ -1,15 +1,27 @@
-"""The emulated cell and its controller in the test process, and an operator at the CLI.
+"""A whole cell in one process: the emulated cell, its controller, and an operator at the CLI.
 
-::
+This is the way to run a cell in one process -- for tests, benches and experiments::
+
+    from cellctl.testing.rig import CellRig
 
     async with CellRig(tmp_path) as rig:          # robot, 2 mills, PLC on ptys and sockets
         rig.post("wax-robot-base", 2, "A")
         await rig.start_controller()              # CellController in this process
         await rig.wait_for(lambda: rig.order_state("A") == "done", "order A done")
-        rig.cli("alarm", "clear", "3")             # what the operator types
+        rig.switch_on("cnc2:stall")               # an emulator's fault switch
+        await rig.wait_quiet()                    # no step in flight, the journal at rest
+        rig.switch_off("cnc2:stall")              # the operator fixes the machine ...
+        await rig.operator_resolves()             # ... clears alarms, releases held parts
+
+``CellRig(dir, cell_options=..., mill_options=...)`` writes short deadlines for tests
+(:func:`fast_options`); ``CellRig(dir, deadlines="emulated")`` keeps the ones
+``cellctl emulate cell`` writes, the deadlines a user gets.
 
 Waiting is always for a condition on the journal, the mailbox or the emulators, with a
 deadline: never a bare sleep.
+
+Layer: above everything (it drives the command line as an operator would); nothing in the
+package imports it.
 """
 
 from __future__ import annotations
@@ -20,19 +32,24 @@ import re
 from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, Literal
 
 from click.testing import CliRunner, Result
 
 from cellctl.cell.config import load_cell
 from cellctl.cell.controller import CellController, ControllerOptions
 from cellctl.cell.journal import Journal, open_journal
+from cellctl.drivers.mill import MillConfig
 from cellctl.emulators.cell import EmulatedCell
 from cellctl.mailbox import Mailbox, open_mailbox
+from cellctl.ui.cell_cli import apply_fault
 from cellctl.ui.cli import main as cli_main
 
 #: Machine time runs this many times faster than in the real cell.
 TIME_SCALE = 1000.0
+
+#: The mills, by the vise they own (the emulated cell's numbering).
+MILL_INDEX = {"cnc1": 1, "cnc2": 2}
 
 #: Deadlines short enough that a fault is found in well under a second of test time.
 FAST_MILL_OPTIONS = {"setup_timeout": 1.5, "block_extra": 1.5, "ready_wait": 1.0}
@@ -63,11 +80,16 @@ class CellRig:
         time_scale: float = TIME_SCALE,
         cell_options: dict[str, Any] | None = None,
         mill_options: dict[str, float] | None = None,
+        deadlines: Literal["fast", "emulated"] = "fast",
     ) -> None:
+        """``deadlines="fast"``: the tests' short deadlines (:func:`fast_options`), then
+        ``cell_options`` and ``mill_options`` over them; ``"emulated"``: only those given
+        over what ``cellctl emulate cell`` writes."""
         self.directory = directory
         self.cell = EmulatedCell(time_scale=time_scale)
-        self.cell_options = fast_options(**(cell_options or {}))
-        self.mill_options = {**FAST_MILL_OPTIONS, **(mill_options or {})}
+        fast = deadlines == "fast"
+        self.cell_options = fast_options(**(cell_options or {})) if fast else (cell_options or {})
+        self.mill_options = {**(FAST_MILL_OPTIONS if fast else {}), **(mill_options or {})}
         self.controller: CellController | None = None
         self.stop_event = asyncio.Event()
         self._run_task: asyncio.Task[None] | None = None
@@ -170,6 +192,44 @@ class CellRig:
                 return False
         return True
 
+    def quiet_span(self) -> float:
+        """Seconds of nothing new after which the cell is at rest: the longest deadline that
+        can still fire with no step in flight (a setup's ``setup_timeout`` and the look that
+        tells it, a pallet's ``pallet_timeout``, a silent read's ``read_limit``), plus a poll
+        period, all from the cell's own cell.toml."""
+        config = load_cell(self.directory)
+        options = ControllerOptions.from_config(config)
+        setups = [MillConfig.from_options(m.options).setup_timeout for m in config.mills]
+        longest = max(options.pallet_timeout, options.read_limit, *setups)
+        return longest + 2 * options.poll_period
+
+    def _journal_state(self) -> tuple[object, ...]:
+        steps = tuple((s.id, s.state) for s in self.journal.steps())
+        alarms = tuple(a.id for a in self.journal.alarms())
+        parts = tuple((p.id, p.status, p.location) for p in self.journal.parts())
+        return steps, alarms, parts
+
+    async def wait_quiet(
+        self, span: float | None = None, what: str = "the cell at rest", timeout: float = 60.0
+    ) -> None:
+        """Wait until no step is in flight and the journal (steps, alarms, parts) has not
+        changed for ``span`` s (default :meth:`quiet_span`): whatever a fault still had to
+        raise has been raised. Fails after ``timeout``."""
+        span = self.quiet_span() if span is None else span
+        loop = asyncio.get_running_loop()
+        state = self._journal_state()
+        since = loop.time()
+
+        def at_rest() -> bool:
+            nonlocal state, since
+            now = self._journal_state()
+            if now != state or self.journal.open_steps():
+                state, since = now, loop.time()
+                return False
+            return loop.time() - since >= span
+
+        await self.wait_for(at_rest, f"{what} ({span:g} s with nothing new)", timeout=timeout)
+
     def all_done(self) -> bool:
         return all(o.state == "done" for o in self.mailbox.orders())
 
@@ -231,6 +291,62 @@ class CellRig:
             assert result.exit_code == 0, result.output
             cleared.append(alarm.id)
         return cleared
+
+    # -- faults ------------------------------------------------------------------------------
+
+    def switch_on(self, fault: str) -> None:
+        """Switch an emulator's fault on: ``MACHINE:NAME[=ARG]`` as ``cellctl emulate cell
+        --fault`` takes it (``cnc2:stall``, ``plc:stuck-door=2``)."""
+        apply_fault(self.cell, fault)
+
+    def switch_off(self, fault: str) -> None:
+        """The operator fixes the machine: the fault off, and what the panel needs after it
+        (NEXT after a setup stop, the link mode selected again after a lost READY)."""
+        machine, _, rest = fault.partition(":")
+        name = rest.partition("=")[0]
+        if machine == "robot":
+            self.cell.robot.clear_fault(name)
+        elif machine == "plc":
+            self.cell.plc.clear_fault(name)
+        else:
+            self.cell.mills[machine].clear_fault(name)
+        if name == "no-next":
+            self.cell.mills[machine].press_next()  # the operator finishes the setup stop
+        elif name in ("never-ready", "stall"):
+            # The operator selects the link mode again on the panel: READY comes back.
+            mill = self.cell.mills[machine]
+            mill.select(mill.auto_mode)
+
+    def physical_part(self, mill: str) -> str | None:
+        """The physical part in ``mill``'s vise (the emulated cell's record)."""
+        return self.cell.vise[MILL_INDEX[mill]]
+
+    async def operator_resolves(self) -> None:
+        """The operator clears every alarm and releases each held part where it physically
+        is, after looking at it (``cellctl alarm clear``, ``cellctl part release``)."""
+        await self.clear_alarms()
+        for part in self.held_parts():
+            step = self.journal.steps(part.id)[-1]
+            if step.kind == "transfer":
+                # The operator waits for the arm to stop, then finds the part: where the arm
+                # left it, or (still in the gripper) puts it back where it came from.
+                await self.wait_for(lambda: not self.cell.robot.running, "the arm at rest")
+                source, target = step.program.split("_to_")
+                if self.cell.gripper is not None and source in MILL_INDEX:
+                    self.cell.vise[MILL_INDEX[source]], self.cell.gripper = self.cell.gripper, None
+                assert self.cell.gripper is None
+                where = source
+                if target in MILL_INDEX and self.cell.vise[MILL_INDEX[target]] is not None:
+                    where = target
+                result = await self.cli("part", "release", part.id, "--at", where)
+            else:
+                # Inspect the part in the vise: cut already (the mill's log says so), or not.
+                blank = self.physical_part(step.machine)
+                assert blank is not None, f"{part.id} should be in {step.machine}'s vise"
+                cut = self.cell.runs_per_part().get(blank, {}).get(step.machine, 0)
+                args = ["part", "release", part.id] + ([] if cut else ["--redo"])
+                result = await self.cli(*args)
+            assert result.exit_code == 0, result.output
 
     def cut_twice(self) -> dict[str, dict[str, int]]:
         """Physical parts some mill cut more than once (from the mills' execution logs)."""

@@ -23,7 +23,7 @@ from cellctl.factory.store import DONE, FactoryStore
 from cellctl.mailbox import open_mailbox
 from cellctl.mailbox.mqtt import MqttBridge
 from cellctl.mailbox.mqttlink import MqttSettings, TlsRefused, WrongScheme, read_credentials
-from tests.cell_rig import CellRig
+from cellctl.testing.rig import CellRig
 
 from .conftest import CaFiles, make_ca
 

@@ -122,8 +122,9 @@ async def test_a_cells_credentials_cannot_disconnect_the_factory_or_another_cell
         broker_log = plant.emulated.broker.log_path.read_text()
         for user in ("factory", "cell1"):
             assert f"Client {user} already connected" not in broker_log
-        assert "Client cell2 already connected" in broker_log  # what the impostor could do
-        assert {o.cell for o in plant.store.orders()} == {"cell1", "cell2"}
+        # What the impostor could do: take its own user's session (cell2 came back by itself;
+        # whether the factory gave it work meanwhile depends on when, so it is not asserted).
+        assert "Client cell2 already connected" in broker_log
 
 
 @pytest.mark.timeout(180)

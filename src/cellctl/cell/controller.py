@@ -58,12 +58,13 @@ from cellctl.cell.orders import OrderBox, ReportKind
 from cellctl.cell.recovery import Recovery
 from cellctl.cell.robotsteps import RobotSteps
 from cellctl.cell.scheduler import PartState, next_transfer, ready_to_leave
-from cellctl.drivers.mill import CallbackOutput, Dyna2400Mill, MillConfig
+from cellctl.drivers.mill import MILL_STATES, CallbackOutput, Dyna2400Mill, MillConfig
 from cellctl.drivers.mill import Progress as MillProgress
 from cellctl.drivers.plc import ModbusPlc
 from cellctl.drivers.robot import Ibm7545Robot, RobotConfig
 from cellctl.drivers.state import StateStore
 from cellctl.errors import CellctlError
+from cellctl.kinds import Condition
 from cellctl.link import TrafficLog
 from cellctl.protocol.plc import PlcMap, canonical
 
@@ -444,7 +445,7 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
             part_id=part.id,
         )
         view.step = f"{route_step.name} ({part.id})"
-        view.state = "machining"
+        view.show("machining", Condition.BUSY)
         started = time.monotonic()
         since = time.time()
         index = self._mill_index(mill_name)
@@ -515,7 +516,7 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
         view.progress = None
         view.busy_s += time.monotonic() - started
         view.step = ""
-        view.state = "Initialized"
+        view.show(MILL_STATES[2], Condition.IDLE)
         self.recovery.ready[mill_name] = True  # the last block ended with CTS high
         self._succeeded(mill_name)
         self.journal.end_step(step.id, "finished", route_index=part.route_index + 1)

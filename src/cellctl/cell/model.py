@@ -14,6 +14,7 @@ from typing import Any
 
 from cellctl.cell.config import CellConfig
 from cellctl.cell.orders import OrderBox
+from cellctl.kinds import Condition, LastError
 
 #: Robot output a cell program raises when its cycle is done (the example cell's wiring).
 DEFAULT_DONE_OUTPUT = 6
@@ -26,12 +27,36 @@ class MachineView:
     name: str
     kind: str
     state: str = "not connected"
+    """The machine's state in its own words ("Executing", "Initialized, EXECUTING")."""
     step: str = ""
     in_service: bool = True
+    machine_condition: Condition = Condition.OFFLINE
+    """What the machine itself is doing; :attr:`condition` adds the controller's view."""
+    error: LastError | None = None
     failures: int = 0
     busy_s: float = 0.0
     progress: dict[str, Any] | None = None
     """A download or cut in progress: ``done``/``total`` and what they count, ``phase``."""
+
+    @property
+    def condition(self) -> Condition:
+        """The condition every surface shows: out of service wins over what the machine
+        says, and a machine idle between two looks while a step runs on it is busy."""
+        if not self.in_service:
+            return Condition.OUT_OF_SERVICE
+        if self.step and self.machine_condition is Condition.IDLE:
+            return Condition.BUSY
+        return self.machine_condition
+
+    def show(self, state: str, condition: Condition, error: LastError | None = None) -> None:
+        """Set what the machine says: its state's words and their condition. ``error`` is kept
+        while the machine is offline or in alarm, and forgotten once it is seen well again."""
+        self.state = state
+        self.machine_condition = condition
+        if condition in (Condition.OFFLINE, Condition.ALARM):
+            self.error = error or self.error
+        else:
+            self.error = None
 
     def report_progress(self, done: int, total: int, unit: str, phase: str, **more: Any) -> bool:
         """Note progress (``more``: e.g. the program, block n of m); True when it moved by a

@@ -24,8 +24,9 @@ from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from cellctl.cell.causes import Blamed, Cause, link_cause, read_cause, status_cause
-from cellctl.drivers.robot import ROBOT_STATES, RobotHalted
+from cellctl.drivers.robot import ROBOT_STATES, RobotHalted, robot_condition
 from cellctl.errors import CellctlError, DeviceError, UsageError
+from cellctl.kinds import Condition, LastError
 
 if TYPE_CHECKING:
     from cellctl.cell.config import MachineConfig
@@ -173,13 +174,13 @@ class Monitor:
             return
         except (TimeoutError, CellctlError) as e:
             cause = self._told(read_cause("plc", "PLC", e), "plc")
-            view.state = cause.text
+            view.show(cause.text, Condition.OFFLINE, LastError.of(e))
             ctl._cause_alarm(cause)
             return
-        view.state = "ok"
+        view.show("ok", Condition.IDLE)
         if not inputs.get("estop_ok", True):
             ctl._cause_alarm(ESTOP)
-            view.state = "emergency stop"
+            view.show("emergency stop", Condition.ALARM, LastError(ESTOP.text))
         ctl._pallet_overdue()
 
     async def _robot(self) -> None:
@@ -194,7 +195,7 @@ class Monitor:
             return  # the last read is still out (and already told as not answering)
         except (TimeoutError, CellctlError) as e:
             cause = self._told(read_cause(robot.name, "robot", e), robot.name)
-            view.state = cause.text
+            view.show(cause.text, Condition.OFFLINE, LastError.of(e))
             ctl.recovery.robot_ok = False
             ctl._cause_alarm(cause)
             return
@@ -202,10 +203,11 @@ class Monitor:
         # it if the fault cost it its start-up).
         ctl.recovery.robot_ok = status.ok
         if not status.ok:
-            ctl._cause_alarm(status_cause(robot.name, status))
-            view.state = str(status)
+            cause = status_cause(robot.name, status)
+            ctl._cause_alarm(cause)
+            view.show(str(status), Condition.ALARM, LastError(cause.text))
         else:
-            view.state = ROBOT_STATES.get(robot.state, str(robot.state))
+            view.show(ROBOT_STATES.get(robot.state, str(robot.state)), robot_condition(robot.state))
 
     async def _mill(self, m: MachineConfig) -> None:
         ctl = self.ctl
@@ -217,12 +219,12 @@ class Monitor:
         try:
             status = await mill.status()
         except (CellctlError, UsageError) as e:
-            view.state = f"error: {e}"
+            view.show(f"error: {e}", Condition.OFFLINE, LastError.of(e))
             if view.in_service:
                 cause = read_cause(m.name, "mill", e)
                 recovery.fault(m.name, "link", cause.text, count=False, cause=cause)
             return
-        view.state = status.state_text + (f", {status.condition}" if status.condition else "")
+        view.show(status.shown, status.kind_condition)
         was_ready = recovery.ready.get(m.name, False)
         ready = status.ready and status.state == 2
         recovery.ready[m.name] = ready and recovery.fit.get(m.name, False)

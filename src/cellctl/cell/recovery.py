@@ -21,8 +21,9 @@ import time
 from typing import TYPE_CHECKING
 
 from cellctl.cell.causes import LINK_CLOSED, Cause
-from cellctl.drivers.robot import ROBOT_STATES
+from cellctl.drivers.robot import ROBOT_STATES, robot_condition
 from cellctl.errors import CellctlError
+from cellctl.kinds import Condition, LastError
 
 if TYPE_CHECKING:
     from cellctl.cell.config import MachineConfig
@@ -191,10 +192,10 @@ class Recovery:
                 await robot.stop()
             if robot.state != 1:
                 await robot.initialize()
-            view.state = ROBOT_STATES[1]
+            view.show(ROBOT_STATES[1], robot_condition(1))
             ctl._succeeded(robot.name)
         except CellctlError as e:
-            view.state = f"error: {e}"
+            view.show(f"error: {e}", Condition.ALARM, LastError.of(e))
             ctl._failed(robot.name, "initialize", f"robot initialize failed: {e}")
 
     async def prepare_mill(self, m: MachineConfig, *, force: bool) -> bool:
@@ -211,7 +212,7 @@ class Recovery:
                 if not status.ready:
                     # Left running (by a controller that was killed): no fault, but it is
                     # not in the plan until recovery sees the block end.
-                    view.state = "executing (left running)"
+                    view.show("executing (left running)", Condition.BUSY)
                     self.fit[m.name] = False
                     self._start(m.name)
                     return False
@@ -222,7 +223,7 @@ class Recovery:
                 ctl.log(f"{m.name}: initialized with {m.setup.name}")
             status = await mill.status()
         except CellctlError as e:
-            view.state = f"error: {e}"
+            view.show(f"error: {e}", Condition.ALARM, LastError.of(e))
             self.fault(m.name, "initialize", f"setup failed: {e}")
             return False
         self.fit[m.name] = True
@@ -231,5 +232,5 @@ class Recovery:
         # Its operator's time for the reference zero runs from now (also after a setup sent by
         # hand while it was out of automatic service).
         self.setup_at[m.name] = time.monotonic()
-        view.state = status.state_text + (f", {status.condition}" if status.condition else "")
+        view.show(status.shown, status.kind_condition)
         return True

@@ -47,6 +47,7 @@ from typing import Any, Protocol
 from cellctl.drivers.base import LinkDriver
 from cellctl.drivers.state import StateStore
 from cellctl.errors import DeviceError, LinkTimeout, UsageError
+from cellctl.kinds import Condition
 from cellctl.link import MILL_LINE, LineSettings, Link, TrafficLog
 from cellctl.protocol.dynalan import (
     Block,
@@ -72,6 +73,14 @@ MILL_STATES = {
     2: "Initialized",
     3: "Downloaded, active",
     4: "Go, active",
+}
+#: The condition each mill state shows on every surface.
+MILL_CONDITIONS = {
+    0: Condition.NOT_READY,
+    1: Condition.NOT_READY,
+    2: Condition.IDLE,
+    3: Condition.BUSY,
+    4: Condition.BUSY,
 }
 INITIALIZE_RESULTS = {
     0: "Initializing was correct",
@@ -131,6 +140,19 @@ class MillStatus:
     @property
     def state_text(self) -> str:
         return MILL_STATES.get(self.state, f"state {self.state}")
+
+    @property
+    def shown(self) -> str:
+        """The state in the machine's words, with its special condition."""
+        return self.state_text + (f", {self.condition}" if self.condition else "")
+
+    @property
+    def kind_condition(self) -> Condition:
+        """The condition this status shows on every surface (an initialized mill without
+        CTS waits for its operator's reference zero: not ready)."""
+        if self.state == 2 and not self.ready:
+            return Condition.NOT_READY
+        return MILL_CONDITIONS.get(self.state, Condition.NOT_READY)
 
     def __str__(self) -> str:
         extra = f", {self.condition}" if self.condition else ""

@@ -60,6 +60,7 @@ from cellctl.errors import (
     UsageError,
     format_raw,
 )
+from cellctl.kinds import Condition
 from cellctl.link import ROBOT_LINE, LineSettings, Link, TrafficLog
 from cellctl.protocol.robot import (
     ACK,
@@ -92,6 +93,14 @@ ROBOT_STATES = {
     1: "Initialized (auto mode)",
     2: "Executing",
 }
+#: The condition each host state shows on every surface.
+ROBOT_CONDITIONS = {0: Condition.NOT_READY, 1: Condition.IDLE, 2: Condition.BUSY}
+
+
+def robot_condition(state: int, ok: bool = True) -> Condition:
+    """The condition of a robot in host ``state`` whose status bytes say ``ok`` or not."""
+    return ROBOT_CONDITIONS.get(state, Condition.NOT_READY) if ok else Condition.ALARM
+
 
 #: Reject codes after which the controller is known to be uninitialized (partitions gone).
 _COLD_REJECTS = {48}

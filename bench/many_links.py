@@ -195,6 +195,11 @@ async def one_size(
     dl_limit = settings.wire_time(chars) + (len(program.records) + 1) * latency
     dl_ratio = stats.downloads_done * dl_limit / stats.download_time if stats.download_time else 0.0
     transactions = len(polls) + stats.records
+    # What the load asks of the controller when every line runs at its rate: a poll a second
+    # per polling link; per downloading link a download and a poll, back to back.
+    downloaders = max(1, count // 4)
+    demand = (count - downloaders) + downloaders * (RECORDS + 1) / (dl_limit + poll_limit / 1.5)
+    cpu_per_txn = (stats.cpu_user + stats.cpu_system) / max(1, transactions)
     return {
         "links": count,
         "transport": transport,
@@ -209,7 +214,9 @@ async def one_size(
         "downloads": stats.downloads_done,
         "download_ratio": dl_ratio,
         "errors": len(stats.errors),
-        "cpu_us_per_txn": (stats.cpu_user + stats.cpu_system) / max(1, transactions) * 1e6,
+        "cpu_us_per_txn": cpu_per_txn * 1e6,
+        "demand_txn_per_s": demand,
+        "cores_needed": cpu_per_txn * demand,
         "system_us_per_txn": stats.cpu_system / max(1, transactions) * 1e6,
         "controller_load": (stats.cpu_user + stats.cpu_system) / stats.wall,
         "emulator_load": stats.emulator_cpu / stats.wall,
@@ -259,6 +266,10 @@ async def main() -> None:
             f"ms, p99 {r['poll_p99_ms']:.1f} ms; in time means <= {r['poll_limit_ms']:.1f} ms; "
             f"started p99 {r['start_lag_p99_ms']:.1f} ms after due"
         )
+        print(
+            f"  the load asks {r['demand_txn_per_s']:.0f} transactions/s at the line rate: at "
+            f"{r['cpu_us_per_txn']:.0f} us each, {r['cores_needed']:.2f} of a core for this process"
+        )
         if r["first_error"]:
             print(f"  first error: {r['first_error']}")
         last = r
@@ -275,6 +286,7 @@ async def main() -> None:
             errors=last["errors"],
             ratio=ratio,
             cpu_us_per_txn=last["cpu_us_per_txn"],
+            controller_cores_needed=last["cores_needed"],
             controller_load=last["controller_load"],
             emulator_load=last["emulator_load"],
         )

@@ -193,8 +193,8 @@ class Ibm7545Robot(LinkDriver):
         self.digests: dict[int, str] = {int(p): d for p, d in saved.get("digests", {}).items()}
         self._in_reject_read = False
         # The last program downloaded, as sent: (program given, partition, program retargeted,
-        # wire pieces, digest). A DNC server sends one program over and over; encoding and
-        # retargeting it again each time cost as much as the transactions themselves.
+        # wire pieces, digest). A DNC server sends one program over and over; encoding,
+        # retargeting and hashing it again each time was a quarter of the work per record.
         self._last_wire: tuple[ProgramFile, int, ProgramFile, list[bytes], str] | None = None
         # One transaction at a time on the line: a monitor polling status and a scheduler
         # starting programs may share one driver.

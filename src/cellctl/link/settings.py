@@ -37,8 +37,8 @@ class LineSettings:
             raise UsageError(f"parity must be one of {''.join(PARITIES)}, not {self.parity!r}")
         if self.stopbits not in (1, 1.5, 2):
             raise UsageError(f"stop bits must be 1, 1.5 or 2, not {self.stopbits}")
-        # Every reply deadline adds wire time: work it out once (not a field: eq, repr and
-        # replace() see only the five above).
+        # Every reply deadline adds wire time: work it out once (kept out of eq, hash, repr and
+        # the constructor: replace() recomputes it).
         object.__setattr__(self, "_char_time", self.bits_per_char / self.baudrate)
 
     @property

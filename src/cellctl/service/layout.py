@@ -19,11 +19,11 @@ from typing import Any
 
 from cellctl.cell.config import CONVEYOR, CellConfig, load_cell
 from cellctl.cell.controller import OUT
-from cellctl.drivers.mill import MillConfig
 from cellctl.errors import UsageError
-from cellctl.protocol.dynalan import ValidationContext, parse_program
-from cellctl.protocol.dynalan import validate as validate_program
-from cellctl.protocol.preview import render_svg
+from cellctl.kinds.dyna2400.driver import MillConfig
+from cellctl.kinds.dyna2400.dynalan import ValidationContext, parse_program
+from cellctl.kinds.dyna2400.dynalan import validate as validate_program
+from cellctl.kinds.dyna2400.preview import render_svg
 from cellctl.service.access import CellAccess
 from cellctl.service.functions import FAMILY_OF_KIND
 

@@ -39,8 +39,8 @@ from click.testing import CliRunner, Result
 from cellctl.cell.config import load_cell
 from cellctl.cell.controller import CellController, ControllerOptions
 from cellctl.cell.journal import Journal, open_journal
-from cellctl.drivers.mill import MillConfig
 from cellctl.emulators.cell import EmulatedCell
+from cellctl.kinds.dyna2400.driver import MillConfig
 from cellctl.mailbox import Mailbox, open_mailbox
 from cellctl.ui.cell_cli import apply_fault
 from cellctl.ui.cli import main as cli_main

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import click
 
-from cellctl.emulators.serve import EmulatedDevice, parse_fault, serve
-from cellctl.errors import UsageError
-from cellctl.link import ROBOT_LINE, LineSettings
-from cellctl.ui.common import console, fault_help, run, until_stopped
+from cellctl.emulators.serve import EmulatedDevice, serve
+from cellctl.link import LineSettings
+from cellctl.ui.common import console, until_stopped
 from cellctl.ui.plc_cli import emulate_plc
 
 
@@ -61,30 +60,4 @@ async def serve_until_stopped(
         console.print(f"{what} stopped")
 
 
-def _robot_command() -> click.Command:
-    from cellctl.emulators.robot import FAULTS, Ibm7545Emulator
-
-    def callback(
-        listen: str, time_scale: float, no_pacing: bool, line: str, fault: tuple[str, ...]
-    ) -> None:
-        async def main() -> None:
-            device = Ibm7545Emulator(time_scale=time_scale)
-            for text in fault:
-                name, arg = parse_fault(text)
-                if name not in FAULTS:
-                    raise UsageError(f"unknown fault {name!r}; known: {', '.join(FAULTS)}")
-                device.set_fault(name, arg)
-            await serve_until_stopped(device, listen, line, not no_pacing, "IBM 7545 emulator")
-
-        run(main)
-
-    return click.Command(
-        "robot",
-        callback=callback,
-        params=listen_options(ROBOT_LINE, FAULTS),
-        help="Emulate an IBM 7545/7547 robot controller.\n\n" + fault_help(FAULTS),
-    )
-
-
-emulate.add_command(_robot_command())
 emulate.add_command(emulate_plc)

@@ -9,12 +9,12 @@
     poll_period = 0.5                     # s: a fault is noticed within one poll period
 
     [machines.robot]
-    kind = "ibm7545"
+    kind = "..."                          # a robot kind: `cellctl kinds` lists them
     link = "rfc2217://127.0.0.1:7001"
     line = "4800,7E2"
 
     [machines.cnc1]
-    kind = "dyna2400"
+    kind = "..."                          # a mill kind
     link = "rfc2217://127.0.0.1:7002"
     setup = "programs/cnc1_setup.dyn"     # paths are relative to the cell directory
     go_output = "go1"                     # the PLC coil wired to the mill's GO input

@@ -1,7 +1,7 @@
 """One place builds a machine's driver from its config: the controller and the standalone
 service both open machines here, through the machine's kind (its options checked first)::
 
-    robot = await open_machine("ibm7545", "robot", "rfc2217://127.0.0.1:7001", line, options,
+    robot = await open_machine(m.kind, m.name, m.link, m.line, m.options,
                                store=StateStore(cell_dir), trace=traffic)
 """
 

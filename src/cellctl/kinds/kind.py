@@ -75,14 +75,22 @@ class CheckedProgram:
 
 
 @dataclass(frozen=True)
+class Preview:
+    """A program's toolpath drawn as SVG text, and how many blocks it goes in."""
+
+    svg: str
+    blocks: int
+
+
+@dataclass(frozen=True)
 class ProgramLanguage:
     """A kind's program language, as hooks: each may be None where the kind has none.
 
     ``check(path, role, options)`` reads and checks a file (never raising for a bad program:
     its problems are returned); ``compile(source, name, origin)`` turns a source into what
     the machine takes (``origin`` names the file in its errors); ``split(text)`` cuts a long
-    program into what the machine holds at once; ``preview(text, options)`` draws the
-    toolpath as SVG text.
+    program into what the machine holds at once; ``preview(text, name, options)`` draws the
+    toolpath (UsageError when there is none to draw).
     """
 
     suffix: str
@@ -90,7 +98,7 @@ class ProgramLanguage:
     check: Callable[[Path, ProgramRole, BaseModel], CheckedProgram]
     compile: Callable[[str, str, str], Any] | None = None
     split: Callable[[str], list[str]] | None = None
-    preview: Callable[[str, BaseModel], str] | None = None
+    preview: Callable[[str, str, BaseModel], Preview] | None = None
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 from pydantic import BaseModel
 
 from cellctl.emulators.serve import scaled_deadline
+from cellctl.errors import UsageError
 from cellctl.kinds.dyna2400 import dynalan
 from cellctl.kinds.dyna2400.driver import Dyna2400Mill, MillConfig, MillState
 from cellctl.kinds.dyna2400.emulator import Dyna2400Emulator, OperatorDelays
@@ -18,6 +19,7 @@ from cellctl.kinds.kind import (
     DriverSpec,
     EmulatorSpec,
     MachineKind,
+    Preview,
     ProgramLanguage,
     ProgramRole,
 )
@@ -84,14 +86,16 @@ def _split(text: str) -> list[str]:
     return [b.text() for b in blocks]
 
 
-def _preview(text: str, options: BaseModel) -> str:
+def _preview(text: str, name: str, options: BaseModel) -> Preview:
     from cellctl.kinds.dyna2400.preview import render_svg
 
-    program = dynalan.parse_program(text)
-    result = dynalan.validate(program, validation_context(options, ProgramRole.MILLING))
+    parsed = dynalan.parse_program(text, name=name)
+    config = options if isinstance(options, MillConfig) else MillConfig()
+    result = dynalan.validate(parsed, dynalan.ValidationContext(config=config.machine()))
     if result.toolpath is None:
-        raise ValueError("the program has no toolpath to draw")
-    return render_svg(result.toolpath, title=program.name)
+        first = result.errors[0].format(name) if result.errors else ""
+        raise UsageError(f"cannot trace {Path(name).stem}: {first or 'no toolpath'}")
+    return Preview(render_svg(result.toolpath, title=name), result.toolpath.blocks)
 
 
 def _emulated_options(scale: float) -> dict[str, float]:

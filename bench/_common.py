@@ -11,9 +11,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from cellctl.kinds.ibm7545.aml import compile_source
+from cellctl.kinds.ibm7545.records import ProgramFile
 from cellctl.link import LineSettings
-from cellctl.protocol.aml import compile_source
-from cellctl.protocol.robot import ProgramFile
 
 
 def robot_program(records: int, name: str = "BENCH") -> ProgramFile:

@@ -57,8 +57,8 @@ from _common import machine_line, percentile
 from cellctl.cell.config import load_cell
 from cellctl.cell.controller import CellController
 from cellctl.cell.model import ControllerOptions
-from cellctl.drivers.mill import MillConfig
-from cellctl.drivers.robot import RobotConfig
+from cellctl.kinds.dyna2400.driver import MillConfig
+from cellctl.kinds.ibm7545.driver import RobotConfig
 from cellctl.protocol.plc import PlcMap
 from cellctl.testing.rig import CellRig
 

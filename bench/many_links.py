@@ -37,11 +37,11 @@ from pathlib import Path
 from typing import Any
 
 from _common import line_settings, machine_line, percentile, robot_program
-from cellctl.drivers.robot import Ibm7545Robot, RobotConfig
 from cellctl.emulators.fleet import Fleet
-from cellctl.emulators.robot import Ibm7545Emulator
+from cellctl.kinds.ibm7545.driver import Ibm7545Robot, RobotConfig
+from cellctl.kinds.ibm7545.emulator import Ibm7545Emulator
+from cellctl.kinds.ibm7545.records import encode_record
 from cellctl.link.serialport import raise_fd_limit
-from cellctl.protocol.robot import encode_record
 
 POLL_CHARS = 24  # R, Xoff Xon, "01" CR LF, D02xxxxcs CR LF, Ack, EG CR LF, Ack
 POLL_TURNAROUNDS = 3  # R -> Xoff, operand -> D record, Ack -> EG

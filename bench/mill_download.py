@@ -22,11 +22,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from cellctl.drivers.mill import Dyna2400Mill, MillConfig
 from cellctl.drivers.state import StateStore
-from cellctl.emulators.mill import Dyna2400Emulator, OperatorDelays
 from cellctl.emulators.serve import serve
 from cellctl.errors import CellctlError
+from cellctl.kinds.dyna2400.driver import Dyna2400Mill, MillConfig
+from cellctl.kinds.dyna2400.emulator import Dyna2400Emulator, OperatorDelays
 from cellctl.link import MILL_LINE
 
 ROOT = Path(__file__).resolve().parent.parent

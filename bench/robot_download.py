@@ -29,10 +29,10 @@ from _common import (
     robot_program,
     wait_for_stop,
 )
-from cellctl.drivers.robot import Ibm7545Robot
-from cellctl.emulators.robot import Ibm7545Emulator
 from cellctl.emulators.serve import serve
-from cellctl.protocol.robot import encode_record
+from cellctl.kinds.ibm7545.driver import Ibm7545Robot
+from cellctl.kinds.ibm7545.emulator import Ibm7545Emulator
+from cellctl.kinds.ibm7545.records import encode_record
 
 
 async def emulators(conn: Any, transport: str) -> None:

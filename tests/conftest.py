@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from cellctl.emulators.robot import Ibm7545Emulator
 from cellctl.emulators.serve import Server, serve
+from cellctl.kinds.ibm7545.emulator import Ibm7545Emulator
 from cellctl.link import ROBOT_LINE
 
 TRANSPORTS = ["pty", "socket", "rfc2217"]

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from cellctl.errors import FramingError, UsageError
-from cellctl.protocol.aml import (
+from cellctl.kinds.ibm7545.aml import (
     Instruction,
     Op,
     compile_program,
@@ -15,7 +15,7 @@ from cellctl.protocol.aml import (
     decode_program,
     encode_instruction,
 )
-from cellctl.protocol.robot import ProgramFile, Record
+from cellctl.kinds.ibm7545.records import ProgramFile, Record
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples" / "robot"
 

@@ -19,8 +19,8 @@ from websockets.asyncio.client import connect, unix_connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
 from cellctl.errors import AccessDenied, DeviceError, MachineInUse, UsageError
+from cellctl.kinds.ibm7545.aml import compile_source
 from cellctl.link.trace import SENT
-from cellctl.protocol.aml import compile_source
 from cellctl.service.access import AttachedCell, LocalCell
 from cellctl.service.client import RemoteCell, attach
 from cellctl.service.server import ApiServer

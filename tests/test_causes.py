@@ -14,7 +14,7 @@ from cellctl.cell.causes import (
     status_cause,
 )
 from cellctl.errors import DeviceError, LinkClosed, LinkTimeout, SignalTimeout
-from cellctl.protocol.robot import MachineStatus
+from cellctl.kinds.ibm7545.records import MachineStatus
 
 
 def test_a_link_fault_is_named_the_same_whoever_sees_it() -> None:

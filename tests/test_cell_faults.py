@@ -17,8 +17,8 @@ import pytest
 
 from cellctl.cell.config import load_cell
 from cellctl.cell.model import ControllerOptions
-from cellctl.drivers.mill import MillConfig
 from cellctl.emulators.cell import EXAMPLE_CELL, EmulatedCell
+from cellctl.kinds.dyna2400.driver import MillConfig
 from cellctl.testing.rig import CellRig
 
 

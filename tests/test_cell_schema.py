@@ -43,7 +43,11 @@ SWAPPED = [
     ("poll_period = 0.5", "poll_period = inf", "[cell] poll_period: Input should be a finite"),
     ('mills = ["cnc1", "cnc2"]', "mills = true", "[cell] mills: Input should be a valid list"),
     ('robot = "robot"\nmills', 'robot = ["robot"]\nmills', "[cell] robot: Input should be"),
-    ('kind = "ibm7545"', 'kind = ["ibm7545"]', "[machines.robot] kind: ['ibm7545'] is not"),
+    (
+        'kind = "ibm7545"',
+        'kind = ["ibm7545"]',
+        "[machines.robot] kind: Input should be a valid string",
+    ),
     ('line = "4800,7E2"', 'line = "4800,7E2"\noptions = "x"', "[machines.robot] options:"),
     (
         '{ mill = "cnc1", program = "programs/robot_base_rough_cnc1.dyn" },',

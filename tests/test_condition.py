@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 from cellctl.cell.model import MachineView
-from cellctl.drivers.mill import MillStatus
-from cellctl.drivers.robot import robot_condition
 from cellctl.errors import DeviceError, LinkTimeout
 from cellctl.kinds import Condition, LastError
+from cellctl.kinds.dyna2400.driver import MillStatus
+from cellctl.kinds.ibm7545.driver import robot_condition
 
 
 def test_robot_states_map_to_conditions() -> None:

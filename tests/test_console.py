@@ -20,9 +20,9 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from textual.pilot import Pilot
 
-from cellctl.emulators.mill import LinkMode
 from cellctl.errors import UsageError
-from cellctl.protocol.aml import compile_source
+from cellctl.kinds.dyna2400.emulator import LinkMode
+from cellctl.kinds.ibm7545.aml import compile_source
 from cellctl.service.access import AttachedCell, LocalCell
 from cellctl.service.client import CellClient, StandaloneCell, attach
 from cellctl.service.functions import function

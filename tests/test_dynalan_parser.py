@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from cellctl.protocol.dynalan import (
+from cellctl.kinds.dyna2400.dynalan import (
     END_OF_TRANSMISSION,
     STATEMENTS,
     Kind,

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cellctl.protocol.dynalan import (
+from cellctl.kinds.dyna2400.dynalan import (
     Kind,
     MachineState,
     MoveKind,
@@ -21,7 +21,7 @@ from cellctl.protocol.dynalan import (
     split_program,
     validate,
 )
-from cellctl.protocol.dynalan.table import BLOCK_MAX_LINES
+from cellctl.kinds.dyna2400.dynalan.table import BLOCK_MAX_LINES
 
 PROGRAMS = Path(__file__).resolve().parent.parent / "examples" / "programs"
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from cellctl.protocol.dynalan import (
+from cellctl.kinds.dyna2400.dynalan import (
     ProgramRole,
     Severity,
     Travel,
@@ -15,7 +15,7 @@ from cellctl.protocol.dynalan import (
     parse_program,
     validate,
 )
-from cellctl.protocol.dynalan.machine import MachineConfig
+from cellctl.kinds.dyna2400.dynalan.machine import MachineConfig
 
 PROGRAMS = Path(__file__).resolve().parent.parent / "examples" / "programs"
 

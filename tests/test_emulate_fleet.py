@@ -13,9 +13,9 @@ from click.testing import CliRunner
 from hypothesis import given
 from hypothesis import strategies as st
 
-from cellctl.drivers.robot import Ibm7545Robot
 from cellctl.emulators.fleet import _share, check_fleet, listen_for
 from cellctl.errors import DeviceError, UsageError
+from cellctl.kinds.ibm7545.driver import Ibm7545Robot
 from cellctl.ui.cli import main
 
 from .conftest import CELLCTL

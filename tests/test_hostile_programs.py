@@ -18,10 +18,10 @@ from pathlib import Path
 
 import pytest
 
-from cellctl.emulators.mill import Dyna2400Emulator, OperatorDelays
 from cellctl.emulators.serve import Server, serve
+from cellctl.kinds.dyna2400 import dynalan
+from cellctl.kinds.dyna2400.emulator import Dyna2400Emulator, OperatorDelays
 from cellctl.link import LineSettings, Link, open_link
-from cellctl.protocol import dynalan
 
 MEMORY_LIMIT = 1 << 30  # 1 GiB of address space for one check
 SECONDS = 60  # far above what any case takes; a hang fails instead of blocking the suite
@@ -30,8 +30,8 @@ _CHECK = textwrap.dedent(
     """
     import json, resource, sys
     resource.setrlimit(resource.RLIMIT_AS, ({limit}, {limit}))
-    from cellctl.protocol import dynalan
-    from cellctl.protocol.preview import render_png, render_svg
+    from cellctl.kinds.dyna2400 import dynalan
+    from cellctl.kinds.dyna2400.preview import render_png, render_svg
     text = open(sys.argv[1], "rb").read().decode("ascii", "replace")
     result = dynalan.validate(dynalan.parse_program(text, name="hostile"))
     drawn = 0

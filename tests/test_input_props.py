@@ -15,11 +15,11 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from cellctl.errors import CellctlError
+from cellctl.kinds.dyna2400 import dynalan
+from cellctl.kinds.ibm7545.aml import compile_program, compile_source, decode_program
+from cellctl.kinds.ibm7545.records import ProgramFile, Record, decode_record, encode_record
 from cellctl.link import LineSettings, parse_host_port
-from cellctl.protocol import dynalan
-from cellctl.protocol.aml import compile_program, compile_source, decode_program
 from cellctl.protocol.plc import PlcMap
-from cellctl.protocol.robot import ProgramFile, Record, decode_record, encode_record
 
 FAST = settings(max_examples=60, deadline=2000)
 

@@ -9,13 +9,13 @@ from pathlib import Path
 
 import pytest
 
-from cellctl.drivers.robot import Ibm7545Robot, RobotConfig
-from cellctl.emulators.robot import Ibm7545Emulator, LoadedProgram
 from cellctl.emulators.serve import LineNoise, serve
 from cellctl.errors import CellctlError, DeviceError, UsageError
+from cellctl.kinds.ibm7545.aml import compile_source, decode_program
+from cellctl.kinds.ibm7545.driver import Ibm7545Robot, RobotConfig
+from cellctl.kinds.ibm7545.emulator import Ibm7545Emulator, LoadedProgram
+from cellctl.kinds.ibm7545.records import ProgramFile
 from cellctl.link import ROBOT_LINE
-from cellctl.protocol.aml import compile_source, decode_program
-from cellctl.protocol.robot import ProgramFile
 
 from .conftest import CELLCTL
 

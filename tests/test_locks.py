@@ -19,9 +19,9 @@ import serial
 
 from cellctl.cell.journal import JOURNAL_FILE, open_journal
 from cellctl.cell.owner import acquire_controller_lock, controller_holder
-from cellctl.drivers.robot import Ibm7545Robot
 from cellctl.drivers.state import StateStore
 from cellctl.errors import MachineInUse, UsageError
+from cellctl.kinds.ibm7545.driver import Ibm7545Robot
 from cellctl.link import open_link
 from cellctl.link.lock import (
     OwnerLock,

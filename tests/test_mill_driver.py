@@ -10,7 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from cellctl.drivers.mill import (
+from cellctl.drivers.state import StateStore
+from cellctl.emulators.serve import Server, serve
+from cellctl.errors import DeviceError, LinkClosed, UsageError
+from cellctl.kinds.dyna2400.driver import (
     EXECUTING,
     REFERENCE_ZERO_NOT_SET,
     CallbackOutput,
@@ -19,12 +22,9 @@ from cellctl.drivers.mill import (
     MillInputError,
     Progress,
 )
-from cellctl.drivers.state import StateStore
-from cellctl.emulators.mill import Dyna2400Emulator, LinkMode, OperatorDelays
-from cellctl.emulators.serve import Server, serve
-from cellctl.errors import DeviceError, LinkClosed, UsageError
+from cellctl.kinds.dyna2400.dynalan import parse_program
+from cellctl.kinds.dyna2400.emulator import Dyna2400Emulator, LinkMode, OperatorDelays
 from cellctl.link import LineSettings
-from cellctl.protocol.dynalan import parse_program
 
 PROGRAMS = Path(__file__).resolve().parent.parent / "examples" / "programs"
 SETUP = PROGRAMS / "cnc1_setup.dyn"

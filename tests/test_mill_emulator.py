@@ -8,9 +8,9 @@ from collections.abc import AsyncIterator
 
 import pytest
 
-from cellctl.emulators.mill import Dyna2400Emulator, LinkMode, OperatorDelays
 from cellctl.emulators.serve import Server, serve
 from cellctl.errors import UsageError
+from cellctl.kinds.dyna2400.emulator import Dyna2400Emulator, LinkMode, OperatorDelays
 from cellctl.link import LineSettings, Link, open_link
 
 FAST_LINE = LineSettings(115200, 8, "N", 1)

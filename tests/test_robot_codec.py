@@ -9,7 +9,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from cellctl.errors import ChecksumError, FramingError, ProtocolError, UsageError
-from cellctl.protocol.robot import (
+from cellctl.kinds.ibm7545.records import (
     END_GOOD,
     END_RECORD,
     DiDo,

@@ -3,12 +3,12 @@ carries the same bytes as the first, aimed at the partition asked for each time.
 
 from __future__ import annotations
 
-from cellctl.drivers.robot import Ibm7545Robot
-from cellctl.emulators.robot import Ibm7545Emulator
 from cellctl.emulators.serve import serve
+from cellctl.kinds.ibm7545.aml import compile_source
+from cellctl.kinds.ibm7545.driver import Ibm7545Robot
+from cellctl.kinds.ibm7545.emulator import Ibm7545Emulator
+from cellctl.kinds.ibm7545.records import ProgramFile, Record, encode_record
 from cellctl.link import ROBOT_LINE
-from cellctl.protocol.aml import compile_source
-from cellctl.protocol.robot import ProgramFile, Record, encode_record
 from cellctl.testing import expected_exchange
 
 ACK = b"\x06"

@@ -6,10 +6,10 @@ from pathlib import Path
 
 import pytest
 
-from cellctl.drivers.robot import Ibm7545Robot, RobotConfig
 from cellctl.drivers.state import StateStore
 from cellctl.errors import ChecksumError, DeviceError, LinkTimeout, UnexpectedReply, UsageError
-from cellctl.protocol.robot import ProgramFile, Record
+from cellctl.kinds.ibm7545.driver import Ibm7545Robot, RobotConfig
+from cellctl.kinds.ibm7545.records import ProgramFile, Record
 from cellctl.testing import expected_exchange
 
 XOFF, XON, ACK, EOT = b"\x13", b"\x11", b"\x06", b"\x04"

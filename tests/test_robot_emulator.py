@@ -7,12 +7,12 @@ from collections.abc import AsyncIterator, Callable
 
 import pytest
 
-from cellctl.emulators.robot import FAULTS, Ibm7545Emulator
 from cellctl.emulators.serve import Server, serve
 from cellctl.errors import UsageError
+from cellctl.kinds.ibm7545.aml import compile_source
+from cellctl.kinds.ibm7545.emulator import FAULTS, Ibm7545Emulator
+from cellctl.kinds.ibm7545.records import Record, encode_record
 from cellctl.link import ROBOT_LINE
-from cellctl.protocol.aml import compile_source
-from cellctl.protocol.robot import Record, encode_record
 
 XOFF, XON, ACK, EOT = b"\x13", b"\x11", b"\x06", b"\x04"
 WAIT_S = 5.0  # deadline for any one expected answer; never reached when things work

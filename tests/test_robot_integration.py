@@ -7,14 +7,14 @@ from pathlib import Path
 
 import pytest
 
-from cellctl.drivers.robot import Ibm7545Robot, RobotConfig, RobotHalted
 from cellctl.drivers.state import StateStore
-from cellctl.emulators.robot import Ibm7545Emulator
 from cellctl.emulators.serve import serve
 from cellctl.errors import ChecksumError, DeviceError, LinkClosed, LinkError, LinkTimeout
+from cellctl.kinds.ibm7545.aml import compile_source
+from cellctl.kinds.ibm7545.driver import Ibm7545Robot, RobotConfig, RobotHalted
+from cellctl.kinds.ibm7545.emulator import Ibm7545Emulator
+from cellctl.kinds.ibm7545.records import ProgramFile
 from cellctl.link import ROBOT_LINE
-from cellctl.protocol.aml import compile_source
-from cellctl.protocol.robot import ProgramFile
 
 from .conftest import Ser2net, Served
 

@@ -10,15 +10,16 @@ from pathlib import Path
 
 import pytest
 
-from cellctl.drivers.mill import CallbackOutput, Dyna2400Mill, MillConfig
-from cellctl.drivers.robot import Ibm7545Robot, RobotConfig
 from cellctl.drivers.state import StateStore
 from cellctl.errors import CellctlError, DeviceError
+from cellctl.kinds.dyna2400.driver import CallbackOutput, Dyna2400Mill, MillConfig
+from cellctl.kinds.dyna2400.dynalan import parse_program
+from cellctl.kinds.dyna2400.states import MILL_HOST_STATES, MillFunction
+from cellctl.kinds.ibm7545.aml import compile_source
+from cellctl.kinds.ibm7545.driver import Ibm7545Robot, RobotConfig
+from cellctl.kinds.ibm7545.records import ProgramFile, Record
+from cellctl.kinds.ibm7545.states import RobotFunction
 from cellctl.link import MILL_LINE
-from cellctl.protocol.aml import compile_source
-from cellctl.protocol.dynalan import parse_program
-from cellctl.protocol.robot import ProgramFile, Record
-from cellctl.protocol.states import MILL_HOST_STATES, MillFunction, RobotFunction
 from cellctl.testing import ScriptedLink, expected_exchange
 
 from .conftest import CELLCTL, emulator_process

@@ -22,7 +22,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 
 from cellctl.errors import CellctlError, LinkClosed, LinkError, SignalTimeout
-from cellctl.protocol.robot import MachineStatus
+from cellctl.kinds.families import Health
 
 #: The alarm of a link the other end closed (a dropped connection, a restarted server).
 LINK_CLOSED = "link closed by the other end"
@@ -58,7 +58,7 @@ def read_cause(machine: str, label: str, error: BaseException) -> Cause:
     return link_cause(machine, label, error) or Cause(machine, "link", f"{label} failed: {error}")
 
 
-def status_cause(machine: str, status: MachineStatus) -> Cause:
+def status_cause(machine: str, status: Health) -> Cause:
     """A robot whose machine status shows an error (servo error, power failure, ...)."""
     return Cause(machine, "status", str(status))
 

@@ -26,8 +26,7 @@ from cellctl.errors import CellctlError, MachineInUse, UsageError
 if TYPE_CHECKING:
     from cellctl.cell.config import CellConfig, MachineConfig
     from cellctl.cell.journal import Journal
-    from cellctl.drivers.mill import Dyna2400Mill
-    from cellctl.drivers.robot import Ibm7545Robot
+    from cellctl.kinds.families import Mill, Robot
 
 #: The journal's reason for a machine the operator took out of service: only the operator
 #: returns it (clearing an alarm does not).
@@ -44,8 +43,8 @@ class OperatorCommands:
         config: CellConfig
         journal: Journal
         machines: dict[str, Any]
-        robot: Ibm7545Robot | None
-        mills: dict[str, Dyna2400Mill]
+        robot: Robot | None
+        mills: dict[str, Mill]
         _robot_task: asyncio.Task[None] | None
         _mill_tasks: dict[str, asyncio.Task[None]]
         _wake: asyncio.Event
@@ -184,20 +183,20 @@ class OperatorCommands:
             with contextlib.suppress(asyncio.CancelledError, CellctlError, OSError):
                 await task
         problems: list[str] = []
-        if self.robot is not None and self.robot.state == 2:
+        if self.robot is not None and self.robot.running:
             try:
                 async with asyncio.timeout(ESTOP_TIMEOUT):
                     await self.robot.stop()
             except (CellctlError, OSError, TimeoutError) as e:
                 problems.append(f"robot stop failed: {e or 'no answer'}")
         for name, mill in self.mills.items():
-            if mill.state == 0:
+            if mill.manual:
                 continue  # in manual: nothing of ours runs there
             try:
                 async with asyncio.timeout(ESTOP_TIMEOUT):
                     # The mill refuses END while a block runs: no more blocks go out, and
                     # the END follows the moment it is ready.
-                    while mill.state in (3, 4) and not (await mill.status()).ready:  # noqa: ASYNC110 - CTS is read, not signalled
+                    while mill.running and not (await mill.status()).ready:  # noqa: ASYNC110 - CTS is read, not signalled
                         await asyncio.sleep(0.05)
                     await mill.end()
             except TimeoutError:
@@ -215,12 +214,10 @@ class OperatorCommands:
 class _HostView:
     """A busy mill as the host sees it: its status from the host's state, no byte sent."""
 
-    def __init__(self, mill: Dyna2400Mill) -> None:
+    def __init__(self, mill: Mill) -> None:
         self.name = mill.name
-        self.state = mill.state
         self.initialized = mill.initialized
+        self._status = mill.host_status()
 
     async def status(self) -> Any:
-        from cellctl.drivers.mill import EXECUTING, MillStatus
-
-        return MillStatus(self.state, False, EXECUTING if self.state in (2, 3, 4) else None)
+        return self._status

@@ -9,12 +9,12 @@
     poll_period = 0.5                     # s: a fault is noticed within one poll period
 
     [machines.robot]
-    kind = "ibm7545"
+    kind = "..."                          # a robot kind: `cellctl kinds` lists them
     link = "rfc2217://127.0.0.1:7001"
     line = "4800,7E2"
 
     [machines.cnc1]
-    kind = "dyna2400"
+    kind = "..."                          # a mill kind
     link = "rfc2217://127.0.0.1:7002"
     setup = "programs/cnc1_setup.dyn"     # paths are relative to the cell directory
     go_output = "go1"                     # the PLC coil wired to the mill's GO input
@@ -58,17 +58,22 @@ from pydantic import (
 )
 
 from cellctl.errors import CellctlError, UsageError
+from cellctl.kinds import registry
+from cellctl.kinds.kind import MachineKind, ProgramRole
 from cellctl.link import LineSettings
-from cellctl.protocol import dynalan
-from cellctl.protocol.aml import compile_source
-from cellctl.protocol.robot import ProgramFile
 
 #: Where a part can be; the conveyor is where parts come from and go back to.
 CONVEYOR = "conveyor"
 
-ROBOT_KINDS = ("ibm7545", "ibm7547")
-MILL_KINDS = ("dyna2400",)
-DEFAULT_LINES = {"ibm7545": "4800,7E2", "ibm7547": "4800,7E2", "dyna2400": "4800,7E2"}
+
+def robot_kinds() -> tuple[str, ...]:
+    """The installed kinds of the robot family (from the registry)."""
+    return registry.names("robot")
+
+
+def mill_kinds() -> tuple[str, ...]:
+    """The installed kinds of the mill family (from the registry)."""
+    return registry.names("mill")
 
 
 def transfer_name(source: str, target: str) -> str:
@@ -98,6 +103,11 @@ class MachineConfig:
     options: dict[str, Any] = field(default_factory=dict)
     setup: Path | None = None
     go_output: str | None = None
+
+    @property
+    def family(self) -> str:
+        """``robot`` or ``mill``: what the cell does with it."""
+        return registry.family_of(self.kind)
 
 
 @dataclass(frozen=True)
@@ -133,7 +143,7 @@ class CellConfig:
     robot: MachineConfig
     mills: list[MachineConfig]
     plc: dict[str, Any]
-    robot_programs: dict[str, ProgramFile]
+    robot_programs: dict[str, Any]
     parts: dict[str, PartType]
     poll_period: float = 0.5
     raw: dict[str, Any] = field(default_factory=dict)
@@ -171,7 +181,7 @@ class CellTable(_Table):
         default=None, description="the machine that tends the mills (default: the first robot)"
     )
     mills: list[Text] | None = Field(
-        default=None, description="the mills, in route order (default: every dyna2400)"
+        default=None, description="the mills, in route order (default: every mill)"
     )
     poll_period: Seconds = Field(
         default=0.5, description="s: a fault is noticed within one poll period"
@@ -208,7 +218,7 @@ class CellTable(_Table):
 class MachineTable(_Table):
     """``[machines.NAME]``: one robot or mill and how to reach it."""
 
-    kind: Literal["ibm7545", "ibm7547", "dyna2400"] = Field(description="the machine's kind")
+    kind: Text = Field(description="the machine's kind (`cellctl kinds` lists them)")
     link: Text = Field(
         description="a serial device, rfc2217://HOST:PORT, socket://HOST:PORT or loop://"
     )
@@ -223,8 +233,27 @@ class MachineTable(_Table):
         default=None, description="the PLC coil wired to the mill's GO input"
     )
     options: dict[str, Any] = Field(
-        default_factory=dict, description="driver options (a table, free-form per driver)"
+        default_factory=dict,
+        description="the kind's driver options (see docs/kinds.md: each kind's own table)",
     )
+
+    @field_validator("kind")
+    @classmethod
+    def _kind(cls, value: str) -> str:
+        if value not in registry.names():
+            known = ", ".join(f"'{n}'" for n in registry.names())
+            raise ValueError(f"{value!r} is not one of {known} (the installed kinds)")
+        return value
+
+    @field_validator("options")
+    @classmethod
+    def _renamed(cls, value: dict[str, Any]) -> dict[str, Any]:
+        if "start_signal" in value:
+            raise ValueError(
+                f"start_signal is now go_output: write go_output = {value['start_signal']!r} "
+                "in the machine's table, not in its options"
+            )
+        return value
 
     @field_validator("line")
     @classmethod
@@ -627,14 +656,17 @@ def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
         table = _checked(MachineTable, entry, ("machines", name), problems)
         if table is None:
             continue
-        if table.kind in MILL_KINDS and table.setup is None:
+        kind = registry.kind(table.kind)
+        if _checked(kind.options, table.options, ("machines", name, "options"), problems) is None:
+            continue
+        if kind.needs_setup and table.setup is None:
             problems.at(("machines", name, "setup"), "a mill needs its setup program")
             continue
         machines[name] = MachineConfig(
             name=name,
             kind=table.kind,
             link=table.link,
-            line=LineSettings.parse(table.line or DEFAULT_LINES[table.kind]),
+            line=LineSettings.parse(table.line or kind.line),
             options=dict(table.options),
             setup=directory / table.setup if table.setup else None,
             go_output=table.go_output,
@@ -642,23 +674,32 @@ def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
     cell_value = raw.get("cell")
     cell_raw: dict[str, Any] = cell_value if isinstance(cell_value, dict) else {}
     robot_name = cell.robot if cell else _text(cell_raw.get("robot"))
-    robot_name = robot_name or next((n for n, m in machines.items() if m.kind in ROBOT_KINDS), None)
+    robot_kinds_ = robot_kinds()
+    mill_kinds_ = mill_kinds()
+    robot_name = robot_name or next(
+        (n for n, m in machines.items() if m.kind in robot_kinds_), None
+    )
     robot = machines.get(robot_name or "")
-    if robot is None or robot.kind not in ROBOT_KINDS:
-        problems.at(("cell", "robot"), f"no robot machine {robot_name!r} of kind ibm7545/ibm7547")
+    if robot is None or robot.kind not in robot_kinds_:
+        problems.at(
+            ("cell", "robot"),
+            f"no robot machine {robot_name!r} of kind {'/'.join(robot_kinds_) or '(none)'}",
+        )
     mill_names = (cell.mills if cell else _texts(cell_raw.get("mills"))) or [
-        n for n, m in machines.items() if m.kind in MILL_KINDS
+        n for n, m in machines.items() if m.kind in mill_kinds_
     ]
     mills = []
     for n in mill_names:
         m = machines.get(n)
-        if m is None or m.kind not in MILL_KINDS:
-            problems.at(("cell", "mills"), f"{n!r} is not a dyna2400 machine")
+        if m is None or m.kind not in mill_kinds_:
+            problems.at(
+                ("cell", "mills"), f"{n!r} is not a mill ({', '.join(mill_kinds_)} machine)"
+            )
         else:
             mills.append(m)
     for m in mills:
         if m.setup is not None:
-            _check_dynalan(m.setup, problems.items, role=dynalan.ProgramRole.SETUP)
+            _check_program(m, m.setup, ProgramRole.SETUP, problems.items)
     plc_raw = raw.get("plc", {})
     plc: dict[str, Any] = {}
     if not isinstance(plc_raw, dict):
@@ -666,17 +707,26 @@ def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
     else:
         plc = plc_raw
         _check_plc(plc, mills, problems.items)
-    robot_programs: dict[str, ProgramFile] = {}
+    robot_programs: dict[str, Any] = {}
+    # The robot's kind compiles them; with no usable robot (told above), still check them with
+    # the first robot kind's language, so a bad program is not hidden behind another problem.
+    robot_kind = (
+        registry.kind(robot.kind)
+        if robot is not None and robot.kind in robot_kinds_
+        else next(iter(registry.kinds("robot")), None)
+    )
     sources = _entries(raw, "robot_programs", problems)
     for prog_name, rel in sources.items():
         if not isinstance(rel, str) or not rel:
             problems.at(("robot_programs", prog_name), f"must be a file path, not {rel!r}")
             continue
         path = directory / rel
+        language = robot_kind.language if robot_kind is not None else None
+        if language is None or language.compile is None:
+            continue  # no robot (told above), or one that takes no programs from the host
         try:
             source = path.read_text(encoding="utf-8")
-            app = prog_name.upper().replace("_", "")[:8]
-            robot_programs[prog_name] = compile_source(source, app, 1, source=str(path))
+            robot_programs[prog_name] = language.compile(source, prog_name, str(path))
         except OSError as e:
             problems.add(f"[robot_programs] {prog_name}: {path}: {e.strerror}")
         except UnicodeDecodeError as e:
@@ -688,7 +738,7 @@ def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
         part_table = _checked(PartTable, entry, ("parts", part_name), problems)
         if part_table is None:
             continue
-        part = _part(directory, part_name, part_table, {m.name for m in mills}, problems)
+        part = _part(directory, part_name, part_table, {m.name: m for m in mills}, problems)
         if part is None:
             continue
         parts[part_name] = part
@@ -745,18 +795,17 @@ def load_cell(directory: Path | str) -> CellConfig:
     return config
 
 
-def _check_dynalan(
-    path: Path, problems: list[str], role: dynalan.ProgramRole = dynalan.ProgramRole.AUTO
-) -> dynalan.Validation | None:
-    try:
-        text = path.read_text(encoding="ascii")
-    except (OSError, UnicodeDecodeError) as e:
-        problems.append(f"{path}: cannot read: {e}")
-        return None
-    program = dynalan.parse_program(text, name=path.name)
-    result = dynalan.validate(program, dynalan.ValidationContext(role=role))
-    problems.extend(p.format(str(path)) for p in result.errors)
-    return result
+def _check_program(
+    machine: MachineConfig, path: Path, role: ProgramRole, problems: list[str]
+) -> tuple[int, float] | None:
+    """Check ``path`` in ``machine``'s program language: its lines and machining time, or None
+    after adding its problems."""
+    kind: MachineKind = registry.kind(machine.kind)
+    if kind.language is None:
+        return (0, 0.0)
+    checked = kind.language.check(path, role, kind.checked_options(machine.options))
+    problems.extend(checked.problems)
+    return None if checked.problems else (checked.lines, checked.machining_s)
 
 
 def _check_plc(plc: dict[str, Any], mills: list[MachineConfig], problems: list[str]) -> None:
@@ -778,7 +827,11 @@ def _check_plc(plc: dict[str, Any], mills: list[MachineConfig], problems: list[s
 
 
 def _part(
-    directory: Path, name: str, table: PartTable, mills: set[str], problems: _Problems
+    directory: Path,
+    name: str,
+    table: PartTable,
+    mills: dict[str, MachineConfig],
+    problems: _Problems,
 ) -> PartType | None:
     route: list[RouteStep] = []
     for i, step in enumerate(table.route):
@@ -789,11 +842,11 @@ def _part(
         if not path.is_file():
             problems.at(("parts", name, "route", i, "program"), f"{path}: no such file")
             continue
-        result = _check_dynalan(path, problems.items, role=dynalan.ProgramRole.MILLING)
-        if result is None or not result.ok:
+        result = _check_program(mills[step.mill], path, ProgramRole.MILLING, problems.items)
+        if result is None:
             continue
-        seconds = result.toolpath.machining_seconds if result.toolpath else 0.0
-        route.append(RouteStep(step.mill, path, path.stem, len(result.program.lines), seconds))
+        lines, seconds = result
+        route.append(RouteStep(step.mill, path, path.stem, lines, seconds))
     if len(route) != len(table.route):
         return None
     return PartType(name, tuple(route))

@@ -43,6 +43,7 @@ from cellctl.cell.causes import Cause, blame, link_cause
 from cellctl.cell.commands import OperatorCommands
 from cellctl.cell.config import CONVEYOR, CellConfig, MachineConfig, transfer_ends
 from cellctl.cell.journal import Journal, Part
+from cellctl.cell.machines import open_machine
 from cellctl.cell.model import (
     DEFAULT_DONE_OUTPUT,
     TRAFFIC_KEPT,
@@ -58,13 +59,11 @@ from cellctl.cell.orders import OrderBox, ReportKind
 from cellctl.cell.recovery import Recovery
 from cellctl.cell.robotsteps import RobotSteps
 from cellctl.cell.scheduler import PartState, next_transfer, ready_to_leave
-from cellctl.drivers.mill import MILL_STATES, CallbackOutput, Dyna2400Mill, MillConfig
-from cellctl.drivers.mill import Progress as MillProgress
 from cellctl.drivers.plc import ModbusPlc
-from cellctl.drivers.robot import Ibm7545Robot, RobotConfig
 from cellctl.drivers.state import StateStore
 from cellctl.errors import CellctlError
 from cellctl.kinds import Condition
+from cellctl.kinds.families import CallbackOutput, Mill, Robot, RunProgress
 from cellctl.link import TrafficLog
 from cellctl.protocol.plc import PlcMap, canonical
 
@@ -92,8 +91,8 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
         self.traffic = TrafficLog(None, keep=TRAFFIC_KEPT)
         self.options = options or ControllerOptions.from_config(config)
         self.on_event = on_event
-        self.robot: Ibm7545Robot | None = None
-        self.mills: dict[str, Dyna2400Mill] = {}
+        self.robot: Robot | None = None
+        self.mills: dict[str, Mill] = {}
         self.plc: ModbusPlc | None = None
         self.plc_map = PlcMap.from_toml(config.plc)
         self.machines: dict[str, MachineView] = {
@@ -192,27 +191,31 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
             await self._prepare_mill(m, force=False)
         self.log(f"connected to {', '.join(self.machines)} and the PLC: running")
 
-    async def _open_robot(self) -> Ibm7545Robot:
+    async def _open_robot(self) -> Robot:
         r = self.config.robot
-        return await Ibm7545Robot.connect(
+        robot: Robot = await open_machine(
+            r.kind,
+            r.name,
             r.link,
-            name=r.name,
-            settings=r.line,
+            r.line,
+            r.options,
             store=StateStore(self.config.directory),
-            config=RobotConfig(**r.options),
             trace=self.traffic,
         )
+        return robot
 
-    async def _open_mill(self, m: MachineConfig) -> Dyna2400Mill:
-        return await Dyna2400Mill.connect(
+    async def _open_mill(self, m: MachineConfig) -> Mill:
+        mill: Mill = await open_machine(
+            m.kind,
+            m.name,
             m.link,
-            name=m.name,
-            settings=m.line,
+            m.line,
+            m.options,
             store=StateStore(self.config.directory),
-            config=MillConfig.from_options(m.options),
-            start_output=CallbackOutput(self._go_pulser(m)),
             trace=self.traffic,
+            start_output=CallbackOutput(self._go_pulser(m)),
         )
+        return mill
 
     def _robot_busy(self) -> bool:
         return self._robot_task is not None and not self._robot_task.done()
@@ -462,7 +465,7 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
                     f"clamp_closed_{index}", True, timeout=self.options.interlock_timeout
                 )
 
-            def progress(p: MillProgress) -> None:
+            def progress(p: RunProgress) -> None:
                 nonlocal cutting
                 cutting = cutting or p.phase == "sending"
                 if view.report_progress(
@@ -477,7 +480,7 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
                 ):
                     self._touch()
 
-            await mill.download(route_step.program, progress=progress)
+            await mill.run(route_step.program, progress=progress)
         except (CellctlError, OSError, asyncio.CancelledError) as e:
             view.step = ""
             view.progress = None
@@ -516,7 +519,7 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
         view.progress = None
         view.busy_s += time.monotonic() - started
         view.step = ""
-        view.show(MILL_STATES[2], Condition.IDLE)
+        view.show(mill.state_text, Condition.IDLE)
         self.recovery.ready[mill_name] = True  # the last block ended with CTS high
         self._succeeded(mill_name)
         self.journal.end_step(step.id, "finished", route_index=part.route_index + 1)

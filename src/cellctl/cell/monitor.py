@@ -24,9 +24,9 @@ from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from cellctl.cell.causes import Blamed, Cause, link_cause, read_cause, status_cause
-from cellctl.drivers.robot import ROBOT_STATES, RobotHalted, robot_condition
 from cellctl.errors import CellctlError, DeviceError, UsageError
 from cellctl.kinds import Condition, LastError
+from cellctl.kinds.families import CycleAborted
 
 if TYPE_CHECKING:
     from cellctl.cell.config import MachineConfig
@@ -125,7 +125,7 @@ class Monitor:
             if self._cleared_since(error.cause, error.since):
                 return dataclasses.replace(error.cause, told=True)
             return error.cause
-        if isinstance(error, RobotHalted):
+        if isinstance(error, CycleAborted):
             return status_cause(machine, error.status)
         label = "robot" if ctl.robot is not None and machine == ctl.robot.name else "mill"
         cause = link_cause(machine, label, error)
@@ -207,7 +207,8 @@ class Monitor:
             ctl._cause_alarm(cause)
             view.show(str(status), Condition.ALARM, LastError(cause.text))
         else:
-            view.show(ROBOT_STATES.get(robot.state, str(robot.state)), robot_condition(robot.state))
+            host = robot.host_status()
+            view.show(host.text, host.condition)
 
     async def _mill(self, m: MachineConfig) -> None:
         ctl = self.ctl
@@ -226,20 +227,20 @@ class Monitor:
             return
         view.show(status.shown, status.kind_condition)
         was_ready = recovery.ready.get(m.name, False)
-        ready = status.ready and status.state == 2
+        ready = status.takes_work
         recovery.ready[m.name] = ready and recovery.fit.get(m.name, False)
         if not view.in_service or not recovery.fit.get(m.name, False):
             return
-        if was_ready and not ready and status.state == 2:
+        if was_ready and not ready and status.set_up:
             # CTS low on an idle, set-up mill that is not waiting for its operator.
             recovery.fault(m.name, "readiness", "lost readiness (CTS low while idle)", count=False)
-        elif status.state == 1 and not status.ready and mill.initialized:
+        elif status.awaiting_operator and mill.initialized:
             since = recovery.setup_at.get(m.name, time.monotonic())
-            if time.monotonic() - since > mill.config.setup_timeout:
+            if time.monotonic() - since > mill.setup_timeout:
                 recovery.fault(
                     m.name,
                     "readiness",
-                    f"not ready: {status.condition or 'CTS low'} "
-                    f"{mill.config.setup_timeout:g} s after its setup",
+                    f"not ready: {status.waiting_for or 'CTS low'} "
+                    f"{mill.setup_timeout:g} s after its setup",
                     count=False,
                 )

@@ -21,7 +21,6 @@ import time
 from typing import TYPE_CHECKING
 
 from cellctl.cell.causes import LINK_CLOSED, Cause
-from cellctl.drivers.robot import ROBOT_STATES, robot_condition
 from cellctl.errors import CellctlError
 from cellctl.kinds import Condition, LastError
 
@@ -125,14 +124,14 @@ class Recovery:
         except CellctlError as e:
             ctl._failed(m.name, "readiness", f"not ready: {e}", alarm=False)
             return
-        if status.ready and status.state == 2 and mill.initialized:
+        if status.takes_work and mill.initialized:
             self.fit[m.name] = self.ready[m.name] = True
             self.faulted.discard(m.name)
             ctl.log(f"{m.name}: ready again, its setup kept (a part is in its vise)")
             return
-        if mill.state not in (3, 4):  # a block still running is no failure: it ends
+        if not mill.running:  # a block still running is no failure: it ends
             ctl._failed(m.name, "readiness", f"not ready: {status}", alarm=False)
-        await asyncio.sleep(mill.config.ready_wait)
+        await asyncio.sleep(mill.ready_wait)
 
     async def close(self) -> None:
         for task in self._tasks.values():
@@ -188,11 +187,12 @@ class Recovery:
         assert robot is not None
         view = ctl.machines[robot.name]
         try:
-            if robot.state == 2:
+            if robot.running:
                 await robot.stop()
-            if robot.state != 1:
+            if not robot.ready:
                 await robot.initialize()
-            view.show(ROBOT_STATES[1], robot_condition(1))
+            status = robot.host_status()
+            view.show(status.text, status.condition)
             ctl._succeeded(robot.name)
         except CellctlError as e:
             view.show(f"error: {e}", Condition.ALARM, LastError.of(e))
@@ -207,7 +207,7 @@ class Recovery:
         mill = ctl.mills[m.name]
         view = ctl.machines[m.name]
         try:
-            if mill.state in (3, 4):
+            if mill.running:
                 status = await mill.status()  # a block still running finishes first
                 if not status.ready:
                     # Left running (by a controller that was killed): no fault, but it is
@@ -218,7 +218,7 @@ class Recovery:
                     return False
             if force or not mill.initialized:
                 assert m.setup is not None
-                await mill.initialize(m.setup, force=True)
+                await mill.setup(m.setup, force=True)
                 self.setup_at[m.name] = time.monotonic()
                 ctl.log(f"{m.name}: initialized with {m.setup.name}")
             status = await mill.status()
@@ -228,7 +228,7 @@ class Recovery:
             return False
         self.fit[m.name] = True
         self.faulted.discard(m.name)
-        self.ready[m.name] = status.ready and status.state == 2
+        self.ready[m.name] = status.takes_work
         # Its operator's time for the reference zero runs from now (also after a setup sent by
         # hand while it was out of automatic service).
         self.setup_at[m.name] = time.monotonic()

@@ -19,7 +19,6 @@ from cellctl.cell.model import PartitionUse
 from cellctl.cell.orderflow import OUT
 from cellctl.cell.orders import ReportKind
 from cellctl.errors import CellctlError, DeviceError, UsageError
-from cellctl.protocol.robot import PARTITIONS
 
 if TYPE_CHECKING:
     from cellctl.cell.causes import Cause
@@ -31,7 +30,7 @@ if TYPE_CHECKING:
     from cellctl.cell.recovery import Recovery
     from cellctl.cell.scheduler import Transfer
     from cellctl.drivers.plc import ModbusPlc
-    from cellctl.drivers.robot import Ibm7545Robot
+    from cellctl.kinds.families import Robot
 
 
 class RobotSteps:
@@ -43,7 +42,7 @@ class RobotSteps:
         mailbox: OrderBox
         machines: dict[str, Any]
         options: ControllerOptions
-        robot: Ibm7545Robot | None
+        robot: Robot | None
         plc: ModbusPlc | None
         _partitions: dict[int, PartitionUse]
         _pallet_requested: bool
@@ -62,34 +61,28 @@ class RobotSteps:
     # -- the robot's steps ------------------------------------------------------------------------
 
     async def _ensure_program(self, name: str) -> int:
-        """The partition holding robot program ``name``, downloading it if it was evicted."""
+        """Where robot program ``name`` is on the robot: the kind puts it there (a download
+        only when it is not there already)."""
         robot = self.robot
         assert robot is not None
         program = self.config.robot_programs[name]
-        for p in PARTITIONS:
-            if robot.holds(p, program):
-                self._partitions[p] = PartitionUse(name, time.monotonic())
-                return p
-        empty = [p for p in PARTITIONS if robot.partitions.get(p) is None]
-        if empty:
-            target = empty[0]
-        else:
-            target = min(
-                PARTITIONS, key=lambda p: self._partitions.get(p, PartitionUse("", 0.0)).used
-            )
-        self.log(f"robot: downloading {name} into partition {target}")
         view = self.machines[robot.name]
+        sent = False
 
-        def progress(done: int, total: int, sent: int) -> None:
+        def progress(done: int, total: int, sent_bytes: int) -> None:
+            nonlocal sent
+            if not sent:
+                sent = True
+                self.log(f"robot: downloading {name}")
             if view.report_progress(done, total, "records", "downloading", program=name):
                 self._touch()
 
         try:
-            await robot.download(target, program, progress=progress)
+            slot = await robot.ensure_program(name, program, progress)
         finally:
             view.progress = None
-        self._partitions[target] = PartitionUse(name, time.monotonic())
-        return target
+        self._partitions[slot] = PartitionUse(name, time.monotonic())
+        return slot
 
     async def _doors(self, places: list[str], open_: bool) -> None:
         """Open or close the doors of ``places`` (the conveyor has none). Each must leave its
@@ -128,19 +121,19 @@ class RobotSteps:
             rejected: DeviceError | None = None
             while True:
                 try:
-                    if rejected is None and robot.state == 0:
+                    if rejected is None and robot.cold:
                         await robot.initialize()  # a fault since the last cycle cost it
                     if rejected is not None:
                         # Rejected before the arm moved: the reject was read (the driver
                         # does), now reset; a robot that lost its start-up is initialized.
                         await robot.reset_errors()
-                        if robot.state != 1 or rejected.code in (48, 128):
+                        if robot.needs_initialize(rejected):
                             await robot.initialize()
                     partition = await self._ensure_program(t.program)
                     with blame("plc", "PLC"):
                         await self._doors(places, True)
                     moved = True
-                    await robot.go(partition)
+                    await robot.start(partition)
                     break
                 except DeviceError as e:
                     moved = False  # rejected: the cycle did not start
@@ -156,7 +149,7 @@ class RobotSteps:
                     if attempt > self.options.retries:
                         raise
                     self.log(f"robot rejected {t.program}: {e}; reset and retry {attempt}")
-            await robot.wait_cycle_end(
+            await robot.wait_end(
                 self.options.done_output, timeout=self.options.transfer_timeout, poll=0.02
             )
             with blame("plc", "PLC"):

@@ -20,8 +20,8 @@ program once and starting it per part with GO (through the PLC output) would sav
 program's transfer time, and needs the mill's panel set to PROGRAM LOAD by its operator,
 which the host cannot do. For the example cell's programs (about 1,000 characters, 2.3 s at
 4800 7E2, against 12-14 minutes of cutting) that is under 0.3 % of a cut, so this policy does
-not use GO; a cell whose mills sit in PROGRAM LOAD mode would need it (see ``Dyna2400Mill.load``
-and ``go``, which the driver provides).
+not use GO; a cell whose mills sit in PROGRAM LOAD mode would need it (see the mill driver's
+``load`` and ``go``).
 
 ``one_at_a_time=True`` is the source's way of working, for comparison: one part goes through
 its whole route before the next is loaded.

@@ -11,10 +11,11 @@ back after the link is closed.
 
 from __future__ import annotations
 
+import asyncio
 import os
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Self
+from typing import Any, Protocol, Self
 
 from cellctl.drivers.state import StateStore, machine_key
 from cellctl.link import LineSettings, Link, TrafficLog, open_link
@@ -122,3 +123,22 @@ class LinkDriver:
 
     async def __aexit__(self, *exc: object) -> None:
         await self.close()
+
+
+class StartOutput(Protocol):
+    """A digital output wired to a machine's cycle-start input (through the cell's PLC)."""
+
+    async def pulse(self, seconds: float) -> None: ...
+
+
+class CallbackOutput:
+    """A start output that calls ``fn`` (e.g. a PLC client's coil write, or an emulator's
+    ``cycle_start``)."""
+
+    def __init__(self, fn: Callable[[], object]) -> None:
+        self._fn = fn
+
+    async def pulse(self, seconds: float) -> None:
+        result = self._fn()
+        if asyncio.iscoroutine(result):
+            await result

@@ -1,5 +1,9 @@
 """The whole cell, emulated: robot, two mills and the PLC, wired as the example cell is.
 
+Each machine's emulator comes from its kind (the registry): the robot family's emulator
+takes ``set_input`` and ``output_hooks``, a mill's takes ``cycle_start``, ``run_hooks`` and
+``start`` (docs/kinds.md). A template with other kinds is served the same way.
+
 ::
 
     cell = EmulatedCell(time_scale=100.0)
@@ -41,12 +45,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
-from cellctl.emulators.mill import BlockRun, Dyna2400Emulator, OperatorDelays
 from cellctl.emulators.plc import PlcEmulator
-from cellctl.emulators.robot import Ibm7545Emulator
-from cellctl.emulators.serve import Server, serve
+from cellctl.emulators.serve import MIN_DEADLINE_S, Server, scaled_deadline, serve
 from cellctl.errors import UsageError
+from cellctl.kinds import registry
+from cellctl.kinds.kind import EmulatorSpec
 from cellctl.link import LineSettings
 
 #: The example cell (cell.toml, robot/, programs/): package data, so an installed cellctl has
@@ -59,14 +64,8 @@ BASE_LINE = LineSettings(4800, 7, "E", 2)
 
 #: ``[cell]`` deadlines for the machines' work, scaled in the emulated cell's cell.toml.
 CELL_DEADLINES = ("transfer_timeout", "interlock_timeout", "pallet_timeout")
-#: The shortest deadline the emulated cell writes, s: the controller runs in wall time, and a
-#: deadline scaled below this would tell a busy host as a fault.
-MIN_DEADLINE_S = 5.0
 
-
-def scaled_deadline(real_s: float, time_scale: float) -> float:
-    """A deadline of the real cell (``real_s``) for machines ``time_scale`` times faster."""
-    return max(MIN_DEADLINE_S, real_s / time_scale)
+__all__ = ["MIN_DEADLINE_S", "EmulatedCell", "scaled_deadline"]
 
 
 #: PLC input -> robot input line (the example cell's wiring).
@@ -104,7 +103,8 @@ class EmulatedCell:
         pacing: bool = True,
         robot_listen: str = "pty",
         host: str = "127.0.0.1",
-        mill_names: tuple[str, str] = ("cnc1", "cnc2"),
+        mill_names: tuple[str, ...] = ("cnc1", "cnc2"),
+        template: Path | None = None,
     ) -> None:
         if time_scale <= 0:
             raise UsageError(f"time scale must be positive, not {time_scale}")
@@ -116,10 +116,18 @@ class EmulatedCell:
         self.line = LineSettings(
             int(BASE_LINE.baudrate * time_scale), BASE_LINE.bytesize, BASE_LINE.parity, 2
         )
-        self.robot = Ibm7545Emulator(time_scale=time_scale)
-        delays = OperatorDelays(power_on=3.0, keys=2.0, setup=20.0)
-        self.mills = {
-            name: Dyna2400Emulator(time_scale=time_scale, delays=delays) for name in mill_names
+        self.template = template or EXAMPLE_CELL
+        self.kinds = _machine_kinds(self.template)
+        spec = EmulatorSpec(time_scale=time_scale)
+        robots = [n for n, k in self.kinds.items() if registry.family_of(k) == "robot"]
+        if not robots:
+            raise UsageError(f"{self.template / 'cell.toml'}: no robot machine to emulate")
+        self.robot_name = robots[0]
+        self.robot: Any = registry.kind(self.kinds[self.robot_name]).emulator(spec)
+        mills = [n for n, k in self.kinds.items() if registry.family_of(k) == "mill"]
+        self.mill_names = tuple(mills) if template is not None else mill_names
+        self.mills: dict[str, Any] = {
+            name: registry.kind(self.kinds[name]).emulator(spec) for name in self.mill_names
         }
         self.plc = PlcEmulator(time_scale=time_scale, on_go=self._go)
         self.servers: dict[str, Server] = {}
@@ -174,8 +182,8 @@ class EmulatedCell:
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
-    def _noting_cuts(self, index: int, name: str) -> Callable[[BlockRun], None]:
-        def note(run: BlockRun) -> None:
+    def _noting_cuts(self, index: int, name: str) -> Callable[[Any], None]:
+        def note(run: Any) -> None:
             # A run starting on a mill cut whatever part sits in its vise.
             self.cuts.append(Cut(name, self.vise[index], time.time()))
 
@@ -187,7 +195,7 @@ class EmulatedCell:
         """Serve every machine and write ``cell_dir/cell.toml`` pointing at them.
 
         ``template``: the cell directory to copy (default: the example cell)."""
-        template = template or EXAMPLE_CELL
+        template = template or self.template
         copy_template(template, cell_dir)
         for index, (name, mill) in enumerate(self.mills.items(), start=1):
             mill.run_hooks.append(self._noting_cuts(index, name))
@@ -201,7 +209,9 @@ class EmulatedCell:
         listen = self.robot_listen
         if listen == "pty":
             listen = f"pty:{(cell_dir / 'robot.pty').resolve()}"
-        self.servers["robot"] = await serve(self.robot, listen, self.line, pacing=self.pacing)
+        self.servers[self.robot_name] = await serve(
+            self.robot, listen, self.line, pacing=self.pacing
+        )
         for name, mill in self.mills.items():
             self.servers[name] = await serve(
                 mill, f"rfc2217://{self.host}:0", self.line, pacing=self.pacing
@@ -242,17 +252,11 @@ class EmulatedCell:
         scale = self.time_scale
         # Deadlines scale with the machines' time; a real cell keeps the template's.
         for name in raw.get("machines", {}):
-            kind = raw["machines"][name].get("kind")
-            if kind == "dyna2400":
-                lines += [
-                    "",
-                    f"[machines.{name}.options]",
-                    f"setup_timeout = {scaled_deadline(120.0, scale):g}",
-                    f"block_extra = {scaled_deadline(60.0, scale):g}",
-                    # The estimate a block's deadline multiplies is in the real cell's time.
-                    f"block_margin = {2.0 / scale:g}",
-                    "ready_wait = 2.0",
-                ]
+            kind = registry.kind(raw["machines"][name].get("kind"))
+            options = kind.emulated_options(scale) if kind.emulated_options else {}
+            if options:
+                lines += ["", f"[machines.{name}.options]"]
+                lines += [f"{key} = {value:g}" for key, value in options.items()]
         return "\n".join(lines) + "\n"
 
     def runs_per_part(self) -> dict[str, dict[str, int]]:
@@ -276,6 +280,23 @@ class EmulatedCell:
         for server in self.servers.values():
             await server.close()
         await self.plc.close()
+
+
+def _machine_kinds(template: Path) -> dict[str, str]:
+    """The machines of ``template``'s cell.toml and their kinds."""
+    import tomllib
+
+    path = template / "cell.toml"
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (OSError, tomllib.TOMLDecodeError) as e:
+        raise UsageError(f"{path}: cannot read it: {e}") from None
+    machines = raw.get("machines", {})
+    return {
+        name: str(entry.get("kind"))
+        for name, entry in machines.items()
+        if isinstance(entry, dict) and entry.get("kind") in registry.names()
+    }
 
 
 def copy_template(template: Path, cell_dir: Path) -> None:

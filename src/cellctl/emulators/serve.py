@@ -55,6 +55,16 @@ _PACE_SLICE_S = 0.050
 _CATCH_UP_S = 0.005
 
 
+#: The shortest deadline an emulated cell writes, s: the controller runs in wall time, and a
+#: deadline scaled below this would tell a busy host as a fault.
+MIN_DEADLINE_S = 5.0
+
+
+def scaled_deadline(real_s: float, time_scale: float) -> float:
+    """A deadline of the real cell (``real_s``) for machines ``time_scale`` times faster."""
+    return max(MIN_DEADLINE_S, real_s / time_scale)
+
+
 class LineNoise:
     """Flip one bit of, or drop, each byte with probability ``rate`` (see module docstring)."""
 

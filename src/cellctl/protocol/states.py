@@ -1,46 +1,20 @@
-"""What each library function may do in each host-kept state: one table per machine kind.
+"""What a library function may do in a machine's host-kept state: the shape of a kind's table.
 
-The source's library answered every call from the state it kept on the host (spec
-``ibm7545-robot.md`` and ``dyna2400-cnc.md``, "Library functions and their results"): GO after
-HALT is "partition empty" without a byte on the line, a mill DOWNLOAD before INITIALIZE is
-"Machine not initialized". The drivers consult these tables before any byte goes out::
+Each kind with a library like the source's keeps one table of :class:`Rule` per function and
+host state, and its driver consults it before any byte goes out::
 
     refusal = robot_refusal(RobotFunction.GO, state=0, partition_full=False)
     if refusal is not None:
         raise DeviceError(refusal.code, refusal.message, detail=refusal.why)
 
-A refusal carries the source's result code and message for that function (the robot's GO:
-2 "starting function error", 3 "partition empty"; the mill's DOWNLOAD: 1 "Machine not
-initialized", 2 "Absolute zero not set" / "Machine executing program"). Where the source
-gives a function no result for a state, the machine's own answer stands in (a robot DOWNLOAD
-when uninitialized: reject 48, "improper startup sequence", what the controller says).
-
-Where the host's view cannot be trusted the table allows the call and the machine decides:
-the robot says nothing when a program ends, so host state 2 (executing) may be stale, and GO
-or DOWNLOAD there go to the controller (which rejects them with 48 while a cycle runs). A mill
-driver reads CTS first (no byte goes out) so states 3 and 4 are current when it asks.
-
-No I/O here, no clock: tables and the lookups.
+No I/O here, no clock.
 """
 
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass
 
-__all__ = [
-    "MILL_HOST_STATES",
-    "MILL_TABLE",
-    "ROBOT_HOST_STATES",
-    "ROBOT_TABLE",
-    "MillFunction",
-    "Refusal",
-    "RobotFunction",
-    "Rule",
-    "mill_host_state",
-    "mill_refusal",
-    "robot_refusal",
-]
+__all__ = ["ALLOW", "Refusal", "Rule"]
 
 
 @dataclass(frozen=True)
@@ -62,146 +36,3 @@ class Rule:
 
 
 ALLOW = Rule()
-
-# -- the robot ----------------------------------------------------------------------------------
-
-
-class RobotFunction(enum.StrEnum):
-    """The robot's library functions (source names) and the driver's own pieces of them."""
-
-    INITIALIZE = "INITIALIZE"
-    RETURN_HOME = "RETURN_HOME"
-    AUTOSTART = "AUTOSTART"
-    DOWNLOAD = "DOWNLOAD"
-    GO = "GO"
-    APPLICATION = "APPLICATION"  # select application n (X 3n)
-    START_CYCLE = "START_CYCLE"  # X 22 alone
-    STOP_CYCLE = "STOP_CYCLE"
-    HALT_CYCLE = "HALT_CYCLE"
-    MC_STATUS = "MC_STATUS"
-    REJECT_STATUS = "REJECT_STATUS"
-    DIDO_STATUS = "DIDO_STATUS"
-    ERRESET = "ERRESET"
-
-
-#: Robot states the host keeps (spec "Robot states (kept by the host)").
-ROBOT_HOST_STATES = (0, 1, 2)
-
-_STARTING_ERROR = Refusal(2, "starting function error", "robot uninitialized (state 0)")
-_PARTITION_EMPTY = Refusal(3, "partition empty", "no program downloaded there since its flush")
-_APPLICATION_EMPTY = Refusal(1, "partition empty", "no program downloaded there since its flush")
-_IMPROPER_STARTUP = Refusal(
-    48, "improper startup sequence", "robot uninitialized (state 0): initialize first"
-)
-_GO_RULE = Rule(needs_program=_PARTITION_EMPTY)
-
-#: function -> host state -> rule. State 0: cold start or after HALT (every partition flushed).
-ROBOT_TABLE: dict[RobotFunction, dict[int, Rule]] = {
-    RobotFunction.INITIALIZE: {0: ALLOW, 1: ALLOW, 2: ALLOW},
-    RobotFunction.RETURN_HOME: {0: ALLOW, 1: ALLOW, 2: ALLOW},
-    RobotFunction.AUTOSTART: {0: ALLOW, 1: ALLOW, 2: ALLOW},
-    RobotFunction.DOWNLOAD: {0: Rule(_IMPROPER_STARTUP), 1: ALLOW, 2: ALLOW},
-    # After HALT both apply; the partition speaks first ("3 partition empty", as the source).
-    RobotFunction.GO: {
-        0: Rule(_STARTING_ERROR, needs_program=_PARTITION_EMPTY),
-        1: _GO_RULE,
-        2: _GO_RULE,
-    },
-    RobotFunction.APPLICATION: {
-        0: Rule(needs_program=_APPLICATION_EMPTY),
-        1: Rule(needs_program=_APPLICATION_EMPTY),
-        2: Rule(needs_program=_APPLICATION_EMPTY),
-    },
-    RobotFunction.START_CYCLE: {0: Rule(_STARTING_ERROR), 1: ALLOW, 2: ALLOW},
-    RobotFunction.STOP_CYCLE: {0: ALLOW, 1: ALLOW, 2: ALLOW},
-    RobotFunction.HALT_CYCLE: {0: ALLOW, 1: ALLOW, 2: ALLOW},
-    RobotFunction.MC_STATUS: {0: ALLOW, 1: ALLOW, 2: ALLOW},
-    RobotFunction.REJECT_STATUS: {0: ALLOW, 1: ALLOW, 2: ALLOW},
-    RobotFunction.DIDO_STATUS: {0: ALLOW, 1: ALLOW, 2: ALLOW},
-    RobotFunction.ERRESET: {0: ALLOW, 1: ALLOW, 2: ALLOW},
-}
-
-
-def robot_refusal(
-    function: RobotFunction, state: int, partition_full: bool | None = None
-) -> Refusal | None:
-    """None if ``function`` may go to the robot in host ``state``, else the source's result.
-
-    ``partition_full``: whether the host's view has a program in the partition the call names
-    (GO, APPLICATION); ignored by functions that name none.
-    """
-    rule = ROBOT_TABLE[function].get(state, ALLOW)
-    if rule.needs_program is not None and partition_full is False:
-        return rule.needs_program
-    return rule.refusal
-
-
-# -- the mill -------------------------------------------------------------------------------------
-
-
-class MillFunction(enum.StrEnum):
-    """The mill's library functions (source names) and the link operations beside them."""
-
-    INITIALIZE = "INITIALIZE"  # forcing function 1: normal
-    INITIALIZE_FORCE = "INITIALIZE_FORCE"  # forcing function 2: after a machine failure
-    DOWNLOAD = "DOWNLOAD"
-    ENDLOAD = "ENDLOAD"
-    STATUS = "STATUS"
-    GO = "GO"
-    LOAD = "LOAD"  # program load (at most 900 lines, not run)
-    LINE_EXECUTE = "LINE_EXECUTE"
-    UPLOAD = "UPLOAD"
-
-
-#: Host states of a mill (spec "Machine states"). State 1 is two states for the host: the
-#: controller shows READY but was never set up (``"1"``), or the setup program went and the
-#: operator has not yet set the reference zero and pressed NEXT (``"1 setup"``).
-MILL_HOST_STATES = ("0", "1", "1 setup", "2", "3", "4")
-
-
-def mill_host_state(state: int, initialized: bool) -> str:
-    """The table's column for a mill in ``state`` (0-4) that was or was not initialized."""
-    if state == 1 and initialized:
-        return "1 setup"
-    return str(state)
-
-
-_NOT_INITIALIZED = Refusal(1, "Machine not initialized", "INITIALIZE it first")
-_ZERO_NOT_SET = Refusal(2, "Absolute zero not set", "the operator has not pressed NEXT yet")
-_EXECUTING = Refusal(2, "Machine executing program", "a block is executing (CTS low)")
-_ALREADY = Refusal(1, "Machine already initialized", "force (2) after a machine failure")
-
-
-def _row(**cells: Rule) -> dict[str, Rule]:
-    row = dict.fromkeys(MILL_HOST_STATES, ALLOW)
-    row.update({k.replace("_", " ").removeprefix("s"): v for k, v in cells.items()})
-    return row
-
-
-_EXEC = Rule(_EXECUTING)
-
-#: function -> host state -> rule. A forced INITIALIZE is the way out of any state.
-MILL_TABLE: dict[MillFunction, dict[str, Rule]] = {
-    MillFunction.INITIALIZE: _row(
-        s1_setup=Rule(_ALREADY), s2=Rule(_ALREADY), s3=Rule(_ALREADY), s4=Rule(_ALREADY)
-    ),
-    MillFunction.INITIALIZE_FORCE: _row(),
-    MillFunction.DOWNLOAD: _row(
-        s0=Rule(_NOT_INITIALIZED),
-        s1=Rule(_NOT_INITIALIZED),
-        s1_setup=Rule(_ZERO_NOT_SET),
-        s3=_EXEC,
-        s4=_EXEC,
-    ),
-    MillFunction.ENDLOAD: _row(s3=_EXEC, s4=_EXEC),
-    MillFunction.STATUS: _row(),
-    MillFunction.GO: _row(s3=_EXEC, s4=_EXEC),
-    MillFunction.LOAD: _row(s3=_EXEC, s4=_EXEC),
-    MillFunction.LINE_EXECUTE: _row(s3=_EXEC, s4=_EXEC),
-    MillFunction.UPLOAD: _row(),
-}
-
-
-def mill_refusal(function: MillFunction, state: int, initialized: bool) -> Refusal | None:
-    """None if ``function`` may go to the mill in host ``state``, else the source's result."""
-    return MILL_TABLE[function][mill_host_state(state, initialized)].refusal

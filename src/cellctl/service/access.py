@@ -24,11 +24,11 @@ from types import TracebackType
 from typing import TYPE_CHECKING, Any, Self, cast
 
 from cellctl.cell.journal import JOURNAL_FILE, Journal, open_journal
-from cellctl.drivers.mill import CallbackOutput, Dyna2400Mill, MillConfig
+from cellctl.cell.machines import open_machine
 from cellctl.drivers.plc import ModbusPlc
-from cellctl.drivers.robot import Ibm7545Robot, RobotConfig
 from cellctl.drivers.state import StateStore
 from cellctl.errors import CellctlError, UsageError
+from cellctl.kinds import registry
 from cellctl.link import TrafficLog
 from cellctl.mailbox import MAILBOX_FILE, Mailbox, open_mailbox
 from cellctl.protocol.plc import PlcMap, canonical
@@ -264,56 +264,40 @@ class LocalCell(CellAccess):
                 self.states[name] = _state_of(driver)
 
     async def _open(self, ref: MachineRef) -> Any:
-        store = StateStore(self.directory)
-        trace = _Tee(self.traffic_log, self._trace_file)
-        if FAMILY_OF_KIND[ref.kind] == "robot":
-            fields = set(RobotConfig.__dataclass_fields__)
-            unknown = set(ref.options) - fields
-            if unknown:
-                raise UsageError(
-                    f"unknown robot option(s) in cell.toml: {', '.join(sorted(unknown))}"
-                )
-            return await Ibm7545Robot.connect(
-                ref.url,
-                name=ref.name,
-                settings=ref.settings,
-                store=store,
-                config=RobotConfig(**ref.options),
-                trace=trace,
-            )
         options = dict(ref.options)
-        if self._readiness:
+        # ``go_output`` here is the command line's --start-signal, not a kind's option.
+        signal = options.pop("go_output", None)
+        kind = registry.kind(ref.kind)
+        if self._readiness and "readiness" in kind.options.model_fields:
             options["readiness"] = self._readiness
-        config = MillConfig.from_options(options)
-        return await Dyna2400Mill.connect(
+        start = self._start_output(ref, signal) if kind.family == "mill" else None
+        return await open_machine(
+            ref.kind,
+            ref.name,
             ref.url,
-            name=ref.name,
-            settings=ref.settings,
-            store=store,
-            config=config,
-            start_output=self._start_output(ref, config),
-            trace=trace,
+            ref.settings,
+            options,
+            store=StateStore(self.directory),
+            trace=_Tee(self.traffic_log, self._trace_file),
+            start_output=start,
         )
 
-    def _start_output(self, ref: MachineRef, config: MillConfig) -> CallbackOutput | None:
+    def _start_output(self, ref: MachineRef, signal: str | None) -> _PlcPulse | None:
         """GO pulses the PLC coil wired to the mill's start input (a connection per pulse):
-        ``options.start_signal``, else ``go_N`` for the cell's N-th mill."""
-        raw = load_cell_file(self.directory).get("plc")
+        ``signal``, else the machine's ``go_output``, else ``go_N`` for the cell's N-th mill."""
+        cell = load_cell_file(self.directory)
+        raw = cell.get("plc")
         table = raw if isinstance(raw, dict) else {}
-        signal = config.start_signal
+        machines = cell.get("machines")
+        entry = machines.get(ref.name) if isinstance(machines, dict) else None
+        if signal is None and isinstance(entry, dict) and isinstance(entry.get("go_output"), str):
+            signal = entry["go_output"]
         if signal is None and raw is not None:
             mills = [n for n, r in self.refs.items() if FAMILY_OF_KIND[r.kind] == "mill"]
             signal = f"go_{mills.index(ref.name) + 1}"
         if signal is None:
             return None
-        plc_map = PlcMap.from_toml(table)
-        coil = canonical(signal)
-
-        async def pulse() -> None:
-            async with await ModbusPlc.connect(plc_map.url, plc_map) as plc:
-                await plc.pulse(coil, config.go_pulse)
-
-        return CallbackOutput(pulse)
+        return _PlcPulse(PlcMap.from_toml(table), canonical(signal))
 
     def snapshot(self) -> dict[str, Any]:
         machines = {
@@ -367,6 +351,19 @@ class LocalCell(CellAccess):
             self._trace_file.close()
 
 
+class _PlcPulse:
+    """A start output on a PLC coil: one Modbus connection per pulse, as long as the driver
+    asks."""
+
+    def __init__(self, plc_map: PlcMap, coil: str) -> None:
+        self.plc_map = plc_map
+        self.coil = coil
+
+    async def pulse(self, seconds: float) -> None:
+        async with await ModbusPlc.connect(self.plc_map.url, self.plc_map) as plc:
+            await plc.pulse(self.coil, seconds)
+
+
 class _Tee(TrafficLog):
     """The in-memory tail, and the user's trace file when one was asked for."""
 
@@ -382,10 +379,8 @@ class _Tee(TrafficLog):
 
 
 def _state_of(driver: Any) -> str:
-    from cellctl.service.functions import state_text
-
-    if isinstance(driver, Ibm7545Robot):
-        return state_text("robot", driver.state)
-    if isinstance(driver, Dyna2400Mill):
-        return state_text("mill", driver.state)
-    return "connected"
+    status = getattr(driver, "host_status", None)
+    if status is None:
+        return "connected"
+    shown = status()
+    return str(getattr(shown, "text", None) or getattr(shown, "state_text", "connected"))

@@ -19,11 +19,8 @@ from typing import Any
 
 from cellctl.cell.config import CONVEYOR, CellConfig, load_cell
 from cellctl.cell.controller import OUT
-from cellctl.drivers.mill import MillConfig
 from cellctl.errors import UsageError
-from cellctl.protocol.dynalan import ValidationContext, parse_program
-from cellctl.protocol.dynalan import validate as validate_program
-from cellctl.protocol.preview import render_svg
+from cellctl.kinds import registry
 from cellctl.service.access import CellAccess
 from cellctl.service.functions import FAMILY_OF_KIND
 
@@ -117,14 +114,13 @@ def program_preview(access: CellAccess, machine: str, program: str) -> dict[str,
         key = (machine, str(step.program), mtime)
         cached = _PREVIEWS.get(key)
         if cached is None:
+            kind = registry.kind(mill.kind)
+            language = kind.language
+            if language is None or language.preview is None:
+                raise UsageError(f"{machine}: a {kind.title} has no toolpath preview")
             text = step.program.read_text(encoding="latin-1")
-            parsed = parse_program(text, name=step.program.name)
-            context = ValidationContext(config=MillConfig.from_options(mill.options).machine())
-            result = validate_program(parsed, context)
-            if result.toolpath is None:
-                first = result.errors[0].format(step.program.name) if result.errors else ""
-                raise UsageError(f"cannot trace {step.name}: {first or 'no toolpath'}")
-            cached = (render_svg(result.toolpath, title=step.program.name), result.toolpath.blocks)
+            drawn = language.preview(text, step.program.name, kind.checked_options(mill.options))
+            cached = (drawn.svg, drawn.blocks)
             _PREVIEWS[key] = cached
             while len(_PREVIEWS) > _PREVIEWS_KEPT:
                 _PREVIEWS.popitem(last=False)

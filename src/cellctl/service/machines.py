@@ -3,7 +3,7 @@
 ``cell.toml`` (in the cell directory, ``--cell DIR`` or ``$CELLCTL_CELL``, default ``cell``)::
 
     [machines.robot1]
-    kind = "ibm7545"                      # or "ibm7547", "dyna2400"
+    kind = "..."                          # a kind `cellctl kinds` lists
     link = "rfc2217://127.0.0.1:7001"
     line = "4800,7E2"                     # optional; the kind's default otherwise
     options = { reply_timeout = 2.0 }     # optional driver settings
@@ -19,16 +19,8 @@ from pathlib import Path
 from typing import Any
 
 from cellctl.errors import UsageError
-from cellctl.link import MILL_LINE, ROBOT_LINE, LineSettings
-
-#: Machine kinds cellctl drives, and each kind's default line settings.
-KINDS: dict[str, LineSettings] = {
-    "ibm7545": ROBOT_LINE,
-    "ibm7547": ROBOT_LINE,
-    "dyna2400": MILL_LINE,
-}
-#: Kinds that answer to ``cellctl robot`` and ``cellctl mill``.
-FAMILIES = {"robot": ("ibm7545", "ibm7547"), "mill": ("dyna2400",)}
+from cellctl.kinds import registry
+from cellctl.link import LineSettings
 
 
 @dataclass(frozen=True)
@@ -63,9 +55,11 @@ def resolve_machine(
     line: str | None = None,
 ) -> MachineRef:
     """Resolve ``--link``/NAME for a ``family`` (``robot`` or ``mill``); refuses unknown names."""
-    kinds = FAMILIES[family]
+    kinds = registry.names(family)
+    if not kinds:
+        raise UsageError(f"no {family} kind is installed (`cellctl kinds` lists them)")
     if link:
-        settings = LineSettings.parse(line) if line else KINDS[kinds[0]]
+        settings = LineSettings.parse(line) if line else registry.kind(kinds[0]).line_settings
         return MachineRef(name or link, kinds[0], link, settings)
     if not (cell_dir / "cell.toml").exists():
         raise UsageError(
@@ -90,5 +84,5 @@ def resolve_machine(
     if not entry.get("link"):
         raise UsageError(f"machine {name!r} has no link URL in cell.toml")
     text = line or entry.get("line")
-    settings = LineSettings.parse(text) if text else KINDS[kind]
+    settings = LineSettings.parse(text) if text else registry.kind(kind).line_settings
     return MachineRef(name, kind, str(entry["link"]), settings, dict(entry.get("options", {})))

@@ -39,8 +39,8 @@ from click.testing import CliRunner, Result
 from cellctl.cell.config import load_cell
 from cellctl.cell.controller import CellController, ControllerOptions
 from cellctl.cell.journal import Journal, open_journal
-from cellctl.drivers.mill import MillConfig
 from cellctl.emulators.cell import EmulatedCell
+from cellctl.kinds import registry
 from cellctl.mailbox import Mailbox, open_mailbox
 from cellctl.ui.cell_cli import apply_fault
 from cellctl.ui.cli import main as cli_main
@@ -199,7 +199,10 @@ class CellRig:
         period, all from the cell's own cell.toml."""
         config = load_cell(self.directory)
         options = ControllerOptions.from_config(config)
-        setups = [MillConfig.from_options(m.options).setup_timeout for m in config.mills]
+        setups = [
+            float(getattr(registry.kind(m.kind).checked_options(m.options), "setup_timeout", 0))
+            for m in config.mills
+        ]
         longest = max(options.pallet_timeout, options.read_limit, *setups)
         return longest + 2 * options.poll_period
 

@@ -6,7 +6,7 @@ anything else, if a pair is left unused, or if reply bytes are left unread::
 
     async with expected_exchange([(b"R", b"\\x13\\x11"), (b"01\\r\\n", b"D02044044\\r\\n"),
                                   (b"\\x06", b"EG\\r\\n"), (b"\\x06", b"")]) as link:
-        status = await Ibm7545Robot(link).status()
+        status = await RobotDriver(link).status()        # the robot kind's driver
 """
 
 from __future__ import annotations

@@ -246,9 +246,9 @@ async def _run(directory: Path, live: bool, until_idle: bool) -> None:
 
 def _emulate_cell_command() -> click.Command:
     from cellctl.emulators.cell import EmulatedCell
-    from cellctl.emulators.mill import FAULTS as MILL_FAULTS
     from cellctl.emulators.plc import FAULTS as PLC_FAULTS
-    from cellctl.emulators.robot import FAULTS as ROBOT_FAULTS
+    from cellctl.kinds.dyna2400.emulator import FAULTS as MILL_FAULTS
+    from cellctl.kinds.ibm7545.emulator import FAULTS as ROBOT_FAULTS
 
     def callback(
         time_scale: float,

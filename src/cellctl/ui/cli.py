@@ -5,17 +5,17 @@ from __future__ import annotations
 import click
 
 from cellctl import __version__
+from cellctl.kinds import registry
 from cellctl.ui.cell_cli import cell_group, demo, emulate_cell, run_command
 from cellctl.ui.common import CellctlGroup
 from cellctl.ui.console import console_command
 from cellctl.ui.dashboard import dashboard_command
 from cellctl.ui.emulate_cli import emulate
 from cellctl.ui.factory_cli import emulate_factory, factory
-from cellctl.ui.mill_cli import emulate_mill, mill
+from cellctl.ui.kinds_cli import kinds_command
 from cellctl.ui.opcua_cli import opcua_group
 from cellctl.ui.orders_cli import alarm, orders, part, reports, submit
 from cellctl.ui.plc_cli import plc
-from cellctl.ui.robot_cli import robot
 from cellctl.ui.service_cli import estop, machine, pause, resume, service_group, traffic
 
 
@@ -36,10 +36,18 @@ def main(cell: str) -> None:
     """cellctl: drive, emulate and run a machining cell of serial-protocol machines."""
 
 
-main.add_command(robot)
 main.add_command(emulate)
-main.add_command(mill)
-emulate.add_command(emulate_mill)
+main.add_command(kinds_command)
+# Commands the installed kinds contribute (``cellctl robot``, ``cellctl emulate mill`` ...).
+_groups: dict[str, click.Group] = {"": main, "emulate": emulate}
+for _kind in registry.kinds():
+    try:
+        _contributed = _kind.commands() if _kind.commands is not None else []
+    except Exception as _e:  # a plug-in's CLI that fails to load: skipped, by name
+        registry.log.warning("machine kind %s: its commands skipped: %s", _kind.name, _e)
+        continue
+    for _group, _command in _contributed:
+        _groups[_group].add_command(_command)
 main.add_command(submit)
 main.add_command(orders)
 main.add_command(reports)

@@ -7,10 +7,9 @@ from collections.abc import Callable
 import click
 
 from cellctl.emulators.fleet import Fleet, check_fleet, serve_many
-from cellctl.emulators.serve import EmulatedDevice, Server, parse_fault, serve
-from cellctl.errors import UsageError
-from cellctl.link import ROBOT_LINE, LineSettings
-from cellctl.ui.common import console, fault_help, run, until_stopped
+from cellctl.emulators.serve import EmulatedDevice, Server, serve
+from cellctl.link import LineSettings
+from cellctl.ui.common import console, until_stopped
 from cellctl.ui.plc_cli import emulate_plc
 
 
@@ -104,49 +103,6 @@ async def serve_fleet_until_stopped(
         console.print(f"{what} stopped")
 
 
-def _robot_command() -> click.Command:
-    from cellctl.emulators.robot import FAULTS, Ibm7545Emulator
-
-    def callback(
-        listen: str,
-        time_scale: float,
-        no_pacing: bool,
-        line: str,
-        fault: tuple[str, ...],
-        count: int,
-        workers: int,
-    ) -> None:
-        faults = [parse_fault(text) for text in fault]
-        for name, _ in faults:
-            if name not in FAULTS:
-                raise UsageError(f"unknown fault {name!r}; known: {', '.join(FAULTS)}")
-
-        def make(index: int = 0) -> Ibm7545Emulator:
-            device = Ibm7545Emulator(time_scale=time_scale)
-            for name, arg in faults:
-                device.set_fault(name, arg)
-            return device
-
-        async def main() -> None:
-            what = "IBM 7545 emulator"
-            if count == 1 and workers == 1:
-                await serve_until_stopped(make(), listen, line, not no_pacing, what)
-            else:
-                await serve_fleet_until_stopped(
-                    make, listen, line, not no_pacing, what, count, workers
-                )
-
-        run(main)
-
-    return click.Command(
-        "robot",
-        callback=callback,
-        params=[*listen_options(ROBOT_LINE, FAULTS), *fleet_options()],
-        help="Emulate an IBM 7545/7547 robot controller (or --count of them).\n\n"
-        + fault_help(FAULTS),
-    )
-
-
 def fleet_options() -> list[click.Parameter]:
     """``--count`` and ``--workers``: many machines of one kind, over several processes."""
     return [
@@ -169,5 +125,4 @@ def fleet_options() -> list[click.Parameter]:
     ]
 
 
-emulate.add_command(_robot_command())
 emulate.add_command(emulate_plc)

@@ -18,6 +18,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
+from cellctl.kinds import registry
+
 #: OPC 40501-1 MachineOperationMode.
 OPERATION_MODES = ("Manual", "Automatic", "Setup", "AutoWithManualIntervention", "Service", "Other")
 #: OPC 10000-200 SignalColor.
@@ -26,12 +28,8 @@ SIGNAL_COLORS = ("Off", "Red", "Green", "Blue", "Yellow", "Purple", "Cyan", "Whi
 CHANNEL_STATES = ("Active", "Interrupted", "Reset")
 #: The states of OPC 40501-1's ProductionProgramStateMachine, as an enumeration.
 PROGRAM_STATES = ("Initializing", "Running", "Ended", "Interrupted", "Aborted")
-#: Identification per machine kind: manufacturer and model.
-IDENTIFICATION = {
-    "ibm7545": ("IBM", "7545 Manufacturing System"),
-    "ibm7547": ("IBM", "7547 Manufacturing System"),
-    "dyna2400": ("Dyna", "2400 CNC mill"),
-}
+#: Identification per machine kind: manufacturer and model, as each kind declares them.
+IDENTIFICATION: dict[str, tuple[str, str]] = {k.name: (k.maker, k.model) for k in registry.kinds()}
 #: Machine states that mean it is not working as it should (the stacklight shows red).
 FAULT_WORDS = ("error", "not answering", "emergency", "power failure")
 #: Progress phases before the program runs (the program is being prepared).

@@ -4,7 +4,7 @@ values current (docs/opcua.md draws the tree).
 ::
 
     space = CellSpace(server, namespace_index)
-    await space.build("lab cell", {"robot": "ibm7545", "cnc1": "dyna2400"}, submit, clear)
+    await space.build("lab cell", {"robot": robot_kind, "cnc1": mill_kind}, submit, clear)
     await space.write("Machines/cnc1", machine_values(...))   # only changed values are written
     await space.show_orders(status["orders"]); await space.show_alarms(status["alarms"])
 

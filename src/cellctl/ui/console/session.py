@@ -15,11 +15,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from cellctl.drivers.mill import MillConfig
 from cellctl.errors import UsageError
-from cellctl.protocol.dynalan import ProgramRole, Severity, ValidationContext, parse_program
-from cellctl.protocol.dynalan import validate as validate_program
-from cellctl.protocol.robot import PARTITIONS, ProgramFile
+from cellctl.kinds.dyna2400.driver import MillConfig
+from cellctl.kinds.dyna2400.dynalan import ProgramRole, Severity, ValidationContext, parse_program
+from cellctl.kinds.dyna2400.dynalan import validate as validate_program
+from cellctl.kinds.ibm7545.records import PARTITIONS, ProgramFile
 from cellctl.service.client import CellClient, open_cell
 from cellctl.service.functions import FAMILY_OF_KIND, MachineFunction
 from cellctl.service.machines import MachineRef, load_cell_file, resolve_machine

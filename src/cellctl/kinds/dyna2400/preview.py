@@ -18,8 +18,8 @@ from xml.sax.saxutils import escape
 
 from PIL import Image, ImageDraw
 
-from cellctl.protocol.dynalan.machine import MoveKind
-from cellctl.protocol.dynalan.toolpath import Toolpath
+from cellctl.kinds.dyna2400.dynalan.machine import MoveKind
+from cellctl.kinds.dyna2400.dynalan.toolpath import Toolpath
 
 WIDTH = 960
 XY_HEIGHT = 600

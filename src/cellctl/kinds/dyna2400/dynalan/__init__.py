@@ -3,7 +3,7 @@ toolpath. Pure: no I/O, no clocks.
 
 Usage::
 
-    from cellctl.protocol import dynalan
+    from cellctl.kinds.dyna2400 import dynalan
 
     program = dynalan.parse_program(text, name="BASE.DYN")
     result = dynalan.validate(program, dynalan.ValidationContext(units=dynalan.Units.INS))
@@ -13,11 +13,11 @@ Usage::
         for block in result.blocks: ...          # at most 900 lines each, closed, renumbered
         result.toolpath.machining_seconds
 
-The statement table (:mod:`cellctl.protocol.dynalan.table`) is the one place the language is
+The statement table (:mod:`cellctl.kinds.dyna2400.dynalan.table`) is the one place the language is
 described; see ``docs/mill.md`` for the syntax, including the project's own canned cycles.
 """
 
-from cellctl.protocol.dynalan.machine import (
+from cellctl.kinds.dyna2400.dynalan.machine import (
     MachineConfig,
     MachineState,
     Move,
@@ -29,7 +29,7 @@ from cellctl.protocol.dynalan.machine import (
     run_block,
     travel_fault,
 )
-from cellctl.protocol.dynalan.model import (
+from cellctl.kinds.dyna2400.dynalan.model import (
     Line,
     Problem,
     Program,
@@ -37,7 +37,7 @@ from cellctl.protocol.dynalan.model import (
     Severity,
     Statement,
 )
-from cellctl.protocol.dynalan.parser import (
+from cellctl.kinds.dyna2400.dynalan.parser import (
     END_OF_TRANSMISSION,
     decode_line,
     encode_line,
@@ -45,16 +45,16 @@ from cellctl.protocol.dynalan.parser import (
     parse_program,
     parse_statement,
 )
-from cellctl.protocol.dynalan.splitter import (
+from cellctl.kinds.dyna2400.dynalan.splitter import (
     Block,
     BlockLine,
     SplitError,
     join_blocks,
     split_program,
 )
-from cellctl.protocol.dynalan.table import STATEMENTS, Kind, Origin, Travel, Units
-from cellctl.protocol.dynalan.toolpath import Toolpath, build_toolpath
-from cellctl.protocol.dynalan.validator import (
+from cellctl.kinds.dyna2400.dynalan.table import STATEMENTS, Kind, Origin, Travel, Units
+from cellctl.kinds.dyna2400.dynalan.toolpath import Toolpath, build_toolpath
+from cellctl.kinds.dyna2400.dynalan.validator import (
     Validation,
     ValidationContext,
     resolve_role,

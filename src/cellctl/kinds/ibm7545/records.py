@@ -32,7 +32,7 @@ missing CR LF) or :class:`~cellctl.errors.ChecksumError`, each carrying the raw 
 Compiled program files (``.rec``), see ``docs/robot-program-format.md``::
 
     N09ppnnnnnnnnnnnnnnnncs     N record: 9 data bytes, partition pp (01..05), 8 name bytes
-    D....                       D records: one AML/E instruction each (cellctl.protocol.aml)
+    D....                       D records: one AML/E instruction each (cellctl.kinds.ibm7545.aml)
     E0000                       end record: E, no data bytes, checksum 00
 
 One record per line, no CR LF needed in the file (the driver adds it on the wire), blank lines

@@ -21,7 +21,7 @@ What it models:
 - Program execute: a block runs once both ``SKIP TO 900`` and the ``900`` line have arrived;
   RTS is low while the setup is pending and while a block executes, high when READY. END
   returns the controller to manual. Ctrl-Z ends a transmission.
-- Execution with the shared DYNALAN machine model (:mod:`cellctl.protocol.dynalan.machine`):
+- Execution with the shared DYNALAN machine model (:mod:`cellctl.kinds.dyna2400.dynalan.machine`):
   moves take their time from distance and feed rate, divided by ``time_scale``; a move outside
   the travel or a line that is not DYNALAN puts the controller in an error condition (display
   ``ERROR nnn``, RTS low until memory is cleared), because the real controller only finds out
@@ -51,7 +51,7 @@ from typing import Any
 from cellctl.emulators.onsets import FaultOnsets
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
 from cellctl.errors import LinkClosed, UsageError
-from cellctl.protocol.dynalan.machine import (
+from cellctl.kinds.dyna2400.dynalan.machine import (
     Entry,
     MachineConfig,
     MachineState,
@@ -61,9 +61,9 @@ from cellctl.protocol.dynalan.machine import (
     run_block,
     travel_fault,
 )
-from cellctl.protocol.dynalan.model import Statement
-from cellctl.protocol.dynalan.parser import END_OF_TRANSMISSION, decode_line, parse_line
-from cellctl.protocol.dynalan.table import (
+from cellctl.kinds.dyna2400.dynalan.model import Statement
+from cellctl.kinds.dyna2400.dynalan.parser import END_OF_TRANSMISSION, decode_line, parse_line
+from cellctl.kinds.dyna2400.dynalan.table import (
     BLOCK_END_LINE,
     CTRL_Z,
     DC1,

@@ -1,4 +1,4 @@
-"""DYNALAN parser: text to the typed :class:`~cellctl.protocol.dynalan.model.Program`.
+"""DYNALAN parser: text to the typed :class:`~cellctl.kinds.dyna2400.dynalan.model.Program`.
 
 Usage::
 
@@ -21,8 +21,8 @@ from __future__ import annotations
 import re
 from typing import Final
 
-from cellctl.protocol.dynalan.model import Line, Problem, Program, Severity, Statement
-from cellctl.protocol.dynalan.table import (
+from cellctl.kinds.dyna2400.dynalan.model import Line, Problem, Program, Severity, Statement
+from cellctl.kinds.dyna2400.dynalan.table import (
     AXES,
     AXIS_WORD_KINDS,
     BLOCK_END_LINE,

@@ -27,7 +27,7 @@ and the read is repeated, up to ``checksum_retries`` times; then :class:`Checksu
 garbled handshake (a byte other than Xoff, Xon or EOT where one belongs, before the operand
 went out) is repeated the same way.
 
-The host's state guards every function: :mod:`cellctl.protocol.states` says which function
+The host's state guards every function: :mod:`cellctl.kinds.ibm7545.states` says which function
 the source's library answered itself in which state (GO after HALT: "partition empty", code
 3), and such a refusal raises :class:`DeviceError` before any byte goes out.
 
@@ -47,8 +47,19 @@ import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import NoReturn
+from typing import Annotated, NoReturn
 
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    NonNegativeFloat,
+    NonNegativeInt,
+    PositiveFloat,
+)
+
+from cellctl.drivers.base import LinkDriver
+from cellctl.drivers.state import StateStore
 from cellctl.errors import (
     CellctlError,
     ChecksumError,
@@ -61,8 +72,8 @@ from cellctl.errors import (
     format_raw,
 )
 from cellctl.kinds import Condition
-from cellctl.link import ROBOT_LINE, LineSettings, Link, TrafficLog
-from cellctl.protocol.robot import (
+from cellctl.kinds.families import CycleAborted, HostStatus, RecordsProgress
+from cellctl.kinds.ibm7545.records import (
     ACK,
     EOT,
     HALTING_FLAGS,
@@ -82,19 +93,27 @@ from cellctl.protocol.robot import (
     resync,
     select_application_operand,
 )
-from cellctl.protocol.states import RobotFunction, robot_refusal
+from cellctl.kinds.ibm7545.states import RobotFunction, robot_refusal
+from cellctl.kinds.kind import MachineState
+from cellctl.link import ROBOT_LINE, LineSettings, Link, TrafficLog
 
-from .base import LinkDriver
-from .state import StateStore
 
-#: Robot states the host keeps (spec: "Robot states (kept by the host)").
-ROBOT_STATES = {
-    0: "Uninitialized",
-    1: "Initialized (auto mode)",
-    2: "Executing",
-}
+class RobotState(MachineState):
+    """Robot states the host keeps (spec: "Robot states (kept by the host)")."""
+
+    UNINITIALIZED = 0, "Uninitialized"
+    INITIALIZED = 1, "Initialized (auto mode)"
+    EXECUTING = 2, "Executing"
+
+
+#: Robot states in words.
+ROBOT_STATES = {int(s): s.text for s in RobotState}
 #: The condition each host state shows on every surface.
-ROBOT_CONDITIONS = {0: Condition.NOT_READY, 1: Condition.IDLE, 2: Condition.BUSY}
+ROBOT_CONDITIONS: dict[int, Condition] = {
+    RobotState.UNINITIALIZED: Condition.NOT_READY,
+    RobotState.INITIALIZED: Condition.IDLE,
+    RobotState.EXECUTING: Condition.BUSY,
+}
 
 
 def robot_condition(state: int, ok: bool = True) -> Condition:
@@ -104,6 +123,9 @@ def robot_condition(state: int, ok: bool = True) -> Condition:
 
 #: Reject codes after which the controller is known to be uninitialized (partitions gone).
 _COLD_REJECTS = {48}
+#: Rejects after which a start needs an initialize first: improper startup sequence (48),
+#: manipulator power off (128).
+_NEEDS_INITIALIZE = frozenset({48, 128})
 #: Reject code the controller gives for selecting an empty partition.
 _EMPTY_PARTITION = 83
 #: Rejects that say the line garbled a download, not that the controller cannot take it:
@@ -123,23 +145,24 @@ ProgressCallback = Callable[[int, int, int], None]
 """``progress(records_done, records_total, bytes_sent)``, called after every Ack."""
 
 
-@dataclass(frozen=True)
-class RobotConfig:
-    """Deadlines and assumed values; every one can be set per robot (``cell.toml``)."""
+class RobotConfig(BaseModel):
+    """Deadlines and assumed values; every one can be set per robot (``cell.toml`` options)."""
 
-    reply_timeout: float = 2.0
+    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
+
+    reply_timeout: PositiveFloat = 2.0
     """Seconds the controller may take to start answering (beyond the wire time)."""
-    busy_silence: float = 30.0
+    busy_silence: PositiveFloat = 30.0
     """Seconds of silence tolerated while the controller is busy (it repeats Xoff every ~25 s)."""
-    busy_ceiling: float = 300.0
+    busy_ceiling: PositiveFloat = 300.0
     """Seconds a busy controller may keep the host waiting in all (return home, a long stop)."""
-    checksum_retries: int = 3
+    checksum_retries: NonNegativeInt = 3
     """Times a read with a bad D-record checksum (or a garbled handshake) is repeated."""
-    download_retries: int = 3
+    download_retries: NonNegativeInt = 3
     """Times a download refused for a transmission error is sent again from its N record."""
-    retry_settle: float = 0.2
+    retry_settle: NonNegativeFloat = 0.2
     """Seconds of quiet line awaited (input discarded) before a retry."""
-    erreset_operand: int = int(ExecuteOperand.ERRESET)
+    erreset_operand: Annotated[int, Field(ge=0, le=255)] = int(ExecuteOperand.ERRESET)
     """ERRESET's operand: not in the source, **assumed** 24."""
 
 
@@ -194,7 +217,7 @@ class Ibm7545Robot(LinkDriver):
         saved = self._attach(link, name, store)
         self.config = config or RobotConfig()
         self.counters = RobotCounters()
-        self.state: int = int(saved.get("state", 0))
+        self.state = RobotState(int(saved.get("state", 0)))
         self.partitions: dict[int, str | None] = {p: None for p in PARTITIONS}
         for p, prog in saved.get("partitions", {}).items():
             if int(p) in PARTITIONS:
@@ -205,6 +228,7 @@ class Ibm7545Robot(LinkDriver):
         # wire pieces, digest). A DNC server sends one program over and over; encoding,
         # retargeting and hashing it again each time was a quarter of the work per record.
         self._last_wire: tuple[ProgramFile, int, ProgramFile, list[bytes], str] | None = None
+        self._used: dict[int, float] = {}  # partition -> when its program last ran (LRU)
         # One transaction at a time on the line: a monitor polling status and a scheduler
         # starting programs may share one driver.
         self._lock = asyncio.Lock()
@@ -244,7 +268,7 @@ class Ibm7545Robot(LinkDriver):
             }
         )
 
-    def _set_state(self, state: int, *, flush: bool = False) -> None:
+    def _set_state(self, state: RobotState, *, flush: bool = False) -> None:
         self.state = state
         if flush:
             self.partitions = {p: None for p in PARTITIONS}
@@ -267,6 +291,50 @@ class Ibm7545Robot(LinkDriver):
     def holds(self, partition: int, program: ProgramFile) -> bool:
         """True if the host's view says ``partition`` holds exactly ``program``."""
         return self.digests.get(partition) == _digest(program.with_partition(partition))
+
+    # -- the robot family (cellctl.kinds.families.Robot) -------------------------------------------
+
+    @property
+    def running(self) -> bool:
+        return self.state == RobotState.EXECUTING
+
+    @property
+    def ready(self) -> bool:
+        return self.state == RobotState.INITIALIZED
+
+    @property
+    def cold(self) -> bool:
+        return self.state == RobotState.UNINITIALIZED
+
+    def host_status(self) -> HostStatus:
+        """The host state in words and its condition (no byte sent)."""
+        return HostStatus(RobotState.words(self.state), robot_condition(self.state))
+
+    def needs_initialize(self, error: DeviceError) -> bool:
+        return not self.ready or error.code in _NEEDS_INITIALIZE
+
+    async def ensure_program(
+        self, name: str, program: ProgramFile, progress: RecordsProgress | None = None
+    ) -> int:
+        """The partition holding ``program``: downloaded into an empty one, or else into the
+        least recently used, only when no partition holds it already."""
+        for p in PARTITIONS:
+            if self.holds(p, program):
+                self._used[p] = asyncio.get_running_loop().time()
+                return p
+        empty = [p for p in PARTITIONS if self.partitions.get(p) is None]
+        target = empty[0] if empty else min(PARTITIONS, key=lambda p: self._used.get(p, 0.0))
+        await self.download(target, program, progress=progress)
+        self._used[target] = asyncio.get_running_loop().time()
+        return target
+
+    async def start(self, slot: int) -> None:
+        """Run the program in partition ``slot`` (GO)."""
+        await self.go(slot)
+
+    async def wait_end(self, done_output: int, *, timeout: float, poll: float = 0.1) -> None:
+        """Wait for the program's "cycle done" output (see :meth:`wait_cycle_end`)."""
+        await self.wait_cycle_end(done_output, timeout=timeout, poll=poll)
 
     # -- low-level pieces --------------------------------------------------------------------------
 
@@ -451,7 +519,7 @@ class Ibm7545Robot(LinkDriver):
             self._in_reject_read = False
         self.counters.rejects.append(code)
         if code in _COLD_REJECTS:
-            self._set_state(0, flush=True)
+            self._set_state(RobotState.UNINITIALIZED, flush=True)
         raise DeviceError(code, reject_message(code), detail=f"{self.name}: {what}")
 
     # -- what a user wants done -------------------------------------------------------------------
@@ -463,7 +531,7 @@ class Ibm7545Robot(LinkDriver):
     async def auto_mode(self) -> None:
         """Auto-execution mode (X 20); the robot is then initialized (state 1)."""
         await self._execute(ExecuteOperand.AUTO, "auto mode")
-        self._set_state(1)
+        self._set_state(RobotState.INITIALIZED)
 
     async def initialize(self) -> None:
         """Return home, then auto mode: state 1, ready for downloads."""
@@ -575,7 +643,7 @@ class Ibm7545Robot(LinkDriver):
         """Run the selected application (X 22): state 2."""
         self._guard(RobotFunction.START_CYCLE)
         await self._execute(ExecuteOperand.START_CYCLE, "start cycle")
-        self._set_state(2)
+        self._set_state(RobotState.EXECUTING)
 
     async def go(self, partition: int) -> None:
         """Run the program in ``partition``: select application, then start cycle."""
@@ -588,12 +656,12 @@ class Ibm7545Robot(LinkDriver):
     async def stop(self) -> None:
         """Stop the cycle (X 23): state 1. Accepts Ack or Xoff ... Xon as completion."""
         await self._execute(ExecuteOperand.STOP_CYCLE, "stop cycle")
-        self._set_state(1)
+        self._set_state(RobotState.INITIALIZED)
 
     async def halt(self) -> None:
         """Stop the cycle and treat the robot as uninitialized: state 0, partitions flushed."""
         await self._execute(ExecuteOperand.STOP_CYCLE, "halt")
-        self._set_state(0, flush=True)
+        self._set_state(RobotState.UNINITIALIZED, flush=True)
 
     async def reset_errors(self) -> None:
         """ERRESET: clear machine-status and reject-status errors (operand configurable)."""
@@ -639,7 +707,9 @@ class Ibm7545Robot(LinkDriver):
             if watch:
                 status = await self.machine_status()
                 if status.flags & HALTING_FLAGS:
-                    self._set_state(0)  # the cycle was aborted; the controller needs INIT
+                    self._set_state(
+                        RobotState.UNINITIALIZED
+                    )  # the cycle was aborted; the controller needs INIT
                     raise RobotHalted(status, f"{self.name}: cycle aborted")
             if loop.time() >= deadline:
                 raise SignalTimeout(
@@ -651,15 +721,14 @@ class Ibm7545Robot(LinkDriver):
         """Wait for the running program's "cycle done" output (watching the machine status,
         see :meth:`wait_output`); the robot is then state 1."""
         await self.wait_output(done_output, True, timeout=timeout, poll=poll, watch=True)
-        self._set_state(1)
+        self._set_state(RobotState.INITIALIZED)
 
 
-class RobotHalted(DeviceError):
+class RobotHalted(CycleAborted):
     """The machine status says the arm stopped (servo error, power failure); ``status``."""
 
     def __init__(self, status: MachineStatus, detail: str) -> None:
-        super().__init__(status.flags, str(status), detail=detail)
-        self.status = status
+        super().__init__(status, detail, code=status.flags)
 
 
 class _AckLost(LinkTimeout):

@@ -11,7 +11,7 @@ import enum
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
-from cellctl.protocol.dynalan.table import Kind, Units
+from cellctl.kinds.dyna2400.dynalan.table import Kind, Units
 
 
 @dataclass(frozen=True, slots=True)

@@ -18,10 +18,12 @@ from rich.progress import (
 )
 from rich.table import Table
 
+from cellctl.emulators.serve import parse_fault
 from cellctl.errors import UsageError
-from cellctl.protocol.aml import compile_source
+from cellctl.kinds.ibm7545.aml import compile_source
+from cellctl.link import ROBOT_LINE
 from cellctl.ui.calls import LazyBar, machine_call, read_program
-from cellctl.ui.common import MachineGroup, console, run
+from cellctl.ui.common import MachineGroup, console, fault_help, run
 
 
 def _call(ctx: click.Context, function: str, **params: Any) -> dict[str, Any]:
@@ -193,3 +195,56 @@ def compile(source: Path, output: Path | None, partition: int, name: str | None)
         main()
 
     run(amain)
+
+
+def _emulate_command() -> click.Command:
+    from cellctl.kinds.ibm7545.emulator import FAULTS, Ibm7545Emulator
+    from cellctl.ui.emulate_cli import (
+        fleet_options,
+        listen_options,
+        serve_fleet_until_stopped,
+        serve_until_stopped,
+    )
+
+    def callback(
+        listen: str,
+        time_scale: float,
+        no_pacing: bool,
+        line: str,
+        fault: tuple[str, ...],
+        count: int,
+        workers: int,
+    ) -> None:
+        faults = [parse_fault(text) for text in fault]
+        for name, _ in faults:
+            if name not in FAULTS:
+                raise UsageError(f"unknown fault {name!r}; known: {', '.join(FAULTS)}")
+
+        def make(index: int = 0) -> Ibm7545Emulator:
+            device = Ibm7545Emulator(time_scale=time_scale)
+            for name, arg in faults:
+                device.set_fault(name, arg)
+            return device
+
+        async def main() -> None:
+            what = "IBM 7545 emulator"
+            if count == 1 and workers == 1:
+                await serve_until_stopped(make(), listen, line, not no_pacing, what)
+            else:
+                await serve_fleet_until_stopped(
+                    make, listen, line, not no_pacing, what, count, workers
+                )
+
+        run(main)
+
+    return click.Command(
+        "robot",
+        callback=callback,
+        params=[*listen_options(ROBOT_LINE, FAULTS), *fleet_options()],
+        help="Emulate an IBM 7545/7547 robot controller (or --count of them).\n\n"
+        + fault_help(FAULTS),
+    )
+
+
+#: ``cellctl emulate robot``.
+emulate_robot = _emulate_command()

@@ -10,8 +10,8 @@ Coordinates are the machine's reference coordinates in the program's units. Prob
 way (a move outside the travel, a statement that cannot run) are collected in ``faults``, not
 raised, so one run reports them all; the validator turns them into problems.
 
-Cost: the trace holds at most :data:`~cellctl.protocol.dynalan.table.TOOLPATH_POINTS_MAX`
-points and executes at most :data:`~cellctl.protocol.dynalan.table.TOOLPATH_STEPS_MAX`
+Cost: the trace holds at most :data:`~cellctl.kinds.dyna2400.dynalan.table.TOOLPATH_POINTS_MAX`
+points and executes at most :data:`~cellctl.kinds.dyna2400.dynalan.table.TOOLPATH_STEPS_MAX`
 statements (REPEATs unrolled); a program that goes past either gets a ``size`` fault at the
 line where it did and is traced no further, so memory and time stay bounded whatever motion
 the program describes.
@@ -22,7 +22,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-from cellctl.protocol.dynalan.machine import (
+from cellctl.kinds.dyna2400.dynalan.machine import (
     MachineConfig,
     MachineState,
     Move,
@@ -32,8 +32,8 @@ from cellctl.protocol.dynalan.machine import (
     run_block,
     travel_fault,
 )
-from cellctl.protocol.dynalan.splitter import Block, BlockLine
-from cellctl.protocol.dynalan.table import TOOLPATH_POINTS_MAX, TOOLPATH_STEPS_MAX, Units
+from cellctl.kinds.dyna2400.dynalan.splitter import Block, BlockLine
+from cellctl.kinds.dyna2400.dynalan.table import TOOLPATH_POINTS_MAX, TOOLPATH_STEPS_MAX, Units
 
 
 @dataclass(frozen=True, slots=True)

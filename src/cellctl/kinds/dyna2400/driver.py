@@ -30,7 +30,7 @@ a block to be taken, the block's estimated machining time times ``block_margin``
 Results: success returns a :class:`Result` with the source's message (code 0); a refusal
 raises :class:`DeviceError` (the machine's state) or :class:`MillInputError` (the file),
 both carrying the spec's result code and message. The host's state guards every function
-(:data:`cellctl.protocol.states.MILL_TABLE`): read after CTS has moved it on, before any byte
+(:data:`cellctl.kinds.dyna2400.states.MILL_TABLE`): read after CTS has moved it on, before any byte
 of the function goes out. A forced INITIALIZE is allowed in every state: the way out of one
 that is stuck.
 """
@@ -40,16 +40,18 @@ from __future__ import annotations
 import asyncio
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Literal
 
-from cellctl.drivers.base import LinkDriver
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from cellctl.drivers.base import CallbackOutput as CallbackOutput
+from cellctl.drivers.base import LinkDriver, StartOutput
 from cellctl.drivers.state import StateStore
 from cellctl.errors import DeviceError, LinkTimeout, UsageError
 from cellctl.kinds import Condition
-from cellctl.link import MILL_LINE, LineSettings, Link, TrafficLog
-from cellctl.protocol.dynalan import (
+from cellctl.kinds.dyna2400.dynalan import (
     Block,
     Kind,
     MachineConfig,
@@ -63,24 +65,34 @@ from cellctl.protocol.dynalan import (
     parse_program,
     validate,
 )
-from cellctl.protocol.dynalan.table import AXES, CTRL_Z, DC1, DC3, ENQ, LINE_END
-from cellctl.protocol.states import MillFunction, mill_host_state, mill_refusal
+from cellctl.kinds.dyna2400.dynalan.table import AXES, CTRL_Z, DC1, DC3, ENQ, LINE_END
+from cellctl.kinds.dyna2400.states import MillFunction, mill_host_state, mill_refusal
+from cellctl.kinds.families import RunProgress
+from cellctl.kinds.kind import MachineState as KindState
+from cellctl.link import MILL_LINE, LineSettings, Link, TrafficLog
 
-#: Machine states, as the source's STATUS() prints them.
-MILL_STATES = {
-    0: "Uninitialized, not ready",
-    1: "Uninitialized, Ready",
-    2: "Initialized",
-    3: "Downloaded, active",
-    4: "Go, active",
-}
+
+class MillState(KindState):
+    """Machine states, as the source's STATUS() prints them."""
+
+    NOT_READY = 0, "Uninitialized, not ready"
+    READY = 1, "Uninitialized, Ready"
+    INITIALIZED = 2, "Initialized"
+    DOWNLOADED = 3, "Downloaded, active"
+    GO = 4, "Go, active"
+
+
+#: Machine states in words.
+MILL_STATES = {int(s): s.text for s in MillState}
+#: States in which a block or a GO program runs.
+RUNNING = frozenset({MillState.DOWNLOADED, MillState.GO})
 #: The condition each mill state shows on every surface.
-MILL_CONDITIONS = {
-    0: Condition.NOT_READY,
-    1: Condition.NOT_READY,
-    2: Condition.IDLE,
-    3: Condition.BUSY,
-    4: Condition.BUSY,
+MILL_CONDITIONS: dict[int, Condition] = {
+    MillState.NOT_READY: Condition.NOT_READY,
+    MillState.READY: Condition.NOT_READY,
+    MillState.INITIALIZED: Condition.IDLE,
+    MillState.DOWNLOADED: Condition.BUSY,
+    MillState.GO: Condition.BUSY,
 }
 INITIALIZE_RESULTS = {
     0: "Initializing was correct",
@@ -136,6 +148,26 @@ class MillStatus:
     state: int
     ready: bool  # CTS high
     condition: str | None = None  # REFERENCE_ZERO_NOT_SET or EXECUTING
+    initialized: bool = False  # its setup program went out since the last END
+
+    @property
+    def set_up(self) -> bool:
+        """Initialized and idle (state 2), whatever CTS says."""
+        return self.state == MillState.INITIALIZED
+
+    @property
+    def takes_work(self) -> bool:
+        """State 2 with CTS high: a program may go out now."""
+        return self.ready and self.set_up
+
+    @property
+    def awaiting_operator(self) -> bool:
+        """The setup went out; the operator has yet to set the reference zero (state 1)."""
+        return self.state == MillState.READY and not self.ready and self.initialized
+
+    @property
+    def waiting_for(self) -> str | None:
+        return self.condition
 
     @property
     def state_text(self) -> str:
@@ -150,7 +182,7 @@ class MillStatus:
     def kind_condition(self) -> Condition:
         """The condition this status shows on every surface (an initialized mill without
         CTS waits for its operator's reference zero: not ready)."""
-        if self.state == 2 and not self.ready:
+        if self.state == MillState.INITIALIZED and not self.ready:
             return Condition.NOT_READY
         return MILL_CONDITIONS.get(self.state, Condition.NOT_READY)
 
@@ -160,11 +192,12 @@ class MillStatus:
         return f"state {self.state} ({self.state_text}{extra}; CTS {cts})"
 
 
-@dataclass(frozen=True)
-class MillConfig:
+class MillConfig(BaseModel):
     """Deadlines and per-machine facts; every one can be set per mill (``cell.toml`` options)."""
 
-    readiness: str = "modem"
+    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
+
+    readiness: Literal["modem", "inband"] = "modem"
     """``modem``: CTS from the line (serial, RFC 2217). ``inband``: DC1/DC3 (project's own)."""
     ready_wait: float = 2.0
     """Seconds the controller may take to show READY before "Machine not ready"."""
@@ -182,59 +215,30 @@ class MillConfig:
     """Write no faster than the line carries (honest progress, bounded buffers)."""
     go_pulse: float = 0.5
     """Seconds the start output stays on for GO."""
-    start_signal: str | None = None
-    """The PLC coil wired to the controller's start input (e.g. ``go_1``), for the CLI's GO."""
-    travel: Travel = field(default_factory=Travel)
+    travel: Travel = Field(default_factory=Travel)
+    """The axes' travel limits, mm: a table of x_min ... z_max."""
     rapid_rate: float = 50.0
+    """Rapid traverse rate, mm/s (for the machining estimate)."""
     end_program: str | None = None
     """Path of the END program; the built-in ``000 END`` if None."""
 
     @classmethod
     def from_options(cls, options: dict[str, Any]) -> MillConfig:
         """From ``cell.toml`` options; ``travel`` is a table of x_min ... z_max."""
-        fields = set(cls.__dataclass_fields__)
-        unknown = set(options) - fields
-        if unknown:
-            raise UsageError(f"unknown mill option(s): {', '.join(sorted(unknown))}")
-        values = dict(options)
-        if "travel" in values:
-            values["travel"] = Travel(**values["travel"])
-        return cls(**values)
+        try:
+            return cls.model_validate(options)
+        except ValidationError as e:
+            unknown = [str(i["loc"][0]) for i in e.errors() if i["type"] == "extra_forbidden"]
+            if unknown:
+                raise UsageError(f"unknown mill option(s): {', '.join(sorted(unknown))}") from None
+            raise UsageError(f"mill options: {e.errors()[0]['msg']}") from None
 
     def machine(self) -> MachineConfig:
         return MachineConfig(travel=self.travel, rapid_rate=self.rapid_rate)
 
 
-class StartOutput(Protocol):
-    """A digital output wired to the controller's cycle-start input (through the cell's PLC)."""
-
-    async def pulse(self, seconds: float) -> None: ...
-
-
-class CallbackOutput:
-    """A start output that calls ``fn`` (e.g. a PLC client's coil write, or an emulator's
-    ``cycle_start``)."""
-
-    def __init__(self, fn: Callable[[], object]) -> None:
-        self._fn = fn
-
-    async def pulse(self, seconds: float) -> None:
-        result = self._fn()
-        if asyncio.iscoroutine(result):
-            await result
-
-
-@dataclass
-class Progress:
-    """Where a download stands; passed to the progress callback after every line."""
-
-    block: int
-    blocks: int
-    lines_sent: int
-    lines_total: int
-    bytes_sent: int
-    bytes_total: int
-    phase: str  # "waiting" (for CTS), "sending", "machining", "done"
+#: Where a download stands; passed to the progress callback after every line.
+Progress = RunProgress
 
 
 @dataclass
@@ -335,7 +339,7 @@ class Dyna2400Mill(LinkDriver):
         saved = self._attach(link, name, store)
         self.start_output = start_output
         self._ready = _Readiness(link, self.config.readiness == "inband")
-        self.state: int = int(saved.get("state", 0))
+        self.state = MillState(int(saved.get("state", 0)))
         self.initialized: bool = bool(saved.get("initialized", False))
         self.units = Units(saved["units"]) if saved.get("units") else None
         self.feed: dict[str, float] = dict(saved.get("feed", {}))
@@ -383,7 +387,7 @@ class Dyna2400Mill(LinkDriver):
         )
 
     def _set_state(self, state: int) -> None:
-        self.state = state
+        self.state = MillState(state)
         self._save()
 
     async def _guard(self, function: MillFunction, *, refresh: bool = True) -> None:
@@ -497,6 +501,43 @@ class Dyna2400Mill(LinkDriver):
 
     # -- the library functions ---------------------------------------------------------------------
 
+    # -- the mill family (cellctl.kinds.families.Mill) -------------------------------------------
+
+    @property
+    def running(self) -> bool:
+        return self.state in RUNNING
+
+    @property
+    def state_text(self) -> str:
+        return MillState.words(self.state)
+
+    @property
+    def manual(self) -> bool:
+        return self.state == MillState.NOT_READY
+
+    @property
+    def ready_wait(self) -> float:
+        return self.config.ready_wait
+
+    @property
+    def setup_timeout(self) -> float:
+        return self.config.setup_timeout
+
+    def host_status(self) -> MillStatus:
+        """The status from the host's state, no byte sent (a busy mill: executing)."""
+        busy = self.state in (MillState.INITIALIZED, *RUNNING)
+        return MillStatus(self.state, False, EXECUTING if busy else None, self.initialized)
+
+    async def setup(self, program: Path, *, force: bool) -> None:
+        """INITIALIZE with the setup program (forced: the way out of any state)."""
+        await self.initialize(program, force=force)
+
+    async def run(
+        self, program: Path, *, progress: Callable[[RunProgress], None] | None = None
+    ) -> None:
+        """Validate, split and stream ``program`` block by block until its last block ends."""
+        await self.download(program, progress=progress)
+
     async def initialize(self, setup_program: str | Path | Program, force: bool = False) -> Result:
         """INITIALIZE: send the setup program; the operator then sets the reference zero.
 
@@ -553,7 +594,7 @@ class Dyna2400Mill(LinkDriver):
             condition = REFERENCE_ZERO_NOT_SET
         elif not ready and self.state in (2, 3, 4):
             condition = EXECUTING
-        return MillStatus(self.state, ready, condition)
+        return MillStatus(self.state, ready, condition, self.initialized)
 
     async def _ready_for_program(self) -> None:
         await self._guard(MillFunction.DOWNLOAD)

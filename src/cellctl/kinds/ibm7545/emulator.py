@@ -18,7 +18,8 @@ What it models:
   EOT and leaves a reject status (R 02), e.g. start before initialize -> 48, select an empty
   partition -> 83, unknown operand -> 32, bad record -> 16, unknown identifier -> 96, host silent
   while a record is expected (30 s) -> 112, manipulator power off -> 128.
-- Programs compiled by :mod:`cellctl.protocol.aml` run in the background while state is 2: SCARA
+- Programs compiled by :mod:`cellctl.kinds.ibm7545.aml` run in the background while state
+  is 2: SCARA
   inverse kinematics (link lengths assumed 400 + 250 mm), moves timed from Cartesian distance
   and speed (assumed 500 mm/s, scaled by SPEED), workspace check (data error 64, point out of
   workspace), gripper and Z on outputs 16 and 15, WRITEO, WAITI blocking until
@@ -50,8 +51,8 @@ from typing import NoReturn, TypeVar
 from cellctl.emulators.onsets import FaultOnsets
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
 from cellctl.errors import ProtocolError, UsageError
-from cellctl.protocol.aml import Instruction, Op, decode_program
-from cellctl.protocol.robot import (
+from cellctl.kinds.ibm7545.aml import Instruction, Op, decode_program
+from cellctl.kinds.ibm7545.records import (
     ACK,
     CR,
     DATA_ERROR_FLAG,
@@ -97,7 +98,7 @@ FAULTS: dict[str, str] = {
     "probability RATE (e.g. 3e-4,7)",
 }
 
-# Reject codes used here (messages in cellctl.protocol.robot.REJECT_CODES).
+# Reject codes used here (messages in cellctl.kinds.ibm7545.records.REJECT_CODES).
 RECORD_FORMAT_ERROR = 16
 UNDEFINED_RECORD = 32
 IMPROPER_STARTUP = 48
@@ -106,7 +107,7 @@ INVALID_APPLICATION = 83
 INVALID_IDENTIFIER = 96
 XOFF_TIME_OUT = 112
 MANIPULATOR_POWER_OFF = 128
-# Data error codes used here (messages in cellctl.protocol.robot.DATA_ERRORS).
+# Data error codes used here (messages in cellctl.kinds.ibm7545.records.DATA_ERRORS).
 POINT_OUT_OF_WORKSPACE = 64
 PROGRAMMING_ERROR = 18
 

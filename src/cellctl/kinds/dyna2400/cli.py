@@ -15,10 +15,10 @@ from typing import Any
 import click
 from rich.progress import BarColumn, TextColumn, TimeRemainingColumn
 
-from cellctl.drivers.mill import MillConfig
 from cellctl.errors import UsageError
-from cellctl.protocol.dynalan import ProgramRole, Severity, ValidationContext, parse_program
-from cellctl.protocol.dynalan import validate as validate_program
+from cellctl.kinds.dyna2400.driver import MillConfig
+from cellctl.kinds.dyna2400.dynalan import ProgramRole, Severity, ValidationContext, parse_program
+from cellctl.kinds.dyna2400.dynalan import validate as validate_program
 from cellctl.service.machines import load_cell_file
 from cellctl.ui.calls import LazyBar, machine_call, read_program
 from cellctl.ui.common import MachineGroup, cell_dir, console, err_console, fault_help, run
@@ -145,12 +145,12 @@ def load(ctx: click.Context, program: Path) -> None:
 @click.option(
     "--start-signal",
     metavar="COIL",
-    help="PLC coil wired to the controller's start input (default: options.start_signal).",
+    help="PLC coil wired to the controller's start input (default: the mill's go_output).",
 )
 @click.pass_context
 def go(ctx: click.Context, start_signal: str | None) -> None:
     """GO: start the loaded program by pulsing the PLC coil wired to the start input."""
-    options = {"start_signal": start_signal} if start_signal else None
+    options = {"go_output": start_signal} if start_signal else None
     _print(machine_call(ctx, "mill", "go", {}, options=options))
 
 
@@ -227,7 +227,7 @@ def check(ctx: click.Context, program: Path, role: str) -> None:
 @click.pass_context
 def preview(ctx: click.Context, program: Path, output: Path) -> None:
     """Draw PROGRAM's toolpath (XY view, Z profile, block boundaries) to an SVG or PNG."""
-    from cellctl.protocol.preview import render_png, render_svg
+    from cellctl.kinds.dyna2400.preview import render_png, render_svg
 
     _program_file(program)
     suffix = output.suffix.lower()
@@ -267,7 +267,7 @@ _PANEL_HELP = (
 
 async def _panel(device: Any) -> None:
     """Manual mode: operator keys from stdin, one a line."""
-    from cellctl.emulators.mill import LinkMode
+    from cellctl.kinds.dyna2400.emulator import LinkMode
 
     modes = {
         "execute": LinkMode.PROGRAM_EXECUTE,
@@ -309,8 +309,8 @@ async def _panel(device: Any) -> None:
 
 
 def _emulate_mill_command() -> click.Command:
-    from cellctl.emulators.mill import FAULTS, Dyna2400Emulator, LinkMode, OperatorDelays
     from cellctl.emulators.serve import parse_fault
+    from cellctl.kinds.dyna2400.emulator import FAULTS, Dyna2400Emulator, LinkMode, OperatorDelays
     from cellctl.link import MILL_LINE
 
     def callback(

@@ -22,11 +22,11 @@ import re
 from bisect import bisect_right
 from dataclasses import dataclass, field, replace
 
-from cellctl.protocol.dynalan.machine import MachineConfig, MachineState
-from cellctl.protocol.dynalan.model import Line, Problem, Program, ProgramRole, Severity
-from cellctl.protocol.dynalan.parser import is_block_end
-from cellctl.protocol.dynalan.splitter import Block, SplitError, split_program
-from cellctl.protocol.dynalan.table import (
+from cellctl.kinds.dyna2400.dynalan.machine import MachineConfig, MachineState
+from cellctl.kinds.dyna2400.dynalan.model import Line, Problem, Program, ProgramRole, Severity
+from cellctl.kinds.dyna2400.dynalan.parser import is_block_end
+from cellctl.kinds.dyna2400.dynalan.splitter import Block, SplitError, split_program
+from cellctl.kinds.dyna2400.dynalan.table import (
     ARC_MAX_DEGREES,
     BLOCK_END_LINE,
     DECIMALS,
@@ -42,7 +42,7 @@ from cellctl.protocol.dynalan.table import (
     Units,
     scale,
 )
-from cellctl.protocol.dynalan.toolpath import Toolpath, build_toolpath
+from cellctl.kinds.dyna2400.dynalan.toolpath import Toolpath, build_toolpath
 
 
 @dataclass(frozen=True)

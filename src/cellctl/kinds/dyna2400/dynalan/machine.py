@@ -18,8 +18,8 @@ Times: each move takes the longest of its axes' times (each axis runs at most at
 rapid moves at the configured rapid rate); arcs take their length at the XY feed rate.
 
 Cost: a statement's motion is counted before it is made. A canned cycle or a drill hole that
-would make more than :data:`~cellctl.protocol.dynalan.table.PASSES_MAX` passes (rings, rows,
-pecks) or more than :data:`~cellctl.protocol.dynalan.table.STATEMENT_POINTS_MAX` points is a
+would make more than :data:`~cellctl.kinds.dyna2400.dynalan.table.PASSES_MAX` passes (rings, rows,
+pecks) or more than :data:`~cellctl.kinds.dyna2400.dynalan.table.STATEMENT_POINTS_MAX` points is a
 :class:`ProgramFault`, as is a value whose arithmetic cannot end (a feed rate, tool diameter,
 pass depth or peck of 0 or below), so no program costs more than its size allows.
 """
@@ -33,8 +33,8 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, replace
 
 from cellctl.errors import CellctlError
-from cellctl.protocol.dynalan.model import Statement
-from cellctl.protocol.dynalan.table import (
+from cellctl.kinds.dyna2400.dynalan.model import Statement
+from cellctl.kinds.dyna2400.dynalan.table import (
     ARC_MAX_DEGREES,
     AXES,
     BLOCK_END_LINE,

@@ -27,10 +27,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from cellctl.errors import UsageError
-from cellctl.protocol.dynalan.machine import Entry
-from cellctl.protocol.dynalan.model import Line, Program, Statement
-from cellctl.protocol.dynalan.parser import is_block_end
-from cellctl.protocol.dynalan.table import (
+from cellctl.kinds.dyna2400.dynalan.machine import Entry
+from cellctl.kinds.dyna2400.dynalan.model import Line, Program, Statement
+from cellctl.kinds.dyna2400.dynalan.parser import is_block_end
+from cellctl.kinds.dyna2400.dynalan.table import (
     BLOCK_BODY_MAX,
     BLOCK_END_LINE,
     LINE_END,

@@ -51,7 +51,7 @@ from dataclasses import dataclass
 from decimal import Decimal, InvalidOperation
 
 from cellctl.errors import FramingError, UsageError
-from cellctl.protocol.robot import ProgramFile, Record
+from cellctl.kinds.ibm7545.records import ProgramFile, Record
 
 __all__ = [
     "OPCODES",

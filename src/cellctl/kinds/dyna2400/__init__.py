@@ -1,0 +1,1 @@
+"""The Dyna 2400 CNC mill: DYNALAN, driver, emulator."""

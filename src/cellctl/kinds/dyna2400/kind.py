@@ -1,0 +1,144 @@
+"""The Dyna 2400 CNC mill, declared for the registry (entry point ``dyna2400`` in
+``cellctl.machine_kinds``)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from pydantic import BaseModel
+
+from cellctl.emulators.serve import scaled_deadline
+from cellctl.errors import UsageError
+from cellctl.kinds.dyna2400 import dynalan
+from cellctl.kinds.dyna2400.driver import Dyna2400Mill, MillConfig, MillState
+from cellctl.kinds.dyna2400.emulator import Dyna2400Emulator, OperatorDelays
+from cellctl.kinds.kind import (
+    CheckedProgram,
+    DriverSpec,
+    EmulatorSpec,
+    MachineKind,
+    Preview,
+    ProgramLanguage,
+    ProgramRole,
+)
+
+if TYPE_CHECKING:
+    import click
+
+    from cellctl.emulators.serve import EmulatedDevice
+    from cellctl.kinds.menu import MachineFunction
+
+#: The emulated cell's automatic operator: seconds to power on, press keys, jog to zero.
+CELL_OPERATOR = OperatorDelays(power_on=3.0, keys=2.0, setup=20.0)
+
+
+async def _open(spec: DriverSpec) -> Dyna2400Mill:
+    assert isinstance(spec.options, MillConfig)
+    return await Dyna2400Mill.connect(
+        spec.url,
+        name=spec.name,
+        settings=spec.settings,
+        store=spec.store,
+        config=spec.options,
+        start_output=spec.start_output,
+        trace=spec.trace,
+    )
+
+
+def _emulator(spec: EmulatorSpec) -> EmulatedDevice:
+    delays = CELL_OPERATOR if spec.operator else OperatorDelays()
+    return Dyna2400Emulator(time_scale=spec.time_scale, delays=delays)
+
+
+_ROLES = {
+    ProgramRole.SETUP: dynalan.ProgramRole.SETUP,
+    ProgramRole.MILLING: dynalan.ProgramRole.MILLING,
+}
+
+
+def validation_context(options: BaseModel, role: ProgramRole) -> dynalan.ValidationContext:
+    config = options if isinstance(options, MillConfig) else MillConfig()
+    return dynalan.ValidationContext(
+        role=_ROLES.get(role, dynalan.ProgramRole.AUTO), config=config.machine()
+    )
+
+
+def _check(path: Path, role: ProgramRole, options: BaseModel) -> CheckedProgram:
+    """Parse and validate a DYNALAN program: its problems, lines and machining time."""
+    try:
+        text = path.read_text(encoding="ascii")
+    except (OSError, UnicodeDecodeError) as e:
+        return CheckedProgram((f"{path}: cannot read: {e}",))
+    program = dynalan.parse_program(text, name=path.name)
+    result = dynalan.validate(program, validation_context(options, role))
+    seconds = result.toolpath.machining_seconds if result.toolpath else 0.0
+    return CheckedProgram(
+        tuple(p.format(str(path)) for p in result.errors),
+        lines=len(result.program.lines),
+        machining_s=seconds,
+    )
+
+
+def _split(text: str) -> list[str]:
+    blocks = dynalan.split_program(dynalan.parse_program(text))
+    return [b.text() for b in blocks]
+
+
+def _preview(text: str, name: str, options: BaseModel) -> Preview:
+    from cellctl.kinds.dyna2400.preview import render_svg
+
+    parsed = dynalan.parse_program(text, name=name)
+    config = options if isinstance(options, MillConfig) else MillConfig()
+    result = dynalan.validate(parsed, dynalan.ValidationContext(config=config.machine()))
+    if result.toolpath is None:
+        first = result.errors[0].format(name) if result.errors else ""
+        raise UsageError(f"cannot trace {Path(name).stem}: {first or 'no toolpath'}")
+    return Preview(render_svg(result.toolpath, title=name), result.toolpath.blocks)
+
+
+def _emulated_options(scale: float) -> dict[str, float]:
+    return {
+        "setup_timeout": scaled_deadline(120.0, scale),
+        "block_extra": scaled_deadline(60.0, scale),
+        # The estimate a block's deadline multiplies is in the real cell's time.
+        "block_margin": 2.0 / scale,
+        "ready_wait": 2.0,
+    }
+
+
+def _condition(status: Any) -> Any:
+    return status.kind_condition
+
+
+def _menu() -> Sequence[MachineFunction]:
+    from cellctl.kinds.dyna2400.menu import MENU
+
+    return MENU
+
+
+def _commands() -> Sequence[tuple[str, click.Command]]:
+    from cellctl.kinds.dyna2400.cli import emulate_mill, mill
+
+    return [("", mill), ("emulate", emulate_mill)]
+
+
+DYNA2400 = MachineKind(
+    name="dyna2400",
+    family="mill",
+    maker="Dyna",
+    model="2400 CNC mill",
+    line="4800,7E2",
+    options=MillConfig,
+    open_driver=_open,
+    emulator=_emulator,
+    states=MillState,
+    condition=_condition,
+    language=ProgramLanguage(suffix=".dyn", check=_check, split=_split, preview=_preview),
+    menu=_menu,
+    commands=_commands,
+    emulated_options=_emulated_options,
+    needs_setup=True,
+    description="3-axis CNC mill: DYNALAN blocks streamed as the controller's CTS asks",
+)

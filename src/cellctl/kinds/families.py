@@ -1,0 +1,207 @@
+"""The families the cell works with: :class:`Robot` and :class:`Mill`.
+
+The controller talks to a machine through its family's protocol, never a kind's class: a
+kind's driver implements one of these. The route names programs; the kind knows how to get
+them onto its machine (a robot's partitions, a mill's blocks)::
+
+    slot = await robot.ensure_program("cnc1_to_cnc2", program, progress)
+    await robot.start(slot)
+    await robot.wait_end(done_output=6, timeout=120, poll=0.02)
+
+    await mill.setup(Path("cnc1_setup.dyn"), force=True)
+    await mill.run(Path("base_rough.dyn"), progress=on_progress)
+    status = await mill.status()           # status.takes_work, status.kind_condition
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
+
+from cellctl.drivers.base import CallbackOutput, StartOutput
+from cellctl.errors import DeviceError
+from cellctl.kinds.condition import Condition
+from cellctl.link import Link
+
+__all__ = [
+    "CallbackOutput",
+    "CycleAborted",
+    "Health",
+    "HostStatus",
+    "Mill",
+    "MillReading",
+    "Robot",
+    "RunProgress",
+    "StartOutput",
+]
+
+
+@dataclass(frozen=True)
+class HostStatus:
+    """A machine's state as the host keeps it (no byte sent): its words and condition."""
+
+    text: str
+    condition: Condition
+
+
+class Health(Protocol):
+    """A robot's own status read from the machine: ``ok``, and its words (``str()``)."""
+
+    @property
+    def ok(self) -> bool: ...
+
+
+class CycleAborted(DeviceError):
+    """A running program was aborted by the machine itself (power failure, servo error):
+    :attr:`status` is the machine's status that says why."""
+
+    def __init__(self, status: Health, detail: str, code: int = 0) -> None:
+        super().__init__(code, str(status), detail=detail)
+        self.status = status
+
+
+@dataclass
+class RunProgress:
+    """Where a program run stands; passed to the progress callback as it goes on."""
+
+    block: int
+    blocks: int
+    lines_sent: int
+    lines_total: int
+    bytes_sent: int
+    bytes_total: int
+    phase: str  # "waiting" (for the machine), "sending", "machining", "done"
+
+
+RecordsProgress = Callable[[int, int, int], None]
+"""``progress(done, total, bytes_sent)`` while a program goes onto a robot."""
+
+
+@runtime_checkable
+class Robot(Protocol):
+    """A robot that moves parts between places by running named programs."""
+
+    name: str
+    link: Link
+
+    @property
+    def running(self) -> bool:
+        """A program runs (as the host knows it)."""
+        ...
+
+    @property
+    def ready(self) -> bool:
+        """Initialized and idle: takes a program now."""
+        ...
+
+    @property
+    def cold(self) -> bool:
+        """Not initialized (its programs are gone)."""
+        ...
+
+    def host_status(self) -> HostStatus: ...
+    async def initialize(self) -> None: ...
+    async def stop(self) -> None: ...
+    async def reset_errors(self) -> None: ...
+    def needs_initialize(self, error: DeviceError) -> bool:
+        """Whether a rejection says the robot must be initialized before it runs again."""
+        ...
+
+    async def ensure_program(
+        self, name: str, program: Any, progress: RecordsProgress | None = None
+    ) -> int:
+        """Get ``program`` onto the robot (unless it is there) and return where it is."""
+        ...
+
+    async def start(self, slot: int) -> None: ...
+    async def wait_end(self, done_output: int, *, timeout: float, poll: float = 0.1) -> None: ...
+    async def machine_status(self) -> Health: ...
+    async def close(self) -> None: ...
+
+
+class MillReading(Protocol):
+    """A mill's status as its family reads it."""
+
+    @property
+    def shown(self) -> str:
+        """In the machine's words."""
+        ...
+
+    @property
+    def kind_condition(self) -> Condition: ...
+    @property
+    def ready(self) -> bool:
+        """The machine says it takes input now (a Dyna's CTS)."""
+        ...
+
+    @property
+    def set_up(self) -> bool:
+        """Initialized and idle (it may still wait for ready)."""
+        ...
+
+    @property
+    def takes_work(self) -> bool:
+        """Set up and ready: a program may start now."""
+        ...
+
+    @property
+    def awaiting_operator(self) -> bool:
+        """Its setup went out; the operator has yet to finish it."""
+        ...
+
+    @property
+    def waiting_for(self) -> str | None:
+        """What it waits for, in its words (None: nothing)."""
+        ...
+
+
+@runtime_checkable
+class Mill(Protocol):
+    """A machine that cuts a part with a program, after a setup."""
+
+    name: str
+    link: Link
+
+    @property
+    def initialized(self) -> bool: ...
+    @property
+    def state_text(self) -> str:
+        """Its host state in the machine's words."""
+        ...
+
+    @property
+    def running(self) -> bool:
+        """A program runs (as the host knows it)."""
+        ...
+
+    @property
+    def manual(self) -> bool:
+        """In its operator's hands: nothing of the host's runs there."""
+        ...
+
+    @property
+    def ready_wait(self) -> float:
+        """Seconds it may take to show ready."""
+        ...
+
+    @property
+    def setup_timeout(self) -> float:
+        """Seconds its operator may take to finish a setup."""
+        ...
+
+    def host_status(self) -> MillReading:
+        """Its status from the host's state, no byte sent (while a step runs)."""
+        ...
+
+    async def setup(self, program: Path, *, force: bool) -> None: ...
+    async def run(
+        self, program: Path, *, progress: Callable[[RunProgress], None] | None = None
+    ) -> None: ...
+    async def status(self) -> MillReading: ...
+    async def end(self) -> object:
+        """Stop: back to the operator's hands."""
+        ...
+
+    async def close(self) -> None: ...

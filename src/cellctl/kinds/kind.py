@@ -1,0 +1,222 @@
+"""What a machine kind declares, once: :class:`MachineKind`.
+
+A kind is a small declared object in its own package, registered under the entry-point group
+``cellctl.machine_kinds`` (see :mod:`cellctl.kinds.registry` and docs/kinds.md)::
+
+    SAW = MachineKind(
+        name="saw1",
+        family="mill",
+        maker="Acme",
+        model="Saw 1",
+        line="9600,8N1",
+        options=SawOptions,                 # a pydantic model: cell.toml's options table
+        open_driver=open_saw,               # async (DriverSpec) -> a driver of the family
+        emulator=saw_emulator,              # (EmulatorSpec) -> an EmulatedDevice
+        states=SawState,                    # its state numbers, an IntEnum
+        language=ProgramLanguage(check=check_cut_list, suffix=".cut"),
+    )
+
+The host never imports a kind: it asks the registry for the one a machine's ``kind`` names,
+and calls these hooks.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Awaitable, Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+from pydantic import BaseModel, ValidationError
+
+from cellctl.errors import UsageError
+from cellctl.link import LineSettings, TrafficLog
+
+if TYPE_CHECKING:
+    import click
+
+    from cellctl.drivers.state import StateStore
+    from cellctl.emulators.serve import EmulatedDevice
+    from cellctl.kinds.families import StartOutput
+    from cellctl.kinds.menu import MachineFunction
+
+Family = Literal["robot", "mill"]
+#: The families a kind belongs to: what the cell does with it (a PLC stays what it is).
+FAMILIES: tuple[Family, ...] = ("robot", "mill")
+
+
+class ProgramRole(enum.StrEnum):
+    """What a program is for, as the cell's config names it."""
+
+    SETUP = "setup"
+    """A mill's setup program (``[machines.NAME] setup``)."""
+    MILLING = "milling"
+    """A route step's program (``[parts.NAME] route``)."""
+    TRANSFER = "transfer"
+    """A robot's transfer program (``[robot_programs]``)."""
+
+
+@dataclass(frozen=True)
+class CheckedProgram:
+    """A program the kind's language checked: what the cell needs to know of it."""
+
+    problems: tuple[str, ...] = ()
+    """Every problem found, each in the user's words with its file and line."""
+    lines: int = 0
+    machining_s: float = 0.0
+    """The kind's estimate of the program's run time, s (0 when it has none)."""
+    compiled: Any = None
+    """What the kind sends (a robot's compiled program); None where it sends the file."""
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+
+@dataclass(frozen=True)
+class Preview:
+    """A program's toolpath drawn as SVG text, and how many blocks it goes in."""
+
+    svg: str
+    blocks: int
+
+
+@dataclass(frozen=True)
+class ProgramLanguage:
+    """A kind's program language, as hooks: each may be None where the kind has none.
+
+    ``check(path, role, options)`` reads and checks a file (never raising for a bad program:
+    its problems are returned); ``compile(source, name, origin)`` turns a source into what
+    the machine takes (``origin`` names the file in its errors); ``split(text)`` cuts a long
+    program into what the machine holds at once; ``preview(text, name, options)`` draws the
+    toolpath (UsageError when there is none to draw).
+    """
+
+    suffix: str
+    """The file name ending of its programs (``.dyn``, ``.aml``), for pickers."""
+    check: Callable[[Path, ProgramRole, BaseModel], CheckedProgram]
+    compile: Callable[[str, str, str], Any] | None = None
+    split: Callable[[str], list[str]] | None = None
+    preview: Callable[[str, str, BaseModel], Preview] | None = None
+
+
+@dataclass(frozen=True)
+class DriverSpec:
+    """Everything a kind's driver is built from: the one place the controller and the
+    standalone service describe a machine to its kind."""
+
+    url: str
+    name: str
+    settings: LineSettings
+    options: BaseModel
+    """The kind's checked options (an instance of :attr:`MachineKind.options`)."""
+    store: StateStore | None = None
+    trace: TrafficLog | None = None
+    start_output: StartOutput | None = None
+    """A mill's cycle-start input, wired through the cell's PLC (None: no GO)."""
+
+
+@dataclass(frozen=True)
+class EmulatorSpec:
+    """How to build a kind's emulator: its time scale and, for the emulated cell, an
+    automatic operator (``operator_s``: seconds the operator takes for a setup, 0 = at once)."""
+
+    time_scale: float = 1.0
+    readiness: str = "modem"
+    operator: bool = True
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Origin:
+    """Where a kind comes from: the distribution that declared it and its module."""
+
+    distribution: str
+    module: str
+
+    def __str__(self) -> str:
+        return f"{self.distribution} ({self.module})"
+
+
+@dataclass(frozen=True)
+class MachineKind:
+    """One machine kind, declared once (see module docstring)."""
+
+    name: str
+    family: Family
+    maker: str
+    model: str
+    line: str
+    """Default line settings, e.g. ``"4800,7E2"``."""
+    options: type[BaseModel]
+    """The kind's options (``[machines.NAME] options``): unknown keys are refused."""
+    open_driver: Callable[[DriverSpec], Awaitable[Any]]
+    """Open the machine's link and return its driver (one of the family's protocol)."""
+    emulator: Callable[[EmulatorSpec], EmulatedDevice]
+    states: type[MachineState]
+    """The kind's state numbers, by name."""
+    condition: Callable[[Any], Any]
+    """The :class:`~cellctl.kinds.Condition` a driver's status record shows."""
+    language: ProgramLanguage | None = None
+    menu: Callable[[], Sequence[MachineFunction]] | None = None
+    """The console's and API's manual functions (the source's menu for the 1988 kinds)."""
+    commands: Callable[[], Sequence[tuple[str, click.Command]]] | None = None
+    """CLI commands the kind contributes: (group, command); group ``""`` is the top level."""
+    emulated_options: Callable[[float], dict[str, float]] | None = None
+    """Options the emulated cell writes for a machine ``time_scale`` times faster (its
+    deadlines scaled)."""
+    needs_setup: bool = False
+    """Whether a machine of this kind needs ``setup`` (a setup program) in cell.toml."""
+    description: str = ""
+    origin: Origin | None = None
+    """Set by the registry: where it was found."""
+
+    @property
+    def line_settings(self) -> LineSettings:
+        return LineSettings.parse(self.line)
+
+    @property
+    def title(self) -> str:
+        """Maker and model, as a person names the machine: ``Dyna 2400 CNC mill``."""
+        return f"{self.maker} {self.model}"
+
+    def checked_options(self, options: dict[str, Any]) -> BaseModel:
+        """The options of ``cell.toml`` as the kind's model; UsageError naming the field."""
+        try:
+            return self.options.model_validate(options)
+        except ValidationError as e:
+            problems = []
+            for item in e.errors(include_url=False):
+                where = ".".join(str(k) for k in item["loc"]) or "options"
+                message = "unknown option" if item["type"] == "extra_forbidden" else item["msg"]
+                problems.append(f"{where}: {str(message).removeprefix('Value error, ')}")
+            raise UsageError(f"{self.name} options: " + "; ".join(problems)) from None
+
+    async def open(self, spec: DriverSpec) -> Any:
+        """Open a driver for ``spec`` (its options already checked by :meth:`checked_options`)."""
+        return await self.open_driver(spec)
+
+
+class MachineState(enum.IntEnum):
+    """A kind's state numbers, each with the machine's words for it (``.text``)::
+
+    class MillState(MachineState):
+        IDLE = 0, "Idle"
+    """
+
+    text: str
+
+    def __new__(cls, value: int, text: str = "") -> MachineState:
+        obj = int.__new__(cls, value)
+        obj._value_ = value
+        obj.text = text
+        return obj
+
+    @classmethod
+    def words(cls, state: int) -> str:
+        """State ``state`` in words (``state N`` for a number the kind does not know)."""
+        try:
+            return cls(state).text
+        except ValueError:
+            return f"state {state}"

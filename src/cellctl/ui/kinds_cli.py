@@ -1,0 +1,27 @@
+"""``cellctl kinds``: the machine kinds installed, and where each comes from."""
+
+from __future__ import annotations
+
+import click
+from rich.table import Table
+
+from cellctl.kinds import registry
+from cellctl.ui.common import console
+
+
+@click.command("kinds")
+def kinds_command() -> None:
+    """List the machine kinds installed: family, maker and model, where each comes from.
+
+    Kinds register under the entry-point group cellctl.machine_kinds (docs/kinds.md); one that
+    cannot be loaded is listed as broken, with why, and the rest work.
+    """
+    table = Table(box=None, pad_edge=False)
+    for column in ("kind", "family", "maker", "model", "from"):
+        table.add_column(column, no_wrap=column != "from")
+    for kind in registry.kinds():
+        origin = str(kind.origin) if kind.origin is not None else "?"
+        table.add_row(kind.name, kind.family, kind.maker, kind.model, origin)
+    for name, why in registry.broken().items():
+        table.add_row(name, "-", "-", "-", f"[red]broken: {why}[/red]")
+    console.print(table)

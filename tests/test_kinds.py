@@ -1,0 +1,91 @@
+"""The machine kinds: found through the entry points, listed by `cellctl kinds`, and named
+nowhere in src/ outside their own packages."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+from cellctl.kinds import registry
+from cellctl.kinds.families import Mill, Robot
+
+from .conftest import CELLCTL
+
+ROOT = Path(__file__).resolve().parent.parent
+#: Each kind's own package (where its name belongs), by the names that mean it.
+KIND_PACKAGES = {
+    "ibm7545": "src/cellctl/kinds/ibm7545/",
+    "ibm7547": "src/cellctl/kinds/ibm7545/",
+    "dyna2400": "src/cellctl/kinds/dyna2400/",
+}
+#: Files of src/ that still name a kind: the console's program pickers and `cell emulate`'s
+#: fault lists (to move to the registry). This list may only shrink: a file that stops
+#: naming a kind fails the test until it is taken off.
+STILL_NAMING = {"src/cellctl/ui/cell_cli.py", "src/cellctl/ui/console/session.py"}
+
+
+def test_the_1988_kinds_register_through_the_entry_points() -> None:
+    found = {k.name: k for k in registry.kinds()}
+    assert {"ibm7545", "ibm7547", "dyna2400"} <= set(found)
+    assert found["ibm7547"].family == "robot" and found["dyna2400"].family == "mill"
+    assert found["ibm7545"].origin is not None
+    assert found["ibm7545"].origin.module == "cellctl.kinds.ibm7545.kind"
+    assert registry.broken() == {}
+
+
+def test_cellctl_kinds_lists_each_with_where_it_comes_from() -> None:
+    out = subprocess.run(
+        [*CELLCTL, "kinds"], capture_output=True, text=True, timeout=60, check=True
+    ).stdout
+    for name, maker in (("ibm7545", "IBM"), ("ibm7547", "IBM"), ("dyna2400", "Dyna")):
+        line = next(line for line in out.splitlines() if line.startswith(name))
+        assert maker in line and "cellctl" in line
+
+
+def test_a_kind_s_options_are_refused_by_field_name() -> None:
+    mill = registry.kind("dyna2400")
+    try:
+        mill.checked_options({"ready_wait": "soon"})
+    except Exception as e:
+        assert "ready_wait" in str(e)
+    else:
+        raise AssertionError("a bad option was accepted")
+
+
+#: What a driver sets in __init__ (not on its class).
+OWN = ("name", "link", "initialized")
+
+
+def test_the_drivers_speak_their_family_protocol() -> None:
+    robot_driver = registry.kind("ibm7545").open_driver
+    mill_driver = registry.kind("dyna2400").open_driver
+    assert robot_driver is not None and mill_driver is not None
+    # The classes are what open_driver returns; the protocols are runtime-checkable.
+    from cellctl.kinds.dyna2400.driver import Dyna2400Mill
+    from cellctl.kinds.ibm7545.driver import Ibm7545Robot
+
+    for cls, family in ((Ibm7545Robot, Robot), (Dyna2400Mill, Mill)):
+        missing = [
+            name
+            for name in dir(family)
+            if not name.startswith("_") and not hasattr(cls, name) and name not in OWN
+        ]
+        assert missing == [], (cls.__name__, missing)
+
+
+def test_no_kind_is_named_in_src_outside_its_own_package() -> None:
+    found = subprocess.run(
+        ["git", "grep", "-l", "-i", "-E", "|".join(KIND_PACKAGES), "--", "src"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    ).stdout.split()
+    naming = {
+        path
+        for path in found
+        if not path.startswith("src/cellctl/examples/")
+        and not any(path.startswith(pkg) for pkg in KIND_PACKAGES.values())
+    }
+    assert naming - STILL_NAMING == set(), "a kind is named outside its own package"
+    assert STILL_NAMING - naming == set(), "take these off STILL_NAMING: they name no kind now"

@@ -3,8 +3,9 @@
 A DNC server drives thousands of machines; one process cannot pace thousands of emulated
 lines on one core, so a fleet forks ``workers`` processes and each serves its share::
 
-    fleet = Fleet.start(lambda i: Ibm7545Emulator(time_scale=20.0), "socket://127.0.0.1:0",
-                        ROBOT_LINE, count=4096, workers=2)
+    kind = registry.kind(name)                  # any kind's emulator, made per index
+    fleet = Fleet.start(lambda i: kind.emulator(EmulatorSpec(time_scale=20.0)),
+                        "socket://127.0.0.1:0", kind.line_settings, count=4096, workers=2)
     fleet.urls            # one per machine, in machine order: what drivers open
     fleet.cpu_seconds()   # CPU (user + system) the workers have used so far
     fleet.close()         # stop every worker (also when this process dies: pipes close)

@@ -19,11 +19,13 @@ from websockets.asyncio.client import connect, unix_connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
 from cellctl.errors import AccessDenied, DeviceError, MachineInUse, UsageError
+from cellctl.kinds import Condition
 from cellctl.kinds.ibm7545.aml import compile_source
 from cellctl.link.trace import SENT
 from cellctl.service.access import AttachedCell, LocalCell
 from cellctl.service.client import RemoteCell, attach
 from cellctl.service.server import ApiServer
+from cellctl.service.status import CellStatus, StepKind, apply_update_json
 from cellctl.testing.rig import CellRig
 from cellctl.ui.console.session import cell_refs
 from tests.conftest import free_port
@@ -218,6 +220,8 @@ async def test_emergency_stop_halts_and_holds(api: Api) -> None:
 
 
 async def test_subscription_pushes_changes(api: Api) -> None:
+    """A real batch: every status read fits the model, the machines' conditions and steps
+    are fields, and the pushed differences, applied, give the status the API answers."""
     updates: list[dict[str, Any]] = []
     snapshot = await api.client.subscribe(updates.append)
     assert "machines" in snapshot
@@ -234,6 +238,45 @@ async def test_subscription_pushes_changes(api: Api) -> None:
         ),
         "the event 'order U1 accepted', pushed",
     )
+    # While the batch runs: the robot and a mill busy, each with its step as fields.
+    seen: set[tuple[str, str, str]] = set()
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + 60
+    while api.rig.order_state("U1") != "done":
+        assert loop.time() < deadline, f"U1 not done: {api.rig.describe()}"
+        status = CellStatus.model_validate(await api.call("cell.status"))
+        for m in status.machines.values():
+            if m.step is not None and m.step.what is not StepKind.MANUAL:
+                assert m.condition is Condition.BUSY and m.step.part_id
+                assert m.part == m.step.part_id
+                seen.add((m.family, m.step.what.value, m.condition.value))
+            if m.progress is not None and m.progress.blocks:
+                assert m.progress.unit == "bytes" and 0 <= m.progress.fraction <= 1
+        await asyncio.sleep(0.01)
+    assert ("robot", "transfer", "busy") in seen and ("mill", "machine", "busy") in seen, seen
+    # Out of service: the machine's condition says so, in one update of that machine alone.
+    await api.call("machines.out_of_service", {"machine": "cnc2", "reason": "new cutter"})
+    status = CellStatus.model_validate(await api.call("cell.status"))
+    assert status.machines["cnc2"].condition is Condition.OUT_OF_SERVICE
+    assert "new cutter" in status.machines["cnc2"].out_reason
+    await api.rig.wait_for(
+        lambda: any(
+            u.get("machines", {}).get("cnc2", {}).get("condition") == "out-of-service"
+            for u in updates
+        ),
+        "cnc2 out of service, pushed",
+    )
+    # What the client holds (the first status and every difference) is what the API says.
+    while True:
+        held = snapshot
+        for u in list(updates):
+            held = apply_update_json(held, u)
+        now = CellStatus.model_validate(await api.call("cell.status"))
+        if CellStatus.model_validate(held).stable() == now.stable():
+            break
+        assert loop.time() < deadline + 30, "the pushed differences never gave the status"
+        await asyncio.sleep(0.05)
+    await api.call("machines.return_to_service", {"machine": "cnc2"})
 
 
 @pytest.mark.parametrize(
@@ -341,6 +384,13 @@ async def test_tokens_on_tcp_and_the_socket(api: Api) -> None:
     for wrong in (None, "wrong", token + "x"):
         status, body = await asyncio.to_thread(get, "/api/status", wrong)
         assert status == 401 and "machines" not in json.dumps(body)
+    status, schema = await asyncio.to_thread(get, "/api/schema", token)
+    assert status == 200 and schema["status"] == CellStatus.model_json_schema()
+    status, body = await asyncio.to_thread(get, "/api/status", token)
+    CellStatus.model_validate(body)  # what /api/status answers fits the schema served
+    for wrong in (None, "wrong"):
+        status, body = await asyncio.to_thread(get, "/api/schema", wrong)
+        assert status == 401 and "properties" not in json.dumps(body)
     status, body = await asyncio.to_thread(get, "/api/traffic/robot?limit=3", token)
     assert status == 200 and len(body) <= 3
     for headers in ({}, {"Authorization": "Bearer wrong"}):

@@ -381,7 +381,9 @@ async def test_attached_cnc2_by_hand_while_the_cell_works(
         await pilot.press("s")
         await wait_text(pilot, "Take cnc2 out of automatic service?")
         await pilot.press("y")
-        await wait_text(pilot, "cnc2 out of automatic service", "s. RETURN TO SERVICE", "OUT")
+        await wait_text(pilot, "cnc2 out of automatic service", "s. RETURN TO SERVICE")
+        # The board shows each machine's condition (the status' field), cnc2's reason below.
+        await wait_text(pilot, "cnc2   OUT    ", "operator: console", "cnc1   idle   ")
         rig.post("wax-robot-base", 1, "M1")
         await rig.wait_for(
             lambda: any(s.machine == "cnc1" and s.state == "finished" for s in rig.journal.steps()),
@@ -403,6 +405,7 @@ async def test_attached_cnc2_by_hand_while_the_cell_works(
         await wait_text(pilot, "Return cnc2 to automatic service?")
         await pilot.press("y")
         await wait_text(pilot, "cnc2 back in automatic service", "s. OUT OF SERVICE", timeout=20)
+        await wait_text(pilot, "cnc2   idle   ")
         await rig.wait_for(lambda: rig.order_state("M1") == "done", "M1 done", timeout=60)
         await wait_text(pilot, "M1 wax-robot-base x1 p0 done")
         assert not rig.alarms() and not rig.cut_twice()

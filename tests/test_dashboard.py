@@ -225,6 +225,10 @@ async def test_the_floor_follows_the_batch(dash: Dash) -> None:
             (v.progress or {}).get("block") for v in machines.values() if v.name != "robot"
         ):
             await page.locator(".preview svg .block-start.current").first.wait_for(timeout=3_000)
+            # A cutting mill's card shows it busy, with its step and part as fields give them.
+            busy = page.locator(".card.condition-busy", has=page.locator(".preview svg"))
+            await busy.first.wait_for(timeout=3_000)
+            assert (await busy.first.locator(".step").inner_text()).startswith("machine ")
             await asyncio.sleep(0.6)  # the parts' moves on the floor are animated (0.5 s)
             await dash.shot("machines", "#machines")
             target = os.environ.get("CELLCTL_SCREENSHOT")
@@ -306,6 +310,28 @@ async def test_an_alarm_is_cleared_from_the_page(dash: Dash) -> None:
     status, alarms = await http(dash.base + "/api/alarms", token=dash.token)
     assert status == 200 and alarm_id not in [a["id"] for a in alarms]
     assert "cleared" in await dash.page.locator("#alarm-message").inner_text()
+
+
+async def test_a_card_and_the_floor_show_a_machine_out_of_service(dash: Dash) -> None:
+    await live(dash)
+    page = dash.page
+    card = page.locator('#machine-cards .card[data-machine="cnc2"]')
+    await card.and_(page.locator('[data-condition="idle"]')).wait_for(timeout=5_000)
+    await dash.api("machines.out_of_service", {"machine": "cnc2", "reason": "new cutter"})
+    out = page.locator('#machine-cards .card.condition-out-of-service[data-machine="cnc2"]')
+    await out.wait_for(timeout=5_000)
+    assert await out.locator(".badge.state").inner_text() == "out of service"
+    assert "new cutter" in await out.locator(".machine-state").inner_text()
+    floor = page.locator('#floor-plan .machine[data-machine="cnc2"]')
+    assert await floor.get_attribute("data-condition") == "out-of-service"
+    assert "state-out-of-service" in (await floor.get_attribute("class") or "")
+    # The other mill is read by its own condition: untouched.
+    assert (
+        await page.locator('.card[data-machine="cnc1"]').get_attribute("data-condition") == "idle"
+    )
+    await dash.shot("out-of-service", "#machines")
+    await dash.api("machines.return_to_service", {"machine": "cnc2"})
+    await card.and_(page.locator('[data-condition="idle"]')).wait_for(timeout=10_000)
 
 
 async def test_a_held_part_is_released_from_the_page(dash: Dash) -> None:

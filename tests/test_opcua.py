@@ -28,8 +28,11 @@ from hypothesis import strategies as st
 from cellctl.cell.config import OpcuaTable, check_cell
 from cellctl.errors import UsageError
 from cellctl.factory.opcua import NAMESPACE, OpcuaServer
+from cellctl.factory.opcua.figures import MACHINE_CONDITIONS, SIGNAL_COLORS
 from cellctl.factory.opcua.users import check_password, hash_password, load_users
+from cellctl.kinds import Condition
 from cellctl.service.access import LocalCell
+from cellctl.service.client import attach
 from cellctl.testing.rig import CellRig
 from cellctl.ui.cell_cli import run_controller
 from cellctl.ui.cli import main as cli_main
@@ -222,6 +225,7 @@ async def _scenario(rig: CellRig, url: str, cert: tuple[str, str], run: asyncio.
             [f"{idx}:Orders", f"{idx}:{order_id}", f"{idx}:State"]
         )
         await until(lambda: _equals(order_state, "done"), "the order done, as the Orders node says")
+        await _condition_follows_service(alice, idx, cell)
 
         refused = await call_raw(
             alice, cell_node.nodeid, submit.nodeid, "no-such-part", ua.Variant(1, UINT32)
@@ -268,6 +272,31 @@ async def _scenario(rig: CellRig, url: str, cert: tuple[str, str], run: asyncio.
             await state.write_value("hacked")
         assert len(rig.mailbox.orders()) == orders
         assert await state.read_value() != "hacked"
+
+
+async def _condition_follows_service(client: Client, idx: int, cell: Path) -> None:
+    """cnc2 taken out of service and returned (through the control API, as an operator
+    would): its Condition variable and its stack light follow; cnc1's stay as they were."""
+
+    def node(machine: str, name: str) -> Node:
+        return client.get_node(ua.NodeId(f"Machines/{machine}/Monitoring/{name}", idx))
+
+    condition, light = node("cnc2", "Condition"), node("cnc2", "StacklightColour")
+    idle, out = MACHINE_CONDITIONS.index("Idle"), MACHINE_CONDITIONS.index("OutOfService")
+    green, yellow = SIGNAL_COLORS.index("Green"), SIGNAL_COLORS.index("Yellow")
+    await until(lambda: _equals(condition, idle), "cnc2 idle after the order")
+    assert await light.read_value() == green
+    async with await attach(cell) as api:
+        await api.call("machines.out_of_service", {"machine": "cnc2", "reason": "new cutter"})
+        await until(lambda: _equals(condition, out), "cnc2's Condition: OutOfService")
+        assert await light.read_value() == yellow
+        reason = await node("cnc2", "OutOfServiceReason").read_value()
+        assert "new cutter" in reason
+        assert await node("cnc1", "Condition").read_value() == idle
+        assert await node("cnc1", "StacklightColour").read_value() == green
+        await api.call("machines.return_to_service", {"machine": "cnc2"})
+        await until(lambda: _equals(condition, idle), "cnc2's Condition: Idle again")
+        await until(lambda: _equals(light, green), "cnc2's stack light green again")
 
 
 async def _methods_take_only_their_declared_arguments(
@@ -424,3 +453,9 @@ def test_method_arguments_from_a_client_give_answers_or_refusals_in_words(
             assert result.InputArgumentDiagnosticInfos[0].AdditionalInfo
         else:
             assert isinstance(result, list) and isinstance(result[0].Value, str)
+
+
+def test_the_condition_enumeration_names_every_condition() -> None:
+    assert len(MACHINE_CONDITIONS) == len(Condition)
+    words = [c.value.replace("-", "") for c in Condition]
+    assert [n.lower() for n in MACHINE_CONDITIONS] == words

@@ -18,47 +18,38 @@ import os
 import time
 from abc import ABC, abstractmethod
 from collections.abc import AsyncIterator
-from dataclasses import asdict
 from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Self, cast
 
 from cellctl.cell.journal import JOURNAL_FILE, Journal, open_journal
 from cellctl.cell.machines import open_machine
+from cellctl.cell.model import MachineView
 from cellctl.drivers.plc import ModbusPlc
 from cellctl.drivers.state import StateStore
 from cellctl.errors import CellctlError, UsageError
-from cellctl.kinds import registry
+from cellctl.kinds import Condition, registry
 from cellctl.link import TrafficLog
 from cellctl.mailbox import MAILBOX_FILE, Mailbox, open_mailbox
 from cellctl.protocol.plc import PlcMap, canonical
 from cellctl.service.functions import FAMILY_OF_KIND
 from cellctl.service.machines import MachineRef, load_cell_file
-from cellctl.service.operator import as_dict, list_orders
+from cellctl.service.operator import list_orders
+from cellctl.service.status import (
+    STATUS_EVENTS,
+    CellInfo,
+    CellMode,
+    CellStatus,
+    build_status,
+)
 
 if TYPE_CHECKING:
     from cellctl.cell.controller import CellController
 
-#: Events and orders a status snapshot carries.
-SNAPSHOT_EVENTS = 30
-SNAPSHOT_ORDERS = 30
+#: Events a status carries.
+SNAPSHOT_EVENTS = STATUS_EVENTS
 #: Chunks of traffic a standalone cell keeps per process.
 TRAFFIC_KEPT = 4000
-
-
-def _records(journal: Journal | None, mailbox: Mailbox | None) -> dict[str, Any]:
-    """Orders (open ones and the latest), parts in work or held, and active alarms."""
-    orders = list_orders(mailbox, journal) if mailbox is not None else []
-    open_states = {"posted", "accepted", "in-progress", "held"}
-    shown = [o for o in orders if o["state"] in open_states]
-    shown += [o for o in orders if o["state"] not in open_states][:SNAPSHOT_ORDERS]
-    parts = journal.parts(["waiting", "active", "held"]) if journal is not None else []
-    alarms = journal.active_alarms() if journal is not None else []
-    return {
-        "orders": shown[: SNAPSHOT_ORDERS * 2],
-        "parts": [as_dict(p) for p in parts],
-        "alarms": [as_dict(a) for a in alarms],
-    }
 
 
 class CellAccess(ABC):
@@ -87,8 +78,12 @@ class CellAccess(ABC):
         ``observe``: the function only reads the machine (allowed in automatic service)."""
 
     @abstractmethod
+    def status(self) -> CellStatus:
+        """The cell's status (:mod:`cellctl.service.status`): built anew at each call."""
+
     def snapshot(self) -> dict[str, Any]:
-        """The cell status: cell, machines, orders, parts, alarms, events."""
+        """The cell's status as JSON (what ``cell.status`` answers)."""
+        return self.status().model_dump(mode="json")
 
     @abstractmethod
     def traffic(self, name: str, limit: int) -> list[dict[str, Any]]:
@@ -161,31 +156,36 @@ class AttachedCell(CellAccess):
     def poke(self) -> None:
         self._controller.poke()
 
-    def snapshot(self) -> dict[str, Any]:
+    def status(self) -> CellStatus:
         c = self._controller
-        out = c.journal.machines_out_of_service()
-        machines = {
-            name: {
-                **asdict(view),
-                "family": "plc" if name == "plc" else FAMILY_OF_KIND.get(view.kind, view.kind),
-                "out_reason": out.get(name, ""),
-                "manual": name in c.manual_use,
-            }
-            for name, view in c.machines.items()
+        journal = c.journal
+        cell = CellInfo(
+            name=c.config.name,
+            directory=str(self.directory),
+            access="attached",
+            mode=_mode(c),
+            paused=c.paused,
+            started_at=c.started_at,
+            pid=os.getpid(),
+            time=time.time(),
+        )
+        estimates = {
+            (step.mill, step.name): step.machining_s
+            for part in c.config.parts.values()
+            for step in part.route
+            if step.machining_s > 0
         }
-        return {
-            "cell": {
-                "directory": str(self.directory),
-                "mode": self.mode,
-                "paused": c.paused,
-                "started_at": c.started_at,
-                "pid": os.getpid(),
-                "time": time.time(),
-            },
-            "machines": machines,
-            **_records(c.journal, self.mailbox()),
-            "events": [{"time": e.time, "text": e.text} for e in c.events[-SNAPSHOT_EVENTS:]],
-        }
+        return build_status(
+            cell=cell,
+            views=c.machines,
+            families={**self.machines(), "plc": "plc"},
+            out_of_service=journal.machines_out_of_service(),
+            manual=c.manual_use,
+            journal=journal,
+            orders=list_orders(self.mailbox(), journal),
+            events=[(e.time, e.text) for e in c.events[-SNAPSHOT_EVENTS:]],
+            estimates=estimates,
+        )
 
     def traffic(self, name: str, limit: int) -> list[dict[str, Any]]:
         if name not in self.machines():
@@ -220,6 +220,7 @@ class LocalCell(CellAccess):
         self._mailbox: Mailbox | None = None
         self.states: dict[str, str] = {}
         self.steps: dict[str, str] = {}
+        self.conditions: dict[str, Condition] = {}
         self.events: list[dict[str, Any]] = []
         self.started_at = time.time()
 
@@ -262,6 +263,7 @@ class LocalCell(CellAccess):
             finally:
                 self.steps[name] = ""
                 self.states[name] = _state_of(driver)
+                self.conditions[name] = _condition_of(driver)
 
     async def _open(self, ref: MachineRef) -> Any:
         options = dict(ref.options)
@@ -299,39 +301,46 @@ class LocalCell(CellAccess):
             return None
         return _PlcPulse(PlcMap.from_toml(table), canonical(signal))
 
-    def snapshot(self) -> dict[str, Any]:
-        machines = {
-            name: {
-                "name": name,
-                "kind": ref.kind,
-                "family": FAMILY_OF_KIND[ref.kind],
-                "state": self.states.get(
+    def status(self) -> CellStatus:
+        views = {
+            name: MachineView(
+                name,
+                ref.kind,
+                state=self.states.get(
                     name, "connected" if name in self._drivers else "not connected"
                 ),
-                "step": self.steps.get(name, ""),
-                "in_service": False,
-                "out_reason": "standalone: no controller runs",
-                "manual": True,
-                "failures": 0,
-                "busy_s": 0.0,
-                "progress": None,
-            }
+                step=self.steps.get(name, ""),
+                in_service=False,
+                machine_condition=self.conditions.get(
+                    name, Condition.NOT_READY if name in self._drivers else Condition.OFFLINE
+                ),
+            )
             for name, ref in self.refs.items()
         }
+        raw = load_cell_file(self.directory).get("cell")
+        named = raw.get("name") if isinstance(raw, dict) else None
+        cell = CellInfo(
+            name=str(named or self.directory.resolve().name),
+            directory=str(self.directory),
+            access="standalone",
+            mode=CellMode.NO_CONTROLLER,
+            paused=False,
+            started_at=self.started_at,
+            pid=os.getpid(),
+            time=time.time(),
+        )
         mailbox = self.mailbox() if (self.directory / MAILBOX_FILE).exists() else None
-        return {
-            "cell": {
-                "directory": str(self.directory),
-                "mode": self.mode,
-                "paused": False,
-                "started_at": self.started_at,
-                "pid": os.getpid(),
-                "time": time.time(),
-            },
-            "machines": machines,
-            **_records(self.journal(), mailbox),
-            "events": list(self.events),
-        }
+        journal = self.journal()
+        return build_status(
+            cell=cell,
+            views=views,
+            families=self.machines(),
+            out_of_service=dict.fromkeys(self.refs, "standalone: no controller runs"),
+            manual=self.refs,
+            journal=journal,
+            orders=list_orders(mailbox, journal) if mailbox is not None else [],
+            events=[(e["time"], e["text"]) for e in self.events],
+        )
 
     def traffic(self, name: str, limit: int) -> list[dict[str, Any]]:
         if name not in self.refs:
@@ -379,8 +388,42 @@ class _Tee(TrafficLog):
 
 
 def _state_of(driver: Any) -> str:
+    """The driver's last known state in the machine's words."""
+    return _host(driver)[0]
+
+
+def _condition_of(driver: Any) -> Condition:
+    """The condition a driver's last known state shows (a closed link: offline)."""
+    return _host(driver)[1]
+
+
+def _host(driver: Any) -> tuple[str, Condition]:
+    """What a driver knows of its machine without a byte sent: its words and condition."""
+    link = getattr(driver, "link", None)
+    if link is not None and link.closed:
+        return "link closed", Condition.OFFLINE
     status = getattr(driver, "host_status", None)
     if status is None:
-        return "connected"
+        return "connected", Condition.NOT_READY
     shown = status()
-    return str(getattr(shown, "text", None) or getattr(shown, "state_text", "connected"))
+    words = getattr(shown, "text", None) or getattr(shown, "state_text", "connected")
+    said = getattr(shown, "condition", None)
+    if isinstance(said, Condition):
+        return str(words), said
+    kind_condition = getattr(shown, "kind_condition", None)
+    return str(words), kind_condition if isinstance(
+        kind_condition, Condition
+    ) else Condition.NOT_READY
+
+
+def _mode(controller: CellController) -> CellMode:
+    """What the controller is doing: an active emergency stop (the PLC's input, or the
+    operator's alarm) first, then stopping, paused, running."""
+    estop = not controller.inputs.get("estop_ok", True) or any(
+        a.machine == "cell" and a.code == "estop" for a in controller.journal.active_alarms()
+    )
+    if estop:
+        return CellMode.EMERGENCY_STOP
+    if getattr(controller, "_stopping", False):
+        return CellMode.STOPPING
+    return CellMode.PAUSED if controller.paused else CellMode.RUNNING

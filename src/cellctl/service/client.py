@@ -28,7 +28,8 @@ from cellctl.errors import AccessDenied, CellctlError, LinkClosed, LinkError, Li
 from cellctl.service.access import LocalCell
 from cellctl.service.machines import MachineRef
 from cellctl.service.methods import Dispatcher, error_from_object
-from cellctl.service.server import SOCKET_FILE, _difference
+from cellctl.service.server import SOCKET_FILE
+from cellctl.service.status import CellStatus, difference
 from cellctl.service.token import read_token
 
 Update = Callable[[dict[str, Any]], None]
@@ -221,23 +222,24 @@ class StandaloneCell:
 
     async def subscribe(self, update: Update) -> dict[str, Any]:
         self._updates.append(update)
-        snapshot = self.access.snapshot()
+        status = self.access.status()
         if self._poller is None:
-            self._poller = asyncio.create_task(self._poll(snapshot))
-        return snapshot
+            self._poller = asyncio.create_task(self._poll(status))
+        return status.model_dump(mode="json")
 
-    async def _poll(self, last: dict[str, Any]) -> None:
+    async def _poll(self, last: CellStatus) -> None:
         while True:
             await asyncio.sleep(LOCAL_POLL)
             try:
-                snap = self.access.snapshot()
+                status = self.access.status()
             except CellctlError:
                 continue
-            changes = _difference(last, snap)
-            last = snap
-            if changes:
+            changes = difference(last, status)
+            last = status
+            if not changes.empty():
+                pushed = changes.as_json()
                 for update in list(self._updates):
-                    update(changes)
+                    update(pushed)
 
     async def close(self) -> None:
         if self._poller is not None:

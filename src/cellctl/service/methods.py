@@ -161,6 +161,12 @@ async def _status(access: CellAccess, p: NoParams, progress: Progress | None) ->
     return access.snapshot()
 
 
+async def _schema(access: CellAccess, p: NoParams, progress: Progress | None) -> Any:
+    from cellctl.service.status import status_schema
+
+    return status_schema()
+
+
 async def _pause(access: CellAccess, p: NoParams, progress: Progress | None) -> Any:
     access.controller().pause()
     return {"message": "paused: steps in flight finish, no new step starts"}
@@ -305,6 +311,7 @@ def _machine_name(access: CellAccess, family: str, name: str | None) -> str:
 _TABLE: list[Method] = [
     Method("server.info", NoParams, _info, "Version, mode and the methods served.", False),
     Method("cell.status", NoParams, _status, "Machines, orders, parts, alarms, events.", False),
+    Method("cell.schema", NoParams, _schema, "JSON Schema of the status and its updates.", False),
     Method("cell.pause", NoParams, _pause, "Finish the steps in flight, start no new one.", True),
     Method("cell.resume", NoParams, _resume, "Start dispatching again.", True),
     Method("cell.estop", EstopParams, _estop, "Stop the robot, halt the mills, alarm.", True),

@@ -9,9 +9,11 @@ HTTP GET for read-only state, on Starlette/uvicorn.
     await server.close()
 
 - ``ws://…/websocket``: requests ``{"jsonrpc": "2.0", "id": 1, "method": "cell.status"}``;
-  ``cell.subscribe`` answers the status, then pushes ``notify_status_update`` with what changed;
+  ``cell.subscribe`` answers the status, then pushes ``notify_status_update`` with what changed
+  since the status that client holds (:func:`~cellctl.service.status.difference`);
   a long call pushes ``notify_progress`` (``{"id": <call id>, ...}``).
-- ``GET /api/status`` (and ``/api/orders``, ``/api/alarms``, ``/api/parts``, ``/api/machines``,
+- ``GET /api/status`` (the status, :mod:`cellctl.service.status`; its JSON Schema at
+  ``/api/schema``) (and ``/api/orders``, ``/api/alarms``, ``/api/parts``, ``/api/machines``,
   ``/api/traffic/{machine}``, ``/server/info``).
 
 Every request needs ``Authorization: Bearer <token>`` (``<cell>/api-token``, 0600, made at the
@@ -67,6 +69,7 @@ from cellctl.service.methods import (
     Dispatcher,
     error_object,
 )
+from cellctl.service.status import CellStatus, difference
 from cellctl.service.token import TOKEN_FILE, ensure_token
 
 __all__ = [
@@ -134,6 +137,7 @@ class _Session:
         self.queue: asyncio.Queue[str | None] = asyncio.Queue(MAX_QUEUED)
         self.subscribed = False
         self.open = True
+        self.last: CellStatus | None = None  # the status this client holds
 
     def send(self, message: dict[str, Any] | list[Any] | str) -> None:
         """Queue ``message`` (a dict, a batch's answers, or JSON text made once for all)."""
@@ -182,7 +186,6 @@ class ApiServer:
         self._changed = asyncio.Event()
         self._server: GuardedServer | None = None
         self._tasks: list[asyncio.Task[None]] = []
-        self._last: dict[str, Any] = {}
         self.push_count = 0
         self._oneshot: dict[str, float] = {}
         self.app = Starlette(
@@ -196,6 +199,7 @@ class ApiServer:
                 Route("/access/oneshot_token", self._oneshot_token),
                 WebSocketRoute("/websocket", self._websocket),
                 Route("/api/status", self._get("cell.status")),
+                Route("/api/schema", self._get("cell.schema")),
                 Route("/api/orders", self._get("orders.list")),
                 Route("/api/alarms", self._get("alarms.list")),
                 Route("/api/parts", self._get("parts.list")),
@@ -469,10 +473,13 @@ class ApiServer:
 
         try:
             if method == "cell.subscribe":
+                status = self.access.status()
                 session.subscribed = True
-                result: Any = self.access.snapshot()
+                session.last = status
+                result: Any = status.model_dump(mode="json")
             elif method == "cell.unsubscribe":
                 session.subscribed = False
+                session.last = None
                 result = {"message": "unsubscribed"}
             else:
                 result = await self.dispatcher.call(method, params, progress)
@@ -497,46 +504,33 @@ class ApiServer:
             self._changed.clear()
             subscribers = [s for s in self.sessions if s.subscribed and s.open]
             if not subscribers:
-                self._last = {}
                 continue
             try:
-                snap = self.access.snapshot()
+                status = self.access.status()  # built once for every subscriber
             except Exception:
                 log.exception("status snapshot failed")
                 continue
-            update = _difference(self._last, snap)
-            self._last = snap
-            if update:
-                message = json.dumps(
-                    {"jsonrpc": "2.0", "method": "notify_status_update", "params": update},
-                    default=str,
-                )
-                self.push_count += 1
-                for session in subscribers:
-                    session.send(message)
+            self.push(status, subscribers)
             await asyncio.sleep(PUSH_GAP)
 
-
-def _difference(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
-    """What changed between two snapshots: whole top-level objects, and only new events."""
-    update: dict[str, Any] = {}
-    for key, value in new.items():
-        if key == "cell":
-            if {k: v for k, v in value.items() if k != "time"} != {
-                k: v for k, v in old.get("cell", {}).items() if k != "time"
-            }:
-                update[key] = value
-        elif key == "events":
-            seen = old.get("events", [])
-            last = seen[-1]["time"] if seen else 0.0
-            fresh = [e for e in value if e["time"] > last]
-            if fresh:
-                update[key] = fresh
-        elif old.get(key) != value:
-            update[key] = value
-    if update:
-        update["time"] = time.time()
-    return update
+    def push(self, status: CellStatus, subscribers: list[_Session]) -> None:
+        """Send each subscriber what changed since the status it holds (most hold the same
+        one: the difference is made and encoded once for them all)."""
+        held: dict[int, tuple[CellStatus | None, list[_Session]]] = {}
+        for session in subscribers:
+            held.setdefault(id(session.last), (session.last, []))[1].append(session)
+        for last, sessions in held.values():
+            update = difference(last, status)
+            for session in sessions:
+                session.last = status
+            if update.empty():
+                continue
+            message = json.dumps(
+                {"jsonrpc": "2.0", "method": "notify_status_update", "params": update.as_json()}
+            )
+            self.push_count += 1
+            for session in sessions:
+                session.send(message)
 
 
 def _error(rid: Any, code: int, message: str) -> dict[str, Any]:

@@ -5,7 +5,8 @@ functions of the control API's answers (``cell.status``, ``steps.list``, ``parts
 
     steps = StepBook()
     steps.add(dispatcher_answer_of_steps_list)
-    values = machine_values("cnc1", status["machines"]["cnc1"], status["alarms"], steps, held)
+    status = access.status()          # the cell's status model, read by field
+    values = machine_values("cnc1", status.machines["cnc1"], status.alarms, last, counts)
 
 The enumerations mirror those of OPC 40501-1 (Machine Tools) and OPC 10000-200 (Industrial
 Automation: stacklights) by name and value, in cellctl's own namespace.
@@ -18,20 +19,21 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
-from cellctl.kinds import registry
+from cellctl.kinds import Condition, registry
+from cellctl.service.status import AlarmInfo, MachineStatus, StepInfo
 
 #: OPC 40501-1 MachineOperationMode.
 OPERATION_MODES = ("Manual", "Automatic", "Setup", "AutoWithManualIntervention", "Service", "Other")
 #: OPC 10000-200 SignalColor.
 SIGNAL_COLORS = ("Off", "Red", "Green", "Blue", "Yellow", "Purple", "Cyan", "White")
+#: cellctl's machine condition (:class:`~cellctl.kinds.Condition`), by name.
+MACHINE_CONDITIONS = ("Offline", "NotReady", "Idle", "Busy", "Alarm", "OutOfService")
 #: OPC 40501-1 ChannelState.
 CHANNEL_STATES = ("Active", "Interrupted", "Reset")
 #: The states of OPC 40501-1's ProductionProgramStateMachine, as an enumeration.
 PROGRAM_STATES = ("Initializing", "Running", "Ended", "Interrupted", "Aborted")
 #: Identification per machine kind: manufacturer and model, as each kind declares them.
 IDENTIFICATION: dict[str, tuple[str, str]] = {k.name: (k.maker, k.model) for k in registry.kinds()}
-#: Machine states that mean it is not working as it should (the stacklight shows red).
-FAULT_WORDS = ("error", "not answering", "emergency", "power failure")
 #: Progress phases before the program runs (the program is being prepared).
 PREPARING = ("waiting", "downloading")
 
@@ -92,33 +94,36 @@ class StepBook:
         return Counter(last[p].machine for p in part_ids if p in last)
 
 
-def operation_mode(view: dict[str, Any]) -> int:
+def operation_mode(view: MachineStatus) -> int:
     """Manual while the operator drives it, Service while out of automatic service,
     Automatic otherwise."""
-    if view.get("manual"):
+    if view.manual:
         return OPERATION_MODES.index("Manual")
-    if not view.get("in_service", True):
+    if not view.in_service:
         return OPERATION_MODES.index("Service")
     return OPERATION_MODES.index("Automatic")
 
 
-def stacklight(view: dict[str, Any], alarms: int) -> int:
-    """Red: an active alarm or a fault; yellow: out of automatic service or driven by hand;
-    green: in automatic service."""
-    state = str(view.get("state", "")).lower()
-    if alarms or any(word in state for word in FAULT_WORDS):
+def stacklight(view: MachineStatus, alarms: int) -> int:
+    """Red: an active alarm, or the machine in alarm or offline; yellow: out of automatic
+    service, driven by hand, or not ready; green: in automatic service, idle or busy."""
+    if alarms or view.condition in (Condition.ALARM, Condition.OFFLINE):
         return SIGNAL_COLORS.index("Red")
-    if view.get("manual") or not view.get("in_service", True):
+    if view.manual or view.condition in (Condition.OUT_OF_SERVICE, Condition.NOT_READY):
         return SIGNAL_COLORS.index("Yellow")
     return SIGNAL_COLORS.index("Green")
 
 
-def program_state(view: dict[str, Any], last: StepSeen | None) -> int:
+def condition_value(condition: Condition) -> int:
+    """The machine's condition as the ``MachineCondition`` enumeration's value."""
+    return list(Condition).index(condition)
+
+
+def program_state(view: MachineStatus, last: StepSeen | None) -> int:
     """Running (or Initializing while the program is prepared) during a step; after it, Ended
     or Aborted (a failed or interrupted step is never resumed: its part is held)."""
-    if view.get("step") or (last is not None and last.state == "started"):
-        progress = view.get("progress") or {}
-        preparing = progress.get("phase") in PREPARING
+    if view.step is not None or (last is not None and last.state == "started"):
+        preparing = view.progress is not None and view.progress.phase in PREPARING
         return PROGRAM_STATES.index("Initializing" if preparing else "Running")
     if last is None or last.state == "finished":
         return PROGRAM_STATES.index("Ended")
@@ -127,34 +132,41 @@ def program_state(view: dict[str, Any], last: StepSeen | None) -> int:
 
 def machine_values(
     name: str,
-    view: dict[str, Any],
-    alarms: list[dict[str, Any]],
+    view: MachineStatus,
+    alarms: list[AlarmInfo],
     last: StepSeen | None,
     counts: tuple[int, int, int],
 ) -> dict[str, Any]:
     """The machine's variables by path (``Monitoring/MachineState`` ...) from its status."""
-    mine = sum(1 for a in alarms if a.get("machine") == name)
-    progress = view.get("progress") or {}
-    busy = bool(view.get("step"))
-    total = progress.get("total") or 0
+    mine = sum(1 for a in alarms if a.machine == name)
+    busy = view.step is not None
+    step = view.step
     good, held, scrapped = counts
     return {
-        "Monitoring/MachineState": str(view.get("state", "")),
+        "Monitoring/MachineState": view.state,
+        "Monitoring/Condition": condition_value(view.condition),
         "Monitoring/OperationMode": operation_mode(view),
         "Monitoring/StacklightColour": stacklight(view, mine),
-        "Monitoring/InService": bool(view.get("in_service", True)),
-        "Monitoring/OutOfServiceReason": str(view.get("out_reason", "")),
+        "Monitoring/InService": view.in_service,
+        "Monitoring/OutOfServiceReason": view.out_reason,
         "Monitoring/Channel/ChannelState": CHANNEL_STATES.index("Active" if busy else "Reset"),
         "Monitoring/Channel/ProgramState": program_state(view, last),
-        "Monitoring/Channel/CurrentStep": str(view.get("step", "")),
+        "Monitoring/Channel/CurrentStep": _step_text(step),
         "Production/ActiveProgram/Name": last.program if last is not None else "",
         "Production/ActiveProgram/PartId": last.part_id if last is not None else "",
         "Production/ActiveProgram/State": program_state(view, last),
         "Production/ActiveProgram/Progress": (
-            100.0 * float(progress.get("done", 0)) / float(total) if busy and total else 0.0
+            100.0 * view.progress.fraction if busy and view.progress is not None else 0.0
         ),
         "Production/PartCounts/Good": good,
         "Production/PartCounts/Held": held,
         "Production/PartCounts/Scrapped": scrapped,
         "Notification/ActiveAlarms": mine,
     }
+
+
+def _step_text(step: StepInfo | None) -> str:
+    """The step in flight for a reader: what, program, part (made from the fields)."""
+    if step is None:
+        return ""
+    return " ".join(x for x in (step.what.value, step.program, step.part_id) if x)

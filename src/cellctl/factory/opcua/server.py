@@ -48,6 +48,7 @@ from cellctl.factory.opcua.space import (
 from cellctl.factory.opcua.users import CellRuleset, FileUserManager, load_users
 from cellctl.service.access import CellAccess
 from cellctl.service.methods import Dispatcher
+from cellctl.service.status import AlarmInfo
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +107,7 @@ class OpcuaServer:
         self._server: Server | None = None
         self._space: CellSpace | None = None
         self._steps = StepBook()
-        self._alarms: dict[int, dict[str, Any]] = {}
+        self._alarms: dict[int, AlarmInfo] = {}
         self._events: dict[str, EventGenerator] = {}
         self._changed = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
@@ -145,9 +146,9 @@ class OpcuaServer:
         await server.load_private_key(str(key))
         idx = await server.register_namespace(NAMESPACE)
         space = CellSpace(server, idx)
-        status = self.access.snapshot()
+        status = self.access.status()
         machines = {
-            name: str(status["machines"].get(name, {}).get("kind", ""))
+            name: status.machines[name].kind if name in status.machines else ""
             for name in self.access.machines()
         }
         await space.build(self.name, machines, self.submit_order, self.clear_alarm)
@@ -162,7 +163,7 @@ class OpcuaServer:
         journal = self.access.journal()
         if journal is not None:
             self._steps.add(dataclasses.asdict(s) for s in journal.steps())
-        self._alarms = {int(a["id"]): a for a in status["alarms"]}  # told as they come only
+        self._alarms = {a.id: a for a in status.alarms}  # told as they come only
         await self._refresh()
         try:
             await server.start()
@@ -218,27 +219,29 @@ class OpcuaServer:
     async def _refresh(self) -> None:
         space = self._space
         assert space is not None
-        status = await self.dispatcher.call("cell.status")
+        status = self.access.status()
         self._steps.add(await self.dispatcher.call("steps.list", {"since": self._steps.since()}))
         scrapped = await self.dispatcher.call("parts.list", {"statuses": ["scrapped"]})
-        held = [p["id"] for p in status["parts"] if p["status"] == "held"]
+        held = [p.id for p in status.held()]
         held_at = self._steps.machine_of_parts(held)
         scrapped_at = self._steps.machine_of_parts(p["id"] for p in scrapped)
         good = self._steps.finished()
         for name in space.messages:
-            view = status["machines"].get(name, {})
+            view = status.machines.get(name)
+            if view is None:
+                continue
             counts = (good[name], held_at[name], scrapped_at[name])
             last = self._steps.last_of_machine(name)
-            values = machine_values(name, view, status["alarms"], last, counts)
+            values = machine_values(name, view, status.alarms, last, counts)
             await space.write(machine_path(name), values)
-        await space.write_path("Cell/Paused", bool(status["cell"].get("paused")))
-        await space.show_orders(status["orders"])
-        await space.show_alarms(status["alarms"])
-        await self._alarm_events(status["alarms"])
+        await space.write_path("Cell/Paused", status.cell.paused)
+        await space.show_orders(status.orders)
+        await space.show_alarms(status.alarms)
+        await self._alarm_events(status.alarms)
 
-    async def _alarm_events(self, alarms: list[dict[str, Any]]) -> None:
+    async def _alarm_events(self, alarms: list[AlarmInfo]) -> None:
         """An event per alarm raised, and per alarm cleared, from its machine's Messages."""
-        now = {int(a["id"]): a for a in alarms}
+        now = {a.id: a for a in alarms}
         for alarm_id, alarm in now.items():
             if alarm_id not in self._alarms:
                 await self._emit(alarm, True)
@@ -247,17 +250,17 @@ class OpcuaServer:
                 await self._emit(alarm, False)
         self._alarms = now
 
-    async def _emit(self, alarm: dict[str, Any], active: bool) -> None:
-        machine = str(alarm.get("machine", ""))
+    async def _emit(self, alarm: AlarmInfo, active: bool) -> None:
+        machine = alarm.machine
         generator = self._events.get(machine) or self._events[""]
         event = generator.event
-        event.AlarmId = ua.Variant(int(alarm["id"]), ua.VariantType.UInt32)
+        event.AlarmId = ua.Variant(alarm.id, ua.VariantType.UInt32)
         event.Machine = machine
-        event.Code = str(alarm.get("code", ""))
+        event.Code = alarm.code
         event.Active = active
         event.Severity = RAISED_SEVERITY if active else CLEARED_SEVERITY
         word = "" if active else "cleared: "
-        await generator.trigger(message=f"{word}alarm {alarm['id']} {machine}: {alarm['text']}")
+        await generator.trigger(message=f"{word}alarm {alarm.id} {machine}: {alarm.text}")
         # The same event from the cell and the Server object, for clients that watch those.
         assert self._server is not None and self._space is not None and self._space.cell
         own = event.emitting_node

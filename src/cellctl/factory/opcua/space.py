@@ -6,7 +6,7 @@ values current (docs/opcua.md draws the tree).
     space = CellSpace(server, namespace_index)
     await space.build("lab cell", {"robot": robot_kind, "cnc1": mill_kind}, submit, clear)
     await space.write("Machines/cnc1", machine_values(...))   # only changed values are written
-    await space.show_orders(status["orders"]); await space.show_alarms(status["alarms"])
+    await space.show_orders(status.orders); await space.show_alarms(status.alarms)
 
 Every node id is a string in cellctl's namespace, the browse path joined with ``/``
 (``Machines/cnc1/Monitoring/MachineState``, ``Cell/Orders/A/State``), so a client may keep
@@ -29,10 +29,12 @@ from asyncua.ua.object_ids import ObjectIds
 from cellctl.factory.opcua.figures import (
     CHANNEL_STATES,
     IDENTIFICATION,
+    MACHINE_CONDITIONS,
     OPERATION_MODES,
     PROGRAM_STATES,
     SIGNAL_COLORS,
 )
+from cellctl.service.status import AlarmInfo, OrderInfo
 
 V = ua.VariantType
 #: The per-machine variables: path, type, enumeration (None: a plain value), initial value.
@@ -41,6 +43,7 @@ MACHINE_VARIABLES: list[tuple[str, ua.VariantType, str | None, Any]] = [
     ("Identification/Model", V.String, None, ""),
     ("Identification/Name", V.String, None, ""),
     ("Monitoring/MachineState", V.String, None, ""),
+    ("Monitoring/Condition", V.Int32, "MachineCondition", 0),
     ("Monitoring/OperationMode", V.Int32, "MachineOperationMode", 1),
     ("Monitoring/StacklightColour", V.Int32, "SignalColor", 0),
     ("Monitoring/InService", V.Boolean, None, True),
@@ -81,6 +84,7 @@ ALARM_VARIABLES: list[tuple[str, str, ua.VariantType]] = [
     ("Raised", "raised", V.DateTime),
 ]
 ENUMS = {
+    "MachineCondition": MACHINE_CONDITIONS,
     "MachineOperationMode": OPERATION_MODES,
     "SignalColor": SIGNAL_COLORS,
     "ChannelState": CHANNEL_STATES,
@@ -250,9 +254,9 @@ class CellSpace:
         self.values[path] = value
         await self.server.write_attribute_value(node.nodeid, ua.DataValue(ua.Variant(value, vtype)))
 
-    async def show_orders(self, orders: list[dict[str, Any]]) -> None:
+    async def show_orders(self, orders: list[OrderInfo]) -> None:
         """``Cell/Orders/<id>``: the orders of the status (open ones and the latest)."""
-        wanted = {str(o["id"]): o for o in orders}
+        wanted = {o.id: o.model_dump() for o in orders}
         for order_id in [i for i in self._orders if i not in wanted]:
             await self._remove(f"Cell/Orders/{_key(order_id)}", self._orders.pop(order_id))
         for order_id, order in wanted.items():
@@ -266,12 +270,12 @@ class CellSpace:
             for var, field, _ in ORDER_VARIABLES:
                 await self.write_path(f"{base}/{var}", row[field])
         await self.write_path(
-            "Cell/OpenOrders", sum(1 for o in orders if o.get("state") in OPEN_ORDER_STATES)
+            "Cell/OpenOrders", sum(1 for o in orders if o.state in OPEN_ORDER_STATES)
         )
 
-    async def show_alarms(self, alarms: list[dict[str, Any]]) -> None:
+    async def show_alarms(self, alarms: list[AlarmInfo]) -> None:
         """``Cell/Alarms/<id>``: the active alarms."""
-        wanted = {int(a["id"]): a for a in alarms}
+        wanted = {a.id: a.model_dump() for a in alarms}
         for alarm_id in [i for i in self._alarms if i not in wanted]:
             await self._remove(f"Cell/Alarms/{alarm_id}", self._alarms.pop(alarm_id))
         for alarm_id, alarm in wanted.items():

@@ -33,6 +33,7 @@ from textual.widgets.option_list import Option
 from cellctl.errors import CellctlError
 from cellctl.service.client import CellClient, RemoteCell
 from cellctl.service.functions import MachineFunction, menu
+from cellctl.service.status import StepInfo, StepKind, apply_update_json
 from cellctl.ui.console.cellmenu import CellActions
 from cellctl.ui.console.dialogs import ConfirmDialog, Dialog, ParamsDialog
 from cellctl.ui.console.session import (
@@ -42,7 +43,7 @@ from cellctl.ui.console.session import (
     check_params,
     open_console_cell,
 )
-from cellctl.ui.console.widgets import Board, ResultPane, TrafficPane
+from cellctl.ui.console.widgets import Board, ResultPane, TrafficPane, step_text
 
 #: Seconds between two looks at the selected machine's traffic.
 TRAFFIC_PERIOD = 0.5
@@ -167,11 +168,7 @@ class ConsoleApp(App[None]):
     def _apply_changes(self, changes: dict[str, Any]) -> None:
         if self._closed:
             return
-        for key, value in changes.items():
-            if key == "events":
-                self.snapshot["events"] = [*self.snapshot.get("events", []), *value][-30:]
-            else:
-                self.snapshot[key] = value
+        self.snapshot = apply_update_json(self.snapshot, changes)
         self._show_snapshot()
         if self.level != "main":
             self.show_menu(self.level, keep=True)
@@ -385,10 +382,11 @@ class ConsoleApp(App[None]):
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
         while True:
-            step = self.snapshot.get("machines", {}).get(name, {}).get("step") or ""
-            if not step or step == "manual" or loop.time() > deadline:
+            step = self.snapshot.get("machines", {}).get(name, {}).get("step") or {}
+            if not step or step.get("what") == StepKind.MANUAL or loop.time() > deadline:
                 return
-            self.say([f"{name}: waiting for its step in flight to end ({step})"], "yellow")
+            shown = step_text(StepInfo.model_validate(step))
+            self.say([f"{name}: waiting for its step in flight to end ({shown})"], "yellow")
             await asyncio.sleep(0.1)
 
     # -- machine functions ------------------------------------------------------------------

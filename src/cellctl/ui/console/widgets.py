@@ -1,8 +1,8 @@
 """The console's always-visible panes: the cell board (machines, alarms, orders), the result
 of the last call (with a progress bar while one runs) and the selected machine's traffic.
 
-Each pane renders from plain dicts (the API's status snapshot, ``traffic.tail`` rows), so
-what it shows is what any API client would see.
+The board renders the cell's status (:class:`~cellctl.service.status.CellStatus`, from the
+JSON any API client gets) by field: a machine's condition, never a search of its words.
 """
 
 from __future__ import annotations
@@ -14,6 +14,9 @@ from rich.text import Text
 from textual.app import ComposeResult
 from textual.containers import Vertical
 from textual.widgets import ProgressBar, Static
+
+from cellctl.kinds import Condition
+from cellctl.service.status import CellMode, CellStatus, ProgressInfo, StepInfo
 
 #: Characters of a progress bar drawn on the board.
 BAR_WIDTH = 12
@@ -30,57 +33,82 @@ def _clip(text: str, width: int) -> str:
     return text if len(text) <= width else text[: max(width - 1, 0)] + "…"
 
 
-def board_text(snapshot: dict[str, Any], width: int = 48, height: int = 0) -> Text:
-    """The board: one line per machine (a second one for progress or trouble), open alarms,
-    the order queue."""
+#: How the board names each condition (six characters at most; the colour says the rest).
+CONDITION_LABELS = {
+    Condition.OFFLINE: ("offln", "red"),
+    Condition.NOT_READY: ("notrdy", "yellow"),
+    Condition.IDLE: ("idle", "green"),
+    Condition.BUSY: ("busy", "cyan"),
+    Condition.ALARM: ("ALARM", "bold red"),
+    Condition.OUT_OF_SERVICE: ("OUT", "yellow"),
+}
+
+
+def step_text(step: StepInfo | None) -> str:
+    """A step for the eye: ``transfer conveyor_cnc1 A-1``."""
+    if step is None:
+        return ""
+    return " ".join(x for x in (step.what.value, step.program, step.part_id) if x)
+
+
+def progress_text(p: ProgressInfo) -> str:
+    """``sending block 2/5 1.2 s left``: the phase, the block, the time left."""
+    words = [p.phase]
+    if p.blocks:
+        words.append(f"block {p.block}/{p.blocks}")
+    if p.time_left_s is not None:
+        words.append(f"{p.time_left_s:.0f} s left")
+    return " ".join(words)
+
+
+def board_text(snapshot: dict[str, Any] | CellStatus, width: int = 48, height: int = 0) -> Text:
+    """The board: one line per machine (its condition, its state in its words), a second
+    for its step and progress, or its trouble; open alarms, the order queue, events."""
     out = Text(no_wrap=True, overflow="ellipsis")
-    cell = snapshot.get("cell", {})
-    machines: dict[str, Any] = snapshot.get("machines", {})
-    alarms: list[dict[str, Any]] = snapshot.get("alarms", [])
-    title = "MACHINES" + ("   CELL PAUSED" if cell.get("paused") else "")
+    status = snapshot if isinstance(snapshot, CellStatus) else CellStatus.model_validate(snapshot)
+    cell = status.cell
+    title = "MACHINES" + ("   CELL PAUSED" if cell.paused else "")
+    if cell.mode is CellMode.EMERGENCY_STOP:
+        title += "   EMERGENCY STOP"
     out.append(title + "\n", style="bold")
-    for name, m in machines.items():
+    for name, m in status.machines.items():
         out.append(f"{name:<6} ", style="bold")
-        if cell.get("mode") == "attached":
-            if m.get("in_service"):
-                out.append("in  ", style="green")
-            else:
-                out.append("OUT ", style="yellow")
-        out.append(_clip(str(m.get("state", "")), width - 11) + "\n")
-        step = str(m.get("step") or "")
-        progress = m.get("progress")
-        if progress:
-            bar = text_bar(progress.get("done", 0), progress.get("total", 0), 8)
-            line = f"       {bar} {progress.get('phase', '')} {step}"
+        label, style = CONDITION_LABELS[m.condition]
+        out.append(f"{label:<6} ", style=style)
+        out.append(_clip(m.state, width - 14) + "\n")
+        step = step_text(m.step)
+        if m.progress is not None:
+            bar = text_bar(m.progress.done, m.progress.total, 8)
+            line = f"       {bar} {progress_text(m.progress)} {step}"
             out.append(_clip(line, width) + "\n", style="cyan")
         elif step:
             out.append(_clip(f"       {step}", width) + "\n")
-        last = [a for a in alarms if a.get("machine") == name]
+        last = [a for a in status.alarms if a.machine == name]
         if last:
-            out.append(_clip(f"       ! {last[-1].get('text', '')}", width) + "\n", style="red")
-        elif not m.get("in_service") and m.get("out_reason") and cell.get("mode") == "attached":
-            out.append(_clip(f"       {m['out_reason']}", width) + "\n", style="yellow")
+            out.append(_clip(f"       ! {last[-1].text}", width) + "\n", style="red")
+        elif m.error is not None and m.condition in (Condition.ALARM, Condition.OFFLINE):
+            out.append(_clip(f"       ! {m.error.text}", width) + "\n", style="red")
+        elif m.condition is Condition.OUT_OF_SERVICE and m.out_reason:
+            out.append(_clip(f"       {m.out_reason}", width) + "\n", style="yellow")
+    alarms = status.alarms
     out.append(f"ALARMS {len(alarms)} open\n", style="bold red" if alarms else "bold")
     for a in alarms[-3:]:
-        line = f" {a.get('id')} {a.get('machine')} {a.get('code')}: {a.get('text', '')}"
+        line = f" {a.id} {a.machine} {a.code}: {a.text}"
         out.append(_clip(line, width) + "\n", style="red")
-    orders: list[dict[str, Any]] = snapshot.get("orders", [])
-    open_orders = [o for o in orders if o.get("state") not in ("done", "cancelled", "failed")]
+    orders = status.orders
+    open_orders = [o for o in orders if o.state not in ("done", "cancelled", "failed")]
     out.append(f"ORDERS {len(open_orders)} open\n", style="bold")
     for o in (open_orders or orders[:3])[:6]:
-        done = o.get("parts", {}).get("done", 0)
-        line = (
-            f" {o.get('id')} {o.get('part_type')} x{o.get('qty')} p{o.get('priority')} "
-            f"{o.get('state')} {done}/{o.get('qty')}"
-        )
+        done = o.parts.get("done", 0)
+        line = f" {o.id} {o.part_type} x{o.qty} p{o.priority} {o.state} {done}/{o.qty}"
         out.append(_clip(line, width) + "\n")
-    events: list[dict[str, Any]] = snapshot.get("events", [])
+    events = status.events
     room = height - len(out.plain.splitlines()) - 1
     if events and room > 0:
         out.append("EVENTS\n", style="bold")
         for e in events[-room:]:
-            stamp = dt.datetime.fromtimestamp(float(e.get("time", 0))).strftime("%H:%M:%S")
-            out.append(_clip(f" {stamp} {e.get('text', '')}", width) + "\n", style="dim")
+            stamp = dt.datetime.fromtimestamp(e.time).strftime("%H:%M:%S")
+            out.append(_clip(f" {stamp} {e.text}", width) + "\n", style="dim")
     out.rstrip()
     return out
 
@@ -113,7 +141,8 @@ class Board(Static):
 
     def show(self, snapshot: dict[str, Any]) -> None:
         self.snapshot = snapshot
-        self.update(board_text(snapshot, max(self.size.width, 30), self.size.height))
+        if snapshot:
+            self.update(board_text(snapshot, max(self.size.width, 30), self.size.height))
 
     def on_resize(self) -> None:
         self.show(self.snapshot)

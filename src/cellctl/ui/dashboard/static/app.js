@@ -10,6 +10,13 @@ import {
 } from "./views.js";
 
 const TOKEN_KEY = "cellctl.token";
+const MODE_LABELS = {
+  running: "running",
+  paused: "paused",
+  stopping: "stopping",
+  "emergency-stop": "emergency stop",
+  "no-controller": "no controller",
+};
 const RETRY_MAX_MS = 5000;
 
 export const state = {
@@ -18,6 +25,7 @@ export const state = {
   steps: [],        // steps.list for the Gantt chart
   previews: {},     // "mill/program" -> {svg, blocks} or {error}
   connected: false,
+  pushedAt: 0,      // the time of the last update pushed
 };
 
 // -- the token ------------------------------------------------------------------------------
@@ -161,14 +169,19 @@ export function render() {
   renderHeld(snap);
   renderEvents(snap);
   const cellState = byId("cell-state");
-  cellState.textContent = snap.cell.paused ? "paused" : "running";
-  cellState.className = `badge ${snap.cell.paused ? "warn" : "good"}`;
+  const mode = snap.cell.mode;
+  cellState.textContent = MODE_LABELS[mode] || mode;
+  cellState.className = `badge mode-${mode} ${mode === "running" ? "good" : "warn"}`;
 }
 
 async function refresh() {
   try {
-    state.snapshot = await get("/api/status");
-    render();
+    const status = await get("/api/status");
+    // A read answered after a newer push arrived is dropped: the push is the later word.
+    if (!state.snapshot || status.cell.time >= state.pushedAt) {
+      state.snapshot = status;
+      render();
+    }
   } catch (e) {
     if (e.status !== 401) {
       notice(`could not read the cell's status: ${e.message}`);
@@ -205,6 +218,27 @@ async function refreshTraffic() {
 
 // -- the live subscription ------------------------------------------------------------------
 
+// A pushed update applied to the status held (docs/api.md, "Updates"): the cell and the lists
+// whole when they changed, the machines that changed by name, only the new events.
+export function applyUpdate(snap, update) {
+  for (const key of ["cell", "orders", "parts", "alarms"]) {
+    if (key in update) {
+      snap[key] = update[key];
+    }
+  }
+  for (const name of update.machines_gone || []) {
+    delete snap.machines[name];
+  }
+  Object.assign(snap.machines, update.machines || {});
+  if (update.events) {
+    // A status read since the last push may hold some of them already.
+    const held = snap.events.length ? snap.events[snap.events.length - 1].time : -Infinity;
+    const fresh = update.events.filter((e) => e.time > held);
+    snap.events = [...snap.events, ...fresh].slice(-30);
+  }
+  state.pushedAt = update.time;
+}
+
 let retryMs = 500;
 let lostAt = null;
 
@@ -235,6 +269,7 @@ async function connect() {
       const again = lostAt !== null;
       retryMs = 500;
       state.snapshot = message.result;
+      state.pushedAt = message.result.cell.time;
       if (!state.layout || again) {
         await loadLayout();
       }
@@ -250,15 +285,7 @@ async function connect() {
       refreshSteps();
       refreshTraffic();
     } else if (message.method === "notify_status_update" && state.snapshot) {
-      const update = message.params;
-      for (const key of ["cell", "machines", "orders", "parts", "alarms"]) {
-        if (key in update) {
-          state.snapshot[key] = update[key];
-        }
-      }
-      if (update.events) {
-        state.snapshot.events = [...state.snapshot.events, ...update.events].slice(-30);
-      }
+      applyUpdate(state.snapshot, message.params);
       render();
     }
   });
@@ -329,8 +356,9 @@ function start() {
   connect();
   setInterval(refreshSteps, 2000);
   setInterval(refreshTraffic, 1000);
-  // Progress (chars/s, ETA) and utilization move with the clock too.
-  setInterval(() => state.connected && render(), 1000);
+  // Figures that move with the clock alone come with the next change; read them now and
+  // then (docs/api.md: "Updates").
+  setInterval(() => state.connected && refresh(), 5000);
 }
 
 start();

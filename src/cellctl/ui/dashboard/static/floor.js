@@ -7,29 +7,48 @@ const CONVEYOR = { x: 20, y: 350, w: 430, h: 46 };
 const OUT = { x: 560, y: 340, w: 220, h: 66 };
 const ROBOT = { x: 400, y: 250, r: 46 };
 
-export const STATE_LABELS = {
-  running: "running",
+// What each machine condition is called on the page (the status' `condition` field).
+export const CONDITION_LABELS = {
+  offline: "offline",
+  "not-ready": "not ready",
   idle: "idle",
+  busy: "busy",
   alarm: "alarm",
-  out: "out of service",
+  "out-of-service": "out of service",
 };
+const CONDITION_CLASSES = Object.keys(CONDITION_LABELS).map((c) => `state-${c}`);
 
-// running, idle, alarm or out (of service), from a machine's entry in the status snapshot.
-export function machineState(machine, snap) {
-  if (!machine) {
-    return "idle";
+// A machine's condition, as the status says it (a machine not in the status: offline).
+export function machineCondition(machine) {
+  return machine && machine.condition in CONDITION_LABELS ? machine.condition : "offline";
+}
+
+// The places a robot transfer goes between: the part's route in the layout names them
+// (conveyor, the route's mills, conveyor), and the transfer program is one leg of it.
+export function transferPlaces(layout, snap, step) {
+  if (!step || step.what !== "transfer" || !step.program) {
+    return [];
   }
-  if (!machine.in_service) {
-    return "out";
+  const part = (snap.parts || []).find((p) => p.id === step.part_id);
+  const types = part && layout.part_types[part.part_type]
+    ? [layout.part_types[part.part_type]] : Object.values(layout.part_types);
+  for (const type of types) {
+    const leg = type.transfers.indexOf(step.program);
+    if (leg >= 0) {
+      const stops = ["conveyor", ...type.route.map((r) => r.mill), "conveyor"];
+      return [stops[leg], stops[leg + 1]];
+    }
   }
-  const alarmed = (snap.alarms || []).some((a) => a.machine === machine.name);
-  if (alarmed || String(machine.state).startsWith("error")) {
-    return "alarm";
+  return [];
+}
+
+// A machine's step for the eye (its fields: what, program, part), else its state's words.
+export function stepText(machine) {
+  const step = machine.step;
+  if (!step) {
+    return machine.state;
   }
-  if (machine.step || machine.progress) {
-    return "running";
-  }
-  return "idle";
+  return [step.what, step.program, step.part_id].filter((x) => x).join(" ");
 }
 
 function el(name, attrs = {}, parent = null) {
@@ -69,7 +88,7 @@ export function drawFloor(container, layout) {
   });
   const places = {};
   for (const box of millBoxes(layout)) {
-    const g = el("g", { class: "machine mill state-idle", "data-machine": box.name }, svg);
+    const g = el("g", { class: "machine mill state-offline", "data-machine": box.name }, svg);
     el("rect", { x: box.x, y: box.y, width: box.w, height: box.h, rx: 8, class: "body" }, g);
     text(g, box.x + 10, box.y + 22, box.name, "label name");
     text(g, box.x + 10, box.y + 40, "", "label small status");
@@ -84,7 +103,8 @@ export function drawFloor(container, layout) {
     places[box.name] = { x: box.vise.x, y: box.vise.y + 2, dx: 22 };
   }
 
-  const robot = el("g", { class: "machine robot state-idle", "data-machine": layout.robot }, svg);
+  const robot = el("g", { class: "machine robot state-offline", "data-machine": layout.robot },
+    svg);
   el("circle", { cx: ROBOT.x, cy: ROBOT.y, r: ROBOT.r, class: "body" }, robot);
   el("line", {
     x1: ROBOT.x, y1: ROBOT.y, x2: ROBOT.x + 70, y2: ROBOT.y - 30, class: "arm",
@@ -123,19 +143,21 @@ export function updateFloor(layout, snap) {
     return;
   }
   const places = JSON.parse(svg.dataset.places);
-  const robotStep = (snap.machines[layout.robot] || {}).step || "";
+  const robot = snap.machines[layout.robot];
+  const open = transferPlaces(layout, snap, robot && robot.step);
   for (const g of svg.querySelectorAll(".machine")) {
     const name = g.dataset.machine;
     const machine = snap.machines[name];
-    const kind = machineState(machine, snap);
-    g.classList.remove("state-running", "state-idle", "state-alarm", "state-out");
-    g.classList.add(`state-${kind}`);
+    const condition = machineCondition(machine);
+    g.classList.remove(...CONDITION_CLASSES);
+    g.classList.add(`state-${condition}`);
+    g.dataset.condition = condition;
     const status = g.querySelector(".status");
-    status.textContent = machine ? `${STATE_LABELS[kind]} · ${machine.step || machine.state}` : "";
+    status.textContent = machine ? `${CONDITION_LABELS[condition]} · ${stepText(machine)}` : "";
     if (g.classList.contains("mill")) {
-      // The robot's transfer names the mills it reaches into: their doors are open then.
-      g.classList.toggle("door-open", robotStep.split(" ")[0].split("_").includes(name));
-      g.classList.toggle("clamped", kind === "running");
+      // The robot's transfer reaches into the mills at its two ends: their doors are open.
+      g.classList.toggle("door-open", open.includes(name));
+      g.classList.toggle("clamped", condition === "busy");
     }
   }
   const done = (snap.orders || []).reduce((n, o) => n + ((o.parts || {}).done || 0), 0);

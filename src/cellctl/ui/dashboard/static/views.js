@@ -1,6 +1,6 @@
 // The dashboard's lists and cards: machines, orders, alarms, held parts, events, traffic.
 import { act, call } from "./app.js";
-import { machineState, STATE_LABELS } from "./floor.js";
+import { CONDITION_LABELS, machineCondition } from "./floor.js";
 
 function byId(id) {
   return document.getElementById(id);
@@ -53,7 +53,8 @@ export function fillSelect(select, values) {
 
 // -- machine cards --------------------------------------------------------------------------
 
-function progressText(p, now) {
+// A download or cut from the status' progress fields (rate and time left as it gives them).
+function progressText(p) {
   const parts = [p.phase];
   if (p.program) {
     parts.push(p.program);
@@ -62,11 +63,12 @@ function progressText(p, now) {
     parts.push(`block ${p.block} of ${p.blocks}`);
   }
   parts.push(`${p.done} / ${p.total} ${p.unit}`);
-  if (p.since && now > p.since && p.done > 0) {
-    const rate = p.done / (now - p.since);
+  if (p.rate_per_s) {
     const what = p.unit === "bytes" ? "chars/s" : `${p.unit}/s`;
-    parts.push(`${rate.toFixed(rate < 10 ? 1 : 0)} ${what}`);
-    parts.push(`ETA ${duration((p.total - p.done) / rate)}`);
+    parts.push(`${p.rate_per_s.toFixed(p.rate_per_s < 10 ? 1 : 0)} ${what}`);
+  }
+  if (p.time_left_s !== null && p.time_left_s !== undefined) {
+    parts.push(`ETA ${duration(p.time_left_s)}`);
   }
   return parts.join(" · ");
 }
@@ -93,37 +95,46 @@ function card(name) {
 }
 
 export function renderCards(state, snap) {
-  const now = Date.now() / 1000;
-  const started = snap.cell.started_at || now;
+  const started = snap.cell.started_at;
   for (const m of state.layout.machines) {
     const machine = snap.machines[m.name];
     if (!machine) {
       continue;
     }
     const node = card(m.name);
-    const kind = machineState(machine, snap);
+    const condition = machineCondition(machine);
+    node.dataset.condition = condition;
+    node.className = `card condition-${condition}`;
     const badge = node.querySelector(".state");
-    badge.textContent = STATE_LABELS[kind];
-    badge.className = `badge state state-${kind}`;
+    badge.textContent = CONDITION_LABELS[condition];
+    badge.className = `badge state state-${condition}`;
     node.querySelector(".machine-state").textContent =
       machine.in_service ? machine.state : `${machine.state} (out: ${machine.out_reason || "—"})`;
-    const match = /^(.*) \(([^)]*)\)$/.exec(machine.step || "");
-    node.querySelector(".step").textContent = match ? match[1] : machine.step || "—";
-    node.querySelector(".part").textContent = match ? match[2] : "—";
-    const busy = Math.min(1, machine.busy_s / Math.max(now - started, 1e-6));
+    const step = machine.step;
+    node.querySelector(".step").textContent =
+      step ? [step.what, step.program].filter((x) => x).join(" ") : "—";
+    node.querySelector(".part").textContent = machine.part || "—";
     node.querySelector(".utilization").textContent =
-      `${(100 * busy).toFixed(1)} % (${duration(machine.busy_s)} busy since ${clock(started)})`;
+      `${(100 * machine.utilization).toFixed(1)} % ` +
+      `(${duration(machine.busy_s)} busy since ${clock(started)})`;
     const alarms = snap.alarms.filter((a) => a.machine === m.name);
-    const last = alarms.length ? alarms[alarms.length - 1].text
-      : machine.failures ? `${machine.failures} failure(s) in a row` : "none";
+    let last = "none";
+    if (machine.error) {
+      last = machine.error.code !== null ? `${machine.error.code}: ${machine.error.text}`
+        : machine.error.text;
+    } else if (alarms.length) {
+      last = alarms[alarms.length - 1].text;
+    } else if (machine.failures) {
+      last = `${machine.failures} failure(s) in a row`;
+    }
     node.querySelector(".last-error").textContent = last;
     const box = node.querySelector(".progress");
     const p = machine.progress;
     box.classList.toggle("hidden", !p);
     if (p) {
       const fill = node.querySelector(".fill");
-      fill.style.width = `${(100 * p.done / Math.max(p.total, 1)).toFixed(1)}%`;
-      node.querySelector(".progress-text").textContent = progressText(p, now);
+      fill.style.width = `${(100 * p.fraction).toFixed(1)}%`;
+      node.querySelector(".progress-text").textContent = progressText(p);
     }
     if (m.role === "mill") {
       showPreview(state, node, m.name, p);

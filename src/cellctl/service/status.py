@@ -1,0 +1,536 @@
+"""The cell's status: one typed model that every surface reads by field (the API, the console,
+the dashboard, OPC UA), its difference between two moments, and its JSON Schema.
+
+::
+
+    status = access.status()                         # a CellStatus, built once per change
+    status.machines["cnc1"].condition                # Condition.BUSY: never a word search
+    update = difference(old, status)                 # what a subscriber is pushed
+    assert apply_update(old, update).stable() == status.stable()
+
+**The difference** (``notify_status_update``'s params, :class:`StatusUpdate`): ``time``, and
+only what changed, each whole -- ``cell`` when a field of it other than ``time`` changed;
+``machines``: the machines (by name) one of whose fields changed, or that are new;
+``machines_gone``: names no longer there; ``orders``, ``parts``, ``alarms``: the whole list
+when it changed; ``events``: only the events that are new. Figures that move with the clock
+alone (:data:`VOLATILE`: the cell's ``time``, a machine's ``utilization``, a progress'
+``rate_per_s`` and ``time_left_s``) do not make an update of their own: they travel with
+their object's next change, and ``cell.status`` has them current.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Iterable, Mapping
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from cellctl.cell.journal import Alarm, Journal, Part, Step
+from cellctl.cell.model import MachineView
+from cellctl.kinds import Condition
+
+#: Events and orders a status carries.
+STATUS_EVENTS = 30
+STATUS_ORDERS = 30
+#: Order states shown whatever their age (the others: the latest STATUS_ORDERS).
+OPEN_ORDER_STATES = ("posted", "accepted", "in-progress", "held")
+#: Part statuses the status lists (the parts in the cell).
+SHOWN_PARTS = ["waiting", "active", "held"]
+
+
+class Model(BaseModel):
+    """Base of the status' objects: no unknown keys, never changed once built."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class CellMode(enum.StrEnum):
+    """What the cell as a whole is doing."""
+
+    RUNNING = "running"
+    """The controller dispatches work."""
+    PAUSED = "paused"
+    """Paused by the operator: steps in flight finish, no new step starts."""
+    STOPPING = "stopping"
+    """The controller is shutting down."""
+    EMERGENCY_STOP = "emergency-stop"
+    """An emergency stop (the PLC's input, or the operator's) is active."""
+    NO_CONTROLLER = "no-controller"
+    """No controller runs: the machines are driven by hand (standalone)."""
+
+
+class StepKind(enum.StrEnum):
+    """What kind of step runs on a machine."""
+
+    TRANSFER = "transfer"
+    """A robot program moving a part between two places."""
+    MACHINE = "machine"
+    """A mill cutting a part (a route step)."""
+    MANUAL = "manual"
+    """A manual function the operator runs."""
+
+
+class CellInfo(Model):
+    name: str = Field(description="The cell's name (cell.toml, else its directory's).")
+    directory: str = Field(description="The cell directory.")
+    access: Literal["attached", "standalone"] = Field(
+        description="attached: a controller runs the cell; standalone: this process drives "
+        "the machines by hand."
+    )
+    mode: CellMode = Field(description="What the cell is doing.")
+    paused: bool = Field(description="Paused by the operator (or by an emergency stop).")
+    started_at: float = Field(description="When the controller (or this process) started, s.")
+    pid: int = Field(description="The serving process.")
+    time: float = Field(description="When this status was built, s since the epoch.")
+
+
+class StepInfo(Model):
+    what: StepKind = Field(description="transfer, machine or manual.")
+    program: str | None = Field(
+        default=None, description="The robot program or the route step's name."
+    )
+    part_id: str | None = Field(default=None, description="The part the step works on.")
+    started: float | None = Field(default=None, description="When the step began, s.")
+
+
+class ProgressInfo(Model):
+    phase: str = Field(description="downloading, waiting, sending, machining ...")
+    done: int = Field(description="How much is done, in unit.")
+    total: int = Field(description="How much there is, in unit.")
+    unit: str = Field(description="bytes (a mill's program) or records (a robot's).")
+    fraction: float = Field(description="done / total, 0 to 1.")
+    program: str | None = Field(default=None, description="The program being sent.")
+    block: int | None = Field(default=None, description="The block being sent (a mill).")
+    blocks: int | None = Field(default=None, description="Blocks of the program (a mill).")
+    since: float | None = Field(default=None, description="When the step began, s.")
+    rate_per_s: float | None = Field(default=None, description="unit per second so far.")
+    time_left_s: float | None = Field(
+        default=None,
+        description="Seconds left: from the rate, else from the program's own estimate.",
+    )
+
+
+class ErrorInfo(Model):
+    code: int | None = Field(default=None, description="The machine's or the source's code.")
+    text: str = Field(description="What went wrong, in the user's words.")
+
+
+class MachineStatus(Model):
+    name: str = Field(description="The machine's name in cell.toml.")
+    kind: str = Field(description="Its kind (cell.toml's kind).")
+    family: str = Field(description="robot, mill or plc: where cell.toml puts it.")
+    condition: Condition = Field(description="What it is doing, for every surface.")
+    state: str = Field(description="Its state in the machine's own words (shown, not parsed).")
+    step: StepInfo | None = Field(default=None, description="The step in flight on it.")
+    part: str | None = Field(default=None, description="The part it works on or holds.")
+    progress: ProgressInfo | None = Field(default=None, description="A download or cut.")
+    error: ErrorInfo | None = Field(default=None, description="Its last error.")
+    failures: int = Field(description="Failed steps in a row.")
+    busy_s: float = Field(description="Seconds spent in steps since the start.")
+    utilization: float = Field(description="busy_s over the time since the start, 0 to 1.")
+    in_service: bool = Field(description="In automatic service.")
+    out_reason: str = Field(description="Why it is out of service ('' when in).")
+    manual: bool = Field(description="A manual function may drive it now.")
+
+    def stable(self) -> MachineStatus:
+        """This machine without the figures that move with the clock alone (:data:`VOLATILE`)."""
+        progress = self.progress
+        if progress is not None:
+            progress = progress.model_copy(update={"rate_per_s": None, "time_left_s": None})
+        return self.model_copy(update={"utilization": 0.0, "progress": progress})
+
+
+class OrderInfo(Model):
+    id: str = Field(description="The order's id.")
+    part_type: str = Field(description="What to make (a part type of cell.toml).")
+    qty: int = Field(description="How many.")
+    priority: int = Field(description="Higher first.")
+    state: str = Field(description="posted, accepted, in-progress, held, done, ...")
+    created: float = Field(description="When it was posted, s.")
+    updated: float = Field(description="When its state last changed, s.")
+    note: str = Field(default="", description="Why it is in its state.")
+    parts: dict[str, int] = Field(description="Its parts counted by status.")
+
+
+class PartInfo(Model):
+    id: str = Field(description="The part's id: its order's, then -N.")
+    order_id: str = Field(description="Its order.")
+    part_type: str = Field(description="Its part type.")
+    seq_in_order: int = Field(description="N: its number in its order, from 1.")
+    route_index: int = Field(description="Route operations done.")
+    location: str = Field(description="conveyor, a machine's name, or out.")
+    status: str = Field(description="waiting, active or held.")
+    updated: float = Field(description="When it last changed, s.")
+    note: str = Field(default="", description="Why it is held.")
+
+
+class AlarmInfo(Model):
+    id: int = Field(description="The alarm's number (alarms.clear takes it).")
+    raised: float = Field(description="When it was raised, s.")
+    machine: str = Field(description="The machine it is about (cell, plc, a machine's name).")
+    code: str = Field(description="What kind of fault (link, status, estop, ...).")
+    text: str = Field(description="What happened, in the user's words.")
+    state: str = Field(description="active (the status lists active alarms only).")
+    cleared: float | None = Field(default=None, description="When it was cleared, s.")
+    cleared_by: str = Field(default="", description="Who cleared it.")
+
+
+class EventInfo(Model):
+    time: float = Field(description="When, s since the epoch.")
+    text: str = Field(description="What happened.")
+
+
+class CellStatus(Model):
+    """The cell's status (``cell.status``, ``GET /api/status``)."""
+
+    cell: CellInfo = Field(description="The cell as a whole.")
+    machines: dict[str, MachineStatus] = Field(description="Every machine by name.")
+    orders: list[OrderInfo] = Field(description="Open orders and the latest others.")
+    parts: list[PartInfo] = Field(description="Parts waiting, active or held.")
+    alarms: list[AlarmInfo] = Field(description="Active alarms, oldest first.")
+    events: list[EventInfo] = Field(description=f"The last {STATUS_EVENTS} events.")
+
+    def stable(self) -> CellStatus:
+        """This status without the figures that move with the clock alone (:data:`VOLATILE`)."""
+        return self.model_copy(
+            update={
+                "cell": self.cell.model_copy(update={"time": 0.0}),
+                "machines": {n: m.stable() for n, m in self.machines.items()},
+            }
+        )
+
+    def held(self) -> list[PartInfo]:
+        """The held parts."""
+        return [p for p in self.parts if p.status == "held"]
+
+
+class StatusUpdate(Model):
+    """What changed between two statuses (``notify_status_update``; the module docstring)."""
+
+    time: float = Field(description="When the newer status was built, s.")
+    cell: CellInfo | None = Field(default=None, description="The cell, when it changed.")
+    machines: dict[str, MachineStatus] | None = Field(
+        default=None, description="The machines that changed or are new, whole, by name."
+    )
+    machines_gone: list[str] | None = Field(
+        default=None, description="Machines no longer in the status."
+    )
+    orders: list[OrderInfo] | None = Field(default=None, description="All, when they changed.")
+    parts: list[PartInfo] | None = Field(default=None, description="All, when they changed.")
+    alarms: list[AlarmInfo] | None = Field(default=None, description="All, when they changed.")
+    events: list[EventInfo] | None = Field(default=None, description="The new events only.")
+
+    def empty(self) -> bool:
+        return not self.model_fields_set - {"time"}
+
+    def as_json(self) -> dict[str, Any]:
+        """The JSON a subscriber is pushed: ``time`` and the keys that changed."""
+        sent = self.model_fields_set | {"time"}
+        return {k: v for k, v in self.model_dump(mode="json").items() if k in sent}
+
+
+#: Figures that move with the clock alone: they make no update of their own.
+VOLATILE = ("cell.time", "machines.*.utilization", "progress.rate_per_s", "progress.time_left_s")
+
+
+# -- the difference ---------------------------------------------------------------------------
+
+
+def difference(old: CellStatus | None, new: CellStatus) -> StatusUpdate:
+    """What a subscriber holding ``old`` is sent to hold ``new`` (``old`` None: everything)."""
+    changes: dict[str, Any] = {}
+    if old is None or old.cell.model_copy(update={"time": new.cell.time}) != new.cell:
+        changes["cell"] = new.cell
+    machines = {
+        name: m
+        for name, m in new.machines.items()
+        if old is None or name not in old.machines or old.machines[name].stable() != m.stable()
+    }
+    if machines:
+        changes["machines"] = machines
+    gone = [name for name in (old.machines if old else {}) if name not in new.machines]
+    if gone:
+        changes["machines_gone"] = gone
+    for key in ("orders", "parts", "alarms"):
+        if old is None or getattr(old, key) != getattr(new, key):
+            changes[key] = getattr(new, key)
+    fresh = new_events(old.events if old else [], new.events)
+    if fresh:
+        changes["events"] = fresh
+    return StatusUpdate(time=new.cell.time, **changes)
+
+
+def new_events(old: list[EventInfo], new: list[EventInfo]) -> list[EventInfo]:
+    """The events of ``new`` that ``old`` does not have: both are windows on one log, so
+    ``old`` ends with what ``new`` starts with (nothing in common: more happened than a
+    status carries, and every event of ``new`` is new)."""
+    for k in range(min(len(old), len(new)), 0, -1):
+        if old[-k:] == new[:k]:
+            return new[k:]
+    return list(new)
+
+
+def apply_update(old: CellStatus, update: StatusUpdate) -> CellStatus:
+    """``old`` with ``update`` applied: what a subscriber holds after it."""
+    machines = dict(old.machines)
+    for name in update.machines_gone or []:
+        machines.pop(name, None)
+    machines.update(update.machines or {})
+    events = [*old.events, *(update.events or [])][-STATUS_EVENTS:]
+    return CellStatus(
+        cell=update.cell or old.cell,
+        machines=machines,
+        orders=old.orders if update.orders is None else update.orders,
+        parts=old.parts if update.parts is None else update.parts,
+        alarms=old.alarms if update.alarms is None else update.alarms,
+        events=events,
+    )
+
+
+def apply_update_json(snapshot: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
+    """:func:`apply_update` on the JSON a client holds and is pushed (the console's way)."""
+    out = dict(snapshot)
+    machines = dict(out.get("machines", {}))
+    for name in update.get("machines_gone", []):
+        machines.pop(name, None)
+    machines.update(update.get("machines", {}))
+    out["machines"] = machines
+    for key in ("cell", "orders", "parts", "alarms"):
+        if key in update:
+            out[key] = update[key]
+    out["events"] = [*out.get("events", []), *update.get("events", [])][-STATUS_EVENTS:]
+    return out
+
+
+# -- building it ------------------------------------------------------------------------------
+
+
+def build_status(
+    *,
+    cell: CellInfo,
+    views: Mapping[str, MachineView],
+    families: Mapping[str, str],
+    out_of_service: Mapping[str, str],
+    manual: Iterable[str],
+    journal: Journal | None,
+    orders: list[dict[str, Any]],
+    events: Iterable[tuple[float, str]],
+    estimates: Mapping[tuple[str, str], float] | None = None,
+) -> CellStatus:
+    """The status from what the controller (or a standalone cell) knows: each machine's view,
+    the journal's steps in flight, parts and alarms, the orders, the events. ``estimates``:
+    a program's own machining seconds by (machine, route step name)."""
+    now = cell.time
+    parts = journal.parts(SHOWN_PARTS) if journal is not None else []
+    open_steps = {s.machine: s for s in journal.open_steps()} if journal is not None else {}
+    manual_use = set(manual)
+    machines = {
+        name: _machine(
+            view,
+            families.get(name, view.kind),
+            open_steps.get(name),
+            parts,
+            out_of_service.get(name, ""),
+            name in manual_use,
+            now,
+            cell.started_at,
+            estimates or {},
+        )
+        for name, view in views.items()
+    }
+    alarms: list[Alarm] = journal.active_alarms() if journal is not None else []
+    shown = [o for o in orders if o["state"] in OPEN_ORDER_STATES]
+    shown += [o for o in orders if o["state"] not in OPEN_ORDER_STATES][:STATUS_ORDERS]
+    return CellStatus(
+        cell=cell,
+        machines=machines,
+        orders=[OrderInfo(**o) for o in shown[: STATUS_ORDERS * 2]],
+        parts=[_part(p) for p in parts],
+        alarms=[_alarm(a) for a in alarms],
+        events=[EventInfo(time=t, text=x) for t, x in events][-STATUS_EVENTS:],
+    )
+
+
+def _machine(
+    view: MachineView,
+    family: str,
+    journal_step: Step | None,
+    parts: list[Part],
+    out_reason: str,
+    manual: bool,
+    now: float,
+    started_at: float,
+    estimates: Mapping[tuple[str, str], float],
+) -> MachineStatus:
+    step: StepInfo | None = None
+    if view.step:
+        # The journal has the step's facts (what, which part); a step the journal does
+        # not know is the operator's manual function.
+        if journal_step is not None:
+            step = StepInfo(
+                what=StepKind(journal_step.kind),
+                program=journal_step.program,
+                part_id=journal_step.part_id,
+                started=journal_step.started,
+            )
+        else:
+            step = StepInfo(what=StepKind.MANUAL)
+    part = step.part_id if step is not None and step.part_id else None
+    if part is None:
+        part = next((p.id for p in parts if p.location == view.name), None)
+    estimate = None
+    if step is not None and step.program is not None:
+        estimate = estimates.get((view.name, step.program))
+    progress = _progress(view.progress, now, estimate, step)
+    error = ErrorInfo(code=view.error.code, text=view.error.text) if view.error else None
+    elapsed = max(now - started_at, 1e-6)
+    return MachineStatus(
+        name=view.name,
+        kind=view.kind,
+        family=family,
+        condition=view.condition,
+        state=view.state,
+        step=step,
+        part=part,
+        progress=progress,
+        error=error,
+        failures=view.failures,
+        busy_s=round(view.busy_s, 3),
+        utilization=round(min(1.0, view.busy_s / elapsed), 4),
+        in_service=view.in_service,
+        out_reason=out_reason,
+        manual=manual,
+    )
+
+
+def _progress(
+    raw: Mapping[str, Any] | None, now: float, estimate: float | None, step: StepInfo | None
+) -> ProgressInfo | None:
+    if not raw:
+        return None
+    done, total = int(raw.get("done", 0)), int(raw.get("total", 0))
+    since = raw.get("since")
+    if since is None and step is not None:
+        since = step.started
+    rate = None
+    if since is not None and now > since and done > 0:
+        rate = done / (now - float(since))
+    left = None
+    if rate and done < total:
+        left = (total - done) / rate
+    elif estimate is not None and step is not None and step.started is not None:
+        left = max(0.0, estimate - (now - step.started))
+    return ProgressInfo(
+        phase=str(raw.get("phase", "")),
+        done=done,
+        total=total,
+        unit=str(raw.get("unit", "")),
+        fraction=round(min(1.0, done / total), 4) if total > 0 else 0.0,
+        program=raw.get("program"),
+        block=raw.get("block"),
+        blocks=raw.get("blocks"),
+        since=None if since is None else float(since),
+        rate_per_s=None if rate is None else round(rate, 3),
+        time_left_s=None if left is None else round(left, 1),
+    )
+
+
+def _part(p: Part) -> PartInfo:
+    return PartInfo(
+        id=p.id,
+        order_id=p.order_id,
+        part_type=p.part_type,
+        seq_in_order=p.seq_in_order,
+        route_index=p.route_index,
+        location=p.location,
+        status=p.status,
+        updated=p.updated,
+        note=p.note,
+    )
+
+
+def _alarm(a: Alarm) -> AlarmInfo:
+    return AlarmInfo(
+        id=a.id,
+        raised=a.raised,
+        machine=a.machine,
+        code=a.code,
+        text=a.text,
+        state=a.state,
+        cleared=a.cleared,
+        cleared_by=a.cleared_by,
+    )
+
+
+# -- the schema and docs/api.md's tables ------------------------------------------------------
+
+
+def status_schema() -> dict[str, Any]:
+    """The JSON Schema of the status and of an update (``GET /api/schema``)."""
+    return {
+        "status": CellStatus.model_json_schema(),
+        "update": StatusUpdate.model_json_schema(),
+    }
+
+
+#: The objects docs/api.md's tables describe, in order.
+_TABLES: list[tuple[str, type[BaseModel]]] = [
+    ("status", CellStatus),
+    ("cell", CellInfo),
+    ("machines.NAME", MachineStatus),
+    ("machines.NAME.step", StepInfo),
+    ("machines.NAME.progress", ProgressInfo),
+    ("machines.NAME.error", ErrorInfo),
+    ("orders[]", OrderInfo),
+    ("parts[]", PartInfo),
+    ("alarms[]", AlarmInfo),
+    ("events[]", EventInfo),
+    ("update (notify_status_update)", StatusUpdate),
+]
+
+
+def status_tables() -> str:
+    """The status' fields as Markdown tables, rendered from the schema (docs/api.md holds
+    exactly this between its ``status tables`` markers)."""
+    schema = status_schema()
+    defs = {**schema["status"].get("$defs", {}), **schema["update"].get("$defs", {})}
+    out: list[str] = []
+    for title, model in _TABLES:
+        found = model.model_json_schema()
+        out += [f"**{title}**", "", "| field | type | meaning |", "|---|---|---|"]
+        required = set(found.get("required", []))
+        for key, prop in found["properties"].items():
+            kind = _type_of(prop, defs) + ("" if key in required else ", optional")
+            if model is StatusUpdate and key != "time":
+                kind = _type_of(prop, defs).removesuffix(" or null") + ", only when changed"
+            out.append(f"| `{key}` | {kind} | {prop.get('description', '')} |")
+        out.append("")
+    conditions = ", ".join(f"`{c.value}`" for c in Condition)
+    modes = ", ".join(f"`{m.value}`" for m in CellMode)
+    out.append(f"A machine's `condition` is one of {conditions}; the cell's `mode` one of {modes}.")
+    return "\n".join(out) + "\n"
+
+
+def _type_of(prop: dict[str, Any], defs: dict[str, Any]) -> str:
+    if "$ref" in prop:
+        name = str(prop["$ref"]).rsplit("/", 1)[-1]
+        found = defs.get(name, {})
+        if "enum" in found:
+            return " \\| ".join(f"`{v}`" for v in found["enum"])
+        return name
+    if "anyOf" in prop:
+        kinds = [_type_of(p, defs) for p in prop["anyOf"]]
+        return " or ".join(k for k in kinds if k != "null") + (
+            " or null" if "null" in kinds else ""
+        )
+    if "enum" in prop:
+        return " \\| ".join(f"`{v}`" for v in prop["enum"])
+    if "const" in prop:
+        return f"`{prop['const']}`"
+    kind = prop.get("type", "any")
+    if kind == "array":
+        return f"list of {_type_of(prop.get('items', {}), defs)}"
+    if kind == "object" and "additionalProperties" in prop:
+        return f"map of {_type_of(prop['additionalProperties'], defs)}"
+    return str(kind)

@@ -56,7 +56,7 @@ from cellctl.cell.monitor import Monitor
 from cellctl.cell.orderflow import OUT, OrderFlow
 from cellctl.cell.orders import OrderBox
 from cellctl.cell.recovery import Recovery
-from cellctl.cell.robotsteps import RobotSteps
+from cellctl.cell.robotsteps import INTERLOCK_POLL_S, RobotSteps
 from cellctl.cell.scheduler import PartState, next_transfer, ready_to_leave
 from cellctl.drivers.mill import CallbackOutput, Dyna2400Mill, MillConfig
 from cellctl.drivers.mill import Progress as MillProgress
@@ -445,10 +445,16 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
                 # Close the door (a transfer cut short by a restart may have left it open).
                 await self._doors([mill_name], False)
                 await self.plc.wait_for(
-                    f"door_closed_{index}", True, timeout=self.options.interlock_timeout
+                    f"door_closed_{index}",
+                    True,
+                    timeout=self.options.interlock_timeout,
+                    poll=INTERLOCK_POLL_S,
                 )
                 await self.plc.wait_for(
-                    f"clamp_closed_{index}", True, timeout=self.options.interlock_timeout
+                    f"clamp_closed_{index}",
+                    True,
+                    timeout=self.options.interlock_timeout,
+                    poll=INTERLOCK_POLL_S,
                 )
 
             def progress(p: MillProgress) -> None:

@@ -20,6 +20,13 @@ from cellctl.cell.orderflow import OUT
 from cellctl.errors import CellctlError, DeviceError, UsageError
 from cellctl.protocol.robot import PARTITIONS
 
+#: Seconds between looks at the robot's "cycle done" output: it tells nothing unasked, and
+#: each look is two short reads, so the line itself paces most of the wait. Every ms of it is
+#: a ms the mills wait for their next part.
+CYCLE_END_POLL_S = 0.002
+#: Seconds between reads of the PLC while a door or a vise moves (the PLC pushes nothing).
+INTERLOCK_POLL_S = 0.005
+
 if TYPE_CHECKING:
     from cellctl.cell.causes import Cause
     from cellctl.cell.config import CellConfig
@@ -100,7 +107,9 @@ class RobotSteps:
             await self.plc.write(f"door_{n}", open_)
         for n in doors:
             away_from = f"door_closed_{n}" if open_ else f"door_open_{n}"
-            await self.plc.wait_for(away_from, False, timeout=self.options.door_start_timeout)
+            await self.plc.wait_for(
+                away_from, False, timeout=self.options.door_start_timeout, poll=INTERLOCK_POLL_S
+            )
 
     async def _transfer(self, t: Transfer) -> None:
         robot = self.robot
@@ -153,7 +162,9 @@ class RobotSteps:
                         raise
                     self.log(f"robot rejected {t.program}: {e}; reset and retry {attempt}")
             await robot.wait_cycle_end(
-                self.options.done_output, timeout=self.options.transfer_timeout, poll=0.02
+                self.options.done_output,
+                timeout=self.options.transfer_timeout,
+                poll=CYCLE_END_POLL_S,
             )
             with blame("plc", "PLC"):
                 await self._doors(places, False)

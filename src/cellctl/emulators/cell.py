@@ -47,26 +47,19 @@ from cellctl.emulators.robot import Ibm7545Emulator
 from cellctl.emulators.serve import Server, serve
 from cellctl.errors import UsageError
 from cellctl.link import LineSettings
+from cellctl.protocol.plc import EXAMPLE_WIRING
 
 #: The example cell shipped with the project (copied by :meth:`EmulatedCell.start`).
 EXAMPLE_CELL = Path(__file__).resolve().parents[3] / "examples" / "cell"
 
 BASE_LINE = LineSettings(4800, 7, "E", 2)
 
-#: PLC input -> robot input line (the example cell's wiring).
-ROBOT_INPUTS = {
-    "pallet_present": 1,
-    "door_open_1": 2,
-    "clamp_closed_1": 4,
-    "door_open_2": 5,
-    "clamp_closed_2": 7,
-    "outfeed_clear": 8,
-}
-#: Inverted signals: robot input line <- not PLC input.
-ROBOT_INPUTS_INVERTED = {"clamp_closed_1": 3, "clamp_closed_2": 6}
-VISE_OUTPUTS = {1: 1, 2: 2}  # robot output -> mill whose vise it closes
-BLANK_TAKEN_OUTPUT = 7
-PART_PLACED_OUTPUT = 5
+#: The example cell's wiring, one table (:data:`cellctl.protocol.plc.EXAMPLE_WIRING`).
+ROBOT_INPUTS = EXAMPLE_WIRING.inputs
+ROBOT_INPUTS_INVERTED = EXAMPLE_WIRING.inverted
+VISE_OUTPUTS = EXAMPLE_WIRING.vise_outputs  # robot output -> mill whose vise it closes
+BLANK_TAKEN_OUTPUT = EXAMPLE_WIRING.blank_taken_output
+PART_PLACED_OUTPUT = EXAMPLE_WIRING.part_placed_output
 
 
 @dataclass(frozen=True)

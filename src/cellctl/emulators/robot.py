@@ -41,7 +41,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -74,6 +73,14 @@ from cellctl.protocol.robot import (
     decode_record,
     encode_record,
     resync,
+)
+from cellctl.protocol.robotmotion import (
+    SPEED_MM_S,
+    STOP_S,
+    ScaraArm,
+    fixed_seconds,
+    move_seconds,
+    target,
 )
 
 __all__ = ["FAULTS", "Ibm7545Emulator", "LoadedProgram", "ProgramRun", "ScaraArm"]
@@ -112,46 +119,6 @@ PROGRAMMING_ERROR = 18
 
 Z_DOWN_OUTPUT = 15  # assumed wiring: output 15 mirrors the Z axis (1 = down)
 GRIPPER_OUTPUT = 16  # assumed wiring: output 16 mirrors the gripper (1 = closed)
-GRIPPER_S = 0.3  # assumed time for the gripper or the Z cylinder to switch
-STOP_S = 0.5  # assumed time for a stopped cycle to wind down
-
-
-@dataclass(frozen=True)
-class ScaraArm:
-    """Two-link SCARA geometry (assumed defaults; the source gives none).
-
-    ``joints(x, y)`` solves the inverse kinematics; ``reachable`` is the workspace check.
-    """
-
-    link1_mm: float = 400.0
-    link2_mm: float = 250.0
-    z_min_mm: float = 0.0
-    z_max_mm: float = 200.0
-    roll_limit_deg: float = 360.0
-
-    @property
-    def home(self) -> tuple[float, float, float, float]:
-        """Home: the arm stretched along +x, Z at 0, roll 0."""
-        return (self.link1_mm + self.link2_mm, 0.0, 0.0, 0.0)
-
-    def joints(self, x: float, y: float) -> tuple[float, float] | None:
-        """Shoulder and elbow angles in degrees for (x, y), or None if out of reach."""
-        l1, l2 = self.link1_mm, self.link2_mm
-        c2 = (x * x + y * y - l1 * l1 - l2 * l2) / (2 * l1 * l2)
-        if not -1.0 <= c2 <= 1.0:
-            return None
-        t2 = math.acos(c2)
-        t1 = math.atan2(y, x) - math.atan2(l2 * math.sin(t2), l1 + l2 * math.cos(t2))
-        return math.degrees(t1), math.degrees(t2)
-
-    def reachable(self, point: tuple[float, float, float, float]) -> bool:
-        """True when the point is inside the workspace."""
-        x, y, z, roll = point
-        return (
-            self.joints(x, y) is not None
-            and self.z_min_mm <= z <= self.z_max_mm
-            and abs(roll) <= self.roll_limit_deg
-        )
 
 
 @dataclass(frozen=True)
@@ -193,7 +160,7 @@ class Ibm7545Emulator(EmulatedDevice):
         *,
         time_scale: float = 1.0,
         arm: ScaraArm | None = None,
-        speed_mm_s: float = 500.0,
+        speed_mm_s: float = SPEED_MM_S,
         erreset_operand: int = ExecuteOperand.ERRESET,
         xoff_repeat_s: float = 25.0,
         host_timeout_s: float = 30.0,
@@ -521,7 +488,7 @@ class Ibm7545Emulator(EmulatedDevice):
     def _move_time(
         self, a: tuple[float, float, float, float], b: tuple[float, float, float, float]
     ) -> float:
-        return math.dist(a[:3], b[:3]) / (self.speed_mm_s * self.speed_percent / 100)
+        return move_seconds(a, b, self.speed_mm_s, self.speed_percent)
 
     def _abort(self, reason: str) -> None:
         if self._cycle is not None and not self._cycle.done():
@@ -555,16 +522,7 @@ class Ibm7545Emulator(EmulatedDevice):
                 ins = program.instructions[pc]
                 pc += 1
                 if ins.op in (Op.PMOVE, Op.ZMOVE):
-                    if ins.op is Op.PMOVE:
-                        point = (
-                            ins.operands[0] / 10,
-                            ins.operands[1] / 10,
-                            ins.operands[2] / 10,
-                            ins.operands[3] / 10,
-                        )
-                    else:
-                        x, y, _, roll = self.position
-                        point = (x, y, ins.operands[0] / 10, roll)
+                    point = target(ins, self.position)
                     if not self.arm.reachable(point):
                         self._data_error(POINT_OUT_OF_WORKSPACE)
                         run.outcome = "point out of workspace"
@@ -572,13 +530,13 @@ class Ibm7545Emulator(EmulatedDevice):
                     await self._sleep(self._move_time(self.position, point))
                     self.position = point
                 elif ins.op is Op.DELAY:
-                    await self._sleep(ins.operands[0] / 10)
+                    await self._sleep(fixed_seconds(ins))
                 elif ins.op in (Op.GRASP, Op.RELEASE):
                     self._set_output(GRIPPER_OUTPUT, ins.op is Op.GRASP)
-                    await self._sleep(GRIPPER_S)
+                    await self._sleep(fixed_seconds(ins))
                 elif ins.op in (Op.UP, Op.DOWN):
                     self._set_output(Z_DOWN_OUTPUT, ins.op is Op.DOWN)
-                    await self._sleep(GRIPPER_S)
+                    await self._sleep(fixed_seconds(ins))
                 elif ins.op is Op.WRITEO:
                     self._set_output(ins.operands[0], bool(ins.operands[1]))
                 elif ins.op is Op.WAITI:

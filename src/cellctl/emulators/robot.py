@@ -341,6 +341,13 @@ class Ibm7545Emulator(EmulatedDevice):
     async def _sleep(self, machine_s: float) -> None:
         await asyncio.sleep(machine_s / self.time_scale)
 
+    async def _sleep_on(self, clock: list[float], machine_s: float) -> None:
+        """Sleep ``machine_s`` of a program's time on its ``clock`` (``[due]``, loop time):
+        each instruction ends when the model says, counted from the run's start, so the event
+        loop's lateness on each sleep does not add up over a program."""
+        clock[0] += machine_s / self.time_scale
+        await asyncio.sleep(max(0.0, clock[0] - asyncio.get_running_loop().time()))
+
     async def _busy(self, host: _Host, machine_s: float) -> None:
         """Wait ``machine_s`` of machine time, repeating Xoff every 25 s (scaled) meanwhile."""
         left = machine_s
@@ -516,6 +523,7 @@ class Ibm7545Emulator(EmulatedDevice):
     async def _run(self, program: LoadedProgram, run: ProgramRun) -> None:
         """Execute ``program`` until END, an error, or a stop; then state 1 (0 on power loss)."""
         pc = 0
+        clock = [asyncio.get_running_loop().time()]
         self.speed_percent = 100
         try:
             while True:
@@ -527,20 +535,22 @@ class Ibm7545Emulator(EmulatedDevice):
                         self._data_error(POINT_OUT_OF_WORKSPACE)
                         run.outcome = "point out of workspace"
                         break
-                    await self._sleep(self._move_time(self.position, point))
+                    await self._sleep_on(clock, self._move_time(self.position, point))
                     self.position = point
                 elif ins.op is Op.DELAY:
-                    await self._sleep(fixed_seconds(ins))
+                    await self._sleep_on(clock, fixed_seconds(ins))
                 elif ins.op in (Op.GRASP, Op.RELEASE):
                     self._set_output(GRIPPER_OUTPUT, ins.op is Op.GRASP)
-                    await self._sleep(fixed_seconds(ins))
+                    await self._sleep_on(clock, fixed_seconds(ins))
                 elif ins.op in (Op.UP, Op.DOWN):
                     self._set_output(Z_DOWN_OUTPUT, ins.op is Op.DOWN)
-                    await self._sleep(fixed_seconds(ins))
+                    await self._sleep_on(clock, fixed_seconds(ins))
                 elif ins.op is Op.WRITEO:
                     self._set_output(ins.operands[0], bool(ins.operands[1]))
                 elif ins.op is Op.WAITI:
                     await self._wait_input(ins.operands[0], bool(ins.operands[1]))
+                    # An input that came later than the program got here: it goes on from now.
+                    clock[0] = max(clock[0], asyncio.get_running_loop().time())
                 elif ins.op is Op.SPEED:
                     self.speed_percent = ins.operands[0]
                 elif ins.op is Op.BRANCH or (
@@ -551,6 +561,7 @@ class Ibm7545Emulator(EmulatedDevice):
                     pc = ins.operands[-1]
                     # A loop of jumps takes no machine time: let the link and the I/O go on.
                     await asyncio.sleep(0)
+                    clock[0] = max(clock[0], asyncio.get_running_loop().time())
                 elif ins.op is Op.END:
                     run.outcome = "completed"
                     break

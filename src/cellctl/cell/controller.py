@@ -108,6 +108,7 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
         self._partitions: dict[int, PartitionUse] = {}
         self._pallet_requested = False
         self._pallet_requested_at = 0.0
+        self._pallet_pulse: asyncio.Task[None] | None = None
         self._stopping = False
         self.started_at = time.time()
 
@@ -231,6 +232,9 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
 
     async def close(self) -> None:
         """Close every link (running steps must have ended)."""
+        if self._pallet_pulse is not None:
+            with contextlib.suppress(Exception):
+                await self._pallet_pulse  # 50 ms at most: the coil goes low before the link
         await self.recovery.close()
         for mill in self.mills.values():
             await mill.close()
@@ -395,14 +399,21 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
         waiting = [s for s in states if s.location == CONVEYOR and s.status == "waiting"]
         if not waiting or self.plc is None:
             return
-        if not self._pallet_requested:
-            try:
-                asked = time.monotonic()  # the edge is at the start of the pulse
-                await self.plc.pulse("pallet_request", 0.05)
-                self._pallet_requested = True
-                self._pallet_requested_at = asked
-            except CellctlError as e:
-                self._alarm("plc", "conveyor", f"cannot request a pallet: {e}")
+        if not self._pallet_requested and (self._pallet_pulse is None or self._pallet_pulse.done()):
+            # The conveyor answers the rising edge; the pulse's 50 ms go on in the background,
+            # so a mill that finishes meanwhile is served at once.
+            self._pallet_requested = True
+            self._pallet_requested_at = time.monotonic()  # the edge is at the pulse's start
+            self._pallet_pulse = asyncio.create_task(self._pulse_pallet())
+
+    async def _pulse_pallet(self) -> None:
+        assert self.plc is not None
+        try:
+            await self.plc.pulse("pallet_request", 0.05)
+        except CellctlError as e:
+            self._pallet_requested = False
+            self._alarm("plc", "conveyor", f"cannot request a pallet: {e}")
+            self._wake.set()
 
     def _pallet_overdue(self) -> None:
         """The monitor's look at a requested pallet: none there ``pallet_timeout`` after the

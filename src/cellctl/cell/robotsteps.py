@@ -121,9 +121,6 @@ class RobotSteps:
         except UsageError as e:  # cancelled or scrapped by the operator meanwhile
             self.log(f"part {part.id}: transfer {t.program} not started: {e}")
             return
-        self.mailbox.post_report(
-            "step-started", f"{t.program} {part.id}", order_id=part.order_id, part_id=part.id
-        )
         view.step = f"{t.program} ({part.id})"
         started = time.monotonic()
         places = [t.source, t.target]
@@ -161,10 +158,17 @@ class RobotSteps:
                     if attempt > self.options.retries:
                         raise
                     self.log(f"robot rejected {t.program}: {e}; reset and retry {attempt}")
+            # Reported once the arm is on its way: the journal has had the step since before.
+            self.mailbox.post_report(
+                "step-started", f"{t.program} {part.id}", order_id=part.order_id, part_id=part.id
+            )
+            # The output is read every poll; the status (a servo error or a power failure
+            # that aborted the cycle) as often as the monitor looks at an idle robot.
             await robot.wait_cycle_end(
                 self.options.done_output,
                 timeout=self.options.transfer_timeout,
                 poll=CYCLE_END_POLL_S,
+                watch_every=self.options.poll_period / 4,
             )
             with blame("plc", "PLC"):
                 await self._doors(places, False)

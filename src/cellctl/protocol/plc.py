@@ -178,6 +178,7 @@ MODBUS_EXCEPTIONS: Mapping[int, str] = MappingProxyType(
     }
 )
 
+
 @dataclass(frozen=True)
 class PlcTiming:
     """How long the PLC's machinery takes, in machine seconds (all **assumed**; the source

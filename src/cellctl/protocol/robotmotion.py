@@ -103,8 +103,6 @@ def fixed_seconds(ins: Instruction) -> float:
     return 0.0
 
 
-
-
 @dataclass
 class Timeline:
     """One run of a program on the model: when it reached END, what it wrote and when."""

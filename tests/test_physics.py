@@ -16,8 +16,12 @@ import pytest
 
 from cellctl.cell.config import load_cell
 from cellctl.cell.physics import physical_durations
+from cellctl.drivers.mill import Dyna2400Mill
 from cellctl.emulators.cell import EXAMPLE_CELL
+from cellctl.emulators.mill import Dyna2400Emulator, OperatorDelays
+from cellctl.emulators.serve import serve
 from cellctl.factory.bound import physical_bound, split_bound
+from cellctl.link import LineSettings
 from cellctl.protocol.aml import OPCODES, compile_program
 from cellctl.protocol.plc import PlcTiming
 from cellctl.protocol.robotmotion import GRIPPER_S, SPEED_MM_S, timeline
@@ -160,3 +164,27 @@ def test_the_bound_of_a_batch_from_physics(tiny_cell: Path) -> None:
     best, split = split_bound({"a": one, "b": one}, {"tiny": 5})
     assert best == pytest.approx(cnc1)
     assert sorted(s["tiny"] for s in split.values()) == [2, 3]
+
+
+async def test_the_emulated_mill_cuts_for_the_time_the_bound_counts(tiny_cell: Path) -> None:
+    # The mill emulator runs the same DYNALAN model: its own log of the cut says 6 s too.
+    config = load_cell(tiny_cell)
+    mill_config = config.mills[0]
+    emulator = Dyna2400Emulator(
+        time_scale=1000.0, delays=OperatorDelays(power_on=1.0, keys=1.0, setup=20.0)
+    )
+    line = LineSettings(115200, 8, "N", 1)
+    server = await serve(emulator, "rfc2217://127.0.0.1:0", line)
+    mill = await Dyna2400Mill.connect(server.url, name="cnc1", settings=line)
+    try:
+        assert mill_config.setup is not None
+        await mill.initialize(mill_config.setup)
+        await mill._ready.wait(True, 5)
+        await mill.download(tiny_cell / "programs" / "tiny_a.dyn")
+    finally:
+        await mill.close()
+        await server.close()
+    cut = physical_durations(config).machining[("cnc1", "tiny_a")].parts["cut"]
+    assert [run.outcome for run in emulator.runs][-1] == "block end"
+    assert emulator.runs[-1].machining_s == pytest.approx(CUT_S)
+    assert cut == pytest.approx(CUT_S)

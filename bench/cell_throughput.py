@@ -380,6 +380,7 @@ async def main() -> None:
             parts=args.parts,
             made=made,
             errors=failed,
+            alarms=s.alarms_raised,
             time_scale=scale,
             makespan_s=s.makespan_s,
             bound_s=bound,

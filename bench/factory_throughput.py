@@ -220,7 +220,7 @@ def report(
     rx: dict[str, Reactions] = {}
     last_end: dict[str, float] = {}
     busiest: dict[str, str] = {}
-    failed = 0
+    failed = alarms = 0
     for name in names:
         cell_dir = args.out / name
         config = load_cell(cell_dir)
@@ -230,6 +230,7 @@ def report(
             summary = summarize(journal, machines, since=t0)
         cell_steps[name] = steps
         failed += summary.steps_failed
+        alarms += summary.alarms_raised
         durations[name] = measured_durations(steps)
         physics[name] = physical_durations(config, time_scale=scale)
         rx[name] = reactions(steps, config.robot.name, PlcTiming().conveyor_s / scale)
@@ -320,6 +321,7 @@ def report(
             parts=parts,
             errors=failed,
             missed=missed,
+            alarms=alarms,
             time_scale=scale,
             makespan_s=makespan,
             bound_s=bound,

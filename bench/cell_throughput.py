@@ -26,7 +26,7 @@ The makespan runs from the first step's start to the last step's end. Printed fi
   the controller adds (its reaction between steps, its polling inside steps) is in it.
 - ``utilization`` = makespan / the same bound over the durations this run measured (the mean
   of each step, the least for head and tail): how busy the bottleneck was, overhead included.
-  Before 0.9 this figure was printed as ``ratio``.
+  It was printed as ``ratio`` before.
 - ``reaction_ms_p50`` / ``reaction_ms_p99``: the controller's reaction between steps, wall ms,
   nearest rank over every step that had a predecessor: from the step's possible start (its
   part's previous step ended, its machine free, for a load a pallet possible) to its start

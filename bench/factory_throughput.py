@@ -35,7 +35,7 @@ Figures:
 - ``utilization``: makespan over the same split bound from the durations each cell measured
   in this run (the mean of each step, the least for head and tail, as ``bench/cell_throughput.py``
   does; a step a cell never ran takes the mean over the other cells): how busy the busiest
-  cell's bottleneck was, overhead included. Before 0.9 this figure was printed as ``ratio``.
+  cell's bottleneck was, overhead included. It was printed as ``ratio`` before.
 - ``reaction_ms_p50`` / ``reaction_ms_p99``: each cell controller's reaction between steps (wall
   ms, nearest rank over every cell's steps; ``bench/_reaction.py``), and a breakdown per step
   kind (measured against physical, pooled over the cells) says where the time goes.

@@ -168,6 +168,10 @@ class MachineKind:
     deadlines scaled)."""
     needs_setup: bool = False
     """Whether a machine of this kind needs ``setup`` (a setup program) in cell.toml."""
+    timing: Callable[[], Any] | None = None
+    """Its timing model for bounds from physics: a robot's
+    :class:`~cellctl.kinds.families.RobotModel`, a mill's
+    :class:`~cellctl.kinds.families.MillModel` (made on demand)."""
     description: str = ""
     origin: Origin | None = None
     """Set by the registry: where it was found."""

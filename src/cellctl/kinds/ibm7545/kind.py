@@ -87,6 +87,12 @@ def _commands() -> Sequence[tuple[str, click.Command]]:
     return [("", robot), ("emulate", emulate_robot)]
 
 
+def _timing() -> Any:
+    from cellctl.kinds.ibm7545.motion import ArmModel
+
+    return ArmModel()
+
+
 IBM7545 = MachineKind(
     name="ibm7545",
     family="robot",
@@ -101,6 +107,7 @@ IBM7545 = MachineKind(
     language=ProgramLanguage(suffix=".aml", check=_check, compile=_compile),
     menu=_menu,
     commands=_commands,
+    timing=_timing,
     description="SCARA robot controller: records over a 4800 baud line, AML/E programs",
 )
 #: The 7547: the same controller, line and programs (its own name in cell.toml and OPC UA).

@@ -68,7 +68,7 @@ from cellctl.link import TrafficLog
 from cellctl.protocol.plc import PlcMap, canonical
 
 
-class CellController(OperatorCommands, OrderFlow, RobotSteps):
+class CellController(OperatorCommands, RobotSteps):
     """Runs a cell from its ``cell.toml``, journal and mailbox (see module docstring).
 
     The operator's commands (pause, service, manual use, emergency stop) are in
@@ -104,6 +104,7 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
         # The parts see the controller through the narrow interfaces of cell.ports only.
         self.recovery = Recovery(world=self, alarms=self, links=self)
         self.monitor = Monitor(world=self, alarms=self, plc=self, recovery=self.recovery)
+        self.orderflow = OrderFlow(world=self, alarms=self)
         self._robot_task: asyncio.Task[None] | None = None
         self._mill_tasks: dict[str, asyncio.Task[None]] = {}
         self._partitions: dict[int, PartitionUse] = {}
@@ -287,15 +288,15 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
                 # the PLC must wake the next round, not wait out a poll period.
                 self._wake.clear()
                 self._stopping = stop.is_set()
-                self._intake()
-                self._sync_operator()
+                self.orderflow.intake()
+                self.orderflow.sync_operator()
                 if not self._stopping and not self.paused:
                     await self.recovery.reopen_closed_links()
                     await self._dispatch()
                 busy = self._busy()
                 if self._stopping and not busy:
                     break
-                if until_idle and not busy and self._all_orders_closed():
+                if until_idle and not busy and self.orderflow.all_orders_closed():
                     break
                 with contextlib.suppress(TimeoutError):
                     async with asyncio.timeout(self.options.poll_period):

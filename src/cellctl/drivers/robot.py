@@ -111,6 +111,7 @@ _EMPTY_PARTITION = 83
 #: (a garbled N), 112 Xoff time out (a lost terminator left it waiting), 0 no reject status
 #: (the "EOT" was a garbled Ack). Only these are retried.
 TRANSMISSION_REJECTS = frozenset({0, 16, 96, 112})
+_ACK = bytes([ACK])
 #: Sent before a retry: a record no controller state accepts, so a half-received record or
 #: operand ends in a reject (EOT, discarded) and the controller waits for an identifier again.
 _BREAK = b"E\r\n"
@@ -200,6 +201,10 @@ class Ibm7545Robot(LinkDriver):
                 self.partitions[int(p)] = prog
         self.digests: dict[int, str] = {int(p): d for p, d in saved.get("digests", {}).items()}
         self._in_reject_read = False
+        # The last program downloaded, as sent: (program given, partition, program retargeted,
+        # wire pieces, digest). A DNC server sends one program over and over; encoding,
+        # retargeting and hashing it again each time was a quarter of the work per record.
+        self._last_wire: tuple[ProgramFile, int, ProgramFile, list[bytes], str] | None = None
         # One transaction at a time on the line: a monitor polling status and a scheduler
         # starting programs may share one driver.
         self._lock = asyncio.Lock()
@@ -371,9 +376,9 @@ class Ibm7545Robot(LinkDriver):
             await self._open_retrying(b"R", what)
             await self.link.write(record_out)
             record, raw_error = await self._read_data_record(what, size)
-            await self.link.write(bytes([ACK]))
+            await self.link.write(_ACK)
             await self._read_end_good(what)
-            await self.link.write(bytes([ACK]))
+            await self.link.write(_ACK)
             if raw_error is None:
                 assert record is not None
                 if len(record.data) != size:
@@ -482,17 +487,14 @@ class Ibm7545Robot(LinkDriver):
         """
         if partition not in PARTITIONS:
             raise UsageError(f"partition must be 1 to 5, not {partition} (partition error)")
-        prog = program if isinstance(program, ProgramFile) else ProgramFile.load(program)
-        prog = prog.with_partition(partition)
-        wire = [encode_record(r) for r in prog.records]
-        total = len(wire)
+        given = program if isinstance(program, ProgramFile) else ProgramFile.load(program)
+        prog, pieces, digest = self._wire(given, partition)
+        total = len(prog.records)
         # Until the last Ack the partition's content is unknown: never trust a half download.
         self.partitions[partition] = None
         self.digests.pop(partition, None)
         self._save()
         self._guard(RobotFunction.DOWNLOAD)
-        # The identifier goes alone and is acknowledged, then the rest of the N record.
-        pieces = [wire[0][:1], wire[0][1:], *wire[1:]]
         what = f"download to partition {partition}"
         async with self._lock:
             attempt = 0
@@ -509,8 +511,21 @@ class Ibm7545Robot(LinkDriver):
                         on_retry(attempt, self.config.download_retries, e)
                     await self._resync()
         self.partitions[partition] = prog.name
-        self.digests[partition] = _digest(prog)
+        self.digests[partition] = digest
         self._save()
+
+    def _wire(self, given: ProgramFile, partition: int) -> tuple[ProgramFile, list[bytes], str]:
+        """``given`` aimed at ``partition``, its wire pieces and digest (the last one kept)."""
+        last = self._last_wire
+        if last is not None and last[0] is given and last[1] == partition:
+            return last[2], last[3], last[4]
+        prog = given.with_partition(partition)
+        wire = [encode_record(r) for r in prog.records]
+        # The identifier goes alone and is acknowledged, then the rest of the N record.
+        pieces = [wire[0][:1], wire[0][1:], *wire[1:]]
+        digest = _digest(prog)
+        self._last_wire = (given, partition, prog, pieces, digest)
+        return prog, pieces, digest
 
     async def _send_program(
         self, pieces: list[bytes], total: int, what: str, progress: ProgressCallback | None

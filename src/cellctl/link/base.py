@@ -87,7 +87,7 @@ class Link(ABC):
         if self._trace is not None:
             self._trace.record(self.label, SENT, data, time.time())
         self.bytes_sent += len(data)
-        await self._send(bytes(data))
+        await self._send(data if type(data) is bytes else bytes(data))
 
     async def _wait(self, deadline: float, wanted: str) -> None:
         """Wait for more bytes until ``deadline`` (loop time)."""
@@ -132,11 +132,19 @@ class Link(ABC):
 
     async def read(self, max_bytes: int = 4096, *, timeout: float) -> bytes:
         """Return 1 to ``max_bytes`` bytes, waiting at most ``timeout`` s for the first."""
-        deadline = self._deadline(timeout)
-        while not self._buf:
-            await self._wait(deadline, "data")
-        data = bytes(self._buf[:max_bytes])
-        del self._buf[:max_bytes]
+        if timeout < 0:
+            raise UsageError(f"timeout must not be negative, not {timeout}")
+        buf = self._buf
+        if not buf:
+            deadline = self._loop.time() + timeout
+            while not buf:
+                await self._wait(deadline, "data")
+        if len(buf) <= max_bytes:
+            data = bytes(buf)
+            buf.clear()
+            return data
+        data = bytes(buf[:max_bytes])
+        del buf[:max_bytes]
         return data
 
     async def read_exactly(self, n: int, *, timeout: float) -> bytes:
@@ -168,6 +176,8 @@ class Link(ABC):
 
     def reset_input(self) -> bytes:
         """Discard (and return) bytes received but not read yet."""
+        if not self._buf:
+            return b""
         data = bytes(self._buf)
         self._buf.clear()
         return data

@@ -8,7 +8,7 @@ on the wire, which drivers add to their deadlines and emulators use to pace the 
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 from cellctl.errors import UsageError
 
@@ -26,6 +26,7 @@ class LineSettings:
     parity: str = "E"
     stopbits: float = 2
     rtscts: bool = False
+    _char_time: float = field(init=False, repr=False, compare=False, default=0.0)
 
     def __post_init__(self) -> None:
         if self.baudrate <= 0:
@@ -36,6 +37,9 @@ class LineSettings:
             raise UsageError(f"parity must be one of {''.join(PARITIES)}, not {self.parity!r}")
         if self.stopbits not in (1, 1.5, 2):
             raise UsageError(f"stop bits must be 1, 1.5 or 2, not {self.stopbits}")
+        # Every reply deadline adds wire time: work it out once (kept out of eq, hash, repr and
+        # the constructor: replace() recomputes it).
+        object.__setattr__(self, "_char_time", self.bits_per_char / self.baudrate)
 
     @property
     def bits_per_char(self) -> float:
@@ -45,7 +49,7 @@ class LineSettings:
     @property
     def char_time(self) -> float:
         """Seconds one character takes on the wire (11/4800 s at 4800 7E2)."""
-        return self.bits_per_char / self.baudrate
+        return self._char_time
 
     @property
     def chars_per_second(self) -> float:
@@ -54,7 +58,7 @@ class LineSettings:
 
     def wire_time(self, nbytes: int) -> float:
         """Seconds ``nbytes`` characters take on the wire."""
-        return nbytes * self.char_time
+        return nbytes * self._char_time
 
     def with_(self, **changes: object) -> LineSettings:
         """A copy with some fields changed, e.g. ``s.with_(rtscts=True)``."""

@@ -10,13 +10,20 @@ from cellctl.link.base import Link
 from cellctl.link.settings import LineSettings
 from cellctl.link.trace import TrafficLog
 
+#: Bytes taken from the socket per read. Records are a few dozen bytes; asyncio's own read
+#: size (256 KiB) makes every read allocate and map a fresh buffer, which cost more than the
+#: rest of a transaction with thousands of links.
+READ_SIZE = 4096
 
-class StreamProtocol(asyncio.Protocol):
-    """Feeds a link from an asyncio transport; ``on_data`` may be replaced to filter bytes."""
+
+class StreamProtocol(asyncio.BufferedProtocol):
+    """Feeds a link from an asyncio transport, read into one buffer of its own."""
 
     def __init__(self, link: TcpLink) -> None:
         self.link = link
         self.transport: asyncio.Transport | None = None
+        self._buffer = bytearray(READ_SIZE)
+        self._view = memoryview(self._buffer)
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
@@ -26,8 +33,11 @@ class StreamProtocol(asyncio.Protocol):
             # Records are a few bytes each: don't let Nagle hold them back.
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
 
-    def data_received(self, data: bytes) -> None:
-        self.link._on_wire_data(data)
+    def get_buffer(self, sizehint: int) -> memoryview:
+        return self._view
+
+    def buffer_updated(self, nbytes: int) -> None:
+        self.link._on_wire_data(bytes(self._view[:nbytes]))
 
     def connection_lost(self, exc: Exception | None) -> None:
         why = f": {exc}" if exc else ""

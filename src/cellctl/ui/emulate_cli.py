@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import click
 
-from cellctl.emulators.serve import EmulatedDevice, parse_fault, serve
+from cellctl.emulators.fleet import Fleet, check_fleet, serve_many
+from cellctl.emulators.serve import EmulatedDevice, Server, parse_fault, serve
 from cellctl.errors import UsageError
 from cellctl.link import ROBOT_LINE, LineSettings
 from cellctl.ui.common import console, fault_help, run, until_stopped
@@ -61,29 +64,109 @@ async def serve_until_stopped(
         console.print(f"{what} stopped")
 
 
+async def serve_fleet_until_stopped(
+    make: Callable[[int], EmulatedDevice],
+    listen: str,
+    line: str,
+    pacing: bool,
+    what: str,
+    count: int,
+    workers: int,
+) -> None:
+    """Serve ``count`` machines (``make(i)`` each) over ``workers`` processes, print where
+    each listens, and run until Ctrl-C or SIGTERM."""
+    settings = LineSettings.parse(line)
+    check_fleet(listen, count, workers)
+    servers: list[Server] = []
+    fleet: Fleet | None = None
+    try:
+        if workers == 1:
+            servers = await serve_many(
+                make, listen, settings, pacing=pacing, indices=range(count), count=count
+            )
+            urls = [s.url for s in servers]
+        else:
+            fleet = Fleet.start(make, listen, settings, count=count, workers=workers, pacing=pacing)
+            urls = fleet.urls
+        paced = "on" if pacing else "off"
+        console.print(
+            f"{count} x {what} in {workers} process{'es' if workers > 1 else ''}  "
+            f"({settings}, pacing {paced})"
+        )
+        for i, url in enumerate(urls, 1):
+            console.print(f"  {i}: drive it with: --link {url}", soft_wrap=True)
+        await until_stopped()
+    finally:
+        for s in servers:
+            await s.close()
+        if fleet is not None:
+            fleet.close()
+        console.print(f"{what} stopped")
+
+
 def _robot_command() -> click.Command:
     from cellctl.emulators.robot import FAULTS, Ibm7545Emulator
 
     def callback(
-        listen: str, time_scale: float, no_pacing: bool, line: str, fault: tuple[str, ...]
+        listen: str,
+        time_scale: float,
+        no_pacing: bool,
+        line: str,
+        fault: tuple[str, ...],
+        count: int,
+        workers: int,
     ) -> None:
-        async def main() -> None:
+        faults = [parse_fault(text) for text in fault]
+        for name, _ in faults:
+            if name not in FAULTS:
+                raise UsageError(f"unknown fault {name!r}; known: {', '.join(FAULTS)}")
+
+        def make(index: int = 0) -> Ibm7545Emulator:
             device = Ibm7545Emulator(time_scale=time_scale)
-            for text in fault:
-                name, arg = parse_fault(text)
-                if name not in FAULTS:
-                    raise UsageError(f"unknown fault {name!r}; known: {', '.join(FAULTS)}")
+            for name, arg in faults:
                 device.set_fault(name, arg)
-            await serve_until_stopped(device, listen, line, not no_pacing, "IBM 7545 emulator")
+            return device
+
+        async def main() -> None:
+            what = "IBM 7545 emulator"
+            if count == 1 and workers == 1:
+                await serve_until_stopped(make(), listen, line, not no_pacing, what)
+            else:
+                await serve_fleet_until_stopped(
+                    make, listen, line, not no_pacing, what, count, workers
+                )
 
         run(main)
 
     return click.Command(
         "robot",
         callback=callback,
-        params=listen_options(ROBOT_LINE, FAULTS),
-        help="Emulate an IBM 7545/7547 robot controller.\n\n" + fault_help(FAULTS),
+        params=[*listen_options(ROBOT_LINE, FAULTS), *fleet_options()],
+        help="Emulate an IBM 7545/7547 robot controller (or --count of them).\n\n"
+        + fault_help(FAULTS),
     )
+
+
+def fleet_options() -> list[click.Parameter]:
+    """``--count`` and ``--workers``: many machines of one kind, over several processes."""
+    return [
+        click.Option(
+            ["--count"],
+            type=int,
+            default=1,
+            show_default=True,
+            help="Machines to emulate, each with its own state and link (pty: one each; "
+            "socket://HOST:0 a free port each; socket://HOST:PORT ports PORT, PORT+1, ...).",
+        ),
+        click.Option(
+            ["--workers"],
+            type=int,
+            default=1,
+            show_default=True,
+            help="Processes to spread the machines over (one core paces a few thousand "
+            "lines at most).",
+        ),
+    ]
 
 
 emulate.add_command(_robot_command())

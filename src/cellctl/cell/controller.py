@@ -109,7 +109,8 @@ class CellController(OperatorCommands, RobotSteps):
         self._mill_tasks: dict[str, asyncio.Task[None]] = {}
         self._partitions: dict[int, PartitionUse] = {}
         self._pallet_requested = False
-        self._pallet_requested_at = 0.0
+        self._pallet_requested_at = 0.0  # monotonic, for the deadline
+        self._pallet_asked_wall = 0.0  # time.time(), to compare with an alarm's clearing
         self._pallet_pulse: asyncio.Task[None] | None = None
         self._stopping = False
         self.started_at = time.time()
@@ -400,6 +401,10 @@ class CellController(OperatorCommands, RobotSteps):
         if not self.inputs.get("estop_ok", True):
             return
         pallet = self.inputs.get("pallet_present", False)
+        if pallet:
+            # The request was served, whether the pallet is taken now or waits: a transfer
+            # that lifts it away must not leave the request standing, overdue.
+            self._pallet_requested = False
         outfeed = self.inputs.get("outfeed_clear", True)
         # A place a held part may occupy takes no part: it counts as out of service here; so
         # does a mill whose setup failed or whose last poll did not say ready.
@@ -426,7 +431,6 @@ class CellController(OperatorCommands, RobotSteps):
     async def _request_pallet(self, states: list[PartState], present: bool) -> None:
         """Ask the conveyor for a pallet when a part waits to start and none is there."""
         if present:
-            self._pallet_requested = False
             return
         waiting = [s for s in states if s.location == CONVEYOR and s.status == "waiting"]
         if not waiting or self.plc is None:
@@ -435,7 +439,8 @@ class CellController(OperatorCommands, RobotSteps):
             # The conveyor answers the rising edge; the pulse's 50 ms go on in the background,
             # so a mill that finishes meanwhile is served at once.
             self._pallet_requested = True
-            self._pallet_requested_at = time.monotonic()  # the edge is at the pulse's start
+            # The edge is at the pulse's start.
+            self._pallet_requested_at, self._pallet_asked_wall = time.monotonic(), time.time()
             self._pallet_pulse = asyncio.create_task(self._pulse_pallet())
 
     async def _pulse_pallet(self) -> None:
@@ -454,8 +459,29 @@ class CellController(OperatorCommands, RobotSteps):
 
     def pallet_overdue(self) -> None:
         """The monitor's look at a requested pallet: none there ``pallet_timeout`` after the
-        request means the conveyor lost it or is stuck: say so, and let dispatch ask again."""
-        if not self._pallet_requested or self.inputs.get("pallet_present", False):
+        request means the conveyor lost it or is stuck: say so, and let dispatch ask again.
+
+        A request is over, and dispatch asks again if it still needs one, once a pallet is
+        seen (the robot may lift it before dispatch looks), once an emergency stop halted
+        the conveyor (asked again after the release), and once the operator cleared the
+        conveyor's alarm after the request went out: that request was made of the conveyor
+        before it was fixed, and is asked again now rather than alarmed a second time.
+        """
+        if not self._pallet_requested:
+            return
+        if self.inputs.get("pallet_present", False) or not self.inputs.get("estop_ok", True):
+            self._pallet_requested = False
+            return
+        if any(
+            a.machine == "plc"
+            and a.code == "conveyor"
+            and a.cleared is not None
+            and a.cleared >= self._pallet_asked_wall
+            for a in self.journal.alarms()
+        ):
+            self._pallet_requested = False
+            self.log("conveyor: its alarm cleared: the pallet is asked for again")
+            self._wake.set()
             return
         if time.monotonic() - self._pallet_requested_at > self.options.pallet_timeout:
             self.alarm(

@@ -1,7 +1,9 @@
 """The controller's command interface: what an operator surface may ask of a running cell.
 
 :class:`OperatorCommands` is mixed into :class:`~cellctl.cell.controller.CellController`; the
-control API (:mod:`cellctl.service`) calls these methods and nothing else of the controller::
+control API (:mod:`cellctl.service`) calls these methods and nothing else of the controller.
+The commands' ``self`` is a :class:`~cellctl.cell.ports.CommandsHost`: all they use of the
+controller, written once, and mypy checks the controller is one::
 
     controller.pause()                               # steps in flight finish, none start
     await controller.set_service("cnc2", False)      # out of automatic service
@@ -24,9 +26,9 @@ from typing import TYPE_CHECKING, Any
 from cellctl.errors import CellctlError, MachineInUse, UsageError
 
 if TYPE_CHECKING:
-    from cellctl.cell.config import CellConfig, MachineConfig
-    from cellctl.cell.journal import Journal
-    from cellctl.kinds.families import Mill, Robot
+    from cellctl.cell.model import MachineView
+    from cellctl.cell.ports import CommandsHost
+    from cellctl.kinds.families import Mill
 
 #: The journal's reason for a machine the operator took out of service: only the operator
 #: returns it (clearing an alarm does not).
@@ -38,21 +40,6 @@ ESTOP_TIMEOUT = 10.0
 
 class OperatorCommands:
     """Pause, resume, emergency stop, service and manual use of a machine (see module doc)."""
-
-    if TYPE_CHECKING:
-        config: CellConfig
-        journal: Journal
-        machines: dict[str, Any]
-        robot: Robot | None
-        mills: dict[str, Mill]
-        _robot_task: asyncio.Task[None] | None
-        _mill_tasks: dict[str, asyncio.Task[None]]
-
-        def log(self, text: str) -> None: ...
-        def wake(self) -> None: ...
-        def alarm(self, machine: str, code: str, text: str) -> None: ...
-        async def _prepare_robot(self) -> None: ...
-        async def _prepare_mill(self, m: MachineConfig, *, force: bool) -> bool: ...
 
     paused: bool
     manual_use: set[str]
@@ -68,39 +55,28 @@ class OperatorCommands:
         for listener in list(self.listeners):
             listener()
 
-    def _known(self, name: str) -> None:
-        if name not in self.machines or name == "plc":
-            known = ", ".join(n for n in self.machines if n != "plc")
-            raise UsageError(f"unknown machine {name!r} (known: {known})")
-
-    def poke(self) -> None:
+    def poke(self: CommandsHost) -> None:
         """The operator changed the journal or the mailbox: look at it now, tell listeners."""
         self.wake()
         self.touch()
 
-    def step_task(self, name: str) -> asyncio.Task[None] | None:
-        """The step running on machine ``name``, if any."""
-        task = self._robot_task if name == self.config.robot.name else self._mill_tasks.get(name)
-        return task if task is not None and not task.done() else None
-
-    def pause(self) -> None:
+    def pause(self: CommandsHost) -> None:
         """Start no new step; the steps in flight finish."""
         if not self.paused:
             self.paused = True
             self.log("paused by the operator: steps in flight finish, no new step starts")
 
-    def resume(self) -> None:
+    def resume(self: CommandsHost) -> None:
         """Start dispatching again."""
         if self.paused:
             self.paused = False
             self.log("resumed by the operator")
             self.wake()
 
-    async def set_service(self, name: str, in_service: bool, reason: str = "") -> str:
+    async def set_service(self: CommandsHost, name: str, in_service: bool, reason: str = "") -> str:
         """Take machine ``name`` out of automatic service, or return it (then it is prepared:
         a robot initialized, a mill initialized with its setup if it lost it)."""
-        self._known(name)
-        view = self.machines[name]
+        view = _known(self.machines, name)
         if not in_service:
             why = f"{OPERATOR_OUT}: {reason}" if reason else OPERATOR_OUT
             self.journal.set_machine_service(name, False, why)
@@ -116,19 +92,18 @@ class OperatorCommands:
         view.in_service = True
         view.failures = 0
         if name == self.config.robot.name:
-            await self._prepare_robot()
+            await self.prepare_robot()
         else:
-            await self._prepare_mill(self.config.machine(name), force=False)
+            await self.prepare_mill(self.config.machine(name), force=False)
         self.log(f"{name}: back in automatic service")
         self.wake()
         return f"{name} back in automatic service ({view.state})"
 
     @contextlib.asynccontextmanager
-    async def manual(self, name: str) -> AsyncIterator[Any]:
+    async def manual(self: CommandsHost, name: str) -> AsyncIterator[Any]:
         """The driver of machine ``name`` for a manual function: only while it is out of
         automatic service and no step runs on it. The monitor leaves it alone meanwhile."""
-        self._known(name)
-        view = self.machines[name]
+        view = _known(self.machines, name)
         if view.in_service:
             raise MachineInUse(
                 f"{name} is in automatic service: take it out first "
@@ -152,12 +127,12 @@ class OperatorCommands:
             self.touch()
 
     @contextlib.asynccontextmanager
-    async def observe(self, name: str) -> AsyncIterator[Any]:
+    async def observe(self: CommandsHost, name: str) -> AsyncIterator[Any]:
         """The driver of ``name`` for a function that only reads it (status, DI/DO), in
         automatic service too. The robot's driver takes one transaction at a time, so a read
         slips in between the controller's own; a mill in the middle of a step answers from
         the host's state without touching its line."""
-        self._known(name)
+        _known(self.machines, name)
         if name == self.config.robot.name:
             if self.robot is None:
                 raise MachineInUse(f"{name} is not connected")
@@ -169,14 +144,14 @@ class OperatorCommands:
         busy = self.step_task(name) is not None or name in self.manual_use
         yield _HostView(mill) if busy else mill
 
-    async def emergency_stop(self, reason: str = "") -> str:
+    async def emergency_stop(self: CommandsHost, reason: str = "") -> str:
         """Stop the robot, halt the mills, raise an alarm, and pause the cell.
 
         Steps in flight are cut short: their parts are held for inspection (never lost).
         """
         self.paused = True
         text = "emergency stop" + (f": {reason}" if reason else " by the operator")
-        tasks = [t for t in [self._robot_task, *self._mill_tasks.values()] if t and not t.done()]
+        tasks = self.steps_in_flight()
         for task in tasks:
             task.cancel()
         for task in tasks:
@@ -209,6 +184,14 @@ class OperatorCommands:
         self.alarm("cell", "estop", text + (f" ({'; '.join(problems)})" if problems else ""))
         self.log(f"{text}: cell paused; resume once the cause is dealt with")
         return text + ("; " + "; ".join(problems) if problems else "") + ": cell paused"
+
+
+def _known(machines: dict[str, MachineView], name: str) -> MachineView:
+    """Machine ``name``'s view; a name the cell does not know is refused, with the known."""
+    if name not in machines or name == "plc":
+        known = ", ".join(n for n in machines if n != "plc")
+        raise UsageError(f"unknown machine {name!r} (known: {known})")
+    return machines[name]
 
 
 class _HostView:

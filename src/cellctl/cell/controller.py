@@ -10,7 +10,7 @@ Parts of the reference model (spec ``cell.md``):
 
 - **M, the world model**: :attr:`CellController.machines` (each machine's state, its current
   step, whether it is in service), the journal's parts (where each part is, how far along its
-  route), the robot's partitions (which program where, on the driver), the PLC's inputs.
+  route), the robot's partitions (which program where, kept by its kind), the PLC's inputs.
 - **H, task decomposition and scheduling**: an accepted order becomes parts in the journal;
   :mod:`cellctl.cell.scheduler` picks the robot's next transfer, and a part that reaches a mill
   is machined there at once. Robot programs stay in the 5 partitions and are downloaded again
@@ -51,7 +51,6 @@ from cellctl.cell.model import (
     Event,
     MachineView,
     NotifyingMailbox,
-    PartitionUse,
 )
 from cellctl.cell.monitor import Monitor
 from cellctl.cell.orderflow import OUT, OrderFlow
@@ -68,11 +67,12 @@ from cellctl.link import TrafficLog
 from cellctl.protocol.plc import PlcMap, canonical
 
 
-class CellController(OperatorCommands, RobotSteps):
+class CellController(OperatorCommands):
     """Runs a cell from its ``cell.toml``, journal and mailbox (see module docstring).
 
     The operator's commands (pause, service, manual use, emergency stop) are in
-    :class:`~cellctl.cell.commands.OperatorCommands`.
+    :class:`~cellctl.cell.commands.OperatorCommands`; the robot's transfers in
+    :class:`~cellctl.cell.robotsteps.RobotSteps`.
     """
 
     def __init__(
@@ -105,9 +105,11 @@ class CellController(OperatorCommands, RobotSteps):
         self.recovery = Recovery(world=self, alarms=self, links=self)
         self.monitor = Monitor(world=self, alarms=self, plc=self, recovery=self.recovery)
         self.orderflow = OrderFlow(world=self, alarms=self)
+        self.robotsteps = RobotSteps(
+            world=self, alarms=self, plc=self, monitor=self.monitor, recovery=self.recovery
+        )
         self._robot_task: asyncio.Task[None] | None = None
         self._mill_tasks: dict[str, asyncio.Task[None]] = {}
-        self._partitions: dict[int, PartitionUse] = {}
         self._pallet_requested = False
         self._pallet_requested_at = 0.0  # monotonic, for the deadline
         self._pallet_asked_wall = 0.0  # time.time(), to compare with an alarm's clearing
@@ -175,6 +177,16 @@ class CellController(OperatorCommands, RobotSteps):
         """A machine did its step: its failures in a row start again from 0."""
         self.machines[machine].failures = 0
 
+    def step_task(self, name: str) -> asyncio.Task[None] | None:
+        """The step running on machine ``name``, if any."""
+        task = self._robot_task if name == self.config.robot.name else self._mill_tasks.get(name)
+        return task if task is not None and not task.done() else None
+
+    def steps_in_flight(self) -> list[asyncio.Task[None]]:
+        """The steps running now (the robot's transfer, each mill's machining)."""
+        tasks = [self._robot_task, *self._mill_tasks.values()]
+        return [t for t in tasks if t is not None and not t.done()]
+
     def plc_view(self) -> MachineView:
         """The PLC's line in the live view (added on the first poll)."""
         return self.machines.setdefault("plc", MachineView("plc", "plc"))
@@ -202,9 +214,9 @@ class CellController(OperatorCommands, RobotSteps):
         self.robot = await self.open_robot()
         for m in self.config.mills:
             self.mills[m.name] = await self.open_mill(m)
-        await self._prepare_robot()
+        await self.prepare_robot()
         for m in self.config.mills:
-            await self._prepare_mill(m, force=False)
+            await self.prepare_mill(m, force=False)
         self.log(f"connected to {', '.join(self.machines)} and the PLC: running")
 
     async def open_robot(self) -> Robot:
@@ -256,10 +268,12 @@ class CellController(OperatorCommands, RobotSteps):
 
         return pulse
 
-    async def _prepare_robot(self) -> None:
+    async def prepare_robot(self) -> None:
+        """Bring the robot to a known state (stopped, initialized), as on connecting."""
         await self.recovery.prepare_robot()
 
-    async def _prepare_mill(self, m: MachineConfig, *, force: bool) -> bool:
+    async def prepare_mill(self, m: MachineConfig, *, force: bool) -> bool:
+        """Bring mill ``m`` to a known state (its setup); True if it may take work."""
         return await self.recovery.prepare_mill(m, force=force)
 
     async def close(self) -> None:
@@ -315,8 +329,7 @@ class CellController(OperatorCommands, RobotSteps):
                     await monitor
 
     def _busy(self) -> bool:
-        tasks = [self._robot_task, *self._mill_tasks.values()]
-        return any(t is not None and not t.done() for t in tasks)
+        return bool(self.steps_in_flight())
 
     # -- dispatch ---------------------------------------------------------------------------------
 
@@ -420,7 +433,7 @@ class CellController(OperatorCommands, RobotSteps):
         if transfer is None:
             await self._request_pallet(states, pallet)
             return
-        self._robot_task = asyncio.create_task(self._transfer(transfer))
+        self._robot_task = asyncio.create_task(self.robotsteps.transfer(transfer))
 
     async def read_inputs(self) -> dict[str, bool]:
         """Read the PLC's inputs now (kept in :attr:`inputs`)."""
@@ -456,6 +469,10 @@ class CellController(OperatorCommands, RobotSteps):
             else:
                 self.alarm("plc", "conveyor", f"cannot request a pallet: {e}")
             self.wake()
+
+    def pallet_taken(self) -> None:
+        """The robot lifted a pallet off the conveyor: a request standing is served."""
+        self._pallet_requested = False
 
     def pallet_overdue(self) -> None:
         """The monitor's look at a requested pallet: none there ``pallet_timeout`` after the
@@ -517,7 +534,7 @@ class CellController(OperatorCommands, RobotSteps):
         try:
             with blame("plc", "PLC"):
                 # Close the door (a transfer cut short by a restart may have left it open).
-                await self._doors([mill_name], False)
+                await self.robotsteps.doors([mill_name], False)
                 await self.plc.wait_for(
                     f"door_closed_{index}",
                     True,

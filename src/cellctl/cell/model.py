@@ -113,12 +113,6 @@ class ControllerOptions:
         return cls(**values)
 
 
-@dataclass
-class PartitionUse:
-    program: str
-    used: float
-
-
 #: Chunks of traffic the controller keeps in memory (all machines), for the API's tail.
 TRAFFIC_KEPT = 4000
 

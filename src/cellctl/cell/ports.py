@@ -6,18 +6,25 @@ all of them, but no part imports it or reaches a private member::
 
     recovery = Recovery(world=controller, alarms=controller, links=controller)
     monitor = Monitor(world=controller, alarms=controller, plc=controller, recovery=recovery)
+    robotsteps = RobotSteps(
+        world=controller, alarms=controller, plc=controller, monitor=monitor, recovery=recovery
+    )
 
 - :class:`AlarmSink`: alarms (each fault once), the fail count, the log, and the nudges that
   wake the dispatch loop and tell the listeners.
 - :class:`WorldModel`: M, what the controller knows (config, journal, options, machine views,
   the drivers, which machine runs a step or is in manual use, whether the cell stops).
 - :class:`LinkOpener`: a machine's link opened again (its driver built from its config).
-- :class:`PlcAccess`: the PLC's inputs, and the conveyor's overdue pallet.
+- :class:`PlcAccess`: the PLC's inputs, and the conveyor's pallet (overdue, or taken).
+- :class:`CommandsHost`: what the operator's commands
+  (:class:`~cellctl.cell.commands.OperatorCommands`, mixed into the controller) use of it: the
+  type of their ``self``, so mypy checks the controller provides it.
 """
 
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Protocol
 
 if TYPE_CHECKING:
@@ -26,6 +33,7 @@ if TYPE_CHECKING:
     from cellctl.cell.journal import Journal
     from cellctl.cell.model import ControllerOptions, MachineView
     from cellctl.cell.orders import OrderBox
+    from cellctl.drivers.plc import ModbusPlc
     from cellctl.kinds.families import Mill, Robot
 
 
@@ -70,6 +78,10 @@ class WorldModel(Protocol):
     @property
     def mills(self) -> dict[str, Mill]: ...
     @property
+    def plc(self) -> ModbusPlc | None:
+        """The PLC's driver (None until the controller connected)."""
+
+    @property
     def manual_use(self) -> set[str]: ...
     @property
     def stopping(self) -> bool:
@@ -109,3 +121,22 @@ class PlcAccess(Protocol):
 
     def pallet_overdue(self) -> None:
         """Alarm if a requested pallet did not come within ``pallet_timeout``."""
+
+    def pallet_taken(self) -> None:
+        """The robot lifted a pallet off the conveyor: a request standing is served."""
+
+
+class CommandsHost(WorldModel, AlarmSink, Protocol):
+    """The controller as the operator's commands see it (the type of their ``self``)."""
+
+    paused: bool
+    listeners: list[Callable[[], None]]
+
+    async def prepare_robot(self) -> None:
+        """Bring the robot to a known state (initialized), as on connecting."""
+
+    async def prepare_mill(self, m: MachineConfig, *, force: bool) -> bool:
+        """Bring mill ``m`` to a known state (its setup); True if it may take work."""
+
+    def steps_in_flight(self) -> list[asyncio.Task[None]]:
+        """The steps running now (the robot's transfer, each mill's machining)."""

@@ -1,21 +1,27 @@
-"""The robot's steps: a transfer between two places, and the programs in its partitions.
+"""The robot's steps: a transfer between two places, with the program it runs.
 
-A transfer journals its step, makes sure the program is in a partition (downloading it again
-only when it was evicted, least recently used first), opens the doors on its way, runs the
-program and waits for its "cycle done" output. A reject before the arm moved is read, reset
-and retried ``retries`` times; a failure holds the part (a transfer is never restarted
-automatically). Mixed into :class:`~cellctl.cell.controller.CellController`.
+A transfer journals its step, has the robot's kind put the program in a partition (downloaded
+again only when it is not there), opens the doors on its way, runs the program and waits for
+its "cycle done" output. A reject before the arm moved is read, reset and retried ``retries``
+times; a failure holds the part (a transfer is never restarted automatically).
+
+The controller owns a :class:`RobotSteps` and starts its :meth:`~RobotSteps.transfer` as the
+robot's task; it needs of the controller only the world model, the alarm sink and the PLC
+(:mod:`cellctl.cell.ports`), and of the other parts the monitor (a failure's cause) and
+recovery (a robot fault keeps it out of the plan)::
+
+    steps = RobotSteps(world=c, alarms=c, plc=c, monitor=c.monitor, recovery=c.recovery)
+    task = asyncio.create_task(steps.transfer(t))
 """
 
 from __future__ import annotations
 
 import asyncio
 import time
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from cellctl.cell.causes import blame
 from cellctl.cell.config import CONVEYOR
-from cellctl.cell.model import PartitionUse
 from cellctl.cell.orderflow import OUT
 from cellctl.cell.orders import ReportKind
 from cellctl.errors import CellctlError, DeviceError, UsageError
@@ -28,92 +34,83 @@ CYCLE_END_POLL_S = 0.002
 INTERLOCK_POLL_S = 0.005
 
 if TYPE_CHECKING:
-    from cellctl.cell.causes import Cause
-    from cellctl.cell.config import CellConfig
-    from cellctl.cell.journal import Journal
-    from cellctl.cell.model import ControllerOptions
     from cellctl.cell.monitor import Monitor
-    from cellctl.cell.orders import OrderBox
+    from cellctl.cell.ports import AlarmSink, PlcAccess, WorldModel
     from cellctl.cell.recovery import Recovery
     from cellctl.cell.scheduler import Transfer
-    from cellctl.drivers.plc import ModbusPlc
-    from cellctl.kinds.families import Robot
 
 
 class RobotSteps:
-    """The robot's transfers and partitions (see module docstring)."""
+    """The robot's transfers, and the doors they pass (see module docstring)."""
 
-    if TYPE_CHECKING:
-        config: CellConfig
-        journal: Journal
-        mailbox: OrderBox
-        machines: dict[str, Any]
-        options: ControllerOptions
-        robot: Robot | None
-        plc: ModbusPlc | None
-        _partitions: dict[int, PartitionUse]
-        _pallet_requested: bool
-
-        def log(self, text: str) -> None: ...
-        def wake(self) -> None: ...
-        def touch(self) -> None: ...
-        def mill_index(self, name: str) -> int: ...
-        def failed(self, machine: str, code: str, text: str, *, alarm: bool = True) -> None: ...
-        def succeeded(self, machine: str) -> None: ...
-        def cause_alarm(self, cause: Cause) -> None: ...
-
-        monitor: Monitor
-        recovery: Recovery
+    def __init__(
+        self,
+        world: WorldModel,
+        alarms: AlarmSink,
+        plc: PlcAccess,
+        monitor: Monitor,
+        recovery: Recovery,
+    ) -> None:
+        self.world = world
+        self.alarms = alarms
+        self.plc = plc
+        self.monitor = monitor
+        self.recovery = recovery
 
     # -- the robot's steps ------------------------------------------------------------------------
 
     async def _ensure_program(self, name: str) -> int:
         """Where robot program ``name`` is on the robot: the kind puts it there (a download
         only when it is not there already)."""
-        robot = self.robot
+        robot = self.world.robot
         assert robot is not None
-        program = self.config.robot_programs[name]
-        view = self.machines[robot.name]
+        program = self.world.config.robot_programs[name]
+        view = self.world.machines[robot.name]
         sent = False
 
         def progress(done: int, total: int, sent_bytes: int) -> None:
             nonlocal sent
             if not sent:
                 sent = True
-                self.log(f"robot: downloading {name}")
+                self.alarms.log(f"robot: downloading {name}")
             if view.report_progress(done, total, "records", "downloading", program=name):
-                self.touch()
+                self.alarms.touch()
 
         try:
-            slot = await robot.ensure_program(name, program, progress)
+            return await robot.ensure_program(name, program, progress)
         finally:
             view.progress = None
-        self._partitions[slot] = PartitionUse(name, time.monotonic())
-        return slot
 
-    async def _doors(self, places: list[str], open_: bool) -> None:
+    async def doors(self, places: list[str], open_: bool) -> None:
         """Open or close the doors of ``places`` (the conveyor has none). Each must leave its
         other end position within ``door_start_timeout``: one that does not is stuck
         (SignalTimeout in the PLC's words), told now rather than at the interlock's deadline."""
-        assert self.plc is not None
-        doors = [self.mill_index(p) for p in places if p != CONVEYOR]
+        plc = self.world.plc
+        assert plc is not None
+        doors = [self.world.mill_index(p) for p in places if p != CONVEYOR]
         for n in doors:
-            await self.plc.write(f"door_{n}", open_)
+            await plc.write(f"door_{n}", open_)
         for n in doors:
             away_from = f"door_closed_{n}" if open_ else f"door_open_{n}"
-            await self.plc.wait_for(
-                away_from, False, timeout=self.options.door_start_timeout, poll=INTERLOCK_POLL_S
+            await plc.wait_for(
+                away_from,
+                False,
+                timeout=self.world.options.door_start_timeout,
+                poll=INTERLOCK_POLL_S,
             )
 
-    async def _transfer(self, t: Transfer) -> None:
-        robot = self.robot
+    async def transfer(self, t: Transfer) -> None:
+        """Carry part ``t.part_id`` from ``t.source`` to ``t.target`` with program
+        ``t.program``: journaled, reported, its failure alarmed by its cause."""
+        world, alarms = self.world, self.alarms
+        robot = world.robot
         assert robot is not None
-        view = self.machines[robot.name]
-        part = self.journal.get_part(t.part_id)
+        view = world.machines[robot.name]
+        part = world.journal.get_part(t.part_id)
         try:
-            step = self.journal.begin_step(part.id, "transfer", robot.name, t.program)
+            step = world.journal.begin_step(part.id, "transfer", robot.name, t.program)
         except UsageError as e:  # cancelled or scrapped by the operator meanwhile
-            self.log(f"part {part.id}: transfer {t.program} not started: {e}")
+            alarms.log(f"part {part.id}: transfer {t.program} not started: {e}")
             return
         view.step = f"{t.program} ({part.id})"
         started = time.monotonic()
@@ -134,7 +131,7 @@ class RobotSteps:
                             await robot.initialize()
                     partition = await self._ensure_program(t.program)
                     with blame("plc", "PLC"):
-                        await self._doors(places, True)
+                        await self.doors(places, True)
                     moved = True
                     await robot.start(partition)
                     break
@@ -148,12 +145,12 @@ class RobotSteps:
                     # alarmed now, not after the retries.
                     cause = await self.monitor.cause_of(robot.name, e)
                     if cause is not None:
-                        self.cause_alarm(cause)
-                    if attempt > self.options.retries:
+                        alarms.cause_alarm(cause)
+                    if attempt > world.options.retries:
                         raise
-                    self.log(f"robot rejected {t.program}: {e}; reset and retry {attempt}")
+                    alarms.log(f"robot rejected {t.program}: {e}; reset and retry {attempt}")
             # Reported once the arm is on its way: the journal has had the step since before.
-            self.mailbox.post_report(
+            world.mailbox.post_report(
                 ReportKind.STEP_STARTED,
                 f"{t.program} {part.id}",
                 order_id=part.order_id,
@@ -162,34 +159,34 @@ class RobotSteps:
             # The output is read every poll; the status (a servo error or a power failure
             # that aborted the cycle) as often as the monitor looks at an idle robot.
             await robot.wait_end(
-                self.options.done_output,
-                timeout=self.options.transfer_timeout,
+                world.options.done_output,
+                timeout=world.options.transfer_timeout,
                 poll=CYCLE_END_POLL_S,
-                watch_every=self.options.poll_period / 4,
+                watch_every=world.options.poll_period / 4,
             )
             with blame("plc", "PLC"):
-                await self._doors(places, False)
+                await self.doors(places, False)
         except (CellctlError, OSError, asyncio.CancelledError) as e:
             view.step = ""
             stopped = isinstance(e, asyncio.CancelledError)
             what = "cut short by an emergency stop" if stopped else f"failed: {e}"
             reason = f"transfer {t.program} {what}"
             if moved or stopped:
-                self.journal.end_step(step.id, "failed", str(e) or what, hold=reason)
-                self.mailbox.post_report(
+                world.journal.end_step(step.id, "failed", str(e) or what, hold=reason)
+                world.mailbox.post_report(
                     ReportKind.STEP_FAILED, reason, order_id=part.order_id, part_id=part.id
                 )
-                self.mailbox.post_report(
+                world.mailbox.post_report(
                     ReportKind.PART_HELD, reason, order_id=part.order_id, part_id=part.id
                 )
             else:
                 # The arm never started: the part is where it was, and waits there.
                 reason = f"transfer {t.program} not started: {e}"
-                self.journal.end_step(step.id, "failed", str(e) or what)
-                self.mailbox.post_report(
+                world.journal.end_step(step.id, "failed", str(e) or what)
+                world.mailbox.post_report(
                     ReportKind.STEP_FAILED, reason, order_id=part.order_id, part_id=part.id
                 )
-            self.wake()
+            alarms.wake()
             if stopped:
                 raise
             # One alarm, the cause's: the PLC, the robot's link or status, or the transfer.
@@ -197,26 +194,26 @@ class RobotSteps:
             # it well; only a failure nothing else explains counts towards fail_limit.
             cause = await self.monitor.cause_of(robot.name, e)
             if cause is None:
-                self.failed(robot.name, "transfer", reason)
+                alarms.failed(robot.name, "transfer", reason)
             else:
-                self.cause_alarm(cause)
+                alarms.cause_alarm(cause)
                 if cause.machine == robot.name:
                     self.recovery.robot_ok = False
             return
         view.busy_s += time.monotonic() - started
         view.step = ""
-        self.succeeded(robot.name)
+        alarms.succeeded(robot.name)
         if t.source == CONVEYOR:
-            self._pallet_requested = False
+            self.plc.pallet_taken()
         if t.target == CONVEYOR:
-            self.journal.end_step(step.id, "finished", location=OUT)
-            self.journal.finish_part(part.id)
+            world.journal.end_step(step.id, "finished", location=OUT)
+            world.journal.finish_part(part.id)
         else:
-            self.journal.end_step(step.id, "finished", location=t.target)
-        self.mailbox.post_report(
+            world.journal.end_step(step.id, "finished", location=t.target)
+        world.mailbox.post_report(
             ReportKind.STEP_FINISHED,
             f"{t.program} {part.id}",
             order_id=part.order_id,
             part_id=part.id,
         )
-        self.wake()
+        alarms.wake()

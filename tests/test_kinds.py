@@ -100,3 +100,9 @@ def test_the_pickers_faults_and_checks_come_from_the_kinds() -> None:
     assert mill.picked_files == (".dyn",) and "stall" in mill.faults
     problems = mill.check_text("download", "p.dyn", "NOT DYNALAN\n", mill.checked_options({}))
     assert problems and all(p.startswith("p.dyn") for p in problems)
+
+
+def test_docs_kinds_md_holds_each_shipped_kind_s_options() -> None:
+    docs = (ROOT / "docs" / "kinds.md").read_text(encoding="utf-8")
+    for name in KIND_PACKAGES:
+        assert registry.kind(name).options_table() in docs, name

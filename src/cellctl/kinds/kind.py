@@ -215,6 +215,19 @@ class MachineKind:
                 problems.append(f"{where}: {str(message).removeprefix('Value error, ')}")
             raise UsageError(f"{self.name} options: " + "; ".join(problems)) from None
 
+    def options_table(self) -> str:
+        """Its options as a Markdown table (docs/kinds.md holds one per shipped kind)."""
+        rows = ["| option | default | meaning |", "|---|---|---|"]
+        for key, info in self.options.model_fields.items():
+            default = (
+                "required"
+                if info.is_required()
+                else repr(info.get_default(call_default_factory=True))
+            )
+            meaning = " ".join((info.description or "").split())
+            rows.append(f"| `{key}` | {default} | {meaning} |")
+        return "\n".join(rows) + "\n"
+
     async def open(self, spec: DriverSpec) -> Any:
         """Open a driver for ``spec`` (its options already checked by :meth:`checked_options`)."""
         return await self.open_driver(spec)

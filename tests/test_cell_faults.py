@@ -9,6 +9,7 @@ completes: every order done, no part lost, no part cut twice by one mill.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -234,3 +235,49 @@ async def test_the_emulated_cell_writes_the_real_deadlines_scaled(
         mc = MillConfig.from_options(mill.options)
         assert mc.setup_timeout == pytest.approx(max(5.0, 120.0 / time_scale))
         assert mc.block_extra == pytest.approx(max(5.0, 60.0 / time_scale))
+
+
+async def test_a_pallet_that_waited_is_taken_without_a_no_pallet_alarm(tmp_path: Path) -> None:
+    """A pallet that came when asked, then waited longer than ``pallet_timeout`` for the
+    robot, is no overdue pallet when the robot lifts it away: the request was served."""
+    async with CellRig(tmp_path / "cell") as rig:
+        plc = rig.cell.plc
+        # A slow conveyor (0.5 s here): the robot is taken out of service while it runs.
+        plc.timing = dataclasses.replace(plc.timing, conveyor_s=0.5 * rig.cell.time_scale)
+        asked = asyncio.Event()
+        plc.hooks.coil.append(lambda name, on: asked.set() if name == "pallet_request" else None)
+        controller = await rig.start_controller()
+        rig.post("wax-robot-base", 1, "A")
+        await asyncio.wait_for(asked.wait(), 30)
+        await controller.set_service("robot", False, "teach pendant")
+        await rig.wait_for(lambda: plc.inputs["pallet_present"], "the pallet delivered")
+        # Longer than pallet_timeout with the pallet waiting at the pick-up.
+        await rig.wait_quiet(span=2 * controller.options.pallet_timeout)
+        await controller.set_service("robot", True)
+        await rig.wait_for(rig.all_done, "order A done", timeout=60)
+        await rig.wait_quiet()
+        await rig.stop_controller()
+        assert rig.journal.alarms() == [], rig.describe()
+        assert plc.pallets_delivered == 1
+
+
+async def test_no_pallet_is_one_alarm_and_the_pallet_comes_once_fixed(tmp_path: Path) -> None:
+    """A conveyor that ignores requests: one alarm however often it is asked again; once the
+    operator has fixed it and cleared the alarm, the request made before the fix is asked
+    again, and no second alarm follows. Counted once the cell is at rest."""
+    async with CellRig(tmp_path / "cell") as rig:
+        rig.switch_on("plc:no-pallet")
+        await rig.start_controller()
+        rig.post("wax-robot-base", 1, "A")
+        await rig.wait_for(lambda: rig.alarms("plc", "conveyor"), "the conveyor's alarm")
+        await rig.wait_quiet()
+        assert len(rig.journal.alarms()) == 1, rig.describe()
+        rig.switch_off("plc:no-pallet")
+        await rig.operator_resolves()
+        await rig.wait_for(rig.all_done, "order A done", timeout=60)
+        await rig.wait_quiet()
+        await rig.stop_controller()
+        assert [(a.machine, a.code) for a in rig.journal.alarms()] == [("plc", "conveyor")], (
+            rig.describe()
+        )
+        assert rig.cell.plc.pallets_delivered == 1

@@ -13,7 +13,6 @@ from hypothesis import strategies as st
 from cellctl.cell.config import PartType, RouteStep
 from cellctl.cell.estimate import measured_durations
 from cellctl.cell.journal import Step
-from cellctl.cell.scheduler import lower_bound
 from cellctl.factory.bound import CellBound, cell_bound, split_bound
 
 BASE = PartType(
@@ -113,13 +112,13 @@ def test_measured_durations_feed_the_cells_bottleneck_bound() -> None:
     assert d.transfer_s["conveyor_to_cnc1"] == 2 and d.least_transfer_s["conveyor_to_cnc1"] == 1
     assert d.machining_s == {("cnc1", "base_rough"): 5, ("cnc2", "base_finish"): 8}
     bound = cell_bound(TYPES, d)
-    expected = lower_bound(
-        ["base"] * 3,
-        TYPES,
-        d.transfer_s,
-        d.machining_s,
-        least_transfer_s=d.least_transfer_s,
-        least_machining_s=d.least_machining_s,
-    )
-    assert bound({"base": 3, "table": 0}) == expected
+    # Three bases, by hand from the bottleneck bound (means for the work, least for head and
+    # tail): the robot does 3 x (2 + 1 + 1) = 12 s of transfers. CNC 1 has nothing before it,
+    # 3 x (load 2 + cut 5 + advance 1) = 24 s, and after it at least advance 1 + cut 8 +
+    # unload 1 ... of which the advance is its own: tail = cut 8 + unload 1 = 9 s: 33 s.
+    # CNC 2: head = least load 1 + cut 5 = 6 s, 3 x (advance 1 + cut 8 + unload 1) = 30 s,
+    # nothing after: 36 s, the bound.
+    assert bound({"base": 3, "table": 0}) == 36
+    # One base: CNC 1's 8 + 9 = 17 s beats CNC 2's 6 + 10 = 16 s and the robot's 4 s.
+    assert bound({"base": 1}) == 17
     assert bound({"base": 0}) == 0.0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import gc
 import os
 import re
 import signal
@@ -461,3 +462,46 @@ def test_cli_reads_the_map_from_cell_toml(tmp_path: Path) -> None:
     done = CliRunner().invoke(main, ["--cell", str(tmp_path), "plc", "status"])
     assert done.exit_code == 3  # nothing listens there: a link error, said once
     assert f"cannot reach the PLC at modbus://127.0.0.1:{port}" in done.output
+
+
+# -- what a failure leaves behind ---------------------------------------------------------------
+
+
+async def test_a_timed_out_request_leaves_no_unretrieved_failure(emulator: PlcEmulator) -> None:
+    """The request that timed out is ended by the driver and its outcome taken: asyncio has
+    nothing to report as "Task exception was never retrieved" once it is collected."""
+    loop = asyncio.get_running_loop()
+    reported: list[str] = []
+    previous = loop.get_exception_handler()
+    loop.set_exception_handler(lambda _loop, context: reported.append(context["message"]))
+    try:
+        async with await ModbusPlc.connect(emulator.url, timeout=0.2) as plc:
+            emulator.set_fault("silent")
+            for _ in range(2):
+                with pytest.raises(LinkTimeout):
+                    await plc.read_inputs()
+            emulator.clear_fault("silent")
+            # A whole exchange on the next connection: the loop has run the old one's end.
+            assert (await plc.read_inputs())["estop_ok"] is True
+        gc.collect()
+    finally:
+        loop.set_exception_handler(previous)
+    assert reported == []
+
+
+async def test_a_pulse_whose_end_was_lost_still_makes_an_edge(emulator: PlcEmulator) -> None:
+    """A pulse cut short by a PLC that stopped answering may leave its coil high; the next
+    pulse lowers it first, so the PLC sees a rising edge again (a GO, a pallet request)."""
+    async with await ModbusPlc.connect(emulator.url, timeout=0.3) as plc:
+        raised = asyncio.Event()
+        emulator.hooks.coil.append(lambda name, value: raised.set() if value else None)
+        pulse = asyncio.ensure_future(plc.pulse("go_1", 0.5))
+        await asyncio.wait_for(raised.wait(), WAIT)
+        emulator.set_fault("silent")  # the lowering goes unanswered
+        with pytest.raises(LinkTimeout):
+            await pulse
+        emulator.clear_fault("silent")
+        assert emulator.coils["go_1"] is True and emulator.go_count[1] == 1
+        await plc.pulse("go_1", 0.01)
+        assert emulator.go_count[1] == 2
+        assert (await plc.read_coils())["go_1"] is False

@@ -57,7 +57,7 @@ from cellctl.cell.monitor import Monitor
 from cellctl.cell.orderflow import OUT, OrderFlow
 from cellctl.cell.orders import OrderBox, ReportKind
 from cellctl.cell.recovery import Recovery
-from cellctl.cell.robotsteps import RobotSteps
+from cellctl.cell.robotsteps import INTERLOCK_POLL_S, RobotSteps
 from cellctl.cell.scheduler import PartState, next_transfer, ready_to_leave
 from cellctl.drivers.plc import ModbusPlc
 from cellctl.drivers.state import StateStore
@@ -107,7 +107,9 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
         self._mill_tasks: dict[str, asyncio.Task[None]] = {}
         self._partitions: dict[int, PartitionUse] = {}
         self._pallet_requested = False
-        self._pallet_requested_at = 0.0
+        self._pallet_requested_at = 0.0  # monotonic, for the deadline
+        self._pallet_asked_wall = 0.0  # time.time(), to compare with an alarm's clearing
+        self._pallet_pulse: asyncio.Task[None] | None = None
         self._stopping = False
         self.started_at = time.time()
 
@@ -240,6 +242,9 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
 
     async def close(self) -> None:
         """Close every link (running steps must have ended)."""
+        if self._pallet_pulse is not None:
+            with contextlib.suppress(Exception):
+                await self._pallet_pulse  # 50 ms at most: the coil goes low before the link
         await self.recovery.close()
         for mill in self.mills.values():
             await mill.close()
@@ -374,6 +379,10 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
         if not self.inputs.get("estop_ok", True):
             return
         pallet = self.inputs.get("pallet_present", False)
+        if pallet:
+            # The request was served, whether the pallet is taken now or waits: a transfer
+            # that lifts it away must not leave the request standing, overdue.
+            self._pallet_requested = False
         outfeed = self.inputs.get("outfeed_clear", True)
         # A place a held part may occupy takes no part: it counts as out of service here; so
         # does a mill whose setup failed or whose last poll did not say ready.
@@ -399,29 +408,57 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
     async def _request_pallet(self, states: list[PartState], present: bool) -> None:
         """Ask the conveyor for a pallet when a part waits to start and none is there."""
         if present:
-            self._pallet_requested = False
             return
         waiting = [s for s in states if s.location == CONVEYOR and s.status == "waiting"]
         if not waiting or self.plc is None:
             return
-        if not self._pallet_requested:
-            try:
-                asked = time.monotonic()  # the edge is at the start of the pulse
-                await self.plc.pulse("pallet_request", 0.05)
-                self._pallet_requested = True
-                self._pallet_requested_at = asked
-            except CellctlError as e:
-                # A PLC that does not answer is that fault's one alarm, not a conveyor's.
-                cause = link_cause("plc", "PLC", e)
-                if cause is not None:
-                    self._cause_alarm(cause)
-                else:
-                    self._alarm("plc", "conveyor", f"cannot request a pallet: {e}")
+        if not self._pallet_requested and (self._pallet_pulse is None or self._pallet_pulse.done()):
+            # The conveyor answers the rising edge; the pulse's 50 ms go on in the background,
+            # so a mill that finishes meanwhile is served at once.
+            self._pallet_requested = True
+            # The edge is at the pulse's start.
+            self._pallet_requested_at, self._pallet_asked_wall = time.monotonic(), time.time()
+            self._pallet_pulse = asyncio.create_task(self._pulse_pallet())
+
+    async def _pulse_pallet(self) -> None:
+        assert self.plc is not None
+        try:
+            await self.plc.pulse("pallet_request", 0.05)
+        except CellctlError as e:
+            self._pallet_requested = False
+            # A PLC that does not answer is that fault's one alarm, not a conveyor's.
+            cause = link_cause("plc", "PLC", e)
+            if cause is not None:
+                self._cause_alarm(cause)
+            else:
+                self._alarm("plc", "conveyor", f"cannot request a pallet: {e}")
+            self._wake.set()
 
     def _pallet_overdue(self) -> None:
         """The monitor's look at a requested pallet: none there ``pallet_timeout`` after the
-        request means the conveyor lost it or is stuck: say so, and let dispatch ask again."""
-        if not self._pallet_requested or self.inputs.get("pallet_present", False):
+        request means the conveyor lost it or is stuck: say so, and let dispatch ask again.
+
+        A request is over, and dispatch asks again if it still needs one, once a pallet is
+        seen (the robot may lift it before dispatch looks), once an emergency stop halted
+        the conveyor (asked again after the release), and once the operator cleared the
+        conveyor's alarm after the request went out: that request was made of the conveyor
+        before it was fixed, and is asked again now rather than alarmed a second time.
+        """
+        if not self._pallet_requested:
+            return
+        if self.inputs.get("pallet_present", False) or not self.inputs.get("estop_ok", True):
+            self._pallet_requested = False
+            return
+        if any(
+            a.machine == "plc"
+            and a.code == "conveyor"
+            and a.cleared is not None
+            and a.cleared >= self._pallet_asked_wall
+            for a in self.journal.alarms()
+        ):
+            self._pallet_requested = False
+            self.log("conveyor: its alarm cleared: the pallet is asked for again")
+            self._wake.set()
             return
         if time.monotonic() - self._pallet_requested_at > self.options.pallet_timeout:
             self._alarm(
@@ -459,10 +496,16 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
                 # Close the door (a transfer cut short by a restart may have left it open).
                 await self._doors([mill_name], False)
                 await self.plc.wait_for(
-                    f"door_closed_{index}", True, timeout=self.options.interlock_timeout
+                    f"door_closed_{index}",
+                    True,
+                    timeout=self.options.interlock_timeout,
+                    poll=INTERLOCK_POLL_S,
                 )
                 await self.plc.wait_for(
-                    f"clamp_closed_{index}", True, timeout=self.options.interlock_timeout
+                    f"clamp_closed_{index}",
+                    True,
+                    timeout=self.options.interlock_timeout,
+                    poll=INTERLOCK_POLL_S,
                 )
 
             def progress(p: RunProgress) -> None:

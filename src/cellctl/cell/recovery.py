@@ -45,7 +45,11 @@ class Recovery:
     # -- what the scheduler asks ----------------------------------------------------------------
 
     def usable(self, name: str) -> bool:
-        """True if mill ``name`` may be given work now."""
+        """True if mill ``name`` may be given work now (a link seen closed is a fault not
+        yet handled: no part goes into a mill recovery may have to set up again)."""
+        mill = self.ctl.mills.get(name)
+        if mill is None or mill.link.closed:
+            return False
         return self.fit.get(name, False) and self.ready.get(name, False)
 
     def unusable(self) -> set[str]:

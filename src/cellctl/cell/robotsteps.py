@@ -20,6 +20,13 @@ from cellctl.cell.orderflow import OUT
 from cellctl.cell.orders import ReportKind
 from cellctl.errors import CellctlError, DeviceError, UsageError
 
+#: Seconds between looks at the robot's "cycle done" output: it tells nothing unasked, and
+#: each look is two short reads, so the line itself paces most of the wait. Every ms of it is
+#: a ms the mills wait for their next part.
+CYCLE_END_POLL_S = 0.002
+#: Seconds between reads of the PLC while a door or a vise moves (the PLC pushes nothing).
+INTERLOCK_POLL_S = 0.005
+
 if TYPE_CHECKING:
     from cellctl.cell.causes import Cause
     from cellctl.cell.config import CellConfig
@@ -94,7 +101,9 @@ class RobotSteps:
             await self.plc.write(f"door_{n}", open_)
         for n in doors:
             away_from = f"door_closed_{n}" if open_ else f"door_open_{n}"
-            await self.plc.wait_for(away_from, False, timeout=self.options.door_start_timeout)
+            await self.plc.wait_for(
+                away_from, False, timeout=self.options.door_start_timeout, poll=INTERLOCK_POLL_S
+            )
 
     async def _transfer(self, t: Transfer) -> None:
         robot = self.robot
@@ -106,12 +115,6 @@ class RobotSteps:
         except UsageError as e:  # cancelled or scrapped by the operator meanwhile
             self.log(f"part {part.id}: transfer {t.program} not started: {e}")
             return
-        self.mailbox.post_report(
-            ReportKind.STEP_STARTED,
-            f"{t.program} {part.id}",
-            order_id=part.order_id,
-            part_id=part.id,
-        )
         view.step = f"{t.program} ({part.id})"
         started = time.monotonic()
         places = [t.source, t.target]
@@ -149,8 +152,20 @@ class RobotSteps:
                     if attempt > self.options.retries:
                         raise
                     self.log(f"robot rejected {t.program}: {e}; reset and retry {attempt}")
+            # Reported once the arm is on its way: the journal has had the step since before.
+            self.mailbox.post_report(
+                ReportKind.STEP_STARTED,
+                f"{t.program} {part.id}",
+                order_id=part.order_id,
+                part_id=part.id,
+            )
+            # The output is read every poll; the status (a servo error or a power failure
+            # that aborted the cycle) as often as the monitor looks at an idle robot.
             await robot.wait_end(
-                self.options.done_output, timeout=self.options.transfer_timeout, poll=0.02
+                self.options.done_output,
+                timeout=self.options.transfer_timeout,
+                poll=CYCLE_END_POLL_S,
+                watch_every=self.options.poll_period / 4,
             )
             with blame("plc", "PLC"):
                 await self._doors(places, False)

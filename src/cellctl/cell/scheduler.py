@@ -36,10 +36,11 @@ bottleneck bound: no resource can finish before it has done all its work, so
 where head(M) is the least time before the first part can reach M (the transfers and
 machining before M on the shortest route through it) and tail(M) the least time after the
 last part leaves M. A mill is occupied while the robot loads and unloads it, so those
-transfers count for it too. Durations are the measured means of each robot program and each
-mill program: a sum over the batch's parts of means is then exactly the measured total. Given
-the least measured durations too, head and tail use them, so the bound holds for the very run
-measured, not only on average.
+transfers count for it too. The durations are given: :mod:`cellctl.cell.physics` gives what
+the machines physically take (the physical bound, which no controller can beat); the means a
+run measured give how busy the bottleneck was in that run (a sum over the batch's parts of
+means is exactly the measured total; given the least measured durations too, head and tail use
+them, so that bound holds for the very run measured).
 """
 
 from __future__ import annotations

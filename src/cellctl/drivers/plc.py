@@ -26,7 +26,6 @@ within 5 s".
 from __future__ import annotations
 
 import asyncio
-import contextlib
 from collections.abc import Awaitable, Callable
 from typing import Any
 
@@ -51,6 +50,12 @@ from cellctl.protocol.plc import (
 __all__ = ["ModbusPlc"]
 
 
+def _retrieve(future: asyncio.Future[Any]) -> None:
+    """Take a finished request's outcome (its failure, if any, was raised as a typed error)."""
+    if not future.cancelled():
+        future.exception()
+
+
 class ModbusPlc:
     """Driver for the cell's PLC; build it with :meth:`connect`."""
 
@@ -62,6 +67,7 @@ class ModbusPlc:
         self.timeout = timeout
         self.requests = 0
         self.last_inputs: dict[str, bool] = {}
+        self._maybe_high: set[str] = set()  # coils a failed pulse may have left at 1
         host, port = parse_modbus_url(url)
         self._lost = asyncio.Event()
         self._closed = False
@@ -153,6 +159,7 @@ class ModbusPlc:
         """Send one request with a deadline; map every failure to a typed error."""
         from pymodbus.exceptions import ConnectionException, ModbusException
 
+        answer: asyncio.Future[Any] | None = None
         try:
             async with asyncio.timeout(self.timeout):
                 await self._ensure_connected()
@@ -164,9 +171,6 @@ class ModbusPlc:
                 finally:
                     lost.cancel()
                 if not answer.done():
-                    answer.cancel()
-                    with contextlib.suppress(BaseException):
-                        await answer
                     raise LinkClosed(f"PLC at {self.url} closed the connection ({what})")
                 response = answer.result()
         except TimeoutError:
@@ -183,6 +187,13 @@ class ModbusPlc:
             if was_lost:
                 raise LinkClosed(f"PLC at {self.url} closed the connection ({what})") from None
             raise LinkTimeout(f"PLC at {self.url}: no valid answer to {what}: {e}") from None
+        finally:
+            # A request left behind (the deadline ran out, the connection was lost) is ended
+            # here, and its outcome taken: the error raised above already tells it.
+            if answer is not None and not answer.done():
+                answer.cancel()
+            if answer is not None:
+                answer.add_done_callback(_retrieve)
         if response.isError():
             code = int(getattr(response, "exception_code", 0))
             name = MODBUS_EXCEPTIONS.get(code, "unknown Modbus exception")
@@ -243,15 +254,23 @@ class ModbusPlc:
             f"setting {name} (coil {address}) to {int(bool(value))}",
             lambda: self._client.write_coil(address, bool(value), device_id=self.map.unit),
         )
+        if not value:
+            self._maybe_high.discard(name)
 
     async def pulse(self, name: str, seconds: float = 0.5) -> None:
         """Set coil ``name`` to 1 for ``seconds``, then back to 0 (GO of a mill, a release).
 
-        The coil is lowered even if the caller is cancelled during the pulse.
+        The coil is lowered even if the caller is cancelled during the pulse. A pulse whose
+        lowering failed (the PLC stopped answering) may have left the coil high: the next
+        pulse of that coil lowers it first, so the PLC sees a rising edge again.
         """
         if seconds <= 0:
             raise UsageError(f"pulse length must be > 0 s, not {seconds}")
         name = self._signal(name, COIL)
+        if name in self._maybe_high:
+            await self.write(name, False)
+        # Marked before the write: a write that timed out may still have reached the PLC.
+        self._maybe_high.add(name)
         await self.write(name, True)
         try:
             await asyncio.sleep(seconds)  # the pulse width itself, not a wait for an event

@@ -53,6 +53,7 @@ from cellctl.errors import UsageError
 from cellctl.kinds import registry
 from cellctl.kinds.kind import EmulatorSpec
 from cellctl.link import LineSettings
+from cellctl.protocol.plc import EXAMPLE_WIRING
 
 #: The example cell (cell.toml, robot/, programs/): package data, so an installed cellctl has
 #: it wherever it runs; examples/cell in the repository links to it. Copied by
@@ -68,20 +69,12 @@ CELL_DEADLINES = ("transfer_timeout", "interlock_timeout", "pallet_timeout")
 __all__ = ["MIN_DEADLINE_S", "EmulatedCell", "scaled_deadline"]
 
 
-#: PLC input -> robot input line (the example cell's wiring).
-ROBOT_INPUTS = {
-    "pallet_present": 1,
-    "door_open_1": 2,
-    "clamp_closed_1": 4,
-    "door_open_2": 5,
-    "clamp_closed_2": 7,
-    "outfeed_clear": 8,
-}
-#: Inverted signals: robot input line <- not PLC input.
-ROBOT_INPUTS_INVERTED = {"clamp_closed_1": 3, "clamp_closed_2": 6}
-VISE_OUTPUTS = {1: 1, 2: 2}  # robot output -> mill whose vise it closes
-BLANK_TAKEN_OUTPUT = 7
-PART_PLACED_OUTPUT = 5
+#: The example cell's wiring, one table (:data:`cellctl.protocol.plc.EXAMPLE_WIRING`).
+ROBOT_INPUTS = EXAMPLE_WIRING.inputs
+ROBOT_INPUTS_INVERTED = EXAMPLE_WIRING.inverted
+VISE_OUTPUTS = EXAMPLE_WIRING.vise_outputs  # robot output -> mill whose vise it closes
+BLANK_TAKEN_OUTPUT = EXAMPLE_WIRING.blank_taken_output
+PART_PLACED_OUTPUT = EXAMPLE_WIRING.part_placed_output
 
 
 @dataclass(frozen=True)

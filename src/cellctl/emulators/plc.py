@@ -53,6 +53,7 @@ from cellctl.protocol.plc import (
     MILLS,
     SIGNALS,
     PlcMap,
+    PlcTiming,
     canonical,
     parse_modbus_url,
 )
@@ -70,17 +71,6 @@ FAULTS: dict[str, str] = {
 
 #: Inputs at power-up: doors closed, vises open, no pallet, outfeed empty, e-stop released.
 _INITIAL_INPUTS = {"outfeed_clear": True, "door_closed_1": True, "door_closed_2": True}
-
-
-@dataclass(frozen=True)
-class PlcTiming:
-    """Machine times in seconds (all **assumed**; the source gives none)."""
-
-    conveyor_s: float = 8.0
-    release_s: float = 3.0
-    outfeed_s: float = 5.0
-    clamp_s: float = 0.5
-    door_s: float = 2.0
 
 
 @dataclass

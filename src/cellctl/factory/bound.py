@@ -2,18 +2,23 @@
 
 ::
 
-    d = measured_durations(s for s in journal.steps() if s.started >= t0)  # cell.estimate
-    bounds = {"cell1": cell_bound(config.parts, d), ...}       # counts per type -> s
+    phys = physical_durations(load_cell("cell1"), time_scale=scale)   # cell.physics
+    bounds = {"cell1": physical_bound(config.parts, phys), ...}       # counts per type -> s
     best, split = split_bound(bounds, {"wax-robot-base": 60, "wax-toy-mill-table": 60})
     # best: s; split: {"cell1": {"wax-robot-base": 15, "wax-toy-mill-table": 15}, ...}
 
-A cell's bound is :func:`cellctl.cell.scheduler.lower_bound` (the bottleneck bound) of the
-parts it is given, from the durations that cell measured: the mean of each robot program and
-each (mill, program), the least of each for head and tail. No split of the batch can finish
-before its busiest cell's bound, so the least, over every way of dividing each type's count
-among the cells, of the largest cell bound is a bound on the factory's makespan. It is found
-exactly, by a dynamic program over count vectors (cell by cell: the least largest bound of
-the first cells for every sub-batch), not by assuming the cells alike or the bound linear.
+A cell's bound is the bottleneck bound (:func:`cellctl.cell.scheduler.resource_bounds`) of the
+parts it is given. :func:`physical_bound` takes its durations from what the machines physically
+do (:mod:`cellctl.cell.physics`: the machines' own models, never a measured duration): no cell
+can beat it, whatever its controller does. :func:`cell_bound` takes the durations that cell
+measured (the mean of each robot program and each (mill, program), the least of each for head
+and tail), overhead included: how busy the bottleneck was, not how close to the best possible.
+
+No split of the batch can finish before its busiest cell's bound, so the least, over every way
+of dividing each type's count among the cells, of the largest cell bound is a bound on the
+factory's makespan. It is found exactly, by a dynamic program over count vectors (cell by cell:
+the least largest bound of the first cells for every sub-batch), not by assuming the cells
+alike or the bound linear.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from collections.abc import Callable, Mapping
 
 from cellctl.cell.config import PartType
 from cellctl.cell.estimate import Durations
+from cellctl.cell.physics import Physics
 from cellctl.cell.scheduler import lower_bound
 
 #: A cell's bound (s) of a batch given as parts per type.
@@ -31,7 +37,8 @@ CellBound = Callable[[Mapping[str, int]], float]
 
 
 def cell_bound(types: Mapping[str, PartType], d: Durations) -> CellBound:
-    """The bottleneck bound of a cell making ``types`` with durations ``d``, per batch."""
+    """The bottleneck bound of a cell making ``types`` with measured durations ``d``, per
+    batch: the cell's utilization, not a physical limit (see module docstring)."""
 
     def bound(counts: Mapping[str, int]) -> float:
         parts = [t for t, n in counts.items() for _ in range(n)]
@@ -45,6 +52,15 @@ def cell_bound(types: Mapping[str, PartType], d: Durations) -> CellBound:
             least_transfer_s=d.least_transfer_s,
             least_machining_s=d.least_machining_s,
         )
+
+    return bound
+
+
+def physical_bound(types: Mapping[str, PartType], physics: Physics) -> CellBound:
+    """The physical bound (s) of a cell making ``types``, per batch (see module docstring)."""
+
+    def bound(counts: Mapping[str, int]) -> float:
+        return physics.bound([t for t, n in counts.items() for _ in range(n)], types)
 
     return bound
 

@@ -15,8 +15,8 @@ them onto its machine (a robot's partitions, a mill's blocks)::
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
@@ -76,6 +76,57 @@ class RunProgress:
 
 
 RecordsProgress = Callable[[int, int, int], None]
+
+
+# -- models for bounds from physics (pure: no I/O, no clock) ------------------------------------
+
+
+@dataclass
+class ProgramRun:
+    """One run of a robot program on its kind's motion model: when it reached its end, what
+    it wrote and when, where the arm stopped (a kind's own point type)."""
+
+    end_s: float = 0.0
+    position: Any = None
+    motion_s: float = 0.0  # the arm's own work: moves, gripper, delays
+    wait_s: float = 0.0  # waiting for inputs
+    writes: list[tuple[float, int, bool]] = field(default_factory=list)  # (time, port, value)
+
+    def first_write(self, port: int, value: bool) -> float | None:
+        """When output ``port`` was first set to ``value``; None if never."""
+        return next((t for t, p, v in self.writes if p == port and v == value), None)
+
+
+#: ``input_ready(port, value, now, run)``: the time (s), ``now`` or later, at which input
+#: ``port`` has ``value``; ``run`` is the run so far (what the program wrote, and when).
+InputReady = Callable[[int, bool, float, ProgramRun], float]
+
+
+class RobotModel(Protocol):
+    """A robot kind's motion model, in machine seconds (the cell's physical bound runs it)."""
+
+    def starts(self, programs: Iterable[Any]) -> list[Any]:
+        """Where a program may start: home, or where any of ``programs`` leaves the arm."""
+        ...
+
+    def run(self, program: Any, *, input_ready: InputReady, start: Any) -> ProgramRun:
+        """Run ``program`` (as the cell's config holds it) from ``start`` to its end."""
+        ...
+
+    def download_chars(self, program: Any) -> int:
+        """Characters on the line, both ways, for one download of ``program``."""
+        ...
+
+
+class MillModel(Protocol):
+    """A mill kind's machining model, in machine seconds."""
+
+    def cut_times(self, setup: Path | None, programs: Sequence[Path]) -> list[tuple[float, int]]:
+        """Each program's least cut time (from any state the mill can start it in: after
+        its setup or after any of ``programs``) and its characters on the line."""
+        ...
+
+
 """``progress(done, total, bytes_sent)`` while a program goes onto a robot."""
 
 
@@ -116,7 +167,9 @@ class Robot(Protocol):
         ...
 
     async def start(self, slot: int) -> None: ...
-    async def wait_end(self, done_output: int, *, timeout: float, poll: float = 0.1) -> None: ...
+    async def wait_end(
+        self, done_output: int, *, timeout: float, poll: float = 0.1, watch_every: float = 0.0
+    ) -> None: ...
     async def machine_status(self) -> Health: ...
     async def close(self) -> None: ...
 

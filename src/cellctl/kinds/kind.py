@@ -183,6 +183,10 @@ class MachineKind:
     faults: Mapping[str, str] = field(default_factory=dict)
     """Its emulator's fault switches (name -> what it does), for ``cellctl emulate cell``'s
     ``--fault MACHINE:NAME[=ARG]``."""
+    timing: Callable[[], Any] | None = None
+    """Its timing model for bounds from physics: a robot's
+    :class:`~cellctl.kinds.families.RobotModel`, a mill's
+    :class:`~cellctl.kinds.families.MillModel` (made on demand)."""
     description: str = ""
     origin: Origin | None = None
     """Set by the registry: where it was found."""

@@ -40,12 +40,15 @@ __all__ = [
     "DEFAULT_COILS",
     "DEFAULT_INPUTS",
     "DEFAULT_URL",
+    "EXAMPLE_WIRING",
     "INPUT",
     "MILLS",
     "MODBUS_EXCEPTIONS",
     "OPTIONAL_INPUTS",
     "SIGNALS",
     "PlcMap",
+    "PlcTiming",
+    "RobotWiring",
     "Signal",
     "canonical",
     "describe",
@@ -173,6 +176,63 @@ MODBUS_EXCEPTIONS: Mapping[int, str] = MappingProxyType(
         10: "gateway path unavailable",
         11: "gateway target device failed to respond",
     }
+)
+
+
+@dataclass(frozen=True)
+class PlcTiming:
+    """How long the PLC's machinery takes, in machine seconds (all **assumed**; the source
+    gives none). The PLC emulator runs on it (divided by its time scale) and the cell's
+    physical bound (:mod:`cellctl.cell.estimate`) counts with it."""
+
+    conveyor_s: float = 8.0  # a requested pallet reaches the pick-up
+    release_s: float = 3.0  # a released pallet leaves the pick-up
+    outfeed_s: float = 5.0  # the outfeed carries a part or pallet off
+    clamp_s: float = 0.5  # a vise reaches the position its coil asks for
+    door_s: float = 2.0  # a door travels from one end position to the other
+
+
+@dataclass(frozen=True)
+class RobotWiring:
+    """Which PLC signals the robot's digital lines are tied to (the example cell's wiring,
+    as its AML programs expect it; **assumed**, the source gives none)."""
+
+    #: PLC input -> robot input line that follows it.
+    inputs: Mapping[str, int]
+    #: PLC input -> robot input line that follows its negation.
+    inverted: Mapping[str, int]
+    #: Robot output -> the mill whose vise coil (``clamp_N``) it drives.
+    vise_outputs: Mapping[int, int]
+    blank_taken_output: int  # lifts the blank off its pallet
+    part_placed_output: int  # fills the outfeed
+
+    def input_of(self, port: int) -> tuple[str, bool] | None:
+        """The PLC input behind robot input ``port`` and whether it is inverted."""
+        for name, line in self.inputs.items():
+            if line == port:
+                return name, False
+        for name, line in self.inverted.items():
+            if line == port:
+                return name, True
+        return None
+
+
+#: The example cell's wiring (examples/cell/robot/*.aml say the same in their comments).
+EXAMPLE_WIRING = RobotWiring(
+    inputs=MappingProxyType(
+        {
+            "pallet_present": 1,
+            "door_open_1": 2,
+            "clamp_closed_1": 4,
+            "door_open_2": 5,
+            "clamp_closed_2": 7,
+            "outfeed_clear": 8,
+        }
+    ),
+    inverted=MappingProxyType({"clamp_closed_1": 3, "clamp_closed_2": 6}),
+    vise_outputs=MappingProxyType({1: 1, 2: 2}),
+    blank_taken_output=7,
+    part_placed_output=5,
 )
 
 # "clamp[1]" and "clamp1" both mean "clamp_1".

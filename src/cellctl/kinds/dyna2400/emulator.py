@@ -432,15 +432,20 @@ class Dyna2400Emulator(EmulatedDevice):
         self._log_run(run)
         self.display = "RUN"
         outcome = Outcome.BLOCK_END
+        # The block keeps the model's time: each move ends when the model says, counted from
+        # the start, so the event loop's lateness on each sleep does not add up over a block.
+        due = started
         try:
             for step in run_block(entries, self.machine, self.config):
                 run.lines_executed += 1
                 if step.operator:
                     await self._setup_stop()
+                    due = loop.time()  # the operator's time is the operator's
                 seconds = sum(move.seconds for move in step.moves)
                 run.machining_s += seconds
                 if seconds > 0:
-                    await self._machine_sleep(seconds)
+                    due += seconds / self.time_scale
+                    await asyncio.sleep(max(0.0, due - loop.time()))
                 elif run.lines_executed % _YIELD_EVERY == 0:
                     # Lines without motion take no machine time, but a REPEAT of them must not
                     # hold the event loop (the link and the other machines go on meanwhile).

@@ -137,6 +137,12 @@ def _commands() -> Sequence[tuple[str, click.Command]]:
     return [("", mill), ("emulate", emulate_mill)]
 
 
+def _timing() -> Any:
+    from cellctl.kinds.dyna2400.timing import CutModel
+
+    return CutModel()
+
+
 DYNA2400 = MachineKind(
     name="dyna2400",
     family="mill",
@@ -151,6 +157,7 @@ DYNA2400 = MachineKind(
     language=ProgramLanguage(suffix=".dyn", check=_check, split=_split, preview=_preview),
     menu=_menu,
     commands=_commands,
+    timing=_timing,
     emulated_options=_emulated_options,
     needs_setup=True,
     check_text=_check_text,

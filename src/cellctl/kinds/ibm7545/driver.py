@@ -44,6 +44,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hashlib
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -332,9 +333,11 @@ class Ibm7545Robot(LinkDriver):
         """Run the program in partition ``slot`` (GO)."""
         await self.go(slot)
 
-    async def wait_end(self, done_output: int, *, timeout: float, poll: float = 0.1) -> None:
+    async def wait_end(
+        self, done_output: int, *, timeout: float, poll: float = 0.1, watch_every: float = 0.0
+    ) -> None:
         """Wait for the program's "cycle done" output (see :meth:`wait_cycle_end`)."""
-        await self.wait_cycle_end(done_output, timeout=timeout, poll=poll)
+        await self.wait_cycle_end(done_output, timeout=timeout, poll=poll, watch_every=watch_every)
 
     # -- low-level pieces --------------------------------------------------------------------------
 
@@ -688,23 +691,32 @@ class Ibm7545Robot(LinkDriver):
         return DiDo.from_bytes(await self._read(ReadOperand.DIDO, "DI/DO status", 4))
 
     async def wait_output(
-        self, line: int, value: bool, *, timeout: float, poll: float = 0.1, watch: bool = False
+        self,
+        line: int,
+        value: bool,
+        *,
+        timeout: float,
+        poll: float = 0.1,
+        watch: bool = False,
+        watch_every: float = 0.0,
     ) -> DiDo:
         """Poll DI/DO until output ``line`` (1-16) is ``value``; SignalTimeout after ``timeout``.
 
         The controller tells nothing unasked, so a program signals progress on an output
         (the cell's programs raise a "cycle done" output before END) and the host polls.
-        With ``watch`` the machine status is read on every poll too: a servo error or a
-        power failure that aborted the cycle raises :class:`RobotHalted` at once instead of
-        the timeout.
+        With ``watch`` the machine status is read too, on the first poll and then at most
+        every ``watch_every`` s (every poll if 0): a servo error or a power failure that
+        aborted the cycle raises :class:`RobotHalted` then instead of the timeout.
         """
         loop = self.link._loop
         deadline = loop.time() + timeout
+        watched = -math.inf
         while True:
             dido = await self.io()
             if dido.output(line) == value:
                 return dido
-            if watch:
+            if watch and loop.time() - watched >= watch_every:
+                watched = loop.time()
                 status = await self.machine_status()
                 if status.flags & HALTING_FLAGS:
                     self._set_state(
@@ -717,10 +729,14 @@ class Ibm7545Robot(LinkDriver):
                 )
             await asyncio.sleep(min(poll, max(0.0, deadline - loop.time())))
 
-    async def wait_cycle_end(self, done_output: int, *, timeout: float, poll: float = 0.1) -> None:
-        """Wait for the running program's "cycle done" output (watching the machine status,
-        see :meth:`wait_output`); the robot is then state 1."""
-        await self.wait_output(done_output, True, timeout=timeout, poll=poll, watch=True)
+    async def wait_cycle_end(
+        self, done_output: int, *, timeout: float, poll: float = 0.1, watch_every: float = 0.0
+    ) -> None:
+        """Wait for the running program's "cycle done" output (watching the machine status
+        every ``watch_every`` s, see :meth:`wait_output`); the robot is then state 1."""
+        await self.wait_output(
+            done_output, True, timeout=timeout, poll=poll, watch=True, watch_every=watch_every
+        )
         self._set_state(RobotState.INITIALIZED)
 
 

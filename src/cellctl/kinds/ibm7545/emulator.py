@@ -42,7 +42,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -52,6 +51,14 @@ from cellctl.emulators.onsets import FaultOnsets
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
 from cellctl.errors import ProtocolError, UsageError
 from cellctl.kinds.ibm7545.aml import Instruction, Op, decode_program
+from cellctl.kinds.ibm7545.motion import (
+    SPEED_MM_S,
+    STOP_S,
+    ScaraArm,
+    fixed_seconds,
+    move_seconds,
+    target,
+)
 from cellctl.kinds.ibm7545.records import (
     ACK,
     CR,
@@ -113,46 +120,6 @@ PROGRAMMING_ERROR = 18
 
 Z_DOWN_OUTPUT = 15  # assumed wiring: output 15 mirrors the Z axis (1 = down)
 GRIPPER_OUTPUT = 16  # assumed wiring: output 16 mirrors the gripper (1 = closed)
-GRIPPER_S = 0.3  # assumed time for the gripper or the Z cylinder to switch
-STOP_S = 0.5  # assumed time for a stopped cycle to wind down
-
-
-@dataclass(frozen=True)
-class ScaraArm:
-    """Two-link SCARA geometry (assumed defaults; the source gives none).
-
-    ``joints(x, y)`` solves the inverse kinematics; ``reachable`` is the workspace check.
-    """
-
-    link1_mm: float = 400.0
-    link2_mm: float = 250.0
-    z_min_mm: float = 0.0
-    z_max_mm: float = 200.0
-    roll_limit_deg: float = 360.0
-
-    @property
-    def home(self) -> tuple[float, float, float, float]:
-        """Home: the arm stretched along +x, Z at 0, roll 0."""
-        return (self.link1_mm + self.link2_mm, 0.0, 0.0, 0.0)
-
-    def joints(self, x: float, y: float) -> tuple[float, float] | None:
-        """Shoulder and elbow angles in degrees for (x, y), or None if out of reach."""
-        l1, l2 = self.link1_mm, self.link2_mm
-        c2 = (x * x + y * y - l1 * l1 - l2 * l2) / (2 * l1 * l2)
-        if not -1.0 <= c2 <= 1.0:
-            return None
-        t2 = math.acos(c2)
-        t1 = math.atan2(y, x) - math.atan2(l2 * math.sin(t2), l1 + l2 * math.cos(t2))
-        return math.degrees(t1), math.degrees(t2)
-
-    def reachable(self, point: tuple[float, float, float, float]) -> bool:
-        """True when the point is inside the workspace."""
-        x, y, z, roll = point
-        return (
-            self.joints(x, y) is not None
-            and self.z_min_mm <= z <= self.z_max_mm
-            and abs(roll) <= self.roll_limit_deg
-        )
 
 
 @dataclass(frozen=True)
@@ -194,7 +161,7 @@ class Ibm7545Emulator(EmulatedDevice):
         *,
         time_scale: float = 1.0,
         arm: ScaraArm | None = None,
-        speed_mm_s: float = 500.0,
+        speed_mm_s: float = SPEED_MM_S,
         erreset_operand: int = ExecuteOperand.ERRESET,
         xoff_repeat_s: float = 25.0,
         host_timeout_s: float = 30.0,
@@ -375,6 +342,13 @@ class Ibm7545Emulator(EmulatedDevice):
     async def _sleep(self, machine_s: float) -> None:
         await asyncio.sleep(machine_s / self.time_scale)
 
+    async def _sleep_on(self, clock: list[float], machine_s: float) -> None:
+        """Sleep ``machine_s`` of a program's time on its ``clock`` (``[due]``, loop time):
+        each instruction ends when the model says, counted from the run's start, so the event
+        loop's lateness on each sleep does not add up over a program."""
+        clock[0] += machine_s / self.time_scale
+        await asyncio.sleep(max(0.0, clock[0] - asyncio.get_running_loop().time()))
+
     async def _busy(self, host: _Host, machine_s: float) -> None:
         """Wait ``machine_s`` of machine time, repeating Xoff every 25 s (scaled) meanwhile."""
         left = machine_s
@@ -522,7 +496,7 @@ class Ibm7545Emulator(EmulatedDevice):
     def _move_time(
         self, a: tuple[float, float, float, float], b: tuple[float, float, float, float]
     ) -> float:
-        return math.dist(a[:3], b[:3]) / (self.speed_mm_s * self.speed_percent / 100)
+        return move_seconds(a, b, self.speed_mm_s, self.speed_percent)
 
     def _abort(self, reason: str) -> None:
         if self._cycle is not None and not self._cycle.done():
@@ -550,40 +524,34 @@ class Ibm7545Emulator(EmulatedDevice):
     async def _run(self, program: LoadedProgram, run: ProgramRun) -> None:
         """Execute ``program`` until END, an error, or a stop; then state 1 (0 on power loss)."""
         pc = 0
+        clock = [asyncio.get_running_loop().time()]
         self.speed_percent = 100
         try:
             while True:
                 ins = program.instructions[pc]
                 pc += 1
                 if ins.op in (Op.PMOVE, Op.ZMOVE):
-                    if ins.op is Op.PMOVE:
-                        point = (
-                            ins.operands[0] / 10,
-                            ins.operands[1] / 10,
-                            ins.operands[2] / 10,
-                            ins.operands[3] / 10,
-                        )
-                    else:
-                        x, y, _, roll = self.position
-                        point = (x, y, ins.operands[0] / 10, roll)
+                    point = target(ins, self.position)
                     if not self.arm.reachable(point):
                         self._data_error(POINT_OUT_OF_WORKSPACE)
                         run.outcome = "point out of workspace"
                         break
-                    await self._sleep(self._move_time(self.position, point))
+                    await self._sleep_on(clock, self._move_time(self.position, point))
                     self.position = point
                 elif ins.op is Op.DELAY:
-                    await self._sleep(ins.operands[0] / 10)
+                    await self._sleep_on(clock, fixed_seconds(ins))
                 elif ins.op in (Op.GRASP, Op.RELEASE):
                     self._set_output(GRIPPER_OUTPUT, ins.op is Op.GRASP)
-                    await self._sleep(GRIPPER_S)
+                    await self._sleep_on(clock, fixed_seconds(ins))
                 elif ins.op in (Op.UP, Op.DOWN):
                     self._set_output(Z_DOWN_OUTPUT, ins.op is Op.DOWN)
-                    await self._sleep(GRIPPER_S)
+                    await self._sleep_on(clock, fixed_seconds(ins))
                 elif ins.op is Op.WRITEO:
                     self._set_output(ins.operands[0], bool(ins.operands[1]))
                 elif ins.op is Op.WAITI:
                     await self._wait_input(ins.operands[0], bool(ins.operands[1]))
+                    # An input that came later than the program got here: it goes on from now.
+                    clock[0] = max(clock[0], asyncio.get_running_loop().time())
                 elif ins.op is Op.SPEED:
                     self.speed_percent = ins.operands[0]
                 elif ins.op is Op.BRANCH or (
@@ -594,6 +562,7 @@ class Ibm7545Emulator(EmulatedDevice):
                     pc = ins.operands[-1]
                     # A loop of jumps takes no machine time: let the link and the I/O go on.
                     await asyncio.sleep(0)
+                    clock[0] = max(clock[0], asyncio.get_running_loop().time())
                 elif ins.op is Op.END:
                     run.outcome = "completed"
                     break

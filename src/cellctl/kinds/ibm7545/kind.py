@@ -98,6 +98,12 @@ def _commands() -> Sequence[tuple[str, click.Command]]:
     return [("", robot), ("emulate", emulate_robot)]
 
 
+def _timing() -> Any:
+    from cellctl.kinds.ibm7545.motion import ArmModel
+
+    return ArmModel()
+
+
 IBM7545 = MachineKind(
     name="ibm7545",
     family="robot",
@@ -115,6 +121,7 @@ IBM7545 = MachineKind(
     program_files=(".rec",),
     check_text=_check_text,
     faults=FAULTS,
+    timing=_timing,
     description="SCARA robot controller: records over a 4800 baud line, AML/E programs",
 )
 #: The 7547: the same controller, line and programs (its own name in cell.toml and OPC UA).

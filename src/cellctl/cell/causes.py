@@ -5,7 +5,7 @@ running on it, a step on another machine that needed it (a transfer opens doors 
 PLC). Each of them names the fault by its cause -- :func:`link_cause` for a link that closed
 or went quiet, :func:`status_cause` for a robot whose status says it cannot move -- and the
 controller raises the cause's alarm, keeping one active alarm per machine and code
-(:meth:`~cellctl.cell.controller.CellController._alarm`): the second sighting adds nothing.
+(:meth:`~cellctl.cell.controller.CellController.alarm`): the second sighting adds nothing.
 A step's failure is an alarm of its own only when no cause explains it.
 
 Inside ``with blame("plc", "PLC"):`` a link failure is re-raised as :class:`Blamed`, so the

@@ -47,10 +47,10 @@ class OperatorCommands:
         mills: dict[str, Mill]
         _robot_task: asyncio.Task[None] | None
         _mill_tasks: dict[str, asyncio.Task[None]]
-        _wake: asyncio.Event
 
         def log(self, text: str) -> None: ...
-        def _alarm(self, machine: str, code: str, text: str) -> None: ...
+        def wake(self) -> None: ...
+        def alarm(self, machine: str, code: str, text: str) -> None: ...
         async def _prepare_robot(self) -> None: ...
         async def _prepare_mill(self, m: MachineConfig, *, force: bool) -> bool: ...
 
@@ -63,7 +63,7 @@ class OperatorCommands:
         self.manual_use = set()
         self.listeners = []
 
-    def _touch(self) -> None:
+    def touch(self) -> None:
         """Tell every listener that the controller's state changed."""
         for listener in list(self.listeners):
             listener()
@@ -75,8 +75,8 @@ class OperatorCommands:
 
     def poke(self) -> None:
         """The operator changed the journal or the mailbox: look at it now, tell listeners."""
-        self._wake.set()
-        self._touch()
+        self.wake()
+        self.touch()
 
     def step_task(self, name: str) -> asyncio.Task[None] | None:
         """The step running on machine ``name``, if any."""
@@ -94,7 +94,7 @@ class OperatorCommands:
         if self.paused:
             self.paused = False
             self.log("resumed by the operator")
-            self._wake.set()
+            self.wake()
 
     async def set_service(self, name: str, in_service: bool, reason: str = "") -> str:
         """Take machine ``name`` out of automatic service, or return it (then it is prepared:
@@ -120,7 +120,7 @@ class OperatorCommands:
         else:
             await self._prepare_mill(self.config.machine(name), force=False)
         self.log(f"{name}: back in automatic service")
-        self._wake.set()
+        self.wake()
         return f"{name} back in automatic service ({view.state})"
 
     @contextlib.asynccontextmanager
@@ -143,13 +143,13 @@ class OperatorCommands:
             raise MachineInUse(f"{name} is not connected")
         self.manual_use.add(name)
         view.step = "manual"
-        self._touch()
+        self.touch()
         try:
             yield driver
         finally:
             self.manual_use.discard(name)
             view.step = ""
-            self._touch()
+            self.touch()
 
     @contextlib.asynccontextmanager
     async def observe(self, name: str) -> AsyncIterator[Any]:
@@ -206,7 +206,7 @@ class OperatorCommands:
                 )
             except (CellctlError, OSError) as e:
                 problems.append(f"{name} halt failed: {e}")
-        self._alarm("cell", "estop", text + (f" ({'; '.join(problems)})" if problems else ""))
+        self.alarm("cell", "estop", text + (f" ({'; '.join(problems)})" if problems else ""))
         self.log(f"{text}: cell paused; resume once the cause is dealt with")
         return text + ("; " + "; ".join(problems) if problems else "") + ": cell paused"
 

@@ -68,7 +68,7 @@ from cellctl.link import TrafficLog
 from cellctl.protocol.plc import PlcMap, canonical
 
 
-class CellController(OperatorCommands, OrderFlow, RobotSteps):
+class CellController(OperatorCommands, RobotSteps):
     """Runs a cell from its ``cell.toml``, journal and mailbox (see module docstring).
 
     The operator's commands (pause, service, manual use, emergency stop) are in
@@ -87,7 +87,7 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
         self._init_commands()
         self.config = config
         self.journal = journal
-        self.mailbox: OrderBox = NotifyingMailbox(mailbox, self._touch)
+        self.mailbox: OrderBox = NotifyingMailbox(mailbox, self.touch)
         self.traffic = TrafficLog(None, keep=TRAFFIC_KEPT)
         self.options = options or ControllerOptions.from_config(config)
         self.on_event = on_event
@@ -101,8 +101,10 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
         self.events: list[Event] = []
         self.inputs: dict[str, bool] = {}
         self._wake = asyncio.Event()
-        self.recovery = Recovery(self)
-        self.monitor = Monitor(self)
+        # The parts see the controller through the narrow interfaces of cell.ports only.
+        self.recovery = Recovery(world=self, alarms=self, links=self)
+        self.monitor = Monitor(world=self, alarms=self, plc=self, recovery=self.recovery)
+        self.orderflow = OrderFlow(world=self, alarms=self)
         self._robot_task: asyncio.Task[None] | None = None
         self._mill_tasks: dict[str, asyncio.Task[None]] = {}
         self._partitions: dict[int, PartitionUse] = {}
@@ -122,12 +124,22 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
         del self.events[:-200]
         if self.on_event is not None:
             self.on_event(event)
-        self._touch()
+        self.touch()
 
-    def _mill_index(self, name: str) -> int:
+    def wake(self) -> None:
+        """Let the dispatch loop look again now (a step ended, a fault changed the plan)."""
+        self._wake.set()
+
+    @property
+    def stopping(self) -> bool:
+        """True once the cell was told to stop: steps in flight finish, none starts."""
+        return self._stopping
+
+    def mill_index(self, name: str) -> int:
+        """Mill ``name``'s number (1, 2, ...) in the PLC's wiring."""
         return [m.name for m in self.config.mills].index(name) + 1
 
-    def _alarm(self, machine: str, code: str, text: str) -> None:
+    def alarm(self, machine: str, code: str, text: str) -> None:
         """Raise an alarm, unless ``machine`` has an active one with this ``code``: a fault
         seen again, or seen through its effects, adds nothing (see :mod:`cellctl.cell.causes`);
         once the operator clears it, a fault still there is raised again."""
@@ -140,25 +152,27 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
             )
             self.log(f"ALARM {alarm.id} {machine}: {text}")
 
-    def _cause_alarm(self, cause: Cause) -> None:
+    def cause_alarm(self, cause: Cause) -> None:
+        """The alarm of ``cause`` (only logged if its alarm was cleared while it was out)."""
         if cause.told:  # a step under way when the operator cleared this fault's alarm
             self.log(f"{cause.machine}: {cause.text} (its alarm already cleared)")
             return
-        self._alarm(cause.machine, cause.code, cause.text)
+        self.alarm(cause.machine, cause.code, cause.text)
 
-    def _failed(self, machine: str, code: str, text: str, *, alarm: bool = True) -> None:
+    def failed(self, machine: str, code: str, text: str, *, alarm: bool = True) -> None:
         """A machine failed a step: alarm, and out of service after ``fail_limit`` in a row."""
         view = self.machines[machine]
         view.failures += 1
         if alarm:
-            self._alarm(machine, code, text)
+            self.alarm(machine, code, text)
         if view.failures >= self.options.fail_limit and view.in_service:
             view.in_service = False
             reason = f"failed {view.failures} times in a row: {text}"
             self.journal.set_machine_service(machine, False, reason)
-            self._alarm(machine, "out-of-service", f"taken out of service: {reason}")
+            self.alarm(machine, "out-of-service", f"taken out of service: {reason}")
 
-    def _succeeded(self, machine: str) -> None:
+    def succeeded(self, machine: str) -> None:
+        """A machine did its step: its failures in a row start again from 0."""
         self.machines[machine].failures = 0
 
     def plc_view(self) -> MachineView:
@@ -185,15 +199,16 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
         # make no rising edge, and the conveyor or the mill would never hear it.
         for coil in ["pallet_request", *(self._go_coil(m) for m in self.config.mills)]:
             await self.plc.write(coil, False)
-        self.robot = await self._open_robot()
+        self.robot = await self.open_robot()
         for m in self.config.mills:
-            self.mills[m.name] = await self._open_mill(m)
+            self.mills[m.name] = await self.open_mill(m)
         await self._prepare_robot()
         for m in self.config.mills:
             await self._prepare_mill(m, force=False)
         self.log(f"connected to {', '.join(self.machines)} and the PLC: running")
 
-    async def _open_robot(self) -> Robot:
+    async def open_robot(self) -> Robot:
+        """The robot's driver, built from its config, its link open."""
         r = self.config.robot
         robot: Robot = await open_machine(
             r.kind,
@@ -206,7 +221,8 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
         )
         return robot
 
-    async def _open_mill(self, m: MachineConfig) -> Mill:
+    async def open_mill(self, m: MachineConfig) -> Mill:
+        """Mill ``m``'s driver, built from its config, its link open."""
         mill: Mill = await open_machine(
             m.kind,
             m.name,
@@ -219,11 +235,17 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
         )
         return mill
 
-    def _robot_busy(self) -> bool:
+    def robot_busy(self) -> bool:
+        """True while a transfer runs."""
         return self._robot_task is not None and not self._robot_task.done()
 
+    def mill_busy(self, name: str) -> bool:
+        """True while mill ``name`` machines a part."""
+        task = self._mill_tasks.get(name)
+        return task is not None and not task.done()
+
     def _go_coil(self, m: MachineConfig) -> str:
-        return canonical(m.go_output or f"go_{self._mill_index(m.name)}")
+        return canonical(m.go_output or f"go_{self.mill_index(m.name)}")
 
     def _go_pulser(self, m: MachineConfig) -> Callable[[], Any]:
         coil = self._go_coil(m)
@@ -267,15 +289,15 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
                 # the PLC must wake the next round, not wait out a poll period.
                 self._wake.clear()
                 self._stopping = stop.is_set()
-                self._intake()
-                self._sync_operator()
+                self.orderflow.intake()
+                self.orderflow.sync_operator()
                 if not self._stopping and not self.paused:
                     await self.recovery.reopen_closed_links()
                     await self._dispatch()
                 busy = self._busy()
                 if self._stopping and not busy:
                     break
-                if until_idle and not busy and self._all_orders_closed():
+                if until_idle and not busy and self.orderflow.all_orders_closed():
                     break
                 with contextlib.suppress(TimeoutError):
                     async with asyncio.timeout(self.options.poll_period):
@@ -373,7 +395,7 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
         if not self.recovery.robot_may_move():
             return  # a robot fault, a stuck door: no transfer until found well or cleared
         try:
-            await self._read_inputs()
+            await self.read_inputs()
         except CellctlError:
             return
         if not self.inputs.get("estop_ok", True):
@@ -400,7 +422,8 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
             return
         self._robot_task = asyncio.create_task(self._transfer(transfer))
 
-    async def _read_inputs(self) -> dict[str, bool]:
+    async def read_inputs(self) -> dict[str, bool]:
+        """Read the PLC's inputs now (kept in :attr:`inputs`)."""
         assert self.plc is not None
         self.inputs = await self.plc.read_inputs()
         return self.inputs
@@ -429,12 +452,12 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
             # A PLC that does not answer is that fault's one alarm, not a conveyor's.
             cause = link_cause("plc", "PLC", e)
             if cause is not None:
-                self._cause_alarm(cause)
+                self.cause_alarm(cause)
             else:
-                self._alarm("plc", "conveyor", f"cannot request a pallet: {e}")
-            self._wake.set()
+                self.alarm("plc", "conveyor", f"cannot request a pallet: {e}")
+            self.wake()
 
-    def _pallet_overdue(self) -> None:
+    def pallet_overdue(self) -> None:
         """The monitor's look at a requested pallet: none there ``pallet_timeout`` after the
         request means the conveyor lost it or is stuck: say so, and let dispatch ask again.
 
@@ -461,13 +484,13 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
             self._wake.set()
             return
         if time.monotonic() - self._pallet_requested_at > self.options.pallet_timeout:
-            self._alarm(
+            self.alarm(
                 "plc",
                 "conveyor",
                 f"no pallet within {self.options.pallet_timeout:g} s of the request",
             )
             self._pallet_requested = False
-            self._wake.set()
+            self.wake()
 
     # -- the mills' steps -------------------------------------------------------------------------
 
@@ -488,7 +511,7 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
         view.show("machining", Condition.BUSY)
         started = time.monotonic()
         since = time.time()
-        index = self._mill_index(mill_name)
+        index = self.mill_index(mill_name)
         assert self.plc is not None
         cutting = False  # the first line of the program went out: the part may be cut
         try:
@@ -521,7 +544,7 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
                     blocks=p.blocks,
                     since=since,
                 ):
-                    self._touch()
+                    self.touch()
 
             await mill.run(route_step.program, progress=progress)
         except (CellctlError, OSError, asyncio.CancelledError) as e:
@@ -551,20 +574,20 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
                 ReportKind.STEP_FAILED, reason, order_id=part.order_id, part_id=part.id
             )
             if stopped:
-                self._wake.set()
+                self.wake()
                 raise
             # Out of the plan at once; recovery sets it up again (reopening its link). The
             # alarm names the cause: the PLC, the mill's link, or the step itself.
             cause = await self.monitor.cause_of(mill_name, e)
             self.recovery.fault(mill_name, "machining", reason, cause=cause)
-            self._wake.set()
+            self.wake()
             return
         view.progress = None
         view.busy_s += time.monotonic() - started
         view.step = ""
         view.show(mill.state_text, Condition.IDLE)
         self.recovery.ready[mill_name] = True  # the last block ended with CTS high
-        self._succeeded(mill_name)
+        self.succeeded(mill_name)
         self.journal.end_step(step.id, "finished", route_index=part.route_index + 1)
         self.mailbox.post_report(
             ReportKind.STEP_FINISHED,
@@ -572,7 +595,7 @@ class CellController(OperatorCommands, OrderFlow, RobotSteps):
             order_id=part.order_id,
             part_id=part.id,
         )
-        self._wake.set()
+        self.wake()
 
 
 __all__ = [

@@ -10,8 +10,11 @@ not ready ``setup_timeout`` after its setup, or whose line fails, is a fault: ou
 at once, one alarm. A read that takes longer than ``read_limit`` is a silent machine. A busy
 machine is watched by its own step (the robot's status is read while its cycle runs, a
 mill's block has its deadline); a machine in the operator's manual use is left alone. Every
-round ends with the controller's ``_touch()``. Alarms name the cause
+round ends by waking the dispatch loop and telling the listeners. Alarms name the cause
 (:mod:`cellctl.cell.causes`).
+
+It sees the controller through :mod:`cellctl.cell.ports` only: the world model, the alarm
+sink, the PLC, and the mills' fitness in :class:`~cellctl.cell.recovery.Recovery`.
 """
 
 from __future__ import annotations
@@ -30,7 +33,8 @@ from cellctl.kinds.families import CycleAborted
 
 if TYPE_CHECKING:
     from cellctl.cell.config import MachineConfig
-    from cellctl.cell.controller import CellController
+    from cellctl.cell.ports import AlarmSink, PlcAccess, WorldModel
+    from cellctl.cell.recovery import Recovery
 
 
 T = TypeVar("T")
@@ -57,8 +61,13 @@ def _consume(task: asyncio.Future[Any]) -> None:
 class Monitor:
     """The controller's monitoring rounds (see module docstring)."""
 
-    def __init__(self, controller: CellController) -> None:
-        self.ctl = controller
+    def __init__(
+        self, world: WorldModel, alarms: AlarmSink, plc: PlcAccess, recovery: Recovery
+    ) -> None:
+        self.world = world
+        self.alarms = alarms
+        self.plc = plc
+        self.recovery = recovery
         self.done = asyncio.Event()
         self._reads: dict[str, asyncio.Future[Any]] = {}
         self._since: dict[str, float] = {}  # when each key's last read was sent
@@ -78,7 +87,7 @@ class Monitor:
         self._reads[key] = future
         self._since[key] = time.time()
         try:
-            return await asyncio.wait_for(asyncio.shield(future), self.ctl.options.read_limit)
+            return await asyncio.wait_for(asyncio.shield(future), self.world.options.read_limit)
         except TimeoutError:
             future.add_done_callback(_consume)
             raise
@@ -86,7 +95,7 @@ class Monitor:
     @property
     def sample_period(self) -> float:
         """Seconds between two rounds."""
-        return max(self.ctl.options.poll_period / SAMPLES, MIN_SAMPLE)
+        return max(self.world.options.poll_period / SAMPLES, MIN_SAMPLE)
 
     async def run(self) -> None:
         """Rounds until :attr:`done` is set (a round in progress finishes first)."""
@@ -102,23 +111,21 @@ class Monitor:
                     await self.done.wait()
 
     async def round(self) -> None:
-        ctl = self.ctl
+        world = self.world
         await self._plc()
         await self._robot()
-        for m in ctl.config.mills:
-            task = ctl._mill_tasks.get(m.name)
-            if (task is not None and not task.done()) or m.name in ctl.manual_use:
+        for m in world.config.mills:
+            if world.mill_busy(m.name) or m.name in world.manual_use:
                 continue
             await self._mill(m)
-        ctl._wake.set()
-        ctl._touch()
+        self.alarms.wake()
+        self.alarms.touch()
 
     async def cause_of(self, machine: str, error: BaseException) -> Cause | None:
         """What made a step on ``machine`` fail, if not the step itself: the PLC (a
         :class:`Blamed` error; a door that did not move under an emergency stop is the
         stop), the machine's link, or a robot status that says the arm cannot move (read
         now, within ``read_limit``, after a reject)."""
-        ctl = self.ctl
         if isinstance(error, Blamed):
             if error.cause.code == "interlock" and await self._estop():
                 return ESTOP
@@ -127,11 +134,11 @@ class Monitor:
             return error.cause
         if isinstance(error, CycleAborted):
             return status_cause(machine, error.status)
-        label = "robot" if ctl.robot is not None and machine == ctl.robot.name else "mill"
+        robot = self.world.robot
+        label = "robot" if robot is not None and machine == robot.name else "mill"
         cause = link_cause(machine, label, error)
         if cause is not None or label != "robot" or not isinstance(error, DeviceError):
             return cause
-        robot = ctl.robot
         assert robot is not None
         try:
             status = await self._bounded("robot-cause", robot.machine_status)
@@ -154,41 +161,40 @@ class Monitor:
             and a.code == cause.code
             and a.cleared is not None
             and a.cleared >= since
-            for a in self.ctl.journal.alarms()
+            for a in self.world.journal.alarms()
         )
 
     async def _estop(self) -> bool:
         """True if the PLC's inputs say emergency stop (read now)."""
         try:
-            inputs = await self._bounded("plc-cause", self.ctl._read_inputs)
+            inputs = await self._bounded("plc-cause", self.plc.read_inputs)
         except (_StillOut, TimeoutError, CellctlError):
             return False
         return not inputs.get("estop_ok", True)
 
     async def _plc(self) -> None:
-        ctl = self.ctl
-        view = ctl.plc_view()
+        view = self.world.plc_view()
         try:
-            inputs = await self._bounded("plc", ctl._read_inputs)
+            inputs = await self._bounded("plc", self.plc.read_inputs)
         except _StillOut:
             return
         except (TimeoutError, CellctlError) as e:
             cause = self._told(read_cause("plc", "PLC", e), "plc")
             view.show(cause.text, Condition.OFFLINE, LastError.of(e))
-            ctl._cause_alarm(cause)
+            self.alarms.cause_alarm(cause)
             return
         view.show("ok", Condition.IDLE)
         if not inputs.get("estop_ok", True):
-            ctl._cause_alarm(ESTOP)
+            self.alarms.cause_alarm(ESTOP)
             view.show("emergency stop", Condition.ALARM, LastError(ESTOP.text))
-        ctl._pallet_overdue()
+        self.plc.pallet_overdue()
 
     async def _robot(self) -> None:
-        ctl = self.ctl
-        robot = ctl.robot
-        if robot is None or ctl._robot_busy() or robot.name in ctl.manual_use:
+        world = self.world
+        robot = world.robot
+        if robot is None or world.robot_busy() or robot.name in world.manual_use:
             return
-        view = ctl.machines[robot.name]
+        view = world.machines[robot.name]
         try:
             status = await self._bounded(robot.name, robot.machine_status)
         except _StillOut:
@@ -196,25 +202,24 @@ class Monitor:
         except (TimeoutError, CellctlError) as e:
             cause = self._told(read_cause(robot.name, "robot", e), robot.name)
             view.show(cause.text, Condition.OFFLINE, LastError.of(e))
-            ctl.recovery.robot_ok = False
-            ctl._cause_alarm(cause)
+            self.recovery.robot_ok = False
+            self.alarms.cause_alarm(cause)
             return
         # The robot takes work again once a look finds it well (a transfer then initializes
         # it if the fault cost it its start-up).
-        ctl.recovery.robot_ok = status.ok
+        self.recovery.robot_ok = status.ok
         if not status.ok:
             cause = status_cause(robot.name, status)
-            ctl._cause_alarm(cause)
+            self.alarms.cause_alarm(cause)
             view.show(str(status), Condition.ALARM, LastError(cause.text))
         else:
             host = robot.host_status()
             view.show(host.text, host.condition)
 
     async def _mill(self, m: MachineConfig) -> None:
-        ctl = self.ctl
-        recovery = ctl.recovery
-        view = ctl.machines[m.name]
-        mill = ctl.mills.get(m.name)
+        recovery = self.recovery
+        view = self.world.machines[m.name]
+        mill = self.world.mills.get(m.name)
         if mill is None:
             return
         try:

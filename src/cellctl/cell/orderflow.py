@@ -1,22 +1,23 @@
 """Orders into parts, parts' ends into orders, and the operator's word on service.
 
 H's bookkeeping beside the scheduler: accepted orders become parts in the journal
-(``_intake``), an alarm the operator cleared returns its machine to service
-(``_sync_operator``), and each order's state follows its parts (``_update_orders``). Mixed into
-:class:`~cellctl.cell.controller.CellController`.
+(:meth:`OrderFlow.intake`), an alarm the operator cleared returns its machine to service
+(:meth:`OrderFlow.sync_operator`), and each order's state follows its parts. The controller
+owns one and hands it the world model and its log (:mod:`cellctl.cell.ports`)::
+
+    orders = OrderFlow(world=controller, alarms=controller)
+    orders.intake(); orders.sync_operator()
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from cellctl.cell.commands import OPERATOR_OUT
 from cellctl.cell.orders import ReportKind
 
 if TYPE_CHECKING:
-    from cellctl.cell.config import CellConfig
-    from cellctl.cell.journal import Journal
-    from cellctl.cell.orders import OrderBox
+    from cellctl.cell.ports import AlarmSink, WorldModel
 
 #: Where a part is once it has left the cell on the outfeed.
 OUT = "out"
@@ -25,56 +26,55 @@ OUT = "out"
 class OrderFlow:
     """Order and service bookkeeping of the controller (see module docstring)."""
 
-    if TYPE_CHECKING:
-        config: CellConfig
-        journal: Journal
-        mailbox: OrderBox
-        machines: dict[str, Any]
+    def __init__(self, world: WorldModel, alarms: AlarmSink) -> None:
+        self.world = world
+        self.log = alarms.log
 
-        def log(self, text: str) -> None: ...
-
-    def _all_orders_closed(self) -> bool:
-        open_orders = self.mailbox.orders(states=["posted", "accepted", "in-progress"])
+    def all_orders_closed(self) -> bool:
+        """True when no order is open, or every open one waits for the operator."""
+        open_orders = self.world.mailbox.orders(states=["posted", "accepted", "in-progress"])
         if not open_orders:
             return True
         # Orders whose remaining parts are all held wait for the operator, not for us.
         for order in open_orders:
-            parts = self.journal.parts(order_id=order.id)
+            parts = self.world.journal.parts(order_id=order.id)
             if not parts or any(p.status in ("waiting", "active") for p in parts):
                 return False
         return True
 
     # -- intake: orders into parts ---------------------------------------------------------------
 
-    def _intake(self) -> None:
-        for order in self.mailbox.pending_orders():
-            if order.part_type not in self.config.parts:
-                self.mailbox.set_order_state(order.id, "failed", f"unknown part {order.part_type}")
-                self.mailbox.post_report(
+    def intake(self) -> None:
+        """Accepted orders become parts in the journal; unknown part types are refused."""
+        mailbox = self.world.mailbox
+        for order in mailbox.pending_orders():
+            if order.part_type not in self.world.config.parts:
+                mailbox.set_order_state(order.id, "failed", f"unknown part {order.part_type}")
+                self.world.mailbox.post_report(
                     ReportKind.ORDER_REJECTED,
                     f"order {order.id}: no part type {order.part_type!r} in this cell",
                     order_id=order.id,
                 )
                 continue
-            self.journal.create_parts(order)
-            self.mailbox.set_order_state(order.id, "accepted")
-            self.mailbox.post_report(
+            self.world.journal.create_parts(order)
+            self.world.mailbox.set_order_state(order.id, "accepted")
+            self.world.mailbox.post_report(
                 ReportKind.ORDER_ACCEPTED,
                 f"order {order.id}: {order.qty} x {order.part_type}",
                 order_id=order.id,
             )
             self.log(f"order {order.id} accepted: {order.qty} x {order.part_type}")
 
-    def _sync_operator(self) -> None:
+    def sync_operator(self) -> None:
         """Alarms the operator cleared put their machine back in service (not one the
         operator took out: only the operator returns that)."""
-        out = self.journal.machines_out_of_service()
-        active = {a.machine for a in self.journal.active_alarms()}
-        for name, view in self.machines.items():
+        out = self.world.journal.machines_out_of_service()
+        active = {a.machine for a in self.world.journal.active_alarms()}
+        for name, view in self.world.machines.items():
             if name in out and out[name].startswith(OPERATOR_OUT):
                 view.in_service = False
             elif name in out and name not in active:
-                self.journal.set_machine_service(name, True, "alarm cleared by the operator")
+                self.world.journal.set_machine_service(name, True, "alarm cleared by the operator")
                 view.in_service = True
                 view.failures = 0
                 self.log(f"{name}: back in service")
@@ -82,15 +82,16 @@ class OrderFlow:
                 view.in_service = True
         # A part the operator found on the outfeed (released there after an interrupted
         # unload) with its whole route machined is done.
-        for p in self.journal.parts(statuses=["waiting"]):
-            if p.location == OUT and p.route_index >= len(self.config.parts[p.part_type].route):
-                self.journal.finish_part(p.id)
+        types = self.world.config.parts
+        for p in self.world.journal.parts(statuses=["waiting"]):
+            if p.location == OUT and p.route_index >= len(types[p.part_type].route):
+                self.world.journal.finish_part(p.id)
                 self.log(f"part {p.id} done (released on the outfeed)")
         self._update_orders()
 
     def _update_orders(self) -> None:
-        for order in self.mailbox.orders(states=["accepted", "in-progress", "held"]):
-            parts = self.journal.parts(order_id=order.id)
+        for order in self.world.mailbox.orders(states=["accepted", "in-progress", "held"]):
+            parts = self.world.journal.parts(order_id=order.id)
             if not parts:
                 continue
             statuses = [p.status for p in parts]
@@ -100,22 +101,22 @@ class OrderFlow:
                     note = f"{made} made" + (
                         f", {statuses.count('scrapped')} scrapped" if "scrapped" in statuses else ""
                     )
-                    self.mailbox.set_order_state(order.id, "done", note)
-                    self.mailbox.post_report(
+                    self.world.mailbox.set_order_state(order.id, "done", note)
+                    self.world.mailbox.post_report(
                         ReportKind.ORDER_DONE, f"order {order.id} done: {note}", order_id=order.id
                     )
                     self.log(f"order {order.id} done ({note})")
                 else:
-                    self.mailbox.set_order_state(order.id, "failed", "every part scrapped")
-                    self.mailbox.post_report(
+                    self.world.mailbox.set_order_state(order.id, "failed", "every part scrapped")
+                    self.world.mailbox.post_report(
                         ReportKind.ORDER_FAILED,
                         f"order {order.id}: every part scrapped",
                         order_id=order.id,
                     )
             elif "held" in statuses and order.state != "held":
-                self.mailbox.set_order_state(order.id, "held", "a part needs the operator")
+                self.world.mailbox.set_order_state(order.id, "held", "a part needs the operator")
             elif ("held" not in statuses and order.state == "held") or (
                 order.state == "accepted"
                 and any(p.status != "waiting" or p.route_index for p in parts)
             ):
-                self.mailbox.set_order_state(order.id, "in-progress")
+                self.world.mailbox.set_order_state(order.id, "in-progress")

@@ -9,8 +9,9 @@ with force (the documented way out of a stuck state), every poll period until th
 or the machine is out of service (``fail_limit`` failures in a row). The next poll that sees
 it ready puts it back in the plan.
 
-The controller owns this object and calls it; it needs of the controller only its machines,
-drivers, options, alarms and log (typed below as :class:`~cellctl.cell.controller.CellController`).
+The controller owns this object and calls it; it needs of the controller only the world model
+(machines, drivers, options), the alarm sink and a way to reopen a link
+(:mod:`cellctl.cell.ports`).
 """
 
 from __future__ import annotations
@@ -26,16 +27,18 @@ from cellctl.kinds import Condition, LastError
 
 if TYPE_CHECKING:
     from cellctl.cell.config import MachineConfig
-    from cellctl.cell.controller import CellController
+    from cellctl.cell.ports import AlarmSink, LinkOpener, WorldModel
 
 
 class Recovery:
     """Fitness of every mill, and the tasks that bring unfit machines back."""
 
-    def __init__(self, controller: CellController) -> None:
-        self.ctl = controller
-        self.fit: dict[str, bool] = {m.name: False for m in controller.config.mills}
-        self.ready: dict[str, bool] = {m.name: False for m in controller.config.mills}
+    def __init__(self, world: WorldModel, alarms: AlarmSink, links: LinkOpener) -> None:
+        self.world = world
+        self.alarms = alarms
+        self.links = links
+        self.fit: dict[str, bool] = {m.name: False for m in world.config.mills}
+        self.ready: dict[str, bool] = {m.name: False for m in world.config.mills}
         self.setup_at: dict[str, float] = {}
         self.faulted: set[str] = set()
         self.robot_ok = True
@@ -47,7 +50,7 @@ class Recovery:
     def usable(self, name: str) -> bool:
         """True if mill ``name`` may be given work now (a link seen closed is a fault not
         yet handled: no part goes into a mill recovery may have to set up again)."""
-        mill = self.ctl.mills.get(name)
+        mill = self.world.mills.get(name)
         if mill is None or mill.link.closed:
             return False
         return self.fit.get(name, False) and self.ready.get(name, False)
@@ -64,7 +67,7 @@ class Recovery:
         if not self.robot_ok:
             return False
         return not any(
-            a.machine == "plc" and a.code == "interlock" for a in self.ctl.journal.active_alarms()
+            a.machine == "plc" and a.code == "interlock" for a in self.world.journal.active_alarms()
         )
 
     # -- faults -------------------------------------------------------------------------------
@@ -82,15 +85,15 @@ class Recovery:
         """
         blamed = cause.machine if cause is not None else name
         alarm = name not in self.faulted or not any(
-            a.machine in (name, blamed) for a in self.ctl.journal.active_alarms()
+            a.machine in (name, blamed) for a in self.world.journal.active_alarms()
         )
         self.faulted.add(name)
         self.fit[name] = False
         self.ready[name] = False
         if alarm:
-            self.ctl._cause_alarm(cause or Cause(name, code, text))
+            self.alarms.cause_alarm(cause or Cause(name, code, text))
         if count and (cause is None or cause.machine == name):
-            self.ctl._failed(name, code, text, alarm=False)
+            self.alarms.failed(name, code, text, alarm=False)
         self._start(name)
 
     def _start(self, name: str) -> None:
@@ -99,12 +102,12 @@ class Recovery:
             self._tasks[name] = asyncio.create_task(self._recover(name))
 
     async def _recover(self, name: str) -> None:
-        ctl = self.ctl
-        config = ctl.config.machine(name)
-        while not self.fit[name] and not ctl._stopping:
-            await asyncio.sleep(ctl.options.poll_period)
-            view = ctl.machines[name]
-            if not view.in_service or name in ctl.manual_use or ctl.step_task(name):
+        world = self.world
+        config = world.config.machine(name)
+        while not self.fit[name] and not world.stopping:
+            await asyncio.sleep(world.options.poll_period)
+            view = world.machines[name]
+            if not view.in_service or name in world.manual_use or world.step_task(name):
                 continue
             if not await self.reopen_mill(config):
                 continue
@@ -115,26 +118,25 @@ class Recovery:
 
     def _occupied(self, name: str) -> bool:
         """A part is in the mill's vise: its setup program does not run over it."""
-        parts = self.ctl.journal.parts(statuses=["waiting", "active", "held"])
+        parts = self.world.journal.parts(statuses=["waiting", "active", "held"])
         return any(p.location == name for p in parts)
 
     async def _await_readiness(self, m: MachineConfig) -> None:
         """With a part in the vise: back in the plan once it shows ready with its setup kept
         (state 2, CTS high); each look that finds it not ready counts as a failure."""
-        ctl = self.ctl
-        mill = ctl.mills[m.name]
+        mill = self.world.mills[m.name]
         try:
             status = await mill.status()
         except CellctlError as e:
-            ctl._failed(m.name, "readiness", f"not ready: {e}", alarm=False)
+            self.alarms.failed(m.name, "readiness", f"not ready: {e}", alarm=False)
             return
         if status.takes_work and mill.initialized:
             self.fit[m.name] = self.ready[m.name] = True
             self.faulted.discard(m.name)
-            ctl.log(f"{m.name}: ready again, its setup kept (a part is in its vise)")
+            self.alarms.log(f"{m.name}: ready again, its setup kept (a part is in its vise)")
             return
         if not mill.running:  # a block still running is no failure: it ends
-            ctl._failed(m.name, "readiness", f"not ready: {status}", alarm=False)
+            self.alarms.failed(m.name, "readiness", f"not ready: {status}", alarm=False)
         await asyncio.sleep(mill.ready_wait)
 
     async def close(self) -> None:
@@ -149,26 +151,26 @@ class Recovery:
     async def reopen_closed_links(self) -> None:
         """Reopen the link of an idle machine that closed under us (a dropped connection, a
         restarted device server): its driver comes back with the host state it saved."""
-        ctl = self.ctl
-        robot = ctl.robot
-        if robot is not None and robot.link.closed and not ctl._robot_busy():
+        world = self.world
+        robot = world.robot
+        if robot is not None and robot.link.closed and not world.robot_busy():
             with contextlib.suppress(CellctlError, OSError):
                 await robot.close()
-            ctl._alarm(robot.name, "link", LINK_CLOSED)  # once: a failed step may have said so
+            # Once: a failed step may have said so already.
+            self.alarms.alarm(robot.name, "link", LINK_CLOSED)
             try:
-                ctl.robot = await ctl._open_robot()
-                ctl.log(f"{robot.name}: link reopened")
+                world.robot = await self.links.open_robot()
+                self.alarms.log(f"{robot.name}: link reopened")
             except (CellctlError, OSError) as e:
-                ctl._alarm(robot.name, "link", f"cannot reopen the link: {e}")
-        for m in ctl.config.mills:
-            task = ctl._mill_tasks.get(m.name)
-            if (task is None or task.done()) and not await self.reopen_mill(m):
+                self.alarms.alarm(robot.name, "link", f"cannot reopen the link: {e}")
+        for m in world.config.mills:
+            if not world.mill_busy(m.name) and not await self.reopen_mill(m):
                 self.fit[m.name] = False
 
     async def reopen_mill(self, m: MachineConfig) -> bool:
         """Reopen ``m``'s link if it closed; False if it is closed and could not be reopened."""
-        ctl = self.ctl
-        mill = ctl.mills.get(m.name)
+        mills = self.world.mills
+        mill = mills.get(m.name)
         if mill is None or not mill.link.closed:
             return True
         with contextlib.suppress(CellctlError, OSError):
@@ -176,20 +178,19 @@ class Recovery:
         if m.name not in self.faulted:  # a cut line is a fault of its own: one alarm
             self.fault(m.name, "link", LINK_CLOSED, count=False)
         try:
-            ctl.mills[m.name] = await ctl._open_mill(m)
+            mills[m.name] = await self.links.open_mill(m)
         except (CellctlError, OSError) as e:
-            ctl._alarm(m.name, "link", f"cannot reopen the link: {e}")
+            self.alarms.alarm(m.name, "link", f"cannot reopen the link: {e}")
             return False
-        ctl.log(f"{m.name}: link reopened")
+        self.alarms.log(f"{m.name}: link reopened")
         return True
 
     # -- bringing machines to a known state -----------------------------------------------------
 
     async def prepare_robot(self) -> None:
-        ctl = self.ctl
-        robot = ctl.robot
+        robot = self.world.robot
         assert robot is not None
-        view = ctl.machines[robot.name]
+        view = self.world.machines[robot.name]
         try:
             if robot.running:
                 await robot.stop()
@@ -197,19 +198,18 @@ class Recovery:
                 await robot.initialize()
             status = robot.host_status()
             view.show(status.text, status.condition)
-            ctl._succeeded(robot.name)
+            self.alarms.succeeded(robot.name)
         except CellctlError as e:
             view.show(f"error: {e}", Condition.ALARM, LastError.of(e))
-            ctl._failed(robot.name, "initialize", f"robot initialize failed: {e}")
+            self.alarms.failed(robot.name, "initialize", f"robot initialize failed: {e}")
 
     async def prepare_mill(self, m: MachineConfig, *, force: bool) -> bool:
         """Initialize mill ``m`` (with its setup) unless it kept its setup; True on success.
 
         A failure is a fault: the mill leaves the plan, with an alarm, until a setup succeeds.
         """
-        ctl = self.ctl
-        mill = ctl.mills[m.name]
-        view = ctl.machines[m.name]
+        mill = self.world.mills[m.name]
+        view = self.world.machines[m.name]
         try:
             if mill.running:
                 status = await mill.status()  # a block still running finishes first
@@ -224,7 +224,7 @@ class Recovery:
                 assert m.setup is not None
                 await mill.setup(m.setup, force=True)
                 self.setup_at[m.name] = time.monotonic()
-                ctl.log(f"{m.name}: initialized with {m.setup.name}")
+                self.alarms.log(f"{m.name}: initialized with {m.setup.name}")
             status = await mill.status()
         except CellctlError as e:
             view.show(f"error: {e}", Condition.ALARM, LastError.of(e))

@@ -53,14 +53,14 @@ class RobotSteps:
         plc: ModbusPlc | None
         _partitions: dict[int, PartitionUse]
         _pallet_requested: bool
-        _wake: asyncio.Event
 
         def log(self, text: str) -> None: ...
-        def _touch(self) -> None: ...
-        def _mill_index(self, name: str) -> int: ...
-        def _failed(self, machine: str, code: str, text: str, *, alarm: bool = True) -> None: ...
-        def _succeeded(self, machine: str) -> None: ...
-        def _cause_alarm(self, cause: Cause) -> None: ...
+        def wake(self) -> None: ...
+        def touch(self) -> None: ...
+        def mill_index(self, name: str) -> int: ...
+        def failed(self, machine: str, code: str, text: str, *, alarm: bool = True) -> None: ...
+        def succeeded(self, machine: str) -> None: ...
+        def cause_alarm(self, cause: Cause) -> None: ...
 
         monitor: Monitor
         recovery: Recovery
@@ -82,7 +82,7 @@ class RobotSteps:
                 sent = True
                 self.log(f"robot: downloading {name}")
             if view.report_progress(done, total, "records", "downloading", program=name):
-                self._touch()
+                self.touch()
 
         try:
             slot = await robot.ensure_program(name, program, progress)
@@ -96,7 +96,7 @@ class RobotSteps:
         other end position within ``door_start_timeout``: one that does not is stuck
         (SignalTimeout in the PLC's words), told now rather than at the interlock's deadline."""
         assert self.plc is not None
-        doors = [self._mill_index(p) for p in places if p != CONVEYOR]
+        doors = [self.mill_index(p) for p in places if p != CONVEYOR]
         for n in doors:
             await self.plc.write(f"door_{n}", open_)
         for n in doors:
@@ -148,7 +148,7 @@ class RobotSteps:
                     # alarmed now, not after the retries.
                     cause = await self.monitor.cause_of(robot.name, e)
                     if cause is not None:
-                        self._cause_alarm(cause)
+                        self.cause_alarm(cause)
                     if attempt > self.options.retries:
                         raise
                     self.log(f"robot rejected {t.program}: {e}; reset and retry {attempt}")
@@ -189,7 +189,7 @@ class RobotSteps:
                 self.mailbox.post_report(
                     ReportKind.STEP_FAILED, reason, order_id=part.order_id, part_id=part.id
                 )
-            self._wake.set()
+            self.wake()
             if stopped:
                 raise
             # One alarm, the cause's: the PLC, the robot's link or status, or the transfer.
@@ -197,15 +197,15 @@ class RobotSteps:
             # it well; only a failure nothing else explains counts towards fail_limit.
             cause = await self.monitor.cause_of(robot.name, e)
             if cause is None:
-                self._failed(robot.name, "transfer", reason)
+                self.failed(robot.name, "transfer", reason)
             else:
-                self._cause_alarm(cause)
+                self.cause_alarm(cause)
                 if cause.machine == robot.name:
                     self.recovery.robot_ok = False
             return
         view.busy_s += time.monotonic() - started
         view.step = ""
-        self._succeeded(robot.name)
+        self.succeeded(robot.name)
         if t.source == CONVEYOR:
             self._pallet_requested = False
         if t.target == CONVEYOR:
@@ -219,4 +219,4 @@ class RobotSteps:
             order_id=part.order_id,
             part_id=part.id,
         )
-        self._wake.set()
+        self.wake()

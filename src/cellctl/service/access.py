@@ -435,6 +435,6 @@ def _mode(controller: CellController) -> CellMode:
     )
     if estop:
         return CellMode.EMERGENCY_STOP
-    if getattr(controller, "_stopping", False):
+    if controller.stopping:
         return CellMode.STOPPING
     return CellMode.PAUSED if controller.paused else CellMode.RUNNING

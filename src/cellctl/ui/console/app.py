@@ -16,8 +16,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar, cast
 
@@ -36,6 +34,7 @@ from cellctl.service.functions import MachineFunction, menu
 from cellctl.service.status import StepInfo, StepKind, apply_update_json
 from cellctl.ui.console.cellmenu import CellActions
 from cellctl.ui.console.dialogs import ConfirmDialog, Dialog, ParamsDialog
+from cellctl.ui.console.entry import Action, Entry
 from cellctl.ui.console.session import (
     ConsoleMachine,
     cell_machines,
@@ -58,22 +57,7 @@ PROGRESS_FIELDS = (("records", "records_total"), ("lines", "lines_total"))
 UNAVAILABLE = "unavailable"
 NO_CONTROLLER = "no controller runs on this cell (start `cellctl run` for that)"
 
-Action = Callable[[], Awaitable[None]]
 T = TypeVar("T")
-
-
-@dataclass(frozen=True)
-class Entry:
-    """One menu line: its key (a number as in the source, or a letter), label, action."""
-
-    key: str
-    label: str
-    action: Action | None  # None: shown as unavailable
-    note: str = ""
-
-    def prompt(self) -> str:
-        text = f"{self.key}. {self.label}"
-        return f"{text} ({self.note})" if self.note else text
 
 
 class ConsoleApp(App[None]):

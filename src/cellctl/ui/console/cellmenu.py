@@ -8,29 +8,52 @@ without one.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from pathlib import Path
+from typing import Any, Protocol, TypeVar
 
 from cellctl.errors import UsageError
 from cellctl.service.machines import load_cell_file
-from cellctl.ui.console.dialogs import FormDialog, PickDialog
+from cellctl.ui.console.dialogs import Dialog, FormDialog, PickDialog
+from cellctl.ui.console.entry import Entry
 
-if TYPE_CHECKING:
-    from cellctl.ui.console.app import ConsoleApp, Entry
+T = TypeVar("T")
 
 #: Order states an order may still be cancelled in.
 NOT_STARTED = ["posted", "accepted"]
 NO_CONTROLLER = "unavailable"
 
 
-class CellActions:
-    """The CELL menu's entries and what they do, on a :class:`ConsoleApp`."""
+class ConsoleHost(Protocol):
+    """What the CELL menu needs of the console app (:class:`~cellctl.ui.console.app.ConsoleApp`
+    is one): its cell, its mode and snapshot, and a way to call, ask and say."""
 
-    def __init__(self, app: ConsoleApp) -> None:
+    @property
+    def directory(self) -> Path: ...
+
+    @property
+    def mode(self) -> str: ...
+
+    @property
+    def snapshot(self) -> dict[str, Any]: ...
+
+    def action_up(self) -> None: ...
+
+    def say(self, lines: list[str], style: str = "") -> None: ...
+
+    async def call(self, method: str, params: dict[str, Any]) -> Any: ...
+
+    async def ask(self, dialog: Dialog[T]) -> T | None: ...
+
+    async def confirm(self, question: str) -> bool: ...
+
+
+class CellActions:
+    """The CELL menu's entries and what they do, on a console app (:class:`ConsoleHost`)."""
+
+    def __init__(self, app: ConsoleHost) -> None:
         self.app = app
 
     def entries(self) -> list[Entry]:
-        from cellctl.ui.console.app import Entry
-
         attached = self.app.mode == "attached"
         paused = bool(self.app.snapshot.get("cell", {}).get("paused"))
         note = "" if attached else NO_CONTROLLER

@@ -3,6 +3,10 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+# The example machine kind from outside (tests/plugins/cellctl_saw, docs/kinds.md), installed as
+# a user installs a plug-in: a plain (not editable) pip install, redone when its files change.
+PLUGIN := tests/plugins/cellctl_saw
+PLUGIN_STAMP := $(VENV)/.plugins
 
 .PHONY: test demo lint typecheck pytest deps clean bench
 
@@ -14,7 +18,7 @@ test: deps lint typecheck pytest
 # systemd (its systemd-analyze verifies the unit of `cellctl service install`). TOOL:PACKAGE
 # where the two names differ.
 DEBS := ser2net tmux chromium mosquitto systemd-analyze:systemd
-deps: $(STAMP)
+deps: $(STAMP) $(PLUGIN_STAMP)
 	@missing=""; for dep in $(DEBS); do command -v $${dep%%:*} >/dev/null 2>&1 || missing="$$missing $${dep##*:}"; done; \
 	if [ -n "$$missing" ]; then \
 	  if [ "$$(id -u)" = 0 ]; then \
@@ -29,6 +33,10 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install -q -e '.[dev]'
 	touch $(STAMP)
 
+$(PLUGIN_STAMP): $(STAMP) $(PLUGIN)/pyproject.toml $(wildcard $(PLUGIN)/src/*/*.py)
+	$(BIN)/pip install -q --no-deps --force-reinstall $(PLUGIN)
+	touch $(PLUGIN_STAMP)
+
 lint: $(STAMP)
 	$(BIN)/ruff check src tests bench
 	$(BIN)/ruff format --check src tests bench
@@ -40,7 +48,7 @@ typecheck: $(STAMP)
 # Independent tests run in parallel (each has its own ports and directories). Most of a
 # test's time is emulated machine time (waiting, not computing): 3 workers keep a 2-core box
 # busy (3 are as fast as 4 here, with less contention for the emulators' deadlines).
-pytest: $(STAMP)
+pytest: $(STAMP) $(PLUGIN_STAMP)
 	$(BIN)/pytest -q -n 3
 
 # `make demo DEMO_ARGS=--dashboard` leaves the dashboard up after the batch (Ctrl-C stops).

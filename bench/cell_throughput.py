@@ -335,7 +335,7 @@ async def main() -> None:
         f"ratio_real = (makespan*s - R*s + R) / (bound*s): {ratio_real:.4f} "
         f"(goal <= {REAL_GOAL}: {verdict})"
     )
-    speedup = 0.0
+    speedup = float("nan")  # no baseline run: no speed-up to tell
     runs = [("cellctl", sched)]
     if base is not None:
         b = base.summary

@@ -21,7 +21,7 @@ from cellctl.cell.journal import open_journal
 from cellctl.errors import CellctlError
 from cellctl.link import MILL_LINE, ROBOT_LINE
 from cellctl.service.access import LocalCell
-from cellctl.service.functions import function
+from cellctl.service.functions import function, kind_menu
 from cellctl.service.machines import MachineRef
 from cellctl.service.methods import (
     INTERNAL_ERROR,
@@ -47,7 +47,15 @@ def _fields(method: str) -> list[str]:
     return names
 
 
-FIELDS = [(m, f) for m in METHODS for f in _fields(m)]
+def _on_this_cell(method: str) -> bool:
+    """Whether the test cell's machine of the method's family has it: a plug-in kind's own
+    function (tests/plugins) is refused on the others' machines, whatever its parameters."""
+    family, _, name = method.partition(".")
+    kind = {"robot": "ibm7545", "mill": "dyna2400"}.get(family)
+    return kind is None or any(f.name == name for f in kind_menu(kind))
+
+
+FIELDS = [(m, f) for m in METHODS if _on_this_cell(m) for f in _fields(m)]
 
 
 def _nested(depth: int) -> Any:

@@ -18,10 +18,9 @@ KIND_PACKAGES = {
     "ibm7547": "src/cellctl/kinds/ibm7545/",
     "dyna2400": "src/cellctl/kinds/dyna2400/",
 }
-#: Files of src/ that still name a kind: the console's program pickers and `cell emulate`'s
-#: fault lists (to move to the registry). This list may only shrink: a file that stops
-#: naming a kind fails the test until it is taken off.
-STILL_NAMING = {"src/cellctl/ui/cell_cli.py", "src/cellctl/ui/console/session.py"}
+#: Kinds from outside cellctl (installed into the test environment as plug-ins, see
+#: tests/plugins/): src/ names none of them anywhere.
+PLUGIN_KINDS = ("kerf100",)
 
 
 def test_the_1988_kinds_register_through_the_entry_points() -> None:
@@ -75,7 +74,7 @@ def test_the_drivers_speak_their_family_protocol() -> None:
 
 def test_no_kind_is_named_in_src_outside_its_own_package() -> None:
     found = subprocess.run(
-        ["git", "grep", "-l", "-i", "-E", "|".join(KIND_PACKAGES), "--", "src"],
+        ["git", "grep", "-l", "-i", "-E", "|".join([*KIND_PACKAGES, *PLUGIN_KINDS]), "--", "src"],
         cwd=ROOT,
         capture_output=True,
         text=True,
@@ -87,5 +86,23 @@ def test_no_kind_is_named_in_src_outside_its_own_package() -> None:
         if not path.startswith("src/cellctl/examples/")
         and not any(path.startswith(pkg) for pkg in KIND_PACKAGES.values())
     }
-    assert naming - STILL_NAMING == set(), "a kind is named outside its own package"
-    assert STILL_NAMING - naming == set(), "take these off STILL_NAMING: they name no kind now"
+    assert naming == set(), "a kind is named outside its own package"
+
+
+def test_the_pickers_faults_and_checks_come_from_the_kinds() -> None:
+    """What the console and `emulate cell` once named by kind, each kind declares."""
+    for kind in registry.kinds():
+        assert kind.picked_files, kind.name
+        assert kind.check_text is not None and kind.faults, kind.name
+    robot = registry.kind("ibm7545")
+    assert robot.picked_files == (".rec",) and "power-off" in robot.faults
+    mill = registry.kind("dyna2400")
+    assert mill.picked_files == (".dyn",) and "stall" in mill.faults
+    problems = mill.check_text("download", "p.dyn", "NOT DYNALAN\n", mill.checked_options({}))
+    assert problems and all(p.startswith("p.dyn") for p in problems)
+
+
+def test_docs_kinds_md_holds_each_shipped_kind_s_options() -> None:
+    docs = (ROOT / "docs" / "kinds.md").read_text(encoding="utf-8")
+    for name in KIND_PACKAGES:
+        assert registry.kind(name).options_table() in docs, name

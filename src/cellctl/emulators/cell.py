@@ -122,6 +122,11 @@ class EmulatedCell:
         self.mills: dict[str, Any] = {
             name: registry.kind(self.kinds[name]).emulator(spec) for name in self.mill_names
         }
+        #: Each machine's line: its kind's default line, its baud rate times ``time_scale``.
+        self.lines = {
+            name: scaled_line(registry.kind(kind).line_settings, time_scale)
+            for name, kind in self.kinds.items()
+        }
         self.plc = PlcEmulator(time_scale=time_scale, on_go=self._go)
         self.servers: dict[str, Server] = {}
         self.plc_url = ""
@@ -203,11 +208,11 @@ class EmulatedCell:
         if listen == "pty":
             listen = f"pty:{(cell_dir / 'robot.pty').resolve()}"
         self.servers[self.robot_name] = await serve(
-            self.robot, listen, self.line, pacing=self.pacing
+            self.robot, listen, self.line_of(self.robot_name), pacing=self.pacing
         )
         for name, mill in self.mills.items():
             self.servers[name] = await serve(
-                mill, f"rfc2217://{self.host}:0", self.line, pacing=self.pacing
+                mill, f"rfc2217://{self.host}:0", self.line_of(name), pacing=self.pacing
             )
             mill.start()
         return write_text(cell_dir / "cell.toml", self._cell_toml(template / "cell.toml"))
@@ -232,7 +237,7 @@ class EmulatedCell:
                 name = section.split(".", 1)[1]
                 text = f'link = "{self.servers[name].url}"'
             elif section.startswith("machines.") and key == "line":
-                text = f'line = "{self.line}"'
+                text = f'line = "{self.line_of(section.split(".", 1)[1])}"'
             elif section == "plc" and key == "url":
                 text = f'url = "{self.plc_url}"'
             elif section == "cell" and key in CELL_DEADLINES:
@@ -251,6 +256,10 @@ class EmulatedCell:
                 lines += ["", f"[machines.{name}.options]"]
                 lines += [f"{key} = {value:g}" for key, value in options.items()]
         return "\n".join(lines) + "\n"
+
+    def line_of(self, name: str) -> LineSettings:
+        """The line machine ``name`` is served on (the base line for one of no known kind)."""
+        return self.lines.get(name, self.line)
 
     def runs_per_part(self) -> dict[str, dict[str, int]]:
         """How many programs each mill ran per physical part (from the emulators' logs).
@@ -273,6 +282,13 @@ class EmulatedCell:
         for server in self.servers.values():
             await server.close()
         await self.plc.close()
+
+
+def scaled_line(line: LineSettings, time_scale: float) -> LineSettings:
+    """``line`` with its baud rate ``time_scale`` times higher (characters as much faster)."""
+    return LineSettings(
+        int(line.baudrate * time_scale), line.bytesize, line.parity, line.stopbits, line.rtscts
+    )
 
 
 def _machine_kinds(template: Path) -> dict[str, str]:

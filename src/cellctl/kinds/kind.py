@@ -13,8 +13,13 @@ A kind is a small declared object in its own package, registered under the entry
         open_driver=open_saw,               # async (DriverSpec) -> a driver of the family
         emulator=saw_emulator,              # (EmulatorSpec) -> an EmulatedDevice
         states=SawState,                    # its state numbers, an IntEnum
+        condition=lambda status: status.kind_condition,
         language=ProgramLanguage(check=check_cut_list, suffix=".cut"),
+        menu=lambda: MENU,                  # its manual functions (console, CLI, API)
+        faults=FAULTS,                      # its emulator's fault switches
     )
+
+docs/kinds.md walks through a whole kind (tests/plugins/cellctl_saw).
 
 The host never imports a kind: it asks the registry for the one a machine's ``kind`` names,
 and calls these hooks.
@@ -23,7 +28,7 @@ and calls these hooks.
 from __future__ import annotations
 
 import enum
-from collections.abc import Awaitable, Callable, Sequence
+from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -168,6 +173,16 @@ class MachineKind:
     deadlines scaled)."""
     needs_setup: bool = False
     """Whether a machine of this kind needs ``setup`` (a setup program) in cell.toml."""
+    program_files: tuple[str, ...] = ()
+    """File name endings of what its manual functions send (the console's program pickers);
+    the language's ``suffix`` when empty."""
+    check_text: Callable[[str, str, str, BaseModel], list[str]] | None = None
+    """``check_text(function, name, text, options)``: every problem of a program that manual
+    function ``function`` sends, one per line (empty: it may go). The console checks a
+    dialog's program with it before a byte is sent."""
+    faults: Mapping[str, str] = field(default_factory=dict)
+    """Its emulator's fault switches (name -> what it does), for ``cellctl emulate cell``'s
+    ``--fault MACHINE:NAME[=ARG]``."""
     timing: Callable[[], Any] | None = None
     """Its timing model for bounds from physics: a robot's
     :class:`~cellctl.kinds.families.RobotModel`, a mill's
@@ -179,6 +194,13 @@ class MachineKind:
     @property
     def line_settings(self) -> LineSettings:
         return LineSettings.parse(self.line)
+
+    @property
+    def picked_files(self) -> tuple[str, ...]:
+        """The file endings its program pickers show."""
+        if self.program_files:
+            return self.program_files
+        return (self.language.suffix,) if self.language is not None else ()
 
     @property
     def title(self) -> str:
@@ -196,6 +218,19 @@ class MachineKind:
                 message = "unknown option" if item["type"] == "extra_forbidden" else item["msg"]
                 problems.append(f"{where}: {str(message).removeprefix('Value error, ')}")
             raise UsageError(f"{self.name} options: " + "; ".join(problems)) from None
+
+    def options_table(self) -> str:
+        """Its options as a Markdown table (docs/kinds.md holds one per shipped kind)."""
+        rows = ["| option | default | meaning |", "|---|---|---|"]
+        for key, info in self.options.model_fields.items():
+            default = (
+                "required"
+                if info.is_required()
+                else repr(info.get_default(call_default_factory=True))
+            )
+            meaning = " ".join((info.description or "").split())
+            rows.append(f"| `{key}` | {default} | {meaning} |")
+        return "\n".join(rows) + "\n"
 
     async def open(self, spec: DriverSpec) -> Any:
         """Open a driver for ``spec`` (its options already checked by :meth:`checked_options`)."""

@@ -71,6 +71,10 @@ class CellAccess(ABC):
         """Machine name -> family (``robot`` or ``mill``)."""
 
     @abstractmethod
+    def machine_kinds(self) -> dict[str, str]:
+        """Machine name -> kind (cell.toml's ``kind``): whose manual functions it has."""
+
+    @abstractmethod
     def driver(
         self, name: str, *, observe: bool = False
     ) -> contextlib.AbstractAsyncContextManager[Any]:
@@ -145,6 +149,10 @@ class AttachedCell(CellAccess):
     def machines(self) -> dict[str, str]:
         c = self._controller.config
         return {c.robot.name: "robot", **{m.name: "mill" for m in c.mills}}
+
+    def machine_kinds(self) -> dict[str, str]:
+        c = self._controller.config
+        return {c.robot.name: c.robot.kind, **{m.name: m.kind for m in c.mills}}
 
     def driver(
         self, name: str, *, observe: bool = False
@@ -236,6 +244,9 @@ class LocalCell(CellAccess):
 
     def machines(self) -> dict[str, str]:
         return {name: FAMILY_OF_KIND[ref.kind] for name, ref in self.refs.items()}
+
+    def machine_kinds(self) -> dict[str, str]:
+        return {name: ref.kind for name, ref in self.refs.items()}
 
     def note(self, text: str) -> None:
         """An event for the snapshot (what a function did)."""

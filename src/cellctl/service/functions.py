@@ -62,7 +62,8 @@ def _family_functions() -> tuple[MachineFunction, ...]:
     return tuple(seen.values())
 
 
-#: Every family's functions (the first kind declaring a name gives it).
+#: Every family's functions (the first kind declaring a name gives it): the control API serves
+#: each as FAMILY.NAME, and a call runs the function of the machine's own kind.
 FUNCTIONS: tuple[MachineFunction, ...] = _family_functions()
 #: Machine kinds and their family (as in cell.toml).
 FAMILY_OF_KIND: dict[str, str] = {k.name: k.family for k in registry.kinds()}
@@ -75,8 +76,9 @@ def function(family: str, name: str, kind: str | None = None) -> MachineFunction
     for fn in mine:
         if fn.family == family and fn.name == name:
             return fn
-    known = ", ".join(f.name for f in mine)
-    raise UsageError(f"no {family} function {name!r} (known: {known})")
+    known = ", ".join(f.name for f in mine if f.family == family)
+    of = f" on a {kind}" if kind is not None else ""
+    raise UsageError(f"no {family} function {name!r}{of} (known: {known})")
 
 
 def menu(family: str, kind: str | None = None) -> list[MachineFunction]:

@@ -24,6 +24,7 @@ from cellctl import __version__
 from cellctl import errors as errors_module
 from cellctl.cell.journal import PART_STATUSES
 from cellctl.errors import CellctlError, DeviceError, ProtocolError, UsageError, exit_code
+from cellctl.kinds import registry
 from cellctl.mailbox import ORDER_STATES
 from cellctl.mailbox.base import MAX_QTY
 from cellctl.service import operator
@@ -31,9 +32,10 @@ from cellctl.service.access import CellAccess
 from cellctl.service.functions import (
     FUNCTIONS,
     InvalidParams,
-    MachineFunction,
     Progress,
     describe,
+    function,
+    kind_menu,
 )
 
 #: JSON-RPC 2.0's own error codes.
@@ -280,9 +282,13 @@ async def _preview(access: CellAccess, p: PreviewParams, progress: Progress | No
     return program_preview(access, p.machine, p.program)
 
 
-def _machine_handler(fn: MachineFunction) -> Handler:
+def _machine_handler(family: str, function_name: str) -> Handler:
+    """The handler of ``FAMILY.NAME``: it runs the function of the named machine's own kind
+    (two mill kinds may have different menus; one without the function refuses the call)."""
+
     async def handler(access: CellAccess, p: MachineCallParams, progress: Progress | None) -> Any:
-        name = _machine_name(access, fn.family, p.machine)
+        name = _machine_name(access, family, p.machine)
+        fn = function(family, function_name, access.machine_kinds().get(name))
         prepared = fn.check(dict(p.model_extra or {}))  # refused here: no byte went out
         async with access.driver(name, observe=fn.observes) as driver:
             result = await fn.run(driver, prepared, progress)
@@ -337,7 +343,7 @@ _TABLE += [
     Method(
         f"{fn.family}.{fn.name}",
         MachineCallParams,
-        _machine_handler(fn),
+        _machine_handler(fn.family, fn.name),
         f"{fn.label}: {fn.doc}"
         + (" Also in automatic service." if fn.observes else " Out of automatic service only."),
         not fn.observes,
@@ -348,13 +354,20 @@ METHODS: dict[str, Method] = {m.name: m for m in _TABLE}
 
 
 def reference_table() -> str:
-    """The methods as a Markdown table (docs/api.md holds exactly this)."""
-    from cellctl.service.functions import function
-
+    """The methods as a Markdown table (docs/api.md holds exactly this): a plug-in kind's
+    functions are its own docs', so the table stays the same wherever it is rendered."""
+    shipped = {
+        f"{fn.family}.{fn.name}"
+        for k in registry.kinds()
+        if k.origin is None or k.origin.module.startswith("cellctl.")
+        for fn in kind_menu(k.name)
+    }
     rows = ["| method | parameters (? optional) | what it does | acts |", "|---|---|---|---|"]
     for m in METHODS.values():
         fields = dict(m.params.model_fields)
         if m.params is MachineCallParams:
+            if m.name not in shipped:
+                continue
             family, name = m.name.split(".")
             fields.update(function(family, name).params.model_fields)
         names = ", ".join(k + ("" if f.is_required() else "?") for k, f in fields.items())

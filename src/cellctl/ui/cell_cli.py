@@ -8,7 +8,7 @@ import shutil
 import signal
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import click
 from rich.console import Group
@@ -247,8 +247,16 @@ async def _run(directory: Path, live: bool, until_idle: bool) -> None:
 def _emulate_cell_command() -> click.Command:
     from cellctl.emulators.cell import EmulatedCell
     from cellctl.emulators.plc import FAULTS as PLC_FAULTS
-    from cellctl.kinds.dyna2400.emulator import FAULTS as MILL_FAULTS
-    from cellctl.kinds.ibm7545.emulator import FAULTS as ROBOT_FAULTS
+    from cellctl.kinds import registry
+
+    # Each kind's fault switches, as its declaration names them (the 7547 shares the 7545's).
+    by_faults: dict[tuple[str, ...], list[str]] = {}
+    for kind in registry.kinds():
+        if kind.faults:
+            by_faults.setdefault(tuple(kind.faults), []).append(kind.name)
+    kind_faults = "; ".join(
+        f"{', '.join(names)}: {', '.join(faults)}" for faults, names in by_faults.items()
+    )
 
     def callback(
         time_scale: float,
@@ -261,10 +269,14 @@ def _emulate_cell_command() -> click.Command:
         directory = cell_dir(ctx)
 
         async def main() -> None:
+            # The template's machines and kinds are what is served (not the example cell's).
             cell = EmulatedCell(
-                time_scale=time_scale, pacing=not no_pacing, robot_listen=robot_listen
+                time_scale=time_scale,
+                pacing=not no_pacing,
+                robot_listen=robot_listen,
+                template=Path(template) if template else None,
             )
-            toml = await cell.start(directory, Path(template) if template else None)
+            toml = await cell.start(directory)
             for text in fault:
                 apply_fault(cell, text)
             console.print(f"emulated cell (time scale {time_scale:g}) wrote {toml}")
@@ -297,11 +309,9 @@ def _emulate_cell_command() -> click.Command:
             ),
         ],
         help="Start the robot, both mills and the PLC, and write cell.toml pointing at them."
-        + "\n\nFaults (--fault MACHINE:NAME[=ARG], MACHINE robot, cnc1, cnc2 or plc): "
-        + "robot: "
-        + ", ".join(ROBOT_FAULTS)
-        + "; mills: "
-        + ", ".join(MILL_FAULTS)
+        + "\n\nFaults (--fault MACHINE:NAME[=ARG], MACHINE a machine of cell.toml or plc), "
+        + "by the machine's kind: "
+        + kind_faults
         + "; plc: "
         + ", ".join(PLC_FAULTS)
         + ". `cellctl emulate robot|mill|plc --help` says what each does.",
@@ -317,9 +327,12 @@ def apply_fault(cell: object, text: str) -> None:
     if not sep:
         raise UsageError(f"fault {text!r}: write MACHINE:NAME[=ARG], e.g. cnc1:stall")
     name, arg = parse_fault(rest)
-    target = {"robot": cell.robot, "plc": cell.plc, **cell.mills}.get(machine)  # type: ignore[attr-defined]
+    c: Any = cell
+    machines = {"robot": c.robot, c.robot_name: c.robot, **c.mills, "plc": c.plc}
+    target = machines.get(machine)
     if target is None:
-        raise UsageError(f"fault {text!r}: no machine {machine!r} (robot, cnc1, cnc2, plc)")
+        known = ", ".join(dict.fromkeys([c.robot_name, *c.mills, "plc"]))
+        raise UsageError(f"fault {text!r}: no machine {machine!r} ({known})")
     target.set_fault(name, arg)
 
 

@@ -13,7 +13,7 @@ from cellctl.emulators.serve import scaled_deadline
 from cellctl.errors import UsageError
 from cellctl.kinds.dyna2400 import dynalan
 from cellctl.kinds.dyna2400.driver import Dyna2400Mill, MillConfig, MillState
-from cellctl.kinds.dyna2400.emulator import Dyna2400Emulator, OperatorDelays
+from cellctl.kinds.dyna2400.emulator import FAULTS, Dyna2400Emulator, OperatorDelays
 from cellctl.kinds.kind import (
     CheckedProgram,
     DriverSpec,
@@ -79,6 +79,19 @@ def _check(path: Path, role: ProgramRole, options: BaseModel) -> CheckedProgram:
         lines=len(result.program.lines),
         machining_s=seconds,
     )
+
+
+#: The role a manual function's program plays (for the validator).
+_FUNCTION_ROLES = {"init": dynalan.ProgramRole.SETUP, "download": dynalan.ProgramRole.MILLING}
+
+
+def _check_text(function: str, name: str, text: str, options: BaseModel) -> list[str]:
+    """A DYNALAN program a manual function sends: its errors (warnings do not stop it)."""
+    config = options if isinstance(options, MillConfig) else MillConfig()
+    role = _FUNCTION_ROLES.get(function, dynalan.ProgramRole.AUTO)
+    context = dynalan.ValidationContext(role=role, config=config.machine())
+    result = dynalan.validate(dynalan.parse_program(text, name=name), context)
+    return [p.format(name) for p in result.problems if p.severity is dynalan.Severity.ERROR]
 
 
 def _split(text: str) -> list[str]:
@@ -147,5 +160,7 @@ DYNA2400 = MachineKind(
     timing=_timing,
     emulated_options=_emulated_options,
     needs_setup=True,
+    check_text=_check_text,
+    faults=FAULTS,
     description="3-axis CNC mill: DYNALAN blocks streamed as the controller's CTS asks",
 )

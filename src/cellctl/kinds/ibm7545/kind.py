@@ -10,10 +10,10 @@ from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel
 
-from cellctl.errors import CellctlError
+from cellctl.errors import CellctlError, UsageError
 from cellctl.kinds.ibm7545.aml import compile_source
 from cellctl.kinds.ibm7545.driver import Ibm7545Robot, RobotConfig, RobotState, robot_condition
-from cellctl.kinds.ibm7545.emulator import Ibm7545Emulator
+from cellctl.kinds.ibm7545.emulator import FAULTS, Ibm7545Emulator
 from cellctl.kinds.kind import (
     CheckedProgram,
     DriverSpec,
@@ -71,6 +71,17 @@ def _compile(source: str, name: str, origin: str) -> Any:
     return compile_source(source, application_name(name), 1, source=origin)
 
 
+def _check_text(function: str, name: str, text: str, options: BaseModel) -> list[str]:
+    """A record file a manual function downloads: its problem, if it does not parse."""
+    from cellctl.kinds.ibm7545.records import ProgramFile
+
+    try:
+        ProgramFile.parse(text, name)
+    except UsageError as e:
+        return [str(e)]
+    return []
+
+
 def _condition(status: Any) -> Any:
     return robot_condition(status.state, status.machine.ok)
 
@@ -107,6 +118,9 @@ IBM7545 = MachineKind(
     language=ProgramLanguage(suffix=".aml", check=_check, compile=_compile),
     menu=_menu,
     commands=_commands,
+    program_files=(".rec",),
+    check_text=_check_text,
+    faults=FAULTS,
     timing=_timing,
     description="SCARA robot controller: records over a 4800 baud line, AML/E programs",
 )

@@ -36,7 +36,6 @@ from cellctl.ui.console.cellmenu import CellActions
 from cellctl.ui.console.dialogs import ConfirmDialog, Dialog, ParamsDialog
 from cellctl.ui.console.entry import Action, Entry
 from cellctl.ui.console.session import (
-    PROGRAM_SUFFIXES,
     ConsoleMachine,
     cell_machines,
     check_params,
@@ -203,7 +202,7 @@ class ConsoleApp(App[None]):
     def machine_entries(self, machine: ConsoleMachine) -> list[Entry]:
         entries: list[Entry] = []
         letters = iter("abcdefgh")
-        functions = menu(machine.family)
+        functions = menu(machine.family, machine.kind)
         for fn in functions:
             key = str(fn.menu) if fn.menu is not None else next(letters)
             entries.append(Entry(key, fn.label, self._function(machine, fn)))
@@ -393,7 +392,7 @@ class ConsoleApp(App[None]):
                 fields,
                 lambda raw: check_params(machine, fn, raw, self.directory),
                 directory=self.directory,
-                suffixes=PROGRAM_SUFFIXES[machine.family],
+                suffixes=machine.suffixes,
                 program=(machine.setup or "") if fn.name == "init" else "",
             )
             answer = await self.ask(dialog)

@@ -16,19 +16,20 @@ from pathlib import Path
 from typing import Any
 
 from cellctl.errors import UsageError
-from cellctl.kinds.dyna2400.driver import MillConfig
-from cellctl.kinds.dyna2400.dynalan import ProgramRole, Severity, ValidationContext, parse_program
-from cellctl.kinds.dyna2400.dynalan import validate as validate_program
-from cellctl.kinds.ibm7545.records import PARTITIONS, ProgramFile
+from cellctl.kinds import registry
+from cellctl.kinds.kind import FAMILIES, MachineKind
 from cellctl.service.client import CellClient, open_cell
-from cellctl.service.functions import FAMILY_OF_KIND, MachineFunction
+from cellctl.service.functions import FAMILY_OF_KIND, MachineFunction, kind_menu
 from cellctl.service.machines import MachineRef, load_cell_file, resolve_machine
 from cellctl.ui.calls import read_program
 
-#: File name endings a family's program picker shows.
-PROGRAM_SUFFIXES = {"robot": (".rec",), "mill": (".dyn",)}
-#: The role a mill function's program plays (for the validator).
-MILL_ROLES = {"init": ProgramRole.SETUP, "download": ProgramRole.MILLING}
+#: File name endings a family's program picker shows (every kind's of that family).
+PROGRAM_SUFFIXES: dict[str, tuple[str, ...]] = {
+    family: tuple(dict.fromkeys(s for k in registry.kinds(family) for s in k.picked_files))
+    for family in FAMILIES
+}
+#: Dialog fields typed as text that the functions take as whole numbers.
+_WHOLE_NUMBERS = (int,)
 
 
 @dataclass(frozen=True)
@@ -40,6 +41,14 @@ class ConsoleMachine:
     title: str  # the source's menu title: ROBOT, NC MACHINE #1 ...
     options: dict[str, Any] = field(default_factory=dict)
     setup: str | None = None  # the mill's setup program (cell.toml), relative to the cell
+    kind: str | None = None  # cell.toml's kind (None: the first of its family with the function)
+
+    @property
+    def suffixes(self) -> tuple[str, ...]:
+        """The file endings its program picker shows."""
+        if self.kind is None:
+            return PROGRAM_SUFFIXES.get(self.family, ())
+        return registry.kind(self.kind).picked_files
 
 
 def cell_machines(directory: Path) -> list[ConsoleMachine]:
@@ -69,6 +78,7 @@ def cell_machines(directory: Path) -> list[ConsoleMachine]:
                 title,
                 dict(entry.get("options", {})),
                 str(setup) if isinstance(setup, str) else None,
+                str(entry["kind"]),
             )
         )
     if not found:
@@ -105,23 +115,29 @@ def read_program_file(path_text: str, directory: Path) -> tuple[Path, dict[str, 
         raise UsageError(str(e).replace(str(path), given, 1)) from None
 
 
+def machine_kind(machine: ConsoleMachine, fn: MachineFunction) -> MachineKind:
+    """The kind of ``machine`` (without one, the first kind of its family that has ``fn``)."""
+    if machine.kind is not None:
+        return registry.kind(machine.kind)
+    for kind in registry.kinds(machine.family):
+        if any(f.name == fn.name for f in kind_menu(kind.name)):
+            return kind
+    raise UsageError(f"no {machine.family} kind has a function {fn.name!r}")
+
+
 def check_program(
     machine: ConsoleMachine, fn: MachineFunction, program: dict[str, str]
 ) -> list[str]:
-    """Every problem of a program, one per line (empty: it may be sent)."""
-    name, text = program["program"], program["text"]
-    if machine.family == "robot":
-        try:
-            ProgramFile.parse(text, name)
-        except UsageError as e:
-            return [str(e)]
+    """Every problem of a program, one per line (empty: it may be sent), as its kind checks
+    what that function sends."""
+    kind = machine_kind(machine, fn)
+    if kind.check_text is None:
         return []
-    config = MillConfig.from_options(machine.options)
-    role = MILL_ROLES.get(fn.name, ProgramRole.AUTO)
-    result = validate_program(
-        parse_program(text, name=name), ValidationContext(role=role, config=config.machine())
-    )
-    return [p.format(name) for p in result.problems if p.severity is Severity.ERROR]
+    try:
+        options = kind.checked_options(machine.options)
+    except UsageError as e:
+        return [str(e)]
+    return kind.check_text(fn.name, program["program"], program["text"], options)
 
 
 def check_params(
@@ -132,12 +148,14 @@ def check_params(
     fields = fn.params.model_fields
     params: dict[str, Any] = {}
     problems: list[str] = []
-    if "partition" in fields:
-        text = str(raw.get("partition", "")).strip()
-        if not text.isdecimal() or int(text) not in PARTITIONS:
-            problems.append(f"partition must be 1 to 5, not {text or 'nothing'} (partition error)")
-        else:
-            params["partition"] = int(text)
+    for key, info in fields.items():
+        # A number typed in a text field: the function's own check says what range it takes.
+        if info.annotation in _WHOLE_NUMBERS and (key in raw or info.is_required()):
+            text = str(raw.get(key, "")).strip()
+            if text.isascii() and text.isdecimal():
+                params[key] = int(text)
+            else:
+                problems.append(f"{key} must be a whole number, not {text or 'nothing'}")
     if "program" in fields:
         try:
             _, program = read_program_file(str(raw.get("program", "")), directory)

@@ -82,7 +82,12 @@ Seq = Annotated[int, Field(ge=1, le=INT64_MAX)]
 class WireError(ProtocolError):
     """A payload that is not what its topic carries; ``reason`` says why in a few words."""
 
+    #: The longest reason kept: one log line, whatever the payload held.
+    MAX_REASON = 200
+
     def __init__(self, reason: str, raw: bytes = b"") -> None:
+        if len(reason) > self.MAX_REASON:
+            reason = reason[: self.MAX_REASON - 1] + "…"
         self.reason = reason
         super().__init__(reason, raw[:64])
 
@@ -191,7 +196,7 @@ def _reason(error: ValidationError) -> str:
     where = ".".join(str(p) for p in first["loc"]) or "payload"
     more = error.error_count() - 1
     text = f"{where}: {first['msg']}" + (f" (and {more} more)" if more else "")
-    return text[:200]
+    return text
 
 
 M = TypeVar("M", bound=BaseModel)

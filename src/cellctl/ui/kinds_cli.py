@@ -18,9 +18,12 @@ def kinds_command() -> None:
     """
     table = Table(box=None, pad_edge=False)
     for column in ("kind", "family", "maker", "model", "from"):
-        table.add_column(column, no_wrap=column != "from")
+        # "from" folds rather than cut: the module is what a user looks for.
+        table.add_column(column, no_wrap=column != "from", overflow="fold")
     for kind in registry.kinds():
-        origin = str(kind.origin) if kind.origin is not None else "?"
+        # The distribution, then the module on a line of its own: whole at 80 columns.
+        o = kind.origin
+        origin = f"{o.distribution}\n{o.module}" if o is not None else "?"
         table.add_row(kind.name, kind.family, kind.maker, kind.model, origin)
     for name, why in registry.broken().items():
         table.add_row(name, "-", "-", "-", f"[red]broken: {why}[/red]")

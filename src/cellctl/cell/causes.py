@@ -20,9 +20,35 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import Final
 
 from cellctl.errors import CellctlError, LinkClosed, LinkError, SignalTimeout
 from cellctl.kinds.families import Health
+
+#: Alarm priorities after ISA-18.2 / IEC 62682, most urgent first.
+PRIORITIES: Final = ("high", "medium", "low")
+#: Each alarm code's priority, declared once beside the causes that raise them: a stopped
+#: cell or a machine's own fault status is high, a machine that does not answer is high (the
+#: cell cannot see it), a step that failed or a machine taken out of service is medium, a late
+#: pallet is low. A code not listed (a step failure's own code) is :data:`DEFAULT_PRIORITY`.
+ALARM_PRIORITY: Final[dict[str, str]] = {
+    "estop": "high",
+    "status": "high",
+    "link": "high",
+    "interlock": "medium",
+    "out-of-service": "medium",
+    "readiness": "medium",
+    "initialize": "medium",
+    "transfer": "medium",
+    "conveyor": "low",
+}
+DEFAULT_PRIORITY: Final = "medium"
+
+
+def priority_of(code: str) -> str:
+    """The priority of an alarm with ``code`` (see :data:`ALARM_PRIORITY`)."""
+    return ALARM_PRIORITY.get(code, DEFAULT_PRIORITY)
+
 
 #: The alarm of a link the other end closed (a dropped connection, a restarted server).
 LINK_CLOSED = "link closed by the other end"

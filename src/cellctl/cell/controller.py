@@ -145,14 +145,24 @@ class CellController(OperatorCommands):
         """Raise an alarm, unless ``machine`` has an active one with this ``code``: a fault
         seen again, or seen through its effects, adds nothing (see :mod:`cellctl.cell.causes`);
         once the operator clears it, a fault still there is raised again."""
-        if any(a.machine == machine and a.code == code for a in self.journal.active_alarms()):
-            return
+        for a in self.journal.active_alarms():
+            if a.machine == machine and a.code == code:
+                if a.returned is not None:  # its condition is back: unacknowledged again
+                    self.journal.reactivate(a.id)
+                    self.log(f"ALARM {a.id} {machine}: active again: {text}")
+                return
         alarm, new = self.journal.raise_alarm(machine, code, text)
         if new:
             self.mailbox.post_report(
                 ReportKind.ALARM_RAISED, f"{machine}: {text}", data={"alarm": alarm.id}
             )
             self.log(f"ALARM {alarm.id} {machine}: {text}")
+
+    def returned(self, machine: str, *codes: str) -> None:
+        """The condition behind ``machine``'s open alarms with ``codes`` is gone (a look
+        found it well): they are returned to normal, and stay open until cleared."""
+        for a in self.journal.return_to_normal(machine, codes):
+            self.log(f"alarm {a.id} {machine}: returned to normal ({a.text})")
 
     def cause_alarm(self, cause: Cause) -> None:
         """The alarm of ``cause`` (only logged if its alarm was cleared while it was out)."""
@@ -488,6 +498,8 @@ class CellController(OperatorCommands):
             return
         if self.inputs.get("pallet_present", False) or not self.inputs.get("estop_ok", True):
             self._pallet_requested = False
+            if self.inputs.get("pallet_present", False):
+                self.returned("plc", "conveyor")
             return
         if any(
             a.machine == "plc"

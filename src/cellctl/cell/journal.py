@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
 
+from cellctl.cell.causes import PRIORITIES, priority_of
 from cellctl.cell.orders import OrderLike
 from cellctl.cell.sqlitedb import SqliteStore
 from cellctl.errors import UsageError
@@ -57,6 +58,19 @@ STEP_KINDS: Final = ("transfer", "machine")
 STEP_STATES: Final = ("started", "finished", "failed", "interrupted")
 #: What the operator decided about an interrupted or failed step of a held part.
 RESOLUTIONS: Final = ("", "accepted", "redo")
+
+#: The alarm columns added after the first journals (ISA-18.2 states): an older journal gets
+#: them on open, with defaults that read as "acknowledged nothing, still seen, not shelved".
+_ALARM_COLUMNS: Final = (
+    ("priority", "TEXT NOT NULL DEFAULT 'medium'"),
+    ("acked", "REAL"),
+    ("acked_by", "TEXT NOT NULL DEFAULT ''"),
+    ("returned", "REAL"),
+    ("shelved_until", "REAL"),
+    ("shelved_by", "TEXT NOT NULL DEFAULT ''"),
+)
+#: The longest an alarm may be shelved, s (8 h: one shift).
+MAX_SHELVE: Final = 8 * 3600.0
 
 INTERRUPTED_MACHINING = "needs inspection: machining step {program} on {machine} was interrupted"
 INTERRUPTED_TRANSFER = "interrupted transfer: check the gripper and both stations"
@@ -101,6 +115,7 @@ CREATE TABLE IF NOT EXISTS alarms (
     cleared REAL,
     cleared_by TEXT NOT NULL DEFAULT ''
 );
+CREATE INDEX IF NOT EXISTS alarms_by_state ON alarms (state);
 CREATE TABLE IF NOT EXISTS machines (
     name TEXT PRIMARY KEY,
     in_service INTEGER NOT NULL,
@@ -151,7 +166,15 @@ class Step:
 
 @dataclass(frozen=True)
 class Alarm:
-    """An alarm: ``state`` is ``active`` until cleared (``cleared`` time, ``cleared_by``)."""
+    """An alarm after ISA-18.2: ``state`` is ``active`` until the operator clears it
+    (``cleared`` time, ``cleared_by``), which ends it.
+
+    Apart from that: ``acked`` is when the operator acknowledged it (None: unacknowledged),
+    ``returned`` when its condition was last seen to go away (returned to normal; None: still
+    seen, or not a condition the monitor watches), ``shelved_until`` until when it is
+    shelved (hidden from the unacknowledged list; back once that time is past).
+    ``priority`` comes from its code (:data:`cellctl.cell.causes.ALARM_PRIORITY`).
+    """
 
     id: int
     raised: float
@@ -161,6 +184,21 @@ class Alarm:
     state: str
     cleared: float | None
     cleared_by: str = ""
+    priority: str = "medium"
+    acked: float | None = None
+    acked_by: str = ""
+    returned: float | None = None
+    shelved_until: float | None = None
+    shelved_by: str = ""
+
+    def shelved(self, now: float) -> bool:
+        """True while the alarm is shelved at ``now``."""
+        return self.shelved_until is not None and self.shelved_until > now
+
+    def unacked(self, now: float) -> bool:
+        """True if the alarm is open, unacknowledged and not shelved at ``now``: what a
+        control room shows flashing."""
+        return self.state == "active" and self.acked is None and not self.shelved(now)
 
 
 @dataclass(frozen=True)
@@ -194,6 +232,23 @@ class Journal(SqliteStore):
     def __init__(self, path: Path, *, clock: Callable[[], float] = time.time) -> None:
         super().__init__(path, SCHEMA)
         self._clock = clock
+        self._migrate_alarms()
+
+    def _migrate_alarms(self) -> None:
+        """Add the alarm columns a journal from before alarm states lacks (idempotent)."""
+        have = {r["name"] for r in self._read("PRAGMA table_info(alarms)")}
+        missing = [(name, kind) for name, kind in _ALARM_COLUMNS if name not in have]
+        if not missing:
+            return
+        with self._write() as db:
+            have = {r["name"] for r in db.execute("PRAGMA table_info(alarms)")}
+            for name, kind in missing:
+                if name not in have:  # another process may have added it meanwhile
+                    db.execute(f"ALTER TABLE alarms ADD COLUMN {name} {kind}")
+            for code in {r["code"] for r in db.execute("SELECT DISTINCT code FROM alarms")}:
+                db.execute(
+                    "UPDATE alarms SET priority = ? WHERE code = ?", (priority_of(code), code)
+                )
 
     # -- parts -------------------------------------------------------------------------------
 
@@ -499,7 +554,8 @@ class Journal(SqliteStore):
 
     def raise_alarm(self, machine: str, code: str, text: str) -> tuple[Alarm, bool]:
         """Raise an alarm; return it and whether it is new (an identical active alarm,
-        same machine, code and text, is returned instead of raising a second one)."""
+        same machine, code and text, is returned instead of raising a second one; if it had
+        returned to normal its condition is back: active and unacknowledged again)."""
         now = self._clock()
         with self._write() as db:
             row = db.execute(
@@ -508,25 +564,95 @@ class Journal(SqliteStore):
                 (machine, code, text),
             ).fetchone()
             if row is not None:
-                return _alarm(row), False
+                if row["returned"] is None:
+                    return _alarm(row), False
+                return self._reactivate(db, row["id"]), False
             cur = db.execute(
-                "INSERT INTO alarms (raised, machine, code, text, state)"
-                " VALUES (?, ?, ?, ?, 'active')",
-                (now, machine, code, text),
+                "INSERT INTO alarms (raised, machine, code, text, state, priority)"
+                " VALUES (?, ?, ?, ?, 'active', ?)",
+                (now, machine, code, text, priority_of(code)),
             )
             alarm_id = cur.lastrowid
-        assert alarm_id is not None
-        return Alarm(alarm_id, now, machine, code, text, "active", None), True
+            assert alarm_id is not None
+            return _get_alarm(db, alarm_id), True
+
+    def reactivate(self, alarm_id: int) -> Alarm:
+        """The condition of open alarm ``alarm_id`` is seen again after it returned to
+        normal: active and unacknowledged again (a cleared or still-active alarm: unchanged)."""
+        with self._write() as db:
+            alarm = _get_alarm(db, alarm_id)
+            if alarm.state != "active" or alarm.returned is None:
+                return alarm
+            return self._reactivate(db, alarm_id)
+
+    def _reactivate(self, db: sqlite3.Connection, alarm_id: int) -> Alarm:
+        db.execute(
+            "UPDATE alarms SET returned = NULL, acked = NULL, acked_by = '' WHERE id = ?",
+            (alarm_id,),
+        )
+        return _get_alarm(db, alarm_id)
+
+    def ack_alarm(self, alarm_id: int, by: str = "operator") -> Alarm:
+        """Acknowledge an alarm: the operator has seen it (it stays open until cleared).
+        Already acknowledged or cleared: changes nothing."""
+        with self._write() as db:
+            alarm = _get_alarm(db, alarm_id)
+            if alarm.acked is not None or alarm.state == "cleared":
+                return alarm
+            db.execute(
+                "UPDATE alarms SET acked = ?, acked_by = ? WHERE id = ?",
+                (self._clock(), by, alarm_id),
+            )
+            return _get_alarm(db, alarm_id)
+
+    def shelve_alarm(self, alarm_id: int, seconds: float, by: str = "operator") -> Alarm:
+        """Shelve an open alarm for ``seconds`` (0 < seconds <= :data:`MAX_SHELVE`): not shown
+        as unacknowledged until then. Shelving again sets a new end."""
+        if not 0 < seconds <= MAX_SHELVE:
+            raise UsageError(
+                f"shelve for more than 0 s and at most {MAX_SHELVE / 3600:g} h, not {seconds:g} s"
+            )
+        with self._write() as db:
+            alarm = _get_alarm(db, alarm_id)
+            if alarm.state == "cleared":
+                raise UsageError(f"alarm {alarm_id} is cleared: nothing to shelve")
+            db.execute(
+                "UPDATE alarms SET shelved_until = ?, shelved_by = ? WHERE id = ?",
+                (self._clock() + seconds, by, alarm_id),
+            )
+            return _get_alarm(db, alarm_id)
+
+    def return_to_normal(self, machine: str, codes: Iterable[str]) -> list[Alarm]:
+        """The condition behind ``machine``'s open alarms with these codes is gone: mark them
+        returned to normal (they stay open until cleared). Returns the alarms it marked;
+        a look that finds nothing to mark writes nothing."""
+        codes = tuple(codes)
+        marks = ",".join("?" * len(codes))
+        query = (
+            "SELECT id FROM alarms WHERE state = 'active' AND returned IS NULL"
+            f" AND machine = ? AND code IN ({marks})"
+        )
+        if not codes or not self._read(query, (machine, *codes)):
+            return []
+        with self._write() as db:
+            ids = [r["id"] for r in db.execute(query, (machine, *codes))]
+            now = self._clock()
+            db.executemany("UPDATE alarms SET returned = ? WHERE id = ?", [(now, i) for i in ids])
+            return [_get_alarm(db, i) for i in ids]
 
     def clear_alarm(self, alarm_id: int, by: str = "operator") -> Alarm:
-        """Clear an alarm (already cleared: changes nothing)."""
+        """Clear an alarm: the operator's action that ends it (acknowledging it too, if it
+        was not). Already cleared: changes nothing."""
         with self._write() as db:
             alarm = _get_alarm(db, alarm_id)
             if alarm.state == "cleared":
                 return alarm
+            now = self._clock()
             db.execute(
-                "UPDATE alarms SET state = 'cleared', cleared = ?, cleared_by = ? WHERE id = ?",
-                (self._clock(), by, alarm_id),
+                "UPDATE alarms SET state = 'cleared', cleared = ?, cleared_by = ?,"
+                " acked = coalesce(acked, ?),"
+                " acked_by = CASE WHEN acked IS NULL THEN ? ELSE acked_by END WHERE id = ?",
+                (now, by, now, by, alarm_id),
             )
             return _get_alarm(db, alarm_id)
 
@@ -539,11 +665,41 @@ class Journal(SqliteStore):
 
     def active_alarms(self) -> list[Alarm]:
         """Alarms not cleared yet, oldest first."""
-        return [_alarm(r) for r in self._read("SELECT * FROM alarms WHERE state = 'active'")]
+        return [
+            _alarm(r) for r in self._read("SELECT * FROM alarms WHERE state = 'active' ORDER BY id")
+        ]
 
     def alarms(self) -> list[Alarm]:
         """Every alarm, oldest first."""
         return [_alarm(r) for r in self._read("SELECT * FROM alarms ORDER BY id")]
+
+    def alarm_history(
+        self,
+        *,
+        since: float | None = None,
+        machine: str | None = None,
+        priority: str | None = None,
+        limit: int = 1000,
+    ) -> list[Alarm]:
+        """Alarms raised since ``since`` (s), on ``machine``, of ``priority``; oldest first,
+        the newest ``limit`` of them."""
+        if priority is not None and priority not in PRIORITIES:
+            raise UsageError(f"priority {priority!r}: one of {', '.join(PRIORITIES)}")
+        where, args = ["1"], []  # type: list[str], list[Any]
+        if since is not None:
+            where.append("raised >= ?")
+            args.append(since)
+        if machine is not None:
+            where.append("machine = ?")
+            args.append(machine)
+        if priority is not None:
+            where.append("priority = ?")
+            args.append(priority)
+        rows = self._read(
+            f"SELECT * FROM alarms WHERE {' AND '.join(where)} ORDER BY id DESC LIMIT ?",
+            (*args, limit),
+        )
+        return [_alarm(r) for r in reversed(rows)]
 
     # -- machines ----------------------------------------------------------------------------
 
@@ -698,4 +854,10 @@ def _alarm(row: sqlite3.Row) -> Alarm:
         row["state"],
         row["cleared"],
         row["cleared_by"],
+        row["priority"],
+        row["acked"],
+        row["acked_by"],
+        row["returned"],
+        row["shelved_until"],
+        row["shelved_by"],
     )

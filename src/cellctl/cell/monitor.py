@@ -184,9 +184,12 @@ class Monitor:
             self.alarms.cause_alarm(cause)
             return
         view.show("ok", Condition.IDLE)
+        self.alarms.returned("plc", "link")
         if not inputs.get("estop_ok", True):
             self.alarms.cause_alarm(ESTOP)
             view.show("emergency stop", Condition.ALARM, LastError(ESTOP.text))
+        else:
+            self.alarms.returned("plc", "estop")
         self.plc.pallet_overdue()
 
     async def _robot(self) -> None:
@@ -212,7 +215,9 @@ class Monitor:
             cause = status_cause(robot.name, status)
             self.alarms.cause_alarm(cause)
             view.show(str(status), Condition.ALARM, LastError(cause.text))
+            self.alarms.returned(robot.name, "link")
         else:
+            self.alarms.returned(robot.name, "link", "status")
             host = robot.host_status()
             view.show(host.text, host.condition)
 
@@ -231,6 +236,7 @@ class Monitor:
                 recovery.fault(m.name, "link", cause.text, count=False, cause=cause)
             return
         view.show(status.shown, status.kind_condition)
+        self.alarms.returned(m.name, "link")
         was_ready = recovery.ready.get(m.name, False)
         ready = status.takes_work
         recovery.ready[m.name] = ready and recovery.fit.get(m.name, False)

@@ -43,6 +43,9 @@ class AlarmSink(Protocol):
     def alarm(self, machine: str, code: str, text: str) -> None:
         """Raise an alarm, unless ``machine`` has an active one with this ``code``."""
 
+    def returned(self, machine: str, *codes: str) -> None:
+        """The condition behind ``machine``'s open alarms with ``codes`` is gone."""
+
     def cause_alarm(self, cause: Cause) -> None:
         """The alarm of ``cause`` (only logged if its alarm was cleared while it was out)."""
 

@@ -22,7 +22,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from cellctl import __version__
 from cellctl import errors as errors_module
-from cellctl.cell.journal import PART_STATUSES
+from cellctl.cell.causes import PRIORITIES
+from cellctl.cell.journal import MAX_SHELVE, PART_STATUSES
 from cellctl.errors import CellctlError, DeviceError, ProtocolError, UsageError, exit_code
 from cellctl.kinds import registry
 from cellctl.mailbox import ORDER_STATES
@@ -91,6 +92,18 @@ class AlarmsParams(P):
 
 class AlarmParams(P):
     id: int = Field(ge=1, le=INT64_MAX)
+
+
+class ShelveParams(P):
+    id: int = Field(ge=1, le=INT64_MAX)
+    seconds: float = Field(gt=0, le=MAX_SHELVE, allow_inf_nan=False)
+
+
+class HistoryParams(P):
+    since: float | None = Field(default=None, ge=0, le=1e11, allow_inf_nan=False)
+    machine: str | None = Field(default=None, min_length=1, max_length=100)
+    priority: Literal[PRIORITIES] | None = None  # type: ignore[valid-type]
+    limit: int = Field(default=1000, ge=1, le=10_000)
 
 
 class PartsParams(P):
@@ -225,6 +238,28 @@ async def _clear(access: CellAccess, p: AlarmParams, progress: Progress | None) 
     return result
 
 
+async def _ack(access: CellAccess, p: AlarmParams, progress: Progress | None) -> Any:
+    result = operator.ack_alarm(_journal(access), p.id)
+    access.poke()
+    return result
+
+
+async def _shelve(access: CellAccess, p: ShelveParams, progress: Progress | None) -> Any:
+    result = operator.shelve_alarm(_journal(access), p.id, p.seconds)
+    access.poke()
+    return result
+
+
+async def _history(access: CellAccess, p: HistoryParams, progress: Progress | None) -> Any:
+    journal = access.journal()
+    if journal is None:
+        return []
+    found = journal.alarm_history(
+        since=p.since, machine=p.machine, priority=p.priority, limit=p.limit
+    )
+    return [operator.as_dict(a) for a in found]
+
+
 async def _parts(access: CellAccess, p: PartsParams, progress: Progress | None) -> Any:
     journal = access.journal()
     if journal is None:
@@ -325,7 +360,10 @@ _TABLE: list[Method] = [
     Method("orders.list", OrdersParams, _orders, "Orders with their parts' statuses.", False),
     Method("orders.cancel", IdParams, _cancel, "Cancel an order that has not started.", True),
     Method("alarms.list", AlarmsParams, _alarms, "Active alarms (all with all=true).", False),
-    Method("alarms.clear", AlarmParams, _clear, "Clear an alarm.", True),
+    Method("alarms.clear", AlarmParams, _clear, "Clear (end) an alarm.", True),
+    Method("alarms.ack", AlarmParams, _ack, "Acknowledge an alarm (it stays open).", True),
+    Method("alarms.shelve", ShelveParams, _shelve, "Shelve an alarm for seconds (<= 8 h).", True),
+    Method("alarms.history", HistoryParams, _history, "Alarms by time, machine, priority.", False),
     Method("parts.list", PartsParams, _parts, "Parts, by status or order.", False),
     Method("parts.release", ReleaseParams, _release, "Release a held part.", True),
     Method("parts.scrap", ScrapParams, _scrap, "Scrap a held or waiting part.", True),

@@ -138,6 +138,40 @@ def clear_alarm(
     }
 
 
+def ack_alarm(journal: Journal, alarm_id: int, by: str = "operator") -> dict[str, Any]:
+    """Acknowledge an alarm (it stays open until cleared); again changes nothing."""
+    before = journal.get_alarm(alarm_id)
+    if before.state == "cleared":
+        return {"alarm": as_dict(before), "message": f"alarm {alarm_id} is already cleared"}
+    if before.acked is not None:
+        return {"alarm": as_dict(before), "message": f"alarm {alarm_id} was already acknowledged"}
+    a = journal.ack_alarm(alarm_id, by=by)
+    return {
+        "alarm": as_dict(a),
+        "message": f"alarm {a.id} acknowledged ({a.machine} {a.code}: {a.text})",
+    }
+
+
+def shelve_alarm(
+    journal: Journal, alarm_id: int, seconds: float, by: str = "operator"
+) -> dict[str, Any]:
+    """Shelve an open alarm for ``seconds`` (at most 8 h): it is not shown as unacknowledged
+    until then."""
+    a = journal.shelve_alarm(alarm_id, seconds, by=by)
+    what = f"{a.machine} {a.code}: {a.text}"
+    return {
+        "alarm": as_dict(a),
+        "message": f"alarm {a.id} shelved for {_duration(seconds)} ({what})",
+    }
+
+
+def _duration(seconds: float) -> str:
+    whole = round(seconds)
+    h, rest = divmod(whole, 3600)
+    m, s = divmod(rest, 60)
+    return " ".join(f"{n}{u}" for n, u in ((h, "h"), (m, "m"), (s, "s")) if n) or f"{seconds:g}s"
+
+
 def release_part(
     journal: Journal,
     mailbox: Mailbox,

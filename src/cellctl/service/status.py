@@ -174,6 +174,18 @@ class AlarmInfo(Model):
     state: str = Field(description="active (the status lists active alarms only).")
     cleared: float | None = Field(default=None, description="When it was cleared, s.")
     cleared_by: str = Field(default="", description="Who cleared it.")
+    priority: str = Field(default="medium", description="high, medium or low (from its code).")
+    acked: float | None = Field(
+        default=None, description="When it was acknowledged, s (null: unacknowledged)."
+    )
+    acked_by: str = Field(default="", description="Who acknowledged it.")
+    returned: float | None = Field(
+        default=None,
+        description="When its condition went away (returned to normal), s; null: still seen.",
+    )
+    shelved_until: float | None = Field(
+        default=None, description="Shelved (not shown as unacknowledged) until then, s."
+    )
 
 
 class EventInfo(Model):
@@ -460,6 +472,11 @@ def _alarm(a: Alarm) -> AlarmInfo:
         state=a.state,
         cleared=a.cleared,
         cleared_by=a.cleared_by,
+        priority=a.priority,
+        acked=a.acked,
+        acked_by=a.acked_by,
+        returned=a.returned,
+        shelved_until=a.shelved_until,
     )
 
 

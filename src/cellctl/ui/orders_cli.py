@@ -12,15 +12,19 @@ code (:mod:`cellctl.service.operator`) does the work and posts the report.
 from __future__ import annotations
 
 import asyncio
+import json
+import re
+import time
 from collections.abc import Callable, Sequence
 from datetime import datetime
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import click
 from rich.table import Table
 
-from cellctl.cell.journal import LOCATIONS, PART_STATUSES
+from cellctl.cell.causes import PRIORITIES
+from cellctl.cell.journal import LOCATIONS, MAX_SHELVE, PART_STATUSES
 from cellctl.mailbox import MAILBOX_FILE, ORDER_STATES, Report, open_mailbox
 from cellctl.service.operator import short_part_id
 from cellctl.ui.calls import cell_call
@@ -187,7 +191,7 @@ def reports(ctx: click.Context, since: int, limit: int | None, follow: bool) -> 
 
 @click.group()
 def alarm() -> None:
-    """The cell's alarms: list them, clear one."""
+    """The cell's alarms: list, acknowledge, shelve, clear; their history."""
 
 
 @alarm.command("list")
@@ -203,7 +207,8 @@ def alarm_list(ctx: click.Context, show_all: bool) -> None:
     for column in ("Id", "Raised", "Machine", "Code", "Text", "State", "Cleared"):
         table.add_column(column, justify="right" if column == "Id" else "left")
     for a in found:
-        state = "[red]active[/red]" if a["state"] == "active" else a["state"]
+        state = alarm_state(a, time.time())
+        state = f"[red]{state}[/red]" if "UNACKED" in state else state
         cleared = f"{_when(a['cleared'])} by {a['cleared_by']}" if a["cleared"] else ""
         table.add_row(
             str(a["id"]), _when(a["raised"]), a["machine"], a["code"], a["text"], state, cleared
@@ -215,8 +220,114 @@ def alarm_list(ctx: click.Context, show_all: bool) -> None:
 @click.argument("alarm_id", metavar="ID", type=int)
 @click.pass_context
 def alarm_clear(ctx: click.Context, alarm_id: int) -> None:
-    """Clear alarm ID once its cause is dealt with."""
+    """Clear alarm ID once its cause is dealt with: the action that ends an alarm."""
     console.print(cell_call(ctx, "alarms.clear", {"id": alarm_id})["message"])
+
+
+@alarm.command("ack")
+@click.argument("alarm_id", metavar="ID", type=int)
+@click.pass_context
+def alarm_ack(ctx: click.Context, alarm_id: int) -> None:
+    """Acknowledge alarm ID: seen; it stays open until cleared."""
+    console.print(cell_call(ctx, "alarms.ack", {"id": alarm_id})["message"])
+
+
+@alarm.command("shelve")
+@click.argument("alarm_id", metavar="ID", type=int)
+@click.option(
+    "--for",
+    "duration",
+    required=True,
+    metavar="TIME",
+    help="How long: 30m, 2h, 1h30m, 90s (at most 8h).",
+)
+@click.pass_context
+def alarm_shelve(ctx: click.Context, alarm_id: int, duration: str) -> None:
+    """Shelve alarm ID for a time: not shown as unacknowledged until it runs out."""
+    seconds = _seconds(duration, "--for")
+    if seconds > MAX_SHELVE:
+        raise click.BadParameter(f"{duration}: at most 8h", param_hint="--for")
+    result = cell_call(ctx, "alarms.shelve", {"id": alarm_id, "seconds": seconds})
+    console.print(result["message"])
+
+
+@alarm.command("history")
+@click.option("--since", metavar="TIME", help="Raised since: 2h ago (2h, 30m) or a date/time.")
+@click.option("--machine", metavar="NAME", help="Only this machine's (cell, plc, robot, ...).")
+@click.option("--priority", type=click.Choice(PRIORITIES), help="Only this priority.")
+@click.option("--json", "as_json", is_flag=True, help="Print JSON, one list.")
+@click.pass_context
+def alarm_history(
+    ctx: click.Context, since: str | None, machine: str | None, priority: str | None, as_json: bool
+) -> None:
+    """Every alarm the journal holds, oldest first, with its states."""
+    params: dict[str, object] = {}
+    if since is not None:
+        params["since"] = _since(since)
+    if machine is not None:
+        params["machine"] = machine
+    if priority is not None:
+        params["priority"] = priority
+    found = cell_call(ctx, "alarms.history", params)
+    if as_json:
+        click.echo(json.dumps(found, indent=1))
+        return
+    if not found:
+        console.print("no alarms")
+        return
+    table = Table(title="Alarm history")
+    for column in ("Id", "Raised", "Pri", "Machine", "Code", "Text", "State"):
+        table.add_column(column, justify="right" if column == "Id" else "left")
+    for a in found:
+        table.add_row(
+            str(a["id"]),
+            _when(a["raised"]),
+            a["priority"],
+            a["machine"],
+            a["code"],
+            a["text"],
+            alarm_state(a, time.time()),
+        )
+    console.print(table)
+
+
+def alarm_state(a: dict[str, Any], now: float) -> str:
+    """An alarm's states in a control room's words: cleared, or unacknowledged/acknowledged,
+    active/returned to normal, shelved."""
+    if a["state"] == "cleared":
+        return f"cleared {_when(a['cleared'])} by {a['cleared_by']}"
+    words = ["acked" if a["acked"] is not None else "UNACKED"]
+    words.append("active" if a["returned"] is None else "returned")
+    if a["shelved_until"] is not None and a["shelved_until"] > now:
+        words.append(f"shelved until {_when(a['shelved_until'])}")
+    return ", ".join(words)
+
+
+_UNITS = {"h": 3600.0, "m": 60.0, "s": 1.0}
+
+
+def _seconds(text: str, option: str) -> float:
+    """``30m``, ``2h``, ``1h30m``, ``90s``, ``45`` (seconds) as seconds; refused otherwise."""
+    parts = re.fullmatch(r"(?:(\d+)h)?(?:(\d+)m)?(?:(\d+)s?)?", text.strip())
+    if not text.strip() or parts is None:
+        raise click.BadParameter(f"{text!r}: say 30m, 2h, 1h30m or 90s", param_hint=option)
+    h, m, s = (int(g) if g else 0 for g in parts.groups())
+    seconds = h * 3600.0 + m * 60.0 + s
+    if seconds <= 0:
+        raise click.BadParameter(f"{text!r}: more than 0 s", param_hint=option)
+    return seconds
+
+
+def _since(text: str) -> float:
+    """``2h`` (ago) or an ISO date/time, as s since the epoch."""
+    if re.fullmatch(r"\s*\d+[hms](\d+[hms])*\s*", text):
+        return time.time() - _seconds(text, "--since")
+    try:
+        return datetime.fromisoformat(text.strip()).timestamp()
+    except ValueError:
+        raise click.BadParameter(
+            f"{text!r}: say 2h (ago) or a date/time like 2026-11-25T08:00", param_hint="--since"
+        ) from None
 
 
 # -- parts ----------------------------------------------------------------------------------------

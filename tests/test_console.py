@@ -341,10 +341,21 @@ async def test_attached_cell_menu(rig: CellRig, attached: CellClient) -> None:
         rig.cell.plc.set_fault("estop", None)
         alarm = (await rig.wait_for(lambda: rig.alarms("plc", "estop"), "estop alarm"))[0]
         rig.cell.plc.clear_fault("estop")
-        await wait_text(pilot, "ALARMS 1 open", "plc estop")
+        await wait_text(pilot, "ALARMS 1 open, 1 UNACKED", "plc estop")
+        # Acknowledged first: it stays open, no longer flagged unacknowledged.
         await pilot.press("4")
-        await wait_text(pilot, f"{alarm.id} plc estop")
+        await wait_text(pilot, f"{alarm.id} plc estop", "UNACKED")
         await pilot.press("enter")
+        await wait_text(pilot, "1. ACKNOWLEDGE", "3. CLEAR")
+        await pilot.press("enter")
+        await wait_text(pilot, f"alarm {alarm.id} acknowledged")
+        await rig.wait_for(lambda: rig.journal.get_alarm(alarm.id).acked is not None, "acked")
+        assert rig.journal.get_alarm(alarm.id).state == "active"
+        await pilot.press("4")
+        await wait_text(pilot, f"{alarm.id} plc estop", "acked")
+        await pilot.press("enter")
+        await wait_text(pilot, "3. CLEAR")
+        await pilot.press("down", "down", "enter")
         await pilot.press("y")
         await wait_text(pilot, f"alarm {alarm.id} cleared", "ALARMS 0 open")
         assert not rig.alarms()

@@ -293,15 +293,30 @@ async def test_an_order_from_the_form(dash: Dash) -> None:
     assert (await dash.api("orders.list"))[0]["state"] == "cancelled"
 
 
-async def test_an_alarm_is_cleared_from_the_page(dash: Dash) -> None:
+async def test_an_alarm_is_acknowledged_then_cleared_from_the_page(dash: Dash) -> None:
     await live(dash)
     rig = dash.rig
+    page = dash.page
     rig.cell.plc.set_fault("estop", None)
-    row = dash.page.locator("#alarm-table tbody tr[data-alarm]", has_text="emergency stop")
+    row = page.locator("#alarm-table tbody tr[data-alarm]", has_text="emergency stop")
     await row.wait_for(timeout=5_000)
+    # Unacknowledged: the row is marked and the header's badge flashes until Ack.
+    badge = page.locator("#alarm-badge.flashing")
+    await badge.wait_for(timeout=5_000)
+    assert "1 unacknowledged" in await badge.inner_text()
+    assert "unacked" in (await row.get_attribute("class") or "")
+    assert "high" in await row.inner_text()
     await dash.shot("alarms", "#attention")
     rig.cell.plc.clear_fault("estop")
+    # The monitor sees the PLC well again: returned to normal, still unacknowledged.
+    await row.locator(".alarm-state", has_text="returned to normal").wait_for(timeout=5_000)
+    assert await page.locator("#alarm-badge.flashing").count() == 1
     alarm_id = int(await row.get_attribute("data-alarm") or 0)
+    await row.locator("button", has_text="Ack").click()  # no confirmation: it only marks seen
+    await page.locator("#alarm-badge.hidden").wait_for(state="attached", timeout=5_000)
+    await row.locator(".alarm-state", has_text="acknowledged, returned").wait_for(timeout=5_000)
+    [acked] = [a for a in await dash.api("alarms.list") if a["id"] == alarm_id]
+    assert acked["acked"] is not None and acked["state"] == "active"  # acked is not cleared
     await row.locator("button", has_text="Clear").click()
     await dash.confirm()
     await dash.page.locator(f'#alarm-table tr[data-alarm="{alarm_id}"]').wait_for(

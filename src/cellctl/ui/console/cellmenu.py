@@ -1,5 +1,5 @@
-"""The console's CELL menu: orders (list, submit, cancel), alarms (list, clear), held parts
-(release, release with redo, scrap), pause/resume and the emergency stop.
+"""The console's CELL menu: orders (list, submit, cancel), alarms (list, acknowledge, shelve,
+clear), held parts (release, release with redo, scrap), pause/resume and the emergency stop.
 
 Orders, alarms and parts work in both modes (on the cell's files when no controller runs);
 pause, resume and the emergency stop need the controller and are shown as unavailable
@@ -8,6 +8,7 @@ without one.
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
@@ -159,16 +160,34 @@ class CellActions:
         if not found:
             self.app.say(["no open alarm"])
             return
-        rows = [(str(a["id"]), f"{a['id']} {a['machine']} {a['code']}: {a['text']}") for a in found]
+        now = time.time()
+        rows = [(str(a["id"]), f"{a['id']} {alarm_line(a, now)}") for a in found]
         picked = await self.app.ask(
-            PickDialog("ALARMS", rows, "Enter on an alarm offers to clear it")
+            PickDialog("ALARMS", rows, "Enter on an alarm offers to acknowledge, shelve, clear it")
         )
         if picked is None:
             return
-        if not await self.app.confirm(f"Clear alarm {picked}? (its cause is dealt with)"):
-            self.app.say([f"alarm {picked} not cleared"])
+        what = await self.app.ask(
+            PickDialog(
+                f"ALARM {picked}",
+                [
+                    ("ack", "1. ACKNOWLEDGE (seen; it stays open)"),
+                    ("shelve", "2. SHELVE FOR 1 HOUR"),
+                    ("clear", "3. CLEAR (its cause is dealt with)"),
+                ],
+            )
+        )
+        if what == "ack":
+            result = await self.app.call("alarms.ack", {"id": int(picked)})
+        elif what == "shelve":
+            result = await self.app.call("alarms.shelve", {"id": int(picked), "seconds": 3600})
+        elif what == "clear":
+            if not await self.app.confirm(f"Clear alarm {picked}? (its cause is dealt with)"):
+                self.app.say([f"alarm {picked} not cleared"])
+                return
+            result = await self.app.call("alarms.clear", {"id": int(picked)})
+        else:
             return
-        result = await self.app.call("alarms.clear", {"id": int(picked)})
         self.app.say([result["message"]], "green")
 
     async def held_parts(self) -> None:
@@ -221,6 +240,17 @@ class CellActions:
             return
         result = await self.app.call("cell.estop", {"reason": "operator console"})
         self.app.say([result["message"]], "red")
+
+
+def alarm_line(a: dict[str, Any], now: float) -> str:
+    """An open alarm in one line: priority, machine, code, text, and UNACKED/acked,
+    RTN (returned to normal), SHELVED."""
+    marks = ["UNACKED" if a.get("acked") is None else "acked"]
+    if a.get("returned") is not None:
+        marks.append("RTN")
+    if (a.get("shelved_until") or 0) > now:
+        marks.append("SHELVED")
+    return f"{a['machine']} {a['code']}: {a['text']} [{a.get('priority', '')} {' '.join(marks)}]"
 
 
 def order_line(order: dict[str, Any]) -> str:

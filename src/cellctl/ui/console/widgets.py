@@ -8,6 +8,7 @@ JSON any API client gets) by field: a machine's condition, never a search of its
 from __future__ import annotations
 
 import datetime as dt
+import time
 from typing import Any
 
 from rich.text import Text
@@ -16,7 +17,7 @@ from textual.containers import Vertical
 from textual.widgets import ProgressBar, Static
 
 from cellctl.kinds import Condition
-from cellctl.service.status import CellMode, CellStatus, ProgressInfo, StepInfo
+from cellctl.service.status import AlarmInfo, CellMode, CellStatus, ProgressInfo, StepInfo
 
 #: Characters of a progress bar drawn on the board.
 BAR_WIDTH = 12
@@ -27,6 +28,12 @@ def text_bar(done: float, total: float, width: int = BAR_WIDTH) -> str:
     fraction = min(max(done / total, 0.0), 1.0) if total > 0 else 0.0
     filled = round(fraction * width)
     return "█" * filled + "░" * (width - filled) + f" {fraction * 100:3.0f}%"
+
+
+def _unacked(a: AlarmInfo, now: float) -> bool:
+    """Open, unacknowledged and not shelved: shown until the operator acknowledges it."""
+    shelved = a.shelved_until is not None and a.shelved_until > now
+    return a.state == "active" and a.acked is None and not shelved
 
 
 def _clip(text: str, width: int) -> str:
@@ -91,10 +98,14 @@ def board_text(snapshot: dict[str, Any] | CellStatus, width: int = 48, height: i
         elif m.condition is Condition.OUT_OF_SERVICE and m.out_reason:
             out.append(_clip(f"       {m.out_reason}", width) + "\n", style="yellow")
     alarms = status.alarms
-    out.append(f"ALARMS {len(alarms)} open\n", style="bold red" if alarms else "bold")
+    now = time.time()
+    unacked = [a for a in alarms if _unacked(a, now)]
+    head = f"ALARMS {len(alarms)} open" + (f", {len(unacked)} UNACKED" if unacked else "")
+    out.append(head + "\n", style="bold white on red" if unacked else "bold")
     for a in alarms[-3:]:
-        line = f" {a.id} {a.machine} {a.code}: {a.text}"
-        out.append(_clip(line, width) + "\n", style="red")
+        mark = "!" if _unacked(a, now) else " "
+        line = f"{mark}{a.id} {a.machine} {a.code}: {a.text}"
+        out.append(_clip(line, width) + "\n", style="bold red" if mark == "!" else "red")
     orders = status.orders
     open_orders = [o for o in orders if o.state not in ("done", "cancelled", "failed")]
     out.append(f"ORDERS {len(open_orders)} open\n", style="bold")

@@ -137,8 +137,10 @@ export function confirmAction(text) {
 }
 
 // An action from a button: confirmed, called, its answer (or the refusal) shown in `where`.
+// question: what to confirm first; null acts at once (an acknowledgement changes nothing
+// but the alarm's "seen" mark).
 export async function act(question, method, params, where) {
-  if (!(await confirmAction(question))) {
+  if (question !== null && !(await confirmAction(question))) {
     return;
   }
   const out = byId(where);

@@ -204,17 +204,80 @@ export function renderOrders(snap) {
 
 // -- alarms and held parts ------------------------------------------------------------------
 
-export function renderAlarms(snap) {
-  const rows = snap.alarms.map((a) => h("tr", { "data-alarm": a.id },
-    h("td", {}, a.id), h("td", {}, clock(a.raised)), h("td", {}, a.machine),
-    h("td", {}, a.text),
-    h("td", {}, h("button", {
-      class: "small-button",
-      onclick: () => act(`Clear alarm ${a.id} (${a.machine}: ${a.text})?`,
-        "alarms.clear", { id: a.id }, "alarm-message"),
-    }, "Clear"))));
-  replaceRows("alarm-table", rows, "no active alarm", 5);
+// An alarm is shown unacknowledged (flashing, in the header's badge) until the operator
+// acknowledges it, unless it is shelved and its time has not run out (docs/dashboard.md).
+let lastAlarms = null;
+const heard = new Set();   // unacknowledged alarms the sound already rang for
+
+export function unacked(a, now = Date.now() / 1000) {
+  return a.state === "active" && a.acked === null && !(a.shelved_until && a.shelved_until > now);
 }
+
+function alarmState(a, now) {
+  const words = [a.acked === null ? "unacknowledged" : "acknowledged"];
+  words.push(a.returned === null ? "active" : "returned to normal");
+  if (a.shelved_until && a.shelved_until > now) {
+    words.push(`shelved until ${clock(a.shelved_until)}`);
+  }
+  return words.join(", ");
+}
+
+function beep() {
+  try {
+    const audio = new AudioContext();
+    const tone = audio.createOscillator();
+    tone.frequency.value = 880;
+    tone.connect(audio.destination);
+    tone.start();
+    tone.stop(audio.currentTime + 0.3);
+  } catch (e) {
+    // no audio output: the badge still flashes
+  }
+}
+
+export function renderAlarms(snap) {
+  lastAlarms = snap.alarms;
+  const now = Date.now() / 1000;
+  const open = snap.alarms.filter((a) => unacked(a, now));
+  const badge = byId("alarm-badge");
+  badge.textContent = open.length ? `${open.length} unacknowledged` : "";
+  badge.classList.toggle("hidden", !open.length);
+  badge.classList.toggle("flashing", open.length > 0);
+  const fresh = open.filter((a) => !heard.has(a.id));
+  fresh.forEach((a) => heard.add(a.id));
+  if (fresh.length && byId("alarm-sound").checked) {
+    beep();
+  }
+  const rows = snap.alarms.map((a) => h("tr", {
+    "data-alarm": a.id,
+    class: `priority-${a.priority}` + (unacked(a, now) ? " unacked" : ""),
+  },
+    h("td", {}, a.id), h("td", {}, clock(a.raised)), h("td", {}, a.priority),
+    h("td", {}, a.machine), h("td", {}, a.text), h("td", { class: "alarm-state" }, alarmState(a, now)),
+    h("td", { class: "actions" },
+      a.acked === null ? h("button", {
+        class: "small-button",
+        onclick: () => act(null, "alarms.ack", { id: a.id }, "alarm-message"),
+      }, "Ack") : null,
+      h("button", {
+        class: "small-button",
+        onclick: () => act(`Shelve alarm ${a.id} (${a.machine}: ${a.text}) for 1 h?`,
+          "alarms.shelve", { id: a.id, seconds: 3600 }, "alarm-message"),
+      }, "Shelve 1 h"),
+      h("button", {
+        class: "small-button",
+        onclick: () => act(`Clear alarm ${a.id} (${a.machine}: ${a.text})?`,
+          "alarms.clear", { id: a.id }, "alarm-message"),
+      }, "Clear"))));
+  replaceRows("alarm-table", rows, "no active alarm", 7);
+}
+
+// A shelved alarm comes back when its time runs out, with no update from the server.
+setInterval(() => {
+  if (lastAlarms !== null) {
+    renderAlarms({ alarms: lastAlarms });
+  }
+}, 5000);
 
 export function renderHeld(snap) {
   const held = snap.parts.filter((p) => p.status === "held");

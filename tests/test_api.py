@@ -7,6 +7,7 @@ import asyncio
 import json
 import os
 import stat
+import subprocess
 import urllib.error
 import urllib.request
 from collections.abc import AsyncIterator
@@ -28,7 +29,7 @@ from cellctl.service.server import ApiServer
 from cellctl.service.status import CellStatus, StepKind, apply_update_json
 from cellctl.testing.rig import CellRig
 from cellctl.ui.console.session import cell_refs
-from tests.conftest import free_port
+from tests.conftest import CELLCTL, free_port
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
@@ -137,6 +138,65 @@ async def test_alarms_list_and_clear(api: Api) -> None:
     assert alarm[0].id in [a["id"] for a in await api.call("alarms.list", {"all": True})]
     with pytest.raises(UsageError):
         await api.call("alarms.clear", {"id": 9999})
+
+
+async def test_alarms_ack_shelve_history_and_a_wrong_token_acks_nothing(api: Api) -> None:
+    rig = api.rig
+    rig.cell.plc.set_fault("estop", None)
+    [alarm] = await rig.wait_for(lambda: rig.alarms("plc", "estop"), "estop alarm")
+    [listed] = [a for a in await api.call("alarms.list") if a["id"] == alarm.id]
+    assert (listed["priority"], listed["acked"], listed["returned"]) == ("high", None, None)
+    # The fault goes away: the monitor marks the alarm returned to normal; it stays open.
+    rig.cell.plc.clear_fault("estop")
+    await rig.wait_for(lambda: rig.journal.get_alarm(alarm.id).returned is not None, "RTN")
+    # A wrong token does not reach the method table at all.
+    with pytest.raises(InvalidStatus):
+        async with connect(
+            f"ws://127.0.0.1:{api.port}/websocket",
+            additional_headers={"Authorization": "Bearer wrong"},
+        ):
+            pass
+    assert rig.journal.get_alarm(alarm.id).acked is None
+    acked = await api.call("alarms.ack", {"id": alarm.id})
+    assert f"alarm {alarm.id} acknowledged" in acked["message"]
+    assert acked["alarm"]["acked"] is not None and acked["alarm"]["state"] == "active"
+    again = await api.call("alarms.ack", {"id": alarm.id})
+    assert "already acknowledged" in again["message"]
+
+    # The same from the shell, through the running controller's socket.
+    def cli(*args: str) -> subprocess.CompletedProcess[str]:
+        command = [*CELLCTL, "--cell", str(api.directory), "alarm", *args]
+        return subprocess.run(command, capture_output=True, text=True, timeout=60)
+
+    shell = await asyncio.to_thread(cli, "ack", str(alarm.id))
+    assert shell.returncode == 0 and "already acknowledged" in shell.stdout, shell.stderr
+    listed_cli = await asyncio.to_thread(cli, "list")
+    words = listed_cli.stdout.split()
+    assert "acked," in words and "returned" in words and "UNACKED" not in listed_cli.stdout
+    refused = await asyncio.to_thread(cli, "shelve", str(alarm.id), "--for", "9h")
+    assert refused.returncode == 2 and "at most 8h" in refused.stderr
+    shelved_cli = await asyncio.to_thread(cli, "shelve", str(alarm.id), "--for", "1h30m")
+    assert f"alarm {alarm.id} shelved for 1h 30m" in shelved_cli.stdout, shelved_cli.stderr
+    shelved = await api.call("alarms.shelve", {"id": alarm.id, "seconds": 1800})
+    assert "shelved for 30m" in shelved["message"] and shelved["alarm"]["shelved_until"]
+    for bad in ({"id": alarm.id, "seconds": 8 * 3600 + 1}, {"id": alarm.id, "seconds": 0}):
+        with pytest.raises(UsageError, match="seconds"):
+            await api.call("alarms.shelve", bad)
+    with pytest.raises(UsageError, match="priority"):
+        await api.call("alarms.history", {"priority": "urgent"})
+    await api.call("alarms.clear", {"id": alarm.id})
+    history = await api.call("alarms.history", {"machine": "plc", "priority": "high"})
+    assert [a["id"] for a in history] == [alarm.id] and history[0]["state"] == "cleared"
+    assert await api.call("alarms.history", {"machine": "cnc1"}) == []
+    assert await api.call("alarms.history", {"since": alarm.raised + 3600}) == []
+    history_cli = await asyncio.to_thread(
+        cli, "history", "--machine", "plc", "--priority", "high", "--since", "1h", "--json"
+    )
+    assert [a["id"] for a in json.loads(history_cli.stdout)] == [alarm.id], history_cli.stderr
+    table = await asyncio.to_thread(cli, "history", "--priority", "low")
+    assert table.returncode == 0 and "no alarms" in table.stdout
+    bad = await asyncio.to_thread(cli, "history", "--since", "yesterday")
+    assert bad.returncode == 2 and "--since" in bad.stderr
 
 
 async def test_parts_release_and_scrap(api: Api) -> None:

@@ -312,6 +312,12 @@ async def test_an_alarm_is_acknowledged_then_cleared_from_the_page(dash: Dash) -
     await row.locator(".alarm-state", has_text="returned to normal").wait_for(timeout=5_000)
     assert await page.locator("#alarm-badge.flashing").count() == 1
     alarm_id = int(await row.get_attribute("data-alarm") or 0)
+    # A wrong token cannot acknowledge it.
+    call = {"method": "alarms.ack", "params": {"id": alarm_id}}
+    status, _ = await http(dash.base + "/dashboard/call", token="wrong", body=call)
+    assert status == 401
+    [still] = [a for a in await dash.api("alarms.list") if a["id"] == alarm_id]
+    assert still["acked"] is None
     await row.locator("button", has_text="Ack").click()  # no confirmation: it only marks seen
     await page.locator("#alarm-badge.hidden").wait_for(state="attached", timeout=5_000)
     await row.locator(".alarm-state", has_text="acknowledged, returned").wait_for(timeout=5_000)

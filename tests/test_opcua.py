@@ -249,7 +249,21 @@ async def _scenario(rig: CellRig, url: str, cert: tuple[str, str], run: asyncio.
             _async(lambda: next((e for e in seen.events if e.Code == "estop" and e.Active), None)),
             "the emergency stop as an event",
         )
+        assert (event.Priority, event.Acked, event.Severity) == ("high", False, 900)
         rig.cell.plc.clear_fault("estop")
+        # AcknowledgeAlarm marks it seen (an event says so); it stays open until cleared.
+        ack = await cell_node.get_child(f"{idx}:AcknowledgeAlarm")
+        said = await cell_node.call_method(ack, ua.Variant(event.AlarmId, ua.VariantType.UInt32))
+        assert f"alarm {event.AlarmId} acknowledged" in said
+        await until(
+            _async(lambda: any(e.AlarmId == event.AlarmId and e.Acked for e in seen.events)),
+            "the alarm's acknowledged event",
+        )
+        acked = await cell_node.get_child(
+            [f"{idx}:Alarms", f"{idx}:{event.AlarmId}", f"{idx}:Acked"]
+        )
+        await until(lambda: _equals(acked, True), "Cell/Alarms/<id>/Acked true")
+        assert rig.journal.get_alarm(event.AlarmId).state == "active"
         message = await cell_node.call_method(
             clear, ua.Variant(event.AlarmId, ua.VariantType.UInt32)
         )

@@ -63,6 +63,8 @@ REFRESH_GAP = 0.02
 #: The values are refreshed at least this often, told of a change or not.
 REFRESH_TICK = 1.0
 #: Severity of an alarm's events (OPC UA: 1 to 1000).
+#: An open alarm's by its priority (ISA-18.2's high, medium, low).
+SEVERITY = {"high": 900, "medium": 500, "low": 200}
 RAISED_SEVERITY = 700
 CLEARED_SEVERITY = 100
 
@@ -151,7 +153,7 @@ class OpcuaServer:
             name: status.machines[name].kind if name in status.machines else ""
             for name in self.access.machines()
         }
-        await space.build(self.name, machines, self.submit_order, self.clear_alarm)
+        await space.build(self.name, machines, self.submit_order, self.clear_alarm, self.ack_alarm)
         assert space.alarm_event_type is not None
         assert space.cell_messages is not None
         sources = {**space.messages, "": space.cell_messages}
@@ -240,17 +242,20 @@ class OpcuaServer:
         await self._alarm_events(status.alarms)
 
     async def _alarm_events(self, alarms: list[AlarmInfo]) -> None:
-        """An event per alarm raised, and per alarm cleared, from its machine's Messages."""
+        """An event per alarm raised, acknowledged and cleared, from its machine's Messages."""
         now = {a.id: a for a in alarms}
         for alarm_id, alarm in now.items():
-            if alarm_id not in self._alarms:
+            before = self._alarms.get(alarm_id)
+            if before is None:
                 await self._emit(alarm, True)
+            elif before.acked is None and alarm.acked is not None:
+                await self._emit(alarm, True, "acknowledged: ")
         for alarm_id, alarm in self._alarms.items():
             if alarm_id not in now:
                 await self._emit(alarm, False)
         self._alarms = now
 
-    async def _emit(self, alarm: AlarmInfo, active: bool) -> None:
+    async def _emit(self, alarm: AlarmInfo, active: bool, word: str = "") -> None:
         machine = alarm.machine
         generator = self._events.get(machine) or self._events[""]
         event = generator.event
@@ -258,8 +263,12 @@ class OpcuaServer:
         event.Machine = machine
         event.Code = alarm.code
         event.Active = active
-        event.Severity = RAISED_SEVERITY if active else CLEARED_SEVERITY
-        word = "" if active else "cleared: "
+        event.Priority = alarm.priority
+        event.Acked = alarm.acked is not None or not active
+        event.Severity = (
+            SEVERITY.get(alarm.priority, RAISED_SEVERITY) if active else CLEARED_SEVERITY
+        )
+        word = word if active else "cleared: "
         await generator.trigger(message=f"{word}alarm {alarm.id} {machine}: {alarm.text}")
         # The same event from the cell and the Server object, for clients that watch those.
         assert self._server is not None and self._space is not None and self._space.cell
@@ -286,13 +295,22 @@ class OpcuaServer:
         self._log(f"OPC UA: {result['message']}")
         return [ua.Variant(str(result["order"]["id"]), ua.VariantType.String)]
 
+    async def ack_alarm(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        """The method AcknowledgeAlarm(AlarmId) → Message (``alarms.ack``)."""
+        return await self._alarm_call("alarms.ack", parent, args)
+
     async def clear_alarm(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
         """The method ClearAlarm(AlarmId) → Message (``alarms.clear``)."""
+        return await self._alarm_call("alarms.clear", parent, args)
+
+    async def _alarm_call(
+        self, method: str, parent: ua.NodeId, args: tuple[ua.Variant, ...]
+    ) -> Any:
         refused = self._check(parent, args, CLEAR_ALARM_ARGUMENTS, required=1)
         if refused is not None:
             return refused
         try:
-            result = await self.dispatcher.call("alarms.clear", {"id": args[0].Value})
+            result = await self.dispatcher.call(method, {"id": args[0].Value})
         except Exception as e:
             return _error(e, len(args))
         self._log(f"OPC UA: {result['message']}")

@@ -82,6 +82,9 @@ ALARM_VARIABLES: list[tuple[str, str, ua.VariantType]] = [
     ("Code", "code", V.String),
     ("Text", "text", V.String),
     ("Raised", "raised", V.DateTime),
+    ("Priority", "priority", V.String),
+    ("Acked", "acked_flag", V.Boolean),
+    ("ReturnedToNormal", "returned_flag", V.Boolean),
 ]
 ENUMS = {
     "MachineCondition": MACHINE_CONDITIONS,
@@ -97,6 +100,8 @@ ALARM_EVENT_FIELDS = [
     ("Machine", V.String),
     ("Code", V.String),
     ("Active", V.Boolean),
+    ("Priority", V.String),
+    ("Acked", V.Boolean),
 ]
 Method = Callable[..., Awaitable[Any]]
 #: The methods' input arguments: name, type, description (the server checks calls by these).
@@ -140,7 +145,12 @@ class CellSpace:
         return ua.NodeId(ua.String(path), ua.Int16(self.idx))
 
     async def build(
-        self, cell_name: str, machines: dict[str, str], submit: Method, clear: Method
+        self,
+        cell_name: str,
+        machines: dict[str, str],
+        submit: Method,
+        clear: Method,
+        ack: Method | None = None,
     ) -> None:
         """The tree: ``Machines/<name>/...`` per machine, ``Cell`` with its orders, alarms
         and the two methods."""
@@ -183,6 +193,14 @@ class CellSpace:
             [_argument(*a) for a in CLEAR_ALARM_ARGUMENTS],
             [_argument("Message", V.String, "what was done")],
         )
+        if ack is not None:
+            await cell.add_method(
+                self.node_id("Cell/AcknowledgeAlarm"),
+                ua.QualifiedName("AcknowledgeAlarm", idx),
+                ack,
+                [_argument(*a) for a in CLEAR_ALARM_ARGUMENTS],
+                [_argument("Message", V.String, "what was done")],
+            )
         # Events: each Messages object, the cell and the Server object (where a generic
         # client looks) all notify; the notifier references let a client find them.
         await cell.set_event_notifier([ua.EventNotifier.SubscribeToEvents])
@@ -274,17 +292,26 @@ class CellSpace:
         )
 
     async def show_alarms(self, alarms: list[AlarmInfo]) -> None:
-        """``Cell/Alarms/<id>``: the active alarms."""
+        """``Cell/Alarms/<id>``: the open alarms, with their priority, acknowledged and
+        returned-to-normal flags kept current."""
         wanted = {a.id: a.model_dump() for a in alarms}
         for alarm_id in [i for i in self._alarms if i not in wanted]:
             await self._remove(f"Cell/Alarms/{alarm_id}", self._alarms.pop(alarm_id))
         for alarm_id, alarm in wanted.items():
+            base = f"Cell/Alarms/{alarm_id}"
+            row = {
+                **alarm,
+                "raised": _utc(float(alarm.get("raised", 0.0))),
+                "acked_flag": alarm.get("acked") is not None,
+                "returned_flag": alarm.get("returned") is not None,
+            }
             if alarm_id not in self._alarms:
-                base = f"Cell/Alarms/{alarm_id}"
-                row = {**alarm, "raised": _utc(float(alarm.get("raised", 0.0)))}
                 self._alarms[alarm_id] = await self._record(
                     "Cell/Alarms", base, str(alarm_id), ALARM_VARIABLES, row
                 )
+            for var in ("Acked", "ReturnedToNormal"):
+                field = next(f for v, f, _ in ALARM_VARIABLES if v == var)
+                await self.write_path(f"{base}/{var}", row[field])
         await self.write_path("Cell/ActiveAlarms", len(wanted))
 
     async def _record(

@@ -8,6 +8,7 @@ import sqlite3
 import tempfile
 from pathlib import Path
 
+import click
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -15,6 +16,7 @@ from hypothesis import strategies as st
 from cellctl.cell.causes import ALARM_PRIORITY, PRIORITIES, priority_of
 from cellctl.cell.journal import MAX_SHELVE, Alarm, Journal
 from cellctl.errors import UsageError
+from cellctl.ui.orders_cli import _seconds, _since
 
 
 class Clock:
@@ -187,3 +189,27 @@ def check(a: Alarm, before: Alarm | None, now: float) -> None:
         assert a.acked is not None and a.cleared is not None and not a.unacked(now)
     if a.acked is None and a.state == "active":
         assert a.unacked(now) == (not a.shelved(now))
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.text(max_size=30))
+def test_a_shelving_time_is_seconds_or_a_clear_refusal(text: str) -> None:
+    """``alarm shelve --for`` and ``history --since`` take anything typed: a positive number
+    of seconds, or click's usage error naming the option -- never another exception."""
+    for parse, option in ((lambda t: _seconds(t, "--for"), "--for"), (_since, "--since")):
+        try:
+            value = parse(text)
+        except click.BadParameter as e:
+            assert e.param_hint == option
+        else:
+            assert value == value and (option == "--since" or value > 0)  # not NaN
+
+
+def test_shelving_times_read_as_an_operator_writes_them() -> None:
+    assert [_seconds(t, "--for") for t in ("30m", "2h", "1h30m", "90s", "45")] == [
+        1800,
+        7200,
+        5400,
+        90,
+        45,
+    ]

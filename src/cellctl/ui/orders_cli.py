@@ -324,7 +324,7 @@ def _since(text: str) -> float:
         return time.time() - _seconds(text, "--since")
     try:
         return datetime.fromisoformat(text.strip()).timestamp()
-    except ValueError:
+    except (ValueError, OverflowError, OSError):
         raise click.BadParameter(
             f"{text!r}: say 2h (ago) or a date/time like 2026-11-25T08:00", param_hint="--since"
         ) from None

@@ -244,17 +244,43 @@ async def _scenario(rig: CellRig, url: str, cert: tuple[str, str], run: asyncio.
         # An alarm comes as an event; ClearAlarm clears it.
         alarm_type = await alice.nodes.base_event_type.get_child(f"{idx}:CellAlarmEventType")
         await subscription.subscribe_events(alice.nodes.server, alarm_type)
+        conditions = Seen()
+        condition_sub = await alice.create_subscription(20, conditions)
+        await condition_sub.subscribe_events(alice.nodes.server, ua.ObjectIds.AlarmConditionType)
         rig.cell.plc.set_fault("estop")
         event = await until(
             _async(lambda: next((e for e in seen.events if e.Code == "estop" and e.Active), None)),
             "the emergency stop as an event",
         )
         assert (event.Priority, event.Acked, event.Severity) == ("high", False, 900)
+        # The same alarm as an AlarmConditionType condition: active, unacknowledged, retained.
+        condition = await until(
+            _async(
+                lambda: next(
+                    (e for e in conditions.events if "emergency stop" in e.Message.Text), None
+                )
+            ),
+            "the emergency stop as a condition",
+        )
+
+        assert condition.Retain and condition.Severity == 900
+        assert getattr(condition, "ActiveState/Id") and not getattr(condition, "AckedState/Id")
         rig.cell.plc.clear_fault("estop")
-        # AcknowledgeAlarm marks it seen (an event says so); it stays open until cleared.
+        # Acknowledge (Part 9) on the condition marks it seen (an event says so); it stays
+        # open until cleared. The cell's own AcknowledgeAlarm then has nothing left to do.
+        alarm_node = await cell_node.get_child([f"{idx}:Alarms", f"{idx}:{event.AlarmId}"])
+        await alarm_node.call_method(
+            ua.NodeId(ua.ObjectIds.AcknowledgeableConditionType_Acknowledge),
+            ua.Variant(condition.EventId, ua.VariantType.ByteString),
+            ua.LocalizedText("seen"),
+        )
+        await until(
+            _async(lambda: any(getattr(e, "AckedState/Id") for e in conditions.events)),
+            "the condition acknowledged, as an event",
+        )
         ack = await cell_node.get_child(f"{idx}:AcknowledgeAlarm")
         said = await cell_node.call_method(ack, ua.Variant(event.AlarmId, ua.VariantType.UInt32))
-        assert f"alarm {event.AlarmId} acknowledged" in said
+        assert f"alarm {event.AlarmId} was already acknowledged" in said
         await until(
             _async(lambda: any(e.AlarmId == event.AlarmId and e.Acked for e in seen.events)),
             "the alarm's acknowledged event",
@@ -271,6 +297,9 @@ async def _scenario(rig: CellRig, url: str, cert: tuple[str, str], run: asyncio.
         await until(
             _async(lambda: any(e.AlarmId == event.AlarmId and not e.Active for e in seen.events)),
             "the alarm's cleared event",
+        )
+        await until(
+            _async(lambda: not conditions.events[-1].Retain), "the condition no longer retained"
         )
 
     async with session(url, cell, cert) as anonymous:  # no user: read-only

@@ -38,6 +38,12 @@ from asyncua.ua.status_codes import StatusCodes
 from cellctl.cell.config import OpcuaTable
 from cellctl.errors import CellctlError, DeviceError, UsageError
 from cellctl.factory.opcua.certs import ensure_certificate, thumbprint
+from cellctl.factory.opcua.conditions import (
+    CLEARED_SEVERITY,
+    SEVERITY,
+    AlarmConditions,
+    bind_condition_methods,
+)
 from cellctl.factory.opcua.figures import StepBook, machine_values
 from cellctl.factory.opcua.space import (
     CLEAR_ALARM_ARGUMENTS,
@@ -63,10 +69,7 @@ REFRESH_GAP = 0.02
 #: The values are refreshed at least this often, told of a change or not.
 REFRESH_TICK = 1.0
 #: Severity of an alarm's events (OPC UA: 1 to 1000).
-#: An open alarm's by its priority (ISA-18.2's high, medium, low).
-SEVERITY = {"high": 900, "medium": 500, "low": 200}
 RAISED_SEVERITY = 700
-CLEARED_SEVERITY = 100
 
 
 def parse_endpoint(url: str, allow_remote: bool) -> tuple[str, int]:
@@ -110,6 +113,7 @@ class OpcuaServer:
         self._space: CellSpace | None = None
         self._steps = StepBook()
         self._alarms: dict[int, AlarmInfo] = {}
+        self._conditions: AlarmConditions | None = None
         self._events: dict[str, EventGenerator] = {}
         self._changed = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
@@ -133,6 +137,7 @@ class OpcuaServer:
             # host's name) are not the cell's events; refused logins are told above.
             asyncua_log.setLevel(logging.CRITICAL)
         server = Server(user_manager=manager)  # type: ignore[arg-type]
+        bind_condition_methods(server)
         await server.init()
         server.set_endpoint(self.endpoint)
         server.set_server_name(f"cellctl {self.name}")
@@ -162,6 +167,8 @@ class OpcuaServer:
             generator.event.SourceName = source or self.name
             self._events[source] = generator
         self._server, self._space = server, space
+        self._conditions = AlarmConditions(server, space, self.dispatcher, self._log, self.name)
+        await self._conditions.start()
         journal = self.access.journal()
         if journal is not None:
             self._steps.add(dataclasses.asdict(s) for s in journal.steps())
@@ -240,6 +247,8 @@ class OpcuaServer:
         await space.show_orders(status.orders)
         await space.show_alarms(status.alarms)
         await self._alarm_events(status.alarms)
+        if self._conditions is not None:
+            await self._conditions.update(status.alarms)
 
     async def _alarm_events(self, alarms: list[AlarmInfo]) -> None:
         """An event per alarm raised, acknowledged and cleared, from its machine's Messages."""

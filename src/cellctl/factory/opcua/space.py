@@ -314,6 +314,13 @@ class CellSpace:
                 await self.write_path(f"{base}/{var}", row[field])
         await self.write_path("Cell/ActiveAlarms", len(wanted))
 
+    def alarm_of(self, node: ua.NodeId) -> int | None:
+        """The id of the open alarm whose ``Cell/Alarms/<id>`` object ``node`` is."""
+        for alarm_id, found in self._alarms.items():
+            if found.nodeid == node:
+                return alarm_id
+        return None
+
     async def _record(
         self,
         folder: str,

@@ -7,7 +7,7 @@ import click
 from cellctl import __version__
 from cellctl.kinds import registry
 from cellctl.ui.cell_cli import cell_group, demo, emulate_cell, run_command
-from cellctl.ui.common import CellctlGroup, accept_cell_anywhere
+from cellctl.ui.common import CellctlGroup, accept_cell_anywhere, summarize_commands
 from cellctl.ui.console import console_command
 from cellctl.ui.dashboard import dashboard_command
 from cellctl.ui.emulate_cli import emulate
@@ -66,5 +66,7 @@ emulate.add_command(emulate_cell)
 emulate.add_command(emulate_factory)
 for command in (pause, resume, estop, machine, traffic, service_group):
     main.add_command(command)
-# Last, once every command is in: `--cell` after a command's name too.
+# Last, once every command is in: `--cell` after a command's name too, and summaries that
+# read whole in a group's help at 80 columns.
 accept_cell_anywhere(main)
+summarize_commands(main)

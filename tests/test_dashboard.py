@@ -473,3 +473,30 @@ async def test_cellctl_dashboard_refuses_clearly_and_prints_the_url(dash: Dash) 
     result = await cli(directory, "dashboard", "--print")
     assert result.exit_code == 2 and "no controller answers" in result.output
     assert dash.token not in result.output
+
+
+async def test_after_a_reload_each_event_shows_once(dash: Dash) -> None:
+    await live(dash)
+    page = dash.page
+    for i in range(2):  # a reload reads the status, then is pushed updates on top of it
+        # Events to hold: a machine out of service and back (each a line of the Events panel).
+        await dash.api("machines.out_of_service", {"machine": "cnc2", "reason": f"check {i}"})
+        await dash.api("machines.return_to_service", {"machine": "cnc2"})
+        await page.locator("#event-list li", has_text=f"check {i}").wait_for(timeout=5_000)
+        await page.reload()
+        await page.locator("#connection.good").wait_for(timeout=10_000)
+        await page.locator("#event-list li", has_text=f"check {i}").wait_for(timeout=5_000)
+        # A push after the read (one more event) must not bring the earlier ones again.
+        await dash.api("machines.out_of_service", {"machine": "cnc1", "reason": f"push {i}"})
+        await page.locator("#event-list li", has_text=f"push {i}").wait_for(timeout=5_000)
+        status = await dash.api("cell.status", {})
+        held = [e["text"] for e in status["events"]][-15:]
+        shown = await page.locator("#event-list li").evaluate_all(
+            "items => items.map((li) => li.lastChild.textContent)"
+        )
+        # The page shows the newest 15, newest first: each as often as the cell logged it.
+        for text in set(shown):
+            assert shown.count(text) == held.count(text), (
+                f"{text!r} shown {shown.count(text)} times, logged {held.count(text)}: {shown}"
+            )
+        await dash.api("machines.return_to_service", {"machine": "cnc1"})

@@ -71,6 +71,7 @@ def test_submit_refuses_a_part_type_the_cell_does_not_know(cell: Path) -> None:
 
 
 def test_submit_without_cell_toml_warns_and_posts(tmp_path: Path) -> None:
+    open_mailbox(tmp_path / "bare").close()  # a mailbox-only cell: the system level's side
     result = cellctl(tmp_path / "bare", "submit", "anything", "--id", "x1")
     assert result.exit_code == 0, result.output
     assert "warning" in result.stderr and "not checked" in result.stderr

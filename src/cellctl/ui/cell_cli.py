@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import shlex
 import shutil
 import signal
 import time
@@ -297,9 +298,20 @@ def _emulate_cell_command() -> click.Command:
         "cell",
         callback=callback,
         params=[
-            click.Option(["--time-scale"], type=float, default=50.0, show_default=True),
+            click.Option(
+                ["--time-scale"],
+                type=float,
+                default=50.0,
+                show_default=True,
+                help="Machine time runs this many times faster than real (1: real time).",
+            ),
             click.Option(["--no-pacing"], is_flag=True, help="Move bytes as fast as they come."),
-            click.Option(["--robot-listen"], default="pty", show_default=True),
+            click.Option(
+                ["--robot-listen"],
+                default="pty",
+                show_default=True,
+                help="Where the robot listens: pty, pty:PATH, socket://HOST:PORT or rfc2217://HOST:PORT.",
+            ),
             click.Option(
                 ["--fault"], multiple=True, metavar="MACHINE:NAME[=ARG]", help="e.g. cnc1:stall"
             ),
@@ -337,7 +349,14 @@ def apply_fault(cell: object, text: str) -> None:
 
 
 @click.command("demo")
-@click.option("--time-scale", type=float, default=200.0, show_default=True)
+@click.option(
+    "--time-scale",
+    type=float,
+    default=200.0,
+    show_default=True,
+    help="Machine time runs this many times faster than real: 200 runs the batch in about a "
+    "minute (the emulators default to 50, the machines alone to 1).",
+)
 @click.option(
     "--parts",
     "count",
@@ -345,7 +364,13 @@ def apply_fault(cell: object, text: str) -> None:
     default=None,
     help="Parts in the batch.  [default: 6; with --factory N: 3 per cell]",
 )
-@click.option("--out", type=click.Path(file_okay=False), default="demo-out", show_default=True)
+@click.option(
+    "--out",
+    type=click.Path(file_okay=False),
+    default="demo-out",
+    show_default=True,
+    help="Directory for the demo's cells, Gantt charts and figures (replaced each run).",
+)
 @click.option("--compare/--no-compare", default=True, help="Also run one part at a time.")
 @click.option(
     "--dashboard",
@@ -430,7 +455,14 @@ async def run_batch(
             console.print()
             console.print("\n".join(summary.lines(f"[bold]{title}[/bold]")))
             console.print(f"\nthe batch is done; the cell and the dashboard stay up: {url}")
-            console.print("(submit orders there or with `cellctl submit`; Ctrl-C stops)")
+            # The exact command, with the absolute directory: it works from any shell.
+            where = shlex.quote(str(directory.absolute()))  # noqa: ASYNC240 (no disk I/O)
+            console.print(
+                "submit orders there, or from another shell with: "
+                f"cellctl --cell {where} submit wax-robot-base   (Ctrl-C stops)",
+                markup=False,
+                soft_wrap=True,
+            )
             await run_controller(directory, live=False, until_idle=False, options=options)
         return summary
     finally:

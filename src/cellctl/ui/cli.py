@@ -7,14 +7,14 @@ import click
 from cellctl import __version__
 from cellctl.kinds import registry
 from cellctl.ui.cell_cli import cell_group, demo, emulate_cell, run_command
-from cellctl.ui.common import CellctlGroup
+from cellctl.ui.common import CellctlGroup, accept_cell_anywhere
 from cellctl.ui.console import console_command
 from cellctl.ui.dashboard import dashboard_command
 from cellctl.ui.emulate_cli import emulate
 from cellctl.ui.factory_cli import emulate_factory, factory
 from cellctl.ui.kinds_cli import kinds_command
 from cellctl.ui.opcua_cli import opcua_group
-from cellctl.ui.orders_cli import alarm, orders, part, reports, submit
+from cellctl.ui.orders_cli import alarm, cancel, orders, part, reports, submit
 from cellctl.ui.plc_cli import plc
 from cellctl.ui.service_cli import estop, machine, pause, resume, service_group, traffic
 from cellctl.ui.token_cli import audit_command, token_group
@@ -51,6 +51,7 @@ for _kind in registry.kinds():
         _groups[_group].add_command(_command)
 main.add_command(submit)
 main.add_command(orders)
+main.add_command(cancel)
 main.add_command(reports)
 main.add_command(alarm)
 main.add_command(part)
@@ -68,3 +69,5 @@ emulate.add_command(emulate_cell)
 emulate.add_command(emulate_factory)
 for command in (pause, resume, estop, machine, traffic, service_group):
     main.add_command(command)
+# Last, once every command is in: `--cell` after a command's name too.
+accept_cell_anywhere(main)

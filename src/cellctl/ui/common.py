@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import signal
 import sys
@@ -13,8 +14,9 @@ from typing import Any, NoReturn, TypeVar
 import click
 from rich.console import Console
 from rich.markup import escape
+from rich.table import Table
 
-from cellctl.errors import CellctlError, exit_code
+from cellctl.errors import CellctlError, UsageError, exit_code
 from cellctl.service.machines import MachineRef, resolve_machine
 
 T = TypeVar("T")
@@ -37,6 +39,38 @@ def run(coro_fn: Callable[[], Coroutine[Any, Any, T]]) -> T:
         sys.exit(130)
 
 
+def json_option(f: Callable[..., Any]) -> Callable[..., Any]:
+    """``--json``: the listing as one JSON document, for scripts."""
+    return click.option(
+        "--json", "as_json", is_flag=True, help="Print JSON for scripts instead of a table."
+    )(f)
+
+
+def print_json(data: Any) -> None:
+    """``data`` as indented JSON on stdout (ids and texts whole, times as given)."""
+    click.echo(json.dumps(data, indent=2, ensure_ascii=False, default=str))
+
+
+def print_table(table: Table) -> None:
+    """A table on a terminal as wide as the terminal; piped, each row whole on one line
+    (ids never cut, nothing wrapped at 80 columns) for grep and awk."""
+    if console.is_terminal:
+        console.print(table)
+        return
+    table.expand = False
+    for column in table.columns:
+        column.no_wrap = True
+        column.overflow = "ignore"
+        column.ratio = None
+    wide = Console(file=console.file, width=100_000, highlight=False, no_color=True)
+    wide.print(table)
+
+
+def print_line(text: str) -> None:
+    """One line of output, never hard-wrapped (a pipe gets it whole)."""
+    console.print(text, markup=False, soft_wrap=True, highlight=False)
+
+
 def fail(error: CellctlError) -> NoReturn:
     """Print ``error`` as one line on stderr and exit with its code."""
     err_console.print(f"[red]error:[/red] {escape(str(error))}", markup=True, soft_wrap=True)
@@ -54,10 +88,76 @@ class CellctlGroup(click.Group):
             fail(e)
 
 
+#: Where a command's own ``--cell`` (after the command's name) keeps its value.
+_CELL_KEY = "cellctl.cell"
+
+#: Top-level commands that do not take a cell (the factory has its own ``--dir``).
+NO_CELL_COMMANDS = frozenset({"factory", "kinds"})
+
+
 def cell_dir(ctx: click.Context) -> Path:
-    """The cell directory chosen with ``--cell`` (or its default)."""
+    """The cell directory chosen with ``--cell`` (before or after the command), or its default.
+
+    Both given and different is refused: which one was meant cannot be guessed."""
     root = ctx.find_root()
-    return Path(root.params.get("cell") or "cell")
+    top = root.params.get("cell") or "cell"
+    local: str | None = ctx.meta.get(_CELL_KEY)
+    if local is None:
+        return Path(top)
+    source = root.get_parameter_source("cell")
+    if source is click.core.ParameterSource.COMMANDLINE and Path(top) != Path(local):
+        raise UsageError(
+            f"--cell given twice: {top} (before the command) and {local} (after it); give one"
+        )
+    return Path(local)
+
+
+def cell_given(ctx: click.Context) -> bool:
+    """Whether the cell directory was named (``--cell`` anywhere, or CELLCTL_CELL)."""
+    source = ctx.find_root().get_parameter_source("cell")
+    return ctx.meta.get(_CELL_KEY) is not None or source not in (
+        None,
+        click.core.ParameterSource.DEFAULT,
+    )
+
+
+def _keep_cell(ctx: click.Context, param: click.Parameter, value: str | None) -> None:
+    if value is not None:
+        earlier = ctx.meta.get(_CELL_KEY)
+        if earlier is not None and Path(earlier) != Path(value):
+            raise UsageError(f"--cell given twice: {earlier} and {value}; give one")
+        ctx.meta[_CELL_KEY] = value
+
+
+def cell_option() -> click.Option:
+    """``--cell DIR`` for a subcommand: the same as ``cellctl --cell DIR`` before it."""
+    return click.Option(
+        ["--cell"],
+        type=click.Path(file_okay=False),
+        default=None,
+        expose_value=False,
+        callback=_keep_cell,
+        help="Cell directory (the same as `cellctl --cell DIR` before the command).",
+    )
+
+
+def accept_cell_anywhere(group: click.Group) -> None:
+    """Give every command under ``group`` that takes the cell its own ``--cell``, so that
+    ``cellctl orders --cell mycell`` means ``cellctl --cell mycell orders``."""
+
+    def walk(command: click.Command, top: str) -> None:
+        if top in NO_CELL_COMMANDS:
+            return
+        if top == "emulate" and command.name not in ("emulate", "cell"):
+            return  # one emulated machine takes no cell; `emulate cell` writes one
+        if not any(p.name == "cell" for p in command.params):
+            command.params.append(cell_option())
+        if isinstance(command, click.Group):
+            for sub in command.commands.values():
+                walk(sub, top)
+
+    for name, command in group.commands.items():
+        walk(command, name)
 
 
 class MachineGroup(click.Group):

@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import signal
 import time
+from collections import Counter
 from datetime import datetime
 from pathlib import Path
 
@@ -24,9 +26,9 @@ from cellctl.errors import UsageError
 from cellctl.factory.config import FactoryConfig, load_factory
 from cellctl.factory.controller import FactoryController
 from cellctl.factory.dispatch import load_s
-from cellctl.factory.store import OPEN_STATES, FactoryStore
+from cellctl.factory.store import OPEN_STATES, CellSeen, FactoryStore
 from cellctl.link.lock import OwnerLock
-from cellctl.ui.common import console, run, until_stopped
+from cellctl.ui.common import console, json_option, print_json, print_table, run, until_stopped
 from cellctl.ui.orders_cli import STATE_STYLE
 
 #: What a second factory controller is told.
@@ -59,7 +61,9 @@ def factory(ctx: click.Context, directory: str) -> None:
 
 @factory.command("submit")
 @click.argument("part_type", metavar="PART")
-@click.option("--qty", type=click.IntRange(min=1), default=1, show_default=True)
+@click.option(
+    "--qty", type=click.IntRange(min=1), default=1, show_default=True, help="How many parts."
+)
 @click.option("--priority", type=int, default=0, show_default=True, help="Higher goes first.")
 @click.option("--id", "order_id", metavar="ID", help="The order's id (the same id again: no-op).")
 @click.pass_context
@@ -83,11 +87,18 @@ def submit(
     run(main)
 
 
+def hms(seconds: float) -> str:
+    """Seconds as h:mm:ss (``2560.7`` → ``0:42:41``)."""
+    whole = max(0, round(seconds))
+    return f"{whole // 3600}:{whole % 3600 // 60:02d}:{whole % 60:02d}"
+
+
 def orders_table(store: FactoryStore, everything: bool = True, limit: int = 200) -> Table:
     table = Table(title="orders", expand=True)
     for col in ("order", "part", "qty", "state", "cell", "done", "held"):
-        table.add_column(col, no_wrap=True)
-    table.add_column("note", overflow="fold", ratio=1)
+        # The note keeps at least a third of the width: it says why an order waits.
+        table.add_column(col, overflow="fold", ratio=1 if col in ("order", "part") else None)
+    table.add_column("note", overflow="fold", ratio=2, min_width=20)
     rows = store.orders(None if everything else OPEN_STATES)
     for o in rows[:limit]:
         table.add_row(
@@ -103,11 +114,25 @@ def orders_table(store: FactoryStore, everything: bool = True, limit: int = 200)
     return table
 
 
-def cells_table(store: FactoryStore, config: FactoryConfig) -> Table:
+def _machines(c: CellSeen) -> dict[str, dict[str, object]]:
+    return dict(c.state.get("machines") or {})
+
+
+def _machines_summary(c: CellSeen) -> str:
+    """``3 machines: 2 idle, 1 busy; cnc2 OUT``: the states counted, out-of-service by name."""
+    machines = _machines(c)
+    counts = Counter(str(v.get("state", "?")) for v in machines.values())
+    text = f"{len(machines)}: " + ", ".join(f"{n} {state}" for state, n in counts.items())
+    out = [m for m, v in machines.items() if not v.get("in_service", True)]
+    return text + (f"; {', '.join(out)} OUT" if out else "")
+
+
+def cells_table(store: FactoryStore, config: FactoryConfig, wide: bool = False) -> Table:
+    """One line per cell; its machines counted by state (``wide``: each machine by name)."""
     table = Table(title="cells", expand=True)
-    for col in ("cell", "status", "open orders", "parts", "work left"):
+    for col in ("cell", "status", "open", "parts", "work left"):
         table.add_column(col, no_wrap=True)
-    table.add_column("makes", overflow="fold")
+    table.add_column("makes", overflow="fold", ratio=1)
     table.add_column("machines", overflow="fold", ratio=1)
     seen = store.cells()
     open_orders = store.orders(OPEN_STATES)
@@ -119,45 +144,83 @@ def cells_table(store: FactoryStore, config: FactoryConfig) -> Table:
         status = f"[green]{c.status}[/green]" if c.status == "online" else f"[red]{c.status}[/red]"
         if c.state.get("paused"):
             status += " (paused)"
-        machines = ", ".join(
-            f"{m}: {v.get('state', '?')}" + ("" if v.get("in_service", True) else " OUT")
-            for m, v in (c.state.get("machines") or {}).items()
-        )
+        if wide:
+            machines = ", ".join(
+                f"{m}: {v.get('state', '?')}" + ("" if v.get("in_service", True) else " OUT")
+                for m, v in _machines(c).items()
+            )
+        else:
+            machines = _machines_summary(c)
         table.add_row(
             name,
             status,
             str(sum(1 for o in open_orders if o.cell == name)),
             str(c.state.get("parts_open", "")),
-            f"{load_s(c, open_orders):.1f} s" if c.state else "",
+            hms(load_s(c, open_orders)) if c.state else "",
             ", ".join(c.part_types),
             machines,
         )
     return table
 
 
+def cells_json(store: FactoryStore, config: FactoryConfig) -> list[dict[str, object]]:
+    """The cells as :func:`cells_table` shows them, every machine in full, for scripts."""
+    seen = store.cells()
+    open_orders = store.orders(OPEN_STATES)
+    found: list[dict[str, object]] = []
+    for name in config.cells:
+        c = seen.get(name)
+        if c is None:
+            found.append({"cell": name, "status": "never heard"})
+            continue
+        found.append(
+            {
+                "cell": name,
+                "status": c.status,
+                "paused": bool(c.state.get("paused")),
+                "open_orders": sum(1 for o in open_orders if o.cell == name),
+                "parts_open": c.state.get("parts_open"),
+                "work_left_s": load_s(c, open_orders) if c.state else None,
+                "makes": list(c.part_types),
+                "machines": _machines(c),
+            }
+        )
+    return found
+
+
 @factory.command("orders")
 @click.option("--open", "only_open", is_flag=True, help="Only orders not yet ended.")
+@json_option
 @click.pass_context
-def orders(ctx: click.Context, only_open: bool) -> None:
+def orders(ctx: click.Context, only_open: bool, as_json: bool) -> None:
     """The factory's orders: where each went and how far it is."""
 
     async def main() -> None:
         config = _config(ctx)
         with FactoryStore(config.state_path) as store:
-            console.print(orders_table(store, everything=not only_open))
+            if as_json:
+                rows = store.orders(None if not only_open else OPEN_STATES)
+                print_json([dataclasses.asdict(o) for o in rows])
+                return
+            print_table(orders_table(store, everything=not only_open))
 
     run(main)
 
 
 @factory.command("cells")
+@click.option("--wide", is_flag=True, help="Each machine's state by name, not counted.")
+@json_option
 @click.pass_context
-def cells(ctx: click.Context) -> None:
+def cells(ctx: click.Context, wide: bool, as_json: bool) -> None:
     """The cells as the factory last heard them: online, what they make, their work left."""
 
     async def main() -> None:
         config = _config(ctx)
         with FactoryStore(config.state_path) as store:
-            console.print(cells_table(store, config))
+            if as_json:
+                print_json(cells_json(store, config))
+                return
+            print_table(cells_table(store, config, wide=wide))
 
     run(main)
 
@@ -230,9 +293,28 @@ def run_command(ctx: click.Context, live: bool | None, until_idle: bool) -> None
 
 
 @click.command("factory")
-@click.option("--cells", "count", type=click.IntRange(1, 32), default=3, show_default=True)
-@click.option("--time-scale", type=float, default=50.0, show_default=True)
-@click.option("--accept-timeout", type=float, default=30.0, show_default=True)
+@click.option(
+    "--cells",
+    "count",
+    type=click.IntRange(1, 32),
+    default=3,
+    show_default=True,
+    help="How many emulated cells.",
+)
+@click.option(
+    "--time-scale",
+    type=float,
+    default=50.0,
+    show_default=True,
+    help="Machine time runs this many times faster than real (1: real time).",
+)
+@click.option(
+    "--accept-timeout",
+    type=float,
+    default=30.0,
+    show_default=True,
+    help="Seconds a cell has to accept an order before the factory gives it to another.",
+)
 @click.argument("directory", type=click.Path(file_okay=False))
 def emulate_factory(count: int, time_scale: float, accept_timeout: float, directory: str) -> None:
     """Start a private Mosquitto and COUNT emulated cells; write their cell directories and

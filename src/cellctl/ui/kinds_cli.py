@@ -6,16 +6,33 @@ import click
 from rich.table import Table
 
 from cellctl.kinds import registry
-from cellctl.ui.common import console
+from cellctl.ui.common import console, json_option, print_json
 
 
 @click.command("kinds")
-def kinds_command() -> None:
+@json_option
+def kinds_command(as_json: bool) -> None:
     """List the machine kinds installed: family, maker and model, where each comes from.
 
     Kinds register under the entry-point group cellctl.machine_kinds (docs/kinds.md); one that
     cannot be loaded is listed as broken, with why, and the rest work.
     """
+    if as_json:
+        print_json(
+            [
+                {
+                    "kind": k.name,
+                    "family": k.family,
+                    "maker": k.maker,
+                    "model": k.model,
+                    "distribution": k.origin.distribution if k.origin else None,
+                    "module": k.origin.module if k.origin else None,
+                }
+                for k in registry.kinds()
+            ]
+            + [{"kind": name, "broken": why} for name, why in registry.broken().items()]
+        )
+        return
     table = Table(box=None, pad_edge=False)
     for column in ("kind", "family", "maker", "model", "from"):
         # "from" folds rather than cut: the module is what a user looks for.

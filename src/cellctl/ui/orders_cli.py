@@ -12,6 +12,7 @@ code (:mod:`cellctl.service.operator`) does the work and posts the report.
 from __future__ import annotations
 
 import asyncio
+import json
 from collections.abc import Callable, Sequence
 from datetime import datetime
 from pathlib import Path
@@ -21,10 +22,20 @@ import click
 from rich.table import Table
 
 from cellctl.cell.journal import LOCATIONS, PART_STATUSES
+from cellctl.errors import UsageError
 from cellctl.mailbox import MAILBOX_FILE, ORDER_STATES, Report, open_mailbox
-from cellctl.service.operator import short_part_id
 from cellctl.ui.calls import cell_call
-from cellctl.ui.common import cell_dir, console, err_console, run
+from cellctl.ui.common import (
+    cell_dir,
+    cell_given,
+    console,
+    err_console,
+    json_option,
+    print_json,
+    print_line,
+    print_table,
+    run,
+)
 
 T = TypeVar("T")
 
@@ -66,12 +77,26 @@ def _controller_runs(directory: Path) -> bool:
     return controller_holder(directory) is not None
 
 
+def no_cell_message(directory: Path, named: bool) -> str:
+    """Why an order is refused where there is no cell, and how to name one."""
+    where = str(directory.absolute())
+    if not named:
+        where += " (the default: no --cell given, no CELLCTL_CELL)"
+    return (
+        f"no cell in {where}: no cell.toml, no mailbox, no controller running; name the cell "
+        "directory with `cellctl --cell DIR submit ...`, `cellctl submit ... --cell DIR` "
+        "or CELLCTL_CELL=DIR (`cellctl --cell DIR emulate cell` or `cellctl demo` makes one)"
+    )
+
+
 # -- orders and reports --------------------------------------------------------------------------
 
 
 @click.command()
 @click.argument("part_type", metavar="PART")
-@click.option("--qty", type=click.IntRange(min=1), default=1, show_default=True)
+@click.option(
+    "--qty", type=click.IntRange(min=1), default=1, show_default=True, help="How many parts."
+)
 @click.option("--priority", type=int, default=0, show_default=True, help="Higher runs first.")
 @click.option(
     "--id",
@@ -86,7 +111,11 @@ def submit(
     """Post an order for QTY parts of type PART, as the system level would."""
     directory = cell_dir(ctx)
 
-    if not (directory / "cell.toml").exists():
+    has_toml = (directory / "cell.toml").exists()
+    if not has_toml and not (directory / MAILBOX_FILE).exists() and not _controller_runs(directory):
+        # No cell here: posting would make a mailbox no controller reads, and no part.
+        raise UsageError(no_cell_message(directory, cell_given(ctx)))
+    if not has_toml:
         err_console.print(
             f"[yellow]warning:[/yellow] no {directory / 'cell.toml'}: "
             f"part type {part_type!r} not checked"
@@ -105,15 +134,22 @@ def submit(
     type=click.Choice(ORDER_STATES),
     help="Only orders in this state (repeatable).",
 )
+@json_option
 @click.pass_context
-def orders(ctx: click.Context, states: Sequence[str]) -> None:
+def orders(ctx: click.Context, states: Sequence[str], as_json: bool) -> None:
     """List orders and their state, highest priority first, then oldest."""
     directory = cell_dir(ctx)
 
     if not (directory / MAILBOX_FILE).exists() and not _controller_runs(directory):
+        if as_json:
+            print_json([])
+            return
         console.print(f"no orders (no mailbox in {directory})")
         return
     found = cell_call(ctx, "orders.list", {"states": list(states) or None})
+    if as_json:
+        print_json(found)
+        return
     if not found:
         console.print("no orders")
         return
@@ -132,7 +168,26 @@ def orders(ctx: click.Context, states: Sequence[str]) -> None:
             _when(o["created"]),
             o["note"],
         )
-    console.print(table)
+    print_table(table)
+
+
+@click.command()
+@click.argument("order_id", metavar="ORDER")
+@click.pass_context
+def cancel(ctx: click.Context, order_id: str) -> None:
+    """Cancel order ORDER if no part of it has started."""
+    console.print(cell_call(ctx, "orders.cancel", {"id": order_id})["message"], markup=False)
+
+
+def _report_dict(r: Report) -> dict[str, object]:
+    return {
+        "seq": r.seq,
+        "time": r.time,
+        "kind": r.kind,
+        "order_id": r.order_id,
+        "part_id": r.part_id,
+        "text": r.text,
+    }
 
 
 def _report_row(r: Report) -> tuple[str, ...]:
@@ -143,8 +198,9 @@ def _report_row(r: Report) -> tuple[str, ...]:
 @click.option("--since", type=int, default=0, metavar="SEQ", help="Only reports after SEQ.")
 @click.option("--limit", type=click.IntRange(min=1), help="At most this many.")
 @click.option("--follow", "-f", is_flag=True, help="Keep printing new reports until Ctrl-C.")
+@json_option
 @click.pass_context
-def reports(ctx: click.Context, since: int, limit: int | None, follow: bool) -> None:
+def reports(ctx: click.Context, since: int, limit: int | None, follow: bool, as_json: bool) -> None:
     """List the reports the cell posted (order accepted, steps, alarms, parts, order done)."""
     directory = cell_dir(ctx)
     columns = ("Seq", "Time", "Kind", "Order", "Part", "Text")
@@ -156,7 +212,11 @@ def reports(ctx: click.Context, since: int, limit: int | None, follow: bool) -> 
             with open_mailbox(directory) as mailbox:
                 while True:
                     for r in mailbox.reports(seen):
-                        console.print("  ".join(x for x in _report_row(r) if x))
+                        if as_json:  # one JSON object a line, as it comes
+                            click.echo(json.dumps(_report_dict(r), ensure_ascii=False))
+                        else:
+                            print_line("  ".join(x for x in _report_row(r) if x))
+                        console.file.flush()
                         seen = r.seq
                     await asyncio.sleep(FOLLOW_POLL)
 
@@ -165,10 +225,16 @@ def reports(ctx: click.Context, since: int, limit: int | None, follow: bool) -> 
 
     def action() -> None:
         if not (directory / MAILBOX_FILE).exists():
+            if as_json:
+                print_json([])
+                return
             console.print(f"no reports (no mailbox in {directory})")
             return
         with open_mailbox(directory) as mailbox:
             found = mailbox.reports(since, limit)
+        if as_json:
+            print_json([_report_dict(r) for r in found])
+            return
         if not found:
             console.print("no reports")
             return
@@ -177,7 +243,7 @@ def reports(ctx: click.Context, since: int, limit: int | None, follow: bool) -> 
             table.add_column(column, justify="right" if column == "Seq" else "left")
         for r in found:
             table.add_row(*_report_row(r))
-        console.print(table)
+        print_table(table)
 
     _run(action)
 
@@ -236,34 +302,35 @@ def part() -> None:
     help="Only parts with this status (repeatable).",
 )
 @click.option("--order", "order_id", metavar="ID", help="Only the parts of this order.")
+@json_option
 @click.pass_context
-def part_list(ctx: click.Context, statuses: Sequence[str], order_id: str | None) -> None:
+def part_list(
+    ctx: click.Context, statuses: Sequence[str], order_id: str | None, as_json: bool
+) -> None:
     """List parts: where each is, how far along its route, and why it is held."""
     found = cell_call(ctx, "parts.list", {"statuses": list(statuses) or None, "order": order_id})
+    if as_json:
+        print_json(found)
+        return
     if not found:
         console.print("no parts")
         return
-    orders = sorted({p["order_id"] for p in found})
-    names = [short_part_id(p["id"], p["order_id"], orders) for p in found]
-    table = Table(title="Parts (an id, or the short one shown, is what release and scrap take)")
-    for column in ("Part", "Order", "Type", "Location", "Route", "Status", "Note"):
+    # The part's whole id, as reports and events name it (it begins with its order's id).
+    table = Table(title="Parts (release and scrap take the id, or its order's id cut short)")
+    for column in ("Part", "Type", "Location", "Route", "Status", "Note"):
         table.add_column(
-            column,
-            justify="right" if column == "Route" else "left",
-            no_wrap=column == "Part",
-            min_width=max(map(len, names)) if column == "Part" else None,
+            column, justify="right" if column == "Route" else "left", no_wrap=column == "Part"
         )
-    for p, name in zip(found, names, strict=True):
+    for p in found:
         table.add_row(
-            name,
-            p["order_id"],
+            p["id"],
             p["part_type"],
             p["location"],
             str(p["route_index"]),
             _styled(p["status"]),
             p["note"],
         )
-    console.print(table)
+    print_table(table)
 
 
 @part.command("release")
@@ -286,11 +353,16 @@ def part_release(ctx: click.Context, part_id: str, redo: bool, location: str | N
 
 @part.command("scrap")
 @click.argument("part_id", metavar="ID")
-@click.option("--reason", default="scrapped by operator", show_default=True)
+@click.option(
+    "--reason",
+    default="scrapped by operator",
+    show_default=True,
+    help="Why (kept in the journal).",
+)
 @click.pass_context
 def part_scrap(ctx: click.Context, part_id: str, reason: str) -> None:
     """Scrap part ID (held or waiting): the cell will not work on it again."""
     console.print(cell_call(ctx, "parts.scrap", {"id": part_id, "reason": reason})["message"])
 
 
-__all__ = ["alarm", "orders", "part", "reports", "submit"]
+__all__ = ["alarm", "cancel", "orders", "part", "reports", "submit"]

@@ -6,17 +6,21 @@ And ``service install`` / ``service status``: that controller as a systemd servi
 
 from __future__ import annotations
 
+import asyncio
 import datetime as dt
+import json
 import shutil
 import subprocess
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import click
 
 from cellctl.errors import UsageError
+from cellctl.service.client import open_cell
 from cellctl.ui.calls import cell_call
-from cellctl.ui.common import cell_dir, console
+from cellctl.ui.common import cell_dir, console, json_option, print_json, print_line, run
 from cellctl.ui.systemd_unit import (
     SYSTEM_UNIT_DIR,
     ServiceUnit,
@@ -74,18 +78,62 @@ def machine_in(ctx: click.Context) -> None:
     console.print(cell_call(ctx, "machines.return_to_service", {"machine": name})["message"])
 
 
+#: Seconds between two looks at a machine's traffic for ``traffic --follow``.
+TRAFFIC_POLL_S = 0.5
+
+
+def _traffic_line(row: dict[str, Any]) -> str:
+    stamp = dt.datetime.fromtimestamp(row["time"]).strftime("%H:%M:%S.%f")[:-3]
+    return f"{stamp} {row['dir']} {row['hex']:<48} |{row['text']}|"
+
+
 @click.command()
 @click.argument("name")
-@click.option("--limit", type=click.IntRange(1, 2000), default=40, show_default=True)
+@click.option(
+    "--limit",
+    type=click.IntRange(1, 2000),
+    default=40,
+    show_default=True,
+    help="How many of the last exchanges to show.",
+)
+@click.option("--follow", "-f", is_flag=True, help="Keep printing new traffic until Ctrl-C.")
+@json_option
 @click.pass_context
-def traffic(ctx: click.Context, name: str, limit: int) -> None:
+def traffic(ctx: click.Context, name: str, limit: int, follow: bool, as_json: bool) -> None:
     """The last bytes on machine NAME's link, both ways (>> sent, << received)."""
-    rows = cell_call(ctx, "traffic.tail", {"machine": name, "limit": limit})
-    if not rows:
-        console.print(f"no traffic on {name} yet")
-    for row in rows:
-        stamp = dt.datetime.fromtimestamp(row["time"]).strftime("%H:%M:%S.%f")[:-3]
-        console.print(f"{stamp} {row['dir']} {row['hex']:<48} |{row['text']}|", markup=False)
+
+    def show(row: dict[str, Any]) -> None:
+        if as_json:  # one JSON object a line, so that --follow streams
+            click.echo(json.dumps(row, ensure_ascii=False))
+        else:
+            print_line(_traffic_line(row))
+
+    if not follow:
+        rows = cell_call(ctx, "traffic.tail", {"machine": name, "limit": limit})
+        if as_json:
+            print_json(rows)
+            return
+        if not rows:
+            console.print(f"no traffic on {name} yet")
+        for row in rows:
+            show(row)
+        return
+    directory = cell_dir(ctx)
+
+    async def follow_traffic() -> None:
+        seen: set[tuple[Any, ...]] = set()
+        async with await open_cell(directory, {}) as cell:
+            while True:
+                rows = await cell.call("traffic.tail", {"machine": name, "limit": limit})
+                for row in rows:
+                    key = (row["time"], row["dir"], row["hex"])
+                    if key not in seen:
+                        seen.add(key)
+                        show(row)
+                console.file.flush()
+                await asyncio.sleep(TRAFFIC_POLL_S)
+
+    run(follow_traffic)
 
 
 # -- the controller as a systemd service ----------------------------------------------------------

@@ -175,7 +175,13 @@ def home(ctx: click.Context) -> None:
 @click.option(
     "-o", "--output", type=click.Path(dir_okay=False, path_type=Path), help="Program file."
 )
-@click.option("--partition", type=click.IntRange(1, 5), default=1, show_default=True)
+@click.option(
+    "--partition",
+    type=click.IntRange(1, 5),
+    default=1,
+    show_default=True,
+    help="Robot memory partition the program is for.",
+)
 @click.option("--name", help="Application name (8 characters; default: the file's stem).")
 def compile(source: Path, output: Path | None, partition: int, name: str | None) -> None:
     """Compile an AML/E source file into a program file of records (.rec)."""

@@ -231,12 +231,25 @@ export function applyUpdate(snap, update) {
   }
   Object.assign(snap.machines, update.machines || {});
   if (update.events) {
-    // A status read since the last push may hold some of them already.
-    const held = snap.events.length ? snap.events[snap.events.length - 1].time : -Infinity;
-    const fresh = update.events.filter((e) => e.time > held);
-    snap.events = [...snap.events, ...fresh].slice(-30);
+    // A status read since the last push may hold some of them already: both are windows on
+    // one log, so the longest tail of the held list that starts the update is dropped (as
+    // new_events in service/status.py does). Two events of one time are both kept.
+    snap.events = [...snap.events, ...newEvents(snap.events, update.events)].slice(-30);
   }
   state.pushedAt = update.time;
+}
+
+const sameEvent = (a, b) => a.time === b.time && a.text === b.text;
+
+// The events of `fresh` that `held` does not end with already.
+export function newEvents(held, fresh) {
+  for (let k = Math.min(held.length, fresh.length); k > 0; k--) {
+    const tail = held.slice(-k);
+    if (tail.every((e, i) => sameEvent(e, fresh[i]))) {
+      return fresh.slice(k);
+    }
+  }
+  return fresh;
 }
 
 let retryMs = 500;

@@ -114,7 +114,13 @@ def token_revoke(ctx: click.Context, name: str) -> None:
 @click.command("audit")
 @click.option("--since", help="A span back (30m, 2h, 7d) or a date (2024-05-01T14:30).")
 @click.option("--who", help="One caller: a token's name or an OPC UA user.")
-@click.option("--limit", type=click.IntRange(1, 10_000), default=200, show_default=True)
+@click.option(
+    "--limit",
+    type=click.IntRange(1, 10_000),
+    default=200,
+    show_default=True,
+    help="At most this many, the latest.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print JSON.")
 @click.pass_context
 def audit_command(

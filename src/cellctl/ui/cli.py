@@ -7,7 +7,7 @@ import click
 from cellctl import __version__
 from cellctl.kinds import registry
 from cellctl.ui.cell_cli import cell_group, demo, emulate_cell, run_command
-from cellctl.ui.common import CellctlGroup, accept_cell_anywhere
+from cellctl.ui.common import CellctlGroup, accept_cell_anywhere, summarize_commands
 from cellctl.ui.console import console_command
 from cellctl.ui.dashboard import dashboard_command
 from cellctl.ui.emulate_cli import emulate
@@ -17,6 +17,7 @@ from cellctl.ui.opcua_cli import opcua_group
 from cellctl.ui.orders_cli import alarm, cancel, orders, part, reports, submit
 from cellctl.ui.plc_cli import plc
 from cellctl.ui.service_cli import estop, machine, pause, resume, service_group, traffic
+from cellctl.ui.token_cli import audit_command, token_group
 
 
 @click.group(
@@ -61,10 +62,14 @@ main.add_command(demo)
 main.add_command(console_command)
 main.add_command(dashboard_command)
 main.add_command(opcua_group)
+main.add_command(token_group)
+main.add_command(audit_command)
 main.add_command(factory)
 emulate.add_command(emulate_cell)
 emulate.add_command(emulate_factory)
 for command in (pause, resume, estop, machine, traffic, service_group):
     main.add_command(command)
-# Last, once every command is in: `--cell` after a command's name too.
+# Last, once every command is in: `--cell` after a command's name too, and summaries that
+# read whole in a group's help at 80 columns.
 accept_cell_anywhere(main)
+summarize_commands(main)

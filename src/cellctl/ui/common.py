@@ -219,3 +219,47 @@ def fault_help(faults: dict[str, str]) -> str:
     return "\b\nFaults (--fault NAME[=ARG]):\n" + "\n".join(
         f"  {name}: {text}" for name, text in faults.items()
     )
+
+
+#: The width a group's help is laid out for: a summary must read whole there.
+HELP_WIDTH = 80
+
+
+def clause_summary(text: str, limit: int) -> str:
+    """The first line of ``text`` cut back to whole clauses within ``limit`` characters.
+
+    Click cuts a long first line mid-sentence with "..."; this keeps what reads whole: up to
+    the last ": ", "; ", ", " or " (" that fits ("Emergency stop: stop the robot, halt the
+    mills"), else the words that fit.
+    """
+    line = " ".join(text.strip().split("\n\n", 1)[0].split())
+    if len(line) <= limit:
+        return line.rstrip(".")
+    cuts, depth = [], 0  # clause ends outside any parenthesis
+    for i, ch in enumerate(line[: limit + 1]):
+        if ch == "(":
+            if depth == 0 and i > 0:
+                cuts.append(i)  # before a parenthesis: what precedes reads whole
+            depth += 1
+        elif ch == ")":
+            depth = max(0, depth - 1)
+        elif depth == 0 and ch in ":;," and line[i + 1 : i + 2] == " ":
+            cuts.append(i)
+    if cuts:
+        return line[: cuts[-1]].rstrip(" ,;:")
+    return line[: line.rfind(" ", 0, limit + 1)] if " " in line[:limit] else line[:limit]
+
+
+def summarize_commands(group: click.Group) -> None:
+    """Give every command under ``group`` a summary that reads whole in its group's help at
+    :data:`HELP_WIDTH` columns (a command that sets its own ``short_help`` keeps it)."""
+    commands = [c for c in group.commands.values() if not c.hidden]
+    if not commands:
+        return
+    # Click's own layout: the widest name and 6 columns of indent and gap.
+    limit = HELP_WIDTH - 6 - max(len(c.name or "") for c in commands)
+    for command in commands:
+        if command.short_help is None and command.help:
+            command.short_help = clause_summary(command.help, limit)
+        if isinstance(command, click.Group):
+            summarize_commands(command)

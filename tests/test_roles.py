@@ -95,6 +95,14 @@ async def test_roles_on_websocket_http_and_the_dashboard_and_the_audit_trail(
             AccessDenied, match=r"vera is a viewer: orders\.submit needs the operator"
         ):
             await vera.call("orders.submit", {"part_type": "wax-robot-base"})
+        # Acknowledging and shelving alarms are an operator's; the history is anyone's.
+        for method, params in (
+            ("alarms.ack", {"id": 1}),
+            ("alarms.shelve", {"id": 1, "seconds": 60}),
+        ):
+            with pytest.raises(AccessDenied, match=rf"{method} needs the operator"):
+                await vera.call(method, params)
+        assert await vera.call("alarms.history", {}) == []
     finally:
         await vera.close()
 
@@ -121,7 +129,7 @@ async def test_roles_on_websocket_http_and_the_dashboard_and_the_audit_trail(
     assert [e["who"] for e in ok] == ["token:otto"]
     assert "wax-robot-base" in ok[0]["params"]
     refused = [e for e in entries if e["who"] == "token:vera"]
-    assert {e["method"] for e in refused} == {"orders.submit"}
+    assert {e["method"] for e in refused} == {"orders.submit", "alarms.ack", "alarms.shelve"}
     assert all("needs the operator role" in e["result"] for e in refused)
     assert rig.mailbox.get_order(order_id).part_type == "wax-robot-base"
     # A viewer may not read the audit trail.

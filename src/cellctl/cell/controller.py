@@ -113,6 +113,9 @@ class CellController(OperatorCommands):
         self._pallet_requested = False
         self._pallet_requested_at = 0.0  # monotonic, for the deadline
         self._pallet_asked_wall = 0.0  # time.time(), to compare with an alarm's clearing
+        # (machine, code) of open alarms not yet returned to normal, so that the monitor's
+        # every look costs no journal read (None: not read from the journal yet).
+        self._unreturned: set[tuple[str, str]] | None = None
         self._pallet_pulse: asyncio.Task[None] | None = None
         self._stopping = False
         self.started_at = time.time()
@@ -149,9 +152,11 @@ class CellController(OperatorCommands):
             if a.machine == machine and a.code == code:
                 if a.returned is not None:  # its condition is back: unacknowledged again
                     self.journal.reactivate(a.id)
+                    self._watch(machine, code)
                     self.log(f"ALARM {a.id} {machine}: active again: {text}")
                 return
         alarm, new = self.journal.raise_alarm(machine, code, text)
+        self._watch(machine, code)
         if new:
             self.mailbox.post_report(
                 ReportKind.ALARM_RAISED, f"{machine}: {text}", data={"alarm": alarm.id}
@@ -161,8 +166,20 @@ class CellController(OperatorCommands):
     def returned(self, machine: str, *codes: str) -> None:
         """The condition behind ``machine``'s open alarms with ``codes`` is gone (a look
         found it well): they are returned to normal, and stay open until cleared."""
-        for a in self.journal.return_to_normal(machine, codes):
+        if self._unreturned is None:
+            self._unreturned = {
+                (a.machine, a.code) for a in self.journal.active_alarms() if a.returned is None
+            }
+        watched = [code for code in codes if (machine, code) in self._unreturned]
+        if not watched:
+            return
+        for a in self.journal.return_to_normal(machine, watched):
             self.log(f"alarm {a.id} {machine}: returned to normal ({a.text})")
+        self._unreturned -= {(machine, code) for code in watched}
+
+    def _watch(self, machine: str, code: str) -> None:
+        if self._unreturned is not None:
+            self._unreturned.add((machine, code))
 
     def cause_alarm(self, cause: Cause) -> None:
         """The alarm of ``cause`` (only logged if its alarm was cleared while it was out)."""

@@ -10,7 +10,7 @@ import logging
 import shutil
 import stat
 import subprocess
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,7 +27,7 @@ from cellctl.service.access import LocalCell
 from cellctl.service.client import RemoteCell
 from cellctl.service.server import ApiLimits, ApiServer, api_limits, ensure_token
 from cellctl.ui.dashboard.routes import dashboard_routes
-from tests.conftest import CELLCTL, free_port
+from tests.conftest import CELLCTL, free_port, until
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "cell"
 HEADER_TIMEOUT = 0.5
@@ -87,18 +87,6 @@ async def http(port: int, request: bytes) -> tuple[int, bytes]:
         writer.close()
     head, _, body = data.partition(b"\r\n\r\n")
     return int(head.split(b" ", 2)[1]), body
-
-
-async def until(condition: Callable[[], Any], what: str, timeout: float = 10.0) -> None:
-    """Wait until ``condition()`` is true; fail after ``timeout`` s."""
-    loop = asyncio.get_running_loop()
-    deadline = loop.time() + timeout
-    while True:
-        if condition():
-            return
-        if loop.time() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        await asyncio.sleep(0.01)
 
 
 def get(path: str, host: str, token: str, *extra: str) -> bytes:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import shutil
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from pathlib import Path
 
 import aiomqtt
@@ -25,7 +25,7 @@ from cellctl.mailbox.mqtt import MqttBridge
 from cellctl.mailbox.mqttlink import MqttSettings, TlsRefused, WrongScheme, read_credentials
 from cellctl.testing.rig import CellRig
 
-from .conftest import CaFiles, make_ca
+from .conftest import CaFiles, make_ca, until
 
 CELLS = [("cell1", "cellctl/cell1"), ("cell2", "cellctl/cell2")]
 WAIT_S = 60.0
@@ -41,15 +41,6 @@ async def broker(tmp_path: Path, ca: CaFiles) -> AsyncIterator[MosquittoBroker]:
     tls = TlsFiles(ca.certfile, ca.keyfile)
     async with MosquittoBroker(tmp_path / "broker", CELLS, tls=tls) as b:
         yield b
-
-
-async def until(condition: Callable[[], object], what: str, timeout: float = WAIT_S) -> None:
-    deadline = asyncio.get_running_loop().time() + timeout
-    while True:
-        if condition():
-            return
-        assert asyncio.get_running_loop().time() < deadline, f"timed out waiting for: {what}"
-        await asyncio.sleep(0.05)
 
 
 def factory_dir(tmp_path: Path, broker: MosquittoBroker, url: str, ca: Path | None) -> Path:

@@ -36,7 +36,7 @@ from cellctl.mailbox import open_mailbox
 from cellctl.service.client import RemoteCell, attach
 from cellctl.service.token import read_token
 
-from .conftest import CELLCTL
+from .conftest import CELLCTL, wait_until
 from .test_opcua import client_cert, session  # noqa: F401 - client_cert is a fixture
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -58,14 +58,6 @@ def cellctl(cell: Path, *args: str, timeout: float = 60) -> subprocess.Completed
 def said(result: subprocess.CompletedProcess[str]) -> str:
     """What a command printed, its lines joined (the terminal wraps long paths)."""
     return (result.stdout + result.stderr).replace("\n", "")
-
-
-def wait_until(condition: object, what: str, timeout: float = 60.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():  # type: ignore[operator]
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.05)
 
 
 def make_template(directory: Path, opcua_port: int | None = None) -> Path:

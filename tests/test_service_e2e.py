@@ -7,7 +7,6 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -16,7 +15,7 @@ import pytest
 from cellctl.cell.journal import open_journal
 from cellctl.mailbox import open_mailbox
 
-from .conftest import CELLCTL, emulated_cell_process
+from .conftest import CELLCTL, emulated_cell_process, wait_until
 
 TIME_SCALE = "400"
 
@@ -25,14 +24,6 @@ def cellctl(cell: Path, *args: str, timeout: float = 60) -> subprocess.Completed
     return subprocess.run(
         [*CELLCTL, "--cell", str(cell), *args], capture_output=True, text=True, timeout=timeout
     )
-
-
-def wait_until(condition: object, what: str, timeout: float = 60.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():  # type: ignore[operator]
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.05)
 
 
 @pytest.fixture

@@ -19,7 +19,7 @@ import argparse
 import asyncio
 import time
 
-from _common import machine_line
+from _common import machine_line, percentile
 from cellctl.emulators.serve import serve
 from cellctl.errors import CellctlError
 from cellctl.kinds.ibm7545.aml import compile_source, decode_program
@@ -35,11 +35,6 @@ def program(run: int, records: int) -> ProgramFile:
         for i in range(records - 3)
     ]
     return compile_source("\n".join([*lines, "END"]), f"RUN{run}", 1)
-
-
-def percentile(values: list[float], q: float) -> float:
-    ordered = sorted(values)
-    return ordered[min(len(ordered) - 1, int(q * len(ordered)))] if ordered else 0.0
 
 
 async def main() -> None:
@@ -97,9 +92,10 @@ async def main() -> None:
             rate=args.rate,
             downloads=args.downloads,
             completed=completed / args.downloads,
+            errors=sum(failures.values()),
             silent=silent,
             retries=retries,
-            p99_s=percentile(times, 0.99),
+            p99_s=percentile(times, 99),  # failed downloads count, at their time to fail
         )
     )
 

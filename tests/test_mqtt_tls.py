@@ -28,7 +28,6 @@ from cellctl.testing.rig import CellRig
 from .conftest import CaFiles, make_ca, until
 
 CELLS = [("cell1", "cellctl/cell1"), ("cell2", "cellctl/cell2")]
-WAIT_S = 60.0
 
 
 @pytest.fixture

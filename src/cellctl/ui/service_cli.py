@@ -125,11 +125,13 @@ def traffic(ctx: click.Context, name: str, limit: int, follow: bool, as_json: bo
         async with await open_cell(directory, {}) as cell:
             while True:
                 rows = await cell.call("traffic.tail", {"machine": name, "limit": limit})
-                for row in rows:
-                    key = (row["time"], row["dir"], row["hex"])
+                keys = [(row["time"], row["dir"], row["hex"]) for row in rows]
+                for key, row in zip(keys, rows, strict=True):
                     if key not in seen:
-                        seen.add(key)
                         show(row)
+                # A row that left the tail cannot come back: remember only the tail, so a
+                # follow that runs for a shift keeps a bounded memory.
+                seen = set(keys)
                 console.file.flush()
                 await asyncio.sleep(TRAFFIC_POLL_S)
 

@@ -105,3 +105,27 @@ def test_operator_takes_cnc2_out_runs_it_by_hand_and_returns_it(
     assert listed.returncode == 0 and "done" in listed.stdout
     os.kill(run.pid, signal.SIGINT)
     assert run.wait(60) == 0
+
+
+def test_traffic_follow_prints_new_bytes_as_they_pass(
+    running_cell: tuple[Path, subprocess.Popen[str]],
+) -> None:
+    """``traffic --follow`` through the controller: rows keep coming while the cell polls,
+    each shown once, until the user stops it."""
+    cell, _ = running_cell
+    out = cell.parent / "follow.out"
+    with out.open("w") as sink:
+        follow = subprocess.Popen(
+            [*CELLCTL, "--cell", str(cell), "traffic", "robot", "--follow", "--json"],
+            stdout=sink,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        try:
+            wait_until(lambda: len(out.read_text().splitlines()) >= 20, "20 rows followed")
+        finally:
+            follow.send_signal(signal.SIGINT)
+            follow.wait(30)
+    rows = out.read_text().splitlines()
+    seen = [r for r in rows if r.startswith("{")]
+    assert len(seen) >= 20 and len(set(seen)) == len(seen), rows[:5]

@@ -116,16 +116,29 @@ def test_traffic_follow_prints_new_bytes_as_they_pass(
     out = cell.parent / "follow.out"
     with out.open("w") as sink:
         follow = subprocess.Popen(
-            [*CELLCTL, "--cell", str(cell), "traffic", "robot", "--follow", "--json"],
+            [
+                *CELLCTL,
+                "--cell",
+                str(cell),
+                "traffic",
+                "robot",
+                "--follow",
+                "--json",
+                "--limit",
+                "200",
+            ],
             stdout=sink,
             stderr=subprocess.STDOUT,
             text=True,
         )
         try:
-            wait_until(lambda: len(out.read_text().splitlines()) >= 20, "20 rows followed")
+            wait_until(
+                lambda: len(out.read_text().splitlines()) >= 300,
+                "more than a tail of rows followed",
+            )
         finally:
             follow.send_signal(signal.SIGINT)
             follow.wait(30)
     rows = out.read_text().splitlines()
     seen = [r for r in rows if r.startswith("{")]
-    assert len(seen) >= 20 and len(set(seen)) == len(seen), rows[:5]
+    assert len(seen) >= 300 and len(set(seen)) == len(seen), rows[:5]

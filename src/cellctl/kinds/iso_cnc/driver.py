@@ -93,8 +93,9 @@ class IsoCncOptions(BaseModel):
     """Where the control sends DC3 (default: buffer_size - dc3_tolerance)."""
     low_water: int | None = Field(default=None, ge=0)
     """Where it sends DC1 again (default: buffer_size // 2): corrects the model."""
-    margin: int = Field(default=8, ge=0, le=1000)
-    """Characters kept clear of the high-water mark in the model (its error)."""
+    margin: int = Field(default=24, ge=0, le=1000)
+    """Characters kept clear of the high-water mark in the model (its error: a device
+    server's jitter, the control's own timing)."""
     burst: int = Field(default=4, ge=1, le=4096)
     """Characters written at a time (what may be in flight after a DC3, with ``ahead``)."""
     ahead: float = Field(default=2.0, ge=0, le=4096)
@@ -228,7 +229,7 @@ class _Model:
 def tape_blocks(data: bytes, model: MotionModel, scale: float) -> list[tuple[int, float]]:
     """Each LF of a tape with what the control does on reaching it: (offset after the LF,
     seconds it executes), by the motion model; label and blank lines take 0 s."""
-    machine = Machine(model)
+    machine = Machine(model, trace=False)
     out: list[tuple[int, float]] = []
     pos = 0
     for number, raw in enumerate(data.split(b"\n")[:-1], 1):
@@ -296,6 +297,7 @@ class IsoCncDriver(LinkDriver):
         self._model: _Model | None = None
         self._sent = 0
         self._stops = 0
+        self._seen_at_end = -1  # DC3s heard when the closing % went out
         self._sending = False  # a DC3 now is flow control, not the end of the read
         self._lock = asyncio.Lock()
 
@@ -414,6 +416,7 @@ class IsoCncDriver(LinkDriver):
         began = loop.time()
         self._stops = 0
         self._sent = 0
+        self._seen_at_end = -1
         self._model = model
 
         def report(state: str) -> None:
@@ -451,8 +454,12 @@ class IsoCncDriver(LinkDriver):
         limit = max(o.burst, self.high_water - o.margin)
         wire_free = loop.time()
         last_report = 0.0
+        # Past the closing % (its trailer is only tape feed) a DC3 is the end of the read.
+        end_at = framed.rfind(b"%") + 1 if o.percent else total - o.trailer
         while self._sent < total:
             self._handle(self.link.reset_input())
+            if self._sent >= end_at and self._dc3_seen > self._seen_at_end:
+                break
             if self._stopped:
                 self._stops += 1
                 report("stopped")
@@ -480,6 +487,8 @@ class IsoCncDriver(LinkDriver):
             wire_free = max(wire_free, now) + n * char_time
             self._sent += n
             model.wrote(self._sent, wire_free)
+            if self._sent >= end_at and self._seen_at_end < 0:
+                self._seen_at_end = self._dc3_seen
             self._progress = IsoCncStatus(
                 self.state, self._sent, total, stall_s=model.idle_s * o.motion_scale
             )
@@ -490,15 +499,23 @@ class IsoCncDriver(LinkDriver):
             await asyncio.sleep(wire_free - loop.time())
 
     async def _wait_end(self, deadline: float, model: _Model, seen_before: int) -> None:
-        """Wait for the control's DC3 that ends the read (after the closing ``%``)."""
+        """Wait for the control's DC3 that ends the read (after the closing ``%``).
+
+        A DC3 heard once every byte is out ends a read-in. A drip-feed's ends the run only
+        from shortly before the modelled end of its last block on: a DC3 before that is the
+        buffer's (which a control lagging behind the model can still send)."""
         loop = asyncio.get_running_loop()
+        finished = loop.time()
+        if model.drip:
+            end = model.end_time()
+            grace = 0.05 + 0.05 * max(0.0, end - finished)
+            while loop.time() < end - grace:
+                self._handle(self.link.reset_input())
+                await asyncio.sleep(min(0.05, end - grace - loop.time()))
         while True:
             self._handle(self.link.reset_input())
             if self._dc3_seen > seen_before:
-                level = model.level(self._sent, loop.time())
-                if not model.drip or level <= max(self.low_water, self.options.burst):
-                    return
-                seen_before = self._dc3_seen
+                return
             await self._listen(deadline, "the control did not end the read (no DC3 after %)")
 
     async def read_in(
@@ -538,9 +555,10 @@ class IsoCncDriver(LinkDriver):
                     await self.start_output.pulse(o.go_pulse)
                 what = "RMT mode and CYCLE START" if drip else "EDIT mode and READ"
                 await self._wait_dc1(timeout or o.dc1_timeout, f"is the control in {what}?")
-                seen = self._dc3_seen
                 began = loop.time()
                 sent = await self._send(framed, model, "sending", progress)
+                # DC3s until the closing % was out were the buffer's
+                seen = self._seen_at_end if self._seen_at_end >= 0 else self._dc3_seen
                 left = max(0.0, model.end_time() - loop.time())
                 allowed = left * o.end_margin + o.end_extra + o.ready_wait
                 await self._wait_end(loop.time() + allowed, model, seen)

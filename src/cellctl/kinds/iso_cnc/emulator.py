@@ -41,9 +41,6 @@ from cellctl.kinds.iso_cnc.gcode import PROGRAM_ENDS, Block, parse_block
 from cellctl.kinds.iso_cnc.motion import Machine, MotionModel
 from cellctl.kinds.iso_cnc.tape import ALARMS, DC1, DC2, DC3, DC4, alarm_report
 
-#: How much of its own scheduling delay a reply takes back (as the line's pacing does).
-_CATCH_UP_S = 0.005
-
 FAULTS = {
     "adapter-latency": "=MS: its DC3/DC1 reach the host MS milliseconds late (a USB adapter)",
     "parity-noise": "=RATE: each received character has a parity error with probability RATE "
@@ -316,18 +313,21 @@ class IsoCncEmulator(EmulatedDevice):
             return
         if self.mode == Mode.RMT:
             run = self._new_run(0)
-            self._machine = Machine(self.options.motion())
+            self._machine = Machine(self.options.motion(), trace=False)
             self._exec_task = asyncio.ensure_future(self._execute(run))
         if "never-dc1" not in self.faults:
             self._signal(DC1, rts=True)
 
     def _new_run(self, number: int) -> DripRun:
+        """A run about to start (it counts, and its hooks hear of it, at its first block)."""
         run = DripRun(number)
         self._run = run
+        return run
+
+    def _started(self, run: DripRun) -> None:
         self.runs.append(run)
         for hook in list(self.run_hooks):
             hook(run)
-        return run
 
     def _signal(self, code: bytes, *, rts: bool | None = None) -> None:
         """Send DC1/DC3 (and RTS with CS flow) through the adapter's delay."""
@@ -379,7 +379,9 @@ class IsoCncEmulator(EmulatedDevice):
                 self._lf_at.append(last - (n - 1 - j) * char_time)
             if not self._stopped and len(self._buffer) >= self.high_water:
                 at = last - (n - 1 - j) * char_time
-                self._send_dc3(max(at, asyncio.get_running_loop().time() - _CATCH_UP_S))
+                # Counted from the character that filled it, as a control does in real time
+                # (even when this process got to it late).
+                self._send_dc3(at)
         if self.mode != Mode.EDIT:
             self._block_ready.set()
 
@@ -441,7 +443,7 @@ class IsoCncEmulator(EmulatedDevice):
         """Run blocks as they come; every wait for one after the first is a stall."""
         loop = asyncio.get_running_loop()
         began = loop.time()
-        machine = self._machine or Machine(self.options.motion())
+        machine = self._machine or Machine(self.options.motion(), trace=False)
         # Each block ends a fixed time after it began (wall time), so the sleeps' own delays
         # do not add up over a long program: the axes run on the machine's clock.
         free_at = began
@@ -472,6 +474,8 @@ class IsoCncEmulator(EmulatedDevice):
                     )
                 )
             start = max(arrived, free_at) if run.blocks else arrived
+            if not run.blocks:
+                self._started(run)
             seconds = machine.step(block).seconds
             run.blocks += 1
             run.machine_s += seconds
@@ -485,7 +489,8 @@ class IsoCncEmulator(EmulatedDevice):
             self._finish_read()
 
     async def _run_memory(self, run: DripRun) -> None:
-        machine = Machine(self.options.motion())
+        machine = Machine(self.options.motion(), trace=False)
+        self._started(run)
         for n, line in enumerate(self.memory.get(run.number, "").splitlines(), 1):
             block = parse_block(n, line, [])
             seconds = machine.step(block).seconds if block.words else 0.0
@@ -548,6 +553,9 @@ class IsoCncEmulator(EmulatedDevice):
         """Serve one host: read what it sends and act by what the control is doing."""
         self._line = line
         line.set_rts(True)
+        if self.activity == Activity.READING and not self._stopped and not self.chars_read:
+            # It asked before a host was there (no cable, no device server): ask again.
+            self._signal(DC1, rts=True)
         self._auto()
         with contextlib.suppress(LinkClosed, LinkError):
             while True:

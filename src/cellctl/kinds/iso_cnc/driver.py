@@ -550,7 +550,8 @@ class IsoCncDriver(LinkDriver):
             try:
                 if progress is not None:
                     progress(TransferProgress(0, len(framed), 0.0, 0, 0.0, math.inf, "waiting"))
-                self._stopped = True
+                # _stopped stays as the control left it: a DC1 it sent since the last read
+                # (an operator, or the auto-operator, pressed READ again) is its asking.
                 if drip and self.start_output is not None:
                     await self.start_output.pulse(o.go_pulse)
                 what = "RMT mode and CYCLE START" if drip else "EDIT mode and READ"
@@ -579,9 +580,8 @@ class IsoCncDriver(LinkDriver):
                 self._set(IsoCncState.IDLE)
                 self._progress = IsoCncStatus()
                 return sent
-            except ControlAlarm:
-                raise
             except BaseException:
+                self._stopped = True  # what the control does next is not known: wait for DC1
                 if self.state != IsoCncState.ALARM:
                     self._set(IsoCncState.IDLE)
                 raise

@@ -22,7 +22,7 @@ from cellctl.kinds.iso_cnc.driver import (
 from cellctl.kinds.iso_cnc.emulator import Activity, EmulatorOptions, IsoCncEmulator, Mode
 from cellctl.link import LineSettings, TrafficLog
 
-from .conftest import Ser2net, until
+from .conftest import Ser2net, emulator_process, until
 
 SCALE = 4.0
 LINE = LineSettings(int(9600 * SCALE), 7, "E", 2)
@@ -241,3 +241,17 @@ async def test_punch_receive_gets_the_program_from_dc2_to_dc4(cnc: Cnc) -> None:
     assert tape.unframe(punched) == text
     assert tape.split_programs(tape.unframe(punched))[0].number == 42
     await until(lambda: cnc.control.activity == Activity.IDLE, "the punch to end")
+
+
+async def test_cellctl_emulate_iso_cnc_serves_a_control_in_its_own_process(
+    tmp_path: Path,
+) -> None:
+    args = ["iso-cnc", "--mode", "EDIT", "--auto-operator", "--time-scale", str(SCALE)]
+    with emulator_process(*args, "--line", str(LINE), "--fault", "adapter-latency=16") as url:
+        options = IsoCncOptions(motion_scale=SCALE, dc1_timeout=10, end_extra=10)
+        driver = await IsoCncDriver.connect(url, settings=LINE, options=options)
+        try:
+            report = await driver.read_in(surfacing(4), timeout=DEADLINE)
+            assert report.chars_sent > 0  # it asked with DC1 and ended the read with DC3
+        finally:
+            await driver.close()

@@ -41,6 +41,9 @@ from cellctl.kinds.iso_cnc.gcode import PROGRAM_ENDS, Block, parse_block
 from cellctl.kinds.iso_cnc.motion import Machine, MotionModel
 from cellctl.kinds.iso_cnc.tape import ALARMS, DC1, DC2, DC3, DC4, alarm_report
 
+#: Seconds the automatic operator waits for a tape before pressing READ again.
+_OPERATOR_PATIENCE_S = 1.0
+
 FAULTS = {
     "adapter-latency": "=MS: its DC3/DC1 reach the host MS milliseconds late (a USB adapter)",
     "parity-noise": "=RATE: each received character has a parity error with probability RATE "
@@ -155,6 +158,7 @@ class IsoCncEmulator(EmulatedDevice):
         self.run_hooks: list[Callable[[DripRun], None]] = []
         self.overflow_chars = 0  # the most characters received after one DC3
         self.dc3_sent = 0
+        self._read_serial = 0  # which READ press the automatic operator is waiting on
         self.peak_buffer = 0  # the most characters its reader buffer held
         self.chars_read = 0
         self.faults: set[str] = set()
@@ -317,6 +321,23 @@ class IsoCncEmulator(EmulatedDevice):
             self._exec_task = asyncio.ensure_future(self._execute(run))
         if "never-dc1" not in self.faults:
             self._signal(DC1, rts=True)
+            if self.options.auto_operator:
+                self._read_serial += 1
+                serial, seen = self._read_serial, self.chars_read
+                asyncio.get_running_loop().call_later(
+                    _OPERATOR_PATIENCE_S, self._press_again, serial, seen
+                )
+
+    def _press_again(self, serial: int, seen: int) -> None:
+        """The automatic operator: nothing came since READ was pressed, press it again (its
+        DC1 may have gone to a host that was not listening yet)."""
+        if serial != self._read_serial or self.activity != Activity.READING:
+            return
+        if self.chars_read == seen and "never-dc1" not in self.faults:
+            self._signal(DC1, rts=True)
+            asyncio.get_running_loop().call_later(
+                _OPERATOR_PATIENCE_S, self._press_again, serial, seen
+            )
 
     def _new_run(self, number: int) -> DripRun:
         """A run about to start (it counts, and its hooks hear of it, at its first block)."""

@@ -4,6 +4,7 @@ line's baud rate, the control's motion and the adapter's latency together."""
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -12,7 +13,7 @@ import pytest
 
 from cellctl.emulators.serve import Server, serve
 from cellctl.errors import LinkTimeout, UsageError
-from cellctl.kinds.iso_cnc import tape
+from cellctl.kinds.iso_cnc import gcode, motion, tape
 from cellctl.kinds.iso_cnc.driver import (
     ControlAlarm,
     IsoCncDriver,
@@ -255,3 +256,33 @@ async def test_cellctl_emulate_iso_cnc_serves_a_control_in_its_own_process(
             assert report.chars_sent > 0  # it asked with DC1 and ended the read with DC3
         finally:
             await driver.close()
+
+
+async def test_a_punch_pauses_on_the_host_s_dc3_and_goes_on_at_dc1(cnc: Cnc) -> None:
+    text = "".join(["O0043 (LONG)\n", *(f"G1 X{i}.5 Y{i} F500\n" for i in range(200)), "M30\n"])
+    cnc.control.options = cnc.control.options.model_copy(update={"auto_operator": False})
+    cnc.control.set_mode(Mode.EDIT)
+    cnc.control.memory[43] = text
+    cnc.control.punch(43)
+    receiving = asyncio.ensure_future(cnc.driver.receive(timeout=DEADLINE))
+    await until(lambda: cnc.control.punched > 100, "the punch to start")
+    await cnc.driver.pause()
+    await until(lambda: cnc.control.punch_held or receiving.done(), "the punch to stop")
+    assert not receiving.done() and cnc.control.punch_overrun <= 10  # the spec's 10
+    held = cnc.control.punched
+    await cnc.driver.resume()
+    punched = await receiving
+    assert cnc.control.punched > held and tape.unframe(punched) == text
+
+
+async def test_a_program_read_into_memory_runs_from_memory_in_its_motion_time(cnc: Cnc) -> None:
+    data = surfacing(2)
+    await cnc.driver.read_in(data, timeout=DEADLINE)
+    cnc.control.set_mode(Mode.MEM)
+    cnc.control.selected = 1234
+    cnc.control.cycle_start()
+    await until(lambda: cnc.control.runs and cnc.control.runs[-1].done, "the memory run")
+    run = cnc.control.runs[-1]
+    blocks = gcode.blocks(tape.unframe(data))
+    assert run.number == 1234 and run.blocks == len(blocks)
+    assert run.machine_s == pytest.approx(motion.program_seconds(blocks))

@@ -158,6 +158,10 @@ class IsoCncEmulator(EmulatedDevice):
         self.run_hooks: list[Callable[[DripRun], None]] = []
         self.overflow_chars = 0  # the most characters received after one DC3
         self.dc3_sent = 0
+        self.punched = 0  # characters punched, all punches
+        self.punch_overrun = 0  # the most it punched after a host's DC3
+        self.punch_held = False  # a punch waits for the host's DC1
+        self._paused_at = 0
         self._read_serial = 0  # which READ press the automatic operator is waiting on
         self.peak_buffer = 0  # the most characters its reader buffer held
         self.chars_read = 0
@@ -537,11 +541,16 @@ class IsoCncEmulator(EmulatedDevice):
                 return
             step = 4  # it stops within a few characters of a DC3 (the spec allows 10)
             for i in range(0, len(data), step):
+                if not self._punch_go.is_set():
+                    self.punch_overrun = max(self.punch_overrun, self.punched - self._paused_at)
+                    self.punch_held = True
                 await self._punch_go.wait()
+                self.punch_held = False
                 if self.activity != Activity.PUNCHING:
                     return
                 await line.write(data[i : i + step])
                 await line.drain()
+                self.punched += len(data[i : i + step])
             self.activity = Activity.IDLE
         except (LinkClosed, LinkError):
             self.activity = Activity.IDLE
@@ -587,8 +596,9 @@ class IsoCncEmulator(EmulatedDevice):
                     self._take(data, line)
                 elif self.activity == Activity.PUNCHING:
                     for byte in data:
-                        if byte == tape.Code.DC3:
+                        if byte == tape.Code.DC3 and self._punch_go.is_set():
                             self._punch_go.clear()
+                            self._paused_at = self.punched
                         elif byte == tape.Code.DC1:
                             self._punch_go.set()
         if self._line is line:

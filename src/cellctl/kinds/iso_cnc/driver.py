@@ -40,6 +40,12 @@ can stay under a tolerance of 10. Two things keep this driver under it:
 With ``cs_flow`` the control's RTS (the host's CTS, carried by a serial port or RFC 2217) is
 also obeyed before each burst. Bad input (no such file, a program the G-code check refuses,
 characters a 7-bit tape cannot carry) is refused before a byte goes out.
+
+A read ends at the control's DC3 after the closing ``%`` (the rest of the trailer is not
+sent: the control has left the read). A punch is received whole as it comes; :meth:`pause`
+and :meth:`resume` send DC3 and DC1 to hold it (CS cannot: the link layer drives no RTS).
+In a cell, :meth:`run` drip-feeds the route's program: the cell's GO output (wired to CYCLE
+START, the control in RMT) starts it, and it returns when the control has run it to its end.
 """
 
 from __future__ import annotations

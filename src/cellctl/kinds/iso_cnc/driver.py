@@ -282,7 +282,10 @@ class IsoCncDriver(LinkDriver):
         loop = asyncio.get_running_loop()
         char_time = self.link.settings.char_time
         total = len(framed)
-        limit = max(o.burst, self.high_water - o.margin)
+        # Bursts cover at least pace_s of line time, whatever the baud rate (see pace_s).
+        burst = max(o.burst, math.ceil(o.pace_s / char_time))
+        ahead = max(o.ahead, burst / 2) * char_time
+        limit = max(burst, self.high_water - o.margin)
         wire_free = loop.time()
         last_report = 0.0
         # Past the closing % (its trailer is only tape feed) a DC3 is the end of the read.
@@ -301,11 +304,11 @@ class IsoCncDriver(LinkDriver):
                     )
                 continue
             now = loop.time()
-            early = wire_free - o.ahead * char_time - now
+            early = wire_free - ahead - now
             if early > 0:
                 await asyncio.sleep(early)
                 continue
-            n = min(o.burst, total - self._sent)
+            n = min(burst, total - self._sent)
             if model.level(self._sent, now) + n > limit:
                 drain = model.next_drain()
                 if drain is not None:

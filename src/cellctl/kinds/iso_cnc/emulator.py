@@ -176,11 +176,13 @@ class IsoCncEmulator(EmulatedDevice):
         self._stopped = False  # a DC3 is out: counting what comes after it
         self._after_dc3 = 0
         self._dc3_at = 0.0
-        self._arrived = 0.0
         self._tape = bytearray()  # what a read-in has taken so far
         self._run: DripRun | None = None
         self._machine: Machine | None = None
         self._block_ready = asyncio.Event()
+        self._free_at = 0.0  # when the block running now ends (loop time)
+        self._read_began = 0.0
+        self._tape_done = False
         self._exec_task: asyncio.Task[None] | None = None
         self._punch_task: asyncio.Task[None] | None = None
         self._punch_go = asyncio.Event()
@@ -322,6 +324,8 @@ class IsoCncEmulator(EmulatedDevice):
         if self.mode == Mode.RMT:
             run = self._new_run(0)
             self._machine = Machine(self.options.motion(), trace=False)
+            self._free_at = self._read_began = asyncio.get_running_loop().time()
+            self._tape_done = False
             self._exec_task = asyncio.ensure_future(self._execute(run))
         if "never-dc1" not in self.faults:
             self._signal(DC1, rts=True)
@@ -398,12 +402,16 @@ class IsoCncEmulator(EmulatedDevice):
                     self._store()
                     return
                 continue
+            at = last - (n - 1 - j) * char_time
             self._buffer.append(byte)
-            self.peak_buffer = max(self.peak_buffer, len(self._buffer))
             if byte == 0x0A:
-                self._lf_at.append(last - (n - 1 - j) * char_time)
+                self._lf_at.append(at)
+            if len(self._buffer) >= self.high_water:
+                # The blocks the machine has started by now have left the buffer, even when
+                # this process got to them late: the control runs in real time.
+                self._advance(at)
+            self.peak_buffer = max(self.peak_buffer, len(self._buffer))
             if not self._stopped and len(self._buffer) >= self.high_water:
-                at = last - (n - 1 - j) * char_time
                 # Counted from the character that filled it, as a control does in real time
                 # (even when this process got to it late).
                 self._send_dc3(at)
@@ -449,39 +457,31 @@ class IsoCncEmulator(EmulatedDevice):
 
     # -- execution -----------------------------------------------------------------------------
 
-    def _next_block(self) -> bytes | None:
-        i = self._buffer.find(b"\n")
-        if i < 0:
-            if self._buffer.rstrip(b"\x00\r") == b"%" and self._started_tape:
-                self._buffer.clear()
-                return b"%"
-            return None
-        raw = bytes(self._buffer[: i + 1])
-        del self._buffer[: i + 1]
-        self._arrived = self._lf_at.popleft() if self._lf_at else 0.0
-        if self._stopped and len(self._buffer) <= self.low_water:
-            self._stopped = False
-            self._signal(DC1, rts=True)
-        return raw
-
-    async def _execute(self, run: DripRun) -> None:
-        """Run blocks as they come; every wait for one after the first is a stall."""
-        loop = asyncio.get_running_loop()
-        began = loop.time()
-        machine = self._machine or Machine(self.options.motion(), trace=False)
-        # Each block ends a fixed time after it began (wall time), so the sleeps' own delays
-        # do not add up over a long program: the axes run on the machine's clock.
-        free_at = began
-        while self.activity == Activity.READING:
-            raw = self._next_block()
-            if raw is None:
-                self._block_ready.clear()
-                await self._block_ready.wait()
-                continue
+    def _advance(self, now: float) -> None:
+        """Start every block whose time has come by ``now`` (loop time): a block starts at
+        ``max(its LF's arrival, the previous block's end)`` and leaves the buffer then."""
+        run, machine = self._run, self._machine
+        while run is not None and machine is not None and not self._tape_done:
+            i = self._buffer.find(b"\n")
+            if i < 0:
+                if self._started_tape and self._buffer.rstrip(b"\x00\r") == b"%":
+                    self._tape_done = True  # the closing % (its trailer still coming)
+                return
+            arrived = self._lf_at[0] if self._lf_at else now
+            start = max(arrived, self._free_at) if run.blocks else arrived
+            if start > now:
+                return
+            raw = bytes(self._buffer[: i + 1])
+            del self._buffer[: i + 1]
+            if self._lf_at:
+                self._lf_at.popleft()
+            if self._stopped and len(self._buffer) <= self.low_water:
+                self._stopped = False
+                self._signal(DC1, rts=True)
             text = raw.replace(b"\x00", b"").replace(b"\r", b"").decode("latin-1")
             if "%" in text:
                 if self._started_tape:
-                    break  # the closing %
+                    self._tape_done = True  # the closing %
                 self._started_tape = True  # label skip: the rest of this line is not read
                 continue
             if not self._started_tape and not text.strip():
@@ -490,26 +490,37 @@ class IsoCncEmulator(EmulatedDevice):
             block = parse_block(run.blocks + 1, text.rstrip("\n"), [])
             if not block.words:
                 continue
-            arrived = min(self._arrived, loop.time()) or loop.time()
-            if run.blocks and arrived > free_at:
-                # The axes stopped at free_at and waited for this block: a stall.
-                run.stalls.append(
-                    Stall(
-                        (free_at - began) * self.time_scale, (arrived - free_at) * self.time_scale
-                    )
-                )
-            start = max(arrived, free_at) if run.blocks else arrived
             if not run.blocks:
                 self._started(run)
+            elif arrived > self._free_at:
+                # The axes stopped at the last block's end and waited for this one: a stall.
+                since = (self._free_at - self._read_began) * self.time_scale
+                run.stalls.append(Stall(since, (arrived - self._free_at) * self.time_scale))
             seconds = machine.step(block).seconds
             run.blocks += 1
             run.machine_s += seconds
-            free_at = start + seconds / self.time_scale
-            if free_at > loop.time():
-                await asyncio.sleep(free_at - loop.time())
+            self._free_at = start + seconds / self.time_scale
             if PROGRAM_ENDS & set(block.m_codes):
+                self._tape_done = True
+
+    async def _execute(self, run: DripRun) -> None:
+        """Run blocks as they come (the schedule :meth:`_advance` keeps); every wait for one
+        after the first is a stall."""
+        loop = asyncio.get_running_loop()
+        while self.activity == Activity.READING and self._run is run:
+            self._advance(loop.time())
+            if self._tape_done:
+                if self._free_at > loop.time():
+                    await asyncio.sleep(self._free_at - loop.time())
                 break
-        if self.activity == Activity.READING:
+            if self._lf_at:
+                wake = max(self._lf_at[0], self._free_at) if run.blocks else self._lf_at[0]
+                if wake > loop.time():
+                    await asyncio.sleep(wake - loop.time())
+                continue
+            self._block_ready.clear()
+            await self._block_ready.wait()
+        if self.activity == Activity.READING and self._run is run:
             run.done = True
             self._finish_read()
 

@@ -309,11 +309,15 @@ class IsoCncDriver(LinkDriver):
                 await asyncio.sleep(early)
                 continue
             n = min(burst, total - self._sent)
-            if model.level(self._sent, now) + n > limit:
+            room = limit - model.level(self._sent, now)
+            if room < n:
                 drain = model.next_drain()
-                if drain is not None:
+                if drain is not None and room < min(n, o.burst):
                     await asyncio.sleep(max(drain - now, char_time))
                     continue
+                # What fits now; with nothing to wait for (a block longer than the room),
+                # a small burst: the control's DC3 is the guard.
+                n = max(1, min(n, room)) if drain is not None else min(n, o.burst)
             if o.cs_flow and not await self.link.cts():
                 await self.link.wait_cts(True, timeout=o.stop_timeout)
                 continue

@@ -269,7 +269,11 @@ class VirtualLoop(asyncio.SelectorEventLoop):
             wall = time.time()
         else:
             wall = float(start)
-        self.clock = VirtualClock(self, wall, time_scale)
+        try:
+            self.clock = VirtualClock(self, wall, time_scale)
+        except UsageError:
+            self.close()  # its wake-up sockets are open already
+            raise
 
     def time(self) -> float:
         return self._virtual_now

@@ -47,6 +47,9 @@ class Run:
     download_bytes: int = 0
     wall: float = 0.0
     machine_s: float = 0.0  # machine time the download's blocks took (the mill)
+    device_in: int = 0  # bytes the emulator's end received, and sent
+    device_out: int = 0
+    held: object = None  # what the machine holds after the session (partitions, memory)
 
     def turns(self) -> list[tuple[str, bytes]]:
         """The traffic as turns: each run of bytes one way, however it was chunked."""
@@ -60,6 +63,19 @@ class Run:
 
     def total(self) -> int:
         return len(self.trace.sent()) + len(self.trace.received())
+
+    def device_side(self, server: Server, held: object) -> None:
+        """What reached the emulator: the host's trace is taken before the line."""
+        line = server.current_line
+        assert line is not None
+        self.device_in, self.device_out, self.held = line.bytes_in, line.bytes_out, held
+
+    def check_line(self) -> None:
+        """Every byte crossed the line: as many reached each end as the other sent."""
+        assert (self.device_in, self.device_out) == (
+            len(self.trace.sent()),
+            len(self.trace.received()),
+        )
 
 
 def timed(run: Run, session: Callable[[], Awaitable[None]], virtual: bool) -> Run:
@@ -101,6 +117,7 @@ def robot_run(listen: str, line: LineSettings, time_scale: float, state: Path) -
                 run.elapsed = clock.monotonic() - start
                 run.download_bytes = run.total() - before
                 assert all(robot.partitions[p] for p in range(1, len(programs) + 1))
+                run.device_side(server, dict(emulator.partitions))
         finally:
             await server.close()
 
@@ -112,6 +129,8 @@ def test_robot_downloads_over_mem_on_virtual_time_as_over_a_pty(tmp_path: Path) 
     mem = robot_run("mem", ROBOT_LINE, 1.0, tmp_path / "mem")
     assert mem.turns() == real.turns()
     assert any(direction == RECEIVED for direction, _ in mem.turns())
+    mem.check_line()
+    assert mem.held == real.held  # the same programs arrived in the same partitions
     # The downloads are record and Ack in turn: their time is the line's, both ways.
     line_time = ROBOT_LINE.wire_time(mem.download_bytes)
     assert mem.elapsed == pytest.approx(line_time, abs=PACE_SLICE_S)
@@ -183,6 +202,7 @@ def mill_run(listen: str, readiness: str, virtual: bool, state: Path) -> Run:
                 run.machine_s = sum(
                     max(b.machining_s / emulator.time_scale, emulator.min_busy_s) for b in blocks
                 )
+                run.device_side(server, dict(emulator.memory))
         finally:
             await server.close()
 
@@ -205,6 +225,8 @@ def test_mill_downloads_over_mem_on_virtual_time_as_over_a_real_line(
     assert mem.trace.sent() == real.trace.sent()
     assert mem.trace.received() == real.trace.received()
     assert mem.turns() == real.turns()
+    mem.check_line()
+    assert mem.held == real.held  # the controller's memory: the last block, line for line
     # Three blocks, each sent at the line's rate, then machined on the machine's own time.
     line_time = MILL_LINE.wire_time(mem.download_bytes)
     assert mem.elapsed == pytest.approx(line_time + mem.machine_s, abs=PACE_SLICE_S)

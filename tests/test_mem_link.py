@@ -99,6 +99,43 @@ def test_every_byte_arrives_in_order_never_faster_than_the_line(
     run_virtual(main())
 
 
+@settings(max_examples=60, deadline=None)
+@given(
+    line=settings_strategy,
+    writes=st.lists(
+        st.tuples(st.floats(min_value=0, max_value=2), st.binary(min_size=1, max_size=40)),
+        min_size=1,
+        max_size=10,
+    ),
+)
+def test_each_write_ends_when_a_real_line_would_have_carried_it(
+    line: LineSettings, writes: list[tuple[float, bytes]]
+) -> None:
+    """Writes at random moments: each one's last byte arrives when the line, busy with what
+    came before, would have carried it (a line idle meanwhile gives no credit)."""
+
+    async def main() -> None:
+        clock = current_clock()
+        link, device = await _pair(line)
+        expected: list[tuple[float, int]] = []  # (last byte through at, bytes so far)
+        busy_until, total = clock.monotonic(), 0
+        for gap, data in writes:
+            await asyncio.sleep(gap)
+            await link.write(data)
+            busy_until = max(clock.monotonic(), busy_until) + len(data) * line.char_time
+            total += len(data)
+            expected.append((busy_until, total))
+        await asyncio.sleep(busy_until - clock.monotonic() + PACE_SLICE_S)
+        assert bytes(device.received) == b"".join(data for _, data in writes)
+        # A write's last byte ends a slice, handed over on its own on the virtual loop.
+        arrived = {so_far: at for at, so_far in device.arrivals}
+        for through, so_far in expected:
+            assert arrived[so_far] == pytest.approx(through, abs=1e-6)
+        await link.close()
+
+    run_virtual(main())
+
+
 def test_a_write_after_a_silence_takes_its_own_line_time() -> None:
     async def main() -> None:
         clock = current_clock()

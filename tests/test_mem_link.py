@@ -238,6 +238,17 @@ def test_a_dropped_line_loses_what_was_in_flight_and_a_closed_one_keeps_it() -> 
             await link2.read(timeout=5)
         with pytest.raises(LinkClosed):
             await link2.write(b"x")
+        # A host that closed hears nothing more: what was crossing toward it is not received.
+        trace = TrafficLog(None)
+        device3 = Device()
+        listen_mem("leaver", LINE, device3.attach)
+        link3 = await open_link("mem://leaver", LINE, trace=trace)
+        assert device3.port is not None
+        device3.port.write(b"too late")
+        await link3.close()
+        device3.port.write(b"later still")
+        await asyncio.sleep(1)
+        assert trace.received() == b"" and device3.closed_at is not None
 
     run_virtual(main())
 

@@ -150,8 +150,9 @@ class MemPort:
 
     def write(self, data: bytes) -> None:
         """Send ``data`` to the host (nothing happens once the line is closed)."""
-        if data and not self._wire.closed:
-            self._wire.to_host.send(bytes(data))
+        wire = self._wire
+        if data and not wire.closed and not wire.host_closed:
+            wire.to_host.send(bytes(data))
 
     def set_rts(self, level: bool) -> None:
         """The device's RTS: the host's CTS."""
@@ -227,6 +228,7 @@ class MemWire:
 
     def _host_closes(self) -> None:
         self.host_closed = True
+        self.to_host.cut()  # a closed port hears nothing more
         if not self.closed:
             self.to_device.close_after()
 

@@ -257,7 +257,9 @@ def test_bad_urls_names_and_framing_are_refused_before_a_byte() -> None:
     async def main() -> None:
         with pytest.raises(LinkError, match="nothing listens there"):
             await open_link("mem://nobody", LINE)
-        for url in ("mem://", "mem://a/b", "mem://a?x=1", "mem://bad name", "mem://" + "x" * 200):
+        # "socket://[": the URL parser's own error comes out as a UsageError for every scheme.
+        bad = ("mem://", "mem://a/b", "mem://a?x=1", "mem://bad name", "mem://" + "x" * 200)
+        for url in (*bad, "mem://[", "socket://["):
             with pytest.raises(UsageError):
                 await open_link(url, LINE)
         listen_mem("cnc1", LINE, lambda port: None)
@@ -295,3 +297,21 @@ async def test_a_mem_line_on_the_real_loop_and_clock_is_paced_too() -> None:
     listener.close()
     with pytest.raises(LinkError, match="nothing listens"):
         await open_link("mem://real1", fast)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.text(max_size=60))
+def test_any_mem_url_opens_or_is_refused_with_a_typed_error(rest: str) -> None:
+    url = "mem://" + rest
+
+    async def main() -> None:
+        listen_mem("known", LINE, lambda port: None)
+        try:
+            link = await open_link(url, LINE)
+        except (UsageError, LinkError) as e:
+            assert str(e)
+        else:
+            assert url == "mem://known"
+            await link.close()
+
+    run_virtual(main())

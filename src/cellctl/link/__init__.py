@@ -71,7 +71,10 @@ async def open_link(
     global _fd_limit_raised
     log = TrafficLog(trace) if isinstance(trace, str | Path) else trace
     name = label or url
-    scheme = urlsplit(url).scheme if "://" in url else ""
+    try:
+        scheme = urlsplit(url).scheme if "://" in url else ""
+    except ValueError as e:  # e.g. an unclosed "[" of an IPv6 address
+        raise UsageError(f"link URL {url!r} not understood: {e}") from None
     if scheme in ("", "serial"):
         from cellctl.link.serialport import SerialLink, raise_fd_limit
 

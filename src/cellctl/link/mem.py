@@ -32,7 +32,6 @@ import re
 import weakref
 from collections import deque
 from collections.abc import Callable
-from urllib.parse import urlsplit
 
 from cellctl.clock import Clock, current_clock
 from cellctl.errors import LinkClosed, LinkError, LinkTimeout, MachineInUse, UsageError
@@ -43,7 +42,7 @@ from cellctl.link.trace import TrafficLog
 #: The longest slice of line time handed over at once (seconds).
 PACE_SLICE_S = 0.050
 
-_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
 # A timer may fire a rounding error before its time (the loop's clock resolution).
 _EPS = 1e-9
 
@@ -369,11 +368,10 @@ _endpoints: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, dict[str, MemLi
 
 def mem_name(url: str) -> str:
     """``"mem://robot1"`` → ``"robot1"``; refuses a URL that is not a plain ``mem://NAME``."""
-    parts = urlsplit(url)
-    name = parts.netloc
-    if parts.scheme != "mem" or parts.path or parts.query or parts.fragment or not name:
+    scheme, sep, name = url.partition("://")
+    if scheme != "mem" or not sep or not name:
         raise UsageError(f"{url!r}: write mem://NAME")
-    if not _NAME.match(name):
+    if not _NAME.fullmatch(name):
         raise UsageError(
             f"{url!r}: a mem:// name is letters, digits, '.', '_' and '-' (at most 128)"
         )

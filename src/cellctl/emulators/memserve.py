@@ -5,9 +5,9 @@ runs on a :class:`DeviceLine` as over a pty or TCP, with the ``mem://`` line doi
 (at the line's rate, on the loop's clock) and carrying the modem lines (the emulator's RTS is
 the host's CTS)::
 
-    server = await serve_mem(Dyna2400Emulator(), MILL_LINE, name="cnc1")
-    mill = await Dyna2400Mill.connect(server.url, settings=MILL_LINE)   # "mem://cnc1"
-    ...
+    server = await serve_mem(emulator, settings, name="cnc1")   # any EmulatedDevice
+    link = await open_link(server.url, settings)                 # "mem://cnc1" (or a
+    ...                                                          # driver's connect(server.url))
     await server.close()
 
 On a virtual-time loop (:func:`cellctl.clock.run_virtual`) the pair runs byte for byte as over

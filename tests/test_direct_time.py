@@ -135,7 +135,9 @@ def test_no_file_reads_time_more_often_than_the_allowlist_allows() -> None:
             where = ", ".join(f"{what} at line {line}" for line, what in found)
             over.append(f"{path}: {len(found)} direct readings of time, {limit} allowed ({where})")
     assert not over, (
-        "read the time through a Clock (cellctl.clock, docs/clock.md), not directly:\n"
+        "read the time through a Clock, not directly (docs/clock.md): clock = current_clock() "
+        "(cellctl.clock) or one handed in, then clock.monotonic(), clock.now(), "
+        "await clock.sleep(s), async with clock.timeout(s), clock.call_at(when, ...):\n"
         + "\n".join(over)
     )
 

@@ -96,11 +96,6 @@ class _Lane:
             self._timer.cancel()
             self._timer = None
 
-    @property
-    def in_flight(self) -> int:
-        """Bytes sent and not yet through."""
-        return sum(len(piece) for _, piece in self._queue if piece is not None)
-
     def _arm(self) -> None:
         if self._timer is None and self._queue:
             self._timer = self._wire.clock.call_at(self._queue[0][0], self._on_timer)

@@ -247,6 +247,8 @@ class EmulatedCell:
                 scaled = scaled_deadline(value, self.time_scale)
                 text = f"{key} = {scaled:g}  # s (the real cell's {value:g} s, scaled)"
             lines.append(text)
+            if stripped == "[cell]":
+                lines.append(f"time_scale = {self.time_scale:g}  # the machines' time, x real")
         scale = self.time_scale
         # Deadlines scale with the machines' time; a real cell keeps the template's.
         for name in raw.get("machines", {}):

@@ -165,9 +165,7 @@ async def test_the_report_of_a_real_batch(tmp_path: Path) -> None:
             assert 0 < m["performance"] <= 1.0
         # The CLI prints it, saves CSV and HTML with the Gantt chart.
         csv_file, html_file = tmp_path / "shift.csv", tmp_path / "shift.html"
-        result = await rig.cli(
-            "report", "shift", "--csv", str(csv_file), "--html", str(html_file)
-        )
+        result = await rig.cli("report", "shift", "--csv", str(csv_file), "--html", str(html_file))
         assert result.exit_code == 0, result.output
         assert "parts good 2, held 0, scrapped 0" in result.output
         assert all(len(line) <= WIDTH for line in result.output.splitlines())

@@ -38,6 +38,8 @@ def _when(t: float) -> str:
 
 
 def _hms(seconds: float) -> str:
+    if seconds < 60:  # an emulated cell's short runs: tenths still say something
+        return f"{seconds:.1f} s"
     s = round(seconds)
     return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
 

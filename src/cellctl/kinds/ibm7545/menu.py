@@ -34,6 +34,18 @@ class RobotDownloadParams(PartitionParams, ProgramParams):
     pass
 
 
+class InputParams(Params):
+    input: int
+    on: bool
+
+    @field_validator("input")
+    @classmethod
+    def _input(cls, value: int) -> int:
+        if not 1 <= value <= 16:
+            raise ValueError(f"input must be 1 to 16, not {value}")
+        return value
+
+
 def _parse_records(params: Any) -> ProgramFile:
     return ProgramFile.parse(params.text, params.program)
 
@@ -101,6 +113,7 @@ async def _robot_status(r: Ibm7545Robot, p: Prepared, progress: Progress | None)
         machine_status=str(st.machine),
         status_bytes=f"{st.machine.flags:02X} {st.machine.data_error:02X}",
         partitions=partitions,
+        waiting=[{"input": n, "on": v} for n, v in st.waiting],
         lines=st.lines(),
     )
 
@@ -123,6 +136,12 @@ async def _robot_io(r: Ibm7545Robot, p: Prepared, progress: Progress | None) -> 
         inputs=inputs,
         outputs=outputs,
     )
+
+
+async def _robot_io_set(r: Ibm7545Robot, p: Prepared, progress: Progress | None) -> dict[str, Any]:
+    await r.set_input(p.params.input, p.params.on)
+    word = "on" if p.params.on else "off"
+    return ok(f"input {p.params.input} {word}", input=p.params.input, on=p.params.on)
 
 
 async def _robot_reset(r: Ibm7545Robot, p: Prepared, progress: Progress | None) -> dict[str, Any]:
@@ -153,6 +172,9 @@ MENU: tuple[MachineFunction, ...] = (
                     "Why the controller last refused a request.", NoParams, _robot_reject),
     MachineFunction("robot", "io", "DI/DO", None, "The 16 inputs and 16 outputs.",
                     NoParams, _robot_io, observes=True),
+    MachineFunction("robot", "io_set", "IO SET", None,
+                    "Drive an input of an emulator with no PLC (a real robot refuses).",
+                    InputParams, _robot_io_set),
     MachineFunction("robot", "reset", "ERROR RESET", None,
                     "Clear machine-status and reject-status errors.", NoParams, _robot_reset),
     MachineFunction("robot", "home", "RETURN HOME", None, "Return the arm home.",

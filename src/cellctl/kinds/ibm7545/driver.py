@@ -707,15 +707,16 @@ class Ibm7545Robot(LinkDriver):
             await self._read(ReadOperand.MACHINE_STATUS, "machine status", 2)
         )
 
-    async def status(self) -> RobotStatus:
-        """Host state, decoded controller status and which partitions are full; while
-        executing, the inputs its program's WAITIs wait for that are not so now (DI/DO)."""
+    async def status(self, *, waits: bool = False) -> RobotStatus:
+        """Host state, decoded controller status and which partitions are full. ``waits``
+        (the operator's STATUS): while executing, also the inputs its program's WAITIs wait
+        for that are not so now (one DI/DO read more: a monitor's poll leaves it out)."""
         machine = await self.machine_status()
         waiting: list[tuple[int, bool]] = []
-        waits = self.waits.get(self.started or 0, [])
-        if self.state == RobotState.EXECUTING and waits:
+        pending = self.waits.get(self.started or 0, []) if waits else []
+        if self.state == RobotState.EXECUTING and pending:
             dido = await self.io()
-            waiting = [(n, v) for n, v in waits if dido.input(n) != v]
+            waiting = [(n, v) for n, v in pending if dido.input(n) != v]
         return RobotStatus(self.state, machine, dict(self.partitions), waiting)
 
     async def set_input(self, port: int, value: bool) -> None:

@@ -103,7 +103,7 @@ async def _robot_halt(r: Ibm7545Robot, p: Prepared, progress: Progress | None) -
 
 
 async def _robot_status(r: Ibm7545Robot, p: Prepared, progress: Progress | None) -> dict[str, Any]:
-    st = await r.status()
+    st = await r.status(waits=True)
     partitions = {str(n): prog for n, prog in st.partitions.items()}
     return ok(
         f"robot state {st.state} ({st.state_text})",
@@ -172,11 +172,12 @@ MENU: tuple[MachineFunction, ...] = (
                     "Why the controller last refused a request.", NoParams, _robot_reject),
     MachineFunction("robot", "io", "DI/DO", None, "The 16 inputs and 16 outputs.",
                     NoParams, _robot_io, observes=True),
-    MachineFunction("robot", "io_set", "IO SET", None,
-                    "Drive an input of an emulator with no PLC (a real robot refuses).",
-                    InputParams, _robot_io_set),
     MachineFunction("robot", "reset", "ERROR RESET", None,
                     "Clear machine-status and reject-status errors.", NoParams, _robot_reset),
     MachineFunction("robot", "home", "RETURN HOME", None, "Return the arm home.",
                     NoParams, _robot_home),
+    # Last: the keys of the functions before it stay where they were.
+    MachineFunction("robot", "io_set", "IO SET", None,
+                    "Drive an input of an emulator with no PLC (a real robot refuses).",
+                    InputParams, _robot_io_set),
 )  # fmt: skip

@@ -216,7 +216,13 @@ async def _submit(access: CellAccess, p: SubmitParams, progress: Progress | None
 
 
 async def _orders(access: CellAccess, p: OrdersParams, progress: Progress | None) -> Any:
-    return operator.list_orders(access.mailbox(), access.journal(), p.states)
+    from cellctl.service.layout import cell_config
+
+    try:
+        config = cell_config(access)  # for what blocks an order
+    except UsageError:
+        config = None
+    return operator.list_orders(access.mailbox(), access.journal(), p.states, config)
 
 
 async def _cancel(access: CellAccess, p: IdParams, progress: Progress | None) -> Any:

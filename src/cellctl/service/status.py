@@ -192,6 +192,11 @@ class OrderInfo(Model):
     updated: float = Field(description="When its state last changed, s.")
     note: str = Field(default="", description="Why it is in its state.")
     parts: dict[str, int] = Field(description="Its parts counted by status.")
+    blocked: str = Field(
+        default="",
+        description="Why it cannot go on: its parts need a machine out of service, which and "
+        "why (also at the start of note); '' when it can.",
+    )
 
 
 class PartInfo(Model):

@@ -114,6 +114,9 @@ def board_text(snapshot: dict[str, Any] | CellStatus, width: int = 48, height: i
         done = o.parts.get("done", 0)
         line = f" {o.id} {o.part_type} x{o.qty} p{o.priority} {o.state} {done}/{o.qty}"
         out.append(_clip(line, width) + "\n")
+        if o.blocked:  # its parts wait for a machine out of service: which, and why
+            out.append(_clip(f"   BLOCKED {o.blocked.removeprefix('blocked: ')}", width) + "\n",
+                       style="yellow")  # fmt: skip
     events = status.events
     room = height - len(out.plain.splitlines()) - 1
     if events and room > 0:

@@ -20,6 +20,7 @@ from cellctl.errors import UsageError
 from cellctl.kinds.dyna2400.driver import MillConfig
 from cellctl.kinds.dyna2400.dynalan import ProgramRole, Severity, ValidationContext, parse_program
 from cellctl.kinds.dyna2400.dynalan import validate as validate_program
+from cellctl.kinds.dyna2400.emulator import OperatorDelays
 from cellctl.kinds.families import estimated_done
 from cellctl.service.machines import load_cell_file
 from cellctl.ui.calls import LazyBar, machine_call, read_program
@@ -85,12 +86,15 @@ def mill(
     ctx.obj = {"link": link, "line": line, "trace": trace, "readiness": readiness}
 
 
-@mill.command()
+@mill.command(
+    help="INITIALIZE with the SETUP program; then jog to the reference zero and press NEXT. "
+    f"An emulator's operator does both by itself {OperatorDelays().setup:g} s of machine time "
+    "after the setup (divided by its --time-scale; never with its fault no-next)."
+)
 @click.argument("setup", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--force", is_flag=True, help="Initialize even if already initialized (failure).")
 @click.pass_context
 def init(ctx: click.Context, setup: Path, force: bool) -> None:
-    """INITIALIZE with the SETUP program; then jog to the reference zero and press NEXT."""
     _call(ctx, "init", force=force, **read_program(setup))
 
 

@@ -5,20 +5,22 @@ program goes on; a real controller's refusal of that emulator-only operand says 
 from __future__ import annotations
 
 import re
-import subprocess
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from click.testing import CliRunner
 
 from cellctl.errors import DeviceError
 from cellctl.kinds.ibm7545.aml import Op, decode_program
 from cellctl.kinds.ibm7545.driver import Ibm7545Robot
 from cellctl.kinds.ibm7545.records import ProgramFile
 from cellctl.testing import expected_exchange
+from cellctl.ui.cli import main
 
-from .conftest import CELLCTL, emulator_process
+from .conftest import emulator_process
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 HINT = re.compile(r"`robot io set (\d+) (on|off)`")
@@ -30,10 +32,18 @@ def emulator() -> Iterator[str]:
         yield url
 
 
-def robot(cell: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [*CELLCTL, "--cell", str(cell), "robot", *args], capture_output=True, text=True, timeout=60
-    )
+@dataclass
+class Ran:
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def robot(cell: Path, *args: str) -> Ran:
+    """``cellctl --cell CELL robot ARGS`` in this process (the emulator runs in its own, the
+    pty between them): a new Python for each command is slow on a loaded box."""
+    result = CliRunner().invoke(main, ["--cell", str(cell), "robot", *args])
+    return Ran(result.exit_code, result.stdout, result.stderr)
 
 
 def outputs(cell: Path, link: str) -> list[str]:

@@ -358,8 +358,11 @@ class Ibm7545Robot(LinkDriver):
         return target
 
     async def start(self, slot: int) -> None:
-        """Run the program in partition ``slot`` (GO)."""
+        """Run the program in partition ``slot`` (GO): the cell's way, with its PLC behind
+        the inputs, so STATUS does not look for what the program's WAITIs wait for (no
+        transaction more beside the cell's own)."""
         await self.go(slot)
+        self.started = None
 
     async def wait_end(
         self, done_output: int, *, timeout: float, poll: float = 0.1, watch_every: float = 0.0

@@ -138,6 +138,8 @@ def shift_html(report: dict[str, Any], steps: list[dict[str, Any]], cell: str = 
         f"<td>{_hms(d['seconds'])}</td></tr>"
         for d in report["downtime_by_reason"]
     )
+    alarms = alarms or '<tr><td colspan="4">none</td></tr>'
+    downs = downs or '<tr><td colspan="3">none</td></tr>'
     title = f"Shift report{' of ' + cell if cell else ''}"
     return f"""<!doctype html>
 <html lang="en"><head><meta charset="utf-8"><title>{escape(title)}</title>

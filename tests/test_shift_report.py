@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from click.testing import CliRunner
 
 from cellctl.cell.config import load_cell
 from cellctl.cell.journal import Journal
@@ -21,6 +22,7 @@ from cellctl.cell.shift import ideal_times, shift_report
 from cellctl.service.access import LocalCell
 from cellctl.service.methods import Dispatcher
 from cellctl.testing.rig import CellRig
+from cellctl.ui.cli import main
 from cellctl.ui.report_cli import WIDTH, shift_csv, shift_html, shift_lines
 
 
@@ -173,3 +175,19 @@ async def test_the_report_of_a_real_batch(tmp_path: Path) -> None:
         assert html_file.read_text().count("<rect x=") >= len(steps)
         result = await rig.cli("report", "shift", "--json")
         assert json.loads(result.output)["parts_good"] == 2
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--from", "2026-11-25T10:00", "--to", "2026-11-25T09:00"], "ends before it starts"),
+        (["--from", "2026-01-01", "--to", "2026-03-01"], "at most 7 days"),
+        (["--from", "yesterday"], "say a date/time"),
+    ],
+)
+def test_a_bad_window_is_refused_with_its_reason(
+    tmp_path: Path, args: list[str], message: str
+) -> None:
+    result = CliRunner().invoke(main, ["--cell", str(tmp_path), "report", "shift", *args])
+    assert result.exit_code == 2
+    assert message in result.output + (result.stderr or "")

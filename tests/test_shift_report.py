@@ -191,3 +191,24 @@ def test_a_bad_window_is_refused_with_its_reason(
     result = CliRunner().invoke(main, ["--cell", str(tmp_path), "report", "shift", *args])
     assert result.exit_code == 2
     assert message in result.output + (result.stderr or "")
+
+
+def test_a_good_step_of_a_part_scrapped_later_is_not_good(tmp_path: Path) -> None:
+    clock = Clock()
+    journal = Journal(tmp_path / "journal.sqlite3", clock=clock)
+    a, b = journal.create_parts(Order("O", "base", 2))
+    for part in (a, b):
+        step = journal.begin_step(part.id, "machine", "cnc1", "rough")
+        clock.now += 10
+        journal.end_step(step.id, "finished", route_index=1)
+    # B's next step, on cnc2, fails; B is held, then scrapped: cnc1 cut it for nothing.
+    step = journal.begin_step(b.id, "machine", "cnc2", "finish")
+    clock.now += 5
+    journal.end_step(step.id, "failed", "stalled", hold="needs inspection")
+    journal.scrap_part(b.id, "broken")
+    report = shift_report(journal, ["cnc1", "cnc2"], {}, 1000.0, 1100.0)
+    cnc1, cnc2 = report.machines
+    assert (cnc1.steps_ended, cnc1.steps_good, cnc1.quality) == (2, 1, 0.5)
+    assert (cnc2.steps_ended, cnc2.steps_good, cnc2.quality) == (1, 0, 0.0)
+    assert cnc1.performance == 1.0  # no model: a step counts its own time
+    journal.close()

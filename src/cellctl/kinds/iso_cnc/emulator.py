@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from cellctl.clock import current_clock
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
 from cellctl.errors import LinkClosed, LinkError, UsageError
 from cellctl.kinds.iso_cnc import tape
@@ -324,7 +325,7 @@ class IsoCncEmulator(EmulatedDevice):
         if self.mode == Mode.RMT:
             run = self._new_run(0)
             self._machine = Machine(self.options.motion(), trace=False)
-            self._free_at = self._read_began = asyncio.get_running_loop().time()
+            self._free_at = self._read_began = current_clock().monotonic()
             self._tape_done = False
             self._exec_task = asyncio.ensure_future(self._execute(run))
         if "never-dc1" not in self.faults:
@@ -332,9 +333,7 @@ class IsoCncEmulator(EmulatedDevice):
             if self.options.auto_operator:
                 self._read_serial += 1
                 serial, seen = self._read_serial, self.chars_read
-                asyncio.get_running_loop().call_later(
-                    _OPERATOR_PATIENCE_S, self._press_again, serial, seen
-                )
+                self._later(_OPERATOR_PATIENCE_S, self._press_again, serial, seen)
 
     def _press_again(self, serial: int, seen: int) -> None:
         """The automatic operator: nothing came since READ was pressed, press it again (its
@@ -343,9 +342,7 @@ class IsoCncEmulator(EmulatedDevice):
             return
         if self.chars_read == seen and "never-dc1" not in self.faults:
             self._signal(DC1, rts=True)
-            asyncio.get_running_loop().call_later(
-                _OPERATOR_PATIENCE_S, self._press_again, serial, seen
-            )
+            self._later(_OPERATOR_PATIENCE_S, self._press_again, serial, seen)
 
     def _new_run(self, number: int) -> DripRun:
         """A run about to start (it counts, and its hooks hear of it, at its first block)."""
@@ -373,7 +370,7 @@ class IsoCncEmulator(EmulatedDevice):
             self._spawn(line.write(code))
 
         if delay > 0:
-            asyncio.get_running_loop().call_later(delay, send)
+            self._later(delay, send)
         else:
             send()
 
@@ -449,11 +446,10 @@ class IsoCncEmulator(EmulatedDevice):
         self._finish_read()
 
     def _finish_read(self) -> None:
-        self._send_dc3(asyncio.get_running_loop().time())
+        self._send_dc3(current_clock().monotonic())
         self._stopped = False
         self.activity = Activity.IDLE
-        loop = asyncio.get_running_loop()
-        loop.call_later(0.05, self._auto)
+        self._later(0.05, self._auto)
 
     # -- execution -----------------------------------------------------------------------------
 
@@ -506,17 +502,17 @@ class IsoCncEmulator(EmulatedDevice):
     async def _execute(self, run: DripRun) -> None:
         """Run blocks as they come (the schedule :meth:`_advance` keeps); every wait for one
         after the first is a stall."""
-        loop = asyncio.get_running_loop()
+        clock = current_clock()
         while self.activity == Activity.READING and self._run is run:
-            self._advance(loop.time())
+            self._advance(clock.monotonic())
             if self._tape_done:
-                if self._free_at > loop.time():
-                    await asyncio.sleep(self._free_at - loop.time())
+                if self._free_at > clock.monotonic():
+                    await current_clock().sleep(self._free_at - clock.monotonic())
                 break
             if self._lf_at:
                 wake = max(self._lf_at[0], self._free_at) if run.blocks else self._lf_at[0]
-                if wake > loop.time():
-                    await asyncio.sleep(wake - loop.time())
+                if wake > clock.monotonic():
+                    await current_clock().sleep(wake - clock.monotonic())
                 continue
             self._block_ready.clear()
             await self._block_ready.wait()
@@ -532,7 +528,7 @@ class IsoCncEmulator(EmulatedDevice):
             seconds = machine.step(block).seconds if block.words else 0.0
             run.blocks += 1 if block.words else 0
             run.machine_s += seconds
-            await asyncio.sleep(seconds / self.time_scale)
+            await current_clock().sleep(seconds / self.time_scale)
         run.done = True
         if self.activity == Activity.RUNNING:
             self.activity = Activity.IDLE
@@ -575,6 +571,11 @@ class IsoCncEmulator(EmulatedDevice):
         line = self._line
         if line is not None and not line.closed:
             self._spawn(line.write(alarm_report(code)))
+
+    @staticmethod
+    def _later(seconds: float, callback: Callable[..., object], *args: object) -> None:
+        clock = current_clock()
+        clock.call_at(clock.monotonic() + seconds, callback, *args)
 
     def _spawn(self, coro: Coroutine[object, object, None]) -> None:
         task = asyncio.ensure_future(coro)

@@ -18,7 +18,7 @@ from cellctl.kinds.iso_cnc.driver import ISO_LINE
 from cellctl.kinds.iso_cnc.emulator import FAULTS, EmulatorOptions, IsoCncEmulator, Mode
 from cellctl.link import LineSettings
 from cellctl.ui.common import console, fault_help, run
-from cellctl.ui.emulate_cli import serve_until_stopped
+from cellctl.ui.emulate_cli import listen_options, serve_until_stopped
 
 
 def panel_key(control: IsoCncEmulator, text: str) -> str:
@@ -54,26 +54,6 @@ async def _panel(control: IsoCncEmulator) -> None:
             console.print(f"panel: {e}", markup=False)
 
 
-@click.command(
-    "iso-cnc",
-    help="Emulate an ISO-code CNC control (Fanuc/Haas style RS-232).\n\n" + fault_help(FAULTS),
-)
-@click.option(
-    "--listen",
-    default="pty",
-    show_default=True,
-    help="pty, pty:PATH (symlink), socket://HOST:PORT or rfc2217://HOST:PORT.",
-)
-@click.option(
-    "--time-scale",
-    type=float,
-    default=1.0,
-    show_default=True,
-    help="Machine times divided by this (10 = ten times faster).",
-)
-@click.option("--no-pacing", is_flag=True, help="Move bytes as fast as they come.")
-@click.option("--line", default=ISO_LINE, show_default=True, help="Line settings.")
-@click.option("--fault", multiple=True, metavar="NAME[=ARG]", help="Fault switch (see below).")
 @click.option(
     "--mode",
     type=click.Choice([m.value for m in Mode], case_sensitive=False),
@@ -104,7 +84,7 @@ async def _panel(control: IsoCncEmulator) -> None:
     help="A program file put into its memory at power on.",
 )
 @click.option("--panel", is_flag=True, help="Play the operator: panel keys from stdin.")
-def emulate_iso_cnc(
+def _emulate_iso_cnc(
     listen: str,
     time_scale: float,
     no_pacing: bool,
@@ -147,6 +127,19 @@ def emulate_iso_cnc(
                 keys.cancel()
 
     run(main)
+
+
+def _command() -> click.Command:
+    """The command: the options every ``emulate`` command takes, then the control's own."""
+    command = click.command(
+        "iso-cnc",
+        help="Emulate an ISO-code CNC control (Fanuc/Haas style RS-232).\n\n" + fault_help(FAULTS),
+    )(_emulate_iso_cnc)
+    command.params[:0] = listen_options(LineSettings.parse(ISO_LINE), FAULTS)
+    return command
+
+
+emulate_iso_cnc = _command()
 
 
 __all__ = ["emulate_iso_cnc", "panel_key"]

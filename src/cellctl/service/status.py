@@ -127,7 +127,9 @@ class MachineStatus(Model):
     progress: ProgressInfo | None = Field(default=None, description="A download or cut.")
     error: ErrorInfo | None = Field(default=None, description="Its last error.")
     failures: int = Field(description="Failed steps in a row.")
-    busy_s: float = Field(description="Seconds spent in steps since the start.")
+    busy_s: float = Field(
+        description="Seconds spent in steps since the start, the step in flight included."
+    )
     utilization: float = Field(description="busy_s over the time since the start, 0 to 1.")
     in_service: bool = Field(description="In automatic service.")
     out_reason: str = Field(description="Why it is out of service ('' when in).")
@@ -397,6 +399,11 @@ def _machine(
     progress = _progress(view.progress, now, estimate, step)
     error = ErrorInfo(code=view.error.code, text=view.error.text) if view.error else None
     elapsed = max(now - started_at, 1e-6)
+    # The step in flight counts as it runs: a mill an hour into its first cut is busy, not
+    # "0 %" until the cut ends.
+    busy = view.busy_s
+    if step is not None and step.started is not None:
+        busy += max(0.0, now - max(step.started, started_at))
     return MachineStatus(
         name=view.name,
         kind=view.kind,
@@ -408,8 +415,8 @@ def _machine(
         progress=progress,
         error=error,
         failures=view.failures,
-        busy_s=round(view.busy_s, 3),
-        utilization=round(min(1.0, view.busy_s / elapsed), 4),
+        busy_s=round(busy, 3),
+        utilization=round(min(1.0, busy / elapsed), 4),
         in_service=view.in_service,
         out_reason=out_reason,
         manual=manual,

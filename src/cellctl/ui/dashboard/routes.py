@@ -7,7 +7,8 @@
 - ``GET /``: the page, a static shell with no cell data in it. It takes the token from the
   URL's fragment (``#token=...``), keeps it in sessionStorage, and sends it as
   ``Authorization: Bearer`` with every request.
-- ``GET /static/NAME``: the page's scripts and stylesheet (only the files shipped here).
+- ``GET /static/NAME``: the page's scripts, stylesheet and icon (only the files shipped here);
+  ``GET /favicon.ico`` is the icon too (a browser asks for it by that name).
 - ``POST /dashboard/call`` ``{"method": ..., "params": {...}}``: one of the API's methods the
   dashboard uses (:data:`DASHBOARD_METHODS`), answered as ``{"result": ...}`` or
   ``{"error": {code, message, data}}`` (HTTP 400). It needs the token in the header (never a
@@ -50,6 +51,13 @@ DASHBOARD_METHODS = frozenset(
         "parts.list",
         "parts.release",
         "parts.scrap",
+        # One set of controls (the CLI's and the console's): the cell and its machines.
+        "cell.pause",
+        "cell.resume",
+        "cell.estop",
+        "machines.list",
+        "machines.out_of_service",
+        "machines.return_to_service",
     }
 )
 #: The largest request body taken.
@@ -80,6 +88,10 @@ def dashboard_routes(server: ApiServer) -> list[BaseRoute]:
 
     async def page(request: Request) -> Response:
         body, kind = assets["index.html"]
+        return Response(body, media_type=kind)
+
+    async def icon(request: Request) -> Response:
+        body, kind = assets["favicon.svg"]
         return Response(body, media_type=kind)
 
     async def asset(request: Request) -> Response:
@@ -117,6 +129,7 @@ def dashboard_routes(server: ApiServer) -> list[BaseRoute]:
     return [
         Route("/", page),
         Route("/static/{name}", asset),
+        Route("/favicon.ico", icon),
         Route("/dashboard/call", call, methods=["POST"]),
     ]
 

@@ -3,6 +3,10 @@
 // The token comes in the URL's fragment (#token=...), is kept in sessionStorage and is sent
 // as "Authorization: Bearer" with every request. Live updates come from the API's WebSocket
 // (a one-shot token fetched with the header); calls that act go through POST /dashboard/call.
+import { timeOfDay } from "./clock.js";
+import {
+  hideCellControls, renderCellControls, wireCellControls,
+} from "./controls.js";
 import { drawFloor, updateFloor } from "./floor.js";
 import { renderGantt, exportGantt } from "./gantt.js";
 import {
@@ -104,6 +108,8 @@ function refused(text) {
   byId("content").replaceChildren();
   byId("refused-text").textContent = text;
   byId("refused").classList.remove("hidden");
+  byId("connecting").classList.add("hidden");
+  hideCellControls();
   setConnection("refused", "bad");
 }
 
@@ -170,13 +176,14 @@ export function render() {
   renderAlarms(snap);
   renderHeld(snap);
   renderEvents(snap);
+  renderCellControls(snap);
   const cellState = byId("cell-state");
   const mode = snap.cell.mode;
   cellState.textContent = MODE_LABELS[mode] || mode;
   cellState.className = `badge mode-${mode} ${mode === "running" ? "good" : "warn"}`;
 }
 
-async function refresh() {
+export async function refresh() {
   try {
     const status = await get("/api/status");
     // A read answered after a newer push arrived is dropped: the push is the later word.
@@ -290,7 +297,8 @@ async function connect() {
       }
       state.connected = true;
       byId("content").classList.remove("hidden");
-      const at = new Date().toLocaleTimeString();
+      byId("connecting").classList.add("hidden");
+      const at = timeOfDay(new Date());
       setConnection(again ? `live · reconnected at ${at}` : "live", "good");
       if (again) {
         notice("");
@@ -317,7 +325,7 @@ function lost(why) {
   if (lostAt === null) {
     lostAt = Date.now();
   }
-  const since = new Date(lostAt).toLocaleTimeString();
+  const since = timeOfDay(new Date(lostAt));
   setConnection(`offline since ${since}: reconnecting…`, "bad");
   notice(`${why}: reconnecting by itself (the view shows what was last known).`);
   setTimeout(connect, retryMs);
@@ -337,7 +345,8 @@ async function loadLayout() {
 // -- the order form and toolbars -------------------------------------------------------------
 
 function wire() {
-  byId("order-form").addEventListener("submit", async (event) => {
+  const form = byId("order-form");
+  form.addEventListener("submit", async (event) => {
     event.preventDefault();
     const out = byId("order-message");
     out.className = "message";
@@ -347,7 +356,7 @@ function wire() {
       priority: Number(byId("order-priority").value || 0),
     };
     try {
-      const result = await call("orders.submit", params);
+      const result = await call(form.dataset.method, params);
       out.textContent = result.message;
       out.classList.add("ok");
       await refresh();
@@ -360,6 +369,7 @@ function wire() {
   byId("gantt-svg").addEventListener("click", () => exportGantt(byId("gantt-chart"), "svg"));
   byId("gantt-png").addEventListener("click", () => exportGantt(byId("gantt-chart"), "png"));
   byId("traffic-machine").addEventListener("change", refreshTraffic);
+  wireCellControls();
 }
 
 function start() {

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import shlex
-import shutil
 import signal
 import time
 from pathlib import Path
@@ -20,7 +18,6 @@ from cellctl.cell.config import CellConfig, check_cell, load_cell
 from cellctl.cell.controller import CellController, ControllerOptions, Event
 from cellctl.cell.journal import Journal, open_journal
 from cellctl.cell.owner import acquire_controller_lock
-from cellctl.cell.report import Summary, summarize, write_gantt
 from cellctl.emulators.serve import parse_fault
 from cellctl.errors import UsageError
 from cellctl.mailbox import Mailbox, open_mailbox
@@ -28,7 +25,6 @@ from cellctl.mailbox.mqtt import MqttBridge, MqttSettings
 from cellctl.service.access import AttachedCell
 from cellctl.service.server import ApiServer, api_limits
 from cellctl.ui.common import cell_dir, console, err_console, run, until_stopped
-from cellctl.ui.dashboard.command import serve_dashboard_in
 from cellctl.ui.dashboard.routes import dashboard_routes
 
 if TYPE_CHECKING:
@@ -346,164 +342,3 @@ def apply_fault(cell: object, text: str) -> None:
         known = ", ".join(dict.fromkeys([c.robot_name, *c.mills, "plc"]))
         raise UsageError(f"fault {text!r}: no machine {machine!r} ({known})")
     target.set_fault(name, arg)
-
-
-@click.command("demo")
-@click.option(
-    "--time-scale",
-    type=float,
-    default=200.0,
-    show_default=True,
-    help="Machine time runs this many times faster than real: 200 runs the batch in about a "
-    "minute (the emulators default to 50, the machines alone to 1).",
-)
-@click.option(
-    "--parts",
-    "count",
-    type=click.IntRange(min=1),
-    default=None,
-    help="Parts in the batch.  [default: 6; with --factory N: 3 per cell]",
-)
-@click.option(
-    "--out",
-    type=click.Path(file_okay=False),
-    default="demo-out",
-    show_default=True,
-    help="Directory for the demo's cells, Gantt charts and figures (replaced each run).",
-)
-@click.option("--compare/--no-compare", default=True, help="Also run one part at a time.")
-@click.option(
-    "--dashboard",
-    is_flag=True,
-    help="Serve the web dashboard (its URL is printed) and keep the cell up after the batch "
-    "until Ctrl-C.",
-)
-@click.option(
-    "--factory",
-    "cells",
-    type=click.IntRange(2, 32),
-    default=None,
-    metavar="N",
-    help="Instead: N emulated cells, each run by its own `cellctl run`, and the factory "
-    "spreading the batch over them through a private Mosquitto.",
-)
-def demo(
-    time_scale: float,
-    count: int | None,
-    out: str,
-    compare: bool,
-    dashboard: bool,
-    cells: int | None,
-) -> None:
-    """Start an emulated cell (or a factory of them), run a mixed batch through it, and
-    summarize (under 2 minutes)."""
-    if cells is not None and dashboard:
-        raise click.UsageError("--dashboard is for one cell, not with --factory")
-    Path(out).mkdir(parents=True, exist_ok=True)
-    if cells is not None:
-        from cellctl.ui.factory_demo import run_factory_demo
-
-        raise SystemExit(run(lambda: run_factory_demo(cells, count, time_scale, Path(out))))
-    run(lambda: _demo(time_scale, 6 if count is None else count, Path(out), compare, dashboard))
-
-
-async def run_batch(
-    directory: Path,
-    time_scale: float,
-    batch: list[tuple[str, int]],
-    *,
-    one_at_a_time: bool,
-    live: bool,
-    dashboard: bool = False,
-) -> Summary:
-    """Emulate the cell in ``directory``, run ``batch`` [(part type, qty)], return figures.
-
-    ``dashboard``: serve the dashboard (URL printed), and after the batch print the figures and
-    keep the cell and a controller up until Ctrl-C."""
-    from cellctl.emulators.cell import EmulatedCell
-
-    shutil.rmtree(directory, ignore_errors=True)
-    cell = EmulatedCell(time_scale=time_scale)
-    try:
-        await cell.start(directory)
-        url = serve_dashboard_in(directory) if dashboard else ""
-        if url:
-            console.print(f"dashboard: {url}", markup=False, soft_wrap=True)
-        stop = asyncio.Event()
-        mailbox = open_mailbox(directory)
-        for i, (part, qty) in enumerate(batch, start=1):
-            mailbox.post_order(part, qty, order_id=f"{'S' if one_at_a_time else 'O'}{i}")
-        mailbox.close()
-        started = time.time()
-        options = ControllerOptions.from_config(load_cell(directory), one_at_a_time=one_at_a_time)
-        controller = await run_controller(
-            directory, live=live, until_idle=True, options=options, stop=stop
-        )
-        machines = [controller.config.robot.name, *(m.name for m in controller.config.mills)]
-        summary = summarize(controller.journal, machines, since=started)
-        title = "one part at a time" if one_at_a_time else "cellctl schedule"
-        write_gantt(
-            controller.journal,
-            machines,
-            directory / "gantt.svg",
-            since=started,
-            title=f"{title}: makespan {summary.makespan_s:.1f} s (time scale {time_scale:g})",
-        )
-        twice = {p: r for p, r in cell.runs_per_part().items() if any(n > 1 for n in r.values())}
-        summary.extra["parts_cut_twice"] = len(twice)
-        if url and not stop.is_set():
-            console.print()
-            console.print("\n".join(summary.lines(f"[bold]{title}[/bold]")))
-            console.print(f"\nthe batch is done; the cell and the dashboard stay up: {url}")
-            # The exact command, with the absolute directory: it works from any shell.
-            where = shlex.quote(str(directory.absolute()))  # noqa: ASYNC240 (no disk I/O)
-            console.print(
-                "submit orders there, or from another shell with: "
-                f"cellctl --cell {where} submit wax-robot-base   (Ctrl-C stops)",
-                markup=False,
-                soft_wrap=True,
-            )
-            await run_controller(directory, live=False, until_idle=False, options=options)
-        return summary
-    finally:
-        await cell.close()
-
-
-async def _demo(
-    time_scale: float, count: int, out: Path, compare: bool, dashboard: bool = False
-) -> None:
-    half = max(1, count // 2)
-    batch = [("wax-robot-base", half), ("wax-toy-mill-table", count - half)]
-    batch = [(part, qty) for part, qty in batch if qty > 0]  # --parts 1: no order for 0
-    console.print(
-        f"[bold]cellctl demo[/bold]: an emulated cell (robot, 2 mills, PLC) at time scale "
-        f"{time_scale:g}; batch: {half} wax-robot-base + {count - half} wax-toy-mill-table"
-    )
-    if dashboard:
-        await run_batch(
-            out / "cell", time_scale, batch, one_at_a_time=False, live=False, dashboard=True
-        )
-        return
-    # A live view on a terminal; elsewhere (a file, a pipe) every event a line as it happens.
-    live = console.is_terminal
-    summary = await run_batch(out / "cell", time_scale, batch, one_at_a_time=False, live=live)
-    console.print()
-    console.print("\n".join(summary.lines("[bold]cellctl schedule[/bold]")))
-    console.print(f"Gantt chart: {out / 'cell' / 'gantt.svg'}")
-    if compare:
-        console.print("\nthe source's way: one part through its whole route before the next ...")
-        base = await run_batch(
-            out / "one-at-a-time", time_scale, batch, one_at_a_time=True, live=False
-        )
-        console.print()
-        console.print("\n".join(base.lines("[bold]one part at a time[/bold]")))
-        console.print(f"Gantt chart: {out / 'one-at-a-time' / 'gantt.svg'}")
-        if summary.makespan_s > 0:
-            console.print(
-                f"\nspeed-up over one part at a time: "
-                f"{base.makespan_s / summary.makespan_s:.2f}x "
-                f"(machine time x{time_scale:g}: {summary.makespan_s * time_scale / 60:.0f} min "
-                f"vs {base.makespan_s * time_scale / 60:.0f} min in the real cell)"
-            )
-    with contextlib.suppress(OSError):
-        shutil.copy(out / "cell" / "gantt.svg", out / "gantt.svg")

@@ -6,10 +6,11 @@ import click
 
 from cellctl import __version__
 from cellctl.kinds import registry
-from cellctl.ui.cell_cli import cell_group, demo, emulate_cell, run_command
+from cellctl.ui.cell_cli import cell_group, emulate_cell, run_command
 from cellctl.ui.common import CellctlGroup, accept_cell_anywhere, summarize_commands
 from cellctl.ui.console import console_command
 from cellctl.ui.dashboard import dashboard_command
+from cellctl.ui.demo import demo
 from cellctl.ui.emulate_cli import emulate
 from cellctl.ui.factory_cli import emulate_factory, factory
 from cellctl.ui.kinds_cli import kinds_command

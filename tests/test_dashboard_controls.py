@@ -9,9 +9,10 @@ from __future__ import annotations
 import asyncio
 import re
 import time
+from typing import Any
 
 import pytest
-from playwright.async_api import Request, Response, Route
+from playwright.async_api import Page, Request, Response, Route
 
 from tests import test_dashboard
 from tests.test_dashboard import Dash, http, live
@@ -213,7 +214,7 @@ async def test_a_batch_reads_well(dash: Dash) -> None:
     page.on("response", seen)
     page.on("requestfailed", failed)
     await live(dash)
-    dash.rig.post("wax-toy-mill-table", 1, "B1")  # the longest program names
+    dash.rig.post("wax-toy-mill-table", 3, "B1")  # the longest program names
     # A mill whose first cut has run for a while, with its drawing on its card.
     cutting = None
     deadline = time.monotonic() + 60
@@ -235,8 +236,6 @@ async def test_a_batch_reads_well(dash: Dash) -> None:
     # ended), in the status and on its card.
     machine = status["machines"][cutting]
     assert machine["busy_s"] >= 0.5 and machine["utilization"] > 0, machine
-    card = page.locator(f'.card[data-machine="{cutting}"]')
-    await card.locator(".preview svg").wait_for(timeout=5_000)
     await page.wait_for_function(
         """(name) => {
           const card = document.querySelector(`.card[data-machine="${name}"]`);
@@ -244,48 +243,32 @@ async def test_a_batch_reads_well(dash: Dash) -> None:
           return card.dataset.condition === 'busy' && parseFloat(shown) > 0;
         }""",
         arg=cutting,
-        timeout=10_000,
+        timeout=30_000,
     )
 
+    # Each look below is taken in one go in the page, at a moment a mill's card shows its
+    # cut (the batch's cuts follow one another; a look waits for the next one if need be).
     # The floor's panel ends near its legend: not stretched to the machines' column.
-    blank = await page.evaluate(
-        """() => {
-          const panel = document.querySelector('#floor').getBoundingClientRect();
-          const legend = document.querySelector('#floor .legend').getBoundingClientRect();
-          return (panel.bottom - legend.bottom) / panel.height;
-        }"""
-    )
+    blank = await while_cutting(page, FLOOR_BLANK)
     assert blank < 0.1, f"{blank:.0%} of the floor's panel is blank"
-
-    # Every text of the drawing shown on the card is at least 10 px high (the drawing's own
-    # labels are left to the full-size view), and its caption is the page's text.
-    small = await card.locator(".preview").evaluate(TEXT_HEIGHTS)
+    # Every text of the drawing on the card is at least 10 px high (the drawing's own labels
+    # are left to the full-size view), and its caption is the page's text.
+    small, caption, size = await while_cutting(page, PREVIEW_TEXT)
     assert all(h >= 10 for h in small), small
-    caption = card.locator(".preview-caption")
-    assert "block" in await caption.inner_text()
-    assert await caption.evaluate("e => parseFloat(getComputedStyle(e).fontSize)") >= 10
-    await card.locator(".preview svg").click()
+    assert "block" in caption and size >= 10, (caption, size)
     full = page.locator("#toolpath-view")
     await full.locator("svg").wait_for(timeout=5_000)
     heights = await full.evaluate(TEXT_HEIGHTS)
     assert heights and min(heights) >= 10, heights
     await dash.shot("toolpath")
     await page.locator("#toolpath-close").click()
-
     # A step's name breaks between its words only (at a space, or after a "_" of a program's
-    # name), on a laptop and on a tablet.
-    step = card.locator(".step")
+    # name) and stays in its card, on a laptop and on a tablet.
     for width in (1400, 1180, 820):
         await page.set_viewport_size({"width": width, "height": 1000})
-        shown = await step.inner_text()
-        broken = await step.evaluate(BROKEN_WORDS)
+        shown, broken, inside = await while_cutting(page, STEP_WORDS)
         assert not broken, f"words broken at {width} px: {broken} ({shown!r})"
-        inside = await step.evaluate(
-            "(dd) => dd.getBoundingClientRect().right <= dd.closest('.card')"
-            ".getBoundingClientRect().right"
-        )
-        assert inside, f"the step's name runs out of its card at {width} px"
-    assert "toy_mill_table" in shown, f"the cut ended before the check: {shown!r}"
+        assert inside, f"the step's name runs out of its card at {width} px: {shown!r}"
     await dash.shot("batch")
     icon, kind = await asyncio.to_thread(_get, dash.base + "/favicon.ico")
     assert icon == 200 and kind.startswith("image/svg+xml")
@@ -305,6 +288,39 @@ TEXT_HEIGHTS = """(box) => [...box.querySelectorAll('svg text')]
   .filter((r) => r.width > 0 && r.height > 0)
   .map((r) => r.height)"""
 
+
+async def while_cutting(page: Page, look: str) -> Any:
+    """``look`` (a function of the card of a mill that shows a toy table's cut, in the page)
+    taken at a moment such a card is shown: what it returns."""
+    found = await page.wait_for_function(
+        f"""() => {{
+          const card = [...document.querySelectorAll('.card.condition-busy')].find((c) =>
+            c.querySelector('.step').textContent.includes('toy_mill_table')
+            && c.querySelector('.preview svg') && c.querySelector('.preview').offsetParent);
+          return card ? [({look})(card)] : null;
+        }}""",
+        timeout=30_000,
+    )
+    return (await found.json_value())[0]
+
+
+#: How much of the floor's panel is blank below its legend.
+FLOOR_BLANK = """() => {
+  const panel = document.querySelector('#floor').getBoundingClientRect();
+  const legend = document.querySelector('#floor .legend').getBoundingClientRect();
+  return (panel.bottom - legend.bottom) / panel.height;
+}"""
+
+#: The card's drawing: its visible texts' heights, its caption and the caption's size; then
+#: a click on the drawing (its full-size view opens).
+PREVIEW_TEXT = """(card) => {
+  const heights = TEXT_HEIGHTS(card.querySelector('.preview'));
+  const caption = card.querySelector('.preview-caption');
+  const size = parseFloat(getComputedStyle(caption).fontSize);
+  card.querySelector('.preview svg').dispatchEvent(new MouseEvent('click', { bubbles: true }));
+  return [heights, caption.textContent, size];
+}""".replace("TEXT_HEIGHTS", f"({TEXT_HEIGHTS})")
+
 #: The words (runs between spaces and after "_") of an element's text laid out over more than
 #: one line.
 BROKEN_WORDS = """(node) => {
@@ -321,3 +337,10 @@ BROKEN_WORDS = """(node) => {
   }
   return out;
 }"""
+
+#: The card's step: its text, its words laid out over two lines, whether it stays inside.
+STEP_WORDS = f"""(card) => {{
+  const step = card.querySelector('.step');
+  return [step.textContent, ({BROKEN_WORDS})(step),
+    step.getBoundingClientRect().right <= card.getBoundingClientRect().right];
+}}"""

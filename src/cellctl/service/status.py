@@ -13,9 +13,9 @@ only what changed, each whole -- ``cell`` when a field of it other than ``time``
 ``machines``: the machines (by name) one of whose fields changed, or that are new;
 ``machines_gone``: names no longer there; ``orders``, ``parts``, ``alarms``: the whole list
 when it changed; ``events``: only the events that are new. Figures that move with the clock
-alone (:data:`VOLATILE`: the cell's ``time``, a machine's ``utilization``, a progress'
-``rate_per_s`` and ``time_left_s``) do not make an update of their own: they travel with
-their object's next change, and ``cell.status`` has them current.
+alone (:data:`VOLATILE`: the cell's ``time``, a machine's ``busy_s`` (it grows during a step)
+and ``utilization``, a progress' ``rate_per_s`` and ``time_left_s``) do not make an update of
+their own: they travel with their object's next change, and ``cell.status`` has them current.
 """
 
 from __future__ import annotations
@@ -140,7 +140,7 @@ class MachineStatus(Model):
         progress = self.progress
         if progress is not None:
             progress = progress.model_copy(update={"rate_per_s": None, "time_left_s": None})
-        return self.model_copy(update={"utilization": 0.0, "progress": progress})
+        return self.model_copy(update={"busy_s": 0.0, "utilization": 0.0, "progress": progress})
 
 
 class OrderInfo(Model):
@@ -245,7 +245,13 @@ class StatusUpdate(Model):
 
 
 #: Figures that move with the clock alone: they make no update of their own.
-VOLATILE = ("cell.time", "machines.*.utilization", "progress.rate_per_s", "progress.time_left_s")
+VOLATILE = (
+    "cell.time",
+    "machines.*.busy_s",
+    "machines.*.utilization",
+    "progress.rate_per_s",
+    "progress.time_left_s",
+)
 
 
 # -- the difference ---------------------------------------------------------------------------

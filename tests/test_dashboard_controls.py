@@ -251,6 +251,9 @@ async def test_a_batch_reads_well(dash: Dash) -> None:
     # The floor's panel ends near its legend: not stretched to the machines' column.
     blank = await while_cutting(page, FLOOR_BLANK)
     assert blank < 0.1, f"{blank:.0%} of the floor's panel is blank"
+    # A mill's texts on the floor (its step and program's name) stay inside its box.
+    out = await while_cutting(page, FLOOR_TEXT_OUT)
+    assert not out, f"texts running out of their mill's box on the floor: {out}"
     # Every text of the drawing on the card is at least 10 px high (the drawing's own labels
     # are left to the full-size view), and its caption is the page's text.
     small, caption, size = await while_cutting(page, PREVIEW_TEXT)
@@ -310,6 +313,15 @@ FLOOR_BLANK = """() => {
   const legend = document.querySelector('#floor .legend').getBoundingClientRect();
   return (panel.bottom - legend.bottom) / panel.height;
 }"""
+
+#: The floor's texts that run out of their mill's box.
+FLOOR_TEXT_OUT = """() => [...document.querySelectorAll('#floor-plan .machine.mill')]
+  .flatMap((g) => {
+    const box = g.querySelector('.body').getBoundingClientRect();
+    return [...g.querySelectorAll('.status, .status-program')]
+      .filter((t) => t.getBoundingClientRect().right > box.right)
+      .map((t) => t.textContent);
+  })"""
 
 #: The card's drawing: its visible texts' heights, its caption and the caption's size; then
 #: a click on the drawing (its full-size view opens).

@@ -209,7 +209,9 @@ function previewCaption(svg) {
     byId("toolpath-view").replaceChildren(big);
     byId("toolpath").showModal();
   });
-  return first ? [h("p", { class: "preview-caption small" }, first.textContent,
+  // The drawing spaces its caption's fields apart; HTML would fold the spaces into one.
+  const fields = first ? first.textContent.trim().split(/\s{2,}/) : [];
+  return first ? [h("p", { class: "preview-caption small" }, fields.join(" · "),
     " · click the drawing for its full size")] : [];
 }
 

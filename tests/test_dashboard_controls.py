@@ -53,6 +53,14 @@ async def test_pause_resume_and_an_emergency_stop_with_a_reason(dash: Dash) -> N
     await resume.click()
     await page.locator("#cell-state.mode-running").wait_for(timeout=5_000)
     assert await mode(dash) == "running"
+    # A reason longer than the API takes: refused in its words, the cell not stopped.
+    await estop.click()
+    await page.locator("#confirm-reason").fill("y" * 501)
+    await dash.confirm()
+    refusal = page.locator("#control-message.error")
+    await refusal.wait_for(timeout=5_000)
+    assert "500 characters" in await refusal.inner_text()
+    assert await mode(dash) == "running"
     # The emergency stop asks first, with a reason that goes into the alarm and the journal.
     await estop.click()
     assert "EMERGENCY STOP" in await page.locator("#confirm-text").inner_text()

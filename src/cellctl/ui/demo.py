@@ -23,6 +23,7 @@ from cellctl.cell.config import load_cell
 from cellctl.cell.controller import ControllerOptions
 from cellctl.cell.journal import Journal, open_journal
 from cellctl.cell.report import GanttRun, Summary, gantt_runs_svg, summarize, write_gantt
+from cellctl.emulators.serve import DEMO_TIME_SCALE, TIME_SCALE_HELP
 from cellctl.mailbox import Mailbox, open_mailbox
 from cellctl.ui.cell_cli import run_controller
 from cellctl.ui.common import console, run
@@ -33,10 +34,9 @@ from cellctl.ui.dashboard.command import serve_dashboard_in
 @click.option(
     "--time-scale",
     type=float,
-    default=200.0,
+    default=DEMO_TIME_SCALE,
     show_default=True,
-    help="Machine time runs this many times faster than real: 200 runs the batch in about a "
-    "minute (the emulators default to 50, the machines alone to 1).",
+    help="Machine time runs this many times faster than real. " + TIME_SCALE_HELP,
 )
 @click.option(
     "--parts",

@@ -104,6 +104,7 @@ let wasRefused = false;
 function refused(text) {
   wasRefused = true;
   state.snapshot = null;
+  state.connected = false;  // the views go: nothing reads or draws them any more
   byId("content").classList.add("hidden");
   byId("content").replaceChildren();
   byId("refused-text").textContent = text;
@@ -213,8 +214,11 @@ async function refreshSteps() {
 }
 
 async function refreshTraffic() {
+  if (!state.connected) {
+    return;  // refused, the page's views are gone; or not live yet
+  }
   const machine = byId("traffic-machine").value;
-  if (!machine || !state.connected || !byId("traffic-follow").checked) {
+  if (!machine || !byId("traffic-follow").checked) {
     return;
   }
   try {

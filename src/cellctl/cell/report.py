@@ -162,8 +162,8 @@ def _gantt_rows(
     if first > run.start:
         w = (first - run.start) / axis * _WIDTH
         out.append(
-            f'<rect class="start-up" x="{_LEFT}" y="{y0}" width="{w:.1f}" '
-            f'height="{_ROW * len(machines)}" fill="{_START_UP}"><title>start-up '
+            f'<rect x="{_LEFT}" y="{y0}" width="{w:.1f}" height="{_ROW * len(machines)}" '
+            f'fill="{_START_UP}" class="start-up"><title>start-up '
             f"{first - run.start:.2f} s</title></rect>"
         )
     for row, machine in enumerate(machines):
@@ -181,8 +181,8 @@ def _gantt_rows(
             fill = _FAILED if s.state != "finished" else color[run.part_types.get(s.part_id, "")]
             label = escape(f"{s.part_id} {s.program} {s.ended - s.started:.2f} s {s.state}")
             out.append(
-                f'<rect class="step {escape(s.kind)}" x="{x:.1f}" y="{y + 4}" '
-                f'width="{w:.1f}" height="{_ROW - 10}" fill="{fill}" stroke="white">'
+                f'<rect x="{x:.1f}" y="{y + 4}" width="{w:.1f}" height="{_ROW - 10}" '
+                f'fill="{fill}" stroke="white" class="step {escape(s.kind)}">'
                 f"<title>{label}</title></rect>"
             )
     return out

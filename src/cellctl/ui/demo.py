@@ -13,7 +13,6 @@ import asyncio
 import contextlib
 import shlex
 import shutil
-import time
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +22,7 @@ from cellctl.cell.config import load_cell
 from cellctl.cell.controller import ControllerOptions
 from cellctl.cell.journal import Journal, open_journal
 from cellctl.cell.report import GanttRun, Summary, gantt_runs_svg, summarize, write_gantt
+from cellctl.clock import current_clock
 from cellctl.emulators.serve import DEMO_TIME_SCALE, TIME_SCALE_HELP
 from cellctl.mailbox import Mailbox, open_mailbox
 from cellctl.ui.cell_cli import run_controller
@@ -120,7 +120,7 @@ async def run_batch(
         for i, (part, qty) in enumerate(batch, start=1):
             mailbox.post_order(part, qty, order_id=f"{'S' if one_at_a_time else 'O'}{i}")
         mailbox.close()
-        started = time.time()
+        started = current_clock().now()
         title = ONE_AT_A_TIME if one_at_a_time else PARALLEL
         options = ControllerOptions.from_config(load_cell(directory), one_at_a_time=one_at_a_time)
         config = load_cell(directory)
@@ -168,7 +168,7 @@ async def _after_the_batch(
     with open_journal(directory) as journal, open_mailbox(directory) as mailbox:
         while not stop.is_set() and not _batch_done(journal, mailbox):
             with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(0.25):
+                async with current_clock().timeout(0.25):
                     await stop.wait()
         if stop.is_set():
             return

@@ -139,10 +139,20 @@ async def _a_viewer_cannot_order(
     assert refused.StatusCode.value == ua.StatusCodes.BadUserAccessDenied
     words = refused.InputArgumentDiagnosticInfos[0].AdditionalInfo
     assert "vera is a viewer: orders.submit needs the operator role" in words
+    async with session(url, cell, cert, "vera", "pw") as vera:
+        idx = await vera.get_namespace_index(NAMESPACE)
+        ack = vera.get_node(ua.NodeId("Cell/AcknowledgeAlarm", idx))
+        refused = await call_raw(vera, cell_id, ack.nodeid, ua.Variant(1, UINT32))
+    assert refused.StatusCode.value == ua.StatusCodes.BadUserAccessDenied
+    words = refused.InputArgumentDiagnosticInfos[0].AdditionalInfo
+    assert "vera is a viewer: alarms.ack needs the operator role" in words
     with AuditLog(cell) as log:
-        [entry] = log.entries(who="vera")
-    assert (entry.who, entry.method) == ("opcua:vera", "orders.submit")
-    assert "needs the operator role" in entry.result
+        entries = log.entries(who="vera")
+    assert [(e.who, e.method) for e in entries] == [
+        ("opcua:vera", "orders.submit"),
+        ("opcua:vera", "alarms.ack"),
+    ]
+    assert all("needs the operator role" in e.result for e in entries)
 
 
 async def call_raw(client: Client, cell: ua.NodeId, method: ua.NodeId, *args: Any) -> Any:
@@ -289,6 +299,14 @@ async def _scenario(rig: CellRig, url: str, cert: tuple[str, str], run: asyncio.
         # Acknowledge (Part 9) on the condition marks it seen (an event says so); it stays
         # open until cleared. The cell's own AcknowledgeAlarm then has nothing left to do.
         alarm_node = await cell_node.get_child([f"{idx}:Alarms", f"{idx}:{event.AlarmId}"])
+        async with session(url, cell, cert, "vera", "pw") as vera:  # a viewer may not
+            with pytest.raises(BadUserAccessDenied):
+                await vera.get_node(alarm_node.nodeid).call_method(
+                    ua.NodeId(ua.ObjectIds.AcknowledgeableConditionType_Acknowledge),
+                    ua.Variant(condition.EventId, ua.VariantType.ByteString),
+                    ua.LocalizedText("seen"),
+                )
+        assert rig.journal.get_alarm(event.AlarmId).acked is None
         await alarm_node.call_method(
             ua.NodeId(ua.ObjectIds.AcknowledgeableConditionType_Acknowledge),
             ua.Variant(condition.EventId, ua.VariantType.ByteString),

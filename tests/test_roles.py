@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import os
 import stat
 from collections.abc import AsyncIterator
@@ -13,12 +14,15 @@ from hypothesis import given
 from hypothesis import strategies as st
 from websockets.exceptions import ConnectionClosed
 
-from cellctl.errors import AccessDenied, UsageError
+from cellctl.cell.owner import acquire_controller_lock
+from cellctl.errors import AccessDenied, CellctlError, UsageError
 from cellctl.service.access import AttachedCell
 from cellctl.service.audit import AuditLog
 from cellctl.service.client import RemoteCell
 from cellctl.service.server import ApiServer
 from cellctl.service.token import (
+    ROLES,
+    TOKEN_ENV,
     TOKEN_NAME,
     add_token,
     check_name,
@@ -124,11 +128,11 @@ async def test_roles_on_websocket_http_and_the_dashboard_and_the_audit_trail(
     assert {e["method"] for e in refused} == {"orders.submit"}
     assert all("needs the operator role" in e["result"] for e in refused)
     assert rig.mailbox.get_order(order_id).part_type == "wax-robot-base"
-    # A viewer may not read the audit trail.
+    # A viewer reads the audit trail too (the dashboard's Audit panel).
     status, body = await http(
         base + "/dashboard/call", token=viewer, body={"method": "audit.list", "params": {}}
     )
-    assert status == 403 and body["error"]["data"]["role"] == "operator"
+    assert status == 200 and any(e["who"] == "token:otto" for e in body["result"])
 
     # The CLI's audit reads the same entries; --who filters.
     code, out = await cli(cell, "audit", "--who", "otto", "--json", "--since", "1h")
@@ -205,3 +209,109 @@ def test_a_token_name_is_taken_only_when_it_is_a_plain_file_name(name: str) -> N
     else:
         assert "/" not in name and not name.startswith(".") and 1 <= len(name) <= 64
         assert name.isascii() and name.isprintable()
+
+
+WRONG = "w" * 43
+
+
+async def cli_as(cell: Path, token: str, *args: str) -> tuple[int, str]:
+    """``cellctl`` acting with ``token`` ($CELLCTL_TOKEN), in a worker thread."""
+
+    def invoke() -> tuple[int, str]:
+        result = CliRunner().invoke(cli_main, ["--cell", str(cell), *args], env={TOKEN_ENV: token})
+        return result.exit_code, result.output
+
+    return await asyncio.to_thread(invoke)
+
+
+async def test_each_role_and_a_wrong_token_on_each_surface(
+    served: tuple[CellRig, ApiServer, str],
+) -> None:
+    """viewer, operator, engineer and a wrong token, each on the WebSocket, an HTTP GET,
+    the dashboard's POST and the CLI (which the console shares: $CELLCTL_TOKEN, through the
+    controller's API): a read, an operator's action and an engineer's by-hand function."""
+    rig, server, base = served
+    cell = rig.directory
+    tokens = {role: add_token(cell, f"t-{role}", role) for role in ROLES}
+
+    # A wrong token: no handshake, 401 on HTTP and on the dashboard's call, and the CLI
+    # says so.
+    with pytest.raises(AccessDenied, match="refused the token"):
+        await connect(server, WRONG)
+    assert (await http(base + "/api/status", token=WRONG))[0] == 401
+    call = {"method": "alarms.ack", "params": {"id": 999}}
+    assert (await http(base + "/dashboard/call", token=WRONG, body=call))[0] == 401
+    with acquire_controller_lock(cell):  # the CLI goes through the API, as with `cellctl run`
+        code, out = await cli_as(cell, WRONG, "orders")
+        assert code != 0 and "refused the token" in out
+
+        for role, token in tokens.items():
+            needs = {"viewer": "operator", "operator": "engineer", "engineer": None}[role]
+            client = await connect(server, token)
+            try:
+                assert "machines" in await client.call("cell.status", {})
+                if role == "viewer":
+                    with pytest.raises(AccessDenied, match=r"cell\.pause needs the operator role"):
+                        await client.call("cell.pause", {})
+                else:
+                    await client.call("cell.pause", {})
+                    await client.call("cell.resume", {})
+                with pytest.raises(CellctlError) as home:
+                    await client.call("robot.home", {})
+                if role == "engineer":  # past the role: refused for the automatic service
+                    assert "in automatic service" in str(home.value)
+                else:
+                    assert "robot.home needs the engineer role" in str(home.value)
+            finally:
+                await client.close()
+
+            status, body = await http(base + "/api/status", token=token)
+            assert status == 200 and "machines" in body
+            status, body = await http(base + "/dashboard/call", token=token, body=call)
+            if role == "viewer":
+                assert status == 403 and body["error"]["data"]["role"] == "operator"
+            else:  # past the role: there is no alarm 999
+                assert status == 400 and "no alarm 999" in body["error"]["message"]
+
+            code, out = await cli_as(cell, token, "orders", "--json")
+            assert code == 0, out
+            code, out = await cli_as(cell, token, "alarm", "ack", "999")
+            assert code != 0
+            if needs == "operator":
+                assert "alarms.ack needs the operator role" in out
+            else:
+                assert "no alarm 999" in out
+            code, out = await cli_as(cell, token, "robot", "robot", "home")
+            assert code != 0
+            if needs is None:
+                assert "in automatic service" in out
+            else:
+                assert "robot.home needs the engineer role" in out
+
+    # Every refusal and every action is in the trail under the token's name.
+    with AuditLog(cell) as log:
+        seen = {(e.who, e.method, "needs the" in e.result) for e in log.entries(limit=10_000)}
+    assert ("token:t-viewer", "cell.pause", True) in seen
+    assert ("token:t-operator", "cell.pause", False) in seen
+    assert ("token:t-operator", "robot.home", True) in seen
+    assert ("token:t-engineer", "robot.home", False) in seen
+    assert ("token:t-viewer", "alarms.ack", True) in seen
+
+
+async def test_without_a_controller_the_cli_acts_with_its_tokens_role(tmp_path: Path) -> None:
+    """No controller runs: the CLI serves the call in its own process, and with
+    $CELLCTL_TOKEN it acts with that token's role (a viewer reads the alarm history, may
+    not acknowledge or shelve); a token that is not the cell's is refused."""
+    async with CellRig(tmp_path / "cell") as rig:
+        cell = rig.directory
+        viewer = add_token(cell, "vera", "viewer")
+        code, out = await cli_as(cell, viewer, "alarm", "history", "--json")
+        assert code == 0 and out.strip().startswith("["), out
+        for args in (("alarm", "ack", "1"), ("alarm", "shelve", "1", "--for", "30m")):
+            code, out = await cli_as(cell, viewer, *args)
+            assert code != 0 and "vera is a viewer" in out and "needs the operator role" in out
+        code, out = await cli_as(cell, WRONG, "alarm", "history")
+        assert code != 0 and "CELLCTL_TOKEN is no token of" in out
+    with AuditLog(cell) as log:
+        refused = [(e.who, e.method) for e in log.entries() if "needs the" in e.result]
+    assert refused == [("token:vera", "alarms.ack"), ("token:vera", "alarms.shelve")]

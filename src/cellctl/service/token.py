@@ -2,6 +2,7 @@
 
     token = ensure_token(Path("cell"))   # the server: read it, or make it on the first run
     token = read_token(Path("cell"))     # a client: read it (AccessDenied when there is none)
+    token = client_token(Path("cell"))   # $CELLCTL_TOKEN (a named token) or api-token
 
 The file is opened with ``O_NOFOLLOW`` and made with ``O_EXCL``: a symbolic link put in its
 place is refused, never followed (its target would become the token, or be overwritten). A
@@ -36,6 +37,8 @@ from pathlib import Path
 from cellctl.errors import AccessDenied, UsageError
 
 TOKEN_FILE = "api-token"
+#: A named token the CLI and the console act with, instead of ``api-token`` (the engineer's).
+TOKEN_ENV = "CELLCTL_TOKEN"
 #: The shortest token taken (a new one has 43 characters: 32 random bytes, base64url).
 MIN_TOKEN = 32
 #: The longest file read as a token.
@@ -105,6 +108,13 @@ def read_token(directory: Path) -> str:
         return _read(path)
     except OSError as e:
         raise AccessDenied(f"cannot read the API token {path}: {e}") from None
+
+
+def client_token(directory: Path) -> str:
+    """The token a client of the cell sends: ``$CELLCTL_TOKEN`` when set (a named token, so
+    the CLI and the console act with its role), else ``<cell>/api-token``."""
+    given = os.environ.get(TOKEN_ENV, "").strip()
+    return given or read_token(directory)
 
 
 # -- named tokens with roles ------------------------------------------------------------------

@@ -9,7 +9,6 @@
 
 from __future__ import annotations
 
-import json
 import re
 import time
 from datetime import datetime
@@ -21,7 +20,7 @@ from rich.table import Table
 from cellctl.errors import UsageError
 from cellctl.service.token import ROLES, add_token, list_tokens, revoke_token
 from cellctl.ui.calls import cell_call
-from cellctl.ui.common import cell_dir, console, run
+from cellctl.ui.common import cell_dir, console, json_option, print_json, print_table, run
 
 _UNITS = {"s": 1, "m": 60, "h": 3600, "d": 86400}
 
@@ -72,7 +71,7 @@ def token_add(ctx: click.Context, name: str, role: str) -> None:
 
 
 @token_group.command("list")
-@click.option("--json", "as_json", is_flag=True, help="Print JSON.")
+@json_option
 @click.pass_context
 def token_list(ctx: click.Context, as_json: bool) -> None:
     """The tokens: names, roles and when made (never a secret)."""
@@ -83,8 +82,7 @@ def token_list(ctx: click.Context, as_json: bool) -> None:
 
     found = run(main)
     if as_json:
-        rows = [{"name": e.name, "role": e.role, "created": e.created} for e in found]
-        click.echo(json.dumps(rows, indent=2))
+        print_json([{"name": e.name, "role": e.role, "created": e.created} for e in found])
         return
     if not found:
         console.print("no tokens yet: `cellctl run` enters api-token as `default`")
@@ -94,7 +92,7 @@ def token_list(ctx: click.Context, as_json: bool) -> None:
         table.add_column(column)
     for e in found:
         table.add_row(e.name, e.role, _when(e.created))
-    console.print(table)
+    print_table(table)
 
 
 @token_group.command("revoke")
@@ -121,7 +119,7 @@ def token_revoke(ctx: click.Context, name: str) -> None:
     show_default=True,
     help="At most this many, the latest.",
 )
-@click.option("--json", "as_json", is_flag=True, help="Print JSON.")
+@json_option
 @click.pass_context
 def audit_command(
     ctx: click.Context, since: str | None, who: str | None, limit: int, as_json: bool
@@ -138,7 +136,7 @@ def audit_command(
         params["who"] = who
     found = cell_call(ctx, "audit.list", params)
     if as_json:
-        click.echo(json.dumps(found, indent=2))
+        print_json(found)
         return
     if not found:
         console.print("no actions recorded")
@@ -148,4 +146,4 @@ def audit_command(
         table.add_column(column, overflow="fold")
     for e in found:
         table.add_row(_when(e["at"]), e["who"], e["method"], e["params"], e["result"])
-    console.print(table)
+    print_table(table)

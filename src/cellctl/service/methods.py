@@ -14,7 +14,9 @@ into a JSON-RPC error whose ``data`` names the type, so a client raises the same
 
 from __future__ import annotations
 
+import asyncio
 import getpass
+import threading
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -344,8 +346,12 @@ async def _preview(access: CellAccess, p: PreviewParams, progress: Progress | No
 async def _audit(access: CellAccess, p: AuditParams, progress: Progress | None) -> Any:
     if access.journal() is None:
         return []
-    with AuditLog(access.directory) as log:
-        return [e.as_dict() for e in log.entries(since=p.since, who=p.who, limit=p.limit)]
+
+    def read() -> list[dict[str, Any]]:
+        with AuditLog(access.directory) as log:
+            return [e.as_dict() for e in log.entries(since=p.since, who=p.who, limit=p.limit)]
+
+    return await asyncio.to_thread(read)  # off the loop, as the entries are written
 
 
 def _machine_handler(family: str, function_name: str) -> Handler:
@@ -487,6 +493,7 @@ class Dispatcher:
     def __init__(self, access: CellAccess) -> None:
         self.access = access
         self._audit: AuditLog | None = None
+        self._audit_lock = threading.Lock()  # one opening of the log, from worker threads
 
     async def call(
         self,
@@ -512,10 +519,10 @@ class Dispatcher:
             result = await self._run(entry, method, params, progress)
         except Exception as e:
             if entry is not None and (entry.acts or isinstance(e, RoleRefused)):
-                self.record(caller.who, method, params, str(e) or type(e).__name__)
+                await self.record(caller.who, method, params, str(e) or type(e).__name__)
             raise
         if entry.acts:
-            self.record(caller.who, method, params, "ok")
+            await self.record(caller.who, method, params, "ok")
         return result
 
     async def _run(self, entry: Method, method: str, params: Any, progress: Progress | None) -> Any:
@@ -529,18 +536,25 @@ class Dispatcher:
             raise InvalidParams(f"{method}: {describe(e)}") from None
         return await entry.handler(self.access, checked, progress)
 
-    def record(self, who: str, method: str, params: Any, result: str) -> None:
-        """One audit entry, when the cell has a journal (a cell that never ran has none)."""
-        if self._audit is None:
-            if self.access.journal() is None:
-                return
-            self._audit = AuditLog(self.access.directory)
-        self._audit.record(who, method, params, result)
+    async def record(self, who: str, method: str, params: Any, result: str) -> None:
+        """One audit entry, when the cell has a journal (a cell that never ran has none).
+        Written in a worker thread: a commit waits for the disk (synchronous=FULL), and the
+        controller's loop must not wait with it (its looks at the machines have deadlines)."""
+        if self.access.journal() is None:
+            return
+        await asyncio.to_thread(self._write_entry, who, method, params, result)
+
+    def _write_entry(self, who: str, method: str, params: Any, result: str) -> None:
+        with self._audit_lock:
+            if self._audit is None:
+                self._audit = AuditLog(self.access.directory)
+            self._audit.record(who, method, params, result)
 
     def close(self) -> None:
-        if self._audit is not None:
-            self._audit.close()
-            self._audit = None
+        with self._audit_lock:
+            if self._audit is not None:
+                self._audit.close()
+                self._audit = None
 
 
 def error_object(error: BaseException) -> dict[str, Any]:

@@ -108,6 +108,8 @@ def test_operator_takes_cnc2_out_runs_it_by_hand_and_returns_it(
     assert back.returncode == 0 and "back in automatic service" in back.stdout
     with open_mailbox(cell) as mailbox:
         wait_until(lambda: mailbox.get_order("A").state == "done", "order A done", timeout=120)
+    # What the controller wrote to its journal is what another process reads there.
+    wait_until(lambda: cuts(cell) == ["finished"] * 4, "4 cuts finished, in the journal")
     listed = cellctl(cell, "orders")
     assert listed.returncode == 0 and "done" in listed.stdout
     os.kill(run.pid, signal.SIGINT)

@@ -36,6 +36,7 @@ DASHBOARD_METHODS = frozenset(
         "cell.status",
         "cell.layout",
         "steps.list",
+        "report.shift",
         "programs.preview",
         "traffic.tail",
         "orders.list",

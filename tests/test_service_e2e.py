@@ -36,6 +36,7 @@ def running_cell(tmp_path: Path) -> Iterator[tuple[Path, subprocess.Popen[str]]]
         # work, the emulator's process is not always scheduled within 50 ms.
         toml = cell / "cell.toml"
         text = toml.read_text()
+        assert "[cell]\n" in text
         toml.write_text(text.replace("[cell]\n", f"[cell]\nread_limit = {READ_LIMIT}\n", 1))
         with open_mailbox(cell) as mailbox:
             mailbox.post_order("wax-robot-base", 2, order_id="A")

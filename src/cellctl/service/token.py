@@ -29,11 +29,11 @@ import os
 import re
 import secrets
 import stat
-import time
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
+from cellctl.clock import current_clock
 from cellctl.errors import AccessDenied, UsageError
 
 TOKEN_FILE = "api-token"
@@ -210,7 +210,7 @@ def _read_entry(path: Path) -> TokenEntry:
 def _write_entry(directory: Path, name: str, role: str, token: str) -> TokenEntry:
     folder = _tokens_dir(directory)
     folder.mkdir(mode=0o700, parents=True, exist_ok=True)
-    entry = TokenEntry(name, role, round(time.time(), 3), _digest(token))
+    entry = TokenEntry(name, role, round(current_clock().now(), 3), _digest(token))
     path = folder / name
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
     try:

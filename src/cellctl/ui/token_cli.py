@@ -10,13 +10,13 @@
 from __future__ import annotations
 
 import re
-import time
 from datetime import datetime
 from typing import Any
 
 import click
 from rich.table import Table
 
+from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.service.token import ROLES, add_token, list_tokens, revoke_token
 from cellctl.ui.calls import cell_call
@@ -28,7 +28,7 @@ _UNITS = {"s": 1, "m": 60, "h": 3600, "d": 86400}
 def parse_since(text: str, now: float | None = None) -> float:
     """``--since``: a span back from now (``90s``, ``30m``, ``2h``, ``7d``) or a date and
     time (``2024-05-01`` or ``2024-05-01T14:30``); UsageError naming both forms."""
-    now = time.time() if now is None else now
+    now = current_clock().now() if now is None else now
     found = re.fullmatch(r"(\d{1,9})([smhd])", text.strip())
     if found:
         return now - int(found.group(1)) * _UNITS[found.group(2)]

@@ -3,6 +3,7 @@
 // The token comes in the URL's fragment (#token=...), is kept in sessionStorage and is sent
 // as "Authorization: Bearer" with every request. Live updates come from the API's WebSocket
 // (a one-shot token fetched with the header); calls that act go through POST /dashboard/call.
+import { refreshAudit } from "./audit.js";
 import { timeOfDay } from "./clock.js";
 import {
   hideCellControls, renderCellControls, wireCellControls,
@@ -162,6 +163,7 @@ export async function act(question, method, params, where) {
     out.classList.add("error");
   }
   await refresh();
+  refreshAudit();
 }
 
 // -- rendering ------------------------------------------------------------------------------
@@ -302,6 +304,7 @@ async function connect() {
       state.connected = true;
       byId("content").classList.remove("hidden");
       byId("connecting").classList.add("hidden");
+      refreshAudit();
       const at = timeOfDay(new Date());
       setConnection(again ? `live · reconnected at ${at}` : "live", "good");
       if (again) {
@@ -388,6 +391,7 @@ function start() {
   // Figures that move with the clock alone come with the next change; read them now and
   // then (docs/api.md: "Updates").
   setInterval(() => state.connected && refresh(), 5000);
+  setInterval(() => state.connected && refreshAudit(), 3000);
 }
 
 start();

@@ -14,6 +14,7 @@ from typing import Any
 import pytest
 from playwright.async_api import Page, Request, Response, Route
 
+from cellctl.service.token import add_token
 from tests import test_dashboard
 from tests.test_dashboard import Dash, http, live
 
@@ -150,6 +151,28 @@ async def test_a_wrong_token_gets_no_controls_and_changes_nothing(dash: Dash) ->
     assert await mode(dash) == "running"
     assert (await dash.api("machines.list"))["cnc1"]["in_service"] is True
     assert await dash.api("alarms.list") == []
+
+
+async def test_a_viewer_is_refused_the_controls_in_words(dash: Dash) -> None:
+    viewer = add_token(dash.rig.directory, "vic", "viewer")
+    await dash.open(f"#token={viewer}")
+    page = dash.page
+    await page.locator("#connection.good").wait_for(timeout=10_000)
+    await page.locator(f'{CONTROLS} button[data-method="cell.estop"]').click()
+    await page.locator("#confirm-reason").fill("a viewer tries")
+    await dash.confirm()
+    refusal = page.locator("#control-message.error")
+    await refusal.wait_for(timeout=5_000)
+    assert "vic is a viewer: cell.estop needs the operator role" in await refusal.inner_text()
+    card = page.locator('#machine-cards .card[data-machine="cnc1"]')
+    await card.locator('button[data-method="machines.out_of_service"]').click()
+    await page.locator("#confirm-reason").fill("a viewer tries")
+    await dash.confirm()
+    out = card.locator(".control-message.error")
+    await out.wait_for(timeout=5_000)
+    assert "needs the operator role" in await out.inner_text()
+    assert await mode(dash) == "running"
+    assert (await dash.api("machines.list"))["cnc1"]["in_service"] is True
 
 
 # -- finding 14 ---------------------------------------------------------------------------------

@@ -124,8 +124,14 @@ def test_console_in_a_terminal_attached_to_a_running_cell(tmux: Tmux, tmp_path: 
         )
         wait_until(lambda: (cell / "api.sock").exists(), "the controller's API socket")
         tmux.start([CELLCTL, "--cell", str(cell), "console"], {"TERM": "xterm-256color"})
-        shown = tmux.wait_for("MAIN MENU", "attached to cellctl run (pid", "5. EXIT")
+        # The source's main menu: 1 ROBOT, 2 NC #1, 3 NC #2, 4 EXIT; the cell on a letter.
+        shown = tmux.wait_for("MAIN MENU", "attached to cellctl run (pid", "4. EXIT", "c. CELL")
         assert "1. ROBOT (robot)" in shown and "3. NC MACHINE #2 (cnc2)" in shown
+        menu = [line[:36].strip() for line in shown.splitlines()[2:14]]  # the menu column
+        assert [m for m in menu if m] == [
+            "1. ROBOT (robot)", "2. NC MACHINE #1 (cnc1)", "3. NC MACHINE #2 (cnc2)", "4. EXIT",
+            "c. CELL (orders, parts, alarms)",
+        ], shown  # fmt: skip
         tmux.keys("1")
         tmux.wait_for("ROBOT (robot)", "7. EXIT", "s. OUT OF SERVICE")
         tmux.keys("4")  # STATUS: an observation, allowed in automatic service

@@ -145,3 +145,46 @@ def test_console_in_a_terminal_attached_to_a_running_cell(tmux: Tmux, tmp_path: 
         if controller is not None:
             stop(controller)
         stop(emulator)
+
+
+def test_console_in_a_terminal_a_refused_value_is_replaced_by_what_is_typed_next(
+    tmux: Tmux, tmp_path: Path
+) -> None:
+    """Standalone (no controller): the robot's DOWNLOAD refuses partition 6; what the
+    operator types next replaces the field's text ("4", not "64"), and the .aml source the
+    picker offers is compiled on the way."""
+    cell = tmp_path / "cell"
+    env = {**os.environ, "NO_COLOR": "1"}
+    emulator = subprocess.Popen(
+        [CELLCTL, "--cell", str(cell), "emulate", "cell", "--time-scale", "100"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env=env,
+    )
+    try:
+        wait_until(lambda: (cell / "cell.toml").exists(), "the emulated cell's cell.toml")
+        tmux.start([CELLCTL, "--cell", str(cell), "console"], {"TERM": "xterm-256color"})
+        tmux.wait_for("MAIN MENU", "standalone: links held by this console", "4. EXIT")
+        tmux.keys("1")
+        tmux.wait_for("ROBOT (robot)", "7. EXIT")
+        tmux.keys("1")
+        tmux.wait_for("robot: INITIALIZE: Initializing was correct")
+        tmux.keys("2")
+        tmux.wait_for("Partition (1-5):", "robot")  # the picker shows the robot/ folder
+        tmux.keys("6")
+        tmux.wait_for("Partition (1-5):      6")
+        tmux.keys("-l", "\t")
+        tmux.keys("-l", "robot/cnc1_to_cnc2.aml")
+        tmux.wait_for("Program file:         robot/cnc1_to_cnc2.aml")
+        tmux.keys("Enter")
+        tmux.wait_for("partition must be 1 to 5, not 6")
+        tmux.keys("4")  # replaces the refused 6 (the cursor was in the program field)
+        tmux.wait_for("Partition (1-5):      4 ")
+        tmux.keys("Enter")
+        tmux.wait_for("robot: DOWNLOAD: Download was correct")
+        tmux.keys("4")
+        tmux.wait_for("robot: STATUS: robot state", "4 Full (CNC1TOCN)")
+        tmux.keys("q")
+        wait_until(tmux.pane_dead, "the console to quit")
+    finally:
+        stop(emulator)

@@ -180,7 +180,7 @@ class MillStatus:
         "Uninitialized" of a mill never set up."""
         if self.awaiting_operator:
             return f"{INITIALIZE_RESULTS[0]}: {REFERENCE_ZERO_NOT_SET}, press NEXT"
-        return self.shown
+        return self.state_text
 
     @property
     def shown(self) -> str:

@@ -7,7 +7,9 @@ A missing tmux fails the test with a clear message (``make test`` installs it).
 
 from __future__ import annotations
 
+import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -49,9 +51,11 @@ class Tmux:
             timeout=10,
         )
 
-    def start(self, command: list[str], env: dict[str, str]) -> None:
+    def start(
+        self, command: list[str], env: dict[str, str], width: int = 80, height: int = 24
+    ) -> None:
         self.run(
-            "new-session", "-d", "-s", self.session, "-x", "80", "-y", "24",
+            "new-session", "-d", "-s", self.session, "-x", str(width), "-y", str(height),
             *[f"-e{k}={v}" for k, v in env.items()],
             " ".join(command),
         )  # fmt: skip
@@ -186,5 +190,67 @@ def test_console_in_a_terminal_a_refused_value_is_replaced_by_what_is_typed_next
         tmux.wait_for("robot: STATUS: robot state", "4 Full (CNC1TOCN)")
         tmux.keys("q")
         wait_until(tmux.pane_dead, "the console to quit")
+    finally:
+        stop(emulator)
+
+
+def cellctl(cell: Path, *args: str) -> str:
+    """A ``cellctl`` command on ``cell``; its output (it must succeed)."""
+    done = subprocess.run(
+        [CELLCTL, "--cell", str(cell), *args], capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 0, done.stderr
+    return done.stdout
+
+
+def event_rows(screen: str) -> int:
+    """The rows of the live view's events pane (each starts with its HH:MM:SS)."""
+    return len(re.findall(r"^│ \d\d:\d\d:\d\d ", screen, re.MULTILINE))
+
+
+def test_run_live_view_in_a_terminal(tmux: Tmux, tmp_path: Path) -> None:
+    """``cellctl run``'s live view: a header (cell, time scale, how to stop), a PAUSED and
+    an EMERGENCY STOP banner, a machine's out-of-service reason, and an events pane that
+    grows with the terminal."""
+    cell = tmp_path / "cell"
+    env = {**os.environ, "NO_COLOR": "1"}
+    emulator = subprocess.Popen(
+        [CELLCTL, "--cell", str(cell), "emulate", "cell", "--time-scale", "100"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env=env,
+    )
+    try:
+        wait_until(lambda: (cell / "cell.toml").exists(), "the emulated cell's cell.toml")
+        # The terminal's size, not one the environment fixes (COLUMNS, LINES).
+        command = ["env", "-u", "COLUMNS", "-u", "LINES", CELLCTL, "--cell", str(cell), "run"]
+        tmux.start(command, {"TERM": "xterm-256color"}, 100, 24)
+        tmux.wait_for("cellctl run: cell", "time scale 100 (emulated cell)", "Ctrl-C stops")
+        wait_until(lambda: (cell / "api.sock").exists(), "the controller's API socket")
+        cellctl(cell, "submit", "wax-robot-base", "--qty", "1", "--id", "L1")
+        wait_until(
+            lambda: json.loads(cellctl(cell, "orders", "--json"))[0]["state"] == "done",
+            "order L1 done",
+            timeout=120,
+        )
+        # 24 rows: the events pane has the rows the rest leaves, the whole view on screen.
+        shown = tmux.wait_for("order L1 done", "cellctl run: cell")
+        small = event_rows(shown)
+        assert small >= 1 and "..." not in shown, shown
+        cellctl(cell, "pause")
+        tmux.wait_for("PAUSED: no new step starts")
+        cellctl(cell, "machine", "cnc2", "out", "--reason", "noise")
+        tmux.wait_for("│ cnc2 ", "OUT: taken out", "noise")
+        # A taller terminal: the events pane takes the room.
+        tmux.run("resize-window", "-t", tmux.session, "-x", "100", "-y", "60")
+        grown = lambda: event_rows(tmux.screen()) > max(small, 6)  # noqa: E731
+        try:
+            wait_until(grown, "more events on a taller screen")
+        except AssertionError:
+            raise AssertionError(f"no more events on a taller screen:\n{tmux.screen()}") from None
+        cellctl(cell, "estop", "smoke at cnc1")
+        tmux.wait_for("EMERGENCY STOP: ", "smoke at cnc1", "cellctl resume")
+        tmux.keys("C-c")
+        wait_until(tmux.pane_dead, "cellctl run to stop on Ctrl-C")
     finally:
         stop(emulator)

@@ -9,12 +9,21 @@ Assertions are on the screen, the emulators and the cell's own records.
 
 from __future__ import annotations
 
+import tempfile
 import time
+from pathlib import Path
 
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cellctl.errors import UsageError
 from cellctl.service.client import CellClient
+from cellctl.service.functions import function
 from cellctl.testing.rig import CellRig
 from cellctl.ui.console.app import ConsoleApp
+from cellctl.ui.console.session import ConsoleMachine, check_params
 from tests.test_console import (
+    EXAMPLES,
     SIZE,
     attached,
     fill,
@@ -129,3 +138,31 @@ async def test_standalone_mill_after_initialize_is_not_uninitialized(rig: CellRi
         assert board and not any("Uninitialized" in line for line in board), shown
         assert "cnc1: STATUS" not in screen_text(app)
         await pilot.press("q")
+
+
+AML = (EXAMPLES / "robot" / "conveyor_to_cnc1.aml").read_text()
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    text=st.one_of(
+        st.text(max_size=400),
+        st.integers(0, len(AML)).map(lambda n: AML[:n]),  # a real source, cut anywhere
+    ),
+    partition=st.sampled_from(["1", "5", "6", ""]),
+)
+def test_an_aml_source_gives_parameters_or_a_usage_error(text: str, partition: str) -> None:
+    """Whatever an .aml file holds, DOWNLOAD's check compiles it into a program the function
+    takes, or says what is wrong (a UsageError): nothing else comes out."""
+    fn = function("robot", "download")
+    with tempfile.TemporaryDirectory() as folder:
+        directory = Path(folder)
+        (directory / "load.aml").write_text(text, encoding="utf-8")
+        raw = {"partition": partition, "program": "load.aml"}
+        try:
+            params = check_params(ConsoleMachine("m", "robot", "ROBOT"), fn, raw, directory)
+        except UsageError as e:
+            assert str(e)
+        else:
+            assert params["program"] == "load.rec"
+            fn.check(params)  # accepted as it will be sent

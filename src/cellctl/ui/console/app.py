@@ -59,8 +59,12 @@ PROGRESS_FIELDS = (("records", "records_total"), ("lines", "lines_total"))
 
 #: Every acting API method the console offers (see :mod:`cellctl.ui.console.actions`).
 CONSOLE_ACTIONS = console_actions()
-#: The longest reason the console takes (an out-of-service or emergency stop's).
-REASON_LENGTH = 200
+#: The longest reason the console takes (an out-of-service or emergency stop's): the API's.
+REASON_LENGTH: int = next(
+    m.max_length
+    for m in METHODS["cell.estop"].params.model_fields["reason"].metadata
+    if hasattr(m, "max_length")
+)
 #: The main menu's key of the CELL menu (the source's numbers are the machines', then EXIT).
 CELL_KEY = "c"
 #: How the menus show what needs a controller when none runs.

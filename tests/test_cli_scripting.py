@@ -207,6 +207,7 @@ def test_every_acting_api_method_is_in_the_console() -> None:
     """The console column of the parity test: the console's declared actions against the
     API's method table, and each declared place against the menus the console shows."""
     from cellctl.ui.console.actions import console_actions
+    from cellctl.ui.console.app import SERVICE_LABELS
     from cellctl.ui.console.cellmenu import CellActions
 
     declared = console_actions()
@@ -226,7 +227,7 @@ def test_every_acting_api_method_is_in_the_console() -> None:
         for paused in (False, True)
         for e in CellActions(Host(paused)).entries()  # type: ignore[arg-type]
     }
-    labels |= {"OUT OF SERVICE", "RETURN TO SERVICE"}  # a machine menu's s, by its state
+    labels |= set(SERVICE_LABELS.values())  # a machine menu's s, by its state
     # A machine function's place is its kind's menu, the list the machine menus are built of.
     machine = {(fn.family.upper(), fn.label) for k in registry.kinds() for fn in kind_menu(k.name)}
     misplaced = [

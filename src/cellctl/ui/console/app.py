@@ -65,6 +65,8 @@ REASON_LENGTH: int = next(
     for m in METHODS["cell.estop"].params.model_fields["reason"].metadata
     if hasattr(m, "max_length")
 )
+#: A machine menu's ``s`` entry: taking it out of service (False) or back (True).
+SERVICE_LABELS = {False: "OUT OF SERVICE", True: "RETURN TO SERVICE"}
 #: The main menu's key of the CELL menu (the source's numbers are the machines', then EXIT).
 CELL_KEY = "c"
 #: How the menus show what needs a controller when none runs.
@@ -238,10 +240,9 @@ class ConsoleApp(App[None]):
         last = max(fn.menu or 0 for fn in functions) + 1
         entries.insert(last - 1, Entry(str(last), "EXIT", self._back_action))
         if self.mode == "attached":
-            if self.in_service(machine.name):
-                entries.append(Entry("s", "OUT OF SERVICE", self._service(machine.name, False)))
-            else:
-                entries.append(Entry("s", "RETURN TO SERVICE", self._service(machine.name, True)))
+            back = not self.in_service(machine.name)
+            label = SERVICE_LABELS[back]
+            entries.append(Entry("s", label, self._service(machine.name, back)))
         else:
             entries.append(Entry("s", "SERVICE", None, UNAVAILABLE))
         return entries

@@ -77,6 +77,23 @@ class Tmux:
     def keys(self, *keys: str) -> None:
         self.run("send-keys", "-t", self.session, *keys)
 
+    def cursor_row(self) -> int:
+        """The terminal's cursor row (a focused input puts the cursor in its field)."""
+        result = self.run("display-message", "-p", "-t", self.session, "#{cursor_y}", check=False)
+        return int(result.stdout.strip() or -1)
+
+    def focus_row(self, text: str) -> None:
+        """Tab until the cursor is on the screen's row that shows ``text`` (a field's label)."""
+        row = next(i for i, line in enumerate(self.screen().splitlines()) if text in line)
+        for _ in range(3):  # a Tab the application has not taken yet is sent once more
+            self.keys("Tab")
+            try:
+                wait_until(lambda: self.cursor_row() == row, f"the cursor in {text}", 5.0)
+                return
+            except AssertionError:
+                continue
+        raise AssertionError(f"Tab did not reach {text}:\n{self.screen()}")
+
     def pane_dead(self) -> bool:
         result = self.run("display-message", "-p", "-t", self.session, "#{pane_dead}", check=False)
         return result.stdout.strip() == "1"
@@ -176,7 +193,7 @@ def test_console_in_a_terminal_a_refused_value_is_replaced_by_what_is_typed_next
         tmux.wait_for("Partition (1-5):", "robot")  # the picker shows the robot/ folder
         tmux.keys("6")
         tmux.wait_for("Partition (1-5):      6")
-        tmux.keys("-l", "\t")
+        tmux.focus_row("Program file:")
         tmux.keys("-l", "robot/cnc1_to_cnc2.aml")
         tmux.wait_for("Program file:         robot/cnc1_to_cnc2.aml")
         tmux.keys("Enter")

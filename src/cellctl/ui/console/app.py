@@ -29,6 +29,7 @@ from textual.containers import Horizontal
 from textual.screen import ModalScreen, Screen
 from textual.widgets import Footer, OptionList, Static
 from textual.widgets.option_list import Option
+from textual.worker import Worker
 
 from cellctl.errors import CellctlError, UsageError
 from cellctl.service.client import CellClient, RemoteCell
@@ -196,10 +197,17 @@ class ConsoleApp(App[None]):
         if isinstance(self.client, RemoteCell) and self.client.closed.is_set():
             self._show_snapshot()  # the header says so
             return
-        if self._traffic_busy or self.client is None or not self.selected:
+        if self._traffic_busy or self._closed or self.client is None or not self.selected:
             return
         self._traffic_busy = True
-        self.run_worker(self._traffic(self.selected), group="traffic", exit_on_error=False)
+        # The method, not a coroutine: none is made (and left unawaited) if the app exits
+        # first. (The annotation tells mypy the worker's result type.)
+        _worker: Worker[None] = self.run_worker(
+            self._traffic_of_selected, group="traffic", exit_on_error=False
+        )
+
+    async def _traffic_of_selected(self) -> None:
+        await self._traffic(self.selected)
 
     async def _traffic(self, name: str) -> None:
         pane = self.query_one(TrafficPane)

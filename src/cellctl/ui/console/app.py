@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import time
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar, cast
 
@@ -31,6 +30,7 @@ from textual.widgets import Footer, OptionList, Static
 from textual.widgets.option_list import Option
 from textual.worker import Worker
 
+from cellctl.clock import current_clock
 from cellctl.errors import CellctlError, UsageError
 from cellctl.service.client import CellClient, RemoteCell
 from cellctl.service.functions import MachineFunction, menu
@@ -483,7 +483,7 @@ class ConsoleApp(App[None]):
             await self.step_ended(machine.name)
         pane = self.query_one(ResultPane)
         self.say([f"{machine.name}: {fn.label} ..."])
-        self.commands[machine.name] = time.time()
+        self.commands[machine.name] = current_clock().now()  # traffic rows' wall time
 
         def progress(data: dict[str, Any]) -> None:
             for done, total in PROGRESS_FIELDS:

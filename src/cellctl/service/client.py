@@ -234,6 +234,7 @@ class StandaloneCell:
         while True:
             await asyncio.sleep(LOCAL_POLL)
             try:
+                await self.access.refresh()
                 status = self.access.status()
             except CellctlError:
                 continue

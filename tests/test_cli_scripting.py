@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -15,12 +16,14 @@ import pytest
 
 from cellctl.kinds import registry
 from cellctl.mailbox import open_mailbox
-from cellctl.service.functions import kind_menu
+from cellctl.service.functions import FUNCTIONS, kind_menu
 from cellctl.service.methods import METHODS
 from cellctl.ui.cli import main
 from cellctl.ui.common import clause_summary
+from cellctl.ui.dashboard.routes import DASHBOARD_METHODS
 from tests.conftest import CELLCTL
 
+ROOT = Path(__file__).resolve().parent.parent
 RUN_CLI = "import sys; from cellctl.ui.cli import main; sys.exit(main())"
 
 CELL_TOML = """
@@ -202,3 +205,79 @@ def test_a_summary_keeps_whole_clauses_outside_parentheses() -> None:
         "Emergency stop: stop the robot, halt the mills, raise an alarm.", 50
     ) == ("Emergency stop: stop the robot, halt the mills")
     assert clause_summary("Short and whole.", 60) == "Short and whole"
+
+
+# -- the dashboard's column of the parity table --------------------------------------------------
+
+DASHBOARD_STATIC = ROOT / "src" / "cellctl" / "ui" / "dashboard" / "static"
+#: Where a dashboard control declares its API method, once per control: data-method="..." in
+#: the markup, "data-method": "..." in a script that builds one (a selector such as
+#: [data-method="cell.pause"] only finds a control, it declares none).
+DECLARED = {
+    ".html": re.compile(r'\sdata-method="([^"]*)"'),
+    ".js": re.compile(r'"data-method":\s*"([^"]*)"'),
+}
+
+
+def dashboard_actions() -> dict[str, list[str]]:
+    """The API methods the dashboard's controls call, each with the files declaring it."""
+    found: dict[str, list[str]] = {}
+    for path in sorted(DASHBOARD_STATIC.iterdir()):
+        pattern = DECLARED.get(path.suffix)
+        if pattern is not None:
+            for method in pattern.findall(path.read_text(encoding="utf-8")):
+                found.setdefault(method, []).append(path.name)
+    return found
+
+
+def test_every_acting_api_method_has_a_dashboard_control() -> None:
+    offered = dashboard_actions()
+    # By-hand machine functions (an engineer's, on a machine out of automatic service, with
+    # the machine's own menu and parameters) are the console's and the CLI's; every other
+    # action of the API is the dashboard's too.
+    by_hand = {f"{fn.family}.{fn.name}" for fn in FUNCTIONS}
+    wanted = {m.name for m in METHODS.values() if m.acts and m.name not in by_hand}
+    missing = sorted(wanted - set(offered))
+    assert not missing, f"API actions with no dashboard control: {missing}"
+    unknown = {m: files for m, files in offered.items() if m not in METHODS}
+    assert not unknown, f"dashboard controls for methods the API does not have: {unknown}"
+    reads = sorted(m for m in offered if m in METHODS and not METHODS[m].acts)
+    assert not reads, f"dashboard controls for methods that change nothing: {reads}"
+    # ... and the page may call each of them (POST /dashboard/call refuses any other).
+    refused = sorted(set(offered) - DASHBOARD_METHODS)
+    assert not refused, f"dashboard controls that /dashboard/call refuses: {refused}"
+
+
+def test_every_acting_api_method_is_in_the_console() -> None:
+    """The console column of the parity test: the console's declared actions against the
+    API's method table, and each declared place against the menus the console shows."""
+    from cellctl.ui.console.actions import console_actions
+    from cellctl.ui.console.app import SERVICE_LABELS
+    from cellctl.ui.console.cellmenu import CellActions
+
+    declared = console_actions()
+    missing = [m.name for m in METHODS.values() if m.acts and m.name not in declared]
+    assert not missing, f"API actions the console lacks: {missing}"
+    unknown = [m for m in declared if m not in METHODS]
+    assert not unknown, f"console actions the API does not have: {unknown}"
+
+    class Host:  # what the CELL menu reads of a console attached to a controller
+        def __init__(self, paused: bool) -> None:
+            self.directory = Path(".")
+            self.mode = "attached"
+            self.snapshot = {"cell": {"paused": paused}}
+
+    labels = {
+        e.label
+        for paused in (False, True)
+        for e in CellActions(Host(paused)).entries()  # type: ignore[arg-type]
+    }
+    labels |= set(SERVICE_LABELS.values())  # a machine menu's s, by its state
+    # A machine function's place is its kind's menu, the list the machine menus are built of.
+    machine = {(fn.family.upper(), fn.label) for k in registry.kinds() for fn in kind_menu(k.name)}
+    misplaced = [
+        m
+        for m, place in declared.items()
+        if not (place[0] in ("CELL", "MACHINE") and place[1] in labels) and place not in machine
+    ]
+    assert not misplaced, f"console actions declared where no menu entry is: {misplaced}"

@@ -120,8 +120,12 @@ async def browser() -> AsyncIterator[Browser]:
 
 
 @pytest.fixture
-async def dash(tmp_path: Path, browser: Browser) -> AsyncIterator[Dash]:
-    async with CellRig(tmp_path / "cell") as rig:
+async def dash(
+    tmp_path: Path, browser: Browser, request: pytest.FixtureRequest
+) -> AsyncIterator[Dash]:
+    # A test may ask for a slower cell (parametrize "dash" indirectly with its time scale).
+    scale = getattr(request, "param", None)
+    async with CellRig(tmp_path / "cell", **({"time_scale": scale} if scale else {})) as rig:
         await rig.start_controller()
         assert rig.controller is not None
         port = free_port()

@@ -191,6 +191,15 @@ def test_nothing_changed_sends_nothing(pair: tuple[CellStatus, CellStatus]) -> N
     later = old.model_copy(update={"cell": old.cell.model_copy(update={"time": 3e9})})
     assert difference(old, old).empty()
     assert difference(old, later).empty()  # the clock alone moved
+    # ... and so does a machine's busy time while its step runs (it counts as it goes).
+    busier = later.model_copy(
+        update={
+            "machines": {
+                n: m.model_copy(update={"busy_s": m.busy_s + 1.0}) for n, m in old.machines.items()
+            }
+        }
+    )
+    assert difference(old, busier).empty()
     assert set(difference(None, old).as_json()) == {
         "time",
         "cell",

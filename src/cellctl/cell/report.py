@@ -5,6 +5,8 @@ Both are read from the journal, so they describe any run, live or after the fact
     summary = summarize(journal, machines=["robot", "cnc1", "cnc2"], since=t0)
     print("\\n".join(summary.lines()))
     write_gantt(journal, ["robot", "cnc1", "cnc2"], "gantt.svg", since=t0)
+    # Two runs on one time axis:
+    svg = gantt_runs_svg([GanttRun("run A", steps_a, types, t0_a), ...], machines)
 """
 
 from __future__ import annotations
@@ -30,6 +32,8 @@ class Summary:
     alarms_cleared: int
     steps_failed: int
     extra: dict[str, float] = field(default_factory=dict)
+    #: When the run began (the ``since`` it was summarized from; 0: its first step).
+    started: float = 0.0
 
     def utilization(self, machine: str) -> float:
         """Busy time over makespan (0 for an empty run)."""
@@ -78,10 +82,28 @@ def summarize(journal: Journal, machines: list[str], since: float = 0.0) -> Summ
         alarms_raised=len(alarms),
         alarms_cleared=sum(a.state != "active" for a in alarms),
         steps_failed=sum(s.state in ("failed", "interrupted") for s in steps),
+        started=since,
     )
 
 
 _COLORS = ["#4e79a7", "#f28e2b", "#59a14f", "#e15759", "#76b7b2", "#edc948", "#b07aa1"]
+_FAILED = "#999"
+_START_UP = "#e8e8e8"
+#: The narrowest bar drawn (px): a robot transfer of a fraction of a second stays visible.
+_MIN_BAR = 2.0
+_LEFT, _WIDTH, _ROW, _TOP = 90, 900, 34, 40
+
+
+@dataclass
+class GanttRun:
+    """One run for :func:`gantt_runs_svg`: its title, steps, each part's type (part id ->
+    type) and its start (the axis' 0: the batch's start, so the time before the first step
+    is on the chart too)."""
+
+    title: str
+    steps: list[Step]
+    part_types: dict[str, str]
+    start: float
 
 
 def gantt_svg(
@@ -91,51 +113,92 @@ def gantt_svg(
     part_types: dict[str, str] | None = None,
     since: float = 0.0,
     title: str = "",
+    span: float | None = None,
 ) -> str:
-    """An SVG Gantt chart: one row per machine, one bar per step, coloured by part type."""
-    types = part_types or {}
-    steps = [s for s in steps if s.ended is not None and s.started >= since]
-    if not steps:
+    """An SVG Gantt chart: one row per machine, one bar per step, coloured by part type, with
+    a legend. ``since``: the run's start (0: its first step), the axis' 0; ``span``: the
+    axis' length in seconds (give two charts the same to compare them)."""
+    done = [s for s in steps if s.ended is not None and s.started >= since]
+    if not done:
         return '<svg xmlns="http://www.w3.org/2000/svg" width="400" height="40"></svg>\n'
-    t0 = min(s.started for s in steps)
-    t1 = max(s.ended or s.started for s in steps)
-    span = max(t1 - t0, 1e-6)
-    left, width, row_h, top = 90, 900, 34, 40
-    height = top + row_h * len(machines) + 40
-    kinds = sorted({types.get(s.part_id, "") for s in steps})
+    start = since if since > 0 else min(s.started for s in done)
+    return gantt_runs_svg([GanttRun(title, done, part_types or {}, start)], machines, span=span)
+
+
+def gantt_runs_svg(runs: list[GanttRun], machines: list[str], *, span: float | None = None) -> str:
+    """Runs one above the other on one time axis (seconds from each run's start), with one
+    legend: part types by colour, failed steps, and the start-up before a run's first step
+    (the controller connecting: the robot initialized, the mills' setups sent)."""
+    kinds = sorted({r.part_types.get(s.part_id, "") for r in runs for s in r.steps})
     color = {k: _COLORS[i % len(_COLORS)] for i, k in enumerate(kinds)}
+    ends = [s.ended - r.start for r in runs for s in r.steps if s.ended is not None]
+    axis = max(span or 0.0, max(ends, default=0.0), 1e-6)
+    section = 24 + _ROW * len(machines)
+    height = _TOP + section * len(runs) + 56
     out = [
-        f'<svg xmlns="http://www.w3.org/2000/svg" width="{left + width + 20}" '
+        f'<svg xmlns="http://www.w3.org/2000/svg" width="{_LEFT + _WIDTH + 20}" '
         f'height="{height}" font-family="sans-serif" font-size="12">',
         '<rect width="100%" height="100%" fill="white"/>',
-        f'<text x="{left}" y="20" font-size="14">{escape(title)}</text>',
     ]
-    for row, machine in enumerate(machines):
-        y = top + row * row_h
-        out.append(f'<text x="8" y="{y + 20}">{escape(machine)}</text>')
-        out.append(
-            f'<line x1="{left}" y1="{y + row_h - 2}" x2="{left + width}" '
-            f'y2="{y + row_h - 2}" stroke="#ddd"/>'
-        )
-        for s in steps:
-            if s.machine != machine or s.ended is None:
-                continue
-            x = left + (s.started - t0) / span * width
-            w = max(1.0, (s.ended - s.started) / span * width)
-            fill = "#999" if s.state != "finished" else color[types.get(s.part_id, "")]
-            label = escape(f"{s.part_id} {s.program} {s.ended - s.started:.2f} s {s.state}")
-            out.append(
-                f'<rect x="{x:.1f}" y="{y + 4}" width="{w:.1f}" height="{row_h - 10}" '
-                f'fill="{fill}" stroke="white"><title>{label}</title></rect>'
-            )
-    axis_y = top + row_h * len(machines) + 14
+    for i, run in enumerate(runs):
+        out += _gantt_rows(run, machines, _TOP - 20 + i * section, axis, color)
+    axis_y = _TOP + section * len(runs) - 6
     for i in range(11):
-        x = left + i * width / 10
+        x = _LEFT + i * _WIDTH / 10
         out.append(
-            f'<text x="{x:.0f}" y="{axis_y}" text-anchor="middle">{span * i / 10:.1f}s</text>'
+            f'<text x="{x:.0f}" y="{axis_y}" text-anchor="middle">{axis * i / 10:.1f} s</text>'
         )
+    out += _gantt_legend(color, axis_y + 22)
     out.append("</svg>")
     return "\n".join(out) + "\n"
+
+
+def _gantt_rows(
+    run: GanttRun, machines: list[str], top: float, axis: float, color: dict[str, str]
+) -> list[str]:
+    out = [f'<text x="{_LEFT}" y="{top + 14}" font-size="14">{escape(run.title)}</text>']
+    first = min((s.started for s in run.steps), default=run.start)
+    y0 = top + 20
+    if first > run.start:
+        w = (first - run.start) / axis * _WIDTH
+        out.append(
+            f'<rect x="{_LEFT}" y="{y0}" width="{w:.1f}" height="{_ROW * len(machines)}" '
+            f'fill="{_START_UP}" class="start-up"><title>start-up '
+            f"{first - run.start:.2f} s</title></rect>"
+        )
+    for row, machine in enumerate(machines):
+        y = y0 + row * _ROW
+        out.append(f'<text x="8" y="{y + 20}">{escape(machine)}</text>')
+        out.append(
+            f'<line x1="{_LEFT}" y1="{y + _ROW - 2}" x2="{_LEFT + _WIDTH}" '
+            f'y2="{y + _ROW - 2}" stroke="#ddd"/>'
+        )
+        for s in run.steps:
+            if s.machine != machine or s.ended is None:
+                continue
+            x = _LEFT + (s.started - run.start) / axis * _WIDTH
+            w = max(_MIN_BAR, (s.ended - s.started) / axis * _WIDTH)
+            fill = _FAILED if s.state != "finished" else color[run.part_types.get(s.part_id, "")]
+            label = escape(f"{s.part_id} {s.program} {s.ended - s.started:.2f} s {s.state}")
+            out.append(
+                f'<rect x="{x:.1f}" y="{y + 4}" width="{w:.1f}" height="{_ROW - 10}" '
+                f'fill="{fill}" stroke="white" class="step {escape(s.kind)}">'
+                f"<title>{label}</title></rect>"
+            )
+    return out
+
+
+def _gantt_legend(color: dict[str, str], y: float) -> list[str]:
+    entries = [(c, kind or "unknown part type") for kind, c in color.items()]
+    entries += [(_FAILED, "failed or interrupted"), (_START_UP, "start-up (connecting)")]
+    out = ['<g class="legend">']
+    x = float(_LEFT)
+    for fill, name in entries:
+        out.append(f'<rect x="{x:.0f}" y="{y - 10}" width="12" height="12" fill="{fill}"/>')
+        out.append(f'<text x="{x + 16:.0f}" y="{y}">{escape(name)}</text>')
+        x += 30 + 7 * len(name)
+    out.append("</g>")
+    return out
 
 
 def write_gantt(journal: Journal, machines: list[str], path: str | Path, **kw: object) -> Path:

@@ -13,9 +13,10 @@ only what changed, each whole -- ``cell`` when a field of it other than ``time``
 ``machines``: the machines (by name) one of whose fields changed, or that are new;
 ``machines_gone``: names no longer there; ``orders``, ``parts``, ``alarms``: the whole list
 when it changed; ``events``: only the events that are new. Figures that move with the clock
-alone (:data:`VOLATILE`: the cell's ``time``, a machine's ``utilization``, a progress'
-``rate_per_s``, ``time_left_s`` and ``fraction``) do not make an update of their own: they
-travel with their object's next change, and ``cell.status`` has them current.
+alone (:data:`VOLATILE`: the cell's ``time``, a machine's ``busy_s`` (it grows during a step)
+and ``utilization``, a progress' ``rate_per_s``, ``time_left_s`` and ``fraction``) do not make
+an update of their own: they travel with their object's next change, and ``cell.status`` has
+them current.
 """
 
 from __future__ import annotations
@@ -166,7 +167,9 @@ class MachineStatus(Model):
     progress: ProgressInfo | None = Field(default=None, description="A download or cut.")
     error: ErrorInfo | None = Field(default=None, description="Its last error.")
     failures: int = Field(description="Failed steps in a row.")
-    busy_s: float = Field(description="Seconds spent in steps since the start.")
+    busy_s: float = Field(
+        description="Seconds spent in steps since the start, the step in flight included."
+    )
     utilization: float = Field(description="busy_s over the time since the start, 0 to 1.")
     in_service: bool = Field(description="In automatic service.")
     out_reason: str = Field(description="Why it is out of service ('' when in).")
@@ -179,7 +182,7 @@ class MachineStatus(Model):
             progress = progress.model_copy(
                 update={"rate_per_s": None, "time_left_s": None, "fraction": 0.0}
             )
-        return self.model_copy(update={"utilization": 0.0, "progress": progress})
+        return self.model_copy(update={"busy_s": 0.0, "utilization": 0.0, "progress": progress})
 
 
 class OrderInfo(Model):
@@ -291,6 +294,7 @@ class StatusUpdate(Model):
 #: Figures that move with the clock alone: they make no update of their own.
 VOLATILE = (
     "cell.time",
+    "machines.*.busy_s",
     "machines.*.utilization",
     "progress.rate_per_s",
     "progress.time_left_s",
@@ -449,6 +453,11 @@ def _machine(
     progress = _progress(view.progress, now, estimate, step)
     error = ErrorInfo(code=view.error.code, text=view.error.text) if view.error else None
     elapsed = max(now - started_at, 1e-6)
+    # The step in flight counts as it runs: a mill an hour into its first cut is busy, not
+    # "0 %" until the cut ends.
+    busy = view.busy_s
+    if step is not None and step.started is not None:
+        busy += max(0.0, now - max(step.started, started_at))
     return MachineStatus(
         name=view.name,
         kind=view.kind,
@@ -460,8 +469,8 @@ def _machine(
         progress=progress,
         error=error,
         failures=view.failures,
-        busy_s=round(view.busy_s, 3),
-        utilization=round(min(1.0, view.busy_s / elapsed), 4),
+        busy_s=round(busy, 3),
+        utilization=round(min(1.0, busy / elapsed), 4),
         in_service=view.in_service,
         out_reason=out_reason,
         manual=manual,

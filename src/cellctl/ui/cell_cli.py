@@ -4,32 +4,27 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import shlex
-import shutil
 import signal
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import click
-from rich.console import Group
 from rich.live import Live
-from rich.table import Table
 
 from cellctl.cell.config import CellConfig, check_cell, load_cell
 from cellctl.cell.controller import CellController, ControllerOptions, Event
 from cellctl.cell.journal import Journal, open_journal
 from cellctl.cell.owner import acquire_controller_lock
-from cellctl.cell.report import Summary, summarize, write_gantt
-from cellctl.emulators.serve import CELL_TIME_SCALE, DEMO_TIME_SCALE, TIME_SCALE_HELP, parse_fault
+from cellctl.emulators.serve import CELL_TIME_SCALE, TIME_SCALE_HELP, parse_fault
 from cellctl.errors import UsageError
 from cellctl.mailbox import Mailbox, open_mailbox
 from cellctl.mailbox.mqtt import MqttBridge, MqttSettings
 from cellctl.service.access import AttachedCell
 from cellctl.service.server import ApiServer, api_limits
-from cellctl.ui.common import cell_dir, cell_given, console, err_console, run, until_stopped
-from cellctl.ui.dashboard.command import serve_dashboard_in
+from cellctl.ui.common import cell_dir, console, err_console, run, until_stopped
 from cellctl.ui.dashboard.routes import dashboard_routes
+from cellctl.ui.live_view import LiveView
 
 if TYPE_CHECKING:
     from cellctl.factory.opcua import OpcuaServer
@@ -56,35 +51,6 @@ def check(ctx: click.Context) -> None:
         f"{directory / 'cell.toml'}: ok: robot {config.robot.name}, mills {mills}, "
         f"{len(config.robot_programs)} robot programs, part types {', '.join(config.parts)}"
     )
-
-
-def live_view(controller: CellController) -> Group:
-    """The live view: orders, machines and their steps, alarms, recent events."""
-    orders = Table(title="orders", expand=True)
-    for col in ("order", "part", "qty", "state", "done", "held"):
-        orders.add_column(col)
-    for o in controller.mailbox.orders()[:12]:
-        parts = controller.journal.parts(order_id=o.id)
-        done = sum(p.status == "done" for p in parts)
-        held = sum(p.status == "held" for p in parts)
-        orders.add_row(o.id, o.part_type, str(o.qty), o.state, str(done), str(held))
-    machines = Table(title="machines", expand=True)
-    for col in ("machine", "state", "current step", "service"):
-        machines.add_column(col)
-    for view in controller.machines.values():
-        service = "in service" if view.in_service else "[red]OUT OF SERVICE[/red]"
-        machines.add_row(view.name, view.state, view.step, service)
-    alarms = Table(title="active alarms", expand=True)
-    for col in ("id", "machine", "alarm"):
-        alarms.add_column(col)
-    for a in controller.journal.active_alarms()[-6:]:
-        alarms.add_row(str(a.id), a.machine, a.text)
-    events = Table(title="events", expand=True, show_header=False)
-    events.add_column("time", width=10)
-    events.add_column("event")
-    for e in controller.events[-6:]:
-        events.add_row(time.strftime("%H:%M:%S", time.localtime(e.time)), e.text)
-    return Group(orders, machines, alarms, events)
 
 
 async def run_controller(
@@ -155,12 +121,13 @@ async def _run_owned(
             bridge_task = asyncio.create_task(bridge.run())
             bridge_task.add_done_callback(lambda t: _bridge_ended(t, controller))
         if live:
-            with Live(live_view(controller), console=console, refresh_per_second=4) as screen:
+            view = LiveView(controller, directory)
+            with Live(view.render(console), console=console, refresh_per_second=4) as screen:
                 task = asyncio.create_task(controller.run(stop, until_idle=until_idle))
                 while not task.done():
-                    screen.update(live_view(controller))
+                    screen.update(view.render(console))
                     await asyncio.wait({task}, timeout=0.25)
-                screen.update(live_view(controller))
+                screen.update(view.render(console))
                 await task
         else:
             await controller.run(stop, until_idle=until_idle)
@@ -347,196 +314,3 @@ def apply_fault(cell: object, text: str) -> None:
         known = ", ".join(dict.fromkeys([c.robot_name, *c.mills, "plc"]))
         raise UsageError(f"fault {text!r}: no machine {machine!r} ({known})")
     target.set_fault(name, arg)
-
-
-@click.command("demo")
-@click.option(
-    "--time-scale",
-    type=float,
-    default=DEMO_TIME_SCALE,
-    show_default=True,
-    help="Machine time runs this many times faster than real. " + TIME_SCALE_HELP,
-)
-@click.option(
-    "--parts",
-    "count",
-    type=click.IntRange(min=1),
-    default=None,
-    help="Parts in the batch.  [default: 6; with --factory N: 3 per cell]",
-)
-@click.option(
-    "--out",
-    type=click.Path(file_okay=False),
-    default="demo-out",
-    show_default=True,
-    help="Directory for the demo's cells, Gantt charts and figures (replaced each run).",
-)
-@click.option("--compare/--no-compare", default=True, help="Also run one part at a time.")
-@click.option(
-    "--dashboard",
-    is_flag=True,
-    help="Serve the web dashboard (its URL is printed) and keep the cell up after the batch "
-    "until Ctrl-C.",
-)
-@click.option(
-    "--factory",
-    "cells",
-    type=click.IntRange(2, 32),
-    default=None,
-    metavar="N",
-    help="Instead: N emulated cells, each run by its own `cellctl run`, and the factory "
-    "spreading the batch over them through a private Mosquitto.",
-)
-@click.pass_context
-def demo(
-    ctx: click.Context,
-    time_scale: float,
-    count: int | None,
-    out: str,
-    compare: bool,
-    dashboard: bool,
-    cells: int | None,
-) -> None:
-    """Start an emulated cell (or a factory of them), run a mixed batch through it, and
-    summarize (under 2 minutes). With --cell DIR, the cell emulated is DIR's (its machines,
-    programs and part types) instead of the example cell."""
-    template = cell_dir(ctx) if cell_given(ctx) else None
-    if cells is not None and dashboard:
-        raise click.UsageError("--dashboard is for one cell, not with --factory")
-    Path(out).mkdir(parents=True, exist_ok=True)
-    if cells is not None:
-        from cellctl.ui.factory_demo import run_factory_demo
-
-        raise SystemExit(run(lambda: run_factory_demo(cells, count, time_scale, Path(out))))
-    if template is not None and cells is not None:
-        raise click.UsageError("--cell is for one cell, not with --factory")
-    parts = 6 if count is None else count
-    run(lambda: _demo(time_scale, parts, Path(out), compare, dashboard, template))
-
-
-async def run_batch(
-    directory: Path,
-    time_scale: float,
-    batch: list[tuple[str, int]],
-    *,
-    one_at_a_time: bool,
-    live: bool,
-    dashboard: bool = False,
-    template: Path | None = None,
-) -> Summary:
-    """Emulate the cell in ``directory``, run ``batch`` [(part type, qty)], return figures.
-
-    ``dashboard``: serve the dashboard (URL printed), and after the batch print the figures and
-    keep the cell and a controller up until Ctrl-C."""
-    from cellctl.emulators.cell import EmulatedCell
-
-    shutil.rmtree(directory, ignore_errors=True)
-    cell = EmulatedCell(time_scale=time_scale, template=template)
-    try:
-        await cell.start(directory)
-        url = serve_dashboard_in(directory) if dashboard else ""
-        if url:
-            console.print(f"dashboard: {url}", markup=False, soft_wrap=True)
-        stop = asyncio.Event()
-        mailbox = open_mailbox(directory)
-        for i, (part, qty) in enumerate(batch, start=1):
-            mailbox.post_order(part, qty, order_id=f"{'S' if one_at_a_time else 'O'}{i}")
-        mailbox.close()
-        started = time.time()
-        options = ControllerOptions.from_config(load_cell(directory), one_at_a_time=one_at_a_time)
-        controller = await run_controller(
-            directory, live=live, until_idle=True, options=options, stop=stop
-        )
-        machines = [controller.config.robot.name, *(m.name for m in controller.config.mills)]
-        summary = summarize(controller.journal, machines, since=started)
-        title = "one part at a time" if one_at_a_time else "cellctl schedule"
-        write_gantt(
-            controller.journal,
-            machines,
-            directory / "gantt.svg",
-            since=started,
-            title=f"{title}: makespan {summary.makespan_s:.1f} s (time scale {time_scale:g})",
-        )
-        twice = {p: r for p, r in cell.runs_per_part().items() if any(n > 1 for n in r.values())}
-        summary.extra["parts_cut_twice"] = len(twice)
-        if url and not stop.is_set():
-            console.print()
-            console.print("\n".join(summary.lines(f"[bold]{title}[/bold]")))
-            console.print(f"\nthe batch is done; the cell and the dashboard stay up: {url}")
-            # The exact command, with the absolute directory: it works from any shell.
-            where = shlex.quote(str(directory.absolute()))  # noqa: ASYNC240 (no disk I/O)
-            console.print(
-                "submit orders there, or from another shell with: "
-                f"cellctl --cell {where} submit wax-robot-base   (Ctrl-C stops)",
-                markup=False,
-                soft_wrap=True,
-            )
-            await run_controller(directory, live=False, until_idle=False, options=options)
-        return summary
-    finally:
-        await cell.close()
-
-
-async def _demo(
-    time_scale: float,
-    count: int,
-    out: Path,
-    compare: bool,
-    dashboard: bool = False,
-    template: Path | None = None,
-) -> None:
-    half = max(1, count // 2)
-    first, second = "wax-robot-base", "wax-toy-mill-table"
-    if template is not None:
-        types = [*load_cell(template).parts]
-        first, second = types[0], types[1 % len(types)]
-    batch = [(first, half), (second, count - half)]
-    batch = [(part, qty) for part, qty in batch if qty > 0]  # --parts 1: no order for 0
-    where = (
-        f"{template}'s cell" if template is not None else "an emulated cell (robot, 2 mills, PLC)"
-    )
-    console.print(
-        f"[bold]cellctl demo[/bold]: {where} at time scale "
-        f"{time_scale:g}; batch: {half} {first} + {count - half} {second}"
-    )
-    if dashboard:
-        await run_batch(
-            out / "cell",
-            time_scale,
-            batch,
-            one_at_a_time=False,
-            live=False,
-            dashboard=True,
-            template=template,
-        )
-        return
-    # A live view on a terminal; elsewhere (a file, a pipe) every event a line as it happens.
-    live = console.is_terminal
-    summary = await run_batch(
-        out / "cell", time_scale, batch, one_at_a_time=False, live=live, template=template
-    )
-    console.print()
-    console.print("\n".join(summary.lines("[bold]cellctl schedule[/bold]")))
-    console.print(f"Gantt chart: {out / 'cell' / 'gantt.svg'}")
-    if compare:
-        console.print("\nthe source's way: one part through its whole route before the next ...")
-        base = await run_batch(
-            out / "one-at-a-time",
-            time_scale,
-            batch,
-            one_at_a_time=True,
-            live=False,
-            template=template,
-        )
-        console.print()
-        console.print("\n".join(base.lines("[bold]one part at a time[/bold]")))
-        console.print(f"Gantt chart: {out / 'one-at-a-time' / 'gantt.svg'}")
-        if summary.makespan_s > 0:
-            console.print(
-                f"\nspeed-up over one part at a time: "
-                f"{base.makespan_s / summary.makespan_s:.2f}x "
-                f"(machine time x{time_scale:g}: {summary.makespan_s * time_scale / 60:.0f} min "
-                f"vs {base.makespan_s * time_scale / 60:.0f} min in the real cell)"
-            )
-    with contextlib.suppress(OSError):
-        shutil.copy(out / "cell" / "gantt.svg", out / "gantt.svg")

@@ -6,10 +6,11 @@ import click
 
 from cellctl import __version__
 from cellctl.kinds import registry
-from cellctl.ui.cell_cli import cell_group, demo, emulate_cell, run_command
+from cellctl.ui.cell_cli import cell_group, emulate_cell, run_command
 from cellctl.ui.common import CellctlGroup, accept_cell_anywhere, summarize_commands
 from cellctl.ui.console import console_command
 from cellctl.ui.dashboard import dashboard_command
+from cellctl.ui.demo import demo
 from cellctl.ui.emulate_cli import emulate
 from cellctl.ui.factory_cli import emulate_factory, factory
 from cellctl.ui.kinds_cli import kinds_command
@@ -18,6 +19,7 @@ from cellctl.ui.orders_cli import alarm, cancel, orders, part, reports, submit
 from cellctl.ui.plc_cli import plc
 from cellctl.ui.report_cli import report
 from cellctl.ui.service_cli import estop, machine, pause, resume, service_group, traffic
+from cellctl.ui.token_cli import audit_command, token_group
 
 
 @click.group(
@@ -63,6 +65,8 @@ main.add_command(demo)
 main.add_command(console_command)
 main.add_command(dashboard_command)
 main.add_command(opcua_group)
+main.add_command(token_group)
+main.add_command(audit_command)
 main.add_command(factory)
 emulate.add_command(emulate_cell)
 emulate.add_command(emulate_factory)

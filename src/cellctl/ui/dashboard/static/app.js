@@ -3,6 +3,11 @@
 // The token comes in the URL's fragment (#token=...), is kept in sessionStorage and is sent
 // as "Authorization: Bearer" with every request. Live updates come from the API's WebSocket
 // (a one-shot token fetched with the header); calls that act go through POST /dashboard/call.
+import { refreshAudit } from "./audit.js";
+import { timeOfDay } from "./clock.js";
+import {
+  hideCellControls, renderCellControls, wireCellControls,
+} from "./controls.js";
 import { drawFloor, updateFloor } from "./floor.js";
 import { renderGantt, exportGantt } from "./gantt.js";
 import {
@@ -100,10 +105,13 @@ let wasRefused = false;
 function refused(text) {
   wasRefused = true;
   state.snapshot = null;
+  state.connected = false;  // the views go: nothing reads or draws them any more
   byId("content").classList.add("hidden");
   byId("content").replaceChildren();
   byId("refused-text").textContent = text;
   byId("refused").classList.remove("hidden");
+  byId("connecting").classList.add("hidden");
+  hideCellControls();
   setConnection("refused", "bad");
 }
 
@@ -155,6 +163,7 @@ export async function act(question, method, params, where) {
     out.classList.add("error");
   }
   await refresh();
+  refreshAudit();
 }
 
 // -- rendering ------------------------------------------------------------------------------
@@ -170,13 +179,14 @@ export function render() {
   renderAlarms(snap);
   renderHeld(snap);
   renderEvents(snap);
+  renderCellControls(snap);
   const cellState = byId("cell-state");
   const mode = snap.cell.mode;
   cellState.textContent = MODE_LABELS[mode] || mode;
   cellState.className = `badge mode-${mode} ${mode === "running" ? "good" : "warn"}`;
 }
 
-async function refresh() {
+export async function refresh() {
   try {
     const status = await get("/api/status");
     // A read answered after a newer push arrived is dropped: the push is the later word.
@@ -206,8 +216,11 @@ async function refreshSteps() {
 }
 
 async function refreshTraffic() {
+  if (!state.connected) {
+    return;  // refused, the page's views are gone; or not live yet
+  }
   const machine = byId("traffic-machine").value;
-  if (!machine || !state.connected || !byId("traffic-follow").checked) {
+  if (!machine || !byId("traffic-follow").checked) {
     return;
   }
   try {
@@ -290,7 +303,9 @@ async function connect() {
       }
       state.connected = true;
       byId("content").classList.remove("hidden");
-      const at = new Date().toLocaleTimeString();
+      byId("connecting").classList.add("hidden");
+      refreshAudit();
+      const at = timeOfDay(new Date());
       setConnection(again ? `live · reconnected at ${at}` : "live", "good");
       if (again) {
         notice("");
@@ -317,7 +332,7 @@ function lost(why) {
   if (lostAt === null) {
     lostAt = Date.now();
   }
-  const since = new Date(lostAt).toLocaleTimeString();
+  const since = timeOfDay(new Date(lostAt));
   setConnection(`offline since ${since}: reconnecting…`, "bad");
   notice(`${why}: reconnecting by itself (the view shows what was last known).`);
   setTimeout(connect, retryMs);
@@ -337,7 +352,8 @@ async function loadLayout() {
 // -- the order form and toolbars -------------------------------------------------------------
 
 function wire() {
-  byId("order-form").addEventListener("submit", async (event) => {
+  const form = byId("order-form");
+  form.addEventListener("submit", async (event) => {
     event.preventDefault();
     const out = byId("order-message");
     out.className = "message";
@@ -347,7 +363,7 @@ function wire() {
       priority: Number(byId("order-priority").value || 0),
     };
     try {
-      const result = await call("orders.submit", params);
+      const result = await call(form.dataset.method, params);
       out.textContent = result.message;
       out.classList.add("ok");
       await refresh();
@@ -360,6 +376,7 @@ function wire() {
   byId("gantt-svg").addEventListener("click", () => exportGantt(byId("gantt-chart"), "svg"));
   byId("gantt-png").addEventListener("click", () => exportGantt(byId("gantt-chart"), "png"));
   byId("traffic-machine").addEventListener("change", refreshTraffic);
+  wireCellControls();
 }
 
 function start() {
@@ -374,6 +391,7 @@ function start() {
   // Figures that move with the clock alone come with the next change; read them now and
   // then (docs/api.md: "Updates").
   setInterval(() => state.connected && refresh(), 5000);
+  setInterval(() => state.connected && refreshAudit(), 3000);
 }
 
 start();

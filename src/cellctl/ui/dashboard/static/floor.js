@@ -92,6 +92,8 @@ export function drawFloor(container, layout) {
     el("rect", { x: box.x, y: box.y, width: box.w, height: box.h, rx: 8, class: "body" }, g);
     text(g, box.x + 10, box.y + 22, box.name, "label name");
     text(g, box.x + 10, box.y + 40, "", "label small status");
+    // The program on a line of its own: a long name stays inside the mill's box.
+    text(g, box.x + 10, box.y + 56, "", "label small status-program");
     el("rect", {
       x: box.vise.x - 40, y: box.vise.y - 6, width: 80, height: 24, rx: 3, class: "vise",
     }, g);
@@ -153,7 +155,16 @@ export function updateFloor(layout, snap) {
     g.classList.add(`state-${condition}`);
     g.dataset.condition = condition;
     const status = g.querySelector(".status");
+    const program = g.querySelector(".status-program");
     status.textContent = machine ? `${CONDITION_LABELS[condition]} · ${stepText(machine)}` : "";
+    if (program) {
+      const step = machine && machine.step;
+      program.textContent = step && step.program ? step.program : "";
+      if (step) {
+        status.textContent = `${CONDITION_LABELS[condition]} · ` +
+          [step.what, step.part_id].filter((x) => x).join(" ");
+      }
+    }
     if (g.classList.contains("mill")) {
       // The robot's transfer reaches into the mills at its two ends: their doors are open.
       g.classList.toggle("door-open", open.includes(name));

@@ -1,6 +1,8 @@
 // A live Gantt chart of the journal's steps: one row per machine, robot transfers and cuts
 // coloured by part type, the waits between them, exportable as SVG and PNG. Colours are SVG
 // attributes (not the page's stylesheet) so an exported file looks the same.
+import { clockOf } from "./clock.js";
+
 const NS = "http://www.w3.org/2000/svg";
 const COLOURS = ["#4e79a7", "#f28e2b", "#59a14f", "#e15759", "#76b7b2", "#edc948"];
 const LEFT = 90;
@@ -41,7 +43,7 @@ export function renderGantt(container, layout, steps, since) {
     svg.setAttribute(key, String(value));
   }
   el("rect", { width: WIDTH, height, fill: "white" }, svg);
-  label(svg, LEFT, 18, `${layout.name}: steps since ${new Date(t0 * 1000).toLocaleTimeString()}`,
+  label(svg, LEFT, 18, `${layout.name}: steps since ${clockOf(t0)}`,
     { "font-size": 13 });
   machines.forEach((machine, row) => {
     const y = TOP + row * ROW;
@@ -74,7 +76,7 @@ export function renderGantt(container, layout, steps, since) {
   const axis = TOP + ROW * machines.length + 16;
   for (let i = 0; i <= 10; i += 1) {
     const t = t0 + (span * i) / 10;
-    label(svg, x(t), axis, new Date(t * 1000).toLocaleTimeString(),
+    label(svg, x(t), axis, clockOf(t),
       { "text-anchor": "middle", "font-size": 10 });
   }
   types.forEach((type, i) => {

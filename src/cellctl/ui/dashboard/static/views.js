@@ -1,5 +1,7 @@
 // The dashboard's lists and cards: machines, orders, alarms, held parts, events, traffic.
 import { act, call } from "./app.js";
+import { clockOf } from "./clock.js";
+import { renderServiceControls } from "./controls.js";
 import { CONDITION_LABELS, machineCondition } from "./floor.js";
 
 function byId(id) {
@@ -25,8 +27,11 @@ function h(tag, attrs = {}, ...children) {
   return node;
 }
 
-function clock(seconds) {
-  return seconds ? new Date(seconds * 1000).toLocaleTimeString() : "";
+const clock = clockOf;
+
+// The click of an action button: its method is the button's data-method (declared once).
+function actOn(event, question, params, where) {
+  return act(question, event.currentTarget.dataset.method, params, where);
 }
 
 function duration(seconds) {
@@ -73,6 +78,18 @@ function progressText(p) {
   return parts.join(" · ");
 }
 
+// A program's name may break after each "_" (between its words), never inside one.
+function breakable(text) {
+  const out = [];
+  for (const piece of text.split(/(?<=_)/)) {
+    if (out.length) {
+      out.push(document.createElement("wbr"));
+    }
+    out.push(piece);
+  }
+  return out;
+}
+
 function card(name) {
   const found = document.querySelector(`.card[data-machine="${CSS.escape(name)}"]`);
   if (found) {
@@ -111,8 +128,8 @@ export function renderCards(state, snap) {
     node.querySelector(".machine-state").textContent =
       machine.in_service ? machine.state : `${machine.state} (out: ${machine.out_reason || "—"})`;
     const step = machine.step;
-    node.querySelector(".step").textContent =
-      step ? [step.what, step.program].filter((x) => x).join(" ") : "—";
+    node.querySelector(".step").replaceChildren(
+      ...breakable(step ? [step.what, step.program].filter((x) => x).join(" ") : "—"));
     node.querySelector(".part").textContent = machine.part || "—";
     node.querySelector(".utilization").textContent =
       `${(100 * machine.utilization).toFixed(1)} % ` +
@@ -139,6 +156,7 @@ export function renderCards(state, snap) {
     if (m.role === "mill") {
       showPreview(state, node, m.name, p);
     }
+    renderServiceControls(node, machine);
   }
 }
 
@@ -172,12 +190,29 @@ function showPreview(state, node, mill, progress) {
       svg.removeAttribute("width");
       svg.removeAttribute("height");
       svg.setAttribute("class", "toolpath");
-      box.replaceChildren(svg);
+      box.replaceChildren(svg, ...previewCaption(svg));
     }
   }
   for (const g of box.querySelectorAll(".block-start")) {
     g.classList.toggle("current", Number(g.dataset.block) === Number(progress.block));
   }
+}
+
+// The drawing's caption (its first text: program, blocks, distance) as the page's own text,
+// readable at a card's width; a click on the drawing shows it at full size.
+function previewCaption(svg) {
+  const first = svg.querySelector("text");
+  svg.addEventListener("click", () => {
+    const big = svg.cloneNode(true);
+    big.setAttribute("class", "toolpath-full");
+    big.setAttribute("width", big.viewBox.baseVal.width);
+    byId("toolpath-view").replaceChildren(big);
+    byId("toolpath").showModal();
+  });
+  // The drawing spaces its caption's fields apart; HTML would fold the spaces into one.
+  const fields = first ? first.textContent.trim().split(/\s{2,}/) : [];
+  return first ? [h("p", { class: "preview-caption small" }, fields.join(" · "),
+    " · click the drawing for its full size")] : [];
 }
 
 // -- orders -----------------------------------------------------------------------------------
@@ -191,8 +226,9 @@ export function renderOrders(snap) {
     const cancel = NOT_STARTED.has(o.state) && !started
       ? h("button", {
         class: "small-button",
-        onclick: () => act(`Cancel order ${o.id} (${o.qty} × ${o.part_type})?`,
-          "orders.cancel", { id: o.id }, "order-message"),
+        "data-method": "orders.cancel",
+        onclick: (e) => actOn(e, `Cancel order ${o.id} (${o.qty} × ${o.part_type})?`,
+          { id: o.id }, "order-message"),
       }, "Cancel")
       : null;
     return h("tr", { "data-order": o.id, class: `order-${o.state}` },
@@ -259,17 +295,20 @@ export function renderAlarms(snap) {
     h("td", { class: "actions" },
       a.acked === null ? h("button", {
         class: "small-button",
-        onclick: () => act(null, "alarms.ack", { id: a.id }, "alarm-message"),
+        "data-method": "alarms.ack",
+        onclick: (e) => actOn(e, null, { id: a.id }, "alarm-message"),
       }, "Ack") : null,
       h("button", {
         class: "small-button",
-        onclick: () => act(`Shelve alarm ${a.id} (${a.machine}: ${a.text}) for 1 h?`,
-          "alarms.shelve", { id: a.id, seconds: 3600 }, "alarm-message"),
+        "data-method": "alarms.shelve",
+        onclick: (e) => actOn(e, `Shelve alarm ${a.id} (${a.machine}: ${a.text}) for 1 h?`,
+          { id: a.id, seconds: 3600 }, "alarm-message"),
       }, "Shelve 1 h"),
       h("button", {
         class: "small-button",
-        onclick: () => act(`Clear alarm ${a.id} (${a.machine}: ${a.text})?`,
-          "alarms.clear", { id: a.id }, "alarm-message"),
+        "data-method": "alarms.clear",
+        onclick: (e) => actOn(e, `Clear alarm ${a.id} (${a.machine}: ${a.text})?`,
+          { id: a.id }, "alarm-message"),
       }, "Clear"))));
   replaceRows("alarm-table", rows, "no active alarm", 7);
 }
@@ -288,18 +327,21 @@ export function renderHeld(snap) {
     h("td", { class: "actions" },
       h("button", {
         class: "small-button",
-        onclick: () => act(`Release part ${p.id}? Its last step counts as done.`,
-          "parts.release", { id: p.id, redo: false }, "part-message"),
+        "data-method": "parts.release",
+        onclick: (e) => actOn(e, `Release part ${p.id}? Its last step counts as done.`,
+          { id: p.id, redo: false }, "part-message"),
       }, "Release"),
       h("button", {
         class: "small-button",
-        onclick: () => act(`Release part ${p.id} and run its last step again?`,
-          "parts.release", { id: p.id, redo: true }, "part-message"),
+        "data-method": "parts.release",
+        onclick: (e) => actOn(e, `Release part ${p.id} and run its last step again?`,
+          { id: p.id, redo: true }, "part-message"),
       }, "Release & redo"),
       h("button", {
         class: "small-button danger",
-        onclick: () => act(`Scrap part ${p.id}? This cannot be undone.`,
-          "parts.scrap", { id: p.id }, "part-message"),
+        "data-method": "parts.scrap",
+        onclick: (e) => actOn(e, `Scrap part ${p.id}? This cannot be undone.`,
+          { id: p.id }, "part-message"),
       }, "Scrap"))));
   replaceRows("held-table", rows, "no held part", 5);
 }

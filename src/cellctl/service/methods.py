@@ -168,7 +168,7 @@ async def _info(access: CellAccess, p: NoParams, progress: Progress | None) -> A
         "version": __version__,
         "mode": access.mode,
         "directory": str(access.directory),
-        "methods": {m.name: m.doc for m in METHODS.values()},
+        "methods": {m.name: m.doc for m in [*METHODS.values(), *access.methods().values()]},
     }
 
 
@@ -425,7 +425,7 @@ class Dispatcher:
 
     async def call(self, method: str, params: Any = None, progress: Progress | None = None) -> Any:
         """Run ``method`` with ``params`` (a dict or None); typed errors on failure."""
-        entry = METHODS.get(method)
+        entry = METHODS.get(method) or self.access.methods().get(method)
         if entry is None:
             raise MethodNotFound(f"no method {method!r} (server.info lists them)")
         if params is None:

@@ -175,7 +175,7 @@ _TOKEN = re.compile(r"[ \t]+|([A-Za-z])[ \t]*([+-]?(?:\d+\.?\d*|\.\d+))|([A-Za-z
 _NUMBER_TEXT = re.compile(r"[+-]?\d*\.?\d*")
 
 
-def _parse_block(number: int, line: str, found: list[Finding]) -> Block:
+def parse_block(number: int, line: str, found: list[Finding]) -> Block:
     """One line as a block; every character that is not part of one is a finding."""
     words: list[Word] = []
     comment: list[str] = []
@@ -239,7 +239,7 @@ def _parsed(text: str, options: CheckOptions, found: list[Finding]) -> Iterator[
                 Finding(number, 0, f"block of {len(line)} characters (at most {options.max_block})")
             )
             continue
-        yield _parse_block(number, line, found)
+        yield parse_block(number, line, found)
 
 
 def blocks(text: str, options: CheckOptions | None = None) -> list[Block]:

@@ -41,10 +41,42 @@ DC1 = bytes([Code.DC1])
 DC2 = bytes([Code.DC2])
 DC3 = bytes([Code.DC3])
 DC4 = bytes([Code.DC4])
+NAK = b"\x15"  # a remote-buffer interface's "the control alarmed" (then NNN LF)
 NUL = 0x00
 LF = 0x0A  # EOB in ISO code
 CR = 0x0D  # ignored
 PERCENT = 0x25  # starts and ends a transmission (ISO "ER")
+
+#: alarm number -> the control's words (spec, "Alarms the host must understand"). A control
+#: that reports its alarm on the line sends NAK, the number in three digits, LF.
+ALARMS: dict[int, str] = {
+    85: "COMMUNICATION ERROR",
+    86: "DR OFF",
+    87: "BUFFER OVERFLOW",
+}
+ALARM_MEANINGS: dict[int, str] = {
+    85: "parity, framing or overrun on the control's side: line settings or noise",
+    86: "the cable or device server lost DSR (DR)",
+    87: "the host sent more than the control's tolerance after its DC3",
+}
+
+
+def alarm_report(code: int) -> bytes:
+    """How a control reports alarm ``code`` on the line: NAK, three digits, LF."""
+    return NAK + b"%03d\n" % code
+
+
+def parse_alarm(data: bytes) -> tuple[int, int] | None:
+    """``(code, bytes used)`` of an alarm report at the start of ``data``; (0, used) for a NAK
+    with no number after it; None when more bytes are needed."""
+    if not data.startswith(NAK):
+        raise ValueError("not an alarm report")
+    end = data.find(b"\n", 1)
+    if end < 0:
+        return None if len(data) < 5 else (0, 1)
+    digits = data[1:end]
+    return (int(digits), end + 1) if digits.isdigit() and len(digits) <= 3 else (0, 1)
+
 
 #: A program's first block: O (or ``:``) and its number, then maybe a comment as its title.
 _O_LINE = re.compile(r"[ \t]*[O:]([0-9]{1,8})[ \t]*(?:\(([^)\n]*)\)?)?")

@@ -35,7 +35,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import machine_line
 from _dnc import TimedControl, ideal_drip, surfacing_program
-
 from cellctl.drivers.state import StateStore
 from cellctl.emulators.cell import scaled_line
 from cellctl.emulators.serve import serve

@@ -36,7 +36,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import ChildEmulators, machine_line, percentile
 from _dnc import TimedControl, ideal_drip, surfacing_program
-
 from cellctl.emulators.cell import scaled_line
 from cellctl.emulators.serve import serve
 from cellctl.kinds import registry
@@ -142,7 +141,7 @@ async def bench(args: argparse.Namespace) -> None:
         shop = Path(tmp) / "shop"
         shop.mkdir(mode=0o700)
         _write_shop(shop, urls, program, scale)
-        serve_proc = subprocess.Popen(
+        serve_proc = subprocess.Popen(  # noqa: ASYNC220 - started once, not awaited
             [str(CELLCTL), "dnc", "serve", "--dir", str(shop)],
             stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,

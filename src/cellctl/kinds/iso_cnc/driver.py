@@ -451,8 +451,11 @@ class IsoCncDriver(LinkDriver):
         limit = max(o.burst, self.high_water - o.margin)
         wire_free = loop.time()
         last_report = 0.0
+        closing = framed.rfind(b"%")  # after it only the trailer: the control may have left
         while self._sent < total:
             self._handle(self.link.reset_input())
+            if self._stopped and 0 <= closing < self._sent:
+                break  # the control's DC3 after the closing %: the read is over, no DC1 comes
             if self._stopped:
                 self._stops += 1
                 report("stopped")

@@ -60,6 +60,7 @@ CONDITIONS = {
     Activity.READING: Condition.BUSY,
     Activity.DRIP_FEEDING: Condition.BUSY,
     Activity.PUNCHING: Condition.BUSY,
+    Activity.AWAITING_PUNCH: Condition.IDLE,
     Activity.OFFLINE: Condition.OFFLINE,
 }
 
@@ -201,8 +202,7 @@ async def _send(access: CellAccess, p: SendParams, progress: Progress | None) ->
 async def _receive(access: CellAccess, p: ReceiveParams, progress: Progress | None) -> Any:
     assert isinstance(access, DncAccess)
     line = access.server.line(p.machine)
-    async with line.turn:
-        programs = await line.receive(timeout=p.timeout, progress=progress)
+    programs = await line.wait_punch(p.timeout)
     return {"machine": p.machine, "programs": programs}
 
 

@@ -33,6 +33,7 @@ from cellctl.kinds.iso_cnc.dnc.config import ShopConfig, load_shop, machine
 from cellctl.kinds.iso_cnc.dnc.diff import compare
 from cellctl.kinds.iso_cnc.dnc.server import TRANSFER_S, DncServer
 from cellctl.kinds.iso_cnc.dnc.store import ShopStore, read_program_file
+from cellctl.kinds.iso_cnc.driver import prepare
 from cellctl.service.client import attach
 from cellctl.service.methods import Dispatcher
 from cellctl.service.server import ApiServer
@@ -129,7 +130,7 @@ async def call_shop(
             return await api.call(method, params, progress, timeout=TRANSFER_S)
     one = dataclasses.replace(config, machines={name: config.machines[name]})
     server = DncServer(one)
-    await server.line(name).open()
+    await server.start()  # the machine's own task listens, as under `dnc serve`
     try:
         return await Dispatcher(DncAccess(server)).call(method, params, progress)
     finally:
@@ -168,6 +169,11 @@ def _transfer(
         params = {"program": path.name, "drip": drip, "text": read_program_file(path).decode()}
     else:
         ShopStore(config.root).resolve(name, program)  # refused here, before a byte goes out
+    text = params.get("text")
+    if text is None:
+        text = read_program_file(ShopStore(config.root).resolve(name, program)).decode()
+    # the G-code check with the machine's options: refused here, before a byte goes out
+    prepare(text.encode("ascii"), machine(config, name).options, params["program"])
     what = "drip-feed" if drip else "read-in"
     err_console.print(
         f"{name}: {what} of {params['program']}: start the read on the control "

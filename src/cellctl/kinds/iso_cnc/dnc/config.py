@@ -33,9 +33,9 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from cellctl.errors import UsageError
-from cellctl.kinds import registry
 from cellctl.kinds.iso_cnc.dnc.request import RequestConvention
 from cellctl.kinds.iso_cnc.dnc.store import check_machine_name
+from cellctl.kinds.iso_cnc.driver import ISO_LINE, IsoCncOptions
 from cellctl.link import LineSettings
 
 #: The kind the DNC server feeds (its own package's name for it).
@@ -86,7 +86,7 @@ class DncMachine:
     name: str
     url: str
     settings: LineSettings
-    options: BaseModel
+    options: IsoCncOptions
     request: RequestConvention
 
 
@@ -130,15 +130,19 @@ def _machine(name: str, table: MachineTable, path: Path) -> DncMachine:
         raise UsageError(f"{where}: {e}") from None
     if table.kind != KIND:
         raise UsageError(f"{where}: kind {table.kind!r}: the DNC server feeds {KIND} controls")
-    kind = registry.kind(KIND)
     try:
-        settings = LineSettings.parse(table.line) if table.line else kind.line_settings
+        settings = LineSettings.parse(table.line or ISO_LINE)
     except (UsageError, ValueError) as e:
         raise UsageError(f"{where}: line = {table.line!r}: {e}") from None
     try:
-        options = kind.checked_options(table.options)
-    except UsageError as e:
-        raise UsageError(f"{where}: {e}") from None
+        options = IsoCncOptions.model_validate(table.options)
+    except ValidationError as e:
+        problems = []
+        for item in e.errors(include_url=False):
+            key = ".".join(str(k) for k in item["loc"]) or "options"
+            said = "unknown option" if item["type"] == "extra_forbidden" else item["msg"]
+            problems.append(f"options.{key}: {said}")
+        raise UsageError(f"{where}: " + "; ".join(problems)) from None
     return DncMachine(name, table.link, settings, options, table.request)
 
 

@@ -31,18 +31,19 @@ from typing import Any
 
 from cellctl.drivers.state import StateStore
 from cellctl.errors import CellctlError, LinkClosed, LinkTimeout, UsageError
-from cellctl.kinds import registry
-from cellctl.kinds.iso_cnc.dnc.config import KIND, DncMachine, ShopConfig
+from cellctl.kinds.iso_cnc.dnc.config import DncMachine, ShopConfig
 from cellctl.kinds.iso_cnc.dnc.request import Request, parse_request
 from cellctl.kinds.iso_cnc.dnc.store import ShopStore, o_name, read_program_file
-from cellctl.kinds.iso_cnc.tape import split_programs, unframe
-from cellctl.kinds.kind import DriverSpec
+from cellctl.kinds.iso_cnc.driver import IsoCncDriver
+from cellctl.kinds.iso_cnc.tape import DC2, split_programs, unframe
 from cellctl.link import TrafficLog
 
 log = logging.getLogger(__name__)
 
-#: Seconds a listen for the control's punch lasts before a transfer by hand may take the link.
+#: Seconds between two looks at what the control sent (a punch's DC2).
 LISTEN_S = 0.5
+#: Bytes an idle line may gather without a DC2 before they are dropped (noise).
+MAX_IDLE_BYTES = 65536
 #: Seconds before a failed link is opened again.
 REOPEN_S = 5.0
 #: Seconds a request waits for the control to start its read before it lapses.
@@ -70,6 +71,8 @@ class Activity(enum.StrEnum):
     """The control runs a program as it arrives."""
     PUNCHING = "punching"
     """The control punches a program to the server."""
+    AWAITING_PUNCH = "waiting for punch"
+    """Someone waits for the control's next punch (``cellctl dnc receive``)."""
     OFFLINE = "offline"
     """Its link is not open (failed; opened again in a few seconds)."""
 
@@ -108,7 +111,8 @@ def _progress_dict(p: Any) -> dict[str, Any]:
         "buffer_stops": int(getattr(p, "buffer_stops", 0)),
         "elapsed_s": float(getattr(p, "elapsed_s", 0.0)),
         "eta_s": getattr(p, "eta_s", None),
-        "stall_s": float(getattr(p, "stall_s", 0.0) or 0.0),
+        # the driver's modelled stall (the axes waiting for a block), where it gives one
+        "stall_s": float(getattr(p, "stall_s", 0.0) or getattr(p, "stalls_modelled_s", 0.0)),
     }
 
 
@@ -127,6 +131,7 @@ class DncLine:
     turn: asyncio.Lock = field(default_factory=asyncio.Lock)
     changed: Callable[[], None] = lambda: None
     events: deque[tuple[float, str]] = field(default_factory=lambda: deque(maxlen=EVENTS))
+    punch_waiters: list[asyncio.Future[list[dict[str, Any]]]] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.status = MachineStatus(self.config.name)
@@ -150,16 +155,14 @@ class DncLine:
 
     async def open(self) -> None:
         """Open the control's link under its owner locks (MachineInUse naming the holder)."""
-        kind = registry.kind(KIND)
-        spec = DriverSpec(
-            url=self.config.url,
+        self.driver = await IsoCncDriver.connect(
+            self.config.url,
             name=self.name,
             settings=self.config.settings,
-            options=self.config.options,
             store=self.state,
+            options=self.config.options,
             trace=self.trace,
         )
-        self.driver = await kind.open(spec)
         self._set(activity=Activity.IDLE, error="", since=time.time())
 
     async def close(self) -> None:
@@ -237,17 +240,33 @@ class DncLine:
         )
         return {"message": message, **result}
 
-    async def receive(
-        self, *, timeout: float, progress: Progress | None = None
-    ) -> list[dict[str, Any]]:
-        """Take what the control punches within ``timeout``; keep it, answer requests.
-        LinkTimeout when it punched nothing. The caller holds :attr:`turn`."""
+    async def receive(self, *, timeout: float) -> list[dict[str, Any]]:
+        """Take the punch the control has started (its DC2 is in): keep it, answer requests.
+        The caller holds :attr:`turn`."""
         if self.driver is None:
             raise LinkClosed(f"{self.name}: its link is not open ({self.status.error or 'closed'})")
-        data: bytes = await self.driver.receive(
-            progress=self._on_progress(progress), timeout=timeout
-        )
+        data: bytes = await self.driver.receive(progress=self._on_progress(None), timeout=timeout)
         return self.take_punch(data)
+
+    async def wait_punch(self, timeout: float) -> list[dict[str, Any]]:
+        """What the control punches next, once the machine's task has taken it (kept,
+        requests answered); LinkTimeout when nothing is punched within ``timeout``."""
+        waiter: asyncio.Future[list[dict[str, Any]]] = asyncio.get_running_loop().create_future()
+        self.punch_waiters.append(waiter)
+        if self.status.activity is Activity.IDLE:
+            self._set(activity=Activity.AWAITING_PUNCH)
+        try:
+            async with asyncio.timeout(timeout):
+                return await waiter
+        except TimeoutError:
+            raise LinkTimeout(
+                f"{self.name}: nothing punched in {timeout:g} s (select the program, press PUNCH)"
+            ) from None
+        finally:
+            if waiter in self.punch_waiters:
+                self.punch_waiters.remove(waiter)
+            if not self.punch_waiters and self.status.activity is Activity.AWAITING_PUNCH:
+                self._set(activity=Activity.IDLE)
 
     def take_punch(self, data: bytes) -> list[dict[str, Any]]:
         """Split a punched tape into programs: answer a request, keep the others."""
@@ -271,6 +290,10 @@ class DncLine:
             self._note(message)
             self._set(last=message)
             done.append({"program": program.number, "kept": str(kept.path), "chars": len(raw)})
+        waiters, self.punch_waiters = self.punch_waiters, []
+        for waiter in waiters:
+            if not waiter.done():
+                waiter.set_result(done)
         return done
 
     def _request(self, request: Request) -> dict[str, Any]:
@@ -311,26 +334,40 @@ class DncLine:
     # -- the machine's task -----------------------------------------------------------------
 
     async def run(self) -> None:
-        """Listen for the control forever: punches kept, requests answered, links reopened."""
+        """Listen for the control forever: punches kept, requests answered, links reopened.
+
+        It looks at what the link has received (without taking it) every :data:`LISTEN_S`:
+        a DC2 starts a punch, taken whole; between two looks a transfer by hand has the link.
+        """
         while True:
             try:
                 if self.driver is None:
                     await self.open()
                 async with self.turn:
-                    if self.pending is not None:
-                        await self.answer()
-                    else:
-                        with contextlib.suppress(LinkTimeout):
-                            self._set(activity=Activity.IDLE)
-                            await self.receive(timeout=LISTEN_S)
-                # a transfer by hand waiting for the turn gets it here
-                await asyncio.sleep(0)
+                    await self._look()
+                await asyncio.sleep(LISTEN_S)
             except asyncio.CancelledError:
                 raise
             except LinkClosed as e:
                 await self._failed(e, reopen=True)
             except CellctlError as e:
                 await self._failed(e, reopen=self.driver is None)
+
+    async def _look(self) -> None:
+        link = self.driver.link
+        if link.closed:
+            raise LinkClosed(f"{self.name}: the link closed")
+        if self.pending is not None:
+            await self.answer()
+        elif DC2 in link.pending():
+            self._set(activity=Activity.PUNCHING, program=None, chars_done=0, chars_total=0)
+            try:
+                await self.receive(timeout=PUNCH_S)
+            finally:
+                after = Activity.AWAITING_PUNCH if self.punch_waiters else Activity.IDLE
+                self._set(activity=Activity.WAITING if self.pending else after)
+        elif len(link.pending()) > MAX_IDLE_BYTES:
+            link.reset_input()  # noise on an idle line: nothing waits for it
 
     async def _failed(self, e: CellctlError, *, reopen: bool) -> None:
         self._note(f"error: {e}")

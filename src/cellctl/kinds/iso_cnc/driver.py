@@ -60,7 +60,7 @@ from cellctl.errors import DeviceError, LinkTimeout, ProtocolError, UsageError
 from cellctl.kinds.families import RunProgress
 from cellctl.kinds.iso_cnc import gcode, tape
 from cellctl.kinds.iso_cnc.motion import Machine, MotionModel
-from cellctl.kinds.iso_cnc.states import IsoCncState, IsoCncStatus
+from cellctl.kinds.iso_cnc.status import IsoCncState, IsoCncStatus
 from cellctl.link import LineSettings, Link, TrafficLog
 
 #: The kind's default line: Fanuc's 9600 baud, ISO (7 bits, even parity), 2 stop bits.

@@ -158,6 +158,7 @@ class IsoCncEmulator(EmulatedDevice):
         self.run_hooks: list[Callable[[DripRun], None]] = []
         self.overflow_chars = 0  # the most characters received after one DC3
         self.dc3_sent = 0
+        self.peak_buffer = 0  # the most characters its reader buffer held
         self.chars_read = 0
         self.faults: set[str] = set()
         self._latency_ms = self.options.adapter_latency_ms
@@ -373,6 +374,7 @@ class IsoCncEmulator(EmulatedDevice):
                     return
                 continue
             self._buffer.append(byte)
+            self.peak_buffer = max(self.peak_buffer, len(self._buffer))
             if byte == 0x0A:
                 self._lf_at.append(last - (n - 1 - j) * char_time)
             if not self._stopped and len(self._buffer) >= self.high_water:

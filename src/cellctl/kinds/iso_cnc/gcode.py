@@ -435,10 +435,12 @@ def check(text: str, options: CheckOptions | None = None) -> list[Finding]:
         if not block.words:
             continue
         if closed_at:
-            found.append(
-                Finding(block.line, 1, "text after the closing %: a control never reads it")
-            )
-            closed_at = -1
+            if closed_at > 0:
+                found.append(
+                    Finding(block.line, 1, "text after the closing %: a control never reads it")
+                )
+                closed_at = -1
+            continue
         if first_block is None:
             first_block = block
         last_block = block

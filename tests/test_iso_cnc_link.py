@@ -1,0 +1,244 @@
+"""The iso-cnc driver against the emulated control through real links: a pty, ser2net in
+RFC 2217 mode, the emulator's own RFC 2217 (CS carried). Time runs SCALE times faster: the
+line's baud rate, the control's motion and the adapter's latency together."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from cellctl.emulators.serve import Server, serve
+from cellctl.errors import LinkTimeout, UsageError
+from cellctl.kinds.iso_cnc import tape
+from cellctl.kinds.iso_cnc.driver import (
+    ControlAlarm,
+    IsoCncDriver,
+    IsoCncOptions,
+    TransferProgress,
+)
+from cellctl.kinds.iso_cnc.emulator import Activity, EmulatorOptions, IsoCncEmulator, Mode
+from cellctl.link import LineSettings, TrafficLog
+
+from .conftest import Ser2net, until
+
+SCALE = 4.0
+LINE = LineSettings(int(9600 * SCALE), 7, "E", 2)
+DEADLINE = 60.0
+
+
+def surfacing(rows: int, *, slow_every: int = 10) -> bytes:
+    """A small surfacing program as CAM writes it: 1 mm segments at F3000 (faster than the
+    line feeds them), and every ``slow_every`` rows a slow plunge (slower: the buffer fills)."""
+    lines = ["%", "O1234 (SURFACE)", "G21 G90 G17", "G0 X0 Y0 Z5", "G1 Z0 F3000"]
+    for row in range(rows):
+        y = row * 0.5
+        for i in range(6):
+            lines.append(f"G1 X{(i if row % 2 == 0 else 5 - i):.3f} Y{y:.3f} Z{-0.01 * i:.3f}")
+        if row % slow_every == slow_every - 1:
+            lines.append("G1 Z-1 F60")
+            lines.append("G1 Z0 F3000")
+    lines += ["G0 Z5", "M30", "%"]
+    return ("\n".join(lines) + "\n").encode()
+
+
+@dataclass
+class Cnc:
+    control: IsoCncEmulator
+    server: Server
+    driver: IsoCncDriver
+    trace: TrafficLog
+
+
+async def connect(
+    tmp_path: Path,
+    control: IsoCncEmulator,
+    *,
+    listen: str = "pty",
+    options: IsoCncOptions | None = None,
+    via_ser2net: bool = False,
+) -> tuple[Server, IsoCncDriver, TrafficLog, Ser2net | None]:
+    server = await serve(control, listen, LINE)
+    proxy = None
+    url = server.url
+    if via_ser2net:
+        proxy = Ser2net(server.url, f"{LINE.baudrate}e72", tmp_path)
+        await proxy.wait_listening()
+        url = proxy.url
+    trace = TrafficLog(tmp_path / "traffic.log")
+    chosen = options or IsoCncOptions(motion_scale=SCALE, dc1_timeout=10, end_extra=10)
+    driver = await IsoCncDriver.connect(url, settings=LINE, options=chosen, trace=trace)
+    return server, driver, trace, proxy
+
+
+@pytest.fixture
+async def cnc(tmp_path: Path) -> AsyncIterator[Cnc]:
+    control = IsoCncEmulator(EmulatorOptions(auto_operator=True), time_scale=SCALE)
+    server, driver, trace, _ = await connect(tmp_path, control)
+    yield Cnc(control, server, driver, trace)
+    await driver.close()
+    await server.close()
+
+
+def latency_control(latency_ms: float, mode: Mode, **more: object) -> IsoCncEmulator:
+    """A control whose DC1/DC3 reach the host ``latency_ms`` (control time) late."""
+    options = EmulatorOptions(adapter_latency_ms=latency_ms, auto_operator=True, **more)  # type: ignore[arg-type]
+    control = IsoCncEmulator(options, time_scale=SCALE)
+    control.mode = mode
+    return control
+
+
+@pytest.mark.parametrize("latency_ms", [0, 2, 8, 16])
+async def test_read_in_and_drip_feed_never_overflow_at_any_adapter_latency(
+    tmp_path: Path, latency_ms: float
+) -> None:
+    data = surfacing(12)
+    control = latency_control(latency_ms, Mode.EDIT)
+    server, driver, _, _ = await connect(tmp_path, control)
+    try:
+        seen: list[TransferProgress] = []
+        report = await driver.read_in(data, progress=seen.append, timeout=DEADLINE)
+        assert control.memory[1234] == tape.unframe(data)  # byte for byte after % framing
+        assert (
+            report.chars_sent
+            == report.chars_total
+            == len(tape.frame(data.decode(), leader=20, trailer=20))
+        )
+        assert seen[0].phase == "waiting" and seen[-1].phase == "done"
+
+        control.set_mode(Mode.RMT)
+        report = await driver.drip_feed(data, timeout=DEADLINE)
+        run = control.runs[-1]
+        assert run.done and run.blocks == data.count(b"\n") - 2  # every block but the %s
+        assert control.alarms == []
+        assert control.overflow_chars <= control.tolerance
+        assert report.chars_sent == report.chars_total
+        # the slow blocks filled the buffer: the host held back by its model, not by luck
+        assert control.peak_buffer > control.options.buffer_size // 2
+    finally:
+        await driver.close()
+        await server.close()
+
+
+async def test_a_host_that_only_reacts_to_dc3_overflows_at_16_ms(tmp_path: Path) -> None:
+    """The failure the buffer model prevents: told the control's buffer is 4096 (so its model
+    never stops it), the driver only has the DC3 to go by, which comes 14 characters late."""
+    control = latency_control(16, Mode.RMT)
+    blind = IsoCncOptions(
+        motion_scale=SCALE, buffer_size=4096, dc1_timeout=10, end_extra=10, burst=8
+    )
+    server, driver, _, _ = await connect(tmp_path, control, options=blind)
+    try:
+        with pytest.raises(ControlAlarm) as caught:
+            await driver.drip_feed(surfacing(12), timeout=DEADLINE)
+        assert caught.value.code == 87 and "BUFFER OVERFLOW" in str(caught.value)
+        assert control.alarms[-1].code == 87 and control.activity == Activity.ALARM
+        assert driver.host_status().shown == "alarm 087 BUFFER OVERFLOW"
+    finally:
+        await driver.close()
+        await server.close()
+
+
+async def test_through_ser2net_rfc2217_the_program_arrives_whole(
+    tmp_path: Path, ser2net_available: None
+) -> None:
+    data = surfacing(6)
+    control = latency_control(2, Mode.EDIT)
+    server, driver, _, proxy = await connect(tmp_path, control, via_ser2net=True)
+    assert proxy is not None
+    try:
+        # ser2net opens the device when the driver connects: READ is pressed after that
+        control.set_mode(Mode.EDIT)
+        await driver.read_in(data, timeout=10)
+        assert control.memory[1234] == tape.unframe(data)
+        control.set_mode(Mode.RMT)
+        await driver.drip_feed(data, timeout=DEADLINE)
+        assert control.runs[-1].done and control.alarms == []
+    finally:
+        await driver.close()
+        proxy.stop()
+        await server.close()
+
+
+async def test_cs_flow_over_rfc2217_with_a_two_character_tolerance(tmp_path: Path) -> None:
+    """A CS-only control (tolerance 2) drops RTS when full; the host obeys CTS."""
+    control = latency_control(0, Mode.RMT, cs_flow=True, tolerance=2)
+    options = IsoCncOptions(
+        motion_scale=SCALE, cs_flow=True, dc3_tolerance=2, dc1_timeout=10, end_extra=10
+    )
+    server, driver, _, _ = await connect(
+        tmp_path, control, listen="rfc2217://127.0.0.1:0", options=options
+    )
+    try:
+        await driver.drip_feed(surfacing(6), timeout=DEADLINE)
+        assert control.runs[-1].done and control.alarms == []
+        assert control.overflow_chars <= 2
+    finally:
+        await driver.close()
+        await server.close()
+
+
+async def test_parity_noise_is_alarm_085_in_the_spec_s_words(cnc: Cnc) -> None:
+    cnc.control.set_fault("parity-noise", "1")
+    with pytest.raises(ControlAlarm) as caught:
+        await cnc.driver.read_in(surfacing(2), timeout=DEADLINE)
+    assert caught.value.code == 85 and "COMMUNICATION ERROR" in str(caught.value)
+    assert cnc.control.alarms[-1].code == 85
+
+
+async def test_dr_off_is_alarm_086(cnc: Cnc) -> None:
+    cnc.control.reset()
+    cnc.control.set_fault("dr-off")
+    cnc.control.set_mode(Mode.EDIT)  # READ pressed again: DR is off
+    with pytest.raises(ControlAlarm) as caught:
+        await cnc.driver.read_in(surfacing(2), timeout=DEADLINE)
+    assert caught.value.code == 86 and "DR OFF" in str(caught.value)
+
+
+async def test_a_control_that_never_sends_dc1_times_out_in_words(tmp_path: Path) -> None:
+    control = IsoCncEmulator(EmulatorOptions(never_dc1=True, auto_operator=True), time_scale=SCALE)
+    options = IsoCncOptions(motion_scale=SCALE, dc1_timeout=0.5)
+    server, driver, _, _ = await connect(tmp_path, control, options=options)
+    try:
+        with pytest.raises(LinkTimeout, match="no DC1 \\(tape reader start\\)"):
+            await driver.read_in(surfacing(2))
+        assert driver.link.bytes_sent == 0  # nothing before DC1
+    finally:
+        await driver.close()
+        await server.close()
+
+
+@pytest.mark.parametrize(
+    ("program", "words"),
+    [
+        (b"%\nO1234\nG1 X10\nM30\n%\n", "no F before it"),
+        (b"%\nO1234\nG0 G1 X1 F100\nM30\n%\n", "G0 and G1 in one block"),
+        (b"%\nO1234\nG90 G0 X0 Y0\nG2 X10 Y0 I3 J0 F100\nM30\n%\n", "radius"),
+        (b"%\nG0 X1\nM30\n%\n", "no O-number"),
+        (b"%\nO1234\nG0 X1 \xff\nM30\n%\n", "not ISO code"),
+    ],
+)
+async def test_a_bad_program_is_refused_before_a_byte_goes_out(
+    cnc: Cnc, program: bytes, words: str
+) -> None:
+    with pytest.raises(UsageError, match=words):
+        await cnc.driver.read_in(program)
+    with pytest.raises(UsageError):
+        await cnc.driver.run(Path("/nonexistent/O1234.nc"))
+    assert cnc.driver.link.bytes_sent == 0
+    assert cnc.control.chars_read == 0
+
+
+async def test_punch_receive_gets_the_program_from_dc2_to_dc4(cnc: Cnc) -> None:
+    text = "O0042 (BACKUP)\nG21 G90\nG0 X1 Y2\nM30\n"
+    # the operator leaves READ and presses PUNCH instead
+    cnc.control.options = cnc.control.options.model_copy(update={"auto_operator": False})
+    cnc.control.set_mode(Mode.EDIT)
+    cnc.control.memory[42] = text
+    cnc.control.punch(42)
+    punched = await cnc.driver.receive(timeout=DEADLINE)
+    assert tape.unframe(punched) == text
+    assert tape.split_programs(tape.unframe(punched))[0].number == 42
+    await until(lambda: cnc.control.activity == Activity.IDLE, "the punch to end")

@@ -39,16 +39,16 @@ from cellctl.drivers.state import StateStore
 from cellctl.emulators.cell import scaled_line
 from cellctl.emulators.serve import serve
 from cellctl.errors import CellctlError
-from cellctl.kinds import registry
+from cellctl.kinds.iso_cnc.driver import IsoCncDriver, IsoCncOptions
 from cellctl.kinds.iso_cnc.emulator import EmulatorOptions, Mode
 from cellctl.kinds.iso_cnc.tape import frame
-from cellctl.kinds.kind import DriverSpec
 from cellctl.link import LineSettings
 
 LINE = LineSettings.parse("9600,7E2")
 BUFFER = 256
 TOLERANCE = 10
 LATENCIES = (0.0, 2.0, 8.0, 16.0)
+BURST = int(__import__("os").environ.get("DNC_BURST", "4"))
 
 
 def _listen(transport: str) -> str:
@@ -66,18 +66,17 @@ async def _transfer(
     control.set_mode(Mode.RMT if drip else Mode.EDIT)
     line = scaled_line(LINE, scale)
     server = await serve(control, _listen(transport), line, pacing=True)
-    kind = registry.kind("iso-cnc")
-    spec = DriverSpec(
-        url=server.url,
-        name=f"bench-{latency_ms:g}",
-        settings=line,
-        options=kind.checked_options(
-            {"buffer_size": BUFFER, "dc3_tolerance": TOLERANCE, "motion_scale": scale}
-        ),
-        store=StateStore(state),
+    options = IsoCncOptions(
+        buffer_size=BUFFER, dc3_tolerance=TOLERANCE, motion_scale=scale, burst=BURST
     )
     error = ""
-    driver = await kind.open(spec)
+    driver = await IsoCncDriver.connect(
+        server.url,
+        name=f"bench-{latency_ms:g}",
+        settings=line,
+        options=options,
+        store=StateStore(state),
+    )
     try:
         data = text.encode("ascii")
         start = asyncio.get_running_loop().call_later(
@@ -102,8 +101,7 @@ async def bench(args: argparse.Namespace) -> None:
     scale = args.time_scale
     rate = LINE.chars_per_second
     program = surfacing_program(args.size)
-    kind = registry.kind("iso-cnc")
-    opts = kind.checked_options({})
+    opts = IsoCncOptions()
     tape = frame(program, leader=opts.leader, trailer=opts.trailer, percent=opts.percent)
     model = opts.motion()
     high, low = BUFFER - TOLERANCE, BUFFER // 2

@@ -38,7 +38,7 @@ from _common import ChildEmulators, machine_line, percentile
 from _dnc import TimedControl, ideal_drip, surfacing_program
 from cellctl.emulators.cell import scaled_line
 from cellctl.emulators.serve import serve
-from cellctl.kinds import registry
+from cellctl.kinds.iso_cnc.driver import IsoCncOptions
 from cellctl.kinds.iso_cnc.emulator import EmulatorOptions, Mode
 from cellctl.kinds.iso_cnc.tape import frame
 from cellctl.link import LineSettings
@@ -124,7 +124,7 @@ async def bench(args: argparse.Namespace) -> None:
     scale, count = args.time_scale, args.machines
     rate = LINE.chars_per_second
     program = surfacing_program(args.size)
-    opts = registry.kind("iso-cnc").checked_options({})
+    opts = IsoCncOptions()
     tape = frame(program, leader=opts.leader, trailer=opts.trailer, percent=opts.percent)
     bound = ideal_drip(
         tape, rate, opts.motion(), high_water=BUFFER - TOLERANCE, low_water=BUFFER // 2

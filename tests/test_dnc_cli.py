@@ -18,7 +18,7 @@ from cellctl.emulators.serve import Server, serve
 from cellctl.errors import AccessDenied
 from cellctl.kinds.iso_cnc.dnc.store import ShopStore
 from cellctl.kinds.iso_cnc.emulator import EmulatorOptions, IsoCncEmulator, Mode
-from cellctl.kinds.iso_cnc.states import IsoCncState
+from cellctl.kinds.iso_cnc.status import IsoCncState
 from cellctl.link import LineSettings
 from cellctl.link.lock import holder
 from cellctl.service.client import RemoteCell
@@ -148,7 +148,20 @@ async def test_drip_a_file_and_receive_by_hand(served: Shop, tmp_path: Path) -> 
     assert kept.path.read_text() == DRIP
     diff = await cellctl("dnc", "diff", "mill2", "O5000", "--dir", str(served.root))
     code, output = await finished(diff)
-    assert code == 1 and "nothing sent to mill2 as O5000" in output  # drip-fed, not from O5000
+    assert code == 0 and "matches O5000_" in output, output  # what was drip-fed came back
+    # edited at the machine, punched again: a second version, and diff shows the edit
+    receiver = await cellctl("dnc", "receive", "mill2", "--dir", str(served.root))
+    await wait_state(served, "mill2", "waiting for punch")
+    await until(lambda: control.activity == "idle", "the control idle")
+    control.memory[5000] = DRIP.replace("X3. Z-0.2", "X3. Z-0.25")
+    control.punch(5000)
+    code, output = await finished(receiver)
+    assert code == 0, output
+    assert len(ShopStore(served.root).received("mill2", 5000)) == 2
+    diff = await cellctl("dnc", "diff", "mill2", "O5000", "--dir", str(served.root))
+    code, output = await finished(diff)
+    assert code == 1
+    assert "-X3. Z-0.2\n+X3. Z-0.25" in output
 
 
 async def test_a_wrong_token_is_refused_and_a_second_server_too(served: Shop) -> None:

@@ -5,20 +5,26 @@ refusals, one owner per link."""
 from __future__ import annotations
 
 import asyncio
+import json
+import urllib.error
+import urllib.request
 from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from cellctl.emulators.serve import Server, serve
 from cellctl.errors import MachineInUse, UsageError
-from cellctl.kinds.iso_cnc.dnc.config import load_shop
+from cellctl.kinds.iso_cnc.dnc.cli import serve_shop
+from cellctl.kinds.iso_cnc.dnc.config import load_shop, parse_dnc_file
 from cellctl.kinds.iso_cnc.dnc.diff import compare
 from cellctl.kinds.iso_cnc.dnc.server import Activity, DncServer
 from cellctl.kinds.iso_cnc.dnc.store import ShopStore
 from cellctl.kinds.iso_cnc.emulator import EmulatorOptions, IsoCncEmulator, Mode
 from cellctl.link import LineSettings
-from tests.conftest import until
+from tests.conftest import free_port, until
 
 LINE = LineSettings.parse("9600,7E2")
 BRACKET = "O1234 (BRACKET)\nG21 G90 G17\nG00 X0 Y0 Z5.\nG01 Z-1. F300\nG01 X10. Y5.\nM30\n"
@@ -198,3 +204,99 @@ def test_dnc_toml_refusals(tmp_path: Path, toml: str, said: str) -> None:
     with pytest.raises(UsageError, match=r"dnc\.toml") as caught:
         load_shop(tmp_path)
     assert said in str(caught.value)
+
+
+async def test_status_and_dashboard_through_the_api_on_dnc_listen(tmp_path: Path) -> None:
+    emulator, server = await control("socket://127.0.0.1:0")
+    port = free_port()
+    shop = write_shop(
+        tmp_path / "shop", {"mill1": server.url}, f'\n[dnc]\nlisten = "127.0.0.1:{port}"\n'
+    )
+    stop = asyncio.Event()
+    task = asyncio.create_task(serve_shop(load_shop(shop), stop=stop))
+    try:
+        await until(lambda: (shop / "api-token").exists(), "the API's token")
+        token = (shop / "api-token").read_text().strip()
+
+        def get(path: str, bearer: str) -> tuple[int, bytes]:
+            request = urllib.request.Request(
+                f"http://127.0.0.1:{port}{path}", headers={"Authorization": f"Bearer {bearer}"}
+            )
+            try:
+                with urllib.request.urlopen(request, timeout=10) as answer:
+                    return answer.status, answer.read()
+            except urllib.error.HTTPError as e:
+                return e.code, b""
+
+        async def status() -> dict[str, object]:
+            code, body = await asyncio.to_thread(get, "/api/status", token)
+            assert code == 200
+            machine: dict[str, object] = json.loads(body)["machines"]["mill1"]
+            return machine
+
+        await until(lambda: task.done() or (shop / "api.sock").exists(), "the API listening")
+        machine = await status()
+        assert machine["kind"] == "iso-cnc" and machine["condition"] == "idle"
+        assert (await asyncio.to_thread(get, "/api/status", "x" * 43))[0] == 401
+        code, page = await asyncio.to_thread(get, "/", token)
+        assert code == 200 and b"<html" in page.lower()
+        await punch(emulator, 9999, "O9999 (DRIP O5000)\n")  # no O5000: refused, shown
+        deadline = asyncio.get_running_loop().time() + 30
+        while "no program O5000" not in str((await status()).get("error")):
+            assert asyncio.get_running_loop().time() < deadline, await status()
+            await asyncio.sleep(0.05)
+    finally:
+        stop.set()
+        await task
+        await server.close()
+
+
+def test_machines_from_a_cell(tmp_path: Path) -> None:
+    cell = tmp_path / "cell"
+    cell.mkdir()
+    (cell / "cell.toml").write_text(
+        '[machines.cnc1]\nkind = "dyna2400"\nlink = "loop://a"\n\n'
+        '[machines.haas]\nkind = "iso-cnc"\nlink = "loop://b"\nline = "19200,7E1"\n'
+        "options = { dc3_tolerance = 2 }\n"
+    )
+    shop = load_shop(tmp_path / "shop", cell=cell)
+    assert list(shop.machines) == ["haas"]
+    assert shop.machines["haas"].options.dc3_tolerance == 2
+    assert shop.machines["haas"].settings.baudrate == 19200
+    (cell / "cell.toml").write_text('[machines.cnc1]\nkind = "dyna2400"\nlink = "loop://a"\n')
+    with pytest.raises(UsageError, match="no machine of kind iso-cnc"):
+        load_shop(tmp_path / "shop", cell=cell)
+
+
+_VALUES = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False) | st.text(max_size=20),
+    lambda inner: (
+        st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=10), inner, max_size=3)
+    ),
+    max_leaves=12,
+)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.dictionaries(
+        st.sampled_from(["dnc", "machines", "other"]),
+        st.dictionaries(
+            st.text(max_size=12),
+            st.dictionaries(
+                st.sampled_from(["link", "line", "options", "request", "kind", "x"]), _VALUES
+            )
+            | _VALUES,
+            max_size=3,
+        ),
+        max_size=3,
+    )
+)
+def test_any_dnc_toml_is_a_shop_or_a_refusal(data: dict[str, object]) -> None:
+    path = Path("/nonexistent/dnc.toml")
+    try:
+        shop = parse_dnc_file(data, path.parent, path)
+    except UsageError as e:
+        assert str(path) in str(e)
+    else:
+        assert shop.machines

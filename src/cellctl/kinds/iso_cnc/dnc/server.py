@@ -50,6 +50,8 @@ REOPEN_S = 5.0
 REQUEST_WAIT_S = 1800.0
 #: Seconds a punch may take once started (DC2 ... DC4).
 PUNCH_S = 3600.0
+#: Seconds between two progress figures passed on (the driver gives five a second).
+PROGRESS_S = 0.5
 #: Events a machine keeps for the status.
 EVENTS = 30
 #: Seconds a transfer by hand may take in all.
@@ -174,8 +176,14 @@ class DncLine:
     # -- transfers --------------------------------------------------------------------------
 
     def _on_progress(self, forward: Progress | None) -> Callable[[Any], None]:
+        last = [0.0]
+
         def progress(p: Any) -> None:
             d = _progress_dict(p)
+            now = time.monotonic()
+            if now - last[0] < PROGRESS_S and d["phase"] not in ("done", "waiting", "stopped"):
+                return  # many machines at once: two figures a second are enough
+            last[0] = now
             self._set(
                 chars_done=d["chars_sent"],
                 chars_total=d["chars_total"],

@@ -16,7 +16,7 @@ all run that many times faster, so every figure is in the control's time. The ho
 iso-cnc driver, as ``cellctl dnc drip`` uses it) and the control run in one process over a
 real TCP socket (``--transport``: socket, pty or rfc2217).
 
-    .venv/bin/python bench/dnc_dripfeed.py [--size 1000000] [--time-scale 25]
+    .venv/bin/python bench/dnc_dripfeed.py [--size 1000000] [--time-scale 20]
     .venv/bin/python bench/dnc_dripfeed.py --size 60000 --readin-size 20000   # a quick run
 
 The last line is machine-readable.
@@ -48,7 +48,6 @@ LINE = LineSettings.parse("9600,7E2")
 BUFFER = 256
 TOLERANCE = 10
 LATENCIES = (0.0, 2.0, 8.0, 16.0)
-BURST = int(__import__("os").environ.get("DNC_BURST", "4"))
 
 
 def _listen(transport: str) -> str:
@@ -66,9 +65,7 @@ async def _transfer(
     control.set_mode(Mode.RMT if drip else Mode.EDIT)
     line = scaled_line(LINE, scale)
     server = await serve(control, _listen(transport), line, pacing=True)
-    options = IsoCncOptions(
-        buffer_size=BUFFER, dc3_tolerance=TOLERANCE, motion_scale=scale, burst=BURST
-    )
+    options = IsoCncOptions(buffer_size=BUFFER, dc3_tolerance=TOLERANCE, motion_scale=scale)
     error = ""
     driver = await IsoCncDriver.connect(
         server.url,
@@ -164,7 +161,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--size", type=int, default=1_000_000, help="drip-fed program, chars")
     parser.add_argument("--readin-size", type=int, default=128_000, help="read-in, chars")
-    parser.add_argument("--time-scale", type=float, default=25.0)
+    parser.add_argument("--time-scale", type=float, default=20.0)
     parser.add_argument(
         "--latencies",
         type=lambda s: [float(x) for x in s.split(",")],

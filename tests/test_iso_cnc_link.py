@@ -101,11 +101,10 @@ async def test_read_in_and_drip_feed_never_overflow_at_any_adapter_latency(
         seen: list[TransferProgress] = []
         report = await driver.read_in(data, progress=seen.append, timeout=DEADLINE)
         assert control.memory[1234] == tape.unframe(data)  # byte for byte after % framing
-        assert (
-            report.chars_sent
-            == report.chars_total
-            == len(tape.frame(data.decode(), leader=20, trailer=20))
-        )
+        assert report.chars_total == len(tape.frame(data.decode(), leader=20, trailer=20))
+        # all through the closing %; the trailer's NULs stop at the control's DC3 that ends
+        # the read (an operator who does not press READ again sends no DC1 for them)
+        assert report.chars_total - 20 <= report.chars_sent <= report.chars_total
         assert seen[0].phase == "waiting" and seen[-1].phase == "done"
 
         control.set_mode(Mode.RMT)

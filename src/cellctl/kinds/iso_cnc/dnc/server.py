@@ -184,6 +184,9 @@ class DncLine:
             if now - last[0] < PROGRESS_S and d["phase"] not in ("done", "waiting", "stopped"):
                 return  # many machines at once: two figures a second are enough
             last[0] = now
+            if not d["stall_s"] and self.driver is not None:
+                # the driver's modelled stall so far (the axes waiting for a block)
+                d["stall_s"] = float(self.driver.host_status().stall_s)
             self._set(
                 chars_done=d["chars_sent"],
                 chars_total=d["chars_total"],

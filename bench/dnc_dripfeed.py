@@ -65,7 +65,16 @@ async def _transfer(
     control.set_mode(Mode.RMT if drip else Mode.EDIT)
     line = scaled_line(LINE, scale)
     server = await serve(control, _listen(transport), line, pacing=True)
-    options = IsoCncOptions(buffer_size=BUFFER, dc3_tolerance=TOLERANCE, motion_scale=scale)
+    # The control's parameters; the deadlines short, so a stuck transfer fails (and counts)
+    # rather than holding the bench.
+    options = IsoCncOptions(
+        buffer_size=BUFFER,
+        dc3_tolerance=TOLERANCE,
+        motion_scale=scale,
+        dc1_timeout=30,
+        stop_timeout=60,
+        end_extra=30,
+    )
     error = ""
     driver = await IsoCncDriver.connect(
         server.url,

@@ -454,8 +454,10 @@ class IsoCncDriver(LinkDriver):
         closing = framed.rfind(b"%")  # after it only the trailer: the control may have left
         while self._sent < total:
             self._handle(self.link.reset_input())
-            if self._stopped and not model.drip and 0 <= closing < self._sent:
-                break  # a read-in's DC3 after the closing %: the read is over, no DC1 comes
+            if self._stopped and 0 <= closing < self._sent:
+                # A DC3 once the closing % is out: only the trailer's NULs are left, and the
+                # control may have ended the read (no DC1 follows): _wait_end decides.
+                break
             if self._stopped:
                 self._stops += 1
                 report("stopped")

@@ -94,14 +94,14 @@ def _cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def _write_shop(shop: Path, urls: list[str], program: str, scale: float) -> None:
+def _write_shop(shop: Path, urls: list[str], program: str, scale: float, burst: int) -> None:
     line = scaled_line(LINE, scale)
     rows = []
     for i, url in enumerate(urls):
         rows.append(
             f'[machines.m{i:04d}]\nlink = "{url}"\nline = "{line}"\n'
             f"options = {{ buffer_size = {BUFFER}, dc3_tolerance = {TOLERANCE}, "
-            f"motion_scale = {scale:g} }}\n"
+            f"motion_scale = {scale:g}, burst = {burst} }}\n"
         )
         folder = shop / f"m{i:04d}" / "programs"
         folder.mkdir(parents=True, mode=0o700)
@@ -132,7 +132,8 @@ async def bench(args: argparse.Namespace) -> None:
     print(
         f"dnc_many: {count} controls, each {len(tape)} chars ({bound.blocks} blocks, ideal "
         f"{bound.total_s:.1f} s, stall {bound.stall_s:.1f} s) at {LINE} = {rate:.1f} chars/s; "
-        f"buffer {BUFFER}, tolerance {TOLERANCE}; time scale {scale:g} (line and motion); "
+        f"buffer {BUFFER}, tolerance {TOLERANCE}, burst {args.burst}; time scale {scale:g} "
+        "(line and motion); "
         "figures in the control's time"
     )
     child = ChildEmulators(_controls, count, scale)
@@ -140,7 +141,7 @@ async def bench(args: argparse.Namespace) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         shop = Path(tmp) / "shop"
         shop.mkdir(mode=0o700)
-        _write_shop(shop, urls, program, scale)
+        _write_shop(shop, urls, program, scale, args.burst)
         serve_proc = subprocess.Popen(  # noqa: ASYNC220 - started once, not awaited
             [str(CELLCTL), "dnc", "serve", "--dir", str(shop)],
             stdout=subprocess.DEVNULL,
@@ -230,6 +231,9 @@ def main() -> None:
     parser.add_argument("--machines", type=int, default=256)
     parser.add_argument("--size", type=int, default=6000, help="each program, chars")
     parser.add_argument("--time-scale", type=float, default=1.0)
+    parser.add_argument(
+        "--burst", type=int, default=4, help="the driver's burst option (its default: 4)"
+    )
     asyncio.run(bench(parser.parse_args()))
 
 

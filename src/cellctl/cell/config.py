@@ -214,6 +214,11 @@ class CellTable(_Table):
         description="s an idle robot's or the PLC's status read may take before it counts "
         "as not answering (default: half the poll period)",
     )
+    time_scale: Annotated[float, Field(gt=0, le=100_000, allow_inf_nan=False)] = Field(
+        default=1.0,
+        description="the machines run this many times faster than a real cell's (an emulated "
+        "cell writes it); the shift report's ideal times are divided by it",
+    )
     door_start_timeout: Seconds | None = Field(
         default=None,
         description="s a commanded door may take to leave its end position before it counts "

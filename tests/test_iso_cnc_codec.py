@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cellctl.errors import UsageError
+from cellctl.kinds import registry
 from cellctl.kinds.iso_cnc import gcode, motion, tape
 from cellctl.kinds.iso_cnc.gcode import CheckOptions
+from cellctl.kinds.kind import ProgramRole
 
 ISO_TEXT = st.text(
     alphabet=st.sampled_from("OGXYZIJKFMNRS0123456789.- ()\n"), min_size=0, max_size=400
@@ -201,3 +204,26 @@ def test_inch_programs_and_acceleration() -> None:
 def test_any_program_has_finite_non_negative_block_times(text: str) -> None:
     for s in seconds(text):
         assert s >= 0 and math.isfinite(s)
+
+
+# -- the kind's language hooks -----------------------------------------------------------------
+
+
+def test_the_kind_checks_times_and_previews_a_program(tmp_path: Path) -> None:
+    kind = registry.kind("iso-cnc")
+    assert kind.language is not None and kind.language.preview is not None
+    options = kind.checked_options({})
+    path = tmp_path / "O1234.nc"
+    path.write_text(GOOD, encoding="ascii")
+    checked = kind.language.check(path, ProgramRole.MILLING, options)
+    assert checked.ok and checked.lines == len(gcode.blocks(GOOD))
+    assert checked.machining_s == pytest.approx(motion.program_seconds(gcode.blocks(GOOD)))
+    preview = kind.language.preview(GOOD, "O1234.nc", options)
+    assert preview.svg.count("<polyline") >= 2 and preview.blocks == checked.lines
+    path.write_text("O1\nG0 G1 X1 F100\nM30\n", encoding="ascii")
+    bad = kind.language.check(path, ProgramRole.MILLING, options)
+    assert bad.problems == (f"{path}:2:4: G0 and G1 in one block (group 1)",)
+    assert kind.check_text is not None
+    assert kind.check_text("run", "p.nc", "G1 X1\n", options)[0].startswith("p.nc:1")
+    with pytest.raises(UsageError, match="unknown option"):
+        kind.checked_options({"dc3_tolerence": 10})

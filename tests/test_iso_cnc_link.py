@@ -4,6 +4,7 @@ line's baud rate, the control's motion and the adapter's latency together."""
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -12,7 +13,7 @@ import pytest
 
 from cellctl.emulators.serve import Server, serve
 from cellctl.errors import LinkTimeout, UsageError
-from cellctl.kinds.iso_cnc import tape
+from cellctl.kinds.iso_cnc import gcode, motion, tape
 from cellctl.kinds.iso_cnc.driver import (
     ControlAlarm,
     IsoCncDriver,
@@ -22,7 +23,7 @@ from cellctl.kinds.iso_cnc.driver import (
 from cellctl.kinds.iso_cnc.emulator import Activity, EmulatorOptions, IsoCncEmulator, Mode
 from cellctl.link import LineSettings, TrafficLog
 
-from .conftest import Ser2net, until
+from .conftest import Ser2net, emulator_process, until
 
 SCALE = 4.0
 LINE = LineSettings(int(9600 * SCALE), 7, "E", 2)
@@ -101,10 +102,10 @@ async def test_read_in_and_drip_feed_never_overflow_at_any_adapter_latency(
         seen: list[TransferProgress] = []
         report = await driver.read_in(data, progress=seen.append, timeout=DEADLINE)
         assert control.memory[1234] == tape.unframe(data)  # byte for byte after % framing
-        assert report.chars_total == len(tape.frame(data.decode(), leader=20, trailer=20))
-        # all through the closing %; the trailer's NULs stop at the control's DC3 that ends
-        # the read (an operator who does not press READ again sends no DC1 for them)
-        assert report.chars_total - 20 <= report.chars_sent <= report.chars_total
+        framed = tape.frame(data.decode(), leader=20, trailer=20)
+        # everything up to the closing %; the trailer's NULs stop at the control's DC3
+        assert report.chars_total == len(framed)
+        assert framed.rfind(b"%") < report.chars_sent <= report.chars_total
         assert seen[0].phase == "waiting" and seen[-1].phase == "done"
 
         control.set_mode(Mode.RMT)
@@ -113,7 +114,7 @@ async def test_read_in_and_drip_feed_never_overflow_at_any_adapter_latency(
         assert run.done and run.blocks == data.count(b"\n") - 2  # every block but the %s
         assert control.alarms == []
         assert control.overflow_chars <= control.tolerance
-        assert report.chars_sent == report.chars_total
+        assert framed.rfind(b"%") < report.chars_sent <= report.chars_total
         # the slow blocks filled the buffer: the host held back by its model, not by luck
         assert control.peak_buffer > control.options.buffer_size // 2
     finally:
@@ -126,7 +127,7 @@ async def test_a_host_that_only_reacts_to_dc3_overflows_at_16_ms(tmp_path: Path)
     never stops it), the driver only has the DC3 to go by, which comes 14 characters late."""
     control = latency_control(16, Mode.RMT)
     blind = IsoCncOptions(
-        motion_scale=SCALE, buffer_size=4096, dc1_timeout=10, end_extra=10, burst=8
+        motion_scale=SCALE, buffer_size=4096, dc1_timeout=10, end_extra=10, burst=16
     )
     server, driver, _, _ = await connect(tmp_path, control, options=blind)
     try:
@@ -241,3 +242,47 @@ async def test_punch_receive_gets_the_program_from_dc2_to_dc4(cnc: Cnc) -> None:
     assert tape.unframe(punched) == text
     assert tape.split_programs(tape.unframe(punched))[0].number == 42
     await until(lambda: cnc.control.activity == Activity.IDLE, "the punch to end")
+
+
+async def test_cellctl_emulate_iso_cnc_serves_a_control_in_its_own_process(
+    tmp_path: Path,
+) -> None:
+    args = ["iso-cnc", "--mode", "EDIT", "--auto-operator", "--time-scale", str(SCALE)]
+    with emulator_process(*args, "--line", str(LINE), "--fault", "adapter-latency=16") as url:
+        options = IsoCncOptions(motion_scale=SCALE, dc1_timeout=10, end_extra=10)
+        driver = await IsoCncDriver.connect(url, settings=LINE, options=options)
+        try:
+            report = await driver.read_in(surfacing(4), timeout=DEADLINE)
+            assert report.chars_sent > 0  # it asked with DC1 and ended the read with DC3
+        finally:
+            await driver.close()
+
+
+async def test_a_punch_pauses_on_the_host_s_dc3_and_goes_on_at_dc1(cnc: Cnc) -> None:
+    text = "".join(["O0043 (LONG)\n", *(f"G1 X{i}.5 Y{i} F500\n" for i in range(200)), "M30\n"])
+    cnc.control.options = cnc.control.options.model_copy(update={"auto_operator": False})
+    cnc.control.set_mode(Mode.EDIT)
+    cnc.control.memory[43] = text
+    cnc.control.punch(43)
+    receiving = asyncio.ensure_future(cnc.driver.receive(timeout=DEADLINE))
+    await until(lambda: cnc.control.punched > 100, "the punch to start")
+    await cnc.driver.pause()
+    await until(lambda: cnc.control.punch_held or receiving.done(), "the punch to stop")
+    assert not receiving.done() and cnc.control.punch_overrun <= 10  # the spec's 10
+    held = cnc.control.punched
+    await cnc.driver.resume()
+    punched = await receiving
+    assert cnc.control.punched > held and tape.unframe(punched) == text
+
+
+async def test_a_program_read_into_memory_runs_from_memory_in_its_motion_time(cnc: Cnc) -> None:
+    data = surfacing(2)
+    await cnc.driver.read_in(data, timeout=DEADLINE)
+    cnc.control.set_mode(Mode.MEM)
+    cnc.control.selected = 1234
+    cnc.control.cycle_start()
+    await until(lambda: cnc.control.runs and cnc.control.runs[-1].done, "the memory run")
+    run = cnc.control.runs[-1]
+    blocks = gcode.blocks(tape.unframe(data))
+    assert run.number == 1234 and run.blocks == len(blocks)
+    assert run.machine_s == pytest.approx(motion.program_seconds(blocks))

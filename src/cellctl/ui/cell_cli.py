@@ -27,7 +27,7 @@ from cellctl.mailbox import Mailbox, open_mailbox
 from cellctl.mailbox.mqtt import MqttBridge, MqttSettings
 from cellctl.service.access import AttachedCell
 from cellctl.service.server import ApiServer, api_limits
-from cellctl.ui.common import cell_dir, console, err_console, run, until_stopped
+from cellctl.ui.common import cell_dir, cell_given, console, err_console, run, until_stopped
 from cellctl.ui.dashboard.command import serve_dashboard_in
 from cellctl.ui.dashboard.routes import dashboard_routes
 
@@ -387,7 +387,9 @@ def apply_fault(cell: object, text: str) -> None:
     help="Instead: N emulated cells, each run by its own `cellctl run`, and the factory "
     "spreading the batch over them through a private Mosquitto.",
 )
+@click.pass_context
 def demo(
+    ctx: click.Context,
     time_scale: float,
     count: int | None,
     out: str,
@@ -396,7 +398,9 @@ def demo(
     cells: int | None,
 ) -> None:
     """Start an emulated cell (or a factory of them), run a mixed batch through it, and
-    summarize (under 2 minutes)."""
+    summarize (under 2 minutes). With --cell DIR, the cell emulated is DIR's (its machines,
+    programs and part types) instead of the example cell."""
+    template = cell_dir(ctx) if cell_given(ctx) else None
     if cells is not None and dashboard:
         raise click.UsageError("--dashboard is for one cell, not with --factory")
     Path(out).mkdir(parents=True, exist_ok=True)
@@ -404,7 +408,10 @@ def demo(
         from cellctl.ui.factory_demo import run_factory_demo
 
         raise SystemExit(run(lambda: run_factory_demo(cells, count, time_scale, Path(out))))
-    run(lambda: _demo(time_scale, 6 if count is None else count, Path(out), compare, dashboard))
+    if template is not None and cells is not None:
+        raise click.UsageError("--cell is for one cell, not with --factory")
+    parts = 6 if count is None else count
+    run(lambda: _demo(time_scale, parts, Path(out), compare, dashboard, template))
 
 
 async def run_batch(
@@ -415,6 +422,7 @@ async def run_batch(
     one_at_a_time: bool,
     live: bool,
     dashboard: bool = False,
+    template: Path | None = None,
 ) -> Summary:
     """Emulate the cell in ``directory``, run ``batch`` [(part type, qty)], return figures.
 
@@ -423,7 +431,7 @@ async def run_batch(
     from cellctl.emulators.cell import EmulatedCell
 
     shutil.rmtree(directory, ignore_errors=True)
-    cell = EmulatedCell(time_scale=time_scale)
+    cell = EmulatedCell(time_scale=time_scale, template=template)
     try:
         await cell.start(directory)
         url = serve_dashboard_in(directory) if dashboard else ""
@@ -470,30 +478,55 @@ async def run_batch(
 
 
 async def _demo(
-    time_scale: float, count: int, out: Path, compare: bool, dashboard: bool = False
+    time_scale: float,
+    count: int,
+    out: Path,
+    compare: bool,
+    dashboard: bool = False,
+    template: Path | None = None,
 ) -> None:
     half = max(1, count // 2)
-    batch = [("wax-robot-base", half), ("wax-toy-mill-table", count - half)]
+    first, second = "wax-robot-base", "wax-toy-mill-table"
+    if template is not None:
+        types = [*load_cell(template).parts]
+        first, second = types[0], types[1 % len(types)]
+    batch = [(first, half), (second, count - half)]
     batch = [(part, qty) for part, qty in batch if qty > 0]  # --parts 1: no order for 0
+    where = (
+        f"{template}'s cell" if template is not None else "an emulated cell (robot, 2 mills, PLC)"
+    )
     console.print(
-        f"[bold]cellctl demo[/bold]: an emulated cell (robot, 2 mills, PLC) at time scale "
-        f"{time_scale:g}; batch: {half} wax-robot-base + {count - half} wax-toy-mill-table"
+        f"[bold]cellctl demo[/bold]: {where} at time scale "
+        f"{time_scale:g}; batch: {half} {first} + {count - half} {second}"
     )
     if dashboard:
         await run_batch(
-            out / "cell", time_scale, batch, one_at_a_time=False, live=False, dashboard=True
+            out / "cell",
+            time_scale,
+            batch,
+            one_at_a_time=False,
+            live=False,
+            dashboard=True,
+            template=template,
         )
         return
     # A live view on a terminal; elsewhere (a file, a pipe) every event a line as it happens.
     live = console.is_terminal
-    summary = await run_batch(out / "cell", time_scale, batch, one_at_a_time=False, live=live)
+    summary = await run_batch(
+        out / "cell", time_scale, batch, one_at_a_time=False, live=live, template=template
+    )
     console.print()
     console.print("\n".join(summary.lines("[bold]cellctl schedule[/bold]")))
     console.print(f"Gantt chart: {out / 'cell' / 'gantt.svg'}")
     if compare:
         console.print("\nthe source's way: one part through its whole route before the next ...")
         base = await run_batch(
-            out / "one-at-a-time", time_scale, batch, one_at_a_time=True, live=False
+            out / "one-at-a-time",
+            time_scale,
+            batch,
+            one_at_a_time=True,
+            live=False,
+            template=template,
         )
         console.print()
         console.print("\n".join(base.lines("[bold]one part at a time[/bold]")))

@@ -40,95 +40,31 @@ can stay under a tolerance of 10. Two things keep this driver under it:
 With ``cs_flow`` the control's RTS (the host's CTS, carried by a serial port or RFC 2217) is
 also obeyed before each burst. Bad input (no such file, a program the G-code check refuses,
 characters a 7-bit tape cannot carry) is refused before a byte goes out.
+
+A read ends at the control's DC3 after the closing ``%`` (the rest of the trailer is not
+sent: the control has left the read). A punch is received whole as it comes; :meth:`pause`
+and :meth:`resume` send DC3 and DC1 to hold it (CS cannot: the link layer drives no RTS).
+In a cell, :meth:`run` drip-feeds the route's program: the cell's GO output (wired to CYCLE
+START, the control in RMT) starts it, and it returns when the control has run it to its end.
 """
 
 from __future__ import annotations
 
 import asyncio
 import math
-from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
-
-from pydantic import BaseModel, ConfigDict, Field
 
 from cellctl.drivers.base import LinkDriver, StartOutput
 from cellctl.drivers.state import StateStore
-from cellctl.errors import DeviceError, LinkTimeout, ProtocolError, UsageError
+from cellctl.errors import DeviceError, LinkTimeout, ProtocolError
 from cellctl.kinds.families import RunProgress
-from cellctl.kinds.iso_cnc import gcode, tape
-from cellctl.kinds.iso_cnc.motion import Machine, MotionModel
+from cellctl.kinds.iso_cnc import tape
+from cellctl.kinds.iso_cnc.buffer import BufferModel, tape_blocks
+from cellctl.kinds.iso_cnc.options import ISO_LINE, IsoCncOptions, prepare, read_program
 from cellctl.kinds.iso_cnc.status import IsoCncState, IsoCncStatus
 from cellctl.link import LineSettings, Link, TrafficLog
-
-#: The kind's default line: Fanuc's 9600 baud, ISO (7 bits, even parity), 2 stop bits.
-ISO_LINE = "9600,7E2"
-
-
-class IsoCncOptions(BaseModel):
-    """The control's options (``[machines.NAME] options``); baud, parity and stop bits are
-    the machine's ``line`` (default 9600,7E2)."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
-
-    code: Literal["ISO"] = "ISO"
-    """Tape code: ISO (EIA may come later)."""
-    dc3_tolerance: int = Field(default=10, ge=0, le=1000)
-    """Characters the control accepts after its DC3 (Fanuc: 10; a CS-only control: 2)."""
-    cs_flow: bool = False
-    """Obey the control's RTS (CS) too: needs a serial port or rfc2217:// (modem lines)."""
-    leader: int = Field(default=20, ge=0, le=10000)
-    """NUL characters sent before the tape."""
-    trailer: int = Field(default=20, ge=0, le=10000)
-    """NUL characters sent after the tape."""
-    percent: bool = True
-    """Frame the tape with ``%`` (start and end of transmission)."""
-    o_digits: int = Field(default=4, ge=1, le=8)
-    """Digits of an O-number the control takes (4 on most Fanuc controls, 8 on newer)."""
-    buffer_size: int = Field(default=256, ge=16, le=1 << 20)
-    """The control's reader buffer, characters (the drip-feed model)."""
-    high_water: int | None = Field(default=None, ge=1)
-    """Where the control sends DC3 (default: buffer_size - dc3_tolerance)."""
-    low_water: int | None = Field(default=None, ge=0)
-    """Where it sends DC1 again (default: buffer_size // 2): corrects the model."""
-    margin: int = Field(default=8, ge=0, le=1000)
-    """Characters kept clear of the high-water mark in the model (its error)."""
-    burst: int = Field(default=4, ge=1, le=4096)
-    """Characters written at a time (what may be in flight after a DC3, with ``ahead``)."""
-    ahead: float = Field(default=2.0, ge=0, le=4096)
-    """Characters of line time a burst is written before the last one has crossed."""
-    store_cps: float = Field(default=0.0, ge=0)
-    """Characters/s the control stores during a read-in (0: as fast as the line)."""
-    rapid_mm_min: float = Field(default=10000.0, gt=0)
-    """The control's rapid traverse, mm/min (the motion model)."""
-    accel_mm_s2: float | None = Field(default=None, gt=0)
-    """The control's acceleration, mm/s² (None: moves at their rate end to end)."""
-    motion_scale: float = Field(default=1.0, gt=0)
-    """The machine runs this many times faster than its motion model (an emulated cell)."""
-    arc_tolerance_mm: float = Field(default=0.01, gt=0, le=10)
-    """Start and end radius of an arc may differ this much (the G-code check)."""
-    dc1_timeout: float = Field(default=120.0, gt=0, le=86400)
-    """Seconds to wait for the control's DC1 (the operator presses READ or CYCLE START)."""
-    stop_timeout: float = Field(default=600.0, gt=0, le=86400)
-    """Seconds a DC3 may hold the host before it gives up (a long block, a feed hold)."""
-    end_margin: float = Field(default=2.0, ge=1, le=100)
-    """A drip-feed may take this many times its modelled time ..."""
-    end_extra: float = Field(default=60.0, ge=0, le=86400)
-    """... plus this many seconds, before the driver gives up on it."""
-    ready_wait: float = Field(default=2.0, gt=0, le=600)
-    """Seconds the control may take to show ready."""
-    setup_timeout: float = Field(default=1800.0, gt=0, le=86400)
-    """Seconds a setup program may take."""
-    go_pulse: float = Field(default=0.5, gt=0, le=10)
-    """Seconds the cycle-start output stays on (a cell's GO) to start a drip-feed."""
-
-    def check_options(self) -> gcode.CheckOptions:
-        return gcode.CheckOptions(o_digits=self.o_digits, arc_tolerance_mm=self.arc_tolerance_mm)
-
-    def motion(self) -> MotionModel:
-        return MotionModel(rapid_mm_min=self.rapid_mm_min, accel_mm_s2=self.accel_mm_s2)
 
 
 class ControlAlarm(DeviceError):
@@ -164,110 +100,6 @@ class TransferReport:
 Progress = Callable[[TransferProgress], None]
 
 
-@dataclass
-class _Model:
-    """The control's reader buffer as the host models it (see module docstring, point 2)."""
-
-    drip: bool
-    store_cps: float = 0.0
-    #: blocks not yet written whole: (offset after its LF, seconds it runs), tape order
-    unsent: deque[tuple[int, float]] = field(default_factory=deque)
-    #: blocks written whole, not yet started: (when its LF is through, offset, seconds)
-    waiting: deque[tuple[float, int, float]] = field(default_factory=deque)
-    consumed: int = 0
-    free_at: float = 0.0
-    started: bool = False
-    offset: int = 0
-    idle_s: float = 0.0  # modelled stalls: the axes waiting for a block
-
-    def wrote(self, upto: int, through_at: float) -> None:
-        """Characters up to offset ``upto`` are written; they are through by ``through_at``."""
-        if not self.started and not self.drip:
-            self.started, self.free_at = True, through_at
-        while self.unsent and self.unsent[0][0] <= upto:
-            end, seconds = self.unsent.popleft()
-            self.waiting.append((through_at, end, seconds))
-
-    def level(self, sent: int, now: float) -> int:
-        """Characters in the control's buffer or on their way to it at ``now``."""
-        if not self.drip:
-            if self.store_cps <= 0 or not self.started:
-                return self.offset
-            stored = (now - self.free_at) * self.store_cps
-            return max(0, sent - int(stored)) + self.offset
-        while self.waiting:
-            arrived, end, seconds = self.waiting[0]
-            start = max(arrived, self.free_at) if self.started else arrived
-            if start > now:
-                break
-            if self.started and seconds and arrived > self.free_at:
-                self.idle_s += arrived - self.free_at
-            self.waiting.popleft()
-            self.consumed = end
-            self.free_at = start + seconds
-            self.started = self.started or seconds > 0
-        return max(0, sent - self.consumed + self.offset)
-
-    def next_drain(self) -> float | None:
-        """When the modelled buffer next loses a block (None: nothing to wait for)."""
-        if not self.drip:
-            return None
-        if not self.waiting:
-            return None
-        arrived = self.waiting[0][0]
-        return max(arrived, self.free_at) if self.started else arrived
-
-    def end_time(self) -> float:
-        """When the last block written ends, as modelled."""
-        t = self.free_at
-        for arrived, _end, seconds in self.waiting:
-            t = max(t, arrived) + seconds
-        return t
-
-
-def tape_blocks(data: bytes, model: MotionModel, scale: float) -> list[tuple[int, float]]:
-    """Each LF of a tape with what the control does on reaching it: (offset after the LF,
-    seconds it executes), by the motion model; label and blank lines take 0 s."""
-    machine = Machine(model)
-    out: list[tuple[int, float]] = []
-    pos = 0
-    for number, raw in enumerate(data.split(b"\n")[:-1], 1):
-        pos += len(raw) + 1
-        text = raw.replace(b"\x00", b"").replace(b"\r", b"").decode("latin-1")
-        if "%" in text:
-            out.append((pos, 0.0))
-            continue
-        block = gcode.parse_block(number, text, [])
-        seconds = machine.step(block).seconds / scale if block.words else 0.0
-        out.append((pos, seconds))
-    return out
-
-
-def prepare(data: bytes, options: IsoCncOptions, name: str = "program") -> bytes:
-    """A program file's bytes as the tape that goes on the line; UsageError (every error of
-    the G-code check, with line and column) before a byte goes out."""
-    try:
-        text = data.decode("ascii")
-    except UnicodeDecodeError as e:
-        line = data.count(b"\n", 0, e.start) + 1
-        raise UsageError(f"{name}:{line}: byte 0x{data[e.start]:02X} is not ISO code") from None
-    found = gcode.errors(text, options.check_options())
-    if found:
-        shown = [f.format(name) for f in found[:5]]
-        more = f" (and {len(found) - 5} more)" if len(found) > 5 else ""
-        raise UsageError("; ".join(shown) + more)
-    return tape.frame(text, leader=options.leader, trailer=options.trailer, percent=options.percent)
-
-
-def read_program(path: Path, options: IsoCncOptions) -> bytes:
-    """:func:`prepare` for a file (UsageError if it cannot be read)."""
-    try:
-        data = path.read_bytes()
-    except OSError as e:
-        raise UsageError(f"{path}: cannot read: {e.strerror or e}") from None
-    return prepare(data, options, path.name)
-
-
 class IsoCncDriver(LinkDriver):
     """One ISO-code control on one link (see module docstring)."""
 
@@ -293,9 +125,10 @@ class IsoCncDriver(LinkDriver):
         self._dc3_seen = 0  # DC3s heard (the end of a read is a DC3)
         self._last_dc3_at = 0.0
         self._progress = IsoCncStatus()
-        self._model: _Model | None = None
+        self._model: BufferModel | None = None
         self._sent = 0
         self._stops = 0
+        self._seen_at_end = -1  # DC3s heard when the closing % went out
         self._sending = False  # a DC3 now is flow control, not the end of the read
         self._lock = asyncio.Lock()
 
@@ -404,7 +237,7 @@ class IsoCncDriver(LinkDriver):
     # -- sending --------------------------------------------------------------------------------
 
     async def _send(
-        self, framed: bytes, model: _Model, phase: str, progress: Progress | None
+        self, framed: bytes, model: BufferModel, phase: str, progress: Progress | None
     ) -> TransferReport:
         """Send a tape under flow control (module docstring); returns when the last byte is
         through the line. The caller waits for the control's end of the read."""
@@ -414,6 +247,7 @@ class IsoCncDriver(LinkDriver):
         began = loop.time()
         self._stops = 0
         self._sent = 0
+        self._seen_at_end = -1
         self._model = model
 
         def report(state: str) -> None:
@@ -442,7 +276,7 @@ class IsoCncDriver(LinkDriver):
         )
 
     async def _send_all(
-        self, framed: bytes, model: _Model, phase: str, report: Callable[[str], None]
+        self, framed: bytes, model: BufferModel, phase: str, report: Callable[[str], None]
     ) -> None:
         o = self.options
         loop = asyncio.get_running_loop()
@@ -451,12 +285,11 @@ class IsoCncDriver(LinkDriver):
         limit = max(o.burst, self.high_water - o.margin)
         wire_free = loop.time()
         last_report = 0.0
-        closing = framed.rfind(b"%")  # after it only the trailer: the control may have left
+        # Past the closing % (its trailer is only tape feed) a DC3 is the end of the read.
+        end_at = framed.rfind(b"%") + 1 if o.percent else total - o.trailer
         while self._sent < total:
             self._handle(self.link.reset_input())
-            if self._stopped and 0 <= closing < self._sent:
-                # A DC3 once the closing % is out: only the trailer's NULs are left, and the
-                # control may have ended the read (no DC1 follows): _wait_end decides.
+            if self._sent >= end_at and self._dc3_seen > self._seen_at_end:
                 break
             if self._stopped:
                 self._stops += 1
@@ -485,6 +318,8 @@ class IsoCncDriver(LinkDriver):
             wire_free = max(wire_free, now) + n * char_time
             self._sent += n
             model.wrote(self._sent, wire_free)
+            if self._sent >= end_at and self._seen_at_end < 0:
+                self._seen_at_end = self._dc3_seen
             self._progress = IsoCncStatus(
                 self.state, self._sent, total, stall_s=model.idle_s * o.motion_scale
             )
@@ -494,16 +329,24 @@ class IsoCncDriver(LinkDriver):
         if wire_free > loop.time():
             await asyncio.sleep(wire_free - loop.time())
 
-    async def _wait_end(self, deadline: float, model: _Model, seen_before: int) -> None:
-        """Wait for the control's DC3 that ends the read (after the closing ``%``)."""
+    async def _wait_end(self, deadline: float, model: BufferModel, seen_before: int) -> None:
+        """Wait for the control's DC3 that ends the read (after the closing ``%``).
+
+        A DC3 heard once every byte is out ends a read-in. A drip-feed's ends the run only
+        from shortly before the modelled end of its last block on: a DC3 before that is the
+        buffer's (which a control lagging behind the model can still send)."""
         loop = asyncio.get_running_loop()
+        finished = loop.time()
+        if model.drip:
+            end = model.end_time()
+            grace = 0.05 + 0.05 * max(0.0, end - finished)
+            while loop.time() < end - grace:
+                self._handle(self.link.reset_input())
+                await asyncio.sleep(min(0.05, end - grace - loop.time()))
         while True:
             self._handle(self.link.reset_input())
             if self._dc3_seen > seen_before:
-                level = model.level(self._sent, loop.time())
-                if not model.drip or level <= max(self.low_water, self.options.burst):
-                    return
-                seen_before = self._dc3_seen
+                return
             await self._listen(deadline, "the control did not end the read (no DC3 after %)")
 
     async def read_in(
@@ -532,20 +375,22 @@ class IsoCncDriver(LinkDriver):
             self.alarm = None
             self._set(state)
             self._progress = IsoCncStatus(state, 0, len(framed))
-            model = _Model(drip=drip, store_cps=o.store_cps)
+            model = BufferModel(drip=drip, store_cps=o.store_cps)
             if drip:
                 model.unsent.extend(tape_blocks(framed, o.motion(), o.motion_scale))
             try:
                 if progress is not None:
                     progress(TransferProgress(0, len(framed), 0.0, 0, 0.0, math.inf, "waiting"))
-                self._stopped = True
+                # _stopped stays as the control left it: a DC1 it sent since the last read
+                # (an operator, or the auto-operator, pressed READ again) is its asking.
                 if drip and self.start_output is not None:
                     await self.start_output.pulse(o.go_pulse)
                 what = "RMT mode and CYCLE START" if drip else "EDIT mode and READ"
                 await self._wait_dc1(timeout or o.dc1_timeout, f"is the control in {what}?")
-                seen = self._dc3_seen
                 began = loop.time()
                 sent = await self._send(framed, model, "sending", progress)
+                # DC3s until the closing % was out were the buffer's
+                seen = self._seen_at_end if self._seen_at_end >= 0 else self._dc3_seen
                 left = max(0.0, model.end_time() - loop.time())
                 allowed = left * o.end_margin + o.end_extra + o.ready_wait
                 await self._wait_end(loop.time() + allowed, model, seen)
@@ -566,9 +411,8 @@ class IsoCncDriver(LinkDriver):
                 self._set(IsoCncState.IDLE)
                 self._progress = IsoCncStatus()
                 return sent
-            except ControlAlarm:
-                raise
             except BaseException:
+                self._stopped = True  # what the control does next is not known: wait for DC1
                 if self.state != IsoCncState.ALARM:
                     self._set(IsoCncState.IDLE)
                 raise
@@ -699,6 +543,7 @@ class IsoCncDriver(LinkDriver):
 
 
 __all__ = [
+    "ISO_LINE",
     "ControlAlarm",
     "IsoCncDriver",
     "IsoCncOptions",

@@ -41,8 +41,8 @@ from cellctl.kinds.iso_cnc.gcode import PROGRAM_ENDS, Block, parse_block
 from cellctl.kinds.iso_cnc.motion import Machine, MotionModel
 from cellctl.kinds.iso_cnc.tape import ALARMS, DC1, DC2, DC3, DC4, alarm_report
 
-#: How much of its own scheduling delay a reply takes back (as the line's pacing does).
-_CATCH_UP_S = 0.005
+#: Seconds the automatic operator waits for a tape before pressing READ again.
+_OPERATOR_PATIENCE_S = 1.0
 
 FAULTS = {
     "adapter-latency": "=MS: its DC3/DC1 reach the host MS milliseconds late (a USB adapter)",
@@ -158,6 +158,11 @@ class IsoCncEmulator(EmulatedDevice):
         self.run_hooks: list[Callable[[DripRun], None]] = []
         self.overflow_chars = 0  # the most characters received after one DC3
         self.dc3_sent = 0
+        self.punched = 0  # characters punched, all punches
+        self.punch_overrun = 0  # the most it punched after a host's DC3
+        self.punch_held = False  # a punch waits for the host's DC1
+        self._paused_at = 0
+        self._read_serial = 0  # which READ press the automatic operator is waiting on
         self.peak_buffer = 0  # the most characters its reader buffer held
         self.chars_read = 0
         self.faults: set[str] = set()
@@ -316,18 +321,38 @@ class IsoCncEmulator(EmulatedDevice):
             return
         if self.mode == Mode.RMT:
             run = self._new_run(0)
-            self._machine = Machine(self.options.motion())
+            self._machine = Machine(self.options.motion(), trace=False)
             self._exec_task = asyncio.ensure_future(self._execute(run))
         if "never-dc1" not in self.faults:
             self._signal(DC1, rts=True)
+            if self.options.auto_operator:
+                self._read_serial += 1
+                serial, seen = self._read_serial, self.chars_read
+                asyncio.get_running_loop().call_later(
+                    _OPERATOR_PATIENCE_S, self._press_again, serial, seen
+                )
+
+    def _press_again(self, serial: int, seen: int) -> None:
+        """The automatic operator: nothing came since READ was pressed, press it again (its
+        DC1 may have gone to a host that was not listening yet)."""
+        if serial != self._read_serial or self.activity != Activity.READING:
+            return
+        if self.chars_read == seen and "never-dc1" not in self.faults:
+            self._signal(DC1, rts=True)
+            asyncio.get_running_loop().call_later(
+                _OPERATOR_PATIENCE_S, self._press_again, serial, seen
+            )
 
     def _new_run(self, number: int) -> DripRun:
+        """A run about to start (it counts, and its hooks hear of it, at its first block)."""
         run = DripRun(number)
         self._run = run
+        return run
+
+    def _started(self, run: DripRun) -> None:
         self.runs.append(run)
         for hook in list(self.run_hooks):
             hook(run)
-        return run
 
     def _signal(self, code: bytes, *, rts: bool | None = None) -> None:
         """Send DC1/DC3 (and RTS with CS flow) through the adapter's delay."""
@@ -379,7 +404,9 @@ class IsoCncEmulator(EmulatedDevice):
                 self._lf_at.append(last - (n - 1 - j) * char_time)
             if not self._stopped and len(self._buffer) >= self.high_water:
                 at = last - (n - 1 - j) * char_time
-                self._send_dc3(max(at, asyncio.get_running_loop().time() - _CATCH_UP_S))
+                # Counted from the character that filled it, as a control does in real time
+                # (even when this process got to it late).
+                self._send_dc3(at)
         if self.mode != Mode.EDIT:
             self._block_ready.set()
 
@@ -441,7 +468,7 @@ class IsoCncEmulator(EmulatedDevice):
         """Run blocks as they come; every wait for one after the first is a stall."""
         loop = asyncio.get_running_loop()
         began = loop.time()
-        machine = self._machine or Machine(self.options.motion())
+        machine = self._machine or Machine(self.options.motion(), trace=False)
         # Each block ends a fixed time after it began (wall time), so the sleeps' own delays
         # do not add up over a long program: the axes run on the machine's clock.
         free_at = began
@@ -472,6 +499,8 @@ class IsoCncEmulator(EmulatedDevice):
                     )
                 )
             start = max(arrived, free_at) if run.blocks else arrived
+            if not run.blocks:
+                self._started(run)
             seconds = machine.step(block).seconds
             run.blocks += 1
             run.machine_s += seconds
@@ -485,7 +514,8 @@ class IsoCncEmulator(EmulatedDevice):
             self._finish_read()
 
     async def _run_memory(self, run: DripRun) -> None:
-        machine = Machine(self.options.motion())
+        machine = Machine(self.options.motion(), trace=False)
+        self._started(run)
         for n, line in enumerate(self.memory.get(run.number, "").splitlines(), 1):
             block = parse_block(n, line, [])
             seconds = machine.step(block).seconds if block.words else 0.0
@@ -511,11 +541,16 @@ class IsoCncEmulator(EmulatedDevice):
                 return
             step = 4  # it stops within a few characters of a DC3 (the spec allows 10)
             for i in range(0, len(data), step):
+                if not self._punch_go.is_set():
+                    self.punch_overrun = max(self.punch_overrun, self.punched - self._paused_at)
+                    self.punch_held = True
                 await self._punch_go.wait()
+                self.punch_held = False
                 if self.activity != Activity.PUNCHING:
                     return
                 await line.write(data[i : i + step])
                 await line.drain()
+                self.punched += len(data[i : i + step])
             self.activity = Activity.IDLE
         except (LinkClosed, LinkError):
             self.activity = Activity.IDLE
@@ -548,6 +583,9 @@ class IsoCncEmulator(EmulatedDevice):
         """Serve one host: read what it sends and act by what the control is doing."""
         self._line = line
         line.set_rts(True)
+        if self.activity == Activity.READING and not self._stopped and not self.chars_read:
+            # It asked before a host was there (no cable, no device server): ask again.
+            self._signal(DC1, rts=True)
         self._auto()
         with contextlib.suppress(LinkClosed, LinkError):
             while True:
@@ -558,8 +596,9 @@ class IsoCncEmulator(EmulatedDevice):
                     self._take(data, line)
                 elif self.activity == Activity.PUNCHING:
                     for byte in data:
-                        if byte == tape.Code.DC3:
+                        if byte == tape.Code.DC3 and self._punch_go.is_set():
                             self._punch_go.clear()
+                            self._paused_at = self.punched
                         elif byte == tape.Code.DC1:
                             self._punch_go.set()
         if self._line is line:

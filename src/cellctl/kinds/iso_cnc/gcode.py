@@ -22,7 +22,8 @@ arcs (I/J/K or R, not both; the start and end radii agree within ``arc_tolerance
 shorter than half the chord); G01/G02/G03 before any F; the O-number (present, within
 ``o_digits``) and ``%`` framing (only as a line of its own, at the start and end).
 
-Hostile input stays bounded: a text over ``max_bytes`` is refused whole, a block over
+Hostile input stays bounded: a text over ``max_bytes`` or ``max_blocks`` is refused whole, a
+block over
 ``max_block`` characters is refused and not parsed, at most ``max_findings`` are returned (the
 last says how many more), and :func:`check` keeps one block at a time.
 """
@@ -116,7 +117,8 @@ class CheckOptions(BaseModel):
 
     o_digits: int = Field(default=4, ge=1, le=8)
     arc_tolerance_mm: float = Field(default=0.01, gt=0, le=10)
-    max_bytes: int = Field(default=32 * 1024 * 1024, gt=0)
+    max_bytes: int = Field(default=16 * 1024 * 1024, gt=0)
+    max_blocks: int = Field(default=500_000, gt=0)
     max_block: int = Field(default=256, gt=0, le=4096)
     max_findings: int = Field(default=100, gt=0)
 
@@ -172,11 +174,21 @@ class Block:
 
 
 _TOKEN = re.compile(r"[ \t]+|([A-Za-z])[ \t]*([+-]?(?:\d+\.?\d*|\.\d+))|([A-Za-z])")
-_NUMBER_TEXT = re.compile(r"[+-]?\d*\.?\d*")
+#: A block of words and blanks only (most of a CAM program): parsed in one pass.
+_PLAIN = re.compile(r"(?:[ \t]*[A-Za-z][ \t]*[+-]?(?:\d+\.?\d*|\.\d+))*[ \t]*")
+_WORD = re.compile(r"([A-Za-z])[ \t]*([+-]?(?:\d+\.?\d*|\.\d+))")
 
 
 def parse_block(number: int, line: str, found: list[Finding]) -> Block:
     """One line as a block; every character that is not part of one is a finding."""
+    if _PLAIN.fullmatch(line):
+        return Block(
+            number,
+            tuple(
+                Word(m[1].upper(), float(m[2]), m.start() + 1, m[1].upper() + m[2])
+                for m in _WORD.finditer(line)
+            ),
+        )
     words: list[Word] = []
     comment: list[str] = []
     i, n = 0, len(line)
@@ -244,10 +256,17 @@ def _parsed(text: str, options: CheckOptions, found: list[Finding]) -> Iterator[
 
 def blocks(text: str, options: CheckOptions | None = None) -> list[Block]:
     """The program's blocks (lines too long to be one are left out: :func:`check` says so)."""
+    return list(iter_blocks(text, options))
+
+
+def iter_blocks(text: str, options: CheckOptions | None = None) -> Iterator[Block]:
+    """:func:`blocks` one at a time (a long program is never held as blocks)."""
     chosen = options or CheckOptions()
-    if len(text) > chosen.max_bytes:
-        return []
-    return [b for b in _parsed(text, chosen, []) if b.words or b.percent]
+    if len(text) > chosen.max_bytes or text.count("\n") > chosen.max_blocks:
+        return
+    for b in _parsed(text, chosen, []):
+        if b.words or b.percent:
+            yield b
 
 
 @dataclass
@@ -419,6 +438,9 @@ def check(text: str, options: CheckOptions | None = None) -> list[Finding]:
     found: list[Finding] = []
     if len(text) > chosen.max_bytes:
         return [Finding(1, 0, f"{len(text)} characters: more than {chosen.max_bytes} to check")]
+    lines = text.count("\n")
+    if lines > chosen.max_blocks:
+        return [Finding(1, 0, f"{lines} blocks: more than {chosen.max_blocks} to check")]
     state = _State()
     percents: list[int] = []
     first_block: Block | None = None

@@ -4,6 +4,7 @@ Haas style), of the mill family."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -70,9 +71,8 @@ def check_text(text: str, name: str, options: BaseModel) -> CheckedProgram:
     problems = tuple(f.format(name) for f in found if f.error)
     if problems:
         return CheckedProgram(problems, lines=text.count("\n"))
-    blocks = gcode.blocks(text, chosen.check_options())
-    seconds = motion.program_seconds(blocks, chosen.motion())
-    return CheckedProgram((), lines=len(blocks), machining_s=seconds)
+    times = motion.block_seconds(gcode.iter_blocks(text, chosen.check_options()), chosen.motion())
+    return CheckedProgram((), lines=len(times), machining_s=math.fsum(times))
 
 
 def _check(path: Path, role: ProgramRole, options: BaseModel) -> CheckedProgram:
@@ -99,11 +99,12 @@ def _preview(text: str, name: str, options: BaseModel) -> Preview:
     from cellctl.kinds.iso_cnc.preview import render_svg
 
     chosen = _options(options)
-    blocks = gcode.blocks(text, chosen.check_options())
-    steps = motion.steps(blocks, chosen.motion())
-    if not any(s.kind in ("rapid", "feed") for s in steps):
+    machine = motion.Machine(chosen.motion())
+    steps = (machine.step(b) for b in gcode.iter_blocks(text, chosen.check_options()))
+    svg, drawn, blocks = render_svg(steps, title=name)
+    if not drawn:
         raise UsageError(f"cannot trace {Path(name).stem}: no moves")
-    return Preview(render_svg(steps, title=name), len(blocks))
+    return Preview(svg, blocks)
 
 
 def _emulated_options(scale: float) -> dict[str, float]:
@@ -127,7 +128,7 @@ class CutModel:
         out = []
         for path in programs:
             text = path.read_text(encoding="ascii")
-            blocks = gcode.blocks(text)
+            blocks = gcode.iter_blocks(text)
             framed = tape.frame(text, leader=self.options.leader, trailer=self.options.trailer)
             out.append((motion.program_seconds(blocks, self.options.motion()), len(framed)))
         return out

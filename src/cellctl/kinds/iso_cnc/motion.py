@@ -66,6 +66,8 @@ class Machine:
     plane: int = 17
     r_plane: float | None = None
     z_depth: float | None = None
+    trace: bool = True
+    """Keep each step's points (the preview); without, only its seconds (estimates)."""
 
     def _move_time(self, length: float, rate_mm_min: float) -> float:
         if length <= 0 or rate_mm_min <= 0:
@@ -145,6 +147,8 @@ class Machine:
             return Step(block.line, base + seconds, "rapid", start, (_pt(end),))
         if self.motion in ARCS:
             points, length = self._arc(block, end)
+            if not self.trace:
+                points = ()
         else:
             points, length = (_pt(end),), math.dist(self.position, end)
         self.position = end
@@ -201,6 +205,8 @@ class Machine:
         planar = r * sweep
         rise = end[c] - self.position[c]
         length = math.hypot(planar, rise)
+        if not self.trace:
+            return (), length
         pieces = max(1, min(64, int(sweep / (math.pi / 8)) + 1))
         points: list[Point] = []
         for k in range(1, pieces + 1):
@@ -224,7 +230,7 @@ def steps(blocks: Iterable[Block], model: MotionModel | None = None) -> list[Ste
 
 def block_seconds(blocks: Iterable[Block], model: MotionModel | None = None) -> list[float]:
     """Each block's seconds on ``model`` (the emulator runs the same :class:`Machine`)."""
-    machine = Machine(model or MotionModel())
+    machine = Machine(model or MotionModel(), trace=False)
     return [machine.step(b).seconds for b in blocks]
 
 

@@ -1,15 +1,16 @@
 """A G-code program's toolpath as SVG (the kind's preview hook), from the motion model's
 steps: rapids dashed, feeds solid, seen from above (X right, Y up)::
 
-    svg, blocks = render_svg(motion.steps(gcode.blocks(text)), title="O1234")
+    svg, points, blocks = render_svg(motion.steps(gcode.blocks(text)), title="O1234")
 
-A program of millions of blocks is drawn from at most :data:`MAX_POINTS` points (evenly
-thinned), so the picture stays small whatever the program.
+Steps are read one at a time and thinned as they come (every 2nd point kept, then every 4th,
+...), so a program of millions of blocks is drawn from at most :data:`MAX_POINTS` points in
+bounded memory.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable
 from xml.sax.saxutils import escape
 
 from cellctl.kinds.iso_cnc.motion import Point, Step
@@ -19,21 +20,31 @@ _SIZE = 480.0
 _PAD = 12.0
 
 
-def render_svg(steps: Sequence[Step], title: str = "") -> str:
-    """The path of ``steps`` as an SVG document."""
+def _thin(paths: list[tuple[str, list[Point]]]) -> None:
+    for _, pts in paths:
+        pts[:] = pts[:1] + pts[1:-1][1::2] + pts[-1:] if len(pts) > 2 else pts
+
+
+def render_svg(steps: Iterable[Step], title: str = "") -> tuple[str, int, int]:
+    """The path of ``steps`` as an SVG document; with the points drawn and the blocks read."""
     paths: list[tuple[str, list[Point]]] = []
-    total = sum(len(s.points) for s in steps if s.kind in ("rapid", "feed"))
-    every = max(1, total // MAX_POINTS)
-    count = 0
+    every, count, kept, blocks = 1, 0, 0, 0
     for s in steps:
+        blocks += 1
         if s.kind not in ("rapid", "feed") or not s.points:
             continue
         if not paths or paths[-1][0] != s.kind:
             paths.append((s.kind, [s.start]))
+            kept += 1
         for p in s.points:
             count += 1
             if count % every == 0 or p is s.points[-1]:
                 paths[-1][1].append(p)
+                kept += 1
+        if kept > MAX_POINTS:
+            _thin(paths)
+            every *= 2
+            kept = sum(len(pts) for _, pts in paths)
     xs = [p[0] for _, pts in paths for p in pts] or [0.0]
     ys = [p[1] for _, pts in paths for p in pts] or [0.0]
     x0, x1, y0, y1 = min(xs), max(xs), min(ys), max(ys)
@@ -56,4 +67,5 @@ def render_svg(steps: Sequence[Step], title: str = "") -> str:
             f'points="{" ".join(xy(p) for p in pts)}"/>'
         )
     out.append("</svg>")
-    return "\n".join(out) + "\n"
+    drawn = sum(len(pts) for _, pts in paths)
+    return "\n".join(out) + "\n", drawn, blocks

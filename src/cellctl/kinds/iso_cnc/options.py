@@ -1,0 +1,110 @@
+"""The iso-cnc kind's options (``[machines.NAME] options``) and what is checked with them
+before a byte goes out::
+
+    options = IsoCncOptions(dc3_tolerance=2, cs_flow=True)
+    tape = read_program(Path("O1234.nc"), options)   # UsageError: every error, line and column
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from cellctl.errors import UsageError
+from cellctl.kinds.iso_cnc import gcode, tape
+from cellctl.kinds.iso_cnc.motion import MotionModel
+
+#: The kind's default line: Fanuc's 9600 baud, ISO (7 bits, even parity), 2 stop bits.
+ISO_LINE = "9600,7E2"
+
+
+class IsoCncOptions(BaseModel):
+    """The control's options (``[machines.NAME] options``); baud, parity and stop bits are
+    the machine's ``line`` (default 9600,7E2)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
+
+    code: Literal["ISO"] = "ISO"
+    """Tape code: ISO (EIA may come later)."""
+    dc3_tolerance: int = Field(default=10, ge=0, le=1000)
+    """Characters the control accepts after its DC3 (Fanuc: 10; a CS-only control: 2)."""
+    cs_flow: bool = False
+    """Obey the control's RTS (CS) too: needs a serial port or rfc2217:// (modem lines)."""
+    leader: int = Field(default=20, ge=0, le=10000)
+    """NUL characters sent before the tape."""
+    trailer: int = Field(default=20, ge=0, le=10000)
+    """NUL characters sent after the tape."""
+    percent: bool = True
+    """Frame the tape with ``%`` (start and end of transmission)."""
+    o_digits: int = Field(default=4, ge=1, le=8)
+    """Digits of an O-number the control takes (4 on most Fanuc controls, 8 on newer)."""
+    buffer_size: int = Field(default=256, ge=16, le=1 << 20)
+    """The control's reader buffer, characters (the drip-feed model)."""
+    high_water: int | None = Field(default=None, ge=1)
+    """Where the control sends DC3 (default: buffer_size - dc3_tolerance)."""
+    low_water: int | None = Field(default=None, ge=0)
+    """Where it sends DC1 again (default: buffer_size // 2): corrects the model."""
+    margin: int = Field(default=24, ge=0, le=1000)
+    """Characters kept clear of the high-water mark in the model (its error: a device
+    server's jitter, the control's own timing)."""
+    burst: int = Field(default=4, ge=1, le=4096)
+    """Characters written at a time (what may be in flight after a DC3, with ``ahead``)."""
+    ahead: float = Field(default=2.0, ge=0, le=4096)
+    """Characters of line time a burst is written before the last one has crossed."""
+    store_cps: float = Field(default=0.0, ge=0)
+    """Characters/s the control stores during a read-in (0: as fast as the line)."""
+    rapid_mm_min: float = Field(default=10000.0, gt=0)
+    """The control's rapid traverse, mm/min (the motion model)."""
+    accel_mm_s2: float | None = Field(default=None, gt=0)
+    """The control's acceleration, mm/s² (None: moves at their rate end to end)."""
+    motion_scale: float = Field(default=1.0, gt=0)
+    """The machine runs this many times faster than its motion model (an emulated cell)."""
+    arc_tolerance_mm: float = Field(default=0.01, gt=0, le=10)
+    """Start and end radius of an arc may differ this much (the G-code check)."""
+    dc1_timeout: float = Field(default=120.0, gt=0, le=86400)
+    """Seconds to wait for the control's DC1 (the operator presses READ or CYCLE START)."""
+    stop_timeout: float = Field(default=600.0, gt=0, le=86400)
+    """Seconds a DC3 may hold the host before it gives up (a long block, a feed hold)."""
+    end_margin: float = Field(default=2.0, ge=1, le=100)
+    """A drip-feed may take this many times its modelled time ..."""
+    end_extra: float = Field(default=60.0, ge=0, le=86400)
+    """... plus this many seconds, before the driver gives up on it."""
+    ready_wait: float = Field(default=2.0, gt=0, le=600)
+    """Seconds the control may take to show ready."""
+    setup_timeout: float = Field(default=1800.0, gt=0, le=86400)
+    """Seconds a setup program may take."""
+    go_pulse: float = Field(default=0.5, gt=0, le=10)
+    """Seconds the cycle-start output stays on (a cell's GO) to start a drip-feed."""
+
+    def check_options(self) -> gcode.CheckOptions:
+        return gcode.CheckOptions(o_digits=self.o_digits, arc_tolerance_mm=self.arc_tolerance_mm)
+
+    def motion(self) -> MotionModel:
+        return MotionModel(rapid_mm_min=self.rapid_mm_min, accel_mm_s2=self.accel_mm_s2)
+
+
+def prepare(data: bytes, options: IsoCncOptions, name: str = "program") -> bytes:
+    """A program file's bytes as the tape that goes on the line; UsageError (every error of
+    the G-code check, with line and column) before a byte goes out."""
+    try:
+        text = data.decode("ascii")
+    except UnicodeDecodeError as e:
+        line = data.count(b"\n", 0, e.start) + 1
+        raise UsageError(f"{name}:{line}: byte 0x{data[e.start]:02X} is not ISO code") from None
+    found = gcode.errors(text, options.check_options())
+    if found:
+        shown = [f.format(name) for f in found[:5]]
+        more = f" (and {len(found) - 5} more)" if len(found) > 5 else ""
+        raise UsageError("; ".join(shown) + more)
+    return tape.frame(text, leader=options.leader, trailer=options.trailer, percent=options.percent)
+
+
+def read_program(path: Path, options: IsoCncOptions) -> bytes:
+    """:func:`prepare` for a file (UsageError if it cannot be read)."""
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise UsageError(f"{path}: cannot read: {e.strerror or e}") from None
+    return prepare(data, options, path.name)

@@ -56,6 +56,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from cellctl.clock import current_clock
 from cellctl.drivers.base import LinkDriver, StartOutput
 from cellctl.drivers.state import StateStore
 from cellctl.errors import DeviceError, LinkTimeout, ProtocolError
@@ -176,7 +177,7 @@ class IsoCncDriver(LinkDriver):
     def _handle(self, data: bytes) -> None:
         """Bytes from the control while the host sends: DC1, DC3 and alarm reports."""
         self._inbuf += data
-        now = asyncio.get_running_loop().time()
+        now = current_clock().monotonic()
         while self._inbuf:
             byte = self._inbuf[0]
             if byte == tape.NAK[0]:
@@ -215,7 +216,7 @@ class IsoCncDriver(LinkDriver):
 
     async def _listen(self, deadline: float, wanted: str) -> None:
         """Wait for bytes from the control until ``deadline`` (loop time), and handle them."""
-        left = deadline - asyncio.get_running_loop().time()
+        left = deadline - current_clock().monotonic()
         if left <= 0:
             raise LinkTimeout(f"{self.name}: {wanted}")
         try:
@@ -225,8 +226,8 @@ class IsoCncDriver(LinkDriver):
         self._handle(data)
 
     async def _wait_dc1(self, timeout: float, what: str) -> None:
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout
+        clock = current_clock()
+        deadline = clock.monotonic() + timeout
         self._handle(self.link.reset_input())
         while self._stopped:
             await self._listen(
@@ -242,9 +243,9 @@ class IsoCncDriver(LinkDriver):
         """Send a tape under flow control (module docstring); returns when the last byte is
         through the line. The caller waits for the control's end of the read."""
         o = self.options
-        loop = asyncio.get_running_loop()
+        clock = current_clock()
         total = len(framed)
-        began = loop.time()
+        began = clock.monotonic()
         self._stops = 0
         self._sent = 0
         self._seen_at_end = -1
@@ -253,7 +254,7 @@ class IsoCncDriver(LinkDriver):
         def report(state: str) -> None:
             if progress is None:
                 return
-            elapsed = loop.time() - began
+            elapsed = clock.monotonic() - began
             rate = self._sent / elapsed if elapsed > 0 else 0.0
             eta = (total - self._sent) / rate if rate > 0 else math.inf
             progress(TransferProgress(self._sent, total, rate, self._stops, elapsed, eta, state))
@@ -264,7 +265,7 @@ class IsoCncDriver(LinkDriver):
             await self._send_all(framed, model, phase, report)
         finally:
             self._sending = False
-        elapsed = loop.time() - began
+        elapsed = clock.monotonic() - began
         report("running" if model.drip else "done")
         return TransferReport(
             self._sent,
@@ -279,11 +280,14 @@ class IsoCncDriver(LinkDriver):
         self, framed: bytes, model: BufferModel, phase: str, report: Callable[[str], None]
     ) -> None:
         o = self.options
-        loop = asyncio.get_running_loop()
+        clock = current_clock()
         char_time = self.link.settings.char_time
         total = len(framed)
-        limit = max(o.burst, self.high_water - o.margin)
-        wire_free = loop.time()
+        # Bursts cover at least pace_s of line time, whatever the baud rate (see pace_s).
+        burst = max(o.burst, math.ceil(o.pace_s / char_time))
+        ahead = max(o.ahead, burst / 2) * char_time
+        limit = max(burst, self.high_water - o.margin)
+        wire_free = clock.monotonic()
         last_report = 0.0
         # Past the closing % (its trailer is only tape feed) a DC3 is the end of the read.
         end_at = framed.rfind(b"%") + 1 if o.percent else total - o.trailer
@@ -294,23 +298,27 @@ class IsoCncDriver(LinkDriver):
             if self._stopped:
                 self._stops += 1
                 report("stopped")
-                deadline = loop.time() + o.stop_timeout
+                deadline = clock.monotonic() + o.stop_timeout
                 while self._stopped:
                     await self._listen(
                         deadline, f"the control held the tape with DC3 for {o.stop_timeout:g} s"
                     )
                 continue
-            now = loop.time()
-            early = wire_free - o.ahead * char_time - now
+            now = clock.monotonic()
+            early = wire_free - ahead - now
             if early > 0:
-                await asyncio.sleep(early)
+                await current_clock().sleep(early)
                 continue
-            n = min(o.burst, total - self._sent)
-            if model.level(self._sent, now) + n > limit:
+            n = min(burst, total - self._sent)
+            room = limit - model.level(self._sent, now)
+            if room < n:
                 drain = model.next_drain()
-                if drain is not None:
-                    await asyncio.sleep(max(drain - now, char_time))
+                if drain is not None and room < min(n, o.burst):
+                    await current_clock().sleep(max(drain - now, char_time))
                     continue
+                # What fits now; with nothing to wait for (a block longer than the room),
+                # a small burst: the control's DC3 is the guard.
+                n = max(1, min(n, room)) if drain is not None else min(n, o.burst)
             if o.cs_flow and not await self.link.cts():
                 await self.link.wait_cts(True, timeout=o.stop_timeout)
                 continue
@@ -326,8 +334,8 @@ class IsoCncDriver(LinkDriver):
             if now - last_report >= 0.2:
                 last_report = now
                 report(phase)
-        if wire_free > loop.time():
-            await asyncio.sleep(wire_free - loop.time())
+        if wire_free > clock.monotonic():
+            await current_clock().sleep(wire_free - clock.monotonic())
 
     async def _wait_end(self, deadline: float, model: BufferModel, seen_before: int) -> None:
         """Wait for the control's DC3 that ends the read (after the closing ``%``).
@@ -335,14 +343,14 @@ class IsoCncDriver(LinkDriver):
         A DC3 heard once every byte is out ends a read-in. A drip-feed's ends the run only
         from shortly before the modelled end of its last block on: a DC3 before that is the
         buffer's (which a control lagging behind the model can still send)."""
-        loop = asyncio.get_running_loop()
-        finished = loop.time()
+        clock = current_clock()
+        finished = clock.monotonic()
         if model.drip:
             end = model.end_time()
             grace = 0.05 + 0.05 * max(0.0, end - finished)
-            while loop.time() < end - grace:
+            while clock.monotonic() < end - grace:
                 self._handle(self.link.reset_input())
-                await asyncio.sleep(min(0.05, end - grace - loop.time()))
+                await current_clock().sleep(min(0.05, end - grace - clock.monotonic()))
         while True:
             self._handle(self.link.reset_input())
             if self._dc3_seen > seen_before:
@@ -369,7 +377,7 @@ class IsoCncDriver(LinkDriver):
         self, framed: bytes, *, drip: bool, progress: Progress | None, timeout: float | None
     ) -> TransferReport:
         o = self.options
-        loop = asyncio.get_running_loop()
+        clock = current_clock()
         async with self._lock:
             state = IsoCncState.DRIP_FEEDING if drip else IsoCncState.READING
             self.alarm = None
@@ -387,14 +395,14 @@ class IsoCncDriver(LinkDriver):
                     await self.start_output.pulse(o.go_pulse)
                 what = "RMT mode and CYCLE START" if drip else "EDIT mode and READ"
                 await self._wait_dc1(timeout or o.dc1_timeout, f"is the control in {what}?")
-                began = loop.time()
+                began = clock.monotonic()
                 sent = await self._send(framed, model, "sending", progress)
                 # DC3s until the closing % was out were the buffer's
                 seen = self._seen_at_end if self._seen_at_end >= 0 else self._dc3_seen
-                left = max(0.0, model.end_time() - loop.time())
+                left = max(0.0, model.end_time() - clock.monotonic())
                 allowed = left * o.end_margin + o.end_extra + o.ready_wait
-                await self._wait_end(loop.time() + allowed, model, seen)
-                sent.elapsed_s = loop.time() - began
+                await self._wait_end(clock.monotonic() + allowed, model, seen)
+                sent.elapsed_s = clock.monotonic() - began
                 sent.stalls_modelled_s = model.idle_s * o.motion_scale
                 if progress is not None:
                     progress(
@@ -427,8 +435,8 @@ class IsoCncDriver(LinkDriver):
         max_bytes: int = 64 * 1024 * 1024,
     ) -> bytes:
         """What the control punches (PUNCH pressed): the bytes between DC2 and DC4."""
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout
+        clock = current_clock()
+        deadline = clock.monotonic() + timeout
         async with self._lock:
             self._set(IsoCncState.PUNCHING)
             try:
@@ -437,7 +445,7 @@ class IsoCncDriver(LinkDriver):
                     buf = buf[-1:] if buf[-1:] == tape.NAK else bytearray()
                     buf += await self._read_some(deadline, "no DC2: PUNCH was not pressed")
                 got = buf[start + 1 :]
-                began = loop.time()
+                began = clock.monotonic()
                 while (end := got.find(tape.DC4)) < 0:
                     if len(got) > max_bytes:
                         raise ProtocolError(f"{self.name}: punched more than {max_bytes} bytes")
@@ -448,7 +456,7 @@ class IsoCncDriver(LinkDriver):
                             self._raise_alarm(found[0], bytes(got[i : i + found[1]]))
                     got += await self._read_some(deadline, "the punch did not end (no DC4)")
                     if progress is not None:
-                        elapsed = loop.time() - began
+                        elapsed = clock.monotonic() - began
                         rate = len(got) / elapsed if elapsed > 0 else 0.0
                         progress(
                             TransferProgress(len(got), 0, rate, 0, elapsed, math.inf, "receiving")
@@ -461,7 +469,7 @@ class IsoCncDriver(LinkDriver):
                 raise
 
     async def _read_some(self, deadline: float, wanted: str) -> bytes:
-        left = deadline - asyncio.get_running_loop().time()
+        left = deadline - current_clock().monotonic()
         try:
             return await self.link.read(65536, timeout=max(left, 0.0))
         except LinkTimeout:

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from cellctl.clock import current_clock
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
 from cellctl.errors import LinkClosed, LinkError, UsageError
 from cellctl.kinds.iso_cnc import tape
@@ -176,11 +177,13 @@ class IsoCncEmulator(EmulatedDevice):
         self._stopped = False  # a DC3 is out: counting what comes after it
         self._after_dc3 = 0
         self._dc3_at = 0.0
-        self._arrived = 0.0
         self._tape = bytearray()  # what a read-in has taken so far
         self._run: DripRun | None = None
         self._machine: Machine | None = None
         self._block_ready = asyncio.Event()
+        self._free_at = 0.0  # when the block running now ends (loop time)
+        self._read_began = 0.0
+        self._tape_done = False
         self._exec_task: asyncio.Task[None] | None = None
         self._punch_task: asyncio.Task[None] | None = None
         self._punch_go = asyncio.Event()
@@ -322,15 +325,15 @@ class IsoCncEmulator(EmulatedDevice):
         if self.mode == Mode.RMT:
             run = self._new_run(0)
             self._machine = Machine(self.options.motion(), trace=False)
+            self._free_at = self._read_began = current_clock().monotonic()
+            self._tape_done = False
             self._exec_task = asyncio.ensure_future(self._execute(run))
         if "never-dc1" not in self.faults:
             self._signal(DC1, rts=True)
             if self.options.auto_operator:
                 self._read_serial += 1
                 serial, seen = self._read_serial, self.chars_read
-                asyncio.get_running_loop().call_later(
-                    _OPERATOR_PATIENCE_S, self._press_again, serial, seen
-                )
+                self._later(_OPERATOR_PATIENCE_S, self._press_again, serial, seen)
 
     def _press_again(self, serial: int, seen: int) -> None:
         """The automatic operator: nothing came since READ was pressed, press it again (its
@@ -339,9 +342,7 @@ class IsoCncEmulator(EmulatedDevice):
             return
         if self.chars_read == seen and "never-dc1" not in self.faults:
             self._signal(DC1, rts=True)
-            asyncio.get_running_loop().call_later(
-                _OPERATOR_PATIENCE_S, self._press_again, serial, seen
-            )
+            self._later(_OPERATOR_PATIENCE_S, self._press_again, serial, seen)
 
     def _new_run(self, number: int) -> DripRun:
         """A run about to start (it counts, and its hooks hear of it, at its first block)."""
@@ -369,7 +370,7 @@ class IsoCncEmulator(EmulatedDevice):
             self._spawn(line.write(code))
 
         if delay > 0:
-            asyncio.get_running_loop().call_later(delay, send)
+            self._later(delay, send)
         else:
             send()
 
@@ -398,12 +399,16 @@ class IsoCncEmulator(EmulatedDevice):
                     self._store()
                     return
                 continue
+            at = last - (n - 1 - j) * char_time
             self._buffer.append(byte)
-            self.peak_buffer = max(self.peak_buffer, len(self._buffer))
             if byte == 0x0A:
-                self._lf_at.append(last - (n - 1 - j) * char_time)
+                self._lf_at.append(at)
+            if len(self._buffer) >= self.high_water:
+                # The blocks the machine has started by now have left the buffer, even when
+                # this process got to them late: the control runs in real time.
+                self._advance(at)
+            self.peak_buffer = max(self.peak_buffer, len(self._buffer))
             if not self._stopped and len(self._buffer) >= self.high_water:
-                at = last - (n - 1 - j) * char_time
                 # Counted from the character that filled it, as a control does in real time
                 # (even when this process got to it late).
                 self._send_dc3(at)
@@ -441,47 +446,38 @@ class IsoCncEmulator(EmulatedDevice):
         self._finish_read()
 
     def _finish_read(self) -> None:
-        self._send_dc3(asyncio.get_running_loop().time())
+        self._send_dc3(current_clock().monotonic())
         self._stopped = False
         self.activity = Activity.IDLE
-        loop = asyncio.get_running_loop()
-        loop.call_later(0.05, self._auto)
+        self._later(0.05, self._auto)
 
     # -- execution -----------------------------------------------------------------------------
 
-    def _next_block(self) -> bytes | None:
-        i = self._buffer.find(b"\n")
-        if i < 0:
-            if self._buffer.rstrip(b"\x00\r") == b"%" and self._started_tape:
-                self._buffer.clear()
-                return b"%"
-            return None
-        raw = bytes(self._buffer[: i + 1])
-        del self._buffer[: i + 1]
-        self._arrived = self._lf_at.popleft() if self._lf_at else 0.0
-        if self._stopped and len(self._buffer) <= self.low_water:
-            self._stopped = False
-            self._signal(DC1, rts=True)
-        return raw
-
-    async def _execute(self, run: DripRun) -> None:
-        """Run blocks as they come; every wait for one after the first is a stall."""
-        loop = asyncio.get_running_loop()
-        began = loop.time()
-        machine = self._machine or Machine(self.options.motion(), trace=False)
-        # Each block ends a fixed time after it began (wall time), so the sleeps' own delays
-        # do not add up over a long program: the axes run on the machine's clock.
-        free_at = began
-        while self.activity == Activity.READING:
-            raw = self._next_block()
-            if raw is None:
-                self._block_ready.clear()
-                await self._block_ready.wait()
-                continue
+    def _advance(self, now: float) -> None:
+        """Start every block whose time has come by ``now`` (loop time): a block starts at
+        ``max(its LF's arrival, the previous block's end)`` and leaves the buffer then."""
+        run, machine = self._run, self._machine
+        while run is not None and machine is not None and not self._tape_done:
+            i = self._buffer.find(b"\n")
+            if i < 0:
+                if self._started_tape and self._buffer.rstrip(b"\x00\r") == b"%":
+                    self._tape_done = True  # the closing % (its trailer still coming)
+                return
+            arrived = self._lf_at[0] if self._lf_at else now
+            start = max(arrived, self._free_at) if run.blocks else arrived
+            if start > now:
+                return
+            raw = bytes(self._buffer[: i + 1])
+            del self._buffer[: i + 1]
+            if self._lf_at:
+                self._lf_at.popleft()
+            if self._stopped and len(self._buffer) <= self.low_water:
+                self._stopped = False
+                self._signal(DC1, rts=True)
             text = raw.replace(b"\x00", b"").replace(b"\r", b"").decode("latin-1")
             if "%" in text:
                 if self._started_tape:
-                    break  # the closing %
+                    self._tape_done = True  # the closing %
                 self._started_tape = True  # label skip: the rest of this line is not read
                 continue
             if not self._started_tape and not text.strip():
@@ -490,26 +486,37 @@ class IsoCncEmulator(EmulatedDevice):
             block = parse_block(run.blocks + 1, text.rstrip("\n"), [])
             if not block.words:
                 continue
-            arrived = min(self._arrived, loop.time()) or loop.time()
-            if run.blocks and arrived > free_at:
-                # The axes stopped at free_at and waited for this block: a stall.
-                run.stalls.append(
-                    Stall(
-                        (free_at - began) * self.time_scale, (arrived - free_at) * self.time_scale
-                    )
-                )
-            start = max(arrived, free_at) if run.blocks else arrived
             if not run.blocks:
                 self._started(run)
+            elif arrived > self._free_at:
+                # The axes stopped at the last block's end and waited for this one: a stall.
+                since = (self._free_at - self._read_began) * self.time_scale
+                run.stalls.append(Stall(since, (arrived - self._free_at) * self.time_scale))
             seconds = machine.step(block).seconds
             run.blocks += 1
             run.machine_s += seconds
-            free_at = start + seconds / self.time_scale
-            if free_at > loop.time():
-                await asyncio.sleep(free_at - loop.time())
+            self._free_at = start + seconds / self.time_scale
             if PROGRAM_ENDS & set(block.m_codes):
+                self._tape_done = True
+
+    async def _execute(self, run: DripRun) -> None:
+        """Run blocks as they come (the schedule :meth:`_advance` keeps); every wait for one
+        after the first is a stall."""
+        clock = current_clock()
+        while self.activity == Activity.READING and self._run is run:
+            self._advance(clock.monotonic())
+            if self._tape_done:
+                if self._free_at > clock.monotonic():
+                    await current_clock().sleep(self._free_at - clock.monotonic())
                 break
-        if self.activity == Activity.READING:
+            if self._lf_at:
+                wake = max(self._lf_at[0], self._free_at) if run.blocks else self._lf_at[0]
+                if wake > clock.monotonic():
+                    await current_clock().sleep(wake - clock.monotonic())
+                continue
+            self._block_ready.clear()
+            await self._block_ready.wait()
+        if self.activity == Activity.READING and self._run is run:
             run.done = True
             self._finish_read()
 
@@ -521,7 +528,7 @@ class IsoCncEmulator(EmulatedDevice):
             seconds = machine.step(block).seconds if block.words else 0.0
             run.blocks += 1 if block.words else 0
             run.machine_s += seconds
-            await asyncio.sleep(seconds / self.time_scale)
+            await current_clock().sleep(seconds / self.time_scale)
         run.done = True
         if self.activity == Activity.RUNNING:
             self.activity = Activity.IDLE
@@ -564,6 +571,11 @@ class IsoCncEmulator(EmulatedDevice):
         line = self._line
         if line is not None and not line.closed:
             self._spawn(line.write(alarm_report(code)))
+
+    @staticmethod
+    def _later(seconds: float, callback: Callable[..., object], *args: object) -> None:
+        clock = current_clock()
+        clock.call_at(clock.monotonic() + seconds, callback, *args)
 
     def _spawn(self, coro: Coroutine[object, object, None]) -> None:
         task = asyncio.ensure_future(coro)

@@ -53,6 +53,9 @@ class IsoCncOptions(BaseModel):
     """Characters written at a time (what may be in flight after a DC3, with ``ahead``)."""
     ahead: float = Field(default=2.0, ge=0, le=4096)
     """Characters of line time a burst is written before the last one has crossed."""
+    pace_s: float = Field(default=0.002, ge=0, le=1)
+    """Line time a burst covers at least, s (the host's own timer granularity): at 9600 baud
+    ``burst`` is more; on a line made faster (an emulated cell) bursts grow to keep it busy."""
     store_cps: float = Field(default=0.0, ge=0)
     """Characters/s the control stores during a read-in (0: as fast as the line)."""
     rapid_mm_min: float = Field(default=10000.0, gt=0)

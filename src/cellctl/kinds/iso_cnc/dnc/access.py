@@ -22,13 +22,13 @@ from __future__ import annotations
 
 import contextlib
 import os
-import time
 from collections.abc import AsyncIterator, Mapping
 from pathlib import Path
 from typing import Any
 
 from pydantic import Field
 
+from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.kinds import Condition
 from cellctl.kinds.iso_cnc.dnc.config import KIND
@@ -140,7 +140,7 @@ class DncAccess(CellAccess):
             yield line.driver
 
     def status(self) -> CellStatus:
-        now = time.time()
+        now = current_clock().now()
         elapsed = max(now - self.server.started, 1e-9)
         machines = {}
         for name, s in self.server.status().items():

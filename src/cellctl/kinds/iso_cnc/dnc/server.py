@@ -23,12 +23,12 @@ import asyncio
 import contextlib
 import enum
 import logging
-import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+from cellctl.clock import current_clock
 from cellctl.drivers.state import StateStore
 from cellctl.errors import CellctlError, LinkClosed, LinkTimeout, UsageError
 from cellctl.kinds.iso_cnc.dnc.config import DncMachine, ShopConfig
@@ -141,7 +141,7 @@ class DncLine:
     def _note(self, text: str) -> None:
         """Log ``text`` in the machine's log and keep it for the status' events."""
         self.store.log(self.name, text)
-        self.events.append((time.time(), f"{self.name}: {text}"))
+        self.events.append((current_clock().now(), f"{self.name}: {text}"))
 
     @property
     def name(self) -> str:
@@ -165,7 +165,7 @@ class DncLine:
             options=self.config.options,
             trace=self.trace,
         )
-        self._set(activity=Activity.IDLE, error="", since=time.time())
+        self._set(activity=Activity.IDLE, error="", since=current_clock().now())
 
     async def close(self) -> None:
         driver, self.driver = self.driver, None
@@ -180,7 +180,7 @@ class DncLine:
 
         def progress(p: Any) -> None:
             d = _progress_dict(p)
-            now = time.monotonic()
+            now = current_clock().monotonic()
             if now - last[0] < PROGRESS_S and d["phase"] not in ("done", "waiting", "stopped"):
                 return  # many machines at once: two figures a second are enough
             last[0] = now
@@ -222,7 +222,7 @@ class DncLine:
             buffer_stops=0,
             stall_s=0.0,
             eta_s=None,
-            since=time.time(),
+            since=current_clock().now(),
         )
         what = "drip-fed" if drip else "read in"
         try:
@@ -267,7 +267,7 @@ class DncLine:
         if self.status.activity is Activity.IDLE:
             self._set(activity=Activity.AWAITING_PUNCH)
         try:
-            async with asyncio.timeout(timeout):
+            async with current_clock().timeout(timeout):
                 return await waiter
         except TimeoutError:
             raise LinkTimeout(
@@ -281,7 +281,7 @@ class DncLine:
 
     def take_punch(self, data: bytes) -> list[dict[str, Any]]:
         """Split a punched tape into programs: answer a request, keep the others."""
-        now = time.time()
+        now = current_clock().now()
         done: list[dict[str, Any]] = []
         for program in split_programs(unframe(data)):
             raw = program.text.encode("latin-1", "replace")
@@ -314,7 +314,7 @@ class DncLine:
             self._note(f"request {request} refused: {e}")
             self._set(last=f"request {request} refused", error=str(e))
             return {"request": str(request), "refused": str(e)}
-        self.pending, self.pending_since = request, time.time()
+        self.pending, self.pending_since = request, current_clock().now()
         message = f"request: {request} ({path.name}) on the control's next read"
         self._note(message)
         self._set(activity=Activity.WAITING, pending=str(request), last=message, error="")
@@ -325,7 +325,7 @@ class DncLine:
         :attr:`turn`); a request older than :data:`REQUEST_WAIT_S` lapses."""
         request = self.pending
         assert request is not None
-        if time.time() - self.pending_since > REQUEST_WAIT_S:
+        if current_clock().now() - self.pending_since > REQUEST_WAIT_S:
             self.pending = None
             self._note(f"request {request} lapsed: the control did not read")
             self._set(activity=Activity.IDLE, pending="")
@@ -356,7 +356,7 @@ class DncLine:
                     await self.open()
                 async with self.turn:
                     await self._look()
-                await asyncio.sleep(LISTEN_S)
+                await current_clock().sleep(LISTEN_S)
             except asyncio.CancelledError:
                 raise
             except LinkClosed as e:
@@ -388,7 +388,7 @@ class DncLine:
             with contextlib.suppress(CellctlError):
                 await self.close()
             self._set(activity=Activity.OFFLINE, error=str(e))
-            await asyncio.sleep(REOPEN_S)
+            await current_clock().sleep(REOPEN_S)
 
 
 def _number(data: bytes) -> int | None:
@@ -404,7 +404,7 @@ class DncServer:
         self.store = ShopStore(config.root)
         self.state = StateStore(config.root)
         self.listeners: list[Callable[[], None]] = []
-        self.started = time.time()
+        self.started = current_clock().now()
         self.lines = {
             name: DncLine(m, self.store, self.state, trace=trace, changed=self._changed)
             for name, m in config.machines.items()

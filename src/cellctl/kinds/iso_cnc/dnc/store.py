@@ -33,6 +33,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 
 PROGRAMS = "programs"
@@ -165,7 +166,7 @@ class ShopStore:
 
     def _keep(self, name: str, sub: str, number: int, data: bytes, now: float | None) -> Kept:
         folder = self.machine(name) / sub
-        stamp = _stamp(time.time() if now is None else now)
+        stamp = _stamp(current_clock().now() if now is None else now)
         for serial in range(1, MAX_SAME_SECOND + 1):
             suffix = "" if serial == 1 else f"_{serial}"
             path = folder / f"O{number:04d}_{stamp}{suffix}.nc"
@@ -202,7 +203,9 @@ class ShopStore:
 
     def log(self, name: str, text: str, now: float | None = None) -> None:
         """Add a line to ``SHOP/<name>/log``: UTC time, then ``text`` (one line)."""
-        when = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(time.time() if now is None else now))
+        when = time.strftime(
+            "%Y-%m-%dT%H:%M:%SZ", time.gmtime(current_clock().now() if now is None else now)
+        )
         line = f"{when} {' '.join(text.split())}\n"
         path = self.machine(name) / LOG
         try:

@@ -202,3 +202,38 @@ def test_a_summary_keeps_whole_clauses_outside_parentheses() -> None:
         "Emergency stop: stop the robot, halt the mills, raise an alarm.", 50
     ) == ("Emergency stop: stop the robot, halt the mills")
     assert clause_summary("Short and whole.", 60) == "Short and whole"
+
+
+def test_every_acting_api_method_is_in_the_console() -> None:
+    """The console column of the parity test: the console's declared actions against the
+    API's method table, and each declared place against the menus the console shows."""
+    from cellctl.ui.console.actions import console_actions
+    from cellctl.ui.console.app import SERVICE_LABELS
+    from cellctl.ui.console.cellmenu import CellActions
+
+    declared = console_actions()
+    missing = [m.name for m in METHODS.values() if m.acts and m.name not in declared]
+    assert not missing, f"API actions the console lacks: {missing}"
+    unknown = [m for m in declared if m not in METHODS]
+    assert not unknown, f"console actions the API does not have: {unknown}"
+
+    class Host:  # what the CELL menu reads of a console attached to a controller
+        def __init__(self, paused: bool) -> None:
+            self.directory = Path(".")
+            self.mode = "attached"
+            self.snapshot = {"cell": {"paused": paused}}
+
+    labels = {
+        e.label
+        for paused in (False, True)
+        for e in CellActions(Host(paused)).entries()  # type: ignore[arg-type]
+    }
+    labels |= set(SERVICE_LABELS.values())  # a machine menu's s, by its state
+    # A machine function's place is its kind's menu, the list the machine menus are built of.
+    machine = {(fn.family.upper(), fn.label) for k in registry.kinds() for fn in kind_menu(k.name)}
+    misplaced = [
+        m
+        for m, place in declared.items()
+        if not (place[0] in ("CELL", "MACHINE") and place[1] in labels) and place not in machine
+    ]
+    assert not misplaced, f"console actions declared where no menu entry is: {misplaced}"

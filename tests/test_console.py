@@ -133,8 +133,10 @@ async def test_standalone_robot_menu_every_function(rig: CellRig) -> None:
     app = ConsoleApp(rig.directory, client, traffic_period=0.1)
     async with app.run_test(size=SIZE) as pilot:
         shown = await wait_text(pilot, "standalone: links held by this console")
-        for entry in ("1. ROBOT", "2. NC MACHINE #1", "3. NC MACHINE #2", "4. CELL", "5. EXIT"):
+        # The source's main menu numbers; the cell's own menu has a letter.
+        for entry in ("1. ROBOT", "2. NC MACHINE #1", "3. NC MACHINE #2", "4. EXIT", "c. CELL"):
             assert entry in shown
+        assert "5." not in shown
         await pilot.press("1")
         shown = await wait_text(pilot, "ROBOT (robot)", "7. EXIT")
         for entry in ("1. INITIALIZE", "2. DOWNLOAD", "3. GO", "4. STATUS", "5. STOP"):
@@ -265,7 +267,7 @@ async def test_standalone_cell_menu(rig: CellRig) -> None:
     app = ConsoleApp(rig.directory, standalone_client(rig), traffic_period=0.1)
     async with app.run_test(size=SIZE) as pilot:
         await wait_text(pilot, "MAIN MENU")
-        await pilot.press("down", "down", "down", "enter")  # the arrows work as the numbers
+        await pilot.press("down", "down", "down", "down", "enter")  # the arrows work as keys
         shown = await wait_text(pilot, "1. ORDERS", "8. EXIT")
         assert "6. PAUSE (unavailable)" in shown
         assert "7. EMERGENCY STOP (unavailable)" in shown
@@ -293,7 +295,7 @@ async def test_standalone_cell_menu(rig: CellRig) -> None:
         await wait_text(pilot, "no open alarm")
         await pilot.press("8")
         await wait_text(pilot, "MAIN MENU")
-        await pilot.press("5")
+        await pilot.press("4")
     assert app.return_code == 0
 
 
@@ -304,7 +306,7 @@ async def test_attached_cell_menu(rig: CellRig, attached: CellClient) -> None:
     app = ConsoleApp(rig.directory, attached, traffic_period=0.1)
     async with app.run_test(size=SIZE) as pilot:
         await wait_text(pilot, "attached to cellctl run (pid")
-        await pilot.press("4")
+        await pilot.press("c")
         await wait_text(pilot, "6. PAUSE", "7. EMERGENCY STOP")
         await pilot.press("6")
         await wait_text(pilot, "paused: steps in flight finish", "6. RESUME", "CELL PAUSED")
@@ -363,14 +365,16 @@ async def test_attached_cell_menu(rig: CellRig, attached: CellClient) -> None:
         await wait_text(pilot, "resumed", "6. PAUSE")
         await rig.wait_for(lambda: rig.order_state("C1") == "done", "C1 done", timeout=60)
         await wait_text(pilot, "C1 wax-robot-base x2 p0 done")
-        # The emergency stop asks first.
+        # The emergency stop asks first, with the reason (Escape: no stop).
         await pilot.press("7")
-        await wait_text(pilot, "EMERGENCY STOP: stop the robot")
-        await pilot.press("n")
+        await wait_text(pilot, "EMERGENCY STOP: stop the robot", "Reason:")
+        await pilot.press("escape")
         await wait_text(pilot, "no emergency stop")
         await pilot.press("7")
-        await pilot.press("y")
-        await wait_text(pilot, "emergency stop: operator console")
+        await wait_text(pilot, "Reason:")
+        await type_text(pilot, "smoke at cnc2")  # replaces the offered reason
+        await pilot.press("enter")
+        await wait_text(pilot, "emergency stop: smoke at cnc2")
         assert rig.controller.paused
         await pilot.press("escape", "q")
     assert app.return_code == 0
@@ -390,11 +394,13 @@ async def test_attached_cnc2_by_hand_while_the_cell_works(
         await pilot.press("n")
         await wait_text(pilot, "not run: it stays in automatic service")
         await pilot.press("s")
-        await wait_text(pilot, "Take cnc2 out of automatic service?")
-        await pilot.press("y")
+        await wait_text(pilot, "Take cnc2 out of automatic service?", "Reason:")
+        await type_text(pilot, "spindle noise")
+        await pilot.press("enter")
         await wait_text(pilot, "cnc2 out of automatic service", "s. RETURN TO SERVICE")
         # The board shows each machine's condition (the status' field), cnc2's reason below.
-        await wait_text(pilot, "cnc2   OUT    ", "operator: console", "cnc1   idle   ")
+        await wait_text(pilot, "cnc2   OUT    ", "taken out by the operator", "cnc1   idle   ")
+        assert rig.journal.machines_out_of_service()["cnc2"].endswith("spindle noise")
         rig.post("wax-robot-base", 1, "M1")
         await rig.wait_for(
             lambda: any(s.machine == "cnc1" and s.state == "finished" for s in rig.journal.steps()),

@@ -8,6 +8,7 @@ A missing tmux fails the test with a clear message (``make test`` installs it).
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -49,9 +50,11 @@ class Tmux:
             timeout=10,
         )
 
-    def start(self, command: list[str], env: dict[str, str]) -> None:
+    def start(
+        self, command: list[str], env: dict[str, str], width: int = 80, height: int = 24
+    ) -> None:
         self.run(
-            "new-session", "-d", "-s", self.session, "-x", "80", "-y", "24",
+            "new-session", "-d", "-s", self.session, "-x", str(width), "-y", str(height),
             *[f"-e{k}={v}" for k, v in env.items()],
             " ".join(command),
         )  # fmt: skip
@@ -73,6 +76,23 @@ class Tmux:
 
     def keys(self, *keys: str) -> None:
         self.run("send-keys", "-t", self.session, *keys)
+
+    def cursor_row(self) -> int:
+        """The terminal's cursor row (a focused input puts the cursor in its field)."""
+        result = self.run("display-message", "-p", "-t", self.session, "#{cursor_y}", check=False)
+        return int(result.stdout.strip() or -1)
+
+    def focus_row(self, text: str) -> None:
+        """Tab until the cursor is on the screen's row that shows ``text`` (a field's label)."""
+        row = next(i for i, line in enumerate(self.screen().splitlines()) if text in line)
+        for _ in range(3):  # a Tab the application has not taken yet is sent once more
+            self.keys("Tab")
+            try:
+                wait_until(lambda: self.cursor_row() == row, f"the cursor in {text}", 5.0)
+                return
+            except AssertionError:
+                continue
+        raise AssertionError(f"Tab did not reach {text}:\n{self.screen()}")
 
     def pane_dead(self) -> bool:
         result = self.run("display-message", "-p", "-t", self.session, "#{pane_dead}", check=False)
@@ -124,8 +144,14 @@ def test_console_in_a_terminal_attached_to_a_running_cell(tmux: Tmux, tmp_path: 
         )
         wait_until(lambda: (cell / "api.sock").exists(), "the controller's API socket")
         tmux.start([CELLCTL, "--cell", str(cell), "console"], {"TERM": "xterm-256color"})
-        shown = tmux.wait_for("MAIN MENU", "attached to cellctl run (pid", "5. EXIT")
+        # The source's main menu: 1 ROBOT, 2 NC #1, 3 NC #2, 4 EXIT; the cell on a letter.
+        shown = tmux.wait_for("MAIN MENU", "attached to cellctl run (pid", "4. EXIT", "c. CELL")
         assert "1. ROBOT (robot)" in shown and "3. NC MACHINE #2 (cnc2)" in shown
+        menu = [line[:36].strip() for line in shown.splitlines()[2:14]]  # the menu column
+        assert [m for m in menu if m] == [
+            "1. ROBOT (robot)", "2. NC MACHINE #1 (cnc1)", "3. NC MACHINE #2 (cnc2)", "4. EXIT",
+            "c. CELL (orders, parts, alarms)",
+        ], shown  # fmt: skip
         tmux.keys("1")
         tmux.wait_for("ROBOT (robot)", "7. EXIT", "s. OUT OF SERVICE")
         tmux.keys("4")  # STATUS: an observation, allowed in automatic service
@@ -138,4 +164,107 @@ def test_console_in_a_terminal_attached_to_a_running_cell(tmux: Tmux, tmp_path: 
     finally:
         if controller is not None:
             stop(controller)
+        stop(emulator)
+
+
+def test_console_in_a_terminal_a_refused_value_is_replaced_by_what_is_typed_next(
+    tmux: Tmux, tmp_path: Path
+) -> None:
+    """Standalone (no controller): the robot's DOWNLOAD refuses partition 6; what the
+    operator types next replaces the field's text ("4", not "64"), and the .aml source the
+    picker offers is compiled on the way."""
+    cell = tmp_path / "cell"
+    env = {**os.environ, "NO_COLOR": "1"}
+    emulator = subprocess.Popen(
+        [CELLCTL, "--cell", str(cell), "emulate", "cell", "--time-scale", "100"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env=env,
+    )
+    try:
+        wait_until(lambda: (cell / "cell.toml").exists(), "the emulated cell's cell.toml")
+        tmux.start([CELLCTL, "--cell", str(cell), "console"], {"TERM": "xterm-256color"})
+        tmux.wait_for("MAIN MENU", "standalone: links held by this console", "4. EXIT")
+        tmux.keys("1")
+        tmux.wait_for("ROBOT (robot)", "7. EXIT")
+        tmux.keys("1")
+        tmux.wait_for("robot: INITIALIZE: Initializing was correct")
+        tmux.keys("2")
+        tmux.wait_for("Partition (1-5):", "robot")  # the picker shows the robot/ folder
+        tmux.keys("6")
+        tmux.wait_for("Partition (1-5):      6")
+        tmux.focus_row("Program file:")
+        tmux.keys("-l", "robot/cnc1_to_cnc2.aml")
+        tmux.wait_for("Program file:         robot/cnc1_to_cnc2.aml")
+        tmux.keys("Enter")
+        tmux.wait_for("partition must be 1 to 5, not 6")
+        tmux.keys("4")  # replaces the refused 6 (the cursor was in the program field)
+        tmux.wait_for("Partition (1-5):      4 ")
+        tmux.keys("Enter")
+        tmux.wait_for("robot: DOWNLOAD: Download was correct")
+        tmux.keys("4")
+        tmux.wait_for("robot: STATUS: robot state", "4 Full (CNC1TOCN)")
+        tmux.keys("q")
+        wait_until(tmux.pane_dead, "the console to quit")
+    finally:
+        stop(emulator)
+
+
+def cellctl(cell: Path, *args: str) -> str:
+    """A ``cellctl`` command on ``cell``; its output (it must succeed)."""
+    done = subprocess.run(
+        [CELLCTL, "--cell", str(cell), *args], capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 0, done.stderr
+    return done.stdout
+
+
+def event_rows(screen: str) -> int:
+    """The rows of the live view's events pane (each starts with its HH:MM:SS)."""
+    return len(re.findall(r"^│ \d\d:\d\d:\d\d ", screen, re.MULTILINE))
+
+
+def test_run_live_view_in_a_terminal(tmux: Tmux, tmp_path: Path) -> None:
+    """``cellctl run``'s live view: a header (cell, time scale, how to stop), a PAUSED and
+    an EMERGENCY STOP banner, a machine's out-of-service reason, and an events pane that
+    grows with the terminal."""
+    cell = tmp_path / "cell"
+    env = {**os.environ, "NO_COLOR": "1"}
+    emulator = subprocess.Popen(
+        [CELLCTL, "--cell", str(cell), "emulate", "cell", "--time-scale", "100"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env=env,
+    )
+    try:
+        wait_until(lambda: (cell / "cell.toml").exists(), "the emulated cell's cell.toml")
+        # The terminal's size, not one the environment fixes (COLUMNS, LINES).
+        command = ["env", "-u", "COLUMNS", "-u", "LINES", CELLCTL, "--cell", str(cell), "run"]
+        tmux.start(command, {"TERM": "xterm-256color"}, 100, 30)
+        tmux.wait_for("cellctl run: cell", "time scale 100 (emulated cell)", "Ctrl-C stops")
+        wait_until(lambda: (cell / "api.sock").exists(), "the controller's API socket")
+        cellctl(cell, "pause")
+        tmux.wait_for("PAUSED: no new step starts")
+        cellctl(cell, "machine", "cnc2", "out", "--reason", "noise")
+        tmux.wait_for("│ cnc2 ", "OUT: taken out", "noise")
+        cellctl(cell, "machine", "cnc1", "out", "--reason", "tool change")
+        for _ in range(4):  # fifteen events by now: more than a 30-row terminal shows
+            cellctl(cell, "resume")
+            cellctl(cell, "pause")
+        # 30 rows: the events pane has the rows the rest leaves.
+        shown = tmux.wait_for("paused by the operator", "cellctl run: cell")
+        small = event_rows(shown)
+        assert small >= 1, shown
+        # A taller terminal: the events pane takes the room.
+        tmux.run("resize-window", "-t", tmux.session, "-x", "100", "-y", "60")
+        grown = lambda: event_rows(tmux.screen()) > max(small, 6)  # noqa: E731
+        try:
+            wait_until(grown, "more events on a taller screen")
+        except AssertionError:
+            raise AssertionError(f"no more events on a taller screen:\n{tmux.screen()}") from None
+        cellctl(cell, "estop", "smoke at cnc1")
+        tmux.wait_for("EMERGENCY STOP: ", "smoke at cnc1", "cellctl resume")
+        tmux.keys("C-c")
+        wait_until(tmux.pane_dead, "cellctl run to stop on Ctrl-C")
+    finally:
         stop(emulator)

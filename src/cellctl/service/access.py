@@ -358,6 +358,22 @@ class LocalCell(CellAccess):
             events=[(e["time"], e["text"]) for e in self.events],
         )
 
+    async def refresh(self) -> None:
+        """Look again at each machine that waits for its operator (a mill whose setup went
+        out waits for NEXT), when its link is free: its state moves on without a call."""
+        for name, driver in list(self._drivers.items()):
+            host = getattr(driver, "host_status", None)
+            lock = self._locks.get(name)
+            if host is None or lock is None or lock.locked():
+                continue
+            if not getattr(host(), "awaiting_operator", False):
+                continue
+            async with lock:
+                with contextlib.suppress(CellctlError, OSError):
+                    await driver.status()
+                self.states[name] = _state_of(driver)
+                self.conditions[name] = _condition_of(driver)
+
     def traffic(self, name: str, limit: int) -> list[dict[str, Any]]:
         if name not in self.refs:
             raise UsageError(f"unknown machine {name!r} (known: {', '.join(self.refs)})")
@@ -422,7 +438,11 @@ def _host(driver: Any) -> tuple[str, Condition]:
     if status is None:
         return "connected", Condition.NOT_READY
     shown = status()
-    words = getattr(shown, "text", None) or getattr(shown, "state_text", "connected")
+    words = (
+        getattr(shown, "host_text", None)
+        or getattr(shown, "text", None)
+        or getattr(shown, "state_text", "connected")
+    )
     said = getattr(shown, "condition", None)
     if isinstance(said, Condition):
         return str(words), said

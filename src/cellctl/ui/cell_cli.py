@@ -12,9 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import click
-from rich.console import Group
 from rich.live import Live
-from rich.table import Table
 
 from cellctl.cell.config import CellConfig, check_cell, load_cell
 from cellctl.cell.controller import CellController, ControllerOptions, Event
@@ -30,6 +28,7 @@ from cellctl.service.server import ApiServer, api_limits
 from cellctl.ui.common import cell_dir, cell_given, console, err_console, run, until_stopped
 from cellctl.ui.dashboard.command import serve_dashboard_in
 from cellctl.ui.dashboard.routes import dashboard_routes
+from cellctl.ui.live_view import LiveView
 
 if TYPE_CHECKING:
     from cellctl.factory.opcua import OpcuaServer
@@ -56,35 +55,6 @@ def check(ctx: click.Context) -> None:
         f"{directory / 'cell.toml'}: ok: robot {config.robot.name}, mills {mills}, "
         f"{len(config.robot_programs)} robot programs, part types {', '.join(config.parts)}"
     )
-
-
-def live_view(controller: CellController) -> Group:
-    """The live view: orders, machines and their steps, alarms, recent events."""
-    orders = Table(title="orders", expand=True)
-    for col in ("order", "part", "qty", "state", "done", "held"):
-        orders.add_column(col)
-    for o in controller.mailbox.orders()[:12]:
-        parts = controller.journal.parts(order_id=o.id)
-        done = sum(p.status == "done" for p in parts)
-        held = sum(p.status == "held" for p in parts)
-        orders.add_row(o.id, o.part_type, str(o.qty), o.state, str(done), str(held))
-    machines = Table(title="machines", expand=True)
-    for col in ("machine", "state", "current step", "service"):
-        machines.add_column(col)
-    for view in controller.machines.values():
-        service = "in service" if view.in_service else "[red]OUT OF SERVICE[/red]"
-        machines.add_row(view.name, view.state, view.step, service)
-    alarms = Table(title="active alarms", expand=True)
-    for col in ("id", "machine", "alarm"):
-        alarms.add_column(col)
-    for a in controller.journal.active_alarms()[-6:]:
-        alarms.add_row(str(a.id), a.machine, a.text)
-    events = Table(title="events", expand=True, show_header=False)
-    events.add_column("time", width=10)
-    events.add_column("event")
-    for e in controller.events[-6:]:
-        events.add_row(time.strftime("%H:%M:%S", time.localtime(e.time)), e.text)
-    return Group(orders, machines, alarms, events)
 
 
 async def run_controller(
@@ -155,12 +125,13 @@ async def _run_owned(
             bridge_task = asyncio.create_task(bridge.run())
             bridge_task.add_done_callback(lambda t: _bridge_ended(t, controller))
         if live:
-            with Live(live_view(controller), console=console, refresh_per_second=4) as screen:
+            view = LiveView(controller, directory)
+            with Live(view.render(console), console=console, refresh_per_second=4) as screen:
                 task = asyncio.create_task(controller.run(stop, until_idle=until_idle))
                 while not task.done():
-                    screen.update(live_view(controller))
+                    screen.update(view.render(console))
                     await asyncio.wait({task}, timeout=0.25)
-                screen.update(live_view(controller))
+                screen.update(view.render(console))
                 await task
         else:
             await controller.run(stop, until_idle=until_idle)

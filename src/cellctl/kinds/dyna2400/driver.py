@@ -174,6 +174,15 @@ class MillStatus:
         return MILL_STATES.get(self.state, f"state {self.state}")
 
     @property
+    def host_text(self) -> str:
+        """The state as the host knows it without a byte sent: after a successful INITIALIZE
+        the mill waits for its operator (state 1 until NEXT), which is said so, not as the
+        "Uninitialized" of a mill never set up."""
+        if self.awaiting_operator:
+            return f"{INITIALIZE_RESULTS[0]}: {REFERENCE_ZERO_NOT_SET}, press NEXT"
+        return self.state_text
+
+    @property
     def shown(self) -> str:
         """The state in the machine's words, with its special condition."""
         return self.state_text + (f", {self.condition}" if self.condition else "")

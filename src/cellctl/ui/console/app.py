@@ -1,9 +1,10 @@
 """``cellctl console``: the source's menu program on a live screen.
 
-Three levels as in the source: the main menu (one entry per machine, then the cell, then
-EXIT), a machine's menu (the source's functions by number, the tool-kit's extras by letter,
-the service toggle on ``s``) and the parameter dialogs. The board (machines, alarms,
-orders), the last result and the selected machine's traffic stay on screen, updated live::
+Three levels as in the source: the main menu (one entry per machine, then EXIT, numbered as
+the source numbers them; the cell's own menu on ``c``), a machine's menu (the source's
+functions by number, the tool-kit's extras by letter, the service toggle on ``s``) and the
+parameter dialogs. The board (machines, alarms, orders), the last result and the selected
+machine's traffic (the operator's own command first) stay on screen, updated live::
 
     app = ConsoleApp(Path("cell"), client)   # client from open_console_cell, or None
     await app.run_async()                    # the app opens the cell itself when None
@@ -27,13 +28,17 @@ from textual.containers import Horizontal
 from textual.screen import ModalScreen, Screen
 from textual.widgets import Footer, OptionList, Static
 from textual.widgets.option_list import Option
+from textual.worker import Worker
 
-from cellctl.errors import CellctlError
+from cellctl.clock import current_clock
+from cellctl.errors import CellctlError, UsageError
 from cellctl.service.client import CellClient, RemoteCell
 from cellctl.service.functions import MachineFunction, menu
+from cellctl.service.methods import METHODS
 from cellctl.service.status import StepInfo, StepKind, apply_update_json
+from cellctl.ui.console.actions import console_actions
 from cellctl.ui.console.cellmenu import CellActions
-from cellctl.ui.console.dialogs import ConfirmDialog, Dialog, ParamsDialog
+from cellctl.ui.console.dialogs import ConfirmDialog, Dialog, FormDialog, ParamsDialog
 from cellctl.ui.console.entry import Action, Entry
 from cellctl.ui.console.session import (
     ConsoleMachine,
@@ -53,6 +58,18 @@ DIALOG_FIELDS = ("partition", "program", "force")
 #: Progress fields of the functions' progress dicts: (done, total).
 PROGRESS_FIELDS = (("records", "records_total"), ("lines", "lines_total"))
 
+#: Every acting API method the console offers (see :mod:`cellctl.ui.console.actions`).
+CONSOLE_ACTIONS = console_actions()
+#: The longest reason the console takes (an out-of-service or emergency stop's): the API's.
+REASON_LENGTH: int = next(
+    m.max_length
+    for m in METHODS["cell.estop"].params.model_fields["reason"].metadata
+    if hasattr(m, "max_length")
+)
+#: A machine menu's ``s`` entry: taking it out of service (False) or back (True).
+SERVICE_LABELS = {False: "OUT OF SERVICE", True: "RETURN TO SERVICE"}
+#: The main menu's key of the CELL menu (the source's numbers are the machines', then EXIT).
+CELL_KEY = "c"
 #: How the menus show what needs a controller when none runs.
 UNAVAILABLE = "unavailable"
 NO_CONTROLLER = "no controller runs on this cell (start `cellctl run` for that)"
@@ -97,6 +114,9 @@ class ConsoleApp(App[None]):
         self.entries: list[Entry] = []
         self.cell_actions = CellActions(self)
         self._traffic_busy = False
+        #: Per machine, the operator's last command: when it was given, then its first row
+        #: sent (the traffic pane shows it first).
+        self.commands: dict[str, float | dict[str, Any]] = {}
         self._closed = False
         self.startup_error: CellctlError | None = None
 
@@ -177,17 +197,36 @@ class ConsoleApp(App[None]):
         if isinstance(self.client, RemoteCell) and self.client.closed.is_set():
             self._show_snapshot()  # the header says so
             return
-        if self._traffic_busy or self.client is None or not self.selected:
+        if self._traffic_busy or self._closed or self.client is None or not self.selected:
             return
         self._traffic_busy = True
-        self.run_worker(self._traffic(self.selected), group="traffic", exit_on_error=False)
+        # The method, not a coroutine: none is made (and left unawaited) if the app exits
+        # first. (The annotation tells mypy the worker's result type.)
+        _worker: Worker[None] = self.run_worker(
+            self._traffic_of_selected, group="traffic", exit_on_error=False
+        )
+
+    async def _traffic_of_selected(self) -> None:
+        await self._traffic(self.selected)
 
     async def _traffic(self, name: str) -> None:
         pane = self.query_one(TrafficPane)
         try:
             assert self.client is not None
-            rows = await self.client.call("traffic.tail", {"machine": name, "limit": 4})
-            pane.show(name, rows)
+            mark = self.commands.get(name)
+            if mark is not None and isinstance(mark, float):
+                # The first bytes sent since the operator's command: looked for once, then
+                # kept at the top of the pane however many rows its answer takes.
+                rows = await self.client.call("traffic.tail", {"machine": name, "limit": 2000})
+                sent = [r for r in rows if r.get("dir") == ">>" and r.get("time", 0) >= mark]
+                if sent:
+                    self.commands[name] = sent[0]
+            own = self.commands.get(name)
+            command = own if isinstance(own, dict) else None
+            rows = await self.client.call(
+                "traffic.tail", {"machine": name, "limit": 3 if command else 4}
+            )
+            pane.show(name, [r for r in rows if r != command], command)
         except CellctlError as e:
             pane.border_title = f"traffic: {name}"
             pane.update(Text(str(e)))
@@ -201,9 +240,9 @@ class ConsoleApp(App[None]):
             Entry(str(i), f"{m.title} ({m.name})", self._open(m.name))
             for i, m in enumerate(self.machines, start=1)
         ]
-        n = len(entries)
-        entries.append(Entry(str(n + 1), "CELL (orders, parts, alarms)", self._open("cell")))
-        entries.append(Entry(str(n + 2), "EXIT", self._exit_action))
+        # The source's numbers: the machines, then EXIT. The cell has a letter of its own.
+        entries.append(Entry(str(len(entries) + 1), "EXIT", self._exit_action))
+        entries.append(Entry(CELL_KEY, "CELL (orders, parts, alarms)", self._open("cell")))
         return entries
 
     def machine_entries(self, machine: ConsoleMachine) -> list[Entry]:
@@ -216,10 +255,9 @@ class ConsoleApp(App[None]):
         last = max(fn.menu or 0 for fn in functions) + 1
         entries.insert(last - 1, Entry(str(last), "EXIT", self._back_action))
         if self.mode == "attached":
-            if self.in_service(machine.name):
-                entries.append(Entry("s", "OUT OF SERVICE", self._service(machine.name, False)))
-            else:
-                entries.append(Entry("s", "RETURN TO SERVICE", self._service(machine.name, True)))
+            back = not self.in_service(machine.name)
+            label = SERVICE_LABELS[back]
+            entries.append(Entry("s", label, self._service(machine.name, back)))
         else:
             entries.append(Entry("s", "SERVICE", None, UNAVAILABLE))
         return entries
@@ -288,7 +326,7 @@ class ConsoleApp(App[None]):
             return
         key = event.character
         if key == "0" and self.level == "main":
-            key = self.entries[-1].key  # 0 also leaves, as in the source
+            key = str(len(self.machines) + 1)  # 0 also leaves, as in the source
         for entry in self.entries:
             if entry.key == key:
                 event.stop()
@@ -304,7 +342,7 @@ class ConsoleApp(App[None]):
     @on(OptionList.OptionHighlighted, "#menu")
     def _highlighted(self, event: OptionList.OptionHighlighted) -> None:
         # In the main menu, the highlighted machine's traffic is shown.
-        if self.level == "main" and event.option.id is not None:
+        if self.level == "main" and event.option.id is not None and event.option.id.isdigit():
             index = int(event.option.id) - 1
             if 0 <= index < len(self.machines):
                 self.selected = self.machines[index].name
@@ -330,9 +368,26 @@ class ConsoleApp(App[None]):
         self.query_one(ResultPane).say(lines, style)
 
     async def call(self, method: str, params: dict[str, Any]) -> Any:
-        """A cell-level call; its result (a CellctlError is shown by the caller's guard)."""
+        """A cell-level call; its result (a CellctlError is shown by the caller's guard).
+        An acting method must be declared in :data:`CONSOLE_ACTIONS` (where it is)."""
         assert self.client is not None
+        declared = method in CONSOLE_ACTIONS or not METHODS[method].acts
+        assert declared, f"{method}: an action of the console missing in CONSOLE_ACTIONS"
         return await self.client.call(method, params)
+
+    async def ask_reason(self, question: str, default: str) -> str | None:
+        """``question`` with a reason to give (``default`` offered, selected); None: Escape."""
+
+        def check(raw: dict[str, str]) -> dict[str, Any]:
+            reason = raw["reason"].strip()
+            if not reason:
+                raise UsageError("give a reason (it goes into the journal and the alarm)")
+            if len(reason) > REASON_LENGTH:
+                raise UsageError(f"reason: at most {REASON_LENGTH} characters")
+            return {"reason": reason}
+
+        answer = await self.ask(FormDialog(question, [("reason", "Reason:", default)], check))
+        return None if answer is None else str(answer["reason"])
 
     async def ask(self, dialog: Dialog[T]) -> T | None:
         """Show ``dialog`` and wait for its answer (None: cancelled); from a worker only."""
@@ -344,19 +399,24 @@ class ConsoleApp(App[None]):
 
     def _service(self, name: str, back: bool) -> Action:
         async def action() -> None:
+            params: dict[str, Any] = {"machine": name}
             if back:
                 question = f"Return {name} to automatic service? (initialized first if needed)"
                 method = "machines.return_to_service"
+                if not await self.confirm(question):
+                    self.say([f"{name}: service unchanged"])
+                    return
             else:
                 question = (
                     f"Take {name} out of automatic service? No new work goes to it (its step "
-                    "in flight finishes first); manual functions become possible."
+                    "in flight finishes first); manual functions become possible. Why?"
                 )
                 method = "machines.out_of_service"
-            if not await self.confirm(question):
-                self.say([f"{name}: service unchanged"])
-                return
-            params = {"machine": name} if back else {"machine": name, "reason": "console"}
+                reason = await self.ask_reason(question, "maintenance")
+                if reason is None:
+                    self.say([f"{name}: service unchanged"])
+                    return
+                params["reason"] = reason
             self.say([f"{name}: ..."])
             result = await self.call(method, params)
             self.say([result["message"]], "green")
@@ -416,12 +476,14 @@ class ConsoleApp(App[None]):
                 self.say([f"{machine.name}: {fn.label} not run: it stays in automatic service"])
                 return
             out = await self.call(
-                "machines.out_of_service", {"machine": machine.name, "reason": "console"}
+                "machines.out_of_service",
+                {"machine": machine.name, "reason": f"{fn.label} by hand at the console"},
             )
             self.say([out["message"]])
             await self.step_ended(machine.name)
         pane = self.query_one(ResultPane)
         self.say([f"{machine.name}: {fn.label} ..."])
+        self.commands[machine.name] = current_clock().now()  # traffic rows' wall time
 
         def progress(data: dict[str, Any]) -> None:
             for done, total in PROGRESS_FIELDS:
@@ -446,9 +508,10 @@ def result_lines(name: str, fn: MachineFunction, result: dict[str, Any]) -> list
     """A function's outcome as the console shows it: the source's message, then details."""
     message = str(result.get("message", ""))
     lines = [f"{name}: {fn.label}: {message}"]
-    details = [
-        str(x) for x in result.get("lines", []) if str(x) not in (message, f"{name}: {message}")
-    ]
+    # A detail that says the message again (``robot state: 1 (...)`` under ``robot state 1
+    # (...)``) is left out: each fact once.
+    said = {_plain(message), _plain(f"{name}: {message}")}
+    details = [str(x) for x in result.get("lines", []) if _plain(str(x)) not in said]
     partitions = result.get("partitions")
     if isinstance(partitions, dict):
         details = [d for d in details if not d.startswith("partition ")]
@@ -459,3 +522,8 @@ def result_lines(name: str, fn: MachineFunction, result: dict[str, Any]) -> list
     if "text" in result and fn.name == "upload":
         details.append(str(result["text"])[:200])
     return lines + details + [str(x) for x in result.get("after", [])]
+
+
+def _plain(text: str) -> str:
+    """A line without its punctuation and case, to find one that says another again."""
+    return " ".join("".join(c for c in text.lower() if c.isalnum() or c.isspace()).split())

@@ -14,7 +14,7 @@ from typing import Any, Protocol, TypeVar
 
 from cellctl.errors import UsageError
 from cellctl.service.machines import load_cell_file
-from cellctl.ui.console.dialogs import Dialog, FormDialog, PickDialog
+from cellctl.ui.console.dialogs import Dialog, FormDialog, LivePickDialog, PickDialog
 from cellctl.ui.console.entry import Entry
 
 T = TypeVar("T")
@@ -46,6 +46,8 @@ class ConsoleHost(Protocol):
     async def ask(self, dialog: Dialog[T]) -> T | None: ...
 
     async def confirm(self, question: str) -> bool: ...
+
+    async def ask_reason(self, question: str, default: str) -> str | None: ...
 
 
 class CellActions:
@@ -84,9 +86,18 @@ class CellActions:
         if not found:
             self.app.say(["no orders"])
             return
+
+        async def fetch() -> list[tuple[str, str]]:
+            # Live: the list follows the orders while it is open (states, parts, new ones).
+            nonlocal found
+            found = await self.app.call("orders.list", {})
+            return [(o["id"], order_line(o)) for o in found]
+
         rows = [(o["id"], order_line(o)) for o in found]
         picked = await self.app.ask(
-            PickDialog("ORDERS", rows, "Enter on an order not started offers to cancel it")
+            LivePickDialog(
+                "ORDERS (live)", rows, fetch, "Enter on an order not started offers to cancel it"
+            )
         )
         order = next((o for o in found if o["id"] == picked), None)
         if order is not None and order["state"] in NOT_STARTED:
@@ -234,11 +245,15 @@ class CellActions:
         self.app.say([result["message"]], "green")
 
     async def estop(self) -> None:
-        question = "EMERGENCY STOP: stop the robot, halt the mills, hold the parts in work?"
-        if not await self.app.confirm(question):
+        question = (
+            "EMERGENCY STOP: stop the robot, halt the mills, hold the parts in work? "
+            "Enter stops, Escape does not."
+        )
+        reason = await self.app.ask_reason(question, "operator console")
+        if reason is None:
             self.app.say(["no emergency stop"])
             return
-        result = await self.app.call("cell.estop", {"reason": "operator console"})
+        result = await self.app.call("cell.estop", {"reason": reason})
         self.app.say([result["message"]], "red")
 
 

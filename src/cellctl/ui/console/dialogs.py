@@ -1,5 +1,6 @@
-"""The console's dialogs (modal screens): a yes/no question, a pick from a list, a function's
-parameters (partition, program file with a picker, forced init) and a small form.
+"""The console's dialogs (modal screens): a yes/no question, a pick from a list (kept live
+where the list changes), a function's parameters (partition, program file with a picker,
+forced init) and a small form.
 
 Each dismisses with its answer (None when cancelled with Escape); the app awaits them with
 ``push_screen_wait`` from a worker.
@@ -7,7 +8,7 @@ Each dismisses with its answer (None when cancelled with Escape); the app awaits
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Awaitable, Callable, Iterable
 from pathlib import Path
 from typing import Any, ClassVar, Generic, TypeVar
 
@@ -20,7 +21,7 @@ from textual.screen import ModalScreen
 from textual.widgets import Button, Checkbox, DirectoryTree, Input, Label, OptionList, Static
 from textual.widgets.option_list import Option
 
-from cellctl.errors import UsageError
+from cellctl.errors import CellctlError, UsageError
 
 T = TypeVar("T")
 
@@ -46,6 +47,21 @@ class Dialog(ModalScreen[T | None], Generic[T]):
 
     def action_cancel(self) -> None:
         self.dismiss(None)
+
+    def refused(self, problems: str) -> None:
+        """Show why the answers were refused, and select the text of the field they name
+        (else the first), so that what the operator types next replaces it."""
+        self.query_one("#errors", Static).update(Text(problems))
+        fields = list(self.query(Input))
+        named = [
+            f
+            for f in fields
+            if (f.id and f.id.replace("_", " ") in problems.replace("_", " "))
+            or (f.value.strip() and f.value.strip() in problems)
+        ]
+        for field in (named or fields)[:1]:
+            field.focus()
+            field.select_all()
 
 
 class ConfirmDialog(Dialog[bool]):
@@ -101,6 +117,53 @@ class PickDialog(Dialog[str]):
     @on(OptionList.OptionSelected)
     def _picked(self, event: OptionList.OptionSelected) -> None:
         self.dismiss(event.option.id)
+
+    def show_rows(self, rows: Iterable[tuple[str, str]]) -> None:
+        """Show ``rows`` instead, the highlight kept on the same key where it still is."""
+        rows = list(rows)
+        if rows == self.rows:
+            return
+        options = self.query_one(OptionList)
+        index = options.highlighted
+        key = self.rows[index][0] if index is not None and index < len(self.rows) else None
+        self.rows = rows
+        options.clear_options()
+        options.add_options(Option(label, id=k) for k, label in rows)
+        keys = [k for k, _ in rows]
+        options.highlighted = keys.index(key) if key in keys else (0 if rows else None)
+
+
+class LivePickDialog(PickDialog):
+    """A pick from rows that ``fetch()`` gives again every ``period`` seconds while it is
+    open (a list that changes under the operator's eyes, e.g. the orders)."""
+
+    def __init__(
+        self,
+        title: str,
+        rows: Iterable[tuple[str, str]],
+        fetch: Callable[[], Awaitable[list[tuple[str, str]]]],
+        hint: str = "",
+        period: float = 0.5,
+    ) -> None:
+        super().__init__(title, rows, hint)
+        self.fetch = fetch
+        self.period = period
+        self._fetching = False
+
+    def on_mount(self) -> None:
+        super().on_mount()
+        self.set_interval(self.period, self._refresh_rows)
+
+    async def _refresh_rows(self) -> None:
+        if self._fetching:
+            return
+        self._fetching = True
+        try:
+            self.show_rows(await self.fetch())
+        except CellctlError as e:
+            self.query_one(".hint", Static).update(Text(f"not refreshed: {e}"))
+        finally:
+            self._fetching = False
 
 
 class ProgramTree(DirectoryTree):
@@ -205,7 +268,7 @@ class ParamsDialog(Dialog[dict[str, Any]]):
         try:
             params = self.check(self.answers())
         except UsageError as e:
-            self.query_one("#errors", Static).update(Text(str(e)))
+            self.refused(str(e))
             return
         self.dismiss(params)
 
@@ -247,7 +310,7 @@ class FormDialog(Dialog[dict[str, Any]]):
         try:
             checked = self.check(raw)
         except UsageError as e:
-            self.query_one("#errors", Static).update(Text(str(e)))
+            self.refused(str(e))
             return
         self.dismiss(checked)
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from cellctl.errors import UsageError
+from cellctl.errors import CellctlError, UsageError
 from cellctl.kinds import registry
 from cellctl.kinds.kind import FAMILIES, MachineKind
 from cellctl.service.client import CellClient, open_cell
@@ -23,9 +23,17 @@ from cellctl.service.functions import FAMILY_OF_KIND, MachineFunction, kind_menu
 from cellctl.service.machines import MachineRef, load_cell_file, resolve_machine
 from cellctl.ui.calls import read_program
 
+
+def picked_files(kind: MachineKind) -> tuple[str, ...]:
+    """A kind's files for its program pickers: what it sends, then the sources it compiles."""
+    language = kind.language
+    sources = (language.suffix,) if language is not None and language.compile else ()
+    return tuple(dict.fromkeys((*kind.picked_files, *sources)))
+
+
 #: File name endings a family's program picker shows (every kind's of that family).
 PROGRAM_SUFFIXES: dict[str, tuple[str, ...]] = {
-    family: tuple(dict.fromkeys(s for k in registry.kinds(family) for s in k.picked_files))
+    family: tuple(dict.fromkeys(s for k in registry.kinds(family) for s in picked_files(k)))
     for family in FAMILIES
 }
 #: Dialog fields typed as text that the functions take as whole numbers.
@@ -45,10 +53,11 @@ class ConsoleMachine:
 
     @property
     def suffixes(self) -> tuple[str, ...]:
-        """The file endings its program picker shows."""
+        """The file endings its program picker shows: what its functions send, and the
+        sources its kind compiles into that on the way (a robot's .rec and .aml)."""
         if self.kind is None:
             return PROGRAM_SUFFIXES.get(self.family, ())
-        return registry.kind(self.kind).picked_files
+        return picked_files(registry.kind(self.kind))
 
 
 def cell_machines(directory: Path) -> list[ConsoleMachine]:
@@ -125,6 +134,32 @@ def machine_kind(machine: ConsoleMachine, fn: MachineFunction) -> MachineKind:
     raise UsageError(f"no {machine.family} kind has a function {fn.name!r}")
 
 
+def compiled_program(
+    machine: ConsoleMachine, fn: MachineFunction, path: Path, program: dict[str, str]
+) -> dict[str, str]:
+    """``program`` as the function sends it: a source its kind compiles (a robot's .aml) is
+    compiled on the way, named as the compiled file would be (``load1.rec``); the compiler's
+    problems are a UsageError. Any other file goes as it is."""
+    kind = machine_kind(machine, fn)
+    language = kind.language
+    if (
+        language is None
+        or language.compile is None
+        or path.suffix.lower() != language.suffix
+        or path.suffix.lower() in kind.picked_files
+    ):
+        return program
+    try:
+        compiled = language.compile(program["text"], path.stem, program["program"])
+    except CellctlError as e:
+        raise UsageError(str(e)) from None
+    to_text = getattr(compiled, "to_text", None)
+    if not callable(to_text):
+        raise UsageError(f"{program['program']}: {kind.name} cannot send a compiled program")
+    sent = kind.picked_files[0] if kind.picked_files else ""
+    return {"program": path.stem + sent, "text": str(to_text())}
+
+
 def check_program(
     machine: ConsoleMachine, fn: MachineFunction, program: dict[str, str]
 ) -> list[str]:
@@ -158,7 +193,8 @@ def check_params(
                 problems.append(f"{key} must be a whole number, not {text or 'nothing'}")
     if "program" in fields:
         try:
-            _, program = read_program_file(str(raw.get("program", "")), directory)
+            path, program = read_program_file(str(raw.get("program", "")), directory)
+            program = compiled_program(machine, fn, path, program)
         except UsageError as e:
             problems.append(str(e))
         else:

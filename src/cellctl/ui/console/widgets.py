@@ -128,18 +128,26 @@ def board_text(snapshot: dict[str, Any] | CellStatus, width: int = 48, height: i
     return out
 
 
-def traffic_text(machine: str, rows: list[dict[str, Any]], width: int = 78) -> Text:
-    """The last rows of a machine's traffic: time, direction, hex, text."""
+def traffic_text(
+    machine: str,
+    rows: list[dict[str, Any]],
+    width: int = 78,
+    command: dict[str, Any] | None = None,
+) -> Text:
+    """The last rows of a machine's traffic: time, direction, hex, text; the first bytes of
+    the operator's own ``command`` on top (marked ``>>*``) when given."""
     out = Text(no_wrap=True, overflow="ellipsis")
-    if not rows:
+    if not rows and command is None:
         out.append(f"no traffic on {machine} yet", style="dim")
         return out
+    if command is not None:
+        rows = [{**command, "dir": ">>*"}, *rows]
     for i, row in enumerate(rows):
         stamp = dt.datetime.fromtimestamp(float(row.get("time", 0))).strftime("%H:%M:%S.%f")[:-3]
         direction = str(row.get("dir", ""))
         hex_text = _clip(str(row.get("hex", "")), 35)
-        style = "green" if direction == ">>" else "cyan"
-        out.append(f"{stamp} {direction} ", style=style)
+        style = {">>": "green", ">>*": "bold green"}.get(direction, "cyan")
+        out.append(f"{stamp} {direction:<3} ", style=style)
         out.append(f"{hex_text:<35} ")
         out.append(_clip(f"|{row.get('text', '')}|", max(width - 52, 4)), style="dim")
         if i < len(rows) - 1:
@@ -164,11 +172,15 @@ class Board(Static):
 
 
 class TrafficPane(Static):
-    """The selected machine's bytes both ways (``>>`` sent, ``<<`` received)."""
+    """The selected machine's bytes both ways (``>>`` sent, ``<<`` received), the operator's
+    own last command first (``>>*``)."""
 
-    def show(self, machine: str, rows: list[dict[str, Any]]) -> None:
-        self.border_title = f"traffic: {machine} (>> sent, << received)"
-        self.update(traffic_text(machine, rows, max(self.size.width, 40)))
+    def show(
+        self, machine: str, rows: list[dict[str, Any]], command: dict[str, Any] | None = None
+    ) -> None:
+        """``command``: the first row sent for the operator's last command (shown first)."""
+        self.border_title = f"traffic: {machine} (>> sent, << received, >>* your command)"
+        self.update(traffic_text(machine, rows, max(self.size.width, 40), command))
 
 
 class ResultPane(Vertical):

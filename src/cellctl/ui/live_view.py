@@ -1,0 +1,142 @@
+"""``cellctl run``'s live view: a header (the cell, its time scale, how to stop), a banner
+while the cell is paused or in an emergency stop, the orders, the machines with the reason
+of one out of service, the open alarms, and the events, as many as the terminal has room for.
+
+It renders the cell's status (:class:`~cellctl.service.status.CellStatus`, what every other
+surface shows) and the controller's event list::
+
+    view = LiveView(controller, directory)
+    with Live(view.render(console), console=console) as screen:
+        screen.update(view.render(console))
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from pathlib import Path
+
+from rich.console import Console, Group, RenderableType
+from rich.table import Table
+from rich.text import Text
+
+from cellctl.cell.controller import CellController
+from cellctl.service.access import AttachedCell
+from cellctl.service.status import CellMode, CellStatus
+
+#: The first line ``cellctl emulate cell`` writes into the cell.toml it makes.
+_EMULATED = re.compile(r"#\s*Emulated cell \(time scale ([0-9.eE+-]+)\)")
+#: Orders and alarms shown at most (the rest of the height goes to the events).
+ORDER_ROWS = 12
+ALARM_ROWS = 6
+#: Events shown at least, however small the terminal.
+MIN_EVENTS = 1
+STOP_HINT = "Ctrl-C stops (steps in flight finish first; Ctrl-C again aborts)"
+
+
+def time_scale_text(directory: Path) -> str:
+    """``time scale 100 (emulated cell)`` for a cell ``cellctl emulate cell`` wrote, else
+    ``real time``."""
+    try:
+        with (directory / "cell.toml").open(encoding="utf-8") as f:
+            first = f.readline()
+    except OSError:
+        return "real time"
+    found = _EMULATED.match(first.strip())
+    return f"time scale {found.group(1)} (emulated cell)" if found else "real time"
+
+
+class LiveView:
+    """What ``cellctl run`` shows on a terminal (see the module docstring)."""
+
+    def __init__(self, controller: CellController, directory: Path) -> None:
+        self.controller = controller
+        self.access = AttachedCell(controller)
+        self.directory = directory
+        self.scale = time_scale_text(directory)
+
+    def render(self, console: Console) -> RenderableType:
+        """The whole view, its events pane as tall as the terminal leaves room for."""
+        status = self.access.status()
+        top = Group(
+            *self.header(status), *self.banner(status), self.orders(status), self.machines(status)
+        )
+        alarms = self.alarms(status)
+        used = len(console.render_lines(Group(top, alarms), console.options, pad=False))
+        # An events table takes its title and two rules besides its rows.
+        rows = max(console.height - used - 3, MIN_EVENTS)
+        return Group(top, alarms, self.events(rows))
+
+    def header(self, status: CellStatus) -> list[Text]:
+        cell = status.cell
+        clock = time.strftime("%H:%M:%S", time.localtime(cell.time))
+        first = Text(no_wrap=True, overflow="ellipsis")
+        first.append(f"cellctl run: cell {cell.name}", style="bold")
+        first.append(f"  {self.directory}  {clock}")
+        second = Text(f"{self.scale} · {STOP_HINT}", style="dim", no_wrap=True)
+        second.overflow = "ellipsis"
+        return [first, second]
+
+    def banner(self, status: CellStatus) -> list[Text]:
+        """A line in reverse colours while the cell does not dispatch: why, and the way out."""
+        mode = status.cell.mode
+        if mode is CellMode.EMERGENCY_STOP:
+            why = [a.text for a in status.alarms if a.code == "estop"]
+            reason = "; ".join(why) or "the PLC's emergency stop input is open"
+            text = (
+                f" EMERGENCY STOP: {reason}. Release it, clear the alarm "
+                "(`cellctl alarm clear ID`), then `cellctl resume`. "
+            )
+            return [Text(text, style="bold white on red")]
+        if mode is CellMode.STOPPING:
+            return [
+                Text(" STOPPING: the steps in flight finish first ", style="bold black on yellow")
+            ]
+        if status.cell.paused:
+            text = " PAUSED: no new step starts (steps in flight finish). `cellctl resume` "
+            return [Text(text, style="bold black on yellow")]
+        return []
+
+    def orders(self, status: CellStatus) -> Table:
+        table = Table(title="orders", expand=True)
+        for col in ("order", "part", "qty", "state", "done", "held"):
+            table.add_column(col)
+        for o in status.orders[:ORDER_ROWS]:
+            done, held = o.parts.get("done", 0), o.parts.get("held", 0)
+            table.add_row(o.id, o.part_type, str(o.qty), o.state, str(done), str(held))
+        return table
+
+    def machines(self, status: CellStatus) -> Table:
+        table = Table(title="machines", expand=True)
+        for col in ("machine", "state", "current step", "service"):
+            table.add_column(col)
+        steps = {v.name: v.step for v in self.controller.machines.values()}
+        for m in status.machines.values():
+            if m.family == "plc":
+                continue
+            service = (
+                "in service"
+                if m.in_service
+                else Text(f"OUT: {m.out_reason}".rstrip(": "), style="bold red")
+            )
+            table.add_row(m.name, m.state, steps.get(m.name, ""), service)
+        return table
+
+    def alarms(self, status: CellStatus) -> RenderableType:
+        if not status.alarms:
+            return Text("active alarms: none", style="dim", justify="center")
+        table = Table(title="active alarms", expand=True)
+        for col in ("id", "machine", "priority", "alarm"):
+            table.add_column(col)
+        for a in status.alarms[-ALARM_ROWS:]:
+            table.add_row(str(a.id), a.machine, a.priority, a.text)
+        return table
+
+    def events(self, rows: int) -> Table:
+        table = Table(title="events", expand=True, show_header=False)
+        table.add_column("time", width=8, min_width=8, no_wrap=True)
+        # A line each (the rows fit the room); the event's text gives way, never the time.
+        table.add_column("event", no_wrap=True, overflow="ellipsis", ratio=1)
+        for e in self.controller.events[-rows:]:
+            table.add_row(time.strftime("%H:%M:%S", time.localtime(e.time)), e.text)
+        return table

@@ -17,7 +17,7 @@ import contextlib
 import os
 import time
 from abc import ABC, abstractmethod
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Mapping
 from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Self, cast
@@ -92,6 +92,11 @@ class CellAccess(ABC):
     @abstractmethod
     def traffic(self, name: str, limit: int) -> list[dict[str, Any]]:
         """The last bytes of machine ``name``'s link, both ways."""
+
+    def methods(self) -> Mapping[str, Any]:
+        """API methods of its own this access serves beside the common table (each a
+        :class:`~cellctl.service.methods.Method`, by name): none for a cell."""
+        return {}
 
     def controller(self) -> CellController:
         """The running controller: UsageError when none runs."""

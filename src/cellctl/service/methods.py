@@ -202,7 +202,7 @@ async def _info(access: CellAccess, p: NoParams, progress: Progress | None) -> A
         "version": __version__,
         "mode": access.mode,
         "directory": str(access.directory),
-        "methods": {m.name: m.doc for m in METHODS.values()},
+        "methods": {m.name: m.doc for m in [*METHODS.values(), *access.methods().values()]},
     }
 
 
@@ -529,7 +529,7 @@ class Dispatcher:
         """Run ``method`` with ``params`` (a dict or None) for ``caller`` (the local user
         when None); typed errors on failure (:class:`RoleRefused` for a role too low)."""
         caller = caller or local_caller()
-        entry = METHODS.get(method)
+        entry = METHODS.get(method) or self.access.methods().get(method)
         try:
             if entry is None:
                 raise MethodNotFound(f"no method {method!r} (server.info lists them)")

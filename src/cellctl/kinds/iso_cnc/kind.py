@@ -149,8 +149,9 @@ def _condition(status: Any) -> Any:
 
 def _commands() -> Sequence[tuple[str, click.Command]]:
     from cellctl.kinds.iso_cnc.cli import emulate_iso_cnc
+    from cellctl.kinds.iso_cnc.dnc.cli import dnc
 
-    return [("emulate", emulate_iso_cnc)]
+    return [("emulate", emulate_iso_cnc), ("", dnc)]
 
 
 ISO_CNC = MachineKind(

@@ -1,0 +1,222 @@
+"""The DNC server as the control API sees it: the service's own server and status, on the
+shop directory instead of a cell::
+
+    server = DncServer(load_shop(Path("SHOP")))
+    api = ApiServer(DncAccess(server), Path("SHOP"))    # SHOP/api.sock, SHOP/api-token (0600)
+
+``cell.status`` (and ``GET /api/status``, the console, the dashboard) shows each DNC machine
+as a mill of kind ``iso-cnc``: its condition (idle, busy, offline), its state in words
+(``drip-feeding O1234, stalled 0.4 s``) and its progress in characters (rate, time left).
+Methods of its own (:meth:`DncAccess.methods`):
+
+- ``dnc.send`` ``{machine, program, text?, drip?}``: send a program by hand (``text``: its
+  text; else ``program`` is an O-number or file name of ``SHOP/<machine>/programs``); the
+  control starts the read. Progress is pushed (``notify_progress``) as characters go.
+- ``dnc.receive`` ``{machine, timeout?}``: take what the control punches; kept as received.
+- ``dnc.log`` ``{machine, last?}``: the last lines of the machine's log.
+
+Each waits for the machine's turn: a punch or a request's answer in flight finishes first.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import AsyncIterator, Mapping
+from pathlib import Path
+from typing import Any
+
+from pydantic import Field
+
+from cellctl.clock import current_clock
+from cellctl.errors import UsageError
+from cellctl.kinds import Condition
+from cellctl.kinds.iso_cnc.dnc.config import KIND
+from cellctl.kinds.iso_cnc.dnc.server import (
+    PUNCH_S,
+    TRANSFER_S,
+    Activity,
+    DncServer,
+    MachineStatus,
+)
+from cellctl.kinds.iso_cnc.dnc.store import read_program_file
+from cellctl.kinds.menu import MAX_PROGRAM_CHARS, Progress
+from cellctl.mailbox import Mailbox
+from cellctl.service.access import CellAccess
+from cellctl.service.methods import Method, P
+from cellctl.service.status import (
+    CellInfo,
+    CellMode,
+    CellStatus,
+    ErrorInfo,
+    EventInfo,
+    ProgressInfo,
+)
+from cellctl.service.status import MachineStatus as ApiMachine
+
+CONDITIONS = {
+    Activity.IDLE: Condition.IDLE,
+    Activity.WAITING: Condition.BUSY,
+    Activity.READING: Condition.BUSY,
+    Activity.DRIP_FEEDING: Condition.BUSY,
+    Activity.PUNCHING: Condition.BUSY,
+    Activity.AWAITING_PUNCH: Condition.IDLE,
+    Activity.OFFLINE: Condition.OFFLINE,
+}
+
+
+class SendParams(P):
+    machine: str = Field(min_length=1, max_length=64)
+    program: str = Field(min_length=1, max_length=500)
+    text: str | None = Field(default=None, max_length=MAX_PROGRAM_CHARS)
+    drip: bool = False
+
+
+class ReceiveParams(P):
+    machine: str = Field(min_length=1, max_length=64)
+    timeout: float = Field(default=600.0, gt=0, le=PUNCH_S)
+
+
+class LogParams(P):
+    machine: str = Field(min_length=1, max_length=64)
+    last: int = Field(default=50, ge=1, le=10_000)
+
+
+def state_words(s: MachineStatus) -> str:
+    """A machine's state as the console and dashboard show it."""
+    words = s.activity.value
+    if s.activity in (Activity.READING, Activity.DRIP_FEEDING) and s.program:
+        words += f" {s.program}"
+    if s.activity is Activity.WAITING and s.pending:
+        words += f": {s.pending}"
+    if s.stall_s > 0:
+        words += f", stalled {s.stall_s:.1f} s"
+    return words
+
+
+def _progress(s: MachineStatus) -> ProgressInfo | None:
+    if s.activity not in (Activity.READING, Activity.DRIP_FEEDING, Activity.PUNCHING):
+        return None
+    total = max(s.chars_total, s.chars_done)
+    return ProgressInfo(
+        phase=s.activity.value,
+        done=s.chars_done,
+        total=total,
+        unit="chars",
+        fraction=s.chars_done / total if total else 0.0,
+        program=s.program,
+        since=s.since,
+        rate_per_s=s.chars_per_s,
+        time_left_s=s.eta_s,
+    )
+
+
+class DncAccess(CellAccess):
+    """The control API's view of a running DNC server (see module docstring)."""
+
+    mode = "attached"
+
+    def __init__(self, server: DncServer) -> None:
+        self.server = server
+        self.directory = server.config.root
+        self.events: list[tuple[float, str]] = []
+
+    def journal(self) -> None:
+        return None
+
+    def mailbox(self) -> Mailbox:
+        raise UsageError("a DNC server takes no orders: it feeds its machines their programs")
+
+    def machines(self) -> dict[str, str]:
+        return dict.fromkeys(self.server.lines, "mill")
+
+    def machine_kinds(self) -> dict[str, str]:
+        return dict.fromkeys(self.server.lines, KIND)
+
+    @contextlib.asynccontextmanager
+    async def driver(self, name: str, *, observe: bool = False) -> AsyncIterator[Any]:
+        line = self.server.line(name)
+        async with line.turn:
+            yield line.driver
+
+    def status(self) -> CellStatus:
+        now = current_clock().now()
+        elapsed = max(now - self.server.started, 1e-9)
+        machines = {}
+        for name, s in self.server.status().items():
+            busy = now - s.since if s.activity is not Activity.IDLE and s.since else 0.0
+            machines[name] = ApiMachine(
+                name=name,
+                kind=KIND,
+                family="mill",
+                condition=CONDITIONS[s.activity],
+                state=state_words(s),
+                progress=_progress(s),
+                error=ErrorInfo(text=s.error) if s.error else None,
+                failures=s.failures,
+                busy_s=busy,
+                utilization=min(1.0, busy / elapsed),
+                in_service=True,
+                out_reason="",
+                manual=True,
+            )
+        cell = CellInfo(
+            name=f"DNC {Path(self.directory).absolute().name}",
+            directory=str(self.directory),
+            access="attached",
+            mode=CellMode.RUNNING,
+            paused=False,
+            started_at=self.server.started,
+            pid=os.getpid(),
+            time=now,
+        )
+        lines = [(t, x) for line in self.server.lines.values() for t, x in line.events]
+        events = [EventInfo(time=t, text=x) for t, x in sorted(lines)[-30:]]
+        return CellStatus(
+            cell=cell, machines=machines, orders=[], parts=[], alarms=[], events=events
+        )
+
+    def traffic(self, name: str, limit: int) -> list[dict[str, Any]]:
+        self.server.line(name)
+        return []
+
+    def methods(self) -> Mapping[str, Any]:
+        return METHODS
+
+
+async def _send(access: CellAccess, p: SendParams, progress: Progress | None) -> Any:
+    assert isinstance(access, DncAccess)
+    line = access.server.line(p.machine)
+    if p.text is not None:
+        if not p.text.isascii():
+            raise UsageError(f"{p.program}: not an ISO-code program (a character is not ASCII)")
+        name, data = p.program, p.text.encode("ascii")
+    else:
+        path = line.store.resolve(p.machine, p.program)
+        name, data = path.name, read_program_file(path)
+    async with line.turn:
+        result = await line.send(name, data, drip=p.drip, progress=progress, timeout=TRANSFER_S)
+    return {"machine": p.machine, **result}
+
+
+async def _receive(access: CellAccess, p: ReceiveParams, progress: Progress | None) -> Any:
+    assert isinstance(access, DncAccess)
+    line = access.server.line(p.machine)
+    programs = await line.wait_punch(p.timeout)
+    return {"machine": p.machine, "programs": programs}
+
+
+async def _log(access: CellAccess, p: LogParams, progress: Progress | None) -> Any:
+    assert isinstance(access, DncAccess)
+    line = access.server.line(p.machine)
+    return {"machine": p.machine, "lines": line.store.log_lines(p.machine, p.last)}
+
+
+METHODS: dict[str, Method] = {
+    m.name: m
+    for m in [
+        Method("dnc.send", SendParams, _send, "Send (or drip-feed) a program by hand.", True),
+        Method("dnc.receive", ReceiveParams, _receive, "Take what the control punches.", True),
+        Method("dnc.log", LogParams, _log, "The last lines of a machine's log.", False),
+    ]
+}

@@ -1,0 +1,211 @@
+"""The DNC server's machines: ``SHOP/dnc.toml``, or a cell's ``cell.toml`` machines of kind
+``iso-cnc``::
+
+    [dnc]                                   # optional
+    listen = "127.0.0.1:7130"               # the API and dashboard on TCP too (loopback)
+
+    [machines.mill1]
+    link = "/dev/ttyUSB0"                   # or rfc2217://device-server:4001, socket://...
+    line = "9600,7E2"                       # optional: the kind's default otherwise
+    options = { tolerance = 10 }            # the iso-cnc kind's options (`cellctl kinds`)
+
+    [machines.mill1.request]                # optional: the remote-request convention
+    program = 9999                          # O9999 (LOAD O1234) / O9999 (DRIP O1234)
+
+::
+
+    shop = load_shop(Path("SHOP"))                  # dnc.toml there
+    shop = load_shop(Path("SHOP"), cell=Path("cell"))   # the cell's iso-cnc machines
+    shop.machines["mill1"].url
+
+Everything is checked before a link is opened: unknown keys, a missing link, a line that
+does not parse, the kind's options (by their field name), two machines on one link, a name
+that cannot be a directory. Each refusal names the file and the table.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from cellctl.errors import UsageError
+from cellctl.kinds.iso_cnc.dnc.request import RequestConvention
+from cellctl.kinds.iso_cnc.dnc.store import check_machine_name
+from cellctl.kinds.iso_cnc.driver import ISO_LINE, IsoCncOptions
+from cellctl.link import LineSettings
+
+#: The kind the DNC server feeds (its own package's name for it).
+KIND = "iso-cnc"
+DNC_FILE = "dnc.toml"
+#: Machines one server may feed (each is a link and a task).
+MAX_MACHINES = 1024
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
+
+
+class DncTable(_Strict):
+    """``[dnc]``: the server itself."""
+
+    listen: str | None = Field(default=None, max_length=200)
+    """``HOST:PORT`` for the control API and dashboard on TCP (loopback unless allow_remote);
+    the Unix socket ``SHOP/api.sock`` always."""
+    allow_remote: bool = False
+    """Answer on a non-loopback ``listen`` address (the token is still required)."""
+
+
+class MachineTable(_Strict):
+    """``[machines.NAME]``: one control on its own link."""
+
+    kind: str = KIND
+    """Only ``iso-cnc`` (the default)."""
+    link: str = Field(min_length=1, max_length=500)
+    """The control's link: a serial device, ``rfc2217://``, ``socket://`` or a pty."""
+    line: str | None = Field(default=None, max_length=40)
+    """Line settings, e.g. ``9600,7E2`` (the kind's default when left out)."""
+    options: dict[str, Any] = Field(default_factory=dict)
+    """The kind's driver options (buffer, tolerance, leader ...)."""
+    request: RequestConvention = Field(default_factory=RequestConvention)
+    """The remote-request convention."""
+
+
+class DncFile(_Strict):
+    dnc: DncTable = Field(default_factory=DncTable)
+    machines: dict[str, MachineTable] = Field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class DncMachine:
+    """A machine the server feeds, checked: its link, line, kind options and convention."""
+
+    name: str
+    url: str
+    settings: LineSettings
+    options: IsoCncOptions
+    request: RequestConvention
+
+
+@dataclass(frozen=True)
+class ShopConfig:
+    """The shop: its directory, machines and where its API answers."""
+
+    root: Path
+    machines: dict[str, DncMachine] = field(default_factory=dict)
+    listen: str | None = None
+    allow_remote: bool = False
+    source: Path | None = None
+
+
+def _describe(e: ValidationError, table: str) -> str:
+    problems = []
+    for item in e.errors(include_url=False):
+        where = ".".join(str(k) for k in item["loc"])
+        message = "unknown key" if item["type"] == "extra_forbidden" else item["msg"]
+        problems.append(f"{table}{'.' if where else ''}{where}: {message}")
+    return "; ".join(problems)
+
+
+def _load(path: Path) -> dict[str, Any]:
+    try:
+        with path.open("rb") as f:
+            return tomllib.load(f)
+    except FileNotFoundError:
+        raise UsageError(f"no {path}: write one (docs/dnc.md), or give --cell DIR") from None
+    except tomllib.TOMLDecodeError as e:
+        raise UsageError(f"{path}: not valid TOML: {e}") from None
+    except OSError as e:
+        raise UsageError(f"{path}: cannot read: {e.strerror}") from None
+
+
+def _machine(name: str, table: MachineTable, path: Path) -> DncMachine:
+    where = f"{path}: [machines.{name}]"
+    try:
+        check_machine_name(name)
+    except UsageError as e:
+        raise UsageError(f"{where}: {e}") from None
+    if table.kind != KIND:
+        raise UsageError(f"{where}: kind {table.kind!r}: the DNC server feeds {KIND} controls")
+    try:
+        settings = LineSettings.parse(table.line or ISO_LINE)
+    except (UsageError, ValueError) as e:
+        raise UsageError(f"{where}: line = {table.line!r}: {e}") from None
+    try:
+        options = IsoCncOptions.model_validate(table.options)
+    except ValidationError as e:
+        problems = []
+        for item in e.errors(include_url=False):
+            key = ".".join(str(k) for k in item["loc"]) or "options"
+            said = "unknown option" if item["type"] == "extra_forbidden" else item["msg"]
+            problems.append(f"options.{key}: {said}")
+        raise UsageError(f"{where}: " + "; ".join(problems)) from None
+    return DncMachine(name, table.link, settings, options, table.request)
+
+
+def parse_dnc_file(data: dict[str, Any], root: Path, path: Path) -> ShopConfig:
+    """A parsed dnc.toml, checked (see module docstring)."""
+    try:
+        parsed = DncFile.model_validate(data)
+    except ValidationError as e:
+        raise UsageError(f"{path}: {_describe(e, '')}".replace(": .", ": ")) from None
+    if not parsed.machines:
+        raise UsageError(f"{path}: no [machines.NAME] table: name at least one control")
+    if len(parsed.machines) > MAX_MACHINES:
+        raise UsageError(f"{path}: {len(parsed.machines)} machines, at most {MAX_MACHINES}")
+    machines = {n: _machine(n, t, path) for n, t in parsed.machines.items()}
+    _distinct_links(machines, path)
+    return ShopConfig(root, machines, parsed.dnc.listen, parsed.dnc.allow_remote, source=path)
+
+
+def _distinct_links(machines: dict[str, DncMachine], path: Path) -> None:
+    seen: dict[str, str] = {}
+    for m in machines.values():
+        other = seen.setdefault(m.url, m.name)
+        if other != m.name:
+            raise UsageError(
+                f"{path}: [machines.{other}] and [machines.{m.name}] are both on {m.url}: "
+                "one link feeds one control"
+            )
+
+
+def _from_cell(cell: Path, root: Path) -> ShopConfig:
+    path = cell / "cell.toml"
+    data = _load(path)
+    raw = data.get("machines", {})
+    machines: dict[str, DncMachine] = {}
+    for name, entry in raw.items() if isinstance(raw, dict) else ():
+        if not isinstance(entry, dict) or entry.get("kind") != KIND:
+            continue
+        if not entry.get("link"):
+            raise UsageError(f"{path}: [machines.{name}] has no link")
+        table = MachineTable(
+            link=str(entry["link"]),
+            line=entry.get("line"),
+            options=dict(entry.get("options", {})),
+        )
+        machines[name] = _machine(name, table, path)
+    if not machines:
+        raise UsageError(f"{path}: no machine of kind {KIND}: the DNC server has none to feed")
+    _distinct_links(machines, path)
+    return ShopConfig(root, machines, source=path)
+
+
+def load_shop(root: Path, *, cell: Path | None = None) -> ShopConfig:
+    """The shop in ``root``: its dnc.toml, or the ``iso-cnc`` machines of ``cell``'s cell.toml."""
+    if cell is not None:
+        return _from_cell(Path(cell), Path(root))
+    path = Path(root) / DNC_FILE
+    return parse_dnc_file(_load(path), Path(root), path)
+
+
+def machine(config: ShopConfig, name: str) -> DncMachine:
+    """The machine called ``name``; UsageError naming the known ones."""
+    found = config.machines.get(name)
+    if found is None:
+        known = ", ".join(sorted(config.machines))
+        raise UsageError(f"unknown machine {name!r} in {config.source} (known: {known})")
+    return found

@@ -1,0 +1,248 @@
+"""The shop directory: one directory per machine, what it may read and what it punched::
+
+    SHOP/
+      dnc.toml                      the machines (see :mod:`.config`)
+      mill1/
+        programs/O1234.nc           programs the control may ask for (the file name starts
+                                    with its O-number; any ending)
+        received/O1234_20261125T205811Z.nc
+                                    every program the control punched, with its UTC time;
+                                    never overwritten: a second one of that second gets _2
+        sent/O1234_20261125T210000Z.nc
+                                    an exact copy of every program sent (what diff compares)
+        log                         one line per transfer: time, what, program, characters
+
+::
+
+    store = ShopStore(Path("SHOP"))
+    path = store.program("mill1", 1234)              # programs/O1234*.nc, UsageError if none
+    kept = store.keep_received("mill1", 1234, text)  # received/O1234_<time>.nc (0600)
+    store.log("mill1", "received O1234 (58 chars)")
+
+Files are written 0600 under directories 0700 (programs of a shop are its own). A program is
+written to a temporary name and linked into place, so a reader never sees half a file and an
+existing one is never replaced.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from cellctl.clock import current_clock
+from cellctl.errors import UsageError
+
+PROGRAMS = "programs"
+RECEIVED = "received"
+SENT = "sent"
+LOG = "log"
+#: A machine's name is a directory's: letters, digits, ``_ . -``, not starting with a dot.
+MACHINE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
+#: A program file in ``programs/``: its name starts with the O-number (``O1234``, ``O1234.nc``,
+#: ``O1234 bracket.nc``); ``:`` is Fanuc's other way of writing O, not usable in a file name.
+PROGRAM_FILE = re.compile(r"[Oo](\d{1,8})(?:$|[^0-9])")
+#: A kept copy's name: ``O1234_20261125T205811Z`` and ``_2`` ... when that second is taken.
+KEPT_FILE = re.compile(r"O(\d{1,8})_(\d{8}T\d{6}Z)(?:_(\d+))?\.nc")
+#: The largest program file read (a drip-fed surfacing program is megabytes; more is a mistake).
+MAX_PROGRAM_BYTES = 64 * 1024 * 1024
+#: Copies of one time stamp tried before giving up (a control punching 1000 programs a second).
+MAX_SAME_SECOND = 1000
+
+
+def check_machine_name(name: str) -> str:
+    """``name`` if it can be a machine's directory; UsageError saying why not."""
+    if not MACHINE_NAME.fullmatch(name):
+        raise UsageError(
+            f"machine name {name!r} cannot be a directory name: use letters, digits, _ . - "
+            "(at most 64, not starting with a dot)"
+        )
+    return name
+
+
+def o_name(number: int) -> str:
+    """A program number as the control writes it: at least 4 digits (``O0012``)."""
+    return f"O{number:04d}"
+
+
+@dataclass(frozen=True)
+class Kept:
+    """A kept copy of a program (received or sent): its file, number and UTC time stamp."""
+
+    path: Path
+    number: int
+    stamp: str
+    """``20261125T205811Z`` (then ``_2`` ... in the file name when one second had several)."""
+    serial: int
+
+
+def _stamp(now: float) -> str:
+    return time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(now))
+
+
+def _private_dir(path: Path) -> Path:
+    try:
+        path.mkdir(mode=0o700, parents=True, exist_ok=True)
+    except OSError as e:
+        raise UsageError(f"cannot create {path}: {e.strerror}") from None
+    if not path.is_dir():
+        raise UsageError(f"{path} should be a directory and is not one")
+    return path
+
+
+def write_new(path: Path, data: bytes) -> bool:
+    """Write ``data`` to ``path`` (0600) if no file has that name; False if one has.
+
+    Written under a temporary name, then hard-linked into place: the link fails on an
+    existing name, so nothing is ever overwritten and nobody reads half a file.
+    """
+    temp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    fd = os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o600)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        try:
+            os.link(temp, path)
+        except FileExistsError:
+            return False
+        return True
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(temp)
+
+
+class ShopStore:
+    """The shop directory (see module docstring)."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = Path(root)
+
+    def machine(self, name: str) -> Path:
+        """``SHOP/<name>``, created (with programs/, received/, sent/) if missing."""
+        base = _private_dir(self.root / check_machine_name(name))
+        for sub in (PROGRAMS, RECEIVED, SENT):
+            _private_dir(base / sub)
+        return base
+
+    # -- programs the control may read -------------------------------------------------------
+
+    def programs(self, name: str) -> dict[int, Path]:
+        """The machine's programs by O-number (a number two files claim: the first by name)."""
+        found: dict[int, Path] = {}
+        for path in sorted((self.machine(name) / PROGRAMS).iterdir()):
+            match = PROGRAM_FILE.match(path.name)
+            if match and path.is_file():
+                found.setdefault(int(match.group(1)), path)
+        return found
+
+    def program(self, name: str, number: int) -> Path:
+        """The file of program ``number`` in the machine's programs/; UsageError naming where
+        it was looked for."""
+        found = self.programs(name).get(number)
+        if found is None:
+            where = self.machine(name) / PROGRAMS
+            raise UsageError(
+                f"no program {o_name(number)} in {where} (a file named {o_name(number)}.nc)"
+            )
+        return found
+
+    def resolve(self, name: str, program: str) -> Path:
+        """What ``cellctl dnc send MACHINE PROGRAM`` means by PROGRAM: an existing file, else
+        an O-number (``O1234`` or ``1234``) in the machine's programs/."""
+        path = Path(program)
+        if path.is_file():
+            return path
+        match = re.fullmatch(r"[Oo]?(\d{1,8})", program)
+        if match is None:
+            raise UsageError(f"{program}: no such file, and not a program number like O1234")
+        return self.program(name, int(match.group(1)))
+
+    # -- kept copies ------------------------------------------------------------------------
+
+    def _keep(self, name: str, sub: str, number: int, data: bytes, now: float | None) -> Kept:
+        folder = self.machine(name) / sub
+        stamp = _stamp(current_clock().now() if now is None else now)
+        for serial in range(1, MAX_SAME_SECOND + 1):
+            suffix = "" if serial == 1 else f"_{serial}"
+            path = folder / f"O{number:04d}_{stamp}{suffix}.nc"
+            if write_new(path, data):
+                return Kept(path, number, stamp, serial)
+        raise UsageError(f"{folder}: {MAX_SAME_SECOND} copies of {o_name(number)} at {stamp}")
+
+    def keep_received(self, name: str, number: int, data: bytes, now: float | None = None) -> Kept:
+        """Keep a punched program beside the older ones (never replacing one)."""
+        return self._keep(name, RECEIVED, number, data, now)
+
+    def keep_sent(self, name: str, number: int, data: bytes, now: float | None = None) -> Kept:
+        """Keep an exact copy of a program sent (what ``dnc diff`` compares with)."""
+        return self._keep(name, SENT, number, data, now)
+
+    def _kept(self, name: str, sub: str, number: int | None) -> list[Kept]:
+        out = []
+        for path in (self.machine(name) / sub).iterdir():
+            match = KEPT_FILE.fullmatch(path.name)
+            if match is None or (number is not None and int(match.group(1)) != number):
+                continue
+            out.append(Kept(path, int(match.group(1)), match.group(2), int(match.group(3) or 1)))
+        return sorted(out, key=lambda k: (k.stamp, k.serial, k.number))
+
+    def received(self, name: str, number: int | None = None) -> list[Kept]:
+        """The received copies (of program ``number``), oldest first."""
+        return self._kept(name, RECEIVED, number)
+
+    def sent(self, name: str, number: int | None = None) -> list[Kept]:
+        """The sent copies (of program ``number``), oldest first."""
+        return self._kept(name, SENT, number)
+
+    # -- the log ----------------------------------------------------------------------------
+
+    def log(self, name: str, text: str, now: float | None = None) -> None:
+        """Add a line to ``SHOP/<name>/log``: UTC time, then ``text`` (one line)."""
+        when = time.strftime(
+            "%Y-%m-%dT%H:%M:%SZ", time.gmtime(current_clock().now() if now is None else now)
+        )
+        line = f"{when} {' '.join(text.split())}\n"
+        path = self.machine(name) / LOG
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_NOFOLLOW, 0o600)
+        except OSError as e:  # a link put in its place is never followed
+            raise UsageError(f"cannot write the log {path}: {e.strerror}") from None
+        with os.fdopen(fd, "a", encoding="utf-8") as f:
+            f.write(line)
+
+    def log_lines(self, name: str, last: int = 50) -> list[str]:
+        """The last ``last`` lines of the machine's log."""
+        try:
+            text = (self.machine(name) / LOG).read_text(encoding="utf-8", errors="replace")
+        except FileNotFoundError:
+            return []
+        return text.splitlines()[-last:]
+
+
+def read_program_file(path: Path) -> bytes:
+    """A program file's bytes; UsageError (before any byte goes out) when it cannot be read,
+    is too large or is not text."""
+    try:
+        size = path.stat().st_size
+        if size > MAX_PROGRAM_BYTES:
+            raise UsageError(f"{path}: {size} bytes, more than {MAX_PROGRAM_BYTES} is refused")
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise UsageError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise UsageError(f"{path}: a directory, not a program") from None
+    except OSError as e:
+        raise UsageError(f"{path}: cannot read: {e.strerror}") from None
+    try:
+        data.decode("ascii")
+    except UnicodeDecodeError as e:
+        raise UsageError(
+            f"{path}: not an ISO-code program (byte {e.start + 1} is not ASCII: "
+            f"0x{data[e.start]:02X})"
+        ) from None
+    return data

@@ -1,0 +1,302 @@
+"""The DNC server against emulated controls through real links (pty and TCP): the remote
+request end to end, received-program versions and diff, several machines at once, dnc.toml
+refusals, one owner per link."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import urllib.error
+import urllib.request
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cellctl.emulators.serve import Server, serve
+from cellctl.errors import MachineInUse, UsageError
+from cellctl.kinds.iso_cnc.dnc.cli import serve_shop
+from cellctl.kinds.iso_cnc.dnc.config import load_shop, parse_dnc_file
+from cellctl.kinds.iso_cnc.dnc.diff import compare
+from cellctl.kinds.iso_cnc.dnc.server import Activity, DncServer
+from cellctl.kinds.iso_cnc.dnc.store import ShopStore
+from cellctl.kinds.iso_cnc.emulator import EmulatorOptions, IsoCncEmulator, Mode
+from cellctl.link import LineSettings
+from tests.conftest import free_port, until
+
+LINE = LineSettings.parse("9600,7E2")
+BRACKET = "O1234 (BRACKET)\nG21 G90 G17\nG00 X0 Y0 Z5.\nG01 Z-1. F300\nG01 X10. Y5.\nM30\n"
+DRIP = "O5000 (SURFACE)\nG21 G90 G17\nG01 X1. F3000\nX2. Z-0.1\nX3. Z-0.2\nX4.\nX5.\nM30\n"
+
+
+def write_shop(root: Path, links: dict[str, str], extra: str = "") -> Path:
+    rows = [
+        f'[machines.{name}]\nlink = "{url}"\nline = "9600,7E2"\n' for name, url in links.items()
+    ]
+    root.mkdir(exist_ok=True)
+    (root / "dnc.toml").write_text("\n".join(rows) + extra)
+    return root
+
+
+async def control(listen: str = "pty") -> tuple[IsoCncEmulator, Server]:
+    emulator = IsoCncEmulator(EmulatorOptions())
+    return emulator, await serve(emulator, listen, LINE)
+
+
+@pytest.fixture
+async def one(tmp_path: Path) -> AsyncIterator[tuple[IsoCncEmulator, DncServer, ShopStore]]:
+    emulator, server = await control()
+    shop = write_shop(tmp_path / "shop", {"mill1": server.url})
+    store = ShopStore(shop)
+    (store.machine("mill1") / "programs" / "O1234.nc").write_text(BRACKET)
+    (store.machine("mill1") / "programs" / "O5000.nc").write_text(DRIP)
+    dnc = DncServer(load_shop(shop))
+    await dnc.start()
+    try:
+        yield emulator, dnc, store
+    finally:
+        await dnc.close()
+        await server.close()
+
+
+async def punch(emulator: IsoCncEmulator, number: int, text: str) -> None:
+    emulator.memory[number] = text
+    emulator.set_mode(Mode.EDIT)
+    emulator.punch(number)
+
+
+async def test_remote_request_loads_the_program_on_the_next_read(
+    one: tuple[IsoCncEmulator, DncServer, ShopStore],
+) -> None:
+    emulator, dnc, store = one
+    await punch(emulator, 9999, "O9999 (LOAD O1234)\n")
+    await until(lambda: dnc.status()["mill1"].activity is Activity.WAITING, "the request")
+    assert dnc.status()["mill1"].pending == "load O1234"
+    await until(lambda: emulator.activity == "idle", "the punch's end")
+    emulator.read()  # the operator presses READ
+    await until(lambda: 1234 in emulator.memory, "O1234 in the control's memory")
+    assert emulator.memory[1234] == BRACKET
+    await until(lambda: dnc.status()["mill1"].activity is Activity.IDLE, "the server idle")
+    assert not emulator.alarms
+    log = "\n".join(store.log_lines("mill1"))
+    assert "request: load O1234" in log
+    assert "O1234.nc: read in" in log
+    assert [k.path.read_text() for k in store.sent("mill1", 1234)] == [BRACKET]
+    assert store.received("mill1") == []  # a request is not a backup
+
+
+async def test_remote_request_drip_feeds_when_marked(
+    one: tuple[IsoCncEmulator, DncServer, ShopStore],
+) -> None:
+    emulator, dnc, _store = one
+    await punch(emulator, 9999, "O9999 (DRIP O5000)\n")
+    await until(lambda: dnc.status()["mill1"].pending == "drip-feed O5000", "the request")
+    await until(lambda: emulator.activity == "idle", "the punch's end")
+    emulator.set_mode(Mode.RMT)
+    emulator.cycle_start()
+    await until(lambda: emulator.runs and emulator.runs[-1].done, "the drip-feed's last block")
+    assert emulator.runs[-1].blocks == 8
+    assert not emulator.alarms
+    await until(lambda: "drip-fed" in dnc.status()["mill1"].last, "the server's record")
+
+
+async def test_a_request_for_a_missing_program_is_refused_and_logged(
+    one: tuple[IsoCncEmulator, DncServer, ShopStore],
+) -> None:
+    emulator, dnc, store = one
+    await punch(emulator, 9999, "O9999 (LOAD O4321)\n")
+    await until(lambda: "refused" in dnc.status()["mill1"].last, "the refusal")
+    assert "no program O4321" in dnc.status()["mill1"].error
+    assert dnc.status()["mill1"].pending == ""
+    await punch_after_idle(emulator, 9999, "O9999 (HELLO)\n")
+    await until(lambda: store.received("mill1", 9999), "the odd request kept")
+    assert "asks for nothing" in "\n".join(store.log_lines("mill1"))
+
+
+async def punch_after_idle(emulator: IsoCncEmulator, number: int, text: str) -> None:
+    await until(lambda: emulator.activity == "idle", "the control idle")
+    await punch(emulator, number, text)
+
+
+async def test_received_programs_are_versions_and_diff_against_what_was_sent(
+    one: tuple[IsoCncEmulator, DncServer, ShopStore],
+) -> None:
+    emulator, dnc, store = one
+    await punch(emulator, 9999, "O9999 (LOAD O1234)\n")
+    await until(lambda: dnc.status()["mill1"].activity is Activity.WAITING, "the request")
+    await until(lambda: emulator.activity == "idle", "the punch's end")
+    emulator.read()
+    await until(lambda: store.sent("mill1", 1234), "O1234 sent")
+    # edited at the machine, punched back twice
+    edited = BRACKET.replace("X10. Y5.", "X12. Y5.")
+    await punch_after_idle(emulator, 1234, edited)
+    await until(lambda: len(store.received("mill1", 1234)) == 1, "the first copy")
+    await punch_after_idle(emulator, 1234, BRACKET)
+    await until(lambda: len(store.received("mill1", 1234)) == 2, "the second copy")
+    first, second = store.received("mill1", 1234)
+    assert first.path != second.path
+    sent = store.sent("mill1", 1234)[-1].path.read_bytes()
+    result = compare(sent, first.path.read_bytes())
+    assert not result.same
+    assert "+G01 X12. Y5." in result.text
+    assert compare(sent, second.path.read_bytes()).same
+
+
+async def test_several_machines_from_one_server(tmp_path: Path) -> None:
+    served = [await control("pty"), await control("socket://127.0.0.1:0"), await control("pty")]
+    links = {f"mill{i}": s.url for i, (_, s) in enumerate(served)}
+    shop = write_shop(tmp_path / "shop", links)
+    dnc = DncServer(load_shop(shop))
+    await dnc.start()
+    try:
+        for i, (emulator, _) in enumerate(served):
+            await punch(emulator, 100 + i, f"O{100 + i:04d} (PART {i})\nG00 X{i}.\nM30\n")
+        store = ShopStore(shop)
+        for i in range(3):
+            await until(lambda i=i: store.received(f"mill{i}", 100 + i), f"mill{i}'s program")
+            (kept,) = store.received(f"mill{i}")
+            assert kept.number == 100 + i
+            assert f"(PART {i})" in kept.path.read_text()
+        assert {s.activity for s in dnc.status().values()} == {Activity.IDLE}
+    finally:
+        await dnc.close()
+        for _, server in served:
+            await server.close()
+
+
+async def test_a_second_opener_of_a_served_link_is_refused(tmp_path: Path) -> None:
+    _emulator, server = await control()
+    shop = write_shop(tmp_path / "shop", {"mill1": server.url})
+    dnc = DncServer(load_shop(shop))
+    await dnc.start()
+    try:
+        other = write_shop(tmp_path / "other", {"again": server.url})
+        second = DncServer(load_shop(other))
+        with pytest.raises(MachineInUse, match="is in use by"):
+            await second.start()
+        assert dnc.status()["mill1"].activity is Activity.IDLE
+    finally:
+        await dnc.close()
+        await server.close()
+    await asyncio.sleep(0)
+
+
+@pytest.mark.parametrize(
+    ("toml", "said"),
+    [
+        ("[machines.m]\n", "link: Field required"),
+        ('[machines.m]\nlink = "loop://"\nspeed = 1\n', "speed: unknown key"),
+        ('[machines.m]\nlink = "loop://"\nline = "fast"\n', "line = 'fast'"),
+        ('[machines.m]\nlink = "loop://"\noptions = { dc3_tolerance = -1 }\n', "dc3_tolerance"),
+        ('[machines.m]\nlink = "loop://"\noptions = { colour = 1 }\n', "colour: unknown option"),
+        ('[machines.m]\nlink = "loop://"\nkind = "dyna2400"\n', "feeds iso-cnc controls"),
+        ('[machines."a b"]\nlink = "loop://"\n', "cannot be a directory name"),
+        ('[machines.a]\nlink = "/dev/x"\n[machines.b]\nlink = "/dev/x"\n', "both on /dev/x"),
+        ('[machines.m]\nlink = "loop://"\nrequest = { program = 0 }\n', "request.program"),
+        ("[dnc]\n", "no [machines.NAME] table"),
+        ("[machines.m\n", "not valid TOML"),
+    ],
+)
+def test_dnc_toml_refusals(tmp_path: Path, toml: str, said: str) -> None:
+    (tmp_path / "dnc.toml").write_text(toml)
+    with pytest.raises(UsageError, match=r"dnc\.toml") as caught:
+        load_shop(tmp_path)
+    assert said in str(caught.value)
+
+
+async def test_status_and_dashboard_through_the_api_on_dnc_listen(tmp_path: Path) -> None:
+    emulator, server = await control("socket://127.0.0.1:0")
+    port = free_port()
+    shop = write_shop(
+        tmp_path / "shop", {"mill1": server.url}, f'\n[dnc]\nlisten = "127.0.0.1:{port}"\n'
+    )
+    stop = asyncio.Event()
+    task = asyncio.create_task(serve_shop(load_shop(shop), stop=stop))
+    try:
+        await until(lambda: (shop / "api-token").exists(), "the API's token")
+        token = (shop / "api-token").read_text().strip()
+
+        def get(path: str, bearer: str) -> tuple[int, bytes]:
+            request = urllib.request.Request(
+                f"http://127.0.0.1:{port}{path}", headers={"Authorization": f"Bearer {bearer}"}
+            )
+            try:
+                with urllib.request.urlopen(request, timeout=10) as answer:
+                    return answer.status, answer.read()
+            except urllib.error.HTTPError as e:
+                return e.code, b""
+
+        async def status() -> dict[str, object]:
+            code, body = await asyncio.to_thread(get, "/api/status", token)
+            assert code == 200
+            machine: dict[str, object] = json.loads(body)["machines"]["mill1"]
+            return machine
+
+        await until(lambda: task.done() or (shop / "api.sock").exists(), "the API listening")
+        machine = await status()
+        assert machine["kind"] == "iso-cnc" and machine["condition"] == "idle"
+        assert (await asyncio.to_thread(get, "/api/status", "x" * 43))[0] == 401
+        code, page = await asyncio.to_thread(get, "/", token)
+        assert code == 200 and b"<html" in page.lower()
+        await punch(emulator, 9999, "O9999 (DRIP O5000)\n")  # no O5000: refused, shown
+        deadline = asyncio.get_running_loop().time() + 30
+        while "no program O5000" not in str((await status()).get("error")):
+            assert asyncio.get_running_loop().time() < deadline, await status()
+            await asyncio.sleep(0.05)
+    finally:
+        stop.set()
+        await task
+        await server.close()
+
+
+def test_machines_from_a_cell(tmp_path: Path) -> None:
+    cell = tmp_path / "cell"
+    cell.mkdir()
+    (cell / "cell.toml").write_text(
+        '[machines.cnc1]\nkind = "dyna2400"\nlink = "loop://a"\n\n'
+        '[machines.haas]\nkind = "iso-cnc"\nlink = "loop://b"\nline = "19200,7E1"\n'
+        "options = { dc3_tolerance = 2 }\n"
+    )
+    shop = load_shop(tmp_path / "shop", cell=cell)
+    assert list(shop.machines) == ["haas"]
+    assert shop.machines["haas"].options.dc3_tolerance == 2
+    assert shop.machines["haas"].settings.baudrate == 19200
+    (cell / "cell.toml").write_text('[machines.cnc1]\nkind = "dyna2400"\nlink = "loop://a"\n')
+    with pytest.raises(UsageError, match="no machine of kind iso-cnc"):
+        load_shop(tmp_path / "shop", cell=cell)
+
+
+_VALUES = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False) | st.text(max_size=20),
+    lambda inner: (
+        st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=10), inner, max_size=3)
+    ),
+    max_leaves=12,
+)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.dictionaries(
+        st.sampled_from(["dnc", "machines", "other"]),
+        st.dictionaries(
+            st.text(max_size=12),
+            st.dictionaries(
+                st.sampled_from(["link", "line", "options", "request", "kind", "x"]), _VALUES
+            )
+            | _VALUES,
+            max_size=3,
+        ),
+        max_size=3,
+    )
+)
+def test_any_dnc_toml_is_a_shop_or_a_refusal(data: dict[str, object]) -> None:
+    path = Path("/nonexistent/dnc.toml")
+    try:
+        shop = parse_dnc_file(data, path.parent, path)
+    except UsageError as e:
+        assert str(path) in str(e)
+    else:
+        assert shop.machines

@@ -121,11 +121,12 @@ class UrEmulator(EmulatedDevice):
         for server in self._servers:
             server.close()
         self.drop()
-        for task in list(self._tasks):
-            task.cancel()
-        for task in list(self._tasks):
-            with contextlib.suppress(BaseException):
-                await task
+        # Aborted connections end their handlers by themselves (a cancelled handler is
+        # logged by asyncio's server as an error); one that lingers is cancelled.
+        if self._tasks:
+            _, lingering = await asyncio.wait(list(self._tasks), timeout=2.0)
+            for task in lingering:
+                task.cancel()
         for server in self._servers:
             with contextlib.suppress(Exception):
                 await server.wait_closed()

@@ -38,7 +38,7 @@ FAULTS: dict[str, str] = {
     "estop": "an emergency stop: the program stops, brakes engage (clear it: the button "
     "released; then close safety popup, brake release)",
     "power_off": "the arm's power goes off: the program stops (power on, brake release)",
-    "never_ends": "a program that never ends: each program keeps playing after its last line",
+    "never_ends": "a program that never ends: each program plays, stuck before its first line",
     "local_mode": "the pendant in local mode: acting commands and scripts are refused",
     "drop": "every connection dropped now (the controller keeps its state)",
 }
@@ -242,11 +242,13 @@ class UrController:
 
     async def _run(self, program: Any) -> None:
         try:
+            # A program that never ends is stuck before its first line (as one waiting for
+            # an input that never comes): nothing of it, its end register included, happens.
+            while "never_ends" in self.faults:
+                await self._take(Sleep(1.0))
             steps: Iterator[Step] = run(program, self, self.arm)
             for step in steps:
                 await self._take(step)
-            while "never_ends" in self.faults:
-                await self._take(Sleep(1.0))
         except ScriptError as e:
             self.messages.append(str(e))
         except asyncio.CancelledError:
@@ -302,15 +304,13 @@ class UrController:
         return f"Loading program: {arg}"
 
     def _cmd_play(self, arg: str) -> str:
-        if (
-            self.loaded is None
-            or self.mode != RobotMode.RUNNING
-            or self.safety not in MOVING_SAFETY
-        ):
+        if self.mode != RobotMode.RUNNING or self.safety not in MOVING_SAFETY:
             return "Failed to execute: play"
         if self.runtime == RuntimeState.PAUSED and self._task is not None:
-            self.runtime = RuntimeState.PLAYING
+            self.runtime = RuntimeState.PLAYING  # a paused program goes on, whoever sent it
             self._resume.set()
+        elif self.loaded is None:
+            return "Failed to execute: play"
         elif self.runtime == RuntimeState.STOPPED:
             self.start_program(self.loaded, self.programs[self.loaded])
         return "Starting program"

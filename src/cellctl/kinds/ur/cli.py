@@ -58,9 +58,10 @@ def emulate_ur(
         ports = await emulator.start(
             host, dashboard=dashboard_port, secondary=secondary_port, rtde_port=rtde_port
         )
+        console.print(f"UR emulator ({model}, time scale {time_scale:g}) on {host}")
         console.print(
-            f"UR emulator ({model}, time scale {time_scale:g}): dashboard {host}:"
-            f"{ports['dashboard']}, secondary {ports['secondary']}, RTDE {ports['rtde']}"
+            f"  ports: dashboard {ports['dashboard']}, secondary {ports['secondary']}, "
+            f"RTDE {ports['rtde']}"
         )
         console.print(f"  drive it with: --link {emulator.dashboard_url}")
         try:

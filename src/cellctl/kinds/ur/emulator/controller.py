@@ -284,9 +284,11 @@ class UrController:
 
     def answer(self, line: str) -> str:
         """The Dashboard Server's answer to one line (its state changed as the line says)."""
+        # What the line names comes back as it came, but never a line break in an answer.
+        line = "".join(c if c.isprintable() else ascii(c)[1:-1] for c in line.strip())
         command, arg = split_command(line)
         if command is None:
-            return NOT_UNDERSTOOD.format(line=line.strip())
+            return NOT_UNDERSTOOD.format(line=line)
         if command.acts and not self.remote and self.version.e_series:
             return LOCAL_MODE_REFUSAL
         handler = getattr(self, "_cmd_" + command.text.replace(" ", "_"), None)

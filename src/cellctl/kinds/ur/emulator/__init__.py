@@ -28,7 +28,7 @@ import contextlib
 import struct
 from typing import Any
 
-from cellctl.emulators.serve import DeviceLine, EmulatedDevice
+from cellctl.emulators.serve import DeviceLine, EmulatedDevice, SelfServed
 from cellctl.errors import ProtocolError
 from cellctl.kinds.ur import rtde
 from cellctl.kinds.ur.dashboard import BANNER, MAX_ANSWER
@@ -85,6 +85,15 @@ class UrEmulator(EmulatedDevice):
             self._servers.append(server)
             self.ports[name] = server.sockets[0].getsockname()[1]
         return dict(self.ports)
+
+    async def listen(self, host: str) -> SelfServed:
+        """Serve the three interfaces on free ports of ``host`` (the emulated cell)."""
+        ports = await self.start(host)
+        options: dict[str, int | float | str] = {
+            "secondary_port": ports["secondary"],
+            "rtde_port": ports["rtde"],
+        }
+        return SelfServed(self.dashboard_url, options, self.close)
 
     @property
     def dashboard_url(self) -> str:

@@ -17,10 +17,12 @@ KIND_PACKAGES = {
     "ibm7545": "src/cellctl/kinds/ibm7545/",
     "ibm7547": "src/cellctl/kinds/ibm7545/",
     "dyna2400": "src/cellctl/kinds/dyna2400/",
+    "iso-cnc": "src/cellctl/kinds/iso_cnc/",
 }
 #: Kinds from outside cellctl (installed into the test environment as plug-ins, see
 #: tests/plugins/): src/ names none of them anywhere.
 PLUGIN_KINDS = ("kerf100",)
+NAMES = [*KIND_PACKAGES, *PLUGIN_KINDS]
 
 
 def test_the_1988_kinds_register_through_the_entry_points() -> None:
@@ -74,7 +76,8 @@ def test_the_drivers_speak_their_family_protocol() -> None:
 
 def test_no_kind_is_named_in_src_outside_its_own_package() -> None:
     found = subprocess.run(
-        ["git", "grep", "-l", "-i", "-E", "|".join([*KIND_PACKAGES, *PLUGIN_KINDS]), "--", "src"],
+        # a kind named with a dash is also found spelt as its package (iso-cnc, iso_cnc)
+        ["git", "grep", "-l", "-i", "-E", "|".join(NAMES).replace("-", "[-_]"), "--", "src"],
         cwd=ROOT,
         capture_output=True,
         text=True,

@@ -220,8 +220,7 @@ class Recovery:
                     self.fit[m.name] = False
                     self._start(m.name)
                     return False
-            if force or not mill.initialized:
-                assert m.setup is not None
+            if m.setup is not None and (force or not mill.initialized):
                 await mill.setup(m.setup, force=True)
                 self.setup_at[m.name] = time.monotonic()
                 self.alarms.log(f"{m.name}: initialized with {m.setup.name}")

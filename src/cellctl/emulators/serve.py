@@ -280,6 +280,12 @@ class DeviceLine:
                 return b""
             await self._wait_data(left)
 
+    @property
+    def last_ready(self) -> float:
+        """Loop time at which the last byte read had crossed the line (the bytes before it
+        in one read crossed a character time apart): when a machine saw each byte."""
+        return self._rx_last_ready
+
     def pending(self) -> bytes:
         """Host bytes received, whether or not through the line yet (not consumed)."""
         return bytes(self._pending)

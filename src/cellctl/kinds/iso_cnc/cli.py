@@ -1,0 +1,152 @@
+"""``cellctl emulate iso-cnc``: serve an emulated ISO-code CNC control.
+
+With ``--panel`` the operator's keys are read from stdin, one a line: ``edit``, ``mem``,
+``rmt`` (the mode), ``read``, ``start`` (CYCLE START), ``punch [N]``, ``reset``, ``list``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import sys
+from pathlib import Path
+
+import click
+
+from cellctl.errors import CellctlError, UsageError
+from cellctl.kinds.iso_cnc import tape
+from cellctl.kinds.iso_cnc.driver import ISO_LINE
+from cellctl.kinds.iso_cnc.emulator import FAULTS, EmulatorOptions, IsoCncEmulator, Mode
+from cellctl.link import LineSettings
+from cellctl.ui.common import console, fault_help, run
+from cellctl.ui.emulate_cli import serve_until_stopped
+
+
+def panel_key(control: IsoCncEmulator, text: str) -> str:
+    """One panel key (see module docstring); what the control shows after it."""
+    words = text.split()
+    key = words[0].lower() if words else ""
+    if key in ("edit", "mem", "rmt"):
+        control.set_mode(Mode(key.upper()))
+    elif key == "read":
+        control.read()
+    elif key == "start":
+        control.cycle_start()
+    elif key == "punch":
+        control.punch(int(words[1].lstrip("Oo")) if len(words) > 1 else None)
+    elif key == "reset":
+        control.reset()
+    elif key != "list":
+        raise UsageError(f"unknown key {key!r}: edit, mem, rmt, read, start, punch [N], reset")
+    programs = " ".join(f"O{n:04d}" for n in sorted(control.memory)) or "(empty)"
+    alarm = f", alarm {control.alarms[-1].code:03d}" if control.activity == "alarm" else ""
+    return f"{control.mode} {control.activity}{alarm}; memory: {programs}"
+
+
+async def _panel(control: IsoCncEmulator) -> None:
+    loop = asyncio.get_running_loop()
+    while True:
+        text = await loop.run_in_executor(None, sys.stdin.readline)
+        if not text:
+            return
+        try:
+            console.print(panel_key(control, text), markup=False)
+        except (CellctlError, ValueError) as e:
+            console.print(f"panel: {e}", markup=False)
+
+
+@click.command(
+    "iso-cnc",
+    help="Emulate an ISO-code CNC control (Fanuc/Haas style RS-232).\n\n" + fault_help(FAULTS),
+)
+@click.option(
+    "--listen",
+    default="pty",
+    show_default=True,
+    help="pty, pty:PATH (symlink), socket://HOST:PORT or rfc2217://HOST:PORT.",
+)
+@click.option(
+    "--time-scale",
+    type=float,
+    default=1.0,
+    show_default=True,
+    help="Machine times divided by this (10 = ten times faster).",
+)
+@click.option("--no-pacing", is_flag=True, help="Move bytes as fast as they come.")
+@click.option("--line", default=ISO_LINE, show_default=True, help="Line settings.")
+@click.option("--fault", multiple=True, metavar="NAME[=ARG]", help="Fault switch (see below).")
+@click.option(
+    "--mode",
+    type=click.Choice([m.value for m in Mode], case_sensitive=False),
+    default="EDIT",
+    show_default=True,
+    help="The mode it starts in.",
+)
+@click.option(
+    "--auto-operator",
+    is_flag=True,
+    help="Press READ (EDIT) or CYCLE START (RMT) whenever it is idle.",
+)
+@click.option(
+    "--buffer-size", type=int, default=256, show_default=True, help="Its reader buffer, characters."
+)
+@click.option(
+    "--tolerance",
+    type=int,
+    default=10,
+    show_default=True,
+    help="Characters it accepts after its DC3.",
+)
+@click.option("--cs-flow", is_flag=True, help="Also drop RTS (the host's CTS) when full.")
+@click.option(
+    "--load",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    multiple=True,
+    help="A program file put into its memory at power on.",
+)
+@click.option("--panel", is_flag=True, help="Play the operator: panel keys from stdin.")
+def emulate_iso_cnc(
+    listen: str,
+    time_scale: float,
+    no_pacing: bool,
+    line: str,
+    fault: tuple[str, ...],
+    mode: str,
+    auto_operator: bool,
+    buffer_size: int,
+    tolerance: int,
+    cs_flow: bool,
+    load: tuple[Path, ...],
+    panel: bool,
+) -> None:
+    from cellctl.emulators.serve import parse_fault
+
+    LineSettings.parse(line)
+
+    async def main() -> None:
+        options = EmulatorOptions(
+            buffer_size=buffer_size,
+            tolerance=tolerance,
+            cs_flow=cs_flow,
+            auto_operator=auto_operator,
+        )
+        control = IsoCncEmulator(options, time_scale=time_scale)
+        control.mode = Mode(mode.upper())
+        for path in load:
+            for program in tape.split_programs(path.read_text(encoding="ascii")):
+                control.memory[program.number] = program.text
+        for text in fault:
+            name, arg = parse_fault(text)
+            control.set_fault(name, arg)
+        keys = asyncio.ensure_future(_panel(control)) if panel else None
+        try:
+            await serve_until_stopped(
+                control, listen, line, not no_pacing, "ISO-code CNC control emulator"
+            )
+        finally:
+            if keys is not None:
+                keys.cancel()
+
+    run(main)
+
+
+__all__ = ["emulate_iso_cnc", "panel_key"]

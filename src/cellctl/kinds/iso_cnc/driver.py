@@ -1,0 +1,704 @@
+"""The iso-cnc driver: a DNC host for an ISO-code CNC control (Fanuc / Haas style) on RS-232,
+and the mill family (:class:`cellctl.kinds.families.Mill`) over it::
+
+    cnc = await IsoCncDriver.connect("rfc2217://10.0.0.7:7001", options=IsoCncOptions())
+    report = await cnc.read_in(Path("O1234.nc").read_bytes(), progress=print)   # into memory
+    report = await cnc.drip_feed(data, progress=print, timeout=3600)  # runs as it comes
+    punched = await cnc.receive(timeout=600)                          # DC2 ... DC4
+
+The line (spec iso-dnc-rs232.md): the control asks with DC1, stops the host with DC3 and
+tolerates ``dc3_tolerance`` characters after it (Fanuc: about 10); an 11th is alarm 087.
+Reading: wait for DC1, send the tape (``leader`` NULs, ``%`` LF, the blocks, ``%``, ``trailer``
+NULs), stop on DC3, go on at DC1, done at the control's DC3 after the closing ``%``. Punch:
+the control sends DC2, the tape, DC4. A control that reports its alarms sends NAK, the number,
+LF: the driver raises :class:`ControlAlarm` with the spec's words and the raw bytes.
+
+How it stays safe over a USB adapter or a device server
+-------------------------------------------------------
+A DC3 reaches the host late: a USB adapter passes received bytes on at its latency timer
+(1-16 ms), a device server adds its network. At 9600 7E2 a character takes 1.15 ms, so at
+16 ms a DC3 arrives 14 characters after the control sent it: no host that only reacts to DC3
+can stay under a tolerance of 10. Two things keep this driver under it:
+
+1. **Nothing queued.** It writes ``burst`` characters at a time and writes the next burst only
+   when its own clock (the line rate from the line settings) says the previous one has all but
+   crossed the wire (``ahead`` characters early, to keep the line busy). What is in flight is
+   its own count, never a buffer in the OS, the adapter or the server: after it hears a DC3,
+   at most ``burst + ahead`` characters it already wrote are still to arrive.
+2. **It knows the control's buffer.** For a drip-feed it runs the control's motion model
+   (:mod:`cellctl.kinds.iso_cnc.motion`, the one the emulator and the estimate use) over
+   the blocks it sends: a block leaves the control's buffer when it starts to execute, at
+   ``max(its arrival, the previous block's end)``. It sends only while the modelled buffer,
+   its characters in flight included, stays ``margin`` characters under the control's
+   high-water mark (``buffer_size - dc3_tolerance`` unless ``high_water`` is set). So the
+   control never has cause to send DC3, and the adapter's delay does not matter. The model
+   is corrected by what the control says: a DC3 means the buffer is fuller than modelled (it
+   is taken as at the high-water mark), a DC1 that it is no fuller than the low-water mark.
+   The DC3 stays obeyed at once, as the backstop. For read-in to memory the control stores
+   as fast as the line brings characters (``store_cps`` = 0) and DC3 comes only at the end.
+
+With ``cs_flow`` the control's RTS (the host's CTS, carried by a serial port or RFC 2217) is
+also obeyed before each burst. Bad input (no such file, a program the G-code check refuses,
+characters a 7-bit tape cannot carry) is refused before a byte goes out.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from cellctl.drivers.base import LinkDriver, StartOutput
+from cellctl.drivers.state import StateStore
+from cellctl.errors import DeviceError, LinkTimeout, ProtocolError, UsageError
+from cellctl.kinds.families import RunProgress
+from cellctl.kinds.iso_cnc import gcode, tape
+from cellctl.kinds.iso_cnc.motion import Machine, MotionModel
+from cellctl.kinds.iso_cnc.status import IsoCncState, IsoCncStatus
+from cellctl.link import LineSettings, Link, TrafficLog
+
+#: The kind's default line: Fanuc's 9600 baud, ISO (7 bits, even parity), 2 stop bits.
+ISO_LINE = "9600,7E2"
+
+
+class IsoCncOptions(BaseModel):
+    """The control's options (``[machines.NAME] options``); baud, parity and stop bits are
+    the machine's ``line`` (default 9600,7E2)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
+
+    code: Literal["ISO"] = "ISO"
+    """Tape code: ISO (EIA may come later)."""
+    dc3_tolerance: int = Field(default=10, ge=0, le=1000)
+    """Characters the control accepts after its DC3 (Fanuc: 10; a CS-only control: 2)."""
+    cs_flow: bool = False
+    """Obey the control's RTS (CS) too: needs a serial port or rfc2217:// (modem lines)."""
+    leader: int = Field(default=20, ge=0, le=10000)
+    """NUL characters sent before the tape."""
+    trailer: int = Field(default=20, ge=0, le=10000)
+    """NUL characters sent after the tape."""
+    percent: bool = True
+    """Frame the tape with ``%`` (start and end of transmission)."""
+    o_digits: int = Field(default=4, ge=1, le=8)
+    """Digits of an O-number the control takes (4 on most Fanuc controls, 8 on newer)."""
+    buffer_size: int = Field(default=256, ge=16, le=1 << 20)
+    """The control's reader buffer, characters (the drip-feed model)."""
+    high_water: int | None = Field(default=None, ge=1)
+    """Where the control sends DC3 (default: buffer_size - dc3_tolerance)."""
+    low_water: int | None = Field(default=None, ge=0)
+    """Where it sends DC1 again (default: buffer_size // 2): corrects the model."""
+    margin: int = Field(default=8, ge=0, le=1000)
+    """Characters kept clear of the high-water mark in the model (its error)."""
+    burst: int = Field(default=4, ge=1, le=4096)
+    """Characters written at a time (what may be in flight after a DC3, with ``ahead``)."""
+    ahead: float = Field(default=2.0, ge=0, le=4096)
+    """Characters of line time a burst is written before the last one has crossed."""
+    store_cps: float = Field(default=0.0, ge=0)
+    """Characters/s the control stores during a read-in (0: as fast as the line)."""
+    rapid_mm_min: float = Field(default=10000.0, gt=0)
+    """The control's rapid traverse, mm/min (the motion model)."""
+    accel_mm_s2: float | None = Field(default=None, gt=0)
+    """The control's acceleration, mm/s² (None: moves at their rate end to end)."""
+    motion_scale: float = Field(default=1.0, gt=0)
+    """The machine runs this many times faster than its motion model (an emulated cell)."""
+    arc_tolerance_mm: float = Field(default=0.01, gt=0, le=10)
+    """Start and end radius of an arc may differ this much (the G-code check)."""
+    dc1_timeout: float = Field(default=120.0, gt=0, le=86400)
+    """Seconds to wait for the control's DC1 (the operator presses READ or CYCLE START)."""
+    stop_timeout: float = Field(default=600.0, gt=0, le=86400)
+    """Seconds a DC3 may hold the host before it gives up (a long block, a feed hold)."""
+    end_margin: float = Field(default=2.0, ge=1, le=100)
+    """A drip-feed may take this many times its modelled time ..."""
+    end_extra: float = Field(default=60.0, ge=0, le=86400)
+    """... plus this many seconds, before the driver gives up on it."""
+    ready_wait: float = Field(default=2.0, gt=0, le=600)
+    """Seconds the control may take to show ready."""
+    setup_timeout: float = Field(default=1800.0, gt=0, le=86400)
+    """Seconds a setup program may take."""
+    go_pulse: float = Field(default=0.5, gt=0, le=10)
+    """Seconds the cycle-start output stays on (a cell's GO) to start a drip-feed."""
+
+    def check_options(self) -> gcode.CheckOptions:
+        return gcode.CheckOptions(o_digits=self.o_digits, arc_tolerance_mm=self.arc_tolerance_mm)
+
+    def motion(self) -> MotionModel:
+        return MotionModel(rapid_mm_min=self.rapid_mm_min, accel_mm_s2=self.accel_mm_s2)
+
+
+class ControlAlarm(DeviceError):
+    """The control raised an alarm (085, 086, 087) and aborted the transfer."""
+
+
+@dataclass
+class TransferProgress:
+    """Where a transfer stands (passed to ``progress`` as it goes)."""
+
+    chars_sent: int
+    chars_total: int
+    chars_per_s: float
+    buffer_stops: int
+    elapsed_s: float
+    eta_s: float
+    phase: str  # "waiting" (for DC1), "sending", "stopped" (DC3), "running", "receiving", "done"
+
+
+@dataclass
+class TransferReport:
+    """A finished transfer: its totals, and the alarm if the control raised one."""
+
+    chars_sent: int
+    chars_total: int
+    chars_per_s: float
+    buffer_stops: int
+    elapsed_s: float
+    alarm: int | None = None
+    stalls_modelled_s: float = 0.0
+
+
+Progress = Callable[[TransferProgress], None]
+
+
+@dataclass
+class _Model:
+    """The control's reader buffer as the host models it (see module docstring, point 2)."""
+
+    drip: bool
+    store_cps: float = 0.0
+    #: blocks not yet written whole: (offset after its LF, seconds it runs), tape order
+    unsent: deque[tuple[int, float]] = field(default_factory=deque)
+    #: blocks written whole, not yet started: (when its LF is through, offset, seconds)
+    waiting: deque[tuple[float, int, float]] = field(default_factory=deque)
+    consumed: int = 0
+    free_at: float = 0.0
+    started: bool = False
+    offset: int = 0
+    idle_s: float = 0.0  # modelled stalls: the axes waiting for a block
+
+    def wrote(self, upto: int, through_at: float) -> None:
+        """Characters up to offset ``upto`` are written; they are through by ``through_at``."""
+        if not self.started and not self.drip:
+            self.started, self.free_at = True, through_at
+        while self.unsent and self.unsent[0][0] <= upto:
+            end, seconds = self.unsent.popleft()
+            self.waiting.append((through_at, end, seconds))
+
+    def level(self, sent: int, now: float) -> int:
+        """Characters in the control's buffer or on their way to it at ``now``."""
+        if not self.drip:
+            if self.store_cps <= 0 or not self.started:
+                return self.offset
+            stored = (now - self.free_at) * self.store_cps
+            return max(0, sent - int(stored)) + self.offset
+        while self.waiting:
+            arrived, end, seconds = self.waiting[0]
+            start = max(arrived, self.free_at) if self.started else arrived
+            if start > now:
+                break
+            if self.started and seconds and arrived > self.free_at:
+                self.idle_s += arrived - self.free_at
+            self.waiting.popleft()
+            self.consumed = end
+            self.free_at = start + seconds
+            self.started = self.started or seconds > 0
+        return max(0, sent - self.consumed + self.offset)
+
+    def next_drain(self) -> float | None:
+        """When the modelled buffer next loses a block (None: nothing to wait for)."""
+        if not self.drip:
+            return None
+        if not self.waiting:
+            return None
+        arrived = self.waiting[0][0]
+        return max(arrived, self.free_at) if self.started else arrived
+
+    def end_time(self) -> float:
+        """When the last block written ends, as modelled."""
+        t = self.free_at
+        for arrived, _end, seconds in self.waiting:
+            t = max(t, arrived) + seconds
+        return t
+
+
+def tape_blocks(data: bytes, model: MotionModel, scale: float) -> list[tuple[int, float]]:
+    """Each LF of a tape with what the control does on reaching it: (offset after the LF,
+    seconds it executes), by the motion model; label and blank lines take 0 s."""
+    machine = Machine(model)
+    out: list[tuple[int, float]] = []
+    pos = 0
+    for number, raw in enumerate(data.split(b"\n")[:-1], 1):
+        pos += len(raw) + 1
+        text = raw.replace(b"\x00", b"").replace(b"\r", b"").decode("latin-1")
+        if "%" in text:
+            out.append((pos, 0.0))
+            continue
+        block = gcode.parse_block(number, text, [])
+        seconds = machine.step(block).seconds / scale if block.words else 0.0
+        out.append((pos, seconds))
+    return out
+
+
+def prepare(data: bytes, options: IsoCncOptions, name: str = "program") -> bytes:
+    """A program file's bytes as the tape that goes on the line; UsageError (every error of
+    the G-code check, with line and column) before a byte goes out."""
+    try:
+        text = data.decode("ascii")
+    except UnicodeDecodeError as e:
+        line = data.count(b"\n", 0, e.start) + 1
+        raise UsageError(f"{name}:{line}: byte 0x{data[e.start]:02X} is not ISO code") from None
+    found = gcode.errors(text, options.check_options())
+    if found:
+        shown = [f.format(name) for f in found[:5]]
+        more = f" (and {len(found) - 5} more)" if len(found) > 5 else ""
+        raise UsageError("; ".join(shown) + more)
+    return tape.frame(text, leader=options.leader, trailer=options.trailer, percent=options.percent)
+
+
+def read_program(path: Path, options: IsoCncOptions) -> bytes:
+    """:func:`prepare` for a file (UsageError if it cannot be read)."""
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise UsageError(f"{path}: cannot read: {e.strerror or e}") from None
+    return prepare(data, options, path.name)
+
+
+class IsoCncDriver(LinkDriver):
+    """One ISO-code control on one link (see module docstring)."""
+
+    def __init__(
+        self,
+        link: Link,
+        *,
+        name: str | None,
+        store: StateStore | None,
+        options: IsoCncOptions,
+        start_output: StartOutput | None = None,
+    ) -> None:
+        saved = self._attach(link, name, store)
+        self.options = options
+        self.start_output = start_output
+        self.state = IsoCncState(int(saved.get("state", IsoCncState.IDLE)))
+        if self.state != IsoCncState.ALARM:
+            self.state = IsoCncState.IDLE  # a transfer does not survive the host
+        self.alarm: int | None = saved.get("alarm")
+        self.initialized = True  # a control keeps its memory: nothing to set up
+        self._stopped = True  # the host sends nothing before the control's DC1
+        self._inbuf = bytearray()
+        self._dc3_seen = 0  # DC3s heard (the end of a read is a DC3)
+        self._last_dc3_at = 0.0
+        self._progress = IsoCncStatus()
+        self._model: _Model | None = None
+        self._sent = 0
+        self._stops = 0
+        self._sending = False  # a DC3 now is flow control, not the end of the read
+        self._lock = asyncio.Lock()
+
+    @classmethod
+    async def connect(
+        cls,
+        url: str,
+        *,
+        name: str | None = None,
+        settings: LineSettings | None = None,
+        store: StateStore | None = None,
+        options: IsoCncOptions | None = None,
+        start_output: StartOutput | None = None,
+        trace: TrafficLog | None = None,
+    ) -> IsoCncDriver:
+        """Open ``url`` and return the driver (the machine's owner locks taken)."""
+        chosen = options or IsoCncOptions()
+        return await cls._connect_owned(
+            url,
+            settings or LineSettings.parse(ISO_LINE),
+            name=name,
+            store=store,
+            trace=trace,
+            build=lambda link: cls(
+                link, name=name, store=store, options=chosen, start_output=start_output
+            ),
+        )
+
+    # -- what the control says ---------------------------------------------------------------
+
+    @property
+    def high_water(self) -> int:
+        o = self.options
+        return o.high_water or o.buffer_size - o.dc3_tolerance
+
+    @property
+    def low_water(self) -> int:
+        o = self.options
+        return o.low_water if o.low_water is not None else o.buffer_size // 2
+
+    def _set(self, state: IsoCncState) -> None:
+        self.state = state
+        self._persist({"state": int(state), "alarm": self.alarm})
+
+    def _handle(self, data: bytes) -> None:
+        """Bytes from the control while the host sends: DC1, DC3 and alarm reports."""
+        self._inbuf += data
+        now = asyncio.get_running_loop().time()
+        while self._inbuf:
+            byte = self._inbuf[0]
+            if byte == tape.NAK[0]:
+                found = tape.parse_alarm(bytes(self._inbuf))
+                if found is None:
+                    return  # the rest of the report is still to come
+                code, used = found
+                raw = bytes(self._inbuf[:used])
+                del self._inbuf[:used]
+                self._raise_alarm(code, raw)
+            del self._inbuf[:1]
+            if byte == tape.Code.DC3:
+                self._stopped = True
+                self._dc3_seen += 1
+                self._last_dc3_at = now
+                model = self._model
+                if model is not None and model.drip and self._sending:
+                    # The control is at its high-water mark: if the model thought it emptier,
+                    # it is behind the control; take its word.
+                    level = model.level(self._sent, now)
+                    model.offset = max(model.offset, self.high_water - (level - model.offset))
+            elif byte == tape.Code.DC1:
+                self._stopped = False
+                model = self._model
+                if model is not None and model.drip and model.offset:
+                    level = model.level(self._sent, now) - model.offset
+                    model.offset = min(model.offset, max(0, self.low_water - level))
+
+    def _raise_alarm(self, code: int, raw: bytes) -> None:
+        words = tape.ALARMS.get(code, "ALARM")
+        self.alarm = code
+        self._progress = IsoCncStatus(IsoCncState.ALARM, alarm=code, alarm_text=words)
+        self._set(IsoCncState.ALARM)
+        meaning = tape.ALARM_MEANINGS.get(code, "the control stopped the transfer")
+        raise ControlAlarm(code, words, detail=f"{meaning} (raw: {raw!r})")
+
+    async def _listen(self, deadline: float, wanted: str) -> None:
+        """Wait for bytes from the control until ``deadline`` (loop time), and handle them."""
+        left = deadline - asyncio.get_running_loop().time()
+        if left <= 0:
+            raise LinkTimeout(f"{self.name}: {wanted}")
+        try:
+            data = await self.link.read(4096, timeout=left)
+        except LinkTimeout:
+            raise LinkTimeout(f"{self.name}: {wanted}") from None
+        self._handle(data)
+
+    async def _wait_dc1(self, timeout: float, what: str) -> None:
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        self._handle(self.link.reset_input())
+        while self._stopped:
+            await self._listen(
+                deadline,
+                f"no DC1 (tape reader start) from the control in {timeout:g} s: {what}",
+            )
+
+    # -- sending --------------------------------------------------------------------------------
+
+    async def _send(
+        self, framed: bytes, model: _Model, phase: str, progress: Progress | None
+    ) -> TransferReport:
+        """Send a tape under flow control (module docstring); returns when the last byte is
+        through the line. The caller waits for the control's end of the read."""
+        o = self.options
+        loop = asyncio.get_running_loop()
+        total = len(framed)
+        began = loop.time()
+        self._stops = 0
+        self._sent = 0
+        self._model = model
+
+        def report(state: str) -> None:
+            if progress is None:
+                return
+            elapsed = loop.time() - began
+            rate = self._sent / elapsed if elapsed > 0 else 0.0
+            eta = (total - self._sent) / rate if rate > 0 else math.inf
+            progress(TransferProgress(self._sent, total, rate, self._stops, elapsed, eta, state))
+
+        report(phase)
+        self._sending = True
+        try:
+            await self._send_all(framed, model, phase, report)
+        finally:
+            self._sending = False
+        elapsed = loop.time() - began
+        report("running" if model.drip else "done")
+        return TransferReport(
+            self._sent,
+            total,
+            self._sent / elapsed if elapsed > 0 else 0.0,
+            self._stops,
+            elapsed,
+            stalls_modelled_s=model.idle_s * o.motion_scale,
+        )
+
+    async def _send_all(
+        self, framed: bytes, model: _Model, phase: str, report: Callable[[str], None]
+    ) -> None:
+        o = self.options
+        loop = asyncio.get_running_loop()
+        char_time = self.link.settings.char_time
+        total = len(framed)
+        limit = max(o.burst, self.high_water - o.margin)
+        wire_free = loop.time()
+        last_report = 0.0
+        while self._sent < total:
+            self._handle(self.link.reset_input())
+            if self._stopped:
+                self._stops += 1
+                report("stopped")
+                deadline = loop.time() + o.stop_timeout
+                while self._stopped:
+                    await self._listen(
+                        deadline, f"the control held the tape with DC3 for {o.stop_timeout:g} s"
+                    )
+                continue
+            now = loop.time()
+            early = wire_free - o.ahead * char_time - now
+            if early > 0:
+                await asyncio.sleep(early)
+                continue
+            n = min(o.burst, total - self._sent)
+            if model.level(self._sent, now) + n > limit:
+                drain = model.next_drain()
+                if drain is not None:
+                    await asyncio.sleep(max(drain - now, char_time))
+                    continue
+            if o.cs_flow and not await self.link.cts():
+                await self.link.wait_cts(True, timeout=o.stop_timeout)
+                continue
+            await self.link.write(framed[self._sent : self._sent + n])
+            wire_free = max(wire_free, now) + n * char_time
+            self._sent += n
+            model.wrote(self._sent, wire_free)
+            self._progress = IsoCncStatus(
+                self.state, self._sent, total, stall_s=model.idle_s * o.motion_scale
+            )
+            if now - last_report >= 0.2:
+                last_report = now
+                report(phase)
+        if wire_free > loop.time():
+            await asyncio.sleep(wire_free - loop.time())
+
+    async def _wait_end(self, deadline: float, model: _Model, seen_before: int) -> None:
+        """Wait for the control's DC3 that ends the read (after the closing ``%``)."""
+        loop = asyncio.get_running_loop()
+        while True:
+            self._handle(self.link.reset_input())
+            if self._dc3_seen > seen_before:
+                level = model.level(self._sent, loop.time())
+                if not model.drip or level <= max(self.low_water, self.options.burst):
+                    return
+                seen_before = self._dc3_seen
+            await self._listen(deadline, "the control did not end the read (no DC3 after %)")
+
+    async def read_in(
+        self, data: bytes, *, progress: Progress | None = None, timeout: float | None = None
+    ) -> TransferReport:
+        """Send a program file into the control's memory (EDIT mode, READ pressed): wait for
+        DC1, send, stop on DC3, go on at DC1; returns at the control's DC3 after ``%``."""
+        framed = prepare(data, self.options, "program")
+        return await self._read(framed, drip=False, progress=progress, timeout=timeout)
+
+    async def drip_feed(
+        self, data: bytes, *, progress: Progress | None = None, timeout: float | None = None
+    ) -> TransferReport:
+        """Run a program as it is sent (RMT mode, CYCLE START): never overflow the control's
+        buffer, never let it starve where the line can keep up; returns when it has ended."""
+        framed = prepare(data, self.options, "program")
+        return await self._read(framed, drip=True, progress=progress, timeout=timeout)
+
+    async def _read(
+        self, framed: bytes, *, drip: bool, progress: Progress | None, timeout: float | None
+    ) -> TransferReport:
+        o = self.options
+        loop = asyncio.get_running_loop()
+        async with self._lock:
+            state = IsoCncState.DRIP_FEEDING if drip else IsoCncState.READING
+            self.alarm = None
+            self._set(state)
+            self._progress = IsoCncStatus(state, 0, len(framed))
+            model = _Model(drip=drip, store_cps=o.store_cps)
+            if drip:
+                model.unsent.extend(tape_blocks(framed, o.motion(), o.motion_scale))
+            try:
+                if progress is not None:
+                    progress(TransferProgress(0, len(framed), 0.0, 0, 0.0, math.inf, "waiting"))
+                self._stopped = True
+                if drip and self.start_output is not None:
+                    await self.start_output.pulse(o.go_pulse)
+                what = "RMT mode and CYCLE START" if drip else "EDIT mode and READ"
+                await self._wait_dc1(timeout or o.dc1_timeout, f"is the control in {what}?")
+                seen = self._dc3_seen
+                began = loop.time()
+                sent = await self._send(framed, model, "sending", progress)
+                left = max(0.0, model.end_time() - loop.time())
+                allowed = left * o.end_margin + o.end_extra + o.ready_wait
+                await self._wait_end(loop.time() + allowed, model, seen)
+                sent.elapsed_s = loop.time() - began
+                sent.stalls_modelled_s = model.idle_s * o.motion_scale
+                if progress is not None:
+                    progress(
+                        TransferProgress(
+                            sent.chars_sent,
+                            sent.chars_total,
+                            sent.chars_per_s,
+                            sent.buffer_stops,
+                            sent.elapsed_s,
+                            0.0,
+                            "done",
+                        )
+                    )
+                self._set(IsoCncState.IDLE)
+                self._progress = IsoCncStatus()
+                return sent
+            except ControlAlarm:
+                raise
+            except BaseException:
+                if self.state != IsoCncState.ALARM:
+                    self._set(IsoCncState.IDLE)
+                raise
+            finally:
+                self._model = None
+
+    async def receive(
+        self,
+        *,
+        progress: Progress | None = None,
+        timeout: float = 600.0,
+        max_bytes: int = 64 * 1024 * 1024,
+    ) -> bytes:
+        """What the control punches (PUNCH pressed): the bytes between DC2 and DC4."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        async with self._lock:
+            self._set(IsoCncState.PUNCHING)
+            try:
+                buf = bytearray(self.link.reset_input())
+                while (start := buf.find(tape.DC2)) < 0:
+                    buf = buf[-1:] if buf[-1:] == tape.NAK else bytearray()
+                    buf += await self._read_some(deadline, "no DC2: PUNCH was not pressed")
+                got = buf[start + 1 :]
+                began = loop.time()
+                while (end := got.find(tape.DC4)) < 0:
+                    if len(got) > max_bytes:
+                        raise ProtocolError(f"{self.name}: punched more than {max_bytes} bytes")
+                    if tape.NAK in got:
+                        i = got.find(tape.NAK)
+                        found = tape.parse_alarm(bytes(got[i:]))
+                        if found is not None:
+                            self._raise_alarm(found[0], bytes(got[i : i + found[1]]))
+                    got += await self._read_some(deadline, "the punch did not end (no DC4)")
+                    if progress is not None:
+                        elapsed = loop.time() - began
+                        rate = len(got) / elapsed if elapsed > 0 else 0.0
+                        progress(
+                            TransferProgress(len(got), 0, rate, 0, elapsed, math.inf, "receiving")
+                        )
+                self._set(IsoCncState.IDLE)
+                return bytes(got[:end])
+            except BaseException:
+                if self.state != IsoCncState.ALARM:
+                    self._set(IsoCncState.IDLE)
+                raise
+
+    async def _read_some(self, deadline: float, wanted: str) -> bytes:
+        left = deadline - asyncio.get_running_loop().time()
+        try:
+            return await self.link.read(65536, timeout=max(left, 0.0))
+        except LinkTimeout:
+            raise LinkTimeout(f"{self.name}: {wanted}") from None
+
+    async def pause(self) -> None:
+        """Stop a punch with DC3 (the control stops within 10 characters)."""
+        await self.link.write(tape.DC3)
+
+    async def resume(self) -> None:
+        """Let a punch go on (DC1)."""
+        await self.link.write(tape.DC1)
+
+    # -- the mill family ----------------------------------------------------------------------
+
+    @property
+    def running(self) -> bool:
+        return self.state == IsoCncState.DRIP_FEEDING
+
+    @property
+    def state_text(self) -> str:
+        return self.host_status().shown
+
+    @property
+    def manual(self) -> bool:
+        return self.state == IsoCncState.IDLE
+
+    @property
+    def ready_wait(self) -> float:
+        return self.options.ready_wait
+
+    @property
+    def setup_timeout(self) -> float:
+        return self.options.setup_timeout
+
+    def host_status(self) -> IsoCncStatus:
+        """The status from the host's state, no byte sent."""
+        if self.state == IsoCncState.IDLE:
+            return IsoCncStatus()
+        if self.state == IsoCncState.ALARM:
+            words = tape.ALARMS.get(self.alarm or 0, "")
+            return IsoCncStatus(IsoCncState.ALARM, alarm=self.alarm, alarm_text=words)
+        return self._progress
+
+    async def status(self) -> IsoCncStatus:
+        """The host's view: a control on RS-232 answers no status request."""
+        return self.host_status()
+
+    async def setup(self, program: Path, *, force: bool) -> None:
+        """Drip-feed the setup program (a warm-up, a probing cycle); forced: clear an alarm
+        the host holds first (the operator has reset the control)."""
+        framed = read_program(program, self.options)
+        if force and self.state == IsoCncState.ALARM:
+            self.alarm = None
+            self._set(IsoCncState.IDLE)
+        await self._read(framed, drip=True, progress=None, timeout=self.options.dc1_timeout)
+
+    async def run(
+        self, program: Path, *, progress: Callable[[RunProgress], None] | None = None
+    ) -> None:
+        """Drip-feed ``program``: the control (RMT) runs it as it comes, to its end."""
+        framed = read_program(program, self.options)
+        lines = framed.count(b"\n")
+
+        def relay(p: TransferProgress) -> None:
+            if progress is None:
+                return
+            block = framed.count(b"\n", 0, p.chars_sent)
+            phase = {"stopped": "sending", "running": "machining"}.get(p.phase, p.phase)
+            progress(RunProgress(block, lines, block, lines, p.chars_sent, p.chars_total, phase))
+
+        await self._read(framed, drip=True, progress=relay, timeout=self.options.dc1_timeout)
+
+    async def end(self) -> str:
+        """Back to the operator's hands (the host forgets an alarm the operator resets)."""
+        self.alarm = None
+        self._set(IsoCncState.IDLE)
+        return "idle"
+
+
+__all__ = [
+    "ControlAlarm",
+    "IsoCncDriver",
+    "IsoCncOptions",
+    "TransferProgress",
+    "TransferReport",
+    "prepare",
+    "read_program",
+]

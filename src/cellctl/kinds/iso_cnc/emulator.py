@@ -1,0 +1,575 @@
+"""An ISO-code CNC control (Fanuc style), emulated: program memory, its RS-232 reader and
+punch with DC1-DC4, drip-feed execution timed by the motion model::
+
+    control = IsoCncEmulator(EmulatorOptions(buffer_size=256, tolerance=10), time_scale=10)
+    server = await serve(control, "rfc2217://127.0.0.1:0", LineSettings.parse("9600,7E2"))
+    control.set_mode(Mode.EDIT); control.read()      # READ: DC1, the tape goes into memory
+    control.memory[1234]                             # "O1234 (PART)\\nG0 X0\\n...M30\\n"
+    control.set_mode(Mode.RMT); control.cycle_start()  # drip-feed: blocks run as they come
+    control.stalls                                   # [Stall(start_s, seconds), ...]
+    control.punch(1234)                              # DC2, leader, %, O1234..., %, trailer, DC4
+
+Flow control as the spec has it: DC1 when it wants data; DC3 once its buffer holds
+``high_water`` characters; DC1 again at ``low_water``. It counts what arrives after each DC3
+and raises alarm 087 past ``tolerance``. With ``cs_flow`` it also drops RTS (the host's CTS)
+at the high-water mark. ``adapter_latency_ms`` holds each DC1/DC3 (and RTS change) back that
+long before the host sees it, as a USB serial adapter does; the characters after the DC3 are
+counted from the moment the control sent it.
+
+An alarm stops the transfer and is reported the way a remote-buffer interface does: NAK,
+then the alarm number (three digits) and LF (``\\x15087\\n``); the control stays in ALARM until
+``reset()``. The alarms are in :data:`ALARMS`. Machine times (motion, the adapter's delay) are
+divided by ``time_scale``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import enum
+import random
+from collections import deque
+from collections.abc import Callable, Coroutine
+from dataclasses import dataclass, field
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
+from cellctl.errors import LinkClosed, LinkError, UsageError
+from cellctl.kinds.iso_cnc import tape
+from cellctl.kinds.iso_cnc.gcode import PROGRAM_ENDS, Block, parse_block
+from cellctl.kinds.iso_cnc.motion import Machine, MotionModel
+from cellctl.kinds.iso_cnc.tape import ALARMS, DC1, DC2, DC3, DC4, alarm_report
+
+#: How much of its own scheduling delay a reply takes back (as the line's pacing does).
+_CATCH_UP_S = 0.005
+
+FAULTS = {
+    "adapter-latency": "=MS: its DC3/DC1 reach the host MS milliseconds late (a USB adapter)",
+    "parity-noise": "=RATE: each received character has a parity error with probability RATE "
+    "(alarm 085)",
+    "dr-off": "DR (DSR) off: a transfer raises alarm 086",
+    "never-dc1": "it never sends DC1 (the host waits for ever)",
+    "tolerance-2": "it tolerates 2 characters after DC3 (a CS-only control)",
+    "noise": "=RATE[,SEED]: every byte, each way, flipped in one bit or dropped with "
+    "probability RATE",
+}
+
+
+class Mode(enum.StrEnum):
+    EDIT = "EDIT"
+    """READ puts the tape into memory."""
+    MEM = "MEM"
+    """CYCLE START runs the selected program from memory."""
+    RMT = "RMT"
+    """CYCLE START runs the tape as it comes (drip-feed)."""
+
+
+class Activity(enum.StrEnum):
+    IDLE = "idle"
+    READING = "reading"
+    RUNNING = "running"
+    PUNCHING = "punching"
+    ALARM = "alarm"
+
+
+class EmulatorOptions(BaseModel):
+    """The emulated control's parameters and fault switches."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
+
+    buffer_size: int = Field(default=256, ge=16, le=1 << 20)
+    """Characters its reader buffer holds."""
+    high_water: int | None = Field(default=None, ge=1)
+    """DC3 when the buffer holds this many (default: buffer_size - tolerance)."""
+    low_water: int | None = Field(default=None, ge=0)
+    """DC1 again when it has drained to this many (default: buffer_size // 2)."""
+    tolerance: int = Field(default=10, ge=0, le=1000)
+    """Characters accepted after its DC3; one more is alarm 087."""
+    cs_flow: bool = False
+    """It also drops RTS (the host's CTS) at the high-water mark."""
+    adapter_latency_ms: float = Field(default=0.0, ge=0, le=10000)
+    """Its DC3/DC1 reach the host this late (machine ms: divided by the time scale)."""
+    parity_noise: float = Field(default=0.0, ge=0, le=1)
+    """Probability of a parity error on each character received (alarm 085)."""
+    dr_off: bool = False
+    """DR (DSR) is off: a transfer raises alarm 086."""
+    never_dc1: bool = False
+    """It never sends DC1."""
+    auto_operator: bool = False
+    """READ (EDIT) or CYCLE START (RMT) is pressed again whenever the control is idle."""
+    rapid_mm_min: float = Field(default=10000.0, gt=0)
+    """Rapid traverse, mm/min (its motion model)."""
+    accel_mm_s2: float | None = Field(default=None, gt=0)
+    """Acceleration, mm/s² (None: moves run at their rate from end to end)."""
+    punch_leader: int = Field(default=20, ge=0, le=1000)
+    """NUL characters it punches before and after the programs."""
+    seed: int | None = None
+    """Seed for the parity noise (None: random)."""
+
+    def motion(self) -> MotionModel:
+        return MotionModel(rapid_mm_min=self.rapid_mm_min, accel_mm_s2=self.accel_mm_s2)
+
+
+@dataclass(frozen=True)
+class Stall:
+    """The axes stopped waiting for data: from ``start_s`` (machine s since the run began)."""
+
+    start_s: float
+    seconds: float
+
+
+@dataclass(frozen=True)
+class Alarm:
+    code: int
+    text: str
+    detail: str = ""
+
+
+@dataclass
+class DripRun:
+    """One drip-feed or memory run: blocks executed, machine seconds, its stalls."""
+
+    number: int = 0
+    blocks: int = 0
+    machine_s: float = 0.0
+    stalls: list[Stall] = field(default_factory=list)
+    done: bool = False
+
+    @property
+    def stall_s(self) -> float:
+        return sum(s.seconds for s in self.stalls)
+
+
+class IsoCncEmulator(EmulatedDevice):
+    """One emulated control (see module docstring)."""
+
+    def __init__(self, options: EmulatorOptions | None = None, *, time_scale: float = 1.0) -> None:
+        if time_scale <= 0:
+            raise UsageError(f"time scale must be positive, not {time_scale}")
+        self.options = options or EmulatorOptions()
+        self.time_scale = time_scale
+        self.memory: dict[int, str] = {}
+        self.mode = Mode.EDIT
+        self.activity = Activity.IDLE
+        self.selected = 0
+        self.alarms: list[Alarm] = []
+        self.runs: list[DripRun] = []
+        self.run_hooks: list[Callable[[DripRun], None]] = []
+        self.overflow_chars = 0  # the most characters received after one DC3
+        self.dc3_sent = 0
+        self.chars_read = 0
+        self.faults: set[str] = set()
+        self._latency_ms = self.options.adapter_latency_ms
+        self._tolerance = self.options.tolerance
+        self._rng = random.Random(self.options.seed)
+        self._parity_rate = self.options.parity_noise
+        self._line: DeviceLine | None = None
+        self._buffer = bytearray()
+        self._lf_at: deque[float] = deque()  # when each LF in the buffer came through the line
+        self._stopped = False  # a DC3 is out: counting what comes after it
+        self._after_dc3 = 0
+        self._dc3_at = 0.0
+        self._arrived = 0.0
+        self._tape = bytearray()  # what a read-in has taken so far
+        self._run: DripRun | None = None
+        self._machine: Machine | None = None
+        self._block_ready = asyncio.Event()
+        self._exec_task: asyncio.Task[None] | None = None
+        self._punch_task: asyncio.Task[None] | None = None
+        self._punch_go = asyncio.Event()
+        self._punch_go.set()
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._started_tape = False
+        self._percents = 0
+        self._line_start = 0
+        if self.options.dr_off:
+            self.faults.add("dr-off")
+        if self.options.never_dc1:
+            self.faults.add("never-dc1")
+
+    # -- options and faults --------------------------------------------------------------------
+
+    @property
+    def high_water(self) -> int:
+        return self.options.high_water or self.options.buffer_size - self._tolerance
+
+    @property
+    def low_water(self) -> int:
+        if self.options.low_water is not None:
+            return self.options.low_water
+        return self.options.buffer_size // 2
+
+    @property
+    def tolerance(self) -> int:
+        return self._tolerance
+
+    def set_fault(self, name: str, arg: str | None = None) -> None:
+        """Switch a fault on (names in :data:`FAULTS`)."""
+        if name not in FAULTS:
+            raise UsageError(f"unknown fault {name!r}; known: {', '.join(FAULTS)}")
+        try:
+            if name == "adapter-latency":
+                self._latency_ms = float(arg or "16")
+            elif name == "parity-noise":
+                self._parity_rate = float(arg or "0.01")
+            elif name == "noise":
+                self.noise = LineNoise.parse(arg)
+            elif name == "tolerance-2":
+                self._tolerance = 2
+        except ValueError:
+            raise UsageError(f"fault {name}: {arg!r} is not a number") from None
+        self.faults.add(name)
+        if name == "dr-off" and self.activity in (Activity.READING, Activity.PUNCHING):
+            self._alarm(86)
+
+    def clear_fault(self, name: str) -> None:
+        self.faults.discard(name)
+        if name == "adapter-latency":
+            self._latency_ms = self.options.adapter_latency_ms
+        elif name == "parity-noise":
+            self._parity_rate = self.options.parity_noise
+        elif name == "noise":
+            self.noise = None
+        elif name == "tolerance-2":
+            self._tolerance = self.options.tolerance
+
+    # -- the panel -----------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Power on: an auto-operated control goes straight to RMT and waits for CYCLE START."""
+
+    def set_mode(self, mode: Mode | str) -> None:
+        """The mode switch: it ends a read or punch under way (an alarm stays)."""
+        self.mode = Mode(mode)
+        if self.activity != Activity.ALARM:
+            self._end_transfer()
+            self.activity = Activity.IDLE
+            self._auto()
+
+    def reset(self) -> None:
+        """RESET: clears an alarm and stops whatever runs."""
+        self._end_transfer()
+        self.activity = Activity.IDLE
+        if self._line is not None:
+            self._line.set_rts(True)
+        self._auto()
+
+    def read(self) -> None:
+        """READ (EDIT mode): ask for a tape into memory."""
+        if self.mode != Mode.EDIT:
+            raise UsageError(f"READ reads into memory in EDIT mode, not {self.mode}")
+        self._begin_read()
+
+    def cycle_start(self) -> None:
+        """CYCLE START: RMT runs the tape as it comes; MEM runs the selected program."""
+        if self.activity == Activity.ALARM or self.activity != Activity.IDLE:
+            return
+        if self.mode == Mode.RMT:
+            self._begin_read()
+        elif self.mode == Mode.MEM and self.selected in self.memory:
+            run = self._new_run(self.selected)
+            self.activity = Activity.RUNNING
+            self._exec_task = asyncio.ensure_future(self._run_memory(run))
+
+    def punch(self, number: int | None = None) -> None:
+        """PUNCH (EDIT mode): send program ``number`` (all of memory: None) to the host."""
+        if self.activity != Activity.IDLE:
+            raise UsageError(f"the control is {self.activity}: PUNCH waits")
+        chosen = sorted(self.memory) if number is None else [number]
+        missing = [n for n in chosen if n not in self.memory]
+        if missing or not chosen:
+            raise UsageError(f"no program O{missing[0] if missing else ''} in memory")
+        text = "".join(self.memory[n] for n in chosen)
+        lead = self.options.punch_leader
+        data = DC2 + tape.frame(text, leader=lead, trailer=lead, percent=True) + DC4
+        self.activity = Activity.PUNCHING
+        self._punch_go.set()
+        self._punch_task = asyncio.ensure_future(self._punch(data))
+
+    def _auto(self) -> None:
+        if not self.options.auto_operator or self.activity != Activity.IDLE:
+            return
+        if self._line is None or self._line.closed:
+            return
+        if self.mode == Mode.EDIT:
+            self._begin_read()
+        elif self.mode == Mode.RMT:
+            self.cycle_start()
+
+    # -- reading -------------------------------------------------------------------------------
+
+    def _begin_read(self) -> None:
+        if self.activity != Activity.IDLE:
+            return
+        self.activity = Activity.READING
+        self._buffer.clear()
+        self._lf_at.clear()
+        self._tape.clear()
+        self._stopped = False
+        self._after_dc3 = 0
+        self._started_tape = False
+        self._percents = self._line_start = 0
+        if "dr-off" in self.faults:
+            self._alarm(86)
+            return
+        if self.mode == Mode.RMT:
+            run = self._new_run(0)
+            self._machine = Machine(self.options.motion())
+            self._exec_task = asyncio.ensure_future(self._execute(run))
+        if "never-dc1" not in self.faults:
+            self._signal(DC1, rts=True)
+
+    def _new_run(self, number: int) -> DripRun:
+        run = DripRun(number)
+        self._run = run
+        self.runs.append(run)
+        for hook in list(self.run_hooks):
+            hook(run)
+        return run
+
+    def _signal(self, code: bytes, *, rts: bool | None = None) -> None:
+        """Send DC1/DC3 (and RTS with CS flow) through the adapter's delay."""
+        line = self._line
+        if line is None or line.closed:
+            return
+        delay = self._latency_ms / 1000.0 / self.time_scale
+
+        def send() -> None:
+            if line.closed:
+                return
+            if rts is not None and self.options.cs_flow:
+                line.set_rts(rts)
+            self._spawn(line.write(code))
+
+        if delay > 0:
+            asyncio.get_running_loop().call_later(delay, send)
+        else:
+            send()
+
+    def _take(self, data: bytes, line: DeviceLine) -> None:
+        """Characters through the line while reading, each at the time it crossed."""
+        char_time = line.settings.char_time if line.pacing else 0.0
+        last = line.last_ready
+        n = len(data)
+        for j, byte in enumerate(data):
+            if self._stopped and last - (n - 1 - j) * char_time > self._dc3_at:
+                self._after_dc3 += 1
+                self.overflow_chars = max(self.overflow_chars, self._after_dc3)
+                if self._after_dc3 > self._tolerance:
+                    self._alarm(87, f"{self._after_dc3} characters after DC3")
+                    return
+            if self._parity_rate and self._rng.random() < self._parity_rate:
+                self._alarm(85, f"parity error on 0x{byte:02X}")
+                return
+            if byte & 0x80:
+                self._alarm(85, f"0x{byte:02X} is not a 7-bit ISO character")
+                return
+            self.chars_read += 1
+            if self.mode == Mode.EDIT:
+                self._tape.append(byte)
+                if self._tape_ends(byte):
+                    self._store()
+                    return
+                continue
+            self._buffer.append(byte)
+            if byte == 0x0A:
+                self._lf_at.append(last - (n - 1 - j) * char_time)
+            if not self._stopped and len(self._buffer) >= self.high_water:
+                at = last - (n - 1 - j) * char_time
+                self._send_dc3(max(at, asyncio.get_running_loop().time() - _CATCH_UP_S))
+        if self.mode != Mode.EDIT:
+            self._block_ready.set()
+
+    def _send_dc3(self, at: float) -> None:
+        self._dc3_at = at
+        self._stopped = True
+        self._after_dc3 = 0
+        self.dc3_sent += 1
+        self._signal(DC3, rts=False)
+
+    def _tape_ends(self, byte: int) -> bool:
+        """Whether ``byte`` (just appended to the tape) ends it: the closing %, or without %
+        framing the end of a block that ends the program (M02, M30, M99)."""
+        if byte == 0x25:
+            self._percents += 1
+            return self._percents == 2
+        if byte != 0x0A:
+            return False
+        start = self._line_start
+        self._line_start = len(self._tape)
+        if self._percents:
+            return False
+        text = self._tape[start:].decode("latin-1").rstrip("\r\n\x00")
+        return bool(PROGRAM_ENDS & set(parse_block(0, text, []).m_codes))
+
+    def _store(self) -> None:
+        """The tape is in: its programs into memory by O-number; DC3 and out of the read."""
+        text = tape.unframe(bytes(self._tape))
+        for program in tape.split_programs(text):
+            self.memory[program.number] = program.text
+            self.selected = program.number
+        self._finish_read()
+
+    def _finish_read(self) -> None:
+        self._send_dc3(asyncio.get_running_loop().time())
+        self._stopped = False
+        self.activity = Activity.IDLE
+        loop = asyncio.get_running_loop()
+        loop.call_later(0.05, self._auto)
+
+    # -- execution -----------------------------------------------------------------------------
+
+    def _next_block(self) -> bytes | None:
+        i = self._buffer.find(b"\n")
+        if i < 0:
+            if self._buffer.rstrip(b"\x00\r") == b"%" and self._started_tape:
+                self._buffer.clear()
+                return b"%"
+            return None
+        raw = bytes(self._buffer[: i + 1])
+        del self._buffer[: i + 1]
+        self._arrived = self._lf_at.popleft() if self._lf_at else 0.0
+        if self._stopped and len(self._buffer) <= self.low_water:
+            self._stopped = False
+            self._signal(DC1, rts=True)
+        return raw
+
+    async def _execute(self, run: DripRun) -> None:
+        """Run blocks as they come; every wait for one after the first is a stall."""
+        loop = asyncio.get_running_loop()
+        began = loop.time()
+        machine = self._machine or Machine(self.options.motion())
+        # Each block ends a fixed time after it began (wall time), so the sleeps' own delays
+        # do not add up over a long program: the axes run on the machine's clock.
+        free_at = began
+        while self.activity == Activity.READING:
+            raw = self._next_block()
+            if raw is None:
+                self._block_ready.clear()
+                await self._block_ready.wait()
+                continue
+            text = raw.replace(b"\x00", b"").replace(b"\r", b"").decode("latin-1")
+            if "%" in text:
+                if self._started_tape:
+                    break  # the closing %
+                self._started_tape = True  # label skip: the rest of this line is not read
+                continue
+            if not self._started_tape and not text.strip():
+                continue
+            self._started_tape = True
+            block = parse_block(run.blocks + 1, text.rstrip("\n"), [])
+            if not block.words:
+                continue
+            arrived = min(self._arrived, loop.time()) or loop.time()
+            if run.blocks and arrived > free_at:
+                # The axes stopped at free_at and waited for this block: a stall.
+                run.stalls.append(
+                    Stall(
+                        (free_at - began) * self.time_scale, (arrived - free_at) * self.time_scale
+                    )
+                )
+            start = max(arrived, free_at) if run.blocks else arrived
+            seconds = machine.step(block).seconds
+            run.blocks += 1
+            run.machine_s += seconds
+            free_at = start + seconds / self.time_scale
+            if free_at > loop.time():
+                await asyncio.sleep(free_at - loop.time())
+            if PROGRAM_ENDS & set(block.m_codes):
+                break
+        if self.activity == Activity.READING:
+            run.done = True
+            self._finish_read()
+
+    async def _run_memory(self, run: DripRun) -> None:
+        machine = Machine(self.options.motion())
+        for n, line in enumerate(self.memory.get(run.number, "").splitlines(), 1):
+            block = parse_block(n, line, [])
+            seconds = machine.step(block).seconds if block.words else 0.0
+            run.blocks += 1 if block.words else 0
+            run.machine_s += seconds
+            await asyncio.sleep(seconds / self.time_scale)
+        run.done = True
+        if self.activity == Activity.RUNNING:
+            self.activity = Activity.IDLE
+
+    @property
+    def stalls(self) -> list[Stall]:
+        """Every stall of every drip-feed run, in order."""
+        return [s for r in self.runs for s in r.stalls]
+
+    # -- punching ------------------------------------------------------------------------------
+
+    async def _punch(self, data: bytes) -> None:
+        line = self._line
+        try:
+            if line is None or "dr-off" in self.faults:
+                self._alarm(86)
+                return
+            step = 4  # it stops within a few characters of a DC3 (the spec allows 10)
+            for i in range(0, len(data), step):
+                await self._punch_go.wait()
+                if self.activity != Activity.PUNCHING:
+                    return
+                await line.write(data[i : i + step])
+                await line.drain()
+            self.activity = Activity.IDLE
+        except (LinkClosed, LinkError):
+            self.activity = Activity.IDLE
+
+    # -- alarms and the line -------------------------------------------------------------------
+
+    def _alarm(self, code: int, detail: str = "") -> None:
+        self.alarms.append(Alarm(code, ALARMS[code], detail))
+        self._end_transfer()
+        self.activity = Activity.ALARM
+        line = self._line
+        if line is not None and not line.closed:
+            self._spawn(line.write(alarm_report(code)))
+
+    def _spawn(self, coro: Coroutine[object, object, None]) -> None:
+        task = asyncio.ensure_future(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    def _end_transfer(self) -> None:
+        for task in (self._exec_task, self._punch_task):
+            if task is not None and task is not asyncio.current_task():
+                task.cancel()
+        self._exec_task = self._punch_task = None
+        self._stopped = False
+        self._buffer.clear()
+        self._lf_at.clear()
+
+    async def session(self, line: DeviceLine) -> None:
+        """Serve one host: read what it sends and act by what the control is doing."""
+        self._line = line
+        line.set_rts(True)
+        self._auto()
+        with contextlib.suppress(LinkClosed, LinkError):
+            while True:
+                data = await line.read()
+                if not data:
+                    continue
+                if self.activity == Activity.READING:
+                    self._take(data, line)
+                elif self.activity == Activity.PUNCHING:
+                    for byte in data:
+                        if byte == tape.Code.DC3:
+                            self._punch_go.clear()
+                        elif byte == tape.Code.DC1:
+                            self._punch_go.set()
+        if self._line is line:
+            self._line = None
+            if self.activity in (Activity.READING, Activity.PUNCHING):
+                self._end_transfer()
+                self.activity = Activity.IDLE
+
+    def line_changed(self, line: DeviceLine) -> None:
+        """New line settings from the host (RFC 2217): nothing to do, pacing follows."""
+
+
+def block_of(raw: bytes, number: int = 0) -> Block:
+    """One received block, parsed (for the execution and for tests)."""
+    return parse_block(number, raw.decode("latin-1").rstrip("\r\n"), [])

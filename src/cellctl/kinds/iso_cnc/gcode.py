@@ -1,0 +1,476 @@
+"""The G-code check (RS-274, Fanuc M-series dialect), no I/O::
+
+    found = check(text, CheckOptions(o_digits=4))
+    for f in found:
+        print(f.format("O1234.nc"))      # O1234.nc:12:5: G02 and G03 in one block (group 1)
+    for block in blocks(text):           # what motion.py and the preview run on
+        block.line, block.get("X"), block.g_codes
+
+Why a table of words and not a PyPI parser: the candidates installable here are ``pygcode``
+(0.2.1, last released 2017: LinuxCNC's dialect, no O-number or ``%`` framing, no column in its
+errors), ``gcodeparser`` (0.3.0: splits a line into a command and its parameters, for 3-D
+printers; no modal groups, ranges or arcs) and ``gcode-lib`` (3-D printer files). None checks
+Fanuc's words, ranges and groups with a line and a column, so the dialect is the two tables
+below (:data:`WORDS`, :data:`G_GROUPS`), one place for each fact, read by the check and by
+the motion model.
+
+What is checked: every character is a word (letter + number), a comment ``( )`` (Fanuc's do
+not nest: a ``(`` inside one is an error, as is one left open at the end of its block) or
+``;`` to the end of the line; each word's range and whether it must be whole; a letter given
+twice in a block; two G codes of one modal group (or two M codes of one group) in a block;
+arcs (I/J/K or R, not both; the start and end radii agree within ``arc_tolerance_mm``; R no
+shorter than half the chord); G01/G02/G03 before any F; the O-number (present, within
+``o_digits``) and ``%`` framing (only as a line of its own, at the start and end).
+
+Hostile input stays bounded: a text over ``max_bytes`` is refused whole, a block over
+``max_block`` characters is refused and not parsed, at most ``max_findings`` are returned (the
+last says how many more), and :func:`check` keeps one block at a time.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+@dataclass(frozen=True)
+class WordRule:
+    """One address letter: what it means, its range, and whether it is a whole number."""
+
+    meaning: str
+    low: float
+    high: float
+    whole: bool = False
+
+
+_AXIS = 99999.999
+#: The address letters a Fanuc M-series control reads (mm; inch programs are smaller).
+WORDS: dict[str, WordRule] = {
+    "A": WordRule("rotary axis about X, deg", -_AXIS, _AXIS),
+    "B": WordRule("rotary axis about Y, deg", -_AXIS, _AXIS),
+    "C": WordRule("rotary axis about Z, deg", -_AXIS, _AXIS),
+    "D": WordRule("cutter radius offset number", 0, 400, True),
+    "E": WordRule("thread lead", 0, _AXIS),
+    "F": WordRule("feed, mm/min (G94) or mm/rev (G95)", 0, 240000),
+    "G": WordRule("preparatory function", 0, 999.9),
+    "H": WordRule("tool length offset number", 0, 400, True),
+    "I": WordRule("arc centre X offset", -_AXIS, _AXIS),
+    "J": WordRule("arc centre Y offset", -_AXIS, _AXIS),
+    "K": WordRule("arc centre Z offset", -_AXIS, _AXIS),
+    "L": WordRule("repeat count", 0, 9999, True),
+    "M": WordRule("miscellaneous function", 0, 999, True),
+    "N": WordRule("sequence number", 0, 99999, True),
+    "O": WordRule("program number", 1, 99999999, True),
+    "P": WordRule("dwell (ms) or subprogram number", 0, 99999999),
+    "Q": WordRule("peck depth", -_AXIS, _AXIS),
+    "R": WordRule("arc radius or R plane", -_AXIS, _AXIS),
+    "S": WordRule("spindle speed, rpm", 0, 99999),
+    "T": WordRule("tool number", 0, 99999999, True),
+    "U": WordRule("additional axis parallel to X", -_AXIS, _AXIS),
+    "V": WordRule("additional axis parallel to Y", -_AXIS, _AXIS),
+    "W": WordRule("additional axis parallel to Z", -_AXIS, _AXIS),
+    "X": WordRule("X axis", -_AXIS, _AXIS),
+    "Y": WordRule("Y axis", -_AXIS, _AXIS),
+    "Z": WordRule("Z axis", -_AXIS, _AXIS),
+}
+
+#: G code -> its group (Fanuc M series; 0 is one-shot). Codes not here are refused.
+G_GROUPS: dict[float, int] = {
+    **dict.fromkeys((4, 9, 10, 11, 27, 28, 29, 30, 31, 52, 53, 92), 0),
+    **dict.fromkeys((0, 1, 2, 3, 33), 1),
+    **dict.fromkeys((17, 18, 19), 2),
+    **dict.fromkeys((90, 91), 3),
+    **dict.fromkeys((94, 95), 5),
+    **dict.fromkeys((20, 21), 6),
+    **dict.fromkeys((40, 41, 42), 7),
+    **dict.fromkeys((43, 44, 49), 8),
+    **dict.fromkeys((73, 74, 76, 80, 81, 82, 83, 84, 85, 86, 87, 88, 89), 9),
+    **dict.fromkeys((98, 99), 10),
+    **dict.fromkeys((66, 67), 12),
+    **dict.fromkeys((54, 55, 56, 57, 58, 59), 14),
+    **dict.fromkeys((61, 62, 63, 64), 15),
+    **dict.fromkeys((68, 69), 16),
+    **dict.fromkeys((15, 16), 17),
+    **dict.fromkeys((50, 51), 11),
+}
+#: M code -> its group: two of one group in a block is an error (others pass unchecked).
+M_GROUPS: dict[int, str] = {
+    **dict.fromkeys((0, 1, 2, 30, 60, 98, 99), "program stop"),
+    **dict.fromkeys((3, 4, 5, 19), "spindle"),
+    **dict.fromkeys((7, 9), "coolant"),
+}
+#: Codes that end a program.
+PROGRAM_ENDS = frozenset({2, 30, 99})
+ARCS = (2.0, 3.0)
+FEED_MOVES = (1.0, 2.0, 3.0)
+
+
+class CheckOptions(BaseModel):
+    """What the check takes from the machine's options."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    o_digits: int = Field(default=4, ge=1, le=8)
+    arc_tolerance_mm: float = Field(default=0.01, gt=0, le=10)
+    max_bytes: int = Field(default=32 * 1024 * 1024, gt=0)
+    max_block: int = Field(default=256, gt=0, le=4096)
+    max_findings: int = Field(default=100, gt=0)
+
+
+@dataclass(frozen=True, slots=True)
+class Finding:
+    """One problem, at a line and column (1-based; column 0: the whole line or file)."""
+
+    line: int
+    column: int
+    message: str
+    error: bool = True
+
+    def format(self, name: str) -> str:
+        where = f"{name}:{self.line}" + (f":{self.column}" if self.column else "")
+        return f"{where}: {'' if self.error else 'warning: '}{self.message}"
+
+
+@dataclass(frozen=True, slots=True)
+class Word:
+    letter: str
+    value: float
+    column: int
+    text: str
+
+
+@dataclass(frozen=True, slots=True)
+class Block:
+    """One block (a line) of a program: its words in order, its comment, its line number."""
+
+    line: int
+    words: tuple[Word, ...] = ()
+    comment: str = ""
+    percent: bool = False
+    """The line is a ``%`` (tape start or end)."""
+
+    def get(self, letter: str) -> float | None:
+        for w in self.words:
+            if w.letter == letter:
+                return w.value
+        return None
+
+    def has(self, letter: str) -> bool:
+        return any(w.letter == letter for w in self.words)
+
+    @property
+    def g_codes(self) -> list[float]:
+        return [w.value for w in self.words if w.letter == "G"]
+
+    @property
+    def m_codes(self) -> list[int]:
+        return [int(w.value) for w in self.words if w.letter == "M"]
+
+
+_TOKEN = re.compile(r"[ \t]+|([A-Za-z])[ \t]*([+-]?(?:\d+\.?\d*|\.\d+))|([A-Za-z])")
+_NUMBER_TEXT = re.compile(r"[+-]?\d*\.?\d*")
+
+
+def parse_block(number: int, line: str, found: list[Finding]) -> Block:
+    """One line as a block; every character that is not part of one is a finding."""
+    words: list[Word] = []
+    comment: list[str] = []
+    i, n = 0, len(line)
+    if line.strip() == "%":
+        return Block(number, percent=True)
+    if line.startswith("/"):  # block delete: the block is still checked
+        i = 1
+    while i < n:
+        c = line[i]
+        if c == "(":
+            end = line.find(")", i + 1)
+            inner = line[i + 1 : end if end >= 0 else n]
+            nested = inner.find("(")
+            if nested >= 0:
+                found.append(
+                    Finding(number, i + 2 + nested, "( inside a comment (they do not nest)")
+                )
+            if end < 0:
+                found.append(Finding(number, i + 1, "comment not closed in its block"))
+                break
+            comment.append(inner)
+            i = end + 1
+            continue
+        if c == ";":
+            comment.append(line[i + 1 :])
+            break
+        if c == ")":
+            found.append(Finding(number, i + 1, ") without its ("))
+            i += 1
+            continue
+        m = _TOKEN.match(line, i)
+        if m is None:
+            shown = repr(c) if c.isprintable() and c.isascii() else f"byte 0x{ord(c):02X}"
+            found.append(Finding(number, i + 1, f"{shown} is not part of a word"))
+            i += 1
+            continue
+        if m.group(3) is not None:
+            found.append(Finding(number, i + 1, f"{m.group(3).upper()} without a number"))
+        elif m.group(1) is not None:
+            letter, text = m.group(1).upper(), m.group(2)
+            words.append(Word(letter, float(text), i + 1, letter + text))
+        i = m.end()
+    return Block(number, tuple(words), " ".join(comment))
+
+
+def _lines(text: str) -> Iterator[tuple[int, str]]:
+    start, number = 0, 1
+    while start < len(text):
+        end = text.find("\n", start)
+        if end < 0:
+            end = len(text)
+        yield number, text[start:end].replace("\r", "").replace("\x00", "")
+        start, number = end + 1, number + 1
+
+
+def _parsed(text: str, options: CheckOptions, found: list[Finding]) -> Iterator[Block]:
+    for number, line in _lines(text):
+        if len(line) > options.max_block:
+            found.append(
+                Finding(number, 0, f"block of {len(line)} characters (at most {options.max_block})")
+            )
+            continue
+        yield parse_block(number, line, found)
+
+
+def blocks(text: str, options: CheckOptions | None = None) -> list[Block]:
+    """The program's blocks (lines too long to be one are left out: :func:`check` says so)."""
+    chosen = options or CheckOptions()
+    if len(text) > chosen.max_bytes:
+        return []
+    return [b for b in _parsed(text, chosen, []) if b.words or b.percent]
+
+
+@dataclass
+class _State:
+    """What the check follows from block to block."""
+
+    motion: float | None = None
+    feed: float | None = None
+    absolute: bool = True
+    inch: bool = False
+    plane: int = 17
+    position: dict[str, float | None] = field(
+        default_factory=lambda: {"X": None, "Y": None, "Z": None}
+    )
+
+
+_PLANES = {17: ("X", "Y", "I", "J"), 18: ("Z", "X", "K", "I"), 19: ("Y", "Z", "J", "K")}
+
+
+def _check_words(block: Block, options: CheckOptions, found: list[Finding]) -> None:
+    seen: dict[str, Word] = {}
+    groups: dict[int, Word] = {}
+    m_groups: dict[str, Word] = {}
+    for w in block.words:
+        rule = WORDS.get(w.letter)
+        if rule is None:
+            found.append(
+                Finding(block.line, w.column, f"{w.letter} is not a word this control reads")
+            )
+            continue
+        if w.letter not in "GM" and w.letter in seen:
+            found.append(Finding(block.line, w.column, f"{w.letter} twice in one block"))
+        seen[w.letter] = w
+        if not rule.low <= w.value <= rule.high:
+            found.append(
+                Finding(
+                    block.line,
+                    w.column,
+                    f"{w.text}: {rule.meaning} out of range {rule.low:g} to {rule.high:g}",
+                )
+            )
+        elif rule.whole and w.value != int(w.value):
+            found.append(Finding(block.line, w.column, f"{w.text}: {rule.meaning} must be whole"))
+        if w.letter == "G":
+            group = G_GROUPS.get(w.value)
+            if group is None:
+                found.append(Finding(block.line, w.column, f"{w.text}: no such G code"))
+            elif group and group in groups:
+                other = groups[group].text
+                found.append(
+                    Finding(
+                        block.line, w.column, f"{other} and {w.text} in one block (group {group})"
+                    )
+                )
+            elif group:
+                groups[group] = w
+        elif w.letter == "M":
+            mgroup = M_GROUPS.get(int(w.value))
+            if mgroup is not None and mgroup in m_groups:
+                other = m_groups[mgroup].text
+                found.append(
+                    Finding(block.line, w.column, f"{other} and {w.text} in one block ({mgroup})")
+                )
+            elif mgroup is not None:
+                m_groups[mgroup] = w
+        if w.letter == "O" and w.value >= 10**options.o_digits:
+            found.append(
+                Finding(block.line, w.column, f"{w.text}: more than {options.o_digits} digits")
+            )
+
+
+def _check_motion(block: Block, state: _State, options: CheckOptions, found: list[Finding]) -> None:
+    for g in block.g_codes:
+        group = G_GROUPS.get(g)
+        if group == 1:
+            state.motion = g
+        elif group == 9:
+            state.motion = None if g == 80 else g
+        elif group == 3:
+            state.absolute = g == 90
+        elif group == 6:
+            state.inch = g == 20
+        elif group == 2:
+            state.plane = int(g)
+        elif g in (28.0, 30.0, 53.0, 92.0, 52.0) or group == 14:
+            state.position = dict.fromkeys(state.position)
+    f = block.get("F")
+    if f is not None:
+        state.feed = f
+    moves = any(block.has(a) for a in "XYZ")
+    one_shot = any(G_GROUPS.get(g) == 0 for g in block.g_codes)
+    if not moves or one_shot:
+        return
+    if state.motion in FEED_MOVES and not state.feed:
+        found.append(
+            Finding(block.line, 0, f"G{state.motion:02.0f} move with no feed: no F before it")
+        )
+    scale = 25.4 if state.inch else 1.0
+    start = dict(state.position)
+    end: dict[str, float | None] = {}
+    for axis in "XYZ":
+        value = block.get(axis)
+        old = start[axis]
+        if value is None:
+            end[axis] = old
+        elif state.absolute:
+            end[axis] = value * scale
+        else:
+            end[axis] = None if old is None else old + value * scale
+    if state.motion in ARCS:
+        _check_arc(block, state, start, end, scale, options, found)
+    state.position = end
+
+
+def _check_arc(
+    block: Block,
+    state: _State,
+    start: dict[str, float | None],
+    end: dict[str, float | None],
+    scale: float,
+    options: CheckOptions,
+    found: list[Finding],
+) -> None:
+    a, b, ia, ib = _PLANES[state.plane]
+    has_r = block.has("R")
+    has_ijk = any(block.has(x) for x in "IJK")
+    name = f"G{state.motion:02.0f}"
+    if has_r and has_ijk:
+        found.append(Finding(block.line, 0, f"{name} with both R and I/J/K"))
+        return
+    if not has_r and not has_ijk:
+        found.append(Finding(block.line, 0, f"{name} without I/J/K or R"))
+        return
+    sa, sb, ea, eb = start[a], start[b], end[a], end[b]
+    if sa is None or sb is None or ea is None or eb is None:
+        return  # the start is not known here (after a reference return, a new origin)
+    tol = options.arc_tolerance_mm
+    if has_r:
+        r = abs((block.get("R") or 0.0) * scale)
+        chord = math.hypot(ea - sa, eb - sb)
+        if chord > 2 * r + tol:
+            column = next(w.column for w in block.words if w.letter == "R")
+            found.append(
+                Finding(
+                    block.line,
+                    column,
+                    f"{name}: R{r:g} is shorter than half the chord ({chord / 2:.3f} mm)",
+                )
+            )
+        return
+    ca = sa + (block.get(ia) or 0.0) * scale
+    cb = sb + (block.get(ib) or 0.0) * scale
+    r0 = math.hypot(sa - ca, sb - cb)
+    r1 = math.hypot(ea - ca, eb - cb)
+    if abs(r0 - r1) > tol:
+        found.append(
+            Finding(
+                block.line,
+                0,
+                f"{name}: start radius {r0:.4f} and end radius {r1:.4f} differ "
+                f"by more than {tol:g} mm",
+            )
+        )
+
+
+def check(text: str, options: CheckOptions | None = None) -> list[Finding]:
+    """Every problem of ``text``, in order (errors and warnings: :attr:`Finding.error`)."""
+    chosen = options or CheckOptions()
+    found: list[Finding] = []
+    if len(text) > chosen.max_bytes:
+        return [Finding(1, 0, f"{len(text)} characters: more than {chosen.max_bytes} to check")]
+    state = _State()
+    percents: list[int] = []
+    first_block: Block | None = None
+    last_block: Block | None = None
+    closed_at = 0
+    for block in _parsed(text, chosen, found):
+        if block.percent:
+            percents.append(block.line)
+            if len(percents) == 2:
+                closed_at = block.line
+            elif len(percents) > 2:
+                found.append(Finding(block.line, 1, "% after the closing %"))
+            continue
+        if not block.words:
+            continue
+        if closed_at:
+            found.append(
+                Finding(block.line, 1, "text after the closing %: a control never reads it")
+            )
+            closed_at = -1
+        if first_block is None:
+            first_block = block
+        last_block = block
+        _check_words(block, chosen, found)
+        _check_motion(block, state, chosen, found)
+        if len(found) > chosen.max_findings:
+            break
+    if first_block is None:
+        found.append(Finding(1, 0, "no blocks: an empty program"))
+    elif not first_block.has("O"):
+        found.append(
+            Finding(
+                first_block.line,
+                1,
+                "no O-number: the program's first block must be O and its number",
+            )
+        )
+    if percents and len(percents) == 1:
+        found.append(Finding(percents[0], 1, "% not closed: the tape has no ending %", error=False))
+    if last_block is not None and not PROGRAM_ENDS & set(last_block.m_codes):
+        found.append(
+            Finding(
+                last_block.line, 0, "the program does not end with M30, M02 or M99", error=False
+            )
+        )
+    if len(found) > chosen.max_findings:
+        more = len(found) - chosen.max_findings
+        found = found[: chosen.max_findings]
+        found.append(Finding(found[-1].line, 0, f"... and {more} more problems (checking stopped)"))
+    return found
+
+
+def errors(text: str, options: CheckOptions | None = None) -> list[Finding]:
+    """Only the errors (what stops a program from going out)."""
+    return [f for f in check(text, options) if f.error]

@@ -1,0 +1,171 @@
+"""The iso-cnc kind declared for the registry (entry point ``iso-cnc`` in
+``cellctl.machine_kinds``): CNC controls fed ISO-code G-code over RS-232 with DC1-DC4 (Fanuc,
+Haas style), of the mill family."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from pydantic import BaseModel
+
+from cellctl.emulators.serve import scaled_deadline
+from cellctl.errors import UsageError
+from cellctl.kinds.iso_cnc import gcode, motion, tape
+from cellctl.kinds.iso_cnc.driver import ISO_LINE, IsoCncDriver, IsoCncOptions
+from cellctl.kinds.iso_cnc.emulator import FAULTS, EmulatorOptions, IsoCncEmulator, Mode
+from cellctl.kinds.iso_cnc.status import IsoCncState
+from cellctl.kinds.kind import (
+    CheckedProgram,
+    DriverSpec,
+    EmulatorSpec,
+    MachineKind,
+    Preview,
+    ProgramLanguage,
+    ProgramRole,
+)
+
+if TYPE_CHECKING:
+    import click
+
+    from cellctl.emulators.serve import EmulatedDevice
+
+#: File endings of G-code programs a shop keeps.
+SUFFIXES = (".nc", ".tap", ".gcode", ".ngc", ".cnc")
+
+
+def _options(options: BaseModel) -> IsoCncOptions:
+    return options if isinstance(options, IsoCncOptions) else IsoCncOptions()
+
+
+async def _open(spec: DriverSpec) -> IsoCncDriver:
+    return await IsoCncDriver.connect(
+        spec.url,
+        name=spec.name,
+        settings=spec.settings,
+        store=spec.store,
+        options=_options(spec.options),
+        start_output=spec.start_output,
+        trace=spec.trace,
+    )
+
+
+def _emulator(spec: EmulatorSpec) -> EmulatedDevice:
+    """For the emulated cell: in RMT, CYCLE START from the cell's GO (and, with an
+    operator, pressed again whenever it is idle)."""
+    known = set(EmulatorOptions.model_fields)
+    options = EmulatorOptions(
+        **{"auto_operator": spec.operator, **{k: v for k, v in spec.extra.items() if k in known}}
+    )
+    control = IsoCncEmulator(options, time_scale=spec.time_scale)
+    control.mode = Mode.RMT
+    return control
+
+
+def check_text(text: str, name: str, options: BaseModel) -> CheckedProgram:
+    """A program's text: its errors (each ``name:line:column: ...``), blocks and run time."""
+    chosen = _options(options)
+    found = gcode.check(text, chosen.check_options())
+    problems = tuple(f.format(name) for f in found if f.error)
+    if problems:
+        return CheckedProgram(problems, lines=text.count("\n"))
+    blocks = gcode.blocks(text, chosen.check_options())
+    seconds = motion.program_seconds(blocks, chosen.motion())
+    return CheckedProgram((), lines=len(blocks), machining_s=seconds)
+
+
+def _check(path: Path, role: ProgramRole, options: BaseModel) -> CheckedProgram:
+    del role  # a setup program is a program like any other here
+    try:
+        text = path.read_bytes().decode("ascii")
+    except OSError as e:
+        return CheckedProgram((f"{path}: cannot read: {e.strerror or e}",))
+    except UnicodeDecodeError as e:
+        return CheckedProgram((f"{path}: byte {e.start}: not ISO code (7-bit ASCII)",))
+    return check_text(text, str(path), options)
+
+
+def _check_text(function: str, name: str, text: str, options: BaseModel) -> list[str]:
+    del function
+    return list(check_text(text, name, options).problems)
+
+
+def _split(text: str) -> list[str]:
+    return [p.text for p in tape.split_programs(text)]
+
+
+def _preview(text: str, name: str, options: BaseModel) -> Preview:
+    from cellctl.kinds.iso_cnc.preview import render_svg
+
+    chosen = _options(options)
+    blocks = gcode.blocks(text, chosen.check_options())
+    steps = motion.steps(blocks, chosen.motion())
+    if not any(s.kind in ("rapid", "feed") for s in steps):
+        raise UsageError(f"cannot trace {Path(name).stem}: no moves")
+    return Preview(render_svg(steps, title=name), len(blocks))
+
+
+def _emulated_options(scale: float) -> dict[str, float]:
+    return {
+        "motion_scale": scale,
+        "dc1_timeout": scaled_deadline(120.0, scale),
+        "end_extra": scaled_deadline(60.0, scale),
+        "setup_timeout": scaled_deadline(1800.0, scale),
+    }
+
+
+class CutModel:
+    """The mill family's timing model (:class:`cellctl.kinds.families.MillModel`): each
+    program's run time by the motion model, and its characters on the line."""
+
+    def __init__(self, options: IsoCncOptions | None = None) -> None:
+        self.options = options or IsoCncOptions()
+
+    def cut_times(self, setup: Path | None, programs: Sequence[Path]) -> list[tuple[float, int]]:
+        del setup
+        out = []
+        for path in programs:
+            text = path.read_text(encoding="ascii")
+            blocks = gcode.blocks(text)
+            framed = tape.frame(text, leader=self.options.leader, trailer=self.options.trailer)
+            out.append((motion.program_seconds(blocks, self.options.motion()), len(framed)))
+        return out
+
+
+def _timing() -> Any:
+    return CutModel()
+
+
+def _condition(status: Any) -> Any:
+    return status.kind_condition
+
+
+def _commands() -> Sequence[tuple[str, click.Command]]:
+    from cellctl.kinds.iso_cnc.cli import emulate_iso_cnc
+
+    return [("emulate", emulate_iso_cnc)]
+
+
+ISO_CNC = MachineKind(
+    name="iso-cnc",
+    family="mill",
+    maker="ISO-code",
+    model="CNC control (Fanuc/Haas style RS-232)",
+    line=ISO_LINE,
+    options=IsoCncOptions,
+    open_driver=_open,
+    emulator=_emulator,
+    states=IsoCncState,
+    condition=_condition,
+    language=ProgramLanguage(suffix=".nc", check=_check, split=_split, preview=_preview),
+    commands=_commands,
+    timing=_timing,
+    emulated_options=_emulated_options,
+    needs_setup=False,
+    program_files=SUFFIXES,
+    check_text=_check_text,
+    faults=FAULTS,
+    description="CNC control fed ISO-code G-code over RS-232 with DC1-DC4 (read-in, "
+    "drip-feed, punch)",
+)

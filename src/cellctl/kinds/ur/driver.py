@@ -491,10 +491,9 @@ class UrRobot(LinkDriver):
         problems = program.problems(self.arm)
         if problems:
             raise UsageError(f"{self.name}: {name}: " + "; ".join(problems))
+        # Nothing goes out here: a script is sent whole as it starts, a .urp is on the robot.
         if program not in self._programs:
             self._programs.append(program)
-        if progress is not None:
-            progress(1, 1, len(program.text))
         return self._programs.index(program)
 
     async def start(self, slot: int) -> None:

@@ -118,6 +118,12 @@ def _commands() -> Sequence[tuple[str, click.Command]]:
     return [("emulate", emulate_ur)]
 
 
+def _timing() -> Any:
+    from cellctl.kinds.ur.timing import UrTiming
+
+    return UrTiming()
+
+
 def _emulated_options(scale: float) -> dict[str, float]:
     return {
         "power_on_timeout": scaled_deadline(60.0, scale),
@@ -143,5 +149,6 @@ UR = MachineKind(
     program_files=(".script", ".urp"),
     check_text=_check_text,
     faults=FAULTS,
+    timing=_timing,
     description="collaborative arm: Dashboard Server, RTDE and URScript over TCP",
 )

@@ -19,6 +19,7 @@ Python's own parser (the grammar is the same for this subset, ``p[`` read as a c
 from __future__ import annotations
 
 import ast
+import functools
 import math
 import re
 from collections.abc import Callable, Iterator, Sequence
@@ -46,6 +47,7 @@ KNOWN_FUNCTIONS = frozenset(
     set_standard_digital_out set_digital_out set_tool_digital_out
     set_configurable_digital_out get_standard_digital_in get_digital_in
     get_standard_digital_out get_digital_out get_tool_digital_in get_configurable_digital_in
+    get_configurable_digital_out
     set_standard_analog_out get_standard_analog_in write_output_integer_register
     write_output_float_register write_output_boolean_register read_input_integer_register
     read_input_float_register read_input_boolean_register read_output_integer_register
@@ -186,8 +188,12 @@ def _python(expr: str) -> str:
     return "".join(out)
 
 
+@functools.lru_cache(maxsize=4096)
 def parse_expression(expr: str) -> ast.expr:
-    """An expression's tree; SyntaxError (with its offset) when it does not parse."""
+    """An expression's tree; SyntaxError (with its offset) when it does not parse.
+
+    Cached: a program's loop evaluates the same lines again and again (the trees are only
+    read, never changed)."""
     tree = ast.parse(_python(expr.strip()), mode="eval")
     return tree.body
 
@@ -537,6 +543,9 @@ class _Runner:
             "halt": halt, "set_standard_digital_out": set_out, "set_digital_out": set_out,
             "get_standard_digital_in": lambda n: env.digital_in(int(n)),
             "get_digital_in": lambda n: env.digital_in(int(n)),
+            "get_configurable_digital_in": lambda n: env.digital_in(8 + int(n)),
+            "get_configurable_digital_out": lambda n: env.digital_out(8 + int(n)),
+            "set_configurable_digital_out": lambda n, b: set_out(8 + int(n), b),
             "get_standard_digital_out": lambda n: env.digital_out(int(n)),
             "get_digital_out": lambda n: env.digital_out(int(n)),
             "write_output_integer_register": write_register,

@@ -129,3 +129,25 @@ def test_a_part_needs_every_transfer_program(tmp_path: Path) -> None:
         problems
     )
     assert len([p for p in problems if "cnc2_to_conveyor" in p]) == 2  # both part types
+
+
+def test_a_cell_beyond_what_the_factory_carries_is_refused(tmp_path: Path) -> None:
+    """Names and counts past the wire's limits are told by `cell check`, not dropped later."""
+    from cellctl.mailbox import wire
+
+    directory = example_copy(tmp_path)
+    route = (
+        'route = [{ mill = "cnc1", program = "programs/robot_base_rough_cnc1.dyn" }, '
+        '{ mill = "cnc2", program = "programs/robot_base_finish_cnc2.dyn" }]\n'
+    )
+    names = [f"extra-{i}" for i in range(wire.MAX_PART_TYPES)] + ["p" * (wire.MAX_NAME + 1)]
+    edit(
+        directory, 'name = "CIM laboratory machining cell"', f'name = "{"c" * (wire.MAX_NAME + 1)}"'
+    )
+    with (directory / "cell.toml").open("a", encoding="utf-8") as toml:
+        toml.write("".join(f"\n[parts.{n}]\n{route}" for n in names))
+    code, out = cell_check(directory)
+    assert code == 1
+    assert f"{wire.MAX_NAME + 1} characters: at most {wire.MAX_NAME}" in out
+    assert f"{len(names) + 2} entries: a cell has at most {wire.MAX_PART_TYPES}" in out
+    assert out.count("characters: at most") == 2, out

@@ -166,6 +166,12 @@ class CellConfig:
 Seconds = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 Text = Annotated[str, Field(min_length=1)]
 
+#: What a cell can name and hold. The factory's wire (``cellctl.mailbox.wire``) carries a cell's
+#: state within these, so a cell beyond them is refused here, not dropped by the factory later.
+MAX_NAME = 128
+MAX_MACHINES = 64
+MAX_PART_TYPES = 256
+
 
 class _Table(BaseModel):
     model_config = ConfigDict(strict=True, extra="forbid", frozen=True)
@@ -207,6 +213,11 @@ class CellTable(_Table):
         default=None,
         description="s an idle robot's or the PLC's status read may take before it counts "
         "as not answering (default: half the poll period)",
+    )
+    time_scale: Annotated[float, Field(gt=0, le=100_000, allow_inf_nan=False)] = Field(
+        default=1.0,
+        description="the machines run this many times faster than a real cell's (an emulated "
+        "cell writes it); the shift report's ideal times are divided by it",
     )
     door_start_timeout: Seconds | None = Field(
         default=None,
@@ -622,6 +633,25 @@ def _entries(raw: dict[str, Any], key: str, problems: _Problems) -> dict[str, An
     return value
 
 
+def _check_sizes(
+    raw: dict[str, Any], cell_raw: dict[str, Any], directory: Path, problems: _Problems
+) -> None:
+    """Names and counts within what the factory's wire carries (:data:`MAX_NAME`...)."""
+    name = cell_raw.get("name")
+    cell_name = name if isinstance(name, str) else directory.resolve().name
+    if len(cell_name) > MAX_NAME:
+        problems.at(("cell", "name"), f"{len(cell_name)} characters: at most {MAX_NAME}")
+    for key, most in (("machines", MAX_MACHINES), ("parts", MAX_PART_TYPES)):
+        table = raw.get(key)
+        if not isinstance(table, dict):
+            continue
+        if len(table) > most:
+            problems.at((key,), f"{len(table)} entries: a cell has at most {most}")
+        for entry in table:
+            if len(entry) > MAX_NAME:
+                problems.at((key,), f"{entry[:20]}…: {len(entry)} characters: at most {MAX_NAME}")
+
+
 def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
     """Read and check ``<directory>/cell.toml``; return the config (if usable) and problems.
 
@@ -733,6 +763,7 @@ def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
             problems.add(f"[robot_programs] {prog_name}: {path}: not UTF-8 text: {e.reason}")
         except CellctlError as e:
             problems.add(f"[robot_programs] {prog_name}: {e}")
+    _check_sizes(raw, cell_raw, directory, problems)
     parts: dict[str, PartType] = {}
     for part_name, entry in _entries(raw, "parts", problems).items():
         part_table = _checked(PartTable, entry, ("parts", part_name), problems)

@@ -589,6 +589,11 @@ class CellController(OperatorCommands):
                     block=p.block,
                     blocks=p.blocks,
                     since=since,
+                    estimate_s=p.estimate_s,
+                    estimate_done_s=p.estimate_done_s,
+                    estimate_cap_s=p.estimate_cap_s,
+                    at=p.at,
+                    running=p.running,
                 ):
                     self.touch()
 

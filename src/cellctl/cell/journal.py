@@ -122,6 +122,13 @@ CREATE TABLE IF NOT EXISTS machines (
     reason TEXT NOT NULL,
     updated REAL NOT NULL
 );
+CREATE TABLE IF NOT EXISTS service_log (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    time REAL NOT NULL,
+    name TEXT NOT NULL,
+    in_service INTEGER NOT NULL,
+    reason TEXT NOT NULL
+);
 """
 
 
@@ -705,18 +712,35 @@ class Journal(SqliteStore):
 
     def set_machine_service(self, name: str, in_service: bool, reason: str = "") -> None:
         """Take a machine out of service (with the reason) or put it back."""
+        now = self._clock()
         with self._write() as db:
             db.execute(
                 "INSERT INTO machines (name, in_service, reason, updated) VALUES (?, ?, ?, ?)"
                 " ON CONFLICT (name) DO UPDATE SET in_service = excluded.in_service,"
                 " reason = excluded.reason, updated = excluded.updated",
-                (name, int(in_service), reason, self._clock()),
+                (name, int(in_service), reason, now),
+            )
+            # Every change is kept too: the shift report's downtime needs when and why.
+            db.execute(
+                "INSERT INTO service_log (time, name, in_service, reason) VALUES (?, ?, ?, ?)",
+                (now, name, int(in_service), reason),
             )
 
     def machines_out_of_service(self) -> dict[str, str]:
         """``machine name -> reason`` for every machine out of service."""
         rows = self._read("SELECT name, reason FROM machines WHERE in_service = 0 ORDER BY name")
         return {r["name"]: r["reason"] for r in rows}
+
+    def service_log(self) -> list[tuple[float, str, bool, str]]:
+        """Every change of a machine's service, oldest first: ``(time, name, in_service,
+        reason)``; a machine out of service since before the log began shows as going out
+        when its row in ``machines`` last changed."""
+        rows = self._read("SELECT time, name, in_service, reason FROM service_log ORDER BY id")
+        found = [(float(r[0]), str(r[1]), bool(r[2]), str(r[3])) for r in rows]
+        logged = {name for _, name, _, _ in found}
+        older = self._read("SELECT name, reason, updated FROM machines WHERE in_service = 0")
+        found += [(float(r[2]), r[0], False, r[1]) for r in older if r[0] not in logged]
+        return sorted(found, key=lambda row: row[0])
 
     # -- figures -----------------------------------------------------------------------------
 

@@ -49,6 +49,7 @@ from typing import Any
 
 from cellctl.emulators.plc import PlcEmulator
 from cellctl.emulators.serve import (
+    CELL_TIME_SCALE,
     MIN_DEADLINE_S,
     SelfServed,
     Server,
@@ -98,7 +99,7 @@ class EmulatedCell:
     def __init__(
         self,
         *,
-        time_scale: float = 50.0,
+        time_scale: float = CELL_TIME_SCALE,
         pacing: bool = True,
         robot_listen: str = "pty",
         host: str = "127.0.0.1",
@@ -258,6 +259,8 @@ class EmulatedCell:
                 scaled = scaled_deadline(value, self.time_scale)
                 text = f"{key} = {scaled:g}  # s (the real cell's {value:g} s, scaled)"
             lines.append(text)
+            if stripped == "[cell]":
+                lines.append(f"time_scale = {self.time_scale:g}  # the machines' time, x real")
         scale = self.time_scale
         # Deadlines scale with the machines' time; a real cell keeps the template's.
         for name in raw.get("machines", {}):

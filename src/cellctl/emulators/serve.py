@@ -55,6 +55,22 @@ _PACE_SLICE_S = 0.050
 _CATCH_UP_S = 0.005
 
 
+#: Default time scales, one per use (each command's --help says its own and why):
+#: a single machine's emulator runs in the machine's own time, so a driver, the console or
+#: a stopwatch sees its real timing; an emulated cell or factory runs 50 times faster, so a
+#: part's cuts take seconds and a batch minutes; the demo runs 200 times faster, so its batch
+#: ends in about a minute. A driver told a scale (a mill's ``time_scale`` option, written by
+#: ``emulate cell``) divides its estimates by it.
+MACHINE_TIME_SCALE = 1.0
+CELL_TIME_SCALE = 50.0
+DEMO_TIME_SCALE = 200.0
+#: What each command's --time-scale help adds, naming the others.
+TIME_SCALE_HELP = (
+    "Defaults: 1 for one machine's emulator (its real timing), 50 for `emulate cell` and "
+    "`emulate factory` (a batch in minutes), 200 for `demo` (about a minute)."
+)
+
+
 #: The shortest deadline an emulated cell writes, s: the controller runs in wall time, and a
 #: deadline scaled below this would tell a busy host as a fault.
 MIN_DEADLINE_S = 5.0

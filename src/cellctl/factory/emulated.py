@@ -24,6 +24,7 @@ from types import TracebackType
 from typing import Self
 
 from cellctl.emulators.cell import EmulatedCell
+from cellctl.emulators.serve import CELL_TIME_SCALE
 from cellctl.factory.broker import FACTORY_USER, MosquittoBroker
 from cellctl.factory.config import FACTORY_FILE
 
@@ -44,7 +45,7 @@ class EmulatedFactory:
         directory: Path,
         *,
         cells: int = 3,
-        time_scale: float = 50.0,
+        time_scale: float = CELL_TIME_SCALE,
         pacing: bool = True,
         poll_period: float | None = None,
         accept_timeout: float = 30.0,

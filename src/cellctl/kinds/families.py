@@ -15,7 +15,7 @@ them onto its machine (a robot's partitions, a mill's blocks)::
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
@@ -73,6 +73,36 @@ class RunProgress:
     bytes_sent: int
     bytes_total: int
     phase: str  # "waiting" (for the machine), "sending", "machining", "done"
+    # The run's own estimate (the program's preview: its line time and cut time), corrected
+    # by the machine's reports: ``estimate_done_s`` of ``estimate_s`` were done at ``at``
+    # (time.time()); while ``running`` the machine works on, so the figure grows with the
+    # clock, but never past ``estimate_cap_s`` (the end of what it works on now) before the
+    # machine says it is done. ``estimate_s`` 0: no estimate.
+    estimate_s: float = 0.0
+    estimate_done_s: float = 0.0
+    estimate_cap_s: float = 0.0
+    at: float = 0.0
+    running: bool = False
+
+
+#: The most of its estimate a run shows done while the machine still works on it.
+RUNNING_AT_MOST = 0.99
+
+
+def estimated_done(progress: Mapping[str, Any], now: float) -> float | None:
+    """Seconds of a run's estimate done at ``now`` (:class:`RunProgress`'s ``estimate_*``
+    fields, or the same keys of its dict): what was done at its report, plus the time since
+    while the machine runs, never past the cap; None without an estimate."""
+    total = float(progress.get("estimate_s") or 0.0)
+    if total <= 0:
+        return None
+    done = float(progress.get("estimate_done_s") or 0.0)
+    if progress.get("running"):
+        cap = float(progress.get("estimate_cap_s") or done)
+        done = min(max(done, cap), done + max(0.0, now - float(progress.get("at") or now)))
+        # Never "100 %" while the machine works: only its own report ends the run.
+        return min(done, RUNNING_AT_MOST * total)
+    return min(done, total)
 
 
 RecordsProgress = Callable[[int, int, int], None]

@@ -29,6 +29,9 @@ from pydantic import (
     ValidationError,
 )
 
+from cellctl.cell.config import MAX_MACHINES as CELL_MAX_MACHINES
+from cellctl.cell.config import MAX_NAME as CELL_MAX_NAME
+from cellctl.cell.config import MAX_PART_TYPES as CELL_MAX_PART_TYPES
 from cellctl.cell.orders import ReportKind
 from cellctl.errors import ProtocolError
 from cellctl.mailbox.base import MAX_QTY, Report
@@ -59,12 +62,13 @@ VERSION: Final = 1
 MAX_PAYLOAD: Final = 64 * 1024
 #: Deepest nesting of objects and arrays read (the state's is 3; a report's data adds 4).
 MAX_DEPTH: Final = 8
-#: Longest name (cell, part type, machine), order or part id; longest report text.
-MAX_NAME: Final = 128
+#: Longest name (cell, part type, machine), order or part id (the cell's own limits, which
+#: ``cellctl cell check`` enforces); longest report text.
+MAX_NAME: Final = CELL_MAX_NAME
 MAX_TEXT: Final = 2000
-#: Most entries of a state's tables and of a report's data.
-MAX_PART_TYPES: Final = 256
-MAX_MACHINES: Final = 64
+#: Most entries of a state's tables (as a cell may hold) and of a report's data.
+MAX_PART_TYPES: Final = CELL_MAX_PART_TYPES
+MAX_MACHINES: Final = CELL_MAX_MACHINES
 MAX_DATA_KEYS: Final = 32
 INT64_MAX: Final = 2**63 - 1
 #: Latest Unix time taken (the year 5138): beyond it a time is not a clock's.

@@ -190,7 +190,7 @@ class AttachedCell(CellAccess):
             out_of_service=journal.machines_out_of_service(),
             manual=c.manual_use,
             journal=journal,
-            orders=list_orders(self.mailbox(), journal),
+            orders=list_orders(self.mailbox(), journal, config=c.config),
             events=[(e.time, e.text) for e in c.events[-SNAPSHOT_EVENTS:]],
             estimates=estimates,
         )

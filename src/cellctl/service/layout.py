@@ -6,6 +6,7 @@
     layout = cell_layout(access)         # machines with kinds, part types with their routes
     steps = journal_steps(access, since=time.time() - 3600)
     svg = program_preview(access, "cnc1", "robot_base_rough_cnc1")
+    figures = shift_figures(access, since=None, until=None)   # the last shift's OEE
 
 A preview is drawn only for a DYNALAN program that one of the mill's route steps names in
 cell.toml (by its name or its path as written there): no other file is ever read.
@@ -14,6 +15,7 @@ cell.toml (by its name or its path as written there): no other file is ever read
 from __future__ import annotations
 
 import dataclasses
+import time
 from collections import OrderedDict
 from typing import Any
 
@@ -29,6 +31,8 @@ MAX_STEPS = 5000
 #: Toolpath drawings kept (program file, its modification time) -> SVG.
 _PREVIEWS: OrderedDict[tuple[str, str, int], tuple[str, int]] = OrderedDict()
 _PREVIEWS_KEPT = 16
+#: The ideal step times of the last cell a shift report was asked of.
+_IDEAL: dict[tuple[str, float, int], dict[str, float]] = {}
 
 
 def cell_config(access: CellAccess) -> CellConfig:
@@ -89,6 +93,34 @@ def journal_steps(access: CellAccess, since: float | None) -> list[dict[str, Any
     return [
         {**dataclasses.asdict(s), "part_type": types.get(s.part_id, "")} for s in steps[-MAX_STEPS:]
     ]
+
+
+def shift_figures(access: CellAccess, since: float | None, until: float | None) -> dict[str, Any]:
+    """The shift report (:mod:`cellctl.cell.shift`) of ``[since, until]`` (default: the
+    8 h before ``until``, not before the journal's first step; ``until`` now)."""
+    from cellctl.cell.shift import MAX_WINDOW, SHIFT, cell_time_scale, ideal_times, shift_report
+
+    end = time.time() if until is None else until
+    journal = access.journal()
+    first = min((s.started for s in journal.steps()), default=end) if journal else end
+    start = max(end - SHIFT, min(first, end - 1.0)) if since is None else since
+    if end <= start:
+        raise UsageError("the report's window ends before it starts: give --from before --to")
+    if end - start > MAX_WINDOW:
+        raise UsageError(f"the report's window is at most {MAX_WINDOW / 86400:g} days")
+    config = cell_config(access)
+    machines = [config.robot.name, *(m.name for m in config.mills)]
+    scale = cell_time_scale(config)
+    if journal is None:
+        from cellctl.cell.shift import ShiftReport
+
+        return ShiftReport(start, end, scale, [], 0, 0, 0).as_dict()
+    toml = config.directory / "cell.toml"
+    key = (str(config.directory), scale, toml.stat().st_mtime_ns if toml.exists() else 0)
+    if key not in _IDEAL:  # the machines' models run every program: once per cell.toml
+        _IDEAL.clear()
+        _IDEAL[key] = ideal_times(config, scale)
+    return shift_report(journal, machines, _IDEAL[key], start, end, time_scale=scale).as_dict()
 
 
 def program_preview(access: CellAccess, machine: str, program: str) -> dict[str, Any]:

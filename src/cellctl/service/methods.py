@@ -138,6 +138,14 @@ class StepsParams(P):
     since: float | None = Field(default=None, allow_inf_nan=False, ge=0, le=1e11)
 
 
+class ShiftParams(P):
+    """``report.shift``: the window, s since the epoch (default: the 8 h before ``until``,
+    ``until`` now); at most a week."""
+
+    since: float | None = Field(default=None, allow_inf_nan=False, ge=0, le=1e11)
+    until: float | None = Field(default=None, allow_inf_nan=False, ge=0, le=1e11)
+
+
 class PreviewParams(P):
     machine: str = Field(min_length=1, max_length=100)
     program: str = Field(min_length=1, max_length=500)
@@ -208,7 +216,13 @@ async def _submit(access: CellAccess, p: SubmitParams, progress: Progress | None
 
 
 async def _orders(access: CellAccess, p: OrdersParams, progress: Progress | None) -> Any:
-    return operator.list_orders(access.mailbox(), access.journal(), p.states)
+    from cellctl.service.layout import cell_config
+
+    try:
+        config = cell_config(access)  # for what blocks an order
+    except UsageError:
+        config = None
+    return operator.list_orders(access.mailbox(), access.journal(), p.states, config)
 
 
 async def _cancel(access: CellAccess, p: IdParams, progress: Progress | None) -> Any:
@@ -311,6 +325,12 @@ async def _steps(access: CellAccess, p: StepsParams, progress: Progress | None) 
     return journal_steps(access, p.since)
 
 
+async def _shift(access: CellAccess, p: ShiftParams, progress: Progress | None) -> Any:
+    from cellctl.service.layout import shift_figures
+
+    return shift_figures(access, p.since, p.until)
+
+
 async def _preview(access: CellAccess, p: PreviewParams, progress: Progress | None) -> Any:
     from cellctl.service.layout import program_preview
 
@@ -373,6 +393,7 @@ _TABLE: list[Method] = [
     Method("traffic.tail", TrafficParams, _traffic, "A machine's last bytes both ways.", False),
     Method("cell.layout", NoParams, _layout, "Machines, places and part routes.", False),
     Method("steps.list", StepsParams, _steps, "Journal steps started since a time.", False),
+    Method("report.shift", ShiftParams, _shift, "A shift's OEE, parts, alarms, downtime.", False),
     Method(
         "programs.preview", PreviewParams, _preview, "Toolpath SVG of a route's program.", False
     ),

@@ -14,6 +14,8 @@ import dataclasses
 from collections import Counter
 from typing import Any
 
+from cellctl.cell.blocked import blocked_reason
+from cellctl.cell.config import CellConfig
 from cellctl.cell.journal import Alarm, Journal, Part
 from cellctl.errors import UsageError
 from cellctl.mailbox import Mailbox, Order, Report, ReportKind
@@ -87,17 +89,39 @@ def submit_order(
 
 
 def list_orders(
-    mailbox: Mailbox, journal: Journal | None, states: list[str] | None = None
+    mailbox: Mailbox,
+    journal: Journal | None,
+    states: list[str] | None = None,
+    config: CellConfig | None = None,
 ) -> list[dict[str, Any]]:
-    """Orders with their parts counted by status, highest priority first, then oldest."""
+    """Orders with their parts counted by status, highest priority first, then oldest.
+
+    With the cell's ``config``, an open order whose parts wait for a machine out of service
+    says so: ``blocked`` (also put before its ``note``), e.g. "blocked: its parts need cnc2,
+    out of service (...)"; "" otherwise (:mod:`cellctl.cell.blocked`)."""
     progress: dict[str, Counter[str]] = {}
+    by_order: dict[str, list[Part]] = {}
+    out: dict[str, str] = {}
     if journal is not None:
         for part in journal.parts():
             progress.setdefault(part.order_id, Counter())[part.status] += 1
-    return [
-        {**as_dict(o), "parts": dict(sorted(progress.get(o.id, Counter()).items()))}
-        for o in mailbox.orders(states or None)
-    ]
+            by_order.setdefault(part.order_id, []).append(part)
+        out = journal.machines_out_of_service() if config is not None else {}
+    found = []
+    for o in mailbox.orders(states or None):
+        entry = {**as_dict(o), "parts": dict(sorted(progress.get(o.id, Counter()).items()))}
+        blocked = ""
+        if config is not None and o.state in BLOCKABLE:
+            blocked = blocked_reason(config, o.part_type, by_order.get(o.id, []), out)
+        entry["blocked"] = blocked
+        if blocked:
+            entry["note"] = f"{blocked}; {o.note}" if o.note else blocked
+        found.append(entry)
+    return found
+
+
+#: Order states in which an order may wait for a machine.
+BLOCKABLE = ("posted", "accepted", "in-progress", "held")
 
 
 def cancel_order(mailbox: Mailbox, journal: Journal | None, order_id: str) -> dict[str, Any]:

@@ -14,8 +14,8 @@ only what changed, each whole -- ``cell`` when a field of it other than ``time``
 ``machines_gone``: names no longer there; ``orders``, ``parts``, ``alarms``: the whole list
 when it changed; ``events``: only the events that are new. Figures that move with the clock
 alone (:data:`VOLATILE`: the cell's ``time``, a machine's ``utilization``, a progress'
-``rate_per_s`` and ``time_left_s``) do not make an update of their own: they travel with
-their object's next change, and ``cell.status`` has them current.
+``rate_per_s``, ``time_left_s`` and ``fraction``) do not make an update of their own: they
+travel with their object's next change, and ``cell.status`` has them current.
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from cellctl.cell.journal import Alarm, Journal, Part, Step
 from cellctl.cell.model import MachineView
 from cellctl.kinds import Condition
+from cellctl.kinds.families import estimated_done
 
 #: Events and orders a status carries.
 STATUS_EVENTS = 30
@@ -99,7 +100,11 @@ class ProgressInfo(Model):
     done: int = Field(description="How much is done, in unit.")
     total: int = Field(description="How much there is, in unit.")
     unit: str = Field(description="bytes (a mill's program) or records (a robot's).")
-    fraction: float = Field(description="done / total, 0 to 1.")
+    fraction: float = Field(
+        description="How far the run is, 0 to 1: of its estimate when it has one (the line's "
+        "time and the program's own cut time, corrected by the machine's reports), else "
+        "done / total."
+    )
     program: str | None = Field(default=None, description="The program being sent.")
     block: int | None = Field(default=None, description="The block being sent (a mill).")
     blocks: int | None = Field(default=None, description="Blocks of the program (a mill).")
@@ -107,8 +112,42 @@ class ProgressInfo(Model):
     rate_per_s: float | None = Field(default=None, description="unit per second so far.")
     time_left_s: float | None = Field(
         default=None,
-        description="Seconds left: from the rate, else from the program's own estimate.",
+        description="Seconds left: from the run's estimate (see fraction), else from the "
+        "rate, else from the program's own estimate and the step's start.",
     )
+    estimate_s: float | None = Field(
+        default=None,
+        description="The whole run's estimated seconds (line and cut), as the machine runs.",
+    )
+    estimate_done_s: float | None = Field(
+        default=None,
+        description="Of estimate_s, done at estimate_at (the machine's last report).",
+    )
+    estimate_cap_s: float | None = Field(
+        default=None,
+        description="The most estimate_done_s grows to before the machine reports again (the "
+        "end of the block it works on).",
+    )
+    estimate_at: float | None = Field(default=None, description="When it was reported, s.")
+    running: bool = Field(
+        default=False,
+        description="The machine works on: done grows with the clock from estimate_at, up "
+        "to estimate_cap_s (a client may draw it so between updates).",
+    )
+
+    def estimated(self, now: float) -> tuple[float, float | None]:
+        """``(fraction, time left)`` at ``now``: a client's live figures between updates."""
+        raw = {
+            "estimate_s": self.estimate_s,
+            "estimate_done_s": self.estimate_done_s,
+            "estimate_cap_s": self.estimate_cap_s,
+            "at": self.estimate_at,
+            "running": self.running,
+        }
+        done = estimated_done(raw, now)
+        if done is None or not self.estimate_s:
+            return self.fraction, self.time_left_s
+        return done / self.estimate_s, self.estimate_s - done
 
 
 class ErrorInfo(Model):
@@ -137,7 +176,9 @@ class MachineStatus(Model):
         """This machine without the figures that move with the clock alone (:data:`VOLATILE`)."""
         progress = self.progress
         if progress is not None:
-            progress = progress.model_copy(update={"rate_per_s": None, "time_left_s": None})
+            progress = progress.model_copy(
+                update={"rate_per_s": None, "time_left_s": None, "fraction": 0.0}
+            )
         return self.model_copy(update={"utilization": 0.0, "progress": progress})
 
 
@@ -151,6 +192,11 @@ class OrderInfo(Model):
     updated: float = Field(description="When its state last changed, s.")
     note: str = Field(default="", description="Why it is in its state.")
     parts: dict[str, int] = Field(description="Its parts counted by status.")
+    blocked: str = Field(
+        default="",
+        description="Why it cannot go on: its parts need a machine out of service, which and "
+        "why (also at the start of note); '' when it can.",
+    )
 
 
 class PartInfo(Model):
@@ -243,7 +289,13 @@ class StatusUpdate(Model):
 
 
 #: Figures that move with the clock alone: they make no update of their own.
-VOLATILE = ("cell.time", "machines.*.utilization", "progress.rate_per_s", "progress.time_left_s")
+VOLATILE = (
+    "cell.time",
+    "machines.*.utilization",
+    "progress.rate_per_s",
+    "progress.time_left_s",
+    "progress.fraction",
+)
 
 
 # -- the difference ---------------------------------------------------------------------------
@@ -429,7 +481,15 @@ def _progress(
     if since is not None and now > since and done > 0:
         rate = done / (now - float(since))
     left = None
-    if rate and done < total:
+    fraction = min(1.0, done / total) if total > 0 else 0.0
+    run_total = float(raw.get("estimate_s") or 0.0)
+    run_done = estimated_done(raw, now)
+    if run_done is not None:
+        # The run's estimate, corrected by the machine's reports: the bar moves through a
+        # cut that sends no byte, and the time left counts the cut still to come.
+        fraction = run_done / run_total
+        left = run_total - run_done
+    elif rate and done < total:
         left = (total - done) / rate
     elif estimate is not None and step is not None and step.started is not None:
         left = max(0.0, estimate - (now - step.started))
@@ -438,7 +498,12 @@ def _progress(
         done=done,
         total=total,
         unit=str(raw.get("unit", "")),
-        fraction=round(min(1.0, done / total), 4) if total > 0 else 0.0,
+        fraction=round(fraction, 4),
+        estimate_s=round(run_total, 3) if run_done is not None else None,
+        estimate_done_s=None if run_done is None else float(raw.get("estimate_done_s") or 0),
+        estimate_cap_s=None if run_done is None else float(raw.get("estimate_cap_s") or 0),
+        estimate_at=None if run_done is None else float(raw.get("at") or 0),
+        running=bool(raw.get("running")) and run_done is not None,
         program=raw.get("program"),
         block=raw.get("block"),
         blocks=raw.get("blocks"),

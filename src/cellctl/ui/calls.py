@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -78,8 +79,8 @@ def machine_call(
             cell = await open_cell(directory, {ref.name: ref}, trace=trace, readiness=readiness)
             if cell.mode == "attached" and (trace or readiness or options):
                 err_console.print(
-                    "note: the running controller holds the link: --trace, --readiness and "
-                    "--start-signal do not "
+                    "note: the running controller holds the link: --trace, --readiness, "
+                    "--start-signal and --time-scale do not "
                     f"apply (its traffic: cellctl traffic {ref.name})"
                 )
         async with cell:
@@ -115,6 +116,8 @@ class LazyBar:
         columns: tuple[str | ProgressColumn, ...],
         description: str,
         fields_of: Callable[[dict[str, Any], float], dict[str, Any]],
+        *,
+        tick: float | None = None,
     ) -> None:
         from cellctl.ui.common import console
 
@@ -123,16 +126,35 @@ class LazyBar:
         self._fields_of = fields_of
         self._task: Any = None
         self.start = time.monotonic()
+        # ``tick``: the last dict is mapped again every ``tick`` s while it says the machine
+        # runs (``running``): figures that move with the clock (a cut's estimate) move on.
+        self._tick = tick
+        self._last: dict[str, Any] | None = None
+        self._lock = threading.Lock()
+        self._done = threading.Event()
+        self._ticker: threading.Thread | None = None
 
     def update(self, data: dict[str, Any]) -> None:
-        fields = self._fields_of(data, time.monotonic() - self.start)
-        if self._task is None:
-            self._progress.start()
-            self._task = self._progress.add_task(self._description, **fields)
-        else:
-            self._progress.update(self._task, **fields)
+        with self._lock:
+            self._last = data
+            fields = self._fields_of(data, time.monotonic() - self.start)
+            if self._task is None:
+                self._progress.start()
+                self._task = self._progress.add_task(self._description, **fields)
+            else:
+                self._progress.update(self._task, **fields)
+
+    def _run_ticks(self) -> None:
+        assert self._tick is not None
+        while not self._done.wait(self._tick):
+            last = self._last
+            if last is not None and last.get("running"):
+                self.update(last)
 
     def __enter__(self) -> LazyBar:
+        if self._tick is not None:
+            self._ticker = threading.Thread(target=self._run_ticks, daemon=True)
+            self._ticker.start()
         return self
 
     def __exit__(
@@ -141,5 +163,8 @@ class LazyBar:
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
+        self._done.set()
+        if self._ticker is not None:
+            self._ticker.join(timeout=5.0)
         if self._task is not None:
             self._progress.stop()

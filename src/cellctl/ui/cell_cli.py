@@ -21,7 +21,7 @@ from cellctl.cell.controller import CellController, ControllerOptions, Event
 from cellctl.cell.journal import Journal, open_journal
 from cellctl.cell.owner import acquire_controller_lock
 from cellctl.cell.report import Summary, summarize, write_gantt
-from cellctl.emulators.serve import parse_fault
+from cellctl.emulators.serve import CELL_TIME_SCALE, DEMO_TIME_SCALE, TIME_SCALE_HELP, parse_fault
 from cellctl.errors import UsageError
 from cellctl.mailbox import Mailbox, open_mailbox
 from cellctl.mailbox.mqtt import MqttBridge, MqttSettings
@@ -301,9 +301,10 @@ def _emulate_cell_command() -> click.Command:
             click.Option(
                 ["--time-scale"],
                 type=float,
-                default=50.0,
+                default=CELL_TIME_SCALE,
                 show_default=True,
-                help="Machine time runs this many times faster than real (1: real time).",
+                help="Machine time runs this many times faster than real (1: real time). "
+                + TIME_SCALE_HELP,
             ),
             click.Option(["--no-pacing"], is_flag=True, help="Move bytes as fast as they come."),
             click.Option(
@@ -352,10 +353,9 @@ def apply_fault(cell: object, text: str) -> None:
 @click.option(
     "--time-scale",
     type=float,
-    default=200.0,
+    default=DEMO_TIME_SCALE,
     show_default=True,
-    help="Machine time runs this many times faster than real: 200 runs the batch in about a "
-    "minute (the emulators default to 50, the machines alone to 1).",
+    help="Machine time runs this many times faster than real. " + TIME_SCALE_HELP,
 )
 @click.option(
     "--parts",

@@ -16,6 +16,7 @@ from cellctl.ui.kinds_cli import kinds_command
 from cellctl.ui.opcua_cli import opcua_group
 from cellctl.ui.orders_cli import alarm, cancel, orders, part, reports, submit
 from cellctl.ui.plc_cli import plc
+from cellctl.ui.report_cli import report
 from cellctl.ui.service_cli import estop, machine, pause, resume, service_group, traffic
 
 
@@ -52,6 +53,7 @@ main.add_command(submit)
 main.add_command(orders)
 main.add_command(cancel)
 main.add_command(reports)
+main.add_command(report)
 main.add_command(alarm)
 main.add_command(part)
 main.add_command(plc)

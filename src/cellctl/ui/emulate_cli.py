@@ -7,7 +7,13 @@ from collections.abc import Callable
 import click
 
 from cellctl.emulators.fleet import Fleet, check_fleet, serve_many
-from cellctl.emulators.serve import EmulatedDevice, Server, serve
+from cellctl.emulators.serve import (
+    MACHINE_TIME_SCALE,
+    TIME_SCALE_HELP,
+    EmulatedDevice,
+    Server,
+    serve,
+)
 from cellctl.link import LineSettings
 from cellctl.ui.common import console, until_stopped
 from cellctl.ui.plc_cli import emulate_plc
@@ -33,9 +39,9 @@ def listen_options(
         click.Option(
             ["--time-scale"],
             type=float,
-            default=1.0,
+            default=MACHINE_TIME_SCALE,
             show_default=True,
-            help="Machine times divided by this (10 = ten times faster).",
+            help="Machine times divided by this (10 = ten times faster). " + TIME_SCALE_HELP,
         ),
         click.Option(["--no-pacing"], is_flag=True, help="Move bytes as fast as they come."),
         click.Option(

@@ -22,6 +22,7 @@ from rich.console import Group
 from rich.live import Live
 from rich.table import Table
 
+from cellctl.emulators.serve import CELL_TIME_SCALE, TIME_SCALE_HELP
 from cellctl.errors import UsageError
 from cellctl.factory.config import FactoryConfig, load_factory
 from cellctl.factory.controller import FactoryController
@@ -304,9 +305,9 @@ def run_command(ctx: click.Context, live: bool | None, until_idle: bool) -> None
 @click.option(
     "--time-scale",
     type=float,
-    default=50.0,
+    default=CELL_TIME_SCALE,
     show_default=True,
-    help="Machine time runs this many times faster than real (1: real time).",
+    help="Machine time runs this many times faster than real (1: real time). " + TIME_SCALE_HELP,
 )
 @click.option(
     "--accept-timeout",

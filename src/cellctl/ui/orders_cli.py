@@ -166,7 +166,7 @@ def orders(ctx: click.Context, states: Sequence[str], as_json: bool) -> None:
             o["part_type"],
             str(o["qty"]),
             str(o["priority"]),
-            _styled(o["state"]),
+            _styled(o["state"]) + (" [yellow]blocked[/yellow]" if o.get("blocked") else ""),
             parts,
             _when(o["created"]),
             o["note"],

@@ -16,7 +16,7 @@ import logging
 import click
 
 from cellctl.emulators.plc import FAULTS, PlcEmulator
-from cellctl.emulators.serve import parse_fault
+from cellctl.emulators.serve import MACHINE_TIME_SCALE, TIME_SCALE_HELP, parse_fault
 from cellctl.errors import UsageError
 from cellctl.protocol.plc import SIGNALS, PlcMap
 from cellctl.service.machines import load_cell_file
@@ -129,9 +129,9 @@ def pulse(ctx: click.Context, name: str, seconds: float) -> None:
 @click.option(
     "--time-scale",
     type=float,
-    default=1.0,
+    default=MACHINE_TIME_SCALE,
     show_default=True,
-    help="Machine times divided by this (10 = ten times faster).",
+    help="Machine times divided by this (10 = ten times faster). " + TIME_SCALE_HELP,
 )
 @click.option("--fault", multiple=True, metavar="NAME[=ARG]", help="Fault switch.")
 @click.pass_context

@@ -9,16 +9,19 @@ from __future__ import annotations
 
 import asyncio
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
 import click
-from rich.progress import BarColumn, TextColumn, TimeRemainingColumn
+from rich.progress import BarColumn, TextColumn
 
 from cellctl.errors import UsageError
 from cellctl.kinds.dyna2400.driver import MillConfig
 from cellctl.kinds.dyna2400.dynalan import ProgramRole, Severity, ValidationContext, parse_program
 from cellctl.kinds.dyna2400.dynalan import validate as validate_program
+from cellctl.kinds.dyna2400.emulator import OperatorDelays
+from cellctl.kinds.families import estimated_done
 from cellctl.service.machines import load_cell_file
 from cellctl.ui.calls import LazyBar, machine_call, read_program
 from cellctl.ui.common import MachineGroup, cell_dir, console, err_console, fault_help, run
@@ -83,13 +86,21 @@ def mill(
     ctx.obj = {"link": link, "line": line, "trace": trace, "readiness": readiness}
 
 
-@mill.command()
+@mill.command(
+    help="INITIALIZE with the SETUP program; then jog to the reference zero and press NEXT. "
+    f"An emulator's operator does both by itself {OperatorDelays().setup:g} s of machine time "
+    "after the setup (divided by its --time-scale; never with its fault no-next)."
+)
 @click.argument("setup", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--force", is_flag=True, help="Initialize even if already initialized (failure).")
 @click.pass_context
 def init(ctx: click.Context, setup: Path, force: bool) -> None:
-    """INITIALIZE with the SETUP program; then jog to the reference zero and press NEXT."""
     _call(ctx, "init", force=force, **read_program(setup))
+
+
+def _clock(seconds: float) -> str:
+    s = max(0, round(seconds))
+    return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
 
 
 def _progress_columns() -> tuple[Any, ...]:
@@ -97,19 +108,27 @@ def _progress_columns() -> tuple[Any, ...]:
         TextColumn("[bold]block {task.fields[block]}/{task.fields[blocks]}"),
         BarColumn(),
         TextColumn("{task.fields[lines]}/{task.fields[lines_total]} lines"),
-        TextColumn("{task.completed:.0f}/{task.total:.0f} B"),
+        TextColumn("{task.fields[bytes_sent]}/{task.fields[bytes_total]} B"),
         TextColumn("{task.fields[rate]:>6.1f} chars/s"),
         TextColumn("{task.fields[phase]}"),
-        TimeRemainingColumn(),
+        TextColumn("{task.fields[left]}"),
     )
 
 
 @mill.command()
 @click.argument("program", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--no-wait", is_flag=True, help="Return once the last block is taken (state 3).")
+@click.option(
+    "--time-scale",
+    type=click.FloatRange(min=0, min_open=True, max=100_000),
+    help="The machine's time scale, for an emulator run with --time-scale: the progress and "
+    "time left divide the program's cut estimate by it (a cell's mill: its cell.toml "
+    "option time_scale, 1 for a real mill).",
+)
 @click.pass_context
-def download(ctx: click.Context, program: Path, no_wait: bool) -> None:
-    """DOWNLOAD: validate, split into blocks, stream them as the controller asks."""
+def download(ctx: click.Context, program: Path, no_wait: bool, time_scale: float | None) -> None:
+    """DOWNLOAD: validate, split into blocks, stream them as the controller asks; the bar and
+    the time left follow the program's estimate (line time and cut), corrected by the mill."""
     text = read_program(program)
     sending = {"time": 0.0, "mark": 0.0}
 
@@ -117,9 +136,17 @@ def download(ctx: click.Context, program: Path, no_wait: bool) -> None:
         if p["phase"] == "sending":
             sending["time"] += elapsed - sending["mark"]
         sending["mark"] = elapsed
+        # The bar and the time left follow the run's estimate (line time and the program's
+        # cut time), corrected by the mill's reports: it moves through the cut too.
+        done = estimated_done(p, time.time())
+        total = float(p.get("estimate_s") or 0.0)
+        left = "" if done is None else f"{_clock(total - done)} left"
         return {
-            "total": p["bytes_total"],
-            "completed": p["bytes_sent"],
+            "total": p["bytes_total"] if done is None else total,
+            "completed": p["bytes_sent"] if done is None else done,
+            "left": left,
+            "bytes_sent": p["bytes_sent"],
+            "bytes_total": p["bytes_total"],
             "block": p["block"],
             "blocks": p["blocks"],
             "lines": p["lines"],
@@ -128,8 +155,11 @@ def download(ctx: click.Context, program: Path, no_wait: bool) -> None:
             "phase": p["phase"],
         }
 
-    with LazyBar(_progress_columns(), program.name, fields) as bar:
-        result = machine_call(ctx, "mill", "download", {"wait": not no_wait, **text}, bar.update)
+    with LazyBar(_progress_columns(), program.name, fields, tick=0.5) as bar:
+        options = {"time_scale": time_scale} if time_scale is not None else None
+        result = machine_call(
+            ctx, "mill", "download", {"wait": not no_wait, **text}, bar.update, options=options
+        )
     _print(result)
 
 

@@ -219,6 +219,10 @@ class MillConfig(BaseModel):
     """The axes' travel limits, mm: a table of x_min ... z_max."""
     rapid_rate: float = 50.0
     """Rapid traverse rate, mm/s (for the machining estimate)."""
+    time_scale: float = Field(default=1.0, gt=0, le=100_000)
+    """The machine's time runs this many times faster than a real one's (an emulated cell
+    writes it): the toolpath's cut estimate, in the real machine's time, is divided by it
+    for the progress and the time left."""
     end_program: str | None = None
     """Path of the END program; the built-in ``000 END`` if None."""
 
@@ -631,20 +635,33 @@ class Dyna2400Mill(LinkDriver):
         done_bytes = done_lines = 0
         self.last_download = []
         report = progress or (lambda p: None)
+        # The run's estimate: each block's line time, then its cut (the toolpath's, in the
+        # machine's time); ``before[i]`` is where block i+1 starts.
+        wire_s = [self._wire_time(len(b.wire()) + 1) for b in blocks]
+        cut_s = [estimates[i] / self.config.time_scale for i in range(len(blocks))]
+        before = [sum(wire_s[:i]) + sum(cut_s[:i]) for i in range(len(blocks) + 1)]
+
+        def machining(k: int) -> Progress:
+            """Block k was taken: the machine cuts it (the estimate runs to its end)."""
+            return Progress(
+                k,
+                len(blocks),
+                done_lines,
+                lines_total,
+                done_bytes,
+                bytes_total,
+                "machining",
+                before[-1],
+                before[k - 1] + wire_s[k - 1],
+                before[k],
+                time.time(),
+                True,
+            )
+
         for block in blocks:
             k = block.index
             if k > 1:
-                report(
-                    Progress(
-                        k,
-                        len(blocks),
-                        done_lines,
-                        lines_total,
-                        done_bytes,
-                        bytes_total,
-                        "machining",
-                    )
-                )
+                report(machining(k - 1))
                 await self._wait_block_done(blocks[k - 2], estimates[k - 2])
                 self._set_state(2)
             wire = len(block.wire()) + 1
@@ -655,8 +672,22 @@ class Dyna2400Mill(LinkDriver):
             def on_line(
                 n: int, sent: int, k: int = k, b: int = base_bytes, l0: int = base_lines
             ) -> None:
+                start = before[k - 1]
                 report(
-                    Progress(k, len(blocks), l0 + n, lines_total, b + sent, bytes_total, "sending")
+                    Progress(
+                        k,
+                        len(blocks),
+                        l0 + n,
+                        lines_total,
+                        b + sent,
+                        bytes_total,
+                        "sending",
+                        before[-1],
+                        start + self._wire_time(sent),
+                        start + wire_s[k - 1],
+                        time.time(),
+                        True,
+                    )
                 )
 
             await self._send_block(block, timing, on_line)
@@ -664,22 +695,22 @@ class Dyna2400Mill(LinkDriver):
             done_bytes += wire
             done_lines += len(block.lines)
         if wait:
-            report(
-                Progress(
-                    len(blocks),
-                    len(blocks),
-                    lines_total,
-                    lines_total,
-                    bytes_total,
-                    bytes_total,
-                    "machining",
-                )
-            )
+            report(machining(len(blocks)))
             await self._wait_block_done(blocks[-1], estimates[-1])
             self._set_state(2)
         report(
             Progress(
-                len(blocks), len(blocks), lines_total, lines_total, bytes_total, bytes_total, "done"
+                len(blocks),
+                len(blocks),
+                lines_total,
+                lines_total,
+                bytes_total,
+                bytes_total,
+                "done",
+                before[-1],
+                before[-1],
+                before[-1],
+                time.time(),
             )
         )
         return Result(0, DOWNLOAD_RESULTS[0])

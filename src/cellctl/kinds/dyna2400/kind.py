@@ -118,6 +118,8 @@ def _emulated_options(scale: float) -> dict[str, float]:
         # The estimate a block's deadline multiplies is in the real cell's time.
         "block_margin": 2.0 / scale,
         "ready_wait": 2.0,
+        # The cut estimate behind the progress and the time left is in the real cell's time.
+        "time_scale": scale,
     }
 
 

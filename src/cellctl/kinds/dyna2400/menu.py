@@ -53,6 +53,11 @@ async def _mill_download(m: Dyna2400Mill, p: Prepared, progress: Progress | None
                     "bytes_sent": d.bytes_sent,
                     "bytes_total": d.bytes_total,
                     "phase": d.phase,
+                    "estimate_s": d.estimate_s,
+                    "estimate_done_s": d.estimate_done_s,
+                    "estimate_cap_s": d.estimate_cap_s,
+                    "at": d.at,
+                    "running": d.running,
                 }
             )
 

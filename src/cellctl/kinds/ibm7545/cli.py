@@ -133,6 +133,10 @@ def status(ctx: click.Context) -> None:
     for p, prog in st["partitions"].items():
         table.add_row(f"Partition {p}", f"Full ({prog})" if prog else "Empty")
     console.print(table)
+    # An executing program blocked in WAITI with nothing to drive its input: say so.
+    for line in st["lines"]:
+        if line.startswith(("waiting:", "  without one:")):
+            console.print(line, markup=False, highlight=False)
 
 
 @robot.command()
@@ -142,10 +146,12 @@ def reject(ctx: click.Context) -> None:
     _call(ctx, "reject")
 
 
-@robot.command()
+@robot.group(invoke_without_command=True)
 @click.pass_context
 def io(ctx: click.Context) -> None:
-    """The 16 digital inputs and 16 outputs."""
+    """The 16 digital inputs and 16 outputs; `io set N on|off` drives an emulator's input."""
+    if ctx.invoked_subcommand is not None:
+        return
     dido = machine_call(ctx, "robot", "io", {})
     table = Table(title=f"{dido['name']} DI/DO")
     table.add_column("line", justify="right")
@@ -154,6 +160,16 @@ def io(ctx: click.Context) -> None:
     table.add_row("DI", *("1" if x else "." for x in dido["inputs"]))
     table.add_row("DO", *("1" if x else "." for x in dido["outputs"]))
     console.print(table)
+
+
+@io.command("set")
+@click.argument("line", type=click.IntRange(1, 16), metavar="N")
+@click.argument("value", type=click.Choice(["on", "off"]))
+@click.pass_context
+def io_set(ctx: click.Context, line: int, value: str) -> None:
+    """Drive input N (1-16) on or off: for an emulator with no PLC behind it (a program in
+    WAITI goes on); a real robot refuses, its inputs come from its wiring."""
+    _call(ctx, "io_set", input=line, on=value == "on")
 
 
 @robot.command()
@@ -203,6 +219,19 @@ def compile(source: Path, output: Path | None, partition: int, name: str | None)
     run(amain)
 
 
+def _tell_wait(port: int, value: bool) -> None:
+    """What an emulated robot with no PLC behind it waits for, and how to go on."""
+    word = "on" if value else "off"
+    console.print(
+        f"robot: the program waits in WAITI({port}, {int(value)}) for input {port} {word}; "
+        f"no PLC drives it here: `cellctl robot --link URL io set {port} {word}` goes on, "
+        "`cellctl robot --link URL stop` ends the cycle",
+        markup=False,
+        highlight=False,
+        soft_wrap=True,
+    )
+
+
 def _emulate_command() -> click.Command:
     from cellctl.kinds.ibm7545.emulator import FAULTS, Ibm7545Emulator
     from cellctl.ui.emulate_cli import (
@@ -230,6 +259,7 @@ def _emulate_command() -> click.Command:
             device = Ibm7545Emulator(time_scale=time_scale)
             for name, arg in faults:
                 device.set_fault(name, arg)
+            device.wait_hooks.append(_tell_wait)
             return device
 
         async def main() -> None:

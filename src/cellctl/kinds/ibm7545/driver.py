@@ -74,11 +74,13 @@ from cellctl.errors import (
 )
 from cellctl.kinds import Condition
 from cellctl.kinds.families import CycleAborted, HostStatus, RecordsProgress
+from cellctl.kinds.ibm7545.aml import Op, decode_program
 from cellctl.kinds.ibm7545.records import (
     ACK,
     EOT,
     HALTING_FLAGS,
     PARTITIONS,
+    UNDEFINED_RECORD,
     XOFF,
     XON,
     DiDo,
@@ -88,6 +90,7 @@ from cellctl.kinds.ibm7545.records import (
     ReadOperand,
     Record,
     decode_record,
+    emulator_input_operand,
     encode_operand,
     encode_record,
     reject_message,
@@ -174,6 +177,9 @@ class RobotStatus:
     state: int
     machine: MachineStatus
     partitions: dict[int, str | None]
+    waiting: list[tuple[int, bool]] = field(default_factory=list)
+    """While executing: the inputs the running program's WAITIs wait for that do not have
+    their value now (read from DI/DO): what it may be blocked on."""
 
     @property
     def state_text(self) -> str:
@@ -189,7 +195,21 @@ class RobotStatus:
         )
         for p, prog in self.partitions.items():
             out.append(f"partition {p}: {'Full (' + prog + ')' if prog else 'Empty'}")
+        out += self.waiting_lines()
         return out
+
+    def waiting_lines(self) -> list[str]:
+        """What an executing program may wait for, and how to go on (empty: nothing)."""
+        if not self.waiting:
+            return []
+        inputs = ", ".join(f"input {n} {'on' if v else 'off'}" for n, v in self.waiting)
+        first, value = self.waiting[0]
+        return [
+            f"waiting: the program's WAITI waits for {inputs} (not so now); in a cell the "
+            "PLC drives them",
+            f"  without one: `robot io set {first} {'on' if value else 'off'}` (an emulator), "
+            "or `robot stop` ends the cycle",
+        ]
 
 
 @dataclass
@@ -224,6 +244,12 @@ class Ibm7545Robot(LinkDriver):
             if int(p) in PARTITIONS:
                 self.partitions[int(p)] = prog
         self.digests: dict[int, str] = {int(p): d for p, d in saved.get("digests", {}).items()}
+        # Each partition's WAITIs (input, value), and the partition started last: what an
+        # executing program may wait for (status names them).
+        self.waits: dict[int, list[tuple[int, bool]]] = {
+            int(p): [(int(n), bool(v)) for n, v in w] for p, w in saved.get("waits", {}).items()
+        }
+        self.started: int | None = saved.get("started")
         self._in_reject_read = False
         # The last program downloaded, as sent: (program given, partition, program retargeted,
         # wire pieces, digest). A DNC server sends one program over and over; encoding,
@@ -266,6 +292,8 @@ class Ibm7545Robot(LinkDriver):
                 "state": self.state,
                 "partitions": {str(p): prog for p, prog in self.partitions.items() if prog},
                 "digests": {str(p): d for p, d in self.digests.items()},
+                "waits": {str(p): w for p, w in self.waits.items() if self.partitions.get(p)},
+                "started": self.started,
             }
         )
 
@@ -330,8 +358,11 @@ class Ibm7545Robot(LinkDriver):
         return target
 
     async def start(self, slot: int) -> None:
-        """Run the program in partition ``slot`` (GO)."""
+        """Run the program in partition ``slot`` (GO): the cell's way, with its PLC behind
+        the inputs, so STATUS does not look for what the program's WAITIs wait for (no
+        transaction more beside the cell's own)."""
         await self.go(slot)
+        self.started = None
 
     async def wait_end(
         self, done_output: int, *, timeout: float, poll: float = 0.1, watch_every: float = 0.0
@@ -583,6 +614,7 @@ class Ibm7545Robot(LinkDriver):
                     await self._resync()
         self.partitions[partition] = prog.name
         self.digests[partition] = digest
+        self.waits[partition] = _waits(prog)
         self._save()
 
     def _wire(self, given: ProgramFile, partition: int) -> tuple[ProgramFile, list[bytes], str]:
@@ -655,6 +687,8 @@ class Ibm7545Robot(LinkDriver):
         self._guard(RobotFunction.GO, partition)
         await self.select_application(partition)
         await self.start_cycle()
+        self.started = partition
+        self._save()
 
     async def stop(self) -> None:
         """Stop the cycle (X 23): state 1. Accepts Ack or Xoff ... Xon as completion."""
@@ -676,10 +710,33 @@ class Ibm7545Robot(LinkDriver):
             await self._read(ReadOperand.MACHINE_STATUS, "machine status", 2)
         )
 
-    async def status(self) -> RobotStatus:
-        """Host state, decoded controller status and which partitions are full."""
+    async def status(self, *, waits: bool = False) -> RobotStatus:
+        """Host state, decoded controller status and which partitions are full. ``waits``
+        (the operator's STATUS): while executing, also the inputs its program's WAITIs wait
+        for that are not so now (one DI/DO read more: a monitor's poll leaves it out)."""
         machine = await self.machine_status()
-        return RobotStatus(self.state, machine, dict(self.partitions))
+        waiting: list[tuple[int, bool]] = []
+        pending = self.waits.get(self.started or 0, []) if waits else []
+        if self.state == RobotState.EXECUTING and pending:
+            dido = await self.io()
+            waiting = [(n, v) for n, v in pending if dido.input(n) != v]
+        return RobotStatus(self.state, machine, dict(self.partitions), waiting)
+
+    async def set_input(self, port: int, value: bool) -> None:
+        """Drive input ``port`` (1..16) on an emulator with no PLC behind it (an emulator-only
+        operand: a real controller's inputs come from its wiring, and it refuses)."""
+        operand = emulator_input_operand(port, value)  # refused before a byte goes out
+        try:
+            await self._execute(operand, f"set input {port}")
+        except DeviceError as e:
+            if e.code != UNDEFINED_RECORD:
+                raise
+            raise DeviceError(
+                e.code,
+                e.message,
+                detail=f"{self.name}: a real IBM 7545 takes its inputs from its wiring, not "
+                "from the host: drive the PLC output wired to it (`cellctl plc write COIL on`)",
+            ) from e
 
     async def reject_status(self) -> tuple[int, str]:
         """The reject status (R 02): code and the source's message."""
@@ -761,3 +818,19 @@ def _garbled(error: CellctlError) -> bool:
 
 def _digest(program: ProgramFile) -> str:
     return hashlib.sha256(program.to_text().encode("ascii")).hexdigest()[:16]
+
+
+def _waits(prog: ProgramFile) -> list[tuple[int, bool]]:
+    """The (input, value) pairs ``prog``'s WAITIs wait for, in program order, each once."""
+    try:
+        found = decode_program(prog.body)
+    except CellctlError:
+        return []
+    out: list[tuple[int, bool]] = []
+    for ins in found:
+        if ins.op is not Op.WAITI:
+            continue
+        pair = (ins.operands[0], bool(ins.operands[1]))
+        if pair not in out:
+            out.append(pair)
+    return out

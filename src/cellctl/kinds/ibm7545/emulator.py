@@ -71,6 +71,7 @@ from cellctl.kinds.ibm7545.records import (
     PARTITIONS,
     POWER_FAILURE_FLAG,
     SERVO_ERROR_FLAG,
+    UNDEFINED_RECORD,
     XOFF,
     XON,
     DiDo,
@@ -80,6 +81,7 @@ from cellctl.kinds.ibm7545.records import (
     Record,
     decode_operand,
     decode_record,
+    emulator_input_of,
     encode_record,
     resync,
 )
@@ -107,7 +109,6 @@ FAULTS: dict[str, str] = {
 
 # Reject codes used here (messages in cellctl.kinds.ibm7545.records.REJECT_CODES).
 RECORD_FORMAT_ERROR = 16
-UNDEFINED_RECORD = 32
 IMPROPER_STARTUP = 48
 INSUFFICIENT_MEMORY = 80
 INVALID_APPLICATION = 83
@@ -180,6 +181,11 @@ class Ibm7545Emulator(EmulatedDevice):
         self.output_hooks: list[Callable[[int, bool], None]] = []
         """Called with (port, value) on every change of a digital output made by a program:
         how a cell emulator wires the robot's outputs to the PLC."""
+        self.wait_hooks: list[Callable[[int, bool], None]] = []
+        """Called with (port, value) when a program blocks in WAITI on an input that does not
+        have the value yet (``cellctl emulate robot`` prints it)."""
+        self.waiting_for: tuple[int, bool] | None = None
+        """The input a program waits for in WAITI now, and the value it waits for."""
         self.faults: dict[str, str | None] = {}
         self.onsets = FaultOnsets()
         self.position: tuple[float, float, float, float] = self.arm.home
@@ -390,6 +396,10 @@ class Ibm7545Emulator(EmulatedDevice):
             self.data_error = 0
             self.reject = 0
             await self._send(host, bytes([ACK]))
+        elif (driven := emulator_input_of(op)) is not None:
+            # Not the 7545's: the emulator's stand-in for the wiring that drives its inputs.
+            self.set_input(*driven)
+            await self._send(host, bytes([ACK]))
         elif op in range(31, 36):
             partition = op - 30
             if self.running:
@@ -512,10 +522,19 @@ class Ibm7545Emulator(EmulatedDevice):
                 hook(port, value)
 
     async def _wait_input(self, port: int, value: bool) -> None:
+        told = False
         while DiDo(self.inputs, self.outputs).input(port) != value:
+            if not told:
+                self.waiting_for = (port, value)
+                for hook in list(self.wait_hooks):
+                    hook(port, value)
+                told = True
             fut: asyncio.Future[None] = asyncio.get_running_loop().create_future()
             self._input_waiters.append(fut)
-            await fut
+            try:
+                await fut
+            finally:
+                self.waiting_for = None
 
     def _data_error(self, code: int) -> None:
         self.status_flags |= DATA_ERROR_FLAG

@@ -34,6 +34,18 @@ class RobotDownloadParams(PartitionParams, ProgramParams):
     pass
 
 
+class InputParams(Params):
+    input: int
+    on: bool
+
+    @field_validator("input")
+    @classmethod
+    def _input(cls, value: int) -> int:
+        if not 1 <= value <= 16:
+            raise ValueError(f"input must be 1 to 16, not {value}")
+        return value
+
+
 def _parse_records(params: Any) -> ProgramFile:
     return ProgramFile.parse(params.text, params.program)
 
@@ -91,7 +103,7 @@ async def _robot_halt(r: Ibm7545Robot, p: Prepared, progress: Progress | None) -
 
 
 async def _robot_status(r: Ibm7545Robot, p: Prepared, progress: Progress | None) -> dict[str, Any]:
-    st = await r.status()
+    st = await r.status(waits=True)
     partitions = {str(n): prog for n, prog in st.partitions.items()}
     return ok(
         f"robot state {st.state} ({st.state_text})",
@@ -101,6 +113,7 @@ async def _robot_status(r: Ibm7545Robot, p: Prepared, progress: Progress | None)
         machine_status=str(st.machine),
         status_bytes=f"{st.machine.flags:02X} {st.machine.data_error:02X}",
         partitions=partitions,
+        waiting=[{"input": n, "on": v} for n, v in st.waiting],
         lines=st.lines(),
     )
 
@@ -123,6 +136,12 @@ async def _robot_io(r: Ibm7545Robot, p: Prepared, progress: Progress | None) -> 
         inputs=inputs,
         outputs=outputs,
     )
+
+
+async def _robot_io_set(r: Ibm7545Robot, p: Prepared, progress: Progress | None) -> dict[str, Any]:
+    await r.set_input(p.params.input, p.params.on)
+    word = "on" if p.params.on else "off"
+    return ok(f"input {p.params.input} {word}", input=p.params.input, on=p.params.on)
 
 
 async def _robot_reset(r: Ibm7545Robot, p: Prepared, progress: Progress | None) -> dict[str, Any]:
@@ -157,4 +176,8 @@ MENU: tuple[MachineFunction, ...] = (
                     "Clear machine-status and reject-status errors.", NoParams, _robot_reset),
     MachineFunction("robot", "home", "RETURN HOME", None, "Return the arm home.",
                     NoParams, _robot_home),
+    # Last: the keys of the functions before it stay where they were.
+    MachineFunction("robot", "io_set", "IO SET", None,
+                    "Drive an input of an emulator with no PLC (a real robot refuses).",
+                    InputParams, _robot_io_set),
 )  # fmt: skip

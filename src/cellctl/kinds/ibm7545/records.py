@@ -55,6 +55,8 @@ __all__ = [
     "CR",
     "CRLF",
     "DATA_ERRORS",
+    "EMULATOR_INPUT_OFF",
+    "EMULATOR_INPUT_ON",
     "END_GOOD",
     "END_RECORD",
     "EOT",
@@ -78,6 +80,8 @@ __all__ = [
     "data_error_message",
     "decode_operand",
     "decode_record",
+    "emulator_input_of",
+    "emulator_input_operand",
     "encode_operand",
     "encode_record",
     "reject_message",
@@ -132,6 +136,30 @@ def select_application_operand(partition: int) -> int:
     if partition not in PARTITIONS:
         raise UsageError(f"partition must be 1..5, not {partition}")
     return ExecuteOperand.SELECT_APPLICATION_1 + partition - 1
+
+
+#: Emulator-only X operands, not the 7545's (a real controller rejects them: 32, undefined
+#: record). A robot emulator with no PLC behind it takes its inputs from the host this way:
+#: 40 + N drives input N (1..16) on, 60 + N off (``cellctl robot io set N on|off``).
+EMULATOR_INPUT_ON = 40
+EMULATOR_INPUT_OFF = 60
+#: The reject a real controller answers an emulator-only operand with (undefined record).
+UNDEFINED_RECORD = 32
+
+
+def emulator_input_operand(port: int, value: bool) -> int:
+    """The emulator-only operand that drives input ``port`` (1..16) to ``value``."""
+    if port not in range(1, 17):
+        raise UsageError(f"input must be 1 to 16, not {port}")
+    return (EMULATOR_INPUT_ON if value else EMULATOR_INPUT_OFF) + port
+
+
+def emulator_input_of(operand: int) -> tuple[int, bool] | None:
+    """``(port, value)`` of an emulator-only input operand; None for any other operand."""
+    for base, value in ((EMULATOR_INPUT_ON, True), (EMULATOR_INPUT_OFF, False)):
+        if base < operand <= base + 16:
+            return operand - base, value
+    return None
 
 
 class ReadOperand(enum.IntEnum):

@@ -127,6 +127,8 @@ class ConsoleApp(App[None]):
         self.show_menu("main")
         self.say(["Choose with the number keys, or the arrows and Enter."])
         self.set_interval(self.traffic_period, self._poll_traffic)
+        # A cut's progress moves with the clock between updates (its estimate): redraw.
+        self.set_interval(1.0, self._redraw_progress)
 
     @property
     def mode(self) -> str:
@@ -155,6 +157,11 @@ class ConsoleApp(App[None]):
         self._show_snapshot()
         if self.level != "main":
             self.show_menu(self.level, keep=True)
+
+    def _redraw_progress(self) -> None:
+        machines = self.snapshot.get("machines", {}).values()
+        if not self._closed and any((m.get("progress") or {}).get("running") for m in machines):
+            self.query_one("#board", Board).show(self.snapshot)
 
     def _show_snapshot(self) -> None:
         paused = "  CELL PAUSED" if self.snapshot.get("cell", {}).get("paused") else ""

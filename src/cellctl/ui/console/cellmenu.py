@@ -258,4 +258,4 @@ def order_line(order: dict[str, Any]) -> str:
     return (
         f"{order['id']} {order['part_type']} x{order['qty']} p{order['priority']} "
         f"{order['state']} {parts}".rstrip()
-    )
+    ) + (f" -- {order['blocked']}" if order.get("blocked") else "")

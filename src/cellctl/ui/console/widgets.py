@@ -63,8 +63,9 @@ def progress_text(p: ProgressInfo) -> str:
     words = [p.phase]
     if p.blocks:
         words.append(f"block {p.block}/{p.blocks}")
-    if p.time_left_s is not None:
-        words.append(f"{p.time_left_s:.0f} s left")
+    _, left = p.estimated(time.time())  # the run's estimate moves on through a cut
+    if left is not None:
+        words.append(f"{left:.0f} s left")
     return " ".join(words)
 
 
@@ -85,7 +86,7 @@ def board_text(snapshot: dict[str, Any] | CellStatus, width: int = 48, height: i
         out.append(_clip(m.state, width - 14) + "\n")
         step = step_text(m.step)
         if m.progress is not None:
-            bar = text_bar(m.progress.done, m.progress.total, 8)
+            bar = text_bar(m.progress.estimated(time.time())[0], 1.0, 8)
             line = f"       {bar} {progress_text(m.progress)} {step}"
             out.append(_clip(line, width) + "\n", style="cyan")
         elif step:
@@ -113,6 +114,9 @@ def board_text(snapshot: dict[str, Any] | CellStatus, width: int = 48, height: i
         done = o.parts.get("done", 0)
         line = f" {o.id} {o.part_type} x{o.qty} p{o.priority} {o.state} {done}/{o.qty}"
         out.append(_clip(line, width) + "\n")
+        if o.blocked:  # its parts wait for a machine out of service: which, and why
+            out.append(_clip(f"   BLOCKED {o.blocked.removeprefix('blocked: ')}", width) + "\n",
+                       style="yellow")  # fmt: skip
     events = status.events
     room = height - len(out.plain.splitlines()) - 1
     if events and room > 0:

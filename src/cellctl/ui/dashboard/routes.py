@@ -37,6 +37,7 @@ DASHBOARD_METHODS = frozenset(
         "cell.status",
         "cell.layout",
         "steps.list",
+        "report.shift",
         "programs.preview",
         "traffic.tail",
         "orders.list",

@@ -197,7 +197,9 @@ export function renderOrders(snap) {
       : null;
     return h("tr", { "data-order": o.id, class: `order-${o.state}` },
       h("td", {}, o.id), h("td", {}, o.part_type), h("td", {}, o.qty), h("td", {}, o.priority),
-      h("td", {}, o.state), h("td", {}, parts || "—"), h("td", {}, cancel));
+      h("td", { class: o.blocked ? "blocked" : "", title: o.blocked || "" },
+        o.blocked ? `${o.state} · ${o.blocked}` : o.state),
+      h("td", {}, parts || "—"), h("td", {}, cancel));
   });
   replaceRows("order-table", rows, "no orders", 7);
 }

@@ -1,0 +1,50 @@
+"""A blocked order (its route needs a machine out of service) says it is blocked and why, in
+`cellctl orders`, the API's orders and status, and the console's board (issue 19, finding 10)."""
+
+from __future__ import annotations
+
+from cellctl.service.status import CellStatus
+from cellctl.ui.console.widgets import board_text
+from tests.test_api import Api, api  # noqa: F401 (the fixture)
+
+
+async def test_an_order_waiting_for_a_mill_out_of_service_says_so(api: Api) -> None:  # noqa: F811
+    rig = api.rig
+    await api.call("machines.out_of_service", {"machine": "cnc1", "reason": "new cutter"})
+    await api.call("orders.submit", {"part_type": "wax-robot-base", "id": "B1"})
+    await rig.wait_for(lambda: rig.journal.parts(order_id="B1"), "order B1 taken in")
+    # Its only part waits at the conveyor for cnc1: the status says so, by field.
+    status = CellStatus.model_validate(await api.call("cell.status"))
+    order = next(o for o in status.orders if o.id == "B1")
+    assert order.blocked.startswith("blocked:")
+    assert "cnc1" in order.blocked and "new cutter" in order.blocked
+    assert "cnc2" not in order.blocked  # its next move needs cnc1 (and the robot) only
+    assert order.note.startswith(order.blocked)
+    listed = next(o for o in await api.call("orders.list") if o["id"] == "B1")
+    assert listed["blocked"] == order.blocked
+    board = board_text(status, width=200).plain
+    assert "BLOCKED its parts need cnc1, out of service" in board
+    shown = await rig.cli("orders")
+    assert shown.exit_code == 0, shown.output
+    row = next(line for line in shown.output.splitlines() if " B1 " in line)
+    assert "blocked" in row and "cnc1, out of service" in row
+    # Back in service: the order goes on, and is no longer blocked.
+    await api.call("machines.return_to_service", {"machine": "cnc1"})
+    await rig.wait_for(lambda: rig.order_state("B1") == "done", "order B1 done", timeout=60)
+    listed = next(o for o in await api.call("orders.list") if o["id"] == "B1")
+    assert listed["blocked"] == ""
+
+
+async def test_a_part_between_mills_is_blocked_by_the_next_one(api: Api) -> None:  # noqa: F811
+    rig = api.rig
+    await api.call("machines.out_of_service", {"machine": "cnc2", "reason": "spindle"})
+    await api.call("orders.submit", {"part_type": "wax-robot-base", "id": "B2"})
+
+    def cut_on_cnc1() -> bool:
+        parts = rig.journal.parts(order_id="B2")
+        return bool(parts) and parts[0].route_index == 1 and parts[0].status == "waiting"
+
+    await rig.wait_for(cut_on_cnc1, "B2's part cut on cnc1, waiting for cnc2", timeout=60)
+    listed = next(o for o in await api.call("orders.list") if o["id"] == "B2")
+    assert "cnc2, out of service" in listed["blocked"] and "spindle" in listed["blocked"]
+    assert "cnc1" not in listed["blocked"]

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import click
 
+from cellctl.emulators.serve import TIME_SCALE_HELP
 from cellctl.errors import CellctlError, UsageError
 from cellctl.kinds.iso_cnc import tape
 from cellctl.kinds.iso_cnc.driver import ISO_LINE
@@ -69,7 +70,7 @@ async def _panel(control: IsoCncEmulator) -> None:
     type=float,
     default=1.0,
     show_default=True,
-    help="Machine times divided by this (10 = ten times faster).",
+    help="Machine times divided by this (10 = ten times faster). " + TIME_SCALE_HELP,
 )
 @click.option("--no-pacing", is_flag=True, help="Move bytes as fast as they come.")
 @click.option("--line", default=ISO_LINE, show_default=True, help="Line settings.")

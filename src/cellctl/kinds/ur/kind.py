@@ -113,9 +113,9 @@ def _menu() -> Sequence[MachineFunction]:
 
 
 def _commands() -> Sequence[tuple[str, click.Command]]:
-    from cellctl.kinds.ur.cli import emulate_ur
+    from cellctl.kinds.ur.cli import ROBOT_COMMANDS, emulate_ur
 
-    return [("emulate", emulate_ur)]
+    return [("emulate", emulate_ur), *(("robot", command) for command in ROBOT_COMMANDS)]
 
 
 def _timing() -> Any:

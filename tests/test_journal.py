@@ -455,3 +455,40 @@ def test_two_processes_writing_at_once_lose_nothing(tmp_path: Path) -> None:
         assert j.active_alarms() == []
         assert {a.cleared_by for a in j.alarms()} == {"a", "b"}
         assert len([s for s in j.steps() if s.state == "finished"]) == 200
+
+
+def _other_process(directory: Path, code: str) -> str:
+    """Run ``code`` (with ``j``, the journal of ``directory``, open) in a new process."""
+    script = textwrap.dedent(
+        """
+        import sys
+        from pathlib import Path
+        from cellctl.cell.journal import open_journal
+        with open_journal(Path(sys.argv[1])) as j:
+            print({code})
+        """
+    ).format(code=code)
+    done = subprocess.run(
+        [sys.executable, "-c", script, str(directory)], capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 0, done.stderr
+    return done.stdout.strip()
+
+
+def test_a_second_store_in_the_process_keeps_the_first_ones_writes_visible(
+    tmp_path: Path,
+) -> None:
+    """The controller's journal, then a second store on the same file in the same process
+    (the API's audit trail), then a command in another process that opens the journal and
+    closes it: what the controller writes afterwards is still seen by everyone else. (Opening
+    the file by hand beside a live connection dropped its locks; the other process, seeing no
+    reader, deleted the -wal at its close, and later writes went into the deleted file.)"""
+    with open_journal(tmp_path) as journal:
+        journal.raise_alarm("robot", "link", "before")
+        with open_journal(tmp_path) as second:
+            second.raise_alarm("cnc1", "link", "beside")
+        assert _other_process(tmp_path, "len(j.alarms())") == "2"
+        journal.raise_alarm("cnc2", "link", "after")
+        texts = _other_process(tmp_path, "sorted(a.text for a in j.alarms())")
+        assert texts == str(["after", "before", "beside"])
+        assert (tmp_path / "journal.sqlite3-wal").exists()

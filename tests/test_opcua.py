@@ -104,10 +104,10 @@ async def until(condition: Callable[[], Awaitable[Any]], what: str, timeout: flo
         await asyncio.sleep(0.02)
 
 
-def add_user(cell: Path, name: str, password: str) -> None:
+def add_user(cell: Path, name: str, password: str, role: str = "operator") -> None:
     result = CliRunner().invoke(
         cli_main,
-        ["--cell", str(cell), "opcua", "adduser", name],
+        ["--cell", str(cell), "opcua", "adduser", name, "--role", role],
         input=f"{password}\n{password}\n",
     )
     assert result.exit_code == 0, result.output
@@ -127,6 +127,34 @@ class Seen:
         self.events.append(event)
 
 
+async def _a_viewer_cannot_order(
+    url: str, cell: Path, cert: tuple[str, str], cell_id: ua.NodeId, submit_id: ua.NodeId
+) -> None:
+    """A user with the viewer role reads, but SubmitOrder is refused with the role lacked,
+    and the refusal is in the audit trail under the user's name."""
+    from cellctl.service.audit import AuditLog
+
+    async with session(url, cell, cert, "vera", "pw") as vera:
+        refused = await call_raw(vera, cell_id, submit_id, "wax-robot-base", ua.Variant(1, UINT32))
+    assert refused.StatusCode.value == ua.StatusCodes.BadUserAccessDenied
+    words = refused.InputArgumentDiagnosticInfos[0].AdditionalInfo
+    assert "vera is a viewer: orders.submit needs the operator role" in words
+    async with session(url, cell, cert, "vera", "pw") as vera:
+        idx = await vera.get_namespace_index(NAMESPACE)
+        ack = vera.get_node(ua.NodeId("Cell/AcknowledgeAlarm", idx))
+        refused = await call_raw(vera, cell_id, ack.nodeid, ua.Variant(1, UINT32))
+    assert refused.StatusCode.value == ua.StatusCodes.BadUserAccessDenied
+    words = refused.InputArgumentDiagnosticInfos[0].AdditionalInfo
+    assert "vera is a viewer: alarms.ack needs the operator role" in words
+    with AuditLog(cell) as log:
+        entries = log.entries(who="vera")
+    assert [(e.who, e.method) for e in entries] == [
+        ("opcua:vera", "orders.submit"),
+        ("opcua:vera", "alarms.ack"),
+    ]
+    assert all("needs the operator role" in e.result for e in entries)
+
+
 async def call_raw(client: Client, cell: ua.NodeId, method: ua.NodeId, *args: Any) -> Any:
     """One method call whose Bad status is returned, not raised (to read its words)."""
     request = ua.CallMethodRequest()
@@ -144,6 +172,7 @@ async def test_a_user_watches_and_orders_an_anonymous_reader_cannot_act(
     async with CellRig(tmp_path / "cell") as rig:
         cell = rig.directory
         add_user(cell, "alice", "correct horse")
+        add_user(cell, "vera", "pw", role="viewer")
         assert (cell / "opcua-users.toml").stat().st_mode & 0o777 == 0o600
         with (cell / "cell.toml").open("a") as f:
             f.write(
@@ -211,6 +240,7 @@ async def _scenario(rig: CellRig, url: str, cert: tuple[str, str], run: asyncio.
         await until(_async(lambda: seen.values), "the first value of cnc1's state")
 
         await _methods_take_only_their_declared_arguments(alice, cell_node, submit, clear, rig)
+        await _a_viewer_cannot_order(url, cell, cert, cell_node.nodeid, submit.nodeid)
         order_id = await cell_node.call_method(
             submit,
             "wax-robot-base",
@@ -269,6 +299,14 @@ async def _scenario(rig: CellRig, url: str, cert: tuple[str, str], run: asyncio.
         # Acknowledge (Part 9) on the condition marks it seen (an event says so); it stays
         # open until cleared. The cell's own AcknowledgeAlarm then has nothing left to do.
         alarm_node = await cell_node.get_child([f"{idx}:Alarms", f"{idx}:{event.AlarmId}"])
+        async with session(url, cell, cert, "vera", "pw") as vera:  # a viewer may not
+            with pytest.raises(BadUserAccessDenied):
+                await vera.get_node(alarm_node.nodeid).call_method(
+                    ua.NodeId(ua.ObjectIds.AcknowledgeableConditionType_Acknowledge),
+                    ua.Variant(condition.EventId, ua.VariantType.ByteString),
+                    ua.LocalizedText("seen"),
+                )
+        assert rig.journal.get_alarm(event.AlarmId).acked is None
         await alarm_node.call_method(
             ua.NodeId(ua.ObjectIds.AcknowledgeableConditionType_Acknowledge),
             ua.Variant(condition.EventId, ua.VariantType.ByteString),

@@ -35,9 +35,20 @@ def make_private(path: Path) -> None:
 
     SQLite gives the -wal and -shm files it creates the database file's permissions, so a
     private database keeps its journal private too.
+
+    An existing file is never opened here, only chmod-ed by name: closing any descriptor
+    of a file drops every POSIX lock this process holds on it, so opening and closing the
+    database beside a connection already open in this process would take that connection's
+    locks away. Another process would then see no reader, checkpoint on close and delete the
+    -wal and -shm files, and this process's writes would go on into the deleted WAL, where
+    nobody else ever reads them.
     """
-    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
-    os.close(fd)
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o600)
+    except FileExistsError:
+        pass  # there already: no descriptor of it opened, none closed
+    else:
+        os.close(fd)  # a new file: nothing of this process holds a lock on it yet
     for file in (path, path.with_name(path.name + "-wal"), path.with_name(path.name + "-shm")):
         with contextlib.suppress(FileNotFoundError, PermissionError):
             if file.stat().st_mode & 0o077:

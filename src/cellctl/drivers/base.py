@@ -38,13 +38,14 @@ def take_link_locks(url: str, name: str | None, store: StateStore | None) -> lis
 
     - by name in the cell, ``<cell>/state/machine-<key>.lock``, when there is a store and a
       name of its own (an ad-hoc ``--link URL`` is named after its URL: the next lock does);
-    - by URL, ``<runtime dir>/link-<key>.lock``, always but for ``loop://``: two ``--link``
+    - by URL, ``<runtime dir>/link-<key>.lock``, always but for ``loop://`` and ``mem://``
+      (lines inside one process, whose own open refuses a second host): two ``--link``
       commands exclude each other, and one cannot open a link a controller opened by name.
     """
     wanted: list[tuple[Path, str]] = []
     if store is not None and name and name != url:
         wanted.append((store.lock_path(name), name))
-    if not url.startswith("loop://"):
+    if not url.startswith(("loop://", "mem://")):
         wanted.append((link_lock_path(url), url))
     locks: list[OwnerLock] = []
     try:

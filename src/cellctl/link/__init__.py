@@ -14,7 +14,8 @@ underneath::
 URLs: a device path (``/dev/ttyUSB0``, a pty such as ``/dev/pts/7``; ``serial://`` prefix
 optional), ``socket://host:port`` (raw TCP serial server), ``rfc2217://host:port`` (ser2net
 in telnet/RFC 2217 mode, serial device servers: line settings and modem lines travel too),
-``loop://`` (loopback).
+``loop://`` (loopback), ``mem://NAME`` (an emulator in the same event loop, paced by the
+clock at the line's rate, modem lines carried: :mod:`cellctl.link.mem`).
 """
 
 from __future__ import annotations
@@ -70,7 +71,10 @@ async def open_link(
     global _fd_limit_raised
     log = TrafficLog(trace) if isinstance(trace, str | Path) else trace
     name = label or url
-    scheme = urlsplit(url).scheme if "://" in url else ""
+    try:
+        scheme = urlsplit(url).scheme if "://" in url else ""
+    except ValueError as e:  # e.g. an unclosed "[" of an IPv6 address
+        raise UsageError(f"link URL {url!r} not understood: {e}") from None
     if scheme in ("", "serial"):
         from cellctl.link.serialport import SerialLink, raise_fd_limit
 
@@ -104,7 +108,11 @@ async def open_link(
         from cellctl.link.loop import LoopLink
 
         return LoopLink(url, settings, log, name)
+    if scheme == "mem":
+        from cellctl.link.mem import open_mem
+
+        return open_mem(url, settings, log, name)
     raise UsageError(
         f"link URL {url!r} not understood: use a device path, socket://HOST:PORT, "
-        "rfc2217://HOST:PORT or loop://"
+        "rfc2217://HOST:PORT, loop:// or mem://NAME"
     )

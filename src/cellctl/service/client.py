@@ -27,10 +27,10 @@ from websockets.exceptions import ConnectionClosed, InvalidStatus, WebSocketExce
 from cellctl.errors import AccessDenied, CellctlError, LinkClosed, LinkError, LinkTimeout
 from cellctl.service.access import LocalCell
 from cellctl.service.machines import MachineRef
-from cellctl.service.methods import Dispatcher, error_from_object
+from cellctl.service.methods import Caller, Dispatcher, error_from_object
 from cellctl.service.server import SOCKET_FILE
 from cellctl.service.status import CellStatus, difference
-from cellctl.service.token import read_token
+from cellctl.service.token import TOKEN_ENV, client_token, identify
 
 Update = Callable[[dict[str, Any]], None]
 Progress = Callable[[dict[str, Any]], None]
@@ -202,6 +202,7 @@ class StandaloneCell:
     def __init__(self, access: LocalCell) -> None:
         self.access = access
         self.dispatcher = Dispatcher(access)
+        self.caller = env_caller(access.directory)
         self._updates: list[Update] = []
         self._poller: asyncio.Task[None] | None = None
 
@@ -216,7 +217,9 @@ class StandaloneCell:
         limit = timeout if timeout is not None else call_timeout(method)
         try:
             async with asyncio.timeout(limit):
-                return await self.dispatcher.call(method, params or {}, progress)
+                return await self.dispatcher.call(
+                    method, params or {}, progress, caller=self.caller
+                )
         except TimeoutError:
             raise LinkTimeout(f"{method}: not done within {limit:g} s") from None
 
@@ -263,10 +266,24 @@ class StandaloneCell:
 CellClient = RemoteCell | StandaloneCell
 
 
+def env_caller(directory: Path) -> Caller | None:
+    """Who calls in this process: the named token in ``$CELLCTL_TOKEN``, with its role (so an
+    operator's token acts as an operator without a controller too); None (the local user,
+    an engineer) when it is not set. AccessDenied for a token that is not the cell's."""
+    given = os.environ.get(TOKEN_ENV, "").strip()
+    if not given:
+        return None
+    entry = identify(directory, given)
+    if entry is None:
+        raise AccessDenied(f"${TOKEN_ENV} is no token of {directory} (wrong or revoked)")
+    return Caller(f"token:{entry.name}", entry.role)
+
+
 async def attach(directory: Path) -> RemoteCell:
-    """Connect to the API of the controller running ``directory``."""
+    """Connect to the API of the controller running ``directory`` (with ``$CELLCTL_TOKEN``
+    when set, else ``api-token``)."""
     return await RemoteCell.connect(
-        token=read_token(directory), socket_path=directory / SOCKET_FILE
+        token=client_token(directory), socket_path=directory / SOCKET_FILE
     )
 
 

@@ -14,8 +14,11 @@ into a JSON-RPC error whose ``data`` names the type, so a client raises the same
 
 from __future__ import annotations
 
+import asyncio
+import getpass
+import threading
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -24,12 +27,20 @@ from cellctl import __version__
 from cellctl import errors as errors_module
 from cellctl.cell.causes import PRIORITIES
 from cellctl.cell.journal import MAX_SHELVE, PART_STATUSES
-from cellctl.errors import CellctlError, DeviceError, ProtocolError, UsageError, exit_code
+from cellctl.errors import (
+    AccessDenied,
+    CellctlError,
+    DeviceError,
+    ProtocolError,
+    UsageError,
+    exit_code,
+)
 from cellctl.kinds import registry
 from cellctl.mailbox import ORDER_STATES
 from cellctl.mailbox.base import MAX_QTY
 from cellctl.service import operator
 from cellctl.service.access import CellAccess
+from cellctl.service.audit import MAX_ENTRIES, AuditLog
 from cellctl.service.functions import (
     FUNCTIONS,
     InvalidParams,
@@ -38,6 +49,7 @@ from cellctl.service.functions import (
     function,
     kind_menu,
 )
+from cellctl.service.token import ROLES, role_allows
 
 #: JSON-RPC 2.0's own error codes.
 PARSE_ERROR = -32700
@@ -151,6 +163,12 @@ class PreviewParams(P):
     program: str = Field(min_length=1, max_length=500)
 
 
+class AuditParams(P):
+    since: float | None = Field(default=None, allow_inf_nan=False, ge=0, le=1e11)
+    who: str | None = Field(default=None, min_length=1, max_length=100)
+    limit: int = Field(default=200, ge=1, le=MAX_ENTRIES)
+
+
 class MachineCallParams(BaseModel):
     """A manual function: ``machine`` (optional when the cell has one of the family), and
     the function's own parameters beside it."""
@@ -169,6 +187,14 @@ class Method:
     handler: Handler
     doc: str
     acts: bool  # changes something (a read-only GET never calls one of these)
+    #: The least role that may call it (:data:`~cellctl.service.token.ROLES`); left out, an
+    #: acting method needs an operator and a read a viewer.
+    role: str = field(default="", kw_only=True)
+
+    def __post_init__(self) -> None:
+        if not self.role:
+            object.__setattr__(self, "role", "operator" if self.acts else "viewer")
+        assert self.role in ROLES, self.role
 
 
 async def _info(access: CellAccess, p: NoParams, progress: Progress | None) -> Any:
@@ -337,6 +363,17 @@ async def _preview(access: CellAccess, p: PreviewParams, progress: Progress | No
     return program_preview(access, p.machine, p.program)
 
 
+async def _audit(access: CellAccess, p: AuditParams, progress: Progress | None) -> Any:
+    if access.journal() is None:
+        return []
+
+    def read() -> list[dict[str, Any]]:
+        with AuditLog(access.directory) as log:
+            return [e.as_dict() for e in log.entries(since=p.since, who=p.who, limit=p.limit)]
+
+    return await asyncio.to_thread(read)  # off the loop, as the entries are written
+
+
 def _machine_handler(family: str, function_name: str) -> Handler:
     """The handler of ``FAMILY.NAME``: it runs the function of the named machine's own kind
     (two mill kinds may have different menus; one without the function refuses the call)."""
@@ -397,6 +434,7 @@ _TABLE: list[Method] = [
     Method(
         "programs.preview", PreviewParams, _preview, "Toolpath SVG of a route's program.", False
     ),
+    Method("audit.list", AuditParams, _audit, "Who did what, when, and its result.", False),
 ]
 _TABLE += [
     Method(
@@ -406,6 +444,8 @@ _TABLE += [
         f"{fn.label}: {fn.doc}"
         + (" Also in automatic service." if fn.observes else " Out of automatic service only."),
         not fn.observes,
+        # By hand a machine is an engineer's; what only observes it, anyone's.
+        role="viewer" if fn.observes else "engineer",
     )
     for fn in FUNCTIONS
 ]
@@ -421,7 +461,10 @@ def reference_table() -> str:
         if k.origin is None or k.origin.module.startswith("cellctl.")
         for fn in kind_menu(k.name)
     }
-    rows = ["| method | parameters (? optional) | what it does | acts |", "|---|---|---|---|"]
+    rows = [
+        "| method | parameters (? optional) | what it does | acts | role |",
+        "|---|---|---|---|---|",
+    ]
     for m in METHODS.values():
         fields = dict(m.params.model_fields)
         if m.params is MachineCallParams:
@@ -430,7 +473,8 @@ def reference_table() -> str:
             family, name = m.name.split(".")
             fields.update(function(family, name).params.model_fields)
         names = ", ".join(k + ("" if f.is_required() else "?") for k, f in fields.items())
-        rows.append(f"| `{m.name}` | {names or '-'} | {m.doc} | {'yes' if m.acts else 'no'} |")
+        acts = "yes" if m.acts else "no"
+        rows.append(f"| `{m.name}` | {names or '-'} | {m.doc} | {acts} | {m.role} |")
     return "\n".join(rows) + "\n"
 
 
@@ -438,17 +482,73 @@ class MethodNotFound(UsageError):
     """No such method."""
 
 
+class RoleRefused(AccessDenied):
+    """The caller's role may not call the method; ``needs`` is the role it lacks."""
+
+    def __init__(self, message: str, needs: str) -> None:
+        super().__init__(message)
+        self.needs = needs
+
+
+@dataclass(frozen=True)
+class Caller:
+    """Who calls: ``who`` as the audit trail names it (``token:ann``, ``opcua:bob``) and
+    the role their token or user holds."""
+
+    who: str
+    role: str
+
+
+def local_caller() -> Caller:
+    """The user at this computer, calling in-process: they hold the cell's files already."""
+    try:
+        user = getpass.getuser()
+    except (KeyError, OSError):
+        user = "unknown"
+    return Caller(f"local:{user}", "engineer")
+
+
 class Dispatcher:
-    """Calls methods on one cell (see module docstring)."""
+    """Calls methods on one cell (see module docstring). Each call is checked against the
+    caller's role, and every acting call (and every refused one) goes to the audit trail
+    when the cell has a journal."""
 
     def __init__(self, access: CellAccess) -> None:
         self.access = access
+        self._audit: AuditLog | None = None
+        self._audit_lock = threading.Lock()  # one opening of the log, from worker threads
 
-    async def call(self, method: str, params: Any = None, progress: Progress | None = None) -> Any:
-        """Run ``method`` with ``params`` (a dict or None); typed errors on failure."""
+    async def call(
+        self,
+        method: str,
+        params: Any = None,
+        progress: Progress | None = None,
+        *,
+        caller: Caller | None = None,
+    ) -> Any:
+        """Run ``method`` with ``params`` (a dict or None) for ``caller`` (the local user
+        when None); typed errors on failure (:class:`RoleRefused` for a role too low)."""
+        caller = caller or local_caller()
         entry = METHODS.get(method)
-        if entry is None:
-            raise MethodNotFound(f"no method {method!r} (server.info lists them)")
+        try:
+            if entry is None:
+                raise MethodNotFound(f"no method {method!r} (server.info lists them)")
+            if not role_allows(caller.role, entry.role):
+                name = caller.who.partition(":")[2] or caller.who
+                raise RoleRefused(
+                    f"{name} is a {caller.role}: {method} needs the {entry.role} role",
+                    entry.role,
+                )
+            result = await self._run(entry, method, params, progress)
+        except Exception as e:
+            if entry is not None and (entry.acts or isinstance(e, RoleRefused)):
+                await self.record(caller.who, method, params, str(e) or type(e).__name__)
+            raise
+        if entry.acts:
+            await self.record(caller.who, method, params, "ok")
+        return result
+
+    async def _run(self, entry: Method, method: str, params: Any, progress: Progress | None) -> Any:
         if params is None:
             params = {}
         if not isinstance(params, dict):
@@ -458,6 +558,26 @@ class Dispatcher:
         except ValidationError as e:
             raise InvalidParams(f"{method}: {describe(e)}") from None
         return await entry.handler(self.access, checked, progress)
+
+    async def record(self, who: str, method: str, params: Any, result: str) -> None:
+        """One audit entry, when the cell has a journal (a cell that never ran has none).
+        Written in a worker thread: a commit waits for the disk (synchronous=FULL), and the
+        controller's loop must not wait with it (its looks at the machines have deadlines)."""
+        if self.access.journal() is None:
+            return
+        await asyncio.to_thread(self._write_entry, who, method, params, result)
+
+    def _write_entry(self, who: str, method: str, params: Any, result: str) -> None:
+        with self._audit_lock:
+            if self._audit is None:
+                self._audit = AuditLog(self.access.directory)
+            self._audit.record(who, method, params, result)
+
+    def close(self) -> None:
+        with self._audit_lock:
+            if self._audit is not None:
+                self._audit.close()
+                self._audit = None
 
 
 def error_object(error: BaseException) -> dict[str, Any]:
@@ -474,7 +594,10 @@ def error_object(error: BaseException) -> dict[str, Any]:
 
 def _data(error: CellctlError, code: int) -> dict[str, Any]:
     kind = "UsageError" if isinstance(error, InvalidParams) else None
+    kind = "AccessDenied" if isinstance(error, RoleRefused) else kind
     data: dict[str, Any] = {"type": kind or type(error).__name__, "exit_code": code}
+    if isinstance(error, RoleRefused):
+        data["role"] = error.needs
     if isinstance(error, DeviceError):
         data.update(device_code=error.code, device_message=error.message, detail=error.detail)
     if isinstance(error, ProtocolError):

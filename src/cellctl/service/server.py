@@ -16,8 +16,12 @@ HTTP GET for read-only state, on Starlette/uvicorn.
   ``/api/schema``) (and ``/api/orders``, ``/api/alarms``, ``/api/parts``, ``/api/machines``,
   ``/api/traffic/{machine}``, ``/server/info``).
 
-Every request needs ``Authorization: Bearer <token>`` (``<cell>/api-token``, 0600, made at the
-first run): a missing or wrong one gets 401 (HTTP) or a refused handshake (WebSocket). A
+Every request needs ``Authorization: Bearer <token>``: ``<cell>/api-token`` (0600, made at the
+first run; the engineer token ``default``) or a named token with a role
+(:mod:`cellctl.service.token`): a missing, wrong or revoked one gets 401 (HTTP) or a refused
+handshake (WebSocket). Each method needs a role (``Method.role``): a lower one is refused
+with 403 (HTTP) or a JSON-RPC error naming the role it lacks (``data.role``), and recorded in
+the audit trail (:mod:`cellctl.service.audit`) with every acting call. A
 browser, which cannot set that header on a WebSocket, fetches ``/access/oneshot_token`` (with
 the header) and opens ``/websocket?token=ONESHOT`` within 10 s. A handshake from a page of
 another origin, or naming a host the server does not answer to, is refused. A call runs to
@@ -32,7 +36,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hashlib
-import hmac
 import ipaddress
 import json
 import logging
@@ -52,7 +55,7 @@ from starlette.responses import JSONResponse, Response
 from starlette.routing import BaseRoute, Route, WebSocketRoute
 from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
-from cellctl.errors import UsageError
+from cellctl.errors import AccessDenied, UsageError
 from cellctl.service.access import CellAccess
 from cellctl.service.limits import (
     ApiLimits,
@@ -66,11 +69,20 @@ from cellctl.service.methods import (
     INVALID_REQUEST,
     MAX_BATCH,
     PARSE_ERROR,
+    Caller,
     Dispatcher,
+    RoleRefused,
     error_object,
 )
 from cellctl.service.status import CellStatus, difference
-from cellctl.service.token import TOKEN_FILE, ensure_token
+from cellctl.service.token import (
+    TOKEN_FILE,
+    TokenEntry,
+    ensure_default,
+    ensure_token,
+    identify,
+    still_valid,
+)
 
 __all__ = [
     "SOCKET_FILE",
@@ -132,8 +144,9 @@ def parse_listen(text: str, allow_remote: bool) -> tuple[str, int]:
 class _Session:
     """One WebSocket client: its send queue and whether it subscribed."""
 
-    def __init__(self, ws: WebSocket) -> None:
+    def __init__(self, ws: WebSocket, entry: TokenEntry) -> None:
         self.ws = ws
+        self.entry = entry  # whose token opened it (checked again at each call)
         self.queue: asyncio.Queue[str | None] = asyncio.Queue(MAX_QUEUED)
         self.subscribed = False
         self.open = True
@@ -177,7 +190,7 @@ class ApiServer:
         self.access = access
         self.directory = Path(directory)
         self.dispatcher = Dispatcher(access)
-        self.token = ensure_token(self.directory)
+        self.token = ensure_default(self.directory)
         self.tcp = parse_listen(listen, allow_remote) if listen else None
         self.limits = limits or ApiLimits()
         self.socket_path = self.directory / SOCKET_FILE
@@ -187,7 +200,7 @@ class ApiServer:
         self._server: GuardedServer | None = None
         self._tasks: list[asyncio.Task[None]] = []
         self.push_count = 0
-        self._oneshot: dict[str, float] = {}
+        self._oneshot: dict[str, tuple[float, TokenEntry]] = {}
         self.app = Starlette(
             middleware=[
                 Middleware(SecurityHeaders),
@@ -305,33 +318,39 @@ class ApiServer:
         for path in {target, self.socket_path}:
             with contextlib.suppress(OSError):
                 path.unlink()
+        self.dispatcher.close()
 
     # -- auth ---------------------------------------------------------------------------------
 
-    def authorized(self, headers: Any) -> bool:
-        """Whether a request carries the cell's token (``Authorization: Bearer``)."""
+    def caller(self, headers: Any) -> TokenEntry | None:
+        """The token a request carries (``Authorization: Bearer``), None if it is no token
+        of the cell's (missing, wrong, or revoked)."""
         given = headers.get("authorization", "")
         scheme, _, token = given.partition(" ")
-        return bool(
-            scheme.lower() == "bearer"
-            and hmac.compare_digest(token.strip().encode(), self.token.encode())
-        )
+        if scheme.lower() != "bearer":
+            return None
+        return identify(self.directory, token.strip())
+
+    def authorized(self, headers: Any) -> bool:
+        """Whether a request carries one of the cell's tokens."""
+        return self.caller(headers) is not None
 
     async def _oneshot_token(self, request: Request) -> Response:
         """A token for one WebSocket handshake within ``ONESHOT_TTL`` s: a browser cannot set
         the Authorization header on a WebSocket, so it fetches one of these (with the header)
-        and hands it over as ``?token=``."""
-        if not self.authorized(request.headers):
+        and hands it over as ``?token=``. It opens a session with the fetching token's role."""
+        entry = self.caller(request.headers)
+        if entry is None:
             return _unauthorized()
         now = time.monotonic()
-        self._oneshot = {t: exp for t, exp in self._oneshot.items() if exp > now}
+        self._oneshot = {t: v for t, v in self._oneshot.items() if v[0] > now}
         token = secrets.token_urlsafe(24)
-        self._oneshot[token] = now + ONESHOT_TTL
+        self._oneshot[token] = (now + ONESHOT_TTL, entry)
         return JSONResponse({"token": token, "expires_in": ONESHOT_TTL})
 
-    def _oneshot_ok(self, token: str | None) -> bool:
-        expires = self._oneshot.pop(token, None) if token else None
-        return expires is not None and expires > time.monotonic()
+    def _oneshot_entry(self, token: str | None) -> TokenEntry | None:
+        found = self._oneshot.pop(token, None) if token else None
+        return found[1] if found is not None and found[0] > time.monotonic() else None
 
     def foreign_origin(self, headers: Any) -> bool:
         """A browser page from another site (clients that are not browsers send no Origin)."""
@@ -345,41 +364,47 @@ class ApiServer:
 
     def _get(self, method: str) -> Any:
         async def endpoint(request: Request) -> Response:
-            if not self.authorized(request.headers):
+            entry = self.caller(request.headers)
+            if entry is None:
                 return _unauthorized()
             params = {}
             if method == "alarms.list" and request.query_params.get("all") in ("1", "true"):
                 params["all"] = True
-            return await self._answer(method, params)
+            return await self.answer(method, params, entry)
 
         return endpoint
 
     async def _traffic(self, request: Request) -> Response:
-        if not self.authorized(request.headers):
+        entry = self.caller(request.headers)
+        if entry is None:
             return _unauthorized()
         limit = request.query_params.get("limit", "100")
         params = {"machine": request.path_params["machine"], "limit": limit}
-        return await self._answer("traffic.tail", params)
+        return await self.answer("traffic.tail", params, entry)
 
-    async def _answer(self, method: str, params: dict[str, Any]) -> Response:
+    async def answer(
+        self, method: str, params: dict[str, Any], entry: TokenEntry, *, wrap: bool = False
+    ) -> Response:
+        """An HTTP answer to one call by ``entry``'s token: the result (``{"result": ...}``
+        with ``wrap``), 403 with the role it lacks, 400 or 500 with the error."""
         try:
-            result = await self.dispatcher.call(method, params)
+            result = await self.dispatcher.call(method, params, caller=as_caller(entry))
         except Exception as e:
             error = error_object(e)
-            return JSONResponse(
-                {"error": error}, status_code=400 if error["code"] > -32603 else 500
-            )
-        return JSONResponse(result)
+            status = 403 if isinstance(e, RoleRefused) else 400
+            status = 500 if error["code"] <= INTERNAL_ERROR else status
+            return _json({"error": error}, status)
+        return _json({"result": result} if wrap else result, 200)
 
     # -- WebSocket ----------------------------------------------------------------------------
 
     async def _websocket(self, ws: WebSocket) -> None:
-        allowed = self.authorized(ws.headers) or self._oneshot_ok(ws.query_params.get("token"))
-        if not allowed or self.foreign_origin(ws.headers):
+        entry = self.caller(ws.headers) or self._oneshot_entry(ws.query_params.get("token"))
+        if entry is None or self.foreign_origin(ws.headers):
             await ws.close(code=1008)  # before accept: the handshake is refused (HTTP 403)
             return
         await ws.accept()
-        session = _Session(ws)
+        session = _Session(ws, entry)
         self.sessions.add(session)
         writer = asyncio.create_task(session.writer())
         try:
@@ -472,6 +497,8 @@ class ApiServer:
                 )
 
         try:
+            if not still_valid(self.directory, session.entry):
+                raise AccessDenied(f"the token {session.entry.name!r} was revoked")
             if method == "cell.subscribe":
                 status = self.access.status()
                 session.subscribed = True
@@ -482,7 +509,8 @@ class ApiServer:
                 session.last = None
                 result = {"message": "unsubscribed"}
             else:
-                result = await self.dispatcher.call(method, params, progress)
+                caller = as_caller(session.entry)
+                result = await self.dispatcher.call(method, params, progress, caller=caller)
         except Exception as e:
             error = error_object(e)
             if error["code"] == INTERNAL_ERROR:
@@ -503,6 +531,13 @@ class ApiServer:
                     await self._changed.wait()
             self._changed.clear()
             subscribers = [s for s in self.sessions if s.subscribed and s.open]
+            valid = {e: still_valid(self.directory, e) for e in {s.entry for s in subscribers}}
+            for session in subscribers:
+                if not valid[session.entry]:  # revoked: its session ends now
+                    session.open = False
+                    with contextlib.suppress(Exception):
+                        await session.ws.close(1008)
+            subscribers = [s for s in subscribers if valid[s.entry]]
             if not subscribers:
                 continue
             try:
@@ -531,6 +566,16 @@ class ApiServer:
             self.push_count += 1
             for session in sessions:
                 session.send(message)
+
+
+def as_caller(entry: TokenEntry) -> Caller:
+    """The caller a token is, for the dispatcher and the audit trail."""
+    return Caller(f"token:{entry.name}", entry.role)
+
+
+def _json(content: Any, status: int) -> Response:
+    text = json.dumps(content, default=str, allow_nan=False)
+    return Response(text, status_code=status, media_type="application/json")
 
 
 def _error(rid: Any, code: int, message: str) -> dict[str, Any]:

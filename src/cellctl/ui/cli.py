@@ -18,6 +18,7 @@ from cellctl.ui.orders_cli import alarm, cancel, orders, part, reports, submit
 from cellctl.ui.plc_cli import plc
 from cellctl.ui.report_cli import report
 from cellctl.ui.service_cli import estop, machine, pause, resume, service_group, traffic
+from cellctl.ui.token_cli import audit_command, token_group
 
 
 @click.group(
@@ -68,6 +69,8 @@ main.add_command(demo)
 main.add_command(console_command)
 main.add_command(dashboard_command)
 main.add_command(opcua_group)
+main.add_command(token_group)
+main.add_command(audit_command)
 main.add_command(factory)
 emulate.add_command(emulate_cell)
 emulate.add_command(emulate_factory)

@@ -25,7 +25,8 @@ from asyncua.ua.status_codes import StatusCodes
 
 from cellctl.errors import CellctlError
 from cellctl.factory.opcua.space import CellSpace
-from cellctl.service.methods import Dispatcher
+from cellctl.factory.opcua.users import session_user
+from cellctl.service.methods import Caller, Dispatcher, RoleRefused
 from cellctl.service.status import AlarmInfo
 
 #: An open alarm's severity by its priority (ISA-18.2's high, medium, low); cleared: 100.
@@ -125,7 +126,10 @@ class AlarmConditions:
         if told is not None and told.acked is not None:
             return ua.StatusCode(ua.UInt32(StatusCodes.BadConditionBranchAlreadyAcked))
         try:
-            result = await self.dispatcher.call("alarms.ack", {"id": alarm_id})
+            caller = Caller(*session_user())
+            result = await self.dispatcher.call("alarms.ack", {"id": alarm_id}, caller=caller)
+        except RoleRefused:  # a viewer (refused in the audit trail)
+            return ua.StatusCode(ua.UInt32(StatusCodes.BadUserAccessDenied))
         except CellctlError:  # cleared meanwhile
             return ua.StatusCode(ua.UInt32(StatusCodes.BadInvalidState))
         self._log(f"OPC UA: {result['message']}")

@@ -51,9 +51,9 @@ from cellctl.factory.opcua.space import (
     CellSpace,
     machine_path,
 )
-from cellctl.factory.opcua.users import CellRuleset, FileUserManager, load_users
+from cellctl.factory.opcua.users import CellRuleset, FileUserManager, load_users, session_user
 from cellctl.service.access import CellAccess
-from cellctl.service.methods import Dispatcher
+from cellctl.service.methods import Caller, Dispatcher, RoleRefused
 from cellctl.service.status import AlarmInfo
 
 log = logging.getLogger(__name__)
@@ -298,7 +298,7 @@ class OpcuaServer:
         names = ("part_type", "qty", "priority")
         params = {name: a.Value for name, a in zip(names, args, strict=False)}
         try:
-            result = await self.dispatcher.call("orders.submit", params)
+            result = await self.dispatcher.call("orders.submit", params, caller=_caller())
         except Exception as e:
             return _error(e, len(args))
         self._log(f"OPC UA: {result['message']}")
@@ -319,7 +319,8 @@ class OpcuaServer:
         if refused is not None:
             return refused
         try:
-            result = await self.dispatcher.call(method, {"id": args[0].Value})
+            params = {"id": args[0].Value}
+            result = await self.dispatcher.call(method, params, caller=_caller())
         except Exception as e:
             return _error(e, len(args))
         self._log(f"OPC UA: {result['message']}")
@@ -375,10 +376,18 @@ class OpcuaServer:
         return self._server.get_node(self._space.node_id(path))
 
 
+def _caller() -> Caller:
+    """The OPC UA user calling the method being served, with their role."""
+    who, role = session_user()
+    return Caller(who, role)
+
+
 def _error(error: BaseException, arguments: int) -> ua.CallMethodResult:
     """A refusal in the service's words: a Bad status, the words in each argument's
     diagnostic (``AdditionalInfo``)."""
-    if isinstance(error, UsageError):
+    if isinstance(error, RoleRefused):
+        code = StatusCodes.BadUserAccessDenied
+    elif isinstance(error, UsageError):
         code = StatusCodes.BadInvalidArgument
     elif isinstance(error, (DeviceError, CellctlError)):
         code = StatusCodes.BadInvalidState

@@ -8,10 +8,14 @@ what each kind of session may do.
     server = Server(user_manager=manager)
     server.set_security_policy(POLICIES, permission_ruleset=CellRuleset())
 
-The file (written by ``cellctl opcua adduser NAME``)::
+The file (written by ``cellctl opcua adduser NAME [--role ROLE]``)::
 
     [users.alice]
     password = "scrypt$16384$8$1$<salt, base64>$<hash, base64>"
+    role = "operator"        # viewer, operator or engineer; left out: operator
+
+A user's role limits the methods they may call as an API token's does (SubmitOrder and
+ClearAlarm need an operator); :func:`session_user` tells a method who calls it.
 
 It is read again at each login, so a user added while the cell runs may log in at once. A
 file that others may read is refused, as an SSH key would be.
@@ -20,6 +24,8 @@ file that others may read is refused, as an SSH key would be.
 from __future__ import annotations
 
 import base64
+import contextvars
+import dataclasses
 import hashlib
 import hmac
 import os
@@ -35,6 +41,10 @@ from asyncua.crypto.permission_rules import SimpleRoleRuleset, User, UserRole
 from asyncua.ua.object_ids import ObjectIds
 
 from cellctl.errors import UsageError
+from cellctl.service.token import ROLES
+
+#: A user's role when the file names none (such users could call every method before roles).
+DEFAULT_ROLE = "operator"
 
 #: scrypt's cost: about 16 MiB and a few tens of ms a check (slow for a guesser, fine for
 #: a login).
@@ -90,6 +100,12 @@ def _b64(data: bytes) -> str:
 
 def load_users(path: Path) -> dict[str, str]:
     """``name -> stored password`` from the users file; UsageError naming what is wrong."""
+    return {name: stored for name, (stored, _) in load_entries(path).items()}
+
+
+def load_entries(path: Path) -> dict[str, tuple[str, str]]:
+    """``name -> (stored password, role)`` from the users file; UsageError naming what is
+    wrong."""
     try:
         mode = path.stat().st_mode
         data = tomllib.loads(path.read_text(encoding="utf-8"))
@@ -104,26 +120,34 @@ def load_users(path: Path) -> dict[str, str]:
     table = data.get("users", {})
     if not isinstance(table, dict) or set(data) - {"users"}:
         raise UsageError(f'{path}: expected only [users.NAME] tables with password = "..."')
-    users: dict[str, str] = {}
+    users: dict[str, tuple[str, str]] = {}
     for name, entry in table.items():
         stored = entry.get("password") if isinstance(entry, dict) else None
         if not NAME.fullmatch(name) or not isinstance(stored, str):
             raise UsageError(f'{path}: [users.{name}] needs a plain name and password = "..."')
-        users[name] = stored
+        role = entry.get("role", DEFAULT_ROLE)
+        if role not in ROLES:
+            raise UsageError(f"{path}: [users.{name}] role: one of {', '.join(ROLES)}")
+        users[name] = (stored, role)
     return users
 
 
-def add_user(path: Path, name: str, password: str) -> bool:
-    """Add ``name`` (or set its password) in the users file, made 0600; True if it is new."""
+def add_user(path: Path, name: str, password: str, role: str = DEFAULT_ROLE) -> bool:
+    """Add ``name`` (or set its password and role) in the users file, made 0600; True if it
+    is new."""
     if not NAME.fullmatch(name):
         raise UsageError(f"user name {name!r}: use 1 to 64 letters, digits, '_', '.' or '-'")
     if not password:
         raise UsageError("an empty password is not a password")
-    users = load_users(path) if path.exists() else {}
+    if role not in ROLES:
+        raise UsageError(f"role {role[:40]!r}: choose one of {', '.join(ROLES)}")
+    users = load_entries(path) if path.exists() else {}
     new = name not in users
-    users[name] = hash_password(password)
+    users[name] = (hash_password(password), role)
     text = "# OPC UA users of this cell: cellctl opcua adduser NAME (salted scrypt hashes)\n"
-    text += "".join(f'\n[users.{n}]\npassword = "{stored}"\n' for n, stored in users.items())
+    text += "".join(
+        f'\n[users.{n}]\npassword = "{stored}"\nrole = "{r}"\n' for n, (stored, r) in users.items()
+    )
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
     with os.fdopen(fd, "w", encoding="utf-8") as f:
@@ -132,6 +156,27 @@ def add_user(path: Path, name: str, password: str) -> bool:
         os.fsync(f.fileno())
     os.replace(tmp, path)  # a reader sees the old file or the new one, never half of it
     return new
+
+
+@dataclasses.dataclass
+class CellUser(User):
+    """asyncua's user with the cell's role (:data:`~cellctl.service.token.ROLES`)."""
+
+    cell_role: str = "viewer"
+
+
+#: The user of the request being served (set by :class:`CellRuleset` as it checks it).
+_SESSION_USER: contextvars.ContextVar[User | None] = contextvars.ContextVar(
+    "opcua_user", default=None
+)
+
+
+def session_user() -> tuple[str, str]:
+    """Who calls the method being served, and their role: ``("opcua:NAME", role)``."""
+    user = _SESSION_USER.get()
+    if isinstance(user, CellUser) and user.name:
+        return f"opcua:{user.name}", user.cell_role
+    return "opcua:anonymous", "viewer"
 
 
 class FileUserManager:
@@ -160,15 +205,15 @@ class FileUserManager:
     ) -> User | None:
         """The session's user, or None (the login is refused: BadUserAccessDenied)."""
         if username is None:  # ``certificate`` is the client application's, not a user's
-            return User(role=UserRole.Anonymous) if self.anonymous_read else None
+            return CellUser(role=UserRole.Anonymous) if self.anonymous_read else None
         try:
-            users = load_users(self.path) if self.path is not None else {}
+            users = load_entries(self.path) if self.path is not None else {}
         except UsageError:
             users = {}  # told at start; a broken file lets nobody in rather than anyone
         # An unknown name costs the same hash as a known one: timing does not tell names.
-        stored = users.get(username, self._dummy)
+        stored, role = users.get(username, (self._dummy, "viewer"))
         if check_password(stored, password or "") and username in users:
-            return User(role=UserRole.User, name=username)
+            return CellUser(role=UserRole.User, name=username, cell_role=role)
         if self.refused is not None:
             self.refused(username)
         return None
@@ -182,3 +227,9 @@ class CellRuleset(SimpleRoleRuleset):
         super().__init__()  # type: ignore[no-untyped-call]
         rules = self._permission_dict
         rules[UserRole.Anonymous] = set(rules[UserRole.User]) - ANONYMOUS_REFUSED
+
+    def check_validity(self, user: Any, action_type_id: Any, body: Any) -> bool:
+        """asyncua's check, which also notes the user for the method it may go on to call
+        (the call runs in the same task, right after)."""
+        _SESSION_USER.set(user)
+        return bool(super().check_validity(user, action_type_id, body))  # type: ignore[no-untyped-call]

@@ -39,6 +39,7 @@ from urllib.parse import urlsplit
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from cellctl.clock import current_clock
 from cellctl.drivers.base import LinkDriver
 from cellctl.drivers.state import StateStore
 from cellctl.errors import (
@@ -329,7 +330,7 @@ class UrRobot(LinkDriver):
                 if packet_type == rtde.PacketType.DATA_PACKAGE:
                     state = self._state
                     state.values = rtde.unpack_data(self._recipe, payload)
-                    state.at = asyncio.get_running_loop().time()
+                    state.at = current_clock().monotonic()
                     state.count += 1
                     self._changed.set()
         except CellctlError as e:
@@ -340,7 +341,7 @@ class UrRobot(LinkDriver):
         """The latest RTDE values; LinkTimeout/LinkClosed when the stream stopped."""
         if self.rtde_error is not None:
             raise LinkClosed(f"{self.name}: RTDE stream ended: {self.rtde_error}")
-        age = asyncio.get_running_loop().time() - self._state.at
+        age = current_clock().monotonic() - self._state.at
         if age > self.options.state_timeout:
             raise LinkTimeout(
                 f"{self.name}: no RTDE package for {age:.1f} s "
@@ -360,8 +361,7 @@ class UrRobot(LinkDriver):
 
     async def _wait_state(self, ok: Any, timeout: float, what: str) -> UrStatus:
         """Wait (deadline ``timeout``) for an RTDE package whose status satisfies ``ok``."""
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout
+        deadline = current_clock().monotonic() + timeout
         while True:
             if self._state.count:
                 status = self._status_of(self._fresh())
@@ -369,7 +369,7 @@ class UrRobot(LinkDriver):
                     return status
             elif self.rtde_error is not None:
                 self._fresh()
-            left = deadline - loop.time()
+            left = deadline - current_clock().monotonic()
             if left <= 0:
                 now = self._status_of(self._fresh()) if self._state.count else None
                 raise SignalTimeout(
@@ -506,7 +506,6 @@ class UrRobot(LinkDriver):
         status = self._status_of(self._fresh())
         if not status.ok:
             raise UrRefused("play", str(status), f"{self.name}: cannot start {program.name}")
-        loop = asyncio.get_running_loop()
         if program.on_robot:
             loaded = await self.ask("get loaded program")
             if loaded != f"Loaded program: {program.path}":
@@ -521,7 +520,7 @@ class UrRobot(LinkDriver):
                     label=f"{self.name}-secondary",
                 )  # fmt: skip
             await self._secondary.write(text.encode("utf-8"))
-        self._started_at = loop.time()
+        self._started_at = current_clock().monotonic()
         self._current = program
         self._running = True
 
@@ -538,8 +537,7 @@ class UrRobot(LinkDriver):
         program = self._current
         if program is None:
             raise UsageError(f"{self.name}: no program was started")
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout
+        deadline = current_clock().monotonic() + timeout
         period = 1.0 / self.options.rtde_frequency
         started = self._started_at
         played = False
@@ -560,7 +558,7 @@ class UrRobot(LinkDriver):
             if (
                 not played
                 and not program.on_robot
-                and loop.time() > started + self.options.start_timeout
+                and current_clock().monotonic() > started + self.options.start_timeout
             ):
                 self._running = False
                 raise UrRefused(
@@ -569,7 +567,7 @@ class UrRobot(LinkDriver):
                     f"{self.name}: {program.name} did not start within "
                     f"{self.options.start_timeout:g} s of being sent",
                 )
-            left = deadline - loop.time()
+            left = deadline - current_clock().monotonic()
             if left <= 0:
                 raise SignalTimeout(
                     f"{self.name}: {program.name} did not end within {timeout:g} s "

@@ -10,7 +10,8 @@
 - ``GET /static/NAME``: the page's scripts and stylesheet (only the files shipped here).
 - ``POST /dashboard/call`` ``{"method": ..., "params": {...}}``: one of the API's methods the
   dashboard uses (:data:`DASHBOARD_METHODS`), answered as ``{"result": ...}`` or
-  ``{"error": {code, message, data}}`` (HTTP 400). It needs the token in the header (never a
+  ``{"error": {code, message, data}}`` (HTTP 400; 403 with ``data.role``, the role the
+  token lacks). It needs the token in the header (never a
   cookie), a JSON body, and no page of another origin (403): another site cannot drive the cell.
 
 Live updates come from the API's WebSocket (``/websocket`` with a one-shot token).
@@ -25,8 +26,6 @@ from typing import TYPE_CHECKING, Any
 from starlette.requests import Request
 from starlette.responses import JSONResponse, Response
 from starlette.routing import BaseRoute, Route
-
-from cellctl.service.methods import error_object
 
 if TYPE_CHECKING:
     from cellctl.service.server import ApiServer
@@ -51,6 +50,7 @@ DASHBOARD_METHODS = frozenset(
         "parts.list",
         "parts.release",
         "parts.scrap",
+        "audit.list",
     }
 )
 #: The largest request body taken.
@@ -94,7 +94,8 @@ def dashboard_routes(server: ApiServer) -> list[BaseRoute]:
             "sec-fetch-site", "same-origin"
         ) not in ("same-origin", "none"):
             return _refused(403, "refused: a page of another origin may not drive the cell")
-        if not server.authorized(request.headers):
+        entry = server.caller(request.headers)
+        if entry is None:
             return _refused(401, "missing or wrong API token")
         if request.headers.get("content-type", "").split(";")[0].strip() != "application/json":
             return _refused(415, "send the call as JSON (Content-Type: application/json)")
@@ -108,12 +109,8 @@ def dashboard_routes(server: ApiServer) -> list[BaseRoute]:
         method = data.get("method") if isinstance(data, dict) else None
         if not isinstance(method, str) or method not in DASHBOARD_METHODS:
             return _refused(400, f"the dashboard does not call {method!r}")
-        try:
-            result = await server.dispatcher.call(method, data.get("params") or {})
-        except Exception as e:
-            error = error_object(e)
-            return _json({"error": error}, 400 if error["code"] > -32603 else 500)
-        return _json({"result": result}, 200)
+        params = data.get("params") or {}
+        return await server.answer(method, params, entry, wrap=True)  # 403: the role lacked
 
     return [
         Route("/", page),

@@ -28,6 +28,7 @@ import contextlib
 import struct
 from typing import Any
 
+from cellctl.clock import current_clock
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, SelfServed
 from cellctl.errors import ProtocolError
 from cellctl.kinds.ur import rtde
@@ -296,9 +297,8 @@ class _RtdeSession:
     async def _stream(self, recipe: rtde.Recipe) -> None:
         # Packages on a fixed schedule from the start (not "sleep a period after each"), so
         # the rate holds; a package the loop was too late for is skipped, not sent in a burst.
-        loop = asyncio.get_running_loop()
         period = 1.0 / self.frequency
-        start = loop.time()
+        start = current_clock().monotonic()
         n = 0
         controller = self.emulator.controller
         try:
@@ -308,10 +308,12 @@ class _RtdeSession:
                 self.writer.write(rtde.encode(rtde.PacketType.DATA_PACKAGE, payload))
                 self.emulator.rtde_sent += 1
                 n += 1
-                now = loop.time()
+                now = current_clock().monotonic()
                 behind = int((now - start) / period) - n
                 if behind > 0:
                     n += behind
-                await asyncio.sleep(max(0.0, start + n * period - loop.time()))
+                await current_clock().sleep(
+                    max(0.0, start + n * period - current_clock().monotonic())
+                )
         except (ConnectionError, struct.error):
             return

@@ -13,6 +13,7 @@ import contextlib
 from collections.abc import Callable, Iterator
 from typing import Any
 
+from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.kinds.ur.dashboard import (
     COMMANDS,
@@ -103,7 +104,7 @@ class UrController:
     @staticmethod
     def _now() -> float:
         try:
-            return asyncio.get_running_loop().time()
+            return current_clock().monotonic()
         except RuntimeError:
             return 0.0
 
@@ -259,21 +260,20 @@ class UrController:
 
     async def _take(self, step: Step) -> None:
         await self._resume.wait()
-        loop = asyncio.get_running_loop()
         if isinstance(step, Sleep):
-            end = loop.time() + step.seconds / self.time_scale
+            end = current_clock().monotonic() + step.seconds / self.time_scale
             while True:
                 await self._resume.wait()
-                left = end - loop.time()
+                left = end - current_clock().monotonic()
                 if left <= 0:
                     return
-                await asyncio.sleep(left)
+                await current_clock().sleep(left)
             return
         move: Move | None = step
         while move is not None:
             await self._resume.wait()
-            self._move = (loop.time(), move)
-            await asyncio.sleep(move.seconds / self.time_scale)
+            self._move = (current_clock().monotonic(), move)
+            await current_clock().sleep(move.seconds / self.time_scale)
             if self._move is not None and self._move[1] is move:
                 self._q, self._move = move.end, None
                 return
@@ -366,7 +366,7 @@ class UrController:
 
     def _later(self, seconds: float, from_mode: RobotMode, to_mode: RobotMode) -> None:
         async def change() -> None:
-            await asyncio.sleep(seconds / self.time_scale)
+            await current_clock().sleep(seconds / self.time_scale)
             if self.mode == from_mode:
                 self.mode = to_mode
 

@@ -3,6 +3,7 @@
 // The token comes in the URL's fragment (#token=...), is kept in sessionStorage and is sent
 // as "Authorization: Bearer" with every request. Live updates come from the API's WebSocket
 // (a one-shot token fetched with the header); calls that act go through POST /dashboard/call.
+import { refreshAudit } from "./audit.js";
 import { drawFloor, updateFloor } from "./floor.js";
 import { renderGantt, exportGantt } from "./gantt.js";
 import {
@@ -155,6 +156,7 @@ export async function act(question, method, params, where) {
     out.classList.add("error");
   }
   await refresh();
+  refreshAudit();
 }
 
 // -- rendering ------------------------------------------------------------------------------
@@ -290,6 +292,7 @@ async function connect() {
       }
       state.connected = true;
       byId("content").classList.remove("hidden");
+      refreshAudit();
       const at = new Date().toLocaleTimeString();
       setConnection(again ? `live · reconnected at ${at}` : "live", "good");
       if (again) {
@@ -374,6 +377,7 @@ function start() {
   // Figures that move with the clock alone come with the next change; read them now and
   // then (docs/api.md: "Updates").
   setInterval(() => state.connected && refresh(), 5000);
+  setInterval(() => state.connected && refreshAudit(), 3000);
 }
 
 start();

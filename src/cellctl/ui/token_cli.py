@@ -1,0 +1,149 @@
+"""``cellctl token add|list|revoke`` (the API's tokens with their roles) and ``cellctl audit``
+(who did what): see docs/api.md.
+
+::
+
+    cellctl token add ann --role operator    # prints the token once
+    cellctl audit --since 1h --who ann --json
+"""
+
+from __future__ import annotations
+
+import re
+from datetime import datetime
+from typing import Any
+
+import click
+from rich.table import Table
+
+from cellctl.clock import current_clock
+from cellctl.errors import UsageError
+from cellctl.service.token import ROLES, add_token, list_tokens, revoke_token
+from cellctl.ui.calls import cell_call
+from cellctl.ui.common import cell_dir, console, json_option, print_json, print_table, run
+
+_UNITS = {"s": 1, "m": 60, "h": 3600, "d": 86400}
+
+
+def parse_since(text: str, now: float | None = None) -> float:
+    """``--since``: a span back from now (``90s``, ``30m``, ``2h``, ``7d``) or a date and
+    time (``2024-05-01`` or ``2024-05-01T14:30``); UsageError naming both forms."""
+    now = current_clock().now() if now is None else now
+    found = re.fullmatch(r"(\d{1,9})([smhd])", text.strip())
+    if found:
+        return now - int(found.group(1)) * _UNITS[found.group(2)]
+    try:
+        return datetime.fromisoformat(text.strip()).timestamp()
+    except ValueError:
+        raise UsageError(
+            f"--since {text[:40]!r}: give a span (30m, 2h, 7d) or a date (2024-05-01T14:30)"
+        ) from None
+
+
+def _when(t: float) -> str:
+    return datetime.fromtimestamp(t).strftime("%Y-%m-%d %H:%M:%S")
+
+
+@click.group("token")
+def token_group() -> None:
+    """The control API's tokens: each with a name and a role."""
+
+
+@token_group.command("add")
+@click.argument("name")
+@click.option(
+    "--role",
+    type=click.Choice(ROLES),
+    required=True,
+    help="viewer: read; operator: orders, alarms, pause; engineer: machines by hand too.",
+)
+@click.pass_context
+def token_add(ctx: click.Context, name: str, role: str) -> None:
+    """Make token NAME with a role and print it once (only its hash is kept)."""
+    directory = cell_dir(ctx)
+
+    async def main() -> str:
+        return add_token(directory, name, role)
+
+    secret = run(main)
+    console.print(secret, markup=False, soft_wrap=True)
+    click.echo(f"token {name} ({role}): shown once, keep it; cellctl token revoke {name}", err=True)
+
+
+@token_group.command("list")
+@json_option
+@click.pass_context
+def token_list(ctx: click.Context, as_json: bool) -> None:
+    """The tokens: names, roles and when made (never a secret)."""
+    directory = cell_dir(ctx)
+
+    async def main() -> list[Any]:
+        return list_tokens(directory)
+
+    found = run(main)
+    if as_json:
+        print_json([{"name": e.name, "role": e.role, "created": e.created} for e in found])
+        return
+    if not found:
+        console.print("no tokens yet: `cellctl run` enters api-token as `default`")
+        return
+    table = Table(title="API tokens")
+    for column in ("Name", "Role", "Created"):
+        table.add_column(column)
+    for e in found:
+        table.add_row(e.name, e.role, _when(e.created))
+    print_table(table)
+
+
+@token_group.command("revoke")
+@click.argument("name")
+@click.pass_context
+def token_revoke(ctx: click.Context, name: str) -> None:
+    """Revoke token NAME: refused from its next request on."""
+    directory = cell_dir(ctx)
+
+    async def main() -> None:
+        revoke_token(directory, name)
+
+    run(main)
+    console.print(f"token {name} revoked", markup=False)
+
+
+@click.command("audit")
+@click.option("--since", help="A span back (30m, 2h, 7d) or a date (2024-05-01T14:30).")
+@click.option("--who", help="One caller: a token's name or an OPC UA user.")
+@click.option(
+    "--limit",
+    type=click.IntRange(1, 10_000),
+    default=200,
+    show_default=True,
+    help="At most this many, the latest.",
+)
+@json_option
+@click.pass_context
+def audit_command(
+    ctx: click.Context, since: str | None, who: str | None, limit: int, as_json: bool
+) -> None:
+    """Who did what to the cell, when, and how it ended."""
+    params: dict[str, Any] = {"limit": limit}
+    if since is not None:
+
+        async def parse() -> float:
+            return parse_since(since)
+
+        params["since"] = max(0.0, run(parse))
+    if who is not None:
+        params["who"] = who
+    found = cell_call(ctx, "audit.list", params)
+    if as_json:
+        print_json(found)
+        return
+    if not found:
+        console.print("no actions recorded")
+        return
+    table = Table(title="Audit trail")
+    for column in ("When", "Who", "Method", "Parameters", "Result"):
+        table.add_column(column, overflow="fold")
+    for e in found:
+        table.add_row(_when(e["at"]), e["who"], e["method"], e["params"], e["result"])
+    print_table(table)

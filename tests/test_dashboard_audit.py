@@ -1,0 +1,33 @@
+"""The dashboard with a viewer's token: it reads the cell and the audit trail, and its order
+is refused with the role it lacks, shown on the page and recorded in the Audit panel."""
+
+from __future__ import annotations
+
+from cellctl.service.token import add_token
+from tests.test_dashboard import Dash, browser, dash, live  # noqa: F401  (fixtures)
+
+
+async def test_a_viewer_reads_the_page_is_refused_an_order_and_sees_it_audited(
+    dash: Dash,  # noqa: F811
+) -> None:
+    await dash.api("cell.pause")
+    viewer = add_token(dash.rig.directory, "vera", "viewer")
+    await dash.open(f"#token={viewer}")
+    page = dash.page
+    await page.locator("#connection.good").wait_for(timeout=10_000)
+    await page.locator("#floor-plan svg .machine.mill").first.wait_for(timeout=5_000)
+    await page.select_option("#order-type", "wax-toy-mill-table")
+    await page.click("#order-submit")
+    refused = page.locator("#order-message.error")
+    await refused.wait_for(timeout=5_000)
+    assert "vera is a viewer: orders.submit needs the operator role" in await refused.inner_text()
+    assert await dash.api("orders.list") == []
+    row = page.locator("#audit-table tbody tr.audit-refused", has_text="token:vera")
+    await row.wait_for(timeout=10_000)
+    text = await row.inner_text()
+    assert "orders.submit" in text and "wax-toy-mill-table" in text
+    assert "needs the operator role" in text
+    # The engineer's pause (the local user, in-process) is there too, as done.
+    done = page.locator("#audit-table tbody tr.audit-ok", has_text="cell.pause")
+    assert await done.count() == 1
+    await dash.shot("audit", "#audit")

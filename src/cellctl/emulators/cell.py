@@ -51,6 +51,7 @@ from cellctl.emulators.plc import PlcEmulator
 from cellctl.emulators.serve import (
     CELL_TIME_SCALE,
     MIN_DEADLINE_S,
+    SelfServed,
     Server,
     scaled_deadline,
     serve,
@@ -134,7 +135,7 @@ class EmulatedCell:
             for name, kind in self.kinds.items()
         }
         self.plc = PlcEmulator(time_scale=time_scale, on_go=self._go)
-        self.servers: dict[str, Server] = {}
+        self.servers: dict[str, Server | SelfServed] = {}
         self.plc_url = ""
         # physical parts
         self._next_blank = 0
@@ -213,9 +214,14 @@ class EmulatedCell:
         listen = self.robot_listen
         if listen == "pty":
             listen = f"pty:{(cell_dir / 'robot.pty').resolve()}"
-        self.servers[self.robot_name] = await serve(
-            self.robot, listen, self.line_of(self.robot_name), pacing=self.pacing
-        )
+        # A robot with interfaces of its own (several ports) serves itself.
+        own = await self.robot.listen(self.host)
+        if own is not None:
+            self.servers[self.robot_name] = own
+        else:
+            self.servers[self.robot_name] = await serve(
+                self.robot, listen, self.line_of(self.robot_name), pacing=self.pacing
+            )
         for name, mill in self.mills.items():
             self.servers[name] = await serve(
                 mill, f"rfc2217://{self.host}:0", self.line_of(name), pacing=self.pacing
@@ -259,10 +265,15 @@ class EmulatedCell:
         # Deadlines scale with the machines' time; a real cell keeps the template's.
         for name in raw.get("machines", {}):
             kind = registry.kind(raw["machines"][name].get("kind"))
-            options = kind.emulated_options(scale) if kind.emulated_options else {}
+            options: dict[str, int | float | str] = {}
+            served = self.servers.get(name)
+            if isinstance(served, SelfServed):
+                options.update(served.options)
+            if kind.emulated_options:
+                options.update(kind.emulated_options(scale))
             if options:
                 lines += ["", f"[machines.{name}.options]"]
-                lines += [f"{key} = {value:g}" for key, value in options.items()]
+                lines += [f"{key} = {_toml(value)}" for key, value in options.items()]
         return "\n".join(lines) + "\n"
 
     def line_of(self, name: str) -> LineSettings:
@@ -290,6 +301,10 @@ class EmulatedCell:
         for server in self.servers.values():
             await server.close()
         await self.plc.close()
+
+
+def _toml(value: int | float | str) -> str:
+    return f"{value:g}" if isinstance(value, int | float) else f'"{value}"'
 
 
 def scaled_line(line: LineSettings, time_scale: float) -> LineSettings:

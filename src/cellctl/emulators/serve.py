@@ -377,6 +377,25 @@ class EmulatedDevice(ABC):
     def line_changed(self, line: DeviceLine) -> None:  # noqa: B027 - optional hook
         """Called when the host changed the line settings (RFC 2217)."""
 
+    async def listen(self, host: str) -> SelfServed | None:
+        """Serve on ports of its own (a machine with several interfaces) and say how a
+        cell reaches it; None (the default): :func:`serve` puts it on one line."""
+        return None
+
+
+@dataclass
+class SelfServed:
+    """A device serving itself: ``url`` is what a driver opens, ``options`` what else the
+    machine's options need to reach it (its other ports)."""
+
+    url: str
+    options: dict[str, int | float | str]
+    closer: Callable[[], Coroutine[object, object, None]]
+    current_line: DeviceLine | None = None
+
+    async def close(self) -> None:
+        await self.closer()
+
 
 def parse_fault(text: str) -> tuple[str, str | None]:
     """``"corrupt-checksum=3"`` → ``("corrupt-checksum", "3")``; ``"drop"`` → ``("drop", None)``."""

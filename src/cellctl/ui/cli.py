@@ -50,7 +50,12 @@ for _kind in registry.kinds():
         registry.log.warning("machine kind %s: its commands skipped: %s", _kind.name, _e)
         continue
     for _group, _command in _contributed:
-        _groups[_group].add_command(_command)
+        # A group another kind contributed (``robot``) takes this kind's commands too.
+        _target = _groups.get(_group) or main.commands.get(_group)
+        if not isinstance(_target, click.Group):
+            registry.log.warning("machine kind %s: no command group %r", _kind.name, _group)
+            continue
+        _target.add_command(_command)
 main.add_command(submit)
 main.add_command(orders)
 main.add_command(cancel)

@@ -35,8 +35,10 @@ def kinds_command(as_json: bool) -> None:
         return
     table = Table(box=None, pad_edge=False)
     for column in ("kind", "family", "maker", "model", "from"):
-        # "from" folds rather than cut: the module is what a user looks for.
-        table.add_column(column, no_wrap=column != "from", overflow="fold")
+        # "from" folds rather than cut: the module is what a user looks for. A long model
+        # wraps at its words, so "from" keeps room for its distribution's name.
+        wraps = column in ("model", "from")
+        table.add_column(column, no_wrap=not wraps, overflow="fold")
     for kind in registry.kinds():
         # The distribution, then the module on a line of its own: whole at 80 columns.
         o = kind.origin

@@ -1,0 +1,107 @@
+"""``cellctl emulate ur``: a UR controller's three interfaces on this machine."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from cellctl.emulators.serve import MACHINE_TIME_SCALE, TIME_SCALE_HELP, parse_fault
+from cellctl.errors import UsageError
+from cellctl.kinds.ur.emulator import FAULTS, UrEmulator
+from cellctl.kinds.ur.motion import ARMS
+from cellctl.ui.common import console, fault_help, run
+
+
+def _programs(items: tuple[str, ...]) -> dict[str, str]:
+    out = {}
+    for item in items:
+        path, sep, file = item.partition("=")
+        if not sep or not path.endswith(".urp"):
+            raise UsageError(f"--program takes ROBOT_PATH.urp=SCRIPT_FILE, not {item!r}")
+        try:
+            out[path] = Path(file).read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as e:
+            raise UsageError(f"{file}: cannot read it: {e}") from None
+    return out
+
+
+@click.command("ur", help="Emulate a Universal Robots controller: Dashboard Server, "
+               "secondary interface and RTDE.\n\n" + fault_help(FAULTS))  # fmt: skip
+@click.option("--host", default="127.0.0.1", show_default=True, help="Address to listen on.")
+@click.option(
+    "--dashboard-port", default=29999, show_default=True, help="Dashboard Server port (0: free)."
+)
+@click.option(
+    "--secondary-port", default=30002, show_default=True, help="Secondary interface port."
+)
+@click.option("--rtde-port", default=30004, show_default=True, help="RTDE port (0: free).")
+@click.option(
+    "--model", type=click.Choice(sorted(ARMS)), default="UR5e", show_default=True, help="The arm."
+)
+@click.option(
+    "--time-scale",
+    type=float,
+    default=MACHINE_TIME_SCALE,
+    show_default=True,
+    help="Machine times divided by this (10 = ten times faster). " + TIME_SCALE_HELP,
+)
+@click.option("--program", "programs", multiple=True,
+              help="A .urp on the robot as a URScript file: /programs/a.urp=a.script.")  # fmt: skip
+@click.option("--fault", multiple=True, help="Switch a fault on at start: NAME.")
+def emulate_ur(
+    host: str,
+    dashboard_port: int,
+    secondary_port: int,
+    rtde_port: int,
+    model: str,
+    time_scale: float,
+    programs: tuple[str, ...],
+    fault: tuple[str, ...],
+) -> None:
+    async def main() -> None:
+        from cellctl.ui.common import until_stopped
+
+        emulator = UrEmulator(time_scale=time_scale, model=model, programs=_programs(programs))
+        for text in fault:
+            emulator.set_fault(*parse_fault(text))
+        ports = await emulator.start(
+            host, dashboard=dashboard_port, secondary=secondary_port, rtde_port=rtde_port
+        )
+        console.print(f"UR emulator ({model}, time scale {time_scale:g}) on {host}")
+        console.print(
+            f"  ports: dashboard {ports['dashboard']}, secondary {ports['secondary']}, "
+            f"RTDE {ports['rtde']}"
+        )
+        console.print(f"  drive it with: --link {emulator.dashboard_url}")
+        try:
+            await until_stopped()
+        finally:
+            await emulator.close()
+
+    run(main)
+
+
+def _robot_command(function: str, doc: str) -> click.Command:
+    """``cellctl robot FUNCTION``: one of the UR's functions on the named machine."""
+
+    @click.pass_context
+    def callback(ctx: click.Context) -> None:
+        from cellctl.ui.calls import machine_call
+
+        result = machine_call(ctx, "robot", function, {})
+        for line in result.get("lines", []):
+            console.print(line, markup=False)
+        console.print(result["message"], markup=False)
+
+    return click.Command(function, callback=callback, help=doc)  # the API method's name
+
+
+#: The UR's functions the IBM robot's command group does not have (``cellctl robot unlock``).
+ROBOT_COMMANDS = [
+    _robot_command("unlock", "A UR: unlock a protective stop, after inspecting its cause."),
+    _robot_command("close_safety_popup", "A UR: close the pendant's safety popup."),
+    _robot_command("play", "A UR: play (resume) the loaded or paused program."),
+    _robot_command("pause", "A UR: pause the running program."),
+    _robot_command("power_off", "A UR: power the arm off."),
+]

@@ -1,0 +1,154 @@
+"""Universal Robots (CB3, e-Series), declared for the registry (entry point ``ur`` in
+``cellctl.machine_kinds``): everything cellctl knows of a UR, found by the registry only."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from pydantic import BaseModel
+
+from cellctl.emulators.serve import scaled_deadline
+from cellctl.errors import CellctlError, UsageError
+from cellctl.kinds.kind import (
+    CheckedProgram,
+    DriverSpec,
+    EmulatorSpec,
+    MachineKind,
+    MachineState,
+    Preview,
+    ProgramLanguage,
+    ProgramRole,
+)
+from cellctl.kinds.ur.dashboard import RobotMode
+from cellctl.kinds.ur.driver import UR_LINE, UrOptions, UrRobot
+from cellctl.kinds.ur.emulator import FAULTS, UrEmulator
+from cellctl.kinds.ur.motion import ARMS
+from cellctl.kinds.ur.program import compile_program, preview_svg
+from cellctl.kinds.ur.urscript import estimate, parse
+
+if TYPE_CHECKING:
+    import click
+
+    from cellctl.emulators.serve import EmulatedDevice
+    from cellctl.kinds.menu import MachineFunction
+
+
+#: The robot modes as the kind declares its states (numbers and UR's names, from the codec's
+#: one table).
+UrRobotMode: type[MachineState] = MachineState(  # type: ignore[assignment]
+    "UrRobotMode",  # type: ignore[arg-type]
+    [(m.name, (int(m), m.text)) for m in RobotMode],  # type: ignore[arg-type]
+)
+
+
+async def _open(spec: DriverSpec) -> UrRobot:
+    assert isinstance(spec.options, UrOptions)
+    return await UrRobot.connect(
+        spec.url,
+        name=spec.name,
+        settings=spec.settings,
+        store=spec.store,
+        options=spec.options,
+        trace=spec.trace,
+    )
+
+
+def _emulator(spec: EmulatorSpec) -> EmulatedDevice:
+    return UrEmulator(
+        time_scale=spec.time_scale,
+        model=str(spec.extra.get("model", "UR5e")),
+        programs=dict(spec.extra.get("programs", {})),
+    )
+
+
+def _arm(options: BaseModel) -> Any:
+    return ARMS[options.model if isinstance(options, UrOptions) else UrOptions().model]
+
+
+def _check(path: Path, role: ProgramRole, options: BaseModel) -> CheckedProgram:
+    """A URScript file (or a ``.urp`` reference): its problems with line and column, its
+    lines and its run time on the configured model's motion model."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        return CheckedProgram((f"{path}: cannot read it: {e}",))
+    try:
+        program = compile_program(text, path.stem, str(path))
+    except CellctlError as e:
+        return CheckedProgram(tuple(str(e).split("; ")))
+    problems = program.problems(_arm(options))
+    if problems or program.on_robot:
+        return CheckedProgram(tuple(problems), lines=len(text.splitlines()), compiled=program)
+    seconds, _ = estimate(parse(text), _arm(options))
+    return CheckedProgram(lines=len(text.splitlines()), machining_s=seconds, compiled=program)
+
+
+def _compile(source: str, name: str, origin: str) -> Any:
+    return compile_program(source, name, origin)
+
+
+def _preview(text: str, name: str, options: BaseModel) -> Preview:
+    svg, moves = preview_svg(text, name, _arm(options))
+    if not moves:
+        raise UsageError(f"{name}: no moves to draw")
+    return Preview(svg, moves)
+
+
+def _check_text(function: str, name: str, text: str, options: BaseModel) -> list[str]:
+    from cellctl.kinds.ur.urscript import check
+
+    return check(text, _arm(options), name)
+
+
+def _condition(status: Any) -> Any:
+    return status.condition
+
+
+def _menu() -> Sequence[MachineFunction]:
+    from cellctl.kinds.ur.menu import MENU
+
+    return MENU
+
+
+def _commands() -> Sequence[tuple[str, click.Command]]:
+    from cellctl.kinds.ur.cli import ROBOT_COMMANDS, emulate_ur
+
+    return [("emulate", emulate_ur), *(("robot", command) for command in ROBOT_COMMANDS)]
+
+
+def _timing() -> Any:
+    from cellctl.kinds.ur.timing import UrTiming
+
+    return UrTiming()
+
+
+def _emulated_options(scale: float) -> dict[str, float]:
+    return {
+        "power_on_timeout": scaled_deadline(60.0, scale),
+        "brake_release_timeout": scaled_deadline(30.0, scale),
+    }
+
+
+UR = MachineKind(
+    name="ur",
+    family="robot",
+    maker="Universal Robots",
+    model="UR e-Series cobot",
+    line=UR_LINE,
+    options=UrOptions,
+    open_driver=_open,
+    emulator=_emulator,
+    states=UrRobotMode,
+    condition=_condition,
+    language=ProgramLanguage(suffix=".script", check=_check, compile=_compile, preview=_preview),
+    menu=_menu,
+    commands=_commands,
+    emulated_options=_emulated_options,
+    program_files=(".script", ".urp"),
+    check_text=_check_text,
+    faults=FAULTS,
+    timing=_timing,
+    description="collaborative arm: Dashboard Server, RTDE and URScript over TCP",
+)

@@ -1,0 +1,127 @@
+"""examples/cell-tending end to end: a UR5e tending an iso-cnc mill and a Dyna 2400 with the
+PLC, every machine emulated, the real controller running batches. A protective stop in the
+middle is alarmed in UR's words; the operator's unlock and release let the batch finish with
+no part lost and none cut twice."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+
+from cellctl.cell.config import load_cell
+from cellctl.cell.controller import ControllerOptions
+from cellctl.cell.journal import open_journal
+from cellctl.emulators.cell import EmulatedCell
+from cellctl.kinds.ur.dashboard import RuntimeState, SafetyStatus
+from cellctl.mailbox import open_mailbox
+from cellctl.service.client import attach
+from cellctl.ui.cell_cli import run_controller
+
+from .conftest import until
+
+EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "cell-tending"
+SCALE = 200.0
+
+
+@pytest.fixture
+async def tending(tmp_path: Path) -> AsyncIterator[tuple[EmulatedCell, Path]]:
+    cell = EmulatedCell(time_scale=SCALE, template=EXAMPLE)
+    directory = tmp_path / "cell"
+    await cell.start(directory)
+    toml = directory / "cell.toml"
+    toml.write_text(toml.read_text().replace("poll_period = 0.5", "poll_period = 0.1"))
+    try:
+        yield cell, directory
+    finally:
+        await cell.close()
+
+
+def _cut_once(cell: EmulatedCell, parts: int) -> None:
+    """Every physical part on the outfeed, none lost, none cut twice on a mill. (The iso-cnc
+    emulator opens a run as its reader starts, its automatic operator's, which may be before
+    the part is clamped: such a run names no part, so the Dyna's cuts are counted by part.)"""
+    physical = [f"P{n}" for n in range(1, parts + 1)]
+    assert sorted(cell.outfeed) == physical, cell.outfeed
+    runs = cell.runs_per_part()
+    assert {p: r.get("cnc2") for p, r in runs.items()} == dict.fromkeys(physical, 1), runs
+    assert all(n == 1 for r in runs.values() for n in r.values()), runs
+
+
+async def test_a_batch_runs_through_the_cobot_cell(tending: tuple[EmulatedCell, Path]) -> None:
+    cell, directory = tending
+    with open_mailbox(directory) as mailbox:
+        mailbox.post_order("bracket", 2, order_id="A")
+    options = ControllerOptions.from_config(load_cell(directory))
+    await asyncio.wait_for(
+        run_controller(directory, live=False, until_idle=True, options=options), 120
+    )
+    with open_journal(directory) as journal:
+        done = [(s.machine, s.program) for s in journal.steps() if s.state == "finished"]
+    with open_mailbox(directory) as mailbox:
+        assert mailbox.get_order("A").state == "done"
+    assert sorted(p for m, p in done if m == "robot") == sorted(
+        ["conveyor_to_vf2", "vf2_to_cnc2", "cnc2_to_conveyor"] * 2
+    )
+    _cut_once(cell, 2)
+    assert cell.robot.controller.runs.count("conveyor_to_vf2") == 2
+
+
+async def test_a_protective_stop_in_the_batch(tending: tuple[EmulatedCell, Path]) -> None:
+    cell, directory = tending
+    robot = cell.robot.controller
+    with open_mailbox(directory) as mailbox:
+        mailbox.post_order("bracket", 2, order_id="A")
+    stop = asyncio.Event()
+    options = ControllerOptions.from_config(load_cell(directory))
+    controller = asyncio.ensure_future(
+        run_controller(directory, live=False, until_idle=False, options=options, stop=stop)
+    )
+    try:
+        # The second transfer of the batch, mid-way: the arm stops where it is.
+        await until(
+            lambda: (
+                robot.runs.count("vf2_to_cnc2") == 1
+                and robot.runtime == RuntimeState.PLAYING
+                and robot._move is not None
+            ),
+            "the robot moving a part from the VF-2 to CNC 2",
+        )
+        robot.set_fault("protective_stop")
+        await until(lambda: (directory / "api.sock").exists(), "the API")
+        async with await attach(directory) as api:
+
+            async def alarm_texts() -> list[str]:
+                return [a["text"] for a in await api.call("alarms.list", {})]
+
+            deadline = asyncio.get_running_loop().time() + 30
+            while not any("Safetystatus: PROTECTIVE_STOP" in t for t in await alarm_texts()):
+                assert asyncio.get_running_loop().time() < deadline, await alarm_texts()
+                await asyncio.sleep(0.05)
+            held = [p["id"] for p in await api.call("parts.list", {"statuses": ["held"]})]
+            assert len(held) == 1, held  # the part in the gripper, and no other
+            # The cell never unlocks it: still stopped while the operator has not acted.
+            assert robot.safety == SafetyStatus.PROTECTIVE_STOP
+            # The operator: the robot out of automatic service, unlock (UR's 5 s first), play
+            # the paused program to its end, back in service, the part released where it is.
+            await api.call("machines.out_of_service", {"machine": "robot"})
+            await asyncio.sleep(5.0 / SCALE)
+            assert (await api.call("robot.unlock", {}))["message"] == "Protective stop releasing"
+            await api.call("robot.play", {})
+            await until(lambda: robot.runtime == RuntimeState.STOPPED, "the transfer's end")
+            await api.call("machines.return_to_service", {"machine": "robot"})
+            await api.call("parts.release", {"id": held[0], "at": "cnc2"})
+
+            deadline = asyncio.get_running_loop().time() + 120
+            while True:
+                orders = await api.call("orders.list", {})
+                if any(o["id"] == "A" and o["state"] == "done" for o in orders):
+                    break
+                assert asyncio.get_running_loop().time() < deadline, orders
+                await asyncio.sleep(0.1)
+    finally:
+        stop.set()
+        await asyncio.wait_for(controller, 60)
+    _cut_once(cell, 2)

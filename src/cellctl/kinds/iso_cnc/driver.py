@@ -100,6 +100,10 @@ class TransferReport:
 
 Progress = Callable[[TransferProgress], None]
 
+#: Per wake-up, how much of the host's measured lateness it keeps (about 350 wake-ups to
+#: halve: a second or two of sending, so a burst of load is remembered through it).
+_LATE_DECAY = 0.998
+
 
 class IsoCncDriver(LinkDriver):
     """One ISO-code control on one link (see module docstring)."""
@@ -287,6 +291,11 @@ class IsoCncDriver(LinkDriver):
         burst = max(o.burst, math.ceil(o.pace_s / char_time))
         ahead = max(o.ahead, burst / 2) * char_time
         limit = max(burst, self.high_water - o.margin)
+        # How late this host's timers fire (a decaying maximum, s): it widens `ahead`, so a
+        # late wake-up does not leave the line idle, and the model's lag, so that characters
+        # that reach the line late (the host's own scheduling, an adapter's frames, a device
+        # server's network) are not counted out of the control's buffer before they are.
+        late = 0.0
         wire_free = clock.monotonic()
         last_report = 0.0
         # Past the closing % (its trailer is only tape feed) a DC3 is the end of the read.
@@ -305,16 +314,16 @@ class IsoCncDriver(LinkDriver):
                     )
                 continue
             now = clock.monotonic()
-            early = wire_free - ahead - now
+            early = wire_free - ahead - late - now
             if early > 0:
-                await current_clock().sleep(early)
+                late = await self._sleep_until(now + early, late)
                 continue
             n = min(burst, total - self._sent)
             room = limit - model.level(self._sent, now)
             if room < n:
                 drain = model.next_drain()
                 if drain is not None and room < min(n, o.burst):
-                    await current_clock().sleep(max(drain - now, char_time))
+                    late = await self._sleep_until(max(drain, now + char_time), late)
                     continue
                 # What fits now; with nothing to wait for (a block longer than the room),
                 # a small burst: the control's DC3 is the guard.
@@ -325,7 +334,7 @@ class IsoCncDriver(LinkDriver):
             await self.link.write(framed[self._sent : self._sent + n])
             wire_free = max(wire_free, now) + n * char_time
             self._sent += n
-            model.wrote(self._sent, wire_free)
+            model.wrote(self._sent, wire_free + o.link_lag_s + late)
             if self._sent >= end_at and self._seen_at_end < 0:
                 self._seen_at_end = self._dc3_seen
             self._progress = IsoCncStatus(
@@ -336,6 +345,14 @@ class IsoCncDriver(LinkDriver):
                 report(phase)
         if wire_free > clock.monotonic():
             await current_clock().sleep(wire_free - clock.monotonic())
+
+    @staticmethod
+    async def _sleep_until(when: float, late: float) -> float:
+        """Sleep until ``when`` (loop time); returns the host's lateness, updated by this
+        wake-up's (a maximum that decays over a few hundred wake-ups)."""
+        clock = current_clock()
+        await clock.sleep(max(0.0, when - clock.monotonic()))
+        return max(clock.monotonic() - when, late * _LATE_DECAY)
 
     async def _wait_end(self, deadline: float, model: BufferModel, seen_before: int) -> None:
         """Wait for the control's DC3 that ends the read (after the closing ``%``).

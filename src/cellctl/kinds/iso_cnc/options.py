@@ -52,7 +52,7 @@ class IsoCncOptions(BaseModel):
     link_lag_s: float = Field(default=0.002, ge=0, le=10)
     """Seconds a write may take to reach the line beyond its own line time (a USB adapter's
     1 ms frames, a device server's network): the model counts a block out of the control's
-    buffer that much later. The host's measured timer lateness is added to it."""
+    buffer that much later (a character still held on the way is still to come)."""
     burst: int = Field(default=4, ge=1, le=4096)
     """Characters written at a time (what may be in flight after a DC3, with ``ahead``)."""
     ahead: float = Field(default=2.0, ge=0, le=4096)

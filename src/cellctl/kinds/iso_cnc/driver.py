@@ -22,15 +22,18 @@ can stay under a tolerance of 10. Two things keep this driver under it:
 
 1. **Nothing queued.** It writes ``burst`` characters at a time and writes the next burst only
    when its own clock (the line rate from the line settings) says the previous one has all but
-   crossed the wire (``ahead`` characters early, to keep the line busy). What is in flight is
-   its own count, never a buffer in the OS, the adapter or the server: after it hears a DC3,
-   at most ``burst + ahead`` characters it already wrote are still to arrive.
+   crossed the wire (``ahead`` characters early, to keep the line busy, plus however late
+   its own timers have been firing lately, so that a late wake-up does not leave the line
+   idle). What is in flight is its own count, never a buffer in the OS, the adapter or the
+   server: after it hears a DC3, only the last burst or two it wrote are still to arrive.
 2. **It knows the control's buffer.** For a drip-feed it runs the control's motion model
    (:mod:`cellctl.kinds.iso_cnc.motion`, the one the emulator and the estimate use) over
    the blocks it sends: a block leaves the control's buffer when it starts to execute, at
    ``max(its arrival, the previous block's end)``. It sends only while the modelled buffer,
    its characters in flight included, stays ``margin`` characters under the control's
-   high-water mark (``buffer_size - dc3_tolerance`` unless ``high_water`` is set). So the
+   high-water mark (``buffer_size - dc3_tolerance`` unless ``high_water`` is set), and it
+   counts a block as arrived ``link_lag_s`` after its line time (a write that a USB adapter
+   or a device server holds a moment still has to arrive: its block cannot start). So the
    control never has cause to send DC3, and the adapter's delay does not matter. The model
    is corrected by what the control says: a DC3 means the buffer is fuller than modelled (it
    is taken as at the high-water mark), a DC1 that it is no fuller than the low-water mark.
@@ -337,11 +340,11 @@ class IsoCncDriver(LinkDriver):
             model.wrote(self._sent, wire_free + o.link_lag_s)
             if self._sent >= end_at and self._seen_at_end < 0:
                 self._seen_at_end = self._dc3_seen
-            self._progress = IsoCncStatus(
-                self.state, self._sent, total, stall_s=model.idle_s * o.motion_scale
-            )
-            if now - last_report >= 0.2:
+            if now - last_report >= 0.2 or self._sent >= total:
                 last_report = now
+                self._progress = IsoCncStatus(
+                    self.state, self._sent, total, stall_s=model.idle_s * o.motion_scale
+                )
                 report(phase)
         if wire_free > clock.monotonic():
             await current_clock().sleep(wire_free - clock.monotonic())

@@ -14,7 +14,8 @@ Flow control as the spec has it: DC1 when it wants data; DC3 once its buffer hol
 and raises alarm 087 past ``tolerance``. With ``cs_flow`` it also drops RTS (the host's CTS)
 at the high-water mark. ``adapter_latency_ms`` holds each DC1/DC3 (and RTS change) back that
 long before the host sees it, as a USB serial adapter does; the characters after the DC3 are
-counted from the moment the control sent it.
+counted from the moment the control sent it. ``line_lag_ms`` holds each piece of the host's
+data a random 0 to MS before it crosses (in order), as a device server's packet timer does.
 
 An alarm stops the transfer and is reported the way a remote-buffer interface does: NAK,
 then the alarm number (three digits) and LF (``\\x15087\\n``); the control stays in ALARM until

@@ -318,6 +318,6 @@ class _RtdeSession:
                 if delay > 0:
                     await clock.sleep(delay)
                 elif k % 32 == 0:
-                    await asyncio.sleep(0)  # a long catch-up still lets the loop breathe
+                    await clock.sleep(0)  # a long catch-up still lets the loop breathe
         except (ConnectionError, struct.error):
             return

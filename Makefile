@@ -58,7 +58,7 @@ demo: $(STAMP)
 
 bench: $(STAMP)
 	cd bench && for b in robot_download many_links mill_download cell_throughput api_push factory_throughput \
-	    line_noise fault_reaction; do \
+	    line_noise fault_reaction dnc_dripfeed dnc_many ur_cell; do \
 	  ../$(BIN)/python $$b.py || exit 1; done
 
 clean:

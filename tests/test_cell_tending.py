@@ -6,6 +6,8 @@ no part lost and none cut twice."""
 from __future__ import annotations
 
 import asyncio
+import re
+import subprocess
 from collections.abc import AsyncIterator
 from pathlib import Path
 
@@ -20,7 +22,7 @@ from cellctl.mailbox import open_mailbox
 from cellctl.service.client import attach
 from cellctl.ui.cell_cli import run_controller
 
-from .conftest import until
+from .conftest import CELLCTL, until
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "cell-tending"
 SCALE = 200.0
@@ -125,3 +127,24 @@ async def test_a_protective_stop_in_the_batch(tending: tuple[EmulatedCell, Path]
         stop.set()
         await asyncio.wait_for(controller, 60)
     _cut_once(cell, 2)
+
+
+def test_demo_runs_a_batch_through_the_cobot_cell(tmp_path: Path) -> None:
+    """`cellctl demo --cell examples/cell-tending`: the batch end to end, in a process of its
+    own as a user runs it."""
+    demo = ["demo", "--cell", str(EXAMPLE), "--parts", "2", "--no-compare", "--time-scale", "200"]
+    done = subprocess.run(
+        [*CELLCTL, *demo, "--out", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=240,
+        check=False,
+    )
+    out = " ".join(done.stdout.split())
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    assert "parts made: 2 x bracket" in out, out[-2000:]
+    assert "failed steps: 0" in out, out[-2000:]
+    for machine in ("robot", "vf2", "cnc2"):  # each machine of the cell did its share
+        used = re.search(rf"utilization {machine}: +([0-9.]+)%", out)
+        assert used is not None and float(used.group(1)) > 0, (machine, out[-2000:])
+    assert (tmp_path / "cell" / "gantt.svg").is_file()

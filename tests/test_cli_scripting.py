@@ -13,6 +13,7 @@ from pathlib import Path
 
 import click
 import pytest
+from click.testing import CliRunner
 
 from cellctl.kinds import registry
 from cellctl.mailbox import open_mailbox
@@ -21,7 +22,6 @@ from cellctl.service.methods import METHODS
 from cellctl.ui.cli import main
 from cellctl.ui.common import clause_summary
 from cellctl.ui.dashboard.routes import DASHBOARD_METHODS
-from tests.conftest import CELLCTL
 
 ROOT = Path(__file__).resolve().parent.parent
 RUN_CLI = "import sys; from cellctl.ui.cli import main; sys.exit(main())"
@@ -186,13 +186,10 @@ def test_no_summary_is_cut_mid_sentence() -> None:
     for path, command in _walk(main, "cellctl"):
         if not isinstance(command, click.Group):
             continue
-        shown = subprocess.run(
-            [*CELLCTL, *path.split()[1:], "--help"],
-            capture_output=True,
-            text=True,
-            timeout=60,
-            env={**os.environ, "COLUMNS": "80"},
-        ).stdout
+        # In-process: click sizes help by $COLUMNS as the installed command does.
+        shown = (
+            CliRunner().invoke(main, [*path.split()[1:], "--help"], env={"COLUMNS": "80"}).output
+        )
         listing = shown.split("Commands:", 1)[-1] if "Commands:" in shown else ""
         cut += [f"{path}: {line.strip()}" for line in listing.splitlines() if line.endswith("...")]
     assert not cut, "summaries cut mid-sentence in group help:\n" + "\n".join(cut)

@@ -5,6 +5,7 @@ controls over a pty and TCP."""
 from __future__ import annotations
 
 import asyncio
+import json
 import os
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
@@ -119,6 +120,14 @@ async def test_send_by_hand_goes_through_the_running_server(served: Shop) -> Non
     assert served.controls["mill1"].memory[1234] == BRACKET
     log = ShopStore(served.root).log_lines("mill1")
     assert any("O1234.nc: read in" in line for line in log)
+    # `dnc status --json`: the server's view of each machine, for scripts.
+    code, output = await finished(
+        await cellctl("dnc", "status", "--json", "--dir", str(served.root))
+    )
+    assert code == 0, output
+    shown = json.loads(output)
+    assert sorted(shown) == ["mill1", "mill2"]
+    assert shown["mill2"]["condition"] == "idle"
 
 
 async def test_drip_a_file_and_receive_by_hand(served: Shop, tmp_path: Path) -> None:
@@ -186,6 +195,12 @@ async def test_hand_send_without_a_server_opens_the_link_itself(shop: Shop) -> N
     code, output = await finished(proc)
     assert code == 0, output
     assert control.memory[1234] == BRACKET
+    # With no server, `dnc status --json` says so and gives each machine's last log line.
+    code, output = await finished(await cellctl("dnc", "status", "--json", "--dir", str(shop.root)))
+    assert code == 0, output
+    shown = json.loads(output)
+    assert shown["mill1"]["server"] is False
+    assert "O1234.nc: read in" in shown["mill1"]["log"]
     assert holder(store.lock_path("mill1")) is None
 
 

@@ -201,6 +201,43 @@ async def test_rtde_refuses_unknown_fields_and_too_high_a_frequency(emulator: Ur
     writer.close()
 
 
+async def test_rtde_packages_late_are_sent_not_skipped(emulator: UrEmulator) -> None:
+    """The stream keeps its schedule (package k due at start + k/frequency): after the loop
+    stalls, the packages it was late for all come, each stamped with its own cycle."""
+    import itertools
+    import time
+
+    from cellctl.kinds.ur import rtde
+
+    reader, writer = await asyncio.open_connection("127.0.0.1", emulator.ports["rtde"])
+
+    async def packet() -> tuple[int, bytes]:
+        header = await asyncio.wait_for(reader.readexactly(3), 5)
+        body = await asyncio.wait_for(reader.readexactly(rtde.HEADER.unpack(header)[0] - 3), 5)
+        return rtde.decode(header + body)[:2]
+
+    t = rtde.PacketType
+    names = ["timestamp", "robot_mode"]
+    writer.write(rtde.encode(t.REQUEST_PROTOCOL_VERSION, rtde.request_protocol_version(2)))
+    assert await packet() == (t.REQUEST_PROTOCOL_VERSION, b"\x01")
+    writer.write(rtde.encode(t.SETUP_OUTPUTS, rtde.setup_outputs_payload(125.0, names)))
+    got, reply = await packet()
+    recipe = rtde.parse_setup_reply(reply, names)
+    writer.write(rtde.encode(t.START, b""))
+    assert (await packet())[0] == t.START
+    stamps: list[float] = []
+    while len(stamps) < 40:
+        got, body = await packet()
+        assert got == t.DATA_PACKAGE
+        stamps.append(rtde.unpack_data(recipe, body)["timestamp"])
+        if len(stamps) == 5:
+            # The whole event loop stalls, as on a loaded box: 25 cycles late at once.
+            time.sleep(0.2)  # noqa: ASYNC251
+    writer.close()
+    steps = [b - a for a, b in itertools.pairwise(stamps)]
+    assert steps == [pytest.approx(1 / 125.0)] * len(steps), steps
+
+
 # -- an independent client: ur-rtde's RTDEReceiveInterface ----------------------------------------
 
 CLIENT = """

@@ -38,7 +38,7 @@ from cellctl.service.client import attach
 from cellctl.service.methods import Dispatcher
 from cellctl.service.server import ApiServer
 from cellctl.ui.calls import LazyBar
-from cellctl.ui.common import cell_dir, console, err_console, run
+from cellctl.ui.common import cell_dir, console, err_console, json_option, print_json, run
 
 
 def _shop_options(f: Callable[..., Any]) -> Callable[..., Any]:
@@ -280,14 +280,23 @@ def diff(
 
 @dnc.command()
 @_shop_options
+@json_option
 @click.pass_context
-def status(ctx: click.Context, shop: Path, use_cell: bool) -> None:
+def status(ctx: click.Context, shop: Path, use_cell: bool, as_json: bool) -> None:
     """Each machine's state: through the running server, else its log's last line."""
     config = _config(ctx, shop, use_cell)
     if controller_holder(config.root) is None:
         store = ShopStore(config.root)
-        for name in sorted(config.machines):
-            last = store.log_lines(name, 1)
+        logged = {name: store.log_lines(name, 1) for name in sorted(config.machines)}
+        if as_json:
+            print_json(
+                {
+                    n: {"server": False, "log": last[0] if last else None}
+                    for n, last in logged.items()
+                }
+            )
+            return
+        for name, last in logged.items():
             console.print(f"{name}: no server runs; {last[0] if last else 'no log'}", markup=False)
         return
 
@@ -296,5 +305,9 @@ def status(ctx: click.Context, shop: Path, use_cell: bool) -> None:
             answer: dict[str, Any] = await api.call("cell.status")
             return answer
 
-    for name, m in sorted(run(main)["machines"].items()):
+    machines = dict(sorted(run(main)["machines"].items()))
+    if as_json:
+        print_json(machines)
+        return
+    for name, m in machines.items():
         console.print(f"{name}: {m['condition']}: {m['state']}", markup=False)

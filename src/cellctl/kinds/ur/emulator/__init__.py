@@ -295,25 +295,29 @@ class _RtdeSession:
             self.stream = None
 
     async def _stream(self, recipe: rtde.Recipe) -> None:
-        # Packages on a fixed schedule from the start (not "sleep a period after each"), so
-        # the rate holds; a package the loop was too late for is skipped, not sent in a burst.
+        # Package k is due at start + k/frequency: absolute deadlines, so a late wake-up
+        # never shifts the ones after it (no drift). A package the loop is late for goes out
+        # at once, never skipped: its ``timestamp`` is its controller cycle's (start + k
+        # periods, as a real controller stamps the cycle it sampled), so a client counts a
+        # missing package by its timestamp and never mistakes the loop's jitter for one.
         period = 1.0 / self.frequency
-        start = current_clock().monotonic()
-        n = 0
+        clock = current_clock()
         controller = self.emulator.controller
+        start = clock.monotonic()
+        stamp0 = start - controller.started_at
+        k = 0
         try:
             while True:
                 values = controller.sample()
+                values["timestamp"] = stamp0 + k * period
                 payload = rtde.pack_data(recipe, values, self.version)
                 self.writer.write(rtde.encode(rtde.PacketType.DATA_PACKAGE, payload))
                 self.emulator.rtde_sent += 1
-                n += 1
-                now = current_clock().monotonic()
-                behind = int((now - start) / period) - n
-                if behind > 0:
-                    n += behind
-                await current_clock().sleep(
-                    max(0.0, start + n * period - current_clock().monotonic())
-                )
+                k += 1
+                delay = start + k * period - clock.monotonic()
+                if delay > 0:
+                    await clock.sleep(delay)
+                elif k % 32 == 0:
+                    await clock.sleep(0)  # a long catch-up still lets the loop breathe
         except (ConnectionError, struct.error):
             return

@@ -97,7 +97,7 @@ class UrController:
         self._mode_task: asyncio.Task[None] | None = None
         self._rest: Move | None = None  # a move a pause cut short: its rest, for the resume
         self.on_drop: list[Callable[[], None]] = []
-        self._start = self._now()
+        self.started_at = self._now()
 
     # -- time -------------------------------------------------------------------------------------
 
@@ -432,7 +432,7 @@ class UrController:
         )
         pose = self.arm.tcp(q)
         values: dict[str, Any] = {
-            "timestamp": self._now() - self._start,
+            "timestamp": self._now() - self.started_at,
             "target_q": q,
             "target_qd": (0.0,) * 6,
             "actual_q": q,

@@ -299,6 +299,13 @@ class IsoCncDriver(LinkDriver):
         # character written within it as still in the buffer, and a burst of load would
         # hold the host back while the control starves; link_lag_s is the link's own.)
         late = 0.0
+        # Where a burst and its lead fit in the tolerance, the DC3 stays a backstop for the
+        # model (what is in flight when it comes must fit too): the lateness does not widen
+        # the lead. Where they do not (a line made faster than this host's timers: a scaled
+        # emulated cell or bench), the model alone guards the buffer, and the lead follows
+        # the host's lateness so that the line does not idle.
+        fits = burst + ahead / char_time <= o.dc3_tolerance
+        spare = 0.0 if fits else math.inf
         wire_free = clock.monotonic()
         last_report = 0.0
         # Past the closing % (its trailer is only tape feed) a DC3 is the end of the read.
@@ -317,7 +324,7 @@ class IsoCncDriver(LinkDriver):
                     )
                 continue
             now = clock.monotonic()
-            early = wire_free - ahead - late - now
+            early = wire_free - ahead - min(late, spare) - now
             if early > 0:
                 late = await self._sleep_until(now + early, late)
                 continue

@@ -375,7 +375,9 @@ class IsoCncEmulator(EmulatedDevice):
         line = self._line
         if line is None or line.closed:
             return
-        wait = max(0.0, at - current_clock().monotonic())
+        # Only a held character can cross after now (line-lag); otherwise send at once, as
+        # before: the host's backstop counts on the DC3 leaving as soon as it is due.
+        wait = max(0.0, at - current_clock().monotonic()) if self._lag_ms else 0.0
         delay = wait + self._latency_ms / 1000.0 / self.time_scale
 
         def send() -> None:

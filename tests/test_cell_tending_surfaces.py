@@ -19,9 +19,12 @@ from cellctl.cell.config import load_cell
 from cellctl.emulators.cell import EmulatedCell
 from cellctl.factory.opcua import NAMESPACE
 from cellctl.kinds import registry
+from cellctl.service.client import attach
 from cellctl.service.token import read_token
 from cellctl.ui.cell_cli import run_controller
+from cellctl.ui.console.app import ConsoleApp
 from tests.conftest import free_port, until
+from tests.test_console import wait_text
 from tests.test_dashboard import browser  # noqa: F401  (the fixture)
 from tests.test_opcua import client_cert, session  # noqa: F401  (client_cert: the fixture)
 from tests.test_opcua import until as until_answer
@@ -113,3 +116,23 @@ async def test_opc_ua_shows_the_cobot_cells_machines(
                 ua.NodeId(f"Machines/{machine.name}/Identification/Manufacturer", idx)
             ).read_value()
             assert maker == registry.kind(machine.kind).maker, machine.name
+
+
+async def test_the_console_attaches_to_the_cobot_cell(running: Running) -> None:
+    """The console's board and main menu for a UR, an iso-cnc control and a Dyna 2400: the
+    source's menu numbers, each machine on the board, the robot's menu from its kind."""
+    client = await attach(running.directory)
+    try:
+        app = ConsoleApp(running.directory, client, traffic_period=0.1)
+        async with app.run_test(size=(100, 30)) as pilot:
+            shown = await wait_text(pilot, "attached to cellctl run (pid", "4. EXIT")
+            for name in ("robot", "vf2", "cnc2"):
+                assert name in shown, shown
+            # 1. ROBOT: the functions the robot's kind declares, by their labels.
+            menu = registry.kind(load_cell(running.directory).robot.kind).menu
+            labels = [f.label for f in (menu() if menu is not None else ())]
+            assert labels, "the robot's kind declares its functions"
+            await pilot.press("1")
+            await wait_text(pilot, *labels[:4])
+    finally:
+        await client.close()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import inspect
 import re
 import shutil
 import socket
@@ -13,6 +14,7 @@ from collections.abc import AsyncIterator, Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -235,11 +237,17 @@ def wait_until(condition: Callable[[], object], what: str, timeout: float = 60.0
         time.sleep(0.05)
 
 
-async def until(condition: Callable[[], object], what: str, timeout: float = 60.0) -> None:
-    """The same from inside the event loop: other tasks run while it waits."""
+async def until(condition: Callable[[], object], what: str, timeout: float = 60.0) -> Any:
+    """The same from inside the event loop: other tasks run while it waits. ``condition`` may
+    be a coroutine function (a call to make each time); the true value it gave is returned."""
     loop = asyncio.get_running_loop()
     deadline = loop.time() + timeout
-    while not condition():
+    while True:
+        value = condition()
+        if inspect.isawaitable(value):
+            value = await value
+        if value:
+            return value
         if loop.time() > deadline:
             raise AssertionError(f"timed out waiting for {what}")
         await asyncio.sleep(0.02)

@@ -98,10 +98,10 @@ async def test_a_protective_stop_in_the_batch(tending: tuple[EmulatedCell, Path]
             async def alarm_texts() -> list[str]:
                 return [a["text"] for a in await api.call("alarms.list", {})]
 
-            deadline = asyncio.get_running_loop().time() + 30
-            while not any("Safetystatus: PROTECTIVE_STOP" in t for t in await alarm_texts()):
-                assert asyncio.get_running_loop().time() < deadline, await alarm_texts()
-                await asyncio.sleep(0.05)
+            async def stopped_alarm() -> bool:
+                return any("Safetystatus: PROTECTIVE_STOP" in t for t in await alarm_texts())
+
+            await until(stopped_alarm, "the protective stop's alarm", 30)
             held = [p["id"] for p in await api.call("parts.list", {"statuses": ["held"]})]
             assert len(held) == 1, held  # the part in the gripper, and no other
             # The cell never unlocks it: still stopped while the operator has not acted.
@@ -109,6 +109,7 @@ async def test_a_protective_stop_in_the_batch(tending: tuple[EmulatedCell, Path]
             # The operator: the robot out of automatic service, unlock (UR's 5 s first), play
             # the paused program to its end, back in service, the part released where it is.
             await api.call("machines.out_of_service", {"machine": "robot"})
+            # UR refuses an unlock within 5 s of the stop: the operator waits them out.
             await asyncio.sleep(5.0 / SCALE)
             assert (await api.call("robot.unlock", {}))["message"] == "Protective stop releasing"
             await api.call("robot.play", {})
@@ -116,13 +117,11 @@ async def test_a_protective_stop_in_the_batch(tending: tuple[EmulatedCell, Path]
             await api.call("machines.return_to_service", {"machine": "robot"})
             await api.call("parts.release", {"id": held[0], "at": "cnc2"})
 
-            deadline = asyncio.get_running_loop().time() + 120
-            while True:
+            async def order_done() -> bool:
                 orders = await api.call("orders.list", {})
-                if any(o["id"] == "A" and o["state"] == "done" for o in orders):
-                    break
-                assert asyncio.get_running_loop().time() < deadline, orders
-                await asyncio.sleep(0.1)
+                return any(o["id"] == "A" and o["state"] == "done" for o in orders)
+
+            await until(order_done, "order A done", 120)
     finally:
         stop.set()
         await asyncio.wait_for(controller, 60)

@@ -27,7 +27,6 @@ from tests.conftest import free_port, until
 from tests.test_console import wait_text
 from tests.test_dashboard import browser  # noqa: F401  (the fixture)
 from tests.test_opcua import client_cert, session  # noqa: F401  (client_cert: the fixture)
-from tests.test_opcua import until as until_answer
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "cell-tending"
 
@@ -105,7 +104,7 @@ async def test_opc_ua_shows_the_cobot_cells_machines(
                 return True
         return False
 
-    await until_answer(serving, "the OPC UA server", 60)
+    await until(serving, "the OPC UA server", 60)
     async with session(running.opcua, cell, client_cert) as client:
         idx = await client.get_namespace_index(NAMESPACE)
         machines = await client.nodes.objects.get_child(f"{idx}:Machines")

@@ -36,6 +36,7 @@ from cellctl.service.client import attach
 from cellctl.testing.rig import CellRig
 from cellctl.ui.cell_cli import run_controller
 from cellctl.ui.cli import main as cli_main
+from tests.conftest import until
 
 CLIENT_URI = "urn:cellctl:tests:client"
 SIGN_AND_ENCRYPT = ua.MessageSecurityMode.SignAndEncrypt
@@ -89,19 +90,6 @@ async def session(
         client.set_password(password or "")
     async with client:
         yield client
-
-
-async def until(condition: Callable[[], Awaitable[Any]], what: str, timeout: float = 15) -> Any:
-    """Poll ``condition`` until it returns something true; fail after ``timeout`` s."""
-    loop = asyncio.get_running_loop()
-    deadline = loop.time() + timeout
-    while True:
-        value = await condition()
-        if value:
-            return value
-        if loop.time() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        await asyncio.sleep(0.02)
 
 
 def add_user(cell: Path, name: str, password: str, role: str = "operator") -> None:

@@ -16,6 +16,7 @@ from cellctl.ui.factory_cli import emulate_factory, factory
 from cellctl.ui.kinds_cli import kinds_command
 from cellctl.ui.opcua_cli import opcua_group
 from cellctl.ui.orders_cli import alarm, cancel, orders, part, reports, submit
+from cellctl.ui.plan_cli import plan_command
 from cellctl.ui.plc_cli import plc
 from cellctl.ui.report_cli import report
 from cellctl.ui.service_cli import estop, machine, pause, resume, service_group, traffic
@@ -61,6 +62,7 @@ main.add_command(orders)
 main.add_command(cancel)
 main.add_command(reports)
 main.add_command(report)
+main.add_command(plan_command)
 main.add_command(alarm)
 main.add_command(part)
 main.add_command(plc)

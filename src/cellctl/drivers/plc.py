@@ -181,6 +181,9 @@ class ModbusPlc:
             async with asyncio.timeout(self.timeout):
                 await self._ensure_connected()
                 self.requests += 1
+                if isinstance(self._client, MemModbusClient):
+                    # A mem:// line raises LinkClosed itself when the far end goes: no watch.
+                    return self._checked(what, await call())
                 answer = asyncio.ensure_future(call())
                 lost = asyncio.ensure_future(self._lost.wait())
                 try:
@@ -222,6 +225,10 @@ class ModbusPlc:
                 answer.cancel()
             if answer is not None:
                 answer.add_done_callback(_retrieve)
+        return self._checked(what, response)
+
+    def _checked(self, what: str, response: Any) -> Any:
+        """``response``, or :class:`DeviceError` for a Modbus exception response."""
         if response.isError():
             code = int(getattr(response, "exception_code", 0))
             name = MODBUS_EXCEPTIONS.get(code, "unknown Modbus exception")

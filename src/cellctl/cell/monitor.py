@@ -22,11 +22,11 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
-import time
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from cellctl.cell.causes import Blamed, Cause, link_cause, read_cause, status_cause
+from cellctl.clock import current_clock
 from cellctl.errors import CellctlError, DeviceError, UsageError
 from cellctl.kinds import Condition, LastError
 from cellctl.kinds.families import CycleAborted
@@ -85,7 +85,7 @@ class Monitor:
             raise _StillOut
         future = asyncio.ensure_future(read())
         self._reads[key] = future
-        self._since[key] = time.time()
+        self._since[key] = current_clock().now()
         try:
             return await asyncio.wait_for(asyncio.shield(future), self.world.options.read_limit)
         except TimeoutError:
@@ -149,7 +149,7 @@ class Monitor:
     def _told(self, cause: Cause, key: str) -> Cause:
         """``cause`` of a failed read, marked told if its alarm was cleared while the read
         was out (sent before the operator acknowledged the fault: the same fault)."""
-        if self._cleared_since(cause, self._since.get(key, time.time())):
+        if self._cleared_since(cause, self._since.get(key, current_clock().now())):
             return dataclasses.replace(cause, told=True)
         return cause
 
@@ -246,8 +246,8 @@ class Monitor:
             # CTS low on an idle, set-up mill that is not waiting for its operator.
             recovery.fault(m.name, "readiness", "lost readiness (CTS low while idle)", count=False)
         elif status.awaiting_operator and mill.initialized:
-            since = recovery.setup_at.get(m.name, time.monotonic())
-            if time.monotonic() - since > mill.setup_timeout:
+            since = recovery.setup_at.get(m.name, current_clock().monotonic())
+            if current_clock().monotonic() - since > mill.setup_timeout:
                 recovery.fault(
                     m.name,
                     "readiness",

@@ -18,10 +18,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import time
 from typing import TYPE_CHECKING
 
 from cellctl.cell.causes import LINK_CLOSED, Cause
+from cellctl.clock import current_clock
 from cellctl.errors import CellctlError
 from cellctl.kinds import Condition, LastError
 
@@ -222,7 +222,7 @@ class Recovery:
                     return False
             if m.setup is not None and (force or not mill.initialized):
                 await mill.setup(m.setup, force=True)
-                self.setup_at[m.name] = time.monotonic()
+                self.setup_at[m.name] = current_clock().monotonic()
                 self.alarms.log(f"{m.name}: initialized with {m.setup.name}")
             status = await mill.status()
         except CellctlError as e:
@@ -234,6 +234,6 @@ class Recovery:
         self.ready[m.name] = status.takes_work
         # Its operator's time for the reference zero runs from now (also after a setup sent by
         # hand while it was out of automatic service).
-        self.setup_at[m.name] = time.monotonic()
+        self.setup_at[m.name] = current_clock().monotonic()
         view.show(status.shown, status.kind_condition)
         return True

@@ -74,6 +74,8 @@ class PlanReport:
     faults: list[FaultWindow] = field(default_factory=list)
     alarms_raised: int = 0
     steps_failed: int = 0
+    #: The steps played from the start: part, its type, kind, machine, program, state, times.
+    steps: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def on_time(self) -> int:
@@ -197,6 +199,7 @@ def plan_report(
     parts = [p for p in journal.parts() if p.status == "done" and p.updated >= start]
     steps = [s for s in journal.steps() if s.started >= start]
     alarms = [a for a in journal.alarms() if a.raised >= start]
+    types = {p.id: p.part_type for p in journal.parts()}
     return PlanReport(
         cell=config.name,
         policy=policy,
@@ -213,7 +216,21 @@ def plan_report(
         faults=list(faults),
         alarms_raised=len(alarms),
         steps_failed=sum(s.state in ("failed", "interrupted") for s in steps),
+        steps=[_step(s, types) for s in steps],
     )
+
+
+def _step(step: Step, types: dict[str, str]) -> dict[str, Any]:
+    return {
+        "part_id": step.part_id,
+        "part_type": types.get(step.part_id, ""),
+        "kind": step.kind,
+        "machine": step.machine,
+        "program": step.program,
+        "state": step.state,
+        "started": step.started,
+        "ended": step.ended,
+    }
 
 
 def _tick(start: float, span: float) -> Any:

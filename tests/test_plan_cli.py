@@ -29,7 +29,7 @@ def cell(tmp_path_factory: pytest.TempPathFactory) -> Path:
     directory = tmp_path_factory.mktemp("plan") / "cell"
     shutil.copytree(EXAMPLE_CELL, directory)
     (directory.parent / "orders.csv").write_text(
-        "id,part_type,qty,priority,due\nA,wax-robot-base,1,5,WED 06:30\n",
+        "id,part_type,qty,priority,due\nA,wax-toy-mill-table,1,5,WED 06:15\n",
         encoding="utf-8",
     )
     return directory
@@ -58,42 +58,44 @@ def steps_of(out: Path) -> list[dict[str, Any]]:
     ]
 
 
+@pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
 def test_what_finishes_by_the_end_of_the_shift_if_cnc2_is_down(cell: Path, tmp_path: Path) -> None:
     """The issue's "if cnc2 is down from 10:00 to 11:00": here while the order needs it."""
     out = tmp_path / "down"
     text = plan(
         "--dir", str(cell), "--orders", str(cell.parent / "orders.csv"), "--start", START,
-        "--shift", "8h", "--fault", "cnc2:down@06:05-06:20", "--out", str(out),
+        "--shift", "8h", "--fault", "cnc2:down@06:03-06:13", "--out", str(out),
     ).output  # fmt: skip
-    assert "fault: cnc2 down from Wed 06:05:00 to Wed 06:20:00" in text
+    assert "fault: cnc2 down from Wed 06:03:00 to Wed 06:13:00" in text
     [report] = json.loads((out / "plan.json").read_text())["plans"]
     assert report["start"] == T0 and report["until"] == T0 + 8 * 3600
     [order] = report["orders"]
     # The order's line: when it finishes, against its due time.
     assert order["order_id"] == "A" and order["made"] == 1 and order["finished"] is not None
     assert T0 < order["finished"] == report["ended"] < report["until"]
-    verdict = "on time" if order["finished"] <= T0 + 30 * 60 else "late"
+    verdict = "on time" if order["finished"] <= T0 + 15 * 60 else "late"
     assert order["verdict"] == verdict
     assert re.search(
-        rf"^A +wax-robot-base +1/1 +Wed \d\d:\d\d:\d\d +Wed 06:30:00 +{verdict}", text, re.M
+        rf"^A +wax-toy-mill-table +1/1 +Wed \d\d:\d\d:\d\d +Wed 06:15:00 +{verdict}", text, re.M
     )
     # cnc2 is down over the window: no step of it starts there, and its down time says so.
     steps = [s for s in report["steps"] if s["machine"] == "cnc2"]
-    assert steps and not any(T0 + 300 <= s["started"] < T0 + 1200 for s in steps)
-    assert report["down_s"]["cnc2"] >= 15 * 60 - 1
-    assert all(s["started"] >= T0 + 1200 for s in steps)  # the part waited for it
+    assert steps and not any(T0 + 180 <= s["started"] < T0 + 780 for s in steps)
+    assert report["down_s"]["cnc2"] >= 10 * 60 - 1
+    assert all(s["started"] >= T0 + 780 for s in steps)  # the part waited for it
     # The chart: the window shaded on cnc2's row, the axis in the shift's wall-clock time.
     svg = (out / "plan.svg").read_text()
     assert svg.count('class="window"') == 1 and ">06:00<" in svg and ">14:00<" in svg
 
 
-def test_can_we_take_more_robot_bases_by_a_time(cell: Path) -> None:
-    """The issue's "40 more robot bases by Friday?", at a test's size: one more by 06:45, and
-    by 06:15 (too soon: the answer is no)."""
-    for until, fits in (("WED 06:45", True), ("06:15", False)):
+@pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
+def test_can_we_take_more_by_a_time(cell: Path) -> None:
+    """The issue's "40 more robot bases by Friday?", at a test's size: one more toy mill
+    table by 06:30, and by 06:05 (too soon: the answer is no)."""
+    for until, fits in (("WED 06:30", True), ("06:05", False)):
         found = plan_json(
             "--dir", str(cell), "--start", START, "--until", until,
-            "--add", "wax-robot-base:1@5",
+            "--add", "wax-toy-mill-table:1@5",
         )  # fmt: skip
         [report] = found["plans"]
         [added] = report["orders"]
@@ -105,16 +107,17 @@ def test_can_we_take_more_robot_bases_by_a_time(cell: Path) -> None:
             assert report["all_finished"] and report["ended"] == added["finished"]
         else:
             assert added["made"] == 0 and report["ended"] == report["until"]
-    assert report["until"] == T0 + 15 * 60
+    assert report["until"] == T0 + 5 * 60
 
 
+@pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
 def test_the_policies_compared_and_the_plan_replayed_from_its_inputs(
     cell: Path, tmp_path: Path
 ) -> None:
     out = tmp_path / "compare"
     text = plan(
         "--dir", str(cell), "--orders", str(cell.parent / "orders.csv"), "--start", START,
-        "--shift", "10m", "--fault", "cnc1:stall@06:02-06:05", "--policy", "default,one-at-a-time",
+        "--shift", "5m", "--fault", "cnc1:stall@06:02-06:04", "--policy", "default,one-at-a-time",
         "--seed", "7", "--out", str(out),
     ).output  # fmt: skip
     assert "policies compared:" in text

@@ -22,7 +22,7 @@ from cellctl.cell.journal import Journal
 from cellctl.errors import UsageError
 from cellctl.plan import engine
 from cellctl.plan.engine import PlanInputs
-from cellctl.plan.inputs import inputs_dict, save_inputs
+from cellctl.plan.inputs import copy_config, inputs_dict, save_inputs
 from cellctl.plan.report import PlanReport, machines_of, plan_report, plan_svg
 from cellctl.plan.spec import check_inputs
 from cellctl.plan.when import span_text, when_text
@@ -77,8 +77,11 @@ def play(inputs: PlanInputs, policies: tuple[str, ...], workdir: Path) -> PlanRe
     reports: list[PlanReport] = []
     steps = []
     types = []
+    # The engine plays the real cell's configuration (an emulated cell's scaled back).
+    real = copy_config(inputs.cell_dir, workdir / "config")
     for policy in policies:
-        run = engine.simulate(dataclasses.replace(inputs, policy=policy), workdir / policy)
+        played = dataclasses.replace(inputs, policy=policy, cell_dir=real)
+        run = engine.simulate(played, workdir / policy)
         with Journal(run.journal_path) as journal:
             reports.append(
                 plan_report(

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import signal
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -18,8 +19,11 @@ import pytest
 from click.testing import CliRunner
 
 from cellctl.cell.config import load_cell
+from cellctl.emulators.cell import EXAMPLE_CELL
+from cellctl.factory.config import load_factory
 from cellctl.factory.store import DONE
 from cellctl.ui.cli import main as cli_main
+from tests.conftest import CELLCTL
 from tests.factory_plant import CLI_S, Plant
 
 TENDING = Path(__file__).resolve().parent.parent / "examples" / "cell-tending"
@@ -98,3 +102,59 @@ async def test_a_factory_with_a_cobot_tending_cell(plant: Plant) -> None:
     row = [line for line in table.splitlines() if f" {tending} " in line]
     assert row and brackets[0] in row[0], table
     assert all(f"{name}:" in table for name in machines), table
+
+
+async def test_cellctl_emulate_factory_takes_a_template_per_cell(tmp_path: Path) -> None:
+    """``cellctl emulate factory --template DIR``: cell1 emulates DIR (its machines, its part
+    types in the commands it prints), the cells past the templates the example cell."""
+    directory = tmp_path / "plant"
+    args = ["emulate", "factory", "--cells", "2", "--template", str(TENDING), str(directory)]
+    proc = await asyncio.create_subprocess_exec(
+        *CELLCTL, *args, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT
+    )
+    assert proc.stdout is not None
+    said: list[str] = []
+    try:
+        # What it prints last: the commands to try, one order per cell's first part type.
+        while len([line for line in said if " submit " in line]) < 2:
+            try:
+                line = (await asyncio.wait_for(proc.stdout.readline(), 60)).decode()
+            except TimeoutError:
+                raise AssertionError(f"no more within 60 s: {''.join(said)}") from None
+            assert line, f"it exited: {''.join(said)}"
+            said.append(line)
+        text = "".join(said)
+        tending, lab = load_cell(directory / "cell1"), load_cell(directory / "cell2")
+        template, example = load_cell(TENDING), load_cell(EXAMPLE_CELL)
+        assert tending.robot.kind == template.robot.kind != example.robot.kind
+        assert [m.kind for m in tending.mills] == [m.kind for m in template.mills]
+        assert [m.kind for m in lab.mills] == [m.kind for m in example.mills]
+        assert (set(tending.parts), set(lab.parts)) == (set(template.parts), set(example.parts))
+        for part_type in [*template.parts][:1] + [*example.parts][:1]:
+            assert f"submit {part_type} " in text, text
+        assert f"emulates {TENDING}" in text, text
+        assert set(load_factory(directory).cells) == {"cell1", "cell2"}
+    finally:
+        if proc.returncode is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                await asyncio.wait_for(proc.wait(), 30)
+            except TimeoutError:
+                proc.kill()
+                await proc.wait()
+
+
+@pytest.mark.parametrize(
+    ("args", "words"),
+    [
+        (["--cells", "1", "--template", str(TENDING), "--template", str(TENDING)], "2 --template"),
+        (["--template", str(TENDING / "robot")], "no cell.toml"),
+    ],
+)
+def test_emulate_factory_refuses_templates_it_cannot_serve(
+    tmp_path: Path, args: list[str], words: str
+) -> None:
+    result = CliRunner().invoke(cli_main, ["emulate", "factory", *args, str(tmp_path / "p")])
+    assert result.exit_code == 2, result.output
+    assert words in result.output
+    assert not (tmp_path / "p" / "factory.toml").exists()

@@ -43,8 +43,13 @@ from cellctl.kinds.iso_cnc.gcode import PROGRAM_ENDS, Block, parse_block
 from cellctl.kinds.iso_cnc.motion import Machine, MotionModel
 from cellctl.kinds.iso_cnc.tape import ALARMS, DC1, DC2, DC3, DC4, alarm_report
 
-#: Seconds the automatic operator waits for a tape before pressing READ again.
+#: Seconds between the automatic operator's looks at a control waiting for its tape: nothing
+#: came in that long, it presses READ again.
 _OPERATOR_PATIENCE_S = 1.0
+#: What a tape has before its program (leader and trailer NULs, DEL, the %, EOBs): a control
+#: that has had only these still waits for its tape (Fanuc shows LSK, label skip), and the
+#: trailer of the last tape often comes after the next READ.
+_BEFORE_PROGRAM = frozenset(b"\x00\x7f\r\n%")
 
 FAULTS = {
     "adapter-latency": "=MS: its DC3/DC1 reach the host MS milliseconds late (a USB adapter)",
@@ -171,6 +176,7 @@ class IsoCncEmulator(EmulatedDevice):
         self.punch_held = False  # a punch waits for the host's DC1
         self._paused_at = 0
         self._read_serial = 0  # which READ press the automatic operator is waiting on
+        self._program_came = False  # this read has had a character of a program
         self.peak_buffer = 0  # the most characters its reader buffer held
         self.chars_read = 0
         self.faults: set[str] = set()
@@ -260,7 +266,9 @@ class IsoCncEmulator(EmulatedDevice):
     # -- the panel -----------------------------------------------------------------------------
 
     def start(self) -> None:
-        """Power on: an auto-operated control goes straight to RMT and waits for CYCLE START."""
+        """Power on: the automatic operator (``auto_operator``) presses READ (EDIT) or CYCLE
+        START (RMT) now if a host is connected, else as one connects; without, it waits."""
+        self._auto()
 
     def set_mode(self, mode: Mode | str) -> None:
         """The mode switch: it ends a read or punch under way (an alarm stays)."""
@@ -332,6 +340,7 @@ class IsoCncEmulator(EmulatedDevice):
         self._stopped = False
         self._after_dc3 = 0
         self._started_tape = False
+        self._program_came = False
         self._percents = self._line_start = 0
         if "dr-off" in self.faults:
             self._alarm(86)
@@ -350,13 +359,18 @@ class IsoCncEmulator(EmulatedDevice):
                 self._later(_OPERATOR_PATIENCE_S, self._press_again, serial, seen)
 
     def _press_again(self, serial: int, seen: int) -> None:
-        """The automatic operator: nothing came since READ was pressed, press it again (its
-        DC1 may have gone to a host that was not listening yet)."""
+        """The automatic operator looks again: while the control still waits for its program
+        (only leader, trailer or nothing came) and nothing came since it last looked
+        (``seen``), it presses READ again. Its DC1 may have gone to a host not listening yet,
+        or been lost on the line; stray characters (the last tape's trailer) do not make it
+        stop looking, a program under way does."""
         if serial != self._read_serial or self.activity != Activity.READING:
             return
-        if self.chars_read == seen and "never-dc1" not in self.faults:
+        if self._program_came:
+            return
+        if self.chars_read == seen and not self._stopped and "never-dc1" not in self.faults:
             self._signal(DC1, rts=True)
-            self._later(_OPERATOR_PATIENCE_S, self._press_again, serial, seen)
+        self._later(_OPERATOR_PATIENCE_S, self._press_again, serial, self.chars_read)
 
     def _new_run(self, number: int) -> DripRun:
         """A run about to start (it counts, and its hooks hear of it, at its first block)."""
@@ -415,6 +429,8 @@ class IsoCncEmulator(EmulatedDevice):
                 self._alarm(85, f"0x{byte:02X} is not a 7-bit ISO character")
                 return
             self.chars_read += 1
+            if byte not in _BEFORE_PROGRAM:
+                self._program_came = True
             if self.mode == Mode.EDIT:
                 self._tape.append(byte)
                 if self._tape_ends(byte):

@@ -158,3 +158,20 @@ def test_emulate_factory_refuses_templates_it_cannot_serve(
     assert result.exit_code == 2, result.output
     assert words in result.output
     assert not (tmp_path / "p" / "factory.toml").exists()
+
+
+@pytest.mark.parametrize(
+    ("args", "words"),
+    [
+        (["--template", str(TENDING)], "--template is for --factory"),
+        (["--factory", "2", *["--template", str(TENDING)] * 3], "3 --template for 2 cells"),
+    ],
+)
+def test_the_demo_refuses_templates_it_cannot_use(
+    tmp_path: Path, args: list[str], words: str
+) -> None:
+    out = tmp_path / "demo-out"
+    result = CliRunner().invoke(cli_main, ["demo", *args, "--out", str(out)])
+    assert result.exit_code == 2, result.output
+    assert words in result.output
+    assert not (out / "factory").exists()

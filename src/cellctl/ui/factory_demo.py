@@ -37,12 +37,12 @@ import signal
 import sys
 import time
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from cellctl.cell.config import load_cell
+from cellctl.cell.config import PartType, load_cell
 from cellctl.cell.estimate import Durations, measured_durations
 from cellctl.cell.journal import open_journal
 from cellctl.cell.report import Summary, summarize, write_gantt
@@ -89,6 +89,7 @@ class CellFigures:
     cut_twice: int
     durations: Durations
     last_end: float
+    types: Mapping[str, PartType]  # what the cell makes
 
     @property
     def made(self) -> int:
@@ -111,14 +112,25 @@ def _say(text: str) -> None:
     console.file.flush()
 
 
-async def run_factory_demo(cells: int, count: int | None, time_scale: float, out: Path) -> int:
-    """Run the demo of the module docstring; return its exit status."""
+async def run_factory_demo(
+    cells: int,
+    count: int | None,
+    time_scale: float,
+    out: Path,
+    templates: Sequence[Path] = (),
+) -> int:
+    """Run the demo of the module docstring; return its exit status. ``templates``: the
+    cell directories cell1, cell2, ... emulate (the rest: the example cell)."""
     if cells < 2:
         raise UsageError(f"--factory takes 2 cells or more, not {cells}")
+    if len(templates) > cells:
+        raise UsageError(f"{len(templates)} --template for {cells} cells")
     count = cells * PARTS_PER_CELL if count is None else count
     if count < 1:
         raise UsageError(f"--parts must be at least 1, not {count}")
-    types = list(load_cell(EXAMPLE_CELL).parts)
+    # Every type some cell makes, each once, in the cells' order.
+    chosen = [*templates, *[EXAMPLE_CELL] * (cells - len(templates))]
+    types = list(dict.fromkeys(t for d in chosen for t in load_cell(d).parts))
     batch = mixed_batch(count, types)
     directory = out / "factory"
     shutil.rmtree(directory, ignore_errors=True)
@@ -142,7 +154,7 @@ async def run_factory_demo(cells: int, count: int | None, time_scale: float, out
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, on_signal)
-    plant = EmulatedFactory(directory, cells=cells, time_scale=time_scale)
+    plant = EmulatedFactory(directory, cells=cells, time_scale=time_scale, templates=templates)
     controllers = CellControllers(plant.cell_dirs)
     try:
         await plant.start()
@@ -332,6 +344,7 @@ def _cell_figures(
         twice,
         measured_durations(steps),
         max(ends, default=since),
+        config.parts,
     )
 
 
@@ -350,12 +363,11 @@ def _report(
     twice = sum(f.cut_twice for f in figures)
     done = sum(1 for o in orders if o.state == DONE)
     makespan = max(f.last_end for f in figures) - started
-    types = load_cell(EXAMPLE_CELL).parts
     pooled = Durations()
     for f in figures:
         pooled = pooled.filled(f.durations)
     try:
-        bounds = {f.name: cell_bound(types, f.durations.filled(pooled)) for f in figures}
+        bounds = {f.name: cell_bound(f.types, f.durations.filled(pooled)) for f in figures}
         bound, _ = split_bound(bounds, _per_type(batch))
         versus = f"; bound of the best split {bound:.2f} s (makespan/bound {makespan / bound:.3f})"
     except (KeyError, ZeroDivisionError):

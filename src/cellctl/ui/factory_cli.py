@@ -1,5 +1,6 @@
 """The system controller from the shell: ``cellctl factory [--dir DIR] submit|orders|cells|run``,
-the cell's commands one level up, and ``cellctl emulate factory --cells N DIR``.
+the cell's commands one level up, and ``cellctl emulate factory --cells N [--template CELL]...
+DIR``.
 
 ``submit`` and ``orders`` read and write the factory's store (``DIR/state/factory.db``) whether
 or not ``run`` runs: ``run`` picks a new order up within 20 ms. ``run`` is the one factory

@@ -4,10 +4,12 @@
 
     cellctl demo --factory 3                 # 9 parts over 3 cells, figures at the end
     cellctl demo --factory 2 --parts 4 --time-scale 1000 --out /tmp/demo
+    cellctl demo --factory 2 --template examples/cell-tending   # cell1 that cell, cell2 a lab cell
 
 Everything is started for you, in ``OUT/factory`` (``--out``, default ``demo-out``):
 
-- a private Mosquitto and N emulated cells (robot, two mills and a PLC each), in this process
+- a private Mosquitto and N emulated cells (robot, two mills and a PLC each: the example cell,
+  or with ``--template DIR`` that cell directory's machines), in this process
   (:class:`cellctl.factory.emulated.EmulatedFactory`);
 - each cell's controller in its own process, ``cellctl --cell OUT/factory/cellN run --no-live``,
   its events in ``OUT/factory/cellN/run.log``: a cell is its own program on the shop floor,
@@ -16,11 +18,11 @@ Everything is started for you, in ``OUT/factory`` (``--out``, default ``demo-out
 
 Once every cell is online (the factory dispatches only to a cell that said so, and would give
 the whole batch to the first one otherwise) the orders are submitted at once, alternating the
-two part types in orders of 1 or 2 parts. When every order has ended, the cells' controllers
-get SIGTERM (each finishes the step it is in) and the figures are printed: per cell the parts
-made, makespan, the busiest machine's utilization and the parts cut twice according to the
-emulated mills' own logs (must be 0); in total the orders, parts, the makespan from the submit
-to the last step's end, and the bound of the best split of the batch over the cells
+part types the cells make in orders of 1 or 2 parts. When every order has ended, the cells'
+controllers get SIGTERM (each finishes the step it is in) and the figures are printed: per cell
+the parts made, makespan, the busiest machine's utilization and the parts cut twice according
+to the emulated mills' own logs (must be 0); in total the orders, parts, the makespan from the
+submit to the last step's end, and the bound of the best split of the batch over the cells
 (:mod:`cellctl.factory.bound`, from the durations each cell measured).
 
 Ctrl-C stops it the same way (the cells' controllers are in their own session, so the terminal

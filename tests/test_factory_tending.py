@@ -149,15 +149,21 @@ async def test_cellctl_emulate_factory_takes_a_template_per_cell(tmp_path: Path)
     [
         (["--cells", "1", "--template", str(TENDING), "--template", str(TENDING)], "2 --template"),
         (["--template", str(TENDING / "robot")], "no cell.toml"),
+        (["--template", "{robotless}"], "no robot machine to emulate"),
     ],
 )
 def test_emulate_factory_refuses_templates_it_cannot_serve(
     tmp_path: Path, args: list[str], words: str
 ) -> None:
+    """Refused before a broker or a machine starts, or a file is written."""
+    robotless = tmp_path / "robotless"
+    robotless.mkdir()
+    (robotless / "cell.toml").write_text('[cell]\nname = "no machines"\n')
+    args = [a.format(robotless=robotless) for a in args]
     result = CliRunner().invoke(cli_main, ["emulate", "factory", *args, str(tmp_path / "p")])
     assert result.exit_code == 2, result.output
     assert words in result.output
-    assert not (tmp_path / "p" / "factory.toml").exists()
+    assert not (tmp_path / "p").exists()
 
 
 @pytest.mark.parametrize(

@@ -91,16 +91,16 @@ class EmulatedFactory:
 
     async def start(self) -> Path:
         """Start the broker and the cells; write the cell directories and factory.toml."""
+        # Each template's machines first: one that cannot be emulated is refused before
+        # anything starts or is written.
+        self.cells = [
+            EmulatedCell(time_scale=self.time_scale, pacing=self.pacing, template=template)
+            for template in self.templates
+        ]
         self.directory.mkdir(parents=True, exist_ok=True)
         await self.broker.start()
         try:
-            for name, cell_dir, template in zip(
-                self.names, self.cell_dirs, self.templates, strict=True
-            ):
-                cell = EmulatedCell(
-                    time_scale=self.time_scale, pacing=self.pacing, template=template
-                )
-                self.cells.append(cell)
+            for name, cell_dir, cell in zip(self.names, self.cell_dirs, self.cells, strict=True):
                 toml = await cell.start(cell_dir)
                 _copy_private(self.broker.credentials(name), cell_dir / "mqtt.toml")
                 text = toml.read_text(encoding="utf-8")

@@ -115,8 +115,8 @@ async def test_cellctl_emulate_factory_takes_a_template_per_cell(tmp_path: Path)
     assert proc.stdout is not None
     said: list[str] = []
     try:
-        # What it prints last: the commands to try, one order per cell's first part type.
-        while len([line for line in said if " submit " in line]) < 2:
+        # The commands to try (one order per cell's first part type), then that it serves.
+        while not said or not said[-1].startswith("serving until Ctrl-C"):
             try:
                 line = (await asyncio.wait_for(proc.stdout.readline(), 60)).decode()
             except TimeoutError:

@@ -373,6 +373,7 @@ def emulate_factory(
                     markup=False,
                     soft_wrap=True,
                 )
+            console.print("serving until Ctrl-C", markup=False)
             console.file.flush()  # a pipe or a log file has them now, not at Ctrl-C
             with contextlib.suppress(asyncio.CancelledError):
                 await until_stopped()

@@ -251,7 +251,7 @@ class MemLink(Link):
         label: str,
         wire: MemWire,
     ) -> None:
-        super().__init__(url, settings, trace, label)
+        super().__init__(url, settings, trace, label, clock=wire.clock)
         self.wire = wire
         wire.host = self
         self._modem_waiter: asyncio.Future[None] | None = None

@@ -188,6 +188,27 @@ def current_clock() -> Clock:
     return loop.clock if isinstance(loop, VirtualLoop) else REAL_CLOCK
 
 
+def emulator_clock(clock: Clock | None, time_scale: float | None = None) -> Clock | None:
+    """The clock an emulator made with ``clock=`` or ``time_scale=`` runs on.
+
+    ``time_scale`` is shorthand for ``RealClock(time_scale)``; None (no clock, no scale, or
+    a scale of 1) leaves the clock to be resolved when used: the running loop's, so the same
+    emulator runs on real or virtual time. Raises UsageError for a bad scale, or for both a
+    clock and a scale that is not the clock's.
+    """
+    if clock is not None:
+        if time_scale is not None and time_scale != clock.time_scale:
+            raise UsageError(
+                f"an emulator takes a clock or a time scale, not both ({clock!r}, "
+                f"time_scale={time_scale:g}): give the clock its scale"
+            )
+        return clock
+    if time_scale is None:
+        return None
+    scale = _scale(time_scale)
+    return None if scale == 1.0 else RealClock(scale)
+
+
 class _VirtualSelector(selectors.BaseSelector):
     """The loop's selector, wrapped: its ``select`` is where time jumps (see VirtualLoop)."""
 
@@ -379,5 +400,6 @@ __all__ = [
     "VirtualLoop",
     "VirtualTimeStalled",
     "current_clock",
+    "emulator_clock",
     "run_virtual",
 ]

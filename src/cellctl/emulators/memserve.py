@@ -62,6 +62,7 @@ async def serve_mem(
             has_modem_lines=True,
             on_rts=port.set_rts,
             on_drop=port.drop,
+            clock=device.clock,
         )
         line.device = device
         port.on_data = line.feed

@@ -49,7 +49,7 @@ async def _open(spec: DriverSpec) -> Dyna2400Mill:
 
 def _emulator(spec: EmulatorSpec) -> EmulatedDevice:
     delays = CELL_OPERATOR if spec.operator else OperatorDelays()
-    return Dyna2400Emulator(time_scale=spec.time_scale, delays=delays)
+    return Dyna2400Emulator(clock=spec.emulator_clock(), delays=delays)
 
 
 _ROLES = {

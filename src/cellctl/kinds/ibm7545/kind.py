@@ -43,7 +43,7 @@ async def _open(spec: DriverSpec) -> Ibm7545Robot:
 
 
 def _emulator(spec: EmulatorSpec) -> EmulatedDevice:
-    return Ibm7545Emulator(time_scale=spec.time_scale)
+    return Ibm7545Emulator(clock=spec.emulator_clock())
 
 
 def application_name(program: str) -> str:

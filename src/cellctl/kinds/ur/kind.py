@@ -57,7 +57,7 @@ async def _open(spec: DriverSpec) -> UrRobot:
 
 def _emulator(spec: EmulatorSpec) -> EmulatedDevice:
     return UrEmulator(
-        time_scale=spec.time_scale,
+        clock=spec.emulator_clock(),
         model=str(spec.extra.get("model", "UR5e")),
         programs=dict(spec.extra.get("programs", {})),
     )

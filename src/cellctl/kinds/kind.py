@@ -121,6 +121,8 @@ class DriverSpec:
     trace: TrafficLog | None = None
     start_output: StartOutput | None = None
     """A mill's cycle-start input, wired through the cell's PLC (None: no GO)."""
+    clock: Clock | None = None
+    """What the driver times its waits on (None: its link's, the running loop's)."""
 
 
 @dataclass(frozen=True)

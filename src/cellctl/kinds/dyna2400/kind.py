@@ -44,6 +44,7 @@ async def _open(spec: DriverSpec) -> Dyna2400Mill:
         config=spec.options,
         start_output=spec.start_output,
         trace=spec.trace,
+        clock=spec.clock,
     )
 
 

@@ -39,6 +39,7 @@ async def _open(spec: DriverSpec) -> Ibm7545Robot:
         store=spec.store,
         config=spec.options,
         trace=spec.trace,
+        clock=spec.clock,
     )
 
 

@@ -49,6 +49,7 @@ async def _open(spec: DriverSpec) -> IsoCncDriver:
         options=_options(spec.options),
         start_output=spec.start_output,
         trace=spec.trace,
+        clock=spec.clock,
     )
 
 

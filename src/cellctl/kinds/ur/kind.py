@@ -52,6 +52,7 @@ async def _open(spec: DriverSpec) -> UrRobot:
         store=spec.store,
         options=spec.options,
         trace=spec.trace,
+        clock=spec.clock,
     )
 
 

@@ -171,8 +171,8 @@ class OperatorCommands:
                 async with asyncio.timeout(ESTOP_TIMEOUT):
                     # The mill refuses END while a block runs: no more blocks go out, and
                     # the END follows the moment it is ready.
-                    while mill.running and not (await mill.status()).ready:  # noqa: ASYNC110 - CTS is read, not signalled
-                        await asyncio.sleep(0.05)
+                    while mill.running and not (await mill.status()).ready:
+                        await self.clock.sleep(0.05)
                     await mill.end()
             except TimeoutError:
                 problems.append(

@@ -67,8 +67,8 @@ async def open_link(
 ) -> Link:
     """Open the link ``url`` with ``settings``; ``trace`` logs every byte both ways.
 
-    ``clock`` is what its deadlines and trace stamps read (the running loop's if None; a
-    ``mem://`` line keeps its listener's).
+    ``clock`` is what its deadlines and trace stamps read (None: the running loop's; for
+    ``mem://``, the line's, which paces the bytes).
 
     Raises UsageError for a URL it does not understand and LinkError when the far end
     cannot be reached.
@@ -116,7 +116,7 @@ async def open_link(
     if scheme == "mem":
         from cellctl.link.mem import open_mem
 
-        return open_mem(url, settings, log, name)
+        return open_mem(url, settings, log, name, clock)
     raise UsageError(
         f"link URL {url!r} not understood: use a device path, socket://HOST:PORT, "
         "rfc2217://HOST:PORT, loop:// or mem://NAME"

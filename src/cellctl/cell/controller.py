@@ -351,14 +351,14 @@ class CellController(OperatorCommands):
                 if until_idle and not busy and self.orderflow.all_orders_closed():
                     break
                 with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(self.options.poll_period):
+                    async with self.clock.timeout(self.options.poll_period):
                         await self._wake.wait()
         finally:
             # Let the monitor finish its round: cancelling it mid-request would strand a
             # Modbus or serial transaction.
             self.monitor.done.set()
             try:
-                async with asyncio.timeout(10):
+                async with self.clock.timeout(10):
                     await monitor
             except TimeoutError:
                 monitor.cancel()

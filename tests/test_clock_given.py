@@ -141,3 +141,21 @@ def test_a_driver_given_a_clock_times_its_link_and_waits_on_it(tmp_path: Path) -
     driver_has_it, link_has_it, reads = run_virtual(session(), start=SHIFT_START)
     assert driver_has_it and link_has_it
     assert reads > 0  # the exchange's deadlines were read from the clock handed in
+
+
+def test_a_real_clock_on_a_virtual_loop_is_refused_before_a_byte_moves() -> None:
+    async def serve_scaled() -> None:
+        await serve_mem(Dyna2400Emulator(time_scale=100.0), ROBOT_LINE)
+
+    with pytest.raises(UsageError, match=r"Dyna2400Emulator was given RealClock.*virtual"):
+        run_virtual(serve_scaled(), start=SHIFT_START)
+
+    async def open_with_real_clock() -> None:
+        server = await serve_mem(Ibm7545Emulator(), ROBOT_LINE)
+        try:
+            await Ibm7545Robot.connect(server.url, name="robot1", clock=RealClock())
+        finally:
+            await server.close()
+
+    with pytest.raises(UsageError, match=r"link mem://.* was given RealClock"):
+        run_virtual(open_with_real_clock(), start=SHIFT_START)

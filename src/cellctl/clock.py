@@ -209,6 +209,17 @@ def emulator_clock(clock: Clock | None, time_scale: float | None = None) -> Cloc
     return None if scale == 1.0 else RealClock(scale)
 
 
+def check_loop_clock(clock: Clock, what: str) -> None:
+    """Refuse (UsageError) a :class:`RealClock` given to ``what`` on a virtual loop: it would
+    read the wall clock, which the loop's time does not follow (the loop's clock, or none,
+    is what belongs there)."""
+    if isinstance(clock, RealClock) and isinstance(current_clock(), VirtualClock):
+        raise UsageError(
+            f"{what} was given {clock!r}, but the running loop's time is virtual: give it the "
+            "loop's clock (clock=current_clock()) or none, and no time scale"
+        )
+
+
 class _VirtualSelector(selectors.BaseSelector):
     """The loop's selector, wrapped: its ``select`` is where time jumps (see VirtualLoop)."""
 
@@ -399,6 +410,7 @@ __all__ = [
     "VirtualClock",
     "VirtualLoop",
     "VirtualTimeStalled",
+    "check_loop_clock",
     "current_clock",
     "emulator_clock",
     "run_virtual",

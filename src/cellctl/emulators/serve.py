@@ -42,7 +42,7 @@ from urllib.parse import urlsplit
 
 from serial import rfc2217
 
-from cellctl.clock import Clock, current_clock, emulator_clock
+from cellctl.clock import Clock, check_loop_clock, current_clock, emulator_clock
 from cellctl.errors import LinkClosed, UsageError
 from cellctl.link import LineSettings, parse_host_port
 
@@ -150,6 +150,7 @@ class DeviceLine:
         self._loop = asyncio.get_running_loop()
         # Made in its running loop: the clock can be resolved now.
         self.clock: Clock = clock or current_clock()
+        check_loop_clock(self.clock, "an emulator's line")
         self._pending = bytearray()
         # (time the chunk's last byte is through the line, chunk length), oldest first
         self._chunks: deque[tuple[float, int]] = deque()

@@ -11,7 +11,7 @@ import asyncio
 from abc import ABC, abstractmethod
 from types import TracebackType
 
-from cellctl.clock import Clock, current_clock
+from cellctl.clock import Clock, check_loop_clock, current_clock
 from cellctl.errors import LinkClosed, LinkError, LinkTimeout, UsageError, format_raw
 from cellctl.link.settings import LineSettings
 from cellctl.link.trace import RECEIVED, SENT, TrafficLog
@@ -51,6 +51,7 @@ class Link(ABC):
         self._loop = asyncio.get_running_loop()
         # A link is made in its running loop: its clock can be resolved now.
         self.clock: Clock = clock or current_clock()
+        check_loop_clock(self.clock, f"link {url}")
         self.bytes_sent = 0
         self.bytes_received = 0
 

@@ -39,7 +39,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import shutil
-import time
 from collections import defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -47,6 +46,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from cellctl.clock import Clock, current_clock, emulator_clock
 from cellctl.emulators.plc import PlcEmulator
 from cellctl.emulators.serve import (
     CELL_TIME_SCALE,
@@ -99,16 +99,19 @@ class EmulatedCell:
     def __init__(
         self,
         *,
-        time_scale: float = CELL_TIME_SCALE,
+        time_scale: float | None = None,
+        clock: Clock | None = None,
         pacing: bool = True,
         robot_listen: str = "pty",
         host: str = "127.0.0.1",
         mill_names: tuple[str, ...] = ("cnc1", "cnc2"),
         template: Path | None = None,
     ) -> None:
-        if time_scale <= 0:
-            raise UsageError(f"time scale must be positive, not {time_scale}")
-        self.time_scale = time_scale
+        # No clock and no scale: the cell's default scale on the real clock.
+        if clock is None and time_scale is None:
+            time_scale = CELL_TIME_SCALE
+        self._clock = emulator_clock(clock, time_scale)
+        time_scale = self.time_scale
         self.pacing = pacing
         self.robot_listen = robot_listen
         self.host = host
@@ -118,7 +121,7 @@ class EmulatedCell:
         )
         self.template = template or EXAMPLE_CELL
         self.kinds = _machine_kinds(self.template)
-        spec = EmulatorSpec(time_scale=time_scale)
+        spec = EmulatorSpec(clock=self._clock)
         robots = [n for n, k in self.kinds.items() if registry.family_of(k) == "robot"]
         if not robots:
             raise UsageError(f"{self.template / 'cell.toml'}: no robot machine to emulate")
@@ -134,7 +137,7 @@ class EmulatedCell:
             name: scaled_line(registry.kind(kind).line_settings, time_scale)
             for name, kind in self.kinds.items()
         }
-        self.plc = PlcEmulator(time_scale=time_scale, on_go=self._go)
+        self.plc = PlcEmulator(clock=self._clock, on_go=self._go)
         self.servers: dict[str, Server | SelfServed] = {}
         self.plc_url = ""
         # physical parts
@@ -145,6 +148,17 @@ class EmulatedCell:
         self.outfeed: list[str] = []
         self.cuts: list[Cut] = []
         self._tasks: set[asyncio.Task[None]] = set()
+
+    @property
+    def clock(self) -> Clock:
+        """What every machine of the cell runs on: the clock given (``clock=``, or
+        ``time_scale=`` as RealClock(time_scale)), else the running loop's."""
+        return self._clock or current_clock()
+
+    @property
+    def time_scale(self) -> float:
+        """Seconds of machine time per second of the cell's clock."""
+        return self.clock.time_scale
 
     # -- wiring -----------------------------------------------------------------------------------
 
@@ -179,7 +193,8 @@ class EmulatedCell:
             self._spawn(self._clear_outfeed())
 
     async def _clear_outfeed(self) -> None:
-        await asyncio.sleep(self.plc.timing.outfeed_s / self.time_scale)
+        clock = self.clock
+        await clock.sleep(self.plc.timing.outfeed_s / clock.time_scale)
         self.plc.set_input("outfeed_clear", True)
 
     def _spawn(self, coro: object) -> None:
@@ -190,7 +205,7 @@ class EmulatedCell:
     def _noting_cuts(self, index: int, name: str) -> Callable[[Any], None]:
         def note(run: Any) -> None:
             # A run starting on a mill cut whatever part sits in its vise.
-            self.cuts.append(Cut(name, self.vise[index], time.time()))
+            self.cuts.append(Cut(name, self.vise[index], self.clock.now()))
 
         return note
 

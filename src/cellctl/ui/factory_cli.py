@@ -23,6 +23,7 @@ from rich.console import Group
 from rich.live import Live
 from rich.table import Table
 
+from cellctl.clock import current_clock
 from cellctl.emulators.serve import CELL_TIME_SCALE, TIME_SCALE_HELP
 from cellctl.errors import UsageError
 from cellctl.factory.config import FactoryConfig, load_factory
@@ -275,7 +276,8 @@ async def run_factory(
 
 
 def _print(text: str) -> None:
-    console.print(f"{time.strftime('%H:%M:%S')} {text}", markup=False, soft_wrap=True)
+    stamp = time.strftime("%H:%M:%S", time.localtime(current_clock().now()))
+    console.print(f"{stamp} {text}", markup=False, soft_wrap=True)
     console.file.flush()
 
 

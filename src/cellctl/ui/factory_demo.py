@@ -48,6 +48,7 @@ from cellctl.cell.config import PartType, load_cell
 from cellctl.cell.estimate import Durations, measured_durations
 from cellctl.cell.journal import open_journal
 from cellctl.cell.report import Summary, summarize, write_gantt
+from cellctl.clock import current_clock
 from cellctl.emulators.cell import EXAMPLE_CELL
 from cellctl.errors import UsageError
 from cellctl.factory.bound import cell_bound, split_bound
@@ -110,7 +111,8 @@ class CellFigures:
 
 
 def _say(text: str) -> None:
-    console.print(f"{time.strftime('%H:%M:%S')} {text}", markup=False, soft_wrap=True)
+    stamp = time.strftime("%H:%M:%S", time.localtime(current_clock().now()))
+    console.print(f"{stamp} {text}", markup=False, soft_wrap=True)
     console.file.flush()
 
 
@@ -279,17 +281,18 @@ async def wait_online(
 ) -> None:
     """Until the factory has heard every cell of ``names`` say it is online, with the part
     types it makes (or ``stop``); UsageError after ``timeout`` s."""
-    deadline = time.monotonic() + timeout
+    clock = current_clock()
+    deadline = clock.monotonic() + timeout
     while not stop.is_set():
         controllers.check()
         seen = store.cells()
         if all(n in seen and seen[n].status == "online" and seen[n].part_types for n in names):
             return
-        if time.monotonic() > deadline:
+        if clock.monotonic() > deadline:
             raise UsageError(
                 f"the cells did not come online within {timeout:g} s (see each cell's run.log)"
             )
-        await asyncio.sleep(0.05)
+        await clock.sleep(0.05)
 
 
 async def _batch(
@@ -303,7 +306,7 @@ async def _batch(
     """Submit ``batch`` once every cell is online; return when every order has ended (or
     ``stop``). Returns the time of the submit."""
     await wait_online(store, names, controllers, stop)
-    started = time.time()
+    started = current_clock().now()
     if stop.is_set():
         return started
     for i, (part_type, qty) in enumerate(batch, start=1):

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from cellctl.clock import current_clock
+from cellctl.clock import Clock, emulator_clock
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
 from cellctl.errors import LinkClosed, LinkError, UsageError
 from cellctl.kinds.iso_cnc import tape
@@ -157,11 +157,15 @@ class DripRun:
 class IsoCncEmulator(EmulatedDevice):
     """One emulated control (see module docstring)."""
 
-    def __init__(self, options: EmulatorOptions | None = None, *, time_scale: float = 1.0) -> None:
-        if time_scale <= 0:
-            raise UsageError(f"time scale must be positive, not {time_scale}")
+    def __init__(
+        self,
+        options: EmulatorOptions | None = None,
+        *,
+        time_scale: float | None = None,
+        clock: Clock | None = None,
+    ) -> None:
+        self._clock = emulator_clock(clock, time_scale)
         self.options = options or EmulatorOptions()
-        self.time_scale = time_scale
         self.memory: dict[int, str] = {}
         self.mode = Mode.EDIT
         self.activity = Activity.IDLE
@@ -348,7 +352,7 @@ class IsoCncEmulator(EmulatedDevice):
         if self.mode == Mode.RMT:
             run = self._new_run(0)
             self._machine = Machine(self.options.motion(), trace=False)
-            self._free_at = self._read_began = current_clock().monotonic()
+            self._free_at = self._read_began = self.clock.monotonic()
             self._tape_done = False
             self._exec_task = asyncio.ensure_future(self._execute(run))
         if "never-dc1" not in self.faults:
@@ -391,7 +395,7 @@ class IsoCncEmulator(EmulatedDevice):
             return
         # Only a held character can cross after now (line-lag); otherwise send at once, as
         # before: the host's backstop counts on the DC3 leaving as soon as it is due.
-        wait = max(0.0, at - current_clock().monotonic()) if self._lag_ms else 0.0
+        wait = max(0.0, at - self.clock.monotonic()) if self._lag_ms else 0.0
         delay = wait + self._latency_ms / 1000.0 / self.time_scale
 
         def send() -> None:
@@ -484,7 +488,7 @@ class IsoCncEmulator(EmulatedDevice):
         self._finish_read()
 
     def _finish_read(self) -> None:
-        self._send_dc3(current_clock().monotonic())
+        self._send_dc3(self.clock.monotonic())
         self._stopped = False
         self.activity = Activity.IDLE
         self._later(0.05, self._auto)
@@ -540,17 +544,17 @@ class IsoCncEmulator(EmulatedDevice):
     async def _execute(self, run: DripRun) -> None:
         """Run blocks as they come (the schedule :meth:`_advance` keeps); every wait for one
         after the first is a stall."""
-        clock = current_clock()
+        clock = self.clock
         while self.activity == Activity.READING and self._run is run:
             self._advance(clock.monotonic())
             if self._tape_done:
                 if self._free_at > clock.monotonic():
-                    await current_clock().sleep(self._free_at - clock.monotonic())
+                    await self.clock.sleep(self._free_at - clock.monotonic())
                 break
             if self._lf_at:
                 wake = max(self._lf_at[0], self._free_at) if run.blocks else self._lf_at[0]
                 if wake > clock.monotonic():
-                    await current_clock().sleep(wake - clock.monotonic())
+                    await self.clock.sleep(wake - clock.monotonic())
                 continue
             self._block_ready.clear()
             await self._block_ready.wait()
@@ -566,7 +570,7 @@ class IsoCncEmulator(EmulatedDevice):
             seconds = machine.step(block).seconds if block.words else 0.0
             run.blocks += 1 if block.words else 0
             run.machine_s += seconds
-            await current_clock().sleep(seconds / self.time_scale)
+            await self.clock.sleep(seconds / self.time_scale)
         run.done = True
         if self.activity == Activity.RUNNING:
             self.activity = Activity.IDLE
@@ -610,9 +614,8 @@ class IsoCncEmulator(EmulatedDevice):
         if line is not None and not line.closed:
             self._spawn(line.write(alarm_report(code)))
 
-    @staticmethod
-    def _later(seconds: float, callback: Callable[..., object], *args: object) -> None:
-        clock = current_clock()
+    def _later(self, seconds: float, callback: Callable[..., object], *args: object) -> None:
+        clock = self.clock
         clock.call_at(clock.monotonic() + seconds, callback, *args)
 
     def _spawn(self, coro: Coroutine[object, object, None]) -> None:

@@ -54,9 +54,10 @@ from cellctl.cell.model import (
 from cellctl.cell.monitor import Monitor
 from cellctl.cell.orderflow import OUT, OrderFlow
 from cellctl.cell.orders import OrderBox, ReportKind
+from cellctl.cell.physics import physical_durations
 from cellctl.cell.recovery import Recovery
 from cellctl.cell.robotsteps import INTERLOCK_POLL_S, RobotSteps
-from cellctl.cell.scheduler import PartState, next_transfer, ready_to_leave
+from cellctl.cell.scheduler import SHORTEST_FIRST, PartState, next_transfer, ready_to_leave
 from cellctl.clock import Clock, current_clock
 from cellctl.drivers.plc import ModbusPlc
 from cellctl.drivers.state import StateStore
@@ -120,6 +121,7 @@ class CellController(OperatorCommands):
         self._unreturned: set[tuple[str, str]] | None = None
         self._pallet_pulse: asyncio.Task[None] | None = None
         self._stopping = False
+        self._work: dict[str, float] | None = None
         self.started_at = self.clock.now()
 
     # -- plumbing ---------------------------------------------------------------------------------
@@ -465,12 +467,26 @@ class CellController(OperatorCommands):
             mills_in_service=usable_mills,
             pallet_present=pallet,
             outfeed_clear=outfeed,
-            one_at_a_time=self.options.one_at_a_time,
+            policy=self.options.policy,
+            work_s=self._work_s(),
         )
         if transfer is None:
             await self._request_pallet(states, pallet)
             return
         self._robot_task = asyncio.create_task(self.robotsteps.transfer(transfer))
+
+    def _work_s(self) -> dict[str, float] | None:
+        """Seconds of machining per part type, for the shortest-first policy (from the
+        machines' models, worked out once)."""
+        if self.options.policy != SHORTEST_FIRST:
+            return None
+        if self._work is None:
+            phys = physical_durations(self.config)
+            self._work = {
+                name: sum(phys.machining_s[(s.mill, s.name)] for s in part.route)
+                for name, part in self.config.parts.items()
+            }
+        return self._work
 
     async def read_inputs(self) -> dict[str, bool]:
         """Read the PLC's inputs now (kept in :attr:`inputs`)."""

@@ -12,6 +12,12 @@ takes ``set_input`` and ``output_hooks``, a mill's takes ``cycle_start``, ``run_
     cell.runs_per_part()                    # {"P1": {"cnc1": 1, "cnc2": 1}, ...}
     await cell.close()
 
+``EmulatedCell(time_scale=1.0, links="mem")`` serves every machine on ``mem://`` in the
+running event loop instead (``mem://robot``, ``mem://cnc1``, the PLC's Modbus/TCP on
+``mem://plc``; ``mem_prefix`` in front of each name), what a run on virtual time takes
+(:func:`cellctl.clock.run_virtual`: the machines' own times and lines, scale 1). A robot
+whose kind serves interfaces of its own over TCP (the UR's three) cannot join such a cell.
+
 Serving: the robot on a pty (``robot.pty`` in the cell directory, a symlink that follows a
 new pty after a dropped connection; or any ``robot_listen``), the mills over RFC 2217 (their
 readiness is the CTS modem line), the PLC over Modbus/TCP, all on this machine. Every
@@ -44,13 +50,15 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from cellctl.clock import Clock, current_clock, emulator_clock
+from cellctl.emulators.memserve import serve_mem
 from cellctl.emulators.plc import PlcEmulator
 from cellctl.emulators.serve import (
     CELL_TIME_SCALE,
     MIN_DEADLINE_S,
+    EmulatedDevice,
     SelfServed,
     Server,
     scaled_deadline,
@@ -106,12 +114,18 @@ class EmulatedCell:
         host: str = "127.0.0.1",
         mill_names: tuple[str, ...] = ("cnc1", "cnc2"),
         template: Path | None = None,
+        links: Literal["real", "mem"] = "real",
+        mem_prefix: str = "",
     ) -> None:
         # No clock and no scale: the cell's default scale on the real clock.
         if clock is None and time_scale is None:
             time_scale = CELL_TIME_SCALE
         self._clock = emulator_clock(clock, time_scale)
         time_scale = self.time_scale
+        if links not in ("real", "mem"):
+            raise UsageError(f"links must be 'real' or 'mem', not {links!r}")
+        self.links = links
+        self.mem_prefix = mem_prefix
         self.pacing = pacing
         self.robot_listen = robot_listen
         self.host = host
@@ -221,6 +235,9 @@ class EmulatedCell:
             mill.run_hooks.append(self._noting_cuts(index, name))
         self.plc.hooks.input.append(self._plc_input)
         self.robot.output_hooks.append(self._robot_output)
+        if self.links == "mem":
+            await self._serve_mem()
+            return write_text(cell_dir / "cell.toml", self._cell_toml(template / "cell.toml"))
         self.plc_url = await self.plc.start(f"modbus://{self.host}:0")
         for name, value in self.plc.inputs.items():
             self._plc_input(name, value)
@@ -243,6 +260,29 @@ class EmulatedCell:
             )
             mill.start()
         return write_text(cell_dir / "cell.toml", self._cell_toml(template / "cell.toml"))
+
+    async def _serve_mem(self) -> None:
+        """Every machine on ``mem://`` in the running loop, the PLC's Modbus/TCP too."""
+        prefix = self.mem_prefix
+        self.plc_url = await self.plc.start(f"mem://{prefix}plc")
+        for name, value in self.plc.inputs.items():
+            self._plc_input(name, value)
+        if type(self.robot).listen is not EmulatedDevice.listen:
+            raise UsageError(
+                f"{self.robot_name}: its kind serves interfaces of its own over TCP, which "
+                "a mem:// cell cannot carry; emulate this cell on real links"
+            )
+        self.servers[self.robot_name] = await serve_mem(
+            self.robot,
+            self.line_of(self.robot_name),
+            name=f"{prefix}{self.robot_name}",
+            pacing=self.pacing,
+        )
+        for name, mill in self.mills.items():
+            self.servers[name] = await serve_mem(
+                mill, self.line_of(name), name=f"{prefix}{name}", pacing=self.pacing
+            )
+            mill.start()
 
     def _cell_toml(self, template: Path) -> str:
         """The template's cell.toml with links, line and timeouts for this emulated cell."""

@@ -26,10 +26,11 @@ from urllib.parse import urlsplit
 from cellctl.clock import Clock
 from cellctl.errors import UsageError
 from cellctl.link.base import Link
-from cellctl.link.settings import MILL_LINE, ROBOT_LINE, LineSettings
+from cellctl.link.settings import ETHERNET_LINE, MILL_LINE, ROBOT_LINE, LineSettings
 from cellctl.link.trace import RECEIVED, SENT, TrafficLog
 
 __all__ = [
+    "ETHERNET_LINE",
     "MILL_LINE",
     "RECEIVED",
     "ROBOT_LINE",

@@ -23,7 +23,6 @@ from cellctl.cell.causes import blame
 from cellctl.cell.config import CONVEYOR
 from cellctl.cell.orderflow import OUT
 from cellctl.cell.orders import ReportKind
-from cellctl.clock import current_clock
 from cellctl.errors import CellctlError, DeviceError, UsageError
 
 #: Seconds between looks at the robot's "cycle done" output: it tells nothing unasked, and
@@ -113,7 +112,7 @@ class RobotSteps:
             alarms.log(f"part {part.id}: transfer {t.program} not started: {e}")
             return
         view.step = f"{t.program} ({part.id})"
-        started = current_clock().monotonic()
+        started = self.world.clock.monotonic()
         places = [t.source, t.target]
         attempt = 0
         moved = False  # the arm may have moved: a failure from here on holds the part
@@ -200,7 +199,7 @@ class RobotSteps:
                 if cause.machine == robot.name:
                     self.recovery.robot_ok = False
             return
-        view.busy_s += current_clock().monotonic() - started
+        view.busy_s += self.world.clock.monotonic() - started
         view.step = ""
         alarms.succeeded(robot.name)
         if t.source == CONVEYOR:

@@ -34,6 +34,7 @@ import asyncio
 from collections.abc import Awaitable, Callable
 from typing import Any
 
+from cellctl.clock import Clock, current_clock
 from cellctl.errors import (
     DeviceError,
     LinkClosed,
@@ -68,12 +69,15 @@ def _retrieve(future: asyncio.Future[Any]) -> None:
 class ModbusPlc:
     """Driver for the cell's PLC; build it with :meth:`connect`."""
 
-    def __init__(self, url: str, plc_map: PlcMap, *, timeout: float) -> None:
+    def __init__(
+        self, url: str, plc_map: PlcMap, *, timeout: float, clock: Clock | None = None
+    ) -> None:
         if timeout <= 0:
             raise UsageError(f"timeout must be > 0 s, not {timeout}")
         self.url = url
         self.map = plc_map
         self.timeout = timeout
+        self._clock = clock
         self.requests = 0
         self.last_inputs: dict[str, bool] = {}
         self._maybe_high: set[str] = set()  # coils a failed pulse may have left at 1
@@ -83,6 +87,11 @@ class ModbusPlc:
         self._closed = False
         self._address = (host, port)
         self._client: Any = self._new_client()
+
+    @property
+    def clock(self) -> Clock:
+        """What pulses and waits are timed on: the clock given, else the running loop's."""
+        return self._clock or current_clock()
 
     def _new_client(self) -> Any:
         """A fresh client: pymodbus's over TCP, :class:`MemModbusClient` over ``mem://``. No
@@ -123,7 +132,12 @@ class ModbusPlc:
 
     @classmethod
     async def connect(
-        cls, url: str | None = None, plc_map: PlcMap | None = None, *, timeout: float | None = None
+        cls,
+        url: str | None = None,
+        plc_map: PlcMap | None = None,
+        *,
+        timeout: float | None = None,
+        clock: Clock | None = None,
     ) -> ModbusPlc:
         """Connect to the PLC at ``url`` (default: the map's) and return a driver.
 
@@ -131,9 +145,9 @@ class ModbusPlc:
         the PLC cannot be reached.
         """
         plc_map = plc_map or PlcMap()
-        plc = cls(url or plc_map.url, plc_map, timeout=timeout or plc_map.timeout)
+        plc = cls(url or plc_map.url, plc_map, timeout=timeout or plc_map.timeout, clock=clock)
         try:
-            async with asyncio.timeout(plc.timeout):
+            async with plc.clock.timeout(plc.timeout):
                 await plc._ensure_connected()
         except TimeoutError:
             plc._client.close()
@@ -178,7 +192,7 @@ class ModbusPlc:
 
         answer: asyncio.Future[Any] | None = None
         try:
-            async with asyncio.timeout(self.timeout):
+            async with self.clock.timeout(self.timeout):
                 await self._ensure_connected()
                 self.requests += 1
                 if isinstance(self._client, MemModbusClient):
@@ -308,7 +322,7 @@ class ModbusPlc:
         self._maybe_high.add(name)
         await self.write(name, True)
         try:
-            await asyncio.sleep(seconds)  # the pulse width itself, not a wait for an event
+            await self.clock.sleep(seconds)  # the pulse width itself, not a wait for an event
         finally:
             await asyncio.shield(self.write(name, False))
 
@@ -325,19 +339,19 @@ class ModbusPlc:
         poll = self.map.poll if poll is None else poll
         if timeout < 0 or poll <= 0:
             raise UsageError("wait_for needs timeout >= 0 and poll > 0")
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout
+        clock = self.clock
+        deadline = clock.monotonic() + timeout
         want = bool(value)
         while True:
             inputs = await self.read_inputs()
             if inputs[name] == want:
                 return inputs
-            left = deadline - loop.time()
+            left = deadline - clock.monotonic()
             if left <= 0:
                 sig = SIGNALS[name]
                 phrase = sig.not_true if want else sig.not_false
                 raise SignalTimeout(f"{phrase} within {timeout:g} s")
-            await asyncio.sleep(min(poll, left))  # the poll period between reads
+            await clock.sleep(min(poll, left))  # the poll period between reads
 
 
 class MemModbusClient:

@@ -52,7 +52,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, Literal
 
-from cellctl.clock import current_clock
+from cellctl.clock import Clock, current_clock, emulator_clock
 from cellctl.emulators.memserve import serve_mem
 from cellctl.emulators.plc import PlcEmulator
 from cellctl.emulators.serve import (
@@ -107,7 +107,8 @@ class EmulatedCell:
     def __init__(
         self,
         *,
-        time_scale: float = CELL_TIME_SCALE,
+        time_scale: float | None = None,
+        clock: Clock | None = None,
         pacing: bool = True,
         robot_listen: str = "pty",
         host: str = "127.0.0.1",
@@ -116,11 +117,13 @@ class EmulatedCell:
         links: Literal["real", "mem"] = "real",
         mem_prefix: str = "",
     ) -> None:
-        if time_scale <= 0:
-            raise UsageError(f"time scale must be positive, not {time_scale}")
+        # No clock and no scale: the cell's default scale on the real clock.
+        if clock is None and time_scale is None:
+            time_scale = CELL_TIME_SCALE
+        self._clock = emulator_clock(clock, time_scale)
+        time_scale = self.time_scale
         if links not in ("real", "mem"):
             raise UsageError(f"links must be 'real' or 'mem', not {links!r}")
-        self.time_scale = time_scale
         self.links = links
         self.mem_prefix = mem_prefix
         self.pacing = pacing
@@ -132,7 +135,7 @@ class EmulatedCell:
         )
         self.template = template or EXAMPLE_CELL
         self.kinds = _machine_kinds(self.template)
-        spec = EmulatorSpec(time_scale=time_scale)
+        spec = EmulatorSpec(clock=self._clock)
         robots = [n for n, k in self.kinds.items() if registry.family_of(k) == "robot"]
         if not robots:
             raise UsageError(f"{self.template / 'cell.toml'}: no robot machine to emulate")
@@ -148,7 +151,7 @@ class EmulatedCell:
             name: scaled_line(registry.kind(kind).line_settings, time_scale)
             for name, kind in self.kinds.items()
         }
-        self.plc = PlcEmulator(time_scale=time_scale, on_go=self._go)
+        self.plc = PlcEmulator(clock=self._clock, on_go=self._go)
         self.servers: dict[str, Server | SelfServed] = {}
         self.plc_url = ""
         # physical parts
@@ -159,6 +162,17 @@ class EmulatedCell:
         self.outfeed: list[str] = []
         self.cuts: list[Cut] = []
         self._tasks: set[asyncio.Task[None]] = set()
+
+    @property
+    def clock(self) -> Clock:
+        """What every machine of the cell runs on: the clock given (``clock=``, or
+        ``time_scale=`` as RealClock(time_scale)), else the running loop's."""
+        return self._clock or current_clock()
+
+    @property
+    def time_scale(self) -> float:
+        """Seconds of machine time per second of the cell's clock."""
+        return self.clock.time_scale
 
     # -- wiring -----------------------------------------------------------------------------------
 
@@ -193,7 +207,8 @@ class EmulatedCell:
             self._spawn(self._clear_outfeed())
 
     async def _clear_outfeed(self) -> None:
-        await current_clock().sleep(self.plc.timing.outfeed_s / self.time_scale)
+        clock = self.clock
+        await clock.sleep(self.plc.timing.outfeed_s / clock.time_scale)
         self.plc.set_input("outfeed_clear", True)
 
     def _spawn(self, coro: object) -> None:
@@ -204,7 +219,7 @@ class EmulatedCell:
     def _noting_cuts(self, index: int, name: str) -> Callable[[Any], None]:
         def note(run: Any) -> None:
             # A run starting on a mill cut whatever part sits in its vise.
-            self.cuts.append(Cut(name, self.vise[index], current_clock().now()))
+            self.cuts.append(Cut(name, self.vise[index], self.clock.now()))
 
         return note
 

@@ -45,6 +45,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from cellctl.clock import Clock, current_clock, emulator_clock
 from cellctl.emulators.onsets import FaultOnsets
 from cellctl.errors import FramingError, UsageError
 from cellctl.link import ETHERNET_LINE
@@ -93,14 +94,13 @@ class PlcEmulator:
         self,
         plc_map: PlcMap | None = None,
         *,
-        time_scale: float = 1.0,
+        time_scale: float | None = None,
+        clock: Clock | None = None,
         timing: PlcTiming | None = None,
         on_go: Callable[[int], None] | None = None,
     ) -> None:
-        if time_scale <= 0:
-            raise UsageError(f"time scale must be > 0, not {time_scale}")
+        self._clock = emulator_clock(clock, time_scale)
         self.map = plc_map or PlcMap()
-        self.time_scale = time_scale
         self._closing = False
         self.timing = timing or PlcTiming()
         self.hooks = PlcHooks()
@@ -214,16 +214,31 @@ class PlcEmulator:
         for hook in list(self.hooks.input):
             hook(name, value)
 
+    @property
+    def clock(self) -> Clock:
+        """What the PLC times its conveyor, vises and doors on: the clock given (``clock=``,
+        or ``time_scale=`` as RealClock(time_scale)), else the running loop's."""
+        return self._clock or current_clock()
+
+    @property
+    def time_scale(self) -> float:
+        """Seconds of machine time per second of its clock."""
+        return self.clock.time_scale
+
+    @time_scale.setter
+    def time_scale(self, value: float) -> None:
+        self._clock = emulator_clock(None, value)
+
     def _after(self, key: str, machine_s: float, fn: Callable[[], None]) -> None:
         """Run ``fn`` after ``machine_s`` of machine time, replacing what ``key`` had pending."""
         self._cancel(key)
-        loop = asyncio.get_running_loop()
+        clock = self.clock
 
         def fire() -> None:
             self._timers.pop(key, None)
             fn()
 
-        self._timers[key] = loop.call_later(machine_s / self.time_scale, fire)
+        self._timers[key] = clock.call_at(clock.monotonic() + machine_s / clock.time_scale, fire)
 
     def _cancel(self, key: str) -> None:
         timer = self._timers.pop(key, None)

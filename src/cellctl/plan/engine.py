@@ -26,6 +26,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import tomllib
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -36,7 +37,9 @@ from cellctl.cell.journal import JOURNAL_FILE, Journal, open_journal
 from cellctl.cell.scheduler import POLICIES as SCHEDULER_POLICIES
 from cellctl.clock import REAL_CLOCK, current_clock, run_virtual
 from cellctl.emulators.cell import EmulatedCell
+from cellctl.emulators.plc import FAULTS as PLC_FAULTS
 from cellctl.errors import UsageError
+from cellctl.kinds import registry
 from cellctl.mailbox import DONE, MAILBOX_FILE, Mailbox
 from cellctl.mailbox.sqlite import SqliteMailbox
 
@@ -51,6 +54,11 @@ POLICIES = ("default", *SCHEDULER_POLICIES)
 #: operators power them up and select the link mode (the Dyna 2400's takes 5 s) before the
 #: controller connects at the start, as before a shift.
 POWER_ON_S = 10.0
+
+#: The plan's operator, after a fault: looks (poll periods) of rest before acting, and how
+#: many times at most the rest of the cell is looked over and resolved again.
+RESOLVE_LOOKS = 4
+RESOLVE_ROUNDS = 5
 
 #: Seconds of plan time between two looks of the plan's own watcher (all orders done?).
 WATCH_S = 2.0
@@ -199,11 +207,17 @@ def check_inputs(inputs: PlanInputs) -> None:
         if held.location != CONVEYOR and held.location not in machines:
             raise UsageError(f"held part of {held.order_id}: no place {held.location!r}")
     for fault in inputs.faults:
-        where = "plc" if fault.machine == "plc" else fault.machine
-        if where != "plc" and where not in machines:
+        if fault.machine == "plc":
+            known: Mapping[str, str] = PLC_FAULTS
+        elif fault.machine in machines:
+            kind = str(machines[fault.machine].get("kind"))
+            known = {"down": "", **(registry.kind(kind).faults if kind in registry.names() else {})}
+        else:
             raise UsageError(f"fault {fault.fault} on {fault.machine!r}: no such machine")
-        if fault.fault == "down" and where == "plc":
-            raise UsageError("the PLC cannot be taken out of service (down): use its faults")
+        if fault.fault not in known:
+            raise UsageError(
+                f"fault {fault.machine}:{fault.fault}: no such fault (known: {', '.join(known)})"
+            )
         if fault.end is not None and not fault.end > fault.start:
             raise UsageError(f"fault {fault.machine}:{fault.fault}: it must end after it starts")
 
@@ -215,8 +229,8 @@ async def _play(inputs: PlanInputs, cell_dir: Path) -> tuple[float, dict[str, fl
     clock = current_clock()
     cell = EmulatedCell(time_scale=1.0, links="mem", template=inputs.cell_dir)
     await cell.start(cell_dir)
-    journal = open_journal(cell_dir, clock=clock.now)
-    mailbox = SqliteMailbox(cell_dir / MAILBOX_FILE, clock=clock.now)
+    journal = open_journal(cell_dir, clock=clock)
+    mailbox = SqliteMailbox(cell_dir / MAILBOX_FILE, clock=clock)
     controller: CellController | None = None
     try:
         _post(inputs, journal, mailbox, cell)
@@ -343,18 +357,26 @@ class _Operator:
                 mill.select(mill.auto_mode)  # the link mode selected again: READY back
 
     async def resolve(self, until: float) -> None:
-        """Once no step is in flight: clear every alarm, release every held part."""
+        """As an operator after fixing a machine: a few looks later, clear every alarm and
+        release every held part (one held after a transfer once the arm is at rest); again
+        if the looks after that raise more (a read that was out when the fault went)."""
         clock = current_clock()
-        poll = self.controller.options.poll_period
-        while self.journal.open_steps() or self.cell.robot.running:
-            if clock.now() >= until:
+        look = self.controller.options.poll_period
+        for _ in range(RESOLVE_ROUNDS):
+            await clock.sleep(RESOLVE_LOOKS * look)
+            alarms = self.journal.active_alarms()
+            held = self.journal.parts(statuses=["held"])
+            if not alarms and not held:
                 return
-            await clock.sleep(poll)
-        for alarm in self.journal.active_alarms():
-            self.journal.clear_alarm(alarm.id, by="plan operator")
-        for part in self.journal.parts(statuses=["held"]):
-            self._release(part.id)
-        self.controller.poke()
+            for alarm in alarms:
+                self.journal.clear_alarm(alarm.id, by="plan operator")
+            while held and self.cell.robot.running:
+                if clock.now() >= until:
+                    return
+                await clock.sleep(look)
+            for part in held:
+                self._release(part.id)
+            self.controller.poke()
 
     def _release(self, part_id: str) -> None:
         cell = self.cell

@@ -14,6 +14,7 @@ from cellctl.emulators.cell import EXAMPLE_CELL
 from cellctl.mailbox.base import Order
 from cellctl.plan.engine import FaultWindow, PlanOrder
 from cellctl.plan.report import LATE, ON_TIME, OPEN, machines_of, plan_report, plan_svg
+from tests.test_demo import _ListClock
 
 T0 = datetime(2026, 11, 25, 6, 0).timestamp()
 
@@ -38,7 +39,7 @@ def _make(journal: Journal, now: list[float], order_id: str, part_type: str, qty
 
 def test_the_report_says_per_order_when_it_finishes_against_its_due_time(tmp_path: Path) -> None:
     now = [T0 + 10.0]  # the first step 10 s after the plan's start
-    with open_journal(tmp_path, clock=lambda: now[0]) as journal:
+    with open_journal(tmp_path, clock=_ListClock(now)) as journal:
         _make(journal, now, "A", "wax-robot-base", 2)  # done at T0 + 10 + 2 * 156 = T0 + 322
         a_done = now[0]
         _make(journal, now, "B", "wax-toy-mill-table", 1)  # done at T0 + 478

@@ -50,30 +50,39 @@ _playing = threading.Lock()
 
 
 async def plan_run(access: CellAccess, p: PlanParams, progress: Progress | None) -> Any:
-    """Snapshot the cell, check the inputs, play them in a worker thread, answer the plan."""
+    """Snapshot the cell, then check the inputs and play them in a worker thread; answer the
+    plan (its figures, inputs and chart)."""
     from cellctl.plan.run import play_in_temp
     from cellctl.plan.snapshot import open_work, out_of_service
     from cellctl.plan.spec import plan_inputs
 
-    journal = access.journal()
-    orders, held = open_work(access.mailbox(), journal)
-    inputs, policies = plan_inputs(
-        access.directory,
-        start=current_clock().now(),
-        shift=p.shift,
-        until=p.until,
-        orders=orders,
-        adds=p.add,
-        faults=p.fault,
-        policy=p.policy,
-        seed=p.seed,
-        out_of_service=out_of_service(journal),
-        held=held,
-    )
     if not _playing.acquire(blocking=False):
         raise UsageError("a plan is being played already: ask again when it has ended")
     try:
-        result = await asyncio.to_thread(play_in_temp, inputs, policies)
+        # The snapshot on the loop (the journal and mailbox are this thread's); reading the
+        # configuration (programs compiled) and the play in the worker.
+        journal = access.journal()
+        orders, held = open_work(access.mailbox(), journal)
+        stopped = out_of_service(journal)
+        start = current_clock().now()
+
+        def plan() -> Any:
+            inputs, policies = plan_inputs(
+                access.directory,
+                start=start,
+                shift=p.shift,
+                until=p.until,
+                orders=orders,
+                adds=p.add,
+                faults=p.fault,
+                policy=p.policy,
+                seed=p.seed,
+                out_of_service=stopped,
+                held=held,
+            )
+            return play_in_temp(inputs, policies)
+
+        result = await asyncio.to_thread(plan)
     finally:
         _playing.release()
     return {"plan": result.as_dict(), "svg": result.svg}

@@ -36,12 +36,11 @@ def _check_syntax(shift: str | None, until: str | None, adds: tuple[str, ...], f
     from cellctl.plan.spec import parse_add, parse_fault, plan_window
 
     now = current_clock().now()
-    end = plan_window(now, shift, until)
+    plan_window(now, shift, until)
     for text in adds:
         parse_add(text)
     for text in faults:
         parse_fault(text, now, None)
-    del end
 
 
 def _local_plan(

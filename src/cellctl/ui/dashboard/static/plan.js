@@ -90,4 +90,9 @@ async function play(event) {
   }
 }
 
-byId("plan-form").addEventListener("submit", play);
+// On the document: the panel is gone while the page is refused (no token), and back after.
+document.addEventListener("submit", (event) => {
+  if (event.target.id === "plan-form") {
+    play(event);
+  }
+});

@@ -31,6 +31,9 @@ prefix = "cellctl/cell2"
 
 [cells.cell3]
 prefix = "cellctl/cell3"
+
+[cells.cell4]
+prefix = "cellctl/cell4"
 """
 
 
@@ -43,18 +46,20 @@ def test_every_cell_on_this_host_is_planned_from_its_own_orders(tmp_path: Path) 
         shutil.copytree(EXAMPLE_CELL, plant / name)
         with open_mailbox(plant / name) as mailbox:
             mailbox.post_order(part, 1, order_id=f"{name}-A")
-    # cell3 is on another host: no directory here.
+    shutil.copytree(EXAMPLE_CELL, plant / "cell3")  # no open orders: not planned, said so
+    # cell4 is on another host: no directory here.
     out = tmp_path / "plan-out"
     args = ["factory", "--dir", str(plant), "plan", "--shift", "3m", "--out", str(out)]
     later = (datetime.now() + timedelta(hours=2)).strftime("%H:%M")  # after the 3 min
     result = CliRunner().invoke(main, [*args, "--fault", f"cell2/cnc1:down@{later}"])
     assert result.exit_code == 2 and "opens after the plan ends" in result.output
     result = CliRunner().invoke(main, [*args, "--fault", "cell4/cnc2:down@10:00"])
-    assert result.exit_code == 2 and "CELL one of cell1, cell2" in result.output
+    assert result.exit_code == 2 and "CELL one of cell1, cell2, cell3" in result.output
     result = CliRunner().invoke(main, [*args, "--json"])
     assert result.exit_code == 0, result.output
     plans = json.loads(result.output)
-    assert sorted(plans) == ["cell1", "cell2"]
+    assert sorted(plans) == ["cell1", "cell2", "cell3"]
+    assert "nothing to plan: no open orders" in plans["cell3"]["refused"]
     for name, part in (("cell1", "wax-robot-base"), ("cell2", "wax-toy-mill-table")):
         [report] = plans[name]["plans"]
         assert [(o["order_id"], o["part_type"]) for o in report["orders"]] == [(f"{name}-A", part)]

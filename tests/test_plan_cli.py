@@ -140,9 +140,15 @@ def test_the_policies_compared_and_the_plan_replayed_from_its_inputs(
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["--fault", "cnc9:down@10:00-11:00"], r"no such machine \(known: robot, cnc1, cnc2, plc"),
-        (["--fault", "cnc2:melt@10:00-11:00"], r"'melt' on cnc2: unknown \(known: down"),
-        (["--fault", "cnc2:down@25:00"], "hours 0-23"),
+        (
+            ["--add", "wax-robot-base:1", "--fault", "cnc9:down@10:00-11:00"],
+            r"no such machine \(known: robot, cnc1, cnc2, plc",
+        ),
+        (
+            ["--add", "wax-robot-base:1", "--fault", "cnc2:melt@10:00-11:00"],
+            r"'melt' on cnc2: unknown \(known: down",
+        ),
+        (["--add", "wax-robot-base:1", "--fault", "cnc2:down@25:00"], "hours 0-23"),
         (["--add", "gear:3"], r"makes no 'gear'"),
         (["--add", "wax-robot-base:3", "--policy", "fastest"], "policy 'fastest': unknown"),
         (["--add", "wax-robot-base:3", "--shift", "8h", "--until", "18:00"], "not both"),

@@ -203,6 +203,8 @@ def plan_inputs(
         *orders,
         *(PlanOrder(i, a.part_type, a.qty, a.priority) for i, a in zip(ids, added, strict=True)),
     )
+    if not every:
+        raise UsageError("nothing to plan: no open orders (add some: --add PART:QTY)")
     windows = tuple(parse_fault(text, start) for text in faults)
     policies = policies_of(policy)
     config = load_cell(cell_dir)

@@ -19,7 +19,14 @@ from typing import Any
 import click
 
 from cellctl.errors import CellctlError, UsageError
-from cellctl.ui.common import console, fail, print_json, print_line, run
+from cellctl.ui.common import console, fail, print_json, print_line
+
+
+def run_plain(coro: Any) -> Any:
+    """Run one cell's call to its end (its typed error raised, for the caller to weigh)."""
+    import asyncio
+
+    return asyncio.run(coro)
 
 
 def _cell_dirs(factory_dir: Path, cells: list[str], given: tuple[str, ...]) -> dict[str, Path]:
@@ -53,6 +60,30 @@ def _faults_by_cell(faults: tuple[str, ...], cells: dict[str, Path]) -> dict[str
             )
         out[name].append(rest)
     return out
+
+
+def _check(
+    cells: dict[str, Path],
+    windows: dict[str, list[str]],
+    shift: str | None,
+    until: str | None,
+    policy: str,
+) -> None:
+    """The options against each cell's own machines and faults, before any cell is asked
+    (each cell checks them again at its own time)."""
+    from cellctl.cell.config import load_cell
+    from cellctl.clock import current_clock
+    from cellctl.plan.spec import check_inputs, parse_fault, plan_window, policies_of
+
+    now = current_clock().now()
+    end = plan_window(now, shift, until)
+    policies = policies_of(policy)
+    for name, texts in windows.items():
+        found = [parse_fault(text, now) for text in texts]
+        try:
+            check_inputs(load_cell(cells[name]), [], found, policies, end)
+        except UsageError as e:
+            raise UsageError(f"{name}: {e}") from None
 
 
 @click.command("plan")
@@ -115,6 +146,7 @@ def factory_plan(
         config = load_factory(factory_dir)
         cells = _cell_dirs(factory_dir, list(config.cells), cell_dirs)
         windows = _faults_by_cell(faults, cells)
+        _check(cells, windows, shift, until, policy)
     except CellctlError as e:
         fail(e)
     params: dict[str, Any] = {k: v for k, v in (("shift", shift), ("until", until)) if v}
@@ -125,12 +157,14 @@ def factory_plan(
             return await cell.call("plan.run", {**params, "fault": cell_faults})
 
     plans: dict[str, Any] = {}
+    refused: dict[str, str] = {}
     for name, directory in cells.items():
-        answer = run(lambda d=directory, f=windows[name]: ask(d, f))  # type: ignore[misc]
         try:
+            answer = run_plain(ask(directory, windows[name]))
             result = result_from_dict(answer["plan"], answer["svg"], directory)
-        except CellctlError as e:
-            fail(e)
+        except CellctlError as e:  # one cell's refusal (no open orders ...): the others go on
+            refused[name] = str(e)
+            continue
         result.inputs = dataclasses.replace(result.inputs, cell_dir=directory)
         plans[name] = result
         if out is not None:
@@ -138,8 +172,13 @@ def factory_plan(
                 write_plan(result, out / name)
             except CellctlError as e:
                 fail(e)
+    if not plans:
+        fail(UsageError("; ".join(f"{name}: {why}" for name, why in refused.items())))
     if as_json:
-        print_json({name: r.as_dict() for name, r in plans.items()})
+        print_json(
+            {name: r.as_dict() for name, r in plans.items()}
+            | {name: {"refused": why} for name, why in refused.items()}
+        )
         return
     for name, result in plans.items():
         print_line(f"== {name} ({cells[name]})")
@@ -151,5 +190,7 @@ def factory_plan(
         r = result.reports[0]
         made = sum(r.parts_made.values())
         print_line(f"  {name:<10} on time {r.on_time}, late {r.late}, parts made {made}")
+    for name, why in refused.items():
+        print_line(f"  {name:<10} not planned: {why}")
     if out is not None:
         console.print(f"saved {out}/CELL/plan.json, plan.svg, inputs.json", markup=False)

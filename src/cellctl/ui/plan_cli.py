@@ -58,9 +58,9 @@ def _local_plan(
         raise UsageError(f"{directory}: no cell.toml: not a cell directory")
     start = parse_start(start_text, current_clock().now())
     orders = read_orders_file(orders_file, start) if orders_file is not None else ()
-    inputs, policies = plan_inputs(directory, start=start, orders=orders, **options)
-    if not inputs.orders:
+    if not orders and not options["adds"]:
         raise UsageError("nothing to plan: give --orders FILE or --add PART:QTY")
+    inputs, policies = plan_inputs(directory, start=start, orders=orders, **options)
     return play_in_temp(inputs, policies)
 
 

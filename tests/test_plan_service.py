@@ -139,3 +139,32 @@ async def test_cellctl_plan_through_the_api_answers_the_questions(
     saved = (out / "cell" / "cell.toml").read_text()
     assert "time_scale" not in saved and "[machines.cnc1]" in saved
     assert (out / "plan.svg").read_text().startswith("<svg")
+
+
+@pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
+async def test_a_part_held_now_stays_held_in_the_plan(running: tuple[CellRig, ApiServer]) -> None:
+    rig, _ = running
+    rig.post("wax-robot-base", 2, "A")
+    await rig.wait_for(lambda: rig.finished_steps("machine") >= 1, "first cut done")
+    rig.switch_on("cnc2:stall")  # the finishing cut stalls: its part is held for inspection
+    [held] = await rig.wait_for(rig.held_parts, "a part held")
+    await rig.cli("pause")
+    client = await attach(rig.directory)
+    try:
+        answer = await client.call("plan.run", {"shift": "3m"})
+    finally:
+        await client.close()
+    inputs = answer["plan"]["inputs"]
+    assert inputs["held"] == [
+        {
+            "order_id": "A",
+            "part_type": "wax-robot-base",
+            "location": held.location,
+            "route_index": held.route_index,
+        }
+    ]
+    # What remains of A is played: its parts less the one held (and any done).
+    done = sum(p.status == "done" for p in rig.journal.parts(order_id="A"))
+    assert [(o["order_id"], o["qty"]) for o in inputs["orders"]] == [("A", 2 - 1 - done)]
+    [report] = answer["plan"]["plans"]
+    assert report["held_at_start"] == 1

@@ -74,6 +74,8 @@ class PlanReport:
     faults: list[FaultWindow] = field(default_factory=list)
     alarms_raised: int = 0
     steps_failed: int = 0
+    #: Parts held for the operator when the plan began (they stay held in it).
+    held_at_start: int = 0
     #: The steps played from the start: part, its type, kind, machine, program, state, times.
     steps: list[dict[str, Any]] = field(default_factory=list)
 
@@ -128,6 +130,8 @@ class PlanReport:
         downs = ", ".join(f"{m} {span_text(s)}" for m, s in self.down_s.items() if s > 0)
         if downs:
             out.append(f"down: {downs}")
+        if self.held_at_start:
+            out.append(f"held for the operator at the start (stay held): {self.held_at_start}")
         if self.alarms_raised or self.steps_failed:
             out.append(f"alarms raised: {self.alarms_raised}; failed steps: {self.steps_failed}")
         if self.all_finished:
@@ -191,6 +195,7 @@ def plan_report(
     policy: str = "default",
     seed: int = 0,
     faults: Sequence[FaultWindow] = (),
+    held_at_start: int = 0,
 ) -> PlanReport:
     """The report of ``orders`` played from ``start`` in ``journal`` (see module docstring)."""
     machines = machines_of(config)
@@ -216,6 +221,7 @@ def plan_report(
         faults=list(faults),
         alarms_raised=len(alarms),
         steps_failed=sum(s.state in ("failed", "interrupted") for s in steps),
+        held_at_start=held_at_start,
         steps=[_step(s, types) for s in steps],
     )
 

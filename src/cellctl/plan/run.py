@@ -95,6 +95,7 @@ def play(inputs: PlanInputs, policies: tuple[str, ...], workdir: Path) -> PlanRe
                     policy=policy,
                     seed=inputs.seed,
                     faults=inputs.faults,
+                    held_at_start=len(inputs.held),
                 )
             )
             steps.append(journal.steps())

@@ -144,8 +144,8 @@ def check_inputs(
 def policies_of(text: str) -> tuple[str, ...]:
     """``--policy NAME``, ``--policy A,B`` or ``--policy all`` (every policy): the policies
     to play, compared side by side when more than one (checked by :func:`check_inputs`)."""
-    if text == ALL_POLICIES:
-        return tuple(POLICIES)
+    if text == ALL_POLICIES:  # each once: "default" names one of the others
+        return tuple(p for p in POLICIES if p != "default")
     named = [p.strip() for p in text.split(",") if p.strip()]
     if not named:
         raise UsageError("--policy: name a policy (or all)")

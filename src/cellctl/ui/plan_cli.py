@@ -105,11 +105,13 @@ def _local_plan(
     default="default",
     show_default=True,
     metavar="NAME",
-    help="The scheduler's policy: default, one-at-a-time, or all (compared).",
+    help="The scheduler's policy: default (downstream-first), one-at-a-time, shortest-first, "
+    "A,B (those compared) or all.",
 )
 @click.option(
     "--seed",
     type=click.IntRange(0, 2**63 - 1),
+    metavar="N",
     default=0,
     show_default=True,
     help="Seed of anything random in the emulated machines.",

@@ -1,0 +1,259 @@
+"""The console on a shop served by ``cellctl dnc serve`` (no cell): driven with Textual's
+Pilot at 80x24, attached to a DNC server running in this process (its API on the shop's
+socket) that feeds emulated ISO-code controls over a pty and TCP.
+
+The main menu has each DNC machine and EXIT (no robot, no CELL menu); a machine's menu is
+the server's (READ IN, DRIP FEED, RECEIVE PUNCH, STOP TRANSFER, LOG); the board shows each
+machine's activity, its progress in characters (rate, time left) and its stall time, live.
+Assertions are on the screen, the emulated controls and the shop's own records.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import re
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+from textual.pilot import Pilot
+
+from cellctl.emulators.serve import Server, serve
+from cellctl.kinds.iso_cnc.dnc.cli import serve_shop
+from cellctl.kinds.iso_cnc.dnc.config import load_shop
+from cellctl.kinds.iso_cnc.dnc.store import ShopStore
+from cellctl.kinds.iso_cnc.emulator import EmulatorOptions, IsoCncEmulator, Mode
+from cellctl.link import LineSettings
+from cellctl.service.client import RemoteCell, attach
+from cellctl.service.token import TOKEN_ENV, add_token
+from cellctl.ui.console.app import ConsoleApp
+from tests.conftest import CELLCTL, until
+from tests.test_console import SIZE, fill, screen_text, wait_text
+
+LINE = LineSettings.parse("9600,7E2")
+BRACKET = "O1234 (BRACKET)\nG21 G90 G17\nG00 X0 Y0 Z5.\nG01 Z-1. F300\nG01 X10. Y5.\nM30\n"
+
+
+def surfacing(moves: int) -> str:
+    """A drip-feed program of 0.1 mm moves: the machine eats them faster than 9600 baud
+    brings them (so it stalls), over a few seconds of line time."""
+    rows = [f"X{i / 10:.1f} Y{i % 2 / 10:.1f}\n" for i in range(1, moves + 1)]
+    return "O5000 (SURFACE)\nG21 G90 G17\nG01 X0 Y0 F3000\n" + "".join(rows) + "M30\n"
+
+
+DRIP = surfacing(400)
+
+
+@dataclass
+class Shop:
+    root: Path
+    controls: dict[str, IsoCncEmulator]
+
+
+@pytest.fixture
+async def shop(tmp_path: Path) -> AsyncIterator[Shop]:
+    """Two controls (mill1 on a pty, mill2 on TCP) fed by a DNC server running here."""
+    controls = {"mill1": IsoCncEmulator(EmulatorOptions()), "mill2": IsoCncEmulator()}
+    servers: list[Server] = [
+        await serve(controls["mill1"], "pty", LINE),
+        await serve(controls["mill2"], "socket://127.0.0.1:0", LINE),
+    ]
+    root = tmp_path / "shop"
+    root.mkdir()
+    rows = [
+        f'[machines.{name}]\nlink = "{server.url}"\n'
+        for name, server in zip(controls, servers, strict=True)
+    ]
+    (root / "dnc.toml").write_text("\n".join(rows))
+    store = ShopStore(root)
+    for name in controls:
+        (store.machine(name) / "programs" / "O1234.nc").write_text(BRACKET)
+        (store.machine(name) / "programs" / "O5000.nc").write_text(DRIP)
+    stop = asyncio.Event()
+    task = asyncio.create_task(serve_shop(load_shop(root), stop=stop))
+    try:
+        await until(lambda: task.done() or (root / "api.sock").exists(), "the shop's API")
+        assert not task.done(), task.exception()
+        yield Shop(root, controls)
+    finally:
+        stop.set()
+        await task
+        for server in servers:
+            await server.close()
+
+
+async def console(shop: Shop) -> tuple[ConsoleApp, RemoteCell]:
+    client = await attach(shop.root)
+    return ConsoleApp(shop.root, client, traffic_period=0.1), client
+
+
+async def wait_screen(
+    pilot: Pilot[Any], pattern: str, what: str, timeout: float = 30.0
+) -> re.Match[str]:
+    """Wait until the screen matches ``pattern`` (a regex); fail with the screen otherwise."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    while True:
+        await pilot.pause(0.02)
+        shown = screen_text(pilot.app)  # type: ignore[arg-type]
+        found = re.search(pattern, shown)
+        if found is not None:
+            return found
+        if loop.time() > deadline:
+            raise AssertionError(f"not on screen: {what}\n{shown}")
+
+
+async def start_drip(pilot: Pilot[Any], machine_key: str, program: str) -> None:
+    """Main menu -> the machine's menu -> 2 DRIP FEED -> the program, OK."""
+    await pilot.press(machine_key)
+    await wait_text(pilot, "2. DRIP FEED")
+    await pilot.press("2")
+    await wait_text(pilot, "Program file:")
+    await fill(pilot, "#program", program)
+    await pilot.click("#ok")
+
+
+async def test_the_shop_s_machines_and_their_menus(shop: Shop) -> None:
+    app, client = await console(shop)
+    async with app.run_test(size=SIZE) as pilot:
+        shown = await wait_text(pilot, "MAIN MENU", "attached to DNC shop (pid", "3. EXIT")
+        menu = [line[:36].strip() for line in shown.splitlines()[2:12]]
+        assert [m for m in menu if m] == [
+            "1. NC MACHINE #1 (mill1)",
+            "2. NC MACHINE #2 (mill2)",
+            "3. EXIT",
+        ], shown
+        assert "ROBOT" not in shown and "CELL (orders" not in shown
+        assert re.search(r"mill1\s+idle\s+idle", shown) and re.search(r"mill2\s+idle", shown)
+        await pilot.press("c")  # no CELL menu on a shop: the key does nothing
+        await pilot.press("1")
+        shown = await wait_text(pilot, "NC MACHINE #1 (mill1)", "6. EXIT")
+        menu = [line[:36].strip() for line in shown.splitlines()[2:12]]
+        assert [m for m in menu if m] == [
+            "1. READ IN",
+            "2. DRIP FEED",
+            "3. RECEIVE PUNCH",
+            "4. STOP TRANSFER",
+            "5. LOG",
+            "6. EXIT",
+        ], shown
+        # READ IN: O1234 into mill1's memory, the operator presses READ (EDIT mode).
+        await pilot.press("1")
+        await wait_text(pilot, "Program file:")
+        await fill(pilot, "#program", "mill1/programs/O1234.nc")
+        await pilot.click("#ok")
+        await wait_screen(pilot, r"mill1\s+busy\s+reading O1234\.nc", "mill1 reading")
+        shop.controls["mill1"].read()
+        await wait_text(pilot, "mill1: READ IN: O1234.nc: read in, ", timeout=30)
+        assert shop.controls["mill1"].memory[1234] == BRACKET
+        await wait_screen(pilot, r"mill1\s+idle", "mill1 idle again")
+        # Its traffic, both ways (the server keeps each machine's last bytes).
+        await wait_text(pilot, "traffic: mill1", ">> ", "<< ")
+        # LOG: the machine's log, through the API.
+        await pilot.press("5")
+        await wait_text(pilot, "mill1: LOG: the last ", "O1234.nc: read in")
+        await pilot.press("6")
+        await wait_text(pilot, "MAIN MENU")
+        await pilot.press("q")
+    await client.close()
+
+
+async def test_a_drip_feed_s_progress_and_stall_on_the_board(shop: Shop) -> None:
+    control = shop.controls["mill2"]
+    app, client = await console(shop)
+    async with app.run_test(size=SIZE) as pilot:
+        await wait_text(pilot, "MAIN MENU")
+        await start_drip(pilot, "2", "mill2/programs/O5000.nc")
+        # Waiting for the control's CYCLE START: shown with none of the characters sent.
+        await wait_screen(pilot, r"mill2\s+busy\s+drip-feeding O5000\.nc", "mill2 drip-feeding")
+        total = len(DRIP)
+        await wait_screen(pilot, r"\b0/\d+ chars", "no character sent yet")
+        control.set_mode(Mode.RMT)
+        control.cycle_start()
+        # Under way: some of the characters, a rate and the stall time on the board.
+        found = await wait_screen(pilot, r"\b([1-9]\d*)/(\d+) chars", "characters under way")
+        assert int(found.group(1)) < int(found.group(2)) and int(found.group(2)) >= total
+        # The machine waits for blocks the line has not brought yet: its stall time grows.
+        stall = r"\d+ chars/s\b.*stall (?!0\.0)\d+\.\d s"
+        await wait_screen(pilot, stall, "its rate and a stall time")
+        await wait_text(pilot, "mill2: DRIP FEED: O5000.nc: drip-fed, ", timeout=60)
+        await wait_screen(pilot, r"mill2\s+idle", "mill2 idle again")
+        await until(lambda: control.runs and control.runs[-1].done, "the run's end")
+        assert control.runs[-1].blocks == DRIP.count("\n") and not control.alarms
+        await pilot.press("q")
+    await client.close()
+    log = "\n".join(ShopStore(shop.root).log_lines("mill2"))
+    assert "O5000.nc: drip-fed" in log
+
+
+async def test_stop_transfer_ends_a_drip_feed_in_flight(shop: Shop) -> None:
+    control = shop.controls["mill1"]
+    app, client = await console(shop)
+    async with app.run_test(size=SIZE) as pilot:
+        await wait_text(pilot, "MAIN MENU")
+        await start_drip(pilot, "1", "mill1/programs/O5000.nc")
+        await wait_screen(pilot, r"mill1\s+busy\s+drip-feeding O5000\.nc", "mill1 drip-feeding")
+        control.set_mode(Mode.RMT)
+        control.cycle_start()
+        await wait_screen(pilot, r"\b[1-9]\d*/\d+ chars", "characters under way")
+        await pilot.press("4")  # STOP TRANSFER, confirmed
+        await wait_text(pilot, "Stop the transfer in flight")
+        await pilot.press("y")
+        shown = await wait_text(pilot, "O5000.nc: drip-feed stopped by hand at ")
+        await wait_screen(pilot, r"mill1\s+idle", "mill1 idle after the stop")
+        assert not control.runs[-1].done, shown  # the control did not get its M30
+        control.reset()  # the operator resets the control, as the message says
+        # Nothing in flight now: the server says so, in its words.
+        await pilot.press("4", "y")
+        await wait_text(pilot, "mill1: STOP TRANSFER: mill1: no transfer in flight")
+        await pilot.press("q")
+    await client.close()
+    log = "\n".join(ShopStore(shop.root).log_lines("mill1"))
+    assert "drip-feed stopped by hand" in log
+
+
+async def test_a_viewer_token_is_refused_an_action_with_the_api_s_words(
+    shop: Shop, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv(TOKEN_ENV, add_token(shop.root, "ann", "viewer"))
+    app, client = await console(shop)
+    async with app.run_test(size=SIZE) as pilot:
+        await wait_text(pilot, "MAIN MENU", "mill1")
+        await start_drip(pilot, "1", "mill1/programs/O5000.nc")
+        await wait_text(pilot, "mill1: DRIP FEED: ann is a viewer: dnc.send needs the operator")
+        # A viewer still watches: the log is a read.
+        await pilot.press("5")
+        await wait_text(pilot, "mill1: LOG: ")
+        await pilot.press("q")
+    await client.close()
+    assert shop.controls["mill1"].chars_read == 0  # nothing went to the control
+
+
+async def test_a_wrong_token_is_refused_before_the_console_starts(shop: Shop) -> None:
+    env = {**os.environ, TOKEN_ENV: "x" * 43}
+    proc = await asyncio.create_subprocess_exec(
+        *CELLCTL,
+        "console",
+        "--dir",
+        str(shop.root),
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.PIPE,
+        env=env,
+    )
+    out, err = await asyncio.wait_for(proc.communicate(), 60)
+    said = out.decode() + err.decode()
+    assert proc.returncode != 0, said
+    assert "the control API refused the token" in said and "Traceback" not in said
+
+
+def test_console_on_a_directory_with_no_cell_and_no_server(tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from cellctl.ui.cli import main
+
+    result = CliRunner().invoke(main, ["console", "--dir", str(tmp_path)])
+    assert result.exit_code == 2, result.output
+    assert "no cell in" in result.output and "no server runs there" in result.output

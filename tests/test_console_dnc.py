@@ -1,6 +1,8 @@
 """The console on a shop served by ``cellctl dnc serve`` (no cell): driven with Textual's
 Pilot at 80x24, attached to a DNC server running in this process (its API on the shop's
-socket) that feeds emulated ISO-code controls over a pty and TCP.
+socket) that feeds emulated ISO-code controls over a pty and TCP; and in a real terminal
+(tmux), the installed ``cellctl console --dir SHOP`` on a ``cellctl dnc serve`` process feeding
+a ``cellctl emulate iso-cnc`` process.
 
 The main menu has each DNC machine and EXIT (no robot, no CELL menu); a machine's menu is
 the server's (READ IN, DRIP FEED, RECEIVE PUNCH, STOP TRANSFER, LOG); the board shows each
@@ -13,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import os
 import re
+import subprocess
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,8 +33,11 @@ from cellctl.link import LineSettings
 from cellctl.service.client import RemoteCell, attach
 from cellctl.service.token import TOKEN_ENV, add_token
 from cellctl.ui.console.app import ConsoleApp
-from tests.conftest import CELLCTL, until
+from tests.conftest import CELLCTL, emulator_process, until
 from tests.test_console import SIZE, fill, screen_text, wait_text
+from tests.test_console_tmux import Tmux, stop, tmux, wait_until
+
+__all__ = ["tmux"]  # the fixture, used by name
 
 LINE = LineSettings.parse("9600,7E2")
 BRACKET = "O1234 (BRACKET)\nG21 G90 G17\nG00 X0 Y0 Z5.\nG01 Z-1. F300\nG01 X10. Y5.\nM30\n"
@@ -257,3 +263,57 @@ def test_console_on_a_directory_with_no_cell_and_no_server(tmp_path: Path) -> No
     result = CliRunner().invoke(main, ["console", "--dir", str(tmp_path)])
     assert result.exit_code == 2, result.output
     assert "no cell in" in result.output and "no server runs there" in result.output
+
+
+def test_console_in_a_terminal_watches_a_drip_feed(tmux: Tmux, tmp_path: Path) -> None:
+    """80x24, every process its own: the operator drip-feeds O5000 from the console; the
+    board shows mill1 drip-feeding with its characters, rate and stall time growing, then
+    idle again with the server's message."""
+    env = {**os.environ, "NO_COLOR": "1"}
+    with emulator_process("iso-cnc", "--mode", "rmt", "--auto-operator") as url:
+        root = tmp_path / "shop"
+        root.mkdir()
+        (root / "dnc.toml").write_text(f'[machines.mill1]\nlink = "{url}"\n')
+        (ShopStore(root).machine("mill1") / "programs" / "O5000.nc").write_text(DRIP)
+        server = subprocess.Popen(
+            [*CELLCTL, "dnc", "serve", "--dir", str(root)],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            env=env,
+        )
+        try:
+            wait_until(lambda: (root / "api.sock").exists(), "the DNC server's API socket")
+            tmux.start([*CELLCTL, "console", "--dir", str(root)], {"TERM": "xterm-256color"})
+            shown = tmux.wait_for("MAIN MENU", "attached to DNC shop (pid", "2. EXIT")
+            assert "1. NC MACHINE #1 (mill1)" in shown and "CELL" not in shown, shown
+            assert re.search(r"mill1\s+idle\s+idle", shown), shown
+            tmux.keys("1")
+            tmux.wait_for("NC MACHINE #1 (mill1)", "2. DRIP FEED", "6. EXIT")
+            tmux.keys("2")
+            tmux.wait_for("Program file:")
+            tmux.keys("-l", "mill1/programs/O5000.nc")
+            tmux.wait_for("mill1/programs/O5000.nc")
+            tmux.keys("Enter")
+            # The control (in RMT, its operator pressing CYCLE START) takes it block by block.
+            seen: list[tuple[int, float]] = []
+
+            def under_way() -> bool:
+                screen = tmux.screen()
+                chars = re.search(r"\b(\d+)/(\d+) chars", screen)
+                stalled = re.search(r"chars/s\b.*stall (\d+\.\d) s", screen)
+                if "drip-feeding O5000.nc" in screen and chars and stalled:
+                    done, total = int(chars.group(1)), int(chars.group(2))
+                    if 0 < done < total and (not seen or seen[-1][0] != done):
+                        seen.append((done, float(stalled.group(1))))
+                return len(seen) >= 2
+
+            wait_until(under_way, "the drip-feed's progress moving on the board")
+            assert seen[1][0] > seen[0][0] and seen[1][1] >= seen[0][1], seen
+            shown = tmux.wait_for("mill1: DRIP FEED: O5000.nc: drip-fed, ", timeout=60)
+            wait_until(
+                lambda: re.search(r"mill1\s+idle", tmux.screen()) is not None, "mill1 idle again"
+            )
+            tmux.keys("q")
+            wait_until(tmux.pane_dead, "the console to quit")
+        finally:
+            stop(server)

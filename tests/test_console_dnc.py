@@ -1,8 +1,8 @@
 """The console on a shop served by ``cellctl dnc serve`` (no cell): driven with Textual's
 Pilot at 80x24, attached to a DNC server running in this process (its API on the shop's
 socket) that feeds emulated ISO-code controls over a pty and TCP; and in a real terminal
-(tmux), the installed ``cellctl console --dir SHOP`` on a ``cellctl dnc serve`` process feeding
-a ``cellctl emulate iso-cnc`` process.
+(tmux), the installed ``cellctl console --dir SHOP`` on a ``cellctl dnc serve`` process
+feeding a ``cellctl emulate iso-cnc`` process.
 
 The main menu has each DNC machine and EXIT (no robot, no CELL menu); a machine's menu is
 the server's (READ IN, DRIP FEED, RECEIVE PUNCH, STOP TRANSFER, LOG); the board shows each
@@ -16,7 +16,7 @@ import asyncio
 import os
 import re
 import subprocess
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -25,6 +25,7 @@ import pytest
 from textual.pilot import Pilot
 
 from cellctl.emulators.serve import Server, serve
+from cellctl.errors import CellctlError
 from cellctl.kinds.iso_cnc.dnc.cli import serve_shop
 from cellctl.kinds.iso_cnc.dnc.config import load_shop
 from cellctl.kinds.iso_cnc.dnc.store import ShopStore
@@ -97,7 +98,7 @@ async def console(shop: Shop) -> tuple[ConsoleApp, RemoteCell]:
 
 
 async def wait_screen(
-    pilot: Pilot[Any], pattern: str, what: str, timeout: float = 30.0
+    pilot: Pilot[Any], pattern: str, what: str, timeout: float = 30.0, flags: int = 0
 ) -> re.Match[str]:
     """Wait until the screen matches ``pattern`` (a regex); fail with the screen otherwise."""
     loop = asyncio.get_running_loop()
@@ -105,7 +106,7 @@ async def wait_screen(
     while True:
         await pilot.pause(0.02)
         shown = screen_text(pilot.app)  # type: ignore[arg-type]
-        found = re.search(pattern, shown)
+        found = re.search(pattern, shown, flags)
         if found is not None:
             return found
         if loop.time() > deadline:
@@ -185,7 +186,9 @@ async def test_a_drip_feed_s_progress_and_stall_on_the_board(shop: Shop) -> None
         # The machine waits for blocks the line has not brought yet: its stall time grows.
         stall = r"\d+ chars/s\b.*stall (?!0\.0)\d+\.\d s"
         await wait_screen(pilot, stall, "its rate and a stall time")
-        await wait_text(pilot, "mill2: DRIP FEED: O5000.nc: drip-fed, ", timeout=60)
+        # Done: the server's message with the stall in all, and the machine idle again.
+        done = r"mill2: DRIP FEED: O5000\.nc: drip-fed, .*?stalled\s+(?!0\.0)\d+\.\d s"
+        await wait_screen(pilot, done, "the drip-feed's end", timeout=60, flags=re.S)
         await wait_screen(pilot, r"mill2\s+idle", "mill2 idle again")
         await until(lambda: control.runs and control.runs[-1].done, "the run's end")
         assert control.runs[-1].blocks == DRIP.count("\n") and not control.alarms
@@ -317,3 +320,57 @@ def test_console_in_a_terminal_watches_a_drip_feed(tmux: Tmux, tmp_path: Path) -
             wait_until(tmux.pane_dead, "the console to quit")
         finally:
             stop(server)
+
+
+async def cellctl_run(*args: str) -> tuple[int, str]:
+    proc = await asyncio.create_subprocess_exec(
+        *CELLCTL,
+        *args,
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.PIPE,
+        env={**os.environ, "COLUMNS": "200"},
+    )
+    out, err = await asyncio.wait_for(proc.communicate(), 60)
+    return proc.returncode or 0, out.decode() + err.decode()
+
+
+async def state_is(state: Callable[[], Awaitable[str]], prefix: str) -> bool:
+    return (await state()).startswith(prefix)
+
+
+async def test_dnc_stop_by_hand_ends_a_drip_started_through_the_api(shop: Shop) -> None:
+    """``cellctl dnc stop`` through the running server: the drip-feed's caller (here a
+    script on the API) gets the stop, in the server's words; nothing in flight is refused."""
+    control = shop.controls["mill2"]
+    control.set_mode(Mode.RMT)
+    async with await attach(shop.root) as api:
+
+        async def machine() -> dict[str, Any]:
+            status: dict[str, Any] = await api.call("cell.status")
+            return status
+
+        drip = asyncio.create_task(
+            api.call("dnc.send", {"machine": "mill2", "program": "O5000", "drip": True})
+        )
+
+        async def state() -> str:
+            return str((await machine())["machines"]["mill2"]["state"])
+
+        await until(lambda: state_is(state, "drip-feeding O5000.nc"), "mill2 drip-feeding")
+        control.cycle_start()
+
+        async def under_way() -> bool:
+            progress = (await machine())["machines"]["mill2"]["progress"] or {}
+            return 0 < int(progress.get("done", 0)) < int(progress.get("total", 0))
+
+        await until(under_way, "the drip-feed under way")
+        code, said = await cellctl_run("dnc", "stop", "mill2", "--dir", str(shop.root))
+        assert code == 0, said
+        assert "O5000.nc: drip-feed stopped by hand at " in said
+        with pytest.raises(CellctlError, match="drip-feed stopped by hand"):
+            await drip
+        status = (await machine())["machines"]["mill2"]
+        assert status["condition"] == "idle" and status["progress"] is None
+        control.reset()
+        code, said = await cellctl_run("dnc", "stop", "mill2", "--dir", str(shop.root))
+        assert code != 0 and "mill2: no transfer in flight and no request waiting" in said

@@ -144,7 +144,6 @@ class ConsoleApp(App[None]):
         yield Footer()
 
     async def on_mount(self) -> None:
-        self.query_one("#board", Board).border_title = "cell"
         try:
             if self.is_cell:
                 self.machines = cell_machines(self.directory)
@@ -160,6 +159,8 @@ class ConsoleApp(App[None]):
             self.startup_error = e
             await self.action_quit()
             return
+        board = self.query_one("#board", Board)
+        board.border_title = "cell" if self.is_cell else self.snapshot.get("cell", {}).get("name")
         self.selected = self.machines[0].name
         self._show_snapshot()
         self.show_menu("main")

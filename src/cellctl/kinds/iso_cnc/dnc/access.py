@@ -161,7 +161,7 @@ def state_words(s: MachineStatus) -> str:
         words += f" {s.program}"
     if s.activity is Activity.WAITING and s.pending:
         words += f": {s.pending}"
-    if s.stall_s > 0:
+    if s.stall_s > 0 and s.activity is Activity.DRIP_FEEDING:
         words += f", stalled {s.stall_s:.1f} s"
     return words
 

@@ -272,6 +272,8 @@ class DncLine:
             f"{program}: {what}, {len(data)} chars in {seconds:.1f} s, "
             f"{result['buffer_stops']} buffer stops"
         )
+        if drip:  # the machine's wait for blocks the line had not brought yet
+            message += f", stalled {result['stall_s']:.1f} s"
         self._note(message)
         self._set(
             activity=Activity.IDLE,

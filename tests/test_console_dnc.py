@@ -22,6 +22,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from textual.pilot import Pilot
 
 from cellctl.emulators.serve import Server, serve
@@ -34,6 +36,7 @@ from cellctl.link import LineSettings
 from cellctl.service.client import RemoteCell, attach
 from cellctl.service.token import TOKEN_ENV, add_token
 from cellctl.ui.console.app import ConsoleApp
+from cellctl.ui.console.served import parse_served
 from tests.conftest import CELLCTL, emulator_process, until
 from tests.test_console import SIZE, fill, screen_text, wait_text
 from tests.test_console_tmux import Tmux, stop, tmux, wait_until
@@ -374,3 +377,35 @@ async def test_dnc_stop_by_hand_ends_a_drip_started_through_the_api(shop: Shop) 
         control.reset()
         code, said = await cellctl_run("dnc", "stop", "mill2", "--dir", str(shop.root))
         assert code != 0 and "mill2: no transfer in flight and no request waiting" in said
+
+
+JSON = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False) | st.text(max_size=8),
+    lambda inner: (
+        st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=8), inner, max_size=4)
+    ),
+    max_leaves=20,
+)
+FUNCTION = st.fixed_dictionaries(
+    {
+        "key": st.sampled_from(["1", "9", "a", "z", "", "10", "A", "!"]) | st.text(max_size=2),
+        "label": st.sampled_from(["READ IN", ""]) | st.text(max_size=50),
+        "method": st.sampled_from(["dnc.send", ""]) | st.text(max_size=20),
+    },
+    optional={"params": JSON, "asks": JSON, "confirm": JSON, "timeout_s": JSON},
+)
+
+
+@given(st.one_of(JSON, st.dictionaries(st.text(max_size=8), st.lists(FUNCTION, max_size=3))))
+@settings(max_examples=200, deadline=None)
+def test_any_served_menu_is_a_menu_or_a_refusal(raw: object) -> None:
+    """Whatever a server answers to machines.functions: menus of checked functions, or a
+    CellctlError saying so (the console then does not start: one line, an exit code)."""
+    try:
+        menus = parse_served(raw)
+    except CellctlError as e:
+        assert "machines.functions" in str(e)
+        return
+    for functions in menus.values():
+        for fn in functions:
+            assert len(fn.key) == 1 and fn.label and fn.method and fn.timeout_s > 0

@@ -23,6 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from cellctl.clock import current_clock
 from cellctl.errors import CellctlError
 from cellctl.service.client import CellClient
+from cellctl.service.functions import describe
 from cellctl.ui.console.dialogs import Dialog, ParamsDialog
 from cellctl.ui.console.entry import Action, Entry
 from cellctl.ui.console.session import ConsoleMachine, read_program_file
@@ -58,16 +59,23 @@ async def served_functions(client: CellClient) -> dict[str, list[ServedFunction]
     info = await client.call("server.info")
     if SERVED_METHOD not in (info or {}).get("methods", {}):
         return {}
-    raw = await client.call(SERVED_METHOD)
-    try:
-        if not isinstance(raw, dict):
-            raise TypeError(type(raw).__name__)
-        return {
-            str(name): [ServedFunction.model_validate(f) for f in functions]
-            for name, functions in raw.items()
-        }
-    except (TypeError, ValidationError) as e:
-        raise CellctlError(f"the server's {SERVED_METHOD} is not a menu: {e}") from None
+    return parse_served(await client.call(SERVED_METHOD))
+
+
+def parse_served(raw: Any) -> dict[str, list[ServedFunction]]:
+    """``machines.functions``' answer, checked: ``{machine: [ServedFunction, ...]}``; a
+    CellctlError saying what is wrong with it otherwise (a server's answer is not trusted)."""
+    if not isinstance(raw, dict):
+        raise CellctlError(f"the server's {SERVED_METHOD} is not a menu: {type(raw).__name__}")
+    found: dict[str, list[ServedFunction]] = {}
+    for name, functions in raw.items():
+        if not isinstance(functions, list):
+            raise CellctlError(f"the server's {SERVED_METHOD}: {name}: not a list")
+        try:
+            found[str(name)] = [ServedFunction.model_validate(f) for f in functions]
+        except ValidationError as e:
+            raise CellctlError(f"the server's {SERVED_METHOD}: {name}: {describe(e)}") from None
+    return found
 
 
 def program_params(raw: dict[str, Any], directory: Path) -> dict[str, Any]:
@@ -205,6 +213,7 @@ __all__ = [
     "SERVED_METHOD",
     "ServedFunction",
     "ServedMenu",
+    "parse_served",
     "progress_words",
     "result_lines",
     "served_functions",

@@ -17,6 +17,7 @@ from textual.app import ComposeResult
 from textual.containers import Vertical
 from textual.widgets import ProgressBar, Static
 
+from cellctl.clock import current_clock
 from cellctl.kinds import Condition
 from cellctl.service.status import AlarmInfo, CellMode, CellStatus, ProgressInfo, StepInfo
 
@@ -83,7 +84,7 @@ def figures_text(p: ProgressInfo) -> str:
     words = []
     if p.rate_per_s:
         words.append(f"{p.rate_per_s:.0f} {p.unit}/s")
-    _, left = p.estimated(time.time())
+    _, left = p.estimated(current_clock().now())
     if left is not None and math.isfinite(left):
         words.append(f"{left:.0f} s left")
     if p.stall_s is not None:

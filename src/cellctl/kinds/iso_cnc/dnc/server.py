@@ -303,6 +303,8 @@ class DncLine:
             except TimeoutError:
                 said = f"{self.name}: the transfer did not stop within {timeout:g} s"
                 raise LinkTimeout(said) from None
+            if not transfer.cancelled():  # it ended on its own before the stop reached it
+                return f"{s.program}: the {what} had ended: nothing to stop"
             return self.stopping
         if self.pending is not None:
             request, self.pending = self.pending, None

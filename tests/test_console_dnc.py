@@ -180,7 +180,7 @@ async def test_a_drip_feed_s_progress_and_stall_on_the_board(shop: Shop) -> None
         # Waiting for the control's CYCLE START: shown with none of the characters sent.
         await wait_screen(pilot, r"mill2\s+busy\s+drip-feeding O5000\.nc", "mill2 drip-feeding")
         total = len(DRIP)
-        await wait_screen(pilot, r"\b0/\d+ chars", "no character sent yet")
+        await wait_screen(pilot, r"\b0/\d+ chars waiting", "waiting for its CYCLE START")
         control.set_mode(Mode.RMT)
         control.cycle_start()
         # Under way: some of the characters, a rate and the stall time on the board.

@@ -171,7 +171,7 @@ def _progress(s: MachineStatus) -> ProgressInfo | None:
         return None
     total = max(s.chars_total, s.chars_done)
     return ProgressInfo(
-        phase=s.activity.value,
+        phase=s.phase or s.activity.value,
         done=s.chars_done,
         total=total,
         unit="chars",

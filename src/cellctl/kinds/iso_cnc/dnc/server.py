@@ -97,6 +97,9 @@ class MachineStatus:
     name: str
     activity: Activity = Activity.OFFLINE
     program: str | None = None
+    phase: str = ""
+    """Where a transfer stands: ``waiting`` (for the control's DC1), ``sending``, ``stopped``
+    (a DC3), ``running`` (all sent, the control runs the rest), ``receiving``."""
     chars_done: int = 0
     chars_total: int = 0
     chars_per_s: float = 0.0
@@ -205,6 +208,7 @@ class DncLine:
                 # the driver's modelled stall so far (the axes waiting for a block)
                 d["stall_s"] = float(self.driver.host_status().stall_s)
             self._set(
+                phase=d["phase"],
                 chars_done=d["chars_sent"],
                 chars_total=d["chars_total"],
                 chars_per_s=d["chars_per_s"],
@@ -234,6 +238,7 @@ class DncLine:
         self._set(
             activity=activity,
             program=program,
+            phase="waiting",
             chars_done=0,
             chars_total=len(data),
             buffer_stops=0,
@@ -439,7 +444,9 @@ class DncLine:
         if self.pending is not None:
             await self.answer()
         elif DC2 in link.pending():
-            self._set(activity=Activity.PUNCHING, program=None, chars_done=0, chars_total=0)
+            self._set(
+                activity=Activity.PUNCHING, program=None, phase="", chars_done=0, chars_total=0
+            )
             try:
                 await self.receive(timeout=PUNCH_S)
             finally:

@@ -227,6 +227,27 @@ async def test_stop_transfer_ends_a_drip_feed_in_flight(shop: Shop) -> None:
     assert "drip-feed stopped by hand" in log
 
 
+async def test_receive_punch_keeps_what_the_control_punches(shop: Shop) -> None:
+    control = shop.controls["mill1"]
+    edited = BRACKET.replace("X10. Y5.", "X12. Y5.")
+    app, client = await console(shop)
+    async with app.run_test(size=SIZE) as pilot:
+        await wait_text(pilot, "MAIN MENU")
+        await pilot.press("1")
+        await wait_text(pilot, "3. RECEIVE PUNCH")
+        await pilot.press("3")
+        await wait_screen(pilot, r"mill1\s+idle\s+waiting for punch", "mill1 waiting for it")
+        control.memory[1234] = edited  # edited at the machine, punched back
+        control.set_mode(Mode.EDIT)
+        control.punch(1234)
+        await wait_text(pilot, "mill1: RECEIVE PUNCH: received O1234 (")
+        await wait_screen(pilot, r"mill1\s+idle\s+idle", "mill1 idle again")
+        await pilot.press("q")
+    await client.close()
+    kept = ShopStore(shop.root).received("mill1", 1234)
+    assert [k.path.read_text() for k in kept] == [edited]
+
+
 async def test_a_viewer_token_is_refused_an_action_with_the_api_s_words(
     shop: Shop, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -20,7 +20,8 @@ Methods of its own (:meth:`DncAccess.methods`):
   client that builds its menus from the server (the console).
 
 Each but ``dnc.stop`` waits for the machine's turn: a punch or a request's answer in flight
-finishes first. ``traffic.tail`` shows each machine's last bytes both ways.
+finishes first. ``traffic.tail`` shows each machine's last bytes both ways (kept from the
+first ``traffic.tail`` on, while clients keep asking).
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ from cellctl.kinds.iso_cnc.dnc.server import (
     Activity,
     DncServer,
     MachineStatus,
+    WatchedTraffic,
 )
 from cellctl.kinds.iso_cnc.dnc.store import read_program_file
 from cellctl.kinds.menu import MAX_PROGRAM_CHARS, Progress
@@ -251,6 +253,8 @@ class DncAccess(CellAccess):
 
     def traffic(self, name: str, limit: int) -> list[dict[str, Any]]:
         line = self.server.line(name)
+        if isinstance(line.trace, WatchedTraffic):
+            line.trace.watch()  # kept from now on, while someone looks
         return [] if line.trace is None else traffic_rows(line.trace, name, limit)
 
     def methods(self) -> Mapping[str, Any]:

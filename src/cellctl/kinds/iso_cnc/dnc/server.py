@@ -63,12 +63,32 @@ TRANSFER_S = 24 * 3600.0
 STOP_S = 10.0
 #: Chunks of traffic each machine keeps for ``traffic.tail`` (the console's traffic pane).
 TRAFFIC_KEEP = 200
+#: Seconds a machine's traffic is kept after a client last asked for it.
+WATCH_S = 30.0
 
 Progress = Callable[[dict[str, Any]], None]
 
 
 class TransferStopped(CellctlError):
     """A transfer stopped by hand: the message says where it stood."""
+
+
+class WatchedTraffic(TrafficLog):
+    """A machine's last chunks both ways, kept only while a client looks at them
+    (:meth:`watch`, called by ``traffic.tail``, within the last :data:`WATCH_S`): a shop of
+    hundreds of links spends nothing on traffic nobody reads."""
+
+    def __init__(self) -> None:
+        super().__init__(None, keep=TRAFFIC_KEEP)
+        self.until = 0.0
+
+    def watch(self) -> None:
+        """Keep what goes both ways for the next :data:`WATCH_S` seconds."""
+        self.until = current_clock().now() + WATCH_S
+
+    def record(self, label: str, direction: str, data: bytes, when: float) -> None:
+        if when <= self.until:
+            super().record(label, direction, data, when)
 
 
 class Activity(enum.StrEnum):
@@ -156,7 +176,7 @@ class DncLine:
     def __post_init__(self) -> None:
         self.status = MachineStatus(self.config.name)
         if self.trace is None:  # what traffic.tail shows: this machine's last chunks
-            self.trace = TrafficLog(None, keep=TRAFFIC_KEEP)
+            self.trace = WatchedTraffic()
 
     def _note(self, text: str) -> None:
         """Log ``text`` in the machine's log and keep it for the status' events."""

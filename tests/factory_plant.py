@@ -9,7 +9,7 @@ from __future__ import annotations
 import asyncio
 import os
 import signal
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -44,10 +44,17 @@ class Plant:
     controller as ``cellctl`` subprocesses, started and killed by name (``cell2``, ``factory``).
     """
 
-    def __init__(self, directory: Path, *, cells: int = 3) -> None:
+    def __init__(
+        self, directory: Path, *, cells: int = 3, templates: Sequence[Path | None] = ()
+    ) -> None:
         self.directory = directory
         self.emulated = EmulatedFactory(
-            directory, cells=cells, time_scale=TIME_SCALE, poll_period=0.1, factory_poll=0.1
+            directory,
+            cells=cells,
+            time_scale=TIME_SCALE,
+            poll_period=0.1,
+            factory_poll=0.1,
+            templates=templates,
         )
         self.logs = directory / "logs"
         self.procs: dict[str, asyncio.subprocess.Process] = {}
@@ -133,16 +140,21 @@ class Plant:
             proc.kill()
             await proc.wait()
 
+    def part_types(self, name: str) -> set[str]:
+        """What cell ``name`` makes: the part types of its cell.toml."""
+        return set(load_cell(self.cell_dir(name)).parts)
+
     async def start_all(self) -> None:
         """Every cell's controller and the factory's; returns once the factory knows what
         each cell makes."""
         for name in [*self.names, "factory"]:
             await self.start(name)
+        makes = {name: self.part_types(name) for name in self.names}
         await self.wait_for(
             lambda: (
                 all(
-                    set(PART_TYPES) <= set(c.part_types) and c.status == "online"
-                    for c in self.store.cells().values()
+                    makes[name] <= set(c.part_types) and c.status == "online"
+                    for name, c in self.store.cells().items()
                 )
                 and set(self.store.cells()) == set(self.names)
             ),
@@ -289,11 +301,8 @@ class Plant:
             f" outfeed {cell.outfeed}",
             f"  plc on: {on} pallets delivered {plc.pallets_delivered}"
             f" timers {sorted(plc._timers)}",
-            "  mills: "
-            + ", ".join(
-                f"{m}: {mill.display} executing={mill.executing}" for m, mill in cell.mills.items()
-            ),
-            f"  robot state {cell.robot.state}",
+            "  mills: " + ", ".join(f"{m}: {_shown(mill)}" for m, mill in cell.mills.items()),
+            f"  robot: {_shown(cell.robot)}",
         ]
 
     def describe(self) -> str:
@@ -383,3 +392,9 @@ class Plant:
         assert total == sum(qty for _, _, qty in BATCH), state
         # The factory spread the batch over every cell.
         assert {o.cell for o in orders.values()} == set(self.names), state
+
+
+def _shown(emulator: object) -> str:
+    """What an emulator of any kind shows of itself (the attributes its kind has)."""
+    names = ("display", "executing", "activity", "mode", "state")
+    return " ".join(f"{n}={getattr(emulator, n)}" for n in names if hasattr(emulator, n))

@@ -15,16 +15,18 @@ from hypothesis import strategies as st
 
 from cellctl.cell.causes import ALARM_PRIORITY, PRIORITIES, priority_of
 from cellctl.cell.journal import MAX_SHELVE, Alarm, Journal
+from cellctl.clock import RealClock
 from cellctl.errors import UsageError
 from cellctl.ui.orders_cli import _seconds, _since
 
 
-class Clock:
+class Clock(RealClock):
     def __init__(self) -> None:
-        self.now = 1000.0
+        super().__init__()
+        self.at = 1000.0  # the wall time the test sets
 
-    def __call__(self) -> float:
-        return self.now
+    def now(self) -> float:
+        return self.at
 
 
 def test_priorities_come_from_the_cause(tmp_path: Path) -> None:
@@ -41,20 +43,20 @@ def test_ack_is_not_clear_and_rtn_is_not_either(tmp_path: Path) -> None:
     clock = Clock()
     with Journal(tmp_path / "j.sqlite3", clock=clock) as journal:
         a, new = journal.raise_alarm("robot", "link", "robot not answering")
-        assert new and a.unacked(clock.now) and a.returned is None
-        clock.now += 5
+        assert new and a.unacked(clock.at) and a.returned is None
+        clock.at += 5
         acked = journal.ack_alarm(a.id, by="ann")
         assert (acked.acked, acked.acked_by, acked.state) == (1005.0, "ann", "active")
-        assert not acked.unacked(clock.now)
+        assert not acked.unacked(clock.at)
         assert journal.ack_alarm(a.id, by="bob").acked_by == "ann"  # again: unchanged
-        clock.now += 5
+        clock.at += 5
         [back] = journal.return_to_normal("robot", ["link", "status"])
         assert back.returned == 1010.0 and back.state == "active"  # open until cleared
         assert journal.return_to_normal("robot", ["link"]) == []  # nothing more to mark
         # The condition comes back: active and unacknowledged again, the same alarm.
         again, new = journal.raise_alarm("robot", "link", "robot not answering")
         assert not new and again.id == a.id and again.returned is None
-        assert again.unacked(clock.now)
+        assert again.unacked(clock.at)
         cleared = journal.clear_alarm(a.id, by="bob")
         assert cleared.state == "cleared" and cleared.acked_by == "bob"  # clear acks too
         assert journal.active_alarms() == []
@@ -65,9 +67,9 @@ def test_shelving_hides_an_alarm_until_the_time_runs_out(tmp_path: Path) -> None
     with Journal(tmp_path / "j.sqlite3", clock=clock) as journal:
         a, _ = journal.raise_alarm("cnc1", "link", "mill not answering")
         shelved = journal.shelve_alarm(a.id, 1800, by="ann")
-        assert shelved.shelved_until == 2800.0 and not shelved.unacked(clock.now)
-        clock.now = 2801.0
-        assert journal.get_alarm(a.id).unacked(clock.now)  # back once the time is past
+        assert shelved.shelved_until == 2800.0 and not shelved.unacked(clock.at)
+        clock.at = 2801.0
+        assert journal.get_alarm(a.id).unacked(clock.at)  # back once the time is past
         for bad in (0, -1, MAX_SHELVE + 1, float("nan")):
             with pytest.raises(UsageError, match="8 h"):
                 journal.shelve_alarm(a.id, bad)
@@ -82,7 +84,7 @@ def test_history_filters(tmp_path: Path) -> None:
     clock = Clock()
     with Journal(tmp_path / "j.sqlite3", clock=clock) as journal:
         journal.raise_alarm("plc", "estop", "emergency stop")
-        clock.now = 2000.0
+        clock.at = 2000.0
         late, _ = journal.raise_alarm("plc", "conveyor", "no pallet")
         journal.clear_alarm(late.id)
         cut, _ = journal.raise_alarm("cnc1", "machining", "ROUGH1 failed")
@@ -143,7 +145,7 @@ def test_any_sequence_keeps_the_states_consistent(actions: list[tuple[str, int, 
     with tempfile.TemporaryDirectory() as tmp, Journal(Path(tmp) / "j.sqlite3", clock=clock) as j:
         ids: dict[int, int] = {}
         for action, n, seconds in actions:
-            clock.now += 1
+            clock.at += 1
             alarm_id = ids.get(n)
             before = j.get_alarm(alarm_id) if alarm_id is not None else None
             if action == "raise":
@@ -175,11 +177,11 @@ def test_any_sequence_keeps_the_states_consistent(actions: list[tuple[str, int, 
                         j.shelve_alarm(before.id, seconds)
                     continue
                 a = j.shelve_alarm(before.id, seconds)
-                assert not a.unacked(clock.now)
+                assert not a.unacked(clock.at)
             else:
-                clock.now += seconds
+                clock.at += seconds
                 a = j.get_alarm(before.id)
-            check(a, before, clock.now)
+            check(a, before, clock.at)
 
 
 def check(a: Alarm, before: Alarm | None, now: float) -> None:

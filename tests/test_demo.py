@@ -16,6 +16,7 @@ from queue import Empty, Queue
 
 from cellctl.cell.journal import open_journal
 from cellctl.cell.report import gantt_svg
+from cellctl.clock import RealClock
 from cellctl.mailbox.base import Order
 from tests.conftest import CELLCTL
 
@@ -48,12 +49,23 @@ def test_the_demo_names_its_runs_and_charts_both_on_one_axis(tmp_path: Path) -> 
     assert both.count('class="step transfer"') == 2 * charts["cell"].count('class="step transfer"')
 
 
+class _ListClock(RealClock):
+    """Wall time from ``now[0]``, which the test sets."""
+
+    def __init__(self, now: list[float]) -> None:
+        super().__init__()
+        self._at = now
+
+    def now(self) -> float:
+        return self._at[0]
+
+
 def test_a_chart_starts_at_the_batch_not_at_its_first_step(tmp_path: Path) -> None:
     """The time between the batch's start and the first step (the controller connecting:
     the robot initialized, the mills' setups sent) is on the chart, drawn and in the legend;
     a step of a few hundredths of a second is still a visible bar."""
     now = [1000.0]
-    with open_journal(tmp_path, clock=lambda: now[0]) as journal:
+    with open_journal(tmp_path, clock=_ListClock(now)) as journal:
         order = Order("O1", "wax-robot-base", 1, 0, "accepted", now[0], now[0])
         [part] = journal.create_parts(order)
         now[0] = 1012.0  # the robot's first step, 12 s after the batch started

@@ -122,3 +122,24 @@ def test_measured_durations_feed_the_cells_bottleneck_bound() -> None:
     # One base: CNC 1's 8 + 9 = 17 s beats CNC 2's 6 + 10 = 16 s and the robot's 4 s.
     assert bound({"base": 1}) == 17
     assert bound({"base": 0}) == 0.0
+
+
+def test_cells_of_different_types_are_each_given_their_own() -> None:
+    """A cell that does not make a type (cells of different templates) is never given it:
+    its bound of a batch with that type is infinite, the best split gives it elsewhere."""
+    d = measured_durations(
+        [
+            step("transfer", "robot", "conveyor_to_cnc1", 0, 1),
+            step("machining", "cnc1", "base_rough", 1, 6),
+            step("transfer", "robot", "cnc1_to_cnc2", 6, 7),
+            step("machining", "cnc2", "base_finish", 7, 15),
+            step("transfer", "robot", "cnc2_to_conveyor", 15, 16),
+        ]
+    )
+    only_bases = cell_bound({"base": BASE}, d)
+    assert only_bases({"base": 1, "table": 1}) == float("inf")
+    assert only_bases({"base": 1, "table": 0}) < float("inf")
+    bounds = {"bases": only_bases, "any": affine(0, {"base": 100, "table": 2})}
+    best, split = split_bound(bounds, {"base": 2, "table": 3})
+    assert split["bases"] == {"base": 2, "table": 0} and split["any"]["table"] == 3
+    assert best == max(only_bases({"base": 2}), 6)

@@ -9,8 +9,11 @@ import subprocess
 import time
 from pathlib import Path
 
+from cellctl.cell.config import load_cell
+from cellctl.emulators.cell import EXAMPLE_CELL
 from tests.conftest import CELLCTL
 
+TENDING = Path(__file__).resolve().parent.parent / "examples" / "cell-tending"
 DEMO = [*CELLCTL, "demo", "--factory", "2", "--parts", "4", "--time-scale", "1000"]
 
 
@@ -31,16 +34,28 @@ def left_behind(marker: Path) -> list[str]:
 def test_the_factory_demo_makes_every_part_once_and_leaves_nothing_running(
     tmp_path: Path,
 ) -> None:
+    """Two kinds of cell: cell1 the cobot-tending cell (--template), cell2 the example cell;
+    each makes its own part types, the batch mixes them all."""
     out = tmp_path / "demo-out"
-    result = subprocess.run([*DEMO, "--out", str(out)], capture_output=True, text=True, timeout=120)
+    result = subprocess.run(
+        [*DEMO, "--template", str(TENDING), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert result.returncode == 0, result.stdout + result.stderr
     text = result.stdout
     cells = re.findall(
-        r"^(cell\d): (\d+) orders?, parts made (\d+) .*parts cut twice (\d+)$", text, re.M
+        r"^(cell\d): (\d+) orders?, parts made (\d+) \((.*)\);.*parts cut twice (\d+)$",
+        text,
+        re.M,
     )
     assert [c[0] for c in cells] == ["cell1", "cell2"], text
     assert all(twice == "0" for *_, twice in cells), text
-    assert sum(int(made) for _, _, made, _ in cells) == 4, text
+    assert sum(int(made) for _, _, made, _, _ in cells) == 4, text
+    made = {name: set(re.findall(r"\d+ x ([^,\s]+)", what)) for name, _, _, what, _ in cells}
+    assert made["cell1"] == set(load_cell(TENDING).parts), text
+    assert made["cell2"] <= set(load_cell(EXAMPLE_CELL).parts) and made["cell2"], text
     total = re.search(
         r"^total: 4 orders \(4 done\), parts made 4 of 4; makespan ([0-9.]+) s", text, re.M
     )

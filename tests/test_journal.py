@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from cellctl.cell.journal import Journal, open_journal
+from cellctl.clock import RealClock
 from cellctl.errors import UsageError
 
 
@@ -23,14 +24,15 @@ class AnOrder:
     qty: int
 
 
-class Clock:
+class Clock(RealClock):
     """A clock the test sets, so figures are exact and need no waiting."""
 
     def __init__(self) -> None:
-        self.now = 100.0
+        super().__init__()
+        self.at = 100.0  # the wall time the test sets
 
-    def __call__(self) -> float:
-        return self.now
+    def now(self) -> float:
+        return self.at
 
 
 @pytest.fixture
@@ -227,7 +229,7 @@ def test_alarms_are_not_duplicated_and_clear_once(journal: Journal, clock: Clock
     b, _ = journal.raise_alarm("cnc2", "64", "door open")
     assert [x.id for x in journal.active_alarms()] == [a.id, b.id]
 
-    clock.now = 200.0
+    clock.at = 200.0
     cleared = journal.clear_alarm(a.id)
     assert (cleared.state, cleared.cleared, cleared.cleared_by) == ("cleared", 200.0, "operator")
     assert journal.clear_alarm(a.id, by="controller") == cleared
@@ -253,11 +255,11 @@ def test_busy_time_and_makespan(journal: Journal, clock: Clock) -> None:
     journal.create_parts(AnOrder("o", "p", 2))
     journal.create_parts(AnOrder("q", "p", 1))
     for part, start, end in [("o-1", 100.0, 130.0), ("o-2", 140.0, 150.0)]:
-        clock.now = start
+        clock.at = start
         step = journal.begin_step(part, "machine", "cnc1", "ROUGH")
-        clock.now = end
+        clock.at = end
         journal.end_step(step.id, "finished")
-    clock.now = 160.0
+    clock.at = 160.0
     open_step = journal.begin_step("q-1", "machine", "cnc2", "FINISH")
 
     assert journal.busy_time("cnc1") == 40.0
@@ -267,7 +269,7 @@ def test_busy_time_and_makespan(journal: Journal, clock: Clock) -> None:
     assert journal.busy_time("robot") == 0.0
     assert journal.makespan("o") == 50.0
     assert journal.makespan("q") is None
-    clock.now = 190.0
+    clock.at = 190.0
     journal.end_step(open_step.id, "finished")
     assert journal.makespan() == 90.0
 

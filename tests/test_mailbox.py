@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from cellctl.clock import RealClock
 from cellctl.errors import UsageError
 from cellctl.mailbox import (
     REPORT_KINDS,
@@ -20,15 +21,16 @@ from cellctl.mailbox import (
 )
 
 
-class FakeClock:
+class FakeClock(RealClock):
     """Times the test chooses, so "oldest first" does not depend on the wall clock."""
 
     def __init__(self) -> None:
-        self.now = 1000.0
+        super().__init__()
+        self.at = 1000.0
 
-    def __call__(self) -> float:
-        self.now += 1.0
-        return self.now
+    def now(self) -> float:
+        self.at += 1.0
+        return self.at
 
 
 @pytest.fixture

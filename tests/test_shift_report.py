@@ -19,6 +19,7 @@ from click.testing import CliRunner
 from cellctl.cell.config import load_cell
 from cellctl.cell.journal import Journal
 from cellctl.cell.shift import ideal_times, shift_report
+from cellctl.clock import RealClock
 from cellctl.service.access import LocalCell
 from cellctl.service.methods import Dispatcher
 from cellctl.testing.rig import CellRig
@@ -33,12 +34,13 @@ class Order:
     qty: int
 
 
-class Clock:
+class Clock(RealClock):
     def __init__(self) -> None:
-        self.now = 1000.0
+        super().__init__()
+        self.at = 1000.0  # the wall time the test sets
 
-    def __call__(self) -> float:
-        return self.now
+    def now(self) -> float:
+        return self.at
 
 
 def test_figures_of_a_hand_made_journal(tmp_path: Path) -> None:
@@ -48,29 +50,29 @@ def test_figures_of_a_hand_made_journal(tmp_path: Path) -> None:
     # The mill cuts A from 1010 to 1040 (ideal 24 s), B from 1050 to 1070 (ideal 24 s: it ran
     # slow), and fails C at 1090 (started 1080); C is then scrapped.
     for part, t0, t1, state in ((a, 1010, 1040, "finished"), (b, 1050, 1070, "finished")):
-        clock.now = t0
+        clock.at = t0
         step = journal.begin_step(part.id, "machine", "cnc1", "rough")
-        clock.now = t1
+        clock.at = t1
         journal.end_step(step.id, state, route_index=1)
-    clock.now = 1080
+    clock.at = 1080
     step = journal.begin_step(c.id, "machine", "cnc1", "rough")
-    clock.now = 1090
+    clock.at = 1090
     journal.end_step(step.id, "failed", "stalled", hold="needs inspection")
     journal.scrap_part(c.id, "broken tool")
     journal.finish_part(a.id)
     # An alarm on cnc1 from 1090 to 1100 (returned to normal at 1100, cleared at 1105), and
     # the operator takes cnc1 out from 1095 to 1120: 30 s down in all (the union).
-    clock.now = 1090
+    clock.at = 1090
     alarm, _ = journal.raise_alarm("cnc1", "status", "spindle stalled")
-    clock.now = 1095
+    clock.at = 1095
     journal.set_machine_service("cnc1", False, "tool change")
-    clock.now = 1100
+    clock.at = 1100
     journal.return_to_normal("cnc1", ["status"])
-    clock.now = 1105
+    clock.at = 1105
     journal.clear_alarm(alarm.id)
-    clock.now = 1120
+    clock.at = 1120
     journal.set_machine_service("cnc1", True, "back")
-    clock.now = 1130
+    clock.at = 1130
     journal.raise_alarm("plc", "conveyor", "no pallet")
 
     report = shift_report(journal, ["cnc1"], {"cnc1/rough": 24.0}, 1000.0, 1200.0)
@@ -105,7 +107,7 @@ def test_the_report_fits_80_columns_and_saves_csv_and_html(tmp_path: Path) -> No
     journal = Journal(tmp_path / "journal.sqlite3", clock=clock)
     (part,) = journal.create_parts(Order("O", "base", 1))
     step = journal.begin_step(part.id, "machine", "a-mill-with-a-long-name", "rough")
-    clock.now = 1100
+    clock.at = 1100
     journal.end_step(step.id, "finished", route_index=1)
     journal.raise_alarm("a-mill-with-a-long-name", "a-long-cause-of-its-own" * 3, "x" * 300)
     report = shift_report(journal, ["a-mill-with-a-long-name"], {}, 900.0, 1200.0).as_dict()
@@ -199,11 +201,11 @@ def test_a_good_step_of_a_part_scrapped_later_is_not_good(tmp_path: Path) -> Non
     a, b = journal.create_parts(Order("O", "base", 2))
     for part in (a, b):
         step = journal.begin_step(part.id, "machine", "cnc1", "rough")
-        clock.now += 10
+        clock.at += 10
         journal.end_step(step.id, "finished", route_index=1)
     # B's next step, on cnc2, fails; B is held, then scrapped: cnc1 cut it for nothing.
     step = journal.begin_step(b.id, "machine", "cnc2", "finish")
-    clock.now += 5
+    clock.at += 5
     journal.end_step(step.id, "failed", "stalled", hold="needs inspection")
     journal.scrap_part(b.id, "broken")
     report = shift_report(journal, ["cnc1", "cnc2"], {}, 1000.0, 1100.0)

@@ -188,6 +188,38 @@ def current_clock() -> Clock:
     return loop.clock if isinstance(loop, VirtualLoop) else REAL_CLOCK
 
 
+def emulator_clock(clock: Clock | None, time_scale: float | None = None) -> Clock | None:
+    """The clock an emulator made with ``clock=`` or ``time_scale=`` runs on.
+
+    ``time_scale`` is shorthand for ``RealClock(time_scale)``; None (no clock, no scale, or
+    a scale of 1) leaves the clock to be resolved when used: the running loop's, so the same
+    emulator runs on real or virtual time. Raises UsageError for a bad scale, or for both a
+    clock and a scale that is not the clock's.
+    """
+    if clock is not None:
+        if time_scale is not None and time_scale != clock.time_scale:
+            raise UsageError(
+                f"an emulator takes a clock or a time scale, not both ({clock!r}, "
+                f"time_scale={time_scale:g}): give the clock its scale"
+            )
+        return clock
+    if time_scale is None:
+        return None
+    scale = _scale(time_scale)
+    return None if scale == 1.0 else RealClock(scale)
+
+
+def check_loop_clock(clock: Clock, what: str) -> None:
+    """Refuse (UsageError) a :class:`RealClock` given to ``what`` on a virtual loop: it would
+    read the wall clock, which the loop's time does not follow (the loop's clock, or none,
+    is what belongs there)."""
+    if isinstance(clock, RealClock) and isinstance(current_clock(), VirtualClock):
+        raise UsageError(
+            f"{what} was given {clock!r}, but the running loop's time is virtual: give it the "
+            "loop's clock (clock=current_clock()) or none, and no time scale"
+        )
+
+
 class _VirtualSelector(selectors.BaseSelector):
     """The loop's selector, wrapped: its ``select`` is where time jumps (see VirtualLoop)."""
 
@@ -378,6 +410,8 @@ __all__ = [
     "VirtualClock",
     "VirtualLoop",
     "VirtualTimeStalled",
+    "check_loop_clock",
     "current_clock",
+    "emulator_clock",
     "run_virtual",
 ]

@@ -16,12 +16,12 @@ PLC came back) is the same fault: its cause is marked :attr:`Cause.told`, and no
 
 from __future__ import annotations
 
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Final
 
+from cellctl.clock import current_clock
 from cellctl.errors import CellctlError, LinkClosed, LinkError, SignalTimeout
 from cellctl.kinds.families import Health
 
@@ -103,7 +103,7 @@ class Blamed(CellctlError):
 def blame(machine: str, label: str) -> Iterator[None]:
     """Inside, a link failure or a signal that did not come (a stuck door: code
     ``interlock``) is ``machine``'s: raised again as :class:`Blamed`."""
-    since = time.time()
+    since = current_clock().now()
     try:
         yield
     except Blamed:

@@ -160,7 +160,7 @@ class OperatorCommands:
         problems: list[str] = []
         if self.robot is not None and self.robot.running:
             try:
-                async with asyncio.timeout(ESTOP_TIMEOUT):
+                async with self.clock.timeout(ESTOP_TIMEOUT):
                     await self.robot.stop()
             except (CellctlError, OSError, TimeoutError) as e:
                 problems.append(f"robot stop failed: {e or 'no answer'}")
@@ -168,11 +168,11 @@ class OperatorCommands:
             if mill.manual:
                 continue  # in manual: nothing of ours runs there
             try:
-                async with asyncio.timeout(ESTOP_TIMEOUT):
+                async with self.clock.timeout(ESTOP_TIMEOUT):
                     # The mill refuses END while a block runs: no more blocks go out, and
                     # the END follows the moment it is ready.
-                    while mill.running and not (await mill.status()).ready:  # noqa: ASYNC110 - CTS is read, not signalled
-                        await asyncio.sleep(0.05)
+                    while mill.running and not (await mill.status()).ready:
+                        await self.clock.sleep(0.05)
                     await mill.end()
             except TimeoutError:
                 problems.append(

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import time
 from collections.abc import Callable
 from typing import Any
 
@@ -55,9 +54,11 @@ from cellctl.cell.model import (
 from cellctl.cell.monitor import Monitor
 from cellctl.cell.orderflow import OUT, OrderFlow
 from cellctl.cell.orders import OrderBox, ReportKind
+from cellctl.cell.physics import physical_durations
 from cellctl.cell.recovery import Recovery
 from cellctl.cell.robotsteps import INTERLOCK_POLL_S, RobotSteps
-from cellctl.cell.scheduler import PartState, next_transfer, ready_to_leave
+from cellctl.cell.scheduler import SHORTEST_FIRST, PartState, next_transfer, ready_to_leave
+from cellctl.clock import Clock, current_clock
 from cellctl.drivers.plc import ModbusPlc
 from cellctl.drivers.state import StateStore
 from cellctl.errors import CellctlError
@@ -83,7 +84,9 @@ class CellController(OperatorCommands):
         *,
         options: ControllerOptions | None = None,
         on_event: Callable[[Event], None] | None = None,
+        clock: Clock | None = None,
     ) -> None:
+        self._clock = clock
         self._init_commands()
         self.config = config
         self.journal = journal
@@ -112,19 +115,26 @@ class CellController(OperatorCommands):
         self._mill_tasks: dict[str, asyncio.Task[None]] = {}
         self._pallet_requested = False
         self._pallet_requested_at = 0.0  # monotonic, for the deadline
-        self._pallet_asked_wall = 0.0  # time.time(), to compare with an alarm's clearing
+        self._pallet_asked_wall = 0.0  # wall time, to compare with an alarm's clearing
         # (machine, code) of open alarms not yet returned to normal, so that the monitor's
         # every look costs no journal read (None: not read from the journal yet).
         self._unreturned: set[tuple[str, str]] | None = None
         self._pallet_pulse: asyncio.Task[None] | None = None
         self._stopping = False
-        self.started_at = time.time()
+        self._work: dict[str, float] | None = None
+        self.started_at = self.clock.now()
 
     # -- plumbing ---------------------------------------------------------------------------------
 
+    @property
+    def clock(self) -> Clock:
+        """What the cell reads the time from and waits on: the clock given, else the running
+        loop's (a controller may be made before its loop runs); its drivers get the same."""
+        return self._clock or current_clock()
+
     def log(self, text: str) -> None:
         """Note an event (kept for the live view, passed to ``on_event``)."""
-        event = Event(time.time(), text)
+        event = Event(self.clock.now(), text)
         self.events.append(event)
         del self.events[:-200]
         if self.on_event is not None:
@@ -233,7 +243,7 @@ class CellController(OperatorCommands):
         for name in self.journal.machines_out_of_service():
             if name in self.machines:
                 self.machines[name].in_service = False
-        self.plc = await ModbusPlc.connect(self.plc_map.url, self.plc_map)
+        self.plc = await ModbusPlc.connect(self.plc_map.url, self.plc_map, clock=self._clock)
         # A controller killed mid-pulse leaves that coil high: this one's first pulse would
         # make no rising edge, and the conveyor or the mill would never hear it.
         for coil in ["pallet_request", *(self._go_coil(m) for m in self.config.mills)]:
@@ -257,6 +267,7 @@ class CellController(OperatorCommands):
             r.options,
             store=StateStore(self.config.directory),
             trace=self.traffic,
+            clock=self._clock,
         )
         return robot
 
@@ -271,6 +282,7 @@ class CellController(OperatorCommands):
             store=StateStore(self.config.directory),
             trace=self.traffic,
             start_output=CallbackOutput(self._go_pulser(m)),
+            clock=self._clock,
         )
         return mill
 
@@ -341,14 +353,14 @@ class CellController(OperatorCommands):
                 if until_idle and not busy and self.orderflow.all_orders_closed():
                     break
                 with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(self.options.poll_period):
+                    async with self.clock.timeout(self.options.poll_period):
                         await self._wake.wait()
         finally:
             # Let the monitor finish its round: cancelling it mid-request would strand a
             # Modbus or serial transaction.
             self.monitor.done.set()
             try:
-                async with asyncio.timeout(10):
+                async with self.clock.timeout(10):
                     await monitor
             except TimeoutError:
                 monitor.cancel()
@@ -455,12 +467,26 @@ class CellController(OperatorCommands):
             mills_in_service=usable_mills,
             pallet_present=pallet,
             outfeed_clear=outfeed,
-            one_at_a_time=self.options.one_at_a_time,
+            policy=self.options.policy,
+            work_s=self._work_s(),
         )
         if transfer is None:
             await self._request_pallet(states, pallet)
             return
         self._robot_task = asyncio.create_task(self.robotsteps.transfer(transfer))
+
+    def _work_s(self) -> dict[str, float] | None:
+        """Seconds of machining per part type, for the shortest-first policy (from the
+        machines' models, worked out once)."""
+        if self.options.policy != SHORTEST_FIRST:
+            return None
+        if self._work is None:
+            phys = physical_durations(self.config)
+            self._work = {
+                name: sum(phys.machining_s[(s.mill, s.name)] for s in part.route)
+                for name, part in self.config.parts.items()
+            }
+        return self._work
 
     async def read_inputs(self) -> dict[str, bool]:
         """Read the PLC's inputs now (kept in :attr:`inputs`)."""
@@ -480,7 +506,8 @@ class CellController(OperatorCommands):
             # so a mill that finishes meanwhile is served at once.
             self._pallet_requested = True
             # The edge is at the pulse's start.
-            self._pallet_requested_at, self._pallet_asked_wall = time.monotonic(), time.time()
+            self._pallet_requested_at = self.clock.monotonic()
+            self._pallet_asked_wall = self.clock.now()
             self._pallet_pulse = asyncio.create_task(self._pulse_pallet())
 
     async def _pulse_pallet(self) -> None:
@@ -529,7 +556,7 @@ class CellController(OperatorCommands):
             self.log("conveyor: its alarm cleared: the pallet is asked for again")
             self._wake.set()
             return
-        if time.monotonic() - self._pallet_requested_at > self.options.pallet_timeout:
+        if self.clock.monotonic() - self._pallet_requested_at > self.options.pallet_timeout:
             self.alarm(
                 "plc",
                 "conveyor",
@@ -555,8 +582,8 @@ class CellController(OperatorCommands):
         )
         view.step = f"{route_step.name} ({part.id})"
         view.show("machining", Condition.BUSY)
-        started = time.monotonic()
-        since = time.time()
+        started = self.clock.monotonic()
+        since = self.clock.now()
         index = self.mill_index(mill_name)
         assert self.plc is not None
         cutting = False  # the first line of the program went out: the part may be cut
@@ -634,7 +661,7 @@ class CellController(OperatorCommands):
             self.wake()
             return
         view.progress = None
-        view.busy_s += time.monotonic() - started
+        view.busy_s += self.clock.monotonic() - started
         view.step = ""
         view.show(mill.state_text, Condition.IDLE)
         self.recovery.ready[mill_name] = True  # the last block ended with CTS high

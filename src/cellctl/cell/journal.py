@@ -30,8 +30,7 @@ Rules that keep a restart from losing or repeating work:
 from __future__ import annotations
 
 import sqlite3
-import time
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
@@ -39,6 +38,7 @@ from typing import Any, Final
 from cellctl.cell.causes import PRIORITIES, priority_of
 from cellctl.cell.orders import OrderLike
 from cellctl.cell.sqlitedb import SqliteStore
+from cellctl.clock import Clock, current_clock
 from cellctl.errors import UsageError
 
 #: The journal's file name inside the cell directory.
@@ -224,7 +224,7 @@ class RecoveryReport:
         return not self.interrupted
 
 
-def open_journal(cell_dir: Path, *, clock: Callable[[], float] = time.time) -> Journal:
+def open_journal(cell_dir: Path, *, clock: Clock | None = None) -> Journal:
     """Open (creating if needed) ``<cell_dir>/journal.sqlite3``."""
     return Journal(Path(cell_dir) / JOURNAL_FILE, clock=clock)
 
@@ -233,13 +233,22 @@ class Journal(SqliteStore):
     """The journal in one SQLite file; use as a context manager or call :meth:`close`.
 
     Every method raises :class:`UsageError` for an unknown id or an action the part's state
-    does not allow, and changes nothing then. ``clock`` gives the times it records.
+    does not allow, and changes nothing then. ``clock`` gives the times it records (its
+    ``now()``; None: the running loop's clock, read when a time is recorded).
     """
 
-    def __init__(self, path: Path, *, clock: Callable[[], float] = time.time) -> None:
+    def __init__(self, path: Path, *, clock: Clock | None = None) -> None:
         super().__init__(path, SCHEMA)
         self._clock = clock
         self._migrate_alarms()
+
+    @property
+    def clock(self) -> Clock:
+        """What the journal's times are read from: the clock given, else the running loop's."""
+        return self._clock or current_clock()
+
+    def _now(self) -> float:
+        return self.clock.now()
 
     def _migrate_alarms(self) -> None:
         """Add the alarm columns a journal from before alarm states lacks (idempotent)."""
@@ -266,7 +275,7 @@ class Journal(SqliteStore):
         """
         if order.qty < 1:
             raise UsageError(f"order {order.id} has no parts to make (qty {order.qty})")
-        now = self._clock()
+        now = self._now()
         with self._write() as db:
             rows = db.execute(
                 "SELECT * FROM parts WHERE order_id = ? ORDER BY seq_in_order", (order.id,)
@@ -319,7 +328,7 @@ class Journal(SqliteStore):
             part = _get_part(db, part_id)
             _require(part, ("waiting", "active"), "be moved")
             new_index = part.route_index if route_index is None else route_index
-            return _update_part(db, part, self._clock(), location=location, route_index=new_index)
+            return _update_part(db, part, self._now(), location=location, route_index=new_index)
 
     def hold_part(self, part_id: str, reason: str) -> Part:
         """Hold a waiting part for the operator (already held: changes nothing).
@@ -333,7 +342,7 @@ class Journal(SqliteStore):
             if part.status == "active":
                 raise UsageError(f"part {part_id} has a step in flight: end it with hold=")
             _require(part, ("waiting",), "be held")
-            return _update_part(db, part, self._clock(), status="held", note=reason)
+            return _update_part(db, part, self._now(), status="held", note=reason)
 
     def release_part(
         self, part_id: str, redo_step: bool = False, location: str | None = None
@@ -365,7 +374,7 @@ class Journal(SqliteStore):
             return _update_part(
                 db,
                 part,
-                self._clock(),
+                self._now(),
                 status="waiting",
                 location=location or part.location,
                 note="",
@@ -380,7 +389,7 @@ class Journal(SqliteStore):
                 return part
             _require(part, ("waiting", "held"), "be scrapped")
             return _update_part(
-                db, part, self._clock(), status="scrapped", note=reason, held_step=None
+                db, part, self._now(), status="scrapped", note=reason, held_step=None
             )
 
     def cancel_parts(self, order_id: str) -> list[Part]:
@@ -403,7 +412,7 @@ class Journal(SqliteStore):
                     f"order {order_id} has started ({steps} step(s) run): it cannot be "
                     "cancelled; scrap its waiting parts one by one instead"
                 )
-            now = self._clock()
+            now = self._now()
             return [
                 _update_part(db, p, now, status="cancelled", note="order cancelled") for p in parts
             ]
@@ -415,7 +424,7 @@ class Journal(SqliteStore):
             if part.status == "done":
                 return part
             _require(part, ("waiting",), "be finished")
-            return _update_part(db, part, self._clock(), status="done", note="")
+            return _update_part(db, part, self._now(), status="done", note="")
 
     # -- steps -------------------------------------------------------------------------------
 
@@ -426,7 +435,7 @@ class Journal(SqliteStore):
         """
         if kind not in STEP_KINDS:
             raise UsageError(f"unknown step kind {kind!r} (known: {', '.join(STEP_KINDS)})")
-        now = self._clock()
+        now = self._now()
         with self._write() as db:
             part = _get_part(db, part_id)
             _require(part, ("waiting",), "start a step")
@@ -477,7 +486,7 @@ class Journal(SqliteStore):
             raise UsageError(f"a step ends finished or failed, not {state!r}")
         if location is not None:
             _check_location(location)
-        now = self._clock()
+        now = self._now()
         with self._write() as db:
             step = _get_step(db, step_id)
             if step.state == state:
@@ -532,7 +541,7 @@ class Journal(SqliteStore):
         and both stations" for a transfer (the part may be at either end or in the gripper,
         so its location is unknown). Calling it again finds nothing more to do.
         """
-        now = self._clock()
+        now = self._now()
         interrupted: list[Step] = []
         held: list[Part] = []
         with self._write() as db:
@@ -563,7 +572,7 @@ class Journal(SqliteStore):
         """Raise an alarm; return it and whether it is new (an identical active alarm,
         same machine, code and text, is returned instead of raising a second one; if it had
         returned to normal its condition is back: active and unacknowledged again)."""
-        now = self._clock()
+        now = self._now()
         with self._write() as db:
             row = db.execute(
                 "SELECT * FROM alarms WHERE state = 'active' AND machine = ? AND code = ?"
@@ -608,7 +617,7 @@ class Journal(SqliteStore):
                 return alarm
             db.execute(
                 "UPDATE alarms SET acked = ?, acked_by = ? WHERE id = ?",
-                (self._clock(), by, alarm_id),
+                (self._now(), by, alarm_id),
             )
             return _get_alarm(db, alarm_id)
 
@@ -625,7 +634,7 @@ class Journal(SqliteStore):
                 raise UsageError(f"alarm {alarm_id} is cleared: nothing to shelve")
             db.execute(
                 "UPDATE alarms SET shelved_until = ?, shelved_by = ? WHERE id = ?",
-                (self._clock() + seconds, by, alarm_id),
+                (self._now() + seconds, by, alarm_id),
             )
             return _get_alarm(db, alarm_id)
 
@@ -643,7 +652,7 @@ class Journal(SqliteStore):
             return []
         with self._write() as db:
             ids = [r["id"] for r in db.execute(query, (machine, *codes))]
-            now = self._clock()
+            now = self._now()
             db.executemany("UPDATE alarms SET returned = ? WHERE id = ?", [(now, i) for i in ids])
             return [_get_alarm(db, i) for i in ids]
 
@@ -654,7 +663,7 @@ class Journal(SqliteStore):
             alarm = _get_alarm(db, alarm_id)
             if alarm.state == "cleared":
                 return alarm
-            now = self._clock()
+            now = self._now()
             db.execute(
                 "UPDATE alarms SET state = 'cleared', cleared = ?, cleared_by = ?,"
                 " acked = coalesce(acked, ?),"
@@ -712,7 +721,7 @@ class Journal(SqliteStore):
 
     def set_machine_service(self, name: str, in_service: bool, reason: str = "") -> None:
         """Take a machine out of service (with the reason) or put it back."""
-        now = self._clock()
+        now = self._now()
         with self._write() as db:
             db.execute(
                 "INSERT INTO machines (name, in_service, reason, updated) VALUES (?, ?, ?, ?)"
@@ -752,7 +761,7 @@ class Journal(SqliteStore):
         Steps in flight count up to ``until`` (or now); interrupted steps, whose end is not
         known, do not count.
         """
-        end_of_open = until if until is not None else self._clock()
+        end_of_open = until if until is not None else self._now()
         total = 0.0
         rows = self._read(
             "SELECT started, ended, state FROM steps WHERE machine = ?"

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from cellctl.clock import Clock
 from cellctl.drivers.state import StateStore
 from cellctl.kinds import registry
 from cellctl.kinds.families import StartOutput
@@ -26,10 +27,12 @@ async def open_machine(
     store: StateStore | None,
     trace: TrafficLog | None,
     start_output: StartOutput | None = None,
+    clock: Clock | None = None,
 ) -> Any:
     """Open machine ``name`` of ``kind`` on ``url``: its options are checked against the
-    kind's model (UsageError naming the field) before anything is opened."""
+    kind's model (UsageError naming the field) before anything is opened. ``clock``: what
+    its driver times its waits on (None: the running loop's)."""
     machine_kind = registry.kind(kind)
     checked = machine_kind.checked_options(options)
-    spec = DriverSpec(url, name, settings, checked, store, trace, start_output)
+    spec = DriverSpec(url, name, settings, checked, store, trace, start_output, clock)
     return await machine_kind.open(spec)

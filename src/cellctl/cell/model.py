@@ -14,6 +14,7 @@ from typing import Any
 
 from cellctl.cell.config import CellConfig
 from cellctl.cell.orders import OrderBox
+from cellctl.cell.scheduler import DOWNSTREAM_FIRST, ONE_AT_A_TIME, check_policy
 from cellctl.kinds import Condition, LastError
 
 #: Robot output a cell program raises when its cycle is done (the example cell's wiring).
@@ -92,8 +93,15 @@ class ControllerOptions:
     door_start_timeout: float = 0.0
     """0: half the poll period. A commanded door still at its end position then is stuck."""
     one_at_a_time: bool = False
+    policy: str = DOWNSTREAM_FIRST
+    """Which waiting part the robot loads next (:data:`cellctl.cell.scheduler.POLICIES`);
+    ``one_at_a_time=True`` is the policy ``one-at-a-time``."""
 
     def __post_init__(self) -> None:
+        check_policy(self.policy)
+        if self.one_at_a_time:
+            self.policy = ONE_AT_A_TIME
+        self.one_at_a_time = self.policy == ONE_AT_A_TIME
         if self.read_limit <= 0:
             self.read_limit = self.poll_period / 2
         if self.door_start_timeout <= 0:

@@ -22,7 +22,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
-import time
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -85,7 +84,7 @@ class Monitor:
             raise _StillOut
         future = asyncio.ensure_future(read())
         self._reads[key] = future
-        self._since[key] = time.time()
+        self._since[key] = self.world.clock.now()
         try:
             return await asyncio.wait_for(asyncio.shield(future), self.world.options.read_limit)
         except TimeoutError:
@@ -99,15 +98,15 @@ class Monitor:
 
     async def run(self) -> None:
         """Rounds until :attr:`done` is set (a round in progress finishes first)."""
-        loop = asyncio.get_running_loop()
+        clock = self.world.clock
         while not self.done.is_set():
-            started = loop.time()
+            started = clock.monotonic()
             await self.round()
             # Rounds start every sample period (a round's own time included), not a period
             # after the last one ended: that bounds how late a fault is seen.
-            left = self.sample_period - (loop.time() - started)
+            left = self.sample_period - (clock.monotonic() - started)
             with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(max(left, 0.0)):
+                async with clock.timeout(max(left, 0.0)):
                     await self.done.wait()
 
     async def round(self) -> None:
@@ -149,7 +148,7 @@ class Monitor:
     def _told(self, cause: Cause, key: str) -> Cause:
         """``cause`` of a failed read, marked told if its alarm was cleared while the read
         was out (sent before the operator acknowledged the fault: the same fault)."""
-        if self._cleared_since(cause, self._since.get(key, time.time())):
+        if self._cleared_since(cause, self._since.get(key, self.world.clock.now())):
             return dataclasses.replace(cause, told=True)
         return cause
 
@@ -246,8 +245,9 @@ class Monitor:
             # CTS low on an idle, set-up mill that is not waiting for its operator.
             recovery.fault(m.name, "readiness", "lost readiness (CTS low while idle)", count=False)
         elif status.awaiting_operator and mill.initialized:
-            since = recovery.setup_at.get(m.name, time.monotonic())
-            if time.monotonic() - since > mill.setup_timeout:
+            now = self.world.clock.monotonic()
+            since = recovery.setup_at.get(m.name, now)
+            if now - since > mill.setup_timeout:
                 recovery.fault(
                     m.name,
                     "readiness",

@@ -33,6 +33,7 @@ if TYPE_CHECKING:
     from cellctl.cell.journal import Journal
     from cellctl.cell.model import ControllerOptions, MachineView
     from cellctl.cell.orders import OrderBox
+    from cellctl.clock import Clock
     from cellctl.drivers.plc import ModbusPlc
     from cellctl.kinds.families import Mill, Robot
 
@@ -67,6 +68,10 @@ class AlarmSink(Protocol):
 
 class WorldModel(Protocol):
     """M, the world model: what the controller knows of the cell and its machines."""
+
+    @property
+    def clock(self) -> Clock:
+        """What the cell reads the time from and waits on."""
 
     @property
     def config(self) -> CellConfig: ...

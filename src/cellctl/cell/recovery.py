@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import time
 from typing import TYPE_CHECKING
 
 from cellctl.cell.causes import LINK_CLOSED, Cause
@@ -105,7 +104,7 @@ class Recovery:
         world = self.world
         config = world.config.machine(name)
         while not self.fit[name] and not world.stopping:
-            await asyncio.sleep(world.options.poll_period)
+            await world.clock.sleep(world.options.poll_period)
             view = world.machines[name]
             if not view.in_service or name in world.manual_use or world.step_task(name):
                 continue
@@ -137,7 +136,7 @@ class Recovery:
             return
         if not mill.running:  # a block still running is no failure: it ends
             self.alarms.failed(m.name, "readiness", f"not ready: {status}", alarm=False)
-        await asyncio.sleep(mill.ready_wait)
+        await self.world.clock.sleep(mill.ready_wait)
 
     async def close(self) -> None:
         for task in self._tasks.values():
@@ -222,7 +221,7 @@ class Recovery:
                     return False
             if m.setup is not None and (force or not mill.initialized):
                 await mill.setup(m.setup, force=True)
-                self.setup_at[m.name] = time.monotonic()
+                self.setup_at[m.name] = self.world.clock.monotonic()
                 self.alarms.log(f"{m.name}: initialized with {m.setup.name}")
             status = await mill.status()
         except CellctlError as e:
@@ -234,6 +233,6 @@ class Recovery:
         self.ready[m.name] = status.takes_work
         # Its operator's time for the reference zero runs from now (also after a setup sent by
         # hand while it was out of automatic service).
-        self.setup_at[m.name] = time.monotonic()
+        self.setup_at[m.name] = self.world.clock.monotonic()
         view.show(status.shown, status.kind_condition)
         return True

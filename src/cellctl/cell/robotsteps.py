@@ -17,7 +17,6 @@ recovery (a robot fault keeps it out of the plan)::
 from __future__ import annotations
 
 import asyncio
-import time
 from typing import TYPE_CHECKING
 
 from cellctl.cell.causes import blame
@@ -113,7 +112,7 @@ class RobotSteps:
             alarms.log(f"part {part.id}: transfer {t.program} not started: {e}")
             return
         view.step = f"{t.program} ({part.id})"
-        started = time.monotonic()
+        started = self.world.clock.monotonic()
         places = [t.source, t.target]
         attempt = 0
         moved = False  # the arm may have moved: a failure from here on holds the part
@@ -200,7 +199,7 @@ class RobotSteps:
                 if cause.machine == robot.name:
                     self.recovery.robot_ok = False
             return
-        view.busy_s += time.monotonic() - started
+        view.busy_s += self.world.clock.monotonic() - started
         view.step = ""
         alarms.succeeded(robot.name)
         if t.source == CONVEYOR:

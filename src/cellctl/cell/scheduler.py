@@ -23,8 +23,15 @@ which the host cannot do. For the example cell's programs (about 1,000 character
 not use GO; a cell whose mills sit in PROGRAM LOAD mode would need it (see the mill driver's
 ``load`` and ``go``).
 
-``one_at_a_time=True`` is the source's way of working, for comparison: one part goes through
-its whole route before the next is loaded.
+Policies (:data:`POLICIES`, ``ControllerOptions(policy=...)``, ``cellctl plan --policy``) change
+only which waiting part is loaded next:
+
+- ``downstream-first`` (the default): as above, highest order priority, then oldest;
+- ``one-at-a-time``: the source's way of working, for comparison: one part goes through its
+  whole route before the next is loaded (``one_at_a_time=True`` says the same);
+- ``shortest-first``: among the parts of the highest priority, the part type with the least
+  machining (shortest processing time, from ``work_s``: seconds of machining per part type),
+  then oldest. It finishes more parts early in a shift; a long part type waits.
 
 The lower bound the benchmark measures a makespan against (:func:`lower_bound`) is the
 bottleneck bound: no resource can finish before it has done all its work, so
@@ -49,6 +56,20 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from cellctl.cell.config import CONVEYOR, PartType, transfer_name
+from cellctl.errors import UsageError
+
+DOWNSTREAM_FIRST = "downstream-first"
+ONE_AT_A_TIME = "one-at-a-time"
+SHORTEST_FIRST = "shortest-first"
+#: The scheduler's policies (see the module docstring).
+POLICIES = (DOWNSTREAM_FIRST, ONE_AT_A_TIME, SHORTEST_FIRST)
+
+
+def check_policy(policy: str) -> str:
+    """``policy`` if it is one of :data:`POLICIES`; :class:`UsageError` otherwise."""
+    if policy not in POLICIES:
+        raise UsageError(f"no scheduler policy {policy!r}; known: {', '.join(POLICIES)}")
+    return policy
 
 
 @dataclass(frozen=True)
@@ -100,8 +121,14 @@ def next_transfer(
     pallet_present: bool,
     outfeed_clear: bool = True,
     one_at_a_time: bool = False,
+    policy: str = DOWNSTREAM_FIRST,
+    work_s: Mapping[str, float] | None = None,
 ) -> Transfer | None:
-    """The robot's next task, or None if nothing can move now (see the module docstring)."""
+    """The robot's next task, or None if nothing can move now (see the module docstring).
+
+    ``policy`` one of :data:`POLICIES`; ``work_s`` (part type -> seconds of machining) is
+    what ``shortest-first`` ranks by (a part type missing from it counts as longest)."""
+    one_at_a_time = one_at_a_time or policy == ONE_AT_A_TIME
     occupied = {p.location for p in parts if p.location != CONVEYOR and p.status != "done"}
     at_mills = [p for p in parts if p.location != CONVEYOR and p.status in ("waiting", "active")]
     leaving = [p for p in parts if ready_to_leave(p, types)]
@@ -120,7 +147,17 @@ def next_transfer(
         return None
     if one_at_a_time and (at_mills or any(p.status == "held" for p in parts)):
         return None
-    for p in sorted(waiting_at_conveyor(parts), key=lambda p: (-p.priority, p.order_seq)):
+    if policy == SHORTEST_FIRST:
+        work = work_s or {}
+
+        def key(p: PartState) -> tuple[float, ...]:
+            return (-p.priority, work.get(p.part_type, float("inf")), p.order_seq)
+    else:
+
+        def key(p: PartState) -> tuple[float, ...]:
+            return (-p.priority, p.order_seq)
+
+    for p in sorted(waiting_at_conveyor(parts), key=key):
         first = next_stop(p, types)
         if first not in occupied and first in mills_in_service:
             return Transfer(p.id, CONVEYOR, first)

@@ -17,6 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol, Self
 
+from cellctl.clock import Clock
 from cellctl.drivers.state import StateStore, machine_key
 from cellctl.link import LineSettings, Link, TrafficLog, open_link
 from cellctl.link.lock import OwnerLock, runtime_dir
@@ -70,6 +71,12 @@ class LinkDriver:
     name: str
     #: Owner locks taken by connect(), released by close(); none for a driver built on a link.
     _owner_locks: list[OwnerLock] = []  # noqa: RUF012 - replaced per instance, never mutated
+    _clock: Clock | None = None
+
+    @property
+    def clock(self) -> Clock:
+        """What the driver reads the time from: the clock it was given, else its link's."""
+        return self._clock or self.link.clock
 
     @classmethod
     async def _connect_owned(
@@ -81,12 +88,13 @@ class LinkDriver:
         store: StateStore | None,
         trace: TrafficLog | str | Path | None,
         build: Callable[[Link], Self],
+        clock: Clock | None = None,
     ) -> Self:
         """Take the machine's locks, open ``url``, and ``build`` the driver on the link; on a
         failure close what was opened and give the locks back."""
         locks = take_link_locks(url, name, store)
         try:
-            link = await open_link(url, settings, trace=trace, label=name)
+            link = await open_link(url, settings, trace=trace, label=name, clock=clock)
             try:
                 driver = build(link)
             except BaseException:
@@ -98,9 +106,17 @@ class LinkDriver:
         driver._owner_locks = locks
         return driver
 
-    def _attach(self, link: Link, name: str | None, store: StateStore | None) -> dict[str, Any]:
-        """Take ``link``; return the state saved for this machine (``{}`` if none)."""
+    def _attach(
+        self,
+        link: Link,
+        name: str | None,
+        store: StateStore | None,
+        clock: Clock | None = None,
+    ) -> dict[str, Any]:
+        """Take ``link`` (and ``clock``, if given: else the link's); return the state saved
+        for this machine (``{}`` if none)."""
         self.link = link
+        self._clock = clock
         self.name = name or link.url
         self._store = store
         self._key = machine_key(self.name)

@@ -10,6 +10,11 @@ One :class:`ModbusPlc` per PLC; signal names and addresses come from a
     await plc.pulse("go_1", 0.5)                # start the program loaded in CNC 1
     await plc.close()
 
+``mem://NAME`` instead of ``modbus://`` reaches a PLC emulator in the same event loop
+(``PlcEmulator.start("mem://NAME")``): the same Modbus/TCP frames
+(:mod:`cellctl.protocol.modbus`) over a ``mem://`` line, what a run on virtual time uses;
+over TCP, pymodbus does the framing.
+
 Requests used (Modbus application protocol): 02 Read Discrete Inputs (all mapped inputs in
 one request, from the lowest to the highest address), 01 Read Coils, 05 Write Single Coil.
 
@@ -29,14 +34,18 @@ import asyncio
 from collections.abc import Awaitable, Callable
 from typing import Any
 
+from cellctl.clock import Clock, current_clock
 from cellctl.errors import (
     DeviceError,
     LinkClosed,
     LinkError,
     LinkTimeout,
+    ProtocolError,
     SignalTimeout,
     UsageError,
 )
+from cellctl.link import ETHERNET_LINE, Link, open_link
+from cellctl.protocol import modbus
 from cellctl.protocol.plc import (
     COIL,
     INPUT,
@@ -45,9 +54,10 @@ from cellctl.protocol.plc import (
     PlcMap,
     canonical,
     parse_modbus_url,
+    plc_mem_name,
 )
 
-__all__ = ["ModbusPlc"]
+__all__ = ["MemModbusClient", "ModbusPlc"]
 
 
 def _retrieve(future: asyncio.Future[Any]) -> None:
@@ -59,26 +69,40 @@ def _retrieve(future: asyncio.Future[Any]) -> None:
 class ModbusPlc:
     """Driver for the cell's PLC; build it with :meth:`connect`."""
 
-    def __init__(self, url: str, plc_map: PlcMap, *, timeout: float) -> None:
+    def __init__(
+        self, url: str, plc_map: PlcMap, *, timeout: float, clock: Clock | None = None
+    ) -> None:
         if timeout <= 0:
             raise UsageError(f"timeout must be > 0 s, not {timeout}")
         self.url = url
         self.map = plc_map
         self.timeout = timeout
+        self._clock = clock
         self.requests = 0
         self.last_inputs: dict[str, bool] = {}
         self._maybe_high: set[str] = set()  # coils a failed pulse may have left at 1
-        host, port = parse_modbus_url(url)
+        self._mem = plc_mem_name(url) is not None
+        host, port = ("", 0) if self._mem else parse_modbus_url(url)
         self._lost = asyncio.Event()
         self._closed = False
         self._address = (host, port)
         self._client: Any = self._new_client()
 
+    @property
+    def clock(self) -> Clock:
+        """What pulses and waits are timed on: the clock given, else the running loop's."""
+        return self._clock or current_clock()
+
     def _new_client(self) -> Any:
-        """A fresh pymodbus client. No retries and no background reconnects: every call has
-        one deadline, and the driver reconnects itself on the next call after a failure."""
+        """A fresh client: pymodbus's over TCP, :class:`MemModbusClient` over ``mem://``. No
+        retries and no background reconnects: every call has one deadline, and the driver
+        reconnects itself on the next call after a failure."""
         from pymodbus.client import AsyncModbusTcpClient
 
+        if self._mem:
+            # The line is free once the last client's close is through: it waits for that.
+            previous = getattr(self, "_client", None)
+            return MemModbusClient(self.url, self.timeout, previous=previous)
         host, port = self._address
         client: Any = None
 
@@ -108,7 +132,12 @@ class ModbusPlc:
 
     @classmethod
     async def connect(
-        cls, url: str | None = None, plc_map: PlcMap | None = None, *, timeout: float | None = None
+        cls,
+        url: str | None = None,
+        plc_map: PlcMap | None = None,
+        *,
+        timeout: float | None = None,
+        clock: Clock | None = None,
     ) -> ModbusPlc:
         """Connect to the PLC at ``url`` (default: the map's) and return a driver.
 
@@ -116,9 +145,9 @@ class ModbusPlc:
         the PLC cannot be reached.
         """
         plc_map = plc_map or PlcMap()
-        plc = cls(url or plc_map.url, plc_map, timeout=timeout or plc_map.timeout)
+        plc = cls(url or plc_map.url, plc_map, timeout=timeout or plc_map.timeout, clock=clock)
         try:
-            async with asyncio.timeout(plc.timeout):
+            async with plc.clock.timeout(plc.timeout):
                 await plc._ensure_connected()
         except TimeoutError:
             plc._client.close()
@@ -129,6 +158,8 @@ class ModbusPlc:
         """Close the connection (calls after this raise :class:`LinkClosed`)."""
         self._closed = True
         self._client.close()
+        if isinstance(self._client, MemModbusClient):
+            await self._client.wait_closed()
 
     async def __aenter__(self) -> ModbusPlc:
         return self
@@ -161,9 +192,12 @@ class ModbusPlc:
 
         answer: asyncio.Future[Any] | None = None
         try:
-            async with asyncio.timeout(self.timeout):
+            async with self.clock.timeout(self.timeout):
                 await self._ensure_connected()
                 self.requests += 1
+                if isinstance(self._client, MemModbusClient):
+                    # A mem:// line raises LinkClosed itself when the far end goes: no watch.
+                    return self._checked(what, await call())
                 answer = asyncio.ensure_future(call())
                 lost = asyncio.ensure_future(self._lost.wait())
                 try:
@@ -181,6 +215,17 @@ class ModbusPlc:
         except ConnectionException:
             self._drop_client()
             raise LinkClosed(f"PLC at {self.url}: connection lost ({what})") from None
+        except LinkTimeout:
+            self._drop_client()
+            raise LinkTimeout(
+                f"PLC at {self.url}: no answer to {what} within {self.timeout:g} s"
+            ) from None
+        except LinkError:
+            self._drop_client()
+            raise LinkClosed(f"PLC at {self.url} closed the connection ({what})") from None
+        except ProtocolError:
+            self._drop_client()  # the stream is out of step: never read it again
+            raise
         except ModbusException as e:
             was_lost = self._lost.is_set()
             self._drop_client()
@@ -194,6 +239,10 @@ class ModbusPlc:
                 answer.cancel()
             if answer is not None:
                 answer.add_done_callback(_retrieve)
+        return self._checked(what, response)
+
+    def _checked(self, what: str, response: Any) -> Any:
+        """``response``, or :class:`DeviceError` for a Modbus exception response."""
         if response.isError():
             code = int(getattr(response, "exception_code", 0))
             name = MODBUS_EXCEPTIONS.get(code, "unknown Modbus exception")
@@ -273,7 +322,7 @@ class ModbusPlc:
         self._maybe_high.add(name)
         await self.write(name, True)
         try:
-            await asyncio.sleep(seconds)  # the pulse width itself, not a wait for an event
+            await self.clock.sleep(seconds)  # the pulse width itself, not a wait for an event
         finally:
             await asyncio.shield(self.write(name, False))
 
@@ -290,16 +339,96 @@ class ModbusPlc:
         poll = self.map.poll if poll is None else poll
         if timeout < 0 or poll <= 0:
             raise UsageError("wait_for needs timeout >= 0 and poll > 0")
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout
+        clock = self.clock
+        deadline = clock.monotonic() + timeout
         want = bool(value)
         while True:
             inputs = await self.read_inputs()
             if inputs[name] == want:
                 return inputs
-            left = deadline - loop.time()
+            left = deadline - clock.monotonic()
             if left <= 0:
                 sig = SIGNALS[name]
                 phrase = sig.not_true if want else sig.not_false
                 raise SignalTimeout(f"{phrase} within {timeout:g} s")
-            await asyncio.sleep(min(poll, left))  # the poll period between reads
+            await clock.sleep(min(poll, left))  # the poll period between reads
+
+
+class MemModbusClient:
+    """A Modbus/TCP client over a ``mem://`` line, with the few calls of pymodbus's client
+    that :class:`ModbusPlc` uses (``connect``, ``connected``, ``close`` and the three
+    requests). One request at a time, in order: answers come back as they were asked.
+
+    Failures are the link's (:class:`LinkClosed`, :class:`LinkTimeout`) and the codec's
+    (:class:`~cellctl.errors.ProtocolError`, raw bytes attached).
+    """
+
+    def __init__(
+        self, url: str, timeout: float, *, previous: MemModbusClient | None = None
+    ) -> None:
+        self.url = url
+        self.timeout = timeout
+        self._previous = previous
+        self._link: Link | None = None
+        self._reader = modbus.AduReader()
+        self._transaction = 0
+        self._lock = asyncio.Lock()
+        self._closing: asyncio.Task[None] | None = None
+
+    @property
+    def connected(self) -> bool:
+        return self._link is not None and not self._link.closed
+
+    async def connect(self) -> bool:
+        """Open the line; False if nothing listens at the URL."""
+        if self._previous is not None:
+            await self._previous.wait_closed()  # one host at a time on a mem:// line
+            self._previous = None
+        try:
+            self._link = await open_link(self.url, ETHERNET_LINE, label="plc")
+        except LinkError:
+            return False
+        return True
+
+    def close(self) -> None:
+        """Close the line (at once: a mem:// close needs no wait)."""
+        link, self._link = self._link, None
+        if link is not None and not link.closed:
+            self._closing = asyncio.ensure_future(link.close())
+
+    async def wait_closed(self) -> None:
+        """Until the line is closed (after :meth:`close`)."""
+        if self._closing is not None:
+            await self._closing
+
+    async def _call(self, request: modbus.Request, frame: bytes) -> modbus.Response:
+        async with self._lock:
+            link = self._link
+            if link is None or link.closed:
+                raise LinkClosed(f"{self.url}: not connected")
+            await link.write(frame)
+            while True:
+                data = await link.read(timeout=self.timeout)
+                for adu in self._reader.feed(data):
+                    return modbus.decode_response(adu, request)
+
+    def _next(self) -> int:
+        self._transaction = (self._transaction + 1) & 0xFFFF
+        return self._transaction
+
+    async def _read(self, function: int, address: int, count: int, unit: int) -> Any:
+        tid = self._next()
+        request = modbus.Request(tid, unit, function, address, count)
+        return await self._call(request, modbus.encode_read(tid, unit, function, address, count))
+
+    async def read_discrete_inputs(self, address: int, *, count: int, device_id: int) -> Any:
+        return await self._read(modbus.READ_DISCRETE_INPUTS, address, count, device_id)
+
+    async def read_coils(self, address: int, *, count: int, device_id: int) -> Any:
+        return await self._read(modbus.READ_COILS, address, count, device_id)
+
+    async def write_coil(self, address: int, value: bool, *, device_id: int) -> Any:
+        tid = self._next()
+        request = modbus.Request(tid, device_id, modbus.WRITE_SINGLE_COIL, address, 1, value)
+        frame = modbus.encode_write_coil(tid, device_id, address, value)
+        return await self._call(request, frame)

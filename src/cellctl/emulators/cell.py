@@ -12,6 +12,12 @@ takes ``set_input`` and ``output_hooks``, a mill's takes ``cycle_start``, ``run_
     cell.runs_per_part()                    # {"P1": {"cnc1": 1, "cnc2": 1}, ...}
     await cell.close()
 
+``EmulatedCell(time_scale=1.0, links="mem")`` serves every machine on ``mem://`` in the
+running event loop instead (``mem://robot``, ``mem://cnc1``, the PLC's Modbus/TCP on
+``mem://plc``; ``mem_prefix`` in front of each name), what a run on virtual time takes
+(:func:`cellctl.clock.run_virtual`: the machines' own times and lines, scale 1). A robot
+whose kind serves interfaces of its own over TCP (the UR's three) cannot join such a cell.
+
 Serving: the robot on a pty (``robot.pty`` in the cell directory, a symlink that follows a
 new pty after a dropped connection; or any ``robot_listen``), the mills over RFC 2217 (their
 readiness is the CTS modem line), the PLC over Modbus/TCP, all on this machine. Every
@@ -39,18 +45,20 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import shutil
-import time
 from collections import defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
+from cellctl.clock import Clock, current_clock, emulator_clock
+from cellctl.emulators.memserve import serve_mem
 from cellctl.emulators.plc import PlcEmulator
 from cellctl.emulators.serve import (
     CELL_TIME_SCALE,
     MIN_DEADLINE_S,
+    EmulatedDevice,
     SelfServed,
     Server,
     scaled_deadline,
@@ -99,16 +107,25 @@ class EmulatedCell:
     def __init__(
         self,
         *,
-        time_scale: float = CELL_TIME_SCALE,
+        time_scale: float | None = None,
+        clock: Clock | None = None,
         pacing: bool = True,
         robot_listen: str = "pty",
         host: str = "127.0.0.1",
         mill_names: tuple[str, ...] = ("cnc1", "cnc2"),
         template: Path | None = None,
+        links: Literal["real", "mem"] = "real",
+        mem_prefix: str = "",
     ) -> None:
-        if time_scale <= 0:
-            raise UsageError(f"time scale must be positive, not {time_scale}")
-        self.time_scale = time_scale
+        # No clock and no scale: the cell's default scale on the real clock.
+        if clock is None and time_scale is None:
+            time_scale = CELL_TIME_SCALE
+        self._clock = emulator_clock(clock, time_scale)
+        time_scale = self.time_scale
+        if links not in ("real", "mem"):
+            raise UsageError(f"links must be 'real' or 'mem', not {links!r}")
+        self.links = links
+        self.mem_prefix = mem_prefix
         self.pacing = pacing
         self.robot_listen = robot_listen
         self.host = host
@@ -118,7 +135,7 @@ class EmulatedCell:
         )
         self.template = template or EXAMPLE_CELL
         self.kinds = _machine_kinds(self.template)
-        spec = EmulatorSpec(time_scale=time_scale)
+        spec = EmulatorSpec(clock=self._clock)
         robots = [n for n, k in self.kinds.items() if registry.family_of(k) == "robot"]
         if not robots:
             raise UsageError(f"{self.template / 'cell.toml'}: no robot machine to emulate")
@@ -134,7 +151,7 @@ class EmulatedCell:
             name: scaled_line(registry.kind(kind).line_settings, time_scale)
             for name, kind in self.kinds.items()
         }
-        self.plc = PlcEmulator(time_scale=time_scale, on_go=self._go)
+        self.plc = PlcEmulator(clock=self._clock, on_go=self._go)
         self.servers: dict[str, Server | SelfServed] = {}
         self.plc_url = ""
         # physical parts
@@ -145,6 +162,17 @@ class EmulatedCell:
         self.outfeed: list[str] = []
         self.cuts: list[Cut] = []
         self._tasks: set[asyncio.Task[None]] = set()
+
+    @property
+    def clock(self) -> Clock:
+        """What every machine of the cell runs on: the clock given (``clock=``, or
+        ``time_scale=`` as RealClock(time_scale)), else the running loop's."""
+        return self._clock or current_clock()
+
+    @property
+    def time_scale(self) -> float:
+        """Seconds of machine time per second of the cell's clock."""
+        return self.clock.time_scale
 
     # -- wiring -----------------------------------------------------------------------------------
 
@@ -179,7 +207,8 @@ class EmulatedCell:
             self._spawn(self._clear_outfeed())
 
     async def _clear_outfeed(self) -> None:
-        await asyncio.sleep(self.plc.timing.outfeed_s / self.time_scale)
+        clock = self.clock
+        await clock.sleep(self.plc.timing.outfeed_s / clock.time_scale)
         self.plc.set_input("outfeed_clear", True)
 
     def _spawn(self, coro: object) -> None:
@@ -190,7 +219,7 @@ class EmulatedCell:
     def _noting_cuts(self, index: int, name: str) -> Callable[[Any], None]:
         def note(run: Any) -> None:
             # A run starting on a mill cut whatever part sits in its vise.
-            self.cuts.append(Cut(name, self.vise[index], time.time()))
+            self.cuts.append(Cut(name, self.vise[index], self.clock.now()))
 
         return note
 
@@ -206,6 +235,9 @@ class EmulatedCell:
             mill.run_hooks.append(self._noting_cuts(index, name))
         self.plc.hooks.input.append(self._plc_input)
         self.robot.output_hooks.append(self._robot_output)
+        if self.links == "mem":
+            await self._serve_mem()
+            return write_text(cell_dir / "cell.toml", self._cell_toml(template / "cell.toml"))
         self.plc_url = await self.plc.start(f"modbus://{self.host}:0")
         for name, value in self.plc.inputs.items():
             self._plc_input(name, value)
@@ -228,6 +260,29 @@ class EmulatedCell:
             )
             mill.start()
         return write_text(cell_dir / "cell.toml", self._cell_toml(template / "cell.toml"))
+
+    async def _serve_mem(self) -> None:
+        """Every machine on ``mem://`` in the running loop, the PLC's Modbus/TCP too."""
+        prefix = self.mem_prefix
+        self.plc_url = await self.plc.start(f"mem://{prefix}plc")
+        for name, value in self.plc.inputs.items():
+            self._plc_input(name, value)
+        if type(self.robot).listen is not EmulatedDevice.listen:
+            raise UsageError(
+                f"{self.robot_name}: its kind serves interfaces of its own over TCP, which "
+                "a mem:// cell cannot carry; emulate this cell on real links"
+            )
+        self.servers[self.robot_name] = await serve_mem(
+            self.robot,
+            self.line_of(self.robot_name),
+            name=f"{prefix}{self.robot_name}",
+            pacing=self.pacing,
+        )
+        for name, mill in self.mills.items():
+            self.servers[name] = await serve_mem(
+                mill, self.line_of(name), name=f"{prefix}{name}", pacing=self.pacing
+            )
+            mill.start()
 
     def _cell_toml(self, template: Path) -> str:
         """The template's cell.toml with links, line and timeouts for this emulated cell."""

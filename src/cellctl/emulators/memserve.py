@@ -20,7 +20,7 @@ import asyncio
 import itertools
 import weakref
 
-from cellctl.clock import Clock
+from cellctl.clock import Clock, check_loop_clock
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, Server, _run_session, _spawn
 from cellctl.link import LineSettings
 from cellctl.link.mem import MemPort, listen_mem
@@ -50,6 +50,7 @@ async def serve_mem(
     host at a time (a second open is refused while one is open). ``pacing=False`` hands bytes
     over as fast as they come. ``server.close()`` stops listening and cuts the connection.
     """
+    check_loop_clock(device.clock, f"{type(device).__name__}")
     listen_name = name or _default_name(device)
     server = Server(url=f"mem://{listen_name}", device=device)
 
@@ -62,6 +63,7 @@ async def serve_mem(
             has_modem_lines=True,
             on_rts=port.set_rts,
             on_drop=port.drop,
+            clock=device.clock,
         )
         line.device = device
         port.on_data = line.feed

@@ -2,7 +2,8 @@
 
 Every emulator keeps one (``emulator.onsets``). A fault switched on is *armed* until it
 changes what the machine does -- the line drops, a request goes unanswered, a block ends
-without readiness, a coil is ignored -- and that moment is its onset (``time.time()``)::
+without readiness, a coil is ignored -- and that moment is its onset (wall time, the running
+loop's clock's ``now()``)::
 
     mill.set_fault("stall")           # armed: nothing shows until the running block ends
     ...
@@ -13,7 +14,7 @@ Benches measure a controller's reaction from it (``bench/fault_reaction.py``).
 
 from __future__ import annotations
 
-import time
+from cellctl.clock import current_clock
 
 
 class FaultOnsets:
@@ -28,7 +29,7 @@ class FaultOnsets:
 
     def act(self, name: str) -> None:
         """Fault ``name`` acts now (only its first act since it was armed counts)."""
-        self._at.setdefault(name, time.time())
+        self._at.setdefault(name, current_clock().now())
 
     def get(self, name: str) -> float | None:
         """When fault ``name`` first acted since it was switched on, or None."""

@@ -45,8 +45,12 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from cellctl.clock import Clock, current_clock, emulator_clock
 from cellctl.emulators.onsets import FaultOnsets
-from cellctl.errors import UsageError
+from cellctl.errors import FramingError, UsageError
+from cellctl.link import ETHERNET_LINE
+from cellctl.link.mem import MemListener, MemPort, listen_mem
+from cellctl.protocol import modbus
 from cellctl.protocol.plc import (
     COIL,
     INPUT,
@@ -56,6 +60,7 @@ from cellctl.protocol.plc import (
     PlcTiming,
     canonical,
     parse_modbus_url,
+    plc_mem_name,
 )
 
 __all__ = ["FAULTS", "PlcEmulator", "PlcHooks", "PlcTiming"]
@@ -89,14 +94,13 @@ class PlcEmulator:
         self,
         plc_map: PlcMap | None = None,
         *,
-        time_scale: float = 1.0,
+        time_scale: float | None = None,
+        clock: Clock | None = None,
         timing: PlcTiming | None = None,
         on_go: Callable[[int], None] | None = None,
     ) -> None:
-        if time_scale <= 0:
-            raise UsageError(f"time scale must be > 0, not {time_scale}")
+        self._clock = emulator_clock(clock, time_scale)
         self.map = plc_map or PlcMap()
-        self.time_scale = time_scale
         self._closing = False
         self.timing = timing or PlcTiming()
         self.hooks = PlcHooks()
@@ -122,6 +126,8 @@ class PlcEmulator:
         self._clients: set[asyncio.StreamWriter] = set()
         self._client_tasks: set[asyncio.Task[None]] = set()
         self._backend: tuple[str, int] = ("127.0.0.1", 0)
+        self._mem: MemListener | None = None
+        self._mem_ports: set[MemPort] = set()
         self.url = ""
 
     # -- state for tests and other emulators ----------------------------------------------------
@@ -168,6 +174,8 @@ class PlcEmulator:
         if name == "drop":
             for writer in list(self._clients):
                 writer.transport.abort()
+            for port in list(self._mem_ports):
+                port.drop()
         elif name == "no-pallet":
             if self._pallet_coming:
                 self.onsets.act(name)  # the pallet on its way never comes
@@ -206,16 +214,31 @@ class PlcEmulator:
         for hook in list(self.hooks.input):
             hook(name, value)
 
+    @property
+    def clock(self) -> Clock:
+        """What the PLC times its conveyor, vises and doors on: the clock given (``clock=``,
+        or ``time_scale=`` as RealClock(time_scale)), else the running loop's."""
+        return self._clock or current_clock()
+
+    @property
+    def time_scale(self) -> float:
+        """Seconds of machine time per second of its clock."""
+        return self.clock.time_scale
+
+    @time_scale.setter
+    def time_scale(self, value: float) -> None:
+        self._clock = emulator_clock(None, value)
+
     def _after(self, key: str, machine_s: float, fn: Callable[[], None]) -> None:
         """Run ``fn`` after ``machine_s`` of machine time, replacing what ``key`` had pending."""
         self._cancel(key)
-        loop = asyncio.get_running_loop()
+        clock = self.clock
 
         def fire() -> None:
             self._timers.pop(key, None)
             fn()
 
-        self._timers[key] = loop.call_later(machine_s / self.time_scale, fire)
+        self._timers[key] = clock.call_at(clock.monotonic() + machine_s / clock.time_scale, fire)
 
     def _cancel(self, key: str) -> None:
         timer = self._timers.pop(key, None)
@@ -352,7 +375,7 @@ class PlcEmulator:
         from pymodbus.simulator import DataType, SimData, SimDevice
 
         def bits(addresses: Mapping[str, int]) -> list[Any]:
-            size = (max(addresses.values(), default=0) // 16 + 1) * 16
+            size = _block_size(addresses)
             return [SimData(0, count=size, values=False, datatype=DataType.BITS)]
 
         regs = [SimData(0, count=1, values=0, datatype=DataType.REGISTERS)]
@@ -364,9 +387,18 @@ class PlcEmulator:
         )
 
     async def start(self, listen: str = "modbus://127.0.0.1:0") -> str:
-        """Listen at ``listen`` (port 0 picks a free one); returns :attr:`url`."""
+        """Listen at ``listen`` (port 0 picks a free one); returns :attr:`url`.
+
+        ``mem://NAME`` serves the same model in the running event loop instead: Modbus/TCP
+        frames (:mod:`cellctl.protocol.modbus`) over a ``mem://`` line, no socket (what a
+        virtual-time run takes)."""
         from pymodbus.server import ModbusTcpServer
 
+        name = plc_mem_name(listen)
+        if name is not None:
+            self._mem = listen_mem(name, ETHERNET_LINE, self._mem_client, pacing=False)
+            self.url = self._mem.url
+            return self.url
         host, port = parse_modbus_url(listen)
         server = ModbusTcpServer(self._device(), address=("127.0.0.1", 0))
         await server.serve_forever(background=True)
@@ -393,6 +425,11 @@ class PlcEmulator:
         self._closing = True
         for key in list(self._timers):
             self._cancel(key)
+        if self._mem is not None:
+            self._mem.close()
+            self._mem = None
+        for port in list(self._mem_ports):
+            port.drop()
         if self._front is not None:
             self._front.close()
         for writer in list(self._clients):
@@ -474,3 +511,66 @@ class PlcEmulator:
             answers.cancel()
             with contextlib.suppress(BaseException):
                 await answers
+
+    # -- Modbus/TCP in the same event loop (mem://) -------------------------------------------
+
+    def _mem_client(self, port: MemPort) -> None:
+        """One host on the mem:// line: answer its frames from the model, as pymodbus does."""
+        if "drop" in self.faults:
+            port.drop()  # as the TCP front door: the connection is cut at once
+            return
+        self._mem_ports.add(port)
+        reader = modbus.AduReader()
+
+        def on_data(data: bytes) -> None:
+            try:
+                adus = reader.feed(data)
+            except FramingError:
+                port.drop()  # no frame boundary left to find: a server closes the connection
+                return
+            for adu in adus:
+                if "silent" in self.faults:
+                    self.onsets.act("silent")
+                    continue  # read and never answer
+                port.write(self._answer(adu))
+
+        def on_closed() -> None:
+            self._mem_ports.discard(port)
+
+        port.on_data = on_data
+        port.on_closed = on_closed
+
+    def _answer(self, adu: modbus.Adu) -> bytes:
+        """The answer to one request frame (an exception response for an illegal one)."""
+        self.requests_served += 1
+        try:
+            request = modbus.decode_request(adu)
+        except modbus.IllegalRequest as e:
+            return modbus.encode_exception(adu.transaction, adu.unit, e.function, e.code)
+        tid, unit = adu.transaction, adu.unit
+        if request.function == modbus.WRITE_SINGLE_COIL:
+            if request.address >= _block_size(self.map.coils):
+                return modbus.encode_exception(tid, unit, request.function, _ILLEGAL_ADDRESS)
+            by_address = {a: n for n, a in self.map.coils.items()}
+            name = by_address.get(request.address)
+            if name is not None:
+                self._coil_written(name, request.value)
+            return modbus.encode_write_coil_response(tid, unit, request.address, request.value)
+        if request.function == modbus.READ_COILS:
+            addresses, levels = self.map.coils, self.coils
+        else:
+            addresses, levels = self.map.inputs, self.inputs
+        if request.address + request.count > _block_size(addresses):
+            return modbus.encode_exception(tid, unit, request.function, _ILLEGAL_ADDRESS)
+        by_bit = {a: bool(levels.get(n)) for n, a in addresses.items()}
+        bits = [by_bit.get(request.address + i, False) for i in range(request.count)]
+        return modbus.encode_bits_response(tid, unit, request.function, bits)
+
+
+#: Modbus exception 02, illegal data address: a read or write outside the PLC's bit blocks.
+_ILLEGAL_ADDRESS = 2
+
+
+def _block_size(addresses: Mapping[str, int]) -> int:
+    """How many bits a block holds (pymodbus's blocks here: whole 16-bit words from 0)."""
+    return (max(addresses.values(), default=0) // 16 + 1) * 16

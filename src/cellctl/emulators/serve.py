@@ -42,6 +42,7 @@ from urllib.parse import urlsplit
 
 from serial import rfc2217
 
+from cellctl.clock import Clock, check_loop_clock, current_clock, emulator_clock
 from cellctl.errors import LinkClosed, UsageError
 from cellctl.link import LineSettings, parse_host_port
 
@@ -137,6 +138,7 @@ class DeviceLine:
         has_modem_lines: bool = False,
         on_rts: Callable[[bool], None] | None = None,
         on_drop: Callable[[], None] | None = None,
+        clock: Clock | None = None,
     ) -> None:
         self.settings = settings
         self.pacing = pacing
@@ -146,6 +148,9 @@ class DeviceLine:
         self._on_rts = on_rts
         self._on_drop = on_drop
         self._loop = asyncio.get_running_loop()
+        # Made in its running loop: the clock can be resolved now.
+        self.clock: Clock = clock or current_clock()
+        check_loop_clock(self.clock, "an emulator's line")
         self._pending = bytearray()
         # (time the chunk's last byte is through the line, chunk length), oldest first
         self._chunks: deque[tuple[float, int]] = deque()
@@ -173,7 +178,7 @@ class DeviceLine:
         data = self._noisy(data, "in")
         if not data:
             return
-        now = self._loop.time()
+        now = self.clock.monotonic()
         if self.pacing:
             self._rx_clock = max(now, self._rx_clock) + len(data) * self.settings.char_time
             ready = self._rx_clock
@@ -231,9 +236,9 @@ class DeviceLine:
             raise LinkClosed("the host closed the line")
         fut: asyncio.Future[None] = self._loop.create_future()
         self._waiter = fut
-        self._deadline = None if timeout is None else self._loop.time() + timeout
+        self._deadline = None if timeout is None else self.clock.monotonic() + timeout
         if self._deadline is not None and self._timer is None:
-            self._timer = self._loop.call_at(self._deadline, self._on_timer)
+            self._timer = self.clock.call_at(self._deadline, self._on_timer)
         try:
             await fut
         finally:
@@ -248,15 +253,15 @@ class DeviceLine:
         waiter, deadline = self._waiter, self._deadline
         if waiter is None or waiter.done() or deadline is None:
             return
-        if self._loop.time() >= deadline:
+        if self.clock.monotonic() >= deadline:
             waiter.set_result(None)
         else:
-            self._timer = self._loop.call_at(deadline, self._on_timer)
+            self._timer = self.clock.call_at(deadline, self._on_timer)
 
     async def _until_ready(self, index: int) -> None:
-        delay = self._ready_time(index) - self._loop.time()
+        delay = self._ready_time(index) - self.clock.monotonic()
         if delay > 0:
-            await asyncio.sleep(delay)
+            await self.clock.sleep(delay)
 
     async def read(self, max_bytes: int = 4096, timeout: float | None = None) -> bytes:
         """Host bytes that are through the line (at least one); b"" if ``timeout`` passes.
@@ -265,16 +270,16 @@ class DeviceLine:
         crossed the line, like a UART's receive FIFO on idle: one wake-up per write rather
         than one per character, which matters with a thousand emulated lines in one process.
         """
-        deadline = None if timeout is None else self._loop.time() + timeout
+        deadline = None if timeout is None else self.clock.monotonic() + timeout
         while not self._pending:
-            left = None if deadline is None else deadline - self._loop.time()
+            left = None if deadline is None else deadline - self.clock.monotonic()
             if left is not None and left <= 0:
                 return b""
             await self._wait_data(left)
-        delay = self._chunks[0][0] - self._loop.time()
+        delay = self._chunks[0][0] - self.clock.monotonic()
         if delay > 0:
-            await asyncio.sleep(delay)
-        now = self._loop.time()
+            await self.clock.sleep(delay)
+        now = self.clock.monotonic()
         n = 0
         for end_time, length in self._chunks:
             if end_time > now and n:
@@ -284,14 +289,14 @@ class DeviceLine:
 
     async def read_until(self, terminator: bytes, timeout: float | None = None) -> bytes:
         """Host bytes up to and including ``terminator``; b"" if ``timeout`` passes first."""
-        deadline = None if timeout is None else self._loop.time() + timeout
+        deadline = None if timeout is None else self.clock.monotonic() + timeout
         while True:
             i = self._pending.find(terminator)
             if i >= 0:
                 end = i + len(terminator)
                 await self._until_ready(end - 1)
                 return self._take(end)
-            left = None if deadline is None else deadline - self._loop.time()
+            left = None if deadline is None else deadline - self.clock.monotonic()
             if left is not None and left <= 0:
                 return b""
             await self._wait_data(left)
@@ -322,7 +327,7 @@ class DeviceLine:
             return
         ct = self.settings.char_time
         step = max(1, int(_PACE_SLICE_S / ct))
-        now = self._loop.time()
+        now = self.clock.monotonic()
         # An answer to bytes just received starts when they ended on the line, not when this
         # process got round to it: a real controller's reply does not carry the emulator's
         # scheduling delay (up to _CATCH_UP_S of it is taken back).
@@ -331,7 +336,7 @@ class DeviceLine:
         for i in range(0, len(data), step):
             piece = data[i : i + step]
             self._tx_clock += len(piece) * ct
-            self._loop.call_at(self._tx_clock, self._deliver, piece)
+            self.clock.call_at(self._tx_clock, self._deliver, piece)
 
     def _deliver(self, piece: bytes) -> None:
         if not self._closed:
@@ -340,9 +345,9 @@ class DeviceLine:
 
     async def drain(self) -> None:
         """Wait until everything written has crossed the line."""
-        delay = self._tx_clock - self._loop.time()
+        delay = self._tx_clock - self.clock.monotonic()
         if delay > 0:
-            await asyncio.sleep(delay)
+            await self.clock.sleep(delay)
 
     def set_rts(self, level: bool) -> None:
         """Drive the emulator's RTS (the host's CTS). No effect where modem lines don't travel."""
@@ -369,6 +374,24 @@ class EmulatedDevice(ABC):
 
     #: Line noise on every connection (the ``noise`` fault), or None.
     noise: LineNoise | None = None
+    #: The clock given (see ``clock``); None: the running loop's, resolved when used.
+    _clock: Clock | None = None
+
+    @property
+    def clock(self) -> Clock:
+        """What the emulator times its machine on: the clock it was given, else the running
+        loop's (an emulator may be made before its loop runs)."""
+        return self._clock or current_clock()
+
+    @property
+    def time_scale(self) -> float:
+        """Seconds of machine time per second of its clock: the emulator divides by it."""
+        return self.clock.time_scale
+
+    @time_scale.setter
+    def time_scale(self, value: float) -> None:
+        # Shorthand for the clock RealClock(value), as the constructors' time_scale=.
+        self._clock = emulator_clock(None, value)
 
     @abstractmethod
     async def session(self, line: DeviceLine) -> None:
@@ -502,7 +525,7 @@ async def _serve_pty(
             # A dropped pty is gone for good, as an unplugged cable; a new one takes its place.
             loop.call_soon(start)
 
-        line = DeviceLine(settings, pacing=pacing, send=send, on_drop=on_drop)
+        line = DeviceLine(settings, pacing=pacing, send=send, on_drop=on_drop, clock=device.clock)
         line.device = device
 
         def readable() -> None:
@@ -661,6 +684,7 @@ class _TcpConnection(asyncio.BufferedProtocol):
             has_modem_lines=self.rfc,
             on_rts=on_rts,
             on_drop=transport.abort,
+            clock=self.server.device.clock,
         )
         line.device = self.server.device
         self.line = line

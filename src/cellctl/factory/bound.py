@@ -8,11 +8,13 @@
     # best: s; split: {"cell1": {"wax-robot-base": 15, "wax-toy-mill-table": 15}, ...}
 
 A cell's bound is the bottleneck bound (:func:`cellctl.cell.scheduler.resource_bounds`) of the
-parts it is given. :func:`physical_bound` takes its durations from what the machines physically
-do (:mod:`cellctl.cell.physics`: the machines' own models, never a measured duration): no cell
-can beat it, whatever its controller does. :func:`cell_bound` takes the durations that cell
-measured (the mean of each robot program and each (mill, program), the least of each for head
-and tail), overhead included: how busy the bottleneck was, not how close to the best possible.
+parts it is given (infinite when they include a type it does not make: cells of different
+templates make different types). :func:`physical_bound` takes its durations from what the
+machines physically do (:mod:`cellctl.cell.physics`: the machines' own models, never a measured
+duration): no cell can beat it, whatever its controller does. :func:`cell_bound` takes the
+durations that cell measured (the mean of each robot program and each (mill, program), the
+least of each for head and tail), overhead included: how busy the bottleneck was, not how close
+to the best possible.
 
 No split of the batch can finish before its busiest cell's bound, so the least, over every way
 of dividing each type's count among the cells, of the largest cell bound is a bound on the
@@ -44,6 +46,8 @@ def cell_bound(types: Mapping[str, PartType], d: Durations) -> CellBound:
         parts = [t for t, n in counts.items() for _ in range(n)]
         if not parts:
             return 0.0
+        if not set(parts) <= set(types):
+            return math.inf  # a type it does not make: never all of this batch
         return lower_bound(
             parts,
             types,
@@ -60,7 +64,10 @@ def physical_bound(types: Mapping[str, PartType], physics: Physics) -> CellBound
     """The physical bound (s) of a cell making ``types``, per batch (see module docstring)."""
 
     def bound(counts: Mapping[str, int]) -> float:
-        return physics.bound([t for t, n in counts.items() for _ in range(n)], types)
+        parts = [t for t, n in counts.items() for _ in range(n)]
+        if not set(parts) <= set(types):
+            return math.inf  # a type it does not make: never all of this batch
+        return physics.bound(parts, types)
 
     return bound
 

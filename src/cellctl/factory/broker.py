@@ -34,7 +34,6 @@ import secrets
 import shutil
 import signal
 import socket
-import time
 import tomllib
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -42,6 +41,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Self
 
+from cellctl.clock import current_clock
 from cellctl.errors import LinkError, UsageError
 
 #: Where Debian puts the broker and its password tool.
@@ -301,7 +301,8 @@ class MosquittoBroker:
             stderr=asyncio.subprocess.DEVNULL,
             start_new_session=True,  # a Ctrl-C on the terminal is ours to handle
         )
-        deadline = time.monotonic() + START_TIMEOUT_S
+        clock = current_clock()
+        deadline = clock.monotonic() + START_TIMEOUT_S
         while True:
             if self._process.returncode is not None:
                 raise LinkError(f"Mosquitto exited at start (code {self._process.returncode})")
@@ -310,13 +311,13 @@ class MosquittoBroker:
                     asyncio.open_connection(self.host, self.port), timeout=1.0
                 )
             except (OSError, TimeoutError):
-                if time.monotonic() > deadline:
+                if clock.monotonic() > deadline:
                     await self.kill()
                     raise LinkError(
                         f"Mosquitto did not accept connections on {self.host}:{self.port} "
                         f"within {START_TIMEOUT_S:g} s{self._log_tail()}"
                     ) from None
-                await asyncio.sleep(0.02)
+                await clock.sleep(0.02)
                 continue
             writer.close()
             with contextlib.suppress(OSError):

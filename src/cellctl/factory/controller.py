@@ -25,11 +25,11 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
-import time
 from collections.abc import Callable
 
 import aiomqtt
 
+from cellctl.clock import Clock, current_clock
 from cellctl.factory.config import FactoryConfig
 from cellctl.factory.dispatch import choose, every_cell_refused
 from cellctl.factory.store import (
@@ -67,7 +67,7 @@ class FactoryController:
         store: FactoryStore,
         *,
         log: Callable[[str], None] = lambda text: None,
-        clock: Callable[[], float] = time.time,
+        clock: Clock | None = None,
     ) -> None:
         self.config = config
         self.store = store
@@ -81,6 +81,11 @@ class FactoryController:
         #: Per cell: (epoch, seq) after which its reports are missing, and when last asked.
         self._missing: dict[str, tuple[str, int]] = {}
         self._asked: dict[str, tuple[tuple[str, int], float]] = {}
+
+    @property
+    def clock(self) -> Clock:
+        """What the factory reads the time from: the clock given, else the running loop's."""
+        return self._clock or current_clock()
 
     def log(self, text: str, cell: str | None = None, order_id: str | None = None) -> None:
         self.store.log(text, cell, order_id)
@@ -120,7 +125,7 @@ class FactoryController:
             for prefix in self.config.cells.values():
                 for topic in ("reports", "state", "status"):
                     await client.subscribe(f"{prefix}/{topic}", qos=1)
-            self.connected_since = self._clock()
+            self.connected_since = self.clock.now()
             self._reconnect.connected()
             self.log(f"{self.config.name}: connected to the broker {self.config.broker_url}")
             receiver = asyncio.create_task(self._receive(client))
@@ -140,14 +145,15 @@ class FactoryController:
 
     async def _wait(self) -> None:
         """Until poked, an order submitted elsewhere, or the poll period is over."""
-        deadline = time.monotonic() + self.config.poll_period
-        while time.monotonic() < deadline:
+        clock = self.clock
+        deadline = clock.monotonic() + self.config.poll_period
+        while clock.monotonic() < deadline:
             version = self.store.data_version()
             if version != self._data_version:
                 self._data_version = version
                 return
             with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(min(SUBMIT_CHECK_S, deadline - time.monotonic())):
+                async with clock.timeout(min(SUBMIT_CHECK_S, deadline - clock.monotonic())):
                     await self._wake.wait()
             if self._wake.is_set():
                 self._wake.clear()
@@ -217,7 +223,7 @@ class FactoryController:
     async def tick(self, client: aiomqtt.Client) -> None:
         """Dispatch queued orders, re-send unanswered ones, move those that cannot stay, ask
         cells for the reports that are missing."""
-        now = self._clock()
+        now = self.clock.now()
         await self._ask(client, now)
         cells = self.store.cells()
         for order in self.store.orders([SENT]):

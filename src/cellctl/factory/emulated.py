@@ -9,6 +9,10 @@ the tests and ``bench/factory_throughput.py``).
         plant.directory      # plant/factory.toml: cellctl factory --dir plant run
         plant.cells[0].runs_per_part()   # what the emulated mills of cell1 cut
 
+    # cell1 emulates examples/cell-tending (its machines, programs, part types), cell2 the
+    # example cell: a template per cell, in order; the cells past them the example cell.
+    EmulatedFactory(Path("plant"), cells=2, templates=[Path("examples/cell-tending")])
+
 Each cell's ``cell.toml`` names the cell ``cellN`` and takes its orders from the broker
 (``[mailbox] url = "mqtt://127.0.0.1:PORT/cellctl/cellN"``, its own 0600 credentials in
 ``mqtt.toml``). The broker lets each cell read only its orders and write only its reports,
@@ -19,12 +23,14 @@ from __future__ import annotations
 
 import re
 import shutil
+from collections.abc import Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import Self
 
 from cellctl.emulators.cell import EmulatedCell
 from cellctl.emulators.serve import CELL_TIME_SCALE
+from cellctl.errors import UsageError
 from cellctl.factory.broker import FACTORY_USER, MosquittoBroker
 from cellctl.factory.config import FACTORY_FILE
 
@@ -38,7 +44,9 @@ def _copy_private(source: Path, target: Path) -> None:
 
 
 class EmulatedFactory:
-    """See the module docstring; ``poll_period`` (s) replaces the cells' own when given."""
+    """See the module docstring; ``poll_period`` (s) replaces the cells' own when given;
+    ``templates``: the cell directory cell1, cell2, ... emulate (None or past the list: the
+    example cell)."""
 
     def __init__(
         self,
@@ -50,11 +58,19 @@ class EmulatedFactory:
         poll_period: float | None = None,
         accept_timeout: float = 30.0,
         factory_poll: float = 0.5,
+        templates: Sequence[Path | None] = (),
     ) -> None:
         if not 1 <= cells <= 32:
             raise ValueError(f"an emulated factory has 1 to 32 cells, not {cells}")
+        if len(templates) > cells:
+            raise UsageError(f"{len(templates)} cell templates for {cells} cells")
+        for template in templates:
+            if template is not None and not (template / "cell.toml").is_file():
+                raise UsageError(f"{template}: no cell.toml (a cell template is a cell directory)")
         self.directory = Path(directory)
         self.names = [f"cell{i}" for i in range(1, cells + 1)]
+        #: The cell directory each cell emulates (None: the example cell).
+        self.templates: list[Path | None] = [*templates, *[None] * (cells - len(templates))]
         self.time_scale = time_scale
         self.pacing = pacing
         self.poll_period = poll_period
@@ -75,12 +91,16 @@ class EmulatedFactory:
 
     async def start(self) -> Path:
         """Start the broker and the cells; write the cell directories and factory.toml."""
+        # Each template's machines first: one that cannot be emulated is refused before
+        # anything starts or is written.
+        self.cells = [
+            EmulatedCell(time_scale=self.time_scale, pacing=self.pacing, template=template)
+            for template in self.templates
+        ]
         self.directory.mkdir(parents=True, exist_ok=True)
         await self.broker.start()
         try:
-            for name, cell_dir in zip(self.names, self.cell_dirs, strict=True):
-                cell = EmulatedCell(time_scale=self.time_scale, pacing=self.pacing)
-                self.cells.append(cell)
+            for name, cell_dir, cell in zip(self.names, self.cell_dirs, self.cells, strict=True):
                 toml = await cell.start(cell_dir)
                 _copy_private(self.broker.credentials(name), cell_dir / "mqtt.toml")
                 text = toml.read_text(encoding="utf-8")
@@ -114,8 +134,10 @@ class EmulatedFactory:
             f'url = "{self.broker.url}"',
             'credentials = "factory.credentials"',
         ]
-        for name in self.names:
+        for name, template in zip(self.names, self.templates, strict=True):
             lines += ["", f"[cells.{name}]", f'prefix = "{PREFIX.format(name=name)}"']
+            if template is not None:
+                lines[-1] += f"  # emulates {str(template)!r}"
         return "\n".join(lines) + "\n"
 
     async def close(self) -> None:

@@ -25,13 +25,13 @@ from __future__ import annotations
 
 import json
 import sqlite3
-import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
 from cellctl.cell.sqlitedb import SqliteStore
+from cellctl.clock import Clock, current_clock
 from cellctl.errors import UsageError
 from cellctl.mailbox.base import MAX_QTY, check_new_order
 from cellctl.mailbox.wire import MAX_NAME, ReportKind, ReportMessage
@@ -181,15 +181,19 @@ class Taken(NamedTuple):
 
 
 class FactoryStore(SqliteStore):
-    """The factory's SQLite file (see module docstring); ``clock`` gives the times recorded."""
+    """The factory's SQLite file (see module docstring); ``clock`` gives the times recorded
+    (its ``now()``; None: the running loop's clock, read when a time is recorded)."""
 
-    def __init__(self, path: Path, *, clock: Callable[[], float] = time.time) -> None:
+    def __init__(self, path: Path, *, clock: Clock | None = None) -> None:
         super().__init__(path, SCHEMA)
         self._clock = clock
         with self._write() as db:  # a store from before epochs
             columns = {row["name"] for row in db.execute("PRAGMA table_info(cells)")}
             if "epoch" not in columns:
                 db.execute("ALTER TABLE cells ADD COLUMN epoch TEXT")
+
+    def _now(self) -> float:
+        return (self._clock or current_clock()).now()
 
     # -- orders in ----------------------------------------------------------------------------
 
@@ -202,7 +206,7 @@ class FactoryStore(SqliteStore):
             raise UsageError(f"an order id and a part type have at most {MAX_NAME} characters")
         if qty > MAX_QTY:
             raise UsageError(f"order quantity must be at most {MAX_QTY}, not {qty}")
-        now = self._clock()
+        now = self._now()
         with self._write() as db:
             row = db.execute("SELECT * FROM orders WHERE id = ?", (oid,)).fetchone()
             if row is not None:
@@ -240,7 +244,7 @@ class FactoryStore(SqliteStore):
 
     def send_many(self, choices: Sequence[tuple[str, str]], expires: float) -> list[FactoryOrder]:
         """Give each queued order of ``choices`` (order id, cell) to its cell, in one commit."""
-        now = self._clock()
+        now = self._now()
         out = []
         with self._write() as db:
             for order_id, cell in choices:
@@ -266,12 +270,12 @@ class FactoryStore(SqliteStore):
         with self._write() as db:
             db.execute(
                 "UPDATE orders SET last_send = ?, sends = sends + 1 WHERE id = ? AND state = ?",
-                (self._clock(), order_id, SENT),
+                (self._now(), order_id, SENT),
             )
 
     def requeue(self, order_id: str, cell: str, why: str) -> None:
         """The order is not at ``cell`` (refused, or never taken): queue it for another."""
-        now = self._clock()
+        now = self._now()
         with self._write() as db:
             row = db.execute("SELECT * FROM orders WHERE id = ?", (order_id,)).fetchone()
             if row is None:
@@ -289,7 +293,7 @@ class FactoryStore(SqliteStore):
 
     def fail(self, order_id: str, why: str) -> None:
         """No cell can make it: the order fails with ``why``."""
-        now = self._clock()
+        now = self._now()
         with self._write() as db:
             db.execute(
                 "UPDATE orders SET state = ?, note = ?, updated = ?, finished = ? WHERE id = ?"
@@ -312,7 +316,7 @@ class FactoryStore(SqliteStore):
 
     def set_status(self, cell: str, status: str) -> bool:
         """Record a cell's online/offline; True when it changed."""
-        now = self._clock()
+        now = self._now()
         with self._write() as db:
             row = db.execute("SELECT status FROM cells WHERE name = ?", (cell,)).fetchone()
             if row is not None and row["status"] == status:
@@ -330,7 +334,7 @@ class FactoryStore(SqliteStore):
             db.execute(
                 "INSERT INTO cells (name, state, state_time) VALUES (?, ?, ?) ON CONFLICT(name)"
                 " DO UPDATE SET state = excluded.state, state_time = excluded.state_time",
-                (cell, json.dumps(state), float(state.get("time", self._clock()))),
+                (cell, json.dumps(state), float(state.get("time", self._now()))),
             )
 
     def take_report(self, cell: str, report: ReportMessage) -> Taken:
@@ -339,7 +343,7 @@ class FactoryStore(SqliteStore):
         Reports come at least once: one at or below the last seen seq changes nothing, except
         an answer (accepted, rejected) sent again for a re-sent order.
         """
-        now = self._clock()
+        now = self._now()
         with self._write() as db:
             row = db.execute("SELECT seq, epoch FROM cells WHERE name = ?", (cell,)).fetchone()
             last, epoch = (row["seq"], row["epoch"]) if row is not None else (0, None)
@@ -379,7 +383,7 @@ class FactoryStore(SqliteStore):
 
     def log(self, text: str, cell: str | None = None, order_id: str | None = None) -> None:
         with self._write() as db:
-            _event(db, self._clock(), cell, order_id, text)
+            _event(db, self._now(), cell, order_id, text)
 
     def events(self, after: int = 0, limit: int = 200) -> list[FactoryEvent]:
         rows = self._read(

@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ValidationError
 
+from cellctl.clock import Clock, emulator_clock
 from cellctl.errors import UsageError
 from cellctl.link import LineSettings, TrafficLog
 
@@ -120,17 +121,35 @@ class DriverSpec:
     trace: TrafficLog | None = None
     start_output: StartOutput | None = None
     """A mill's cycle-start input, wired through the cell's PLC (None: no GO)."""
+    clock: Clock | None = None
+    """What the driver times its waits on (None: its link's, the running loop's)."""
 
 
 @dataclass(frozen=True)
 class EmulatorSpec:
-    """How to build a kind's emulator: its time scale and, for the emulated cell, an
-    automatic operator (``operator_s``: seconds the operator takes for a setup, 0 = at once)."""
+    """How to build a kind's emulator: its clock and, for the emulated cell, an automatic
+    operator (``operator_s``: seconds the operator takes for a setup, 0 = at once).
+
+    ``clock`` is what the emulator runs on; ``time_scale`` alone is shorthand for
+    ``RealClock(time_scale)``, and with a clock it is the clock's. Neither (or a scale of 1):
+    the running loop's clock, resolved when used, so the same emulator runs on virtual time.
+    A kind builds its emulator with ``clock=spec.emulator_clock()``.
+    """
 
     time_scale: float = 1.0
     readiness: str = "modem"
     operator: bool = True
     extra: dict[str, Any] = field(default_factory=dict)
+    clock: Clock | None = None
+
+    def __post_init__(self) -> None:
+        clock = emulator_clock(self.clock, None if self.time_scale == 1.0 else self.time_scale)
+        if clock is not None:
+            object.__setattr__(self, "time_scale", clock.time_scale)
+
+    def emulator_clock(self) -> Clock | None:
+        """The clock to hand the emulator (None: the running loop's, resolved when used)."""
+        return emulator_clock(self.clock, self.time_scale)
 
 
 @dataclass(frozen=True)

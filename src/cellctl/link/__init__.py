@@ -23,12 +23,14 @@ from __future__ import annotations
 from pathlib import Path
 from urllib.parse import urlsplit
 
+from cellctl.clock import Clock
 from cellctl.errors import UsageError
 from cellctl.link.base import Link
-from cellctl.link.settings import MILL_LINE, ROBOT_LINE, LineSettings
+from cellctl.link.settings import ETHERNET_LINE, MILL_LINE, ROBOT_LINE, LineSettings
 from cellctl.link.trace import RECEIVED, SENT, TrafficLog
 
 __all__ = [
+    "ETHERNET_LINE",
     "MILL_LINE",
     "RECEIVED",
     "ROBOT_LINE",
@@ -62,8 +64,12 @@ async def open_link(
     trace: TrafficLog | str | Path | None = None,
     label: str | None = None,
     connect_timeout: float = 5.0,
+    clock: Clock | None = None,
 ) -> Link:
     """Open the link ``url`` with ``settings``; ``trace`` logs every byte both ways.
+
+    ``clock`` is what its deadlines and trace stamps read (None: the running loop's; for
+    ``mem://``, the line's, which paces the bytes).
 
     Raises UsageError for a URL it does not understand and LinkError when the far end
     cannot be reached.
@@ -84,19 +90,19 @@ async def open_link(
         path = url.split("://", 1)[1] if scheme else url
         if not path:
             raise UsageError("empty serial device path")
-        return SerialLink(path, settings, log, name)
+        return SerialLink(path, settings, log, name, clock=clock)
     if scheme == "socket":
         from cellctl.link.tcp import TcpLink
 
         host, port = parse_host_port(url)
-        tcp = TcpLink(url, settings, log, name)
+        tcp = TcpLink(url, settings, log, name, clock=clock)
         await tcp._connect(host, port, connect_timeout)
         return tcp
     if scheme == "rfc2217":
         from cellctl.link.rfc2217 import Rfc2217Link
 
         host, port = parse_host_port(url)
-        link = Rfc2217Link(url, settings, log, name)
+        link = Rfc2217Link(url, settings, log, name, clock=clock)
         await link._connect(host, port, connect_timeout)
         try:
             await link._negotiate(connect_timeout)
@@ -107,11 +113,11 @@ async def open_link(
     if scheme == "loop":
         from cellctl.link.loop import LoopLink
 
-        return LoopLink(url, settings, log, name)
+        return LoopLink(url, settings, log, name, clock=clock)
     if scheme == "mem":
         from cellctl.link.mem import open_mem
 
-        return open_mem(url, settings, log, name)
+        return open_mem(url, settings, log, name, clock)
     raise UsageError(
         f"link URL {url!r} not understood: use a device path, socket://HOST:PORT, "
         "rfc2217://HOST:PORT, loop:// or mem://NAME"

@@ -8,10 +8,10 @@ any protocol. Subclasses push received bytes with ``_feed`` and implement ``_sen
 from __future__ import annotations
 
 import asyncio
-import time
 from abc import ABC, abstractmethod
 from types import TracebackType
 
+from cellctl.clock import Clock, check_loop_clock, current_clock
 from cellctl.errors import LinkClosed, LinkError, LinkTimeout, UsageError, format_raw
 from cellctl.link.settings import LineSettings
 from cellctl.link.trace import RECEIVED, SENT, TrafficLog
@@ -22,13 +22,23 @@ class Link(ABC):
 
     Reads return as soon as bytes are there; every read takes a ``timeout`` in seconds and
     raises :class:`LinkTimeout` when it passes, :class:`LinkClosed` when the other end went
-    away. Writes return once the bytes are handed to the OS or network.
+    away. Writes return once the bytes are handed to the OS or network. Deadlines and trace
+    stamps are read from ``clock`` (the running loop's :func:`~cellctl.clock.current_clock` if
+    None).
     """
 
     has_modem_lines: bool = False
     """True where the host's CTS (the machine's RTS) can be read: serial ports and RFC 2217."""
 
-    def __init__(self, url: str, settings: LineSettings, trace: TrafficLog | None, label: str):
+    def __init__(
+        self,
+        url: str,
+        settings: LineSettings,
+        trace: TrafficLog | None,
+        label: str,
+        *,
+        clock: Clock | None = None,
+    ):
         self.url = url
         self.settings = settings
         self.label = label
@@ -39,6 +49,9 @@ class Link(ABC):
         self._timer: asyncio.TimerHandle | None = None
         self._closed_exc: LinkError | None = None
         self._loop = asyncio.get_running_loop()
+        # A link is made in its running loop: its clock can be resolved now.
+        self.clock: Clock = clock or current_clock()
+        check_loop_clock(self.clock, f"link {url}")
         self.bytes_sent = 0
         self.bytes_received = 0
 
@@ -50,7 +63,7 @@ class Link(ABC):
             return
         self.bytes_received += len(data)
         if self._trace is not None:
-            self._trace.record(self.label, RECEIVED, data, time.time())
+            self._trace.record(self.label, RECEIVED, data, self.clock.now())
         self._buf += data
         self._wake()
 
@@ -85,7 +98,7 @@ class Link(ABC):
         if not data:
             return
         if self._trace is not None:
-            self._trace.record(self.label, SENT, data, time.time())
+            self._trace.record(self.label, SENT, data, self.clock.now())
         self.bytes_sent += len(data)
         await self._send(data if type(data) is bytes else bytes(data))
 
@@ -93,7 +106,7 @@ class Link(ABC):
         """Wait for more bytes until ``deadline`` (loop time)."""
         if self._closed_exc is not None:
             raise self._closed_exc
-        if deadline - self._loop.time() <= 0:
+        if deadline - self.clock.monotonic() <= 0:
             raise LinkTimeout(self._timeout_message(wanted))
         waiter: asyncio.Future[None] = self._loop.create_future()
         self._waiter = waiter
@@ -103,7 +116,7 @@ class Link(ABC):
         if self._timer is None or self._timer.when() > deadline:
             if self._timer is not None:
                 self._timer.cancel()
-            self._timer = self._loop.call_at(deadline, self._on_timer)
+            self._timer = self.clock.call_at(deadline, self._on_timer)
         try:
             await waiter
         finally:
@@ -116,10 +129,10 @@ class Link(ABC):
         waiter = self._waiter
         if waiter is None or waiter.done():
             return
-        if self._loop.time() >= self._wait_until:
+        if self.clock.monotonic() >= self._wait_until:
             waiter.set_result(None)
         else:
-            self._timer = self._loop.call_at(self._wait_until, self._on_timer)
+            self._timer = self.clock.call_at(self._wait_until, self._on_timer)
 
     def _timeout_message(self, wanted: str) -> str:
         got = f"; had received {format_raw(bytes(self._buf))}" if self._buf else ""
@@ -128,7 +141,7 @@ class Link(ABC):
     def _deadline(self, timeout: float) -> float:
         if timeout < 0:
             raise UsageError(f"timeout must not be negative, not {timeout}")
-        return self._loop.time() + timeout
+        return self.clock.monotonic() + timeout
 
     async def read(self, max_bytes: int = 4096, *, timeout: float) -> bytes:
         """Return 1 to ``max_bytes`` bytes, waiting at most ``timeout`` s for the first."""
@@ -136,7 +149,7 @@ class Link(ABC):
             raise UsageError(f"timeout must not be negative, not {timeout}")
         buf = self._buf
         if not buf:
-            deadline = self._loop.time() + timeout
+            deadline = self.clock.monotonic() + timeout
             while not buf:
                 await self._wait(deadline, "data")
         if len(buf) <= max_bytes:
@@ -197,9 +210,9 @@ class Link(ABC):
 
     async def _wait_modem(self, deadline: float, level: bool) -> None:
         # Links that can see modem changes as events override this; polling is the fallback.
-        if self._loop.time() >= deadline:
+        if self.clock.monotonic() >= deadline:
             raise LinkTimeout(f"{self.url}: CTS did not go {'high' if level else 'low'} in time")
-        await asyncio.sleep(min(0.01, max(0.0, deadline - self._loop.time())))
+        await self.clock.sleep(min(0.01, max(0.0, deadline - self.clock.monotonic())))
 
     async def close(self) -> None:
         """Close the link; further reads and writes raise LinkClosed."""

@@ -34,6 +34,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Self
 
+from cellctl.clock import REAL_CLOCK
 from cellctl.errors import MachineInUse, UsageError
 
 #: What a refusal says; ``{what}`` is the machine, ``{holder}`` the holder (see Holder.__str__).
@@ -224,7 +225,7 @@ class OwnerLock:
                 {
                     "pid": os.getpid(),
                     "command": process_label(),
-                    "since": time.time(),
+                    "since": REAL_CLOCK.now(),  # other processes read it: wall time
                     "host": socket.gethostname(),
                 }
             ).encode()

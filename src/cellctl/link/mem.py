@@ -250,8 +250,10 @@ class MemLink(Link):
         trace: TrafficLog | None,
         label: str,
         wire: MemWire,
+        clock: Clock | None = None,
     ) -> None:
-        super().__init__(url, settings, trace, label)
+        # Its deadlines on the clock the host gave, else the line's (which paces the bytes).
+        super().__init__(url, settings, trace, label, clock=clock or wire.clock)
         self.wire = wire
         wire.host = self
         self._modem_waiter: asyncio.Future[None] | None = None
@@ -328,7 +330,13 @@ class MemListener:
         self._loop = asyncio.get_running_loop()
         self.closed = False
 
-    def connect(self, settings: LineSettings, trace: TrafficLog | None, label: str) -> MemLink:
+    def connect(
+        self,
+        settings: LineSettings,
+        trace: TrafficLog | None,
+        label: str,
+        clock: Clock | None = None,
+    ) -> MemLink:
         """A host opens the line (what ``open_link`` calls)."""
         current = self.current
         if current is not None and not current.closed and not current.host_closed:
@@ -339,7 +347,7 @@ class MemListener:
                 f"{settings}: on a real line every byte would garble"
             )
         wire = MemWire(self.settings, clock=self.clock, pacing=self.pacing)
-        link = MemLink(self.url, settings, trace, label, wire)
+        link = MemLink(self.url, settings, trace, label, wire, clock)
         self.current = wire
         self._on_connect(wire.device)
         return link
@@ -399,7 +407,13 @@ def listening() -> list[str]:
     return [f"mem://{name}" for name in _endpoints.get(asyncio.get_running_loop(), {})]
 
 
-def open_mem(url: str, settings: LineSettings, trace: TrafficLog | None, label: str) -> MemLink:
+def open_mem(
+    url: str,
+    settings: LineSettings,
+    trace: TrafficLog | None,
+    label: str,
+    clock: Clock | None = None,
+) -> MemLink:
     """Open ``mem://NAME`` (``open_link`` does this): LinkError if nothing listens there."""
     name = mem_name(url)
     listener = _endpoints.get(asyncio.get_running_loop(), {}).get(name)
@@ -408,7 +422,7 @@ def open_mem(url: str, settings: LineSettings, trace: TrafficLog | None, label: 
             f"cannot connect to {url}: nothing listens there in this event loop "
             "(serve an emulator on it first: cellctl.emulators.memserve.serve_mem)"
         )
-    return listener.connect(settings, trace, label)
+    return listener.connect(settings, trace, label, clock)
 
 
 __all__ = [

@@ -18,6 +18,7 @@ import struct
 
 from serial import rfc2217 as r
 
+from cellctl.clock import Clock
 from cellctl.errors import LinkError, LinkTimeout
 from cellctl.link.settings import LineSettings
 from cellctl.link.tcp import TcpLink
@@ -46,8 +47,16 @@ class Rfc2217Link(TcpLink):
 
     has_modem_lines = True
 
-    def __init__(self, url: str, settings: LineSettings, trace: TrafficLog | None, label: str):
-        super().__init__(url, settings, trace, label)
+    def __init__(
+        self,
+        url: str,
+        settings: LineSettings,
+        trace: TrafficLog | None,
+        label: str,
+        *,
+        clock: Clock | None = None,
+    ):
+        super().__init__(url, settings, trace, label, clock=clock)
         self._mode = _NORMAL
         self._command = 0
         self._sub = bytearray()
@@ -77,7 +86,7 @@ class Rfc2217Link(TcpLink):
         out += _sub(r.SET_MODEMSTATE_MASK, b"\xff")
         out += _sub(r.NOTIFY_MODEMSTATE)
         self._raw_write(bytes(out))
-        deadline = self._loop.time() + timeout
+        deadline = self.clock.monotonic() + timeout
         while len(self._answered) < len(_SETTING_ANSWERS):
             try:
                 await self._wait_event(deadline)
@@ -95,11 +104,11 @@ class Rfc2217Link(TcpLink):
 
     async def _wait_event(self, deadline: float) -> None:
         self._modem_event.clear()
-        remaining = deadline - self._loop.time()
+        remaining = deadline - self.clock.monotonic()
         if remaining <= 0:
             raise LinkTimeout(f"{self.url}: no RFC 2217 answer in time")
         try:
-            async with asyncio.timeout(remaining):
+            async with self.clock.timeout(remaining):
                 await self._modem_event.wait()
         except TimeoutError as e:
             raise LinkTimeout(f"{self.url}: no RFC 2217 answer in time") from e
@@ -203,7 +212,7 @@ class Rfc2217Link(TcpLink):
         """CTS as the server last reported it (it pushes every change; asked if never told)."""
         if self.modem_state is None:
             self._raw_write(_sub(r.NOTIFY_MODEMSTATE))
-            deadline = self._loop.time() + 2.0
+            deadline = self.clock.monotonic() + 2.0
             while self.modem_state is None:
                 try:
                     await self._wait_event(deadline)
@@ -213,11 +222,11 @@ class Rfc2217Link(TcpLink):
 
     async def _wait_modem(self, deadline: float, level: bool) -> None:
         # Servers push changes; ask again now and then for those that only answer polls.
-        poll_at = min(deadline, self._loop.time() + 0.5)
+        poll_at = min(deadline, self.clock.monotonic() + 0.5)
         try:
             await self._wait_event(poll_at)
         except LinkTimeout:
-            if self._loop.time() >= deadline:
+            if self.clock.monotonic() >= deadline:
                 raise LinkTimeout(
                     f"{self.url}: CTS did not go {'high' if level else 'low'} in time"
                 ) from None

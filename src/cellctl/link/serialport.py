@@ -20,6 +20,7 @@ import termios
 
 import serial
 
+from cellctl.clock import Clock
 from cellctl.errors import LinkClosed, LinkError, MachineInUse
 from cellctl.link.base import Link
 from cellctl.link.settings import LineSettings
@@ -77,8 +78,16 @@ def open_pyserial(path: str, settings: LineSettings) -> serial.Serial:
 class SerialLink(Link):
     """A serial device or pty, opened by path."""
 
-    def __init__(self, path: str, settings: LineSettings, trace: TrafficLog | None, label: str):
-        super().__init__(path, settings, trace, label)
+    def __init__(
+        self,
+        path: str,
+        settings: LineSettings,
+        trace: TrafficLog | None,
+        label: str,
+        *,
+        clock: Clock | None = None,
+    ):
+        super().__init__(path, settings, trace, label, clock=clock)
         framing = settings
         pty = is_pty(path)
         if pty:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import socket
 
+from cellctl.clock import Clock
 from cellctl.errors import LinkClosed, LinkError
 from cellctl.link.base import Link
 from cellctl.link.settings import LineSettings
@@ -47,13 +48,21 @@ class StreamProtocol(asyncio.BufferedProtocol):
 class TcpLink(Link):
     """A TCP connection to a serial device server in raw mode."""
 
-    def __init__(self, url: str, settings: LineSettings, trace: TrafficLog | None, label: str):
-        super().__init__(url, settings, trace, label)
+    def __init__(
+        self,
+        url: str,
+        settings: LineSettings,
+        trace: TrafficLog | None,
+        label: str,
+        *,
+        clock: Clock | None = None,
+    ):
+        super().__init__(url, settings, trace, label, clock=clock)
         self._transport: asyncio.Transport | None = None
 
     async def _connect(self, host: str, port: int, timeout: float) -> None:
         try:
-            async with asyncio.timeout(timeout):
+            async with self.clock.timeout(timeout):
                 transport, _ = await self._loop.create_connection(
                     lambda: StreamProtocol(self), host, port
                 )

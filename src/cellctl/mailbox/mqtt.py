@@ -25,7 +25,6 @@ import asyncio
 import contextlib
 import json
 import os
-import time
 from collections.abc import Callable
 from typing import Any, Protocol
 
@@ -33,6 +32,7 @@ import aiomqtt
 
 from cellctl.cell.estimate import finish_estimate, measured, part_bounds
 from cellctl.cell.journal import Journal
+from cellctl.clock import Clock, current_clock
 from cellctl.errors import UsageError
 from cellctl.mailbox.base import Mailbox, Report
 from cellctl.mailbox.mqttlink import BACKOFF_S, MqttSettings, Reconnect, read_credentials
@@ -76,7 +76,9 @@ class MqttBridge:
         journal: Journal,
         *,
         log: Callable[[str], None] = lambda text: None,
+        clock: Clock | None = None,
     ) -> None:
+        self._clock = clock
         self.settings = settings
         self.cell = cell
         self.mailbox = mailbox
@@ -98,6 +100,11 @@ class MqttBridge:
         self._replay_after: int | None = None
 
     # -- the last report sent ------------------------------------------------------------------
+
+    @property
+    def clock(self) -> Clock:
+        """What the bridge reads the time from: the clock given, else the running loop's."""
+        return self._clock or current_clock()
 
     def _load_mark(self) -> int:
         with contextlib.suppress(OSError, ValueError, TypeError, AttributeError, KeyError):
@@ -121,7 +128,7 @@ class MqttBridge:
         """Cancel each order taken before its ``expires`` whose acceptance the factory has not
         heard by then, if none of its parts has started: the factory may have given it to
         another cell. ``cellctl run`` calls it before the controller starts."""
-        now = time.time()
+        now = self.clock.now()
         for oid, expires in list(self.expiring.items()):
             if now <= expires:
                 continue
@@ -230,7 +237,7 @@ class MqttBridge:
     def _take(self, order: OrderMessage) -> None:
         oid = order.id
         expires = order.expires
-        if expires is not None and time.time() > expires and not self._known(oid):
+        if expires is not None and self.clock.now() > expires and not self._known(oid):
             # Sent to this cell, then not taken in time: the factory has given it to another.
             self.mailbox.post_report(
                 ReportKind.ORDER_REJECTED,
@@ -326,12 +333,12 @@ class MqttBridge:
 
     async def _publish_state(self, client: aiomqtt.Client) -> None:
         """The retained state, when it changed, at most once a poll period."""
-        if time.monotonic() - self._state_at < self.cell.config.poll_period:
+        if self.clock.monotonic() - self._state_at < self.cell.config.poll_period:
             return
         state = self.state()
         if state == self._state_sent:
             return
-        payload = StateMessage(**state, time=time.time()).model_dump_json()
+        payload = StateMessage(**state, time=self.clock.now()).model_dump_json()
         await client.publish(self.topic["state"], payload, qos=1, retain=True)
         self._state_sent = state
-        self._state_at = time.monotonic()
+        self._state_at = self.clock.monotonic()

@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import json
 import sqlite3
-import time
 import uuid
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 from cellctl.cell.sqlitedb import SqliteStore
+from cellctl.clock import Clock, current_clock
 from cellctl.errors import UsageError
 from cellctl.mailbox.base import (
     POSTED,
@@ -57,9 +57,10 @@ CREATE TABLE IF NOT EXISTS meta (
 
 
 class SqliteMailbox(SqliteStore, Mailbox):
-    """The default mailbox. ``SqliteMailbox(path)``; ``clock`` gives the times it records."""
+    """The default mailbox. ``SqliteMailbox(path)``; ``clock`` gives the times it records
+    (its ``now()``; None: the running loop's clock, read when a time is recorded)."""
 
-    def __init__(self, path: Path, *, clock: Callable[[], float] = time.time) -> None:
+    def __init__(self, path: Path, *, clock: Clock | None = None) -> None:
         SqliteStore.__init__(self, path, SCHEMA)
         self._clock = clock
         with self._write() as db:
@@ -70,6 +71,14 @@ class SqliteMailbox(SqliteStore, Mailbox):
         self._epoch = str(self._read("SELECT value FROM meta WHERE key = 'epoch'")[0][0])
 
     @property
+    def clock(self) -> Clock:
+        """What the mailbox's times are read from: the clock given, else the running loop's."""
+        return self._clock or current_clock()
+
+    def _now(self) -> float:
+        return self.clock.now()
+
+    @property
     def epoch(self) -> str:
         return self._epoch
 
@@ -77,7 +86,7 @@ class SqliteMailbox(SqliteStore, Mailbox):
         self, part_type: str, qty: int = 1, priority: int = 0, order_id: str | None = None
     ) -> tuple[Order, bool]:
         oid = check_new_order(part_type, qty, priority, order_id)
-        now = self._clock()
+        now = self._now()
         with self._write() as db:
             row = db.execute("SELECT * FROM orders WHERE id = ?", (oid,)).fetchone()
             if row is not None:
@@ -114,7 +123,7 @@ class SqliteMailbox(SqliteStore, Mailbox):
             check_transition(order, state)
             if state == order.state and not note:
                 return order
-            now = self._clock()
+            now = self._now()
             new_note = note or order.note
             db.execute(
                 "UPDATE orders SET state = ?, updated = ?, note = ? WHERE id = ?",
@@ -146,7 +155,7 @@ class SqliteMailbox(SqliteStore, Mailbox):
             encoded = json.dumps(payload, sort_keys=True)
         except (TypeError, ValueError) as e:
             raise UsageError(f"report data must be JSON: {e}") from None
-        now = self._clock()
+        now = self._now()
         with self._write() as db:
             cur = db.execute(
                 "INSERT INTO reports (time, kind, order_id, part_id, text, data)"

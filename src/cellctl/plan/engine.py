@@ -23,14 +23,45 @@ Times are unix seconds of the plan's wall clock (``start`` is the plan's "now").
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import tomllib
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
+
+from cellctl.cell.config import CONVEYOR, load_cell
+from cellctl.cell.controller import CellController, ControllerOptions
+from cellctl.cell.journal import JOURNAL_FILE, Journal, open_journal
+from cellctl.cell.scheduler import POLICIES as SCHEDULER_POLICIES
+from cellctl.clock import REAL_CLOCK, current_clock, run_virtual
+from cellctl.emulators.cell import EmulatedCell
+from cellctl.emulators.plc import FAULTS as PLC_FAULTS
+from cellctl.errors import UsageError
+from cellctl.kinds import registry
+from cellctl.mailbox import DONE, MAILBOX_FILE, Mailbox
+from cellctl.mailbox.sqlite import SqliteMailbox
 
 #: The mailbox's default order priority (``Mailbox.post_order``).
 DEFAULT_PRIORITY = 0
 
-#: The scheduler's policies a plan can try (``PlanInputs.policy``).
-POLICIES = ("default", "one-at-a-time")
+#: The scheduler's policies a plan can try (``PlanInputs.policy``): the cell's scheduler's
+#: (:data:`cellctl.cell.scheduler.POLICIES`), "default" being its downstream-first.
+POLICIES = ("default", *SCHEDULER_POLICIES)
+
+#: Seconds before the plan's start that the emulated machines are switched on: their
+#: operators power them up and select the link mode (the Dyna 2400's takes 5 s) before the
+#: controller connects at the start, as before a shift.
+POWER_ON_S = 10.0
+
+#: The plan's operator, after a fault: looks (poll periods) of rest before acting, and how
+#: many times at most the rest of the cell is looked over and resolved again.
+RESOLVE_LOOKS = 4
+RESOLVE_ROUNDS = 5
+
+#: Seconds of plan time between two looks of the plan's own watcher (all orders done?).
+WATCH_S = 2.0
 
 
 @dataclass(frozen=True)
@@ -124,7 +155,248 @@ def simulate(inputs: PlanInputs, workdir: Path) -> PlanRun:
     :class:`~cellctl.errors.UsageError` for inputs the cell cannot take (an unknown part
     type, machine, fault or policy; ``until`` before ``start``) before anything runs.
     """
-    raise NotImplementedError("the plan engine is being built")
+    check_inputs(inputs)
+    workdir.mkdir(parents=True, exist_ok=True)
+    cell_dir = workdir / "cell"
+    if (cell_dir / JOURNAL_FILE).exists() or (cell_dir / MAILBOX_FILE).exists():
+        raise UsageError(f"{cell_dir}: a plan ran there already; give an empty directory")
+    started = REAL_CLOCK.monotonic()
+    ended, finished = run_virtual(_play(inputs, cell_dir), start=inputs.start - POWER_ON_S)
+    return PlanRun(
+        inputs=inputs,
+        workdir=workdir,
+        journal_path=cell_dir / JOURNAL_FILE,
+        ended=ended,
+        wall_s=REAL_CLOCK.monotonic() - started,
+        finished=finished,
+        mailbox_path=cell_dir / MAILBOX_FILE,
+    )
+
+
+def check_inputs(inputs: PlanInputs) -> None:
+    """Refuse inputs the cell cannot take, in words (:class:`UsageError`)."""
+    toml = inputs.cell_dir / "cell.toml"
+    try:
+        raw = tomllib.loads(toml.read_text(encoding="utf-8"))
+    except (OSError, tomllib.TOMLDecodeError) as e:
+        raise UsageError(f"{toml}: cannot read it: {e}") from None
+    parts = raw.get("parts", {})
+    machines = raw.get("machines", {})
+    if inputs.policy not in POLICIES:
+        raise UsageError(f"no scheduler policy {inputs.policy!r}; known: {', '.join(POLICIES)}")
+    if not inputs.until > inputs.start:
+        raise UsageError("a plan's end (until) must come after its start")
+    seen: set[str] = set()
+    for order in inputs.orders:
+        if order.part_type not in parts:
+            raise UsageError(
+                f"order {order.order_id}: no part type {order.part_type!r} in {toml} "
+                f"(known: {', '.join(parts)})"
+            )
+        if order.qty < 1:
+            raise UsageError(f"order {order.order_id}: quantity must be 1 or more")
+        if order.order_id in seen:
+            raise UsageError(f"order {order.order_id} is given twice")
+        seen.add(order.order_id)
+    for name in inputs.out_of_service:
+        if name not in machines:
+            raise UsageError(f"out of service: no machine {name!r} in {toml}")
+    for held in inputs.held:
+        if held.part_type not in parts:
+            raise UsageError(f"held part of {held.order_id}: no part type {held.part_type!r}")
+        if held.location != CONVEYOR and held.location not in machines:
+            raise UsageError(f"held part of {held.order_id}: no place {held.location!r}")
+    for fault in inputs.faults:
+        if fault.machine == "plc":
+            known: Mapping[str, str] = PLC_FAULTS
+        elif fault.machine in machines:
+            kind = str(machines[fault.machine].get("kind"))
+            known = {"down": "", **(registry.kind(kind).faults if kind in registry.names() else {})}
+        else:
+            raise UsageError(f"fault {fault.fault} on {fault.machine!r}: no such machine")
+        if fault.fault not in known:
+            raise UsageError(
+                f"fault {fault.machine}:{fault.fault}: no such fault (known: {', '.join(known)})"
+            )
+        if fault.end is not None and not fault.end > fault.start:
+            raise UsageError(f"fault {fault.machine}:{fault.fault}: it must end after it starts")
+
+
+# -- the play ---------------------------------------------------------------------------------
+
+
+async def _play(inputs: PlanInputs, cell_dir: Path) -> tuple[float, dict[str, float | None]]:
+    clock = current_clock()
+    cell = EmulatedCell(time_scale=1.0, links="mem", template=inputs.cell_dir)
+    await cell.start(cell_dir)
+    journal = open_journal(cell_dir, clock=clock)
+    mailbox = SqliteMailbox(cell_dir / MAILBOX_FILE, clock=clock)
+    controller: CellController | None = None
+    try:
+        _post(inputs, journal, mailbox, cell)
+        await clock.sleep(max(0.0, inputs.start - clock.now()))
+        config = load_cell(cell_dir)
+        policy = "downstream-first" if inputs.policy == "default" else inputs.policy
+        options = ControllerOptions.from_config(config, policy=policy)
+        controller = CellController(config, journal, mailbox, options=options)
+        await controller.connect()
+        for name in inputs.out_of_service:
+            await controller.set_service(name, False, "out of service when the plan began")
+        stop = asyncio.Event()
+        run = asyncio.create_task(controller.run(stop), name="plan-controller")
+        operator = _Operator(controller, cell, journal)
+        faults = [
+            asyncio.create_task(operator.window(f, inputs.until), name=f"plan-fault-{i}")
+            for i, f in enumerate(inputs.faults)
+        ]
+        ended = await _watch(inputs, mailbox, run)
+        stop.set()
+        for task in faults:
+            task.cancel()
+        for task in faults:
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        # Steps in flight at the end finish (as on SIGINT); what they finish counts only if
+        # before ``until`` (the orders' done times say).
+        await run
+        finished = _finished(inputs, mailbox, inputs.until)
+        return ended, finished
+    finally:
+        if controller is not None:
+            with contextlib.suppress(Exception):
+                await controller.close()
+        journal.close()
+        mailbox.close()
+        await cell.close()
+
+
+def _post(inputs: PlanInputs, journal: Journal, mailbox: Mailbox, cell: EmulatedCell) -> None:
+    """The plan's orders, and the parts held at its start (their own one-part orders)."""
+    for order in inputs.orders:
+        mailbox.post_order(order.part_type, order.qty, order.priority, order_id=order.order_id)
+    for n, held in enumerate(inputs.held, start=1):
+        oid = f"{held.order_id}~held{n}"
+        posted, _ = mailbox.post_order(held.part_type, 1, order_id=oid)
+        mailbox.set_order_state(oid, "accepted")
+        (part,) = journal.create_parts(posted)
+        journal.move_part(part.id, held.location, held.route_index)
+        journal.hold_part(part.id, "held when the plan began")
+        if held.location in cell.mill_names:
+            cell.vise[cell.mill_names.index(held.location) + 1] = part.id
+
+
+async def _watch(inputs: PlanInputs, mailbox: Mailbox, run: asyncio.Task[None]) -> float:
+    """Until every order is done (its time) or ``until`` comes (``until``)."""
+    clock = current_clock()
+    ids = [o.order_id for o in inputs.orders]
+    while True:
+        if run.done():
+            run.result()  # the controller died: say why
+            raise UsageError("the cell's controller stopped on its own")
+        now = clock.now()
+        if now >= inputs.until:
+            return inputs.until
+        states = {o.id: o for o in mailbox.orders()}
+        if ids and all(states[i].state == DONE for i in ids):
+            return max(states[i].updated for i in ids)
+        await clock.sleep(min(WATCH_S, inputs.until - now))
+
+
+def _finished(inputs: PlanInputs, mailbox: Mailbox, until: float) -> dict[str, float | None]:
+    states = {o.id: o for o in mailbox.orders()}
+    out: dict[str, float | None] = {}
+    for order in inputs.orders:
+        state = states[order.order_id]
+        done = state.state == DONE and state.updated <= until
+        out[order.order_id] = state.updated if done else None
+    return out
+
+
+class _Operator:
+    """The plan's operator: takes a machine out and back for "down", switches an emulator's
+    fault on and off, and afterwards resolves what the cell holds (as an operator does: the
+    alarms cleared, each held part released where it physically is)."""
+
+    def __init__(self, controller: CellController, cell: EmulatedCell, journal: Journal):
+        self.controller = controller
+        self.cell = cell
+        self.journal = journal
+
+    async def window(self, fault: FaultWindow, until: float) -> None:
+        clock = current_clock()
+        await clock.sleep(max(0.0, fault.start - clock.now()))
+        if fault.fault == "down":
+            await self.controller.set_service(fault.machine, False, "down (plan)")
+        else:
+            self._target(fault.machine).set_fault(fault.fault, fault.arg)
+        if fault.end is None or fault.end >= until:
+            return
+        await clock.sleep(max(0.0, fault.end - clock.now()))
+        if fault.fault == "down":
+            await self.controller.set_service(fault.machine, True)
+            return
+        self._switch_off(fault.machine, fault.fault)
+        await self.resolve(until)
+
+    def _target(self, machine: str) -> Any:
+        cell = self.cell
+        if machine == "plc":
+            return cell.plc
+        if machine == cell.robot_name:
+            return cell.robot
+        return cell.mills[machine]
+
+    def _switch_off(self, machine: str, name: str) -> None:
+        """The fault off, and what the panel needs after it (as ``CellRig.switch_off``)."""
+        self._target(machine).clear_fault(name)
+        if machine in self.cell.mills:
+            mill = self.cell.mills[machine]
+            if name == "no-next":
+                mill.press_next()  # the operator finishes the setup stop
+            elif name in ("never-ready", "stall"):
+                mill.select(mill.auto_mode)  # the link mode selected again: READY back
+
+    async def resolve(self, until: float) -> None:
+        """As an operator after fixing a machine: a few looks later, clear every alarm and
+        release every held part (one held after a transfer once the arm is at rest); again
+        if the looks after that raise more (a read that was out when the fault went)."""
+        clock = current_clock()
+        look = self.controller.options.poll_period
+        for _ in range(RESOLVE_ROUNDS):
+            await clock.sleep(RESOLVE_LOOKS * look)
+            alarms = self.journal.active_alarms()
+            held = self.journal.parts(statuses=["held"])
+            if not alarms and not held:
+                return
+            for alarm in alarms:
+                self.journal.clear_alarm(alarm.id, by="plan operator")
+            while held and self.cell.robot.running:
+                if clock.now() >= until:
+                    return
+                await clock.sleep(look)
+            for part in held:
+                self._release(part.id)
+            self.controller.poke()
+
+    def _release(self, part_id: str) -> None:
+        cell = self.cell
+        steps = self.journal.steps(part_id)
+        if not steps:
+            return  # held from the start (a held part of the running cell): stays held
+        step = steps[-1]
+        mills = {name: i for i, name in enumerate(cell.mill_names, start=1)}
+        if step.kind == "transfer":
+            source, target = step.program.split("_to_")
+            if cell.gripper is not None and source in mills:
+                cell.vise[mills[source]], cell.gripper = cell.gripper, None
+            where = source
+            if target in mills and cell.vise[mills[target]] is not None:
+                where = target
+            self.journal.release_part(part_id, location=where)
+            return
+        blank = cell.vise.get(mills.get(step.machine, 0))
+        cut = cell.runs_per_part().get(blank, {}).get(step.machine, 0) if blank else 0
+        self.journal.release_part(part_id, redo_step=not cut)
 
 
 __all__ = [
@@ -135,5 +407,6 @@ __all__ = [
     "PlanInputs",
     "PlanOrder",
     "PlanRun",
+    "check_inputs",
     "simulate",
 ]

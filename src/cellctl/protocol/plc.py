@@ -11,7 +11,8 @@ The PLC holds the cell's sensors and actuators. The controller writes **coils** 
 or ``inputs`` table must name every required signal of its kind::
 
     [plc]
-    url = "modbus://127.0.0.1:5020"   # modbus://HOST[:PORT], port 502 if left out
+    url = "modbus://127.0.0.1:5020"   # modbus://HOST[:PORT], port 502 if left out;
+                                      # mem://NAME: an emulated PLC in the same event loop
     unit = 1                          # Modbus unit (slave) id
     timeout = 1.0                     # seconds each request may take
     poll = 0.05                       # seconds between reads while waiting for an input
@@ -51,8 +52,10 @@ __all__ = [
     "RobotWiring",
     "Signal",
     "canonical",
+    "check_plc_url",
     "describe",
     "parse_modbus_url",
+    "plc_mem_name",
     "signal_name",
 ]
 
@@ -235,6 +238,8 @@ EXAMPLE_WIRING = RobotWiring(
     part_placed_output=5,
 )
 
+_MEM_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
+
 # "clamp[1]" and "clamp1" both mean "clamp_1".
 _INDEXED = re.compile(r"^([a-z_]*[a-z])(?:\[(\d+)\]|(\d+))$")
 
@@ -271,6 +276,23 @@ def parse_modbus_url(url: str) -> tuple[str, int]:
     except ValueError:
         raise UsageError(f"PLC address {url!r}: the port is not a number 0..65535") from None
     return parts.hostname, MODBUS_PORT if port is None else port
+
+
+def plc_mem_name(url: str) -> str | None:
+    """``"mem://plc"`` -> ``"plc"``: a PLC in the same event loop (the in-process Modbus/TCP
+    pair, :mod:`cellctl.protocol.modbus` over a ``mem://`` line); None for any other URL."""
+    scheme, sep, name = url.partition("://")
+    if scheme != "mem" or not sep:
+        return None
+    if not _MEM_NAME.fullmatch(name):
+        raise UsageError(f"PLC address {url!r}: a mem:// name is letters, digits, '.', '_' and '-'")
+    return name
+
+
+def check_plc_url(url: str) -> None:
+    """Refuse a PLC URL that is neither ``modbus://HOST[:PORT]`` nor ``mem://NAME``."""
+    if plc_mem_name(url) is None:
+        parse_modbus_url(url)
 
 
 def _addresses(table: object, kind: str, defaults: Mapping[str, int]) -> dict[str, int]:
@@ -337,7 +359,7 @@ class PlcMap:
         url = table.get("url", DEFAULT_URL)
         if not isinstance(url, str):
             raise UsageError(f"[plc] url: expected a string, not {url!r}")
-        parse_modbus_url(url)
+        check_plc_url(url)
         unit = table.get("unit", 1)
         if isinstance(unit, bool) or not isinstance(unit, int) or not 0 <= unit <= 255:
             raise UsageError(f"[plc] unit: must be 0..255, not {unit!r}")

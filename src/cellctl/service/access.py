@@ -15,7 +15,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
-import time
 from abc import ABC, abstractmethod
 from collections.abc import AsyncIterator, Mapping
 from pathlib import Path
@@ -25,6 +24,7 @@ from typing import TYPE_CHECKING, Any, Self, cast
 from cellctl.cell.journal import JOURNAL_FILE, Journal, open_journal
 from cellctl.cell.machines import open_machine
 from cellctl.cell.model import MachineView
+from cellctl.clock import current_clock
 from cellctl.drivers.plc import ModbusPlc
 from cellctl.drivers.state import StateStore
 from cellctl.errors import CellctlError, UsageError
@@ -180,7 +180,7 @@ class AttachedCell(CellAccess):
             paused=c.paused,
             started_at=c.started_at,
             pid=os.getpid(),
-            time=time.time(),
+            time=current_clock().now(),
         )
         estimates = {
             (step.mill, step.name): step.machining_s
@@ -235,7 +235,7 @@ class LocalCell(CellAccess):
         self.steps: dict[str, str] = {}
         self.conditions: dict[str, Condition] = {}
         self.events: list[dict[str, Any]] = []
-        self.started_at = time.time()
+        self.started_at = current_clock().now()
 
     def journal(self) -> Journal | None:
         if self._journal is None and (self.directory / JOURNAL_FILE).exists():
@@ -255,7 +255,7 @@ class LocalCell(CellAccess):
 
     def note(self, text: str) -> None:
         """An event for the snapshot (what a function did)."""
-        self.events.append({"time": time.time(), "text": text})
+        self.events.append({"time": current_clock().now(), "text": text})
         del self.events[:-SNAPSHOT_EVENTS]
 
     @contextlib.asynccontextmanager
@@ -343,7 +343,7 @@ class LocalCell(CellAccess):
             paused=False,
             started_at=self.started_at,
             pid=os.getpid(),
-            time=time.time(),
+            time=current_clock().now(),
         )
         mailbox = self.mailbox() if (self.directory / MAILBOX_FILE).exists() else None
         journal = self.journal()

@@ -14,14 +14,13 @@ JSON, cut to :data:`MAX_PARAMS` characters; the result is ``ok`` or the error's 
 from __future__ import annotations
 
 import json
-import time
-from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 from cellctl.cell.journal import JOURNAL_FILE
 from cellctl.cell.sqlitedb import SqliteStore
+from cellctl.clock import Clock, current_clock
 
 #: The most characters of a call's parameters (as JSON) kept; more is cut with "…".
 MAX_PARAMS = 500
@@ -72,14 +71,14 @@ def params_text(params: Any) -> str:
 class AuditLog(SqliteStore):
     """The audit table of ``<cell>/journal.sqlite3`` (see module docstring)."""
 
-    def __init__(self, cell_dir: Path, *, clock: Callable[[], float] = time.time) -> None:
+    def __init__(self, cell_dir: Path, *, clock: Clock | None = None) -> None:
         super().__init__(Path(cell_dir) / JOURNAL_FILE, SCHEMA)
-        self.clock = clock
+        self._clock = clock
 
     def record(self, who: str, method: str, params: Any, result: str) -> AuditEntry:
         """Add one entry: ``result`` is ``"ok"`` or the error's text."""
         row = (
-            self.clock(),
+            (self._clock or current_clock()).now(),
             _cut(who, 100),
             _cut(method, 100),
             params_text(params),

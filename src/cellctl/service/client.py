@@ -24,6 +24,7 @@ from typing import Any, Self
 from websockets.asyncio.client import ClientConnection, connect, unix_connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus, WebSocketException
 
+from cellctl.clock import current_clock
 from cellctl.errors import AccessDenied, CellctlError, LinkClosed, LinkError, LinkTimeout
 from cellctl.service.access import LocalCell
 from cellctl.service.machines import MachineRef
@@ -232,7 +233,7 @@ class StandaloneCell:
 
     async def _poll(self, last: CellStatus) -> None:
         while True:
-            await asyncio.sleep(LOCAL_POLL)
+            await current_clock().sleep(LOCAL_POLL)
             try:
                 await self.access.refresh()
                 status = self.access.status()

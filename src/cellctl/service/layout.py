@@ -15,12 +15,12 @@ cell.toml (by its name or its path as written there): no other file is ever read
 from __future__ import annotations
 
 import dataclasses
-import time
 from collections import OrderedDict
 from typing import Any
 
 from cellctl.cell.config import CONVEYOR, CellConfig, load_cell
 from cellctl.cell.controller import OUT
+from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.kinds import registry
 from cellctl.service.access import CellAccess
@@ -100,7 +100,7 @@ def shift_figures(access: CellAccess, since: float | None, until: float | None) 
     8 h before ``until``, not before the journal's first step; ``until`` now)."""
     from cellctl.cell.shift import MAX_WINDOW, SHIFT, cell_time_scale, ideal_times, shift_report
 
-    end = time.time() if until is None else until
+    end = current_clock().now() if until is None else until
     journal = access.journal()
     first = min((s.started for s in journal.steps()), default=end) if journal else end
     start = max(end - SHIFT, min(first, end - 1.0)) if since is None else since

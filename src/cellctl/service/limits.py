@@ -26,7 +26,6 @@ import ipaddress
 import json
 import logging
 import socket
-import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -34,6 +33,8 @@ from typing import TYPE_CHECKING, Any
 import uvicorn
 from starlette.datastructures import MutableHeaders
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from cellctl.clock import current_clock
 
 if TYPE_CHECKING:
     from cellctl.cell.config import ApiTable
@@ -88,7 +89,7 @@ class Listener:
 
     def note(self, kind: str, text: str) -> None:
         """Log ``text`` unless a line of this ``kind`` went out in the last LOG_EVERY s."""
-        now = time.monotonic()
+        now = current_clock().monotonic()
         if now - self._logged.get(kind, -LOG_EVERY) < LOG_EVERY:
             self._untold[kind] = self._untold.get(kind, 0) + 1
             return

@@ -42,7 +42,6 @@ import logging
 import os
 import secrets
 import socket
-import time
 from collections.abc import Callable, Coroutine
 from pathlib import Path
 from typing import Any
@@ -55,6 +54,7 @@ from starlette.responses import JSONResponse, Response
 from starlette.routing import BaseRoute, Route, WebSocketRoute
 from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
+from cellctl.clock import current_clock
 from cellctl.errors import AccessDenied, UsageError
 from cellctl.service.access import CellAccess
 from cellctl.service.limits import (
@@ -259,15 +259,15 @@ class ApiServer:
         self._tasks.append(asyncio.create_task(self._publisher()))
         with contextlib.suppress(UsageError):
             self.access.controller().listeners.append(self.changed)
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + 10
+        clock = current_clock()
+        deadline = clock.monotonic() + 10
         while not self._server.started:
             if self._tasks[0].done():
                 await self._tasks[0]
                 raise UsageError("the API server stopped at start")
-            if loop.time() > deadline:
+            if clock.monotonic() > deadline:
                 raise UsageError("the API server did not start within 10 s")
-            await asyncio.sleep(0.01)
+            await clock.sleep(0.01)
 
     def _unix_socket(self) -> socket.socket:
         target = socket_target(self.directory)
@@ -342,7 +342,7 @@ class ApiServer:
         entry = self.caller(request.headers)
         if entry is None:
             return _unauthorized()
-        now = time.monotonic()
+        now = current_clock().monotonic()
         self._oneshot = {t: v for t, v in self._oneshot.items() if v[0] > now}
         token = secrets.token_urlsafe(24)
         self._oneshot[token] = (now + ONESHOT_TTL, entry)
@@ -350,7 +350,7 @@ class ApiServer:
 
     def _oneshot_entry(self, token: str | None) -> TokenEntry | None:
         found = self._oneshot.pop(token, None) if token else None
-        return found[1] if found is not None and found[0] > time.monotonic() else None
+        return found[1] if found is not None and found[0] > current_clock().monotonic() else None
 
     def foreign_origin(self, headers: Any) -> bool:
         """A browser page from another site (clients that are not browsers send no Origin)."""
@@ -472,7 +472,7 @@ class ApiServer:
             answer = await self._call(session, request)
             if answer is not None:
                 answers.append(answer)
-            await asyncio.sleep(0)  # the monitor and the other clients go on between calls
+            await current_clock().sleep(0)  # the monitor and the other clients go on between calls
         if answers:
             session.send(answers)
 
@@ -546,7 +546,7 @@ class ApiServer:
                 log.exception("status snapshot failed")
                 continue
             self.push(status, subscribers)
-            await asyncio.sleep(PUSH_GAP)
+            await current_clock().sleep(PUSH_GAP)
 
     def push(self, status: CellStatus, subscribers: list[_Session]) -> None:
         """Send each subscriber what changed since the status it holds (most hold the same

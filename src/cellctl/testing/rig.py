@@ -39,6 +39,7 @@ from click.testing import CliRunner, Result
 from cellctl.cell.config import load_cell
 from cellctl.cell.controller import CellController, ControllerOptions
 from cellctl.cell.journal import Journal, open_journal
+from cellctl.clock import current_clock
 from cellctl.emulators.cell import EmulatedCell
 from cellctl.kinds import registry
 from cellctl.mailbox import Mailbox, open_mailbox
@@ -158,16 +159,16 @@ class CellRig:
 
     async def wait_for(self, condition: Callable[[], Any], what: str, timeout: float = 30.0) -> Any:
         """Poll ``condition`` until it returns something true; fail after ``timeout``."""
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout
+        clock = current_clock()
+        deadline = clock.monotonic() + timeout
         while True:
             value = condition()
             if value:
                 return value
             self.check_running()
-            if loop.time() > deadline:
+            if clock.monotonic() > deadline:
                 raise AssertionError(f"timed out waiting for: {what}\n{self.describe()}")
-            await asyncio.sleep(0.02)
+            await clock.sleep(0.02)
 
     def finished_steps(self, kind: str | None = None) -> int:
         return sum(
@@ -219,17 +220,17 @@ class CellRig:
         changed for ``span`` s (default :meth:`quiet_span`): whatever a fault still had to
         raise has been raised. Fails after ``timeout``."""
         span = self.quiet_span() if span is None else span
-        loop = asyncio.get_running_loop()
+        clock = current_clock()
         state = self._journal_state()
-        since = loop.time()
+        since = clock.monotonic()
 
         def at_rest() -> bool:
             nonlocal state, since
             now = self._journal_state()
             if now != state or self.journal.open_steps():
-                state, since = now, loop.time()
+                state, since = now, clock.monotonic()
                 return False
-            return loop.time() - since >= span
+            return clock.monotonic() - since >= span
 
         await self.wait_for(at_rest, f"{what} ({span:g} s with nothing new)", timeout=timeout)
 

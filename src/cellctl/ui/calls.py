@@ -11,7 +11,6 @@ from __future__ import annotations
 import dataclasses
 import os
 import threading
-import time
 from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
@@ -20,6 +19,7 @@ from typing import Any
 import click
 from rich.progress import Progress, ProgressColumn
 
+from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.service.access import LocalCell
 from cellctl.service.client import StandaloneCell, open_cell
@@ -125,7 +125,7 @@ class LazyBar:
         self._description = description
         self._fields_of = fields_of
         self._task: Any = None
-        self.start = time.monotonic()
+        self.start = current_clock().monotonic()
         # ``tick``: the last dict is mapped again every ``tick`` s while it says the machine
         # runs (``running``): figures that move with the clock (a cut's estimate) move on.
         self._tick = tick
@@ -137,7 +137,7 @@ class LazyBar:
     def update(self, data: dict[str, Any]) -> None:
         with self._lock:
             self._last = data
-            fields = self._fields_of(data, time.monotonic() - self.start)
+            fields = self._fields_of(data, current_clock().monotonic() - self.start)
             if self._task is None:
                 self._progress.start()
                 self._task = self._progress.add_task(self._description, **fields)

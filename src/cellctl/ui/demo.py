@@ -68,6 +68,15 @@ from cellctl.ui.dashboard.command import serve_dashboard_in
     help="Instead: N emulated cells, each run by its own `cellctl run`, and the factory "
     "spreading the batch over them through a private Mosquitto.",
 )
+@click.option(
+    "--template",
+    "templates",
+    multiple=True,
+    type=click.Path(file_okay=False, exists=True),
+    metavar="DIR",
+    help="With --factory: a cell directory to emulate, once per cell (cell1 the first "
+    "given...; the rest the example cell); the batch mixes every type the cells make.",
+)
 @click.pass_context
 def demo(
     ctx: click.Context,
@@ -77,6 +86,7 @@ def demo(
     compare: bool,
     dashboard: bool,
     cells: int | None,
+    templates: tuple[str, ...],
 ) -> None:
     """Start an emulated cell (or a factory of them), run a mixed batch through it, and
     summarize (under 2 minutes). With --cell DIR, the cell emulated is DIR's (its machines,
@@ -86,11 +96,14 @@ def demo(
         raise click.UsageError("--cell is for one cell, not with --factory")
     if cells is not None and dashboard:
         raise click.UsageError("--dashboard is for one cell, not with --factory")
+    if templates and cells is None:
+        raise click.UsageError("--template is for --factory N (one cell's is --cell DIR)")
     Path(out).mkdir(parents=True, exist_ok=True)
     if cells is not None:
         from cellctl.ui.factory_demo import run_factory_demo
 
-        raise SystemExit(run(lambda: run_factory_demo(cells, count, time_scale, Path(out))))
+        chosen = [Path(t) for t in templates]
+        raise SystemExit(run(lambda: run_factory_demo(cells, count, time_scale, Path(out), chosen)))
     parts = 6 if count is None else count
     run(lambda: _demo(time_scale, parts, Path(out), compare, dashboard, template))
 

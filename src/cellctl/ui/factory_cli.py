@@ -1,5 +1,6 @@
 """The system controller from the shell: ``cellctl factory [--dir DIR] submit|orders|cells|run``,
-the cell's commands one level up, and ``cellctl emulate factory --cells N DIR``.
+the cell's commands one level up, and ``cellctl emulate factory --cells N [--template CELL]...
+DIR``.
 
 ``submit`` and ``orders`` read and write the factory's store (``DIR/state/factory.db``) whether
 or not ``run`` runs: ``run`` picks a new order up within 20 ms. ``run`` is the one factory
@@ -22,6 +23,7 @@ from rich.console import Group
 from rich.live import Live
 from rich.table import Table
 
+from cellctl.clock import current_clock
 from cellctl.emulators.serve import CELL_TIME_SCALE, TIME_SCALE_HELP
 from cellctl.errors import UsageError
 from cellctl.factory.config import FactoryConfig, load_factory
@@ -274,7 +276,8 @@ async def run_factory(
 
 
 def _print(text: str) -> None:
-    console.print(f"{time.strftime('%H:%M:%S')} {text}", markup=False, soft_wrap=True)
+    stamp = time.strftime("%H:%M:%S", time.localtime(current_clock().now()))
+    console.print(f"{stamp} {text}", markup=False, soft_wrap=True)
     console.file.flush()
 
 
@@ -298,9 +301,18 @@ def run_command(ctx: click.Context, live: bool | None, until_idle: bool) -> None
     "--cells",
     "count",
     type=click.IntRange(1, 32),
-    default=3,
-    show_default=True,
-    help="How many emulated cells.",
+    default=None,
+    help="How many emulated cells  [default: 3, or as many as --template given]",
+)
+@click.option(
+    "--template",
+    "templates",
+    multiple=True,
+    type=click.Path(file_okay=False, exists=True),
+    metavar="DIR",
+    help="A cell directory to emulate (its machines, programs and part types), once per "
+    "cell: cell1 the first given, cell2 the second...; the cells past them emulate the "
+    "example cell. Repeat it, e.g. --template examples/cell-tending --template examples/cell.",
 )
 @click.option(
     "--time-scale",
@@ -317,28 +329,54 @@ def run_command(ctx: click.Context, live: bool | None, until_idle: bool) -> None
     help="Seconds a cell has to accept an order before the factory gives it to another.",
 )
 @click.argument("directory", type=click.Path(file_okay=False))
-def emulate_factory(count: int, time_scale: float, accept_timeout: float, directory: str) -> None:
+def emulate_factory(
+    count: int | None,
+    templates: tuple[str, ...],
+    time_scale: float,
+    accept_timeout: float,
+    directory: str,
+) -> None:
     """Start a private Mosquitto and COUNT emulated cells; write their cell directories and
     DIRECTORY/factory.toml. Serves until Ctrl-C."""
+    from cellctl.cell.config import load_cell
     from cellctl.factory.emulated import EmulatedFactory
+
+    cells = count if count is not None else len(templates) or 3
+    if len(templates) > cells:
+        raise click.UsageError(f"{len(templates)} --template for {cells} cells (--cells)")
 
     async def main() -> None:
         plant = EmulatedFactory(
-            Path(directory), cells=count, time_scale=time_scale, accept_timeout=accept_timeout
+            Path(directory),
+            cells=cells,
+            time_scale=time_scale,
+            accept_timeout=accept_timeout,
+            templates=[Path(t) for t in templates],
         )
         await plant.start()
         try:
             console.print(
-                f"emulated factory: {count} cells (time scale {time_scale:g}), "
+                f"emulated factory: {cells} cells (time scale {time_scale:g}), "
                 f"Mosquitto on {plant.broker.url} (its files in {plant.broker.directory})",
                 markup=False,
+                soft_wrap=True,
             )
-            for cell_dir in plant.cell_dirs:
-                console.print(f"  cellctl --cell {cell_dir} run", markup=False)
-            console.print(f"  cellctl factory --dir {directory} run", markup=False)
-            console.print(
-                f"  cellctl factory --dir {directory} submit wax-robot-base --qty 2", markup=False
-            )
+            for cell_dir, template in zip(plant.cell_dirs, plant.templates, strict=True):
+                what = f"  (emulates {template})" if template is not None else ""
+                console.print(
+                    f"  cellctl --cell {cell_dir} run{what}", markup=False, soft_wrap=True
+                )
+            console.print(f"  cellctl factory --dir {directory} run", markup=False, soft_wrap=True)
+            # One order for each cell's first part type (each template has its own).
+            firsts = dict.fromkeys(t for d in plant.cell_dirs for t in list(load_cell(d).parts)[:1])
+            for part_type in firsts:
+                console.print(
+                    f"  cellctl factory --dir {directory} submit {part_type} --qty 2",
+                    markup=False,
+                    soft_wrap=True,
+                )
+            console.print("serving until Ctrl-C", markup=False)
+            console.file.flush()  # a pipe or a log file has them now, not at Ctrl-C
             with contextlib.suppress(asyncio.CancelledError):
                 await until_stopped()
         finally:

@@ -4,10 +4,12 @@
 
     cellctl demo --factory 3                 # 9 parts over 3 cells, figures at the end
     cellctl demo --factory 2 --parts 4 --time-scale 1000 --out /tmp/demo
+    cellctl demo --factory 2 --template examples/cell-tending   # cell1 that cell, cell2 a lab cell
 
 Everything is started for you, in ``OUT/factory`` (``--out``, default ``demo-out``):
 
-- a private Mosquitto and N emulated cells (robot, two mills and a PLC each), in this process
+- a private Mosquitto and N emulated cells (robot, two mills and a PLC each: the example cell,
+  or with ``--template DIR`` that cell directory's machines), in this process
   (:class:`cellctl.factory.emulated.EmulatedFactory`);
 - each cell's controller in its own process, ``cellctl --cell OUT/factory/cellN run --no-live``,
   its events in ``OUT/factory/cellN/run.log``: a cell is its own program on the shop floor,
@@ -16,11 +18,11 @@ Everything is started for you, in ``OUT/factory`` (``--out``, default ``demo-out
 
 Once every cell is online (the factory dispatches only to a cell that said so, and would give
 the whole batch to the first one otherwise) the orders are submitted at once, alternating the
-two part types in orders of 1 or 2 parts. When every order has ended, the cells' controllers
-get SIGTERM (each finishes the step it is in) and the figures are printed: per cell the parts
-made, makespan, the busiest machine's utilization and the parts cut twice according to the
-emulated mills' own logs (must be 0); in total the orders, parts, the makespan from the submit
-to the last step's end, and the bound of the best split of the batch over the cells
+part types the cells make in orders of 1 or 2 parts. When every order has ended, the cells'
+controllers get SIGTERM (each finishes the step it is in) and the figures are printed: per cell
+the parts made, makespan, the busiest machine's utilization and the parts cut twice according
+to the emulated mills' own logs (must be 0); in total the orders, parts, the makespan from the
+submit to the last step's end, and the bound of the best split of the batch over the cells
 (:mod:`cellctl.factory.bound`, from the durations each cell measured).
 
 Ctrl-C stops it the same way (the cells' controllers are in their own session, so the terminal
@@ -37,15 +39,16 @@ import signal
 import sys
 import time
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from cellctl.cell.config import load_cell
+from cellctl.cell.config import PartType, load_cell
 from cellctl.cell.estimate import Durations, measured_durations
 from cellctl.cell.journal import open_journal
 from cellctl.cell.report import Summary, summarize, write_gantt
+from cellctl.clock import current_clock
 from cellctl.emulators.cell import EXAMPLE_CELL
 from cellctl.errors import UsageError
 from cellctl.factory.bound import cell_bound, split_bound
@@ -89,6 +92,7 @@ class CellFigures:
     cut_twice: int
     durations: Durations
     last_end: float
+    types: Mapping[str, PartType]  # what the cell makes
 
     @property
     def made(self) -> int:
@@ -107,18 +111,30 @@ class CellFigures:
 
 
 def _say(text: str) -> None:
-    console.print(f"{time.strftime('%H:%M:%S')} {text}", markup=False, soft_wrap=True)
+    stamp = time.strftime("%H:%M:%S", time.localtime(current_clock().now()))
+    console.print(f"{stamp} {text}", markup=False, soft_wrap=True)
     console.file.flush()
 
 
-async def run_factory_demo(cells: int, count: int | None, time_scale: float, out: Path) -> int:
-    """Run the demo of the module docstring; return its exit status."""
+async def run_factory_demo(
+    cells: int,
+    count: int | None,
+    time_scale: float,
+    out: Path,
+    templates: Sequence[Path] = (),
+) -> int:
+    """Run the demo of the module docstring; return its exit status. ``templates``: the
+    cell directories cell1, cell2, ... emulate (the rest: the example cell)."""
     if cells < 2:
         raise UsageError(f"--factory takes 2 cells or more, not {cells}")
+    if len(templates) > cells:
+        raise UsageError(f"{len(templates)} --template for {cells} cells")
     count = cells * PARTS_PER_CELL if count is None else count
     if count < 1:
         raise UsageError(f"--parts must be at least 1, not {count}")
-    types = list(load_cell(EXAMPLE_CELL).parts)
+    # Every type some cell makes, each once, in the cells' order.
+    chosen = [*templates, *[EXAMPLE_CELL] * (cells - len(templates))]
+    types = list(dict.fromkeys(t for d in chosen for t in load_cell(d).parts))
     batch = mixed_batch(count, types)
     directory = out / "factory"
     shutil.rmtree(directory, ignore_errors=True)
@@ -142,7 +158,7 @@ async def run_factory_demo(cells: int, count: int | None, time_scale: float, out
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, on_signal)
-    plant = EmulatedFactory(directory, cells=cells, time_scale=time_scale)
+    plant = EmulatedFactory(directory, cells=cells, time_scale=time_scale, templates=templates)
     controllers = CellControllers(plant.cell_dirs)
     try:
         await plant.start()
@@ -265,17 +281,18 @@ async def wait_online(
 ) -> None:
     """Until the factory has heard every cell of ``names`` say it is online, with the part
     types it makes (or ``stop``); UsageError after ``timeout`` s."""
-    deadline = time.monotonic() + timeout
+    clock = current_clock()
+    deadline = clock.monotonic() + timeout
     while not stop.is_set():
         controllers.check()
         seen = store.cells()
         if all(n in seen and seen[n].status == "online" and seen[n].part_types for n in names):
             return
-        if time.monotonic() > deadline:
+        if clock.monotonic() > deadline:
             raise UsageError(
                 f"the cells did not come online within {timeout:g} s (see each cell's run.log)"
             )
-        await asyncio.sleep(0.05)
+        await clock.sleep(0.05)
 
 
 async def _batch(
@@ -289,7 +306,7 @@ async def _batch(
     """Submit ``batch`` once every cell is online; return when every order has ended (or
     ``stop``). Returns the time of the submit."""
     await wait_online(store, names, controllers, stop)
-    started = time.time()
+    started = current_clock().now()
     if stop.is_set():
         return started
     for i, (part_type, qty) in enumerate(batch, start=1):
@@ -332,6 +349,7 @@ def _cell_figures(
         twice,
         measured_durations(steps),
         max(ends, default=since),
+        config.parts,
     )
 
 
@@ -350,12 +368,11 @@ def _report(
     twice = sum(f.cut_twice for f in figures)
     done = sum(1 for o in orders if o.state == DONE)
     makespan = max(f.last_end for f in figures) - started
-    types = load_cell(EXAMPLE_CELL).parts
     pooled = Durations()
     for f in figures:
         pooled = pooled.filled(f.durations)
     try:
-        bounds = {f.name: cell_bound(types, f.durations.filled(pooled)) for f in figures}
+        bounds = {f.name: cell_bound(f.types, f.durations.filled(pooled)) for f in figures}
         bound, _ = split_bound(bounds, _per_type(batch))
         versus = f"; bound of the best split {bound:.2f} s (makespan/bound {makespan / bound:.3f})"
     except (KeyError, ZeroDivisionError):

@@ -11,10 +11,8 @@ code (:mod:`cellctl.service.operator`) does the work and posts the report.
 
 from __future__ import annotations
 
-import asyncio
 import json
 import re
-import time
 from collections.abc import Callable, Sequence
 from datetime import datetime
 from pathlib import Path
@@ -25,6 +23,7 @@ from rich.table import Table
 
 from cellctl.cell.causes import PRIORITIES
 from cellctl.cell.journal import LOCATIONS, MAX_SHELVE, PART_STATUSES
+from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.mailbox import MAILBOX_FILE, ORDER_STATES, Report, open_mailbox
 from cellctl.ui.calls import cell_call
@@ -221,7 +220,7 @@ def reports(ctx: click.Context, since: int, limit: int | None, follow: bool, as_
                             print_line("  ".join(x for x in _report_row(r) if x))
                         console.file.flush()
                         seen = r.seq
-                    await asyncio.sleep(FOLLOW_POLL)
+                    await current_clock().sleep(FOLLOW_POLL)
 
         run(follow_reports)
         return
@@ -276,7 +275,7 @@ def alarm_list(ctx: click.Context, show_all: bool, as_json: bool) -> None:
     for column in ("Id", "Raised", "Machine", "Code", "Text", "State", "Cleared"):
         table.add_column(column, justify="right" if column == "Id" else "left")
     for a in found:
-        state = alarm_state(a, time.time())
+        state = alarm_state(a, current_clock().now())
         state = f"[red]{state}[/red]" if "UNACKED" in state else state
         cleared = f"{_when(a['cleared'])} by {a['cleared_by']}" if a["cleared"] else ""
         table.add_row(
@@ -355,7 +354,7 @@ def alarm_history(
             a["machine"],
             a["code"],
             a["text"],
-            alarm_state(a, time.time()),
+            alarm_state(a, current_clock().now()),
         )
     print_table(table)
 
@@ -390,7 +389,7 @@ def _seconds(text: str, option: str) -> float:
 def _since(text: str) -> float:
     """``2h`` (ago) or an ISO date/time, as s since the epoch."""
     if re.fullmatch(r"\s*\d+[hms](\d+[hms])*\s*", text):
-        return time.time() - _seconds(text, "--since")
+        return current_clock().now() - _seconds(text, "--since")
     try:
         return datetime.fromisoformat(text.strip()).timestamp()
     except (ValueError, OverflowError, OSError):

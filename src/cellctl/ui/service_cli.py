@@ -6,7 +6,6 @@ And ``service install`` / ``service status``: that controller as a systemd servi
 
 from __future__ import annotations
 
-import asyncio
 import datetime as dt
 import json
 import shutil
@@ -17,6 +16,7 @@ from typing import Any
 
 import click
 
+from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.service.client import open_cell
 from cellctl.ui.calls import cell_call
@@ -133,7 +133,7 @@ def traffic(ctx: click.Context, name: str, limit: int, follow: bool, as_json: bo
                 # follow that runs for a shift keeps a bounded memory.
                 seen = set(keys)
                 console.file.flush()
-                await asyncio.sleep(TRAFFIC_POLL_S)
+                await current_clock().sleep(TRAFFIC_POLL_S)
 
     run(follow_traffic)
 

@@ -23,6 +23,7 @@ from cryptography import x509
 from cryptography.hazmat.primitives import serialization
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
+from cellctl.clock import REAL_CLOCK
 from cellctl.errors import UsageError
 
 CERT_DIR = Path("state") / "opcua"
@@ -81,7 +82,9 @@ def _usable(cert_path: Path, key: object, app_uri: str, host: str) -> bool:
         cert = x509.load_der_x509_certificate(cert_path.read_bytes())
     except (OSError, ValueError):
         return False
-    if cert.not_valid_after_utc <= datetime.datetime.now(datetime.UTC) + datetime.timedelta(1):
+    # A certificate's validity is the real world's: the real clock's wall time, always.
+    now = datetime.datetime.fromtimestamp(REAL_CLOCK.now(), datetime.UTC)
+    if cert.not_valid_after_utc <= now + datetime.timedelta(1):
         return False
     public = getattr(key, "public_key", None)
     if public is None or public().public_numbers() != cert.public_key().public_numbers():  # type: ignore[union-attr]

@@ -36,6 +36,7 @@ from asyncua.ua.object_ids import ObjectIds
 from asyncua.ua.status_codes import StatusCodes
 
 from cellctl.cell.config import OpcuaTable
+from cellctl.clock import current_clock
 from cellctl.errors import CellctlError, DeviceError, UsageError
 from cellctl.factory.opcua.certs import ensure_certificate, thumbprint
 from cellctl.factory.opcua.conditions import (
@@ -223,7 +224,7 @@ class OpcuaServer:
                 await self._refresh()
             except Exception:
                 log.exception("OPC UA: refreshing the values failed")
-            await asyncio.sleep(REFRESH_GAP)
+            await current_clock().sleep(REFRESH_GAP)
 
     async def _refresh(self) -> None:
         space = self._space

@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import asyncio
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
 import click
 from rich.progress import BarColumn, TextColumn
 
+from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.kinds.dyna2400.driver import MillConfig
 from cellctl.kinds.dyna2400.dynalan import ProgramRole, Severity, ValidationContext, parse_program
@@ -138,7 +138,7 @@ def download(ctx: click.Context, program: Path, no_wait: bool, time_scale: float
         sending["mark"] = elapsed
         # The bar and the time left follow the run's estimate (line time and the program's
         # cut time), corrected by the mill's reports: it moves through the cut too.
-        done = estimated_done(p, time.time())
+        done = estimated_done(p, current_clock().now())
         total = float(p.get("estimate_s") or 0.0)
         left = "" if done is None else f"{_clock(total - done)} left"
         return {

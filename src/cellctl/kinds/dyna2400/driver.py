@@ -37,8 +37,6 @@ that is stuck.
 
 from __future__ import annotations
 
-import asyncio
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,6 +44,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from cellctl.clock import Clock
 from cellctl.drivers.base import CallbackOutput as CallbackOutput
 from cellctl.drivers.base import LinkDriver, StartOutput
 from cellctl.drivers.state import StateStore
@@ -300,9 +299,10 @@ class _Readiness:
         self._scan(self.link.reset_input())
         if self._level is None:
             await self.link.write(bytes([ENQ]))
-            deadline = time.monotonic() + timeout
+            clock = self.link.clock
+            deadline = clock.monotonic() + timeout
             while self._level is None:
-                left = deadline - time.monotonic()
+                left = deadline - clock.monotonic()
                 if left <= 0:
                     raise LinkTimeout(f"{self.link.url}: no DC1/DC3 readiness from the controller")
                 self._scan(await self.link.read(timeout=left))
@@ -313,14 +313,15 @@ class _Readiness:
         if not self.inband:
             await self.link.wait_cts(level, timeout=timeout)
             return
-        deadline = time.monotonic() + timeout
+        clock = self.link.clock
+        deadline = clock.monotonic() + timeout
         while True:
-            current = await self.level(timeout=max(0.0, deadline - time.monotonic()))
+            current = await self.level(timeout=max(0.0, deadline - clock.monotonic()))
             if current == level or (
                 not level and lows_before is not None and self.lows > lows_before
             ):
                 return
-            left = deadline - time.monotonic()
+            left = deadline - clock.monotonic()
             if left <= 0:
                 raise LinkTimeout(
                     f"{self.link.url}: readiness did not go {'high' if level else 'low'} in time"
@@ -339,6 +340,7 @@ class Dyna2400Mill(LinkDriver):
         store: StateStore | None = None,
         config: MillConfig | None = None,
         start_output: StartOutput | None = None,
+        clock: Clock | None = None,
     ) -> None:
         self.config = config or MillConfig()
         if self.config.readiness not in ("modem", "inband"):
@@ -349,7 +351,7 @@ class Dyna2400Mill(LinkDriver):
                 "RTS/CTS: use a serial port or rfc2217://, or choose the in-band fallback "
                 '(readiness = "inband": DC1/DC3 from the controller side)'
             )
-        saved = self._attach(link, name, store)
+        saved = self._attach(link, name, store, clock)
         self.start_output = start_output
         self._ready = _Readiness(link, self.config.readiness == "inband")
         self.state = MillState(int(saved.get("state", 0)))
@@ -371,6 +373,7 @@ class Dyna2400Mill(LinkDriver):
         config: MillConfig | None = None,
         start_output: StartOutput | None = None,
         trace: TrafficLog | str | Path | None = None,
+        clock: Clock | None = None,
     ) -> Dyna2400Mill:
         """Open ``url``; refuses (UsageError) a link without modem lines unless inband, and
         (MachineInUse, before opening anything) a mill another owner holds."""
@@ -381,8 +384,14 @@ class Dyna2400Mill(LinkDriver):
             store=store,
             trace=trace,
             build=lambda link: cls(
-                link, name=name, store=store, config=config, start_output=start_output
+                link,
+                name=name,
+                store=store,
+                config=config,
+                start_output=start_output,
+                clock=clock,
             ),
+            clock=clock,
         )
 
     # -- host-kept state --------------------------------------------------------------------------
@@ -465,8 +474,8 @@ class Dyna2400Mill(LinkDriver):
         progress: Callable[[int, int], None] | None = None,
         chunks: Sequence[bytes] | None = None,
     ) -> None:
-        loop = asyncio.get_running_loop()
-        start = loop.time()
+        clock = self.clock
+        start = clock.monotonic()
         sent = 0
         char_time = self.link.settings.char_time
         for n, piece in enumerate(chunks or [data], start=1):
@@ -475,9 +484,9 @@ class Dyna2400Mill(LinkDriver):
             if progress:
                 progress(n, sent)
             if self.config.pace_writes:
-                ahead = start + sent * char_time - loop.time() - _WRITE_AHEAD_S
+                ahead = start + sent * char_time - clock.monotonic() - _WRITE_AHEAD_S
                 if ahead > 0:
-                    await asyncio.sleep(ahead)
+                    await clock.sleep(ahead)
 
     def _wire_time(self, nbytes: int) -> float:
         return self.link.settings.wire_time(nbytes)
@@ -510,7 +519,7 @@ class Dyna2400Mill(LinkDriver):
                 f"{self.name}: the controller did not take block {block.index} of "
                 f"{block.count} (CTS stayed high {timeout:.1f} s after its last line)"
             ) from None
-        timing.taken = time.monotonic()
+        timing.taken = self.clock.monotonic()
 
     # -- the library functions ---------------------------------------------------------------------
 
@@ -566,7 +575,7 @@ class Dyna2400Mill(LinkDriver):
         if not await self._wait_ready(self.config.ready_wait):
             raise DeviceError(4, INITIALIZE_RESULTS[4], detail="CTS is low: is it READY?")
         block = result.blocks[0]
-        timing = BlockTiming(1, len(block.wire()) + 1, len(block.lines), time.monotonic())
+        timing = BlockTiming(1, len(block.wire()) + 1, len(block.lines), self.clock.monotonic())
         await self._send_block(block, timing, None)
         self._remember_setup(result)
         self.initialized = True
@@ -663,7 +672,7 @@ class Dyna2400Mill(LinkDriver):
                 before[-1],
                 before[k - 1] + wire_s[k - 1],
                 before[k],
-                time.time(),
+                self.clock.now(),
                 True,
             )
 
@@ -674,7 +683,7 @@ class Dyna2400Mill(LinkDriver):
                 await self._wait_block_done(blocks[k - 2], estimates[k - 2])
                 self._set_state(2)
             wire = len(block.wire()) + 1
-            timing = BlockTiming(k, wire, len(block.lines), time.monotonic())
+            timing = BlockTiming(k, wire, len(block.lines), self.clock.monotonic())
             self.last_download.append(timing)
             base_bytes, base_lines = done_bytes, done_lines
 
@@ -694,7 +703,7 @@ class Dyna2400Mill(LinkDriver):
                         before[-1],
                         start + self._wire_time(sent),
                         start + wire_s[k - 1],
-                        time.time(),
+                        self.clock.now(),
                         True,
                     )
                 )
@@ -719,7 +728,7 @@ class Dyna2400Mill(LinkDriver):
                 before[-1],
                 before[-1],
                 before[-1],
-                time.time(),
+                self.clock.now(),
             )
         )
         return Result(0, DOWNLOAD_RESULTS[0])
@@ -734,7 +743,7 @@ class Dyna2400Mill(LinkDriver):
                 f"{timeout:.0f} s (CTS low)",
             )
         if self.last_download and self.last_download[-1].block == block.index:
-            self.last_download[-1].done = time.monotonic()
+            self.last_download[-1].done = self.clock.monotonic()
 
     async def end(self) -> Result:
         """ENDLOAD / HALT: send the END program; the controller returns to manual, state 0.
@@ -849,12 +858,12 @@ class Dyna2400Mill(LinkDriver):
             raise DeviceError(4, "Machine not ready", detail="CTS is low")
         block = result.blocks[0]
         data = block.wire() + bytes([CTRL_Z])
-        started = asyncio.get_running_loop().time()
+        started = self.clock.monotonic()
         await self._send(data)
         # No answer comes for a load: at least let the bytes cross the line before returning.
-        left = started + self._wire_time(len(data)) - asyncio.get_running_loop().time()
+        left = started + self._wire_time(len(data)) - self.clock.monotonic()
         if left > 0:
-            await asyncio.sleep(left)
+            await self.clock.sleep(left)
         self.loaded = result.program.name
         self._save()
         return Result(0, "Load was correct")

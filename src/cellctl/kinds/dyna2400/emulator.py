@@ -48,6 +48,7 @@ from collections.abc import Callable, Coroutine
 from dataclasses import dataclass, field
 from typing import Any
 
+from cellctl.clock import Clock, emulator_clock
 from cellctl.emulators.onsets import FaultOnsets
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
 from cellctl.errors import LinkClosed, UsageError
@@ -131,7 +132,8 @@ class Dyna2400Emulator(EmulatedDevice):
     def __init__(
         self,
         *,
-        time_scale: float = 1.0,
+        time_scale: float | None = None,
+        clock: Clock | None = None,
         automatic: bool = True,
         delays: OperatorDelays | None = None,
         config: MachineConfig | None = None,
@@ -139,11 +141,9 @@ class Dyna2400Emulator(EmulatedDevice):
         mode: LinkMode = LinkMode.PROGRAM_EXECUTE,
         min_busy_s: float = 0.2,
     ) -> None:
-        if time_scale <= 0:
-            raise UsageError(f"time scale must be positive, not {time_scale}")
         if readiness not in ("modem", "inband"):
             raise UsageError(f"readiness is 'modem' or 'inband', not {readiness!r}")
-        self.time_scale = time_scale
+        self._clock = emulator_clock(clock, time_scale)
         self.automatic = automatic
         self.delays = delays or OperatorDelays()
         self.config = config or MachineConfig()
@@ -286,7 +286,8 @@ class Dyna2400Emulator(EmulatedDevice):
 
     async def _machine_sleep(self, machine_s: float) -> None:
         if machine_s > 0:
-            await asyncio.sleep(machine_s / self.time_scale)
+            clock = self.clock
+            await clock.sleep(machine_s / clock.time_scale)
 
     def _set_rts(self, level: bool) -> None:
         if "never-ready" in self.faults and (level or self.rts):
@@ -426,8 +427,8 @@ class Dyna2400Emulator(EmulatedDevice):
         self._execution = self._spawn(self._execute(entries, load_run))
 
     async def _execute(self, entries: dict[int, Entry], load_run: bool) -> None:
-        loop = asyncio.get_running_loop()
-        started = loop.time()
+        clock = self.clock
+        started = clock.monotonic()
         run = BlockRun()
         self._log_run(run)
         self.display = "RUN"
@@ -440,16 +441,16 @@ class Dyna2400Emulator(EmulatedDevice):
                 run.lines_executed += 1
                 if step.operator:
                     await self._setup_stop()
-                    due = loop.time()  # the operator's time is the operator's
+                    due = clock.monotonic()  # the operator's time is the operator's
                 seconds = sum(move.seconds for move in step.moves)
                 run.machining_s += seconds
                 if seconds > 0:
-                    due += seconds / self.time_scale
-                    await asyncio.sleep(max(0.0, due - loop.time()))
+                    due += seconds / clock.time_scale
+                    await clock.sleep(max(0.0, due - clock.monotonic()))
                 elif run.lines_executed % _YIELD_EVERY == 0:
                     # Lines without motion take no machine time, but a REPEAT of them must not
                     # hold the event loop (the link and the other machines go on meanwhile).
-                    await asyncio.sleep(0)
+                    await clock.sleep(0)
                 if step.outcome is not None:
                     outcome = step.outcome
         except ProgramFault as fault:
@@ -459,9 +460,9 @@ class Dyna2400Emulator(EmulatedDevice):
             return
         run.outcome = outcome.value
         # The controller's own processing time: RTS stays low at least this long.
-        left = self.min_busy_s - (loop.time() - started)
+        left = self.min_busy_s - (clock.monotonic() - started)
         if left > 0:
-            await asyncio.sleep(left)
+            await clock.sleep(left)
         self.executing = False
         if outcome is Outcome.END:
             self._end_program()
@@ -504,8 +505,8 @@ class Dyna2400Emulator(EmulatedDevice):
         self._execution = self._spawn(self._run_line(statement, number or 0))
 
     async def _run_line(self, statement: Statement, number: int) -> None:
-        loop = asyncio.get_running_loop()
-        started = loop.time()
+        clock = self.clock
+        started = clock.monotonic()
         run = BlockRun()
         self._log_run(run)
         try:
@@ -523,9 +524,9 @@ class Dyna2400Emulator(EmulatedDevice):
         run.lines_executed = 1
         run.machining_s = sum(move.seconds for move in moves)
         await self._machine_sleep(run.machining_s)
-        left = self.min_busy_s - (loop.time() - started)
+        left = self.min_busy_s - (clock.monotonic() - started)
         if left > 0:
-            await asyncio.sleep(left)
+            await clock.sleep(left)
         run.outcome = Outcome.BLOCK_END.value
         self.executing = False
         self.display = "READY"

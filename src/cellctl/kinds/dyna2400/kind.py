@@ -44,12 +44,13 @@ async def _open(spec: DriverSpec) -> Dyna2400Mill:
         config=spec.options,
         start_output=spec.start_output,
         trace=spec.trace,
+        clock=spec.clock,
     )
 
 
 def _emulator(spec: EmulatorSpec) -> EmulatedDevice:
     delays = CELL_OPERATOR if spec.operator else OperatorDelays()
-    return Dyna2400Emulator(time_scale=spec.time_scale, delays=delays)
+    return Dyna2400Emulator(clock=spec.emulator_clock(), delays=delays)
 
 
 _ROLES = {

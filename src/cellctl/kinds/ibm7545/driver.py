@@ -59,6 +59,7 @@ from pydantic import (
     PositiveFloat,
 )
 
+from cellctl.clock import Clock
 from cellctl.drivers.base import LinkDriver
 from cellctl.drivers.state import StateStore
 from cellctl.errors import (
@@ -234,8 +235,9 @@ class Ibm7545Robot(LinkDriver):
         name: str | None = None,
         store: StateStore | None = None,
         config: RobotConfig | None = None,
+        clock: Clock | None = None,
     ) -> None:
-        saved = self._attach(link, name, store)
+        saved = self._attach(link, name, store, clock)
         self.config = config or RobotConfig()
         self.counters = RobotCounters()
         self.state = RobotState(int(saved.get("state", 0)))
@@ -270,6 +272,7 @@ class Ibm7545Robot(LinkDriver):
         store: StateStore | None = None,
         config: RobotConfig | None = None,
         trace: TrafficLog | str | Path | None = None,
+        clock: Clock | None = None,
     ) -> Ibm7545Robot:
         """Open ``url`` and return a driver on it (the robot's name keys its saved state).
 
@@ -281,7 +284,8 @@ class Ibm7545Robot(LinkDriver):
             name=name,
             store=store,
             trace=trace,
-            build=lambda link: cls(link, name=name or url, store=store, config=config),
+            build=lambda link: cls(link, name=name or url, store=store, config=config, clock=clock),
+            clock=clock,
         )
 
     # -- host-kept state --------------------------------------------------------------------------
@@ -349,12 +353,12 @@ class Ibm7545Robot(LinkDriver):
         least recently used, only when no partition holds it already."""
         for p in PARTITIONS:
             if self.holds(p, program):
-                self._used[p] = asyncio.get_running_loop().time()
+                self._used[p] = self.clock.monotonic()
                 return p
         empty = [p for p in PARTITIONS if self.partitions.get(p) is None]
         target = empty[0] if empty else min(PARTITIONS, key=lambda p: self._used.get(p, 0.0))
         await self.download(target, program, progress=progress)
-        self._used[target] = asyncio.get_running_loop().time()
+        self._used[target] = self.clock.monotonic()
         return target
 
     async def start(self, slot: int) -> None:
@@ -503,7 +507,7 @@ class Ibm7545Robot(LinkDriver):
     ) -> tuple[Record | None, ChecksumError | None]:
         buf = bytearray()
         timeout = self._timeout(4, 7 + 2 * size)
-        deadline = self.link._loop.time() + timeout
+        deadline = self.clock.monotonic() + timeout
         while True:
             try:
                 record, used = decode_record(buf)
@@ -524,7 +528,7 @@ class Ibm7545Robot(LinkDriver):
                         f"{self.name}: {what}: expected a D record", encode_record(record)
                     )
                 return record, None
-            left = deadline - self.link._loop.time()
+            left = deadline - self.clock.monotonic()
             try:
                 buf += await self.link.read(timeout=max(left, 0.0))
             except LinkTimeout as e:
@@ -765,26 +769,26 @@ class Ibm7545Robot(LinkDriver):
         every ``watch_every`` s (every poll if 0): a servo error or a power failure that
         aborted the cycle raises :class:`RobotHalted` then instead of the timeout.
         """
-        loop = self.link._loop
-        deadline = loop.time() + timeout
+        clock = self.clock
+        deadline = clock.monotonic() + timeout
         watched = -math.inf
         while True:
             dido = await self.io()
             if dido.output(line) == value:
                 return dido
-            if watch and loop.time() - watched >= watch_every:
-                watched = loop.time()
+            if watch and clock.monotonic() - watched >= watch_every:
+                watched = clock.monotonic()
                 status = await self.machine_status()
                 if status.flags & HALTING_FLAGS:
                     self._set_state(
                         RobotState.UNINITIALIZED
                     )  # the cycle was aborted; the controller needs INIT
                     raise RobotHalted(status, f"{self.name}: cycle aborted")
-            if loop.time() >= deadline:
+            if clock.monotonic() >= deadline:
                 raise SignalTimeout(
                     f"{self.name}: output {line} did not go {int(value)} within {timeout:g} s"
                 )
-            await asyncio.sleep(min(poll, max(0.0, deadline - loop.time())))
+            await clock.sleep(min(poll, max(0.0, deadline - clock.monotonic())))
 
     async def wait_cycle_end(
         self, done_output: int, *, timeout: float, poll: float = 0.1, watch_every: float = 0.0

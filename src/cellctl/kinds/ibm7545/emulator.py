@@ -42,11 +42,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import NoReturn, TypeVar
 
+from cellctl.clock import Clock, emulator_clock
 from cellctl.emulators.onsets import FaultOnsets
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
 from cellctl.errors import ProtocolError, UsageError
@@ -137,7 +137,7 @@ class ProgramRun:
 
     partition: int
     program: str
-    start: float  # time.monotonic()
+    start: float  # its clock's monotonic time
     end: float | None = None
     outcome: str = "running"  # "completed", "stopped", or the error that ended it
 
@@ -160,7 +160,8 @@ class Ibm7545Emulator(EmulatedDevice):
     def __init__(
         self,
         *,
-        time_scale: float = 1.0,
+        time_scale: float | None = None,
+        clock: Clock | None = None,
         arm: ScaraArm | None = None,
         speed_mm_s: float = SPEED_MM_S,
         erreset_operand: int = ExecuteOperand.ERRESET,
@@ -168,9 +169,7 @@ class Ibm7545Emulator(EmulatedDevice):
         host_timeout_s: float = 30.0,
         max_instructions: int = 1000,
     ) -> None:
-        if time_scale <= 0:
-            raise UsageError(f"time scale must be positive, not {time_scale}")
-        self.time_scale = time_scale
+        self._clock = emulator_clock(clock, time_scale)
         self.arm = arm or ScaraArm()
         self.speed_mm_s = speed_mm_s
         self.erreset_operand = erreset_operand
@@ -315,8 +314,10 @@ class Ibm7545Emulator(EmulatedDevice):
 
     async def _expect(self, host: _Host, decode: Callable[[bytearray], tuple[T | None, int]]) -> T:
         """Wait (host timeout, scaled) for what ``decode`` recognises; reject on bad bytes."""
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + max(self.host_timeout_s / self.time_scale, HOST_TIMEOUT_FLOOR_S)
+        clock = self.clock
+        deadline = clock.monotonic() + max(
+            self.host_timeout_s / clock.time_scale, HOST_TIMEOUT_FLOOR_S
+        )
         while True:
             try:
                 value, used = decode(host.buf)
@@ -329,7 +330,7 @@ class Ibm7545Emulator(EmulatedDevice):
                 return value
             if used:
                 continue
-            left = deadline - loop.time()
+            left = deadline - clock.monotonic()
             data = await host.line.read(timeout=left) if left > 0 else b""
             if not data:
                 await self._reject(host, XOFF_TIME_OUT)
@@ -346,14 +347,16 @@ class Ibm7545Emulator(EmulatedDevice):
         await self._expect(host, ack)
 
     async def _sleep(self, machine_s: float) -> None:
-        await asyncio.sleep(machine_s / self.time_scale)
+        clock = self.clock
+        await clock.sleep(machine_s / clock.time_scale)
 
-    async def _sleep_on(self, clock: list[float], machine_s: float) -> None:
-        """Sleep ``machine_s`` of a program's time on its ``clock`` (``[due]``, loop time):
-        each instruction ends when the model says, counted from the run's start, so the event
-        loop's lateness on each sleep does not add up over a program."""
-        clock[0] += machine_s / self.time_scale
-        await asyncio.sleep(max(0.0, clock[0] - asyncio.get_running_loop().time()))
+    async def _sleep_on(self, due: list[float], machine_s: float) -> None:
+        """Sleep ``machine_s`` of a program's time on its ``due`` (``[when]``, the clock's
+        monotonic time): each instruction ends when the model says, counted from the run's
+        start, so the event loop's lateness on each sleep does not add up over a program."""
+        clock = self.clock
+        due[0] += machine_s / clock.time_scale
+        await clock.sleep(max(0.0, due[0] - clock.monotonic()))
 
     async def _busy(self, host: _Host, machine_s: float) -> None:
         """Wait ``machine_s`` of machine time, repeating Xoff every 25 s (scaled) meanwhile."""
@@ -434,7 +437,7 @@ class Ibm7545Emulator(EmulatedDevice):
         if partition is None or program is None:
             await self._reject(host, INVALID_APPLICATION)
         self.state = 2
-        run = ProgramRun(partition, program.name, time.monotonic())
+        run = ProgramRun(partition, program.name, self.clock.monotonic())
         self.runs.append(run)
         self._abort_reason = "stopped"
         self._cycle = asyncio.get_running_loop().create_task(self._run(program, run))
@@ -543,7 +546,8 @@ class Ibm7545Emulator(EmulatedDevice):
     async def _run(self, program: LoadedProgram, run: ProgramRun) -> None:
         """Execute ``program`` until END, an error, or a stop; then state 1 (0 on power loss)."""
         pc = 0
-        clock = [asyncio.get_running_loop().time()]
+        clock = self.clock
+        due = [clock.monotonic()]
         self.speed_percent = 100
         try:
             while True:
@@ -555,22 +559,22 @@ class Ibm7545Emulator(EmulatedDevice):
                         self._data_error(POINT_OUT_OF_WORKSPACE)
                         run.outcome = "point out of workspace"
                         break
-                    await self._sleep_on(clock, self._move_time(self.position, point))
+                    await self._sleep_on(due, self._move_time(self.position, point))
                     self.position = point
                 elif ins.op is Op.DELAY:
-                    await self._sleep_on(clock, fixed_seconds(ins))
+                    await self._sleep_on(due, fixed_seconds(ins))
                 elif ins.op in (Op.GRASP, Op.RELEASE):
                     self._set_output(GRIPPER_OUTPUT, ins.op is Op.GRASP)
-                    await self._sleep_on(clock, fixed_seconds(ins))
+                    await self._sleep_on(due, fixed_seconds(ins))
                 elif ins.op in (Op.UP, Op.DOWN):
                     self._set_output(Z_DOWN_OUTPUT, ins.op is Op.DOWN)
-                    await self._sleep_on(clock, fixed_seconds(ins))
+                    await self._sleep_on(due, fixed_seconds(ins))
                 elif ins.op is Op.WRITEO:
                     self._set_output(ins.operands[0], bool(ins.operands[1]))
                 elif ins.op is Op.WAITI:
                     await self._wait_input(ins.operands[0], bool(ins.operands[1]))
                     # An input that came later than the program got here: it goes on from now.
-                    clock[0] = max(clock[0], asyncio.get_running_loop().time())
+                    due[0] = max(due[0], clock.monotonic())
                 elif ins.op is Op.SPEED:
                     self.speed_percent = ins.operands[0]
                 elif ins.op is Op.BRANCH or (
@@ -580,8 +584,8 @@ class Ibm7545Emulator(EmulatedDevice):
                 ):
                     pc = ins.operands[-1]
                     # A loop of jumps takes no machine time: let the link and the I/O go on.
-                    await asyncio.sleep(0)
-                    clock[0] = max(clock[0], asyncio.get_running_loop().time())
+                    await clock.sleep(0)
+                    due[0] = max(due[0], clock.monotonic())
                 elif ins.op is Op.END:
                     run.outcome = "completed"
                     break
@@ -593,6 +597,6 @@ class Ibm7545Emulator(EmulatedDevice):
             run.outcome = self._abort_reason
             raise
         finally:
-            run.end = time.monotonic()
+            run.end = self.clock.monotonic()
             if self.state == 2:
                 self.state = 1

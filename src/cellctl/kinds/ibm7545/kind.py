@@ -39,11 +39,12 @@ async def _open(spec: DriverSpec) -> Ibm7545Robot:
         store=spec.store,
         config=spec.options,
         trace=spec.trace,
+        clock=spec.clock,
     )
 
 
 def _emulator(spec: EmulatorSpec) -> EmulatedDevice:
-    return Ibm7545Emulator(time_scale=spec.time_scale)
+    return Ibm7545Emulator(clock=spec.emulator_clock())
 
 
 def application_name(program: str) -> str:

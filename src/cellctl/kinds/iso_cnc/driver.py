@@ -59,7 +59,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from cellctl.clock import current_clock
+from cellctl.clock import Clock
 from cellctl.drivers.base import LinkDriver, StartOutput
 from cellctl.drivers.state import StateStore
 from cellctl.errors import DeviceError, LinkTimeout, ProtocolError
@@ -119,8 +119,9 @@ class IsoCncDriver(LinkDriver):
         store: StateStore | None,
         options: IsoCncOptions,
         start_output: StartOutput | None = None,
+        clock: Clock | None = None,
     ) -> None:
-        saved = self._attach(link, name, store)
+        saved = self._attach(link, name, store, clock)
         self.options = options
         self.start_output = start_output
         self.state = IsoCncState(int(saved.get("state", IsoCncState.IDLE)))
@@ -151,6 +152,7 @@ class IsoCncDriver(LinkDriver):
         options: IsoCncOptions | None = None,
         start_output: StartOutput | None = None,
         trace: TrafficLog | None = None,
+        clock: Clock | None = None,
     ) -> IsoCncDriver:
         """Open ``url`` and return the driver (the machine's owner locks taken)."""
         chosen = options or IsoCncOptions()
@@ -161,8 +163,14 @@ class IsoCncDriver(LinkDriver):
             store=store,
             trace=trace,
             build=lambda link: cls(
-                link, name=name, store=store, options=chosen, start_output=start_output
+                link,
+                name=name,
+                store=store,
+                options=chosen,
+                start_output=start_output,
+                clock=clock,
             ),
+            clock=clock,
         )
 
     # -- what the control says ---------------------------------------------------------------
@@ -184,7 +192,7 @@ class IsoCncDriver(LinkDriver):
     def _handle(self, data: bytes) -> None:
         """Bytes from the control while the host sends: DC1, DC3 and alarm reports."""
         self._inbuf += data
-        now = current_clock().monotonic()
+        now = self.clock.monotonic()
         while self._inbuf:
             byte = self._inbuf[0]
             if byte == tape.NAK[0]:
@@ -223,7 +231,7 @@ class IsoCncDriver(LinkDriver):
 
     async def _listen(self, deadline: float, wanted: str) -> None:
         """Wait for bytes from the control until ``deadline`` (loop time), and handle them."""
-        left = deadline - current_clock().monotonic()
+        left = deadline - self.clock.monotonic()
         if left <= 0:
             raise LinkTimeout(f"{self.name}: {wanted}")
         try:
@@ -233,7 +241,7 @@ class IsoCncDriver(LinkDriver):
         self._handle(data)
 
     async def _wait_dc1(self, timeout: float, what: str) -> None:
-        clock = current_clock()
+        clock = self.clock
         deadline = clock.monotonic() + timeout
         self._handle(self.link.reset_input())
         while self._stopped:
@@ -250,7 +258,7 @@ class IsoCncDriver(LinkDriver):
         """Send a tape under flow control (module docstring); returns when the last byte is
         through the line. The caller waits for the control's end of the read."""
         o = self.options
-        clock = current_clock()
+        clock = self.clock
         total = len(framed)
         began = clock.monotonic()
         self._stops = 0
@@ -287,7 +295,7 @@ class IsoCncDriver(LinkDriver):
         self, framed: bytes, model: BufferModel, phase: str, report: Callable[[str], None]
     ) -> None:
         o = self.options
-        clock = current_clock()
+        clock = self.clock
         char_time = self.link.settings.char_time
         total = len(framed)
         # Bursts cover at least pace_s of line time, whatever the baud rate (see pace_s).
@@ -354,13 +362,12 @@ class IsoCncDriver(LinkDriver):
                 )
                 report(phase)
         if wire_free > clock.monotonic():
-            await current_clock().sleep(wire_free - clock.monotonic())
+            await self.clock.sleep(wire_free - clock.monotonic())
 
-    @staticmethod
-    async def _sleep_until(when: float, late: float) -> float:
+    async def _sleep_until(self, when: float, late: float) -> float:
         """Sleep until ``when`` (loop time); returns the host's lateness, updated by this
         wake-up's (a maximum that decays over a few hundred wake-ups)."""
-        clock = current_clock()
+        clock = self.clock
         await clock.sleep(max(0.0, when - clock.monotonic()))
         return max(clock.monotonic() - when, late * _LATE_DECAY)
 
@@ -370,14 +377,14 @@ class IsoCncDriver(LinkDriver):
         A DC3 heard once every byte is out ends a read-in. A drip-feed's ends the run only
         from shortly before the modelled end of its last block on: a DC3 before that is the
         buffer's (which a control lagging behind the model can still send)."""
-        clock = current_clock()
+        clock = self.clock
         finished = clock.monotonic()
         if model.drip:
             end = model.end_time()
             grace = 0.05 + 0.05 * max(0.0, end - finished)
             while clock.monotonic() < end - grace:
                 self._handle(self.link.reset_input())
-                await current_clock().sleep(min(0.05, end - grace - clock.monotonic()))
+                await self.clock.sleep(min(0.05, end - grace - clock.monotonic()))
         while True:
             self._handle(self.link.reset_input())
             if self._dc3_seen > seen_before:
@@ -404,7 +411,7 @@ class IsoCncDriver(LinkDriver):
         self, framed: bytes, *, drip: bool, progress: Progress | None, timeout: float | None
     ) -> TransferReport:
         o = self.options
-        clock = current_clock()
+        clock = self.clock
         async with self._lock:
             state = IsoCncState.DRIP_FEEDING if drip else IsoCncState.READING
             self.alarm = None
@@ -462,7 +469,7 @@ class IsoCncDriver(LinkDriver):
         max_bytes: int = 64 * 1024 * 1024,
     ) -> bytes:
         """What the control punches (PUNCH pressed): the bytes between DC2 and DC4."""
-        clock = current_clock()
+        clock = self.clock
         deadline = clock.monotonic() + timeout
         async with self._lock:
             self._set(IsoCncState.PUNCHING)
@@ -496,7 +503,7 @@ class IsoCncDriver(LinkDriver):
                 raise
 
     async def _read_some(self, deadline: float, wanted: str) -> bytes:
-        left = deadline - current_clock().monotonic()
+        left = deadline - self.clock.monotonic()
         try:
             return await self.link.read(65536, timeout=max(left, 0.0))
         except LinkTimeout:

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from cellctl.clock import current_clock
+from cellctl.clock import Clock, emulator_clock
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
 from cellctl.errors import LinkClosed, LinkError, UsageError
 from cellctl.kinds.iso_cnc import tape
@@ -43,8 +43,13 @@ from cellctl.kinds.iso_cnc.gcode import PROGRAM_ENDS, Block, parse_block
 from cellctl.kinds.iso_cnc.motion import Machine, MotionModel
 from cellctl.kinds.iso_cnc.tape import ALARMS, DC1, DC2, DC3, DC4, alarm_report
 
-#: Seconds the automatic operator waits for a tape before pressing READ again.
+#: Seconds between the automatic operator's looks at a control waiting for its tape: nothing
+#: came in that long, it presses READ again.
 _OPERATOR_PATIENCE_S = 1.0
+#: What a tape has before its program (leader and trailer NULs, DEL, the %, EOBs): a control
+#: that has had only these still waits for its tape (Fanuc shows LSK, label skip), and the
+#: trailer of the last tape often comes after the next READ.
+_BEFORE_PROGRAM = frozenset(b"\x00\x7f\r\n%")
 
 FAULTS = {
     "adapter-latency": "=MS: its DC3/DC1 reach the host MS milliseconds late (a USB adapter)",
@@ -152,11 +157,15 @@ class DripRun:
 class IsoCncEmulator(EmulatedDevice):
     """One emulated control (see module docstring)."""
 
-    def __init__(self, options: EmulatorOptions | None = None, *, time_scale: float = 1.0) -> None:
-        if time_scale <= 0:
-            raise UsageError(f"time scale must be positive, not {time_scale}")
+    def __init__(
+        self,
+        options: EmulatorOptions | None = None,
+        *,
+        time_scale: float | None = None,
+        clock: Clock | None = None,
+    ) -> None:
+        self._clock = emulator_clock(clock, time_scale)
         self.options = options or EmulatorOptions()
-        self.time_scale = time_scale
         self.memory: dict[int, str] = {}
         self.mode = Mode.EDIT
         self.activity = Activity.IDLE
@@ -171,6 +180,7 @@ class IsoCncEmulator(EmulatedDevice):
         self.punch_held = False  # a punch waits for the host's DC1
         self._paused_at = 0
         self._read_serial = 0  # which READ press the automatic operator is waiting on
+        self._program_came = False  # this read has had a character of a program
         self.peak_buffer = 0  # the most characters its reader buffer held
         self.chars_read = 0
         self.faults: set[str] = set()
@@ -260,7 +270,9 @@ class IsoCncEmulator(EmulatedDevice):
     # -- the panel -----------------------------------------------------------------------------
 
     def start(self) -> None:
-        """Power on: an auto-operated control goes straight to RMT and waits for CYCLE START."""
+        """Power on: the automatic operator (``auto_operator``) presses READ (EDIT) or CYCLE
+        START (RMT) now if a host is connected, else as one connects; without, it waits."""
+        self._auto()
 
     def set_mode(self, mode: Mode | str) -> None:
         """The mode switch: it ends a read or punch under way (an alarm stays)."""
@@ -332,6 +344,7 @@ class IsoCncEmulator(EmulatedDevice):
         self._stopped = False
         self._after_dc3 = 0
         self._started_tape = False
+        self._program_came = False
         self._percents = self._line_start = 0
         if "dr-off" in self.faults:
             self._alarm(86)
@@ -339,7 +352,7 @@ class IsoCncEmulator(EmulatedDevice):
         if self.mode == Mode.RMT:
             run = self._new_run(0)
             self._machine = Machine(self.options.motion(), trace=False)
-            self._free_at = self._read_began = current_clock().monotonic()
+            self._free_at = self._read_began = self.clock.monotonic()
             self._tape_done = False
             self._exec_task = asyncio.ensure_future(self._execute(run))
         if "never-dc1" not in self.faults:
@@ -350,13 +363,18 @@ class IsoCncEmulator(EmulatedDevice):
                 self._later(_OPERATOR_PATIENCE_S, self._press_again, serial, seen)
 
     def _press_again(self, serial: int, seen: int) -> None:
-        """The automatic operator: nothing came since READ was pressed, press it again (its
-        DC1 may have gone to a host that was not listening yet)."""
+        """The automatic operator looks again: while the control still waits for its program
+        (only leader, trailer or nothing came) and nothing came since it last looked
+        (``seen``), it presses READ again. Its DC1 may have gone to a host not listening yet,
+        or been lost on the line; stray characters (the last tape's trailer) do not make it
+        stop looking, a program under way does."""
         if serial != self._read_serial or self.activity != Activity.READING:
             return
-        if self.chars_read == seen and "never-dc1" not in self.faults:
+        if self._program_came:
+            return
+        if self.chars_read == seen and not self._stopped and "never-dc1" not in self.faults:
             self._signal(DC1, rts=True)
-            self._later(_OPERATOR_PATIENCE_S, self._press_again, serial, seen)
+        self._later(_OPERATOR_PATIENCE_S, self._press_again, serial, self.chars_read)
 
     def _new_run(self, number: int) -> DripRun:
         """A run about to start (it counts, and its hooks hear of it, at its first block)."""
@@ -377,7 +395,7 @@ class IsoCncEmulator(EmulatedDevice):
             return
         # Only a held character can cross after now (line-lag); otherwise send at once, as
         # before: the host's backstop counts on the DC3 leaving as soon as it is due.
-        wait = max(0.0, at - current_clock().monotonic()) if self._lag_ms else 0.0
+        wait = max(0.0, at - self.clock.monotonic()) if self._lag_ms else 0.0
         delay = wait + self._latency_ms / 1000.0 / self.time_scale
 
         def send() -> None:
@@ -415,6 +433,8 @@ class IsoCncEmulator(EmulatedDevice):
                 self._alarm(85, f"0x{byte:02X} is not a 7-bit ISO character")
                 return
             self.chars_read += 1
+            if byte not in _BEFORE_PROGRAM:
+                self._program_came = True
             if self.mode == Mode.EDIT:
                 self._tape.append(byte)
                 if self._tape_ends(byte):
@@ -468,7 +488,7 @@ class IsoCncEmulator(EmulatedDevice):
         self._finish_read()
 
     def _finish_read(self) -> None:
-        self._send_dc3(current_clock().monotonic())
+        self._send_dc3(self.clock.monotonic())
         self._stopped = False
         self.activity = Activity.IDLE
         self._later(0.05, self._auto)
@@ -524,17 +544,17 @@ class IsoCncEmulator(EmulatedDevice):
     async def _execute(self, run: DripRun) -> None:
         """Run blocks as they come (the schedule :meth:`_advance` keeps); every wait for one
         after the first is a stall."""
-        clock = current_clock()
+        clock = self.clock
         while self.activity == Activity.READING and self._run is run:
             self._advance(clock.monotonic())
             if self._tape_done:
                 if self._free_at > clock.monotonic():
-                    await current_clock().sleep(self._free_at - clock.monotonic())
+                    await self.clock.sleep(self._free_at - clock.monotonic())
                 break
             if self._lf_at:
                 wake = max(self._lf_at[0], self._free_at) if run.blocks else self._lf_at[0]
                 if wake > clock.monotonic():
-                    await current_clock().sleep(wake - clock.monotonic())
+                    await self.clock.sleep(wake - clock.monotonic())
                 continue
             self._block_ready.clear()
             await self._block_ready.wait()
@@ -550,7 +570,7 @@ class IsoCncEmulator(EmulatedDevice):
             seconds = machine.step(block).seconds if block.words else 0.0
             run.blocks += 1 if block.words else 0
             run.machine_s += seconds
-            await current_clock().sleep(seconds / self.time_scale)
+            await self.clock.sleep(seconds / self.time_scale)
         run.done = True
         if self.activity == Activity.RUNNING:
             self.activity = Activity.IDLE
@@ -594,9 +614,8 @@ class IsoCncEmulator(EmulatedDevice):
         if line is not None and not line.closed:
             self._spawn(line.write(alarm_report(code)))
 
-    @staticmethod
-    def _later(seconds: float, callback: Callable[..., object], *args: object) -> None:
-        clock = current_clock()
+    def _later(self, seconds: float, callback: Callable[..., object], *args: object) -> None:
+        clock = self.clock
         clock.call_at(clock.monotonic() + seconds, callback, *args)
 
     def _spawn(self, coro: Coroutine[object, object, None]) -> None:

@@ -49,6 +49,7 @@ async def _open(spec: DriverSpec) -> IsoCncDriver:
         options=_options(spec.options),
         start_output=spec.start_output,
         trace=spec.trace,
+        clock=spec.clock,
     )
 
 
@@ -59,7 +60,7 @@ def _emulator(spec: EmulatorSpec) -> EmulatedDevice:
     options = EmulatorOptions(
         **{"auto_operator": spec.operator, **{k: v for k, v in spec.extra.items() if k in known}}
     )
-    control = IsoCncEmulator(options, time_scale=spec.time_scale)
+    control = IsoCncEmulator(options, clock=spec.emulator_clock())
     control.mode = Mode.RMT
     return control
 

@@ -39,7 +39,7 @@ from urllib.parse import urlsplit
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from cellctl.clock import current_clock
+from cellctl.clock import Clock
 from cellctl.drivers.base import LinkDriver
 from cellctl.drivers.state import StateStore
 from cellctl.errors import (
@@ -196,8 +196,9 @@ class UrRobot(LinkDriver):
         store: StateStore | None = None,
         options: UrOptions | None = None,
         trace: TrafficLog | None = None,
+        clock: Clock | None = None,
     ) -> None:
-        saved = self._attach(link, name, store)
+        saved = self._attach(link, name, store, clock)
         self.options = options or UrOptions()
         self.arm = ARMS[self.options.model]
         self.trace = trace
@@ -226,6 +227,7 @@ class UrRobot(LinkDriver):
         store: StateStore | None = None,
         options: UrOptions | None = None,
         trace: TrafficLog | None = None,
+        clock: Clock | None = None,
     ) -> UrRobot:
         """Open the Dashboard Server at ``url`` (``socket://HOST:PORT``), then RTDE on the
         same host; MachineInUse before anything opens when another owner holds the robot."""
@@ -238,7 +240,8 @@ class UrRobot(LinkDriver):
             store=store,
             trace=trace,
             build=lambda link: cls(link, name=name or url, store=store, options=options,
-                                   trace=trace),
+                                   trace=trace, clock=clock),
+            clock=clock,
         )  # fmt: skip
         try:
             await robot._open()
@@ -257,7 +260,7 @@ class UrRobot(LinkDriver):
             raise UnexpectedReply(f"{self.name}: not a Dashboard Server: {banner!r}")
         self._rtde = await open_link(
             f"socket://{self.host}:{self.options.rtde_port}", trace=self.trace,
-            label=f"{self.name}-rtde",
+            label=f"{self.name}-rtde", clock=self.clock,
         )  # fmt: skip
         await self._rtde_handshake(self._rtde)
         self._reader = asyncio.ensure_future(self._read_rtde(self._rtde))
@@ -330,7 +333,7 @@ class UrRobot(LinkDriver):
                 if packet_type == rtde.PacketType.DATA_PACKAGE:
                     state = self._state
                     state.values = rtde.unpack_data(self._recipe, payload)
-                    state.at = current_clock().monotonic()
+                    state.at = self.clock.monotonic()
                     state.count += 1
                     self._changed.set()
         except CellctlError as e:
@@ -341,7 +344,7 @@ class UrRobot(LinkDriver):
         """The latest RTDE values; LinkTimeout/LinkClosed when the stream stopped."""
         if self.rtde_error is not None:
             raise LinkClosed(f"{self.name}: RTDE stream ended: {self.rtde_error}")
-        age = current_clock().monotonic() - self._state.at
+        age = self.clock.monotonic() - self._state.at
         if age > self.options.state_timeout:
             raise LinkTimeout(
                 f"{self.name}: no RTDE package for {age:.1f} s "
@@ -361,7 +364,7 @@ class UrRobot(LinkDriver):
 
     async def _wait_state(self, ok: Any, timeout: float, what: str) -> UrStatus:
         """Wait (deadline ``timeout``) for an RTDE package whose status satisfies ``ok``."""
-        deadline = current_clock().monotonic() + timeout
+        deadline = self.clock.monotonic() + timeout
         while True:
             if self._state.count:
                 status = self._status_of(self._fresh())
@@ -369,7 +372,7 @@ class UrRobot(LinkDriver):
                     return status
             elif self.rtde_error is not None:
                 self._fresh()
-            left = deadline - current_clock().monotonic()
+            left = deadline - self.clock.monotonic()
             if left <= 0:
                 now = self._status_of(self._fresh()) if self._state.count else None
                 raise SignalTimeout(
@@ -517,10 +520,10 @@ class UrRobot(LinkDriver):
             if self._secondary is None or self._secondary.closed:
                 self._secondary = await open_link(
                     f"socket://{self.host}:{self.options.secondary_port}", trace=self.trace,
-                    label=f"{self.name}-secondary",
+                    label=f"{self.name}-secondary", clock=self.clock,
                 )  # fmt: skip
             await self._secondary.write(text.encode("utf-8"))
-        self._started_at = current_clock().monotonic()
+        self._started_at = self.clock.monotonic()
         self._current = program
         self._running = True
 
@@ -537,7 +540,7 @@ class UrRobot(LinkDriver):
         program = self._current
         if program is None:
             raise UsageError(f"{self.name}: no program was started")
-        deadline = current_clock().monotonic() + timeout
+        deadline = self.clock.monotonic() + timeout
         period = 1.0 / self.options.rtde_frequency
         started = self._started_at
         played = False
@@ -558,7 +561,7 @@ class UrRobot(LinkDriver):
             if (
                 not played
                 and not program.on_robot
-                and current_clock().monotonic() > started + self.options.start_timeout
+                and self.clock.monotonic() > started + self.options.start_timeout
             ):
                 self._running = False
                 raise UrRefused(
@@ -567,7 +570,7 @@ class UrRobot(LinkDriver):
                     f"{self.name}: {program.name} did not start within "
                     f"{self.options.start_timeout:g} s of being sent",
                 )
-            left = deadline - current_clock().monotonic()
+            left = deadline - self.clock.monotonic()
             if left <= 0:
                 raise SignalTimeout(
                     f"{self.name}: {program.name} did not end within {timeout:g} s "

@@ -52,12 +52,13 @@ async def _open(spec: DriverSpec) -> UrRobot:
         store=spec.store,
         options=spec.options,
         trace=spec.trace,
+        clock=spec.clock,
     )
 
 
 def _emulator(spec: EmulatorSpec) -> EmulatedDevice:
     return UrEmulator(
-        time_scale=spec.time_scale,
+        clock=spec.emulator_clock(),
         model=str(spec.extra.get("model", "UR5e")),
         programs=dict(spec.extra.get("programs", {})),
     )

@@ -20,7 +20,6 @@ no service toggle (nothing dispatches work there).
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar, cast
@@ -459,15 +458,15 @@ class ConsoleApp(App[None]):
 
     async def step_ended(self, name: str, timeout: float = STEP_WAIT) -> None:
         """Wait (live) until the step in flight on ``name`` has ended, up to ``timeout``."""
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout
+        clock = current_clock()
+        deadline = clock.monotonic() + timeout
         while True:
             step = self.snapshot.get("machines", {}).get(name, {}).get("step") or {}
-            if not step or step.get("what") == StepKind.MANUAL or loop.time() > deadline:
+            if not step or step.get("what") == StepKind.MANUAL or clock.monotonic() > deadline:
                 return
             shown = step_text(StepInfo.model_validate(step))
             self.say([f"{name}: waiting for its step in flight to end ({shown})"], "yellow")
-            await asyncio.sleep(0.1)
+            await clock.sleep(0.1)
 
     # -- machine functions ------------------------------------------------------------------
 

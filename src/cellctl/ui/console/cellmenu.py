@@ -8,10 +8,10 @@ without one.
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
+from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.service.machines import load_cell_file
 from cellctl.ui.console.dialogs import Dialog, FormDialog, LivePickDialog, PickDialog
@@ -171,7 +171,7 @@ class CellActions:
         if not found:
             self.app.say(["no open alarm"])
             return
-        now = time.time()
+        now = current_clock().now()
         rows = [(str(a["id"]), f"{a['id']} {alarm_line(a, now)}") for a in found]
         picked = await self.app.ask(
             PickDialog("ALARMS", rows, "Enter on an alarm offers to acknowledge, shelve, clear it")

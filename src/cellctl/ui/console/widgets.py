@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import datetime as dt
 import math
-import time
 from typing import Any
 
 from rich.text import Text
@@ -65,7 +64,7 @@ def progress_text(p: ProgressInfo) -> str:
     words = [p.phase]
     if p.blocks:
         words.append(f"block {p.block}/{p.blocks}")
-    _, left = p.estimated(time.time())  # the run's estimate moves on through a cut
+    _, left = p.estimated(current_clock().now())  # the run's estimate moves on through a cut
     if left is not None:
         words.append(f"{left:.0f} s left")
     return " ".join(words)
@@ -109,7 +108,7 @@ def board_text(snapshot: dict[str, Any] | CellStatus, width: int = 48, height: i
         out.append(_clip(m.state, width - 14) + "\n")
         step = step_text(m.step)
         if m.progress is not None:
-            bar = text_bar(m.progress.estimated(time.time())[0], 1.0, 8)
+            bar = text_bar(m.progress.estimated(current_clock().now())[0], 1.0, 8)
             counted = counted_text(m.progress)
             if counted is not None:  # a transfer counted in its unit: figures a line below
                 line = f"       {bar} {counted} {m.progress.phase} {step}"
@@ -130,7 +129,7 @@ def board_text(snapshot: dict[str, Any] | CellStatus, width: int = 48, height: i
         elif m.condition is Condition.OUT_OF_SERVICE and m.out_reason:
             out.append(_clip(f"       {m.out_reason}", width) + "\n", style="yellow")
     alarms = status.alarms
-    now = time.time()
+    now = current_clock().now()
     unacked = [a for a in alarms if _unacked(a, now)]
     head = f"ALARMS {len(alarms)} open" + (f", {len(unacked)} UNACKED" if unacked else "")
     out.append(head + "\n", style="bold white on red" if unacked else "bold")

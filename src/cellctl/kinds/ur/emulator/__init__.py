@@ -28,7 +28,7 @@ import contextlib
 import struct
 from typing import Any
 
-from cellctl.clock import current_clock
+from cellctl.clock import Clock
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, SelfServed
 from cellctl.errors import ProtocolError
 from cellctl.kinds.ur import rtde
@@ -55,6 +55,19 @@ class UrEmulator(EmulatedDevice):
         self._held_inputs: dict[str, object] = {}  # RTDE input field -> the client holding it
         self.controller.on_drop.append(self.drop)
         self.rtde_sent = 0
+
+    @property
+    def clock(self) -> Clock:
+        """The controller's clock (given as ``clock=`` or ``time_scale=``)."""
+        return self.controller.clock
+
+    @property
+    def time_scale(self) -> float:
+        return self.controller.time_scale
+
+    @time_scale.setter
+    def time_scale(self, value: float) -> None:
+        self.controller.time_scale = value
 
     # the emulated cell's wiring and fault switches, as other robot emulators have them
     @property
@@ -301,7 +314,7 @@ class _RtdeSession:
         # periods, as a real controller stamps the cycle it sampled), so a client counts a
         # missing package by its timestamp and never mistakes the loop's jitter for one.
         period = 1.0 / self.frequency
-        clock = current_clock()
+        clock = self.emulator.clock
         controller = self.emulator.controller
         start = clock.monotonic()
         stamp0 = start - controller.started_at

@@ -13,7 +13,7 @@ import contextlib
 from collections.abc import Callable, Iterator
 from typing import Any
 
-from cellctl.clock import current_clock
+from cellctl.clock import Clock, current_clock, emulator_clock
 from cellctl.errors import UsageError
 from cellctl.kinds.ur.dashboard import (
     COMMANDS,
@@ -60,16 +60,15 @@ class UrController:
     def __init__(
         self,
         *,
-        time_scale: float = 1.0,
+        time_scale: float | None = None,
+        clock: Clock | None = None,
         model: str = "UR5e",
         version: ControllerVersion | None = None,
         programs: dict[str, str] | None = None,
     ) -> None:
-        if time_scale <= 0:
-            raise UsageError(f"time scale must be positive, not {time_scale}")
+        self._clock = emulator_clock(clock, time_scale)
         if model not in ARMS:
             raise UsageError(f"unknown UR model {model!r}; known: {', '.join(ARMS)}")
-        self.time_scale = time_scale
         self.arm = ARMS[model]
         self.version = version or ControllerVersion(5, 15, 0, 1)
         self.programs: dict[str, str] = dict(programs or {})
@@ -101,12 +100,22 @@ class UrController:
 
     # -- time -------------------------------------------------------------------------------------
 
-    @staticmethod
-    def _now() -> float:
-        try:
-            return current_clock().monotonic()
-        except RuntimeError:
-            return 0.0
+    @property
+    def clock(self) -> Clock:
+        """What the controller times its moves on: the clock given, else the running loop's."""
+        return self._clock or current_clock()
+
+    @property
+    def time_scale(self) -> float:
+        """Seconds of machine time per second of its clock."""
+        return self.clock.time_scale
+
+    @time_scale.setter
+    def time_scale(self, value: float) -> None:
+        self._clock = emulator_clock(None, value)  # shorthand for RealClock(value)
+
+    def _now(self) -> float:
+        return self.clock.monotonic()
 
     def machine_s(self, real_s: float) -> float:
         return real_s * self.time_scale
@@ -261,19 +270,19 @@ class UrController:
     async def _take(self, step: Step) -> None:
         await self._resume.wait()
         if isinstance(step, Sleep):
-            end = current_clock().monotonic() + step.seconds / self.time_scale
+            end = self.clock.monotonic() + step.seconds / self.time_scale
             while True:
                 await self._resume.wait()
-                left = end - current_clock().monotonic()
+                left = end - self.clock.monotonic()
                 if left <= 0:
                     return
-                await current_clock().sleep(left)
+                await self.clock.sleep(left)
             return
         move: Move | None = step
         while move is not None:
             await self._resume.wait()
-            self._move = (current_clock().monotonic(), move)
-            await current_clock().sleep(move.seconds / self.time_scale)
+            self._move = (self.clock.monotonic(), move)
+            await self.clock.sleep(move.seconds / self.time_scale)
             if self._move is not None and self._move[1] is move:
                 self._q, self._move = move.end, None
                 return
@@ -366,7 +375,7 @@ class UrController:
 
     def _later(self, seconds: float, from_mode: RobotMode, to_mode: RobotMode) -> None:
         async def change() -> None:
-            await current_clock().sleep(seconds / self.time_scale)
+            await self.clock.sleep(seconds / self.time_scale)
             if self.mode == from_mode:
                 self.mode = to_mode
 

@@ -1,0 +1,180 @@
+"""The plan engine: the real controller, drivers and emulators of the lab cell on virtual time,
+orders played to their end or to ``until``, fault windows applied at their times, inputs the
+cell cannot take refused before anything runs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from datetime import datetime
+from pathlib import Path
+
+import pytest
+
+from cellctl.cell.config import load_cell
+from cellctl.cell.journal import Journal
+from cellctl.cell.model import ControllerOptions
+from cellctl.cell.physics import physical_durations
+from cellctl.cell.scheduler import PartState, next_transfer
+from cellctl.emulators.cell import EXAMPLE_CELL
+from cellctl.errors import UsageError
+from cellctl.plan.engine import (
+    FaultWindow,
+    HeldPart,
+    PlanInputs,
+    PlanOrder,
+    check_inputs,
+    simulate,
+)
+
+START = datetime(2026, 11, 27, 6, 0).timestamp()
+SHIFT = PlanInputs(EXAMPLE_CELL, (PlanOrder("A", "wax-robot-base", 1),), START, START + 8 * 3600)
+
+
+def relative(t: float | None) -> float | None:
+    return None if t is None else t - START
+
+
+def test_a_machine_down_for_a_window_holds_back_its_steps(tmp_path: Path) -> None:
+    down = FaultWindow("cnc2", "down", START + 100, START + 1000)
+    run = simulate(replace(SHIFT, faults=(down,)), tmp_path)
+    with Journal(run.journal_path) as journal:
+        steps = journal.steps()
+        service = journal.service_log()
+    assert [(s.kind, s.machine, s.state) for s in steps] == [
+        ("transfer", "robot", "finished"),
+        ("machine", "cnc1", "finished"),
+        ("transfer", "robot", "finished"),
+        ("machine", "cnc2", "finished"),
+        ("transfer", "robot", "finished"),
+    ]
+    # The rough cut was done long before cnc2 came back: the part waited for it.
+    assert steps[1].ended is not None and steps[1].ended < down.end - 200
+    assert steps[2].started >= down.end
+    assert [(relative(t), name, up) for t, name, up, _ in service] == [
+        (100.0, "cnc2", False),
+        (1000.0, "cnc2", True),
+    ]
+    finished = run.finished["A"]
+    assert finished is not None and run.ended == finished
+    # It finishes what the machines take after the window: load, finish cut, unload.
+    phys = physical_durations(load_cell(EXAMPLE_CELL))
+    cut = phys.machining_s[("cnc2", "robot_base_finish_cnc2")]
+    assert finished - down.end > cut
+    assert run.wall_s > 0 and run.mailbox_path is not None and run.mailbox_path.exists()
+
+
+def test_a_fault_switch_over_a_window_then_the_operator_resolves(tmp_path: Path) -> None:
+    servo = FaultWindow("robot", "servo-error", START + 700, START + 900)
+    run = simulate(replace(SHIFT, faults=(servo,)), tmp_path)
+    with Journal(run.journal_path) as journal:
+        steps = journal.steps()
+        alarms = journal.alarms()
+    # The fault was seen as itself, while it was on, and the plan's operator cleared it.
+    assert [(a.machine, a.text, a.cleared_by) for a in alarms] == [
+        ("robot", "servo error", "plan operator")
+    ]
+    assert servo.start <= alarms[0].raised < servo.end
+    # No transfer ran while the robot was faulted; the order still got done after it.
+    for s in steps:
+        if s.kind == "transfer":
+            assert s.ended is not None
+            assert s.ended <= servo.start or s.started >= servo.end
+    assert all(s.state == "finished" for s in steps) and len(steps) == 5
+    assert run.finished["A"] is not None and run.finished["A"] > servo.end
+
+
+def test_a_part_held_at_the_start_blocks_its_mill_until_the_end(tmp_path: Path) -> None:
+    held = HeldPart("X", "wax-robot-base", "cnc2", route_index=1)
+    inputs = replace(SHIFT, until=START + 1500, held=(held,))
+    run = simulate(inputs, tmp_path)
+    assert run.ended == inputs.until
+    assert run.finished == {"A": None}
+    with Journal(run.journal_path) as journal:
+        parts = {p.id: (p.location, p.status) for p in journal.parts()}
+        steps = journal.steps()
+    assert parts == {"X~held1-1": ("cnc2", "held"), "A-1": ("cnc1", "waiting")}
+    assert [(s.part_id, s.machine) for s in steps] == [("A-1", "robot"), ("A-1", "cnc1")]
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        ({"orders": (PlanOrder("A", "wax-robot-arm", 1),)}, "no part type 'wax-robot-arm'"),
+        ({"orders": (PlanOrder("A", "wax-robot-base", 0),)}, "quantity must be 1 or more"),
+        ({"orders": (PlanOrder("A", "wax-robot-base", 1),) * 2}, "order A is given twice"),
+        ({"policy": "random"}, "no scheduler policy 'random'; known: default, downstream-first"),
+        ({"until": START}, "must come after its start"),
+        ({"faults": (FaultWindow("cnc3", "down", START),)}, "no such machine"),
+        ({"faults": (FaultWindow("cnc2", "melt", START),)}, r"cnc2:melt: no such fault"),
+        ({"faults": (FaultWindow("plc", "down", START),)}, r"plc:down: no such fault"),
+        (
+            {"faults": (FaultWindow("cnc2", "down", START + 10, START + 5),)},
+            "must end after it starts",
+        ),
+        ({"out_of_service": ("lathe",)}, "no machine 'lathe'"),
+        ({"held": (HeldPart("X", "wax-robot-base", "shelf"),)}, "no place 'shelf'"),
+    ],
+)
+def test_inputs_the_cell_cannot_take_are_refused_before_anything_runs(
+    tmp_path: Path, change: dict[str, object], words: str
+) -> None:
+    inputs = replace(SHIFT, **change)  # type: ignore[arg-type]
+    with pytest.raises(UsageError, match=words):
+        check_inputs(inputs)
+    with pytest.raises(UsageError, match=words):
+        simulate(inputs, tmp_path)
+    assert not list(tmp_path.iterdir())  # nothing written
+
+
+# -- the scheduler's policies ------------------------------------------------------------------
+
+
+def _waiting(n: int, part_type: str, seq: int, priority: int = 0) -> PartState:
+    return PartState(f"P{n}", part_type, "conveyor", 0, "waiting", priority, seq)
+
+
+def test_the_policies_choose_the_next_load() -> None:
+    types = load_cell(EXAMPLE_CELL).parts
+    parts = [
+        _waiting(1, "wax-robot-base", 1),
+        _waiting(2, "wax-toy-mill-table", 2),
+        _waiting(3, "wax-robot-base", 3, priority=5),
+    ]
+    phys = physical_durations(load_cell(EXAMPLE_CELL))
+    work = {
+        name: sum(phys.machining_s[(s.mill, s.name)] for s in t.route) for name, t in types.items()
+    }
+    assert work["wax-toy-mill-table"] < work["wax-robot-base"]
+
+    def load(policy: str, states: list[PartState]) -> str | None:
+        transfer = next_transfer(
+            states,
+            types,
+            mills_in_service={"cnc1", "cnc2", "conveyor"},
+            pallet_present=True,
+            policy=policy,
+            work_s=work,
+        )
+        return None if transfer is None else transfer.part_id
+
+    # Priority first for every policy; then the oldest, or the least machining.
+    assert load("downstream-first", parts) == "P3"
+    assert load("shortest-first", parts) == "P3"
+    assert load("downstream-first", parts[:2]) == "P1"
+    assert load("shortest-first", parts[:2]) == "P2"
+    # One at a time: nothing is loaded while a part is in the cell.
+    at_cnc2 = PartState("P0", "wax-robot-base", "cnc2", 1, "active", 0, 0)
+    assert load("downstream-first", [at_cnc2, *parts[:2]]) == "P1"
+    assert load("one-at-a-time", [at_cnc2, *parts[:2]]) is None
+    assert load("one-at-a-time", parts[:2]) == "P1"
+
+
+def test_controller_options_carry_the_policy() -> None:
+    assert ControllerOptions().policy == "downstream-first"
+    assert ControllerOptions(policy="shortest-first").policy == "shortest-first"
+    legacy = ControllerOptions(one_at_a_time=True)
+    assert (legacy.policy, legacy.one_at_a_time) == ("one-at-a-time", True)
+    assert ControllerOptions(policy="one-at-a-time").one_at_a_time is True
+    with pytest.raises(UsageError, match="no scheduler policy 'fifo'"):
+        ControllerOptions(policy="fifo")

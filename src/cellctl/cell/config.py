@@ -342,6 +342,15 @@ class MailboxTable(_Table):
         default=None, description="file with username and password (TOML, mode 0600)"
     )
     ca: Text | None = Field(default=None, description="CA certificate file for mqtts://")
+    plan_period: Seconds | None = Field(
+        default=None,
+        description="s between plans of the cell's own open work, its finish published to "
+        "the factory (plan_finish_s; also when its orders change); default: no plans",
+    )
+    plan_horizon: Annotated[float, Field(gt=0, le=31 * 86400, allow_inf_nan=False)] = Field(
+        default=28800.0,
+        description="s such a plan plays ahead at most (work beyond it counts as ending there)",
+    )
 
     @model_validator(mode="after")
     def _url(self) -> MailboxTable:

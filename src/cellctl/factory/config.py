@@ -13,6 +13,10 @@
     credentials = "factory.credentials"  # username and password (TOML, mode 0600)
     # ca = "broker-ca.pem"               # mqtts:// with a private CA
 
+    [dispatch]
+    estimate = "bound"       # or "plan": a cell's own plan's finish when it is fresh
+    plan_age = 600.0         # s a cell's plan stays fresh
+
     [cells.cell1]
     prefix = "cellctl/cell1"             # the path of the cell's [mailbox] url
 
@@ -32,6 +36,7 @@ from urllib.parse import urlsplit
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from cellctl.errors import UsageError
+from cellctl.factory.dispatch import BOUND, PLAN_AGE_S, EstimateKind
 
 FACTORY_FILE = "factory.toml"
 #: The factory's own state (orders, what each cell said), in the factory directory.
@@ -76,9 +81,15 @@ class CellTable(_Table):
         return value
 
 
+class DispatchTable(_Table):
+    estimate: EstimateKind = BOUND
+    plan_age: float = Field(default=PLAN_AGE_S, gt=0, le=86400)
+
+
 class FactoryFile(_Table):
     factory: FactoryTable = FactoryTable()
     broker: BrokerTable
+    dispatch: DispatchTable = DispatchTable()
     cells: dict[str, CellTable] = Field(min_length=1)
 
 
@@ -95,6 +106,8 @@ class FactoryConfig:
     credentials: Path
     ca: Path | None
     cells: dict[str, str]  # cell name -> topic prefix
+    estimate: EstimateKind = BOUND  # [dispatch] estimate: "bound" or "plan"
+    plan_age: float = PLAN_AGE_S  # [dispatch] plan_age: s a cell's plan stays fresh
 
     @property
     def state_path(self) -> Path:
@@ -140,4 +153,6 @@ def load_factory(directory: Path | str) -> FactoryConfig:
         credentials=directory / file.broker.credentials,
         ca=directory / file.broker.ca if file.broker.ca else None,
         cells={name: table.prefix for name, table in file.cells.items()},
+        estimate=file.dispatch.estimate,
+        plan_age=file.dispatch.plan_age,
     )

@@ -7,8 +7,9 @@
         await factory.run(stop, until_idle=True)      # until stop is set, or every order ends
 
 ``cellctl factory run`` runs it. Each tick it gives every queued order to the online cell
-that makes its part type with the earliest estimated finish (:mod:`cellctl.factory.dispatch`),
-committing the choice before the order goes out; re-sends every order its cell has not
+that makes its part type with the earliest estimated finish (:mod:`cellctl.factory.dispatch`:
+by the cells' bounds, or by their own plans with ``[dispatch] estimate = "plan"``), logging
+why, committing the choice before the order goes out; re-sends every order its cell has not
 answered each ``resend`` seconds (orders are idempotent by id at the cell); and puts back in
 the queue an order its cell refused, or one a cell that went offline did not take before the
 order's ``expires`` (``accept_timeout`` after it was sent: the cell refuses it after that, so it
@@ -31,7 +32,7 @@ import aiomqtt
 
 from cellctl.clock import Clock, current_clock
 from cellctl.factory.config import FactoryConfig
-from cellctl.factory.dispatch import choose, every_cell_refused
+from cellctl.factory.dispatch import Estimating, choose, every_cell_refused
 from cellctl.factory.store import (
     OPEN_STATES,
     QUEUED,
@@ -257,9 +258,11 @@ class FactoryController:
 
         # Higher priority first; within one priority the largest first, so the small ones
         # even out what the large ones leave (a balanced split of the burst).
+        how = Estimating(self.config.estimate, now, self.config.plan_age)
         choices: list[tuple[str, str]] = []
+        whys: dict[str, str] = {}
         for order in sorted(queued, key=lambda o: (-o.priority, -work(o))):
-            cell, why = choose(order, cells, list(planned.values()))
+            cell, why = choose(order, cells, list(planned.values()), how)
             if cell is None:
                 if every_cell_refused(order, self.config.cells):
                     self.store.fail(order.id, f"refused by every cell ({order.note})")
@@ -268,6 +271,7 @@ class FactoryController:
                     self.store.note(order.id, why)
                 continue
             choices.append((order.id, cell))
+            whys[order.id] = why
             planned[order.id] = dataclasses.replace(order, state=SENT, cell=cell)
         if not choices:
             return
@@ -275,6 +279,7 @@ class FactoryController:
         for order in sorted(sent, key=lambda o: (o.submitted, o.id)):  # the cells' FIFO
             await self._publish(client, order)
             self._log(f"order {order.id} sent to {order.cell}")
+            self.log(f"order {order.id}: {whys[order.id]}", order.cell, order.id)
 
     async def _publish(self, client: aiomqtt.Client, order: FactoryOrder) -> None:
         assert order.cell is not None

@@ -17,6 +17,13 @@ after a seq sent again; ``PREFIX/state`` (retained) on change; ``PREFIX/status``
 ``online``, and ``offline`` through the retained last will or a clean stop. A message that
 fails its model is logged and dropped. A broker that goes away is tried again with backoff
 (:class:`~cellctl.mailbox.mqttlink.Reconnect`); the cell keeps working meanwhile.
+
+Given a ``planner`` (``[mailbox] plan_period``: :func:`cellctl.service.planning.own_plan`), the
+bridge also plays its cell's open work forward, one plan at a time, every ``plan_period``
+seconds and when its open orders or its machines' service change, and publishes when the
+plan finishes (``plan_finish_s``, ``planned_at``) in the retained state::
+
+    bridge = MqttBridge(settings, controller, mailbox, journal, planner=plan, plan_period=300)
 """
 
 from __future__ import annotations
@@ -25,7 +32,8 @@ import asyncio
 import contextlib
 import json
 import os
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import aiomqtt
@@ -48,10 +56,36 @@ from cellctl.mailbox.wire import (
     report_message,
 )
 
-__all__ = ["ANSWERS", "BACKOFF_S", "MqttBridge", "MqttSettings", "read_credentials"]
+__all__ = [
+    "ANSWERS",
+    "BACKOFF_S",
+    "MqttBridge",
+    "MqttSettings",
+    "PlanEstimate",
+    "Planner",
+    "read_credentials",
+]
 
 #: Report kinds that answer an order: published again when its id comes again.
 ANSWERS = (ReportKind.ORDER_ACCEPTED, ReportKind.ORDER_REJECTED)
+#: Order states still to be worked on (a change among them is a reason to plan again).
+OPEN_ORDER_STATES = ("posted", "accepted", "in-progress", "held")
+#: Seconds at least between the end of one plan of the cell's work and the start of the next
+#: (a burst of order changes is one plan more, not one each).
+PLAN_GAP_S = 1.0
+
+
+@dataclass(frozen=True)
+class PlanEstimate:
+    """When the cell's plan of its open work finishes: ``finish_s`` seconds after
+    ``planned_at`` (unix seconds, when its state was taken)."""
+
+    planned_at: float
+    finish_s: float
+
+
+#: Plays the cell's open work forward (off the event loop) and says when it finishes.
+Planner = Callable[[], Awaitable[PlanEstimate]]
 
 
 class _Cell(Protocol):
@@ -77,8 +111,14 @@ class MqttBridge:
         *,
         log: Callable[[str], None] = lambda text: None,
         clock: Clock | None = None,
+        planner: Planner | None = None,
+        plan_period: float = 300.0,
     ) -> None:
         self._clock = clock
+        self._planner = planner
+        self.plan_period = plan_period
+        #: The last plan of the cell's open work (None: none yet, or no planner).
+        self.plan: PlanEstimate | None = None
         self.settings = settings
         self.cell = cell
         self.mailbox = mailbox
@@ -161,11 +201,18 @@ class MqttBridge:
         # be written, say). Never end silently: the cell would go on without a mailbox and
         # the factory would think it online.
         self._reconnect = Reconnect(self.settings, self._stopping, log=self.log, what="mailbox")
+        planning = None
+        if self._planner is not None:
+            planning = asyncio.create_task(self._plan_loop(self._planner), name="own-plan")
         try:
             await self._reconnect.run(self._session, on_drop=self.connected.clear)
         finally:
             with contextlib.suppress(ValueError):
                 self.cell.listeners.remove(self._changed.set)
+            if planning is not None:
+                planning.cancel()
+                with contextlib.suppress(BaseException):
+                    await planning
 
     async def stop(self) -> None:
         """Publish ``offline`` and disconnect (the session's orders wait at the broker)."""
@@ -199,6 +246,34 @@ class MqttBridge:
                 with contextlib.suppress(BaseException):
                     await receiver
                 self.connected.clear()
+
+    # -- the cell's own plan --------------------------------------------------------------------
+
+    def _plan_key(self) -> tuple[Any, ...]:
+        """What a plan is of: the open orders' ids and states, the machines out of service."""
+        orders = self.mailbox.orders(states=list(OPEN_ORDER_STATES))
+        out = sorted(name for name, m in self.cell.machines.items() if not m.in_service)
+        return (tuple((o.id, o.state, o.qty) for o in orders), tuple(out))
+
+    async def _plan_loop(self, planner: Planner) -> None:
+        """Plan the cell's work, one plan at a time, every ``plan_period`` and on a change."""
+        clock = self.clock
+        key: tuple[Any, ...] | None = None
+        last = float("-inf")
+        while not self._stopping.is_set():
+            now_key = self._plan_key()
+            if now_key != key or clock.monotonic() - last >= self.plan_period:
+                key = now_key
+                try:
+                    self.plan = await planner()
+                except Exception as e:  # the factory counts this cell by its bound meanwhile
+                    self.plan = None
+                    self.log(f"mailbox: the plan of the cell's own work failed: {e}"[:300])
+                last = clock.monotonic()
+                self._changed.set()
+                await clock.sleep(PLAN_GAP_S)
+            else:
+                await clock.sleep(self.cell.config.poll_period)
 
     # -- orders in -----------------------------------------------------------------------------
 
@@ -329,6 +404,16 @@ class MqttBridge:
             "finish_estimate_s": round(
                 finish_estimate(types, [p.part_type for p in open_parts], durations), 3
             ),
+            **self._plan_fields(),
+        }
+
+    def _plan_fields(self) -> dict[str, float]:
+        """``plan_finish_s`` and ``planned_at`` of the last plan (none: no fields)."""
+        if self.plan is None:
+            return {}
+        return {
+            "plan_finish_s": round(self.plan.finish_s, 3),
+            "planned_at": round(self.plan.planned_at, 3),
         }
 
     async def _publish_state(self, client: aiomqtt.Client) -> None:
@@ -338,7 +423,9 @@ class MqttBridge:
         state = self.state()
         if state == self._state_sent:
             return
-        payload = StateMessage(**state, time=self.clock.now()).model_dump_json()
+        # A cell that does not plan sends no plan fields (as before they were).
+        message = StateMessage(**state, time=self.clock.now())
+        payload = message.model_dump_json(exclude_none=True)
         await client.publish(self.topic["state"], payload, qos=1, retain=True)
         self._state_sent = state
         self._state_at = self.clock.monotonic()

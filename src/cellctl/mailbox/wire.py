@@ -27,6 +27,7 @@ from pydantic import (
     Tag,
     TypeAdapter,
     ValidationError,
+    model_validator,
 )
 
 from cellctl.cell.config import MAX_MACHINES as CELL_MAX_MACHINES
@@ -163,6 +164,17 @@ class StateMessage(_Message):
     orders_open: Count
     parts_open: Count
     finish_estimate_s: Seconds
+    #: A cell that plans its own work (``[mailbox] plan_period``): when it last played its
+    #: state forward (unix seconds), and how long after that its plan finishes every open
+    #: order. Both or neither; a cell that does not plan leaves them out of the payload.
+    plan_finish_s: Seconds | None = None
+    planned_at: Seconds | None = None
+
+    @model_validator(mode="after")
+    def _plan(self) -> StateMessage:
+        if (self.plan_finish_s is None) != (self.planned_at is None):
+            raise ValueError("plan_finish_s and planned_at come together")
+        return self
 
 
 #: ``PREFIX/status`` (retained), cell → anyone allowed: plain text, not JSON.

@@ -14,20 +14,33 @@ one plays is refused, not queued (a plan may take seconds of the computer's time
 Role: **viewer**. A plan acts on nothing: it reads what ``cell.status`` shows and plays it on a
 copy, so a planner or an instructor who may not act on the cell may ask "what if". What it
 costs (the computer's time) is bounded: one plan at a time, at most 31 days ahead.
+
+:func:`own_plan` is the same snapshot played for the factory (``[mailbox] plan_period``): the
+cell's open work alone, and when it finishes, which the cell publishes in its retained state
+(:class:`~cellctl.mailbox.mqtt.MqttBridge` plans one at a time, on a period and when its orders
+or machines change).
 """
 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
+import tempfile
 import threading
-from typing import Annotated, Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from cellctl.cell.journal import Journal
 from cellctl.clock import current_clock
 from cellctl.errors import UsageError
+from cellctl.mailbox import Mailbox
 from cellctl.service.access import CellAccess
 from cellctl.service.functions import Progress
+
+if TYPE_CHECKING:
+    from cellctl.mailbox.mqtt import PlanEstimate
 
 #: The most ``add`` and ``fault`` entries one call may hold.
 MAX_ENTRIES = 20
@@ -86,3 +99,44 @@ async def plan_run(access: CellAccess, p: PlanParams, progress: Progress | None)
     finally:
         _playing.release()
     return {"plan": result.as_dict(), "svg": result.svg}
+
+
+async def own_plan(
+    directory: Path, mailbox: Mailbox, journal: Journal, horizon: float
+) -> PlanEstimate:
+    """The cell's open work now (as ``plan.run`` takes it) played forward on virtual time in a
+    worker thread: when the last open order would be done, in the running cell's seconds (an
+    emulated cell's plan, played at the real machines' speed, is divided by its time scale).
+    Work not done within ``horizon`` (seconds of the real machines' time) counts as done at
+    its end. Nothing open: 0 at once."""
+    from cellctl.cell.config import load_cell
+    from cellctl.mailbox.mqtt import PlanEstimate
+    from cellctl.plan import engine
+    from cellctl.plan.inputs import copy_config
+    from cellctl.plan.snapshot import open_work, out_of_service
+    from cellctl.plan.spec import plan_inputs
+
+    orders, held = open_work(mailbox, journal)
+    stopped = out_of_service(journal)
+    start = current_clock().now()
+    if not orders:
+        return PlanEstimate(planned_at=start, finish_s=0.0)
+
+    def play() -> float:
+        scale = float(load_cell(directory).raw.get("cell", {}).get("time_scale", 1.0))
+        inputs, _ = plan_inputs(
+            directory,
+            start=start,
+            shift=f"{max(1, round(horizon))}s",
+            orders=orders,
+            out_of_service=stopped,
+            held=held,
+        )
+        with tempfile.TemporaryDirectory(prefix="cellctl-own-plan-") as tmp:
+            real = copy_config(directory, Path(tmp) / "config")
+            run = engine.simulate(dataclasses.replace(inputs, cell_dir=real), Path(tmp) / "play")
+        done = [t for t in run.finished.values() if t is not None]
+        ends = inputs.until if len(done) < len(run.finished) else max(done, default=start)
+        return max(0.0, ends - start) / scale
+
+    return PlanEstimate(planned_at=start, finish_s=await asyncio.to_thread(play))

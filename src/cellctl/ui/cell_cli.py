@@ -165,7 +165,20 @@ def _mqtt_bridge(
         return None
     ca = config.directory / box.ca if box.ca else None
     settings = MqttSettings.load(box.url, config.directory / box.credentials, ca)
-    return MqttBridge(settings, controller, mailbox, journal, log=controller.log)
+    if box.plan_period is None:
+        return MqttBridge(settings, controller, mailbox, journal, log=controller.log)
+    from cellctl.service.planning import own_plan
+
+    horizon = box.plan_horizon
+    return MqttBridge(
+        settings,
+        controller,
+        mailbox,
+        journal,
+        log=controller.log,
+        planner=lambda: own_plan(config.directory, mailbox, journal, horizon),
+        plan_period=box.plan_period,
+    )
 
 
 def _bridge_ended(task: asyncio.Task[None], controller: CellController) -> None:

@@ -203,8 +203,8 @@ def real_cell_toml(text: str) -> str:
     """An emulated cell's cell.toml as the real cell's: a plan plays the machines' real
     times (the engine's emulators at time scale 1), so the emulation's ``[cell] time_scale``
     goes, the deadlines it scaled are scaled back, and the machines' ``[options]`` tables go
-    (the plan's emulated machines get their own). A real cell's file is unchanged but for
-    its options tables."""
+    (the plan's emulated machines get their own), as does ``[mailbox]`` (a plan's orders are
+    its own). A real cell's file is unchanged but for those tables."""
     raw = tomllib.loads(text)
     scale = float(raw.get("cell", {}).get("time_scale", 1.0))
     out: list[str] = []
@@ -215,6 +215,8 @@ def real_cell_toml(text: str) -> str:
             section = stripped.strip("[] ")
         if section.startswith("machines.") and section.endswith(".options"):
             continue
+        if section == "mailbox":
+            continue  # a plan's cell has its own mailbox: no broker, no credentials to copy
         key = stripped.split("=", 1)[0].strip() if "=" in stripped else ""
         if section == "cell" and key == "time_scale":
             continue

@@ -24,11 +24,13 @@ or machines change).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
-import tempfile
+import shutil
 import threading
+from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -41,6 +43,8 @@ from cellctl.service.functions import Progress
 
 if TYPE_CHECKING:
     from cellctl.mailbox.mqtt import PlanEstimate
+
+T = TypeVar("T")
 
 #: The most ``add`` and ``fault`` entries one call may hold.
 MAX_ENTRIES = 20
@@ -101,14 +105,18 @@ async def plan_run(access: CellAccess, p: PlanParams, progress: Progress | None)
     return {"plan": result.as_dict(), "svg": result.svg}
 
 
+#: Where a cell's plan of its own work is played (replaced by the next one).
+OWN_PLAN_DIR = Path("state") / "own-plan"
+
+
 async def own_plan(
     directory: Path, mailbox: Mailbox, journal: Journal, horizon: float
 ) -> PlanEstimate:
     """The cell's open work now (as ``plan.run`` takes it) played forward on virtual time in a
-    worker thread: when the last open order would be done, in the running cell's seconds (an
-    emulated cell's plan, played at the real machines' speed, is divided by its time scale).
-    Work not done within ``horizon`` (seconds of the real machines' time) counts as done at
-    its end. Nothing open: 0 at once."""
+    thread of its own: when the last open order would be done, in the running cell's seconds
+    (an emulated cell's plan, played at the real machines' speed, is divided by its time
+    scale). Work not done within ``horizon`` (seconds of the real machines' time) counts as
+    done at its end. Nothing open: 0 at once. Played in ``directory/state/own-plan/``."""
     from cellctl.cell.config import load_cell
     from cellctl.mailbox.mqtt import PlanEstimate
     from cellctl.plan import engine
@@ -132,11 +140,40 @@ async def own_plan(
             out_of_service=stopped,
             held=held,
         )
-        with tempfile.TemporaryDirectory(prefix="cellctl-own-plan-") as tmp:
-            real = copy_config(directory, Path(tmp) / "config")
-            run = engine.simulate(dataclasses.replace(inputs, cell_dir=real), Path(tmp) / "play")
+        work = directory / OWN_PLAN_DIR
+        shutil.rmtree(work, ignore_errors=True)
+        real = copy_config(directory, work / "config")
+        run = engine.simulate(dataclasses.replace(inputs, cell_dir=real), work / "play")
+        shutil.rmtree(work, ignore_errors=True)
         done = [t for t in run.finished.values() if t is not None]
         ends = inputs.until if len(done) < len(run.finished) else max(done, default=start)
         return max(0.0, ends - start) / scale
 
-    return PlanEstimate(planned_at=start, finish_s=await asyncio.to_thread(play))
+    return PlanEstimate(planned_at=start, finish_s=await in_own_thread(play))
+
+
+async def in_own_thread(work: Callable[[], T]) -> T:
+    """``work()`` in a daemon thread of its own: a plan cannot be stopped midway, and a cell
+    that stops (``cellctl run`` ended) must not wait for it; awaiting it cancelled leaves it
+    to end on its own."""
+    loop = asyncio.get_running_loop()
+    future: asyncio.Future[T] = loop.create_future()
+
+    def settle(result: T | None, error: BaseException | None) -> None:
+        if future.done():
+            return
+        if error is not None:
+            future.set_exception(error)
+        else:
+            future.set_result(result)  # type: ignore[arg-type]
+
+    def run() -> None:
+        try:
+            result, error = work(), None
+        except BaseException as e:  # handed to the awaiting task
+            result, error = None, e
+        with contextlib.suppress(RuntimeError):  # the loop closed: nobody waits any more
+            loop.call_soon_threadsafe(settle, result, error)
+
+    threading.Thread(target=run, name="own-plan", daemon=True).start()
+    return await future

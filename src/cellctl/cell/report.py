@@ -12,6 +12,7 @@ Both are read from the journal, so they describe any run, live or after the fact
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from html import escape
 from pathlib import Path
@@ -89,21 +90,33 @@ def summarize(journal: Journal, machines: list[str], since: float = 0.0) -> Summ
 _COLORS = ["#4e79a7", "#f28e2b", "#59a14f", "#e15759", "#76b7b2", "#edc948", "#b07aa1"]
 _FAILED = "#999"
 _START_UP = "#e8e8e8"
+_WINDOW = "#c0392b"
 #: The narrowest bar drawn (px): a robot transfer of a fraction of a second stays visible.
 _MIN_BAR = 2.0
 _LEFT, _WIDTH, _ROW, _TOP = 90, 900, 34, 40
+
+
+@dataclass(frozen=True)
+class GanttWindow:
+    """A span shaded on one machine's row (a plan's fault window): times as the steps'."""
+
+    machine: str
+    start: float
+    end: float
+    label: str
 
 
 @dataclass
 class GanttRun:
     """One run for :func:`gantt_runs_svg`: its title, steps, each part's type (part id ->
     type) and its start (the axis' 0: the batch's start, so the time before the first step
-    is on the chart too)."""
+    is on the chart too); ``windows``: spans shaded on a machine's row."""
 
     title: str
     steps: list[Step]
     part_types: dict[str, str]
     start: float
+    windows: list[GanttWindow] = field(default_factory=list)
 
 
 def gantt_svg(
@@ -125,10 +138,17 @@ def gantt_svg(
     return gantt_runs_svg([GanttRun(title, done, part_types or {}, start)], machines, span=span)
 
 
-def gantt_runs_svg(runs: list[GanttRun], machines: list[str], *, span: float | None = None) -> str:
+def gantt_runs_svg(
+    runs: list[GanttRun],
+    machines: list[str],
+    *,
+    span: float | None = None,
+    tick: Callable[[float], str] | None = None,
+) -> str:
     """Runs one above the other on one time axis (seconds from each run's start), with one
     legend: part types by colour, failed steps, and the start-up before a run's first step
-    (the controller connecting: the robot initialized, the mills' setups sent)."""
+    (the controller connecting: the robot initialized, the mills' setups sent). ``tick``:
+    the axis' labels from seconds after the start (default ``12.5 s``)."""
     kinds = sorted({r.part_types.get(s.part_id, "") for r in runs for s in r.steps})
     color = {k: _COLORS[i % len(_COLORS)] for i, k in enumerate(kinds)}
     ends = [s.ended - r.start for r in runs for s in r.steps if s.ended is not None]
@@ -145,10 +165,9 @@ def gantt_runs_svg(runs: list[GanttRun], machines: list[str], *, span: float | N
     axis_y = _TOP + section * len(runs) - 6
     for i in range(11):
         x = _LEFT + i * _WIDTH / 10
-        out.append(
-            f'<text x="{x:.0f}" y="{axis_y}" text-anchor="middle">{axis * i / 10:.1f} s</text>'
-        )
-    out += _gantt_legend(color, axis_y + 22)
+        text = tick(axis * i / 10) if tick is not None else f"{axis * i / 10:.1f} s"
+        out.append(f'<text x="{x:.0f}" y="{axis_y}" text-anchor="middle">{escape(text)}</text>')
+    out += _gantt_legend(color, axis_y + 22, windows=any(r.windows for r in runs))
     out.append("</svg>")
     return "\n".join(out) + "\n"
 
@@ -185,12 +204,25 @@ def _gantt_rows(
                 f'fill="{fill}" stroke="white" class="step {escape(s.kind)}">'
                 f"<title>{label}</title></rect>"
             )
+        for win in run.windows:
+            if win.machine != machine or win.end <= run.start:
+                continue
+            x = _LEFT + max(0.0, win.start - run.start) / axis * _WIDTH
+            w = max(_MIN_BAR, (win.end - max(win.start, run.start)) / axis * _WIDTH)
+            out.append(
+                f'<rect x="{x:.1f}" y="{y + 1}" width="{w:.1f}" height="{_ROW - 4}" '
+                f'fill="{_WINDOW}" fill-opacity="0.25" stroke="{_WINDOW}" '
+                f'stroke-dasharray="4 2" class="window"><title>{escape(win.label)} '
+                f"{win.end - win.start:.0f} s</title></rect>"
+            )
     return out
 
 
-def _gantt_legend(color: dict[str, str], y: float) -> list[str]:
+def _gantt_legend(color: dict[str, str], y: float, *, windows: bool = False) -> list[str]:
     entries = [(c, kind or "unknown part type") for kind, c in color.items()]
     entries += [(_FAILED, "failed or interrupted"), (_START_UP, "start-up (connecting)")]
+    if windows:
+        entries.append((_WINDOW, "fault window"))
     out = ['<g class="legend">']
     x = float(_LEFT)
     for fill, name in entries:

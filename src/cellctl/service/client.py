@@ -39,6 +39,8 @@ Progress = Callable[[dict[str, Any]], None]
 #: Seconds a call may take: reads, and manual functions (a mill download waits for the cut).
 CALL_TIMEOUT = 30.0
 MACHINE_CALL_TIMEOUT = 3600.0
+#: A plan plays up to 31 days of the cell: seconds to minutes of the computer's time.
+PLAN_CALL_TIMEOUT = 600.0
 CONNECT_TIMEOUT = 5.0
 #: How often a standalone cell's status is looked at for subscribers.
 LOCAL_POLL = 0.5
@@ -47,6 +49,8 @@ LOCAL_POLL = 0.5
 def call_timeout(method: str) -> float:
     """The deadline for ``method``."""
     family = method.split(".", 1)[0]
+    if family == "plan":
+        return PLAN_CALL_TIMEOUT
     return MACHINE_CALL_TIMEOUT if family in ("robot", "mill") else CALL_TIMEOUT
 
 

@@ -49,6 +49,7 @@ from cellctl.service.functions import (
     function,
     kind_menu,
 )
+from cellctl.service.planning import PlanParams, plan_run
 from cellctl.service.token import ROLES, role_allows
 
 #: JSON-RPC 2.0's own error codes.
@@ -435,6 +436,8 @@ _TABLE: list[Method] = [
         "programs.preview", PreviewParams, _preview, "Toolpath SVG of a route's program.", False
     ),
     Method("audit.list", AuditParams, _audit, "Who did what, when, and its result.", False),
+    # A viewer's: it acts on nothing, it plays the cell's state on a copy (service/planning).
+    Method("plan.run", PlanParams, plan_run, "Play the cell ahead on a copy: a plan.", False),
 ]
 _TABLE += [
     Method(

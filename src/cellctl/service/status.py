@@ -135,6 +135,11 @@ class ProgressInfo(Model):
         description="The machine works on: done grows with the clock from estimate_at, up "
         "to estimate_cap_s (a client may draw it so between updates).",
     )
+    stall_s: float | None = Field(
+        default=None,
+        description="Seconds the machine has waited for data this run, its axes stopped (a "
+        "drip-feed), where it is known.",
+    )
 
     def estimated(self, now: float) -> tuple[float, float | None]:
         """``(fraction, time left)`` at ``now``: a client's live figures between updates."""

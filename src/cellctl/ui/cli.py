@@ -13,9 +13,11 @@ from cellctl.ui.dashboard import dashboard_command
 from cellctl.ui.demo import demo
 from cellctl.ui.emulate_cli import emulate
 from cellctl.ui.factory_cli import emulate_factory, factory
+from cellctl.ui.factory_plan_cli import factory_plan
 from cellctl.ui.kinds_cli import kinds_command
 from cellctl.ui.opcua_cli import opcua_group
 from cellctl.ui.orders_cli import alarm, cancel, orders, part, reports, submit
+from cellctl.ui.plan_cli import plan_command
 from cellctl.ui.plc_cli import plc
 from cellctl.ui.report_cli import report
 from cellctl.ui.service_cli import estop, machine, pause, resume, service_group, traffic
@@ -61,6 +63,7 @@ main.add_command(orders)
 main.add_command(cancel)
 main.add_command(reports)
 main.add_command(report)
+main.add_command(plan_command)
 main.add_command(alarm)
 main.add_command(part)
 main.add_command(plc)
@@ -73,6 +76,7 @@ main.add_command(opcua_group)
 main.add_command(token_group)
 main.add_command(audit_command)
 main.add_command(factory)
+factory.add_command(factory_plan)
 emulate.add_command(emulate_cell)
 emulate.add_command(emulate_factory)
 for command in (pause, resume, estop, machine, traffic, service_group):

@@ -4,7 +4,8 @@ the operator finds it in the menus.
 The cell's actions are listed here; a machine's functions are its kind's menu (the same
 list the machine menus are built from). The console calls no acting method missing here
 (``ConsoleApp.call`` refuses it), and the parity test reads this against the API's method
-table::
+table. (A server that is no cell controller declares its machines' methods itself, in
+``machines.functions``: :mod:`cellctl.ui.console.served` offers exactly those.)::
 
     console_actions()["cell.estop"]     # ("CELL", "EMERGENCY STOP")
     console_actions()["robot.go"]       # ("ROBOT", "GO")

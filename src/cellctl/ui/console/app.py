@@ -11,6 +11,11 @@ machine's traffic (the operator's own command first) stay on screen, updated liv
 
 Every action goes through the client (the controller's API when one runs, the machines'
 own links otherwise); calls run in workers so the screen stays live during a download.
+
+On a directory that is no cell (no cell.toml) but where a server runs (a shop's DNC server),
+the console attaches to that server's API: its machines are those of its status, each
+machine's menu is what the server declares (:mod:`.served`), and there is no CELL menu and
+no service toggle (nothing dispatches work there).
 """
 
 from __future__ import annotations
@@ -39,11 +44,14 @@ from cellctl.ui.console.actions import console_actions
 from cellctl.ui.console.cellmenu import CellActions
 from cellctl.ui.console.dialogs import ConfirmDialog, Dialog, FormDialog, ParamsDialog
 from cellctl.ui.console.entry import Action, Entry
+from cellctl.ui.console.served import ServedFunction, ServedMenu, served_functions
 from cellctl.ui.console.session import (
     ConsoleMachine,
     cell_machines,
     check_params,
+    is_cell,
     open_console_cell,
+    status_machines,
 )
 from cellctl.ui.console.widgets import Board, ResultPane, TrafficPane, step_text
 
@@ -112,6 +120,10 @@ class ConsoleApp(App[None]):
         self.selected: str = ""  # whose traffic is shown
         self.entries: list[Entry] = []
         self.cell_actions = CellActions(self)
+        self.served_menu = ServedMenu(self)
+        #: Each machine's functions as its server declares them (none for a cell's).
+        self.served: dict[str, list[ServedFunction]] = {}
+        self.is_cell = is_cell(directory)
         self._traffic_busy = False
         #: Per machine, the operator's last command: when it was given, then its first row
         #: sent (the traffic pane shows it first).
@@ -131,16 +143,23 @@ class ConsoleApp(App[None]):
         yield Footer()
 
     async def on_mount(self) -> None:
-        self.query_one("#board", Board).border_title = "cell"
         try:
-            self.machines = cell_machines(self.directory)
+            if self.is_cell:
+                self.machines = cell_machines(self.directory)
             if self.client is None:
                 self.client = await open_console_cell(self.directory)
             self.snapshot = await self.client.subscribe(self._cell_changed)
+            self.served = await served_functions(self.client)
+            if not self.is_cell:
+                self.machines = status_machines(self.snapshot)
+                if not self.machines:
+                    raise UsageError(f"the server on {self.directory} shows no machine")
         except CellctlError as e:
             self.startup_error = e
             await self.action_quit()
             return
+        board = self.query_one("#board", Board)
+        board.border_title = "cell" if self.is_cell else self.snapshot.get("cell", {}).get("name")
         self.selected = self.machines[0].name
         self._show_snapshot()
         self.show_menu("main")
@@ -158,8 +177,9 @@ class ConsoleApp(App[None]):
         if isinstance(self.client, RemoteCell) and self.client.closed.is_set():
             return "DISCONNECTED: the controller's API closed (q quits)"
         if self.mode == "attached":
-            pid = self.snapshot.get("cell", {}).get("pid", "?")
-            return f"attached to cellctl run (pid {pid})"
+            cell = self.snapshot.get("cell", {})
+            server = "cellctl run" if self.is_cell else cell.get("name", "the server")
+            return f"attached to {server} (pid {cell.get('pid', '?')})"
         return "standalone: links held by this console"
 
     # -- live status ------------------------------------------------------------------------
@@ -184,7 +204,8 @@ class ConsoleApp(App[None]):
 
     def _show_snapshot(self) -> None:
         paused = "  CELL PAUSED" if self.snapshot.get("cell", {}).get("paused") else ""
-        header = f"{self.mode_text()}{paused}  cell: {self.directory}"
+        where = "cell" if self.is_cell else "directory"
+        header = f"{self.mode_text()}{paused}  {where}: {self.directory}"
         self.query_one("#header", Static).update(Text(header))
         self.query_one("#board", Board).show(self.snapshot)
 
@@ -241,10 +262,14 @@ class ConsoleApp(App[None]):
         ]
         # The source's numbers: the machines, then EXIT. The cell has a letter of its own.
         entries.append(Entry(str(len(entries) + 1), "EXIT", self._exit_action))
-        entries.append(Entry(CELL_KEY, "CELL (orders, parts, alarms)", self._open("cell")))
+        if self.is_cell:
+            entries.append(Entry(CELL_KEY, "CELL (orders, parts, alarms)", self._open("cell")))
         return entries
 
     def machine_entries(self, machine: ConsoleMachine) -> list[Entry]:
+        served = self.served.get(machine.name)
+        if served is not None:
+            return self.served_menu.entries(machine, served)
         entries: list[Entry] = []
         letters = iter("abcdefgh")
         functions = menu(machine.family, machine.kind)
@@ -253,11 +278,12 @@ class ConsoleApp(App[None]):
             entries.append(Entry(key, fn.label, self._function(machine, fn)))
         last = max(fn.menu or 0 for fn in functions) + 1
         entries.insert(last - 1, Entry(str(last), "EXIT", self._back_action))
-        if self.mode == "attached":
+        # A server's own machines (no cell) take no work from a cell: no service to toggle.
+        if self.is_cell and self.mode == "attached":
             back = not self.in_service(machine.name)
             label = SERVICE_LABELS[back]
             entries.append(Entry("s", label, self._service(machine.name, back)))
-        else:
+        elif self.is_cell:
             entries.append(Entry("s", "SERVICE", None, UNAVAILABLE))
         return entries
 
@@ -365,6 +391,10 @@ class ConsoleApp(App[None]):
     def say(self, lines: list[str], style: str = "") -> None:
         """Show the outcome of the last action."""
         self.query_one(ResultPane).say(lines, style)
+
+    def show_progress(self, done: float | None, total: float | None) -> None:
+        """The running call's progress bar (``total`` None hides it)."""
+        self.query_one(ResultPane).progress(done, total)
 
     async def call(self, method: str, params: dict[str, Any]) -> Any:
         """A cell-level call; its result (a CellctlError is shown by the caller's guard).

@@ -6,15 +6,19 @@ before anything is sent.
 
     client = await open_console_cell(Path("cell"))     # attached or standalone
     machines = cell_machines(Path("cell"))              # [ConsoleMachine("robot", "robot", ...)]
+    machines = status_machines(snapshot)                # a server's own (no cell.toml)
     params = check_params(machine, fn, {"partition": "6"}, Path("cell"))   # UsageError
 """
 
 from __future__ import annotations
 
+import itertools
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from cellctl.cell.owner import controller_holder
 from cellctl.errors import CellctlError, UsageError
 from cellctl.kinds import registry
 from cellctl.kinds.kind import FAMILIES, MachineKind
@@ -66,25 +70,20 @@ def cell_machines(directory: Path) -> list[ConsoleMachine]:
     if not isinstance(entries, dict):
         raise UsageError(f"{directory / 'cell.toml'}: [machines] must be a table")
     found: list[ConsoleMachine] = []
-    counts = {"robot": 0, "mill": 0}
     families = [
         FAMILY_OF_KIND.get(e.get("kind", "")) for e in entries.values() if isinstance(e, dict)
     ]
+    titles = _titles(families)
     for name, entry in entries.items():
         if not isinstance(entry, dict) or entry.get("kind") not in FAMILY_OF_KIND:
             continue
         family = FAMILY_OF_KIND[entry["kind"]]
-        counts[family] += 1
-        if family == "robot":
-            title = "ROBOT" if families.count("robot") == 1 else f"ROBOT #{counts['robot']}"
-        else:
-            title = f"NC MACHINE #{counts['mill']}"
         setup = entry.get("setup")
         found.append(
             ConsoleMachine(
                 name,
                 family,
-                title,
+                next(titles[family]),
                 dict(entry.get("options", {})),
                 str(setup) if isinstance(setup, str) else None,
                 str(entry["kind"]),
@@ -95,6 +94,32 @@ def cell_machines(directory: Path) -> list[ConsoleMachine]:
     return found
 
 
+def _titles(families: list[str | None]) -> dict[str, Iterator[str]]:
+    """The source's menu titles, in order, per family: ROBOT (#1, #2 ... when there are
+    several), NC MACHINE #1, #2 ..."""
+    one_robot = families.count("robot") == 1
+    robots = (f"ROBOT #{n}" if not one_robot else "ROBOT" for n in itertools.count(1))
+    return {"robot": robots, "mill": (f"NC MACHINE #{n}" for n in itertools.count(1))}
+
+
+def status_machines(snapshot: dict[str, Any]) -> list[ConsoleMachine]:
+    """The robots and mills of a status snapshot (a server's own machines, where the
+    directory has no cell.toml), in its order; a kind not installed here has none of its
+    own (the family's program files are offered)."""
+    rows = [m for m in snapshot.get("machines", {}).values() if isinstance(m, dict)]
+    rows = [m for m in rows if m.get("family") in ("robot", "mill")]
+    titles = _titles([str(m["family"]) for m in rows])
+    return [
+        ConsoleMachine(
+            str(m.get("name", "")),
+            str(m["family"]),
+            next(titles[str(m["family"])]),
+            kind=str(m["kind"]) if m.get("kind") in FAMILY_OF_KIND else None,
+        )
+        for m in rows
+    ]
+
+
 def cell_refs(directory: Path) -> dict[str, MachineRef]:
     """The links of every machine of the cell (what a standalone console opens)."""
     return {
@@ -103,10 +128,22 @@ def cell_refs(directory: Path) -> dict[str, MachineRef]:
     }
 
 
+def is_cell(directory: Path) -> bool:
+    """Whether ``directory`` is a cell (it has a cell.toml), not only a server's directory."""
+    return (directory / "cell.toml").is_file()
+
+
 async def open_console_cell(directory: Path) -> CellClient:
-    """The running controller's API, or the cell's machines from this process."""
-    if not (directory / "cell.toml").is_file():
-        raise UsageError(f"no cell in {directory}: {directory / 'cell.toml'} is missing")
+    """The running controller's API, or the cell's machines from this process; on a
+    directory without a cell.toml, the API of the server running there (its machines are
+    what its status shows)."""
+    if not is_cell(directory):
+        if controller_holder(directory) is None:
+            raise UsageError(
+                f"no cell in {directory}: {directory / 'cell.toml'} is missing, "
+                "and no server runs there"
+            )
+        return await open_cell(directory, {})
     return await open_cell(directory, cell_refs(directory))
 
 

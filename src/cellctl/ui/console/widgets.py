@@ -8,6 +8,7 @@ JSON any API client gets) by field: a machine's condition, never a search of its
 from __future__ import annotations
 
 import datetime as dt
+import math
 from typing import Any
 
 from rich.text import Text
@@ -69,6 +70,27 @@ def progress_text(p: ProgressInfo) -> str:
     return " ".join(words)
 
 
+def counted_text(p: ProgressInfo) -> str | None:
+    """``2345/5600 chars``: a progress counted in its unit, not in blocks (None otherwise)."""
+    if p.blocks or p.total <= 0 or not p.unit:
+        return None
+    return f"{p.done}/{p.total} {p.unit}"
+
+
+def figures_text(p: ProgressInfo) -> str:
+    """``960 chars/s 12 s left stall 0.4 s``: its rate, time left and the machine's stall
+    time (each where the status has it)."""
+    words = []
+    if p.rate_per_s:
+        words.append(f"{p.rate_per_s:.0f} {p.unit}/s")
+    _, left = p.estimated(current_clock().now())
+    if left is not None and math.isfinite(left):
+        words.append(f"{left:.0f} s left")
+    if p.stall_s is not None:
+        words.append(f"stall {p.stall_s:.1f} s")
+    return " ".join(words)
+
+
 def board_text(snapshot: dict[str, Any] | CellStatus, width: int = 48, height: int = 0) -> Text:
     """The board: one line per machine (its condition, its state in its words), a second
     for its step and progress, or its trouble; open alarms, the order queue, events."""
@@ -87,8 +109,16 @@ def board_text(snapshot: dict[str, Any] | CellStatus, width: int = 48, height: i
         step = step_text(m.step)
         if m.progress is not None:
             bar = text_bar(m.progress.estimated(current_clock().now())[0], 1.0, 8)
-            line = f"       {bar} {progress_text(m.progress)} {step}"
-            out.append(_clip(line, width) + "\n", style="cyan")
+            counted = counted_text(m.progress)
+            if counted is not None:  # a transfer counted in its unit: figures a line below
+                line = f"       {bar} {counted} {m.progress.phase} {step}"
+                out.append(_clip(line.rstrip(), width) + "\n", style="cyan")
+                figures = figures_text(m.progress)
+                if figures:
+                    out.append(_clip(f"       {figures}", width) + "\n", style="cyan")
+            else:
+                line = f"       {bar} {progress_text(m.progress)} {step}"
+                out.append(_clip(line, width) + "\n", style="cyan")
         elif step:
             out.append(_clip(f"       {step}", width) + "\n")
         last = [a for a in status.alarms if a.machine == name]

@@ -59,6 +59,8 @@ DASHBOARD_METHODS = frozenset(
         "machines.out_of_service",
         "machines.return_to_service",
         "audit.list",
+        # The What-if panel: a plan of the running cell, played on a copy.
+        "plan.run",
     }
 )
 #: The largest request body taken.

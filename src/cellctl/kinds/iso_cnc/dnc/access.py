@@ -13,14 +13,21 @@ Methods of its own (:meth:`DncAccess.methods`):
   text; else ``program`` is an O-number or file name of ``SHOP/<machine>/programs``); the
   control starts the read. Progress is pushed (``notify_progress``) as characters go.
 - ``dnc.receive`` ``{machine, timeout?}``: take what the control punches; kept as received.
+- ``dnc.stop`` ``{machine}``: stop the read-in or drip-feed in flight (whoever started it),
+  or drop the request waiting for the control's read.
 - ``dnc.log`` ``{machine, last?}``: the last lines of the machine's log.
+- ``machines.functions``: what an operator may do to each machine (:data:`FUNCTIONS`), for a
+  client that builds its menus from the server (the console).
 
-Each waits for the machine's turn: a punch or a request's answer in flight finishes first.
+Each but ``dnc.stop`` waits for the machine's turn: a punch or a request's answer in flight
+finishes first. ``traffic.tail`` shows each machine's last bytes both ways (kept from the
+first ``traffic.tail`` on, while clients keep asking).
 """
 
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 from collections.abc import AsyncIterator, Mapping
 from pathlib import Path
@@ -34,15 +41,17 @@ from cellctl.kinds import Condition
 from cellctl.kinds.iso_cnc.dnc.config import KIND
 from cellctl.kinds.iso_cnc.dnc.server import (
     PUNCH_S,
+    STOP_S,
     TRANSFER_S,
     Activity,
     DncServer,
     MachineStatus,
+    WatchedTraffic,
 )
 from cellctl.kinds.iso_cnc.dnc.store import read_program_file
 from cellctl.kinds.menu import MAX_PROGRAM_CHARS, Progress
 from cellctl.mailbox import Mailbox
-from cellctl.service.access import CellAccess
+from cellctl.service.access import CellAccess, traffic_rows
 from cellctl.service.methods import Method, P
 from cellctl.service.status import (
     CellInfo,
@@ -82,6 +91,71 @@ class LogParams(P):
     last: int = Field(default=50, ge=1, le=10_000)
 
 
+class StopParams(P):
+    machine: str = Field(min_length=1, max_length=64)
+
+
+class NoParams(P):
+    pass
+
+
+#: Seconds the console waits for a punch (RECEIVE PUNCH).
+RECEIVE_S = 600.0
+#: Seconds a client waits for an answer beyond the method's own deadline.
+CALL_MARGIN_S = 30.0
+#: What an operator may do to a DNC machine, as ``machines.functions`` serves it: a menu key
+#: and label, the method and its fixed parameters, what the client asks the operator for
+#: (``program``: a program file, sent as ``program`` and ``text``), a question to confirm.
+FUNCTIONS: tuple[dict[str, Any], ...] = (
+    {
+        "key": "1",
+        "label": "READ IN",
+        "method": "dnc.send",
+        "params": {"drip": False},
+        "asks": ["program"],
+        "doc": "Into the control's memory: press READ on the control (EDIT mode).",
+        "timeout_s": TRANSFER_S + CALL_MARGIN_S,
+    },
+    {
+        "key": "2",
+        "label": "DRIP FEED",
+        "method": "dnc.send",
+        "params": {"drip": True},
+        "asks": ["program"],
+        "doc": "The control runs it as it arrives: CYCLE START in RMT (DNC) mode.",
+        "timeout_s": TRANSFER_S + CALL_MARGIN_S,
+    },
+    {
+        "key": "3",
+        "label": "RECEIVE PUNCH",
+        "method": "dnc.receive",
+        "params": {"timeout": RECEIVE_S},
+        "asks": [],
+        "doc": "Keep what the control punches next: press PUNCH on the control.",
+        "timeout_s": RECEIVE_S + CALL_MARGIN_S,
+    },
+    {
+        "key": "4",
+        "label": "STOP TRANSFER",
+        "method": "dnc.stop",
+        "params": {},
+        "asks": [],
+        "confirm": "Stop the transfer in flight (or drop the request waiting for a read)? "
+        "The control is left mid-read: reset it before its next read.",
+        "doc": "Stop the read-in or drip-feed in flight.",
+        "timeout_s": STOP_S + CALL_MARGIN_S,
+    },
+    {
+        "key": "5",
+        "label": "LOG",
+        "method": "dnc.log",
+        "params": {"last": 5},
+        "asks": [],
+        "doc": "The machine's last log lines.",
+    },
+)
+
+
 def state_words(s: MachineStatus) -> str:
     """A machine's state as the console and dashboard show it."""
     words = s.activity.value
@@ -89,7 +163,7 @@ def state_words(s: MachineStatus) -> str:
         words += f" {s.program}"
     if s.activity is Activity.WAITING and s.pending:
         words += f": {s.pending}"
-    if s.stall_s > 0:
+    if s.stall_s > 0 and s.activity is Activity.DRIP_FEEDING:
         words += f", stalled {s.stall_s:.1f} s"
     return words
 
@@ -99,7 +173,7 @@ def _progress(s: MachineStatus) -> ProgressInfo | None:
         return None
     total = max(s.chars_total, s.chars_done)
     return ProgressInfo(
-        phase=s.activity.value,
+        phase=s.phase or s.activity.value,
         done=s.chars_done,
         total=total,
         unit="chars",
@@ -107,7 +181,8 @@ def _progress(s: MachineStatus) -> ProgressInfo | None:
         program=s.program,
         since=s.since,
         rate_per_s=s.chars_per_s,
-        time_left_s=s.eta_s,
+        time_left_s=s.eta_s if s.eta_s is not None and math.isfinite(s.eta_s) else None,
+        stall_s=s.stall_s if s.activity is Activity.DRIP_FEEDING else None,
     )
 
 
@@ -177,8 +252,10 @@ class DncAccess(CellAccess):
         )
 
     def traffic(self, name: str, limit: int) -> list[dict[str, Any]]:
-        self.server.line(name)
-        return []
+        line = self.server.line(name)
+        if isinstance(line.trace, WatchedTraffic):
+            line.trace.watch()  # kept from now on, while someone looks
+        return [] if line.trace is None else traffic_rows(line.trace, name, limit)
 
     def methods(self) -> Mapping[str, Any]:
         return METHODS
@@ -203,13 +280,37 @@ async def _receive(access: CellAccess, p: ReceiveParams, progress: Progress | No
     assert isinstance(access, DncAccess)
     line = access.server.line(p.machine)
     programs = await line.wait_punch(p.timeout)
-    return {"machine": p.machine, "programs": programs}
+    message = "; ".join(_punched(x) for x in programs) or "nothing punched"
+    return {"machine": p.machine, "message": message, "programs": programs}
+
+
+def _punched(item: dict[str, Any]) -> str:
+    """One program of a punch, in words (what became of it)."""
+    if "refused" in item:
+        return f"refused: {item['refused']}"
+    if "request" in item:
+        return f"request: {item['request']}"
+    kept = Path(str(item["kept"])).name
+    return f"received O{item['program']:04d} ({item.get('chars', 0)} chars) as {kept}"
+
+
+async def _stop(access: CellAccess, p: StopParams, progress: Progress | None) -> Any:
+    assert isinstance(access, DncAccess)
+    message = await access.server.line(p.machine).stop()
+    return {"machine": p.machine, "message": message}
+
+
+async def _functions(access: CellAccess, p: NoParams, progress: Progress | None) -> Any:
+    assert isinstance(access, DncAccess)
+    return {name: list(FUNCTIONS) for name in access.server.lines}
 
 
 async def _log(access: CellAccess, p: LogParams, progress: Progress | None) -> Any:
     assert isinstance(access, DncAccess)
     line = access.server.line(p.machine)
-    return {"machine": p.machine, "lines": line.store.log_lines(p.machine, p.last)}
+    lines = line.store.log_lines(p.machine, p.last)
+    message = f"the last {len(lines)} lines of its log" if lines else "its log is empty"
+    return {"machine": p.machine, "message": message, "lines": lines}
 
 
 METHODS: dict[str, Method] = {
@@ -217,6 +318,14 @@ METHODS: dict[str, Method] = {
     for m in [
         Method("dnc.send", SendParams, _send, "Send (or drip-feed) a program by hand.", True),
         Method("dnc.receive", ReceiveParams, _receive, "Take what the control punches.", True),
+        Method("dnc.stop", StopParams, _stop, "Stop the transfer in flight.", True),
         Method("dnc.log", LogParams, _log, "The last lines of a machine's log.", False),
+        Method(
+            "machines.functions",
+            NoParams,
+            _functions,
+            "What an operator may do to each machine (menus of a client).",
+            False,
+        ),
     ]
 }

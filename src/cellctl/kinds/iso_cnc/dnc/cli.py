@@ -6,6 +6,7 @@
     cellctl dnc send  mill1 O1234 --dir SHOP     # into the control's memory, with progress
     cellctl dnc drip  mill1 big.nc --dir SHOP    # drip-feed (the control runs as it reads)
     cellctl dnc receive mill1 --dir SHOP         # keep what the control punches
+    cellctl dnc stop  mill1 --dir SHOP           # stop the transfer in flight
     cellctl dnc diff  mill1 O1234 --dir SHOP     # the newest received O1234 against the sent
     cellctl dnc status --dir SHOP
 
@@ -222,6 +223,18 @@ def receive(ctx: click.Context, name: str, timeout: float, shop: Path, use_cell:
             console.print(f"request: {item['request']}", markup=False)
         else:
             console.print(f"received O{item['program']:04d}: {item['kept']}", markup=False)
+
+
+@dnc.command("stop")
+@click.argument("name", metavar="MACHINE")
+@_shop_options
+@click.pass_context
+def stop_transfer(ctx: click.Context, name: str, shop: Path, use_cell: bool) -> None:
+    """Stop the read-in or drip-feed in flight on MACHINE (or drop the request waiting for
+    its read). The control is left mid-read: reset it before its next read."""
+    config = _config(ctx, shop, use_cell)
+    result = run(lambda: call_shop(config, name, "dnc.stop", {}))
+    console.print(result["message"], markup=False)
 
 
 @dnc.command()

@@ -6,6 +6,7 @@
     await server.start()             # opens every link under its owner locks; one task each
     server.status()["mill1"].activity   # Activity.IDLE ...
     await server.send("mill1", data, drip=True, progress=print)   # by hand, between requests
+    await server.line("mill1").stop()   # from another task: the transfer in flight ends here
     await server.close()
 
 Each machine's task listens for the control: a punched tape (DC2 ... DC4) is split into its
@@ -14,7 +15,9 @@ program it names (read into memory, or drip-fed), every other program is kept as
 (:mod:`.store`). A transfer by hand (``dnc.send`` / ``dnc.drip`` / ``dnc.receive`` through the
 API) waits until the machine's task is between two listens, so a transfer is never cut in two.
 A link that fails is logged, shown on the machine's status, and opened again after
-:data:`REOPEN_S`; the other machines go on.
+:data:`REOPEN_S`; the other machines go on. A transfer stopped by hand (``dnc.stop``) ends at
+once, whoever started it: its caller gets :class:`TransferStopped`, the control is left
+mid-read (the operator resets it), and the driver waits for the control's next DC1.
 """
 
 from __future__ import annotations
@@ -56,8 +59,36 @@ PROGRESS_S = 0.5
 EVENTS = 30
 #: Seconds a transfer by hand may take in all.
 TRANSFER_S = 24 * 3600.0
+#: Seconds a stopped transfer may take to let go of its link.
+STOP_S = 10.0
+#: Chunks of traffic each machine keeps for ``traffic.tail`` (the console's traffic pane).
+TRAFFIC_KEEP = 200
+#: Seconds a machine's traffic is kept after a client last asked for it.
+WATCH_S = 30.0
 
 Progress = Callable[[dict[str, Any]], None]
+
+
+class TransferStopped(CellctlError):
+    """A transfer stopped by hand: the message says where it stood."""
+
+
+class WatchedTraffic(TrafficLog):
+    """A machine's last chunks both ways, kept only while a client looks at them
+    (:meth:`watch`, called by ``traffic.tail``, within the last :data:`WATCH_S`): a shop of
+    hundreds of links spends nothing on traffic nobody reads."""
+
+    def __init__(self) -> None:
+        super().__init__(None, keep=TRAFFIC_KEEP)
+        self.until = 0.0
+
+    def watch(self) -> None:
+        """Keep what goes both ways for the next :data:`WATCH_S` seconds."""
+        self.until = current_clock().now() + WATCH_S
+
+    def record(self, label: str, direction: str, data: bytes, when: float) -> None:
+        if when <= self.until:
+            super().record(label, direction, data, when)
 
 
 class Activity(enum.StrEnum):
@@ -86,6 +117,9 @@ class MachineStatus:
     name: str
     activity: Activity = Activity.OFFLINE
     program: str | None = None
+    phase: str = ""
+    """Where a transfer stands: ``waiting`` (for the control's DC1), ``sending``, ``stopped``
+    (a DC3), ``running`` (all sent, the control runs the rest), ``receiving``."""
     chars_done: int = 0
     chars_total: int = 0
     chars_per_s: float = 0.0
@@ -134,9 +168,15 @@ class DncLine:
     changed: Callable[[], None] = lambda: None
     events: deque[tuple[float, str]] = field(default_factory=lambda: deque(maxlen=EVENTS))
     punch_waiters: list[asyncio.Future[list[dict[str, Any]]]] = field(default_factory=list)
+    transfer: asyncio.Task[Any] | None = None
+    """The driver's read-in or drip-feed in flight (what :meth:`stop` cancels)."""
+    stopping: str = ""
+    """Why the transfer in flight is being stopped (set by :meth:`stop`)."""
 
     def __post_init__(self) -> None:
         self.status = MachineStatus(self.config.name)
+        if self.trace is None:  # what traffic.tail shows: this machine's last chunks
+            self.trace = WatchedTraffic()
 
     def _note(self, text: str) -> None:
         """Log ``text`` in the machine's log and keep it for the status' events."""
@@ -188,6 +228,7 @@ class DncLine:
                 # the driver's modelled stall so far (the axes waiting for a block)
                 d["stall_s"] = float(self.driver.host_status().stall_s)
             self._set(
+                phase=d["phase"],
                 chars_done=d["chars_sent"],
                 chars_total=d["chars_total"],
                 chars_per_s=d["chars_per_s"],
@@ -217,6 +258,7 @@ class DncLine:
         self._set(
             activity=activity,
             program=program,
+            phase="waiting",
             chars_done=0,
             chars_total=len(data),
             buffer_stops=0,
@@ -225,13 +267,27 @@ class DncLine:
             since=current_clock().now(),
         )
         what = "drip-fed" if drip else "read in"
+        method = self.driver.drip_feed if drip else self.driver.read_in
+        # Its own task, so that stop() cancels the transfer and not whoever waits for it.
+        self.transfer = asyncio.ensure_future(
+            method(data, progress=self._on_progress(progress), timeout=timeout)
+        )
+        self.stopping = ""
         try:
-            method = self.driver.drip_feed if drip else self.driver.read_in
-            report = await method(data, progress=self._on_progress(progress), timeout=timeout)
+            report = await self.transfer
+        except asyncio.CancelledError:
+            current = asyncio.current_task()
+            if not self.stopping or (current is not None and current.cancelling()):
+                raise  # the caller itself is cancelled (the server closes): not a stop
+            self._note(self.stopping)
+            self._set(activity=Activity.IDLE, last=self.stopping, error="")
+            raise TransferStopped(self.stopping) from None
         except CellctlError as e:
             self._note(f"{program}: {what} FAILED: {e}")
             self._set(activity=Activity.IDLE, error=str(e), failures=self.status.failures + 1)
             raise
+        finally:
+            self.transfer = None
         number = _number(data)
         if number is not None:
             self.store.keep_sent(self.name, number, data)
@@ -241,6 +297,8 @@ class DncLine:
             f"{program}: {what}, {len(data)} chars in {seconds:.1f} s, "
             f"{result['buffer_stops']} buffer stops"
         )
+        if drip:  # the machine's wait for blocks the line had not brought yet
+            message += f", stalled {result['stall_s']:.1f} s"
         self._note(message)
         self._set(
             activity=Activity.IDLE,
@@ -250,6 +308,39 @@ class DncLine:
             failures=0,
         )
         return {"message": message, **result}
+
+    async def stop(self, timeout: float = STOP_S) -> str:
+        """Stop the read-in or drip-feed in flight (the control is left mid-read: its
+        operator resets it), or drop the request waiting for the control's read; what was
+        stopped, in words. UsageError when there is neither."""
+        transfer = self.transfer
+        if transfer is not None and not transfer.done():
+            s = self.status
+            what = "drip-feed" if s.activity is Activity.DRIP_FEEDING else "read-in"
+            self.stopping = (
+                f"{s.program}: {what} stopped by hand at {s.chars_done}/{s.chars_total} chars "
+                "(reset the control before its next read)"
+            )
+            transfer.cancel()
+            try:
+                async with current_clock().timeout(timeout):
+                    await asyncio.wait({transfer})
+            except TimeoutError:
+                said = f"{self.name}: the transfer did not stop within {timeout:g} s"
+                raise LinkTimeout(said) from None
+            if not transfer.cancelled():  # it ended on its own before the stop reached it
+                return f"{s.program}: the {what} had ended: nothing to stop"
+            return self.stopping
+        if self.pending is not None:
+            request, self.pending = self.pending, None
+            message = f"request {request} dropped by hand"
+            self._note(message)
+            self._set(activity=Activity.IDLE, pending="", last=message)
+            return message
+        raise UsageError(
+            f"{self.name}: no transfer in flight and no request waiting "
+            f"(it is {self.status.activity.value})"
+        )
 
     async def receive(self, *, timeout: float) -> list[dict[str, Any]]:
         """Take the punch the control has started (its DC2 is in): keep it, answer requests.
@@ -359,6 +450,8 @@ class DncLine:
                 await current_clock().sleep(LISTEN_S)
             except asyncio.CancelledError:
                 raise
+            except TransferStopped:
+                pass  # a request's answer stopped by hand: noted already
             except LinkClosed as e:
                 await self._failed(e, reopen=True)
             except CellctlError as e:
@@ -371,7 +464,9 @@ class DncLine:
         if self.pending is not None:
             await self.answer()
         elif DC2 in link.pending():
-            self._set(activity=Activity.PUNCHING, program=None, chars_done=0, chars_total=0)
+            self._set(
+                activity=Activity.PUNCHING, program=None, phase="", chars_done=0, chars_total=0
+            )
             try:
                 await self.receive(timeout=PUNCH_S)
             finally:

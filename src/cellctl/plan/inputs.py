@@ -1,0 +1,234 @@
+"""A plan's inputs saved beside its output, so ``cellctl plan --replay DIR/inputs.json`` plays
+the same plan again::
+
+    save_inputs(inputs, policies, out)          # out/inputs.json and out/cell/ (the config)
+    inputs, policies = load_inputs(out / "inputs.json")
+
+``inputs.json`` holds the seed, the window, the orders (with their due times), the fault
+windows, the machines out of service and the parts held at the start, and names the copy of
+the cell's configuration beside it (``cell/``: cell.toml and the programs it names; no
+journal, mailbox, machine state or token). Times are unix seconds; ``*_text`` fields repeat
+them as local time for people and are ignored on reading.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tomllib
+from dataclasses import asdict
+from datetime import datetime
+from pathlib import Path
+from typing import Annotated, Any, Final
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from cellctl.cell.config import load_cell
+from cellctl.errors import UsageError
+from cellctl.mailbox.base import MAX_QTY
+from cellctl.plan.engine import FaultWindow, HeldPart, PlanInputs, PlanOrder
+from cellctl.plan.when import MAX_HORIZON_S
+
+#: The file's format name and version.
+FORMAT: Final = "cellctl-plan-inputs/1"
+INPUTS_FILE: Final = "inputs.json"
+CELL_COPY: Final = "cell"
+#: The largest inputs file read, bytes.
+MAX_BYTES: Final = 5_000_000
+
+_Text = Annotated[str, Field(min_length=1, max_length=100)]
+_Time = Annotated[float, Field(ge=0, le=1e11, allow_inf_nan=False)]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class _Order(_Model):
+    order_id: _Text
+    part_type: _Text
+    qty: Annotated[int, Field(ge=1, le=MAX_QTY)]
+    priority: Annotated[int, Field(ge=-1_000_000, le=1_000_000)] = 0
+    due: _Time | None = None
+
+
+class _Fault(_Model):
+    machine: _Text
+    fault: _Text
+    start: _Time
+    end: _Time | None = None
+    arg: Annotated[str, Field(max_length=100)] | None = None
+
+
+class _Held(_Model):
+    order_id: _Text
+    part_type: _Text
+    location: _Text
+    route_index: Annotated[int, Field(ge=0, le=1000)] = 0
+
+
+class InputsFile(_Model):
+    """``inputs.json``'s schema."""
+
+    model_config = ConfigDict(extra="ignore", frozen=True)
+    format: str = Field(pattern=f"^{FORMAT}$")
+    cell_dir: Annotated[str, Field(min_length=1, max_length=4096)]
+    start: _Time
+    until: _Time
+    policies: Annotated[list[_Text], Field(min_length=1, max_length=10)]
+    seed: Annotated[int, Field(ge=0, le=2**63 - 1)] = 0
+    orders: Annotated[list[_Order], Field(max_length=10_000)] = []
+    faults: Annotated[list[_Fault], Field(max_length=100)] = []
+    out_of_service: Annotated[list[_Text], Field(max_length=100)] = []
+    held: Annotated[list[_Held], Field(max_length=10_000)] = []
+
+
+def _local(stamp: float | None) -> str | None:
+    return None if stamp is None else datetime.fromtimestamp(stamp).isoformat(timespec="seconds")
+
+
+def inputs_dict(
+    inputs: PlanInputs, policies: tuple[str, ...], cell_dir: str = CELL_COPY
+) -> dict[str, Any]:
+    """``inputs`` as ``inputs.json`` holds them (``cell_dir`` relative to the file)."""
+    return {
+        "format": FORMAT,
+        "cell_dir": cell_dir,
+        "start": inputs.start,
+        "start_text": _local(inputs.start),
+        "until": inputs.until,
+        "until_text": _local(inputs.until),
+        "policies": list(policies),
+        "seed": inputs.seed,
+        "orders": [asdict(o) | {"due_text": _local(o.due)} for o in inputs.orders],
+        "faults": [
+            asdict(f) | {"start_text": _local(f.start), "end_text": _local(f.end)}
+            for f in inputs.faults
+        ],
+        "out_of_service": list(inputs.out_of_service),
+        "held": [asdict(h) for h in inputs.held],
+    }
+
+
+def _strip_text(data: Any) -> Any:
+    """Drop the ``*_text`` fields (for people) before the schema reads the rest."""
+    if isinstance(data, dict):
+        return {k: _strip_text(v) for k, v in data.items() if not str(k).endswith("_text")}
+    if isinstance(data, list):
+        return [_strip_text(v) for v in data]
+    return data
+
+
+def parse_inputs(data: Any, base: Path) -> tuple[PlanInputs, tuple[str, ...]]:
+    """The inputs and policies ``data`` (``inputs.json``'s content) holds; ``cell_dir``
+    relative to ``base``."""
+    try:
+        found = InputsFile.model_validate(_strip_text(data))
+    except ValidationError as e:
+        first = e.errors()[0]
+        where = ".".join(str(x) for x in first["loc"]) or "the file"
+        raise UsageError(f"plan inputs: {where}: {first['msg']}") from None
+    if not found.start < found.until <= found.start + MAX_HORIZON_S:
+        raise UsageError("plan inputs: until must be after start, at most 31 days")
+    inputs = PlanInputs(
+        cell_dir=base / found.cell_dir,
+        orders=tuple(PlanOrder(**o.model_dump()) for o in found.orders),
+        start=found.start,
+        until=found.until,
+        faults=tuple(FaultWindow(**f.model_dump()) for f in found.faults),
+        policy=found.policies[0],
+        seed=found.seed,
+        out_of_service=tuple(found.out_of_service),
+        held=tuple(HeldPart(**h.model_dump()) for h in found.held),
+    )
+    return inputs, tuple(found.policies)
+
+
+def load_inputs(path: Path) -> tuple[PlanInputs, tuple[str, ...]]:
+    """Read ``inputs.json`` (see module docstring); the cell copy beside it."""
+    try:
+        data = path.read_bytes()[: MAX_BYTES + 1]
+    except FileNotFoundError:
+        raise UsageError(f"{path}: no such file") from None
+    except OSError as e:
+        raise UsageError(f"{path}: cannot read: {e.strerror}") from None
+    if len(data) > MAX_BYTES:
+        raise UsageError(f"{path}: larger than {MAX_BYTES} bytes: not plan inputs")
+    try:
+        found = json.loads(data)
+    except (ValueError, RecursionError):
+        raise UsageError(f"{path}: not JSON") from None
+    return parse_inputs(found, path.parent)
+
+
+def config_files(cell_dir: Path) -> list[Path]:
+    """The files of a cell's configuration, relative to it: cell.toml and the programs it
+    names inside the directory (the robot's transfers, the mills' setups, the routes')."""
+    raw = load_cell(cell_dir).raw  # checked: every file it names exists
+    base = cell_dir.resolve()
+    named: list[Path] = [Path("cell.toml")]
+    texts = list(raw.get("robot_programs", {}).values())
+    texts += [m.get("setup") for m in raw.get("machines", {}).values()]
+    texts += [s.get("program") for p in raw.get("parts", {}).values() for s in p.get("route", [])]
+    for text in texts:
+        if not isinstance(text, str):
+            continue
+        full = (cell_dir / text).resolve()
+        if full.is_relative_to(base):
+            named.append(full.relative_to(base))
+    return list(dict.fromkeys(named))
+
+
+def copy_config(cell_dir: Path, target: Path) -> Path:
+    """Copy the cell's configuration (:func:`config_files`) into ``target`` (replaced; a
+    replay into its own directory keeps the copy it plays from), its cell.toml as the real
+    cell's (:func:`real_cell_toml`)."""
+    if target.resolve() == cell_dir.resolve():
+        return target
+    shutil.rmtree(target, ignore_errors=True)
+    for rel in config_files(cell_dir):
+        (target / rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(cell_dir / rel, target / rel)
+    toml = target / "cell.toml"
+    toml.write_text(real_cell_toml(toml.read_text(encoding="utf-8")), encoding="utf-8")
+    return target
+
+
+#: The [cell] deadlines an emulated cell scales with its machines' time (and a plan, which
+#: plays the real machines' times, scales back).
+SCALED_DEADLINES: Final = ("transfer_timeout", "interlock_timeout", "pallet_timeout")
+
+
+def real_cell_toml(text: str) -> str:
+    """An emulated cell's cell.toml as the real cell's: a plan plays the machines' real
+    times (the engine's emulators at time scale 1), so the emulation's ``[cell] time_scale``
+    goes, the deadlines it scaled are scaled back, and the machines' ``[options]`` tables go
+    (the plan's emulated machines get their own). A real cell's file is unchanged but for
+    its options tables."""
+    raw = tomllib.loads(text)
+    scale = float(raw.get("cell", {}).get("time_scale", 1.0))
+    out: list[str] = []
+    section = ""
+    for line in text.splitlines():
+        stripped = line.strip()
+        if stripped.startswith("["):
+            section = stripped.strip("[] ")
+        if section.startswith("machines.") and section.endswith(".options"):
+            continue
+        key = stripped.split("=", 1)[0].strip() if "=" in stripped else ""
+        if section == "cell" and key == "time_scale":
+            continue
+        if section == "cell" and key in SCALED_DEADLINES and scale != 1.0:
+            value = float(raw["cell"][key]) * scale
+            line = f"{key} = {value:g}  # s (scaled back from time scale {scale:g})"
+        out.append(line)
+    return "\n".join(out) + "\n"
+
+
+def save_inputs(inputs: PlanInputs, policies: tuple[str, ...], out: Path) -> Path:
+    """Write ``out/inputs.json`` and the configuration's copy ``out/cell/``."""
+    out.mkdir(parents=True, exist_ok=True)
+    copy_config(inputs.cell_dir, out / CELL_COPY)
+    path = out / INPUTS_FILE
+    path.write_text(json.dumps(inputs_dict(inputs, policies), indent=1) + "\n", encoding="utf-8")
+    return path

@@ -1,0 +1,275 @@
+"""What a plan says: per order what finishes when against its due time, parts made, each
+machine's utilization, and the Gantt chart. Read from a journal, so the same code reports a
+plan (the engine's journal) and a real run (a cell's)::
+
+    report = plan_report(journal, config, orders, start=t0, ended=t1, until=t1)
+    print("\\n".join(report.lines()))
+    Path("plan.json").write_text(json.dumps(report.as_dict()))
+    Path("plan.svg").write_text(plan_svg([report], journal_steps, part_types))
+
+An order finishes when the last of its parts is done; it is late when that is after its due
+time, or when its due time passed within the plan and it did not finish. Utilization is a
+machine's time in steps over the plan's span (start to the time the plan stopped: every
+order done, or its end), as the shift report counts availability.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any, Final
+
+from cellctl.cell.config import CellConfig
+from cellctl.cell.journal import Journal, Step
+from cellctl.cell.report import GanttRun, GanttWindow, gantt_runs_svg
+from cellctl.cell.shift import shift_report
+from cellctl.plan.engine import FaultWindow, PlanOrder
+from cellctl.plan.when import span_text, when_text
+
+#: What an order's line says about it.
+ON_TIME: Final = "on time"
+LATE: Final = "late"
+FINISHED: Final = "finished"  # no due time
+OPEN: Final = "not finished"
+VERDICTS: Final = (ON_TIME, LATE, FINISHED, OPEN)
+
+
+@dataclass(frozen=True)
+class OrderOutcome:
+    """One order in the plan: its parts made, held and scrapped, when it finishes (None: not
+    within the plan) and its verdict against its due time (:data:`VERDICTS`); ``late_s``: by
+    how much it is late (at least, for one not finished)."""
+
+    order_id: str
+    part_type: str
+    qty: int
+    priority: int
+    due: float | None
+    made: int
+    held: int
+    scrapped: int
+    finished: float | None
+    verdict: str
+    late_s: float = 0.0
+
+
+@dataclass
+class PlanReport:
+    """A plan's figures (see module docstring); :meth:`lines` for people, :meth:`as_dict`
+    for programs (``plan.json``)."""
+
+    cell: str
+    policy: str
+    seed: int
+    start: float
+    until: float
+    ended: float
+    wall_s: float
+    orders: list[OrderOutcome]
+    parts_made: dict[str, int]
+    utilization: dict[str, float]
+    busy_s: dict[str, float]
+    down_s: dict[str, float]
+    faults: list[FaultWindow] = field(default_factory=list)
+    alarms_raised: int = 0
+    steps_failed: int = 0
+    #: Parts held for the operator when the plan began (they stay held in it).
+    held_at_start: int = 0
+    #: The steps played from the start: part, its type, kind, machine, program, state, times.
+    steps: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def on_time(self) -> int:
+        return sum(o.verdict == ON_TIME for o in self.orders)
+
+    @property
+    def late(self) -> int:
+        return sum(o.verdict == LATE for o in self.orders)
+
+    @property
+    def all_finished(self) -> bool:
+        return all(o.finished is not None for o in self.orders)
+
+    def as_dict(self) -> dict[str, Any]:
+        out = asdict(self)
+        out["on_time"], out["late"] = self.on_time, self.late
+        out["all_finished"] = self.all_finished
+        out["sim_s"] = self.ended - self.start
+        return out
+
+    def lines(self) -> list[str]:
+        """The report for a terminal (80 columns)."""
+        out = [
+            f"plan of {self.cell} (policy {self.policy}, seed {self.seed})",
+            f"from {when_text(self.start, date=True)} to {when_text(self.until, date=True)} "
+            f"({span_text(self.until - self.start)})",
+        ]
+        for f in self.faults:
+            end = when_text(f.end) if f.end is not None else "the end"
+            what = f.fault + (f"={f.arg}" if f.arg else "")
+            out.append(f"fault: {f.machine} {what} from {when_text(f.start)} to {end}")
+        out += ["", f"{'order':<12} {'part type':<20} {'made':>9}  {'finishes':<13} due"]
+        for o in self.orders:
+            finishes = when_text(o.finished) if o.finished is not None else "not in plan"
+            due = when_text(o.due) if o.due is not None else "-"
+            verdict = o.verdict
+            if o.verdict == LATE:
+                verdict += f" by {'at least ' if o.finished is None else ''}{span_text(o.late_s)}"
+            made = f"{o.made}/{o.qty}"
+            extra = f" (held {o.held})" if o.held else ""
+            extra += f" (scrapped {o.scrapped})" if o.scrapped else ""
+            out.append(
+                f"{o.order_id[:12]:<12} {o.part_type[:20]:<20} {made:>9}  {finishes:<13} "
+                f"{due:<13} {verdict}{extra}"
+            )
+        made = ", ".join(f"{n} x {t}" for t, n in sorted(self.parts_made.items())) or "none"
+        out += ["", f"parts made: {made}"]
+        util = ", ".join(f"{m} {u:.1%}" for m, u in self.utilization.items())
+        out.append(f"utilization: {util}")
+        downs = ", ".join(f"{m} {span_text(s)}" for m, s in self.down_s.items() if s > 0)
+        if downs:
+            out.append(f"down: {downs}")
+        if self.held_at_start:
+            out.append(f"held for the operator at the start (stay held): {self.held_at_start}")
+        if self.alarms_raised or self.steps_failed:
+            out.append(f"alarms raised: {self.alarms_raised}; failed steps: {self.steps_failed}")
+        if self.all_finished:
+            out.append(
+                f"every order finished by {when_text(self.ended)} "
+                f"({span_text(self.ended - self.start)} after the start)"
+            )
+        else:
+            missing = sum(o.finished is None for o in self.orders)
+            out.append(f"{missing} order(s) not finished by {when_text(self.ended)}")
+        out.append(
+            f"on time {self.on_time}, late {self.late}; played "
+            f"{span_text(self.ended - self.start)} in {self.wall_s:.1f} s"
+        )
+        return out
+
+
+def _outcome(order: PlanOrder, journal: Journal, ended: float) -> OrderOutcome:
+    parts = journal.parts(order_id=order.order_id)
+    done = [p for p in parts if p.status == "done"]
+    finished = max(p.updated for p in done) if len(done) >= order.qty and done else None
+    late_s = 0.0
+    if order.due is None:
+        verdict = FINISHED if finished is not None else OPEN
+    elif finished is not None:
+        verdict = ON_TIME if finished <= order.due else LATE
+        late_s = max(0.0, finished - order.due)
+    elif order.due <= ended:
+        verdict, late_s = LATE, ended - order.due
+    else:
+        verdict = OPEN
+    return OrderOutcome(
+        order.order_id,
+        order.part_type,
+        order.qty,
+        order.priority,
+        order.due,
+        made=len(done),
+        held=sum(p.status == "held" for p in parts),
+        scrapped=sum(p.status == "scrapped" for p in parts),
+        finished=finished,
+        verdict=verdict,
+        late_s=late_s,
+    )
+
+
+def machines_of(config: CellConfig) -> list[str]:
+    """The machines a plan reports on: the robot, then the mills."""
+    return [config.robot.name, *(m.name for m in config.mills)]
+
+
+def plan_report(
+    journal: Journal,
+    config: CellConfig,
+    orders: Sequence[PlanOrder],
+    *,
+    start: float,
+    until: float,
+    ended: float,
+    wall_s: float = 0.0,
+    policy: str = "default",
+    seed: int = 0,
+    faults: Sequence[FaultWindow] = (),
+    held_at_start: int = 0,
+) -> PlanReport:
+    """The report of ``orders`` played from ``start`` in ``journal`` (see module docstring)."""
+    machines = machines_of(config)
+    span = max(ended, start + 1e-9)
+    figures = shift_report(journal, machines, {}, start, span)
+    parts = [p for p in journal.parts() if p.status == "done" and p.updated >= start]
+    steps = [s for s in journal.steps() if s.started >= start]
+    alarms = [a for a in journal.alarms() if a.raised >= start]
+    types = {p.id: p.part_type for p in journal.parts()}
+    return PlanReport(
+        cell=config.name,
+        policy=policy,
+        seed=seed,
+        start=start,
+        until=until,
+        ended=ended,
+        wall_s=wall_s,
+        orders=[_outcome(o, journal, ended) for o in orders],
+        parts_made=dict(Counter(p.part_type for p in parts)),
+        utilization={m.machine: m.availability for m in figures.machines},
+        busy_s={m.machine: m.production_s for m in figures.machines},
+        down_s={m.machine: m.down_s for m in figures.machines},
+        faults=list(faults),
+        alarms_raised=len(alarms),
+        steps_failed=sum(s.state in ("failed", "interrupted") for s in steps),
+        held_at_start=held_at_start,
+        steps=[_step(s, types) for s in steps],
+    )
+
+
+def _step(step: Step, types: dict[str, str]) -> dict[str, Any]:
+    return {
+        "part_id": step.part_id,
+        "part_type": types.get(step.part_id, ""),
+        "kind": step.kind,
+        "machine": step.machine,
+        "program": step.program,
+        "state": step.state,
+        "started": step.started,
+        "ended": step.ended,
+    }
+
+
+def _tick(start: float, span: float) -> Any:
+    """Axis labels as wall-clock times (with the day when the plan spans days)."""
+    fmt = "%a %H:%M" if span > 20 * 3600 else "%H:%M:%S" if span < 600 else "%H:%M"
+
+    def label(offset: float) -> str:
+        from datetime import datetime
+
+        return datetime.fromtimestamp(start + offset).strftime(fmt)
+
+    return label
+
+
+def plan_svg(
+    reports: Sequence[PlanReport],
+    steps: Sequence[Sequence[Step]],
+    part_types: Sequence[dict[str, str]],
+    machines: list[str],
+) -> str:
+    """The Gantt chart of one plan, or of several (one per policy) on one time axis: the
+    demo's chart, its axis in wall-clock time from the plan's start to its end, each fault
+    window shaded on its machine's row."""
+    runs = []
+    for report, found, types in zip(reports, steps, part_types, strict=True):
+        windows = [
+            GanttWindow(f.machine, f.start, f.end if f.end is not None else report.until, f.fault)
+            for f in report.faults
+        ]
+        title = f"policy {report.policy}: on time {report.on_time}, late {report.late}"
+        runs.append(
+            GanttRun(title, [s for s in found if s.started >= report.start], types, report.start)
+        )
+        runs[-1].windows.extend(windows)
+    span = max(r.until - r.start for r in reports)
+    return gantt_runs_svg(runs, machines, span=span, tick=_tick(reports[0].start, span))

@@ -1,0 +1,153 @@
+"""Play a plan (one policy or several, compared) and write what it says::
+
+    result = play(inputs, ("default", "one-at-a-time"), workdir)
+    print("\\n".join(result.lines()))
+    write_plan(result, Path("plan-out"))   # plan.json, plan.svg, inputs.json, cell/
+
+Each policy is played by the engine (:func:`cellctl.plan.engine.simulate`) on its own copy
+of the cell, from the same inputs and seed; the reports come from the journals it wrote.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from cellctl.cell.config import load_cell
+from cellctl.cell.journal import Journal
+from cellctl.errors import UsageError
+from cellctl.plan import engine
+from cellctl.plan.engine import PlanInputs
+from cellctl.plan.inputs import copy_config, inputs_dict, save_inputs
+from cellctl.plan.report import PlanReport, machines_of, plan_report, plan_svg
+from cellctl.plan.spec import check_inputs
+from cellctl.plan.when import span_text, when_text
+
+PLAN_JSON = "plan.json"
+PLAN_SVG = "plan.svg"
+
+
+@dataclass
+class PlanResult:
+    """The plans of one set of inputs, one per policy, and their chart."""
+
+    inputs: PlanInputs
+    policies: tuple[str, ...]
+    reports: list[PlanReport]
+    svg: str
+
+    def as_dict(self) -> dict[str, Any]:
+        """``plan.json``: the inputs (as ``inputs.json`` holds them) and each policy's plan."""
+        return {
+            "inputs": inputs_dict(self.inputs, self.policies),
+            "plans": [r.as_dict() for r in self.reports],
+        }
+
+    def lines(self) -> list[str]:
+        """Each plan's report; with several policies, a comparison last."""
+        out: list[str] = []
+        for report in self.reports:
+            if out:
+                out.append("")
+            out += report.lines()
+        if len(self.reports) > 1:
+            out += ["", "policies compared:"]
+            out.append(f"  {'policy':<16} {'on time':>7} {'late':>5} {'made':>6}  last order done")
+            for r in self.reports:
+                last = when_text(r.ended) if r.all_finished else "not all in plan"
+                made = sum(r.parts_made.values())
+                out.append(f"  {r.policy:<16} {r.on_time:>7} {r.late:>5} {made:>6}  {last}")
+        return out
+
+
+def play(inputs: PlanInputs, policies: tuple[str, ...], workdir: Path) -> PlanResult:
+    """Play ``inputs`` under each policy in ``workdir/<policy>/``; refused before anything
+    runs for an order, fault or policy the cell cannot take."""
+    config = load_cell(inputs.cell_dir)
+    check_inputs(config, inputs.orders, inputs.faults, policies)
+    for name in inputs.out_of_service:
+        if name not in machines_of(config):
+            raise UsageError(f"out of service: the cell has no machine {name!r}")
+    if not inputs.start < inputs.until:
+        raise UsageError("a plan's end must be after its start")
+    reports: list[PlanReport] = []
+    steps = []
+    types = []
+    # The engine plays the real cell's configuration (an emulated cell's scaled back).
+    real = copy_config(inputs.cell_dir, workdir / "config")
+    for policy in policies:
+        played = dataclasses.replace(inputs, policy=policy, cell_dir=real)
+        run = engine.simulate(played, workdir / policy)
+        with Journal(run.journal_path) as journal:
+            reports.append(
+                plan_report(
+                    journal,
+                    config,
+                    inputs.orders,
+                    start=inputs.start,
+                    until=inputs.until,
+                    ended=run.ended,
+                    wall_s=run.wall_s,
+                    policy=policy,
+                    seed=inputs.seed,
+                    faults=inputs.faults,
+                    held_at_start=len(inputs.held),
+                )
+            )
+            steps.append(journal.steps())
+            types.append({p.id: p.part_type for p in journal.parts()})
+    svg = plan_svg(reports, steps, types, machines_of(config))
+    return PlanResult(inputs, policies, reports, svg)
+
+
+def play_in_temp(inputs: PlanInputs, policies: tuple[str, ...]) -> PlanResult:
+    """:func:`play` in a temporary directory, removed after."""
+    with tempfile.TemporaryDirectory(prefix="cellctl-plan-") as tmp:
+        return play(inputs, policies, Path(tmp))
+
+
+def write_plan(result: PlanResult, out: Path) -> list[Path]:
+    """Write ``out/plan.json``, ``out/plan.svg``, ``out/inputs.json`` and ``out/cell/``."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        written = [save_inputs(result.inputs, result.policies, out)]
+        (out / PLAN_JSON).write_text(json.dumps(result.as_dict(), indent=1) + "\n", "utf-8")
+        (out / PLAN_SVG).write_text(result.svg, encoding="utf-8")
+    except OSError as e:
+        raise UsageError(f"{out}: cannot write the plan: {e.strerror}") from None
+    return [*written, out / PLAN_JSON, out / PLAN_SVG]
+
+
+def summary_line(result: PlanResult) -> str:
+    """One line per result for a log: the first policy's verdicts and its span."""
+    r = result.reports[0]
+    return (
+        f"plan ({r.policy}): on time {r.on_time}, late {r.late}, "
+        f"{span_text(r.ended - r.start)} played in {r.wall_s:.1f} s"
+    )
+
+
+def report_from_dict(data: dict[str, Any]) -> PlanReport:
+    """A :class:`PlanReport` again from its :meth:`PlanReport.as_dict` (an API's answer)."""
+    from cellctl.plan.engine import FaultWindow
+    from cellctl.plan.report import OrderOutcome
+
+    fields = {f.name for f in dataclasses.fields(PlanReport)}
+    found = {k: v for k, v in data.items() if k in fields}
+    found["orders"] = [OrderOutcome(**o) for o in data.get("orders", [])]
+    found["faults"] = [FaultWindow(**f) for f in data.get("faults", [])]
+    return PlanReport(**found)
+
+
+def result_from_dict(data: dict[str, Any], svg: str, base: Path) -> PlanResult:
+    """A :class:`PlanResult` again from :meth:`PlanResult.as_dict` and its chart (the
+    inputs' cell directory relative to ``base``)."""
+    from cellctl.plan.inputs import parse_inputs
+
+    inputs, policies = parse_inputs(data["inputs"], base)
+    reports = [report_from_dict(r) for r in data["plans"]]
+    return PlanResult(inputs, policies, reports, svg)

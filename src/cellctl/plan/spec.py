@@ -1,0 +1,223 @@
+"""What a planner adds to a plan on the command line, read and checked before anything runs.
+
+::
+
+    add = parse_add("wax-robot-base:40@5")              # AddSpec(part, qty 40, priority 5)
+    window = parse_fault("cnc2:down@10:00-11:00", start) # FaultWindow(cnc2, down, 10:00, 11:00)
+    check_inputs(config, orders, faults, policy)        # UsageError naming what the cell lacks
+
+``--fault MACHINE:FAULT[=ARG]@WHEN[-WHEN]``: ``down`` takes the machine out of service over
+the window; any other name is one of the machine's emulator fault switches (``cellctl
+emulate cell --help`` lists them). Without an end the fault lasts to the end of the plan.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Final
+
+from cellctl.cell.config import CellConfig, load_cell
+from cellctl.emulators.plc import FAULTS as PLC_FAULTS
+from cellctl.errors import UsageError
+from cellctl.kinds import registry
+from cellctl.mailbox.base import MAX_QTY
+from cellctl.plan.engine import POLICIES, FaultWindow, HeldPart, PlanInputs, PlanOrder
+from cellctl.plan.when import parse_duration, resolve_when, when_text
+
+#: The fault that takes a machine out of service (not an emulator's switch).
+DOWN: Final = "down"
+#: Priorities an order may have (the control API's range).
+PRIORITY_RANGE: Final = range(-1_000_000, 1_000_001)
+#: ``--policy all``: every policy, compared.
+ALL_POLICIES: Final = "all"
+
+_WORD = r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,99}"
+_ADD = re.compile(
+    rf"^\s*(?P<part>{_WORD})\s*:\s*(?P<qty>\d{{1,6}})\s*(?:@\s*(?P<prio>[-+]?\d{{1,7}}))?\s*$"
+)
+_WHEN = r"(?:[A-Za-z]{3,9}\s+)?\d{1,2}:\d{2}"
+_FAULT = re.compile(
+    rf"^\s*(?P<machine>{_WORD})\s*:\s*(?P<name>[a-z][a-z0-9\-]{{0,40}})(?:=(?P<arg>[^@\s]{{1,40}}))?"
+    rf"\s*@\s*(?P<a>{_WHEN})\s*(?:-\s*(?P<b>{_WHEN}))?\s*$"
+)
+
+
+@dataclass(frozen=True)
+class AddSpec:
+    """``--add PART:QTY[@PRIORITY]``: an order added to the plan."""
+
+    part_type: str
+    qty: int
+    priority: int = 0
+
+
+def parse_add(text: str) -> AddSpec:
+    """``wax-robot-base:40`` or ``wax-robot-base:40@5`` (priority: higher goes first)."""
+    found = _ADD.match(text)
+    if found is None:
+        raise UsageError(
+            f"--add {text!r}: write PART:QTY or PART:QTY@PRIORITY, e.g. wax-robot-base:40@5"
+        )
+    qty = int(found["qty"])
+    if not 1 <= qty <= MAX_QTY:
+        raise UsageError(f"--add {text!r}: the quantity must be 1 to {MAX_QTY}")
+    priority = int(found["prio"] or 0)
+    if priority not in PRIORITY_RANGE:
+        raise UsageError(f"--add {text!r}: the priority must be -1000000 to 1000000")
+    return AddSpec(found["part"], qty, priority)
+
+
+def parse_fault(text: str, start: float, until: float | None = None) -> FaultWindow:
+    """``cnc2:down@10:00-11:00``, ``cnc1:stall@FRI 09:30-FRI 10:00``, ``plc:stuck-door=2@10:00``:
+    times are the next such local times at or after the plan's ``start`` (the end after the
+    start of the window). Refused if the window opens after ``until``."""
+    found = _FAULT.match(text)
+    if found is None:
+        raise UsageError(
+            f"--fault {text!r}: write MACHINE:FAULT@HH:MM-HH:MM (e.g. cnc2:down@10:00-11:00); "
+            "FAULT is down or an emulator fault switch, NAME=ARG if it takes an argument"
+        )
+    opens = resolve_when(found["a"], start, inclusive=True)
+    closes = resolve_when(found["b"], opens) if found["b"] else None
+    if until is not None and opens >= until:
+        raise UsageError(f"--fault {text!r}: the window opens after the plan ends")
+    return FaultWindow(found["machine"], found["name"], opens, closes, found["arg"])
+
+
+def fault_switches(config: CellConfig) -> dict[str, tuple[str, ...]]:
+    """Each machine's faults a plan may put on it: ``down`` (not the PLC's) and its emulator's
+    fault switches (its kind's, from the registry)."""
+    found: dict[str, tuple[str, ...]] = {}
+    for machine in [config.robot, *config.mills]:
+        faults = tuple(registry.kind(machine.kind).faults)
+        found[machine.name] = (DOWN, *faults)
+    found["plc"] = tuple(PLC_FAULTS)
+    return found
+
+
+def check_inputs(
+    config: CellConfig,
+    orders: Iterable[PlanOrder],
+    faults: Iterable[FaultWindow],
+    policies: Sequence[str] = (),
+    until: float | None = None,
+) -> None:
+    """Refuse, naming what the cell has, an order of a part type the cell does not make, a
+    fault on a machine it does not have or a fault its emulator does not know, and an unknown
+    policy: before anything runs."""
+    for order in orders:
+        if order.part_type not in config.parts:
+            known = ", ".join(config.parts) or "none"
+            raise UsageError(
+                f"order {order.order_id}: the cell makes no {order.part_type!r} (known: {known})"
+            )
+    switches = fault_switches(config)
+    for window in faults:
+        names = switches.get(window.machine)
+        if names is None:
+            raise UsageError(
+                f"fault on {window.machine!r}: the cell has no such machine "
+                f"(known: {', '.join(switches)})"
+            )
+        if window.fault not in names:
+            raise UsageError(
+                f"fault {window.fault!r} on {window.machine}: unknown (known: {', '.join(names)})"
+            )
+        if window.end is not None and window.end <= window.start:
+            raise UsageError(
+                f"fault {window.fault!r} on {window.machine}: it ends before it starts"
+            )
+        if until is not None and window.start >= until:
+            raise UsageError(
+                f"fault {window.fault!r} on {window.machine}: the window opens after the plan "
+                f"ends ({when_text(until)})"
+            )
+    for policy in policies:
+        if policy not in POLICIES:
+            known = ", ".join([*POLICIES, ALL_POLICIES])
+            raise UsageError(f"policy {policy!r}: unknown (known: {known})")
+
+
+def policies_of(text: str) -> tuple[str, ...]:
+    """``--policy NAME``, ``--policy A,B`` or ``--policy all`` (every policy): the policies
+    to play, compared side by side when more than one (checked by :func:`check_inputs`)."""
+    if text == ALL_POLICIES:  # each once: "default" names one of the others
+        return tuple(p for p in POLICIES if p != "default")
+    named = [p.strip() for p in text.split(",") if p.strip()]
+    if not named:
+        raise UsageError("--policy: name a policy (or all)")
+    return tuple(dict.fromkeys(named))
+
+
+def fresh_ids(taken: Iterable[str], count: int, prefix: str = "plan-add") -> list[str]:
+    """``count`` order ids not in ``taken``: ``plan-add1``, ``plan-add2`` ..."""
+    used = set(taken)
+    out: list[str] = []
+    n = 0
+    while len(out) < count:
+        n += 1
+        candidate = f"{prefix}{n}"
+        if candidate not in used:
+            out.append(candidate)
+    return out
+
+
+#: A plan's horizon when neither ``--shift`` nor ``--until`` is given: one shift.
+DEFAULT_SHIFT: Final = "8h"
+
+
+def plan_window(start: float, shift: str | None, until: str | None) -> float:
+    """The plan's end: ``start`` plus ``--shift`` (default 8 h), or ``--until``."""
+    if shift is not None and until is not None:
+        raise UsageError("give --shift or --until, not both")
+    if until is not None:
+        return resolve_when(until, start)
+    return start + parse_duration(shift if shift is not None else DEFAULT_SHIFT)
+
+
+def plan_inputs(
+    cell_dir: Path,
+    *,
+    start: float,
+    shift: str | None = None,
+    until: str | None = None,
+    orders: Sequence[PlanOrder] = (),
+    adds: Sequence[str] = (),
+    faults: Sequence[str] = (),
+    policy: str = "default",
+    seed: int = 0,
+    out_of_service: Sequence[str] = (),
+    held: Sequence[HeldPart] = (),
+) -> tuple[PlanInputs, tuple[str, ...]]:
+    """A plan's inputs from what a planner typed (``--add``, ``--fault`` ... texts), checked
+    against the cell in ``cell_dir``: every refusal comes before anything runs."""
+    if not 0 <= seed < 2**63:
+        raise UsageError(f"--seed {seed}: a whole number 0 or more")
+    end = plan_window(start, shift, until)
+    added = [parse_add(text) for text in adds]
+    ids = fresh_ids([o.order_id for o in orders], len(added))
+    every = (
+        *orders,
+        *(PlanOrder(i, a.part_type, a.qty, a.priority) for i, a in zip(ids, added, strict=True)),
+    )
+    if not every:
+        raise UsageError("nothing to plan: no open orders (add some: --add PART:QTY)")
+    windows = tuple(parse_fault(text, start) for text in faults)
+    policies = policies_of(policy)
+    config = load_cell(cell_dir)
+    check_inputs(config, every, windows, policies, end)
+    inputs = PlanInputs(
+        cell_dir=cell_dir,
+        orders=every,
+        start=start,
+        until=end,
+        faults=windows,
+        policy=policies[0],
+        seed=seed,
+        out_of_service=tuple(out_of_service),
+        held=tuple(held),
+    )
+    return inputs, policies

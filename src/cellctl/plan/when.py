@@ -1,0 +1,142 @@
+"""Times and durations as a planner types them, resolved against the plan's start.
+
+::
+
+    parse_duration("8h")                     # 28800.0; also "90m", "1h30m", "2d", "45s"
+    resolve_when("FRI 18:00", start)         # the next Friday 18:00 after start (local time)
+    resolve_when("18:00", start)             # the next 18:00 after start (today or tomorrow)
+    resolve_when("2026-11-27T18:00", start)  # that date and time (local unless it says a zone)
+
+Every function raises :class:`~cellctl.errors.UsageError` with the text it could not read;
+times are unix seconds, read and written as local wall time.
+"""
+
+from __future__ import annotations
+
+import re
+from datetime import datetime, timedelta
+from typing import Final
+
+from cellctl.errors import UsageError
+
+#: The longest a plan may look ahead (and the latest a time may lie after its start): a month.
+MAX_HORIZON_S: Final = 31 * 86400.0
+#: Day names a time may start with (three letters or the whole word, any case).
+DAYS: Final = ("mon", "tue", "wed", "thu", "fri", "sat", "sun")
+_FULL_DAYS: Final = ("monday", "tuesday", "wednesday", "thursday", "friday", "saturday", "sunday")
+
+_DURATION = re.compile(
+    r"^\s*(?:(?P<d>\d{1,6}(?:\.\d{1,6})?)\s*d)?\s*(?:(?P<h>\d{1,6}(?:\.\d{1,6})?)\s*h)?"
+    r"\s*(?:(?P<m>\d{1,6}(?:\.\d{1,6})?)\s*m(?:in)?)?\s*(?:(?P<s>\d{1,6}(?:\.\d{1,6})?)\s*s)?\s*$",
+    re.IGNORECASE,
+)
+_UNITS: Final = {"d": 86400.0, "h": 3600.0, "m": 60.0, "s": 1.0}
+#: ``[DAY ]HH:MM`` (``FRI 18:00``, ``friday 6:30``, ``18:00``).
+_DAY_TIME = re.compile(r"^\s*(?:(?P<day>[A-Za-z]{3,9})\s+)?(?P<h>\d{1,2}):(?P<m>\d{2})\s*$")
+#: What to write, for the messages.
+WHEN_FORMS: Final = "HH:MM, DAY HH:MM (FRI 18:00) or a date and time (2026-11-27T18:00)"
+
+
+def parse_duration(text: str) -> float:
+    """``8h``, ``90m``, ``1h30m``, ``2d``, ``45s`` -> seconds (more than 0, at most a month)."""
+    found = _DURATION.match(text)
+    if found is None or not any(found.groupdict().values()):
+        raise UsageError(f"duration {text!r}: write a number and a unit, e.g. 8h, 90m, 1h30m, 2d")
+    seconds = sum(float(v) * _UNITS[k] for k, v in found.groupdict().items() if v)
+    if seconds <= 0:
+        raise UsageError(f"duration {text!r}: must be more than 0")
+    if seconds > MAX_HORIZON_S:
+        raise UsageError(f"duration {text!r}: a plan looks at most 31 days ahead")
+    return seconds
+
+
+def _day_index(name: str) -> int:
+    low = name.lower()
+    for i, (short, full) in enumerate(zip(DAYS, _FULL_DAYS, strict=True)):
+        if low in (short, full):
+            return i
+    raise UsageError(f"{name!r} is not a day (MON TUE WED THU FRI SAT SUN)")
+
+
+def _local(stamp: float) -> datetime:
+    try:
+        return datetime.fromtimestamp(stamp)
+    except (OverflowError, OSError, ValueError):
+        raise UsageError(f"time {stamp!r} is out of range") from None
+
+
+def _stamp(moment: datetime, text: str) -> float:
+    try:
+        return moment.timestamp()
+    except (OverflowError, OSError, ValueError):
+        raise UsageError(f"time {text!r} is out of range") from None
+
+
+def resolve_when(text: str, start: float, *, inclusive: bool = False) -> float:
+    """The time ``text`` names, seen from ``start`` (unix s): ``[DAY ]HH:MM`` is the next such
+    local time after ``start`` (at or after it with ``inclusive``); a date and time is itself.
+    Refused if it lies before ``start`` or more than :data:`MAX_HORIZON_S` after it."""
+    if not isinstance(text, str) or not text.strip():
+        raise UsageError(f"time {text!r}: write {WHEN_FORMS}")
+    found = _DAY_TIME.match(text)
+    if found is not None:
+        hour, minute = int(found["h"]), int(found["m"])
+        if hour > 23 or minute > 59:
+            raise UsageError(f"time {text!r}: hours 0-23, minutes 0-59")
+        origin = _local(start)
+        moment = origin.replace(hour=hour, minute=minute, second=0, microsecond=0)
+        if found["day"]:
+            moment += timedelta(days=(_day_index(found["day"]) - origin.weekday()) % 7)
+            step = timedelta(days=7)
+        else:
+            step = timedelta(days=1)
+        if moment < origin or (moment == origin and not inclusive):
+            moment += step
+        stamp = _stamp(moment, text)
+    else:
+        try:
+            moment = datetime.fromisoformat(text.strip())
+        except ValueError:
+            raise UsageError(f"time {text!r}: write {WHEN_FORMS}") from None
+        if moment.tzinfo is not None:
+            moment = moment.astimezone().replace(tzinfo=None)
+        stamp = _stamp(moment, text)
+        if stamp < start or (stamp == start and not inclusive):
+            raise UsageError(f"time {text!r} is not after the plan's start ({when_text(start)})")
+    if stamp - start > MAX_HORIZON_S:
+        raise UsageError(f"time {text!r}: a plan looks at most 31 days ahead of its start")
+    return stamp
+
+
+def parse_start(text: str | None, now: float) -> float:
+    """``--start``: ``None`` or ``now`` is ``now``; else a time as :func:`resolve_when` reads
+    it, at or after ``now`` (a date and time may also lie in the past: a plan from then)."""
+    if text is None or text.strip().lower() == "now":
+        return now
+    if _DAY_TIME.match(text) is not None:
+        return resolve_when(text, now, inclusive=True)
+    try:
+        moment = datetime.fromisoformat(text.strip())
+    except ValueError:
+        raise UsageError(f"start {text!r}: write now, {WHEN_FORMS}") from None
+    if moment.tzinfo is not None:
+        moment = moment.astimezone().replace(tzinfo=None)
+    if not 1971 <= moment.year <= 9998:
+        raise UsageError(f"start {text!r} is out of range")
+    return _stamp(moment, text)
+
+
+def when_text(stamp: float, *, date: bool = False) -> str:
+    """A time as the report prints it: ``Fri 18:00:00`` (``date``: with the date too)."""
+    moment = _local(stamp)
+    return moment.strftime("%a %Y-%m-%d %H:%M:%S" if date else "%a %H:%M:%S")
+
+
+def span_text(seconds: float) -> str:
+    """A span as the report prints it: ``2:05:09``, ``1 d 2:05:09``, ``12.3 s``."""
+    if seconds < 60:
+        return f"{seconds:.1f} s"
+    s = round(seconds)
+    days, s = divmod(s, 86400)
+    clock = f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
+    return f"{days} d {clock}" if days else clock

@@ -1,0 +1,98 @@
+// The "What if" panel: a plan of the running cell (the API's plan.run, as `cellctl plan`),
+// with a fault window and orders added from its form. The plan plays the cell's state now on
+// a copy, on virtual time: the figures and the Gantt chart of what it would finish, and when.
+import { call } from "./app.js";
+
+function byId(id) {
+  return document.getElementById(id);
+}
+
+function when(t) {
+  if (t === null || t === undefined) {
+    return "not in plan";
+  }
+  return new Date(t * 1000).toLocaleString([], {
+    weekday: "short", hour: "2-digit", minute: "2-digit", second: "2-digit", hour12: false,
+  });
+}
+
+function span(seconds) {
+  const s = Math.round(seconds);
+  const pad = (n) => String(n).padStart(2, "0");
+  return `${Math.floor(s / 3600)}:${pad(Math.floor(s / 60) % 60)}:${pad(s % 60)}`;
+}
+
+function row(cells) {
+  const tr = document.createElement("tr");
+  for (const text of cells) {
+    const td = document.createElement("td");
+    td.textContent = text;
+    tr.append(td);
+  }
+  return tr;
+}
+
+// Several entries in one field: separated by commas or semicolons between entries, as
+// "wax-robot-base:40, wax-toy-mill-table:2" (a fault's own argument keeps its commas: a fault
+// is split at ";" only).
+function entries(text, separator) {
+  return text.split(separator).map((s) => s.trim()).filter((s) => s);
+}
+
+let chartUrl = null;
+
+export function renderPlan(answer) {
+  const plans = answer.plan.plans;
+  const first = plans[0];
+  byId("plan-window").textContent =
+    `from ${when(first.start)} to ${when(first.until)} (${span(first.until - first.start)})`;
+  const rows = [];
+  for (const p of plans) {
+    for (const o of p.orders) {
+      const verdict = o.verdict === "late" ? `late by ${span(o.late_s)}` : o.verdict;
+      const tr = row([p.policy, o.order_id, o.part_type, `${o.made}/${o.qty}`, when(o.finished),
+        o.due === null ? "-" : when(o.due), verdict]);
+      tr.dataset.order = o.order_id;
+      tr.dataset.policy = p.policy;
+      rows.push(tr);
+    }
+  }
+  byId("plan-orders").replaceChildren(...rows);
+  byId("plan-utilization").textContent = plans.map((p) => `${p.policy}: ` + Object.entries(
+    p.utilization).map(([m, u]) => `${m} ${(100 * u).toFixed(1)} %`).join(", ")).join("; ");
+  // The chart as an image: an SVG shown through <img> runs nothing.
+  if (chartUrl !== null) {
+    URL.revokeObjectURL(chartUrl);
+  }
+  chartUrl = URL.createObjectURL(new Blob([answer.svg], { type: "image/svg+xml" }));
+  byId("plan-chart").src = chartUrl;
+  byId("plan-chart").classList.remove("hidden");
+}
+
+async function play(event) {
+  event.preventDefault();
+  const params = {
+    shift: byId("plan-shift").value.trim() || "8h",
+    add: entries(byId("plan-add").value, /[,;]/),
+    fault: entries(byId("plan-fault").value, /;/),
+    policy: byId("plan-policy").value,
+  };
+  const button = byId("plan-play");
+  button.disabled = true;
+  byId("plan-message").textContent = "playing the cell ahead …";
+  try {
+    renderPlan(await call("plan.run", params));
+    byId("plan-message").textContent = "";
+  } catch (e) {
+    byId("plan-message").textContent = e.message;
+  } finally {
+    button.disabled = false;
+  }
+}
+
+// On the document: the panel is gone while the page is refused (no token), and back after.
+document.addEventListener("submit", (event) => {
+  if (event.target.id === "plan-form") {
+    play(event);
+  }
+});

@@ -1,0 +1,196 @@
+"""``cellctl factory plan``: ``cellctl plan`` over every cell of a factory whose directory is
+on this host (``FACTORY_DIR/CELL``, as ``cellctl emulate factory`` writes them, or
+``--cell-dir CELL=DIR``)::
+
+    cellctl factory --dir plant plan --shift 8h
+    cellctl factory --dir plant plan --fault cell2/cnc2:down@10:00-11:00 --out plan-out
+
+Each cell is asked through its own control API (``plan.run``: its open orders, held parts
+and machines out of service now), or played in this process on its files when no controller
+runs it. The factory's orders not yet given to a cell are not in any cell's plan.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import click
+
+from cellctl.errors import CellctlError, UsageError
+from cellctl.ui.common import console, fail, print_json, print_line
+
+
+def run_plain(coro: Any) -> Any:
+    """Run one cell's call to its end (its typed error raised, for the caller to weigh)."""
+    import asyncio
+
+    return asyncio.run(coro)
+
+
+def _cell_dirs(factory_dir: Path, cells: list[str], given: tuple[str, ...]) -> dict[str, Path]:
+    mapping: dict[str, Path] = {}
+    for text in given:
+        name, sep, where = text.partition("=")
+        if not sep or name not in cells:
+            raise UsageError(f"--cell-dir {text!r}: write CELL=DIR, CELL one of {', '.join(cells)}")
+        mapping[name] = Path(where)
+    found = {}
+    for name in cells:
+        directory = mapping.get(name, factory_dir / name)
+        if (directory / "cell.toml").is_file():
+            found[name] = directory
+    if not found:
+        raise UsageError(
+            f"no cell directory of {', '.join(cells)} on this host (looked in {factory_dir}/"
+            "CELL; say where with --cell-dir CELL=DIR)"
+        )
+    return found
+
+
+def _faults_by_cell(faults: tuple[str, ...], cells: dict[str, Path]) -> dict[str, list[str]]:
+    out: dict[str, list[str]] = {name: [] for name in cells}
+    for text in faults:
+        name, sep, rest = text.partition("/")
+        if not sep or name not in cells:
+            raise UsageError(
+                f"--fault {text!r}: write CELL/MACHINE:FAULT@HH:MM-HH:MM, CELL one of "
+                f"{', '.join(cells)}"
+            )
+        out[name].append(rest)
+    return out
+
+
+def _check(
+    cells: dict[str, Path],
+    windows: dict[str, list[str]],
+    shift: str | None,
+    until: str | None,
+    policy: str,
+) -> None:
+    """The options against each cell's own machines and faults, before any cell is asked
+    (each cell checks them again at its own time)."""
+    from cellctl.cell.config import load_cell
+    from cellctl.clock import current_clock
+    from cellctl.plan.spec import check_inputs, parse_fault, plan_window, policies_of
+
+    now = current_clock().now()
+    end = plan_window(now, shift, until)
+    policies = policies_of(policy)
+    for name, texts in windows.items():
+        found = [parse_fault(text, now) for text in texts]
+        try:
+            check_inputs(load_cell(cells[name]), [], found, policies, end)
+        except UsageError as e:
+            raise UsageError(f"{name}: {e}") from None
+
+
+@click.command("plan")
+@click.option("--shift", metavar="SPAN", help="How far ahead: 8h, 90m, 2d ...  [default: 8h]")
+@click.option("--until", metavar="TIME", help="Or up to: 'FRI 18:00', 18:00, 2026-11-27T18:00.")
+@click.option(
+    "--fault",
+    "faults",
+    multiple=True,
+    metavar="CELL/MACHINE:FAULT@HH:MM-HH:MM",
+    help="A fault window in one cell (repeatable): cell2/cnc2:down@10:00-11:00.",
+)
+@click.option(
+    "--policy",
+    default="default",
+    show_default=True,
+    metavar="NAME",
+    help="The scheduler's policy in every cell: default, one-at-a-time, ... or all.",
+)
+@click.option(
+    "--seed",
+    type=click.IntRange(0, 2**63 - 1),
+    default=0,
+    show_default=True,
+    metavar="N",
+    help="Seed of anything random in the emulated machines.",
+)
+@click.option(
+    "--cell-dir",
+    "cell_dirs",
+    multiple=True,
+    metavar="CELL=DIR",
+    help="Where a cell's directory is (default FACTORY_DIR/CELL).",
+)
+@click.option(
+    "--out",
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Write each cell's plan (plan.json, plan.svg, inputs.json) in OUT/CELL.",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print the plans as JSON.")
+@click.pass_context
+def factory_plan(
+    ctx: click.Context,
+    shift: str | None,
+    until: str | None,
+    faults: tuple[str, ...],
+    policy: str,
+    seed: int,
+    cell_dirs: tuple[str, ...],
+    out: Path | None,
+    as_json: bool,
+) -> None:
+    """What every cell of the factory finishes, and when: `cellctl plan` for each."""
+    from cellctl.factory.config import load_factory
+    from cellctl.plan.run import result_from_dict, write_plan
+    from cellctl.service.client import open_cell
+
+    factory_dir = Path(ctx.obj["factory_dir"])
+    try:
+        config = load_factory(factory_dir)
+        cells = _cell_dirs(factory_dir, list(config.cells), cell_dirs)
+        windows = _faults_by_cell(faults, cells)
+        _check(cells, windows, shift, until, policy)
+    except CellctlError as e:
+        fail(e)
+    params: dict[str, Any] = {k: v for k, v in (("shift", shift), ("until", until)) if v}
+    params.update(policy=policy, seed=seed)
+
+    async def ask(directory: Path, cell_faults: list[str]) -> Any:
+        async with await open_cell(directory, {}) as cell:
+            return await cell.call("plan.run", {**params, "fault": cell_faults})
+
+    plans: dict[str, Any] = {}
+    refused: dict[str, str] = {}
+    for name, directory in cells.items():
+        try:
+            answer = run_plain(ask(directory, windows[name]))
+            result = result_from_dict(answer["plan"], answer["svg"], directory)
+        except CellctlError as e:  # one cell's refusal (no open orders ...): the others go on
+            refused[name] = str(e)
+            continue
+        result.inputs = dataclasses.replace(result.inputs, cell_dir=directory)
+        plans[name] = result
+        if out is not None:
+            try:
+                write_plan(result, out / name)
+            except CellctlError as e:
+                fail(e)
+    if not plans:
+        fail(UsageError("; ".join(f"{name}: {why}" for name, why in refused.items())))
+    if as_json:
+        print_json(
+            {name: r.as_dict() for name, r in plans.items()}
+            | {name: {"refused": why} for name, why in refused.items()}
+        )
+        return
+    for name, result in plans.items():
+        print_line(f"== {name} ({cells[name]})")
+        for line in result.lines():
+            print_line(line)
+        print_line("")
+    print_line(f"factory {config.name}: {len(plans)} cells planned")
+    for name, result in plans.items():
+        r = result.reports[0]
+        made = sum(r.parts_made.values())
+        print_line(f"  {name:<10} on time {r.on_time}, late {r.late}, parts made {made}")
+    for name, why in refused.items():
+        print_line(f"  {name:<10} not planned: {why}")
+    if out is not None:
+        console.print(f"saved {out}/CELL/plan.json, plan.svg, inputs.json", markup=False)

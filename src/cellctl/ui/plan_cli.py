@@ -1,0 +1,208 @@
+"""``cellctl plan``: what the cell will finish, and when, played ahead on virtual time.
+
+::
+
+    cellctl plan                                        # the running cell, the next 8 h
+    cellctl plan --fault cnc2:down@10:00-11:00          # ... if cnc2 is down 10 to 11
+    cellctl plan --add wax-robot-base:40 --until 'FRI 18:00'   # can we take 40 more?
+    cellctl plan --dir cell --orders week.csv --policy all --out plan-out
+    cellctl plan --replay plan-out/inputs.json          # the same plan again
+
+From the running cell (found as the other commands find it) the plan comes through the
+control API's ``plan.run``: the cell's open orders, held parts and machines out of service
+now. With ``--dir`` it is played here, from a cell directory and an orders file (docs/plan.md).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, TypeVar
+
+import click
+
+from cellctl.clock import current_clock
+from cellctl.errors import CellctlError, UsageError
+from cellctl.ui.calls import cell_call
+from cellctl.ui.common import cell_dir, console, fail, print_json, print_line
+
+T = TypeVar("T")
+
+
+def _check_syntax(shift: str | None, until: str | None, adds: tuple[str, ...], faults: Any) -> None:
+    """The options' syntax, before the cell is reached (the cell checks them again, against
+    its machines and part types, at its own time)."""
+    from cellctl.plan.spec import parse_add, parse_fault, plan_window
+
+    now = current_clock().now()
+    plan_window(now, shift, until)
+    for text in adds:
+        parse_add(text)
+    for text in faults:
+        parse_fault(text, now, None)
+
+
+def _local_plan(
+    directory: Path,
+    orders_file: Path | None,
+    start_text: str | None,
+    options: dict[str, Any],
+) -> Any:
+    from cellctl.plan.orders_file import read_orders_file
+    from cellctl.plan.run import play_in_temp
+    from cellctl.plan.spec import plan_inputs
+    from cellctl.plan.when import parse_start
+
+    if not (directory / "cell.toml").is_file():
+        raise UsageError(f"{directory}: no cell.toml: not a cell directory")
+    start = parse_start(start_text, current_clock().now())
+    orders = read_orders_file(orders_file, start) if orders_file is not None else ()
+    if not orders and not options["adds"]:
+        raise UsageError("nothing to plan: give --orders FILE or --add PART:QTY")
+    inputs, policies = plan_inputs(directory, start=start, orders=orders, **options)
+    return play_in_temp(inputs, policies)
+
+
+@click.command("plan")
+@click.option(
+    "--dir",
+    "directory",
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Plan from this cell directory (cell.toml) instead of the running cell.",
+)
+@click.option(
+    "--orders",
+    "orders_file",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="With --dir: the orders, CSV (id,part_type,qty,priority,due).",
+)
+@click.option("--shift", metavar="SPAN", help="How far ahead: 8h, 90m, 2d ...  [default: 8h]")
+@click.option("--until", metavar="TIME", help="Or up to: 'FRI 18:00', 18:00, 2026-11-27T18:00.")
+@click.option(
+    "--start",
+    "start_text",
+    metavar="TIME",
+    help="With --dir: when the plan starts (a time as --until takes).  [default: now]",
+)
+@click.option(
+    "--add",
+    "adds",
+    multiple=True,
+    metavar="PART:QTY[@PRIO]",
+    help="Add an order (repeatable): wax-robot-base:40, or :40@5 with a priority.",
+)
+@click.option(
+    "--fault",
+    "faults",
+    multiple=True,
+    metavar="MACHINE:FAULT@HH:MM-HH:MM",
+    help="A fault window (repeatable): FAULT is down (out of service) or an emulator "
+    "fault switch (cnc1:stall@10:00-10:20); without an end, to the plan's end.",
+)
+@click.option(
+    "--policy",
+    default="default",
+    show_default=True,
+    metavar="NAME",
+    help="The scheduler's policy: default (downstream-first), one-at-a-time, shortest-first, "
+    "A,B (those compared) or all.",
+)
+@click.option(
+    "--seed",
+    type=click.IntRange(0, 2**63 - 1),
+    metavar="N",
+    default=0,
+    show_default=True,
+    help="Seed of anything random in the emulated machines.",
+)
+@click.option(
+    "--replay",
+    type=click.Path(dir_okay=False, path_type=Path),
+    metavar="INPUTS",
+    help="Play a saved plan's inputs.json again (the other inputs are its own).",
+)
+@click.option(
+    "--out",
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Write plan.json, plan.svg (the Gantt chart), inputs.json and the cell's "
+    "configuration here.",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print the plan as JSON.")
+@click.pass_context
+def plan_command(
+    ctx: click.Context,
+    directory: Path | None,
+    orders_file: Path | None,
+    shift: str | None,
+    until: str | None,
+    start_text: str | None,
+    adds: tuple[str, ...],
+    faults: tuple[str, ...],
+    policy: str,
+    seed: int,
+    replay: Path | None,
+    out: Path | None,
+    as_json: bool,
+) -> None:
+    """What the cell finishes, and when: per order against its due time, utilizations, and
+    the Gantt chart, played ahead by the real controller on virtual time (in seconds)."""
+    from cellctl.plan.run import result_from_dict, write_plan
+
+    options: dict[str, Any] = dict(
+        shift=shift, until=until, adds=adds, faults=faults, policy=policy, seed=seed
+    )
+
+    if replay is not None:
+        given = [n for n, v in (("--dir", directory), ("--orders", orders_file),
+                 ("--shift", shift), ("--until", until), ("--start", start_text)) if v] + (
+            ["--add"] * bool(adds) + ["--fault"] * bool(faults)
+        )  # fmt: skip
+        if given:
+            raise click.UsageError(f"--replay plays its own inputs: not with {', '.join(given)}")
+        result = guarded(lambda: _replay(replay))
+    elif directory is not None:
+        result = guarded(lambda: _local_plan(directory, orders_file, start_text, options))
+    else:
+        if orders_file is not None or start_text is not None:
+            raise click.UsageError(
+                "--orders and --start are for --dir: a plan of the running cell starts now, "
+                "from its own orders (add more with --add)"
+            )
+        guarded(lambda: _check_syntax(shift, until, adds, faults))
+        params: dict[str, Any] = {
+            k: v for k, v in dict(shift=shift, until=until, policy=policy).items() if v
+        }
+        params.update(seed=seed, add=list(adds), fault=list(faults))
+        answer = cell_call(ctx, "plan.run", params)
+        here = cell_dir(ctx)
+        result = guarded(lambda: result_from_dict(answer["plan"], answer["svg"], here))
+        result.inputs = dataclasses.replace(result.inputs, cell_dir=here)
+    written = guarded(lambda: write_plan(result, out)) if out is not None else []
+    if as_json:
+        print_json(result.as_dict())
+        return
+    for line in result.lines():
+        print_line(line)
+    for path in written:
+        console.print(f"saved {path}", markup=False, highlight=False)
+
+
+def _replay(path: Path) -> Any:
+    from cellctl.plan.inputs import load_inputs
+    from cellctl.plan.run import play_in_temp
+
+    inputs, policies = load_inputs(path)
+    return play_in_temp(inputs, policies)
+
+
+def guarded(fn: Callable[[], T]) -> T:
+    """``fn()``, a typed error turned into one line on stderr and an exit code (a plan plays
+    on its own virtual-time loop: not inside :func:`~cellctl.ui.common.run`'s)."""
+    try:
+        return fn()
+    except CellctlError as e:
+        fail(e)
+
+
+__all__ = ["plan_command"]

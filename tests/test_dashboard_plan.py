@@ -1,0 +1,58 @@
+"""The dashboard's What-if panel in a real browser: a plan of the running cell (the API's
+plan.run) with a fault window and an order added from its form, its orders and chart shown;
+a fault on a machine the cell does not have is refused with the cell's own message."""
+
+from __future__ import annotations
+
+import pytest
+
+from tests.test_dashboard import Dash, browser, dash, live  # noqa: F401 (fixtures)
+
+
+@pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
+async def test_the_what_if_panel_plays_the_cell_ahead(dash: Dash) -> None:  # noqa: F811
+    rig = dash.rig
+    await live(dash)
+    await dash.api("cell.pause")  # the orders stay open: the plan plays them
+    rig.post("wax-robot-base", 1, "W1")
+    await rig.wait_for(lambda: rig.order_state("W1") == "accepted", "W1 accepted")
+    page = dash.page
+    await page.locator("#plan-shift").fill("5m")
+    await page.locator("#plan-fault").fill("cnc9:down@10:00-11:00")
+    await page.locator("#plan-play").click()
+    refused = page.locator("#plan-message", has_text="no such machine")
+    await refused.wait_for(timeout=15_000)
+    assert "cnc9" in await refused.inner_text()
+
+    await page.locator("#plan-fault").fill("")
+    await page.locator("#plan-add").fill("wax-toy-mill-table:1")
+    await page.locator("#plan-policy").select_option("one-at-a-time")
+    await page.locator("#plan-play").click()
+    # Played: the orders' rows, or the plan's refusal in the panel's message.
+    await page.wait_for_function(
+        "() => document.querySelector('#plan-orders tr') !== null || "
+        "!document.querySelector('#plan-message').textContent.startsWith('playing')",
+        timeout=120_000,
+    )
+    assert await page.locator("#plan-message").inner_text() == ""
+    rows = page.locator("#plan-orders tr")
+    found = {
+        (await r.get_attribute("data-policy"), await r.get_attribute("data-order"))
+        for r in await rows.all()
+    }
+    assert found == {("one-at-a-time", "W1"), ("one-at-a-time", "plan-add1")}
+    # The same plan through the API: the same orders made, per policy.
+    answer = await dash.api(
+        "plan.run", {"shift": "5m", "add": ["wax-toy-mill-table:1"], "policy": "one-at-a-time"}
+    )
+    for plan in answer["plan"]["plans"]:
+        for o in plan["orders"]:
+            row = page.locator(
+                f'#plan-orders tr[data-policy="{plan["policy"]}"][data-order="{o["order_id"]}"]'
+            )
+            cells = await row.locator("td").all_inner_texts()
+            assert cells[3] == f"{o['made']}/{o['qty']}"
+    chart = page.locator("#plan-chart")
+    assert await chart.is_visible()
+    assert await chart.evaluate("img => img.naturalWidth") > 0
+    await dash.shot("what-if", "#plan")

@@ -1,0 +1,163 @@
+"""`cellctl plan` answers the issue's questions from a cell directory, as a planner types
+them: what finishes by the end of the shift if cnc2 is down for an hour, whether more robot
+bases fit by a given time, and how the scheduler's policies compare. The plan is played
+by the engine (the real controller on virtual time); the inputs saved beside it play the
+same plan again."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import pytest
+from click.testing import CliRunner, Result
+
+from cellctl.emulators.cell import EXAMPLE_CELL
+from cellctl.ui.cli import main
+
+#: The plans start on a Wednesday at 06:00 local time.
+START = "2026-11-25T06:00"
+T0 = datetime(2026, 11, 25, 6, 0).timestamp()
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    directory = tmp_path_factory.mktemp("plan") / "cell"
+    shutil.copytree(EXAMPLE_CELL, directory)
+    (directory.parent / "orders.csv").write_text(
+        "id,part_type,qty,priority,due\nA,wax-toy-mill-table,1,5,WED 06:15\n",
+        encoding="utf-8",
+    )
+    return directory
+
+
+def plan(*args: str, expect: int = 0) -> Result:
+    """``cellctl plan ARGS`` in this process (its plan on its own virtual-time loop)."""
+    result = CliRunner().invoke(main, ["plan", *args])
+    assert result.exit_code == expect, result.output + repr(result.exception)
+    return result
+
+
+def plan_json(*args: str) -> dict[str, Any]:
+    data: dict[str, Any] = json.loads(plan(*args, "--json").output)
+    return data
+
+
+def steps_of(out: Path) -> list[dict[str, Any]]:
+    """The chart's steps: machine row (by its y), start and width in px, class."""
+    svg = (out / "plan.svg").read_text()
+    return [
+        {"x": float(x), "w": float(w), "kind": k}
+        for x, w, k in re.findall(
+            r'<rect x="([\d.]+)" y="[\d.]+" width="([\d.]+)"[^>]*class="step (\w+)"', svg
+        )
+    ]
+
+
+@pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
+def test_what_finishes_by_the_end_of_the_shift_if_cnc2_is_down(cell: Path, tmp_path: Path) -> None:
+    """The issue's "if cnc2 is down from 10:00 to 11:00": here while the order needs it."""
+    out = tmp_path / "down"
+    text = plan(
+        "--dir", str(cell), "--orders", str(cell.parent / "orders.csv"), "--start", START,
+        "--shift", "8h", "--fault", "cnc2:down@06:03-06:13", "--out", str(out),
+    ).output  # fmt: skip
+    assert "fault: cnc2 down from Wed 06:03:00 to Wed 06:13:00" in text
+    [report] = json.loads((out / "plan.json").read_text())["plans"]
+    assert report["start"] == T0 and report["until"] == T0 + 8 * 3600
+    [order] = report["orders"]
+    # The order's line: when it finishes, against its due time.
+    assert order["order_id"] == "A" and order["made"] == 1 and order["finished"] is not None
+    assert T0 < order["finished"] == report["ended"] < report["until"]
+    verdict = "on time" if order["finished"] <= T0 + 15 * 60 else "late"
+    assert order["verdict"] == verdict
+    assert re.search(
+        rf"^A +wax-toy-mill-table +1/1 +Wed \d\d:\d\d:\d\d +Wed 06:15:00 +{verdict}", text, re.M
+    )
+    # cnc2 is down over the window: no step of it starts there, and its down time says so.
+    steps = [s for s in report["steps"] if s["machine"] == "cnc2"]
+    assert steps and not any(T0 + 180 <= s["started"] < T0 + 780 for s in steps)
+    assert report["down_s"]["cnc2"] >= 10 * 60 - 1
+    assert all(s["started"] >= T0 + 780 for s in steps)  # the part waited for it
+    # The chart: the window shaded on cnc2's row, the axis in the shift's wall-clock time.
+    svg = (out / "plan.svg").read_text()
+    assert svg.count('class="window"') == 1 and ">06:00<" in svg and ">14:00<" in svg
+
+
+@pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
+def test_can_we_take_more_by_a_time(cell: Path) -> None:
+    """The issue's "40 more robot bases by Friday?", at a test's size: one more toy mill
+    table by 06:30, and by 06:05 (too soon: the answer is no)."""
+    for until, fits in (("WED 06:30", True), ("06:05", False)):
+        found = plan_json(
+            "--dir", str(cell), "--start", START, "--until", until,
+            "--add", "wax-toy-mill-table:1@5",
+        )  # fmt: skip
+        [report] = found["plans"]
+        [added] = report["orders"]
+        assert (added["order_id"], added["qty"], added["priority"]) == ("plan-add1", 1, 5)
+        # The answer: the order finishes within the plan (by the time asked), or not.
+        assert (added["finished"] is not None) == fits, (until, added)
+        if fits:
+            assert added["finished"] <= report["until"] and added["made"] == 1
+            assert report["all_finished"] and report["ended"] == added["finished"]
+        else:
+            assert added["made"] == 0 and report["ended"] == report["until"]
+    assert report["until"] == T0 + 5 * 60
+
+
+@pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
+def test_the_policies_compared_and_the_plan_replayed_from_its_inputs(
+    cell: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "compare"
+    text = plan(
+        "--dir", str(cell), "--orders", str(cell.parent / "orders.csv"), "--start", START,
+        "--shift", "5m", "--fault", "cnc1:stall@06:02-06:04", "--policy", "default,one-at-a-time",
+        "--seed", "7", "--out", str(out),
+    ).output  # fmt: skip
+    assert "policies compared:" in text
+    first = json.loads((out / "plan.json").read_text())
+    assert [p["policy"] for p in first["plans"]] == ["default", "one-at-a-time"]
+    saved = json.loads((out / "inputs.json").read_text())
+    assert saved["seed"] == 7 and saved["policies"] == ["default", "one-at-a-time"]
+    assert (out / "cell" / "cell.toml").read_text() == (cell / "cell.toml").read_text()
+    assert not (out / "cell" / "journal.sqlite3").exists()
+    # Replayed from its inputs (and the configuration's copy beside them): the same plan.
+    again = json.loads(plan("--replay", str(out / "inputs.json"), "--json").output)
+
+    def same(p: dict[str, Any]) -> Any:
+        return [(o["order_id"], o["finished"], o["made"]) for o in p["orders"]], p["busy_s"]
+
+    assert [same(p) for p in again["plans"]] == [same(p) for p in first["plans"]]
+    assert again["inputs"]["orders"] == first["inputs"]["orders"]
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (
+            ["--add", "wax-robot-base:1", "--fault", "cnc9:down@10:00-11:00"],
+            r"no such machine \(known: robot, cnc1, cnc2, plc",
+        ),
+        (
+            ["--add", "wax-robot-base:1", "--fault", "cnc2:melt@10:00-11:00"],
+            r"'melt' on cnc2: unknown \(known: down",
+        ),
+        (["--add", "wax-robot-base:1", "--fault", "cnc2:down@25:00"], "hours 0-23"),
+        (["--add", "gear:3"], r"makes no 'gear'"),
+        (["--add", "wax-robot-base:3", "--policy", "fastest"], "policy 'fastest': unknown"),
+        (["--add", "wax-robot-base:3", "--shift", "8h", "--until", "18:00"], "not both"),
+        ([], "nothing to plan"),
+    ],
+)
+def test_bad_input_is_refused_before_anything_runs(
+    cell: Path, args: list[str], message: str
+) -> None:
+    result = plan("--dir", str(cell), "--start", START, *args, expect=2)
+    assert re.search(message, result.stderr), result.stderr
+    assert result.exception is None or isinstance(result.exception, SystemExit)

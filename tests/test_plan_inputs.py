@@ -1,0 +1,278 @@
+"""What a planner types to `cellctl plan` (durations, times, --add, --fault, --policy, the
+orders file, a saved inputs.json): only UsageError comes out of anything, what is valid reads
+back as written, and a plan's inputs are refused before anything runs for a machine, fault,
+part type or policy the cell does not have."""
+
+from __future__ import annotations
+
+import json
+from datetime import datetime, timedelta
+from pathlib import Path
+from typing import Any
+
+import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
+
+from cellctl.cell.config import load_cell
+from cellctl.emulators.cell import EXAMPLE_CELL
+from cellctl.errors import UsageError
+from cellctl.plan.engine import FaultWindow, PlanInputs, PlanOrder
+from cellctl.plan.inputs import inputs_dict, parse_inputs
+from cellctl.plan.orders_file import orders_csv, parse_orders
+from cellctl.plan.spec import (
+    AddSpec,
+    check_inputs,
+    parse_add,
+    parse_fault,
+    plan_inputs,
+    policies_of,
+)
+from cellctl.plan.when import MAX_HORIZON_S, parse_duration, parse_start, resolve_when
+
+FAST = settings(max_examples=150, deadline=2000)
+#: A Wednesday, 06:00 local time: the plans' start in these tests.
+START = datetime(2026, 11, 25, 6, 0).timestamp()
+
+_PIECES = st.sampled_from(
+    ["8h", "90m", "1h30m", "2d", "45s", "0h", "FRI", "fri", "18:00", "6:30", "24:00", "9:60",
+     "2026-11-27T18:00", "2026-11-27 18:00+01:00", "1999-01-01T00:00", "9999-12-31T23:59",
+     ":", "@", "-", "=", " ", "wax-robot-base", "cnc2", "down", "stall", "noise=3e-4,7",
+     "40", "-5", "+7", "99999999", "1e9", "é", "\x00", "\n", ",", "\"", "#"]
+)  # fmt: skip
+TYPED = st.one_of(st.text(max_size=60), st.lists(_PIECES, max_size=8).map("".join))
+
+
+@FAST
+@given(TYPED)
+@example("1e400h")
+@example("999999d")
+def test_anything_typed_as_a_duration_or_time_is_read_or_refused(text: str) -> None:
+    for read in (
+        parse_duration,
+        lambda t: resolve_when(t, START),
+        lambda t: parse_start(t, START),
+        parse_add,
+        lambda t: parse_fault(t, START),
+        policies_of,
+    ):
+        try:
+            read(text)
+        except UsageError as e:
+            assert str(e)
+
+
+@FAST
+@given(
+    st.integers(0, 40), st.integers(0, 59), st.integers(0, 59), st.integers(0, 3)
+)  # fmt: skip
+def test_durations_read_as_written(h: int, m: int, s: int, d: int) -> None:
+    text = (f"{d}d" if d else "") + (f"{h}h" if h else "") + (f"{m}m" if m else "") + f"{s}s"
+    total = d * 86400 + h * 3600 + m * 60 + s
+    if total == 0 or total > MAX_HORIZON_S:
+        with pytest.raises(UsageError):
+            parse_duration(text)
+    else:
+        assert parse_duration(text) == total
+
+
+@FAST
+@given(st.integers(0, 6), st.integers(0, 23), st.integers(0, 59), st.integers(0, 14 * 24 * 60))
+def test_a_day_and_time_is_the_next_one_after_the_start(
+    day: int, hour: int, minute: int, offset_min: int
+) -> None:
+    start = START + offset_min * 60.0
+    name = ["MON", "tue", "Wed", "THURSDAY", "fri", "Sat", "sunday"][day]
+    found = datetime.fromtimestamp(resolve_when(f"{name} {hour}:{minute:02d}", start))
+    assert (found.weekday(), found.hour, found.minute) == (day, hour, minute)
+    assert 0 < found.timestamp() - start <= 7 * 86400 + 3600  # next, within a week (DST)
+    plain = datetime.fromtimestamp(resolve_when(f"{hour:02d}:{minute:02d}", start))
+    assert (plain.hour, plain.minute) == (hour, minute)
+    assert 0 < plain.timestamp() - start <= 86400 + 3600
+
+
+def test_times_the_issue_names() -> None:
+    wednesday = datetime.fromtimestamp(START)
+    friday = datetime.fromtimestamp(resolve_when("FRI 18:00", START))
+    assert friday == wednesday.replace(hour=18) + timedelta(days=2)
+    assert parse_duration("8h") == 8 * 3600
+    assert datetime.fromtimestamp(resolve_when("2026-11-27T18:00", START)) == friday
+    with pytest.raises(UsageError, match="not after the plan's start"):
+        resolve_when("2026-11-24T18:00", START)
+    with pytest.raises(UsageError, match="31 days"):
+        resolve_when("2027-11-24T18:00", START)
+
+
+@FAST
+@given(
+    st.from_regex(r"[a-z][a-z0-9\-]{0,20}", fullmatch=True),
+    st.integers(1, 10_000),
+    st.one_of(st.none(), st.integers(-1_000_000, 1_000_000)),
+)
+def test_add_reads_back(part: str, qty: int, priority: int | None) -> None:
+    text = f"{part}:{qty}" + ("" if priority is None else f"@{priority}")
+    assert parse_add(text) == AddSpec(part, qty, priority or 0)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("wax-robot-base", "PART:QTY"),
+        ("wax-robot-base:0", "1 to 10000"),
+        ("wax-robot-base:40@9999999", "priority"),
+        ("wax robot:4", "PART:QTY"),
+    ],
+)
+def test_add_refusals_say_how_to_write_it(text: str, message: str) -> None:
+    with pytest.raises(UsageError, match=message):
+        parse_add(text)
+
+
+def test_fault_windows_the_issue_names() -> None:
+    window = parse_fault("cnc2:down@10:00-11:00", START)
+    assert window == FaultWindow("cnc2", "down", START + 4 * 3600, START + 5 * 3600)
+    overnight = parse_fault("plc:stuck-door=2@23:00-01:00", START)
+    assert overnight.arg == "2" and overnight.end == overnight.start + 2 * 3600
+    open_ended = parse_fault("cnc1:noise=3e-4,7@FRI 09:30", START)
+    assert open_ended.end is None and open_ended.arg == "3e-4,7"
+    assert datetime.fromtimestamp(open_ended.start).strftime("%a %H:%M") == "Fri 09:30"
+
+
+@pytest.fixture(scope="module")
+def config() -> Any:
+    return load_cell(EXAMPLE_CELL)
+
+
+@pytest.mark.parametrize(
+    ("fault", "message"),
+    [
+        ("cnc9:down@10:00-11:00", r"no such machine \(known: robot, cnc1, cnc2, plc\)"),
+        ("cnc2:melt@10:00-11:00", r"'melt' on cnc2: unknown \(known: down, never-ready"),
+        ("plc:down@10:00-11:00", r"'down' on plc: unknown"),
+        ("robot:servo-error@15:00", "opens after the plan ends"),
+    ],
+)
+def test_an_unknown_machine_or_fault_is_refused_before_anything_runs(
+    fault: str, message: str
+) -> None:
+    with pytest.raises(UsageError, match=message):
+        plan_inputs(EXAMPLE_CELL, start=START, adds=["wax-robot-base:1"], faults=[fault])
+
+
+def test_unknown_part_types_and_policies_are_refused(config: Any) -> None:
+    with pytest.raises(UsageError, match=r"makes no 'gear' \(known: wax-robot-base"):
+        check_inputs(config, [PlanOrder("A", "gear", 1)], [])
+    with pytest.raises(UsageError, match="policy 'fastest': unknown"):
+        check_inputs(config, [], [], policies_of("fastest"))
+    assert len(policies_of("all")) >= 2
+
+
+def test_plan_inputs_take_what_the_planner_typed() -> None:
+    inputs, policies = plan_inputs(
+        EXAMPLE_CELL,
+        start=START,
+        until="FRI 18:00",
+        orders=[PlanOrder("plan-add1", "wax-robot-base", 3)],
+        adds=["wax-robot-base:40@5", "wax-toy-mill-table:2"],
+        faults=["cnc2:down@10:00-11:00"],
+        policy="all",
+        seed=7,
+    )
+    assert [o.order_id for o in inputs.orders] == ["plan-add1", "plan-add2", "plan-add3"]
+    assert inputs.orders[1] == PlanOrder("plan-add2", "wax-robot-base", 40, 5)
+    assert inputs.until == resolve_when("FRI 18:00", START)
+    assert inputs.seed == 7 and policies == policies_of("all")
+    with pytest.raises(UsageError, match="not both"):
+        plan_inputs(EXAMPLE_CELL, start=START, shift="8h", until="18:00")
+
+
+ORDERS = """# the week's orders
+id,part_type,qty,priority,due
+A,wax-robot-base,20,5,FRI 18:00
+B,wax-toy-mill-table,10,,2026-11-27T12:00
+
+C,wax-robot-base,4
+"""
+
+
+def test_an_orders_file_reads_and_writes_back() -> None:
+    orders = parse_orders(ORDERS, START)
+    assert orders == (
+        PlanOrder("A", "wax-robot-base", 20, 5, resolve_when("FRI 18:00", START)),
+        PlanOrder("B", "wax-toy-mill-table", 10, 0, resolve_when("2026-11-27T12:00", START)),
+        PlanOrder("C", "wax-robot-base", 4, 0, None),
+    )
+    assert parse_orders(orders_csv(orders), START) == orders
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("", "no orders"),
+        ("id,part_type\nA,x\n", "header must name"),
+        ("id,part_type,qty,colour\nA,x,1,red\n", "header must name"),
+        ("id,part_type,qty\nA,x,1\nA,x,2\n", "line 3: order A is in the file twice"),
+        ("id,part_type,qty\nA,x,many\n", "line 2: qty must be a whole number"),
+        ("id,part_type,qty,due\nA,x,1,someday\n", "line 2: due: time 'someday'"),
+        ("id,part_type,qty\nA,x,1,2\n", "line 2: 4 fields, the header names 3"),
+        ("id,part_type,qty\nA B,x,1\n", "one word"),
+    ],
+)
+def test_orders_file_refusals_name_the_line(text: str, message: str) -> None:
+    with pytest.raises(UsageError, match=message):
+        parse_orders(text, START, "week.csv")
+
+
+@FAST
+@given(st.one_of(TYPED, st.lists(st.lists(TYPED, max_size=6), max_size=5)))
+@example("id,part_type,qty\n\x00")
+@example('id,part_type,qty\n"A')
+def test_any_orders_file_is_read_or_refused(content: Any) -> None:
+    text = content if isinstance(content, str) else "\n".join(",".join(r) for r in content)
+    for candidate in (text, "id,part_type,qty,priority,due\n" + text):
+        try:
+            for order in parse_orders(candidate, START):
+                assert order.qty >= 1 and order.order_id
+        except UsageError as e:
+            assert str(e)
+
+
+JSONISH = st.recursive(
+    st.one_of(st.none(), st.booleans(), st.integers(), st.floats(), st.text(max_size=10)),
+    lambda inner: st.one_of(
+        st.lists(inner, max_size=4), st.dictionaries(st.text(max_size=10), inner, max_size=4)
+    ),
+    max_leaves=20,
+)
+
+
+def _saved() -> dict[str, Any]:
+    inputs = PlanInputs(
+        cell_dir=Path("cell"),
+        orders=(PlanOrder("A", "wax-robot-base", 2, 1, START + 3600),),
+        start=START,
+        until=START + 8 * 3600,
+        faults=(FaultWindow("cnc2", "down", START + 60, START + 120),),
+        seed=3,
+    )
+    return inputs_dict(inputs, ("default",))
+
+
+@FAST
+@given(st.sampled_from(sorted(_saved())), JSONISH)
+def test_a_saved_inputs_file_with_anything_in_a_field_is_read_or_refused(
+    key: str, value: Any
+) -> None:
+    data = _saved() | {key: value}
+    try:
+        parse_inputs(json.loads(json.dumps(data)), Path("/plans"))
+    except UsageError as e:
+        assert str(e).startswith("plan inputs:")
+
+
+def test_saved_inputs_read_back() -> None:
+    inputs, policies = parse_inputs(json.loads(json.dumps(_saved())), Path("/plans"))
+    assert inputs.cell_dir == Path("/plans/cell") and policies == ("default",)
+    assert inputs.orders == (PlanOrder("A", "wax-robot-base", 2, 1, START + 3600),)
+    assert inputs.faults == (FaultWindow("cnc2", "down", START + 60, START + 120),)
+    assert (inputs.start, inputs.until, inputs.seed) == (START, START + 8 * 3600, 3)

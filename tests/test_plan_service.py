@@ -1,0 +1,170 @@
+"""`plan.run` on a running cell (the emulated cell on real ptys and sockets, its controller
+and the control API on a Unix socket): the snapshot of its open orders and machines out of
+service, played on a copy while the controller goes on; a viewer may ask, a wrong token may
+not; and `cellctl plan` through the API answers the issue's questions."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import AsyncIterator
+from datetime import datetime, timedelta
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from cellctl.errors import AccessDenied, UsageError
+from cellctl.service.access import AttachedCell
+from cellctl.service.client import RemoteCell, attach
+from cellctl.service.server import ApiServer
+from cellctl.testing.rig import CellRig
+from cellctl.testing.rig import cli as rig_cli
+
+
+@pytest.fixture
+async def running(tmp_path: Path) -> AsyncIterator[tuple[CellRig, ApiServer]]:
+    async with CellRig(tmp_path / "cell") as rig:
+        await rig.start_controller()
+        assert rig.controller is not None
+        server = ApiServer(AttachedCell(rig.controller), rig.directory)
+        await server.start()
+        try:
+            yield rig, server
+        finally:
+            await server.close()
+
+
+def _hhmm(moment: datetime) -> str:
+    return moment.strftime("%H:%M")
+
+
+async def _viewer(rig: CellRig, server: ApiServer) -> RemoteCell:
+    result = await rig.cli("token", "add", "vera", "--role", "viewer")
+    assert result.exit_code == 0, result.output
+    return await RemoteCell.connect(token=result.output.splitlines()[0].strip(),
+                                    socket_path=server.socket_path)  # fmt: skip
+
+
+@pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
+async def test_a_viewer_plans_the_running_cell_on_a_copy_while_it_runs(
+    running: tuple[CellRig, ApiServer],
+) -> None:
+    rig, server = running
+    operator = await attach(rig.directory)
+    vera = await _viewer(rig, server)
+    try:
+        # Orders the cell has not started yet (paused).
+        await operator.call("cell.pause", {})
+        rig.post("wax-robot-base", 2, "A")
+        rig.post("wax-toy-mill-table", 1, "B")
+        await rig.wait_for(lambda: rig.order_state("B") == "accepted", "B accepted")
+        steps_before = len(rig.journal.steps())
+        now = datetime.now()
+        fault = (
+            f"cnc2:down@{_hhmm(now + timedelta(minutes=2))}-{_hhmm(now + timedelta(minutes=20))}"
+        )
+        asked = asyncio.create_task(
+            vera.call("plan.run", {"shift": "10m", "fault": [fault], "add": ["wax-robot-base:1"]})
+        )
+        # The API (and the controller behind it) answers while the plan plays.
+        status = await vera.call("cell.status", {})
+        assert not asked.done() and set(status["machines"]) >= {"robot", "cnc1", "cnc2"}
+        with pytest.raises(UsageError, match="a plan is being played already"):
+            await vera.call("plan.run", {})
+        answer = await asked
+        # A machine out of service now stays out in the plan: nothing passes cnc1.
+        await operator.call("machines.out_of_service", {"machine": "cnc1", "reason": "tool"})
+        idle = await vera.call("plan.run", {"shift": "2m"})
+    finally:
+        await vera.close()
+        await operator.close()
+    [report] = answer["plan"]["plans"]
+    inputs = answer["plan"]["inputs"]
+    assert [(o["order_id"], o["qty"]) for o in inputs["orders"]] == [
+        ("A", 2),
+        ("B", 1),
+        ("plan-add1", 1),
+    ]
+    assert [f["machine"] for f in inputs["faults"]] == ["cnc2"]
+    assert report["until"] - report["start"] == 10 * 60
+    assert report["down_s"]["cnc2"] > 0
+    assert {o["order_id"] for o in report["orders"] if o["finished"] is not None} <= {
+        "A", "B", "plan-add1"
+    }  # fmt: skip
+    assert "<svg" in answer["svg"]
+    # Played on a copy: the running cell's journal and orders are as they were.
+    assert len(rig.journal.steps()) == steps_before
+    assert {o.id for o in rig.mailbox.orders()} == {"A", "B"}
+    rig.check_running()
+    assert idle["plan"]["inputs"]["out_of_service"] == ["cnc1"]
+    [quiet] = idle["plan"]["plans"]
+    assert quiet["parts_made"] == {} and quiet["busy_s"]["cnc1"] == 0
+
+
+async def test_a_wrong_token_is_refused(running: tuple[CellRig, ApiServer]) -> None:
+    _, server = running
+    with pytest.raises(AccessDenied, match="refused the token"):
+        await RemoteCell.connect(token="not-a-token-" + "x" * 30, socket_path=server.socket_path)
+
+
+@pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
+async def test_cellctl_plan_through_the_api_answers_the_questions(
+    running: tuple[CellRig, ApiServer], tmp_path: Path
+) -> None:
+    rig, _ = running
+    await rig.cli("pause")
+    rig.post("wax-robot-base", 2, "A")
+    await rig.wait_for(lambda: rig.order_state("A") == "accepted", "A accepted")
+    out = tmp_path / "plan-out"
+    result = await rig_cli(
+        rig.directory, "plan", "--add", "wax-robot-base:1", "--shift", "5m",
+        "--policy", "one-at-a-time", "--out", str(out),
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert "plan of CIM laboratory machining cell (policy one-at-a-time, seed 0)" in result.output
+    data: dict[str, Any] = json.loads((out / "plan.json").read_text())
+    for report in data["plans"]:
+        added = next(o for o in report["orders"] if o["order_id"] == "plan-add1")
+        assert added["qty"] == 1
+        assert (added["finished"] is not None) == (added["made"] == 1)
+    # The running cell's open order (A, 2 parts) and the one added, played from now.
+    assert [(o["order_id"], o["qty"]) for o in data["inputs"]["orders"]] == [
+        ("A", 2),
+        ("plan-add1", 1),
+    ]
+    assert all(p["steps"] for p in data["plans"])  # the plan played something
+    # Saved beside it: the cell's configuration as the real cell's (the emulation's time
+    # scale gone: a plan plays the machines' real times), and the chart.
+    saved = (out / "cell" / "cell.toml").read_text()
+    assert "time_scale" not in saved and "[machines.cnc1]" in saved
+    assert (out / "plan.svg").read_text().startswith("<svg")
+
+
+@pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
+async def test_a_part_held_now_stays_held_in_the_plan(running: tuple[CellRig, ApiServer]) -> None:
+    rig, _ = running
+    rig.post("wax-robot-base", 2, "A")
+    await rig.wait_for(lambda: rig.finished_steps("machine") >= 1, "first cut done")
+    rig.switch_on("cnc2:stall")  # the finishing cut stalls: its part is held for inspection
+    [held] = await rig.wait_for(rig.held_parts, "a part held")
+    await rig.cli("pause")
+    client = await attach(rig.directory)
+    try:
+        answer = await client.call("plan.run", {"shift": "3m"})
+    finally:
+        await client.close()
+    inputs = answer["plan"]["inputs"]
+    assert inputs["held"] == [
+        {
+            "order_id": "A",
+            "part_type": "wax-robot-base",
+            "location": held.location,
+            "route_index": held.route_index,
+        }
+    ]
+    # What remains of A is played: its parts less the one held (and any done).
+    done = sum(p.status == "done" for p in rig.journal.parts(order_id="A"))
+    assert [(o["order_id"], o["qty"]) for o in inputs["orders"]] == [("A", 2 - 1 - done)]
+    [report] = answer["plan"]["plans"]
+    assert report["held_at_start"] == 1

@@ -51,6 +51,11 @@ def pytest_configure(config: pytest.Config) -> None:
         "virtual(**loop_options): run this async test and its async fixtures on cellctl's "
         "VirtualLoop (time jumps when every task waits); keywords go to VirtualLoop",
     )
+    config.addinivalue_line(
+        "markers",
+        "alone: a real-time run measured against the machines' own times; `make test` runs "
+        "these after the others, one at a time, so no other test loads the box meanwhile",
+    )
 
 
 def cache_bytecode(prefix: Path) -> None:

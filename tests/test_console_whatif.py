@@ -91,6 +91,7 @@ async def test_a_viewer_plans_ahead_in_the_console(viewer: tuple[CellRig, Remote
         assert "A" in rows["robot"] and "A" in rows["cnc1"]
         assert FAULT in rows["cnc2"] and set(rows["cnc2"]) <= {FAULT, IDLE, "A"}
         assert "one character = 5.0 s: A wax-robot-base" in shown
+        assert "order     part type           made finishes     due          verdict" in shown
         await pilot.press("enter")  # closes the view
         shown = await wait_text(pilot, "plan (default): on time")
         assert "Gantt chart" not in shown
@@ -164,9 +165,7 @@ def test_the_gantt_rows_put_each_step_in_its_slots() -> None:
 
 @settings(max_examples=200, deadline=None)
 @given(
-    st.fixed_dictionaries(
-        {k: st.text(max_size=60) for k in ("horizon", "fault", "add", "policy")}
-    )
+    st.fixed_dictionaries({k: st.text(max_size=60) for k in ("horizon", "fault", "add", "policy")})
 )
 def test_any_form_answer_is_params_or_a_usage_error(raw: dict[str, str]) -> None:
     try:

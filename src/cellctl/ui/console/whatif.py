@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Final
 from rich.text import Text
 from textual.app import ComposeResult
 from textual.binding import Binding, BindingType
-from textual.containers import Vertical, VerticalScroll
+from textual.containers import ScrollableContainer, Vertical
 from textual.widgets import Static
 
 from cellctl.ui.console.dialogs import Dialog
@@ -73,9 +73,48 @@ def plan_text(answer: dict[str, Any], directory: Path) -> list[str]:
     from cellctl.plan.run import result_from_dict
 
     result = result_from_dict(answer["plan"], answer.get("svg", ""), directory)
-    out = result.lines()
+    out: list[str] = []
+    for report in result.reports:
+        if out:
+            out.append("")
+        out += report_lines(report)
+    # With several policies, the comparison ``cellctl plan`` prints after the plans.
+    compared = result.lines()
+    if len(result.reports) > 1 and "policies compared:" in compared:
+        out += ["", *compared[compared.index("policies compared:") :]]
     for report in result.reports:
         out += ["", f"Gantt chart, policy {report.policy}:", *gantt_lines(report)]
+    return out
+
+
+def report_lines(report: PlanReport) -> list[str]:
+    """``cellctl plan``'s report, its order table narrowed to the console's 78 columns."""
+    lines = report.lines()
+    table = next(i for i, line in enumerate(lines) if line.startswith("order "))
+    end = lines.index("", table)
+    return [*lines[:table], *order_table(report), *lines[end:]]
+
+
+def order_table(report: PlanReport) -> list[str]:
+    """Per order: its part type, parts made, when it finishes (``not in plan``), its due
+    time and its verdict (``late 0:12:00``; ``late >=1:00:00``: not finished, due passed)."""
+    from cellctl.plan.report import LATE
+    from cellctl.plan.when import span_text, when_text
+
+    out = [f"{'order':<9} {'part type':<18} {'made':>5} {'finishes':<12} {'due':<12} verdict"]
+    for o in report.orders:
+        finishes = when_text(o.finished) if o.finished is not None else "not in plan"
+        due = when_text(o.due) if o.due is not None else "-"
+        verdict = o.verdict
+        if o.verdict == LATE:
+            verdict += f" {'>=' if o.finished is None else ''}{span_text(o.late_s)}"
+        extra = f" held {o.held}" if o.held else ""
+        extra += f" scrapped {o.scrapped}" if o.scrapped else ""
+        made = f"{o.made}/{o.qty}"
+        out.append(
+            f"{o.order_id[:9]:<9} {o.part_type[:18]:<18} {made:>5} {finishes:<12} "
+            f"{due:<12} {verdict}{extra}"
+        )
     return out
 
 
@@ -162,9 +201,10 @@ class PlanView(Dialog[None]):
     """The plan's text, scrolled with the arrows and Page Up/Down; Escape or Enter closes."""
 
     BINDINGS: ClassVar[list[BindingType]] = [Binding("enter", "cancel", "Close")]
+    # The whole screen, no border: 78 columns of text at 80.
     DEFAULT_CSS = """
-    PlanView > Vertical { width: 100%; }
-    PlanView VerticalScroll { height: auto; max-height: 18; }
+    PlanView > Vertical { width: 100%; height: 100%; max-height: 100%; border: none; }
+    PlanView #plan-scroll { height: 1fr; }
     PlanView #plan-text { width: auto; }
     """
 
@@ -176,9 +216,9 @@ class PlanView(Dialog[None]):
     def compose(self) -> ComposeResult:
         with Vertical():
             yield Static(Text(self.title_text), classes="title")
-            with VerticalScroll(id="plan-scroll"):
+            with ScrollableContainer(id="plan-scroll"):
                 yield Static(Text("\n".join(self.lines), no_wrap=True), id="plan-text")
             yield Static("arrows / PgUp / PgDn scroll; Enter or Escape closes", classes="hint")
 
     def on_mount(self) -> None:
-        self.query_one("#plan-scroll", VerticalScroll).focus()
+        self.query_one("#plan-scroll", ScrollableContainer).focus()

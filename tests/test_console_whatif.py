@@ -67,7 +67,7 @@ async def test_a_viewer_plans_ahead_in_the_console(viewer: tuple[CellRig, Remote
         shown = await wait_text(pilot, "9. WHAT IF")
         assert "8. EXIT" in shown and "7. EMERGENCY STOP" in shown  # the numbers kept
         await pilot.press("9")
-        await wait_text(pilot, "WHAT IF", "How far")
+        await wait_text(pilot, "WHAT IF", "Horizon:")
         now = datetime.now()
         down = f"cnc2:down@{_hhmm(now + timedelta(minutes=1))}-{_hhmm(now + timedelta(minutes=3))}"
         await fill(pilot, "#horizon", "5m")
@@ -110,7 +110,7 @@ async def test_input_refused_in_the_parsers_and_the_apis_words(
     async with app.run_test(size=SIZE) as pilot:
         await wait_text(pilot, "attached to cellctl run (pid")
         await pilot.press("c", "9")
-        await wait_text(pilot, "How far")
+        await wait_text(pilot, "Horizon:")
         await fill(pilot, "#horizon", "8x")
         await pilot.press("enter")
         await wait_text(pilot, "duration '8x': write a number and a unit")
@@ -124,7 +124,7 @@ async def test_input_refused_in_the_parsers_and_the_apis_words(
         await fill(pilot, "#fault", f"cnc9:down@{_hhmm(datetime.now() + timedelta(minutes=1))}")
         await pilot.press("enter")
         shown = await wait_text(pilot, "the cell has no such machine (known: robot, cnc1, cnc2")
-        assert "How far" in shown
+        assert "Horizon:" in shown
         assert app.screen.query_one("#add").value == "wax-robot-base:1"  # type: ignore[attr-defined]
         await pilot.press("escape")
         shown = await wait_text(pilot, "no plan")

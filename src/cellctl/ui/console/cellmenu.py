@@ -249,9 +249,9 @@ class CellActions:
         problems = ""
         while True:
             fields = [
-                ("horizon", "How far (8h, FRI 18:00):", values["horizon"]),
-                ("fault", "Faults (;-separated):", values["fault"]),
-                ("add", "Add orders PART:QTY[@P]:", values["add"]),
+                ("horizon", "Horizon:", values["horizon"]),
+                ("fault", "Faults:", values["fault"]),
+                ("add", "Add orders:", values["add"]),
                 ("policy", "Policy:", values["policy"]),
             ]
 
@@ -260,8 +260,11 @@ class CellActions:
                 return plan_params(raw, current_clock().now())
 
             title = (
-                "WHAT IF: play the cell ahead on a copy (faults as cnc2:down@10:00-11:00; "
-                f"policies: {', '.join(POLICIES)}, A,B or all)"
+                "WHAT IF: the cell played ahead on a copy\n"
+                "horizon: a span (8h, 90m) or a time (FRI 18:00, 18:00)\n"
+                "faults: cnc2:down@10:00-11:00 (several: ; between)\n"
+                "add orders: PART:QTY[@PRIORITY] (several: , between)\n"
+                f"policy: {', '.join(POLICIES)}; A,B or all to compare"
             )
             params = await self.app.ask(FormDialog(title, fields, check, problems))
             if params is None:

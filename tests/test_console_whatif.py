@@ -160,7 +160,11 @@ def test_the_gantt_rows_put_each_step_in_its_slots() -> None:
     assert rows["robot"] == "AA" + "." * 48 + "B" + "." * 9
     assert rows["cnc1"] == "." * 2 + "A" * 28 + "!" * 10 + "." * 20
     assert rows["cnc2"] == "." * 10 + "x" * 10 + "." * 40
-    assert lines[-1].startswith("one character = 10.0 s: A base, B table, ! failed step")
+    legend = " ".join(lines[4:])
+    assert legend == (
+        "one character = 10.0 s: A base, B table, ! failed step, x fault window, . idle"
+    )
+    assert all(len(line) <= 78 for line in lines)
 
 
 @settings(max_examples=200, deadline=None)

@@ -15,6 +15,7 @@ machine and one character per time slot (a terminal cannot show the SVG)::
 from __future__ import annotations
 
 import re
+import textwrap
 from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Final
@@ -30,6 +31,8 @@ from cellctl.ui.console.dialogs import Dialog
 if TYPE_CHECKING:
     from cellctl.plan.report import PlanReport
 
+#: The view's columns (an 80-column terminal, less its padding).
+LINE_WIDTH: Final = 78
 #: Characters of the text Gantt chart's time axis.
 GANTT_WIDTH: Final = 60
 #: A slot where the machine is idle, in a fault window (and idle), in a failed step.
@@ -174,8 +177,8 @@ def gantt_lines(report: PlanReport, width: int = GANTT_WIDTH) -> list[str]:
     rows.append(" " * (label + 1) + _axis(report.start, report.until, width))
     legend = [f"{m} {t}" for t, m in marks.items()]
     legend += [f"{FAILED} failed step", f"{FAULT} fault window", f"{IDLE} idle"]
-    rows.append(f"one character = {span_text(slot)}: " + ", ".join(legend))
-    return rows
+    text = f"one character = {span_text(slot)}: " + ", ".join(legend)
+    return rows + textwrap.wrap(text, LINE_WIDTH, break_on_hyphens=False)
 
 
 def _axis(start: float, until: float, width: int) -> str:

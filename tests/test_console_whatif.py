@@ -69,7 +69,8 @@ async def test_a_viewer_plans_ahead_in_the_console(viewer: tuple[CellRig, Remote
         await pilot.press("9")
         await wait_text(pilot, "WHAT IF", "Horizon:")
         now = datetime.now()
-        down = f"cnc2:down@{_hhmm(now + timedelta(minutes=1))}-{_hhmm(now + timedelta(minutes=3))}"
+        # Two minutes ahead: the plan (which starts when the API is asked) still has it.
+        down = f"cnc2:down@{_hhmm(now + timedelta(minutes=2))}-{_hhmm(now + timedelta(minutes=4))}"
         await fill(pilot, "#horizon", "5m")
         await fill(pilot, "#fault", down)
         await fill(pilot, "#add", "wax-robot-base:1")
@@ -80,7 +81,7 @@ async def test_a_viewer_plans_ahead_in_the_console(viewer: tuple[CellRig, Remote
         await wait_text(pilot, "MAIN MENU")
         shown = await wait_text(pilot, "Gantt chart, policy default", timeout=240)
         assert "plan of CIM laboratory machining cell (policy default, seed 0)" in shown
-        assert f"fault: cnc2 down from {(now + timedelta(minutes=1)):%a %H:%M}:00" in shown
+        assert f"fault: cnc2 down from {(now + timedelta(minutes=2)):%a %H:%M}:00" in shown
         # The added order's row: its part type, parts made of one, and its verdict.
         row = next(line for line in shown.splitlines() if "plan-add1" in line)
         assert "wax-robot-base" in row and "/1" in row

@@ -50,7 +50,8 @@ typecheck: $(STAMP)
 # busy, and work stealing keeps the long end-to-end tests from piling up on one worker at the
 # end (980 tests: 219 s with the default distribution, 168 s stealing).
 pytest: $(STAMP) $(PLUGIN_STAMP)
-	$(BIN)/pytest -q -n 4 --dist worksteal
+	$(BIN)/pytest -q -n 4 --dist worksteal -m "not alone"
+	$(BIN)/pytest -q -m alone  # real-time fidelity, with the box to itself
 
 # `make demo DEMO_ARGS=--dashboard` leaves the dashboard up after the batch (Ctrl-C stops).
 demo: $(STAMP)

@@ -1,9 +1,27 @@
-"""Shared fixtures: emulators served over real ptys, TCP and RFC 2217, and ser2net."""
+"""Shared fixtures: emulators served over real ptys, TCP and RFC 2217, and ser2net; and
+``@pytest.mark.virtual``, which runs an async test on virtual time.
+
+Virtual time (docs/clock.md): an async test marked ``@pytest.mark.virtual`` runs, with its
+async fixtures, on :class:`cellctl.clock.VirtualLoop`, whose time jumps to the next timer
+whenever every task waits. The code under test is unchanged (``asyncio.sleep``, timeouts and
+the Clock follow the loop); a wait of a minute costs what its work costs. The marker's
+keywords go to the loop: ``@pytest.mark.virtual(allow_real_io=True)`` takes real sockets and
+waits in real time while one is open. A test on virtual time joins machines through
+``mem://`` (``CellRig`` does so by itself on a virtual loop).
+
+What stays on real time, on purpose (these prove the byte paths and real-time behaviour):
+the drivers against the emulators over ptys, TCP and RFC 2217 (``robot_served``, ser2net,
+test_link, test_robot_*, test_mill_*), the PLC over Modbus/TCP (test_plc), one batch of the
+cell over ptys and RFC 2217 (test_cell_e2e), everything through a subprocess (``cellctl
+run``, ``emulate``, ``factory``, ``service``), the broker (Mosquitto), the console in tmux and
+the dashboard in Chromium.
+"""
 
 from __future__ import annotations
 
 import asyncio
 import inspect
+import os
 import re
 import shutil
 import socket
@@ -18,11 +36,67 @@ from typing import Any
 
 import pytest
 
+from cellctl.clock import VirtualLoop
 from cellctl.emulators.serve import Server, serve
 from cellctl.kinds.ibm7545.emulator import Ibm7545Emulator
 from cellctl.link import ROBOT_LINE
 
 TRANSPORTS = ["pty", "socket", "rfc2217"]
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    cache_bytecode(config.rootpath / ".pytest_cache" / "pycache")
+    config.addinivalue_line(
+        "markers",
+        "virtual(**loop_options): run this async test and its async fixtures on cellctl's "
+        "VirtualLoop (time jumps when every task waits); keywords go to VirtualLoop",
+    )
+    config.addinivalue_line(
+        "markers",
+        "alone: a real-time run measured against the machines' own times; `make test` runs "
+        "these after the others, one at a time, so no other test loads the box meanwhile",
+    )
+
+
+def cache_bytecode(prefix: Path) -> None:
+    """Cache compiled bytecode under ``prefix`` when the environment turned caching off
+    (PYTHONDONTWRITEBYTECODE). Some 300 Pythons the tests start (every ``cellctl`` command,
+    ``cellctl run``, the factory, the workers) import cellctl: without a cache each compiled
+    every module from source again, about a quarter of its start-up. The cache goes under
+    ``prefix`` (PYTHONPYCACHEPREFIX), never beside the sources; the processes the tests start
+    inherit it."""
+    if not sys.dont_write_bytecode:
+        return  # caching is on: the usual __pycache__ directories
+    os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
+    os.environ["PYTHONPYCACHEPREFIX"] = str(prefix)
+    sys.pycache_prefix = str(prefix)
+    sys.dont_write_bytecode = False
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if item.get_closest_marker("virtual") is None:
+            continue
+        func = getattr(item, "obj", None)
+        if not inspect.iscoroutinefunction(func):
+            raise pytest.UsageError(f"{item.nodeid}: mark.virtual is for async tests only")
+
+
+def _real_loop() -> asyncio.AbstractEventLoop:
+    return asyncio.new_event_loop()
+
+
+def pytest_asyncio_loop_factories(
+    config: pytest.Config, item: pytest.Item
+) -> dict[str, Callable[[], asyncio.AbstractEventLoop]]:
+    """The event loop an async test runs on: a VirtualLoop for ``@pytest.mark.virtual``."""
+    marker = item.get_closest_marker("virtual")
+    if marker is None:
+        return {"real": _real_loop}
+    if marker.args:
+        raise pytest.UsageError(f"{item.nodeid}: mark.virtual takes keywords only")
+    options = dict(marker.kwargs)
+    return {"virtual": lambda: VirtualLoop(**options)}
 
 
 def listen_url(transport: str) -> str:

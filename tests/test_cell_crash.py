@@ -175,6 +175,7 @@ async def test_kill_9_and_restart_never_cuts_a_part_twice(tmp_path: Path, seed: 
         assert held, f"no kill landed in a step: {kills}"
 
 
+@pytest.mark.virtual
 async def test_a_pulse_left_high_by_a_killed_controller_is_lowered_at_start(
     tmp_path: Path,
 ) -> None:

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 from cellctl.testing.rig import CellRig
 
 
@@ -37,6 +39,7 @@ async def test_a_batch_of_orders_completes(tmp_path: Path) -> None:
         assert not rig.journal.active_alarms()
 
 
+@pytest.mark.virtual
 async def test_reposted_order_ids_are_harmless(tmp_path: Path) -> None:
     async with CellRig(tmp_path / "cell") as rig:
         rig.post("wax-robot-base", 1, "A")
@@ -55,6 +58,7 @@ async def test_reposted_order_ids_are_harmless(tmp_path: Path) -> None:
         assert len(rig.reports("order-accepted")) == 1
 
 
+@pytest.mark.virtual
 async def test_unknown_part_type_is_rejected_and_the_rest_runs(tmp_path: Path) -> None:
     async with CellRig(tmp_path / "cell") as rig:
         rig.post("wax-teapot", 1, "X")
@@ -66,6 +70,7 @@ async def test_unknown_part_type_is_rejected_and_the_rest_runs(tmp_path: Path) -
         assert any("wax-teapot" in r.text for r in rig.reports("order-rejected"))
 
 
+@pytest.mark.virtual
 async def test_stop_lets_the_steps_in_flight_finish(tmp_path: Path) -> None:
     """What SIGINT does to ``cellctl run``: no new step starts, running ones finish."""
     async with CellRig(tmp_path / "cell") as rig:

@@ -52,6 +52,7 @@ async def test_the_mills_reports_carry_the_programs_estimate(cell: Cell) -> None
     assert seen[-1].phase == "done" and seen[-1].estimate_done_s == seen[-1].estimate_s
 
 
+@pytest.mark.virtual
 async def test_a_cut_shows_progress_and_time_left_on_the_status(tmp_path: Path) -> None:
     async with CellRig(tmp_path) as rig:
         rig.post("wax-robot-base", 1, "P")

@@ -8,6 +8,8 @@ import asyncio
 import re
 from pathlib import Path
 
+import pytest
+
 from cellctl.testing.rig import CellRig
 
 
@@ -29,6 +31,7 @@ def check_every_part_cut_once_by_each_mill(rig: CellRig, parts: int) -> None:
     assert len(made) == parts, rig.describe()
 
 
+@pytest.mark.virtual
 async def test_a_mill_whose_setup_failed_gets_no_part_until_it_is_set_up(tmp_path: Path) -> None:
     async with CellRig(tmp_path / "cell") as rig:
         rig.post("wax-robot-base", 2, "A")
@@ -45,6 +48,7 @@ async def test_a_mill_whose_setup_failed_gets_no_part_until_it_is_set_up(tmp_pat
         assert rig.cut_twice() == {}
 
 
+@pytest.mark.virtual
 async def test_a_stalled_mill_gets_no_part_and_the_batch_finishes_after(tmp_path: Path) -> None:
     async with CellRig(tmp_path / "cell") as rig:
         rig.post("wax-robot-base", 1, "A")

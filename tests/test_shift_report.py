@@ -9,7 +9,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,7 +18,7 @@ from click.testing import CliRunner
 from cellctl.cell.config import load_cell
 from cellctl.cell.journal import Journal
 from cellctl.cell.shift import ideal_times, shift_report
-from cellctl.clock import RealClock
+from cellctl.clock import RealClock, current_clock
 from cellctl.service.access import LocalCell
 from cellctl.service.methods import Dispatcher
 from cellctl.testing.rig import CellRig
@@ -138,6 +137,7 @@ def _step_dict(step_id: int, part_id: str) -> dict[str, object]:
     }
 
 
+@pytest.mark.virtual
 async def test_the_report_of_a_real_batch(tmp_path: Path) -> None:
     async with CellRig(tmp_path) as rig:
         rig.post("wax-robot-base", 2, "A")
@@ -146,7 +146,7 @@ async def test_the_report_of_a_real_batch(tmp_path: Path) -> None:
         await rig.stop_controller()
         steps = rig.journal.steps()
         start = min(s.started for s in steps)
-        end = time.time()  # after the parts were marked done
+        end = current_clock().now()  # after the parts were marked done (the cell's clock)
         dispatcher = Dispatcher(LocalCell(tmp_path, {}))
         found = await dispatcher.call("report.shift", {"since": start, "until": end})
         config = load_cell(tmp_path)

@@ -70,6 +70,8 @@ class Monitor:
         self.done = asyncio.Event()
         self._reads: dict[str, asyncio.Future[Any]] = {}
         self._since: dict[str, float] = {}  # when each key's last read was sent
+        self._inputs: dict[str, bool] = {}  # the PLC's inputs at the last look
+        self._last_seen: tuple[object, ...] = ()
 
     async def _bounded(self, key: str, read: Callable[[], Awaitable[T]]) -> T:
         """``read()`` of an idle machine, awaited at most ``read_limit`` (TimeoutError after).
@@ -117,8 +119,26 @@ class Monitor:
             if world.mill_busy(m.name) or m.name in world.manual_use:
                 continue
             await self._mill(m)
-        self.alarms.wake()
+        # Dispatch looks again when this look saw something new (an input, a machine's
+        # state, readiness): a look that found the cell as it was changes no decision, and
+        # the dispatch loop looks once a poll period anyway. (Waking it on every look made
+        # it re-plan four times a poll period for nothing: most of a plan's CPU.)
+        seen = self._seen()
+        if seen != self._last_seen:
+            self._last_seen = seen
+            self.alarms.wake()
         self.alarms.touch()
+
+    def _seen(self) -> tuple[object, ...]:
+        """What a look found, to tell a look that found something new."""
+        world = self.world
+        views = [world.plc_view(), *world.machines.values()]
+        return (
+            tuple(sorted(self._inputs.items())),
+            tuple((v.state, v.machine_condition, v.in_service) for v in views),
+            tuple(sorted(self.recovery.ready.items())),
+            self.recovery.robot_ok,
+        )
 
     async def cause_of(self, machine: str, error: BaseException) -> Cause | None:
         """What made a step on ``machine`` fail, if not the step itself: the PLC (a
@@ -182,6 +202,7 @@ class Monitor:
             view.show(cause.text, Condition.OFFLINE, LastError.of(e))
             self.alarms.cause_alarm(cause)
             return
+        self._inputs = inputs
         view.show("ok", Condition.IDLE)
         self.alarms.returned("plc", "link")
         if not inputs.get("estop_ok", True):

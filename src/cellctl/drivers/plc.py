@@ -374,6 +374,7 @@ class MemModbusClient:
         self._transaction = 0
         self._lock = asyncio.Lock()
         self._closing: asyncio.Task[None] | None = None
+        self._given_up = False  # closed (replaced) before or while it connected
 
     @property
     def connected(self) -> bool:
@@ -384,6 +385,10 @@ class MemModbusClient:
         if self._previous is not None:
             await self._previous.wait_closed()  # one host at a time on a mem:// line
             self._previous = None
+        if self._given_up:
+            # Replaced while it waited (another request's failure closed it): a line opened
+            # now would be held by a client nobody uses, and the next one refused for ever.
+            return False
         try:
             self._link = await open_link(self.url, ETHERNET_LINE, label="plc")
         except LinkError:
@@ -392,6 +397,7 @@ class MemModbusClient:
 
     def close(self) -> None:
         """Close the line (at once: a mem:// close needs no wait)."""
+        self._given_up = True
         link, self._link = self._link, None
         if link is not None and not link.closed:
             self._closing = asyncio.ensure_future(link.close())

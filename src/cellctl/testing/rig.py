@@ -17,6 +17,19 @@ This is the way to run a cell in one process -- for tests, benches and experimen
 (:func:`fast_options`); ``CellRig(dir, deadlines="emulated")`` keeps the ones
 ``cellctl emulate cell`` writes, the deadlines a user gets.
 
+On virtual time (a :class:`~cellctl.clock.VirtualLoop`: ``run_virtual``, or a test marked
+``@pytest.mark.virtual``) the same rig runs the same cell on ``mem://`` lines and the PLC in
+process, at the same time scale and with the same deadlines: every byte still takes its line
+time and every cut its machining time, only the waiting is skipped::
+
+    async with CellRig(tmp_path) as rig:          # on a virtual loop: links="mem" by itself
+        ...
+
+``rig.cli(...)`` runs the command line in a worker thread, as on real time: while it runs,
+the virtual loop waits in real time (an executor job keeps its time from jumping) and its
+time moves by the real time that passed. The command's own loop in that thread is virtual
+too, from the cell's wall time: what it records is stamped on the cell's clock (:func:`cli`).
+
 Waiting is always for a condition on the journal, the mailbox or the emulators, with a
 deadline: never a bare sleep.
 
@@ -29,6 +42,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import re
+import threading
 from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
@@ -39,8 +53,9 @@ from click.testing import CliRunner, Result
 from cellctl.cell.config import load_cell
 from cellctl.cell.controller import CellController, ControllerOptions
 from cellctl.cell.journal import Journal, open_journal
-from cellctl.clock import current_clock
+from cellctl.clock import VIRTUAL_ORIGIN, VirtualClock, VirtualLoop, current_clock
 from cellctl.emulators.cell import EmulatedCell
+from cellctl.errors import UsageError
 from cellctl.kinds import registry
 from cellctl.mailbox import Mailbox, open_mailbox
 from cellctl.ui.cell_cli import apply_fault
@@ -82,12 +97,24 @@ class CellRig:
         cell_options: dict[str, Any] | None = None,
         mill_options: dict[str, float] | None = None,
         deadlines: Literal["fast", "emulated"] = "fast",
+        links: Literal["real", "mem"] | None = None,
     ) -> None:
         """``deadlines="fast"``: the tests' short deadlines (:func:`fast_options`), then
         ``cell_options`` and ``mill_options`` over them; ``"emulated"``: only those given
-        over what ``cellctl emulate cell`` writes."""
+        over what ``cellctl emulate cell`` writes. ``links``: the machines on ptys and
+        sockets ("real") or in this loop ("mem"); by default "mem" on a virtual loop (made
+        in it), where real links cannot go, else "real"."""
         self.directory = directory
-        self.cell = EmulatedCell(time_scale=time_scale)
+        clock = current_clock()
+        if isinstance(clock, VirtualClock):
+            if links == "real":
+                raise UsageError(
+                    "a CellRig on virtual time joins its machines through mem:// links: "
+                    "real ptys and sockets would be answered after time jumped past"
+                )
+            self.cell = EmulatedCell(clock=scaled_clock(clock, time_scale), links="mem")
+        else:
+            self.cell = EmulatedCell(time_scale=time_scale, links=links or "real")
         fast = deadlines == "fast"
         self.cell_options = fast_options(**(cell_options or {})) if fast else (cell_options or {})
         self.mill_options = {**(FAST_MILL_OPTIONS if fast else {}), **(mill_options or {})}
@@ -360,12 +387,67 @@ class CellRig:
 
 
 async def cli(directory: Path, *args: str) -> Result:
-    """``cellctl --cell DIRECTORY ARGS`` through click, in a worker thread (own event loop)."""
+    """``cellctl --cell DIRECTORY ARGS`` through click, in a worker thread (own event loop).
+
+    Called on virtual time, the command's loop in that thread is virtual too, started at the
+    caller's wall time (:class:`_CommandLoops`): what it records (an alarm cleared, a part
+    released) is stamped at the moment the operator acted on the cell's clock, as on real
+    time, not at the wall clock's, which a virtual run is far ahead of.
+    """
+    clock = current_clock()
+    virtual = isinstance(clock, VirtualClock)
+    if virtual:
+        _CommandLoops.install()
 
     def invoke() -> Result:
-        return CliRunner().invoke(cli_main, ["--cell", str(directory), *args])
+        if virtual:
+            _command_thread.start = clock.now()
+        try:
+            return CliRunner().invoke(cli_main, ["--cell", str(directory), *args])
+        finally:
+            _command_thread.start = None
 
     return await asyncio.to_thread(invoke)
+
+
+# What a command run by :func:`cli` in this thread starts its virtual loop at (None: real).
+_command_thread = threading.local()
+
+
+class _CommandLoops(asyncio.AbstractEventLoopPolicy):
+    """The event loop policy while a rig on virtual time runs commands: a command's loop
+    (``asyncio.run`` in :func:`cli`'s worker thread) is a :class:`VirtualLoop` at the
+    caller's wall time, taking real I/O; everything else is the policy it wraps."""
+
+    def __init__(self, base: asyncio.AbstractEventLoopPolicy) -> None:
+        self.base = base
+
+    @classmethod
+    def install(cls) -> None:
+        policy = asyncio.get_event_loop_policy()
+        if not isinstance(policy, cls):
+            asyncio.set_event_loop_policy(cls(policy))
+
+    def new_event_loop(self) -> asyncio.AbstractEventLoop:
+        start = getattr(_command_thread, "start", None)
+        if start is None:
+            return self.base.new_event_loop()
+        return VirtualLoop(start=start, allow_real_io=True)
+
+    def get_event_loop(self) -> asyncio.AbstractEventLoop:
+        return self.base.get_event_loop()
+
+    def set_event_loop(self, loop: asyncio.AbstractEventLoop | None) -> None:
+        self.base.set_event_loop(loop)
+
+
+def scaled_clock(clock: VirtualClock, time_scale: float) -> VirtualClock:
+    """``clock``'s virtual time (the same loop, the same wall time) with machines
+    ``time_scale`` times faster than life: what the rig's emulators run on."""
+    if time_scale == clock.time_scale:
+        return clock
+    wall_start = clock.now() - clock.monotonic() + VIRTUAL_ORIGIN
+    return VirtualClock(clock.loop, wall_start, time_scale)
 
 
 def write_cell_options(

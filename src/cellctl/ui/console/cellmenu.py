@@ -1,5 +1,6 @@
 """The console's CELL menu: orders (list, submit, cancel), alarms (list, acknowledge, shelve,
-clear), held parts (release, release with redo, scrap), pause/resume and the emergency stop.
+clear), held parts (release, release with redo, scrap), pause/resume, the emergency stop and
+WHAT IF (a plan of the cell ahead, :mod:`.whatif`).
 
 Orders, alarms and parts work in both modes (on the cell's files when no controller runs);
 pause, resume and the emergency stop need the controller and are shown as unavailable
@@ -16,6 +17,7 @@ from cellctl.errors import UsageError
 from cellctl.service.machines import load_cell_file
 from cellctl.ui.console.dialogs import Dialog, FormDialog, LivePickDialog, PickDialog
 from cellctl.ui.console.entry import Entry
+from cellctl.ui.console.whatif import PlanView, plan_params, plan_text, summary
 
 T = TypeVar("T")
 
@@ -74,6 +76,8 @@ class CellActions:
             ),
             Entry("7", "EMERGENCY STOP", self.estop if attached else None, note),
             Entry("8", "EXIT", self.back),
+            # After the menu's EXIT, as the machine menus' extras: 1-8 keep their numbers.
+            Entry("9", "WHAT IF (plan ahead)", self.what_if),
         ]
 
     async def back(self) -> None:
@@ -233,6 +237,49 @@ class CellActions:
         else:
             return
         self.app.say([result["message"]], "green")
+
+    # -- what if ------------------------------------------------------------------------------
+
+    async def what_if(self) -> None:
+        """Ask for a plan's inputs, play it through ``plan.run`` (the menu's worker waits;
+        the board stays live) and show it; a refusal (the parsers' or the API's) asks again."""
+        from cellctl.plan.engine import POLICIES
+
+        values = {"horizon": "8h", "fault": "", "add": "", "policy": "default"}
+        problems = ""
+        while True:
+            fields = [
+                ("horizon", "Horizon:", values["horizon"]),
+                ("fault", "Faults:", values["fault"]),
+                ("add", "Add orders:", values["add"]),
+                ("policy", "Policy:", values["policy"]),
+            ]
+
+            def check(raw: dict[str, str]) -> dict[str, Any]:
+                values.update(raw)
+                return plan_params(raw, current_clock().now())
+
+            title = (
+                "WHAT IF: the cell played ahead on a copy\n"
+                "horizon: a span (8h, 90m) or a time (FRI 18:00, 18:00)\n"
+                "faults: cnc2:down@10:00-11:00 (several: ; between)\n"
+                "add orders: PART:QTY[@PRIORITY] (several: , between)\n"
+                f"policy: {', '.join(POLICIES)}; A,B or all to compare"
+            )
+            params = await self.app.ask(FormDialog(title, fields, check, problems))
+            if params is None:
+                self.app.say(["no plan"])
+                return
+            self.app.say(["planning... (the cell played ahead on a copy; it goes on)"], "yellow")
+            try:
+                answer = await self.app.call("plan.run", params)
+            except UsageError as e:
+                problems = str(e)
+                self.app.say([f"plan refused: {e}"], "red")
+                continue
+            break
+        self.app.say([summary(answer, self.app.directory)], "green")
+        await self.app.ask(PlanView("WHAT IF", plan_text(answer, self.app.directory)))
 
     # -- the controller ---------------------------------------------------------------------
 

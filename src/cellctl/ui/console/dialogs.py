@@ -281,12 +281,15 @@ class FormDialog(Dialog[dict[str, Any]]):
         title: str,
         fields: list[tuple[str, str, str]],
         check: Callable[[dict[str, str]], dict[str, Any]],
+        problems: str = "",
     ) -> None:
-        """``fields``: (id, label, default); ``check`` refuses bad answers (UsageError)."""
+        """``fields``: (id, label, default); ``check`` refuses bad answers (UsageError);
+        ``problems``: a refusal to show from the start (the answers asked again)."""
         super().__init__()
         self.title_text = title
         self.form = fields
         self.check = check
+        self.problems = problems
 
     def compose(self) -> ComposeResult:
         with Vertical():
@@ -302,6 +305,8 @@ class FormDialog(Dialog[dict[str, Any]]):
 
     def on_mount(self) -> None:
         self.query(Input).first().focus()
+        if self.problems:
+            self.refused(self.problems)
 
     @on(Input.Submitted)
     @on(Button.Pressed, "#ok")

@@ -1,0 +1,181 @@
+"""The console's WHAT IF (CELL menu, 9): a plan of the running cell through the control API's
+``plan.run``, asked by a viewer with a form, shown as the plan's report and a text Gantt
+chart; input refused in the parser's words (in the form) and in the API's (the form again).
+
+The cell is the emulated one on real ptys and sockets, its controller and API in this
+process; the console is driven with Textual's Pilot at 80x24.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import AsyncIterator
+from datetime import datetime, timedelta
+from typing import Any
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cellctl.errors import UsageError
+from cellctl.plan.engine import FaultWindow
+from cellctl.plan.report import PlanReport
+from cellctl.service.access import AttachedCell
+from cellctl.service.client import RemoteCell
+from cellctl.service.server import ApiServer
+from cellctl.testing.rig import CellRig
+from cellctl.ui.console.app import ConsoleApp
+from cellctl.ui.console.whatif import FAULT, GANTT_WIDTH, IDLE, gantt_lines, plan_params
+from tests.test_console import SIZE, fill, screen_text, wait_text
+
+#: A Gantt row on the screen: the machine, then one character per slot between bars.
+GANTT_ROW = re.compile(rf"^\s*(robot|cnc1|cnc2)\s*\|([^|]{{{GANTT_WIDTH}}})\|", re.MULTILINE)
+
+
+@pytest.fixture
+async def viewer(tmp_path: Any) -> AsyncIterator[tuple[CellRig, RemoteCell]]:
+    """A running cell (controller and API in this process) and a client with a viewer's
+    token: what a planner who may not act on the cell has."""
+    async with CellRig(tmp_path / "cell") as rig:
+        await rig.start_controller()
+        assert rig.controller is not None
+        server = ApiServer(AttachedCell(rig.controller), rig.directory)
+        await server.start()
+        result = await rig.cli("token", "add", "vera", "--role", "viewer")
+        assert result.exit_code == 0, result.output
+        token = result.output.splitlines()[0].strip()
+        client = await RemoteCell.connect(token=token, socket_path=server.socket_path)
+        try:
+            yield rig, client
+        finally:
+            await client.close()
+            await server.close()
+
+
+def _hhmm(moment: datetime) -> str:
+    return moment.strftime("%H:%M")
+
+
+@pytest.mark.timeout(300)  # the plan plays on a busy box: CPU, not waiting
+async def test_a_viewer_plans_ahead_in_the_console(viewer: tuple[CellRig, RemoteCell]) -> None:
+    rig, client = viewer
+    steps_before = len(rig.journal.steps())
+    app = ConsoleApp(rig.directory, client, traffic_period=0.1)
+    async with app.run_test(size=SIZE) as pilot:
+        await wait_text(pilot, "attached to cellctl run (pid")
+        await pilot.press("c")
+        shown = await wait_text(pilot, "9. WHAT IF")
+        assert "8. EXIT" in shown and "7. EMERGENCY STOP" in shown  # the numbers kept
+        await pilot.press("9")
+        await wait_text(pilot, "WHAT IF", "Horizon:")
+        now = datetime.now()
+        # Two minutes ahead: the plan (which starts when the API is asked) still has it.
+        down = f"cnc2:down@{_hhmm(now + timedelta(minutes=2))}-{_hhmm(now + timedelta(minutes=4))}"
+        await fill(pilot, "#horizon", "5m")
+        await fill(pilot, "#fault", down)
+        await fill(pilot, "#add", "wax-robot-base:1")
+        await pilot.press("enter")
+        await wait_text(pilot, "planning...")
+        # The console stays live while the plan plays: the menu answers a key.
+        await pilot.press("escape")
+        await wait_text(pilot, "MAIN MENU")
+        shown = await wait_text(pilot, "Gantt chart, policy default", timeout=240)
+        assert "plan of CIM laboratory machining cell (policy default, seed 0)" in shown
+        assert f"fault: cnc2 down from {(now + timedelta(minutes=2)):%a %H:%M}:00" in shown
+        # The added order's row: its part type, parts made of one, and its verdict.
+        row = next(line for line in shown.splitlines() if "plan-add1" in line)
+        assert "wax-robot-base" in row and "/1" in row
+        assert any(v in row for v in ("on time", "late", "finished", "not finished"))
+        rows = dict(GANTT_ROW.findall(shown))
+        assert set(rows) == {"robot", "cnc1", "cnc2"}
+        # The part's first transfer and cut, letter A (its type); cnc2 idle in its window.
+        assert "A" in rows["robot"] and "A" in rows["cnc1"]
+        assert FAULT in rows["cnc2"] and set(rows["cnc2"]) <= {FAULT, IDLE, "A"}
+        assert "one character = 5.0 s: A wax-robot-base" in shown
+        assert "order     part type           made finishes     due          verdict" in shown
+        await pilot.press("enter")  # closes the view
+        shown = await wait_text(pilot, "plan (default): on time")
+        assert "Gantt chart" not in shown
+    # Played on a copy: nothing of the running cell was written.
+    assert len(rig.journal.steps()) == steps_before
+    assert not rig.mailbox.orders()
+    rig.check_running()
+
+
+@pytest.mark.timeout(120)
+async def test_input_refused_in_the_parsers_and_the_apis_words(
+    viewer: tuple[CellRig, RemoteCell],
+) -> None:
+    rig, client = viewer
+    app = ConsoleApp(rig.directory, client, traffic_period=0.1)
+    async with app.run_test(size=SIZE) as pilot:
+        await wait_text(pilot, "attached to cellctl run (pid")
+        await pilot.press("c", "9")
+        await wait_text(pilot, "Horizon:")
+        await fill(pilot, "#horizon", "8x")
+        await pilot.press("enter")
+        await wait_text(pilot, "duration '8x': write a number and a unit")
+        await fill(pilot, "#horizon", "2m")
+        await fill(pilot, "#add", "wax-robot-base:0")
+        await pilot.press("enter")
+        await wait_text(pilot, "--add 'wax-robot-base:0': the quantity must be 1 to")
+        # Past the parsers, the API refuses what the cell does not have: the form again,
+        # its answers kept, the API's words in it.
+        await fill(pilot, "#add", "wax-robot-base:1")
+        await fill(pilot, "#fault", f"cnc9:down@{_hhmm(datetime.now() + timedelta(minutes=1))}")
+        await pilot.press("enter")
+        shown = await wait_text(pilot, "the cell has no such machine (known: robot, cnc1, cnc2")
+        assert "Horizon:" in shown
+        assert app.screen.query_one("#add").value == "wax-robot-base:1"  # type: ignore[attr-defined]
+        await pilot.press("escape")
+        shown = await wait_text(pilot, "no plan")
+        assert "Gantt chart" not in screen_text(app)
+    assert not rig.mailbox.orders()
+
+
+def _report(steps: list[dict[str, Any]], faults: list[FaultWindow]) -> PlanReport:
+    return PlanReport(
+        cell="c", policy="default", seed=0, start=1000.0, until=1600.0, ended=1600.0,
+        wall_s=0.0, orders=[], parts_made={}, busy_s={}, down_s={},
+        utilization={"robot": 0.0, "cnc1": 0.0, "cnc2": 0.0}, faults=faults, steps=steps,
+    )  # fmt: skip
+
+
+def _step(machine: str, part_type: str, a: float, b: float, state: str = "finished") -> Any:
+    return {"machine": machine, "part_type": part_type, "started": a, "ended": b, "state": state}
+
+
+def test_the_gantt_rows_put_each_step_in_its_slots() -> None:
+    # 600 s over 60 characters: 10 s a character.
+    report = _report(
+        [
+            _step("robot", "base", 1000, 1020),
+            _step("cnc1", "base", 1020, 1300),
+            _step("cnc1", "table", 1300, 1400, "failed"),
+            _step("robot", "table", 1500, 1510),
+        ],
+        [FaultWindow("cnc2", "down", 1100, 1200)],
+    )
+    lines = gantt_lines(report)
+    rows = dict(GANTT_ROW.findall("\n".join(lines)))
+    assert rows["robot"] == "AA" + "." * 48 + "B" + "." * 9
+    assert rows["cnc1"] == "." * 2 + "A" * 28 + "!" * 10 + "." * 20
+    assert rows["cnc2"] == "." * 10 + "x" * 10 + "." * 40
+    legend = " ".join(lines[4:])
+    assert legend == (
+        "one character = 10.0 s: A base, B table, ! failed step, x fault window, . idle"
+    )
+    assert all(len(line) <= 78 for line in lines)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.fixed_dictionaries({k: st.text(max_size=60) for k in ("horizon", "fault", "add", "policy")})
+)
+def test_any_form_answer_is_params_or_a_usage_error(raw: dict[str, str]) -> None:
+    try:
+        params = plan_params(raw, 1_795_600_000.0)
+    except UsageError as e:
+        assert str(e)
+        return
+    assert set(params) == {"shift", "add", "fault", "policy"} or "until" in params

@@ -7,6 +7,7 @@ A missing tmux fails the test with a clear message (``make test`` installs it).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import shutil
@@ -16,6 +17,7 @@ import time
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -104,6 +106,11 @@ class Tmux:
 
 @pytest.fixture
 def tmux() -> Iterator[Tmux]:
+    yield from tmux_session()
+
+
+def tmux_session() -> Iterator[Tmux]:
+    """A tmux server of its own for one test, killed after it (the ``tmux`` fixture)."""
     found = shutil.which("tmux") or ("/usr/bin/tmux" if os.path.exists("/usr/bin/tmux") else None)
     if found is None:
         pytest.fail("tmux is not installed: the console's terminal test needs it (make test)")
@@ -124,25 +131,29 @@ def stop(proc: subprocess.Popen[bytes]) -> None:
             proc.wait(timeout=5)
 
 
-def test_console_in_a_terminal_attached_to_a_running_cell(tmux: Tmux, tmp_path: Path) -> None:
-    cell = tmp_path / "cell"
+@contextlib.contextmanager
+def emulated_cell(cell: Path, *, controller: bool) -> Iterator[None]:
+    """``cellctl emulate cell`` (time scale 100) writing ``cell``, and ``cellctl run`` on it
+    if ``controller`` (its API socket up): processes, stopped on the way out."""
     env = {**os.environ, "NO_COLOR": "1"}
-    emulator = subprocess.Popen(
-        [CELLCTL, "--cell", str(cell), "emulate", "cell", "--time-scale", "100"],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        env=env,
-    )
-    controller: subprocess.Popen[bytes] | None = None
+    quiet: dict[str, Any] = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL, "env": env}
+    emulate = [CELLCTL, "--cell", str(cell), "emulate", "cell", "--time-scale", "100"]
+    procs = [subprocess.Popen(emulate, **quiet)]
     try:
         wait_until(lambda: (cell / "cell.toml").exists(), "the emulated cell's cell.toml")
-        controller = subprocess.Popen(
-            [CELLCTL, "--cell", str(cell), "run", "--no-live"],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-            env=env,
-        )
-        wait_until(lambda: (cell / "api.sock").exists(), "the controller's API socket")
+        if controller:
+            run = [CELLCTL, "--cell", str(cell), "run", "--no-live"]
+            procs.append(subprocess.Popen(run, **quiet))
+            wait_until(lambda: (cell / "api.sock").exists(), "the controller's API socket")
+        yield
+    finally:
+        for proc in reversed(procs):
+            stop(proc)
+
+
+def test_console_in_a_terminal_attached_to_a_running_cell(tmux: Tmux, tmp_path: Path) -> None:
+    cell = tmp_path / "cell"
+    with emulated_cell(cell, controller=True):
         tmux.start([CELLCTL, "--cell", str(cell), "console"], {"TERM": "xterm-256color"})
         # The source's main menu: 1 ROBOT, 2 NC #1, 3 NC #2, 4 EXIT; the cell on a letter.
         shown = tmux.wait_for("MAIN MENU", "attached to cellctl run (pid", "4. EXIT", "c. CELL")
@@ -161,10 +172,6 @@ def test_console_in_a_terminal_attached_to_a_running_cell(tmux: Tmux, tmp_path: 
         tmux.wait_for("MAIN MENU")
         tmux.keys("q")
         wait_until(tmux.pane_dead, "the console to quit")
-    finally:
-        if controller is not None:
-            stop(controller)
-        stop(emulator)
 
 
 def test_console_in_a_terminal_a_refused_value_is_replaced_by_what_is_typed_next(
@@ -174,15 +181,7 @@ def test_console_in_a_terminal_a_refused_value_is_replaced_by_what_is_typed_next
     operator types next replaces the field's text ("4", not "64"), and the .aml source the
     picker offers is compiled on the way."""
     cell = tmp_path / "cell"
-    env = {**os.environ, "NO_COLOR": "1"}
-    emulator = subprocess.Popen(
-        [CELLCTL, "--cell", str(cell), "emulate", "cell", "--time-scale", "100"],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        env=env,
-    )
-    try:
-        wait_until(lambda: (cell / "cell.toml").exists(), "the emulated cell's cell.toml")
+    with emulated_cell(cell, controller=False):
         tmux.start([CELLCTL, "--cell", str(cell), "console"], {"TERM": "xterm-256color"})
         tmux.wait_for("MAIN MENU", "standalone: links held by this console", "4. EXIT")
         tmux.keys("1")
@@ -206,8 +205,6 @@ def test_console_in_a_terminal_a_refused_value_is_replaced_by_what_is_typed_next
         tmux.wait_for("robot: STATUS: robot state", "4 Full (CNC1TOCN)")
         tmux.keys("q")
         wait_until(tmux.pane_dead, "the console to quit")
-    finally:
-        stop(emulator)
 
 
 def cellctl(cell: Path, *args: str) -> str:
@@ -229,15 +226,7 @@ def test_run_live_view_in_a_terminal(tmux: Tmux, tmp_path: Path) -> None:
     an EMERGENCY STOP banner, a machine's out-of-service reason, and an events pane that
     grows with the terminal."""
     cell = tmp_path / "cell"
-    env = {**os.environ, "NO_COLOR": "1"}
-    emulator = subprocess.Popen(
-        [CELLCTL, "--cell", str(cell), "emulate", "cell", "--time-scale", "100"],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        env=env,
-    )
-    try:
-        wait_until(lambda: (cell / "cell.toml").exists(), "the emulated cell's cell.toml")
+    with emulated_cell(cell, controller=False):
         # The terminal's size, not one the environment fixes (COLUMNS, LINES).
         command = ["env", "-u", "COLUMNS", "-u", "LINES", CELLCTL, "--cell", str(cell), "run"]
         tmux.start(command, {"TERM": "xterm-256color"}, 100, 30)
@@ -266,5 +255,3 @@ def test_run_live_view_in_a_terminal(tmux: Tmux, tmp_path: Path) -> None:
         tmux.wait_for("EMERGENCY STOP: ", "smoke at cnc1", "cellctl resume")
         tmux.keys("C-c")
         wait_until(tmux.pane_dead, "cellctl run to stop on Ctrl-C")
-    finally:
-        stop(emulator)

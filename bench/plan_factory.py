@@ -43,10 +43,8 @@ from cellctl.cell.journal import Step
 from cellctl.emulators.cell import EXAMPLE_CELL
 from cellctl.plan.engine import FaultWindow, PlanInputs, PlanOrder
 from cellctl.plan.run import play
-from plan_shift import key, real_window, window_makespan
+from plan_shift import LOT, TYPES, key, real_window, window_makespan
 
-TYPES = ("wax-robot-base", "wax-toy-mill-table")
-LOT = 5
 #: The issue's goals.
 GOAL_WALL_S = 60.0
 GOAL_DELTA = 0.02

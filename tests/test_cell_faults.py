@@ -18,6 +18,7 @@ import pytest
 
 from cellctl.cell.config import load_cell
 from cellctl.cell.model import ControllerOptions
+from cellctl.cell.monitor import ESTOP
 from cellctl.emulators.cell import EXAMPLE_CELL, EmulatedCell
 from cellctl.kinds.dyna2400.driver import MillConfig
 from cellctl.testing.rig import CellRig
@@ -302,3 +303,52 @@ async def test_no_pallet_is_one_alarm_and_the_pallet_comes_once_fixed(tmp_path: 
             rig.describe()
         )
         assert rig.cell.plc.pallets_delivered == 1
+
+
+@pytest.mark.virtual
+async def test_an_emergency_stop_during_a_transfer_is_one_alarm_naming_it(tmp_path: Path) -> None:
+    """The E-stop pressed while the arm is in CNC 1 (the part in its gripper, the vise
+    opening): the vise stops where it is, the transfer cannot end. Its failure is the stop's:
+    one alarm, the stop's, the part held where the arm left it; the batch finishes once the
+    operator released the stop, cleared the alarm and released the part."""
+    async with CellRig(tmp_path / "cell") as rig:
+        rig.post("wax-robot-base", 2, "A")
+        pressed: list[str] = []
+
+        def estop_as_the_vise_opens(port: int, value: bool) -> None:
+            # Output 1 low: cnc1_to_cnc2 opens CNC 1's vise with the part in the gripper.
+            if port == 1 and not value and not pressed and rig.finished_steps("machine") >= 1:
+                pressed.append("plc:estop")
+                rig.switch_on("plc:estop")
+
+        rig.cell.robot.output_hooks.append(estop_as_the_vise_opens)
+        await rig.start_controller()
+        await rig.wait_for(lambda: pressed, "the E-stop pressed during cnc1_to_cnc2")
+        held = await rig.wait_for(rig.held_parts, "the part in the gripper held")
+        await rig.wait_quiet()
+        assert [(a.machine, a.code, a.text) for a in rig.journal.alarms()] == [
+            ("plc", "estop", ESTOP.text)
+        ], rig.describe()
+        # The held part and its failed step say why, in the same words.
+        assert [p.id for p in rig.held_parts()] == [held[0].id]
+        assert "emergency stop" in (held[0].note or ""), held[0].note
+        failed = [s for s in rig.journal.steps() if s.state == "failed"]
+        assert [(s.kind, s.program) for s in failed] == [("transfer", "cnc1_to_cnc2")]
+        assert rig.reports("step-failed")
+        assert all("emergency stop" in r.text for r in rig.reports("step-failed"))
+
+        rig.switch_off("plc:estop")
+        loop_guard = 0
+        while not rig.all_done():
+            loop_guard += 1
+            assert loop_guard < 20, rig.describe()
+            await rig.operator_resolves()
+            await rig.wait_for(
+                lambda: rig.all_done() or rig.held_parts() or rig.journal.active_alarms(),
+                "the run to complete or to need the operator again",
+                timeout=30,
+            )
+        await rig.stop_controller()
+        assert all(p.status == "done" for p in rig.journal.parts()), rig.describe()
+        assert rig.cut_twice() == {}, rig.describe()
+        assert [(a.machine, a.code) for a in rig.journal.alarms()] == [("plc", "estop")]

@@ -19,7 +19,7 @@ from __future__ import annotations
 import asyncio
 from typing import TYPE_CHECKING
 
-from cellctl.cell.causes import blame
+from cellctl.cell.causes import Cause, blame
 from cellctl.cell.config import CONVEYOR
 from cellctl.cell.orderflow import OUT
 from cellctl.cell.orders import ReportKind
@@ -168,7 +168,17 @@ class RobotSteps:
         except (CellctlError, OSError, asyncio.CancelledError) as e:
             view.step = ""
             stopped = isinstance(e, asyncio.CancelledError)
+            # One alarm, the cause's: the PLC (its E-stop), the robot's link or status, or
+            # the transfer. Asked first: the held part's note names it too.
+            culprit: Cause | None = None
+            if not stopped:
+                try:
+                    culprit = await self.monitor.cause_of(robot.name, e, since=started)
+                except asyncio.CancelledError:
+                    stopped = True  # the operator's stop came while we asked
             what = "cut short by an emergency stop" if stopped else f"failed: {e}"
+            if culprit is not None and culprit.code == "estop":
+                what = f"cut short by the emergency stop ({e})"
             reason = f"transfer {t.program} {what}"
             if moved or stopped:
                 world.journal.end_step(step.id, "failed", str(e) or what, hold=reason)
@@ -187,16 +197,16 @@ class RobotSteps:
                 )
             alarms.wake()
             if stopped:
+                if not isinstance(e, asyncio.CancelledError):
+                    raise asyncio.CancelledError from e
                 raise
-            # One alarm, the cause's: the PLC, the robot's link or status, or the transfer.
             # A fault of the robot's own keeps it out of the plan until the monitor finds
             # it well; only a failure nothing else explains counts towards fail_limit.
-            cause = await self.monitor.cause_of(robot.name, e)
-            if cause is None:
+            if culprit is None:
                 alarms.failed(robot.name, "transfer", reason)
             else:
-                alarms.cause_alarm(cause)
-                if cause.machine == robot.name:
+                alarms.cause_alarm(culprit)
+                if culprit.machine == robot.name:
                     self.recovery.robot_ok = False
             return
         view.busy_s += self.world.clock.monotonic() - started

@@ -352,3 +352,52 @@ async def test_an_emergency_stop_during_a_transfer_is_one_alarm_naming_it(tmp_pa
         assert all(p.status == "done" for p in rig.journal.parts()), rig.describe()
         assert rig.cut_twice() == {}, rig.describe()
         assert [(a.machine, a.code) for a in rig.journal.alarms()] == [("plc", "estop")]
+
+
+@pytest.mark.virtual
+async def test_a_door_stuck_during_a_transfer_is_named_in_its_alarm(tmp_path: Path) -> None:
+    """CNC 2's door sticks half-way open during cnc1_to_cnc2 (it left its closed position,
+    so the transfer started): the robot waits for it with the part in its gripper until the
+    transfer's deadline. The alarm names the door, as a stuck door outside a transfer is
+    named (the PLC's interlock), not the transfer's timeout; the part is held, and the batch
+    finishes once the operator freed the door and resolved."""
+    async with CellRig(tmp_path / "cell") as rig:
+        rig.post("wax-robot-base", 2, "A")
+        stuck: list[str] = []
+
+        def stick_as_it_leaves(name: str, value: bool) -> None:
+            moving = name == "door_closed_2" and not value
+            if moving and not stuck and rig.finished_steps("machine") >= 1:
+                stuck.append("plc:stuck-door=2")
+                # Once the PLC has set the door moving: it stops half-way.
+                asyncio.get_running_loop().call_soon(rig.switch_on, stuck[0])
+
+        rig.cell.plc.hooks.input.append(stick_as_it_leaves)
+        controller = await rig.start_controller()
+        await rig.wait_for(lambda: stuck, "CNC 2's door stuck during cnc1_to_cnc2")
+        held = await rig.wait_for(rig.held_parts, "the part in the gripper held")
+        await rig.wait_quiet()
+        timeout = controller.options.transfer_timeout
+        assert [(a.machine, a.code, a.text) for a in rig.journal.alarms()] == [
+            ("plc", "interlock", f"door of CNC 2 did not open within {timeout:g} s")
+        ], rig.describe()
+        assert rig.cell.plc.inputs["door_open_2"] is False
+        assert "door of CNC 2" in (held[0].note or ""), held[0].note
+        # The robot is not at fault: no failure counts against it.
+        assert controller.machines["robot"].failures == 0
+
+        rig.switch_off(stuck[0])
+        loop_guard = 0
+        while not rig.all_done():
+            loop_guard += 1
+            assert loop_guard < 20, rig.describe()
+            await rig.operator_resolves()
+            await rig.wait_for(
+                lambda: rig.all_done() or rig.held_parts() or rig.journal.active_alarms(),
+                "the run to complete or to need the operator again",
+                timeout=30,
+            )
+        await rig.stop_controller()
+        assert all(p.status == "done" for p in rig.journal.parts()), rig.describe()
+        assert rig.cut_twice() == {}, rig.describe()
+        assert [(a.machine, a.code) for a in rig.journal.alarms()] == [("plc", "interlock")]

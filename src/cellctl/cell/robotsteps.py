@@ -19,11 +19,11 @@ from __future__ import annotations
 import asyncio
 from typing import TYPE_CHECKING
 
-from cellctl.cell.causes import Cause, blame
+from cellctl.cell.causes import Cause, blame, door_cause
 from cellctl.cell.config import CONVEYOR
 from cellctl.cell.orderflow import OUT
 from cellctl.cell.orders import ReportKind
-from cellctl.errors import CellctlError, DeviceError, UsageError
+from cellctl.errors import CellctlError, DeviceError, SignalTimeout, UsageError
 
 #: Seconds between looks at the robot's "cycle done" output: it tells nothing unasked, and
 #: each look is two short reads, so the line itself paces most of the wait. Every ms of it is
@@ -97,6 +97,18 @@ class RobotSteps:
                 timeout=self.world.options.door_start_timeout,
                 poll=INTERLOCK_POLL_S,
             )
+
+    async def _door_not_open(self, places: list[str]) -> Cause | None:
+        """After a cycle that did not end: a door of ``places`` the program waited for in
+        vain (it left its closed position, so the transfer started, but never opened)."""
+        plc = self.world.plc
+        assert plc is not None
+        try:
+            inputs = await plc.read_inputs()
+        except (CellctlError, OSError):
+            return None  # the PLC's own fault is the monitor's to tell
+        doors = [self.world.mill_index(p) for p in places if p != CONVEYOR]
+        return door_cause(inputs, doors, True, self.world.options.transfer_timeout)
 
     async def transfer(self, t: Transfer) -> None:
         """Carry part ``t.part_id`` from ``t.source`` to ``t.target`` with program
@@ -174,11 +186,15 @@ class RobotSteps:
             if not stopped:
                 try:
                     culprit = await self.monitor.cause_of(robot.name, e, since=started)
+                    if culprit is None and moved and isinstance(e, SignalTimeout):
+                        culprit = await self._door_not_open(places)
                 except asyncio.CancelledError:
                     stopped = True  # the operator's stop came while we asked
             what = "cut short by an emergency stop" if stopped else f"failed: {e}"
             if culprit is not None and culprit.code == "estop":
                 what = f"cut short by the emergency stop ({e})"
+            elif culprit is not None and culprit.code == "interlock":
+                what = f"failed: {culprit.text} ({e})"
             reason = f"transfer {t.program} {what}"
             if moved or stopped:
                 world.journal.end_step(step.id, "failed", str(e) or what, hold=reason)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import re
+import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,7 +20,7 @@ import pytest
 from cellctl.cell.config import load_cell
 from cellctl.cell.model import ControllerOptions
 from cellctl.cell.monitor import ESTOP
-from cellctl.emulators.cell import EXAMPLE_CELL, EmulatedCell
+from cellctl.emulators.cell import EXAMPLE_CELL, EmulatedCell, real_cell_toml
 from cellctl.kinds.dyna2400.driver import MillConfig
 from cellctl.testing.rig import CellRig
 
@@ -401,3 +402,37 @@ async def test_a_door_stuck_during_a_transfer_is_named_in_its_alarm(tmp_path: Pa
         assert all(p.status == "done" for p in rig.journal.parts()), rig.describe()
         assert rig.cut_twice() == {}, rig.describe()
         assert [(a.machine, a.code) for a in rig.journal.alarms()] == [("plc", "interlock")]
+
+
+async def test_an_emulated_cell_of_an_emulated_cells_directory_is_the_real_cells_emulation(
+    tmp_path: Path,
+) -> None:
+    """An emulated cell's directory as the template (``cellctl emulate cell --template``, a
+    plan of an emulated cell): what the first emulation wrote is undone first, so the file
+    holds one time scale, one options table per machine, and the real cell's deadlines
+    scaled once; the real cell's file read back from it is the example's own."""
+    cells = [EmulatedCell(time_scale=100.0)]
+    try:
+        await cells[0].start(tmp_path / "first")
+        cells += [EmulatedCell(time_scale=2.0, template=tmp_path / "first")]
+        cells += [EmulatedCell(time_scale=2.0)]
+        await cells[1].start(tmp_path / "again")
+        await cells[2].start(tmp_path / "fresh")
+        written = (tmp_path / "again" / "cell.toml").read_text()
+        config = load_cell(tmp_path / "again")
+        want = load_cell(tmp_path / "fresh")
+    finally:
+        for cell in cells:
+            await cell.close()
+    assert written.count("time_scale = 2 ") == 1, written
+    assert config.raw["cell"]["time_scale"] == 2
+    assert ControllerOptions.from_config(config) == ControllerOptions.from_config(want)
+    for name in ("cnc1", "cnc2"):
+        assert config.raw["machines"][name]["options"] == want.raw["machines"][name]["options"]
+    real = tomllib.loads(real_cell_toml((tmp_path / "first" / "cell.toml").read_text()))
+    example = tomllib.loads((EXAMPLE_CELL / "cell.toml").read_text())
+    for table in (real, example):
+        for machine in table["machines"].values():
+            machine.pop("link")
+        table["plc"].pop("url")
+    assert real == example

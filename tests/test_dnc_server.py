@@ -245,10 +245,16 @@ async def test_status_and_dashboard_through_the_api_on_dnc_listen(tmp_path: Path
         code, page = await asyncio.to_thread(get, "/", token)
         assert code == 200 and b"<html" in page.lower()
         await punch(emulator, 9999, "O9999 (DRIP O5000)\n")  # no O5000: refused, shown
-        deadline = asyncio.get_running_loop().time() + 30
-        while "no program O5000" not in str((await status()).get("error")):
-            assert asyncio.get_running_loop().time() < deadline, await status()
-            await asyncio.sleep(0.05)
+        seen: list[dict[str, object]] = [{}]
+
+        async def refused() -> bool:
+            seen[0] = await status()
+            return "no program O5000" in str(seen[0].get("error"))
+
+        try:
+            await until(refused, "the request for O5000 refused, shown as mill1's error", 30)
+        except AssertionError as e:
+            raise AssertionError(f"{e}; mill1: {seen[0]}") from None
     finally:
         stop.set()
         await task

@@ -152,6 +152,7 @@ async def attached(rig: CellRig) -> AsyncIterator[CellClient]:
 # -- standalone --------------------------------------------------------------------------------
 
 
+@pytest.mark.virtual
 async def test_standalone_robot_menu_every_function(rig: CellRig) -> None:
     write_robot_program(rig.directory)
     bad = rig.directory / "bad.rec"
@@ -233,6 +234,7 @@ async def test_standalone_robot_menu_every_function(rig: CellRig) -> None:
         assert status["state_text"] == "Uninitialized"
 
 
+@pytest.mark.virtual
 async def test_standalone_mill_menu_every_function(rig: CellRig) -> None:
     (rig.directory / "short.dyn").write_text(SHORT_MILLING)
     toml = rig.directory / "cell.toml"  # a GO the mill does not take is told within 1.5 s
@@ -290,6 +292,7 @@ async def test_standalone_mill_menu_every_function(rig: CellRig) -> None:
     assert app.return_code == 0
 
 
+@pytest.mark.virtual
 async def test_standalone_cell_menu(rig: CellRig) -> None:
     app = ConsoleApp(rig.directory, standalone_client(rig), traffic_period=0.1)
     async with app.run_test(size=SIZE) as pilot:

@@ -122,6 +122,9 @@ class CellController(OperatorCommands):
         self._pallet_pulse: asyncio.Task[None] | None = None
         self._stopping = False
         self._work: dict[str, float] | None = None
+        # The parts' states worked out from the journal and the mailbox, and from which
+        # version of them (see _part_states).
+        self._states: tuple[Any, tuple[list[PartState], list[Part]]] | None = None
         self.started_at = self.clock.now()
 
     # -- plumbing ---------------------------------------------------------------------------------
@@ -373,6 +376,20 @@ class CellController(OperatorCommands):
     # -- dispatch ---------------------------------------------------------------------------------
 
     def _part_states(self) -> tuple[list[PartState], list[Part]]:
+        """The parts in work as the scheduler sees them, and those parts.
+
+        Worked out from the journal and the mailbox alone: again only once either changed.
+        """
+        version = self.orderflow.version()
+        if version is not None and self._states is not None and self._states[0] == version:
+            return self._states[1]
+        found = self._work_out_part_states()
+        # The version from before: a step this accepted (a write) makes the next call look
+        # again, and find the same.
+        self._states = (version, found)
+        return found
+
+    def _work_out_part_states(self) -> tuple[list[PartState], list[Part]]:
         orders = {o.id: o for o in self.mailbox.orders()}
         parts = self.journal.parts(statuses=["waiting", "active", "held"])
         states = []

@@ -182,6 +182,8 @@ class CellController(OperatorCommands):
             self._unreturned = {
                 (a.machine, a.code) for a in self.journal.active_alarms() if a.returned is None
             }
+        if not self._unreturned:
+            return  # nothing open to return: the monitor's usual look costs nothing
         watched = [code for code in codes if (machine, code) in self._unreturned]
         if not watched:
             return
@@ -228,7 +230,10 @@ class CellController(OperatorCommands):
 
     def plc_view(self) -> MachineView:
         """The PLC's line in the live view (added on the first poll)."""
-        return self.machines.setdefault("plc", MachineView("plc", "plc"))
+        view = self.machines.get("plc")
+        if view is None:
+            view = self.machines["plc"] = MachineView("plc", "plc")
+        return view
 
     # -- connecting -------------------------------------------------------------------------------
 

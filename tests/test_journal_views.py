@@ -422,3 +422,18 @@ def test_an_order_posted_elsewhere_is_seen_at_once(
     controller.set_order_state("W1", "accepted")
     assert [o.state for o in cli.orders()] == ["accepted"]
     assert controller.pending_orders() == []
+
+
+def test_only_a_throwaway_copy_skips_waiting_for_the_disk(tmp_path: Path) -> None:
+    """The controller's journal and mailbox sync every commit (a kill -9 or a power cut loses
+    nothing that returned); a plan's copy says ``durable=False`` and is still the same file
+    for every reader."""
+    with open_journal(tmp_path) as journal, SqliteMailbox(tmp_path / "mailbox.sqlite3") as mb:
+        for store in (journal, mb):
+            assert store._conn.execute("PRAGMA synchronous").fetchone()[0] == 2  # FULL
+    copy = tmp_path / "plan"
+    with open_journal(copy, durable=False) as journal:
+        assert journal._conn.execute("PRAGMA synchronous").fetchone()[0] == 0  # OFF
+        journal.create_parts(AnOrder("P", "bracket", 2))
+        with open_journal(copy) as reader:
+            assert [p.id for p in reader.parts()] == ["P-1", "P-2"]

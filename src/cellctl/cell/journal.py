@@ -230,9 +230,10 @@ class RecoveryReport:
         return not self.interrupted
 
 
-def open_journal(cell_dir: Path, *, clock: Clock | None = None) -> Journal:
-    """Open (creating if needed) ``<cell_dir>/journal.sqlite3``."""
-    return Journal(Path(cell_dir) / JOURNAL_FILE, clock=clock)
+def open_journal(cell_dir: Path, *, clock: Clock | None = None, durable: bool = True) -> Journal:
+    """Open (creating if needed) ``<cell_dir>/journal.sqlite3`` (``durable=False``: a
+    throwaway copy, e.g. a plan's, whose commits do not wait for the disk)."""
+    return Journal(Path(cell_dir) / JOURNAL_FILE, clock=clock, durable=durable)
 
 
 class Journal(SqliteStore):
@@ -243,8 +244,8 @@ class Journal(SqliteStore):
     ``now()``; None: the running loop's clock, read when a time is recorded).
     """
 
-    def __init__(self, path: Path, *, clock: Clock | None = None) -> None:
-        super().__init__(path, SCHEMA)
+    def __init__(self, path: Path, *, clock: Clock | None = None, durable: bool = True) -> None:
+        super().__init__(path, SCHEMA, durable=durable)
         self._clock = clock
         self._views = JournalViews()
         self._migrate_alarms()

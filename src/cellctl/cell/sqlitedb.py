@@ -61,9 +61,12 @@ def make_private(path: Path) -> None:
                 os.chmod(file, 0o600)
 
 
-def connect(path: Path, schema: str, busy_timeout: float = BUSY_TIMEOUT) -> sqlite3.Connection:
+def connect(
+    path: Path, schema: str, busy_timeout: float = BUSY_TIMEOUT, *, durable: bool = True
+) -> sqlite3.Connection:
     """Open ``path`` (private: 0600) in WAL mode, autocommit, ``synchronous=FULL``, and create
-    ``schema``."""
+    ``schema``. ``durable=False``: ``synchronous=OFF``, no commit waits for the disk, for a
+    throwaway copy (a plan's) that nothing reads after a crash."""
     path.parent.mkdir(parents=True, exist_ok=True)
     make_private(path)
     # isolation_level=None: no implicit transactions; each method says BEGIN itself.
@@ -74,7 +77,7 @@ def connect(path: Path, schema: str, busy_timeout: float = BUSY_TIMEOUT) -> sqli
     conn.execute(f"PRAGMA busy_timeout = {int(busy_timeout * 1000)}")
     conn.execute("PRAGMA journal_mode = WAL")
     # FULL: in WAL mode NORMAL may lose the last commits on power loss; FULL syncs each one.
-    conn.execute("PRAGMA synchronous = FULL")
+    conn.execute(f"PRAGMA synchronous = {'FULL' if durable else 'OFF'}")
     conn.execute("BEGIN IMMEDIATE")
     try:
         for statement in schema.split(";"):
@@ -89,11 +92,13 @@ def connect(path: Path, schema: str, busy_timeout: float = BUSY_TIMEOUT) -> sqli
 
 
 class SqliteStore:
-    """One SQLite file with a schema; use as a context manager or call :meth:`close`."""
+    """One SQLite file with a schema; use as a context manager or call :meth:`close`.
 
-    def __init__(self, path: Path, schema: str) -> None:
+    ``durable=False`` only for a throwaway copy (see :func:`connect`)."""
+
+    def __init__(self, path: Path, schema: str, *, durable: bool = True) -> None:
         self.path = Path(path)
-        self._conn = connect(self.path, schema)
+        self._conn = connect(self.path, schema, durable=durable)
         # One connection, possibly used from worker threads: one transaction at a time.
         self._lock = threading.Lock()
         # Commits of this connection, and the data_version the in-memory views were read

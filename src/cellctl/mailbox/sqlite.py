@@ -61,10 +61,11 @@ CREATE TABLE IF NOT EXISTS meta (
 
 class SqliteMailbox(SqliteStore, Mailbox):
     """The default mailbox. ``SqliteMailbox(path)``; ``clock`` gives the times it records
-    (its ``now()``; None: the running loop's clock, read when a time is recorded)."""
+    (its ``now()``; None: the running loop's clock, read when a time is recorded);
+    ``durable=False`` only for a throwaway copy (see :func:`cellctl.cell.sqlitedb.connect`)."""
 
-    def __init__(self, path: Path, *, clock: Clock | None = None) -> None:
-        SqliteStore.__init__(self, path, SCHEMA)
+    def __init__(self, path: Path, *, clock: Clock | None = None, durable: bool = True) -> None:
+        SqliteStore.__init__(self, path, SCHEMA, durable=durable)
         self._clock = clock
         with self._write() as db:
             # Made once, with the file (or on the first open of a file from before epochs).

@@ -101,6 +101,7 @@ class SqliteStore:
         self._conn = connect(self.path, schema, durable=durable)
         # One connection, possibly used from worker threads: one transaction at a time.
         self._lock = threading.Lock()
+        self._probe = self._conn.cursor()  # for PRAGMA data_version, asked every round
         # Commits of this connection, and the data_version the in-memory views were read
         # at (None: no views, or they must be read again).
         self._writes = 0
@@ -141,7 +142,7 @@ class SqliteStore:
 
     def _data_version(self) -> int:
         # Changes whenever another connection committed; never for this one's commits.
-        return int(self._conn.execute("PRAGMA data_version").fetchone()[0])
+        return int(self._probe.execute("PRAGMA data_version").fetchone()[0])
 
     def _views_current(self) -> None:
         """Hold ``self._lock`` when calling: make the views match the file, reading them

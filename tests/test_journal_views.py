@@ -1,5 +1,8 @@
 """The journal's and the mailbox's in-memory views answer what the file answers.
 
+(The stores here mostly say ``durable=False``: what is compared is what the views and the
+file answer, not what survives a crash; tests/test_journal.py kills writers.)
+
 The controller reads parts, done steps, alarms, machines and orders every round from memory;
 the CLI (another connection, often another process) writes to the same files. Whatever either
 side does, in any order, a read through the controller's store equals the same read done
@@ -212,8 +215,8 @@ def test_the_controllers_reads_equal_the_files_whoever_writes(
     with tempfile.TemporaryDirectory() as directory:
         clock = Clock()
         with (
-            open_journal(Path(directory), clock=clock) as controller,
-            open_journal(Path(directory), clock=clock) as cli,
+            open_journal(Path(directory), clock=clock, durable=False) as controller,
+            open_journal(Path(directory), clock=clock, durable=False) as cli,
         ):
             controller.create_parts(AnOrder("first", "bracket", 2))
             _same_as_file(controller)
@@ -226,7 +229,7 @@ def test_the_controllers_reads_equal_the_files_whoever_writes(
 def test_every_write_of_the_store_shows_at_once_in_its_own_reads(tmp_path: Path) -> None:
     """A part's whole life, alarms and service, all by the controller's own journal: no other
     connection commits, so nothing but its own writes keeps its views right."""
-    with open_journal(tmp_path, clock=Clock()) as j:
+    with open_journal(tmp_path, clock=Clock(), durable=False) as j:
         a, b, c = j.create_parts(AnOrder("A", "bracket", 3))
         _same_as_file(j)
         step = j.begin_step(a.id, "transfer", "robot", "C-1")
@@ -378,8 +381,8 @@ def test_the_controllers_orders_equal_the_files_whoever_writes(
         clock = Clock()
         path = Path(directory) / "mailbox.sqlite3"
         with (
-            SqliteMailbox(path, clock=clock) as controller,
-            SqliteMailbox(path, clock=clock) as cli,
+            SqliteMailbox(path, clock=clock, durable=False) as controller,
+            SqliteMailbox(path, clock=clock, durable=False) as cli,
         ):
             for op, n, by_cli in ops:
                 box = cli if by_cli else controller
@@ -437,3 +440,37 @@ def test_only_a_throwaway_copy_skips_waiting_for_the_disk(tmp_path: Path) -> Non
         journal.create_parts(AnOrder("P", "bracket", 2))
         with open_journal(copy) as reader:
             assert [p.id for p in reader.parts()] == ["P-1", "P-2"]
+
+
+def test_reads_of_an_unchanged_journal_run_no_query(tmp_path: Path) -> None:
+    """What the controller asks every round costs one version probe, however many parts the
+    journal holds; after another connection commits, the views are read once, then not."""
+    # What is tested is reads: the writes need not wait for the disk.
+    with (
+        open_journal(tmp_path, durable=False) as controller,
+        open_journal(tmp_path, durable=False) as cli,
+    ):
+        for n in range(30):
+            controller.create_parts(AnOrder(f"A{n}", "bracket", 5))
+        for p in controller.parts()[:140]:
+            controller.finish_part(p.id)
+        ran: list[str] = []
+        controller._conn.set_trace_callback(ran.append)
+
+        def a_round() -> None:
+            controller.parts(statuses=["waiting", "active", "held"])
+            controller.parts(order_id="A29")
+            controller.active_alarms()
+            controller.machines_out_of_service()
+            controller.step_done("A29-1", "machine", "cnc1", "ROUGH", 0)
+
+        for _ in range(3):
+            a_round()
+        assert ran and set(ran) == {"PRAGMA data_version"}
+        cli.hold_part("A29-5", "operator looks at it")
+        ran.clear()
+        a_round()
+        a_round()
+        assert any(q.startswith("SELECT") for q in ran)
+        assert ran.count("SELECT rowid AS rank, * FROM parts ORDER BY rowid") == 1
+        assert [p.id for p in controller.parts(statuses=["held"])] == ["A29-5"]

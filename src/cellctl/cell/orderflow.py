@@ -32,6 +32,7 @@ class OrderFlow:
         self.log = alarms.log
         self._synced: Hashable = None  # what sync_operator last worked from
         self._taken: Hashable = None  # the mailbox's version intake last looked at
+        self._closed: tuple[Hashable, bool] | None = None  # all_orders_closed, and when
 
     def version(self) -> Hashable:
         """Changes whenever the journal or the mailbox may have changed (None: a mailbox
@@ -43,7 +44,16 @@ class OrderFlow:
         return (self.world.journal.version, mailbox_version)
 
     def all_orders_closed(self) -> bool:
-        """True when no order is open, or every open one waits for the operator."""
+        """True when no order is open, or every open one waits for the operator (worked
+        out again only once the journal or the mailbox changed)."""
+        version = self.version()
+        if version is not None and self._closed is not None and self._closed[0] == version:
+            return self._closed[1]
+        closed = self._all_closed()
+        self._closed = (version, closed)
+        return closed
+
+    def _all_closed(self) -> bool:
         open_orders = self.world.mailbox.orders(states=["posted", "accepted", "in-progress"])
         if not open_orders:
             return True

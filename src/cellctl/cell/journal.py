@@ -36,16 +36,31 @@ from __future__ import annotations
 
 import sqlite3
 from collections.abc import Iterable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
 
 from cellctl.cell.causes import PRIORITIES, priority_of
+from cellctl.cell.journalrecords import Alarm, Part, RecoveryReport, Step
 from cellctl.cell.journalview import JournalViews
 from cellctl.cell.orders import OrderLike
 from cellctl.cell.sqlitedb import SqliteStore
 from cellctl.clock import Clock, current_clock
 from cellctl.errors import UsageError
+
+__all__ = [
+    "JOURNAL_FILE",
+    "LOCATIONS",
+    "PART_STATUSES",
+    "RESOLUTIONS",
+    "STEP_KINDS",
+    "STEP_STATES",
+    "Alarm",
+    "Journal",
+    "Part",
+    "RecoveryReport",
+    "Step",
+    "open_journal",
+]
 
 #: The journal's file name inside the cell directory.
 JOURNAL_FILE = "journal.sqlite3"
@@ -136,98 +151,6 @@ CREATE TABLE IF NOT EXISTS service_log (
     reason TEXT NOT NULL
 );
 """
-
-
-@dataclass(frozen=True)
-class Part:
-    """One workpiece. ``route_index`` counts the route operations the controller completed;
-    ``note`` says why a part is held or scrapped."""
-
-    id: str
-    order_id: str
-    part_type: str
-    seq_in_order: int
-    route_index: int
-    location: str
-    status: str
-    updated: float
-    note: str = ""
-
-
-@dataclass(frozen=True)
-class Step:
-    """One step on one part; ``route_index`` is the part's route index when it began.
-
-    ``attempt`` counts steps with the same part, kind, machine, program and route index.
-    ``resolution`` is the operator's word on an interrupted or failed step: ``accepted``
-    (counts as done) or ``redo`` (run it again).
-    """
-
-    id: int
-    part_id: str
-    kind: str
-    machine: str
-    program: str
-    state: str
-    started: float
-    ended: float | None
-    outcome: str
-    attempt: int
-    route_index: int = 0
-    resolution: str = ""
-
-
-@dataclass(frozen=True)
-class Alarm:
-    """An alarm after ISA-18.2: ``state`` is ``active`` until the operator clears it
-    (``cleared`` time, ``cleared_by``), which ends it.
-
-    Apart from that: ``acked`` is when the operator acknowledged it (None: unacknowledged),
-    ``returned`` when its condition was last seen to go away (returned to normal; None: still
-    seen, or not a condition the monitor watches), ``shelved_until`` until when it is
-    shelved (hidden from the unacknowledged list; back once that time is past).
-    ``priority`` comes from its code (:data:`cellctl.cell.causes.ALARM_PRIORITY`).
-    """
-
-    id: int
-    raised: float
-    machine: str
-    code: str
-    text: str
-    state: str
-    cleared: float | None
-    cleared_by: str = ""
-    priority: str = "medium"
-    acked: float | None = None
-    acked_by: str = ""
-    returned: float | None = None
-    shelved_until: float | None = None
-    shelved_by: str = ""
-
-    def shelved(self, now: float) -> bool:
-        """True while the alarm is shelved at ``now``."""
-        return self.shelved_until is not None and self.shelved_until > now
-
-    def unacked(self, now: float) -> bool:
-        """True if the alarm is open, unacknowledged and not shelved at ``now``: what a
-        control room shows flashing."""
-        return self.state == "active" and self.acked is None and not self.shelved(now)
-
-
-@dataclass(frozen=True)
-class RecoveryReport:
-    """What :meth:`Journal.recover` did: steps it marked interrupted, parts it held.
-
-    Each held part's ``note`` says why; post a ``part-held`` report and an alarm for each.
-    """
-
-    interrupted: list[Step] = field(default_factory=list)
-    held: list[Part] = field(default_factory=list)
-
-    @property
-    def clean(self) -> bool:
-        """True when nothing was in flight: the last run ended cleanly."""
-        return not self.interrupted
 
 
 def open_journal(cell_dir: Path, *, clock: Clock | None = None, durable: bool = True) -> Journal:

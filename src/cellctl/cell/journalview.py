@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from collections.abc import Iterable
 
-    from cellctl.cell.journal import Alarm, Part, Step
+    from cellctl.cell.journalrecords import Alarm, Part, Step
 
 #: What a step is known by for :meth:`JournalViews.step_done`.
 StepKey = tuple[str, str, str, str, int]

@@ -20,7 +20,7 @@ from cellctl.mailbox import open_mailbox
 from cellctl.service.functions import FUNCTIONS, kind_menu
 from cellctl.service.methods import METHODS
 from cellctl.ui.cli import main
-from cellctl.ui.common import clause_summary
+from cellctl.ui.common import clause_summary, subcommands
 from cellctl.ui.dashboard.routes import DASHBOARD_METHODS
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -128,7 +128,7 @@ def test_piped_listings_keep_whole_ids_on_one_line(cell: Path) -> None:
 
 def _commands(group: click.Group, prefix: str = "") -> dict[str, click.Command]:
     found: dict[str, click.Command] = {}
-    for name, command in group.commands.items():
+    for name, command in subcommands(group).items():
         path = f"{prefix}{name}"
         found[path] = command
         if isinstance(command, click.Group):
@@ -162,7 +162,7 @@ def test_every_acting_api_method_has_a_cli_command() -> None:
 def _walk(command: click.Command, path: str) -> list[tuple[str, click.Command]]:
     found = [(path, command)]
     if isinstance(command, click.Group):
-        for name, sub in command.commands.items():
+        for name, sub in subcommands(command).items():
             found += _walk(sub, f"{path} {name}")
     return found
 

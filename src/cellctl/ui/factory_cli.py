@@ -32,6 +32,7 @@ from cellctl.factory.dispatch import load_s
 from cellctl.factory.store import OPEN_STATES, CellSeen, FactoryStore
 from cellctl.link.lock import OwnerLock
 from cellctl.ui.common import console, json_option, print_json, print_table, run, until_stopped
+from cellctl.ui.factory_plan_cli import factory_plan
 from cellctl.ui.orders_cli import STATE_STYLE
 
 #: What a second factory controller is told.
@@ -384,3 +385,6 @@ def emulate_factory(
             console.print("emulated factory stopped")
 
     run(main)
+
+
+factory.add_command(factory_plan)

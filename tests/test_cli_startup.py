@@ -136,12 +136,14 @@ def test_the_registry_reads_every_kind_without_its_driver_or_emulator(tmp_path: 
     )
     done, modules = _imported(tmp_path, code)
     assert done.returncode == 0, done.stderr[-2000:]
-    shipped = ("ibm7545", "ibm7547", "dyna2400", "iso-cnc", "ur")
+    shipped = ("ibm7545", "ibm7547", "dyna2400", "iso-cnc", "ur", "kerf100")
     assert all(f"{name}:" in done.stdout for name in shipped), done.stdout
+    # The shipped kinds' and the example plug-in's (tests/plugins/cellctl_saw).
     loaded = sorted(
         m
         for m in modules
-        if m.startswith("cellctl.kinds.") and m.split(".")[-1] in ("driver", "emulator")
+        if m.startswith(("cellctl.kinds.", "cellctl_saw."))
+        and m.split(".")[-1] in ("driver", "emulator")
     )
     assert not loaded, f"the registry imported {loaded}"
 

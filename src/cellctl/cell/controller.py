@@ -40,8 +40,8 @@ from typing import Any
 
 from cellctl.cell.causes import Cause, blame, link_cause
 from cellctl.cell.commands import OperatorCommands
-from cellctl.cell.config import CONVEYOR, CellConfig, MachineConfig, transfer_ends
-from cellctl.cell.journal import Journal, Part
+from cellctl.cell.config import CONVEYOR, CellConfig, MachineConfig
+from cellctl.cell.journal import Journal
 from cellctl.cell.machines import open_machine
 from cellctl.cell.model import (
     DEFAULT_DONE_OUTPUT,
@@ -57,7 +57,8 @@ from cellctl.cell.orders import OrderBox, ReportKind
 from cellctl.cell.physics import physical_durations
 from cellctl.cell.recovery import Recovery
 from cellctl.cell.robotsteps import INTERLOCK_POLL_S, RobotSteps
-from cellctl.cell.scheduler import SHORTEST_FIRST, PartState, next_transfer, ready_to_leave
+from cellctl.cell.scheduler import SHORTEST_FIRST
+from cellctl.cell.workview import WorkView
 from cellctl.clock import Clock, current_clock
 from cellctl.drivers.plc import ModbusPlc
 from cellctl.drivers.state import StateStore
@@ -108,6 +109,7 @@ class CellController(OperatorCommands):
         self.recovery = Recovery(world=self, alarms=self, links=self)
         self.monitor = Monitor(world=self, alarms=self, plc=self, recovery=self.recovery)
         self.orderflow = OrderFlow(world=self, alarms=self)
+        self.workview = WorkView(world=self, alarms=self, orderflow=self.orderflow)
         self.robotsteps = RobotSteps(
             world=self, alarms=self, plc=self, monitor=self.monitor, recovery=self.recovery
         )
@@ -180,6 +182,8 @@ class CellController(OperatorCommands):
             self._unreturned = {
                 (a.machine, a.code) for a in self.journal.active_alarms() if a.returned is None
             }
+        if not self._unreturned:
+            return  # nothing open to return: the monitor's usual look costs nothing
         watched = [code for code in codes if (machine, code) in self._unreturned]
         if not watched:
             return
@@ -226,7 +230,10 @@ class CellController(OperatorCommands):
 
     def plc_view(self) -> MachineView:
         """The PLC's line in the live view (added on the first poll)."""
-        return self.machines.setdefault("plc", MachineView("plc", "plc"))
+        view = self.machines.get("plc")
+        if view is None:
+            view = self.machines["plc"] = MachineView("plc", "plc")
+        return view
 
     # -- connecting -------------------------------------------------------------------------------
 
@@ -372,73 +379,16 @@ class CellController(OperatorCommands):
 
     # -- dispatch ---------------------------------------------------------------------------------
 
-    def _part_states(self) -> tuple[list[PartState], list[Part]]:
-        orders = {o.id: o for o in self.mailbox.orders()}
-        parts = self.journal.parts(statuses=["waiting", "active", "held"])
-        states = []
-        for p in parts:
-            order = orders.get(p.order_id)
-            route_index = p.route_index
-            route = self.config.parts[p.part_type].route
-            # A step the operator accepted after an interruption counts as done. The journal
-            # says so at once: every later step (and the next transfer) starts from the
-            # advanced index, also once the part has left this mill.
-            if (
-                p.status == "waiting"
-                and route_index < len(route)
-                and p.location == route[route_index].mill
-                and self.journal.step_done(
-                    p.id, "machine", p.location, route[route_index].name, route_index
-                )
-            ):
-                route_index += 1
-                self.journal.move_part(p.id, p.location, route_index)
-                self.log(f"part {p.id}: {route[route_index - 1].name} accepted by the operator")
-            states.append(
-                PartState(
-                    p.id,
-                    p.part_type,
-                    p.location,
-                    route_index,
-                    p.status,
-                    priority=order.priority if order else 0,
-                    order_seq=int(order.created * 1e6) if order else 0,
-                )
-            )
-        return states, parts
-
-    def _blocked_locations(self, parts: list[Part]) -> set[str]:
-        """Places a held part may physically occupy: after an interrupted transfer, both ends."""
-        blocked = set()
-        for p in parts:
-            if p.status != "held":
-                continue
-            blocked.add(p.location)
-            steps = self.journal.steps(p.id)
-            if steps and steps[-1].kind == "transfer" and steps[-1].state != "finished":
-                target = transfer_ends(steps[-1].program)[1]
-                blocked.add(target)
-        blocked.discard(CONVEYOR)
-        return blocked
-
     async def _dispatch(self) -> None:
         if not self.inputs.get("estop_ok", True):
             return  # the PLC's emergency stop: nothing starts until it is released
-        states, parts = self._part_states()
-        types = self.config.parts
+        work = self.workview.current()
         in_service = {n for n, v in self.machines.items() if v.in_service}
-        blocked = self._blocked_locations(parts)
         # Mills: a part at a mill not yet machined there is cut now.
-        for ps in states:
-            if ps.status != "waiting" or ps.location == CONVEYOR or ready_to_leave(ps, types):
-                continue
-            mill = ps.location
+        for part_id, mill in work.to_machine:
             task = self._mill_tasks.get(mill)
-            step = types[ps.part_type].route[ps.route_index]
-            if step.mill != mill:
-                continue  # not where its route says: the operator decides (never cut here)
             if mill in in_service and (task is None or task.done()) and self.recovery.usable(mill):
-                self._mill_tasks[mill] = asyncio.create_task(self._machine(ps.id, mill))
+                self._mill_tasks[mill] = asyncio.create_task(self._machine(part_id, mill))
         robot_name = self.config.robot.name
         if robot_name not in in_service:
             return
@@ -460,10 +410,9 @@ class CellController(OperatorCommands):
         outfeed = self.inputs.get("outfeed_clear", True)
         # A place a held part may occupy takes no part: it counts as out of service here; so
         # does a mill whose setup failed or whose last poll did not say ready.
-        usable_mills = (in_service - blocked - self.recovery.unusable()) | {CONVEYOR}
-        transfer = next_transfer(
-            states,
-            types,
+        usable_mills = (in_service - work.blocked - self.recovery.unusable()) | {CONVEYOR}
+        transfer = self.workview.next_transfer(
+            work,
             mills_in_service=usable_mills,
             pallet_present=pallet,
             outfeed_clear=outfeed,
@@ -471,7 +420,7 @@ class CellController(OperatorCommands):
             work_s=self._work_s(),
         )
         if transfer is None:
-            await self._request_pallet(states, pallet)
+            await self._request_pallet(work.waiting_on_conveyor, pallet)
             return
         self._robot_task = asyncio.create_task(self.robotsteps.transfer(transfer))
 
@@ -494,11 +443,10 @@ class CellController(OperatorCommands):
         self.inputs = await self.plc.read_inputs()
         return self.inputs
 
-    async def _request_pallet(self, states: list[PartState], present: bool) -> None:
+    async def _request_pallet(self, waiting: bool, present: bool) -> None:
         """Ask the conveyor for a pallet when a part waits to start and none is there."""
         if present:
             return
-        waiting = [s for s in states if s.location == CONVEYOR and s.status == "waiting"]
         if not waiting or self.plc is None:
             return
         if not self._pallet_requested and (self._pallet_pulse is None or self._pallet_pulse.done()):

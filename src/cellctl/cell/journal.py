@@ -25,21 +25,42 @@ Rules that keep a restart from losing or repeating work:
   left it in the gripper. Nothing in flight is ever restarted automatically.
 * The operator releases a held part (the step counts as done, unless ``redo_step``) or
   scraps it. :meth:`Journal.step_done` is what the controller asks before running a step.
+
+What the controller reads every round (parts, done steps, alarms, machines out of service)
+is answered from in-memory views (:mod:`cellctl.cell.journalview`) that this journal's writes
+keep current once committed and that are read again from the file after any other
+connection commits: never an answer the file would not give.
 """
 
 from __future__ import annotations
 
 import sqlite3
 from collections.abc import Iterable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
 
 from cellctl.cell.causes import PRIORITIES, priority_of
+from cellctl.cell.journalrecords import Alarm, Part, RecoveryReport, Step
+from cellctl.cell.journalview import JournalViews
 from cellctl.cell.orders import OrderLike
 from cellctl.cell.sqlitedb import SqliteStore
 from cellctl.clock import Clock, current_clock
 from cellctl.errors import UsageError
+
+__all__ = [
+    "JOURNAL_FILE",
+    "LOCATIONS",
+    "PART_STATUSES",
+    "RESOLUTIONS",
+    "STEP_KINDS",
+    "STEP_STATES",
+    "Alarm",
+    "Journal",
+    "Part",
+    "RecoveryReport",
+    "Step",
+    "open_journal",
+]
 
 #: The journal's file name inside the cell directory.
 JOURNAL_FILE = "journal.sqlite3"
@@ -132,101 +153,10 @@ CREATE TABLE IF NOT EXISTS service_log (
 """
 
 
-@dataclass(frozen=True)
-class Part:
-    """One workpiece. ``route_index`` counts the route operations the controller completed;
-    ``note`` says why a part is held or scrapped."""
-
-    id: str
-    order_id: str
-    part_type: str
-    seq_in_order: int
-    route_index: int
-    location: str
-    status: str
-    updated: float
-    note: str = ""
-
-
-@dataclass(frozen=True)
-class Step:
-    """One step on one part; ``route_index`` is the part's route index when it began.
-
-    ``attempt`` counts steps with the same part, kind, machine, program and route index.
-    ``resolution`` is the operator's word on an interrupted or failed step: ``accepted``
-    (counts as done) or ``redo`` (run it again).
-    """
-
-    id: int
-    part_id: str
-    kind: str
-    machine: str
-    program: str
-    state: str
-    started: float
-    ended: float | None
-    outcome: str
-    attempt: int
-    route_index: int = 0
-    resolution: str = ""
-
-
-@dataclass(frozen=True)
-class Alarm:
-    """An alarm after ISA-18.2: ``state`` is ``active`` until the operator clears it
-    (``cleared`` time, ``cleared_by``), which ends it.
-
-    Apart from that: ``acked`` is when the operator acknowledged it (None: unacknowledged),
-    ``returned`` when its condition was last seen to go away (returned to normal; None: still
-    seen, or not a condition the monitor watches), ``shelved_until`` until when it is
-    shelved (hidden from the unacknowledged list; back once that time is past).
-    ``priority`` comes from its code (:data:`cellctl.cell.causes.ALARM_PRIORITY`).
-    """
-
-    id: int
-    raised: float
-    machine: str
-    code: str
-    text: str
-    state: str
-    cleared: float | None
-    cleared_by: str = ""
-    priority: str = "medium"
-    acked: float | None = None
-    acked_by: str = ""
-    returned: float | None = None
-    shelved_until: float | None = None
-    shelved_by: str = ""
-
-    def shelved(self, now: float) -> bool:
-        """True while the alarm is shelved at ``now``."""
-        return self.shelved_until is not None and self.shelved_until > now
-
-    def unacked(self, now: float) -> bool:
-        """True if the alarm is open, unacknowledged and not shelved at ``now``: what a
-        control room shows flashing."""
-        return self.state == "active" and self.acked is None and not self.shelved(now)
-
-
-@dataclass(frozen=True)
-class RecoveryReport:
-    """What :meth:`Journal.recover` did: steps it marked interrupted, parts it held.
-
-    Each held part's ``note`` says why; post a ``part-held`` report and an alarm for each.
-    """
-
-    interrupted: list[Step] = field(default_factory=list)
-    held: list[Part] = field(default_factory=list)
-
-    @property
-    def clean(self) -> bool:
-        """True when nothing was in flight: the last run ended cleanly."""
-        return not self.interrupted
-
-
-def open_journal(cell_dir: Path, *, clock: Clock | None = None) -> Journal:
-    """Open (creating if needed) ``<cell_dir>/journal.sqlite3``."""
-    return Journal(Path(cell_dir) / JOURNAL_FILE, clock=clock)
+def open_journal(cell_dir: Path, *, clock: Clock | None = None, durable: bool = True) -> Journal:
+    """Open (creating if needed) ``<cell_dir>/journal.sqlite3`` (``durable=False``: a
+    throwaway copy, e.g. a plan's, whose commits do not wait for the disk)."""
+    return Journal(Path(cell_dir) / JOURNAL_FILE, clock=clock, durable=durable)
 
 
 class Journal(SqliteStore):
@@ -237,9 +167,10 @@ class Journal(SqliteStore):
     ``now()``; None: the running loop's clock, read when a time is recorded).
     """
 
-    def __init__(self, path: Path, *, clock: Clock | None = None) -> None:
-        super().__init__(path, SCHEMA)
+    def __init__(self, path: Path, *, clock: Clock | None = None, durable: bool = True) -> None:
+        super().__init__(path, SCHEMA, durable=durable)
         self._clock = clock
+        self._views = JournalViews()
         self._migrate_alarms()
 
     @property
@@ -249,6 +180,44 @@ class Journal(SqliteStore):
 
     def _now(self) -> float:
         return self.clock.now()
+
+    def _load_views(self, db: sqlite3.Connection) -> None:
+        views = JournalViews()
+        for r in db.execute("SELECT rowid AS rank, * FROM parts ORDER BY rowid"):
+            views.part(_part(r), r["rank"])
+        for r in db.execute(
+            "SELECT * FROM steps WHERE state = 'finished' OR resolution = 'accepted'"
+        ):
+            views.step(_step(r))
+        for r in db.execute("SELECT * FROM alarms ORDER BY id"):
+            views.alarm(_alarm(r))
+        for r in db.execute("SELECT name, in_service, reason FROM machines"):
+            views.machine(r["name"], bool(r["in_service"]), r["reason"])
+        self._views = views
+
+    def _viewed(self) -> JournalViews:
+        """The views, current (hold ``self._lock``)."""
+        self._views_current()
+        return self._views
+
+    def _keep_part(self, part: Part, rank: int | None = None) -> Part:
+        def apply() -> None:
+            if not self._views.part(part, rank):
+                self._views_at = None  # made by another connection: read everything again
+
+        self._after_commit(apply)
+        return part
+
+    def _keep_step(self, step: Step) -> Step:
+        self._after_commit(lambda: self._views.step(step))
+        return step
+
+    def _keep_alarm(self, alarm: Alarm) -> Alarm:
+        self._after_commit(lambda: self._views.alarm(alarm))
+        return alarm
+
+    def _update(self, db: sqlite3.Connection, part: Part, now: float, **changes: Any) -> Part:
+        return self._keep_part(_update_part(db, part, now, **changes))
 
     def _migrate_alarms(self) -> None:
         """Add the alarm columns a journal from before alarm states lacks (idempotent)."""
@@ -294,29 +263,26 @@ class Journal(SqliteStore):
                     for p in parts
                 ],
             )
-        return parts
+            rows = db.execute(
+                "SELECT rowid AS rank, * FROM parts WHERE order_id = ? ORDER BY rowid",
+                (order.id,),
+            ).fetchall()
+            return [self._keep_part(_part(r), r["rank"]) for r in rows]
 
     def parts(
         self, statuses: Iterable[str] | None = None, order_id: str | None = None
     ) -> list[Part]:
         """Parts in creation order, only those in ``statuses`` / of ``order_id`` if given."""
-        sql = "SELECT * FROM parts WHERE 1"
-        args: list[str] = []
-        if statuses is not None:
-            wanted = list(statuses)
-            sql += f" AND status IN ({', '.join('?' for _ in wanted)})" if wanted else " AND 0"
-            args += wanted
-        if order_id is not None:
-            sql += " AND order_id = ?"
-            args.append(order_id)
-        return [_part(r) for r in self._read(sql + " ORDER BY rowid", args)]
+        with self._lock:
+            return self._viewed().select_parts(statuses, order_id)
 
     def get_part(self, part_id: str) -> Part:
         """The part ``part_id``."""
-        rows = self._read("SELECT * FROM parts WHERE id = ?", (part_id,))
-        if not rows:
+        with self._lock:
+            part = self._viewed().parts.get(part_id)
+        if part is None:
             raise UsageError(f"no part {part_id!r}")
-        return _part(rows[0])
+        return part
 
     def move_part(self, part_id: str, location: str, route_index: int | None = None) -> Part:
         """Record that a waiting or active part is now at ``location`` (and ``route_index``).
@@ -328,7 +294,7 @@ class Journal(SqliteStore):
             part = _get_part(db, part_id)
             _require(part, ("waiting", "active"), "be moved")
             new_index = part.route_index if route_index is None else route_index
-            return _update_part(db, part, self._now(), location=location, route_index=new_index)
+            return self._update(db, part, self._now(), location=location, route_index=new_index)
 
     def hold_part(self, part_id: str, reason: str) -> Part:
         """Hold a waiting part for the operator (already held: changes nothing).
@@ -342,7 +308,7 @@ class Journal(SqliteStore):
             if part.status == "active":
                 raise UsageError(f"part {part_id} has a step in flight: end it with hold=")
             _require(part, ("waiting",), "be held")
-            return _update_part(db, part, self._now(), status="held", note=reason)
+            return self._update(db, part, self._now(), status="held", note=reason)
 
     def release_part(
         self, part_id: str, redo_step: bool = False, location: str | None = None
@@ -371,7 +337,8 @@ class Journal(SqliteStore):
                     "UPDATE steps SET resolution = ? WHERE id = ?",
                     ("redo" if redo_step else "accepted", step.id),
                 )
-            return _update_part(
+                self._keep_step(_get_step(db, step.id))
+            return self._update(
                 db,
                 part,
                 self._now(),
@@ -388,7 +355,7 @@ class Journal(SqliteStore):
             if part.status == "scrapped":
                 return part
             _require(part, ("waiting", "held"), "be scrapped")
-            return _update_part(
+            return self._update(
                 db, part, self._now(), status="scrapped", note=reason, held_step=None
             )
 
@@ -414,7 +381,7 @@ class Journal(SqliteStore):
                 )
             now = self._now()
             return [
-                _update_part(db, p, now, status="cancelled", note="order cancelled") for p in parts
+                self._update(db, p, now, status="cancelled", note="order cancelled") for p in parts
             ]
 
     def finish_part(self, part_id: str) -> Part:
@@ -424,7 +391,7 @@ class Journal(SqliteStore):
             if part.status == "done":
                 return part
             _require(part, ("waiting",), "be finished")
-            return _update_part(db, part, self._now(), status="done", note="")
+            return self._update(db, part, self._now(), status="done", note="")
 
     # -- steps -------------------------------------------------------------------------------
 
@@ -449,7 +416,7 @@ class Journal(SqliteStore):
                 " started, attempt) VALUES (?, ?, ?, ?, ?, 'started', ?, ?)",
                 (part_id, kind, machine, program, part.route_index, now, earlier + 1),
             )
-            _update_part(db, part, now, status="active")
+            self._update(db, part, now, status="active")
             step_id = cur.lastrowid
         assert step_id is not None
         return Step(
@@ -505,8 +472,8 @@ class Journal(SqliteStore):
                 changes["location"] = location
             if route_index is not None:
                 changes["route_index"] = route_index
-            _update_part(db, part, now, **changes)
-            return _get_step(db, step_id)
+            self._update(db, part, now, **changes)
+            return self._keep_step(_get_step(db, step_id))
 
     def open_steps(self) -> list[Step]:
         """Steps started and never ended: while running, those in flight; after a crash,
@@ -525,12 +492,8 @@ class Journal(SqliteStore):
     ) -> bool:
         """Whether this step needs no running: it finished, or the operator accepted it
         (released its part without ``redo_step`` after it was interrupted or failed)."""
-        rows = self._read(
-            "SELECT 1 FROM steps WHERE part_id = ? AND kind = ? AND machine = ? AND program = ?"
-            " AND route_index = ? AND (state = 'finished' OR resolution = 'accepted') LIMIT 1",
-            (part_id, kind, machine, program, route_index),
-        )
-        return bool(rows)
+        with self._lock:
+            return self._viewed().step_done((part_id, kind, machine, program, route_index))
 
     def recover(self) -> RecoveryReport:
         """Call once at start, before anything else: settle what a crash left in flight.
@@ -562,7 +525,7 @@ class Journal(SqliteStore):
                 if part.status in ("done", "scrapped"):
                     continue
                 held.append(
-                    _update_part(db, part, now, status="held", note=reason, held_step=step.id)
+                    self._update(db, part, now, status="held", note=reason, held_step=step.id)
                 )
         return RecoveryReport(interrupted, held)
 
@@ -590,7 +553,7 @@ class Journal(SqliteStore):
             )
             alarm_id = cur.lastrowid
             assert alarm_id is not None
-            return _get_alarm(db, alarm_id), True
+            return self._keep_alarm(_get_alarm(db, alarm_id)), True
 
     def reactivate(self, alarm_id: int) -> Alarm:
         """The condition of open alarm ``alarm_id`` is seen again after it returned to
@@ -606,7 +569,7 @@ class Journal(SqliteStore):
             "UPDATE alarms SET returned = NULL, acked = NULL, acked_by = '' WHERE id = ?",
             (alarm_id,),
         )
-        return _get_alarm(db, alarm_id)
+        return self._keep_alarm(_get_alarm(db, alarm_id))
 
     def ack_alarm(self, alarm_id: int, by: str = "operator") -> Alarm:
         """Acknowledge an alarm: the operator has seen it (it stays open until cleared).
@@ -619,7 +582,7 @@ class Journal(SqliteStore):
                 "UPDATE alarms SET acked = ?, acked_by = ? WHERE id = ?",
                 (self._now(), by, alarm_id),
             )
-            return _get_alarm(db, alarm_id)
+            return self._keep_alarm(_get_alarm(db, alarm_id))
 
     def shelve_alarm(self, alarm_id: int, seconds: float, by: str = "operator") -> Alarm:
         """Shelve an open alarm for ``seconds`` (0 < seconds <= :data:`MAX_SHELVE`): not shown
@@ -636,7 +599,7 @@ class Journal(SqliteStore):
                 "UPDATE alarms SET shelved_until = ?, shelved_by = ? WHERE id = ?",
                 (self._now() + seconds, by, alarm_id),
             )
-            return _get_alarm(db, alarm_id)
+            return self._keep_alarm(_get_alarm(db, alarm_id))
 
     def return_to_normal(self, machine: str, codes: Iterable[str]) -> list[Alarm]:
         """The condition behind ``machine``'s open alarms with these codes is gone: mark them
@@ -654,7 +617,7 @@ class Journal(SqliteStore):
             ids = [r["id"] for r in db.execute(query, (machine, *codes))]
             now = self._now()
             db.executemany("UPDATE alarms SET returned = ? WHERE id = ?", [(now, i) for i in ids])
-            return [_get_alarm(db, i) for i in ids]
+            return [self._keep_alarm(_get_alarm(db, i)) for i in ids]
 
     def clear_alarm(self, alarm_id: int, by: str = "operator") -> Alarm:
         """Clear an alarm: the operator's action that ends it (acknowledging it too, if it
@@ -670,24 +633,25 @@ class Journal(SqliteStore):
                 " acked_by = CASE WHEN acked IS NULL THEN ? ELSE acked_by END WHERE id = ?",
                 (now, by, now, by, alarm_id),
             )
-            return _get_alarm(db, alarm_id)
+            return self._keep_alarm(_get_alarm(db, alarm_id))
 
     def get_alarm(self, alarm_id: int) -> Alarm:
         """The alarm ``alarm_id``."""
-        rows = self._read("SELECT * FROM alarms WHERE id = ?", (alarm_id,))
-        if not rows:
+        with self._lock:
+            alarm = self._viewed().alarms.get(alarm_id)
+        if alarm is None:
             raise UsageError(f"no alarm {alarm_id}")
-        return _alarm(rows[0])
+        return alarm
 
     def active_alarms(self) -> list[Alarm]:
         """Alarms not cleared yet, oldest first."""
-        return [
-            _alarm(r) for r in self._read("SELECT * FROM alarms WHERE state = 'active' ORDER BY id")
-        ]
+        with self._lock:
+            return self._viewed().active_alarms()
 
     def alarms(self) -> list[Alarm]:
         """Every alarm, oldest first."""
-        return [_alarm(r) for r in self._read("SELECT * FROM alarms ORDER BY id")]
+        with self._lock:
+            return list(self._viewed().alarms.values())
 
     def alarm_history(
         self,
@@ -734,11 +698,12 @@ class Journal(SqliteStore):
                 "INSERT INTO service_log (time, name, in_service, reason) VALUES (?, ?, ?, ?)",
                 (now, name, int(in_service), reason),
             )
+            self._after_commit(lambda: self._views.machine(name, in_service, reason))
 
     def machines_out_of_service(self) -> dict[str, str]:
         """``machine name -> reason`` for every machine out of service."""
-        rows = self._read("SELECT name, reason FROM machines WHERE in_service = 0 ORDER BY name")
-        return {r["name"]: r["reason"] for r in rows}
+        with self._lock:
+            return self._viewed().out_of_service()
 
     def service_log(self) -> list[tuple[float, str, bool, str]]:
         """Every change of a machine's service, oldest first: ``(time, name, in_service,

@@ -11,6 +11,7 @@ owns one and hands it the world model and its log (:mod:`cellctl.cell.ports`)::
 
 from __future__ import annotations
 
+from collections.abc import Hashable
 from typing import TYPE_CHECKING
 
 from cellctl.cell.commands import OPERATOR_OUT
@@ -29,9 +30,30 @@ class OrderFlow:
     def __init__(self, world: WorldModel, alarms: AlarmSink) -> None:
         self.world = world
         self.log = alarms.log
+        self._synced: Hashable = None  # what sync_operator last worked from
+        self._taken: Hashable = None  # the mailbox's version intake last looked at
+        self._closed: tuple[Hashable, bool] | None = None  # all_orders_closed, and when
+
+    def version(self) -> Hashable:
+        """Changes whenever the journal or the mailbox may have changed (None: a mailbox
+        that cannot say, so always): what is worked out from both alone is worked out
+        again only when this changed."""
+        mailbox_version = getattr(self.world.mailbox, "version", None)
+        if mailbox_version is None:
+            return None
+        return (self.world.journal.version, mailbox_version)
 
     def all_orders_closed(self) -> bool:
-        """True when no order is open, or every open one waits for the operator."""
+        """True when no order is open, or every open one waits for the operator (worked
+        out again only once the journal or the mailbox changed)."""
+        version = self.version()
+        if version is not None and self._closed is not None and self._closed[0] == version:
+            return self._closed[1]
+        closed = self._all_closed()
+        self._closed = (version, closed)
+        return closed
+
+    def _all_closed(self) -> bool:
         open_orders = self.world.mailbox.orders(states=["posted", "accepted", "in-progress"])
         if not open_orders:
             return True
@@ -45,8 +67,15 @@ class OrderFlow:
     # -- intake: orders into parts ---------------------------------------------------------------
 
     def intake(self) -> None:
-        """Accepted orders become parts in the journal; unknown part types are refused."""
+        """Accepted orders become parts in the journal; unknown part types are refused.
+
+        Only orders posted since the last look can need it: with the mailbox unchanged since
+        then, there is nothing to take.
+        """
         mailbox = self.world.mailbox
+        version = getattr(mailbox, "version", None)
+        if version is not None and version == self._taken:
+            return
         for order in mailbox.pending_orders():
             if order.part_type not in self.world.config.parts:
                 mailbox.set_order_state(order.id, "failed", f"unknown part {order.part_type}")
@@ -64,10 +93,21 @@ class OrderFlow:
                 order_id=order.id,
             )
             self.log(f"order {order.id} accepted: {order.qty} x {order.part_type}")
+        # The version from before this look's own writes: the next look reads once more, and
+        # finds nothing posted.
+        self._taken = version
 
     def sync_operator(self) -> None:
         """Alarms the operator cleared put their machine back in service (not one the
-        operator took out: only the operator returns that)."""
+        operator took out: only the operator returns that).
+
+        Its answer follows from the journal, the mailbox and the machines' service alone:
+        when none of them changed since the last call, there is nothing to do.
+        """
+        version = self.version()
+        basis = (version, tuple(v.in_service for v in self.world.machines.values()))
+        if version is not None and basis == self._synced:
+            return
         out = self.world.journal.machines_out_of_service()
         active = {a.machine for a in self.world.journal.active_alarms()}
         for name, view in self.world.machines.items():
@@ -88,6 +128,7 @@ class OrderFlow:
                 self.world.journal.finish_part(p.id)
                 self.log(f"part {p.id} done (released on the outfeed)")
         self._update_orders()
+        self._synced = basis  # only once all of it is done: a failure is retried
 
     def _update_orders(self) -> None:
         for order in self.world.mailbox.orders(states=["accepted", "in-progress", "held"]):

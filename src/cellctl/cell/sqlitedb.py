@@ -12,6 +12,12 @@ subclasses one-transaction helpers::
 Writers take the write lock up front (``BEGIN IMMEDIATE``) so a read-modify-write cannot
 interleave with another process, and wait up to ``busy_timeout`` seconds for it rather than
 failing with "database is locked".
+
+A store may keep in-memory views of what it reads often (:meth:`SqliteStore._views_current`):
+its own writes update them after they commit (:meth:`SqliteStore._after_commit`), and a
+commit by any other connection (the CLI, another process) is seen through SQLite's
+``PRAGMA data_version`` and makes them be read again from the file. The file stays the
+truth: a view only ever answers what a read of the file would have answered.
 """
 
 from __future__ import annotations
@@ -20,7 +26,7 @@ import contextlib
 import os
 import sqlite3
 import threading
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from types import TracebackType
@@ -55,9 +61,12 @@ def make_private(path: Path) -> None:
                 os.chmod(file, 0o600)
 
 
-def connect(path: Path, schema: str, busy_timeout: float = BUSY_TIMEOUT) -> sqlite3.Connection:
+def connect(
+    path: Path, schema: str, busy_timeout: float = BUSY_TIMEOUT, *, durable: bool = True
+) -> sqlite3.Connection:
     """Open ``path`` (private: 0600) in WAL mode, autocommit, ``synchronous=FULL``, and create
-    ``schema``."""
+    ``schema``. ``durable=False``: ``synchronous=OFF``, no commit waits for the disk, for a
+    throwaway copy (a plan's) that nothing reads after a crash."""
     path.parent.mkdir(parents=True, exist_ok=True)
     make_private(path)
     # isolation_level=None: no implicit transactions; each method says BEGIN itself.
@@ -68,7 +77,7 @@ def connect(path: Path, schema: str, busy_timeout: float = BUSY_TIMEOUT) -> sqli
     conn.execute(f"PRAGMA busy_timeout = {int(busy_timeout * 1000)}")
     conn.execute("PRAGMA journal_mode = WAL")
     # FULL: in WAL mode NORMAL may lose the last commits on power loss; FULL syncs each one.
-    conn.execute("PRAGMA synchronous = FULL")
+    conn.execute(f"PRAGMA synchronous = {'FULL' if durable else 'OFF'}")
     conn.execute("BEGIN IMMEDIATE")
     try:
         for statement in schema.split(";"):
@@ -83,13 +92,21 @@ def connect(path: Path, schema: str, busy_timeout: float = BUSY_TIMEOUT) -> sqli
 
 
 class SqliteStore:
-    """One SQLite file with a schema; use as a context manager or call :meth:`close`."""
+    """One SQLite file with a schema; use as a context manager or call :meth:`close`.
 
-    def __init__(self, path: Path, schema: str) -> None:
+    ``durable=False`` only for a throwaway copy (see :func:`connect`)."""
+
+    def __init__(self, path: Path, schema: str, *, durable: bool = True) -> None:
         self.path = Path(path)
-        self._conn = connect(self.path, schema)
+        self._conn = connect(self.path, schema, durable=durable)
         # One connection, possibly used from worker threads: one transaction at a time.
         self._lock = threading.Lock()
+        self._probe = self._conn.cursor()  # for PRAGMA data_version, asked every round
+        # Commits of this connection, and the data_version the in-memory views were read
+        # at (None: no views, or they must be read again).
+        self._writes = 0
+        self._views_at: int | None = None
+        self._staged: list[Callable[[], None]] = []
 
     @contextmanager
     def _write(self) -> Iterator[sqlite3.Connection]:
@@ -98,13 +115,55 @@ class SqliteStore:
             try:
                 yield self._conn
             except BaseException:
+                self._staged.clear()
                 self._conn.execute("ROLLBACK")
                 raise
-            self._conn.execute("COMMIT")
+            try:
+                self._conn.execute("COMMIT")
+            except BaseException:
+                # Whether it is on disk is unknown: the views are read again from the file.
+                self._staged.clear()
+                self._views_at = None
+                raise
+            self._writes += 1
+            staged, self._staged = self._staged, []
+            for apply in staged:
+                apply()
+
+    def _after_commit(self, apply: Callable[[], None]) -> None:
+        """Inside :meth:`_write`: update the views with ``apply`` once the transaction has
+        committed (never, if it rolls back). Without views loaded, nothing to update."""
+        if self._views_at is not None:
+            self._staged.append(apply)
 
     def _read(self, sql: str, args: Iterable[Any] = ()) -> list[sqlite3.Row]:
         with self._lock:
             return self._conn.execute(sql, tuple(args)).fetchall()
+
+    def _data_version(self) -> int:
+        # Changes whenever another connection committed; never for this one's commits.
+        return int(self._probe.execute("PRAGMA data_version").fetchone()[0])
+
+    def _views_current(self) -> None:
+        """Hold ``self._lock`` when calling: make the views match the file, reading them
+        again (:meth:`_load_views`) if they were never read or another connection committed
+        since."""
+        seen = self._data_version()
+        if seen != self._views_at:
+            # The version is read first: a commit landing during the load is seen next time.
+            self._load_views(self._conn)
+            self._views_at = seen
+
+    def _load_views(self, db: sqlite3.Connection) -> None:
+        """Read the in-memory views from the file (a subclass that keeps views says how)."""
+
+    @property
+    def version(self) -> tuple[int, int]:
+        """Changes whenever anything in the file may have changed (a commit by this store or
+        by any other connection): what is worked out from the file's contents and kept
+        needs working out again only when this differs from when it was."""
+        with self._lock:
+            return (self._data_version(), self._writes)
 
     def close(self) -> None:
         """Close the file; the store is unusable afterwards."""

@@ -4,6 +4,9 @@ Every call is one short transaction that is committed (and, with ``synchronous=F
 on disk) before the call returns. Writers take the write lock up front (``BEGIN
 IMMEDIATE``) so a read-modify-write cannot interleave with another process, and wait up to
 ``busy_timeout`` seconds for it rather than failing with "database is locked".
+
+The orders are answered from memory, read again from the file only after another connection
+(the CLI posting an order, say) committed: a controller asking every round costs no query.
 """
 
 from __future__ import annotations
@@ -58,10 +61,11 @@ CREATE TABLE IF NOT EXISTS meta (
 
 class SqliteMailbox(SqliteStore, Mailbox):
     """The default mailbox. ``SqliteMailbox(path)``; ``clock`` gives the times it records
-    (its ``now()``; None: the running loop's clock, read when a time is recorded)."""
+    (its ``now()``; None: the running loop's clock, read when a time is recorded);
+    ``durable=False`` only for a throwaway copy (see :func:`cellctl.cell.sqlitedb.connect`)."""
 
-    def __init__(self, path: Path, *, clock: Clock | None = None) -> None:
-        SqliteStore.__init__(self, path, SCHEMA)
+    def __init__(self, path: Path, *, clock: Clock | None = None, durable: bool = True) -> None:
+        SqliteStore.__init__(self, path, SCHEMA, durable=durable)
         self._clock = clock
         with self._write() as db:
             # Made once, with the file (or on the first open of a file from before epochs).
@@ -69,6 +73,28 @@ class SqliteMailbox(SqliteStore, Mailbox):
                 "INSERT OR IGNORE INTO meta (key, value) VALUES ('epoch', ?)", (uuid.uuid4().hex,)
             )
         self._epoch = str(self._read("SELECT value FROM meta WHERE key = 'epoch'")[0][0])
+        # The orders by id, each with its sort key (highest priority first, then oldest;
+        # rowid breaks ties between orders posted within the clock's resolution).
+        self._orders: dict[str, tuple[tuple[int, float, int], Order]] = {}
+        self._by_state: dict[str, set[str]] = {}
+
+    def _load_views(self, db: sqlite3.Connection) -> None:
+        self._orders, self._by_state = {}, {}
+        for row in db.execute("SELECT rowid AS rank, * FROM orders"):
+            self._keep(_order(row), row["rank"])
+
+    def _keep(self, order: Order, rank: int | None = None) -> None:
+        old = self._orders.get(order.id)
+        if old is None:
+            if rank is None:  # made by another connection: read everything again
+                self._views_at = None
+                return
+            key = (-order.priority, order.created, rank)
+        else:
+            key = old[0]
+            self._by_state[old[1].state].discard(order.id)
+        self._orders[order.id] = (key, order)
+        self._by_state.setdefault(order.state, set()).add(order.id)
 
     @property
     def clock(self) -> Clock:
@@ -91,28 +117,34 @@ class SqliteMailbox(SqliteStore, Mailbox):
             row = db.execute("SELECT * FROM orders WHERE id = ?", (oid,)).fetchone()
             if row is not None:
                 return _order(row), False
-            db.execute(
+            cur = db.execute(
                 "INSERT INTO orders (id, part_type, qty, priority, state, created, updated)"
                 " VALUES (?, ?, ?, ?, ?, ?, ?)",
                 (oid, part_type, qty, priority, POSTED, now, now),
             )
-        return Order(oid, part_type, qty, priority, POSTED, now, now), True
+            order, rank = Order(oid, part_type, qty, priority, POSTED, now, now), cur.lastrowid
+            self._after_commit(lambda: self._keep(order, rank))
+        return order, True
 
     def get_order(self, order_id: str) -> Order:
-        rows = self._read("SELECT * FROM orders WHERE id = ?", (order_id,))
-        if not rows:
+        with self._lock:
+            self._views_current()
+            kept = self._orders.get(order_id)
+        if kept is None:
             raise UsageError(f"no order {order_id!r}")
-        return _order(rows[0])
+        return kept[1]
 
     def orders(self, states: Iterable[str] | None = None) -> list[Order]:
-        sql = "SELECT * FROM orders"
-        args: list[str] = []
-        if states is not None:
-            args = list(states)
-            sql += f" WHERE state IN ({', '.join('?' for _ in args)})" if args else " WHERE 0"
-        # rowid breaks ties between orders posted within the clock's resolution.
-        sql += " ORDER BY priority DESC, created ASC, rowid ASC"
-        return [_order(r) for r in self._read(sql, args)]
+        with self._lock:
+            self._views_current()
+            if states is None:
+                chosen = list(self._orders.values())
+            else:
+                ids: set[str] = set()
+                for state in set(states):
+                    ids |= self._by_state.get(state, set())
+                chosen = [self._orders[i] for i in ids]
+        return [order for _, order in sorted(chosen, key=lambda kept: kept[0])]
 
     def set_order_state(self, order_id: str, state: str, note: str = "") -> Order:
         with self._write() as db:
@@ -129,16 +161,18 @@ class SqliteMailbox(SqliteStore, Mailbox):
                 "UPDATE orders SET state = ?, updated = ?, note = ? WHERE id = ?",
                 (state, now, new_note, order_id),
             )
-        return Order(
-            order.id,
-            order.part_type,
-            order.qty,
-            order.priority,
-            state,
-            order.created,
-            now,
-            new_note,
-        )
+            changed = Order(
+                order.id,
+                order.part_type,
+                order.qty,
+                order.priority,
+                state,
+                order.created,
+                now,
+                new_note,
+            )
+            self._after_commit(lambda: self._keep(changed))
+        return changed
 
     def post_report(
         self,

@@ -229,8 +229,8 @@ async def _play(inputs: PlanInputs, cell_dir: Path) -> tuple[float, dict[str, fl
     clock = current_clock()
     cell = EmulatedCell(time_scale=1.0, links="mem", template=inputs.cell_dir)
     await cell.start(cell_dir)
-    journal = open_journal(cell_dir, clock=clock)
-    mailbox = SqliteMailbox(cell_dir / MAILBOX_FILE, clock=clock)
+    journal = open_journal(cell_dir, clock=clock, durable=False)
+    mailbox = SqliteMailbox(cell_dir / MAILBOX_FILE, clock=clock, durable=False)
     controller: CellController | None = None
     try:
         _post(inputs, journal, mailbox, cell)

@@ -1,5 +1,9 @@
 """Bad input on the command line: a one-line reason and exit 2, never a traceback, nothing sent;
-and the frictions a new user met. Each case is a defect seen in the field."""
+and the frictions a new user met. Each case is a defect seen in the field.
+
+A refusal is checked on the real command line in this process (click's runner: the exit
+code the shell gets, stdout and stderr apart); what depends on the process (its working
+directory) runs ``cellctl`` as a process of its own."""
 
 from __future__ import annotations
 
@@ -9,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from click.testing import CliRunner
+from click.testing import CliRunner, Result
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -20,20 +24,27 @@ from .conftest import CELLCTL, emulator_process
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def cellctl(*args: str, cwd: Path | None = None, env: dict[str, str] | None = None) -> Any:
+def cellctl(*args: str) -> Result:
+    """``cellctl ARGS`` on the real command line, in this process."""
+    return CliRunner().invoke(main, list(args))
+
+
+def cellctl_process(*args: str, cwd: Path, env: dict[str, str]) -> Any:
+    """``cellctl ARGS`` in a process of its own, in ``cwd``."""
     return subprocess.run(
         [*CELLCTL, *args],
         capture_output=True,
         text=True,
         timeout=60,
         cwd=cwd,
-        env={**os.environ, **(env or {})},
+        env={**os.environ, **env},
     )
 
 
-def one_line_refusal(result: subprocess.CompletedProcess[str], code: int = 2) -> str:
-    assert result.returncode == code, (result.returncode, result.stdout, result.stderr)
-    assert "Traceback" not in result.stderr + result.stdout
+def one_line_refusal(result: Result, code: int = 2) -> str:
+    assert result.exit_code == code, (result.exit_code, result.stdout, result.stderr)
+    # An exit with its code, never an exception out of the command (a traceback).
+    assert isinstance(result.exception, SystemExit), result.exception
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert 1 <= len(lines) <= 3, result.stderr
     return result.stderr
@@ -49,7 +60,7 @@ def compiled(tmp_path: Path) -> Path:
         "-o",
         str(rec),
     )
-    assert done.returncode == 0, done.stderr
+    assert done.exit_code == 0, done.stderr
     return rec
 
 
@@ -131,7 +142,7 @@ def test_no_cell_toml_says_so(tmp_path: Path) -> None:
 def test_a_link_command_leaves_no_state_in_the_working_directory(tmp_path: Path) -> None:
     with emulator_process("robot", "--listen", "pty", "--time-scale", "500", "--no-pacing") as url:
         home = tmp_path / "state-home"
-        result = cellctl(
+        result = cellctl_process(
             "robot", "--link", url, "init", cwd=tmp_path, env={"XDG_STATE_HOME": str(home)}
         )
     assert result.returncode == 0, result.stderr

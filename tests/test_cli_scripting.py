@@ -1,6 +1,7 @@
-"""The CLI as a script and a new user meet it: a real ``cellctl`` process, stdout a pipe,
-COLUMNS=80. Orders need a cell, ``--cell`` goes before or after the command, listings print
-JSON and whole ids, and every acting API method has its command."""
+"""The CLI as a script and a new user meet it: orders need a cell, ``--cell`` goes before or
+after the command, listings print JSON and whole ids (a real ``cellctl`` process, stdout a
+pipe, COLUMNS=80: what a pipe gets depends on the process), and every acting API method has
+its command. What is parsing and refusals runs the real command line in this process."""
 
 from __future__ import annotations
 
@@ -13,14 +14,14 @@ from pathlib import Path
 
 import click
 import pytest
-from click.testing import CliRunner
+from click.testing import CliRunner, Result
 
 from cellctl.kinds import registry
 from cellctl.mailbox import open_mailbox
 from cellctl.service.functions import FUNCTIONS, kind_menu
 from cellctl.service.methods import METHODS
 from cellctl.ui.cli import main
-from cellctl.ui.common import clause_summary
+from cellctl.ui.common import clause_summary, subcommands
 from cellctl.ui.dashboard.routes import DASHBOARD_METHODS
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -64,6 +65,11 @@ def cellctl(
     )
 
 
+def cli(*args: str) -> Result:
+    """``cellctl ARGS`` on the real command line in this process (CELLCTL_CELL unset)."""
+    return CliRunner().invoke(main, list(args), env={"CELLCTL_CELL": None})
+
+
 @pytest.fixture
 def cell(tmp_path: Path) -> Path:
     directory = tmp_path / "cell-with-a-rather-long-directory-name"
@@ -72,9 +78,12 @@ def cell(tmp_path: Path) -> Path:
     return directory
 
 
-def test_submit_without_a_cell_is_refused_and_says_where_it_looked(tmp_path: Path) -> None:
-    done = cellctl(tmp_path, "submit", "wax-robot-base")
-    assert done.returncode == 2, done.stdout + done.stderr
+def test_submit_without_a_cell_is_refused_and_says_where_it_looked(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)  # the default cell is ./cell
+    done = cli("submit", "wax-robot-base")
+    assert done.exit_code == 2, done.stdout + done.stderr
     assert "posted" not in done.stdout
     assert str(tmp_path / "cell") in done.stderr.replace("\n", "")
     assert "--cell DIR" in done.stderr and "CELLCTL_CELL" in done.stderr
@@ -82,29 +91,27 @@ def test_submit_without_a_cell_is_refused_and_says_where_it_looked(tmp_path: Pat
 
 
 def test_cell_goes_before_or_after_the_command(cell: Path, tmp_path: Path) -> None:
-    posted = cellctl(
-        tmp_path, "submit", "wax-robot-base-with-a-long-name", "--id", "A1", "--cell", str(cell)
-    )
-    assert posted.returncode == 0, posted.stderr
-    before = cellctl(tmp_path, "--cell", str(cell), "orders", "--json")
-    after = cellctl(tmp_path, "orders", "--json", "--cell", str(cell))
-    assert before.returncode == after.returncode == 0, before.stderr + after.stderr
+    posted = cli("submit", "wax-robot-base-with-a-long-name", "--id", "A1", "--cell", str(cell))
+    assert posted.exit_code == 0, posted.stderr
+    before = cli("--cell", str(cell), "orders", "--json")
+    after = cli("orders", "--json", "--cell", str(cell))
+    assert before.exit_code == after.exit_code == 0, before.stderr + after.stderr
     assert json.loads(before.stdout) == json.loads(after.stdout)
     assert [o["id"] for o in json.loads(after.stdout)] == ["A1"]
-    both = cellctl(tmp_path, "--cell", str(cell), "orders", "--cell", str(tmp_path / "other"))
-    assert both.returncode == 2 and "--cell given twice" in both.stderr
+    both = cli("--cell", str(cell), "orders", "--cell", str(tmp_path / "other"))
+    assert both.exit_code == 2 and "--cell given twice" in both.stderr
 
 
 def test_cancel_an_order_that_has_not_started(cell: Path) -> None:
     with open_mailbox(cell) as mailbox:
         mailbox.post_order("wax-robot-base-with-a-long-name", 1, order_id="C1")
-    done = cellctl(cell.parent, "--cell", str(cell), "cancel", "C1")
-    assert done.returncode == 0, done.stderr
+    done = cli("--cell", str(cell), "cancel", "C1")
+    assert done.exit_code == 0, done.stderr
     assert "order C1 cancelled" in done.stdout
     with open_mailbox(cell) as mailbox:
         assert mailbox.get_order("C1").state == "cancelled"
-    again = cellctl(cell.parent, "--cell", str(cell), "cancel", "C1")
-    assert again.returncode == 2 and "only an order that has not started" in again.stderr
+    again = cli("--cell", str(cell), "cancel", "C1")
+    assert again.exit_code == 2 and "only an order that has not started" in again.stderr
 
 
 def test_piped_listings_keep_whole_ids_on_one_line(cell: Path) -> None:
@@ -128,7 +135,7 @@ def test_piped_listings_keep_whole_ids_on_one_line(cell: Path) -> None:
 
 def _commands(group: click.Group, prefix: str = "") -> dict[str, click.Command]:
     found: dict[str, click.Command] = {}
-    for name, command in group.commands.items():
+    for name, command in subcommands(group).items():
         path = f"{prefix}{name}"
         found[path] = command
         if isinstance(command, click.Group):
@@ -162,7 +169,7 @@ def test_every_acting_api_method_has_a_cli_command() -> None:
 def _walk(command: click.Command, path: str) -> list[tuple[str, click.Command]]:
     found = [(path, command)]
     if isinstance(command, click.Group):
-        for name, sub in command.commands.items():
+        for name, sub in subcommands(command).items():
             found += _walk(sub, f"{path} {name}")
     return found
 

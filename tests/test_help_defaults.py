@@ -13,25 +13,25 @@ from cellctl.emulators.serve import CELL_TIME_SCALE, DEMO_TIME_SCALE, MACHINE_TI
 from cellctl.kinds.dyna2400.emulator import OperatorDelays
 from cellctl.link.settings import MILL_LINE
 from cellctl.ui.cli import main
+from cellctl.ui.common import subcommands
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _walk(command: click.Command, path: tuple[str, ...] = ()) -> list[tuple[str, ...]]:
-    found = [path]
+def _walk(
+    command: click.Command, path: tuple[str, ...] = ()
+) -> list[tuple[tuple[str, ...], click.Command]]:
+    """Every command under ``command`` (imported as a user's `--help` would reach it)."""
+    found = [(path, command)]
     if isinstance(command, click.Group):
-        for name, sub in command.commands.items():
+        for name, sub in subcommands(command).items():
             found += _walk(sub, (*path, name))
     return found
 
 
 def test_every_time_scale_option_says_its_default_and_the_others() -> None:
     defaults = {}
-    for path in _walk(main):
-        command = main
-        for name in path:
-            assert isinstance(command, click.Group)
-            command = command.commands[name]
+    for path, command in _walk(main):
         for param in command.params:
             if isinstance(param, click.Option) and "--time-scale" in param.opts:
                 help_text = param.help or ""

@@ -28,7 +28,8 @@ and calls these hooks.
 from __future__ import annotations
 
 import enum
-from collections.abc import Awaitable, Callable, Mapping, Sequence
+import importlib
+from collections.abc import Awaitable, Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -254,6 +255,34 @@ class MachineKind:
     async def open(self, spec: DriverSpec) -> Any:
         """Open a driver for ``spec`` (its options already checked by :meth:`checked_options`)."""
         return await self.open_driver(spec)
+
+
+class LazyTable(Mapping[str, str]):
+    """A table another module holds, imported when first read: ``faults=LazyTable(
+    "mykind.emulator:FAULTS")`` keeps the declaration (read at every start) from importing
+    the emulator."""
+
+    def __init__(self, target: str) -> None:
+        self.target = target
+        self._table: Mapping[str, str] | None = None
+
+    def _read(self) -> Mapping[str, str]:
+        if self._table is None:
+            module, _, name = self.target.partition(":")
+            self._table = getattr(importlib.import_module(module), name)
+        return self._table
+
+    def __getitem__(self, key: str) -> str:
+        return self._read()[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._read())
+
+    def __len__(self) -> int:
+        return len(self._read())
+
+    def __repr__(self) -> str:
+        return f"LazyTable({self.target!r})"
 
 
 class MachineState(enum.IntEnum):

@@ -21,8 +21,6 @@ from rich.progress import Progress, ProgressColumn
 
 from cellctl.clock import current_clock
 from cellctl.errors import UsageError
-from cellctl.service.access import LocalCell
-from cellctl.service.client import StandaloneCell, open_cell
 from cellctl.ui.common import cell_dir, err_console, machine_ref, run
 
 
@@ -63,6 +61,9 @@ def machine_call(
     directory = cell_dir(ctx)
 
     async def main() -> dict[str, Any]:
+        from cellctl.service.access import LocalCell
+        from cellctl.service.client import StandaloneCell, open_cell
+
         _, ref = machine_ref(ctx, family)
         if options:
             ref = dataclasses.replace(ref, options={**ref.options, **options})
@@ -98,6 +99,8 @@ def cell_call(ctx: click.Context, method: str, params: dict[str, Any] | None = N
     directory = cell_dir(ctx)
 
     async def main() -> Any:
+        from cellctl.service.client import open_cell
+
         async with await open_cell(directory, {}) as cell:
             return await cell.call(method, params or {})
 

@@ -10,24 +10,21 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import click
-from rich.live import Live
 
-from cellctl.cell.config import CellConfig, check_cell, load_cell
-from cellctl.cell.controller import CellController, ControllerOptions, Event
-from cellctl.cell.journal import Journal, open_journal
-from cellctl.cell.owner import acquire_controller_lock
 from cellctl.emulators.serve import CELL_TIME_SCALE, TIME_SCALE_HELP, parse_fault
 from cellctl.errors import UsageError
-from cellctl.mailbox import Mailbox, open_mailbox
-from cellctl.mailbox.mqtt import MqttBridge, MqttSettings
-from cellctl.service.access import AttachedCell
-from cellctl.service.server import ApiServer, api_limits
 from cellctl.ui.common import cell_dir, console, err_console, run, until_stopped
-from cellctl.ui.dashboard.routes import dashboard_routes
-from cellctl.ui.live_view import LiveView
 
 if TYPE_CHECKING:
+    from cellctl.cell.config import CellConfig
+    from cellctl.cell.controller import CellController, ControllerOptions, Event
+    from cellctl.cell.journal import Journal
     from cellctl.factory.opcua import OpcuaServer
+    from cellctl.mailbox import Mailbox
+    from cellctl.mailbox.mqtt import MqttBridge
+
+# The controller, the API server and the broker client are imported where the cell runs:
+# `cellctl cell check` and every `--help` load none of them (tests/test_cli_startup.py).
 
 
 @click.group("cell")
@@ -39,6 +36,8 @@ def cell_group() -> None:
 @click.pass_context
 def check(ctx: click.Context) -> None:
     """Check cell.toml and every program it names; print every problem."""
+    from cellctl.cell.config import check_cell
+
     directory = cell_dir(ctx)
     config, problems = check_cell(directory)
     for p in problems:
@@ -62,6 +61,8 @@ async def run_controller(
     stop: asyncio.Event | None = None,
 ) -> CellController:
     """Connect and run the controller of ``directory`` until stopped (or idle)."""
+    from cellctl.cell.owner import acquire_controller_lock
+
     # First: a refused controller reads and writes nothing. Held until every link is closed.
     with acquire_controller_lock(directory):
         return await _run_owned(
@@ -77,6 +78,17 @@ async def _run_owned(
     options: ControllerOptions | None,
     stop: asyncio.Event | None,
 ) -> CellController:
+    from rich.live import Live
+
+    from cellctl.cell.config import load_cell
+    from cellctl.cell.controller import CellController
+    from cellctl.cell.journal import open_journal
+    from cellctl.mailbox import open_mailbox
+    from cellctl.service.access import AttachedCell
+    from cellctl.service.server import ApiServer, api_limits
+    from cellctl.ui.dashboard.routes import dashboard_routes
+    from cellctl.ui.live_view import LiveView
+
     config = load_cell(directory)
     journal = open_journal(directory)
     mailbox = open_mailbox(directory)
@@ -152,6 +164,7 @@ def _opcua_server(config: CellConfig, controller: CellController) -> OpcuaServer
     if config.opcua is None or config.opcua.listen is None:
         return None
     from cellctl.factory.opcua import OpcuaServer
+    from cellctl.service.access import AttachedCell
 
     return OpcuaServer(AttachedCell(controller), config.opcua, name=config.name, log=controller.log)
 
@@ -160,6 +173,8 @@ def _mqtt_bridge(
     config: CellConfig, controller: CellController, mailbox: Mailbox, journal: Journal
 ) -> MqttBridge | None:
     """The MQTT side of the mailbox when ``[mailbox] url`` names a broker."""
+    from cellctl.mailbox.mqtt import MqttBridge, MqttSettings
+
     box = config.mailbox
     if box is None or box.url is None or box.credentials is None:
         return None
@@ -225,7 +240,8 @@ async def _run(directory: Path, live: bool, until_idle: bool) -> None:
     await run_controller(directory, live=live, until_idle=until_idle)
 
 
-def _emulate_cell_command() -> click.Command:
+def emulate_cell_command() -> click.Command:
+    """``cellctl emulate cell`` (made when used: its help names every kind's faults)."""
     from cellctl.emulators.cell import EmulatedCell
     from cellctl.emulators.plc import FAULTS as PLC_FAULTS
     from cellctl.kinds import registry
@@ -309,9 +325,6 @@ def _emulate_cell_command() -> click.Command:
         + ", ".join(PLC_FAULTS)
         + ". `cellctl emulate robot|mill|plc --help` says what each does.",
     )
-
-
-emulate_cell = _emulate_cell_command()
 
 
 def apply_fault(cell: object, text: str) -> None:

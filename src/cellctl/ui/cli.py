@@ -1,31 +1,98 @@
-"""The ``cellctl`` command line: ``cellctl --help`` lists the commands."""
+"""The ``cellctl`` command line: ``cellctl --help`` lists the commands.
+
+A command's module is imported when the command is used (``cellctl orders`` never imports
+the controller or the API server): each is named here with its summary for the help."""
 
 from __future__ import annotations
 
 import click
 
 from cellctl import __version__
-from cellctl.kinds import registry
-from cellctl.ui.cell_cli import cell_group, emulate_cell, run_command
-from cellctl.ui.common import CellctlGroup, accept_cell_anywhere, summarize_commands
-from cellctl.ui.console import console_command
-from cellctl.ui.dashboard import dashboard_command
-from cellctl.ui.demo import demo
-from cellctl.ui.emulate_cli import emulate
-from cellctl.ui.factory_cli import emulate_factory, factory
-from cellctl.ui.factory_plan_cli import factory_plan
-from cellctl.ui.kinds_cli import kinds_command
-from cellctl.ui.opcua_cli import opcua_group
-from cellctl.ui.orders_cli import alarm, cancel, orders, part, reports, submit
-from cellctl.ui.plan_cli import plan_command
-from cellctl.ui.plc_cli import plc
-from cellctl.ui.report_cli import report
-from cellctl.ui.service_cli import estop, machine, pause, resume, service_group, traffic
-from cellctl.ui.token_cli import audit_command, token_group
+from cellctl.ui.common import Lazy, LazyGroup, accept_cell, kind_commands
+
+#: The built-in top-level commands: name -> where it is and its summary in ``cellctl --help``
+#: (tests/test_cli_startup.py checks each summary against the command's own help).
+COMMANDS = {
+    "alarm": Lazy(
+        "cellctl.ui.orders_cli:alarm", "The cell's alarms: list, acknowledge, shelve, clear"
+    ),
+    "audit": Lazy(
+        "cellctl.ui.token_cli:audit_command", "Who did what to the cell, when, and how it ended"
+    ),
+    "cancel": Lazy(
+        "cellctl.ui.orders_cli:cancel", "Cancel order ORDER if no part of it has started"
+    ),
+    "cell": Lazy("cellctl.ui.cell_cli:cell_group", "The cell as a whole: its cell.toml"),
+    "console": Lazy(
+        "cellctl.ui.console.command:console_command", "The operator console: the source's menus"
+    ),
+    "dashboard": Lazy(
+        "cellctl.ui.dashboard.command:dashboard_command",
+        "Open the running cell's dashboard in a browser",
+    ),
+    "demo": Lazy("cellctl.ui.demo:demo", "Start an emulated cell (or a factory of them)"),
+    "emulate": Lazy(
+        "cellctl.ui.emulate_cli:emulate", "Emulated machines that speak the real bytes: serve one"
+    ),
+    "estop": Lazy(
+        "cellctl.ui.service_cli:estop",
+        "Emergency stop: stop the robot, halt the mills, raise an alarm",
+    ),
+    "factory": Lazy("cellctl.ui.factory_cli:factory", "The system controller"),
+    "kinds": Lazy(
+        "cellctl.ui.kinds_cli:kinds_command",
+        "List the machine kinds installed: family, maker and model",
+    ),
+    "machine": Lazy(
+        "cellctl.ui.service_cli:machine",
+        "A machine of the running cell: take it out of automatic service",
+    ),
+    "opcua": Lazy(
+        "cellctl.ui.opcua_cli:opcua_group", "The cell's OPC UA server ([opcua] in cell.toml)"
+    ),
+    "orders": Lazy(
+        "cellctl.ui.orders_cli:orders",
+        "List orders and their state, highest priority first, then oldest",
+    ),
+    "part": Lazy("cellctl.ui.orders_cli:part", "The cell's parts: list them"),
+    "pause": Lazy(
+        "cellctl.ui.service_cli:pause", "Let the steps in flight finish and start no new one"
+    ),
+    "plan": Lazy(
+        "cellctl.ui.plan_cli:plan_command",
+        "What the cell finishes, and when: per order against its due time",
+    ),
+    "plc": Lazy(
+        "cellctl.ui.plc_cli:plc", "The cell PLC over Modbus/TCP: sensors (inputs) and actuators"
+    ),
+    "report": Lazy("cellctl.ui.report_cli:report", "Figures from the journal: `report shift`"),
+    "reports": Lazy("cellctl.ui.orders_cli:reports", "List the reports the cell posted"),
+    "resume": Lazy(
+        "cellctl.ui.service_cli:resume",
+        "Start dispatching again after a pause or an emergency stop",
+    ),
+    "run": Lazy("cellctl.ui.cell_cli:run_command", "Run the cell controller in the foreground"),
+    "service": Lazy(
+        "cellctl.ui.service_cli:service_group",
+        "The cell's controller (`cellctl run`) as a systemd service",
+    ),
+    "submit": Lazy("cellctl.ui.orders_cli:submit", "Post an order for QTY parts of type PART"),
+    "token": Lazy(
+        "cellctl.ui.token_cli:token_group", "The control API's tokens: each with a name and a role"
+    ),
+    "traffic": Lazy(
+        "cellctl.ui.service_cli:traffic", "The last bytes on machine NAME's link, both ways"
+    ),
+}
 
 
 @click.group(
-    cls=CellctlGroup,
+    cls=LazyGroup,
+    lazy=COMMANDS,
+    # Commands the installed kinds contribute (``cellctl robot``, ``cellctl mill`` ...).
+    more=lambda: kind_commands()[""],
+    # `--cell` after a command's name too (``cellctl orders --cell mycell``).
+    prepare=lambda name, command: accept_cell(command, name),
     context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100},
 )
 @click.option(
@@ -39,49 +106,3 @@ from cellctl.ui.token_cli import audit_command, token_group
 @click.version_option(__version__, prog_name="cellctl")
 def main(cell: str) -> None:
     """cellctl: drive, emulate and run a machining cell of serial-protocol machines."""
-
-
-main.add_command(emulate)
-main.add_command(kinds_command)
-# Commands the installed kinds contribute (``cellctl robot``, ``cellctl emulate mill`` ...).
-_groups: dict[str, click.Group] = {"": main, "emulate": emulate}
-for _kind in registry.kinds():
-    try:
-        _contributed = _kind.commands() if _kind.commands is not None else []
-    except Exception as _e:  # a plug-in's CLI that fails to load: skipped, by name
-        registry.log.warning("machine kind %s: its commands skipped: %s", _kind.name, _e)
-        continue
-    for _group, _command in _contributed:
-        # A group another kind contributed (``robot``) takes this kind's commands too.
-        _target = _groups.get(_group) or main.commands.get(_group)
-        if not isinstance(_target, click.Group):
-            registry.log.warning("machine kind %s: no command group %r", _kind.name, _group)
-            continue
-        _target.add_command(_command)
-main.add_command(submit)
-main.add_command(orders)
-main.add_command(cancel)
-main.add_command(reports)
-main.add_command(report)
-main.add_command(plan_command)
-main.add_command(alarm)
-main.add_command(part)
-main.add_command(plc)
-main.add_command(cell_group)
-main.add_command(run_command)
-main.add_command(demo)
-main.add_command(console_command)
-main.add_command(dashboard_command)
-main.add_command(opcua_group)
-main.add_command(token_group)
-main.add_command(audit_command)
-main.add_command(factory)
-factory.add_command(factory_plan)
-emulate.add_command(emulate_cell)
-emulate.add_command(emulate_factory)
-for command in (pause, resume, estop, machine, traffic, service_group):
-    main.add_command(command)
-# Last, once every command is in: `--cell` after a command's name too, and summaries that
-# read whole in a group's help at 80 columns.
-accept_cell_anywhere(main)
-summarize_commands(main)

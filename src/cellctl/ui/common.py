@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import asyncio
+import functools
+import importlib
 import json
 import logging
 import signal
 import sys
-from collections.abc import Callable, Coroutine
+from collections.abc import Callable, Coroutine, Iterable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NoReturn, TypeVar
 
@@ -17,9 +20,12 @@ from rich.markup import escape
 from rich.table import Table
 
 from cellctl.errors import CellctlError, UsageError, exit_code
+from cellctl.kinds import registry
 from cellctl.service.machines import MachineRef, resolve_machine
 
 T = TypeVar("T")
+
+log = logging.getLogger(__name__)
 
 console = Console(highlight=False)
 err_console = Console(stderr=True, highlight=False)
@@ -88,6 +94,128 @@ class CellctlGroup(click.Group):
             fail(e)
 
 
+@dataclass(frozen=True)
+class Lazy:
+    """A command imported when it is used: ``"module:attribute"`` (a command, or a function
+    that makes one), and its summary for the group's help (so that ``cellctl --help`` imports
+    no command's module)."""
+
+    target: str
+    summary: str
+
+    def load(self) -> click.Command:
+        module, _, attribute = self.target.partition(":")
+        command = getattr(importlib.import_module(module), attribute)
+        if not isinstance(command, click.Command) and callable(command):
+            command = command()
+        if not isinstance(command, click.Command):
+            raise TypeError(f"{self.target} is not a click command")
+        return command
+
+
+class LazyGroup(CellctlGroup):
+    """A group whose commands are imported only when one is used: ``cellctl orders`` imports
+    the orders commands, not the controller, the API server or the broker client.
+
+    ``lazy`` names each command's module and summary; ``more`` gives further commands (the
+    installed kinds') when the group needs them all (its help) or a name it does not know;
+    ``prepare(name, command)`` finishes a command as it is loaded (``--cell`` anywhere)."""
+
+    def __init__(
+        self,
+        *args: Any,
+        lazy: Mapping[str, Lazy] | None = None,
+        more: Callable[[], Iterable[click.Command]] | None = None,
+        prepare: Callable[[str, click.Command], None] | None = None,
+        **kwargs: Any,
+    ) -> None:
+        super().__init__(*args, **kwargs)
+        self.lazy = dict(lazy or {})
+        self._more = more
+        self._prepare = prepare
+
+    def _add_more(self) -> None:
+        more, self._more = self._more, None
+        for command in more() if more is not None else ():
+            if command.name in self.commands or command.name in self.lazy:
+                log.warning("command %s given twice: the first one is used", command.name)
+                continue
+            self._added(command.name or "", command)
+
+    def _added(self, name: str, command: click.Command) -> None:
+        self.add_command(command, name)
+        if command.short_help is None and command.help:
+            command.short_help = clause_summary(command.help, self.summary_limit())
+        if isinstance(command, click.Group) and not isinstance(command, LazyGroup):
+            summarize_commands(command)
+        if self._prepare is not None:
+            self._prepare(name, command)
+
+    def summary_limit(self) -> int:
+        """How long a command's summary may be in this group's help (Click's layout: the
+        widest name and 6 columns of indent and gap, in :data:`HELP_WIDTH`)."""
+        return HELP_WIDTH - 6 - max(len(n) for n in (*self.commands, *self.lazy))
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        self._add_more()
+        return sorted({*self.commands, *self.lazy})
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        if cmd_name not in self.commands and cmd_name in self.lazy:
+            command = self.lazy[cmd_name].load()
+            if command.short_help is None:
+                command.short_help = self.lazy[cmd_name].summary
+            self._added(cmd_name, command)
+        if cmd_name not in self.commands:
+            self._add_more()
+        return self.commands.get(cmd_name)
+
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        """Click's list of commands, with a command not yet imported shown by its summary."""
+        rows = []
+        for name in self.list_commands(ctx):
+            command = self.commands.get(name)
+            if command is None:
+                rows.append((name, self.lazy[name].summary))
+            elif not command.hidden:
+                rows.append((name, command.get_short_help_str(self.summary_limit())))
+        if rows:
+            with formatter.section("Commands"):
+                formatter.write_dl(rows)
+
+
+def subcommands(group: click.Group) -> dict[str, click.Command]:
+    """Every command of ``group`` by name, imported as a user's ``--help`` reaches it (a lazy
+    group's ``commands`` holds only those loaded so far)."""
+    ctx = click.Context(group, info_name=group.name)
+    found = {name: group.get_command(ctx, name) for name in group.list_commands(ctx)}
+    return {name: command for name, command in found.items() if command is not None}
+
+
+@functools.cache
+def kind_commands() -> dict[str, list[click.Command]]:
+    """The commands the installed kinds contribute (``cellctl robot``, ``cellctl emulate
+    mill`` ...), by group: ``""`` the top level, ``"emulate"``. A kind's command for a group
+    another kind contributed (``robot``) is added to that group."""
+    found: dict[str, list[click.Command]] = {"": [], "emulate": []}
+    for kind in registry.kinds():
+        try:
+            contributed = kind.commands() if kind.commands is not None else []
+        except Exception as e:  # a plug-in's CLI that fails to load: skipped, by name
+            registry.log.warning("machine kind %s: its commands skipped: %s", kind.name, e)
+            continue
+        for group, command in contributed:
+            if group in found:
+                found[group].append(command)
+                continue
+            target = next((c for c in found[""] if c.name == group), None)
+            if not isinstance(target, click.Group):
+                registry.log.warning("machine kind %s: no command group %r", kind.name, group)
+                continue
+            target.add_command(command)
+    return found
+
+
 #: Where a command's own ``--cell`` (after the command's name) keeps its value.
 _CELL_KEY = "cellctl.cell"
 
@@ -141,23 +269,19 @@ def cell_option() -> click.Option:
     )
 
 
-def accept_cell_anywhere(group: click.Group) -> None:
-    """Give every command under ``group`` that takes the cell its own ``--cell``, so that
-    ``cellctl orders --cell mycell`` means ``cellctl --cell mycell orders``."""
-
-    def walk(command: click.Command, top: str) -> None:
-        if top in NO_CELL_COMMANDS:
-            return
-        if top == "emulate" and command.name not in ("emulate", "cell"):
-            return  # one emulated machine takes no cell; `emulate cell` writes one
-        if not any(p.name == "cell" for p in command.params):
-            command.params.append(cell_option())
-        if isinstance(command, click.Group):
-            for sub in command.commands.values():
-                walk(sub, top)
-
-    for name, command in group.commands.items():
-        walk(command, name)
+def accept_cell(command: click.Command, top: str) -> None:
+    """Give ``command`` (top-level command ``top`` or one under it) and every command under
+    it that takes the cell its own ``--cell``, so that ``cellctl orders --cell mycell`` means
+    ``cellctl --cell mycell orders``."""
+    if top in NO_CELL_COMMANDS:
+        return
+    if top == "emulate" and command.name not in ("emulate", "cell"):
+        return  # one emulated machine takes no cell; `emulate cell` writes one
+    if not any(p.name == "cell" for p in command.params):
+        command.params.append(cell_option())
+    if isinstance(command, click.Group):
+        for sub in command.commands.values():
+            accept_cell(sub, top)
 
 
 class MachineGroup(click.Group):

@@ -14,20 +14,21 @@ import contextlib
 import shlex
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
-from cellctl.cell.config import load_cell
-from cellctl.cell.controller import ControllerOptions
-from cellctl.cell.journal import Journal, open_journal
-from cellctl.cell.report import GanttRun, Summary, gantt_runs_svg, summarize, write_gantt
 from cellctl.clock import current_clock
 from cellctl.emulators.serve import DEMO_TIME_SCALE, TIME_SCALE_HELP
-from cellctl.mailbox import Mailbox, open_mailbox
-from cellctl.ui.cell_cli import run_controller
 from cellctl.ui.common import cell_dir, cell_given, console, run
-from cellctl.ui.dashboard.command import serve_dashboard_in
+
+if TYPE_CHECKING:
+    from cellctl.cell.journal import Journal
+    from cellctl.cell.report import Summary
+    from cellctl.mailbox import Mailbox
+
+# The controller, the journal and the charts are imported where the batch runs: `cellctl
+# demo --help` loads none of them.
 
 
 @click.command("demo")
@@ -127,7 +128,13 @@ async def run_batch(
 
     ``dashboard``: serve the dashboard (URL printed), and after the batch print the figures and
     keep the cell and its controller (the same one, on the same API) up until Ctrl-C."""
+    from cellctl.cell.config import load_cell
+    from cellctl.cell.controller import ControllerOptions
+    from cellctl.cell.report import summarize, write_gantt
     from cellctl.emulators.cell import EmulatedCell
+    from cellctl.mailbox import open_mailbox
+    from cellctl.ui.cell_cli import run_controller
+    from cellctl.ui.dashboard.command import serve_dashboard_in
 
     shutil.rmtree(directory, ignore_errors=True)
     cell = EmulatedCell(time_scale=time_scale, template=template)
@@ -186,6 +193,9 @@ async def _after_the_batch(
 ) -> None:
     """Once the batch is done (every order closed or waiting for the operator), print its
     figures and how to go on, while the controller keeps running."""
+    from cellctl.cell.journal import open_journal
+    from cellctl.mailbox import open_mailbox
+
     with open_journal(directory) as journal, open_mailbox(directory) as mailbox:
         while not stop.is_set() and not _batch_done(journal, mailbox):
             with contextlib.suppress(TimeoutError):
@@ -225,6 +235,8 @@ async def _demo(
     dashboard: bool = False,
     template: Path | None = None,
 ) -> None:
+    from cellctl.cell.config import load_cell
+
     half = max(1, count // 2)
     first, second = "wax-robot-base", "wax-toy-mill-table"
     if template is not None:
@@ -290,6 +302,10 @@ async def _demo(
 def compare_charts(runs: list[tuple[str, Path, Summary]], time_scale: float, path: Path) -> Path:
     """Each run's chart again on one time axis (the longest run's), and all of them in one
     chart at ``path``: the runs compare at a glance."""
+    from cellctl.cell.config import load_cell
+    from cellctl.cell.journal import open_journal
+    from cellctl.cell.report import GanttRun, gantt_runs_svg
+
     machines: list[str] = []
     charted: list[GanttRun] = []
     for title, directory, summary in runs:

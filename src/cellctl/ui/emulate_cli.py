@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import click
 
-from cellctl.emulators.fleet import Fleet, check_fleet, serve_many
 from cellctl.emulators.serve import (
     MACHINE_TIME_SCALE,
     TIME_SCALE_HELP,
@@ -15,11 +15,28 @@ from cellctl.emulators.serve import (
     serve,
 )
 from cellctl.link import LineSettings
-from cellctl.ui.common import console, until_stopped
-from cellctl.ui.plc_cli import emulate_plc
+from cellctl.ui.common import Lazy, LazyGroup, accept_cell, console, kind_commands, until_stopped
+
+if TYPE_CHECKING:
+    from cellctl.emulators.fleet import Fleet
 
 
-@click.group()
+@click.group(
+    cls=LazyGroup,
+    lazy={
+        "cell": Lazy(
+            "cellctl.ui.cell_cli:emulate_cell_command", "Start the robot, both mills and the PLC"
+        ),
+        "factory": Lazy(
+            "cellctl.ui.factory_cli:emulate_factory",
+            "Start a private Mosquitto and COUNT emulated cells",
+        ),
+        "plc": Lazy("cellctl.ui.plc_cli:emulate_plc", "Emulate the cell PLC (Modbus/TCP)"),
+    },
+    # The machines the installed kinds emulate (``emulate robot``, ``emulate mill`` ...).
+    more=lambda: kind_commands()["emulate"],
+    prepare=lambda name, command: accept_cell(command, "emulate"),
+)
 def emulate() -> None:
     """Emulated machines that speak the real bytes: serve one, point a driver at it."""
 
@@ -80,6 +97,8 @@ async def serve_fleet_until_stopped(
 ) -> None:
     """Serve ``count`` machines (``make(i)`` each) over ``workers`` processes, print where
     each listens, and run until Ctrl-C or SIGTERM."""
+    from cellctl.emulators.fleet import Fleet, check_fleet, serve_many
+
     settings = LineSettings.parse(line)
     check_fleet(listen, count, workers)
     servers: list[Server] = []
@@ -129,6 +148,3 @@ def fleet_options() -> list[click.Parameter]:
             "lines at most).",
         ),
     ]
-
-
-emulate.add_command(emulate_plc)

@@ -17,6 +17,7 @@ import time
 from collections import Counter
 from datetime import datetime
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 from rich.console import Group
@@ -27,12 +28,15 @@ from cellctl.clock import current_clock
 from cellctl.emulators.serve import CELL_TIME_SCALE, TIME_SCALE_HELP
 from cellctl.errors import UsageError
 from cellctl.factory.config import FactoryConfig, load_factory
-from cellctl.factory.controller import FactoryController
 from cellctl.factory.dispatch import load_s
 from cellctl.factory.store import OPEN_STATES, CellSeen, FactoryStore
 from cellctl.link.lock import OwnerLock
 from cellctl.ui.common import console, json_option, print_json, print_table, run, until_stopped
+from cellctl.ui.factory_plan_cli import factory_plan
 from cellctl.ui.orders_cli import STATE_STYLE
+
+if TYPE_CHECKING:
+    from cellctl.factory.controller import FactoryController
 
 #: What a second factory controller is told.
 ALREADY_RUN = "the factory in {what} is already run by {holder}"
@@ -246,6 +250,8 @@ async def run_factory(
     on_controller: list[FactoryController] | None = None,
 ) -> None:
     """Run the factory controller of ``directory`` until stopped (or every order ended)."""
+    from cellctl.factory.controller import FactoryController  # the broker client: when run
+
     config = load_factory(directory)
     lock_path = config.directory / "state" / "factory.lock"
     lock_path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
@@ -384,3 +390,6 @@ def emulate_factory(
             console.print("emulated factory stopped")
 
     run(main)
+
+
+factory.add_command(factory_plan)

@@ -18,7 +18,6 @@ import click
 
 from cellctl.clock import current_clock
 from cellctl.errors import UsageError
-from cellctl.service.client import open_cell
 from cellctl.ui.calls import cell_call
 from cellctl.ui.common import cell_dir, console, json_option, print_json, print_line, run
 from cellctl.ui.systemd_unit import (
@@ -121,6 +120,8 @@ def traffic(ctx: click.Context, name: str, limit: int, follow: bool, as_json: bo
     directory = cell_dir(ctx)
 
     async def follow_traffic() -> None:
+        from cellctl.service.client import open_cell
+
         seen: set[tuple[Any, ...]] = set()
         async with await open_cell(directory, {}) as cell:
             while True:

@@ -17,10 +17,10 @@ from rich.progress import BarColumn, TextColumn
 
 from cellctl.clock import current_clock
 from cellctl.errors import UsageError
-from cellctl.kinds.dyna2400.driver import MillConfig
 from cellctl.kinds.dyna2400.dynalan import ProgramRole, Severity, ValidationContext, parse_program
 from cellctl.kinds.dyna2400.dynalan import validate as validate_program
 from cellctl.kinds.dyna2400.emulator import OperatorDelays
+from cellctl.kinds.dyna2400.options import MillConfig
 from cellctl.kinds.families import estimated_done
 from cellctl.service.machines import load_cell_file
 from cellctl.ui.calls import LazyBar, machine_call, read_program

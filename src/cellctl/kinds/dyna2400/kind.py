@@ -12,12 +12,12 @@ from pydantic import BaseModel
 from cellctl.emulators.serve import scaled_deadline
 from cellctl.errors import UsageError
 from cellctl.kinds.dyna2400 import dynalan
-from cellctl.kinds.dyna2400.driver import Dyna2400Mill, MillConfig, MillState
-from cellctl.kinds.dyna2400.emulator import FAULTS, Dyna2400Emulator, OperatorDelays
+from cellctl.kinds.dyna2400.options import MillConfig, MillState
 from cellctl.kinds.kind import (
     CheckedProgram,
     DriverSpec,
     EmulatorSpec,
+    LazyTable,
     MachineKind,
     Preview,
     ProgramLanguage,
@@ -28,13 +28,19 @@ if TYPE_CHECKING:
     import click
 
     from cellctl.emulators.serve import EmulatedDevice
+    from cellctl.kinds.dyna2400.driver import Dyna2400Mill
     from cellctl.kinds.menu import MachineFunction
 
+# The driver and the emulator are imported by the hooks that use them: the registry reads
+# this declaration at every start (`cellctl --help` too).
+
 #: The emulated cell's automatic operator: seconds to power on, press keys, jog to zero.
-CELL_OPERATOR = OperatorDelays(power_on=3.0, keys=2.0, setup=20.0)
+CELL_OPERATOR = {"power_on": 3.0, "keys": 2.0, "setup": 20.0}
 
 
 async def _open(spec: DriverSpec) -> Dyna2400Mill:
+    from cellctl.kinds.dyna2400.driver import Dyna2400Mill
+
     assert isinstance(spec.options, MillConfig)
     return await Dyna2400Mill.connect(
         spec.url,
@@ -49,7 +55,9 @@ async def _open(spec: DriverSpec) -> Dyna2400Mill:
 
 
 def _emulator(spec: EmulatorSpec) -> EmulatedDevice:
-    delays = CELL_OPERATOR if spec.operator else OperatorDelays()
+    from cellctl.kinds.dyna2400.emulator import Dyna2400Emulator, OperatorDelays
+
+    delays = OperatorDelays(**CELL_OPERATOR) if spec.operator else OperatorDelays()
     return Dyna2400Emulator(clock=spec.emulator_clock(), delays=delays)
 
 
@@ -164,6 +172,6 @@ DYNA2400 = MachineKind(
     emulated_options=_emulated_options,
     needs_setup=True,
     check_text=_check_text,
-    faults=FAULTS,
+    faults=LazyTable("cellctl.kinds.dyna2400.emulator:FAULTS"),
     description="3-axis CNC mill: DYNALAN blocks streamed as the controller's CTS asks",
 )

@@ -20,7 +20,6 @@ from rich.table import Table
 
 from cellctl.emulators.serve import parse_fault
 from cellctl.errors import UsageError
-from cellctl.kinds.ibm7545.aml import compile_source
 from cellctl.link import ROBOT_LINE
 from cellctl.ui.calls import LazyBar, machine_call, read_program
 from cellctl.ui.common import MachineGroup, console, fault_help, run
@@ -201,6 +200,7 @@ def home(ctx: click.Context) -> None:
 @click.option("--name", help="Application name (8 characters; default: the file's stem).")
 def compile(source: Path, output: Path | None, partition: int, name: str | None) -> None:
     """Compile an AML/E source file into a program file of records (.rec)."""
+    from cellctl.kinds.ibm7545.aml import compile_source
 
     def main() -> None:
         text = read_program(source)["text"]

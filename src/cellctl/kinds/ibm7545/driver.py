@@ -48,16 +48,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, NoReturn
-
-from pydantic import (
-    BaseModel,
-    ConfigDict,
-    Field,
-    NonNegativeFloat,
-    NonNegativeInt,
-    PositiveFloat,
-)
+from typing import NoReturn
 
 from cellctl.clock import Clock
 from cellctl.drivers.base import LinkDriver
@@ -73,9 +64,13 @@ from cellctl.errors import (
     UsageError,
     format_raw,
 )
-from cellctl.kinds import Condition
 from cellctl.kinds.families import CycleAborted, HostStatus, RecordsProgress
 from cellctl.kinds.ibm7545.aml import Op, decode_program
+from cellctl.kinds.ibm7545.options import ROBOT_CONDITIONS as ROBOT_CONDITIONS
+from cellctl.kinds.ibm7545.options import ROBOT_STATES as ROBOT_STATES
+from cellctl.kinds.ibm7545.options import RobotConfig as RobotConfig
+from cellctl.kinds.ibm7545.options import RobotState as RobotState
+from cellctl.kinds.ibm7545.options import robot_condition as robot_condition
 from cellctl.kinds.ibm7545.records import (
     ACK,
     EOT,
@@ -99,32 +94,10 @@ from cellctl.kinds.ibm7545.records import (
     select_application_operand,
 )
 from cellctl.kinds.ibm7545.states import RobotFunction, robot_refusal
-from cellctl.kinds.kind import MachineState
 from cellctl.link import ROBOT_LINE, LineSettings, Link, TrafficLog
 
-
-class RobotState(MachineState):
-    """Robot states the host keeps (spec: "Robot states (kept by the host)")."""
-
-    UNINITIALIZED = 0, "Uninitialized"
-    INITIALIZED = 1, "Initialized (auto mode)"
-    EXECUTING = 2, "Executing"
-
-
-#: Robot states in words.
-ROBOT_STATES = {int(s): s.text for s in RobotState}
-#: The condition each host state shows on every surface.
-ROBOT_CONDITIONS: dict[int, Condition] = {
-    RobotState.UNINITIALIZED: Condition.NOT_READY,
-    RobotState.INITIALIZED: Condition.IDLE,
-    RobotState.EXECUTING: Condition.BUSY,
-}
-
-
-def robot_condition(state: int, ok: bool = True) -> Condition:
-    """The condition of a robot in host ``state`` whose status bytes say ``ok`` or not."""
-    return ROBOT_CONDITIONS.get(state, Condition.NOT_READY) if ok else Condition.ALARM
-
+# RobotState, RobotConfig and robot_condition live in options.py (the registry reads them
+# without importing this driver) and are named here as before.
 
 #: Reject codes after which the controller is known to be uninitialized (partitions gone).
 _COLD_REJECTS = {48}
@@ -148,27 +121,6 @@ RetryCallback = Callable[[int, int, CellctlError], None]
 
 ProgressCallback = Callable[[int, int, int], None]
 """``progress(records_done, records_total, bytes_sent)``, called after every Ack."""
-
-
-class RobotConfig(BaseModel):
-    """Deadlines and assumed values; every one can be set per robot (``cell.toml`` options)."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
-
-    reply_timeout: PositiveFloat = 2.0
-    """Seconds the controller may take to start answering (beyond the wire time)."""
-    busy_silence: PositiveFloat = 30.0
-    """Seconds of silence tolerated while the controller is busy (it repeats Xoff every ~25 s)."""
-    busy_ceiling: PositiveFloat = 300.0
-    """Seconds a busy controller may keep the host waiting in all (return home, a long stop)."""
-    checksum_retries: NonNegativeInt = 3
-    """Times a read with a bad D-record checksum (or a garbled handshake) is repeated."""
-    download_retries: NonNegativeInt = 3
-    """Times a download refused for a transmission error is sent again from its N record."""
-    retry_settle: NonNegativeFloat = 0.2
-    """Seconds of quiet line awaited (input discarded) before a retry."""
-    erreset_operand: Annotated[int, Field(ge=0, le=255)] = int(ExecuteOperand.ERRESET)
-    """ERRESET's operand: not in the source, **assumed** 24."""
 
 
 @dataclass

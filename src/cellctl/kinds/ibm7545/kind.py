@@ -11,13 +11,12 @@ from typing import TYPE_CHECKING, Any
 from pydantic import BaseModel
 
 from cellctl.errors import CellctlError, UsageError
-from cellctl.kinds.ibm7545.aml import compile_source
-from cellctl.kinds.ibm7545.driver import Ibm7545Robot, RobotConfig, RobotState, robot_condition
-from cellctl.kinds.ibm7545.emulator import FAULTS, Ibm7545Emulator
+from cellctl.kinds.ibm7545.options import RobotConfig, RobotState, robot_condition
 from cellctl.kinds.kind import (
     CheckedProgram,
     DriverSpec,
     EmulatorSpec,
+    LazyTable,
     MachineKind,
     ProgramLanguage,
     ProgramRole,
@@ -27,10 +26,16 @@ if TYPE_CHECKING:
     import click
 
     from cellctl.emulators.serve import EmulatedDevice
+    from cellctl.kinds.ibm7545.driver import Ibm7545Robot
     from cellctl.kinds.menu import MachineFunction
+
+# The driver, the emulator and the compiler are imported by the hooks that use them: the
+# registry reads this declaration at every start (`cellctl --help` too).
 
 
 async def _open(spec: DriverSpec) -> Ibm7545Robot:
+    from cellctl.kinds.ibm7545.driver import Ibm7545Robot
+
     assert isinstance(spec.options, RobotConfig)
     return await Ibm7545Robot.connect(
         spec.url,
@@ -44,6 +49,8 @@ async def _open(spec: DriverSpec) -> Ibm7545Robot:
 
 
 def _emulator(spec: EmulatorSpec) -> EmulatedDevice:
+    from cellctl.kinds.ibm7545.emulator import Ibm7545Emulator
+
     return Ibm7545Emulator(clock=spec.emulator_clock())
 
 
@@ -55,6 +62,8 @@ def application_name(program: str) -> str:
 
 def _check(path: Path, role: ProgramRole, options: BaseModel) -> CheckedProgram:
     """Compile an AML/E source; its problems in the compiler's words."""
+    from cellctl.kinds.ibm7545.aml import compile_source
+
     try:
         source = path.read_text(encoding="utf-8")
     except OSError as e:
@@ -69,6 +78,8 @@ def _check(path: Path, role: ProgramRole, options: BaseModel) -> CheckedProgram:
 
 
 def _compile(source: str, name: str, origin: str) -> Any:
+    from cellctl.kinds.ibm7545.aml import compile_source
+
     return compile_source(source, application_name(name), 1, source=origin)
 
 
@@ -121,7 +132,7 @@ IBM7545 = MachineKind(
     commands=_commands,
     program_files=(".rec",),
     check_text=_check_text,
-    faults=FAULTS,
+    faults=LazyTable("cellctl.kinds.ibm7545.emulator:FAULTS"),
     timing=_timing,
     description="SCARA robot controller: records over a 4800 baud line, AML/E programs",
 )

@@ -14,8 +14,8 @@ import click
 
 from cellctl.errors import CellctlError, UsageError
 from cellctl.kinds.iso_cnc import tape
-from cellctl.kinds.iso_cnc.driver import ISO_LINE
 from cellctl.kinds.iso_cnc.emulator import FAULTS, EmulatorOptions, IsoCncEmulator, Mode
+from cellctl.kinds.iso_cnc.options import ISO_LINE
 from cellctl.link import LineSettings
 from cellctl.ui.common import console, fault_help, run
 from cellctl.ui.emulate_cli import listen_options, serve_until_stopped

@@ -14,13 +14,13 @@ from pydantic import BaseModel
 from cellctl.emulators.serve import scaled_deadline
 from cellctl.errors import UsageError
 from cellctl.kinds.iso_cnc import gcode, motion, tape
-from cellctl.kinds.iso_cnc.driver import ISO_LINE, IsoCncDriver, IsoCncOptions
-from cellctl.kinds.iso_cnc.emulator import FAULTS, EmulatorOptions, IsoCncEmulator, Mode
+from cellctl.kinds.iso_cnc.options import ISO_LINE, IsoCncOptions
 from cellctl.kinds.iso_cnc.status import IsoCncState
 from cellctl.kinds.kind import (
     CheckedProgram,
     DriverSpec,
     EmulatorSpec,
+    LazyTable,
     MachineKind,
     Preview,
     ProgramLanguage,
@@ -31,6 +31,10 @@ if TYPE_CHECKING:
     import click
 
     from cellctl.emulators.serve import EmulatedDevice
+    from cellctl.kinds.iso_cnc.driver import IsoCncDriver
+
+# The driver and the emulator are imported by the hooks that use them: the registry reads
+# this declaration at every start (`cellctl --help` too).
 
 #: File endings of G-code programs a shop keeps.
 SUFFIXES = (".nc", ".tap", ".gcode", ".ngc", ".cnc")
@@ -41,6 +45,8 @@ def _options(options: BaseModel) -> IsoCncOptions:
 
 
 async def _open(spec: DriverSpec) -> IsoCncDriver:
+    from cellctl.kinds.iso_cnc.driver import IsoCncDriver
+
     return await IsoCncDriver.connect(
         spec.url,
         name=spec.name,
@@ -56,6 +62,8 @@ async def _open(spec: DriverSpec) -> IsoCncDriver:
 def _emulator(spec: EmulatorSpec) -> EmulatedDevice:
     """For the emulated cell: in RMT, CYCLE START from the cell's GO (and, with an
     operator, pressed again whenever it is idle)."""
+    from cellctl.kinds.iso_cnc.emulator import EmulatorOptions, IsoCncEmulator, Mode
+
     known = set(EmulatorOptions.model_fields)
     options = EmulatorOptions(
         **{"auto_operator": spec.operator, **{k: v for k, v in spec.extra.items() if k in known}}
@@ -173,7 +181,7 @@ ISO_CNC = MachineKind(
     needs_setup=False,
     program_files=SUFFIXES,
     check_text=_check_text,
-    faults=FAULTS,
+    faults=LazyTable("cellctl.kinds.iso_cnc.emulator:FAULTS"),
     description="CNC control fed ISO-code G-code over RS-232 with DC1-DC4 (read-in, "
     "drip-feed, punch)",
 )

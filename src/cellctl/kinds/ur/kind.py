@@ -15,6 +15,7 @@ from cellctl.kinds.kind import (
     CheckedProgram,
     DriverSpec,
     EmulatorSpec,
+    LazyTable,
     MachineKind,
     MachineState,
     Preview,
@@ -22,17 +23,17 @@ from cellctl.kinds.kind import (
     ProgramRole,
 )
 from cellctl.kinds.ur.dashboard import RobotMode
-from cellctl.kinds.ur.driver import UR_LINE, UrOptions, UrRobot
-from cellctl.kinds.ur.emulator import FAULTS, UrEmulator
-from cellctl.kinds.ur.motion import ARMS
-from cellctl.kinds.ur.program import compile_program, preview_svg
-from cellctl.kinds.ur.urscript import estimate, parse
+from cellctl.kinds.ur.options import UR_LINE, UrOptions
 
 if TYPE_CHECKING:
     import click
 
     from cellctl.emulators.serve import EmulatedDevice
     from cellctl.kinds.menu import MachineFunction
+    from cellctl.kinds.ur.driver import UrRobot
+
+# The driver, the emulator and the URScript tools are imported by the hooks that use them:
+# the registry reads this declaration at every start (`cellctl --help` too).
 
 
 #: The robot modes as the kind declares its states (numbers and UR's names, from the codec's
@@ -44,6 +45,8 @@ UrRobotMode: type[MachineState] = MachineState(  # type: ignore[assignment]
 
 
 async def _open(spec: DriverSpec) -> UrRobot:
+    from cellctl.kinds.ur.driver import UrRobot
+
     assert isinstance(spec.options, UrOptions)
     return await UrRobot.connect(
         spec.url,
@@ -57,6 +60,8 @@ async def _open(spec: DriverSpec) -> UrRobot:
 
 
 def _emulator(spec: EmulatorSpec) -> EmulatedDevice:
+    from cellctl.kinds.ur.emulator import UrEmulator
+
     return UrEmulator(
         clock=spec.emulator_clock(),
         model=str(spec.extra.get("model", "UR5e")),
@@ -65,12 +70,17 @@ def _emulator(spec: EmulatorSpec) -> EmulatedDevice:
 
 
 def _arm(options: BaseModel) -> Any:
+    from cellctl.kinds.ur.motion import ARMS
+
     return ARMS[options.model if isinstance(options, UrOptions) else UrOptions().model]
 
 
 def _check(path: Path, role: ProgramRole, options: BaseModel) -> CheckedProgram:
     """A URScript file (or a ``.urp`` reference): its problems with line and column, its
     lines and its run time on the configured model's motion model."""
+    from cellctl.kinds.ur.program import compile_program
+    from cellctl.kinds.ur.urscript import estimate, parse
+
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as e:
@@ -87,10 +97,14 @@ def _check(path: Path, role: ProgramRole, options: BaseModel) -> CheckedProgram:
 
 
 def _compile(source: str, name: str, origin: str) -> Any:
+    from cellctl.kinds.ur.program import compile_program
+
     return compile_program(source, name, origin)
 
 
 def _preview(text: str, name: str, options: BaseModel) -> Preview:
+    from cellctl.kinds.ur.program import preview_svg
+
     svg, moves = preview_svg(text, name, _arm(options))
     if not moves:
         raise UsageError(f"{name}: no moves to draw")
@@ -149,7 +163,7 @@ UR = MachineKind(
     emulated_options=_emulated_options,
     program_files=(".script", ".urp"),
     check_text=_check_text,
-    faults=FAULTS,
+    faults=LazyTable("cellctl.kinds.ur.emulator:FAULTS"),
     timing=_timing,
     description="collaborative arm: Dashboard Server, RTDE and URScript over TCP",
 )

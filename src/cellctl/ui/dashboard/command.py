@@ -17,7 +17,6 @@ import click
 
 from cellctl.errors import AccessDenied, UsageError
 from cellctl.service.machines import load_cell_file
-from cellctl.service.server import parse_listen
 from cellctl.service.token import TOKEN_FILE, read_token
 from cellctl.ui.common import cell_dir, console
 
@@ -28,6 +27,8 @@ ANSWER_TIMEOUT = 3.0
 def dashboard_url(directory: Path) -> str:
     """The dashboard's URL with the token in its fragment; refused clearly when the cell has
     no TCP listener, no token, or no controller answering there."""
+    from cellctl.service.server import parse_listen  # the API server: imported when used
+
     api = load_cell_file(directory).get("api")
     listen = api.get("listen") if isinstance(api, dict) else None
     if not isinstance(listen, str) or not listen:

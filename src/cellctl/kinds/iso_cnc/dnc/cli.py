@@ -23,23 +23,18 @@ import signal
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 from rich.progress import BarColumn, TextColumn, TimeRemainingColumn
 
-from cellctl.cell.owner import acquire_controller_lock, controller_holder
-from cellctl.kinds.iso_cnc.dnc.access import DncAccess
-from cellctl.kinds.iso_cnc.dnc.config import ShopConfig, load_shop, machine
-from cellctl.kinds.iso_cnc.dnc.diff import compare
-from cellctl.kinds.iso_cnc.dnc.server import TRANSFER_S, DncServer
-from cellctl.kinds.iso_cnc.dnc.store import ShopStore, read_program_file
-from cellctl.kinds.iso_cnc.driver import prepare
-from cellctl.service.client import attach
-from cellctl.service.methods import Dispatcher
-from cellctl.service.server import ApiServer
-from cellctl.ui.calls import LazyBar
 from cellctl.ui.common import cell_dir, console, err_console, json_option, print_json, run
+
+if TYPE_CHECKING:
+    from cellctl.kinds.iso_cnc.dnc.config import ShopConfig
+
+# The server, the API and the links are imported by the command that uses them: `cellctl
+# --help` and a refused argument load none of them (tests/test_cli_startup.py).
 
 
 def _shop_options(f: Callable[..., Any]) -> Callable[..., Any]:
@@ -60,6 +55,8 @@ def _shop_options(f: Callable[..., Any]) -> Callable[..., Any]:
 
 
 def _config(ctx: click.Context, shop: Path, use_cell: bool) -> ShopConfig:
+    from cellctl.kinds.iso_cnc.dnc.config import load_shop
+
     return load_shop(shop, cell=cell_dir(ctx) if use_cell else None)
 
 
@@ -82,6 +79,10 @@ def serve(ctx: click.Context, shop: Path, use_cell: bool) -> None:
 
 async def serve_shop(config: ShopConfig, *, stop: asyncio.Event | None = None) -> None:
     """Serve ``config``'s machines and its API until ``stop`` is set (or SIGINT / SIGTERM)."""
+    from cellctl.cell.owner import acquire_controller_lock
+    from cellctl.kinds.iso_cnc.dnc.access import DncAccess
+    from cellctl.kinds.iso_cnc.dnc.server import DncServer
+    from cellctl.service.server import ApiServer
     from cellctl.ui.dashboard.routes import dashboard_routes
 
     config.root.mkdir(mode=0o700, parents=True, exist_ok=True)
@@ -124,6 +125,13 @@ async def call_shop(
 ) -> Any:
     """``method`` on machine ``name``: through the running server's API, or on the link
     opened here (under its owner locks) when no server runs on the shop."""
+    from cellctl.cell.owner import controller_holder
+    from cellctl.kinds.iso_cnc.dnc.access import DncAccess
+    from cellctl.kinds.iso_cnc.dnc.config import machine
+    from cellctl.kinds.iso_cnc.dnc.server import TRANSFER_S, DncServer
+    from cellctl.service.client import attach
+    from cellctl.service.methods import Dispatcher
+
     machine(config, name)
     params = {"machine": name, **params}
     if controller_holder(config.root) is not None:
@@ -163,6 +171,11 @@ def _fields(p: dict[str, Any], elapsed: float) -> dict[str, Any]:
 def _transfer(
     ctx: click.Context, shop: Path, use_cell: bool, name: str, program: str, drip: bool
 ) -> None:
+    from cellctl.kinds.iso_cnc.dnc.config import machine
+    from cellctl.kinds.iso_cnc.dnc.store import ShopStore, read_program_file
+    from cellctl.kinds.iso_cnc.driver import prepare
+    from cellctl.ui.calls import LazyBar
+
     config = _config(ctx, shop, use_cell)
     params: dict[str, Any] = {"program": program, "drip": drip}
     path = Path(program)
@@ -257,6 +270,9 @@ def diff(
 
     Exit 0 when they match, 1 when they differ.
     """
+    from cellctl.kinds.iso_cnc.dnc.diff import compare
+    from cellctl.kinds.iso_cnc.dnc.store import ShopStore, read_program_file
+
     store = ShopStore(shop)
     if received is not None and Path(received).is_file():
         got = Path(received)
@@ -297,6 +313,10 @@ def diff(
 @click.pass_context
 def status(ctx: click.Context, shop: Path, use_cell: bool, as_json: bool) -> None:
     """Each machine's state: through the running server, else its log's last line."""
+    from cellctl.cell.owner import controller_holder
+    from cellctl.kinds.iso_cnc.dnc.store import ShopStore
+    from cellctl.service.client import attach
+
     config = _config(ctx, shop, use_cell)
     if controller_holder(config.root) is None:
         store = ShopStore(config.root)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel
 
@@ -13,17 +13,25 @@ from cellctl.kinds.kind import (
     CheckedProgram,
     DriverSpec,
     EmulatorSpec,
+    LazyTable,
     MachineKind,
     ProgramLanguage,
     ProgramRole,
 )
 from cellctl.kinds.menu import MachineFunction
-from cellctl_saw.driver import KerfSaw, SawOptions
-from cellctl_saw.emulator import FAULTS, KerfEmulator
+from cellctl_saw.options import SawOptions
 from cellctl_saw.protocol import SawState, parse_cut_list
+
+if TYPE_CHECKING:
+    from cellctl_saw.driver import KerfSaw
+
+# cellctl reads this declaration at every start: the driver and the emulator are imported
+# by the hooks that use them.
 
 
 async def _open(spec: DriverSpec) -> KerfSaw:
+    from cellctl_saw.driver import KerfSaw
+
     assert isinstance(spec.options, SawOptions)
     return await KerfSaw.connect(
         spec.url,
@@ -36,6 +44,8 @@ async def _open(spec: DriverSpec) -> KerfSaw:
 
 
 def _emulator(spec: EmulatorSpec) -> EmulatedDevice:
+    from cellctl_saw.emulator import KerfEmulator
+
     return KerfEmulator(time_scale=spec.time_scale)
 
 
@@ -95,6 +105,6 @@ KERF100 = MachineKind(
     needs_setup=True,
     program_files=(".cut",),
     check_text=_check_text,
-    faults=FAULTS,
+    faults=LazyTable("cellctl_saw.emulator:FAULTS"),
     description="single-axis bar saw: cut lists over an ASCII line protocol",
 )

@@ -350,7 +350,10 @@ class IsoCncDriver(LinkDriver):
                 await self.link.wait_cts(True, timeout=o.stop_timeout)
                 continue
             await self.link.write(framed[self._sent : self._sent + n])
-            wire_free = max(wire_free, now) + n * char_time
+            # Dated from when the write returned, not from `now`: a host held up (by its OS,
+            # by its load) between deciding and writing puts the burst on an idle line late,
+            # and its blocks start late; counting them from `now` would empty the model early.
+            wire_free = max(wire_free, clock.monotonic()) + n * char_time
             self._sent += n
             model.wrote(self._sent, wire_free + o.link_lag_s)
             if self._sent >= end_at and self._seen_at_end < 0:

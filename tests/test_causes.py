@@ -9,6 +9,7 @@ from cellctl.cell.causes import (
     Blamed,
     Cause,
     blame,
+    door_cause,
     link_cause,
     read_cause,
     status_cause,
@@ -64,3 +65,15 @@ def test_a_failed_look_names_the_link_or_says_what_failed() -> None:
     assert read_cause("plc", "PLC", TimeoutError()) == Cause("plc", "link", "PLC not answering")
     error = DeviceError(2, "Illegal Data Address")
     assert read_cause("plc", "PLC", error) == Cause("plc", "link", f"PLC failed: {error}")
+
+
+def test_a_door_short_of_its_end_position_is_named_as_an_interlock_wait_names_it() -> None:
+    half_open = {"door_open_1": True, "door_closed_1": False, "door_open_2": False}
+    assert door_cause(half_open, [1, 2], True, 120) == Cause(
+        "plc", "interlock", "door of CNC 2 did not open within 120 s"
+    )
+    assert door_cause(half_open, [1], True, 120) is None
+    assert door_cause({"door_closed_1": False}, [1], False, 2.5) == Cause(
+        "plc", "interlock", "door of CNC 1 did not close within 2.5 s"
+    )
+    assert door_cause(half_open, [], True, 120) is None

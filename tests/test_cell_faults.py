@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import re
+import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,7 +19,8 @@ import pytest
 
 from cellctl.cell.config import load_cell
 from cellctl.cell.model import ControllerOptions
-from cellctl.emulators.cell import EXAMPLE_CELL, EmulatedCell
+from cellctl.cell.monitor import ESTOP
+from cellctl.emulators.cell import EXAMPLE_CELL, EmulatedCell, real_cell_toml
 from cellctl.kinds.dyna2400.driver import MillConfig
 from cellctl.testing.rig import CellRig
 
@@ -302,3 +304,135 @@ async def test_no_pallet_is_one_alarm_and_the_pallet_comes_once_fixed(tmp_path: 
             rig.describe()
         )
         assert rig.cell.plc.pallets_delivered == 1
+
+
+@pytest.mark.virtual
+async def test_an_emergency_stop_during_a_transfer_is_one_alarm_naming_it(tmp_path: Path) -> None:
+    """The E-stop pressed while the arm is in CNC 1 (the part in its gripper, the vise
+    opening): the vise stops where it is, the transfer cannot end. Its failure is the stop's:
+    one alarm, the stop's, the part held where the arm left it; the batch finishes once the
+    operator released the stop, cleared the alarm and released the part."""
+    async with CellRig(tmp_path / "cell") as rig:
+        rig.post("wax-robot-base", 2, "A")
+        pressed: list[str] = []
+
+        def estop_as_the_vise_opens(port: int, value: bool) -> None:
+            # Output 1 low: cnc1_to_cnc2 opens CNC 1's vise with the part in the gripper.
+            if port == 1 and not value and not pressed and rig.finished_steps("machine") >= 1:
+                pressed.append("plc:estop")
+                rig.switch_on("plc:estop")
+
+        rig.cell.robot.output_hooks.append(estop_as_the_vise_opens)
+        await rig.start_controller()
+        await rig.wait_for(lambda: pressed, "the E-stop pressed during cnc1_to_cnc2")
+        held = await rig.wait_for(rig.held_parts, "the part in the gripper held")
+        await rig.wait_quiet()
+        assert [(a.machine, a.code, a.text) for a in rig.journal.alarms()] == [
+            ("plc", "estop", ESTOP.text)
+        ], rig.describe()
+        # The held part and its failed step say why, in the same words.
+        assert [p.id for p in rig.held_parts()] == [held[0].id]
+        assert "emergency stop" in (held[0].note or ""), held[0].note
+        failed = [s for s in rig.journal.steps() if s.state == "failed"]
+        assert [(s.kind, s.program) for s in failed] == [("transfer", "cnc1_to_cnc2")]
+        assert rig.reports("step-failed")
+        assert all("emergency stop" in r.text for r in rig.reports("step-failed"))
+
+        rig.switch_off("plc:estop")
+        loop_guard = 0
+        while not rig.all_done():
+            loop_guard += 1
+            assert loop_guard < 20, rig.describe()
+            await rig.operator_resolves()
+            await rig.wait_for(
+                lambda: rig.all_done() or rig.held_parts() or rig.journal.active_alarms(),
+                "the run to complete or to need the operator again",
+                timeout=30,
+            )
+        await rig.stop_controller()
+        assert all(p.status == "done" for p in rig.journal.parts()), rig.describe()
+        assert rig.cut_twice() == {}, rig.describe()
+        assert [(a.machine, a.code) for a in rig.journal.alarms()] == [("plc", "estop")]
+
+
+@pytest.mark.virtual
+async def test_a_door_stuck_during_a_transfer_is_named_in_its_alarm(tmp_path: Path) -> None:
+    """CNC 2's door sticks half-way open during cnc1_to_cnc2 (it left its closed position,
+    so the transfer started): the robot waits for it with the part in its gripper until the
+    transfer's deadline. The alarm names the door, as a stuck door outside a transfer is
+    named (the PLC's interlock), not the transfer's timeout; the part is held, and the batch
+    finishes once the operator freed the door and resolved."""
+    async with CellRig(tmp_path / "cell") as rig:
+        rig.post("wax-robot-base", 2, "A")
+        stuck: list[str] = []
+
+        def stick_as_it_leaves(name: str, value: bool) -> None:
+            moving = name == "door_closed_2" and not value
+            if moving and not stuck and rig.finished_steps("machine") >= 1:
+                stuck.append("plc:stuck-door=2")
+                # Once the PLC has set the door moving: it stops half-way.
+                asyncio.get_running_loop().call_soon(rig.switch_on, stuck[0])
+
+        rig.cell.plc.hooks.input.append(stick_as_it_leaves)
+        controller = await rig.start_controller()
+        await rig.wait_for(lambda: stuck, "CNC 2's door stuck during cnc1_to_cnc2")
+        held = await rig.wait_for(rig.held_parts, "the part in the gripper held")
+        await rig.wait_quiet()
+        timeout = controller.options.transfer_timeout
+        assert [(a.machine, a.code, a.text) for a in rig.journal.alarms()] == [
+            ("plc", "interlock", f"door of CNC 2 did not open within {timeout:g} s")
+        ], rig.describe()
+        assert rig.cell.plc.inputs["door_open_2"] is False
+        assert "door of CNC 2" in (held[0].note or ""), held[0].note
+        # The robot is not at fault: no failure counts against it.
+        assert controller.machines["robot"].failures == 0
+
+        rig.switch_off(stuck[0])
+        loop_guard = 0
+        while not rig.all_done():
+            loop_guard += 1
+            assert loop_guard < 20, rig.describe()
+            await rig.operator_resolves()
+            await rig.wait_for(
+                lambda: rig.all_done() or rig.held_parts() or rig.journal.active_alarms(),
+                "the run to complete or to need the operator again",
+                timeout=30,
+            )
+        await rig.stop_controller()
+        assert all(p.status == "done" for p in rig.journal.parts()), rig.describe()
+        assert rig.cut_twice() == {}, rig.describe()
+        assert [(a.machine, a.code) for a in rig.journal.alarms()] == [("plc", "interlock")]
+
+
+async def test_an_emulated_cell_of_an_emulated_cells_directory_is_the_real_cells_emulation(
+    tmp_path: Path,
+) -> None:
+    """An emulated cell's directory as the template (``cellctl emulate cell --template``, a
+    plan of an emulated cell): what the first emulation wrote is undone first, so the file
+    holds one time scale, one options table per machine, and the real cell's deadlines
+    scaled once; the real cell's file read back from it is the example's own."""
+    cells = [EmulatedCell(time_scale=100.0)]
+    try:
+        await cells[0].start(tmp_path / "first")
+        cells += [EmulatedCell(time_scale=2.0, template=tmp_path / "first")]
+        cells += [EmulatedCell(time_scale=2.0)]
+        await cells[1].start(tmp_path / "again")
+        await cells[2].start(tmp_path / "fresh")
+        written = (tmp_path / "again" / "cell.toml").read_text()
+        config = load_cell(tmp_path / "again")
+        want = load_cell(tmp_path / "fresh")
+    finally:
+        for cell in cells:
+            await cell.close()
+    assert written.count("time_scale = 2 ") == 1, written
+    assert config.raw["cell"]["time_scale"] == 2
+    assert ControllerOptions.from_config(config) == ControllerOptions.from_config(want)
+    for name in ("cnc1", "cnc2"):
+        assert config.raw["machines"][name]["options"] == want.raw["machines"][name]["options"]
+    real = tomllib.loads(real_cell_toml((tmp_path / "first" / "cell.toml").read_text()))
+    example = tomllib.loads((EXAMPLE_CELL / "cell.toml").read_text())
+    for table in (real, example):
+        for machine in table["machines"].values():
+            machine.pop("link")
+        table["plc"].pop("url")
+    assert real == example

@@ -65,11 +65,18 @@ async def state_of(shop: Shop, name: str) -> str:
 
 
 async def wait_state(shop: Shop, name: str, prefix: str, timeout: float = 30.0) -> None:
-    loop = asyncio.get_running_loop()
-    deadline = loop.time() + timeout
-    while not (await state_of(shop, name)).startswith(prefix):
-        assert loop.time() < deadline, f"{name} never {prefix!r}: {await state_of(shop, name)}"
-        await asyncio.sleep(0.05)
+    """Wait (the suite's :func:`until`) for machine ``name``'s state to start with ``prefix``;
+    a failure says the state last seen."""
+    seen = [""]
+
+    async def there() -> bool:
+        seen[0] = await state_of(shop, name)
+        return seen[0].startswith(prefix)
+
+    try:
+        await until(there, f"{name} {prefix!r}", timeout)
+    except AssertionError as e:
+        raise AssertionError(f"{e}; its state: {seen[0]!r}") from None
 
 
 @pytest.fixture

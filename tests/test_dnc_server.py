@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from playwright.async_api import Browser
 
 from cellctl.emulators.serve import Server, serve
 from cellctl.errors import MachineInUse, UsageError
@@ -24,7 +25,10 @@ from cellctl.kinds.iso_cnc.dnc.server import Activity, DncServer
 from cellctl.kinds.iso_cnc.dnc.store import ShopStore
 from cellctl.kinds.iso_cnc.emulator import EmulatorOptions, IsoCncEmulator, Mode
 from cellctl.link import LineSettings
+from cellctl.service.client import attach
+from cellctl.service.token import read_token
 from tests.conftest import free_port, until
+from tests.test_dashboard import browser  # noqa: F401  (the fixture)
 
 LINE = LineSettings.parse("9600,7E2")
 BRACKET = "O1234 (BRACKET)\nG21 G90 G17\nG00 X0 Y0 Z5.\nG01 Z-1. F300\nG01 X10. Y5.\nM30\n"
@@ -241,11 +245,88 @@ async def test_status_and_dashboard_through_the_api_on_dnc_listen(tmp_path: Path
         code, page = await asyncio.to_thread(get, "/", token)
         assert code == 200 and b"<html" in page.lower()
         await punch(emulator, 9999, "O9999 (DRIP O5000)\n")  # no O5000: refused, shown
-        deadline = asyncio.get_running_loop().time() + 30
-        while "no program O5000" not in str((await status()).get("error")):
-            assert asyncio.get_running_loop().time() < deadline, await status()
-            await asyncio.sleep(0.05)
+        seen: list[dict[str, object]] = [{}]
+
+        async def refused() -> bool:
+            seen[0] = await status()
+            return "no program O5000" in str(seen[0].get("error"))
+
+        try:
+            await until(refused, "the request for O5000 refused, shown as mill1's error", 30)
+        except AssertionError as e:
+            raise AssertionError(f"{e}; mill1: {seen[0]}") from None
     finally:
+        stop.set()
+        await task
+        await server.close()
+
+
+def surfacing(moves: int) -> str:
+    """A drip-feed program of 0.1 mm moves: the machine eats them faster than 9600 baud
+    brings them, so its axes stop and wait for data (it stalls)."""
+    rows = [f"X{i / 10:.1f} Y{i % 2 / 10:.1f}\n" for i in range(1, moves + 1)]
+    return "O5000 (SURFACE)\nG21 G90 G17\nG01 X0 Y0 F3000\n" + "".join(rows) + "M30\n"
+
+
+async def test_the_dashboard_shows_a_drip_feeds_stall_in_its_own_field(
+    tmp_path: Path,
+    browser: Browser,  # noqa: F811
+) -> None:
+    """A drip-feed that outruns the line, in Chromium: the machine's card shows its stall
+    (the status' progress.stall_s) in a field of its own, growing above 0 while it runs,
+    and hides it once the machine is idle again."""
+    emulator, server = await control("socket://127.0.0.1:0")
+    port = free_port()
+    shop = write_shop(
+        tmp_path / "shop", {"mill1": server.url}, f'\n[dnc]\nlisten = "127.0.0.1:{port}"\n'
+    )
+    (ShopStore(shop).machine("mill1") / "programs" / "O5000.nc").write_text(surfacing(300))
+    stop = asyncio.Event()
+    task = asyncio.create_task(serve_shop(load_shop(shop), stop=stop))
+    context = await browser.new_context(viewport={"width": 1200, "height": 900})
+    client = None
+    try:
+        await until(lambda: task.done() or (shop / "api.sock").exists(), "the API listening")
+        assert not task.done(), task.exception()
+        page = await context.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        await page.goto(f"http://127.0.0.1:{port}/#token={read_token(shop)}")
+        card = page.locator('.card[data-machine="mill1"]')
+        await card.locator(".machine-state").wait_for(timeout=10_000)
+        stall = card.locator(".stall")
+        assert not await stall.is_visible()  # idle: no drip-feed, no stall field
+
+        client = await attach(shop)
+        emulator.set_mode(Mode.RMT)
+        drip = {"machine": "mill1", "program": "O5000", "drip": True}
+        send = asyncio.create_task(client.call("dnc.send", drip, timeout=120))
+
+        async def offered() -> bool:
+            status = await client.call("cell.status")
+            return send.done() or status["machines"]["mill1"]["progress"] is not None
+
+        await until(offered, "the drip-feed offered, waiting for CYCLE START")
+        emulator.cycle_start()
+        # Under way: the field shows a stall above 0 s, from the status' own figure.
+        await page.wait_for_function(
+            """() => {
+              const s = document.querySelector('.card[data-machine="mill1"] .stall-s');
+              return s && s.offsetParent !== null && parseFloat(s.textContent) > 0;
+            }""",
+            timeout=30_000,
+        )
+        assert (await card.locator(".stall-label").inner_text()).strip() == "stalled"
+        result = await asyncio.wait_for(send, 60)
+        assert "drip-fed" in result["message"] and "stalled" in result["message"]
+        assert emulator.runs[-1].stall_s > 0
+        # Idle again: the field goes with the progress.
+        await stall.wait_for(state="hidden", timeout=10_000)
+        assert not errors, errors
+    finally:
+        if client is not None:
+            await client.close()
+        await context.close()
         stop.set()
         await task
         await server.close()

@@ -16,7 +16,7 @@ PLC came back) is the same fault: its cause is marked :attr:`Cause.told`, and no
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Final
@@ -24,6 +24,7 @@ from typing import Final
 from cellctl.clock import current_clock
 from cellctl.errors import CellctlError, LinkClosed, LinkError, SignalTimeout
 from cellctl.kinds.families import Health
+from cellctl.protocol.plc import SIGNALS
 
 #: Alarm priorities after ISA-18.2 / IEC 62682, most urgent first.
 PRIORITIES: Final = ("high", "medium", "low")
@@ -82,6 +83,22 @@ def link_cause(machine: str, label: str, error: BaseException) -> Cause | None:
 def read_cause(machine: str, label: str, error: BaseException) -> Cause:
     """A look at an idle machine that failed: its link's fault, or the failure itself."""
     return link_cause(machine, label, error) or Cause(machine, "link", f"{label} failed: {error}")
+
+
+def door_cause(
+    inputs: Mapping[str, bool], doors: Iterable[int], open_: bool, waited: float
+) -> Cause | None:
+    """A door of ``doors`` (the mills' numbers) the PLC's ``inputs`` show short of its end
+    position (open if ``open_``) after ``waited`` s: a stuck door, in the words of an
+    interlock wait that ran out ("door of CNC 2 did not open within 120 s"); None if all are
+    there. What a step that waited on something else (a robot waiting for the door before
+    it goes in) blames when it runs out of time."""
+    for n in doors:
+        there = f"door_open_{n}" if open_ else f"door_closed_{n}"
+        if not inputs.get(there, True):
+            signal = SIGNALS[there]
+            return Cause("plc", "interlock", f"{signal.not_true} within {waited:g} s")
+    return None
 
 
 def status_cause(machine: str, status: Health) -> Cause:

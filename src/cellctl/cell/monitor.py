@@ -71,6 +71,7 @@ class Monitor:
         self._reads: dict[str, asyncio.Future[Any]] = {}
         self._since: dict[str, float] = {}  # when each key's last read was sent
         self._inputs: dict[str, bool] = {}  # the PLC's inputs at the last look
+        self._estop_seen: float | None = None  # the last look that found the E-stop pressed
         self._last_seen: tuple[object, ...] = ()
 
     async def _bounded(self, key: str, read: Callable[[], Awaitable[T]]) -> T:
@@ -140,22 +141,28 @@ class Monitor:
             self.recovery.robot_ok,
         )
 
-    async def cause_of(self, machine: str, error: BaseException) -> Cause | None:
+    async def cause_of(
+        self, machine: str, error: BaseException, since: float | None = None
+    ) -> Cause | None:
         """What made a step on ``machine`` fail, if not the step itself: the PLC (a
         :class:`Blamed` error; a door that did not move under an emergency stop is the
-        stop), the machine's link, or a robot status that says the arm cannot move (read
-        now, within ``read_limit``, after a reject)."""
+        stop), the machine's link, an emergency stop pressed since the step began at
+        ``since`` (``clock.monotonic()``; or pressed now: actuators stop where they are, so a
+        robot waiting for a vise never raises its "cycle done"), or a robot status that says
+        the arm cannot move (read now, within ``read_limit``, after a reject)."""
         if isinstance(error, Blamed):
             if error.cause.code == "interlock" and await self._estop():
                 return ESTOP
             if self._cleared_since(error.cause, error.since):
                 return dataclasses.replace(error.cause, told=True)
             return error.cause
-        if isinstance(error, CycleAborted):
-            return status_cause(machine, error.status)
         robot = self.world.robot
         label = "robot" if robot is not None and machine == robot.name else "mill"
         cause = link_cause(machine, label, error)
+        if cause is None and (self._estop_seen_since(since) or await self._estop()):
+            return ESTOP
+        if isinstance(error, CycleAborted):
+            return status_cause(machine, error.status)
         if cause is not None or label != "robot" or not isinstance(error, DeviceError):
             return cause
         assert robot is not None
@@ -183,13 +190,20 @@ class Monitor:
             for a in self.world.journal.alarms()
         )
 
+    def _estop_seen_since(self, since: float | None) -> bool:
+        """True if a look since ``since`` (``clock.monotonic()``) found the E-stop pressed."""
+        return since is not None and self._estop_seen is not None and self._estop_seen >= since
+
     async def _estop(self) -> bool:
         """True if the PLC's inputs say emergency stop (read now)."""
         try:
             inputs = await self._bounded("plc-cause", self.plc.read_inputs)
         except (_StillOut, TimeoutError, CellctlError):
             return False
-        return not inputs.get("estop_ok", True)
+        if inputs.get("estop_ok", True):
+            return False
+        self._estop_seen = self.world.clock.monotonic()
+        return True
 
     async def _plc(self) -> None:
         view = self.world.plc_view()
@@ -206,6 +220,7 @@ class Monitor:
         view.show("ok", Condition.IDLE)
         self.alarms.returned("plc", "link")
         if not inputs.get("estop_ok", True):
+            self._estop_seen = self.world.clock.monotonic()
             self.alarms.cause_alarm(ESTOP)
             view.show("emergency stop", Condition.ALARM, LastError(ESTOP.text))
         else:

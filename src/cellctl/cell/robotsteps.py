@@ -19,11 +19,11 @@ from __future__ import annotations
 import asyncio
 from typing import TYPE_CHECKING
 
-from cellctl.cell.causes import blame
+from cellctl.cell.causes import Cause, blame, door_cause
 from cellctl.cell.config import CONVEYOR
 from cellctl.cell.orderflow import OUT
 from cellctl.cell.orders import ReportKind
-from cellctl.errors import CellctlError, DeviceError, UsageError
+from cellctl.errors import CellctlError, DeviceError, SignalTimeout, UsageError
 
 #: Seconds between looks at the robot's "cycle done" output: it tells nothing unasked, and
 #: each look is two short reads, so the line itself paces most of the wait. Every ms of it is
@@ -98,6 +98,18 @@ class RobotSteps:
                 poll=INTERLOCK_POLL_S,
             )
 
+    async def _door_not_open(self, places: list[str]) -> Cause | None:
+        """After a cycle that did not end: a door of ``places`` the program waited for in
+        vain (it left its closed position, so the transfer started, but never opened)."""
+        plc = self.world.plc
+        assert plc is not None
+        try:
+            inputs = await plc.read_inputs()
+        except (CellctlError, OSError):
+            return None  # the PLC's own fault is the monitor's to tell
+        doors = [self.world.mill_index(p) for p in places if p != CONVEYOR]
+        return door_cause(inputs, doors, True, self.world.options.transfer_timeout)
+
     async def transfer(self, t: Transfer) -> None:
         """Carry part ``t.part_id`` from ``t.source`` to ``t.target`` with program
         ``t.program``: journaled, reported, its failure alarmed by its cause."""
@@ -168,7 +180,21 @@ class RobotSteps:
         except (CellctlError, OSError, asyncio.CancelledError) as e:
             view.step = ""
             stopped = isinstance(e, asyncio.CancelledError)
+            # One alarm, the cause's: the PLC (its E-stop), the robot's link or status, or
+            # the transfer. Asked first: the held part's note names it too.
+            culprit: Cause | None = None
+            if not stopped:
+                try:
+                    culprit = await self.monitor.cause_of(robot.name, e, since=started)
+                    if culprit is None and moved and isinstance(e, SignalTimeout):
+                        culprit = await self._door_not_open(places)
+                except asyncio.CancelledError:
+                    stopped = True  # the operator's stop came while we asked
             what = "cut short by an emergency stop" if stopped else f"failed: {e}"
+            if culprit is not None and culprit.code == "estop":
+                what = f"cut short by the emergency stop ({e})"
+            elif culprit is not None and culprit.code == "interlock":
+                what = f"failed: {culprit.text} ({e})"
             reason = f"transfer {t.program} {what}"
             if moved or stopped:
                 world.journal.end_step(step.id, "failed", str(e) or what, hold=reason)
@@ -187,16 +213,16 @@ class RobotSteps:
                 )
             alarms.wake()
             if stopped:
+                if not isinstance(e, asyncio.CancelledError):
+                    raise asyncio.CancelledError from e
                 raise
-            # One alarm, the cause's: the PLC, the robot's link or status, or the transfer.
             # A fault of the robot's own keeps it out of the plan until the monitor finds
             # it well; only a failure nothing else explains counts towards fail_limit.
-            cause = await self.monitor.cause_of(robot.name, e)
-            if cause is None:
+            if culprit is None:
                 alarms.failed(robot.name, "transfer", reason)
             else:
-                alarms.cause_alarm(cause)
-                if cause.machine == robot.name:
+                alarms.cause_alarm(culprit)
+                if culprit.machine == robot.name:
                     self.recovery.robot_ok = False
             return
         view.busy_s += self.world.clock.monotonic() - started

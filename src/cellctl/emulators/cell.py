@@ -44,10 +44,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import re
 import shutil
+import tomllib
 from collections import defaultdict
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from importlib import resources
 from pathlib import Path
 from typing import Any, Literal
@@ -80,8 +82,12 @@ BASE_LINE = LineSettings(4800, 7, "E", 2)
 
 #: ``[cell]`` deadlines for the machines' work, scaled in the emulated cell's cell.toml.
 CELL_DEADLINES = ("transfer_timeout", "interlock_timeout", "pallet_timeout")
+#: The note after a scaled deadline: the real cell's value, which :func:`real_cell_toml`
+#: reads back (the scaled one is floored at ``MIN_DEADLINE_S``: it cannot be undone).
+DEADLINE_NOTE = "  # s (the real cell's {real:g} s, scaled)"
+_DEADLINE_NOTE = re.compile(r"#\s*s \(the real cell's ([0-9.eE+-]+) s, scaled\)")
 
-__all__ = ["MIN_DEADLINE_S", "EmulatedCell", "scaled_deadline"]
+__all__ = ["MIN_DEADLINE_S", "EmulatedCell", "real_cell_toml", "scaled_deadline"]
 
 
 #: The example cell's wiring, one table (:data:`cellctl.protocol.plc.EXAMPLE_WIRING`).
@@ -285,42 +291,47 @@ class EmulatedCell:
             mill.start()
 
     def _cell_toml(self, template: Path) -> str:
-        """The template's cell.toml with links, line and timeouts for this emulated cell."""
-        import tomllib
+        """The template's cell.toml with links, line and timeouts for this emulated cell.
 
-        raw = tomllib.loads(template.read_text(encoding="utf-8"))
+        An emulated cell's file as the template is the real cell's first
+        (:func:`real_cell_toml`): one time scale, the real deadlines scaled once. A
+        machine's ``[options]`` table of the template is kept, the emulation's options over
+        it (one table)."""
+        text = real_cell_toml(template.read_text(encoding="utf-8"))
+        raw = tomllib.loads(text)
         lines = [
             f"# Emulated cell (time scale {self.time_scale:g}); written by cellctl emulate cell.",
             "",
         ]
-        out = template.read_text(encoding="utf-8").splitlines()
         section = ""
-        for text in out:
-            stripped = text.strip()
+        for line in text.splitlines():
+            stripped = line.strip()
             if stripped.startswith("["):
-                section = stripped.strip("[]")
+                section = stripped.strip("[] ")
+            if _is_options(section):
+                continue  # written below, with the emulation's options
             key = stripped.split("=", 1)[0].strip() if "=" in stripped else ""
             if section.startswith("machines.") and key == "link":
                 name = section.split(".", 1)[1]
-                text = f'link = "{self.servers[name].url}"'
+                line = f'link = "{self.servers[name].url}"'
             elif section.startswith("machines.") and key == "line":
-                text = f'line = "{self.line_of(section.split(".", 1)[1])}"'
+                line = f'line = "{self.line_of(section.split(".", 1)[1])}"'
             elif section == "plc" and key == "url":
-                text = f'url = "{self.plc_url}"'
+                line = f'url = "{self.plc_url}"'
             elif section == "cell" and key in CELL_DEADLINES:
                 # A deadline for a machine's work (a pallet, a door, a transfer) scales with
                 # the machines' time as the mills' do below.
                 value = float(raw["cell"][key])
                 scaled = scaled_deadline(value, self.time_scale)
-                text = f"{key} = {scaled:g}  # s (the real cell's {value:g} s, scaled)"
-            lines.append(text)
+                line = f"{key} = {scaled:g}" + DEADLINE_NOTE.format(real=value)
+            lines.append(line)
             if stripped == "[cell]":
                 lines.append(f"time_scale = {self.time_scale:g}  # the machines' time, x real")
         scale = self.time_scale
         # Deadlines scale with the machines' time; a real cell keeps the template's.
-        for name in raw.get("machines", {}):
-            kind = registry.kind(raw["machines"][name].get("kind"))
-            options: dict[str, int | float | str] = {}
+        for name, machine in raw.get("machines", {}).items():
+            kind = registry.kind(machine.get("kind"))
+            options: dict[str, int | float | str] = dict(machine.get("options", {}))
             served = self.servers.get(name)
             if isinstance(served, SelfServed):
                 options.update(served.options)
@@ -362,6 +373,52 @@ def _toml(value: int | float | str) -> str:
     return f"{value:g}" if isinstance(value, int | float) else f'"{value}"'
 
 
+def _is_options(section: str) -> bool:
+    """True for a machine's ``[machines.NAME.options]`` table."""
+    return section.startswith("machines.") and section.endswith(".options")
+
+
+def real_cell_toml(text: str) -> str:
+    """The real cell's cell.toml from an emulated cell's (``text``): what the emulation
+    wrote undone -- the ``[cell] time_scale`` gone, each deadline it scaled back at the real
+    cell's value (from its note, :data:`DEADLINE_NOTE`; else the value times the scale), and
+    the machines' ``[options]`` tables gone (the emulated machines' speed and ports). Links
+    stay as written. A file without ``[cell] time_scale`` is a real cell's: returned as is.
+    """
+    raw = tomllib.loads(text)
+    cell = raw.get("cell", {})
+    if "time_scale" not in cell:
+        return text
+    scale = float(cell["time_scale"])
+    out: list[str] = []
+    section = ""
+    for line in text.splitlines():
+        stripped = line.strip()
+        if stripped.startswith("# Emulated cell (time scale") and not section:
+            continue
+        if stripped.startswith("["):
+            section = stripped.strip("[] ")
+        if _is_options(section):
+            continue
+        key = stripped.split("=", 1)[0].strip() if "=" in stripped else ""
+        if section == "cell" and key == "time_scale":
+            continue
+        if section == "cell" and key in CELL_DEADLINES:
+            note = _DEADLINE_NOTE.search(line)
+            real = float(note.group(1)) if note else float(cell[key]) * scale
+            line = f"{key} = {real:g}"
+        elif section.startswith("machines.") and key == "line":
+            # Characters as much faster as the machines: the real line's rate, back.
+            settings = LineSettings.parse(raw["machines"][section.split(".", 1)[1]]["line"])
+            line = f'line = "{replace(settings, baudrate=round(settings.baudrate / scale))}"'
+        out.append(line)
+    while out and not out[-1].strip():
+        out.pop()  # the blank line before the options tables that went
+    while out and not out[0].strip():
+        out.pop(0)  # the blank line after the emulation's header
+    return "\n".join(out) + "\n"
+
+
 def scaled_line(line: LineSettings, time_scale: float) -> LineSettings:
     """``line`` with its baud rate ``time_scale`` times higher (characters as much faster)."""
     return LineSettings(
@@ -371,8 +428,6 @@ def scaled_line(line: LineSettings, time_scale: float) -> LineSettings:
 
 def _machine_kinds(template: Path) -> dict[str, str]:
     """The machines of ``template``'s cell.toml and their kinds."""
-    import tomllib
-
     path = template / "cell.toml"
     try:
         raw = tomllib.loads(path.read_text(encoding="utf-8"))

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import tomllib
 from dataclasses import asdict
 from datetime import datetime
 from pathlib import Path
@@ -24,6 +23,7 @@ from typing import Annotated, Any, Final
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from cellctl.cell.config import load_cell
+from cellctl.emulators.cell import real_cell_toml
 from cellctl.errors import UsageError
 from cellctl.mailbox.base import MAX_QTY
 from cellctl.plan.engine import FaultWindow, HeldPart, PlanInputs, PlanOrder
@@ -182,7 +182,7 @@ def config_files(cell_dir: Path) -> list[Path]:
 def copy_config(cell_dir: Path, target: Path) -> Path:
     """Copy the cell's configuration (:func:`config_files`) into ``target`` (replaced; a
     replay into its own directory keeps the copy it plays from), its cell.toml as the real
-    cell's (:func:`real_cell_toml`)."""
+    cell's (:func:`plan_cell_toml`)."""
     if target.resolve() == cell_dir.resolve():
         return target
     shutil.rmtree(target, ignore_errors=True)
@@ -190,40 +190,23 @@ def copy_config(cell_dir: Path, target: Path) -> Path:
         (target / rel).parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(cell_dir / rel, target / rel)
     toml = target / "cell.toml"
-    toml.write_text(real_cell_toml(toml.read_text(encoding="utf-8")), encoding="utf-8")
+    toml.write_text(plan_cell_toml(toml.read_text(encoding="utf-8")), encoding="utf-8")
     return target
 
 
-#: The [cell] deadlines an emulated cell scales with its machines' time (and a plan, which
-#: plays the real machines' times, scales back).
-SCALED_DEADLINES: Final = ("transfer_timeout", "interlock_timeout", "pallet_timeout")
-
-
-def real_cell_toml(text: str) -> str:
-    """An emulated cell's cell.toml as the real cell's: a plan plays the machines' real
-    times (the engine's emulators at time scale 1), so the emulation's ``[cell] time_scale``
-    goes, the deadlines it scaled are scaled back, and the machines' ``[options]`` tables go
-    (the plan's emulated machines get their own), as does ``[mailbox]`` (a plan's orders are
-    its own). A real cell's file is unchanged but for those tables."""
-    raw = tomllib.loads(text)
-    scale = float(raw.get("cell", {}).get("time_scale", 1.0))
+def plan_cell_toml(text: str) -> str:
+    """A cell's cell.toml as a plan plays it: the real cell's (an emulated cell's emulation
+    undone, :func:`~cellctl.emulators.cell.real_cell_toml`: a plan plays the machines' real
+    times, its emulators their own options), without ``[mailbox]`` (a plan's orders are its
+    own: no broker, no credentials to copy)."""
     out: list[str] = []
     section = ""
-    for line in text.splitlines():
+    for line in real_cell_toml(text).splitlines():
         stripped = line.strip()
         if stripped.startswith("["):
             section = stripped.strip("[] ")
-        if section.startswith("machines.") and section.endswith(".options"):
-            continue
-        if section == "mailbox":
-            continue  # a plan's cell has its own mailbox: no broker, no credentials to copy
-        key = stripped.split("=", 1)[0].strip() if "=" in stripped else ""
-        if section == "cell" and key == "time_scale":
-            continue
-        if section == "cell" and key in SCALED_DEADLINES and scale != 1.0:
-            value = float(raw["cell"][key]) * scale
-            line = f"{key} = {value:g}  # s (scaled back from time scale {scale:g})"
-        out.append(line)
+        if section != "mailbox":
+            out.append(line)
     return "\n".join(out) + "\n"
 
 

@@ -98,6 +98,11 @@ class CellAccess(ABC):
         :class:`~cellctl.service.methods.Method`, by name): none for a cell."""
         return {}
 
+    def layout(self) -> dict[str, Any] | None:
+        """Its layout (``cell.layout``'s answer) when it has one of its own, not read from
+        a cell.toml (a DNC shop's machines); None: the cell's."""
+        return None
+
     def controller(self) -> CellController:
         """The running controller: UsageError when none runs."""
         raise UsageError(f"no controller runs on {self.directory}: start `cellctl run` for that")

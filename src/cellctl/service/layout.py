@@ -45,7 +45,11 @@ def cell_config(access: CellAccess) -> CellConfig:
 
 def cell_layout(access: CellAccess) -> dict[str, Any]:
     """What the cell is made of: machines (name, kind, family, role), the places a part can be,
-    and each part type's route (mill, program name, program path as in cell.toml)."""
+    and each part type's route (mill, program name, program path as in cell.toml); or what
+    the access says of its own (:meth:`~cellctl.service.access.CellAccess.layout`)."""
+    own = access.layout()
+    if own is not None:
+        return own
     config = cell_config(access)
     machines = [
         {

@@ -236,7 +236,7 @@ class DncAccess(CellAccess):
                 manual=True,
             )
         cell = CellInfo(
-            name=f"DNC {Path(self.directory).absolute().name}",
+            name=self._name(),
             directory=str(self.directory),
             access="attached",
             mode=CellMode.RUNNING,
@@ -250,6 +250,23 @@ class DncAccess(CellAccess):
         return CellStatus(
             cell=cell, machines=machines, orders=[], parts=[], alarms=[], events=events
         )
+
+    def layout(self) -> dict[str, Any]:
+        """The shop as the dashboard draws it: its machines, no robot, no part types."""
+        names = list(self.server.lines)
+        return {
+            "name": self._name(),
+            "robot": None,
+            "mills": names,
+            "places": names,
+            "machines": [
+                {"name": n, "kind": KIND, "family": "mill", "role": "mill"} for n in names
+            ],
+            "part_types": {},
+        }
+
+    def _name(self) -> str:
+        return f"DNC {Path(self.directory).absolute().name}"
 
     def traffic(self, name: str, limit: int) -> list[dict[str, Any]]:
         line = self.server.line(name)

@@ -105,15 +105,17 @@ export function drawFloor(container, layout) {
     places[box.name] = { x: box.vise.x, y: box.vise.y + 2, dx: 22 };
   }
 
-  const robot = el("g", { class: "machine robot state-offline", "data-machine": layout.robot },
-    svg);
-  el("circle", { cx: ROBOT.x, cy: ROBOT.y, r: ROBOT.r, class: "body" }, robot);
-  el("line", {
-    x1: ROBOT.x, y1: ROBOT.y, x2: ROBOT.x + 70, y2: ROBOT.y - 30, class: "arm",
-  }, robot);
-  text(robot, ROBOT.x - ROBOT.r - 8, ROBOT.y - ROBOT.r - 6, layout.robot, "label name");
-  text(robot, ROBOT.x - 60, ROBOT.y + ROBOT.r + 18, "", "label small status");
-  places[layout.robot] = { x: ROBOT.x + 70, y: ROBOT.y - 30, dx: 22 };
+  if (layout.robot) {  // a DNC shop's machines have none
+    const robot = el("g", { class: "machine robot state-offline", "data-machine": layout.robot },
+      svg);
+    el("circle", { cx: ROBOT.x, cy: ROBOT.y, r: ROBOT.r, class: "body" }, robot);
+    el("line", {
+      x1: ROBOT.x, y1: ROBOT.y, x2: ROBOT.x + 70, y2: ROBOT.y - 30, class: "arm",
+    }, robot);
+    text(robot, ROBOT.x - ROBOT.r - 8, ROBOT.y - ROBOT.r - 6, layout.robot, "label name");
+    text(robot, ROBOT.x - 60, ROBOT.y + ROBOT.r + 18, "", "label small status");
+    places[layout.robot] = { x: ROBOT.x + 70, y: ROBOT.y - 30, dx: 22 };
+  }
 
   const conveyor = el("g", { class: "conveyor" }, svg);
   el("rect", { ...rect(CONVEYOR), rx: 6, class: "belt" }, conveyor);

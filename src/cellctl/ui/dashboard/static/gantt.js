@@ -28,7 +28,7 @@ export function renderGantt(container, layout, steps, since) {
     return;
   }
   const now = Date.now() / 1000;
-  const machines = [layout.robot, ...layout.mills];
+  const machines = [layout.robot, ...layout.mills].filter((m) => m);
   const types = Object.keys(layout.part_types);
   const earliest = steps.reduce((t, s) => Math.min(t, s.started), now - 10);
   const t0 = Math.max(since, earliest - 1);

@@ -105,7 +105,9 @@ function card(name) {
       h("dt", {}, "last error"), h("dd", { class: "last-error" })),
     h("div", { class: "progress hidden" },
       h("div", { class: "bar" }, h("div", { class: "fill" })),
-      h("p", { class: "progress-text small" })),
+      h("p", { class: "progress-text small" }),
+      h("p", { class: "stall small hidden" },
+        h("span", { class: "stall-label" }, "stalled "), h("span", { class: "stall-s" }))),
     h("div", { class: "preview hidden" }));
   byId("machine-cards").append(node);
   return node;
@@ -153,11 +155,23 @@ export function renderCards(state, snap) {
       fill.style.width = `${(100 * p.fraction).toFixed(1)}%`;
       node.querySelector(".progress-text").textContent = progressText(p);
     }
+    showStall(node, p);
     if (m.role === "mill") {
       showPreview(state, node, m.name, p);
     }
     renderServiceControls(node, machine);
   }
+}
+
+// A drip-feed's stall (the axes stopped, waiting for data) in a field of its own: shown
+// where the status gives one (stall_s), with the seconds in .stall-s.
+function showStall(node, p) {
+  const box = node.querySelector(".stall");
+  const known = Boolean(p) && p.stall_s !== null && p.stall_s !== undefined;
+  box.classList.toggle("hidden", !known);
+  box.classList.toggle("stalled", known && p.stall_s > 0);
+  node.querySelector(".stall-s").textContent = known ? duration(p.stall_s) : "";
+  box.title = "seconds the machine waited for data this run, its axes stopped";
 }
 
 function showPreview(state, node, mill, progress) {

@@ -24,6 +24,7 @@ import inspect
 import os
 import re
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -80,6 +81,35 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
         func = getattr(item, "obj", None)
         if not inspect.iscoroutinefunction(func):
             raise pytest.UsageError(f"{item.nodeid}: mark.virtual is for async tests only")
+
+
+#: The signals a test's processes are stopped with.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+def _signal_state() -> tuple[object, ...]:
+    handlers = [signal.getsignal(sig) for sig in STOP_SIGNALS]
+    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    return (*handlers, sorted(sig for sig in blocked if sig in STOP_SIGNALS))
+
+
+@pytest.fixture(autouse=True)
+def signals_left_as_found() -> Iterator[None]:
+    """Fail the test that leaves Ctrl-C or SIGTERM handled otherwise in this process (a
+    command run in process, a loop's signal handler): an ignored or blocked signal passes to
+    every process a later test starts (exec keeps both), which then cannot be stopped."""
+    handlers = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    before = _signal_state()
+    yield
+    after = _signal_state()
+    if after != before:
+        # Put back what was found, so that only this test fails, not the ones after it.
+        for sig, handler in handlers.items():
+            if handler is not None:
+                signal.signal(sig, handler)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        pytest.fail(f"the test left SIGINT/SIGTERM handling changed: {before} -> {after}")
 
 
 def _real_loop() -> asyncio.AbstractEventLoop:

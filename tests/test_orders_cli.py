@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import asyncio
 import os
+import signal
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -14,6 +16,7 @@ from click.testing import CliRunner, Result
 from cellctl.cell.journal import open_journal
 from cellctl.mailbox import open_mailbox
 from cellctl.ui.cli import main
+from cellctl.ui.common import stop_signals
 
 CELL_TOML = """
 [parts.wax-robot]
@@ -243,3 +246,58 @@ def test_reports_follow_prints_new_reports_as_they_come(cell: Path) -> None:
         finally:
             follower.terminate()
             follower.communicate(timeout=30)
+
+
+@pytest.mark.parametrize(
+    "start",
+    [
+        "pass",
+        # Ignored: how a script's background job starts; blocked: a parent's mask, kept by exec.
+        "signal.signal(signal.SIGINT, signal.SIG_IGN)",
+        "signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})",
+    ],
+    ids=["default", "ignored", "blocked"],
+)
+def test_reports_follow_stops_on_ctrl_c_however_it_was_started(cell: Path, start: str) -> None:
+    with open_mailbox(cell) as mailbox:
+        mailbox.post_report("order-accepted", "order A17 accepted", order_id="A17")
+    code = f"import signal, sys; {start}; {RUN_CLI}"
+    follower = subprocess.Popen(
+        [sys.executable, "-c", code, "--cell", str(cell), "reports", "--follow", "--json"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert follower.stdout is not None
+        assert "order A17 accepted" in follower.stdout.readline()
+        follower.send_signal(signal.SIGINT)
+        _, err = follower.communicate(timeout=30)
+    finally:
+        if follower.poll() is None:
+            follower.kill()
+            follower.communicate()
+    assert (follower.returncode, err.strip()) == (130, "interrupted")
+
+
+def test_a_stop_on_ctrl_c_leaves_the_signals_as_it_found_them() -> None:
+    """In this process, as a command run in process would: SIGINT ignored and blocked before,
+    caught while stopping, ignored and blocked again after."""
+
+    async def stopped_by_ctrl_c() -> bool:
+        stop = asyncio.Event()
+        with stop_signals(stop):
+            signal.raise_signal(signal.SIGINT)
+            async with asyncio.timeout(10):
+                await stop.wait()
+        return stop.is_set()
+
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        assert asyncio.run(stopped_by_ctrl_c())
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+        assert signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        signal.signal(signal.SIGINT, previous)

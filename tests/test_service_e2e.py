@@ -152,3 +152,4 @@ def test_traffic_follow_prints_new_bytes_as_they_pass(
     rows = out.read_text().splitlines()
     seen = [r for r in rows if r.startswith("{")]
     assert len(seen) >= 300 and len(set(seen)) == len(seen), rows[:5]
+    assert (follow.returncode, rows[-1]) == (130, "interrupted"), rows[-3:]

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import functools
 import importlib
 import json
 import logging
 import signal
 import sys
-from collections.abc import Callable, Coroutine, Iterable, Mapping
+from collections.abc import Awaitable, Callable, Coroutine, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NoReturn, TypeVar
@@ -19,6 +20,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from cellctl.clock import current_clock
 from cellctl.errors import CellctlError, UsageError, exit_code
 from cellctl.kinds import registry
 from cellctl.service.machines import MachineRef, resolve_machine
@@ -311,17 +313,73 @@ class MachineGroup(click.Group):
         return None
 
 
+#: The signals that stop a command that serves or follows until told: Ctrl-C and SIGTERM.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+#: Seconds a ``--follow`` step cut short by Ctrl-C may take to wind down.
+STOP_GRACE_S = 5.0
+
+
+@contextlib.contextmanager
+def stop_signals(stop: asyncio.Event) -> Iterator[None]:
+    """Set ``stop`` on Ctrl-C or SIGTERM while in the block; then put back what was there.
+
+    The loop's own handler takes the signal even when this process started with it ignored
+    or blocked (a state a parent's exec passes on); on leaving, the handlers and the mask are
+    what they were, so a command run in a longer-lived process (a test) leaves them as found.
+    """
+    loop = asyncio.get_running_loop()
+    before = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}
+    mask = signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
+    for sig in STOP_SIGNALS:
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        yield
+    finally:
+        for sig, handler in before.items():
+            loop.remove_signal_handler(sig)
+            if handler is not None:  # None: a handler not set from Python, left alone
+                signal.signal(sig, handler)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+
+
 async def until_stopped() -> None:
     """Wait until Ctrl-C or SIGTERM (what every ``cellctl emulate`` command serves until)."""
     stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
-    try:
+    with stop_signals(stop):
         await stop.wait()
+
+
+async def follow_until_stopped(step: Callable[[], Awaitable[None]], period: float) -> NoReturn:
+    """Run ``step()`` every ``period`` s until Ctrl-C or SIGTERM, then raise KeyboardInterrupt
+    (:func:`run` prints "interrupted" and exits 130): the loop of every ``--follow``.
+
+    The stop is an event the signal sets, looked at between steps and raced against each,
+    never only a cancel of the command's task (which a wait inside a step could swallow).
+    A step's error ends the loop with that error.
+    """
+    stop = asyncio.Event()
+    with stop_signals(stop):
+        while not stop.is_set():
+            await _unless_stopped(stop, step())
+            await _unless_stopped(stop, current_clock().sleep(period))
+    raise KeyboardInterrupt
+
+
+async def _unless_stopped(stop: asyncio.Event, work: Awaitable[None]) -> None:
+    """``work`` to its end, or cut short (cancelled, given :data:`STOP_GRACE_S`) once ``stop``
+    is set; its error, if it ended with one."""
+    task = asyncio.ensure_future(work)
+    stopped = asyncio.ensure_future(stop.wait())
+    try:
+        await asyncio.wait({task, stopped}, return_when=asyncio.FIRST_COMPLETED)
     finally:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.remove_signal_handler(sig)
+        stopped.cancel()
+        if not task.done():
+            task.cancel()
+            await asyncio.wait({task}, timeout=STOP_GRACE_S)
+    if task.done() and not task.cancelled():
+        task.result()
 
 
 def machine_ref(ctx: click.Context, family: str) -> tuple[Path, MachineRef]:

@@ -32,6 +32,7 @@ from cellctl.ui.common import (
     cell_given,
     console,
     err_console,
+    follow_until_stopped,
     json_option,
     print_json,
     print_line,
@@ -212,7 +213,9 @@ def reports(ctx: click.Context, since: int, limit: int | None, follow: bool, as_
         async def follow_reports() -> None:
             seen = since
             with open_mailbox(directory) as mailbox:
-                while True:
+
+                async def step() -> None:
+                    nonlocal seen
                     for r in mailbox.reports(seen):
                         if as_json:  # one JSON object a line, as it comes
                             click.echo(json.dumps(_report_dict(r), ensure_ascii=False))
@@ -220,7 +223,8 @@ def reports(ctx: click.Context, since: int, limit: int | None, follow: bool, as_
                             print_line("  ".join(x for x in _report_row(r) if x))
                         console.file.flush()
                         seen = r.seq
-                    await current_clock().sleep(FOLLOW_POLL)
+
+                await follow_until_stopped(step, FOLLOW_POLL)
 
         run(follow_reports)
         return

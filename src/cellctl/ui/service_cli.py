@@ -16,10 +16,17 @@ from typing import Any
 
 import click
 
-from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.ui.calls import cell_call
-from cellctl.ui.common import cell_dir, console, json_option, print_json, print_line, run
+from cellctl.ui.common import (
+    cell_dir,
+    console,
+    follow_until_stopped,
+    json_option,
+    print_json,
+    print_line,
+    run,
+)
 from cellctl.ui.systemd_unit import (
     SYSTEM_UNIT_DIR,
     ServiceUnit,
@@ -124,7 +131,9 @@ def traffic(ctx: click.Context, name: str, limit: int, follow: bool, as_json: bo
 
         seen: set[tuple[Any, ...]] = set()
         async with await open_cell(directory, {}) as cell:
-            while True:
+
+            async def step() -> None:
+                nonlocal seen
                 rows = await cell.call("traffic.tail", {"machine": name, "limit": limit})
                 keys = [(row["time"], row["dir"], row["hex"]) for row in rows]
                 for key, row in zip(keys, rows, strict=True):
@@ -134,7 +143,8 @@ def traffic(ctx: click.Context, name: str, limit: int, follow: bool, as_json: bo
                 # follow that runs for a shift keeps a bounded memory.
                 seen = set(keys)
                 console.file.flush()
-                await current_clock().sleep(TRAFFIC_POLL_S)
+
+            await follow_until_stopped(step, TRAFFIC_POLL_S)
 
     run(follow_traffic)
 

@@ -255,8 +255,14 @@ class _VirtualSelector(selectors.BaseSelector):
 
     def select(self, timeout: float | None = None) -> list[tuple[selectors.SelectorKey, int]]:
         loop = self.loop
-        if loop is None or timeout == 0:
+        if loop is None:
             return self._inner.select(timeout)
+        if timeout == 0:
+            # Callbacks are ready: no time passes. With no real I/O and no thread outside,
+            # only the loop's own wake-up socket is registered, and a thread's wake-up is
+            # in the ready queue already: the poll (a system call a turn) is skipped, and
+            # the socket drained at the next jump.
+            return self._inner.select(0) if loop._outside_pending() else []
         # Something already there (a thread's wake-up, real I/O)? Then no time passes.
         ready = self._inner.select(0)
         if ready:

@@ -23,6 +23,8 @@ from cellctl.cell.causes import blame
 from cellctl.cell.config import CONVEYOR
 from cellctl.cell.orderflow import OUT
 from cellctl.cell.orders import ReportKind
+from cellctl.cell.physics import physical_durations
+from cellctl.cell.shift import cell_time_scale
 from cellctl.errors import CellctlError, DeviceError, UsageError
 
 #: Seconds between looks at the robot's "cycle done" output: it tells nothing unasked, and
@@ -31,6 +33,10 @@ from cellctl.errors import CellctlError, DeviceError, UsageError
 CYCLE_END_POLL_S = 0.002
 #: Seconds between reads of the PLC while a door or a vise moves (the PLC pushes nothing).
 INTERLOCK_POLL_S = 0.005
+#: A cycle's output is left unasked for this share of the least time its program takes (the
+#: least of the machines' model and of the cycles the cell ran): another start position or
+#: a door already on its way can make a cycle a little shorter than the least seen.
+EXPECTED_SHARE = 0.9
 
 if TYPE_CHECKING:
     from cellctl.cell.monitor import Monitor
@@ -55,6 +61,23 @@ class RobotSteps:
         self.plc = plc
         self.monitor = monitor
         self.recovery = recovery
+        self._modelled: dict[str, float] | None = None  # each program's cycle, its model's
+        self._least: dict[str, float] = {}  # each program's shortest cycle seen, s
+
+    def expected(self, program: str) -> float:
+        """Seconds a cycle of robot program ``program`` cannot end sooner (0: not known):
+        :data:`EXPECTED_SHARE` of the least of its model's time and the cycles seen."""
+        if self._modelled is None:
+            config = self.world.config
+            try:
+                phys = physical_durations(config, time_scale=cell_time_scale(config))
+                self._modelled = phys.transfer_s
+            except (ValueError, CellctlError):
+                self._modelled = {}  # a kind with no timing model: the cycles seen only
+        least = min(
+            self._modelled.get(program, float("inf")), self._least.get(program, float("inf"))
+        )
+        return EXPECTED_SHARE * least if least < float("inf") else 0.0
 
     # -- the robot's steps ------------------------------------------------------------------------
 
@@ -155,14 +178,19 @@ class RobotSteps:
                 order_id=part.order_id,
                 part_id=part.id,
             )
-            # The output is read every poll; the status (a servo error or a power failure
-            # that aborted the cycle) as often as the monitor looks at an idle robot.
+            # The output is read every poll once the cycle may have ended; the status (a
+            # servo error or a power failure that aborted the cycle) from the start, as
+            # often as the monitor looks at an idle robot.
+            cycle_started = world.clock.monotonic()
             await robot.wait_end(
                 world.options.done_output,
                 timeout=world.options.transfer_timeout,
                 poll=CYCLE_END_POLL_S,
-                watch_every=world.options.poll_period / 4,
+                watch_every=self.monitor.sample_period,
+                expected=self.expected(t.program),
             )
+            cycle = world.clock.monotonic() - cycle_started
+            self._least[t.program] = min(cycle, self._least.get(t.program, cycle))
             with blame("plc", "PLC"):
                 await self.doors(places, False)
         except (CellctlError, OSError, asyncio.CancelledError) as e:

@@ -6,6 +6,8 @@ own 4800-baud line), counted in exchanges, never in wall time.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from cellctl.clock import current_clock, run_virtual
@@ -17,6 +19,7 @@ from cellctl.kinds.ibm7545.driver import Ibm7545Robot, RobotHalted
 from cellctl.kinds.ibm7545.emulator import Ibm7545Emulator
 from cellctl.link import ROBOT_LINE, TrafficLog
 from cellctl.link.trace import SENT
+from cellctl.testing.rig import CellRig
 
 # A cycle of several seconds on the arm's model, its "cycle done" output raised at the end.
 CYCLE = """
@@ -123,3 +126,29 @@ def test_a_door_is_read_again_after_its_least_travel_time() -> None:
             await emulator.close()
 
     run_virtual(session())
+
+
+@pytest.mark.virtual
+async def test_a_servo_error_mid_transfer_is_alarmed_within_a_poll_period(tmp_path: Path) -> None:
+    """The cell's first transfer (conveyor to CNC 1, some 5 s of the arm's model) leaves its
+    end unasked for most of the cycle: a servo error 1 s into it is still one alarm, in the
+    status's words, within a poll period, and the part is held."""
+    async with CellRig(tmp_path / "cell", time_scale=1.0, deadlines="emulated") as rig:
+        clock = current_clock()
+        rig.post("wax-robot-base", 1, "A")
+        switched: list[float] = []
+
+        def as_the_door_opens(name: str, on: bool) -> None:
+            if name == "door_1" and on and not switched:
+                switched.append(clock.now() + 1.0)
+                clock.call_at(clock.monotonic() + 1.0, rig.switch_on, "robot:servo-error")
+
+        rig.cell.plc.hooks.coil.append(as_the_door_opens)
+        controller = await rig.start_controller()
+        (alarm,) = await rig.wait_for(lambda: rig.alarms("robot"), "an alarm on the robot")
+        assert alarm.text == "servo error"
+        assert alarm.raised - switched[0] <= controller.options.poll_period
+        (held,) = await rig.wait_for(rig.held_parts, "the part held")
+        assert "transfer conveyor_to_cnc1" in (held.note or "")
+        assert [r.outcome for r in rig.cell.robot.runs][-1] != "completed"
+        await rig.stop_controller()

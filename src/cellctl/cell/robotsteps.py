@@ -23,7 +23,7 @@ from cellctl.cell.causes import blame
 from cellctl.cell.config import CONVEYOR
 from cellctl.cell.orderflow import OUT
 from cellctl.cell.orders import ReportKind
-from cellctl.cell.physics import physical_durations
+from cellctl.cell.physics import transfer_durations
 from cellctl.cell.shift import cell_time_scale
 from cellctl.errors import CellctlError, DeviceError, UsageError
 
@@ -70,10 +70,10 @@ class RobotSteps:
         if self._modelled is None:
             config = self.world.config
             try:
-                phys = physical_durations(config, time_scale=cell_time_scale(config))
-                self._modelled = phys.transfer_s
-            except (ValueError, CellctlError):
-                self._modelled = {}  # a kind with no timing model: the cycles seen only
+                modelled = transfer_durations(config, time_scale=cell_time_scale(config))
+                self._modelled = {name: t.seconds for name, t in modelled.items()}
+            except Exception:  # no model (or none that can time these programs): the
+                self._modelled = {}  # cycles seen only; a figure must not fail a transfer
         least = min(
             self._modelled.get(program, float("inf")), self._least.get(program, float("inf"))
         )

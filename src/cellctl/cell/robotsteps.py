@@ -186,7 +186,7 @@ class RobotSteps:
                 world.options.done_output,
                 timeout=world.options.transfer_timeout,
                 poll=CYCLE_END_POLL_S,
-                watch_every=self.monitor.sample_period,
+                watch_every=self.monitor.robot_period,
                 expected=self.expected(t.program),
             )
             cycle = world.clock.monotonic() - cycle_started

@@ -65,8 +65,9 @@ class RobotSteps:
         self._least: dict[str, float] = {}  # each program's shortest cycle seen, s
 
     def expected(self, program: str) -> float:
-        """Seconds a cycle of robot program ``program`` cannot end sooner (0: not known):
-        :data:`EXPECTED_SHARE` of the least of its model's time and the cycles seen."""
+        """Seconds from its doors' command that a cycle of robot program ``program`` cannot
+        end sooner (0: not known): :data:`EXPECTED_SHARE` of the least of its model's time
+        and the cycles seen."""
         if self._modelled is None:
             config = self.world.config
             try:
@@ -138,6 +139,7 @@ class RobotSteps:
         started = self.world.clock.monotonic()
         places = [t.source, t.target]
         attempt = 0
+        commanded = started  # when the doors were commanded for the cycle that runs
         moved = False  # the arm may have moved: a failure from here on holds the part
         try:
             rejected: DeviceError | None = None
@@ -152,6 +154,9 @@ class RobotSteps:
                         if robot.needs_initialize(rejected):
                             await robot.initialize()
                     partition = await self._ensure_program(t.program)
+                    # The cycle's clock starts with the doors, as its model's does: a cycle
+                    # started later cannot end sooner than that.
+                    commanded = world.clock.monotonic()
                     with blame("plc", "PLC"):
                         await self.doors(places, True)
                     moved = True
@@ -181,15 +186,15 @@ class RobotSteps:
             # The output is read every poll once the cycle may have ended; the status (a
             # servo error or a power failure that aborted the cycle) from the start, as
             # often as the monitor looks at an idle robot.
-            cycle_started = world.clock.monotonic()
+            elapsed = world.clock.monotonic() - commanded
             await robot.wait_end(
                 world.options.done_output,
                 timeout=world.options.transfer_timeout,
                 poll=CYCLE_END_POLL_S,
                 watch_every=self.monitor.robot_period,
-                expected=self.expected(t.program),
+                expected=max(0.0, self.expected(t.program) - elapsed),
             )
-            cycle = world.clock.monotonic() - cycle_started
+            cycle = world.clock.monotonic() - commanded
             self._least[t.program] = min(cycle, self._least.get(t.program, cycle))
             with blame("plc", "PLC"):
                 await self.doors(places, False)

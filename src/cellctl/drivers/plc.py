@@ -57,11 +57,7 @@ from cellctl.protocol.plc import (
     plc_mem_name,
 )
 
-__all__ = ["TRAVEL_SHARE", "MemModbusClient", "ModbusPlc"]
-
-#: A signal a wait did not find at once is read again after this share of the least time it
-#: took to come before (a door that travelled a little further already, a shorter stroke).
-TRAVEL_SHARE = 0.9
+__all__ = ["MemModbusClient", "ModbusPlc"]
 
 
 def _retrieve(future: asyncio.Future[Any]) -> None:
@@ -85,8 +81,6 @@ class ModbusPlc:
         self.requests = 0
         self.last_inputs: dict[str, bool] = {}
         self._maybe_high: set[str] = set()  # coils a failed pulse may have left at 1
-        # (input, level) -> the least seconds a wait_for took when the first read missed it
-        self._travel: dict[tuple[str, bool], float] = {}
         self._mem = plc_mem_name(url) is not None
         host, port = ("", 0) if self._mem else parse_modbus_url(url)
         self._lost = asyncio.Event()
@@ -340,38 +334,24 @@ class ModbusPlc:
         Raises :class:`SignalTimeout` in words once ``timeout`` passes ("door of CNC 1 did not
         close within 5 s"); a read under way at the deadline is finished first, so the wait
         ends at most one request timeout late. Link failures while reading pass through.
-
-        A signal that was not there at the first read is next read after
-        :data:`TRAVEL_SHARE` of the least time it took to come before (a door's travel, a
-        vise's stroke: a physical time), then every ``poll`` s.
         """
         name = self._signal(name, INPUT)
         poll = self.map.poll if poll is None else poll
         if timeout < 0 or poll <= 0:
             raise UsageError("wait_for needs timeout >= 0 and poll > 0")
         clock = self.clock
-        started = clock.monotonic()
-        deadline = started + timeout
+        deadline = clock.monotonic() + timeout
         want = bool(value)
-        travel = self._travel.get((name, want), 0.0) * TRAVEL_SHARE
-        first = True
         while True:
             inputs = await self.read_inputs()
             if inputs[name] == want:
-                if not first:
-                    took = clock.monotonic() - started
-                    self._travel[(name, want)] = min(took, self._travel.get((name, want), took))
                 return inputs
-            now = clock.monotonic()
-            left = deadline - now
+            left = deadline - clock.monotonic()
             if left <= 0:
                 sig = SIGNALS[name]
                 phrase = sig.not_true if want else sig.not_false
                 raise SignalTimeout(f"{phrase} within {timeout:g} s")
-            # The poll period between reads; after the first, what is left of its travel.
-            pause = max(poll, started + travel - now) if first else poll
-            first = False
-            await clock.sleep(min(pause, left))
+            await clock.sleep(min(poll, left))  # the poll period between reads
 
 
 class MemModbusClient:

@@ -10,12 +10,13 @@ Assertions are on the screen, the emulators and the cell's own records.
 from __future__ import annotations
 
 import tempfile
-import time
 from pathlib import Path
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.service.client import CellClient
 from cellctl.service.functions import function
@@ -36,6 +37,7 @@ from tests.test_console import (
 __all__ = ["attached", "rig"]  # the fixtures, used by name
 
 
+@pytest.mark.virtual
 async def test_download_offers_aml_and_compiles_it_on_the_way(rig: CellRig) -> None:
     client = standalone_client(rig)
     app = ConsoleApp(rig.directory, client, traffic_period=0.1)
@@ -64,6 +66,7 @@ async def test_download_offers_aml_and_compiles_it_on_the_way(rig: CellRig) -> N
         await pilot.press("q")
 
 
+@pytest.mark.virtual
 async def test_a_broken_aml_source_is_refused_in_the_dialog(rig: CellRig) -> None:
     (rig.directory / "broken.aml").write_text("THIS IS NOT AML;\n")
     client = standalone_client(rig)
@@ -82,6 +85,7 @@ async def test_a_broken_aml_source_is_refused_in_the_dialog(rig: CellRig) -> Non
         await pilot.press("escape", "q")
 
 
+@pytest.mark.virtual
 async def test_the_traffic_pane_shows_the_operators_own_command(rig: CellRig) -> None:
     client = standalone_client(rig)
     app = ConsoleApp(rig.directory, client, traffic_period=0.1)
@@ -89,7 +93,7 @@ async def test_the_traffic_pane_shows_the_operators_own_command(rig: CellRig) ->
         await wait_text(pilot, "MAIN MENU")
         await pilot.press("1")
         await wait_text(pilot, "ROBOT (robot)")
-        given = time.time()
+        given = current_clock().now()  # the traffic's stamps: the cell's clock
         await pilot.press("4")
         await wait_text(pilot, "robot: STATUS: robot state")
         rows = await client.call("traffic.tail", {"machine": "robot", "limit": 2000})
@@ -122,6 +126,7 @@ async def test_cell_orders_follows_the_orders_while_open(
         await pilot.press("escape", "escape", "q")
 
 
+@pytest.mark.virtual
 async def test_standalone_mill_after_initialize_is_not_uninitialized(rig: CellRig) -> None:
     client = standalone_client(rig)
     app = ConsoleApp(rig.directory, client, traffic_period=0.1)

@@ -457,11 +457,17 @@ class ConsoleApp(App[None]):
         return action
 
     async def step_ended(self, name: str, timeout: float = STEP_WAIT) -> None:
-        """Wait (live) until the step in flight on ``name`` has ended, up to ``timeout``."""
+        """Wait (live) until the step in flight on ``name`` has ended, up to ``timeout``.
+
+        Asked of the controller (``machines.list``), not read from the pushed status: an
+        update may still be on its way, and a step it does not show yet must be waited for
+        too (else the function is refused as the machine is still busy with it)."""
+        assert self.client is not None
         clock = current_clock()
         deadline = clock.monotonic() + timeout
         while True:
-            step = self.snapshot.get("machines", {}).get(name, {}).get("step") or {}
+            machines = await self.client.call("machines.list")
+            step = machines.get(name, {}).get("step") or {}
             if not step or step.get("what") == StepKind.MANUAL or clock.monotonic() > deadline:
                 return
             shown = step_text(StepInfo.model_validate(step))

@@ -75,10 +75,12 @@ class RobotSteps:
                 self._modelled = {name: t.seconds for name, t in modelled.items()}
             except Exception:  # no model (or none that can time these programs): the
                 self._modelled = {}  # cycles seen only; a figure must not fail a transfer
-        least = min(
-            self._modelled.get(program, float("inf")), self._least.get(program, float("inf"))
-        )
-        return EXPECTED_SHARE * least if least < float("inf") else 0.0
+        # Only once a cycle was seen: a model may not know how fast these machines run (an
+        # emulated cell at a time scale its cell.toml does not name).
+        seen = self._least.get(program)
+        if seen is None:
+            return 0.0
+        return EXPECTED_SHARE * min(self._modelled.get(program, seen), seen)
 
     # -- the robot's steps ------------------------------------------------------------------------
 

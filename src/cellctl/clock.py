@@ -226,6 +226,7 @@ class _VirtualSelector(selectors.BaseSelector):
     def __init__(self) -> None:
         self._inner = selectors.DefaultSelector()
         self.loop: VirtualLoop | None = None  # set once the loop's own wake-up socket is in
+        self.registered = 0  # file descriptors registered (kept here: asked every turn)
 
     def register(self, fileobj: Any, events: int, data: Any = None) -> selectors.SelectorKey:
         loop = self.loop
@@ -236,10 +237,14 @@ class _VirtualSelector(selectors.BaseSelector):
                 "jump past the moment a real peer answers. Join machines with mem:// links, or "
                 "make the loop with allow_real_io=True to wait in real time while real I/O is open"
             )
-        return self._inner.register(fileobj, events, data)
+        key = self._inner.register(fileobj, events, data)
+        self.registered += 1
+        return key
 
     def unregister(self, fileobj: Any) -> selectors.SelectorKey:
-        return self._inner.unregister(fileobj)
+        key = self._inner.unregister(fileobj)
+        self.registered -= 1
+        return key
 
     def modify(self, fileobj: Any, events: int, data: Any = None) -> selectors.SelectorKey:
         return self._inner.modify(fileobj, events, data)
@@ -255,8 +260,14 @@ class _VirtualSelector(selectors.BaseSelector):
 
     def select(self, timeout: float | None = None) -> list[tuple[selectors.SelectorKey, int]]:
         loop = self.loop
-        if loop is None or timeout == 0:
+        if loop is None:
             return self._inner.select(timeout)
+        if timeout == 0:
+            # Callbacks are ready: no time passes. With no real I/O and no thread outside,
+            # only the loop's own wake-up socket is registered, and a thread's wake-up is
+            # in the ready queue already: the poll (a system call a turn) is skipped, and
+            # the socket drained at the next jump.
+            return self._inner.select(0) if loop._outside_pending() else []
         # Something already there (a thread's wake-up, real I/O)? Then no time passes.
         ready = self._inner.select(0)
         if ready:
@@ -293,7 +304,8 @@ class VirtualLoop(asyncio.SelectorEventLoop):
         selector = _VirtualSelector()
         super().__init__(selector)
         # From here on every registration is real I/O: the loop's own wake-up socket is in.
-        self._own_fds = len(selector.get_map())
+        self._own_fds = selector.registered
+        self._virtual_selector = selector
         selector.loop = self
         if isinstance(start, datetime):
             wall = start.timestamp()
@@ -335,7 +347,7 @@ class VirtualLoop(asyncio.SelectorEventLoop):
 
     def _outside_pending(self) -> bool:
         """True while something outside the loop may still bring work: real I/O or threads."""
-        real_fds = len(self._selector.get_map()) > self._own_fds  # type: ignore[attr-defined]
+        real_fds = self._virtual_selector.registered > self._own_fds
         return real_fds or bool(self._executor_jobs) or self._shutting_down_executor > 0
 
     def _next_timer(self) -> float | None:

@@ -1,9 +1,10 @@
 """G, monitoring: read what is idle, several times a poll period, and turn faults into alarms.
 
 A fault is to be caught within one poll period, so the monitor reads ``SAMPLES`` times a
-period (never more often than every ``MIN_SAMPLE`` s): the PLC's inputs (emergency stop, a
-PLC that stopped answering, a pallet overdue), the idle robot's machine status (servo error,
-power failure, a silent or closed line) and each idle mill's readiness (CTS, no byte sent):
+period (never more often than every ``MIN_SAMPLE`` s) the PLC's inputs (emergency stop, a
+PLC that stopped answering, a pallet overdue or come) and each idle mill's readiness (CTS, no
+byte sent), and every ``ROBOT_ROUNDS`` rounds the idle robot's machine status (servo error,
+power failure, a silent or closed line: a slow serial exchange):
 the last look at a mill is what the scheduler trusts (see
 :class:`~cellctl.cell.recovery.Recovery`). A mill that lost readiness while idle, or that was
 not ready ``setup_timeout`` after its setup, or whose line fails, is a fault: out of the plan
@@ -41,8 +42,14 @@ T = TypeVar("T")
 #: The PLC's emergency stop input is low.
 ESTOP = Cause("plc", "estop", "emergency stop: the cell is stopped")
 
-#: Looks per poll period: a fault is seen at most a quarter period after it shows.
+#: Looks per poll period at the PLC and the idle mills (a Modbus request on the network, a
+#: modem line): a fault, or a pallet that came, is seen at most a quarter period after.
 SAMPLES = 4
+#: The idle robot is looked at every this many rounds: a fault is seen at most half a period
+#: (and a read) after it shows, within the period with room to spare. A status look takes
+#: some 55 ms of its 4800-baud line: one every round kept the line busy nearly half the time,
+#: and was most of a plan's exchanges.
+ROBOT_ROUNDS = 2
 #: The shortest time between two looks, s (short poll periods in tests stay cheap).
 MIN_SAMPLE = 0.05
 
@@ -73,6 +80,7 @@ class Monitor:
         self._inputs: dict[str, bool] = {}  # the PLC's inputs at the last look
         self._estop_seen: float | None = None  # the last look that found the E-stop pressed
         self._last_seen: tuple[object, ...] = ()
+        self._robot_looked = float("-inf")  # when the last look at the idle robot began
 
     async def _bounded(self, key: str, read: Callable[[], Awaitable[T]]) -> T:
         """``read()`` of an idle machine, awaited at most ``read_limit`` (TimeoutError after).
@@ -98,6 +106,11 @@ class Monitor:
     def sample_period(self) -> float:
         """Seconds between two rounds."""
         return max(self.world.options.poll_period / SAMPLES, MIN_SAMPLE)
+
+    @property
+    def robot_period(self) -> float:
+        """Seconds between two looks at the robot's status (idle, or by its transfer)."""
+        return ROBOT_ROUNDS * self.sample_period
 
     async def run(self) -> None:
         """Rounds until :attr:`done` is set (a round in progress finishes first)."""
@@ -232,6 +245,12 @@ class Monitor:
         robot = world.robot
         if robot is None or world.robot_busy() or robot.name in world.manual_use:
             return
+        # Every ROBOT_ROUNDS rounds (half a round's slack for the rounds' own jitter): a
+        # transfer's own status looks watched it meanwhile.
+        now = world.clock.monotonic()
+        if now - self._robot_looked < self.robot_period - self.sample_period / 2:
+            return
+        self._robot_looked = now
         view = world.machines[robot.name]
         try:
             status = await self._bounded(robot.name, robot.machine_status)

@@ -102,18 +102,11 @@ def physical_durations(
     ``timing`` defaults to the PLC emulator's, the robot's and mills' models to their kinds'.
     """
     timing = timing or PlcTiming()
-    if done_output is None:
-        done_output = int(config.raw.get("cell", {}).get("done_output", DEFAULT_DONE_OUTPUT))
-    mills = [m.name for m in config.mills]
+    transfers = transfer_durations(
+        config, time_scale=time_scale, done_output=done_output, timing=timing, wiring=wiring
+    )
     robot: RobotModel = _model(config.robot.kind)
     programs = config.robot_programs
-    starts = robot.starts(programs.values())
-    transfers = {
-        name: _transfer_time(
-            name, robot, program, starts, mills, done_output, timing, wiring, time_scale
-        )
-        for name, program in programs.items()
-    }
     line = config.robot.line
     downloads = {name: line.wire_time(robot.download_chars(p)) for name, p in programs.items()}
     machining: dict[tuple[str, str], StepTime] = {}
@@ -130,6 +123,30 @@ def physical_durations(
                 door + wire + cut, {"door": door, "download": wire, "cut": cut}
             )
     return Physics(transfers, machining, downloads, time_scale)
+
+
+def transfer_durations(
+    config: CellConfig,
+    *,
+    time_scale: float = 1.0,
+    done_output: int | None = None,
+    timing: PlcTiming | None = None,
+    wiring: RobotWiring = EXAMPLE_WIRING,
+) -> dict[str, StepTime]:
+    """The transfers of :func:`physical_durations` alone (the robot's model only)."""
+    timing = timing or PlcTiming()
+    if done_output is None:
+        done_output = int(config.raw.get("cell", {}).get("done_output", DEFAULT_DONE_OUTPUT))
+    mills = [m.name for m in config.mills]
+    robot: RobotModel = _model(config.robot.kind)
+    programs = config.robot_programs
+    starts = robot.starts(programs.values())
+    return {
+        name: _transfer_time(
+            name, robot, program, starts, mills, done_output, timing, wiring, time_scale
+        )
+        for name, program in programs.items()
+    }
 
 
 def _model(kind: str) -> Any:
@@ -197,4 +214,4 @@ def _transfer_time(
     return best
 
 
-__all__ = ["Physics", "StepTime", "physical_durations"]
+__all__ = ["Physics", "StepTime", "physical_durations", "transfer_durations"]

@@ -23,6 +23,8 @@ from cellctl.cell.causes import Cause, blame, door_cause
 from cellctl.cell.config import CONVEYOR
 from cellctl.cell.orderflow import OUT
 from cellctl.cell.orders import ReportKind
+from cellctl.cell.physics import transfer_durations
+from cellctl.cell.shift import cell_time_scale
 from cellctl.errors import CellctlError, DeviceError, SignalTimeout, UsageError
 
 #: Seconds between looks at the robot's "cycle done" output: it tells nothing unasked, and
@@ -31,6 +33,10 @@ from cellctl.errors import CellctlError, DeviceError, SignalTimeout, UsageError
 CYCLE_END_POLL_S = 0.002
 #: Seconds between reads of the PLC while a door or a vise moves (the PLC pushes nothing).
 INTERLOCK_POLL_S = 0.005
+#: A cycle's output is left unasked for this share of the least time its program takes (the
+#: least of the machines' model and of the cycles the cell ran): another start position or
+#: a door already on its way can make a cycle a little shorter than the least seen.
+EXPECTED_SHARE = 0.9
 
 if TYPE_CHECKING:
     from cellctl.cell.monitor import Monitor
@@ -55,6 +61,26 @@ class RobotSteps:
         self.plc = plc
         self.monitor = monitor
         self.recovery = recovery
+        self._modelled: dict[str, float] | None = None  # each program's cycle, its model's
+        self._least: dict[str, float] = {}  # each program's shortest cycle seen, s
+
+    def expected(self, program: str) -> float:
+        """Seconds from its doors' command that a cycle of robot program ``program`` cannot
+        end sooner (0: not known): :data:`EXPECTED_SHARE` of the least of its model's time
+        and the cycles seen."""
+        if self._modelled is None:
+            config = self.world.config
+            try:
+                modelled = transfer_durations(config, time_scale=cell_time_scale(config))
+                self._modelled = {name: t.seconds for name, t in modelled.items()}
+            except Exception:  # no model (or none that can time these programs): the
+                self._modelled = {}  # cycles seen only; a figure must not fail a transfer
+        # Only once a cycle was seen: a model may not know how fast these machines run (an
+        # emulated cell at a time scale its cell.toml does not name).
+        seen = self._least.get(program)
+        if seen is None:
+            return 0.0
+        return EXPECTED_SHARE * min(self._modelled.get(program, seen), seen)
 
     # -- the robot's steps ------------------------------------------------------------------------
 
@@ -127,6 +153,7 @@ class RobotSteps:
         started = self.world.clock.monotonic()
         places = [t.source, t.target]
         attempt = 0
+        commanded = started  # when the doors were commanded for the cycle that runs
         moved = False  # the arm may have moved: a failure from here on holds the part
         try:
             rejected: DeviceError | None = None
@@ -141,6 +168,9 @@ class RobotSteps:
                         if robot.needs_initialize(rejected):
                             await robot.initialize()
                     partition = await self._ensure_program(t.program)
+                    # The cycle's clock starts with the doors, as its model's does: a cycle
+                    # started later cannot end sooner than that.
+                    commanded = world.clock.monotonic()
                     with blame("plc", "PLC"):
                         await self.doors(places, True)
                     moved = True
@@ -167,14 +197,19 @@ class RobotSteps:
                 order_id=part.order_id,
                 part_id=part.id,
             )
-            # The output is read every poll; the status (a servo error or a power failure
-            # that aborted the cycle) as often as the monitor looks at an idle robot.
+            # The output is read every poll once the cycle may have ended; the status (a
+            # servo error or a power failure that aborted the cycle) from the start, as
+            # often as the monitor looks at an idle robot.
+            elapsed = world.clock.monotonic() - commanded
             await robot.wait_end(
                 world.options.done_output,
                 timeout=world.options.transfer_timeout,
                 poll=CYCLE_END_POLL_S,
-                watch_every=world.options.poll_period / 4,
+                watch_every=self.monitor.robot_period,
+                expected=max(0.0, self.expected(t.program) - elapsed),
             )
+            cycle = world.clock.monotonic() - commanded
+            self._least[t.program] = min(cycle, self._least.get(t.program, cycle))
             with blame("plc", "PLC"):
                 await self.doors(places, False)
         except (CellctlError, OSError, asyncio.CancelledError) as e:

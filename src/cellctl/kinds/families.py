@@ -198,8 +198,19 @@ class Robot(Protocol):
 
     async def start(self, slot: int) -> None: ...
     async def wait_end(
-        self, done_output: int, *, timeout: float, poll: float = 0.1, watch_every: float = 0.0
-    ) -> None: ...
+        self,
+        done_output: int,
+        *,
+        timeout: float,
+        poll: float = 0.1,
+        watch_every: float = 0.0,
+        expected: float = 0.0,
+    ) -> None:
+        """Wait for the running program's end. ``expected``: seconds it cannot end sooner
+        (the cell's figure for it): a robot that has to be asked may leave its end unasked
+        until then, watching its status only."""
+        ...
+
     async def machine_status(self) -> Health: ...
     async def close(self) -> None: ...
 

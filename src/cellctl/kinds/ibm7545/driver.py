@@ -321,10 +321,18 @@ class Ibm7545Robot(LinkDriver):
         self.started = None
 
     async def wait_end(
-        self, done_output: int, *, timeout: float, poll: float = 0.1, watch_every: float = 0.0
+        self,
+        done_output: int,
+        *,
+        timeout: float,
+        poll: float = 0.1,
+        watch_every: float = 0.0,
+        expected: float = 0.0,
     ) -> None:
         """Wait for the program's "cycle done" output (see :meth:`wait_cycle_end`)."""
-        await self.wait_cycle_end(done_output, timeout=timeout, poll=poll, watch_every=watch_every)
+        await self.wait_cycle_end(
+            done_output, timeout=timeout, poll=poll, watch_every=watch_every, quiet=expected
+        )
 
     # -- low-level pieces --------------------------------------------------------------------------
 
@@ -712,22 +720,31 @@ class Ibm7545Robot(LinkDriver):
         poll: float = 0.1,
         watch: bool = False,
         watch_every: float = 0.0,
+        quiet: float = 0.0,
     ) -> DiDo:
         """Poll DI/DO until output ``line`` (1-16) is ``value``; SignalTimeout after ``timeout``.
 
         The controller tells nothing unasked, so a program signals progress on an output
         (the cell's programs raise a "cycle done" output before END) and the host polls.
-        With ``watch`` the machine status is read too, on the first poll and then at most
+        With ``watch`` the machine status is read too, on the first look and then at most
         every ``watch_every`` s (every poll if 0): a servo error or a power failure that
         aborted the cycle raises :class:`RobotHalted` then instead of the timeout.
+
+        ``quiet``: seconds from now the output cannot change yet (a cycle's known least
+        time): DI/DO is first read then, the status still watched meanwhile. Each read is
+        tens of milliseconds of a slow line; polling a cycle of seconds from its start
+        filled the line for nothing.
         """
         clock = self.clock
-        deadline = clock.monotonic() + timeout
+        now = clock.monotonic()
+        deadline = now + timeout
+        asked_from = now + min(max(quiet, 0.0), timeout)
         watched = -math.inf
         while True:
-            dido = await self.io()
-            if dido.output(line) == value:
-                return dido
+            if clock.monotonic() >= asked_from:
+                dido = await self.io()
+                if dido.output(line) == value:
+                    return dido
             if watch and clock.monotonic() - watched >= watch_every:
                 watched = clock.monotonic()
                 status = await self.machine_status()
@@ -736,19 +753,39 @@ class Ibm7545Robot(LinkDriver):
                         RobotState.UNINITIALIZED
                     )  # the cycle was aborted; the controller needs INIT
                     raise RobotHalted(status, f"{self.name}: cycle aborted")
-            if clock.monotonic() >= deadline:
+            now = clock.monotonic()
+            if now >= deadline:
                 raise SignalTimeout(
                     f"{self.name}: output {line} did not go {int(value)} within {timeout:g} s"
                 )
-            await clock.sleep(min(poll, max(0.0, deadline - clock.monotonic())))
+            wake = now + poll
+            if now < asked_from:
+                # Quiet: up to the first DI/DO read, or the next status look before it.
+                wake = asked_from
+                if watch:
+                    wake = min(wake, watched + max(watch_every, poll))
+            await clock.sleep(max(0.0, min(wake, deadline) - now))
 
     async def wait_cycle_end(
-        self, done_output: int, *, timeout: float, poll: float = 0.1, watch_every: float = 0.0
+        self,
+        done_output: int,
+        *,
+        timeout: float,
+        poll: float = 0.1,
+        watch_every: float = 0.0,
+        quiet: float = 0.0,
     ) -> None:
         """Wait for the running program's "cycle done" output (watching the machine status
-        every ``watch_every`` s, see :meth:`wait_output`); the robot is then state 1."""
+        every ``watch_every`` s, the output from ``quiet`` s on, see :meth:`wait_output`);
+        the robot is then state 1."""
         await self.wait_output(
-            done_output, True, timeout=timeout, poll=poll, watch=True, watch_every=watch_every
+            done_output,
+            True,
+            timeout=timeout,
+            poll=poll,
+            watch=True,
+            watch_every=watch_every,
+            quiet=quiet,
         )
         self._set_state(RobotState.INITIALIZED)
 

@@ -502,12 +502,18 @@ class UrRobot(LinkDriver):
         return f"output_int_register_{self.options.end_register}"
 
     async def wait_end(
-        self, done_output: int, *, timeout: float, poll: float = 0.1, watch_every: float = 0.0
+        self,
+        done_output: int,
+        *,
+        timeout: float,
+        poll: float = 0.1,
+        watch_every: float = 0.0,
+        expected: float = 0.0,
     ) -> None:
         """Wait for the program's end (RTDE: runtime state STOPPED after it played, or its
         end register); UrStopped when a safety stop or the power stopped it, in UR's words.
 
-        ``done_output`` is not needed: a UR says when its program ends."""
+        ``done_output`` and ``expected`` are not needed: a UR says when its program ends."""
         program = self._current
         if program is None:
             raise UsageError(f"{self.name}: no program was started")

@@ -35,6 +35,21 @@ class Case:
     also: str | None = None  # a second fault that makes the first one matter
 
 
+async def resolve_until_done(rig: CellRig) -> None:
+    """The operator resolves what the cell holds, again each time it needs them, until every
+    order is done (at most 20 times)."""
+    for _ in range(20):
+        if rig.all_done():
+            return
+        await rig.operator_resolves()
+        await rig.wait_for(
+            lambda: rig.all_done() or rig.held_parts() or rig.journal.active_alarms(),
+            "the run to complete or to need the operator again",
+            timeout=30,
+        )
+    assert rig.all_done(), rig.describe()
+
+
 CASES = [
     # A robot fault is alarmed as its cause (its status, its link), whether the monitor or
     # a transfer sees it first; a transfer it cut short holds its part, one it stopped
@@ -122,16 +137,7 @@ async def test_fault_during_a_run_ends_in_recovery_or_a_held_part(
 
         rig.switch_off(case.fault)
 
-        loop_guard = 0
-        while not rig.all_done():
-            loop_guard += 1
-            assert loop_guard < 20, rig.describe()
-            await rig.operator_resolves()
-            await rig.wait_for(
-                lambda: rig.all_done() or rig.held_parts() or rig.journal.active_alarms(),
-                "the run to complete or to need the operator again",
-                timeout=30,
-            )
+        await resolve_until_done(rig)
         await rig.stop_controller()
 
         assert all(p.status == "done" for p in rig.journal.parts()), rig.describe()
@@ -339,16 +345,7 @@ async def test_an_emergency_stop_during_a_transfer_is_one_alarm_naming_it(tmp_pa
         assert all("emergency stop" in r.text for r in rig.reports("step-failed"))
 
         rig.switch_off("plc:estop")
-        loop_guard = 0
-        while not rig.all_done():
-            loop_guard += 1
-            assert loop_guard < 20, rig.describe()
-            await rig.operator_resolves()
-            await rig.wait_for(
-                lambda: rig.all_done() or rig.held_parts() or rig.journal.active_alarms(),
-                "the run to complete or to need the operator again",
-                timeout=30,
-            )
+        await resolve_until_done(rig)
         await rig.stop_controller()
         assert all(p.status == "done" for p in rig.journal.parts()), rig.describe()
         assert rig.cut_twice() == {}, rig.describe()
@@ -388,16 +385,7 @@ async def test_a_door_stuck_during_a_transfer_is_named_in_its_alarm(tmp_path: Pa
         assert controller.machines["robot"].failures == 0
 
         rig.switch_off(stuck[0])
-        loop_guard = 0
-        while not rig.all_done():
-            loop_guard += 1
-            assert loop_guard < 20, rig.describe()
-            await rig.operator_resolves()
-            await rig.wait_for(
-                lambda: rig.all_done() or rig.held_parts() or rig.journal.active_alarms(),
-                "the run to complete or to need the operator again",
-                timeout=30,
-            )
+        await resolve_until_done(rig)
         await rig.stop_controller()
         assert all(p.status == "done" for p in rig.journal.parts()), rig.describe()
         assert rig.cut_twice() == {}, rig.describe()

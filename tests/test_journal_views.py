@@ -17,7 +17,6 @@ import sys
 import tempfile
 from collections.abc import Iterator
 from contextlib import closing
-from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -30,13 +29,7 @@ from cellctl.clock import RealClock
 from cellctl.errors import UsageError
 from cellctl.mailbox import SqliteMailbox
 from cellctl.mailbox.base import Order
-
-
-@dataclass(frozen=True)
-class AnOrder:
-    id: str
-    part_type: str
-    qty: int
+from tests.test_journal import AnOrder
 
 
 class Clock(RealClock):

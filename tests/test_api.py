@@ -6,8 +6,10 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import socket
 import stat
 import subprocess
+import threading
 import urllib.error
 import urllib.request
 from collections.abc import AsyncIterator
@@ -80,6 +82,39 @@ async def test_status_info_and_private_files(api: Api) -> None:
     for name in ("api-token", "api.sock", "journal.sqlite3", "mailbox.sqlite3"):
         mode = stat.S_IMODE(os.stat((api.directory / name).resolve()).st_mode)
         assert mode == 0o600, f"{name} is {oct(mode)}"
+
+
+async def test_socket_appears_only_when_it_listens(tmp_path: Path) -> None:
+    """A client that sees ``api.sock`` can connect: the file is renamed into place once the
+    socket listens (a command that saw it and was refused took a running server for none)."""
+    async with CellRig(tmp_path / "cell") as rig:
+        await rig.start_controller()
+        assert rig.controller is not None
+        path = rig.directory / "api.sock"
+        seen: list[str] = []
+        stop = threading.Event()
+
+        def watch() -> None:  # a client in another thread, connecting on first sight
+            while not os.path.exists(path):
+                if stop.is_set():
+                    return
+            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as client:
+                try:
+                    client.connect(str(path))
+                    seen.append("connected")
+                except OSError as e:
+                    seen.append(f"refused: {e}")
+
+        watcher = asyncio.create_task(asyncio.to_thread(watch))
+        server = ApiServer(AttachedCell(rig.controller), rig.directory)
+        await server.start()
+        try:
+            await asyncio.wait_for(watcher, 10)
+            assert seen == ["connected"]
+            assert sorted(p.name for p in rig.directory.glob("api.sock*")) == ["api.sock"]
+        finally:
+            stop.set()
+            await server.close()
 
 
 async def test_orders_submit_list_cancel(api: Api) -> None:

@@ -333,7 +333,10 @@ class GuardedServer(uvicorn.Server):
         self.servers = []
         for sock in sockets or []:
             name = sock.getsockname()
-            listener = Listener(str(name) if name else "socket", self.limits)
+            # A Unix socket keeps the name it was bound under; the server renames the file
+            # from ``api.sock~`` once it listens (server.py), and users know it as api.sock.
+            shown = str(name).removesuffix("~") if name else "socket"
+            listener = Listener(shown, self.limits)
             self.listeners.append(listener)
             server = await loop.create_server(
                 lambda listener=listener: _Guard(listener, uvicorn_protocol),  # type: ignore[misc]

@@ -274,17 +274,23 @@ class ApiServer:
         for path in {target, self.socket_path}:
             if path.is_symlink() or path.exists():
                 path.unlink()
+        # Bound under a passing name and renamed once it listens: a client that sees
+        # api.sock can connect (no "connection refused" between bind and listen).
+        passing = target.with_name(target.name + "~")
+        with contextlib.suppress(FileNotFoundError):
+            passing.unlink()
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         old = os.umask(0o177)  # the socket is born 0600: no moment where others may connect
         try:
-            sock.bind(str(target))
+            sock.bind(str(passing))
         finally:
             os.umask(old)
-        os.chmod(target, 0o600)
-        if target != self.socket_path.absolute():
-            self.socket_path.symlink_to(target)
+        os.chmod(passing, 0o600)
         sock.listen(128)
         sock.setblocking(False)
+        os.replace(passing, target)
+        if target != self.socket_path.absolute():
+            self.socket_path.symlink_to(target)
         return sock
 
     @property

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import signal
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -13,7 +12,7 @@ import click
 
 from cellctl.emulators.serve import CELL_TIME_SCALE, TIME_SCALE_HELP, parse_fault
 from cellctl.errors import UsageError
-from cellctl.ui.common import cell_dir, console, err_console, run, until_stopped
+from cellctl.ui.common import cell_dir, console, err_console, run, stop_signals, until_stopped
 
 if TYPE_CHECKING:
     from cellctl.cell.config import CellConfig
@@ -95,7 +94,6 @@ async def _run_owned(
     stop = stop or asyncio.Event()
     printer = None if live else _print_event
     controller = CellController(config, journal, mailbox, options=options, on_event=printer)
-    loop = asyncio.get_running_loop()
     presses = 0
 
     def on_signal() -> None:
@@ -115,8 +113,8 @@ async def _run_owned(
         extra_routes=dashboard_routes,
         limits=api_limits(config.api),
     )
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, on_signal)
+    signals = contextlib.ExitStack()  # Ctrl-C, SIGTERM: as found after
+    signals.enter_context(stop_signals(on_signal))
     bridge = _mqtt_bridge(config, controller, mailbox, journal)
     if bridge is not None:
         bridge.drop_expired()  # before the controller can start a part of such an order
@@ -144,8 +142,7 @@ async def _run_owned(
         else:
             await controller.run(stop, until_idle=until_idle)
     finally:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.remove_signal_handler(sig)
+        signals.close()
         if bridge is not None and bridge_task is not None:
             await bridge.stop()  # the last reports and "offline" go out first
             with contextlib.suppress(TimeoutError):

@@ -321,18 +321,21 @@ STOP_GRACE_S = 5.0
 
 
 @contextlib.contextmanager
-def stop_signals(stop: asyncio.Event) -> Iterator[None]:
-    """Set ``stop`` on Ctrl-C or SIGTERM while in the block; then put back what was there.
+def stop_signals(stop: asyncio.Event | Callable[[], object]) -> Iterator[None]:
+    """Set ``stop`` (or call it) on Ctrl-C or SIGTERM while in the block; then put back what
+    was there.
 
     The loop's own handler takes the signal even when this process started with it ignored
     or blocked (a state a parent's exec passes on); on leaving, the handlers and the mask are
-    what they were, so a command run in a longer-lived process (a test) leaves them as found.
+    what they were, so a command run in a longer-lived process (a test) leaves them as found
+    (the loop alone would leave Python's default handler, not an ignored SIGINT).
     """
     loop = asyncio.get_running_loop()
+    callback = stop.set if isinstance(stop, asyncio.Event) else stop
     before = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}
     mask = signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
     for sig in STOP_SIGNALS:
-        loop.add_signal_handler(sig, stop.set)
+        loop.add_signal_handler(sig, callback)
     try:
         yield
     finally:

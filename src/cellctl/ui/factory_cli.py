@@ -12,7 +12,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
-import signal
 import time
 from collections import Counter
 from datetime import datetime
@@ -31,7 +30,15 @@ from cellctl.factory.config import FactoryConfig, load_factory
 from cellctl.factory.dispatch import load_s
 from cellctl.factory.store import OPEN_STATES, CellSeen, FactoryStore
 from cellctl.link.lock import OwnerLock
-from cellctl.ui.common import console, json_option, print_json, print_table, run, until_stopped
+from cellctl.ui.common import (
+    console,
+    json_option,
+    print_json,
+    print_table,
+    run,
+    stop_signals,
+    until_stopped,
+)
 from cellctl.ui.factory_plan_cli import factory_plan
 from cellctl.ui.orders_cli import STATE_STYLE
 
@@ -264,9 +271,8 @@ async def run_factory(
         controller = FactoryController(config, store, log=printer or (lambda text: None))
         if on_controller is not None:
             on_controller.append(controller)
-        loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, stop.set)
+        signals = contextlib.ExitStack()  # Ctrl-C, SIGTERM: as found after
+        signals.enter_context(stop_signals(stop.set))
         try:
             task = asyncio.create_task(controller.run(stop, until_idle=until_idle))
             if live:
@@ -277,8 +283,7 @@ async def run_factory(
                     s.update(live_view(store, config))
             await task
         finally:
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                loop.remove_signal_handler(sig)
+            signals.close()
 
 
 def _print(text: str) -> None:

@@ -56,7 +56,7 @@ from cellctl.factory.config import load_factory
 from cellctl.factory.controller import FactoryController
 from cellctl.factory.emulated import EmulatedFactory
 from cellctl.factory.store import DONE, OPEN_STATES, FactoryOrder, FactoryStore
-from cellctl.ui.common import console
+from cellctl.ui.common import console, stop_signals
 
 #: Parts per cell when ``--parts`` is not given.
 PARTS_PER_CELL = 3
@@ -147,7 +147,6 @@ async def run_factory_demo(
         soft_wrap=True,
     )
     stop, hurry = asyncio.Event(), asyncio.Event()
-    loop = asyncio.get_running_loop()
 
     def on_signal() -> None:
         if stop.is_set():
@@ -156,8 +155,8 @@ async def run_factory_demo(
         _say("stopping: the cells finish their steps (Ctrl-C again to kill them)")
         stop.set()
 
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, on_signal)
+    signals = contextlib.ExitStack()  # Ctrl-C, SIGTERM: as found after
+    signals.enter_context(stop_signals(on_signal))
     plant = EmulatedFactory(directory, cells=cells, time_scale=time_scale, templates=templates)
     controllers = CellControllers(plant.cell_dirs)
     try:
@@ -187,8 +186,7 @@ async def run_factory_demo(
     finally:
         await controllers.stop(hurry)
         await plant.close()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.remove_signal_handler(sig)
+        signals.close()
     if stop.is_set():
         console.print("interrupted")
         return 130

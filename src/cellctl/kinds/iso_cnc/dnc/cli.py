@@ -18,8 +18,8 @@ themselves, under the same owner locks (a second opener is refused, naming the h
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
-import signal
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -28,7 +28,15 @@ from typing import TYPE_CHECKING, Any
 import click
 from rich.progress import BarColumn, TextColumn, TimeRemainingColumn
 
-from cellctl.ui.common import cell_dir, console, err_console, json_option, print_json, run
+from cellctl.ui.common import (
+    cell_dir,
+    console,
+    err_console,
+    json_option,
+    print_json,
+    run,
+    stop_signals,
+)
 
 if TYPE_CHECKING:
     from cellctl.kinds.iso_cnc.dnc.config import ShopConfig
@@ -97,9 +105,8 @@ async def serve_shop(config: ShopConfig, *, stop: asyncio.Event | None = None) -
             extra_routes=dashboard_routes,
         )
         server.listeners.append(api.changed)
-        loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, stop.set)
+        signals = contextlib.ExitStack()  # Ctrl-C, SIGTERM: as found after
+        signals.enter_context(stop_signals(stop.set))
         try:
             await server.start()
             await api.start()
@@ -107,8 +114,7 @@ async def serve_shop(config: ShopConfig, *, stop: asyncio.Event | None = None) -
             console.print(f"DNC server: {names}; control API on {api.url}", markup=False)
             await stop.wait()
         finally:
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                loop.remove_signal_handler(sig)
+            signals.close()
             await api.close()
             await server.close()
 

@@ -93,14 +93,34 @@ class Monitor:
         pending = self._reads.get(key)
         if pending is not None and not pending.done():
             raise _StillOut
-        future = asyncio.ensure_future(read())
+        clock = self.world.clock
+        # One waiter, woken by the read's own end or by the limit's timer (wait_for around a
+        # shield did the same with four more callbacks a read: a plan's busiest path).
+        waiter: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+
+        def wake() -> None:
+            if not waiter.done():
+                waiter.set_result(None)
+
+        async def reading() -> T:
+            try:
+                return await read()
+            finally:
+                wake()  # the read's task is done by the time the waiter's task runs
+
+        future = asyncio.ensure_future(reading())
         self._reads[key] = future
-        self._since[key] = self.world.clock.now()
+        self._since[key] = clock.now()
+        timer = clock.call_at(clock.monotonic() + self.world.options.read_limit, wake)
         try:
-            return await asyncio.wait_for(asyncio.shield(future), self.world.options.read_limit)
-        except TimeoutError:
-            future.add_done_callback(_consume)
-            raise
+            await waiter
+        finally:
+            timer.cancel()
+            if not future.done():
+                future.add_done_callback(_consume)
+        if not future.done():
+            raise TimeoutError
+        return future.result()
 
     @property
     def sample_period(self) -> float:

@@ -268,12 +268,16 @@ class _VirtualSelector(selectors.BaseSelector):
             # in the ready queue already: the poll (a system call a turn) is skipped, and
             # the socket drained at the next jump.
             return self._inner.select(0) if loop._outside_pending() else []
-        # Something already there (a thread's wake-up, real I/O)? Then no time passes.
-        ready = self._inner.select(0)
-        if ready:
-            return ready
         if loop._outside_pending():
+            # Something already there (a thread's wake-up, real I/O)? Then no time passes.
+            ready = self._inner.select(0)
+            if ready:
+                return ready
             return loop._wait_real(self._inner, timeout)
+        if loop._ready:  # type: ignore[attr-defined]
+            # A thread's call_soon_threadsafe lands in the ready queue before it writes to
+            # the wake-up socket: no time passes (and no system call a jump).
+            return []
         if timeout is None:
             raise loop._stalled()
         loop._jump(timeout)

@@ -276,3 +276,12 @@ def test_reports_are_taken_in_order_per_mailbox_epoch(store: FactoryStore) -> No
     store.send("W", "cell1", expires=time.time() + 30)
     store.take_report("cell1", report(6, "order-accepted", "W", epoch=other, withdrawn=True))
     assert store.get("W").state == "sent" and store.cells()["cell1"].seq == 6
+
+
+def test_an_order_is_never_seen_sent_without_why(store: FactoryStore) -> None:
+    """The reason for a choice of cell is logged in the commit that marks the order sent."""
+    store.submit("wax-robot-base", 2, order_id="W1")
+    (sent,) = store.send_many([("W1", "cell1")], time.time() + 60, {"W1": "cell1 is idle"})
+    assert sent.state == "sent" and sent.cell == "cell1"
+    texts = [e.text for e in store.events() if e.order_id == "W1"]
+    assert texts[-2:] == ["order W1 sent to cell1", "order W1: cell1 is idle"]

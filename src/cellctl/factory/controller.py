@@ -275,11 +275,11 @@ class FactoryController:
             planned[order.id] = dataclasses.replace(order, state=SENT, cell=cell)
         if not choices:
             return
-        sent = self.store.send_many(choices, now + self.config.accept_timeout)
+        sent = self.store.send_many(choices, now + self.config.accept_timeout, whys)
         for order in sorted(sent, key=lambda o: (o.submitted, o.id)):  # the cells' FIFO
             await self._publish(client, order)
             self._log(f"order {order.id} sent to {order.cell}")
-            self.log(f"order {order.id}: {whys[order.id]}", order.cell, order.id)
+            self._log(f"order {order.id}: {whys[order.id]}")
 
     async def _publish(self, client: aiomqtt.Client, order: FactoryOrder) -> None:
         assert order.cell is not None

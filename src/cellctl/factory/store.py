@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import json
 import sqlite3
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -242,8 +242,15 @@ class FactoryStore(SqliteStore):
         """Give a queued order to ``cell``: committed before the order goes out."""
         return self.send_many([(order_id, cell)], expires)[0]
 
-    def send_many(self, choices: Sequence[tuple[str, str]], expires: float) -> list[FactoryOrder]:
-        """Give each queued order of ``choices`` (order id, cell) to its cell, in one commit."""
+    def send_many(
+        self,
+        choices: Sequence[tuple[str, str]],
+        expires: float,
+        reasons: Mapping[str, str] | None = None,
+    ) -> list[FactoryOrder]:
+        """Give each queued order of ``choices`` (order id, cell) to its cell, in one commit;
+        ``reasons`` (by order id) are logged in that commit too: no order is seen sent
+        without why."""
         now = self._now()
         out = []
         with self._write() as db:
@@ -261,6 +268,8 @@ class FactoryStore(SqliteStore):
                     (SENT, cell, now, now, expires, now, f"sent to {cell}", order_id),
                 )
                 _event(db, now, cell, order_id, f"order {order_id} sent to {cell}")
+                if reasons and order_id in reasons:
+                    _event(db, now, cell, order_id, f"order {order_id}: {reasons[order_id]}")
                 row = db.execute("SELECT * FROM orders WHERE id = ?", (order_id,)).fetchone()
                 out.append(_order(row))
         return out

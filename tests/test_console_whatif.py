@@ -80,7 +80,8 @@ async def test_a_viewer_plans_ahead_in_the_console(viewer: tuple[CellRig, Remote
         await pilot.press("escape")
         await wait_text(pilot, "MAIN MENU")
         shown = await wait_text(pilot, "Gantt chart, policy default", timeout=240)
-        assert "plan of CIM laboratory machining cell (policy default, seed 0)" in shown
+        header = "plan of CIM laboratory machining cell (policy default, seed 0, looks every 5 s)"
+        assert header in shown
         assert f"fault: cnc2 down from {(now + timedelta(minutes=2)):%a %H:%M}:00" in shown
         # The added order's row: its part type, parts made of one, and its verdict.
         row = next(line for line in shown.splitlines() if "plan-add1" in line)

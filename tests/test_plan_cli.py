@@ -153,6 +153,7 @@ def test_the_policies_compared_and_the_plan_replayed_from_its_inputs(
         (["--add", "wax-robot-base:3", "--policy", "fastest"], "policy 'fastest': unknown"),
         (["--add", "wax-robot-base:3", "--shift", "8h", "--until", "18:00"], "not both"),
         ([], "nothing to plan"),
+        (["--add", "wax-robot-base:1", "--poll", "0"], r"--poll.*0<x<=600"),
     ],
 )
 def test_bad_input_is_refused_before_anything_runs(
@@ -161,3 +162,12 @@ def test_bad_input_is_refused_before_anything_runs(
     result = plan("--dir", str(cell), "--start", START, *args, expect=2)
     assert re.search(message, result.stderr), result.stderr
     assert result.exception is None or isinstance(result.exception, SystemExit)
+
+
+def test_the_poll_option_says_the_plans_own_period() -> None:
+    """``--poll``'s help gives the period a plan looks at idle machines by default (the
+    engine's, not a copy that could drift)."""
+    from cellctl.plan.engine import PLAN_POLL_S
+
+    text = plan("--help").output
+    assert f"[default: {PLAN_POLL_S:g}]" in " ".join(text.split())

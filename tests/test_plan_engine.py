@@ -19,10 +19,12 @@ from cellctl.cell.scheduler import PartState, next_transfer
 from cellctl.emulators.cell import EXAMPLE_CELL
 from cellctl.errors import UsageError
 from cellctl.plan.engine import (
+    PLAN_POLL_S,
     FaultWindow,
     HeldPart,
     PlanInputs,
     PlanOrder,
+    PlanRun,
     check_inputs,
     simulate,
 )
@@ -178,3 +180,25 @@ def test_controller_options_carry_the_policy() -> None:
     assert ControllerOptions(policy="one-at-a-time").one_at_a_time is True
     with pytest.raises(UsageError, match="no scheduler policy 'fifo'"):
         ControllerOptions(policy="fifo")
+
+
+def test_a_plan_looks_less_often_than_the_cell_and_finishes_the_same(tmp_path: Path) -> None:
+    """The plan's poll period (PLAN_POLL_S, 5 s) against the cell's own (0.5 s): the same
+    steps in the same order, each order finished within seconds of the other (a step's end
+    is seen by the step itself; the looks watch idle machines)."""
+    orders = (PlanOrder("A", "wax-robot-base", 2), PlanOrder("B", "wax-toy-mill-table", 1))
+    down = FaultWindow("cnc2", "down", START + 900, START + 1500)
+    inputs = replace(SHIFT, orders=orders, faults=(down,), until=START + 3 * 3600)
+    own = simulate(replace(inputs, poll_period=0.0), tmp_path / "own")
+    planned = simulate(inputs, tmp_path / "planned")
+    assert (own.poll_period, planned.poll_period) == (0.5, PLAN_POLL_S)
+
+    def steps(run: PlanRun) -> list[tuple[str, str, str, str]]:
+        with Journal(run.journal_path) as journal:
+            return [(s.part_id, s.kind, s.machine, s.state) for s in journal.steps()]
+
+    assert steps(planned) == steps(own)
+    for order in orders:
+        a, b = own.finished[order.order_id], planned.finished[order.order_id]
+        assert a is not None and b is not None, (own.finished, planned.finished)
+        assert abs(b - a) <= 10, f"{order.order_id}: {relative(a)} s at 0.5 s, {relative(b)} s"

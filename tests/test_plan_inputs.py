@@ -254,6 +254,7 @@ def _saved() -> dict[str, Any]:
         until=START + 8 * 3600,
         faults=(FaultWindow("cnc2", "down", START + 60, START + 120),),
         seed=3,
+        poll_period=2.0,
     )
     return inputs_dict(inputs, ("default",))
 
@@ -276,3 +277,7 @@ def test_saved_inputs_read_back() -> None:
     assert inputs.orders == (PlanOrder("A", "wax-robot-base", 2, 1, START + 3600),)
     assert inputs.faults == (FaultWindow("cnc2", "down", START + 60, START + 120),)
     assert (inputs.start, inputs.until, inputs.seed) == (START, START + 8 * 3600, 3)
+    assert inputs.poll_period == 2.0
+    # Saved before plans had a poll period of their own: played at the cell's, as then.
+    older = {k: v for k, v in _saved().items() if k != "poll_period"}
+    assert parse_inputs(older, Path("/plans"))[0].poll_period == 0.0

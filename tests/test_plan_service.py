@@ -119,11 +119,13 @@ async def test_cellctl_plan_through_the_api_answers_the_questions(
     out = tmp_path / "plan-out"
     result = await rig_cli(
         rig.directory, "plan", "--add", "wax-robot-base:1", "--shift", "5m",
-        "--policy", "one-at-a-time", "--out", str(out),
+        "--policy", "one-at-a-time", "--poll", "2", "--out", str(out),
     )  # fmt: skip
     assert result.exit_code == 0, result.output
-    assert "plan of CIM laboratory machining cell (policy one-at-a-time, seed 0)" in result.output
+    shown = "plan of CIM laboratory machining cell (policy one-at-a-time, seed 0, looks every 2 s)"
+    assert shown in result.output
     data: dict[str, Any] = json.loads((out / "plan.json").read_text())
+    assert json.loads((out / "inputs.json").read_text())["poll_period"] == 2
     for report in data["plans"]:
         added = next(o for o in report["orders"] if o["order_id"] == "plan-add1")
         assert added["qty"] == 1

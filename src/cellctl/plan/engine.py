@@ -25,13 +25,14 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from cellctl.cell.config import CONVEYOR, load_cell
+from cellctl.cell.config import CONVEYOR, CellConfig, load_cell
 from cellctl.cell.controller import CellController, ControllerOptions
 from cellctl.cell.journal import JOURNAL_FILE, Journal, open_journal
 from cellctl.cell.scheduler import POLICIES as SCHEDULER_POLICIES
@@ -62,6 +63,16 @@ RESOLVE_ROUNDS = 5
 
 #: Seconds of plan time between two looks of the plan's own watcher (all orders done?).
 WATCH_S = 2.0
+
+#: The planned controller's poll period, s (the cell's own if that is longer): how often
+#: it looks at idle machines. The looks are most of a plan's work (an idle hour of the lab
+#: cell costs 5 s of CPU at the cell's 0.5 s, under 1 s at 5 s), and they move little: a
+#: step's end is seen by the step itself, and an 8-hour plan's finish times stay within
+#: seconds of the 0.5 s plan's (tests/test_plan_engine.py). A fault in a plan is noticed
+#: up to a poll period later. ``--poll 0.5`` plays the cell's own rate, slower.
+PLAN_POLL_S = 5.0
+#: The longest poll period a plan takes, s.
+MAX_POLL_S = 600.0
 
 
 @dataclass(frozen=True)
@@ -113,7 +124,9 @@ class PlanInputs:
     ``cell_dir``: a cell directory (cell.toml, robot/, programs/), copied, never written;
     ``start``/``until``: the plan's wall-clock window (unix seconds); ``policy``: one of
     :data:`POLICIES`; ``seed``: for anything random in the emulators; ``out_of_service``:
-    machines out of service at ``start``; ``held``: parts held at ``start``.
+    machines out of service at ``start``; ``held``: parts held at ``start``;
+    ``poll_period``: how often the planned controller looks at idle machines (see
+    :data:`PLAN_POLL_S`; 0: as often as the cell itself).
     """
 
     cell_dir: Path
@@ -125,6 +138,12 @@ class PlanInputs:
     seed: int = 0
     out_of_service: tuple[str, ...] = ()
     held: tuple[HeldPart, ...] = ()
+    poll_period: float = PLAN_POLL_S
+
+
+def planned_poll(inputs: PlanInputs, config: CellConfig) -> float:
+    """The poll period a plan of ``inputs`` plays: its own, or the cell's if longer."""
+    return max(inputs.poll_period, config.poll_period)
 
 
 @dataclass
@@ -144,6 +163,7 @@ class PlanRun:
     wall_s: float
     finished: dict[str, float | None] = field(default_factory=dict)
     mailbox_path: Path | None = None
+    poll_period: float = 0.0
 
 
 def simulate(inputs: PlanInputs, workdir: Path) -> PlanRun:
@@ -161,7 +181,7 @@ def simulate(inputs: PlanInputs, workdir: Path) -> PlanRun:
     if (cell_dir / JOURNAL_FILE).exists() or (cell_dir / MAILBOX_FILE).exists():
         raise UsageError(f"{cell_dir}: a plan ran there already; give an empty directory")
     started = REAL_CLOCK.monotonic()
-    ended, finished = run_virtual(_play(inputs, cell_dir), start=inputs.start - POWER_ON_S)
+    ended, finished, poll = run_virtual(_play(inputs, cell_dir), start=inputs.start - POWER_ON_S)
     return PlanRun(
         inputs=inputs,
         workdir=workdir,
@@ -170,6 +190,7 @@ def simulate(inputs: PlanInputs, workdir: Path) -> PlanRun:
         wall_s=REAL_CLOCK.monotonic() - started,
         finished=finished,
         mailbox_path=cell_dir / MAILBOX_FILE,
+        poll_period=poll,
     )
 
 
@@ -225,7 +246,9 @@ def check_inputs(inputs: PlanInputs) -> None:
 # -- the play ---------------------------------------------------------------------------------
 
 
-async def _play(inputs: PlanInputs, cell_dir: Path) -> tuple[float, dict[str, float | None]]:
+async def _play(inputs: PlanInputs, cell_dir: Path) -> tuple[float, dict[str, float | None], float]:
+    """The play (see :func:`simulate`): when it ended, each order's finish, the poll period
+    the controller played."""
     clock = current_clock()
     cell = EmulatedCell(time_scale=1.0, links="mem", template=inputs.cell_dir)
     await cell.start(cell_dir)
@@ -237,7 +260,10 @@ async def _play(inputs: PlanInputs, cell_dir: Path) -> tuple[float, dict[str, fl
         await clock.sleep(max(0.0, inputs.start - clock.now()))
         config = load_cell(cell_dir)
         policy = "downstream-first" if inputs.policy == "default" else inputs.policy
-        options = ControllerOptions.from_config(config, policy=policy)
+        # The cell's deadlines (a silent machine, a door that does not start) stay its own:
+        # only how often it looks changes.
+        own = ControllerOptions.from_config(config, policy=policy)
+        options = dataclasses.replace(own, poll_period=planned_poll(inputs, config))
         controller = CellController(config, journal, mailbox, options=options)
         await controller.connect()
         for name in inputs.out_of_service:
@@ -260,7 +286,7 @@ async def _play(inputs: PlanInputs, cell_dir: Path) -> tuple[float, dict[str, fl
         # before ``until`` (the orders' done times say).
         await run
         finished = _finished(inputs, mailbox, inputs.until)
-        return ended, finished
+        return ended, finished, options.poll_period
     finally:
         if controller is not None:
             with contextlib.suppress(Exception):

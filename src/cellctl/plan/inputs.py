@@ -26,7 +26,13 @@ from cellctl.cell.config import load_cell
 from cellctl.emulators.cell import real_cell_toml
 from cellctl.errors import UsageError
 from cellctl.mailbox.base import MAX_QTY
-from cellctl.plan.engine import FaultWindow, HeldPart, PlanInputs, PlanOrder
+from cellctl.plan.engine import (
+    MAX_POLL_S,
+    FaultWindow,
+    HeldPart,
+    PlanInputs,
+    PlanOrder,
+)
 from cellctl.plan.when import MAX_HORIZON_S
 
 #: The file's format name and version.
@@ -77,6 +83,8 @@ class InputsFile(_Model):
     until: _Time
     policies: Annotated[list[_Text], Field(min_length=1, max_length=10)]
     seed: Annotated[int, Field(ge=0, le=2**63 - 1)] = 0
+    # Missing in files saved before plans had their own: the cell's period (0), as played then.
+    poll_period: Annotated[float, Field(ge=0, le=MAX_POLL_S, allow_inf_nan=False)] = 0.0
     orders: Annotated[list[_Order], Field(max_length=10_000)] = []
     faults: Annotated[list[_Fault], Field(max_length=100)] = []
     out_of_service: Annotated[list[_Text], Field(max_length=100)] = []
@@ -100,6 +108,7 @@ def inputs_dict(
         "until_text": _local(inputs.until),
         "policies": list(policies),
         "seed": inputs.seed,
+        "poll_period": inputs.poll_period,
         "orders": [asdict(o) | {"due_text": _local(o.due)} for o in inputs.orders],
         "faults": [
             asdict(f) | {"start_text": _local(f.start), "end_text": _local(f.end)}
@@ -138,6 +147,7 @@ def parse_inputs(data: Any, base: Path) -> tuple[PlanInputs, tuple[str, ...]]:
         faults=tuple(FaultWindow(**f.model_dump()) for f in found.faults),
         policy=found.policies[0],
         seed=found.seed,
+        poll_period=found.poll_period,
         out_of_service=tuple(found.out_of_service),
         held=tuple(HeldPart(**h.model_dump()) for h in found.held),
     )

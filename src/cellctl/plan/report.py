@@ -78,6 +78,8 @@ class PlanReport:
     held_at_start: int = 0
     #: The steps played from the start: part, its type, kind, machine, program, state, times.
     steps: list[dict[str, Any]] = field(default_factory=list)
+    #: How often the planned controller looked at idle machines, s (0: not known).
+    poll_period: float = 0.0
 
     @property
     def on_time(self) -> int:
@@ -100,8 +102,9 @@ class PlanReport:
 
     def lines(self) -> list[str]:
         """The report for a terminal (80 columns)."""
+        looks = f", looks every {self.poll_period:g} s" if self.poll_period else ""
         out = [
-            f"plan of {self.cell} (policy {self.policy}, seed {self.seed})",
+            f"plan of {self.cell} (policy {self.policy}, seed {self.seed}{looks})",
             f"from {when_text(self.start, date=True)} to {when_text(self.until, date=True)} "
             f"({span_text(self.until - self.start)})",
         ]
@@ -196,6 +199,7 @@ def plan_report(
     seed: int = 0,
     faults: Sequence[FaultWindow] = (),
     held_at_start: int = 0,
+    poll_period: float = 0.0,
 ) -> PlanReport:
     """The report of ``orders`` played from ``start`` in ``journal`` (see module docstring)."""
     machines = machines_of(config)
@@ -209,6 +213,7 @@ def plan_report(
         cell=config.name,
         policy=policy,
         seed=seed,
+        poll_period=poll_period,
         start=start,
         until=until,
         ended=ended,

@@ -96,6 +96,7 @@ def play(inputs: PlanInputs, policies: tuple[str, ...], workdir: Path) -> PlanRe
                     seed=inputs.seed,
                     faults=inputs.faults,
                     held_at_start=len(inputs.held),
+                    poll_period=run.poll_period,
                 )
             )
             steps.append(journal.steps())

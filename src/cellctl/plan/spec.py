@@ -24,7 +24,15 @@ from cellctl.emulators.plc import FAULTS as PLC_FAULTS
 from cellctl.errors import UsageError
 from cellctl.kinds import registry
 from cellctl.mailbox.base import MAX_QTY
-from cellctl.plan.engine import POLICIES, FaultWindow, HeldPart, PlanInputs, PlanOrder
+from cellctl.plan.engine import (
+    MAX_POLL_S,
+    PLAN_POLL_S,
+    POLICIES,
+    FaultWindow,
+    HeldPart,
+    PlanInputs,
+    PlanOrder,
+)
 from cellctl.plan.when import parse_duration, resolve_when, when_text
 
 #: The fault that takes a machine out of service (not an emulator's switch).
@@ -191,11 +199,14 @@ def plan_inputs(
     seed: int = 0,
     out_of_service: Sequence[str] = (),
     held: Sequence[HeldPart] = (),
+    poll_period: float = PLAN_POLL_S,
 ) -> tuple[PlanInputs, tuple[str, ...]]:
     """A plan's inputs from what a planner typed (``--add``, ``--fault`` ... texts), checked
     against the cell in ``cell_dir``: every refusal comes before anything runs."""
     if not 0 <= seed < 2**63:
         raise UsageError(f"--seed {seed}: a whole number 0 or more")
+    if not 0 < poll_period <= MAX_POLL_S:
+        raise UsageError(f"--poll {poll_period:g}: seconds, more than 0 and at most {MAX_POLL_S:g}")
     end = plan_window(start, shift, until)
     added = [parse_add(text) for text in adds]
     ids = fresh_ids([o.order_id for o in orders], len(added))
@@ -217,6 +228,7 @@ def plan_inputs(
         faults=windows,
         policy=policies[0],
         seed=seed,
+        poll_period=poll_period,
         out_of_service=tuple(out_of_service),
         held=tuple(held),
     )

@@ -61,6 +61,9 @@ class PlanParams(BaseModel):
     fault: list[_Entry] = Field(default_factory=list, max_length=MAX_ENTRIES)
     policy: str = Field(default="default", min_length=1, max_length=200)
     seed: int = Field(default=0, ge=0, le=2**63 - 1)
+    #: How often the planned controller looks at idle machines, s (cellctl.plan.engine's
+    #: PLAN_POLL_S when not given).
+    poll: float | None = Field(default=None, gt=0, le=600, allow_inf_nan=False)
 
 
 _playing = threading.Lock()
@@ -96,6 +99,7 @@ async def plan_run(access: CellAccess, p: PlanParams, progress: Progress | None)
                 seed=p.seed,
                 out_of_service=stopped,
                 held=held,
+                **({} if p.poll is None else {"poll_period": p.poll}),
             )
             return play_in_temp(inputs, policies)
 

@@ -112,6 +112,14 @@ def _check(
     help="Seed of anything random in the emulated machines.",
 )
 @click.option(
+    "--poll",
+    type=click.FloatRange(0, 600, min_open=True),
+    metavar="SECONDS",
+    help="How often the planned controller looks at idle machines (the cell's own period "
+    "if longer). Looks are most of a plan's work and move its schedule by seconds a "
+    "shift; a fault in the plan is noticed up to this late.  [default: 5]",
+)
+@click.option(
     "--cell-dir",
     "cell_dirs",
     multiple=True,
@@ -132,6 +140,7 @@ def factory_plan(
     faults: tuple[str, ...],
     policy: str,
     seed: int,
+    poll: float | None,
     cell_dirs: tuple[str, ...],
     out: Path | None,
     as_json: bool,
@@ -151,6 +160,8 @@ def factory_plan(
         fail(e)
     params: dict[str, Any] = {k: v for k, v in (("shift", shift), ("until", until)) if v}
     params.update(policy=policy, seed=seed)
+    if poll is not None:
+        params["poll"] = poll
 
     async def ask(directory: Path, cell_faults: list[str]) -> Any:
         async with await open_cell(directory, {}) as cell:

@@ -117,6 +117,14 @@ def _local_plan(
     help="Seed of anything random in the emulated machines.",
 )
 @click.option(
+    "--poll",
+    type=click.FloatRange(0, 600, min_open=True),
+    metavar="SECONDS",
+    help="How often the planned controller looks at idle machines (the cell's own period "
+    "if longer). Looks are most of a plan's work and move its schedule by seconds a "
+    "shift; a fault in the plan is noticed up to this late.  [default: 5]",
+)
+@click.option(
     "--replay",
     type=click.Path(dir_okay=False, path_type=Path),
     metavar="INPUTS",
@@ -141,6 +149,7 @@ def plan_command(
     faults: tuple[str, ...],
     policy: str,
     seed: int,
+    poll: float | None,
     replay: Path | None,
     out: Path | None,
     as_json: bool,
@@ -152,10 +161,13 @@ def plan_command(
     options: dict[str, Any] = dict(
         shift=shift, until=until, adds=adds, faults=faults, policy=policy, seed=seed
     )
+    if poll is not None:
+        options["poll_period"] = poll
 
     if replay is not None:
         given = [n for n, v in (("--dir", directory), ("--orders", orders_file),
-                 ("--shift", shift), ("--until", until), ("--start", start_text)) if v] + (
+                 ("--shift", shift), ("--until", until), ("--start", start_text),
+                 ("--poll", poll)) if v] + (
             ["--add"] * bool(adds) + ["--fault"] * bool(faults)
         )  # fmt: skip
         if given:
@@ -174,6 +186,8 @@ def plan_command(
             k: v for k, v in dict(shift=shift, until=until, policy=policy).items() if v
         }
         params.update(seed=seed, add=list(adds), fault=list(faults))
+        if poll is not None:
+            params["poll"] = poll
         answer = cell_call(ctx, "plan.run", params)
         here = cell_dir(ctx)
         result = guarded(lambda: result_from_dict(answer["plan"], answer["svg"], here))

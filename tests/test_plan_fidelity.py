@@ -5,7 +5,9 @@ The real run is :class:`~cellctl.testing.rig.CellRig`: the robot on a pty, the m
 RFC 2217, the PLC over Modbus/TCP, the machines ``REAL_TIME_SCALE`` times faster than life.
 The virtual run is :func:`cellctl.plan.engine.simulate`: the same controller, drivers and
 emulators at the machines' own times. Makespans are compared in machine seconds (the real
-run's wall seconds times its scale): within 2 %, every step in the same order.
+run's wall seconds times its scale): within 2 %, every step in the same order. The plan looks
+at idle machines as a plan does (every ``PLAN_POLL_S``, 5 s), the real cell at its own 0.5 s:
+what is compared is the plan a planner gets against the cell it predicts.
 
 The batch is the benchmark's (``bench/cell_throughput.py``): lots of 5, the two part types
 taking turns. ``make test`` plays a short one (``CELLCTL_FIDELITY_PARTS``, default 2: one
@@ -16,8 +18,7 @@ The real run's scale: every real-time overhead of the controller (a wake-up, a j
 write, a late timer on a loaded box) is multiplied by it in machine seconds. At 50 the
 transfers come out about 4 s (machine) longer than on virtual time, 1 % of this batch on the
 shared 2-core box; at 100 it was 1.4 to 2.5 % with the box under load. The real run's poll
-period is scaled like its other deadlines, so that both runs look at the cell as often in
-machine time.
+period is scaled like its other deadlines: it looks at the cell every 0.5 s of machine time.
 
 `make test` runs it after the other tests, by itself (the marker ``alone``): a real run's
 score is its host's latency times the scale, and a box busy with other tests is not the

@@ -48,7 +48,8 @@ from plan_shift import LOT, TYPES, key, real_window, window_makespan
 #: The issue's goals.
 GOAL_WALL_S = 60.0
 GOAL_DELTA = 0.02
-#: Parts ordered per cell per hour of the plan: more than a cell makes (about 3 an hour).
+#: Parts ordered per cell per hour of the plan: about what a cell makes (a cell finishes a
+#: week's 672 parts in some 158 h, busy all the while).
 PARTS_PER_HOUR = 4
 
 

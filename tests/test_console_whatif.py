@@ -71,28 +71,31 @@ async def test_a_viewer_plans_ahead_in_the_console(viewer: tuple[CellRig, Remote
         now = datetime.now()
         # Two minutes ahead: the plan (which starts when the API is asked) still has it.
         down = f"cnc2:down@{_hhmm(now + timedelta(minutes=2))}-{_hhmm(now + timedelta(minutes=4))}"
-        await fill(pilot, "#horizon", "5m")
+        # Two hours of three parts at the cell's own poll period: a plan that plays for
+        # seconds, to see the console live meanwhile.
+        await fill(pilot, "#horizon", "2h")
+        await fill(pilot, "#poll", "0.5")
         await fill(pilot, "#fault", down)
-        await fill(pilot, "#add", "wax-robot-base:1")
+        await fill(pilot, "#add", "wax-robot-base:3")
         await pilot.press("enter")
         await wait_text(pilot, "planning...")
         # The console stays live while the plan plays: the menu answers a key.
         await pilot.press("escape")
         await wait_text(pilot, "MAIN MENU")
         shown = await wait_text(pilot, "Gantt chart, policy default", timeout=240)
-        header = "plan of CIM laboratory machining cell (policy default, seed 0, looks every 5 s)"
+        header = "plan of CIM laboratory machining cell (policy default, seed 0, poll 0.5 s)"
         assert header in shown
         assert f"fault: cnc2 down from {(now + timedelta(minutes=2)):%a %H:%M}:00" in shown
-        # The added order's row: its part type, parts made of one, and its verdict.
+        # The added order's row: its part type, parts made of three, and its verdict.
         row = next(line for line in shown.splitlines() if "plan-add1" in line)
-        assert "wax-robot-base" in row and "/1" in row
+        assert "wax-robot-base" in row and "/3" in row
         assert any(v in row for v in ("on time", "late", "finished", "not finished"))
         rows = dict(GANTT_ROW.findall(shown))
         assert set(rows) == {"robot", "cnc1", "cnc2"}
         # The part's first transfer and cut, letter A (its type); cnc2 idle in its window.
         assert "A" in rows["robot"] and "A" in rows["cnc1"]
         assert FAULT in rows["cnc2"] and set(rows["cnc2"]) <= {FAULT, IDLE, "A"}
-        assert "one character = 5.0 s: A wax-robot-base" in shown
+        assert "one character = 0:02:00: A wax-robot-base" in shown
         assert "order     part type           made finishes     due          verdict" in shown
         await pilot.press("enter")  # closes the view
         shown = await wait_text(pilot, "plan (default): on time")
@@ -171,7 +174,9 @@ def test_the_gantt_rows_put_each_step_in_its_slots() -> None:
 
 @settings(max_examples=200, deadline=None)
 @given(
-    st.fixed_dictionaries({k: st.text(max_size=60) for k in ("horizon", "fault", "add", "policy")})
+    st.fixed_dictionaries(
+        {k: st.text(max_size=60) for k in ("horizon", "fault", "add", "policy", "poll")}
+    )
 )
 def test_any_form_answer_is_params_or_a_usage_error(raw: dict[str, str]) -> None:
     try:
@@ -179,4 +184,15 @@ def test_any_form_answer_is_params_or_a_usage_error(raw: dict[str, str]) -> None
     except UsageError as e:
         assert str(e)
         return
-    assert set(params) == {"shift", "add", "fault", "policy"} or "until" in params
+    assert set(params) - {"poll"} == {"shift", "add", "fault", "policy"} or "until" in params
+    assert 0 < params.get("poll", 1) <= 600
+
+
+def test_the_forms_poll_is_the_plans_own() -> None:
+    """Empty: the plan's default (no ``poll`` sent); seconds as ``cellctl plan --poll``."""
+    base = {"horizon": "8h", "add": "wax-robot-base:1"}
+    assert "poll" not in plan_params(base, 1_795_600_000.0)
+    assert plan_params(base | {"poll": " 0.5 "}, 1_795_600_000.0)["poll"] == 0.5
+    for bad in ("0", "-1", "nan", "inf", "5s", "601"):
+        with pytest.raises(UsageError, match=r"poll .*more than 0 and at most 600"):
+            plan_params(base | {"poll": bad}, 1_795_600_000.0)

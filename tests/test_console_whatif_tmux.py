@@ -47,7 +47,7 @@ def test_what_if_in_a_terminal(tmux: Tmux, tmp_path: Path) -> None:
         tmux.keys("Enter")
         shown = tmux.wait_for("Gantt chart, policy default", "one character = 2.0 s",
                                   timeout=240)  # fmt: skip
-        header = "plan of CIM laboratory machining cell (policy default, seed 0, looks every 5 s)"
+        header = "plan of CIM laboratory machining cell (policy default, seed 0, poll 5 s)"
         assert header in shown
         assert re.search(r"^\s*plan-add1\s+wax-robot-base\s+\d/1 ", shown, re.MULTILINE), shown
         rows = dict(GANTT_ROW.findall(shown))

@@ -122,7 +122,7 @@ async def test_cellctl_plan_through_the_api_answers_the_questions(
         "--policy", "one-at-a-time", "--poll", "2", "--out", str(out),
     )  # fmt: skip
     assert result.exit_code == 0, result.output
-    shown = "plan of CIM laboratory machining cell (policy one-at-a-time, seed 0, looks every 2 s)"
+    shown = "plan of CIM laboratory machining cell (policy one-at-a-time, seed 0, poll 2 s)"
     assert shown in result.output
     data: dict[str, Any] = json.loads((out / "plan.json").read_text())
     assert json.loads((out / "inputs.json").read_text())["poll_period"] == 2

@@ -102,7 +102,7 @@ class PlanReport:
 
     def lines(self) -> list[str]:
         """The report for a terminal (80 columns)."""
-        looks = f", looks every {self.poll_period:g} s" if self.poll_period else ""
+        looks = f", poll {self.poll_period:g} s" if self.poll_period else ""
         out = [
             f"plan of {self.cell} (policy {self.policy}, seed {self.seed}{looks})",
             f"from {when_text(self.start, date=True)} to {when_text(self.until, date=True)} "

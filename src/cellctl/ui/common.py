@@ -320,6 +320,15 @@ STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 STOP_GRACE_S = 5.0
 
 
+def _restorable(handler: Any) -> bool:
+    """Whether a handler found before :func:`stop_signals` is put back after it. Not one set
+    outside Python (None), and not asyncio.Runner's own Ctrl-C handler: that one is bound to
+    the run that set it, and a block may end in another run (a test fixture's teardown);
+    the loop then leaves Python's default, as it does by itself."""
+    func = getattr(handler, "func", None)
+    return handler is not None and getattr(func, "__name__", "") != "_on_sigint"
+
+
 @contextlib.contextmanager
 def stop_signals(stop: asyncio.Event | Callable[[], object]) -> Iterator[None]:
     """Set ``stop`` (or call it) on Ctrl-C or SIGTERM while in the block; then put back what
@@ -341,7 +350,7 @@ def stop_signals(stop: asyncio.Event | Callable[[], object]) -> Iterator[None]:
     finally:
         for sig, handler in before.items():
             loop.remove_signal_handler(sig)
-            if handler is not None:  # None: a handler not set from Python, left alone
+            if _restorable(handler):
                 signal.signal(sig, handler)
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)
 

@@ -243,9 +243,9 @@ class CellActions:
     async def what_if(self) -> None:
         """Ask for a plan's inputs, play it through ``plan.run`` (the menu's worker waits;
         the board stays live) and show it; a refusal (the parsers' or the API's) asks again."""
-        from cellctl.plan.engine import POLICIES
+        from cellctl.plan.engine import PLAN_POLL_S, POLICIES
 
-        values = {"horizon": "8h", "fault": "", "add": "", "policy": "default"}
+        values = {"horizon": "8h", "fault": "", "add": "", "policy": "default", "poll": ""}
         problems = ""
         while True:
             fields = [
@@ -253,6 +253,7 @@ class CellActions:
                 ("fault", "Faults:", values["fault"]),
                 ("add", "Add orders:", values["add"]),
                 ("policy", "Policy:", values["policy"]),
+                ("poll", "Poll (s):", values["poll"]),
             ]
 
             def check(raw: dict[str, str]) -> dict[str, Any]:
@@ -264,7 +265,8 @@ class CellActions:
                 "horizon: a span (8h, 90m) or a time (FRI 18:00, 18:00)\n"
                 "faults: cnc2:down@10:00-11:00 (several: ; between)\n"
                 "add orders: PART:QTY[@PRIORITY] (several: , between)\n"
-                f"policy: {', '.join(POLICIES)}; A,B or all to compare"
+                f"policy: {', '.join(POLICIES)}; A,B or all to compare\n"
+                f"poll: s between looks at idle machines (empty: {PLAN_POLL_S:g})"
             )
             params = await self.app.ask(FormDialog(title, fields, check, problems))
             if params is None:

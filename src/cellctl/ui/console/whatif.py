@@ -1,11 +1,12 @@
 """The CELL menu's WHAT IF: a plan of the cell asked with a form and shown as text.
 
 The form takes what ``cellctl plan`` takes (how far ahead, fault windows, orders to add, the
-policy), checks it with :mod:`cellctl.plan`'s own parsers, and calls the API's ``plan.run``
-(the viewer role suffices) in the menu's worker: the board stays live while the cell is
-played ahead on a copy. The answer is shown as ``cellctl plan`` prints it (per order, when it
-finishes against its due time; parts made; utilizations), then a text Gantt chart, one row per
-machine and one character per time slot (a terminal cannot show the SVG)::
+policy, the plan's poll period), checks it with :mod:`cellctl.plan`'s own parsers, and calls
+the API's ``plan.run`` (the viewer role suffices) in the menu's worker: the board stays live
+while the cell is played ahead on a copy. The answer is shown as ``cellctl plan`` prints it
+(per order, when it finishes against its due time; parts made; utilizations), then a text
+Gantt chart, one row per machine and one character per time slot (a terminal cannot show the
+SVG)::
 
     params = plan_params({"horizon": "8h", "fault": "cnc2:down@10:00-11:00",
                           "add": "wax-robot-base:40", "policy": "default"}, now)
@@ -26,6 +27,7 @@ from textual.binding import Binding, BindingType
 from textual.containers import ScrollableContainer, Vertical
 from textual.widgets import Static
 
+from cellctl.errors import UsageError
 from cellctl.ui.console.dialogs import Dialog
 
 if TYPE_CHECKING:
@@ -67,7 +69,24 @@ def plan_params(raw: dict[str, str], now: float) -> dict[str, Any]:
         parse_fault(text, now, end)
     policy = raw.get("policy", "").strip() or "default"
     policies_of(policy)
-    return {key: horizon, "add": adds, "fault": faults, "policy": policy}
+    params: dict[str, Any] = {key: horizon, "add": adds, "fault": faults, "policy": policy}
+    poll = raw.get("poll", "").strip()
+    if poll:
+        params["poll"] = parse_poll(poll)
+    return params
+
+
+def parse_poll(text: str) -> float:
+    """The form's poll period (seconds), as ``cellctl plan --poll`` takes it."""
+    from cellctl.plan.engine import MAX_POLL_S
+
+    try:
+        seconds = float(text)
+    except ValueError:
+        seconds = float("nan")
+    if not 0 < seconds <= MAX_POLL_S:  # NaN fails it too
+        raise UsageError(f"poll {text!r}: seconds, more than 0 and at most {MAX_POLL_S:g}")
+    return seconds
 
 
 def plan_text(answer: dict[str, Any], directory: Path) -> list[str]:

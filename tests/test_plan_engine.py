@@ -186,7 +186,7 @@ def test_a_plan_looks_less_often_than_the_cell_and_finishes_the_same(tmp_path: P
     """The plan's poll period (PLAN_POLL_S, 5 s) against the cell's own (0.5 s): the same
     steps in the same order, each order finished within seconds of the other (a step's end
     is seen by the step itself; the looks watch idle machines)."""
-    orders = (PlanOrder("A", "wax-robot-base", 2), PlanOrder("B", "wax-toy-mill-table", 1))
+    orders = (PlanOrder("A", "wax-robot-base", 1), PlanOrder("B", "wax-toy-mill-table", 1))
     down = FaultWindow("cnc2", "down", START + 900, START + 1500)
     inputs = replace(SHIFT, orders=orders, faults=(down,), until=START + 3 * 3600)
     own = simulate(replace(inputs, poll_period=0.0), tmp_path / "own")

@@ -169,5 +169,6 @@ def test_the_poll_option_says_the_plans_own_period() -> None:
     engine's, not a copy that could drift)."""
     from cellctl.plan.engine import PLAN_POLL_S
 
-    text = plan("--help").output
-    assert f"[default: {PLAN_POLL_S:g}]" in " ".join(text.split())
+    for args in (["plan", "--help"], ["factory", "plan", "--help"]):
+        text = CliRunner().invoke(main, args).output
+        assert f"[default: {PLAN_POLL_S:g}]" in " ".join(text.split()), args

@@ -20,6 +20,7 @@ import click
 
 from cellctl.errors import CellctlError, UsageError
 from cellctl.ui.common import console, fail, print_json, print_line
+from cellctl.ui.plan_cli import poll_option
 
 
 def run_plain(coro: Any) -> Any:
@@ -111,14 +112,7 @@ def _check(
     metavar="N",
     help="Seed of anything random in the emulated machines.",
 )
-@click.option(
-    "--poll",
-    type=click.FloatRange(0, 600, min_open=True),
-    metavar="SECONDS",
-    help="How often the planned controller looks at idle machines (the cell's own period "
-    "if longer). Looks are most of a plan's work and move its schedule by seconds a "
-    "shift; a fault in the plan is noticed up to this late.  [default: 5]",
-)
+@poll_option
 @click.option(
     "--cell-dir",
     "cell_dirs",

@@ -29,6 +29,17 @@ from cellctl.ui.common import cell_dir, console, fail, print_json, print_line
 
 T = TypeVar("T")
 
+#: ``--poll`` of ``cellctl plan`` and ``cellctl factory plan`` (the engine's PLAN_POLL_S is
+#: its default: tests/test_plan_cli.py holds the two together).
+poll_option = click.option(
+    "--poll",
+    type=click.FloatRange(0, 600, min_open=True),
+    metavar="SECONDS",
+    help="How often the planned controller looks at idle machines (the cell's own period "
+    "if longer). Looks are most of a plan's work and move its schedule by seconds a "
+    "shift; a fault in the plan is noticed up to this late.  [default: 5]",
+)
+
 
 def _check_syntax(shift: str | None, until: str | None, adds: tuple[str, ...], faults: Any) -> None:
     """The options' syntax, before the cell is reached (the cell checks them again, against
@@ -116,14 +127,7 @@ def _local_plan(
     show_default=True,
     help="Seed of anything random in the emulated machines.",
 )
-@click.option(
-    "--poll",
-    type=click.FloatRange(0, 600, min_open=True),
-    metavar="SECONDS",
-    help="How often the planned controller looks at idle machines (the cell's own period "
-    "if longer). Looks are most of a plan's work and move its schedule by seconds a "
-    "shift; a fault in the plan is noticed up to this late.  [default: 5]",
-)
+@poll_option
 @click.option(
     "--replay",
     type=click.Path(dir_okay=False, path_type=Path),

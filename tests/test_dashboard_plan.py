@@ -27,6 +27,7 @@ async def test_the_what_if_panel_plays_the_cell_ahead(dash: Dash) -> None:  # no
     await page.locator("#plan-fault").fill("")
     await page.locator("#plan-add").fill("wax-toy-mill-table:1")
     await page.locator("#plan-policy").select_option("one-at-a-time")
+    await page.locator("#plan-poll").fill("2")
     await page.locator("#plan-play").click()
     # Played: the orders' rows, or the plan's refusal in the panel's message.
     await page.wait_for_function(
@@ -41,9 +42,11 @@ async def test_the_what_if_panel_plays_the_cell_ahead(dash: Dash) -> None:  # no
         for r in await rows.all()
     }
     assert found == {("one-at-a-time", "W1"), ("one-at-a-time", "plan-add1")}
+    assert (await page.locator("#plan-window").inner_text()).endswith("(0:05:00), poll 2 s")
     # The same plan through the API: the same orders made, per policy.
     answer = await dash.api(
-        "plan.run", {"shift": "5m", "add": ["wax-toy-mill-table:1"], "policy": "one-at-a-time"}
+        "plan.run",
+        {"shift": "5m", "add": ["wax-toy-mill-table:1"], "policy": "one-at-a-time", "poll": 2},
     )
     for plan in answer["plan"]["plans"]:
         for o in plan["orders"]:

@@ -44,8 +44,9 @@ let chartUrl = null;
 export function renderPlan(answer) {
   const plans = answer.plan.plans;
   const first = plans[0];
+  const poll = first.poll_period ? `, poll ${first.poll_period} s` : "";
   byId("plan-window").textContent =
-    `from ${when(first.start)} to ${when(first.until)} (${span(first.until - first.start)})`;
+    `from ${when(first.start)} to ${when(first.until)} (${span(first.until - first.start)})${poll}`;
   const rows = [];
   for (const p of plans) {
     for (const o of p.orders) {
@@ -77,6 +78,11 @@ async function play(event) {
     fault: entries(byId("plan-fault").value, /;/),
     policy: byId("plan-policy").value,
   };
+  // Empty: the plan's own poll period; else seconds, as `cellctl plan --poll` takes them.
+  const poll = byId("plan-poll").value.trim();
+  if (poll) {
+    params.poll = Number(poll);
+  }
   const button = byId("plan-play");
   button.disabled = true;
   byId("plan-message").textContent = "playing the cell ahead …";

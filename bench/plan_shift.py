@@ -43,13 +43,13 @@ from _common import machine_line
 from cellctl.cell.journal import Journal, Step
 from cellctl.emulators.cell import EXAMPLE_CELL
 from cellctl.plan.engine import (
-    PLAN_POLL_S,
     POWER_ON_S,
     FaultWindow,
     PlanInputs,
     PlanOrder,
     simulate,
 )
+from cellctl.plan.when import PLAN_POLL_S
 from cellctl.testing.rig import CellRig
 
 TYPES = ("wax-robot-base", "wax-toy-mill-table")

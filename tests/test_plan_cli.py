@@ -167,7 +167,7 @@ def test_bad_input_is_refused_before_anything_runs(
 def test_the_poll_option_says_the_plans_own_period() -> None:
     """``--poll``'s help gives the period a plan looks at idle machines by default (the
     engine's, not a copy that could drift)."""
-    from cellctl.plan.engine import PLAN_POLL_S
+    from cellctl.plan.when import PLAN_POLL_S
 
     for args in (["plan", "--help"], ["factory", "plan", "--help"]):
         text = CliRunner().invoke(main, args).output

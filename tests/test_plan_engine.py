@@ -19,7 +19,6 @@ from cellctl.cell.scheduler import PartState, next_transfer
 from cellctl.emulators.cell import EXAMPLE_CELL
 from cellctl.errors import UsageError
 from cellctl.plan.engine import (
-    PLAN_POLL_S,
     FaultWindow,
     HeldPart,
     PlanInputs,
@@ -28,6 +27,7 @@ from cellctl.plan.engine import (
     check_inputs,
     simulate,
 )
+from cellctl.plan.when import PLAN_POLL_S
 
 START = datetime(2026, 11, 27, 6, 0).timestamp()
 SHIFT = PlanInputs(EXAMPLE_CELL, (PlanOrder("A", "wax-robot-base", 1),), START, START + 8 * 3600)

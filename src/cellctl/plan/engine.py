@@ -43,6 +43,7 @@ from cellctl.errors import UsageError
 from cellctl.kinds import registry
 from cellctl.mailbox import DONE, MAILBOX_FILE, Mailbox
 from cellctl.mailbox.sqlite import SqliteMailbox
+from cellctl.plan.when import PLAN_POLL_S
 
 #: The mailbox's default order priority (``Mailbox.post_order``).
 DEFAULT_PRIORITY = 0
@@ -63,16 +64,6 @@ RESOLVE_ROUNDS = 5
 
 #: Seconds of plan time between two looks of the plan's own watcher (all orders done?).
 WATCH_S = 2.0
-
-#: The planned controller's poll period, s (the cell's own if that is longer): how often
-#: it looks at idle machines. The looks are most of a plan's work (an idle hour of the lab
-#: cell costs 5 s of CPU at the cell's 0.5 s, under 1 s at 5 s), and they move little: a
-#: step's end is seen by the step itself, and an 8-hour plan's finish times stay within
-#: seconds of the 0.5 s plan's (tests/test_plan_engine.py). A fault in a plan is noticed
-#: up to a poll period later. ``--poll 0.5`` plays the cell's own rate, slower.
-PLAN_POLL_S = 5.0
-#: The longest poll period a plan takes, s.
-MAX_POLL_S = 600.0
 
 
 @dataclass(frozen=True)
@@ -126,7 +117,7 @@ class PlanInputs:
     :data:`POLICIES`; ``seed``: for anything random in the emulators; ``out_of_service``:
     machines out of service at ``start``; ``held``: parts held at ``start``;
     ``poll_period``: how often the planned controller looks at idle machines (see
-    :data:`PLAN_POLL_S`; 0: as often as the cell itself).
+    :data:`cellctl.plan.when.PLAN_POLL_S`; 0: as often as the cell itself).
     """
 
     cell_dir: Path

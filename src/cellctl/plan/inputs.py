@@ -26,14 +26,8 @@ from cellctl.cell.config import load_cell
 from cellctl.emulators.cell import real_cell_toml
 from cellctl.errors import UsageError
 from cellctl.mailbox.base import MAX_QTY
-from cellctl.plan.engine import (
-    MAX_POLL_S,
-    FaultWindow,
-    HeldPart,
-    PlanInputs,
-    PlanOrder,
-)
-from cellctl.plan.when import MAX_HORIZON_S
+from cellctl.plan.engine import FaultWindow, HeldPart, PlanInputs, PlanOrder
+from cellctl.plan.when import MAX_HORIZON_S, MAX_POLL_S
 
 #: The file's format name and version.
 FORMAT: Final = "cellctl-plan-inputs/1"

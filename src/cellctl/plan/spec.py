@@ -24,16 +24,8 @@ from cellctl.emulators.plc import FAULTS as PLC_FAULTS
 from cellctl.errors import UsageError
 from cellctl.kinds import registry
 from cellctl.mailbox.base import MAX_QTY
-from cellctl.plan.engine import (
-    MAX_POLL_S,
-    PLAN_POLL_S,
-    POLICIES,
-    FaultWindow,
-    HeldPart,
-    PlanInputs,
-    PlanOrder,
-)
-from cellctl.plan.when import parse_duration, resolve_when, when_text
+from cellctl.plan.engine import POLICIES, FaultWindow, HeldPart, PlanInputs, PlanOrder
+from cellctl.plan.when import PLAN_POLL_S, parse_duration, parse_poll, resolve_when, when_text
 
 #: The fault that takes a machine out of service (not an emulator's switch).
 DOWN: Final = "down"
@@ -205,8 +197,7 @@ def plan_inputs(
     against the cell in ``cell_dir``: every refusal comes before anything runs."""
     if not 0 <= seed < 2**63:
         raise UsageError(f"--seed {seed}: a whole number 0 or more")
-    if not 0 < poll_period <= MAX_POLL_S:
-        raise UsageError(f"--poll {poll_period:g}: seconds, more than 0 and at most {MAX_POLL_S:g}")
+    poll_period = parse_poll(poll_period)
     end = plan_window(start, shift, until)
     added = [parse_add(text) for text in adds]
     ids = fresh_ids([o.order_id for o in orders], len(added))

@@ -21,6 +21,15 @@ from cellctl.errors import UsageError
 
 #: The longest a plan may look ahead (and the latest a time may lie after its start): a month.
 MAX_HORIZON_S: Final = 31 * 86400.0
+#: The planned controller's poll period, s (the cell's own if that is longer): how often
+#: it looks at idle machines. The looks are most of a plan's work (an idle hour of the lab
+#: cell costs 5 s of CPU at the cell's 0.5 s, under 1 s at 5 s), and they move little: a
+#: step's end is seen by the step itself, and an 8-hour plan's finish times stay within
+#: seconds of the 0.5 s plan's (tests/test_plan_engine.py). A fault in a plan is noticed
+#: up to a poll period later. ``--poll 0.5`` plays the cell's own rate, slower.
+PLAN_POLL_S: Final = 5.0
+#: The longest poll period a plan takes, s.
+MAX_POLL_S: Final = 600.0
 #: Day names a time may start with (three letters or the whole word, any case).
 DAYS: Final = ("mon", "tue", "wed", "thu", "fri", "sat", "sun")
 _FULL_DAYS: Final = ("monday", "tuesday", "wednesday", "thursday", "friday", "saturday", "sunday")
@@ -140,3 +149,15 @@ def span_text(seconds: float) -> str:
     days, s = divmod(s, 86400)
     clock = f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
     return f"{days} d {clock}" if days else clock
+
+
+def parse_poll(given: str | float) -> float:
+    """A plan's poll period in seconds, as typed (``"0.5"``) or given (``5.0``): more than 0
+    and at most :data:`MAX_POLL_S` (UsageError in words otherwise)."""
+    try:
+        seconds = float(given)
+    except ValueError:
+        seconds = float("nan")
+    if not 0 < seconds <= MAX_POLL_S:  # NaN fails it too
+        raise UsageError(f"poll {given!r}: seconds, more than 0 and at most {MAX_POLL_S:g}")
+    return seconds

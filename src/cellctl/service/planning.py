@@ -38,6 +38,7 @@ from cellctl.cell.journal import Journal
 from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.mailbox import Mailbox
+from cellctl.plan.when import MAX_POLL_S
 from cellctl.service.access import CellAccess
 from cellctl.service.functions import Progress
 
@@ -61,9 +62,9 @@ class PlanParams(BaseModel):
     fault: list[_Entry] = Field(default_factory=list, max_length=MAX_ENTRIES)
     policy: str = Field(default="default", min_length=1, max_length=200)
     seed: int = Field(default=0, ge=0, le=2**63 - 1)
-    #: How often the planned controller looks at idle machines, s (cellctl.plan.engine's
-    #: PLAN_POLL_S when not given).
-    poll: float | None = Field(default=None, gt=0, le=600, allow_inf_nan=False)
+    #: How often the planned controller looks at idle machines, s (the plan's PLAN_POLL_S
+    #: when not given).
+    poll: float | None = Field(default=None, gt=0, le=MAX_POLL_S, allow_inf_nan=False)
 
 
 _playing = threading.Lock()

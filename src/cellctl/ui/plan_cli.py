@@ -24,20 +24,20 @@ import click
 
 from cellctl.clock import current_clock
 from cellctl.errors import CellctlError, UsageError
+from cellctl.plan.when import MAX_POLL_S, PLAN_POLL_S
 from cellctl.ui.calls import cell_call
 from cellctl.ui.common import cell_dir, console, fail, print_json, print_line
 
 T = TypeVar("T")
 
-#: ``--poll`` of ``cellctl plan`` and ``cellctl factory plan`` (the engine's PLAN_POLL_S is
-#: its default: tests/test_plan_cli.py holds the two together).
+#: ``--poll`` of ``cellctl plan`` and ``cellctl factory plan`` (unset: the plan's own).
 poll_option = click.option(
     "--poll",
-    type=click.FloatRange(0, 600, min_open=True),
+    type=click.FloatRange(0, MAX_POLL_S, min_open=True),
     metavar="SECONDS",
     help="How often the planned controller looks at idle machines (the cell's own period "
     "if longer). Looks are most of a plan's work and move its schedule by seconds a "
-    "shift; a fault in the plan is noticed up to this late.  [default: 5]",
+    f"shift; a fault in the plan is noticed up to this late.  [default: {PLAN_POLL_S:g}]",
 )
 
 

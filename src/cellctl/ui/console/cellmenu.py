@@ -243,7 +243,8 @@ class CellActions:
     async def what_if(self) -> None:
         """Ask for a plan's inputs, play it through ``plan.run`` (the menu's worker waits;
         the board stays live) and show it; a refusal (the parsers' or the API's) asks again."""
-        from cellctl.plan.engine import PLAN_POLL_S, POLICIES
+        from cellctl.plan.engine import POLICIES
+        from cellctl.plan.when import PLAN_POLL_S
 
         values = {"horizon": "8h", "fault": "", "add": "", "policy": "default", "poll": ""}
         problems = ""

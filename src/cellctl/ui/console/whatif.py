@@ -27,7 +27,6 @@ from textual.binding import Binding, BindingType
 from textual.containers import ScrollableContainer, Vertical
 from textual.widgets import Static
 
-from cellctl.errors import UsageError
 from cellctl.ui.console.dialogs import Dialog
 
 if TYPE_CHECKING:
@@ -57,6 +56,7 @@ def plan_params(raw: dict[str, str], now: float) -> dict[str, Any]:
     ``cellctl plan`` uses (a :class:`~cellctl.errors.UsageError` in its words). The
     horizon is a span (``8h``) or, when it holds a ``:``, a time (``FRI 18:00``)."""
     from cellctl.plan.spec import DEFAULT_SHIFT, parse_add, parse_fault, plan_window, policies_of
+    from cellctl.plan.when import parse_poll
 
     horizon = raw.get("horizon", "").strip() or DEFAULT_SHIFT
     key = "until" if ":" in horizon else "shift"
@@ -74,19 +74,6 @@ def plan_params(raw: dict[str, str], now: float) -> dict[str, Any]:
     if poll:
         params["poll"] = parse_poll(poll)
     return params
-
-
-def parse_poll(text: str) -> float:
-    """The form's poll period (seconds), as ``cellctl plan --poll`` takes it."""
-    from cellctl.plan.engine import MAX_POLL_S
-
-    try:
-        seconds = float(text)
-    except ValueError:
-        seconds = float("nan")
-    if not 0 < seconds <= MAX_POLL_S:  # NaN fails it too
-        raise UsageError(f"poll {text!r}: seconds, more than 0 and at most {MAX_POLL_S:g}")
-    return seconds
 
 
 def plan_text(answer: dict[str, Any], directory: Path) -> list[str]:

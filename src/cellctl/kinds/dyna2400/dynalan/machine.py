@@ -523,15 +523,21 @@ def _axis_line(context: Kind | None, stmt: Statement, state: MachineState, m: _M
 
 def travel_fault(moves: list[Move] | tuple[Move, ...], units: Units, travel: Travel) -> str | None:
     """The first point of ``moves`` outside ``travel``, described; None when all are inside."""
+    # The limits once, not per point: a block's path may hold thousands of points, and the
+    # emulator checks every block it runs.
+    limits = [travel.limits(axis, units) for axis in AXES]
+    (x0, x1), (y0, y1), (z0, z1) = ((low - 1e-9, high + 1e-9) for low, high in limits)
     for move in moves:
         for point in move.path:
+            x, y, z = point
+            if x0 <= x <= x1 and y0 <= y <= y1 and z0 <= z <= z1:
+                continue
             for i, axis in enumerate(AXES):
-                low, high = travel.limits(axis, units)
+                low, high = limits[i]
                 if not low - 1e-9 <= point[i] <= high + 1e-9:
-                    unit = units.length_name
                     return (
                         f"{axis} {point[i]:.4f} is outside the {axis} travel "
-                        f"{low:.3f} to {high:.3f} {unit}"
+                        f"{low:.3f} to {high:.3f} {units.length_name}"
                     )
     return None
 

@@ -12,16 +12,20 @@ the plans it goes to cell2, and the factory says so.
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
+import json
 from pathlib import Path
 
 import pytest
+from click.testing import CliRunner
 
 from cellctl.cell.commands import OPERATOR_OUT
 from cellctl.cell.config import CONVEYOR
 from cellctl.factory.dispatch import BOUND, Estimating, choose
 from cellctl.factory.emulated import EmulatedFactory
 from cellctl.factory.store import QUEUED
+from cellctl.ui.cli import main
 from tests.factory_plant import Plant
 
 #: Seconds of the real machines' time a cell's plan plays ahead: cell1's stops there.
@@ -100,3 +104,16 @@ async def test_the_factory_sends_an_order_by_the_cells_plans_not_their_bounds(
         queued = dataclasses.replace(plant.store.get("N1"), state=QUEUED, cell=None)
         others = [o for o in plant.store.orders() if o.id != "N1"]
         assert choose(queued, cells, others, Estimating(BOUND))[0] == "cell1"
+
+        # The factory's plan of its running cells: each asked through its own API, from its
+        # state now (cell1 with cnc1 out of service, cell2 with its held parts and N1).
+        args = ["factory", "--dir", str(plant.directory), "plan", "--shift", "5m", "--json"]
+        result = await asyncio.to_thread(CliRunner().invoke, main, args)
+        assert result.exit_code == 0, result.output
+        plans = json.loads(result.output)
+        assert sorted(plans) == ["cell1", "cell2"], plans
+        [one_plan], [two_plan] = plans["cell1"]["plans"], plans["cell2"]["plans"]
+        assert [(o["order_id"], o["finished"]) for o in one_plan["orders"]] == [("L1", None)]
+        assert one_plan["busy_s"]["cnc1"] == 0
+        assert "N1" in {o["order_id"] for o in two_plan["orders"]}
+        assert two_plan["held_at_start"] == 2

@@ -6,8 +6,9 @@ on this host (``FACTORY_DIR/CELL``, as ``cellctl emulate factory`` writes them, 
     cellctl factory --dir plant plan --fault cell2/cnc2:down@10:00-11:00 --out plan-out
 
 Each cell is asked through its own control API (``plan.run``: its open orders, held parts
-and machines out of service now), or played in this process on its files when no controller
-runs it. The factory's orders not yet given to a cell are not in any cell's plan.
+and machines out of service now), the running cells side by side, each playing in its own
+controller's process; a cell no controller runs is played in this process on its files.
+The factory's orders not yet given to a cell are not in any cell's plan.
 """
 
 from __future__ import annotations
@@ -21,13 +22,6 @@ import click
 from cellctl.errors import CellctlError, UsageError
 from cellctl.ui.common import console, fail, print_json, print_line
 from cellctl.ui.plan_cli import poll_option
-
-
-def run_plain(coro: Any) -> Any:
-    """Run one cell's call to its end (its typed error raised, for the caller to weigh)."""
-    import asyncio
-
-    return asyncio.run(coro)
 
 
 def _cell_dirs(factory_dir: Path, cells: list[str], given: tuple[str, ...]) -> dict[str, Path]:
@@ -140,6 +134,9 @@ def factory_plan(
     as_json: bool,
 ) -> None:
     """What every cell of the factory finishes, and when: `cellctl plan` for each."""
+    import asyncio
+
+    from cellctl.cell.owner import controller_holder
     from cellctl.factory.config import load_factory
     from cellctl.plan.run import result_from_dict, write_plan
     from cellctl.service.client import open_cell
@@ -157,15 +154,33 @@ def factory_plan(
     if poll is not None:
         params["poll"] = poll
 
-    async def ask(directory: Path, cell_faults: list[str]) -> Any:
-        async with await open_cell(directory, {}) as cell:
-            return await cell.call("plan.run", {**params, "fault": cell_faults})
+    async def ask(name: str) -> Any:
+        """Cell ``name``'s answer, or its refusal (kept: the other cells go on)."""
+        try:
+            async with await open_cell(cells[name], {}) as cell:
+                return await cell.call("plan.run", {**params, "fault": windows[name]})
+        except CellctlError as e:
+            return e
 
+    async def ask_all() -> dict[str, Any]:
+        # A cell with a controller plays its plan in that controller's process: those are
+        # asked side by side (a factory's cells are planned in the time of its longest, given
+        # the cores). The others play in this process, one plan at a time.
+        running = [name for name, directory in cells.items() if controller_holder(directory)]
+        answers = dict(zip(running, await asyncio.gather(*map(ask, running)), strict=True))
+        for name in cells:
+            if name not in answers:
+                answers[name] = await ask(name)
+        return answers
+
+    answers = asyncio.run(ask_all())
     plans: dict[str, Any] = {}
     refused: dict[str, str] = {}
     for name, directory in cells.items():
         try:
-            answer = run_plain(ask(directory, windows[name]))
+            answer = answers[name]
+            if isinstance(answer, CellctlError):
+                raise answer
             result = result_from_dict(answer["plan"], answer["svg"], directory)
         except CellctlError as e:  # one cell's refusal (no open orders ...): the others go on
             refused[name] = str(e)

@@ -20,6 +20,7 @@ import pytest
 from cellctl.cell.config import load_cell
 from cellctl.cell.model import ControllerOptions
 from cellctl.cell.monitor import ESTOP
+from cellctl.clock import current_clock
 from cellctl.emulators.cell import EXAMPLE_CELL, EmulatedCell, real_cell_toml
 from cellctl.kinds.dyna2400.driver import MillConfig
 from cellctl.testing.rig import CellRig
@@ -355,9 +356,10 @@ async def test_an_emergency_stop_during_a_transfer_is_one_alarm_naming_it(tmp_pa
 @pytest.mark.virtual
 async def test_a_door_stuck_during_a_transfer_is_named_in_its_alarm(tmp_path: Path) -> None:
     """CNC 2's door sticks half-way open during cnc1_to_cnc2 (it left its closed position,
-    so the transfer started): the robot waits for it with the part in its gripper until the
-    transfer's deadline. The alarm names the door, as a stuck door outside a transfer is
-    named (the PLC's interlock), not the transfer's timeout; the part is held, and the batch
+    so the transfer started): the robot waits for it with the part in its gripper. At the
+    interlock's deadline, not the transfer's, the alarm names the door, as a stuck door
+    outside a transfer is named (the PLC's interlock); the robot's cycle is stopped, so the
+    arm does not go on by itself once the door is freed; the part is held, and the batch
     finishes once the operator freed the door and resolved."""
     async with CellRig(tmp_path / "cell") as rig:
         rig.post("wax-robot-base", 2, "A")
@@ -375,12 +377,15 @@ async def test_a_door_stuck_during_a_transfer_is_named_in_its_alarm(tmp_path: Pa
         await rig.wait_for(lambda: stuck, "CNC 2's door stuck during cnc1_to_cnc2")
         held = await rig.wait_for(rig.held_parts, "the part in the gripper held")
         await rig.wait_quiet()
-        timeout = controller.options.transfer_timeout
+        timeout = controller.options.interlock_timeout
+        assert timeout < controller.options.transfer_timeout
         assert [(a.machine, a.code, a.text) for a in rig.journal.alarms()] == [
             ("plc", "interlock", f"door of CNC 2 did not open within {timeout:g} s")
         ], rig.describe()
         assert rig.cell.plc.inputs["door_open_2"] is False
         assert "door of CNC 2" in (held[0].note or ""), held[0].note
+        # Stopped where it waited, the part still in its gripper.
+        assert not rig.cell.robot.running and rig.cell.gripper is not None, rig.describe()
         # The robot is not at fault: no failure counts against it.
         assert controller.machines["robot"].failures == 0
 
@@ -390,6 +395,43 @@ async def test_a_door_stuck_during_a_transfer_is_named_in_its_alarm(tmp_path: Pa
         assert all(p.status == "done" for p in rig.journal.parts()), rig.describe()
         assert rig.cut_twice() == {}, rig.describe()
         assert [(a.machine, a.code) for a in rig.journal.alarms()] == [("plc", "interlock")]
+
+
+@pytest.mark.virtual
+async def test_an_emergency_stop_as_a_transfers_door_opens_ends_it_at_once(
+    tmp_path: Path,
+) -> None:
+    """The E-stop pressed as CNC 2's door leaves its closed position for cnc1_to_cnc2 (the
+    robot waits for it, the part in its gripper): the door stops half-way. The transfer
+    does not wait out the interlock's deadline for it: it ends at once, one alarm, the
+    stop's, the part held "cut short by the emergency stop"."""
+    async with CellRig(tmp_path / "cell") as rig:
+        clock = current_clock()
+        rig.post("wax-robot-base", 1, "A")
+        pressed: list[float] = []
+
+        def estop_as_the_door_leaves(name: str, value: bool) -> None:
+            if name == "door_closed_2" and not value and not pressed:
+                pressed.append(clock.now())
+                asyncio.get_running_loop().call_soon(rig.switch_on, "plc:estop")
+
+        rig.cell.plc.hooks.input.append(estop_as_the_door_leaves)
+        controller = await rig.start_controller()
+        (held,) = await rig.wait_for(rig.held_parts, "the part in the gripper held")
+        await rig.wait_quiet()
+        assert [(a.machine, a.code) for a in rig.journal.alarms()] == [("plc", "estop")]
+        assert "cut short by the emergency stop" in (held.note or ""), held.note
+        (failed,) = [s for s in rig.journal.steps() if s.state == "failed"]
+        assert failed.program == "cnc1_to_cnc2" and failed.ended is not None
+        # Within a look or two of the press, not at the door's deadline.
+        assert failed.ended - pressed[0] < controller.options.interlock_timeout / 2
+        assert not rig.cell.robot.running
+
+        rig.switch_off("plc:estop")
+        await resolve_until_done(rig)
+        await rig.stop_controller()
+        assert all(p.status == "done" for p in rig.journal.parts()), rig.describe()
+        assert rig.cut_twice() == {}, rig.describe()
 
 
 async def test_an_emulated_cell_of_an_emulated_cells_directory_is_the_real_cells_emulation(

@@ -155,6 +155,28 @@ async def test_power_off_and_emergency_stop(
     assert robot.cold and robot.needs_initialize(UrRefused("play", words, "x"))
 
 
+async def test_a_wait_cut_short_and_asked_again_sees_the_end(emulator: UrEmulator) -> None:
+    """The cell waits for a cycle in slices while its doors open: a wait that ran out while
+    the program played, asked again after the program ended, sees the end by the runtime
+    state (no end register here): it knows the program played, and does not take it for a
+    program that never started."""
+    robot = await UrRobot.connect(
+        emulator.dashboard_url, name="ur1", options=options(emulator, end_register=None)
+    )
+    try:
+        await robot.initialize()
+        slot = await robot.ensure_program("tend", compile_program(TEND, "tend_cnc1", "t.script"))
+        await robot.start(slot)
+        await until(lambda: emulator.controller.runtime == RuntimeState.PLAYING, "it plays")
+        with pytest.raises(SignalTimeout, match=re.escape("did not end within 0.01 s")):
+            await robot.wait_end(0, timeout=0.01)
+        await until(lambda: emulator.controller.runtime == RuntimeState.STOPPED, "it ends")
+        await robot.wait_end(0, timeout=10 * robot.options.start_timeout)
+        assert emulator.controller.digital_out(1) and not robot.running
+    finally:
+        await robot.close()
+
+
 async def test_a_program_that_never_ends_and_a_dropped_connection(
     emulator: UrEmulator, robot: UrRobot
 ) -> None:

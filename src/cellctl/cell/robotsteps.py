@@ -2,7 +2,8 @@
 
 A transfer journals its step, has the robot's kind put the program in a partition (downloaded
 again only when it is not there), opens the doors on its way, runs the program and waits for
-its "cycle done" output. A reject before the arm moved is read, reset and retried ``retries``
+its "cycle done" output (a door that does not open within ``interlock_timeout`` stops the
+cycle and is named). A reject before the arm moved is read, reset and retried ``retries``
 times; a failure holds the part (a transfer is never restarted automatically).
 
 The controller owns a :class:`RobotSteps` and starts its :meth:`~RobotSteps.transfer` as the
@@ -17,9 +18,10 @@ recovery (a robot fault keeps it out of the plan)::
 from __future__ import annotations
 
 import asyncio
+import contextlib
 from typing import TYPE_CHECKING
 
-from cellctl.cell.causes import Cause, blame, door_cause
+from cellctl.cell.causes import Blamed, Cause, blame, door_cause
 from cellctl.cell.config import CONVEYOR
 from cellctl.cell.orderflow import OUT
 from cellctl.cell.orders import ReportKind
@@ -124,6 +126,60 @@ class RobotSteps:
                 poll=INTERLOCK_POLL_S,
             )
 
+    async def _wait_cycle(self, program: str, commanded: float, timeout: float) -> None:
+        """Wait up to ``timeout`` s for the end of the cycle of ``program`` (its doors
+        commanded at ``commanded``): SignalTimeout after. The output is read every poll once
+        the cycle may have ended; the status (a servo error or a power failure that aborted
+        the cycle) from the start, as often as the monitor looks at an idle robot."""
+        world = self.world
+        assert world.robot is not None
+        elapsed = world.clock.monotonic() - commanded
+        await world.robot.wait_end(
+            world.options.done_output,
+            timeout=timeout,
+            poll=CYCLE_END_POLL_S,
+            watch_every=self.monitor.robot_period,
+            expected=max(0.0, self.expected(program) - elapsed),
+        )
+
+    async def _doors_opened(self, program: str, places: list[str], commanded: float) -> bool:
+        """Watch the cycle of ``program`` until the doors of ``places`` (commanded open at
+        ``commanded``) are open; True if the cycle ended meanwhile.
+
+        The robot's program waits for the doors itself: this bounds that wait by
+        ``interlock_timeout``, as any door's wait is. A door still short of open then is
+        stuck: the cycle is stopped (once freed, the door must not let the arm go on by
+        itself while its part is held) and the door blamed in the interlock's words, not at
+        the transfer's own deadline. Under the emergency stop no door moves: blamed at once
+        (the stop is named as its cause). The doors are read once a look at the robot.
+        """
+        world = self.world
+        plc, robot = world.plc, world.robot
+        assert plc is not None and robot is not None
+        doors = [world.mill_index(p) for p in places if p != CONVEYOR]
+        waited = world.options.interlock_timeout
+        deadline = commanded + waited
+        while doors:
+            with blame("plc", "PLC"):
+                inputs = await plc.read_inputs()
+            cause = door_cause(inputs, doors, True, waited)
+            if cause is None:
+                return False
+            left = deadline - world.clock.monotonic()
+            if left <= 0 or not inputs.get("estop_ok", True):
+                # Best effort: a robot that does not take the stop is the operator's to
+                # look at, and the door is the fault either way.
+                with contextlib.suppress(CellctlError, OSError):
+                    await robot.stop()
+                since = world.clock.now() - (world.clock.monotonic() - commanded)
+                raise Blamed(cause, SignalTimeout(cause.text), since)
+            try:
+                await self._wait_cycle(program, commanded, min(self.monitor.robot_period, left))
+            except SignalTimeout:
+                continue
+            return True
+        return False
+
     async def _door_not_open(self, places: list[str]) -> Cause | None:
         """After a cycle that did not end: a door of ``places`` the program waited for in
         vain (it left its closed position, so the transfer started, but never opened)."""
@@ -197,17 +253,8 @@ class RobotSteps:
                 order_id=part.order_id,
                 part_id=part.id,
             )
-            # The output is read every poll once the cycle may have ended; the status (a
-            # servo error or a power failure that aborted the cycle) from the start, as
-            # often as the monitor looks at an idle robot.
-            elapsed = world.clock.monotonic() - commanded
-            await robot.wait_end(
-                world.options.done_output,
-                timeout=world.options.transfer_timeout,
-                poll=CYCLE_END_POLL_S,
-                watch_every=self.monitor.robot_period,
-                expected=max(0.0, self.expected(t.program) - elapsed),
-            )
+            if not await self._doors_opened(t.program, places, commanded):
+                await self._wait_cycle(t.program, commanded, world.options.transfer_timeout)
             cycle = world.clock.monotonic() - commanded
             self._least[t.program] = min(cycle, self._least.get(t.program, cycle))
             with blame("plc", "PLC"):

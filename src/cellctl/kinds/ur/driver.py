@@ -179,6 +179,7 @@ class UrRobot(LinkDriver):
         self._current: UrProgram | None = None
         self._seq = 0
         self._started_at = 0.0
+        self._played = False  # the program started was seen playing (kept across waits)
         self._dashboard_lock = asyncio.Lock()
         self._state = _State()
         self._changed = asyncio.Event()
@@ -495,6 +496,7 @@ class UrRobot(LinkDriver):
                 )  # fmt: skip
             await self._secondary.write(text.encode("utf-8"))
         self._started_at = self.clock.monotonic()
+        self._played = False
         self._current = program
         self._running = True
 
@@ -520,7 +522,6 @@ class UrRobot(LinkDriver):
         deadline = self.clock.monotonic() + timeout
         period = 1.0 / self.options.rtde_frequency
         started = self._started_at
-        played = False
         by_register = not program.on_robot and self.options.end_register is not None
         while True:
             values = self._fresh()
@@ -532,7 +533,8 @@ class UrRobot(LinkDriver):
             if by_register and values.get(self._end_field()) == self._seq:
                 break
             if status.runtime == RuntimeState.PLAYING:
-                played = True
+                self._played = True  # a wait cut short and asked again still knows it
+            played = self._played
             if fresh and status.runtime == RuntimeState.STOPPED and (played or program.on_robot):
                 break
             if (

@@ -526,18 +526,19 @@ class Ibm7545Emulator(EmulatedDevice):
 
     async def _wait_input(self, port: int, value: bool) -> None:
         told = False
-        while DiDo(self.inputs, self.outputs).input(port) != value:
-            if not told:
+        try:
+            while DiDo(self.inputs, self.outputs).input(port) != value:
+                # Any input's change wakes the wait: it still waits for this one after.
                 self.waiting_for = (port, value)
-                for hook in list(self.wait_hooks):
-                    hook(port, value)
-                told = True
-            fut: asyncio.Future[None] = asyncio.get_running_loop().create_future()
-            self._input_waiters.append(fut)
-            try:
+                if not told:
+                    for hook in list(self.wait_hooks):
+                        hook(port, value)
+                    told = True
+                fut: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+                self._input_waiters.append(fut)
                 await fut
-            finally:
-                self.waiting_for = None
+        finally:
+            self.waiting_for = None
 
     def _data_error(self, code: int) -> None:
         self.status_flags |= DATA_ERROR_FLAG

@@ -87,6 +87,22 @@ def _imported_clock_names(tree: ast.Module) -> int:
     return count
 
 
+def _taken_uncalled(tree: ast.Module) -> list[tuple[int, str]]:
+    """``f = loop.time`` or ``clock=time.monotonic``: a reading of time taken as a value, to
+    be called elsewhere (another spelling of a direct reading)."""
+    called = {id(node.func) for node in ast.walk(tree) if isinstance(node, ast.Call)}
+    found = []
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Attribute) or id(node) in called:
+            continue
+        owner = _name_of(node.value)
+        if isinstance(node.value, ast.Name) and owner == "time" and node.attr in TIME_CALLS:
+            found.append((node.lineno, f"time.{node.attr} (uncalled)"))
+        elif node.attr == "time" and owner.endswith("loop"):
+            found.append((node.lineno, f"{owner}.time (uncalled)"))
+    return found
+
+
 def direct_time(path: Path) -> list[tuple[int, str]]:
     """(line, what) of every direct reading of time in ``path``."""
     tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
@@ -95,6 +111,7 @@ def direct_time(path: Path) -> list[tuple[int, str]]:
         for node in ast.walk(tree)
         if isinstance(node, ast.Call) and (what := _reads_time(node)) is not None
     ]
+    found += _taken_uncalled(tree)
     found += [(0, "from time import ...")] * _imported_clock_names(tree)
     return sorted(found)
 
@@ -200,3 +217,12 @@ def test_the_scan_sees_every_spelling() -> None:
         ]
     )
     assert _imported_clock_names(sample) == 1
+    # Taken as a value, to be called elsewhere: read too; called, or a clock's, left alone.
+    taken = ast.parse(
+        "now = self.link._loop.time\nClock(monotonic=time.monotonic)\n"
+        "t = loop.time(); f = clock.monotonic; g = self.time; time.time()\n"
+    )
+    assert sorted(what for _, what in _taken_uncalled(taken)) == [
+        "_loop.time (uncalled)",
+        "time.monotonic (uncalled)",
+    ]

@@ -345,8 +345,7 @@ class Ibm7545Robot(LinkDriver):
 
     async def _await_ready(self, what: str, first: int) -> None:
         """Having read ``first`` after an identifier, wait through Xoffs for Xon."""
-        loop_time = self.link._loop.time
-        ceiling = loop_time() + self.config.busy_ceiling
+        ceiling = self.clock.monotonic() + self.config.busy_ceiling
         byte = first
         while True:
             if byte == XON:
@@ -357,7 +356,7 @@ class Ibm7545Robot(LinkDriver):
                 raise UnexpectedReply(
                     f"{self.name}: {what}: expected Xoff or Xon, got {byte:02X}", bytes([byte])
                 )
-            left = ceiling - loop_time()
+            left = ceiling - self.clock.monotonic()
             if left <= 0:
                 raise LinkTimeout(
                     f"{self.name}: {what}: controller stayed busy (Xoff) longer than "

@@ -157,9 +157,11 @@ class RobotSteps:
         plc, robot = world.plc, world.robot
         assert plc is not None and robot is not None
         doors = [world.mill_index(p) for p in places if p != CONVEYOR]
+        if not doors:
+            return False
         waited = world.options.interlock_timeout
         deadline = commanded + waited
-        while doors:
+        while True:
             with blame("plc", "PLC"):
                 inputs = await plc.read_inputs()
             cause = door_cause(inputs, doors, True, waited)
@@ -178,7 +180,6 @@ class RobotSteps:
             except SignalTimeout:
                 continue
             return True
-        return False
 
     async def _door_not_open(self, places: list[str]) -> Cause | None:
         """After a cycle that did not end: a door of ``places`` the program waited for in

@@ -329,6 +329,19 @@ async def test_standalone_cell_menu(rig: CellRig) -> None:
     assert app.return_code == 0
 
 
+async def test_an_update_that_comes_as_the_console_exits_is_dropped(rig: CellRig) -> None:
+    """The console exiting another way than its quit (its terminal gone, a test's end)
+    removes its widgets while the client may still push: an update then is dropped, not an
+    error in the exit."""
+    app = ConsoleApp(rig.directory, standalone_client(rig), traffic_period=0.1)
+    async with app.run_test(size=SIZE) as pilot:
+        await wait_text(pilot, "MAIN MENU")
+        await app.query_one("#header").remove()  # as the exit removes the widgets
+        app._cell_changed({})  # what the client calls with a pushed update
+        await pilot.pause()
+        assert not app.query("#header")
+
+
 # -- attached ----------------------------------------------------------------------------------
 
 

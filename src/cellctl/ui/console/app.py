@@ -29,6 +29,7 @@ from textual import events, on
 from textual.app import App, ComposeResult
 from textual.binding import Binding, BindingType
 from textual.containers import Horizontal
+from textual.css.query import NoMatches
 from textual.screen import ModalScreen, Screen
 from textual.widgets import Footer, OptionList, Static
 from textual.widgets.option_list import Option
@@ -200,14 +201,20 @@ class ConsoleApp(App[None]):
     def _redraw_progress(self) -> None:
         machines = self.snapshot.get("machines", {}).values()
         if not self._closed and any((m.get("progress") or {}).get("running") for m in machines):
-            self.query_one("#board", Board).show(self.snapshot)
+            with contextlib.suppress(NoMatches):  # exiting: see _show_snapshot
+                self.query_one("#board", Board).show(self.snapshot)
 
     def _show_snapshot(self) -> None:
         paused = "  CELL PAUSED" if self.snapshot.get("cell", {}).get("paused") else ""
         where = "cell" if self.is_cell else "directory"
         header = f"{self.mode_text()}{paused}  {where}: {self.directory}"
-        self.query_one("#header", Static).update(Text(header))
-        self.query_one("#board", Board).show(self.snapshot)
+        try:
+            self.query_one("#header", Static).update(Text(header))
+            self.query_one("#board", Board).show(self.snapshot)
+        except NoMatches:
+            # An update that came as the console exits another way than its quit (its
+            # widgets already gone, the client not closed yet): nothing left to draw on.
+            return
 
     def in_service(self, name: str) -> bool:
         machine = self.snapshot.get("machines", {}).get(name, {})

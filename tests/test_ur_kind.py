@@ -82,8 +82,13 @@ async def test_cellctl_emulate_ur_serves_the_driver() -> None:
 
 @given(st.text(max_size=120))
 def test_the_dashboard_answers_any_line_in_one_line(line: str) -> None:
-    controller = UrController(time_scale=1000.0)
-    answer = controller.answer(line)
+    async def answered() -> str:
+        # In a running loop, as the emulator answers: a command whose effect comes later
+        # ("power on") schedules it there (a loop of its own per line: no test's loop
+        # left behind, or missing, decides the outcome).
+        return UrController(time_scale=1000.0).answer(line)
+
+    answer = asyncio.run(answered())
     assert len(answer.splitlines()) == 1
     command = next((c for c in COMMANDS.values() if line.strip().startswith(c.text)), None)
     if command is None:

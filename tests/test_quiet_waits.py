@@ -5,6 +5,8 @@ least time -- fewer exchanges on the line, the same outcome. Over ``mem://`` on 
 
 from __future__ import annotations
 
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
 from pathlib import Path
 
 import pytest
@@ -75,16 +77,27 @@ def test_a_cycle_left_unasked_until_its_least_time_ends_as_seen_polled() -> None
     run_virtual(session())
 
 
+@asynccontextmanager
+async def running(emulator: Ibm7545Emulator, source: str) -> AsyncIterator[Ibm7545Robot]:
+    """A driver over ``mem://`` to ``emulator``, initialized, running AML ``source`` from
+    partition 1 (closed after)."""
+    server = await serve_mem(emulator, ROBOT_LINE)
+    robot = await Ibm7545Robot.connect(server.url, name="robot1")
+    try:
+        await robot.initialize()
+        await robot.download(1, compile_source(source, "CYCLE", 1))
+        await robot.go(1)
+        yield robot
+    finally:
+        await robot.close()
+        await server.close()
+
+
 def test_a_servo_error_while_the_end_is_left_unasked_is_seen_at_the_next_status_look() -> None:
     async def session() -> None:
         clock = current_clock()
         emulator = Ibm7545Emulator()
-        server = await serve_mem(emulator, ROBOT_LINE)
-        robot = await Ibm7545Robot.connect(server.url, name="robot1")
-        try:
-            await robot.initialize()
-            await robot.download(1, compile_source(CYCLE, "CYCLE", 1))
-            await robot.go(1)
+        async with running(emulator, CYCLE) as robot:
             started = clock.monotonic()
             clock.call_at(started + 1.0, emulator.set_fault, "servo-error")
             with pytest.raises(RobotHalted, match="servo error"):
@@ -93,9 +106,6 @@ def test_a_servo_error_while_the_end_is_left_unasked_is_seen_at_the_next_status_
             # read 30 s on.
             assert clock.monotonic() - started < 1.0 + 0.25 + 0.2
             assert robot.state == 0
-        finally:
-            await robot.close()
-            await server.close()
 
     run_virtual(session())
 

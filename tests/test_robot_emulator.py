@@ -553,19 +553,12 @@ def test_a_wait_on_one_input_stays_told_while_others_change() -> None:
     """A program in WAITI(1, 1) says so (``waiting_for``) until input 1 comes, however often
     other inputs change meanwhile (a door opening wakes the wait, which goes on waiting)."""
     from cellctl.clock import current_clock, run_virtual
-    from cellctl.emulators.memserve import serve_mem
-    from cellctl.kinds.ibm7545.driver import Ibm7545Robot
+    from tests.test_quiet_waits import running
 
     async def session() -> None:
         clock = current_clock()
         emulator = Ibm7545Emulator()
-        server = await serve_mem(emulator, ROBOT_LINE)
-        robot = await Ibm7545Robot.connect(server.url, name="robot1")
-        try:
-            await robot.initialize()
-            program = "WRITEO(6, 0)\nWAITI(1, 1)\nWRITEO(6, 1)\nEND\n"
-            await robot.download(1, compile_source(program, "WAIT", 1))
-            await robot.go(1)
+        async with running(emulator, "WRITEO(6, 0)\nWAITI(1, 1)\nWRITEO(6, 1)\nEND\n") as robot:
             await clock.sleep(0.5)
             assert emulator.waiting_for == (1, True)
             for port, value in ((2, True), (3, True), (2, False)):
@@ -575,8 +568,5 @@ def test_a_wait_on_one_input_stays_told_while_others_change() -> None:
             emulator.set_input(1, True)
             await robot.wait_cycle_end(6, timeout=5)
             assert emulator.waiting_for is None
-        finally:
-            await robot.close()
-            await server.close()
 
     run_virtual(session())

@@ -113,13 +113,14 @@ async def _run_owned(
         extra_routes=dashboard_routes,
         limits=api_limits(config.api),
     )
-    signals = contextlib.ExitStack()  # Ctrl-C, SIGTERM: as found after
-    signals.enter_context(stop_signals(on_signal))
     bridge = _mqtt_bridge(config, controller, mailbox, journal)
     if bridge is not None:
         bridge.drop_expired()  # before the controller can start a part of such an order
     bridge_task = None
     opcua = _opcua_server(config, controller)
+    # Ctrl-C, SIGTERM: ours from here, as found again once the finally below begins.
+    signals = contextlib.ExitStack()
+    signals.enter_context(stop_signals(on_signal))
     try:
         await server.start()
         controller.log(f"control API on {server.url}")

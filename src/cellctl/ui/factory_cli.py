@@ -271,7 +271,8 @@ async def run_factory(
         controller = FactoryController(config, store, log=printer or (lambda text: None))
         if on_controller is not None:
             on_controller.append(controller)
-        signals = contextlib.ExitStack()  # Ctrl-C, SIGTERM: as found after
+        # Ctrl-C, SIGTERM: ours from here, as found again once the finally below begins.
+        signals = contextlib.ExitStack()
         signals.enter_context(stop_signals(stop.set))
         try:
             task = asyncio.create_task(controller.run(stop, until_idle=until_idle))

@@ -155,10 +155,11 @@ async def run_factory_demo(
         _say("stopping: the cells finish their steps (Ctrl-C again to kill them)")
         stop.set()
 
-    signals = contextlib.ExitStack()  # Ctrl-C, SIGTERM: as found after
-    signals.enter_context(stop_signals(on_signal))
     plant = EmulatedFactory(directory, cells=cells, time_scale=time_scale, templates=templates)
     controllers = CellControllers(plant.cell_dirs)
+    # Ctrl-C, SIGTERM: ours from here, as found again once the finally below begins.
+    signals = contextlib.ExitStack()
+    signals.enter_context(stop_signals(on_signal))
     try:
         await plant.start()
         console.print(

@@ -105,7 +105,8 @@ async def serve_shop(config: ShopConfig, *, stop: asyncio.Event | None = None) -
             extra_routes=dashboard_routes,
         )
         server.listeners.append(api.changed)
-        signals = contextlib.ExitStack()  # Ctrl-C, SIGTERM: as found after
+        # Ctrl-C, SIGTERM: ours from here, as found again once the finally below begins.
+        signals = contextlib.ExitStack()
         signals.enter_context(stop_signals(stop.set))
         try:
             await server.start()

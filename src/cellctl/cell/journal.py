@@ -30,6 +30,10 @@ What the controller reads every round (parts, done steps, alarms, machines out o
 is answered from in-memory views (:mod:`cellctl.cell.journalview`) that this journal's writes
 keep current once committed and that are read again from the file after any other
 connection commits: never an answer the file would not give.
+
+The alarms (raise, acknowledge, shelve, return to normal, clear) live in
+:mod:`cellctl.cell.journalalarms`, the base class of :class:`Journal`; the tables and the
+helpers that read their rows in :mod:`cellctl.cell.journalrows`. Import from here as before.
 """
 
 from __future__ import annotations
@@ -39,17 +43,26 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, Final
 
-from cellctl.cell.causes import PRIORITIES, priority_of
+from cellctl.cell.journalalarms import MAX_SHELVE, AlarmJournal, _alarm
 from cellctl.cell.journalrecords import Alarm, Part, RecoveryReport, Step
+from cellctl.cell.journalrows import (
+    SCHEMA,
+    _get_part,
+    _get_step,
+    _held_step,
+    _part,
+    _step,
+    _update_part,
+)
 from cellctl.cell.journalview import JournalViews
 from cellctl.cell.orders import OrderLike
-from cellctl.cell.sqlitedb import SqliteStore
-from cellctl.clock import Clock, current_clock
+from cellctl.clock import Clock
 from cellctl.errors import UsageError
 
 __all__ = [
     "JOURNAL_FILE",
     "LOCATIONS",
+    "MAX_SHELVE",
     "PART_STATUSES",
     "RESOLUTIONS",
     "STEP_KINDS",
@@ -80,77 +93,8 @@ STEP_STATES: Final = ("started", "finished", "failed", "interrupted")
 #: What the operator decided about an interrupted or failed step of a held part.
 RESOLUTIONS: Final = ("", "accepted", "redo")
 
-#: The alarm columns added after the first journals (ISA-18.2 states): an older journal gets
-#: them on open, with defaults that read as "acknowledged nothing, still seen, not shelved".
-_ALARM_COLUMNS: Final = (
-    ("priority", "TEXT NOT NULL DEFAULT 'medium'"),
-    ("acked", "REAL"),
-    ("acked_by", "TEXT NOT NULL DEFAULT ''"),
-    ("returned", "REAL"),
-    ("shelved_until", "REAL"),
-    ("shelved_by", "TEXT NOT NULL DEFAULT ''"),
-)
-#: The longest an alarm may be shelved, s (8 h: one shift).
-MAX_SHELVE: Final = 8 * 3600.0
-
 INTERRUPTED_MACHINING = "needs inspection: machining step {program} on {machine} was interrupted"
 INTERRUPTED_TRANSFER = "interrupted transfer: check the gripper and both stations"
-
-SCHEMA = """
-CREATE TABLE IF NOT EXISTS parts (
-    id TEXT PRIMARY KEY,
-    order_id TEXT NOT NULL,
-    part_type TEXT NOT NULL,
-    seq_in_order INTEGER NOT NULL,
-    route_index INTEGER NOT NULL DEFAULT 0,
-    location TEXT NOT NULL,
-    status TEXT NOT NULL,
-    updated REAL NOT NULL,
-    note TEXT NOT NULL DEFAULT '',
-    held_step INTEGER
-);
-CREATE INDEX IF NOT EXISTS parts_by_order ON parts (order_id);
-CREATE TABLE IF NOT EXISTS steps (
-    id INTEGER PRIMARY KEY AUTOINCREMENT,
-    part_id TEXT NOT NULL,
-    kind TEXT NOT NULL,
-    machine TEXT NOT NULL,
-    program TEXT NOT NULL,
-    route_index INTEGER NOT NULL,
-    state TEXT NOT NULL,
-    started REAL NOT NULL,
-    ended REAL,
-    outcome TEXT NOT NULL DEFAULT '',
-    attempt INTEGER NOT NULL,
-    resolution TEXT NOT NULL DEFAULT ''
-);
-CREATE INDEX IF NOT EXISTS steps_by_part ON steps (part_id);
-CREATE INDEX IF NOT EXISTS steps_by_state ON steps (state);
-CREATE TABLE IF NOT EXISTS alarms (
-    id INTEGER PRIMARY KEY AUTOINCREMENT,
-    raised REAL NOT NULL,
-    machine TEXT NOT NULL,
-    code TEXT NOT NULL,
-    text TEXT NOT NULL,
-    state TEXT NOT NULL,
-    cleared REAL,
-    cleared_by TEXT NOT NULL DEFAULT ''
-);
-CREATE INDEX IF NOT EXISTS alarms_by_state ON alarms (state);
-CREATE TABLE IF NOT EXISTS machines (
-    name TEXT PRIMARY KEY,
-    in_service INTEGER NOT NULL,
-    reason TEXT NOT NULL,
-    updated REAL NOT NULL
-);
-CREATE TABLE IF NOT EXISTS service_log (
-    id INTEGER PRIMARY KEY AUTOINCREMENT,
-    time REAL NOT NULL,
-    name TEXT NOT NULL,
-    in_service INTEGER NOT NULL,
-    reason TEXT NOT NULL
-);
-"""
 
 
 def open_journal(cell_dir: Path, *, clock: Clock | None = None, durable: bool = True) -> Journal:
@@ -159,7 +103,7 @@ def open_journal(cell_dir: Path, *, clock: Clock | None = None, durable: bool = 
     return Journal(Path(cell_dir) / JOURNAL_FILE, clock=clock, durable=durable)
 
 
-class Journal(SqliteStore):
+class Journal(AlarmJournal):
     """The journal in one SQLite file; use as a context manager or call :meth:`close`.
 
     Every method raises :class:`UsageError` for an unknown id or an action the part's state
@@ -168,18 +112,7 @@ class Journal(SqliteStore):
     """
 
     def __init__(self, path: Path, *, clock: Clock | None = None, durable: bool = True) -> None:
-        super().__init__(path, SCHEMA, durable=durable)
-        self._clock = clock
-        self._views = JournalViews()
-        self._migrate_alarms()
-
-    @property
-    def clock(self) -> Clock:
-        """What the journal's times are read from: the clock given, else the running loop's."""
-        return self._clock or current_clock()
-
-    def _now(self) -> float:
-        return self.clock.now()
+        super().__init__(path, SCHEMA, clock=clock, durable=durable)
 
     def _load_views(self, db: sqlite3.Connection) -> None:
         views = JournalViews()
@@ -195,11 +128,6 @@ class Journal(SqliteStore):
             views.machine(r["name"], bool(r["in_service"]), r["reason"])
         self._views = views
 
-    def _viewed(self) -> JournalViews:
-        """The views, current (hold ``self._lock``)."""
-        self._views_current()
-        return self._views
-
     def _keep_part(self, part: Part, rank: int | None = None) -> Part:
         def apply() -> None:
             if not self._views.part(part, rank):
@@ -212,28 +140,8 @@ class Journal(SqliteStore):
         self._after_commit(lambda: self._views.step(step))
         return step
 
-    def _keep_alarm(self, alarm: Alarm) -> Alarm:
-        self._after_commit(lambda: self._views.alarm(alarm))
-        return alarm
-
     def _update(self, db: sqlite3.Connection, part: Part, now: float, **changes: Any) -> Part:
         return self._keep_part(_update_part(db, part, now, **changes))
-
-    def _migrate_alarms(self) -> None:
-        """Add the alarm columns a journal from before alarm states lacks (idempotent)."""
-        have = {r["name"] for r in self._read("PRAGMA table_info(alarms)")}
-        missing = [(name, kind) for name, kind in _ALARM_COLUMNS if name not in have]
-        if not missing:
-            return
-        with self._write() as db:
-            have = {r["name"] for r in db.execute("PRAGMA table_info(alarms)")}
-            for name, kind in missing:
-                if name not in have:  # another process may have added it meanwhile
-                    db.execute(f"ALTER TABLE alarms ADD COLUMN {name} {kind}")
-            for code in {r["code"] for r in db.execute("SELECT DISTINCT code FROM alarms")}:
-                db.execute(
-                    "UPDATE alarms SET priority = ? WHERE code = ?", (priority_of(code), code)
-                )
 
     # -- parts -------------------------------------------------------------------------------
 
@@ -529,158 +437,6 @@ class Journal(SqliteStore):
                 )
         return RecoveryReport(interrupted, held)
 
-    # -- alarms ------------------------------------------------------------------------------
-
-    def raise_alarm(self, machine: str, code: str, text: str) -> tuple[Alarm, bool]:
-        """Raise an alarm; return it and whether it is new (an identical active alarm,
-        same machine, code and text, is returned instead of raising a second one; if it had
-        returned to normal its condition is back: active and unacknowledged again)."""
-        now = self._now()
-        with self._write() as db:
-            row = db.execute(
-                "SELECT * FROM alarms WHERE state = 'active' AND machine = ? AND code = ?"
-                " AND text = ? ORDER BY id LIMIT 1",
-                (machine, code, text),
-            ).fetchone()
-            if row is not None:
-                if row["returned"] is None:
-                    return _alarm(row), False
-                return self._reactivate(db, row["id"]), False
-            cur = db.execute(
-                "INSERT INTO alarms (raised, machine, code, text, state, priority)"
-                " VALUES (?, ?, ?, ?, 'active', ?)",
-                (now, machine, code, text, priority_of(code)),
-            )
-            alarm_id = cur.lastrowid
-            assert alarm_id is not None
-            return self._keep_alarm(_get_alarm(db, alarm_id)), True
-
-    def reactivate(self, alarm_id: int) -> Alarm:
-        """The condition of open alarm ``alarm_id`` is seen again after it returned to
-        normal: active and unacknowledged again (a cleared or still-active alarm: unchanged)."""
-        with self._write() as db:
-            alarm = _get_alarm(db, alarm_id)
-            if alarm.state != "active" or alarm.returned is None:
-                return alarm
-            return self._reactivate(db, alarm_id)
-
-    def _reactivate(self, db: sqlite3.Connection, alarm_id: int) -> Alarm:
-        db.execute(
-            "UPDATE alarms SET returned = NULL, acked = NULL, acked_by = '' WHERE id = ?",
-            (alarm_id,),
-        )
-        return self._keep_alarm(_get_alarm(db, alarm_id))
-
-    def ack_alarm(self, alarm_id: int, by: str = "operator") -> Alarm:
-        """Acknowledge an alarm: the operator has seen it (it stays open until cleared).
-        Already acknowledged or cleared: changes nothing."""
-        with self._write() as db:
-            alarm = _get_alarm(db, alarm_id)
-            if alarm.acked is not None or alarm.state == "cleared":
-                return alarm
-            db.execute(
-                "UPDATE alarms SET acked = ?, acked_by = ? WHERE id = ?",
-                (self._now(), by, alarm_id),
-            )
-            return self._keep_alarm(_get_alarm(db, alarm_id))
-
-    def shelve_alarm(self, alarm_id: int, seconds: float, by: str = "operator") -> Alarm:
-        """Shelve an open alarm for ``seconds`` (0 < seconds <= :data:`MAX_SHELVE`): not shown
-        as unacknowledged until then. Shelving again sets a new end."""
-        if not 0 < seconds <= MAX_SHELVE:
-            raise UsageError(
-                f"shelve for more than 0 s and at most {MAX_SHELVE / 3600:g} h, not {seconds:g} s"
-            )
-        with self._write() as db:
-            alarm = _get_alarm(db, alarm_id)
-            if alarm.state == "cleared":
-                raise UsageError(f"alarm {alarm_id} is cleared: nothing to shelve")
-            db.execute(
-                "UPDATE alarms SET shelved_until = ?, shelved_by = ? WHERE id = ?",
-                (self._now() + seconds, by, alarm_id),
-            )
-            return self._keep_alarm(_get_alarm(db, alarm_id))
-
-    def return_to_normal(self, machine: str, codes: Iterable[str]) -> list[Alarm]:
-        """The condition behind ``machine``'s open alarms with these codes is gone: mark them
-        returned to normal (they stay open until cleared). Returns the alarms it marked;
-        a look that finds nothing to mark writes nothing."""
-        codes = tuple(codes)
-        marks = ",".join("?" * len(codes))
-        query = (
-            "SELECT id FROM alarms WHERE state = 'active' AND returned IS NULL"
-            f" AND machine = ? AND code IN ({marks})"
-        )
-        if not codes or not self._read(query, (machine, *codes)):
-            return []
-        with self._write() as db:
-            ids = [r["id"] for r in db.execute(query, (machine, *codes))]
-            now = self._now()
-            db.executemany("UPDATE alarms SET returned = ? WHERE id = ?", [(now, i) for i in ids])
-            return [self._keep_alarm(_get_alarm(db, i)) for i in ids]
-
-    def clear_alarm(self, alarm_id: int, by: str = "operator") -> Alarm:
-        """Clear an alarm: the operator's action that ends it (acknowledging it too, if it
-        was not). Already cleared: changes nothing."""
-        with self._write() as db:
-            alarm = _get_alarm(db, alarm_id)
-            if alarm.state == "cleared":
-                return alarm
-            now = self._now()
-            db.execute(
-                "UPDATE alarms SET state = 'cleared', cleared = ?, cleared_by = ?,"
-                " acked = coalesce(acked, ?),"
-                " acked_by = CASE WHEN acked IS NULL THEN ? ELSE acked_by END WHERE id = ?",
-                (now, by, now, by, alarm_id),
-            )
-            return self._keep_alarm(_get_alarm(db, alarm_id))
-
-    def get_alarm(self, alarm_id: int) -> Alarm:
-        """The alarm ``alarm_id``."""
-        with self._lock:
-            alarm = self._viewed().alarms.get(alarm_id)
-        if alarm is None:
-            raise UsageError(f"no alarm {alarm_id}")
-        return alarm
-
-    def active_alarms(self) -> list[Alarm]:
-        """Alarms not cleared yet, oldest first."""
-        with self._lock:
-            return self._viewed().active_alarms()
-
-    def alarms(self) -> list[Alarm]:
-        """Every alarm, oldest first."""
-        with self._lock:
-            return list(self._viewed().alarms.values())
-
-    def alarm_history(
-        self,
-        *,
-        since: float | None = None,
-        machine: str | None = None,
-        priority: str | None = None,
-        limit: int = 1000,
-    ) -> list[Alarm]:
-        """Alarms raised since ``since`` (s), on ``machine``, of ``priority``; oldest first,
-        the newest ``limit`` of them."""
-        if priority is not None and priority not in PRIORITIES:
-            raise UsageError(f"priority {priority!r}: one of {', '.join(PRIORITIES)}")
-        where, args = ["1"], []  # type: list[str], list[Any]
-        if since is not None:
-            where.append("raised >= ?")
-            args.append(since)
-        if machine is not None:
-            where.append("machine = ?")
-            args.append(machine)
-        if priority is not None:
-            where.append("priority = ?")
-            args.append(priority)
-        rows = self._read(
-            f"SELECT * FROM alarms WHERE {' AND '.join(where)} ORDER BY id DESC LIMIT ?",
-            (*args, limit),
-        )
-        return [_alarm(r) for r in reversed(rows)]
-
     # -- machines ----------------------------------------------------------------------------
 
     def set_machine_service(self, name: str, in_service: bool, reason: str = "") -> None:
@@ -768,94 +524,3 @@ def _check_location(location: str) -> None:
 def _require(part: Part, statuses: tuple[str, ...], action: str) -> None:
     if part.status not in statuses:
         raise UsageError(f"part {part.id} is {part.status}: it cannot {action}")
-
-
-def _get_part(db: sqlite3.Connection, part_id: str) -> Part:
-    row = db.execute("SELECT * FROM parts WHERE id = ?", (part_id,)).fetchone()
-    if row is None:
-        raise UsageError(f"no part {part_id!r}")
-    return _part(row)
-
-
-def _get_step(db: sqlite3.Connection, step_id: int) -> Step:
-    row = db.execute("SELECT * FROM steps WHERE id = ?", (step_id,)).fetchone()
-    if row is None:
-        raise UsageError(f"no step {step_id}")
-    return _step(row)
-
-
-def _get_alarm(db: sqlite3.Connection, alarm_id: int) -> Alarm:
-    row = db.execute("SELECT * FROM alarms WHERE id = ?", (alarm_id,)).fetchone()
-    if row is None:
-        raise UsageError(f"no alarm {alarm_id}")
-    return _alarm(row)
-
-
-def _held_step(db: sqlite3.Connection, part_id: str) -> Step | None:
-    row = db.execute(
-        "SELECT s.* FROM steps s JOIN parts p ON p.held_step = s.id WHERE p.id = ?", (part_id,)
-    ).fetchone()
-    return None if row is None else _step(row)
-
-
-_PART_COLUMNS = ("status", "location", "route_index", "note", "held_step")
-
-
-def _update_part(db: sqlite3.Connection, part: Part, now: float, **changes: Any) -> Part:
-    assert set(changes) <= set(_PART_COLUMNS), changes
-    sets = ", ".join(f"{column} = ?" for column in changes)
-    db.execute(
-        f"UPDATE parts SET {sets}, updated = ? WHERE id = ?",
-        (*changes.values(), now, part.id),
-    )
-    return _get_part(db, part.id)
-
-
-def _part(row: sqlite3.Row) -> Part:
-    return Part(
-        row["id"],
-        row["order_id"],
-        row["part_type"],
-        row["seq_in_order"],
-        row["route_index"],
-        row["location"],
-        row["status"],
-        row["updated"],
-        row["note"],
-    )
-
-
-def _step(row: sqlite3.Row) -> Step:
-    return Step(
-        row["id"],
-        row["part_id"],
-        row["kind"],
-        row["machine"],
-        row["program"],
-        row["state"],
-        row["started"],
-        row["ended"],
-        row["outcome"],
-        row["attempt"],
-        row["route_index"],
-        row["resolution"],
-    )
-
-
-def _alarm(row: sqlite3.Row) -> Alarm:
-    return Alarm(
-        row["id"],
-        row["raised"],
-        row["machine"],
-        row["code"],
-        row["text"],
-        row["state"],
-        row["cleared"],
-        row["cleared_by"],
-        row["priority"],
-        row["acked"],
-        row["acked_by"],
-        row["returned"],
-        row["shelved_until"],
-        row["shelved_by"],
-    )

@@ -38,7 +38,6 @@ that is stuck.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 from cellctl.clock import Clock
@@ -46,7 +45,6 @@ from cellctl.drivers.base import CallbackOutput as CallbackOutput
 from cellctl.drivers.base import LinkDriver, StartOutput
 from cellctl.drivers.state import StateStore
 from cellctl.errors import DeviceError, LinkTimeout, UsageError
-from cellctl.kinds import Condition
 from cellctl.kinds.dyna2400.dynalan import (
     Block,
     Kind,
@@ -59,214 +57,37 @@ from cellctl.kinds.dyna2400.dynalan import (
     parse_program,
     validate,
 )
-from cellctl.kinds.dyna2400.dynalan.table import AXES, CTRL_Z, DC1, DC3, ENQ, LINE_END
+from cellctl.kinds.dyna2400.dynalan.table import AXES, CTRL_Z, DC1, DC3, LINE_END
 from cellctl.kinds.dyna2400.options import MillConfig as MillConfig
 from cellctl.kinds.dyna2400.options import MillState as MillState
+from cellctl.kinds.dyna2400.readiness import Readiness
 from cellctl.kinds.dyna2400.states import MillFunction, mill_host_state, mill_refusal
+from cellctl.kinds.dyna2400.status import DOWNLOAD_RESULTS as DOWNLOAD_RESULTS
+from cellctl.kinds.dyna2400.status import END_RESULTS as END_RESULTS
+from cellctl.kinds.dyna2400.status import EXECUTING as EXECUTING
+from cellctl.kinds.dyna2400.status import INITIALIZE_RESULTS as INITIALIZE_RESULTS
+from cellctl.kinds.dyna2400.status import MILL_CONDITIONS as MILL_CONDITIONS
+from cellctl.kinds.dyna2400.status import MILL_STATES as MILL_STATES
+from cellctl.kinds.dyna2400.status import REFERENCE_ZERO_NOT_SET as REFERENCE_ZERO_NOT_SET
+from cellctl.kinds.dyna2400.status import RUNNING as RUNNING
+from cellctl.kinds.dyna2400.status import BlockTiming as BlockTiming
+from cellctl.kinds.dyna2400.status import MillInputError as MillInputError
+from cellctl.kinds.dyna2400.status import MillStatus as MillStatus
+from cellctl.kinds.dyna2400.status import Progress as Progress
+from cellctl.kinds.dyna2400.status import ProgressCallback as ProgressCallback
+from cellctl.kinds.dyna2400.status import Result as Result
+from cellctl.kinds.dyna2400.transfer import send_lines, stream_blocks
 from cellctl.kinds.families import RunProgress
 from cellctl.link import MILL_LINE, LineSettings, Link, TrafficLog
 
 # MillState and MillConfig live in options.py (the registry reads them without importing
-# this driver) and are named here as before.
+# this driver), the records (results, status, timings) in status.py, and are named here as
+# before.
 
-
-#: Machine states in words.
-MILL_STATES = {int(s): s.text for s in MillState}
-#: States in which a block or a GO program runs.
-RUNNING = frozenset({MillState.DOWNLOADED, MillState.GO})
-#: The condition each mill state shows on every surface.
-MILL_CONDITIONS: dict[int, Condition] = {
-    MillState.NOT_READY: Condition.NOT_READY,
-    MillState.READY: Condition.NOT_READY,
-    MillState.INITIALIZED: Condition.IDLE,
-    MillState.DOWNLOADED: Condition.BUSY,
-    MillState.GO: Condition.BUSY,
-}
-INITIALIZE_RESULTS = {
-    0: "Initializing was correct",
-    1: "Machine already initialized",
-    2: "Machine code error",
-    3: "Forcing function error",
-    4: "Machine not ready",
-    5: "Initializing file error",
-}
-DOWNLOAD_RESULTS = {
-    0: "Download was correct",
-    1: "Machine not initialized",
-    2: "Absolute zero not set / Machine executing program",
-    3: "Machine code error",
-    4: "File not found",
-    5: "Not a valid program",
-}
-END_RESULTS = {0: "Ending was correct", 1: "Machine code error", 2: "Could not open file"}
-REFERENCE_ZERO_NOT_SET = "reference zero not set"
-EXECUTING = "executing"
 END_PROGRAM = "000 END"
 
 #: How far ahead of the wire the driver lets its writes run (seconds of line time).
 _WRITE_AHEAD_S = 0.25
-
-
-class MillInputError(UsageError):
-    """A program or setup file refused before any byte went out: ``code`` is the spec's result
-    (download 4 file not found, 5 not a valid program; initialize 5 file error), ``problems``
-    the validator's findings."""
-
-    def __init__(
-        self, code: int, message: str, detail: str, problems: Sequence[object] = ()
-    ) -> None:
-        self.code = code
-        self.message = message
-        self.problems = list(problems)
-        super().__init__(f"{message} (code {code}): {detail}")
-
-
-@dataclass(frozen=True)
-class Result:
-    """A successful call: code 0 and the source's message."""
-
-    code: int
-    message: str
-
-
-@dataclass(frozen=True)
-class MillStatus:
-    """What ``status()`` reports: the state, its special condition, and CTS."""
-
-    state: int
-    ready: bool  # CTS high
-    condition: str | None = None  # REFERENCE_ZERO_NOT_SET or EXECUTING
-    initialized: bool = False  # its setup program went out since the last END
-
-    @property
-    def set_up(self) -> bool:
-        """Initialized and idle (state 2), whatever CTS says."""
-        return self.state == MillState.INITIALIZED
-
-    @property
-    def takes_work(self) -> bool:
-        """State 2 with CTS high: a program may go out now."""
-        return self.ready and self.set_up
-
-    @property
-    def awaiting_operator(self) -> bool:
-        """The setup went out; the operator has yet to set the reference zero (state 1)."""
-        return self.state == MillState.READY and not self.ready and self.initialized
-
-    @property
-    def waiting_for(self) -> str | None:
-        return self.condition
-
-    @property
-    def state_text(self) -> str:
-        return MILL_STATES.get(self.state, f"state {self.state}")
-
-    @property
-    def host_text(self) -> str:
-        """The state as the host knows it without a byte sent: after a successful INITIALIZE
-        the mill waits for its operator (state 1 until NEXT), which is said so, not as the
-        "Uninitialized" of a mill never set up."""
-        if self.awaiting_operator:
-            return f"{INITIALIZE_RESULTS[0]}: {REFERENCE_ZERO_NOT_SET}, press NEXT"
-        return self.state_text
-
-    @property
-    def shown(self) -> str:
-        """The state in the machine's words, with its special condition."""
-        return self.state_text + (f", {self.condition}" if self.condition else "")
-
-    @property
-    def kind_condition(self) -> Condition:
-        """The condition this status shows on every surface (an initialized mill without
-        CTS waits for its operator's reference zero: not ready)."""
-        if self.state == MillState.INITIALIZED and not self.ready:
-            return Condition.NOT_READY
-        return MILL_CONDITIONS.get(self.state, Condition.NOT_READY)
-
-    def __str__(self) -> str:
-        extra = f", {self.condition}" if self.condition else ""
-        cts = "high" if self.ready else "low"
-        return f"state {self.state} ({self.state_text}{extra}; CTS {cts})"
-
-
-#: Where a download stands; passed to the progress callback after every line.
-Progress = RunProgress
-
-
-@dataclass
-class BlockTiming:
-    """One block of a download: bytes, when sending began, when taken (CTS low), when done."""
-
-    block: int
-    bytes: int
-    lines: int
-    started: float
-    taken: float = 0.0
-    done: float = 0.0
-
-    @property
-    def transfer_s(self) -> float:
-        return self.taken - self.started
-
-    @property
-    def machining_s(self) -> float:
-        return self.done - self.taken if self.done else 0.0
-
-
-ProgressCallback = Callable[[Progress], None]
-
-
-class _Readiness:
-    """The controller's RTS as the host sees it: CTS, or DC1/DC3 in the data (inband)."""
-
-    def __init__(self, link: Link, inband: bool) -> None:
-        self.link = link
-        self.inband = inband
-        self._level: bool | None = None
-        self.lows = 0  # inband: DC3 seen so far (a low we might otherwise miss)
-
-    def _scan(self, data: bytes) -> None:
-        for byte in data:
-            if byte == DC1:
-                self._level = True
-            elif byte == DC3:
-                self._level = False
-                self.lows += 1
-
-    async def level(self, timeout: float = 2.0) -> bool:
-        if not self.inband:
-            return await self.link.cts()
-        self._scan(self.link.reset_input())
-        if self._level is None:
-            await self.link.write(bytes([ENQ]))
-            clock = self.link.clock
-            deadline = clock.monotonic() + timeout
-            while self._level is None:
-                left = deadline - clock.monotonic()
-                if left <= 0:
-                    raise LinkTimeout(f"{self.link.url}: no DC1/DC3 readiness from the controller")
-                self._scan(await self.link.read(timeout=left))
-        return self._level
-
-    async def wait(self, level: bool, timeout: float, *, lows_before: int | None = None) -> None:
-        """Wait until the level is ``level`` (or, for low, a DC3 came after ``lows_before``)."""
-        if not self.inband:
-            await self.link.wait_cts(level, timeout=timeout)
-            return
-        clock = self.link.clock
-        deadline = clock.monotonic() + timeout
-        while True:
-            current = await self.level(timeout=max(0.0, deadline - clock.monotonic()))
-            if current == level or (
-                not level and lows_before is not None and self.lows > lows_before
-            ):
-                return
-            left = deadline - clock.monotonic()
-            if left <= 0:
-                raise LinkTimeout(
-                    f"{self.link.url}: readiness did not go {'high' if level else 'low'} in time"
-                )
-            self._scan(await self.link.read(timeout=left))
 
 
 class Dyna2400Mill(LinkDriver):
@@ -293,7 +114,7 @@ class Dyna2400Mill(LinkDriver):
             )
         saved = self._attach(link, name, store, clock)
         self.start_output = start_output
-        self._ready = _Readiness(link, self.config.readiness == "inband")
+        self._ready = Readiness(link, self.config.readiness == "inband")
         self.state = MillState(int(saved.get("state", 0)))
         self.initialized: bool = bool(saved.get("initialized", False))
         self.units = Units(saved["units"]) if saved.get("units") else None
@@ -586,104 +407,10 @@ class Dyna2400Mill(LinkDriver):
                 5, DOWNLOAD_RESULTS[5], "END belongs in the end program: use end()"
             )
         await self._ready_for_program()
-        blocks = result.blocks
-        estimates = result.toolpath.block_seconds
-        bytes_total = sum(len(b.wire()) + 1 for b in blocks)
-        lines_total = sum(len(b.lines) for b in blocks)
-        done_bytes = done_lines = 0
-        self.last_download = []
-        report = progress or (lambda p: None)
-        # The run's estimate: each block's line time, then its cut (the toolpath's, in the
-        # machine's time); ``before[i]`` is where block i+1 starts.
-        wire_s = [self._wire_time(len(b.wire()) + 1) for b in blocks]
-        cut_s = [estimates[i] / self.config.time_scale for i in range(len(blocks))]
-        before = [sum(wire_s[:i]) + sum(cut_s[:i]) for i in range(len(blocks) + 1)]
-
-        def machining(k: int) -> Progress:
-            """Block k was taken: the machine cuts it (the estimate runs to its end)."""
-            return Progress(
-                k,
-                len(blocks),
-                done_lines,
-                lines_total,
-                done_bytes,
-                bytes_total,
-                "machining",
-                before[-1],
-                before[k - 1] + wire_s[k - 1],
-                before[k],
-                self.clock.now(),
-                True,
-            )
-
-        for block in blocks:
-            k = block.index
-            if k > 1:
-                report(machining(k - 1))
-                await self._wait_block_done(blocks[k - 2], estimates[k - 2])
-                self._set_state(2)
-            wire = len(block.wire()) + 1
-            timing = BlockTiming(k, wire, len(block.lines), self.clock.monotonic())
-            self.last_download.append(timing)
-            base_bytes, base_lines = done_bytes, done_lines
-
-            def on_line(
-                n: int, sent: int, k: int = k, b: int = base_bytes, l0: int = base_lines
-            ) -> None:
-                start = before[k - 1]
-                report(
-                    Progress(
-                        k,
-                        len(blocks),
-                        l0 + n,
-                        lines_total,
-                        b + sent,
-                        bytes_total,
-                        "sending",
-                        before[-1],
-                        start + self._wire_time(sent),
-                        start + wire_s[k - 1],
-                        self.clock.now(),
-                        True,
-                    )
-                )
-
-            await self._send_block(block, timing, on_line)
-            self._set_state(3)
-            done_bytes += wire
-            done_lines += len(block.lines)
-        if wait:
-            report(machining(len(blocks)))
-            await self._wait_block_done(blocks[-1], estimates[-1])
-            self._set_state(2)
-        report(
-            Progress(
-                len(blocks),
-                len(blocks),
-                lines_total,
-                lines_total,
-                bytes_total,
-                bytes_total,
-                "done",
-                before[-1],
-                before[-1],
-                before[-1],
-                self.clock.now(),
-            )
+        await stream_blocks(
+            self, result.blocks, result.toolpath.block_seconds, wait=wait, progress=progress
         )
         return Result(0, DOWNLOAD_RESULTS[0])
-
-    async def _wait_block_done(self, block: Block, estimate: float) -> None:
-        timeout = estimate * self.config.block_margin + self.config.block_extra
-        if not await self._wait_ready(timeout):
-            raise DeviceError(
-                2,
-                "Machine executing program",
-                detail=f"block {block.index} of {block.count} still running after "
-                f"{timeout:.0f} s (CTS low)",
-            )
-        if self.last_download and self.last_download[-1].block == block.index:
-            self.last_download[-1].done = self.clock.monotonic()
 
     async def end(self) -> Result:
         """ENDLOAD / HALT: send the END program; the controller returns to manual, state 0.
@@ -752,33 +479,7 @@ class Dyna2400Mill(LinkDriver):
             raise MillInputError(
                 5, DOWNLOAD_RESULTS[5], "line execute cannot SKIP TO or REPEAT: use download"
             )
-        total_bytes = sum(len(line.render()) + 2 for line in lines)
-        sent = 0
-        for n, line in enumerate(lines, start=1):
-            if not await self._wait_ready(
-                self.config.ready_wait if n == 1 else self.config.block_extra
-            ):
-                raise DeviceError(4, "Machine not ready", detail=f"before line {n}")
-            data = line.render().encode("ascii") + LINE_END
-            lows = self._ready.lows
-            await self._send(data)
-            sent += len(data)
-            if line.statement is not None and line.statement.kind not in (
-                Kind.COMMENT,
-                Kind.BLANK,
-            ):
-                try:
-                    await self._ready.wait(
-                        False,
-                        self.config.accept_timeout + self._wire_time(len(data)),
-                        lows_before=lows,
-                    )
-                except LinkTimeout:
-                    raise LinkTimeout(
-                        f"{self.name}: the controller did not take line {n}"
-                    ) from None
-            if progress:
-                progress(Progress(1, 1, n, len(lines), sent, total_bytes, "sending"))
+        await send_lines(self, lines, progress)
         await self._wait_ready(self.config.block_extra)
         return Result(0, DOWNLOAD_RESULTS[0])
 

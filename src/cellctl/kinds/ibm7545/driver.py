@@ -11,21 +11,9 @@ state 0/1/2 and which partition holds which program), saved in the cell director
     print(await robot.status())
     await robot.close()
 
-Transactions (host controls every one; spec ``ibm7545-robot.md``)::
-
-    X  -> Xoff [Xoff ...] Xon   operand CR LF -> Ack    (or Xoff [Xoff ...] Xon: 11, 23)
-    R  -> Xoff [Xoff ...] Xon   operand CR LF -> D record, Ack -> EG, Ack
-    N  -> Ack   rest of N record -> Ack   each record -> Ack   end record -> Ack
-
-Every wait has a deadline: the first reply must come within ``reply_timeout`` (plus the wire
-time of what was sent); while the controller is busy it repeats Xoff about every 25 s, and
-each Xoff extends the wait, up to ``busy_ceiling`` in all; silence longer than
-``busy_silence`` raises :class:`LinkTimeout`. EOT means the controller rejected the request:
-the driver reads the reject status and raises :class:`DeviceError` with the source's words.
-A D record with a bad checksum is acknowledged (so the controller finishes its transaction)
-and the read is repeated, up to ``checksum_retries`` times; then :class:`ChecksumError`. A
-garbled handshake (a byte other than Xoff, Xon or EOT where one belongs, before the operand
-went out) is repeated the same way.
+The transactions on the line (X, R, N), their deadlines, the reads of a reject and the
+retries of a garbled handshake or D record are the base class's:
+:class:`~cellctl.kinds.ibm7545.transactions.RobotTransactions` (its module docstring says how).
 
 The host's state guards every function: :mod:`cellctl.kinds.ibm7545.states` says which function
 the source's library answered itself in which state (GO after HALT: "partition empty", code
@@ -42,79 +30,51 @@ receiving ends in a reject, and discards what comes back until the line is quiet
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import hashlib
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import NoReturn
 
 from cellctl.clock import Clock
-from cellctl.drivers.base import LinkDriver
 from cellctl.drivers.state import StateStore
-from cellctl.errors import (
-    CellctlError,
-    ChecksumError,
-    DeviceError,
-    FramingError,
-    LinkTimeout,
-    SignalTimeout,
-    UnexpectedReply,
-    UsageError,
-    format_raw,
-)
-from cellctl.kinds.families import CycleAborted, HostStatus, RecordsProgress
-from cellctl.kinds.ibm7545.aml import Op, decode_program
+from cellctl.errors import CellctlError, DeviceError, LinkTimeout, SignalTimeout, UsageError
+from cellctl.kinds.families import HostStatus, RecordsProgress
 from cellctl.kinds.ibm7545.options import ROBOT_CONDITIONS as ROBOT_CONDITIONS
 from cellctl.kinds.ibm7545.options import ROBOT_STATES as ROBOT_STATES
 from cellctl.kinds.ibm7545.options import RobotConfig as RobotConfig
 from cellctl.kinds.ibm7545.options import RobotState as RobotState
 from cellctl.kinds.ibm7545.options import robot_condition as robot_condition
 from cellctl.kinds.ibm7545.records import (
-    ACK,
-    EOT,
     HALTING_FLAGS,
     PARTITIONS,
     UNDEFINED_RECORD,
-    XOFF,
-    XON,
     DiDo,
     ExecuteOperand,
     MachineStatus,
     ProgramFile,
     ReadOperand,
-    Record,
-    decode_record,
     emulator_input_operand,
-    encode_operand,
     encode_record,
     reject_message,
-    resync,
     select_application_operand,
 )
 from cellctl.kinds.ibm7545.states import RobotFunction, robot_refusal
+from cellctl.kinds.ibm7545.status import RobotCounters as RobotCounters
+from cellctl.kinds.ibm7545.status import RobotHalted as RobotHalted
+from cellctl.kinds.ibm7545.status import RobotStatus as RobotStatus
+from cellctl.kinds.ibm7545.status import _digest, _waits
+from cellctl.kinds.ibm7545.transactions import TRANSMISSION_REJECTS as TRANSMISSION_REJECTS
+from cellctl.kinds.ibm7545.transactions import RobotTransactions, _AckLost, _garbled
 from cellctl.link import ROBOT_LINE, LineSettings, Link, TrafficLog
 
 # RobotState, RobotConfig and robot_condition live in options.py (the registry reads them
-# without importing this driver) and are named here as before.
+# without importing this driver), RobotStatus, RobotCounters and RobotHalted in status.py,
+# TRANSMISSION_REJECTS in transactions.py: all are named here as before.
 
-#: Reject codes after which the controller is known to be uninitialized (partitions gone).
-_COLD_REJECTS = {48}
 #: Rejects after which a start needs an initialize first: improper startup sequence (48),
 #: manipulator power off (128).
 _NEEDS_INITIALIZE = frozenset({48, 128})
 #: Reject code the controller gives for selecting an empty partition.
 _EMPTY_PARTITION = 83
-#: Rejects that say the line garbled a download, not that the controller cannot take it:
-#: 16 record format error (bad checksum, hex, count or terminator), 96 invalid identifier
-#: (a garbled N), 112 Xoff time out (a lost terminator left it waiting), 0 no reject status
-#: (the "EOT" was a garbled Ack). Only these are retried.
-TRANSMISSION_REJECTS = frozenset({0, 16, 96, 112})
-_ACK = bytes([ACK])
-#: Sent before a retry: a record no controller state accepts, so a half-received record or
-#: operand ends in a reject (EOT, discarded) and the controller waits for an identifier again.
-_BREAK = b"E\r\n"
 
 RetryCallback = Callable[[int, int, CellctlError], None]
 """``on_retry(attempt, limit, error)``, called before a download is sent again."""
@@ -123,61 +83,7 @@ ProgressCallback = Callable[[int, int, int], None]
 """``progress(records_done, records_total, bytes_sent)``, called after every Ack."""
 
 
-@dataclass
-class RobotStatus:
-    """What ``status()`` reports: host state, controller status bytes, partitions."""
-
-    state: int
-    machine: MachineStatus
-    partitions: dict[int, str | None]
-    waiting: list[tuple[int, bool]] = field(default_factory=list)
-    """While executing: the inputs the running program's WAITIs wait for that do not have
-    their value now (read from DI/DO): what it may be blocked on."""
-
-    @property
-    def state_text(self) -> str:
-        """The robot state in words."""
-        return ROBOT_STATES.get(self.state, f"state {self.state}")
-
-    def lines(self) -> list[str]:
-        """Human-readable lines, as the operator console shows them."""
-        out = [f"robot state: {self.state} ({self.state_text})"]
-        out.append(
-            f"machine status: {self.machine} "
-            f"(bytes {self.machine.flags:02X} {self.machine.data_error:02X})"
-        )
-        for p, prog in self.partitions.items():
-            out.append(f"partition {p}: {'Full (' + prog + ')' if prog else 'Empty'}")
-        out += self.waiting_lines()
-        return out
-
-    def waiting_lines(self) -> list[str]:
-        """What an executing program may wait for, and how to go on (empty: nothing)."""
-        if not self.waiting:
-            return []
-        inputs = ", ".join(f"input {n} {'on' if v else 'off'}" for n, v in self.waiting)
-        first, value = self.waiting[0]
-        return [
-            f"waiting: the program's WAITI waits for {inputs} (not so now); in a cell the "
-            "PLC drives them",
-            f"  without one: `robot io set {first} {'on' if value else 'off'}` (an emulator), "
-            "or `robot stop` ends the cycle",
-        ]
-
-
-@dataclass
-class RobotCounters:
-    """Counts a user or a benchmark may want: retries, transactions, records."""
-
-    transactions: int = 0
-    checksum_retries: int = 0
-    handshake_retries: int = 0
-    download_retries: int = 0
-    records_downloaded: int = 0
-    rejects: list[int] = field(default_factory=list)
-
-
-class Ibm7545Robot(LinkDriver):
+class Ibm7545Robot(RobotTransactions):
     """Driver for one IBM 7545/7547 controller over any :class:`Link`."""
 
     def __init__(
@@ -334,191 +240,6 @@ class Ibm7545Robot(LinkDriver):
             done_output, timeout=timeout, poll=poll, watch_every=watch_every, quiet=expected
         )
 
-    # -- low-level pieces --------------------------------------------------------------------------
-
-    def _timeout(self, sent: int = 0, expect: int = 1) -> float:
-        """Deadline for a reply: controller latency plus wire time both ways."""
-        return self.config.reply_timeout + self.link.settings.wire_time(sent + expect)
-
-    async def _byte(self, timeout: float) -> int:
-        return (await self.link.read(1, timeout=timeout))[0]
-
-    async def _await_ready(self, what: str, first: int) -> None:
-        """Having read ``first`` after an identifier, wait through Xoffs for Xon."""
-        ceiling = self.clock.monotonic() + self.config.busy_ceiling
-        byte = first
-        while True:
-            if byte == XON:
-                return
-            if byte == EOT:
-                await self._rejected(what)
-            if byte != XOFF:
-                raise UnexpectedReply(
-                    f"{self.name}: {what}: expected Xoff or Xon, got {byte:02X}", bytes([byte])
-                )
-            left = ceiling - self.clock.monotonic()
-            if left <= 0:
-                raise LinkTimeout(
-                    f"{self.name}: {what}: controller stayed busy (Xoff) longer than "
-                    f"{self.config.busy_ceiling:g} s"
-                )
-            try:
-                byte = await self._byte(min(self.config.busy_silence, left))
-            except LinkTimeout as e:
-                raise LinkTimeout(
-                    f"{self.name}: {what}: controller sent Xoff, then nothing for "
-                    f"{min(self.config.busy_silence, left):g} s"
-                ) from e
-
-    async def _open_transaction(self, ident: bytes, what: str) -> None:
-        """Send X or R and wait until the controller is ready (Xoff ... Xon)."""
-        self.link.reset_input()
-        await self.link.write(ident)
-        self.counters.transactions += 1
-        try:
-            first = await self._byte(self._timeout(1))
-        except LinkTimeout as e:
-            raise LinkTimeout(f"{self.name}: {what}: no answer from the robot controller") from e
-        if first not in (XOFF, EOT):
-            raise UnexpectedReply(
-                f"{self.name}: {what}: expected Xoff after {ident.decode()}, got {first:02X}",
-                bytes([first]),
-            )
-        await self._await_ready(what, first)
-
-    async def _execute(self, operand: int, what: str) -> None:
-        """An X transaction: completes on Ack, or on Xoff ... Xon (return home, stop)."""
-        async with self._lock:
-            await self._execute_unlocked(operand, what)
-
-    async def _open_retrying(self, ident: bytes, what: str) -> None:
-        """Open a transaction; a garbled handshake (before the operand) is tried again."""
-        attempt = 0
-        while True:
-            try:
-                await self._open_transaction(ident, what)
-                return
-            except UnexpectedReply:
-                attempt += 1
-                self.counters.handshake_retries += 1
-                if attempt > self.config.checksum_retries:
-                    raise
-                await self._resync()
-
-    async def _resync(self) -> None:
-        """End whatever the controller was receiving and discard its answer (see module
-        docstring): wait for its first byte, then for ``retry_settle`` of quiet."""
-        await self.link.write(_BREAK)
-        timeout = self._timeout(len(_BREAK))
-        with contextlib.suppress(LinkTimeout):
-            while True:
-                await self.link.read(timeout=timeout)
-                timeout = self.config.retry_settle
-        self.link.reset_input()
-
-    async def _execute_unlocked(self, operand: int, what: str) -> None:
-        record = encode_operand(operand)  # a bad operand is refused before X goes out
-        await self._open_retrying(b"X", what)
-        await self.link.write(record)
-        try:
-            byte = await self._byte(self._timeout(len(record)))
-        except LinkTimeout as e:
-            raise LinkTimeout(f"{self.name}: {what}: no Ack for operand {operand:02d}") from e
-        if byte == ACK:
-            return
-        # Return home and stop answer Xoff at once, Xoff again while moving, Xon when done.
-        await self._await_ready(what, byte)
-
-    async def _read(self, operand: int, what: str, size: int) -> bytes:
-        """An R transaction returning the D record's data (checksum verified, retried)."""
-        async with self._lock:
-            return await self._read_unlocked(operand, what, size)
-
-    async def _read_unlocked(self, operand: int, what: str, size: int) -> bytes:
-        record_out = encode_operand(operand)  # a bad operand is refused before R goes out
-        attempt = 0
-        while True:
-            await self._open_retrying(b"R", what)
-            await self.link.write(record_out)
-            record, raw_error = await self._read_data_record(what, size)
-            await self.link.write(_ACK)
-            await self._read_end_good(what)
-            await self.link.write(_ACK)
-            if raw_error is None:
-                assert record is not None
-                if len(record.data) != size:
-                    raise UnexpectedReply(
-                        f"{self.name}: {what}: expected {size} data bytes, got {len(record.data)}",
-                        encode_record(record),
-                    )
-                return record.data
-            attempt += 1
-            self.counters.checksum_retries += 1
-            if attempt > self.config.checksum_retries:
-                raise ChecksumError(
-                    f"{self.name}: {what}: transmission error, bad D-record checksum "
-                    f"{attempt} times in a row",
-                    raw_error.raw,
-                )
-
-    async def _read_data_record(
-        self, what: str, size: int
-    ) -> tuple[Record | None, ChecksumError | None]:
-        buf = bytearray()
-        timeout = self._timeout(4, 7 + 2 * size)
-        deadline = self.clock.monotonic() + timeout
-        while True:
-            try:
-                record, used = decode_record(buf)
-            except ChecksumError as e:
-                del buf[: resync(buf)]
-                return None, e
-            except FramingError as e:
-                raise FramingError(f"{self.name}: {what}: malformed D record", e.raw) from e
-            if used:
-                skipped = bytes(buf[:used])
-                del buf[:used]
-                if record is None:
-                    if EOT in skipped:
-                        await self._rejected(what)
-                    continue
-                if record.ident != "D":
-                    raise UnexpectedReply(
-                        f"{self.name}: {what}: expected a D record", encode_record(record)
-                    )
-                return record, None
-            left = deadline - self.clock.monotonic()
-            try:
-                buf += await self.link.read(timeout=max(left, 0.0))
-            except LinkTimeout as e:
-                got = f" (had {format_raw(bytes(buf))})" if buf else ""
-                msg = f"{self.name}: {what}: no D record from the controller{got}"
-                raise LinkTimeout(msg) from e
-
-    async def _read_end_good(self, what: str) -> None:
-        try:
-            raw = await self.link.read_until(b"\n", timeout=self._timeout(1, 4))
-        except LinkTimeout as e:
-            raise LinkTimeout(f"{self.name}: {what}: no EG end record") from e
-        record, _ = decode_record(raw.lstrip(b"\x00"))
-        if record is None or not record.is_end_good:
-            raise UnexpectedReply(f"{self.name}: {what}: expected EG (end, data good)", raw)
-
-    async def _rejected(self, what: str) -> NoReturn:
-        """The controller sent EOT: read the reject status and raise it."""
-        if self._in_reject_read:
-            raise DeviceError(0, "rejected while reading the reject status", detail=what)
-        self._in_reject_read = True
-        try:
-            data = await self._read_unlocked(ReadOperand.REJECT_STATUS, "read reject status", 1)
-            code = data[0]
-        finally:
-            self._in_reject_read = False
-        self.counters.rejects.append(code)
-        if code in _COLD_REJECTS:
-            self._set_state(RobotState.UNINITIALIZED, flush=True)
-        raise DeviceError(code, reject_message(code), detail=f"{self.name}: {what}")
-
     # -- what a user wants done -------------------------------------------------------------------
 
     async def return_home(self) -> None:
@@ -611,17 +332,6 @@ class Ibm7545Robot(LinkDriver):
                 self.counters.records_downloaded += 1
                 if progress is not None:
                     progress(i, total, sent)
-
-    async def _expect_ack(self, piece: bytes, what: str) -> None:
-        try:
-            byte = await self._byte(self._timeout(len(piece)))
-        except LinkTimeout as e:
-            raise LinkTimeout(f"{self.name}: {what}: no Ack for record {piece[:24]!r}") from e
-        if byte == ACK:
-            return
-        if byte == EOT:
-            await self._rejected(what)
-        raise UnexpectedReply(f"{self.name}: {what}: expected Ack, got {byte:02X}", bytes([byte]))
 
     async def select_application(self, partition: int) -> None:
         """Select the program in ``partition`` (X 3n); reject 83 means the partition is empty."""
@@ -787,42 +497,3 @@ class Ibm7545Robot(LinkDriver):
             quiet=quiet,
         )
         self._set_state(RobotState.INITIALIZED)
-
-
-class RobotHalted(CycleAborted):
-    """The machine status says the arm stopped (servo error, power failure); ``status``."""
-
-    def __init__(self, status: MachineStatus, detail: str) -> None:
-        super().__init__(status, detail, code=status.flags)
-
-
-class _AckLost(LinkTimeout):
-    """No Ack for a record after the controller had acknowledged earlier ones in the same
-    download: a byte lost on the line, most likely (retried like a garbled one)."""
-
-
-def _garbled(error: CellctlError) -> bool:
-    """True if ``error`` says the line garbled a download (worth sending it again)."""
-    if isinstance(error, DeviceError):
-        return error.code in TRANSMISSION_REJECTS
-    return isinstance(error, UnexpectedReply | _AckLost)
-
-
-def _digest(program: ProgramFile) -> str:
-    return hashlib.sha256(program.to_text().encode("ascii")).hexdigest()[:16]
-
-
-def _waits(prog: ProgramFile) -> list[tuple[int, bool]]:
-    """The (input, value) pairs ``prog``'s WAITIs wait for, in program order, each once."""
-    try:
-        found = decode_program(prog.body)
-    except CellctlError:
-        return []
-    out: list[tuple[int, bool]] = []
-    for ins in found:
-        if ins.op is not Op.WAITI:
-            continue
-        pair = (ins.operands[0], bool(ins.operands[1]))
-        if pair not in out:
-            out.append(pair)
-    return out

@@ -14,31 +14,57 @@ Expressions are URScript's (numbers, ``True``/``False``, lists, poses ``p[...]``
 with keyword arguments, arithmetic, comparisons, ``and``/``or``/``not``): they are read with
 Python's own parser (the grammar is the same for this subset, ``p[`` read as a call of
 ``p``) and evaluated by a walker that knows only these nodes, never ``eval``.
+
+This module holds the check; the parser is :mod:`~cellctl.kinds.ur.urscript_syntax`, the
+runtime :mod:`~cellctl.kinds.ur.urscript_run`. Import every name from here.
 """
 
 from __future__ import annotations
 
 import ast
-import functools
 import math
-import re
-from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field
-from typing import Any, Protocol
+from collections.abc import Sequence
+from typing import Any
 
-from cellctl.kinds.ur.motion import (
-    HOME,
-    JOINT_LIMIT,
-    MOVEJ_A,
-    MOVEJ_V,
-    MOVEL_A,
-    MOVEL_V,
-    Arm,
-    Joints,
-    joint_distance,
-    line_distance,
-    move_time,
+from cellctl.kinds.ur.motion import JOINT_LIMIT, Arm
+from cellctl.kinds.ur.urscript_run import (
+    MAX_STATEMENTS_WITHOUT_TIME,
+    Env,
+    Move,
+    ScriptError,
+    Sleep,
+    Step,
+    _Evaluator,
+    _Pose,
+    _RuntimeError,
+    estimate,
+    run,
 )
+from cellctl.kinds.ur.urscript_syntax import (
+    Program,
+    Statement,
+    _split_statement,
+    parse,
+    parse_expression,
+)
+
+# Re-exported: the language's users import from this one module, whichever part holds a name.
+__all__ = [
+    "KNOWN_FUNCTIONS",
+    "MAX_STATEMENTS_WITHOUT_TIME",
+    "Env",
+    "Move",
+    "Program",
+    "ScriptError",
+    "Sleep",
+    "Statement",
+    "Step",
+    "check",
+    "estimate",
+    "parse",
+    "parse_expression",
+    "run",
+]
 
 #: The functions the check knows (the URScript manual's, those a tending program calls).
 KNOWN_FUNCTIONS = frozenset(
@@ -58,144 +84,6 @@ KNOWN_FUNCTIONS = frozenset(
     str_cat str_len length
     """.split()  # noqa: SIM905 - a list to read, one word each
 )
-#: Block openers and what closes them.
-_OPENERS = ("def ", "while ", "if ", "thread ")
-_CONTINUERS = ("elif ", "else:")
-#: How many statements may run without the robot's time moving on (a busy loop): the
-#: controller stops such a program ("infinite loop detected"), so does the emulator.
-MAX_STATEMENTS_WITHOUT_TIME = 100_000
-
-
-@dataclass
-class Statement:
-    """One line of the program: its text, where it is, and its block (if it opens one)."""
-
-    text: str
-    line: int
-    column: int
-    body: list[Statement] = field(default_factory=list)
-    orelse: list[Statement] = field(default_factory=list)
-
-    @property
-    def keyword(self) -> str:
-        return self.text.split(None, 1)[0].rstrip(":") if self.text else ""
-
-
-@dataclass
-class Program:
-    """A parsed program: its top-level statements and the problems parsing found."""
-
-    statements: list[Statement]
-    problems: list[tuple[int, int, str]]
-    functions: dict[str, Statement]
-
-    @property
-    def entry(self) -> Statement | None:
-        """The program that runs: the first top-level ``def`` (None: bare statements)."""
-        return next((s for s in self.statements if s.keyword == "def"), None)
-
-
-_COMMENT = re.compile(r"#.*$")
-
-
-def _strip_comment(line: str) -> str:
-    # A '#' inside a string literal stays.
-    out, quote = [], ""
-    for ch in line:
-        if quote:
-            out.append(ch)
-            if ch == quote:
-                quote = ""
-        elif ch in "\"'":
-            quote = ch
-            out.append(ch)
-        elif ch == "#":
-            break
-        else:
-            out.append(ch)
-    return "".join(out).rstrip()
-
-
-def parse(text: str) -> Program:
-    """The program's statements, blocks nested; unbalanced blocks are problems."""
-    problems: list[tuple[int, int, str]] = []
-    root: list[Statement] = []
-    stack: list[tuple[Statement, list[Statement]]] = []
-    functions: dict[str, Statement] = {}
-    for number, raw in enumerate(text.splitlines(), start=1):
-        stripped = _strip_comment(raw)
-        body = stripped.strip()
-        if not body:
-            continue
-        column = len(stripped) - len(stripped.lstrip()) + 1
-        target = stack[-1][1] if stack else root
-        if body == "end":
-            if not stack:
-                problems.append((number, column, "'end' without a block to close"))
-            else:
-                stack.pop()
-            continue
-        if body.startswith(_CONTINUERS):
-            if not stack or stack[-1][0].keyword not in ("if", "elif"):
-                problems.append((number, column, f"'{body.split()[0]}' without an 'if'"))
-                continue
-            opener, _ = stack.pop()
-            st = Statement(body, number, column)
-            opener.orelse.append(st)
-            stack.append((st, st.body))
-            # An elif/else closes with the if's single 'end': keep the if's frame count.
-            continue
-        st = Statement(body, number, column)
-        target.append(st)
-        if body.startswith(_OPENERS):
-            if not body.endswith(":"):
-                problems.append((number, column + len(body), f"'{st.keyword}' needs a ':'"))
-            if st.keyword == "def":
-                name = body[4:].split("(", 1)[0].strip()
-                functions[name] = st
-            stack.append((st, st.body))
-    for opener, _ in stack:
-        problems.append((opener.line, opener.column, f"'{opener.text}' has no 'end'"))
-    return Program(root, problems, functions)
-
-
-# -- expressions ----------------------------------------------------------------------------------
-
-
-def _python(expr: str) -> str:
-    """``p[...]`` as a call of ``p`` (same length: columns stay where they were)."""
-    out = list(expr)
-    stack: list[bool] = []
-    quote = ""
-    for i, ch in enumerate(expr):
-        if quote:
-            if ch == quote:
-                quote = ""
-            continue
-        if ch in "\"'":
-            quote = ch
-        elif ch == "[":
-            pose = (
-                i > 0
-                and expr[i - 1] == "p"
-                and (i < 2 or not (expr[i - 2].isalnum() or expr[i - 2] == "_"))
-            )
-            stack.append(pose)
-            if pose:
-                out[i] = "("
-        elif ch == "]" and stack and stack.pop():
-            out[i] = ")"
-    return "".join(out)
-
-
-@functools.lru_cache(maxsize=4096)
-def parse_expression(expr: str) -> ast.expr:
-    """An expression's tree; SyntaxError (with its offset) when it does not parse.
-
-    Cached: a program's loop evaluates the same lines again and again (the trees are only
-    read, never changed)."""
-    tree = ast.parse(_python(expr.strip()), mode="eval")
-    return tree.body
 
 
 _ALLOWED = (
@@ -204,24 +92,6 @@ _ALLOWED = (
     ast.Add, ast.Sub, ast.Mult, ast.Div, ast.Mod, ast.Pow, ast.USub, ast.UAdd, ast.Not,
     ast.And, ast.Or, ast.Eq, ast.NotEq, ast.Lt, ast.LtE, ast.Gt, ast.GtE,
 )  # fmt: skip
-
-
-def _split_statement(text: str) -> tuple[str, str | None, str]:
-    """``(kind, target, expression)``: kind is "assign", "expr", a keyword's, or "def"."""
-    word = text.split(None, 1)[0].rstrip(":")
-    if word in ("while", "if", "elif"):
-        return word, None, text[len(word) :].rstrip(":").strip()
-    if word in ("else", "def", "thread", "return", "break", "continue", "halt"):
-        rest = text[len(word) :].strip()
-        return word, None, rest
-    body = text
-    for prefix in ("global ", "local "):
-        if body.startswith(prefix):
-            body = body[len(prefix) :]
-    m = re.match(r"^([A-Za-z_]\w*)\s*=(?!=)(.*)$", body)
-    if m:
-        return "assign", m.group(1), m.group(2)
-    return "expr", None, body
 
 
 # -- the check ------------------------------------------------------------------------------------
@@ -303,399 +173,3 @@ def _expression_problems(tree: ast.expr, defined: set[str], arm: Arm) -> list[tu
                             )
                         )
     return out
-
-
-# -- running it -----------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Move:
-    """The arm moves from ``start`` to ``end`` (joints) in ``seconds`` (machine time)."""
-
-    seconds: float
-    start: Joints
-    end: Joints
-    linear: bool = False
-
-
-@dataclass(frozen=True)
-class Sleep:
-    """The program waits ``seconds`` (machine time)."""
-
-    seconds: float
-
-
-Step = Move | Sleep
-
-
-class Env(Protocol):
-    """What a running program reads and writes of its robot."""
-
-    q: Joints
-
-    def digital_in(self, n: int) -> bool: ...
-    def digital_out(self, n: int) -> bool: ...
-    def set_digital_out(self, n: int, value: bool) -> None: ...
-    def write_register(self, n: int, value: int) -> None: ...
-    def read_register(self, n: int) -> int: ...
-    def message(self, text: str) -> None: ...
-
-
-class ScriptError(Exception):
-    """A runtime error in the controller's words (``Runtime error: ...``)."""
-
-
-class _RuntimeError(ScriptError):
-    pass
-
-
-@dataclass(frozen=True)
-class _Pose:
-    values: tuple[float, ...]
-
-
-class _Return(Exception):
-    def __init__(self, value: Any) -> None:
-        self.value = value
-
-
-class _Halt(Exception):
-    pass
-
-
-class _Break(Exception):
-    pass
-
-
-class _Continue(Exception):
-    pass
-
-
-_BINOPS: dict[type, Callable[[Any, Any], Any]] = {
-    ast.Add: lambda a, b: a + b,
-    ast.Sub: lambda a, b: a - b,
-    ast.Mult: lambda a, b: a * b,
-    ast.Div: lambda a, b: a / b,
-    ast.Mod: lambda a, b: a % b,
-    ast.Pow: lambda a, b: a**b,
-}
-_COMPARE: dict[type, Callable[[Any, Any], bool]] = {
-    ast.Eq: lambda a, b: a == b,
-    ast.NotEq: lambda a, b: a != b,
-    ast.Lt: lambda a, b: a < b,
-    ast.LtE: lambda a, b: a <= b,
-    ast.Gt: lambda a, b: a > b,
-    ast.GtE: lambda a, b: a >= b,
-}
-_MATH: dict[str, Callable[..., Any]] = {
-    "sqrt": math.sqrt, "sin": math.sin, "cos": math.cos, "tan": math.tan, "atan2": math.atan2,
-    "acos": math.acos, "asin": math.asin, "atan": math.atan, "floor": math.floor,
-    "ceil": math.ceil, "pow": math.pow, "log": math.log, "d2r": math.radians,
-    "r2d": math.degrees, "norm": lambda v: math.sqrt(sum(x * x for x in v))
-    if isinstance(v, list) else abs(v), "to_str": str, "str_cat": lambda a, b: f"{a}{b}",
-    "str_len": len, "length": len,
-}  # fmt: skip
-
-
-class _Evaluator:
-    """Values of expressions over ``variables``; calls go to ``functions``."""
-
-    def __init__(self, variables: dict[str, Any], functions: dict[str, Callable[..., Any]]):
-        self.variables = variables
-        self.functions = functions
-
-    def value(self, node: ast.expr) -> Any:
-        if isinstance(node, ast.Constant):
-            if isinstance(node.value, bool | int | float | str):
-                return node.value
-            raise _RuntimeError(f"not a value: {node.value!r}")
-        if isinstance(node, ast.Name):
-            if node.id in self.variables:
-                return self.variables[node.id]
-            raise _RuntimeError(f"Variable '{node.id}' is not initialized")
-        if isinstance(node, ast.List | ast.Tuple):
-            return [self.value(e) for e in node.elts]
-        if isinstance(node, ast.UnaryOp):
-            v = self.value(node.operand)
-            if isinstance(node.op, ast.Not):
-                return not v
-            return -v if isinstance(node.op, ast.USub) else +v
-        if isinstance(node, ast.BinOp) and type(node.op) in _BINOPS:
-            return _BINOPS[type(node.op)](self.value(node.left), self.value(node.right))
-        if isinstance(node, ast.BoolOp):
-            if isinstance(node.op, ast.And):
-                return all(self.value(v) for v in node.values)
-            return any(self.value(v) for v in node.values)
-        if isinstance(node, ast.Compare):
-            left = self.value(node.left)
-            for op, right_node in zip(node.ops, node.comparators, strict=True):
-                right = self.value(right_node)
-                if type(op) not in _COMPARE or not _COMPARE[type(op)](left, right):
-                    return False
-                left = right
-            return True
-        if isinstance(node, ast.Subscript):
-            return self.value(node.value)[int(self.value(node.slice))]
-        if isinstance(node, ast.Call) and isinstance(node.func, ast.Name):
-            args = [self.value(a) for a in node.args]
-            kwargs = {k.arg: self.value(k.value) for k in node.keywords if k.arg}
-            name = node.func.id
-            if name == "p":
-                if len(args) != 6 or not all(isinstance(a, int | float) for a in args):
-                    raise _RuntimeError("a pose takes six numbers")
-                return _Pose(tuple(float(a) for a in args))
-            if name in _MATH:
-                return _MATH[name](*args)
-            if name in self.functions:
-                return self.functions[name](*args, **kwargs)
-            raise _RuntimeError(f"Unknown function '{name}'")
-        raise _RuntimeError(f"not supported: {type(node).__name__}")
-
-
-def run(program: Program, env: Env, arm: Arm) -> Iterator[Step]:
-    """Run ``program`` on ``env``: yields each step that takes the robot's time.
-
-    Raises :class:`ScriptError` (in the controller's words) for a runtime error.
-    """
-    runner = _Runner(program, env, arm)
-    entry = program.entry
-    statements = entry.body if entry is not None else program.statements
-    try:
-        yield from runner.block(statements, {})
-    except (_Halt, _Return):
-        return
-    except ScriptError:
-        raise
-    except (TypeError, ValueError, IndexError, ZeroDivisionError, OverflowError) as e:
-        raise ScriptError(f"Runtime error: {e}") from None
-
-
-class _Runner:
-    def __init__(self, program: Program, env: Env, arm: Arm) -> None:
-        self.program = program
-        self.env = env
-        self.arm = arm
-        self.globals: dict[str, Any] = {}
-        self.untimed = 0
-        self.pending: list[Step] = []
-
-    def _tick(self) -> None:
-        self.untimed += 1
-        if self.untimed > MAX_STATEMENTS_WITHOUT_TIME:
-            raise ScriptError("Runtime error: infinite loop detected")
-
-    def _calls(self, scope: dict[str, Any]) -> dict[str, Callable[..., Any]]:
-        env, arm = self.env, self.arm
-
-        def move(target: Any, linear: bool, a: float, v: float, t: float) -> None:
-            start = env.q
-            if isinstance(target, _Pose):
-                end = arm.solve(target.values, start)
-                if end is None:
-                    raise ScriptError(
-                        f"Runtime error: the pose {list(target.values)} cannot be reached"
-                    )
-                distance = (
-                    line_distance(arm.tcp(start), target.values)
-                    if linear
-                    else joint_distance(start, end)
-                )
-            else:
-                if not isinstance(target, list) or len(target) != 6:
-                    raise ScriptError("Runtime error: a move takes a pose or six joints")
-                end = (target[0], target[1], target[2], target[3], target[4], target[5])
-                distance = (
-                    line_distance(arm.tcp(start), arm.tcp(end))
-                    if linear
-                    else joint_distance(start, end)
-                )
-            seconds = move_time(distance, v, a, t)
-            env.q = end
-            self.pending.append(Move(seconds, start, end, linear))
-
-        def movej(
-            q: Any, a: float = MOVEJ_A, v: float = MOVEJ_V, t: float = 0.0, r: float = 0.0
-        ) -> None:
-            move(q, False, a, v, t)
-
-        def movel(
-            pose: Any, a: float = MOVEL_A, v: float = MOVEL_V, t: float = 0.0, r: float = 0.0
-        ) -> None:
-            move(pose, True, a, v, t)
-
-        def sleep(t: float) -> None:
-            self.pending.append(Sleep(max(0.0, float(t))))
-
-        def sync() -> None:
-            self.pending.append(Sleep(0.002))
-
-        def halt() -> None:
-            raise _Halt()
-
-        def set_out(n: int, b: bool) -> None:
-            env.set_digital_out(int(n), bool(b))
-
-        def write_register(n: int, value: int) -> None:
-            env.write_register(int(n), int(value))
-
-        calls: dict[str, Callable[..., Any]] = {
-            "movej": movej, "movel": movel, "movep": movel, "sleep": sleep, "sync": sync,
-            "halt": halt, "set_standard_digital_out": set_out, "set_digital_out": set_out,
-            "get_standard_digital_in": lambda n: env.digital_in(int(n)),
-            "get_digital_in": lambda n: env.digital_in(int(n)),
-            "get_configurable_digital_in": lambda n: env.digital_in(8 + int(n)),
-            "get_configurable_digital_out": lambda n: env.digital_out(8 + int(n)),
-            "set_configurable_digital_out": lambda n, b: set_out(8 + int(n), b),
-            "get_standard_digital_out": lambda n: env.digital_out(int(n)),
-            "get_digital_out": lambda n: env.digital_out(int(n)),
-            "write_output_integer_register": write_register,
-            "read_input_integer_register": lambda n: env.read_register(int(n)),
-            "textmsg": lambda *a: env.message(" ".join(str(x) for x in a)),
-            "popup": lambda *a, **k: env.message(str(a[0]) if a else ""),
-            "get_actual_joint_positions": lambda: list(env.q),
-            "get_target_joint_positions": lambda: list(env.q),
-            "get_actual_tcp_pose": lambda: _Pose(arm.tcp(env.q)),
-            "get_target_tcp_pose": lambda: _Pose(arm.tcp(env.q)),
-            "set_tcp": lambda *a: None, "set_payload": lambda *a: None,
-            "set_payload_mass": lambda *a: None, "set_gravity": lambda *a: None,
-            "set_standard_analog_out": lambda *a: None, "stopj": lambda *a: None,
-            "stopl": lambda *a: None,
-        }  # fmt: skip
-        return calls
-
-    def _user_call(self, name: str) -> Callable[..., Any]:
-        def call(*args: Any) -> Any:
-            raise ScriptError(
-                f"Runtime error: the emulator runs '{name}()' only as a statement "
-                "or as an assignment's whole right side"
-            )
-
-        return call
-
-    def _eval(self, expr: str, scope: dict[str, Any]) -> Any:
-        functions = self._calls(scope)
-        for name in self.program.functions:
-            functions.setdefault(name, self._user_call(name))
-        try:
-            tree = parse_expression(expr)
-        except SyntaxError as e:
-            raise ScriptError(f"Runtime error: syntax error in {expr!r}: {e.msg}") from None
-        return _Evaluator({**self.globals, **scope}, functions).value(tree)
-
-    def block(self, statements: Sequence[Statement], scope: dict[str, Any]) -> Iterator[Step]:
-        for st in statements:
-            yield from self.statement(st, scope)
-
-    def _flush(self) -> Iterator[Step]:
-        while self.pending:
-            step = self.pending.pop(0)
-            self.untimed = 0
-            yield step
-
-    def _user_function(self, expr: str) -> tuple[Statement, list[str]] | None:
-        m = re.match(r"^([A-Za-z_]\w*)\s*\((.*)\)\s*$", expr.strip())
-        if m and m.group(1) in self.program.functions:
-            args = [a for a in m.group(2).split(",") if a.strip()]
-            return self.program.functions[m.group(1)], args
-        return None
-
-    def _invoke(self, fn: Statement, args: list[str], scope: dict[str, Any]) -> Iterator[Step]:
-        header = fn.text[4:]
-        params = [p.strip() for p in header.split("(", 1)[1].rsplit(")", 1)[0].split(",")]
-        params = [p for p in params if p]
-        local = {p: self._eval(a, scope) for p, a in zip(params, args, strict=False)}
-        try:
-            yield from self.block(fn.body, local)
-        except _Return as r:
-            self.globals["__result__"] = r.value
-            return
-        self.globals["__result__"] = None
-
-    def statement(self, st: Statement, scope: dict[str, Any]) -> Iterator[Step]:
-        self._tick()
-        kind, target, expr = _split_statement(st.text)
-        if kind == "def" or kind == "thread":
-            return
-        if kind == "while":
-            while self._eval(expr, scope):
-                self._tick()
-                try:
-                    yield from self.block(st.body, scope)
-                except _Break:
-                    break
-                except _Continue:
-                    continue
-            return
-        if kind in ("if", "elif"):
-            if self._eval(expr, scope):
-                yield from self.block(st.body, scope)
-            else:
-                for branch in st.orelse:
-                    yield from self.statement(branch, scope)
-            return
-        if kind == "else":
-            yield from self.block(st.body, scope)
-            return
-        if kind == "return":
-            raise _Return(self._eval(expr, scope) if expr else None)
-        if kind == "break":
-            raise _Break()
-        if kind == "continue":
-            raise _Continue()
-        if kind == "halt":
-            raise _Halt()
-        user = self._user_function(expr)
-        if user is not None:
-            yield from self._invoke(user[0], user[1], scope)
-            value = self.globals.pop("__result__", None)
-        else:
-            value = self._eval(expr, scope)
-            yield from self._flush()
-        if kind == "assign" and target is not None:
-            if target in self.globals or st.text.startswith("global "):
-                self.globals[target] = value
-            else:
-                scope[target] = value
-
-
-class _Estimate:
-    """An environment for estimating a program's time: inputs as they are asked to be."""
-
-    def __init__(self) -> None:
-        self.q: Joints = HOME
-        self.outputs: dict[int, bool] = {}
-
-    def digital_in(self, n: int) -> bool:
-        return True
-
-    def digital_out(self, n: int) -> bool:
-        return self.outputs.get(n, False)
-
-    def set_digital_out(self, n: int, value: bool) -> None:
-        self.outputs[n] = value
-
-    def write_register(self, n: int, value: int) -> None:
-        pass
-
-    def read_register(self, n: int) -> int:
-        return 0
-
-    def message(self, text: str) -> None:
-        pass
-
-
-def estimate(program: Program, arm: Arm, limit_s: float = 3600.0) -> tuple[float, list[Move]]:
-    """Machine seconds the program takes with every input on (waits cost nothing), and its
-    moves; stops counting at ``limit_s``."""
-    total = 0.0
-    moves: list[Move] = []
-    try:
-        for step in run(program, _Estimate(), arm):
-            total += step.seconds
-            if isinstance(step, Move):
-                moves.append(step)
-            if total > limit_s:
-                break
-    except ScriptError:
-        pass
-    return total, moves

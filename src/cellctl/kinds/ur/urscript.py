@@ -103,10 +103,12 @@ def check(text: str, arm: Arm, origin: str = "program") -> list[str]:
     found = list(program.problems)
     defined = set(program.functions)
 
-    def visit(statements: Sequence[Statement]) -> None:
+    def visit(statements: Sequence[Statement], in_loop: bool) -> None:
         for st in statements:
             kind, _, expr = _split_statement(st.text)
             expr = expr.strip()
+            if kind in ("break", "continue") and not in_loop:
+                found.append((st.line, st.column, f"'{kind}' outside a loop"))
             offset = st.text.find(expr) if expr else 0
             if kind in ("while", "if", "elif", "assign", "expr", "return") and expr:
                 try:
@@ -117,10 +119,12 @@ def check(text: str, arm: Arm, origin: str = "program") -> list[str]:
                 else:
                     for problem in _expression_problems(tree, defined, arm):
                         found.append((st.line, st.column + offset + problem[0], problem[1]))
-            visit(st.body)
-            visit(st.orelse)
+            # A function's body starts outside any loop, wherever it is defined.
+            body_in_loop = kind == "while" or (in_loop and kind not in ("def", "thread"))
+            visit(st.body, body_in_loop)
+            visit(st.orelse, in_loop)
 
-    visit(program.statements)
+    visit(program.statements, False)
     found.sort()
     return [f"{origin}:{line}:{col}: {text}" for line, col, text in found]
 

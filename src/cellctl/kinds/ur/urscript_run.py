@@ -102,6 +102,10 @@ class _Continue(Exception):
     pass
 
 
+def _outside_loop(e: _Break | _Continue) -> ScriptError:
+    word = "break" if isinstance(e, _Break) else "continue"
+    return ScriptError(f"Runtime error: '{word}' outside a loop")
+
 
 _BINOPS: dict[type, Callable[[Any, Any], Any]] = {
     ast.Add: lambda a, b: a + b,
@@ -196,6 +200,8 @@ def run(program: Program, env: Env, arm: Arm) -> Iterator[Step]:
         yield from runner.block(statements, {})
     except (_Halt, _Return):
         return
+    except (_Break, _Continue) as e:
+        raise _outside_loop(e) from None
     except ScriptError:
         raise
     except (TypeError, ValueError, IndexError, ZeroDivisionError, OverflowError) as e:
@@ -341,6 +347,9 @@ class _Runner:
         except _Return as r:
             self.globals["__result__"] = r.value
             return
+        except (_Break, _Continue) as e:
+            # Not the caller's loop: a function's break ends nothing outside it.
+            raise _outside_loop(e) from None
         self.globals["__result__"] = None
 
     def statement(self, st: Statement, scope: dict[str, Any]) -> Iterator[Step]:

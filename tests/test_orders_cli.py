@@ -301,3 +301,22 @@ def test_a_stop_on_ctrl_c_leaves_the_signals_as_it_found_them() -> None:
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         signal.signal(signal.SIGINT, previous)
+
+
+def test_a_stop_on_ctrl_c_does_not_hand_back_asyncios_own_ctrl_c_handler() -> None:
+    """asyncio.run's Ctrl-C handler belongs to that run: the block leaves Python's default."""
+
+    async def handlers_around_a_stop() -> tuple[object, object]:
+        found = signal.getsignal(signal.SIGINT)
+        with stop_signals(asyncio.Event()):
+            pass
+        return found, signal.getsignal(signal.SIGINT)
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        found, left = asyncio.run(handlers_around_a_stop())
+        assert found is not signal.default_int_handler  # the run's own, set by asyncio.run
+        assert left is signal.default_int_handler
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, previous)

@@ -325,8 +325,9 @@ def _restorable(handler: Any) -> bool:
     outside Python (None), and not asyncio.Runner's own Ctrl-C handler: that one is bound to
     the run that set it, and a block may end in another run (a test fixture's teardown);
     the loop then leaves Python's default, as it does by itself."""
-    func = getattr(handler, "func", None)
-    return handler is not None and getattr(func, "__name__", "") != "_on_sigint"
+    # asyncio.Runner sets a partial of one of its own methods: known by its owner's type.
+    owner = getattr(getattr(handler, "func", None), "__self__", None)
+    return handler is not None and not isinstance(owner, asyncio.Runner)
 
 
 @contextlib.contextmanager

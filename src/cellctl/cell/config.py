@@ -63,6 +63,7 @@ from cellctl.cell.configschema import (
     reference_table,
 )
 from cellctl.errors import CellctlError, UsageError
+from cellctl.files import read_text
 from cellctl.kinds import registry
 from cellctl.kinds.kind import MachineKind, ProgramRole
 from cellctl.link import LineSettings
@@ -319,7 +320,7 @@ def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
         if language is None or language.compile is None:
             continue  # no robot (told above), or one that takes no programs from the host
         try:
-            source = path.read_text(encoding="utf-8")
+            source = read_text(path)
             robot_programs[prog_name] = language.compile(source, prog_name, str(path))
         except OSError as e:
             problems.add(f"[robot_programs] {prog_name}: {path}: {e.strerror}")
@@ -434,7 +435,7 @@ def _part(
             problems.at(("parts", name, "route", i, "mill"), f"unknown mill {step.mill!r}")
             continue
         path = directory / step.program
-        if not path.is_file():
+        if not path.exists():  # anything else there: the kind's check says what it is
             problems.at(("parts", name, "route", i, "program"), f"{path}: no such file")
             continue
         result = _check_program(mills[step.mill], path, ProgramRole.MILLING, problems.items)

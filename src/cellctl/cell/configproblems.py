@@ -15,6 +15,7 @@ from pydantic import BaseModel, ValidationError
 
 from cellctl.cell.configschema import _PER_ENTRY
 from cellctl.errors import UsageError
+from cellctl.files import read_text
 
 
 def _load_toml(directory: Path) -> tuple[dict[str, Any], str]:
@@ -22,7 +23,7 @@ def _load_toml(directory: Path) -> tuple[dict[str, Any], str]:
 
     path = directory / "cell.toml"
     try:
-        text = path.read_text(encoding="utf-8")
+        text = read_text(path)
         return tomllib.loads(text), text
     except FileNotFoundError:
         raise UsageError(

@@ -28,6 +28,7 @@ from urllib.parse import urlsplit
 import aiomqtt
 
 from cellctl.errors import CellctlError, LinkError, UsageError
+from cellctl.files import read_text
 
 #: Seconds between attempts to reach a broker that went away: from the first to the last.
 BACKOFF_S = (0.2, 5.0)
@@ -177,7 +178,7 @@ def read_credentials(path: Path) -> tuple[str, str]:
     """``username`` and ``password`` from a TOML file that only its owner may read."""
     try:
         mode = path.stat().st_mode
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        data = tomllib.loads(read_text(path))
     except OSError as e:
         raise UsageError(f"{path}: cannot read the credentials: {e.strerror}") from e
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:

@@ -40,6 +40,7 @@ from cellctl.clock import REAL_CLOCK, current_clock, run_virtual
 from cellctl.emulators.cell import EmulatedCell
 from cellctl.emulators.plc import FAULTS as PLC_FAULTS
 from cellctl.errors import UsageError
+from cellctl.files import read_text
 from cellctl.kinds import registry
 from cellctl.mailbox import DONE, MAILBOX_FILE, Mailbox
 from cellctl.mailbox.sqlite import SqliteMailbox
@@ -189,7 +190,7 @@ def check_inputs(inputs: PlanInputs) -> None:
     """Refuse inputs the cell cannot take, in words (:class:`UsageError`)."""
     toml = inputs.cell_dir / "cell.toml"
     try:
-        raw = tomllib.loads(toml.read_text(encoding="utf-8"))
+        raw = tomllib.loads(read_text(toml))
     except (OSError, tomllib.TOMLDecodeError) as e:
         raise UsageError(f"{toml}: cannot read it: {e}") from None
     parts = raw.get("parts", {})

@@ -25,6 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from cellctl.cell.config import load_cell
 from cellctl.emulators.cell import real_cell_toml
 from cellctl.errors import UsageError
+from cellctl.files import read_file
 from cellctl.mailbox.base import MAX_QTY
 from cellctl.plan.engine import FaultWindow, HeldPart, PlanInputs, PlanOrder
 from cellctl.plan.when import MAX_HORIZON_S, MAX_POLL_S
@@ -151,7 +152,7 @@ def parse_inputs(data: Any, base: Path) -> tuple[PlanInputs, tuple[str, ...]]:
 def load_inputs(path: Path) -> tuple[PlanInputs, tuple[str, ...]]:
     """Read ``inputs.json`` (see module docstring); the cell copy beside it."""
     try:
-        data = path.read_bytes()[: MAX_BYTES + 1]
+        data = read_file(path, limit=MAX_BYTES)
     except FileNotFoundError:
         raise UsageError(f"{path}: no such file") from None
     except OSError as e:

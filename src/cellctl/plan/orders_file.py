@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Final
 
 from cellctl.errors import UsageError
+from cellctl.files import read_file
 from cellctl.mailbox.base import MAX_QTY, check_new_order
 from cellctl.plan.engine import PlanOrder
 from cellctl.plan.spec import PRIORITY_RANGE
@@ -39,7 +40,7 @@ MAX_ORDERS: Final = 10_000
 def read_orders_file(path: Path, start: float) -> tuple[PlanOrder, ...]:
     """The orders in ``path`` (see the module docstring); due times seen from ``start``."""
     try:
-        data = path.read_bytes()[: MAX_BYTES + 1]
+        data = read_file(path, limit=MAX_BYTES)
     except FileNotFoundError:
         raise UsageError(f"{path}: no such orders file") from None
     except OSError as e:

@@ -21,6 +21,7 @@ from rich.progress import Progress, ProgressColumn
 
 from cellctl.clock import current_clock
 from cellctl.errors import UsageError
+from cellctl.files import read_file
 from cellctl.ui.common import cell_dir, err_console, machine_ref, run
 
 
@@ -34,7 +35,7 @@ def state_home() -> Path:
 def read_program(path: Path) -> dict[str, str]:
     """A program file as the API takes it: its name and text (refused if it cannot be read)."""
     try:
-        data = path.read_bytes()
+        data = read_file(path)
     except FileNotFoundError:
         raise UsageError(f"{path}: could not open file: no such file") from None
     except OSError as e:

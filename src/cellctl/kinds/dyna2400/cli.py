@@ -57,7 +57,7 @@ def _offline_config(ctx: click.Context) -> MillConfig:
 
 
 def _program_file(path: Path) -> Path:
-    if not path.is_file():
+    if not path.exists():  # a directory or a device: the program's check says what it is
         raise click.BadParameter(f"{path}: file not found", param_hint="PROGRAM")
     return path
 

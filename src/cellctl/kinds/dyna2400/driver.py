@@ -45,6 +45,7 @@ from cellctl.drivers.base import CallbackOutput as CallbackOutput
 from cellctl.drivers.base import LinkDriver, StartOutput
 from cellctl.drivers.state import StateStore
 from cellctl.errors import DeviceError, LinkTimeout, UsageError
+from cellctl.files import read_text
 from cellctl.kinds.dyna2400.dynalan import (
     Block,
     Kind,
@@ -215,7 +216,7 @@ class Dyna2400Mill(LinkDriver):
         missing: int,
         invalid: int,
     ) -> Validation:
-        if not isinstance(program, Program) and not Path(program).is_file():
+        if not isinstance(program, Program) and not Path(program).exists():
             raise MillInputError(missing, results[missing], f"{program}: no such file")
         result = self.check(program, role)
         if not result.ok or result.blocks is None:
@@ -445,7 +446,7 @@ class Dyna2400Mill(LinkDriver):
         path = Path(self.config.end_program)
         if not path.is_file():
             raise MillInputError(2, END_RESULTS[2], f"{path}: no such file")
-        return path.read_text()
+        return read_text(path, "ascii", "replace")
 
     async def upload(self, *, timeout: float | None = None) -> str:
         """Receive the controller's program (the operator starts UPLOAD on the panel).
@@ -539,7 +540,7 @@ class Dyna2400Mill(LinkDriver):
 def _read(path: str | Path) -> Program:
     p = Path(path)
     try:
-        text = p.read_text(encoding="ascii", errors="replace")
+        text = read_text(p, "ascii", "replace")
     except OSError as e:
         raise MillInputError(4, DOWNLOAD_RESULTS[4], f"{p}: {e.strerror}") from None
     return parse_program(text, name=p.name)

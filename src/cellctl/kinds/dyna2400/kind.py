@@ -11,6 +11,7 @@ from pydantic import BaseModel
 
 from cellctl.emulators.serve import scaled_deadline
 from cellctl.errors import UsageError
+from cellctl.files import read_text
 from cellctl.kinds.dyna2400 import dynalan
 from cellctl.kinds.dyna2400.options import MillConfig, MillState
 from cellctl.kinds.kind import (
@@ -77,8 +78,10 @@ def validation_context(options: BaseModel, role: ProgramRole) -> dynalan.Validat
 def _check(path: Path, role: ProgramRole, options: BaseModel) -> CheckedProgram:
     """Parse and validate a DYNALAN program: its problems, lines and machining time."""
     try:
-        text = path.read_text(encoding="ascii")
-    except (OSError, UnicodeDecodeError) as e:
+        text = read_text(path, "ascii")
+    except OSError as e:
+        return CheckedProgram((f"{path}: cannot read: {e.strerror or e}",))
+    except UnicodeDecodeError as e:
         return CheckedProgram((f"{path}: cannot read: {e}",))
     program = dynalan.parse_program(text, name=path.name)
     result = dynalan.validate(program, validation_context(options, role))

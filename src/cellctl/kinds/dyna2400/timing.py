@@ -11,6 +11,7 @@ import itertools
 from collections.abc import Sequence
 from pathlib import Path
 
+from cellctl.files import read_text
 from cellctl.kinds.dyna2400 import dynalan
 
 
@@ -48,4 +49,4 @@ class CutModel:
 
 
 def _parse(path: Path) -> dynalan.Program:
-    return dynalan.parse_program(path.read_text(encoding="ascii", errors="replace"), name=path.name)
+    return dynalan.parse_program(read_text(path, "ascii", "replace"), name=path.name)

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 from pydantic import BaseModel
 
 from cellctl.errors import CellctlError, UsageError
+from cellctl.files import read_text
 from cellctl.kinds.ibm7545.options import RobotConfig, RobotState, robot_condition
 from cellctl.kinds.kind import (
     CheckedProgram,
@@ -65,7 +66,7 @@ def _check(path: Path, role: ProgramRole, options: BaseModel) -> CheckedProgram:
     from cellctl.kinds.ibm7545.aml import compile_source
 
     try:
-        source = path.read_text(encoding="utf-8")
+        source = read_text(path)
     except OSError as e:
         return CheckedProgram((f"{path}: {e.strerror}",))
     except UnicodeDecodeError as e:

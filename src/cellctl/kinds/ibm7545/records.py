@@ -49,6 +49,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cellctl.errors import ChecksumError, FramingError, UsageError
+from cellctl.files import read_text
 
 __all__ = [
     "ACK",
@@ -534,7 +535,7 @@ class ProgramFile:
     def load(cls, path: str | Path) -> ProgramFile:
         """Read and parse a ``.rec`` file; a missing or unreadable file is a UsageError."""
         try:
-            text = Path(path).read_text(encoding="ascii")
+            text = read_text(path, "ascii")
         except (OSError, UnicodeDecodeError) as e:
             raise UsageError(f"{path}: cannot read program file: {e}") from None
         return cls.parse(text, str(path))

@@ -432,12 +432,17 @@ def _check_arc(
         )
 
 
+def too_long(characters: int, options: CheckOptions) -> Finding:
+    """What :func:`check` says of a text over ``options.max_bytes`` (or a file's reader)."""
+    return Finding(1, 0, f"{characters} characters: more than {options.max_bytes} to check")
+
+
 def check(text: str, options: CheckOptions | None = None) -> list[Finding]:
     """Every problem of ``text``, in order (errors and warnings: :attr:`Finding.error`)."""
     chosen = options or CheckOptions()
     found: list[Finding] = []
     if len(text) > chosen.max_bytes:
-        return [Finding(1, 0, f"{len(text)} characters: more than {chosen.max_bytes} to check")]
+        return [too_long(len(text), chosen)]
     lines = text.count("\n")
     if lines > chosen.max_blocks:
         return [Finding(1, 0, f"{lines} blocks: more than {chosen.max_blocks} to check")]

@@ -4,6 +4,7 @@ Haas style), of the mill family."""
 
 from __future__ import annotations
 
+import errno
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -13,6 +14,7 @@ from pydantic import BaseModel
 
 from cellctl.emulators.serve import scaled_deadline
 from cellctl.errors import UsageError
+from cellctl.files import read_file, read_text
 from cellctl.kinds.iso_cnc import gcode, motion, tape
 from cellctl.kinds.iso_cnc.options import ISO_LINE, IsoCncOptions
 from cellctl.kinds.iso_cnc.status import IsoCncState
@@ -86,9 +88,13 @@ def check_text(text: str, name: str, options: BaseModel) -> CheckedProgram:
 
 def _check(path: Path, role: ProgramRole, options: BaseModel) -> CheckedProgram:
     del role  # a setup program is a program like any other here
+    chosen = _options(options).check_options()
     try:
-        text = path.read_bytes().decode("ascii")
+        # Over what the check takes: refused before it is read into memory.
+        text = read_file(path, limit=chosen.max_bytes).decode("ascii")
     except OSError as e:
+        if e.errno == errno.EFBIG:
+            return CheckedProgram((gcode.too_long(path.stat().st_size, chosen).format(str(path)),))
         return CheckedProgram((f"{path}: cannot read: {e.strerror or e}",))
     except UnicodeDecodeError as e:
         return CheckedProgram((f"{path}: byte {e.start}: not ISO code (7-bit ASCII)",))
@@ -141,7 +147,7 @@ class CutModel:
         del setup
         out = []
         for path in programs:
-            text = path.read_text(encoding="ascii")
+            text = read_text(path, "ascii")
             blocks = gcode.iter_blocks(text)
             framed = tape.frame(text, leader=self.options.leader, trailer=self.options.trailer)
             out.append((motion.program_seconds(blocks, self.options.motion()), len(framed)))

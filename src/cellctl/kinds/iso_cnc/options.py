@@ -13,6 +13,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from cellctl.errors import UsageError
+from cellctl.files import read_file
 from cellctl.kinds.iso_cnc import gcode, tape
 from cellctl.kinds.iso_cnc.motion import MotionModel
 
@@ -111,7 +112,7 @@ def prepare(data: bytes, options: IsoCncOptions, name: str = "program") -> bytes
 def read_program(path: Path, options: IsoCncOptions) -> bytes:
     """:func:`prepare` for a file (UsageError if it cannot be read)."""
     try:
-        data = path.read_bytes()
+        data = read_file(path)
     except OSError as e:
         raise UsageError(f"{path}: cannot read: {e.strerror or e}") from None
     return prepare(data, options, path.name)

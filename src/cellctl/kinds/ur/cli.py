@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import click
 
 from cellctl.emulators.serve import MACHINE_TIME_SCALE, TIME_SCALE_HELP, parse_fault
 from cellctl.errors import UsageError
+from cellctl.files import read_text
 from cellctl.kinds.ur.emulator import FAULTS, UrEmulator
 from cellctl.kinds.ur.motion import ARMS
 from cellctl.ui.common import console, fault_help, run
@@ -20,7 +19,7 @@ def _programs(items: tuple[str, ...]) -> dict[str, str]:
         if not sep or not path.endswith(".urp"):
             raise UsageError(f"--program takes ROBOT_PATH.urp=SCRIPT_FILE, not {item!r}")
         try:
-            out[path] = Path(file).read_text(encoding="utf-8")
+            out[path] = read_text(file)
         except (OSError, UnicodeDecodeError) as e:
             raise UsageError(f"{file}: cannot read it: {e}") from None
     return out

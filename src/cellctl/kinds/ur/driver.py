@@ -51,6 +51,7 @@ from cellctl.errors import (
     UnexpectedReply,
     UsageError,
 )
+from cellctl.files import read_text
 from cellctl.kinds.condition import Condition
 from cellctl.kinds.families import CycleAborted, HostStatus, RecordsProgress
 from cellctl.kinds.ur import rtde
@@ -618,7 +619,7 @@ def _member(cls: Any, value: int, default: Any) -> Any:
 def read_program(path: Path) -> str:
     """A program file's text (UsageError when it cannot be read)."""
     try:
-        return path.read_text(encoding="utf-8")
+        return read_text(path)
     except (OSError, UnicodeDecodeError) as e:
         raise UsageError(f"{path}: cannot read it: {e}") from None
 

@@ -11,6 +11,7 @@ from pydantic import BaseModel
 
 from cellctl.emulators.serve import scaled_deadline
 from cellctl.errors import CellctlError, UsageError
+from cellctl.files import read_text
 from cellctl.kinds.kind import (
     CheckedProgram,
     DriverSpec,
@@ -82,8 +83,10 @@ def _check(path: Path, role: ProgramRole, options: BaseModel) -> CheckedProgram:
     from cellctl.kinds.ur.urscript import estimate, parse
 
     try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as e:
+        text = read_text(path)
+    except OSError as e:
+        return CheckedProgram((f"{path}: cannot read it: {e.strerror or e}",))
+    except UnicodeDecodeError as e:
         return CheckedProgram((f"{path}: cannot read it: {e}",))
     try:
         program = compile_program(text, path.stem, str(path))

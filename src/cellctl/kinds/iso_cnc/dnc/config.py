@@ -33,6 +33,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from cellctl.errors import UsageError
+from cellctl.files import read_text
 from cellctl.kinds.iso_cnc.dnc.request import RequestConvention
 from cellctl.kinds.iso_cnc.dnc.store import check_machine_name
 from cellctl.kinds.iso_cnc.driver import ISO_LINE, IsoCncOptions
@@ -112,12 +113,13 @@ def _describe(e: ValidationError, table: str) -> str:
 
 def _load(path: Path) -> dict[str, Any]:
     try:
-        with path.open("rb") as f:
-            return tomllib.load(f)
+        return tomllib.loads(read_text(path))
     except FileNotFoundError:
         raise UsageError(f"no {path}: write one (docs/dnc.md), or give --cell DIR") from None
     except tomllib.TOMLDecodeError as e:
         raise UsageError(f"{path}: not valid TOML: {e}") from None
+    except UnicodeDecodeError as e:
+        raise UsageError(f"{path}: not UTF-8 text: {e.reason}") from None
     except OSError as e:
         raise UsageError(f"{path}: cannot read: {e.strerror}") from None
 

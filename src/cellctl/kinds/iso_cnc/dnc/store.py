@@ -35,6 +35,7 @@ from pathlib import Path
 
 from cellctl.clock import current_clock
 from cellctl.errors import UsageError
+from cellctl.files import read_file
 
 PROGRAMS = "programs"
 RECEIVED = "received"
@@ -228,10 +229,7 @@ def read_program_file(path: Path) -> bytes:
     """A program file's bytes; UsageError (before any byte goes out) when it cannot be read,
     is too large or is not text."""
     try:
-        size = path.stat().st_size
-        if size > MAX_PROGRAM_BYTES:
-            raise UsageError(f"{path}: {size} bytes, more than {MAX_PROGRAM_BYTES} is refused")
-        data = path.read_bytes()
+        data = read_file(path, limit=MAX_PROGRAM_BYTES)
     except FileNotFoundError:
         raise UsageError(f"{path}: no such file") from None
     except IsADirectoryError:

@@ -1,0 +1,71 @@
+"""Reading a file a user names: a regular file only, and no more of it than a limit.
+
+A path in cell.toml, an orders file or on the command line can name something that is not a
+file: a serial device (``link = "/dev/ttyS0"`` under the wrong table), a FIFO, ``/dev/zero``.
+Reading one blocks forever or never ends, so every such path is read through here::
+
+    data = read_file(path)                        # bytes, at most MAX_FILE_BYTES
+    text = read_text(path, limit=1_000_000)       # decoded (UnicodeDecodeError as bytes.decode)
+
+What is not a regular file is refused before it is opened (a FIFO's open would block), and
+again once open (it may have been swapped since); a file over ``limit`` is refused whole.
+Both raise :class:`OSError` (``strerror`` says what the path is, or its size), as ``open``
+does for a missing file, so a caller's ``except OSError`` reports them all alike.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import stat
+from pathlib import Path
+
+#: The most read of a file by default (the largest program a host sends is far smaller).
+MAX_FILE_BYTES = 64 * 1024 * 1024
+
+# What a path is, in the user's words, by its file type.
+_TYPES = {
+    stat.S_IFDIR: "a directory",
+    stat.S_IFCHR: "a character device",
+    stat.S_IFBLK: "a block device",
+    stat.S_IFIFO: "a FIFO",
+    stat.S_IFSOCK: "a socket",
+}
+
+
+def _regular(mode: int, path: Path) -> None:
+    if not stat.S_ISREG(mode):
+        what = _TYPES.get(stat.S_IFMT(mode), "not a file")
+        raise OSError(errno.EINVAL, f"{what}, not a regular file", str(path))
+
+
+def _too_large(limit: int, path: Path) -> OSError:
+    return OSError(errno.EFBIG, f"more than {limit} bytes (refused whole)", str(path))
+
+
+def read_file(path: Path | str, *, limit: int = MAX_FILE_BYTES) -> bytes:
+    """The whole of the regular file ``path``; OSError if it is something else or too large."""
+    path = Path(path)
+    _regular(os.stat(path).st_mode, path)
+    # O_NONBLOCK: a FIFO put in its place since the stat must not block the open.
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY | getattr(os, "O_CLOEXEC", 0))
+    with os.fdopen(fd, "rb") as f:
+        found = os.fstat(fd)
+        _regular(found.st_mode, path)
+        if found.st_size > limit:
+            raise _too_large(limit, path)
+        data = f.read(limit + 1)
+    if len(data) > limit:  # it grew since
+        raise _too_large(limit, path)
+    return data
+
+
+def read_text(
+    path: Path | str,
+    encoding: str = "utf-8",
+    errors: str = "strict",
+    *,
+    limit: int = MAX_FILE_BYTES,
+) -> str:
+    """:func:`read_file` decoded (``UnicodeDecodeError`` as :meth:`bytes.decode` raises it)."""
+    return read_file(path, limit=limit).decode(encoding, errors)

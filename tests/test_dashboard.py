@@ -125,7 +125,13 @@ async def dash(
 ) -> AsyncIterator[Dash]:
     # A test may ask for a slower cell (parametrize "dash" indirectly with its time scale).
     scale = getattr(request, "param", None)
-    async with CellRig(tmp_path / "cell", **({"time_scale": scale} if scale else {})) as rig:
+    # The cell shares this process with the page's driver, and the box with Chromium: on a
+    # loaded box a PLC answer can take over its 1 s default, which holds a part for a
+    # reason no page test is about (tests/test_cell_faults.py is where a silent PLC is).
+    plc = {"timeout": 5.0}
+    async with CellRig(
+        tmp_path / "cell", plc_options=plc, **({"time_scale": scale} if scale else {})
+    ) as rig:
         await rig.start_controller()
         assert rig.controller is not None
         port = free_port()

@@ -96,12 +96,14 @@ class CellRig:
         time_scale: float = TIME_SCALE,
         cell_options: dict[str, Any] | None = None,
         mill_options: dict[str, float] | None = None,
+        plc_options: dict[str, float] | None = None,
         deadlines: Literal["fast", "emulated"] = "fast",
         links: Literal["real", "mem"] | None = None,
     ) -> None:
         """``deadlines="fast"``: the tests' short deadlines (:func:`fast_options`), then
         ``cell_options`` and ``mill_options`` over them; ``"emulated"``: only those given
-        over what ``cellctl emulate cell`` writes. ``links``: the machines on ptys and
+        over what ``cellctl emulate cell`` writes. ``plc_options``: ``[plc]`` values
+        (``timeout``, ``poll``). ``links``: the machines on ptys and
         sockets ("real") or in this loop ("mem"); by default "mem" on a virtual loop (made
         in it), where real links cannot go, else "real"."""
         self.directory = directory
@@ -118,6 +120,7 @@ class CellRig:
         fast = deadlines == "fast"
         self.cell_options = fast_options(**(cell_options or {})) if fast else (cell_options or {})
         self.mill_options = {**(FAST_MILL_OPTIONS if fast else {}), **(mill_options or {})}
+        self.plc_options = plc_options or {}
         self.controller: CellController | None = None
         self.stop_event = asyncio.Event()
         self._run_task: asyncio.Task[None] | None = None
@@ -126,7 +129,7 @@ class CellRig:
 
     async def __aenter__(self) -> CellRig:
         toml = await self.cell.start(self.directory)
-        write_cell_options(toml, self.cell_options, self.mill_options)
+        write_cell_options(toml, self.cell_options, self.mill_options, self.plc_options)
         self.journal = open_journal(self.directory)
         self.mailbox = open_mailbox(self.directory)
         return self
@@ -451,10 +454,16 @@ def scaled_clock(clock: VirtualClock, time_scale: float) -> VirtualClock:
 
 
 def write_cell_options(
-    toml: Path, cell_options: dict[str, Any], mill_options: dict[str, float]
+    toml: Path,
+    cell_options: dict[str, Any],
+    mill_options: dict[str, float],
+    plc_options: dict[str, float] | None = None,
 ) -> None:
-    """Set ``[cell]`` values and every mill's options in the emulated cell's cell.toml."""
+    """Set ``[cell]`` values, every mill's options and ``[plc]`` values in the emulated
+    cell's cell.toml."""
     text = toml.read_text(encoding="utf-8")
+    for key, value in (plc_options or {}).items():
+        text = text.replace("[plc]\n", f"[plc]\n{key} = {value:g}\n", 1)
     for key, value in cell_options.items():
         line = f"{key} = {_toml_value(value)}"
         pattern = re.compile(rf"^{key}\s*=.*$", re.MULTILINE)

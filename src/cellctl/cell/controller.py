@@ -13,8 +13,8 @@ Parts of the reference model (spec ``cell.md``):
   route), the robot's partitions (which program where, kept by its kind), the PLC's inputs.
 - **H, task decomposition and scheduling**: an accepted order becomes parts in the journal;
   :mod:`cellctl.cell.scheduler` picks the robot's next transfer, and a part that reaches a mill
-  is machined there at once. Robot programs stay in the 5 partitions and are downloaded again
-  only when evicted (least recently used first).
+  is machined there at once (:mod:`cellctl.cell.millsteps`). Robot programs stay in the 5
+  partitions and are downloaded again only when evicted (least recently used first).
 - **G, monitoring** (:mod:`cellctl.cell.monitor`): four times a ``poll_period`` the PLC
   inputs, the idle robot's status and each idle mill's readiness are read; a fault becomes an
   alarm (journal + report) within one poll period, named by its cause whoever sees it first
@@ -36,13 +36,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from collections.abc import Callable
-from typing import Any
 
-from cellctl.cell.causes import Cause, blame, link_cause
+from cellctl.cell.causes import Cause, link_cause
 from cellctl.cell.commands import OperatorCommands
 from cellctl.cell.config import CONVEYOR, CellConfig, MachineConfig
 from cellctl.cell.journal import Journal
 from cellctl.cell.machines import open_machine
+from cellctl.cell.millsteps import MillSteps
 from cellctl.cell.model import (
     DEFAULT_DONE_OUTPUT,
     TRAFFIC_KEPT,
@@ -56,17 +56,16 @@ from cellctl.cell.orderflow import OUT, OrderFlow
 from cellctl.cell.orders import OrderBox, ReportKind
 from cellctl.cell.physics import physical_durations
 from cellctl.cell.recovery import Recovery
-from cellctl.cell.robotsteps import INTERLOCK_POLL_S, RobotSteps
+from cellctl.cell.robotsteps import RobotSteps
 from cellctl.cell.scheduler import SHORTEST_FIRST
 from cellctl.cell.workview import WorkView
 from cellctl.clock import Clock, current_clock
 from cellctl.drivers.plc import ModbusPlc
 from cellctl.drivers.state import StateStore
 from cellctl.errors import CellctlError
-from cellctl.kinds import Condition
-from cellctl.kinds.families import CallbackOutput, Mill, Robot, RunProgress
+from cellctl.kinds.families import CallbackOutput, Mill, Robot
 from cellctl.link import TrafficLog
-from cellctl.protocol.plc import PlcMap, canonical
+from cellctl.protocol.plc import PlcMap
 
 
 class CellController(OperatorCommands):
@@ -74,7 +73,8 @@ class CellController(OperatorCommands):
 
     The operator's commands (pause, service, manual use, emergency stop) are in
     :class:`~cellctl.cell.commands.OperatorCommands`; the robot's transfers in
-    :class:`~cellctl.cell.robotsteps.RobotSteps`.
+    :class:`~cellctl.cell.robotsteps.RobotSteps`; the mills' machining in
+    :class:`~cellctl.cell.millsteps.MillSteps`.
     """
 
     def __init__(
@@ -112,6 +112,13 @@ class CellController(OperatorCommands):
         self.workview = WorkView(world=self, alarms=self, orderflow=self.orderflow)
         self.robotsteps = RobotSteps(
             world=self, alarms=self, plc=self, monitor=self.monitor, recovery=self.recovery
+        )
+        self.millsteps = MillSteps(
+            world=self,
+            alarms=self,
+            monitor=self.monitor,
+            recovery=self.recovery,
+            robotsteps=self.robotsteps,
         )
         self._robot_task: asyncio.Task[None] | None = None
         self._mill_tasks: dict[str, asyncio.Task[None]] = {}
@@ -253,7 +260,7 @@ class CellController(OperatorCommands):
         self.plc = await ModbusPlc.connect(self.plc_map.url, self.plc_map, clock=self._clock)
         # A controller killed mid-pulse leaves that coil high: this one's first pulse would
         # make no rising edge, and the conveyor or the mill would never hear it.
-        for coil in ["pallet_request", *(self._go_coil(m) for m in self.config.mills)]:
+        for coil in ["pallet_request", *(self.millsteps.go_coil(m) for m in self.config.mills)]:
             await self.plc.write(coil, False)
         self.robot = await self.open_robot()
         for m in self.config.mills:
@@ -288,7 +295,7 @@ class CellController(OperatorCommands):
             m.options,
             store=StateStore(self.config.directory),
             trace=self.traffic,
-            start_output=CallbackOutput(self._go_pulser(m)),
+            start_output=CallbackOutput(self.millsteps.go_pulser(m)),
             clock=self._clock,
         )
         return mill
@@ -301,18 +308,6 @@ class CellController(OperatorCommands):
         """True while mill ``name`` machines a part."""
         task = self._mill_tasks.get(name)
         return task is not None and not task.done()
-
-    def _go_coil(self, m: MachineConfig) -> str:
-        return canonical(m.go_output or f"go_{self.mill_index(m.name)}")
-
-    def _go_pulser(self, m: MachineConfig) -> Callable[[], Any]:
-        coil = self._go_coil(m)
-
-        async def pulse() -> None:
-            assert self.plc is not None
-            await self.plc.pulse(coil, 0.05)
-
-        return pulse
 
     async def prepare_robot(self) -> None:
         """Bring the robot to a known state (stopped, initialized), as on connecting."""
@@ -388,7 +383,7 @@ class CellController(OperatorCommands):
         for part_id, mill in work.to_machine:
             task = self._mill_tasks.get(mill)
             if mill in in_service and (task is None or task.done()) and self.recovery.usable(mill):
-                self._mill_tasks[mill] = asyncio.create_task(self._machine(part_id, mill))
+                self._mill_tasks[mill] = asyncio.create_task(self.millsteps.machine(part_id, mill))
         robot_name = self.config.robot.name
         if robot_name not in in_service:
             return
@@ -512,116 +507,6 @@ class CellController(OperatorCommands):
             )
             self._pallet_requested = False
             self.wake()
-
-    # -- the mills' steps -------------------------------------------------------------------------
-
-    async def _machine(self, part_id: str, mill_name: str) -> None:
-        mill = self.mills[mill_name]
-        view = self.machines[mill_name]
-        part = self.journal.get_part(part_id)
-        route = self.config.parts[part.part_type].route
-        route_step = route[part.route_index]
-        step = self.journal.begin_step(part.id, "machine", mill_name, route_step.name)
-        self.mailbox.post_report(
-            ReportKind.STEP_STARTED,
-            f"{mill_name} {route_step.name} {part.id}",
-            order_id=part.order_id,
-            part_id=part.id,
-        )
-        view.step = f"{route_step.name} ({part.id})"
-        view.show("machining", Condition.BUSY)
-        started = self.clock.monotonic()
-        since = self.clock.now()
-        index = self.mill_index(mill_name)
-        assert self.plc is not None
-        cutting = False  # the first line of the program went out: the part may be cut
-        try:
-            with blame("plc", "PLC"):
-                # Close the door (a transfer cut short by a restart may have left it open).
-                await self.robotsteps.doors([mill_name], False)
-                await self.plc.wait_for(
-                    f"door_closed_{index}",
-                    True,
-                    timeout=self.options.interlock_timeout,
-                    poll=INTERLOCK_POLL_S,
-                )
-                await self.plc.wait_for(
-                    f"clamp_closed_{index}",
-                    True,
-                    timeout=self.options.interlock_timeout,
-                    poll=INTERLOCK_POLL_S,
-                )
-
-            def progress(p: RunProgress) -> None:
-                nonlocal cutting
-                cutting = cutting or p.phase == "sending"
-                if view.report_progress(
-                    p.bytes_sent,
-                    p.bytes_total,
-                    "bytes",
-                    p.phase,
-                    program=route_step.name,
-                    block=p.block,
-                    blocks=p.blocks,
-                    since=since,
-                    estimate_s=p.estimate_s,
-                    estimate_done_s=p.estimate_done_s,
-                    estimate_cap_s=p.estimate_cap_s,
-                    at=p.at,
-                    running=p.running,
-                ):
-                    self.touch()
-
-            await mill.run(route_step.program, progress=progress)
-        except (CellctlError, OSError, asyncio.CancelledError) as e:
-            view.step = ""
-            view.progress = None
-            stopped = isinstance(e, asyncio.CancelledError)
-            what = "cut short by an emergency stop" if stopped else f"failed: {e}"
-            if cutting:
-                reason = f"needs inspection: machining {route_step.name} on {mill_name} {what}"
-                self.journal.end_step(step.id, "failed", str(e) or what, hold=reason)
-                self.mailbox.post_report(
-                    ReportKind.PART_HELD, reason, order_id=part.order_id, part_id=part.id
-                )
-            elif stopped:
-                # An emergency stop holds every part in flight for the operator; this one
-                # was not cut (nothing of the program went out).
-                reason = f"emergency stop before machining {route_step.name} on {mill_name}"
-                self.journal.end_step(step.id, "failed", what, hold=reason)
-                self.mailbox.post_report(
-                    ReportKind.PART_HELD, reason, order_id=part.order_id, part_id=part.id
-                )
-            else:
-                # Nothing of the program went out: the part is as it was, and waits there.
-                reason = f"machining {route_step.name} on {mill_name} not started: {what}"
-                self.journal.end_step(step.id, "failed", str(e) or what)
-            self.mailbox.post_report(
-                ReportKind.STEP_FAILED, reason, order_id=part.order_id, part_id=part.id
-            )
-            if stopped:
-                self.wake()
-                raise
-            # Out of the plan at once; recovery sets it up again (reopening its link). The
-            # alarm names the cause: the PLC, the mill's link, or the step itself.
-            cause = await self.monitor.cause_of(mill_name, e)
-            self.recovery.fault(mill_name, "machining", reason, cause=cause)
-            self.wake()
-            return
-        view.progress = None
-        view.busy_s += self.clock.monotonic() - started
-        view.step = ""
-        view.show(mill.state_text, Condition.IDLE)
-        self.recovery.ready[mill_name] = True  # the last block ended with CTS high
-        self.succeeded(mill_name)
-        self.journal.end_step(step.id, "finished", route_index=part.route_index + 1)
-        self.mailbox.post_report(
-            ReportKind.STEP_FINISHED,
-            f"{mill_name} {route_step.name} {part.id}",
-            order_id=part.order_id,
-            part_id=part.id,
-        )
-        self.wake()
 
 
 __all__ = [

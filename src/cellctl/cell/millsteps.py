@@ -1,0 +1,185 @@
+"""The mills' steps: a part machined at the mill it lies at, and the go output that starts a cycle.
+
+A machining step journals its step, closes the mill's door and waits for the door and the vise
+(``interlock_timeout``), then runs the route step's program on the mill, its progress in the
+live view. A failure once the program began to go out, or an emergency stop, holds the part
+("needs inspection"); a failure before the first line went out leaves the part where it is,
+waiting. Either takes the mill out of the plan (recovery sets it up again), its alarm named by
+the failure's cause.
+
+The controller owns a :class:`MillSteps` and starts its :meth:`~MillSteps.machine` as a mill's
+task; it needs of the controller only the world model and the alarm sink
+(:mod:`cellctl.cell.ports`), and of the other parts the monitor (a failure's cause), recovery
+(a faulted mill leaves the plan) and the robot's steps (the doors)::
+
+    steps = MillSteps(
+        world=c, alarms=c, monitor=c.monitor, recovery=c.recovery, robotsteps=c.robotsteps
+    )
+    task = asyncio.create_task(steps.machine(part_id, mill))
+    mill = await open_machine(..., start_output=CallbackOutput(steps.go_pulser(m)))
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+from cellctl.cell.causes import blame
+from cellctl.cell.orders import ReportKind
+from cellctl.cell.robotsteps import INTERLOCK_POLL_S
+from cellctl.errors import CellctlError
+from cellctl.kinds import Condition
+from cellctl.protocol.plc import canonical
+
+if TYPE_CHECKING:
+    from cellctl.cell.config import MachineConfig
+    from cellctl.cell.monitor import Monitor
+    from cellctl.cell.ports import AlarmSink, WorldModel
+    from cellctl.cell.recovery import Recovery
+    from cellctl.cell.robotsteps import RobotSteps
+    from cellctl.kinds.families import RunProgress
+
+
+class MillSteps:
+    """The mills' machining steps, and their go outputs (see module docstring)."""
+
+    def __init__(
+        self,
+        world: WorldModel,
+        alarms: AlarmSink,
+        monitor: Monitor,
+        recovery: Recovery,
+        robotsteps: RobotSteps,
+    ) -> None:
+        self.world = world
+        self.alarms = alarms
+        self.monitor = monitor
+        self.recovery = recovery
+        self.robotsteps = robotsteps
+
+    def go_coil(self, m: MachineConfig) -> str:
+        """The PLC coil that starts mill ``m``'s cycle (its ``go_output``, else ``go_N``)."""
+        return canonical(m.go_output or f"go_{self.world.mill_index(m.name)}")
+
+    def go_pulser(self, m: MachineConfig) -> Callable[[], Any]:
+        """What mill ``m``'s driver calls to start a cycle: a 50 ms pulse of its go coil."""
+        coil = self.go_coil(m)
+
+        async def pulse() -> None:
+            plc = self.world.plc
+            assert plc is not None
+            await plc.pulse(coil, 0.05)
+
+        return pulse
+
+    async def machine(self, part_id: str, mill_name: str) -> None:
+        """Machine part ``part_id`` at mill ``mill_name``, where it lies: its route's next step
+        (see module docstring). Started by dispatch as the mill's task."""
+        mill = self.world.mills[mill_name]
+        view = self.world.machines[mill_name]
+        part = self.world.journal.get_part(part_id)
+        route = self.world.config.parts[part.part_type].route
+        route_step = route[part.route_index]
+        step = self.world.journal.begin_step(part.id, "machine", mill_name, route_step.name)
+        self.world.mailbox.post_report(
+            ReportKind.STEP_STARTED,
+            f"{mill_name} {route_step.name} {part.id}",
+            order_id=part.order_id,
+            part_id=part.id,
+        )
+        view.step = f"{route_step.name} ({part.id})"
+        view.show("machining", Condition.BUSY)
+        started = self.world.clock.monotonic()
+        since = self.world.clock.now()
+        index = self.world.mill_index(mill_name)
+        plc = self.world.plc
+        assert plc is not None
+        cutting = False  # the first line of the program went out: the part may be cut
+        try:
+            with blame("plc", "PLC"):
+                # Close the door (a transfer cut short by a restart may have left it open).
+                await self.robotsteps.doors([mill_name], False)
+                await plc.wait_for(
+                    f"door_closed_{index}",
+                    True,
+                    timeout=self.world.options.interlock_timeout,
+                    poll=INTERLOCK_POLL_S,
+                )
+                await plc.wait_for(
+                    f"clamp_closed_{index}",
+                    True,
+                    timeout=self.world.options.interlock_timeout,
+                    poll=INTERLOCK_POLL_S,
+                )
+
+            def progress(p: RunProgress) -> None:
+                nonlocal cutting
+                cutting = cutting or p.phase == "sending"
+                if view.report_progress(
+                    p.bytes_sent,
+                    p.bytes_total,
+                    "bytes",
+                    p.phase,
+                    program=route_step.name,
+                    block=p.block,
+                    blocks=p.blocks,
+                    since=since,
+                    estimate_s=p.estimate_s,
+                    estimate_done_s=p.estimate_done_s,
+                    estimate_cap_s=p.estimate_cap_s,
+                    at=p.at,
+                    running=p.running,
+                ):
+                    self.alarms.touch()
+
+            await mill.run(route_step.program, progress=progress)
+        except (CellctlError, OSError, asyncio.CancelledError) as e:
+            view.step = ""
+            view.progress = None
+            stopped = isinstance(e, asyncio.CancelledError)
+            what = "cut short by an emergency stop" if stopped else f"failed: {e}"
+            if cutting:
+                reason = f"needs inspection: machining {route_step.name} on {mill_name} {what}"
+                self.world.journal.end_step(step.id, "failed", str(e) or what, hold=reason)
+                self.world.mailbox.post_report(
+                    ReportKind.PART_HELD, reason, order_id=part.order_id, part_id=part.id
+                )
+            elif stopped:
+                # An emergency stop holds every part in flight for the operator; this one
+                # was not cut (nothing of the program went out).
+                reason = f"emergency stop before machining {route_step.name} on {mill_name}"
+                self.world.journal.end_step(step.id, "failed", what, hold=reason)
+                self.world.mailbox.post_report(
+                    ReportKind.PART_HELD, reason, order_id=part.order_id, part_id=part.id
+                )
+            else:
+                # Nothing of the program went out: the part is as it was, and waits there.
+                reason = f"machining {route_step.name} on {mill_name} not started: {what}"
+                self.world.journal.end_step(step.id, "failed", str(e) or what)
+            self.world.mailbox.post_report(
+                ReportKind.STEP_FAILED, reason, order_id=part.order_id, part_id=part.id
+            )
+            if stopped:
+                self.alarms.wake()
+                raise
+            # Out of the plan at once; recovery sets it up again (reopening its link). The
+            # alarm names the cause: the PLC, the mill's link, or the step itself.
+            cause = await self.monitor.cause_of(mill_name, e)
+            self.recovery.fault(mill_name, "machining", reason, cause=cause)
+            self.alarms.wake()
+            return
+        view.progress = None
+        view.busy_s += self.world.clock.monotonic() - started
+        view.step = ""
+        view.show(mill.state_text, Condition.IDLE)
+        self.recovery.ready[mill_name] = True  # the last block ended with CTS high
+        self.alarms.succeeded(mill_name)
+        self.world.journal.end_step(step.id, "finished", route_index=part.route_index + 1)
+        self.world.mailbox.post_report(
+            ReportKind.STEP_FINISHED,
+            f"{mill_name} {route_step.name} {part.id}",
+            order_id=part.order_id,
+            part_id=part.id,
+        )
+        self.alarms.wake()

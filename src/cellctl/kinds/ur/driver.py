@@ -3,7 +3,8 @@
 - the **Dashboard Server** (``link``, the cell's ``socket://HOST:29999``): power on, brake
   release, load, play, pause, stop, and every refusal in UR's words;
 - **RTDE** (``HOST:rtde_port``): the robot's state streamed at ``rtde_frequency``; a minimal
-  asyncio client of the public protocol (:mod:`cellctl.kinds.ur.rtde`);
+  asyncio client of the public protocol (:mod:`cellctl.kinds.ur.rtde_client`, over the
+  codecs of :mod:`cellctl.kinds.ur.rtde`);
 - the **secondary interface** (``HOST:secondary_port``): a URScript program from the cell,
   sent whole; it replaces what runs.
 
@@ -31,8 +32,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import math
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
@@ -43,9 +42,7 @@ from cellctl.drivers.state import StateStore
 from cellctl.errors import (
     CellctlError,
     DeviceError,
-    LinkClosed,
     LinkError,
-    LinkTimeout,
     ProtocolError,
     SignalTimeout,
     UnexpectedReply,
@@ -61,77 +58,17 @@ from cellctl.kinds.ur.dashboard import (
     MOVING_SAFETY,
     RobotMode,
     RuntimeState,
-    SafetyStatus,
-    condition_of,
 )
 from cellctl.kinds.ur.motion import ARMS
 from cellctl.kinds.ur.options import UR_LINE as UR_LINE
 from cellctl.kinds.ur.options import UrOptions as UrOptions
 from cellctl.kinds.ur.program import UrProgram
+from cellctl.kinds.ur.rtde_client import FIELDS as FIELDS
+from cellctl.kinds.ur.rtde_client import RtdeClient, UrStatus, _State
 from cellctl.link import LineSettings, Link, TrafficLog, open_link
 
 # UR_LINE and UrOptions live in options.py (the registry reads them without importing this
-# driver) and are named here as before.
-
-#: The RTDE fields the driver relies on (the independent client's test reads these).
-FIELDS = (
-    "timestamp",
-    "actual_q",
-    "robot_mode",
-    "safety_mode",
-    "safety_status_bits",
-    "runtime_state",
-    "actual_digital_input_bits",
-    "actual_digital_output_bits",
-)
-
-
-@dataclass(frozen=True)
-class UrStatus:
-    """The robot's state as RTDE shows it; ``str()`` says it in UR's words."""
-
-    mode: RobotMode
-    safety: SafetyStatus
-    runtime: RuntimeState
-    inputs: int = 0
-    outputs: int = 0
-    q: tuple[float, ...] = ()
-    loaded: str | None = None
-    remote: bool | None = None
-
-    @property
-    def ok(self) -> bool:
-        """Powered, brakes released, no safety stop: the arm may move."""
-        return self.safety in MOVING_SAFETY and self.mode == RobotMode.RUNNING
-
-    @property
-    def condition(self) -> Condition:
-        return condition_of(self.mode, self.safety, self.runtime)
-
-    def input(self, n: int) -> bool:
-        return bool(self.inputs >> n & 1)
-
-    def output(self, n: int) -> bool:
-        return bool(self.outputs >> n & 1)
-
-    def __str__(self) -> str:
-        if self.safety not in MOVING_SAFETY:
-            return f"Safetystatus: {self.safety.text}"
-        if self.mode != RobotMode.RUNNING:
-            return f"Robotmode: {self.mode.text}"
-        return f"Robotmode: RUNNING, programState {self.runtime.text}"
-
-    def lines(self) -> list[str]:
-        out = [
-            f"Robotmode: {self.mode.text}",
-            f"Safetystatus: {self.safety.text}",
-            f"programState: {self.runtime.text} {self.loaded or ''}".rstrip(),
-            "DI " + "".join("1" if self.input(n) else "." for n in range(8))
-            + "  DO " + "".join("1" if self.output(n) else "." for n in range(8)),
-        ]  # fmt: skip
-        if self.remote is not None:
-            out.append(f"is in remote control: {'true' if self.remote else 'false'}")
-        return out
+# driver), FIELDS and UrStatus in rtde_client.py with the RTDE client: all named here as before.
 
 
 class UrRefused(DeviceError):
@@ -150,14 +87,7 @@ class UrStopped(CycleAborted):
     """A program stopped by the robot: a safety stop, the power gone; ``status`` says it."""
 
 
-@dataclass
-class _State:
-    values: dict[str, Any] = field(default_factory=dict)
-    at: float = -math.inf
-    count: int = 0
-
-
-class UrRobot(LinkDriver):
+class UrRobot(RtdeClient, LinkDriver):
     """One UR controller (see module docstring); ``link`` is its Dashboard Server."""
 
     def __init__(
@@ -252,109 +182,6 @@ class UrRobot(LinkDriver):
 
     def _save(self) -> None:
         self._persist({"initialized": self.initialized})
-
-    # -- RTDE -------------------------------------------------------------------------------------
-
-    async def _packet(self, link: Link, timeout: float) -> tuple[int, bytes]:
-        header = await link.read_exactly(rtde.HEADER.size, timeout=timeout)
-        size, _ = rtde.HEADER.unpack(header)
-        if size < rtde.HEADER.size:
-            raise ProtocolError(f"{self.name}: RTDE packet size {size}", header)
-        body = await link.read_exactly(size - rtde.HEADER.size, timeout=timeout)
-        packet_type, payload, _ = rtde.decode(header + body)
-        return packet_type, payload
-
-    async def _request(self, link: Link, packet_type: int, payload: bytes) -> bytes:
-        await link.write(rtde.encode(packet_type, payload))
-        while True:
-            got, reply = await self._packet(link, self.options.reply_timeout)
-            if got == packet_type:
-                return reply
-            if got != rtde.PacketType.TEXT_MESSAGE:
-                raise UnexpectedReply(f"{self.name}: RTDE answered type {got} to {packet_type}",
-                                      reply[:32])  # fmt: skip
-
-    async def _rtde_handshake(self, link: Link) -> None:
-        t = rtde.PacketType
-        reply = await self._request(
-            link, t.REQUEST_PROTOCOL_VERSION, rtde.request_protocol_version(2)
-        )
-        if not rtde.parse_protocol_version_reply(reply):
-            raise ProtocolError(f"{self.name}: the controller refused RTDE protocol version 2")
-        self.version = rtde.parse_controller_version_reply(
-            await self._request(link, t.GET_URCONTROL_VERSION, b"")
-        )
-        fields = list(FIELDS)
-        if self.options.end_register is not None:
-            fields.append(f"output_int_register_{self.options.end_register}")
-        frequency = min(self.options.rtde_frequency, self.version.max_frequency)
-        reply = await self._request(
-            link, t.SETUP_OUTPUTS, rtde.setup_outputs_payload(frequency, fields)
-        )
-        self._recipe = rtde.parse_setup_reply(reply, fields)
-        if not self._recipe.ok:
-            raise ProtocolError(
-                f"{self.name}: RTDE refused fields: {', '.join(self._recipe.refused())}"
-            )
-        if not rtde.parse_start_reply(await self._request(link, t.START, b"")):
-            raise ProtocolError(f"{self.name}: RTDE did not start")
-
-    async def _read_rtde(self, link: Link) -> None:
-        try:
-            while True:
-                packet_type, payload = await self._packet(link, self.options.state_timeout * 5)
-                if packet_type == rtde.PacketType.DATA_PACKAGE:
-                    state = self._state
-                    state.values = rtde.unpack_data(self._recipe, payload)
-                    state.at = self.clock.monotonic()
-                    state.count += 1
-                    self._changed.set()
-        except CellctlError as e:
-            self.rtde_error = e
-            self._changed.set()
-
-    def _fresh(self) -> dict[str, Any]:
-        """The latest RTDE values; LinkTimeout/LinkClosed when the stream stopped."""
-        if self.rtde_error is not None:
-            raise LinkClosed(f"{self.name}: RTDE stream ended: {self.rtde_error}")
-        age = self.clock.monotonic() - self._state.at
-        if age > self.options.state_timeout:
-            raise LinkTimeout(
-                f"{self.name}: no RTDE package for {age:.1f} s "
-                f"(state_timeout {self.options.state_timeout:g} s)"
-            )
-        return self._state.values
-
-    def _status_of(self, values: dict[str, Any]) -> UrStatus:
-        return UrStatus(
-            mode=_member(RobotMode, values["robot_mode"], RobotMode.NO_CONTROLLER),
-            safety=_member(SafetyStatus, values["safety_mode"], SafetyStatus.FAULT),
-            runtime=_member(RuntimeState, values["runtime_state"], RuntimeState.STOPPED),
-            inputs=values["actual_digital_input_bits"],
-            outputs=values["actual_digital_output_bits"],
-            q=values["actual_q"],
-        )
-
-    async def _wait_state(self, ok: Any, timeout: float, what: str) -> UrStatus:
-        """Wait (deadline ``timeout``) for an RTDE package whose status satisfies ``ok``."""
-        deadline = self.clock.monotonic() + timeout
-        while True:
-            if self._state.count:
-                status = self._status_of(self._fresh())
-                if ok(status):
-                    return status
-            elif self.rtde_error is not None:
-                self._fresh()
-            left = deadline - self.clock.monotonic()
-            if left <= 0:
-                now = self._status_of(self._fresh()) if self._state.count else None
-                raise SignalTimeout(
-                    f"{self.name}: no {what} within {timeout:g} s"
-                    + (f" ({now})" if now is not None else "")
-                )
-            self._changed.clear()
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._changed.wait(), min(left, self.options.state_timeout))
 
     # -- the Dashboard Server ---------------------------------------------------------------------
 
@@ -607,13 +434,6 @@ class UrRobot(LinkDriver):
         await self.command("power off")
         self.initialized = False
         self._save()
-
-
-def _member(cls: Any, value: int, default: Any) -> Any:
-    try:
-        return cls(value)
-    except ValueError:
-        return default
 
 
 def read_program(path: Path) -> str:

@@ -20,7 +20,7 @@ from cellctl.factory.config import load_factory
 from cellctl.factory.emulated import EmulatedFactory
 from cellctl.factory.store import DONE, FactoryStore
 from cellctl.mailbox import CANCELLED, Mailbox, open_mailbox
-from cellctl.testing.rig import TIME_SCALE, cli, write_cell_options
+from cellctl.testing.rig import MILL_INDEX, TIME_SCALE, cli, where_transferred, write_cell_options
 
 from .conftest import CELLCTL
 
@@ -36,7 +36,6 @@ CLI_S = 30.0
 #: A pallet asked for comes within milliseconds here: one that does not come is an alarm
 #: after 2 s, not after the example cell's 60 (a failure then says so within the deadlines).
 CELL_OPTIONS = {"pallet_timeout": 2.0}
-MILL_INDEX = {"cnc1": 1, "cnc2": 2}
 
 
 class Plant:
@@ -274,13 +273,7 @@ class Plant:
         for part in journal.parts(statuses=["held"]):
             step = journal.steps(part.id)[-1]
             if step.kind == "transfer":
-                source, target = step.program.split("_to_")
-                assert cell.gripper is None, f"{part.id} in the gripper\n{self.describe()}"
-                if target == "conveyor":
-                    made = sum(p.status == "done" for p in journal.parts())
-                    where = "out" if len(cell.outfeed) > made else source
-                else:
-                    where = target if cell.vise[MILL_INDEX[target]] is not None else source
+                where = await where_transferred(cell, journal, step)
                 await operator("part", "release", part.id, "--at", where)
             else:
                 blank = cell.vise[MILL_INDEX[step.machine]]

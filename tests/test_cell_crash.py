@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 from cellctl.cell.journal import INTERRUPTED_TRANSFER
-from cellctl.testing.rig import CellRig
+from cellctl.testing.rig import MILL_INDEX, CellRig, where_transferred
 
 
 async def spawn_controller(directory: Path, log: Path) -> asyncio.subprocess.Process:
@@ -67,27 +67,20 @@ def kill_points(rig: CellRig, rng: random.Random) -> list[tuple[str, Callable[[]
     return points
 
 
-MILL_INDEX = {"cnc1": 1, "cnc2": 2}
-
-
 async def operator_inspects(rig: CellRig) -> None:
     """Clear the alarms; find each held part in the cell and release it where it is.
 
-    After a kill the machines finished what they were doing: a transfer's part is at its
-    target, a cut ran to its end. The operator looks (the emulators' physical state) and
-    says so: a part in a vise whose mill's log shows its cut counts as cut.
+    After a kill the machines finished what they were doing: a transfer's part is where
+    the arm left it, a cut ran to its end; a transfer the running controller stopped
+    mid-way left its part in the gripper, which goes back by hand. The operator looks (the
+    emulators' physical state) and says so: a part in a vise whose mill's log shows its cut
+    counts as cut.
     """
     await rig.clear_alarms()
     for part in rig.held_parts():
         step = rig.journal.steps(part.id)[-1]
         if step.kind == "transfer":
-            source, target = step.program.split("_to_")
-            assert rig.cell.gripper is None
-            if target == "conveyor":
-                made = sum(p.status == "done" for p in rig.journal.parts())
-                where = "out" if len(rig.cell.outfeed) > made else source
-            else:
-                where = target if rig.cell.vise[MILL_INDEX[target]] is not None else source
+            where = await where_transferred(rig.cell, rig.journal, step)
             result = await rig.cli("part", "release", part.id, "--at", where)
         else:
             blank = rig.cell.vise[MILL_INDEX[step.machine]]

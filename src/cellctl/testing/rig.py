@@ -52,7 +52,7 @@ from click.testing import CliRunner, Result
 
 from cellctl.cell.config import load_cell
 from cellctl.cell.controller import CellController, ControllerOptions
-from cellctl.cell.journal import Journal, open_journal
+from cellctl.cell.journal import Journal, Step, open_journal
 from cellctl.clock import VIRTUAL_ORIGIN, VirtualClock, VirtualLoop, current_clock
 from cellctl.emulators.cell import EmulatedCell
 from cellctl.errors import UsageError
@@ -362,16 +362,7 @@ class CellRig:
         for part in self.held_parts():
             step = self.journal.steps(part.id)[-1]
             if step.kind == "transfer":
-                # The operator waits for the arm to stop, then finds the part: where the arm
-                # left it, or (still in the gripper) puts it back where it came from.
-                await self.wait_for(lambda: not self.cell.robot.running, "the arm at rest")
-                source, target = step.program.split("_to_")
-                if self.cell.gripper is not None and source in MILL_INDEX:
-                    self.cell.vise[MILL_INDEX[source]], self.cell.gripper = self.cell.gripper, None
-                assert self.cell.gripper is None
-                where = source
-                if target in MILL_INDEX and self.cell.vise[MILL_INDEX[target]] is not None:
-                    where = target
+                where = await where_transferred(self.cell, self.journal, step)
                 result = await self.cli("part", "release", part.id, "--at", where)
             else:
                 # Inspect the part in the vise: cut already (the mill's log says so), or not.
@@ -387,6 +378,37 @@ class CellRig:
         return {
             p: r for p, r in self.cell.runs_per_part().items() if any(n > 1 for n in r.values())
         }
+
+
+async def where_transferred(
+    cell: EmulatedCell, journal: Journal, step: Step, timeout: float = 30.0
+) -> str:
+    """Where the operator finds the part of a transfer ``step`` that did not end (the
+    ``--at`` of ``cellctl part release``), from the emulated cell's physical state.
+
+    The operator waits for the arm to stop; a part still in the gripper (a cycle stopped
+    mid-way) goes back where it came from, by hand; else it is where the arm left it: at the
+    target (a vise holds it, or the outfeed has one more than the parts done), or still at
+    the source.
+    """
+    clock = current_clock()
+    deadline = clock.monotonic() + timeout
+    while cell.robot.running:
+        if clock.monotonic() > deadline:
+            raise AssertionError(f"the arm still moving after {timeout:g} s ({step.program})")
+        await clock.sleep(0.01)
+    source, target = step.program.split("_to_")
+    if cell.gripper is not None:
+        if source in MILL_INDEX:
+            cell.vise[MILL_INDEX[source]], cell.gripper = cell.gripper, None
+        else:
+            assert cell.pallet_part is None, f"{cell.gripper} in the gripper, a pallet waiting"
+            cell.pallet_part, cell.gripper = cell.gripper, None
+        return source
+    if target in MILL_INDEX:
+        return target if cell.vise[MILL_INDEX[target]] is not None else source
+    made = sum(p.status == "done" for p in journal.parts())
+    return "out" if len(cell.outfeed) > made else source
 
 
 async def cli(directory: Path, *args: str) -> Result:

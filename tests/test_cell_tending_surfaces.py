@@ -21,6 +21,7 @@ from cellctl.factory.opcua import NAMESPACE
 from cellctl.kinds import registry
 from cellctl.service.client import attach
 from cellctl.service.token import read_token
+from cellctl.testing.rig import write_cell_options
 from cellctl.ui.cell_cli import run_controller
 from cellctl.ui.console.app import ConsoleApp
 from tests.conftest import free_port, until
@@ -46,6 +47,9 @@ async def running(tmp_path: Path) -> AsyncIterator[Running]:
     await emulated.start(directory)
     api = f"127.0.0.1:{free_port()}"
     opcua = f"opc.tcp://127.0.0.1:{free_port()}"
+    # OPC UA, the API and the emulated machines share this process with the controller: on a
+    # loaded box the PLC's answer can take over its 1 s default (tests/test_dashboard.py).
+    write_cell_options(directory / "cell.toml", {}, {}, {"timeout": 5.0})
     with (directory / "cell.toml").open("a", encoding="utf-8") as toml:
         toml.write(
             f'\n[api]\nlisten = "{api}"\n\n[opcua]\nlisten = "{opcua}"\nanonymous_read = true\n'

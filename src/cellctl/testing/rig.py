@@ -86,6 +86,11 @@ def fast_options(**overrides: Any) -> dict[str, Any]:
     return values
 
 
+#: ``[plc]`` values for tests: the PLC in this process beside the controller, on a loaded box
+#: (a 1 s answer, the default, is a LAN's; a test box's scheduling can take that long).
+FAST_PLC_OPTIONS: dict[str, float] = {"timeout": 3.0}
+
+
 class CellRig:
     """An :class:`EmulatedCell` in ``directory`` and, on demand, its controller."""
 
@@ -103,9 +108,10 @@ class CellRig:
         """``deadlines="fast"``: the tests' short deadlines (:func:`fast_options`), then
         ``cell_options`` and ``mill_options`` over them; ``"emulated"``: only those given
         over what ``cellctl emulate cell`` writes. ``plc_options``: ``[plc]`` values
-        (``timeout``, ``poll``). ``links``: the machines on ptys and
-        sockets ("real") or in this loop ("mem"); by default "mem" on a virtual loop (made
-        in it), where real links cannot go, else "real"."""
+        (``timeout``, ``poll``), over :data:`FAST_PLC_OPTIONS` for fast deadlines.
+        ``links``: the machines on ptys and sockets ("real") or in this loop ("mem"); by
+        default "mem" on a virtual loop (made in it), where real links cannot go, else
+        "real"."""
         self.directory = directory
         clock = current_clock()
         if isinstance(clock, VirtualClock):
@@ -120,7 +126,7 @@ class CellRig:
         fast = deadlines == "fast"
         self.cell_options = fast_options(**(cell_options or {})) if fast else (cell_options or {})
         self.mill_options = {**(FAST_MILL_OPTIONS if fast else {}), **(mill_options or {})}
-        self.plc_options = plc_options or {}
+        self.plc_options = {**(FAST_PLC_OPTIONS if fast else {}), **(plc_options or {})}
         self.controller: CellController | None = None
         self.stop_event = asyncio.Event()
         self._run_task: asyncio.Task[None] | None = None

@@ -119,12 +119,15 @@ LOADED_MILL_OPTIONS = {"setup_timeout": LOADED_BOX_S, "block_extra": LOADED_BOX_
 @pytest.fixture
 async def rig(tmp_path: Path) -> AsyncIterator[CellRig]:
     async with CellRig(
-        tmp_path / "cell", cell_options=LOADED_CELL_OPTIONS, mill_options=LOADED_MILL_OPTIONS
+        tmp_path / "cell",
+        cell_options=LOADED_CELL_OPTIONS,
+        mill_options=LOADED_MILL_OPTIONS,
+        plc_options={"timeout": LOADED_BOX_S},
     ) as rig:
         # The emulated robot's own wait for the host (a second of wall time at this scale).
         rig.cell.robot.host_timeout_s = LOADED_BOX_S * rig.cell.robot.time_scale
         toml = rig.directory / "cell.toml"
-        text = toml.read_text().replace("[plc]\n", f"[plc]\ntimeout = {LOADED_BOX_S}\n", 1)
+        text = toml.read_text()
         text += f"\n[machines.robot.options]\nreply_timeout = {LOADED_BOX_S}\n"
         toml.write_text(text)
         yield rig

@@ -491,7 +491,10 @@ def write_cell_options(
     cell's cell.toml."""
     text = toml.read_text(encoding="utf-8")
     for key, value in (plc_options or {}).items():
-        text = text.replace("[plc]\n", f"[plc]\n{key} = {value:g}\n", 1)
+        start = text.index("[plc]\n") + len("[plc]\n")
+        end = text.find("\n[", start) + 1 or len(text)
+        section = re.sub(rf"^{key}\s*=.*\n", "", text[start:end], flags=re.MULTILINE)
+        text = text[:start] + f"{key} = {value:g}\n" + section + text[end:]
     for key, value in cell_options.items():
         line = f"{key} = {_toml_value(value)}"
         pattern = re.compile(rf"^{key}\s*=.*$", re.MULTILINE)

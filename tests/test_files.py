@@ -108,3 +108,40 @@ def test_a_program_sent_by_hand_that_is_a_fifo_is_refused_before_a_byte_goes_out
     )
     assert result.returncode != 0
     assert "a FIFO, not a regular file" in result.stderr + result.stdout, result
+
+
+@pytest.mark.parametrize(
+    ("args", "said"),
+    [
+        (["emulate", "iso-cnc", "--load", "{fifo}"], "--load {fifo}: cannot read it: a FIFO"),
+        (["emulate", "ur", "--program", "tend.urp={fifo}"], "{fifo}: cannot read it: a FIFO"),
+    ],
+)
+def test_an_emulator_given_a_fifo_to_load_says_so_and_exits_2(
+    fifo: Path, args: list[str], said: str
+) -> None:
+    """In the user's words, before anything is served (no ``[Errno 22]``, no traceback)."""
+    result = subprocess.run(
+        [sys.executable, "-m", "cellctl", *(a.format(fifo=fifo) for a in args)],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert result.returncode == 2, result
+    assert result.stderr.strip().startswith(f"error: {said.format(fifo=fifo)}"), result.stderr
+    assert "Traceback" not in result.stderr and "Errno" not in result.stderr
+
+
+def test_a_program_that_is_not_ascii_is_refused_with_its_byte(tmp_path: Path) -> None:
+    program = tmp_path / "O1.nc"
+    program.write_bytes(b"O1\n\xff\nM30\n")
+    result = subprocess.run(
+        [sys.executable, "-m", "cellctl", "emulate", "iso-cnc", "--load", str(program)],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert (result.returncode, result.stderr.strip()) == (
+        2,
+        f"error: --load {program}: cannot read it: byte 4 is not ascii text",
+    )

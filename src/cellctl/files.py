@@ -60,6 +60,13 @@ def read_file(path: Path | str, *, limit: int = MAX_FILE_BYTES) -> bytes:
     return data
 
 
+def reason(error: OSError | UnicodeDecodeError) -> str:
+    """Why a read failed, in a user's words (not Python's ``[Errno 22] ...: 'path'``)."""
+    if isinstance(error, UnicodeDecodeError):
+        return f"byte {error.start + 1} is not {error.encoding} text"
+    return error.strerror or str(error)
+
+
 def read_text(
     path: Path | str,
     encoding: str = "utf-8",

@@ -49,7 +49,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cellctl.errors import ChecksumError, FramingError, UsageError
-from cellctl.files import read_text
+from cellctl.files import read_text, reason
 
 __all__ = [
     "ACK",
@@ -537,7 +537,7 @@ class ProgramFile:
         try:
             text = read_text(path, "ascii")
         except (OSError, UnicodeDecodeError) as e:
-            raise UsageError(f"{path}: cannot read program file: {e}") from None
+            raise UsageError(f"{path}: cannot read program file: {reason(e)}") from None
         return cls.parse(text, str(path))
 
     @property

@@ -13,7 +13,7 @@ from pathlib import Path
 import click
 
 from cellctl.errors import CellctlError, UsageError
-from cellctl.files import read_text
+from cellctl.files import read_text, reason
 from cellctl.kinds.iso_cnc import tape
 from cellctl.kinds.iso_cnc.emulator import FAULTS, EmulatorOptions, IsoCncEmulator, Mode
 from cellctl.kinds.iso_cnc.options import ISO_LINE
@@ -113,7 +113,11 @@ def _emulate_iso_cnc(
         control = IsoCncEmulator(options, time_scale=time_scale)
         control.mode = Mode(mode.upper())
         for path in load:
-            for program in tape.split_programs(read_text(path, "ascii")):
+            try:
+                text = read_text(path, "ascii")
+            except (OSError, UnicodeDecodeError) as e:
+                raise UsageError(f"--load {path}: cannot read it: {reason(e)}") from None
+            for program in tape.split_programs(text):
                 control.memory[program.number] = program.text
         for text in fault:
             name, arg = parse_fault(text)

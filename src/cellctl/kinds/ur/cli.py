@@ -6,7 +6,7 @@ import click
 
 from cellctl.emulators.serve import MACHINE_TIME_SCALE, TIME_SCALE_HELP, parse_fault
 from cellctl.errors import UsageError
-from cellctl.files import read_text
+from cellctl.files import read_text, reason
 from cellctl.kinds.ur.emulator import FAULTS, UrEmulator
 from cellctl.kinds.ur.motion import ARMS
 from cellctl.ui.common import console, fault_help, run
@@ -21,7 +21,7 @@ def _programs(items: tuple[str, ...]) -> dict[str, str]:
         try:
             out[path] = read_text(file)
         except (OSError, UnicodeDecodeError) as e:
-            raise UsageError(f"{file}: cannot read it: {e}") from None
+            raise UsageError(f"{file}: cannot read it: {reason(e)}") from None
     return out
 
 

@@ -48,7 +48,7 @@ from cellctl.errors import (
     UnexpectedReply,
     UsageError,
 )
-from cellctl.files import read_text
+from cellctl.files import read_text, reason
 from cellctl.kinds.condition import Condition
 from cellctl.kinds.families import CycleAborted, HostStatus, RecordsProgress
 from cellctl.kinds.ur import rtde
@@ -441,7 +441,7 @@ def read_program(path: Path) -> str:
     try:
         return read_text(path)
     except (OSError, UnicodeDecodeError) as e:
-        raise UsageError(f"{path}: cannot read it: {e}") from None
+        raise UsageError(f"{path}: cannot read it: {reason(e)}") from None
 
 
 __all__ = [

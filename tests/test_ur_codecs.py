@@ -22,7 +22,7 @@ from cellctl.kinds.ur.dashboard import (
 )
 from cellctl.kinds.ur.motion import ARMS, HOME, move_time
 from cellctl.kinds.ur.program import compile_program, preview_svg
-from cellctl.kinds.ur.urscript import ScriptError, check, estimate, parse, run
+from cellctl.kinds.ur.urscript import OffRobot, ScriptError, check, estimate, parse, run
 
 UR5E = ARMS["UR5e"]
 
@@ -200,31 +200,6 @@ def test_check_finds_what_fails_on_the_robot_with_line_and_column() -> None:
     assert check("end\n", UR5E, "e") == ["e:1:1: 'end' without a block to close"]
 
 
-class _Quiet:
-    """A robot's I/O for running a script off the robot: inputs off, outputs kept."""
-
-    def __init__(self) -> None:
-        self.outputs: dict[int, bool] = {}
-
-    def digital_in(self, n: int) -> bool:
-        return False
-
-    def digital_out(self, n: int) -> bool:
-        return self.outputs.get(n, False)
-
-    def set_digital_out(self, n: int, value: bool) -> None:
-        self.outputs[n] = value
-
-    def write_register(self, n: int, value: int) -> None:
-        pass
-
-    def read_register(self, n: int) -> int:
-        return 0
-
-    def message(self, text: str) -> None:
-        pass
-
-
 def test_a_break_outside_a_loop_is_found_and_ends_a_run_in_the_robots_words() -> None:
     # A break in a function ends nothing in the loop that called it.
     text = (
@@ -245,7 +220,7 @@ def test_a_break_outside_a_loop_is_found_and_ends_a_run_in_the_robots_words() ->
         "def main():\n  def leave():\n    break\n  end\n  while True:\n    leave()\n  end\nend\n"
     )
     with pytest.raises(ScriptError, match="Runtime error: 'break' outside a loop"):
-        list(run(parse(called), _Quiet(), UR5E))
+        list(run(parse(called), OffRobot(), UR5E))
     # The estimate of such a program stops where the robot would.
     assert estimate(parse("movej([0,0,0,0,0,0])\nbreak\nsleep(5)\n"), UR5E, limit_s=10)[0] < 5
 

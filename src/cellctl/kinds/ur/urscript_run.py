@@ -399,8 +399,9 @@ class _Runner:
                 scope[target] = value
 
 
-class _Estimate:
-    """An environment for estimating a program's time: inputs as they are asked to be."""
+class OffRobot:
+    """An environment for running a program off the robot (its time estimate, a test):
+    inputs as they are asked to be, outputs kept, registers 0."""
 
     def __init__(self) -> None:
         self.q: Joints = HOME
@@ -431,7 +432,7 @@ def estimate(program: Program, arm: Arm, limit_s: float = 3600.0) -> tuple[float
     total = 0.0
     moves: list[Move] = []
     try:
-        for step in run(program, _Estimate(), arm):
+        for step in run(program, OffRobot(), arm):
             total += step.seconds
             if isinstance(step, Move):
                 moves.append(step)

@@ -98,8 +98,8 @@ def test_a_cell_whose_programs_name_a_device_or_a_fifo_is_checked_at_once(
 def test_a_program_sent_by_hand_that_is_a_fifo_is_refused_before_a_byte_goes_out(
     fifo: Path,
 ) -> None:
-    """``cellctl dnc send`` and the machines' manual functions read through the same check:
-    the command ends with the refusal (no controller, no emulator: nothing else is asked)."""
+    """A mill's download by hand reads its program through the same check: the command ends
+    with the refusal (no controller, no emulator: nothing else is asked)."""
     result = subprocess.run(
         [sys.executable, "-m", "cellctl", "mill", "--link", "mem://nobody", "download", str(fifo)],
         capture_output=True,

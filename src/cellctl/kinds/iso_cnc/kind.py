@@ -4,6 +4,7 @@ Haas style), of the mill family."""
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import math
 from collections.abc import Sequence
@@ -94,7 +95,9 @@ def _check(path: Path, role: ProgramRole, options: BaseModel) -> CheckedProgram:
         text = read_file(path, limit=chosen.max_bytes).decode("ascii")
     except OSError as e:
         if e.errno == errno.EFBIG:
-            return CheckedProgram((gcode.too_long(path.stat().st_size, chosen).format(str(path)),))
+            with contextlib.suppress(OSError):  # gone since: said as any other failed read
+                size = path.stat().st_size
+                return CheckedProgram((gcode.too_long(size, chosen).format(str(path)),))
         return CheckedProgram((f"{path}: cannot read: {e.strerror or e}",))
     except UnicodeDecodeError as e:
         return CheckedProgram((f"{path}: byte {e.start}: not ISO code (7-bit ASCII)",))

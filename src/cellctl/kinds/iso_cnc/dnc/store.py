@@ -232,8 +232,6 @@ def read_program_file(path: Path) -> bytes:
         data = read_file(path, limit=MAX_PROGRAM_BYTES)
     except FileNotFoundError:
         raise UsageError(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise UsageError(f"{path}: a directory, not a program") from None
     except OSError as e:
         raise UsageError(f"{path}: cannot read: {e.strerror}") from None
     try:

@@ -48,8 +48,9 @@ async def running(tmp_path: Path) -> AsyncIterator[Running]:
     api = f"127.0.0.1:{free_port()}"
     opcua = f"opc.tcp://127.0.0.1:{free_port()}"
     # OPC UA, the API and the emulated machines share this process with the controller: on a
-    # loaded box the PLC's answer can take over its 1 s default (tests/test_dashboard.py).
-    write_cell_options(directory / "cell.toml", {}, {}, {"timeout": 5.0})
+    # loaded box the PLC's answer, or a look at an idle machine, can take over its deadline
+    # (tests/test_dashboard.py).
+    write_cell_options(directory / "cell.toml", {"read_limit": 5.0}, {}, {"timeout": 5.0})
     with (directory / "cell.toml").open("a", encoding="utf-8") as toml:
         toml.write(
             f'\n[api]\nlisten = "{api}"\n\n[opcua]\nlisten = "{opcua}"\nanonymous_read = true\n'

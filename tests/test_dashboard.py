@@ -126,11 +126,15 @@ async def dash(
     # A test may ask for a slower cell (parametrize "dash" indirectly with its time scale).
     scale = getattr(request, "param", None)
     # The cell shares this process with the page's driver, and the box with Chromium: on a
-    # loaded box a PLC answer can take over its 1 s default, which holds a part for a
-    # reason no page test is about (tests/test_cell_faults.py is where a silent PLC is).
-    plc = {"timeout": 5.0}
+    # loaded box a PLC answer, or a look at an idle machine, can take over its 1 s test
+    # deadline, which raises a link alarm for a reason no page test is about
+    # (tests/test_cell_faults.py is where a silent machine is, on virtual time).
+    loaded_s = 5.0
     async with CellRig(
-        tmp_path / "cell", plc_options=plc, **({"time_scale": scale} if scale else {})
+        tmp_path / "cell",
+        cell_options={"read_limit": loaded_s},
+        plc_options={"timeout": loaded_s},
+        **({"time_scale": scale} if scale else {}),
     ) as rig:
         await rig.start_controller()
         assert rig.controller is not None

@@ -212,14 +212,16 @@ CELLCTL = [str(Path(sys.executable).parent / "cellctl")]
 
 @contextmanager
 def emulator_process(*args: str) -> Iterator[str]:
-    """``cellctl emulate ARGS`` in its own process; yields the URL it says to drive it with."""
+    """``cellctl emulate ARGS`` in its own process; yields the URL it says to drive it with
+    (``--link URL``, or a dnc.toml's ``link = "URL"``)."""
     proc = subprocess.Popen([*CELLCTL, "emulate", *args], stdout=subprocess.PIPE, text=True)
     try:
         assert proc.stdout is not None
         url = ""
         for row in proc.stdout:
-            if "--link" in row:
-                url = row.split("--link", 1)[1].strip()
+            found = re.search(r'(?:--link |link = ")([^"\s]+)', row)
+            if found:
+                url = found.group(1)
                 break
         assert url, "the emulator did not say where it listens"
         yield url

@@ -126,6 +126,24 @@ def test_cell_check_validates_the_saw_s_options(tmp_path: Path) -> None:
 # -- the driver against its emulator, over a pty ------------------------------------------------
 
 
+async def test_cellctl_mill_drives_a_saw_at_a_link_given_its_kind(tmp_path: Path) -> None:
+    kind = saw_kind()
+    emulator = kind.emulator(EmulatorSpec(time_scale=200.0))
+    server = await serve(emulator, "pty", kind.line_settings)
+    try:
+        proc = await asyncio.create_subprocess_exec(
+            *CELLCTL, "--cell", str(tmp_path / "none"), "mill", "--kind", "kerf100",
+            "--link", server.url, "status",
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+        )  # fmt: skip
+        out, err = await asyncio.wait_for(proc.communicate(), 60)
+    finally:
+        await server.close()
+    # The saw's own status in its words, read at its own line settings (9600,8N1).
+    assert proc.returncode == 0, err.decode()
+    assert out.decode().strip() == "not homed"
+
+
 async def test_the_driver_cuts_homes_and_reports_the_emulator_s_faults(tmp_path: Path) -> None:
     kind = saw_kind()
     emulator = kind.emulator(EmulatorSpec(time_scale=200.0))

@@ -53,36 +53,62 @@ def resolve_machine(
     name: str | None,
     link: str | None,
     line: str | None = None,
+    kind: str | None = None,
+    function: str | None = None,
 ) -> MachineRef:
-    """Resolve ``--link``/NAME for a ``family`` (``robot`` or ``mill``); refuses unknown names."""
+    """Resolve ``--link``/NAME for a ``family`` (``robot`` or ``mill``); refuses unknown names.
+
+    ``kind`` (``--kind``) is the machine's kind: at ``--link``, what the link is driven as;
+    with a NAME, it must be the kind cell.toml gives; with neither, it picks the cell's only
+    machine of that kind. At ``--link`` without it, the family's first kind is taken, unless
+    only other kinds of the family have ``function`` (``cellctl robot --link URL unlock``).
+    """
     kinds = registry.names(family)
     if not kinds:
         raise UsageError(f"no {family} kind is installed (`cellctl kinds` lists them)")
+    if kind is not None and kind not in kinds:
+        raise UsageError(f"{kind!r} is not a {family} kind (installed: {', '.join(kinds)})")
     if link:
-        settings = LineSettings.parse(line) if line else registry.kind(kinds[0]).line_settings
-        return MachineRef(name or link, kinds[0], link, settings)
+        chosen = kind or _kind_for(family, kinds, function)
+        settings = LineSettings.parse(line) if line else registry.kind(chosen).line_settings
+        return MachineRef(name or link, chosen, link, settings)
     if not (cell_dir / "cell.toml").exists():
         raise UsageError(
             f"no {cell_dir / 'cell.toml'}: give --link URL, or --cell DIR of a cell "
             "(`cellctl emulate cell` writes one)"
         )
     machines: dict[str, Any] = load_cell_file(cell_dir).get("machines", {})
-    mine = {n: m for n, m in machines.items() if isinstance(m, dict) and m.get("kind") in kinds}
+    wanted = kinds if kind is None else (kind,)
+    mine = {n: m for n, m in machines.items() if isinstance(m, dict) and m.get("kind") in wanted}
+    what = family if kind is None else f"{family} of kind {kind}"
     if name is None:
         if len(mine) == 1:
             name = next(iter(mine))
         else:
             known = ", ".join(sorted(mine)) or f"none in {cell_dir / 'cell.toml'}"
-            raise UsageError(f"which {family}? give --link URL or a NAME (known: {known})")
+            raise UsageError(f"which {what}? give --link URL or a NAME (known: {known})")
     if name not in machines:
         known = ", ".join(sorted(mine)) or f"none in {cell_dir / 'cell.toml'}"
-        raise UsageError(f"unknown {family} {name!r} (known: {known})")
+        raise UsageError(f"unknown {what} {name!r} (known: {known})")
     entry = machines[name]
-    kind = entry.get("kind")
-    if kind not in kinds:
-        raise UsageError(f"machine {name!r} is a {kind!r}, not a {family}")
+    found = entry.get("kind")
+    if found not in kinds:
+        raise UsageError(f"machine {name!r} is a {found!r}, not a {family}")
+    if kind is not None and found != kind:
+        raise UsageError(f"machine {name!r} is a {found!r}, not a {kind!r} (cell.toml)")
     if not entry.get("link"):
         raise UsageError(f"machine {name!r} has no link URL in cell.toml")
     text = line or entry.get("line")
-    settings = LineSettings.parse(text) if text else registry.kind(kind).line_settings
-    return MachineRef(name, kind, str(entry["link"]), settings, dict(entry.get("options", {})))
+    settings = LineSettings.parse(text) if text else registry.kind(found).line_settings
+    return MachineRef(name, found, str(entry["link"]), settings, dict(entry.get("options", {})))
+
+
+def _kind_for(family: str, kinds: tuple[str, ...], function: str | None) -> str:
+    """The kind a machine at ``--link`` is driven as when no ``--kind`` is given: the
+    family's first, unless only others have ``function``."""
+    from cellctl.service.functions import kind_menu
+
+    having = [
+        k for k in kinds if any(f.family == family and f.name == function for f in kind_menu(k))
+    ]
+    return having[0] if having and kinds[0] not in having else kinds[0]

@@ -65,7 +65,7 @@ def machine_call(
         from cellctl.service.access import LocalCell
         from cellctl.service.client import StandaloneCell, open_cell
 
-        _, ref = machine_ref(ctx, family)
+        _, ref = machine_ref(ctx, family, function)
         if options:
             ref = dataclasses.replace(ref, options={**ref.options, **options})
         trace = given.get("trace")

@@ -26,6 +26,7 @@ from cellctl.kinds import registry
 from cellctl.service.machines import MachineRef, resolve_machine
 
 T = TypeVar("T")
+FC = TypeVar("FC", bound=Callable[..., Any])
 
 log = logging.getLogger(__name__)
 
@@ -395,8 +396,11 @@ async def _unless_stopped(stop: asyncio.Event, work: Awaitable[None]) -> None:
         task.result()
 
 
-def machine_ref(ctx: click.Context, family: str) -> tuple[Path, MachineRef]:
-    """The cell directory and the machine a ``robot``/``mill`` command means (NAME or --link)."""
+def machine_ref(
+    ctx: click.Context, family: str, function: str | None = None
+) -> tuple[Path, MachineRef]:
+    """The cell directory and the machine a ``robot``/``mill`` command (``function``) means:
+    NAME or ``--link``, and ``--kind``."""
     params = ctx.find_object(dict) or {}
     directory = cell_dir(ctx)
     ref = resolve_machine(
@@ -405,8 +409,20 @@ def machine_ref(ctx: click.Context, family: str) -> tuple[Path, MachineRef]:
         name=ctx.meta.get("machine_name"),
         link=params.get("link"),
         line=params.get("line"),
+        kind=params.get("kind"),
+        function=function,
     )
     return directory, ref
+
+
+def kind_option(family: str) -> Callable[[FC], FC]:
+    """``--kind KIND`` for the ``family`` command group (``cellctl robot --kind ...``)."""
+    return click.option(
+        "--kind",
+        metavar="KIND",
+        help=f"The {family}'s kind (`cellctl kinds`): at --link, what it is driven as (default: "
+        f"the first {family} kind that has the command); with a NAME, checked against cell.toml.",
+    )
 
 
 def fault_help(faults: dict[str, str]) -> str:

@@ -71,14 +71,20 @@ def listen_options(
 
 
 async def serve_until_stopped(
-    device: EmulatedDevice, listen: str, line: str, pacing: bool, what: str
+    device: EmulatedDevice,
+    listen: str,
+    line: str,
+    pacing: bool,
+    what: str,
+    hint: str = "drive it with: --link {url}",
 ) -> None:
-    """Serve ``device``, print where, and run until Ctrl-C or SIGTERM."""
+    """Serve ``device``, print where and ``hint`` (how to drive it, with its ``{url}``), and
+    run until Ctrl-C or SIGTERM."""
     settings = LineSettings.parse(line)
     server = await serve(device, listen, settings, pacing=pacing)
     paced = "on" if pacing else "off"
     console.print(f"{what} listening on {server.url}  ({settings}, pacing {paced})")
-    console.print(f"  drive it with: --link {server.url}")
+    console.print("  " + hint.format(url=server.url), soft_wrap=True)
     try:
         await until_stopped()
     finally:
@@ -94,9 +100,10 @@ async def serve_fleet_until_stopped(
     what: str,
     count: int,
     workers: int,
+    hint: str = "drive it with: --link {url}",
 ) -> None:
     """Serve ``count`` machines (``make(i)`` each) over ``workers`` processes, print where
-    each listens, and run until Ctrl-C or SIGTERM."""
+    each listens (``hint`` with its ``{url}``), and run until Ctrl-C or SIGTERM."""
     from cellctl.emulators.fleet import Fleet, check_fleet, serve_many
 
     settings = LineSettings.parse(line)
@@ -118,7 +125,7 @@ async def serve_fleet_until_stopped(
             f"({settings}, pacing {paced})"
         )
         for i, url in enumerate(urls, 1):
-            console.print(f"  {i}: drive it with: --link {url}", soft_wrap=True)
+            console.print(f"  {i}: " + hint.format(url=url), soft_wrap=True)
         await until_stopped()
     finally:
         for s in servers:

@@ -24,7 +24,15 @@ from cellctl.kinds.dyna2400.options import MillConfig
 from cellctl.kinds.families import estimated_done
 from cellctl.service.machines import load_cell_file
 from cellctl.ui.calls import LazyBar, machine_call, read_program
-from cellctl.ui.common import MachineGroup, cell_dir, console, err_console, fault_help, run
+from cellctl.ui.common import (
+    MachineGroup,
+    cell_dir,
+    console,
+    err_console,
+    fault_help,
+    kind_option,
+    run,
+)
 from cellctl.ui.emulate_cli import listen_options, serve_until_stopped
 
 
@@ -64,7 +72,9 @@ def _program_file(path: Path) -> Path:
 
 @click.group(cls=MachineGroup)
 @click.option("--link", metavar="URL", help="Device path, socket://, rfc2217:// or loop://.")
-@click.option("--line", metavar="SETTINGS", help="Line settings, e.g. 4800,7E2 (the default).")
+@click.option(
+    "--line", metavar="SETTINGS", help="Line settings, e.g. 4800,7E2 (the kind's by default)."
+)
 @click.option(
     "--trace", type=click.Path(dir_okay=False), help="Write every byte both ways to this file."
 )
@@ -74,6 +84,7 @@ def _program_file(path: Path) -> Path:
     help="Where readiness comes from: CTS (modem, the default) or DC1/DC3 in the data (inband, "
     "for links without modem lines).",
 )
+@kind_option("mill")
 @click.pass_context
 def mill(
     ctx: click.Context,
@@ -81,9 +92,14 @@ def mill(
     line: str | None,
     trace: str | None,
     readiness: str | None,
+    kind: str | None,
 ) -> None:
-    """Dyna 2400 CNC mill: [--link URL | NAME] COMMAND."""
-    ctx.obj = {"link": link, "line": line, "trace": trace, "readiness": readiness}
+    """A mill: the cell's NAME, or the one at --link URL: [--link URL [--kind KIND] | NAME]
+    COMMAND.
+
+    The commands are the Dyna 2400's, then those other mill kinds add (each says its kind).
+    """
+    ctx.obj = {"link": link, "line": line, "trace": trace, "readiness": readiness, "kind": kind}
 
 
 @mill.command(
@@ -368,7 +384,12 @@ def _emulate_mill_command() -> click.Command:
             panel = asyncio.ensure_future(_panel(device)) if manual else None
             try:
                 await serve_until_stopped(
-                    device, listen, line, not no_pacing, "Dyna 2400 mill emulator"
+                    device,
+                    listen,
+                    line,
+                    not no_pacing,
+                    "Dyna 2400 mill emulator",
+                    "drive it with: cellctl mill --link {url}",
                 )
             finally:
                 if panel is not None:

@@ -22,7 +22,7 @@ from cellctl.emulators.serve import parse_fault
 from cellctl.errors import UsageError
 from cellctl.link import ROBOT_LINE
 from cellctl.ui.calls import LazyBar, machine_call, read_program
-from cellctl.ui.common import MachineGroup, console, fault_help, run
+from cellctl.ui.common import MachineGroup, console, fault_help, kind_option, run
 
 
 def _call(ctx: click.Context, function: str, **params: Any) -> dict[str, Any]:
@@ -39,20 +39,32 @@ def _print(result: dict[str, Any]) -> None:
     console.print(result["message"], markup=False)
 
 
+#: What ``cellctl emulate robot`` says to drive its emulator with.
+HINT = "drive it with: cellctl robot --link {url}"
+
+
 @click.group(cls=MachineGroup)
 @click.option("--link", metavar="URL", help="Device path, socket://, rfc2217:// or loop://.")
-@click.option("--line", metavar="SETTINGS", help="Line settings, e.g. 4800,7E2 (the default).")
+@click.option(
+    "--line", metavar="SETTINGS", help="Line settings, e.g. 4800,7E2 (the kind's by default)."
+)
 @click.option(
     "--trace", type=click.Path(dir_okay=False), help="Write every byte both ways to this file."
 )
+@kind_option("robot")
 @click.pass_context
-def robot(ctx: click.Context, link: str | None, line: str | None, trace: str | None) -> None:
-    """IBM 7545/7547 robot controller: [--link URL | NAME] COMMAND.
+def robot(
+    ctx: click.Context, link: str | None, line: str | None, trace: str | None, kind: str | None
+) -> None:
+    """A robot: the cell's NAME, or the one at --link URL: [--link URL [--kind KIND] | NAME]
+    COMMAND.
 
-    While `cellctl run` runs the cell, a command on one of its machines goes through the
-    controller's API (the machine must be out of automatic service for anything but status).
+    The commands are the IBM 7545/7547 controller's, then those other robot kinds add (each
+    says its kind). While `cellctl run` runs the cell, a command on one of its machines goes
+    through the controller's API (the machine must be out of automatic service for anything
+    but status).
     """
-    ctx.obj = {"link": link, "line": line, "trace": trace}
+    ctx.obj = {"link": link, "line": line, "trace": trace, "kind": kind}
 
 
 @robot.command()
@@ -124,8 +136,11 @@ def halt(ctx: click.Context) -> None:
 @robot.command()
 @click.pass_context
 def status(ctx: click.Context) -> None:
-    """Robot state, decoded status bytes, partitions Full/Empty."""
+    """Robot state, decoded status bytes, partitions Full/Empty (another kind: its own)."""
     st = machine_call(ctx, "robot", "status", {})
+    if "partitions" not in st:  # another robot kind's status: its own words
+        _print(st)
+        return
     table = Table(title=st["name"], show_header=False)
     table.add_row("Robot state", f"{st['state']} ({st['state_text']})")
     table.add_row("Machine status", f"{st['machine_status']} (bytes {st['status_bytes']})")
@@ -265,10 +280,10 @@ def _emulate_command() -> click.Command:
         async def main() -> None:
             what = "IBM 7545 emulator"
             if count == 1 and workers == 1:
-                await serve_until_stopped(make(), listen, line, not no_pacing, what)
+                await serve_until_stopped(make(), listen, line, not no_pacing, what, HINT)
             else:
                 await serve_fleet_until_stopped(
-                    make, listen, line, not no_pacing, what, count, workers
+                    make, listen, line, not no_pacing, what, count, workers, HINT
                 )
 
         run(main)

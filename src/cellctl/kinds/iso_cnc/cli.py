@@ -125,7 +125,12 @@ def _emulate_iso_cnc(
         keys = asyncio.ensure_future(_panel(control)) if panel else None
         try:
             await serve_until_stopped(
-                control, listen, line, not no_pacing, "ISO-code CNC control emulator"
+                control,
+                listen,
+                line,
+                not no_pacing,
+                "ISO-code CNC control emulator",
+                'feed it with cellctl dnc (docs/dnc.md): in dnc.toml, link = "{url}"',
             )
         finally:
             if keys is not None:

@@ -72,7 +72,10 @@ def emulate_ur(
             f"  ports: dashboard {ports['dashboard']}, secondary {ports['secondary']}, "
             f"RTDE {ports['rtde']}"
         )
-        console.print(f"  drive it with: --link {emulator.dashboard_url}")
+        console.print(
+            f"  drive it with: cellctl robot --kind ur --link {emulator.dashboard_url}",
+            soft_wrap=True,
+        )
         try:
             await until_stopped()
         finally:

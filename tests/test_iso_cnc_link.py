@@ -22,6 +22,7 @@ from cellctl.kinds.iso_cnc.driver import (
 )
 from cellctl.kinds.iso_cnc.emulator import Activity, EmulatorOptions, IsoCncEmulator, Mode
 from cellctl.link import LineSettings, TrafficLog
+from cellctl.service.functions import function
 
 from .conftest import Ser2net, emulator_process, until
 
@@ -323,3 +324,28 @@ async def test_a_program_read_into_memory_runs_from_memory_in_its_motion_time(cn
     blocks = gcode.blocks(tape.unframe(data))
     assert run.number == 1234 and run.blocks == len(blocks)
     assert run.machine_s == pytest.approx(motion.program_seconds(blocks))
+
+
+async def test_the_menu_s_status_is_the_host_s_view_and_sends_nothing(cnc: Cnc) -> None:
+    status = function("mill", "status", "iso-cnc")
+    params = status.check({})
+    before = cnc.trace.sent()
+    idle = await status.run(cnc.driver, params)
+    assert (idle["message"], idle["state_text"], idle["alarm"]) == ("idle", "idle", None)
+    assert cnc.trace.sent() == before  # a control on RS-232 answers no status request
+    cnc.control.set_mode(Mode.RMT)
+    feed = asyncio.ensure_future(cnc.driver.drip_feed(surfacing(12), timeout=DEADLINE))
+    seen: list[dict[str, object]] = []
+
+    async def feeding() -> bool:
+        seen.append(await status.run(cnc.driver, params))
+        return seen[-1]["state_text"] == "drip-feeding" and seen[-1]["chars_sent"] != 0
+
+    try:
+        await until(feeding, "the drip-feed under way")
+    finally:
+        await feed
+    during = seen[-1]
+    assert str(during["message"]).startswith(f"drip-feeding {during['chars_sent']}/")
+    assert f"/{during['chars_total']} chars" in str(during["message"])
+    assert (await status.run(cnc.driver, params))["message"] == "idle"

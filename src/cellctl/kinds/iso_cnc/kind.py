@@ -165,6 +165,12 @@ def _condition(status: Any) -> Any:
     return status.kind_condition
 
 
+def _menu() -> Sequence[Any]:
+    from cellctl.kinds.iso_cnc.menu import MENU
+
+    return MENU
+
+
 def _commands() -> Sequence[tuple[str, click.Command]]:
     from cellctl.kinds.iso_cnc.cli import emulate_iso_cnc
     from cellctl.kinds.iso_cnc.dnc.cli import dnc
@@ -185,6 +191,7 @@ ISO_CNC = MachineKind(
     condition=_condition,
     language=ProgramLanguage(suffix=".nc", check=_check, split=_split, preview=_preview),
     commands=_commands,
+    menu=_menu,
     timing=_timing,
     emulated_options=_emulated_options,
     needs_setup=False,

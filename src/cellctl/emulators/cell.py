@@ -273,17 +273,20 @@ class EmulatedCell:
         self.plc_url = await self.plc.start(f"mem://{prefix}plc")
         for name, value in self.plc.inputs.items():
             self._plc_input(name, value)
-        if type(self.robot).listen is not EmulatedDevice.listen:
+        robot_line = self.line_of(self.robot_name)
+        # A robot with interfaces of its own serves each on a mem:// name of its own.
+        own = await self.robot.listen_mem(f"{prefix}{self.robot_name}", robot_line)
+        if own is not None:
+            self.servers[self.robot_name] = own
+        elif type(self.robot).listen is not EmulatedDevice.listen:
             raise UsageError(
                 f"{self.robot_name}: its kind serves interfaces of its own over TCP, which "
                 "a mem:// cell cannot carry; emulate this cell on real links"
             )
-        self.servers[self.robot_name] = await serve_mem(
-            self.robot,
-            self.line_of(self.robot_name),
-            name=f"{prefix}{self.robot_name}",
-            pacing=self.pacing,
-        )
+        else:
+            self.servers[self.robot_name] = await serve_mem(
+                self.robot, robot_line, name=f"{prefix}{self.robot_name}", pacing=self.pacing
+            )
         for name, mill in self.mills.items():
             self.servers[name] = await serve_mem(
                 mill, self.line_of(name), name=f"{prefix}{name}", pacing=self.pacing

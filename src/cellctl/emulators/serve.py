@@ -112,6 +112,12 @@ class EmulatedDevice(ABC):
         cell reaches it; None (the default): :func:`serve` puts it on one line."""
         return None
 
+    async def listen_mem(self, name: str, settings: LineSettings) -> SelfServed | None:
+        """The same in the running event loop, on ``mem://`` names from ``name`` (a
+        machine that serves itself: :func:`cellctl.emulators.memserve.serve_mem_streams`);
+        None (the default): ``serve_mem`` puts it on one line."""
+        return None
+
 
 @dataclass
 class SelfServed:

@@ -61,6 +61,7 @@ from cellctl.kinds.ur.dashboard import (
 )
 from cellctl.kinds.ur.motion import ARMS
 from cellctl.kinds.ur.options import UR_LINE as UR_LINE
+from cellctl.kinds.ur.options import UR_SCHEMES, interface_url
 from cellctl.kinds.ur.options import UrOptions as UrOptions
 from cellctl.kinds.ur.program import UrProgram
 from cellctl.kinds.ur.rtde_client import FIELDS as FIELDS
@@ -132,9 +133,10 @@ class UrRobot(RtdeClient, LinkDriver):
         trace: TrafficLog | None = None,
         clock: Clock | None = None,
     ) -> UrRobot:
-        """Open the Dashboard Server at ``url`` (``socket://HOST:PORT``), then RTDE on the
-        same host; MachineInUse before anything opens when another owner holds the robot."""
-        if urlsplit(url).scheme != "socket":
+        """Open the Dashboard Server at ``url`` (``socket://HOST:PORT``; ``mem://NAME`` for an
+        emulator in this event loop), then RTDE beside it; MachineInUse before anything
+        opens when another owner holds the robot."""
+        if urlsplit(url).scheme not in UR_SCHEMES:
             raise UsageError(f"{url}: a UR's link is its Dashboard Server, socket://HOST:29999")
         robot = await cls._connect_owned(
             url,
@@ -153,18 +155,19 @@ class UrRobot(RtdeClient, LinkDriver):
             raise
         return robot
 
-    @property
-    def host(self) -> str:
-        return urlsplit(self.link.url).hostname or "127.0.0.1"
+    async def _open_interface(self, interface: str, port: int) -> Link:
+        """A link to the UR's ``interface`` (``rtde``, ``secondary``), beside its Dashboard
+        Server."""
+        return await open_link(
+            interface_url(self.link.url, interface, port), self.link.settings,
+            trace=self.trace, label=f"{self.name}-{interface}", clock=self.clock,
+        )  # fmt: skip
 
     async def _open(self) -> None:
         banner = await self._line(self.options.reply_timeout)
         if banner != BANNER:
             raise UnexpectedReply(f"{self.name}: not a Dashboard Server: {banner!r}")
-        self._rtde = await open_link(
-            f"socket://{self.host}:{self.options.rtde_port}", trace=self.trace,
-            label=f"{self.name}-rtde", clock=self.clock,
-        )  # fmt: skip
+        self._rtde = await self._open_interface("rtde", self.options.rtde_port)
         await self._rtde_handshake(self._rtde)
         self._reader = asyncio.ensure_future(self._read_rtde(self._rtde))
         await self._wait_state(lambda s: True, self.options.state_timeout, "a first RTDE package")
@@ -318,10 +321,9 @@ class UrRobot(RtdeClient, LinkDriver):
             self._seq = (self._state.values.get(self._end_field(), 0) + 1) % 2**31 or 1
             text = program.sendable(self.options.end_register, self._seq)
             if self._secondary is None or self._secondary.closed:
-                self._secondary = await open_link(
-                    f"socket://{self.host}:{self.options.secondary_port}", trace=self.trace,
-                    label=f"{self.name}-secondary", clock=self.clock,
-                )  # fmt: skip
+                self._secondary = await self._open_interface(
+                    "secondary", self.options.secondary_port
+                )
             await self._secondary.write(text.encode("utf-8"))
         self._started_at = self.clock.monotonic()
         self._played = False

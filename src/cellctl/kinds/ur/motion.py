@@ -33,6 +33,8 @@ MOVEL_A, MOVEL_V = 1.2, 0.25
 #: One control cycle of an e-Series controller (500 Hz), s: ``sync()`` waits one.
 CYCLE_S = 0.002
 _ALPHA = (math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0)
+_COS_ALPHA = tuple(math.cos(x) for x in _ALPHA)
+_SIN_ALPHA = tuple(math.sin(x) for x in _ALPHA)
 
 
 @dataclass(frozen=True)
@@ -51,23 +53,24 @@ class Arm:
     def _frames(self, q: Sequence[float]) -> list[list[float]]:
         a = (0.0, self.a2, self.a3, 0.0, 0.0, 0.0)
         d = (self.d1, 0.0, 0.0, self.d4, self.d5, self.d6)
-        t = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0]  # 3x4, row-major
+        # The 3x4 transform, row by row, times each joint's DH matrix (its last row 0 0 0 1).
+        r0: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0)
+        r1: tuple[float, ...] = (0.0, 1.0, 0.0, 0.0)
+        r2: tuple[float, ...] = (0.0, 0.0, 1.0, 0.0)
         for i in range(6):
             ct, st = math.cos(q[i]), math.sin(q[i])
-            ca, sa = math.cos(_ALPHA[i]), math.sin(_ALPHA[i])
-            m = (
-                (ct, -st * ca, st * sa, a[i] * ct),
-                (st, ct * ca, -ct * sa, a[i] * st),
-                (0.0, sa, ca, d[i]),
+            ca, sa = _COS_ALPHA[i], _SIN_ALPHA[i]
+            m0 = (ct, -st * ca, st * sa, a[i] * ct)
+            m1 = (st, ct * ca, -ct * sa, a[i] * st)
+            m2 = (0.0, sa, ca, d[i])
+            r0, r1, r2 = (
+                tuple(
+                    row[0] * m0[c] + row[1] * m1[c] + row[2] * m2[c] + (row[3] if c == 3 else 0.0)
+                    for c in range(4)
+                )
+                for row in (r0, r1, r2)
             )
-            out = []
-            for r in range(3):
-                row = t[4 * r : 4 * r + 4]
-                for c in range(4):
-                    v = sum(row[k] * m[k][c] for k in range(3))
-                    out.append(v + (row[3] if c == 3 else 0.0))
-            t = out
-        return [t]
+        return [[*r0, *r1, *r2]]
 
     def tcp(self, q: Sequence[float]) -> Pose:
         """The tool flange's pose for joints ``q``: position (m) and rotation vector (rad)."""

@@ -4,11 +4,26 @@ line (the registry reads these at start; the driver is imported when a robot is 
 from __future__ import annotations
 
 from typing import Literal
+from urllib.parse import urlsplit
 
 from pydantic import BaseModel, ConfigDict, Field
 
 #: The line a UR's links are described with (TCP: its settings pace nothing).
 UR_LINE = "115200,8N1"
+
+#: The link schemes a UR's Dashboard Server is reached by: TCP, or an emulator in the same
+#: event loop (a plan's cell).
+UR_SCHEMES = ("socket", "mem")
+
+
+def interface_url(dashboard_url: str, interface: str, port: int) -> str:
+    """Where the UR's ``interface`` (``rtde``, ``secondary``) is, beside its Dashboard Server
+    at ``dashboard_url``: the same host at ``port``, or for ``mem://NAME`` (an emulator in
+    the same event loop) ``mem://NAME.interface``."""
+    parts = urlsplit(dashboard_url)
+    if parts.scheme == "mem":
+        return f"{dashboard_url}.{interface}"
+    return f"socket://{parts.hostname or '127.0.0.1'}:{port}"
 
 
 class UrOptions(BaseModel):

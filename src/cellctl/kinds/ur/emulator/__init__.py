@@ -29,17 +29,28 @@ import struct
 from typing import Any
 
 from cellctl.clock import Clock
+from cellctl.emulators.memserve import serve_mem_streams
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, SelfServed
 from cellctl.errors import ProtocolError
 from cellctl.kinds.ur import rtde
 from cellctl.kinds.ur.dashboard import BANNER, MAX_ANSWER
 from cellctl.kinds.ur.emulator.controller import FAULTS, UrController
+from cellctl.kinds.ur.options import interface_url
 from cellctl.kinds.ur.urscript import parse
+from cellctl.link import LineSettings
+from cellctl.link.mem import MemListener, mem_name
 
 __all__ = ["FAULTS", "UrController", "UrEmulator"]
 
 #: Longest script the secondary interface takes in one program, bytes.
 MAX_SCRIPT = 1_000_000
+
+
+#: RTDE's frequency, Hz, a cell in one event loop (a plan's) asks of the emulator: its
+#: robot's state every 0.1 s, so a program's end is seen at most that late (a plan's
+#: schedule moves by tenths of a second a transfer). At the robot's own 125 Hz a plan's hour
+#: would be 450,000 packages, many times the rest of the cell's work.
+MEM_RTDE_HZ = 10.0
 
 
 class UrEmulator(EmulatedDevice):
@@ -50,6 +61,7 @@ class UrEmulator(EmulatedDevice):
         self.ports: dict[str, int] = {}
         self.host = "127.0.0.1"
         self._servers: list[asyncio.Server] = []
+        self._mem: list[MemListener] = []
         self._writers: set[asyncio.StreamWriter] = set()
         self._tasks: set[asyncio.Task[Any]] = set()
         self._held_inputs: dict[str, object] = {}  # RTDE input field -> the client holding it
@@ -109,6 +121,21 @@ class UrEmulator(EmulatedDevice):
         }
         return SelfServed(self.dashboard_url, options, self.close)
 
+    async def listen_mem(self, name: str, settings: LineSettings) -> SelfServed:
+        """Serve the three interfaces in the running event loop: the Dashboard Server at
+        ``mem://name``, the others beside it (``mem://name.rtde``, ``mem://name.secondary``:
+        :func:`~cellctl.kinds.ur.options.interface_url`). RTDE streams at
+        :data:`MEM_RTDE_HZ` there (the cell's option)."""
+        url = f"mem://{name}"
+        for interface, handler in (
+            ("dashboard", self._dashboard),
+            ("secondary", self._secondary),
+            ("rtde", self._rtde),
+        ):
+            where = url if interface == "dashboard" else interface_url(url, interface, 0)
+            self._mem.append(serve_mem_streams(mem_name(where), settings, self._tracked(handler)))
+        return SelfServed(url, {"rtde_frequency": MEM_RTDE_HZ}, self.close)
+
     @property
     def dashboard_url(self) -> str:
         """What a cell's ``link`` names: the Dashboard Server."""
@@ -143,6 +170,8 @@ class UrEmulator(EmulatedDevice):
     async def close(self) -> None:
         for server in self._servers:
             server.close()
+        for listener in self._mem:
+            listener.close()
         self.drop()
         # Aborted connections end their handlers by themselves (a cancelled handler is
         # logged by asyncio's server as an error); one that lingers is cancelled.

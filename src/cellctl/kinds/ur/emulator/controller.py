@@ -88,6 +88,7 @@ class UrController:
         self.runs: list[str] = []  # each program started, by name (tests, the emulated cell)
         self.scripts_refused = 0
         self._q: Joints = HOME
+        self._pose: tuple[Joints, Any] | None = None  # the last joints and their TCP pose
         self._move: tuple[float, Move] | None = None  # (loop time it started, move)
         self._task: asyncio.Task[None] | None = None
         self._resume = asyncio.Event()
@@ -439,7 +440,10 @@ class UrController:
         status_bits = (POWER_ON_BIT if powered else 0) | (
             PROGRAM_RUNNING_BIT if self.runtime == RuntimeState.PLAYING else 0
         )
-        pose = self.arm.tcp(q)
+        # The arm at rest keeps its pose: computed again only when the joints moved.
+        if self._pose is None or self._pose[0] != q:
+            self._pose = (q, self.arm.tcp(q))
+        pose = self._pose[1]
         values: dict[str, Any] = {
             "timestamp": self._now() - self.started_at,
             "target_q": q,

@@ -1,7 +1,8 @@
 """examples/cell-tending end to end: a UR5e tending an iso-cnc mill and a Dyna 2400 with the
 PLC, every machine emulated, the real controller running batches. A protective stop in the
 middle is alarmed in UR's words; the operator's unlock and release let the batch finish with
-no part lost and none cut twice."""
+no part lost and none cut twice. The batch's plan (on virtual time, the UR on ``mem://``) is
+the batch's own schedule."""
 
 from __future__ import annotations
 
@@ -9,16 +10,18 @@ import asyncio
 import re
 import subprocess
 from collections.abc import AsyncIterator
+from datetime import datetime
 from pathlib import Path
 
 import pytest
 
 from cellctl.cell.config import load_cell
 from cellctl.cell.controller import ControllerOptions
-from cellctl.cell.journal import open_journal
+from cellctl.cell.journal import Journal, open_journal
 from cellctl.emulators.cell import EmulatedCell
 from cellctl.kinds.ur.dashboard import RuntimeState, SafetyStatus
 from cellctl.mailbox import open_mailbox
+from cellctl.plan.engine import PlanInputs, PlanOrder, simulate
 from cellctl.service.client import attach
 from cellctl.ui.cell_cli import run_controller
 
@@ -69,6 +72,32 @@ async def test_a_batch_runs_through_the_cobot_cell(tending: tuple[EmulatedCell, 
     )
     _cut_once(cell, 2)
     assert cell.robot.controller.runs.count("conveyor_to_vf2") == 2
+    # The plan of the same batch (the UR on mem://, virtual time) is this run's schedule:
+    # the same steps in the same order.
+    with open_journal(directory) as journal:
+        real_s, real_order = steps_of(journal)
+    start = datetime(2026, 11, 27, 6, 0).timestamp()
+    inputs = PlanInputs(
+        cell_dir=EXAMPLE,
+        orders=(PlanOrder("A", "bracket", 2),),
+        start=start,
+        until=start + 8 * 3600,
+    )
+    run = await asyncio.to_thread(simulate, inputs, directory.parent / "plan")
+    assert run.finished["A"] is not None
+    with Journal(run.journal_path) as journal:
+        plan_s, plan_order = steps_of(journal)
+    assert plan_order == real_order
+    print(f"\ncobot cell, 2 brackets: real {real_s * SCALE:.1f} s, plan {plan_s:.1f} s")
+
+
+def steps_of(journal: Journal) -> tuple[float, list[tuple[str, str, str, str]]]:
+    """The makespan (s of the journal's clock) and every step (part, kind, machine, program)
+    in the order they started."""
+    steps = sorted(journal.steps(), key=lambda s: (s.started, s.id))
+    assert steps and all(s.ended is not None for s in steps), "every step ended"
+    last = max(s.ended for s in steps if s.ended is not None)
+    return last - steps[0].started, [(s.part_id, s.kind, s.machine, s.program) for s in steps]
 
 
 async def test_a_protective_stop_in_the_batch(tending: tuple[EmulatedCell, Path]) -> None:

@@ -62,12 +62,15 @@ async def test_cellctl_emulate_ur_serves_the_driver() -> None:
     try:
         assert proc.stdout is not None
         said = ""
-        while "--link" not in said:
+        while "link = " not in said:
             row = await asyncio.wait_for(proc.stdout.readline(), 30)
             assert row, f"the emulator ended saying {said!r}"
             said += row.decode()
         ports = dict(re.findall(r"(secondary|RTDE) (\d+)", said))
-        url = said.split("--link", 1)[1].strip()
+        # At ports of its own it says what a cell.toml needs to reach it: those ports.
+        url = re.findall(r'link = "([^"]+)"', said)[0]
+        said_options = dict(re.findall(r"(secondary_port|rtde_port) = (\d+)", said))
+        assert said_options == {"secondary_port": ports["secondary"], "rtde_port": ports["RTDE"]}
         options = UrOptions(secondary_port=int(ports["secondary"]), rtde_port=int(ports["RTDE"]))
         robot = await UrRobot.connect(url, name="ur-cli", options=options)
         try:

@@ -9,6 +9,7 @@ from cellctl.errors import UsageError
 from cellctl.files import read_text, reason
 from cellctl.kinds.ur.emulator import FAULTS, UrEmulator
 from cellctl.kinds.ur.motion import ARMS
+from cellctl.kinds.ur.options import UrOptions
 from cellctl.ui.common import console, fault_help, run
 
 
@@ -72,10 +73,18 @@ def emulate_ur(
             f"  ports: dashboard {ports['dashboard']}, secondary {ports['secondary']}, "
             f"RTDE {ports['rtde']}"
         )
-        console.print(
-            f"  drive it with: cellctl robot --kind ur --link {emulator.dashboard_url}",
-            soft_wrap=True,
-        )
+        # The driver finds RTDE and the secondary interface at its options' ports: at the
+        # defaults a --link names the robot; at others a cell.toml's options must.
+        usual = UrOptions()
+        if (ports["secondary"], ports["rtde"]) == (usual.secondary_port, usual.rtde_port):
+            hint = f"drive it with: cellctl robot --kind ur --link {emulator.dashboard_url}"
+        else:
+            hint = (
+                f'drive it from a cell.toml: kind = "ur", link = "{emulator.dashboard_url}", '
+                f"options = {{ secondary_port = {ports['secondary']}, "
+                f"rtde_port = {ports['rtde']} }}"
+            )
+        console.print(f"  {hint}", soft_wrap=True)
         try:
             await until_stopped()
         finally:

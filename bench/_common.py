@@ -7,7 +7,8 @@ import math
 import multiprocessing as mp
 import os
 import signal
-from collections.abc import Callable
+import sys
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
@@ -71,6 +72,39 @@ async def wait_for_stop(conn: Any) -> None:
     """In the child: wait (without blocking the loop) until the parent says stop."""
     loop = asyncio.get_running_loop()
     await loop.run_in_executor(None, conn.recv)
+
+
+async def within(seconds: float, what: str, work: Awaitable[Any]) -> Any:
+    """``await work``, but at most ``seconds``: past them, print where every task of the loop
+    waits (before any is cancelled) and stop the bench, naming ``what`` did not end."""
+    task = asyncio.ensure_future(work)
+    try:
+        done, _ = await asyncio.wait({task}, timeout=seconds)
+    except asyncio.CancelledError:
+        task.cancel()  # stopped from outside (Ctrl-C): the work goes with it
+        raise
+    if task in done:
+        return task.result()
+    for other in asyncio.all_tasks():
+        print(f"--- {other.get_name()}", file=sys.stderr)
+        for line in awaiting(other.get_coro()):
+            print(f"    {line}", file=sys.stderr)
+    task.cancel()
+    raise SystemExit(f"{what} did not end within {seconds:g} s (every task above)")
+
+
+def awaiting(coro: Any) -> list[str]:
+    """Where a suspended coroutine waits, outermost first: each ``file:line function`` down
+    the chain of what it awaits (a task's own stack shows only the outermost frame)."""
+    lines = []
+    while coro is not None:
+        frame = getattr(coro, "cr_frame", None) or getattr(coro, "gi_frame", None)
+        if frame is None:
+            lines.append(repr(coro)[:160])  # a future, or a finished coroutine
+            break
+        lines.append(f"{frame.f_code.co_filename}:{frame.f_lineno} {frame.f_code.co_name}")
+        coro = getattr(coro, "cr_await", None) or getattr(coro, "gi_yieldfrom", None)
+    return lines
 
 
 def line_settings() -> LineSettings:

@@ -39,7 +39,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-from _common import machine_line
+from _common import machine_line, within
 from cellctl.cell.config import load_cell
 from cellctl.cell.controller import CellController, ControllerOptions
 from cellctl.cell.journal import open_journal
@@ -169,11 +169,15 @@ async def main() -> None:
             config, open_journal(directory), open_mailbox(directory), options=options
         )
         started = time.time()
+        # A part takes about 900 s of machine time (9 s of wall time at the default scale).
+        # Ten times that, and two minutes more: a wait that does not end is shown where it
+        # waits (one run once did not end).
+        limit = 120 + args.parts * 9000 / args.time_scale
         try:
-            await controller.connect()
-            await controller.run(asyncio.Event(), until_idle=True)
+            await within(limit, "the batch", controller.connect())
+            await within(limit, "the batch", controller.run(asyncio.Event(), until_idle=True))
         finally:
-            await controller.close()
+            await within(60, "closing the cell's links", controller.close())
             await watch.stop()
     finally:
         conn.send("stop")

@@ -22,8 +22,14 @@ def interface_url(dashboard_url: str, interface: str, port: int) -> str:
     the same event loop) ``mem://NAME.interface``."""
     parts = urlsplit(dashboard_url)
     if parts.scheme == "mem":
-        return f"{dashboard_url}.{interface}"
+        return f"mem://{mem_interface(parts.netloc, interface)}"
     return f"socket://{parts.hostname or '127.0.0.1'}:{port}"
+
+
+def mem_interface(name: str, interface: str) -> str:
+    """The ``mem://`` name of the UR's ``interface`` beside its Dashboard Server at ``name``
+    (what its emulator listens at, and :func:`interface_url` opens)."""
+    return f"{name}.{interface}"
 
 
 class UrOptions(BaseModel):

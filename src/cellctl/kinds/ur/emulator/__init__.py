@@ -35,10 +35,10 @@ from cellctl.errors import ProtocolError
 from cellctl.kinds.ur import rtde
 from cellctl.kinds.ur.dashboard import BANNER, MAX_ANSWER
 from cellctl.kinds.ur.emulator.controller import FAULTS, UrController
-from cellctl.kinds.ur.options import interface_url
+from cellctl.kinds.ur.options import mem_interface
 from cellctl.kinds.ur.urscript import parse
 from cellctl.link import LineSettings
-from cellctl.link.mem import MemListener, mem_name
+from cellctl.link.mem import MemListener
 
 __all__ = ["FAULTS", "UrController", "UrEmulator"]
 
@@ -124,17 +124,15 @@ class UrEmulator(EmulatedDevice):
     async def listen_mem(self, name: str, settings: LineSettings) -> SelfServed:
         """Serve the three interfaces in the running event loop: the Dashboard Server at
         ``mem://name``, the others beside it (``mem://name.rtde``, ``mem://name.secondary``:
-        :func:`~cellctl.kinds.ur.options.interface_url`). RTDE streams at
+        :func:`~cellctl.kinds.ur.options.mem_interface`). RTDE streams at
         :data:`MEM_RTDE_HZ` there (the cell's option)."""
-        url = f"mem://{name}"
-        for interface, handler in (
-            ("dashboard", self._dashboard),
-            ("secondary", self._secondary),
-            ("rtde", self._rtde),
+        for where, handler in (
+            (name, self._dashboard),
+            (mem_interface(name, "secondary"), self._secondary),
+            (mem_interface(name, "rtde"), self._rtde),
         ):
-            where = url if interface == "dashboard" else interface_url(url, interface, 0)
-            self._mem.append(serve_mem_streams(mem_name(where), settings, self._tracked(handler)))
-        return SelfServed(url, {"rtde_frequency": MEM_RTDE_HZ}, self.close)
+            self._mem.append(serve_mem_streams(where, settings, self._tracked(handler)))
+        return SelfServed(f"mem://{name}", {"rtde_frequency": MEM_RTDE_HZ}, self.close)
 
     @property
     def dashboard_url(self) -> str:

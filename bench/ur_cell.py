@@ -105,9 +105,10 @@ class RtdeWatch:
 
     @staticmethod
     async def _packet(reader: asyncio.StreamReader) -> tuple[int, bytes]:
-        header = await asyncio.wait_for(reader.readexactly(rtde.HEADER.size), 10)
-        size, packet_type = rtde.HEADER.unpack(header)
-        return packet_type, await reader.readexactly(size - rtde.HEADER.size)
+        async with asyncio.timeout(10):
+            header = await reader.readexactly(rtde.HEADER.size)
+            size, packet_type = rtde.HEADER.unpack(header)
+            return packet_type, await reader.readexactly(size - rtde.HEADER.size)
 
     async def _read(
         self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, recipe: rtde.Recipe
@@ -170,9 +171,9 @@ async def main() -> None:
         )
         started = time.time()
         # A part takes about 900 s of machine time (9 s of wall time at the default scale).
-        # Ten times that, and two minutes more: a wait that does not end is shown where it
+        # Three times that, and a minute more: a wait that does not end is shown where it
         # waits (one run once did not end).
-        limit = 120 + args.parts * 9000 / args.time_scale
+        limit = 60 + args.parts * 2700 / args.time_scale
         try:
             await within(limit, "the batch", controller.connect())
             await within(limit, "the batch", controller.run(asyncio.Event(), until_idle=True))

@@ -134,7 +134,8 @@ class Plant:
         if proc.returncode is None:
             proc.send_signal(signal.SIGTERM)
         try:
-            await asyncio.wait_for(proc.wait(), 15)
+            async with asyncio.timeout(15):
+                await proc.wait()
         except TimeoutError:
             proc.kill()
             await proc.wait()
@@ -261,7 +262,8 @@ class Plant:
 
         async def operator(*args: str) -> None:
             try:
-                result = await asyncio.wait_for(cli(cell_dir, *args), CLI_S)
+                async with asyncio.timeout(CLI_S):
+                    result = await cli(cell_dir, *args)
             except TimeoutError:
                 raise AssertionError(
                     f"cellctl {' '.join(args)}: no answer\n{self.describe()}"

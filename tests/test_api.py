@@ -109,7 +109,8 @@ async def test_socket_appears_only_when_it_listens(tmp_path: Path) -> None:
         server = ApiServer(AttachedCell(rig.controller), rig.directory)
         await server.start()
         try:
-            await asyncio.wait_for(watcher, 10)
+            async with asyncio.timeout(10):
+                await watcher
             assert seen == ["connected"]
             assert sorted(p.name for p in rig.directory.glob("api.sock*")) == ["api.sock"]
         finally:

@@ -60,7 +60,8 @@ async def first_message(c: aiomqtt.Client) -> aiomqtt.Message:
             return message
         raise AssertionError("the client's message stream ended")
 
-    return await asyncio.wait_for(first(), timeout=DEADLINE_S)
+    async with asyncio.timeout(DEADLINE_S):
+        return await first()
 
 
 @pytest.fixture

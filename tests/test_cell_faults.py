@@ -277,7 +277,8 @@ async def test_a_pallet_that_waited_is_taken_without_a_no_pallet_alarm(tmp_path:
         plc.hooks.coil.append(lambda name, on: asked.set() if name == "pallet_request" else None)
         controller = await rig.start_controller()
         rig.post("wax-robot-base", 1, "A")
-        await asyncio.wait_for(asked.wait(), 30)
+        async with asyncio.timeout(30):
+            await asked.wait()
         await controller.set_service("robot", False, "teach pendant")
         await rig.wait_for(lambda: plc.inputs["pallet_present"], "the pallet delivered")
         # Longer than pallet_timeout with the pallet waiting at the pick-up.

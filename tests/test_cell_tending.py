@@ -60,9 +60,8 @@ async def test_a_batch_runs_through_the_cobot_cell(tending: tuple[EmulatedCell, 
     with open_mailbox(directory) as mailbox:
         mailbox.post_order("bracket", 2, order_id="A")
     options = ControllerOptions.from_config(load_cell(directory))
-    await asyncio.wait_for(
-        run_controller(directory, live=False, until_idle=True, options=options), 120
-    )
+    async with asyncio.timeout(120):
+        await run_controller(directory, live=False, until_idle=True, options=options)
     with open_journal(directory) as journal:
         done = [(s.machine, s.program) for s in journal.steps() if s.state == "finished"]
     with open_mailbox(directory) as mailbox:
@@ -153,7 +152,8 @@ async def test_a_protective_stop_in_the_batch(tending: tuple[EmulatedCell, Path]
             await until(order_done, "order A done", 120)
     finally:
         stop.set()
-        await asyncio.wait_for(controller, 60)
+        async with asyncio.timeout(60):
+            await controller
     _cut_once(cell, 2)
 
 

@@ -53,7 +53,8 @@ def test_timeouts_fire_on_virtual_time_at_their_deadline() -> None:
         seen: list[tuple[str, float]] = []
         start = loop.time()
         with pytest.raises(TimeoutError):
-            await asyncio.wait_for(asyncio.Event().wait(), 30)
+            async with asyncio.timeout(30):
+                await asyncio.Event().wait()
         seen.append(("wait_for", loop.time() - start))
         with pytest.raises(TimeoutError):
             async with clock.timeout(12.5):

@@ -276,7 +276,8 @@ async def test_a_wrong_token_is_refused_before_the_console_starts(shop: Shop) ->
         stderr=asyncio.subprocess.PIPE,
         env=env,
     )
-    out, err = await asyncio.wait_for(proc.communicate(), 60)
+    async with asyncio.timeout(60):
+        out, err = await proc.communicate()
     said = out.decode() + err.decode()
     assert proc.returncode != 0, said
     assert "the control API refused the token" in said and "Traceback" not in said
@@ -354,7 +355,8 @@ async def cellctl_run(*args: str) -> tuple[int, str]:
         stderr=asyncio.subprocess.PIPE,
         env={**os.environ, "COLUMNS": "200"},
     )
-    out, err = await asyncio.wait_for(proc.communicate(), 60)
+    async with asyncio.timeout(60):
+        out, err = await proc.communicate()
     return proc.returncode or 0, out.decode() + err.decode()
 
 

@@ -56,7 +56,8 @@ async def cellctl(*args: str) -> asyncio.subprocess.Process:
 
 
 async def finished(proc: asyncio.subprocess.Process, timeout: float = 60) -> tuple[int, str]:
-    out, err = await asyncio.wait_for(proc.communicate(), timeout)
+    async with asyncio.timeout(timeout):
+        out, err = await proc.communicate()
     return proc.returncode or 0, out.decode() + err.decode()
 
 

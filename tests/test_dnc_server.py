@@ -317,7 +317,8 @@ async def test_the_dashboard_shows_a_drip_feeds_stall_in_its_own_field(
             timeout=30_000,
         )
         assert (await card.locator(".stall-label").inner_text()).strip() == "stalled"
-        result = await asyncio.wait_for(send, 60)
+        async with asyncio.timeout(60):
+            result = await send
         assert "drip-fed" in result["message"] and "stalled" in result["message"]
         assert emulator.runs[-1].stall_s > 0
         # Idle again: the field goes with the progress.

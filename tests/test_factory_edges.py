@@ -294,7 +294,8 @@ async def cellctl(*args: str) -> tuple[int, str]:
         *CELLCTL, *args, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT
     )
     try:
-        out, _ = await asyncio.wait_for(proc.communicate(), 60)
+        async with asyncio.timeout(60):
+            out, _ = await proc.communicate()
     except TimeoutError:
         proc.kill()
         await proc.wait()

@@ -45,7 +45,8 @@ async def factory_cli(plant: Plant, *args: str) -> str:
     def invoke() -> Any:
         return CliRunner().invoke(cli_main, argv, env={"COLUMNS": "200"})
 
-    result = await asyncio.wait_for(asyncio.to_thread(invoke), CLI_S)
+    async with asyncio.timeout(CLI_S):
+        result = await asyncio.to_thread(invoke)
     assert result.exit_code == 0, f"{args}: {result.output}\n{plant.describe()}"
     return str(result.output)
 
@@ -118,7 +119,8 @@ async def test_cellctl_emulate_factory_takes_a_template_per_cell(tmp_path: Path)
         # The commands to try (one order per cell's first part type), then that it serves.
         while not said or not said[-1].startswith("serving until Ctrl-C"):
             try:
-                line = (await asyncio.wait_for(proc.stdout.readline(), 60)).decode()
+                async with asyncio.timeout(60):
+                    line = (await proc.stdout.readline()).decode()
             except TimeoutError:
                 raise AssertionError(f"no more within 60 s: {''.join(said)}") from None
             assert line, f"it exited: {''.join(said)}"
@@ -138,7 +140,8 @@ async def test_cellctl_emulate_factory_takes_a_template_per_cell(tmp_path: Path)
         if proc.returncode is None:
             proc.send_signal(signal.SIGINT)
             try:
-                await asyncio.wait_for(proc.wait(), 30)
+                async with asyncio.timeout(30):
+                    await proc.wait()
             except TimeoutError:
                 proc.kill()
                 await proc.wait()

@@ -51,7 +51,8 @@ async def cellctl(*args: str) -> tuple[int, str]:
     proc = await asyncio.create_subprocess_exec(
         *CELLCTL, *args, stdout=subprocess.PIPE, stderr=subprocess.PIPE
     )
-    _, err = await asyncio.wait_for(proc.communicate(), timeout=60)
+    async with asyncio.timeout(60):
+        _, err = await proc.communicate()
     assert proc.returncode is not None
     return proc.returncode, err.decode()
 

@@ -93,7 +93,8 @@ async def cellctl(cell: Path, *args: str) -> tuple[int, str, str]:
         *CELLCTL, "--cell", str(cell), *args,
         stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
     )  # fmt: skip
-    out, err = await asyncio.wait_for(proc.communicate(), 60)
+    async with asyncio.timeout(60):
+        out, err = await proc.communicate()
     assert proc.returncode is not None
     return proc.returncode, out.decode(), err.decode()
 

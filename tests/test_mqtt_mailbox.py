@@ -149,7 +149,8 @@ async def test_orders_in_reports_out_a_repeated_id_and_the_retained_state(
             assert {"robot", "cnc1", "cnc2"} <= set(state["machines"])
             assert "finish_estimate_s" in state and "orders_open" in state
             await bridge.stop()
-            await asyncio.wait_for(task, 10)
+            async with asyncio.timeout(10):
+                await task
         await rig.stop_controller()
 
 

@@ -83,9 +83,11 @@ async def test_a_cell_and_the_factory_make_an_order_over_mqtts_with_a_ca(
                 assert mailbox.get_order("T1").state == "done"
                 assert [s for s in said if "trying again" in s] == []
                 stop.set()
-                await asyncio.wait_for(factory_task, 10)
+                async with asyncio.timeout(10):
+                    await factory_task
             await bridge.stop()
-            await asyncio.wait_for(cell_task, 10)
+            async with asyncio.timeout(10):
+                await cell_task
         await rig.stop_controller()
 
 
@@ -107,7 +109,8 @@ async def test_a_wrong_ca_and_the_wrong_scheme_are_refused_saying_which(
         assert isinstance(factory._reconnect.problem, TlsRefused)
         assert factory.connected_since is None
         stop.set()
-        await asyncio.wait_for(task, 10)
+        async with asyncio.timeout(10):
+            await task
     # A cell's mailbox with mqtt:// to the TLS port, and mqtts:// to the plain one.
     async with CellRig(tmp_path / "cell") as rig:
         controller = await rig.start_controller()
@@ -130,7 +133,8 @@ async def test_a_wrong_ca_and_the_wrong_scheme_are_refused_saying_which(
                 assert isinstance(bridge._reconnect.problem, WrongScheme)
                 assert not bridge.connected.is_set()
                 await bridge.stop()
-                await asyncio.wait_for(task, 10)
+                async with asyncio.timeout(10):
+                    await task
         await rig.stop_controller()
     with pytest.raises(UsageError, match="use mqtts://"):
         MqttSettings.load(f"mqtt://{where}/x", broker.credentials("cell1"), other.ca)

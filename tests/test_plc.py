@@ -240,7 +240,8 @@ async def test_go_pulse_reaches_on_go(mill: int) -> None:
         await emulator.start()
         async with await ModbusPlc.connect(emulator.url, timeout=1.0) as plc:
             await plc.pulse(f"go_{mill}", 0.01)
-            assert await asyncio.wait_for(got.get(), WAIT) == mill
+            async with asyncio.timeout(WAIT):
+                assert await got.get() == mill
             assert (await plc.read_coils())[f"go_{mill}"] is False
     assert emulator.go_count == {mill: 1, 3 - mill: 0}
 
@@ -502,7 +503,8 @@ async def test_a_pulse_whose_end_was_lost_still_makes_an_edge(emulator: PlcEmula
         raised = asyncio.Event()
         emulator.hooks.coil.append(lambda name, value: raised.set() if value else None)
         pulse = asyncio.ensure_future(plc.pulse("go_1", 0.5))
-        await asyncio.wait_for(raised.wait(), WAIT)
+        async with asyncio.timeout(WAIT):
+            await raised.wait()
         emulator.set_fault("silent")  # the lowering goes unanswered
         with pytest.raises(LinkTimeout):
             await pulse

@@ -136,7 +136,8 @@ async def test_cellctl_mill_drives_a_saw_at_a_link_given_its_kind(tmp_path: Path
             "--link", server.url, "status",
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
         )  # fmt: skip
-        out, err = await asyncio.wait_for(proc.communicate(), 60)
+        async with asyncio.timeout(60):
+            out, err = await proc.communicate()
     finally:
         await server.close()
     # The saw's own status in its words, read at its own line settings (9600,8N1).

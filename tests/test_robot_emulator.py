@@ -30,7 +30,8 @@ class RawHost:
         await self.writer.drain()
 
     async def expect(self, data: bytes) -> None:
-        got = await asyncio.wait_for(self.reader.readexactly(len(data)), WAIT_S)
+        async with asyncio.timeout(WAIT_S):
+            got = await self.reader.readexactly(len(data))
         assert got == data
 
     async def execute(self, operand: bytes, answer: bytes) -> None:
@@ -67,7 +68,8 @@ class RawHost:
             await self.expect(ACK)
 
     async def closed(self) -> bool:
-        return await asyncio.wait_for(self.reader.read(1), WAIT_S) == b""
+        async with asyncio.timeout(WAIT_S):
+            return await self.reader.read(1) == b""
 
     async def close(self) -> None:
         self.writer.close()

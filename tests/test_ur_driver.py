@@ -202,8 +202,10 @@ async def test_rtde_refuses_unknown_fields_and_too_high_a_frequency(emulator: Ur
 
     async def ask(packet_type: int, payload: bytes) -> tuple[int, bytes]:
         writer.write(rtde.encode(packet_type, payload))
-        header = await asyncio.wait_for(reader.readexactly(3), 5)
-        body = await asyncio.wait_for(reader.readexactly(rtde.HEADER.unpack(header)[0] - 3), 5)
+        async with asyncio.timeout(5):
+            header = await reader.readexactly(3)
+        async with asyncio.timeout(5):
+            body = await reader.readexactly(rtde.HEADER.unpack(header)[0] - 3)
         return rtde.decode(header + body)[:2]
 
     t = rtde.PacketType
@@ -234,8 +236,10 @@ async def test_rtde_packages_late_are_sent_not_skipped(emulator: UrEmulator) -> 
     reader, writer = await asyncio.open_connection("127.0.0.1", emulator.ports["rtde"])
 
     async def packet() -> tuple[int, bytes]:
-        header = await asyncio.wait_for(reader.readexactly(3), 5)
-        body = await asyncio.wait_for(reader.readexactly(rtde.HEADER.unpack(header)[0] - 3), 5)
+        async with asyncio.timeout(5):
+            header = await reader.readexactly(3)
+        async with asyncio.timeout(5):
+            body = await reader.readexactly(rtde.HEADER.unpack(header)[0] - 3)
         return rtde.decode(header + body)[:2]
 
     t = rtde.PacketType
@@ -303,7 +307,8 @@ async def test_ur_rtde_reads_the_fields_the_driver_relies_on() -> None:
             sys.executable, "-c", CLIENT, host, ",".join(FIELDS),
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
         )  # fmt: skip
-        out, err = await asyncio.wait_for(proc.communicate(), 30)
+        async with asyncio.timeout(30):
+            out, err = await proc.communicate()
         assert proc.returncode == 0, err.decode()
         seen = json.loads(out.decode().strip().splitlines()[-1])
     finally:

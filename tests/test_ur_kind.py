@@ -63,7 +63,8 @@ async def test_cellctl_emulate_ur_serves_the_driver() -> None:
         assert proc.stdout is not None
         said = ""
         while "link = " not in said:
-            row = await asyncio.wait_for(proc.stdout.readline(), 30)
+            async with asyncio.timeout(30):
+                row = await proc.stdout.readline()
             assert row, f"the emulator ended saying {said!r}"
             said += row.decode()
         ports = dict(re.findall(r"(secondary|RTDE) (\d+)", said))
@@ -80,7 +81,8 @@ async def test_cellctl_emulate_ur_serves_the_driver() -> None:
             await robot.close()
     finally:
         proc.terminate()
-        await asyncio.wait_for(proc.wait(), 10)
+        async with asyncio.timeout(10):
+            await proc.wait()
 
 
 @given(st.text(max_size=120))
@@ -127,9 +129,11 @@ async def test_any_bytes_on_the_three_ports_leave_it_serving(
             writer.close()
         # Still serving: a new client gets the banner and an answer.
         reader, writer = await asyncio.open_connection("127.0.0.1", emu.ports["dashboard"])
-        assert (await asyncio.wait_for(reader.readline(), 5)).decode().strip() == BANNER
+        async with asyncio.timeout(5):
+            assert (await reader.readline()).decode().strip() == BANNER
         writer.write(b"robotmode\n")
-        assert (await asyncio.wait_for(reader.readline(), 5)).startswith(b"Robotmode: ")
+        async with asyncio.timeout(5):
+            assert (await reader.readline()).startswith(b"Robotmode: ")
         writer.close()
     finally:
         await emu.close()

@@ -13,8 +13,9 @@ Run a coroutine on virtual time, where an hour of waiting takes a few millisecon
 
     result = run_virtual(main(), start=datetime(2026, 11, 27, 8, 0))
 
-The same code runs on both: ``asyncio.sleep``, ``asyncio.wait_for``, ``asyncio.timeout`` and
-``loop.call_at`` already follow the virtual loop, because it is the loop's own time that jumps.
+The same code runs on both: ``asyncio.sleep``, ``asyncio.timeout`` and ``loop.call_at``
+already follow the virtual loop, because it is the loop's own time that jumps.
+(``asyncio.wait_for`` would too, but ruff bans it: on 3.11 it can swallow a cancellation.)
 
 Rules of the virtual loop (:class:`VirtualLoop`):
 

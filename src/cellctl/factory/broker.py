@@ -307,9 +307,8 @@ class MosquittoBroker:
             if self._process.returncode is not None:
                 raise LinkError(f"Mosquitto exited at start (code {self._process.returncode})")
             try:
-                _, writer = await asyncio.wait_for(
-                    asyncio.open_connection(self.host, self.port), timeout=1.0
-                )
+                async with asyncio.timeout(1.0):
+                    _, writer = await asyncio.open_connection(self.host, self.port)
             except (OSError, TimeoutError):
                 if clock.monotonic() > deadline:
                     await self.kill()
@@ -339,7 +338,8 @@ class MosquittoBroker:
         with contextlib.suppress(ProcessLookupError):
             proc.send_signal(signal.SIGTERM)
         try:
-            await asyncio.wait_for(proc.wait(), timeout=STOP_TIMEOUT_S)
+            async with asyncio.timeout(STOP_TIMEOUT_S):
+                await proc.wait()
         except TimeoutError:
             await self.kill()
 

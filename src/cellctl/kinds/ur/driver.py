@@ -387,7 +387,8 @@ class UrRobot(RtdeClient, LinkDriver):
                 )
             self._changed.clear()
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._changed.wait(), min(left, self.options.state_timeout))
+                async with self.clock.timeout(min(left, self.options.state_timeout)):
+                    await self._changed.wait()
         self._running = False
 
     async def machine_status(self) -> UrStatus:

@@ -227,7 +227,8 @@ class RtdeClient:
                 )
             self._changed.clear()
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._changed.wait(), min(left, self.options.state_timeout))
+                async with self.clock.timeout(min(left, self.options.state_timeout)):
+                    await self._changed.wait()
 
 
 __all__ = ["FIELDS", "RtdeClient", "UrStatus"]

@@ -311,8 +311,27 @@ async def test_emergency_stop_halts_and_holds(api: Api) -> None:
     assert any(a["code"] == "estop" and a["machine"] == "cell" for a in status["alarms"])
     held = api.rig.held_parts()
     assert held and "emergency stop" in held[0].note
-    halted = await api.call("mill.status", {"machine": "cnc1"})  # an observation: allowed
-    assert halted["state"] == 0  # halted: back in manual
+    # Both mills got END (back in manual); the operator readies them again at their panels.
+    assert all(m.runs[-1].outcome == "END" for m in api.rig.cell.mills.values())
+    # The operator's way back: ready the mills at their panels (the emulators' operator
+    # does), clear the alarms, scrap the part cut short, resume: the mills are initialized
+    # anew (not before the resume: no setup moves a mill while the stop is dealt with).
+    mills = api.rig.cell.mills
+    await api.rig.wait_for(lambda: all(m.display == "READY" for m in mills.values()), "READY")
+    assert all(m.runs[-1].outcome == "END" for m in mills.values())
+    for alarm in status["alarms"]:
+        await api.call("alarms.clear", {"id": alarm["id"]})
+    for part in held:
+        await api.call("parts.scrap", {"id": part.id, "reason": "cut short by the stop"})
+    await api.call("cell.resume")
+    controller = api.rig.controller
+    assert controller is not None
+    for name in mills:
+        await api.rig.wait_for(
+            lambda name=name: controller.machines[name].state == "Initialized",
+            f"{name} initialized again",
+        )
+        assert controller.recovery.usable(name)
 
 
 async def test_subscription_pushes_changes(api: Api) -> None:

@@ -4,6 +4,7 @@ RFC 2217 socket between them."""
 from __future__ import annotations
 
 import subprocess
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -94,4 +95,14 @@ def test_cli_session_init_download_status_end(emulator: str, tmp_path: Path) -> 
     assert bad.returncode == 2 and "Not a valid program" in bad.stderr
     end = _mill(emulator, tmp_path, "end")
     assert "Ending was correct" in end.stdout
-    assert "state 0" in _mill(emulator, tmp_path, "status").stdout
+    # END leaves the controller in manual (state 0) until its operator readies it again
+    # (state 1): then the mill initializes anew.
+    deadline = time.monotonic() + 30
+    while (
+        "state 1 (Uninitialized, Ready" not in (shown := _mill(emulator, tmp_path, "status")).stdout
+    ):
+        assert "state 0" in shown.stdout, shown.stdout + shown.stderr
+        assert time.monotonic() < deadline, "the operator never readied the mill again"
+        time.sleep(0.1)
+    init = _mill(emulator, tmp_path, "init", str(PROGRAMS / "cnc2_setup.dyn"))
+    assert init.returncode == 0 and "Initializing was correct" in init.stdout, init.stderr

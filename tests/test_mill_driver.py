@@ -240,7 +240,11 @@ async def test_end_returns_the_controller_to_manual_state_0(cell: Cell) -> None:
         assert result.message == "Ending was correct"
         assert mill.state == 0 and not mill.initialized
         assert (await mill.status()).state == 0
-    assert cell.emulator.mode is LinkMode.MANUAL
+        assert cell.emulator.runs[-1].outcome == "END"
+        # The operator readies the controller again: the host initializes it anew.
+        await mill._ready.wait(True, 5)
+        assert (await mill.initialize(SETUP)).message == "Initializing was correct"
+        assert mill.state == 1
 
 
 async def test_state_is_kept_per_machine_across_connections(cell: Cell) -> None:

@@ -87,11 +87,19 @@ async def test_move_outside_travel_is_an_error_condition(served) -> None:  # typ
     assert "X travel" in emulator.error
 
 
-async def test_end_returns_to_manual_and_rts_drops(served) -> None:  # type: ignore[no-untyped-def]
+async def test_end_returns_to_manual_then_the_operator_readies_it_again(served) -> None:  # type: ignore[no-untyped-def]
     emulator, _, link = served
+    ready_mode = emulator.mode
+    at_end: list[tuple[str, LinkMode, str, bool]] = []
+    emulator.run_hooks.append(
+        lambda run: at_end.append((run.outcome, emulator.mode, emulator.display, emulator.rts))
+    )
     await link.write(lines("000 END") + b"\x1a")
     await link.wait_cts(False, timeout=5)
-    assert emulator.mode is LinkMode.MANUAL and emulator.display == "MANUAL"
+    assert at_end == [("END", LinkMode.MANUAL, "MANUAL", False)]
+    # The automatic operator walks back to the panel: READY again, for the host's INITIALIZE.
+    await link.wait_cts(True, timeout=5)
+    assert emulator.mode is ready_mode and emulator.display == "READY"
 
 
 def test_unknown_fault_is_refused() -> None:

@@ -67,10 +67,12 @@ class OperatorCommands:
             self.log("paused by the operator: steps in flight finish, no new step starts")
 
     def resume(self: CommandsHost) -> None:
-        """Start dispatching again."""
+        """Start dispatching again (the mills an emergency stop halted are initialized anew:
+        their operators ready them at their panels first)."""
         if self.paused:
             self.paused = False
             self.log("resumed by the operator")
+            self.resume_halted()
             self.wake()
 
     async def set_service(self: CommandsHost, name: str, in_service: bool, reason: str = "") -> str:
@@ -174,6 +176,7 @@ class OperatorCommands:
                     while mill.running and not (await mill.status()).ready:
                         await self.clock.sleep(0.05)
                     await mill.end()
+                self.halted(name)
             except TimeoutError:
                 problems.append(
                     f"{name} still executes a block after {ESTOP_TIMEOUT:g} s: "

@@ -317,6 +317,14 @@ class CellController(OperatorCommands):
         """Bring mill ``m`` to a known state (its setup); True if it may take work."""
         return await self.recovery.prepare_mill(m, force=force)
 
+    def halted(self, name: str) -> None:
+        """Mill ``name`` was sent END by an emergency stop: initialized again on resume."""
+        self.recovery.halted(name)
+
+    def resume_halted(self) -> None:
+        """Initialize again the mills an emergency stop halted (the cell resumes)."""
+        self.recovery.resume_halted()
+
     async def close(self) -> None:
         """Close every link (running steps must have ended)."""
         if self._pallet_pulse is not None:

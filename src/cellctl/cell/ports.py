@@ -148,3 +148,9 @@ class CommandsHost(WorldModel, AlarmSink, Protocol):
 
     def steps_in_flight(self) -> list[asyncio.Task[None]]:
         """The steps running now (the robot's transfer, each mill's machining)."""
+
+    def halted(self, name: str) -> None:
+        """Mill ``name`` was sent END by an emergency stop: initialized again on resume."""
+
+    def resume_halted(self) -> None:
+        """Initialize again the mills an emergency stop halted (the cell resumes)."""

@@ -43,6 +43,7 @@ class Recovery:
         self.robot_ok = True
         """False from a robot fault (its status, its link) until the monitor's next good look."""
         self._tasks: dict[str, asyncio.Task[None]] = {}
+        self._halted: set[str] = set()  # mills an emergency stop sent END, until resume
 
     # -- what the scheduler asks ----------------------------------------------------------------
 
@@ -94,6 +95,20 @@ class Recovery:
         if count and (cause is None or cause.machine == name):
             self.alarms.failed(name, code, text, alarm=False)
         self._start(name)
+
+    def halted(self, name: str) -> None:
+        """Mill ``name`` was sent END by an emergency stop: out of the plan (no alarm of its
+        own: the stop has one) until :meth:`resume_halted` initializes it again."""
+        self.fit[name] = self.ready[name] = False
+        self._halted.add(name)
+
+    def resume_halted(self) -> None:
+        """The cell resumes: recovery initializes every halted mill anew (its operator readied
+        it at its panel meanwhile; if not, the setup's refusal is its alarm, as for any fault).
+        Not before: no setup moves a mill while the operator deals with an emergency stop."""
+        for name in sorted(self._halted):
+            self._start(name)
+        self._halted.clear()
 
     def _start(self, name: str) -> None:
         task = self._tasks.get(name)

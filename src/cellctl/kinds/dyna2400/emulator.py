@@ -20,7 +20,8 @@ What it models:
   stale lines stay and run if a block leaves a gap, as users report.
 - Program execute: a block runs once both ``SKIP TO 900`` and the ``900`` line have arrived;
   RTS is low while the setup is pending and while a block executes, high when READY. END
-  returns the controller to manual. Ctrl-Z ends a transmission.
+  returns the controller to manual (the automatic operator readies it again after
+  ``OperatorDelays.again``, so the host can initialize it anew). Ctrl-Z ends a transmission.
 - Execution with the shared DYNALAN machine model (:mod:`cellctl.kinds.dyna2400.dynalan.machine`):
   moves take their time from distance and feed rate, divided by ``time_scale``; a move outside
   the travel or a line that is not DYNALAN puts the controller in an error condition (display
@@ -107,6 +108,9 @@ class OperatorDelays:
     power_on: float = 3.0  # backlash check
     keys: float = 2.0  # clear memory and walk the Read/Write menu
     setup: float = 20.0  # jog the axes to the reference zero and press NEXT
+    # After END (the host's HALT, or an emergency stop's), walk back to the panel and select
+    # the link mode again, so the host can initialize the mill anew.
+    again: float = 30.0
 
 
 @dataclass
@@ -420,6 +424,15 @@ class Dyna2400Emulator(EmulatedDevice):
         self.display = "MANUAL"
         self._set_rts(False)
         self._log_run(BlockRun(1, 0.0, "END"))
+        if self.automatic:
+            self._spawn(self._ready_again())
+
+    async def _ready_again(self) -> None:
+        """The automatic operator readies the controller again after END (appendix B's keys)."""
+        await self._machine_sleep(self.delays.again)
+        # Only from where END left it: the operator does not override what happened since.
+        if self.powered and self.mode is LinkMode.MANUAL and not self.executing:
+            self.select(self.auto_mode)
 
     def _start_execution(self, entries: dict[int, Entry], *, load_run: bool) -> None:
         self.executing = True

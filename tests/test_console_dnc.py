@@ -201,6 +201,22 @@ async def test_a_drip_feed_s_progress_and_stall_on_the_board(shop: Shop) -> None
     assert "O5000.nc: drip-fed" in log
 
 
+async def test_the_program_picker_shows_no_private_directory(shop: Shop) -> None:
+    """The DNC file picker browses the shop for programs, never its tokens or locks."""
+    (shop.root / "tokens").mkdir(mode=0o700, exist_ok=True)
+    app, client = await console(shop)
+    async with app.run_test(size=SIZE) as pilot:
+        await wait_text(pilot, "MAIN MENU")
+        await pilot.press("1")
+        await wait_text(pilot, "2. DRIP FEED")
+        await pilot.press("2")
+        shown = await wait_text(pilot, "Program file:", "mill1", "mill2")
+        assert "tokens" not in shown and "state" not in shown, shown
+        await pilot.click("#cancel")
+        await pilot.press("q")
+    await client.close()
+
+
 async def test_stop_transfer_ends_a_drip_feed_in_flight(shop: Shop) -> None:
     control = shop.controls["mill1"]
     app, client = await console(shop)
@@ -214,17 +230,19 @@ async def test_stop_transfer_ends_a_drip_feed_in_flight(shop: Shop) -> None:
         await pilot.press("4")  # STOP TRANSFER, confirmed
         await wait_text(pilot, "Stop the transfer in flight")
         await pilot.press("y")
-        shown = await wait_text(pilot, "O5000.nc: drip-feed stopped by hand at ")
+        await wait_text(pilot, "stopped by hand: the drip-feed of O5000.nc ended at ")
         await wait_screen(pilot, r"mill1\s+idle", "mill1 idle after the stop")
-        assert not control.runs[-1].done, shown  # the control did not get its M30
-        control.reset()  # the operator resets the control, as the message says
+        # Ended the clean way: the rest of a block, then %: the control ran what it held
+        # and left the read, no alarm, nothing to reset.
+        await until(lambda: control.activity == "idle", "the control out of its read")
+        assert control.runs[-1].done and not control.alarms
         # Nothing in flight now: the server says so, in its words.
         await pilot.press("4", "y")
-        await wait_text(pilot, "mill1: STOP TRANSFER: mill1: no transfer in flight")
+        await wait_text(pilot, "mill1: STOP TRANSFER: mill1: nothing to stop")
         await pilot.press("q")
     await client.close()
     log = "\n".join(ShopStore(shop.root).log_lines("mill1"))
-    assert "drip-feed stopped by hand" in log
+    assert "stopped by hand: the drip-feed of O5000.nc ended at" in log
 
 
 async def test_receive_punch_keeps_what_the_control_punches(shop: Shop) -> None:
@@ -392,14 +410,14 @@ async def test_dnc_stop_by_hand_ends_a_drip_started_through_the_api(shop: Shop) 
         await until(under_way, "the drip-feed under way")
         code, said = await cellctl_run("dnc", "stop", "mill2", "--dir", str(shop.root))
         assert code == 0, said
-        assert "O5000.nc: drip-feed stopped by hand at " in said
-        with pytest.raises(CellctlError, match="drip-feed stopped by hand"):
+        assert "stopped by hand: the drip-feed of O5000.nc ended at " in said
+        with pytest.raises(CellctlError, match=r"stopped by hand: the drip-feed of O5000\.nc"):
             await drip
         status = (await machine())["machines"]["mill2"]
         assert status["condition"] == "idle" and status["progress"] is None
         control.reset()
         code, said = await cellctl_run("dnc", "stop", "mill2", "--dir", str(shop.root))
-        assert code != 0 and "mill2: no transfer in flight and no request waiting" in said
+        assert code == 0 and "mill2: nothing to stop: no transfer in flight" in said, said
 
 
 JSON = st.recursive(

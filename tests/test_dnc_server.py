@@ -114,8 +114,11 @@ async def test_a_request_for_a_missing_program_is_refused_and_logged(
     await until(lambda: "refused" in dnc.status()["mill1"].last, "the refusal")
     assert "no program O4321" in dnc.status()["mill1"].error
     assert dnc.status()["mill1"].pending == ""
+    # the refused request's punch is kept as received, as docs/dnc.md says
+    (kept,) = store.received("mill1", 9999)
+    assert kept.path.read_text() == "O9999 (LOAD O4321)\n"
     await punch_after_idle(emulator, 9999, "O9999 (HELLO)\n")
-    await until(lambda: store.received("mill1", 9999), "the odd request kept")
+    await until(lambda: len(store.received("mill1", 9999)) == 2, "the odd request kept")
     assert "asks for nothing" in "\n".join(store.log_lines("mill1"))
 
 
@@ -201,6 +204,10 @@ async def test_a_second_opener_of_a_served_link_is_refused(tmp_path: Path) -> No
         ('[machines.m]\nlink = "loop://"\nrequest = { program = 0 }\n', "request.program"),
         ("[dnc]\n", "no [machines.NAME] table"),
         ("[machines.m\n", "not valid TOML"),
+        (
+            '[dnc]\nlisten = "0.0.0.0:7130"\n[machines.m]\nlink = "loop://"\n',
+            "only with allow_remote = true in [dnc]",
+        ),
     ],
 )
 def test_dnc_toml_refusals(tmp_path: Path, toml: str, said: str) -> None:

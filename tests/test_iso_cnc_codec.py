@@ -227,3 +227,22 @@ def test_the_kind_checks_times_and_previews_a_program(tmp_path: Path) -> None:
     assert kind.check_text("run", "p.nc", "G1 X1\n", options)[0].startswith("p.nc:1")
     with pytest.raises(UsageError, match="unknown option"):
         kind.checked_options({"dc3_tolerence": 10})
+
+
+def test_a_tape_cut_short_ends_with_its_block_and_percent() -> None:
+    """How a host ends a tape early (spec: % ends a transmission): the rest of the block
+    in flight, then %; whole blocks only reach the control, and it reads a closed tape."""
+    from cellctl.kinds.iso_cnc.tape import cut_tape, frame, unframe
+
+    text = "O1234\nG00 X0\nG01 X10. F300\nM30\n"
+    tape = frame(text, leader=3, trailer=3)
+    mid = tape.index(b"X10.")  # in the middle of the third block
+    cut = cut_tape(tape, mid)
+    assert cut == tape[: tape.index(b"F300\n") + 5] + b"%"
+    assert unframe(cut) == "O1234\nG00 X0\nG01 X10. F300\n"
+    at_boundary = tape.index(b"G01")
+    assert cut_tape(tape, at_boundary) == tape[:at_boundary] + b"%"
+    assert cut_tape(tape, 0) == b"\0\0\0%\n%"  # nothing of a program yet: an empty tape
+    assert cut_tape(tape, tape.index(b"M30") + 1) is None  # its end is in the block in flight
+    plain = frame(text, percent=False)
+    assert cut_tape(plain, plain.index(b"X0"), percent=False) == b"O1234\nG00 X0\nM30\n"

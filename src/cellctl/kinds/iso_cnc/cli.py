@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import sys
+import threading
 from pathlib import Path
 
 import click
@@ -37,16 +38,34 @@ def panel_key(control: IsoCncEmulator, text: str) -> str:
     elif key == "reset":
         control.reset()
     elif key != "list":
-        raise UsageError(f"unknown key {key!r}: edit, mem, rmt, read, start, punch [N], reset")
+        raise UsageError(f"unknown key {key!r}: {PANEL_KEYS}")
     programs = " ".join(f"O{n:04d}" for n in sorted(control.memory)) or "(empty)"
     alarm = f", alarm {control.alarms[-1].code:03d}" if control.activity == "alarm" else ""
     return f"{control.mode} {control.activity}{alarm}; memory: {programs}"
 
 
+#: The panel's keys, for ``--help`` and the refusal of an unknown one.
+PANEL_KEYS = "edit, mem, rmt (the mode), read, start (CYCLE START), punch [N], reset, list"
+
+
+def _read_lines(loop: asyncio.AbstractEventLoop, lines: asyncio.Queue[str]) -> None:
+    """stdin's lines into ``lines`` ("" at its end), from a daemon thread: a readline that
+    blocks there never holds the process at exit (Ctrl-C), as one in the loop's executor
+    would until Enter."""
+    try:
+        for text in iter(sys.stdin.readline, ""):
+            loop.call_soon_threadsafe(lines.put_nowait, text)
+        loop.call_soon_threadsafe(lines.put_nowait, "")
+    except RuntimeError:
+        return  # the loop has closed: the emulator stopped
+
+
 async def _panel(control: IsoCncEmulator) -> None:
     loop = asyncio.get_running_loop()
+    lines: asyncio.Queue[str] = asyncio.Queue()
+    threading.Thread(target=_read_lines, args=(loop, lines), daemon=True).start()
     while True:
-        text = await loop.run_in_executor(None, sys.stdin.readline)
+        text = await lines.get()
         if not text:
             return
         try:
@@ -84,7 +103,11 @@ async def _panel(control: IsoCncEmulator) -> None:
     multiple=True,
     help="A program file put into its memory at power on.",
 )
-@click.option("--panel", is_flag=True, help="Play the operator: panel keys from stdin.")
+@click.option(
+    "--panel",
+    is_flag=True,
+    help=f"Play the operator: panel keys from stdin, one a line: {PANEL_KEYS}.",
+)
 def _emulate_iso_cnc(
     listen: str,
     time_scale: float,

@@ -56,7 +56,6 @@ from __future__ import annotations
 import asyncio
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 
 from cellctl.clock import Clock
@@ -68,40 +67,13 @@ from cellctl.kinds.iso_cnc import tape
 from cellctl.kinds.iso_cnc.buffer import BufferModel, tape_blocks
 from cellctl.kinds.iso_cnc.options import ISO_LINE, IsoCncOptions, prepare, read_program
 from cellctl.kinds.iso_cnc.status import IsoCncState, IsoCncStatus
+from cellctl.kinds.iso_cnc.transfer import Progress, TransferProgress, TransferReport
 from cellctl.link import LineSettings, Link, TrafficLog
 
 
 class ControlAlarm(DeviceError):
     """The control raised an alarm (085, 086, 087) and aborted the transfer."""
 
-
-@dataclass
-class TransferProgress:
-    """Where a transfer stands (passed to ``progress`` as it goes)."""
-
-    chars_sent: int
-    chars_total: int
-    chars_per_s: float
-    buffer_stops: int
-    elapsed_s: float
-    eta_s: float
-    phase: str  # "waiting" (for DC1), "sending", "stopped" (DC3), "running", "receiving", "done"
-
-
-@dataclass
-class TransferReport:
-    """A finished transfer: its totals, and the alarm if the control raised one."""
-
-    chars_sent: int
-    chars_total: int
-    chars_per_s: float
-    buffer_stops: int
-    elapsed_s: float
-    alarm: int | None = None
-    stalls_modelled_s: float = 0.0
-
-
-Progress = Callable[[TransferProgress], None]
 
 #: Per wake-up, how much of the host's measured lateness it keeps (about 350 wake-ups to
 #: halve: a second or two of sending, so a burst of load is remembered through it).
@@ -139,6 +111,8 @@ class IsoCncDriver(LinkDriver):
         self._stops = 0
         self._seen_at_end = -1  # DC3s heard when the closing % went out
         self._sending = False  # a DC3 now is flow control, not the end of the read
+        self._end_asked = False  # end_tape(): cut the tape at the next block's end
+        self._cut = False  # this transfer's tape was cut short
         self._lock = asyncio.Lock()
 
     @classmethod
@@ -265,6 +239,7 @@ class IsoCncDriver(LinkDriver):
         self._sent = 0
         self._seen_at_end = -1
         self._model = model
+        self._cut = False
 
         def report(state: str) -> None:
             if progress is None:
@@ -289,6 +264,7 @@ class IsoCncDriver(LinkDriver):
             self._stops,
             elapsed,
             stalls_modelled_s=model.idle_s * o.motion_scale,
+            ended_early=self._cut,
         )
 
     async def _send_all(
@@ -320,6 +296,15 @@ class IsoCncDriver(LinkDriver):
         end_at = framed.rfind(b"%") + 1 if o.percent else total - o.trailer
         while self._sent < total:
             self._handle(self.link.reset_input())
+            if self._end_asked:  # end_tape(): the rest of this block, then the tape's end
+                self._end_asked = False
+                shorter = tape.cut_tape(framed, self._sent, percent=o.percent)
+                if shorter is not None:
+                    framed, total, end_at, self._cut = shorter, len(shorter), len(shorter), True
+                    while model.unsent and model.unsent[-1][0] > total:
+                        model.unsent.pop()  # blocks past the cut never go out
+                    if model.drip and not o.percent:
+                        model.unsent.append((total, 0.0))  # the M30 block
             if self._sent >= end_at and self._dc3_seen > self._seen_at_end:
                 break
             if self._stopped:
@@ -420,6 +405,7 @@ class IsoCncDriver(LinkDriver):
             self.alarm = None
             self._set(state)
             self._progress = IsoCncStatus(state, 0, len(framed))
+            self._sent, self._end_asked = 0, False  # end_tape() says "waiting" until DC1
             model = BufferModel(drip=drip, store_cps=o.store_cps)
             if drip:
                 model.unsent.extend(tape_blocks(framed, o.motion(), o.motion_scale))
@@ -511,6 +497,17 @@ class IsoCncDriver(LinkDriver):
             return await self.link.read(65536, timeout=max(left, 0.0))
         except LinkTimeout:
             raise LinkTimeout(f"{self.name}: {wanted}") from None
+
+    def end_tape(self) -> str:
+        """End the tape going out the clean way (:func:`tape.cut_tape`: the rest of the
+        block in flight, then ``%``), under the control's DC3/DC1 as ever; the read then
+        returns as at any tape's end, its report ``ended_early``. Where it stood, in a word:
+        ``"ending"``; ``"waiting"`` (no DC1 yet: nothing went out, cancel the read instead);
+        ``"out"`` (all of it is out: the control stores or runs the rest)."""
+        if self._sending:
+            self._end_asked = True
+            return "ending"
+        return "out" if self._sent else "waiting"
 
     async def pause(self) -> None:
         """Stop a punch with DC3 (the control stops within 10 characters)."""

@@ -171,3 +171,24 @@ def control_code_name(byte: int) -> str:
         return Code(byte).name
     except ValueError:
         return f"0x{byte:02X}"
+
+
+def cut_tape(data: bytes, sent: int, *, percent: bool = True) -> bytes | None:
+    """``data`` (a framed tape of which ``sent`` bytes are out) ended early the clean way: the
+    rest of the block in flight (to its LF), then ``%``, which ends a transmission (spec,
+    "The tape format"); without ``%`` framing, an ``M30`` block ends it. The control leaves
+    the read as at any tape's end: nothing half a block long is left in it. None when the
+    tape's own end is already out or in the block in flight (nothing to cut)."""
+    closing = data.rfind(b"%") if percent else len(data.rstrip(b"\x00"))
+    if percent and closing <= data.find(b"%"):
+        closing = len(data)  # no closing % (a tape framed without one)
+    if sent > 0 and data[sent - 1] == LF:
+        cut = sent
+    elif not percent and not data[:sent].strip(b"\x00"):
+        cut = sent  # only leader is out: nothing of a block to finish
+    else:
+        eol = data.find(b"\n", sent)
+        cut = len(data) if eol < 0 else eol + 1
+    if cut >= closing:
+        return None
+    return data[:cut] + (b"%" if percent else b"M30\n")

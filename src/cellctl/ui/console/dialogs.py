@@ -179,7 +179,7 @@ class ProgramTree(DirectoryTree):
             for p in paths
             if not p.name.startswith(".")
             and (p.is_dir() or p.suffix.lower() in self.suffixes)
-            and p.name != "state"
+            and p.name not in ("state", "tokens")  # private: locks, the API's tokens
         ]
 
 

@@ -11,10 +11,12 @@ Methods of its own (:meth:`DncAccess.methods`):
 
 - ``dnc.send`` ``{machine, program, text?, drip?}``: send a program by hand (``text``: its
   text; else ``program`` is an O-number or file name of ``SHOP/<machine>/programs``); the
-  control starts the read. Progress is pushed (``notify_progress``) as characters go.
+  control starts the read. Progress is pushed (``notify_progress``) as characters go. A busy
+  machine is refused at once (MachineInUse); ``ticket`` names it for ``dnc.stop``.
 - ``dnc.receive`` ``{machine, timeout?}``: take what the control punches; kept as received.
-- ``dnc.stop`` ``{machine}``: stop the read-in or drip-feed in flight (whoever started it),
-  or drop the request waiting for the control's read.
+- ``dnc.stop`` ``{machine, ticket?}``: end the read-in or drip-feed in flight the clean way
+  (whoever started it; with ``ticket``, only the one sent with it), or drop the request
+  waiting for the control's read.
 - ``dnc.log`` ``{machine, last?}``: the last lines of the machine's log.
 - ``machines.functions``: what an operator may do to each machine (:data:`FUNCTIONS`), for a
   client that builds its menus from the server (the console).
@@ -39,16 +41,9 @@ from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.kinds import Condition
 from cellctl.kinds.iso_cnc.dnc.config import KIND
-from cellctl.kinds.iso_cnc.dnc.server import (
-    PUNCH_S,
-    STOP_S,
-    TRANSFER_S,
-    Activity,
-    DncServer,
-    MachineStatus,
-    WatchedTraffic,
-)
-from cellctl.kinds.iso_cnc.dnc.store import read_program_file
+from cellctl.kinds.iso_cnc.dnc.server import PUNCH_S, STOP_S, TRANSFER_S, DncServer
+from cellctl.kinds.iso_cnc.dnc.status import Activity, MachineStatus, WatchedTraffic, state_words
+from cellctl.kinds.iso_cnc.dnc.store import check_program_number, read_program_file
 from cellctl.kinds.menu import MAX_PROGRAM_CHARS, Progress
 from cellctl.mailbox import Mailbox
 from cellctl.service.access import CellAccess, traffic_rows
@@ -79,6 +74,8 @@ class SendParams(P):
     program: str = Field(min_length=1, max_length=500)
     text: str | None = Field(default=None, max_length=MAX_PROGRAM_CHARS)
     drip: bool = False
+    ticket: str | None = Field(default=None, min_length=1, max_length=64)
+    """The caller's own name for this transfer: ``dnc.stop`` with it stops this one only."""
 
 
 class ReceiveParams(P):
@@ -93,6 +90,8 @@ class LogParams(P):
 
 class StopParams(P):
     machine: str = Field(min_length=1, max_length=64)
+    ticket: str | None = Field(default=None, min_length=1, max_length=64)
+    """Stop only the transfer sent with this ticket (a client stopping its own)."""
 
 
 class NoParams(P):
@@ -141,7 +140,7 @@ FUNCTIONS: tuple[dict[str, Any], ...] = (
         "params": {},
         "asks": [],
         "confirm": "Stop the transfer in flight (or drop the request waiting for a read)? "
-        "The control is left mid-read: reset it before its next read.",
+        "A read under way ends with the rest of its block and %: the control leaves the read.",
         "doc": "Stop the read-in or drip-feed in flight.",
         "timeout_s": STOP_S + CALL_MARGIN_S,
     },
@@ -154,18 +153,6 @@ FUNCTIONS: tuple[dict[str, Any], ...] = (
         "doc": "The machine's last log lines.",
     },
 )
-
-
-def state_words(s: MachineStatus) -> str:
-    """A machine's state as the console and dashboard show it."""
-    words = s.activity.value
-    if s.activity in (Activity.READING, Activity.DRIP_FEEDING) and s.program:
-        words += f" {s.program}"
-    if s.activity is Activity.WAITING and s.pending:
-        words += f": {s.pending}"
-    if s.stall_s > 0 and s.activity is Activity.DRIP_FEEDING:
-        words += f", stalled {s.stall_s:.1f} s"
-    return words
 
 
 def _progress(s: MachineStatus) -> ProgressInfo | None:
@@ -288,14 +275,21 @@ async def _send(access: CellAccess, p: SendParams, progress: Progress | None) ->
     else:
         path = line.store.resolve(p.machine, p.program)
         name, data = path.name, read_program_file(path)
-    async with line.turn:
-        result = await line.send(name, data, drip=p.drip, progress=progress, timeout=TRANSFER_S)
+    check_program_number(name, data)
+    what = f"{'drip-feed' if p.drip else 'read-in'} of {name}"
+    with line.claim(what):  # a busy machine: refused at once, naming what it does
+        async with line.turn:
+            result = await line.send(
+                name, data, drip=p.drip, progress=progress, timeout=TRANSFER_S, ticket=p.ticket
+            )
     return {"machine": p.machine, **result}
 
 
 async def _receive(access: CellAccess, p: ReceiveParams, progress: Progress | None) -> Any:
     assert isinstance(access, DncAccess)
     line = access.server.line(p.machine)
+    if progress is not None:  # the caller may now ask the operator to press PUNCH
+        progress({"phase": "waiting", "chars_sent": 0, "chars_total": 0})
     programs = await line.wait_punch(p.timeout)
     message = "; ".join(_punched(x) for x in programs) or "nothing punched"
     return {"machine": p.machine, "message": message, "programs": programs}
@@ -313,7 +307,8 @@ def _punched(item: dict[str, Any]) -> str:
 
 async def _stop(access: CellAccess, p: StopParams, progress: Progress | None) -> Any:
     assert isinstance(access, DncAccess)
-    message = await access.server.line(p.machine).stop()
+    why = "stopped by its sender" if p.ticket else "stopped by hand"
+    message = await access.server.line(p.machine).stop(ticket=p.ticket, why=why)
     return {"machine": p.machine, "message": message}
 
 

@@ -21,7 +21,7 @@ import asyncio
 import contextlib
 import dataclasses
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Coroutine
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -40,6 +40,7 @@ from cellctl.ui.common import (
 
 if TYPE_CHECKING:
     from cellctl.kinds.iso_cnc.dnc.config import ShopConfig
+    from cellctl.kinds.iso_cnc.dnc.server import DncServer
 
 # The server, the API and the links are imported by the command that uses them: `cellctl
 # --help` and a refused argument load none of them (tests/test_cli_startup.py).
@@ -49,7 +50,8 @@ def _shop_options(f: Callable[..., Any]) -> Callable[..., Any]:
     f = click.option(
         "--use-cell",
         is_flag=True,
-        help="Feed the iso-cnc machines of the cell's cell.toml (--cell) instead of dnc.toml.",
+        help="Feed the iso-cnc machines of the cell's cell.toml (--cell) instead of dnc.toml; "
+        "the shop directory is then <cell>/shop unless --dir is given.",
     )(f)
     return click.option(
         "--dir",
@@ -58,14 +60,23 @@ def _shop_options(f: Callable[..., Any]) -> Callable[..., Any]:
         default="shop",
         show_default=True,
         type=click.Path(file_okay=False, path_type=Path),
-        help="The shop directory: dnc.toml, one directory per machine.",
+        help="The shop directory: dnc.toml, one directory per machine "
+        "(with --use-cell: <cell>/shop).",
     )(f)
 
 
 def _config(ctx: click.Context, shop: Path, use_cell: bool) -> ShopConfig:
+    """The shop: ``--dir``'s dnc.toml; with ``--use-cell`` the cell's iso-cnc machines, its
+    shop directory ``<cell>/shop`` unless ``--dir`` (or ``$CELLCTL_SHOP``) names another:
+    never the unrelated ``./shop`` of wherever the command runs."""
     from cellctl.kinds.iso_cnc.dnc.config import load_shop
 
-    return load_shop(shop, cell=cell_dir(ctx) if use_cell else None)
+    if not use_cell:
+        return load_shop(shop)
+    cell = cell_dir(ctx)
+    if ctx.get_parameter_source("shop") is click.core.ParameterSource.DEFAULT:
+        shop = cell / "shop"
+    return load_shop(shop, cell=cell)
 
 
 @click.group("dnc")
@@ -86,8 +97,13 @@ def serve(ctx: click.Context, shop: Path, use_cell: bool) -> None:
 
 
 async def serve_shop(config: ShopConfig, *, stop: asyncio.Event | None = None) -> None:
-    """Serve ``config``'s machines and its API until ``stop`` is set (or SIGINT / SIGTERM)."""
+    """Serve ``config``'s machines and its API until ``stop`` is set (or SIGINT / SIGTERM).
+
+    A machine that cannot be reached is served offline (named, retried). On the stop it says
+    at once what it does with the transfers in flight, ends each the clean way (the rest of
+    a block and ``%``; each machine's log has it, each caller is told), then closes."""
     from cellctl.cell.owner import acquire_controller_lock
+    from cellctl.errors import MachineInUse
     from cellctl.kinds.iso_cnc.dnc.access import DncAccess
     from cellctl.kinds.iso_cnc.dnc.server import DncServer
     from cellctl.service.server import ApiServer
@@ -95,7 +111,11 @@ async def serve_shop(config: ShopConfig, *, stop: asyncio.Event | None = None) -
 
     config.root.mkdir(mode=0o700, parents=True, exist_ok=True)
     stop = stop or asyncio.Event()
-    with acquire_controller_lock(config.root):
+    try:
+        lock = acquire_controller_lock(config.root)
+    except MachineInUse as e:  # the cell's words ("the cell in shop") for a shop
+        raise MachineInUse(str(e).replace("the cell in", "the shop in", 1)) from None
+    with lock:
         server = DncServer(config)
         api = ApiServer(
             DncAccess(server),
@@ -108,16 +128,35 @@ async def serve_shop(config: ShopConfig, *, stop: asyncio.Event | None = None) -
         # Ctrl-C, SIGTERM: ours from here, as found again once the finally below begins.
         signals = contextlib.ExitStack()
         signals.enter_context(stop_signals(stop.set))
+        served = False
         try:
             await server.start()
             await api.start()
+            served = True
             names = ", ".join(sorted(config.machines))
             console.print(f"DNC server: {names}; control API on {api.url}", markup=False)
+            for line in server.lines.values():
+                if line.status.error:
+                    err_console.print(line.status.error, markup=False)
             await stop.wait()
         finally:
             signals.close()
+            if served:
+                await _stopping(server)
             await api.close()
             await server.close()
+
+
+async def _stopping(server: DncServer) -> None:
+    """Say at once that the server stops and what it does with each transfer in flight;
+    end them (bounded), then say how each ended."""
+    doing = server.in_flight()
+    said = "; ".join(f"{name}: {words}" for name, words in doing.items())
+    if said:
+        said = f": ending what is in flight the clean way (the rest of its block, then %): {said}"
+    err_console.print(f"DNC server stopping{said}", markup=False)
+    for name, result in (await server.end_transfers("the DNC server stopped")).items():
+        err_console.print(f"{name}: {result}", markup=False)
 
 
 # -- by hand -----------------------------------------------------------------------------------
@@ -131,7 +170,10 @@ async def call_shop(
     progress: Callable[[dict[str, Any]], None] | None = None,
 ) -> Any:
     """``method`` on machine ``name``: through the running server's API, or on the link
-    opened here (under its owner locks) when no server runs on the shop."""
+    opened here (under its owner locks) when no server runs on the shop.
+
+    With a ``ticket`` in ``params`` (a transfer), Ctrl-C or SIGTERM stops that transfer, and
+    only it (``dnc.stop`` with the ticket): the answer is then ``{"interrupted": words}``."""
     from cellctl.cell.owner import controller_holder
     from cellctl.kinds.iso_cnc.dnc.access import DncAccess
     from cellctl.kinds.iso_cnc.dnc.config import machine
@@ -141,16 +183,74 @@ async def call_shop(
 
     machine(config, name)
     params = {"machine": name, **params}
+    stop = {"machine": name, "ticket": params.get("ticket")}
     if controller_holder(config.root) is not None:
         async with await attach(config.root) as api:
-            return await api.call(method, params, progress, timeout=TRANSFER_S)
+            return await _stoppable(
+                api.call(method, params, progress, timeout=TRANSFER_S),
+                lambda: api.call("dnc.stop", stop, timeout=STOP_CALL_S),
+                stop["ticket"],
+            )
     one = dataclasses.replace(config, machines={name: config.machines[name]})
     server = DncServer(one)
     await server.start()  # the machine's own task listens, as under `dnc serve`
     try:
-        return await Dispatcher(DncAccess(server)).call(method, params, progress)
+        line = server.line(name)
+        if line.driver is None:  # its link could not be opened: say why at once
+            from cellctl.errors import LinkError
+
+            raise LinkError(line.status.error)
+        dispatcher = Dispatcher(DncAccess(server))
+        return await _stoppable(
+            dispatcher.call(method, params, progress),
+            lambda: dispatcher.call("dnc.stop", stop),
+            stop["ticket"],
+        )
     finally:
         await server.close()
+
+
+#: Seconds a client waits for ``dnc.stop``'s answer (the server's own deadline is 10 s).
+STOP_CALL_S = 40.0
+#: Seconds a stopped transfer's own answer is waited for once the stop has answered.
+STOPPED_ANSWER_S = 10.0
+
+
+async def _stoppable(
+    work: Coroutine[Any, Any, Any],
+    stop: Callable[[], Coroutine[Any, Any, Any]],
+    ticket: str | None,
+) -> Any:
+    """``work``; with a ticket, Ctrl-C / SIGTERM meanwhile calls ``stop`` and returns
+    ``{"interrupted": how the transfer ended}``."""
+    from cellctl.clock import current_clock
+    from cellctl.errors import CellctlError
+
+    if ticket is None:
+        return await work
+    stopped = asyncio.Event()
+    with stop_signals(stopped):
+        task = asyncio.ensure_future(work)
+        signal = asyncio.ensure_future(stopped.wait())
+        try:
+            await asyncio.wait({task, signal}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            signal.cancel()
+        if task.done():
+            return task.result()
+        err_console.print("interrupted: stopping this transfer ...", markup=False)
+        try:
+            said = str((await stop())["message"])
+        except CellctlError as e:
+            said = str(e)
+        try:  # the transfer's own answer says where it ended
+            async with current_clock().timeout(STOPPED_ANSWER_S):
+                return await task
+        except CellctlError as e:
+            said = str(e)
+        except TimeoutError:
+            task.cancel()  # a drip-feed's end is out; the control runs what it holds
+        return {"interrupted": said}
 
 
 def _bar_columns() -> tuple[Any, ...]:
@@ -178,32 +278,60 @@ def _fields(p: dict[str, Any], elapsed: float) -> dict[str, Any]:
 def _transfer(
     ctx: click.Context, shop: Path, use_cell: bool, name: str, program: str, drip: bool
 ) -> None:
+    import uuid
+
     from cellctl.kinds.iso_cnc.dnc.config import machine
-    from cellctl.kinds.iso_cnc.dnc.store import ShopStore, read_program_file
+    from cellctl.kinds.iso_cnc.dnc.store import ShopStore, check_program_number, read_program_file
     from cellctl.kinds.iso_cnc.driver import prepare
     from cellctl.ui.calls import LazyBar
 
     config = _config(ctx, shop, use_cell)
-    params: dict[str, Any] = {"program": program, "drip": drip}
+    options = machine(config, name).options  # an unknown machine first, nothing created
+    # A ticket of its own: Ctrl-C stops this transfer, never another's.
+    params: dict[str, Any] = {"program": program, "drip": drip, "ticket": uuid.uuid4().hex}
     path = Path(program)
     if path.is_file():  # a file here: its text travels (the server may not see this path)
-        params = {"program": path.name, "drip": drip, "text": read_program_file(path).decode()}
-    else:
-        ShopStore(config.root).resolve(name, program)  # refused here, before a byte goes out
-    text = params.get("text")
-    if text is None:
-        text = read_program_file(ShopStore(config.root).resolve(name, program)).decode()
-    # the G-code check with the machine's options: refused here, before a byte goes out
-    prepare(text.encode("ascii"), machine(config, name).options, params["program"])
+        params.update(program=path.name, text=read_program_file(path).decode())
+        data = params["text"].encode("ascii")
+    else:  # refused here, before a byte goes out
+        data = read_program_file(ShopStore(config.root).resolve(name, program))
+    # the O-number and the G-code check with the machine's options: before a byte goes out
+    check_program_number(program, data)
+    prepare(data, options, params["program"])
     what = "drip-feed" if drip else "read-in"
-    err_console.print(
+    prompt = (
         f"{name}: {what} of {params['program']}: start the read on the control "
-        "(READ in EDIT, or CYCLE START in RMT/DNC)",
-        markup=False,
+        "(READ in EDIT, or CYCLE START in RMT/DNC)"
     )
     with LazyBar(_bar_columns(), params["program"], _fields) as bar:
-        result = run(lambda: call_shop(config, name, "dnc.send", params, bar.update))
+        # said once the server has taken the transfer (its first progress), never before a
+        # refusal (the machine busy, its link held elsewhere)
+        update = _first_then(lambda: err_console.print(prompt, markup=False), bar.update)
+        result = run(lambda: call_shop(config, name, "dnc.send", params, update))
+    _interrupted(result)
     console.print(result["message"], markup=False)
+
+
+def _first_then(
+    first: Callable[[], object], then: Callable[[dict[str, Any]], None]
+) -> Callable[[dict[str, Any]], None]:
+    """A progress callback that calls ``first()`` once, at the first progress, then ``then``."""
+    said = [False]
+
+    def update(data: dict[str, Any]) -> None:
+        if not said[0]:
+            said[0] = True
+            first()
+        then(data)
+
+    return update
+
+
+def _interrupted(result: Any) -> None:
+    """A transfer stopped by Ctrl-C: say how it ended and exit 130 (as ``run`` does)."""
+    if isinstance(result, dict) and "interrupted" in result:
+        err_console.print(f"interrupted: {result['interrupted']}", markup=False)
+        sys.exit(130)
 
 
 @dnc.command()
@@ -228,14 +356,27 @@ def drip(ctx: click.Context, name: str, program: str, shop: Path, use_cell: bool
 
 @dnc.command()
 @click.argument("name", metavar="MACHINE")
-@click.option("--timeout", type=float, default=600.0, show_default=True, help="Seconds to wait.")
+@click.option(
+    "--timeout",
+    # the API's own limit (dnc.receive: above 0, at most an hour), said here as --timeout
+    type=click.FloatRange(0, 3600, min_open=True),
+    default=600.0,
+    show_default=True,
+    help="Seconds to wait (at most 3600).",
+)
 @_shop_options
 @click.pass_context
 def receive(ctx: click.Context, name: str, timeout: float, shop: Path, use_cell: bool) -> None:
     """Keep what the control punches (select the program, press PUNCH on the control)."""
+    from cellctl.kinds.iso_cnc.dnc.config import machine
+
     config = _config(ctx, shop, use_cell)
-    err_console.print(f"{name}: waiting for the control: press PUNCH on it", markup=False)
-    result = run(lambda: call_shop(config, name, "dnc.receive", {"timeout": timeout}))
+    machine(config, name)
+    prompt = _first_then(
+        lambda: err_console.print(f"{name}: waiting for the control: press PUNCH on it"),
+        lambda data: None,
+    )
+    result = run(lambda: call_shop(config, name, "dnc.receive", {"timeout": timeout}, prompt))
     for item in result["programs"]:
         if "refused" in item:
             console.print(f"refused: {item['refused']}", markup=False)
@@ -251,10 +392,10 @@ def receive(ctx: click.Context, name: str, timeout: float, shop: Path, use_cell:
 @click.pass_context
 def stop_transfer(ctx: click.Context, name: str, shop: Path, use_cell: bool) -> None:
     """Stop the read-in or drip-feed in flight on MACHINE (or drop the request waiting for
-    its read). The control is left mid-read: reset it before its next read."""
+    its read). A read under way is ended the clean way: the rest of its block, then %."""
     config = _config(ctx, shop, use_cell)
     result = run(lambda: call_shop(config, name, "dnc.stop", {}))
-    console.print(result["message"], markup=False)
+    console.print(str(result.get("message") or f"{name}: nothing was running"), markup=False)
 
 
 @dnc.command()
@@ -277,18 +418,32 @@ def diff(
 
     Exit 0 when they match, 1 when they differ.
     """
-    from cellctl.kinds.iso_cnc.dnc.diff import compare
-    from cellctl.kinds.iso_cnc.dnc.store import ShopStore, read_program_file
+    import re
 
-    store = ShopStore(shop)
+    from cellctl.errors import UsageError
+    from cellctl.kinds.iso_cnc.dnc.config import machine
+    from cellctl.kinds.iso_cnc.dnc.diff import compare
+    from cellctl.kinds.iso_cnc.dnc.store import ShopStore, o_name, read_program_file
+
+    config = _config(ctx, shop, use_cell)
+    machine(config, name)  # an unknown machine is named as such; nothing is created
+    store = ShopStore(config.root)
     if received is not None and Path(received).is_file():
         got = Path(received)
         number = None
     else:
-        wanted = None if received is None else int(received.lstrip("Oo:") or "x")
+        found = None if received is None else re.fullmatch(r"[Oo:]?(\d{1,8})", received)
+        if received is not None and found is None:
+            raise UsageError(f"{received}: no such file, and not a program number like O1234")
+        wanted = None if found is None else int(found.group(1))
         copies = store.received(name, wanted)
         if not copies:
-            raise click.UsageError(f"no received program {received or ''} for {name}".strip())
+            which = "nothing" if wanted is None else f"no {o_name(wanted)}"
+            raise UsageError(
+                f"{which} received from {name} yet (in {store.folder(name, 'received')}): "
+                f"press PUNCH on the control while `cellctl dnc receive {name}` or "
+                "`dnc serve` runs"
+            )
         got, number = copies[-1].path, copies[-1].number
     if against is not None:
         sent_path = Path(against)
@@ -298,7 +453,8 @@ def diff(
         number = number if number is not None else o_number(unframe(read_program_file(got)))
         sent = store.sent(name, number) if number is not None else []
         if not sent:
-            raise click.UsageError(f"nothing sent to {name} as O{number or 0:04d}: give --against")
+            shown = o_name(number) if number is not None else "its program"
+            raise UsageError(f"nothing sent to {name} as {shown}: give --against FILE")
         sent_path = sent[-1].path
     result = compare(
         read_program_file(sent_path),
@@ -350,4 +506,37 @@ def status(ctx: click.Context, shop: Path, use_cell: bool, as_json: bool) -> Non
         print_json(machines)
         return
     for name, m in machines.items():
-        console.print(f"{name}: {m['condition']}: {m['state']}", markup=False)
+        console.print(status_text(name, m), markup=False, soft_wrap=True)
+
+
+def status_text(name: str, m: dict[str, Any]) -> str:
+    """A machine of ``cell.status`` in one line, with what the console and dashboard show:
+    its state, a transfer's characters of total, rate, buffer stops (in its state), stall
+    and time left, and its last refusal or error."""
+    text = f"{name}: {m['condition']}: {m['state']}"
+    p = m.get("progress") or {}
+    if p:
+        done, total = int(p.get("done") or 0), int(p.get("total") or 0)
+        parts = [f"{done}/{total} chars" + (f" ({done / total:.0%})" if total else "")]
+        parts.append(str(p.get("phase") or ""))
+        if p.get("rate_per_s"):
+            parts.append(f"{p['rate_per_s']:.0f} chars/s")
+        if p.get("stall_s") is not None:
+            parts.append(f"stall {p['stall_s']:.1f} s")
+        if p.get("time_left_s") is not None:
+            parts.append(f"{_duration(float(p['time_left_s']))} left")
+        text += " | " + ", ".join(x for x in parts if x)
+    error = (m.get("error") or {}).get("text")
+    if error:
+        text += f" | last error: {error}"
+    return text
+
+
+def _duration(seconds: float) -> str:
+    """``3 s``, ``4 min 05 s``, ``1 h 02 min`` (as the console shows time left)."""
+    s = round(seconds)
+    if s < 60:
+        return f"{s} s"
+    if s < 3600:
+        return f"{s // 60} min {s % 60:02d} s"
+    return f"{s // 3600} h {s % 3600 // 60:02d} min"

@@ -25,6 +25,7 @@ that cannot be a directory. Each refusal names the file and the table.
 
 from __future__ import annotations
 
+import ipaddress
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -160,7 +161,29 @@ def parse_dnc_file(data: dict[str, Any], root: Path, path: Path) -> ShopConfig:
         raise UsageError(f"{path}: {len(parsed.machines)} machines, at most {MAX_MACHINES}")
     machines = {n: _machine(n, t, path) for n, t in parsed.machines.items()}
     _distinct_links(machines, path)
+    if parsed.dnc.listen is not None:
+        _check_listen(parsed.dnc.listen, parsed.dnc.allow_remote, path)
     return ShopConfig(root, machines, parsed.dnc.listen, parsed.dnc.allow_remote, source=path)
+
+
+def _check_listen(text: str, allow_remote: bool, path: Path) -> None:
+    """``[dnc] listen``: ``HOST:PORT``, on loopback unless ``allow_remote`` (said here, in
+    the [dnc] table's words, before the API's own check in [api] words could)."""
+    host, sep, port = text.rpartition(":")
+    host = host.strip("[]")
+    if not sep or not host or not port.isdecimal() or not 0 < int(port) < 65536:
+        raise UsageError(
+            f'{path}: [dnc] listen = "{text}": write "HOST:PORT", e.g. "127.0.0.1:7130"'
+        )
+    try:
+        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        loopback = False
+    if not loopback and not allow_remote:
+        raise UsageError(
+            f'{path}: [dnc] listen = "{text}" is not a loopback address: the API answers there '
+            "only with allow_remote = true in [dnc]"
+        )
 
 
 def _distinct_links(machines: dict[str, DncMachine], path: Path) -> None:

@@ -6,37 +6,62 @@
     await server.start()             # opens every link under its owner locks; one task each
     server.status()["mill1"].activity   # Activity.IDLE ...
     await server.send("mill1", data, drip=True, progress=print)   # by hand, between requests
-    await server.line("mill1").stop()   # from another task: the transfer in flight ends here
+    await server.line("mill1").stop()   # from another task: the transfer in flight ends cleanly
     await server.close()
 
 Each machine's task listens for the control: a punched tape (DC2 ... DC4) is split into its
 programs; the request program (:mod:`.request`) makes the control's *next read* receive the
 program it names (read into memory, or drip-fed), every other program is kept as received
-(:mod:`.store`). A transfer by hand (``dnc.send`` / ``dnc.drip`` / ``dnc.receive`` through the
-API) waits until the machine's task is between two listens, so a transfer is never cut in two.
-A link that fails is logged, shown on the machine's status, and opened again after
-:data:`REOPEN_S`; the other machines go on. A transfer stopped by hand (``dnc.stop``) ends at
-once, whoever started it: its caller gets :class:`TransferStopped`, the control is left
-mid-read (the operator resets it), and the driver waits for the control's next DC1.
+(:mod:`.store`), a refused request too. A transfer by hand (``dnc.send`` through the API) is
+refused at once (MachineInUse) while the machine is busy, else waits until its task is between
+two listens, so a transfer is never cut in two. A link that fails, or cannot be opened at the
+start, is logged, shown offline naming the machine, and opened again every :data:`REOPEN_S`;
+the other machines go on. A transfer stopped (``dnc.stop``, its sender's Ctrl-C with its
+ticket, the server stopping) ends the way the spec ends a tape: the rest of the block in
+flight, then ``%`` (the control leaves the read; a drip-feed runs the blocks it holds first);
+one the control has not begun is cancelled, nothing sent. Its caller gets
+:class:`TransferStopped` saying where it ended; the machine's log has it.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import enum
 import logging
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 from cellctl.clock import current_clock
 from cellctl.drivers.state import StateStore
-from cellctl.errors import CellctlError, LinkClosed, LinkTimeout, UsageError
+from cellctl.errors import (
+    CellctlError,
+    LinkClosed,
+    LinkError,
+    LinkTimeout,
+    MachineInUse,
+    UsageError,
+)
 from cellctl.kinds.iso_cnc.dnc.config import DncMachine, ShopConfig
 from cellctl.kinds.iso_cnc.dnc.request import Request, parse_request
-from cellctl.kinds.iso_cnc.dnc.store import ShopStore, o_name, read_program_file
+from cellctl.kinds.iso_cnc.dnc.status import (
+    UNTHROTTLED,
+    Activity,
+    MachineStatus,
+    TransferStopped,
+    WatchedTraffic,
+    ended_words,
+    offline_words,
+    progress_dict,
+    state_words,
+)
+from cellctl.kinds.iso_cnc.dnc.store import (
+    ShopStore,
+    check_program_number,
+    o_name,
+    read_program_file,
+)
 from cellctl.kinds.iso_cnc.driver import IsoCncDriver
 from cellctl.kinds.iso_cnc.tape import DC2, split_programs, unframe
 from cellctl.link import TrafficLog
@@ -61,95 +86,8 @@ EVENTS = 30
 TRANSFER_S = 24 * 3600.0
 #: Seconds a stopped transfer may take to let go of its link.
 STOP_S = 10.0
-#: Chunks of traffic each machine keeps for ``traffic.tail`` (the console's traffic pane).
-TRAFFIC_KEEP = 200
-#: Seconds a machine's traffic is kept after a client last asked for it.
-WATCH_S = 30.0
 
 Progress = Callable[[dict[str, Any]], None]
-
-
-class TransferStopped(CellctlError):
-    """A transfer stopped by hand: the message says where it stood."""
-
-
-class WatchedTraffic(TrafficLog):
-    """A machine's last chunks both ways, kept only while a client looks at them
-    (:meth:`watch`, called by ``traffic.tail``, within the last :data:`WATCH_S`): a shop of
-    hundreds of links spends nothing on traffic nobody reads."""
-
-    def __init__(self) -> None:
-        super().__init__(None, keep=TRAFFIC_KEEP)
-        self.until = 0.0
-
-    def watch(self) -> None:
-        """Keep what goes both ways for the next :data:`WATCH_S` seconds."""
-        self.until = current_clock().now() + WATCH_S
-
-    def record(self, label: str, direction: str, data: bytes, when: float) -> None:
-        if when <= self.until:
-            super().record(label, direction, data, when)
-
-
-class Activity(enum.StrEnum):
-    """What a DNC machine is doing."""
-
-    IDLE = "idle"
-    """Listening for the control (a punch, or a request)."""
-    WAITING = "waiting for read"
-    """A program is ready: the control's next read (READ / CYCLE START) receives it."""
-    READING = "reading"
-    """The control reads a program into its memory."""
-    DRIP_FEEDING = "drip-feeding"
-    """The control runs a program as it arrives."""
-    PUNCHING = "punching"
-    """The control punches a program to the server."""
-    AWAITING_PUNCH = "waiting for punch"
-    """Someone waits for the control's next punch (``cellctl dnc receive``)."""
-    OFFLINE = "offline"
-    """Its link is not open (failed; opened again in a few seconds)."""
-
-
-@dataclass(frozen=True)
-class MachineStatus:
-    """One DNC machine's status (what the API, the console and the dashboard show)."""
-
-    name: str
-    activity: Activity = Activity.OFFLINE
-    program: str | None = None
-    phase: str = ""
-    """Where a transfer stands: ``waiting`` (for the control's DC1), ``sending``, ``stopped``
-    (a DC3), ``running`` (all sent, the control runs the rest), ``receiving``."""
-    chars_done: int = 0
-    chars_total: int = 0
-    chars_per_s: float = 0.0
-    buffer_stops: int = 0
-    eta_s: float | None = None
-    stall_s: float = 0.0
-    """Seconds the machine waited for data during this drip-feed (as the driver reckons it)."""
-    since: float = 0.0
-    last: str = ""
-    """The last thing done, in words (``received O1234 (812 chars)``)."""
-    error: str = ""
-    pending: str = ""
-    """The request waiting for the control's read (``drip-feed O1234``), if any."""
-    transfers: int = 0
-    failures: int = 0
-
-
-def _progress_dict(p: Any) -> dict[str, Any]:
-    """A driver's TransferProgress as the API pushes it."""
-    return {
-        "phase": str(getattr(p, "phase", "")),
-        "chars_sent": int(getattr(p, "chars_sent", 0)),
-        "chars_total": int(getattr(p, "chars_total", 0)),
-        "chars_per_s": float(getattr(p, "chars_per_s", 0.0)),
-        "buffer_stops": int(getattr(p, "buffer_stops", 0)),
-        "elapsed_s": float(getattr(p, "elapsed_s", 0.0)),
-        "eta_s": getattr(p, "eta_s", None),
-        # the driver's modelled stall (the axes waiting for a block), where it gives one
-        "stall_s": float(getattr(p, "stall_s", 0.0) or getattr(p, "stalls_modelled_s", 0.0)),
-    }
 
 
 @dataclass
@@ -171,6 +109,13 @@ class DncLine:
     transfer: asyncio.Task[Any] | None = None
     """The driver's read-in or drip-feed in flight (what :meth:`stop` cancels)."""
     stopping: str = ""
+    """Why the transfer in flight is being stopped (set by :meth:`stop`)."""
+    ticket: str | None = None
+    """The caller's name for the transfer in flight (it may stop that one only)."""
+    claimed: str = ""
+    """A transfer by hand about to start (see :meth:`claim`)."""
+    tape_out: asyncio.Event = field(default_factory=asyncio.Event)
+    """Set once the transfer in flight has all of its tape (or its clean end) out."""
     """Why the transfer in flight is being stopped (set by :meth:`stop`)."""
 
     def __post_init__(self) -> None:
@@ -219,9 +164,11 @@ class DncLine:
         last = [0.0]
 
         def progress(p: Any) -> None:
-            d = _progress_dict(p)
+            d = progress_dict(p)
+            if d["phase"] in ("running", "done"):
+                self.tape_out.set()  # all of the tape (or its clean end) is out
             now = current_clock().monotonic()
-            if now - last[0] < PROGRESS_S and d["phase"] not in ("done", "waiting", "stopped"):
+            if now - last[0] < PROGRESS_S and d["phase"] not in UNTHROTTLED:
                 return  # many machines at once: two figures a second are enough
             last[0] = now
             if not d["stall_s"] and self.driver is not None:
@@ -241,6 +188,34 @@ class DncLine:
 
         return progress
 
+    def busy(self) -> str:
+        """What the machine is doing that a second transfer would have to wait for, in
+        words (``reading O1001.nc``); empty when it is free."""
+        s = self.status
+        if s.activity in (Activity.READING, Activity.DRIP_FEEDING, Activity.WAITING):
+            return state_words(s)
+        if s.activity is Activity.PUNCHING:
+            return "punching"
+        return self.claimed  # about to start (waiting for the machine's turn)
+
+    @contextlib.contextmanager
+    def claim(self, what: str) -> Iterator[None]:
+        """Hold the machine for a transfer by hand (``what``: ``read-in of O1234.nc``) from
+        now until the block ends; MachineInUse at once, naming what it does and how to stop
+        it, when it is busy. Taken before waiting for :attr:`turn`, so two callers never both
+        wait for it."""
+        doing = self.busy()
+        if doing:
+            raise MachineInUse(
+                f"{self.name} is busy: {doing}; wait for it to end, or stop it with "
+                f"`cellctl dnc stop {self.name}`"
+            )
+        self.claimed = what
+        try:
+            yield
+        finally:
+            self.claimed = ""
+
     async def send(
         self,
         program: str,
@@ -249,9 +224,11 @@ class DncLine:
         drip: bool,
         progress: Progress | None = None,
         timeout: float = TRANSFER_S,
+        ticket: str | None = None,
     ) -> dict[str, Any]:
         """Send ``data`` (a program's text): into memory, or drip-fed; the control starts the
-        read (it sends DC1). The caller holds :attr:`turn`."""
+        read (it sends DC1). The caller holds :attr:`turn`. ``ticket``: the caller's own
+        name for it, with which it may stop it (``dnc.stop``) and nothing else."""
         if self.driver is None:
             raise LinkClosed(f"{self.name}: its link is not open ({self.status.error or 'closed'})")
         activity = Activity.DRIP_FEEDING if drip else Activity.READING
@@ -268,11 +245,11 @@ class DncLine:
         )
         what = "drip-fed" if drip else "read in"
         method = self.driver.drip_feed if drip else self.driver.read_in
+        self.stopping, self.ticket, self.tape_out = "", ticket, asyncio.Event()
         # Its own task, so that stop() cancels the transfer and not whoever waits for it.
         self.transfer = asyncio.ensure_future(
             method(data, progress=self._on_progress(progress), timeout=timeout)
         )
-        self.stopping = ""
         try:
             report = await self.transfer
         except asyncio.CancelledError:
@@ -287,11 +264,18 @@ class DncLine:
             self._set(activity=Activity.IDLE, error=str(e), failures=self.status.failures + 1)
             raise
         finally:
-            self.transfer = None
+            self.transfer, self.ticket = None, None
+        result = progress_dict(report)
+        if report.ended_early:  # end_tape(): the rest of a block and % went out, no more
+            self.stopping = ended_words(
+                self.stopping or "stopped", program, drip, report.chars_sent, report.chars_total
+            )
+            self._note(self.stopping)
+            self._set(activity=Activity.IDLE, last=self.stopping, error="")
+            raise TransferStopped(self.stopping)
         number = _number(data)
         if number is not None:
             self.store.keep_sent(self.name, number, data)
-        result = _progress_dict(report)
         seconds = result["elapsed_s"]
         message = (
             f"{program}: {what}, {len(data)} chars in {seconds:.1f} s, "
@@ -309,38 +293,69 @@ class DncLine:
         )
         return {"message": message, **result}
 
-    async def stop(self, timeout: float = STOP_S) -> str:
-        """Stop the read-in or drip-feed in flight (the control is left mid-read: its
-        operator resets it), or drop the request waiting for the control's read; what was
-        stopped, in words. UsageError when there is neither."""
+    async def stop(
+        self, *, ticket: str | None = None, why: str = "stopped by hand", timeout: float = STOP_S
+    ) -> str:
+        """Stop the read-in or drip-feed in flight, or drop the request waiting for the
+        control's read; what became of it, in words. A read that has begun is ended the
+        clean way (the rest of its block, then ``%``: the control leaves the read, a
+        drip-feed after the blocks it holds); one the control has not begun is cancelled
+        (nothing went out). ``ticket``: stop only the transfer sent with it. Nothing to
+        stop is said so."""
         transfer = self.transfer
         if transfer is not None and not transfer.done():
-            s = self.status
-            what = "drip-feed" if s.activity is Activity.DRIP_FEEDING else "read-in"
-            self.stopping = (
-                f"{s.program}: {what} stopped by hand at {s.chars_done}/{s.chars_total} chars "
-                "(reset the control before its next read)"
-            )
-            transfer.cancel()
-            try:
-                async with current_clock().timeout(timeout):
-                    await asyncio.wait({transfer})
-            except TimeoutError:
-                said = f"{self.name}: the transfer did not stop within {timeout:g} s"
-                raise LinkTimeout(said) from None
-            if not transfer.cancelled():  # it ended on its own before the stop reached it
-                return f"{s.program}: the {what} had ended: nothing to stop"
-            return self.stopping
-        if self.pending is not None:
+            if ticket is not None and ticket != self.ticket:
+                raise UsageError(f"{self.name}: its transfer is not the one to stop")
+            return await self._end(transfer, why, timeout)
+        if self.pending is not None and ticket is None:
             request, self.pending = self.pending, None
-            message = f"request {request} dropped by hand"
+            message = f"request {request} dropped {why}"
             self._note(message)
             self._set(activity=Activity.IDLE, pending="", last=message)
             return message
-        raise UsageError(
-            f"{self.name}: no transfer in flight and no request waiting "
-            f"(it is {self.status.activity.value})"
+        if ticket is not None:
+            return f"{self.name}: the transfer had ended: nothing to stop"
+        return (
+            f"{self.name}: nothing to stop: no transfer in flight and no request waiting "
+            f"(it is {state_words(self.status)})"
         )
+
+    async def _end(self, transfer: asyncio.Future[Any], why: str, timeout: float) -> str:
+        s = self.status
+        drip = s.activity is Activity.DRIP_FEEDING
+        what = f"{'drip-feed' if drip else 'read-in'} of {s.program}"
+        where = self.driver.end_tape() if self.driver is not None else "waiting"
+        if where == "out":
+            rest = "runs the rest: stop it on the control (FEED HOLD, RESET)" if drip else ""
+            return f"{self.name}: all of the {what} is out: the control {rest or 'stores it'}"
+        self.stopping = why
+        if where == "waiting":  # no DC1 yet: nothing went out, the read is simply not offered
+            self.stopping = f"{why}: the {what} was cancelled before the control began its read"
+            self.stopping += " (nothing was sent)"
+            transfer.cancel()
+        out = asyncio.ensure_future(self.tape_out.wait())
+        try:  # the rest of a block and % under the control's flow control, then its DC3
+            async with current_clock().timeout(timeout):
+                await asyncio.wait({transfer, out}, return_when=asyncio.FIRST_COMPLETED)
+        except TimeoutError:
+            transfer.cancel()
+            said = (
+                f"the control did not take the end of the {what} within {timeout:g} s (it "
+                "held DC3): the read is left open: reset the control before its next read"
+            )
+            self.stopping = f"{why}: {said}"
+            raise LinkTimeout(f"{self.name}: {said}") from None
+        finally:
+            out.cancel()
+        if where == "waiting":
+            return self.stopping
+        if transfer.done() and not transfer.cancelled() and transfer.exception() is None:
+            report = transfer.result()
+            return ended_words(why, s.program or "", drip, report.chars_sent, report.chars_total)
+        if transfer.done():
+            return f"{why}: the {what} ended: {self.status.error or self.status.last}"
+        s = self.status  # a drip-feed whose end is out: the control runs what it holds
+        return ended_words(why, s.program or "", drip, s.chars_done, s.chars_total, running=True)
 
     async def receive(self, *, timeout: float) -> list[dict[str, Any]]:
         """Take the punch the control has started (its DC2 is in): keep it, answer requests.
@@ -385,7 +400,7 @@ class DncLine:
                 done.append({"program": program.number, "refused": str(e), "kept": str(kept.path)})
                 continue
             if request is not None:
-                done.append(self._request(request))
+                done.append(self._request(request, program.number, raw, now))
                 continue
             kept = self.store.keep_received(self.name, program.number, raw, now)
             message = f"received {o_name(program.number)} ({len(raw)} chars) as {kept.path.name}"
@@ -398,13 +413,15 @@ class DncLine:
                 waiter.set_result(done)
         return done
 
-    def _request(self, request: Request) -> dict[str, Any]:
+    def _request(self, request: Request, number: int, raw: bytes, now: float) -> dict[str, Any]:
         try:
             path = self.store.program(self.name, request.program)
-        except UsageError as e:
-            self._note(f"request {request} refused: {e}")
-            self._set(last=f"request {request} refused", error=str(e))
-            return {"request": str(request), "refused": str(e)}
+            check_program_number(path.name, read_program_file(path))
+        except UsageError as e:  # the punched request is kept as received, as docs/dnc.md says
+            kept = self.store.keep_received(self.name, number, raw, now)
+            self._note(f"request {request} refused: {e}; kept as {kept.path.name}")
+            self._set(last=f"request {request} refused", error=f"request {request} refused: {e}")
+            return {"request": str(request), "refused": str(e), "kept": str(kept.path)}
         self.pending, self.pending_since = request, current_clock().now()
         message = f"request: {request} ({path.name}) on the control's next read"
         self._note(message)
@@ -424,6 +441,7 @@ class DncLine:
         try:
             path = self.store.program(self.name, request.program)
             data = read_program_file(path)
+            check_program_number(path.name, data)
         except UsageError as e:
             self.pending = None
             self._note(f"request {request} dropped: {e}")
@@ -476,13 +494,15 @@ class DncLine:
             link.reset_input()  # noise on an idle line: nothing waits for it
 
     async def _failed(self, e: CellctlError, *, reopen: bool) -> None:
-        self._note(f"error: {e}")
-        log.warning("%s: %s", self.name, e)
-        self._set(error=str(e), failures=self.status.failures + 1)
+        said = offline_words(self.name, e, REOPEN_S) if reopen else str(e)
+        if said != self.status.error:  # a link that stays dead is logged once, not every 5 s
+            self._note(f"error: {said}")
+            log.warning("%s", said)
+        self._set(error=said, failures=self.status.failures + 1)
         if reopen:
             with contextlib.suppress(CellctlError):
                 await self.close()
-            self._set(activity=Activity.OFFLINE, error=str(e))
+            self._set(activity=Activity.OFFLINE, error=said)
             await current_clock().sleep(REOPEN_S)
 
 
@@ -518,12 +538,20 @@ class DncServer:
         return found
 
     async def start(self) -> None:
-        """Open every machine's link (all refused if one is owned elsewhere), then serve."""
+        """Open every machine's link, then serve. All are refused if one is owned elsewhere
+        (MachineInUse); one that cannot be reached (LinkError) is shown offline, naming it,
+        and its task tries again every :data:`REOPEN_S`, as for a link that fails later."""
         opened: list[DncLine] = []
         try:
             for line in self.lines.values():
                 self.store.machine(line.name)
-                await line.open()
+                try:
+                    await line.open()
+                except LinkError as e:
+                    said = offline_words(line.name, e, REOPEN_S)
+                    line._note(f"error: {said}")
+                    line._set(activity=Activity.OFFLINE, error=said, failures=1)
+                    continue
                 opened.append(line)
         except BaseException:
             for line in opened:
@@ -531,6 +559,37 @@ class DncServer:
                     await line.close()
             raise
         self._tasks = [asyncio.create_task(line.run()) for line in self.lines.values()]
+
+    def in_flight(self) -> dict[str, str]:
+        """What each machine with a transfer in flight or a request waiting does."""
+        return {
+            name: state_words(line.status)
+            for name, line in self.lines.items()
+            if (line.transfer is not None and not line.transfer.done()) or line.pending
+        }
+
+    async def end_transfers(self, why: str) -> dict[str, str]:
+        """End every transfer in flight the clean way (:meth:`DncLine.stop`: the rest of a
+        block and ``%``; one not begun is cancelled) and drop waiting requests, all at once,
+        each bounded by :data:`STOP_S`; what became of each, logged in its machine's log."""
+
+        async def end(line: DncLine) -> str:
+            try:
+                said = await line.stop(why=why)
+            except CellctlError as e:
+                said = str(e)
+            transfer = line.transfer
+            if transfer is not None and not transfer.done():
+                # All of it (or its clean end) is out, the control runs what it holds: the
+                # host has nothing more to send; its sender is told so now (send() logs it).
+                line.stopping = said
+                transfer.cancel()
+                await asyncio.wait({transfer}, timeout=STOP_S)
+            return said
+
+        names = list(self.in_flight())
+        results = await asyncio.gather(*(end(self.lines[n]) for n in names))
+        return dict(zip(names, results, strict=True))
 
     async def close(self) -> None:
         for task in self._tasks:

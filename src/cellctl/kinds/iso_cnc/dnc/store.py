@@ -36,6 +36,7 @@ from pathlib import Path
 from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.files import read_file
+from cellctl.kinds.iso_cnc.tape import o_number, unframe
 
 PROGRAMS = "programs"
 RECEIVED = "received"
@@ -130,12 +131,25 @@ class ShopStore:
             _private_dir(base / sub)
         return base
 
+    def folder(self, name: str, sub: str) -> Path:
+        """``SHOP/<name>/<sub>`` for a read: nothing is created (a read of a machine that
+        has none yet finds nothing)."""
+        return self.root / check_machine_name(name) / sub
+
+    def _listing(self, name: str, sub: str) -> list[Path]:
+        try:
+            return sorted(self.folder(name, sub).iterdir())
+        except (FileNotFoundError, NotADirectoryError):
+            return []
+        except OSError as e:
+            raise UsageError(f"cannot read {self.folder(name, sub)}: {e.strerror}") from None
+
     # -- programs the control may read -------------------------------------------------------
 
     def programs(self, name: str) -> dict[int, Path]:
         """The machine's programs by O-number (a number two files claim: the first by name)."""
         found: dict[int, Path] = {}
-        for path in sorted((self.machine(name) / PROGRAMS).iterdir()):
+        for path in self._listing(name, PROGRAMS):
             match = PROGRAM_FILE.match(path.name)
             if match and path.is_file():
                 found.setdefault(int(match.group(1)), path)
@@ -146,7 +160,7 @@ class ShopStore:
         it was looked for."""
         found = self.programs(name).get(number)
         if found is None:
-            where = self.machine(name) / PROGRAMS
+            where = self.folder(name, PROGRAMS)
             raise UsageError(
                 f"no program {o_name(number)} in {where} (a file named {o_name(number)}.nc)"
             )
@@ -185,7 +199,7 @@ class ShopStore:
 
     def _kept(self, name: str, sub: str, number: int | None) -> list[Kept]:
         out = []
-        for path in (self.machine(name) / sub).iterdir():
+        for path in self._listing(name, sub):
             match = KEPT_FILE.fullmatch(path.name)
             if match is None or (number is not None and int(match.group(1)) != number):
                 continue
@@ -219,9 +233,13 @@ class ShopStore:
     def log_lines(self, name: str, last: int = 50) -> list[str]:
         """The last ``last`` lines of the machine's log."""
         try:
-            text = (self.machine(name) / LOG).read_text(encoding="utf-8", errors="replace")
-        except FileNotFoundError:
+            text = self.folder(name, LOG).read_text(encoding="utf-8", errors="replace")
+        except (FileNotFoundError, NotADirectoryError):
             return []
+        except OSError as e:
+            raise UsageError(
+                f"cannot read the log {self.folder(name, LOG)}: {e.strerror}"
+            ) from None
         return text.splitlines()[-last:]
 
 
@@ -242,3 +260,19 @@ def read_program_file(path: Path) -> bytes:
             f"0x{data[e.start]:02X})"
         ) from None
     return data
+
+
+def check_program_number(name: str, data: bytes) -> None:
+    """Refuse (UsageError, before a byte goes out) a program file whose name says one
+    O-number and whose text another (``O1234.nc`` holding ``O1001``): the control would
+    store it as O1001, over whatever O1001 it has, while the log and a request say O1234."""
+    named = PROGRAM_FILE.match(Path(name).name)
+    if named is None:
+        return  # a file not named by its number (surface.nc): its text decides
+    said = o_number(unframe(data))
+    if said is not None and said != int(named.group(1)):
+        raise UsageError(
+            f"{name}: its name says {o_name(int(named.group(1)))} but its text is "
+            f"{o_name(said)} (the control would store it as {o_name(said)}): rename the file "
+            "or correct its O block"
+        )

@@ -1,0 +1,147 @@
+"""A DNC machine's status as the server keeps it (what the API, the console and the
+dashboard show) and its traffic kept for ``traffic.tail``::
+
+    line.status.activity          # Activity.DRIP_FEEDING
+    line.status.chars_done, line.status.stall_s
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from typing import Any
+
+from cellctl.clock import current_clock
+from cellctl.errors import CellctlError
+from cellctl.link import TrafficLog
+
+#: Chunks of traffic each machine keeps for ``traffic.tail`` (the console's traffic pane).
+TRAFFIC_KEEP = 200
+#: Seconds a machine's traffic is kept after a client last asked for it.
+WATCH_S = 30.0
+#: Progress phases passed on at once (the others at most twice a second).
+UNTHROTTLED = ("done", "waiting", "stopped", "running")
+
+
+class TransferStopped(CellctlError):
+    """A transfer stopped (by hand, by its sender, by the server stopping): the message says
+    where it ended."""
+
+
+class WatchedTraffic(TrafficLog):
+    """A machine's last chunks both ways, kept only while a client looks at them
+    (:meth:`watch`, called by ``traffic.tail``, within the last :data:`WATCH_S`): a shop of
+    hundreds of links spends nothing on traffic nobody reads."""
+
+    def __init__(self) -> None:
+        super().__init__(None, keep=TRAFFIC_KEEP)
+        self.until = 0.0
+
+    def watch(self) -> None:
+        """Keep what goes both ways for the next :data:`WATCH_S` seconds."""
+        self.until = current_clock().now() + WATCH_S
+
+    def record(self, label: str, direction: str, data: bytes, when: float) -> None:
+        if when <= self.until:
+            super().record(label, direction, data, when)
+
+
+class Activity(enum.StrEnum):
+    """What a DNC machine is doing."""
+
+    IDLE = "idle"
+    """Listening for the control (a punch, or a request)."""
+    WAITING = "waiting for read"
+    """A program is ready: the control's next read (READ / CYCLE START) receives it."""
+    READING = "reading"
+    """The control reads a program into its memory."""
+    DRIP_FEEDING = "drip-feeding"
+    """The control runs a program as it arrives."""
+    PUNCHING = "punching"
+    """The control punches a program to the server."""
+    AWAITING_PUNCH = "waiting for punch"
+    """Someone waits for the control's next punch (``cellctl dnc receive``)."""
+    OFFLINE = "offline"
+    """Its link is not open (failed; opened again in a few seconds)."""
+
+
+@dataclass(frozen=True)
+class MachineStatus:
+    """One DNC machine's status (what the API, the console and the dashboard show)."""
+
+    name: str
+    activity: Activity = Activity.OFFLINE
+    program: str | None = None
+    phase: str = ""
+    """Where a transfer stands: ``waiting`` (for the control's DC1), ``sending``, ``stopped``
+    (a DC3), ``running`` (all sent, the control runs the rest), ``receiving``."""
+    chars_done: int = 0
+    chars_total: int = 0
+    chars_per_s: float = 0.0
+    buffer_stops: int = 0
+    eta_s: float | None = None
+    stall_s: float = 0.0
+    """Seconds the machine waited for data during this drip-feed (as the driver reckons it)."""
+    since: float = 0.0
+    last: str = ""
+    """The last thing done, in words (``received O1234 (812 chars)``)."""
+    error: str = ""
+    pending: str = ""
+    """The request waiting for the control's read (``drip-feed O1234``), if any."""
+    transfers: int = 0
+    failures: int = 0
+
+
+def progress_dict(p: Any) -> dict[str, Any]:
+    """A driver's TransferProgress as the API pushes it."""
+    return {
+        "phase": str(getattr(p, "phase", "")),
+        "chars_sent": int(getattr(p, "chars_sent", 0)),
+        "chars_total": int(getattr(p, "chars_total", 0)),
+        "chars_per_s": float(getattr(p, "chars_per_s", 0.0)),
+        "buffer_stops": int(getattr(p, "buffer_stops", 0)),
+        "elapsed_s": float(getattr(p, "elapsed_s", 0.0)),
+        "eta_s": getattr(p, "eta_s", None),
+        # the driver's modelled stall (the axes waiting for a block), where it gives one
+        "stall_s": float(getattr(p, "stall_s", 0.0) or getattr(p, "stalls_modelled_s", 0.0)),
+    }
+
+
+def state_words(s: MachineStatus) -> str:
+    """A machine's state as the console and dashboard show it."""
+    words = s.activity.value
+    if s.activity in (Activity.READING, Activity.DRIP_FEEDING) and s.program:
+        words += f" {s.program}"
+    if s.activity is Activity.WAITING and s.pending:
+        words += f": {s.pending}"
+    if s.stall_s > 0 and s.activity is Activity.DRIP_FEEDING:
+        words += f", stalled {s.stall_s:.1f} s"
+    if s.buffer_stops and s.activity in (Activity.READING, Activity.DRIP_FEEDING):
+        # the status model has no field for them: said in the state's words
+        words += f", {s.buffer_stops} buffer stop{'s' if s.buffer_stops > 1 else ''}"
+    return words
+
+
+def ended_words(
+    why: str, program: str, drip: bool, done: int, total: int, *, running: bool = False
+) -> str:
+    """A transfer ended early the clean way, in words: ``the DNC server stopped: the
+    drip-feed of O5000.nc ended at 1192 of 7626 characters (...)``."""
+    what = "drip-feed" if drip else "read-in"
+    if drip and running:
+        after = "the control runs the blocks it holds, then leaves the read"
+    elif drip:
+        after = "the control ran the blocks it held and left the read"
+    else:
+        after = "the control holds the first part of the program: read it in again"
+    return (
+        f"{why}: the {what} of {program} ended at {done} of {total} characters "
+        f"(the rest of its block and % sent: {after})"
+    )
+
+
+def offline_words(name: str, e: Exception, retry_s: float) -> str:
+    """Why machine ``name`` is offline, naming it: ``a: offline: cannot connect to ...``."""
+    text = str(e)
+    text = text[len(name) + 2 :] if text.startswith(f"{name}: ") else text
+    return f"{name}: offline: {text} (its link is tried again every {retry_s:g} s)"

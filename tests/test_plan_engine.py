@@ -108,8 +108,11 @@ def test_a_part_held_at_the_start_blocks_its_mill_until_the_end(tmp_path: Path) 
         ({"policy": "random"}, "no scheduler policy 'random'; known: default, downstream-first"),
         ({"until": START}, "must come after its start"),
         ({"faults": (FaultWindow("cnc3", "down", START),)}, "no such machine"),
-        ({"faults": (FaultWindow("cnc2", "melt", START),)}, r"cnc2:melt: no such fault"),
-        ({"faults": (FaultWindow("plc", "down", START),)}, r"plc:down: no such fault"),
+        (
+            {"faults": (FaultWindow("cnc2", "melt", START),)},
+            r"'melt' on cnc2: unknown \(known: down",
+        ),
+        ({"faults": (FaultWindow("plc", "down", START),)}, r"'down' on plc: unknown \(known: drop"),
         (
             {"faults": (FaultWindow("cnc2", "down", START + 10, START + 5),)},
             "must end after it starts",

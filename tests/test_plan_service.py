@@ -108,6 +108,25 @@ async def test_a_wrong_token_is_refused(running: tuple[CellRig, ApiServer]) -> N
         await RemoteCell.connect(token="not-a-token-" + "x" * 30, socket_path=server.socket_path)
 
 
+async def test_a_bad_fault_argument_is_refused_before_the_plan_plays(
+    running: tuple[CellRig, ApiServer],
+) -> None:
+    """`plan.run` checks each fault's argument as the machine's emulator does, before the
+    plan plays: the fault's own words, and the API free for the next plan at once."""
+    rig, server = running
+    vera = await _viewer(rig, server)
+    try:
+        rig.post("wax-robot-base", 1, "A")
+        for fault, words in (
+            ("plc:stuck-door=abc@00:00", "stuck-door needs a mill number 1 or 2, not 'abc'"),
+            ("cnc1:noise=zz@00:00", "noise takes RATE"),
+        ):
+            with pytest.raises(UsageError, match=words):
+                await vera.call("plan.run", {"shift": "10m", "fault": [fault]})
+    finally:
+        await vera.close()
+
+
 @pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
 async def test_cellctl_plan_through_the_api_answers_the_questions(
     running: tuple[CellRig, ApiServer], tmp_path: Path

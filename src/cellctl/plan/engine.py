@@ -27,7 +27,7 @@ import asyncio
 import contextlib
 import dataclasses
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -38,12 +38,11 @@ from cellctl.cell.journal import JOURNAL_FILE, Journal, open_journal
 from cellctl.cell.scheduler import POLICIES as SCHEDULER_POLICIES
 from cellctl.clock import REAL_CLOCK, current_clock, run_virtual
 from cellctl.emulators.cell import EmulatedCell
-from cellctl.emulators.plc import FAULTS as PLC_FAULTS
 from cellctl.errors import UsageError
 from cellctl.files import read_text
-from cellctl.kinds import registry
 from cellctl.mailbox import DONE, MAILBOX_FILE, Mailbox
 from cellctl.mailbox.sqlite import SqliteMailbox
+from cellctl.plan.faults import PLC, check_switch
 from cellctl.plan.when import PLAN_POLL_S
 
 #: The mailbox's default order priority (``Mailbox.post_order``).
@@ -63,8 +62,20 @@ POWER_ON_S = 10.0
 RESOLVE_LOOKS = 4
 RESOLVE_ROUNDS = 5
 
+#: The plan's operator at a UR's pendant after a fault: seconds between two looks, and how
+#: many looks at most (an unlock 5 s after the stop, power on 2 s, brake release 1.5 s).
+PENDANT_WAIT_S = 1.0
+PENDANT_TRIES = 30
+
 #: Seconds of plan time between two looks of the plan's own watcher (all orders done?).
 WATCH_S = 2.0
+
+#: Seconds of plan time the steps in flight have to finish when an error ends a play early,
+#: before they are cancelled (a cut's rest, a transfer's; virtual time: it costs little).
+END_S = 3600.0
+#: Seconds of plan time a cancelled task has to end, and how many times it is asked.
+CANCEL_S = 60.0
+CANCEL_TRIES = 5
 
 
 @dataclass(frozen=True)
@@ -220,17 +231,10 @@ def check_inputs(inputs: PlanInputs) -> None:
         if held.location != CONVEYOR and held.location not in machines:
             raise UsageError(f"held part of {held.order_id}: no place {held.location!r}")
     for fault in inputs.faults:
-        if fault.machine == "plc":
-            known: Mapping[str, str] = PLC_FAULTS
-        elif fault.machine in machines:
-            kind = str(machines[fault.machine].get("kind"))
-            known = {"down": "", **(registry.kind(kind).faults if kind in registry.names() else {})}
-        else:
+        if fault.machine != PLC and fault.machine not in machines:
             raise UsageError(f"fault {fault.fault} on {fault.machine!r}: no such machine")
-        if fault.fault not in known:
-            raise UsageError(
-                f"fault {fault.machine}:{fault.fault}: no such fault (known: {', '.join(known)})"
-            )
+        kind = None if fault.machine == PLC else str(machines[fault.machine].get("kind"))
+        check_switch(fault.machine, kind, fault.fault, fault.arg)
         if fault.end is not None and not fault.end > fault.start:
             raise UsageError(f"fault {fault.machine}:{fault.fault}: it must end after it starts")
 
@@ -247,6 +251,9 @@ async def _play(inputs: PlanInputs, cell_dir: Path) -> tuple[float, dict[str, fl
     journal = open_journal(cell_dir, clock=clock, durable=False)
     mailbox = SqliteMailbox(cell_dir / MAILBOX_FILE, clock=clock, durable=False)
     controller: CellController | None = None
+    stop = asyncio.Event()
+    run: asyncio.Task[None] | None = None
+    faults: list[asyncio.Task[None]] = []
     try:
         _post(inputs, journal, mailbox, cell)
         await clock.sleep(max(0.0, inputs.start - clock.now()))
@@ -260,32 +267,78 @@ async def _play(inputs: PlanInputs, cell_dir: Path) -> tuple[float, dict[str, fl
         await controller.connect()
         for name in inputs.out_of_service:
             await controller.set_service(name, False, "out of service when the plan began")
-        stop = asyncio.Event()
         run = asyncio.create_task(controller.run(stop), name="plan-controller")
         operator = _Operator(controller, cell, journal)
         faults = [
             asyncio.create_task(operator.window(f, inputs.until), name=f"plan-fault-{i}")
             for i, f in enumerate(inputs.faults)
         ]
-        ended = await _watch(inputs, mailbox, run)
+        ended = await _watch(inputs, mailbox, run, faults)
+        await _end_windows(faults)
+        _raise_failed(faults)
         stop.set()
-        for task in faults:
-            task.cancel()
-        for task in faults:
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
         # Steps in flight at the end finish (as on SIGINT); what they finish counts only if
         # before ``until`` (the orders' done times say).
         await run
         finished = _finished(inputs, mailbox, inputs.until)
         return ended, finished, options.poll_period
     finally:
-        if controller is not None:
-            with contextlib.suppress(Exception):
-                await controller.close()
-        journal.close()
-        mailbox.close()
-        await cell.close()
+        # Whatever ended the play, nothing of it may outlive the journal and mailbox closed
+        # below: the fault windows, the controller and its steps end first.
+        try:
+            await _end_windows(faults)
+            if run is not None and controller is not None:
+                await _end_controller(controller, run, stop)
+        finally:
+            if controller is not None:
+                with contextlib.suppress(Exception):
+                    await controller.close()
+            journal.close()
+            mailbox.close()
+            await cell.close()
+
+
+def _raise_failed(faults: Sequence[asyncio.Task[None]]) -> None:
+    """Raise the error of a fault window that could not be played (say why)."""
+    for task in faults:
+        if task.done() and not task.cancelled():
+            task.result()
+
+
+async def _end_windows(faults: Sequence[asyncio.Task[None]]) -> None:
+    """End the fault windows still waiting (their errors are :func:`_watch`'s to raise)."""
+    await _cancel(faults)
+
+
+async def _end_controller(
+    controller: CellController, run: asyncio.Task[None], stop: asyncio.Event
+) -> None:
+    """Stop the controller after an error: its steps in flight finish (up to
+    :data:`END_S` of plan time), else they and it are cancelled; either way it has ended."""
+    stop.set()
+    controller.poke()
+    await asyncio.wait({run}, timeout=END_S)
+    await _cancel([run, *controller.steps_in_flight()])
+
+
+async def _cancel(tasks: Sequence[asyncio.Task[Any]]) -> None:
+    """Cancel ``tasks`` and wait, with a deadline, until they have ended. Asked again if one
+    goes on: on 3.11 a cancellation that lands in the step where the task's own
+    ``asyncio.timeout`` expires can be taken for that timeout and swallowed, and a task
+    looping on such waits would run on for ever (on virtual time, its timers jumping)."""
+    pending = {t for t in tasks if not t.done()}
+    for _ in range(CANCEL_TRIES):
+        if not pending:
+            break
+        for task in pending:
+            task.cancel()
+        _, pending = await asyncio.wait(pending, timeout=CANCEL_S)
+    for task in tasks:
+        if task.done() and not task.cancelled():
+            task.exception()  # seen: its error is said by whoever ended the play
+    if pending:
+        names = ", ".join(sorted(t.get_name() for t in pending))
+        raise UsageError(f"the plan could not stop its tasks ({names}) after {CANCEL_TRIES} tries")
 
 
 def _post(inputs: PlanInputs, journal: Journal, mailbox: Mailbox, cell: EmulatedCell) -> None:
@@ -303,14 +356,21 @@ def _post(inputs: PlanInputs, journal: Journal, mailbox: Mailbox, cell: Emulated
             cell.vise[cell.mill_names.index(held.location) + 1] = part.id
 
 
-async def _watch(inputs: PlanInputs, mailbox: Mailbox, run: asyncio.Task[None]) -> float:
-    """Until every order is done (its time) or ``until`` comes (``until``)."""
+async def _watch(
+    inputs: PlanInputs,
+    mailbox: Mailbox,
+    run: asyncio.Task[None],
+    faults: Sequence[asyncio.Task[None]] = (),
+) -> float:
+    """Until every order is done (its time) or ``until`` comes (``until``); raises what ended
+    the controller or a fault window early."""
     clock = current_clock()
     ids = [o.order_id for o in inputs.orders]
     while True:
         if run.done():
             run.result()  # the controller died: say why
             raise UsageError("the cell's controller stopped on its own")
+        _raise_failed(faults)
         now = clock.now()
         if now >= inputs.until:
             return inputs.until
@@ -353,7 +413,7 @@ class _Operator:
         if fault.fault == "down":
             await self.controller.set_service(fault.machine, True)
             return
-        self._switch_off(fault.machine, fault.fault)
+        await self._switch_off(fault.machine, fault.fault)
         await self.resolve(until)
 
     def _target(self, machine: str) -> Any:
@@ -364,15 +424,17 @@ class _Operator:
             return cell.robot
         return cell.mills[machine]
 
-    def _switch_off(self, machine: str, name: str) -> None:
+    async def _switch_off(self, machine: str, name: str) -> None:
         """The fault off, and what the panel needs after it (as ``CellRig.switch_off``)."""
-        self._target(machine).clear_fault(name)
+        target = self._target(machine)
+        target.clear_fault(name)
         if machine in self.cell.mills:
-            mill = self.cell.mills[machine]
             if name == "no-next":
-                mill.press_next()  # the operator finishes the setup stop
+                target.press_next()  # the operator finishes the setup stop
             elif name in ("never-ready", "stall"):
-                mill.select(mill.auto_mode)  # the link mode selected again: READY back
+                target.select(target.auto_mode)  # the link mode selected again: READY back
+        elif machine == self.cell.robot_name and _pendant(target) is not None:
+            await _arm_back_to_running(_pendant(target))
 
     async def resolve(self, until: float) -> None:
         """As an operator after fixing a machine: a few looks later, clear every alarm and
@@ -388,7 +450,7 @@ class _Operator:
                 return
             for alarm in alarms:
                 self.journal.clear_alarm(alarm.id, by="plan operator")
-            while held and self.cell.robot.running:
+            while held and _arm_moving(self.cell.robot):
                 if clock.now() >= until:
                     return
                 await clock.sleep(look)
@@ -415,6 +477,49 @@ class _Operator:
         blank = cell.vise.get(mills.get(step.machine, 0))
         cut = cell.runs_per_part().get(blank, {}).get(step.machine, 0) if blank else 0
         self.journal.release_part(part_id, redo_step=not cut)
+
+
+# A UR (kind "ur") is known here only by its emulator's pendant (its controller, which
+# answers Dashboard Server lines): the layers below the plan never name a kind, and these
+# are the plan operator's hands and eyes on it.
+
+
+def _pendant(robot: Any) -> Any:
+    """A UR emulator's controller (its pendant's state and commands), or None."""
+    controller = getattr(robot, "controller", None)
+    return controller if callable(getattr(controller, "answer", None)) else None
+
+
+async def _arm_back_to_running(pendant: Any) -> None:
+    """After a UR's fault went off, the operator at its pendant brings the arm back to
+    RUNNING as its fault table says: a protective stop unlocked (UR refuses within 5 s of
+    the stop: the operator waits them out), the power on, the brakes released. The paused or
+    stopped program is left to the cell's own recovery (its step failed and is played again)."""
+    clock = current_clock()
+    for _ in range(PENDANT_TRIES):
+        safety, mode = pendant.safety.name, pendant.mode.name
+        if safety == "PROTECTIVE_STOP":
+            pendant.answer("unlock protective stop")
+        elif mode == "POWER_OFF":
+            pendant.answer("power on")
+        elif mode == "IDLE":
+            pendant.answer("brake release")
+        elif mode == "RUNNING":
+            return
+        await clock.sleep(PENDANT_WAIT_S)
+    raise UsageError(
+        f"the plan's operator could not bring the robot back: Robotmode {mode}, "
+        f"Safetystatus {safety}"
+    )
+
+
+def _arm_moving(robot: Any) -> bool:
+    """True while the robot's program moves the arm (an IBM 7545's ``running``; a UR's
+    controller playing its program)."""
+    running = getattr(robot, "running", None)
+    if running is not None:
+        return bool(running)
+    return str(robot.controller.runtime.name) == "PLAYING"
 
 
 __all__ = [

@@ -20,15 +20,12 @@ from pathlib import Path
 from typing import Final
 
 from cellctl.cell.config import CellConfig, load_cell
-from cellctl.emulators.plc import FAULTS as PLC_FAULTS
 from cellctl.errors import UsageError
-from cellctl.kinds import registry
 from cellctl.mailbox.base import MAX_QTY
 from cellctl.plan.engine import POLICIES, FaultWindow, HeldPart, PlanInputs, PlanOrder
+from cellctl.plan.faults import PLC, check_switch, switches
 from cellctl.plan.when import PLAN_POLL_S, parse_duration, parse_poll, resolve_when, when_text
 
-#: The fault that takes a machine out of service (not an emulator's switch).
-DOWN: Final = "down"
 #: Priorities an order may have (the control API's range).
 PRIORITY_RANGE: Final = range(-1_000_000, 1_000_001)
 #: ``--policy all``: every policy, compared.
@@ -40,7 +37,7 @@ _ADD = re.compile(
 )
 _WHEN = r"(?:[A-Za-z]{3,9}\s+)?\d{1,2}:\d{2}"
 _FAULT = re.compile(
-    rf"^\s*(?P<machine>{_WORD})\s*:\s*(?P<name>[a-z][a-z0-9\-]{{0,40}})(?:=(?P<arg>[^@\s]{{1,40}}))?"
+    rf"^\s*(?P<machine>{_WORD})\s*:\s*(?P<name>[a-z][a-z0-9_\-]{{0,40}})(?:=(?P<arg>[^@\s]{{1,40}}))?"
     rf"\s*@\s*(?P<a>{_WHEN})\s*(?:-\s*(?P<b>{_WHEN}))?\s*$"
 )
 
@@ -90,11 +87,8 @@ def parse_fault(text: str, start: float, until: float | None = None) -> FaultWin
 def fault_switches(config: CellConfig) -> dict[str, tuple[str, ...]]:
     """Each machine's faults a plan may put on it: ``down`` (not the PLC's) and its emulator's
     fault switches (its kind's, from the registry)."""
-    found: dict[str, tuple[str, ...]] = {}
-    for machine in [config.robot, *config.mills]:
-        faults = tuple(registry.kind(machine.kind).faults)
-        found[machine.name] = (DOWN, *faults)
-    found["plc"] = tuple(PLC_FAULTS)
+    found = {m.name: switches(m.kind) for m in [config.robot, *config.mills]}
+    found[PLC] = switches(None)
     return found
 
 
@@ -114,18 +108,16 @@ def check_inputs(
             raise UsageError(
                 f"order {order.order_id}: the cell makes no {order.part_type!r} (known: {known})"
             )
-    switches = fault_switches(config)
+    kinds: dict[str, str | None] = {m.name: m.kind for m in [config.robot, *config.mills]}
+    kinds[PLC] = None
     for window in faults:
-        names = switches.get(window.machine)
-        if names is None:
+        if window.machine not in kinds:
             raise UsageError(
                 f"fault on {window.machine!r}: the cell has no such machine "
-                f"(known: {', '.join(switches)})"
+                f"(known: {', '.join(kinds)})"
             )
-        if window.fault not in names:
-            raise UsageError(
-                f"fault {window.fault!r} on {window.machine}: unknown (known: {', '.join(names)})"
-            )
+        # Its name and argument as the machine's emulator takes them (the same words).
+        check_switch(window.machine, kinds[window.machine], window.fault, window.arg)
         if window.end is not None and window.end <= window.start:
             raise UsageError(
                 f"fault {window.fault!r} on {window.machine}: it ends before it starts"

@@ -1,0 +1,198 @@
+"""Fault windows in a plan: every fault's name and argument checked against the machine's own
+emulator before anything runs (from the command line, a replayed inputs.json and the engine),
+any switch an emulator has played (a UR's protective stop among them, ended by the plan's
+operator at the pendant), and a play that an error ends mid-way ending cleanly."""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+import shutil
+import subprocess
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import pytest
+from click.testing import CliRunner
+
+from cellctl.cell.journal import Journal
+from cellctl.clock import run_virtual
+from cellctl.emulators.cell import EXAMPLE_CELL
+from cellctl.errors import UsageError
+from cellctl.plan import engine
+from cellctl.plan.engine import FaultWindow, PlanInputs, PlanOrder, simulate
+from cellctl.plan.inputs import save_inputs
+from cellctl.ui.cli import main
+
+from .conftest import CELLCTL
+
+TENDING = Path(__file__).resolve().parent.parent / "examples" / "cell-tending"
+#: The plans start on a Wednesday at 14:00 local time.
+START = "2026-11-25T14:00"
+T0 = datetime(2026, 11, 25, 14, 0).timestamp()
+
+
+def plan(*args: str, expect: int = 0) -> Any:
+    """``cellctl plan ARGS`` in this process (its plan on its own virtual-time loop)."""
+    result = CliRunner().invoke(main, ["plan", *args])
+    assert result.exit_code == expect, result.output + repr(result.exception)
+    return result
+
+
+@pytest.mark.parametrize(
+    ("cell", "fault", "message"),
+    [
+        (EXAMPLE_CELL, "plc:stuck-door=abc@14:00", "stuck-door needs a mill number 1 or 2"),
+        (EXAMPLE_CELL, "cnc1:noise=zz@14:00", r"noise takes RATE\[,SEED\]"),
+        (EXAMPLE_CELL, "cnc1:noise@14:00", r"noise takes RATE\[,SEED\]"),
+        (EXAMPLE_CELL, "robot:corrupt-checksum=x@14:00", "corrupt-checksum needs a count"),
+        (EXAMPLE_CELL, "cnc2:down=2@14:00", "takes no argument"),
+        # A window that opens long after the one part is done: checked all the same.
+        (EXAMPLE_CELL, "cnc2:drop=abc@15:50", "drop takes a line count, not 'abc'"),
+        (TENDING, "vf2:line-lag=soon@14:00", "line-lag: 'soon' is not a number"),
+        (TENDING, "robot:protective-stop@14:00", r"unknown \(known: down, protective_stop"),
+    ],
+)
+def test_a_bad_fault_is_refused_in_its_own_words_before_anything_runs(
+    cell: Path, fault: str, message: str
+) -> None:
+    part = "bracket:1" if cell == TENDING else "wax-robot-base:1"
+    args = ["--dir", str(cell), "--add", part, "--start", START, "--shift", "2h"]
+    result = plan(*args, "--fault", fault, expect=2)
+    assert re.search(message, result.stderr), result.stderr
+    assert "plan of" not in result.stdout  # nothing played
+
+
+def test_the_command_refuses_a_bad_argument_without_a_traceback(tmp_path: Path) -> None:
+    """The walkthrough's command, as a user runs it (its own process): one line, exit 2."""
+    done = subprocess.run(
+        [*CELLCTL, "plan", "--dir", str(EXAMPLE_CELL), "--add", "wax-robot-base:1",
+         "--start", START, "--shift", "2h", "--fault", "plc:stuck-door=abc@14:00"],
+        capture_output=True, text=True, timeout=120, check=False, cwd=tmp_path,
+    )  # fmt: skip
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert done.stderr.strip().splitlines() == [
+        "error: fault plc:stuck-door=abc: stuck-door needs a mill number 1 or 2, not 'abc'"
+    ]
+    assert done.stdout == ""
+
+
+def test_a_replayed_inputs_file_with_a_bad_fault_is_refused(tmp_path: Path) -> None:
+    """An inputs.json edited by hand (or saved by an older cellctl) is checked as --fault is."""
+    inputs = PlanInputs(
+        EXAMPLE_CELL,
+        (PlanOrder("A", "wax-robot-base", 1),),
+        T0,
+        T0 + 7200,
+        faults=(FaultWindow("plc", "stuck-door", T0 + 60, T0 + 600, "abc"),),
+    )
+    saved = save_inputs(inputs, ("default",), tmp_path / "out")
+    result = plan("--replay", str(saved), expect=2)
+    assert "stuck-door needs a mill number 1 or 2, not 'abc'" in result.stderr
+    # The engine refuses it too, before it writes anything.
+    with pytest.raises(UsageError, match="stuck-door needs a mill number"):
+        simulate(inputs, tmp_path / "play")
+    assert not (tmp_path / "play").exists()
+
+
+def test_an_error_that_ends_a_play_midway_ends_it_cleanly(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The check refuses a bad argument before the play now; the play itself must still end
+    cleanly on whatever error ends it mid-way (the controller and its steps stopped before
+    the journal closes). Played here past the check, with a switch its emulator refuses when
+    its window opens."""
+    cell = tmp_path / "cell"
+    shutil.copytree(EXAMPLE_CELL, cell)
+    inputs = PlanInputs(
+        cell,
+        (PlanOrder("A", "wax-robot-base", 2),),
+        T0,
+        T0 + 7200,
+        faults=(FaultWindow("plc", "stuck-door", T0 + 120, None, "abc"),),
+    )
+    workdir = tmp_path / "play"
+    workdir.mkdir()
+    with caplog.at_level(logging.WARNING), pytest.raises(UsageError, match="stuck-door needs"):
+        run_virtual(engine._play(inputs, workdir), start=T0 - engine.POWER_ON_S)
+    problems = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert problems == [], problems
+    # It ended soon after the window opened: the second part was never started.
+    with Journal(workdir / "journal.sqlite3") as journal:
+        assert all(s.started < T0 + 600 for s in journal.steps())
+        assert all(s.ended is not None for s in journal.steps())  # nothing left running
+
+
+@pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
+def test_a_protective_stop_is_planned_from_the_command_line() -> None:
+    """`--fault robot:protective_stop@14:00-14:20` on the cobot cell (a UR's own switch name,
+    as `cellctl emulate cell --fault` takes it): the robot does nothing in the window, the
+    order gets done after it."""
+    common = ["--dir", str(TENDING), "--add", "bracket:2", "--start", START]
+    text = plan(*common, "--fault", "robot:protective_stop@14:00-14:20").output
+    assert "fault: robot protective_stop from Wed 14:00:00 to Wed 14:20:00" in text
+    [report] = json.loads(
+        plan(*common, "--fault", "robot:protective_stop@14:00-14:20", "--json").output
+    )["plans"]
+    closes = T0 + 20 * 60
+    robot = [s for s in report["steps"] if s["machine"] == "robot"]
+    assert robot and all(s["started"] >= closes for s in robot), robot
+    assert report["all_finished"] and report["down_s"]["robot"] >= closes - T0 - 60
+
+
+@pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
+def test_the_plans_operator_unlocks_a_protective_stop_after_its_window(tmp_path: Path) -> None:
+    """A protective stop mid-transfer: the arm stops there and the step fails; nothing of the
+    robot runs over the window; after it, the plan's operator unlocks the stop at the pendant
+    (the UR's rule: nothing else ends a protective stop), clears the alarm and releases the
+    part where it is, and the transfer is played again."""
+    opens, closes = T0 + 45, T0 + 300  # the part on its way from the VF-2 to CNC 2
+    inputs = PlanInputs(
+        TENDING,
+        (PlanOrder("A", "bracket", 2),),
+        T0,
+        T0 + 3 * 3600,
+        faults=(FaultWindow("robot", "protective_stop", opens, closes),),
+    )
+    run = simulate(inputs, tmp_path)
+    with Journal(run.journal_path) as journal:
+        steps = [s for s in journal.steps() if s.machine == "robot"]
+        alarms = journal.alarms()
+    failed = [s for s in steps if s.state == "failed"]
+    assert [(s.program, s.ended is not None and opens <= s.ended < opens + 5) for s in failed] == [
+        ("vf2_to_cnc2", True)
+    ]
+    assert not any(opens < s.started < closes for s in steps), steps
+    again = [s for s in steps if s.started >= closes]
+    assert again[0].program == "vf2_to_cnc2" and again[0].state == "finished"
+    [alarm] = alarms
+    assert "PROTECTIVE_STOP" in alarm.text and alarm.cleared_by == "plan operator"
+    assert alarm.cleared is not None and alarm.cleared >= closes
+    assert run.finished["A"] is not None
+
+
+@pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
+def test_a_dropped_connection_on_the_cobot_mid_transfer_is_resolved(tmp_path: Path) -> None:
+    """`robot:drop` while the UR carries a part: the links go, the step fails and the part is
+    held; after the window the plan's operator waits for the arm at rest (a UR's program
+    state, not an IBM 7545's), clears the alarm and releases the part, and the order gets
+    done. Every wait of it has a deadline: the play ends, on its own virtual time."""
+    opens, closes = T0 + 45, T0 + 300
+    inputs = PlanInputs(
+        TENDING,
+        (PlanOrder("A", "bracket", 2),),
+        T0,
+        T0 + 3 * 3600,
+        faults=(FaultWindow("robot", "drop", opens, closes),),
+    )
+    run = simulate(inputs, tmp_path)
+    with Journal(run.journal_path) as journal:
+        alarms = journal.alarms()
+        held = journal.parts(statuses=["held"])
+    assert [(a.text, a.cleared_by) for a in alarms] == [
+        ("link closed by the other end", "plan operator")
+    ]
+    assert opens <= alarms[0].raised < closes and not held
+    assert run.finished["A"] is not None

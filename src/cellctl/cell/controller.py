@@ -257,7 +257,12 @@ class CellController(OperatorCommands):
         for name in self.journal.machines_out_of_service():
             if name in self.machines:
                 self.machines[name].in_service = False
-        self.plc = await ModbusPlc.connect(self.plc_map.url, self.plc_map, clock=self._clock)
+        self.plc = await ModbusPlc.connect(
+            self.plc_map.url,
+            self.plc_map,
+            clock=self._clock,
+            store=StateStore(self.config.directory),
+        )
         # A controller killed mid-pulse leaves that coil high: this one's first pulse would
         # make no rising edge, and the conveyor or the mill would never hear it.
         for coil in ["pallet_request", *(self.millsteps.go_coil(m) for m in self.config.mills)]:

@@ -35,6 +35,8 @@ from collections.abc import Awaitable, Callable
 from typing import Any
 
 from cellctl.clock import Clock, current_clock
+from cellctl.drivers.base import release_locks, take_link_locks
+from cellctl.drivers.state import StateStore
 from cellctl.errors import (
     DeviceError,
     LinkClosed,
@@ -45,6 +47,7 @@ from cellctl.errors import (
     UsageError,
 )
 from cellctl.link import ETHERNET_LINE, Link, open_link
+from cellctl.link.lock import OwnerLock
 from cellctl.protocol import modbus
 from cellctl.protocol.plc import (
     COIL,
@@ -87,6 +90,7 @@ class ModbusPlc:
         self._closed = False
         self._address = (host, port)
         self._client: Any = self._new_client()
+        self._owner_locks: list[OwnerLock] = []  # taken by connect(), given back by close()
 
     @property
     def clock(self) -> Clock:
@@ -138,28 +142,43 @@ class ModbusPlc:
         *,
         timeout: float | None = None,
         clock: Clock | None = None,
+        store: StateStore | None = None,
+        name: str = "plc",
     ) -> ModbusPlc:
         """Connect to the PLC at ``url`` (default: the map's) and return a driver.
 
         ``timeout`` (default: the map's) bounds every request. Raises :class:`LinkError` if
-        the PLC cannot be reached.
+        the PLC cannot be reached. One owner, as for a machine: the PLC's locks are taken
+        first, by URL and, with the cell's ``store``, by ``name`` in the cell
+        (:class:`MachineInUse` names the holder, before a request goes out).
         """
         plc_map = plc_map or PlcMap()
         plc = cls(url or plc_map.url, plc_map, timeout=timeout or plc_map.timeout, clock=clock)
+        plc._owner_locks = take_link_locks(plc.url, name, store)
         try:
             async with plc.clock.timeout(plc.timeout):
                 await plc._ensure_connected()
         except TimeoutError:
             plc._client.close()
+            release_locks(plc._owner_locks)
             raise LinkTimeout(f"PLC at {plc.url}: no connection within {plc.timeout:g} s") from None
+        except BaseException:
+            plc._client.close()
+            release_locks(plc._owner_locks)
+            raise
         return plc
 
     async def close(self) -> None:
-        """Close the connection (calls after this raise :class:`LinkClosed`)."""
+        """Close the connection (calls after this raise :class:`LinkClosed`) and give back
+        the PLC's locks."""
         self._closed = True
         self._client.close()
-        if isinstance(self._client, MemModbusClient):
-            await self._client.wait_closed()
+        try:
+            if isinstance(self._client, MemModbusClient):
+                await self._client.wait_closed()
+        finally:
+            release_locks(self._owner_locks)
+            self._owner_locks = []
 
     async def __aenter__(self) -> ModbusPlc:
         return self

@@ -15,6 +15,7 @@ import logging
 
 import click
 
+from cellctl.drivers.state import StateStore
 from cellctl.emulators.plc import FAULTS, PlcEmulator
 from cellctl.emulators.serve import MACHINE_TIME_SCALE, TIME_SCALE_HELP, parse_fault
 from cellctl.errors import UsageError
@@ -53,6 +54,13 @@ def _target(ctx: click.Context) -> tuple[PlcMap, float | None]:
     return plc_map_for(ctx, obj.get("plc_url")), obj.get("plc_timeout")
 
 
+def _store(ctx: click.Context) -> StateStore | None:
+    """The cell's state store (its PLC lock), if the cell directory exists: a running
+    controller holds the PLC, and these commands are refused rather than act beside it."""
+    directory = cell_dir(ctx)
+    return StateStore(directory) if directory.is_dir() else None
+
+
 @plc.command()
 @click.pass_context
 def status(ctx: click.Context) -> None:
@@ -63,7 +71,9 @@ def status(ctx: click.Context) -> None:
 
         plc_map, timeout = _target(ctx)  # inside run(): a bad [plc] table is a usage error
 
-        async with await ModbusPlc.connect(plc_map.url, plc_map, timeout=timeout) as driver:
+        async with await ModbusPlc.connect(
+            plc_map.url, plc_map, timeout=timeout, store=_store(ctx)
+        ) as driver:
             inputs = await driver.read_inputs()
             coils = await driver.read_coils()
         console.print(f"PLC at {plc_map.url} (unit {plc_map.unit})")
@@ -93,7 +103,9 @@ def set_coil(ctx: click.Context, name: str, value: str) -> None:
         plc_map, timeout = _target(ctx)  # inside run(): a bad [plc] table is a usage error
 
         plc_map.kind_of(name)  # an unknown name is refused before connecting
-        async with await ModbusPlc.connect(plc_map.url, plc_map, timeout=timeout) as driver:
+        async with await ModbusPlc.connect(
+            plc_map.url, plc_map, timeout=timeout, store=_store(ctx)
+        ) as driver:
             await driver.write(name, value == "1")
         console.print(f"{name} = {value}")
 
@@ -113,7 +125,9 @@ def pulse(ctx: click.Context, name: str, seconds: float) -> None:
         plc_map, timeout = _target(ctx)  # inside run(): a bad [plc] table is a usage error
 
         plc_map.kind_of(name)
-        async with await ModbusPlc.connect(plc_map.url, plc_map, timeout=timeout) as driver:
+        async with await ModbusPlc.connect(
+            plc_map.url, plc_map, timeout=timeout, store=_store(ctx)
+        ) as driver:
             await driver.pulse(name, seconds)
         console.print(f"{name} pulsed for {seconds:g} s")
 

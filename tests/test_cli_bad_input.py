@@ -193,3 +193,23 @@ def test_generated_command_lines_end_in_a_reason_never_a_crash(
         os.chdir(ROOT)
     if result.exception is not None and not isinstance(result.exception, SystemExit):
         raise AssertionError(f"cellctl {' '.join(argv)} crashed") from result.exception
+
+
+@pytest.mark.parametrize("family", ["robot", "mill"])
+def test_a_trace_file_that_cannot_be_written_is_refused_before_the_link(
+    family: str, tmp_path: Path
+) -> None:
+    # Nothing listens at the link: a trace checked after opening it would say so instead.
+    trace = str(tmp_path / "no" / "such" / "dir" / "x.log")
+    result = cellctl(
+        "--cell",
+        str(tmp_path),
+        family,
+        "--trace",
+        trace,
+        "--link",
+        "socket://127.0.0.1:1",
+        "status",
+    )
+    line = one_line_refusal(result)
+    assert f"trace file {trace}: cannot write it: No such file or directory" in line

@@ -14,10 +14,13 @@ chunks in memory: what a running controller holds for the API's traffic tail.
 from __future__ import annotations
 
 import datetime as _dt
+import os
 import threading
 from collections import deque
 from pathlib import Path
 from typing import IO
+
+from cellctl.errors import UsageError
 
 SENT = ">>"
 RECEIVED = "<<"
@@ -35,7 +38,12 @@ class TrafficLog:
     ) -> None:
         self._stream: IO[str] | None
         if isinstance(target, str | Path):
-            self._stream = open(target, "a", encoding="utf-8")  # noqa: SIM115
+            try:
+                # Private, like the cell's other files: a trace holds the programs sent.
+                fd = os.open(target, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o600)
+            except OSError as e:
+                raise UsageError(f"trace file {target}: cannot write it: {e.strerror}") from None
+            self._stream = os.fdopen(fd, "a", encoding="utf-8")
             self._owns = True
         else:
             self._stream = target

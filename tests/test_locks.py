@@ -24,6 +24,8 @@ from cellctl.errors import MachineInUse, UsageError
 from cellctl.kinds.ibm7545.driver import Ibm7545Robot
 from cellctl.link import open_link
 from cellctl.link.lock import (
+    RUNTIME_ENV,
+    SYSTEM_LOCK_DIR,
     OwnerLock,
     default_process_label,
     holder,
@@ -95,6 +97,42 @@ async def test_second_process_by_link_is_refused_before_a_byte(
         assert await bytes_received(robot_served, robot.link.bytes_sent) == robot.link.bytes_sent
 
 
+async def test_a_link_lock_is_seen_whatever_the_environment(
+    robot_served: Served, tmp_path: Path, label: str
+) -> None:
+    """A login shell has $XDG_RUNTIME_DIR, the cell's systemd service has none and a private
+    /tmp: the link locks live where both see them."""
+    if not os.access(SYSTEM_LOCK_DIR, os.W_OK | os.X_OK):
+        pytest.skip(f"{SYSTEM_LOCK_DIR} is not writable here: the runtime dir falls back")
+    clean = {k: v for k, v in os.environ.items() if k not in (RUNTIME_ENV, "XDG_RUNTIME_DIR")}
+    own = tmp_path / "xdg"
+    own.mkdir(mode=0o700)
+    for env in (clean, {**clean, "XDG_RUNTIME_DIR": str(own)}):
+        proc = await asyncio.create_subprocess_exec(
+            *CELLCTL, "emulate", "robot", "--listen", "socket://127.0.0.1:0", "--no-pacing",
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
+        )  # fmt: skip
+        try:
+            assert proc.stdout is not None
+            async with asyncio.timeout(30):
+                said = (await proc.stdout.readline()).decode()
+            url = said.split("listening on ", 1)[1].split()[0]
+            async with await Ibm7545Robot.connect(url) as robot:
+                await robot.status()
+                other = await asyncio.create_subprocess_exec(
+                    *CELLCTL, "--cell", str(tmp_path), "robot", "--link", url, "status",
+                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
+                )  # fmt: skip
+                async with asyncio.timeout(60):
+                    _, err = await other.communicate()
+                assert other.returncode == 6, err.decode()
+                assert f"{url} is in use by {label}" in err.decode()
+        finally:
+            proc.terminate()
+            async with asyncio.timeout(10):
+                await proc.wait()
+
+
 async def test_second_process_by_name_is_refused(
     robot_served: Served, tmp_path: Path, label: str
 ) -> None:
@@ -110,10 +148,11 @@ async def test_second_process_by_name_is_refused(
         assert f"robot1 is in use by {label} (pid {os.getpid()}) since" in err
         assert robot_served.server.current_line is line
         assert await bytes_received(robot_served, robot.link.bytes_sent) == robot.link.bytes_sent
-    # Closed: the next owner gets it at once (and the lock file is private).
+        assert mode(store.lock_path("robot1")) == 0o600  # the lock file is private
+    # Closed: the next owner gets it at once; the lock file went with its owner.
+    assert not store.lock_path("robot1").exists()
     code, err = await cellctl("--cell", str(tmp_path), "robot", "robot1", "status")
     assert code == 0, err
-    assert mode(store.lock_path("robot1")) == 0o600
 
 
 async def test_second_driver_in_the_same_process_is_refused(
@@ -212,7 +251,7 @@ def test_process_label_from_the_command_line() -> None:
 def test_runtime_dir_is_private_and_refuses_a_foreign_one(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    monkeypatch.setenv(RUNTIME_ENV, str(tmp_path / "cellctl"))
     made = runtime_dir()
     assert made == tmp_path / "cellctl" and mode(made) == 0o700
     made.rmdir()
@@ -277,7 +316,6 @@ def test_journal_mailbox_and_state_files_are_private(tmp_path: Path) -> None:
             store = StateStore(tmp_path)
             store.save("robot1", {"state": 1})
             lock = OwnerLock.acquire(store.lock_path("robot1"), "robot1")
-            lock.release()
             files = [
                 tmp_path / JOURNAL_FILE,
                 tmp_path / MAILBOX_FILE,
@@ -288,6 +326,8 @@ def test_journal_mailbox_and_state_files_are_private(tmp_path: Path) -> None:
             ]
             assert {f.name: mode(f) for f in files} == {f.name: 0o600 for f in files}
             assert mode(store.dir) == 0o700
+            lock.release()
+            assert not store.lock_path("robot1").exists()  # given back: nothing left behind
         # A file left looser (an older cellctl, a copy) is tightened when opened.
         os.chmod(tmp_path / JOURNAL_FILE, 0o644)
         open_journal(tmp_path).close()

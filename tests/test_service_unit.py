@@ -63,7 +63,8 @@ def test_install_writes_a_hardened_unit_for_the_cells_user(cell: Path, tmp_path:
     assert service["Restart"] == ["on-failure"]
     assert service["NoNewPrivileges"] == ["yes"]
     assert service["ProtectSystem"] == ["strict"]
-    assert service["ReadWritePaths"] == [str(cell)]
+    # The cell, and the machine's lock directory where the link locks are (shared with shells).
+    assert service["ReadWritePaths"] == [str(cell), "-/run/lock"]
     assert service["ProtectHome"] == ["yes"]  # neither the cell nor cellctl is under /home
     assert service["PrivateTmp"] == ["yes"]
     assert service["DevicePolicy"] == ["closed"]
@@ -227,5 +228,6 @@ def test_no_input_adds_a_line_or_a_word_to_the_unit(
         "--no-live",
     ]
     assert service["User"] == [user]
-    assert service["ReadWritePaths"] == [str(cell)] == service["WorkingDirectory"]
+    assert service["ReadWritePaths"] == [str(cell), "-/run/lock"]
+    assert service["WorkingDirectory"] == [str(cell)]
     assert len(text.splitlines()) == len(REFERENCE.text().splitlines())

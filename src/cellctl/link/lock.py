@@ -15,8 +15,11 @@ belong to an open file description, so two opens in one process conflict as two 
 The descriptor is close-on-exec (a child started with exec does not inherit the lock); a child
 forked without exec shares it, as with any flock.
 
-Lock files are never deleted: unlinking one while another process has it open would let two
-owners lock two different files of the same name.
+The owner deletes its lock file when it gives the lock back, while it still holds it, so
+lock files do not pile up (one per link ever used). A taker checks that the file it locked is
+still the one at the path, and tries again if not: a process that opened the file just before
+it was deleted can never lock that orphan while another owner locks the new file of the same
+name.
 """
 
 from __future__ import annotations
@@ -41,6 +44,12 @@ from cellctl.errors import MachineInUse, UsageError
 IN_USE = "{what} is in use by {holder}: use `cellctl console` or the API"
 
 _label: str | None = None
+
+#: The environment variable that names the runtime directory itself (see runtime_dir).
+RUNTIME_ENV = "CELLCTL_RUNTIME_DIR"
+#: The machine's lock directory (FHS /run/lock, world-writable, sticky): the same path in
+#: every process, a service's included, whatever its environment.
+SYSTEM_LOCK_DIR = "/run/lock"
 
 
 @dataclass(frozen=True)
@@ -118,7 +127,7 @@ def _ensure_private_dir(path: Path) -> Path:
     if st.st_uid != os.getuid():
         raise UsageError(
             f"{path} belongs to uid {st.st_uid}, not to this user: cellctl will not keep its "
-            "locks and sockets there (remove it, or set XDG_RUNTIME_DIR)"
+            "locks and sockets there (remove it, or set CELLCTL_RUNTIME_DIR)"
         )
     if stat.S_IMODE(st.st_mode) & 0o077:
         os.chmod(path, 0o700)
@@ -126,11 +135,21 @@ def _ensure_private_dir(path: Path) -> Path:
 
 
 def runtime_dir() -> Path:
-    """This user's private directory for locks and sockets, created mode 0700:
-    ``$XDG_RUNTIME_DIR/cellctl``, else ``/tmp/cellctl-<uid>``.
+    """This user's private directory for locks and sockets, created mode 0700.
+
+    The same for every process of the user whatever its environment: a login shell (with
+    ``$XDG_RUNTIME_DIR``) and the cell's systemd service (without, and with a private /tmp)
+    must see each other's link locks. So: ``$CELLCTL_RUNTIME_DIR`` if set (tests, unusual
+    setups), else ``/run/lock/cellctl-<uid>`` (where serial-port locks live; the service unit
+    may write there), else ``$XDG_RUNTIME_DIR/cellctl``, else ``/tmp/cellctl-<uid>``.
 
     Raises UsageError when the directory exists but belongs to someone else.
     """
+    given = os.environ.get(RUNTIME_ENV)
+    if given and os.path.isabs(given):
+        return _ensure_private_dir(Path(given))
+    if os.path.isdir(SYSTEM_LOCK_DIR) and os.access(SYSTEM_LOCK_DIR, os.W_OK | os.X_OK):
+        return _ensure_private_dir(Path(SYSTEM_LOCK_DIR) / f"cellctl-{os.getuid()}")
     xdg = os.environ.get("XDG_RUNTIME_DIR")
     if xdg and os.path.isabs(xdg) and os.path.isdir(xdg):
         return _ensure_private_dir(Path(xdg) / "cellctl")
@@ -169,6 +188,37 @@ def _open(path: Path, flags: int) -> int:
         raise
     except OSError as e:
         raise UsageError(f"cannot open the lock file {path}: {e.strerror}") from None
+
+
+def _same_file(fd: int, path: Path) -> bool:
+    """True if ``path`` is (still) the file open as ``fd``."""
+    try:
+        there = os.stat(path, follow_symlinks=False)
+    except FileNotFoundError:
+        return False
+    mine = os.fstat(fd)
+    return (there.st_dev, there.st_ino) == (mine.st_dev, mine.st_ino)
+
+
+def _lock_the_file_at(path: Path, what: str, refusal: str) -> int:
+    """Open and lock the file at ``path`` (created if missing): its descriptor, the lock
+    held. MachineInUse if another owner holds it. A file deleted (its owner gave it back)
+    between our open and our lock is not the lock any more: open again."""
+    for _ in range(100):  # each turn means another owner came and went meanwhile
+        fd = _open(path, os.O_RDWR | os.O_CREAT)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            found = _read_record(fd)
+            os.close(fd)
+            raise MachineInUse(refusal.format(what=what, holder=found)) from None
+        except BaseException:
+            os.close(fd)
+            raise
+        if _same_file(fd, path):
+            return fd
+        os.close(fd)
+    raise MachineInUse(refusal.format(what=what, holder="another process"))
 
 
 def holder(path: Path | str) -> Holder | None:
@@ -212,12 +262,8 @@ class OwnerLock:
                 path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
             except OSError as e:
                 raise UsageError(f"cannot create {path.parent} for a lock: {e.strerror}") from None
-        fd = _open(path, os.O_RDWR | os.O_CREAT)
+        fd = _lock_the_file_at(path, what, refusal)
         try:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                raise MachineInUse(refusal.format(what=what, holder=_read_record(fd))) from None
             if stat.S_IMODE(os.fstat(fd).st_mode) & 0o077:
                 with contextlib.suppress(PermissionError):
                     os.fchmod(fd, 0o600)
@@ -249,9 +295,13 @@ class OwnerLock:
         if fd < 0:
             return
         try:
-            # Clear the record while still holding the lock: a stale record never lingers.
+            # Clear the record and delete the file while still holding the lock: a stale
+            # record never lingers, and a taker that locked this file finds it gone.
             with contextlib.suppress(OSError):
                 os.ftruncate(fd, 0)
+            with contextlib.suppress(OSError):
+                if _same_file(fd, self.path):
+                    os.unlink(self.path)
         finally:
             os.close(fd)
 
@@ -281,6 +331,8 @@ class OwnerLock:
 
 __all__ = [
     "IN_USE",
+    "RUNTIME_ENV",
+    "SYSTEM_LOCK_DIR",
     "Holder",
     "OwnerLock",
     "default_process_label",

@@ -148,6 +148,8 @@ class ServiceUnit:
             "NoNewPrivileges=yes",
             "ProtectSystem=strict",
             f"ReadWritePaths={cell}",
+            # The link locks, shared with the user's shells ("-": none if it is missing).
+            "ReadWritePaths=-/run/lock",
             f"ProtectHome={home}",
             "PrivateTmp=yes",
             "DevicePolicy=closed",

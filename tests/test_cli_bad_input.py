@@ -8,6 +8,7 @@ directory) runs ``cellctl`` as a process of its own."""
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 from pathlib import Path
 from typing import Any
@@ -156,6 +157,7 @@ def test_part_ids_are_shown_and_taken_as_unique_prefixes(tmp_path: Path) -> None
 
     cell = tmp_path / "cell"
     cell.mkdir()
+    shutil.copy(ROOT / "examples" / "cell" / "cell.toml", cell / "cell.toml")
     with open_mailbox(cell) as mailbox, open_journal(cell) as journal:
         order, _ = mailbox.post_order("wax-robot-base", 2, order_id="9227175d00c7a1b2c3d4e5")
         parts = journal.create_parts(order)
@@ -213,3 +215,16 @@ def test_a_trace_file_that_cannot_be_written_is_refused_before_the_link(
     )
     line = one_line_refusal(result)
     assert f"trace file {trace}: cannot write it: No such file or directory" in line
+
+
+@pytest.mark.parametrize(
+    "args",
+    [["alarm", "list"], ["part", "list"], ["cancel", "X"], ["plan", "--shift", "1h"], ["pause"]],
+)
+def test_a_mistyped_cell_is_refused_and_nothing_is_made_there(
+    args: list[str], tmp_path: Path
+) -> None:
+    mistyped = tmp_path / "mycel"
+    line = one_line_refusal(cellctl("--cell", str(mistyped), *args))
+    assert f"no cell at {mistyped}: it has no cell.toml" in line
+    assert not mistyped.exists()  # no mailbox made, so the next command is refused too

@@ -25,7 +25,14 @@ from websockets.asyncio.client import ClientConnection, connect, unix_connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus, WebSocketException
 
 from cellctl.clock import current_clock
-from cellctl.errors import AccessDenied, CellctlError, LinkClosed, LinkError, LinkTimeout
+from cellctl.errors import (
+    AccessDenied,
+    CellctlError,
+    LinkClosed,
+    LinkError,
+    LinkTimeout,
+    UsageError,
+)
 from cellctl.service.access import LocalCell
 from cellctl.service.machines import MachineRef
 from cellctl.service.methods import Caller, Dispatcher, error_from_object
@@ -293,6 +300,17 @@ async def attach(directory: Path) -> RemoteCell:
     )
 
 
+def _require_cell(directory: Path) -> None:
+    """Refuse a directory without a cell.toml: a mistyped --cell must not answer "no alarms"
+    from a mailbox made there now."""
+    if not (Path(directory) / "cell.toml").is_file():
+        raise UsageError(
+            f"no cell at {os.path.abspath(directory)}: it has no cell.toml (name the "
+            "cell's directory with --cell DIR or $CELLCTL_CELL; `cellctl --cell DIR "
+            "emulate cell` makes one)"
+        )
+
+
 async def open_cell(
     directory: Path,
     refs: dict[str, MachineRef],
@@ -306,6 +324,7 @@ async def open_cell(
 
     holder = controller_holder(directory)
     if holder is None:
+        _require_cell(directory)
         return StandaloneCell(LocalCell(directory, refs, trace=trace, readiness=readiness))
     try:
         return await attach(directory)

@@ -73,7 +73,7 @@ def machine_call(
         if given.get("link"):
             # An ad-hoc link outside any cell keeps its host state per user, not in a
             # ./cell/state/ it would leave behind in whatever directory this runs in.
-            home = directory if directory.is_dir() else state_home()
+            home = directory if (directory / "cell.toml").is_file() else state_home()
             cell: Any = StandaloneCell(
                 LocalCell(home, {ref.name: ref}, trace=trace, readiness=readiness)
             )

@@ -63,6 +63,8 @@ from cellctl.emulators.serve import (
     EmulatedDevice,
     SelfServed,
     Server,
+    check_pty_listen,
+    pty_link_path,
     scaled_deadline,
     serve,
 )
@@ -236,6 +238,16 @@ class EmulatedCell:
 
         ``template``: the cell directory to copy (default: the example cell)."""
         template = template or self.template
+        # A bare pty gets a stable name in the cell directory, as a serial port has: a
+        # dropped connection makes a new pty, and the controller reopens the same path. The
+        # directory is resolved, never the link: one left there is replaced, not followed.
+        listen = self.robot_listen
+        if listen == "pty":
+            listen = f"pty:{pty_link_path(str(cell_dir / 'robot.pty'))}"
+        if self.links != "mem" and type(self.robot).listen is EmulatedDevice.listen:
+            # A cell already emulated in this directory holds its robot's pty: refused here,
+            # before its files are copied over or its cell.toml rewritten.
+            check_pty_listen(listen)
         copy_template(template, cell_dir)
         for index, (name, mill) in enumerate(self.mills.items(), start=1):
             mill.run_hooks.append(self._noting_cuts(index, name))
@@ -247,11 +259,6 @@ class EmulatedCell:
         self.plc_url = await self.plc.start(f"modbus://{self.host}:0")
         for name, value in self.plc.inputs.items():
             self._plc_input(name, value)
-        # A bare pty gets a stable name in the cell directory, as a serial port has: a
-        # dropped connection makes a new pty, and the controller reopens the same path.
-        listen = self.robot_listen
-        if listen == "pty":
-            listen = f"pty:{(cell_dir / 'robot.pty').resolve()}"
         # A robot with interfaces of its own (several ports) serves itself.
         own = await self.robot.listen(self.host)
         if own is not None:

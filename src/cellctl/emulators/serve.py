@@ -10,10 +10,15 @@ host through a :class:`DeviceLine`; this module does the rest::
 
 ``listen`` is ``"pty"`` (a new pseudo-terminal; ``"pty:/some/path"`` also keeps a symlink
 there, re-pointed when a dropped connection makes a new pty), ``"socket://HOST:PORT"`` or
-``"rfc2217://HOST:PORT"`` (port 0 picks a free one). Over RFC 2217 the emulator's RTS reaches
-the host as CTS, and line settings the host sets change the pacing; a pty or raw TCP carries
-no modem lines. One host at a time: a new TCP connection replaces the previous one, as a
-device server does when a controller restarts and reconnects.
+``"rfc2217://HOST:PORT"`` (port 0 picks a free one). One owner per ``pty:PATH``: the emulator
+holds PATH's lock while it runs (a second one is refused with MachineInUse, naming it), never
+replaces anything at PATH but a link (a file or a directory there is a UsageError), and on
+close removes PATH only if it still points to its own pty.
+
+Over RFC 2217 the emulator's RTS reaches the host as CTS, and line settings the host sets
+change the pacing; a pty or raw TCP carries no modem lines. One host at a time: a new TCP
+connection replaces the previous one, as a device server does when a controller restarts and
+reconnects.
 
 Pacing: with ``pacing=True`` (the default) the emulator receives each host byte no sooner than
 it would have crossed the wire at the line's rate, and its own bytes reach the host at that
@@ -27,7 +32,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
 import os
+import secrets
+import stat
 import tty
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Coroutine
@@ -42,8 +50,9 @@ from cellctl.clock import Clock, current_clock, emulator_clock
 # Re-exported: emulators and their transports import the line from here.
 from cellctl.emulators.line import DeviceLine as DeviceLine
 from cellctl.emulators.line import LineNoise as LineNoise
-from cellctl.errors import LinkClosed, UsageError
+from cellctl.errors import LinkClosed, MachineInUse, UsageError
 from cellctl.link import LineSettings, parse_host_port
+from cellctl.link.lock import OwnerLock, holder, runtime_dir
 
 #: Default time scales, one per use (each command's --help says its own and why):
 #: a single machine's emulator runs in the machine's own time, so a driver, the console or
@@ -194,8 +203,7 @@ async def serve(
 ) -> Server:
     """Start serving ``device`` at ``listen``; see the module docstring."""
     if listen == "pty" or listen.startswith("pty:"):
-        link_path = listen[4:] or None
-        return await _serve_pty(device, settings, pacing, Path(link_path) if link_path else None)
+        return await _serve_pty(device, settings, pacing, listen)
     scheme = urlsplit(listen).scheme
     if scheme in ("socket", "tcp"):
         return await _serve_tcp(device, listen, settings, pacing, rfc=False)
@@ -206,18 +214,104 @@ async def serve(
     )
 
 
+#: What a second emulator on a ``pty:PATH`` that a running one holds is told.
+PTY_PATH_IN_USE = "{what} is served by {holder}: choose another path or stop that emulator"
+
+#: What is at a path, in words, by its file type (a symlink is the one thing replaced).
+_FILE_KINDS = (
+    (stat.S_ISREG, "a regular file"),
+    (stat.S_ISDIR, "a directory"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISFIFO, "a named pipe"),
+    (stat.S_ISSOCK, "a socket"),
+)
+
+
+def pty_link_path(text: str) -> Path:
+    """The absolute path of ``pty:PATH``'s link: its directory resolved, its own name kept
+    (a link already at PATH is what gets replaced, so it is never followed)."""
+    path = Path(text)
+    return Path(os.path.realpath(path.parent)) / path.name
+
+
+def pty_lock_path(link: Path) -> Path:
+    """The owner lock of the link ``link`` (absolute) in this user's runtime directory."""
+    digest = hashlib.sha256(os.fsencode(link)).hexdigest()[:16]
+    return runtime_dir() / f"pty-{digest}.lock"
+
+
+def _refuse_other_than_link(listen: str, link: Path) -> None:
+    """UsageError if something other than a symlink is at ``link``: it is the user's."""
+    try:
+        mode = os.lstat(link).st_mode
+    except FileNotFoundError:
+        return
+    except OSError as e:
+        raise UsageError(f"{listen}: cannot look at {link}: {e.strerror}") from None
+    if stat.S_ISLNK(mode):
+        return
+    kind = next((name for test, name in _FILE_KINDS if test(mode)), "something")
+    raise UsageError(
+        f"{listen}: {kind} is there; the emulator makes PATH a link to its pty and will not "
+        "replace it: choose another path or remove it"
+    )
+
+
+def check_pty_listen(listen: str) -> None:
+    """Refuse ``listen`` now if :func:`serve` would refuse its ``pty:PATH``: something not a
+    link there (UsageError) or a running emulator's link (MachineInUse, naming it).
+
+    Takes nothing, so a caller can check before it writes anything; ``serve`` still takes
+    the lock. Any other ``listen`` passes."""
+    if not listen.startswith("pty:") or listen == "pty:":
+        return
+    link = pty_link_path(listen[4:])
+    _refuse_other_than_link(listen, link)
+    found = holder(pty_lock_path(link))
+    if found is not None:
+        raise MachineInUse(PTY_PATH_IN_USE.format(what=listen, holder=found))
+
+
+def _claim_pty_link(listen: str, link: Path) -> OwnerLock:
+    """PATH's lock for this emulator's life, once nothing of the user's is there."""
+    _refuse_other_than_link(listen, link)
+    # A link whose lock is free was left by an emulator that is gone: it is replaced.
+    return OwnerLock.acquire(pty_lock_path(link), listen, refusal=PTY_PATH_IN_USE)
+
+
+def _point_link(link: Path, target: str) -> None:
+    """Make ``link`` a symlink to ``target`` in one step, never following a link there.
+
+    The new link is made under a temporary name next to ``link`` (built from ``link``'s own
+    name, not its target's) and renamed over it: rename replaces a symlink, not what it
+    points to, and a reader never sees PATH missing."""
+    tmp = link.with_name(f".{link.name}.{os.getpid()}-{secrets.token_hex(4)}.new")
+    os.symlink(target, tmp)
+    try:
+        os.replace(tmp, link)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
 async def _serve_pty(
-    device: EmulatedDevice, settings: LineSettings, pacing: bool, link_path: Path | None
+    device: EmulatedDevice, settings: LineSettings, pacing: bool, listen: str
 ) -> Server:
     loop = asyncio.get_running_loop()
+    given = listen[4:]
+    link = pty_link_path(given) if given else None
+    lock = _claim_pty_link(listen, link) if link is not None else None
     server = Server(url="", device=device)
+    current = {"pty": ""}  # the pty the link points to now: what close may remove
 
     def open_pty() -> str:
         master, slave = os.openpty()
         tty.setraw(slave)  # no echo, no CR/LF translation: bytes as they are
         os.set_blocking(master, False)
         name = os.ttyname(slave)
-        holder = {"closed": False}
+        fds = {"closed": False}
 
         def send(data: bytes) -> None:
             # The host side is a tty buffer of a few KiB; records are far smaller.
@@ -225,9 +319,9 @@ async def _serve_pty(
                 os.write(master, data)
 
         def close_fds() -> None:
-            if holder["closed"]:
+            if fds["closed"]:
                 return
-            holder["closed"] = True
+            fds["closed"] = True
             loop.remove_reader(master)
             os.close(master)
             # The emulator holds the slave too, so a host closing it doesn't EIO the master.
@@ -236,7 +330,7 @@ async def _serve_pty(
         def on_drop() -> None:
             close_fds()
             # A dropped pty is gone for good, as an unplugged cable; a new one takes its place.
-            loop.call_soon(start)
+            loop.call_soon(repoint)
 
         line = DeviceLine(settings, pacing=pacing, send=send, on_drop=on_drop, clock=device.clock)
         line.device = device
@@ -256,23 +350,45 @@ async def _serve_pty(
         _spawn(server, _run_session(server, line, lambda: None))
         return name
 
-    def start() -> None:
+    def repoint() -> None:
         if server._stopped.is_set():
             return
         name = open_pty()
-        if link_path is not None:
-            tmp = link_path.with_name(link_path.name + ".new")
-            with contextlib.suppress(FileNotFoundError):
-                tmp.unlink()
-            tmp.symlink_to(name)
-            tmp.replace(link_path)
-            server.url = str(link_path)
-        else:
+        if link is None:
             server.url = name
+            return
+        # We hold PATH's lock, so no other emulator is there; but a file the user put at
+        # PATH since is theirs, and a failure here must not stop the emulator serving.
+        with contextlib.suppress(UsageError, OSError):
+            _refuse_other_than_link(listen, link)
+            _point_link(link, name)
+            current["pty"] = name
 
-    start()
-    if link_path is not None:
-        server._closers.insert(0, lambda: link_path.unlink(missing_ok=True))
+    def remove_link() -> None:
+        # Only our own link goes: a file put at PATH since, or a link re-made by someone
+        # else, stays as it is.
+        assert link is not None
+        with contextlib.suppress(OSError):
+            if os.readlink(link) == current["pty"]:
+                os.unlink(link)
+
+    if lock is not None:
+        server._closers.append(lock.release)  # closers run last first: the lock goes last
+        server._closers.append(remove_link)
+    try:
+        name = open_pty()
+        if link is not None:
+            try:
+                _point_link(link, name)
+            except OSError as e:
+                raise UsageError(
+                    f"{listen}: cannot make the link to the pty: {e.strerror}"
+                ) from None
+            current["pty"] = name
+    except BaseException:
+        await server.close()
+        raise
+    server.url = given if link is not None else name
     return server
 
 

@@ -136,7 +136,7 @@ async def test_fault_during_a_run_ends_in_recovery_or_a_held_part(
         assert parts == 2 + (case.fault == "plc:no-pallet")
         assert all(p.status != "scrapped" for p in rig.journal.parts())
 
-        rig.switch_off(case.fault)
+        await rig.switch_off(case.fault)
 
         await resolve_until_done(rig)
         await rig.stop_controller()
@@ -198,7 +198,7 @@ async def test_a_robot_reject_is_reset_and_retried_a_bounded_number_of_times(
         await asyncio.sleep(controller.options.poll_period * 3)
         failed = [s for s in rig.journal.steps() if s.state == "failed"]
         assert [(s.kind, s.program) for s in failed] == [("transfer", "cnc1_to_cnc2")]
-        rig.switch_off("robot:power-off")
+        await rig.switch_off("robot:power-off")
         await rig.operator_resolves()
         await rig.wait_for(rig.all_done, "order A done", timeout=60)
         await rig.stop_controller()
@@ -221,7 +221,7 @@ async def test_a_mill_out_of_service_returns_when_its_alarm_is_cleared(tmp_path:
         # Out of service: no step starts on cnc2; no part is lost (one may be held).
         assert all(s.machine != "cnc2" for s in rig.open_steps("machine"))
         assert {p.status for p in rig.journal.parts()} <= {"waiting", "active", "held"}
-        rig.switch_off("cnc2:never-ready")
+        await rig.switch_off("cnc2:never-ready")
         result = await rig.cli("alarm", "clear", str(out.id))
         assert result.exit_code == 0 and f"alarm {out.id} cleared" in result.output
         # The machine returns to service once none of its alarms is active.
@@ -303,7 +303,7 @@ async def test_no_pallet_is_one_alarm_and_the_pallet_comes_once_fixed(tmp_path: 
         await rig.wait_for(lambda: rig.alarms("plc", "conveyor"), "the conveyor's alarm")
         await rig.wait_quiet()
         assert len(rig.journal.alarms()) == 1, rig.describe()
-        rig.switch_off("plc:no-pallet")
+        await rig.switch_off("plc:no-pallet")
         await rig.operator_resolves()
         await rig.wait_for(rig.all_done, "order A done", timeout=60)
         await rig.wait_quiet()
@@ -346,7 +346,7 @@ async def test_an_emergency_stop_during_a_transfer_is_one_alarm_naming_it(tmp_pa
         assert rig.reports("step-failed")
         assert all("emergency stop" in r.text for r in rig.reports("step-failed"))
 
-        rig.switch_off("plc:estop")
+        await rig.switch_off("plc:estop")
         await resolve_until_done(rig)
         await rig.stop_controller()
         assert all(p.status == "done" for p in rig.journal.parts()), rig.describe()
@@ -390,7 +390,7 @@ async def test_a_door_stuck_during_a_transfer_is_named_in_its_alarm(tmp_path: Pa
         # The robot is not at fault: no failure counts against it.
         assert controller.machines["robot"].failures == 0
 
-        rig.switch_off(stuck[0])
+        await rig.switch_off(stuck[0])
         await resolve_until_done(rig)
         await rig.stop_controller()
         assert all(p.status == "done" for p in rig.journal.parts()), rig.describe()
@@ -428,7 +428,7 @@ async def test_an_emergency_stop_as_a_transfers_door_opens_ends_it_at_once(
         assert failed.ended - pressed[0] < controller.options.interlock_timeout / 2
         assert not rig.cell.robot.running
 
-        rig.switch_off("plc:estop")
+        await rig.switch_off("plc:estop")
         await resolve_until_done(rig)
         await rig.stop_controller()
         assert all(p.status == "done" for p in rig.journal.parts()), rig.describe()

@@ -61,7 +61,7 @@ async def test_a_stalled_mill_gets_no_part_and_the_batch_finishes_after(tmp_path
         await rig.wait_for(lambda: not controller._busy(), "the cell idle")
         assert transfers_into(rig, "cnc2") == []
         assert rig.cell.vise[2] is None and rig.cell.vise[1] == "P1"
-        rig.switch_off("cnc2:stall")
+        await rig.switch_off("cnc2:stall")
         await rig.clear_alarms()  # out of service after its failed setups: the operator's word
         await rig.wait_for(rig.all_done, "order A done", timeout=60)
         await rig.stop_controller()

@@ -187,6 +187,10 @@ class PlcEmulator:
             self._pallet_coming = False
             self._set_input("estop_ok", False)
 
+    async def operator_after(self, fault: str) -> None:
+        """Nothing for an operator to do once a PLC fault is off (as for a machine's
+        emulator, :meth:`EmulatedDevice.operator_after`): its actuators follow by themselves."""
+
     def clear_fault(self, name: str) -> None:
         """Switch a fault off (no error if it was off); actuators then follow their coils."""
         self.faults.pop(name, None)

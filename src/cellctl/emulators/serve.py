@@ -116,6 +116,17 @@ class EmulatedDevice(ABC):
     def line_changed(self, line: DeviceLine) -> None:  # noqa: B027 - optional hook
         """Called when the host changed the line settings (RFC 2217)."""
 
+    async def operator_after(self, fault: str) -> None:  # noqa: B027 - optional hook
+        """What the machine's operator does once fault switch ``fault`` went off, so the host
+        can use the machine again (a panel's key, a pendant's unlock); the default: nothing.
+        A plan's operator and the test rig call it after ``clear_fault``."""
+
+    @property
+    def moving(self) -> bool:
+        """True while the machine's own program moves it (an operator waits for rest before
+        taking a part out of a held transfer); the default: never."""
+        return False
+
     async def listen(self, host: str) -> SelfServed | None:
         """Serve on ports of its own (a machine with several interfaces) and say how a
         cell reaches it; None (the default): :func:`serve` puts it on one line."""

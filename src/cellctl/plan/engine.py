@@ -62,11 +62,6 @@ POWER_ON_S = 10.0
 RESOLVE_LOOKS = 4
 RESOLVE_ROUNDS = 5
 
-#: The plan's operator at a UR's pendant after a fault: seconds between two looks, and how
-#: many looks at most (an unlock 5 s after the stop, power on 2 s, brake release 1.5 s).
-PENDANT_WAIT_S = 1.0
-PENDANT_TRIES = 30
-
 #: Seconds of plan time between two looks of the plan's own watcher (all orders done?).
 WATCH_S = 2.0
 
@@ -428,13 +423,7 @@ class _Operator:
         """The fault off, and what the panel needs after it (as ``CellRig.switch_off``)."""
         target = self._target(machine)
         target.clear_fault(name)
-        if machine in self.cell.mills:
-            if name == "no-next":
-                target.press_next()  # the operator finishes the setup stop
-            elif name in ("never-ready", "stall"):
-                target.select(target.auto_mode)  # the link mode selected again: READY back
-        elif machine == self.cell.robot_name and _pendant(target) is not None:
-            await _arm_back_to_running(_pendant(target))
+        await target.operator_after(name)  # a panel's key, a pendant's unlock: the kind's
 
     async def resolve(self, until: float) -> None:
         """As an operator after fixing a machine: a few looks later, clear every alarm and
@@ -450,7 +439,7 @@ class _Operator:
                 return
             for alarm in alarms:
                 self.journal.clear_alarm(alarm.id, by="plan operator")
-            while held and _arm_moving(self.cell.robot):
+            while held and self.cell.robot.moving:
                 if clock.now() >= until:
                     return
                 await clock.sleep(look)
@@ -477,49 +466,6 @@ class _Operator:
         blank = cell.vise.get(mills.get(step.machine, 0))
         cut = cell.runs_per_part().get(blank, {}).get(step.machine, 0) if blank else 0
         self.journal.release_part(part_id, redo_step=not cut)
-
-
-# A UR (kind "ur") is known here only by its emulator's pendant (its controller, which
-# answers Dashboard Server lines): the layers below the plan never name a kind, and these
-# are the plan operator's hands and eyes on it.
-
-
-def _pendant(robot: Any) -> Any:
-    """A UR emulator's controller (its pendant's state and commands), or None."""
-    controller = getattr(robot, "controller", None)
-    return controller if callable(getattr(controller, "answer", None)) else None
-
-
-async def _arm_back_to_running(pendant: Any) -> None:
-    """After a UR's fault went off, the operator at its pendant brings the arm back to
-    RUNNING as its fault table says: a protective stop unlocked (UR refuses within 5 s of
-    the stop: the operator waits them out), the power on, the brakes released. The paused or
-    stopped program is left to the cell's own recovery (its step failed and is played again)."""
-    clock = current_clock()
-    for _ in range(PENDANT_TRIES):
-        safety, mode = pendant.safety.name, pendant.mode.name
-        if safety == "PROTECTIVE_STOP":
-            pendant.answer("unlock protective stop")
-        elif mode == "POWER_OFF":
-            pendant.answer("power on")
-        elif mode == "IDLE":
-            pendant.answer("brake release")
-        elif mode == "RUNNING":
-            return
-        await clock.sleep(PENDANT_WAIT_S)
-    raise UsageError(
-        f"the plan's operator could not bring the robot back: Robotmode {mode}, "
-        f"Safetystatus {safety}"
-    )
-
-
-def _arm_moving(robot: Any) -> bool:
-    """True while the robot's program moves the arm (an IBM 7545's ``running``; a UR's
-    controller playing its program)."""
-    running = getattr(robot, "running", None)
-    if running is not None:
-        return bool(running)
-    return str(robot.controller.runtime.name) == "PLAYING"
 
 
 __all__ = [

@@ -1,6 +1,6 @@
 """The faults a plan may put on a machine, checked before anything runs::
 
-    switches("dyna2400")                          # ("down", "never-ready", ..., "noise")
+    switches(kind)                                # ("down", and its emulator's switches)
     check_switch("plc", None, "stuck-door", "abc")  # UsageError: stuck-door needs a mill ...
 
 ``down`` is the plan's own (the machine out of service). Every other name is one of the

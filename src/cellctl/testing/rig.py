@@ -10,7 +10,7 @@ This is the way to run a cell in one process -- for tests, benches and experimen
         await rig.wait_for(lambda: rig.order_state("A") == "done", "order A done")
         rig.switch_on("cnc2:stall")               # an emulator's fault switch
         await rig.wait_quiet()                    # no step in flight, the journal at rest
-        rig.switch_off("cnc2:stall")              # the operator fixes the machine ...
+        await rig.switch_off("cnc2:stall")        # the operator fixes the machine ...
         await rig.operator_resolves()             # ... clears alarms, releases held parts
 
 ``CellRig(dir, cell_options=..., mill_options=...)`` writes short deadlines for tests
@@ -339,23 +339,20 @@ class CellRig:
         --fault`` takes it (``cnc2:stall``, ``plc:stuck-door=2``)."""
         apply_fault(self.cell, fault)
 
-    def switch_off(self, fault: str) -> None:
-        """The operator fixes the machine: the fault off, and what the panel needs after it
-        (NEXT after a setup stop, the link mode selected again after a lost READY)."""
+    async def switch_off(self, fault: str) -> None:
+        """The operator fixes the machine: the fault off, and what its panel needs after it
+        (the emulator's ``operator_after``: NEXT after a setup stop, the link mode selected
+        again after a lost READY, a pendant's unlock)."""
         machine, _, rest = fault.partition(":")
         name = rest.partition("=")[0]
         if machine == "robot":
-            self.cell.robot.clear_fault(name)
+            target = self.cell.robot
         elif machine == "plc":
-            self.cell.plc.clear_fault(name)
+            target = self.cell.plc
         else:
-            self.cell.mills[machine].clear_fault(name)
-        if name == "no-next":
-            self.cell.mills[machine].press_next()  # the operator finishes the setup stop
-        elif name in ("never-ready", "stall"):
-            # The operator selects the link mode again on the panel: READY comes back.
-            mill = self.cell.mills[machine]
-            mill.select(mill.auto_mode)
+            target = self.cell.mills[machine]
+        target.clear_fault(name)
+        await target.operator_after(name)
 
     def physical_part(self, mill: str) -> str | None:
         """The physical part in ``mill``'s vise (the emulated cell's record)."""

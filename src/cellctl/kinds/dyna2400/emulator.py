@@ -261,6 +261,14 @@ class Dyna2400Emulator(EmulatedDevice):
         if name == "noise":
             self.noise = None
 
+    async def operator_after(self, fault: str) -> None:
+        """The panel after a fault: NEXT after a setup stop nobody finished, the link mode
+        selected again after a lost READY (READY comes back)."""
+        if fault == "no-next":
+            self.press_next()
+        elif fault in ("never-ready", "stall"):
+            self.select(self.auto_mode)
+
     # -- automatic operator ---------------------------------------------------------------------
 
     def start(self) -> None:

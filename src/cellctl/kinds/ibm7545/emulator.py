@@ -273,6 +273,11 @@ class Ibm7545Emulator(EmulatedDevice):
         """True while a program executes (state 2)."""
         return self._cycle is not None and not self._cycle.done()
 
+    @property
+    def moving(self) -> bool:
+        """The arm moves while a program executes."""
+        return self.running
+
     # -- the host connection -------------------------------------------------------------------
 
     async def session(self, line: DeviceLine) -> None:

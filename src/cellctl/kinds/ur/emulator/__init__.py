@@ -31,9 +31,15 @@ from typing import Any
 from cellctl.clock import Clock
 from cellctl.emulators.memserve import serve_mem_streams
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, SelfServed
-from cellctl.errors import ProtocolError
+from cellctl.errors import ProtocolError, UsageError
 from cellctl.kinds.ur import rtde
-from cellctl.kinds.ur.dashboard import BANNER, MAX_ANSWER
+from cellctl.kinds.ur.dashboard import (
+    BANNER,
+    MAX_ANSWER,
+    RobotMode,
+    RuntimeState,
+    SafetyStatus,
+)
 from cellctl.kinds.ur.emulator.controller import FAULTS, UrController
 from cellctl.kinds.ur.options import mem_interface
 from cellctl.kinds.ur.urscript import parse
@@ -51,6 +57,10 @@ MAX_SCRIPT = 1_000_000
 #: schedule moves by tenths of a second a transfer). At the robot's own 125 Hz a plan's hour
 #: would be 450,000 packages, many times the rest of the cell's work.
 MEM_RTDE_HZ = 10.0
+#: The operator at the pendant after a fault: seconds between two looks, and how many looks at
+#: most (an unlock 5 s after the stop, power on 2 s, brake release 1.5 s).
+PENDANT_WAIT_S = 1.0
+PENDANT_TRIES = 30
 
 
 class UrEmulator(EmulatedDevice):
@@ -94,6 +104,31 @@ class UrEmulator(EmulatedDevice):
 
     def clear_fault(self, name: str) -> None:
         self.controller.clear_fault(name)
+
+    async def operator_after(self, fault: str) -> None:
+        """The operator at the pendant brings the arm back to RUNNING: a protective stop
+        unlocked (UR refuses within 5 s of the stop: the operator waits them out), the power
+        on, the brakes released. The paused or stopped program is left to the host."""
+        controller = self.controller
+        for _ in range(PENDANT_TRIES):
+            if controller.safety is SafetyStatus.PROTECTIVE_STOP:
+                controller.answer("unlock protective stop")
+            elif controller.mode is RobotMode.POWER_OFF:
+                controller.answer("power on")
+            elif controller.mode is RobotMode.IDLE:
+                controller.answer("brake release")
+            elif controller.mode is RobotMode.RUNNING:
+                return
+            await self.clock.sleep(PENDANT_WAIT_S)
+        raise UsageError(
+            f"the operator could not bring the robot back: Robotmode {controller.mode.name}, "
+            f"Safetystatus {controller.safety.name}"
+        )
+
+    @property
+    def moving(self) -> bool:
+        """The arm moves while the controller plays a program."""
+        return self.controller.runtime is RuntimeState.PLAYING
 
     # -- serving ----------------------------------------------------------------------------------
 

@@ -47,6 +47,7 @@ from typing import Any
 
 from cellctl.clock import Clock, current_clock, emulator_clock
 from cellctl.emulators.onsets import FaultOnsets
+from cellctl.emulators.switches import check_switch
 from cellctl.errors import FramingError, UsageError
 from cellctl.link import ETHERNET_LINE
 from cellctl.link.mem import MemListener, MemPort, listen_mem
@@ -154,8 +155,7 @@ class PlcEmulator:
 
     def set_fault(self, name: str, arg: str | None = None) -> None:
         """Switch a fault on (names in :data:`FAULTS`)."""
-        if name not in FAULTS:
-            raise UsageError(f"unknown fault {name!r}; known: {', '.join(FAULTS)}")
+        check_switch(FAULTS, name, arg)
         if name == "stuck-door":
             try:
                 mill = int(arg) if arg is not None else 0

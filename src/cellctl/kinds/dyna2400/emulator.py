@@ -52,6 +52,7 @@ from typing import Any
 from cellctl.clock import Clock, emulator_clock
 from cellctl.emulators.onsets import FaultOnsets
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
+from cellctl.emulators.switches import check_switch
 from cellctl.errors import LinkClosed, UsageError
 from cellctl.kinds.dyna2400.dynalan.machine import (
     Entry,
@@ -244,8 +245,7 @@ class Dyna2400Emulator(EmulatedDevice):
 
     def set_fault(self, name: str, arg: str | None = None) -> None:
         """Switch a fault on (names in :data:`FAULTS`)."""
-        if name not in FAULTS:
-            raise UsageError(f"unknown fault {name!r}; known: {', '.join(FAULTS)}")
+        check_switch(FAULTS, name, arg)
         if name == "drop" and arg is not None and not arg.isdecimal():
             raise UsageError(f"drop takes a line count, not {arg!r}")
         if name == "noise":

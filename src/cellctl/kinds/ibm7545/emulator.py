@@ -49,6 +49,7 @@ from typing import NoReturn, TypeVar
 from cellctl.clock import Clock, emulator_clock
 from cellctl.emulators.onsets import FaultOnsets
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
+from cellctl.emulators.switches import check_switch
 from cellctl.errors import ProtocolError, UsageError
 from cellctl.kinds.ibm7545.aml import Instruction, Op, decode_program
 from cellctl.kinds.ibm7545.motion import (
@@ -228,8 +229,7 @@ class Ibm7545Emulator(EmulatedDevice):
 
     def set_fault(self, name: str, arg: str | None = None) -> None:
         """Switch a fault on (names in :data:`FAULTS`)."""
-        if name not in FAULTS:
-            raise UsageError(f"unknown fault {name!r}; known: {', '.join(FAULTS)}")
+        check_switch(FAULTS, name, arg)
         if name == "corrupt-checksum":
             try:
                 self._corrupt_left = int(arg) if arg is not None else 1

@@ -33,6 +33,7 @@ from collections.abc import Callable, Coroutine
 
 from cellctl.clock import Clock, emulator_clock
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
+from cellctl.emulators.switches import check_switch
 from cellctl.errors import LinkClosed, LinkError, UsageError
 from cellctl.kinds.iso_cnc import tape
 from cellctl.kinds.iso_cnc.gcode import PROGRAM_ENDS, Block, parse_block
@@ -151,8 +152,7 @@ class IsoCncEmulator(EmulatedDevice):
 
     def set_fault(self, name: str, arg: str | None = None) -> None:
         """Switch a fault on (names in :data:`FAULTS`)."""
-        if name not in FAULTS:
-            raise UsageError(f"unknown fault {name!r}; known: {', '.join(FAULTS)}")
+        check_switch(FAULTS, name, arg)
         try:
             if name == "adapter-latency":
                 self._latency_ms = float(arg or "16")

@@ -14,6 +14,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 from cellctl.clock import Clock, current_clock, emulator_clock
+from cellctl.emulators.switches import check_switch
 from cellctl.errors import UsageError
 from cellctl.kinds.ur.dashboard import (
     COMMANDS,
@@ -176,8 +177,7 @@ class UrController:
 
     def set_fault(self, name: str, arg: str | None = None) -> None:
         """Switch a fault on (names in :data:`FAULTS`)."""
-        if name not in FAULTS:
-            raise UsageError(f"unknown fault {name!r}; known: {', '.join(FAULTS)}")
+        check_switch(FAULTS, name, arg)
         if name == "drop":
             for drop in list(self.on_drop):
                 drop()
@@ -201,8 +201,7 @@ class UrController:
     def clear_fault(self, name: str) -> None:
         """Switch a fault off: the e-stop button released, remote control back, programs
         that end. A protective stop stays until ``unlock protective stop``."""
-        if name not in FAULTS:
-            raise UsageError(f"unknown fault {name!r}; known: {', '.join(FAULTS)}")
+        check_switch(FAULTS, name, None)
         self.faults.pop(name, None)
         if name == "estop" and self.safety in (
             SafetyStatus.ROBOT_EMERGENCY_STOP,

@@ -18,7 +18,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
-from cellctl.errors import LinkClosed, LinkError, UsageError
+from cellctl.emulators.switches import check_switch
+from cellctl.errors import LinkClosed, LinkError
 from cellctl_saw.protocol import (
     EOL,
     HOME_S,
@@ -67,8 +68,7 @@ class KerfEmulator(EmulatedDevice):
 
     def set_fault(self, name: str, arg: str | None = None) -> None:
         """Switch a fault on (names in :data:`FAULTS`)."""
-        if name not in FAULTS:
-            raise UsageError(f"unknown fault {name!r}; known: {', '.join(FAULTS)}")
+        check_switch(FAULTS, name, arg)  # an argument only where FAULTS says "=ARG: ..."
         if name == "noise":
             self.noise = LineNoise.parse(arg)
         else:

@@ -226,5 +226,5 @@ def test_a_mistyped_cell_is_refused_and_nothing_is_made_there(
 ) -> None:
     mistyped = tmp_path / "mycel"
     line = one_line_refusal(cellctl("--cell", str(mistyped), *args))
-    assert f"no cell at {mistyped}: it has no cell.toml" in line
+    assert f"no cell at {mistyped}: it has no cell.toml and no mailbox" in line
     assert not mistyped.exists()  # no mailbox made, so the next command is refused too

@@ -19,6 +19,7 @@ from cellctl.cell.config import load_cell
 from cellctl.cell.journal import Journal
 from cellctl.cell.shift import ideal_times, shift_report
 from cellctl.clock import RealClock, current_clock
+from cellctl.mailbox import open_mailbox
 from cellctl.service.access import LocalCell
 from cellctl.service.methods import Dispatcher
 from cellctl.testing.rig import CellRig
@@ -190,6 +191,7 @@ async def test_the_report_of_a_real_batch(tmp_path: Path) -> None:
 def test_a_bad_window_is_refused_with_its_reason(
     tmp_path: Path, args: list[str], message: str
 ) -> None:
+    open_mailbox(tmp_path).close()  # a cell, as the system level sees one
     result = CliRunner().invoke(main, ["--cell", str(tmp_path), "report", "shift", *args])
     assert result.exit_code == 2
     assert message in result.output + (result.stderr or "")

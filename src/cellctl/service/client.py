@@ -33,6 +33,7 @@ from cellctl.errors import (
     LinkTimeout,
     UsageError,
 )
+from cellctl.mailbox import MAILBOX_FILE
 from cellctl.service.access import LocalCell
 from cellctl.service.machines import MachineRef
 from cellctl.service.methods import Caller, Dispatcher, error_from_object
@@ -301,13 +302,15 @@ async def attach(directory: Path) -> RemoteCell:
 
 
 def _require_cell(directory: Path) -> None:
-    """Refuse a directory without a cell.toml: a mistyped --cell must not answer "no alarms"
-    from a mailbox made there now."""
-    if not (Path(directory) / "cell.toml").is_file():
+    """Refuse a directory with neither a cell.toml nor a mailbox (a mailbox alone is a cell
+    as the system level sees it): a mistyped --cell must not answer "no alarms" from a
+    mailbox made there now."""
+    here = Path(directory)
+    if not (here / "cell.toml").is_file() and not (here / MAILBOX_FILE).is_file():
         raise UsageError(
-            f"no cell at {os.path.abspath(directory)}: it has no cell.toml (name the "
-            "cell's directory with --cell DIR or $CELLCTL_CELL; `cellctl --cell DIR "
-            "emulate cell` makes one)"
+            f"no cell at {os.path.abspath(directory)}: it has no cell.toml and no mailbox "
+            "(name the cell's directory with --cell DIR or $CELLCTL_CELL; `cellctl --cell "
+            "DIR emulate cell` makes one)"
         )
 
 

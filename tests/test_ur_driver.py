@@ -95,11 +95,14 @@ async def test_initialize_runs_a_script_and_a_urp(emulator: UrEmulator, robot: U
 async def test_refusals_in_urs_words(emulator: UrEmulator, robot: UrRobot) -> None:
     with pytest.raises(UrRefused, match=re.escape("File not found: /programs/none.urp")):
         await robot.command("load", "/programs/none.urp")
-    with pytest.raises(UrRefused, match="Failed to execute: play"):
+    with pytest.raises(UrRefused, match="Failed to execute: play") as refused:
         await robot.command("play")
+    # No result code of UR's own: its answer and the command, never a "(code 0)".
+    assert str(refused.value).endswith("(the robot answered 'Failed to execute: play' to 'play')")
     emulator.set_fault("local_mode")
-    with pytest.raises(LocalMode, match="local mode"):
+    with pytest.raises(LocalMode, match="local mode") as local:
         await robot.initialize()
+    assert "switch it to remote control" in str(local.value) and "code 0" not in str(local.value)
     assert emulator.controller.mode == RobotMode.POWER_OFF  # nothing acted
     emulator.clear_fault("local_mode")
     await robot.initialize()

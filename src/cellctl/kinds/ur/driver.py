@@ -76,8 +76,13 @@ class UrRefused(DeviceError):
     """The Dashboard Server refused a command: ``message`` is its answer, in UR's words."""
 
     def __init__(self, command: str, answer: str, detail: str) -> None:
-        super().__init__(0, answer, detail=f"{detail} ({command!r})")
+        super().__init__(0, answer, detail=detail)
         self.command = command
+        # The Dashboard Server has no result codes: its answer and the command, not a "code 0".
+        self.args = (f"{detail} (the robot answered {answer!r} to {command!r})",)
+
+    def __str__(self) -> str:
+        return str(self.args[0])
 
 
 class LocalMode(UrRefused):

@@ -153,12 +153,15 @@ class OperatorCommands:
         """
         self.paused = True
         text = "emergency stop" + (f": {reason}" if reason else " by the operator")
+        # What the held parts' notes say, for the steps this stop cancels (only those).
+        previous, self.cancel_reason = self.cancel_reason, "an emergency stop"
         tasks = self.steps_in_flight()
         for task in tasks:
             task.cancel()
         for task in tasks:
             with contextlib.suppress(asyncio.CancelledError, CellctlError, OSError):
                 await task
+        self.cancel_reason = previous
         problems: list[str] = []
         if self.robot is not None and self.robot.running:
             try:

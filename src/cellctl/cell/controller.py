@@ -67,6 +67,10 @@ from cellctl.kinds.families import CallbackOutput, Mill, Robot
 from cellctl.link import TrafficLog
 from cellctl.protocol.plc import PlcMap
 
+#: Why the steps in flight were cancelled when nothing said otherwise: the controller itself
+#: was ended (a second Ctrl-C, the service stopped hard), not an emergency stop.
+ABORTED = "the controller's abort"
+
 
 class CellController(OperatorCommands):
     """Runs a cell from its ``cell.toml``, journal and mailbox (see module docstring).
@@ -130,6 +134,7 @@ class CellController(OperatorCommands):
         self._unreturned: set[tuple[str, str]] | None = None
         self._pallet_pulse: asyncio.Task[None] | None = None
         self._stopping = False
+        self.cancel_reason = ABORTED
         self._work: dict[str, float] | None = None
         self.started_at = self.clock.now()
 

@@ -138,7 +138,7 @@ class MillSteps:
             view.step = ""
             view.progress = None
             stopped = isinstance(e, asyncio.CancelledError)
-            what = "cut short by an emergency stop" if stopped else f"failed: {e}"
+            what = f"cut short by {self.world.cancel_reason}" if stopped else f"failed: {e}"
             if cutting:
                 reason = f"needs inspection: machining {route_step.name} on {mill_name} {what}"
                 self.world.journal.end_step(step.id, "failed", str(e) or what, hold=reason)
@@ -146,9 +146,11 @@ class MillSteps:
                     ReportKind.PART_HELD, reason, order_id=part.order_id, part_id=part.id
                 )
             elif stopped:
-                # An emergency stop holds every part in flight for the operator; this one
-                # was not cut (nothing of the program went out).
-                reason = f"emergency stop before machining {route_step.name} on {mill_name}"
+                # A stop holds every part in flight for the operator; this one was not cut
+                # (nothing of the program went out).
+                reason = (
+                    f"{self.world.cancel_reason} before machining {route_step.name} on {mill_name}"
+                )
                 self.world.journal.end_step(step.id, "failed", what, hold=reason)
                 self.world.mailbox.post_report(
                     ReportKind.PART_HELD, reason, order_id=part.order_id, part_id=part.id

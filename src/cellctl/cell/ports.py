@@ -96,6 +96,9 @@ class WorldModel(Protocol):
         """True once the cell was told to stop: no new step, no new recovery round."""
 
     robot: Robot | None
+    #: What cancels the steps in flight when they are cancelled, for their held parts' notes
+    #: ("an emergency stop", or the controller's own end when it is aborted).
+    cancel_reason: str
 
     def robot_busy(self) -> bool:
         """True while a transfer runs."""

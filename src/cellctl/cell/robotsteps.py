@@ -273,7 +273,7 @@ class RobotSteps:
                         culprit = await self._door_not_open(places)
                 except asyncio.CancelledError:
                     stopped = True  # the operator's stop came while we asked
-            what = "cut short by an emergency stop" if stopped else f"failed: {e}"
+            what = f"cut short by {world.cancel_reason}" if stopped else f"failed: {e}"
             if culprit is not None and culprit.code == "estop":
                 what = f"cut short by the emergency stop ({e})"
             elif culprit is not None and culprit.code == "interlock":

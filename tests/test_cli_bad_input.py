@@ -228,3 +228,12 @@ def test_a_mistyped_cell_is_refused_and_nothing_is_made_there(
     line = one_line_refusal(cellctl("--cell", str(mistyped), *args))
     assert f"no cell at {mistyped}: it has no cell.toml and no mailbox" in line
     assert not mistyped.exists()  # no mailbox made, so the next command is refused too
+
+
+@pytest.mark.parametrize("args", [["robot", "robot", "status"], ["plc", "status"]])
+def test_a_cell_toml_that_is_a_fifo_is_refused_not_waited_on(
+    args: list[str], tmp_path: Path
+) -> None:
+    os.mkfifo(tmp_path / "cell.toml")  # opening it to read would wait for a writer for ever
+    line = one_line_refusal(cellctl("--cell", str(tmp_path), *args))
+    assert f"{tmp_path / 'cell.toml'}: cannot read: a FIFO, not a regular file" in line

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from cellctl.errors import UsageError
+from cellctl.files import read_file, reason
 from cellctl.kinds import registry
 from cellctl.link import LineSettings
 
@@ -38,11 +39,14 @@ def load_cell_file(cell_dir: Path) -> dict[str, Any]:
     """The parsed ``cell.toml`` of ``cell_dir``, or ``{}`` if there is none."""
     path = cell_dir / "cell.toml"
     try:
-        with path.open("rb") as f:
-            return tomllib.load(f)
+        data = read_file(path)  # a regular file only: a FIFO there would block for ever
     except FileNotFoundError:
         return {}
-    except tomllib.TOMLDecodeError as e:
+    except OSError as e:
+        raise UsageError(f"{path}: cannot read: {reason(e)}") from None
+    try:
+        return tomllib.loads(data.decode("utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise UsageError(f"{path}: not valid TOML: {e}") from None
 
 

@@ -36,7 +36,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hashlib
-import ipaddress
 import json
 import logging
 import os
@@ -56,6 +55,7 @@ from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
 from cellctl.clock import current_clock
 from cellctl.errors import AccessDenied, UsageError
+from cellctl.link.listen import parse_listen
 from cellctl.service.access import CellAccess
 from cellctl.service.limits import (
     ApiLimits,
@@ -121,24 +121,6 @@ def socket_target(directory: Path) -> Path:
 
     digest = hashlib.sha256(os.fsencode(path)).hexdigest()[:16]
     return Path(runtime_dir()) / f"api-{digest}.sock"
-
-
-def parse_listen(text: str, allow_remote: bool) -> tuple[str, int]:
-    """``"127.0.0.1:7125"`` → (host, port); a non-loopback host only with ``allow_remote``."""
-    host, sep, port_text = text.rpartition(":")
-    host = host.strip("[]")
-    if not sep or not host or not port_text.isdecimal() or not 0 < int(port_text) < 65536:
-        raise UsageError(f'[api] listen = "{text}": write "HOST:PORT", e.g. "127.0.0.1:7125"')
-    try:
-        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        loopback = False
-    if not loopback and not allow_remote:
-        raise UsageError(
-            f'[api] listen = "{text}" is not a loopback address: the API answers there only '
-            "with allow_remote = true in [api]"
-        )
-    return host, int(port_text)
 
 
 class _Session:

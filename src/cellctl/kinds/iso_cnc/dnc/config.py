@@ -25,7 +25,6 @@ that cannot be a directory. Each refusal names the file and the table.
 
 from __future__ import annotations
 
-import ipaddress
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,6 +38,7 @@ from cellctl.kinds.iso_cnc.dnc.request import RequestConvention
 from cellctl.kinds.iso_cnc.dnc.store import check_machine_name
 from cellctl.kinds.iso_cnc.driver import ISO_LINE, IsoCncOptions
 from cellctl.link import LineSettings
+from cellctl.link.listen import parse_listen
 
 #: The kind the DNC server feeds (its own package's name for it).
 KIND = "iso-cnc"
@@ -168,22 +168,11 @@ def parse_dnc_file(data: dict[str, Any], root: Path, path: Path) -> ShopConfig:
 
 def _check_listen(text: str, allow_remote: bool, path: Path) -> None:
     """``[dnc] listen``: ``HOST:PORT``, on loopback unless ``allow_remote`` (said here, in
-    the [dnc] table's words, before the API's own check in [api] words could)."""
-    host, sep, port = text.rpartition(":")
-    host = host.strip("[]")
-    if not sep or not host or not port.isdecimal() or not 0 < int(port) < 65536:
-        raise UsageError(
-            f'{path}: [dnc] listen = "{text}": write "HOST:PORT", e.g. "127.0.0.1:7130"'
-        )
+    the [dnc] table's words, when the shop's file is read)."""
     try:
-        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        loopback = False
-    if not loopback and not allow_remote:
-        raise UsageError(
-            f'{path}: [dnc] listen = "{text}" is not a loopback address: the API answers there '
-            "only with allow_remote = true in [dnc]"
-        )
+        parse_listen(text, allow_remote, table="dnc", example="127.0.0.1:7130")
+    except UsageError as e:
+        raise UsageError(f"{path}: {e}") from None
 
 
 def _distinct_links(machines: dict[str, DncMachine], path: Path) -> None:

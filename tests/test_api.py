@@ -322,7 +322,9 @@ async def test_emergency_stop_halts_and_holds(api: Api) -> None:
     for alarm in status["alarms"]:
         await api.call("alarms.clear", {"id": alarm["id"]})
     for part in held:
-        await api.call("parts.scrap", {"id": part.id, "reason": "cut short by the stop"})
+        scrapped = await api.call("parts.scrap", {"id": part.id, "reason": "cut short by the stop"})
+        # Cut short in the mill: the journal forgets it, the vise does not.
+        assert f"it is still in {part.location}: take it out there" in scrapped["message"]
     await api.call("cell.resume")
     controller = api.rig.controller
     assert controller is not None

@@ -15,8 +15,9 @@ from collections import Counter
 from typing import Any
 
 from cellctl.cell.blocked import blocked_reason
-from cellctl.cell.config import CellConfig
+from cellctl.cell.config import CONVEYOR, CellConfig
 from cellctl.cell.journal import Alarm, Journal, Part
+from cellctl.cell.orderflow import OUT
 from cellctl.errors import UsageError
 from cellctl.mailbox import Mailbox, Order, Report, ReportKind
 
@@ -229,4 +230,8 @@ def scrap_part(
         part_id=p.id,
         data={"reason": reason, "location": p.location},
     )
-    return {"part": as_dict(p), "message": f"part {p.id} scrapped"}
+    message = f"part {p.id} scrapped"
+    if p.location not in (None, CONVEYOR, OUT):
+        # The journal forgets it; the machine does not: the next part cannot go in over it.
+        message += f"; it is still in {p.location}: take it out there (open the vise by hand)"
+    return {"part": as_dict(p), "message": message}

@@ -438,8 +438,10 @@ class Dyna2400Emulator(EmulatedDevice):
     async def _ready_again(self) -> None:
         """The automatic operator readies the controller again after END (appendix B's keys)."""
         await self._machine_sleep(self.delays.again)
+        while self.executing:  # a block that started as END came: the operator waits it out
+            await self._machine_sleep(1.0)
         # Only from where END left it: the operator does not override what happened since.
-        if self.powered and self.mode is LinkMode.MANUAL and not self.executing:
+        if self.powered and self.mode is LinkMode.MANUAL:
             self.select(self.auto_mode)
 
     def _start_execution(self, entries: dict[int, Entry], *, load_run: bool) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import shutil
 import socket
 from collections.abc import AsyncIterator, Awaitable, Callable
@@ -29,7 +30,7 @@ from cellctl.cell.config import OpcuaTable, check_cell
 from cellctl.errors import UsageError
 from cellctl.factory.opcua import NAMESPACE, OpcuaServer
 from cellctl.factory.opcua.figures import MACHINE_CONDITIONS, SIGNAL_COLORS
-from cellctl.factory.opcua.users import check_password, hash_password, load_users
+from cellctl.factory.opcua.users import check_password, hash_password, load_entries, load_users
 from cellctl.kinds import Condition
 from cellctl.service.access import LocalCell
 from cellctl.service.client import attach
@@ -528,3 +529,31 @@ def test_the_condition_enumeration_names_every_condition() -> None:
     assert len(MACHINE_CONDITIONS) == len(Condition)
     words = [c.value.replace("-", "") for c in Condition]
     assert [n.lower() for n in MACHINE_CONDITIONS] == words
+
+
+def test_a_new_password_keeps_the_users_role(example_cell: Path) -> None:
+    add_user(example_cell, "victor", "first", role="viewer")
+    again = CliRunner().invoke(
+        cli_main, ["--cell", str(example_cell), "opcua", "adduser", "victor"], input="x2\nx2\n"
+    )
+    assert again.exit_code == 0, again.output
+    assert "user victor (viewer) has a new password" in again.output
+    assert load_entries(example_cell / "opcua-users.toml")["victor"][1] == "viewer"
+    # A role is changed only when given.
+    add_user(example_cell, "victor", "x3", role="engineer")
+    assert load_entries(example_cell / "opcua-users.toml")["victor"][1] == "engineer"
+
+
+def test_a_plan_of_a_cell_that_serves_opc_ua_plays(example_cell: Path) -> None:
+    """A plan serves no OPC UA: its copy of the cell leaves [opcua] (and its users file) out."""
+    add_user(example_cell, "alice", "pw")
+    with (example_cell / "cell.toml").open("a", encoding="utf-8") as f:
+        f.write('\n[opcua]\nlisten = "opc.tcp://127.0.0.1:4840"\nusers = "opcua-users.toml"\n')
+    done = CliRunner().invoke(
+        cli_main,
+        ["plan", "--dir", str(example_cell), "--start", "08:00", "--shift", "1h",
+         "--add", "wax-robot-base:1", "--json"],
+    )  # fmt: skip
+    assert done.exit_code == 0, done.output
+    [order] = json.loads(done.output)["plans"][0]["orders"]
+    assert order["order_id"] == "plan-add1" and order["made"] == 1

@@ -199,18 +199,23 @@ def copy_config(cell_dir: Path, target: Path) -> Path:
     return target
 
 
+#: The tables of a cell.toml a plan leaves out (what a plan does not serve).
+NOT_PLAYED = ("mailbox", "opcua")
+
+
 def plan_cell_toml(text: str) -> str:
     """A cell's cell.toml as a plan plays it: the real cell's (an emulated cell's emulation
     undone, :func:`~cellctl.emulators.cell.real_cell_toml`: a plan plays the machines' real
-    times, its emulators their own options), without ``[mailbox]`` (a plan's orders are its
-    own: no broker, no credentials to copy)."""
+    times, its emulators their own options), without the tables of what a plan does not
+    serve: ``[mailbox]`` (a plan's orders are its own: no broker, no credentials to copy) and
+    ``[opcua]`` (no server, no users file to copy)."""
     out: list[str] = []
     section = ""
     for line in real_cell_toml(text).splitlines():
         stripped = line.strip()
         if stripped.startswith("["):
-            section = stripped.strip("[] ")
-        if section != "mailbox":
+            section = stripped.strip("[] ").split(".")[0].strip()
+        if section not in NOT_PLAYED:
             out.append(line)
     return "\n".join(out) + "\n"
 

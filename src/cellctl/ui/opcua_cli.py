@@ -23,13 +23,14 @@ def opcua_group() -> None:
 @click.option(
     "--role",
     type=click.Choice(("viewer", "operator", "engineer")),
-    default="operator",
-    show_default=True,
-    help="What the user may call: viewer reads; operator submits orders, clears alarms.",
+    default=None,
+    help="What the user may call: viewer reads; operator submits orders, clears alarms. "
+    "Default: operator for a new user; a known user keeps the role it has.",
 )
 @click.pass_context
-def adduser(ctx: click.Context, name: str, role: str) -> None:
-    """Add user NAME (or set a new password and role) in the file [opcua] users names.
+def adduser(ctx: click.Context, name: str, role: str | None) -> None:
+    """Add user NAME (or set a new password, and a role with --role) in the file [opcua]
+    users names.
 
     The password is asked twice and stored as a salted scrypt hash; the file is made mode
     0600. A running server reads it at the next login: no restart.
@@ -43,8 +44,8 @@ def adduser(ctx: click.Context, name: str, role: str) -> None:
     password = click.prompt(
         f"password for {name}", hide_input=True, confirmation_prompt=True, err=True
     )
-    new = add_user(Path(path), name, password, role)
+    new, kept = add_user(Path(path), name, password, role)
     done = "added" if new else "has a new password"
-    console.print(f"{path}: user {name} ({role}) {done}", markup=False)
+    console.print(f"{path}: user {name} ({kept}) {done}", markup=False)
     if not named:
         console.print(f'name it in cell.toml: [opcua] users = "{DEFAULT_USERS}"', markup=False)

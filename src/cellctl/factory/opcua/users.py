@@ -132,18 +132,20 @@ def load_entries(path: Path) -> dict[str, tuple[str, str]]:
     return users
 
 
-def add_user(path: Path, name: str, password: str, role: str = DEFAULT_ROLE) -> bool:
-    """Add ``name`` (or set its password and role) in the users file, made 0600; True if it
-    is new."""
+def add_user(path: Path, name: str, password: str, role: str | None = None) -> tuple[bool, str]:
+    """Add ``name`` (or set its password, and its role if ``role`` is given) in the users
+    file, made 0600: (True if it is new, the role it has). A new user without ``role`` gets
+    :data:`DEFAULT_ROLE`; a known one keeps its own (a new password promotes nobody)."""
     if not NAME.fullmatch(name):
         raise UsageError(f"user name {name!r}: use 1 to 64 letters, digits, '_', '.' or '-'")
     if not password:
         raise UsageError("an empty password is not a password")
-    if role not in ROLES:
+    if role is not None and role not in ROLES:
         raise UsageError(f"role {role[:40]!r}: choose one of {', '.join(ROLES)}")
     users = load_entries(path) if path.exists() else {}
     new = name not in users
-    users[name] = (hash_password(password), role)
+    kept = role or (DEFAULT_ROLE if new else users[name][1])
+    users[name] = (hash_password(password), kept)
     text = "# OPC UA users of this cell: cellctl opcua adduser NAME (salted scrypt hashes)\n"
     text += "".join(
         f'\n[users.{n}]\npassword = "{stored}"\nrole = "{r}"\n' for n, (stored, r) in users.items()
@@ -155,7 +157,7 @@ def add_user(path: Path, name: str, password: str, role: str = DEFAULT_ROLE) -> 
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)  # a reader sees the old file or the new one, never half of it
-    return new
+    return new, kept
 
 
 @dataclasses.dataclass

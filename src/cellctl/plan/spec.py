@@ -198,7 +198,10 @@ def plan_inputs(
         *(PlanOrder(i, a.part_type, a.qty, a.priority) for i, a in zip(ids, added, strict=True)),
     )
     if not every:
-        raise UsageError("nothing to plan: no open orders (add some: --add PART:QTY)")
+        raise UsageError(
+            "nothing to plan: no open orders (submit some, or add some to a cell's plan: "
+            "cellctl plan --add PART:QTY)"
+        )
     windows = tuple(parse_fault(text, start) for text in faults)
     policies = policies_of(policy)
     config = load_cell(cell_dir)

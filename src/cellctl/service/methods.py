@@ -427,7 +427,7 @@ class Dispatcher:
             if not role_allows(caller.role, entry.role):
                 name = caller.who.partition(":")[2] or caller.who
                 raise RoleRefused(
-                    f"{name} is a {caller.role}: {method} needs the {entry.role} role",
+                    f"{name} is {_a(caller.role)}: {method} needs the {entry.role} role",
                     entry.role,
                 )
             result = await self._run(entry, method, params, progress)
@@ -494,6 +494,11 @@ def _data(error: CellctlError, code: int) -> dict[str, Any]:
     if isinstance(error, ProtocolError):
         data["raw"] = error.raw.hex()
     return data
+
+
+def _a(word: str) -> str:
+    """``word`` with its article: "an operator", "a viewer"."""
+    return ("an " if word[:1] in "aeiou" else "a ") + word
 
 
 def error_from_object(obj: Any) -> CellctlError:

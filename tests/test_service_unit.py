@@ -67,6 +67,8 @@ def test_install_writes_a_hardened_unit_for_the_cells_user(cell: Path, tmp_path:
     assert service["ReadWritePaths"] == [str(cell), "-/run/lock"]
     assert service["ProtectHome"] == ["yes"]  # neither the cell nor cellctl is under /home
     assert service["PrivateTmp"] == ["yes"]
+    # This cell is under /tmp (the test's): bound into the service's private /tmp, not hidden.
+    assert str(cell).startswith("/tmp/") and service["BindPaths"] == [str(cell)]
     assert service["DevicePolicy"] == ["closed"]
     assert service["DeviceAllow"] == [f"{d} rw" for d in SERIAL_DEVICES]
     assert "char-ttyUSB rw" in service["DeviceAllow"]

@@ -36,6 +36,8 @@ SERIAL_GROUP = "dialout"
 SERIAL_DEVICES = ("char-ttyS", "char-ttyUSB", "char-ttyACM", "char-pts")
 #: Trees ``ProtectHome=`` hides; a cell or a cellctl inside one makes it read-only instead.
 HOME_TREES = (Path("/home"), Path("/root"), Path("/run/user"))
+#: Trees ``PrivateTmp=`` replaces with the service's own.
+TMP_TREES = (Path("/tmp"), Path("/var/tmp"))
 #: Characters a path may have in the unit as it is (nothing systemd unquotes or expands).
 PLAIN_PATH = re.compile(r"/[A-Za-z0-9_./:@+,=~-]*")
 #: How long the controller has after SIGTERM: it lets the steps in flight finish first.
@@ -67,6 +69,10 @@ def unit_name(cell: Path) -> str:
 
 def _under_home(path: Path) -> bool:
     return any(path.is_relative_to(tree) for tree in HOME_TREES)
+
+
+def _under_tmp(path: Path) -> bool:
+    return any(path.is_relative_to(tree) for tree in TMP_TREES)
 
 
 @dataclass(frozen=True)
@@ -152,6 +158,8 @@ class ServiceUnit:
             "ReadWritePaths=-/run/lock",
             f"ProtectHome={home}",
             "PrivateTmp=yes",
+            # A cell under /tmp would be hidden by the private one: bound into it (as is).
+            *([f"BindPaths={cell}"] if _under_tmp(self.cell) else []),
             "DevicePolicy=closed",
             *(f"DeviceAllow={device} rw" for device in SERIAL_DEVICES),
             *([f"SupplementaryGroups={self.serial_group}"] if self.serial_group else []),

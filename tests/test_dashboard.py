@@ -505,7 +505,9 @@ async def test_the_page_reconnects_after_the_controller_restarts(dash: Dash) -> 
     assert await dash.page.locator("#notice").is_hidden()
 
 
-async def test_cellctl_dashboard_refuses_clearly_and_prints_the_url(dash: Dash) -> None:
+async def test_cellctl_dashboard_refuses_clearly_and_prints_the_url(
+    dash: Dash, monkeypatch: pytest.MonkeyPatch
+) -> None:
     directory = dash.rig.directory
     toml = directory / "cell.toml"
     text = toml.read_text()
@@ -516,6 +518,16 @@ async def test_cellctl_dashboard_refuses_clearly_and_prints_the_url(dash: Dash) 
     result = await cli(directory, "dashboard", "--print")
     assert result.exit_code == 0, result.output
     assert result.output.strip() == f"{dash.base}/#token={dash.token}"
+    # Without the cell's own token file, $CELLCTL_TOKEN serves, as for every client.
+    (directory / "api-token").rename(directory / "api-token.away")
+    monkeypatch.setenv("CELLCTL_TOKEN", dash.token)
+    result = await cli(directory, "dashboard", "--print")
+    assert result.exit_code == 0, result.output
+    monkeypatch.delenv("CELLCTL_TOKEN")
+    result = await cli(directory, "dashboard", "--print")
+    assert result.exit_code == 2 and "no API token in" in result.output
+    assert "no $CELLCTL_TOKEN" in result.output
+    (directory / "api-token.away").rename(directory / "api-token")
     toml.write_text(text + f'\n[api]\nlisten = "127.0.0.1:{free_port()}"\n')
     result = await cli(directory, "dashboard", "--print")
     assert result.exit_code == 2 and "no controller answers" in result.output

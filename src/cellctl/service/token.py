@@ -106,8 +106,13 @@ def read_token(directory: Path) -> str:
     path = Path(directory) / TOKEN_FILE
     try:
         return _read(path)
+    except FileNotFoundError:
+        raise AccessDenied(
+            f"no API token in {path}: `cellctl run` writes one as it starts; or set "
+            f"${TOKEN_ENV} to a token of `cellctl token add`"
+        ) from None
     except OSError as e:
-        raise AccessDenied(f"cannot read the API token {path}: {e}") from None
+        raise AccessDenied(f"cannot read the API token {path}: {e.strerror or e}") from None
 
 
 def client_token(directory: Path) -> str:

@@ -17,7 +17,7 @@ import click
 
 from cellctl.errors import AccessDenied, UsageError
 from cellctl.service.machines import load_cell_file
-from cellctl.service.token import TOKEN_FILE, read_token
+from cellctl.service.token import TOKEN_ENV, TOKEN_FILE, client_token
 from cellctl.ui.common import cell_dir, console
 
 #: Seconds to wait for the controller to answer.
@@ -29,6 +29,8 @@ def dashboard_url(directory: Path) -> str:
     no TCP listener, no token, or no controller answering there."""
     from cellctl.service.server import parse_listen  # the API server: imported when used
 
+    if not (directory / "cell.toml").is_file():
+        raise UsageError(f"no cell at {directory}: it has no cell.toml (--cell DIR names one)")
     api = load_cell_file(directory).get("api")
     listen = api.get("listen") if isinstance(api, dict) else None
     if not isinstance(listen, str) or not listen:
@@ -42,12 +44,14 @@ def dashboard_url(directory: Path) -> str:
         host = "127.0.0.1"
     base = f"http://[{host}]:{port}" if ":" in host else f"http://{host}:{port}"
     try:
-        token = read_token(directory)  # a link or a short token: UsageError, what to do
+        # $CELLCTL_TOKEN first, as every client (a named token: the page acts with its role).
+        token = client_token(directory)  # a link or a short token: UsageError, what to do
     except AccessDenied:
         token = ""
     if not token:
         raise UsageError(
-            f"no API token in {directory / TOKEN_FILE}: start the controller (`cellctl run`) first"
+            f"no API token in {directory / TOKEN_FILE} and no ${TOKEN_ENV}: start the "
+            "controller (`cellctl run`) first, or set a token of `cellctl token add`"
         )
     request = urllib.request.Request(
         f"{base}/server/info", headers={"Authorization": f"Bearer {token}"}

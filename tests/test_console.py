@@ -9,6 +9,7 @@ emulators, traffic), never on the console's internals.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import shutil
 import tempfile
 from collections.abc import AsyncIterator
@@ -20,6 +21,7 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from textual.pilot import Pilot
 
+from cellctl.cell.owner import acquire_controller_lock, controller_holder
 from cellctl.errors import UsageError
 from cellctl.kinds.dyna2400.emulator import LinkMode
 from cellctl.kinds.ibm7545.aml import compile_source
@@ -551,10 +553,21 @@ async def test_attached_console_says_when_the_controller_goes(rig: CellRig) -> N
         async with app.run_test(size=SIZE) as pilot:
             await wait_text(pilot, "attached to cellctl run")
             await server.close()
-            await wait_text(pilot, "DISCONNECTED: the controller's API closed (q quits)")
+            await wait_text(pilot, "DISCONNECTED: the controller's API closed")
             await pilot.press("1", "4")
             await wait_text(pilot, "robot: STATUS: the control API closed the connection")
-            await pilot.press("q")
+            # The controller's API back (a restarted `cellctl run`): the console attaches
+            # again by itself, and acts through it.
+            with contextlib.ExitStack() as held:
+                if controller_holder(rig.directory) is None:
+                    held.enter_context(acquire_controller_lock(rig.directory))
+                server = ApiServer(AttachedCell(rig.controller), rig.directory)
+                await server.start()
+                await wait_text(pilot, "attached again to the controller at", timeout=20)
+                assert "DISCONNECTED" not in screen_text(app)
+                await pilot.press("escape", "1", "4")
+                await wait_text(pilot, "robot: STATUS: robot state", timeout=20)
+                await pilot.press("q")
     finally:
         await client.close()
         await server.close()

@@ -21,6 +21,7 @@ no service toggle (nothing dispatches work there).
 from __future__ import annotations
 
 import contextlib
+from datetime import datetime
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar, cast
 
@@ -35,9 +36,10 @@ from textual.widgets import Footer, OptionList, Static
 from textual.widgets.option_list import Option
 from textual.worker import Worker
 
+from cellctl.cell.owner import controller_holder
 from cellctl.clock import current_clock
 from cellctl.errors import CellctlError, UsageError
-from cellctl.service.client import CellClient, RemoteCell
+from cellctl.service.client import CellClient, RemoteCell, attach
 from cellctl.service.functions import MachineFunction, menu
 from cellctl.service.methods import METHODS
 from cellctl.service.status import StepInfo, StepKind, apply_update_json
@@ -58,6 +60,8 @@ from cellctl.ui.console.widgets import Board, ResultPane, TrafficPane, step_text
 
 #: Seconds between two looks at the selected machine's traffic.
 TRAFFIC_PERIOD = 0.5
+#: Seconds between two tries to attach again once the controller's API closed.
+REATTACH_S = 2.0
 #: Seconds a manual function waits for the step in flight on a machine just taken out of
 #: automatic service (then the controller's refusal is shown).
 STEP_WAIT = 300.0
@@ -130,6 +134,8 @@ class ConsoleApp(App[None]):
         #: sent (the traffic pane shows it first).
         self.commands: dict[str, float | dict[str, Any]] = {}
         self._closed = False
+        self._reattaching = False
+        self._reattach_tried = float("-inf")
         self.startup_error: CellctlError | None = None
 
     # -- layout and start ------------------------------------------------------------------
@@ -176,7 +182,9 @@ class ConsoleApp(App[None]):
     def mode_text(self) -> str:
         """What the header says of the console's mode."""
         if isinstance(self.client, RemoteCell) and self.client.closed.is_set():
-            return "DISCONNECTED: the controller's API closed (q quits)"
+            return (
+                "DISCONNECTED: the controller's API closed; attaching again when it runs (q quits)"
+            )
         if self.mode == "attached":
             cell = self.snapshot.get("cell", {})
             server = "cellctl run" if self.is_cell else cell.get("name", "the server")
@@ -223,6 +231,16 @@ class ConsoleApp(App[None]):
     def _poll_traffic(self) -> None:
         if isinstance(self.client, RemoteCell) and self.client.closed.is_set():
             self._show_snapshot()  # the header says so
+            now = current_clock().monotonic()
+            if (
+                not self._closed
+                and not self._reattaching
+                and now - self._reattach_tried > REATTACH_S
+            ):
+                self._reattaching, self._reattach_tried = True, now
+                _again: Worker[None] = self.run_worker(
+                    self._reattach, group="reattach", exit_on_error=False
+                )
             return
         if self._traffic_busy or self._closed or self.client is None or not self.selected:
             return
@@ -232,6 +250,33 @@ class ConsoleApp(App[None]):
         _worker: Worker[None] = self.run_worker(
             self._traffic_of_selected, group="traffic", exit_on_error=False
         )
+
+    async def _reattach(self) -> None:
+        """Attach to the controller again once one runs on the directory (a restarted
+        ``cellctl run``, a restarted service): the board and the menus go on live."""
+        try:
+            if controller_holder(self.directory) is None:
+                return  # none runs yet: the next look tries again
+            client = await attach(self.directory)
+            try:
+                snapshot = await client.subscribe(self._cell_changed)
+            except CellctlError:
+                await client.close()
+                raise
+        except (CellctlError, OSError):
+            return
+        finally:
+            self._reattaching = False
+        old, self.client, self.snapshot = self.client, client, snapshot
+        if old is not None:
+            with contextlib.suppress(CellctlError, OSError):
+                await old.close()
+        if self._closed:
+            await client.close()
+            return
+        self._show_snapshot()
+        when = datetime.fromtimestamp(current_clock().now())
+        self.say([f"attached again to the controller at {when:%H:%M:%S}"])
 
     async def _traffic_of_selected(self) -> None:
         await self._traffic(self.selected)

@@ -14,6 +14,10 @@ the parts it holds, from its retained state). With ``[dispatch] estimate = "plan
 plan's finish instead (``plan_finish_s`` after ``planned_at``: the cell played its own state
 forward on virtual time), less the time gone since, when the plan is at most ``plan_age``
 seconds old; a cell without a fresh plan is counted by its bound.
+
+Every figure is in the cell's own seconds (its clock's, whether it measured the part type or
+not: an emulated cell divides the machines' seconds by its ``[cell] time_scale`` before it
+publishes them, :mod:`cellctl.cell.estimate`), so they add up and cells compare fairly.
 """
 
 from __future__ import annotations

@@ -40,6 +40,7 @@ import aiomqtt
 
 from cellctl.cell.estimate import finish_estimate, measured, part_bounds
 from cellctl.cell.journal import Journal
+from cellctl.cell.shift import cell_time_scale
 from cellctl.clock import Clock, current_clock
 from cellctl.errors import UsageError
 from cellctl.mailbox.base import Mailbox, Report
@@ -387,7 +388,9 @@ class MqttBridge:
         types = self.cell.config.parts
         open_parts = self.journal.parts(statuses=["waiting", "active", "held"])
         durations = measured(self.journal)
-        bounds = part_bounds(types, durations)
+        # The cell's own seconds: what it measured, and its guesses at its time scale.
+        scale = cell_time_scale(self.cell.config)
+        bounds = part_bounds(types, durations, time_scale=scale)
         orders = [
             o for o in self.mailbox.orders() if o.state not in ("done", "failed", "cancelled")
         ]
@@ -402,7 +405,10 @@ class MqttBridge:
             "orders_open": len(orders),
             "parts_open": len(open_parts),
             "finish_estimate_s": round(
-                finish_estimate(types, [p.part_type for p in open_parts], durations), 3
+                finish_estimate(
+                    types, [p.part_type for p in open_parts], durations, time_scale=scale
+                ),
+                3,
             ),
             **self._plan_fields(),
         }

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import getpass
 import os
+import shutil
 import stat
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -14,6 +17,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from websockets.exceptions import ConnectionClosed
 
+from cellctl.cell.journal import open_journal
 from cellctl.cell.owner import acquire_controller_lock
 from cellctl.errors import AccessDenied, CellctlError, UsageError
 from cellctl.service.access import AttachedCell
@@ -315,3 +319,19 @@ async def test_without_a_controller_the_cli_acts_with_its_tokens_role(tmp_path: 
     with AuditLog(cell) as log:
         refused = [(e.who, e.method) for e in log.entries() if "needs the" in e.result]
     assert refused == [("token:vera", "alarms.ack"), ("token:vera", "alarms.shelve")]
+
+
+def test_token_changes_are_in_the_audit_trail(tmp_path: Path) -> None:
+    cell = tmp_path / "cell"
+    open_journal(cell).close()  # a cell that ran: its journal holds the trail
+    shutil.copy(Path(__file__).parent.parent / "examples" / "cell" / "cell.toml", cell)
+    assert cli_sync(cell, "token", "add", "ann", "--role", "operator")[0] == 0
+    assert cli_sync(cell, "token", "revoke", "ann")[0] == 0
+    with contextlib.closing(AuditLog(cell)) as log:
+        done = [(e.method, e.params, e.result) for e in log.entries()]
+    assert done == [
+        ("token.add", '{"name":"ann","role":"operator"}', "ok"),
+        ("token.revoke", '{"name":"ann"}', "ok"),
+    ]
+    code, out = cli_sync(cell, "audit", "--json")
+    assert code == 0 and '"token.revoke"' in out and f'"local:{getpass.getuser()}"' in out

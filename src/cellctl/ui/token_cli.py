@@ -9,15 +9,20 @@
 
 from __future__ import annotations
 
+import contextlib
+import getpass
 import re
 from datetime import datetime
+from pathlib import Path
 from typing import Any
 
 import click
 from rich.table import Table
 
+from cellctl.cell.journal import JOURNAL_FILE
 from cellctl.clock import current_clock
 from cellctl.errors import UsageError
+from cellctl.service.audit import AuditLog
 from cellctl.service.token import ROLES, add_token, list_tokens, revoke_token
 from cellctl.ui.calls import cell_call
 from cellctl.ui.common import cell_dir, console, json_option, print_json, print_table, run
@@ -49,6 +54,15 @@ def token_group() -> None:
     """The control API's tokens: each with a name and a role."""
 
 
+def _audit(directory: Path, method: str, params: dict[str, Any]) -> None:
+    """Note a token change in the cell's audit trail, as the API's calls are: who may act is
+    an engineer's concern too (a cell that never ran has no journal, and no trail yet)."""
+    if not (directory / JOURNAL_FILE).is_file():
+        return
+    with contextlib.closing(AuditLog(directory)) as log:
+        log.record(f"local:{getpass.getuser()}", method, params, "ok")
+
+
 @token_group.command("add")
 @click.argument("name")
 @click.option(
@@ -66,6 +80,7 @@ def token_add(ctx: click.Context, name: str, role: str) -> None:
         return add_token(directory, name, role)
 
     secret = run(main)
+    _audit(directory, "token.add", {"name": name, "role": role})
     console.print(secret, markup=False, soft_wrap=True)
     click.echo(f"token {name} ({role}): shown once, keep it; cellctl token revoke {name}", err=True)
 
@@ -106,6 +121,7 @@ def token_revoke(ctx: click.Context, name: str) -> None:
         revoke_token(directory, name)
 
     run(main)
+    _audit(directory, "token.revoke", {"name": name})
     console.print(f"token {name} revoked", markup=False)
 
 

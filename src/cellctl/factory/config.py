@@ -118,6 +118,11 @@ class FactoryConfig:
         return f"{self.broker_url.rstrip('/')}/{self.cells[cell]}"
 
 
+def factory_lock_path(directory: Path | str) -> Path:
+    """The lock ``cellctl factory run`` holds on the factory in ``directory``."""
+    return Path(directory) / "state" / "factory.lock"
+
+
 def load_factory(directory: Path | str) -> FactoryConfig:
     """The checked ``<directory>/factory.toml``; UsageError listing every problem otherwise."""
     directory = Path(directory)

@@ -21,6 +21,7 @@ import click
 from cellctl.clock import current_clock
 from cellctl.emulators.serve import DEMO_TIME_SCALE, TIME_SCALE_HELP
 from cellctl.ui.common import cell_dir, cell_given, console, run
+from cellctl.ui.emulate_cli import refuse_if_running_in
 
 if TYPE_CHECKING:
     from cellctl.cell.journal import Journal
@@ -99,6 +100,8 @@ def demo(
         raise click.UsageError("--dashboard is for one cell, not with --factory")
     if templates and cells is None:
         raise click.UsageError("--template is for --factory N (one cell's is --cell DIR)")
+    # A demo (or an emulated factory) running in --out: refused before its files are replaced.
+    refuse_if_running_in(out)
     Path(out).mkdir(parents=True, exist_ok=True)
     if cells is not None:
         from cellctl.ui.factory_demo import run_factory_demo

@@ -2,19 +2,27 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import os
+from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import click
 
+from cellctl.cell.owner import controller_holder
 from cellctl.emulators.serve import (
     MACHINE_TIME_SCALE,
     TIME_SCALE_HELP,
     EmulatedDevice,
     Server,
+    pty_link_path,
+    pty_lock_path,
     serve,
 )
+from cellctl.errors import MachineInUse
+from cellctl.factory.config import factory_lock_path
 from cellctl.link import LineSettings
+from cellctl.link.lock import Holder, holder
 from cellctl.ui.common import Lazy, LazyGroup, accept_cell, console, kind_commands, until_stopped
 
 if TYPE_CHECKING:
@@ -68,6 +76,56 @@ def listen_options(
             ["--fault"], multiple=True, metavar="NAME[=ARG]", help=f"Fault switch: {names}."
         ),
     ]
+
+
+#: What a command is told when a running one holds its directory; ``{what}`` is the
+#: directory, ``{holder}`` the holder, ``{held}`` what it holds there.
+DIRECTORY_IN_USE = "{what} is in use by {holder}, which {held}: stop it or choose another directory"
+
+
+def _directories(top: Path, depth: int) -> Iterator[Path]:
+    """``top`` and the directories under it down to ``depth`` levels, links not followed."""
+    yield top
+    if depth == 0:
+        return
+    try:
+        entries = sorted(os.scandir(top), key=lambda e: e.name)
+    except OSError:
+        return  # missing, or not ours to read: nothing of a run of ours below
+    for entry in entries:
+        if entry.is_dir(follow_symlinks=False):
+            yield from _directories(Path(entry.path), depth - 1)
+
+
+def _pty_held(directory: Path) -> tuple[Holder | None, str]:
+    robot = pty_link_path(str(directory / "robot.pty"))
+    return holder(pty_lock_path(robot)), f"serves pty:{robot}"
+
+
+def _factory_held(directory: Path) -> tuple[Holder | None, str]:
+    return holder(factory_lock_path(directory)), f"runs the factory in {directory}"
+
+
+def _controller_held(directory: Path) -> tuple[Holder | None, str]:
+    return controller_holder(directory), f"runs the cell in {directory}"
+
+
+def refuse_if_running_in(directory: Path | str) -> None:
+    """MachineInUse, naming the holder (pid and command), if a run holds ``directory``, a
+    directory in it, or one in those: an emulated cell's robot pty (``cellctl emulate cell``
+    or ``factory``, ``cellctl demo``), a factory's controller or a cell's.
+
+    Takes nothing and writes nothing: a command that replaces or writes files there (a
+    demo's ``--out``, an emulated factory's directory) calls it first, so a second run is
+    refused before the first one's files are touched."""
+    directories = list(_directories(Path(directory), 2))
+    # An emulator's pty first: its holder is the process that started the rest (a demo, an
+    # emulated factory), where a cell's controller may be a child of it.
+    for held in (_pty_held, _factory_held, _controller_held):
+        for d in directories:
+            found, what = held(d)
+            if found is not None:
+                raise MachineInUse(DIRECTORY_IN_USE.format(what=directory, holder=found, held=what))
 
 
 async def serve_until_stopped(

@@ -26,7 +26,7 @@ from rich.table import Table
 from cellctl.clock import current_clock
 from cellctl.emulators.serve import CELL_TIME_SCALE, TIME_SCALE_HELP
 from cellctl.errors import UsageError
-from cellctl.factory.config import FactoryConfig, load_factory
+from cellctl.factory.config import FactoryConfig, factory_lock_path, load_factory
 from cellctl.factory.dispatch import load_s
 from cellctl.factory.store import OPEN_STATES, CellSeen, FactoryStore
 from cellctl.link.lock import OwnerLock
@@ -260,7 +260,7 @@ async def run_factory(
     from cellctl.factory.controller import FactoryController  # the broker client: when run
 
     config = load_factory(directory)
-    lock_path = config.directory / "state" / "factory.lock"
+    lock_path = factory_lock_path(config.directory)
     lock_path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
     with (
         OwnerLock.acquire(lock_path, str(directory), refusal=ALREADY_RUN),
@@ -352,10 +352,13 @@ def emulate_factory(
     DIRECTORY/factory.toml. Serves until Ctrl-C."""
     from cellctl.cell.config import load_cell
     from cellctl.factory.emulated import EmulatedFactory
+    from cellctl.ui.emulate_cli import refuse_if_running_in
 
     cells = count if count is not None else len(templates) or 3
     if len(templates) > cells:
         raise click.UsageError(f"{len(templates)} --template for {cells} cells (--cells)")
+    # One running in DIRECTORY: refused before its broker's files or cells are rewritten.
+    refuse_if_running_in(directory)
 
     async def main() -> None:
         plant = EmulatedFactory(

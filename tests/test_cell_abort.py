@@ -27,7 +27,8 @@ async def test_an_aborted_controller_holds_its_parts_naming_the_abort(tmp_path: 
                     await task
         rig._run_task = None
         [held] = rig.held_parts()
-        assert "cut short by the controller's abort" in (held.note or ""), held.note
+        # Cut short mid-cut, or stopped before a byte of it went out: the abort either way.
+        assert "the controller's abort" in (held.note or ""), held.note
         assert "emergency stop" not in (held.note or "")
         assert not rig.journal.alarms()  # an abort is no alarm
         await controller.close()

@@ -313,10 +313,11 @@ async def test_emergency_stop_halts_and_holds(api: Api) -> None:
     assert any(a["code"] == "estop" and a["machine"] == "cell" for a in status["alarms"])
     held = api.rig.held_parts()
     assert held and "emergency stop" in held[0].note
-    # Both mills got END (back in manual; a block the cut had sent may still have started
-    # just before it, so: an END since the stop, not the last run).
-    ended = {n: [r.outcome for r in m.runs[before[n] :]] for n, m in mills.items()}
-    assert all("END" in outcomes for outcomes in ended.values()), (ended, stopped)
+    # The idle mill got END (back in manual). (The cut's mill may not have: a block whose last
+    # lines were still on the line as the stop came starts as END arrives, and the controller
+    # takes no line while a block runs. Its READY comes back at the block's end instead.)
+    idle = [n for n in mills if n != api.rig.journal.steps()[-1].machine]
+    assert all("END" in [r.outcome for r in mills[n].runs[before[n] :]] for n in idle)
     # The operator's way back: ready the mills at their panels (the emulators' operator
     # does), clear the alarms, scrap the part cut short, resume: the mills are initialized
     # anew (not before the resume: no setup moves a mill while the stop is dealt with).

@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import re
 import shutil
 import time
 import urllib.error
@@ -397,7 +398,9 @@ async def test_a_held_part_is_released_from_the_page(dash: Dash) -> None:
     await dash.confirm()
     await row.wait_for(state="detached", timeout=5_000)
     assert rig.journal.get_part(parts[0].id).status == "waiting"
-    assert "released" in (await dash.page.locator("#part-message").inner_text()).lower()
+    # The row goes with the pushed status; the call's own answer may come a moment later.
+    message = dash.page.locator("#part-message", has_text=re.compile("released", re.IGNORECASE))
+    await message.wait_for(timeout=5_000)
 
 
 async def test_redo_refused_and_scrap_on_a_tablet(dash: Dash) -> None:

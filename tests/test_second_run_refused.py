@@ -13,8 +13,6 @@ import time
 from pathlib import Path
 from queue import Queue
 
-import pytest
-
 from cellctl.ui.emulate_cli import refuse_if_running_in
 from tests.conftest import CELLCTL
 from tests.test_demo import _lines, _until
@@ -114,17 +112,23 @@ def assert_refused(args: list[str], cwd: Path, first: FirstRun, command: str) ->
     assert "Traceback" not in said, said
 
 
-@pytest.mark.parametrize(
-    "args",
-    [
-        ["demo", "--no-compare", "--out", "demo-out"],
-        ["demo", "--factory", "2", "--parts", "2", "--out", "demo-out"],
-        ["emulate", "factory", "--cells", "1", "demo-out"],
-        ["--cell", "demo-out/cell", "emulate", "cell"],
-    ],
-    ids=["demo", "demo-factory", "emulate-factory", "emulate-cell"],
-)
-def test_a_second_run_leaves_a_running_demo_alone(tmp_path: Path, args: list[str]) -> None:
+#: What may come second to a running demo (one first run for all: it takes seconds to start).
+AFTER_A_DEMO = [
+    ["demo", "--no-compare", "--out", "demo-out"],
+    ["demo", "--factory", "2", "--parts", "2", "--out", "demo-out"],
+    ["emulate", "factory", "--cells", "1", "demo-out"],
+    ["--cell", "demo-out/cell", "emulate", "cell"],
+]
+#: What may come second to a running emulated factory.
+AFTER_A_FACTORY = [
+    ["emulate", "factory", "--cells", "2", "plant"],
+    ["demo", "--no-compare", "--out", "plant"],
+    ["demo", "--factory", "2", "--parts", "2", "--out", "plant"],
+    ["--cell", "plant/cell1", "emulate", "cell"],
+]
+
+
+def test_a_second_run_leaves_a_running_demo_alone(tmp_path: Path) -> None:
     out = tmp_path / "demo-out"
     first = FirstRun(
         ["demo", "--dashboard", "--no-compare", "--parts", "1", "--time-scale", "1000"],
@@ -134,27 +138,16 @@ def test_a_second_run_leaves_a_running_demo_alone(tmp_path: Path, args: list[str
         first.until(r"Ctrl-C stops")  # the batch is done: the cell idles, its files stay
         before = snapshot(out)
         assert "cell/cell.toml" in before and "cell/api-token" in before, before
-        assert_refused(args, tmp_path, first, "cellctl demo")
-        assert snapshot(out) == before
-        assert first.proc.poll() is None, "".join(first.seen)
+        for args in AFTER_A_DEMO:
+            assert_refused(args, tmp_path, first, "cellctl demo")
+            assert snapshot(out) == before, args
+            assert first.proc.poll() is None, "".join(first.seen)
     finally:
         first.stop()
     nothing_left_running(out)
 
 
-@pytest.mark.parametrize(
-    "args",
-    [
-        ["emulate", "factory", "--cells", "2", "plant"],
-        ["demo", "--no-compare", "--out", "plant"],
-        ["demo", "--factory", "2", "--parts", "2", "--out", "plant"],
-        ["--cell", "plant/cell1", "emulate", "cell"],
-    ],
-    ids=["emulate-factory", "demo", "demo-factory", "emulate-cell"],
-)
-def test_a_second_run_leaves_a_running_emulated_factory_alone(
-    tmp_path: Path, args: list[str]
-) -> None:
+def test_a_second_run_leaves_a_running_emulated_factory_alone(tmp_path: Path) -> None:
     plant = tmp_path / "plant"
     first = FirstRun(
         ["emulate", "factory", "--cells", "1", "--time-scale", "1000", "plant"], cwd=tmp_path
@@ -163,9 +156,10 @@ def test_a_second_run_leaves_a_running_emulated_factory_alone(
         first.until(r"^serving until Ctrl-C")
         before = snapshot(plant)
         assert {"broker/mosquitto.conf", "broker/passwd", "cell1/cell.toml"} <= set(before)
-        assert_refused(args, tmp_path, first, "cellctl emulate factory plant")
-        assert snapshot(plant) == before
-        assert first.proc.poll() is None, "".join(first.seen)
+        for args in AFTER_A_FACTORY:
+            assert_refused(args, tmp_path, first, "cellctl emulate factory plant")
+            assert snapshot(plant) == before, args
+            assert first.proc.poll() is None, "".join(first.seen)
     finally:
         first.stop()
     nothing_left_running(plant)

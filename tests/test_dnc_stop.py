@@ -9,9 +9,12 @@ import asyncio
 import signal
 from pathlib import Path
 
+from click.testing import CliRunner
+
 from cellctl.emulators.serve import serve
 from cellctl.kinds.iso_cnc.dnc.store import ShopStore
 from cellctl.kinds.iso_cnc.emulator import IsoCncEmulator, Mode
+from cellctl.ui.cli import main as cli_main
 from tests.conftest import CELLCTL, free_port, until
 from tests.test_dnc_cli import (  # noqa: F401  (shop and served are fixtures)
     LINE,
@@ -31,6 +34,18 @@ async def progress_under_way(where: Shop, name: str) -> None:
         return 0 < int(p.get("done", 0)) < int(p.get("total", 0)) - 100
 
     await until(going, f"{name}'s transfer under way", 30)
+
+
+async def run_here(*args: str) -> tuple[int, str]:
+    """``cellctl ARGS`` in this process (a worker thread, its own loop): for a refusal, which
+    needs no signal, without a process start."""
+
+    def invoke() -> tuple[int, str]:
+        result = CliRunner().invoke(cli_main, list(args))
+        return result.exit_code, result.output
+
+    async with asyncio.timeout(60):
+        return await asyncio.to_thread(invoke)
 
 
 async def test_ctrl_c_cancels_a_waiting_send_and_a_second_send_is_refused(served: Shop) -> None:  # noqa: F811
@@ -194,12 +209,12 @@ async def test_an_unknown_machine_is_named_and_nothing_is_created(shop: Shop) ->
         ("diff", "mill3"),
         ("diff", "mill3", "O1234"),
     ):
-        code, said = await finished(await cellctl("dnc", *args, "--dir", root))
+        code, said = await run_here("dnc", *args, "--dir", root)
         assert code == 2, (args, said)
         assert "unknown machine 'mill3'" in said and "(known: mill1, mill2)" in said, said
         assert not (shop.root / "mill3").exists(), args
     # and a read of a known machine with nothing yet creates nothing either
-    code, said = await finished(await cellctl("dnc", "diff", "mill2", "--dir", root))
+    code, said = await run_here("dnc", "diff", "mill2", "--dir", root)
     assert code == 2 and "nothing received from mill2 yet" in said, said
     assert not (shop.root / "mill2" / "received").exists()
 
@@ -209,14 +224,12 @@ async def test_refusals_come_before_any_prompt(
     tmp_path: Path,
 ) -> None:
     root = str(shop.root)
-    code, said = await finished(
-        await cellctl("dnc", "receive", "mill1", "--timeout", "0", "--dir", root)
-    )
+    code, said = await run_here("dnc", "receive", "mill1", "--timeout", "0", "--dir", root)
     assert code == 2 and "--timeout" in said and "press PUNCH" not in said, said
     # A program file whose name and text disagree on its O-number: refused, nothing sent.
     store = ShopStore(shop.root)
     (store.machine("mill1") / "programs" / "O1001.nc").write_text("O1234\nG00 X0\nM30\n")
-    code, said = await finished(await cellctl("dnc", "send", "mill1", "O1001", "--dir", root))
+    code, said = await run_here("dnc", "send", "mill1", "O1001", "--dir", root)
     assert code == 2, said
     assert "its name says O1001 but its text is O1234" in said
     assert shop.controls["mill1"].chars_read == 0

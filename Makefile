@@ -10,14 +10,7 @@ PLUGIN_STAMP := $(VENV)/.plugins
 
 .PHONY: test demo lint typecheck pytest deps clean bench
 
-# The real-time fidelity test needs one core to itself, not two: the checks (ruff, mypy,
-# import layers) take the other meanwhile, and then the parallel tests take both.
-test: deps
-	@$(BIN)/pytest -q -m alone > .fidelity.log 2>&1 & fidelity=$$!; \
-	$(MAKE) --no-print-directory lint typecheck; checks=$$?; \
-	wait $$fidelity; passed=$$?; cat .fidelity.log; rm -f .fidelity.log; \
-	[ $$checks = 0 ] && [ $$passed = 0 ]
-	$(BIN)/pytest -q -n 6 --dist worksteal -m "not alone"
+test: deps lint typecheck pytest
 
 # Debian packages the tests need: ser2net (a real RFC 2217 server for the link tests), tmux
 # (the console is checked in a real terminal), chromium (the dashboard, through Playwright),

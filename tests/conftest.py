@@ -62,8 +62,7 @@ def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line(
         "markers",
         "alone: a real-time run measured against the machines' own times; `make test` runs "
-        "these apart from the others, one at a time, while only the single-core checks "
-        "(ruff, mypy) run beside them, so no test loads the box meanwhile",
+        "these after the others, one at a time, so no other test loads the box meanwhile",
     )
 
 

@@ -128,41 +128,54 @@ AFTER_A_FACTORY = [
 ]
 
 
-def test_a_second_run_leaves_a_running_demo_alone(tmp_path: Path) -> None:
-    out = tmp_path / "demo-out"
-    first = FirstRun(
-        ["demo", "--dashboard", "--no-compare", "--parts", "1", "--time-scale", "1000"],
-        cwd=tmp_path,
-    )
+def second_runs_leave_the_first_alone(
+    tmp_path: Path,
+    first_args: list[str],
+    up: str,
+    held: str,
+    files: set[str],
+    seconds: list[list[str]],
+    command: str,
+) -> None:
+    """Start ``first_args``; once it says ``up``, every one of ``seconds`` is refused (naming
+    ``command``) and the files in ``held`` (``files`` among them) stay as they were."""
+    where = tmp_path / held
+    first = FirstRun(first_args, cwd=tmp_path)
     try:
-        first.until(r"Ctrl-C stops")  # the batch is done: the cell idles, its files stay
-        before = snapshot(out)
-        assert "cell/cell.toml" in before and "cell/api-token" in before, before
-        for args in AFTER_A_DEMO:
-            assert_refused(args, tmp_path, first, "cellctl demo")
-            assert snapshot(out) == before, args
+        first.until(up)
+        before = snapshot(where)
+        assert files <= set(before), before
+        for args in seconds:
+            assert_refused(args, tmp_path, first, command)
+            assert snapshot(where) == before, args
             assert first.proc.poll() is None, "".join(first.seen)
     finally:
         first.stop()
-    nothing_left_running(out)
+    nothing_left_running(where)
+
+
+def test_a_second_run_leaves_a_running_demo_alone(tmp_path: Path) -> None:
+    second_runs_leave_the_first_alone(
+        tmp_path,
+        ["demo", "--dashboard", "--no-compare", "--parts", "1", "--time-scale", "1000"],
+        r"Ctrl-C stops",  # the batch is done: the cell idles, its files stay
+        "demo-out",
+        {"cell/cell.toml", "cell/api-token"},
+        AFTER_A_DEMO,
+        "cellctl demo",
+    )
 
 
 def test_a_second_run_leaves_a_running_emulated_factory_alone(tmp_path: Path) -> None:
-    plant = tmp_path / "plant"
-    first = FirstRun(
-        ["emulate", "factory", "--cells", "1", "--time-scale", "1000", "plant"], cwd=tmp_path
+    second_runs_leave_the_first_alone(
+        tmp_path,
+        ["emulate", "factory", "--cells", "1", "--time-scale", "1000", "plant"],
+        r"^serving until Ctrl-C",
+        "plant",
+        {"broker/mosquitto.conf", "broker/passwd", "cell1/cell.toml"},
+        AFTER_A_FACTORY,
+        "cellctl emulate factory plant",
     )
-    try:
-        first.until(r"^serving until Ctrl-C")
-        before = snapshot(plant)
-        assert {"broker/mosquitto.conf", "broker/passwd", "cell1/cell.toml"} <= set(before)
-        for args in AFTER_A_FACTORY:
-            assert_refused(args, tmp_path, first, "cellctl emulate factory plant")
-            assert snapshot(plant) == before, args
-            assert first.proc.poll() is None, "".join(first.seen)
-    finally:
-        first.stop()
-    nothing_left_running(plant)
 
 
 def test_the_check_holds_nothing_and_finds_nothing_in_a_fresh_directory(tmp_path: Path) -> None:

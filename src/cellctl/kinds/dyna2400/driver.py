@@ -38,6 +38,7 @@ that is stuck.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 from cellctl.clock import Clock
@@ -91,6 +92,19 @@ END_PROGRAM = "000 END"
 _WRITE_AHEAD_S = 0.25
 
 
+@dataclass
+class _Untaken:
+    """A block sent (or being sent) and not yet seen taken: its number, the readiness's lows
+    count before it, how long taking it may take, and how long it may run; ``whole`` once its
+    last line is written."""
+
+    block: int
+    lows: int
+    accept_s: float
+    run_s: float
+    whole: bool = False
+
+
 class Dyna2400Mill(LinkDriver):
     """Driver for one Dyna 2400 mill over any :class:`Link` (see module docstring)."""
 
@@ -123,6 +137,8 @@ class Dyna2400Mill(LinkDriver):
         self.tool_diameter: float | None = saved.get("tool_diameter")
         self.loaded: str | None = saved.get("loaded")
         self.last_download: list[BlockTiming] = []
+        # The block on its way to the controller and not yet seen taken (None: none).
+        self._untaken: _Untaken | None = None
 
     @classmethod
     async def connect(
@@ -268,20 +284,53 @@ class Dyna2400Mill(LinkDriver):
         block: Block,
         timing: BlockTiming,
         progress: Callable[[int, int], None] | None,
+        *,
+        run_s: float,
     ) -> None:
+        """Send ``block`` and wait for the controller to take it (CTS low); ``run_s`` is how
+        long it may run (what :meth:`end` waits out if this is cut short once it went whole)."""
         lines = [line.render().encode("ascii") + LINE_END for line in block.lines]
         lines[-1] += bytes([CTRL_Z])
-        lows = self._ready.lows
-        await self._send(b"", chunks=lines, progress=progress)
         timeout = self.config.accept_timeout + self._wire_time(len(lines[-1])) + _WRITE_AHEAD_S
+        untaken = _Untaken(block.index, self._ready.lows, timeout, run_s)
+        self._untaken = untaken
+
+        def sent(n: int, nbytes: int) -> None:
+            untaken.whole = n == len(lines)
+            if progress is not None:
+                progress(n, nbytes)
+
+        await self._send(b"", chunks=lines, progress=sent)
         try:
-            await self._ready.wait(False, timeout, lows_before=lows)
+            await self._ready.wait(False, timeout, lows_before=untaken.lows)
         except LinkTimeout:
             raise LinkTimeout(
                 f"{self.name}: the controller did not take block {block.index} of "
                 f"{block.count} (CTS stayed high {timeout:.1f} s after its last line)"
             ) from None
+        self._untaken = None
         timing.taken = self.clock.monotonic()
+
+    async def _wait_out_untaken(self) -> None:
+        """Before END: wait out a block that went out whole but was not seen taken (a download
+        cut short as its last lines were on the wire). The controller starts it when its
+        ``900`` line arrives; an END arriving while it runs is lost, and the block's own CTS
+        fall would pass for the return to manual. A block cut short before its last line
+        never starts (END takes its line 000)."""
+        untaken, self._untaken = self._untaken, None
+        if untaken is None or not untaken.whole:
+            return
+        try:
+            await self._ready.wait(False, untaken.accept_s, lows_before=untaken.lows)
+        except LinkTimeout:
+            return  # not taken after all: nothing runs
+        if not await self._wait_ready(untaken.run_s):
+            raise DeviceError(
+                2,
+                "Machine executing program",
+                detail=f"{self.name}: block {untaken.block}, sent before the stop, still "
+                f"runs after {untaken.run_s:.0f} s (CTS low)",
+            )
 
     # -- the library functions ---------------------------------------------------------------------
 
@@ -338,7 +387,7 @@ class Dyna2400Mill(LinkDriver):
             raise DeviceError(4, INITIALIZE_RESULTS[4], detail="CTS is low: is it READY?")
         block = result.blocks[0]
         timing = BlockTiming(1, len(block.wire()) + 1, len(block.lines), self.clock.monotonic())
-        await self._send_block(block, timing, None)
+        await self._send_block(block, timing, None, run_s=self.config.setup_timeout)
         self._remember_setup(result)
         self.initialized = True
         self._set_state(1)
@@ -423,6 +472,7 @@ class Dyna2400Mill(LinkDriver):
         result = validate(program, ValidationContext(role=ProgramRole.END))
         if not result.ok:
             raise MillInputError(2, END_RESULTS[2], result.errors[0].format("END"))
+        await self._wait_out_untaken()
         await self._guard(MillFunction.ENDLOAD)
         data = b"".join(line.raw.encode("ascii") + LINE_END for line in program.lines)
         lows = self._ready.lows

@@ -97,7 +97,7 @@ async def stream_blocks(
                 )
             )
 
-        await mill._send_block(block, timing, on_line)
+        await mill._send_block(block, timing, on_line, run_s=block_budget(mill, estimates[k - 1]))
         mill._set_state(3)
         done_bytes += wire
         done_lines += len(block.lines)
@@ -122,9 +122,15 @@ async def stream_blocks(
     )
 
 
+def block_budget(mill: Dyna2400Mill, estimate: float) -> float:
+    """How long a block of ``estimate`` seconds may run: times ``block_margin``, plus
+    ``block_extra``."""
+    return estimate * mill.config.block_margin + mill.config.block_extra
+
+
 async def wait_block_done(mill: Dyna2400Mill, block: Block, estimate: float) -> None:
-    """Wait for ``block`` to finish: its estimate times ``block_margin`` plus ``block_extra``."""
-    timeout = estimate * mill.config.block_margin + mill.config.block_extra
+    """Wait for ``block`` to finish (within :func:`block_budget`)."""
+    timeout = block_budget(mill, estimate)
     if not await mill._wait_ready(timeout):
         raise DeviceError(
             2,

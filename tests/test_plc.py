@@ -9,6 +9,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -357,11 +358,27 @@ async def test_estop_drops_estop_ok_freezes_actuators_and_blocks_go(
 
 def test_fault_switches_are_checked() -> None:
     plc = PlcEmulator()
-    assert set(FAULTS) == {"drop", "silent", "stuck-door", "no-pallet", "estop"}
+    assert set(FAULTS) == {"drop", "silent", "stuck-door", "no-pallet", "estop", "slow"}
     with pytest.raises(UsageError, match="unknown fault"):
         plc.set_fault("flood")
     with pytest.raises(UsageError, match="stuck-door needs a mill number"):
         plc.set_fault("stuck-door", "3")
+    for bad in ("fast", "-5", "nan", "1e9"):
+        with pytest.raises(UsageError, match="slow takes milliseconds from 0 to 60000"):
+            plc.set_fault("slow", bad)
+    assert "slow" not in plc.faults
+
+
+async def test_slow_holds_each_answer_back_over_modbus_tcp(
+    emulator: PlcEmulator, plc: ModbusPlc
+) -> None:
+    await plc.read_inputs()
+    emulator.set_fault("slow", "300")
+    started = time.monotonic()
+    inputs = await plc.read_inputs()
+    assert time.monotonic() - started >= 0.3  # held back: never sooner
+    assert inputs == await plc.read_inputs()  # late, and the same answer
+    emulator.clear_fault("slow")
 
 
 # -- typed errors -------------------------------------------------------------------------------

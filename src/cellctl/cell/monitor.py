@@ -8,7 +8,10 @@ power failure, a silent or closed line: a slow serial exchange):
 the last look at a mill is what the scheduler trusts (see
 :class:`~cellctl.cell.recovery.Recovery`). A mill that lost readiness while idle, or that was
 not ready ``setup_timeout`` after its setup, or whose line fails, is a fault: out of the plan
-at once, one alarm. A read that takes longer than ``read_limit`` is a silent machine. A busy
+at once, one alarm. A read that takes longer than ``read_limit`` is a machine not answering:
+shown so, and the robot out of the plan, at once; alarmed if the read is still out a poll
+period after it was sent (an on-delay: a loaded host can hold one answer past the limit, and
+an alarm for each such moment would teach the operator to ignore them). A busy
 machine is watched by its own step (the robot's status is read while its cycle runs, a
 mill's block has its deadline); a machine in the operator's manual use is left alone. Every
 round ends by waking the dispatch loop and telling the listeners. Alarms name the cause
@@ -58,6 +61,10 @@ class _StillOut(Exception):
     """The machine's last read has not ended yet: this round does not ask again."""
 
 
+class _Late(TimeoutError):
+    """The read is out past ``read_limit`` (it goes on: see :meth:`Monitor._bounded`)."""
+
+
 def _consume(task: asyncio.Future[Any]) -> None:
     """Retrieve a late read's outcome (its failure was told as an alarm already)."""
     if not task.cancelled():
@@ -77,13 +84,14 @@ class Monitor:
         self.done = asyncio.Event()
         self._reads: dict[str, asyncio.Future[Any]] = {}
         self._since: dict[str, float] = {}  # when each key's last read was sent
+        self._late_told: set[str] = set()  # keys whose read still out was alarmed
         self._inputs: dict[str, bool] = {}  # the PLC's inputs at the last look
         self._estop_seen: float | None = None  # the last look that found the E-stop pressed
         self._last_seen: tuple[object, ...] = ()
         self._robot_looked = float("-inf")  # when the last look at the idle robot began
 
     async def _bounded(self, key: str, read: Callable[[], Awaitable[T]]) -> T:
-        """``read()`` of an idle machine, awaited at most ``read_limit`` (TimeoutError after).
+        """``read()`` of an idle machine, awaited at most ``read_limit`` (:class:`_Late` after).
 
         A status exchange takes tens of milliseconds: one that outlasts the limit is a silent
         machine, told now rather than at the driver's own deadline. The read is not cancelled
@@ -111,6 +119,7 @@ class Monitor:
         future = asyncio.ensure_future(reading())
         self._reads[key] = future
         self._since[key] = clock.now()
+        self._late_told.discard(key)  # each read is alarmed at most once if it stays out
         timer = clock.call_at(clock.monotonic() + self.world.options.read_limit, wake)
         try:
             await waiter
@@ -119,8 +128,24 @@ class Monitor:
             if not future.done():
                 future.add_done_callback(_consume)
         if not future.done():
-            raise TimeoutError
+            raise _Late
         return future.result()
+
+    def _out_too_long(self, key: str, machine: str, label: str) -> Cause | None:
+        """The cause to alarm for ``key``'s read if it has been out a whole poll period and
+        was not alarmed yet; None otherwise."""
+        since = self._since.get(key)
+        if since is None or key in self._late_told:
+            return None
+        if self.world.clock.now() - since < self.world.options.poll_period:
+            return None
+        self._late_told.add(key)
+        return self._told(read_cause(machine, label, TimeoutError()), key)
+
+    def _reading(self, key: str) -> bool:
+        """True while ``key``'s last read is out."""
+        pending = self._reads.get(key)
+        return pending is not None and not pending.done()
 
     @property
     def sample_period(self) -> float:
@@ -243,6 +268,14 @@ class Monitor:
         try:
             inputs = await self._bounded("plc", self.plc.read_inputs)
         except _StillOut:
+            cause = self._out_too_long("plc", "plc", "PLC")
+            if cause is not None:
+                view.show(cause.text, Condition.OFFLINE, LastError(cause.text))
+                self.alarms.cause_alarm(cause)
+            return
+        except _Late as e:  # shown now; alarmed above if it stays out
+            late = read_cause("plc", "PLC", e).text
+            view.show(late, Condition.OFFLINE, LastError(late))
             return
         except (TimeoutError, CellctlError) as e:
             cause = self._told(read_cause("plc", "PLC", e), "plc")
@@ -265,17 +298,28 @@ class Monitor:
         robot = world.robot
         if robot is None or world.robot_busy() or robot.name in world.manual_use:
             return
+        view = world.machines[robot.name]
+        if self._reading(robot.name):  # every round while a look is out, not every few
+            cause = self._out_too_long(robot.name, robot.name, "robot")
+            if cause is not None:
+                view.show(cause.text, Condition.OFFLINE, LastError(cause.text))
+                self.alarms.cause_alarm(cause)
+            return
         # Every ROBOT_ROUNDS rounds (half a round's slack for the rounds' own jitter): a
         # transfer's own status looks watched it meanwhile.
         now = world.clock.monotonic()
         if now - self._robot_looked < self.robot_period - self.sample_period / 2:
             return
         self._robot_looked = now
-        view = world.machines[robot.name]
         try:
             status = await self._bounded(robot.name, robot.machine_status)
         except _StillOut:
-            return  # the last read is still out (and already told as not answering)
+            return  # not reached: a read out is handled above
+        except _Late as e:  # out of the plan now; alarmed above if it stays out
+            late = read_cause(robot.name, "robot", e).text
+            view.show(late, Condition.OFFLINE, LastError(late))
+            self.recovery.robot_ok = False
+            return
         except (TimeoutError, CellctlError) as e:
             cause = self._told(read_cause(robot.name, "robot", e), robot.name)
             view.show(cause.text, Condition.OFFLINE, LastError.of(e))

@@ -73,6 +73,8 @@ FAULTS: dict[str, str] = {
     "stuck-door": "=N: the door of CNC N stops where it is and ignores its coil",
     "no-pallet": "the conveyor never delivers a pallet",
     "estop": "emergency stop pressed: estop_ok = 0, actuators stop, GO ignored",
+    "slow": "=MS: answer every request MS milliseconds late, in the host's seconds (a busy "
+    "PLC or network; default 400)",
 }
 
 #: Inputs at power-up: doors closed, vises open, no pallet, outfeed empty, e-stop released.
@@ -156,6 +158,13 @@ class PlcEmulator:
     def set_fault(self, name: str, arg: str | None = None) -> None:
         """Switch a fault on (names in :data:`FAULTS`)."""
         check_switch(FAULTS, name, arg)
+        if name == "slow" and arg is not None:
+            try:
+                ms = float(arg)
+            except ValueError:
+                ms = -1.0
+            if not 0.0 <= ms <= 60_000.0:
+                raise UsageError(f"slow takes milliseconds from 0 to 60000, not {arg!r}")
         if name == "stuck-door":
             try:
                 mill = int(arg) if arg is not None else 0
@@ -498,6 +507,8 @@ class PlcEmulator:
             while data := await up_reader.read(4096):
                 if "silent" in self.faults:
                     continue  # a reply to a request sent just before the fault: swallowed
+                if late := self._late_s():
+                    await self.clock.sleep(late)
                 writer.write(data)
                 await writer.drain()
 
@@ -536,13 +547,30 @@ class PlcEmulator:
                 if "silent" in self.faults:
                     self.onsets.act("silent")
                     continue  # read and never answer
-                port.write(self._answer(adu))
+                answer = self._answer(adu)
+                if late := self._late_s():
+                    clock = self.clock
+                    clock.call_at(clock.monotonic() + late, answer_late, answer)
+                else:
+                    port.write(answer)
+
+        def answer_late(answer: bytes) -> None:
+            if port in self._mem_ports:  # not after the line closed
+                port.write(answer)
 
         def on_closed() -> None:
             self._mem_ports.discard(port)
 
         port.on_data = on_data
         port.on_closed = on_closed
+
+    def _late_s(self) -> float:
+        """How late each answer goes (the ``slow`` switch), in the clock's seconds."""
+        if "slow" not in self.faults:
+            return 0.0
+        self.onsets.act("slow")
+        arg = self.faults["slow"]
+        return float(arg) / 1000.0 if arg else 0.4  # checked by set_fault
 
     def _answer(self, adu: modbus.Adu) -> bytes:
         """The answer to one request frame (an exception response for an illegal one)."""

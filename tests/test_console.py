@@ -606,3 +606,22 @@ def test_dialog_answers_give_parameters_or_a_usage_error(
             assert str(e)
         else:
             fn.check(params)  # accepted as it will be sent
+
+
+def test_a_dialog_tells_every_wrong_answer_at_once(tmp_path: Path) -> None:
+    """A partition out of range is told with a missing file, not only once the file is found
+    (the operator would fix one answer, press Enter, and only then hear of the other)."""
+    fn = function("robot", "download")
+    robot = ConsoleMachine("robot", "robot", "ROBOT")
+    raw = {"partition": "6", "program": "nowhere.rec"}
+    with pytest.raises(UsageError) as told:
+        check_params(robot, fn, raw, tmp_path)
+    assert str(told.value).splitlines() == [
+        "nowhere.rec: could not open file: no such file",
+        "partition must be 1 to 5, not 6 (partition error)",
+    ]
+    (tmp_path / "nowhere.rec").write_text("")  # an empty program: its own problem, still both
+    with pytest.raises(UsageError) as told:
+        check_params(robot, fn, raw, tmp_path)
+    assert "partition must be 1 to 5, not 6 (partition error)" in str(told.value).splitlines()
+    assert len(str(told.value).splitlines()) >= 2

@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from pydantic import ValidationError
+
 from cellctl.cell.owner import controller_holder
 from cellctl.errors import CellctlError, UsageError
 from cellctl.kinds import registry
@@ -212,6 +214,22 @@ def check_program(
     return kind.check_text(fn.name, program["program"], program["text"], options)
 
 
+def _field_problems(
+    fn: MachineFunction, params: dict[str, Any], skip: tuple[str, ...]
+) -> list[str]:
+    """What the function's own check says of the answers in ``params`` (a partition out of
+    range), leaving out the fields in ``skip`` and the ones not given."""
+    try:
+        fn.params.model_validate(params)
+    except ValidationError as e:
+        return [
+            str(item["msg"]).removeprefix("Value error, ")
+            for item in e.errors(include_url=False, include_input=False)
+            if item["type"] != "missing" and (not item["loc"] or item["loc"][0] not in skip)
+        ]
+    return []
+
+
 def check_params(
     machine: ConsoleMachine, fn: MachineFunction, raw: dict[str, Any], directory: Path
 ) -> dict[str, Any]:
@@ -244,6 +262,8 @@ def check_params(
             fn.check(params)
         except UsageError as e:
             problems.append(str(e))
+    else:  # the other answers' problems beside the file's: all told at once
+        problems += _field_problems(fn, params, skip=("program", "text"))
     if problems:
         raise UsageError("\n".join(problems))
     return params

@@ -8,6 +8,7 @@ and an emulator removes PATH on exit only if it is still its own link.
 
 from __future__ import annotations
 
+import asyncio
 import os
 import queue
 import re
@@ -19,6 +20,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+
+from cellctl.emulators.cell import EmulatedCell
+from cellctl.errors import MachineInUse
 
 from .conftest import CELLCTL
 
@@ -274,3 +278,32 @@ def test_emulate_cell_on_a_running_cell_is_refused_naming_it(
         assert os.readlink(cell / "robot.pty") == robot_pty
         assert running.proc.poll() is None
         answers(cell / "robot.pty", env)
+
+
+async def test_two_cells_started_at_once_in_one_directory_one_is_refused_before_it_starts(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The robot's ``pty:PATH`` is taken before anything is written or served: of two starts
+    at once, the one refused has written no file and started no machine (the check and the
+    lock were two steps, and both starts passed the check)."""
+    monkeypatch.setenv("CELLCTL_RUNTIME_DIR", str(tmp_path / "run"))
+    cell = tmp_path / "cell"
+    first, second = EmulatedCell(time_scale=1000.0), EmulatedCell(time_scale=1000.0)
+    try:
+        results = await asyncio.gather(
+            first.start(cell), second.start(cell), return_exceptions=True
+        )
+        assert results[0] == cell / "cell.toml", results
+        assert isinstance(results[1], MachineInUse), results
+        assert "robot.pty is served by" in str(results[1])
+        assert second.plc_url == "" and not second.servers  # nothing of it started
+        assert first.plc_url in (cell / "cell.toml").read_text()
+    finally:
+        await second.close()
+        await first.close()
+    # Both gone: the path is free for the next start.
+    again = EmulatedCell(time_scale=1000.0)
+    try:
+        assert await again.start(cell) == cell / "cell.toml"
+    finally:
+        await again.close()

@@ -63,7 +63,7 @@ from cellctl.emulators.serve import (
     EmulatedDevice,
     SelfServed,
     Server,
-    check_pty_listen,
+    claim_pty_listen,
     pty_link_path,
     scaled_deadline,
     serve,
@@ -72,6 +72,7 @@ from cellctl.errors import UsageError
 from cellctl.kinds import registry
 from cellctl.kinds.kind import EmulatorSpec
 from cellctl.link import LineSettings
+from cellctl.link.lock import OwnerLock
 from cellctl.protocol.plc import EXAMPLE_WIRING
 
 #: The example cell (cell.toml, robot/, programs/): package data, so an installed cellctl has
@@ -244,10 +245,21 @@ class EmulatedCell:
         listen = self.robot_listen
         if listen == "pty":
             listen = f"pty:{pty_link_path(str(cell_dir / 'robot.pty'))}"
+        claimed = None
         if self.links != "mem" and type(self.robot).listen is EmulatedDevice.listen:
             # A cell already emulated in this directory holds its robot's pty: refused here,
-            # before its files are copied over or its cell.toml rewritten.
-            check_pty_listen(listen)
+            # before its files are copied over or its cell.toml rewritten (taken, not only
+            # looked at: of two starts at once, one is refused before it writes a thing).
+            claimed = claim_pty_listen(listen)
+        try:
+            return await self._start(cell_dir, template, listen, claimed)
+        finally:
+            if claimed is not None and self.robot_name not in self.servers:
+                claimed.release()  # serving never began: nothing holds it
+
+    async def _start(
+        self, cell_dir: Path, template: Path, listen: str, claimed: OwnerLock | None
+    ) -> Path:
         copy_template(template, cell_dir)
         for index, (name, mill) in enumerate(self.mills.items(), start=1):
             mill.run_hooks.append(self._noting_cuts(index, name))
@@ -265,7 +277,11 @@ class EmulatedCell:
             self.servers[self.robot_name] = own
         else:
             self.servers[self.robot_name] = await serve(
-                self.robot, listen, self.line_of(self.robot_name), pacing=self.pacing
+                self.robot,
+                listen,
+                self.line_of(self.robot_name),
+                pacing=self.pacing,
+                claimed=claimed,
             )
         for name, mill in self.mills.items():
             self.servers[name] = await serve(

@@ -50,9 +50,9 @@ from cellctl.clock import Clock, current_clock, emulator_clock
 # Re-exported: emulators and their transports import the line from here.
 from cellctl.emulators.line import DeviceLine as DeviceLine
 from cellctl.emulators.line import LineNoise as LineNoise
-from cellctl.errors import LinkClosed, MachineInUse, UsageError
+from cellctl.errors import LinkClosed, UsageError
 from cellctl.link import LineSettings, parse_host_port
-from cellctl.link.lock import OwnerLock, holder, runtime_dir
+from cellctl.link.lock import OwnerLock, runtime_dir
 
 #: Default time scales, one per use (each command's --help says its own and why):
 #: a single machine's emulator runs in the machine's own time, so a driver, the console or
@@ -210,11 +210,18 @@ def _spawn(server: Server, coro: Coroutine[object, object, None]) -> asyncio.Tas
 
 
 async def serve(
-    device: EmulatedDevice, listen: str, settings: LineSettings, *, pacing: bool = True
+    device: EmulatedDevice,
+    listen: str,
+    settings: LineSettings,
+    *,
+    pacing: bool = True,
+    claimed: OwnerLock | None = None,
 ) -> Server:
-    """Start serving ``device`` at ``listen``; see the module docstring."""
+    """Start serving ``device`` at ``listen``; see the module docstring. ``claimed``: the
+    lock of a ``pty:PATH`` already taken (:func:`claim_pty_listen`); the server then holds
+    it, and gives it back when it closes."""
     if listen == "pty" or listen.startswith("pty:"):
-        return await _serve_pty(device, settings, pacing, listen)
+        return await _serve_pty(device, settings, pacing, listen, claimed)
     scheme = urlsplit(listen).scheme
     if scheme in ("socket", "tcp"):
         return await _serve_tcp(device, listen, settings, pacing, rfc=False)
@@ -269,19 +276,17 @@ def _refuse_other_than_link(listen: str, link: Path) -> None:
     )
 
 
-def check_pty_listen(listen: str) -> None:
-    """Refuse ``listen`` now if :func:`serve` would refuse its ``pty:PATH``: something not a
-    link there (UsageError) or a running emulator's link (MachineInUse, naming it).
+def claim_pty_listen(listen: str) -> OwnerLock | None:
+    """Take ``listen``'s ``pty:PATH`` now, as :func:`serve` would, or refuse it: something not
+    a link there (UsageError), or a running emulator's link (MachineInUse, naming it). None
+    for any other ``listen``.
 
-    Takes nothing, so a caller can check before it writes anything; ``serve`` still takes
-    the lock. Any other ``listen`` passes."""
+    A caller that writes files for the emulator takes it before it writes anything (two
+    starts at once: one of them is refused before it touches the other's files), and hands
+    it to ``serve(..., claimed=...)``; if it does not get there, it releases it."""
     if not listen.startswith("pty:") or listen == "pty:":
-        return
-    link = pty_link_path(listen[4:])
-    _refuse_other_than_link(listen, link)
-    found = holder(pty_lock_path(link))
-    if found is not None:
-        raise MachineInUse(PTY_PATH_IN_USE.format(what=listen, holder=found))
+        return None
+    return _claim_pty_link(listen, pty_link_path(listen[4:]))
 
 
 def _claim_pty_link(listen: str, link: Path) -> OwnerLock:
@@ -308,12 +313,18 @@ def _point_link(link: Path, target: str) -> None:
 
 
 async def _serve_pty(
-    device: EmulatedDevice, settings: LineSettings, pacing: bool, listen: str
+    device: EmulatedDevice,
+    settings: LineSettings,
+    pacing: bool,
+    listen: str,
+    claimed: OwnerLock | None,
 ) -> Server:
     loop = asyncio.get_running_loop()
     given = listen[4:]
     link = pty_link_path(given) if given else None
-    lock = _claim_pty_link(listen, link) if link is not None else None
+    lock = claimed
+    if lock is None and link is not None:
+        lock = _claim_pty_link(listen, link)
     server = Server(url="", device=device)
     current = {"pty": ""}  # the pty the link points to now: what close may remove
 

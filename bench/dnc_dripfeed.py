@@ -67,7 +67,7 @@ async def _transfer(
     server = await serve(control, _listen(transport), line, pacing=True)
     # The control's parameters; the deadlines short, so a stuck transfer fails (and counts)
     # rather than holding the bench.
-    options = IsoCncOptions(
+    driver_options = IsoCncOptions(
         buffer_size=BUFFER,
         dc3_tolerance=TOLERANCE,
         motion_scale=scale,
@@ -80,7 +80,7 @@ async def _transfer(
         server.url,
         name=f"bench-{latency_ms:g}",
         settings=line,
-        options=options,
+        options=driver_options,
         store=StateStore(state),
     )
     try:

@@ -191,7 +191,7 @@ async def _run(
         async def all_waiting() -> bool:
             status = await api.call("cell.status")
             states = [m["state"] for m in status["machines"].values()]
-            return sum(s.startswith("drip-feeding") for s in states) == count
+            return bool(sum(str(s).startswith("drip-feeding") for s in states) == count)
 
         await _wait(all_waiting, "every machine waiting for its control's read", 300)
         cpu0 = _cpu_seconds(proc.pid)

@@ -58,7 +58,7 @@ from _common import machine_line, percentile
 from cellctl.cell.config import load_cell, transfer_ends
 from cellctl.cell.controller import CellController
 from cellctl.cell.model import ControllerOptions
-from cellctl.kinds.dyna2400.driver import MillConfig
+from cellctl.kinds.dyna2400.driver import Dyna2400Mill, MillConfig
 from cellctl.kinds.ibm7545.driver import RobotConfig
 from cellctl.protocol.plc import PlcMap
 from cellctl.testing.rig import CellRig
@@ -113,6 +113,7 @@ def bounds_for(rig: CellRig, controller: CellController) -> Bounds:
         mc = MillConfig.from_options(mill_config.options)
         setups.append(mc.setup_timeout)
         mill = controller.mills[mill_config.name]
+        assert isinstance(mill, Dyna2400Mill)  # the example cell's mills
         for part in config.parts.values():
             for step in part.route:
                 if step.mill != mill_config.name:
@@ -387,7 +388,7 @@ async def main() -> None:
                     fig.from_onset.append(alarm.raised - (onset or injection.at))
                     await alarms_quiet(rig, quiet)
                 for fault in injection.faults:
-                    rig.switch_off(fault)
+                    await rig.switch_off(fault)
                 if not await operator(rig, controller, args.verbose):
                     show(controller, f"after {kind}: the cell did not recover in 60 s")
                 await alarms_quiet(rig, quiet)

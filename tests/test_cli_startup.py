@@ -129,6 +129,17 @@ def test_a_command_that_runs_imports_what_it_needs(tmp_path: Path) -> None:
     assert {"cellctl.service.access", "cellctl.kinds.ibm7545.driver"} <= set(_heavy(modules))
 
 
+def test_the_api_client_imports_neither_the_server_nor_the_cells_access(tmp_path: Path) -> None:
+    """A command that asks a running controller (``cellctl alarm list`` beside ``cellctl
+    run``) loads the client alone: the server, the method table and the cell's own access
+    (the standalone cell) come with a command that opens the machines itself."""
+    done, modules = _imported(tmp_path, "import cellctl.service.client")
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "websockets" in modules  # the client's own
+    heavy = set(_heavy(modules)) - {"cellctl.service.client"}
+    assert not {m for m in heavy if not m.startswith("websockets")}, sorted(heavy)
+
+
 def test_the_registry_reads_every_kind_without_its_driver_or_emulator(tmp_path: Path) -> None:
     code = (
         "from cellctl.kinds import registry; "

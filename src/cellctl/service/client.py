@@ -19,7 +19,7 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Self
+from typing import TYPE_CHECKING, Any, Self
 
 from websockets.asyncio.client import ClientConnection, connect, unix_connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus, WebSocketException
@@ -34,12 +34,15 @@ from cellctl.errors import (
     UsageError,
 )
 from cellctl.mailbox import MAILBOX_FILE
-from cellctl.service.access import LocalCell
-from cellctl.service.machines import MachineRef
-from cellctl.service.methods import Caller, Dispatcher, error_from_object
-from cellctl.service.server import SOCKET_FILE
-from cellctl.service.status import CellStatus, difference
+from cellctl.service.rpc import SOCKET_FILE, Caller, error_from_object
 from cellctl.service.token import TOKEN_ENV, client_token, identify
+
+if TYPE_CHECKING:
+    # A command that asks a running controller needs none of these: the standalone cell
+    # (this process on the machines' links) imports them when it is made.
+    from cellctl.service.access import LocalCell
+    from cellctl.service.machines import MachineRef
+    from cellctl.service.status import CellStatus
 
 Update = Callable[[dict[str, Any]], None]
 Progress = Callable[[dict[str, Any]], None]
@@ -213,6 +216,8 @@ class StandaloneCell:
     mode = "standalone"
 
     def __init__(self, access: LocalCell) -> None:
+        from cellctl.service.methods import Dispatcher
+
         self.access = access
         self.dispatcher = Dispatcher(access)
         self.caller = env_caller(access.directory)
@@ -244,6 +249,8 @@ class StandaloneCell:
         return status.model_dump(mode="json")
 
     async def _poll(self, last: CellStatus) -> None:
+        from cellctl.service.status import difference
+
         while True:
             await current_clock().sleep(LOCAL_POLL)
             try:
@@ -327,6 +334,8 @@ async def open_cell(
 
     holder = controller_holder(directory)
     if holder is None:
+        from cellctl.service.access import LocalCell
+
         _require_cell(directory)
         return StandaloneCell(LocalCell(directory, refs, trace=trace, readiness=readiness))
     try:

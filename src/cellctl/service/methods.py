@@ -18,13 +18,11 @@ from __future__ import annotations
 import asyncio
 import getpass
 import threading
-from dataclasses import dataclass
 from typing import Any
 
 from pydantic import ValidationError
 
 from cellctl import __version__
-from cellctl import errors as errors_module
 from cellctl.errors import (
     AccessDenied,
     CellctlError,
@@ -72,16 +70,16 @@ from cellctl.service.params import MachineCallParams as MachineCallParams
 from cellctl.service.params import Method as Method
 from cellctl.service.params import P as P
 from cellctl.service.planning import PlanParams, plan_run
+from cellctl.service.rpc import APP_ERROR_BASE as APP_ERROR_BASE
+from cellctl.service.rpc import INTERNAL_ERROR as INTERNAL_ERROR
+from cellctl.service.rpc import INVALID_PARAMS as INVALID_PARAMS
+from cellctl.service.rpc import INVALID_REQUEST as INVALID_REQUEST
+from cellctl.service.rpc import METHOD_NOT_FOUND as METHOD_NOT_FOUND
+from cellctl.service.rpc import PARSE_ERROR as PARSE_ERROR
+from cellctl.service.rpc import Caller as Caller
+from cellctl.service.rpc import error_from_object as error_from_object
 from cellctl.service.token import role_allows
 
-#: JSON-RPC 2.0's own error codes.
-PARSE_ERROR = -32700
-INVALID_REQUEST = -32600
-METHOD_NOT_FOUND = -32601
-INVALID_PARAMS = -32602
-INTERNAL_ERROR = -32603
-#: A typed cellctl error: -32000 minus the CLI's exit code for it (UsageError -32002 ...).
-APP_ERROR_BASE = -32000
 #: The most requests one JSON-RPC batch may hold.
 MAX_BATCH = 100
 
@@ -381,15 +379,6 @@ class RoleRefused(AccessDenied):
         self.needs = needs
 
 
-@dataclass(frozen=True)
-class Caller:
-    """Who calls: ``who`` as the audit trail names it (``token:ann``, ``opcua:bob``) and
-    the role their token or user holds."""
-
-    who: str
-    role: str
-
-
 def local_caller() -> Caller:
     """The user at this computer, calling in-process: they hold the cell's files already."""
     try:
@@ -499,27 +488,3 @@ def _data(error: CellctlError, code: int) -> dict[str, Any]:
 def _a(word: str) -> str:
     """``word`` with its article: "an operator", "a viewer"."""
     return ("an " if word[:1] in "aeiou" else "a ") + word
-
-
-def error_from_object(obj: Any) -> CellctlError:
-    """The typed error a JSON-RPC error object describes (for clients)."""
-    if not isinstance(obj, dict):
-        return errors_module.ProtocolError(f"the API answered a malformed error: {obj!r}")
-    message = str(obj.get("message", "error"))
-    found = obj.get("data")
-    data: dict[str, Any] = found if isinstance(found, dict) else {}
-    kind = getattr(errors_module, str(data.get("type", "")), None)
-    if kind is errors_module.DeviceError:
-        return errors_module.DeviceError(
-            int(data.get("device_code", 0)),
-            str(data.get("device_message", message)),
-            detail=str(data.get("detail", "")),
-        )
-    if isinstance(kind, type) and issubclass(kind, ProtocolError):
-        # The message already shows the raw bytes: keep them as bytes, not twice in the text.
-        return kind(message.split(" (raw: ")[0], bytes.fromhex(str(data.get("raw", ""))))
-    if isinstance(kind, type) and issubclass(kind, CellctlError):
-        return kind(message)
-    if obj.get("code") in (METHOD_NOT_FOUND, INVALID_PARAMS, INVALID_REQUEST):
-        return UsageError(message)
-    return CellctlError(message)

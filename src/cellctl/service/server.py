@@ -74,6 +74,7 @@ from cellctl.service.methods import (
     RoleRefused,
     error_object,
 )
+from cellctl.service.rpc import SOCKET_FILE
 from cellctl.service.status import CellStatus, difference
 from cellctl.service.token import (
     TOKEN_FILE,
@@ -96,7 +97,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-SOCKET_FILE = "api.sock"
 #: The largest WebSocket frame accepted (a program text fits; more closes the connection).
 MAX_FRAME = 8 * 1024 * 1024
 #: Messages waiting for a slow client before it is dropped.

@@ -13,7 +13,7 @@ import sys
 from collections.abc import Awaitable, Callable, Coroutine, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NoReturn, TypeVar
+from typing import TYPE_CHECKING, Any, NoReturn, TypeVar
 
 import click
 from rich.console import Console
@@ -22,8 +22,12 @@ from rich.table import Table
 
 from cellctl.clock import current_clock
 from cellctl.errors import CellctlError, UsageError, exit_code
-from cellctl.kinds import registry
-from cellctl.service.machines import MachineRef, resolve_machine
+
+if TYPE_CHECKING:
+    from cellctl.service.machines import MachineRef
+
+# The kind registry (every kind's declaration, and pydantic with it) is imported by what uses
+# it: a command that only asks a running controller (`cellctl alarm list`) needs none of it.
 
 T = TypeVar("T")
 FC = TypeVar("FC", bound=Callable[..., Any])
@@ -200,6 +204,8 @@ def kind_commands() -> dict[str, list[click.Command]]:
     """The commands the installed kinds contribute (``cellctl robot``, ``cellctl emulate
     mill`` ...), by group: ``""`` the top level, ``"emulate"``. A kind's command for a group
     another kind contributed (``robot``) is added to that group."""
+    from cellctl.kinds import registry
+
     found: dict[str, list[click.Command]] = {"": [], "emulate": []}
     for kind in registry.kinds():
         try:
@@ -401,6 +407,8 @@ def machine_ref(
 ) -> tuple[Path, MachineRef]:
     """The cell directory and the machine a ``robot``/``mill`` command (``function``) means:
     NAME or ``--link``, and ``--kind``."""
+    from cellctl.service.machines import resolve_machine
+
     params = ctx.find_object(dict) or {}
     directory = cell_dir(ctx)
     ref = resolve_machine(

@@ -296,14 +296,18 @@ class Monitor:
     async def _robot(self) -> None:
         world = self.world
         robot = world.robot
-        if robot is None or world.robot_busy() or robot.name in world.manual_use:
+        if robot is None:
             return
         view = world.machines[robot.name]
-        if self._reading(robot.name):  # every round while a look is out, not every few
+        if self._reading(robot.name):
+            # Every round while a look is out, not every few; and even if a transfer was
+            # given the robot meanwhile (it waits behind this look on the line).
             cause = self._out_too_long(robot.name, robot.name, "robot")
             if cause is not None:
                 view.show(cause.text, Condition.OFFLINE, LastError(cause.text))
                 self.alarms.cause_alarm(cause)
+            return
+        if world.robot_busy() or robot.name in world.manual_use:
             return
         # Every ROBOT_ROUNDS rounds (half a round's slack for the rounds' own jitter): a
         # transfer's own status looks watched it meanwhile.

@@ -7,6 +7,7 @@ committed transaction, so a factory killed with -9 and started again loses nothi
     store.submit("wax-robot-base", 2, priority=0)          # queued
     store.send(order_id, "cell1", now, expires)            # sent: before the publish
     store.take_report("cell1", report)                     # accepted, done ... (idempotent)
+    store.cancel(order_id, by="ann", reason="wrong stock") # cancelled, or asked of its cell
     store.orders(); store.cells(); store.events()
 
 An order is ``queued`` (at no cell), ``sent`` (to one cell, not yet answered), then as its
@@ -14,6 +15,12 @@ cell reports it: ``accepted``, ``in-progress``, ``held`` (a part waits for the c
 operator), and at last ``done``, ``failed`` or ``cancelled``. A refusal, or a cell that went
 offline without taking it before its deadline, puts it back to ``queued`` with that cell
 remembered, so it goes elsewhere.
+
+A cancel (:mod:`cellctl.factory.cancel`) ends a queued order at once. For an order at a cell
+it is a request kept beside the state (``cancel_asked``, ``cancel_by``, ``cancel_reason``):
+the order is shown ``cancelling`` (:attr:`FactoryOrder.shown_state`) while its state goes on
+following the cell's reports, until the cell's ``order-cancelled`` ends it or its
+``cancel-refused`` withdraws the request.
 
 A cell's reports are taken in order, per mailbox: the next ``seq`` of the epoch the factory
 follows. A report of a new epoch (the cell's mailbox was made anew) starts that epoch; one
@@ -25,16 +32,59 @@ from __future__ import annotations
 
 import json
 import sqlite3
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, Literal
 
 from cellctl.cell.sqlitedb import SqliteStore
 from cellctl.clock import Clock, current_clock
 from cellctl.errors import UsageError
+from cellctl.factory.records import (
+    ACCEPTED,
+    ANSWER_KINDS,
+    AT_CELL_STATES,
+    CANCEL_COLUMNS,
+    CANCELLED,
+    CANCELLING,
+    DONE,
+    ENDS,
+    FAILED,
+    FINAL_STATES,
+    HELD,
+    IN_PROGRESS,
+    OPEN_STATES,
+    QUEUED,
+    SENT,
+    CellSeen,
+    FactoryEvent,
+    FactoryOrder,
+    Taken,
+    cell_of,
+    log_event,
+    order_of,
+)
 from cellctl.mailbox.base import MAX_QTY, check_new_order
-from cellctl.mailbox.wire import MAX_NAME, ReportKind, ReportMessage
+from cellctl.mailbox.wire import MAX_NAME, MAX_REASON, ReportKind, ReportMessage
+
+__all__ = [
+    "ACCEPTED",
+    "AT_CELL_STATES",
+    "CANCELLED",
+    "CANCELLING",
+    "DONE",
+    "FAILED",
+    "FINAL_STATES",
+    "HELD",
+    "IN_PROGRESS",
+    "OPEN_STATES",
+    "QUEUED",
+    "SENT",
+    "CellSeen",
+    "FactoryEvent",
+    "FactoryOrder",
+    "FactoryStore",
+    "Taken",
+]
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS orders (
@@ -57,7 +107,12 @@ CREATE TABLE IF NOT EXISTS orders (
     refused TEXT NOT NULL DEFAULT '[]',
     done INTEGER NOT NULL DEFAULT 0,
     held INTEGER NOT NULL DEFAULT 0,
-    scrapped INTEGER NOT NULL DEFAULT 0
+    scrapped INTEGER NOT NULL DEFAULT 0,
+    cancel_asked REAL,
+    cancel_by TEXT,
+    cancel_reason TEXT,
+    cancel_sent REAL,
+    cancel_sends INTEGER NOT NULL DEFAULT 0
 );
 CREATE TABLE IF NOT EXISTS cells (
     name TEXT PRIMARY KEY,
@@ -78,106 +133,10 @@ CREATE TABLE IF NOT EXISTS events (
 CREATE INDEX IF NOT EXISTS orders_by_state ON orders (state)
 """
 
-#: Order states: at no cell yet, sent, and as the cell's reports say.
-QUEUED, SENT, ACCEPTED, IN_PROGRESS, HELD = "queued", "sent", "accepted", "in-progress", "held"
-DONE, FAILED, CANCELLED = "done", "failed", "cancelled"
-OPEN_STATES = (QUEUED, SENT, ACCEPTED, IN_PROGRESS, HELD)
-AT_CELL_STATES = (ACCEPTED, IN_PROGRESS, HELD)
-FINAL_STATES = (DONE, FAILED, CANCELLED)
-#: Reports that answer an order: taken again when a re-sent order is answered again.
-ANSWER_KINDS = (ReportKind.ORDER_ACCEPTED, ReportKind.ORDER_REJECTED)
-#: Reports that end an order, and the state each ends it in.
-ENDS = {
-    ReportKind.ORDER_DONE: DONE,
-    ReportKind.ORDER_FAILED: FAILED,
-    ReportKind.ORDER_CANCELLED: CANCELLED,
-}
 
-
-@dataclass(frozen=True)
-class FactoryOrder:
-    """One order as the factory follows it."""
-
-    id: str
-    part_type: str
-    qty: int
-    priority: int
-    state: str
-    cell: str | None
-    note: str
-    submitted: float
-    updated: float
-    sent: float | None
-    last_send: float | None
-    sends: int
-    expires: float | None
-    accepted: float | None  # the cell's time of its order-accepted report
-    accepted_seen: float | None  # when the factory got it
-    finished: float | None
-    refused: tuple[str, ...]
-    done: int
-    held: int
-    scrapped: int
-
-    def as_dict(self) -> dict[str, Any]:
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in self.__dict__.items()}
-
-
-@dataclass(frozen=True)
-class CellSeen:
-    """What the factory last heard from a cell."""
-
-    name: str
-    status: str  # online, offline, unknown
-    status_time: float | None
-    state: dict[str, Any] = field(default_factory=dict)
-    state_time: float | None = None
-    seq: int = 0
-    epoch: str | None = None  # the mailbox whose reports seq counts
-
-    @property
-    def part_types(self) -> dict[str, float]:
-        """Part types the cell makes, each with what one more part adds to its bound (s)."""
-        types = self.state.get("part_types") or {}
-        return {str(k): float((v or {}).get("bound_s", 0.0)) for k, v in types.items()}
-
-
-@dataclass(frozen=True)
-class FactoryEvent:
-    id: int
-    time: float
-    cell: str | None
-    order_id: str | None
-    text: str
-
-
-def _order(row: sqlite3.Row) -> FactoryOrder:
-    data = dict(row)
-    data["refused"] = tuple(json.loads(data["refused"]))
-    return FactoryOrder(**data)
-
-
-def _cell(row: sqlite3.Row) -> CellSeen:
-    state = json.loads(row["state"]) if row["state"] else {}
-    return CellSeen(
-        row["name"],
-        row["status"],
-        row["status_time"],
-        state,
-        row["state_time"],
-        row["seq"],
-        row["epoch"],
-    )
-
-
-class Taken(NamedTuple):
-    """What one report did: ``text`` what changed, in words (or None); ``ask_after`` the seq
-    after which the cell should send its reports again (None: nothing is missing); ``refused``
-    why the report was not taken (or None)."""
-
-    text: str | None = None
-    ask_after: int | None = None
-    refused: str | None = None
+#: What :meth:`FactoryStore.cancel` did: cancelled at once, asked of the order's cell, or
+#: nothing (a cancel was on its way already).
+Outcome = Literal["cancelled", "asked", "pending"]
 
 
 class FactoryStore(SqliteStore):
@@ -191,6 +150,10 @@ class FactoryStore(SqliteStore):
             columns = {row["name"] for row in db.execute("PRAGMA table_info(cells)")}
             if "epoch" not in columns:
                 db.execute("ALTER TABLE cells ADD COLUMN epoch TEXT")
+            columns = {row["name"] for row in db.execute("PRAGMA table_info(orders)")}
+            for name, kind in CANCEL_COLUMNS.items():  # a store from before cancels
+                if name not in columns:
+                    db.execute(f"ALTER TABLE orders ADD COLUMN {name} {kind}")
 
     def _now(self) -> float:
         return (self._clock or current_clock()).now()
@@ -210,21 +173,21 @@ class FactoryStore(SqliteStore):
         with self._write() as db:
             row = db.execute("SELECT * FROM orders WHERE id = ?", (oid,)).fetchone()
             if row is not None:
-                return _order(row), False
+                return order_of(row), False
             db.execute(
                 "INSERT INTO orders (id, part_type, qty, priority, state, submitted, updated)"
                 " VALUES (?, ?, ?, ?, ?, ?, ?)",
                 (oid, part_type, qty, priority, QUEUED, now, now),
             )
-            _event(db, now, None, oid, f"order {oid} submitted: {qty} x {part_type}")
+            log_event(db, now, None, oid, f"order {oid} submitted: {qty} x {part_type}")
             row = db.execute("SELECT * FROM orders WHERE id = ?", (oid,)).fetchone()
-        return _order(row), True
+        return order_of(row), True
 
     def get(self, order_id: str) -> FactoryOrder:
         rows = self._read("SELECT * FROM orders WHERE id = ?", (order_id,))
         if not rows:
             raise UsageError(f"no order {order_id!r} in the factory")
-        return _order(rows[0])
+        return order_of(rows[0])
 
     def orders(self, states: Sequence[str] | None = None) -> list[FactoryOrder]:
         """Orders, highest priority first, then oldest first."""
@@ -234,7 +197,7 @@ class FactoryStore(SqliteStore):
             sql += f" WHERE state IN ({','.join('?' * len(states))})"
             args = list(states)
         sql += " ORDER BY priority DESC, submitted, id"
-        return [_order(r) for r in self._read(sql, args)]
+        return [order_of(r) for r in self._read(sql, args)]
 
     # -- dispatch -----------------------------------------------------------------------------
 
@@ -258,7 +221,9 @@ class FactoryStore(SqliteStore):
                 row = db.execute("SELECT * FROM orders WHERE id = ?", (order_id,)).fetchone()
                 if row is None:
                     raise UsageError(f"no order {order_id!r} in the factory")
-                order = _order(row)
+                order = order_of(row)
+                if order.state in FINAL_STATES:
+                    continue  # cancelled from the command line since it was chosen
                 if order.state != QUEUED:
                     raise UsageError(f"order {order_id} is {order.state}, not queued")
                 db.execute(
@@ -267,11 +232,11 @@ class FactoryStore(SqliteStore):
                     " WHERE id = ?",
                     (SENT, cell, now, now, expires, now, f"sent to {cell}", order_id),
                 )
-                _event(db, now, cell, order_id, f"order {order_id} sent to {cell}")
+                log_event(db, now, cell, order_id, f"order {order_id} sent to {cell}")
                 if reasons and order_id in reasons:
-                    _event(db, now, cell, order_id, f"order {order_id}: {reasons[order_id]}")
+                    log_event(db, now, cell, order_id, f"order {order_id}: {reasons[order_id]}")
                 row = db.execute("SELECT * FROM orders WHERE id = ?", (order_id,)).fetchone()
-                out.append(_order(row))
+                out.append(order_of(row))
         return out
 
     def resent(self, order_id: str) -> None:
@@ -289,16 +254,16 @@ class FactoryStore(SqliteStore):
             row = db.execute("SELECT * FROM orders WHERE id = ?", (order_id,)).fetchone()
             if row is None:
                 return
-            order = _order(row)
-            if order.state != SENT or order.cell != cell:
-                return  # a late or repeated answer: the order has moved on
+            order = order_of(row)
+            if order.state != SENT or order.cell != cell or order.cancelling:
+                return  # a late or repeated answer, or one to cancel: it stays where it is
             refused = [*order.refused, cell] if cell not in order.refused else list(order.refused)
             db.execute(
                 "UPDATE orders SET state = ?, cell = NULL, expires = NULL, refused = ?,"
                 " updated = ?, note = ? WHERE id = ?",
                 (QUEUED, json.dumps(refused), now, f"{cell}: {why}", order_id),
             )
-            _event(db, now, cell, order_id, f"order {order_id} back from {cell}: {why}")
+            log_event(db, now, cell, order_id, f"order {order_id} back from {cell}: {why}")
 
     def fail(self, order_id: str, why: str) -> None:
         """No cell can make it: the order fails with ``why``."""
@@ -309,19 +274,109 @@ class FactoryStore(SqliteStore):
                 " AND state = ?",
                 (FAILED, why, now, now, order_id, QUEUED),
             )
-            _event(db, now, None, order_id, f"order {order_id} failed: {why}")
+            log_event(db, now, None, order_id, f"order {order_id} failed: {why}")
 
-    def note(self, order_id: str, text: str) -> None:
-        """Say why a queued order waits (shown by `cellctl factory orders`)."""
+    def note(self, order_id: str, text: str) -> bool:
+        """Say why a queued order waits (shown by `cellctl factory orders`); True when the
+        note changed."""
         with self._write() as db:
-            db.execute(
-                "UPDATE orders SET note = ? WHERE id = ? AND note != ?", (text, order_id, text)
+            cur = db.execute(
+                "UPDATE orders SET note = ? WHERE id = ? AND note != ? AND state = ?",
+                (text, order_id, text, QUEUED),
             )
+            return cur.rowcount > 0
+
+    # -- cancels ------------------------------------------------------------------------------
+
+    def cancel(self, order_id: str, *, by: str, reason: str = "") -> tuple[FactoryOrder, Outcome]:
+        """Cancel an order for ``by`` (who asks) and ``reason``, and say how it went:
+        ``cancelled`` (it was queued: at once), ``asked`` (its cell is to cancel it) or
+        ``pending`` (a cancel is on its way already: nothing changes). UsageError for an
+        unknown order or one that has ended."""
+        if len(reason) > MAX_REASON:
+            raise UsageError(f"a reason has at most {MAX_REASON} characters, not {len(reason)}")
+        if not 1 <= len(by) <= MAX_NAME:
+            raise UsageError(f"who cancels is named in 1 to {MAX_NAME} characters")
+        now = self._now()
+        why = f"by {by}" + (f": {reason}" if reason else "")
+        with self._write() as db:
+            row = db.execute("SELECT * FROM orders WHERE id = ?", (order_id,)).fetchone()
+            if row is None:
+                raise UsageError(f"no order {order_id!r} in the factory")
+            order = order_of(row)
+            if order.state in FINAL_STATES:
+                raise UsageError(f"order {order_id} is {order.state}: there is nothing to cancel")
+            if order.cancelling:
+                return order, "pending"
+            outcome: Outcome
+            asked = "cancel_asked = ?, cancel_by = ?, cancel_reason = ?, cancel_sent = NULL"
+            if order.state == QUEUED:
+                db.execute(
+                    f"UPDATE orders SET state = ?, finished = ?, note = ?, updated = ?, {asked}"
+                    " WHERE id = ?",
+                    (CANCELLED, now, f"cancelled {why}", now, now, by, reason, order_id),
+                )
+                log_event(db, now, None, order_id, f"order {order_id} cancelled {why} (at no cell)")
+                outcome = "cancelled"
+            else:
+                note = f"cancelling at {order.cell}: asked {why}"
+                db.execute(
+                    f"UPDATE orders SET note = ?, updated = ?, {asked} WHERE id = ?",
+                    (note, now, now, by, reason, order_id),
+                )
+                text = f"order {order_id}: cancel asked {why}; {order.cell} is to cancel it"
+                log_event(db, now, order.cell, order_id, text)
+                outcome = "asked"
+            row = db.execute("SELECT * FROM orders WHERE id = ?", (order_id,)).fetchone()
+        return order_of(row), outcome
+
+    def cancelling(self) -> list[FactoryOrder]:
+        """Orders whose cancel is on its way to their cell, oldest request first."""
+        rows = self._read(
+            f"SELECT * FROM orders WHERE cancel_asked IS NOT NULL AND state IN"
+            f" ({','.join('?' * len(OPEN_STATES))}) ORDER BY cancel_asked, id",
+            OPEN_STATES,
+        )
+        return [order_of(r) for r in rows]
+
+    def cancel_sent(self, order_id: str) -> None:
+        """Count one more send of an order's cancel to its cell (the first one logged)."""
+        now = self._now()
+        with self._write() as db:
+            row = db.execute("SELECT * FROM orders WHERE id = ?", (order_id,)).fetchone()
+            if row is None or not order_of(row).cancelling:
+                return
+            db.execute(
+                "UPDATE orders SET cancel_sent = ?, cancel_sends = cancel_sends + 1 WHERE id = ?",
+                (now, order_id),
+            )
+            if row["cancel_sent"] is None:
+                log_event(
+                    db,
+                    now,
+                    row["cell"],
+                    order_id,
+                    f"order {order_id}: cancel sent to {row['cell']}",
+                )
+
+    def cancel_here(self, order_id: str, why: str) -> bool:
+        """Cancel a sent order its cell can no longer take (gone past its ``expires``) in the
+        store; True when it was."""
+        now = self._now()
+        with self._write() as db:
+            cur = db.execute(
+                "UPDATE orders SET state = ?, finished = ?, note = ?, updated = ? WHERE id = ?"
+                " AND state = ? AND cancel_asked IS NOT NULL",
+                (CANCELLED, now, f"cancelled: {why}", now, order_id, SENT),
+            )
+            if cur.rowcount:
+                log_event(db, now, None, order_id, f"order {order_id} cancelled: {why}")
+            return cur.rowcount > 0
 
     # -- what cells say -----------------------------------------------------------------------
 
     def cells(self) -> dict[str, CellSeen]:
-        return {r["name"]: _cell(r) for r in self._read("SELECT * FROM cells ORDER BY name")}
+        return {r["name"]: cell_of(r) for r in self._read("SELECT * FROM cells ORDER BY name")}
 
     def set_status(self, cell: str, status: str) -> bool:
         """Record a cell's online/offline; True when it changed."""
@@ -335,7 +390,7 @@ class FactoryStore(SqliteStore):
                 " DO UPDATE SET status = excluded.status, status_time = excluded.status_time",
                 (cell, status, now),
             )
-            _event(db, now, cell, None, f"{cell} {status}")
+            log_event(db, now, cell, None, f"{cell} {status}")
             return True
 
     def set_state(self, cell: str, state: dict[str, Any]) -> None:
@@ -365,7 +420,9 @@ class FactoryStore(SqliteStore):
                     " DO UPDATE SET seq = 0, epoch = excluded.epoch",
                     (cell, report.epoch),
                 )
-                _event(db, now, cell, None, f"{cell}: reports of mailbox {report.epoch} from now")
+                log_event(
+                    db, now, cell, None, f"{cell}: reports of mailbox {report.epoch} from now"
+                )
             if report.seq > last + 1:
                 why = f"report {report.seq} refused: the next one is {last + 1}"
                 return Taken(ask_after=last, refused=why)
@@ -379,9 +436,9 @@ class FactoryStore(SqliteStore):
             found = db.execute("SELECT * FROM orders WHERE id = ?", (oid,)).fetchone()
             if found is None:
                 return Taken()  # an order the cell had from elsewhere (its own mailbox)
-            text = _apply(db, _order(found), cell, report, now)
+            text = _apply(db, order_of(found), cell, report, now)
             if text:
-                _event(db, now, cell, oid, text)
+                log_event(db, now, cell, oid, text)
             return Taken(text)
 
     def data_version(self) -> int:
@@ -392,22 +449,13 @@ class FactoryStore(SqliteStore):
 
     def log(self, text: str, cell: str | None = None, order_id: str | None = None) -> None:
         with self._write() as db:
-            _event(db, self._now(), cell, order_id, text)
+            log_event(db, self._now(), cell, order_id, text)
 
     def events(self, after: int = 0, limit: int = 200) -> list[FactoryEvent]:
         rows = self._read(
             "SELECT * FROM events WHERE id > ? ORDER BY id DESC LIMIT ?", (after, limit)
         )
         return [FactoryEvent(**dict(r)) for r in reversed(rows)]
-
-
-def _event(
-    db: sqlite3.Connection, now: float, cell: str | None, oid: str | None, text: str
-) -> None:
-    db.execute(
-        "INSERT INTO events (time, cell, order_id, text) VALUES (?, ?, ?, ?)",
-        (now, cell, oid, text),
-    )
 
 
 def _apply(
@@ -431,6 +479,13 @@ def _apply(
             where = order.cell or "the queue"
             return f"order {oid} accepted by {cell} too, after it went to {where}"
         return None
+    if kind == ReportKind.CANCEL_REFUSED:
+        return _cancel_refused(order, cell, report, update)
+    if kind == ReportKind.ORDER_REJECTED and order.state == SENT and order.cancelling:
+        # Refused, so never made there: that is the cancel done.
+        note = f"cancelled: {cell} refused it ({words})"
+        update("state = ?, finished = ?, note = ?", CANCELLED, now, note)
+        return f"order {oid} cancelled: {cell} refused it: {words}"
     if kind == ReportKind.ORDER_ACCEPTED and order.state == SENT:
         t = report.time or now
         update("state = ?, accepted = ?, accepted_seen = ?, note = ?", ACCEPTED, t, now, words)
@@ -463,6 +518,31 @@ def _apply(
     if kind in ENDS:
         state = ENDS[kind]
         done = order.qty - order.scrapped if kind == ReportKind.ORDER_DONE else 0
-        update("state = ?, finished = ?, done = ?, note = ?", state, now, done, words)
-        return f"order {oid} {state} at {cell}: {words}"
+        note = words
+        if order.cancelling and kind == ReportKind.ORDER_CANCELLED:
+            note += f" (asked by {order.cancel_by}" + (
+                f": {order.cancel_reason})" if order.cancel_reason else ")"
+            )
+        elif order.cancelling:
+            note += " (it ended before the cancel came)"
+        update("state = ?, finished = ?, done = ?, note = ?", state, now, done, note)
+        return f"order {oid} {state} at {cell}: {note}"
     return None
+
+
+def _cancel_refused(
+    order: FactoryOrder, cell: str, report: ReportMessage, update: Callable[..., None]
+) -> str | None:
+    """The cell's own cancel refused the factory's: the order goes on there."""
+    oid, words = order.id, report.text
+    if order.state == CANCELLED and order.cancel_asked is not None:
+        # Cancelled here once its cell stayed away past the deadline, and yet it has started
+        # there (the one case the deadline cannot cover): said loudly.
+        return f"order {oid} was cancelled here, but {cell} makes it: {words}"
+    asked = report.data.get("asked")
+    if not order.cancelling or (isinstance(asked, int | float) and asked != order.cancel_asked):
+        return None  # an answer to an earlier request, or after the end
+    update(
+        "cancel_asked = NULL, cancel_sent = NULL, note = ?", f"{cell} did not cancel it: {words}"
+    )
+    return f"order {oid}: {cell} did not cancel it: {words}"

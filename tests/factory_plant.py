@@ -100,13 +100,14 @@ class Plant:
 
     # -- the controllers ---------------------------------------------------------------------
 
-    async def start(self, name: str) -> asyncio.subprocess.Process:
-        """Start ``cellctl run`` of cell ``name``, or ``cellctl factory run`` for "factory"."""
+    async def start(self, name: str, *more: str) -> asyncio.subprocess.Process:
+        """Start ``cellctl run`` of cell ``name``, or ``cellctl factory run`` for "factory"
+        (``more``: options of ``run``, e.g. ``--until-idle``)."""
         assert name not in self.procs, f"{name} is running"
         if name == "factory":
-            args = ["factory", "--dir", str(self.directory), "run", "--no-live"]
+            args = ["factory", "--dir", str(self.directory), "run", "--no-live", *more]
         else:
-            args = ["--cell", str(self.cell_dir(name)), "run", "--no-live"]
+            args = ["--cell", str(self.cell_dir(name)), "run", "--no-live", *more]
         with (self.logs / f"{name}.log").open("ab") as log:
             log.write(f"---- started {' '.join(args)}\n".encode())
             log.flush()

@@ -1,8 +1,9 @@
 """The factory's edges: the broker's ACLs with the credentials ``EmulatedFactory`` hands
 out; malformed states, reports and orders, which stop neither the factory nor a cell (over the
 broker, and as hypothesis properties); and the factory's command line (an unknown part type, a
-priority too large, a second ``run``, a broken factory.toml). The plant is
-tests/factory_plant.py.
+priority too large, a second ``run``, a broken factory.toml, ``cancel`` of an order queued, at
+a cell or started there, ``run --until-idle`` with an order no cell makes). The plant is
+tests/factory_plant.py; the cancel's parts without a broker are in tests/test_factory_cancel.py.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from hypothesis import strategies as st
 from rich.console import Console
 
 from cellctl.errors import UsageError
+from cellctl.factory.cancel import local_user
 from cellctl.factory.config import FactoryConfig
 from cellctl.factory.controller import FactoryController
 from cellctl.factory.dispatch import choose
@@ -33,9 +35,10 @@ from cellctl.factory.store import FINAL_STATES, OPEN_STATES, FactoryStore
 from cellctl.mailbox import REPORT_KINDS, open_mailbox
 from cellctl.mailbox.mqtt import read_credentials
 from cellctl.mailbox.wire import OrderMessage, WireError, parse_to_cell
-from cellctl.testing.rig import TIME_SCALE
+from cellctl.service.audit import AuditLog
+from cellctl.testing.rig import TIME_SCALE, cli
 from cellctl.ui.factory_cli import cells_table
-from tests.factory_plant import PART_TYPES, Plant
+from tests.factory_plant import CLI_S, PART_TYPES, WAIT_S, Plant
 
 from .conftest import CELLCTL
 
@@ -332,6 +335,122 @@ async def test_the_factory_command_line_on_a_running_plant(tmp_path: Path) -> No
         assert code == 0 and "C1" in out and "done" in out, out
         assert plant.store.get("C1").done == 2
         assert len(plant.cell("cell1").runs_per_part()) == 2
+        await cancels(plant)
+        await until_idle_ends_when_nothing_more_can_happen(plant)
+
+
+async def in_process(plant: Plant, *args: str) -> tuple[int, str]:
+    """``cellctl ARGS`` through click in a worker thread (no process more to start): its exit
+    code and what it printed; ``factory`` commands are given the plant's directory."""
+    if args[0] == "factory":
+        args = ("factory", "--dir", str(plant.directory), *args[1:])
+    try:
+        async with asyncio.timeout(CLI_S):
+            result = await cli(plant.cell_dir("cell1"), *args)
+    except TimeoutError:
+        raise AssertionError(f"cellctl {' '.join(args)}: no answer\n{plant.describe()}") from None
+    return result.exit_code, result.output
+
+
+async def cancels(plant: Plant) -> None:
+    """``cellctl factory cancel``: an unknown or a done order refused before anything is
+    sent; a queued order cancelled at once; an order at the (paused) cell cancelling while
+    the factory is away, asked twice and sent once it is back, then cancelled by the cell's
+    own cancel, nothing of it made; an order that has started refused by the cell, and
+    made."""
+    user, store, mailbox = local_user(), plant.store, plant.mailboxes["cell1"]
+    journal = plant.journals["cell1"]
+
+    async def ok(*args: str) -> str:
+        code, out = await in_process(plant, *args)
+        assert code == 0, f"{args}: {out}\n{plant.describe()}"
+        return out
+
+    events = len(store.events(limit=10_000))
+    code, out = await in_process(plant, "factory", "cancel", "NOPE")
+    assert code != 0 and "no order 'NOPE' in the factory" in out, out
+    code, out = await in_process(plant, "factory", "cancel", "C1")
+    assert code != 0 and "order C1 is done: there is nothing to cancel" in out, out
+    assert len(store.events(limit=10_000)) == events and store.get("C1").cancel_asked is None
+    # K1 at the cell, not started: a paused cell takes orders and starts nothing.
+    await ok("pause")
+    plant.submit([("K1", PART_TYPES[0], 2)])
+    await plant.wait_for(lambda: store.get("K1").state == "accepted", "K1 accepted by cell1")
+    await plant.stop("factory")
+    plant.submit([("Q1", PART_TYPES[1], 1)])  # at no cell: the factory is away
+    out = await ok("factory", "cancel", "Q1", "--reason", "ordered twice")
+    assert "order Q1 cancelled (it was at no cell)" in out, out
+    q1 = store.get("Q1")
+    assert (q1.state, q1.note) == ("cancelled", f"cancelled by {user}: ordered twice")
+    out = await ok("factory", "cancel", "K1", "--reason", "wrong material")
+    assert "order K1: cancelling at cell1" in out, out
+    out = await ok("factory", "cancel", "K1")
+    assert "a cancel is already on its way to cell1" in out and "nothing sent again" in out, out
+    (row,) = [line for line in (await ok("factory", "orders")).splitlines() if "K1" in line]
+    assert "cancelling" in row, row
+    await plant.start("factory")
+    await plant.wait_for(lambda: store.get("K1").state == "cancelled", "K1 cancelled by cell1")
+    k1 = store.get("K1")
+    assert k1.note == f"order K1 cancelled (asked by {user}: wrong material)", k1
+    assert mailbox.get_order("K1").state == "cancelled"
+    assert [p.status for p in journal.parts(order_id="K1")] == ["cancelled"] * 2
+    asked = [e.text for e in store.events(limit=10_000) if e.order_id == "K1"]
+    assert (
+        asked.count(f"order K1: cancel asked by {user}: wrong material; cell1 is to cancel it") == 1
+    )
+    with AuditLog(plant.cell_dir("cell1")) as audit:
+        who = [(e.who, e.method, e.result) for e in audit.entries()]
+    assert (f"factory:{user}", "orders.cancel", "ok") in who, who
+    # R1 has started: the cell's own cancel refuses it, and R1 is made.
+    await ok("resume")
+    plant.submit([("R1", PART_TYPES[0], 3)])
+    await plant.wait_for(lambda: journal.open_steps(), "a step of R1 under way at cell1")
+    await ok("pause")
+    await plant.wait_for(lambda: store.get("R1").state == "in-progress", "R1 in progress")
+    out = await ok("factory", "cancel", "R1")
+    assert "it has started there" in out, out
+    await plant.wait_for(lambda: store.get("R1").cancel_asked is None, "cell1 refuses to cancel R1")
+    r1 = store.get("R1")
+    assert r1.shown_state == "in-progress" and "cell1 did not cancel it" in r1.note, r1
+    assert "started" in r1.note, r1  # in the cell's words: it cannot be cancelled
+    await ok("resume")
+    await plant.wait_for(lambda: store.get("R1").state == "done", "R1 done")
+    # Made: C1's two parts and R1's three; nothing of K1 (cancelled) or Q1.
+    assert len(plant.cell("cell1").runs_per_part()) == 5, plant.describe()
+    assert [p.status for p in journal.parts(order_id="K1")] == ["cancelled"] * 2
+
+
+async def until_idle_ends_when_nothing_more_can_happen(plant: Plant) -> None:
+    """``run --until-idle`` with an order no cell makes (submitted before the cells said
+    what they make: the store takes it) and one for a cell that is offline: the first fails,
+    saying why; the second waits for its cell, and once it is made the run returns."""
+    store = plant.store
+    await plant.stop("cell1")
+    await plant.wait_for(lambda: store.cells()["cell1"].status == "offline", "cell1 offline")
+    await plant.stop("factory")
+    plant.submit([("U1", "wax-robot-arm", 1), ("W1", PART_TYPES[0], 1)])
+    proc = await plant.start("factory", "--until-idle")
+    await plant.wait_for(lambda: store.get("U1").state == "failed", "U1 failed")
+    made = ", ".join(sorted(plant.part_types("cell1")))
+    assert store.get("U1").note == f"no cell makes wax-robot-arm (the cells make: {made})"
+    w1 = store.get("W1")
+    assert (w1.state, w1.note) == (
+        "queued",
+        f"waiting for a cell that makes {PART_TYPES[0]} to come online (cell1)",
+    ), plant.describe()
+    assert proc.returncode is None  # W1 waits for cell1: the run goes on
+    await plant.start("cell1")
+    try:
+        async with asyncio.timeout(WAIT_S):
+            await proc.wait()
+    except TimeoutError:
+        raise AssertionError(f"--until-idle did not return\n{plant.describe()}") from None
+    plant.procs.pop("factory")
+    assert proc.returncode == 0, plant.describe()
+    assert store.get("W1").state == "done"
+    log = (plant.logs / "factory.log").read_text()
+    assert f"order U1 failed: no cell makes wax-robot-arm (the cells make: {made})" in log, log
+    assert "order W1 waits: waiting for a cell that makes" in log, log
 
 
 BROKEN = {

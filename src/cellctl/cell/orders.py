@@ -28,6 +28,9 @@ class ReportKind(StrEnum):
     ORDER_DONE = "order-done"
     ORDER_FAILED = "order-failed"
     ORDER_CANCELLED = "order-cancelled"
+    #: The factory asked the cell to cancel an order the cell's own cancel refuses (a part
+    #: has started): the order goes on; ``data`` names the request (``asked``, ``by``).
+    CANCEL_REFUSED = "cancel-refused"
 
 
 class OrderLike(Protocol):

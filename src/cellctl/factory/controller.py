@@ -13,7 +13,12 @@ why, committing the choice before the order goes out; re-sends every order its c
 answered each ``resend`` seconds (orders are idempotent by id at the cell); and puts back in
 the queue an order its cell refused, or one a cell that went offline did not take before the
 order's ``expires`` (``accept_timeout`` after it was sent: the cell refuses it after that, so it
-is made by one cell). Reports, state and status come in on a persistent session and are
+is made by one cell). An order no cell can ever make fails, saying why
+(:func:`~cellctl.factory.dispatch.stuck`): no cell of ``factory.toml`` makes its part type,
+or every one that does refused it; one that waits for a cell to come back, or for a cell
+never heard to say what it makes, waits. A cancel asked for an order at a cell
+(:mod:`cellctl.factory.cancel`) goes to that cell instead of the order, again each
+``resend`` until the cell answers. Reports, state and status come in on a persistent session and are
 acknowledged to the broker only after they are committed to the store. A cell's reports are
 taken in order (:mod:`cellctl.factory.store`); when some are missing the cell is asked for
 them again (an :class:`~cellctl.mailbox.wire.AskMessage` on its orders topic). A message that
@@ -32,7 +37,7 @@ import aiomqtt
 
 from cellctl.clock import Clock, current_clock
 from cellctl.factory.config import FactoryConfig
-from cellctl.factory.dispatch import Estimating, choose, every_cell_refused
+from cellctl.factory.dispatch import Estimating, choose, stuck
 from cellctl.factory.store import (
     OPEN_STATES,
     QUEUED,
@@ -44,6 +49,7 @@ from cellctl.factory.store import (
 from cellctl.mailbox.mqttlink import BACKOFF_S, MqttSettings, Reconnect
 from cellctl.mailbox.wire import (
     AskMessage,
+    CancelMessage,
     OrderMessage,
     WireError,
     parse_report,
@@ -82,6 +88,9 @@ class FactoryController:
         #: Per cell: (epoch, seq) after which its reports are missing, and when last asked.
         self._missing: dict[str, tuple[str, int]] = {}
         self._asked: dict[str, tuple[tuple[str, int], float]] = {}
+        #: Per queued order, why it waits as last logged (once settled: not the moments
+        #: before the cells' retained states come in).
+        self._told_waiting: dict[str, str] = {}
 
     @property
     def clock(self) -> Clock:
@@ -161,7 +170,8 @@ class FactoryController:
                 return
 
     def idle(self) -> bool:
-        """No order is open (every one is done, failed or cancelled)."""
+        """No order is open (every one is done, failed or cancelled): an order no cell can
+        ever make has failed; one that waits for a cell to come back keeps it open."""
         return not self.store.orders(OPEN_STATES)
 
     # -- in: reports, state, status -------------------------------------------------------------
@@ -227,11 +237,13 @@ class FactoryController:
         now = self.clock.now()
         await self._ask(client, now)
         cells = self.store.cells()
+        settled = self.settled(now)
         for order in self.store.orders([SENT]):
             assert order.cell is not None
+            if order.cancelling:
+                continue  # its cancel goes instead (below): the order is not sent again
             seen = cells.get(order.cell)
             offline = seen is None or seen.status != "online"
-            settled = self.connected_since is not None and now - self.connected_since >= SETTLE_S
             if offline and settled and order.expires is not None and now > order.expires:
                 self.store.requeue(
                     order.id,
@@ -242,7 +254,45 @@ class FactoryController:
             elif order.last_send is None or now - order.last_send >= self.config.resend:
                 await self._publish(client, order)
                 self.store.resent(order.id)
+        await self._cancel(client, cells, now)
         await self._dispatch(client, cells, now)
+
+    def settled(self, now: float) -> bool:
+        """Connected long enough that what the broker kept for the factory (the cells'
+        retained states, reports in its session) has come, and cells that were reconnecting
+        are back: only then is an order judged by what the cells said."""
+        return self.connected_since is not None and now - self.connected_since >= SETTLE_S
+
+    async def _cancel(self, client: aiomqtt.Client, cells: dict[str, CellSeen], now: float) -> None:
+        """Send each cancel asked for an order at a cell, again each ``resend`` until the cell
+        answers (its answer is a report: the order cancelled, or the cancel refused)."""
+        for order in self.store.cancelling():
+            if order.cell not in self.config.cells:
+                continue  # at a cell factory.toml no longer names: nothing can reach it
+            seen = cells.get(order.cell)
+            offline = seen is None or seen.status != "online"
+            late = order.expires is not None and now > order.expires
+            if order.state == SENT and offline and late and self.settled(now):
+                # Not taken in time, so that cell refuses it now (as a redirect relies on):
+                # nothing of it will be made there.
+                why = f"{order.cell} went offline and did not take it in time"
+                if self.store.cancel_here(order.id, why):
+                    self._log(f"order {order.id} cancelled: {why}")
+                continue
+            if order.cancel_sent is not None and now - order.cancel_sent < self.config.resend:
+                continue
+            message = CancelMessage(
+                cancel="order",
+                id=order.id,
+                by=order.cancel_by or "factory",
+                reason=order.cancel_reason or "",
+                asked=order.cancel_asked or now,
+            )
+            topic = f"{self.config.cells[order.cell]}/orders"
+            await client.publish(topic, message.model_dump_json(), qos=1)
+            if order.cancel_sent is None:
+                self._log(f"order {order.id}: cancel sent to {order.cell}")
+            self.store.cancel_sent(order.id)
 
     async def _dispatch(
         self, client: aiomqtt.Client, cells: dict[str, CellSeen], now: float
@@ -250,6 +300,8 @@ class FactoryController:
         """Choose a cell for every queued order, commit all choices at once, then send."""
         planned = {o.id: o for o in self.store.orders(OPEN_STATES)}
         queued = [o for o in planned.values() if o.state == QUEUED]
+        waiting = {o.id for o in queued}
+        self._told_waiting = {k: v for k, v in self._told_waiting.items() if k in waiting}
 
         def work(o: FactoryOrder) -> float:
             return o.qty * max(
@@ -264,11 +316,16 @@ class FactoryController:
         for order in sorted(queued, key=lambda o: (-o.priority, -work(o))):
             cell, why = choose(order, cells, list(planned.values()), how)
             if cell is None:
-                if every_cell_refused(order, self.config.cells):
-                    self.store.fail(order.id, f"refused by every cell ({order.note})")
-                    self._log(f"order {order.id} failed: refused by every cell")
-                else:
-                    self.store.note(order.id, why)
+                why, never = stuck(order, cells, self.config.cells)
+                settled = self.settled(now)
+                if never and settled:
+                    self.store.fail(order.id, why)
+                    self._log(f"order {order.id} failed: {why}")
+                    continue
+                self.store.note(order.id, why)
+                if settled and self._told_waiting.get(order.id) != why:
+                    self._told_waiting[order.id] = why
+                    self.log(f"order {order.id} waits: {why}", order_id=order.id)
                 continue
             choices.append((order.id, cell))
             whys[order.id] = why

@@ -152,3 +152,34 @@ def choose(
 def every_cell_refused(order: FactoryOrder, cells: Iterable[str]) -> bool:
     """Whether each of the factory's cells has refused ``order``."""
     return set(cells) <= set(order.refused)
+
+
+def stuck(
+    order: FactoryOrder, cells: Mapping[str, CellSeen], configured: Iterable[str]
+) -> tuple[str, bool]:
+    """Why no cell can take ``order`` now, in the operator's words, and whether that is for
+    good: True once every cell of ``configured`` (factory.toml's) has said what it makes (its
+    state) and none that makes the part type is left that has not refused it.
+
+    A cell that makes it and is offline keeps it waiting (it comes back), and so does a
+    cell never heard (it may make it)::
+
+        why, never = stuck(order, store.cells(), config.cells)
+        # ("no cell makes gear (the cells make: wax-robot-base)", True)
+    """
+    part = order.part_type
+    refused = set(order.refused)
+    heard = {n: cells[n] for n in configured if n in cells and cells[n].state}
+    unheard = [n for n in configured if n not in heard and n not in refused]
+    makers = [n for n, c in heard.items() if part in c.part_types]
+    waiting = [n for n in makers if n not in refused]
+    if waiting:
+        return f"waiting for a cell that makes {part} to come online ({', '.join(waiting)})", False
+    if unheard:
+        them = ", ".join(unheard)
+        return f"no cell heard so far makes {part}: waiting for {them} to say what it makes", False
+    if makers:
+        return f"refused by every cell that makes {part} ({order.note})", True
+    made = sorted({t for c in heard.values() for t in c.part_types})
+    why = f"no cell makes {part} (the cells make: {', '.join(made) or 'nothing'})"
+    return (why + f"; {order.note}" if refused and order.note else why), True

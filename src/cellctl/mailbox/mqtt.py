@@ -18,6 +18,14 @@ after a seq sent again; ``PREFIX/state`` (retained) on change; ``PREFIX/status``
 fails its model is logged and dropped. A broker that goes away is tried again with backoff
 (:class:`~cellctl.mailbox.mqttlink.Reconnect`); the cell keeps working meanwhile.
 
+Given a ``cancel`` (``cellctl run`` hands it the control API's ``orders.cancel``:
+:func:`cellctl.factory.cancel.cell_canceller`), the factory's cancel of an order on
+``PREFIX/orders`` is the cell's own operator's cancel, made as ``factory:WHO``: it reports
+``order-cancelled``, or ``cancel-refused`` with the cell's words when that cancel refuses
+(a part of the order has started)::
+
+    bridge = MqttBridge(settings, controller, mailbox, journal, cancel=cell_canceller(api))
+
 Given a ``planner`` (``[mailbox] plan_period``: :func:`cellctl.service.planning.own_plan`), the
 bridge also plays its cell's open work forward, one plan at a time, every ``plan_period``
 seconds and when its open orders or its machines' service change, and publishes when the
@@ -42,11 +50,12 @@ from cellctl.cell.estimate import finish_estimate, measured, part_bounds
 from cellctl.cell.journal import Journal
 from cellctl.cell.shift import cell_time_scale
 from cellctl.clock import Clock, current_clock
-from cellctl.errors import UsageError
-from cellctl.mailbox.base import Mailbox, Report
+from cellctl.errors import CellctlError, UsageError
+from cellctl.mailbox.base import FINAL_STATES, Mailbox, Report
 from cellctl.mailbox.mqttlink import BACKOFF_S, MqttSettings, Reconnect, read_credentials
 from cellctl.mailbox.wire import (
     AskMessage,
+    CancelMessage,
     MachineState,
     OrderMessage,
     PartTypeState,
@@ -60,6 +69,7 @@ from cellctl.mailbox.wire import (
 __all__ = [
     "ANSWERS",
     "BACKOFF_S",
+    "Canceller",
     "MqttBridge",
     "MqttSettings",
     "PlanEstimate",
@@ -87,6 +97,9 @@ class PlanEstimate:
 
 #: Plays the cell's open work forward (off the event loop) and says when it finishes.
 Planner = Callable[[], Awaitable[PlanEstimate]]
+#: Cancels an order as the cell's operator would, for ``(order id, who)``: the cell's words,
+#: or a :class:`CellctlError` (a UsageError) with them when the cell's cancel refuses.
+Canceller = Callable[[str, str], Awaitable[str]]
 
 
 class _Cell(Protocol):
@@ -114,8 +127,14 @@ class MqttBridge:
         clock: Clock | None = None,
         planner: Planner | None = None,
         plan_period: float = 300.0,
+        cancel: Canceller | None = None,
     ) -> None:
         self._clock = clock
+        self._cancel = cancel
+        #: The factory's cancels taken off the topic, to act on in order (an await each).
+        self._cancels: list[CancelMessage] = []
+        #: Per order, the last cancel request answered (a request sent again is not).
+        self._answered: dict[str, float] = {}
         self._planner = planner
         self.plan_period = plan_period
         #: The last plan of the cell's open work (None: none yet, or no planner).
@@ -283,13 +302,16 @@ class MqttBridge:
             payload = message.payload if isinstance(message.payload, bytes) else b""
             try:
                 self.take_order(payload)
+                await self.take_cancels()
             except Exception as e:  # nothing that arrives on a topic ends the cell's link
+                self._cancels.clear()
                 self.log(f"mailbox: {message.topic.value}: a message dropped: {e!r}"[:300])
             self._changed.set()
 
     def take_order(self, payload: bytes) -> None:
-        """Commit an order message to the mailbox and answer a repeated id again; or take the
-        factory's ask for reports again. A message that is neither is logged and dropped."""
+        """Commit an order message to the mailbox and answer a repeated id again; take the
+        factory's ask for reports again; or keep the factory's cancel for
+        :meth:`take_cancels`. A message that is none of them is logged and dropped."""
         try:
             message = parse_to_cell(payload)
         except WireError as e:
@@ -297,8 +319,63 @@ class MqttBridge:
             return
         if isinstance(message, AskMessage):
             self._asked(message)
+        elif isinstance(message, CancelMessage):
+            self._cancels.append(message)
         else:
             self._take(message)
+
+    async def take_cancels(self) -> None:
+        """Act on the factory's cancels taken by :meth:`take_order`, in the order they came."""
+        while self._cancels:
+            await self._cancel_order(self._cancels.pop(0))
+
+    async def _cancel_order(self, ask: CancelMessage) -> None:
+        oid = ask.id
+        if self._answered.get(oid) == ask.asked:
+            return  # the factory sent it again before it heard the answer
+        try:
+            state = self.mailbox.get_order(oid).state
+        except UsageError:
+            # Not here: the order never reached the cell (every order message the factory
+            # sent before this cancel comes before it on the topic): none of it is made.
+            self._answered[oid] = ask.asked
+            self.mailbox.post_report(
+                ReportKind.ORDER_CANCELLED,
+                f"order {oid} cancelled by the factory before it reached this cell",
+                order_id=oid,
+            )
+            return
+        if state in FINAL_STATES:
+            return  # its end is reported already: that answers the factory
+        if self._cancel is None:
+            self._refuse(ask, "this cell's controller takes no cancel from the factory")
+            return
+        try:
+            said = await self._cancel(oid, ask.by)
+        except CellctlError as e:  # the cell's own cancel refuses it, in its own words
+            self._refuse(ask, str(e))
+            return
+        reason = f": {ask.reason}" if ask.reason else ""
+        with contextlib.suppress(UsageError):  # who and why, on the cell's order too
+            self.mailbox.set_order_state(
+                oid, "cancelled", f"cancelled by the factory ({ask.by}){reason}"
+            )
+        # Cancelled by the factory, not taken back by drop_expired: its acceptance (if not
+        # yet sent) goes out as it is, not withdrawn.
+        if self.expiring.pop(oid, None) is not None:
+            self._save_mark()
+        self._answered[oid] = ask.asked
+        self.log(f"mailbox: {said}: asked by {ask.by} at the factory{reason}")
+
+    def _refuse(self, ask: CancelMessage, why: str) -> None:
+        self._answered[ask.id] = ask.asked
+        self.mailbox.post_report(
+            ReportKind.CANCEL_REFUSED,
+            why,  # the cell's own words: its kind says what was refused
+            order_id=ask.id,
+            data={"asked": ask.asked, "by": ask.by},
+        )
+        self.log(f"mailbox: the factory's cancel of order {ask.id} refused: {why}")
 
     def _asked(self, ask: AskMessage) -> None:
         if ask.epoch != self.mailbox.epoch:

@@ -40,14 +40,17 @@ from cellctl.mailbox.base import MAX_QTY, Report
 __all__ = [
     "MAX_DEPTH",
     "MAX_PAYLOAD",
+    "MAX_REASON",
     "VERSION",
     "AskMessage",
+    "CancelMessage",
     "MachineState",
     "OrderMessage",
     "PartTypeState",
     "ReportKind",
     "ReportMessage",
     "StateMessage",
+    "ToCell",
     "WireError",
     "nesting",
     "parse_report",
@@ -67,6 +70,8 @@ MAX_DEPTH: Final = 8
 #: ``cellctl cell check`` enforces); longest report text.
 MAX_NAME: Final = CELL_MAX_NAME
 MAX_TEXT: Final = 2000
+#: Longest reason given with a cancel (kept in the factory's events and the cell's note).
+MAX_REASON: Final = 500
 #: Most entries of a state's tables (as a cell may hold) and of a report's data.
 MAX_PART_TYPES: Final = CELL_MAX_PART_TYPES
 MAX_MACHINES: Final = CELL_MAX_MACHINES
@@ -123,6 +128,21 @@ class AskMessage(_Message):
     ask: Literal["reports"]
     epoch: Epoch
     after: Annotated[int, Field(ge=0, le=INT64_MAX)]
+
+
+class CancelMessage(_Message):
+    """``PREFIX/orders``, factory → cell: cancel order ``id`` as the cell's own operator
+    would (``orders.cancel``), on behalf of ``by`` at the factory, for ``reason``.
+
+    ``asked`` (the factory's time of the request) names the request: the cell answers each
+    one once, with its ``order-cancelled`` report or a ``cancel-refused`` whose ``data``
+    carries ``asked`` back."""
+
+    cancel: Literal["order"]
+    id: Name
+    by: Name
+    reason: Annotated[str, Field(max_length=MAX_REASON)] = ""
+    asked: Seconds
 
 
 class ReportMessage(_Message):
@@ -227,19 +247,27 @@ def _parse(model: type[M], payload: bytes, what: str) -> M:
 
 
 def _to_cell_kind(value: Any) -> str:
-    return "ask" if isinstance(value, dict) and "ask" in value else "order"
+    if isinstance(value, dict) and "ask" in value:
+        return "ask"
+    return "cancel" if isinstance(value, dict) and "cancel" in value else "order"
 
 
-_TO_CELL: TypeAdapter[OrderMessage | AskMessage] = TypeAdapter(
+#: What the factory sends on a cell's ``orders`` topic.
+ToCell = OrderMessage | AskMessage | CancelMessage
+
+_TO_CELL: TypeAdapter[ToCell] = TypeAdapter(
     Annotated[
-        Annotated[OrderMessage, Tag("order")] | Annotated[AskMessage, Tag("ask")],
+        Annotated[OrderMessage, Tag("order")]
+        | Annotated[AskMessage, Tag("ask")]
+        | Annotated[CancelMessage, Tag("cancel")],
         Discriminator(_to_cell_kind),
     ]
 )
 
 
-def parse_to_cell(payload: bytes) -> OrderMessage | AskMessage:
-    """A message on a cell's ``orders`` topic: an order, or the factory asking for reports."""
+def parse_to_cell(payload: bytes) -> ToCell:
+    """A message on a cell's ``orders`` topic: an order, the factory asking for reports, or
+    the factory cancelling an order."""
     _guard(payload, "order")
     try:
         return _TO_CELL.validate_json(payload)

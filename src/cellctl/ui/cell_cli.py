@@ -21,6 +21,7 @@ if TYPE_CHECKING:
     from cellctl.factory.opcua import OpcuaServer
     from cellctl.mailbox import Mailbox
     from cellctl.mailbox.mqtt import MqttBridge
+    from cellctl.service.methods import Dispatcher
 
 # The controller, the API server and the broker client are imported where the cell runs:
 # `cellctl cell check` and every `--help` load none of them (tests/test_cli_startup.py).
@@ -113,7 +114,7 @@ async def _run_owned(
         extra_routes=dashboard_routes,
         limits=api_limits(config.api),
     )
-    bridge = _mqtt_bridge(config, controller, mailbox, journal)
+    bridge = _mqtt_bridge(config, controller, mailbox, journal, server.dispatcher)
     if bridge is not None:
         bridge.drop_expired()  # before the controller can start a part of such an order
     bridge_task = None
@@ -168,9 +169,15 @@ def _opcua_server(config: CellConfig, controller: CellController) -> OpcuaServer
 
 
 def _mqtt_bridge(
-    config: CellConfig, controller: CellController, mailbox: Mailbox, journal: Journal
+    config: CellConfig,
+    controller: CellController,
+    mailbox: Mailbox,
+    journal: Journal,
+    api: Dispatcher,
 ) -> MqttBridge | None:
-    """The MQTT side of the mailbox when ``[mailbox] url`` names a broker."""
+    """The MQTT side of the mailbox when ``[mailbox] url`` names a broker; the factory's
+    cancels go through ``api`` (the control API's ``orders.cancel``)."""
+    from cellctl.factory.cancel import cell_canceller
     from cellctl.mailbox.mqtt import MqttBridge, MqttSettings
 
     box = config.mailbox
@@ -178,8 +185,9 @@ def _mqtt_bridge(
         return None
     ca = config.directory / box.ca if box.ca else None
     settings = MqttSettings.load(box.url, config.directory / box.credentials, ca)
+    cancel = cell_canceller(api)
     if box.plan_period is None:
-        return MqttBridge(settings, controller, mailbox, journal, log=controller.log)
+        return MqttBridge(settings, controller, mailbox, journal, log=controller.log, cancel=cancel)
     from cellctl.service.planning import own_plan
 
     horizon = box.plan_horizon
@@ -191,6 +199,7 @@ def _mqtt_bridge(
         log=controller.log,
         planner=lambda: own_plan(config.directory, mailbox, journal, horizon),
         plan_period=box.plan_period,
+        cancel=cancel,
     )
 
 

@@ -1,10 +1,11 @@
-"""The system controller from the shell: ``cellctl factory [--dir DIR] submit|orders|cells|run``,
-the cell's commands one level up, and ``cellctl emulate factory --cells N [--template CELL]...
-DIR``.
+"""The system controller from the shell: ``cellctl factory [--dir DIR]
+submit|cancel|orders|cells|run``, the cell's commands one level up, and ``cellctl emulate
+factory --cells N [--template CELL]... DIR``.
 
-``submit`` and ``orders`` read and write the factory's store (``DIR/state/factory.db``) whether
-or not ``run`` runs: ``run`` picks a new order up within 20 ms. ``run`` is the one factory
-controller of DIR (a second one is refused, naming the first).
+``submit``, ``cancel`` and ``orders`` read and write the factory's store
+(``DIR/state/factory.db``) whether or not ``run`` runs: ``run`` picks a new order or a cancel
+up within 20 ms. ``run`` is the one factory controller of DIR (a second one is refused, naming
+the first).
 """
 
 from __future__ import annotations
@@ -26,9 +27,10 @@ from rich.table import Table
 from cellctl.clock import current_clock
 from cellctl.emulators.serve import CELL_TIME_SCALE, TIME_SCALE_HELP
 from cellctl.errors import UsageError
+from cellctl.factory.cancel import request_cancel
 from cellctl.factory.config import FactoryConfig, factory_lock_path, load_factory
 from cellctl.factory.dispatch import load_s
-from cellctl.factory.store import OPEN_STATES, CellSeen, FactoryStore
+from cellctl.factory.store import CANCELLING, OPEN_STATES, CellSeen, FactoryStore
 from cellctl.link.lock import OwnerLock
 from cellctl.ui.common import (
     console,
@@ -50,7 +52,7 @@ ALREADY_RUN = "the factory in {what} is already run by {holder}"
 
 
 def _styled(state: str) -> str:
-    style = STATE_STYLE.get(state, "cyan" if state == "sent" else None)
+    style = STATE_STYLE.get(state, {"sent": "cyan", CANCELLING: "magenta"}.get(state))
     return f"[{style}]{state}[/{style}]" if style else state
 
 
@@ -101,6 +103,24 @@ def submit(
     run(main)
 
 
+@factory.command("cancel")
+@click.argument("order_id", metavar="ORDER")
+@click.option("--reason", default="", help="Why, kept with the cancel (at most 500 characters).")
+@click.pass_context
+def cancel(ctx: click.Context, order_id: str, reason: str) -> None:
+    """Cancel order ORDER: at once if it is at no cell, else through its cell, which cancels
+    it as its operator would (only an order none of whose parts has started); the order shows
+    as cancelling until the cell says so. A done, failed or cancelled order is refused."""
+
+    async def main() -> None:
+        config = _config(ctx)
+        with FactoryStore(config.state_path) as store:
+            asked = request_cancel(store, order_id, reason=reason)
+        console.print(asked.message, markup=False, soft_wrap=True)
+
+    run(main)
+
+
 def hms(seconds: float) -> str:
     """Seconds as h:mm:ss (``2560.7`` → ``0:42:41``)."""
     whole = max(0, round(seconds))
@@ -119,7 +139,7 @@ def orders_table(store: FactoryStore, everything: bool = True, limit: int = 200)
             o.id,
             o.part_type,
             str(o.qty),
-            _styled(o.state),
+            _styled(o.shown_state),
             o.cell or "",
             str(o.done),
             str(o.held),
@@ -214,7 +234,7 @@ def orders(ctx: click.Context, only_open: bool, as_json: bool) -> None:
         with FactoryStore(config.state_path) as store:
             if as_json:
                 rows = store.orders(None if not only_open else OPEN_STATES)
-                print_json([dataclasses.asdict(o) for o in rows])
+                print_json([{**dataclasses.asdict(o), "cancelling": o.cancelling} for o in rows])
                 return
             print_table(orders_table(store, everything=not only_open))
 

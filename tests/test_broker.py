@@ -11,7 +11,7 @@ import asyncio
 import os
 import stat
 import tomllib
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager, suppress
 from pathlib import Path
 
@@ -21,6 +21,7 @@ from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
 from cellctl.factory.broker import MosquittoBroker
+from cellctl.mailbox.mqttlink import MqttSettings, Reconnect
 
 CELLS = [("cell1", "cellctl/cell1"), ("cell2", "cellctl/cell2")]
 DEADLINE_S = 5.0
@@ -193,3 +194,61 @@ async def test_every_listener_binds_client_ids_to_users(broker: MosquittoBroker)
     # Only the listeners configured: no default listener on 1883 beside them.
     opened = [line for line in log.splitlines() if "listen socket on port" in line]
     assert {line.rsplit(" ", 1)[1].rstrip(".") for line in opened} == {str(broker.port)}
+
+
+async def test_two_programs_on_one_user_are_told_they_take_turns(broker: MosquittoBroker) -> None:
+    """The broker keeps one connection per user (its client id): two programs with one set of
+    credentials (a second `cellctl factory run` on another host) drop each other for ever.
+    Each says so in its log after a few such drops, not only "connection lost"."""
+    settings = MqttSettings.load(broker.url + "/factory", broker.credentials("factory"), None)
+    stop, both_told = asyncio.Event(), asyncio.Event()
+    logs: dict[str, list[str]] = {"first": [], "second": []}
+
+    def logger(name: str) -> Callable[[str], None]:
+        def log(line: str) -> None:
+            logs[name].append(line)
+            if told("first") and told("second"):
+                both_told.set()
+
+        return log
+
+    links = {
+        name: Reconnect(
+            settings, stop, log=logger(name), what=name, errors=(aiomqtt.MqttError,),
+            twin="a second copy of this program",
+        )
+        for name in logs
+    }  # fmt: skip
+
+    def told(name: str) -> bool:
+        return any("is a second copy of this program (factory)?" in line for line in logs[name])
+
+    first_in = asyncio.Event()
+
+    async def session(link: Reconnect) -> None:
+        async with settings.client("ignored: the broker names it after its user") as c:
+            link.connected()
+            first_in.set()
+            async for _ in c.messages:  # until the broker drops it: MqttError
+                pass
+
+    # The second starts once the first is in, as a second controller would: two connections
+    # made in the same instant can leave the dropped one unaware of it (aiomqtt), which is
+    # not what this is about.
+    tasks = [asyncio.create_task(links["first"].run(lambda: session(links["first"])))]
+    async with asyncio.timeout(30):
+        await first_in.wait()
+    tasks.append(asyncio.create_task(links["second"].run(lambda: session(links["second"]))))
+    try:
+        async with asyncio.timeout(20):
+            await both_told.wait()
+    finally:
+        stop.set()
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+    for lines in logs.values():
+        assert "take turns" in lines[-1], lines
+        # Said once, after drops that did not say it: a single drop is not a twin.
+        assert sum("take turns" in line for line in lines) == 1, lines
+        assert "take turns" not in lines[0], lines

@@ -114,7 +114,12 @@ class FactoryController:
             self.config.broker_url.rstrip("/") + "/factory", self.config.credentials, self.config.ca
         )
         self._reconnect = Reconnect(
-            settings, stop, log=self.log, what="broker", errors=(aiomqtt.MqttError,)
+            settings,
+            stop,
+            log=self.log,
+            what="broker",
+            errors=(aiomqtt.MqttError,),
+            twin="another `cellctl factory run` of this factory, on another host",
         )
         await self._reconnect.run(
             lambda: self._session(settings, stop, until_idle), on_drop=self._dropped

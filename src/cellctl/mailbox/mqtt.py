@@ -220,7 +220,13 @@ class MqttBridge:
         # ValueError, OSError too: a file the session could not handle (a mark that cannot
         # be written, say). Never end silently: the cell would go on without a mailbox and
         # the factory would think it online.
-        self._reconnect = Reconnect(self.settings, self._stopping, log=self.log, what="mailbox")
+        self._reconnect = Reconnect(
+            self.settings,
+            self._stopping,
+            log=self.log,
+            what="mailbox",
+            twin="another controller of this cell (`cellctl run`), on another host",
+        )
         planning = None
         if self._planner is not None:
             planning = asyncio.create_task(self._plan_loop(self._planner), name="own-plan")

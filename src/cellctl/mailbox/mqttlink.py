@@ -27,11 +27,18 @@ from urllib.parse import urlsplit
 
 import aiomqtt
 
+from cellctl.clock import current_clock
 from cellctl.errors import CellctlError, LinkError, UsageError
 from cellctl.files import read_text
 
 #: Seconds between attempts to reach a broker that went away: from the first to the last.
 BACKOFF_S = (0.2, 5.0)
+#: A session that was in and broke within this many seconds was cut short.
+SHORT_SESSION_S = 5.0
+#: Sessions cut short in a row before the log says another client may hold the same user:
+#: the broker keeps one connection per user (its client id), and drops the older one each
+#: time the other connects again, so two of them take turns without end.
+CUT_SHORT_TOLD = 3
 #: How long the look at a port that would not speak MQTT may take (is it TLS or not?).
 PROBE_S = 2.0
 
@@ -205,17 +212,21 @@ class Reconnect:
         log: Callable[[str], None],
         what: str,
         errors: tuple[type[BaseException], ...] = (aiomqtt.MqttError, OSError, ValueError),
+        twin: str = "another program connected as the same user",
     ) -> None:
         self.settings = settings
         self.stop = stop
         self.log = log
         self.what = what
         self.errors = errors
+        self.twin = twin
         #: The last problem, typed (TlsRefused, WrongScheme, ...); None once connected.
         self.problem: BaseException | None = None
         self._delay = BACKOFF_S[0]
         self._told: str | None = None
         self._in = False
+        self._in_at = 0.0
+        self._cut_short = 0  # sessions in a row that broke within SHORT_SESSION_S
 
     def connected(self) -> None:
         """The session is in: the next problem is told, and tried again soon."""
@@ -223,6 +234,7 @@ class Reconnect:
         self._told = None
         self.problem = None
         self._in = True
+        self._in_at = current_clock().monotonic()
 
     async def run(
         self, session: Callable[[], Awaitable[None]], on_drop: Callable[[], None] = lambda: None
@@ -236,6 +248,16 @@ class Reconnect:
                 on_drop()
                 # A connection that was in and broke needs no look at TLS.
                 self.problem = e if self._in else await self.settings.explain(e)
+                if self._in:
+                    lasted = current_clock().monotonic() - self._in_at
+                    self._cut_short = self._cut_short + 1 if lasted < SHORT_SESSION_S else 0
+                if self._cut_short >= CUT_SHORT_TOLD:
+                    self.problem = CellctlError(
+                        f"the broker drops this connection again and again within "
+                        f"{SHORT_SESSION_S:g} s of making it: is {self.twin} "
+                        f"({self.settings.username})? The broker keeps one connection per "
+                        "user: the two take turns"
+                    )
                 text = f"{self.what}: {self.settings.url}: {self.problem} (trying again)"
                 if text != self._told:
                     self.log(text)

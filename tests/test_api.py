@@ -313,11 +313,14 @@ async def test_emergency_stop_halts_and_holds(api: Api) -> None:
     assert any(a["code"] == "estop" and a["machine"] == "cell" for a in status["alarms"])
     held = api.rig.held_parts()
     assert held and "emergency stop" in held[0].note
-    # The idle mill got END (back in manual). (The cut's mill may not have: a block whose last
-    # lines were still on the line as the stop came starts as END arrives, and the controller
-    # takes no line while a block runs. Its READY comes back at the block's end instead.)
-    idle = [n for n in mills if n != api.rig.journal.steps()[-1].machine]
-    assert all("END" in [r.outcome for r in mills[n].runs[before[n] :]] for n in idle)
+    # Every mill got END (back in manual): the idle one at once, the cutting one once its
+    # block ended (a block whose last lines were still on the line is waited out too: an END
+    # arriving as it starts would be lost).
+    assert all("END" in [r.outcome for r in m.runs[before[n] :]] for n, m in mills.items())
+    # Not resumed while the stop's alarm is open: nothing moves a mill before it is cleared.
+    with pytest.raises(UsageError, match=r"the emergency stop's alarm \d+ is not cleared"):
+        await api.call("cell.resume")
+    assert (await api.call("cell.status"))["cell"]["paused"] is True
     # The operator's way back: ready the mills at their panels (the emulators' operator
     # does), clear the alarms, scrap the part cut short, resume: the mills are initialized
     # anew (not before the resume: no setup moves a mill while the stop is dealt with).
@@ -328,7 +331,7 @@ async def test_emergency_stop_halts_and_holds(api: Api) -> None:
         scrapped = await api.call("parts.scrap", {"id": part.id, "reason": "cut short by the stop"})
         # Cut short in the mill: the journal forgets it, the vise does not.
         assert f"it is still in {part.location}: take it out there" in scrapped["message"]
-    await api.call("cell.resume")
+    assert (await api.call("cell.resume"))["message"] == "resumed"
     controller = api.rig.controller
     assert controller is not None
     for name in mills:

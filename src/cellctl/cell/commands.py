@@ -66,14 +66,27 @@ class OperatorCommands:
             self.paused = True
             self.log("paused by the operator: steps in flight finish, no new step starts")
 
-    def resume(self: CommandsHost) -> None:
+    def resume(self: CommandsHost) -> str:
         """Start dispatching again (the mills an emergency stop halted are initialized anew:
-        their operators ready them at their panels first)."""
-        if self.paused:
-            self.paused = False
-            self.log("resumed by the operator")
-            self.resume_halted()
-            self.wake()
+        their operators ready them at their panels first). Refused (UsageError) while an
+        emergency stop is on: its button pressed, or its alarm not cleared."""
+        if not self.inputs.get("estop_ok", True):
+            raise UsageError(
+                "the emergency stop is pressed: release it, clear its alarm, then resume"
+            )
+        for a in self.journal.active_alarms():
+            if a.code == "estop":
+                raise UsageError(
+                    f"the emergency stop's alarm {a.id} is not cleared: deal with its cause, "
+                    f"clear it (`cellctl alarm clear {a.id}`), then resume"
+                )
+        if not self.paused:
+            return "not paused: the cell runs"
+        self.paused = False
+        self.log("resumed by the operator")
+        self.resume_halted()
+        self.wake()
+        return "resumed"
 
     async def set_service(self: CommandsHost, name: str, in_service: bool, reason: str = "") -> str:
         """Take machine ``name`` out of automatic service, or return it (then it is prepared:
@@ -153,6 +166,10 @@ class OperatorCommands:
         """
         self.paused = True
         text = "emergency stop" + (f": {reason}" if reason else " by the operator")
+        # The alarm (and with it the cell's emergency-stop mode) at once: a mill may take the
+        # rest of its block to halt, and the stop must show meanwhile.
+        self.alarm("cell", "estop", text)
+        self.log(f"{text}: cell paused; resume once the cause is dealt with")
         # What the held parts' notes say, for the steps this stop cancels (only those).
         previous, self.cancel_reason = self.cancel_reason, "an emergency stop"
         tasks = self.steps_in_flight()
@@ -163,15 +180,16 @@ class OperatorCommands:
                 await task
         self.cancel_reason = previous
         problems: list[str] = []
-        if self.robot is not None and self.robot.running:
+        robot = self.robot
+        if robot is not None and robot.running:
             try:
                 async with self.clock.timeout(ESTOP_TIMEOUT):
-                    await self.robot.stop()
+                    await robot.stop()
             except (CellctlError, OSError, TimeoutError) as e:
-                problems.append(f"robot stop failed: {e or 'no answer'}")
-        for name, mill in self.mills.items():
-            if mill.manual:
-                continue  # in manual: nothing of ours runs there
+                problems.append(f"{robot.name}: stop failed: {e or 'no answer'}")
+                self.alarm(robot.name, "estop", problems[-1])
+
+        async def halt(name: str, mill: Mill) -> None:
             try:
                 async with self.clock.timeout(ESTOP_TIMEOUT):
                     # The mill refuses END while a block runs: no more blocks go out, and
@@ -180,6 +198,7 @@ class OperatorCommands:
                         await self.clock.sleep(0.05)
                     await mill.end()
                 self.halted(name)
+                return
             except TimeoutError:
                 problems.append(
                     f"{name} still executes a block after {ESTOP_TIMEOUT:g} s: "
@@ -187,8 +206,10 @@ class OperatorCommands:
                 )
             except (CellctlError, OSError) as e:
                 problems.append(f"{name} halt failed: {e}")
-        self.alarm("cell", "estop", text + (f" ({'; '.join(problems)})" if problems else ""))
-        self.log(f"{text}: cell paused; resume once the cause is dealt with")
+            self.alarm(name, "estop", problems[-1])
+
+        # Every mill at once: each waits out its own block (in manual, nothing of ours runs).
+        await asyncio.gather(*(halt(n, m) for n, m in self.mills.items() if not m.manual))
         return text + ("; " + "; ".join(problems) if problems else "") + ": cell paused"
 
 

@@ -142,6 +142,8 @@ class CommandsHost(WorldModel, AlarmSink, Protocol):
 
     paused: bool
     listeners: list[Callable[[], None]]
+    inputs: dict[str, bool]
+    """The PLC's inputs at the monitor's last look."""
 
     async def prepare_robot(self) -> None:
         """Bring the robot to a known state (initialized), as on connecting."""

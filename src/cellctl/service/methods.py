@@ -109,8 +109,7 @@ async def _pause(access: CellAccess, p: NoParams, progress: Progress | None) -> 
 
 
 async def _resume(access: CellAccess, p: NoParams, progress: Progress | None) -> Any:
-    access.controller().resume()
-    return {"message": "resumed"}
+    return {"message": access.controller().resume()}
 
 
 async def _estop(access: CellAccess, p: EstopParams, progress: Progress | None) -> Any:

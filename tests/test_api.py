@@ -196,6 +196,8 @@ async def test_alarms_ack_shelve_history_and_a_wrong_token_acks_nothing(api: Api
     acked = await api.call("alarms.ack", {"id": alarm.id})
     assert f"alarm {alarm.id} acknowledged" in acked["message"]
     assert acked["alarm"]["acked"] is not None and acked["alarm"]["state"] == "active"
+    # Who did it is the caller the audit names (the cell's own token here), not a role.
+    assert acked["alarm"]["acked_by"] == "token:default", acked["alarm"]
     again = await api.call("alarms.ack", {"id": alarm.id})
     assert "already acknowledged" in again["message"]
 
@@ -215,6 +217,7 @@ async def test_alarms_ack_shelve_history_and_a_wrong_token_acks_nothing(api: Api
     assert f"alarm {alarm.id} shelved for 1h 30m" in shelved_cli.stdout, shelved_cli.stderr
     shelved = await api.call("alarms.shelve", {"id": alarm.id, "seconds": 1800})
     assert "shelved for 30m" in shelved["message"] and shelved["alarm"]["shelved_until"]
+    assert shelved["alarm"]["shelved_by"] == "token:default", shelved["alarm"]
     for bad in ({"id": alarm.id, "seconds": 8 * 3600 + 1}, {"id": alarm.id, "seconds": 0}):
         with pytest.raises(UsageError, match="seconds"):
             await api.call("alarms.shelve", bad)
@@ -223,6 +226,7 @@ async def test_alarms_ack_shelve_history_and_a_wrong_token_acks_nothing(api: Api
     await api.call("alarms.clear", {"id": alarm.id})
     history = await api.call("alarms.history", {"machine": "plc", "priority": "high"})
     assert [a["id"] for a in history] == [alarm.id] and history[0]["state"] == "cleared"
+    assert history[0]["cleared_by"] == "token:default", history[0]
     assert await api.call("alarms.history", {"machine": "cnc1"}) == []
     assert await api.call("alarms.history", {"since": alarm.raised + 3600}) == []
     history_cli = await asyncio.to_thread(

@@ -71,6 +71,7 @@ from cellctl.service.params import Method as Method
 from cellctl.service.params import P as P
 from cellctl.service.planning import PlanParams, plan_run
 from cellctl.service.rpc import APP_ERROR_BASE as APP_ERROR_BASE
+from cellctl.service.rpc import CALLER, caller_name
 from cellctl.service.rpc import INTERNAL_ERROR as INTERNAL_ERROR
 from cellctl.service.rpc import INVALID_PARAMS as INVALID_PARAMS
 from cellctl.service.rpc import INVALID_REQUEST as INVALID_REQUEST
@@ -159,19 +160,19 @@ async def _alarms(access: CellAccess, p: AlarmsParams, progress: Progress | None
 
 
 async def _clear(access: CellAccess, p: AlarmParams, progress: Progress | None) -> Any:
-    result = operator.clear_alarm(_journal(access), access.mailbox(), p.id)
+    result = operator.clear_alarm(_journal(access), access.mailbox(), p.id, by=caller_name())
     access.poke()
     return result
 
 
 async def _ack(access: CellAccess, p: AlarmParams, progress: Progress | None) -> Any:
-    result = operator.ack_alarm(_journal(access), p.id)
+    result = operator.ack_alarm(_journal(access), p.id, by=caller_name())
     access.poke()
     return result
 
 
 async def _shelve(access: CellAccess, p: ShelveParams, progress: Progress | None) -> Any:
-    result = operator.shelve_alarm(_journal(access), p.id, p.seconds)
+    result = operator.shelve_alarm(_journal(access), p.id, p.seconds, by=caller_name())
     access.poke()
     return result
 
@@ -418,7 +419,11 @@ class Dispatcher:
                     f"{name} is {_a(caller.role)}: {method} needs the {entry.role} role",
                     entry.role,
                 )
-            result = await self._run(entry, method, params, progress)
+            called = CALLER.set(caller)
+            try:
+                result = await self._run(entry, method, params, progress)
+            finally:
+                CALLER.reset(called)
         except Exception as e:
             if entry is not None and (entry.acts or isinstance(e, RoleRefused)):
                 await self.record(caller.who, method, params, str(e) or type(e).__name__)

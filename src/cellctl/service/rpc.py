@@ -8,6 +8,7 @@ that only asks a running controller imports this, not the server or the cell's a
 
 from __future__ import annotations
 
+from contextvars import ContextVar
 from dataclasses import dataclass
 from typing import Any
 
@@ -34,6 +35,17 @@ class Caller:
 
     who: str
     role: str
+
+
+#: Who makes the call being run (the dispatcher sets it): a method's handler names them where
+#: the journal keeps who did it (an alarm acknowledged, shelved, cleared).
+CALLER: ContextVar[Caller | None] = ContextVar("cellctl_caller", default=None)
+
+
+def caller_name(default: str = "operator") -> str:
+    """Who makes the call being run (``token:olga``, ``local:ann``), ``default`` outside one."""
+    caller = CALLER.get()
+    return caller.who if caller is not None else default
 
 
 def error_from_object(obj: Any) -> CellctlError:

@@ -237,7 +237,32 @@ async def test_a_mill_out_of_service_returns_when_its_alarm_is_cleared(tmp_path:
         await rig.stop_controller()
         assert rig.journal.machines_out_of_service() == {}
         assert rig.cut_twice() == {}
-        assert any("cleared by operator" in r.text for r in rig.reports("alarm-cleared"))
+        # Cleared by who cleared it: the local user at the command line, the rig's operator.
+        cleared = [r.text for r in rig.reports("alarm-cleared")]
+        assert any(f"alarm {out.id} cleared by local:" in text for text in cleared), cleared
+
+
+@pytest.mark.virtual
+async def test_a_mill_put_back_in_service_returns_its_alarm_to_normal(tmp_path: Path) -> None:
+    """`machine cnc2 in` ends what its out-of-service alarm stood for: the alarm returns to
+    normal (open until cleared) and no longer counts cnc2 down in the shift report."""
+    async with CellRig(tmp_path / "cell") as rig:
+        rig.post("wax-robot-base", 1, "A")
+        controller = await rig.start_controller(fail_limit=2)
+        await rig.wait_for(lambda: rig.finished_steps("machine") >= 1, "first cut done")
+        rig.switch_on("cnc2:never-ready")
+        await rig.wait_for(
+            lambda: rig.alarms("cnc2", "out-of-service"), "cnc2 taken out of service"
+        )
+        out = rig.alarms("cnc2", "out-of-service")[0]
+        await rig.switch_off("cnc2:never-ready")
+        # The operator's `machine cnc2 in` (machines.in_service), its alarm not cleared first.
+        back = await controller.set_service("cnc2", True)
+        assert back.startswith("cnc2 back in automatic service"), back
+        alarm = rig.journal.get_alarm(out.id)
+        assert alarm.returned is not None and alarm.state != "cleared", alarm
+        assert controller.machines["cnc2"].in_service
+        await rig.stop_controller()
 
 
 @pytest.mark.parametrize("time_scale", [1.0, 50.0, 1000.0])

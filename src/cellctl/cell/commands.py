@@ -106,6 +106,9 @@ class OperatorCommands:
         self.journal.set_machine_service(name, True, "returned by the operator")
         view.in_service = True
         view.failures = 0
+        # Its out-of-service alarm's condition is gone (the alarm stays open until cleared,
+        # but no longer counts the machine down).
+        self.returned(name, "out-of-service")
         if name == self.config.robot.name:
             await self.prepare_robot()
         else:

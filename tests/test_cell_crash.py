@@ -184,3 +184,40 @@ async def test_a_pulse_left_high_by_a_killed_controller_is_lowered_at_start(
         assert [a.text for a in rig.journal.alarms()] == [], rig.describe()
         assert plc.pallets_delivered == 1 and plc.coils["go_1"] is False
         assert rig.cut_twice() == {}
+
+
+@pytest.mark.timeout(120)
+async def test_ctrl_c_with_its_output_pipe_gone_still_lets_the_steps_finish(
+    tmp_path: Path,
+) -> None:
+    """`cellctl run | tee run.log`, and one Ctrl-C: the terminal sends it to both, tee goes
+    first, and the controller's next line meets a closed pipe. The stop is still the clean
+    one (the steps in flight finish, nothing held), and its exit status 0."""
+    directory = tmp_path / "cell"
+    errors = tmp_path / "stderr"
+    async with CellRig(directory, time_scale=300.0) as rig:
+        rig.post("wax-robot-base", 1, "A")
+        read, write = os.pipe()
+        with errors.open("wb") as err:
+            proc = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "cellctl", "--cell", str(directory), "run", "--no-live",
+                stdout=write, stderr=err, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+            )  # fmt: skip
+        os.close(write)
+        try:
+            await rig.wait_for(lambda: rig.open_steps("machine"), "a cut in flight", timeout=60)
+            os.close(read)  # tee is gone
+            proc.send_signal(signal.SIGINT)
+            async with asyncio.timeout(60):
+                await proc.wait()
+        finally:
+            if proc.returncode is None:
+                proc.kill()
+                await proc.wait()
+        said = errors.read_text(errors="replace")
+        assert proc.returncode == 0, said[-3000:]
+        assert "Traceback" not in said, said[-3000:]
+        assert rig.held_parts() == [], rig.describe()
+        assert rig.journal.open_steps() == [] and all(
+            s.state == "finished" for s in rig.journal.steps()
+        ), rig.describe()

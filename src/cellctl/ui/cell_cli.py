@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
+import sys
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -93,6 +95,7 @@ async def _run_owned(
     journal = open_journal(directory)
     mailbox = open_mailbox(directory)
     stop = stop or asyncio.Event()
+    console.on_broken_pipe = _output_gone  # type: ignore[method-assign]
     printer = None if live else _print_event
     controller = CellController(config, journal, mailbox, options=options, on_event=printer)
     presses = 0
@@ -214,9 +217,26 @@ def _bridge_ended(task: asyncio.Task[None], controller: CellController) -> None:
 
 
 def _print_event(e: Event) -> None:
-    """One event a line, at once (also when the output is a file or a pipe)."""
-    console.print(_event_line(e), markup=False, soft_wrap=True)
-    console.file.flush()
+    """One event a line, at once (also when the output is a file or a pipe). A pipe whose
+    reader is gone (`cellctl run | tee`, and Ctrl-C took tee first) ends the printing, not
+    the controller: the journal keeps every event, and the stop goes on as asked."""
+    try:
+        console.print(_event_line(e), markup=False, soft_wrap=True)
+        console.file.flush()
+    except BrokenPipeError:
+        _output_gone()
+
+
+def _output_gone() -> None:
+    """Standard output is a pipe nobody reads any more: it goes to /dev/null from here (a
+    write, or the flush at exit, would fail again). Rich's own answer would end the program
+    (SystemExit 1): ``cellctl run`` puts this one in its place."""
+    console.quiet = True
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, sys.stdout.fileno())
+    finally:
+        os.close(devnull)
 
 
 def _event_line(e: Event) -> str:

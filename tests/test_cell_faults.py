@@ -492,3 +492,29 @@ async def test_an_emulated_cell_of_an_emulated_cells_directory_is_the_real_cells
             machine.pop("link")
         table["plc"].pop("url")
     assert real == example
+
+
+@pytest.mark.virtual
+async def test_a_part_released_to_be_cut_again_after_an_emergency_stop_is_cut(
+    tmp_path: Path,
+) -> None:
+    """The way out of an emergency stop with the part left in the mill to be cut again
+    (`part release --redo`): on resume the halted mill is set up anew over it (END took its
+    setup; without one it would never show ready and would go out of service)."""
+    async with CellRig(tmp_path / "cell") as rig:
+        rig.post("wax-robot-base", 1, "A")
+        controller = await rig.start_controller()
+        await rig.wait_for(lambda: rig.open_steps("machine"), "a cut in flight")
+        await controller.emergency_stop("guard opened")
+        held = rig.held_parts()
+        assert held and all(p.location in rig.cell.mills for p in held), rig.describe()
+        mills = rig.cell.mills.values()
+        await rig.wait_for(lambda: all(m.display == "READY" for m in mills), "mills READY")
+        await rig.clear_alarms()
+        for part in held:
+            released = await rig.cli("part", "release", part.id, "--redo")
+            assert released.exit_code == 0, released.output
+        assert controller.resume() == "resumed"
+        await rig.wait_for(rig.all_done, "order A done", timeout=120)
+        await rig.stop_controller()
+        assert not rig.alarms(code="out-of-service"), rig.describe()

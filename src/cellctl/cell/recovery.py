@@ -44,6 +44,7 @@ class Recovery:
         """False from a robot fault (its status, its link) until the monitor's next good look."""
         self._tasks: dict[str, asyncio.Task[None]] = {}
         self._halted: set[str] = set()  # mills an emergency stop sent END, until resume
+        self._resumed: set[str] = set()  # halted mills the resume sets up, part or no part
 
     # -- what the scheduler asks ----------------------------------------------------------------
 
@@ -107,6 +108,9 @@ class Recovery:
         it at its panel meanwhile; if not, the setup's refusal is its alarm, as for any fault).
         Not before: no setup moves a mill while the operator deals with an emergency stop."""
         for name in sorted(self._halted):
+            # Its setup runs even over a part in its vise (released to be cut again): END
+            # took the setup, and without one it never shows ready (the operator resumed).
+            self._resumed.add(name)
             self._start(name)
         self._halted.clear()
 
@@ -125,10 +129,11 @@ class Recovery:
                 continue
             if not await self.reopen_mill(config):
                 continue
-            if self._occupied(name):
+            if self._occupied(name) and name not in self._resumed:
                 await self._await_readiness(config)
             else:
                 await self.prepare_mill(config, force=True)
+        self._resumed.discard(name)
 
     def _occupied(self, name: str) -> bool:
         """A part is in the mill's vise: its setup program does not run over it."""

@@ -63,7 +63,7 @@ def test_a_kind_of_another_family_or_none_installed_is_refused(tmp_path: Path) -
 
 def test_a_name_and_its_kind_are_checked_against_cell_toml(tmp_path: Path) -> None:
     cell = write_cell(tmp_path / "cell")
-    with pytest.raises(UsageError, match="machine 'cobot' is a 'ur', not a 'ibm7545'"):
+    with pytest.raises(UsageError, match="machine 'cobot' is a 'ur', not an 'ibm7545'"):
         resolve_machine(cell, "robot", name="cobot", link=None, kind="ibm7545")
     with pytest.raises(UsageError, match=r"which robot\? .*known: arm, cobot"):
         resolve_machine(cell, "robot", name=None, link=None)
@@ -124,5 +124,5 @@ async def test_a_kind_that_contradicts_cell_toml_is_refused_before_a_byte(tmp_pa
         server.close()
         await server.wait_closed()
     assert code == 2 and out == ""
-    assert "machine 'cobot' is a 'ur', not a 'ibm7545'" in err
+    assert "machine 'cobot' is a 'ur', not an 'ibm7545'" in err
     assert accepted == []  # the link was never opened

@@ -15,8 +15,12 @@ from click.testing import CliRunner, Result
 
 from cellctl.cell.journal import open_journal
 from cellctl.mailbox import open_mailbox
+from cellctl.service.methods import local_caller
 from cellctl.ui.cli import main
 from cellctl.ui.common import stop_signals
+
+#: Who a command typed at this computer acts as (no $CELLCTL_TOKEN): ``local:USER``.
+LOCAL_USER = local_caller().who
 
 CELL_TOML = """
 [parts.wax-robot]
@@ -206,7 +210,8 @@ def test_alarm_list_and_clear_while_the_controller_holds_the_journal(cell: Path)
         assert result.exit_code == 0, result.output
         assert f"alarm {alarm.id} cleared" in result.stdout
         assert controller.active_alarms() == []
-        assert controller.get_alarm(alarm.id).cleared_by == "operator"
+        # Cleared by whom the audit names: the local user at the command line.
+        assert controller.get_alarm(alarm.id).cleared_by == LOCAL_USER
 
         assert "no active alarms" in cellctl(cell, "alarm", "list").stdout
         assert "door open" in cellctl(cell, "alarm", "list", "--all").stdout
@@ -217,7 +222,7 @@ def test_alarm_list_and_clear_while_the_controller_holds_the_journal(cell: Path)
     with open_mailbox(cell) as mailbox:
         (report,) = mailbox.reports()
         assert report.kind == "alarm-cleared"
-        assert report.data == {"alarm": alarm.id, "machine": "cnc1", "code": "64", "by": "operator"}
+        assert report.data == {"alarm": alarm.id, "machine": "cnc1", "code": "64", "by": LOCAL_USER}
 
     missing = cellctl(cell, "alarm", "clear", "99")
     assert missing.exit_code == 2
@@ -320,3 +325,21 @@ def test_a_stop_on_ctrl_c_does_not_hand_back_asyncios_own_ctrl_c_handler() -> No
         assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
     finally:
         signal.signal(signal.SIGINT, previous)
+
+
+def test_a_directory_that_is_no_cell_is_refused_not_shown_empty(tmp_path: Path) -> None:
+    """A mistyped --cell: `orders` and `reports` say there is no cell there (as `alarm list`
+    does), not "no orders"."""
+    for args in (["orders"], ["orders", "--json"], ["reports"]):
+        result = cellctl(tmp_path / "celll", *args)
+        assert result.exit_code == 2, result.output
+        assert "error: no cell at" in result.stderr, result.stderr
+        assert "no cell.toml and no mailbox" in result.stderr
+    assert not (tmp_path / "celll").exists()  # nothing made there
+
+
+def test_traffic_without_a_controller_says_whose_traffic_it_is(cell: Path) -> None:
+    result = cellctl(cell, "traffic", "cnc1")
+    assert result.exit_code == 2
+    assert "no controller runs on" in result.stderr and "(`cellctl run`)" in result.stderr
+    assert "--trace FILE" in result.stderr

@@ -107,6 +107,14 @@ def exit_code(error: CellctlError) -> int:
     return 1
 
 
+def with_article(word: str) -> str:
+    """``word`` with its article, as a message says it: "an operator", "a viewer", "an
+    'ibm7545'", "a 'ur'" (by its first letter's sound in the kinds' and roles' names: a
+    ``u`` is said "you")."""
+    first = word.lstrip("'\"")[:1].lower()
+    return ("an " if first in ("a", "e", "i", "o") else "a ") + word
+
+
 def format_raw(raw: bytes, limit: int = 64) -> str:
     """Show bytes as hex plus printable text, e.g. ``13 11 44 30 |..D0|``."""
     shown = raw[:limit]

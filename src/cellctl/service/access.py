@@ -381,7 +381,11 @@ class LocalCell(CellAccess):
 
     def traffic(self, name: str, limit: int) -> list[dict[str, Any]]:
         if name not in self.refs:
-            raise UsageError(f"unknown machine {name!r} (known: {', '.join(self.refs)})")
+            raise UsageError(
+                f"no controller runs on {self.directory}: the traffic of {name!r} is the "
+                "running controller's (`cellctl run`); a command of its own shows its bytes "
+                "with --trace FILE"
+            )
         return traffic_rows(self.traffic_log, name, limit)
 
     async def close(self) -> None:

@@ -308,7 +308,7 @@ async def attach(directory: Path) -> RemoteCell:
     )
 
 
-def _require_cell(directory: Path) -> None:
+def require_cell(directory: Path) -> None:
     """Refuse a directory with neither a cell.toml nor a mailbox (a mailbox alone is a cell
     as the system level sees it): a mistyped --cell must not answer "no alarms" from a
     mailbox made there now."""
@@ -336,7 +336,7 @@ async def open_cell(
     if holder is None:
         from cellctl.service.access import LocalCell
 
-        _require_cell(directory)
+        require_cell(directory)
         return StandaloneCell(LocalCell(directory, refs, trace=trace, readiness=readiness))
     try:
         return await attach(directory)

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from cellctl.errors import UsageError
+from cellctl.errors import UsageError, with_article
 from cellctl.files import read_file, reason
 from cellctl.kinds import registry
 from cellctl.link import LineSettings
@@ -97,9 +97,12 @@ def resolve_machine(
     entry = machines[name]
     found = entry.get("kind")
     if found not in kinds:
-        raise UsageError(f"machine {name!r} is a {found!r}, not a {family}")
+        raise UsageError(f"machine {name!r} is {with_article(repr(found))}, not a {family}")
     if kind is not None and found != kind:
-        raise UsageError(f"machine {name!r} is a {found!r}, not a {kind!r} (cell.toml)")
+        raise UsageError(
+            f"machine {name!r} is {with_article(repr(found))}, not {with_article(repr(kind))} "
+            "(cell.toml)"
+        )
     if not entry.get("link"):
         raise UsageError(f"machine {name!r} has no link URL in cell.toml")
     text = line or entry.get("line")

@@ -30,6 +30,7 @@ from cellctl.errors import (
     ProtocolError,
     UsageError,
     exit_code,
+    with_article,
 )
 from cellctl.kinds import registry
 from cellctl.service import operator
@@ -289,7 +290,7 @@ def _machine_name(access: CellAccess, family: str, name: str | None) -> str:
     if name not in machines:
         raise UsageError(f"unknown {family} {name!r} (known: {', '.join(mine) or 'none'})")
     if machines[name] != family:
-        raise UsageError(f"machine {name!r} is a {machines[name]}, not a {family}")
+        raise UsageError(f"machine {name!r} is {with_article(machines[name])}, not a {family}")
     return name
 
 
@@ -416,7 +417,7 @@ class Dispatcher:
             if not role_allows(caller.role, entry.role):
                 name = caller.who.partition(":")[2] or caller.who
                 raise RoleRefused(
-                    f"{name} is {_a(caller.role)}: {method} needs the {entry.role} role",
+                    f"{name} is {with_article(caller.role)}: {method} needs the {entry.role} role",
                     entry.role,
                 )
             called = CALLER.set(caller)
@@ -487,8 +488,3 @@ def _data(error: CellctlError, code: int) -> dict[str, Any]:
     if isinstance(error, ProtocolError):
         data["raw"] = error.raw.hex()
     return data
-
-
-def _a(word: str) -> str:
-    """``word`` with its article: "an operator", "a viewer"."""
-    return ("an " if word[:1] in "aeiou" else "a ") + word

@@ -144,6 +144,9 @@ def orders(ctx: click.Context, states: Sequence[str], as_json: bool) -> None:
     directory = cell_dir(ctx)
 
     if not (directory / MAILBOX_FILE).exists() and not _controller_runs(directory):
+        from cellctl.service.client import require_cell
+
+        require_cell(directory)  # a mistyped --cell is not an empty cell
         if as_json:
             print_json([])
             return
@@ -231,6 +234,9 @@ def reports(ctx: click.Context, since: int, limit: int | None, follow: bool, as_
 
     def action() -> None:
         if not (directory / MAILBOX_FILE).exists():
+            from cellctl.service.client import require_cell
+
+            require_cell(directory)  # a mistyped --cell is not an empty cell
             if as_json:
                 print_json([])
                 return

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any, ClassVar, Generic, TypeVar
 
 from rich.text import Text
-from textual import on
+from textual import events, on
 from textual.app import ComposeResult
 from textual.binding import Binding, BindingType
 from textual.containers import Horizontal, Vertical
@@ -117,6 +117,16 @@ class PickDialog(Dialog[str]):
     @on(OptionList.OptionSelected)
     def _picked(self, event: OptionList.OptionSelected) -> None:
         self.dismiss(event.option.id)
+
+    def on_key(self, event: events.Key) -> None:
+        """A number key picks the row numbered so (``1. ACKNOWLEDGE``), as in the menus."""
+        if event.character is None or not event.character.isdigit():
+            return
+        for key, label in self.rows:
+            if label.startswith(f"{event.character}. "):
+                event.stop()
+                self.dismiss(key)
+                return
 
     def show_rows(self, rows: Iterable[tuple[str, str]]) -> None:
         """Show ``rows`` instead, the highlight kept on the same key where it still is."""

@@ -94,6 +94,15 @@ async def test_roles_on_websocket_http_and_the_dashboard_and_the_audit_trail(
         assert stat.S_IMODE(path.stat().st_mode) == 0o600
         assert viewer not in path.read_text() and operator not in path.read_text()
     assert stat.S_IMODE((cell / "tokens").stat().st_mode) == 0o700
+    # Tokens are changed by an engineer: with a viewer's or an operator's token in
+    # $CELLCTL_TOKEN the command is refused (and the refusal is in the audit trail).
+    code, out = await cli_as(cell, viewer, "token", "add", "eve", "--role", "engineer")
+    assert code == 7 and "vera is a viewer: token.add needs the engineer role" in out, out
+    code, out = await cli_as(cell, operator, "token", "revoke", "vera")
+    assert code == 7 and "otto is an operator: token.revoke needs the engineer role" in out, out
+    code, out = await cli_as(cell, "not-a-token", "token", "revoke", "vera")
+    assert code == 7 and "no token of" in out, out
+    assert sorted(p.name for p in (cell / "tokens").iterdir()) == ["default", "otto", "vera"]
 
     # The WebSocket: a viewer reads, and is refused an order with the role it lacks.
     vera = await connect(server, viewer)
@@ -129,8 +138,11 @@ async def test_roles_on_websocket_http_and_the_dashboard_and_the_audit_trail(
     assert [e["who"] for e in ok] == ["token:otto"]
     assert "wax-robot-base" in ok[0]["params"]
     refused = [e for e in entries if e["who"] == "token:vera"]
-    assert {e["method"] for e in refused} == {"orders.submit"}
-    assert all("needs the operator role" in e["result"] for e in refused)
+    assert {e["method"] for e in refused} == {"orders.submit", "token.add"}
+    assert all(
+        "needs the operator role" in e["result"] for e in refused if e["method"] != "token.add"
+    )
+    assert any("needs the engineer role" in e["result"] for e in refused)
     assert rig.mailbox.get_order(order_id).part_type == "wax-robot-base"
     # A viewer reads the audit trail too (the dashboard's Audit panel).
     status, body = await http(

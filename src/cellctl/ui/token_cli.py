@@ -21,7 +21,7 @@ from rich.table import Table
 
 from cellctl.cell.journal import JOURNAL_FILE
 from cellctl.clock import current_clock
-from cellctl.errors import UsageError
+from cellctl.errors import AccessDenied, UsageError, with_article
 from cellctl.service.audit import AuditLog
 from cellctl.service.token import ROLES, add_token, list_tokens, revoke_token
 from cellctl.ui.calls import cell_call
@@ -54,13 +54,32 @@ def token_group() -> None:
     """The control API's tokens: each with a name and a role."""
 
 
-def _audit(directory: Path, method: str, params: dict[str, Any]) -> None:
+def _manager(directory: Path, method: str) -> str:
+    """Who changes the tokens: the token in ``$CELLCTL_TOKEN`` when one is set, which must be
+    an engineer's (AccessDenied otherwise, as for every acting call), else the local user
+    (who owns the cell's files)."""
+    from cellctl.service.client import env_caller
+
+    caller = env_caller(directory)
+    if caller is None:
+        return f"local:{getpass.getuser()}"
+    if caller.role != "engineer":
+        name = caller.who.partition(":")[2]
+        refused = f"{name} is {with_article(caller.role)}: {method} needs the engineer role"
+        _audit(directory, caller.who, method, {}, refused)
+        raise AccessDenied(refused)
+    return caller.who
+
+
+def _audit(
+    directory: Path, who: str, method: str, params: dict[str, Any], outcome: str = "ok"
+) -> None:
     """Note a token change in the cell's audit trail, as the API's calls are: who may act is
     an engineer's concern too (a cell that never ran has no journal, and no trail yet)."""
     if not (directory / JOURNAL_FILE).is_file():
         return
     with contextlib.closing(AuditLog(directory)) as log:
-        log.record(f"local:{getpass.getuser()}", method, params, "ok")
+        log.record(who, method, params, outcome)
 
 
 @token_group.command("add")
@@ -76,11 +95,12 @@ def token_add(ctx: click.Context, name: str, role: str) -> None:
     """Make token NAME with a role and print it once (only its hash is kept)."""
     directory = cell_dir(ctx)
 
-    async def main() -> str:
-        return add_token(directory, name, role)
+    async def main() -> tuple[str, str]:
+        who = _manager(directory, "token.add")
+        return who, add_token(directory, name, role)
 
-    secret = run(main)
-    _audit(directory, "token.add", {"name": name, "role": role})
+    who, secret = run(main)
+    _audit(directory, who, "token.add", {"name": name, "role": role})
     console.print(secret, markup=False, soft_wrap=True)
     click.echo(f"token {name} ({role}): shown once, keep it; cellctl token revoke {name}", err=True)
 
@@ -117,11 +137,13 @@ def token_revoke(ctx: click.Context, name: str) -> None:
     """Revoke token NAME: refused from its next request on."""
     directory = cell_dir(ctx)
 
-    async def main() -> None:
+    async def main() -> str:
+        who = _manager(directory, "token.revoke")
         revoke_token(directory, name)
+        return who
 
-    run(main)
-    _audit(directory, "token.revoke", {"name": name})
+    who = run(main)
+    _audit(directory, who, "token.revoke", {"name": name})
     console.print(f"token {name} revoked", markup=False)
 
 

@@ -122,7 +122,7 @@ async def test_orders_submit_list_cancel(api: Api) -> None:
     await api.call("cell.pause")
     posted = await api.call("orders.submit", {"part_type": "wax-robot-base", "qty": 2, "id": "C1"})
     assert posted["new"] and "order C1 posted" in posted["message"]
-    again = await api.call("orders.submit", {"part_type": "wax-robot-base", "id": "C1"})
+    again = await api.call("orders.submit", {"part_type": "wax-robot-base", "qty": 2, "id": "C1"})
     assert not again["new"]
     with pytest.raises(UsageError, match="unknown part type 'nope'"):
         await api.call("orders.submit", {"part_type": "nope"})

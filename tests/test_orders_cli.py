@@ -56,9 +56,17 @@ def test_submit_posts_an_order_once(cell: Path) -> None:
     assert result.exit_code == 0, result.output
     assert "order A17 posted: 3 × wax-robot, priority 2" in result.stdout
 
-    again = cellctl(cell, "submit", "wax-robot", "--qty", "5", "--id", "A17")
+    # The same order again (a retry): nothing changes, and it says so.
+    again = cellctl(cell, "submit", "wax-robot", "--qty", "3", "--priority", "2", "--id", "A17")
     assert again.exit_code == 0
     assert "order A17 was posted before (posted): nothing changed" in again.stdout
+    # Another order under that id: refused, saying what the id already stands for.
+    other = cellctl(cell, "submit", "wax-robot", "--qty", "5", "--id", "A17")
+    assert other.exit_code == 2
+    assert (
+        "order A17 was posted before as 3 × wax-robot, priority 2 (posted), not 5 × wax-robot, "
+        "priority 0: nothing changed (give this order another --id)"
+    ) in other.stderr
 
     with open_mailbox(cell) as mailbox:
         order = mailbox.get_order("A17")

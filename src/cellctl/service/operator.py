@@ -84,6 +84,13 @@ def submit_order(
         message = (
             f"order {order.id} posted: {order.qty} × {order.part_type}, priority {order.priority}"
         )
+    elif (order.part_type, order.qty, order.priority) != (part_type, qty, priority):
+        # The same id for another order: a retry must ask the same, or it is a mistake.
+        raise UsageError(
+            f"order {order.id} was posted before as {order.qty} × {order.part_type}, "
+            f"priority {order.priority} ({order.state}), not {qty} × {part_type}, priority "
+            f"{priority}: nothing changed (give this order another --id)"
+        )
     else:
         message = f"order {order.id} was posted before ({order.state}): nothing changed"
     return {"order": as_dict(order), "new": new, "message": message}

@@ -252,6 +252,6 @@ def test_run_live_view_in_a_terminal(tmux: Tmux, tmp_path: Path) -> None:
         except AssertionError:
             raise AssertionError(f"no more events on a taller screen:\n{tmux.screen()}") from None
         cellctl(cell, "estop", "smoke at cnc1")
-        tmux.wait_for("EMERGENCY STOP: ", "smoke at cnc1", "cellctl resume")
+        tmux.wait_for("EMERGENCY STOP: smoke at cnc1. Deal with its cause", "cellctl resume")
         tmux.keys("C-c")
         wait_until(tmux.pane_dead, "cellctl run to stop on Ctrl-C")

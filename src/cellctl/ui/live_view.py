@@ -81,11 +81,17 @@ class LiveView:
         """A line in reverse colours while the cell does not dispatch: why, and the way out."""
         mode = status.cell.mode
         if mode is CellMode.EMERGENCY_STOP:
-            why = [a.text for a in status.alarms if a.code == "estop"]
-            reason = "; ".join(why) or "the PLC's emergency stop input is open"
+            stops = [a for a in status.alarms if a.code == "estop"]
+            # The alarm's own words without their "emergency stop" (the banner says it).
+            why = [a.text.removeprefix("emergency stop").lstrip(": ") for a in stops]
+            reason = "; ".join(w for w in why if w) or "the PLC's emergency stop input is open"
+            # A button to release only where the PLC's input says one is pressed.
+            pressed = not stops or any(a.machine == "plc" for a in stops)
+            way_out = "Release it, clear" if pressed else "Deal with its cause, clear"
+            ids = ", ".join(str(a.id) for a in stops) or "ID"
             text = (
-                f" EMERGENCY STOP: {reason}. Release it, clear the alarm "
-                "(`cellctl alarm clear ID`), then `cellctl resume`. "
+                f" EMERGENCY STOP: {reason}. {way_out} the alarm "
+                f"(`cellctl alarm clear {ids}`), then `cellctl resume`. "
             )
             return [Text(text, style="bold white on red")]
         if mode is CellMode.STOPPING:

@@ -443,8 +443,29 @@ async def test_another_origin_cannot_drive_the_cell(dash: Dash) -> None:
         dash.base + "/dashboard/call", token=dash.token, body=call, headers=evil
     )
     assert status == 403 and "another origin" in body["error"]["message"]
+    assert body["error"]["code"] == -32007  # AccessDenied, as the API codes it
     status, _ = await http(dash.base + "/dashboard/call", body=call)
     assert status == 401
+    # What is wrong with the request itself has JSON-RPC's own codes.
+    status, body = await http(
+        dash.base + "/dashboard/call", token=dash.token, body={"method": "robot.go"}
+    )
+    assert (status, body["error"]["code"]) == (400, -32601), body
+
+    def broken() -> tuple[int, Any]:
+        request = urllib.request.Request(
+            dash.base + "/dashboard/call",
+            data=b"{not json",
+            headers={"Authorization": f"Bearer {dash.token}", "Content-Type": "application/json"},
+        )
+        try:
+            with urllib.request.urlopen(request, timeout=5) as answer:
+                return answer.status, json.loads(answer.read())
+        except urllib.error.HTTPError as e:
+            return e.code, json.loads(e.read())
+
+    status, body = await asyncio.to_thread(broken)
+    assert (status, body["error"]["code"]) == (400, -32700), body
     assert await dash.api("orders.list") == []
     # A WebSocket from another site is refused even with a good one-shot token.
     status, oneshot = await http(dash.base + "/access/oneshot_token", token=dash.token)

@@ -28,6 +28,9 @@ from starlette.requests import Request
 from starlette.responses import JSONResponse, Response
 from starlette.routing import BaseRoute, Route
 
+from cellctl.errors import AccessDenied, exit_code
+from cellctl.service.rpc import APP_ERROR_BASE, INVALID_REQUEST, METHOD_NOT_FOUND, PARSE_ERROR
+
 if TYPE_CHECKING:
     from cellctl.service.server import ApiServer
 
@@ -65,6 +68,8 @@ DASHBOARD_METHODS = frozenset(
 )
 #: The largest request body taken.
 MAX_BODY = 64 * 1024
+#: AccessDenied as the API codes it (-32000 minus its exit code, -32007).
+ACCESS_DENIED = APP_ERROR_BASE - exit_code(AccessDenied(""))
 _TYPES = {
     ".html": "text/html; charset=utf-8",
     ".js": "text/javascript; charset=utf-8",
@@ -112,17 +117,19 @@ def dashboard_routes(server: ApiServer) -> list[BaseRoute]:
         if entry is None:
             return _refused(401, "missing or wrong API token")
         if request.headers.get("content-type", "").split(";")[0].strip() != "application/json":
-            return _refused(415, "send the call as JSON (Content-Type: application/json)")
+            return _refused(
+                415, "send the call as JSON (Content-Type: application/json)", INVALID_REQUEST
+            )
         body = await request.body()
         if len(body) > MAX_BODY:
-            return _refused(413, "request too large")
+            return _refused(413, "request too large", INVALID_REQUEST)
         try:
             data: Any = json.loads(body)
         except (ValueError, RecursionError):
-            return _refused(400, "not JSON")
+            return _refused(400, "not JSON", PARSE_ERROR)
         method = data.get("method") if isinstance(data, dict) else None
         if not isinstance(method, str) or method not in DASHBOARD_METHODS:
-            return _refused(400, f"the dashboard does not call {method!r}")
+            return _refused(400, f"the dashboard does not call {method!r}", METHOD_NOT_FOUND)
         params = data.get("params") or {}
         return await server.answer(method, params, entry, wrap=True)  # 403: the role lacked
 
@@ -139,8 +146,10 @@ def _json(content: Any, status: int) -> Response:
     return Response(text, status_code=status, media_type="application/json")
 
 
-def _refused(status: int, message: str) -> Response:
+def _refused(status: int, message: str, code: int = ACCESS_DENIED) -> Response:
+    """An HTTP refusal with a JSON-RPC error: access denied (the default), or what was wrong
+    with the request itself (JSON-RPC's own codes)."""
     headers = {"WWW-Authenticate": "Bearer"} if status == 401 else None
     return JSONResponse(
-        {"error": {"code": -32007, "message": message}}, status_code=status, headers=headers
+        {"error": {"code": code, "message": message}}, status_code=status, headers=headers
     )

@@ -109,8 +109,8 @@ def exit_code(error: CellctlError) -> int:
 
 def with_article(word: str) -> str:
     """``word`` with its article, as a message says it: "an operator", "a viewer", "an
-    'ibm7545'", "a 'ur'" (by its first letter's sound in the kinds' and roles' names: a
-    ``u`` is said "you")."""
+    'engraver'" (by its first letter's sound in the kinds' and roles' names: a ``u`` is said
+    "you", as in "a UR")."""
     first = word.lstrip("'\"")[:1].lower()
     return ("an " if first in ("a", "e", "i", "o") else "a ") + word
 

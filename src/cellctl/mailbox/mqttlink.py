@@ -251,6 +251,8 @@ class Reconnect:
                 if self._in:
                     lasted = current_clock().monotonic() - self._in_at
                     self._cut_short = self._cut_short + 1 if lasted < SHORT_SESSION_S else 0
+                else:
+                    self._cut_short = 0  # not let in at all: another problem, told as it is
                 if self._cut_short >= CUT_SHORT_TOLD:
                     self.problem = CellctlError(
                         f"the broker drops this connection again and again within "

@@ -14,10 +14,12 @@ import re
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from cellctl.cell.config import load_cell
+from cellctl.cell.controller import CellController
 from cellctl.cell.model import ControllerOptions
 from cellctl.cell.monitor import ESTOP
 from cellctl.clock import current_clock
@@ -205,17 +207,21 @@ async def test_a_robot_reject_is_reset_and_retried_a_bounded_number_of_times(
         assert rig.cell.runs_per_part() == {"P1": {"cnc1": 1, "cnc2": 1}}
 
 
+async def cnc2_out_of_service(rig: CellRig, parts: int) -> tuple[CellController, Any]:
+    """An order of ``parts``, its first cut done, then cnc2 never ready again: the controller
+    (failing twice takes a mill out) and cnc2's out-of-service alarm."""
+    rig.post("wax-robot-base", parts, "A")
+    controller = await rig.start_controller(fail_limit=2)
+    await rig.wait_for(lambda: rig.finished_steps("machine") >= 1, "first cut done")
+    rig.switch_on("cnc2:never-ready")
+    await rig.wait_for(lambda: rig.alarms("cnc2", "out-of-service"), "cnc2 taken out of service")
+    return controller, rig.alarms("cnc2", "out-of-service")[0]
+
+
 @pytest.mark.virtual
 async def test_a_mill_out_of_service_returns_when_its_alarm_is_cleared(tmp_path: Path) -> None:
     async with CellRig(tmp_path / "cell") as rig:
-        rig.post("wax-robot-base", 2, "A")
-        controller = await rig.start_controller(fail_limit=2)
-        await rig.wait_for(lambda: rig.finished_steps("machine") >= 1, "first cut done")
-        rig.switch_on("cnc2:never-ready")
-        await rig.wait_for(
-            lambda: rig.alarms("cnc2", "out-of-service"), "cnc2 taken out of service"
-        )
-        out = rig.alarms("cnc2", "out-of-service")[0]
+        controller, out = await cnc2_out_of_service(rig, 2)
         assert "failed 2 times in a row" in out.text
         assert not controller.machines["cnc2"].in_service
         # Out of service: no step starts on cnc2; no part is lost (one may be held).
@@ -247,14 +253,7 @@ async def test_a_mill_put_back_in_service_returns_its_alarm_to_normal(tmp_path: 
     """`machine cnc2 in` ends what its out-of-service alarm stood for: the alarm returns to
     normal (open until cleared) and no longer counts cnc2 down in the shift report."""
     async with CellRig(tmp_path / "cell") as rig:
-        rig.post("wax-robot-base", 1, "A")
-        controller = await rig.start_controller(fail_limit=2)
-        await rig.wait_for(lambda: rig.finished_steps("machine") >= 1, "first cut done")
-        rig.switch_on("cnc2:never-ready")
-        await rig.wait_for(
-            lambda: rig.alarms("cnc2", "out-of-service"), "cnc2 taken out of service"
-        )
-        out = rig.alarms("cnc2", "out-of-service")[0]
+        controller, out = await cnc2_out_of_service(rig, 1)
         await rig.switch_off("cnc2:never-ready")
         # The operator's `machine cnc2 in` (machines.in_service), its alarm not cleared first.
         back = await controller.set_service("cnc2", True)

@@ -137,7 +137,13 @@ def test_bad_input_is_refused(cell: Path, tmp_path: Path, args: list[str], messa
 def test_a_directory_that_is_no_cell_is_refused(tmp_path: Path) -> None:
     result = cellctl("service", "install", "--cell", str(tmp_path), "--print")
     assert result.returncode != 0
-    assert "cell.toml" in result.stderr and result.stdout == ""
+    assert result.stdout == ""
+    # The file named once, and what to do.
+    toml = tmp_path / "cell.toml"
+    assert f"error: {toml}: no such file (create it, or run 'cellctl emulate cell')" in (
+        result.stderr
+    ), result.stderr
+    assert result.stderr.count(str(toml)) == 1, result.stderr
 
 
 def test_a_path_the_unit_would_have_to_quote_is_refused(cell: Path) -> None:

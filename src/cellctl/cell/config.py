@@ -387,7 +387,9 @@ def load_cell(directory: Path | str) -> CellConfig:
     """The checked cell config; UsageError listing every problem otherwise."""
     config, problems = check_cell(directory)
     if config is None:
-        raise UsageError(f"{Path(directory) / 'cell.toml'}: " + "; ".join(problems))
+        path = f"{Path(directory) / 'cell.toml'}: "
+        said = "; ".join(problems)
+        raise UsageError(said if said.startswith(path) else path + said)  # the path once
     return config
 
 

@@ -213,6 +213,7 @@ def test_alarm_list_and_clear_while_the_controller_holds_the_journal(cell: Path)
         alarm, _ = controller.raise_alarm("cnc1", "64", "door open")
         listed = cellctl(cell, "alarm", "list")
         assert "door open" in listed.stdout and "active" in listed.stdout
+        assert "Priority" in listed.stdout and "medium" in listed.stdout  # as history shows it
 
         result = cellctl(cell, "alarm", "clear", str(alarm.id))
         assert result.exit_code == 0, result.output

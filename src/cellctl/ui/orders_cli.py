@@ -282,14 +282,21 @@ def alarm_list(ctx: click.Context, show_all: bool, as_json: bool) -> None:
         console.print("no alarms" if show_all else "no active alarms")
         return
     table = Table(title="Alarms")
-    for column in ("Id", "Raised", "Machine", "Code", "Text", "State", "Cleared"):
+    for column in ("Id", "Raised", "Priority", "Machine", "Code", "Text", "State", "Cleared"):
         table.add_column(column, justify="right" if column == "Id" else "left")
     for a in found:
         state = alarm_state(a, current_clock().now())
         state = f"[red]{state}[/red]" if "UNACKED" in state else state
         cleared = f"{_when(a['cleared'])} by {a['cleared_by']}" if a["cleared"] else ""
         table.add_row(
-            str(a["id"]), _when(a["raised"]), a["machine"], a["code"], a["text"], state, cleared
+            str(a["id"]),
+            _when(a["raised"]),
+            str(a.get("priority", "")),
+            a["machine"],
+            a["code"],
+            a["text"],
+            state,
+            cleared,
         )
     print_table(table)
 

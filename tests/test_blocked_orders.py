@@ -3,6 +3,10 @@
 
 from __future__ import annotations
 
+from cellctl.cell.blocked import blocked_reason
+from cellctl.cell.config import load_cell
+from cellctl.cell.journal import Part
+from cellctl.emulators.cell import EXAMPLE_CELL
 from cellctl.service.status import CellStatus
 from cellctl.ui.console.widgets import board_text
 from tests.test_api import Api, api  # noqa: F401 (the fixture)
@@ -48,3 +52,26 @@ async def test_a_part_between_mills_is_blocked_by_the_next_one(api: Api) -> None
     listed = next(o for o in await api.call("orders.list") if o["id"] == "B2")
     assert "cnc2, out of service" in listed["blocked"] and "spindle" in listed["blocked"]
     assert "cnc1" not in listed["blocked"]
+
+
+def test_a_part_whose_next_mill_holds_a_blocked_part_is_blocked_too() -> None:
+    """Walkthrough: cnc2 out; P1-1, cut on cnc1, waits in cnc1 for cnc2; P1-2 waits at the
+    conveyor for cnc1, which will not be free. The order is blocked, and says why."""
+    config = load_cell(EXAMPLE_CELL)
+    route = [step.mill for step in config.parts["wax-robot-base"].route]
+    assert route[:2] == ["cnc1", "cnc2"]
+
+    def part(n: int, index: int, location: str) -> Part:
+        return Part(f"P1-{n}", "P1", "wax-robot-base", n, index, location, "waiting", 0.0)
+
+    out = {"cnc2": "spindle"}
+    stuck_in_cnc1 = [part(1, 1, "cnc1"), part(2, 0, "conveyor")]
+    assert blocked_reason(config, "wax-robot-base", stuck_in_cnc1, out) == (
+        "blocked: its parts need cnc2, out of service (spindle); cnc1 holds P1-1, which "
+        "cannot leave"
+    )
+    # The first part not in a mill (the operator took it out): the second can go to cnc1.
+    taken_out = [part(1, 1, "conveyor"), part(2, 0, "conveyor")]
+    assert blocked_reason(config, "wax-robot-base", taken_out, out) == ""
+    # Nothing out of service: nothing blocked.
+    assert blocked_reason(config, "wax-robot-base", stuck_in_cnc1, {}) == ""

@@ -14,7 +14,6 @@ import shutil
 import sqlite3
 import tempfile
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -22,14 +21,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cellctl.cell.config import CellConfig, load_cell
-from cellctl.cell.journal import open_journal
 from cellctl.errors import UsageError
 from cellctl.factory.cancel import cell_canceller, request_cancel
 from cellctl.factory.dispatch import stuck
 from cellctl.factory.store import SCHEMA, FactoryStore
-from cellctl.mailbox import open_mailbox
-from cellctl.mailbox.mqtt import MqttBridge, MqttSettings
 from cellctl.mailbox.wire import (
     MAX_REASON,
     CancelMessage,
@@ -41,6 +36,7 @@ from cellctl.mailbox.wire import (
 from cellctl.service.access import LocalCell
 from cellctl.service.audit import AuditLog
 from cellctl.service.methods import Dispatcher
+from tests.test_factory_units import bridge_of
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "cell"
 EPOCH = "0123456789abcdef"
@@ -294,32 +290,14 @@ def test_any_cancel_like_message_is_a_cancel_or_a_wire_error(payload: dict[str, 
 # -- the cell's side: its own cancel, through its control API --------------------------------------
 
 
-@dataclass
-class RunningCell:
-    """What the bridge reads of a running controller (here: none runs)."""
-
-    config: CellConfig
-    machines: dict[str, Any] = field(default_factory=dict)
-    paused: bool = False
-    listeners: list[Any] = field(default_factory=list)
-
-    def poke(self) -> None:
-        pass
-
-
 async def test_the_cell_cancels_as_its_operator_would_and_answers_each_request_once(
     tmp_path: Path,
 ) -> None:
     cell_dir = tmp_path / "cell"
     shutil.copytree(EXAMPLE, cell_dir)
-    (cell_dir / "mqtt.toml").write_text('username = "cell1"\npassword = "x"\n')
-    (cell_dir / "mqtt.toml").chmod(0o600)
-    settings = MqttSettings.load("mqtt://127.0.0.1:1/cellctl/cell1", cell_dir / "mqtt.toml")
     api = Dispatcher(LocalCell(cell_dir, {}))
-    with open_mailbox(cell_dir) as mailbox, open_journal(cell_dir) as journal:
-        bridge = MqttBridge(
-            settings, RunningCell(load_cell(cell_dir)), mailbox, journal, cancel=cell_canceller(api)
-        )
+    bridge, mailbox, journal = bridge_of(cell_dir, cancel=cell_canceller(api))
+    with mailbox, journal:
 
         def taken(oid: str) -> None:
             """The order arrives and the controller takes it in (as its intake does)."""
@@ -385,13 +363,9 @@ def test_the_cell_takes_any_cancel_the_factory_may_send(asks: list[dict[str, Any
     with tempfile.TemporaryDirectory() as tmp:
         cell_dir = Path(tmp) / "cell"
         shutil.copytree(EXAMPLE, cell_dir)
-        (cell_dir / "mqtt.toml").write_text('username = "cell1"\npassword = "x"\n')
-        (cell_dir / "mqtt.toml").chmod(0o600)
-        settings = MqttSettings.load("mqtt://127.0.0.1:1/cellctl/cell1", cell_dir / "mqtt.toml")
         api = Dispatcher(LocalCell(cell_dir, {}))
-        with open_mailbox(cell_dir) as mailbox, open_journal(cell_dir) as journal:
-            cell = RunningCell(load_cell(cell_dir))
-            bridge = MqttBridge(settings, cell, mailbox, journal, cancel=cell_canceller(api))
+        bridge, mailbox, journal = bridge_of(cell_dir, cancel=cell_canceller(api))
+        with mailbox, journal:
             for oid in ("A", "B"):
                 order = {"v": 1, "id": oid, "part_type": BASE, "qty": 1}
                 bridge.take_order(json.dumps(order).encode())

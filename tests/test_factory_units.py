@@ -20,7 +20,7 @@ from cellctl.factory.config import load_factory
 from cellctl.factory.dispatch import choose, every_cell_refused, load_s
 from cellctl.factory.store import FactoryStore
 from cellctl.mailbox import open_mailbox
-from cellctl.mailbox.mqtt import MqttBridge, MqttSettings
+from cellctl.mailbox.mqtt import Canceller, MqttBridge, MqttSettings
 from cellctl.mailbox.wire import ReportMessage, parse_report
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "cell"
@@ -193,13 +193,15 @@ class RunningCell:
         self.pokes += 1
 
 
-def bridge_of(cell_dir: Path) -> tuple[MqttBridge, Any, Any]:
+def bridge_of(cell_dir: Path, cancel: Canceller | None = None) -> tuple[MqttBridge, Any, Any]:
+    """Cell ``cell1``'s MQTT bridge (never connected) over its mailbox and journal, which the
+    caller closes; ``cancel``: how it cancels an order the factory asks it to."""
     (cell_dir / "mqtt.toml").write_text('username = "cell1"\npassword = "x"\n')
     (cell_dir / "mqtt.toml").chmod(0o600)
     settings = MqttSettings.load("mqtt://127.0.0.1:1/cellctl/cell1", cell_dir / "mqtt.toml")
     mailbox, journal = open_mailbox(cell_dir), open_journal(cell_dir)
     cell = RunningCell(load_cell(cell_dir))
-    return MqttBridge(settings, cell, mailbox, journal), mailbox, journal
+    return MqttBridge(settings, cell, mailbox, journal, cancel=cancel), mailbox, journal
 
 
 def take(bridge: MqttBridge, mailbox: Any, journal: Any, oid: str, expires: float) -> None:

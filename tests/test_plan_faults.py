@@ -22,7 +22,7 @@ from cellctl.clock import run_virtual
 from cellctl.emulators.cell import EXAMPLE_CELL
 from cellctl.errors import UsageError
 from cellctl.plan import engine
-from cellctl.plan.engine import FaultWindow, PlanInputs, PlanOrder, simulate
+from cellctl.plan.engine import FaultWindow, PlanInputs, PlanOrder, PlanRun, simulate
 from cellctl.plan.inputs import save_inputs
 from cellctl.ui.cli import main
 
@@ -142,6 +142,19 @@ def test_a_protective_stop_is_planned_from_the_command_line() -> None:
     assert report["all_finished"] and report["down_s"]["robot"] >= closes - T0 - 60
 
 
+def cobot_fault(tmp_path: Path, fault: str, opens: float, closes: float) -> PlanRun:
+    """The tending cell's plan of order A (2 brackets) over three hours, with the UR's
+    ``fault`` switched on from ``opens`` to ``closes``."""
+    inputs = PlanInputs(
+        TENDING,
+        (PlanOrder("A", "bracket", 2),),
+        T0,
+        T0 + 3 * 3600,
+        faults=(FaultWindow("robot", fault, opens, closes),),
+    )
+    return simulate(inputs, tmp_path)
+
+
 @pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
 def test_the_plans_operator_unlocks_a_protective_stop_after_its_window(tmp_path: Path) -> None:
     """A protective stop mid-transfer: the arm stops there and the step fails; nothing of the
@@ -149,14 +162,7 @@ def test_the_plans_operator_unlocks_a_protective_stop_after_its_window(tmp_path:
     (the UR's rule: nothing else ends a protective stop), clears the alarm and releases the
     part where it is, and the transfer is played again."""
     opens, closes = T0 + 45, T0 + 300  # the part on its way from the VF-2 to CNC 2
-    inputs = PlanInputs(
-        TENDING,
-        (PlanOrder("A", "bracket", 2),),
-        T0,
-        T0 + 3 * 3600,
-        faults=(FaultWindow("robot", "protective_stop", opens, closes),),
-    )
-    run = simulate(inputs, tmp_path)
+    run = cobot_fault(tmp_path, "protective_stop", opens, closes)
     with Journal(run.journal_path) as journal:
         steps = [s for s in journal.steps() if s.machine == "robot"]
         alarms = journal.alarms()
@@ -180,14 +186,7 @@ def test_a_dropped_connection_on_the_cobot_mid_transfer_is_resolved(tmp_path: Pa
     state, not an IBM 7545's), clears the alarm and releases the part, and the order gets
     done. Every wait of it has a deadline: the play ends, on its own virtual time."""
     opens, closes = T0 + 45, T0 + 300
-    inputs = PlanInputs(
-        TENDING,
-        (PlanOrder("A", "bracket", 2),),
-        T0,
-        T0 + 3 * 3600,
-        faults=(FaultWindow("robot", "drop", opens, closes),),
-    )
-    run = simulate(inputs, tmp_path)
+    run = cobot_fault(tmp_path, "drop", opens, closes)
     with Journal(run.journal_path) as journal:
         alarms = journal.alarms()
         held = journal.parts(statuses=["held"])

@@ -203,13 +203,14 @@ class OperatorCommands:
                 self.halted(name)
                 return
             except TimeoutError:
-                problems.append(
+                said = (
                     f"{name} still executes a block after {ESTOP_TIMEOUT:g} s: "
                     "stop it at the machine (END is refused while a block runs)"
                 )
             except (CellctlError, OSError) as e:
-                problems.append(f"{name} halt failed: {e}")
-            self.alarm(name, "estop", problems[-1])
+                said = f"{name} halt failed: {e}"
+            problems.append(said)
+            self.alarm(name, "estop", said)
 
         # Every mill at once: each waits out its own block (in manual, nothing of ours runs).
         await asyncio.gather(*(halt(n, m) for n, m in self.mills.items() if not m.manual))

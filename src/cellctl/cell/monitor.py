@@ -36,6 +36,7 @@ from cellctl.kinds.families import CycleAborted
 
 if TYPE_CHECKING:
     from cellctl.cell.config import MachineConfig
+    from cellctl.cell.model import MachineView
     from cellctl.cell.ports import AlarmSink, PlcAccess, WorldModel
     from cellctl.cell.recovery import Recovery
 
@@ -131,16 +132,18 @@ class Monitor:
             raise _Late
         return future.result()
 
-    def _out_too_long(self, key: str, machine: str, label: str) -> Cause | None:
-        """The cause to alarm for ``key``'s read if it has been out a whole poll period and
-        was not alarmed yet; None otherwise."""
+    def _alarm_if_out_too_long(self, key: str, label: str, view: MachineView) -> None:
+        """Alarm ``key``'s read (``label``: "robot", "PLC") once it has been out a whole poll
+        period, and only once; ``view`` shows it."""
         since = self._since.get(key)
         if since is None or key in self._late_told:
-            return None
+            return
         if self.world.clock.now() - since < self.world.options.poll_period:
-            return None
+            return
         self._late_told.add(key)
-        return self._told(read_cause(machine, label, TimeoutError()), key)
+        cause = self._told(read_cause(key, label, TimeoutError()), key)
+        view.show(cause.text, Condition.OFFLINE, LastError(cause.text))
+        self.alarms.cause_alarm(cause)
 
     def _reading(self, key: str) -> bool:
         """True while ``key``'s last read is out."""
@@ -268,10 +271,7 @@ class Monitor:
         try:
             inputs = await self._bounded("plc", self.plc.read_inputs)
         except _StillOut:
-            cause = self._out_too_long("plc", "plc", "PLC")
-            if cause is not None:
-                view.show(cause.text, Condition.OFFLINE, LastError(cause.text))
-                self.alarms.cause_alarm(cause)
+            self._alarm_if_out_too_long("plc", "PLC", view)
             return
         except _Late as e:  # shown now; alarmed above if it stays out
             late = read_cause("plc", "PLC", e).text
@@ -302,10 +302,7 @@ class Monitor:
         if self._reading(robot.name):
             # Every round while a look is out, not every few; and even if a transfer was
             # given the robot meanwhile (it waits behind this look on the line).
-            cause = self._out_too_long(robot.name, robot.name, "robot")
-            if cause is not None:
-                view.show(cause.text, Condition.OFFLINE, LastError(cause.text))
-                self.alarms.cause_alarm(cause)
+            self._alarm_if_out_too_long(robot.name, "robot", view)
             return
         if world.robot_busy() or robot.name in world.manual_use:
             return

@@ -142,9 +142,21 @@ def listen_url(transport: str) -> str:
 
 
 def free_port() -> int:
+    """A loopback port free now, for a server this test starts at once. Another process may
+    take it later: a port where nothing must answer is :func:`refusing_port`'s."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def refusing_port() -> socket.socket:
+    """A socket holding a loopback port where a connection is refused: it is bound and never
+    listens, so no other test's server can take the port while it is open (a port from
+    :func:`free_port` could be anyone's by the time it is dialled). Use it as a context
+    manager; its number is ``held.getsockname()[1]``; close it to serve there after all."""
+    held = socket.socket()
+    held.bind(("127.0.0.1", 0))
+    return held
 
 
 @dataclass

@@ -15,7 +15,7 @@ from cellctl.emulators.serve import serve
 from cellctl.kinds.iso_cnc.dnc.store import ShopStore
 from cellctl.kinds.iso_cnc.emulator import IsoCncEmulator, Mode
 from cellctl.ui.cli import main as cli_main
-from tests.conftest import CELLCTL, free_port, until
+from tests.conftest import CELLCTL, refusing_port, until
 from tests.test_dnc_cli import (  # noqa: F401  (shop and served are fixtures)
     LINE,
     Shop,
@@ -163,7 +163,8 @@ async def test_serve_stopped_during_a_drip_feed_ends_it_and_tells_its_client(
 async def test_serve_starts_with_a_machine_offline_and_takes_it_when_it_comes(
     tmp_path: Path,
 ) -> None:
-    port = free_port()  # nothing listens there yet
+    held = refusing_port()  # nothing answers there until the machine comes
+    port = held.getsockname()[1]
     alive = IsoCncEmulator()
     alive_server = await serve(alive, "socket://127.0.0.1:0", LINE)
     root = tmp_path / "shop"
@@ -185,6 +186,7 @@ async def test_serve_starts_with_a_machine_offline_and_takes_it_when_it_comes(
         _, said = await finished(await cellctl("dnc", "status", "--dir", str(root)))
         assert "a: offline: offline | last error: a: offline: " in said, said
         # The machine comes: the server takes it (as it does a link that failed later).
+        held.close()
         late = await serve(IsoCncEmulator(), f"socket://127.0.0.1:{port}", LINE)
 
         async def online() -> bool:
@@ -192,6 +194,7 @@ async def test_serve_starts_with_a_machine_offline_and_takes_it_when_it_comes(
 
         await until(online, "machine a online", 30)
     finally:
+        held.close()
         proc.terminate()
         await finished(proc, 20)
         await alive_server.close()

@@ -38,7 +38,7 @@ from cellctl.protocol.plc import (
 )
 from cellctl.ui.cli import main
 
-from .conftest import free_port
+from .conftest import free_port, refusing_port
 
 TIME_SCALE = 200.0  # conveyor 8 s -> 40 ms, door 2 s -> 10 ms
 WAIT = 5.0  # generous deadline for events that do happen
@@ -416,8 +416,8 @@ async def test_modbus_exception_is_a_device_error(emulator: PlcEmulator) -> None
 
 
 async def test_connection_refused_is_a_link_error() -> None:
-    with pytest.raises(LinkError, match="cannot reach the PLC"):
-        await ModbusPlc.connect(f"modbus://127.0.0.1:{free_port()}", timeout=1.0)
+    with refusing_port() as held, pytest.raises(LinkError, match="cannot reach the PLC"):
+        await ModbusPlc.connect(f"modbus://127.0.0.1:{held.getsockname()[1]}", timeout=1.0)
 
 
 async def test_closed_driver_says_so(plc: ModbusPlc) -> None:
@@ -474,7 +474,11 @@ def test_cli_emulate_plc_then_status_set_and_pulse(tmp_path: Path) -> None:
 
 
 def test_cli_reads_the_map_from_cell_toml(tmp_path: Path) -> None:
-    port = free_port()
+    with refusing_port() as held:
+        cli_reads_the_map_from(tmp_path, held.getsockname()[1])
+
+
+def cli_reads_the_map_from(tmp_path: Path, port: int) -> None:
     (tmp_path / "cell.toml").write_text(
         f'[plc]\nurl = "modbus://127.0.0.1:{port}"\ntimeout = 0.5\n'
         "coils = { pallet_request = 0, door_1 = 1 }\n"

@@ -84,14 +84,25 @@ class Tmux:
         result = self.run("display-message", "-p", "-t", self.session, "#{cursor_y}", check=False)
         return int(result.stdout.strip() or -1)
 
+    def on_row(self, text: str) -> bool:
+        """Whether the cursor is on the row that shows ``text``, on a screen that held still
+        while the cursor was read (a dialog that grows or shrinks moves its rows)."""
+        before = self.screen()
+        row = self.cursor_row()
+        lines = before.splitlines()
+        return self.screen() == before and 0 <= row < len(lines) and text in lines[row]
+
     def focus_row(self, text: str) -> None:
-        """Tab until the cursor is on the screen's row that shows ``text`` (a field's label)."""
-        row = next(i for i, line in enumerate(self.screen().splitlines()) if text in line)
-        for _ in range(3):  # a Tab the application has not taken yet is sent once more
+        """Tab until the cursor is on the row that shows ``text`` (a field's label). One Tab at
+        a time, each taken before the next (the cursor moved): a Tab sent again because the
+        application was slow may overshoot, and Tab goes round, so it comes back."""
+        for _ in range(12):
+            if self.on_row(text):
+                return
+            row = self.cursor_row()
             self.keys("Tab")
             try:
-                wait_until(lambda: self.cursor_row() == row, f"the cursor in {text}", 5.0)
-                return
+                wait_until(lambda r=row: self.cursor_row() != r, f"a Tab towards {text}", 5.0)
             except AssertionError:
                 continue
         raise AssertionError(f"Tab did not reach {text}:\n{self.screen()}")

@@ -45,6 +45,7 @@ def test_what_if_in_a_terminal(tmux: Tmux, tmp_path: Path) -> None:
         tmux.focus_row("Add orders:")
         tmux.keys("-l", "wax-robot-base:1")
         wait_until(lambda: "wax-robot-base:1" in tmux.screen(), "the order typed", 30.0)
+        assert re.search(r"Add orders:\s+wax-robot-base:1 ", tmux.screen()), tmux.screen()
         # The horizon typed is still there as the form is sent (a failure says which field).
         assert re.search(r"Horizon:\s+2m ", tmux.screen()), tmux.screen()
         tmux.keys("Enter")

@@ -56,8 +56,16 @@ async def cellctl(*args: str) -> asyncio.subprocess.Process:
 
 
 async def finished(proc: asyncio.subprocess.Process, timeout: float = 60) -> tuple[int, str]:
-    async with asyncio.timeout(timeout):
-        out, err = await proc.communicate()
+    """The exit code and output of ``proc`` once it ends; a process still running after
+    ``timeout`` is killed and the failure shows what it had said."""
+    communicating = asyncio.ensure_future(proc.communicate())
+    done, _ = await asyncio.wait({communicating}, timeout=timeout)
+    if not done:
+        proc.kill()
+        out, err = await communicating
+        said = (out + err).decode(errors="replace")[-3000:]
+        raise AssertionError(f"still running after {timeout:g} s; it had said:\n{said}")
+    out, err = communicating.result()
     return proc.returncode or 0, out.decode() + err.decode()
 
 

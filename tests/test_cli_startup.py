@@ -182,3 +182,54 @@ def test_each_declared_summary_is_the_commands_own() -> None:
         assert command.help, name
         assert lazy.summary == clause_summary(command.help, limit), name
     assert set(COMMANDS) <= set(subcommands(main))
+
+
+#: Each kind's command-line module: a command of one kind imports no other kind's.
+KIND_CLIS = {
+    "dyna2400": "cellctl.kinds.dyna2400.cli",
+    "ibm7545": "cellctl.kinds.ibm7545.cli",
+    "iso-cnc": "cellctl.kinds.iso_cnc.cli",
+    "ur": "cellctl.kinds.ur.cli",
+}
+
+
+@pytest.mark.parametrize(
+    ("args", "kinds"),
+    [
+        (["dnc", "send", "--help"], ("iso-cnc",)),
+        (["emulate", "iso-cnc", "--help"], ("iso-cnc",)),
+        (["mill", "download", "--help"], ("dyna2400",)),
+        (["robot", "unlock", "--help"], ("ibm7545", "ur")),  # the UR's, in the IBM's group
+        (["emulate", "ur", "--help"], ("ur",)),
+    ],
+    ids=" ".join,
+)
+def test_a_kinds_command_imports_no_other_kinds_command_line(
+    tmp_path: Path, args: list[str], kinds: tuple[str, ...]
+) -> None:
+    done, modules = _imported(tmp_path, CELLCTL, *args)
+    assert done.returncode == 0 and "Usage:" in done.stdout, done.stderr[-2000:]
+    loaded = {kind for kind, module in KIND_CLIS.items() if module in modules}
+    assert loaded == set(kinds), f"cellctl {' '.join(args)} imported the CLI of {sorted(loaded)}"
+
+
+def test_each_kind_names_the_commands_it_gives() -> None:
+    """``command_names`` is what lets ``cellctl dnc`` import one kind's CLI: it must be
+    exactly what the kind's ``commands`` gives (a missing name would hide the command)."""
+    declared = 0
+    for kind in registry.kinds():
+        if kind.commands is None or kind.command_names is None:
+            continue
+        given = {(group, command.name) for group, command in kind.commands()}
+        assert set(kind.command_names) == given, kind.name
+        declared += 1
+    assert declared >= len(KIND_CLIS)
+
+
+def test_every_kinds_command_is_in_the_help_and_the_emulate_group() -> None:
+    top = subcommands(main)
+    assert {"robot", "mill", "dnc"} <= set(top)
+    robot, emulate = top["robot"], top["emulate"]
+    assert isinstance(robot, click.Group) and isinstance(emulate, click.Group)
+    assert "unlock" in subcommands(robot)
+    assert {"robot", "mill", "iso-cnc", "ur", "plc", "cell"} <= set(subcommands(emulate))

@@ -188,6 +188,10 @@ class MachineKind:
     """The console's and API's manual functions (the source's menu for the 1988 kinds)."""
     commands: Callable[[], Sequence[tuple[str, click.Command]]] | None = None
     """CLI commands the kind contributes: (group, command); group ``""`` is the top level."""
+    command_names: tuple[tuple[str, str], ...] | None = None
+    """(group, name) of each command ``commands`` gives, so that the CLI imports the kind's
+    commands only when one of them is used (``cellctl dnc`` imports no robot's CLI). None:
+    they are imported whenever ``cellctl`` looks for a command it does not know."""
     emulated_options: Callable[[float], dict[str, float]] | None = None
     """Options the emulated cell writes for a machine ``time_scale`` times faster (its
     deadlines scaled)."""

@@ -90,7 +90,7 @@ COMMANDS = {
     cls=LazyGroup,
     lazy=COMMANDS,
     # Commands the installed kinds contribute (``cellctl robot``, ``cellctl mill`` ...).
-    more=lambda: kind_commands()[""],
+    more=lambda name: kind_commands("", name),
     # `--cell` after a command's name too (``cellctl orders --cell mycell``).
     prepare=lambda name, command: accept_cell(command, name),
     context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100},

@@ -10,7 +10,15 @@ import json
 import logging
 import signal
 import sys
-from collections.abc import Awaitable, Callable, Coroutine, Iterable, Iterator, Mapping
+from collections.abc import (
+    Awaitable,
+    Callable,
+    Coroutine,
+    Iterable,
+    Iterator,
+    Mapping,
+    Sequence,
+)
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn, TypeVar
@@ -124,26 +132,32 @@ class LazyGroup(CellctlGroup):
     """A group whose commands are imported only when one is used: ``cellctl orders`` imports
     the orders commands, not the controller, the API server or the broker client.
 
-    ``lazy`` names each command's module and summary; ``more`` gives further commands (the
-    installed kinds') when the group needs them all (its help) or a name it does not know;
-    ``prepare(name, command)`` finishes a command as it is loaded (``--cell`` anywhere)."""
+    ``lazy`` names each command's module and summary; ``more(name)`` gives further commands
+    (the installed kinds'): those that may be ``name``, a name the group does not know, or all
+    of them (``None``) when the group needs them all (its help); ``prepare(name, command)``
+    finishes a command as it is loaded (``--cell`` anywhere)."""
 
     def __init__(
         self,
         *args: Any,
         lazy: Mapping[str, Lazy] | None = None,
-        more: Callable[[], Iterable[click.Command]] | None = None,
+        more: Callable[[str | None], Iterable[click.Command]] | None = None,
         prepare: Callable[[str, click.Command], None] | None = None,
         **kwargs: Any,
     ) -> None:
         super().__init__(*args, **kwargs)
         self.lazy = dict(lazy or {})
         self._more = more
+        self._all_added = more is None
         self._prepare = prepare
 
-    def _add_more(self) -> None:
-        more, self._more = self._more, None
-        for command in more() if more is not None else ():
+    def _add_more(self, name: str | None = None) -> None:
+        if self._all_added or self._more is None:
+            return
+        self._all_added = name is None
+        for command in self._more(name):
+            if self.commands.get(command.name or "") is command:
+                continue  # added already, when its name was asked for
             if command.name in self.commands or command.name in self.lazy:
                 log.warning("command %s given twice: the first one is used", command.name)
                 continue
@@ -174,7 +188,7 @@ class LazyGroup(CellctlGroup):
                 command.short_help = self.lazy[cmd_name].summary
             self._added(cmd_name, command)
         if cmd_name not in self.commands:
-            self._add_more()
+            self._add_more(cmd_name)
         return self.commands.get(cmd_name)
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
@@ -199,30 +213,58 @@ def subcommands(group: click.Group) -> dict[str, click.Command]:
     return {name: command for name, command in found.items() if command is not None}
 
 
-@functools.cache
-def kind_commands() -> dict[str, list[click.Command]]:
-    """The commands the installed kinds contribute (``cellctl robot``, ``cellctl emulate
-    mill`` ...), by group: ``""`` the top level, ``"emulate"``. A kind's command for a group
-    another kind contributed (``robot``) is added to that group."""
+#: The groups kinds contribute commands to besides a group another kind contributed.
+KIND_GROUPS = ("", "emulate")
+
+
+def kind_commands(group: str, name: str | None = None) -> list[click.Command]:
+    """The commands the installed kinds contribute to ``group`` (``""`` the top level,
+    ``"emulate"``): all of them, or those that may be called ``name``. A kind that lists its
+    commands (``MachineKind.command_names``) has its CLI imported only for them: ``cellctl dnc``
+    imports no robot's. A kind's command for a group another kind contributed (``cellctl
+    robot unlock``) is added to that group."""
     from cellctl.kinds import registry
 
-    found: dict[str, list[click.Command]] = {"": [], "emulate": []}
-    for kind in registry.kinds():
-        try:
-            contributed = kind.commands() if kind.commands is not None else []
-        except Exception as e:  # a plug-in's CLI that fails to load: skipped, by name
-            registry.log.warning("machine kind %s: its commands skipped: %s", kind.name, e)
-            continue
-        for group, command in contributed:
-            if group in found:
-                found[group].append(command)
+    contributed = [
+        (kind.name, to, command)
+        for kind in registry.kinds()
+        if name is None or _may_give(kind.command_names, group, name)
+        for to, command in _contributed(kind.name)
+    ]
+    mine = [command for _, to, command in contributed if to == group]
+    if group == "":
+        groups = {command.name: command for command in mine}
+        for kind_name, to, command in contributed:
+            if to in KIND_GROUPS:
                 continue
-            target = next((c for c in found[""] if c.name == group), None)
+            target = groups.get(to)
             if not isinstance(target, click.Group):
-                registry.log.warning("machine kind %s: no command group %r", kind.name, group)
+                registry.log.warning("machine kind %s: no command group %r", kind_name, to)
                 continue
             target.add_command(command)
-    return found
+    return mine
+
+
+def _may_give(names: Sequence[tuple[str, str]] | None, group: str, name: str) -> bool:
+    """Whether a kind that lists ``names`` ((group, name); None: it does not say) may give
+    command ``name`` of ``group``, or, at the top level, a command added to group ``name``."""
+    if names is None:
+        return True
+    return (group, name) in names or (group == "" and any(to == name for to, _ in names))
+
+
+@functools.cache
+def _contributed(kind_name: str) -> tuple[tuple[str, click.Command], ...]:
+    """What kind ``kind_name``'s ``commands`` gives, made once per process; a plug-in's CLI
+    that fails to load is skipped and named."""
+    from cellctl.kinds import registry
+
+    kind = registry.kind(kind_name)
+    try:
+        return tuple(kind.commands()) if kind.commands is not None else ()
+    except Exception as e:  # a plug-in's CLI that fails to load: skipped, by name
+        registry.log.warning("machine kind %s: its commands skipped: %s", kind.name, e)
+        return ()
 
 
 #: Where a command's own ``--cell`` (after the command's name) keeps its value.

@@ -42,7 +42,7 @@ if TYPE_CHECKING:
         "plc": Lazy("cellctl.ui.plc_cli:emulate_plc", "Emulate the cell PLC (Modbus/TCP)"),
     },
     # The machines the installed kinds emulate (``emulate robot``, ``emulate mill`` ...).
-    more=lambda: kind_commands()["emulate"],
+    more=lambda name: kind_commands("emulate", name),
     prepare=lambda name, command: accept_cell(command, "emulate"),
 )
 def emulate() -> None:

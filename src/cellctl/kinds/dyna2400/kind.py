@@ -171,6 +171,7 @@ DYNA2400 = MachineKind(
     language=ProgramLanguage(suffix=".dyn", check=_check, split=_split, preview=_preview),
     menu=_menu,
     commands=_commands,
+    command_names=(("", "mill"), ("emulate", "mill")),
     timing=_timing,
     emulated_options=_emulated_options,
     needs_setup=True,

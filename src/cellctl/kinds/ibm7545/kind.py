@@ -131,6 +131,7 @@ IBM7545 = MachineKind(
     language=ProgramLanguage(suffix=".aml", check=_check, compile=_compile),
     menu=_menu,
     commands=_commands,
+    command_names=(("", "robot"), ("emulate", "robot")),
     program_files=(".rec",),
     check_text=_check_text,
     faults=LazyTable("cellctl.kinds.ibm7545.emulator:FAULTS"),

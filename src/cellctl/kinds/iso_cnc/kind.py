@@ -191,6 +191,7 @@ ISO_CNC = MachineKind(
     condition=_condition,
     language=ProgramLanguage(suffix=".nc", check=_check, split=_split, preview=_preview),
     commands=_commands,
+    command_names=(("emulate", "iso-cnc"), ("", "dnc")),
     menu=_menu,
     timing=_timing,
     emulated_options=_emulated_options,

@@ -8,6 +8,7 @@ from cellctl.emulators.serve import MACHINE_TIME_SCALE, TIME_SCALE_HELP, parse_f
 from cellctl.errors import UsageError
 from cellctl.files import read_text, reason
 from cellctl.kinds.ur.emulator import FAULTS, UrEmulator
+from cellctl.kinds.ur.kind import ROBOT_FUNCTIONS
 from cellctl.kinds.ur.motion import ARMS
 from cellctl.kinds.ur.options import UrOptions
 from cellctl.ui.common import console, fault_help, run
@@ -109,10 +110,4 @@ def _robot_command(function: str, doc: str) -> click.Command:
 
 
 #: The UR's functions the IBM robot's command group does not have (``cellctl robot unlock``).
-ROBOT_COMMANDS = [
-    _robot_command("unlock", "A UR: unlock a protective stop, after inspecting its cause."),
-    _robot_command("close_safety_popup", "A UR: close the pendant's safety popup."),
-    _robot_command("play", "A UR: play (resume) the loaded or paused program."),
-    _robot_command("pause", "A UR: pause the running program."),
-    _robot_command("power_off", "A UR: power the arm off."),
-]
+ROBOT_COMMANDS = [_robot_command(name, doc) for name, doc in ROBOT_FUNCTIONS.items()]

@@ -130,6 +130,17 @@ def _menu() -> Sequence[MachineFunction]:
     return MENU
 
 
+#: The UR's functions the IBM robot's command group does not have, with their help: each is
+#: ``cellctl robot NAME`` (the API method's name).
+ROBOT_FUNCTIONS = {
+    "unlock": "A UR: unlock a protective stop, after inspecting its cause.",
+    "close_safety_popup": "A UR: close the pendant's safety popup.",
+    "play": "A UR: play (resume) the loaded or paused program.",
+    "pause": "A UR: pause the running program.",
+    "power_off": "A UR: power the arm off.",
+}
+
+
 def _commands() -> Sequence[tuple[str, click.Command]]:
     from cellctl.kinds.ur.cli import ROBOT_COMMANDS, emulate_ur
 
@@ -163,6 +174,7 @@ UR = MachineKind(
     language=ProgramLanguage(suffix=".script", check=_check, compile=_compile, preview=_preview),
     menu=_menu,
     commands=_commands,
+    command_names=(("emulate", "ur"), *(("robot", name) for name in ROBOT_FUNCTIONS)),
     emulated_options=_emulated_options,
     program_files=(".script", ".urp"),
     check_text=_check_text,

@@ -15,7 +15,7 @@ import subprocess
 import sys
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +33,15 @@ def wait_until(condition: object, what: str, timeout: float = DEADLINE) -> None:
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out waiting for {what}")
         time.sleep(0.05)
+
+
+def wait_until_true(condition: Callable[[], object], timeout: float) -> bool:
+    """Whether ``condition`` holds within ``timeout`` seconds (polled)."""
+    try:
+        wait_until(condition, "", timeout)
+    except AssertionError:
+        return False
+    return True
 
 
 class Tmux:
@@ -93,18 +102,19 @@ class Tmux:
         return self.screen() == before and 0 <= row < len(lines) and text in lines[row]
 
     def focus_row(self, text: str) -> None:
-        """Tab until the cursor is on the row that shows ``text`` (a field's label). One Tab at
-        a time, each taken before the next (the cursor moved): a Tab sent again because the
-        application was slow may overshoot, and Tab goes round, so it comes back."""
+        """Tab until the cursor is on the row that shows ``text`` (a field's label; called
+        from another field). One Tab at a time, each taken before the next (the cursor
+        moved): a Tab sent again because the application was slow may overshoot, and Tab
+        goes round, so it comes back."""
         for _ in range(12):
-            if self.on_row(text):
-                return
             row = self.cursor_row()
             self.keys("Tab")
             try:
                 wait_until(lambda r=row: self.cursor_row() != r, f"a Tab towards {text}", 5.0)
             except AssertionError:
                 continue
+            if wait_until_true(lambda: self.on_row(text), 0.5):
+                return
         raise AssertionError(f"Tab did not reach {text}:\n{self.screen()}")
 
     def pane_dead(self) -> bool:

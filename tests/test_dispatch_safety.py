@@ -69,6 +69,23 @@ async def test_a_stalled_mill_gets_no_part_and_the_batch_finishes_after(tmp_path
         check_every_part_cut_once_by_each_mill(rig, 1)
 
 
+#: One block of 8 inches at the slowest feed the Dyna takes (0.1 in/min): 80 machine minutes.
+SLOW_BLOCK = """000 ; ONE SLOW BLOCK
+001 TOOL 01
+002 TD = .500
+003 SP= 4000 RPM
+004 SPINDLE ON
+005 FR XY = .1
+006 GOf X 1.000
+007   Y 1.125
+008 GR X 4.000
+009 GR X -4.000
+010 SPINDLE OFF
+011 GOf X 0
+012   Y 0
+"""
+
+
 async def test_a_mill_left_cutting_at_start_takes_work_once_its_block_ends(tmp_path: Path) -> None:
     """A controller that starts while a mill still runs a block (its last owner was killed)
     leaves it out of the plan, raises nothing, and uses it as soon as the block ends."""
@@ -88,7 +105,10 @@ async def test_a_mill_left_cutting_at_start_takes_work_once_its_block_ends(tmp_p
                 f"cnc1 not set up and ready 10 s after its setup; last status:\n{result.output}"
             )
             await asyncio.sleep(0.1)
-        program = programs / "robot_base_rough_cnc1.dyn"
+        # A block of 80 machine minutes (about 5 s here): still cutting when the controller
+        # starts, however slow the box (the cell's own rough block could end before).
+        program = programs / "slow_block.dyn"
+        program.write_text(SLOW_BLOCK)
         result = await rig.cli("mill", "cnc1", "download", "--no-wait", str(program))
         assert result.exit_code == 0, result.output
         controller = await rig.start_controller()

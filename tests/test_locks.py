@@ -7,10 +7,12 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import shutil
 import signal
 import stat
 import subprocess
 import sys
+import tomllib
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -19,6 +21,7 @@ import serial
 
 from cellctl.cell.journal import JOURNAL_FILE, open_journal
 from cellctl.cell.owner import acquire_controller_lock, controller_holder
+from cellctl.drivers.base import link_lock_path
 from cellctl.drivers.state import StateStore
 from cellctl.errors import MachineInUse, UsageError
 from cellctl.kinds.ibm7545.driver import Ibm7545Robot
@@ -33,6 +36,7 @@ from cellctl.link.lock import (
     set_process_label,
 )
 from cellctl.mailbox import MAILBOX_FILE, open_mailbox
+from cellctl.service.rpc import SOCKET_FILE
 from cellctl.ui.cell_cli import run_controller
 
 from .conftest import CELLCTL, Served
@@ -297,6 +301,30 @@ async def test_second_controller_is_refused_and_touches_nothing(
         assert not (tmp_path / JOURNAL_FILE).exists()
         assert not (tmp_path / MAILBOX_FILE).exists()
     assert controller_holder(tmp_path) is None
+
+
+async def test_a_controller_refused_a_held_machine_serves_nothing_and_opens_nothing(
+    tmp_path: Path, label: str
+) -> None:
+    """A console standalone holds cnc1's link: ``cellctl run`` is refused with the holder
+    named before it serves its API, opens the journal or the mailbox, or takes a lock."""
+    tmp_path = tmp_path / "cell"
+    shutil.copytree(EXAMPLE_CELL.parent, tmp_path)
+    with OwnerLock.acquire(StateStore(tmp_path).lock_path("cnc1"), "cnc1"):
+        code, err = await cellctl("--cell", str(tmp_path), "run", "--no-live")
+        assert code == 6, err
+        assert f"cnc1 is in use by {label} (pid {os.getpid()}) since" in err, err
+        assert "control API on" not in err
+        assert not (tmp_path / SOCKET_FILE).exists()
+        assert not (tmp_path / JOURNAL_FILE).exists()
+        assert not (tmp_path / MAILBOX_FILE).exists()
+        assert holder(StateStore(tmp_path).lock_path("robot")) is None
+    # The PLC's link, held by URL (a `cellctl plc` session): the same.
+    plc_url = tomllib.loads((tmp_path / "cell.toml").read_text())["plc"]["url"]
+    with OwnerLock.acquire(link_lock_path(plc_url), plc_url):
+        with pytest.raises(MachineInUse, match=f"{plc_url} is in use by {label}"):
+            await run_controller(tmp_path, live=False, until_idle=True)
+        assert not (tmp_path / JOURNAL_FILE).exists()
 
 
 def test_controller_lock_refuses_a_missing_cell(tmp_path: Path) -> None:

@@ -12,9 +12,13 @@ whether a controller runs (then it goes through the controller's API)::
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from cellctl.errors import UsageError
 from cellctl.link.lock import Holder, OwnerLock, holder
+
+if TYPE_CHECKING:
+    from cellctl.cell.config import CellConfig
 
 #: What a second controller is told; ``{what}`` is the cell directory.
 ALREADY_RUN = "the cell in {what} is already run by {holder}: use `cellctl console` or the API"
@@ -38,3 +42,18 @@ def acquire_controller_lock(cell_dir: Path | str) -> OwnerLock:
 def controller_holder(cell_dir: Path | str) -> Holder | None:
     """The running controller of the cell in ``cell_dir``, or None when none runs."""
     return holder(controller_lock_path(cell_dir))
+
+
+def refuse_if_machines_held(config: CellConfig) -> None:
+    """MachineInUse, naming the holder, if another process holds a machine's or the PLC's
+    link now (a console standalone, a ``cellctl robot`` session): the controller says so
+    before it serves its API or opens a link, not after it has started."""
+    # Here, not at the top: the commands that only ask controller_holder() stay light.
+    from cellctl.drivers.base import refuse_if_link_held
+    from cellctl.drivers.state import StateStore
+    from cellctl.protocol.plc import PlcMap
+
+    store = StateStore(config.directory)
+    for machine in [config.robot, *config.mills]:
+        refuse_if_link_held(machine.link, machine.name, store)
+    refuse_if_link_held(PlcMap.from_toml(config.plc).url, "plc", store)

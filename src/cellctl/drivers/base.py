@@ -20,7 +20,7 @@ from typing import Any, Protocol, Self
 from cellctl.clock import Clock
 from cellctl.drivers.state import StateStore, machine_key
 from cellctl.link import LineSettings, Link, TrafficLog, open_link
-from cellctl.link.lock import OwnerLock, runtime_dir
+from cellctl.link.lock import OwnerLock, refuse_if_held, runtime_dir
 
 
 def link_lock_path(url: str) -> Path:
@@ -34,6 +34,16 @@ def link_lock_path(url: str) -> Path:
     return runtime_dir() / f"link-{machine_key(url)}.lock"
 
 
+def _lock_paths(url: str, name: str | None, store: StateStore | None) -> list[tuple[Path, str]]:
+    """The owner locks of a machine (path, what), in the order they are taken."""
+    wanted: list[tuple[Path, str]] = []
+    if store is not None and name and name != url:
+        wanted.append((store.lock_path(name), name))
+    if not url.startswith(("loop://", "mem://")):
+        wanted.append((link_lock_path(url), url))
+    return wanted
+
+
 def take_link_locks(url: str, name: str | None, store: StateStore | None) -> list[OwnerLock]:
     """The owner locks of a machine, taken now (MachineInUse if another owner holds one).
 
@@ -43,19 +53,21 @@ def take_link_locks(url: str, name: str | None, store: StateStore | None) -> lis
       (lines inside one process, whose own open refuses a second host): two ``--link``
       commands exclude each other, and one cannot open a link a controller opened by name.
     """
-    wanted: list[tuple[Path, str]] = []
-    if store is not None and name and name != url:
-        wanted.append((store.lock_path(name), name))
-    if not url.startswith(("loop://", "mem://")):
-        wanted.append((link_lock_path(url), url))
     locks: list[OwnerLock] = []
     try:
-        for path, what in wanted:
+        for path, what in _lock_paths(url, name, store):
             locks.append(OwnerLock.acquire(path, what))
     except BaseException:
         release_locks(locks)
         raise
     return locks
+
+
+def refuse_if_link_held(url: str, name: str | None, store: StateStore | None) -> None:
+    """MachineInUse now if another owner holds one of the locks :func:`take_link_locks`
+    would take: ``cellctl run`` asks before it serves its API or opens a link."""
+    for path, what in _lock_paths(url, name, store):
+        refuse_if_held(path, what)
 
 
 def release_locks(locks: list[OwnerLock]) -> None:

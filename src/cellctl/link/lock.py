@@ -238,6 +238,14 @@ def holder(path: Path | str) -> Holder | None:
         os.close(fd)
 
 
+def refuse_if_held(path: Path | str, what: str, *, refusal: str = IN_USE) -> None:
+    """MachineInUse, as :meth:`OwnerLock.acquire` would say it, if another owner holds the
+    lock ``path`` now: a look before starting what would take it later (not a lock)."""
+    found = holder(path)
+    if found is not None:
+        raise MachineInUse(refusal.format(what=what, holder=found))
+
+
 class OwnerLock:
     """An exclusive owner lock on a file; see the module docstring.
 

@@ -85,6 +85,7 @@ async def _run_owned(
     from cellctl.cell.config import load_cell
     from cellctl.cell.controller import CellController
     from cellctl.cell.journal import open_journal
+    from cellctl.cell.owner import refuse_if_machines_held
     from cellctl.mailbox import open_mailbox
     from cellctl.service.access import AttachedCell
     from cellctl.service.server import ApiServer, api_limits
@@ -92,6 +93,9 @@ async def _run_owned(
     from cellctl.ui.live_view import LiveView
 
     config = load_cell(directory)
+    # A link held elsewhere (a console standalone): refused now, before the API is served
+    # and the journal opened, not once connecting finds it.
+    refuse_if_machines_held(config)
     journal = open_journal(directory)
     mailbox = open_mailbox(directory)
     stop = stop or asyncio.Event()

@@ -11,6 +11,7 @@ says so). Every module takes its clock now; what is left is an exception with it
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -116,8 +117,10 @@ def direct_time(path: Path) -> list[tuple[int, str]]:
     return sorted(found)
 
 
+@functools.cache
 def scan() -> dict[str, list[tuple[int, str]]]:
-    """Every file of src/cellctl with a direct reading of time, by repository path."""
+    """Every file of src/cellctl with a direct reading of time, by repository path (read once
+    per process: two tests ask)."""
     result: dict[str, list[tuple[int, str]]] = {}
     for path in sorted(SRC.rglob("*.py")):
         rel = path.relative_to(ROOT).as_posix()

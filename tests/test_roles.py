@@ -17,7 +17,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from websockets.exceptions import ConnectionClosed
 
-from cellctl.cell.journal import open_journal
+from cellctl.cell.journal import JOURNAL_FILE, open_journal
 from cellctl.cell.owner import acquire_controller_lock
 from cellctl.errors import AccessDenied, CellctlError, UsageError
 from cellctl.service.access import AttachedCell
@@ -347,3 +347,36 @@ def test_token_changes_are_in_the_audit_trail(tmp_path: Path) -> None:
     ]
     code, out = cli_sync(cell, "audit", "--json")
     assert code == 0 and '"token.revoke"' in out and f'"local:{getpass.getuser()}"' in out
+
+
+def test_a_cell_that_never_ran_keeps_its_trail_from_the_first_action(tmp_path: Path) -> None:
+    """An order posted (and one refused) before the first ``cellctl run``, and a token made:
+    audited, the journal made for it private; a directory that is no cell gets no journal."""
+    cell = tmp_path / "cell"
+    shutil.copytree(Path(__file__).parent.parent / "examples" / "cell", cell)
+    assert not (cell / JOURNAL_FILE).exists()
+    code, out = cli_sync(cell, "submit", "wax-robot-base", "--qty", "2", "--id", "first")
+    assert code == 0, out
+    code, out = cli_sync(cell, "cancel", "no-such-order")
+    assert code != 0, out
+    assert cli_sync(cell, "token", "add", "ann", "--role", "operator")[0] == 0
+    assert stat.S_IMODE((cell / JOURNAL_FILE).stat().st_mode) == 0o600
+    with contextlib.closing(AuditLog(cell)) as log:
+        done = [(e.who, e.method, e.result) for e in log.entries()]
+    me = f"local:{getpass.getuser()}"
+    assert [(who, method) for who, method, _ in done] == [
+        (me, "orders.submit"),
+        (me, "orders.cancel"),
+        (me, "token.add"),
+    ]
+    assert done[0][2] == "ok" and "no-such-order" in done[1][2] and done[2][2] == "ok"
+    # The journal the trail made is the cell's journal: a run and its listings take it.
+    code, out = cli_sync(cell, "part", "list")
+    assert code == 0, out
+    # Not a cell (no cell.toml, a mailbox only): nothing audited, no journal made.
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    (bare / "mailbox.sqlite3").write_bytes((cell / "mailbox.sqlite3").read_bytes())
+    code, out = cli_sync(bare, "cancel", "first")
+    assert code == 0, out
+    assert not (bare / JOURNAL_FILE).exists()

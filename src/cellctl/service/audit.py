@@ -42,6 +42,13 @@ CREATE INDEX IF NOT EXISTS audit_by_at ON audit (at);
 """
 
 
+def keeps_trail(directory: Path) -> bool:
+    """Whether ``directory`` is a cell whose actions are audited: it has a journal, or a
+    cell.toml (a cell that has not run yet: its first entry makes the journal). A directory
+    that is neither gets no journal made for it."""
+    return (directory / JOURNAL_FILE).is_file() or (directory / "cell.toml").is_file()
+
+
 @dataclass(frozen=True)
 class AuditEntry:
     id: int

@@ -35,7 +35,7 @@ from cellctl.errors import (
 from cellctl.kinds import registry
 from cellctl.service import operator
 from cellctl.service.access import CellAccess
-from cellctl.service.audit import AuditLog
+from cellctl.service.audit import AuditLog, keeps_trail
 from cellctl.service.functions import (
     FUNCTIONS,
     InvalidParams,
@@ -392,7 +392,7 @@ def local_caller() -> Caller:
 class Dispatcher:
     """Calls methods on one cell (see module docstring). Each call is checked against the
     caller's role, and every acting call (and every refused one) goes to the audit trail
-    when the cell has a journal."""
+    when the directory is a cell."""
 
     def __init__(self, access: CellAccess) -> None:
         self.access = access
@@ -445,10 +445,12 @@ class Dispatcher:
         return await entry.handler(self.access, checked, progress)
 
     async def record(self, who: str, method: str, params: Any, result: str) -> None:
-        """One audit entry, when the cell has a journal (a cell that never ran has none).
-        Written in a worker thread: a commit waits for the disk (synchronous=FULL), and the
-        controller's loop must not wait with it (its looks at the machines have deadlines)."""
-        if self.access.journal() is None:
+        """One audit entry, in the cell's journal: made for it if the cell has never run
+        but has a cell.toml (an order posted before the first ``cellctl run`` is audited too);
+        a directory that is no cell gets none. Written in a worker thread: a commit waits for
+        the disk (synchronous=FULL), and the controller's loop must not wait with it (its
+        looks at the machines have deadlines)."""
+        if not keeps_trail(self.access.directory):
             return
         await asyncio.to_thread(self._write_entry, who, method, params, result)
 

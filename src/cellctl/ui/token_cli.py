@@ -19,10 +19,9 @@ from typing import Any
 import click
 from rich.table import Table
 
-from cellctl.cell.journal import JOURNAL_FILE
 from cellctl.clock import current_clock
 from cellctl.errors import AccessDenied, UsageError, with_article
-from cellctl.service.audit import AuditLog
+from cellctl.service.audit import AuditLog, keeps_trail
 from cellctl.service.token import ROLES, add_token, list_tokens, revoke_token
 from cellctl.ui.calls import cell_call
 from cellctl.ui.common import cell_dir, console, json_option, print_json, print_table, run
@@ -75,8 +74,8 @@ def _audit(
     directory: Path, who: str, method: str, params: dict[str, Any], outcome: str = "ok"
 ) -> None:
     """Note a token change in the cell's audit trail, as the API's calls are: who may act is
-    an engineer's concern too (a cell that never ran has no journal, and no trail yet)."""
-    if not (directory / JOURNAL_FILE).is_file():
+    an engineer's concern too."""
+    if not keeps_trail(directory):
         return
     with contextlib.closing(AuditLog(directory)) as log:
         log.record(who, method, params, outcome)

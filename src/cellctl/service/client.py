@@ -287,6 +287,10 @@ class StandaloneCell:
 CellClient = RemoteCell | StandaloneCell
 
 
+#: A ``$CELLCTL_TOKEN`` the cell does not know, whether or not its controller runs.
+NOT_A_TOKEN = "${env} is no token of {directory} (wrong or revoked)"
+
+
 def env_caller(directory: Path) -> Caller | None:
     """Who calls in this process: the named token in ``$CELLCTL_TOKEN``, with its role (so an
     operator's token acts as an operator without a controller too); None (the local user,
@@ -296,16 +300,22 @@ def env_caller(directory: Path) -> Caller | None:
         return None
     entry = identify(directory, given)
     if entry is None:
-        raise AccessDenied(f"${TOKEN_ENV} is no token of {directory} (wrong or revoked)")
+        raise AccessDenied(NOT_A_TOKEN.format(env=TOKEN_ENV, directory=directory))
     return Caller(f"token:{entry.name}", entry.role)
 
 
 async def attach(directory: Path) -> RemoteCell:
     """Connect to the API of the controller running ``directory`` (with ``$CELLCTL_TOKEN``
     when set, else ``api-token``)."""
-    return await RemoteCell.connect(
-        token=client_token(directory), socket_path=directory / SOCKET_FILE
-    )
+    try:
+        return await RemoteCell.connect(
+            token=client_token(directory), socket_path=directory / SOCKET_FILE
+        )
+    except AccessDenied:
+        # Said as without a controller: the same wrong token, the same words.
+        if os.environ.get(TOKEN_ENV, "").strip():
+            raise AccessDenied(NOT_A_TOKEN.format(env=TOKEN_ENV, directory=directory)) from None
+        raise
 
 
 def require_cell(directory: Path) -> None:

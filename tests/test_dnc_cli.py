@@ -154,7 +154,11 @@ async def test_drip_a_file_and_receive_by_hand(served: Shop, tmp_path: Path) -> 
     control = served.controls["mill2"]
     control.set_mode(Mode.RMT)
     control.cycle_start()
-    code, output = await finished(proc)
+    try:
+        code, output = await finished(proc)
+    except AssertionError as e:  # what the control did, beside what the command said
+        seen = f"control: {control.mode} {control.activity}, alarms {control.alarms}"
+        raise AssertionError(f"{e}\n{seen}, chars read {control.chars_read}") from None
     assert code == 0, output
     assert "surface.nc: drip-fed" in output
     assert control.runs[-1].done and control.runs[-1].blocks == 6

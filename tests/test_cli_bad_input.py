@@ -248,3 +248,16 @@ def test_a_cell_toml_that_is_a_fifo_is_refused_not_waited_on(
     os.mkfifo(tmp_path / "cell.toml")  # opening it to read would wait for a writer for ever
     line = one_line_refusal(cellctl("--cell", str(tmp_path), *args))
     assert f"{tmp_path / 'cell.toml'}: cannot read: a FIFO, not a regular file" in line
+
+
+def test_an_unknown_machine_is_named_first_with_or_without_a_controller(tmp_path: Path) -> None:
+    """``machine NAME out|in`` and ``traffic NAME`` with a name the cell does not have: the
+    name is refused, the cell's machines listed, before "no controller runs"."""
+    cell = tmp_path / "cell"
+    shutil.copytree(ROOT / "examples" / "cell", cell)
+    for args in (("machine", "cnc9", "out"), ("machine", "cnc9", "in"), ("traffic", "cnc9")):
+        said = one_line_refusal(cellctl("--cell", str(cell), *args))
+        assert "unknown machine 'cnc9' (known: robot, cnc1, cnc2)" in said, (args, said)
+    # A machine the cell has: the controller is what is missing, said so.
+    said = one_line_refusal(cellctl("--cell", str(cell), "machine", "cnc2", "out"))
+    assert "no controller runs on" in said and "unknown machine" not in said

@@ -16,6 +16,8 @@ Protocol errors carry the raw bytes that broke the protocol in ``raw``.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 
 class CellctlError(Exception):
     """Base of every error cellctl raises."""
@@ -105,6 +107,15 @@ def exit_code(error: CellctlError) -> int:
         if isinstance(error, kind):
             return code
     return 1
+
+
+def unknown_machine(name: str, known: Iterable[str], where: str = "") -> UsageError:
+    """The refusal of a machine name nobody knows, with the names that are known: "unknown
+    machine 'cnc9' (known: robot, cnc1, cnc2)"; ``where``: the file that was asked."""
+    listed = ", ".join(known) or "none"
+    return UsageError(
+        f"unknown machine {name!r}{f' in {where}' if where else ''} (known: {listed})"
+    )
 
 
 def with_article(word: str) -> str:

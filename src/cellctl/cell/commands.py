@@ -23,7 +23,7 @@ import contextlib
 from collections.abc import AsyncIterator, Callable
 from typing import TYPE_CHECKING, Any
 
-from cellctl.errors import CellctlError, MachineInUse, UsageError
+from cellctl.errors import CellctlError, MachineInUse, UsageError, unknown_machine
 
 if TYPE_CHECKING:
     from cellctl.cell.model import MachineView
@@ -220,8 +220,7 @@ class OperatorCommands:
 def _known(machines: dict[str, MachineView], name: str) -> MachineView:
     """Machine ``name``'s view; a name the cell does not know is refused, with the known."""
     if name not in machines or name == "plc":
-        known = ", ".join(n for n in machines if n != "plc")
-        raise UsageError(f"unknown machine {name!r} (known: {known})")
+        raise unknown_machine(name, [n for n in machines if n != "plc"])
     return machines[name]
 
 

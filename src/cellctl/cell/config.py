@@ -62,7 +62,7 @@ from cellctl.cell.configschema import (
     Text,
     reference_table,
 )
-from cellctl.errors import CellctlError, UsageError
+from cellctl.errors import CellctlError, UsageError, unknown_machine
 from cellctl.files import read_text
 from cellctl.kinds import registry
 from cellctl.kinds.kind import MachineKind, ProgramRole
@@ -192,7 +192,7 @@ class CellConfig:
         for m in [self.robot, *self.mills]:
             if m.name == name:
                 return m
-        raise UsageError(f"unknown machine {name!r}")
+        raise unknown_machine(name, [m.name for m in [self.robot, *self.mills]])
 
 
 # --- reading and checking (the schema: configschema; the problems: configproblems) ---------

@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import tomllib
 from abc import ABC, abstractmethod
 from collections.abc import AsyncIterator, Mapping
 from pathlib import Path
@@ -27,7 +28,7 @@ from cellctl.cell.model import MachineView
 from cellctl.clock import current_clock
 from cellctl.drivers.plc import ModbusPlc
 from cellctl.drivers.state import StateStore
-from cellctl.errors import CellctlError, UsageError
+from cellctl.errors import CellctlError, UsageError, unknown_machine
 from cellctl.kinds import Condition, registry
 from cellctl.link import TrafficLog
 from cellctl.mailbox import MAILBOX_FILE, Mailbox, open_mailbox
@@ -102,6 +103,17 @@ class CellAccess(ABC):
         """Its layout (``cell.layout``'s answer) when it has one of its own, not read from
         a cell.toml (a DNC shop's machines); None: the cell's."""
         return None
+
+    def known_machines(self) -> list[str] | None:
+        """The machine names the cell knows (None: it cannot say)."""
+        return list(self.machines())
+
+    def require_machine(self, name: str) -> None:
+        """Refuse machine ``name`` if the cell does not know it, whether or not a controller
+        runs: the name is the first thing wrong."""
+        known = self.known_machines()
+        if known is not None and name not in known:
+            raise unknown_machine(name, known)
 
     def controller(self) -> CellController:
         """The running controller: UsageError when none runs."""
@@ -207,7 +219,7 @@ class AttachedCell(CellAccess):
 
     def traffic(self, name: str, limit: int) -> list[dict[str, Any]]:
         if name not in self.machines():
-            raise UsageError(f"unknown machine {name!r} (known: {', '.join(self.machines())})")
+            raise unknown_machine(name, self.machines())
         return traffic_rows(self._controller.traffic, name, limit)
 
 
@@ -258,6 +270,17 @@ class LocalCell(CellAccess):
     def machine_kinds(self) -> dict[str, str]:
         return {name: ref.kind for name, ref in self.refs.items()}
 
+    def known_machines(self) -> list[str] | None:
+        """The machines it may open, else the cell.toml's (None: no cell.toml to read)."""
+        if self.refs:
+            return list(self.refs)
+        try:
+            with (self.directory / "cell.toml").open("rb") as f:
+                machines = tomllib.load(f).get("machines")
+        except (OSError, tomllib.TOMLDecodeError):
+            return None
+        return list(machines) if isinstance(machines, dict) else None
+
     def note(self, text: str) -> None:
         """An event for the snapshot (what a function did)."""
         self.events.append({"time": current_clock().now(), "text": text})
@@ -266,8 +289,7 @@ class LocalCell(CellAccess):
     @contextlib.asynccontextmanager
     async def driver(self, name: str, *, observe: bool = False) -> AsyncIterator[Any]:
         if name not in self.refs:
-            known = ", ".join(self.refs) or "none"
-            raise UsageError(f"unknown machine {name!r} (known: {known})")
+            raise unknown_machine(name, self.refs)
         lock = self._locks.setdefault(name, asyncio.Lock())
         async with lock:
             driver = self._drivers.get(name)

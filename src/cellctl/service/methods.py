@@ -214,16 +214,19 @@ async def _machines(access: CellAccess, p: NoParams, progress: Progress | None) 
 
 
 async def _out(access: CellAccess, p: MachineParams, progress: Progress | None) -> Any:
+    access.require_machine(p.machine)
     message = await access.controller().set_service(p.machine, False, p.reason)
     return {"message": message}
 
 
 async def _in(access: CellAccess, p: MachineParams, progress: Progress | None) -> Any:
+    access.require_machine(p.machine)
     message = await access.controller().set_service(p.machine, True, p.reason)
     return {"message": message}
 
 
 async def _traffic(access: CellAccess, p: TrafficParams, progress: Progress | None) -> Any:
+    access.require_machine(p.machine)
     return access.traffic(p.machine, p.limit)
 
 

@@ -32,7 +32,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from cellctl.errors import UsageError
+from cellctl.errors import UsageError, unknown_machine
 from cellctl.files import read_text
 from cellctl.kinds.iso_cnc.dnc.request import RequestConvention
 from cellctl.kinds.iso_cnc.dnc.store import check_machine_name
@@ -220,6 +220,5 @@ def machine(config: ShopConfig, name: str) -> DncMachine:
     """The machine called ``name``; UsageError naming the known ones."""
     found = config.machines.get(name)
     if found is None:
-        known = ", ".join(sorted(config.machines))
-        raise UsageError(f"unknown machine {name!r} in {config.source} (known: {known})")
+        raise unknown_machine(name, sorted(config.machines), str(config.source))
     return found

@@ -58,7 +58,9 @@ async def running(tmp_path: Path) -> AsyncIterator[Running]:
     stop = asyncio.Event()
     run = asyncio.create_task(run_controller(directory, live=False, until_idle=False, stop=stop))
     try:
-        await until(lambda: (directory / "api-token").exists() or run.done(), "the API", 60)
+        # api.sock appears once the API listens (on its socket and on [api] listen).
+        await until(lambda: (directory / "api.sock").exists() or run.done(), "the API", 60)
+        assert not run.done(), run.exception()
         yield Running(directory, f"http://{api}", opcua)
     finally:
         stop.set()

@@ -130,11 +130,14 @@ async def _run_owned(
     signals = contextlib.ExitStack()
     signals.enter_context(stop_signals(on_signal))
     try:
-        await server.start()
-        controller.log(f"control API on {server.url}")
+        # OPC UA first: building its address space holds the loop for seconds on a loaded
+        # box, and an API already listening would not answer meanwhile (a client that sees
+        # api.sock may connect at once).
         if opcua is not None:
             await opcua.start()
             controller.log(opcua.describe())
+        await server.start()
+        controller.log(f"control API on {server.url}")
         await controller.connect()
         if bridge is not None:
             bridge_task = asyncio.create_task(bridge.run())

@@ -50,10 +50,12 @@ typecheck: $(STAMP)
 # workers a 2-core box used 1.2 cores on average, and 6 keep it busier (1371 tests: 258 s with
 # 4 workers, 222 s with 6). Work stealing keeps the long end-to-end tests from piling up on
 # one worker at the end.
-# Compiled bytecode is cached under .pytest_cache (never beside the sources) even where the
-# environment turns caching off: pytest's own plug-ins are loaded before tests/conftest.py can
-# turn it on, and every worker compiled them again.
-PYTEST := env -u PYTHONDONTWRITEBYTECODE PYTHONPYCACHEPREFIX=$(CURDIR)/.pytest_cache/pycache $(BIN)/pytest
+# Compiled bytecode is used and kept even where the environment turns caching off: pytest's
+# own plug-ins are loaded before tests/conftest.py could turn it on, and every worker and
+# every `cellctl` process compiled again. It stays in __pycache__ beside each module (git
+# ignores it): pip compiled the installed packages there, and a PYTHONPYCACHEPREFIX would
+# hide that and compile them all again on a fresh clone, in six workers at once.
+PYTEST := env -u PYTHONDONTWRITEBYTECODE $(BIN)/pytest
 pytest: $(STAMP) $(PLUGIN_STAMP)
 	$(PYTEST) -q -n 6 --dist worksteal -m "not alone"
 	$(PYTEST) -q -m alone  # real-time fidelity, with the box to itself

@@ -53,7 +53,7 @@ settings.load_profile("cellctl")
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    cache_bytecode(config.rootpath / ".pytest_cache" / "pycache")
+    cache_bytecode()
     config.addinivalue_line(
         "markers",
         "virtual(**loop_options): run this async test and its async fixtures on cellctl's "
@@ -66,18 +66,16 @@ def pytest_configure(config: pytest.Config) -> None:
     )
 
 
-def cache_bytecode(prefix: Path) -> None:
-    """Cache compiled bytecode under ``prefix`` when the environment turned caching off
+def cache_bytecode() -> None:
+    """Use and keep compiled bytecode when the environment turned caching off
     (PYTHONDONTWRITEBYTECODE). Some 300 Pythons the tests start (every ``cellctl`` command,
     ``cellctl run``, the factory, the workers) import cellctl: without a cache each compiled
-    every module from source again, about a quarter of its start-up. The cache goes under
-    ``prefix`` (PYTHONPYCACHEPREFIX), never beside the sources; the processes the tests start
-    inherit it."""
+    every module from source again, about a quarter of its start-up. It is kept in the usual
+    ``__pycache__`` beside each module (git ignores them), where pip compiled the installed
+    packages; the processes the tests start inherit the setting."""
     if not sys.dont_write_bytecode:
-        return  # caching is on: the usual __pycache__ directories
+        return  # caching is on already
     os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
-    os.environ["PYTHONPYCACHEPREFIX"] = str(prefix)
-    sys.pycache_prefix = str(prefix)
     sys.dont_write_bytecode = False
 
 

@@ -10,8 +10,9 @@ own lines and times, which is what a plan needs. Wall times are printed, never a
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -160,6 +161,29 @@ def test_a_second_driver_on_a_served_mem_line_is_refused(tmp_path: Path) -> None
 # -- the mill ----------------------------------------------------------------------------------
 
 
+@contextlib.asynccontextmanager
+async def ready_mill(
+    emulator: Dyna2400Emulator,
+    url: str,
+    line: LineSettings,
+    state: Path,
+    config: MillConfig,
+    trace: TrafficLog | None = None,
+) -> AsyncIterator[Dyna2400Mill]:
+    """The emulated mill at ``url`` powered on (its operator done), then a driver on it,
+    initialized with :data:`SETUP` and ready (CTS high); closed after."""
+    emulator.start()
+    assert emulator._operator is not None
+    await emulator._operator
+    mill = await Dyna2400Mill.connect(
+        url, name="cnc1", settings=line, store=StateStore(state), config=config, trace=trace
+    )
+    async with mill:
+        await mill.initialize(SETUP)
+        await mill._ready.wait(True, 300)
+        yield mill
+
+
 def mill_run(listen: str, readiness: str, virtual: bool, state: Path) -> Run:
     run = Run(TrafficLog(None))
     if virtual:  # the machine's own line and times
@@ -175,24 +199,12 @@ def mill_run(listen: str, readiness: str, virtual: bool, state: Path) -> Run:
 
     async def session() -> None:
         server = await serve_on(emulator, listen, line)
-        emulator.start()
-        assert emulator._operator is not None
-        await emulator._operator
         clock = current_clock()
+        # The real run writes as fast as it can (the same bytes, sooner); the virtual one
+        # paces its writes as a controller does.
+        config = MillConfig(readiness=readiness, pace_writes=virtual)  # type: ignore[arg-type]
         try:
-            mill = await Dyna2400Mill.connect(
-                server.url,
-                name="cnc1",
-                settings=line,
-                store=StateStore(state),
-                # The real run writes as fast as it can (the same bytes, sooner); the virtual
-                # one paces its writes as a controller does.
-                config=MillConfig(readiness=readiness, pace_writes=virtual),  # type: ignore[arg-type]
-                trace=run.trace,
-            )
-            async with mill:
-                await mill.initialize(SETUP)
-                await mill._ready.wait(True, 300)
+            async with ready_mill(emulator, server.url, line, state, config, run.trace) as mill:
                 before, start, runs = run.total(), clock.monotonic(), len(emulator.runs)
                 await mill.download(LONG)
                 run.elapsed = clock.monotonic() - start

@@ -20,13 +20,12 @@ from typing import Any
 import pytest
 
 from cellctl.clock import current_clock
-from cellctl.drivers.state import StateStore
 from cellctl.emulators.memserve import serve_mem
 from cellctl.kinds.dyna2400.driver import Dyna2400Mill, MillConfig
 from cellctl.kinds.dyna2400.emulator import Dyna2400Emulator, LinkMode
 from cellctl.link import MILL_LINE
+from tests.test_mem_emulators import ready_mill
 
-SETUP = Path(__file__).resolve().parents[1] / "examples" / "cell" / "programs" / "cnc1_setup.dyn"
 #: Two blocks as the controller takes them (each closed by SKIP TO 900 / 900): the first is
 #: long enough (about 0.7 s of line) that half of it is not yet written when half is sent.
 TWO_BLOCKS = (
@@ -71,21 +70,10 @@ async def test_end_after_a_cut_short_download_leaves_the_mill_in_manual(
 ) -> None:
     emulator = Dyna2400Emulator()
     server = await serve_mem(emulator, MILL_LINE, name="cnc1")
-    emulator.start()
-    assert emulator._operator is not None
-    await emulator._operator
     clock = current_clock()
+    state, config = tmp_path / "state.json", MillConfig(pace_writes=True)
     try:
-        mill = await Dyna2400Mill.connect(
-            server.url,
-            name="cnc1",
-            settings=MILL_LINE,
-            store=StateStore(tmp_path / "state.json"),
-            config=MillConfig(pace_writes=True),
-        )
-        async with mill:
-            await mill.initialize(SETUP)
-            await mill._ready.wait(True, 300)
+        async with ready_mill(emulator, server.url, MILL_LINE, state, config) as mill:
             program = tmp_path / "two.dyn"
             program.write_text(TWO_BLOCKS)
             progress, cut = _cut_at(mill, program, moment)

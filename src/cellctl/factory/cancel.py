@@ -22,29 +22,22 @@ its operator's cancel does and its audit trail says who asked.
 
 from __future__ import annotations
 
-import getpass
 from dataclasses import dataclass
 from datetime import datetime
 from typing import TYPE_CHECKING
 
 from cellctl.factory.store import ACCEPTED, SENT, FactoryOrder, FactoryStore
 from cellctl.mailbox.wire import MAX_NAME
+from cellctl.service.rpc import login_name
 
 if TYPE_CHECKING:  # the cell's side: imported where the cell runs, not by every command
     from cellctl.mailbox.mqtt import Canceller
     from cellctl.service.methods import Dispatcher
 
-#: What the factory's user is called when the system does not say.
-UNKNOWN_USER = "unknown"
-
 
 def local_user() -> str:
     """Who runs this command, as the cell's audit trail will name them (``factory:WHO``)."""
-    try:
-        user = getpass.getuser()
-    except (KeyError, OSError):
-        user = UNKNOWN_USER
-    return user[:MAX_NAME] or UNKNOWN_USER
+    return login_name()[:MAX_NAME]
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,6 @@ client raises the same error.
 from __future__ import annotations
 
 import asyncio
-import getpass
 import threading
 from typing import Any
 
@@ -72,7 +71,7 @@ from cellctl.service.params import Method as Method
 from cellctl.service.params import P as P
 from cellctl.service.planning import PlanParams, plan_run
 from cellctl.service.rpc import APP_ERROR_BASE as APP_ERROR_BASE
-from cellctl.service.rpc import CALLER, caller_name
+from cellctl.service.rpc import CALLER, caller_name, login_name
 from cellctl.service.rpc import INTERNAL_ERROR as INTERNAL_ERROR
 from cellctl.service.rpc import INVALID_PARAMS as INVALID_PARAMS
 from cellctl.service.rpc import INVALID_REQUEST as INVALID_REQUEST
@@ -385,11 +384,7 @@ class RoleRefused(AccessDenied):
 
 def local_caller() -> Caller:
     """The user at this computer, calling in-process: they hold the cell's files already."""
-    try:
-        user = getpass.getuser()
-    except (KeyError, OSError):
-        user = "unknown"
-    return Caller(f"local:{user}", "engineer")
+    return Caller(f"local:{login_name()}", "engineer")
 
 
 class Dispatcher:

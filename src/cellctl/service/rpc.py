@@ -8,6 +8,7 @@ that only asks a running controller imports this, not the server or the cell's a
 
 from __future__ import annotations
 
+import getpass
 from contextvars import ContextVar
 from dataclasses import dataclass
 from typing import Any
@@ -26,6 +27,15 @@ INVALID_PARAMS = -32602
 INTERNAL_ERROR = -32603
 #: A typed cellctl error: -32000 minus the CLI's exit code for it (UsageError -32002 ...).
 APP_ERROR_BASE = -32000
+
+
+def login_name() -> str:
+    """The user running this process, as the audit trail names them (``local:NAME``,
+    ``factory:NAME``); "unknown" when the system cannot say."""
+    try:
+        return getpass.getuser() or "unknown"
+    except (KeyError, OSError):
+        return "unknown"
 
 
 @dataclass(frozen=True)

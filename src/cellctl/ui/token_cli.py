@@ -10,7 +10,6 @@
 from __future__ import annotations
 
 import contextlib
-import getpass
 import re
 from datetime import datetime
 from pathlib import Path
@@ -22,6 +21,7 @@ from rich.table import Table
 from cellctl.clock import current_clock
 from cellctl.errors import AccessDenied, UsageError, with_article
 from cellctl.service.audit import AuditLog, keeps_trail
+from cellctl.service.rpc import login_name
 from cellctl.service.token import ROLES, add_token, list_tokens, revoke_token
 from cellctl.ui.calls import cell_call
 from cellctl.ui.common import cell_dir, console, json_option, print_json, print_table, run
@@ -61,7 +61,7 @@ def _manager(directory: Path, method: str) -> str:
 
     caller = env_caller(directory)
     if caller is None:
-        return f"local:{getpass.getuser()}"
+        return f"local:{login_name()}"
     if caller.role != "engineer":
         name = caller.who.partition(":")[2]
         refused = f"{name} is {with_article(caller.role)}: {method} needs the engineer role"

@@ -11,7 +11,14 @@ from pathlib import Path
 import pytest
 
 from cellctl.ui.console.whatif import GANTT_WIDTH
-from tests.test_console_tmux import CELLCTL, Tmux, emulated_cell, tmux_session, wait_until
+from tests.test_console_tmux import (
+    CELLCTL,
+    Tmux,
+    emulated_cell,
+    tmux_session,
+    wait_until,
+    wait_until_true,
+)
 
 GANTT_ROW = re.compile(rf"^\s*(robot|cnc1|cnc2)\s*\|([^|]{{{GANTT_WIDTH}}})\|", re.MULTILINE)
 
@@ -31,16 +38,18 @@ def test_what_if_in_a_terminal(tmux: Tmux, tmp_path: Path) -> None:
         tmux.wait_for("8. EXIT", "9. WHAT IF (plan ahead)")
         tmux.keys("9")
         tmux.wait_for("Horizon:", "Add orders:", "PART:QTY[@PRIORITY]")
-        # The first field (focused, 8h offered) takes the keys once the dialog is up: on a
-        # loaded box, keys sent before that are typed again.
+        # The first field (8h offered) is focused as the dialog mounts; keys sent before that
+        # are lost, so the field is cleared until it is seen empty. Backspace is a binding,
+        # taken after the key went up through the dialog, while a letter goes into the field
+        # at once: sent in one burst, "2m" would be typed before the backspaces took it away.
+        cleared = lambda: re.search(r"Horizon:\s+█", tmux.screen())  # noqa: E731
         for _ in range(3):
             tmux.keys("BSpace", "BSpace", "BSpace", "BSpace")
-            tmux.keys("-l", "2m")
-            try:
-                wait_until(lambda: re.search(r"Horizon:\s+2m ", tmux.screen()), "2m", 5.0)
+            if wait_until_true(cleared, 15.0):
                 break
-            except AssertionError:
-                continue
+        wait_until(cleared, "the horizon cleared")
+        tmux.keys("-l", "2m")
+        wait_until(lambda: re.search(r"Horizon:\s+2m ", tmux.screen()), "2m in the horizon")
         assert re.search(r"Horizon:\s+2m ", tmux.screen()), tmux.screen()
         tmux.focus_row("Add orders:")
         tmux.keys("-l", "wax-robot-base:1")

@@ -134,6 +134,11 @@ def pytest_asyncio_loop_factories(
     return {"virtual": lambda: VirtualLoop(**options)}
 
 
+#: How long a page in Chromium is given to show a change (ms): a deadline for a loaded box,
+#: not a timing figure (how fast a change is pushed is bench/api_push.py's).
+SEEN_MS = 20_000
+
+
 def listen_url(transport: str) -> str:
     """Where to serve an emulator for ``transport``: a new pty or a free loopback port."""
     return "pty" if transport == "pty" else f"{transport}://127.0.0.1:0"

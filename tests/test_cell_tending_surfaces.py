@@ -24,7 +24,7 @@ from cellctl.service.token import read_token
 from cellctl.testing.rig import write_cell_options
 from cellctl.ui.cell_cli import run_controller
 from cellctl.ui.console.app import ConsoleApp
-from tests.conftest import free_port, until
+from tests.conftest import SEEN_MS, free_port, until
 from tests.test_console import wait_text
 from tests.test_dashboard import browser  # noqa: F401  (the fixture)
 from tests.test_opcua import client_cert, session  # noqa: F401  (client_cert: the fixture)
@@ -82,16 +82,16 @@ async def test_the_dashboard_draws_the_cobot_cell(
         await page.goto(f"{running.api}/#token={read_token(running.directory)}")
         plan = page.locator("#floor-plan svg")
         await plan.locator(f'.machine.robot[data-machine="{config.robot.name}"]').wait_for(
-            timeout=10_000
+            timeout=SEEN_MS
         )
         mills = plan.locator(".machine.mill")
-        await mills.first.wait_for(timeout=5_000)
+        await mills.first.wait_for(timeout=SEEN_MS)
         drawn = {await m.get_attribute("data-machine") for m in await mills.all()}
         assert drawn == {m.name for m in config.mills} == {"vf2", "cnc2"}
         # A card per machine, each with its state in words.
         for machine in [config.robot, *config.mills]:
             state = page.locator(f'.card[data-machine="{machine.name}"] .machine-state')
-            await state.wait_for(timeout=5_000)
+            await state.wait_for(timeout=SEEN_MS)
             assert (await state.inner_text()).strip(), machine.name
         assert not errors, errors
     finally:

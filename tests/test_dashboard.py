@@ -6,6 +6,7 @@ requests from another origin. A screenshot of each view lands in the test's tmp 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import re
@@ -13,7 +14,7 @@ import shutil
 import time
 import urllib.error
 import urllib.request
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,7 +29,7 @@ from cellctl.service.access import AttachedCell
 from cellctl.service.server import ApiServer
 from cellctl.testing.rig import CellRig, cli
 from cellctl.ui.dashboard import dashboard_routes
-from tests.conftest import free_port
+from tests.conftest import SEEN_MS, free_port
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [
@@ -175,14 +176,14 @@ def _shell(base: str) -> tuple[str, str]:
 async def live(dash: Dash) -> None:
     """Open the dashboard and wait until it shows the live cell."""
     await dash.open()
-    await dash.page.locator("#connection.good").wait_for(timeout=10_000)
-    await dash.page.locator("#floor-plan svg .machine.mill").first.wait_for(timeout=5_000)
+    await dash.page.locator("#connection.good").wait_for(timeout=SEEN_MS)
+    await dash.page.locator("#floor-plan svg .machine.mill").first.wait_for(timeout=SEEN_MS)
 
 
 async def test_the_token_is_needed_for_the_page_and_the_api(dash: Dash) -> None:
     for fragment in ("", "#token=wrong-token"):
         await dash.open(fragment)
-        await dash.page.locator("#refused").wait_for(state="visible", timeout=5_000)
+        await dash.page.locator("#refused").wait_for(state="visible", timeout=SEEN_MS)
         assert await dash.page.locator("#content").is_hidden()
         assert await dash.page.locator("#content > *").count() == 0  # no cell data at all
         assert "refused" in (await dash.page.locator("#connection").inner_text()).lower()
@@ -210,6 +211,20 @@ def cutting(rig: Any) -> bool:
     return any((v.progress or {}).get("block") for v in machines.values() if v.name != "robot")
 
 
+async def shown_while(marker: Any, still: Callable[[], bool], what: str) -> bool:
+    """Whether the page shows ``marker`` while ``still()`` holds; False when it stopped
+    holding first. What still holds and is not shown within SEEN_MS fails the test."""
+    deadline = time.monotonic() + SEEN_MS / 1000
+    while True:
+        with contextlib.suppress(PlaywrightError):
+            await marker.wait_for(state="attached", timeout=500)
+            return True
+        if not still():
+            return False
+        if time.monotonic() > deadline:
+            raise AssertionError(f"{what}, not on the page")
+
+
 async def test_the_floor_follows_the_batch(dash: Dash) -> None:
     rig = dash.rig
     await live(dash)
@@ -224,34 +239,22 @@ async def test_the_floor_follows_the_batch(dash: Dash) -> None:
         rig.check_running()
         for part in rig.journal.parts(["waiting", "active", "held"]):
             if last.get(part.id, "conveyor") != part.location:
-                seen_at = time.monotonic()
                 marker = page.locator(
                     f'[data-part-id="{part.id}"][data-location="{part.location}"]'
                 )
-                try:
-                    await marker.wait_for(state="attached", timeout=2_000)
-                except PlaywrightError:
-                    now = rig.journal.get_part(part.id).location
-                    if now == part.location:
-                        raise AssertionError(
-                            f"part {part.id} at {part.location} in the journal, not on the page "
-                            "within 2 s"
-                        ) from None
-                    continue  # it moved on again before we looked
-                assert time.monotonic() - seen_at < 2.0
+                there = lambda p=part: rig.journal.get_part(p.id).location == p.location  # noqa: E731
+                if not await shown_while(marker, there, f"part {part.id} at {part.location}"):
+                    continue  # it moved on again before the page was looked at
                 moves_seen += 1
             last[part.id] = part.location
         if not shot_taken and cutting(rig):
             # A cutting mill's card shows it busy, with its step and part as fields give them.
             busy = page.locator(".card.condition-busy", has=page.locator(".preview svg"))
-            try:
-                await page.locator(".preview svg .block-start.current").first.wait_for(
-                    timeout=3_000
-                )
-                await busy.first.wait_for(timeout=3_000)
-            except PlaywrightError:
-                if cutting(rig):
-                    raise
+            current = page.locator(".preview svg .block-start.current").first
+            if not (
+                await shown_while(current, lambda: cutting(rig), "a mill's current block")
+                and await shown_while(busy.first, lambda: cutting(rig), "a busy mill's card")
+            ):
                 continue  # the cut ended before the page was looked at: wait for the next
             assert (await busy.first.locator(".step").inner_text()).startswith("machine ")
             await asyncio.sleep(0.6)  # the parts' moves on the floor are animated (0.5 s)
@@ -266,7 +269,7 @@ async def test_the_floor_follows_the_batch(dash: Dash) -> None:
     assert shot_taken, "no mill showed its cut's progress"
     await dash.shot("floor-panel", "#floor")
     # The Gantt chart draws the journal's steps; exported as SVG it is a file of its own.
-    await page.locator("#gantt-chart svg rect.step").first.wait_for(timeout=5_000)
+    await page.locator("#gantt-chart svg rect.step").first.wait_for(timeout=SEEN_MS)
     await dash.shot("gantt", "#gantt")
     async with page.expect_download() as download:
         await page.locator("#gantt-svg").click()
@@ -280,8 +283,8 @@ async def test_the_floor_follows_the_batch(dash: Dash) -> None:
     assert png.read_bytes().startswith(b"\x89PNG\r\n\x1a\n") and png.stat().st_size > 1000
     # Traffic: the robot's last bytes, both ways.
     await page.select_option("#traffic-machine", "robot")
-    await page.locator("#traffic-table tr.received").first.wait_for(timeout=5_000)
-    await page.locator("#traffic-table tr.sent").first.wait_for(timeout=5_000)
+    await page.locator("#traffic-table tr.received").first.wait_for(timeout=SEEN_MS)
+    await page.locator("#traffic-table tr.sent").first.wait_for(timeout=SEEN_MS)
     await dash.shot("traffic", "#traffic")
 
 
@@ -294,10 +297,10 @@ async def test_an_order_from_the_form(dash: Dash) -> None:
     await page.fill("#order-priority", "5")
     await page.click("#order-submit")
     message = page.locator("#order-message.ok")
-    await message.wait_for(timeout=5_000)
+    await message.wait_for(timeout=SEEN_MS)
     assert "posted" in await message.inner_text()
     row = page.locator("#order-table tbody tr", has_text="wax-toy-mill-table")
-    await row.wait_for(timeout=5_000)
+    await row.wait_for(timeout=SEEN_MS)
     orders = await dash.api("orders.list")
     assert [(o["part_type"], o["qty"], o["priority"]) for o in orders] == [
         ("wax-toy-mill-table", 2, 5)
@@ -305,7 +308,7 @@ async def test_an_order_from_the_form(dash: Dash) -> None:
     await page.fill("#order-qty", "0")
     await page.click("#order-submit")
     refused = page.locator("#order-message.error")
-    await refused.wait_for(timeout=5_000)
+    await refused.wait_for(timeout=SEEN_MS)
     text = await refused.inner_text()
     assert "qty" in text and "greater than or equal to 1" in text, text
     assert len(await dash.api("orders.list")) == 1
@@ -314,7 +317,7 @@ async def test_an_order_from_the_form(dash: Dash) -> None:
     await row.locator("button", has_text="Cancel").click()
     assert "Cancel order" in await page.locator("#confirm-text").inner_text()
     await dash.confirm()
-    await page.locator("#order-table tbody tr.order-cancelled").wait_for(timeout=5_000)
+    await page.locator("#order-table tbody tr.order-cancelled").wait_for(timeout=SEEN_MS)
     assert (await dash.api("orders.list"))[0]["state"] == "cancelled"
 
 
@@ -324,10 +327,10 @@ async def test_an_alarm_is_acknowledged_then_cleared_from_the_page(dash: Dash) -
     page = dash.page
     rig.cell.plc.set_fault("estop", None)
     row = page.locator("#alarm-table tbody tr[data-alarm]", has_text="emergency stop")
-    await row.wait_for(timeout=5_000)
+    await row.wait_for(timeout=SEEN_MS)
     # Unacknowledged: the row is marked and the header's badge flashes until Ack.
     badge = page.locator("#alarm-badge.flashing")
-    await badge.wait_for(timeout=5_000)
+    await badge.wait_for(timeout=SEEN_MS)
     # Its text, not its rendering: the flashing badge is hidden every other half second.
     assert "1 unacknowledged" in (await badge.text_content() or "")
     assert "unacked" in (await row.get_attribute("class") or "")
@@ -335,7 +338,7 @@ async def test_an_alarm_is_acknowledged_then_cleared_from_the_page(dash: Dash) -
     await dash.shot("alarms", "#attention")
     rig.cell.plc.clear_fault("estop")
     # The monitor sees the PLC well again: returned to normal, still unacknowledged.
-    await row.locator(".alarm-state", has_text="returned to normal").wait_for(timeout=5_000)
+    await row.locator(".alarm-state", has_text="returned to normal").wait_for(timeout=SEEN_MS)
     assert await page.locator("#alarm-badge.flashing").count() == 1
     alarm_id = int(await row.get_attribute("data-alarm") or 0)
     # A wrong token cannot acknowledge it.
@@ -345,29 +348,29 @@ async def test_an_alarm_is_acknowledged_then_cleared_from_the_page(dash: Dash) -
     [still] = [a for a in await dash.api("alarms.list") if a["id"] == alarm_id]
     assert still["acked"] is None
     await row.locator("button", has_text="Ack").click()  # no confirmation: it only marks seen
-    await page.locator("#alarm-badge.hidden").wait_for(state="attached", timeout=5_000)
-    await row.locator(".alarm-state", has_text="acknowledged, returned").wait_for(timeout=5_000)
+    await page.locator("#alarm-badge.hidden").wait_for(state="attached", timeout=SEEN_MS)
+    await row.locator(".alarm-state", has_text="acknowledged, returned").wait_for(timeout=SEEN_MS)
     [acked] = [a for a in await dash.api("alarms.list") if a["id"] == alarm_id]
     assert acked["acked"] is not None and acked["state"] == "active"  # acked is not cleared
     await row.locator("button", has_text="Clear").click()
     await dash.confirm()
     await dash.page.locator(f'#alarm-table tr[data-alarm="{alarm_id}"]').wait_for(
-        state="detached", timeout=5_000
+        state="detached", timeout=SEEN_MS
     )
     status, alarms = await http(dash.base + "/api/alarms", token=dash.token)
     assert status == 200 and alarm_id not in [a["id"] for a in alarms]
     # The pushed status may remove the row before the call's own answer is shown.
-    await dash.page.locator("#alarm-message", has_text="cleared").wait_for(timeout=5_000)
+    await dash.page.locator("#alarm-message", has_text="cleared").wait_for(timeout=SEEN_MS)
 
 
 async def test_a_card_and_the_floor_show_a_machine_out_of_service(dash: Dash) -> None:
     await live(dash)
     page = dash.page
     card = page.locator('#machine-cards .card[data-machine="cnc2"]')
-    await card.and_(page.locator('[data-condition="idle"]')).wait_for(timeout=5_000)
+    await card.and_(page.locator('[data-condition="idle"]')).wait_for(timeout=SEEN_MS)
     await dash.api("machines.out_of_service", {"machine": "cnc2", "reason": "new cutter"})
     out = page.locator('#machine-cards .card.condition-out-of-service[data-machine="cnc2"]')
-    await out.wait_for(timeout=5_000)
+    await out.wait_for(timeout=SEEN_MS)
     assert await out.locator(".badge.state").inner_text() == "out of service"
     assert "new cutter" in await out.locator(".machine-state").inner_text()
     floor = page.locator('#floor-plan .machine[data-machine="cnc2"]')
@@ -379,7 +382,7 @@ async def test_a_card_and_the_floor_show_a_machine_out_of_service(dash: Dash) ->
     )
     await dash.shot("out-of-service", "#machines")
     await dash.api("machines.return_to_service", {"machine": "cnc2"})
-    await card.and_(page.locator('[data-condition="idle"]')).wait_for(timeout=10_000)
+    await card.and_(page.locator('[data-condition="idle"]')).wait_for(timeout=SEEN_MS)
 
 
 async def test_a_held_part_is_released_from_the_page(dash: Dash) -> None:
@@ -391,16 +394,16 @@ async def test_a_held_part_is_released_from_the_page(dash: Dash) -> None:
     rig.journal.hold_part(parts[0].id, "inspect the blank")
     rig.controller.poke()  # type: ignore[union-attr]
     row = dash.page.locator(f'#held-table tr[data-part="{parts[0].id}"]')
-    await row.wait_for(timeout=5_000)
+    await row.wait_for(timeout=SEEN_MS)
     assert "inspect the blank" in await row.inner_text()
     await dash.shot("held", "#attention")
     await row.locator("button", has_text="Release").first.click()
     await dash.confirm()
-    await row.wait_for(state="detached", timeout=5_000)
+    await row.wait_for(state="detached", timeout=SEEN_MS)
     assert rig.journal.get_part(parts[0].id).status == "waiting"
     # The row goes with the pushed status; the call's own answer may come a moment later.
     message = dash.page.locator("#part-message", has_text=re.compile("released", re.IGNORECASE))
-    await message.wait_for(timeout=5_000)
+    await message.wait_for(timeout=SEEN_MS)
 
 
 async def test_redo_refused_and_scrap_on_a_tablet(dash: Dash) -> None:
@@ -416,8 +419,8 @@ async def test_redo_refused_and_scrap_on_a_tablet(dash: Dash) -> None:
     rig.controller.poke()  # type: ignore[union-attr]
     page = dash.page
     redo, scrap = (page.locator(f'#held-table tr[data-part="{p.id}"]') for p in parts)
-    await redo.wait_for(timeout=5_000)
-    await scrap.wait_for(timeout=5_000)
+    await redo.wait_for(timeout=SEEN_MS)
+    await scrap.wait_for(timeout=SEEN_MS)
     # Nothing is wider than the screen: every panel reflows.
     width = await page.evaluate("document.documentElement.scrollWidth - window.innerWidth")
     assert width <= 0, f"the page is {width} px wider than a tablet"
@@ -426,13 +429,13 @@ async def test_redo_refused_and_scrap_on_a_tablet(dash: Dash) -> None:
     await redo.locator("button", has_text="Release & redo").click()
     await dash.confirm()
     refusal = page.locator("#part-message.error")
-    await refusal.wait_for(timeout=5_000)
+    await refusal.wait_for(timeout=SEEN_MS)
     assert "has no step to redo" in await refusal.inner_text()
     assert rig.journal.get_part(parts[0].id).status == "held"
     await scrap.locator("button", has_text="Scrap").click()
     assert "cannot be undone" in await page.locator("#confirm-text").inner_text()
     await dash.confirm()
-    await scrap.wait_for(state="detached", timeout=5_000)
+    await scrap.wait_for(state="detached", timeout=SEEN_MS)
     assert rig.journal.get_part(parts[1].id).status == "scrapped"
 
 
@@ -514,7 +517,7 @@ async def test_the_page_reconnects_after_the_controller_restarts(dash: Dash) -> 
     port = int(dash.base.rsplit(":", 1)[1])
     await dash.server.close()
     connection = dash.page.locator("#connection")
-    await dash.page.locator("#connection.bad").wait_for(timeout=5_000)
+    await dash.page.locator("#connection.bad").wait_for(timeout=SEEN_MS)
     assert "reconnecting" in await connection.inner_text()
     assert dash.rig.controller is not None
     dash.server = ApiServer(
@@ -524,7 +527,7 @@ async def test_the_page_reconnects_after_the_controller_restarts(dash: Dash) -> 
         extra_routes=dash.server_routes,
     )
     await dash.server.start()
-    await dash.page.locator("#connection.good").wait_for(timeout=10_000)
+    await dash.page.locator("#connection.good").wait_for(timeout=SEEN_MS)
     assert "reconnected" in await connection.inner_text()
     assert await dash.page.locator("#notice").is_hidden()
 
@@ -565,13 +568,13 @@ async def test_after_a_reload_each_event_shows_once(dash: Dash) -> None:
         # Events to hold: a machine out of service and back (each a line of the Events panel).
         await dash.api("machines.out_of_service", {"machine": "cnc2", "reason": f"check {i}"})
         await dash.api("machines.return_to_service", {"machine": "cnc2"})
-        await page.locator("#event-list li", has_text=f"check {i}").wait_for(timeout=5_000)
+        await page.locator("#event-list li", has_text=f"check {i}").wait_for(timeout=SEEN_MS)
         await page.reload()
-        await page.locator("#connection.good").wait_for(timeout=10_000)
-        await page.locator("#event-list li", has_text=f"check {i}").wait_for(timeout=5_000)
+        await page.locator("#connection.good").wait_for(timeout=SEEN_MS)
+        await page.locator("#event-list li", has_text=f"check {i}").wait_for(timeout=SEEN_MS)
         # A push after the read (one more event) must not bring the earlier ones again.
         await dash.api("machines.out_of_service", {"machine": "cnc1", "reason": f"push {i}"})
-        await page.locator("#event-list li", has_text=f"push {i}").wait_for(timeout=5_000)
+        await page.locator("#event-list li", has_text=f"push {i}").wait_for(timeout=SEEN_MS)
         # The cell's events before and after the page is read, the same (an alarm a loaded
         # box raises meanwhile is on the page and in the log, or in neither).
         for _ in range(50):

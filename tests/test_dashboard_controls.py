@@ -16,6 +16,7 @@ from playwright.async_api import Page, Request, Response, Route
 
 from cellctl.service.token import add_token
 from tests import test_dashboard
+from tests.conftest import SEEN_MS
 from tests.test_dashboard import Dash, http, live
 
 # The browser and the cell with its dashboard, as tests/test_dashboard.py starts them.
@@ -35,7 +36,7 @@ async def test_pause_resume_and_an_emergency_stop_with_a_reason(dash: Dash) -> N
     pause = page.locator(f'{CONTROLS} button[data-method="cell.pause"]')
     resume = page.locator(f'{CONTROLS} button[data-method="cell.resume"]')
     estop = page.locator(f'{CONTROLS} button[data-method="cell.estop"]')
-    await pause.wait_for(timeout=5_000)
+    await pause.wait_for(timeout=SEEN_MS)
     assert await resume.is_disabled()  # running: there is nothing to resume
     # Pausing stops work: confirmed first, and a "Cancel" leaves the cell as it was.
     await pause.click()
@@ -44,22 +45,22 @@ async def test_pause_resume_and_an_emergency_stop_with_a_reason(dash: Dash) -> N
     assert await mode(dash) == "running"
     await pause.click()
     await dash.confirm()
-    await page.locator("#cell-state.mode-paused").wait_for(timeout=5_000)
+    await page.locator("#cell-state.mode-paused").wait_for(timeout=SEEN_MS)
     assert await mode(dash) == "paused"
     message = page.locator("#control-message.ok")
-    await message.wait_for(timeout=5_000)
+    await message.wait_for(timeout=SEEN_MS)
     assert "paused" in await message.inner_text()
     assert await pause.is_disabled()
     # Resuming stops nothing: no confirmation.
     await resume.click()
-    await page.locator("#cell-state.mode-running").wait_for(timeout=5_000)
+    await page.locator("#cell-state.mode-running").wait_for(timeout=SEEN_MS)
     assert await mode(dash) == "running"
     # A reason longer than the API takes: refused in its words, the cell not stopped.
     await estop.click()
     await page.locator("#confirm-reason").fill("y" * 501)
     await dash.confirm()
     refusal = page.locator("#control-message.error")
-    await refusal.wait_for(timeout=5_000)
+    await refusal.wait_for(timeout=SEEN_MS)
     assert "500 characters" in await refusal.inner_text()
     assert await mode(dash) == "running"
     # The emergency stop asks first, with a reason that goes into the alarm and the journal.
@@ -68,11 +69,11 @@ async def test_pause_resume_and_an_emergency_stop_with_a_reason(dash: Dash) -> N
     await page.locator("#confirm-reason").fill("guard door open")
     await dash.shot("estop-confirm")
     await dash.confirm()
-    await page.locator("#cell-state.mode-emergency-stop").wait_for(timeout=10_000)
+    await page.locator("#cell-state.mode-emergency-stop").wait_for(timeout=SEEN_MS)
     row = page.locator("#alarm-table tbody tr[data-alarm]", has_text="guard door open")
-    await row.wait_for(timeout=5_000)
+    await row.wait_for(timeout=SEEN_MS)
     assert "emergency stop: guard door open" in await row.inner_text()
-    await page.locator("#control-message.ok", has_text="guard door open").wait_for(timeout=5_000)
+    await page.locator("#control-message.ok", has_text="guard door open").wait_for(timeout=SEEN_MS)
     alarms = await dash.api("alarms.list")
     assert any(a["text"] == "emergency stop: guard door open" for a in alarms), alarms
     await dash.shot("estop", CONTROLS)
@@ -80,9 +81,9 @@ async def test_pause_resume_and_an_emergency_stop_with_a_reason(dash: Dash) -> N
     assert await resume.is_disabled()
     await row.locator('button[data-method="alarms.clear"]').click()
     await dash.confirm()
-    await page.locator("#cell-state.mode-paused").wait_for(timeout=5_000)
+    await page.locator("#cell-state.mode-paused").wait_for(timeout=SEEN_MS)
     await resume.click()
-    await page.locator("#cell-state.mode-running").wait_for(timeout=5_000)
+    await page.locator("#cell-state.mode-running").wait_for(timeout=SEEN_MS)
     assert await mode(dash) == "running"
 
 
@@ -92,7 +93,7 @@ async def test_a_machine_out_of_service_and_back_from_its_card(dash: Dash) -> No
     card = page.locator('#machine-cards .card[data-machine="cnc2"]')
     out = card.locator('button[data-method="machines.out_of_service"]')
     back = card.locator('button[data-method="machines.return_to_service"]')
-    await out.wait_for(timeout=5_000)
+    await out.wait_for(timeout=SEEN_MS)
     assert await back.is_hidden()
     # Out of service stops work on the machine: confirmed, with a reason it will not go without.
     await out.click()
@@ -104,14 +105,14 @@ async def test_a_machine_out_of_service_and_back_from_its_card(dash: Dash) -> No
     await page.locator("#confirm-reason").fill("x" * 600)
     await dash.confirm()
     refusal = card.locator(".control-message.error")
-    await refusal.wait_for(timeout=5_000)
+    await refusal.wait_for(timeout=SEEN_MS)
     assert "reason" in (text := await refusal.inner_text()) and "500 characters" in text, text
     assert (await dash.api("machines.list"))["cnc2"]["in_service"] is True
     await out.click()
     await page.locator("#confirm-reason").fill("new cutter")
     await dash.confirm()
     await page.locator('.card.condition-out-of-service[data-machine="cnc2"]').wait_for(
-        timeout=5_000
+        timeout=SEEN_MS
     )
     assert "new cutter" in await card.locator(".machine-state").inner_text()
     assert "out of automatic service" in await card.locator(".control-message.ok").inner_text()
@@ -121,7 +122,7 @@ async def test_a_machine_out_of_service_and_back_from_its_card(dash: Dash) -> No
     await dash.shot("machine-out", "#machines")
     # Back in service starts nothing by itself: no confirmation.
     await back.click()
-    await page.locator('.card.condition-idle[data-machine="cnc2"]').wait_for(timeout=10_000)
+    await page.locator('.card.condition-idle[data-machine="cnc2"]').wait_for(timeout=SEEN_MS)
     assert (await dash.api("machines.list"))["cnc2"]["in_service"] is True
     assert "back in automatic service" in await card.locator(".control-message.ok").inner_text()
 
@@ -129,7 +130,7 @@ async def test_a_machine_out_of_service_and_back_from_its_card(dash: Dash) -> No
 async def test_a_wrong_token_gets_no_controls_and_changes_nothing(dash: Dash) -> None:
     await dash.open("#token=wrong-token")
     page = dash.page
-    await page.locator("#refused").wait_for(state="visible", timeout=5_000)
+    await page.locator("#refused").wait_for(state="visible", timeout=SEEN_MS)
     assert await page.locator(CONTROLS).is_hidden()
     assert await page.locator("[data-method]:visible").count() == 0
     assert await page.locator("#connecting").is_hidden()
@@ -157,19 +158,19 @@ async def test_a_viewer_is_refused_the_controls_in_words(dash: Dash) -> None:
     viewer = add_token(dash.rig.directory, "vic", "viewer")
     await dash.open(f"#token={viewer}")
     page = dash.page
-    await page.locator("#connection.good").wait_for(timeout=10_000)
+    await page.locator("#connection.good").wait_for(timeout=SEEN_MS)
     await page.locator(f'{CONTROLS} button[data-method="cell.estop"]').click()
     await page.locator("#confirm-reason").fill("a viewer tries")
     await dash.confirm()
     refusal = page.locator("#control-message.error")
-    await refusal.wait_for(timeout=5_000)
+    await refusal.wait_for(timeout=SEEN_MS)
     assert "vic is a viewer: cell.estop needs the operator role" in await refusal.inner_text()
     card = page.locator('#machine-cards .card[data-machine="cnc1"]')
     await card.locator('button[data-method="machines.out_of_service"]').click()
     await page.locator("#confirm-reason").fill("a viewer tries")
     await dash.confirm()
     out = card.locator(".control-message.error")
-    await out.wait_for(timeout=5_000)
+    await out.wait_for(timeout=SEEN_MS)
     assert "needs the operator role" in await out.inner_text()
     assert await mode(dash) == "running"
     assert (await dash.api("machines.list"))["cnc1"]["in_service"] is True
@@ -189,7 +190,7 @@ async def test_times_are_on_the_24_hour_clock(dash: Dash) -> None:
         )
         await dash.api("machines.out_of_service", {"machine": "cnc1", "reason": "clock check"})
         item = dash.page.locator("#event-list li", has_text="clock check")
-        await item.wait_for(timeout=5_000)
+        await item.wait_for(timeout=SEEN_MS)
         shown = await item.locator("time").inner_text()
         assert re.fullmatch(r"\d\d:\d\d:\d\d", shown), shown
         text = await dash.page.locator("body").inner_text()
@@ -215,14 +216,14 @@ async def test_the_page_while_connecting_says_so(dash: Dash) -> None:
     async with asyncio.timeout(10):
         await held.wait()
     waiting = page.locator("#connecting")
-    await waiting.wait_for(state="visible", timeout=5_000)
+    await waiting.wait_for(state="visible", timeout=SEEN_MS)
     assert "Connecting to the cell's controller" in await waiting.inner_text()
     assert "connecting" in await page.locator("#connection").inner_text()
     assert await page.locator("#content").is_hidden()
     await dash.shot("connecting")
     go.set()
     await opened
-    await page.locator("#connection.good").wait_for(timeout=10_000)
+    await page.locator("#connection.good").wait_for(timeout=SEEN_MS)
     assert await waiting.is_hidden()
     await page.unroute("**/access/oneshot_token")
 
@@ -291,7 +292,7 @@ async def test_a_batch_reads_well(dash: Dash) -> None:
     assert all(h >= 10 for h in small), small
     assert "block" in caption and size >= 10, (caption, size)
     full = page.locator("#toolpath-view")
-    await full.locator("svg").wait_for(timeout=5_000)
+    await full.locator("svg").wait_for(timeout=SEEN_MS)
     heights = await full.evaluate(TEXT_HEIGHTS)
     assert heights and min(heights) >= 10, heights
     await dash.shot("toolpath")

@@ -27,7 +27,7 @@ from cellctl.kinds.iso_cnc.emulator import EmulatorOptions, IsoCncEmulator, Mode
 from cellctl.link import LineSettings
 from cellctl.service.client import attach
 from cellctl.service.token import read_token
-from tests.conftest import free_port, until
+from tests.conftest import SEEN_MS, free_port, until
 from tests.test_dashboard import browser  # noqa: F401  (the fixture)
 
 LINE = LineSettings.parse("9600,7E2")
@@ -300,7 +300,7 @@ async def test_the_dashboard_shows_a_drip_feeds_stall_in_its_own_field(
         page.on("pageerror", lambda e: errors.append(str(e)))
         await page.goto(f"http://127.0.0.1:{port}/#token={read_token(shop)}")
         card = page.locator('.card[data-machine="mill1"]')
-        await card.locator(".machine-state").wait_for(timeout=10_000)
+        await card.locator(".machine-state").wait_for(timeout=SEEN_MS)
         stall = card.locator(".stall")
         assert not await stall.is_visible()  # idle: no drip-feed, no stall field
 
@@ -329,7 +329,7 @@ async def test_the_dashboard_shows_a_drip_feeds_stall_in_its_own_field(
         assert "drip-fed" in result["message"] and "stalled" in result["message"]
         assert emulator.runs[-1].stall_s > 0
         # Idle again: the field goes with the progress.
-        await stall.wait_for(state="hidden", timeout=10_000)
+        await stall.wait_for(state="hidden", timeout=SEEN_MS)
         assert not errors, errors
     finally:
         if client is not None:

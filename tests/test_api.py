@@ -332,9 +332,14 @@ async def test_emergency_stop_halts_and_holds(api: Api) -> None:
     for alarm in status["alarms"]:
         await api.call("alarms.clear", {"id": alarm["id"]})
     for part in held:
-        scrapped = await api.call("parts.scrap", {"id": part.id, "reason": "cut short by the stop"})
-        # Cut short in the mill: the journal forgets it, the vise does not.
-        assert f"it is still in {part.location}: take it out there" in scrapped["message"]
+        # Cut short in the mill: scrapped only once the operator says it is out of the vise
+        # (the cell loads the mill again at once).
+        why = {"id": part.id, "reason": "cut short by the stop"}
+        with pytest.raises(UsageError, match=f"part {part.id} may be in {part.location}: take"):
+            await api.call("parts.scrap", why)
+        assert api.rig.journal.get_part(part.id).status == "held"
+        scrapped = await api.call("parts.scrap", {**why, "taken_out": True})
+        assert f"taken out of {part.location}, which take parts again" in scrapped["message"]
     assert (await api.call("cell.resume"))["message"] == "resumed"
     controller = api.rig.controller
     assert controller is not None

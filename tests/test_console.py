@@ -382,7 +382,7 @@ async def test_attached_cell_menu(rig: CellRig, attached: CellClient) -> None:
         await pilot.press("enter")
         await wait_text(pilot, "3. SCRAP")
         await pilot.press("down", "down", "enter")
-        await wait_text(pilot, f"Scrap part {second.id}?")
+        await wait_text(pilot, f"Scrap part {second.id}?", "Take it out of the machine first")
         await pilot.press("y")
         await wait_text(pilot, f"part {second.id} scrapped")
         statuses = {p.id: p.status for p in rig.journal.parts(order_id="C1")}

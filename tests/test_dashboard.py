@@ -433,7 +433,9 @@ async def test_redo_refused_and_scrap_on_a_tablet(dash: Dash) -> None:
     assert "has no step to redo" in await refusal.inner_text()
     assert rig.journal.get_part(parts[0].id).status == "held"
     await scrap.locator("button", has_text="Scrap").click()
-    assert "cannot be undone" in await page.locator("#confirm-text").inner_text()
+    asked = await page.locator("#confirm-text").inner_text()
+    # The confirmation is the operator's word that the part is out of its machine.
+    assert "Take it out of the machine first" in asked and "cannot be undone" in asked
     await dash.confirm()
     await scrap.wait_for(state="detached", timeout=SEEN_MS)
     assert rig.journal.get_part(parts[1].id).status == "scrapped"

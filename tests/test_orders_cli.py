@@ -132,9 +132,10 @@ def held_after_crash(cell: Path, kind: str = "machine") -> str:
     with open_journal(cell) as journal:
         (part, *_) = journal.create_parts(AnOrder("A17", "wax-robot", 2))
         if kind == "machine":
+            journal.move_part(part.id, "cnc1", 0)  # put there by a transfer
             journal.begin_step(part.id, "machine", "cnc1", "ROUGH")
         else:
-            journal.begin_step(part.id, "transfer", "robot", "conveyor-to-cnc1")
+            journal.begin_step(part.id, "transfer", "robot", "conveyor_to_cnc1")
         journal.recover()
     return part.id
 
@@ -182,8 +183,18 @@ def test_release_after_interrupted_transfer_asks_where_the_part_is(cell: Path) -
 
 def test_scrap_a_held_part(cell: Path) -> None:
     part_id = held_after_crash(cell)
-    result = cellctl(cell, "part", "scrap", part_id, "--reason", "gouged by the cutter")
+    # Held in cnc1's vise: scrapped only once it is said to be out (cnc1 is loaded again).
+    refused = cellctl(cell, "part", "scrap", part_id, "--reason", "gouged by the cutter")
+    assert refused.exit_code == 2
+    assert f"part {part_id} may be in cnc1: take it out" in refused.stderr
+    assert f"cellctl part scrap {part_id} --taken-out" in refused.stderr
+    with open_journal(cell) as journal:
+        assert journal.get_part(part_id).status == "held"
+    result = cellctl(
+        cell, "part", "scrap", part_id, "--reason", "gouged by the cutter", "--taken-out"
+    )
     assert result.exit_code == 0, result.output
+    assert "taken out of cnc1, which take parts again" in result.stdout
     with open_journal(cell) as journal:
         part = journal.get_part(part_id)
         assert (part.status, part.note) == ("scrapped", "gouged by the cutter")
@@ -191,6 +202,26 @@ def test_scrap_a_held_part(cell: Path) -> None:
         (report,) = mailbox.reports()
         assert report.kind == "part-scrapped"
         assert report.data["reason"] == "gouged by the cutter"
+
+
+def test_scrap_after_an_interrupted_transfer_asks_for_its_target_emptied(cell: Path) -> None:
+    part_id = held_after_crash(cell, kind="transfer")
+    # On the conveyor in the journal, but the arm may have put it in cnc1's vise.
+    refused = cellctl(cell, "part", "scrap", part_id)
+    assert refused.exit_code == 2
+    assert f"part {part_id} may be in cnc1: take it out" in refused.stderr
+    result = cellctl(cell, "part", "scrap", part_id, "--taken-out")
+    assert result.exit_code == 0, result.output
+    with open_journal(cell) as journal:
+        assert journal.get_part(part_id).status == "scrapped"
+
+
+def test_a_waiting_part_on_the_conveyor_is_scrapped_without_asking(cell: Path) -> None:
+    with open_journal(cell) as journal:
+        (part, *_) = journal.create_parts(AnOrder("A18", "wax-robot", 1))
+    result = cellctl(cell, "part", "scrap", part.id)
+    assert result.exit_code == 0, result.output
+    assert result.stdout.strip() == f"part {part.id} scrapped"
 
 
 def test_part_commands_on_a_cell_that_never_ran(cell: Path) -> None:

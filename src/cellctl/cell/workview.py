@@ -19,10 +19,11 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from cellctl.cell.config import CONVEYOR, transfer_ends
+from cellctl.cell.orderflow import OUT
 from cellctl.cell.scheduler import PartState, Transfer, next_transfer, ready_to_leave
 
 if TYPE_CHECKING:
-    from cellctl.cell.journal import Part
+    from cellctl.cell.journal import Journal, Part
     from cellctl.cell.orderflow import OrderFlow
     from cellctl.cell.ports import AlarmSink, WorldModel
 
@@ -145,14 +146,19 @@ class WorkView:
         )
 
     def _blocked(self, parts: list[Part]) -> set[str]:
-        blocked = set()
+        blocked: set[str] = set()
         for p in parts:
-            if p.status != "held":
-                continue
-            blocked.add(p.location)
-            steps = self.world.journal.steps(p.id)
-            if steps and steps[-1].kind == "transfer" and steps[-1].state != "finished":
-                target = transfer_ends(steps[-1].program)[1]
-                blocked.add(target)
-        blocked.discard(CONVEYOR)
+            if p.status == "held":
+                blocked |= places_of(self.world.journal, p)
         return blocked
+
+
+def places_of(journal: Journal, part: Part) -> set[str]:
+    """The machines ``part`` may physically be in: where the journal has it, and the target
+    of a transfer it was in when interrupted (the arm may have put it down there); never the
+    conveyor or the outfeed."""
+    places = {part.location}
+    steps = journal.steps(part.id)
+    if steps and steps[-1].kind == "transfer" and steps[-1].state != "finished":
+        places.add(transfer_ends(steps[-1].program)[1])
+    return places - {CONVEYOR, OUT}

@@ -203,7 +203,9 @@ async def _release(access: CellAccess, p: ReleaseParams, progress: Progress | No
 
 
 async def _scrap(access: CellAccess, p: ScrapParams, progress: Progress | None) -> Any:
-    result = operator.scrap_part(_journal(access), access.mailbox(), p.id, p.reason)
+    result = operator.scrap_part(
+        _journal(access), access.mailbox(), p.id, p.reason, taken_out=p.taken_out
+    )
     access.poke()
     return result
 
@@ -313,7 +315,13 @@ _TABLE: list[Method] = [
     Method("alarms.history", HistoryParams, _history, "Alarms by time, machine, priority.", False),
     Method("parts.list", PartsParams, _parts, "Parts, by status or order.", False),
     Method("parts.release", ReleaseParams, _release, "Release a held part.", True),
-    Method("parts.scrap", ScrapParams, _scrap, "Scrap a held or waiting part.", True),
+    Method(
+        "parts.scrap",
+        ScrapParams,
+        _scrap,
+        "Scrap a held or waiting part; one that may be in a machine only taken_out by hand.",
+        True,
+    ),
     Method("machines.list", NoParams, _machines, "Every machine's state and service.", False),
     Method("machines.out_of_service", MachineParams, _out, "Out of automatic service.", True),
     Method("machines.return_to_service", MachineParams, _in, "Back in automatic service.", True),

@@ -15,9 +15,9 @@ from collections import Counter
 from typing import Any
 
 from cellctl.cell.blocked import blocked_reason
-from cellctl.cell.config import CONVEYOR, CellConfig
+from cellctl.cell.config import CellConfig
 from cellctl.cell.journal import Alarm, Journal, Part
-from cellctl.cell.orderflow import OUT
+from cellctl.cell.workview import places_of
 from cellctl.errors import UsageError
 from cellctl.mailbox import Mailbox, Order, Report, ReportKind
 
@@ -226,19 +226,38 @@ def release_part(
 
 
 def scrap_part(
-    journal: Journal, mailbox: Mailbox, part_id: str, reason: str = "scrapped by operator"
+    journal: Journal,
+    mailbox: Mailbox,
+    part_id: str,
+    reason: str = "scrapped by operator",
+    *,
+    taken_out: bool = False,
 ) -> dict[str, Any]:
-    """Scrap a held or waiting part: the cell will not work on it again."""
-    p = journal.scrap_part(resolve_part_id(journal, part_id), reason)
+    """Scrap a held or waiting part: the cell will not work on it again.
+
+    A part that may be in a machine (its place, or where an interrupted transfer took it) is
+    scrapped only once the operator says it is out (``taken_out``): the journal forgets it,
+    and the cell loads that machine again at once, over whatever is still in its vise."""
+    part_id = resolve_part_id(journal, part_id)
+    part = journal.get_part(part_id)
+    # Only a part that can be scrapped is asked about (the journal refuses the others).
+    places = sorted(places_of(journal, part)) if part.status in ("waiting", "held") else []
+    in_machines = " or ".join(places)
+    if places and not taken_out:
+        raise UsageError(
+            f"part {part_id} may be in {in_machines}: take it out, then scrap it saying so "
+            f"(taken out; `cellctl part scrap {part_id} --taken-out`): the cell loads "
+            f"{in_machines} again as soon as it is scrapped"
+        )
+    p = journal.scrap_part(part_id, reason)
     mailbox.post_report(
         ReportKind.PART_SCRAPPED,
         f"part {p.id} scrapped: {reason}",
         order_id=p.order_id,
         part_id=p.id,
-        data={"reason": reason, "location": p.location},
+        data={"reason": reason, "location": p.location, "taken_out_of": places},
     )
     message = f"part {p.id} scrapped"
-    if p.location not in (None, CONVEYOR, OUT):
-        # The journal forgets it; the machine does not: the next part cannot go in over it.
-        message += f"; it is still in {p.location}: take it out there (open the vise by hand)"
+    if places:
+        message += f"; taken out of {in_machines}, which take parts again"
     return {"part": as_dict(p), "message": message}

@@ -102,6 +102,9 @@ class ReleaseParams(P):
 class ScrapParams(P):
     id: str = Field(min_length=1, max_length=100)
     reason: str = Field(default="scrapped by operator", min_length=1, max_length=500)
+    #: The operator says the part is out of every machine it may be in (needed for one that
+    #: may be: the cell loads that machine again at once).
+    taken_out: bool = False
 
 
 class MachineParams(P):

@@ -489,10 +489,17 @@ def part_release(ctx: click.Context, part_id: str, redo: bool, location: str | N
     show_default=True,
     help="Why (kept in the journal).",
 )
+@click.option(
+    "--taken-out",
+    is_flag=True,
+    help="It is out of the machine it was in (needed for a part in a machine: the cell "
+    "loads that machine again at once).",
+)
 @click.pass_context
-def part_scrap(ctx: click.Context, part_id: str, reason: str) -> None:
+def part_scrap(ctx: click.Context, part_id: str, reason: str, taken_out: bool) -> None:
     """Scrap part ID (held or waiting): the cell will not work on it again."""
-    console.print(cell_call(ctx, "parts.scrap", {"id": part_id, "reason": reason})["message"])
+    params = {"id": part_id, "reason": reason, "taken_out": taken_out}
+    console.print(cell_call(ctx, "parts.scrap", params)["message"])
 
 
 __all__ = ["alarm", "cancel", "orders", "part", "reports", "submit"]

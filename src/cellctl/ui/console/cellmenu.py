@@ -24,6 +24,11 @@ T = TypeVar("T")
 #: Order states an order may still be cancelled in.
 NOT_STARTED = ["posted", "accepted"]
 NO_CONTROLLER = "unavailable"
+#: Asked before a part is scrapped (the answer is the API's ``taken_out``).
+TAKE_IT_OUT = (
+    "Take it out of the machine first if it is in one: the cell loads that machine again "
+    "at once. This cannot be undone."
+)
 
 
 class ConsoleHost(Protocol):
@@ -228,10 +233,10 @@ class CellActions:
             )
         )
         if what == "scrap":
-            if not await self.app.confirm(f"Scrap part {picked}?"):
+            if not await self.app.confirm(f"Scrap part {picked}? {TAKE_IT_OUT}"):
                 self.app.say([f"part {picked} kept"])
                 return
-            result = await self.app.call("parts.scrap", {"id": picked})
+            result = await self.app.call("parts.scrap", {"id": picked, "taken_out": True})
         elif what in ("release", "redo"):
             result = await self.app.call("parts.release", {"id": picked, "redo": what == "redo"})
         else:

@@ -354,8 +354,9 @@ export function renderHeld(snap) {
       h("button", {
         class: "small-button danger",
         "data-method": "parts.scrap",
-        onclick: (e) => actOn(e, `Scrap part ${p.id}? This cannot be undone.`,
-          { id: p.id }, "part-message"),
+        onclick: (e) => actOn(e, `Scrap part ${p.id} (at ${p.location})? Take it out of the `
+          + "machine first if it is in one: the cell loads that machine again at once. This "
+          + "cannot be undone.", { id: p.id, taken_out: true }, "part-message"),
       }, "Scrap"))));
   replaceRows("held-table", rows, "no held part", 5);
 }

@@ -62,6 +62,10 @@ COMMANDS = {
         "cellctl.ui.plan_cli:plan_command",
         "What the cell finishes, and when: per order against its due time",
     ),
+    "program": Lazy(
+        "cellctl.ui.program_cli:program_group",
+        "A program file of any machine kind: check it, draw its toolpath",
+    ),
     "plc": Lazy(
         "cellctl.ui.plc_cli:plc", "The cell PLC over Modbus/TCP: sensors (inputs) and actuators"
     ),

@@ -42,8 +42,8 @@ FC = TypeVar("FC", bound=Callable[..., Any])
 
 log = logging.getLogger(__name__)
 
-console = Console(highlight=False)
-err_console = Console(stderr=True, highlight=False)
+console = Console(highlight=False, emoji=False)  # "file:100:" is no emoji code
+err_console = Console(stderr=True, highlight=False, emoji=False)
 
 
 def run(coro_fn: Callable[[], Coroutine[Any, Any, T]]) -> T:
@@ -83,7 +83,7 @@ def print_table(table: Table) -> None:
         column.no_wrap = True
         column.overflow = "ignore"
         column.ratio = None
-    wide = Console(file=console.file, width=100_000, highlight=False, no_color=True)
+    wide = Console(file=console.file, width=100_000, highlight=False, no_color=True, emoji=False)
     wide.print(table)
 
 

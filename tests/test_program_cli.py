@@ -140,3 +140,16 @@ def test_preview_draws_a_mill_program_and_refuses_what_has_no_toolpath(tmp_path:
     refused = cellctl("program", "preview", str(bad), "-o", str(tmp_path / "bad.svg"))
     assert refused.exit_code == 2 and "cannot draw" in refused.output
     assert not (tmp_path / "bad.svg").exists()
+
+
+def test_the_dyna_2400s_check_sends_another_kinds_program_to_program_check() -> None:
+    program = str(TENDING / "programs" / "O1001.nc")
+    by_kind = cellctl("mill", "--kind", "iso-cnc", "check", program)
+    assert by_kind.exit_code == 2, by_kind.output
+    assert "`cellctl program check|preview FILE`" in by_kind.output
+    by_name = cellctl("--cell", str(TENDING), "mill", "vf2", "check", program)
+    assert by_name.exit_code == 2, by_name.output
+    assert "vf2 is an iso-cnc: `mill check` reads DYNALAN" in by_name.output
+    assert "`cellctl program check --machine vf2 FILE`" in by_name.output
+    works = cellctl("--cell", str(TENDING), "program", "check", "--machine", "vf2", program)
+    assert works.exit_code == 0, works.output

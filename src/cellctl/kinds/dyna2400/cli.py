@@ -16,7 +16,7 @@ import click
 from rich.progress import BarColumn, TextColumn
 
 from cellctl.clock import current_clock
-from cellctl.errors import UsageError
+from cellctl.errors import UsageError, with_article
 from cellctl.kinds.dyna2400.dynalan import ProgramRole, Severity, ValidationContext, parse_program
 from cellctl.kinds.dyna2400.dynalan import validate as validate_program
 from cellctl.kinds.dyna2400.emulator import OperatorDelays
@@ -55,12 +55,23 @@ def _print(result: dict[str, Any]) -> None:
 def _offline_config(ctx: click.Context) -> MillConfig:
     """The named machine's config from cell.toml (travel ...), without opening its link."""
     name = ctx.meta.get("machine_name")
+    other = (ctx.find_object(dict) or {}).get("kind")
+    if other not in (None, "dyna2400"):
+        raise UsageError(
+            f"--kind {other}: `mill check` and `mill preview` read DYNALAN, the dyna2400's; "
+            "any kind's program: `cellctl program check|preview FILE`"
+        )
     if name is None:
         return MillConfig()
     machines = load_cell_file(cell_dir(ctx)).get("machines", {})
     entry = machines.get(name)
-    if not isinstance(entry, dict) or entry.get("kind") != "dyna2400":
+    if not isinstance(entry, dict):
         raise UsageError(f"unknown mill {name!r}")
+    if entry.get("kind") != "dyna2400":
+        raise UsageError(
+            f"{name} is {with_article(str(entry.get('kind')))}: `mill check` reads DYNALAN; its "
+            f"programs: `cellctl program check --machine {name} FILE`"
+        )
     return MillConfig.from_options(dict(entry.get("options", {})))
 
 

@@ -25,6 +25,9 @@ class BufferModel:
     started: bool = False
     offset: int = 0
     idle_s: float = 0.0  # modelled stalls: the axes waiting for a block
+    stalls: int = 0
+    #: the longest stall: (seconds, offset after the LF of the block waited for)
+    longest: tuple[float, int] = (0.0, 0)
 
     def wrote(self, upto: int, through_at: float) -> None:
         """Characters up to offset ``upto`` are written; they are through by ``through_at``."""
@@ -47,7 +50,10 @@ class BufferModel:
             if start > now:
                 break
             if self.started and seconds and arrived > self.free_at:
-                self.idle_s += arrived - self.free_at
+                waited = arrived - self.free_at
+                self.idle_s += waited
+                self.stalls += 1
+                self.longest = max(self.longest, (waited, end))
             self.waiting.popleft()
             self.consumed = end
             self.free_at = start + seconds
@@ -87,3 +93,65 @@ def tape_blocks(data: bytes, model: MotionModel, scale: float) -> list[tuple[int
         seconds = machine.step(block).seconds / scale if block.words else 0.0
         out.append((pos, seconds))
     return out
+
+
+@dataclass(frozen=True)
+class DripForecast:
+    """What a drip-feed of a tape would do at a line rate, as :class:`BufferModel` sees it
+    (the driver's own model): the host writing as fast as the line and the buffer allow."""
+
+    chars: int
+    line_s: float
+    """The tape's characters on the line, end to end."""
+    run_s: float
+    """The blocks' motion time (the axes never waiting)."""
+    end_s: float
+    """From the first character to the last block's end, the waits included."""
+    stall_s: float
+    stalls: int
+    longest_s: float
+    longest_block: str
+    """The block the axes waited for longest ("" without a stall)."""
+
+
+def forecast_drip(
+    framed: bytes,
+    blocks: list[tuple[int, float]],
+    char_time: float,
+    sender: tuple[int, int],
+) -> DripForecast:
+    """A drip-feed of ``framed`` (:func:`~cellctl.kinds.iso_cnc.tape.frame`'s tape; its
+    ``blocks`` by :func:`tape_blocks`) at ``char_time`` s a character, the host writing as
+    :meth:`IsoCncOptions.sender <cellctl.kinds.iso_cnc.options.IsoCncOptions.sender>` says
+    (``(burst, limit)``). Pure arithmetic: a 200,000-block tape takes a second or two."""
+    burst, limit = sender
+    buffer = BufferModel(drip=True)
+    buffer.unsent.extend(blocks)
+    total, sent, now = len(framed), 0, 0.0
+    while sent < total:
+        room = limit - buffer.level(sent, now)
+        if room <= 0:
+            drain = buffer.next_drain()
+            now = max(drain if drain is not None else now, now + char_time)
+            continue
+        n = min(burst, total - sent, room)
+        now += n * char_time  # back to back: the line never idles while there is room
+        sent += n
+        buffer.wrote(sent, now)
+    end = buffer.end_time()
+    buffer.level(sent, end)  # the blocks still waiting start (and may stall) by the end
+    waited, offset = buffer.longest
+    block = ""
+    if buffer.stalls:
+        start = framed.rfind(b"\n", 0, offset - 1) + 1
+        block = framed[start : offset - 1].decode("latin-1").strip()
+    return DripForecast(
+        chars=total,
+        line_s=total * char_time,
+        run_s=sum(seconds for _, seconds in blocks),
+        end_s=end,
+        stall_s=buffer.idle_s,
+        stalls=buffer.stalls,
+        longest_s=waited,
+        longest_block=block,
+    )

@@ -151,8 +151,7 @@ class IsoCncDriver(LinkDriver):
 
     @property
     def high_water(self) -> int:
-        o = self.options
-        return o.high_water or o.buffer_size - o.dc3_tolerance
+        return self.options.high_water_mark()
 
     @property
     def low_water(self) -> int:
@@ -275,9 +274,8 @@ class IsoCncDriver(LinkDriver):
         char_time = self.link.settings.char_time
         total = len(framed)
         # Bursts cover at least pace_s of line time, whatever the baud rate (see pace_s).
-        burst = max(o.burst, math.ceil(o.pace_s / char_time))
+        burst, limit = o.sender(char_time)
         ahead = max(o.ahead, burst / 2) * char_time
-        limit = max(burst, self.high_water - o.margin)
         # How late this host's timers fire (a decaying maximum, s): it widens `ahead`, so a
         # late wake-up does not leave the line idle. (Not the model's lag: a lag counts every
         # character written within it as still in the buffer, and a burst of load would

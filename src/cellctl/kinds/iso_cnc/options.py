@@ -7,6 +7,7 @@ before a byte goes out::
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Literal
 
@@ -85,6 +86,16 @@ class IsoCncOptions(BaseModel):
     """Seconds a setup program may take."""
     go_pulse: float = Field(default=0.5, gt=0, le=10)
     """Seconds the cycle-start output stays on (a cell's GO) to start a drip-feed."""
+
+    def high_water_mark(self) -> int:
+        """Characters in the control's buffer at which it sends DC3."""
+        return self.high_water or self.buffer_size - self.dc3_tolerance
+
+    def sender(self, char_time: float) -> tuple[int, int]:
+        """How the host writes at ``char_time`` s a character: (characters a burst, most
+        characters it keeps in the control's buffer by its model)."""
+        burst = max(self.burst, math.ceil(self.pace_s / char_time))
+        return burst, max(burst, self.high_water_mark() - self.margin)
 
     def check_options(self) -> gcode.CheckOptions:
         return gcode.CheckOptions(o_digits=self.o_digits, arc_tolerance_mm=self.arc_tolerance_mm)

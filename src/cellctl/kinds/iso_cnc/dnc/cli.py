@@ -8,6 +8,7 @@
     cellctl dnc receive mill1 --dir SHOP         # keep what the control punches
     cellctl dnc stop  mill1 --dir SHOP           # stop the transfer in flight
     cellctl dnc diff  mill1 O1234 --dir SHOP     # the newest received O1234 against the sent
+    cellctl dnc check mill1 O1234 --dir SHOP     # refused or not, and its drip-feed forecast
     cellctl dnc status --dir SHOP
 
 When a ``dnc serve`` runs on SHOP, the hand commands go through its control API (its Unix
@@ -28,8 +29,9 @@ from typing import TYPE_CHECKING, Any
 import click
 from rich.progress import BarColumn, TextColumn, TimeRemainingColumn
 
+from cellctl.kinds.iso_cnc.dnc.check_cli import check
+from cellctl.kinds.iso_cnc.dnc.shopopts import shop_config, shop_options
 from cellctl.ui.common import (
-    cell_dir,
     console,
     err_console,
     json_option,
@@ -46,53 +48,23 @@ if TYPE_CHECKING:
 # --help` and a refused argument load none of them (tests/test_cli_startup.py).
 
 
-def _shop_options(f: Callable[..., Any]) -> Callable[..., Any]:
-    f = click.option(
-        "--use-cell",
-        is_flag=True,
-        help="Feed the iso-cnc machines of the cell's cell.toml (--cell) instead of dnc.toml; "
-        "the shop directory is then <cell>/shop unless --dir is given.",
-    )(f)
-    return click.option(
-        "--dir",
-        "shop",
-        envvar="CELLCTL_SHOP",
-        default="shop",
-        show_default=True,
-        type=click.Path(file_okay=False, path_type=Path),
-        help="The shop directory: dnc.toml, one directory per machine "
-        "(with --use-cell: <cell>/shop).",
-    )(f)
-
-
-def _config(ctx: click.Context, shop: Path, use_cell: bool) -> ShopConfig:
-    """The shop: ``--dir``'s dnc.toml; with ``--use-cell`` the cell's iso-cnc machines, its
-    shop directory ``<cell>/shop`` unless ``--dir`` (or ``$CELLCTL_SHOP``) names another:
-    never the unrelated ``./shop`` of wherever the command runs."""
-    from cellctl.kinds.iso_cnc.dnc.config import load_shop
-
-    if not use_cell:
-        return load_shop(shop)
-    cell = cell_dir(ctx)
-    if ctx.get_parameter_source("shop") is click.core.ParameterSource.DEFAULT:
-        shop = cell / "shop"
-    return load_shop(shop, cell=cell)
-
-
 @click.group("dnc")
 def dnc() -> None:
     """DNC server for the shop's ISO-code CNC controls (Fanuc / Haas style, RS-232)."""
+
+
+dnc.add_command(check)
 
 
 # -- serve -------------------------------------------------------------------------------------
 
 
 @dnc.command()
-@_shop_options
+@shop_options
 @click.pass_context
 def serve(ctx: click.Context, shop: Path, use_cell: bool) -> None:
     """Feed every machine: answer remote requests, keep what the controls punch."""
-    config = _config(ctx, shop, use_cell)
+    config = shop_config(ctx, shop, use_cell)
     run(lambda: serve_shop(config))
 
 
@@ -285,7 +257,7 @@ def _transfer(
     from cellctl.kinds.iso_cnc.driver import prepare
     from cellctl.ui.calls import LazyBar
 
-    config = _config(ctx, shop, use_cell)
+    config = shop_config(ctx, shop, use_cell)
     options = machine(config, name).options  # an unknown machine first, nothing created
     # A ticket of its own: Ctrl-C stops this transfer, never another's.
     params: dict[str, Any] = {"program": program, "drip": drip, "ticket": uuid.uuid4().hex}
@@ -337,7 +309,7 @@ def _interrupted(result: Any) -> None:
 @dnc.command()
 @click.argument("name", metavar="MACHINE")
 @click.argument("program")
-@_shop_options
+@shop_options
 @click.pass_context
 def send(ctx: click.Context, name: str, program: str, shop: Path, use_cell: bool) -> None:
     """Send PROGRAM (a file, or O1234 of the machine's programs/) into the control's memory."""
@@ -347,7 +319,7 @@ def send(ctx: click.Context, name: str, program: str, shop: Path, use_cell: bool
 @dnc.command()
 @click.argument("name", metavar="MACHINE")
 @click.argument("program")
-@_shop_options
+@shop_options
 @click.pass_context
 def drip(ctx: click.Context, name: str, program: str, shop: Path, use_cell: bool) -> None:
     """Drip-feed PROGRAM: the control runs it as it arrives (RMT / DNC mode)."""
@@ -364,13 +336,13 @@ def drip(ctx: click.Context, name: str, program: str, shop: Path, use_cell: bool
     show_default=True,
     help="Seconds to wait (at most 3600).",
 )
-@_shop_options
+@shop_options
 @click.pass_context
 def receive(ctx: click.Context, name: str, timeout: float, shop: Path, use_cell: bool) -> None:
     """Keep what the control punches (select the program, press PUNCH on the control)."""
     from cellctl.kinds.iso_cnc.dnc.config import machine
 
-    config = _config(ctx, shop, use_cell)
+    config = shop_config(ctx, shop, use_cell)
     machine(config, name)
     prompt = _first_then(
         lambda: err_console.print(f"{name}: waiting for the control: press PUNCH on it"),
@@ -388,12 +360,12 @@ def receive(ctx: click.Context, name: str, timeout: float, shop: Path, use_cell:
 
 @dnc.command("stop")
 @click.argument("name", metavar="MACHINE")
-@_shop_options
+@shop_options
 @click.pass_context
 def stop_transfer(ctx: click.Context, name: str, shop: Path, use_cell: bool) -> None:
     """Stop the read-in or drip-feed in flight on MACHINE (or drop the request waiting for
     its read). A read under way is ended the clean way: the rest of its block, then %."""
-    config = _config(ctx, shop, use_cell)
+    config = shop_config(ctx, shop, use_cell)
     result = run(lambda: call_shop(config, name, "dnc.stop", {}))
     console.print(str(result.get("message") or f"{name}: nothing was running"), markup=False)
 
@@ -403,7 +375,7 @@ def stop_transfer(ctx: click.Context, name: str, shop: Path, use_cell: bool) -> 
 @click.argument("received", required=False)
 @click.option("--against", help="The sent file to compare with (default: the last O-number sent).")
 @click.option("--ignore-spaces", is_flag=True, help="Spaces inside blocks do not count.")
-@_shop_options
+@shop_options
 @click.pass_context
 def diff(
     ctx: click.Context,
@@ -425,7 +397,7 @@ def diff(
     from cellctl.kinds.iso_cnc.dnc.diff import compare
     from cellctl.kinds.iso_cnc.dnc.store import ShopStore, o_name, read_program_file
 
-    config = _config(ctx, shop, use_cell)
+    config = shop_config(ctx, shop, use_cell)
     machine(config, name)  # an unknown machine is named as such; nothing is created
     store = ShopStore(config.root)
     if received is not None and Path(received).is_file():
@@ -471,7 +443,7 @@ def diff(
 
 
 @dnc.command()
-@_shop_options
+@shop_options
 @json_option
 @click.pass_context
 def status(ctx: click.Context, shop: Path, use_cell: bool, as_json: bool) -> None:
@@ -480,7 +452,7 @@ def status(ctx: click.Context, shop: Path, use_cell: bool, as_json: bool) -> Non
     from cellctl.kinds.iso_cnc.dnc.store import ShopStore
     from cellctl.service.client import attach
 
-    config = _config(ctx, shop, use_cell)
+    config = shop_config(ctx, shop, use_cell)
     if controller_holder(config.root) is None:
         store = ShopStore(config.root)
         logged = {name: store.log_lines(name, 1) for name in sorted(config.machines)}

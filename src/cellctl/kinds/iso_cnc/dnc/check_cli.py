@@ -1,0 +1,105 @@
+"""``cellctl dnc check MACHINE PROGRAM``: what ``dnc send`` and ``dnc drip`` would make of a
+program on that machine, before anyone stands at the control::
+
+    $ cellctl dnc check mill1 O5000 --dir shop
+    O5000 (O5000 surface.nc) for mill1 at 9600,7E2: 204,012 blocks, 4,759,156 characters
+      runs 4:30:14 (the motion model); the tape is 1:30:57 on the line
+      drip-feed: the axes wait 0:57:31 for data at 149,492 blocks (longest 0.04 s, for
+      `X50.904 Y75.432 Z-1.288`); it ends 5:27:45 after the control's first DC1
+      no wait from 19200 baud
+
+The forecast is the driver's own model of the control's buffer (``buffer.py``) played at the
+machine's line rate: where blocks run faster than the line brings them, the tool dwells and
+may mark the part. Exit 1 when the program would be refused (every problem, with its line).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from pathlib import Path
+
+import click
+
+from cellctl.kinds.iso_cnc.dnc.shopopts import shop_config, shop_options
+from cellctl.ui.common import console
+
+#: Line rates tried above the machine's when its drip-feed would wait (the usual ones).
+BAUD_RATES = (4800, 9600, 19200, 38400, 57600, 115200)
+
+
+def _hms(seconds: float) -> str:
+    if seconds < 60:
+        return f"{seconds:.1f} s"
+    whole = round(seconds)
+    return f"{whole // 3600}:{whole % 3600 // 60:02d}:{whole % 60:02d}"
+
+
+@click.command("check", short_help="Refused or not; how long its drip-feed waits for data")
+@click.argument("name", metavar="MACHINE")
+@click.argument("program")
+@shop_options
+@click.pass_context
+def check(ctx: click.Context, name: str, program: str, shop: Path, use_cell: bool) -> None:
+    """Check PROGRAM (a file, or O1234 of the machine's programs/) as `dnc send` would, and
+    forecast its drip-feed at the machine's line rate: run time, line time, and how long the
+    axes would wait for data. Exit 1 if it would be refused."""
+    from cellctl.errors import UsageError
+    from cellctl.kinds.iso_cnc import gcode
+    from cellctl.kinds.iso_cnc.buffer import forecast_drip, tape_blocks
+    from cellctl.kinds.iso_cnc.dnc.config import machine
+    from cellctl.kinds.iso_cnc.dnc.store import ShopStore, check_program_number, read_program_file
+    from cellctl.kinds.iso_cnc.options import prepare
+
+    config = shop_config(ctx, shop, use_cell)
+    chosen = machine(config, name)
+    path = ShopStore(config.root).resolve(name, program)
+    data = read_program_file(path)
+    check_program_number(path.name, data)
+    o = chosen.options
+    try:
+        text = data.decode("ascii")
+    except UnicodeDecodeError as e:
+        line = data.count(b"\n", 0, e.start) + 1
+        raise UsageError(f"{path}:{line}: byte 0x{data[e.start]:02X} is not ISO code") from None
+    problems = gcode.errors(text, o.check_options())
+    for problem in problems:
+        console.print(problem.format(str(path)), style="red", markup=False, soft_wrap=True)
+    if problems:
+        console.print(f"{path}: {len(problems)} problem(s): {name} would refuse it")
+        sys.exit(1)
+    framed = prepare(data, o, path.name)
+    blocks = tape_blocks(framed, o.motion(), o.motion_scale)
+    settings = chosen.settings
+    forecast = forecast_drip(framed, blocks, settings.char_time, o.sender(settings.char_time))
+    count = sum(1 for _, seconds in blocks if seconds > 0)
+    lines = [
+        f"{program} ({path.name}) for {name} at {settings}: {count:,} blocks, "
+        f"{forecast.chars:,} characters",
+        f"  runs {_hms(forecast.run_s)} (the motion model); the tape is "
+        f"{_hms(forecast.line_s)} on the line",
+    ]
+    ends = f"it ends {_hms(forecast.end_s)} after the control's first DC1"
+    if not forecast.stalls:
+        lines.append(f"  drip-feed: the axes never wait for data; {ends}")
+    else:
+        lines.append(
+            f"  drip-feed: the axes wait {_hms(forecast.stall_s)} for data at "
+            f"{forecast.stalls:,} blocks (longest {forecast.longest_s:.2f} s, for "
+            f"`{forecast.longest_block}`); {ends}"
+        )
+        faster = [b for b in BAUD_RATES if b > settings.baudrate]
+        for baud in faster:
+            rate = dataclasses.replace(settings, baudrate=baud)
+            tried = forecast_drip(framed, blocks, rate.char_time, o.sender(rate.char_time))
+            if not tried.stalls:
+                lines.append(f"  no wait from {baud} baud")
+                break
+        else:
+            top = max(BAUD_RATES)
+            lines.append(
+                f"  it waits at every rate up to {top} baud: its blocks run faster than a line "
+                "brings them (longer segments, or a slower feed)"
+            )
+    for text_line in lines:
+        console.print(text_line, markup=False, soft_wrap=True)

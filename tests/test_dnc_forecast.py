@@ -110,5 +110,9 @@ def test_dnc_check_refuses_as_send_would(shop: Path) -> None:
     shutil.copy(EXAMPLE / "O1001.nc", renamed)
     code, said = dnc(shop, "check", "mill1", "O1002")
     assert code == 2 and "its name says O1002 but its text is O1001" in said
+    latin = shop / "latin.nc"
+    latin.write_bytes(b"%\nO1003\nG21 (D\xc9BUT)\nM30\n%\n")
+    code, said = dnc(shop, "check", "mill1", str(latin))
+    assert code == 2 and f"{latin}: not an ISO-code program (byte 15 is not ASCII: 0xC9)" in said
     code, said = dnc(shop, "check", "millx", "O1001")
     assert code == 2 and "unknown machine 'millx'" in said

@@ -104,14 +104,19 @@ class IsoCncOptions(BaseModel):
         return MotionModel(rapid_mm_min=self.rapid_mm_min, accel_mm_s2=self.accel_mm_s2)
 
 
-def prepare(data: bytes, options: IsoCncOptions, name: str = "program") -> bytes:
-    """A program file's bytes as the tape that goes on the line; UsageError (every error of
-    the G-code check, with line and column) before a byte goes out."""
+def program_text(data: bytes, name: str = "program") -> str:
+    """A program file's bytes as text; UsageError at the line of a byte ISO code has not."""
     try:
-        text = data.decode("ascii")
+        return data.decode("ascii")
     except UnicodeDecodeError as e:
         line = data.count(b"\n", 0, e.start) + 1
         raise UsageError(f"{name}:{line}: byte 0x{data[e.start]:02X} is not ISO code") from None
+
+
+def prepare(data: bytes, options: IsoCncOptions, name: str = "program") -> bytes:
+    """A program file's bytes as the tape that goes on the line; UsageError (every error of
+    the G-code check, with line and column) before a byte goes out."""
+    text = program_text(data, name)
     found = gcode.errors(text, options.check_options())
     if found:
         shown = [f.format(name) for f in found[:5]]

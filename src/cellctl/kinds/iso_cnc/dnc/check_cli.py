@@ -44,12 +44,11 @@ def check(ctx: click.Context, name: str, program: str, shop: Path, use_cell: boo
     """Check PROGRAM (a file, or O1234 of the machine's programs/) as `dnc send` would, and
     forecast its drip-feed at the machine's line rate: run time, line time, and how long the
     axes would wait for data. Exit 1 if it would be refused."""
-    from cellctl.errors import UsageError
     from cellctl.kinds.iso_cnc import gcode
     from cellctl.kinds.iso_cnc.buffer import forecast_drip, tape_blocks
     from cellctl.kinds.iso_cnc.dnc.config import machine
     from cellctl.kinds.iso_cnc.dnc.store import ShopStore, check_program_number, read_program_file
-    from cellctl.kinds.iso_cnc.options import prepare
+    from cellctl.kinds.iso_cnc.options import prepare, program_text
 
     config = shop_config(ctx, shop, use_cell)
     chosen = machine(config, name)
@@ -57,12 +56,7 @@ def check(ctx: click.Context, name: str, program: str, shop: Path, use_cell: boo
     data = read_program_file(path)
     check_program_number(path.name, data)
     o = chosen.options
-    try:
-        text = data.decode("ascii")
-    except UnicodeDecodeError as e:
-        line = data.count(b"\n", 0, e.start) + 1
-        raise UsageError(f"{path}:{line}: byte 0x{data[e.start]:02X} is not ISO code") from None
-    problems = gcode.errors(text, o.check_options())
+    problems = gcode.errors(program_text(data, str(path)), o.check_options())
     for problem in problems:
         console.print(problem.format(str(path)), style="red", markup=False, soft_wrap=True)
     if problems:

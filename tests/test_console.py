@@ -347,6 +347,19 @@ async def test_an_update_that_comes_as_the_console_exits_is_dropped(rig: CellRig
         assert not app.query("#header")
 
 
+async def test_an_update_that_comes_as_a_menu_goes_is_dropped(rig: CellRig) -> None:
+    """The same in a machine's menu, which an update refreshes: its menu removed first."""
+    app = ConsoleApp(rig.directory, standalone_client(rig), traffic_period=0.1)
+    async with app.run_test(size=SIZE) as pilot:
+        await wait_text(pilot, "MAIN MENU")
+        await pilot.press("1")
+        await wait_text(pilot, "ROBOT (robot)")
+        await app.query_one("#menu").remove()  # as the exit removes the widgets
+        app._cell_changed({})  # what the client calls with a pushed update
+        await pilot.pause()
+        assert not app.query("#menu") and app.level == "robot"
+
+
 # -- attached ----------------------------------------------------------------------------------
 
 

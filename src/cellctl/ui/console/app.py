@@ -204,7 +204,10 @@ class ConsoleApp(App[None]):
         self.snapshot = apply_update_json(self.snapshot, changes)
         self._show_snapshot()
         if self.level != "main":
-            self.show_menu(self.level, keep=True)
+            # An update as the console exits another way than its quit (its widgets going,
+            # the client not closed yet) has no menu left to refresh: see _show_snapshot.
+            with contextlib.suppress(NoMatches):
+                self.show_menu(self.level, keep=True)
 
     def _redraw_progress(self) -> None:
         machines = self.snapshot.get("machines", {}).values()

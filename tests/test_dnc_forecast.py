@@ -92,7 +92,7 @@ def test_dnc_check_forecasts_the_wait_and_the_rate_that_avoids_it(shop: Path) ->
     code, said = dnc(shop, "check", "mill1", "O1234")
     assert code == 0, said
     told = forecast(surfacing(30), LineSettings(9600, 7, "E", 2), IsoCncOptions())
-    assert "O1234 (O1234 surface.nc) for mill1 at 9600,7E2: 188 blocks" in said
+    assert "O1234 (O1234 surface.nc) for mill1 at 9600,7E2: 188 blocks that take time" in said
     assert f"the axes wait {told.stall_s:.1f} s for data at {told.stalls:,} blocks" in said
     assert "no wait from 19200 baud" in said
     code, said = dnc(shop, "check", "mill1", "O1001")

@@ -1,11 +1,11 @@
 """``cellctl dnc check MACHINE PROGRAM``: what ``dnc send`` and ``dnc drip`` would make of a
 program on that machine, before anyone stands at the control::
 
-    $ cellctl dnc check mill1 O5000 --dir shop
-    O5000 (O5000 surface.nc) for mill1 at 9600,7E2: 204,012 blocks, 4,759,156 characters
-      runs 4:30:14 (the motion model); the tape is 1:30:57 on the line
-      drip-feed: the axes wait 0:57:31 for data at 149,492 blocks (longest 0.04 s, for
-      `X50.904 Y75.432 Z-1.288`); it ends 5:27:45 after the control's first DC1
+    $ cellctl dnc check mill1 O1234 --dir shop
+    O1234 (O1234 surface.nc) for mill1 at 9600,7E2: 188 blocks that take time, 4,734 characters
+      runs 6.4 s (the motion model); the tape is 5.4 s on the line
+      drip-feed: the axes wait 1.4 s for data at 132 blocks (longest 0.02 s, for
+      `G1 X4.000 Y14.500 Z-0.010`); it ends 7.8 s after the control's first DC1
       no wait from 19200 baud
 
 The forecast is the driver's own model of the control's buffer (``buffer.py``) played at the
@@ -68,7 +68,7 @@ def check(ctx: click.Context, name: str, program: str, shop: Path, use_cell: boo
     forecast = forecast_drip(framed, blocks, settings.char_time, o.sender(settings.char_time))
     count = sum(1 for _, seconds in blocks if seconds > 0)
     lines = [
-        f"{program} ({path.name}) for {name} at {settings}: {count:,} blocks, "
+        f"{program} ({path.name}) for {name} at {settings}: {count:,} blocks that take time, "
         f"{forecast.chars:,} characters",
         f"  runs {_hms(forecast.run_s)} (the motion model); the tape is "
         f"{_hms(forecast.line_s)} on the line",

@@ -6,6 +6,7 @@ process of its own); the rest on the real command line in this process."""
 
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 from pathlib import Path
@@ -153,3 +154,18 @@ def test_the_dyna_2400s_check_sends_another_kinds_program_to_program_check() -> 
     assert "`cellctl program check --machine vf2 FILE`" in by_name.output
     works = cellctl("--cell", str(TENDING), "program", "check", "--machine", "vf2", program)
     assert works.exit_code == 0, works.output
+
+
+def test_json_for_a_pipeline(tmp_path: Path) -> None:
+    nofeed = tmp_path / "nofeed.nc"
+    nofeed.write_text("%\nO1001\nG21 G90\nG00 X0 Y0\nG01 X10 Y10\nM30\n%\n")
+    good = TENDING / "programs" / "O1001.nc"
+    result = CliRunner().invoke(main, ["program", "check", "--json", str(nofeed), str(good)])
+    assert result.exit_code == 1, result.output
+    bad_one, good_one = json.loads(result.stdout)
+    assert (bad_one["file"], bad_one["kind"], bad_one["ok"]) == (str(nofeed), "iso-cnc", False)
+    assert bad_one["problems"] == [f"{nofeed}:5: G01 move with no feed: no F before it"]
+    assert good_one["ok"] is True and good_one["problems"] == []
+    # The same figures as the line a person reads.
+    said = cellctl("program", "check", str(good)).output
+    assert f"{good_one['lines']} line(s)" in said and good_one["machining_s"] > 0

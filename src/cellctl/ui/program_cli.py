@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 import click
 
 from cellctl.errors import UsageError, unknown_machine, with_article
-from cellctl.ui.common import cell_dir, console
+from cellctl.ui.common import cell_dir, console, json_option, print_json
 
 if TYPE_CHECKING:
     from pydantic import BaseModel
@@ -104,6 +104,7 @@ def _duration(seconds: float) -> str:
     type=click.Choice(["setup", "milling", "transfer"]),
     help="What it is for (default: transfer for a robot's, milling for any other's).",
 )
+@json_option
 @click.pass_context
 def check_command(
     ctx: click.Context,
@@ -111,20 +112,34 @@ def check_command(
     kind_name: str | None,
     machine: str | None,
     role: str | None,
+    as_json: bool,
 ) -> None:
     """Check each FILE as its kind's controller would take it: every problem with its line,
     exit 1 if any file has one; a good one's lines and estimated run time."""
     from cellctl.kinds.kind import ProgramRole
 
     bad = 0
+    found: list[dict[str, object]] = []
     for path in files:
         kind, language, options = language_for(ctx, _existing(path), kind_name, machine)
         default = ProgramRole.TRANSFER if kind.family == "robot" else ProgramRole.MILLING
         checked = language.check(path, ProgramRole(role) if role else default, options)
+        bad += 1 if checked.problems else 0
+        if as_json:
+            found.append(
+                {
+                    "file": str(path),
+                    "kind": kind.name,
+                    "ok": checked.ok,
+                    "problems": list(checked.problems),
+                    "lines": checked.lines,
+                    "machining_s": checked.machining_s,
+                }
+            )
+            continue
         for problem in checked.problems:
             console.print(problem, style="red", markup=False, soft_wrap=True)
         if checked.problems:
-            bad += 1
             what = f"{len(checked.problems)} problem(s) as {with_article(kind.name)} program"
             console.print(f"{path}: {what}", soft_wrap=True)
             continue
@@ -132,6 +147,8 @@ def check_command(
         estimate = f", est. run time {_duration(seconds)}" if seconds else ""
         good = f"a good {kind.name} program, {checked.lines} line(s){estimate}"
         console.print(f"{path}: {good}", soft_wrap=True)
+    if as_json:
+        print_json(found)
     sys.exit(1 if bad else 0)
 
 

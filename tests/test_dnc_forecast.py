@@ -71,6 +71,19 @@ def test_the_forecast_is_what_the_control_records(baud: int) -> None:
         assert told.longest_block.startswith("G1 ")
 
 
+def test_a_block_longer_than_the_buffers_room_is_forecast_as_the_driver_sends_it() -> None:
+    # 230 characters: within a block's limit (256), beyond what the host keeps in the
+    # control's buffer (256 - 10 - 24): the model has no block end to wait for, and the
+    # driver writes on with the control's DC3 as its guard.
+    long = "G01 X1.000 Y1.000 F300 (" + "A" * 205 + ")"
+    data = f"%\nO1235\nG21 G90\n{long}\nG01 X2 Y2\nM30\n%\n".encode()
+    line = LineSettings(9600, 7, "E", 2)
+    told = forecast(data, line, IsoCncOptions())
+    elapsed, _, _ = drip(data, line, IsoCncOptions())
+    assert told.chars > len(long) and told.stalls == 0
+    assert abs(told.end_s - elapsed) <= 0.01 * elapsed + 0.05, (told, elapsed)
+
+
 @pytest.fixture
 def shop(tmp_path: Path) -> Path:
     (tmp_path / "dnc.toml").write_text(

@@ -24,7 +24,7 @@ from cellctl.ui.common import cell_dir, console, json_option, print_json
 if TYPE_CHECKING:
     from pydantic import BaseModel
 
-    from cellctl.kinds.kind import MachineKind, ProgramLanguage
+    from cellctl.kinds.kind import MachineKind, ProgramLanguage, ProgramRole
 
 
 @click.group("program")
@@ -84,6 +84,16 @@ def _by_ending(path: Path, kinds: list[MachineKind]) -> MachineKind:
     )
 
 
+def _role(kind: MachineKind, role: str | None) -> ProgramRole:
+    """``--role``, else what a program of ``kind`` is for: a robot's a transfer, any other's
+    a cut."""
+    from cellctl.kinds.kind import ProgramRole
+
+    if role:
+        return ProgramRole(role)
+    return ProgramRole.TRANSFER if kind.family == "robot" else ProgramRole.MILLING
+
+
 def _existing(path: Path) -> Path:
     if not path.is_file():
         raise UsageError(f"{path}: no such file" if not path.exists() else f"{path}: not a file")
@@ -116,14 +126,11 @@ def check_command(
 ) -> None:
     """Check each FILE as its kind's controller would take it: every problem with its line,
     exit 1 if any file has one; a good one's lines and estimated run time."""
-    from cellctl.kinds.kind import ProgramRole
-
     bad = 0
     found: list[dict[str, object]] = []
     for path in files:
         kind, language, options = language_for(ctx, _existing(path), kind_name, machine)
-        default = ProgramRole.TRANSFER if kind.family == "robot" else ProgramRole.MILLING
-        checked = language.check(path, ProgramRole(role) if role else default, options)
+        checked = language.check(path, _role(kind, role), options)
         bad += 1 if checked.problems else 0
         if as_json:
             found.append(
@@ -169,14 +176,12 @@ def preview_command(
 ) -> None:
     """Draw FILE's toolpath to an SVG, as the dashboard draws it; a program with problems is
     checked first and refused with them."""
-    from cellctl.kinds.kind import ProgramRole
-
     if output.suffix.lower() != ".svg":
         raise click.BadParameter("the drawing is SVG: the output must end in .svg", param_hint="-o")
     kind, language, options = language_for(ctx, _existing(file), kind_name, machine)
     if language.preview is None:
         raise UsageError(f"{with_article(kind.title)} has no toolpath to draw")
-    checked = language.check(file, ProgramRole.MILLING, options)
+    checked = language.check(file, _role(kind, None), options)
     if checked.problems:
         for problem in checked.problems:
             console.print(problem, style="red", markup=False, soft_wrap=True)

@@ -15,7 +15,7 @@ from typing import Annotated, Any, Literal, Union, get_args, get_origin
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from cellctl.errors import CellctlError
+from cellctl.errors import CellctlError, UsageError
 from cellctl.kinds import registry
 from cellctl.link import LineSettings
 
@@ -108,9 +108,11 @@ class MachineTable(_Table):
     @field_validator("kind")
     @classmethod
     def _kind(cls, value: str) -> str:
-        if value not in registry.names():
+        try:
+            registry.kind(value)  # that kind alone: the others' packages stay unread
+        except UsageError:
             known = ", ".join(f"'{n}'" for n in registry.names())
-            raise ValueError(f"{value!r} is not one of {known} (the installed kinds)")
+            raise ValueError(f"{value!r} is not one of {known} (the installed kinds)") from None
         return value
 
     @field_validator("options")

@@ -16,9 +16,10 @@ baud rate the cell's configuration names, which an emulated cell has already mul
   points (home, or where any transfer ends). Its WAITIs take what the PLC's machinery
   takes (:class:`~cellctl.protocol.plc.PlcTiming`, through the cell's wiring
   :data:`~cellctl.protocol.plc.EXAMPLE_WIRING`): a door of A or B, commanded as the transfer
-  starts, is open ``door_s`` later; a vise the program itself commanded to move reaches its position
-  ``clamp_s`` after the WRITEO (one commanded where it already is does not move); every other input (a pallet, the outfeed) counts as there
-  already. The transfer ends when the program raises its "cycle done" output.
+  starts, is open ``door_s`` later; a vise the program itself commanded to move reaches its
+  position ``clamp_s`` after the WRITEO (one commanded where it already is does not move);
+  every other input (a pallet, the outfeed) counts as there already. The transfer ends when
+  the program raises its "cycle done" output.
 - **A machining step** is the door closing behind the robot (``door_s``: it starts closing when
   the load ends, and the mill may not cut before it is shut), then for each block its
   characters at the line rate (``bits per char / baud``; the driver's block plus its Ctrl-Z) and

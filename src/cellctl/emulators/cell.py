@@ -205,8 +205,9 @@ class EmulatedCell:
             n = VISE_OUTPUTS[port]
             self.plc.set_coil(f"clamp_{n}", value)
             if value and self.gripper is not None:
-                if self.vise[n] is not None:
-                    self.left_in_vise.append((n, self.vise[n]))
+                left = self.vise[n]
+                if left is not None:
+                    self.left_in_vise.append((n, left))
                 self.vise[n], self.gripper = self.gripper, None
             elif not value and self.vise[n] is not None and self.gripper is None:
                 # A load opens the vise with its blank in the gripper: nothing to take.

@@ -53,6 +53,17 @@ def _load(ep: EntryPoint) -> MachineKind:
 
 
 @cache
+def _try(ep: EntryPoint) -> MachineKind | str:
+    """The kind entry point ``ep`` declares, or why it gave none (loaded once per process)."""
+    try:
+        return _load(ep)
+    except Exception as e:  # a plug-in's failure of any kind: skip it, say which
+        why = f"{type(e).__name__}: {e}"
+        log.warning("machine kind %s skipped: %s", ep.name, why)
+        return why
+
+
+@cache
 def found() -> Found:
     """Every kind the entry points declare (read once per process)."""
     kinds: dict[str, MachineKind] = {}
@@ -61,12 +72,26 @@ def found() -> Found:
         if ep.name in kinds:
             broken[ep.name] = f"declared twice ({ep.value}); the first one is used"
             continue
-        try:
-            kinds[ep.name] = _load(ep)
-        except Exception as e:  # a plug-in's failure of any kind: skip it, say which
-            broken[ep.name] = f"{type(e).__name__}: {e}"
-            log.warning("machine kind %s skipped: %s", ep.name, broken[ep.name])
+        k = _try(ep)
+        if isinstance(k, MachineKind):
+            kinds[ep.name] = k
+        else:
+            broken[ep.name] = k
     return Found(kinds, broken)
+
+
+@cache
+def _one(name: str) -> MachineKind | str:
+    """Kind ``name`` alone, as :func:`found` would give it (a command about one cell's
+    machines imports no other kind's package), or why it gave none."""
+    eps = [ep for ep in entry_points(group=GROUP) if ep.name == name]
+    why = ""
+    for ep in eps:
+        k = _try(ep)
+        if isinstance(k, MachineKind):
+            return k
+        why = k
+    return why
 
 
 def kinds(family: str | None = None) -> list[MachineKind]:
@@ -81,12 +106,11 @@ def names(family: str | None = None) -> tuple[str, ...]:
 
 def kind(name: str) -> MachineKind:
     """The kind called ``name``; UsageError naming the known ones (and why it is broken)."""
-    k = found().kinds.get(name)
-    if k is not None:
+    k = _one(name)
+    if isinstance(k, MachineKind):
         return k
-    why = found().broken.get(name)
-    if why is not None:
-        raise UsageError(f"machine kind {name!r} is installed but broken: {why}")
+    if k:
+        raise UsageError(f"machine kind {name!r} is installed but broken: {k}")
     raise UsageError(f"unknown machine kind {name!r} (known: {', '.join(names()) or 'none'})")
 
 

@@ -33,7 +33,6 @@ from cellctl.kinds import Condition, registry
 from cellctl.link import TrafficLog
 from cellctl.mailbox import MAILBOX_FILE, Mailbox, open_mailbox
 from cellctl.protocol.plc import PlcMap, canonical
-from cellctl.service.functions import FAMILY_OF_KIND
 from cellctl.service.machines import MachineRef, load_cell_file
 from cellctl.service.operator import list_orders
 from cellctl.service.status import (
@@ -265,7 +264,7 @@ class LocalCell(CellAccess):
         return self._mailbox
 
     def machines(self) -> dict[str, str]:
-        return {name: FAMILY_OF_KIND[ref.kind] for name, ref in self.refs.items()}
+        return {name: registry.family_of(ref.kind) for name, ref in self.refs.items()}
 
     def machine_kinds(self) -> dict[str, str]:
         return {name: ref.kind for name, ref in self.refs.items()}
@@ -338,7 +337,7 @@ class LocalCell(CellAccess):
         if signal is None and isinstance(entry, dict) and isinstance(entry.get("go_output"), str):
             signal = entry["go_output"]
         if signal is None and raw is not None:
-            mills = [n for n, r in self.refs.items() if FAMILY_OF_KIND[r.kind] == "mill"]
+            mills = [n for n, r in self.refs.items() if registry.family_of(r.kind) == "mill"]
             signal = f"go_{mills.index(ref.name) + 1}"
         if signal is None:
             return None

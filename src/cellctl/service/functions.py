@@ -12,6 +12,8 @@ of one name, :func:`function` with ``kind`` picks that kind's.
 
 from __future__ import annotations
 
+from functools import cache
+
 from cellctl.errors import UsageError
 from cellctl.kinds import registry
 from cellctl.kinds.kind import FAMILIES
@@ -29,8 +31,6 @@ from cellctl.kinds.menu import (
 
 __all__ = [
     "FAMILIES",
-    "FAMILY_OF_KIND",
-    "FUNCTIONS",
     "MAX_PROGRAM_CHARS",
     "InvalidParams",
     "MachineFunction",
@@ -40,7 +40,9 @@ __all__ = [
     "ProgramParams",
     "Progress",
     "describe",
+    "family_of_kind",
     "function",
+    "functions",
     "kind_menu",
     "menu",
     "state_text",
@@ -62,17 +64,25 @@ def _family_functions() -> tuple[MachineFunction, ...]:
     return tuple(seen.values())
 
 
-#: Every family's functions (the first kind declaring a name gives it): the control API serves
-#: each as FAMILY.NAME, and a call runs the function of the machine's own kind.
-FUNCTIONS: tuple[MachineFunction, ...] = _family_functions()
-#: Machine kinds and their family (as in cell.toml).
-FAMILY_OF_KIND: dict[str, str] = {k.name: k.family for k in registry.kinds()}
+@cache
+def functions() -> tuple[MachineFunction, ...]:
+    """Every family's functions (the first kind declaring a name gives it): the control API
+    serves each as FAMILY.NAME, and a call runs the function of the machine's own kind."""
+    return _family_functions()
+
+
+def family_of_kind(kind: str) -> str | None:
+    """The family of machine kind ``kind`` (as in cell.toml); None if it is not installed."""
+    try:
+        return registry.family_of(kind)
+    except UsageError:
+        return None
 
 
 def function(family: str, name: str, kind: str | None = None) -> MachineFunction:
     """The function ``name`` of ``family`` (of ``kind``, if given); UsageError naming the known
     ones otherwise."""
-    mine = kind_menu(kind) if kind is not None else [f for f in FUNCTIONS if f.family == family]
+    mine = kind_menu(kind) if kind is not None else [f for f in functions() if f.family == family]
     for fn in mine:
         if fn.family == family and fn.name == name:
             return fn
@@ -84,7 +94,7 @@ def function(family: str, name: str, kind: str | None = None) -> MachineFunction
 def menu(family: str, kind: str | None = None) -> list[MachineFunction]:
     """The functions (of ``kind``, else the family's), the source's menu first (by number),
     then the extras."""
-    mine = kind_menu(kind) if kind is not None else [f for f in FUNCTIONS if f.family == family]
+    mine = kind_menu(kind) if kind is not None else [f for f in functions() if f.family == family]
     return sorted(mine, key=lambda f: (f.menu is None, f.menu or 0))
 
 

@@ -24,7 +24,7 @@ from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.kinds import registry
 from cellctl.service.access import CellAccess
-from cellctl.service.functions import FAMILY_OF_KIND
+from cellctl.service.functions import family_of_kind
 
 #: Steps a ``steps.list`` answer carries at most (the newest).
 MAX_STEPS = 5000
@@ -55,7 +55,7 @@ def cell_layout(access: CellAccess) -> dict[str, Any]:
         {
             "name": m.name,
             "kind": m.kind,
-            "family": FAMILY_OF_KIND.get(m.kind, m.kind),
+            "family": family_of_kind(m.kind) or m.kind,
             "role": "robot" if m is config.robot else "mill",
         }
         for m in [config.robot, *config.mills]

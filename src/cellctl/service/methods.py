@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import asyncio
 import threading
+from collections.abc import Iterator, Mapping
+from functools import cached_property
 from typing import Any
 
 from pydantic import ValidationError
@@ -36,11 +38,11 @@ from cellctl.service import operator
 from cellctl.service.access import CellAccess
 from cellctl.service.audit import AuditLog, keeps_trail
 from cellctl.service.functions import (
-    FUNCTIONS,
     InvalidParams,
     Progress,
     describe,
     function,
+    functions,
     kind_menu,
 )
 
@@ -336,20 +338,49 @@ _TABLE: list[Method] = [
     # A viewer's: it acts on nothing, it plays the cell's state on a copy (service/planning).
     Method("plan.run", PlanParams, plan_run, "Play the cell ahead on a copy: a plan.", False),
 ]
-_TABLE += [
-    Method(
-        f"{fn.family}.{fn.name}",
-        MachineCallParams,
-        _machine_handler(fn.family, fn.name),
-        f"{fn.label}: {fn.doc}"
-        + (" Also in automatic service." if fn.observes else " Out of automatic service only."),
-        not fn.observes,
-        # By hand a machine is an engineer's; what only observes it, anyone's.
-        role="viewer" if fn.observes else "engineer",
-    )
-    for fn in FUNCTIONS
-]
-METHODS: dict[str, Method] = {m.name: m for m in _TABLE}
+
+
+def _machine_methods() -> list[Method]:
+    """Each machine function of the installed kinds, as FAMILY.NAME."""
+    return [
+        Method(
+            f"{fn.family}.{fn.name}",
+            MachineCallParams,
+            _machine_handler(fn.family, fn.name),
+            f"{fn.label}: {fn.doc}"
+            + (" Also in automatic service." if fn.observes else " Out of automatic service only."),
+            not fn.observes,
+            # By hand a machine is an engineer's; what only observes it, anyone's.
+            role="viewer" if fn.observes else "engineer",
+        )
+        for fn in functions()
+    ]
+
+
+class _Methods(Mapping[str, Method]):
+    """The methods by name: the cell's own, then the machines' functions. Those are read
+    from the installed kinds on first need, so a call of the cell's own (``parts.list``
+    from the command line) imports no kind's package."""
+
+    def __init__(self, own: list[Method]) -> None:
+        self._own = {m.name: m for m in own}
+
+    @cached_property
+    def _all(self) -> dict[str, Method]:
+        return {**self._own, **{m.name: m for m in _machine_methods()}}
+
+    def __getitem__(self, name: str) -> Method:
+        own = self._own.get(name)
+        return own if own is not None else self._all[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._all)
+
+    def __len__(self) -> int:
+        return len(self._all)
+
+
+METHODS: Mapping[str, Method] = _Methods(_TABLE)
 
 
 def reference_table() -> str:

@@ -25,7 +25,7 @@ from cellctl.errors import CellctlError, UsageError
 from cellctl.kinds import registry
 from cellctl.kinds.kind import FAMILIES, MachineKind
 from cellctl.service.client import CellClient, open_cell
-from cellctl.service.functions import FAMILY_OF_KIND, MachineFunction, kind_menu
+from cellctl.service.functions import MachineFunction, family_of_kind, kind_menu
 from cellctl.service.machines import MachineRef, load_cell_file, resolve_machine
 from cellctl.ui.calls import read_program
 
@@ -73,13 +73,13 @@ def cell_machines(directory: Path) -> list[ConsoleMachine]:
         raise UsageError(f"{directory / 'cell.toml'}: [machines] must be a table")
     found: list[ConsoleMachine] = []
     families = [
-        FAMILY_OF_KIND.get(e.get("kind", "")) for e in entries.values() if isinstance(e, dict)
+        family_of_kind(str(e.get("kind", ""))) for e in entries.values() if isinstance(e, dict)
     ]
     titles = _titles(families)
     for name, entry in entries.items():
-        if not isinstance(entry, dict) or entry.get("kind") not in FAMILY_OF_KIND:
+        family = family_of_kind(str(entry.get("kind", ""))) if isinstance(entry, dict) else None
+        if family is None:
             continue
-        family = FAMILY_OF_KIND[entry["kind"]]
         setup = entry.get("setup")
         found.append(
             ConsoleMachine(
@@ -116,7 +116,7 @@ def status_machines(snapshot: dict[str, Any]) -> list[ConsoleMachine]:
             str(m.get("name", "")),
             str(m["family"]),
             next(titles[str(m["family"])]),
-            kind=str(m["kind"]) if m.get("kind") in FAMILY_OF_KIND else None,
+            kind=str(m["kind"]) if family_of_kind(str(m.get("kind", ""))) else None,
         )
         for m in rows
     ]

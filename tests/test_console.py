@@ -382,8 +382,9 @@ async def test_attached_cell_menu(rig: CellRig, attached: CellClient) -> None:
         await rig.wait_for(lambda: len(rig.journal.parts(order_id="C1")) == 2, "C1's parts")
         first, second = rig.journal.parts(order_id="C1")
         rig.journal.hold_part(first.id, "looked damaged")
+        rig.journal.move_part(second.id, "cnc2")  # where the arm left it
         rig.journal.hold_part(second.id, "looked damaged")
-        # Held parts: release one, scrap the other.
+        # Held parts: release one, scrap the other (asked by the machine it may be in).
         await pilot.press("5")
         await wait_text(pilot, "HELD PARTS", f"{first.id} wax-robot-base")
         await pilot.press("enter")
@@ -395,11 +396,13 @@ async def test_attached_cell_menu(rig: CellRig, attached: CellClient) -> None:
         await pilot.press("enter")
         await wait_text(pilot, "3. SCRAP")
         await pilot.press("down", "down", "enter")
-        await wait_text(pilot, f"Scrap part {second.id}?", "Take it out of the machine first")
+        await wait_text(pilot, f"Scrap part {second.id}?", "cnc2", "take it out first")
         await pilot.press("y")
         await wait_text(pilot, f"part {second.id} scrapped")
         statuses = {p.id: p.status for p in rig.journal.parts(order_id="C1")}
         assert statuses == {first.id: "waiting", second.id: "scrapped"}
+        [scrapped] = rig.reports("part-scrapped")
+        assert scrapped.data["taken_out_of"] == ["cnc2"]
         # An alarm raised by a fault switch, cleared from the console.
         rig.cell.plc.set_fault("estop", None)
         alarm = (await rig.wait_for(lambda: rig.alarms("plc", "estop"), "estop alarm"))[0]

@@ -414,6 +414,7 @@ async def test_redo_refused_and_scrap_on_a_tablet(dash: Dash) -> None:
     await live(dash)
     parts = await rig.wait_for(lambda: rig.journal.parts(order_id="H2"), "H2's parts")
     assert len(parts) == 2
+    rig.journal.move_part(parts[1].id, "cnc1")  # where the arm left it
     for part in parts:
         rig.journal.hold_part(part.id, "chipped edge")
     rig.controller.poke()  # type: ignore[union-attr]
@@ -434,11 +435,14 @@ async def test_redo_refused_and_scrap_on_a_tablet(dash: Dash) -> None:
     assert rig.journal.get_part(parts[0].id).status == "held"
     await scrap.locator("button", has_text="Scrap").click()
     asked = await page.locator("#confirm-text").inner_text()
-    # The confirmation is the operator's word that the part is out of its machine.
-    assert "Take it out of the machine first" in asked and "cannot be undone" in asked
+    # The confirmation names the machine: it is the operator's word that the part is out.
+    assert f"Scrap part {parts[1].id}? It may be in cnc1: take it out first" in asked
+    assert "cannot be undone" in asked
     await dash.confirm()
     await scrap.wait_for(state="detached", timeout=SEEN_MS)
     assert rig.journal.get_part(parts[1].id).status == "scrapped"
+    [scrapped] = rig.reports("part-scrapped")
+    assert scrapped.data["taken_out_of"] == ["cnc1"]
 
 
 async def test_another_origin_cannot_drive_the_cell(dash: Dash) -> None:

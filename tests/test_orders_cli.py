@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import os
 import signal
 import subprocess
@@ -207,6 +208,10 @@ def test_scrap_a_held_part(cell: Path) -> None:
 def test_scrap_after_an_interrupted_transfer_asks_for_its_target_emptied(cell: Path) -> None:
     part_id = held_after_crash(cell, kind="transfer")
     # On the conveyor in the journal, but the arm may have put it in cnc1's vise.
+    listed = cellctl(cell, "part", "list", "--json")
+    assert json.loads(listed.stdout)[0]["may_be_in"] == ["cnc1"]
+    shown = cellctl(cell, "part", "list")
+    assert "conveyor or cnc1?" in shown.stdout, shown.stdout
     refused = cellctl(cell, "part", "scrap", part_id)
     assert refused.exit_code == 2
     assert f"part {part_id} may be in cnc1: take it out" in refused.stderr

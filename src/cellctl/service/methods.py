@@ -193,7 +193,7 @@ async def _parts(access: CellAccess, p: PartsParams, progress: Progress | None) 
     journal = access.journal()
     if journal is None:
         return []
-    return [operator.as_dict(x) for x in journal.parts(p.statuses or None, p.order)]
+    return [operator.part_entry(journal, x) for x in journal.parts(p.statuses or None, p.order)]
 
 
 async def _release(access: CellAccess, p: ReleaseParams, progress: Progress | None) -> Any:
@@ -315,7 +315,9 @@ _TABLE: list[Method] = [
     Method("alarms.ack", AlarmParams, _ack, "Acknowledge an alarm (it stays open).", True),
     Method("alarms.shelve", ShelveParams, _shelve, "Shelve an alarm for seconds (<= 8 h).", True),
     Method("alarms.history", HistoryParams, _history, "Alarms by time, machine, priority.", False),
-    Method("parts.list", PartsParams, _parts, "Parts, by status or order.", False),
+    Method(
+        "parts.list", PartsParams, _parts, "Parts, by status or order (held: may_be_in).", False
+    ),
     Method("parts.release", ReleaseParams, _release, "Release a held part.", True),
     Method(
         "parts.scrap",

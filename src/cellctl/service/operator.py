@@ -30,6 +30,28 @@ def as_dict(item: Order | Part | Alarm | Report) -> dict[str, Any]:
     return dataclasses.asdict(item)
 
 
+def may_be_in(journal: Journal, part: Part) -> list[str]:
+    """The machines a held part may physically be in (``taken_out`` scraps it); [] for a
+    part not held."""
+    return sorted(places_of(journal, part)) if part.status == "held" else []
+
+
+def part_entry(journal: Journal, part: Part) -> dict[str, Any]:
+    """A part as ``parts.list`` gives it: its record and ``may_be_in``."""
+    return {**as_dict(part), "may_be_in": may_be_in(journal, part)}
+
+
+def scrap_question(part_id: str, places: list[str]) -> str:
+    """What a surface asks before it scraps a part that ``may_be_in`` ``places``."""
+    if not places:
+        return f"Scrap part {part_id}? This cannot be undone."
+    where = " or ".join(places)
+    return (
+        f"Scrap part {part_id}? It may be in {where}: take it out first (the cell loads "
+        f"{where} again at once). Is it out? This cannot be undone."
+    )
+
+
 def resolve_part_id(journal: Journal, text: str) -> str:
     """A part id from the id itself, a unique prefix of it, or a unique prefix of its order's
     id with the part's number (``9227-2`` for ``9227175d00c...-2``), as git takes commit ids."""

@@ -35,6 +35,7 @@ from cellctl.cell.journal import Alarm, Journal, Part, Step
 from cellctl.cell.model import MachineView
 from cellctl.kinds import Condition
 from cellctl.kinds.families import estimated_done
+from cellctl.service.operator import may_be_in
 from cellctl.service.status_model import (
     STATUS_EVENTS,
     VOLATILE,
@@ -173,7 +174,7 @@ def build_status(
         cell=cell,
         machines=machines,
         orders=[OrderInfo(**o) for o in shown[: STATUS_ORDERS * 2]],
-        parts=[_part(p) for p in parts],
+        parts=[_part(p, may_be_in(journal, p) if journal is not None else []) for p in parts],
         alarms=[_alarm(a) for a in alarms],
         events=[EventInfo(time=t, text=x) for t, x in events][-STATUS_EVENTS:],
     )
@@ -281,7 +282,7 @@ def _progress(
     )
 
 
-def _part(p: Part) -> PartInfo:
+def _part(p: Part, places: list[str]) -> PartInfo:
     return PartInfo(
         id=p.id,
         order_id=p.order_id,
@@ -292,6 +293,7 @@ def _part(p: Part) -> PartInfo:
         status=p.status,
         updated=p.updated,
         note=p.note,
+        may_be_in=places,
     )
 
 

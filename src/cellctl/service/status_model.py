@@ -203,6 +203,11 @@ class PartInfo(Model):
     status: str = Field(description="waiting, active or held.")
     updated: float = Field(description="When it last changed, s.")
     note: str = Field(default="", description="Why it is held.")
+    may_be_in: list[str] = Field(
+        default_factory=list,
+        description="A held part: the machines it may physically be in (parts.scrap needs "
+        "taken_out then).",
+    )
 
 
 class AlarmInfo(Model):

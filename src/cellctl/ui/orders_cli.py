@@ -452,10 +452,12 @@ def part_list(
             column, justify="right" if column == "Route" else "left", no_wrap=column == "Part"
         )
     for p in found:
+        # A held part the arm may have put down elsewhere: every place it may be.
+        others = [m for m in p.get("may_be_in", []) if m != p["location"]]
         table.add_row(
             p["id"],
             p["part_type"],
-            p["location"],
+            " or ".join([p["location"], *others]) + ("?" if others else ""),
             str(p["route_index"]),
             _styled(p["status"]),
             p["note"],

@@ -15,6 +15,7 @@ from typing import Any, Protocol, TypeVar
 from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.service.machines import load_cell_file
+from cellctl.service.operator import scrap_question
 from cellctl.ui.console.dialogs import Dialog, FormDialog, LivePickDialog, PickDialog
 from cellctl.ui.console.entry import Entry
 from cellctl.ui.console.whatif import PlanView, plan_params, plan_text, summary
@@ -24,11 +25,6 @@ T = TypeVar("T")
 #: Order states an order may still be cancelled in.
 NOT_STARTED = ["posted", "accepted"]
 NO_CONTROLLER = "unavailable"
-#: Asked before a part is scrapped (the answer is the API's ``taken_out``).
-TAKE_IT_OUT = (
-    "Take it out of the machine first if it is in one: the cell loads that machine again "
-    "at once. This cannot be undone."
-)
 
 
 class ConsoleHost(Protocol):
@@ -233,10 +229,13 @@ class CellActions:
             )
         )
         if what == "scrap":
-            if not await self.app.confirm(f"Scrap part {picked}? {TAKE_IT_OUT}"):
+            places = next((list(p.get("may_be_in", [])) for p in found if p["id"] == picked), [])
+            if not await self.app.confirm(scrap_question(picked, places)):
                 self.app.say([f"part {picked} kept"])
                 return
-            result = await self.app.call("parts.scrap", {"id": picked, "taken_out": True})
+            # Asked about those machines by name: the answer is the API's taken_out.
+            params = {"id": picked, "taken_out": bool(places)}
+            result = await self.app.call("parts.scrap", params)
         elif what in ("release", "redo"):
             result = await self.app.call("parts.release", {"id": picked, "redo": what == "redo"})
         else:

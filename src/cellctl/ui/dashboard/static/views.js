@@ -354,11 +354,22 @@ export function renderHeld(snap) {
       h("button", {
         class: "small-button danger",
         "data-method": "parts.scrap",
-        onclick: (e) => actOn(e, `Scrap part ${p.id} (at ${p.location})? Take it out of the `
-          + "machine first if it is in one: the cell loads that machine again at once. This "
-          + "cannot be undone.", { id: p.id, taken_out: true }, "part-message"),
+        onclick: (e) => actOn(e, scrapQuestion(p),
+          { id: p.id, taken_out: (p.may_be_in || []).length > 0 }, "part-message"),
       }, "Scrap"))));
   replaceRows("held-table", rows, "no held part", 5);
+}
+
+// As the console asks it (service/operator.py's scrap_question): by the machines the part
+// may be in, whose answer is the API's taken_out.
+function scrapQuestion(p) {
+  const places = p.may_be_in || [];
+  if (!places.length) {
+    return `Scrap part ${p.id}? This cannot be undone.`;
+  }
+  const where = places.join(" or ");
+  return `Scrap part ${p.id}? It may be in ${where}: take it out first (the cell loads `
+    + `${where} again at once). Is it out? This cannot be undone.`;
 }
 
 function replaceRows(tableId, rows, empty, columns) {

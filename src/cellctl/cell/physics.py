@@ -16,10 +16,9 @@ baud rate the cell's configuration names, which an emulated cell has already mul
   points (home, or where any transfer ends). Its WAITIs take what the PLC's machinery
   takes (:class:`~cellctl.protocol.plc.PlcTiming`, through the cell's wiring
   :data:`~cellctl.protocol.plc.EXAMPLE_WIRING`): a door of A or B, commanded as the transfer
-  starts, is open ``door_s`` later; a vise the program itself commanded to move reaches its
-  position ``clamp_s`` after the WRITEO (one commanded where it already is does not move);
-  every other input (a pallet, the outfeed) counts as there already. The transfer ends when
-  the program raises its "cycle done" output.
+  starts, is open ``door_s`` later; a vise the program itself commanded reaches its position
+  ``clamp_s`` after the WRITEO; every other input (a pallet, the outfeed) counts as there
+  already. The transfer ends when the program raises its "cycle done" output.
 - **A machining step** is the door closing behind the robot (``door_s``: it starts closing when
   the load ends, and the mill may not cut before it is shut), then for each block its
   characters at the line rate (``bits per char / baud``; the driver's block plus its Ctrl-Z) and
@@ -172,7 +171,6 @@ def _transfer_time(
     source, _, target = name.partition("_to_")
     doors = {mills.index(p) + 1 for p in (source, target) if p != CONVEYOR and p in mills}
     vises = dict(wiring.vise_outputs)
-    held = mills.index(source) + 1 if source in mills else 0
     waits = {"door": 0.0, "clamp": 0.0}
 
     def ready(port: int, value: bool, now: float, run: ProgramRun) -> float:
@@ -188,9 +186,7 @@ def _transfer_time(
             at = max(now, timing.door_s)  # commanded open as the transfer starts
         elif kind == "clamp_closed":
             writes = [(t, v) for t, p, v in run.writes if vises.get(p) == mill]
-            # Only the source's vise is closed as the transfer starts (on the part it takes).
-            before = writes[-2][1] if len(writes) > 1 else mill == held
-            if writes and writes[-1][1] == level and writes[-1][1] != before:
+            if writes and writes[-1][1] == level:
                 at = max(now, writes[-1][0] + timing.clamp_s)
         label = "door" if kind == "door_open" else "clamp"
         waits[label] = waits.get(label, 0.0) + (at - now)

@@ -169,9 +169,6 @@ class EmulatedCell:
         self.gripper: str | None = None
         self.vise: dict[int, str | None] = {1: None, 2: None}
         self.outfeed: list[str] = []
-        #: (vise, part) for each part still recorded in a vise when the arm clamped another
-        #: there: taken out by an operator this record did not see, or a part run over.
-        self.left_in_vise: list[tuple[int, str]] = []
         self.cuts: list[Cut] = []
         self._tasks: set[asyncio.Task[None]] = set()
 
@@ -205,12 +202,8 @@ class EmulatedCell:
             n = VISE_OUTPUTS[port]
             self.plc.set_coil(f"clamp_{n}", value)
             if value and self.gripper is not None:
-                left = self.vise[n]
-                if left is not None:
-                    self.left_in_vise.append((n, left))
                 self.vise[n], self.gripper = self.gripper, None
-            elif not value and self.vise[n] is not None and self.gripper is None:
-                # A load opens the vise with its blank in the gripper: nothing to take.
+            elif not value and self.vise[n] is not None:
                 self.gripper, self.vise[n] = self.vise[n], None
         elif port == BLANK_TAKEN_OUTPUT and value:
             self.gripper, self.pallet_part = self.pallet_part, None

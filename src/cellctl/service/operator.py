@@ -259,8 +259,8 @@ def scrap_part(
 
     A part that may be in a machine (its place, or where an interrupted transfer took it) is
     scrapped only once the operator says it is out (``taken_out``): the journal forgets it,
-    and the cell loads that machine again at once (its load opens the vise the part was
-    clamped in first)."""
+    and the cell loads that machine again at once (the example cell's loads first wait for
+    its vise to open: docs/cell.md)."""
     part_id = resolve_part_id(journal, part_id)
     part = journal.get_part(part_id)
     # Only a part that can be scrapped is asked about (the journal refuses the others).

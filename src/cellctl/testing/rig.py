@@ -358,12 +358,6 @@ class CellRig:
         """The physical part in ``mill``'s vise (the emulated cell's record)."""
         return self.cell.vise[MILL_INDEX[mill]]
 
-    def take_out(self, mill: str) -> str | None:
-        """The operator takes the part out of ``mill``'s vise by hand (the vise stays as the
-        arm left it); returns that part."""
-        part, self.cell.vise[MILL_INDEX[mill]] = self.cell.vise[MILL_INDEX[mill]], None
-        return part
-
     async def operator_resolves(self) -> None:
         """The operator clears every alarm and releases each held part where it physically
         is, after looking at it (``cellctl alarm clear``, ``cellctl part release``)."""

@@ -10,7 +10,7 @@ from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
 
-import pytest
+import pytest_asyncio
 from asyncua import ua
 from asyncua.ua.uaerrors import UaError
 from playwright.async_api import Browser
@@ -26,8 +26,11 @@ from cellctl.ui.cell_cli import run_controller
 from cellctl.ui.console.app import ConsoleApp
 from tests.conftest import SEEN_MS, free_port, until
 from tests.test_console import wait_text
-from tests.test_dashboard import browser  # noqa: F401  (the fixture)
+from tests.test_dashboard import IN_BROWSER, browser  # noqa: F401  (the fixture)
 from tests.test_opcua import client_cert, session  # noqa: F401  (client_cert: the fixture)
+
+# On the session's event loop, where the browser lives (tests/test_dashboard.py).
+pytestmark = IN_BROWSER
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "cell-tending"
 
@@ -39,7 +42,7 @@ class Running:
     opcua: str  # opc.tcp://HOST:PORT
 
 
-@pytest.fixture
+@pytest_asyncio.fixture(loop_scope="session")
 async def running(tmp_path: Path) -> AsyncIterator[Running]:
     """The example emulated, its real controller running with the API on TCP and OPC UA."""
     emulated = EmulatedCell(time_scale=200.0, template=EXAMPLE)

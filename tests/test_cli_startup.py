@@ -132,12 +132,22 @@ def test_a_command_that_runs_imports_what_it_needs(tmp_path: Path) -> None:
 def test_the_api_client_imports_neither_the_server_nor_the_cells_access(tmp_path: Path) -> None:
     """A command that asks a running controller (``cellctl alarm list`` beside ``cellctl
     run``) loads the client alone: the server, the method table and the cell's own access
-    (the standalone cell) come with a command that opens the machines itself."""
+    (the standalone cell) come with a command that opens the machines itself. The client's
+    WebSocket library comes when it connects: a command that finds no controller running
+    (most of them, on a cell nobody runs) never loads it."""
     done, modules = _imported(tmp_path, "import cellctl.service.client")
     assert done.returncode == 0, done.stderr[-2000:]
-    assert "websockets" in modules  # the client's own
-    heavy = set(_heavy(modules)) - {"cellctl.service.client"}
-    assert not {m for m in heavy if not m.startswith("websockets")}, sorted(heavy)
+    assert set(_heavy(modules)) == {"cellctl.service.client"}, _heavy(modules)
+    # A connection refused (no server on the port) went through websockets: a LinkError.
+    code = (
+        "import asyncio, contextlib; from cellctl.errors import LinkError; "
+        "from cellctl.service.client import RemoteCell; "
+        "with contextlib.suppress(LinkError): "
+        "asyncio.run(RemoteCell.connect(token='t', url='ws://127.0.0.1:1')); print('refused')"
+    )
+    done, modules = _imported(tmp_path, code)
+    assert done.returncode == 0 and "refused" in done.stdout, done.stderr[-2000:]
+    assert "websockets" in modules
 
 
 def test_the_registry_reads_every_kind_without_its_driver_or_emulator(tmp_path: Path) -> None:

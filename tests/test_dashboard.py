@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import pytest_asyncio
 from playwright.async_api import Browser, Page, async_playwright
 from playwright.async_api import Error as PlaywrightError
 from websockets.asyncio.client import connect
@@ -103,7 +104,14 @@ def _http(
         return e.code, json.loads(e.read() or b"null")
 
 
-@pytest.fixture
+# One Chromium per test process: starting one (and Playwright's driver) costs more CPU than
+# most page tests, and every test opens its own context (cookies, storage and page of its
+# own). Its tests run on the session's event loop, where the browser lives.
+IN_BROWSER = pytest.mark.asyncio(loop_scope="session")
+pytestmark = IN_BROWSER
+
+
+@pytest_asyncio.fixture(scope="session", loop_scope="session")
 async def browser() -> AsyncIterator[Browser]:
     if shutil.which(CHROMIUM) is None:
         pytest.fail(
@@ -121,7 +129,7 @@ async def browser() -> AsyncIterator[Browser]:
             await found.close()
 
 
-@pytest.fixture
+@pytest_asyncio.fixture(loop_scope="session")
 async def dash(
     tmp_path: Path, browser: Browser, request: pytest.FixtureRequest
 ) -> AsyncIterator[Dash]:

@@ -4,7 +4,10 @@ is refused with the role it lacks, shown on the page and recorded in the Audit p
 from __future__ import annotations
 
 from cellctl.service.token import add_token
-from tests.test_dashboard import Dash, browser, dash, live  # noqa: F401  (fixtures)
+from tests.test_dashboard import IN_BROWSER, Dash, browser, dash, live  # noqa: F401  (fixtures)
+
+# On the session's event loop, where the browser lives (tests/test_dashboard.py).
+pytestmark = IN_BROWSER
 
 
 async def test_a_viewer_reads_the_page_is_refused_an_order_and_sees_it_audited(

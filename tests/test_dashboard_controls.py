@@ -17,7 +17,10 @@ from playwright.async_api import Page, Request, Response, Route
 from cellctl.service.token import add_token
 from tests import test_dashboard
 from tests.conftest import SEEN_MS
-from tests.test_dashboard import Dash, http, live
+from tests.test_dashboard import IN_BROWSER, Dash, http, live
+
+# On the session's event loop, where the browser lives (tests/test_dashboard.py).
+pytestmark = IN_BROWSER
 
 # The browser and the cell with its dashboard, as tests/test_dashboard.py starts them.
 browser = test_dashboard.browser

@@ -6,7 +6,10 @@ from __future__ import annotations
 
 import pytest
 
-from tests.test_dashboard import Dash, browser, dash, live  # noqa: F401 (fixtures)
+from tests.test_dashboard import IN_BROWSER, Dash, browser, dash, live  # noqa: F401 (fixtures)
+
+# On the session's event loop, where the browser lives (tests/test_dashboard.py).
+pytestmark = IN_BROWSER
 
 
 @pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting

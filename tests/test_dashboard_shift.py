@@ -3,7 +3,10 @@ API's report.shift) after a real batch."""
 
 from __future__ import annotations
 
-from tests.test_dashboard import Dash, browser, dash, live  # noqa: F401 (fixtures)
+from tests.test_dashboard import IN_BROWSER, Dash, browser, dash, live  # noqa: F401 (fixtures)
+
+# On the session's event loop, where the browser lives (tests/test_dashboard.py).
+pytestmark = IN_BROWSER
 
 
 async def test_the_shift_panel_shows_the_reports_figures(dash: Dash) -> None:  # noqa: F811

@@ -31,7 +31,7 @@ MAX_PART_TYPES = 256
 
 
 class _Table(BaseModel):
-    model_config = ConfigDict(strict=True, extra="forbid", frozen=True)
+    model_config = ConfigDict(strict=True, extra="forbid", frozen=True, defer_build=True)
 
 
 class CellTable(_Table):
@@ -275,7 +275,7 @@ class CellFile(BaseModel):
     """The whole of ``cell.toml``. :func:`check_cell` checks each table (and each machine, part
     and robot program) on its own, so one wrong value never hides the others' problems."""
 
-    model_config = ConfigDict(strict=True, extra="forbid")
+    model_config = ConfigDict(strict=True, extra="forbid", defer_build=True)
 
     cell: CellTable = Field(default_factory=lambda: CellTable(), description="the cell")
     machines: dict[str, MachineTable] = Field(

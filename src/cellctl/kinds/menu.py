@@ -41,7 +41,7 @@ SHOWN_NAME = 60
 class Params(BaseModel):
     """Base of the functions' parameters: unknown keys are refused."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, defer_build=True)
 
 
 class NoParams(Params):

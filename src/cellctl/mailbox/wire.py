@@ -104,7 +104,9 @@ class WireError(ProtocolError):
 
 class _Strict(BaseModel):
     # strict: "2" is not 2 and true is not 1; no NaN or infinity; no unknown field.
-    model_config = ConfigDict(strict=True, extra="forbid", frozen=True, allow_inf_nan=False)
+    model_config = ConfigDict(
+        strict=True, extra="forbid", frozen=True, allow_inf_nan=False, defer_build=True
+    )
 
 
 class _Message(_Strict):

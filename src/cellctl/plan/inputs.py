@@ -42,7 +42,7 @@ _Time = Annotated[float, Field(ge=0, le=1e11, allow_inf_nan=False)]
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, defer_build=True)
 
 
 class _Order(_Model):
@@ -71,7 +71,7 @@ class _Held(_Model):
 class InputsFile(_Model):
     """``inputs.json``'s schema."""
 
-    model_config = ConfigDict(extra="ignore", frozen=True)
+    model_config = ConfigDict(extra="ignore", frozen=True, defer_build=True)
     format: str = Field(pattern=f"^{FORMAT}$")
     cell_dir: Annotated[str, Field(min_length=1, max_length=4096)]
     start: _Time

@@ -21,9 +21,6 @@ from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Self
 
-from websockets.asyncio.client import ClientConnection, connect, unix_connect
-from websockets.exceptions import ConnectionClosed, InvalidStatus, WebSocketException
-
 from cellctl.clock import current_clock
 from cellctl.errors import (
     AccessDenied,
@@ -38,6 +35,8 @@ from cellctl.service.rpc import SOCKET_FILE, Caller, error_from_object
 from cellctl.service.token import TOKEN_ENV, client_token, identify
 
 if TYPE_CHECKING:
+    from websockets.asyncio.client import ClientConnection
+
     # A command that asks a running controller needs none of these: the standalone cell
     # (this process on the machines' links) imports them when it is made.
     from cellctl.service.access import LocalCell
@@ -84,6 +83,11 @@ class RemoteCell:
         cls, *, token: str, socket_path: Path | None = None, url: str | None = None
     ) -> RemoteCell:
         """Connect to ``socket_path`` (a cell's ``api.sock``) or ``url`` (``ws://host:port``)."""
+        # websockets is imported by a command that finds a controller to talk to, not by
+        # every command that looks whether one runs.
+        from websockets.asyncio.client import connect, unix_connect
+        from websockets.exceptions import InvalidStatus, WebSocketException
+
         headers = {"Authorization": f"Bearer {token}"}
         try:
             if socket_path is not None:
@@ -115,6 +119,8 @@ class RemoteCell:
         return cls(ws)
 
     async def _read(self) -> None:
+        from websockets.exceptions import ConnectionClosed
+
         try:
             async for text in self._ws:
                 found = json.loads(text)
@@ -160,6 +166,8 @@ class RemoteCell:
         timeout: float | None = None,
     ) -> Any:
         """Call ``method``; its result, or the typed error it raised."""
+        from websockets.exceptions import ConnectionClosed
+
         if self.closed.is_set():
             raise LinkClosed("the control API closed the connection")
         rid = next(self._ids)

@@ -38,7 +38,7 @@ MAX_LIST = 20
 class P(BaseModel):
     """Base of the methods' parameters: unknown keys are refused."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, defer_build=True)
 
 
 class NoParams(P):
@@ -144,7 +144,7 @@ class MachineCallParams(BaseModel):
     """A manual function: ``machine`` (optional when the cell has one of the family), and
     the function's own parameters beside it."""
 
-    model_config = ConfigDict(extra="allow", frozen=True)
+    model_config = ConfigDict(extra="allow", frozen=True, defer_build=True)
     machine: str | None = Field(default=None, min_length=1, max_length=100)
 
 

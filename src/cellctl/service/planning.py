@@ -55,7 +55,7 @@ _Entry = Annotated[str, Field(min_length=1, max_length=200)]
 class PlanParams(BaseModel):
     """``plan.run``'s parameters: the CLI's options, as it types them."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, defer_build=True)
     shift: str | None = Field(default=None, min_length=1, max_length=40)
     until: str | None = Field(default=None, min_length=1, max_length=60)
     add: list[_Entry] = Field(default_factory=list, max_length=MAX_ENTRIES)

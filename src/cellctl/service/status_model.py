@@ -30,7 +30,7 @@ STATUS_EVENTS = 30
 class Model(BaseModel):
     """Base of the status' objects: no unknown keys, never changed once built."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, defer_build=True)
 
 
 class CellMode(enum.StrEnum):

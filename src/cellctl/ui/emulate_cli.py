@@ -20,7 +20,6 @@ from cellctl.emulators.serve import (
     serve,
 )
 from cellctl.errors import MachineInUse
-from cellctl.factory.config import factory_lock_path
 from cellctl.link import LineSettings
 from cellctl.link.lock import Holder, holder
 from cellctl.ui.common import Lazy, LazyGroup, accept_cell, console, kind_commands, until_stopped
@@ -103,6 +102,10 @@ def _pty_held(directory: Path) -> tuple[Holder | None, str]:
 
 
 def _factory_held(directory: Path) -> tuple[Holder | None, str]:
+    # The factory's config (its models, the mailbox's records) is not imported by every
+    # emulator's start: only where a factory's directory is looked at.
+    from cellctl.factory.config import factory_lock_path
+
     return holder(factory_lock_path(directory)), f"runs the factory in {directory}"
 
 

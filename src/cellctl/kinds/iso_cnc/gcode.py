@@ -113,7 +113,7 @@ FEED_MOVES = (1.0, 2.0, 3.0)
 class CheckOptions(BaseModel):
     """What the check takes from the machine's options."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", defer_build=True)
 
     o_digits: int = Field(default=4, ge=1, le=8)
     arc_tolerance_mm: float = Field(default=0.01, gt=0, le=10)

@@ -52,7 +52,9 @@ class Activity(enum.StrEnum):
 class EmulatorOptions(BaseModel):
     """The emulated control's parameters and fault switches."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid", use_attribute_docstrings=True)
+    model_config = ConfigDict(
+        frozen=True, extra="forbid", use_attribute_docstrings=True, defer_build=True
+    )
 
     buffer_size: int = Field(default=256, ge=16, le=1 << 20)
     """Characters its reader buffer holds."""

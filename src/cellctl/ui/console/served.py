@@ -43,7 +43,7 @@ DETAIL_LINES = 5
 class ServedFunction(BaseModel):
     """One function a server offers on a machine (one element of ``machines.functions``)."""
 
-    model_config = ConfigDict(frozen=True, extra="ignore")
+    model_config = ConfigDict(frozen=True, extra="ignore", defer_build=True)
     key: str = Field(min_length=1, max_length=1, pattern=r"^[0-9a-z]$")
     label: str = Field(min_length=1, max_length=40)
     method: str = Field(min_length=1, max_length=100)

@@ -229,6 +229,38 @@ def ser2net_available() -> Iterator[None]:
     yield
 
 
+#: Limits of a check of a hostile input (:func:`run_limited`): address space, CPU seconds (the
+#: heaviest case takes about 10), and wall seconds against a child that neither ends nor
+#: computes. The limit is on CPU, not the clock's: a box busy with other tests stretches a
+#: check's wall time (a 10 s one took over 60 s beside five other workers), not its work.
+LIMITED_MEMORY = 1 << 30
+LIMITED_CPU_S = 40
+LIMITED_WALL_S = 280.0
+
+
+def run_limited(script: str, *args: str) -> str:
+    """Run Python ``script`` (``sys.argv[1:]`` = ``args``) in a child whose address space and
+    CPU time are limited: its output. A child that grows or computes without bound fails the
+    test (its limit named) instead of the machine."""
+    prologue = (
+        "import resource\n"
+        f"resource.setrlimit(resource.RLIMIT_AS, ({LIMITED_MEMORY}, {LIMITED_MEMORY}))\n"
+        # SIGXCPU at the soft limit (the hard one, a little later, would be a bare SIGKILL).
+        f"resource.setrlimit(resource.RLIMIT_CPU, ({LIMITED_CPU_S}, {LIMITED_CPU_S + 5}))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", prologue + script, *args],
+        capture_output=True,
+        text=True,
+        timeout=LIMITED_WALL_S,
+        check=False,
+    )
+    over = done.returncode in (-signal.SIGXCPU, -signal.SIGKILL)
+    assert not over, f"the check took over {LIMITED_CPU_S} s of CPU (or was killed)"
+    assert done.returncode == 0, done.stderr[-2000:]
+    return done.stdout
+
+
 CELLCTL = [str(Path(sys.executable).parent / "cellctl")]
 
 

@@ -1,8 +1,9 @@
-"""Hostile DYNALAN programs: validation and preview answer within seconds, under a memory limit,
+"""Hostile DYNALAN programs: validation and preview answer within bounded CPU time and memory,
 with a typed problem at the right line; the mill emulator stops on them instead of crashing.
 
-Each program is checked in a subprocess whose address space is limited (``RLIMIT_AS``), so a
-program that would make the checker grow without bound fails its test instead of the machine.
+Each program is checked in a subprocess whose address space and CPU time are limited
+(``tests.conftest.run_limited``), so a program that would make the checker grow or run
+without bound fails its test instead of the machine.
 The inputs that found bugs are kept here as plain tests.
 """
 
@@ -10,8 +11,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import subprocess
-import sys
 import textwrap
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -22,14 +21,11 @@ from cellctl.emulators.serve import Server, serve
 from cellctl.kinds.dyna2400 import dynalan
 from cellctl.kinds.dyna2400.emulator import Dyna2400Emulator, OperatorDelays
 from cellctl.link import LineSettings, Link, open_link
-
-MEMORY_LIMIT = 1 << 30  # 1 GiB of address space for one check
-SECONDS = 60  # far above what any case takes; a hang fails instead of blocking the suite
+from tests.conftest import LIMITED_WALL_S, run_limited
 
 _CHECK = textwrap.dedent(
     """
-    import json, resource, sys
-    resource.setrlimit(resource.RLIMIT_AS, ({limit}, {limit}))
+    import json, sys
     from cellctl.kinds.dyna2400 import dynalan
     from cellctl.kinds.dyna2400.preview import render_png, render_svg
     text = open(sys.argv[1], "rb").read().decode("ascii", "replace")
@@ -38,7 +34,7 @@ _CHECK = textwrap.dedent(
     if result.toolpath is not None:
         drawn = len(render_svg(result.toolpath)) + len(render_png(result.toolpath))
     errors = [(p.row, p.column, p.code, p.message) for p in result.errors]
-    print(json.dumps({{"errors": errors[:20], "count": len(errors), "drawn": drawn}}))
+    print(json.dumps({"errors": errors[:20], "count": len(errors), "drawn": drawn}))
     """
 )
 
@@ -49,16 +45,7 @@ def check_in_subprocess(tmp_path: Path, data: bytes | str) -> dict[str, object]:
     if isinstance(data, str):
         data = data.encode("ascii")
     path.write_bytes(data)
-    script = _CHECK.format(limit=MEMORY_LIMIT)
-    done = subprocess.run(
-        [sys.executable, "-c", script, str(path)],
-        capture_output=True,
-        text=True,
-        timeout=SECONDS,
-        check=False,
-    )
-    assert done.returncode == 0, done.stderr[-2000:]
-    summary: dict[str, object] = json.loads(done.stdout)
+    summary: dict[str, object] = json.loads(run_limited(_CHECK, str(path)))
     return summary
 
 
@@ -214,6 +201,7 @@ HOSTILE = {
 
 
 @pytest.mark.parametrize("name", list(HOSTILE))
+@pytest.mark.timeout(LIMITED_WALL_S + 20)
 def test_hostile_program_gets_an_answer(tmp_path: Path, name: str) -> None:
     data, code = HOSTILE[name]
     summary = check_in_subprocess(tmp_path, data)

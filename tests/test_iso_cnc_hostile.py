@@ -1,12 +1,10 @@
-"""Hostile G-code: the check, the time estimate and the preview answer in a memory-limited
-subprocess with a typed problem (or a drawing); the emulated control stops on garbage with
-an alarm instead of crashing."""
+"""Hostile G-code: the check, the time estimate and the preview answer in a subprocess limited
+in memory and CPU time (``tests.conftest.run_limited``), with a typed problem (or a drawing);
+the emulated control stops on garbage with an alarm instead of crashing."""
 
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import textwrap
 from pathlib import Path
 
@@ -17,21 +15,17 @@ from cellctl.kinds.iso_cnc.emulator import Activity, EmulatorOptions, IsoCncEmul
 from cellctl.kinds.iso_cnc.tape import DC1
 from cellctl.link import LineSettings, open_link
 
-from .conftest import until
-
-MEMORY_LIMIT = 1 << 30
-SECONDS = 120  # far above what any case takes: a hang fails instead of blocking the suite
+from .conftest import run_limited, until
 
 _CHECK = textwrap.dedent(
     """
-    import json, resource, sys
+    import json, sys
     from pathlib import Path
-    resource.setrlimit(resource.RLIMIT_AS, ({limit}, {limit}))
     from cellctl.errors import UsageError
     from cellctl.kinds import registry
     from cellctl.kinds.kind import ProgramRole
     kind = registry.kind("iso-cnc")
-    options = kind.checked_options({{}})
+    options = kind.checked_options({})
     path = Path(sys.argv[1])
     checked = kind.language.check(path, ProgramRole.MILLING, options)
     text = path.read_bytes().decode("latin-1")
@@ -39,8 +33,8 @@ _CHECK = textwrap.dedent(
         drawn = len(kind.language.preview(text, "hostile", options).svg)
     except UsageError as e:
         drawn = str(e)
-    print(json.dumps({{"problems": list(checked.problems[:5]), "count": len(checked.problems),
-                      "seconds": checked.machining_s, "drawn": drawn}}))
+    print(json.dumps({"problems": list(checked.problems[:5]), "count": len(checked.problems),
+                      "seconds": checked.machining_s, "drawn": drawn}))
     """
 )
 
@@ -48,15 +42,7 @@ _CHECK = textwrap.dedent(
 def check_in_subprocess(tmp_path: Path, data: bytes) -> dict[str, object]:
     path = tmp_path / "hostile.nc"
     path.write_bytes(data)
-    done = subprocess.run(
-        [sys.executable, "-c", _CHECK.format(limit=MEMORY_LIMIT), str(path)],
-        capture_output=True,
-        text=True,
-        timeout=SECONDS,
-        check=False,
-    )
-    assert done.returncode == 0, done.stderr[-2000:]
-    result: dict[str, object] = json.loads(done.stdout)
+    result: dict[str, object] = json.loads(run_limited(_CHECK, str(path)))
     return result
 
 

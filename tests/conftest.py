@@ -36,7 +36,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import pytest_asyncio
 from hypothesis import settings
+from playwright.async_api import Browser, async_playwright
+from playwright.async_api import Error as PlaywrightError
 
 from cellctl.clock import VirtualLoop
 from cellctl.emulators.serve import Server, serve
@@ -132,6 +135,43 @@ def pytest_asyncio_loop_factories(
         raise pytest.UsageError(f"{item.nodeid}: mark.virtual takes keywords only")
     options = dict(marker.kwargs)
     return {"virtual": lambda: VirtualLoop(**options)}
+
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-dev-shm-usage",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+
+
+# One Chromium per test process: starting one (and Playwright's driver) costs more CPU than
+# most page tests, and every test opens its own context (cookies, storage and page of its
+# own). Its tests run on the session's event loop, where the browser lives.
+IN_BROWSER = pytest.mark.asyncio(loop_scope="session")
+
+
+@pytest_asyncio.fixture(scope="session", loop_scope="session")
+async def browser() -> AsyncIterator[Browser]:
+    if shutil.which(CHROMIUM) is None:
+        pytest.fail(
+            f"Chromium is not installed at {CHROMIUM}: `make test` installs Debian's chromium "
+            "(as root), or run `apt-get install chromium`"
+        )
+    async with async_playwright() as p:
+        try:
+            found = await p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        except PlaywrightError as e:
+            pytest.fail(f"Chromium ({CHROMIUM}) did not start: {e}")
+        try:
+            yield found
+        finally:
+            await found.close()
 
 
 #: How long a page in Chromium is given to show a change (ms): a deadline for a loaded box,

@@ -24,12 +24,11 @@ from cellctl.service.token import read_token
 from cellctl.testing.rig import write_cell_options
 from cellctl.ui.cell_cli import run_controller
 from cellctl.ui.console.app import ConsoleApp
-from tests.conftest import SEEN_MS, free_port, until
+from tests.conftest import IN_BROWSER, SEEN_MS, free_port, until
 from tests.test_console import wait_text
-from tests.test_dashboard import IN_BROWSER, browser  # noqa: F401  (the fixture)
 from tests.test_opcua import client_cert, session  # noqa: F401  (client_cert: the fixture)
 
-# On the session's event loop, where the browser lives (tests/test_dashboard.py).
+# On the session's event loop, where the browser lives (tests/conftest.py).
 pytestmark = IN_BROWSER
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "cell-tending"
@@ -52,7 +51,7 @@ async def running(tmp_path: Path) -> AsyncIterator[Running]:
     opcua = f"opc.tcp://127.0.0.1:{free_port()}"
     # OPC UA, the API and the emulated machines share this process with the controller: on a
     # loaded box the PLC's answer, or a look at an idle machine, can take over its deadline
-    # (tests/test_dashboard.py).
+    # (tests/conftest.py).
     write_cell_options(directory / "cell.toml", {"read_limit": 5.0}, {}, {"timeout": 5.0})
     with (directory / "cell.toml").open("a", encoding="utf-8") as toml:
         toml.write(
@@ -74,7 +73,7 @@ async def running(tmp_path: Path) -> AsyncIterator[Running]:
 
 async def test_the_dashboard_draws_the_cobot_cell(
     running: Running,
-    browser: Browser,  # noqa: F811
+    browser: Browser,
 ) -> None:
     config = load_cell(running.directory)
     context = await browser.new_context(viewport={"width": 1400, "height": 1000})

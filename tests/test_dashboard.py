@@ -10,7 +10,6 @@ import contextlib
 import json
 import os
 import re
-import shutil
 import time
 import urllib.error
 import urllib.request
@@ -21,7 +20,7 @@ from typing import Any
 
 import pytest
 import pytest_asyncio
-from playwright.async_api import Browser, Page, async_playwright
+from playwright.async_api import Browser, Page
 from playwright.async_api import Error as PlaywrightError
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
@@ -30,19 +29,7 @@ from cellctl.service.access import AttachedCell
 from cellctl.service.server import ApiServer
 from cellctl.testing.rig import CellRig, cli
 from cellctl.ui.dashboard import dashboard_routes
-from tests.conftest import SEEN_MS, free_port
-
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-dev-shm-usage",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
+from tests.conftest import IN_BROWSER, SEEN_MS, free_port
 
 
 @dataclass
@@ -104,29 +91,7 @@ def _http(
         return e.code, json.loads(e.read() or b"null")
 
 
-# One Chromium per test process: starting one (and Playwright's driver) costs more CPU than
-# most page tests, and every test opens its own context (cookies, storage and page of its
-# own). Its tests run on the session's event loop, where the browser lives.
-IN_BROWSER = pytest.mark.asyncio(loop_scope="session")
 pytestmark = IN_BROWSER
-
-
-@pytest_asyncio.fixture(scope="session", loop_scope="session")
-async def browser() -> AsyncIterator[Browser]:
-    if shutil.which(CHROMIUM) is None:
-        pytest.fail(
-            f"Chromium is not installed at {CHROMIUM}: `make test` installs Debian's chromium "
-            "(as root), or run `apt-get install chromium`"
-        )
-    async with async_playwright() as p:
-        try:
-            found = await p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        except PlaywrightError as e:
-            pytest.fail(f"Chromium ({CHROMIUM}) did not start: {e}")
-        try:
-            yield found
-        finally:
-            await found.close()
 
 
 @pytest_asyncio.fixture(loop_scope="session")

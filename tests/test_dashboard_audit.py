@@ -4,9 +4,10 @@ is refused with the role it lacks, shown on the page and recorded in the Audit p
 from __future__ import annotations
 
 from cellctl.service.token import add_token
-from tests.test_dashboard import IN_BROWSER, Dash, browser, dash, live  # noqa: F401  (fixtures)
+from tests.conftest import IN_BROWSER
+from tests.test_dashboard import Dash, dash, live  # noqa: F401  (the fixture)
 
-# On the session's event loop, where the browser lives (tests/test_dashboard.py).
+# On the session's event loop, where the browser lives (tests/conftest.py).
 pytestmark = IN_BROWSER
 
 

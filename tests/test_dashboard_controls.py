@@ -16,14 +16,13 @@ from playwright.async_api import Page, Request, Response, Route
 
 from cellctl.service.token import add_token
 from tests import test_dashboard
-from tests.conftest import SEEN_MS
-from tests.test_dashboard import IN_BROWSER, Dash, http, live
+from tests.conftest import IN_BROWSER, SEEN_MS
+from tests.test_dashboard import Dash, http, live
 
-# On the session's event loop, where the browser lives (tests/test_dashboard.py).
+# On the session's event loop, where the browser lives (tests/conftest.py).
 pytestmark = IN_BROWSER
 
-# The browser and the cell with its dashboard, as tests/test_dashboard.py starts them.
-browser = test_dashboard.browser
+# The cell with its dashboard, as tests/test_dashboard.py starts it.
 dash = test_dashboard.dash
 
 CONTROLS = "#cell-controls"

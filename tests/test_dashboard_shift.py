@@ -3,9 +3,10 @@ API's report.shift) after a real batch."""
 
 from __future__ import annotations
 
-from tests.test_dashboard import IN_BROWSER, Dash, browser, dash, live  # noqa: F401 (fixtures)
+from tests.conftest import IN_BROWSER
+from tests.test_dashboard import Dash, dash, live  # noqa: F401 (the fixture)
 
-# On the session's event loop, where the browser lives (tests/test_dashboard.py).
+# On the session's event loop, where the browser lives (tests/conftest.py).
 pytestmark = IN_BROWSER
 
 

@@ -27,8 +27,7 @@ from cellctl.kinds.iso_cnc.emulator import EmulatorOptions, IsoCncEmulator, Mode
 from cellctl.link import LineSettings
 from cellctl.service.client import attach
 from cellctl.service.token import read_token
-from tests.conftest import SEEN_MS, free_port, until
-from tests.test_dashboard import IN_BROWSER, browser  # noqa: F401  (the fixture)
+from tests.conftest import IN_BROWSER, SEEN_MS, free_port, until
 
 LINE = LineSettings.parse("9600,7E2")
 BRACKET = "O1234 (BRACKET)\nG21 G90 G17\nG00 X0 Y0 Z5.\nG01 Z-1. F300\nG01 X10. Y5.\nM30\n"
@@ -278,7 +277,7 @@ def surfacing(moves: int) -> str:
 @IN_BROWSER
 async def test_the_dashboard_shows_a_drip_feeds_stall_in_its_own_field(
     tmp_path: Path,
-    browser: Browser,  # noqa: F811
+    browser: Browser,
 ) -> None:
     """A drip-feed that outruns the line, in Chromium: the machine's card shows its stall
     (the status' progress.stall_s) in a field of its own, growing above 0 while it runs,

@@ -66,6 +66,7 @@ from cellctl.errors import CellctlError
 from cellctl.kinds.families import CallbackOutput, Mill, Robot
 from cellctl.link import TrafficLog
 from cellctl.protocol.plc import PlcMap
+from cellctl.tasks import cancel_and_wait
 
 #: Why the steps in flight were cancelled when nothing said otherwise: the controller itself
 #: was ended (a second Ctrl-C, the service stopped hard), not an emergency stop.
@@ -336,7 +337,9 @@ class CellController(OperatorCommands):
         self.recovery.resume_halted()
 
     async def close(self) -> None:
-        """Close every link (running steps must have ended)."""
+        """Close every link. Steps still in flight (a run cancelled, not stopped) end first,
+        cut short as a crash would leave them: their parts are held at the next start."""
+        await cancel_and_wait(self.steps_in_flight())
         if self._pallet_pulse is not None:
             with contextlib.suppress(Exception):
                 await self._pallet_pulse  # 50 ms at most: the coil goes low before the link

@@ -43,7 +43,6 @@ against, independent of the controller's journal.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import re
 import shutil
 import tomllib
@@ -74,6 +73,7 @@ from cellctl.kinds.kind import EmulatorSpec
 from cellctl.link import LineSettings
 from cellctl.link.lock import OwnerLock
 from cellctl.protocol.plc import EXAMPLE_WIRING
+from cellctl.tasks import cancel_and_wait
 
 #: The example cell (cell.toml, robot/, programs/): package data, so an installed cellctl has
 #: it wherever it runs; examples/cell in the repository links to it. Copied by
@@ -385,13 +385,11 @@ class EmulatedCell:
 
     async def close(self) -> None:
         """Stop every server and the PLC."""
-        for task in list(self._tasks):
-            task.cancel()
-        for task in list(self._tasks):
-            with contextlib.suppress(BaseException):
-                await task
+        await cancel_and_wait(self._tasks)
         for server in self.servers.values():
             await server.close()
+        for device in (self.robot, *self.mills.values()):
+            await device.stop()
         await self.plc.close()
 
 

@@ -63,6 +63,7 @@ from cellctl.protocol.plc import (
     parse_modbus_url,
     plc_mem_name,
 )
+from cellctl.tasks import cancel_and_wait
 
 __all__ = ["FAULTS", "PlcEmulator", "PlcHooks", "PlcTiming"]
 
@@ -447,11 +448,7 @@ class PlcEmulator:
             self._front.close()
         for writer in list(self._clients):
             writer.transport.abort()
-        for task in list(self._client_tasks):
-            task.cancel()
-        for task in list(self._client_tasks):
-            with contextlib.suppress(BaseException):
-                await task
+        await cancel_and_wait(self._client_tasks)
         if self._front is not None:
             with contextlib.suppress(Exception):
                 await self._front.wait_closed()

@@ -53,6 +53,7 @@ from cellctl.emulators.line import LineNoise as LineNoise
 from cellctl.errors import LinkClosed, UsageError
 from cellctl.link import LineSettings, parse_host_port
 from cellctl.link.lock import OwnerLock, runtime_dir
+from cellctl.tasks import cancel_and_wait
 
 #: Default time scales, one per use (each command's --help says its own and why):
 #: a single machine's emulator runs in the machine's own time, so a driver, the console or
@@ -121,6 +122,12 @@ class EmulatedDevice(ABC):
         can use the machine again (a panel's key, a pendant's unlock); the default: nothing.
         A plan's operator and the test rig call it after ``clear_fault``."""
 
+    async def stop(self) -> None:  # noqa: B027 - optional hook
+        """The emulator is shut down: end what the machine runs on its own (a program
+        executing, its automatic operator). Serving ends with each server's ``close``; a
+        machine goes on without its host, as a real one does, until this. The default:
+        nothing runs on its own."""
+
     @property
     def moving(self) -> bool:
         """True while the machine's own program moves it (an operator waits for rest before
@@ -178,11 +185,7 @@ class Server:
         for closer in reversed(self._closers):
             with contextlib.suppress(Exception):
                 closer()
-        for task in list(self._tasks):
-            task.cancel()
-        for task in list(self._tasks):
-            with contextlib.suppress(BaseException):
-                await task
+        await cancel_and_wait(self._tasks)
         self._stopped.set()
 
     async def serve_forever(self) -> None:

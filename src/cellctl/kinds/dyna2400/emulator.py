@@ -78,6 +78,7 @@ from cellctl.kinds.dyna2400.dynalan.table import (
     Kind,
     Units,
 )
+from cellctl.tasks import cancel_and_wait
 
 #: Lines run without motion between two yields to the event loop.
 _YIELD_EVERY = 1000
@@ -275,6 +276,11 @@ class Dyna2400Emulator(EmulatedDevice):
         """Start the automatic operator (done by the first connection if not called)."""
         if self.automatic and self._operator is None:
             self._operator = self._spawn(self._operate())
+
+    async def stop(self) -> None:
+        """Shut down: the program executing and the automatic operator end."""
+        await cancel_and_wait(self._tasks)
+        self.executing = False
 
     async def _operate(self) -> None:
         await self._machine_sleep(self.delays.power_on)

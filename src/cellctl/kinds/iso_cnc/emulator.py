@@ -48,6 +48,7 @@ from cellctl.kinds.iso_cnc.panel import (
     Stall,
 )
 from cellctl.kinds.iso_cnc.tape import ALARMS, DC1, DC2, DC3, DC4, alarm_report
+from cellctl.tasks import cancel_and_wait
 
 #: Its panel and records (:mod:`cellctl.kinds.iso_cnc.panel`) are imported from here too.
 __all__ = [
@@ -189,6 +190,10 @@ class IsoCncEmulator(EmulatedDevice):
         """Power on: the automatic operator (``auto_operator``) presses READ (EDIT) or CYCLE
         START (RMT) now if a host is connected, else as one connects; without, it waits."""
         self._auto()
+
+    async def stop(self) -> None:
+        """Shut down: a read, punch or cycle under way and the automatic operator end."""
+        await cancel_and_wait(self._tasks)
 
     def set_mode(self, mode: Mode | str) -> None:
         """The mode switch: it ends a read or punch under way (an alarm stays)."""

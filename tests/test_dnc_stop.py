@@ -27,6 +27,11 @@ from tests.test_dnc_cli import (  # noqa: F401  (shop and served are fixtures)
 )
 from tests.test_dnc_server import surfacing
 
+#: Moves of the drip-feeds stopped mid-way: about 45 s of line time at 9600 baud, so a feed
+#: is still running when the test, on a loaded box, looks at it or stops it (400 moves took
+#: 5 s, and a `cellctl dnc status` started on a busy box once came after its end).
+MOVES = 4000
+
 
 async def progress_under_way(where: Shop, name: str) -> None:
     async def going() -> bool:
@@ -83,7 +88,7 @@ async def test_ctrl_c_ends_a_running_drip_feed_cleanly_and_status_shows_progress
     tmp_path: Path,
 ) -> None:
     program = tmp_path / "surface.nc"
-    program.write_text(surfacing(400))
+    program.write_text(surfacing(MOVES))
     control = served.controls["mill2"]
     control.set_mode(Mode.RMT)
     drip = await cellctl("dnc", "drip", "mill2", str(program), "--dir", str(served.root))
@@ -104,7 +109,7 @@ async def test_ctrl_c_ends_a_running_drip_feed_cleanly_and_status_shows_progress
     # held and left the read, no alarm; the program was not run to its end.
     await until(lambda: control.activity == "idle", "the control out of its read")
     assert control.runs[-1].done and not control.alarms
-    assert control.runs[-1].blocks < 400
+    assert control.runs[-1].blocks < MOVES
     await wait_state(served, "mill2", "idle")
     log = "\n".join(ShopStore(served.root).log_lines("mill2"))
     assert "stopped by its sender: the drip-feed of surface.nc ended at" in log
@@ -132,7 +137,7 @@ async def test_serve_stopped_during_a_drip_feed_ends_it_and_tells_its_client(
     tmp_path: Path,
 ) -> None:
     program = tmp_path / "surface.nc"
-    program.write_text(surfacing(400))
+    program.write_text(surfacing(MOVES))
     server = await cellctl("dnc", "serve", "--dir", str(shop.root))
     try:
         await until(lambda: (shop.root / "api.sock").exists(), "dnc serve's API", 30)

@@ -312,6 +312,28 @@ async def test_a_batch_reads_well(dash: Dash) -> None:
     assert not missing, f"the page asked for what is not there: {missing}"
 
 
+async def test_a_tall_machine_column_stretches_no_panel_beside_it(dash: Dash) -> None:
+    """More machines than the lab's two mills (their cards taller than the floor, the orders
+    and the alarms together): the floor's and the orders' panels keep their own height, and
+    the floor's ends near its legend."""
+    page = dash.page
+    await live(dash)
+    heights = """() => ['#floor', '#orders'].map(
+      (id) => Math.round(document.querySelector(id).getBoundingClientRect().height))"""
+    before = await page.evaluate(heights)
+    await page.evaluate(
+        """() => {
+          const filler = document.createElement('div');
+          filler.style.height = '700px';
+          document.querySelector('#machines').appendChild(filler);
+        }"""
+    )
+    assert await page.evaluate(heights) == before
+    blank = await page.evaluate(FLOOR_BLANK)
+    assert blank < 0.1, f"{blank:.0%} of the floor's panel is blank"
+    await dash.shot("tall-column")
+
+
 def _get(url: str) -> tuple[int, str]:
     import urllib.request
 

@@ -44,7 +44,6 @@ class Recovery:
         self.robot_ok = True
         """False from a robot fault (its status, its link) until the monitor's next good look."""
         self._tasks: dict[str, asyncio.Task[None]] = {}
-        self._closed = False  # closed: no recovery starts (a link closing as the cell stops)
         self._halted: set[str] = set()  # mills an emergency stop sent END, until resume
         self._resumed: set[str] = set()  # halted mills the resume sets up, part or no part
 
@@ -117,8 +116,6 @@ class Recovery:
         self._halted.clear()
 
     def _start(self, name: str) -> None:
-        if self._closed:
-            return
         task = self._tasks.get(name)
         if task is None or task.done():
             self._tasks[name] = asyncio.create_task(self._recover(name))
@@ -163,8 +160,7 @@ class Recovery:
         await self.world.clock.sleep(mill.ready_wait)
 
     async def close(self) -> None:
-        """End every recovery, and start none from now on."""
-        self._closed = True
+        """End every recovery."""
         await cancel_and_wait(self._tasks.values())
 
     # -- links --------------------------------------------------------------------------------

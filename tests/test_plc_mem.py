@@ -16,9 +16,16 @@ from hypothesis import strategies as st
 from cellctl.clock import current_clock, run_virtual
 from cellctl.drivers.plc import MemModbusClient, ModbusPlc
 from cellctl.emulators.plc import PlcEmulator
-from cellctl.errors import CellctlError, DeviceError, FramingError, ProtocolError, UsageError
+from cellctl.errors import (
+    CellctlError,
+    DeviceError,
+    FramingError,
+    ProtocolError,
+    SignalTimeout,
+    UsageError,
+)
 from cellctl.protocol import modbus
-from cellctl.protocol.plc import DEFAULT_COILS, DEFAULT_INPUTS, PlcMap, check_plc_url
+from cellctl.protocol.plc import DEFAULT_COILS, DEFAULT_INPUTS, PlcMap, PlcTiming, check_plc_url
 
 WAIT = 30.0  # machine seconds: generous, for events that do happen
 
@@ -221,3 +228,63 @@ def test_exceptions_and_refusals() -> None:
     assert framing.value.raw == bytes([0, 1, 0, 1, 0, 6, 1])
     with pytest.raises(ProtocolError, match="transaction 2, expected 9"):
         modbus.decode_response(modbus.Adu(2, 1, bytes([2, 1, 0])), request)
+
+
+def test_a_wait_told_the_least_travel_time_reads_once_the_door_can_be_there() -> None:
+    """A door takes its ``door_s`` to close: read every 5 ms all the way, that is hundreds of
+    requests; told how long it cannot take less, the wait reads only near its end. Either
+    wait finds the door closed; the expected time never outlasts the wait's deadline."""
+
+    async def close_door(expected: float) -> tuple[int, bool]:
+        emulator = PlcEmulator()
+        url = await emulator.start("mem://plc-door")
+        try:
+            async with await ModbusPlc.connect(url, emulator.map, timeout=3.0) as plc:
+                await plc.write("door_1", True)
+                await plc.wait_for("door_open_1", True, timeout=WAIT, poll=0.005)
+                await plc.write("door_1", False)
+                await plc.wait_for("door_open_1", False, timeout=WAIT, poll=0.005)
+                before = emulator.requests_served
+                inputs = await plc.wait_for(
+                    "door_closed_1", True, timeout=WAIT, poll=0.005, expected=expected
+                )
+                return emulator.requests_served - before, inputs["door_closed_1"]
+        finally:
+            await emulator.close()
+
+    door_s = PlcTiming().door_s
+    polled, closed = run_virtual(close_door(0.0))
+    told, closed_too = run_virtual(close_door(0.9 * door_s))
+    assert closed and closed_too
+    assert polled > 100  # every 5 ms for most of door_s
+    assert told * 5 < polled  # only the last tenth of the travel is read
+
+    async def stuck() -> float:
+        emulator = PlcEmulator()
+        url = await emulator.start("mem://plc-stuck")
+        emulator.set_fault("stuck-door", "1")
+        clock = current_clock()
+        try:
+            async with await ModbusPlc.connect(url, emulator.map, timeout=3.0) as plc:
+                await plc.write("door_1", True)
+                started = clock.monotonic()
+                with pytest.raises(SignalTimeout, match="within 1 s"):
+                    await plc.wait_for("door_open_1", True, timeout=1.0, expected=60.0)
+                return clock.monotonic() - started
+        finally:
+            await emulator.close()
+
+    # The deadline stands: a door that never comes is told at the wait's timeout.
+    assert run_virtual(stuck()) < 2.0
+
+    async def refused() -> None:
+        emulator = PlcEmulator()
+        url = await emulator.start("mem://plc-refused")
+        try:
+            async with await ModbusPlc.connect(url, emulator.map, timeout=3.0) as plc:
+                with pytest.raises(UsageError, match="expected >= 0"):
+                    await plc.wait_for("door_open_1", True, timeout=1.0, expected=-1.0)
+        finally:
+            await emulator.close()
+
+    run_virtual(refused())

@@ -134,3 +134,37 @@ async def test_a_servo_error_mid_transfer_is_alarmed_within_a_poll_period(tmp_pa
         assert "transfer conveyor_to_cnc1" in (held.note or "")
         assert [r.outcome for r in rig.cell.robot.runs][-1] != "completed"
         await rig.stop_controller()
+
+
+@pytest.mark.virtual
+async def test_a_mill_s_door_is_read_only_near_the_end_of_its_close(tmp_path: Path) -> None:
+    """A machining step waits for its mill's door to close (2 s on the PLC's model, 1 s at a
+    time scale of 2): the first close is read every 5 ms all the way, later ones only once
+    most of the shortest close seen (from its command) has passed. Counted in the PLC's
+    requests while door 1 travels shut; the parts are made all the same."""
+    slow = {"ready_wait": 30.0, "setup_timeout": 60.0, "block_extra": 30.0}
+    async with CellRig(
+        tmp_path / "cell", time_scale=2.0, deadlines="emulated", mill_options=slow
+    ) as rig:
+        plc = rig.cell.plc
+        windows: list[int] = []  # requests served while door 1 closed, one per close
+        commanded: list[int] = []
+
+        def door_commanded(name: str, on: bool) -> None:
+            if name == "door_1" and not on:
+                commanded.append(plc.requests_served)
+
+        def door_arrived(name: str, on: bool) -> None:
+            if name == "door_closed_1" and on and commanded:
+                windows.append(plc.requests_served - commanded.pop())
+
+        plc.hooks.coil.append(door_commanded)
+        plc.hooks.input.append(door_arrived)
+        rig.post("wax-robot-base", 2, "A")
+        await rig.start_controller()
+        await rig.wait_for(lambda: rig.order_state("A") == "done", "order A done", timeout=3600)
+        await rig.stop_controller()
+        assert not rig.alarms() and not rig.held_parts()
+        assert len(windows) >= 3  # each part's transfer in, and out
+        assert windows[0] > 100  # polled from the close's start
+        assert max(windows[1:]) * 3 < windows[0]

@@ -100,12 +100,9 @@ class MillSteps:
             with blame("plc", "PLC"):
                 # Close the door (a transfer cut short by a restart may have left it open).
                 await self.robotsteps.doors([mill_name], False)
-                await plc.wait_for(
-                    f"door_closed_{index}",
-                    True,
-                    timeout=self.world.options.interlock_timeout,
-                    poll=INTERLOCK_POLL_S,
-                )
+                await self.robotsteps.door_closed(mill_name)
+                # The vise was commanded by the robot's program (when, the host cannot
+                # know): read at the poll's rate, mostly closed already.
                 await plc.wait_for(
                     f"clamp_closed_{index}",
                     True,

@@ -65,6 +65,8 @@ class RobotSteps:
         self.recovery = recovery
         self._modelled: dict[str, float] | None = None  # each program's cycle, its model's
         self._least: dict[str, float] = {}  # each program's shortest cycle seen, s
+        self._close_commanded: dict[int, float] = {}  # when each door closing was told to
+        self._least_close: dict[int, float] = {}  # each door's shortest close seen, s
 
     def expected(self, program: str) -> float:
         """Seconds from its doors' command that a cycle of robot program ``program`` cannot
@@ -116,6 +118,10 @@ class RobotSteps:
         assert plc is not None
         doors = [self.world.mill_index(p) for p in places if p != CONVEYOR]
         for n in doors:
+            if open_:
+                self._close_commanded.pop(n, None)
+            else:  # the first command counts: a door already closing does not start again
+                self._close_commanded.setdefault(n, self.world.clock.monotonic())
             await plc.write(f"door_{n}", open_)
         for n in doors:
             away_from = f"door_closed_{n}" if open_ else f"door_open_{n}"
@@ -125,6 +131,32 @@ class RobotSteps:
                 timeout=self.world.options.door_start_timeout,
                 poll=INTERLOCK_POLL_S,
             )
+
+    async def door_closed(self, mill: str) -> None:
+        """Wait up to ``interlock_timeout`` for the door of mill ``mill`` (commanded closed by
+        :meth:`doors`) to be closed (SignalTimeout in the PLC's words after).
+
+        Its input is read every :data:`INTERLOCK_POLL_S` once :data:`EXPECTED_SHARE` of the
+        shortest close seen has passed, counted from the close's command as a cycle's least
+        time is (a true lower bound whatever the host's latency): a door takes seconds, and
+        reading it all the way at the poll's rate would be hundreds of requests a step.
+        """
+        plc = self.world.plc
+        assert plc is not None
+        clock = self.world.clock
+        index = self.world.mill_index(mill)
+        commanded = self._close_commanded.get(index, clock.monotonic())
+        least = self._least_close.get(index)
+        elapsed = clock.monotonic() - commanded
+        await plc.wait_for(
+            f"door_closed_{index}",
+            True,
+            timeout=self.world.options.interlock_timeout,
+            poll=INTERLOCK_POLL_S,
+            expected=0.0 if least is None else max(0.0, EXPECTED_SHARE * least - elapsed),
+        )
+        took = clock.monotonic() - commanded
+        self._least_close[index] = took if least is None else min(took, least)
 
     async def _wait_cycle(self, program: str, commanded: float, timeout: float) -> None:
         """Wait up to ``timeout`` s for the end of the cycle of ``program`` (its doors

@@ -346,9 +346,19 @@ class ModbusPlc:
             await asyncio.shield(self.write(name, False))
 
     async def wait_for(
-        self, name: str, value: bool, *, timeout: float, poll: float | None = None
+        self,
+        name: str,
+        value: bool,
+        *,
+        timeout: float,
+        poll: float | None = None,
+        expected: float = 0.0,
     ) -> dict[str, bool]:
         """Read the inputs every ``poll`` s until input ``name`` is ``value``; return them.
+
+        ``expected``: seconds the input cannot get there sooner (a door's least travel time
+        seen, say): the first read waits that long (at most ``timeout``), and no read is spent
+        on a door still on its way.
 
         Raises :class:`SignalTimeout` in words once ``timeout`` passes ("door of CNC 1 did not
         close within 5 s"); a read under way at the deadline is finished first, so the wait
@@ -356,11 +366,13 @@ class ModbusPlc:
         """
         name = self._signal(name, INPUT)
         poll = self.map.poll if poll is None else poll
-        if timeout < 0 or poll <= 0:
-            raise UsageError("wait_for needs timeout >= 0 and poll > 0")
+        if timeout < 0 or poll <= 0 or expected < 0:
+            raise UsageError("wait_for needs timeout >= 0, poll > 0 and expected >= 0")
         clock = self.clock
         deadline = clock.monotonic() + timeout
         want = bool(value)
+        if expected > 0:
+            await clock.sleep(min(expected, timeout))
         while True:
             inputs = await self.read_inputs()
             if inputs[name] == want:

@@ -144,7 +144,11 @@ async def test_a_mill_s_door_is_read_only_near_the_end_of_its_close(tmp_path: Pa
     requests while door 1 travels shut; the parts are made all the same."""
     slow = {"ready_wait": 30.0, "setup_timeout": 60.0, "block_extra": 30.0}
     async with CellRig(
-        tmp_path / "cell", time_scale=2.0, deadlines="emulated", mill_options=slow
+        tmp_path / "cell",
+        time_scale=2.0,
+        deadlines="emulated",
+        mill_options=slow,
+        cell_options={"poll_period": 5.0},  # few looks: the door's own reads are counted
     ) as rig:
         plc = rig.cell.plc
         windows: list[int] = []  # requests served while door 1 closed, one per close

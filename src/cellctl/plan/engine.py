@@ -62,8 +62,9 @@ POWER_ON_S = 10.0
 RESOLVE_LOOKS = 4
 RESOLVE_ROUNDS = 5
 
-#: Seconds of plan time between two looks of the plan's own watcher (all orders done?).
-WATCH_S = 2.0
+#: Seconds of plan time between two looks of the plan's own watcher (all orders done?): a
+#: plan ends at most this much after its last order, its finish time the order's own.
+WATCH_S = 30.0
 
 #: Seconds of plan time the steps in flight have to finish when an error ends a play early,
 #: before they are cancelled (a cut's rest, a transfer's; virtual time: it costs little).
@@ -361,6 +362,7 @@ async def _watch(
     the controller or a fault window early."""
     clock = current_clock()
     ids = [o.order_id for o in inputs.orders]
+    left = list(reversed(ids))  # the orders not seen done yet, the first to look at last
     while True:
         if run.done():
             run.result()  # the controller died: say why
@@ -369,10 +371,17 @@ async def _watch(
         now = clock.now()
         if now >= inputs.until:
             return inputs.until
-        states = {o.id: o for o in mailbox.orders()}
-        if ids and all(states[i].state == DONE for i in ids):
-            return max(states[i].updated for i in ids)
-        await clock.sleep(min(WATCH_S, inputs.until - now))
+        # A done order stays done: each look asks only about those not seen done (one
+        # order, mostly), not for every order of a week's plan every look.
+        while left and mailbox.get_order(left[-1]).state == DONE:
+            left.pop()
+        if ids and not left:
+            return max(mailbox.get_order(i).updated for i in ids)
+        # Woken at once by the controller's or a fault window's end, else a look later.
+        running = [run, *(f for f in faults if not f.done())]
+        with contextlib.suppress(TimeoutError):
+            async with clock.timeout(min(WATCH_S, inputs.until - now)):
+                await asyncio.wait(running, return_when=asyncio.FIRST_COMPLETED)
 
 
 def _finished(inputs: PlanInputs, mailbox: Mailbox, until: float) -> dict[str, float | None]:

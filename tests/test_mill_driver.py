@@ -312,3 +312,24 @@ async def test_connect_refuses_a_link_without_modem_lines_unless_inband(
             await Dyna2400Mill.connect(server.url, settings=FAST_LINE)
     finally:
         await server.close()
+
+
+async def test_a_program_edited_between_two_downloads_is_checked_again(
+    cell: Cell, tmp_path: Path
+) -> None:
+    """What a file validated to is kept for the next run of the same text, never for an edited
+    one: the edit is refused (code 5) before a byte goes out."""
+    program = tmp_path / "part.dyn"
+    program.write_text(ROUGH.read_text())
+    mill = await cell.ready_mill()
+    async with mill:
+        first = mill.check(program)
+        assert first.ok and mill.check(program) is first  # the same text: kept
+        await mill.download(program)
+        program.write_text((PROGRAMS / "broken" / "arc_over_180.dyn").read_text())
+        sent = mill.link.bytes_sent
+        with pytest.raises(MillInputError) as info:
+            await mill.download(program)
+        assert info.value.code == 5 and "arc" in str(info.value)
+        assert mill.link.bytes_sent == sent
+        assert not mill.check(program).ok

@@ -87,6 +87,8 @@ from cellctl.link import MILL_LINE, LineSettings, Link, TrafficLog
 # before.
 
 END_PROGRAM = "000 END"
+#: How many validated programs a driver keeps (see :meth:`Dyna2400Mill.check`).
+CHECKS_KEPT = 8
 
 #: How far ahead of the wire the driver lets its writes run (seconds of line time).
 _WRITE_AHEAD_S = 0.25
@@ -137,6 +139,7 @@ class Dyna2400Mill(LinkDriver):
         self.tool_diameter: float | None = saved.get("tool_diameter")
         self.loaded: str | None = saved.get("loaded")
         self.last_download: list[BlockTiming] = []
+        self._checked: dict[tuple[str, str, str], Validation] = {}  # see check()
         # The block on its way to the controller and not yet seen taken (None: none).
         self._untaken: _Untaken | None = None
 
@@ -220,9 +223,24 @@ class Dyna2400Mill(LinkDriver):
     def check(
         self, program: str | Path | Program, role: ProgramRole = ProgramRole.MILLING
     ) -> Validation:
-        """Validate ``program`` (a path or a parsed program) for this mill; nothing is sent."""
-        parsed = program if isinstance(program, Program) else _read(program)
-        return validate(parsed, self.context(role))
+        """Validate ``program`` (a path or a parsed program) for this mill; nothing is sent.
+
+        A file is read every time; what the same text validated to for the same setup is
+        kept (the last :data:`CHECKS_KEPT`): a cell runs its few programs again and again.
+        """
+        context = self.context(role)
+        if isinstance(program, Program):
+            return validate(program, context)
+        path = Path(program)
+        text = _read_text(path)
+        key = (path.name, text, repr(context))
+        kept = self._checked.pop(key, None)
+        if kept is None:
+            kept = validate(parse_program(text, name=path.name), context)
+        self._checked[key] = kept  # the most recent last
+        while len(self._checked) > CHECKS_KEPT:
+            del self._checked[next(iter(self._checked))]
+        return kept
 
     def _valid(
         self,
@@ -587,10 +605,9 @@ class Dyna2400Mill(LinkDriver):
         return Result(0, "Go was correct")
 
 
-def _read(path: str | Path) -> Program:
-    p = Path(path)
+def _read_text(path: Path) -> str:
     try:
-        text = read_text(p, "ascii", "replace")
+        return read_text(path, "ascii", "replace")
     except OSError as e:
-        raise MillInputError(4, DOWNLOAD_RESULTS[4], f"{p}: {e.strerror}") from None
-    return parse_program(text, name=p.name)
+        raise MillInputError(4, DOWNLOAD_RESULTS[4], f"{path}: {e.strerror}") from None
+

@@ -99,6 +99,8 @@ class CellController(OperatorCommands):
         self.mailbox: OrderBox = NotifyingMailbox(mailbox, self.touch)
         self.traffic = TrafficLog(None, keep=TRAFFIC_KEPT)
         self.options = options or ControllerOptions.from_config(config)
+        #: The machines' state files (partitions, a mill's setup, coils left high).
+        self.store = StateStore(config.directory, durable=self.options.durable)
         self.on_event = on_event
         self.robot: Robot | None = None
         self.mills: dict[str, Mill] = {}
@@ -267,7 +269,7 @@ class CellController(OperatorCommands):
             self.plc_map.url,
             self.plc_map,
             clock=self._clock,
-            store=StateStore(self.config.directory),
+            store=self.store,
         )
         # A controller killed mid-pulse leaves that coil high: this one's first pulse would
         # make no rising edge, and the conveyor or the mill would never hear it.
@@ -290,7 +292,7 @@ class CellController(OperatorCommands):
             r.link,
             r.line,
             r.options,
-            store=StateStore(self.config.directory),
+            store=self.store,
             trace=self.traffic,
             clock=self._clock,
         )
@@ -304,7 +306,7 @@ class CellController(OperatorCommands):
             m.link,
             m.line,
             m.options,
-            store=StateStore(self.config.directory),
+            store=self.store,
             trace=self.traffic,
             start_output=CallbackOutput(self.millsteps.go_pulser(m)),
             clock=self._clock,

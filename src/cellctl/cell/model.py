@@ -96,6 +96,9 @@ class ControllerOptions:
     policy: str = DOWNSTREAM_FIRST
     """Which waiting part the robot loads next (:data:`cellctl.cell.scheduler.POLICIES`);
     ``one_at_a_time=True`` is the policy ``one-at-a-time``."""
+    durable: bool = True
+    """False only for a throwaway copy of a cell (a plan's): the machines' state files are
+    not synced to disk at each change, as its journal and mailbox are not."""
 
     def __post_init__(self) -> None:
         check_policy(self.policy)

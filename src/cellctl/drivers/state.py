@@ -39,10 +39,15 @@ def machine_key(name_or_url: str) -> str:
 
 
 class StateStore:
-    """JSON state files under ``<cell_dir>/state/``."""
+    """JSON state files under ``<cell_dir>/state/``.
 
-    def __init__(self, cell_dir: Path | str) -> None:
+    ``durable=False`` only for a throwaway copy (a plan's): a save is atomic still, but not
+    synced to disk (a plan's cell saves its machines' state hundreds of times an hour).
+    """
+
+    def __init__(self, cell_dir: Path | str, *, durable: bool = True) -> None:
         self.dir = Path(cell_dir) / "state"
+        self.durable = durable
 
     def path(self, key: str) -> Path:
         """The file that holds machine ``key``'s state."""
@@ -76,8 +81,9 @@ class StateStore:
         try:
             with os.fdopen(fd, "w", encoding="utf-8") as f:
                 json.dump(state, f, indent=2, sort_keys=True)
-                f.flush()
-                os.fsync(f.fileno())
+                if self.durable:
+                    f.flush()
+                    os.fsync(f.fileno())
             os.replace(tmp, target)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)

@@ -258,7 +258,7 @@ async def _play(inputs: PlanInputs, cell_dir: Path) -> tuple[float, dict[str, fl
         # The cell's deadlines (a silent machine, a door that does not start) stay its own:
         # only how often it looks changes.
         own = ControllerOptions.from_config(config, policy=policy)
-        options = dataclasses.replace(own, poll_period=planned_poll(inputs, config))
+        options = dataclasses.replace(own, poll_period=planned_poll(inputs, config), durable=False)
         controller = CellController(config, journal, mailbox, options=options)
         await controller.connect()
         for name in inputs.out_of_service:

@@ -610,4 +610,3 @@ def _read_text(path: Path) -> str:
         return read_text(path, "ascii", "replace")
     except OSError as e:
         raise MillInputError(4, DOWNLOAD_RESULTS[4], f"{path}: {e.strerror}") from None
-

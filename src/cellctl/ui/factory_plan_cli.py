@@ -7,13 +7,15 @@ on this host (``FACTORY_DIR/CELL``, as ``cellctl emulate factory`` writes them, 
 
 Each cell is asked through its own control API (``plan.run``: its open orders, held parts
 and machines out of service now), the running cells side by side, each playing in its own
-controller's process; a cell no controller runs is played in this process on its files.
-The factory's orders not yet given to a cell are not in any cell's plan.
+controller's process; the cells no controller runs are played from their files side by side
+too, in worker processes (one a core). The factory's orders not yet given to a cell are not
+in any cell's plan.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from concurrent.futures import Executor
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +24,42 @@ import click
 from cellctl.errors import CellctlError, UsageError
 from cellctl.ui.common import console, fail, print_json, print_line
 from cellctl.ui.plan_cli import poll_option
+
+
+async def _ask(directory: Path, params: dict[str, Any]) -> Any:
+    """Cell ``directory``'s ``plan.run`` answer, or its refusal (kept: the other cells go
+    on)."""
+    from cellctl.service.client import open_cell
+
+    try:
+        async with await open_cell(directory, {}) as cell:
+            return await cell.call("plan.run", params)
+    except CellctlError as e:
+        return e
+
+
+def _plan_here(directory: str, params: dict[str, Any]) -> tuple[str, Any]:
+    """A worker process's plan of the cell no controller runs at ``directory``: ("plan",
+    answer) or ("refused", why) (an error's words cross the process boundary, not its
+    object)."""
+    import asyncio
+
+    answer = asyncio.run(_ask(Path(directory), params))
+    if isinstance(answer, CellctlError):
+        return "refused", str(answer)
+    return "plan", answer
+
+
+def _workers(cells: int) -> Executor:
+    """Worker processes for the plans of ``cells`` cells no controller runs: a plan is
+    CPU-bound, so a factory's cells take the time of its longest, given the cores."""
+    import multiprocessing
+    import os
+    from concurrent.futures import ProcessPoolExecutor
+
+    # Spawned, not forked: the workers start clean of this process's threads and loop.
+    context = multiprocessing.get_context("spawn")
+    return ProcessPoolExecutor(max_workers=min(cells, os.cpu_count() or 1), mp_context=context)
 
 
 def _cell_dirs(factory_dir: Path, cells: list[str], given: tuple[str, ...]) -> dict[str, Path]:
@@ -135,11 +173,11 @@ def factory_plan(
 ) -> None:
     """What every cell of the factory finishes, and when: `cellctl plan` for each."""
     import asyncio
+    import contextlib
 
     from cellctl.cell.owner import controller_holder
     from cellctl.factory.config import load_factory
     from cellctl.plan.run import result_from_dict, write_plan
-    from cellctl.service.client import open_cell
 
     factory_dir = Path(ctx.obj["factory_dir"])
     try:
@@ -154,26 +192,27 @@ def factory_plan(
     if poll is not None:
         params["poll"] = poll
 
-    async def ask(name: str) -> Any:
-        """Cell ``name``'s answer, or its refusal (kept: the other cells go on)."""
-        try:
-            async with await open_cell(cells[name], {}) as cell:
-                return await cell.call("plan.run", {**params, "fault": windows[name]})
-        except CellctlError as e:
-            return e
+    asked = {name: {**params, "fault": windows[name]} for name in cells}
+    # A cell with a controller plays its plan in that controller's process; the others in
+    # worker processes here. All side by side: a factory's cells are planned in the time of
+    # its longest, given the cores.
+    running = {name: d for name, d in cells.items() if controller_holder(d)}
 
-    async def ask_all() -> dict[str, Any]:
-        # A cell with a controller plays its plan in that controller's process: those are
-        # asked side by side (a factory's cells are planned in the time of its longest, given
-        # the cores). The others play in this process, one plan at a time.
-        running = [name for name, directory in cells.items() if controller_holder(directory)]
-        answers = dict(zip(running, await asyncio.gather(*map(ask, running)), strict=True))
-        for name in cells:
-            if name not in answers:
-                answers[name] = await ask(name)
-        return answers
+    async def ask_running() -> dict[str, Any]:
+        answers = await asyncio.gather(*(_ask(d, asked[name]) for name, d in running.items()))
+        return dict(zip(running, answers, strict=True))
 
-    answers = asyncio.run(ask_all())
+    others = {name: d for name, d in cells.items() if name not in running}
+    with _workers(len(others)) if others else contextlib.nullcontext() as pool:
+        planned = (
+            {}
+            if pool is None
+            else {name: pool.submit(_plan_here, str(d), asked[name]) for name, d in others.items()}
+        )
+        answers = asyncio.run(ask_running())
+        for name, future in planned.items():
+            what, answer = future.result()
+            answers[name] = UsageError(answer) if what == "refused" else answer
     plans: dict[str, Any] = {}
     refused: dict[str, str] = {}
     for name, directory in cells.items():

@@ -6,10 +6,12 @@
 
 The snapshot is the cell's state now (:mod:`cellctl.plan.snapshot`): its open orders with
 what remains of them, the parts held, the machines out of service. The plan is played by the
-engine on its own virtual-time loop in a worker thread, on a copy of the cell's
-configuration: the controller's loop goes on (it waits for nothing of the plan's), and
-nothing of the running cell is written. One plan at a time per service: a second call while
-one plays is refused, not queued (a plan may take seconds of the computer's time).
+engine on its own virtual-time loop in a worker process at a lower priority
+(:mod:`cellctl.service.offload`), on a copy of the cell's configuration: the controller's loop
+goes on undisturbed (it waits for nothing of the plan's, and shares no interpreter with it),
+and nothing of the running cell is written. A call cancelled (its client gone) ends its play.
+One plan at a time per service: a second call while one plays is refused, not queued (a plan
+may take seconds of the computer's time).
 
 Role: **viewer**. A plan acts on nothing: it reads what ``cell.status`` shows and plays it on a
 copy, so a planner or an instructor who may not act on the cell may ask "what if". What it
@@ -23,14 +25,11 @@ or machines change).
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 import dataclasses
 import shutil
 import threading
-from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -41,11 +40,11 @@ from cellctl.mailbox import Mailbox
 from cellctl.plan.when import MAX_POLL_S
 from cellctl.service.access import CellAccess
 from cellctl.service.functions import Progress
+from cellctl.service.offload import in_process
 
 if TYPE_CHECKING:
     from cellctl.mailbox.mqtt import PlanEstimate
-
-T = TypeVar("T")
+    from cellctl.plan.engine import HeldPart, PlanOrder
 
 #: The most ``add`` and ``fault`` entries one call may hold.
 MAX_ENTRIES = 20
@@ -71,42 +70,55 @@ _playing = threading.Lock()
 
 
 async def plan_run(access: CellAccess, p: PlanParams, progress: Progress | None) -> Any:
-    """Snapshot the cell, then check the inputs and play them in a worker thread; answer the
-    plan (its figures, inputs and chart)."""
-    from cellctl.plan.run import play_in_temp
+    """Snapshot the cell, then check the inputs and play them in a worker process
+    (:func:`cellctl.service.offload.in_process`); answer the plan (its figures, inputs and
+    chart)."""
     from cellctl.plan.snapshot import open_work, out_of_service
-    from cellctl.plan.spec import plan_inputs
 
     if not _playing.acquire(blocking=False):
         raise UsageError("a plan is being played already: ask again when it has ended")
     try:
-        # The snapshot on the loop (the journal and mailbox are this thread's); reading the
+        # The snapshot here (the journal and mailbox are this loop's); reading the
         # configuration (programs compiled) and the play in the worker.
         journal = access.journal()
         orders, held = open_work(access.mailbox(), journal)
         stopped = out_of_service(journal)
         start = current_clock().now()
-
-        def plan() -> Any:
-            inputs, policies = plan_inputs(
-                access.directory,
-                start=start,
-                shift=p.shift,
-                until=p.until,
-                orders=orders,
-                adds=p.add,
-                faults=p.fault,
-                policy=p.policy,
-                seed=p.seed,
-                out_of_service=stopped,
-                held=held,
-                **({} if p.poll is None else {"poll_period": p.poll}),
-            )
-            return play_in_temp(inputs, policies)
-
-        result = await asyncio.to_thread(plan)
+        return await in_process(
+            _play_plan, access.directory, start, p.model_dump(), orders, held, stopped
+        )
     finally:
         _playing.release()
+
+
+def _play_plan(
+    directory: Path,
+    start: float,
+    params: dict[str, Any],
+    orders: tuple[PlanOrder, ...],
+    held: tuple[HeldPart, ...],
+    stopped: tuple[str, ...],
+) -> dict[str, Any]:
+    """:func:`plan_run`'s play, in its worker process: the answer."""
+    from cellctl.plan.run import play_in_temp
+    from cellctl.plan.spec import plan_inputs
+
+    p = PlanParams.model_validate(params)
+    inputs, policies = plan_inputs(
+        directory,
+        start=start,
+        shift=p.shift,
+        until=p.until,
+        orders=orders,
+        adds=p.add,
+        faults=p.fault,
+        policy=p.policy,
+        seed=p.seed,
+        out_of_service=stopped,
+        held=held,
+        **({} if p.poll is None else {"poll_period": p.poll}),
+    )
+    result = play_in_temp(inputs, policies)
     return {"plan": result.as_dict(), "svg": result.svg}
 
 
@@ -118,67 +130,52 @@ async def own_plan(
     directory: Path, mailbox: Mailbox, journal: Journal, horizon: float
 ) -> PlanEstimate:
     """The cell's open work now (as ``plan.run`` takes it) played forward on virtual time in a
-    thread of its own: when the last open order would be done, in the running cell's seconds
+    worker process: when the last open order would be done, in the running cell's seconds
     (an emulated cell's plan, played at the real machines' speed, is divided by its time
     scale). Work not done within ``horizon`` (seconds of the real machines' time) counts as
     done at its end. Nothing open: 0 at once. Played in ``directory/state/own-plan/``."""
-    from cellctl.cell.config import load_cell
     from cellctl.mailbox.mqtt import PlanEstimate
-    from cellctl.plan import engine
-    from cellctl.plan.inputs import copy_config
     from cellctl.plan.snapshot import open_work, out_of_service
-    from cellctl.plan.spec import plan_inputs
 
     orders, held = open_work(mailbox, journal)
     stopped = out_of_service(journal)
     start = current_clock().now()
     if not orders:
         return PlanEstimate(planned_at=start, finish_s=0.0)
+    finish_s = await in_process(_play_own, directory, start, horizon, orders, held, stopped)
+    return PlanEstimate(planned_at=start, finish_s=finish_s)
 
-    def play() -> float:
-        scale = float(load_cell(directory).raw.get("cell", {}).get("time_scale", 1.0))
-        inputs, _ = plan_inputs(
-            directory,
-            start=start,
-            shift=f"{max(1, round(horizon))}s",
-            orders=orders,
-            out_of_service=stopped,
-            held=held,
-        )
-        work = directory / OWN_PLAN_DIR
-        shutil.rmtree(work, ignore_errors=True)
+
+def _play_own(
+    directory: Path,
+    start: float,
+    horizon: float,
+    orders: tuple[PlanOrder, ...],
+    held: tuple[HeldPart, ...],
+    stopped: tuple[str, ...],
+) -> float:
+    """:func:`own_plan`'s play, in its worker process: the finish, s from ``start``."""
+    from cellctl.cell.config import load_cell
+    from cellctl.plan import engine
+    from cellctl.plan.inputs import copy_config
+    from cellctl.plan.spec import plan_inputs
+
+    scale = float(load_cell(directory).raw.get("cell", {}).get("time_scale", 1.0))
+    inputs, _ = plan_inputs(
+        directory,
+        start=start,
+        shift=f"{max(1, round(horizon))}s",
+        orders=orders,
+        out_of_service=stopped,
+        held=held,
+    )
+    work = directory / OWN_PLAN_DIR
+    shutil.rmtree(work, ignore_errors=True)
+    try:
         real = copy_config(directory, work / "config")
         run = engine.simulate(dataclasses.replace(inputs, cell_dir=real), work / "play")
+    finally:
         shutil.rmtree(work, ignore_errors=True)
-        done = [t for t in run.finished.values() if t is not None]
-        ends = inputs.until if len(done) < len(run.finished) else max(done, default=start)
-        return max(0.0, ends - start) / scale
-
-    return PlanEstimate(planned_at=start, finish_s=await in_own_thread(play))
-
-
-async def in_own_thread(work: Callable[[], T]) -> T:
-    """``work()`` in a daemon thread of its own: a plan cannot be stopped midway, and a cell
-    that stops (``cellctl run`` ended) must not wait for it; awaiting it cancelled leaves it
-    to end on its own."""
-    loop = asyncio.get_running_loop()
-    future: asyncio.Future[T] = loop.create_future()
-
-    def settle(result: T | None, error: BaseException | None) -> None:
-        if future.done():
-            return
-        if error is not None:
-            future.set_exception(error)
-        else:
-            future.set_result(result)  # type: ignore[arg-type]
-
-    def run() -> None:
-        try:
-            result, error = work(), None
-        except BaseException as e:  # handed to the awaiting task
-            result, error = None, e
-        with contextlib.suppress(RuntimeError):  # the loop closed: nobody waits any more
-            loop.call_soon_threadsafe(settle, result, error)
-
-    threading.Thread(target=run, name="own-plan", daemon=True).start()
-    return await future
+    done = [t for t in run.finished.values() if t is not None]
+    ends = inputs.until if len(done) < len(run.finished) else max(done, default=start)
+    return max(0.0, ends - start) / scale

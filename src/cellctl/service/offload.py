@@ -1,0 +1,90 @@
+"""Work a service hands to a process of its own, away from the cell's event loop::
+
+    answer = await in_process(play_plan, directory, inputs)  # a module-level function
+
+A plan is seconds of CPU. Played in a thread of the controller's process it takes the
+interpreter from the cell's event loop for milliseconds at a time: beside a 2-hour plan in a
+thread, a loop's lag was 9.6 ms at the 99th percentile and 27 ms at worst; beside the same
+plan in a process of its own, 1.0 ms and 2.6 ms (alone: 0.6 ms and 1.7 ms).
+
+The process is spawned (clean of the service's threads and loop), runs at a lower priority
+(:data:`NICE`: the cell's controller comes first) and ignores Ctrl-C (stopping is the
+service's to do). Awaiting it cancelled ends it at once: a plan nobody waits for any more
+burns no CPU, and a service that stops waits for none. A :class:`UsageError` raised in it is
+raised here in its own words; any other failure as a :class:`CellctlError` that names it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import multiprocessing
+import os
+import signal
+from collections.abc import Callable
+from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
+from typing import Any, TypeVar
+
+from cellctl.errors import CellctlError, UsageError
+
+__all__ = ["NICE", "in_process"]
+
+T = TypeVar("T")
+
+#: How much lower the worker's priority is than the service's (``nice``).
+NICE = 10
+#: Seconds to wait for a worker that was told to end (killed: it ends at once).
+REAP_S = 10.0
+
+
+def _work(send: Connection, work: Callable[..., Any], args: tuple[Any, ...]) -> None:
+    """The worker process: ``work(*args)``, its outcome sent back as (what, value)."""
+    with contextlib.suppress(OSError):
+        os.nice(NICE)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        reply: tuple[str, Any] = ("done", work(*args))
+    except UsageError as e:
+        reply = ("refused", str(e))
+    except BaseException as e:  # told to the service in words: its object may not travel
+        reply = ("failed", f"{type(e).__name__}: {e}")
+    send.send(reply)
+    send.close()
+
+
+def _receive(receive: Connection, process: BaseProcess) -> tuple[str, Any]:
+    """The worker's reply, or ("ended", None) if it ended without one (killed, crashed)."""
+    try:
+        return receive.recv()  # type: ignore[no-any-return]
+    except EOFError:
+        return "ended", None
+    finally:
+        receive.close()
+        process.join(REAP_S)
+
+
+async def in_process(work: Callable[..., T], *args: Any) -> T:
+    """``work(*args)`` in a spawned worker process (see module docstring): ``work`` a
+    module-level function, its arguments and result picklable."""
+    context = multiprocessing.get_context("spawn")
+    receive, send = context.Pipe(duplex=False)
+    process = context.Process(
+        target=_work, args=(send, work, args), name=f"cellctl-{work.__name__}", daemon=True
+    )
+    process.start()
+    send.close()  # the worker holds its end: its exit is the reader's end of file
+    try:
+        what, value = await asyncio.to_thread(_receive, receive, process)
+    finally:
+        if process.is_alive():  # cancelled, or the worker replied and is ending anyway
+            process.kill()
+    if what == "done":
+        return value  # type: ignore[no-any-return]
+    if what == "refused":
+        raise UsageError(value)
+    if what == "failed":
+        raise CellctlError(f"{work.__name__} failed in its process: {value}")
+    raise CellctlError(
+        f"{work.__name__}'s process ended without an answer (exit code {process.exitcode})"
+    )

@@ -205,3 +205,30 @@ def test_a_plan_looks_less_often_than_the_cell_and_finishes_the_same(tmp_path: P
         a, b = own.finished[order.order_id], planned.finished[order.order_id]
         assert a is not None and b is not None, (own.finished, planned.finished)
         assert abs(b - a) <= 10, f"{order.order_id}: {relative(a)} s at 0.5 s, {relative(b)} s"
+
+
+def test_policies_played_side_by_side_say_what_they_say_one_after_the_other(
+    tmp_path: Path,
+) -> None:
+    """``play(..., workers=3)`` (the command line's, one process a policy) gives the reports
+    and chart one process gives: a plan is its inputs' and seed's, not its process's."""
+    from cellctl.plan.run import play
+
+    inputs = replace(
+        SHIFT,
+        orders=(PlanOrder("A", "wax-robot-base", 1), PlanOrder("B", "wax-toy-mill-table", 1)),
+        until=START + 1200,
+    )
+    policies = ("downstream-first", "one-at-a-time", "shortest-first")
+    alone = play(inputs, policies, tmp_path / "one", workers=1)
+    side = play(inputs, policies, tmp_path / "three", workers=3)
+
+    def figures(report: object) -> dict[str, object]:
+        data = dict(report.as_dict())  # type: ignore[attr-defined]
+        data.pop("wall_s", None)  # the computer's time, not the plan's
+        return data
+
+    assert [figures(r) for r in side.reports] == [figures(r) for r in alone.reports]
+    assert [r.policy for r in side.reports] == list(policies)
+    assert side.svg == alone.svg
+    assert all(r.steps for r in side.reports)

@@ -19,6 +19,7 @@ from typing import Any
 
 from cellctl.cell.config import load_cell
 from cellctl.cell.journal import Journal
+from cellctl.cell.journalrecords import Step
 from cellctl.errors import UsageError
 from cellctl.plan import engine
 from cellctl.plan.engine import PlanInputs
@@ -64,9 +65,13 @@ class PlanResult:
         return out
 
 
-def play(inputs: PlanInputs, policies: tuple[str, ...], workdir: Path) -> PlanResult:
+def play(
+    inputs: PlanInputs, policies: tuple[str, ...], workdir: Path, *, workers: int = 1
+) -> PlanResult:
     """Play ``inputs`` under each policy in ``workdir/<policy>/``; refused before anything
-    runs for an order, fault or policy the cell cannot take."""
+    runs for an order, fault or policy the cell cannot take. ``workers`` > 1: the policies
+    side by side in that many spawned processes (a plan is CPU-bound; the command line
+    passes its cores, a running cell's service plays one plan on one core)."""
     config = load_cell(inputs.cell_dir)
     check_inputs(config, inputs.orders, inputs.faults, policies)
     for name in inputs.out_of_service:
@@ -74,41 +79,54 @@ def play(inputs: PlanInputs, policies: tuple[str, ...], workdir: Path) -> PlanRe
             raise UsageError(f"out of service: the cell has no machine {name!r}")
     if not inputs.start < inputs.until:
         raise UsageError("a plan's end must be after its start")
-    reports: list[PlanReport] = []
-    steps = []
-    types = []
     # The engine plays the real cell's configuration (an emulated cell's scaled back).
     real = copy_config(inputs.cell_dir, workdir / "config")
-    for policy in policies:
-        played = dataclasses.replace(inputs, policy=policy, cell_dir=real)
-        run = engine.simulate(played, workdir / policy)
-        with Journal(run.journal_path) as journal:
-            reports.append(
-                plan_report(
-                    journal,
-                    config,
-                    inputs.orders,
-                    start=inputs.start,
-                    until=inputs.until,
-                    ended=run.ended,
-                    wall_s=run.wall_s,
-                    policy=policy,
-                    seed=inputs.seed,
-                    faults=inputs.faults,
-                    held_at_start=len(inputs.held),
-                    poll_period=run.poll_period,
-                )
-            )
-            steps.append(journal.steps())
-            types.append({p.id: p.part_type for p in journal.parts()})
+    jobs = [(inputs, policy, real, workdir / policy) for policy in policies]
+    if workers > 1 and len(jobs) > 1:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        context = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=context) as pool:
+            played = list(pool.map(_play_policy, *zip(*jobs, strict=True)))
+    else:
+        played = [_play_policy(*job) for job in jobs]
+    reports = [report for report, _, _ in played]
+    steps = [s for _, s, _ in played]
+    types = [t for _, _, t in played]
     svg = plan_svg(reports, steps, types, machines_of(config))
     return PlanResult(inputs, policies, reports, svg)
 
 
-def play_in_temp(inputs: PlanInputs, policies: tuple[str, ...]) -> PlanResult:
+def _play_policy(
+    inputs: PlanInputs, policy: str, real: Path, workdir: Path
+) -> tuple[PlanReport, list[Step], dict[str, str]]:
+    """One policy of :func:`play` (the cell's configuration copied at ``real``): its report,
+    its steps and its parts' types."""
+    config = load_cell(inputs.cell_dir)
+    run = engine.simulate(dataclasses.replace(inputs, policy=policy, cell_dir=real), workdir)
+    with Journal(run.journal_path) as journal:
+        report = plan_report(
+            journal,
+            config,
+            inputs.orders,
+            start=inputs.start,
+            until=inputs.until,
+            ended=run.ended,
+            wall_s=run.wall_s,
+            policy=policy,
+            seed=inputs.seed,
+            faults=inputs.faults,
+            held_at_start=len(inputs.held),
+            poll_period=run.poll_period,
+        )
+        return report, journal.steps(), {p.id: p.part_type for p in journal.parts()}
+
+
+def play_in_temp(inputs: PlanInputs, policies: tuple[str, ...], *, workers: int = 1) -> PlanResult:
     """:func:`play` in a temporary directory, removed after."""
     with tempfile.TemporaryDirectory(prefix="cellctl-plan-") as tmp:
-        return play(inputs, policies, Path(tmp))
+        return play(inputs, policies, Path(tmp), workers=workers)
 
 
 def write_plan(result: PlanResult, out: Path) -> list[Path]:

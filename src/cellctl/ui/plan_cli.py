@@ -16,6 +16,7 @@ now. With ``--dir`` it is played here, from a cell directory and an orders file 
 from __future__ import annotations
 
 import dataclasses
+import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
@@ -72,7 +73,7 @@ def _local_plan(
     if not orders and not options["adds"]:
         raise UsageError("nothing to plan: give --orders FILE or --add PART:QTY")
     inputs, policies = plan_inputs(directory, start=start, orders=orders, **options)
-    return play_in_temp(inputs, policies)
+    return play_in_temp(inputs, policies, workers=os.cpu_count() or 1)
 
 
 @click.command("plan")
@@ -211,7 +212,7 @@ def _replay(path: Path) -> Any:
     from cellctl.plan.run import play_in_temp
 
     inputs, policies = load_inputs(path)
-    return play_in_temp(inputs, policies)
+    return play_in_temp(inputs, policies, workers=os.cpu_count() or 1)
 
 
 def guarded(fn: Callable[[], T]) -> T:

@@ -56,10 +56,6 @@ async def test_work_nobody_waits_for_is_ended(tmp_path: Path) -> None:
     task.cancel()
     with pytest.raises(asyncio.CancelledError):
         await task
-    while True:  # killed at once, reaped by the parent
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            break
-        assert time.monotonic() < deadline, f"worker {pid} still runs"
-        await asyncio.sleep(0.05)
+    # Killed and reaped by the time the cancelled call ends: what it wrote may go now.
+    with pytest.raises(ProcessLookupError):
+        os.kill(pid, 0)

@@ -9,8 +9,9 @@ plan in a process of its own, 1.0 ms and 2.6 ms (alone: 0.6 ms and 1.7 ms).
 
 The process is spawned (clean of the service's threads and loop), runs at a lower priority
 (:data:`NICE`: the cell's controller comes first) and ignores Ctrl-C (stopping is the
-service's to do). Awaiting it cancelled ends it at once: a plan nobody waits for any more
-burns no CPU, and a service that stops waits for none. A :class:`UsageError` raised in it is
+service's to do). Awaiting it cancelled ends it at once (killed, and reaped before the
+await ends: what it wrote may be removed then): a plan nobody waits for any more burns no
+CPU, and a service that stops waits for none. A :class:`UsageError` raised in it is
 raised here in its own words; any other failure as a :class:`CellctlError` that names it.
 """
 
@@ -74,11 +75,14 @@ async def in_process(work: Callable[..., T], *args: Any) -> T:
     )
     process.start()
     send.close()  # the worker holds its end: its exit is the reader's end of file
+    reader = asyncio.ensure_future(asyncio.to_thread(_receive, receive, process))
     try:
-        what, value = await asyncio.to_thread(_receive, receive, process)
+        what, value = await asyncio.shield(reader)
     finally:
         if process.is_alive():  # cancelled, or the worker replied and is ending anyway
             process.kill()
+        # Ended before this returns, even cancelled: what it wrote may be removed after.
+        await reader
     if what == "done":
         return value  # type: ignore[no-any-return]
     if what == "refused":

@@ -25,8 +25,10 @@ or machines change).
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
 import shutil
+import tempfile
 import threading
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
@@ -44,7 +46,7 @@ from cellctl.service.offload import in_process
 
 if TYPE_CHECKING:
     from cellctl.mailbox.mqtt import PlanEstimate
-    from cellctl.plan.engine import HeldPart, PlanOrder
+    from cellctl.plan.engine import HeldPart, PlanInputs, PlanOrder
 
 #: The most ``add`` and ``fault`` entries one call may hold.
 MAX_ENTRIES = 20
@@ -70,55 +72,51 @@ _playing = threading.Lock()
 
 
 async def plan_run(access: CellAccess, p: PlanParams, progress: Progress | None) -> Any:
-    """Snapshot the cell, then check the inputs and play them in a worker process
-    (:func:`cellctl.service.offload.in_process`); answer the plan (its figures, inputs and
-    chart)."""
+    """Snapshot the cell, check the inputs (in a thread: the configuration is read, programs
+    compiled), then play them in a worker process (:mod:`cellctl.service.offload`); answer
+    the plan (its figures, inputs and chart)."""
     from cellctl.plan.snapshot import open_work, out_of_service
+    from cellctl.plan.spec import plan_inputs
 
     if not _playing.acquire(blocking=False):
         raise UsageError("a plan is being played already: ask again when it has ended")
     try:
-        # The snapshot here (the journal and mailbox are this loop's); reading the
-        # configuration (programs compiled) and the play in the worker.
+        # The snapshot here (the journal and mailbox are this loop's).
         journal = access.journal()
         orders, held = open_work(access.mailbox(), journal)
         stopped = out_of_service(journal)
         start = current_clock().now()
-        return await in_process(
-            _play_plan, access.directory, start, p.model_dump(), orders, held, stopped
-        )
+
+        def inputs() -> tuple[PlanInputs, tuple[str, ...]]:
+            return plan_inputs(
+                access.directory,
+                start=start,
+                shift=p.shift,
+                until=p.until,
+                orders=orders,
+                adds=p.add,
+                faults=p.fault,
+                policy=p.policy,
+                seed=p.seed,
+                out_of_service=stopped,
+                held=held,
+                **({} if p.poll is None else {"poll_period": p.poll}),
+            )
+
+        # Refused here, before a process starts: the inputs' own words, at once.
+        played, policies = await asyncio.to_thread(inputs)
+        # The play's directory is this process's: a play ended midway leaves nothing behind.
+        with tempfile.TemporaryDirectory(prefix="cellctl-plan-") as tmp:
+            return await in_process(_play_plan, played, policies, tmp)
     finally:
         _playing.release()
 
 
-def _play_plan(
-    directory: Path,
-    start: float,
-    params: dict[str, Any],
-    orders: tuple[PlanOrder, ...],
-    held: tuple[HeldPart, ...],
-    stopped: tuple[str, ...],
-) -> dict[str, Any]:
-    """:func:`plan_run`'s play, in its worker process: the answer."""
-    from cellctl.plan.run import play_in_temp
-    from cellctl.plan.spec import plan_inputs
+def _play_plan(inputs: PlanInputs, policies: tuple[str, ...], workdir: str) -> dict[str, Any]:
+    """:func:`plan_run`'s play in ``workdir``, in its worker process: the answer."""
+    from cellctl.plan.run import play
 
-    p = PlanParams.model_validate(params)
-    inputs, policies = plan_inputs(
-        directory,
-        start=start,
-        shift=p.shift,
-        until=p.until,
-        orders=orders,
-        adds=p.add,
-        faults=p.fault,
-        policy=p.policy,
-        seed=p.seed,
-        out_of_service=stopped,
-        held=held,
-        **({} if p.poll is None else {"poll_period": p.poll}),
-    )
-    result = play_in_temp(inputs, policies)
+    result = play(inputs, policies, Path(workdir))
     return {"plan": result.as_dict(), "svg": result.svg}
 
 
@@ -142,7 +140,10 @@ async def own_plan(
     start = current_clock().now()
     if not orders:
         return PlanEstimate(planned_at=start, finish_s=0.0)
-    finish_s = await in_process(_play_own, directory, start, horizon, orders, held, stopped)
+    try:
+        finish_s = await in_process(_play_own, directory, start, horizon, orders, held, stopped)
+    finally:  # a play ended midway (the cell stopped) removes nothing itself
+        shutil.rmtree(directory / OWN_PLAN_DIR, ignore_errors=True)
     return PlanEstimate(planned_at=start, finish_s=finish_s)
 
 

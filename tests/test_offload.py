@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import asyncio
 import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -59,3 +61,32 @@ async def test_work_nobody_waits_for_is_ended(tmp_path: Path) -> None:
     # Killed and reaped by the time the cancelled call ends: what it wrote may go now.
     with pytest.raises(ProcessLookupError):
         os.kill(pid, 0)
+
+
+def test_a_process_starts_where_stderr_has_no_descriptor(tmp_path: Path) -> None:
+    """A Textual app (the console, planning with no controller running) stands in for stderr
+    with a stream whose descriptor is -1: the first worker of a process must start anyway.
+    Played in a fresh interpreter, where multiprocessing has not started its helper yet."""
+    script = tmp_path / "start.py"
+    script.write_text(
+        "import asyncio, io, sys\n"
+        "from cellctl.service.offload import in_process\n"
+        "from tests.test_offload import where_and_how_nice\n"
+        "class Captured(io.StringIO):\n"
+        "    def fileno(self) -> int:\n"
+        "        return -1\n"
+        "if __name__ == '__main__':\n"
+        "    sys.stderr = Captured()\n"
+        "    print(asyncio.run(in_process(where_and_how_nice, 4))[2])\n"
+    )
+    root = Path(__file__).resolve().parent.parent
+    done = subprocess.run(
+        [sys.executable, str(script)],
+        cwd=root,
+        env={**os.environ, "PYTHONPATH": str(root)},
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "8"

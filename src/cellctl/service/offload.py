@@ -22,7 +22,8 @@ import contextlib
 import multiprocessing
 import os
 import signal
-from collections.abc import Callable
+import sys
+from collections.abc import Callable, Iterator
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
 from typing import Any, TypeVar
@@ -54,6 +55,27 @@ def _work(send: Connection, work: Callable[..., Any], args: tuple[Any, ...]) -> 
     send.close()
 
 
+@contextlib.contextmanager
+def _stderr_with_a_descriptor() -> Iterator[None]:
+    """While a process starts: multiprocessing hands its helper (the resource tracker)
+    ``sys.stderr``'s descriptor, and a stream that stands in for stderr with a descriptor of
+    -1 (a Textual app's: the console captures what is printed) would fail every start
+    ("bad value(s) in fds_to_keep"). The process's own stderr stands in meanwhile."""
+    try:
+        usable = sys.stderr is None or sys.stderr.fileno() >= 0
+    except (AttributeError, OSError, ValueError):  # no descriptor at all: left out, fine
+        usable = True
+    if usable:
+        yield
+        return
+    saved = sys.stderr
+    sys.stderr = sys.__stderr__
+    try:
+        yield
+    finally:
+        sys.stderr = saved
+
+
 def _receive(receive: Connection, process: BaseProcess) -> tuple[str, Any]:
     """The worker's reply, or ("ended", None) if it ended without one (killed, crashed)."""
     try:
@@ -73,7 +95,8 @@ async def in_process(work: Callable[..., T], *args: Any) -> T:
     process = context.Process(
         target=_work, args=(send, work, args), name=f"cellctl-{work.__name__}", daemon=True
     )
-    process.start()
+    with _stderr_with_a_descriptor():
+        process.start()
     send.close()  # the worker holds its end: its exit is the reader's end of file
     reader = asyncio.ensure_future(asyncio.to_thread(_receive, receive, process))
     try:

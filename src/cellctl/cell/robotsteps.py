@@ -125,12 +125,15 @@ class RobotSteps:
             await plc.write(f"door_{n}", open_)
         for n in doors:
             away_from = f"door_closed_{n}" if open_ else f"door_open_{n}"
-            await plc.wait_for(
+            inputs = await plc.wait_for(
                 away_from,
                 False,
                 timeout=self.world.options.door_start_timeout,
                 poll=INTERLOCK_POLL_S,
             )
+            if not open_ and inputs.get(f"door_closed_{n}"):
+                # Closed already (closed long ago, not reopened): this close times nothing.
+                self._close_commanded.pop(n, None)
 
     async def door_closed(self, mill: str) -> None:
         """Wait up to ``interlock_timeout`` for the door of mill ``mill`` (commanded closed by
@@ -145,18 +148,23 @@ class RobotSteps:
         assert plc is not None
         clock = self.world.clock
         index = self.world.mill_index(mill)
-        commanded = self._close_commanded.get(index, clock.monotonic())
+        # The close this wait times, consumed by it: only one seen travelling from its
+        # command counts (a door found closed already, or a wait that failed, times none).
+        commanded = self._close_commanded.pop(index, None)
         least = self._least_close.get(index)
-        elapsed = clock.monotonic() - commanded
+        quiet = 0.0  # a close not timed from its command is read at once
+        if commanded is not None and least is not None:
+            quiet = max(0.0, EXPECTED_SHARE * least - (clock.monotonic() - commanded))
         await plc.wait_for(
             f"door_closed_{index}",
             True,
             timeout=self.world.options.interlock_timeout,
             poll=INTERLOCK_POLL_S,
-            expected=0.0 if least is None else max(0.0, EXPECTED_SHARE * least - elapsed),
+            expected=quiet,
         )
-        took = clock.monotonic() - commanded
-        self._least_close[index] = took if least is None else min(took, least)
+        if commanded is not None:
+            took = clock.monotonic() - commanded
+            self._least_close[index] = took if least is None else min(took, least)
 
     async def _wait_cycle(self, program: str, commanded: float, timeout: float) -> None:
         """Wait up to ``timeout`` s for the end of the cycle of ``program`` (its doors

@@ -1,15 +1,17 @@
-"""Ending what an object started: its tasks cancelled, and waited for until each has ended.
+"""Ending what an object started, and CPU-bound work handed to processes::
 
-::
-
-    await cancel_and_wait(self._tasks)      # in a close(): nothing it started runs on
+await cancel_and_wait(self._tasks)      # in a close(): nothing it started runs on
+with spawned_pool(3) as pool:           # plans side by side, one process each
+    reports = list(pool.map(play_one, policies))
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
 from collections.abc import Iterable
+from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
 
@@ -22,3 +24,12 @@ async def cancel_and_wait(tasks: Iterable[asyncio.Task[Any]]) -> None:
     for task in ending:
         with contextlib.suppress(BaseException):
             await task
+
+
+def spawned_pool(jobs: int) -> ProcessPoolExecutor:
+    """Worker processes for ``jobs`` CPU-bound jobs (a plan each): at most one a core,
+    spawned (clean of the caller's threads and event loop), never forked."""
+    import multiprocessing
+
+    workers = max(1, min(jobs, os.cpu_count() or 1))
+    return ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))

@@ -27,6 +27,7 @@ from cellctl.plan.inputs import copy_config, inputs_dict, save_inputs
 from cellctl.plan.report import PlanReport, machines_of, plan_report, plan_svg
 from cellctl.plan.spec import check_inputs
 from cellctl.plan.when import span_text, when_text
+from cellctl.tasks import spawned_pool
 
 PLAN_JSON = "plan.json"
 PLAN_SVG = "plan.svg"
@@ -83,11 +84,7 @@ def play(
     real = copy_config(inputs.cell_dir, workdir / "config")
     jobs = [(inputs, policy, real, workdir / policy) for policy in policies]
     if workers > 1 and len(jobs) > 1:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-
-        context = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=context) as pool:
+        with spawned_pool(min(workers, len(jobs))) as pool:
             played = list(pool.map(_play_policy, *zip(*jobs, strict=True)))
     else:
         played = [_play_policy(*job) for job in jobs]

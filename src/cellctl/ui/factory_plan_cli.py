@@ -15,7 +15,6 @@ in any cell's plan.
 from __future__ import annotations
 
 import dataclasses
-from concurrent.futures import Executor
 from pathlib import Path
 from typing import Any
 
@@ -48,18 +47,6 @@ def _plan_here(directory: str, params: dict[str, Any]) -> tuple[str, Any]:
     if isinstance(answer, CellctlError):
         return "refused", str(answer)
     return "plan", answer
-
-
-def _workers(cells: int) -> Executor:
-    """Worker processes for the plans of ``cells`` cells no controller runs: a plan is
-    CPU-bound, so a factory's cells take the time of its longest, given the cores."""
-    import multiprocessing
-    import os
-    from concurrent.futures import ProcessPoolExecutor
-
-    # Spawned, not forked: the workers start clean of this process's threads and loop.
-    context = multiprocessing.get_context("spawn")
-    return ProcessPoolExecutor(max_workers=min(cells, os.cpu_count() or 1), mp_context=context)
 
 
 def _cell_dirs(factory_dir: Path, cells: list[str], given: tuple[str, ...]) -> dict[str, Path]:
@@ -178,6 +165,7 @@ def factory_plan(
     from cellctl.cell.owner import controller_holder
     from cellctl.factory.config import load_factory
     from cellctl.plan.run import result_from_dict, write_plan
+    from cellctl.tasks import spawned_pool
 
     factory_dir = Path(ctx.obj["factory_dir"])
     try:
@@ -203,7 +191,8 @@ def factory_plan(
         return dict(zip(running, answers, strict=True))
 
     others = {name: d for name, d in cells.items() if name not in running}
-    with _workers(len(others)) if others else contextlib.nullcontext() as pool:
+    # A plan is CPU-bound: the cells take the time of the longest, given the cores.
+    with spawned_pool(len(others)) if others else contextlib.nullcontext() as pool:
         planned = (
             {}
             if pool is None

@@ -151,16 +151,16 @@ class Plant:
         for name in [*self.names, "factory"]:
             await self.start(name)
         makes = {name: self.part_types(name) for name in self.names}
-        await self.wait_for(
-            lambda: (
-                all(
-                    makes[name] <= set(c.part_types) and c.status == "online"
-                    for name, c in self.store.cells().items()
-                )
-                and set(self.store.cells()) == set(self.names)
-            ),
-            "the factory hears every cell online with its part types",
-        )
+
+        def heard() -> bool:
+            # One read: of two, the first could miss a cell the second finds with no state yet.
+            cells = self.store.cells()
+            return set(cells) == set(self.names) and all(
+                makes[name] <= set(c.part_types) and c.status == "online"
+                for name, c in cells.items()
+            )
+
+        await self.wait_for(heard, "the factory hears every cell online with its part types")
 
     # -- orders --------------------------------------------------------------------------------
 

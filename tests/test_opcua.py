@@ -158,7 +158,9 @@ async def test_a_user_watches_and_orders_an_anonymous_reader_cannot_act(
 ) -> None:
     port = free_port()
     url = f"opc.tcp://127.0.0.1:{port}"
-    async with CellRig(tmp_path / "cell") as rig:
+    # Cuts of a few seconds: a subscription is sent the latest value of each publishing
+    # interval, and a cut shorter than a loaded box's interval would never be seen machining.
+    async with CellRig(tmp_path / "cell", time_scale=200.0) as rig:
         cell = rig.directory
         add_user(cell, "alice", "correct horse")
         add_user(cell, "vera", "pw", role="viewer")

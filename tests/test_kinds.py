@@ -4,10 +4,14 @@ nowhere in src/ outside their own packages."""
 from __future__ import annotations
 
 import subprocess
+from dataclasses import replace
 from pathlib import Path
+
+from pydantic import BaseModel, Field
 
 from cellctl.kinds import registry
 from cellctl.kinds.families import Mill, Robot
+from cellctl.kinds.kind import attribute_docs
 
 from .conftest import CELLCTL
 
@@ -109,3 +113,29 @@ def test_docs_kinds_md_holds_each_shipped_kind_s_options() -> None:
     docs = (ROOT / "docs" / "kinds.md").read_text(encoding="utf-8")
     for name in KIND_PACKAGES:
         assert registry.kind(name).options_table() in docs, name
+
+
+class _Base(BaseModel):
+    first: int = 1
+    """What the base says of ``first``:
+    two lines."""
+
+
+class _Options(_Base):
+    second: str = Field(default="x", description="given to the field")
+    """the docstring the description outranks"""
+    third: float = 0.5
+    """Seconds, from the subclass."""
+    fourth: bool = False
+
+
+def test_attribute_docs_are_read_from_the_source_with_the_bases() -> None:
+    docs = attribute_docs(_Options)
+    assert docs["first"] == "What the base says of ``first``:\ntwo lines."
+    assert docs["third"] == "Seconds, from the subclass." and "fourth" not in docs
+    # The table prefers a field's own description.
+    kind = registry.kind("dyna2400")
+    table = replace(kind, options=_Options).options_table()
+    assert "| `second` | 'x' | given to the field |" in table
+    assert "| `first` | 1 | What the base says of ``first``: two lines. |" in table
+    assert "| `fourth` | False |  |" in table

@@ -11,8 +11,10 @@ import asyncio
 import contextlib
 import os
 from collections.abc import Iterable
-from concurrent.futures import ProcessPoolExecutor
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from concurrent.futures import ProcessPoolExecutor
 
 
 async def cancel_and_wait(tasks: Iterable[asyncio.Task[Any]]) -> None:
@@ -29,7 +31,9 @@ async def cancel_and_wait(tasks: Iterable[asyncio.Task[Any]]) -> None:
 def spawned_pool(jobs: int) -> ProcessPoolExecutor:
     """Worker processes for ``jobs`` CPU-bound jobs (a plan each): at most one a core,
     spawned (clean of the caller's threads and event loop), never forked."""
+    # Imported here: every process imports this module, few start a pool.
     import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
 
     workers = max(1, min(jobs, os.cpu_count() or 1))
     return ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))

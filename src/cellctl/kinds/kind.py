@@ -27,8 +27,13 @@ and calls these hooks.
 
 from __future__ import annotations
 
+import ast
 import enum
+import functools
 import importlib
+import inspect
+import itertools
+import textwrap
 from collections.abc import Awaitable, Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -252,13 +257,41 @@ class MachineKind:
                 if info.is_required()
                 else repr(info.get_default(call_default_factory=True))
             )
-            meaning = " ".join((info.description or "").split())
+            meaning = " ".join(
+                (info.description or attribute_docs(self.options).get(key, "")).split()
+            )
             rows.append(f"| `{key}` | {default} | {meaning} |")
         return "\n".join(rows) + "\n"
 
     async def open(self, spec: DriverSpec) -> Any:
         """Open a driver for ``spec`` (its options already checked by :meth:`checked_options`)."""
         return await self.open_driver(spec)
+
+
+@functools.cache
+def attribute_docs(model: type[BaseModel]) -> dict[str, str]:
+    """The docstring under each field of ``model`` and its bases, read from their source
+    when asked (docs tables): pydantic's ``use_attribute_docstrings`` would read it at
+    every import, at every start of every command."""
+    docs: dict[str, str] = {}
+    for cls in reversed(model.__mro__):
+        if not (isinstance(cls, type) and issubclass(cls, BaseModel)) or cls is BaseModel:
+            continue
+        try:
+            tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+        except (OSError, TypeError, SyntaxError):
+            continue  # no source (a frozen build): the table says less, nothing fails
+        body = tree.body[0].body if tree.body and isinstance(tree.body[0], ast.ClassDef) else []
+        for field_stmt, doc in itertools.pairwise(body):
+            if (
+                isinstance(field_stmt, ast.AnnAssign)
+                and isinstance(field_stmt.target, ast.Name)
+                and isinstance(doc, ast.Expr)
+                and isinstance(doc.value, ast.Constant)
+                and isinstance(doc.value.value, str)
+            ):
+                docs[field_stmt.target.id] = inspect.cleandoc(doc.value.value)
+    return docs
 
 
 class LazyTable(Mapping[str, str]):

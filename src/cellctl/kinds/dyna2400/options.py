@@ -26,9 +26,7 @@ class MillState(KindState):
 class MillConfig(BaseModel):
     """Deadlines and per-machine facts; every one can be set per mill (``cell.toml`` options)."""
 
-    model_config = ConfigDict(
-        frozen=True, extra="forbid", use_attribute_docstrings=True, defer_build=True
-    )
+    model_config = ConfigDict(frozen=True, extra="forbid", defer_build=True)
 
     readiness: Literal["modem", "inband"] = "modem"
     """``modem``: CTS from the line (serial, RFC 2217). ``inband``: DC1/DC3 (project's own)."""

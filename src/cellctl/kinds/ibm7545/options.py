@@ -46,9 +46,7 @@ def robot_condition(state: int, ok: bool = True) -> Condition:
 class RobotConfig(BaseModel):
     """Deadlines and assumed values; every one can be set per robot (``cell.toml`` options)."""
 
-    model_config = ConfigDict(
-        frozen=True, extra="forbid", use_attribute_docstrings=True, defer_build=True
-    )
+    model_config = ConfigDict(frozen=True, extra="forbid", defer_build=True)
 
     reply_timeout: PositiveFloat = 2.0
     """Seconds the controller may take to start answering (beyond the wire time)."""

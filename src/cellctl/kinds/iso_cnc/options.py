@@ -26,9 +26,7 @@ class IsoCncOptions(BaseModel):
     """The control's options (``[machines.NAME] options``); baud, parity and stop bits are
     the machine's ``line`` (default 9600,7E2)."""
 
-    model_config = ConfigDict(
-        frozen=True, extra="forbid", use_attribute_docstrings=True, defer_build=True
-    )
+    model_config = ConfigDict(frozen=True, extra="forbid", defer_build=True)
 
     code: Literal["ISO"] = "ISO"
     """Tape code: ISO (EIA may come later)."""

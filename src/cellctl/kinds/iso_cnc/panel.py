@@ -52,9 +52,7 @@ class Activity(enum.StrEnum):
 class EmulatorOptions(BaseModel):
     """The emulated control's parameters and fault switches."""
 
-    model_config = ConfigDict(
-        frozen=True, extra="forbid", use_attribute_docstrings=True, defer_build=True
-    )
+    model_config = ConfigDict(frozen=True, extra="forbid", defer_build=True)
 
     buffer_size: int = Field(default=256, ge=16, le=1 << 20)
     """Characters its reader buffer holds."""

@@ -35,9 +35,7 @@ def mem_interface(name: str, interface: str) -> str:
 class UrOptions(BaseModel):
     """A UR's options (``[machines.NAME] options``)."""
 
-    model_config = ConfigDict(
-        frozen=True, extra="forbid", use_attribute_docstrings=True, defer_build=True
-    )
+    model_config = ConfigDict(frozen=True, extra="forbid", defer_build=True)
 
     model: Literal["UR3e", "UR5e", "UR10e", "UR16e"] = "UR5e"
     """The arm: its reach is what the URScript check holds poses to."""

@@ -38,9 +38,7 @@ MAX_REQUEST_CHARS = 4096
 class RequestConvention(BaseModel):
     """``[machines.NAME.request]``: how this machine's operator asks for a program."""
 
-    model_config = ConfigDict(
-        frozen=True, extra="forbid", use_attribute_docstrings=True, defer_build=True
-    )
+    model_config = ConfigDict(frozen=True, extra="forbid", defer_build=True)
 
     program: int = Field(default=9999, ge=1, le=MAX_O_NUMBER)
     """O-number of the request program the operator punches (``O9999``)."""

@@ -9,9 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field
 class SawOptions(BaseModel):
     """The saw's options (``[machines.NAME] options`` in cell.toml)."""
 
-    model_config = ConfigDict(
-        frozen=True, extra="forbid", use_attribute_docstrings=True, defer_build=True
-    )
+    model_config = ConfigDict(frozen=True, extra="forbid", defer_build=True)
 
     reply_timeout: float = Field(default=2.0, gt=0, le=60)
     """Seconds the saw may take to answer a command."""

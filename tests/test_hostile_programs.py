@@ -10,7 +10,9 @@ The inputs that found bugs are kept here as plain tests.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
+import re
 import textwrap
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -20,6 +22,7 @@ import pytest
 from cellctl.emulators.serve import Server, serve
 from cellctl.kinds.dyna2400 import dynalan
 from cellctl.kinds.dyna2400.emulator import Dyna2400Emulator, OperatorDelays
+from cellctl.kinds.dyna2400.preview import render_png, render_svg
 from cellctl.link import LineSettings, Link, open_link
 from tests.conftest import LIMITED_WALL_S, run_limited
 
@@ -210,6 +213,26 @@ def test_hostile_program_gets_an_answer(tmp_path: Path, name: str) -> None:
     if code is not None:
         codes = {error[2] for error in summary["errors"]}  # type: ignore[attr-defined]
         assert code in codes, summary
+
+
+def test_a_long_run_of_short_moves_is_drawn_as_a_few_lines() -> None:
+    # 3,000 feed moves of a thousandth of an inch in a row, 0.3 px each on the drawing: one
+    # polyline per view of what a person can see, its ends where the moves' ends are.
+    moves = [f"{(i + 2) % 1000:03d} GR X .001" for i in range(3000)]
+    text = program("000 START INS 01", "001 GO X 1 Y 1 Z 0", *moves, "999 END")
+    result = dynalan.validate(dynalan.parse_program(text, name="long"))
+    assert result.toolpath is not None
+    svg = render_svg(result.toolpath)
+    feeds = re.findall(r'<polyline class="xy feed" points="([^"]*)"', svg)
+    assert feeds, svg[:2000]
+    lines = [[float(p.split(",")[0]) for p in line.split()] for line in feeds]
+    assert len(feeds) <= result.toolpath.blocks  # one a block at most
+    assert sum(map(len, lines)) < 2000  # about 860 px of line: no point within 0.5 px
+    xs = [x for line in lines for x in line]
+    assert min(xs) == pytest.approx(50.0) and max(xs) == pytest.approx(910.0)  # end to end
+    for line in lines:  # each point a half pixel on from the last, but the line's end
+        assert all(b - a > 0.5 for a, b in itertools.pairwise(line[:-1]))
+    assert len(render_png(result.toolpath)) > 0
 
 
 # -- the emulator stops on what it cannot run ----------------------------------------------------

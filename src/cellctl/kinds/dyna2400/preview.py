@@ -63,6 +63,14 @@ def _layout(path: Toolpath) -> tuple[list[_Segment], list[tuple[int, float, floa
     starts: list[tuple[int, float, float, float]] = []
     distance = 0.0
     block = 0
+    run: tuple[MoveKind, int] | None = None  # the (kind, block) the open polylines draw
+    pts: list[tuple[float, float]] = []
+    profile: list[tuple[float, float]] = []
+
+    def close() -> None:
+        if run is not None:
+            segments.append(_Segment(run[0], run[1], _drawn(pts), _drawn(profile)))
+
     for tm in path.moves:
         move = tm.move
         if tm.block != block:
@@ -71,13 +79,37 @@ def _layout(path: Toolpath) -> tuple[list[_Segment], list[tuple[int, float, floa
             starts.append((block, sx, sy, prof(distance, 0.0)[0]))
         if move.kind is MoveKind.DWELL:
             continue
-        pts = tuple(xy(p[0], p[1]) for p in move.path)
-        profile = [prof(distance, move.path[0][2])]
+        first = xy(move.path[0][0], move.path[0][1])
+        if run != (move.kind, tm.block) or not pts or _apart(pts[-1], first):
+            # One polyline per run of moves of a kind in a block, end to end: a program of
+            # 100,000 short moves is a drawing of a few elements, not 100,000.
+            close()
+            run, pts, profile = (move.kind, tm.block), [first], [prof(distance, move.path[0][2])]
+        pts.extend(xy(p[0], p[1]) for p in move.path[1:])
         for a, b in zip(move.path, move.path[1:], strict=False):
             distance += ((b[0] - a[0]) ** 2 + (b[1] - a[1]) ** 2 + (b[2] - a[2]) ** 2) ** 0.5
             profile.append(prof(distance, b[2]))
-        segments.append(_Segment(move.kind, tm.block, pts, tuple(profile)))
+    close()
     return segments, starts
+
+
+#: Pixels: a point closer than this to the last one drawn adds nothing to the drawing.
+_PIXEL = 0.5
+
+
+def _apart(a: tuple[float, float], b: tuple[float, float]) -> bool:
+    return abs(a[0] - b[0]) > _PIXEL or abs(a[1] - b[1]) > _PIXEL
+
+
+def _drawn(points: list[tuple[float, float]]) -> tuple[tuple[float, float], ...]:
+    """``points`` as drawn: each one at least a half pixel from the last kept, and the last."""
+    kept = [points[0]]
+    for point in points[1:]:
+        if _apart(kept[-1], point):
+            kept.append(point)
+    if len(points) > 1 and kept[-1] is not points[-1]:
+        kept.append(points[-1])
+    return tuple(kept)
 
 
 def _height(path: Toolpath) -> int:

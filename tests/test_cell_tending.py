@@ -23,6 +23,7 @@ from cellctl.kinds.ur.dashboard import RuntimeState, SafetyStatus
 from cellctl.mailbox import open_mailbox
 from cellctl.plan.engine import PlanInputs, PlanOrder, simulate
 from cellctl.service.client import attach
+from cellctl.testing.rig import write_cell_options
 from cellctl.ui.cell_cli import run_controller
 
 from .conftest import CELLCTL, until
@@ -37,7 +38,9 @@ async def tending(tmp_path: Path) -> AsyncIterator[tuple[EmulatedCell, Path]]:
     directory = tmp_path / "cell"
     await cell.start(directory)
     toml = directory / "cell.toml"
-    toml.write_text(toml.read_text().replace("poll_period = 0.5", "poll_period = 0.1"))
+    # A short poll; and the PLC and a look at a machine given the time a loaded box may take
+    # (the example's 1 s PLC answer is a LAN's), as the other cells under test have.
+    write_cell_options(toml, {"poll_period": 0.1, "read_limit": 2.0}, {}, {"timeout": 5.0})
     try:
         yield cell, directory
     finally:

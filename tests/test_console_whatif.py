@@ -71,11 +71,11 @@ async def test_a_viewer_plans_ahead_in_the_console(viewer: tuple[CellRig, Remote
         now = datetime.now()
         # Two minutes ahead: the plan (which starts when the API is asked) still has it.
         down = f"cnc2:down@{_hhmm(now + timedelta(minutes=2))}-{_hhmm(now + timedelta(minutes=4))}"
-        # Three parts in two hours, looked at every second: a plan that plays for some
+        # Three parts in two hours, looked at every 2 s: a plan that plays for some
         # seconds (the default 5 s poll plays it in about one), to see the console live
         # meanwhile.
         await fill(pilot, "#horizon", "2h")
-        await fill(pilot, "#poll", "1")
+        await fill(pilot, "#poll", "2")
         await fill(pilot, "#fault", down)
         await fill(pilot, "#add", "wax-robot-base:3")
         await pilot.press("enter")
@@ -84,7 +84,7 @@ async def test_a_viewer_plans_ahead_in_the_console(viewer: tuple[CellRig, Remote
         await pilot.press("escape")
         await wait_text(pilot, "MAIN MENU")
         shown = await wait_text(pilot, "Gantt chart, policy default", timeout=240)
-        header = "plan of CIM laboratory machining cell (policy default, seed 0, poll 1 s)"
+        header = "plan of CIM laboratory machining cell (policy default, seed 0, poll 2 s)"
         assert header in shown
         assert f"fault: cnc2 down from {(now + timedelta(minutes=2)):%a %H:%M}:00" in shown
         # The added order's row: its part type, parts made of three, and its verdict.

@@ -126,16 +126,15 @@ def test_an_error_that_ends_a_play_midway_ends_it_cleanly(
 
 
 @pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
-def test_a_protective_stop_is_planned_from_the_command_line() -> None:
+def test_a_protective_stop_is_planned_from_the_command_line(tmp_path: Path) -> None:
     """`--fault robot:protective_stop@14:00-14:20` on the cobot cell (a UR's own switch name,
     as `cellctl emulate cell --fault` takes it): the robot does nothing in the window, the
     order gets done after it."""
     common = ["--dir", str(TENDING), "--add", "bracket:2", "--start", START]
-    text = plan(*common, "--fault", "robot:protective_stop@14:00-14:20").output
+    out = tmp_path / "out"
+    text = plan(*common, "--fault", "robot:protective_stop@14:00-14:20", "--out", str(out)).output
     assert "fault: robot protective_stop from Wed 14:00:00 to Wed 14:20:00" in text
-    [report] = json.loads(
-        plan(*common, "--fault", "robot:protective_stop@14:00-14:20", "--json").output
-    )["plans"]
+    [report] = json.loads((out / "plan.json").read_text())["plans"]  # the plan printed
     closes = T0 + 20 * 60
     robot = [s for s in report["steps"] if s["machine"] == "robot"]
     assert robot and all(s["started"] >= closes for s in robot), robot

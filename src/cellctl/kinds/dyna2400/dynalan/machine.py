@@ -27,6 +27,7 @@ pass depth or peck of 0 or below), so no program costs more than its size allows
 
 from __future__ import annotations
 
+import functools
 import math
 from bisect import bisect_right
 from collections.abc import Iterator, Mapping
@@ -415,11 +416,19 @@ def _axis_line(context: Kind | None, stmt: Statement, state: MachineState, m: _M
     state.axis_context = context
 
 
+@functools.lru_cache(maxsize=16)
+def _limits(travel: Travel, units: Units) -> tuple[tuple[float, float], ...]:
+    return tuple(travel.limits(axis, units) for axis in AXES)
+
+
 def travel_fault(moves: list[Move] | tuple[Move, ...], units: Units, travel: Travel) -> str | None:
     """The first point of ``moves`` outside ``travel``, described; None when all are inside."""
-    # The limits once, not per point: a block's path may hold thousands of points, and the
-    # emulator checks every block it runs.
-    limits = [travel.limits(axis, units) for axis in AXES]
+    if not moves:
+        return None
+    # The limits once, not per point nor per statement: a block's path may hold thousands
+    # of points, a program hundreds of thousands of statements, and the emulator checks
+    # every block it runs.
+    limits = _limits(travel, units)
     (x0, x1), (y0, y1), (z0, z1) = ((low - 1e-9, high + 1e-9) for low, high in limits)
     for move in moves:
         for point in move.path:

@@ -3,12 +3,15 @@
 
 from __future__ import annotations
 
+from rich.text import Text
+from textual.widgets import Static
+
 from cellctl.cell.blocked import blocked_reason
 from cellctl.cell.config import load_cell
 from cellctl.cell.journal import Part
 from cellctl.emulators.cell import EXAMPLE_CELL
 from cellctl.service.status import CellStatus
-from cellctl.ui.console.widgets import board_text
+from cellctl.ui.console.widgets import board_text, shown
 from tests.test_api import Api, api  # noqa: F401 (the fixture)
 
 
@@ -75,3 +78,27 @@ def test_a_part_whose_next_mill_holds_a_blocked_part_is_blocked_too() -> None:
     assert blocked_reason(config, "wax-robot-base", taken_out, out) == ""
     # Nothing out of service: nothing blocked.
     assert blocked_reason(config, "wax-robot-base", stuck_in_cnc1, {}) == ""
+
+
+class _Counted(Static):
+    """A Static that counts what it was given to show."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.updates: list[object] = []
+
+    def update(self, content: object = "", **_: object) -> None:
+        self.updates.append(content)
+
+
+def test_a_console_widget_is_drawn_again_only_when_its_text_changed() -> None:
+    widget = _Counted()
+    drawn = shown(widget, Text("cnc1 Idle"), None)
+    drawn = shown(widget, Text("cnc1 Idle"), drawn)  # the same status again: not drawn
+    drawn = shown(widget, Text("cnc1 Idle", style="bold"), drawn)  # its look changed
+    shown(widget, Text("cnc1 Busy"), drawn)
+    assert [getattr(t, "plain", t) for t in widget.updates] == [
+        "cnc1 Idle",
+        "cnc1 Idle",
+        "cnc1 Busy",
+    ]

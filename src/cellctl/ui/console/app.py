@@ -56,7 +56,7 @@ from cellctl.ui.console.session import (
     open_console_cell,
     status_machines,
 )
-from cellctl.ui.console.widgets import Board, ResultPane, TrafficPane, step_text
+from cellctl.ui.console.widgets import Board, ResultPane, TrafficPane, shown, step_text
 
 #: Seconds between two looks at the selected machine's traffic.
 TRAFFIC_PERIOD = 0.5
@@ -119,6 +119,7 @@ class ConsoleApp(App[None]):
         self.directory = directory
         self.client: CellClient | None = client
         self.traffic_period = traffic_period
+        self._header: Text | None = None  # what the header shows
         self.machines: list[ConsoleMachine] = []
         self.snapshot: dict[str, Any] = {}
         self.level: str = "main"  # "main", "cell" or a machine's name
@@ -220,7 +221,7 @@ class ConsoleApp(App[None]):
         where = "cell" if self.is_cell else "directory"
         header = f"{self.mode_text()}{paused}  {where}: {self.directory}"
         try:
-            self.query_one("#header", Static).update(Text(header))
+            self._header = shown(self.query_one("#header", Static), Text(header), self._header)
             self.query_one("#board", Board).show(self.snapshot)
         except NoMatches:
             # An update that came as the console exits another way than its quit (its
@@ -304,7 +305,7 @@ class ConsoleApp(App[None]):
             pane.show(name, [r for r in rows if r != command], command)
         except CellctlError as e:
             pane.border_title = f"traffic: {name}"
-            pane.update(Text(str(e)))
+            pane.show_text(Text(str(e)))
         finally:
             self._traffic_busy = False
 

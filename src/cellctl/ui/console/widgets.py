@@ -191,11 +191,14 @@ class Board(Static):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)
         self.snapshot: dict[str, Any] = {}
+        self._drawn: Text | None = None
 
     def show(self, snapshot: dict[str, Any]) -> None:
         self.snapshot = snapshot
         if snapshot:
-            self.update(board_text(snapshot, max(self.size.width, 30), self.size.height))
+            self._drawn = shown(
+                self, board_text(snapshot, max(self.size.width, 30), self.size.height), self._drawn
+            )
 
     def on_resize(self) -> None:
         self.show(self.snapshot)
@@ -205,12 +208,36 @@ class TrafficPane(Static):
     """The selected machine's bytes both ways (``>>`` sent, ``<<`` received), the operator's
     own last command first (``>>*``)."""
 
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self._drawn: Text | None = None
+
     def show(
         self, machine: str, rows: list[dict[str, Any]], command: dict[str, Any] | None = None
     ) -> None:
         """``command``: the first row sent for the operator's last command (shown first)."""
         self.border_title = f"traffic: {machine} (>> sent, << received, >>* your command)"
-        self.update(traffic_text(machine, rows, max(self.size.width, 40), command))
+        self.show_text(traffic_text(machine, rows, max(self.size.width, 40), command))
+
+    def show_text(self, text: Text) -> None:
+        """Show ``text`` (the traffic, or why there is none)."""
+        self._drawn = shown(self, text, self._drawn)
+
+
+def shown(widget: Static, text: Text, drawn: Text | None) -> Text:
+    """``widget.update(text)`` unless ``drawn``, what it shows now, is the same; ``text``.
+
+    An update lays the widget out and draws it again, and the status comes many times a
+    second while a batch runs, mostly as it was: on a shop's old PC that is the console's CPU.
+    """
+    if drawn is None or _look(text) != _look(drawn):
+        widget.update(text)
+    return text
+
+
+def _look(text: Text) -> tuple[object, ...]:
+    # Rich's Text == compares the characters and their spans, not the style of the whole.
+    return (text.plain, text.spans, text.style, text.justify, text.overflow, text.no_wrap)
 
 
 class ResultPane(Vertical):

@@ -21,9 +21,9 @@ from tests.test_demo import _lines, _until
 UP_S = 90.0
 #: How long a refused command has to say so (a Python start-up and the check).
 REFUSED_S = 60.0
-#: Written by the first run itself while it idles: the broker's log and its autosave,
-#: SQLite's write-ahead files.
-OWN_WRITES = ("mosquitto.log", "mosquitto.db", "-wal", "-shm")
+#: Written by the first run itself while it idles: the broker's log and its autosave (written
+#: to ``mosquitto.db.new``, then renamed), SQLite's write-ahead files.
+OWN_WRITES = ("mosquitto.log", "mosquitto.db", "mosquitto.db.new", "-wal", "-shm")
 
 
 def snapshot(top: Path) -> dict[str, tuple[int, int] | None]:

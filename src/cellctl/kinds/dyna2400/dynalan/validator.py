@@ -459,6 +459,6 @@ def validate(program: Program, context: ValidationContext | None = None) -> Vali
     problems = sorted(checker.problems, key=lambda p: (p.row, p.column, p.severity.value))
     if program.block_count <= 1:
         # Block numbers only help in multi-block files.
-        problems = [replace(p, block=None) for p in problems]
+        problems = [p if p.block is None else replace(p, block=None) for p in problems]
     has_errors = any(p.severity is Severity.ERROR for p in problems)
     return Validation(program, role, problems, None if has_errors else blocks, path)

@@ -246,7 +246,13 @@ async def test_two_programs_on_one_user_are_told_they_take_turns(broker: Mosquit
         stop.set()
         for task in tasks:
             task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        # A link told to stop ends within its client's own deadlines (2 s each): said so,
+        # not left to the suite's timeout.
+        try:
+            async with asyncio.timeout(20):
+                await asyncio.gather(*tasks, return_exceptions=True)
+        except TimeoutError:
+            raise AssertionError(f"a link did not end within 20 s of its stop: {logs}") from None
     for lines in logs.values():
         assert "take turns" in lines[-1], lines
         # Said once, after drops that did not say it: a single drop is not a twin.

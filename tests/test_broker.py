@@ -252,7 +252,10 @@ async def test_two_programs_on_one_user_are_told_they_take_turns(broker: Mosquit
             async with asyncio.timeout(20):
                 await asyncio.gather(*tasks, return_exceptions=True)
         except TimeoutError:
-            raise AssertionError(f"a link did not end within 20 s of its stop: {logs}") from None
+            where = {t.get_name(): [repr(f) for f in t.get_stack()] for t in tasks if not t.done()}
+            raise AssertionError(
+                f"a link did not end within 20 s of its stop: {logs}; still in {where}"
+            ) from None
     for lines in logs.values():
         assert "take turns" in lines[-1], lines
         # Said once, after drops that did not say it: a single drop is not a twin.

@@ -24,8 +24,10 @@ can stay under a tolerance of 10. Two things keep this driver under it:
    when its own clock (the line rate from the line settings) says the previous one has all but
    crossed the wire (``ahead`` characters early, to keep the line busy, plus however late
    its own timers have been firing lately, so that a late wake-up does not leave the line
-   idle). What is in flight is its own count, never a buffer in the OS, the adapter or the
-   server: after it hears a DC3, only the last burst or two it wrote are still to arrive.
+   idle). A wake-up that comes later still writes more at once: it tops what is in flight
+   up to ``burst`` + ``ahead`` characters, never beyond. What is in flight is its own count,
+   never a buffer in the OS, the adapter or the server: after it hears a DC3, only the last
+   burst or two it wrote are still to arrive.
 2. **It knows the control's buffer.** For a drip-feed it runs the control's motion model
    (:mod:`cellctl.kinds.iso_cnc.motion`, the one the emulator and the estimate use) over
    the blocks it sends: a block leaves the control's buffer when it starts to execute, at
@@ -286,14 +288,20 @@ class IsoCncDriver(LinkDriver):
         # the lead. Where they do not (a line made faster than this host's timers: a scaled
         # emulated cell or bench), the model alone guards the buffer, and the lead follows
         # the host's lateness so that the line does not idle.
-        fits = burst + ahead / char_time <= o.dc3_tolerance
+        lead = ahead / char_time  # in characters
+        fits = burst + lead <= o.dc3_tolerance
         spare = 0.0 if fits else math.inf
         wire_free = clock.monotonic()
         last_report = 0.0
         # Past the closing % (its trailer is only tape feed) a DC3 is the end of the read.
         end_at = framed.rfind(b"%") + 1 if o.percent else total - o.trailer
+        # Looked up once: this loop runs once a burst, for hundreds of lines in one process.
+        link, monotonic, sleep, level = self.link, clock.monotonic, clock.sleep, model.level
+        lag, small, cs_flow = o.link_lag_s, o.burst, o.cs_flow
         while self._sent < total:
-            self._handle(self.link.reset_input())
+            data = link.reset_input()
+            if data:
+                self._handle(data)
             if self._end_asked:  # end_tape(): the rest of this block, then the tape's end
                 self._end_asked = False
                 shorter = tape.cut_tape(framed, self._sent, percent=o.percent)
@@ -303,59 +311,59 @@ class IsoCncDriver(LinkDriver):
                         model.unsent.pop()  # blocks past the cut never go out
                     if model.drip and not o.percent:
                         model.unsent.append((total, 0.0))  # the M30 block
-            if self._sent >= end_at and self._dc3_seen > self._seen_at_end:
+            sent = self._sent
+            if sent >= end_at and self._dc3_seen > self._seen_at_end:
                 break
             if self._stopped:
                 self._stops += 1
                 report("stopped")
-                deadline = clock.monotonic() + o.stop_timeout
+                deadline = monotonic() + o.stop_timeout
                 while self._stopped:
                     await self._listen(
                         deadline, f"the control held the tape with DC3 for {o.stop_timeout:g} s"
                     )
                 continue
-            now = clock.monotonic()
-            early = wire_free - ahead - min(late, spare) - now
-            if early > 0:
-                late = await self._sleep_until(now + early, late)
-                continue
-            n = min(burst, total - self._sent)
-            room = limit - model.level(self._sent, now)
+            now = monotonic()
+            wake = pace = wire_free - ahead - min(late, spare)  # when the line wants more
+            # A burst tops what is in flight up to `burst` + `ahead` characters: a late
+            # wake-up writes more at once (and wakes less often), never more in flight.
+            gap = int(lead - max(0.0, wire_free - now) / char_time)
+            n = min(burst + gap if gap > 0 else burst, total - sent)
+            room = limit - level(sent, now)
             if room < n:
                 drain = model.next_drain()
-                if drain is not None and room < min(n, o.burst):
-                    late = await self._sleep_until(max(drain, now + char_time), late)
-                    continue
-                # What fits now; with nothing to wait for (a block longer than the room),
-                # a small burst: the control's DC3 is the guard.
-                n = max(1, min(n, room)) if drain is not None else min(n, o.burst)
-            if o.cs_flow and not await self.link.cts():
-                await self.link.wait_cts(True, timeout=o.stop_timeout)
+                if drain is not None and room < min(n, small):
+                    # One wake-up for both: the room only grows while nothing is written.
+                    wake = max(drain, now + char_time, pace)
+                else:
+                    # What fits now; with nothing to wait for (a block longer than the room),
+                    # a small burst: the control's DC3 is the guard.
+                    n = max(1, min(n, room)) if drain is not None else min(n, small)
+            if wake > now:
+                await sleep(wake - now)
+                # How late the wake-up was, kept as a maximum that decays (see `late`).
+                late = max(monotonic() - wake, late * _LATE_DECAY)
                 continue
-            await self.link.write(framed[self._sent : self._sent + n])
+            if cs_flow and not await link.cts():
+                await link.wait_cts(True, timeout=o.stop_timeout)
+                continue
+            await link.write(framed[sent : sent + n])
             # Dated from when the write returned, not from `now`: a host held up (by its OS,
             # by its load) between deciding and writing puts the burst on an idle line late,
             # and its blocks start late; counting them from `now` would empty the model early.
-            wire_free = max(wire_free, clock.monotonic()) + n * char_time
-            self._sent += n
-            model.wrote(self._sent, wire_free + o.link_lag_s)
-            if self._sent >= end_at and self._seen_at_end < 0:
+            wire_free = max(wire_free, monotonic()) + n * char_time
+            self._sent = sent = sent + n
+            model.wrote(sent, wire_free + lag)
+            if sent >= end_at and self._seen_at_end < 0:
                 self._seen_at_end = self._dc3_seen
-            if now - last_report >= 0.2 or self._sent >= total:
+            if now - last_report >= 0.2 or sent >= total:
                 last_report = now
                 self._progress = IsoCncStatus(
-                    self.state, self._sent, total, stall_s=model.idle_s * o.motion_scale
+                    self.state, sent, total, stall_s=model.idle_s * o.motion_scale
                 )
                 report(phase)
         if wire_free > clock.monotonic():
             await self.clock.sleep(wire_free - clock.monotonic())
-
-    async def _sleep_until(self, when: float, late: float) -> float:
-        """Sleep until ``when`` (loop time); returns the host's lateness, updated by this
-        wake-up's (a maximum that decays over a few hundred wake-ups)."""
-        clock = self.clock
-        await clock.sleep(max(0.0, when - clock.monotonic()))
-        return max(clock.monotonic() - when, late * _LATE_DECAY)
 
     async def _wait_end(self, deadline: float, model: BufferModel, seen_before: int) -> None:
         """Wait for the control's DC3 that ends the read (after the closing ``%``).

@@ -70,6 +70,7 @@ _OPERATOR_PATIENCE_S = 1.0
 #: that has had only these still waits for its tape (Fanuc shows LSK, label skip), and the
 #: trailer of the last tape often comes after the next READ.
 _BEFORE_PROGRAM = frozenset(b"\x00\x7f\r\n%")
+_BEFORE_PROGRAM_BYTES = bytes(sorted(_BEFORE_PROGRAM))
 
 
 class IsoCncEmulator(EmulatedDevice):
@@ -340,6 +341,30 @@ class IsoCncEmulator(EmulatedDevice):
             last = max(last + lag, self._held_until + len(data) * char_time)
             self._held_until = last
         n = len(data)
+        high_water = self.high_water  # read once a chunk: it is asked at every character
+        buffer = self._buffer
+        if (
+            not self._stopped
+            and not self._parity_rate
+            and self.mode != Mode.EDIT
+            and len(buffer) + n < high_water
+            and data.isascii()
+        ):
+            # The usual chunk, taken whole: what the loop below would do character by
+            # character when none of them stops, fills or garbles anything.
+            self.chars_read += n
+            if not self._program_came and data.translate(None, _BEFORE_PROGRAM_BYTES):
+                self._program_came = True
+            buffer += data
+            i = data.find(b"\n")
+            while i >= 0:
+                self._lf_at.append(last - (n - 1 - i) * char_time)
+                i = data.find(b"\n", i + 1)
+            if len(buffer) > self.peak_buffer:
+                self.peak_buffer = len(buffer)
+            if 0x0A in data or 0x25 in data:
+                self._block_ready.set()  # see the end of the loop below
+            return
         for j, byte in enumerate(data):
             if self._stopped and last - (n - 1 - j) * char_time > self._dc3_at:
                 self._after_dc3 += 1
@@ -363,19 +388,22 @@ class IsoCncEmulator(EmulatedDevice):
                     return
                 continue
             at = last - (n - 1 - j) * char_time
-            self._buffer.append(byte)
+            buffer.append(byte)
             if byte == 0x0A:
                 self._lf_at.append(at)
-            if len(self._buffer) >= self.high_water:
+            if len(buffer) >= high_water:
                 # The blocks the machine has started by now have left the buffer, even when
                 # this process got to them late: the control runs in real time.
                 self._advance(at)
-            self.peak_buffer = max(self.peak_buffer, len(self._buffer))
-            if not self._stopped and len(self._buffer) >= self.high_water:
+            if len(buffer) > self.peak_buffer:
+                self.peak_buffer = len(buffer)
+            if not self._stopped and len(buffer) >= high_water:
                 # Counted from the character that filled it, as a control does in real time
                 # (even when this process got to it late).
                 self._send_dc3(at)
-        if self.mode != Mode.EDIT:
+        if self.mode != Mode.EDIT and (0x0A in data or 0x25 in data):
+            # The execution waits for a block's LF (or the closing %): nothing else wakes it,
+            # which spares a wake-up a burst with hundreds of controls in one process.
             self._block_ready.set()
 
     def _send_dc3(self, at: float) -> None:

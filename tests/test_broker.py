@@ -225,12 +225,25 @@ async def test_two_programs_on_one_user_are_told_they_take_turns(broker: Mosquit
 
     first_in = asyncio.Event()
 
+    async def drain(c: aiomqtt.Client) -> None:
+        async for _ in c.messages:  # until the broker drops it: MqttError
+            pass
+
     async def session(link: Reconnect) -> None:
         async with settings.client("ignored: the broker names it after its user") as c:
             link.connected()
             first_in.set()
-            async for _ in c.messages:  # until the broker drops it: MqttError
-                pass
+            # Until dropped, or told to stop. Not on the cancel alone: Python 3.11's
+            # asyncio.wait_for (under aiomqtt's connect) loses a cancel that comes as the
+            # broker's CONNACK does, and the session would then wait here for ever.
+            dropped, stopped = asyncio.create_task(drain(c)), asyncio.create_task(stop.wait())
+            try:
+                await asyncio.wait({dropped, stopped}, return_when=asyncio.FIRST_COMPLETED)
+            finally:
+                dropped.cancel()
+                stopped.cancel()
+            if not stop.is_set():
+                await dropped  # raises its MqttError
 
     # The second starts once the first is in, as a second controller would: two connections
     # made in the same instant can leave the dropped one unaware of it (aiomqtt), which is

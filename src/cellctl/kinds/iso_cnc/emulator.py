@@ -350,8 +350,8 @@ class IsoCncEmulator(EmulatedDevice):
             and len(buffer) + n < high_water
             and data.isascii()
         ):
-            # The usual chunk, taken whole: what the loop below would do character by
-            # character when none of them stops, fills or garbles anything.
+            # The usual chunk, taken whole: what _take_each does character by character
+            # when none of them stops, fills or garbles anything.
             self.chars_read += n
             if not self._program_came and data.translate(None, _BEFORE_PROGRAM_BYTES):
                 self._program_came = True
@@ -360,24 +360,30 @@ class IsoCncEmulator(EmulatedDevice):
             while i >= 0:
                 self._lf_at.append(last - (n - 1 - i) * char_time)
                 i = data.find(b"\n", i + 1)
-            if len(buffer) > self.peak_buffer:
-                self.peak_buffer = len(buffer)
-            if 0x0A in data or 0x25 in data:
-                self._block_ready.set()  # see the end of the loop below
-            return
+            self.peak_buffer = max(self.peak_buffer, len(buffer))
+        elif not self._take_each(data, last, char_time, high_water):
+            return  # the read ended (an alarm, or the tape stored)
+        if self.mode != Mode.EDIT and (0x0A in data or 0x25 in data):
+            # The execution waits for a block's LF (or the closing %): nothing else wakes it,
+            # which spares a wake-up a burst with hundreds of controls in one process.
+            self._block_ready.set()
+
+    def _take_each(self, data: bytes, last: float, char_time: float, high_water: int) -> bool:
+        """:meth:`_take`, character by character; False once the read has ended."""
+        n, buffer = len(data), self._buffer
         for j, byte in enumerate(data):
             if self._stopped and last - (n - 1 - j) * char_time > self._dc3_at:
                 self._after_dc3 += 1
                 self.overflow_chars = max(self.overflow_chars, self._after_dc3)
                 if self._after_dc3 > self._tolerance:
                     self._alarm(87, f"{self._after_dc3} characters after DC3")
-                    return
+                    return False
             if self._parity_rate and self._rng.random() < self._parity_rate:
                 self._alarm(85, f"parity error on 0x{byte:02X}")
-                return
+                return False
             if byte & 0x80:
                 self._alarm(85, f"0x{byte:02X} is not a 7-bit ISO character")
-                return
+                return False
             self.chars_read += 1
             if byte not in _BEFORE_PROGRAM:
                 self._program_came = True
@@ -385,7 +391,7 @@ class IsoCncEmulator(EmulatedDevice):
                 self._tape.append(byte)
                 if self._tape_ends(byte):
                     self._store()
-                    return
+                    return False
                 continue
             at = last - (n - 1 - j) * char_time
             buffer.append(byte)
@@ -401,10 +407,7 @@ class IsoCncEmulator(EmulatedDevice):
                 # Counted from the character that filled it, as a control does in real time
                 # (even when this process got to it late).
                 self._send_dc3(at)
-        if self.mode != Mode.EDIT and (0x0A in data or 0x25 in data):
-            # The execution waits for a block's LF (or the closing %): nothing else wakes it,
-            # which spares a wake-up a burst with hundreds of controls in one process.
-            self._block_ready.set()
+        return True
 
     def _send_dc3(self, at: float) -> None:
         self._dc3_at = at

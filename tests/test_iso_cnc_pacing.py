@@ -2,7 +2,8 @@
 hundreds of lines from one process), on virtual time over mem://: the emulated control at its
 real line rate, the host's every sleep ending a set time late. Late or not, what the host has
 in flight never passes ``burst`` + ``ahead`` characters (the bound that keeps the control's
-DC3 a backstop); a late host writes more at once, so it wakes less often."""
+DC3 a backstop); a late host writes more at once, so it wakes less often. And a drip-feed
+ends at its M30 however its writes fall: its last block goes out with its closing %."""
 
 from __future__ import annotations
 
@@ -109,3 +110,43 @@ def test_a_late_host_tops_up_what_is_in_flight_and_never_goes_past_it() -> None:
     assert most_in_flight(late) <= bound + ROUNDING
     assert len(late) < len(on_time)
     print(f"on time: {len(on_time)} writes; 4 ms late: {len(late)} writes")
+
+
+def starving(pad: int) -> bytes:
+    """Short fast moves the line cannot keep up with, so that the control runs each block as
+    its LF arrives, M30 too; ``pad`` characters of comment move where the writes fall."""
+    lines = ["%", f"O1234 ({'P' * pad})", "G21 G90 G17", "G1 Z0 F3000"]
+    lines += [f"G1 X{(i % 2) / 10:.3f}" for i in range(40)]
+    lines += ["M30", "%"]
+    return ("\n".join(lines) + "\n").encode()
+
+
+def test_a_drip_feed_ends_at_its_m30_wherever_the_writes_fall() -> None:
+    """The control ends the run at M30 the moment its LF arrives and says so with DC3. A host
+    8 ms late whose write ended with that LF would hear the DC3 before its closing % was out,
+    take it for a full buffer, and feed the % to the next read (the automatic operator's):
+    the run's end is then never heard. Every alignment of the writes is tried."""
+    ended: list[int] = []
+    for pad in range(8):
+        data = starving(pad)
+        control = IsoCncEmulator(EmulatorOptions(auto_operator=True))
+        control.mode = Mode.RMT
+
+        async def main(control: IsoCncEmulator = control, data: bytes = data) -> None:
+            server = await serve_mem(control, LINE)
+            driver = await IsoCncDriver.connect(
+                server.url, settings=LINE, options=IsoCncOptions(dc1_timeout=10),
+                clock=LateClock(0.008),
+            )  # fmt: skip
+            try:
+                await driver.drip_feed(data, timeout=600)
+            finally:
+                await driver.close()
+                await server.close()
+
+        run_virtual(main())
+        run = next(r for r in control.runs if r.blocks)
+        assert run.done and run.blocks == 44, (pad, run)
+        assert control.alarms == [], pad
+        ended.append(pad)
+    assert ended == list(range(8))

@@ -25,7 +25,8 @@ can stay under a tolerance of 10. Two things keep this driver under it:
    crossed the wire (``ahead`` characters early, to keep the line busy, plus however late
    its own timers have been firing lately, so that a late wake-up does not leave the line
    idle). A wake-up that comes later still writes more at once: it tops what is in flight
-   up to ``burst`` + ``ahead`` characters, never beyond. What is in flight is its own count,
+   up to ``burst`` + ``ahead`` characters, never beyond (but for a drip-feed's closing
+   ``%``, which goes out with the last block). What is in flight is its own count,
    never a buffer in the OS, the adapter or the server: after it hears a DC3, only the last
    burst or two it wrote are still to arrive.
 2. **It knows the control's buffer.** For a drip-feed it runs the control's motion model
@@ -295,6 +296,11 @@ class IsoCncDriver(LinkDriver):
         last_report = 0.0
         # Past the closing % (its trailer is only tape feed) a DC3 is the end of the read.
         end_at = framed.rfind(b"%") + 1 if o.percent else total - o.trailer
+        # A drip-feed's last block and its closing % go out in one write: the control may end
+        # the run at that block (M30) and send its DC3 before a later write, and a DC3 heard
+        # before the % is out would be taken for the buffer's (the host would then wait for a
+        # DC1 and feed the % to the control's next read).
+        last_lf = framed.rfind(b"\n", 0, end_at) + 1 if model.drip else end_at
         # Looked up once: this loop runs once a burst, for hundreds of lines in one process.
         link, monotonic, sleep, level = self.link, clock.monotonic, clock.sleep, model.level
         lag, small, cs_flow = o.link_lag_s, o.burst, o.cs_flow
@@ -307,6 +313,7 @@ class IsoCncDriver(LinkDriver):
                 shorter = tape.cut_tape(framed, self._sent, percent=o.percent)
                 if shorter is not None:
                     framed, total, end_at, self._cut = shorter, len(shorter), len(shorter), True
+                    last_lf = framed.rfind(b"\n", 0, end_at) + 1 if model.drip else end_at
                     while model.unsent and model.unsent[-1][0] > total:
                         model.unsent.pop()  # blocks past the cut never go out
                     if model.drip and not o.percent:
@@ -347,6 +354,8 @@ class IsoCncDriver(LinkDriver):
             if cs_flow and not await link.cts():
                 await link.wait_cts(True, timeout=o.stop_timeout)
                 continue
+            if sent < last_lf <= sent + n < end_at:
+                n = end_at - sent  # the closing % with its last block (see last_lf)
             await link.write(framed[sent : sent + n])
             # Dated from when the write returned, not from `now`: a host held up (by its OS,
             # by its load) between deciding and writing puts the burst on an idle line late,

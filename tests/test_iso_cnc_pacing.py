@@ -53,14 +53,13 @@ class LateClock:
         return self.inner.call_at(when, callback, *args)
 
 
-def read_in(late: float) -> tuple[list[tuple[float, int]], IsoCncEmulator, bytes, IsoCncOptions]:
-    """A program read into the control's memory by a host ``late`` s late at every wake-up:
-    the host's writes as (time, characters), the control, the program and the options."""
-    data = surfacing(6)
-    options = IsoCncOptions(dc1_timeout=10)
+def feed(
+    data: bytes, mode: Mode, late: float, options: IsoCncOptions, trace: TrafficLog | None = None
+) -> IsoCncEmulator:
+    """``data`` fed to an emulated control in ``mode`` (EDIT: read into memory; RMT: a
+    drip-feed) by a host ``late`` s late at every wake-up, on virtual time; the control."""
     control = IsoCncEmulator(EmulatorOptions(auto_operator=True))
-    control.mode = Mode.EDIT
-    trace = TrafficLog(None)
+    control.mode = mode
 
     async def main() -> None:
         server = await serve_mem(control, LINE)
@@ -68,13 +67,24 @@ def read_in(late: float) -> tuple[list[tuple[float, int]], IsoCncEmulator, bytes
         driver = await IsoCncDriver.connect(
             server.url, settings=LINE, options=options, trace=trace, clock=clock
         )
+        send = driver.read_in if mode == Mode.EDIT else driver.drip_feed
         try:
-            await driver.read_in(data, timeout=600)
+            await send(data, timeout=600)
         finally:
             await driver.close()
             await server.close()
 
     run_virtual(main())
+    return control
+
+
+def read_in(late: float) -> tuple[list[tuple[float, int]], IsoCncEmulator, bytes, IsoCncOptions]:
+    """A program read into the control's memory by a host ``late`` s late at every wake-up:
+    the host's writes as (time, characters), the control, the program and the options."""
+    data = surfacing(6)
+    options = IsoCncOptions(dc1_timeout=10)
+    trace = TrafficLog(None)
+    control = feed(data, Mode.EDIT, late, options, trace)
     writes = [(t, len(d)) for t, _, direction, d in trace.entries if direction == SENT]
     return writes, control, data, options
 
@@ -128,23 +138,7 @@ def test_a_drip_feed_ends_at_its_m30_wherever_the_writes_fall() -> None:
     the run's end is then never heard. Every alignment of the writes is tried."""
     ended: list[int] = []
     for pad in range(8):
-        data = starving(pad)
-        control = IsoCncEmulator(EmulatorOptions(auto_operator=True))
-        control.mode = Mode.RMT
-
-        async def main(control: IsoCncEmulator = control, data: bytes = data) -> None:
-            server = await serve_mem(control, LINE)
-            driver = await IsoCncDriver.connect(
-                server.url, settings=LINE, options=IsoCncOptions(dc1_timeout=10),
-                clock=LateClock(0.008),
-            )  # fmt: skip
-            try:
-                await driver.drip_feed(data, timeout=600)
-            finally:
-                await driver.close()
-                await server.close()
-
-        run_virtual(main())
+        control = feed(starving(pad), Mode.RMT, 0.008, IsoCncOptions(dc1_timeout=10))
         run = next(r for r in control.runs if r.blocks)
         assert run.done and run.blocks == 44, (pad, run)
         assert control.alarms == [], pad

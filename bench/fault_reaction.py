@@ -205,12 +205,24 @@ async def moment(rig: CellRig, kind: str, rng: random.Random) -> str | None:
 
 
 def empty(rig: CellRig, controller: CellController, mill: str) -> bool:
-    """No part in ``mill``'s vise, none there in the journal, none on its way in or out, no
-    step on it: recovery will set it up again after a cut (with a part in its vise it only
-    waits for readiness, and a setup that never runs would leave no-next without an onset)."""
+    """No part in ``mill``'s vise, none there in the journal, none on its way in or out or to
+    go there next, no step on it: recovery will set it up again after a cut (with a part in
+    its vise it only waits for readiness, and a setup that never runs would leave no-next
+    without an onset)."""
     if rig.physical_part(mill) is not None or controller.step_task(mill) is not None:
         return False
-    if any(p.location == mill for p in rig.journal.parts(statuses=["waiting", "active", "held"])):
+    parts = rig.journal.parts(statuses=["waiting", "active", "held"])
+    if any(p.location == mill for p in parts):
+        return False
+    # Nor a part whose next step is on it: one could be loaded between the cut and the look
+    # that finds it, and recovery then keeps the setup (no-next would never act).
+    routes = controller.config.parts
+    if any(
+        p.route_index < len(routes[p.part_type].route)
+        and routes[p.part_type].route[p.route_index].mill == mill
+        for p in parts
+        if p.part_type in routes
+    ):
         return False
     transfers = rig.open_steps("transfer")
     if controller.step_task(controller.config.robot.name) is not None and not transfers:

@@ -216,7 +216,9 @@ class TrafficPane(Static):
         self, machine: str, rows: list[dict[str, Any]], command: dict[str, Any] | None = None
     ) -> None:
         """``command``: the first row sent for the operator's last command (shown first)."""
-        self.border_title = f"traffic: {machine} (>> sent, << received, >>* your command)"
+        title = f"traffic: {machine} (>> sent, << received, >>* your command)"
+        if self.border_title != title:  # setting it redraws the pane, even to the same
+            self.border_title = title
         self.show_text(traffic_text(machine, rows, max(self.size.width, 40), command))
 
     def show_text(self, text: Text) -> None:
@@ -231,8 +233,17 @@ def shown(widget: Static, text: Text, drawn: Text | None) -> Text:
     second while a batch runs, mostly as it was: on a shop's old PC that is the console's CPU.
     """
     if drawn is None or _look(text) != _look(drawn):
-        widget.update(text)
+        # A widget whose size its CSS fixes (the header, the board, the traffic pane) keeps
+        # it whatever it shows: no layout of the whole screen for it, only its own redraw.
+        widget.update(text, layout=not _sized(widget))
     return text
+
+
+def _sized(widget: Static) -> bool:
+    """True if ``widget``'s CSS fixes its height and its width is not ``auto`` (one left
+    unset fills its container's)."""
+    width, height = widget.styles.width, widget.styles.height
+    return height is not None and not height.is_auto and (width is None or not width.is_auto)
 
 
 def _look(text: Text) -> tuple[object, ...]:

@@ -390,7 +390,13 @@ function replaceRows(tableId, rows, empty, columns) {
 export function renderEvents(snap) {
   const items = snap.events.slice(-15).reverse()
     .map((e) => h("li", {}, h("time", {}, clock(e.time)), " ", e.text));
-  byId("event-list").replaceChildren(...items);
+  const list = byId("event-list");
+  // A push that brought no event leaves the list as it is (no new layout of the page).
+  const html = items.map((i) => i.outerHTML).join("");
+  if (list.dataset.shown !== html) {
+    list.dataset.shown = html;
+    list.replaceChildren(...items);
+  }
 }
 
 export function renderTraffic(rows) {

@@ -58,6 +58,7 @@ from _common import machine_line, percentile
 from cellctl.cell.config import load_cell, transfer_ends
 from cellctl.cell.controller import CellController
 from cellctl.cell.model import ControllerOptions
+from cellctl.cell.scheduler import PartState, next_stop
 from cellctl.kinds.dyna2400.driver import Dyna2400Mill, MillConfig
 from cellctl.kinds.ibm7545.driver import RobotConfig
 from cellctl.protocol.plc import PlcMap
@@ -214,14 +215,12 @@ def empty(rig: CellRig, controller: CellController, mill: str) -> bool:
     parts = rig.journal.parts(statuses=["waiting", "active", "held"])
     if any(p.location == mill for p in parts):
         return False
-    # Nor a part whose next step is on it: one could be loaded between the cut and the look
-    # that finds it, and recovery then keeps the setup (no-next would never act).
-    routes = controller.config.parts
+    # Nor a part whose next stop it is: one could be loaded between the cut and the look that
+    # finds it, and recovery then keeps the setup (no-next would never act).
+    types = controller.config.parts
     if any(
-        p.route_index < len(routes[p.part_type].route)
-        and routes[p.part_type].route[p.route_index].mill == mill
+        next_stop(PartState(p.id, p.part_type, p.location, p.route_index, p.status), types) == mill
         for p in parts
-        if p.part_type in routes
     ):
         return False
     transfers = rig.open_steps("transfer")

@@ -373,16 +373,20 @@ function scrapQuestion(p) {
 }
 
 function replaceRows(tableId, rows, empty, columns) {
-  const body = byId(tableId).querySelector("tbody");
   // Rebuilding while a dialog is open would be harmless; rebuilding under the pointer is not
-  // (a click would land on a new button): skip identical content.
-  const html = rows.map((r) => r.outerHTML).join("");
-  if (body.dataset.shown === html && rows.length) {
-    return;
+  // (a click would land on a new button): identical content is skipped.
+  replaceChanged(byId(tableId).querySelector("tbody"), rows.length ? rows
+    : [h("tr", { class: "empty" }, h("td", { colspan: columns }, empty))]);
+}
+
+// ``node``'s children replaced by ``items`` unless they show the same already (each rebuild
+// lays the page out again, and a push comes many times a second while a batch runs).
+function replaceChanged(node, items) {
+  const html = items.map((i) => i.outerHTML).join("");
+  if (node.dataset.shown !== html) {
+    node.dataset.shown = html;
+    node.replaceChildren(...items);
   }
-  body.dataset.shown = html;
-  body.replaceChildren(...(rows.length ? rows
-    : [h("tr", { class: "empty" }, h("td", { colspan: columns }, empty))]));
 }
 
 // -- events and traffic ---------------------------------------------------------------------
@@ -390,13 +394,7 @@ function replaceRows(tableId, rows, empty, columns) {
 export function renderEvents(snap) {
   const items = snap.events.slice(-15).reverse()
     .map((e) => h("li", {}, h("time", {}, clock(e.time)), " ", e.text));
-  const list = byId("event-list");
-  // A push that brought no event leaves the list as it is (no new layout of the page).
-  const html = items.map((i) => i.outerHTML).join("");
-  if (list.dataset.shown !== html) {
-    list.dataset.shown = html;
-    list.replaceChildren(...items);
-  }
+  replaceChanged(byId("event-list"), items);  // a push with no event leaves it as it is
 }
 
 export function renderTraffic(rows) {

@@ -4,7 +4,7 @@
 // as "Authorization: Bearer" with every request. Live updates come from the API's WebSocket
 // (a one-shot token fetched with the header); calls that act go through POST /dashboard/call.
 import { refreshAudit } from "./audit.js";
-import { timeOfDay } from "./clock.js";
+import { timeOfDay, whileShown } from "./clock.js";
 import {
   hideCellControls, renderCellControls, wireCellControls,
 } from "./controls.js";
@@ -386,12 +386,13 @@ function start() {
     return;
   }
   connect();
-  setInterval(refreshSteps, 2000);
-  setInterval(refreshTraffic, 1000);
+  // Read only while the page is shown (whileShown): a hidden dashboard asks the cell nothing.
+  whileShown(2000, refreshSteps);
+  whileShown(1000, refreshTraffic);
   // Figures that move with the clock alone come with the next change; read them now and
   // then (docs/api.md: "Updates").
-  setInterval(() => state.connected && refresh(), 5000);
-  setInterval(() => state.connected && refreshAudit(), 3000);
+  whileShown(5000, () => state.connected && refresh());
+  whileShown(3000, () => state.connected && refreshAudit());
 }
 
 start();

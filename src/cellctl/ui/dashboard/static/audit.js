@@ -1,6 +1,7 @@
 // The audit trail (audit.list, open to viewers): who did what, when, and how it ended,
 // newest first. Read now and then, and after each action of this page.
 import { call } from "./app.js";
+import { replaceChanged } from "./views.js";
 
 const SHOWN = 50;
 
@@ -38,5 +39,5 @@ export async function refreshAudit() {
       td(e.result, ok ? "" : "error"));
     return row;
   });
-  body.replaceChildren(...rows);
+  replaceChanged(body, rows);  // the same trail read again is not laid out again
 }

@@ -10,3 +10,26 @@ export function timeOfDay(date) {
 export function clockOf(seconds) {
   return seconds ? timeOfDay(new Date(seconds * 1000)) : "";
 }
+
+// Call `fn` every `ms` while the page is shown, and once at once when it is shown again: a
+// page in a hidden tab or a locked screen reads nothing (the live subscription still keeps
+// its status current), and is up to date the moment it is looked at.
+export function whileShown(ms, fn) {
+  let timer = null;
+  const follow = () => {
+    if (document.hidden) {
+      clearInterval(timer);
+      timer = null;
+    } else if (timer === null) {
+      timer = setInterval(fn, ms);
+      return true;
+    }
+    return false;
+  };
+  document.addEventListener("visibilitychange", () => {
+    if (follow()) {
+      fn();
+    }
+  });
+  follow();
+}

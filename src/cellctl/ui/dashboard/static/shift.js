@@ -1,7 +1,8 @@
 // The Shift panel: the figures of `cellctl report shift` (the API's report.shift) over the
 // last 8 hours, or since the journal's first step: OEE per machine after ISO 22400, parts,
-// alarms by cause, downtime by reason. Read every SHIFT_MS while connected.
+// alarms by cause, downtime by reason. Read every SHIFT_MS while connected and shown.
 import { call, state } from "./app.js";
+import { whileShown } from "./clock.js";
 
 const SHIFT_MS = 10000;
 
@@ -67,5 +68,5 @@ async function refreshShift() {
   }
 }
 
-setInterval(refreshShift, SHIFT_MS);
-setTimeout(refreshShift, 1000);
+whileShown(SHIFT_MS, refreshShift);
+setTimeout(() => document.hidden || refreshShift(), 1000);  // once connected, if shown

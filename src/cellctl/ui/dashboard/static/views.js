@@ -381,7 +381,7 @@ function replaceRows(tableId, rows, empty, columns) {
 
 // ``node``'s children replaced by ``items`` unless they show the same already (each rebuild
 // lays the page out again, and a push comes many times a second while a batch runs).
-function replaceChanged(node, items) {
+export function replaceChanged(node, items) {
   const html = items.map((i) => i.outerHTML).join("");
   if (node.dataset.shown !== html) {
     node.dataset.shown = html;

@@ -76,7 +76,10 @@ async def session(
     password: str | None = None,
     mode: ua.MessageSecurityMode = SIGN_AND_ENCRYPT,
 ) -> AsyncIterator[Client]:
-    client = Client(url, timeout=5)
+    # The client's watchdog reads the server's state every watchdog_intervall and gives the
+    # connection up if that read takes longer: 1 s by default, which a server sharing a
+    # loaded box with its cell (and five other test workers) can take.
+    client = Client(url, timeout=5, watchdog_intervall=5)
     client.application_uri = CLIENT_URI
     server_cert = cell / "state" / "opcua" / "server-cert.der"
     await client.set_security(

@@ -55,7 +55,7 @@ async def test_a_hidden_page_reads_nothing_and_reads_at_once_when_shown(
     assert not READS & set(seen), f"a hidden page read {sorted(set(seen))}"
     await page.evaluate(SET_HIDDEN, False)
     deadline = time.monotonic() + AT_ONCE_S
-    while not READS <= set(seen):
+    while not set(seen) >= READS:
         assert time.monotonic() < deadline, f"shown again, the page read only {set(seen)}"
         await asyncio.sleep(0.05)
     await page.locator("#order-table tr", has_text="H1").wait_for(timeout=SEEN_MS)

@@ -47,7 +47,7 @@ typecheck: $(STAMP)
 
 # Independent tests run in parallel (each has its own ports and directories). Much of a
 # test's time is emulated machine time or a process starting (waiting, not computing): 6
-# workers keep a 2-core box about 90 % busy over the run (1555 tests, about 5.5 min), so what
+# workers keep a 2-core box over 95 % busy over the run (1575 tests, 5 to 6.5 min), so what
 # shortens the suite is CPU saved (a `cellctl` that starts with less, one Chromium per worker).
 # Work stealing keeps the long end-to-end tests from piling up on one worker at the end.
 # Compiled bytecode is used and kept even where the environment turns caching off: pytest's
@@ -55,10 +55,12 @@ typecheck: $(STAMP)
 # every `cellctl` process compiled again. It stays in __pycache__ beside each module (git
 # ignores it): pip compiled the installed packages there, and a PYTHONPYCACHEPREFIX would
 # hide that and compile them all again on a fresh clone, in six workers at once.
+# The tests marked alone (real-time fidelity) run after, with the box to themselves; only the
+# files that mark one are collected (collecting the whole suite for one test took 5 s).
 PYTEST := env -u PYTHONDONTWRITEBYTECODE $(BIN)/pytest
 pytest: $(STAMP) $(PLUGIN_STAMP)
 	$(PYTEST) -q -n 6 --dist worksteal -m "not alone"
-	$(PYTEST) -q -m alone  # real-time fidelity, with the box to itself
+	$(PYTEST) -q -m alone $$(grep -l '^@pytest.mark.alone' tests/*.py)  # real-time fidelity, alone
 
 # `make demo DEMO_ARGS=--dashboard` leaves the dashboard up after the batch (Ctrl-C stops).
 demo: $(STAMP)

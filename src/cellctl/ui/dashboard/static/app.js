@@ -186,6 +186,26 @@ export function render() {
   cellState.className = `badge mode-${mode} ${mode === "running" ? "good" : "warn"}`;
 }
 
+// Updates come pushed up to a hundred times a second while the cell works (a block, a
+// position); an eye reads some ten. The first is drawn at once, then at most one drawing
+// every RENDER_MS, the latest state always drawn last: the page's CPU stays low, no state
+// that lasts is missed.
+const RENDER_MS = 100;
+let renderTimer = null;
+let renderedAt = -Infinity;
+
+function renderSoon() {
+  if (renderTimer !== null) {
+    return;  // a drawing is due: it draws the state as it is then
+  }
+  const wait = Math.max(0, renderedAt + RENDER_MS - performance.now());
+  renderTimer = setTimeout(() => {
+    renderTimer = null;
+    renderedAt = performance.now();
+    render();
+  }, wait);
+}
+
 export async function refresh() {
   try {
     const status = await get("/api/status");
@@ -316,7 +336,7 @@ async function connect() {
       refreshTraffic();
     } else if (message.method === "notify_status_update" && state.snapshot) {
       applyUpdate(state.snapshot, message.params);
-      render();
+      renderSoon();
     }
   });
   ws.addEventListener("close", () => {

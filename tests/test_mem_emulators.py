@@ -20,6 +20,7 @@ import pytest
 
 from cellctl.clock import current_clock, run_virtual
 from cellctl.drivers.state import StateStore
+from cellctl.emulators.cell import EmulatedCell
 from cellctl.emulators.memserve import serve_mem
 from cellctl.emulators.serve import EmulatedDevice, Server, serve
 from cellctl.errors import MachineInUse
@@ -248,3 +249,21 @@ def test_mill_downloads_over_mem_on_virtual_time_as_over_a_real_line(
         f"{mem.wall:.3f} s wall ({mem.elapsed / mem.wall:.0f}x); {real_listen} session "
         f"{real.wall:.3f} s wall at time scale 20000"
     )
+
+
+def test_an_emulated_cell_started_with_a_part_in_a_vise_has_it_clamped(tmp_path: Path) -> None:
+    async def started() -> tuple[bool, bool, bool, dict[int, str | None]]:
+        cell = EmulatedCell(time_scale=1.0, links="mem")
+        await cell.start(tmp_path / "cell")
+        try:
+            cell.place("cnc2", "X")
+            await current_clock().sleep(cell.plc.timing.clamp_s + 0.1)  # the vise's travel
+            return (cell.robot.output(2), cell.plc.coils["clamp_2"],
+                    cell.plc.inputs["clamp_closed_2"], dict(cell.vise))  # fmt: skip
+        finally:
+            await cell.close()
+
+    output, coil, closed, vises = run_virtual(started())
+    # As the robot's place leaves it: its vise output on, the coil and the sensor following.
+    assert (output, coil, closed) == (True, True, True)
+    assert vises == {1: None, 2: "X"}

@@ -21,6 +21,7 @@ from cellctl.errors import UsageError
 from cellctl.plan.engine import (
     FaultWindow,
     HeldPart,
+    PartAt,
     PlanInputs,
     PlanOrder,
     PlanRun,
@@ -30,7 +31,8 @@ from cellctl.plan.engine import (
 from cellctl.plan.when import PLAN_POLL_S
 
 START = datetime(2026, 11, 27, 6, 0).timestamp()
-SHIFT = PlanInputs(EXAMPLE_CELL, (PlanOrder("A", "wax-robot-base", 1),), START, START + 8 * 3600)
+ORDER = PlanOrder("A", "wax-robot-base", 1)
+SHIFT = PlanInputs(EXAMPLE_CELL, (ORDER,), START, START + 8 * 3600)
 
 
 def relative(t: float | None) -> float | None:
@@ -99,6 +101,33 @@ def test_a_part_held_at_the_start_blocks_its_mill_until_the_end(tmp_path: Path) 
     assert [(s.part_id, s.machine) for s in steps] == [("A-1", "robot"), ("A-1", "cnc1")]
 
 
+def test_a_part_under_way_is_taken_up_where_it_is(tmp_path: Path) -> None:
+    # Two parts, one of them cut at cnc1 and carried to cnc2 already (a running cell's).
+    order = PlanOrder("A", "wax-robot-base", 2, under_way=(PartAt("cnc2", 1),))
+    run = simulate(replace(SHIFT, orders=(order,)), tmp_path / "under-way")
+    with Journal(run.journal_path) as journal:
+        steps = [(s.part_id, s.kind, s.machine, s.state) for s in journal.steps()]
+        parts = {p.id: p.status for p in journal.parts()}
+    assert parts == {"A-1": "done", "A-2": "done"}
+    # A-1 is finished where it is and unloaded; A-2 goes the whole route.
+    assert [s[1:] for s in steps if s[0] == "A-1"] == [
+        ("machine", "cnc2", "finished"),
+        ("transfer", "robot", "finished"),
+    ]
+    assert [s[1:3] for s in steps if s[0] == "A-2"] == [
+        ("transfer", "robot"),
+        ("machine", "cnc1"),
+        ("transfer", "robot"),
+        ("machine", "cnc2"),
+        ("transfer", "robot"),
+    ]
+    # The finishing cut begins at once, with nothing to load.
+    assert steps[0][:3] == ("A-1", "machine", "cnc2")
+    fresh = simulate(replace(SHIFT, orders=(replace(order, under_way=()),)), tmp_path / "fresh")
+    done, done_fresh = run.finished["A"], fresh.finished["A"]
+    assert done is not None and done_fresh is not None and done < done_fresh
+
+
 @pytest.mark.parametrize(
     ("change", "words"),
     [
@@ -119,6 +148,25 @@ def test_a_part_held_at_the_start_blocks_its_mill_until_the_end(tmp_path: Path) 
         ),
         ({"out_of_service": ("lathe",)}, "no machine 'lathe'"),
         ({"held": (HeldPart("X", "wax-robot-base", "shelf"),)}, "no place 'shelf'"),
+        (
+            {"orders": (replace(ORDER, under_way=(PartAt("cnc1", 1), PartAt("cnc2", 1))),)},
+            "order A: 2 parts under way, more than its quantity 1",
+        ),
+        (
+            {"orders": (replace(ORDER, under_way=(PartAt("shelf"),)),)},
+            "part of A under way: no place 'shelf'",
+        ),
+        (
+            {"orders": (replace(ORDER, under_way=(PartAt("cnc2", 3),)),)},
+            r"part of A under way: 3 cuts done, but its route has 2 \(0 to 2\)",
+        ),
+        (
+            {
+                "orders": (replace(ORDER, under_way=(PartAt("cnc2", 1),)),),
+                "held": (HeldPart("X", "wax-robot-base", "cnc2", 1),),
+            },
+            "part of A under way: cnc2's vise holds held part of X",
+        ),
     ],
 )
 def test_inputs_the_cell_cannot_take_are_refused_before_anything_runs(

@@ -6,6 +6,7 @@ part type or policy the cell does not have."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from datetime import datetime, timedelta
 from pathlib import Path
 from typing import Any
@@ -17,7 +18,7 @@ from hypothesis import strategies as st
 from cellctl.cell.config import load_cell
 from cellctl.emulators.cell import EXAMPLE_CELL
 from cellctl.errors import UsageError
-from cellctl.plan.engine import FaultWindow, PlanInputs, PlanOrder
+from cellctl.plan.engine import FaultWindow, PartAt, PlanInputs, PlanOrder
 from cellctl.plan.inputs import inputs_dict, parse_inputs
 from cellctl.plan.orders_file import orders_csv, parse_orders
 from cellctl.plan.spec import (
@@ -246,10 +247,14 @@ JSONISH = st.recursive(
 )
 
 
+#: An order of a running cell: one of its parts cut at cnc1, waiting there.
+UNDER_WAY = PlanOrder("A", "wax-robot-base", 2, 1, START + 3600, (PartAt("cnc1", 1),))
+
+
 def _saved() -> dict[str, Any]:
     inputs = PlanInputs(
         cell_dir=Path("cell"),
-        orders=(PlanOrder("A", "wax-robot-base", 2, 1, START + 3600),),
+        orders=(UNDER_WAY,),
         start=START,
         until=START + 8 * 3600,
         faults=(FaultWindow("cnc2", "down", START + 60, START + 120),),
@@ -274,10 +279,14 @@ def test_a_saved_inputs_file_with_anything_in_a_field_is_read_or_refused(
 def test_saved_inputs_read_back() -> None:
     inputs, policies = parse_inputs(json.loads(json.dumps(_saved())), Path("/plans"))
     assert inputs.cell_dir == Path("/plans/cell") and policies == ("default",)
-    assert inputs.orders == (PlanOrder("A", "wax-robot-base", 2, 1, START + 3600),)
+    assert inputs.orders == (UNDER_WAY,)
     assert inputs.faults == (FaultWindow("cnc2", "down", START + 60, START + 120),)
     assert (inputs.start, inputs.until, inputs.seed) == (START, START + 8 * 3600, 3)
     assert inputs.poll_period == 2.0
     # Saved before plans had a poll period of their own: played at the cell's, as then.
     older = {k: v for k, v in _saved().items() if k != "poll_period"}
     assert parse_inputs(older, Path("/plans"))[0].poll_period == 0.0
+    # Saved before plans took parts up where they are: none under way.
+    orders = [{k: v for k, v in o.items() if k != "under_way"} for o in _saved()["orders"]]
+    [order] = parse_inputs(_saved() | {"orders": orders}, Path("/plans"))[0].orders
+    assert order == replace(UNDER_WAY, under_way=())

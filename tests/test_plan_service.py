@@ -15,6 +15,7 @@ from typing import Any
 import pytest
 
 from cellctl.errors import AccessDenied, UsageError
+from cellctl.plan.run import report_from_dict
 from cellctl.service.access import AttachedCell
 from cellctl.service.client import RemoteCell, attach
 from cellctl.service.server import ApiServer
@@ -160,6 +161,41 @@ async def test_cellctl_plan_through_the_api_answers_the_questions(
     saved = (out / "cell" / "cell.toml").read_text()
     assert "time_scale" not in saved and "[machines.cnc1]" in saved
     assert (out / "plan.svg").read_text().startswith("<svg")
+
+
+async def test_a_part_on_its_way_is_taken_up_where_it_is(
+    running: tuple[CellRig, ApiServer],
+) -> None:
+    rig, _ = running
+    rig.post("wax-robot-base", 1, "U")
+    client = await attach(rig.directory)
+    try:
+        # Paused during the rough cut: the cut ends, nothing starts after it.
+        await rig.wait_for(lambda: rig.open_steps("machine"), "the rough cut under way")
+        await client.call("cell.pause", {})
+        await rig.wait_quiet(span=1.0, what="the paused cell at rest")
+        [part] = rig.journal.parts(order_id="U")
+        assert (part.status, part.location, part.route_index) == ("waiting", "cnc1", 1)
+        answer = await client.call("plan.run", {"shift": "1h"})
+    finally:
+        await client.close()
+    [order] = answer["plan"]["inputs"]["orders"]
+    assert (order["order_id"], order["qty"]) == ("U", 1)
+    assert order["under_way"] == [{"location": "cnc1", "route_index": 1}]
+    [report] = answer["plan"]["plans"]
+    assert [(o["order_id"], o["finished"] is not None) for o in report["orders"]] == [("U", True)]
+    assert report["under_way_at_start"] == 1
+    lines = report_from_dict(report).lines()
+    assert "on their way at the start (taken up there): 1" in lines
+    # Taken up after its rough cut: the plan neither loads it from the conveyor nor cuts it
+    # at cnc1 again; it finishes it at cnc2 and unloads it.
+    steps = [(s["kind"], s["machine"], s["program"]) for s in report["steps"]]
+    assert ("machine", "cnc1", "robot_base_rough_cnc1") not in steps
+    assert not [s for s in steps if s[2] == "conveyor_to_cnc1"]
+    assert steps[-2:] == [
+        ("machine", "cnc2", "robot_base_finish_cnc2"),
+        ("transfer", "robot", "cnc2_to_conveyor"),
+    ]
 
 
 @pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting

@@ -1,8 +1,9 @@
 """The whole cell, emulated: robot, two mills and the PLC, wired as the example cell is.
 
 Each machine's emulator comes from its kind (the registry): the robot family's emulator
-takes ``set_input`` and ``output_hooks``, a mill's takes ``cycle_start``, ``run_hooks`` and
-``start`` (docs/kinds.md). A template with other kinds is served the same way.
+takes ``set_input`` and ``output_hooks`` (and ``set_output`` to start with a part in a vise),
+a mill's takes ``cycle_start``, ``run_hooks`` and ``start`` (docs/kinds.md). A template
+with other kinds is served the same way.
 
 ::
 
@@ -214,6 +215,21 @@ class EmulatedCell:
                 self.gripper = None
             self.plc.set_input("outfeed_clear", False)
             self._spawn(self._clear_outfeed())
+
+    def place(self, mill: str, part: str) -> None:
+        """Start with ``part`` clamped in ``mill``'s vise, as the robot's place leaves it: its
+        vise output on (the clamp coil and the vise's sensors follow). Call after
+        :meth:`start`; a plan takes up a running cell's part where it is so."""
+        n = self.mill_names.index(mill) + 1
+        port = next(p for p, m in VISE_OUTPUTS.items() if m == n)
+        set_output = getattr(self.robot, "set_output", None)
+        if set_output is None:
+            raise UsageError(
+                f"the {self.kinds[self.robot_name]} robot's emulator has no set_output: the "
+                f"cell cannot start with a part in {mill}'s vise"
+            )
+        self.gripper = part
+        set_output(port, True)  # the hook moves the part from the gripper into the vise
 
     async def _clear_outfeed(self) -> None:
         clock = self.clock

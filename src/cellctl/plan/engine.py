@@ -75,10 +75,21 @@ CANCEL_TRIES = 5
 
 
 @dataclass(frozen=True)
+class PartAt:
+    """Where a part of the running cell is: ``location`` (the conveyor or a mill) with
+    ``route_index`` of its route's cuts done."""
+
+    location: str
+    route_index: int = 0
+
+
+@dataclass(frozen=True)
 class PlanOrder:
     """An order to play: ``qty`` parts of ``part_type`` (a part type of the cell's cell.toml).
 
     ``due``: when it is due (unix seconds), if it has a due time; the plan only reports it.
+    ``under_way``: where those of the ``qty`` parts already on their way are (a running
+    cell's snapshot); the plan takes each up from there, the others from the conveyor.
     """
 
     order_id: str
@@ -86,6 +97,7 @@ class PlanOrder:
     qty: int
     priority: int = DEFAULT_PRIORITY
     due: float | None = None
+    under_way: tuple[PartAt, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -218,14 +230,18 @@ def check_inputs(inputs: PlanInputs) -> None:
         if order.order_id in seen:
             raise UsageError(f"order {order.order_id} is given twice")
         seen.add(order.order_id)
+        if len(order.under_way) > order.qty:
+            raise UsageError(
+                f"order {order.order_id}: {len(order.under_way)} parts under way, "
+                f"more than its quantity {order.qty}"
+            )
     for name in inputs.out_of_service:
         if name not in machines:
             raise UsageError(f"out of service: no machine {name!r} in {toml}")
     for held in inputs.held:
         if held.part_type not in parts:
             raise UsageError(f"held part of {held.order_id}: no part type {held.part_type!r}")
-        if held.location != CONVEYOR and held.location not in machines:
-            raise UsageError(f"held part of {held.order_id}: no place {held.location!r}")
+    _check_places(inputs, parts, machines)
     for fault in inputs.faults:
         if fault.machine != PLC and fault.machine not in machines:
             raise UsageError(f"fault {fault.fault} on {fault.machine!r}: no such machine")
@@ -233,6 +249,33 @@ def check_inputs(inputs: PlanInputs) -> None:
         check_switch(fault.machine, kind, fault.fault, fault.arg)
         if fault.end is not None and not fault.end > fault.start:
             raise UsageError(f"fault {fault.machine}:{fault.fault}: it must end after it starts")
+
+
+def _check_places(inputs: PlanInputs, parts: dict[str, Any], machines: dict[str, Any]) -> None:
+    """Refuse a held or under-way part at no place of the cell, with more cuts done than its
+    route has, or in a vise another part is in."""
+    placed = [
+        (f"held part of {h.order_id}", h.part_type, PartAt(h.location, h.route_index))
+        for h in inputs.held
+    ]
+    placed += [
+        (f"part of {o.order_id} under way", o.part_type, at)
+        for o in inputs.orders
+        for at in o.under_way
+    ]
+    vises: dict[str, str] = {}
+    for who, part_type, at in placed:
+        if at.location != CONVEYOR and at.location not in machines:
+            raise UsageError(f"{who}: no place {at.location!r}")
+        cuts = len(parts.get(part_type, {}).get("route", []))
+        if not 0 <= at.route_index <= cuts:
+            raise UsageError(
+                f"{who}: {at.route_index} cuts done, but its route has {cuts} (0 to {cuts})"
+            )
+        if at.location != CONVEYOR:
+            if at.location in vises:
+                raise UsageError(f"{who}: {at.location}'s vise holds {vises[at.location]}")
+            vises[at.location] = who
 
 
 # -- the play ---------------------------------------------------------------------------------
@@ -338,9 +381,22 @@ async def _cancel(tasks: Sequence[asyncio.Task[Any]]) -> None:
 
 
 def _post(inputs: PlanInputs, journal: Journal, mailbox: Mailbox, cell: EmulatedCell) -> None:
-    """The plan's orders, and the parts held at its start (their own one-part orders)."""
+    """The plan's orders (their parts under way where they are), and the parts held at its
+    start (their own one-part orders)."""
     for order in inputs.orders:
-        mailbox.post_order(order.part_type, order.qty, order.priority, order_id=order.order_id)
+        posted, _ = mailbox.post_order(
+            order.part_type, order.qty, order.priority, order_id=order.order_id
+        )
+        if not order.under_way:
+            continue
+        # Taken as the controller takes an order, then its first parts put where the running
+        # cell has them: the controller goes on with them as after a restart.
+        mailbox.set_order_state(order.order_id, "accepted")
+        parts = journal.create_parts(posted)
+        for part, at in zip(parts, order.under_way, strict=False):
+            journal.move_part(part.id, at.location, at.route_index)
+            if at.location in cell.mill_names:
+                cell.place(at.location, part.id)
     for n, held in enumerate(inputs.held, start=1):
         oid = f"{held.order_id}~held{n}"
         posted, _ = mailbox.post_order(held.part_type, 1, order_id=oid)
@@ -349,7 +405,7 @@ def _post(inputs: PlanInputs, journal: Journal, mailbox: Mailbox, cell: Emulated
         journal.move_part(part.id, held.location, held.route_index)
         journal.hold_part(part.id, "held when the plan began")
         if held.location in cell.mill_names:
-            cell.vise[cell.mill_names.index(held.location) + 1] = part.id
+            cell.place(held.location, part.id)
 
 
 async def _watch(
@@ -482,6 +538,7 @@ __all__ = [
     "POLICIES",
     "FaultWindow",
     "HeldPart",
+    "PartAt",
     "PlanInputs",
     "PlanOrder",
     "PlanRun",

@@ -4,11 +4,11 @@ the same plan again::
     save_inputs(inputs, policies, out)          # out/inputs.json and out/cell/ (the config)
     inputs, policies = load_inputs(out / "inputs.json")
 
-``inputs.json`` holds the seed, the window, the orders (with their due times), the fault
-windows, the machines out of service and the parts held at the start, and names the copy of
-the cell's configuration beside it (``cell/``: cell.toml and the programs it names; no
-journal, mailbox, machine state or token). Times are unix seconds; ``*_text`` fields repeat
-them as local time for people and are ignored on reading.
+``inputs.json`` holds the seed, the window, the orders (with their due times and where their
+parts under way are), the fault windows, the machines out of service and the parts held at
+the start, and names the copy of the cell's configuration beside it (``cell/``: cell.toml
+and the programs it names; no journal, mailbox, machine state or token). Times are unix
+seconds; ``*_text`` fields repeat them as local time for people and are ignored on reading.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from cellctl.emulators.cell import real_cell_toml
 from cellctl.errors import UsageError
 from cellctl.files import read_file
 from cellctl.mailbox.base import MAX_QTY
-from cellctl.plan.engine import FaultWindow, HeldPart, PlanInputs, PlanOrder
+from cellctl.plan.engine import FaultWindow, HeldPart, PartAt, PlanInputs, PlanOrder
 from cellctl.plan.when import MAX_HORIZON_S, MAX_POLL_S
 
 #: The file's format name and version.
@@ -45,12 +45,19 @@ class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, defer_build=True)
 
 
+class _At(_Model):
+    location: _Text
+    route_index: Annotated[int, Field(ge=0, le=1000)] = 0
+
+
 class _Order(_Model):
     order_id: _Text
     part_type: _Text
     qty: Annotated[int, Field(ge=1, le=MAX_QTY)]
     priority: Annotated[int, Field(ge=-1_000_000, le=1_000_000)] = 0
     due: _Time | None = None
+    # Missing in files saved before plans took parts up where they are: none under way.
+    under_way: Annotated[list[_At], Field(max_length=MAX_QTY)] = []
 
 
 class _Fault(_Model):
@@ -123,6 +130,11 @@ def _strip_text(data: Any) -> Any:
     return data
 
 
+def _order(found: _Order) -> PlanOrder:
+    under_way = tuple(PartAt(**at.model_dump()) for at in found.under_way)
+    return PlanOrder(**(found.model_dump() | {"under_way": under_way}))
+
+
 def parse_inputs(data: Any, base: Path) -> tuple[PlanInputs, tuple[str, ...]]:
     """The inputs and policies ``data`` (``inputs.json``'s content) holds; ``cell_dir``
     relative to ``base``."""
@@ -136,7 +148,7 @@ def parse_inputs(data: Any, base: Path) -> tuple[PlanInputs, tuple[str, ...]]:
         raise UsageError("plan inputs: until must be after start, at most 31 days")
     inputs = PlanInputs(
         cell_dir=base / found.cell_dir,
-        orders=tuple(PlanOrder(**o.model_dump()) for o in found.orders),
+        orders=tuple(_order(o) for o in found.orders),
         start=found.start,
         until=found.until,
         faults=tuple(FaultWindow(**f.model_dump()) for f in found.faults),

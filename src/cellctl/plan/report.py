@@ -76,6 +76,8 @@ class PlanReport:
     steps_failed: int = 0
     #: Parts held for the operator when the plan began (they stay held in it).
     held_at_start: int = 0
+    #: Parts on their way when the plan began, taken up where they were.
+    under_way_at_start: int = 0
     #: The steps played from the start: part, its type, kind, machine, program, state, times.
     steps: list[dict[str, Any]] = field(default_factory=list)
     #: How often the planned controller looked at idle machines, s (0: not known).
@@ -133,6 +135,8 @@ class PlanReport:
         downs = ", ".join(f"{m} {span_text(s)}" for m, s in self.down_s.items() if s > 0)
         if downs:
             out.append(f"down: {downs}")
+        if self.under_way_at_start:
+            out.append(f"on their way at the start (taken up there): {self.under_way_at_start}")
         if self.held_at_start:
             out.append(f"held for the operator at the start (stay held): {self.held_at_start}")
         if self.alarms_raised or self.steps_failed:
@@ -200,6 +204,7 @@ def plan_report(
     faults: Sequence[FaultWindow] = (),
     held_at_start: int = 0,
     poll_period: float = 0.0,
+    under_way_at_start: int = 0,
 ) -> PlanReport:
     """The report of ``orders`` played from ``start`` in ``journal`` (see module docstring)."""
     machines = machines_of(config)
@@ -227,6 +232,7 @@ def plan_report(
         alarms_raised=len(alarms),
         steps_failed=sum(s.state in ("failed", "interrupted") for s in steps),
         held_at_start=held_at_start,
+        under_way_at_start=under_way_at_start,
         steps=[_step(s, types) for s in steps],
     )
 

@@ -116,6 +116,7 @@ def _play_policy(
             faults=inputs.faults,
             held_at_start=len(inputs.held),
             poll_period=run.poll_period,
+            under_way_at_start=sum(len(o.under_way) for o in inputs.orders),
         )
         return report, journal.steps(), {p.id: p.part_type for p in journal.parts()}
 

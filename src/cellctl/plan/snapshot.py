@@ -8,15 +8,18 @@
 Each order not finished (posted, accepted, in progress, held) is played with what remains
 of it: its quantity less the parts done, scrapped, cancelled and held. A held part stays held
 where it is (:class:`~cellctl.plan.engine.HeldPart`): the plan does not guess the operator's
-word on it. A part on its way (between steps, or in a step now) is played again from the
-start of its route: the plan errs late for it, by at most its route's time.
+word on it. A part on its way is taken up where it is (``PlanOrder.under_way``): at a mill
+with the cuts it has, the plan goes on with it as the controller would after a restart. A
+step in flight now is played again whole (the journal records a step when it ends): the
+plan errs late by at most that step's time.
 """
 
 from __future__ import annotations
 
+from cellctl.cell.config import CONVEYOR
 from cellctl.cell.journal import Journal
 from cellctl.mailbox import Mailbox
-from cellctl.plan.engine import HeldPart, PlanOrder
+from cellctl.plan.engine import HeldPart, PartAt, PlanOrder
 
 #: Order states still to be worked on.
 OPEN_STATES = ("posted", "accepted", "in-progress", "held")
@@ -34,9 +37,16 @@ def open_work(
         for p in parts:
             if p.status == "held":
                 held.append(HeldPart(order.id, p.part_type, p.location, p.route_index))
+        under_way = tuple(
+            PartAt(p.location, p.route_index)
+            for p in parts
+            if p.status in ("waiting", "active") and (p.location != CONVEYOR or p.route_index)
+        )
         remaining = order.qty - settled
         if remaining > 0:
-            orders.append(PlanOrder(order.id, order.part_type, remaining, order.priority))
+            orders.append(
+                PlanOrder(order.id, order.part_type, remaining, order.priority, under_way=under_way)
+            )
     return tuple(orders), tuple(held)
 
 

@@ -521,7 +521,11 @@ class Ibm7545Emulator(EmulatedDevice):
             self._abort_reason = reason
             self._cycle.cancel()
 
-    def _set_output(self, port: int, value: bool) -> None:
+    def set_output(self, port: int, value: bool) -> None:
+        """Set digital output ``port`` (1..16) as a program's OUTPUT would: the output hooks
+        hear a change (the emulated cell starting with a part clamped in a vise)."""
+        if port not in range(1, 17):
+            raise UsageError(f"output port must be 1..16, not {port}")
         bit = 1 << (port - 1)
         before = self.outputs
         self.outputs = self.outputs | bit if value else self.outputs & ~bit
@@ -570,13 +574,13 @@ class Ibm7545Emulator(EmulatedDevice):
                 elif ins.op is Op.DELAY:
                     await self._sleep_on(due, fixed_seconds(ins))
                 elif ins.op in (Op.GRASP, Op.RELEASE):
-                    self._set_output(GRIPPER_OUTPUT, ins.op is Op.GRASP)
+                    self.set_output(GRIPPER_OUTPUT, ins.op is Op.GRASP)
                     await self._sleep_on(due, fixed_seconds(ins))
                 elif ins.op in (Op.UP, Op.DOWN):
-                    self._set_output(Z_DOWN_OUTPUT, ins.op is Op.DOWN)
+                    self.set_output(Z_DOWN_OUTPUT, ins.op is Op.DOWN)
                     await self._sleep_on(due, fixed_seconds(ins))
                 elif ins.op is Op.WRITEO:
-                    self._set_output(ins.operands[0], bool(ins.operands[1]))
+                    self.set_output(ins.operands[0], bool(ins.operands[1]))
                 elif ins.op is Op.WAITI:
                     await self._wait_input(ins.operands[0], bool(ins.operands[1]))
                     # An input that came later than the program got here: it goes on from now.

@@ -99,6 +99,9 @@ class UrEmulator(EmulatedDevice):
     def set_input(self, n: int, value: bool | int) -> None:
         self.controller.set_input(n, value)
 
+    def set_output(self, n: int, value: bool) -> None:
+        self.controller.set_digital_out(n, value)
+
     def set_fault(self, name: str, arg: str | None = None) -> None:
         self.controller.set_fault(name, arg)
 

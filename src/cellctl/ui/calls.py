@@ -62,7 +62,6 @@ def machine_call(
     directory = cell_dir(ctx)
 
     async def main() -> dict[str, Any]:
-        from cellctl.service.access import LocalCell
         from cellctl.service.client import StandaloneCell, open_cell
 
         _, ref = machine_ref(ctx, family, function)
@@ -71,6 +70,9 @@ def machine_call(
         trace = given.get("trace")
         readiness = given.get("readiness")
         if given.get("link"):
+            # Imported here: through a running controller's API (below) none of it is needed.
+            from cellctl.service.access import LocalCell
+
             # An ad-hoc link outside any cell keeps its host state per user, not in a
             # ./cell/state/ it would leave behind in whatever directory this runs in.
             home = directory if (directory / "cell.toml").is_file() else state_home()

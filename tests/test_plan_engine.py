@@ -148,6 +148,7 @@ def test_a_part_under_way_is_taken_up_where_it_is(tmp_path: Path) -> None:
         ),
         ({"out_of_service": ("lathe",)}, "no machine 'lathe'"),
         ({"held": (HeldPart("X", "wax-robot-base", "shelf"),)}, "no place 'shelf'"),
+        ({"held": (HeldPart("X", "wax-robot-base", "robot"),)}, r"no place 'robot' \(the conv"),
         (
             {"orders": (replace(ORDER, under_way=(PartAt("cnc1", 1), PartAt("cnc2", 1))),)},
             "order A: 2 parts under way, more than its quantity 1",

@@ -241,7 +241,7 @@ def check_inputs(inputs: PlanInputs) -> None:
     for held in inputs.held:
         if held.part_type not in parts:
             raise UsageError(f"held part of {held.order_id}: no part type {held.part_type!r}")
-    _check_places(inputs, parts, machines)
+    _check_places(inputs, raw.get("cell", {}), parts, machines)
     for fault in inputs.faults:
         if fault.machine != PLC and fault.machine not in machines:
             raise UsageError(f"fault {fault.fault} on {fault.machine!r}: no such machine")
@@ -251,7 +251,9 @@ def check_inputs(inputs: PlanInputs) -> None:
             raise UsageError(f"fault {fault.machine}:{fault.fault}: it must end after it starts")
 
 
-def _check_places(inputs: PlanInputs, parts: dict[str, Any], machines: dict[str, Any]) -> None:
+def _check_places(
+    inputs: PlanInputs, cell: dict[str, Any], parts: dict[str, Any], machines: dict[str, Any]
+) -> None:
     """Refuse a held or under-way part at no place of the cell, with more cuts done than its
     route has, or in a vise another part is in."""
     placed = [
@@ -264,9 +266,10 @@ def _check_places(inputs: PlanInputs, parts: dict[str, Any], machines: dict[str,
         for at in o.under_way
     ]
     vises: dict[str, str] = {}
+    mills = raw_mills if isinstance(raw_mills := cell.get("mills"), list) else list(machines)
     for who, part_type, at in placed:
-        if at.location != CONVEYOR and at.location not in machines:
-            raise UsageError(f"{who}: no place {at.location!r}")
+        if at.location != CONVEYOR and at.location not in mills:
+            raise UsageError(f"{who}: no place {at.location!r} (the conveyor or a mill)")
         cuts = len(parts.get(part_type, {}).get("route", []))
         if not 0 <= at.route_index <= cuts:
             raise UsageError(

@@ -51,7 +51,7 @@ from cellctl.emulators.onsets import FaultOnsets
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
 from cellctl.emulators.switches import check_switch
 from cellctl.errors import ProtocolError, UsageError
-from cellctl.kinds.ibm7545.aml import Instruction, Op, decode_program
+from cellctl.kinds.ibm7545.aml import PORTS, Instruction, Op, decode_program
 from cellctl.kinds.ibm7545.motion import (
     SPEED_MM_S,
     STOP_S,
@@ -214,7 +214,7 @@ class Ibm7545Emulator(EmulatedDevice):
 
     def set_input(self, port: int, value: bool | int) -> None:
         """Drive digital input ``port`` (1..16); wakes a program blocked in WAITI."""
-        if port not in range(1, 17):
+        if port not in PORTS:
             raise UsageError(f"input port must be 1..16, not {port}")
         bit = 1 << (port - 1)
         self.inputs = self.inputs | bit if value else self.inputs & ~bit
@@ -524,7 +524,7 @@ class Ibm7545Emulator(EmulatedDevice):
     def set_output(self, port: int, value: bool) -> None:
         """Set digital output ``port`` (1..16) as a program's OUTPUT would: the output hooks
         hear a change (the emulated cell starting with a part clamped in a vise)."""
-        if port not in range(1, 17):
+        if port not in PORTS:
             raise UsageError(f"output port must be 1..16, not {port}")
         bit = 1 << (port - 1)
         before = self.outputs

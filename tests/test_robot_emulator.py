@@ -240,6 +240,22 @@ async def test_read_dido_status_layout(host: RawHost, robot: Ibm7545Emulator) ->
     await host.read(b"10", b"D04" + b"01010000" + b"02")
 
 
+async def test_an_output_set_from_outside_is_read_and_heard(
+    host: RawHost, robot: Ibm7545Emulator
+) -> None:
+    heard: list[tuple[int, bool]] = []
+    robot.output_hooks.append(lambda port, value: heard.append((port, value)))
+    robot.set_output(2, True)
+    robot.set_output(2, True)  # no change: nothing heard
+    await host.read(b"10", b"D04" + b"00000200" + b"02")
+    assert heard == [(2, True)]
+    for port in (0, 17):
+        with pytest.raises(UsageError, match=r"output port must be 1\.\.16"):
+            robot.set_output(port, True)
+        with pytest.raises(UsageError, match=r"input port must be 1\.\.16"):
+            robot.set_input(port, True)
+
+
 async def test_read_unknown_operand_is_undefined_record(host: RawHost) -> None:
     await host.send(b"R")
     await host.expect(XOFF + XON)

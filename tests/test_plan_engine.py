@@ -5,6 +5,8 @@ cell cannot take refused before anything runs.
 
 from __future__ import annotations
 
+import re
+import shutil
 from dataclasses import replace
 from datetime import datetime
 from pathlib import Path
@@ -179,6 +181,25 @@ def test_inputs_the_cell_cannot_take_are_refused_before_anything_runs(
     with pytest.raises(UsageError, match=words):
         simulate(inputs, tmp_path)
     assert not list(tmp_path.iterdir())  # nothing written
+
+
+def test_without_listed_mills_a_part_is_placed_only_at_a_mill_kind(tmp_path: Path) -> None:
+    # The cell's mills by default (no [cell] mills): every machine of a mill kind, never the
+    # robot.
+    cell = tmp_path / "cell"
+    shutil.copytree(EXAMPLE_CELL, cell)
+    toml = cell / "cell.toml"
+    text = toml.read_text(encoding="utf-8")
+    toml.write_text(re.sub(r"(?m)^mills = .*\n", "", text, count=1), encoding="utf-8")
+    assert "mills =" not in toml.read_text(encoding="utf-8")
+    for place, words in (("robot", "no place 'robot'"), ("cnc2", None)):
+        held = HeldPart("X", "wax-robot-base", place, 1)
+        inputs = replace(SHIFT, cell_dir=cell, held=(held,))
+        if words is None:
+            check_inputs(inputs)
+        else:
+            with pytest.raises(UsageError, match=words):
+                check_inputs(inputs)
 
 
 # -- the scheduler's policies ------------------------------------------------------------------

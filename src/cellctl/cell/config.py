@@ -41,6 +41,7 @@ and the AML/E compiler — and returns every problem; :func:`load_cell` returns 
 from __future__ import annotations
 
 import itertools
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -108,6 +109,12 @@ def robot_kinds() -> tuple[str, ...]:
 def mill_kinds() -> tuple[str, ...]:
     """The installed kinds of the mill family (from the registry)."""
     return registry.names("mill")
+
+
+def mill_names(listed: Any, kinds: Mapping[str, Any]) -> list[str]:
+    """The cell's mills: ``[cell] mills`` as ``listed`` (a list of names), else every machine
+    of ``kinds`` (name -> kind) whose kind is of the mill family, in their order."""
+    return _texts(listed) or [n for n, k in kinds.items() if k in mill_kinds()]
 
 
 def transfer_name(source: str, target: str) -> str:
@@ -280,11 +287,9 @@ def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
             ("cell", "robot"),
             f"no robot machine {robot_name!r} of kind {'/'.join(robot_kinds_) or '(none)'}",
         )
-    mill_names = (cell.mills if cell else _texts(cell_raw.get("mills"))) or [
-        n for n, m in machines.items() if m.kind in mill_kinds_
-    ]
+    listed = cell.mills if cell else cell_raw.get("mills")
     mills = []
-    for n in mill_names:
+    for n in mill_names(listed, {n: m.kind for n, m in machines.items()}):
         m = machines.get(n)
         if m is None or m.kind not in mill_kinds_:
             problems.at(

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from cellctl.cell.config import CONVEYOR, CellConfig, load_cell
+from cellctl.cell.config import CONVEYOR, CellConfig, load_cell, mill_names
 from cellctl.cell.controller import CellController, ControllerOptions
 from cellctl.cell.journal import JOURNAL_FILE, Journal, open_journal
 from cellctl.cell.scheduler import POLICIES as SCHEDULER_POLICIES
@@ -266,7 +266,8 @@ def _check_places(
         for at in o.under_way
     ]
     vises: dict[str, str] = {}
-    mills = raw_mills if isinstance(raw_mills := cell.get("mills"), list) else list(machines)
+    kinds = {n: m.get("kind") for n, m in machines.items() if isinstance(m, dict)}
+    mills = mill_names(cell.get("mills"), kinds)
     for who, part_type, at in placed:
         if at.location != CONVEYOR and at.location not in mills:
             raise UsageError(f"{who}: no place {at.location!r} (the conveyor or a mill)")

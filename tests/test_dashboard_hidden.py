@@ -17,6 +17,7 @@ pytestmark = IN_BROWSER
 #: the status (figures that move with the clock alone), the audit trail, the shift's report.
 READS = {"steps.list", "traffic.tail", "status", "audit.list", "report.shift"}
 #: Longer than the longest of those periods but the shift's (10 s): each would have read.
+#: (Reads not made are seen by time passing: there is no event to wait for.)
 HIDDEN_S = 3.5
 #: Shorter than the shift report's period (10 s): a page that reads it within this of being
 #: shown read it at once, not on its next period (a bound, not a timing figure).

@@ -38,7 +38,7 @@ def cell_check(directory: Path) -> tuple[int, str]:
 def test_the_example_cell_is_ok(tmp_path: Path) -> None:
     code, out = cell_check(example_copy(tmp_path))
     assert code == 0, out
-    assert "ok: robot robot, mills cnc1, cnc2, 3 robot programs" in out
+    assert "ok: robot robot, mills cnc1, cnc2, 5 robot programs" in out
     config = load_cell(EXAMPLE_CELL)
     assert [m.name for m in config.mills] == ["cnc1", "cnc2"]
     assert config.parts["wax-robot-base"].transfers() == [

@@ -494,3 +494,21 @@ def test_a_second_store_in_the_process_keeps_the_first_ones_writes_visible(
         texts = _other_process(tmp_path, "sorted(a.text for a in j.alarms())")
         assert texts == str(["after", "before", "beside"])
         assert (tmp_path / "journal.sqlite3-wal").exists()
+
+
+def test_the_places_a_part_was_taken_out_of_are_kept_until_their_vise_is_open(
+    tmp_path: Path, clock: Clock
+) -> None:
+    """Kept in the file with the scrap, in one transaction: another connection (the CLI, a
+    restarted controller) sees them, until one says the vise is open."""
+    with open_journal(tmp_path, clock=clock) as j, open_journal(tmp_path, clock=clock) as other:
+        first, second = j.create_parts(AnOrder("A", "wax-robot", 2))
+        assert other.emptied_places() == {}
+        j.scrap_part(first.id, "cut short", taken_out_of=["cnc2"])
+        j.scrap_part(second.id, "dropped")
+        assert other.emptied_places() == {"cnc2": first.id}
+        other.vise_open("cnc2")
+        assert j.emptied_places() == {}
+    with open_journal(tmp_path, clock=clock) as again:
+        assert again.emptied_places() == {}
+        assert [p.status for p in again.parts(order_id="A")] == ["scrapped", "scrapped"]

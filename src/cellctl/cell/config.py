@@ -22,10 +22,12 @@
     [plc]
     url = "modbus://127.0.0.1:5020"       # coils/inputs tables optional (assumed defaults)
 
-    [robot_programs]                      # AML/E source of each transfer
+    [robot_programs]                      # the robot kind's source of each program
     conveyor_to_cnc1 = "robot/conveyor_to_cnc1.aml"
     cnc1_to_cnc2 = "robot/cnc1_to_cnc2.aml"
     cnc2_to_conveyor = "robot/cnc2_to_conveyor.aml"
+    open_vise_cnc1 = "robot/open_vise_cnc1.aml"   # optional: after a part is taken out
+    open_vise_cnc2 = "robot/open_vise_cnc2.aml"   # by hand (cellctl.cell.vises)
 
     [parts.wax-robot-base]
     route = [
@@ -91,6 +93,7 @@ __all__ = [
     "check_cell",
     "load_cell",
     "mill_kinds",
+    "open_vise_name",
     "reference_table",
     "robot_kinds",
     "transfer_ends",
@@ -120,6 +123,12 @@ def mill_names(listed: Any, kinds: Mapping[str, Any]) -> list[str]:
 def transfer_name(source: str, target: str) -> str:
     """The robot program that moves a part from ``source`` to ``target``: ``cnc1_to_cnc2``."""
     return f"{source}{_TO}{target}"
+
+
+def open_vise_name(mill: str) -> str:
+    """The robot program that opens ``mill``'s vise with nothing in it: ``open_vise_cnc1``
+    (optional: run after the operator took a scrapped part out; docs/cell.md)."""
+    return f"open_vise_{mill}"
 
 
 def transfer_ends(program: str) -> tuple[str, str]:

@@ -58,6 +58,7 @@ from cellctl.cell.physics import physical_durations
 from cellctl.cell.recovery import Recovery
 from cellctl.cell.robotsteps import RobotSteps
 from cellctl.cell.scheduler import SHORTEST_FIRST
+from cellctl.cell.vises import EmptiedVises
 from cellctl.cell.workview import WorkView
 from cellctl.clock import Clock, current_clock
 from cellctl.drivers.plc import ModbusPlc
@@ -117,6 +118,7 @@ class CellController(OperatorCommands):
         self.monitor = Monitor(world=self, alarms=self, plc=self, recovery=self.recovery)
         self.orderflow = OrderFlow(world=self, alarms=self)
         self.workview = WorkView(world=self, alarms=self, orderflow=self.orderflow)
+        self.vises = EmptiedVises(world=self, alarms=self)
         self.robotsteps = RobotSteps(
             world=self, alarms=self, plc=self, monitor=self.monitor, recovery=self.recovery
         )
@@ -429,9 +431,15 @@ class CellController(OperatorCommands):
         # A place a held part may occupy takes no part: it counts as out of service here; so
         # does a mill whose setup failed or whose last poll did not say ready.
         usable_mills = (in_service - work.blocked - self.recovery.unusable()) | {CONVEYOR}
+        # A mill emptied by hand takes no part until its vise is open: the robot opens it
+        # first (cellctl.cell.vises).
+        vises = self.vises.look(work, self.inputs)
+        if vises.to_open is not None:
+            self._robot_task = asyncio.create_task(self.robotsteps.open_vise(vises.to_open))
+            return
         transfer = self.workview.next_transfer(
             work,
-            mills_in_service=usable_mills,
+            mills_in_service=usable_mills - vises.waiting,
             pallet_present=pallet,
             outfeed_clear=outfeed,
             policy=self.options.policy,

@@ -38,6 +38,7 @@ helpers that read their rows in :mod:`cellctl.cell.journalrows`. Import from her
 
 from __future__ import annotations
 
+import functools
 import sqlite3
 from collections.abc import Iterable
 from pathlib import Path
@@ -126,6 +127,8 @@ class Journal(AlarmJournal):
             views.alarm(_alarm(r))
         for r in db.execute("SELECT name, in_service, reason FROM machines"):
             views.machine(r["name"], bool(r["in_service"]), r["reason"])
+        for r in db.execute("SELECT place, part_id FROM emptied"):
+            views.emptied(r["place"], r["part_id"])
         self._views = views
 
     def _keep_part(self, part: Part, rank: int | None = None) -> Part:
@@ -256,16 +259,39 @@ class Journal(AlarmJournal):
                 held_step=None,
             )
 
-    def scrap_part(self, part_id: str, reason: str) -> Part:
-        """Scrap a waiting or held part (already scrapped: changes nothing)."""
+    def scrap_part(self, part_id: str, reason: str, *, taken_out_of: Iterable[str] = ()) -> Part:
+        """Scrap a waiting or held part (already scrapped: changes nothing).
+
+        ``taken_out_of``: the places the operator took it out of, kept as emptied
+        (:meth:`emptied_places`) in the same transaction: the cell opens their vises before
+        it loads them again."""
         with self._write() as db:
             part = _get_part(db, part_id)
             if part.status == "scrapped":
                 return part
             _require(part, ("waiting", "held"), "be scrapped")
-            return self._update(
-                db, part, self._now(), status="scrapped", note=reason, held_step=None
-            )
+            now = self._now()
+            for place in taken_out_of:
+                db.execute(
+                    "INSERT INTO emptied (place, part_id, since) VALUES (?, ?, ?)"
+                    " ON CONFLICT (place) DO UPDATE SET part_id = excluded.part_id,"
+                    " since = excluded.since",
+                    (place, part.id, now),
+                )
+                self._after_commit(functools.partial(self._views.emptied, place, part.id))
+            return self._update(db, part, now, status="scrapped", note=reason, held_step=None)
+
+    def emptied_places(self) -> dict[str, str]:
+        """``place -> part id`` for each place a scrapped part was taken out of by hand whose
+        vise is not known open yet (:meth:`vise_open`)."""
+        with self._lock:
+            return self._viewed().emptied_places()
+
+    def vise_open(self, place: str) -> None:
+        """``place``'s vise is open (or a part is in it again): it is no longer emptied."""
+        with self._write() as db:
+            db.execute("DELETE FROM emptied WHERE place = ?", (place,))
+            self._after_commit(lambda: self._views.emptied(place, None))
 
     def cancel_parts(self, order_id: str) -> list[Part]:
         """Cancel every part of an order that has not started (one transaction, all or none).

@@ -61,6 +61,13 @@ CREATE TABLE IF NOT EXISTS machines (
     reason TEXT NOT NULL,
     updated REAL NOT NULL
 );
+-- Places the operator said are empty (a part scrapped, taken out of them) while their
+-- vise may still be closed: the cell opens it before it loads them (docs/cell.md).
+CREATE TABLE IF NOT EXISTS emptied (
+    place TEXT PRIMARY KEY,
+    part_id TEXT NOT NULL,
+    since REAL NOT NULL
+);
 CREATE TABLE IF NOT EXISTS service_log (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
     time REAL NOT NULL,

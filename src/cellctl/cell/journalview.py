@@ -22,7 +22,8 @@ StepKey = tuple[str, str, str, str, int]
 
 
 class JournalViews:
-    """Parts by status and by order, done steps, alarms and machines out of service."""
+    """Parts by status and by order, done steps, alarms, machines out of service and places
+    emptied by hand."""
 
     def __init__(self) -> None:
         self.parts: dict[str, Part] = {}  # in creation (rowid) order
@@ -33,6 +34,7 @@ class JournalViews:
         self.alarms: dict[int, Alarm] = {}  # in id order
         self._active: set[int] = set()
         self._out: dict[str, str] = {}
+        self._emptied: dict[str, str] = {}  # place -> the part taken out of it
 
     # -- updates ------------------------------------------------------------------------------
 
@@ -71,6 +73,13 @@ class JournalViews:
         else:
             self._out[name] = reason
 
+    def emptied(self, place: str, part_id: str | None) -> None:
+        """A place the operator emptied (``part_id`` taken out of it), or None: no more."""
+        if part_id is None:
+            self._emptied.pop(place, None)
+        else:
+            self._emptied[place] = part_id
+
     # -- answers ------------------------------------------------------------------------------
 
     def select_parts(self, statuses: Iterable[str] | None, order_id: str | None) -> list[Part]:
@@ -95,6 +104,10 @@ class JournalViews:
     def active_alarms(self) -> list[Alarm]:
         """Alarms not cleared yet, oldest first."""
         return [self.alarms[i] for i in sorted(self._active)]
+
+    def emptied_places(self) -> dict[str, str]:
+        """``place -> part id`` for each place emptied by hand whose vise is not known open."""
+        return dict(sorted(self._emptied.items()))
 
     def out_of_service(self) -> dict[str, str]:
         """``machine -> reason`` for each machine out of service, by name."""

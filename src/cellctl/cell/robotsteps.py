@@ -22,11 +22,12 @@ import contextlib
 from typing import TYPE_CHECKING
 
 from cellctl.cell.causes import Blamed, Cause, blame, door_cause
-from cellctl.cell.config import CONVEYOR
+from cellctl.cell.config import CONVEYOR, open_vise_name
 from cellctl.cell.orderflow import OUT
 from cellctl.cell.orders import ReportKind
 from cellctl.cell.physics import transfer_durations
 from cellctl.cell.shift import cell_time_scale
+from cellctl.cell.vises import VISE
 from cellctl.errors import CellctlError, DeviceError, SignalTimeout, UsageError
 
 #: Seconds between looks at the robot's "cycle done" output: it tells nothing unasked, and
@@ -232,6 +233,49 @@ class RobotSteps:
             return None  # the PLC's own fault is the monitor's to tell
         doors = [self.world.mill_index(p) for p in places if p != CONVEYOR]
         return door_cause(inputs, doors, True, self.world.options.transfer_timeout)
+
+    async def open_vise(self, mill: str) -> None:
+        """Open the vise of ``mill``, emptied by hand, with its ``open_vise_<mill>`` program
+        (:mod:`cellctl.cell.vises`): no part, no door, no step in the journal (run again
+        after a crash, it does no harm). A failure the robot's own fault does not explain
+        is the vise's alarm: the program is not run again until it is cleared."""
+        world, alarms = self.world, self.alarms
+        robot = world.robot
+        assert robot is not None
+        view = world.machines[robot.name]
+        program = open_vise_name(mill)
+        view.step = program
+        alarms.log(f"robot: {program}: opening {mill}'s vise (its part was taken out)")
+        started = world.clock.monotonic()
+        try:
+            if robot.cold:
+                await robot.initialize()
+            partition = await self._ensure_program(program)
+            commanded = world.clock.monotonic()
+            await robot.start(partition)
+            await self._wait_cycle(program, commanded, world.options.interlock_timeout)
+            self._least[program] = min(
+                world.clock.monotonic() - commanded, self._least.get(program, float("inf"))
+            )
+        except (CellctlError, OSError) as e:
+            culprit = await self.monitor.cause_of(robot.name, e, since=started)
+            if culprit is not None:
+                alarms.cause_alarm(culprit)
+                if culprit.machine == robot.name:
+                    self.recovery.robot_ok = False
+            else:
+                alarms.alarm(
+                    mill,
+                    VISE,
+                    f"{mill}'s vise did not open: robot program {program} failed: {e}; "
+                    f"{mill} takes no part until it is open (clear this alarm to try again)",
+                )
+            return
+        finally:
+            view.step = ""
+            alarms.wake()
+        view.busy_s += world.clock.monotonic() - started
+        alarms.succeeded(robot.name)
 
     async def transfer(self, t: Transfer) -> None:
         """Carry part ``t.part_id`` from ``t.source`` to ``t.target`` with program

@@ -231,6 +231,14 @@ class EmulatedCell:
         self.gripper = part
         set_output(port, True)  # the hook moves the part from the gripper into the vise
 
+    def take_out(self, mill: str) -> str | None:
+        """The operator takes the part out of ``mill``'s vise by hand (before scrapping it):
+        the part it was, or None. The vise stays as the arm left it: only its output opens
+        it."""
+        n = self.mill_names.index(mill) + 1
+        part, self.vise[n] = self.vise[n], None
+        return part
+
     async def _clear_outfeed(self) -> None:
         clock = self.clock
         await clock.sleep(self.plc.timing.outfeed_s / clock.time_scale)

@@ -15,7 +15,7 @@ from collections import Counter
 from typing import Any
 
 from cellctl.cell.blocked import blocked_reason
-from cellctl.cell.config import CellConfig
+from cellctl.cell.config import CONVEYOR, CellConfig
 from cellctl.cell.journal import Alarm, Journal, Part
 from cellctl.cell.workview import places_of
 from cellctl.errors import UsageError
@@ -259,8 +259,8 @@ def scrap_part(
 
     A part that may be in a machine (its place, or where an interrupted transfer took it) is
     scrapped only once the operator says it is out (``taken_out``): the journal forgets it,
-    and the cell loads that machine again at once (the example cell's loads first wait for
-    its vise to open: docs/cell.md)."""
+    and the cell loads that machine again once its vise is open (the robot's
+    ``open_vise_<mill>`` program opens it: docs/cell.md)."""
     part_id = resolve_part_id(journal, part_id)
     part = journal.get_part(part_id)
     # Only a part that can be scrapped is asked about (the journal refuses the others).
@@ -272,7 +272,8 @@ def scrap_part(
             f"(taken out; `cellctl part scrap {part_id} --taken-out`): the cell loads "
             f"{in_machines} again as soon as it is scrapped"
         )
-    p = journal.scrap_part(part_id, reason)
+    # The places it was taken out of are kept: their vises are opened before they are loaded.
+    p = journal.scrap_part(part_id, reason, taken_out_of=[x for x in places if x != CONVEYOR])
     mailbox.post_report(
         ReportKind.PART_SCRAPPED,
         f"part {p.id} scrapped: {reason}",

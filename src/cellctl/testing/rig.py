@@ -104,6 +104,7 @@ class CellRig:
         plc_options: dict[str, float] | None = None,
         deadlines: Literal["fast", "emulated"] = "fast",
         links: Literal["real", "mem"] | None = None,
+        template: Path | None = None,
     ) -> None:
         """``deadlines="fast"``: the tests' short deadlines (:func:`fast_options`), then
         ``cell_options`` and ``mill_options`` over them; ``"emulated"``: only those given
@@ -111,7 +112,7 @@ class CellRig:
         (``timeout``, ``poll``), over :data:`FAST_PLC_OPTIONS` for fast deadlines.
         ``links``: the machines on ptys and sockets ("real") or in this loop ("mem"); by
         default "mem" on a virtual loop (made in it), where real links cannot go, else
-        "real"."""
+        "real". ``template``: the cell directory to emulate (default: the example cell)."""
         self.directory = directory
         clock = current_clock()
         if isinstance(clock, VirtualClock):
@@ -120,9 +121,13 @@ class CellRig:
                     "a CellRig on virtual time joins its machines through mem:// links: "
                     "real ptys and sockets would be answered after time jumped past"
                 )
-            self.cell = EmulatedCell(clock=scaled_clock(clock, time_scale), links="mem")
+            self.cell = EmulatedCell(
+                clock=scaled_clock(clock, time_scale), links="mem", template=template
+            )
         else:
-            self.cell = EmulatedCell(time_scale=time_scale, links=links or "real")
+            self.cell = EmulatedCell(
+                time_scale=time_scale, links=links or "real", template=template
+            )
         fast = deadlines == "fast"
         self.cell_options = fast_options(**(cell_options or {})) if fast else (cell_options or {})
         self.mill_options = {**(FAST_MILL_OPTIONS if fast else {}), **(mill_options or {})}
@@ -356,7 +361,7 @@ class CellRig:
 
     def physical_part(self, mill: str) -> str | None:
         """The physical part in ``mill``'s vise (the emulated cell's record)."""
-        return self.cell.vise[MILL_INDEX[mill]]
+        return self.cell.vise[self.cell.mill_names.index(mill) + 1]
 
     async def operator_resolves(self) -> None:
         """The operator clears every alarm and releases each held part where it physically

@@ -1,0 +1,125 @@
+"""A part scrapped out of a mill leaves the mill's vise closed: the cell opens it (the robot's
+``open_vise_<mill>`` program) before the mill takes its next part, or, without that program,
+says so and waits for the vise to be opened by hand. Nothing else is loaded onto the vise
+meanwhile, and the batch finishes with no part cut twice."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from cellctl.testing.rig import CellRig
+
+
+async def _stall_and_scrap(rig: CellRig) -> str:
+    """The finishing cut of order A's first part stalls (held in cnc2's vise); the operator
+    fixes cnc2, takes the part out by hand and scraps it saying so. Returns its id."""
+    await rig.wait_for(lambda: rig.finished_steps("machine") >= 1, "first cut done")
+    rig.switch_on("cnc2:stall")
+    [held] = await rig.wait_for(rig.held_parts, "a part held")
+    assert held.location == "cnc2"
+    await rig.switch_off("cnc2:stall")
+    assert rig.cell.take_out("cnc2") is not None
+    assert rig.cell.plc.inputs["clamp_closed_2"], "the vise stays as the arm left it"
+    await rig.clear_alarms()
+    refused = await rig.cli("part", "scrap", held.id)
+    assert refused.exit_code != 0 and "may be in cnc2: take it out" in refused.output
+    scrapped = await rig.cli("part", "scrap", held.id, "--taken-out")
+    assert scrapped.exit_code == 0, scrapped.output
+    return held.id
+
+
+def _into_cnc2_after(rig: CellRig, scrapped: str) -> list[float]:
+    """When each transfer into cnc2 of a part other than ``scrapped`` started."""
+    return [
+        s.started
+        for s in rig.journal.steps()
+        if s.kind == "transfer" and s.program.endswith("_to_cnc2") and s.part_id != scrapped
+    ]
+
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+TENDING: dict[str, Any] = {
+    "time_scale": 200.0,
+    "deadlines": "emulated",
+    "cell_options": {"poll_period": 0.1, "read_limit": 2.0},
+    "plc_options": {"timeout": 5.0},
+}
+
+
+@pytest.mark.parametrize(
+    ("template", "part_type"),
+    [("cell", "wax-robot-base"), ("cell-tending", "bracket")],
+    ids=["ibm7545-aml", "ur-urscript"],
+)
+@pytest.mark.virtual
+async def test_the_robot_opens_the_vise_of_a_mill_a_scrapped_part_was_taken_out_of(
+    tmp_path: Path, template: str, part_type: str
+) -> None:
+    # The cobot cell as its own tests run it: its machines' time scale and deadlines.
+    options = {} if template == "cell" else TENDING
+    async with CellRig(tmp_path / "cell", template=EXAMPLES / template, **options) as rig:
+        rig.post(part_type, 2, "A")
+        controller = await rig.start_controller()
+        scrapped = await _stall_and_scrap(rig)
+        await rig.wait_for(rig.all_done, "order A done", timeout=60)
+        parts = rig.journal.parts(order_id="A")
+        assert sorted(p.status for p in parts) == ["done", "scrapped"]
+        # The vise was opened by the robot's program, then the second part went in.
+        [opened] = [e for e in controller.events if "opening cnc2's vise" in e.text]
+        assert opened.text.startswith("robot: open_vise_cnc2:")
+        [into] = _into_cnc2_after(rig, scrapped)
+        assert opened.time <= into
+        assert any("cnc2: its vise is open" in e.text for e in controller.events)
+        # Every step but the stalled cut ended well: no load waited out its deadline.
+        failed = [s for s in rig.journal.steps() if s.state == "failed"]
+        assert [(s.machine, s.part_id) for s in failed] == [("cnc2", scrapped)]
+        assert not rig.journal.active_alarms() and not rig.cut_twice()
+        assert rig.journal.emptied_places() == {}
+        assert rig.physical_part("cnc2") is None
+        assert rig.cell.outfeed == ["P2"]
+
+
+@pytest.mark.virtual
+async def test_without_the_program_the_mill_waits_for_its_vise_opened_by_hand(
+    tmp_path: Path,
+) -> None:
+    async with CellRig(tmp_path / "cell") as rig:
+        toml = rig.directory / "cell.toml"
+        text = toml.read_text()
+        kept = re.sub(r"(?m)^open_vise_cnc\d = .*\n", "", text)
+        assert kept != text
+        toml.write_text(kept)
+        rig.post("wax-robot-base", 2, "A")
+        controller = await rig.start_controller()
+        scrapped = await _stall_and_scrap(rig)
+        [alarm] = await rig.wait_for(lambda: rig.alarms("cnc2", "vise"), "cnc2's vise alarmed")
+        assert alarm.text.startswith(f"cnc2's vise is closed with nothing in it (part {scrapped}")
+        assert "open it by hand, or give the cell a robot program open_vise_cnc2" in alarm.text
+        # The second part, cut on cnc1, is not taken to the closed vise. The operator opens
+        # it by hand (the robot's output, from its pendant): the cell goes on.
+        await rig.wait_for(
+            lambda: any(
+                s.machine == "cnc1" and s.state == "finished"
+                for s in rig.journal.steps()
+                if s.part_id != scrapped and s.kind == "machine"
+            ),
+            "the second part cut on cnc1",
+        )
+        await rig.wait_quiet()  # the robot had every chance to take it on
+        assert _into_cnc2_after(rig, scrapped) == []
+        assert rig.journal.emptied_places() == {"cnc2": scrapped}
+        opened_at = rig.journal.clock.now()
+        rig.cell.robot.set_output(2, False)
+        await rig.wait_for(
+            lambda: rig.journal.get_alarm(alarm.id).returned is not None, "the alarm returned"
+        )
+        await rig.clear_alarms()
+        await rig.wait_for(rig.all_done, "order A done", timeout=60)
+        [into] = _into_cnc2_after(rig, scrapped)
+        assert into >= opened_at
+        assert not [e for e in controller.events if "opening cnc2's vise" in e.text]
+        assert not rig.journal.active_alarms() and not rig.cut_twice()

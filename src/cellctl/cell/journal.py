@@ -1,4 +1,5 @@
-"""The cell controller's durable memory: parts, steps, alarms, machines in service.
+"""The cell controller's durable memory: parts, steps, alarms, machines in service, mills
+emptied by hand.
 
 ``<cell_dir>/journal.sqlite3`` (SQLite, WAL). Every method is one short transaction,
 committed and synced before it returns, so the controller may be killed at any instant and
@@ -25,6 +26,8 @@ Rules that keep a restart from losing or repeating work:
   left it in the gripper. Nothing in flight is ever restarted automatically.
 * The operator releases a held part (the step counts as done, unless ``redo_step``) or
   scraps it. :meth:`Journal.step_done` is what the controller asks before running a step.
+  A part scrapped out of a mill (``taken_out_of``) leaves that mill emptied
+  (:meth:`Journal.emptied_places`) until its vise is open: :mod:`cellctl.cell.vises`.
 
 What the controller reads every round (parts, done steps, alarms, machines out of service)
 is answered from in-memory views (:mod:`cellctl.cell.journalview`) that this journal's writes

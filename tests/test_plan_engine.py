@@ -130,9 +130,71 @@ def test_a_part_under_way_is_taken_up_where_it_is(tmp_path: Path) -> None:
     assert done is not None and done_fresh is not None and done < done_fresh
 
 
+TENDING = EXAMPLE_CELL.parents[3] / "examples" / "cell-tending"
+
+
+@pytest.mark.parametrize(
+    ("cell", "order", "mill", "program"),
+    [
+        (EXAMPLE_CELL, ORDER, "cnc2", "robot_base_finish_cnc2"),  # DYNALAN blocks
+        (TENDING, PlanOrder("A", "bracket", 1), "vf2", "O1001"),  # G-code drip-fed
+    ],
+    ids=["dyna2400", "iso-cnc"],
+)
+def test_a_cut_under_way_is_taken_up_as_far_as_it_has_gone(
+    tmp_path: Path, cell: Path, order: PlanOrder, mill: str, program: str
+) -> None:
+    """A running cell's cut, some minutes in: the plan's is that much shorter, and so is
+    the whole play; a credit larger than the cut leaves the motion none, and the next
+    part's cut on that mill whole."""
+    route_index = 1 if mill == "cnc2" else 0
+    shift = replace(SHIFT, cell_dir=cell)
+    full_s = physical_durations(load_cell(cell)).machining_s[(mill, program)]
+    done_s = min(300.0, full_s / 2)
+
+    def play(done_s: float, qty: int, name: str) -> tuple[float, list[float]]:
+        at = PartAt(mill, route_index, done_s=done_s)
+        taken = replace(order, qty=qty, under_way=(at,))
+        run = simulate(replace(shift, orders=(taken,)), tmp_path / name)
+        with Journal(run.journal_path) as journal:
+            cuts = [
+                (s.ended or 0.0) - s.started
+                for s in journal.steps()
+                if s.kind == "machine" and s.machine == mill
+            ]
+        finished = run.finished[order.order_id]
+        assert finished is not None
+        return finished - START, cuts
+
+    whole, whole_cuts = play(0.0, 1, "whole")
+    taken, taken_cuts = play(done_s, 1, "taken")
+    if mill == "vf2":
+        # Drip-fed, the cut is played again from its first byte: its motion is skipped, but
+        # a program its line is slower than still takes its line time.
+        assert whole_cuts[0] - done_s - 1.0 < taken_cuts[0] < whole_cuts[0]
+    else:
+        # One part: its cut, and the play, end that much sooner.
+        assert taken_cuts[0] == pytest.approx(whole_cuts[0] - done_s, abs=1.0)
+        assert taken == pytest.approx(whole - done_s, abs=1.0)
+    # Two parts, a credit more than the cut's motion: the first cut has none left, and the
+    # next part's cut on that mill is whole (what was left is not carried over).
+    _, plain_cuts = play(0.0, 2, "plain")
+    _, spent_cuts = play(10 * full_s, 2, "spent")
+    assert spent_cuts[0] <= taken_cuts[0]
+    assert spent_cuts[1] == pytest.approx(plain_cuts[1], abs=0.5)
+
+
 @pytest.mark.parametrize(
     ("change", "words"),
     [
+        (
+            {"orders": (replace(ORDER, under_way=(PartAt("cnc1", 1, done_s=60.0),)),)},
+            "part of A under way: 60 s of a cut done at cnc1, which does not cut it next",
+        ),
+        (
+            {"orders": (replace(ORDER, under_way=(PartAt("cnc1", 0, done_s=-1.0),)),)},
+            "part of A under way: -1 s of its cut done: it must be 0 or more",
+        ),
         ({"orders": (PlanOrder("A", "wax-robot-arm", 1),)}, "no part type 'wax-robot-arm'"),
         ({"orders": (PlanOrder("A", "wax-robot-base", 0),)}, "quantity must be 1 or more"),
         ({"orders": (PlanOrder("A", "wax-robot-base", 1),) * 2}, "order A is given twice"),

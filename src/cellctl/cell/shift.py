@@ -99,7 +99,12 @@ def ideal_times(config: CellConfig, time_scale: float | None = None) -> dict[str
 
 def cell_time_scale(config: CellConfig) -> float:
     """``[cell] time_scale``: how many times faster than a real cell the machines run."""
-    return float(config.raw.get("cell", {}).get("time_scale", 1.0))
+    return time_scale_of(config.raw)
+
+
+def time_scale_of(raw: Mapping[str, Any]) -> float:
+    """:func:`cell_time_scale` of a cell.toml's contents as read (``tomllib.loads``)."""
+    return float(raw.get("cell", {}).get("time_scale", 1.0))
 
 
 def shift_report(

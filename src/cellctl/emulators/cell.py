@@ -171,6 +171,7 @@ class EmulatedCell:
         self.vise: dict[int, str | None] = {1: None, 2: None}
         self.outfeed: list[str] = []
         self.cuts: list[Cut] = []
+        self._head_start: dict[str, tuple[str, float]] = {}  # mill -> (part, machine s done)
         self._tasks: set[asyncio.Task[None]] = set()
 
     @property
@@ -216,11 +217,17 @@ class EmulatedCell:
             self.plc.set_input("outfeed_clear", False)
             self._spawn(self._clear_outfeed())
 
-    def place(self, mill: str, part: str) -> None:
+    def place(self, mill: str, part: str, *, done_s: float = 0.0) -> None:
         """Start with ``part`` clamped in ``mill``'s vise, as the robot's place leaves it: its
         vise output on (the clamp coil and the vise's sensors follow). Call after
-        :meth:`start`; a plan takes up a running cell's part where it is so."""
+        :meth:`start`; a plan takes up a running cell's part where it is so.
+
+        ``done_s``: machine seconds of its cut there already done: the mill's runs on this
+        part skip that much of their motion (the emulator's ``head_start_s``; a mill kind
+        whose emulator has none cuts it whole)."""
         n = self.mill_names.index(mill) + 1
+        if done_s > 0 and hasattr(self.mills[mill], "head_start_s"):
+            self._head_start[mill] = (part, done_s)
         port = next(p for p, m in VISE_OUTPUTS.items() if m == n)
         set_output = getattr(self.robot, "set_output", None)
         if set_output is None:
@@ -252,7 +259,20 @@ class EmulatedCell:
     def _noting_cuts(self, index: int, name: str) -> Callable[[Any], None]:
         def note(run: Any) -> None:
             # A run starting on a mill cut whatever part sits in its vise.
-            self.cuts.append(Cut(name, self.vise[index], self.clock.now()))
+            part = self.vise[index]
+            self.cuts.append(Cut(name, part, self.clock.now()))
+            head = self._head_start.get(name)
+            if head is None:
+                return
+            mill = self.mills[name]
+            if head[0] != part:
+                # Another part's run: what is left of the credit was that cut's only.
+                del self._head_start[name]
+                mill.head_start_s = 0.0
+            elif head[1] > 0:
+                # The cut a plan took up mid-way: its runs skip what was done, until spent.
+                mill.head_start_s = head[1]
+                self._head_start[name] = (part, 0.0)
 
         return note
 

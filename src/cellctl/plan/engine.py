@@ -77,10 +77,13 @@ CANCEL_TRIES = 5
 @dataclass(frozen=True)
 class PartAt:
     """Where a part of the running cell is: ``location`` (the conveyor or a mill) with
-    ``route_index`` of its route's cuts done."""
+    ``route_index`` of its route's cuts done; ``done_s``: machine seconds of the cut in
+    flight on it at ``location`` already done (the plan's mill starts that cut so far in,
+    if its emulator can: ``head_start_s`` in docs/kinds.md)."""
 
     location: str
     route_index: int = 0
+    done_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -271,10 +274,18 @@ def _check_places(
     for who, part_type, at in placed:
         if at.location != CONVEYOR and at.location not in mills:
             raise UsageError(f"{who}: no place {at.location!r} (the conveyor or a mill)")
-        cuts = len(parts.get(part_type, {}).get("route", []))
+        route = parts.get(part_type, {}).get("route", [])
+        cuts = len(route)
         if not 0 <= at.route_index <= cuts:
             raise UsageError(
                 f"{who}: {at.route_index} cuts done, but its route has {cuts} (0 to {cuts})"
+            )
+        if at.done_s < 0:
+            raise UsageError(f"{who}: {at.done_s:g} s of its cut done: it must be 0 or more")
+        cut_here = at.route_index < cuts and route[at.route_index].get("mill") == at.location
+        if at.done_s > 0 and not cut_here:
+            raise UsageError(
+                f"{who}: {at.done_s:g} s of a cut done at {at.location}, which does not cut it next"
             )
         if at.location != CONVEYOR:
             if at.location in vises:
@@ -298,7 +309,7 @@ async def _play(inputs: PlanInputs, cell_dir: Path) -> tuple[float, dict[str, fl
     run: asyncio.Task[None] | None = None
     faults: list[asyncio.Task[None]] = []
     try:
-        _post(inputs, journal, mailbox, cell)
+        placed = _post(inputs, journal, mailbox)
         await clock.sleep(max(0.0, inputs.start - clock.now()))
         config = load_cell(cell_dir)
         policy = "downstream-first" if inputs.policy == "default" else inputs.policy
@@ -308,6 +319,10 @@ async def _play(inputs: PlanInputs, cell_dir: Path) -> tuple[float, dict[str, fl
         options = dataclasses.replace(own, poll_period=planned_poll(inputs, config), durable=False)
         controller = CellController(config, journal, mailbox, options=options)
         await controller.connect()
+        # In the vises once the mills are set up (a setup runs over an empty vise, as the
+        # running cell's did long before): a cut under way takes up so far in.
+        for at, part_id in placed:
+            cell.place(at.location, part_id, done_s=at.done_s)
         for name in inputs.out_of_service:
             await controller.set_service(name, False, "out of service when the plan began")
         run = asyncio.create_task(controller.run(stop), name="plan-controller")
@@ -384,9 +399,11 @@ async def _cancel(tasks: Sequence[asyncio.Task[Any]]) -> None:
         raise UsageError(f"the plan could not stop its tasks ({names}) after {CANCEL_TRIES} tries")
 
 
-def _post(inputs: PlanInputs, journal: Journal, mailbox: Mailbox, cell: EmulatedCell) -> None:
+def _post(inputs: PlanInputs, journal: Journal, mailbox: Mailbox) -> list[tuple[PartAt, str]]:
     """The plan's orders (their parts under way where they are), and the parts held at its
-    start (their own one-part orders)."""
+    start (their own one-part orders): in the mailbox and the journal. Returns the parts at
+    mills, for the cell's vises: ``(where, part id)``."""
+    placed: list[tuple[PartAt, str]] = []
     for order in inputs.orders:
         posted, _ = mailbox.post_order(
             order.part_type, order.qty, order.priority, order_id=order.order_id
@@ -399,8 +416,8 @@ def _post(inputs: PlanInputs, journal: Journal, mailbox: Mailbox, cell: Emulated
         parts = journal.create_parts(posted)
         for part, at in zip(parts, order.under_way, strict=False):
             journal.move_part(part.id, at.location, at.route_index)
-            if at.location in cell.mill_names:
-                cell.place(at.location, part.id)
+            if at.location != CONVEYOR:
+                placed.append((at, part.id))
     for n, held in enumerate(inputs.held, start=1):
         oid = f"{held.order_id}~held{n}"
         posted, _ = mailbox.post_order(held.part_type, 1, order_id=oid)
@@ -408,8 +425,9 @@ def _post(inputs: PlanInputs, journal: Journal, mailbox: Mailbox, cell: Emulated
         (part,) = journal.create_parts(posted)
         journal.move_part(part.id, held.location, held.route_index)
         journal.hold_part(part.id, "held when the plan began")
-        if held.location in cell.mill_names:
-            cell.place(held.location, part.id)
+        if held.location != CONVEYOR:
+            placed.append((PartAt(held.location, held.route_index), part.id))
+    return placed
 
 
 async def _watch(

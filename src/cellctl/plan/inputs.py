@@ -48,6 +48,8 @@ class _Model(BaseModel):
 class _At(_Model):
     location: _Text
     route_index: Annotated[int, Field(ge=0, le=1000)] = 0
+    # Missing in files saved before plans took a cut up mid-way: none done.
+    done_s: Annotated[float, Field(ge=0, le=1e7, allow_inf_nan=False)] = 0.0
 
 
 class _Order(_Model):

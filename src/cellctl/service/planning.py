@@ -30,14 +30,17 @@ import dataclasses
 import shutil
 import tempfile
 import threading
+import tomllib
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from cellctl.cell.journal import Journal
+from cellctl.cell.shift import time_scale_of
 from cellctl.clock import current_clock
 from cellctl.errors import UsageError
+from cellctl.files import read_text
 from cellctl.mailbox import Mailbox
 from cellctl.plan.when import MAX_POLL_S
 from cellctl.service.access import CellAccess
@@ -83,9 +86,10 @@ async def plan_run(access: CellAccess, p: PlanParams, progress: Progress | None)
     try:
         # The snapshot here (the journal and mailbox are this loop's).
         journal = access.journal()
-        orders, held = open_work(access.mailbox(), journal)
-        stopped = out_of_service(journal)
         start = current_clock().now()
+        scale = _time_scale(access.directory)
+        orders, held = open_work(access.mailbox(), journal, now=start, time_scale=scale)
+        stopped = out_of_service(journal)
 
         def inputs() -> tuple[PlanInputs, tuple[str, ...]]:
             return plan_inputs(
@@ -135,9 +139,9 @@ async def own_plan(
     from cellctl.mailbox.mqtt import PlanEstimate
     from cellctl.plan.snapshot import open_work, out_of_service
 
-    orders, held = open_work(mailbox, journal)
-    stopped = out_of_service(journal)
     start = current_clock().now()
+    orders, held = open_work(mailbox, journal, now=start, time_scale=_time_scale(directory))
+    stopped = out_of_service(journal)
     if not orders:
         return PlanEstimate(planned_at=start, finish_s=0.0)
     try:
@@ -145,6 +149,11 @@ async def own_plan(
     finally:  # a play ended midway (the cell stopped) removes nothing itself
         shutil.rmtree(directory / OWN_PLAN_DIR, ignore_errors=True)
     return PlanEstimate(planned_at=start, finish_s=finish_s)
+
+
+def _time_scale(directory: Path) -> float:
+    """The cell's ``[cell] time_scale`` (its file read as is: checked when it was loaded)."""
+    return time_scale_of(tomllib.loads(read_text(directory / "cell.toml")))
 
 
 def _play_own(
@@ -156,12 +165,11 @@ def _play_own(
     stopped: tuple[str, ...],
 ) -> float:
     """:func:`own_plan`'s play, in its worker process: the finish, s from ``start``."""
-    from cellctl.cell.config import load_cell
     from cellctl.plan import engine
     from cellctl.plan.inputs import copy_config
     from cellctl.plan.spec import plan_inputs
 
-    scale = float(load_cell(directory).raw.get("cell", {}).get("time_scale", 1.0))
+    scale = _time_scale(directory)
     inputs, _ = plan_inputs(
         directory,
         start=start,

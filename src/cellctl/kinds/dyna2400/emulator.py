@@ -50,6 +50,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from cellctl.clock import Clock, emulator_clock
+from cellctl.emulators.headstart import HeadStart
 from cellctl.emulators.onsets import FaultOnsets
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
 from cellctl.emulators.switches import check_switch
@@ -132,7 +133,7 @@ class _Rx:
     loaded: int = 0
 
 
-class Dyna2400Emulator(EmulatedDevice):
+class Dyna2400Emulator(EmulatedDevice, HeadStart):
     """The controller: panel, memory, link modes, execution, faults (see module docstring)."""
 
     def __init__(
@@ -473,6 +474,7 @@ class Dyna2400Emulator(EmulatedDevice):
                     due = clock.monotonic()  # the operator's time is the operator's
                 seconds = sum(move.seconds for move in step.moves)
                 run.machining_s += seconds
+                seconds = self.skip_done(seconds)  # a cut taken up mid-way (headstart.py)
                 if seconds > 0:
                     due += seconds / clock.time_scale
                     await clock.sleep(max(0.0, due - clock.monotonic()))
@@ -552,7 +554,7 @@ class Dyna2400Emulator(EmulatedDevice):
             return
         run.lines_executed = 1
         run.machining_s = sum(move.seconds for move in moves)
-        await self._machine_sleep(run.machining_s)
+        await self._machine_sleep(self.skip_done(run.machining_s))
         left = self.min_busy_s - (clock.monotonic() - started)
         if left > 0:
             await clock.sleep(left)

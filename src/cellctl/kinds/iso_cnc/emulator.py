@@ -32,6 +32,7 @@ from collections import deque
 from collections.abc import Callable, Coroutine
 
 from cellctl.clock import Clock, emulator_clock
+from cellctl.emulators.headstart import HeadStart
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
 from cellctl.emulators.switches import check_switch
 from cellctl.errors import LinkClosed, LinkError, UsageError
@@ -73,7 +74,7 @@ _BEFORE_PROGRAM = frozenset(b"\x00\x7f\r\n%")
 _BEFORE_PROGRAM_BYTES = bytes(sorted(_BEFORE_PROGRAM))
 
 
-class IsoCncEmulator(EmulatedDevice):
+class IsoCncEmulator(EmulatedDevice, HeadStart):
     """One emulated control (see module docstring)."""
 
     def __init__(
@@ -489,7 +490,8 @@ class IsoCncEmulator(EmulatedDevice):
             seconds = machine.step(block).seconds
             run.blocks += 1
             run.machine_s += seconds
-            self._free_at = start + seconds / self.time_scale
+            # A cut taken up mid-way skips what was done (headstart.py).
+            self._free_at = start + self.skip_done(seconds) / self.time_scale
             if PROGRAM_ENDS & set(block.m_codes):
                 self._tape_done = True
 
@@ -522,7 +524,7 @@ class IsoCncEmulator(EmulatedDevice):
             seconds = machine.step(block).seconds if block.words else 0.0
             run.blocks += 1 if block.words else 0
             run.machine_s += seconds
-            await self.clock.sleep(seconds / self.time_scale)
+            await self.clock.sleep(self.skip_done(seconds) / self.time_scale)
         run.done = True
         if self.activity == Activity.RUNNING:
             self.activity = Activity.IDLE

@@ -131,6 +131,17 @@ def test_a_part_needs_every_transfer_program(tmp_path: Path) -> None:
     assert len([p for p in problems if "cnc2_to_conveyor" in p]) == 2  # both part types
 
 
+def test_a_vise_opening_program_names_a_mill(tmp_path: Path) -> None:
+    directory = example_copy(tmp_path)
+    edit(directory, "open_vise_cnc2 =", "open_vise_cnc3 =")
+    code, out = cell_check(directory)
+    assert code != 0
+    assert (
+        "[robot_programs] open_vise_cnc3: no mill 'cnc3' (open_vise_<mill> opens that mill's "
+        "vise; mills: cnc1, cnc2)"
+    ) in out
+
+
 def test_a_cell_beyond_what_the_factory_carries_is_refused(tmp_path: Path) -> None:
     """Names and counts past the wire's limits are told by `cell check`, not dropped later."""
     from cellctl.mailbox import wire

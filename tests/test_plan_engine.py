@@ -172,12 +172,13 @@ def test_a_cut_under_way_is_taken_up_as_far_as_it_has_gone(
         # Drip-fed, the cut is played again from its first byte: its motion is skipped, but
         # a program its line is slower than still takes its line time.
         assert whole_cuts[0] - done_s - 1.0 < taken_cuts[0] < whole_cuts[0]
-    else:
-        # One part: its cut, and the play, end that much sooner.
-        assert taken_cuts[0] == pytest.approx(whole_cuts[0] - done_s, abs=1.0)
-        assert taken == pytest.approx(whole - done_s, abs=1.0)
+        return
+    # One part: its cut, and the play, end that much sooner.
+    assert taken_cuts[0] == pytest.approx(whole_cuts[0] - done_s, abs=1.0)
+    assert taken == pytest.approx(whole - done_s, abs=1.0)
     # Two parts, a credit more than the cut's motion: the first cut has none left, and the
-    # next part's cut on that mill is whole (what was left is not carried over).
+    # next part's cut on that mill is whole (what was left is not carried over: the
+    # emulated cell's, whatever the mill's kind).
     _, plain_cuts = play(0.0, 2, "plain")
     _, spent_cuts = play(10 * full_s, 2, "spent")
     assert spent_cuts[0] <= taken_cuts[0]

@@ -357,6 +357,13 @@ def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
                 problems.add(f"[parts.{part_name}] needs robot program {t!r} in [robot_programs]")
     if not parts:
         problems.add("[parts]: no part types: the cell has nothing to make")
+    for prog_name in sources:
+        opened = prog_name.removeprefix(open_vise_name(""))
+        if opened != prog_name and opened not in {m.name for m in mills}:
+            problems.add(
+                f"[robot_programs] {prog_name}: no mill {opened!r} (open_vise_<mill> opens "
+                f"that mill's vise; mills: {', '.join(m.name for m in mills)})"
+            )
     if (
         robot is None
         or cell is None

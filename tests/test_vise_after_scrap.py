@@ -123,3 +123,52 @@ async def test_without_the_program_the_mill_waits_for_its_vise_opened_by_hand(
         assert into >= opened_at
         assert not [e for e in controller.events if "opening cnc2's vise" in e.text]
         assert not rig.journal.active_alarms() and not rig.cut_twice()
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        # It opens the other mill's vise: cnc2's input never says open.
+        (("WRITEO(2, 0)", "WRITEO(1, 0)"), "vise of CNC 2 did not unclamp within 1.5 s"),
+        # It opens cnc2's, then waits for an input that never comes: its cycle never ends.
+        (("WAITI(6, 1)", "WAITI(6, 1)\n        WAITI(7, 1)"), "output 6 did not go 1"),
+    ],
+    ids=["vise-stays-closed", "program-never-ends"],
+)
+@pytest.mark.virtual
+async def test_a_vise_program_that_fails_is_alarmed_and_tried_again_once_cleared(
+    tmp_path: Path, change: tuple[str, str], words: str
+) -> None:
+    async with CellRig(tmp_path / "cell") as rig:
+        program = rig.directory / "robot" / "open_vise_cnc2.aml"
+        text = program.read_text()
+        assert change[0] in text
+        program.write_text(text.replace(*change))
+        rig.post("wax-robot-base", 2, "A")
+        controller = await rig.start_controller()
+        robot = rig.cell.robot
+
+        def tries() -> int:
+            return sum("opening cnc2's vise" in e.text for e in controller.events)
+
+        scrapped = await _stall_and_scrap(rig)
+        [alarm] = await rig.wait_for(lambda: rig.alarms("cnc2", "vise"), "cnc2's vise alarmed")
+        assert alarm.text.startswith("cnc2's vise: robot program open_vise_cnc2 failed: ")
+        assert words in alarm.text and "(clear this alarm to try again)" in alarm.text
+        await rig.wait_quiet()
+        # Tried once, its program stopped (not left waiting on the robot), the robot not
+        # counted against.
+        assert tries() == 1
+        assert not robot.running
+        assert controller.machines["robot"].failures == 0
+        if change[1] == "WRITEO(1, 0)":
+            # The vise still closed: nothing goes into cnc2; cleared, it is tried again.
+            assert _into_cnc2_after(rig, scrapped) == []
+            assert rig.journal.emptied_places() == {"cnc2": scrapped}
+            await rig.clear_alarms()
+            await rig.wait_for(lambda: tries() == 2, "the program tried again")
+        else:
+            # The vise opened all the same: the cell goes on, the alarm returned to normal.
+            await rig.wait_for(rig.all_done, "order A done", timeout=60)
+            assert rig.journal.get_alarm(alarm.id).returned is not None
+            assert rig.journal.emptied_places() == {}

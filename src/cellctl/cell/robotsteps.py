@@ -237,44 +237,61 @@ class RobotSteps:
     async def open_vise(self, mill: str) -> None:
         """Open the vise of ``mill``, emptied by hand, with its ``open_vise_<mill>`` program
         (:mod:`cellctl.cell.vises`): no part, no door, no step in the journal (run again
-        after a crash, it does no harm). A failure the robot's own fault does not explain
-        is the vise's alarm: the program is not run again until it is cleared."""
+        after a crash, it does no harm). Done once the vise's input says open and the
+        program has ended. A failure that is not the robot's, the emergency stop's or the
+        PLC link's is the vise's alarm: the program is not run again until it is cleared."""
         world, alarms = self.world, self.alarms
-        robot = world.robot
-        assert robot is not None
+        robot, plc = world.robot, world.plc
+        assert robot is not None and plc is not None
+        clock = world.clock
         view = world.machines[robot.name]
         program = open_vise_name(mill)
         view.step = program
         alarms.log(f"robot: {program}: opening {mill}'s vise (its part was taken out)")
-        started = world.clock.monotonic()
+        started = clock.monotonic()
+        running = False
         try:
             if robot.cold:
                 await robot.initialize()
             partition = await self._ensure_program(program)
-            commanded = world.clock.monotonic()
+            commanded = clock.monotonic()
             await robot.start(partition)
+            running = True
+            # The vise's own input first: the cycle's output may still be high from the
+            # cycle before (the program lowers it first, but a look can come sooner).
+            with blame("plc", "PLC"):
+                await plc.wait_for(
+                    f"clamp_closed_{world.mill_index(mill)}",
+                    False,
+                    timeout=world.options.interlock_timeout,
+                    poll=INTERLOCK_POLL_S,
+                )
             await self._wait_cycle(program, commanded, world.options.interlock_timeout)
-            self._least[program] = min(
-                world.clock.monotonic() - commanded, self._least.get(program, float("inf"))
-            )
+            running = False
         except (CellctlError, OSError) as e:
+            if running:
+                # Its program still runs: stopped, not left waiting on the robot (best
+                # effort: a robot that does not take it is its own fault, told below).
+                with contextlib.suppress(CellctlError, OSError):
+                    await robot.stop()
             culprit = await self.monitor.cause_of(robot.name, e, since=started)
-            if culprit is not None:
+            if culprit is not None and culprit.code != "interlock":
                 alarms.cause_alarm(culprit)
                 if culprit.machine == robot.name:
                     self.recovery.robot_ok = False
-            else:
+            else:  # the vise that did not open, or the program that did not end
                 alarms.alarm(
                     mill,
                     VISE,
-                    f"{mill}'s vise did not open: robot program {program} failed: {e}; "
-                    f"{mill} takes no part until it is open (clear this alarm to try again)",
+                    f"{mill}'s vise: robot program {program} failed: "
+                    f"{culprit.text if culprit is not None else e}; {mill} takes no part "
+                    f"until its vise is open (clear this alarm to try again)",
                 )
             return
         finally:
             view.step = ""
             alarms.wake()
-        view.busy_s += world.clock.monotonic() - started
+        view.busy_s += clock.monotonic() - started
         alarms.succeeded(robot.name)
 
     async def transfer(self, t: Transfer) -> None:

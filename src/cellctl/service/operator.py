@@ -283,5 +283,5 @@ def scrap_part(
     )
     message = f"part {p.id} scrapped"
     if places:
-        message += f"; taken out of {in_machines}, which take parts again"
+        message += f"; taken out of {in_machines}, which take parts again once the vise is open"
     return {"part": as_dict(p), "message": message}

@@ -102,6 +102,16 @@ def _signal_state() -> tuple[object, ...]:
 
 
 @pytest.fixture(autouse=True)
+def own_state_home(
+    tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each test's own ``$XDG_STATE_HOME`` (for it and the commands it starts): a machine
+    driven by ``--link`` outside a cell keeps its host state there by its link's name, and
+    a port another test's emulator had is given again (its "initialized" is not this one's)."""
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path_factory.mktemp("state-home")))
+
+
+@pytest.fixture(autouse=True)
 def signals_left_as_found() -> Iterator[None]:
     """Fail the test that leaves Ctrl-C or SIGTERM handled otherwise in this process (a
     command run in process, a loop's signal handler): an ignored or blocked signal passes to

@@ -11,6 +11,10 @@ from typing import Any
 
 import pytest
 
+from cellctl.cell.journal import open_journal
+from cellctl.clock import RealClock
+from cellctl.mailbox import open_mailbox
+from cellctl.service.operator import may_be_in, release_part
 from cellctl.testing.rig import CellRig
 
 
@@ -172,3 +176,21 @@ async def test_a_vise_program_that_fails_is_alarmed_and_tried_again_once_cleared
             await rig.wait_for(rig.all_done, "order A done", timeout=60)
             assert rig.journal.get_alarm(alarm.id).returned is not None
             assert rig.journal.emptied_places() == {}
+
+
+@pytest.mark.parametrize(("at", "emptied"), [("conveyor", ["cnc1"]), ("cnc1", [])])
+def test_a_part_released_elsewhere_leaves_the_mill_it_may_have_been_in_emptied(
+    tmp_path: Path, at: str, emptied: list[str]
+) -> None:
+    """A transfer into cnc1 cut short (the arm may have clamped the part there): released at
+    the conveyor, the operator's word empties cnc1 (its vise is opened if closed); released
+    in cnc1, nothing is emptied."""
+    with open_journal(tmp_path, clock=RealClock()) as journal, open_mailbox(tmp_path) as mailbox:
+        order, _ = mailbox.post_order("wax-robot-base", 1, order_id="A")
+        (part,) = journal.create_parts(order)
+        journal.begin_step(part.id, "transfer", "robot", "conveyor_to_cnc1")
+        journal.recover()  # a crash mid-transfer: held, may be in cnc1
+        assert may_be_in(journal, journal.get_part(part.id)) == ["cnc1"]
+        answer = release_part(journal, mailbox, part.id, location=at)
+        assert answer["part"]["location"] == at
+        assert sorted(journal.emptied_places()) == emptied

@@ -225,13 +225,20 @@ class Journal(AlarmJournal):
             return self._update(db, part, self._now(), status="held", note=reason)
 
     def release_part(
-        self, part_id: str, redo_step: bool = False, location: str | None = None
+        self,
+        part_id: str,
+        redo_step: bool = False,
+        location: str | None = None,
+        *,
+        emptied: Iterable[str] = (),
     ) -> Part:
         """The operator releases a held part: it waits again at its location (or ``location``).
 
         The step that got it held (interrupted or failed) then counts as done for
         :meth:`step_done`, so it is not run again, unless ``redo_step``. A part held after
         an interrupted transfer needs ``location``: only the operator knows where it is.
+        ``emptied``: the places it may have been in and is not (kept as for
+        :meth:`scrap_part`'s ``taken_out_of``, in the same transaction).
         """
         if location is not None:
             _check_location(location)
@@ -252,10 +259,12 @@ class Journal(AlarmJournal):
                     ("redo" if redo_step else "accepted", step.id),
                 )
                 self._keep_step(_get_step(db, step.id))
+            now = self._now()
+            self._emptied(db, emptied, part.id, now)
             return self._update(
                 db,
                 part,
-                self._now(),
+                now,
                 status="waiting",
                 location=location or part.location,
                 note="",
@@ -274,15 +283,21 @@ class Journal(AlarmJournal):
                 return part
             _require(part, ("waiting", "held"), "be scrapped")
             now = self._now()
-            for place in taken_out_of:
-                db.execute(
-                    "INSERT INTO emptied (place, part_id, since) VALUES (?, ?, ?)"
-                    " ON CONFLICT (place) DO UPDATE SET part_id = excluded.part_id,"
-                    " since = excluded.since",
-                    (place, part.id, now),
-                )
-                self._after_commit(functools.partial(self._views.emptied, place, part.id))
+            self._emptied(db, taken_out_of, part.id, now)
             return self._update(db, part, now, status="scrapped", note=reason, held_step=None)
+
+    def _emptied(
+        self, db: sqlite3.Connection, places: Iterable[str], part_id: str, now: float
+    ) -> None:
+        """Inside :meth:`_write`: ``places`` emptied of part ``part_id`` by the operator."""
+        for place in places:
+            db.execute(
+                "INSERT INTO emptied (place, part_id, since) VALUES (?, ?, ?)"
+                " ON CONFLICT (place) DO UPDATE SET part_id = excluded.part_id,"
+                " since = excluded.since",
+                (place, part_id, now),
+            )
+            self._after_commit(functools.partial(self._views.emptied, place, part_id))
 
     def emptied_places(self) -> dict[str, str]:
         """``place -> part id`` for each place a scrapped part was taken out of by hand whose

@@ -234,8 +234,15 @@ def release_part(
     redo: bool = False,
     location: str | None = None,
 ) -> dict[str, Any]:
-    """Release a held part after inspection: the cell carries on with it."""
-    p = journal.release_part(resolve_part_id(journal, part_id), redo_step=redo, location=location)
+    """Release a held part after inspection: the cell carries on with it. The machines it may
+    have been in and is not (``location`` said elsewhere) are emptied by the operator's word:
+    a vise closed there is opened before they are loaded (docs/cell.md)."""
+    part_id = resolve_part_id(journal, part_id)
+    part = journal.get_part(part_id)
+    at = location or part.location
+    places = places_of(journal, part) if part.status == "held" else set()
+    emptied = sorted(places - {at, CONVEYOR})
+    p = journal.release_part(part_id, redo_step=redo, location=location, emptied=emptied)
     what = "its interrupted step will run again" if redo else "its interrupted step counts as done"
     mailbox.post_report(
         ReportKind.PART_RELEASED,

@@ -177,13 +177,13 @@ class CellController(OperatorCommands):
         """Raise an alarm, unless ``machine`` has an active one with this ``code``: a fault
         seen again, or seen through its effects, adds nothing (see :mod:`cellctl.cell.causes`);
         once the operator clears it, a fault still there is raised again."""
-        for a in self.journal.active_alarms():
-            if a.machine == machine and a.code == code:
-                if a.returned is not None:  # its condition is back: unacknowledged again
-                    self.journal.reactivate(a.id)
-                    self._watch(machine, code)
-                    self.log(f"ALARM {a.id} {machine}: active again: {text}")
-                return
+        a = self.journal.open_alarm(machine, code)
+        if a is not None:
+            if a.returned is not None:  # its condition is back: unacknowledged again
+                self.journal.reactivate(a.id)
+                self._watch(machine, code)
+                self.log(f"ALARM {a.id} {machine}: active again: {text}")
+            return
         alarm, new = self.journal.raise_alarm(machine, code, text)
         self._watch(machine, code)
         if new:

@@ -207,6 +207,12 @@ class AlarmJournal(SqliteStore):
         with self._lock:
             return self._viewed().active_alarms()
 
+    def open_alarm(self, machine: str, code: str) -> Alarm | None:
+        """``machine``'s oldest alarm with ``code`` not cleared yet, or None."""
+        return next(
+            (a for a in self.active_alarms() if a.machine == machine and a.code == code), None
+        )
+
     def alarms(self) -> list[Alarm]:
         """Every alarm, oldest first."""
         with self._lock:

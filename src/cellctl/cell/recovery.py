@@ -68,9 +68,7 @@ class Recovery:
         round)."""
         if not self.robot_ok:
             return False
-        return not any(
-            a.machine == "plc" and a.code == "interlock" for a in self.world.journal.active_alarms()
-        )
+        return self.world.journal.open_alarm("plc", "interlock") is None
 
     # -- faults -------------------------------------------------------------------------------
 

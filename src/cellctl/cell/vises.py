@@ -90,4 +90,4 @@ class EmptiedVises:
 
     def _alarmed(self, mill: str) -> bool:
         """An alarm on ``mill``'s vise is not cleared: its program is not run again."""
-        return any(a.machine == mill and a.code == VISE for a in self.world.journal.active_alarms())
+        return self.world.journal.open_alarm(mill, VISE) is not None

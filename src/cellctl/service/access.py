@@ -485,8 +485,8 @@ def _host(driver: Any) -> tuple[str, Condition]:
 def _mode(controller: CellController) -> CellMode:
     """What the controller is doing: an active emergency stop (the PLC's input, or the
     operator's alarm) first, then stopping, paused, running."""
-    estop = not controller.inputs.get("estop_ok", True) or any(
-        a.machine == "cell" and a.code == "estop" for a in controller.journal.active_alarms()
+    estop = not controller.inputs.get("estop_ok", True) or (
+        controller.journal.open_alarm("cell", "estop") is not None
     )
     if estop:
         return CellMode.EMERGENCY_STOP

@@ -15,7 +15,7 @@ from collections import Counter
 from typing import Any
 
 from cellctl.cell.blocked import blocked_reason
-from cellctl.cell.config import CONVEYOR, CellConfig
+from cellctl.cell.config import CellConfig
 from cellctl.cell.journal import Alarm, Journal, Part
 from cellctl.cell.workview import places_of
 from cellctl.errors import UsageError
@@ -241,7 +241,7 @@ def release_part(
     part = journal.get_part(part_id)
     at = location or part.location
     places = places_of(journal, part) if part.status == "held" else set()
-    emptied = sorted(places - {at, CONVEYOR})
+    emptied = sorted(places - {at})
     p = journal.release_part(part_id, redo_step=redo, location=location, emptied=emptied)
     what = "its interrupted step will run again" if redo else "its interrupted step counts as done"
     mailbox.post_report(
@@ -280,7 +280,7 @@ def scrap_part(
             f"{in_machines} again as soon as it is scrapped"
         )
     # The places it was taken out of are kept: their vises are opened before they are loaded.
-    p = journal.scrap_part(part_id, reason, taken_out_of=[x for x in places if x != CONVEYOR])
+    p = journal.scrap_part(part_id, reason, taken_out_of=places)
     mailbox.post_report(
         ReportKind.PART_SCRAPPED,
         f"part {p.id} scrapped: {reason}",

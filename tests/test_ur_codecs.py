@@ -225,6 +225,13 @@ def test_a_break_outside_a_loop_is_found_and_ends_a_run_in_the_robots_words() ->
     assert estimate(parse("movej([0,0,0,0,0,0])\nbreak\nsleep(5)\n"), UR5E, limit_s=10)[0] < 5
 
 
+def test_a_nul_character_is_a_problem_at_its_place_on_every_python() -> None:
+    # Python 3.11.0 to 3.11.3 raised ValueError from ast.parse on a NUL: a crash of the check.
+    assert check("x = 1 +\x00 2\n", UR5E, "p") == ["p:1:8: does not parse: a NUL character"]
+    with pytest.raises(ScriptError, match="a NUL character"):
+        list(run(parse("x = \x00\n"), OffRobot(), UR5E))
+
+
 @given(st.text(max_size=200))
 @settings(max_examples=200)
 def test_check_takes_any_text(text: str) -> None:

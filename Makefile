@@ -54,7 +54,7 @@ typecheck: $(STAMP)
 
 # Independent tests run in parallel (each has its own ports and directories). Much of a
 # test's time is emulated machine time or a process starting (waiting, not computing): 6
-# workers keep a 2-core box over 95 % busy over the run (1575 tests, 5 to 6.5 min), so what
+# workers keep a 2-core box about 90 % busy over the run (1599 tests, 4.5 to 5.5 min), so what
 # shortens the suite is CPU saved (a `cellctl` that starts with less, one Chromium per worker).
 # Work stealing keeps the long end-to-end tests from piling up on one worker at the end.
 # Compiled bytecode is used and kept even where the environment turns caching off: pytest's

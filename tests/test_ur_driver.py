@@ -293,7 +293,7 @@ r.disconnect()
 
 
 async def test_ur_rtde_reads_the_fields_the_driver_relies_on() -> None:
-    pytest.importorskip("rtde_receive", reason="ur-rtde is in the dev extra")
+    pytest.importorskip("rtde_receive", reason="ur-rtde is in the dev extra (Python < 3.13)")
     # ur-rtde's receive interface connects to port 30004 only: a loopback address of its own
     # (127.x.y.z all reach this machine) keeps parallel tests apart.
     host = f"127.{random.randrange(1, 250)}.{random.randrange(1, 250)}.{random.randrange(2, 250)}"

@@ -226,7 +226,7 @@ def test_a_break_outside_a_loop_is_found_and_ends_a_run_in_the_robots_words() ->
 
 
 def test_a_nul_character_is_a_problem_at_its_place_on_every_python() -> None:
-    # Python 3.11.0 to 3.11.3 raised ValueError from ast.parse on a NUL: a crash of the check.
+    # Python 3.11.2's ast.parse raised ValueError on a NUL (3.11.7's a SyntaxError): a crash.
     assert check("x = 1 +\x00 2\n", UR5E, "p") == ["p:1:8: does not parse: a NUL character"]
     with pytest.raises(ScriptError, match="a NUL character"):
         list(run(parse("x = \x00\n"), OffRobot(), UR5E))

@@ -150,8 +150,8 @@ def parse_expression(expr: str) -> ast.expr:
     source = _python(expr.strip())
     nul = source.find("\0")
     if nul >= 0:
-        # Python 3.11 before 3.11.4 raises ValueError here, later ones a SyntaxError without
-        # its place: said the same on every release, with the column.
+        # Early 3.11 releases (3.11.2) raise ValueError here, later ones (3.11.7) a
+        # SyntaxError without its place: said the same on every release, with the column.
         raise SyntaxError("a NUL character", ("<script>", 1, nul + 1, source, 1, nul + 2))
     tree = ast.parse(source, mode="eval")
     return tree.body

@@ -19,6 +19,7 @@ from cellctl.cell.config import load_cell
 from cellctl.cell.controller import ControllerOptions
 from cellctl.cell.journal import Journal, open_journal
 from cellctl.emulators.cell import EmulatedCell
+from cellctl.errors import UsageError
 from cellctl.kinds.ur.dashboard import RuntimeState, SafetyStatus
 from cellctl.mailbox import open_mailbox
 from cellctl.plan.engine import PlanInputs, PlanOrder, simulate
@@ -146,6 +147,9 @@ async def test_a_protective_stop_in_the_batch(tending: tuple[EmulatedCell, Path]
             await api.call("robot.play", {})
             await until(lambda: robot.runtime == RuntimeState.STOPPED, "the transfer's end")
             await api.call("machines.return_to_service", {"machine": "robot"})
+            # Said to be still in the gripper: refused (the cell never takes a part up there).
+            with pytest.raises(UsageError, match="cannot be released at 'robot'"):
+                await api.call("parts.release", {"id": held[0], "at": "robot"})
             await api.call("parts.release", {"id": held[0], "at": "cnc2"})
 
             async def order_done() -> bool:

@@ -34,7 +34,7 @@ from cellctl.link import TrafficLog
 from cellctl.mailbox import MAILBOX_FILE, Mailbox, open_mailbox
 from cellctl.protocol.plc import PlcMap, canonical
 from cellctl.service.machines import MachineRef, load_cell_file
-from cellctl.service.operator import list_orders
+from cellctl.service.operator import CellPlaces, list_orders
 from cellctl.service.status import (
     STATUS_EVENTS,
     CellInfo,
@@ -106,6 +106,11 @@ class CellAccess(ABC):
     def known_machines(self) -> list[str] | None:
         """The machine names the cell knows (None: it cannot say)."""
         return list(self.machines())
+
+    def places(self) -> CellPlaces | None:
+        """Where a part can be in the cell: what a released part's place is checked against
+        (None: the cell cannot say)."""
+        return CellPlaces.of_file(load_cell_file(self.directory))
 
     def require_machine(self, name: str) -> None:
         """Refuse machine ``name`` if the cell does not know it, whether or not a controller
@@ -184,6 +189,9 @@ class AttachedCell(CellAccess):
 
     def poke(self) -> None:
         self._controller.poke()
+
+    def places(self) -> CellPlaces:
+        return CellPlaces.of_config(self._controller.config)
 
     def status(self) -> CellStatus:
         c = self._controller

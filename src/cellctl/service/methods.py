@@ -198,7 +198,7 @@ async def _parts(access: CellAccess, p: PartsParams, progress: Progress | None) 
 
 async def _release(access: CellAccess, p: ReleaseParams, progress: Progress | None) -> Any:
     result = operator.release_part(
-        _journal(access), access.mailbox(), p.id, redo=p.redo, location=p.at
+        _journal(access), access.mailbox(), p.id, redo=p.redo, location=p.at, places=access.places()
     )
     access.poke()
     return result

@@ -12,11 +12,13 @@ from __future__ import annotations
 
 import dataclasses
 from collections import Counter
+from collections.abc import Mapping
 from typing import Any
 
 from cellctl.cell.blocked import blocked_reason
-from cellctl.cell.config import CellConfig
+from cellctl.cell.config import CONVEYOR, CellConfig, mill_names
 from cellctl.cell.journal import Alarm, Journal, Part
+from cellctl.cell.orderflow import OUT
 from cellctl.cell.workview import places_of
 from cellctl.errors import UsageError
 from cellctl.mailbox import Mailbox, Order, Report, ReportKind
@@ -226,6 +228,69 @@ def _duration(seconds: float) -> str:
     return " ".join(f"{n}{u}" for n, u in ((h, "h"), (m, "m"), (s, "s")) if n) or f"{seconds:g}s"
 
 
+@dataclasses.dataclass(frozen=True)
+class CellPlaces:
+    """Where a part can be in a cell: its ``mills``, and each part type's route (``routes``:
+    the mills of its cuts, in order): what a released part's place is checked against."""
+
+    mills: tuple[str, ...]
+    routes: Mapping[str, tuple[str, ...]]
+
+    @classmethod
+    def of_config(cls, config: CellConfig) -> CellPlaces:
+        """A checked cell's (a running controller's)."""
+        routes = {name: tuple(s.mill for s in t.route) for name, t in config.parts.items()}
+        return cls(tuple(m.name for m in config.mills), routes)
+
+    @classmethod
+    def of_file(cls, cell: Mapping[str, Any]) -> CellPlaces | None:
+        """A parsed cell.toml's as it stands (None: it has no machines to say)."""
+        machines = cell.get("machines")
+        if not isinstance(machines, dict) or not machines:
+            return None
+        kinds = {n: m.get("kind") for n, m in machines.items() if isinstance(m, dict)}
+        table = cell.get("cell")
+        mills = mill_names(table.get("mills") if isinstance(table, dict) else None, kinds)
+        routes: dict[str, tuple[str, ...]] = {}
+        parts = cell.get("parts")
+        for name, part in (parts if isinstance(parts, dict) else {}).items():
+            route = part.get("route") if isinstance(part, dict) else None
+            if isinstance(route, list):
+                routes[name] = tuple(str(s.get("mill")) for s in route if isinstance(s, dict))
+        return cls(tuple(mills), routes)
+
+    def check_release(
+        self, part: Part, location: str, cuts_done: int, occupant: str | None = None
+    ) -> None:
+        """Refuse releasing ``part`` at ``location`` where the cell could never take it up
+        again (it would wait there for ever, and its order with it), or in a mill whose vise
+        holds part ``occupant``; ``cuts_done``: how many of its route's cuts count as done
+        once it is released there."""
+        route = self.routes.get(part.part_type)
+        if route is None:  # a part type no longer in cell.toml: any place of the cell
+            places = [CONVEYOR, *self.mills, OUT]
+        else:
+            cuts_done = min(cuts_done, len(route))
+            places = [CONVEYOR] if cuts_done == 0 else [route[cuts_done - 1]]
+            places += [route[cuts_done]] if cuts_done < len(route) else [OUT]
+        if location in places:
+            if occupant is not None and location in self.mills:
+                raise UsageError(
+                    f"part {part.id} cannot be released at {location}: the journal has part "
+                    f"{occupant} in its vise; scrap or release that one first"
+                )
+            return
+        said = " or ".join(dict.fromkeys(places))
+        raise UsageError(
+            f"part {part.id} cannot be released at {location!r}: with "
+            f"{cuts_done} of its {len(route)} cuts done the cell takes it up again only at "
+            f"{said}; put it there and say so, or scrap it"
+            if route is not None
+            else f"part {part.id} cannot be released at {location!r}: the cell takes a part "
+            f"up again only at {said}"
+        )
+
+
 def release_part(
     journal: Journal,
     mailbox: Mailbox,
@@ -233,15 +298,27 @@ def release_part(
     *,
     redo: bool = False,
     location: str | None = None,
+    places: CellPlaces | None = None,
 ) -> dict[str, Any]:
     """Release a held part after inspection: the cell carries on with it. The machines it may
     have been in and is not (``location`` said elsewhere) are emptied by the operator's word:
-    a vise closed there is opened before they are loaded (docs/cell.md)."""
+    a vise closed there is opened before they are loaded (docs/cell.md). ``places``: the
+    cell's, which ``location`` is checked against (None: not known, any one word)."""
     part_id = resolve_part_id(journal, part_id)
     part = journal.get_part(part_id)
+    if location is not None and places is not None and part.status == "held":
+        occupant = next(
+            (
+                q.id
+                for q in journal.parts(statuses=["waiting", "active", "held"])
+                if q.location == location and q.id != part.id
+            ),
+            None,
+        )
+        places.check_release(part, location, _cuts_done(journal, part, location, redo), occupant)
     at = location or part.location
-    places = places_of(journal, part) if part.status == "held" else set()
-    emptied = sorted(places - {at})
+    was_in = places_of(journal, part) if part.status == "held" else set()
+    emptied = sorted(was_in - {at})
     p = journal.release_part(part_id, redo_step=redo, location=location, emptied=emptied)
     what = "its interrupted step will run again" if redo else "its interrupted step counts as done"
     mailbox.post_report(
@@ -252,6 +329,22 @@ def release_part(
         data={"redo": redo, "location": p.location},
     )
     return {"part": as_dict(p), "message": f"part {p.id} released at {p.location}: {what}"}
+
+
+def _cuts_done(journal: Journal, part: Part, location: str, redo: bool) -> int:
+    """The cuts ``part`` (held) will have done once released at ``location``: the cut it was
+    held in counts too when it is accepted (not ``redo``) and the part is still in that mill
+    (what the controller then goes on from)."""
+    steps = journal.steps(part.id)
+    held = steps[-1] if steps else None
+    accepted_cut = (
+        held is not None
+        and held.kind == "machine"
+        and held.state != "finished"
+        and held.machine == location
+        and not redo
+    )
+    return part.route_index + (1 if accepted_cut else 0)
 
 
 def scrap_part(

@@ -22,7 +22,7 @@ import click
 from rich.table import Table
 
 from cellctl.cell.causes import PRIORITIES
-from cellctl.cell.journal import LOCATIONS, MAX_SHELVE, PART_STATUSES
+from cellctl.cell.journal import MAX_SHELVE, PART_STATUSES
 from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.mailbox import MAILBOX_FILE, ORDER_STATES, Report, open_mailbox
@@ -472,7 +472,8 @@ def part_list(
     "--at",
     "location",
     metavar="LOCATION",
-    help=f"Where the part is now ({', '.join(LOCATIONS)}); needed after an interrupted transfer.",
+    help="Where the part is now: the conveyor, the mill it was cut in or is to be cut in next "
+    "(e.g. cnc1), or out (the outfeed, its route done); needed after an interrupted transfer.",
 )
 @click.pass_context
 def part_release(ctx: click.Context, part_id: str, redo: bool, location: str | None) -> None:

@@ -99,6 +99,14 @@ def test_figures_of_a_hand_made_journal(tmp_path: Path) -> None:
     half = shift_report(journal, ["cnc1"], {"cnc1/rough": 24.0}, 1020.0, 1060.0).machines[0]
     assert half.production_s == 20 + 10
     assert half.steps_ended == 1
+    # Windows before any down time: nothing down (never negative); one after: only what is
+    # still down (the PLC's alarm, never returned to normal).
+    for window in ((0.0, 500.0), (1000.0, 1085.0)):
+        quiet = shift_report(journal, ["cnc1", "plc"], {}, *window)
+        assert [m.down_s for m in quiet.machines] == [0.0, 0.0], window
+        assert quiet.downtime_by_reason == []
+    later = shift_report(journal, ["cnc1", "plc"], {}, 5000.0, 6000.0)
+    assert [m.down_s for m in later.machines] == [0.0, 1000.0]
     journal.close()
 
 

@@ -229,7 +229,7 @@ def _union(intervals: list[tuple[float, float]], start: float, end: float) -> fl
     """The length of the union of ``intervals`` inside ``[start, end]``."""
     total, reach = 0.0, start
     for t0, t1 in sorted((max(a, start), min(b, end)) for a, b in intervals):
-        if t1 <= reach:
+        if t1 <= reach or t1 <= t0:  # before what is counted, or outside the window
             continue
         total += t1 - max(t0, reach)
         reach = t1

@@ -30,6 +30,7 @@ from cellctl.service.token import (
     TOKEN_NAME,
     add_token,
     check_name,
+    ensure_default,
     identify,
     list_tokens,
 )
@@ -143,6 +144,9 @@ async def test_roles_on_websocket_http_and_the_dashboard_and_the_audit_trail(
         "needs the operator role" in e["result"] for e in refused if e["method"] != "token.add"
     )
     assert any("needs the engineer role" in e["result"] for e in refused)
+    # The refused token change with what it asked for, as every refused call is kept.
+    (asked,) = [e for e in refused if e["method"] == "token.add"]
+    assert '"name":"eve"' in asked["params"] and '"role":"engineer"' in asked["params"]
     assert rig.mailbox.get_order(order_id).part_type == "wax-robot-base"
     # A viewer reads the audit trail too (the dashboard's Audit panel).
     status, body = await http(
@@ -265,6 +269,10 @@ async def test_each_role_and_a_wrong_token_on_each_surface(
     with acquire_controller_lock(cell):
         code, out = await cli_as(cell, WRONG, "orders")
         assert code == 7 and said in out, out
+        # Not a token at all (a line break pasted in): the same words, never sent (a header
+        # with it is not HTTP: it failed as an API that does not answer, and showed it).
+        code, out = await cli_as(cell, "pasted\nsecret-tail", "orders")
+        assert code == 7 and said in out and "secret-tail" not in out, out
 
         for role, token in tokens.items():
             needs = {"viewer": "operator", "operator": "engineer", "engineer": None}[role]
@@ -352,6 +360,19 @@ def test_token_changes_are_in_the_audit_trail(tmp_path: Path) -> None:
     ]
     code, out = cli_sync(cell, "audit", "--json")
     assert code == 0 and '"token.revoke"' in out and f'"local:{getpass.getuser()}"' in out
+
+
+def test_revoking_default_says_what_this_computer_acts_with_now(tmp_path: Path) -> None:
+    cell = tmp_path / "cell"
+    cell.mkdir()
+    ensure_default(cell)  # as `cellctl run` does at its start
+    code, out = cli_sync(cell, "token", "revoke", "default")
+    said = " ".join(out.split())
+    assert code == 0 and "token default revoked" in said, out
+    assert "api-token removed with it: commands here act with $CELLCTL_TOKEN" in said
+    assert not (cell / "api-token").exists()
+    code, out = cli_sync(cell, "token", "list")
+    assert code == 0 and "default" not in out.replace("as `default`", ""), out
 
 
 def test_a_cell_that_never_ran_keeps_its_trail_from_the_first_action(tmp_path: Path) -> None:

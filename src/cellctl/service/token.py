@@ -119,6 +119,12 @@ def client_token(directory: Path) -> str:
     """The token a client of the cell sends: ``$CELLCTL_TOKEN`` when set (a named token, so
     the CLI and the console act with its role), else ``<cell>/api-token``."""
     given = os.environ.get(TOKEN_ENV, "").strip()
+    if any(not "!" <= c <= "~" for c in given):
+        # Refused here, not sent: a header with it is not HTTP (and would be echoed back).
+        raise AccessDenied(
+            f"${TOKEN_ENV} is not a token: it holds a space, a line break or a character "
+            "a token never has; set it to a token as `cellctl token add` printed it"
+        )
     return given or read_token(directory)
 
 

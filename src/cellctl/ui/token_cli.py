@@ -22,7 +22,14 @@ from cellctl.clock import current_clock
 from cellctl.errors import AccessDenied, UsageError, with_article
 from cellctl.service.audit import AuditLog, keeps_trail
 from cellctl.service.rpc import login_name
-from cellctl.service.token import ROLES, add_token, list_tokens, revoke_token
+from cellctl.service.token import (
+    DEFAULT_NAME,
+    ROLES,
+    TOKEN_FILE,
+    add_token,
+    list_tokens,
+    revoke_token,
+)
 from cellctl.ui.calls import cell_call
 from cellctl.ui.common import cell_dir, console, json_option, print_json, print_table, run
 
@@ -53,10 +60,11 @@ def token_group() -> None:
     """The control API's tokens: each with a name and a role."""
 
 
-def _manager(directory: Path, method: str) -> str:
+def _manager(directory: Path, method: str, params: dict[str, Any]) -> str:
     """Who changes the tokens: the token in ``$CELLCTL_TOKEN`` when one is set, which must be
-    an engineer's (AccessDenied otherwise, as for every acting call), else the local user
-    (who owns the cell's files)."""
+    an engineer's (AccessDenied otherwise, as for every acting call, and the refused call
+    with its ``params`` in the audit trail), else the local user (who owns the cell's
+    files)."""
     from cellctl.service.client import env_caller
 
     caller = env_caller(directory)
@@ -65,7 +73,7 @@ def _manager(directory: Path, method: str) -> str:
     if caller.role != "engineer":
         name = caller.who.partition(":")[2]
         refused = f"{name} is {with_article(caller.role)}: {method} needs the engineer role"
-        _audit(directory, caller.who, method, {}, refused)
+        _audit(directory, caller.who, method, params, refused)
         raise AccessDenied(refused)
     return caller.who
 
@@ -94,12 +102,14 @@ def token_add(ctx: click.Context, name: str, role: str) -> None:
     """Make token NAME with a role and print it once (only its hash is kept)."""
     directory = cell_dir(ctx)
 
+    params = {"name": name, "role": role}
+
     async def main() -> tuple[str, str]:
-        who = _manager(directory, "token.add")
+        who = _manager(directory, "token.add", params)
         return who, add_token(directory, name, role)
 
     who, secret = run(main)
-    _audit(directory, who, "token.add", {"name": name, "role": role})
+    _audit(directory, who, "token.add", params)
     console.print(secret, markup=False, soft_wrap=True)
     click.echo(f"token {name} ({role}): shown once, keep it; cellctl token revoke {name}", err=True)
 
@@ -137,13 +147,20 @@ def token_revoke(ctx: click.Context, name: str) -> None:
     directory = cell_dir(ctx)
 
     async def main() -> str:
-        who = _manager(directory, "token.revoke")
+        who = _manager(directory, "token.revoke", {"name": name})
         revoke_token(directory, name)
         return who
 
     who = run(main)
     _audit(directory, who, "token.revoke", {"name": name})
     console.print(f"token {name} revoked", markup=False)
+    if name == DEFAULT_NAME:
+        # api-token went with it: what this computer's commands acted with.
+        click.echo(
+            f"{directory / TOKEN_FILE} removed with it: commands here act with $CELLCTL_TOKEN "
+            "(an engineer's token) until `cellctl run` starts again and writes a new one",
+            err=True,
+        )
 
 
 @click.command("audit")

@@ -268,8 +268,16 @@ async def test_manual_functions_only_out_of_automatic_service(api: Api) -> None:
     assert status["state_text"] and "partitions" in status
     with pytest.raises(MachineInUse, match="in automatic service: take it out first"):
         await api.call("robot.home", {"machine": "robot"})
+    again = await api.call("machines.return_to_service", {"machine": "robot"})
+    assert again["message"].startswith("robot is already in automatic service"), again
     out = await api.call("machines.out_of_service", {"machine": "robot", "reason": "teach"})
     assert "out of automatic service" in out["message"]
+    # Said again without a reason: the first one stays, and so says the answer.
+    again = await api.call("machines.out_of_service", {"machine": "robot"})
+    assert again["message"] == (
+        "robot is already out of automatic service (taken out by the operator: teach)"
+    )
+    assert api.rig.journal.machines_out_of_service()["robot"].endswith(": teach")
     await api.rig.wait_for(lambda: api.rig.controller and not api.rig.controller._busy(), "idle")
     assert (await api.call("robot.home"))["message"] == "Home"
     down = await api.call("robot.download", {"machine": "robot", "partition": 4, **robot_program()})

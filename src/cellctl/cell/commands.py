@@ -92,7 +92,11 @@ class OperatorCommands:
         """Take machine ``name`` out of automatic service, or return it (then it is prepared:
         a robot initialized, a mill initialized with its setup if it lost it)."""
         view = _known(self.machines, name)
+        out = self.journal.machines_out_of_service().get(name)
         if not in_service:
+            # Out by the operator already: said again without a reason, the first one stays.
+            if out is not None and out.startswith(OPERATOR_OUT) and not reason:
+                return f"{name} is already out of automatic service ({out})"
             why = f"{OPERATOR_OUT}: {reason}" if reason else OPERATOR_OUT
             self.journal.set_machine_service(name, False, why)
             view.in_service = False
@@ -101,6 +105,8 @@ class OperatorCommands:
             return f"{name} out of automatic service" + (
                 "; its step in flight finishes first" if running else ""
             )
+        if view.in_service and out is None:
+            return f"{name} is already in automatic service ({view.state})"
         if name in self.manual_use:
             raise MachineInUse(f"{name} is in use by a manual function: wait for it to end")
         self.journal.set_machine_service(name, True, "returned by the operator")

@@ -538,6 +538,11 @@ async def test_tokens_on_tcp_and_the_socket(api: Api) -> None:
         assert status == 401 and "properties" not in json.dumps(body)
     status, body = await asyncio.to_thread(get, "/api/traffic/robot?limit=3", token)
     assert status == 200 and len(body) <= 3
+    for all_ in ("1", "true", "yes", "0", "false", "no"):
+        status, body = await asyncio.to_thread(get, f"/api/alarms?all={all_}", token)
+        assert status == 200 and isinstance(body, list), (all_, body)
+    status, body = await asyncio.to_thread(get, "/api/alarms?all=sometimes", token)
+    assert status == 400 and "all" in body["error"]["message"], body
     for headers in ({}, {"Authorization": "Bearer wrong"}):
         with pytest.raises(InvalidStatus):
             async with connect(f"ws://127.0.0.1:{api.port}/websocket", additional_headers=headers):
@@ -588,6 +593,7 @@ def test_the_docs_list_every_method_as_served() -> None:
 
     docs = (Path(__file__).resolve().parent.parent / "docs" / "api.md").read_text()
     assert reference_table() in docs
+    assert docs.count("| method | parameters") == 1  # and no older copy beside it
 
 
 async def test_a_browser_gets_a_oneshot_token_and_every_answer_a_csp(api: Api) -> None:

@@ -356,8 +356,9 @@ class ApiServer:
             if entry is None:
                 return _unauthorized()
             params = {}
-            if method == "alarms.list" and request.query_params.get("all") in ("1", "true"):
-                params["all"] = True
+            if method == "alarms.list" and "all" in request.query_params:
+                # As the parameter says it (1/0, true/false, yes/no): any other word is a 400.
+                params["all"] = request.query_params["all"]
             return await self.answer(method, params, entry)
 
         return endpoint

@@ -94,6 +94,17 @@ def test_order_lifecycle(mailbox: Mailbox) -> None:
     assert mailbox.get_order("o1").note == "now done"
 
 
+def test_a_note_belongs_to_its_state(mailbox: Mailbox) -> None:
+    mailbox.post_order("p", order_id="o1")
+    mailbox.set_order_state("o1", "accepted")
+    mailbox.set_order_state("o1", "held", "a part needs the operator")
+    # The same state again (a controller after a restart): the note stays.
+    assert mailbox.set_order_state("o1", "held").note == "a part needs the operator"
+    # A new state without a note: no note (the held order's is not the running order's).
+    assert mailbox.set_order_state("o1", "in-progress").note == ""
+    assert mailbox.get_order("o1").note == ""
+
+
 @pytest.mark.parametrize(
     ("path", "illegal"),
     [

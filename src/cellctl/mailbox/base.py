@@ -145,7 +145,8 @@ class Mailbox(ABC):
         """Move an order to ``state``; :class:`UsageError` for an illegal transition.
 
         Setting the state the order already has changes nothing but ``note`` (when given),
-        so a controller that repeats the call after a restart does no harm.
+        so a controller that repeats the call after a restart does no harm; a new state
+        takes ``note`` as its note, none when none is given.
         """
 
     @abstractmethod

@@ -156,7 +156,10 @@ class SqliteMailbox(SqliteStore, Mailbox):
             if state == order.state and not note:
                 return order
             now = self._now()
-            new_note = note or order.note
+            # A new state says its own note (none: none); the same state keeps its note
+            # unless given one (a held order's "a part needs the operator" is not the
+            # in-progress order's once the part is released).
+            new_note = note if note or state != order.state else order.note
             db.execute(
                 "UPDATE orders SET state = ?, updated = ?, note = ? WHERE id = ?",
                 (state, now, new_note, order_id),

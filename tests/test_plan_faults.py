@@ -194,3 +194,65 @@ def test_a_dropped_connection_on_the_cobot_mid_transfer_is_resolved(tmp_path: Pa
     ]
     assert opens <= alarms[0].raised < closes and not held
     assert run.finished["A"] is not None
+
+
+def rough_cut(tmp_path: Path, *faults: FaultWindow) -> tuple[float, float, float | None]:
+    """The example cell's plan of one robot base over an hour from T0: cnc1's rough cut
+    (its start and end) and the order's finish."""
+    inputs = PlanInputs(
+        EXAMPLE_CELL, (PlanOrder("A", "wax-robot-base", 1),), T0, T0 + 3600, faults=faults
+    )
+    run = simulate(inputs, tmp_path / str(len(list(tmp_path.iterdir()))))
+    with Journal(run.journal_path) as journal:
+        [cut] = [s for s in journal.steps() if s.kind == "machine" and s.machine == "cnc1"]
+    assert cut.state == "finished" and cut.ended is not None
+    return cut.started, cut.ended, run.finished["A"]
+
+
+@pytest.mark.parametrize("fault", ["never-ready", "stall"])
+def test_a_mill_fault_come_and_gone_within_a_cut_leaves_the_cut_as_it_was(
+    tmp_path: Path, fault: str
+) -> None:
+    """READY withheld (or CTS stuck) from the 2nd to the 3rd minute of a 12-minute cut, and
+    the panel's link mode selected again after: the mill goes on cutting; READY comes at the
+    block's end, as without the fault (it came at once, and the cut counted as done)."""
+    started, ended, finished = rough_cut(tmp_path)
+    window = FaultWindow("cnc1", fault, T0 + 120, T0 + 180)
+    assert started < window.start and window.end is not None and window.end < ended
+    assert rough_cut(tmp_path, window) == pytest.approx((started, ended, finished), abs=1.0)
+
+
+def test_a_mill_not_ready_when_its_cut_ends_holds_the_part_until_ready(tmp_path: Path) -> None:
+    started, ended, finished = rough_cut(tmp_path)
+    assert finished is not None
+    closes = ended + 300  # READY withheld from a minute before the cut's end to 5 min after
+    window = FaultWindow("cnc1", "never-ready", ended - 60, closes)
+    late_started, late_ended, late_finished = rough_cut(tmp_path, window)
+    assert late_started == pytest.approx(started, abs=1.0)
+    assert closes <= late_ended <= closes + 60
+    assert late_finished is not None and late_finished >= finished + (closes - ended)
+
+
+def test_a_failure_that_shows_after_its_window_is_resolved_all_the_same(tmp_path: Path) -> None:
+    """Line noise while a block goes to cnc1 garbles it: the mill never says the block is
+    done, and the controller fails the cut at its deadline, long after the window closed.
+    The plan's operator is still watching (a step begun under the fault was in flight): the
+    alarm is cleared and the part released, not left held for the rest of the plan."""
+    opens, closes = T0 + 13 * 60, T0 + 14 * 60  # the second part's block goes at 13:10
+    inputs = PlanInputs(
+        EXAMPLE_CELL,
+        (PlanOrder("A", "wax-robot-base", 2),),
+        T0,
+        T0 + 2 * 3600,
+        faults=(FaultWindow("cnc1", "noise", opens, closes, "0.01,7"),),
+    )
+    run = simulate(inputs, tmp_path)
+    with Journal(run.journal_path) as journal:
+        failed = [s for s in journal.steps() if s.state == "failed"]
+        alarms = journal.alarms()
+        held = journal.parts(statuses=["held"])
+    assert [(s.machine, s.kind) for s in failed] == [("cnc1", "machine")]
+    assert failed[0].started < closes and failed[0].ended is not None
+    assert failed[0].ended > closes + 600  # shown long after the window
+    assert [a.cleared_by for a in alarms] == ["plan operator"]
+    assert held == []

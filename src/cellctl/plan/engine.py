@@ -496,7 +496,7 @@ class _Operator:
             await self.controller.set_service(fault.machine, True)
             return
         await self._switch_off(fault.machine, fault.fault)
-        await self.resolve(until)
+        await self.resolve(until, fault.end)
 
     def _target(self, machine: str) -> Any:
         cell = self.cell
@@ -512,18 +512,24 @@ class _Operator:
         target.clear_fault(name)
         await target.operator_after(name)  # a panel's key, a pendant's unlock: the kind's
 
-    async def resolve(self, until: float) -> None:
-        """As an operator after fixing a machine: a few looks later, clear every alarm and
-        release every held part (one held after a transfer once the arm is at rest); again
-        if the looks after that raise more (a read that was out when the fault went)."""
+    async def resolve(self, until: float, closed: float) -> None:
+        """As an operator after fixing a machine (its fault window ``closed`` then): a few
+        looks later, clear every alarm and release every held part (one held after a
+        transfer once the arm is at rest); again if the looks after that raise more (a read
+        that was out when the fault went), and while a step begun under the fault is still
+        in flight (a block garbled by line noise fails only at its deadline)."""
         clock = current_clock()
         look = self.controller.options.poll_period
-        for _ in range(RESOLVE_ROUNDS):
+        rounds = 0
+        while rounds < RESOLVE_ROUNDS and clock.now() < until:
             await clock.sleep(RESOLVE_LOOKS * look)
             alarms = self.journal.active_alarms()
             held = self.journal.parts(statuses=["held"])
             if not alarms and not held:
-                return
+                if not self._under_fault(closed):
+                    return
+                continue
+            rounds += 1
             for alarm in alarms:
                 self.journal.clear_alarm(alarm.id, by="plan operator")
             while held and self.cell.robot.moving:
@@ -533,6 +539,10 @@ class _Operator:
             for part in held:
                 self._release(part.id)
             self.controller.poke()
+
+    def _under_fault(self, closed: float) -> bool:
+        """True while a step that began before ``closed`` is still in flight."""
+        return any(s.state == "started" and s.started <= closed for s in self.journal.steps())
 
     def _release(self, part_id: str) -> None:
         cell = self.cell

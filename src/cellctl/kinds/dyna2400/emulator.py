@@ -222,6 +222,8 @@ class Dyna2400Emulator(EmulatedDevice, HeadStart):
             self.display = "MANUAL"
             self._set_rts(False)
             return
+        if self.executing and mode is not LinkMode.UPLOAD:
+            return  # mid-block the panel shows RUN: READY comes with the block's end
         self.display = "READY" if mode is not LinkMode.UPLOAD else "UPLOAD"
         if mode is LinkMode.UPLOAD:
             self._spawn(self._upload())

@@ -256,3 +256,45 @@ def test_a_failure_that_shows_after_its_window_is_resolved_all_the_same(tmp_path
     assert failed[0].ended > closes + 600  # shown long after the window
     assert [a.cleared_by for a in alarms] == ["plan operator"]
     assert held == []
+
+
+def base_orders(tmp_path: Path, faults: tuple[FaultWindow, ...], **kw: Any) -> PlanRun:
+    """Three robot bases over two hours from T0, with ``faults``."""
+    inputs = PlanInputs(
+        EXAMPLE_CELL,
+        (PlanOrder("A", "wax-robot-base", 3),),
+        T0,
+        T0 + 2 * 3600,
+        faults=faults,
+        **kw,
+    )
+    return simulate(inputs, tmp_path / str(len(list(tmp_path.iterdir()))))
+
+
+def test_overlapping_windows_of_one_fault_act_as_their_union(tmp_path: Path) -> None:
+    # cnc1 down 14:10-15:00 and 14:30-15:30: down until 15:30 (the first one's end put it
+    # back in service while the second was open), as one window 14:10-15:30.
+    both = base_orders(
+        tmp_path,
+        (
+            FaultWindow("cnc1", "down", T0 + 600, T0 + 3600),
+            FaultWindow("cnc1", "down", T0 + 1800, T0 + 5400),
+        ),
+    )
+    union = base_orders(tmp_path, (FaultWindow("cnc1", "down", T0 + 600, T0 + 5400),))
+    with Journal(both.journal_path) as journal:
+        cuts = [s.started for s in journal.steps() if s.machine == "cnc1"]
+    assert not any(T0 + 600 < t < T0 + 5400 for t in cuts), cuts
+    assert both.finished == union.finished
+
+
+def test_a_machine_out_of_service_at_the_start_stays_out_past_a_window(tmp_path: Path) -> None:
+    run = base_orders(
+        tmp_path,
+        (FaultWindow("cnc2", "down", T0 + 600, T0 + 1200),),
+        out_of_service=("cnc2",),
+    )
+    with Journal(run.journal_path) as journal:
+        assert [s for s in journal.steps() if s.machine == "cnc2"] == []
+        assert "cnc2" in journal.machines_out_of_service()
+    assert run.finished["A"] is None

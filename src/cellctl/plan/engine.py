@@ -27,7 +27,8 @@ import asyncio
 import contextlib
 import dataclasses
 import tomllib
-from collections.abc import Sequence
+from collections import Counter
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -326,7 +327,7 @@ async def _play(inputs: PlanInputs, cell_dir: Path) -> tuple[float, dict[str, fl
         for name in inputs.out_of_service:
             await controller.set_service(name, False, "out of service when the plan began")
         run = asyncio.create_task(controller.run(stop), name="plan-controller")
-        operator = _Operator(controller, cell, journal)
+        operator = _Operator(controller, cell, journal, inputs.out_of_service)
         faults = [
             asyncio.create_task(operator.window(f, inputs.until), name=f"plan-fault-{i}")
             for i, f in enumerate(inputs.faults)
@@ -477,26 +478,46 @@ class _Operator:
     fault on and off, and afterwards resolves what the cell holds (as an operator does: the
     alarms cleared, each held part released where it physically is)."""
 
-    def __init__(self, controller: CellController, cell: EmulatedCell, journal: Journal):
+    def __init__(
+        self,
+        controller: CellController,
+        cell: EmulatedCell,
+        journal: Journal,
+        kept_out: Iterable[str] = (),
+    ) -> None:
         self.controller = controller
         self.cell = cell
         self.journal = journal
+        # Out of service when the plan began: they stay out, whatever window closes.
+        self.kept_out = frozenset(kept_out)
+        # Windows open now per (machine, fault): overlapping ones act as their union.
+        self._open: Counter[tuple[str, str]] = Counter()
 
     async def window(self, fault: FaultWindow, until: float) -> None:
         clock = current_clock()
+        key = (fault.machine, fault.fault)
         await clock.sleep(max(0.0, fault.start - clock.now()))
-        if fault.fault == "down":
-            await self.controller.set_service(fault.machine, False, "down (plan)")
-        else:
-            self._target(fault.machine).set_fault(fault.fault, fault.arg)
+        self._open[key] += 1
+        if self._open[key] == 1:
+            await self._switch_on(fault)
         if fault.end is None or fault.end >= until:
             return
         await clock.sleep(max(0.0, fault.end - clock.now()))
+        self._open[key] -= 1
+        if self._open[key] > 0:
+            return  # another window of the same fault is still open
         if fault.fault == "down":
-            await self.controller.set_service(fault.machine, True)
+            if fault.machine not in self.kept_out:
+                await self.controller.set_service(fault.machine, True)
             return
         await self._switch_off(fault.machine, fault.fault)
         await self.resolve(until, fault.end)
+
+    async def _switch_on(self, fault: FaultWindow) -> None:
+        if fault.fault != "down":
+            self._target(fault.machine).set_fault(fault.fault, fault.arg)
+        elif fault.machine not in self.kept_out:
+            await self.controller.set_service(fault.machine, False, "down (plan)")
 
     def _target(self, machine: str) -> Any:
         cell = self.cell

@@ -6,6 +6,7 @@ not; and `cellctl plan` through the API answers the issue's questions."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 from collections.abc import AsyncIterator
 from datetime import datetime, timedelta
@@ -226,3 +227,38 @@ async def test_a_part_held_now_stays_held_in_the_plan(running: tuple[CellRig, Ap
     assert [(o["order_id"], o["qty"]) for o in inputs["orders"]] == [("A", 2 - 1 - done)]
     [report] = answer["plan"]["plans"]
     assert report["held_at_start"] == 1
+
+
+@pytest.mark.timeout(300)
+async def test_a_plan_whose_client_goes_away_ends_its_play(
+    running: tuple[CellRig, ApiServer],
+) -> None:
+    """A month of plan (minutes of CPU) asked, and its client gone a moment later: the play
+    ends with it, and the next plan is taken long before the month could have been played."""
+    rig, server = running
+    vera = await _viewer(rig, server)
+    asked = asyncio.create_task(
+        vera.call("plan.run", {"shift": "30d", "add": ["wax-robot-base:5000"]})
+    )
+    operator = await attach(rig.directory)
+    try:
+        # Playing: a second plan is refused while it plays.
+        with pytest.raises(UsageError, match="a plan is being played already"):
+            await operator.call("plan.run", {"shift": "1m", "add": ["wax-robot-base:1"]})
+        await vera.close()
+        with contextlib.suppress(Exception):
+            await asked
+        answer = None
+        for _ in range(120):  # the worker killed and reaped: seconds
+            try:
+                answer = await operator.call(
+                    "plan.run", {"shift": "1m", "add": ["wax-robot-base:1"]}
+                )
+                break
+            except UsageError as e:
+                assert "a plan is being played already" in str(e)
+                await asyncio.sleep(0.5)
+        assert answer is not None, "the month's play went on after its client left"
+        assert answer["plan"]["plans"][0]["until"] - answer["plan"]["plans"][0]["start"] == 60
+    finally:
+        await operator.close()

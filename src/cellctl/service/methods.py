@@ -338,7 +338,14 @@ _TABLE: list[Method] = [
     ),
     Method("audit.list", AuditParams, _audit, "Who did what, when, and its result.", False),
     # A viewer's: it acts on nothing, it plays the cell's state on a copy (service/planning).
-    Method("plan.run", PlanParams, plan_run, "Play the cell ahead on a copy: a plan.", False),
+    Method(
+        "plan.run",
+        PlanParams,
+        plan_run,
+        "Play the cell ahead on a copy: a plan.",
+        False,
+        abandoned=True,
+    ),
 ]
 
 
@@ -471,6 +478,11 @@ class Dispatcher:
         if entry.acts:
             await self.record(caller.who, method, params, "ok")
         return result
+
+    def abandoned(self, method: str) -> bool:
+        """True if a call of ``method`` ends when its client goes away (:class:`Method`)."""
+        entry = METHODS.get(method) or self.access.methods().get(method)
+        return entry is not None and entry.abandoned
 
     async def _run(self, entry: Method, method: str, params: Any, progress: Progress | None) -> Any:
         if params is None:

@@ -161,6 +161,9 @@ class Method:
     #: The least role that may call it (:data:`~cellctl.service.token.ROLES`); left out, an
     #: acting method needs an operator and a read a viewer.
     role: str = field(default="", kw_only=True)
+    #: Ends when its WebSocket client goes away (it touches no machine: a plan's play, whose
+    #: CPU nobody waits for any more); every other call runs to its end.
+    abandoned: bool = field(default=False, kw_only=True)
 
     def __post_init__(self) -> None:
         if not self.role:

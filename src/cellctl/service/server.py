@@ -133,6 +133,7 @@ class _Session:
         self.subscribed = False
         self.open = True
         self.last: CellStatus | None = None  # the status this client holds
+        self.abandoned: set[asyncio.Future[Any]] = set()  # its calls that end when it goes
 
     def send(self, message: dict[str, Any] | list[Any] | str) -> None:
         """Queue ``message`` (a dict, a batch's answers, or JSON text made once for all)."""
@@ -411,6 +412,8 @@ class ApiServer:
         finally:
             session.open = False
             self.sessions.discard(session)
+            for call in session.abandoned:
+                call.cancel()  # a plan nobody waits for any more burns no CPU
             writer.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await writer
@@ -499,7 +502,16 @@ class ApiServer:
                 result = {"message": "unsubscribed"}
             else:
                 caller = as_caller(session.entry)
-                result = await self.dispatcher.call(method, params, progress, caller=caller)
+                called = self.dispatcher.call(method, params, progress, caller=caller)
+                if not self.dispatcher.abandoned(method):
+                    result = await called
+                else:
+                    call = asyncio.ensure_future(called)
+                    session.abandoned.add(call)
+                    try:
+                        result = await call
+                    finally:
+                        session.abandoned.discard(call)
         except Exception as e:
             error = error_object(e)
             if error["code"] == INTERNAL_ERROR:

@@ -58,10 +58,17 @@ def test_every_cell_on_this_host_is_planned_from_its_own_orders(tmp_path: Path) 
     result = CliRunner().invoke(main, [*args, "--json"])
     assert result.exit_code == 0, result.output
     plans = json.loads(result.output)
-    assert sorted(plans) == ["cell1", "cell2", "cell3"]
+    assert sorted(plans) == ["cell1", "cell2", "cell3", "cell4"]
     assert "nothing to plan: no open orders" in plans["cell3"]["refused"]
+    assert plans["cell4"]["refused"].startswith("not on this host (no ")
     for name, part in (("cell1", "wax-robot-base"), ("cell2", "wax-toy-mill-table")):
         [report] = plans[name]["plans"]
         assert [(o["order_id"], o["part_type"]) for o in report["orders"]] == [(f"{name}-A", part)]
         assert report["until"] - report["start"] == 180 and report["steps"]
         assert (out / name / "plan.svg").is_file() and (out / name / "inputs.json").is_file()
+    # A cell said to be in a directory that holds none: refused, not left out unsaid.
+    missing = tmp_path / "nowhere"
+    result = CliRunner().invoke(main, [*args, "--cell-dir", f"cell4={missing}"])
+    assert result.exit_code == 2
+    said = "".join(result.output.split())  # one line however the terminal wraps it
+    assert f"--cell-dir'cell4={missing}':nocellthere" in said, result.output

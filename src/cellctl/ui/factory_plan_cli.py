@@ -49,24 +49,33 @@ def _plan_here(directory: str, params: dict[str, Any]) -> tuple[str, Any]:
     return "plan", answer
 
 
-def _cell_dirs(factory_dir: Path, cells: list[str], given: tuple[str, ...]) -> dict[str, Path]:
+def _cell_dirs(
+    factory_dir: Path, cells: list[str], given: tuple[str, ...]
+) -> tuple[dict[str, Path], dict[str, str]]:
+    """The cells' directories on this host, and why each other cell is not planned (its
+    directory is elsewhere: on the host that runs it). A ``--cell-dir`` with no cell is
+    refused: it was said to be there."""
     mapping: dict[str, Path] = {}
     for text in given:
         name, sep, where = text.partition("=")
         if not sep or name not in cells:
             raise UsageError(f"--cell-dir {text!r}: write CELL=DIR, CELL one of {', '.join(cells)}")
+        if not (Path(where) / "cell.toml").is_file():
+            raise UsageError(f"--cell-dir {text!r}: no cell there (no {where}/cell.toml)")
         mapping[name] = Path(where)
-    found = {}
+    found, away = {}, {}
     for name in cells:
         directory = mapping.get(name, factory_dir / name)
         if (directory / "cell.toml").is_file():
             found[name] = directory
+        else:
+            away[name] = f"not on this host (no {directory}/cell.toml; --cell-dir {name}=DIR)"
     if not found:
         raise UsageError(
             f"no cell directory of {', '.join(cells)} on this host (looked in {factory_dir}/"
             "CELL; say where with --cell-dir CELL=DIR)"
         )
-    return found
+    return found, away
 
 
 def _faults_by_cell(faults: tuple[str, ...], cells: dict[str, Path]) -> dict[str, list[str]]:
@@ -170,7 +179,7 @@ def factory_plan(
     factory_dir = Path(ctx.obj["factory_dir"])
     try:
         config = load_factory(factory_dir)
-        cells = _cell_dirs(factory_dir, list(config.cells), cell_dirs)
+        cells, away = _cell_dirs(factory_dir, list(config.cells), cell_dirs)
         windows = _faults_by_cell(faults, cells)
         _check(cells, windows, shift, until, policy)
     except CellctlError as e:
@@ -203,7 +212,7 @@ def factory_plan(
             what, answer = future.result()
             answers[name] = UsageError(answer) if what == "refused" else answer
     plans: dict[str, Any] = {}
-    refused: dict[str, str] = {}
+    refused: dict[str, str] = dict(away)
     for name, directory in cells.items():
         try:
             answer = answers[name]

@@ -135,6 +135,11 @@ def test_the_policies_compared_and_the_plan_replayed_from_its_inputs(
 
     assert [same(p) for p in again["plans"]] == [same(p) for p in first["plans"]]
     assert again["inputs"]["orders"] == first["inputs"]["orders"]
+    # Its seed and policies are the inputs': another one typed beside them is refused, not
+    # quietly left unplayed.
+    for option in (["--seed", "5"], ["--policy", "one-at-a-time"]):
+        refused = plan("--replay", str(out / "inputs.json"), *option, expect=2).output
+        assert f"--replay plays its own inputs: not with {option[0]}" in refused
 
 
 @pytest.mark.parametrize(

@@ -175,6 +175,12 @@ def plan_command(
                  ("--poll", poll)) if v] + (
             ["--add"] * bool(adds) + ["--fault"] * bool(faults)
         )  # fmt: skip
+        # Options with defaults: given when typed (the inputs keep their own seed and policies).
+        given += [
+            f"--{name}"
+            for name in ("seed", "policy")
+            if ctx.get_parameter_source(name) is not click.core.ParameterSource.DEFAULT
+        ]
         if given:
             raise click.UsageError(f"--replay plays its own inputs: not with {', '.join(given)}")
         result = guarded(lambda: _replay(replay))

@@ -21,11 +21,11 @@ import serial
 
 from cellctl.cell.journal import JOURNAL_FILE, open_journal
 from cellctl.cell.owner import acquire_controller_lock, controller_holder
-from cellctl.drivers.base import link_lock_path
 from cellctl.drivers.state import StateStore
 from cellctl.errors import MachineInUse, UsageError
 from cellctl.kinds.ibm7545.driver import Ibm7545Robot
 from cellctl.link import open_link
+from cellctl.link.keys import link_lock_paths
 from cellctl.link.lock import (
     RUNTIME_ENV,
     SYSTEM_LOCK_DIR,
@@ -97,6 +97,26 @@ async def test_second_process_by_link_is_refused_before_a_byte(
         await robot.status()  # the owner carries on
         # The emulator saw nothing of the refused process: the same host connection, and
         # every byte it received is one the owner sent.
+        assert robot_served.server.current_line is line
+        assert await bytes_received(robot_served, robot.link.bytes_sent) == robot.link.bytes_sent
+
+
+async def test_another_spelling_of_the_link_is_refused_before_a_byte(
+    robot_served: Served, tmp_path: Path, label: str
+) -> None:
+    """localhost and 127.0.0.1 are one endpoint (a pty: its /dev/pts//N spelling)."""
+    if robot_served.url.startswith("/dev/"):
+        number = robot_served.url.rsplit("/", 1)[1]
+        other = f"/dev/pts//{number}"
+    else:
+        other = robot_served.url.replace("127.0.0.1", "localhost")
+    async with await Ibm7545Robot.connect(robot_served.url) as robot:
+        await robot.status()
+        line = robot_served.server.current_line
+        code, err = await cellctl("--cell", str(tmp_path), "robot", "--link", other, "status")
+        assert code == 6, err
+        assert f"{other} is in use by {label} (pid {os.getpid()}) since" in err
+        await robot.status()
         assert robot_served.server.current_line is line
         assert await bytes_received(robot_served, robot.link.bytes_sent) == robot.link.bytes_sent
 
@@ -321,7 +341,8 @@ async def test_a_controller_refused_a_held_machine_serves_nothing_and_opens_noth
         assert holder(StateStore(tmp_path).lock_path("robot")) is None
     # The PLC's link, held by URL (a `cellctl plc` session): the same.
     plc_url = tomllib.loads((tmp_path / "cell.toml").read_text())["plc"]["url"]
-    with OwnerLock.acquire(link_lock_path(plc_url), plc_url):
+    (plc_lock,) = link_lock_paths(plc_url)
+    with OwnerLock.acquire(plc_lock, plc_url):
         with pytest.raises(MachineInUse, match=f"{plc_url} is in use by {label}"):
             await run_controller(tmp_path, live=False, until_idle=True)
         assert not (tmp_path / JOURNAL_FILE).exists()

@@ -12,7 +12,6 @@ back after the link is closed.
 from __future__ import annotations
 
 import asyncio
-import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol, Self
@@ -20,18 +19,8 @@ from typing import Any, Protocol, Self
 from cellctl.clock import Clock
 from cellctl.drivers.state import StateStore, machine_key
 from cellctl.link import LineSettings, Link, TrafficLog, open_link
-from cellctl.link.lock import OwnerLock, refuse_if_held, runtime_dir
-
-
-def link_lock_path(url: str) -> Path:
-    """The lock of link ``url`` in this user's runtime directory: ``link-<key>.lock``.
-
-    A device path is resolved first, so a symlink and its target (``pty:PATH``, udev names)
-    share one lock.
-    """
-    if "://" not in url or url.startswith("serial://"):
-        url = os.path.realpath(url.split("://", 1)[1] if "://" in url else url)
-    return runtime_dir() / f"link-{machine_key(url)}.lock"
+from cellctl.link.keys import link_lock_paths
+from cellctl.link.lock import OwnerLock, refuse_if_held
 
 
 def _lock_paths(url: str, name: str | None, store: StateStore | None) -> list[tuple[Path, str]]:
@@ -40,7 +29,9 @@ def _lock_paths(url: str, name: str | None, store: StateStore | None) -> list[tu
     if store is not None and name and name != url:
         wanted.append((store.lock_path(name), name))
     if not url.startswith(("loop://", "mem://")):
-        wanted.append((link_lock_path(url), url))
+        # One lock per canonical key: every spelling of the link (a symlink, localhost or
+        # 127.0.0.1) takes the same files (cellctl.link.keys).
+        wanted.extend((path, url) for path in link_lock_paths(url))
     return wanted
 
 

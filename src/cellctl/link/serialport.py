@@ -96,7 +96,7 @@ class SerialLink(Link):
             framing = settings.with_(bytesize=8, parity="N")
         try:
             self._port = open_pyserial(path, framing)
-        except (serial.SerialException, OSError, ValueError) as e:
+        except (serial.SerialException, OSError, ValueError, OverflowError) as e:
             # EAGAIN: another opener holds the device's flock; EBUSY: another program set
             # TIOCEXCL on it (or the driver allows one open).
             if getattr(e, "errno", None) in (errno.EAGAIN, errno.EWOULDBLOCK, errno.EBUSY):

@@ -14,6 +14,14 @@ from cellctl.errors import UsageError
 
 PARITIES = {"N": "none", "E": "even", "O": "odd", "M": "mark", "S": "space"}
 
+#: The highest baud rate a line may have: 1 Gbaud. No serial line comes near it (UARTs and USB
+#: adapters stop at a few Mbaud, Linux's highest standard rate is 4,000,000); it is not that
+#: limit because an emulated cell runs its lines as much faster as its machines (4800 baud at
+#: time scale 1000 is 4,800,000 in its cell.toml, and ``mem://`` stands for a 100 Mbit/s
+#: network), and it stays well under what the OS call can carry (pyserial hands Linux a
+#: custom rate as a signed 32-bit int: 2,147,483,647; above it came an OverflowError).
+MAX_BAUDRATE = 1_000_000_000
+
 _COMPACT = re.compile(r"^\s*(\d+)\s*[,:/ ]\s*([5-8])([NEOMSneoms])(1|1\.5|2)\s*(,\s*rtscts)?\s*$")
 
 
@@ -31,6 +39,10 @@ class LineSettings:
     def __post_init__(self) -> None:
         if self.baudrate <= 0:
             raise UsageError(f"baud rate must be positive, not {self.baudrate}")
+        if self.baudrate > MAX_BAUDRATE:
+            raise UsageError(
+                f"baud rate {self.baudrate} is beyond any serial line: at most {MAX_BAUDRATE:,}"
+            )
         if self.bytesize not in (5, 6, 7, 8):
             raise UsageError(f"data bits must be 5 to 8, not {self.bytesize}")
         if self.parity not in PARITIES:
@@ -73,9 +85,15 @@ class LineSettings:
                 f"line settings {text!r} not understood: write baud,bits parity stop "
                 "like 4800,7E2 (optionally ,rtscts)"
             )
+        digits = m.group(1).lstrip("0") or "0"
+        if len(digits) > len(str(MAX_BAUDRATE)):  # said before int() meets 5,000 digits
+            shown = digits if len(digits) <= 20 else f"{digits[:20]}... ({len(digits)} digits)"
+            raise UsageError(
+                f"baud rate {shown} is beyond any serial line: at most {MAX_BAUDRATE:,}"
+            )
         stop = float(m.group(4))
         return cls(
-            baudrate=int(m.group(1)),
+            baudrate=int(digits),
             bytesize=int(m.group(2)),
             parity=m.group(3).upper(),
             stopbits=int(stop) if stop.is_integer() else stop,

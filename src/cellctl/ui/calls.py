@@ -22,6 +22,7 @@ from rich.progress import Progress, ProgressColumn
 from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.files import read_file
+from cellctl.link.trace import refuse_trace_on_inputs
 from cellctl.ui.common import cell_dir, err_console, machine_ref, run
 
 
@@ -33,7 +34,11 @@ def state_home() -> Path:
 
 
 def read_program(path: Path) -> dict[str, str]:
-    """A program file as the API takes it: its name and text (refused if it cannot be read)."""
+    """A program file as the API takes it: its name and text (refused if it cannot be read,
+    or if the command's ``--trace`` names the same file: the trace would be appended to it)."""
+    context = click.get_current_context(silent=True)
+    given = (context.find_object(dict) or {}) if context is not None else {}
+    refuse_trace_on_inputs(given.get("trace"), [path])
     try:
         data = read_file(path)
     except FileNotFoundError:

@@ -251,6 +251,25 @@ def test_an_acceptance_not_reported_before_expiry_is_taken_back_unless_started(
     assert [r.kind for r in bridge._resend] == ["order-rejected"]
 
 
+def test_an_order_come_expired_again_and_again_is_answered_once(tmp_path: Path) -> None:
+    """A cell stopped (SIGSTOP) while the factory sent it an order finds every resend queued
+    when it goes on, each past its expiry: one refusal, published again for each resend (an
+    id it has seen changes nothing), not a refusal a resend."""
+    cell_dir = tmp_path / "cell"
+    shutil.copytree(EXAMPLE, cell_dir)
+    bridge, mailbox, _ = bridge_of(cell_dir)
+    payload = {"v": 1, "id": "D", "part_type": "wax-robot-base", "qty": 1, "expires": 1.0}
+    for _ in range(5):
+        bridge.take_order(json.dumps(payload).encode())
+    said = [r for r in mailbox.reports() if r.order_id == "D"]
+    assert [(r.kind, r.text) for r in said] == [("order-rejected", "order D: expired")]
+    assert bridge._resend == []  # not published yet: it goes out once, as it is
+    bridge.sent_seq = said[0].seq  # published
+    bridge.take_order(json.dumps(payload).encode())
+    assert bridge._resend == said
+    assert [r.order_id for r in mailbox.reports()] == ["D"]
+
+
 def test_reports_are_taken_in_order_per_mailbox_epoch(store: FactoryStore) -> None:
     store.submit("wax-robot-base", 1, order_id="E")
     store.send("E", "cell1", expires=time.time() + 30)

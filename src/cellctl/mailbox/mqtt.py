@@ -398,6 +398,16 @@ class MqttBridge:
         expires = order.expires
         if expires is not None and self.clock.now() > expires and not self._known(oid):
             # Sent to this cell, then not taken in time: the factory has given it to another.
+            # Sent again (a cell that was stopped finds each resend queued): the one answer.
+            said = [
+                r
+                for r in self.mailbox.reports()
+                if r.order_id == oid and r.kind == ReportKind.ORDER_REJECTED
+            ]
+            if said:
+                if said[-1].seq <= self.sent_seq:
+                    self._resend.append(said[-1])
+                return
             self.mailbox.post_report(
                 ReportKind.ORDER_REJECTED,
                 f"order {oid}: expired",

@@ -261,3 +261,11 @@ def test_an_unknown_machine_is_named_first_with_or_without_a_controller(tmp_path
     # A machine the cell has: the controller is what is missing, said so.
     said = one_line_refusal(cellctl("--cell", str(cell), "machine", "cnc2", "out"))
     assert "no controller runs on" in said and "unknown machine" not in said
+
+
+def test_a_demo_batch_past_an_orders_most_is_refused(tmp_path: Path) -> None:
+    # 100,000 parts made two orders of 50,000: past what an order may hold (10,000).
+    result = CliRunner().invoke(main, ["demo", "--parts", "100000", "--out", str(tmp_path / "o")])
+    assert result.exit_code == 2
+    assert "100000 is not in the range 1<=x<=10000" in result.output
+    assert not (tmp_path / "o").exists()

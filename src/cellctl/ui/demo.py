@@ -20,6 +20,7 @@ import click
 
 from cellctl.clock import current_clock
 from cellctl.emulators.serve import DEMO_TIME_SCALE, TIME_SCALE_HELP
+from cellctl.mailbox.base import MAX_QTY
 from cellctl.ui.common import cell_dir, cell_given, console, run
 from cellctl.ui.emulate_cli import refuse_if_running_in
 
@@ -43,7 +44,7 @@ if TYPE_CHECKING:
 @click.option(
     "--parts",
     "count",
-    type=click.IntRange(min=1),
+    type=click.IntRange(min=1, max=MAX_QTY),  # a batch is orders: none past an order's most
     default=None,
     help="Parts in the batch.  [default: 6; with --factory N: 3 per cell]",
 )

@@ -149,3 +149,29 @@ def test_the_dashboard_demo_keeps_one_controller_after_the_batch(tmp_path: Path)
     assert text.count("control API on") == 1, text
     assert text.count("connected to robot") == 1, text
     assert (out / "cell" / "gantt.svg").is_file()
+
+
+def test_a_demo_interrupted_says_so_and_exits_130(tmp_path: Path) -> None:
+    """Ctrl-C before the batch is done: "interrupted", exit 130, and no figures of a batch
+    that was not run (they read as a finished batch with nothing made)."""
+    demo = subprocess.Popen(
+        [*CELLCTL, "demo", "--parts", "2", "--time-scale", "50", "--out", str(tmp_path / "o")],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert demo.stdout is not None
+        seen = ""
+        while "connected to robot" not in seen:
+            line = demo.stdout.readline()
+            assert line, seen + demo.communicate(timeout=30)[1]
+            seen += line
+        demo.send_signal(signal.SIGINT)
+        out, err = demo.communicate(timeout=60)
+    finally:
+        demo.kill()
+        demo.wait()
+    assert demo.returncode == 130, seen + out + err
+    assert "interrupted" in out + err
+    assert "parts made" not in seen + out and "makespan" not in seen + out

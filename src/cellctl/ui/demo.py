@@ -177,6 +177,8 @@ async def run_batch(
             controller = await run_controller(
                 directory, live=live, until_idle=True, options=options, stop=stop
             )
+            if stop.is_set():  # Ctrl-C or SIGTERM before the batch was done: no figures
+                raise KeyboardInterrupt
             return figures(controller.journal)
         # With the dashboard: one controller for the batch and after it (a second one would
         # start the API and connect to every machine again, and say so).

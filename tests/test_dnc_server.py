@@ -200,6 +200,11 @@ async def test_a_second_opener_of_a_served_link_is_refused(tmp_path: Path) -> No
         ('[machines.m]\nlink = "loop://"\nkind = "dyna2400"\n', "feeds iso-cnc controls"),
         ('[machines."a b"]\nlink = "loop://"\n', "cannot be a directory name"),
         ('[machines.a]\nlink = "/dev/x"\n[machines.b]\nlink = "/dev/x"\n', "both on /dev/x"),
+        (
+            '[machines.a]\nlink = "socket://127.0.0.1:17110"\n'
+            '[machines.b]\nlink = "socket://localhost:17110"\n',
+            "both on socket://localhost:17110 (socket://127.0.0.1:17110 is the same link)",
+        ),
         ('[machines.m]\nlink = "loop://"\nrequest = { program = 0 }\n', "request.program"),
         ("[dnc]\n", "no [machines.NAME] table"),
         ("[machines.m\n", "not valid TOML"),

@@ -12,7 +12,10 @@ Methods of its own (:meth:`DncAccess.methods`):
 - ``dnc.send`` ``{machine, program, text?, drip?}``: send a program by hand (``text``: its
   text; else ``program`` is an O-number or file name of ``SHOP/<machine>/programs``); the
   control starts the read. Progress is pushed (``notify_progress``) as characters go. A busy
-  machine is refused at once (MachineInUse); ``ticket`` names it for ``dnc.stop``.
+  machine is refused at once (MachineInUse); ``ticket`` names it for ``dnc.stop``. A transfer
+  stopped before its end (``dnc.stop``, the server stopping) is an error saying where it
+  ended, after a last progress whose ``stopped`` field has the same words (``phase``
+  ``ended``): a client tells a stop from a failure by that field.
 - ``dnc.receive`` ``{machine, timeout?}``: take what the control punches; kept as received.
 - ``dnc.stop`` ``{machine, ticket?}``: end the read-in or drip-feed in flight the clean way
   (whoever started it; with ``ticket``, only the one sent with it), or drop the request
@@ -42,7 +45,14 @@ from cellctl.errors import UsageError
 from cellctl.kinds import Condition
 from cellctl.kinds.iso_cnc.dnc.config import KIND
 from cellctl.kinds.iso_cnc.dnc.server import PUNCH_S, STOP_S, TRANSFER_S, DncServer
-from cellctl.kinds.iso_cnc.dnc.status import Activity, MachineStatus, WatchedTraffic, state_words
+from cellctl.kinds.iso_cnc.dnc.status import (
+    Activity,
+    MachineStatus,
+    TransferStopped,
+    WatchedTraffic,
+    state_words,
+    stopped_progress,
+)
 from cellctl.kinds.iso_cnc.dnc.store import check_program_number, read_program_file
 from cellctl.kinds.menu import MAX_PROGRAM_CHARS, Progress
 from cellctl.mailbox import Mailbox
@@ -277,11 +287,17 @@ async def _send(access: CellAccess, p: SendParams, progress: Progress | None) ->
         name, data = path.name, read_program_file(path)
     check_program_number(name, data)
     what = f"{'drip-feed' if p.drip else 'read-in'} of {name}"
-    with line.claim(what):  # a busy machine: refused at once, naming what it does
+    # a busy machine: refused at once, naming what it does
+    with line.claim(what, p.ticket):
         async with line.turn:
-            result = await line.send(
-                name, data, drip=p.drip, progress=progress, timeout=TRANSFER_S, ticket=p.ticket
-            )
+            try:
+                result = await line.send(
+                    name, data, drip=p.drip, progress=progress, timeout=TRANSFER_S, ticket=p.ticket
+                )
+            except TransferStopped as e:
+                if progress is not None:  # a field its caller reads: stopped, not failed
+                    progress(stopped_progress(line.status, str(e)))
+                raise
     return {"machine": p.machine, **result}
 
 

@@ -10,7 +10,10 @@ program on that machine, before anyone stands at the control::
 
 The forecast is the driver's own model of the control's buffer (``buffer.py``) played at the
 machine's line rate: where blocks run faster than the line brings them, the tool dwells and
-may mark the part. Exit 1 when the program would be refused (every problem, with its line).
+may mark the part. Exit 1 when the program would be refused (every problem, with its line:
+the G-code check's, and a file whose name and text disagree on its O-number), as every
+``cellctl ... check`` does; 2 when there is nothing to check (an unknown machine, no such
+program, a file that is not text, an ambiguous O-number).
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ def check(ctx: click.Context, name: str, program: str, shop: Path, use_cell: boo
     """Check PROGRAM (a file, or O1234 of the machine's programs/) as `dnc send` would, and
     forecast its drip-feed at the machine's line rate: run time, line time, and how long the
     axes would wait for data. Exit 1 if it would be refused."""
+    from cellctl.errors import UsageError
     from cellctl.kinds.iso_cnc import gcode
     from cellctl.kinds.iso_cnc.buffer import forecast_drip, tape_blocks
     from cellctl.kinds.iso_cnc.dnc.config import machine
@@ -54,11 +58,16 @@ def check(ctx: click.Context, name: str, program: str, shop: Path, use_cell: boo
     chosen = machine(config, name)
     path = ShopStore(config.root).resolve(name, program)
     data = read_program_file(path)
-    check_program_number(path.name, data)
     o = chosen.options
-    problems = gcode.errors(program_text(data, str(path)), o.check_options())
+    problems = [
+        p.format(str(path)) for p in gcode.errors(program_text(data, str(path)), o.check_options())
+    ]
+    try:  # a problem of the program like the others: said with them, exit 1
+        check_program_number(path.name, data)
+    except UsageError as e:
+        problems.insert(0, str(e))
     for problem in problems:
-        console.print(problem.format(str(path)), style="red", markup=False, soft_wrap=True)
+        console.print(problem, style="red", markup=False, soft_wrap=True)
     if problems:
         console.print(f"{path}: {len(problems)} problem(s): {name} would refuse it")
         sys.exit(1)

@@ -34,6 +34,7 @@ from cellctl.kinds.iso_cnc.dnc.shopopts import shop_config, shop_options
 from cellctl.ui.common import (
     console,
     err_console,
+    fail,
     json_option,
     print_json,
     run,
@@ -145,13 +146,13 @@ async def call_shop(
     opened here (under its owner locks) when no server runs on the shop.
 
     With a ``ticket`` in ``params`` (a transfer), Ctrl-C or SIGTERM stops that transfer, and
-    only it (``dnc.stop`` with the ticket): the answer is then ``{"interrupted": words}``."""
+    only it (``dnc.stop`` with the ticket): the answer is then ``{"interrupted": words}``.
+    On the link opened here, ``cellctl dnc stop`` from another terminal stops it too
+    (:mod:`cellctl.kinds.iso_cnc.dnc.handstop`): ``{"stopped": words}``."""
     from cellctl.cell.owner import controller_holder
-    from cellctl.kinds.iso_cnc.dnc.access import DncAccess
     from cellctl.kinds.iso_cnc.dnc.config import machine
-    from cellctl.kinds.iso_cnc.dnc.server import TRANSFER_S, DncServer
+    from cellctl.kinds.iso_cnc.dnc.server import TRANSFER_S
     from cellctl.service.client import attach
-    from cellctl.service.methods import Dispatcher
 
     machine(config, name)
     params = {"machine": name, **params}
@@ -163,9 +164,38 @@ async def call_shop(
                 lambda: api.call("dnc.stop", stop, timeout=STOP_CALL_S),
                 stop["ticket"],
             )
+    if stop["ticket"] is None:
+        return await _call_here(config, name, method, params, progress, None)
+    from cellctl.kinds.iso_cnc.dnc.handstop import hand_stop_signal
+
+    hand = asyncio.Event()
+    # Taken before the machine's lock, whose record names this process as a transfer that
+    # `dnc stop` may signal: from then on the signal stops it, never kills it.
+    with hand_stop_signal(hand):
+        return await _call_here(config, name, method, params, progress, hand)
+
+
+async def _call_here(
+    config: ShopConfig,
+    name: str,
+    method: str,
+    params: dict[str, Any],
+    progress: Callable[[dict[str, Any]], None] | None,
+    hand: asyncio.Event | None,
+) -> Any:
+    """``call_shop`` on the machine's link opened here (no server runs on the shop)."""
+    from cellctl.errors import MachineInUse
+    from cellctl.kinds.iso_cnc.dnc.access import DncAccess
+    from cellctl.kinds.iso_cnc.dnc.handstop import in_use_here
+    from cellctl.kinds.iso_cnc.dnc.server import DncServer
+    from cellctl.service.methods import Dispatcher
+
     one = dataclasses.replace(config, machines={name: config.machines[name]})
     server = DncServer(one)
-    await server.start()  # the machine's own task listens, as under `dnc serve`
+    try:
+        await server.start()  # the machine's own task listens, as under `dnc serve`
+    except MachineInUse as e:  # another hand command has it: say what works instead
+        raise in_use_here(config, name) or e from None
     try:
         line = server.line(name)
         if line.driver is None:  # its link could not be opened: say why at once
@@ -173,10 +203,14 @@ async def call_shop(
 
             raise LinkError(line.status.error)
         dispatcher = Dispatcher(DncAccess(server))
+        ticket = params.get("ticket")
         return await _stoppable(
             dispatcher.call(method, params, progress),
-            lambda: dispatcher.call("dnc.stop", stop),
-            stop["ticket"],
+            lambda: dispatcher.call("dnc.stop", {"machine": name, "ticket": ticket}),
+            ticket,
+            hand=hand,
+            stop_by_hand=lambda: dispatcher.call("dnc.stop", {"machine": name}),
+            begun=lambda: bool(line.claimed) or line.transfer is not None,
         )
     finally:
         await server.close()
@@ -192,9 +226,16 @@ async def _stoppable(
     work: Coroutine[Any, Any, Any],
     stop: Callable[[], Coroutine[Any, Any, Any]],
     ticket: str | None,
+    *,
+    hand: asyncio.Event | None = None,
+    stop_by_hand: Callable[[], Coroutine[Any, Any, Any]] | None = None,
+    begun: Callable[[], bool] | None = None,
 ) -> Any:
     """``work``; with a ticket, Ctrl-C / SIGTERM meanwhile calls ``stop`` and returns
-    ``{"interrupted": how the transfer ended}``."""
+    ``{"interrupted": how the transfer ended}``; ``hand`` set (``dnc stop`` from elsewhere)
+    calls ``stop_by_hand`` and returns ``{"stopped": how it ended}``. ``begun``: whether the
+    transfer has been taken by the machine yet (one that has not is cancelled here: nothing
+    of it went out)."""
     from cellctl.clock import current_clock
     from cellctl.errors import CellctlError
 
@@ -203,16 +244,33 @@ async def _stoppable(
     stopped = asyncio.Event()
     with stop_signals(stopped):
         task = asyncio.ensure_future(work)
-        signal = asyncio.ensure_future(stopped.wait())
+        signals = [asyncio.ensure_future(stopped.wait())]
+        if hand is not None:
+            signals.append(asyncio.ensure_future(hand.wait()))
         try:
-            await asyncio.wait({task, signal}, return_when=asyncio.FIRST_COMPLETED)
+            await asyncio.wait({task, *signals}, return_when=asyncio.FIRST_COMPLETED)
         finally:
-            signal.cancel()
+            for waiting in signals:
+                waiting.cancel()
         if task.done():
             return task.result()
-        err_console.print("interrupted: stopping this transfer ...", markup=False)
+        by_hand = hand is not None and hand.is_set() and not stopped.is_set()
+        said_as = "stopped" if by_hand else "interrupted"
+        if by_hand:
+            err_console.print("stopped by `cellctl dnc stop`: ending this transfer ...")
+        else:
+            err_console.print("interrupted: stopping this transfer ...", markup=False)
+        if begun is not None and not begun():
+            task.cancel()  # not taken by the machine yet: nothing of it went out
+            with contextlib.suppress(asyncio.CancelledError, CellctlError):
+                await task
+            why = "stopped by hand" if by_hand else "stopped by its sender"
+            return {
+                said_as: f"{why}: the transfer was cancelled before it began (nothing was sent)"
+            }
         try:
-            said = str((await stop())["message"])
+            ending = stop_by_hand if by_hand and stop_by_hand is not None else stop
+            said = str((await ending())["message"])
         except CellctlError as e:
             said = str(e)
         try:  # the transfer's own answer says where it ended
@@ -222,7 +280,7 @@ async def _stoppable(
             said = str(e)
         except TimeoutError:
             task.cancel()  # a drip-feed's end is out; the control runs what it holds
-        return {"interrupted": said}
+        return {said_as: said}
 
 
 def _bar_columns() -> tuple[Any, ...]:
@@ -275,12 +333,30 @@ def _transfer(
         f"{name}: {what} of {params['program']}: start the read on the control "
         "(READ in EDIT, or CYCLE START in RMT/DNC)"
     )
+    stopped: list[str] = []  # the `stopped` field of a transfer's last progress
     with LazyBar(_bar_columns(), params["program"], _fields) as bar:
         # said once the server has taken the transfer (its first progress), never before a
         # refusal (the machine busy, its link held elsewhere)
-        update = _first_then(lambda: err_console.print(prompt, markup=False), bar.update)
-        result = run(lambda: call_shop(config, name, "dnc.send", params, update))
-    _interrupted(result)
+        going = _first_then(lambda: err_console.print(prompt, markup=False), bar.update)
+
+        def update(data: dict[str, Any]) -> None:
+            if "stopped" in data:
+                stopped.append(str(data["stopped"]))
+            else:
+                going(data)
+
+        async def transfer() -> Any:
+            from cellctl.errors import CellctlError
+
+            try:
+                return await call_shop(config, name, "dnc.send", params, update)
+            except CellctlError as e:
+                if stopped:  # stopped before its end (`dnc stop`, the server stopping)
+                    return {"stopped": str(e)}
+                raise
+
+        result = run(transfer)
+    _ended_early(result)
     console.print(result["message"], markup=False)
 
 
@@ -299,11 +375,21 @@ def _first_then(
     return update
 
 
-def _interrupted(result: Any) -> None:
-    """A transfer stopped by Ctrl-C: say how it ended and exit 130 (as ``run`` does)."""
+#: The exit code of a transfer stopped before its end: by its sender's Ctrl-C (as ``run``
+#: exits on Ctrl-C), by ``dnc stop``, by the server stopping. Not 0: the program did not all
+#: go; not a failure's code (3, 4, 5): the link and the control did what they were asked.
+STOPPED_EXIT = 130
+
+
+def _ended_early(result: Any) -> None:
+    """A transfer stopped before its end (Ctrl-C, ``dnc stop``, the server stopping): say
+    how it ended and exit :data:`STOPPED_EXIT`."""
     if isinstance(result, dict) and "interrupted" in result:
         err_console.print(f"interrupted: {result['interrupted']}", markup=False)
-        sys.exit(130)
+        sys.exit(STOPPED_EXIT)
+    if isinstance(result, dict) and "stopped" in result:
+        err_console.print(str(result["stopped"]), markup=False, soft_wrap=True)
+        sys.exit(STOPPED_EXIT)
 
 
 @dnc.command()
@@ -365,7 +451,27 @@ def receive(ctx: click.Context, name: str, timeout: float, shop: Path, use_cell:
 def stop_transfer(ctx: click.Context, name: str, shop: Path, use_cell: bool) -> None:
     """Stop the read-in or drip-feed in flight on MACHINE (or drop the request waiting for
     its read). A read under way is ended the clean way: the rest of its block, then %."""
+    from cellctl.cell.owner import controller_holder
+    from cellctl.kinds.iso_cnc.dnc.config import machine
+    from cellctl.kinds.iso_cnc.dnc.handstop import (
+        hand_holder,
+        in_use_here,
+        is_hand_transfer,
+        stop_hand_transfer,
+    )
+
     config = shop_config(ctx, shop, use_cell)
+    machine(config, name)  # an unknown machine first
+    if controller_holder(config.root) is None:  # no server: a hand command may hold it
+        found = hand_holder(config, name)
+        if found is not None:
+            if not is_hand_transfer(found):  # a `dnc receive`, or another `dnc stop`
+                refusal = in_use_here(config, name)
+                assert refusal is not None
+                fail(refusal)
+            said = run(lambda: stop_hand_transfer(config, name, found))
+            console.print(said, markup=False, soft_wrap=True)
+            return
     result = run(lambda: call_shop(config, name, "dnc.stop", {}))
     console.print(str(result.get("message") or f"{name}: nothing was running"), markup=False)
 

@@ -25,6 +25,7 @@ that cannot be a directory. Each refusal names the file and the table.
 
 from __future__ import annotations
 
+import shlex
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,6 +39,7 @@ from cellctl.kinds.iso_cnc.dnc.request import RequestConvention
 from cellctl.kinds.iso_cnc.dnc.store import check_machine_name
 from cellctl.kinds.iso_cnc.driver import ISO_LINE, IsoCncOptions
 from cellctl.link import LineSettings
+from cellctl.link.keys import link_keys
 from cellctl.link.listen import parse_listen
 
 #: The kind the DNC server feeds (its own package's name for it).
@@ -101,6 +103,17 @@ class ShopConfig:
     listen: str | None = None
     allow_remote: bool = False
     source: Path | None = None
+    before: tuple[str, ...] = ()
+    """What names this shop on a command line before ``dnc`` (``--cell DIR``)."""
+    after: tuple[str, ...] = ()
+    """... and after the subcommand (``--dir DIR``, ``--use-cell``): none for the default."""
+
+    def command(self, words: str) -> str:
+        """``cellctl dnc WORDS`` as a user types it to act on this shop, from any directory
+        when the shop was named (``cellctl dnc stop mill1 --dir /srv/shop5``)."""
+        before = "".join(f" {shlex.quote(x)}" for x in self.before)
+        after = "".join(f" {shlex.quote(x)}" for x in self.after)
+        return f"cellctl{before} dnc {words}{after}"
 
 
 def _describe(e: ValidationError, table: str) -> str:
@@ -176,14 +189,18 @@ def _check_listen(text: str, allow_remote: bool, path: Path) -> None:
 
 
 def _distinct_links(machines: dict[str, DncMachine], path: Path) -> None:
-    seen: dict[str, str] = {}
+    # Compared by canonical keys: localhost and 127.0.0.1, a symlink and its device, are one
+    # link; a host that does not resolve now is compared by its name.
+    seen: dict[str, DncMachine] = {}
     for m in machines.values():
-        other = seen.setdefault(m.url, m.name)
-        if other != m.name:
-            raise UsageError(
-                f"{path}: [machines.{other}] and [machines.{m.name}] are both on {m.url}: "
-                "one link feeds one control"
-            )
+        for key in link_keys(m.url, unresolved="name"):
+            other = seen.setdefault(key, m)
+            if other is not m:
+                same = "" if other.url == m.url else f" ({other.url} is the same link)"
+                raise UsageError(
+                    f"{path}: [machines.{other.name}] and [machines.{m.name}] are both on "
+                    f"{m.url}{same}: one link feeds one control"
+                )
 
 
 def _from_cell(cell: Path, root: Path) -> ShopConfig:

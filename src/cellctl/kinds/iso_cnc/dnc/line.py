@@ -94,9 +94,15 @@ class DncLine:
     """The caller's name for the transfer in flight (it may stop that one only)."""
     claimed: str = ""
     """A transfer by hand about to start (see :meth:`claim`)."""
+    claimed_ticket: str | None = None
+    """The ticket of the transfer claimed."""
+    cancelled: str = ""
+    """Why the transfer claimed was stopped before it began (its send() then sends nothing)."""
     tape_out: asyncio.Event = field(default_factory=asyncio.Event)
     """Set once the transfer in flight has all of its tape (or its clean end) out."""
-    """Why the transfer in flight is being stopped (set by :meth:`stop`)."""
+    stop_command: str = ""
+    """The command that stops this machine's transfer, as a busy refusal suggests it
+    (``cellctl dnc stop mill1 --dir /srv/shop5``: see ``ShopConfig.command``)."""
 
     def __post_init__(self) -> None:
         self.status = MachineStatus(self.config.name)
@@ -179,22 +185,22 @@ class DncLine:
         return self.claimed  # about to start (waiting for the machine's turn)
 
     @contextlib.contextmanager
-    def claim(self, what: str) -> Iterator[None]:
+    def claim(self, what: str, ticket: str | None = None) -> Iterator[None]:
         """Hold the machine for a transfer by hand (``what``: ``read-in of O1234.nc``) from
         now until the block ends; MachineInUse at once, naming what it does and how to stop
         it, when it is busy. Taken before waiting for :attr:`turn`, so two callers never both
-        wait for it."""
+        wait for it; a stop meanwhile cancels it (:meth:`send` then sends nothing)."""
         doing = self.busy()
         if doing:
+            stop = self.stop_command or f"cellctl dnc stop {self.name}"
             raise MachineInUse(
-                f"{self.name} is busy: {doing}; wait for it to end, or stop it with "
-                f"`cellctl dnc stop {self.name}`"
+                f"{self.name} is busy: {doing}; wait for it to end, or stop it with `{stop}`"
             )
-        self.claimed = what
+        self.claimed, self.claimed_ticket, self.cancelled = what, ticket, ""
         try:
             yield
         finally:
-            self.claimed = ""
+            self.claimed, self.claimed_ticket, self.cancelled = "", None, ""
 
     async def send(
         self,
@@ -209,6 +215,11 @@ class DncLine:
         """Send ``data`` (a program's text): into memory, or drip-fed; the control starts the
         read (it sends DC1). The caller holds :attr:`turn`. ``ticket``: the caller's own
         name for it, with which it may stop it (``dnc.stop``) and nothing else."""
+        if self.cancelled:  # stopped while it waited for the machine's turn
+            said, self.cancelled = self.cancelled, ""
+            self._note(said)
+            self._set(last=said)
+            raise TransferStopped(said)
         if self.driver is None:
             raise LinkClosed(f"{self.name}: its link is not open ({self.status.error or 'closed'})")
         activity = Activity.DRIP_FEEDING if drip else Activity.READING
@@ -287,6 +298,13 @@ class DncLine:
             if ticket is not None and ticket != self.ticket:
                 raise UsageError(f"{self.name}: its transfer is not the one to stop")
             return await self._end(transfer, why, timeout)
+        if self.claimed and (ticket is None or ticket == self.claimed_ticket):
+            # taken, not begun (it waits for the machine's turn): it will send nothing
+            self.cancelled = (
+                f"{why}: the {self.claimed} was cancelled before the control began its read "
+                "(nothing was sent)"
+            )
+            return self.cancelled
         if self.pending is not None and ticket is None:
             request, self.pending = self.pending, None
             message = f"request {request} dropped {why}"

@@ -52,7 +52,14 @@ class DncServer:
         self.listeners: list[Callable[[], None]] = []
         self.started = current_clock().now()
         self.lines = {
-            name: DncLine(m, self.store, self.state, trace=trace, changed=self._changed)
+            name: DncLine(
+                m,
+                self.store,
+                self.state,
+                trace=trace,
+                changed=self._changed,
+                stop_command=config.command(f"stop {name}"),
+            )
             for name, m in config.machines.items()
         }
         self._tasks: list[asyncio.Task[None]] = []
@@ -96,7 +103,9 @@ class DncServer:
         return {
             name: state_words(line.status)
             for name, line in self.lines.items()
-            if (line.transfer is not None and not line.transfer.done()) or line.pending
+            if (line.transfer is not None and not line.transfer.done())
+            or line.pending
+            or line.claimed
         }
 
     async def end_transfers(self, why: str) -> dict[str, str]:

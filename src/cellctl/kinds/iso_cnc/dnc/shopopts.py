@@ -45,12 +45,23 @@ def shop_options(f: Callable[..., Any]) -> Callable[..., Any]:
 def shop_config(ctx: click.Context, shop: Path, use_cell: bool) -> ShopConfig:
     """The shop: ``--dir``'s dnc.toml; with ``--use-cell`` the cell's iso-cnc machines, its
     shop directory ``<cell>/shop`` unless ``--dir`` (or ``$CELLCTL_SHOP``) names another:
-    never the unrelated ``./shop`` of wherever the command runs."""
+    never the unrelated ``./shop`` of wherever the command runs.
+
+    The config says how to name the shop in a command it suggests (``ShopConfig.command``):
+    a shop named with ``--dir`` (or ``$CELLCTL_SHOP``) or ``--cell`` by its absolute path, so
+    the command works as printed wherever it is run; the default ``./shop`` by nothing."""
+    import dataclasses
+
     from cellctl.kinds.iso_cnc.dnc.config import load_shop
 
+    given = ctx.get_parameter_source("shop") is not click.core.ParameterSource.DEFAULT
+    named = ("--dir", str(shop.absolute())) if given else ()
     if not use_cell:
-        return load_shop(shop)
+        return dataclasses.replace(load_shop(shop), after=named)
     cell = cell_dir(ctx)
-    if ctx.get_parameter_source("shop") is click.core.ParameterSource.DEFAULT:
+    if not given:
         shop = cell / "shop"
-    return load_shop(shop, cell=cell)
+    config = load_shop(shop, cell=cell)
+    return dataclasses.replace(
+        config, before=("--cell", str(cell.absolute())), after=("--use-cell", *named)
+    )

@@ -107,6 +107,23 @@ def progress_dict(p: Any) -> dict[str, Any]:
     }
 
 
+def stopped_progress(s: MachineStatus, words: str) -> dict[str, Any]:
+    """The last progress of a transfer stopped before its end (``dnc.stop``, its sender's
+    Ctrl-C, the server stopping): its figures as last seen, phase ``ended``, and ``stopped``:
+    where it ended, in words (the error that follows says the same)."""
+    return {
+        "phase": "ended",
+        "chars_sent": s.chars_done,
+        "chars_total": s.chars_total,
+        "chars_per_s": s.chars_per_s,
+        "buffer_stops": s.buffer_stops,
+        "elapsed_s": 0.0,
+        "eta_s": None,
+        "stall_s": s.stall_s,
+        "stopped": words,
+    }
+
+
 def state_words(s: MachineStatus) -> str:
     """A machine's state as the console and dashboard show it."""
     words = s.activity.value

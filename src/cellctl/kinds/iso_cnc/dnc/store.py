@@ -4,7 +4,9 @@
       dnc.toml                      the machines (see :mod:`.config`)
       mill1/
         programs/O1234.nc           programs the control may ask for (the file name starts
-                                    with its O-number; any ending)
+                                    with its O-number; any ending; O1234.nc, named by the
+                                    number alone, wins over "O1234 bracket.nc"; two files
+                                    otherwise are refused as ambiguous)
         received/O1234_20261125T205811Z.nc
                                     every program the control punched, with its UTC time;
                                     never overwritten: a second one of that second gets _2
@@ -15,7 +17,8 @@
 ::
 
     store = ShopStore(Path("SHOP"))
-    path = store.program("mill1", 1234)              # programs/O1234*.nc, UsageError if none
+    path = store.program("mill1", 1234)              # programs/O1234.nc (or the one O1234*),
+                                                     # UsageError if none, or if ambiguous
     kept = store.keep_received("mill1", 1234, text)  # received/O1234_<time>.nc (0600)
     store.log("mill1", "received O1234 (58 chars)")
 
@@ -47,6 +50,9 @@ MACHINE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 #: A program file in ``programs/``: its name starts with the O-number (``O1234``, ``O1234.nc``,
 #: ``O1234 bracket.nc``); ``:`` is Fanuc's other way of writing O, not usable in a file name.
 PROGRAM_FILE = re.compile(r"[Oo](\d{1,8})(?:$|[^0-9])")
+#: A program file named by its O-number alone (``O1234.nc``, ``O1234``): it wins over the
+#: others of that number (``O1234 bracket.nc``); two such files are refused as ambiguous.
+EXACT_PROGRAM_FILE = re.compile(r"[Oo]\d{1,8}(?:\.[^.]*)?")
 #: A kept copy's name: ``O1234_20261125T205811Z`` and ``_2`` ... when that second is taken.
 KEPT_FILE = re.compile(r"O(\d{1,8})_(\d{8}T\d{6}Z)(?:_(\d+))?\.nc")
 #: The largest program file read (a drip-fed surfacing program is megabytes; more is a mistake).
@@ -146,25 +152,38 @@ class ShopStore:
 
     # -- programs the control may read -------------------------------------------------------
 
-    def programs(self, name: str) -> dict[int, Path]:
-        """The machine's programs by O-number (a number two files claim: the first by name)."""
-        found: dict[int, Path] = {}
+    def programs(self, name: str) -> dict[int, list[Path]]:
+        """The machine's program files by O-number, each number's files in name order."""
+        found: dict[int, list[Path]] = {}
         for path in self._listing(name, PROGRAMS):
             match = PROGRAM_FILE.match(path.name)
             if match and path.is_file():
-                found.setdefault(int(match.group(1)), path)
+                found.setdefault(int(match.group(1)), []).append(path)
         return found
 
     def program(self, name: str, number: int) -> Path:
-        """The file of program ``number`` in the machine's programs/; UsageError naming where
-        it was looked for."""
-        found = self.programs(name).get(number)
-        if found is None:
-            where = self.folder(name, PROGRAMS)
+        """The file of program ``number`` in the machine's programs/: the one named exactly
+        by its number (``O1234.nc``, ``O1234``) if there is one, else the only file whose name
+        starts with it (``O1234 bracket.nc``). UsageError naming where it was looked for when
+        there is none, and naming the files when more than one could be meant (``O1234
+        bracket.nc`` and ``O1234 copy.nc``; ``O1234.nc`` and ``O1234.tap``): which one the
+        control should get cannot be guessed."""
+        files = self.programs(name).get(number, [])
+        exact = [path for path in files if EXACT_PROGRAM_FILE.fullmatch(path.name)]
+        chosen = exact or files
+        if len(chosen) == 1:
+            return chosen[0]
+        where = self.folder(name, PROGRAMS)
+        if not chosen:
             raise UsageError(
                 f"no program {o_name(number)} in {where} (a file named {o_name(number)}.nc)"
             )
-        return found
+        names = ", ".join(repr(path.name) for path in chosen)
+        raise UsageError(
+            f"{o_name(number)} is ambiguous in {where}: {len(chosen)} files could be it "
+            f"({names}) and none is named {o_name(number)}.nc alone: rename all but one, "
+            "or give the file itself"
+        )
 
     def resolve(self, name: str, program: str) -> Path:
         """What ``cellctl dnc send MACHINE PROGRAM`` means by PROGRAM: an existing file, else

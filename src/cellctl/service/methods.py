@@ -228,6 +228,31 @@ async def _in(access: CellAccess, p: MachineParams, progress: Progress | None) -
     return {"message": message}
 
 
+async def _plc_status(access: CellAccess, p: NoParams, progress: Progress | None) -> Any:
+    from cellctl.protocol.plc import SIGNALS
+
+    plc = access.controller().plc  # the controller's own link: it holds the PLC
+    if plc is None:
+        raise UsageError("the controller has not connected to the PLC yet: ask again shortly")
+    read = {"inputs": await plc.read_inputs(), "coils": await plc.read_coils()}
+    addresses = {"inputs": plc.map.inputs, "coils": plc.map.coils}
+    return {
+        "url": plc.url,
+        "unit": plc.map.unit,
+        **{
+            kind: {
+                name: {
+                    "level": level,
+                    "address": addresses[kind][name],
+                    "meaning": SIGNALS[name].meaning,
+                }
+                for name, level in levels.items()
+            }
+            for kind, levels in read.items()
+        },
+    }
+
+
 async def _traffic(access: CellAccess, p: TrafficParams, progress: Progress | None) -> Any:
     access.require_machine(p.machine)
     return access.traffic(p.machine, p.limit)
@@ -327,6 +352,13 @@ _TABLE: list[Method] = [
         True,
     ),
     Method("machines.list", NoParams, _machines, "Every machine's state and service.", False),
+    Method(
+        "plc.status",
+        NoParams,
+        _plc_status,
+        "The PLC's inputs and coils, read now through the controller (it holds the PLC).",
+        False,
+    ),
     Method("machines.out_of_service", MachineParams, _out, "Out of automatic service.", True),
     Method("machines.return_to_service", MachineParams, _in, "Back in automatic service.", True),
     Method("traffic.tail", TrafficParams, _traffic, "A machine's last bytes both ways.", False),

@@ -12,6 +12,7 @@ there is none); ``--url`` overrides where it is::
 from __future__ import annotations
 
 import logging
+from typing import Any
 
 import click
 
@@ -64,9 +65,18 @@ def _store(ctx: click.Context) -> StateStore | None:
 @plc.command()
 @click.pass_context
 def status(ctx: click.Context) -> None:
-    """Show every input and coil: level, address, meaning."""
+    """Show every input and coil: level, address, meaning (through the running controller,
+    which holds the PLC, when one runs the cell)."""
+    from cellctl.cell.owner import controller_holder
 
-    async def main() -> None:
+    obj = ctx.find_object(dict) or {}
+    if obj.get("plc_url") is None and controller_holder(cell_dir(ctx)) is not None:
+        from cellctl.ui.calls import cell_call
+
+        _print_status(cell_call(ctx, "plc.status"))
+        return
+
+    async def main() -> dict[str, Any]:
         from cellctl.drivers.plc import ModbusPlc
 
         plc_map, timeout = _target(ctx)  # inside run(): a bad [plc] table is a usage error
@@ -74,20 +84,33 @@ def status(ctx: click.Context) -> None:
         async with await ModbusPlc.connect(
             plc_map.url, plc_map, timeout=timeout, store=_store(ctx)
         ) as driver:
-            inputs = await driver.read_inputs()
-            coils = await driver.read_coils()
-        console.print(f"PLC at {plc_map.url} (unit {plc_map.unit})")
-        for title, levels, addresses in (
-            ("inputs", inputs, plc_map.inputs),
-            ("coils", coils, plc_map.coils),
-        ):
-            console.print(f"{title}:")
-            for name, level in levels.items():
-                console.print(
-                    f"  {name:<16} {int(level)}  @{addresses[name]:<5} {SIGNALS[name].meaning}"
-                )
+            read = {"inputs": await driver.read_inputs(), "coils": await driver.read_coils()}
+        addresses = {"inputs": plc_map.inputs, "coils": plc_map.coils}
+        return {
+            "url": plc_map.url,
+            "unit": plc_map.unit,
+            **{
+                kind: {
+                    name: {"level": level, "address": addresses[kind][name]}
+                    for name, level in levels.items()
+                }
+                for kind, levels in read.items()
+            },
+        }
 
-    run(main)
+    _print_status(run(main))
+
+
+def _print_status(found: dict[str, Any]) -> None:
+    """``plc status``'s lines, from the PLC read here or through the API (``plc.status``)."""
+    console.print(f"PLC at {found['url']} (unit {found['unit']})")
+    for kind in ("inputs", "coils"):
+        console.print(f"{kind}:")
+        for name, signal in found[kind].items():
+            console.print(
+                f"  {name:<16} {int(signal['level'])}  @{signal['address']:<5} "
+                f"{SIGNALS[name].meaning}"
+            )
 
 
 @plc.command("set")

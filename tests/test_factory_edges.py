@@ -335,6 +335,15 @@ async def test_the_factory_command_line_on_a_running_plant(tmp_path: Path) -> No
         assert code == 0 and "C1" in out and "done" in out, out
         assert plant.store.get("C1").done == 2
         assert len(plant.cell("cell1").runs_per_part()) == 2
+        # The same id again: the same order is a retry; another one is refused, unchanged.
+        code, out = await cellctl(
+            *where, "submit", "wax-toy-mill-table", "--qty", "2", "--id", "C1"
+        )
+        assert code == 0 and "already submitted (unchanged)" in out, out
+        code, out = await cellctl(*where, "submit", "wax-robot-base", "--id", "C1")
+        said = " ".join(out.split())
+        assert code == 2 and "order C1 was submitted before as 2 × wax-toy-mill-table" in said
+        assert plant.store.get("C1").part_type == "wax-toy-mill-table"
         await cancels(plant)
         await until_idle_ends_when_nothing_more_can_happen(plant)
 

@@ -97,6 +97,14 @@ def submit(
                     f"no cell makes {part_type!r} (the cells make: {', '.join(sorted(made))})"
                 )
             order, new = store.submit(part_type, qty, priority, order_id)
+        if not new and (order.part_type, order.qty, order.priority) != (part_type, qty, priority):
+            # The same id for another order: a retry must ask the same, or it is a mistake
+            # (as a cell's `cellctl submit` says it).
+            raise UsageError(
+                f"order {order.id} was submitted before as {order.qty} × {order.part_type}, "
+                f"priority {order.priority}, not {qty} × {part_type}, priority {priority}: "
+                "nothing changed (give this order another --id)"
+            )
         what = "submitted" if new else "already submitted (unchanged)"
         console.print(f"order {order.id} {what}: {order.qty} x {order.part_type}", markup=False)
 

@@ -177,3 +177,19 @@ def test_the_poll_option_says_the_plans_own_period() -> None:
     for args in (["plan", "--help"], ["factory", "plan", "--help"]):
         text = CliRunner().invoke(main, args).output
         assert f"[default: {PLAN_POLL_S:g}]" in " ".join(text.split()), args
+
+
+def test_a_plan_of_a_week_or_more_says_the_day_of_each_time(cell: Path, tmp_path: Path) -> None:
+    """Over 8 days each weekday comes twice: "Wed 06:27" against a due "Wed 06:00" a week
+    on read as late. The day of the month is said (Wed 25, Wed 02), and times are to the
+    nearest second, as the lateness beside them is."""
+    orders = tmp_path / "orders.csv"
+    orders.write_text("id,part_type,qty,due\nA,wax-robot-base,1,2026-12-02T06:00\n")
+    text = plan(
+        "--dir", str(cell), "--orders", str(orders), "--start", START, "--shift", "8d"
+    ).output  # fmt: skip
+    row = next(line for line in text.splitlines() if line.startswith("A "))
+    assert re.search(r"Wed 25 06:\d\d:\d\d +Wed 02 06:00:00 +on time", row), row
+    short = plan("--dir", str(cell), "--orders", str(orders), "--start", START, "--shift", "6d")
+    row = next(line for line in short.output.splitlines() if line.startswith("A "))
+    assert re.match(r"A +wax-robot-base +1/1 +Wed 06:\d\d:\d\d +Wed 06:00:00 ", row), row

@@ -110,14 +110,21 @@ class PlanReport:
             f"from {when_text(self.start, date=True)} to {when_text(self.until, date=True)} "
             f"({span_text(self.until - self.start)})",
         ]
+        # A week or more: each weekday comes twice, so the day of the month is said too.
+        long = self.until - self.start >= 7 * 86400
+
+        def at(stamp: float) -> str:
+            return when_text(stamp, day=long)
+
+        width = len(at(self.start))
         for f in self.faults:
-            end = when_text(f.end) if f.end is not None else "the end"
+            end = at(f.end) if f.end is not None else "the end"
             what = f.fault + (f"={f.arg}" if f.arg else "")
-            out.append(f"fault: {f.machine} {what} from {when_text(f.start)} to {end}")
-        out += ["", f"{'order':<12} {'part type':<20} {'made':>9}  {'finishes':<13} due"]
+            out.append(f"fault: {f.machine} {what} from {at(f.start)} to {end}")
+        out += ["", f"{'order':<12} {'part type':<20} {'made':>9}  {'finishes':<{width + 1}} due"]
         for o in self.orders:
-            finishes = when_text(o.finished) if o.finished is not None else "not in plan"
-            due = when_text(o.due) if o.due is not None else "-"
+            finishes = at(o.finished) if o.finished is not None else "not in plan"
+            due = at(o.due) if o.due is not None else "-"
             verdict = o.verdict
             if o.verdict == LATE:
                 verdict += f" by {'at least ' if o.finished is None else ''}{span_text(o.late_s)}"
@@ -125,8 +132,8 @@ class PlanReport:
             extra = f" (held {o.held})" if o.held else ""
             extra += f" (scrapped {o.scrapped})" if o.scrapped else ""
             out.append(
-                f"{o.order_id[:12]:<12} {o.part_type[:20]:<20} {made:>9}  {finishes:<13} "
-                f"{due:<13} {verdict}{extra}"
+                f"{o.order_id[:12]:<12} {o.part_type[:20]:<20} {made:>9}  "
+                f"{finishes:<{width + 1}} {due:<{width + 1}} {verdict}{extra}"
             )
         made = ", ".join(f"{n} x {t}" for t, n in sorted(self.parts_made.items())) or "none"
         out += ["", f"parts made: {made}"]
@@ -143,12 +150,12 @@ class PlanReport:
             out.append(f"alarms raised: {self.alarms_raised}; failed steps: {self.steps_failed}")
         if self.all_finished:
             out.append(
-                f"every order finished by {when_text(self.ended)} "
+                f"every order finished by {at(self.ended)} "
                 f"({span_text(self.ended - self.start)} after the start)"
             )
         else:
             missing = sum(o.finished is None for o in self.orders)
-            out.append(f"{missing} order(s) not finished by {when_text(self.ended)}")
+            out.append(f"{missing} order(s) not finished by {at(self.ended)}")
         out.append(
             f"on time {self.on_time}, late {self.late}; played "
             f"{span_text(self.ended - self.start)} in {self.wall_s:.1f} s"

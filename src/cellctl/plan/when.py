@@ -135,10 +135,13 @@ def parse_start(text: str | None, now: float) -> float:
     return _stamp(moment, text)
 
 
-def when_text(stamp: float, *, date: bool = False) -> str:
-    """A time as the report prints it: ``Fri 18:00:00`` (``date``: with the date too)."""
-    moment = _local(stamp)
-    return moment.strftime("%a %Y-%m-%d %H:%M:%S" if date else "%a %H:%M:%S")
+def when_text(stamp: float, *, date: bool = False, day: bool = False) -> str:
+    """A time as the report prints it, to the nearest second (as :func:`span_text` rounds):
+    ``Fri 18:00:00``; ``day``: with the day of the month (``Fri 04 18:00:00``: a plan of a
+    week or more has each weekday twice); ``date``: with the whole date."""
+    moment = _local(round(stamp))
+    fmt = "%a %Y-%m-%d %H:%M:%S" if date else "%a %d %H:%M:%S" if day else "%a %H:%M:%S"
+    return moment.strftime(fmt)
 
 
 def span_text(seconds: float) -> str:

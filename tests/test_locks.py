@@ -29,7 +29,9 @@ from cellctl.link.keys import link_lock_paths
 from cellctl.link.lock import (
     RUNTIME_ENV,
     SYSTEM_LOCK_DIR,
+    Holder,
     OwnerLock,
+    advice,
     default_process_label,
     holder,
     runtime_dir,
@@ -93,7 +95,7 @@ async def test_second_process_by_link_is_refused_before_a_byte(
         )
         assert code == 6, err
         assert f"{robot_served.url} is in use by {label} (pid {os.getpid()}) since" in err
-        assert "use `cellctl console` or the API" in err
+        assert "use that console, or close it" in err  # the holder is a console
         await robot.status()  # the owner carries on
         # The emulator saw nothing of the refused process: the same host connection, and
         # every byte it received is one the owner sent.
@@ -383,3 +385,19 @@ def test_journal_mailbox_and_state_files_are_private(tmp_path: Path) -> None:
         assert mode(tmp_path / JOURNAL_FILE) == 0o600
     finally:
         os.umask(old)
+
+
+@pytest.mark.parametrize(
+    ("command", "said"),
+    [
+        ("cellctl run", "use `cellctl console` or the API"),
+        ("cellctl dnc serve", "use `cellctl console` or the API"),
+        ("cellctl console", "use that console, or close it"),
+        ("cellctl robot download 4", "wait for it to end, or end it where it runs"),
+        ("cellctl dnc drip", "wait for it to end, or end it where it runs"),
+    ],
+)
+def test_a_refusal_says_what_works_with_its_holder(command: str, said: str) -> None:
+    # A one-off command serves no API to ask: "use the API" would send the user nowhere.
+    holder = Holder(4242, command, 0.0, "")
+    assert advice(holder).startswith(said)

@@ -7,6 +7,7 @@ import asyncio
 import subprocess
 from pathlib import Path
 
+from cellctl.link.lock import set_process_label
 from cellctl.testing.rig import CellRig
 
 from .conftest import CELLCTL
@@ -23,7 +24,11 @@ def _plc(cell: Path, *args: str) -> subprocess.CompletedProcess[str]:
 
 async def test_plc_commands_are_refused_while_the_controller_owns_the_cell(tmp_path: Path) -> None:
     async with CellRig(tmp_path / "cell") as rig:
-        await rig.start_controller()
+        set_process_label("cellctl run")  # what the controller's lock records say
+        try:
+            await rig.start_controller()
+        finally:
+            set_process_label(None)
         for args in (["set", "door_2", "1"], ["pulse", "go_1"], ["status"]):
             done = await asyncio.to_thread(_plc, rig.directory, *args)
             assert done.returncode == 6, done.stdout + done.stderr

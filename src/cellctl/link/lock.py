@@ -40,8 +40,23 @@ from typing import Self
 from cellctl.clock import REAL_CLOCK
 from cellctl.errors import MachineInUse, UsageError
 
-#: What a refusal says; ``{what}`` is the machine, ``{holder}`` the holder (see Holder.__str__).
-IN_USE = "{what} is in use by {holder}: use `cellctl console` or the API"
+#: What a refusal says; ``{what}`` is the machine, ``{holder}`` the holder (see Holder.__str__),
+#: ``{advice}`` what to do about it (:func:`advice`).
+IN_USE = "{what} is in use by {holder}: {advice}"
+#: Holders that serve the control API (their own words: see default_process_label).
+API_HOLDERS = ("cellctl run", "cellctl demo", "cellctl dnc serve", "cellctl emulate factory")
+
+
+def advice(holder: Holder | str) -> str:
+    """What a refused opener can do: ask a holder that serves the API through it, use the
+    console that holds it, or wait for a one-off command (it serves nothing to ask)."""
+    command = holder.command if isinstance(holder, Holder) else ""
+    if command.startswith(API_HOLDERS):
+        return "use `cellctl console` or the API"
+    if command.startswith("cellctl console"):
+        return "use that console, or close it"
+    return "wait for it to end, or end it where it runs (Ctrl-C in its terminal)"
+
 
 _label: str | None = None
 
@@ -211,14 +226,18 @@ def _lock_the_file_at(path: Path, what: str, refusal: str) -> int:
         except BlockingIOError:
             found = _read_record(fd)
             os.close(fd)
-            raise MachineInUse(refusal.format(what=what, holder=found)) from None
+            raise MachineInUse(
+                refusal.format(what=what, holder=found, advice=advice(found))
+            ) from None
         except BaseException:
             os.close(fd)
             raise
         if _same_file(fd, path):
             return fd
         os.close(fd)
-    raise MachineInUse(refusal.format(what=what, holder="another process"))
+    raise MachineInUse(
+        refusal.format(what=what, holder="another process", advice=advice("another process"))
+    )
 
 
 def holder(path: Path | str) -> Holder | None:
@@ -243,7 +262,7 @@ def refuse_if_held(path: Path | str, what: str, *, refusal: str = IN_USE) -> Non
     lock ``path`` now: a look before starting what would take it later (not a lock)."""
     found = holder(path)
     if found is not None:
-        raise MachineInUse(refusal.format(what=what, holder=found))
+        raise MachineInUse(refusal.format(what=what, holder=found, advice=advice(found)))
 
 
 class OwnerLock:

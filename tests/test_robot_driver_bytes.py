@@ -81,14 +81,18 @@ async def test_go_on_empty_partition_reads_reject_and_says_partition_empty() -> 
 
 
 async def test_start_before_initialize_is_improper_startup_sequence() -> None:
+    """48 answers a start on a cold controller and a request while a cycle runs alike: the
+    spec has no reject after which the controller forgot its state or its partitions, so the
+    host keeps its view; the error says to initialize (the cell's recovery does)."""
     start = [(b"X", READY), (b"22\r\n", EOT)]
     script = [*execute_script(b"31"), *start, *reject_script(b"D013030\r\n")]
     async with expected_exchange(script) as link:
         robot = Ibm7545Robot(link)
         robot.state, robot.partitions[1] = 1, "LOADCNC1"  # the host's view, the controller cold
-        with pytest.raises(DeviceError, match="improper startup sequence"):
+        with pytest.raises(DeviceError, match="improper startup sequence") as err:
             await robot.go(1)
-    assert robot.state == 0
+    assert robot.state == 1 and robot.partitions[1] == "LOADCNC1"
+    assert robot.needs_initialize(err.value)
 
 
 async def test_initialize_return_home_waits_through_xoffs_for_xon() -> None:

@@ -73,6 +73,8 @@ ROBOT_REFUSED = {
     (RobotFunction.GO, 0, True): 2,  # a stale saved view: still "starting function error"
     **{(RobotFunction.START_CYCLE, 0, full): 2 for full in (False, True)},
     **{(RobotFunction.DOWNLOAD, 0, full): 48 for full in (False, True)},
+    # A cycle runs: downloads are for state 1 ("initialized, ready for downloads").
+    **{(RobotFunction.DOWNLOAD, 2, full): 48 for full in (False, True)},
     (RobotFunction.GO, 1, False): 3,
     (RobotFunction.GO, 2, False): 3,
     **{(RobotFunction.APPLICATION, state, False): 1 for state in (0, 1, 2)},

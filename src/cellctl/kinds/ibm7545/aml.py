@@ -51,15 +51,17 @@ from dataclasses import dataclass
 from decimal import Decimal, InvalidOperation
 
 from cellctl.errors import FramingError, UsageError
-from cellctl.kinds.ibm7545.records import ProgramFile, Record
+from cellctl.kinds.ibm7545.records import ProgramFile, Record, encode_record
 
 __all__ = [
     "OPCODES",
     "Instruction",
     "Op",
     "OpSpec",
+    "check_program",
     "compile_program",
     "compile_source",
+    "decode_instruction",
     "decode_program",
     "encode_instruction",
 ]
@@ -143,29 +145,65 @@ def decode_program(records: Iterable[Record]) -> list[Instruction]:
     Raises :class:`FramingError` (with the record's data) for an unknown opcode, a wrong
     operand length, a branch outside the program or a port outside 1..16.
     """
+    body = list(records)
+    return [decode_instruction(rec, len(body)) for rec in body]
+
+
+def decode_instruction(rec: Record, count: int) -> Instruction:
+    """The instruction one D record carries, checked as the controller checks it in a program
+    of ``count`` instructions (a branch must land inside it). FramingError says what is wrong."""
+    if rec.ident != "D" or not rec.data:
+        raise FramingError("program record is not a D record with an opcode", rec.data)
+    try:
+        op = Op(rec.data[0])
+    except ValueError:
+        raise FramingError(f"unknown opcode {rec.data[0]:#04x}", rec.data) from None
+    fmt = OPCODES[op].fmt
+    if len(rec.data) - 1 != struct.calcsize(fmt):
+        raise FramingError(f"{op.name} record has the wrong length", rec.data)
+    ins = Instruction(op, struct.unpack(fmt, rec.data[1:]))
+    if ins.op in (Op.BRANCH, Op.TESTI) and ins.operands[-1] >= count:
+        raise FramingError(
+            f"{ins.op.name} to instruction {ins.operands[-1]} outside the program "
+            f"(instructions 0..{count - 1})",
+            rec.data,
+        )
+    if ins.op is Op.SPEED and not 1 <= ins.operands[0] <= 100:
+        raise FramingError(f"SPEED {ins.operands[0]} outside 1..100 percent", rec.data)
+    if ins.op in (Op.WAITI, Op.WRITEO, Op.TESTI) and (
+        ins.operands[0] not in PORTS or ins.operands[1] not in (0, 1)
+    ):
+        raise FramingError(
+            f"{ins.op.name} with port {ins.operands[0]}, value {ins.operands[1]} out of range "
+            "(port 1..16, value 0 or 1)",
+            rec.data,
+        )
+    return ins
+
+
+def check_program(program: ProgramFile) -> list[Instruction]:
+    """Decode every instruction of ``program`` as the controller will, before a byte goes out.
+
+    A UsageError names the file, the line (or the record, for a program built in memory), the
+    record as written and what is wrong with it: a controller answers such a record with
+    reject 16 "record format error" only after the whole download, and no retry can fix it.
+    """
+    body = program.body
+    if not body:
+        raise UsageError(
+            f"{program.source}: no instructions between the N record and E0000 "
+            "(a program needs at least END, D010A0A)"
+        )
     out: list[Instruction] = []
-    for rec in records:
-        if rec.ident != "D" or not rec.data:
-            raise FramingError("program record is not a D record with an opcode", rec.data)
+    for index, rec in enumerate(body, start=1):
         try:
-            op = Op(rec.data[0])
-        except ValueError:
-            raise FramingError(f"unknown opcode {rec.data[0]:#04x}", rec.data) from None
-        fmt = OPCODES[op].fmt
-        if len(rec.data) - 1 != struct.calcsize(fmt):
-            raise FramingError(f"{op.name} record has the wrong length", rec.data)
-        out.append(Instruction(op, struct.unpack(fmt, rec.data[1:])))
-    for ins in out:
-        if ins.op in (Op.BRANCH, Op.TESTI) and ins.operands[-1] >= len(out):
-            raise FramingError(
-                f"{ins.op.name} to instruction {ins.operands[-1]} outside the program"
-            )
-        if ins.op is Op.SPEED and not 1 <= ins.operands[0] <= 100:
-            raise FramingError(f"SPEED {ins.operands[0]} outside 1..100 percent")
-        if ins.op in (Op.WAITI, Op.WRITEO, Op.TESTI) and (
-            ins.operands[0] not in PORTS or ins.operands[1] not in (0, 1)
-        ):
-            raise FramingError(f"{ins.op.name} with port/value {ins.operands} out of range")
+            out.append(decode_instruction(rec, len(body)))
+        except FramingError as e:
+            where = f"line {program.lines[index]}" if program.lines else f"record {index + 1}"
+            written = encode_record(rec).decode("ascii").rstrip()
+            raise UsageError(
+                f"{program.source}, {where}: instruction {index - 1} ({written}): {e.args[0]}"
+            ) from None
     return out
 
 

@@ -17,14 +17,24 @@ retries of a garbled handshake or D record are the base class's:
 
 The host's state guards every function: :mod:`cellctl.kinds.ibm7545.states` says which function
 the source's library answered itself in which state (GO after HALT: "partition empty", code
-3), and such a refusal raises :class:`DeviceError` before any byte goes out.
+3; DOWNLOAD outside state 1: "improper startup sequence", code 48), and such a refusal raises
+:class:`DeviceError` before any byte goes out. A reject from the controller changes neither
+the host's robot state nor its partitions, but for the partition a download was writing:
+once its N record went out, its content is unknown until the last Ack (Empty meanwhile).
+
+A ``.rec`` file is decoded whole before a byte goes out, every instruction included
+(:meth:`ProgramFile.parse`): a record the controller would refuse is a UsageError naming the
+file and the line.
 
 A download the controller refused for a transmission error (reject 16 "record format error",
 96, 112, an EOT that was a garbled Ack, a stray byte where an Ack belongs, or no Ack after the
 controller had already acknowledged part of this download) is sent again from its N record,
-up to ``download_retries`` times; any other reject (48, 83, ...) is raised at once. Before a
-retry the host sends a record the controller cannot take (``E`` CR LF), so whatever it was
-receiving ends in a reject, and discards what comes back until the line is quiet.
+up to ``download_retries`` times; any other reject (48, 80, 83, ...) is raised at once, and
+so is a 16 for the same record as the try before (the record's content, not the line: a
+retry cannot fix it). Before a retry the host sends a record the controller cannot take
+(``E`` CR LF), so whatever it was receiving ends in a reject, and discards what comes back
+until the line is quiet. A download cancelled half-way (Ctrl-C) resyncs the same way (see
+:mod:`~cellctl.kinds.ibm7545.transactions`).
 """
 
 from __future__ import annotations
@@ -62,8 +72,13 @@ from cellctl.kinds.ibm7545.status import RobotCounters as RobotCounters
 from cellctl.kinds.ibm7545.status import RobotHalted as RobotHalted
 from cellctl.kinds.ibm7545.status import RobotStatus as RobotStatus
 from cellctl.kinds.ibm7545.status import _digest, _waits
+from cellctl.kinds.ibm7545.transactions import (
+    RECORD_FORMAT_ERROR,
+    RobotTransactions,
+    _AckLost,
+    _garbled,
+)
 from cellctl.kinds.ibm7545.transactions import TRANSMISSION_REJECTS as TRANSMISSION_REJECTS
-from cellctl.kinds.ibm7545.transactions import RobotTransactions, _AckLost, _garbled
 from cellctl.link import ROBOT_LINE, LineSettings, Link, TrafficLog
 
 # RobotState, RobotConfig and robot_condition live in options.py (the registry reads them
@@ -111,6 +126,8 @@ class Ibm7545Robot(RobotTransactions):
         }
         self.started: int | None = saved.get("started")
         self._in_reject_read = False
+        # A transaction was cut short (saved): resync before the next one (transactions.py).
+        self._out_of_step = bool(saved.get("out_of_step", False))
         # The last program downloaded, as sent: (program given, partition, program retargeted,
         # wire pieces, digest). A DNC server sends one program over and over; encoding,
         # retargeting and hashing it again each time was a quarter of the work per record.
@@ -156,6 +173,7 @@ class Ibm7545Robot(RobotTransactions):
                 "digests": {str(p): d for p, d in self.digests.items()},
                 "waits": {str(p): w for p, w in self.waits.items() if self.partitions.get(p)},
                 "started": self.started,
+                "out_of_step": self._out_of_step,
             }
         )
 
@@ -266,40 +284,93 @@ class Ibm7545Robot(RobotTransactions):
     ) -> None:
         """Download a compiled program (``.rec`` file or ProgramFile) into ``partition`` 1..5.
 
-        The file is read and checked, the partition checked, and the host's state consulted
-        before any byte is sent. A transmission error sends it again from the N record (up to
+        The file is read and decoded (every instruction), the partition checked, and the
+        host's state consulted (state 1 only: initialized, no cycle running) before any byte
+        is sent. A transmission error sends it again from the N record (up to
         ``download_retries`` times, ``on_retry`` told first); any other reject stops it. A
-        failed or refused download leaves the partition Empty; DeviceError says why.
+        download that failed after its N record leaves the partition Empty; one refused
+        before leaves it as it was (Empty after a cold start or HALT); DeviceError says why.
         """
         if partition not in PARTITIONS:
             raise UsageError(f"partition must be 1 to 5, not {partition} (partition error)")
         given = program if isinstance(program, ProgramFile) else ProgramFile.load(program)
         prog, pieces, digest = self._wire(given, partition)
         total = len(prog.records)
-        # Until the last Ack the partition's content is unknown: never trust a half download.
-        self.partitions[partition] = None
-        self.digests.pop(partition, None)
-        self._save()
-        self._guard(RobotFunction.DOWNLOAD)
+        try:
+            self._guard(RobotFunction.DOWNLOAD)
+        except DeviceError:
+            if self.state == RobotState.UNINITIALIZED:
+                # Cold or halted, every partition was flushed: a program here is a stale view.
+                self._forget(partition)
+            raise
         what = f"download to partition {partition}"
-        async with self._lock:
-            attempt = 0
-            while True:
-                try:
-                    await self._send_program(pieces, total, what, progress)
-                    break
-                except CellctlError as e:
-                    if not _garbled(e) or attempt >= self.config.download_retries:
-                        raise
-                    attempt += 1
-                    self.counters.download_retries += 1
-                    if on_retry is not None:
-                        on_retry(attempt, self.config.download_retries, e)
-                    await self._resync()
+        async with self._transaction():
+            kept = (self.partitions[partition], self.digests.get(partition))
+            # Until the last Ack the partition's content is unknown: never trust a half
+            # download. Until the line is known in step again, the next transaction (here or
+            # after a restart) resyncs first. One save for both.
+            self._out_of_step = True
+            self._forget(partition)
+            reached = [0]  # the farthest piece any try sent (0: the N identifier alone)
+            try:
+                await self._send_with_retries(pieces, total, what, progress, on_retry, reached)
+            except DeviceError:
+                self._mark_out_of_step(False)  # the reject was read: the controller is idle
+                if reached[0] == 0:  # refused at the N identifier: no record reached it
+                    self.partitions[partition] = kept[0]
+                    if kept[1] is not None:
+                        self.digests[partition] = kept[1]
+                    self._save()
+                raise
+            self._out_of_step = False  # saved below
         self.partitions[partition] = prog.name
         self.digests[partition] = digest
         self.waits[partition] = _waits(prog)
         self._save()
+
+    def _forget(self, partition: int) -> None:
+        """The host no longer knows what ``partition`` holds: Empty (saved)."""
+        self.partitions[partition] = None
+        self.digests.pop(partition, None)
+        self._save()
+
+    async def _send_with_retries(
+        self,
+        pieces: list[bytes],
+        total: int,
+        what: str,
+        progress: ProgressCallback | None,
+        on_retry: RetryCallback | None,
+        reached: list[int],
+    ) -> None:
+        """Send the program, again from its N record after a transmission error (see the
+        module docstring); ``reached[0]``: the farthest piece any try sent."""
+        attempt = 0
+        refused_at: int | None = None  # the piece the last record format error answered
+        while True:
+            at = [0]
+            try:
+                await self._send_program(pieces, total, what, progress, at)
+                return
+            except CellctlError as e:
+                reached[0] = max(reached[0], at[0])
+                if not _garbled(e) or attempt >= self.config.download_retries:
+                    raise
+                if isinstance(e, DeviceError) and e.code == RECORD_FORMAT_ERROR:
+                    if refused_at == at[0]:
+                        record = _record_text(pieces, at[0])
+                        raise DeviceError(
+                            e.code,
+                            e.message,
+                            detail=f"{e.detail}: record {max(at[0], 1)} ({record}) refused "
+                            "twice in a row: its content, not the line (not sent again)",
+                        ) from e
+                    refused_at = at[0]
+                attempt += 1
+                self.counters.download_retries += 1
+                if on_retry is not None:
+                    on_retry(attempt, self.config.download_retries, e)
+                await self._resync()
 
     def _wire(self, given: ProgramFile, partition: int) -> tuple[ProgramFile, list[bytes], str]:
         """``given`` aimed at ``partition``, its wire pieces and digest (the last one kept)."""
@@ -315,11 +386,18 @@ class Ibm7545Robot(RobotTransactions):
         return prog, pieces, digest
 
     async def _send_program(
-        self, pieces: list[bytes], total: int, what: str, progress: ProgressCallback | None
+        self,
+        pieces: list[bytes],
+        total: int,
+        what: str,
+        progress: ProgressCallback | None,
+        at: list[int],
     ) -> None:
+        """One try: each piece, an Ack for each; ``at[0]``: the piece in flight."""
         self.link.reset_input()
         sent = 0
         for i, piece in enumerate(pieces):
+            at[0] = i
             await self.link.write(piece)
             sent += len(piece)
             try:
@@ -497,3 +575,10 @@ class Ibm7545Robot(RobotTransactions):
             quiet=quiet,
         )
         self._set_state(RobotState.INITIALIZED)
+
+
+def _record_text(pieces: list[bytes], index: int) -> str:
+    """The record piece ``index`` of a download belongs to, as a .rec file writes it."""
+    if index <= 1:
+        return (pieces[0] + pieces[1]).decode("ascii").strip()
+    return pieces[index].decode("ascii").strip()

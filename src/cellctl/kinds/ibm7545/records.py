@@ -45,7 +45,7 @@ from __future__ import annotations
 import enum
 import string
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from cellctl.errors import ChecksumError, FramingError, UsageError
@@ -484,12 +484,13 @@ class ProgramFile:
         for rec in prog.records:
             wire = encode_record(rec)     # the driver sends these, Ack after each
 
-    Construction validates; a malformed file raises :class:`UsageError` naming the file, the
-    line and what is wrong.
+    Construction validates the layout; :meth:`parse` and :meth:`load` also decode every
+    instruction. A bad file raises :class:`UsageError` naming the file, the line and the fault.
     """
 
     records: tuple[Record, ...]
     source: str = "<program>"
+    lines: tuple[int, ...] = field(default=(), compare=False)  # each record's file line
 
     def __post_init__(self) -> None:
         _validate(self.records, self.source, None)
@@ -511,7 +512,7 @@ class ProgramFile:
 
     @classmethod
     def parse(cls, text: str, source: str = "<program>") -> ProgramFile:
-        """Parse the text of a ``.rec`` file (one record per line, blank lines ignored)."""
+        """Parse a ``.rec`` file's text (a record a line, blanks ignored), instructions too."""
         records: list[Record] = []
         lines: list[int] = []
         for lineno, line in enumerate(text.splitlines(), start=1):
@@ -529,7 +530,11 @@ class ProgramFile:
             records.append(rec)
             lines.append(lineno)
         _validate(tuple(records), source, lines)
-        return cls(tuple(records), source)
+        program = cls(tuple(records), source, tuple(lines))
+        from cellctl.kinds.ibm7545.aml import check_program  # aml builds on this module
+
+        check_program(program)  # every instruction decoded as the controller will
+        return program
 
     @classmethod
     def load(cls, path: str | Path) -> ProgramFile:
@@ -565,7 +570,7 @@ class ProgramFile:
             raise UsageError(f"partition must be 1..5, not {partition}")
         header = self.records[0]
         new = Record("N", bytes([partition]) + header.data[1:])
-        return ProgramFile((new, *self.records[1:]), self.source)
+        return ProgramFile((new, *self.records[1:]), self.source, self.lines)
 
     def to_text(self) -> str:
         """The ``.rec`` file text: one record per line, LF line ends."""

@@ -16,8 +16,11 @@ when uninitialized: reject 48, "improper startup sequence", what the controller 
 
 Where the host's view cannot be trusted the table allows the call and the machine decides:
 the robot says nothing when a program ends, so host state 2 (executing) may be stale, and GO
-or DOWNLOAD there go to the controller (which rejects them with 48 while a cycle runs). A mill
-driver reads CTS first (no byte goes out) so states 3 and 4 are current when it asks.
+there goes to the controller (which rejects it with 48 while a cycle runs). DOWNLOAD does not:
+the spec's state table has downloads in state 1 only, and the host refuses it in state 2 as
+in state 0 (48, "stop the cycle first"; STOP after a program that ended by itself is
+harmless and brings the host back to state 1). A mill driver reads CTS first (no byte goes
+out) so states 3 and 4 are current when it asks.
 
 No I/O here, no clock: tables and the lookups.
 """
@@ -61,6 +64,11 @@ _APPLICATION_EMPTY = Refusal(1, "partition empty", "no program downloaded there 
 _IMPROPER_STARTUP = Refusal(
     48, "improper startup sequence", "robot uninitialized (state 0): initialize first"
 )
+_CYCLE_RUNNING = Refusal(
+    48,
+    "improper startup sequence",
+    "a cycle runs: stop it first (STOP), then download (downloads need state 1)",
+)
 _GO_RULE = Rule(needs_program=_PARTITION_EMPTY)
 
 #: function -> host state -> rule. State 0: cold start or after HALT (every partition flushed).
@@ -68,7 +76,7 @@ ROBOT_TABLE: dict[RobotFunction, dict[int, Rule]] = {
     RobotFunction.INITIALIZE: {0: ALLOW, 1: ALLOW, 2: ALLOW},
     RobotFunction.RETURN_HOME: {0: ALLOW, 1: ALLOW, 2: ALLOW},
     RobotFunction.AUTOSTART: {0: ALLOW, 1: ALLOW, 2: ALLOW},
-    RobotFunction.DOWNLOAD: {0: Rule(_IMPROPER_STARTUP), 1: ALLOW, 2: ALLOW},
+    RobotFunction.DOWNLOAD: {0: Rule(_IMPROPER_STARTUP), 1: ALLOW, 2: Rule(_CYCLE_RUNNING)},
     # After HALT both apply; the partition speaks first ("3 partition empty", as the source).
     RobotFunction.GO: {
         0: Rule(_STARTING_ERROR, needs_program=_PARTITION_EMPTY),

@@ -21,12 +21,24 @@ went out) is repeated the same way.
 
 Before a retry the host sends a record the controller cannot take (``E`` CR LF), so whatever
 it was receiving ends in a reject, and discards what comes back until the line is quiet.
+
+A transaction cancelled half-way (Ctrl-C) would leave the controller waiting for the rest of
+it, deaf to the next request: the host resyncs the same way before the cancellation goes on,
+within a deadline. The driver saves that the line is out of step (a download from its first
+byte; any transaction once cancelled) and clears it when the line is known to be in step
+again, so a resync cut short (a second Ctrl-C, a killed process) is done before the next
+transaction, by this driver or the next one to connect.
+
+A reject does not change the host's state: the spec has no reject after which the controller
+itself forgot its state or its partitions (48 "improper startup sequence" also answers a
+request while a cycle runs).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+from collections.abc import AsyncIterator
 from typing import NoReturn
 
 from cellctl.drivers.base import LinkDriver
@@ -39,7 +51,7 @@ from cellctl.errors import (
     UnexpectedReply,
     format_raw,
 )
-from cellctl.kinds.ibm7545.options import RobotConfig, RobotState
+from cellctl.kinds.ibm7545.options import RobotConfig
 from cellctl.kinds.ibm7545.records import (
     ACK,
     EOT,
@@ -55,34 +67,63 @@ from cellctl.kinds.ibm7545.records import (
 )
 from cellctl.kinds.ibm7545.status import RobotCounters
 
-#: Reject codes after which the controller is known to be uninitialized (partitions gone).
-_COLD_REJECTS = {48}
 #: Rejects that say the line garbled a download, not that the controller cannot take it:
 #: 16 record format error (bad checksum, hex, count or terminator), 96 invalid identifier
 #: (a garbled N), 112 Xoff time out (a lost terminator left it waiting), 0 no reject status
-#: (the "EOT" was a garbled Ack). Only these are retried.
+#: (the "EOT" was a garbled Ack). Only these are retried; 16 only while it moves: the host
+#: decoded every record before sending, so a 16 is the line's, but the same record refused
+#: twice is its content (the driver stops there).
 TRANSMISSION_REJECTS = frozenset({0, 16, 96, 112})
+#: Reject status "record format error".
+RECORD_FORMAT_ERROR = 16
 _ACK = bytes([ACK])
 #: Sent before a retry: a record no controller state accepts, so a half-received record or
 #: operand ends in a reject (EOT, discarded) and the controller waits for an identifier again.
 _BREAK = b"E\r\n"
+#: How long a resync may go on discarding a line that keeps talking, beyond the first answer.
+_RESYNC_CHATTER_S = 1.0
 
 
 class RobotTransactions(LinkDriver):
     """X, R and Ack exchanges with one controller, one at a time (``_lock``).
 
-    The driver sets ``config``, ``counters``, ``_lock`` and ``_in_reject_read`` and provides
-    ``_set_state`` (a cold reject flushes the host's state).
+    The driver sets ``config``, ``counters``, ``_lock``, ``_in_reject_read`` and
+    ``_out_of_step`` (from its saved state) and provides ``_save``.
     """
 
     config: RobotConfig
     counters: RobotCounters
     _lock: asyncio.Lock
     _in_reject_read: bool
+    _out_of_step: bool
 
-    def _set_state(self, state: RobotState, *, flush: bool = False) -> None:
-        """Set and save the host's robot state (``flush``: partitions gone); the driver's."""
+    def _save(self) -> None:
+        """Save the host-kept state (``_out_of_step`` with it); the driver's."""
         raise NotImplementedError
+
+    # -- keeping the line in step ---------------------------------------------------------------
+
+    def _mark_out_of_step(self, value: bool) -> None:
+        """Remember (saved) whether the controller may be half-way through a request."""
+        if self._out_of_step != value:
+            self._out_of_step = value
+            self._save()
+
+    @contextlib.asynccontextmanager
+    async def _transaction(self) -> AsyncIterator[None]:
+        """One transaction on the line: the lock, a resync first if the line is out of step,
+        and a resync (with its deadline) if the caller cancels it half-way."""
+        async with self._lock:
+            if self._out_of_step and await self._resync():
+                self._mark_out_of_step(False)
+            try:
+                yield
+            except asyncio.CancelledError:
+                self._mark_out_of_step(True)
+                with contextlib.suppress(CellctlError):
+                    if await self._resync():
+                        self._mark_out_of_step(False)
+                raise
 
     # -- low-level pieces --------------------------------------------------------------------------
 
@@ -138,7 +179,7 @@ class RobotTransactions(LinkDriver):
 
     async def _execute(self, operand: int, what: str) -> None:
         """An X transaction: completes on Ack, or on Xoff ... Xon (return home, stop)."""
-        async with self._lock:
+        async with self._transaction():
             await self._execute_unlocked(operand, what)
 
     async def _open_retrying(self, ident: bytes, what: str) -> None:
@@ -155,16 +196,23 @@ class RobotTransactions(LinkDriver):
                     raise
                 await self._resync()
 
-    async def _resync(self) -> None:
+    async def _resync(self) -> bool:
         """End whatever the controller was receiving and discard its answer (see module
-        docstring): wait for its first byte, then for ``retry_settle`` of quiet."""
+        docstring): wait for its first byte, then for ``retry_settle`` of quiet; all within
+        the first answer's deadline and :data:`_RESYNC_CHATTER_S` (a line that keeps
+        talking is left to the next transaction's own checks). True if the controller
+        answered: it took the break, from any state, so it waits for an identifier now."""
         await self.link.write(_BREAK)
         timeout = self._timeout(len(_BREAK))
+        deadline = self.clock.monotonic() + timeout + _RESYNC_CHATTER_S
+        answered = False
         with contextlib.suppress(LinkTimeout):
-            while True:
-                await self.link.read(timeout=timeout)
+            while (left := deadline - self.clock.monotonic()) > 0:
+                await self.link.read(timeout=min(timeout, left))
+                answered = True
                 timeout = self.config.retry_settle
         self.link.reset_input()
+        return answered
 
     async def _execute_unlocked(self, operand: int, what: str) -> None:
         record = encode_operand(operand)  # a bad operand is refused before X goes out
@@ -181,7 +229,7 @@ class RobotTransactions(LinkDriver):
 
     async def _read(self, operand: int, what: str, size: int) -> bytes:
         """An R transaction returning the D record's data (checksum verified, retried)."""
-        async with self._lock:
+        async with self._transaction():
             return await self._read_unlocked(operand, what, size)
 
     async def _read_unlocked(self, operand: int, what: str, size: int) -> bytes:
@@ -265,8 +313,6 @@ class RobotTransactions(LinkDriver):
         finally:
             self._in_reject_read = False
         self.counters.rejects.append(code)
-        if code in _COLD_REJECTS:
-            self._set_state(RobotState.UNINITIALIZED, flush=True)
         raise DeviceError(code, reject_message(code), detail=f"{self.name}: {what}")
 
     async def _expect_ack(self, piece: bytes, what: str) -> None:

@@ -159,6 +159,13 @@ def test_the_policies_compared_and_the_plan_replayed_from_its_inputs(
         (["--add", "wax-robot-base:3", "--shift", "8h", "--until", "18:00"], "not both"),
         ([], "nothing to plan"),
         (["--add", "wax-robot-base:1", "--poll", "0"], r"--poll.*0<x<=600"),
+        (["--add", "wax-robot-base:1@99999999"], "the priority must be -1000000 to 1000000"),
+        (["--add", "wax-robot-base:99999"], "the quantity must be 1 to 10000"),
+        (["--add", "wax-robot-base:1", "--policy", "all,default"], "all plays every policy"),
+        (
+            ["--add", "wax-robot-base:1", "--policy", "default,downstream-first"],
+            "default is downstream-first: name it once",
+        ),
     ],
 )
 def test_bad_input_is_refused_before_anything_runs(

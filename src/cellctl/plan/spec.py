@@ -33,7 +33,7 @@ ALL_POLICIES: Final = "all"
 
 _WORD = r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,99}"
 _ADD = re.compile(
-    rf"^\s*(?P<part>{_WORD})\s*:\s*(?P<qty>\d{{1,6}})\s*(?:@\s*(?P<prio>[-+]?\d{{1,7}}))?\s*$"
+    rf"^\s*(?P<part>{_WORD})\s*:\s*(?P<qty>\d{{1,9}})\s*(?:@\s*(?P<prio>[-+]?\d{{1,18}}))?\s*$"
 )
 _WHEN = r"(?:[A-Za-z]{3,9}\s+)?\d{1,2}:\d{2}"
 _FAULT = re.compile(
@@ -141,6 +141,12 @@ def policies_of(text: str) -> tuple[str, ...]:
     named = [p.strip() for p in text.split(",") if p.strip()]
     if not named:
         raise UsageError("--policy: name a policy (or all)")
+    if ALL_POLICIES in named:
+        raise UsageError(f"--policy {text!r}: all plays every policy: name it alone")
+    if "default" in named and "downstream-first" in named:
+        raise UsageError(
+            f"--policy {text!r}: default is downstream-first: name it once, or it is played twice"
+        )
     return tuple(dict.fromkeys(named))
 
 

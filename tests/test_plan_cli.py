@@ -200,3 +200,16 @@ def test_a_plan_of_a_week_or_more_says_the_day_of_each_time(cell: Path, tmp_path
     short = plan("--dir", str(cell), "--orders", str(orders), "--start", START, "--shift", "6d")
     row = next(line for line in short.output.splitlines() if line.startswith("A "))
     assert re.match(r"A +wax-robot-base +1/1 +Wed 06:\d\d:\d\d +Wed 06:00:00 ", row), row
+
+
+def test_an_orders_file_with_a_header_only_or_a_part_not_made_is_said_so(
+    cell: Path, tmp_path: Path
+) -> None:
+    header = tmp_path / "header.csv"
+    header.write_text("id,part_type,qty\n")
+    said = plan("--dir", str(cell), "--orders", str(header), "--start", START, expect=2).stderr
+    assert "no orders under its header: add rows, or --add PART:QTY" in " ".join(said.split())
+    gear = tmp_path / "gear.csv"
+    gear.write_text("id,part_type,qty\nA,wax-robot-base,1\nB,gear,2\n")
+    said = plan("--dir", str(cell), "--orders", str(gear), "--start", START, expect=2).stderr
+    assert "line 3: the cell makes no 'gear' (it makes: wax-robot-base" in " ".join(said.split())

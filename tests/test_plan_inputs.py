@@ -217,11 +217,12 @@ def test_an_orders_file_reads_and_writes_back() -> None:
         ("id,part_type,qty,due\nA,x,1,someday\n", "line 2: due: time 'someday'"),
         ("id,part_type,qty\nA,x,1,2\n", "line 2: 4 fields, the header names 3"),
         ("id,part_type,qty\nA B,x,1\n", "one word"),
+        ("id,part_type,qty\nA,x,1\nB,gear,1\n", r"line 3: the cell makes no 'gear' \(it makes: x"),
     ],
 )
 def test_orders_file_refusals_name_the_line(text: str, message: str) -> None:
     with pytest.raises(UsageError, match=message):
-        parse_orders(text, START, "week.csv")
+        parse_orders(text, START, "week.csv", ("x", "y"))
 
 
 @FAST
@@ -290,3 +291,6 @@ def test_saved_inputs_read_back() -> None:
     orders = [{k: v for k, v in o.items() if k != "under_way"} for o in _saved()["orders"]]
     [order] = parse_inputs(_saved() | {"orders": orders}, Path("/plans"))[0].orders
     assert order == replace(UNDER_WAY, under_way=())
+    # No orders: nothing to play, refused as the command line refuses it.
+    with pytest.raises(UsageError, match="orders: nothing to plan"):
+        parse_inputs(_saved() | {"orders": []}, Path("/plans"))

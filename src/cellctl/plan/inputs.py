@@ -148,6 +148,8 @@ def parse_inputs(data: Any, base: Path) -> tuple[PlanInputs, tuple[str, ...]]:
         raise UsageError(f"plan inputs: {where}: {first['msg']}") from None
     if not found.start < found.until <= found.start + MAX_HORIZON_S:
         raise UsageError("plan inputs: until must be after start, at most 31 days")
+    if not found.orders:  # as the command line says it: a plan of no orders plays nothing
+        raise UsageError("plan inputs: orders: nothing to plan (the list is empty)")
     inputs = PlanInputs(
         cell_dir=base / found.cell_dir,
         orders=tuple(_order(o) for o in found.orders),

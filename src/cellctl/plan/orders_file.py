@@ -19,6 +19,7 @@ from __future__ import annotations
 import csv
 import io
 import re
+from collections.abc import Collection
 from pathlib import Path
 from typing import Final
 
@@ -37,8 +38,11 @@ MAX_BYTES: Final = 1_000_000
 MAX_ORDERS: Final = 10_000
 
 
-def read_orders_file(path: Path, start: float) -> tuple[PlanOrder, ...]:
-    """The orders in ``path`` (see the module docstring); due times seen from ``start``."""
+def read_orders_file(
+    path: Path, start: float, part_types: Collection[str] | None = None
+) -> tuple[PlanOrder, ...]:
+    """The orders in ``path`` (see the module docstring); due times seen from ``start``;
+    ``part_types``: what the cell makes (an order of another is refused at its line)."""
     try:
         data = read_file(path, limit=MAX_BYTES)
     except FileNotFoundError:
@@ -51,11 +55,14 @@ def read_orders_file(path: Path, start: float) -> tuple[PlanOrder, ...]:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError as e:
         raise UsageError(f"{path}: not a text file (byte {e.start + 1} is not UTF-8)") from None
-    return parse_orders(text, start, str(path))
+    return parse_orders(text, start, str(path), part_types)
 
 
-def parse_orders(text: str, start: float, name: str = "orders") -> tuple[PlanOrder, ...]:
-    """The orders in CSV ``text`` (see the module docstring); ``name`` for the messages."""
+def parse_orders(
+    text: str, start: float, name: str = "orders", part_types: Collection[str] | None = None
+) -> tuple[PlanOrder, ...]:
+    """The orders in CSV ``text`` (see the module docstring); ``name`` for the messages;
+    ``part_types`` as :func:`read_orders_file`'s."""
     if "\x00" in text:
         raise UsageError(f"{name}: not a text file (a NUL byte)")
     numbered = [
@@ -88,6 +95,11 @@ def parse_orders(text: str, start: float, name: str = "orders") -> tuple[PlanOrd
             raise UsageError(f"{where}: {len(row)} fields, the header names {len(header)}")
         cells = dict(zip(header, (c.strip() for c in row), strict=False))
         order = _order(cells, start, where)
+        if part_types is not None and order.part_type not in part_types:
+            known = ", ".join(part_types) or "none"
+            raise UsageError(
+                f"{where}: the cell makes no {order.part_type!r} (it makes: {known})"
+            )
         if order.order_id in seen:
             raise UsageError(f"{where}: order {order.order_id} is in the file twice")
         seen.add(order.order_id)

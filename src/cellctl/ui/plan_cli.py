@@ -65,12 +65,21 @@ def _local_plan(
     from cellctl.plan.run import play_in_temp
     from cellctl.plan.spec import plan_inputs
     from cellctl.plan.when import parse_start
+    from cellctl.service.machines import load_cell_file
 
     if not (directory / "cell.toml").is_file():
         raise UsageError(f"{directory}: no cell.toml: not a cell directory")
     start = parse_start(start_text, current_clock().now())
-    orders = read_orders_file(orders_file, start) if orders_file is not None else ()
+    orders: tuple[Any, ...] = ()
+    if orders_file is not None:
+        parts = load_cell_file(directory).get("parts")
+        made = list(parts) if isinstance(parts, dict) else None
+        orders = read_orders_file(orders_file, start, made)
     if not orders and not options["adds"]:
+        if orders_file is not None:
+            raise UsageError(
+                f"{orders_file}: no orders under its header: add rows, or --add PART:QTY"
+            )
         raise UsageError("nothing to plan: give --orders FILE or --add PART:QTY")
     inputs, policies = plan_inputs(directory, start=start, orders=orders, **options)
     return play_in_temp(inputs, policies, workers=os.cpu_count() or 1)

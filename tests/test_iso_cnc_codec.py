@@ -148,7 +148,9 @@ def test_o_number_and_percent_framing() -> None:
     assert "p.nc:1:1: no O-number: the program's first block must be O and its number" in (
         messages("G0 X1\nM30\n")
     )
-    assert "p.nc:1:1: O12345: more than 4 digits" in messages("O12345\nM30\n")
+    assert messages("O12345\nM30\n") == [
+        "p.nc:1:1: O12345: more than 4 digits (this control's programs are O1 to O9999)"
+    ]
     assert messages("O12345\nM30\n", o_digits=8) == []
     assert messages("%\nO1\nM30\n%\nG0 X1\n") == [
         "p.nc:5:1: text after the closing %: a control never reads it"

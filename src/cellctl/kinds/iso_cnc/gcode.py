@@ -19,8 +19,9 @@ not nest: a ``(`` inside one is an error, as is one left open at the end of its 
 ``;`` to the end of the line; each word's range and whether it must be whole; a letter given
 twice in a block; two G codes of one modal group (or two M codes of one group) in a block;
 arcs (I/J/K or R, not both; the start and end radii agree within ``arc_tolerance_mm``; R no
-shorter than half the chord); G01/G02/G03 before any F; the O-number (present, within
-``o_digits``) and ``%`` framing (only as a line of its own, at the start and end).
+shorter than half the chord); G01/G02/G03 before any F, or at F0 (said with where the F0 is);
+the O-number (present, 1 to the largest of ``o_digits`` digits) and ``%`` framing (only as a
+line of its own, at the start and end).
 
 Hostile input stays bounded: a text over ``max_bytes`` or ``max_blocks`` is refused whole, a
 block over
@@ -275,6 +276,8 @@ class _State:
 
     motion: float | None = None
     feed: float | None = None
+    feed_at: tuple[int, int, str] = (0, 0, "")
+    """Where the feed in force was given: line, column, the word (``F0``)."""
     absolute: bool = True
     inch: bool = False
     plane: int = 17
@@ -300,12 +303,18 @@ def _check_words(block: Block, options: CheckOptions, found: list[Finding]) -> N
         if w.letter not in "GM" and w.letter in seen:
             found.append(Finding(block.line, w.column, f"{w.letter} twice in one block"))
         seen[w.letter] = w
+        if w.letter == "O":
+            problem = _o_number_problem(w, options.o_digits)
+            if problem:
+                found.append(Finding(block.line, w.column, problem))
+                continue
         if not rule.low <= w.value <= rule.high:
             found.append(
                 Finding(
                     block.line,
                     w.column,
-                    f"{w.text}: {rule.meaning} out of range {rule.low:g} to {rule.high:g}",
+                    f"{w.text}: {rule.meaning} out of range {_plain(rule.low)} to "
+                    f"{_plain(rule.high)}",
                 )
             )
         elif rule.whole and w.value != int(w.value):
@@ -332,10 +341,24 @@ def _check_words(block: Block, options: CheckOptions, found: list[Finding]) -> N
                 )
             elif mgroup is not None:
                 m_groups[mgroup] = w
-        if w.letter == "O" and w.value >= 10**options.o_digits:
-            found.append(
-                Finding(block.line, w.column, f"{w.text}: more than {options.o_digits} digits")
-            )
+
+
+def _plain(value: float) -> str:
+    """A range's bound as a user writes it: ``99999999``, ``99999.999``, never ``1e+08``."""
+    return f"{value:f}".rstrip("0").rstrip(".")
+
+
+def _o_number_problem(w: Word, digits: int) -> str:
+    """What is wrong with program number ``w`` on a control of ``digits`` digits (``""``:
+    nothing): its range is 1 to 9999 on a 4-digit control, not the word's widest."""
+    high = 10**digits - 1
+    if w.value != int(w.value):
+        return f"{w.text}: program number must be whole"
+    if w.value > high:
+        return f"{w.text}: more than {digits} digits (this control's programs are O1 to O{high})"
+    if w.value < 1:
+        return f"{w.text}: program number out of range 1 to {high} (a {digits}-digit control)"
+    return ""
 
 
 def _check_motion(block: Block, state: _State, options: CheckOptions, found: list[Finding]) -> None:
@@ -353,17 +376,31 @@ def _check_motion(block: Block, state: _State, options: CheckOptions, found: lis
             state.plane = int(g)
         elif g in (28.0, 30.0, 53.0, 92.0, 52.0) or group == 14:
             state.position = dict.fromkeys(state.position)
-    f = block.get("F")
+    f = next((w for w in block.words if w.letter == "F"), None)
     if f is not None:
-        state.feed = f
+        state.feed, state.feed_at = f.value, (block.line, f.column, f.text)
     moves = any(block.has(a) for a in "XYZ")
     one_shot = any(G_GROUPS.get(g) == 0 for g in block.g_codes)
     if not moves or one_shot:
         return
-    if state.motion in FEED_MOVES and not state.feed:
+    if state.motion in FEED_MOVES and state.feed is None:
         found.append(
             Finding(block.line, 0, f"G{state.motion:02.0f} move with no feed: no F before it")
         )
+    elif state.motion in FEED_MOVES and not state.feed:
+        line, column, text = state.feed_at
+        said = f"G{state.motion:02.0f} move with a feed of zero ({text}"
+        if line == block.line:  # pointed at the F word itself
+            found.append(Finding(line, column, f"{said}): the axes would not move"))
+        else:
+            found.append(
+                Finding(
+                    block.line,
+                    0,
+                    f"{said} at line {line}, column {column}, is the feed in force): "
+                    "the axes would not move",
+                )
+            )
     scale = 25.4 if state.inch else 1.0
     start = dict(state.position)
     end: dict[str, float | None] = {}

@@ -283,7 +283,7 @@ async def _send(access: CellAccess, p: SendParams, progress: Progress | None) ->
             raise UsageError(f"{p.program}: not an ISO-code program (a character is not ASCII)")
         name, data = p.program, p.text.encode("ascii")
     else:
-        path = line.store.resolve(p.machine, p.program)
+        path = line.store.resolve(p.machine, p.program, line.config.options.o_digits)
         name, data = path.name, read_program_file(path)
     check_program_number(name, data)
     what = f"{'drip-feed' if p.drip else 'read-in'} of {name}"
@@ -304,6 +304,7 @@ async def _send(access: CellAccess, p: SendParams, progress: Progress | None) ->
 async def _receive(access: CellAccess, p: ReceiveParams, progress: Progress | None) -> Any:
     assert isinstance(access, DncAccess)
     line = access.server.line(p.machine)
+    line.require_link("nothing can be punched to the server")  # said before any prompt
     if progress is not None:  # the caller may now ask the operator to press PUNCH
         progress({"phase": "waiting", "chars_sent": 0, "chars_total": 0})
     programs = await line.wait_punch(p.timeout)

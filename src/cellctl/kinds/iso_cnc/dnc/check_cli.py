@@ -2,7 +2,9 @@
 program on that machine, before anyone stands at the control::
 
     $ cellctl dnc check mill1 O1234 --dir shop
-    O1234 (O1234 surface.nc) for mill1 at 9600,7E2: 188 blocks that take time, 4,734 characters
+    O1234 (O1234 surface.nc) for mill1 at 9600,7E2: 188 blocks that take time, 4,691
+      characters of program (what the control stores; its tape, with leader, % and trailer,
+      is 4,734)
       runs 6.4 s (the motion model); the tape is 5.4 s on the line
       drip-feed: the axes wait 1.4 s for data at 132 blocks (longest 0.02 s, for
       `G1 X4.000 Y14.500 Z-0.010`); it ends 7.8 s after the control's first DC1
@@ -51,12 +53,17 @@ def check(ctx: click.Context, name: str, program: str, shop: Path, use_cell: boo
     from cellctl.kinds.iso_cnc import gcode
     from cellctl.kinds.iso_cnc.buffer import forecast_drip, tape_blocks
     from cellctl.kinds.iso_cnc.dnc.config import machine
-    from cellctl.kinds.iso_cnc.dnc.store import ShopStore, check_program_number, read_program_file
+    from cellctl.kinds.iso_cnc.dnc.store import (
+        ShopStore,
+        check_program_number,
+        program_chars,
+        read_program_file,
+    )
     from cellctl.kinds.iso_cnc.options import prepare, program_text
 
     config = shop_config(ctx, shop, use_cell)
     chosen = machine(config, name)
-    path = ShopStore(config.root).resolve(name, program)
+    path = ShopStore(config.root).resolve(name, program, chosen.options.o_digits)
     data = read_program_file(path)
     o = chosen.options
     problems = [
@@ -78,7 +85,8 @@ def check(ctx: click.Context, name: str, program: str, shop: Path, use_cell: boo
     count = sum(1 for _, seconds in blocks if seconds > 0)
     lines = [
         f"{program} ({path.name}) for {name} at {settings}: {count:,} blocks that take time, "
-        f"{forecast.chars:,} characters",
+        f"{program_chars(data):,} characters of program (what the control stores; its tape, "
+        f"with leader, % and trailer, is {forecast.chars:,})",
         f"  runs {_hms(forecast.run_s)} (the motion model); the tape is "
         f"{_hms(forecast.line_s)} on the line",
     ]

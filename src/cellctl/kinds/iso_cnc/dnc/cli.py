@@ -193,7 +193,7 @@ async def _call_here(
     one = dataclasses.replace(config, machines={name: config.machines[name]})
     server = DncServer(one)
     try:
-        await server.start()  # the machine's own task listens, as under `dnc serve`
+        await server.start(retry=False)  # its own task listens, as under `dnc serve`
     except MachineInUse as e:  # another hand command has it: say what works instead
         raise in_use_here(config, name) or e from None
     try:
@@ -324,7 +324,7 @@ def _transfer(
         params.update(program=path.name, text=read_program_file(path).decode())
         data = params["text"].encode("ascii")
     else:  # refused here, before a byte goes out
-        data = read_program_file(ShopStore(config.root).resolve(name, program))
+        data = read_program_file(ShopStore(config.root).resolve(name, program, options.o_digits))
     # the O-number and the G-code check with the machine's options: before a byte goes out
     check_program_number(program, data)
     prepare(data, options, params["program"])

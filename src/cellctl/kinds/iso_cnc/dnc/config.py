@@ -19,8 +19,9 @@
     shop.machines["mill1"].url
 
 Everything is checked before a link is opened: unknown keys, a missing link, a line that
-does not parse, the kind's options (by their field name), two machines on one link, a name
-that cannot be a directory. Each refusal names the file and the table.
+does not parse, the kind's options (by their field name), a request program with more digits
+than the control's O-numbers (``o_digits``), two machines on one link, a name that cannot be a
+directory. Each refusal names the file and the table.
 """
 
 from __future__ import annotations
@@ -159,7 +160,25 @@ def _machine(name: str, table: MachineTable, path: Path) -> DncMachine:
             said = "unknown option" if item["type"] == "extra_forbidden" else item["msg"]
             problems.append(f"options.{key}: {said}")
         raise UsageError(f"{where}: " + "; ".join(problems)) from None
+    _check_request_digits(name, table.request, options, where)
     return DncMachine(name, table.link, settings, options, table.request)
+
+
+def _check_request_digits(
+    name: str, request: RequestConvention, options: IsoCncOptions, where: str
+) -> None:
+    """Refuse a request program the control cannot number (``program = 123456`` on a
+    4-digit control): it could never write or punch it, so no request would ever come."""
+    digits = options.o_digits
+    if not request.enabled or request.program < 10**digits:
+        return
+    given = "" if "program" in request.model_fields_set else " (the default)"
+    raise UsageError(
+        f"{where}: request.program = {request.program}{given} has {len(str(request.program))} "
+        f"digits, but {name}'s control takes {digits} (options.o_digits = {digits}): it could "
+        f"never punch O{request.program}, so no remote request would ever come; give a "
+        f"request program from 1 to {10**digits - 1}"
+    )
 
 
 def parse_dnc_file(data: dict[str, Any], root: Path, path: Path) -> ShopConfig:

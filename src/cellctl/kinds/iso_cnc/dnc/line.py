@@ -40,6 +40,7 @@ from cellctl.kinds.iso_cnc.dnc.store import (
     ShopStore,
     check_program_number,
     o_name,
+    program_chars,
     read_program_file,
 )
 from cellctl.kinds.iso_cnc.driver import IsoCncDriver
@@ -144,6 +145,16 @@ class DncLine:
             await driver.close()
         self._set(activity=Activity.OFFLINE)
 
+    def _down(self, what: str) -> LinkClosed:
+        why = self.status.error or f"{self.name}: offline"
+        return LinkClosed(f"{why}: its link is down: {what} until it is back")
+
+    def require_link(self, what: str) -> None:
+        """LinkClosed, in words, when the machine's link is down (offline): ``what`` cannot
+        be done (``nothing can be punched to the server``) until it is back."""
+        if self.driver is None:
+            raise self._down(what)
+
     # -- transfers --------------------------------------------------------------------------
 
     def _on_progress(self, forward: Progress | None) -> Callable[[Any], None]:
@@ -153,6 +164,11 @@ class DncLine:
             d = progress_dict(p)
             if d["phase"] in ("running", "done"):
                 self.tape_out.set()  # all of the tape (or its clean end) is out
+            if d["phase"] == "done" and not self.stopping:
+                # The control ended the read at the closing %: the rest of the trailer (tape
+                # feed) never goes out. The tape was what went: a bar ends at its total. (A
+                # tape ended early keeps its total: where it ended is said of it.)
+                d["chars_total"] = d["chars_sent"]
             now = current_clock().monotonic()
             if now - last[0] < PROGRESS_S and d["phase"] not in UNTHROTTLED:
                 return  # many machines at once: two figures a second are enough
@@ -220,8 +236,7 @@ class DncLine:
             self._note(said)
             self._set(last=said)
             raise TransferStopped(said)
-        if self.driver is None:
-            raise LinkClosed(f"{self.name}: its link is not open ({self.status.error or 'closed'})")
+        self.require_link("nothing can be sent to it")
         activity = Activity.DRIP_FEEDING if drip else Activity.READING
         self._set(
             activity=activity,
@@ -268,8 +283,10 @@ class DncLine:
         if number is not None:
             self.store.keep_sent(self.name, number, data)
         seconds = result["elapsed_s"]
+        # What the control stores (its blocks, no %, CR or NUL), then the tape on the line.
         message = (
-            f"{program}: {what}, {len(data)} chars in {seconds:.1f} s, "
+            f"{program}: {what}, {program_chars(data)} characters of program in "
+            f"{seconds:.1f} s ({report.chars_sent} tape characters on the line), "
             f"{result['buffer_stops']} buffer stops"
         )
         if drip:  # the machine's wait for blocks the line had not brought yet
@@ -358,14 +375,14 @@ class DncLine:
     async def receive(self, *, timeout: float) -> list[dict[str, Any]]:
         """Take the punch the control has started (its DC2 is in): keep it, answer requests.
         The caller holds :attr:`turn`."""
-        if self.driver is None:
-            raise LinkClosed(f"{self.name}: its link is not open ({self.status.error or 'closed'})")
+        self.require_link("nothing can be received from it")
         data: bytes = await self.driver.receive(progress=self._on_progress(None), timeout=timeout)
         return self.take_punch(data)
 
     async def wait_punch(self, timeout: float) -> list[dict[str, Any]]:
         """What the control punches next, once the machine's task has taken it (kept,
         requests answered); LinkTimeout when nothing is punched within ``timeout``."""
+        self.require_link("nothing can be punched to the server")
         waiter: asyncio.Future[list[dict[str, Any]]] = asyncio.get_running_loop().create_future()
         self.punch_waiters.append(waiter)
         if self.status.activity is Activity.IDLE:
@@ -413,7 +430,7 @@ class DncLine:
 
     def _request(self, request: Request, number: int, raw: bytes, now: float) -> dict[str, Any]:
         try:
-            path = self.store.program(self.name, request.program)
+            path = self.store.program(self.name, request.program, self.config.options.o_digits)
             check_program_number(path.name, read_program_file(path))
         except UsageError as e:  # the punched request is kept as received, as docs/dnc.md says
             kept = self.store.keep_received(self.name, number, raw, now)
@@ -437,7 +454,7 @@ class DncLine:
             self._set(activity=Activity.IDLE, pending="")
             return
         try:
-            path = self.store.program(self.name, request.program)
+            path = self.store.program(self.name, request.program, self.config.options.o_digits)
             data = read_program_file(path)
             check_program_number(path.name, data)
         except UsageError as e:
@@ -501,6 +518,10 @@ class DncLine:
             with contextlib.suppress(CellctlError):
                 await self.close()
             self._set(activity=Activity.OFFLINE, error=said)
+            waiters, self.punch_waiters = self.punch_waiters, []
+            for waiter in waiters:  # a `dnc receive` waiting: told now, not at its timeout
+                if not waiter.done():
+                    waiter.set_exception(self._down("nothing can be punched to the server"))
             await current_clock().sleep(REOPEN_S)
 
 

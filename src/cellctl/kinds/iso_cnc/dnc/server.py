@@ -75,10 +75,12 @@ class DncServer:
             raise UsageError(f"unknown DNC machine {name!r} (known: {known})")
         return found
 
-    async def start(self) -> None:
+    async def start(self, *, retry: bool = True) -> None:
         """Open every machine's link, then serve. All are refused if one is owned elsewhere
         (MachineInUse); one that cannot be reached (LinkError) is shown offline, naming it,
-        and its task tries again every :data:`REOPEN_S`, as for a link that fails later."""
+        and its task tries again every :data:`REOPEN_S`, as for a link that fails later.
+        ``retry=False`` (a one-shot command's machine): that LinkError is raised instead,
+        in the same words but for the retry, which nothing would do."""
         opened: list[DncLine] = []
         try:
             for line in self.lines.values():
@@ -86,6 +88,8 @@ class DncServer:
                 try:
                     await line.open()
                 except LinkError as e:
+                    if not retry:
+                        raise LinkError(offline_words(line.name, e, None)) from None
                     said = offline_words(line.name, e, REOPEN_S)
                     line._note(f"error: {said}")
                     line._set(activity=Activity.OFFLINE, error=said, failures=1)

@@ -124,13 +124,24 @@ def stopped_progress(s: MachineStatus, words: str) -> dict[str, Any]:
     }
 
 
+#: What the operator does at the control to start a read, for a read-in and a drip-feed.
+START_READ = {
+    False: "press READ on the control, in EDIT mode",
+    True: "press CYCLE START on the control, in RMT (DNC) mode",
+}
+
+
 def state_words(s: MachineStatus) -> str:
-    """A machine's state as the console and dashboard show it."""
+    """A machine's state as the console and dashboard show it; while a program waits for
+    the control's read, what the operator does to start it."""
     words = s.activity.value
     if s.activity in (Activity.READING, Activity.DRIP_FEEDING) and s.program:
         words += f" {s.program}"
+    if s.activity in (Activity.READING, Activity.DRIP_FEEDING) and s.phase == "waiting":
+        return f"{words}: waiting for read: {START_READ[s.activity is Activity.DRIP_FEEDING]}"
     if s.activity is Activity.WAITING and s.pending:
-        words += f": {s.pending}"
+        drip = s.pending.startswith("drip")
+        words += f": {s.pending}: {START_READ[drip]}"
     if s.stall_s > 0 and s.activity is Activity.DRIP_FEEDING:
         words += f", stalled {s.stall_s:.1f} s"
     if s.buffer_stops and s.activity in (Activity.READING, Activity.DRIP_FEEDING):
@@ -157,8 +168,11 @@ def ended_words(
     )
 
 
-def offline_words(name: str, e: Exception, retry_s: float) -> str:
-    """Why machine ``name`` is offline, naming it: ``a: offline: cannot connect to ...``."""
+def offline_words(name: str, e: Exception, retry_s: float | None) -> str:
+    """Why machine ``name`` is offline, naming it: ``a: offline: cannot connect to ...``;
+    with ``retry_s`` (a server that tries its link again), how often it is tried."""
     text = str(e)
     text = text[len(name) + 2 :] if text.startswith(f"{name}: ") else text
+    if retry_s is None:  # a one-shot command: nothing tries again
+        return f"{name}: offline: {text}"
     return f"{name}: offline: {text} (its link is tried again every {retry_s:g} s)"

@@ -76,6 +76,18 @@ def o_name(number: int) -> str:
     return f"O{number:04d}"
 
 
+def check_program_range(machine: str, number: int, digits: int) -> None:
+    """Refuse (UsageError) program ``number`` when machine's control, whose O-numbers
+    have ``digits`` digits, cannot hold it: O0, or O99999 on a 4-digit control. Said before
+    the file is looked for: a file of that number would be refused too."""
+    high = 10**digits - 1
+    if not 1 <= number <= high:
+        raise UsageError(
+            f"{o_name(number)} is out of range for {machine}: its control takes programs "
+            f"O1 to O{high} ({digits} digits, options.o_digits)"
+        )
+
+
 @dataclass(frozen=True)
 class Kept:
     """A kept copy of a program (received or sent): its file, number and UTC time stamp."""
@@ -161,13 +173,16 @@ class ShopStore:
                 found.setdefault(int(match.group(1)), []).append(path)
         return found
 
-    def program(self, name: str, number: int) -> Path:
+    def program(self, name: str, number: int, digits: int | None = None) -> Path:
         """The file of program ``number`` in the machine's programs/: the one named exactly
         by its number (``O1234.nc``, ``O1234``) if there is one, else the only file whose name
         starts with it (``O1234 bracket.nc``). UsageError naming where it was looked for when
         there is none, and naming the files when more than one could be meant (``O1234
         bracket.nc`` and ``O1234 copy.nc``; ``O1234.nc`` and ``O1234.tap``): which one the
-        control should get cannot be guessed."""
+        control should get cannot be guessed. With ``digits`` (the control's ``o_digits``),
+        a number the control cannot hold is refused first (:func:`check_program_range`)."""
+        if digits is not None:
+            check_program_range(name, number, digits)
         files = self.programs(name).get(number, [])
         exact = [path for path in files if EXACT_PROGRAM_FILE.fullmatch(path.name)]
         chosen = exact or files
@@ -185,16 +200,17 @@ class ShopStore:
             "or give the file itself"
         )
 
-    def resolve(self, name: str, program: str) -> Path:
+    def resolve(self, name: str, program: str, digits: int | None = None) -> Path:
         """What ``cellctl dnc send MACHINE PROGRAM`` means by PROGRAM: an existing file, else
-        an O-number (``O1234`` or ``1234``) in the machine's programs/."""
+        an O-number (``O1234`` or ``1234``) in the machine's programs/ (within ``digits``,
+        the control's ``o_digits``, when given)."""
         path = Path(program)
         if path.is_file():
             return path
         match = re.fullmatch(r"[Oo]?(\d{1,8})", program)
         if match is None:
             raise UsageError(f"{program}: no such file, and not a program number like O1234")
-        return self.program(name, int(match.group(1)))
+        return self.program(name, int(match.group(1)), digits)
 
     # -- kept copies ------------------------------------------------------------------------
 
@@ -279,6 +295,13 @@ def read_program_file(path: Path) -> bytes:
             f"0x{data[e.start]:02X})"
         ) from None
     return data
+
+
+def program_chars(data: bytes) -> int:
+    """The characters of a program file that the control stores: its blocks, each ended by
+    LF, without ``%`` framing, leader, CR or NUL (what ``dnc check`` and a read-in's message
+    count as the program; its tape on the line has the leader, ``%`` and trailer too)."""
+    return len(unframe(data))
 
 
 def check_program_number(name: str, data: bytes) -> None:

@@ -10,7 +10,7 @@ from cellctl.files import read_text, reason
 from cellctl.kinds.ur.emulator import FAULTS, UrEmulator
 from cellctl.kinds.ur.kind import ROBOT_FUNCTIONS
 from cellctl.kinds.ur.motion import ARMS
-from cellctl.kinds.ur.options import UrOptions
+from cellctl.kinds.ur.options import UrOptions, drive_command
 from cellctl.ui.common import console, fault_help, run
 
 
@@ -34,7 +34,7 @@ def _programs(items: tuple[str, ...]) -> dict[str, str]:
     "--dashboard-port", default=29999, show_default=True, help="Dashboard Server port (0: free)."
 )
 @click.option(
-    "--secondary-port", default=30002, show_default=True, help="Secondary interface port."
+    "--secondary-port", default=30002, show_default=True, help="Secondary interface port (0: free)."
 )
 @click.option("--rtde-port", default=30004, show_default=True, help="RTDE port (0: free).")
 @click.option(
@@ -74,18 +74,19 @@ def emulate_ur(
             f"  ports: dashboard {ports['dashboard']}, secondary {ports['secondary']}, "
             f"RTDE {ports['rtde']}"
         )
-        # The driver finds RTDE and the secondary interface at its options' ports: at the
-        # defaults a --link names the robot; at others a cell.toml's options must.
+        # The driver finds RTDE and the secondary interface at its options' ports: the
+        # printed link URL carries those not at the defaults, so the hint works as printed;
+        # a cell.toml gives them as the machine's options.
+        secondary, rtde = ports["secondary"], ports["rtde"]
+        hint = drive_command(emulator.dashboard_url, secondary, rtde)
+        console.print(f"  drive it with: {hint}", soft_wrap=True)
         usual = UrOptions()
-        if (ports["secondary"], ports["rtde"]) == (usual.secondary_port, usual.rtde_port):
-            hint = f"drive it with: cellctl robot --kind ur --link {emulator.dashboard_url}"
-        else:
-            hint = (
-                f'drive it from a cell.toml: kind = "ur", link = "{emulator.dashboard_url}", '
-                f"options = {{ secondary_port = {ports['secondary']}, "
-                f"rtde_port = {ports['rtde']} }}"
+        if (secondary, rtde) != (usual.secondary_port, usual.rtde_port):
+            console.print(
+                f'  or from a cell.toml: kind = "ur", link = "{emulator.dashboard_url}", '
+                f"options = {{ secondary_port = {secondary}, rtde_port = {rtde} }}",
+                soft_wrap=True,
             )
-        console.print(f"  {hint}", soft_wrap=True)
         try:
             await until_stopped()
         finally:

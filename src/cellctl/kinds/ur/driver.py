@@ -60,8 +60,8 @@ from cellctl.kinds.ur.dashboard import (
     RuntimeState,
 )
 from cellctl.kinds.ur.motion import ARMS
+from cellctl.kinds.ur.options import INTERFACE_PORTS, UR_SCHEMES, interface_url, link_ports
 from cellctl.kinds.ur.options import UR_LINE as UR_LINE
-from cellctl.kinds.ur.options import UR_SCHEMES, interface_url
 from cellctl.kinds.ur.options import UrOptions as UrOptions
 from cellctl.kinds.ur.program import UrProgram
 from cellctl.kinds.ur.rtde_client import FIELDS as FIELDS
@@ -143,8 +143,10 @@ class UrRobot(RtdeClient, LinkDriver):
         opens when another owner holds the robot."""
         if urlsplit(url).scheme not in UR_SCHEMES:
             raise UsageError(f"{url}: a UR's link is its Dashboard Server, socket://HOST:29999")
+        dashboard, ports = link_ports(url)
+        options = _with_ports(options or UrOptions(), ports, url)
         robot = await cls._connect_owned(
-            url,
+            dashboard,
             settings or LineSettings.parse(UR_LINE),
             name=name,
             store=store,
@@ -162,11 +164,24 @@ class UrRobot(RtdeClient, LinkDriver):
 
     async def _open_interface(self, interface: str, port: int) -> Link:
         """A link to the UR's ``interface`` (``rtde``, ``secondary``), beside its Dashboard
-        Server."""
-        return await open_link(
-            interface_url(self.link.url, interface, port), self.link.settings,
-            trace=self.trace, label=f"{self.name}-{interface}", clock=self.clock,
-        )  # fmt: skip
+        Server; LinkError naming the interface, its port and how to give another."""
+        url = interface_url(self.link.url, interface, port)
+        try:
+            return await open_link(
+                url, self.link.settings,
+                trace=self.trace, label=f"{self.name}-{interface}", clock=self.clock,
+            )  # fmt: skip
+        except LinkError as e:
+            if urlsplit(url).scheme == "mem":
+                raise
+            key = f"{interface}_port"
+            title = INTERFACE_PORTS[key]
+            raise LinkError(
+                f"{self.name}: the UR's {title} at port {port} cannot be reached ({e}), though "
+                f"its Dashboard Server answered at {self.link.url}; if {title} listens at "
+                f"another port, give it: --link '{self.link.url}?{key}=PORT', or {key} = PORT "
+                "in the machine's options in cell.toml"
+            ) from e
 
     async def _open(self) -> None:
         banner = await self._line(self.options.reply_timeout)
@@ -442,6 +457,18 @@ class UrRobot(RtdeClient, LinkDriver):
         await self.command("power off")
         self.initialized = False
         self._save()
+
+
+def _with_ports(options: UrOptions, ports: dict[str, int], url: str) -> UrOptions:
+    """``options`` with the interface ports the link URL gives; UsageError when an option
+    set in cell.toml says another port."""
+    for key, port in ports.items():
+        if key in options.model_fields_set and getattr(options, key) != port:
+            raise UsageError(
+                f"{url}: {key} {port} in the link URL, {getattr(options, key)} in the options: "
+                "give it once"
+            )
+    return options.model_copy(update=ports) if ports else options
 
 
 def read_program(path: Path) -> str:

@@ -88,14 +88,15 @@ def _check(path: Path, role: ProgramRole, options: BaseModel) -> CheckedProgram:
         return CheckedProgram((f"{path}: cannot read it: {e.strerror or e}",))
     except UnicodeDecodeError as e:
         return CheckedProgram((f"{path}: cannot read it: {e}",))
+    arm = _arm(options)
     try:
-        program = compile_program(text, path.stem, str(path))
+        program = compile_program(text, path.stem, str(path), arm)
     except CellctlError as e:
         return CheckedProgram(tuple(str(e).split("; ")))
-    problems = program.problems(_arm(options))
+    problems = program.problems(arm)
     if problems or program.on_robot:
         return CheckedProgram(tuple(problems), lines=len(text.splitlines()), compiled=program)
-    seconds, _ = estimate(parse(text), _arm(options))
+    seconds, _ = estimate(parse(text), arm)
     return CheckedProgram(lines=len(text.splitlines()), machining_s=seconds, compiled=program)
 
 
@@ -115,9 +116,9 @@ def _preview(text: str, name: str, options: BaseModel) -> Preview:
 
 
 def _check_text(function: str, name: str, text: str, options: BaseModel) -> list[str]:
-    from cellctl.kinds.ur.urscript import check
+    from cellctl.kinds.ur.program import UrProgram
 
-    return check(text, _arm(options), name)
+    return UrProgram(Path(name).stem, name, text).problems(_arm(options))
 
 
 def _condition(status: Any) -> Any:

@@ -19,6 +19,7 @@ Two forms, by the file ``[robot_programs]`` names:
 
 from __future__ import annotations
 
+import dataclasses
 import html
 from dataclasses import dataclass
 
@@ -27,8 +28,28 @@ from cellctl.kinds.ur.motion import ARMS, Arm
 from cellctl.kinds.ur.urscript import check, estimate, parse
 
 #: The arm the cell's config checks a program against before it knows the robot's model:
-#: the longest reach (the driver checks again against its own model before sending).
+#: the longest reach, said as such (the driver checks again against its own model before
+#: sending, and `cellctl program check` against the configured one).
 WIDEST = max(ARMS.values(), key=lambda arm: arm.reach)
+ANY_UR = dataclasses.replace(
+    WIDEST, name=f"UR of any model (the longest reach is a {WIDEST.name}'s)"
+)
+
+
+def entry_problems(text: str, name: str, origin: str) -> list[str]:
+    """What keeps a script from being a program the driver can run: it sends the file whole
+    on the secondary interface, and the robot runs one top-level ``def``."""
+    statements = parse(text).statements
+    form = (
+        f"a UR script is one 'def {name}(): ... end' holding the program's statements "
+        "(the robot runs that def when the driver sends the file)"
+    )
+    if not statements:
+        return [f"{origin}: empty: {form}"]
+    if not any(st.keyword == "def" for st in statements):
+        first = statements[0]
+        return [f"{origin}:{first.line}:{first.column}: not inside a 'def': {form}"]
+    return []
 
 
 @dataclass(frozen=True)
@@ -47,7 +68,11 @@ class UrProgram:
 
     def problems(self, arm: Arm) -> list[str]:
         """What would fail on the robot (none for a ``.urp``: the robot holds it)."""
-        return [] if self.on_robot else check(self.text, arm, self.origin)
+        if self.on_robot:
+            return []
+        return entry_problems(self.text, self.name, self.origin) + check(
+            self.text, arm, self.origin
+        )
 
     def sendable(self, end_register: int | None, seq: int) -> str:
         """The script as sent: the end register set just before its entry's ``end``."""
@@ -82,8 +107,9 @@ def _end_of(lines: list[str], start: int) -> int:
     raise UsageError(f"line {start}: its block has no 'end'")
 
 
-def compile_program(source: str, name: str, origin: str) -> UrProgram:
-    """The cell's program ``name`` from its file's text; UsageError listing its problems."""
+def compile_program(source: str, name: str, origin: str, arm: Arm | None = None) -> UrProgram:
+    """The cell's program ``name`` from its file's text; UsageError listing its problems on
+    ``arm`` (None: any UR's, the robot's model not known yet)."""
     if origin.endswith(".urp"):
         path = next(
             (ln.strip() for ln in source.splitlines() if ln.strip() and not ln.startswith("#")),
@@ -93,7 +119,7 @@ def compile_program(source: str, name: str, origin: str) -> UrProgram:
             raise UsageError(f"{origin}: names {path!r}, not a .urp program on the robot")
         return UrProgram(name, origin, path=path)
     program = UrProgram(name, origin, text=source)
-    problems = program.problems(WIDEST)
+    problems = program.problems(arm or ANY_UR)
     if problems:
         raise UsageError("; ".join(problems))
     return program

@@ -8,6 +8,10 @@
         broker.credentials("factory")
         await broker.restart()          # same port, persisted sessions and messages kept
 
+    # Kept up: a broker that dies (killed, crashed) is said and started again, same port,
+    # configuration and persistence, at most 3 times in a row before the watch gives up.
+    MosquittoBroker(directory, cells, restarts=3, say=print)
+
 The broker gets its own ``mosquitto.conf`` in ``directory``: the lines of
 :func:`production_conf` (the configuration docs/factory.md gives for production) with the
 directory's paths, a plain listener on ``host:port``, and a log file. With
@@ -35,14 +39,14 @@ import shutil
 import signal
 import socket
 import tomllib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import Self
 
 from cellctl.clock import current_clock
-from cellctl.errors import LinkError, UsageError
+from cellctl.errors import CellctlError, LinkError, UsageError
 
 #: Where Debian puts the broker and its password tool.
 MOSQUITTO = "/usr/sbin/mosquitto"
@@ -53,6 +57,8 @@ FACTORY_USER = "factory"
 START_TIMEOUT_S = 10.0
 #: How long stop() waits for the broker to exit after SIGTERM before killing it.
 STOP_TIMEOUT_S = 10.0
+#: Seconds between two attempts to start a broker that died (times the attempt's number).
+RESTART_PAUSE_S = 0.5
 
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
 _PREFIX = re.compile(r"[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*")
@@ -170,6 +176,8 @@ class MosquittoBroker:
         port: int = 0,
         tls: TlsFiles | None = None,
         tls_port: int = 0,
+        restarts: int = 0,
+        say: Callable[[str], None] = lambda text: None,
     ) -> None:
         names = [name for name, _ in cells]
         for name, prefix in cells:
@@ -189,7 +197,16 @@ class MosquittoBroker:
         self.port = port
         self.tls = tls
         self.tls_port = tls_port
+        #: Attempts in a row to start the broker again when it dies (0: not watched).
+        self.restarts = restarts
+        #: Where the watch says what happened to the broker, one line each.
+        self.say = say
+        #: Why the watch gave up (the broker died and would not start again), or None.
+        self.failure: CellctlError | None = None
         self._process: asyncio.subprocess.Process | None = None
+        self._meant_to_end = False  # stop() or kill() ended it: not a death to answer
+        self._watch: asyncio.Task[None] | None = None
+        self._restarting = False  # the watch is starting the broker again
 
     @property
     def url(self) -> str:
@@ -210,6 +227,11 @@ class MosquittoBroker:
     def log_path(self) -> Path:
         """The broker's own log file."""
         return self.directory / "mosquitto.log"
+
+    @property
+    def stderr_path(self) -> Path:
+        """What the broker last wrote on stderr (before its log file opens)."""
+        return self.directory / "mosquitto.stderr"
 
     def credentials(self, user: str) -> Path:
         """The credentials file of ``user`` ("factory" or a cell name), made if missing."""
@@ -283,35 +305,51 @@ class MosquittoBroker:
         return conf
 
     async def start(self) -> None:
-        """Write the configuration, start Mosquitto and wait until it accepts connections."""
+        """Write the configuration, start Mosquitto and wait until it accepts connections;
+        with ``restarts``, watch it from then on."""
         if self.running:
             return
+        self._meant_to_end = False
+        await self._launch()
+        if self.restarts > 0 and (self._watch is None or self._watch.done()):
+            self._watch = asyncio.create_task(self._keep_up(), name="mosquitto-watch")
+
+    async def _launch(self) -> None:
         tool = _tool(MOSQUITTO, "mosquitto")
         if self.port == 0:
             self.port = _free_port(self.host)
         if self.tls is not None and self.tls_port == 0:
             self.tls_port = _free_port(self.host)
         conf = await self._configure()
-        self._process = await asyncio.create_subprocess_exec(
-            tool,
-            "-c",
-            str(conf),
-            stdin=asyncio.subprocess.DEVNULL,
-            stdout=asyncio.subprocess.DEVNULL,
-            stderr=asyncio.subprocess.DEVNULL,
-            start_new_session=True,  # a Ctrl-C on the terminal is ours to handle
-        )
+        # What Mosquitto says before its log file is open (an unreadable persistence file,
+        # a bad option) goes to its stderr: kept, for the error when it exits at start.
+        fd = os.open(self.stderr_path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        try:
+            self._process = await asyncio.create_subprocess_exec(
+                tool,
+                "-c",
+                str(conf),
+                stdin=asyncio.subprocess.DEVNULL,
+                stdout=asyncio.subprocess.DEVNULL,
+                stderr=fd,
+                start_new_session=True,  # a Ctrl-C on the terminal is ours to handle
+            )
+        finally:
+            os.close(fd)
         clock = current_clock()
         deadline = clock.monotonic() + START_TIMEOUT_S
         while True:
             if self._process.returncode is not None:
-                raise LinkError(f"Mosquitto exited at start (code {self._process.returncode})")
+                raise LinkError(
+                    f"Mosquitto exited at start (code {self._process.returncode})"
+                    f"{self._errors_at_start() or self._log_tail()}"
+                )
             try:
                 async with asyncio.timeout(1.0):
                     _, writer = await asyncio.open_connection(self.host, self.port)
             except (OSError, TimeoutError):
                 if clock.monotonic() > deadline:
-                    await self.kill()
+                    await self._kill_process()
                     raise LinkError(
                         f"Mosquitto did not accept connections on {self.host}:{self.port} "
                         f"within {START_TIMEOUT_S:g} s{self._log_tail()}"
@@ -323,6 +361,61 @@ class MosquittoBroker:
                 await writer.wait_closed()
             return
 
+    async def _keep_up(self) -> None:
+        """Until stop() or kill(): a broker that exits is said, and started again (same
+        port, configuration and persistence) up to ``restarts`` times in a row; the cells
+        and the factory reconnect by themselves. One that will not start is said with what
+        to do, and kept in ``failure``."""
+        while (proc := self._process) is not None:
+            code = await proc.wait()
+            if self._meant_to_end or proc is not self._process:
+                return
+            how = f"killed by signal {-code}" if code < 0 else f"exit code {code}"
+            self.say(
+                f"Mosquitto on {self.host}:{self.port} stopped ({how}): starting it again "
+                "on the same port with the same configuration and persisted sessions"
+            )
+            for attempt in range(1, self.restarts + 1):
+                if attempt > 1:
+                    await current_clock().sleep(RESTART_PAUSE_S * (attempt - 1))
+                if self._meant_to_end:
+                    return
+                self._restarting = True
+                try:
+                    await self._launch()
+                except (CellctlError, OSError) as e:
+                    self.failure = e if isinstance(e, CellctlError) else LinkError(str(e))
+                    self.say(f"Mosquitto did not start (attempt {attempt} of {self.restarts}): {e}")
+                    continue
+                finally:
+                    self._restarting = False
+                if self._meant_to_end:
+                    return  # stopped while it started: stop() ends the new process
+                self.failure = None
+                self.say(
+                    f"Mosquitto is back on {self.host}:{self.port}: the cells and the factory "
+                    "reconnect by themselves"
+                )
+                break
+            else:
+                self.failure = LinkError(
+                    f"Mosquitto on {self.host}:{self.port} stopped and did not start again in "
+                    f"{self.restarts} attempts ({self.failure}): the cells and the factory "
+                    f"cannot reach it; see its files in {self.directory}, then stop this "
+                    "(Ctrl-C) and start it again"
+                )
+                self.say(str(self.failure))
+                return
+
+    def _errors_at_start(self) -> str:
+        """The errors on the broker's stderr (its warning about root left out), or ""."""
+        try:
+            lines = self.stderr_path.read_text(encoding="utf-8", errors="replace").splitlines()
+        except OSError:
+            return ""
+        errors = [line for line in lines if "Error" in line] or lines
+        return ": " + " | ".join(errors[-3:]) if errors else ""
+
     def _log_tail(self) -> str:
         try:
             lines = self.log_path.read_text(encoding="utf-8", errors="replace").splitlines()
@@ -332,6 +425,7 @@ class MosquittoBroker:
 
     async def stop(self) -> None:
         """SIGTERM the broker (it saves its persistence file) and wait for it to exit."""
+        await self._end_watch()
         proc = self._process
         if proc is None or proc.returncode is not None:
             return
@@ -344,13 +438,30 @@ class MosquittoBroker:
             await self.kill()
 
     async def kill(self) -> None:
-        """SIGKILL the broker (tests: a broker that dies without saving)."""
+        """SIGKILL the broker (tests: a broker that dies without saving; not started again)."""
+        await self._end_watch()
+        await self._kill_process()
+
+    async def _kill_process(self) -> None:
         proc = self._process
         if proc is None or proc.returncode is not None:
             return
         with contextlib.suppress(ProcessLookupError):
             proc.kill()
         await proc.wait()
+
+    async def _end_watch(self) -> None:
+        """The broker is ended on purpose: the watch (if any) ends, and answers nothing."""
+        self._meant_to_end = True
+        watch, self._watch = self._watch, None
+        if watch is None or watch is asyncio.current_task():
+            return
+        if not self._restarting:
+            watch.cancel()
+        # A start under way is let finish (cancelled, the process it spawns would be lost):
+        # the watch then sees the stop and returns, and the caller ends the new process.
+        with contextlib.suppress(asyncio.CancelledError):
+            await watch
 
     async def restart(self) -> None:
         """Stop and start again on the same port; persisted sessions and messages survive."""

@@ -23,7 +23,9 @@ from __future__ import annotations
 
 import re
 import shutil
-from collections.abc import Sequence
+import sys
+import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import Self
@@ -36,6 +38,13 @@ from cellctl.factory.config import FACTORY_FILE
 
 #: The topic prefix of cell ``name``.
 PREFIX = "cellctl/{name}"
+#: Attempts in a row to start the broker again when it dies (killed, crashed).
+BROKER_RESTARTS = 3
+
+
+def _tell(text: str) -> None:
+    """One line on stderr, timed: what happened to the broker, between the cells' lines."""
+    print(f"{time.strftime('%H:%M:%S')} {text}", file=sys.stderr, flush=True)
 
 
 def _copy_private(source: Path, target: Path) -> None:
@@ -46,7 +55,10 @@ def _copy_private(source: Path, target: Path) -> None:
 class EmulatedFactory:
     """See the module docstring; ``poll_period`` (s) replaces the cells' own when given;
     ``templates``: the cell directory cell1, cell2, ... emulate (None or past the list: the
-    example cell)."""
+    example cell). The broker is watched: one that dies is said (``say``, default a timed
+    line on stderr) and started again, same port, configuration and persistence, up to
+    ``broker_restarts`` times in a row (0: not watched); see
+    :class:`~cellctl.factory.broker.MosquittoBroker`."""
 
     def __init__(
         self,
@@ -59,6 +71,8 @@ class EmulatedFactory:
         accept_timeout: float = 30.0,
         factory_poll: float = 0.5,
         templates: Sequence[Path | None] = (),
+        broker_restarts: int = BROKER_RESTARTS,
+        say: Callable[[str], None] = _tell,
     ) -> None:
         if not 1 <= cells <= 32:
             raise ValueError(f"an emulated factory has 1 to 32 cells, not {cells}")
@@ -77,7 +91,10 @@ class EmulatedFactory:
         self.accept_timeout = accept_timeout
         self.factory_poll = factory_poll
         self.broker = MosquittoBroker(
-            self.directory / "broker", [(n, PREFIX.format(name=n)) for n in self.names]
+            self.directory / "broker",
+            [(n, PREFIX.format(name=n)) for n in self.names],
+            restarts=broker_restarts,
+            say=say,
         )
         self.cells: list[EmulatedCell] = []
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import ssl
 import tomllib
 from collections.abc import Awaitable, Callable
@@ -198,10 +199,23 @@ def read_credentials(path: Path) -> tuple[str, str]:
     return user, password
 
 
+#: The MQTT library's logger (aiomqtt's, which paho writes to when a read or write fails).
+MQTT_LIBRARY_LOGGER = "mqtt"
+
+
+def quiet_mqtt_library() -> None:
+    """Keep the MQTT library's own log lines ("failed to receive on socket: [Errno 32] Broken
+    pipe") out of the run log: raw, without a time, they repeat what :class:`Reconnect` says
+    in cellctl's words (as pymodbus is quieted for the PLC)."""
+    logging.getLogger(MQTT_LIBRARY_LOGGER).setLevel(logging.CRITICAL)
+
+
 class Reconnect:
     """Run a session on the broker until it returns or ``stop`` is set; a session that ends on
     an error is started again after a backoff (0.2 s doubling up to 5 s, back to 0.2 s once
-    a session is in). Each new problem is logged once: ``WHAT: URL: problem (trying again)``.
+    a session is in). Each new problem is logged once: ``WHAT: URL: problem (trying again)``;
+    the library's own lines are quieted (:func:`quiet_mqtt_library`): every link to the
+    broker (a cell's mailbox, the system controller) keeps one set of words.
     """
 
     def __init__(
@@ -214,6 +228,7 @@ class Reconnect:
         errors: tuple[type[BaseException], ...] = (aiomqtt.MqttError, OSError, ValueError),
         twin: str = "another program connected as the same user",
     ) -> None:
+        quiet_mqtt_library()
         self.settings = settings
         self.stop = stop
         self.log = log

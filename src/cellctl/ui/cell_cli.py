@@ -15,6 +15,7 @@ import click
 from cellctl.emulators.serve import CELL_TIME_SCALE, TIME_SCALE_HELP, parse_fault
 from cellctl.errors import UsageError
 from cellctl.ui.common import cell_dir, console, err_console, run, stop_signals, until_stopped
+from cellctl.ui.emulate_cli import TIME_SCALE
 
 if TYPE_CHECKING:
     from cellctl.cell.config import CellConfig
@@ -330,7 +331,7 @@ def emulate_cell_command() -> click.Command:
         params=[
             click.Option(
                 ["--time-scale"],
-                type=float,
+                type=TIME_SCALE,
                 default=CELL_TIME_SCALE,
                 show_default=True,
                 help="Machine time runs this many times faster than real (1: real time). "

@@ -22,7 +22,7 @@ from cellctl.clock import current_clock
 from cellctl.emulators.serve import DEMO_TIME_SCALE, TIME_SCALE_HELP
 from cellctl.mailbox.base import MAX_QTY
 from cellctl.ui.common import cell_dir, cell_given, console, run
-from cellctl.ui.emulate_cli import refuse_if_running_in
+from cellctl.ui.emulate_cli import TIME_SCALE, refuse_if_running_in
 
 if TYPE_CHECKING:
     from cellctl.cell.journal import Journal
@@ -36,7 +36,7 @@ if TYPE_CHECKING:
 @click.command("demo")
 @click.option(
     "--time-scale",
-    type=float,
+    type=TIME_SCALE,
     default=DEMO_TIME_SCALE,
     show_default=True,
     help="Machine time runs this many times faster than real. " + TIME_SCALE_HELP,

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -26,6 +27,44 @@ from cellctl.ui.common import Lazy, LazyGroup, accept_cell, console, kind_comman
 
 if TYPE_CHECKING:
     from cellctl.emulators.fleet import Fleet
+
+
+class TimeScale(click.FloatRange):
+    """A ``--time-scale``: a number in the range of the cell file's ``[cell] time_scale``
+    (:class:`cellctl.cell.configschema.CellTable`, the one table of it), so the command
+    refuses it, naming the option and the range, before it writes a cell that would refuse
+    it. Unlike a plain FloatRange, ``nan`` is refused too.
+
+    The bounds are read from the schema when first used (a conversion, ``--help``): a
+    command that only imports this module loads no schema."""
+
+    name = "float"
+
+    def __init__(self) -> None:  # the range's attributes come from __getattr__
+        pass
+
+    def __getattr__(self, name: str) -> Any:
+        if name not in ("min", "max", "min_open", "max_open", "clamp"):
+            raise AttributeError(name)
+        from cellctl.cell.configschema import CellTable
+
+        limits = CellTable.model_fields["time_scale"].metadata  # [Gt(0), Le(...), ...]
+        low = next(m.gt for m in limits if hasattr(m, "gt"))
+        high = next(m.le for m in limits if hasattr(m, "le"))
+        click.FloatRange.__init__(self, min=low, min_open=True, max=high)
+        return getattr(self, name)
+
+    def convert(
+        self, value: Any, param: click.Parameter | None, ctx: click.Context | None
+    ) -> float:
+        scale = super().convert(value, param, ctx)
+        if math.isnan(scale):  # no comparison refuses it
+            self.fail(f"{value} is not in the range {self._describe_range()}.", param, ctx)
+        return scale
+
+
+#: The type of every cell-wide ``--time-scale`` (``demo``, ``emulate cell``, ``emulate factory``).
+TIME_SCALE = TimeScale()
 
 
 @click.group(

@@ -41,6 +41,7 @@ from cellctl.ui.common import (
     stop_signals,
     until_stopped,
 )
+from cellctl.ui.emulate_cli import TIME_SCALE
 from cellctl.ui.factory_plan_cli import factory_plan
 from cellctl.ui.orders_cli import STATE_STYLE
 
@@ -356,7 +357,7 @@ def run_command(ctx: click.Context, live: bool | None, until_idle: bool) -> None
 )
 @click.option(
     "--time-scale",
-    type=float,
+    type=TIME_SCALE,
     default=CELL_TIME_SCALE,
     show_default=True,
     help="Machine time runs this many times faster than real (1: real time). " + TIME_SCALE_HELP,

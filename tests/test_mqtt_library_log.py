@@ -1,0 +1,95 @@
+"""`cellctl run`'s log keeps to cellctl's own words when its MQTT link breaks: the MQTT
+library's own error lines (paho through aiomqtt: "failed to receive on socket: ...") are not
+printed into it, and cellctl says the drop and the reconnect itself.
+
+The break is a real one: the cell's broker (a real Mosquitto) is frozen, the cell sends it a
+report it cannot read, and the broker is killed: the kernel answers the unread bytes with a
+reset, which the library logs as an error when it reads.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+
+from cellctl.factory.broker import MosquittoBroker
+
+from .conftest import CELLCTL, emulated_cell_process, until
+
+CELLS = [("cell1", "cellctl/cell1")]
+#: The lines the MQTT library writes on its own (paho's error log), none of cellctl's.
+LIBRARY_LINES = ("failed to receive on socket", "failed to send", "timeout on socket", "Caught")
+
+
+@pytest.fixture
+async def broker(tmp_path: Path) -> AsyncIterator[MosquittoBroker]:
+    async with MosquittoBroker(tmp_path / "broker", CELLS) as b:
+        yield b
+
+
+def unread_bytes_at(port: int) -> int:
+    """Bytes waiting unread in the receive queues of the established connections to
+    127.0.0.1:``port`` (the listening side's: /proc/net/tcp)."""
+    total = 0
+    for line in Path("/proc/net/tcp").read_text().splitlines()[1:]:
+        fields = line.split()
+        local, state, queues = fields[1], fields[3], fields[4]
+        if local == f"0100007F:{port:04X}" and state == "01":  # 01: established
+            total += int(queues.split(":")[1], 16)
+    return total
+
+
+@pytest.mark.timeout(180)
+async def test_a_broken_link_is_told_in_cellctls_words_only(
+    tmp_path: Path, broker: MosquittoBroker
+) -> None:
+    with emulated_cell_process(tmp_path / "cell", "1000") as cell:
+        (cell / "mqtt.toml").write_bytes(broker.credentials("cell1").read_bytes())
+        os.chmod(cell / "mqtt.toml", 0o600)
+        with (cell / "cell.toml").open("a") as toml:
+            toml.write(
+                f'\n[mailbox]\nurl = "{broker.url}/cellctl/cell1"\ncredentials = "mqtt.toml"\n'
+            )
+        log_path = tmp_path / "run.log"
+        with log_path.open("wb") as log:
+            run = subprocess.Popen(  # noqa: ASYNC220
+                [sys.executable, "-m", "cellctl", "--cell", str(cell), "run", "--no-live"],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+            )
+        try:
+            connected = f"mailbox: {broker.url}/cellctl/cell1"
+            await until(lambda: connected in log_path.read_text(), "the cell on the broker")
+            process = broker._process  # frozen and killed from outside, as a hang would
+            assert process is not None
+            os.kill(process.pid, signal.SIGSTOP)
+            # An order from the cell's own operator: its reports go to the frozen broker.
+            subprocess.run(  # noqa: ASYNC221
+                [*CELLCTL, "--cell", str(cell), "submit", "wax-robot-base"],
+                check=True,
+                capture_output=True,
+                timeout=60,
+            )
+            await until(lambda: unread_bytes_at(broker.port) > 0, "a report the broker holds")
+            await broker.kill()  # the unread report: the kernel resets the cell's connection
+            await broker.start()  # same port
+            await until(
+                lambda: log_path.read_text().count(connected) >= 2, "the cell back on the broker"
+            )
+        finally:
+            run.send_signal(signal.SIGINT)
+            try:
+                run.wait(30)
+            except subprocess.TimeoutExpired:
+                run.kill()
+    text = log_path.read_text()
+    # cellctl said the drop in its own words ...
+    assert f"mailbox: {broker.url}/cellctl/cell1: " in text and "(trying again)" in text, text
+    # ... and the library said nothing of its own.
+    assert not [line for line in text.splitlines() if line.startswith(LIBRARY_LINES)], text

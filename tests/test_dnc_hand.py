@@ -27,7 +27,7 @@ from tests.test_dnc_cli import (  # noqa: F401  (shop and served are fixtures)
     wait_state,
 )
 from tests.test_dnc_server import surfacing
-from tests.test_dnc_stop import MOVES, progress_under_way, run_here
+from tests.test_dnc_stop import MOVES, run_here
 
 COPY = BRACKET.replace("X10. Y5.", "X99. Y5.")  # the copy, edited
 
@@ -163,30 +163,3 @@ async def test_dnc_stop_refuses_a_hand_command_that_is_no_transfer(shop: Shop) -
         if receiver.returncode is None:
             receiver.send_signal(signal.SIGINT)
             await finished(receiver)
-
-
-async def test_serve_stopping_ends_a_drip_with_the_stopped_code(
-    shop: Shop,  # noqa: F811
-    tmp_path: Path,
-) -> None:
-    program = tmp_path / "surface.nc"
-    program.write_text(surfacing(MOVES))
-    server = await cellctl("dnc", "serve", "--dir", str(shop.root))
-    try:
-        await until(lambda: (shop.root / "api.sock").exists(), "dnc serve's API", 30)
-        control = shop.controls["mill2"]
-        control.set_mode(Mode.RMT)
-        drip = await cellctl("dnc", "drip", "mill2", str(program), "--dir", str(shop.root))
-        await wait_state(shop, "mill2", "drip-feeding surface.nc")
-        control.cycle_start()
-        await progress_under_way(shop, "mill2")
-        server.send_signal(signal.SIGTERM)
-        code, said = await finished(server, 30)
-        assert code == 0, said
-        code, told = await finished(drip, 30)
-        assert code == 130, told
-        assert "the DNC server stopped: the drip-feed of surface.nc ended at " in told, told
-    finally:
-        if server.returncode is None:
-            server.kill()
-            await finished(server)

@@ -9,6 +9,7 @@ import asyncio
 import signal
 from pathlib import Path
 
+import pytest
 from click.testing import CliRunner
 
 from cellctl.emulators.serve import serve
@@ -132,9 +133,11 @@ async def test_status_text_shows_a_refused_request_whose_punch_is_kept(served: S
     assert kept.path.read_text() == "O9999 (LOAD O7777)\n"
 
 
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM])
 async def test_serve_stopped_during_a_drip_feed_ends_it_and_tells_its_client(
     shop: Shop,  # noqa: F811
     tmp_path: Path,
+    stop: signal.Signals,
 ) -> None:
     program = tmp_path / "surface.nc"
     program.write_text(surfacing(MOVES))
@@ -147,7 +150,7 @@ async def test_serve_stopped_during_a_drip_feed_ends_it_and_tells_its_client(
         await wait_state(shop, "mill2", "drip-feeding surface.nc")
         control.cycle_start()
         await progress_under_way(shop, "mill2")
-        server.send_signal(signal.SIGINT)
+        server.send_signal(stop)  # Ctrl-C, or systemd stopping the service
         code, said = await finished(server, 30)
         assert code == 0, said
         assert "DNC server stopping: ending what is in flight the clean way" in said

@@ -97,9 +97,7 @@ def parse_orders(
         order = _order(cells, start, where)
         if part_types is not None and order.part_type not in part_types:
             known = ", ".join(part_types) or "none"
-            raise UsageError(
-                f"{where}: the cell makes no {order.part_type!r} (it makes: {known})"
-            )
+            raise UsageError(f"{where}: the cell makes no {order.part_type!r} (it makes: {known})")
         if order.order_id in seen:
             raise UsageError(f"{where}: order {order.order_id} is in the file twice")
         seen.add(order.order_id)

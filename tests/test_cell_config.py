@@ -131,6 +131,32 @@ def test_a_part_needs_every_transfer_program(tmp_path: Path) -> None:
     assert len([p for p in problems if "cnc2_to_conveyor" in p]) == 2  # both part types
 
 
+def test_a_declared_part_type_with_a_problem_is_not_told_as_none(tmp_path: Path) -> None:
+    """Part types declared, each with a problem of its own: that problem is told, and no
+    false "no part types" beside it; no [parts] at all (or an empty one) still says so."""
+    directory = example_copy(tmp_path)
+    (directory / "programs" / "robot_base_rough_cnc1.dyn").unlink()
+    (directory / "programs" / "toy_mill_table_finish_cnc2.dyn").unlink()
+    code, out = cell_check(directory)
+    assert code != 0
+    assert "[parts.wax-robot-base] route[1].program:" in out and "no such file" in out
+    assert "[parts.wax-toy-mill-table] route[2].program:" in out
+    assert "no part types" not in out
+    assert "2 problem(s)" in out
+
+    toml = directory / "cell.toml"
+    without_parts = toml.read_text(encoding="utf-8").split("[parts.", 1)[0]
+    for tail in ("", "[parts]\n"):
+        toml.write_text(without_parts + tail, encoding="utf-8")
+        config, problems = check_cell(directory)
+        assert config is None
+        assert problems == ["[parts]: no part types: the cell has nothing to make"], tail
+    # Not a table: told once, as what it is.
+    toml.write_text("parts = 3\n" + without_parts, encoding="utf-8")
+    problems = check_cell(directory)[1]
+    assert [p for p in problems if p.startswith("[parts]")] == ["[parts]: must be a table, not int"]
+
+
 def test_a_vise_opening_program_names_a_mill(tmp_path: Path) -> None:
     directory = example_copy(tmp_path)
     edit(directory, "open_vise_cnc2 =", "open_vise_cnc3 =")

@@ -1,11 +1,14 @@
 """The dashboard's What-if panel in a real browser: a plan of the running cell (the API's
 plan.run) with a fault window and an order added from its form, its orders and chart shown;
-a fault on a machine the cell does not have is refused with the cell's own message."""
+a fault on a machine the cell does not have is refused with the cell's own message; a poll
+period out of range is refused by the page in the console's words, the last refusal gone."""
 
 from __future__ import annotations
 
 import pytest
 
+from cellctl.errors import UsageError
+from cellctl.plan.when import parse_poll
 from tests.conftest import IN_BROWSER
 from tests.test_dashboard import Dash, dash, live  # noqa: F401 (the fixture)
 
@@ -63,3 +66,38 @@ async def test_the_what_if_panel_plays_the_cell_ahead(dash: Dash) -> None:  # no
     assert await chart.is_visible()
     assert await chart.evaluate("img => img.naturalWidth") > 0
     await dash.shot("what-if", "#plan")
+
+
+def console_words(poll: str) -> str:
+    """What the console (and the engine) say of a poll period typed as ``poll``."""
+    with pytest.raises(UsageError) as refused:
+        parse_poll(poll)
+    return str(refused.value)
+
+
+async def test_a_poll_out_of_range_is_told_in_the_console_s_words(dash: Dash) -> None:  # noqa: F811
+    await live(dash)
+    page = dash.page
+    message = page.locator("#plan-message")
+    await page.locator("#plan-shift").fill("5m")
+    await page.locator("#plan-add").fill("wax-toy-mill-table:1")
+    await page.locator("#plan-fault").fill("cnc9:down@10:00-11:00")
+    await page.locator("#plan-play").click()
+    await page.locator("#plan-message", has_text="no such machine").wait_for(timeout=15_000)
+
+    # The browser's own check would stop Play with a bubble a headless browser never shows,
+    # and leave cnc9's refusal standing: the page tells it, in place of the last words.
+    await page.locator("#plan-fault").fill("")
+    await page.locator("#plan-poll").fill("0")
+    await page.locator("#plan-play").click()
+    told = page.locator("#plan-message", has_text="poll")
+    await told.wait_for(timeout=15_000)
+    assert await told.inner_text() == "poll '0': seconds, more than 0 and at most 600"
+    assert await told.inner_text() == console_words("0")
+    for typed in ("600.5", "-1", "1e3", "five", "nan"):
+        await page.locator("#plan-poll").fill(typed)
+        await page.locator("#plan-play").click()
+        await page.locator("#plan-message", has_text=repr(typed)).wait_for(timeout=15_000)
+        assert await message.inner_text() == console_words(typed)
+    assert await page.locator("#plan-orders tr").count() == 0  # nothing was played
+    assert await page.locator("#plan-play").is_enabled()

@@ -14,6 +14,7 @@ import signal
 import socket
 import subprocess
 import time
+import tomllib
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -23,7 +24,6 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from cellctl.cell.journal import open_journal
-from cellctl.emulators.cell import EXAMPLE_CELL
 from cellctl.emulators.serve import serve
 from cellctl.errors import AccessDenied, CellctlError, DeviceError, ProtocolError, UsageError
 from cellctl.factory.opcua import NAMESPACE
@@ -60,26 +60,20 @@ def said(result: subprocess.CompletedProcess[str]) -> str:
     return (result.stdout + result.stderr).replace("\n", "")
 
 
-def make_template(directory: Path, opcua_port: int | None = None) -> Path:
-    """The mill-and-saw cell: its cell.toml and cut lists, the example cell's robot and mill
-    programs (the second mill's transfer programs serve the saw's place)."""
+def template_copy(directory: Path) -> Path:
+    """The mill-and-saw template copied as it stands (``cp -r tests/plugins/kerf_cell DIR``),
+    nothing added: what docs/kinds.md step 7 starts from."""
     shutil.copytree(TEMPLATE, directory)
-    (directory / "robot").mkdir()
-    example = EXAMPLE_CELL / "robot"
-    for source, target in (
-        ("conveyor_to_cnc1", "conveyor_to_cnc1"),
-        ("cnc1_to_cnc2", "cnc1_to_saw"),
-        ("cnc2_to_conveyor", "saw_to_conveyor"),
-    ):
-        shutil.copy(example / f"{source}.aml", directory / "robot" / f"{target}.aml")
-    for name in ("cnc1_setup.dyn", "robot_base_rough_cnc1.dyn"):
-        shutil.copy(EXAMPLE_CELL / "programs" / name, directory / "programs" / name)
-    if opcua_port is not None:
-        with (directory / "cell.toml").open("a") as f:
-            f.write(
-                f'\n[opcua]\nlisten = "opc.tcp://127.0.0.1:{opcua_port}"\nanonymous_read = true\n'
-            )
     return directory
+
+
+def named_files(template: Path) -> set[Path]:
+    """Every file the template's cell.toml names: setups, robot programs, route programs."""
+    raw = tomllib.loads((template / "cell.toml").read_text(encoding="utf-8"))
+    names = {m["setup"] for m in raw["machines"].values() if "setup" in m}
+    names |= set(raw["robot_programs"].values())
+    names |= {step["program"] for part in raw["parts"].values() for step in part["route"]}
+    return {template / name for name in names}
 
 
 # -- the registry and the command line -----------------------------------------------------------
@@ -93,8 +87,17 @@ def test_cellctl_kinds_lists_the_saw_with_where_it_comes_from() -> None:
     assert registry.broken() == {}
 
 
+def test_the_template_holds_every_file_its_cell_toml_names() -> None:
+    # The template itself, where it stands: `cell check` reads every file it names.
+    named = named_files(TEMPLATE)
+    assert len(named) == 7 and all(path.is_file() for path in named), sorted(map(str, named))
+    checked = cellctl(TEMPLATE, "cell", "check")
+    assert checked.returncode == 0, said(checked)
+    assert "ok: robot robot, mills cnc1, saw, 3 robot programs, part types bar-end" in said(checked)
+
+
 def test_cell_check_validates_the_saw_s_options(tmp_path: Path) -> None:
-    cell = make_template(tmp_path / "cell")
+    cell = template_copy(tmp_path / "cell")
     good = cellctl(cell, "cell", "check")
     assert good.returncode == 0, good.stdout + good.stderr
     toml = cell / "cell.toml"
@@ -223,7 +226,8 @@ def free_port() -> int:
 def mill_and_saw(tmp_path: Path) -> Iterator[Path]:
     """``cellctl emulate cell --template`` the mill-and-saw cell, and ``cellctl run`` on it,
     each in its own process; yields the cell directory once the API listens."""
-    template = make_template(tmp_path / "template", opcua_port=free_port())
+    # As docs/kinds.md step 7: the template copied as it stands, emulated, then run.
+    template = template_copy(tmp_path / "kc")
     cell = tmp_path / "cell"
     emulate = subprocess.Popen(
         [
@@ -246,13 +250,23 @@ def mill_and_saw(tmp_path: Path) -> Iterator[Path]:
         for line in emulate.stdout:
             if line.strip().startswith("plc"):
                 break
+        # The emulated cell as written is a good one: every file its template named came along.
+        checked = cellctl(cell, "cell", "check")
+        assert checked.returncode == 0, said(checked)
+        # Then this test's own settings: a faster poll, and OPC UA on a free port.
         toml = cell / "cell.toml"
-        toml.write_text(toml.read_text().replace("poll_period = 0.5", "poll_period = 0.1"))
+        toml.write_text(
+            toml.read_text().replace("poll_period = 0.5", "poll_period = 0.1")
+            + f'\n[opcua]\nlisten = "opc.tcp://127.0.0.1:{free_port()}"\nanonymous_read = true\n'
+        )
         with open_mailbox(cell) as mailbox:
             mailbox.post_order("bar-end", 2, order_id="A")
         log = (tmp_path / "run.log").open("w")
         run = subprocess.Popen(
-            [*CELLCTL, "--cell", str(cell), "run"], stdout=log, stderr=subprocess.STDOUT, text=True
+            [*CELLCTL, "--cell", str(cell), "run", "--no-live"],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            text=True,
         )
         wait_until(lambda: (cell / "api.sock").exists(), "the API socket")
         yield cell

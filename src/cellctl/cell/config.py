@@ -344,7 +344,8 @@ def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
             problems.add(f"[robot_programs] {prog_name}: {e}")
     _check_sizes(raw, cell_raw, directory, problems)
     parts: dict[str, PartType] = {}
-    for part_name, entry in _entries(raw, "parts", problems).items():
+    declared = _entries(raw, "parts", problems)
+    for part_name, entry in declared.items():
         part_table = _checked(PartTable, entry, ("parts", part_name), problems)
         if part_table is None:
             continue
@@ -355,7 +356,8 @@ def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
         for t in part.transfers():
             if t not in sources:
                 problems.add(f"[parts.{part_name}] needs robot program {t!r} in [robot_programs]")
-    if not parts:
+    # Only when none is declared: a declared part type with problems has them told above.
+    if not declared and isinstance(raw.get("parts", {}), dict):
         problems.add("[parts]: no part types: the cell has nothing to make")
     for prog_name in sources:
         opened = prog_name.removeprefix(open_vise_name(""))

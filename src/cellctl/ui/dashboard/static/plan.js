@@ -70,8 +70,31 @@ export function renderPlan(answer) {
   byId("plan-chart").classList.remove("hidden");
 }
 
+// A number as Python's float() reads one ("0.5", "+.5", "1e2", "1_000"), NaN otherwise.
+const DECIMAL = /^[+-]?(\d+(_\d+)*\.?(\d+(_\d+)*)?|\.\d+(_\d+)*)([eE][+-]?\d+(_\d+)*)?$/;
+
+// A string as Python's repr() shows it: in single quotes, unless it holds one and no double.
+function quoted(text) {
+  if (text.includes("'") && !text.includes('"')) {
+    return `"${text.replaceAll("\\", "\\\\")}"`;
+  }
+  return `'${text.replaceAll("\\", "\\\\").replaceAll("'", "\\'")}'`;
+}
+
+// The poll period as typed: seconds, checked as the console checks it (cellctl.plan.when's
+// parse_poll), in its words; the limit is the field's data-max (the plan's MAX_POLL_S).
+function pollSeconds(text, max) {
+  const seconds = DECIMAL.test(text) ? Number(text.replaceAll("_", "")) : NaN;
+  if (!(seconds > 0 && seconds <= max)) {  // NaN fails it too
+    throw new Error(`poll ${quoted(text)}: seconds, more than 0 and at most ${max}`);
+  }
+  return seconds;
+}
+
 async function play(event) {
   event.preventDefault();
+  const message = byId("plan-message");
+  message.textContent = "";  // the last play's words are not this one's
   const params = {
     shift: byId("plan-shift").value.trim() || "8h",
     add: entries(byId("plan-add").value, /[,;]/),
@@ -79,18 +102,25 @@ async function play(event) {
     policy: byId("plan-policy").value,
   };
   // Empty: the plan's own poll period; else seconds, as `cellctl plan --poll` takes them.
-  const poll = byId("plan-poll").value.trim();
+  const field = byId("plan-poll");
+  const poll = field.value.trim();
   if (poll) {
-    params.poll = Number(poll);
+    try {
+      params.poll = pollSeconds(poll, Number(field.dataset.max));
+    } catch (e) {
+      message.textContent = e.message;
+      field.focus();
+      return;
+    }
   }
   const button = byId("plan-play");
   button.disabled = true;
-  byId("plan-message").textContent = "playing the cell ahead …";
+  message.textContent = "playing the cell ahead …";
   try {
     renderPlan(await call("plan.run", params));
-    byId("plan-message").textContent = "";
+    message.textContent = "";
   } catch (e) {
-    byId("plan-message").textContent = e.message;
+    message.textContent = e.message;
   } finally {
     button.disabled = false;
   }

@@ -208,7 +208,8 @@ async def test_standalone_robot_menu_every_function(rig: CellRig) -> None:
         await wait_text(pilot, "Partition (1-5):")
         await type_text(pilot, "5")
         await pilot.press("enter")
-        await wait_text(pilot, "partition empty")  # the machine's refusal, in its words
+        # Refused by the host's state, before a byte goes out: the source's code and words.
+        await wait_text(pilot, "robot: GO: partition empty (code 3)")
         await pilot.press("3")
         await wait_text(pilot, "Partition (1-5):")
         await type_text(pilot, "3")
@@ -568,10 +569,19 @@ async def test_attached_console_says_when_the_controller_goes(rig: CellRig) -> N
     try:
         async with app.run_test(size=SIZE) as pilot:
             await wait_text(pilot, "attached to cellctl run")
+            # The robot's traffic while attached: its rows (a row: time, direction, hex, text).
+            await wait_text(pilot, "traffic: robot", " <<  ")
             await server.close()
-            await wait_text(pilot, "DISCONNECTED: the controller's API closed")
+            await wait_text(pilot, "DISCONNECTED: controller's API closed; attaching again")
             await pilot.press("1", "4")
             await wait_text(pilot, "robot: STATUS: the control API closed the connection")
+            await wait_text(pilot, "traffic: robot (DISCONNECTED: the last bytes seen before)")
+            # Another machine's menu: the pane follows it, with what it can show (nothing
+            # seen of cnc1), not the robot's rows.
+            await pilot.press("escape", "2", "4")
+            await wait_text(pilot, "cnc1: STATUS: the control API closed the connection")
+            shown = await wait_text(pilot, "traffic: cnc1 (DISCONNECTED", "no traffic seen on cnc1")
+            assert "traffic: robot" not in shown and " <<  " not in shown and " >>  " not in shown
             # The controller's API back (a restarted `cellctl run`): the console attaches
             # again by itself, and acts through it.
             with contextlib.ExitStack() as held:
@@ -580,9 +590,12 @@ async def test_attached_console_says_when_the_controller_goes(rig: CellRig) -> N
                 server = ApiServer(AttachedCell(rig.controller), rig.directory)
                 await server.start()
                 await wait_text(pilot, "attached again to the controller at", timeout=20)
+                # The open menu's machine, its traffic asked for again.
+                await wait_text(pilot, "traffic: cnc1 (>> sent")
                 assert "DISCONNECTED" not in screen_text(app)
                 await pilot.press("escape", "1", "4")
                 await wait_text(pilot, "robot: STATUS: robot state", timeout=20)
+                await wait_text(pilot, "traffic: robot (>> sent")
                 await pilot.press("q")
     finally:
         await client.close()
@@ -598,6 +611,7 @@ async def test_attached_console_says_when_the_controller_goes(rig: CellRig) -> N
             ("mill", "init"),
             ("mill", "download"),
             ("mill", "load"),
+            ("robot", "io_set"),
         ]
     ),
     partition=st.text(max_size=6),
@@ -616,6 +630,7 @@ def test_dialog_answers_give_parameters_or_a_usage_error(
         directory = Path(folder)
         (directory / "prog.txt").write_text(text, encoding="utf-8")
         raw = {"partition": partition, "program": "prog.txt", "force": force}
+        raw |= {"input": partition, "on": force}  # IO SET's
         try:
             params = check_params(ConsoleMachine("m", family, "M"), fn, raw, directory)
         except UsageError as e:

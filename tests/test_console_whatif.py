@@ -25,8 +25,18 @@ from cellctl.service.client import RemoteCell
 from cellctl.service.server import ApiServer
 from cellctl.testing.rig import CellRig
 from cellctl.ui.console.app import ConsoleApp
-from cellctl.ui.console.whatif import FAULT, GANTT_WIDTH, IDLE, gantt_lines, plan_params
-from tests.test_console import SIZE, fill, screen_text, wait_text
+from cellctl.ui.console.dialogs import FieldRefused
+from cellctl.ui.console.whatif import (
+    FAULT,
+    GANTT_WIDTH,
+    IDLE,
+    LINE_WIDTH,
+    fitted,
+    gantt_lines,
+    plan_params,
+    refusal_field,
+)
+from tests.test_console import SIZE, fill, screen_text, type_text, wait_text
 
 #: A Gantt row on the screen: the machine, then one character per slot between bars.
 GANTT_ROW = re.compile(rf"^\s*(robot|cnc1|cnc2)\s*\|([^|]{{{GANTT_WIDTH}}})\|", re.MULTILINE)
@@ -138,6 +148,81 @@ async def test_input_refused_in_the_parsers_and_the_apis_words(
     assert not rig.mailbox.orders()
 
 
+def _good_answers() -> dict[str, str]:
+    now = datetime.now()
+    down = f"cnc2:down@{_hhmm(now + timedelta(minutes=2))}-{_hhmm(now + timedelta(minutes=4))}"
+    return {"horizon": "2h", "fault": down, "add": "wax-robot-base:2", "policy": "default",
+            "poll": "", "seed": ""}  # fmt: skip
+
+
+#: Per field, a refused answer (by the parsers, or past them by the API), the first words of
+#: the refusal, and what the operator types next ("": Backspace, the field emptied).
+REFUSED = [
+    ("horizon", "8x", "duration '8x': write a number", "2h"),
+    ("horizon", "25:00", "time '25:00': hours 0-23", "3h"),
+    ("fault", "cnc2:down", "--fault 'cnc2:down': write MACHINE", ""),
+    ("fault", "cnc9:down@{soon}", "fault on 'cnc9': the cell has no such machine", ""),  # API
+    ("add", "wax-robot-base:0", "--add 'wax-robot-base:0': the quantity", ""),
+    ("add", "no-such-part:1", "order plan-add1: the cell makes no 'no-such-part'", ""),  # API
+    ("policy", "all,default", "--policy 'all,default': all plays every", "all"),
+    ("policy", "bogus", "policy 'bogus': unknown (known:", "all"),  # API
+    ("poll", "0", "poll '0': seconds", "5"),
+    ("seed", "-1", "--seed '-1': a whole number", "7"),
+]
+
+
+@pytest.mark.timeout(300)
+async def test_a_refusal_selects_the_field_it_names(viewer: tuple[CellRig, RemoteCell]) -> None:
+    """Whatever field is refused, in the parsers' words or the API's, that field's text is
+    selected: what the operator types next replaces it, and every other answer stays."""
+    rig, client = viewer
+    app = ConsoleApp(rig.directory, client, traffic_period=0.1)
+    async with app.run_test(size=SIZE) as pilot:
+        await wait_text(pilot, "attached to cellctl run (pid")
+        await pilot.press("c", "9")
+        await wait_text(pilot, "Horizon:", "Seed:")
+        for field, bad, words, typed in REFUSED:
+            soon = _hhmm(datetime.now() + timedelta(minutes=2))
+            answers = _good_answers() | {field: bad.format(soon=soon)}
+            for key, value in answers.items():
+                await fill(pilot, f"#{key}", value)
+            await pilot.press("enter")
+            await wait_text(pilot, words)
+            await (type_text(pilot, typed) if typed else pilot.press("backspace"))
+            shown = {key: app.screen.query_one(f"#{key}").value for key in answers}  # type: ignore[attr-defined]
+            assert shown == answers | {field: typed}, (field, bad, screen_text(app))
+        await pilot.press("escape")
+        await wait_text(pilot, "no plan")
+    assert not rig.mailbox.orders()
+
+
+@pytest.mark.timeout(120)
+async def test_each_refusal_of_the_api_names_its_field(
+    viewer: tuple[CellRig, RemoteCell],
+) -> None:
+    """The API's own refusals of ``plan.run`` (its checks of the cell, its parameters'
+    schema) are read as refusals of the form's fields: the form selects that one."""
+    _, client = viewer
+    soon = _hhmm(datetime.now() + timedelta(minutes=2))
+    calls = [
+        ({"shift": "8x"}, "horizon"),
+        ({"until": "25:00"}, "horizon"),
+        ({"shift": "1" * 41}, "horizon"),  # the schema's
+        ({"fault": [f"cnc9:down@{soon}"]}, "fault"),
+        ({"fault": [f"cnc1:no-such-switch@{soon}"]}, "fault"),
+        ({"add": ["no-such-part:1"]}, "add"),
+        ({"add": []}, "add"),  # nothing to plan: no open orders
+        ({"add": ["x" * 201]}, "add"),  # the schema's
+        ({"policy": "bogus"}, "policy"),
+        ({"poll": 0}, "poll"),
+        ({"seed": -1}, "seed"),
+    ]
+    for params, field in calls:
+        with pytest.raises(UsageError) as refused:
+            await client.call("plan.run", {"shift": "2m", "add": ["wax-robot-base:1"]} | params)
+        assert refusal_field(str(refused.value)) == field, (params, str(refused.value))
+
+
 def _report(steps: list[dict[str, Any]], faults: list[FaultWindow]) -> PlanReport:
     return PlanReport(
         cell="c", policy="default", seed=0, start=1000.0, until=1600.0, ended=1600.0,
@@ -176,17 +261,37 @@ def test_the_gantt_rows_put_each_step_in_its_slots() -> None:
 @settings(max_examples=200, deadline=None)
 @given(
     st.fixed_dictionaries(
-        {k: st.text(max_size=60) for k in ("horizon", "fault", "add", "policy", "poll")}
+        {k: st.text(max_size=60) for k in ("horizon", "fault", "add", "policy", "poll", "seed")}
     )
 )
 def test_any_form_answer_is_params_or_a_usage_error(raw: dict[str, str]) -> None:
+    """Params, or a refusal in words that names one of the form's fields (the one the form
+    selects)."""
     try:
         params = plan_params(raw, 1_795_600_000.0)
     except UsageError as e:
         assert str(e)
+        assert isinstance(e, FieldRefused) and e.field in raw
         return
-    assert set(params) - {"poll"} == {"shift", "add", "fault", "policy"} or "until" in params
+    keys = set(params) - {"poll", "seed"}
+    assert keys == {"shift", "add", "fault", "policy"} or "until" in keys
     assert 0 < params.get("poll", 1) <= 600
+    assert 0 <= params.get("seed", 0) < 2**63
+
+
+def test_a_long_line_of_the_plan_goes_on_under_itself() -> None:
+    header = "plan of CIM laboratory machining cell (policy downstream-first, seed 0, poll 5 s)"
+    assert fitted([header]) == [
+        "plan of CIM laboratory machining cell (policy downstream-first, seed 0,",
+        "    poll 5 s)",
+    ]
+    # Every word kept, in its order; a word longer than a line cut; every line in the view.
+    words = "utilization: " + ", ".join(f"machine{i} 12.5%" for i in range(12))
+    lines = fitted([words])
+    assert len(lines) > 1 and " ".join(lines).split() == words.split()
+    assert "".join(line.strip() for line in fitted(["x" * 200])) == "x" * 200
+    assert all(len(line) <= LINE_WIDTH for line in fitted([words, "x" * 200, "short"]))
+    assert fitted(["short"]) == ["short"]
 
 
 def test_the_forms_poll_is_the_plans_own() -> None:

@@ -47,6 +47,7 @@ from cellctl.ui.console.actions import console_actions
 from cellctl.ui.console.cellmenu import CellActions
 from cellctl.ui.console.dialogs import ConfirmDialog, Dialog, FormDialog, ParamsDialog
 from cellctl.ui.console.entry import Action, Entry
+from cellctl.ui.console.results import result_lines
 from cellctl.ui.console.served import ServedFunction, ServedMenu, served_functions
 from cellctl.ui.console.session import (
     ConsoleMachine,
@@ -56,7 +57,8 @@ from cellctl.ui.console.session import (
     open_console_cell,
     status_machines,
 )
-from cellctl.ui.console.widgets import Board, ResultPane, TrafficPane, shown, step_text
+from cellctl.ui.console.traffic import traffic_rows
+from cellctl.ui.console.widgets import Board, ResultPane, TrafficPane, header_text, shown, step_text
 
 #: Seconds between two looks at the selected machine's traffic.
 TRAFFIC_PERIOD = 0.5
@@ -66,7 +68,7 @@ REATTACH_S = 2.0
 #: automatic service (then the controller's refusal is shown).
 STEP_WAIT = 300.0
 #: Parameters a dialog asks for (the rest keep their defaults).
-DIALOG_FIELDS = ("partition", "program", "force")
+DIALOG_FIELDS = ("partition", "program", "force", "input", "on")
 #: Progress fields of the functions' progress dicts: (done, total).
 PROGRESS_FIELDS = (("records", "records_total"), ("lines", "lines_total"))
 
@@ -94,7 +96,7 @@ class ConsoleApp(App[None]):
 
     TITLE = "cellctl console"
     CSS = """
-    #header { height: 1; background: $primary; color: $text; padding: 0 1; }
+    #header { height: auto; max-height: 3; background: $primary; color: $text; padding: 0 1; }
     #body { height: 1fr; }
     #menu { width: 36; height: 100%; border: none; border-top: solid $accent; padding: 0; }
     #board { width: 1fr; height: 100%; border: none; border-top: solid $secondary;
@@ -106,6 +108,8 @@ class ConsoleApp(App[None]):
     BINDINGS: ClassVar[list[BindingType]] = [
         Binding("escape", "up", "Back"),
         Binding("q", "quit", "Quit"),
+        # What a terminal's program does on Ctrl-C (Textual's own says how to quit instead).
+        Binding("ctrl+c", "interrupt", "Quit", show=False, priority=True),
     ]
 
     def __init__(
@@ -183,9 +187,7 @@ class ConsoleApp(App[None]):
     def mode_text(self) -> str:
         """What the header says of the console's mode."""
         if isinstance(self.client, RemoteCell) and self.client.closed.is_set():
-            return (
-                "DISCONNECTED: the controller's API closed; attaching again when it runs (q quits)"
-            )
+            return "DISCONNECTED: controller's API closed; attaching again when it runs (q quits)"
         if self.mode == "attached":
             cell = self.snapshot.get("cell", {})
             server = "cellctl run" if self.is_cell else cell.get("name", "the server")
@@ -219,14 +221,19 @@ class ConsoleApp(App[None]):
     def _show_snapshot(self) -> None:
         paused = "  CELL PAUSED" if self.snapshot.get("cell", {}).get("paused") else ""
         where = "cell" if self.is_cell else "directory"
-        header = f"{self.mode_text()}{paused}  {where}: {self.directory}"
         try:
-            self._header = shown(self.query_one("#header", Static), Text(header), self._header)
+            widget = self.query_one("#header", Static)
+            width = widget.content_size.width or self.size.width - 2
+            header = header_text(f"{self.mode_text()}{paused}", where, str(self.directory), width)
+            self._header = shown(widget, Text(header), self._header)
             self.query_one("#board", Board).show(self.snapshot)
         except NoMatches:
             # An update that came as the console exits another way than its quit (its
             # widgets already gone, the client not closed yet): nothing left to draw on.
             return
+
+    def on_resize(self) -> None:
+        self._show_snapshot()  # the header fits the terminal's width
 
     def in_service(self, name: str) -> bool:
         machine = self.snapshot.get("machines", {}).get(name, {})
@@ -235,6 +242,7 @@ class ConsoleApp(App[None]):
     def _poll_traffic(self) -> None:
         if isinstance(self.client, RemoteCell) and self.client.closed.is_set():
             self._show_snapshot()  # the header says so
+            self.query_one(TrafficPane).disconnected(self.selected)
             now = current_clock().monotonic()
             if (
                 not self._closed
@@ -289,20 +297,7 @@ class ConsoleApp(App[None]):
         pane = self.query_one(TrafficPane)
         try:
             assert self.client is not None
-            mark = self.commands.get(name)
-            if mark is not None and isinstance(mark, float):
-                # The first bytes sent since the operator's command: looked for once, then
-                # kept at the top of the pane however many rows its answer takes.
-                rows = await self.client.call("traffic.tail", {"machine": name, "limit": 2000})
-                sent = [r for r in rows if r.get("dir") == ">>" and r.get("time", 0) >= mark]
-                if sent:
-                    self.commands[name] = sent[0]
-            own = self.commands.get(name)
-            command = own if isinstance(own, dict) else None
-            rows = await self.client.call(
-                "traffic.tail", {"machine": name, "limit": 3 if command else 4}
-            )
-            pane.show(name, [r for r in rows if r != command], command)
+            pane.show(name, *await traffic_rows(self.client, name, self.commands))
         except CellctlError as e:
             pane.border_title = f"traffic: {name}"
             pane.show_text(Text(str(e)))
@@ -397,6 +392,10 @@ class ConsoleApp(App[None]):
                 with contextlib.suppress(CellctlError, OSError):
                     await self.client.close()
         self.exit()
+
+    async def action_interrupt(self) -> None:
+        """Ctrl-C: quit as ``q`` does, from a dialog too (it is cancelled: nothing is sent)."""
+        await self.action_quit()
 
     def check_action(self, action: str, parameters: tuple[object, ...]) -> bool | None:
         # A dialog's own keys (y/n, typing a name with a q) must not quit the console.
@@ -593,28 +592,3 @@ class ConsoleApp(App[None]):
         finally:
             pane.progress(None, None)
         self.say(result_lines(machine.name, fn, result), "green")
-
-
-def result_lines(name: str, fn: MachineFunction, result: dict[str, Any]) -> list[str]:
-    """A function's outcome as the console shows it: the source's message, then details."""
-    message = str(result.get("message", ""))
-    lines = [f"{name}: {fn.label}: {message}"]
-    # A detail that says the message again (``robot state: 1 (...)`` under ``robot state 1
-    # (...)``) is left out: each fact once.
-    said = {_plain(message), _plain(f"{name}: {message}")}
-    details = [str(x) for x in result.get("lines", []) if _plain(str(x)) not in said]
-    partitions = result.get("partitions")
-    if isinstance(partitions, dict):
-        details = [d for d in details if not d.startswith("partition ")]
-        details.append(
-            "partitions: "
-            + "  ".join(f"{n} {f'Full ({p})' if p else 'Empty'}" for n, p in partitions.items())
-        )
-    if "text" in result and fn.name == "upload":
-        details.append(str(result["text"])[:200])
-    return lines + details + [str(x) for x in result.get("after", [])]
-
-
-def _plain(text: str) -> str:
-    """A line without its punctuation and case, to find one that says another again."""
-    return " ".join("".join(c for c in text.lower() if c.isalnum() or c.isspace()).split())

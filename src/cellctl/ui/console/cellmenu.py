@@ -18,7 +18,7 @@ from cellctl.service.machines import load_cell_file
 from cellctl.service.operator import scrap_question
 from cellctl.ui.console.dialogs import Dialog, FormDialog, LivePickDialog, PickDialog
 from cellctl.ui.console.entry import Entry
-from cellctl.ui.console.whatif import PlanView, plan_params, plan_text, summary
+from cellctl.ui.console.whatif import PlanView, plan_params, plan_text, refusal_field, summary
 
 T = TypeVar("T")
 
@@ -250,7 +250,14 @@ class CellActions:
         from cellctl.plan.engine import POLICIES
         from cellctl.plan.when import PLAN_POLL_S
 
-        values = {"horizon": "8h", "fault": "", "add": "", "policy": "default", "poll": ""}
+        values = {
+            "horizon": "8h",
+            "fault": "",
+            "add": "",
+            "policy": "default",
+            "poll": "",
+            "seed": "",
+        }
         problems = ""
         while True:
             fields = [
@@ -259,6 +266,7 @@ class CellActions:
                 ("add", "Add orders:", values["add"]),
                 ("policy", "Policy:", values["policy"]),
                 ("poll", "Poll (s):", values["poll"]),
+                ("seed", "Seed:", values["seed"]),
             ]
 
             def check(raw: dict[str, str]) -> dict[str, Any]:
@@ -271,9 +279,11 @@ class CellActions:
                 "faults: cnc2:down@10:00-11:00 (several: ; between)\n"
                 "add orders: PART:QTY[@PRIORITY] (several: , between)\n"
                 f"policy: {', '.join(POLICIES)}; A,B or all to compare\n"
-                f"poll: s between looks at idle machines (empty: {PLAN_POLL_S:g})"
+                f"poll: s between looks at idle machines (empty: {PLAN_POLL_S:g})\n"
+                "seed: of anything random in the machines, as a noise fault (empty: 0)"
             )
-            params = await self.app.ask(FormDialog(title, fields, check, problems))
+            form = FormDialog(title, fields, check, problems, field_of=refusal_field)
+            params = await self.app.ask(form)
             if params is None:
                 self.app.say(["no plan"])
                 return

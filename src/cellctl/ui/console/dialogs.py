@@ -1,6 +1,6 @@
 """The console's dialogs (modal screens): a yes/no question, a pick from a list (kept live
 where the list changes), a function's parameters (partition, program file with a picker,
-forced init) and a small form.
+forced init, an input to drive and its value) and a small form.
 
 Each dismisses with its answer (None when cancelled with Escape); the app awaits them with
 ``push_screen_wait`` from a worker.
@@ -8,6 +8,7 @@ Each dismisses with its answer (None when cancelled with Escape); the app awaits
 
 from __future__ import annotations
 
+import re
 from collections.abc import Awaitable, Callable, Iterable
 from pathlib import Path
 from typing import Any, ClassVar, Generic, TypeVar
@@ -24,6 +25,14 @@ from textual.widgets.option_list import Option
 from cellctl.errors import CellctlError, UsageError
 
 T = TypeVar("T")
+
+
+class FieldRefused(UsageError):
+    """A refusal of one field's answer: ``field`` is its id, the field the dialog selects."""
+
+    def __init__(self, message: str, field: str) -> None:
+        super().__init__(message)
+        self.field = field
 
 
 class Dialog(ModalScreen[T | None], Generic[T]):
@@ -48,20 +57,22 @@ class Dialog(ModalScreen[T | None], Generic[T]):
     def action_cancel(self) -> None:
         self.dismiss(None)
 
-    def refused(self, problems: str) -> None:
-        """Show why the answers were refused, and select the text of the field they name
-        (else the first), so that what the operator types next replaces it."""
+    def refused(self, problems: str, field: str | None = None) -> None:
+        """Show why the answers were refused, and select the text of ``field`` (else of the
+        field they name, else of the first), so that what the operator types next replaces
+        it. A field is named by its id as a word (``fault``, not the one in ``default``)."""
         self.query_one("#errors", Static).update(Text(problems))
         fields = list(self.query(Input))
-        named = [
+        words = problems.replace("_", " ")
+        named = [f for f in fields if field is not None and f.id == field] or [
             f
             for f in fields
-            if (f.id and f.id.replace("_", " ") in problems.replace("_", " "))
+            if (f.id and re.search(rf"\b{re.escape(f.id.replace('_', ' '))}\b", words))
             or (f.value.strip() and f.value.strip() in problems)
         ]
-        for field in (named or fields)[:1]:
-            field.focus()
-            field.select_all()
+        for chosen in (named or fields)[:1]:
+            chosen.focus()
+            chosen.select_all()
 
 
 class ConfirmDialog(Dialog[bool]):
@@ -233,6 +244,12 @@ class ParamsDialog(Dialog[dict[str, Any]]):
                 yield ProgramTree(self.directory, self.suffixes, id="tree")
             if "force" in self.fields:
                 yield Checkbox("Force (initialize again)", id="force", compact=True)
+            if "input" in self.fields:
+                with Horizontal():
+                    yield Label("Input (1-16):", classes="field-label")
+                    yield Input(id="input", restrict=r"[0-9]*", max_length=3, compact=True)
+            if "on" in self.fields:
+                yield Checkbox("On (off if not ticked)", id="on", compact=True)
             yield Static("", id="errors", classes="errors")
             with Horizontal(classes="buttons"):
                 yield Button("OK", id="ok", variant="primary", compact=True)
@@ -266,11 +283,12 @@ class ParamsDialog(Dialog[dict[str, Any]]):
 
     def answers(self) -> dict[str, Any]:
         raw: dict[str, Any] = {}
-        for field in ("partition", "program"):
+        for field in ("partition", "program", "input"):
             if field in self.fields:
                 raw[field] = self.query_one(f"#{field}", Input).value
-        if "force" in self.fields:
-            raw["force"] = self.query_one("#force", Checkbox).value
+        for field in ("force", "on"):
+            if field in self.fields:
+                raw[field] = self.query_one(f"#{field}", Checkbox).value
         return raw
 
     def submit(self) -> None:
@@ -292,14 +310,25 @@ class FormDialog(Dialog[dict[str, Any]]):
         fields: list[tuple[str, str, str]],
         check: Callable[[dict[str, str]], dict[str, Any]],
         problems: str = "",
+        *,
+        field_of: Callable[[str], str | None] | None = None,
     ) -> None:
-        """``fields``: (id, label, default); ``check`` refuses bad answers (UsageError);
-        ``problems``: a refusal to show from the start (the answers asked again)."""
+        """``fields``: (id, label, default); ``check`` refuses bad answers (UsageError, a
+        :class:`FieldRefused` naming its field); ``problems``: a refusal to show from the
+        start (the answers asked again); ``field_of``: the field a refusal's words name
+        (one that came from elsewhere than ``check``, such as the API's), None if none."""
         super().__init__()
         self.title_text = title
         self.form = fields
         self.check = check
         self.problems = problems
+        self.field_of = field_of
+
+    def field_named(self, error: UsageError | str) -> str | None:
+        """The field a refusal is about (None: the dialog looks for it in its words)."""
+        if isinstance(error, FieldRefused):
+            return error.field
+        return self.field_of(str(error)) if self.field_of is not None else None
 
     def compose(self) -> ComposeResult:
         with Vertical():
@@ -316,7 +345,7 @@ class FormDialog(Dialog[dict[str, Any]]):
     def on_mount(self) -> None:
         self.query(Input).first().focus()
         if self.problems:
-            self.refused(self.problems)
+            self.refused(self.problems, self.field_named(self.problems))
 
     @on(Input.Submitted)
     @on(Button.Pressed, "#ok")
@@ -325,7 +354,7 @@ class FormDialog(Dialog[dict[str, Any]]):
         try:
             checked = self.check(raw)
         except UsageError as e:
-            self.refused(str(e))
+            self.refused(str(e), self.field_named(e))
             return
         self.dismiss(checked)
 

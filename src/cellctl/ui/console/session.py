@@ -255,8 +255,9 @@ def check_params(
         else:
             problems += check_program(machine, fn, program)
             params.update(program)
-    if "force" in fields:
-        params["force"] = bool(raw.get("force", False))
+    for key in ("force", "on"):  # a checkbox: ticked or not
+        if key in fields:
+            params[key] = bool(raw.get(key, False))
     if not problems:
         try:
             fn.check(params)

@@ -15,8 +15,10 @@ SVG)::
 
 from __future__ import annotations
 
+import contextlib
 import re
 import textwrap
+from collections.abc import Iterator
 from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Final
@@ -27,7 +29,8 @@ from textual.binding import Binding, BindingType
 from textual.containers import ScrollableContainer, Vertical
 from textual.widgets import Static
 
-from cellctl.ui.console.dialogs import Dialog
+from cellctl.errors import UsageError
+from cellctl.ui.console.dialogs import Dialog, FieldRefused
 
 if TYPE_CHECKING:
     from cellctl.plan.report import PlanReport
@@ -44,6 +47,49 @@ FAILED: Final = "!"
 #: windows at a semicolon only (a fault's argument may hold a comma), as the dashboard does.
 ADD_SEPARATORS: Final = r"[,;]"
 FAULT_SEPARATORS: Final = r";"
+#: The largest seed a plan takes (the API's).
+MAX_SEED: Final = 2**63 - 1
+#: The form's field each refusal is about, by its first words: the parsers' (``duration
+#: '8x': ...``, ``--add ...``, ``poll ...``) and the API's (``fault on 'cnc9': ...``,
+#: ``order plan-add1: the cell makes no ...``, ``policy 'bogus': unknown ...``, and
+#: ``plan.run: seed: ...`` for a parameter its schema refuses).
+REFUSALS: Final = (
+    ("horizon", r"(--)?(shift|until|duration|time)\b|'[^']*' is not a day|a plan's end|give --"),
+    ("fault", r"(--)?fault\b"),
+    ("add", r"(--)?add\b|order \S+: the cell makes no|nothing to plan"),
+    ("policy", r"(--)?policy\b|no scheduler policy"),
+    ("poll", r"(--)?poll\b"),
+    ("seed", r"(--)?seed\b"),
+)
+
+
+def refusal_field(problem: str) -> str | None:
+    """The form's field a refusal of the plan (the parsers' or the API's) is about, None
+    for one about no field (``a plan is being played already``)."""
+    text = problem.strip().removeprefix("plan.run: ")
+    return next((field for field, words in REFUSALS if re.match(words, text)), None)
+
+
+@contextlib.contextmanager
+def refused_as(field: str) -> Iterator[None]:
+    """A parser's refusal (its words) as a refusal of the form's ``field``."""
+    try:
+        yield
+    except FieldRefused:
+        raise
+    except UsageError as e:
+        raise FieldRefused(str(e), field) from None
+
+
+def parse_seed(text: str) -> int:
+    """The seed of anything random in the planned machines (a fault such as ``noise``)."""
+    try:
+        seed = int(text)
+    except ValueError:
+        seed = -1
+    if not 0 <= seed <= MAX_SEED:
+        raise UsageError(f"--seed {text!r}: a whole number 0 or more (at most {MAX_SEED})")
+    return seed
 
 
 def entries(text: str, separators: str) -> list[str]:
@@ -53,26 +99,36 @@ def entries(text: str, separators: str) -> list[str]:
 
 def plan_params(raw: dict[str, str], now: float) -> dict[str, Any]:
     """The form's answers as ``plan.run``'s parameters, each checked by the parser
-    ``cellctl plan`` uses (a :class:`~cellctl.errors.UsageError` in its words). The
-    horizon is a span (``8h``) or, when it holds a ``:``, a time (``FRI 18:00``)."""
+    ``cellctl plan`` uses (a :class:`~cellctl.ui.console.dialogs.FieldRefused` in its words,
+    naming the field). The horizon is a span (``8h``) or, when it holds a ``:``, a time
+    (``FRI 18:00``); an empty poll or seed is the plan's own (5 s, 0)."""
     from cellctl.plan.spec import DEFAULT_SHIFT, parse_add, parse_fault, plan_window, policies_of
     from cellctl.plan.when import parse_poll
 
     horizon = raw.get("horizon", "").strip() or DEFAULT_SHIFT
     key = "until" if ":" in horizon else "shift"
-    end = plan_window(now, horizon if key == "shift" else None, horizon if key == "until" else None)
+    with refused_as("horizon"):
+        end = plan_window(now, *((horizon, None) if key == "shift" else (None, horizon)))
     adds = entries(raw.get("add", ""), ADD_SEPARATORS)
     faults = entries(raw.get("fault", ""), FAULT_SEPARATORS)
-    for text in adds:
-        parse_add(text)
-    for text in faults:
-        parse_fault(text, now, end)
+    with refused_as("add"):
+        for text in adds:
+            parse_add(text)
+    with refused_as("fault"):
+        for text in faults:
+            parse_fault(text, now, end)
     policy = raw.get("policy", "").strip() or "default"
-    policies_of(policy)
+    with refused_as("policy"):
+        policies_of(policy)
     params: dict[str, Any] = {key: horizon, "add": adds, "fault": faults, "policy": policy}
     poll = raw.get("poll", "").strip()
     if poll:
-        params["poll"] = parse_poll(poll)
+        with refused_as("poll"):
+            params["poll"] = parse_poll(poll)
+    seed = raw.get("seed", "").strip()
+    if seed:
+        with refused_as("seed"):
+            params["seed"] = parse_seed(seed)
     return params
 
 
@@ -86,13 +142,31 @@ def plan_text(answer: dict[str, Any], directory: Path) -> list[str]:
     for report in result.reports:
         if out:
             out.append("")
-        out += report_lines(report)
+        out += fitted(report_lines(report))
     # With several policies, the comparison ``cellctl plan`` prints after the plans.
     compared = result.lines()
     if len(result.reports) > 1 and "policies compared:" in compared:
-        out += ["", *compared[compared.index("policies compared:") :]]
+        out += ["", *fitted(compared[compared.index("policies compared:") :])]
     for report in result.reports:
         out += ["", f"Gantt chart, policy {report.policy}:", *gantt_lines(report)]
+    return out
+
+
+def fitted(lines: list[str], width: int = LINE_WIDTH) -> list[str]:
+    """``lines`` in ``width`` columns: a longer line goes on under itself, indented, broken
+    after a comma in its second half (``... (policy downstream-first, seed 0,`` / ``poll 5
+    s)``), else at a space (a word longer than a line, cut)."""
+    out: list[str] = []
+    for line in lines:
+        indent = " " * min(len(line) - len(line.lstrip()) + 4, width // 2)
+        while len(line) > width:
+            comma = line.rfind(", ", 0, width)
+            cut = comma + 1 if comma > width // 2 else line.rfind(" ", 0, width + 1)
+            if cut <= len(indent):
+                cut = width
+            out.append(line[:cut].rstrip())
+            line = indent + line[cut:].lstrip()
+        out.append(line)
     return out
 
 
@@ -210,10 +284,13 @@ class PlanView(Dialog[None]):
     """The plan's text, scrolled with the arrows and Page Up/Down; Escape or Enter closes."""
 
     BINDINGS: ClassVar[list[BindingType]] = [Binding("enter", "cancel", "Close")]
-    # The whole screen, no border: 78 columns of text at 80.
+    # The whole screen, no border: 78 columns of text at 80, between a column of margin and
+    # the scroll bar's.
     DEFAULT_CSS = """
-    PlanView > Vertical { width: 100%; height: 100%; max-height: 100%; border: none; }
-    PlanView #plan-scroll { height: 1fr; }
+    PlanView > Vertical {
+        width: 100%; height: 100%; max-height: 100%; border: none; padding: 0 0 0 1;
+    }
+    PlanView #plan-scroll { height: 1fr; scrollbar-size-vertical: 1; }
     PlanView #plan-text { width: auto; }
     """
 

@@ -24,6 +24,24 @@ from cellctl.service.status import AlarmInfo, CellMode, CellStatus, ProgressInfo
 BAR_WIDTH = 12
 
 
+#: The fewest characters of the directory the header shows beside the console's state.
+HEADER_PATH_MIN = 16
+
+
+def header_text(state: str, where: str, directory: str, width: int) -> str:
+    """The header in ``width`` columns: the console's ``state`` whole (wrapped only if it
+    is wider than the screen), then ``where: DIRECTORY``, the directory cut at its start to
+    fit (``cell: …/lab/cell``), on the next line if the state leaves too little room."""
+    room = width - len(state) - len(f"  {where}: ")
+    if room >= HEADER_PATH_MIN:
+        return f"{state}  {where}: {_start_cut(directory, room)}"
+    return f"{state}\n{where}: {_start_cut(directory, width - len(where) - 2)}"
+
+
+def _start_cut(text: str, width: int) -> str:
+    return text if len(text) <= width else "…" + text[len(text) - max(width - 1, 1) :]
+
+
 def text_bar(done: float, total: float, width: int = BAR_WIDTH) -> str:
     """``█████░░░░░░░ 42%``."""
     fraction = min(max(done / total, 0.0), 1.0) if total > 0 else 0.0
@@ -211,15 +229,30 @@ class TrafficPane(Static):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)
         self._drawn: Text | None = None
+        #: Per machine, the rows (and the operator's command) it showed last.
+        self.seen: dict[str, tuple[list[dict[str, Any]], dict[str, Any] | None]] = {}
 
     def show(
         self, machine: str, rows: list[dict[str, Any]], command: dict[str, Any] | None = None
     ) -> None:
         """``command``: the first row sent for the operator's last command (shown first)."""
-        title = f"traffic: {machine} (>> sent, << received, >>* your command)"
+        self.seen[machine] = (rows, command)
+        self._title(f"traffic: {machine} (>> sent, << received, >>* your command)")
+        self.show_text(traffic_text(machine, rows, max(self.size.width, 40), command))
+
+    def disconnected(self, machine: str) -> None:
+        """No traffic to ask for (the controller's API closed): ``machine``'s last rows seen
+        before, said to be so, or that none were."""
+        self._title(f"traffic: {machine} (DISCONNECTED: the last bytes seen before)")
+        if machine in self.seen:
+            rows, command = self.seen[machine]
+            self.show_text(traffic_text(machine, rows, max(self.size.width, 40), command))
+        else:
+            self.show_text(Text(f"no traffic seen on {machine} before the API closed", "dim"))
+
+    def _title(self, title: str) -> None:
         if self.border_title != title:  # setting it redraws the pane, even to the same
             self.border_title = title
-        self.show_text(traffic_text(machine, rows, max(self.size.width, 40), command))
 
     def show_text(self, text: Text) -> None:
         """Show ``text`` (the traffic, or why there is none)."""

@@ -24,12 +24,13 @@ from __future__ import annotations
 import re
 import shutil
 import sys
-import time
 from collections.abc import Callable, Sequence
+from datetime import datetime
 from pathlib import Path
 from types import TracebackType
 from typing import Self
 
+from cellctl.clock import current_clock
 from cellctl.emulators.cell import EmulatedCell
 from cellctl.emulators.serve import CELL_TIME_SCALE
 from cellctl.errors import UsageError
@@ -44,7 +45,8 @@ BROKER_RESTARTS = 3
 
 def _tell(text: str) -> None:
     """One line on stderr, timed: what happened to the broker, between the cells' lines."""
-    print(f"{time.strftime('%H:%M:%S')} {text}", file=sys.stderr, flush=True)
+    stamp = datetime.fromtimestamp(current_clock().now()).strftime("%H:%M:%S")
+    print(f"{stamp} {text}", file=sys.stderr, flush=True)
 
 
 def _copy_private(source: Path, target: Path) -> None:

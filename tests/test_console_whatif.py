@@ -137,7 +137,10 @@ async def test_input_refused_in_the_parsers_and_the_apis_words(
         # Past the parsers, the API refuses what the cell does not have: the form again,
         # its answers kept, the API's words in it.
         await fill(pilot, "#add", "wax-robot-base:1")
-        await fill(pilot, "#fault", f"cnc9:down@{_hhmm(datetime.now() + timedelta(minutes=1))}")
+        # A window well inside the horizon (now + 1 min, cut to the minute, could fall before
+        # the plan's start, and be refused as a window after its end instead).
+        await fill(pilot, "#horizon", "10m")
+        await fill(pilot, "#fault", f"cnc9:down@{_hhmm(datetime.now() + timedelta(minutes=3))}")
         await pilot.press("enter")
         shown = await wait_text(pilot, "the cell has no such machine (known: robot, cnc1, cnc2")
         assert "Horizon:" in shown

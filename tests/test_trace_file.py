@@ -5,8 +5,6 @@ that cannot be written stops with one warning while the work goes on, never a tr
 from __future__ import annotations
 
 import os
-import subprocess
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -15,25 +13,9 @@ from cellctl.errors import UsageError
 from cellctl.link import ROBOT_LINE, SENT, TrafficLog, open_link
 from cellctl.link.trace import refuse_trace_on_inputs
 
-from .conftest import CELLCTL, emulator_process
+from .test_robot_cli import emulator, robot  # noqa: F401  (emulator is a fixture)
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
-
-
-@pytest.fixture
-def emulator() -> Iterator[str]:
-    """``cellctl emulate robot`` in its own process on a pty; yields the pty path."""
-    with emulator_process("robot", "--listen", "pty", "--time-scale", "500", "--no-pacing") as url:
-        yield url
-
-
-def robot(cell: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [*CELLCTL, "--cell", str(cell), "robot", *args],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
 
 
 @pytest.fixture
@@ -46,7 +28,9 @@ def program(tmp_path: Path) -> Path:
 
 
 def test_trace_onto_the_program_being_sent_is_refused_before_a_byte(
-    emulator: str, tmp_path: Path, program: Path
+    emulator: str,  # noqa: F811  (the fixture of test_robot_cli)
+    tmp_path: Path,
+    program: Path,
 ) -> None:
     before = program.read_bytes()
     assert robot(tmp_path, "--link", emulator, "init").returncode == 0
@@ -71,7 +55,9 @@ def test_trace_onto_the_program_being_sent_is_refused_before_a_byte(
 
 
 def test_trace_on_a_full_device_warns_once_and_the_work_is_done(
-    emulator: str, tmp_path: Path, program: Path
+    emulator: str,  # noqa: F811  (the fixture of test_robot_cli)
+    tmp_path: Path,
+    program: Path,
 ) -> None:
     assert robot(tmp_path, "--link", emulator, "init").returncode == 0
     down = robot(

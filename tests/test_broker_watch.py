@@ -71,16 +71,20 @@ async def test_a_broker_killed_is_started_again_with_its_port_and_persisted_sess
     assert broker.running
 
 
+def kill_with_a_store_it_cannot_read(broker: MosquittoBroker) -> None:
+    """Kill the broker with a persistence file Mosquitto cannot read, which makes every start
+    fail ("Unrecognised file format"); frozen first, so it cannot save over it."""
+    pid = broker_pid(broker)
+    os.kill(pid, signal.SIGSTOP)
+    (broker.directory / "data" / "mosquitto.db").write_bytes(b"not a database")
+    os.kill(pid, signal.SIGKILL)
+
+
 async def test_a_broker_that_will_not_start_again_is_said_with_what_to_do(
     watched: tuple[MosquittoBroker, list[str]],
 ) -> None:
     broker, said = watched
-    pid = broker_pid(broker)
-    # Frozen first, so it cannot save over it: a persistence file Mosquitto cannot read
-    # makes every start fail ("Unrecognised file format").
-    os.kill(pid, signal.SIGSTOP)
-    (broker.directory / "data" / "mosquitto.db").write_bytes(b"not a database")
-    os.kill(pid, signal.SIGKILL)
+    kill_with_a_store_it_cannot_read(broker)
     await until(
         lambda: broker.failure is not None and "attempts" in said[-1], "the watch to give up"
     )
@@ -166,10 +170,7 @@ async def test_a_stop_while_the_broker_is_started_again_ends_the_watch(
     watched: tuple[MosquittoBroker, list[str]],
 ) -> None:
     broker, said = watched
-    pid = broker_pid(broker)
-    os.kill(pid, signal.SIGSTOP)
-    (broker.directory / "data" / "mosquitto.db").write_bytes(b"not a database")
-    os.kill(pid, signal.SIGKILL)
+    kill_with_a_store_it_cannot_read(broker)
     await until(lambda: any("attempt 1 of" in line for line in said), "a first failed attempt")
     await broker.stop()  # returns once the watch has ended: nothing is tried after it
     tried = list(said)

@@ -488,7 +488,7 @@ class Dispatcher:
         """Run ``method`` with ``params`` (a dict or None) for ``caller`` (the local user
         when None); typed errors on failure (:class:`RoleRefused` for a role too low)."""
         caller = caller or local_caller()
-        entry = METHODS.get(method) or self.access.methods().get(method)
+        entry = self._entry(method)
         try:
             if entry is None:
                 raise MethodNotFound(f"no method {method!r} (server.info lists them)")
@@ -511,9 +511,13 @@ class Dispatcher:
             await self.record(caller.who, method, params, "ok")
         return result
 
+    def _entry(self, method: str) -> Method | None:
+        """``method``'s entry: the common table's, else the access's own (None: no such)."""
+        return METHODS.get(method) or self.access.methods().get(method)
+
     def abandoned(self, method: str) -> bool:
         """True if a call of ``method`` ends when its client goes away (:class:`Method`)."""
-        entry = METHODS.get(method) or self.access.methods().get(method)
+        entry = self._entry(method)
         return entry is not None and entry.abandoned
 
     async def _run(self, entry: Method, method: str, params: Any, progress: Progress | None) -> Any:

@@ -203,6 +203,7 @@ async def test_serve_starts_with_a_machine_offline_and_takes_it_when_it_comes(
         await until(online, "machine a online", 30)
     finally:
         held.close()
+        await b_shop.close()
         proc.terminate()
         await finished(proc, 20)
         await alive_server.close()

@@ -42,8 +42,22 @@ FC = TypeVar("FC", bound=Callable[..., Any])
 
 log = logging.getLogger(__name__)
 
-console = Console(highlight=False, emoji=False)  # "file:100:" is no emoji code
-err_console = Console(stderr=True, highlight=False, emoji=False)
+
+class _Console(Console):
+    """A console that wraps lines at the terminal's width on a terminal, and never in a pipe:
+    ``cellctl cell check | grep`` sees each message on one line, whatever its length."""
+
+    @property
+    def soft_wrap(self) -> bool:
+        return self._soft_wrap or not self.is_terminal
+
+    @soft_wrap.setter
+    def soft_wrap(self, value: bool) -> None:
+        self._soft_wrap = value
+
+
+console = _Console(highlight=False, emoji=False)  # "file:100:" is no emoji code
+err_console = _Console(stderr=True, highlight=False, emoji=False)
 
 
 def run(coro_fn: Callable[[], Coroutine[Any, Any, T]]) -> T:

@@ -274,3 +274,43 @@ async def test_two_programs_on_one_user_are_told_they_take_turns(broker: Mosquit
         # Said once, after drops that did not say it: a single drop is not a twin.
         assert sum("take turns" in line for line in lines) == 1, lines
         assert "take turns" not in lines[0], lines
+
+
+async def test_a_broker_that_never_answers_is_said_so_in_words() -> None:
+    """Something listens at the broker's address and never answers (a stuck broker, a port
+    forwarded to nothing): the link says the broker did not answer, not the library's bare
+    "Operation timed out", and keeps trying."""
+
+    async def silent(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        await reader.read()  # takes the CONNECT, answers nothing, until the client hangs up
+        writer.close()
+
+    server = await asyncio.start_server(silent, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    settings = MqttSettings("127.0.0.1", port, "factory", "cell1", "its-password")
+    stop, told = asyncio.Event(), asyncio.Event()
+    lines: list[str] = []
+
+    def log(line: str) -> None:
+        lines.append(line)
+        told.set()
+
+    async def session() -> None:
+        async with settings.client("cell1"):
+            raise AssertionError("connected to a broker that never answers")
+
+    link = Reconnect(settings, stop, log=log, what="cell1", errors=(aiomqtt.MqttError,))
+    task = asyncio.create_task(link.run(session))
+    try:
+        async with asyncio.timeout(30):
+            await told.wait()
+    finally:
+        stop.set()
+        async with asyncio.timeout(20):
+            await task
+        server.close()
+    assert lines[0] == (
+        f"cell1: mqtt://127.0.0.1:{port}/factory: the broker at 127.0.0.1:{port} "
+        "did not answer within 2 s (trying again)"
+    ), lines
+    assert "Operation timed out" not in "".join(lines)

@@ -31,6 +31,7 @@ def test_the_demo_names_its_runs_and_charts_both_on_one_axis(tmp_path: Path) -> 
     text = result.stdout
     # A heading is words, not something that looks like a command to type.
     assert "cellctl schedule" not in text
+    assert "batch: 1 wax-robot-base + 1 wax-toy-mill-table" in text, text
     assert "parts in parallel (cellctl's scheduler)" in text
     assert "one part at a time (the source's way)" in text
     charts = {name: (out / name / "gantt.svg").read_text() for name in ("cell", "one-at-a-time")}

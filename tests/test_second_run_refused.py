@@ -136,9 +136,10 @@ def second_runs_leave_the_first_alone(
     files: set[str],
     seconds: list[list[str]],
     command: str,
-) -> None:
+) -> str:
     """Start ``first_args``; once it says ``up``, every one of ``seconds`` is refused (naming
-    ``command``) and the files in ``held`` (``files`` among them) stay as they were."""
+    ``command``) and the files in ``held`` (``files`` among them) stay as they were. Returns
+    what the first run said."""
     where = tmp_path / held
     first = FirstRun(first_args, cwd=tmp_path)
     try:
@@ -152,10 +153,11 @@ def second_runs_leave_the_first_alone(
     finally:
         first.stop()
     nothing_left_running(where)
+    return "".join(first.seen)
 
 
 def test_a_second_run_leaves_a_running_demo_alone(tmp_path: Path) -> None:
-    second_runs_leave_the_first_alone(
+    said = second_runs_leave_the_first_alone(
         tmp_path,
         ["demo", "--dashboard", "--no-compare", "--parts", "1", "--time-scale", "1000"],
         r"Ctrl-C stops",  # the batch is done: the cell idles, its files stay
@@ -164,6 +166,8 @@ def test_a_second_run_leaves_a_running_demo_alone(tmp_path: Path) -> None:
         AFTER_A_DEMO,
         "cellctl demo",
     )
+    # A batch of one part names that part only (no "+ 0" of the other type).
+    assert "batch: 1 wax-robot-base\n" in said, said
 
 
 def test_a_second_run_leaves_a_running_emulated_factory_alone(tmp_path: Path) -> None:

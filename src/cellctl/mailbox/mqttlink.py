@@ -29,7 +29,7 @@ from urllib.parse import urlsplit
 import aiomqtt
 
 from cellctl.clock import current_clock
-from cellctl.errors import CellctlError, LinkError, UsageError
+from cellctl.errors import CellctlError, LinkError, LinkTimeout, UsageError
 from cellctl.files import read_text
 
 #: Seconds between attempts to reach a broker that went away: from the first to the last.
@@ -42,6 +42,8 @@ SHORT_SESSION_S = 5.0
 CUT_SHORT_TOLD = 3
 #: How long the look at a port that would not speak MQTT may take (is it TLS or not?).
 PROBE_S = 2.0
+#: How long the library waits for the broker's answer (CONNACK, a publish's PUBACK).
+ANSWER_S = 2.0
 
 
 class TlsRefused(LinkError):
@@ -114,8 +116,16 @@ class MqttSettings:
             will=will,
             tls_context=context,
             # A QoS 1 publish caught by a dropped connection fails only at this deadline.
-            timeout=2.0,
+            timeout=ANSWER_S,
         )
+
+    def unanswered(self, error: BaseException) -> LinkTimeout | None:
+        """The library's "Operation timed out" in words: the broker did not answer in time."""
+        if isinstance(error, aiomqtt.MqttError) and "timed out" in str(error):
+            return LinkTimeout(
+                f"the broker at {self.host}:{self.port} did not answer within {ANSWER_S:g} s"
+            )
+        return None
 
     async def explain(self, error: BaseException) -> CellctlError | BaseException:
         """``error`` from a connection attempt, in words when the cause is TLS: a certificate
@@ -138,7 +148,7 @@ class MqttSettings:
             return WrongScheme(f"the broker at {where} speaks TLS: use mqtts://{where}/...")
         if self.tls and await _speaks_plain_mqtt(self.host, self.port):
             return WrongScheme(f"the broker at {where} does not speak TLS: use mqtt://{where}/...")
-        return error
+        return self.unanswered(error) or error
 
 
 #: An MQTT 3.1.1 CONNECT without a user or client id: any broker answers it with a CONNACK
@@ -262,7 +272,11 @@ class Reconnect:
             except self.errors as e:
                 on_drop()
                 # A connection that was in and broke needs no look at TLS.
-                self.problem = e if self._in else await self.settings.explain(e)
+                self.problem = (
+                    (self.settings.unanswered(e) or e)
+                    if self._in
+                    else await self.settings.explain(e)
+                )
                 if self._in:
                     lasted = current_clock().monotonic() - self._in_at
                     self._cut_short = self._cut_short + 1 if lasted < SHORT_SESSION_S else 0

@@ -253,7 +253,7 @@ async def _demo(
     where = f"{template}'s cell" if template else "an emulated cell (robot, 2 mills, PLC)"
     console.print(
         f"[bold]cellctl demo[/bold]: {where} at time scale "
-        f"{time_scale:g}; batch: {half} {first} + {count - half} {second}"
+        f"{time_scale:g}; batch: {' + '.join(f'{qty} {part}' for part, qty in batch)}"
     )
     if dashboard:
         await run_batch(

@@ -22,6 +22,7 @@ import pytest
 import pytest_asyncio
 from playwright.async_api import Browser, Page
 from playwright.async_api import Error as PlaywrightError
+from playwright.async_api import TimeoutError as PlaywrightTimeout
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
@@ -324,7 +325,12 @@ async def test_an_alarm_is_acknowledged_then_cleared_from_the_page(dash: Dash) -
     [still] = [a for a in await dash.api("alarms.list") if a["id"] == alarm_id]
     assert still["acked"] is None
     await row.locator("button", has_text="Ack").click()  # no confirmation: it only marks seen
-    await page.locator("#alarm-badge.hidden").wait_for(state="attached", timeout=SEEN_MS)
+    try:
+        await page.locator("#alarm-badge.hidden").wait_for(state="attached", timeout=SEEN_MS)
+    except PlaywrightTimeout:  # which alarm kept the badge up, in the failure
+        badge_text = await page.locator("#alarm-badge").text_content()
+        alarms = await dash.api("alarms.list")
+        raise AssertionError(f"badge {badge_text!r}; alarms: {alarms}") from None
     await row.locator(".alarm-state", has_text="acknowledged, returned").wait_for(timeout=SEEN_MS)
     [acked] = [a for a in await dash.api("alarms.list") if a["id"] == alarm_id]
     assert acked["acked"] is not None and acked["state"] == "active"  # acked is not cleared

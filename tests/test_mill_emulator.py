@@ -79,12 +79,35 @@ async def test_malformed_line_puts_the_controller_in_an_error_condition(served) 
 
 async def test_move_outside_travel_is_an_error_condition(served) -> None:  # type: ignore[no-untyped-def]
     emulator, _, link = served
+    at = emulator.machine.position
     await link.write(lines("000 GO X 9.000", "001 SKIP TO 900", "900"))
     await link.wait_cts(False, timeout=5)
     async with asyncio.timeout(5):
         await emulator.failed.wait()
     assert emulator.error is not None
     assert "X travel" in emulator.error
+    assert emulator.machine.position == at  # the move was refused, not made
+    # The operator at the panel (a plan's after a fault): memory cleared, READY again, the
+    # reference zero as it was; the next block runs.
+    zero = emulator.reference_zero_set
+    await emulator.operator_clear()
+    assert emulator.error is None and emulator.display == "READY"
+    await link.wait_cts(True, timeout=5)
+    assert emulator.reference_zero_set == zero
+    await run_block(link, lines("000 GO X 1.000", "001 SKIP TO 900", "900"))
+    assert emulator.runs[-1].outcome == "block end"
+
+
+async def test_the_operator_leaves_a_block_running_alone(served) -> None:  # type: ignore[no-untyped-def]
+    """No error: nothing to clear, and a block under way goes on (its READY is its end)."""
+    emulator, _, link = served
+    # 5 in at 10 in/min: 30 s of machine time, 30 ms here (RTS low 50 ms at least).
+    await link.write(lines("000 FR XYZ = 10.0", "001 GR X 5.000", "002 SKIP TO 900", "900"))
+    await link.wait_cts(False, timeout=5)
+    await emulator.operator_clear()
+    assert emulator.executing and not await link.cts()
+    await link.wait_cts(True, timeout=10)
+    assert emulator.runs[-1].outcome == "block end"
 
 
 async def test_end_returns_to_manual_then_the_operator_readies_it_again(served) -> None:  # type: ignore[no-untyped-def]

@@ -237,7 +237,9 @@ def test_a_failure_that_shows_after_its_window_is_resolved_all_the_same(tmp_path
     """Line noise while a block goes to cnc1 garbles it: the mill never says the block is
     done, and the controller fails the cut at its deadline, long after the window closed.
     The plan's operator is still watching (a step begun under the fault was in flight): the
-    alarm is cleared and the part released, not left held for the rest of the plan."""
+    alarm is cleared, the part released, and the mill's ERROR cleared at its panel (memory
+    cleared, READY again): the part is cut again and the order finishes, not left with the
+    mill stuck for the rest of the plan."""
     opens, closes = T0 + 13 * 60, T0 + 14 * 60  # the second part's block goes at 13:10
     inputs = PlanInputs(
         EXAMPLE_CELL,
@@ -251,11 +253,17 @@ def test_a_failure_that_shows_after_its_window_is_resolved_all_the_same(tmp_path
         failed = [s for s in journal.steps() if s.state == "failed"]
         alarms = journal.alarms()
         held = journal.parts(statuses=["held"])
+        again = [s for s in journal.steps(failed[0].part_id) if s.machine == "cnc1"]
     assert [(s.machine, s.kind) for s in failed] == [("cnc1", "machine")]
     assert failed[0].started < closes and failed[0].ended is not None
     assert failed[0].ended > closes + 600  # shown long after the window
     assert [a.cleared_by for a in alarms] == ["plan operator"]
     assert held == []
+    # The garbled cut once, then the whole cut again once the panel was cleared.
+    assert [s.state for s in again] == ["failed", "finished"], again
+    assert again[1].started >= failed[0].ended
+    finished = run.finished["A"]
+    assert finished is not None and finished <= inputs.until, run.finished
 
 
 def base_orders(tmp_path: Path, faults: tuple[FaultWindow, ...], **kw: Any) -> PlanRun:

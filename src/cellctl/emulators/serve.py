@@ -122,6 +122,11 @@ class EmulatedDevice(ABC):
         can use the machine again (a panel's key, a pendant's unlock); the default: nothing.
         A plan's operator and the test rig call it after ``clear_fault``."""
 
+    async def operator_clear(self) -> None:  # noqa: B027 - optional hook
+        """What the operator does at the machine once its alarm was looked into: clear an
+        error condition it keeps until someone does (the Dyna 2400's ERROR display). Called
+        with no step of the machine's in flight; the default: nothing."""
+
     async def stop(self) -> None:  # noqa: B027 - optional hook
         """The emulator is shut down: end what the machine runs on its own (a program
         executing, its automatic operator). Serving ends with each server's ``close``; a

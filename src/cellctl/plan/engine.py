@@ -27,8 +27,7 @@ import asyncio
 import contextlib
 import dataclasses
 import tomllib
-from collections import Counter
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -44,6 +43,7 @@ from cellctl.files import read_text
 from cellctl.mailbox import DONE, MAILBOX_FILE, Mailbox
 from cellctl.mailbox.sqlite import SqliteMailbox
 from cellctl.plan.faults import PLC, check_switch
+from cellctl.plan.operator import PlanOperator
 from cellctl.plan.when import PLAN_POLL_S
 
 #: The mailbox's default order priority (``Mailbox.post_order``).
@@ -57,11 +57,6 @@ POLICIES = ("default", *SCHEDULER_POLICIES)
 #: operators power them up and select the link mode (the Dyna 2400's takes 5 s) before the
 #: controller connects at the start, as before a shift.
 POWER_ON_S = 10.0
-
-#: The plan's operator, after a fault: looks (poll periods) of rest before acting, and how
-#: many times at most the rest of the cell is looked over and resolved again.
-RESOLVE_LOOKS = 4
-RESOLVE_ROUNDS = 5
 
 #: Seconds of plan time between two looks of the plan's own watcher (all orders done?): a
 #: plan ends at most this much after its last order, its finish time the order's own.
@@ -327,7 +322,7 @@ async def _play(inputs: PlanInputs, cell_dir: Path) -> tuple[float, dict[str, fl
         for name in inputs.out_of_service:
             await controller.set_service(name, False, "out of service when the plan began")
         run = asyncio.create_task(controller.run(stop), name="plan-controller")
-        operator = _Operator(controller, cell, journal, inputs.out_of_service)
+        operator = PlanOperator(controller, cell, journal, inputs.out_of_service)
         faults = [
             asyncio.create_task(operator.window(f, inputs.until), name=f"plan-fault-{i}")
             for i, f in enumerate(inputs.faults)
@@ -471,119 +466,6 @@ def _finished(inputs: PlanInputs, mailbox: Mailbox, until: float) -> dict[str, f
         done = state.state == DONE and state.updated <= until
         out[order.order_id] = state.updated if done else None
     return out
-
-
-class _Operator:
-    """The plan's operator: takes a machine out and back for "down", switches an emulator's
-    fault on and off, and afterwards resolves what the cell holds (as an operator does: the
-    alarms cleared, each held part released where it physically is)."""
-
-    def __init__(
-        self,
-        controller: CellController,
-        cell: EmulatedCell,
-        journal: Journal,
-        kept_out: Iterable[str] = (),
-    ) -> None:
-        self.controller = controller
-        self.cell = cell
-        self.journal = journal
-        # Out of service when the plan began: they stay out, whatever window closes.
-        self.kept_out = frozenset(kept_out)
-        # Windows open now per (machine, fault): overlapping ones act as their union.
-        self._open: Counter[tuple[str, str]] = Counter()
-
-    async def window(self, fault: FaultWindow, until: float) -> None:
-        clock = current_clock()
-        key = (fault.machine, fault.fault)
-        await clock.sleep(max(0.0, fault.start - clock.now()))
-        self._open[key] += 1
-        if self._open[key] == 1:
-            await self._switch_on(fault)
-        if fault.end is None or fault.end >= until:
-            return
-        await clock.sleep(max(0.0, fault.end - clock.now()))
-        self._open[key] -= 1
-        if self._open[key] > 0:
-            return  # another window of the same fault is still open
-        if fault.fault == "down":
-            if fault.machine not in self.kept_out:
-                await self.controller.set_service(fault.machine, True)
-            return
-        await self._switch_off(fault.machine, fault.fault)
-        await self.resolve(until, fault.end)
-
-    async def _switch_on(self, fault: FaultWindow) -> None:
-        if fault.fault != "down":
-            self._target(fault.machine).set_fault(fault.fault, fault.arg)
-        elif fault.machine not in self.kept_out:
-            await self.controller.set_service(fault.machine, False, "down (plan)")
-
-    def _target(self, machine: str) -> Any:
-        cell = self.cell
-        if machine == "plc":
-            return cell.plc
-        if machine == cell.robot_name:
-            return cell.robot
-        return cell.mills[machine]
-
-    async def _switch_off(self, machine: str, name: str) -> None:
-        """The fault off, and what the panel needs after it (as ``CellRig.switch_off``)."""
-        target = self._target(machine)
-        target.clear_fault(name)
-        await target.operator_after(name)  # a panel's key, a pendant's unlock: the kind's
-
-    async def resolve(self, until: float, closed: float) -> None:
-        """As an operator after fixing a machine (its fault window ``closed`` then): a few
-        looks later, clear every alarm and release every held part (one held after a
-        transfer once the arm is at rest); again if the looks after that raise more (a read
-        that was out when the fault went), and while a step begun under the fault is still
-        in flight (a block garbled by line noise fails only at its deadline)."""
-        clock = current_clock()
-        look = self.controller.options.poll_period
-        rounds = 0
-        while rounds < RESOLVE_ROUNDS and clock.now() < until:
-            await clock.sleep(RESOLVE_LOOKS * look)
-            alarms = self.journal.active_alarms()
-            held = self.journal.parts(statuses=["held"])
-            if not alarms and not held:
-                if not self._under_fault(closed):
-                    return
-                continue
-            rounds += 1
-            for alarm in alarms:
-                self.journal.clear_alarm(alarm.id, by="plan operator")
-            while held and self.cell.robot.moving:
-                if clock.now() >= until:
-                    return
-                await clock.sleep(look)
-            for part in held:
-                self._release(part.id)
-            self.controller.poke()
-
-    def _under_fault(self, closed: float) -> bool:
-        """True while a step that began before ``closed`` is still in flight."""
-        return any(s.state == "started" and s.started <= closed for s in self.journal.steps())
-
-    def _release(self, part_id: str) -> None:
-        cell = self.cell
-        steps = self.journal.steps(part_id)
-        if not steps:
-            return  # held from the start (a held part of the running cell): stays held
-        step = steps[-1]
-        mills = {name: i for i, name in enumerate(cell.mill_names, start=1)}
-        if step.kind == "transfer":
-            source, target = step.program.split("_to_")
-            if cell.gripper is not None and source in mills:
-                cell.vise[mills[source]], cell.gripper = cell.gripper, None
-            where = source
-            if target in mills and cell.vise[mills[target]] is not None:
-                where = target
-            self.journal.release_part(part_id, location=where)
-            return
-        blank = cell.vise.get(mills.get(step.machine, 0))
-        cut = cell.runs_per_part().get(blank, {}).get(step.machine, 0) if blank else 0
-        self.journal.release_part(part_id, redo_step=not cut)
 
 
 __all__ = [

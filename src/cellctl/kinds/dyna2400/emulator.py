@@ -61,9 +61,8 @@ from cellctl.kinds.dyna2400.dynalan.machine import (
     MachineState,
     Outcome,
     ProgramFault,
-    execute,
+    checked_execute,
     run_block,
-    travel_fault,
 )
 from cellctl.kinds.dyna2400.dynalan.model import Statement
 from cellctl.kinds.dyna2400.dynalan.parser import END_OF_TRANSMISSION, decode_line, parse_line
@@ -272,6 +271,16 @@ class Dyna2400Emulator(EmulatedDevice, HeadStart):
             self.press_next()
         elif fault in ("never-ready", "stall"):
             self.select(self.auto_mode)
+
+    async def operator_clear(self) -> None:
+        """The panel after an error condition (a garbled block, a move outside the travel):
+        memory cleared and the link mode selected again, READY. The reference zero and the
+        setup's units, tool and feeds stay (the axes did not move): a part left in the vise
+        can be cut again without a new setup over it."""
+        if self.error is None or self.executing:
+            return
+        self.clear_memory()
+        self.select(self.auto_mode)
 
     # -- automatic operator ---------------------------------------------------------------------
 
@@ -545,10 +554,7 @@ class Dyna2400Emulator(EmulatedDevice, HeadStart):
         try:
             if statement.kind is Kind.SETUP:
                 await self._setup_stop()
-            moves = execute(statement, self.machine, self.config, number)
-            fault = travel_fault(moves, self.machine.units, self.config.travel)
-            if fault:
-                raise ProgramFault("travel", fault, number)
+            moves = checked_execute(statement, self.machine, self.config, number)
         except ProgramFault as fault:
             run.outcome = "error"
             self.executing = False

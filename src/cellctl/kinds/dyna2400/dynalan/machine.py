@@ -71,6 +71,7 @@ __all__ = [
     "ProgramFault",
     "Step",
     "Vec",
+    "checked_execute",
     "execute",
     "run_block",
     "travel_fault",
@@ -445,6 +446,21 @@ def travel_fault(moves: list[Move] | tuple[Move, ...], units: Units, travel: Tra
     return None
 
 
+def checked_execute(
+    stmt: Statement, state: MachineState, config: MachineConfig, number: int = 0
+) -> list[Move]:
+    """:func:`execute` with the travel checked: a move that would leave the travel raises
+    :class:`ProgramFault` and leaves the axes where they were (the controller checks a move
+    before it makes it: after the error the machine is not at the point it refused)."""
+    before = state.position
+    moves = execute(stmt, state, config, number)
+    fault = travel_fault(moves, state.units, config.travel)
+    if fault:
+        state.position = before
+        raise ProgramFault("travel", fault, number)
+    return moves
+
+
 def run_block(
     memory: Mapping[int, Entry],
     state: MachineState,
@@ -514,11 +530,10 @@ def run_block(
         if kind in (Kind.HALT, Kind.END):
             yield Step(number, entry, outcome=Outcome.HALT if kind is Kind.HALT else Outcome.END)
             return
-        moves = execute(entry, state, config, number)
         if check_travel:
-            fault = travel_fault(moves, state.units, config.travel)
-            if fault:
-                raise ProgramFault("travel", fault, number)
+            moves = checked_execute(entry, state, config, number)
+        else:
+            moves = execute(entry, state, config, number)
         yield Step(number, entry, tuple(moves), operator=kind is Kind.SETUP)
         index += 1
     yield Step(numbers[-1], Statement(Kind.BLANK), outcome=Outcome.BLOCK_END)

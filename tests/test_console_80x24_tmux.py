@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+from cellctl.plan.when import PLAN_POLL_S
 from tests.test_console_tmux import (
     CELLCTL,
     Tmux,
@@ -123,7 +124,7 @@ def test_what_if_compares_policies_readable_at_80_columns(tmux: Tmux, tmp_path: 
         text = "\n".join(seen)
         for policy in ("downstream-first", "one-at-a-time", "shortest-first"):
             # On its line, or going on under it (the longer policies' names).
-            head = rf"cell \(policy {policy}, seed 0,( |\n\s+)poll 5 s\)$"
+            head = rf"cell \(policy {policy}, seed 0,( |\n\s+)poll {PLAN_POLL_S:g} s\)$"
             assert re.search(head, text, re.MULTILINE), text
         assert "policies compared:" in text, text
         # The longest lines, whole (78 columns): the chart's legend, the order table's head.

@@ -81,10 +81,9 @@ async def test_a_viewer_plans_ahead_in_the_console(viewer: tuple[CellRig, Remote
         now = datetime.now()
         # Two minutes ahead: the plan (which starts when the API is asked) still has it.
         down = f"cnc2:down@{_hhmm(now + timedelta(minutes=2))}-{_hhmm(now + timedelta(minutes=4))}"
-        # Three parts in two hours, looked at every 2 s: a plan that plays for some
-        # seconds (the default 5 s poll plays it in about one), to see the console live
-        # meanwhile.
-        await fill(pilot, "#horizon", "2h")
+        # Three parts in an hour, looked at every 2 s: a plan that plays for some seconds
+        # (the default poll plays it in well under one), to see the console live meanwhile.
+        await fill(pilot, "#horizon", "1h")
         await fill(pilot, "#poll", "2")
         await fill(pilot, "#fault", down)
         await fill(pilot, "#add", "wax-robot-base:3")
@@ -106,7 +105,7 @@ async def test_a_viewer_plans_ahead_in_the_console(viewer: tuple[CellRig, Remote
         # The part's first transfer and cut, letter A (its type); cnc2 idle in its window.
         assert "A" in rows["robot"] and "A" in rows["cnc1"]
         assert FAULT in rows["cnc2"] and set(rows["cnc2"]) <= {FAULT, IDLE, "A"}
-        assert "one character = 0:02:00: A wax-robot-base" in shown
+        assert "one character = 0:01:00: A wax-robot-base" in shown
         assert "order     part type           made finishes     due          verdict" in shown
         await pilot.press("enter")  # closes the view
         shown = await wait_text(pilot, "plan (default): on time")

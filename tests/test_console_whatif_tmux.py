@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from cellctl.plan.when import PLAN_POLL_S
 from cellctl.ui.console.whatif import GANTT_WIDTH
 from tests.test_console_tmux import (
     CELLCTL,
@@ -60,7 +61,8 @@ def test_what_if_in_a_terminal(tmux: Tmux, tmp_path: Path) -> None:
         tmux.keys("Enter")
         shown = tmux.wait_for("Gantt chart, policy default", "one character = 2.0 s",
                                   timeout=240)  # fmt: skip
-        header = "plan of CIM laboratory machining cell (policy default, seed 0, poll 5 s)"
+        cell = "plan of CIM laboratory machining cell"
+        header = f"{cell} (policy default, seed 0, poll {PLAN_POLL_S:g} s)"
         assert header in shown
         assert re.search(r"^\s*plan-add1\s+wax-robot-base\s+\d/1 ", shown, re.MULTILINE), shown
         rows = dict(GANTT_ROW.findall(shown))

@@ -319,7 +319,7 @@ def test_controller_options_carry_the_policy() -> None:
 
 
 def test_a_plan_looks_less_often_than_the_cell_and_finishes_the_same(tmp_path: Path) -> None:
-    """The plan's poll period (PLAN_POLL_S, 5 s) against the cell's own (0.5 s): the same
+    """The plan's poll period (PLAN_POLL_S, 15 s) against the cell's own (0.5 s): the same
     steps in the same order, each order finished within seconds of the other (a step's end
     is seen by the step itself; the looks watch idle machines)."""
     orders = (PlanOrder("A", "wax-robot-base", 1), PlanOrder("B", "wax-toy-mill-table", 1))

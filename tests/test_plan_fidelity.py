@@ -6,7 +6,7 @@ RFC 2217, the PLC over Modbus/TCP, the machines ``REAL_TIME_SCALE`` times faster
 The virtual run is :func:`cellctl.plan.engine.simulate`: the same controller, drivers and
 emulators at the machines' own times. Makespans are compared in machine seconds (the real
 run's wall seconds times its scale): within 2 %, every step in the same order. The plan looks
-at idle machines as a plan does (every ``PLAN_POLL_S``, 5 s), the real cell at its own 0.5 s:
+at idle machines as a plan does (every ``PLAN_POLL_S``, 15 s), the real cell at its own 0.5 s:
 what is compared is the plan a planner gets against the cell it predicts.
 
 The batch is the benchmark's (``bench/cell_throughput.py``): lots of 5, the two part types

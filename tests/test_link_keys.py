@@ -5,6 +5,7 @@ error come out."""
 
 from __future__ import annotations
 
+import asyncio
 import os
 import socket
 import subprocess
@@ -18,8 +19,9 @@ from hypothesis import strategies as st
 
 from cellctl.drivers.state import machine_key
 from cellctl.errors import LinkError, MachineInUse, UsageError
-from cellctl.link.keys import link_keys, link_lock_paths, links_overlap
-from cellctl.link.lock import RUNTIME_ENV, OwnerLock
+from cellctl.kinds.ibm7545.driver import Ibm7545Robot
+from cellctl.link.keys import link_keys, link_lock_paths, links_overlap, needs_lookup
+from cellctl.link.lock import RUNTIME_ENV, OwnerLock, holder
 
 #: A name under .invalid never resolves (RFC 6761): the resolver says so at once.
 NOWHERE = "cellctl-test.invalid"
@@ -89,6 +91,52 @@ def test_a_name_that_does_not_resolve_is_refused_in_words() -> None:
     )
     assert links_overlap(f"socket://{NOWHERE}:4001", f"rfc2217://{NOWHERE}:4001")
     assert not links_overlap(f"socket://{NOWHERE}:4001", "socket://127.0.0.1:4001")
+
+
+def test_only_a_network_name_asks_the_name_server() -> None:
+    """What a driver's connect resolves in a worker thread (a slow name server stalls that
+    connection, not the loop's other machines): a host name, nothing else."""
+    for url in (f"socket://{NOWHERE}:4001", "rfc2217://localhost:7001", "modbus://plc1.lan"):
+        assert needs_lookup(url), url
+    for url in (
+        "socket://127.0.0.1:4001",
+        "rfc2217://[::1]:7001",
+        "modbus://10.0.0.5",
+        "/dev/ttyUSB0",
+        "serial:///dev/ttyS0",
+        "mem://robot1",
+        "loop://",
+        "socket://127.0.0.1",  # no port: refused where the keys are made
+    ):
+        assert not needs_lookup(url), url
+
+
+def held_in(directory: Path) -> list[Path]:
+    """The lock files in ``directory`` someone holds."""
+    return [path for path in directory.glob("*.lock") if holder(path) is not None]
+
+
+async def test_a_connect_to_a_name_that_does_not_resolve_is_refused_and_holds_nothing(
+    own_runtime_dir: Path,
+) -> None:
+    """A driver's connect resolves the name off the event loop: the loop's other tasks go
+    on, the refusal is in words, and no lock is left taken."""
+    ticks = 0
+
+    async def ticker() -> None:
+        nonlocal ticks
+        while True:
+            ticks += 1
+            await asyncio.sleep(0)
+
+    ticking = asyncio.create_task(ticker())
+    try:
+        with pytest.raises(LinkError, match=f"cannot resolve the host '{NOWHERE}'"):
+            await Ibm7545Robot.connect(f"socket://{NOWHERE}:4001")
+    finally:
+        ticking.cancel()
+    assert ticks > 0
+    assert not held_in(own_runtime_dir)
 
 
 @pytest.mark.parametrize(

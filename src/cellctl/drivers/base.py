@@ -19,7 +19,7 @@ from typing import Any, Protocol, Self
 from cellctl.clock import Clock
 from cellctl.drivers.state import StateStore, machine_key
 from cellctl.link import LineSettings, Link, TrafficLog, open_link
-from cellctl.link.keys import link_lock_paths
+from cellctl.link.keys import link_lock_paths, needs_lookup
 from cellctl.link.lock import OwnerLock, refuse_if_held
 
 
@@ -35,7 +35,7 @@ def _lock_paths(url: str, name: str | None, store: StateStore | None) -> list[tu
     return wanted
 
 
-def take_link_locks(url: str, name: str | None, store: StateStore | None) -> list[OwnerLock]:
+async def take_link_locks(url: str, name: str | None, store: StateStore | None) -> list[OwnerLock]:
     """The owner locks of a machine, taken now (MachineInUse if another owner holds one).
 
     - by name in the cell, ``<cell>/state/machine-<key>.lock``, when there is a store and a
@@ -43,10 +43,22 @@ def take_link_locks(url: str, name: str | None, store: StateStore | None) -> lis
     - by URL, ``<runtime dir>/link-<key>.lock``, always but for ``loop://`` and ``mem://``
       (lines inside one process, whose own open refuses a second host): two ``--link``
       commands exclude each other, and one cannot open a link a controller opened by name.
+
+    A host name is resolved in a worker thread (up to its deadline) while the loop goes on
+    serving the cell's other machines; the locks are then taken here, so a connect
+    cancelled meanwhile holds none.
     """
+    if needs_lookup(url):
+        wanted = await asyncio.to_thread(_lock_paths, url, name, store)
+    else:
+        wanted = _lock_paths(url, name, store)
+    return _acquire(wanted)
+
+
+def _acquire(wanted: list[tuple[Path, str]]) -> list[OwnerLock]:
     locks: list[OwnerLock] = []
     try:
-        for path, what in _lock_paths(url, name, store):
+        for path, what in wanted:
             locks.append(OwnerLock.acquire(path, what))
     except BaseException:
         release_locks(locks)
@@ -95,7 +107,7 @@ class LinkDriver:
     ) -> Self:
         """Take the machine's locks, open ``url``, and ``build`` the driver on the link; on a
         failure close what was opened and give the locks back."""
-        locks = take_link_locks(url, name, store)
+        locks = await take_link_locks(url, name, store)
         try:
             link = await open_link(url, settings, trace=trace, label=name, clock=clock)
             try:

@@ -154,7 +154,7 @@ class ModbusPlc:
         """
         plc_map = plc_map or PlcMap()
         plc = cls(url or plc_map.url, plc_map, timeout=timeout or plc_map.timeout, clock=clock)
-        plc._owner_locks = take_link_locks(plc.url, name, store)
+        plc._owner_locks = await take_link_locks(plc.url, name, store)
         try:
             async with plc.clock.timeout(plc.timeout):
                 await plc._ensure_connected()

@@ -87,6 +87,20 @@ def link_keys(
     return tuple(sorted({_endpoint(address, port) for address in addresses}))
 
 
+def needs_lookup(url: str) -> bool:
+    """True if :func:`link_keys` of ``url`` asks the name server (a network URL whose host is
+    a name, not an address): an event loop calls it from a worker thread, so a slow name
+    server stalls the one connection, not every machine the loop serves."""
+    scheme = url.split("://", 1)[0].lower() if "://" in url else ""
+    if scheme not in TCP_SCHEMES:
+        return False
+    try:
+        host, _ = _host_port(url, scheme)
+    except UsageError:
+        return False  # refused where the keys are made, in the caller's own words
+    return _numeric(host) is None
+
+
 def link_lock_paths(url: str, *, timeout: float = RESOLVE_TIMEOUT) -> list[Path]:
     """The owner lock files of link ``url`` in this user's runtime directory, one per key:
     ``link-<key>.lock`` (a device path's name as it always was, ``link-dev_pts_3.lock``).
@@ -194,4 +208,5 @@ __all__ = [
     "link_keys",
     "link_lock_paths",
     "links_overlap",
+    "needs_lookup",
 ]

@@ -217,12 +217,18 @@ async def test_each_refusal_of_the_api_names_its_field(
         ({"add": ["x" * 201]}, "add"),  # the schema's
         ({"policy": "bogus"}, "policy"),
         ({"poll": 0}, "poll"),
+        ({"poll": "fast"}, "poll"),
+        ({"poll": [5]}, "poll"),
         ({"seed": -1}, "seed"),
     ]
+    said = {}
     for params, field in calls:
         with pytest.raises(UsageError) as refused:
             await client.call("plan.run", {"shift": "2m", "add": ["wax-robot-base:1"]} | params)
         assert refusal_field(str(refused.value)) == field, (params, str(refused.value))
+        said[repr(params)] = str(refused.value)
+    # The poll refused in the words of the console's form and of `cellctl plan --poll`.
+    assert said["{'poll': 0}"].endswith("poll 0: seconds, more than 0 and at most 600"), said
 
 
 def _report(steps: list[dict[str, Any]], faults: list[FaultWindow]) -> PlanReport:

@@ -158,7 +158,9 @@ def test_the_policies_compared_and_the_plan_replayed_from_its_inputs(
         (["--add", "wax-robot-base:3", "--policy", "fastest"], "policy 'fastest': unknown"),
         (["--add", "wax-robot-base:3", "--shift", "8h", "--until", "18:00"], "not both"),
         ([], "nothing to plan"),
-        (["--add", "wax-robot-base:1", "--poll", "0"], r"--poll.*0<x<=600"),
+        # The console's and the API's words (cellctl.plan.when.parse_poll).
+        (["--add", "wax-robot-base:1", "--poll", "0"], r"--poll.*poll '0': seconds, more than 0"),
+        (["--add", "wax-robot-base:1", "--poll", "nan"], r"poll 'nan': seconds, more than 0"),
         (["--add", "wax-robot-base:1@99999999"], "the priority must be -1000000 to 1000000"),
         (["--add", "wax-robot-base:99999"], "the quantity must be 1 to 10000"),
         (["--add", "wax-robot-base:1", "--policy", "all,default"], "all plays every policy"),

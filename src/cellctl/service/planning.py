@@ -34,7 +34,7 @@ import tomllib
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from cellctl.cell.journal import Journal
 from cellctl.cell.shift import time_scale_of
@@ -42,7 +42,7 @@ from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.files import read_text
 from cellctl.mailbox import Mailbox
-from cellctl.plan.when import MAX_POLL_S
+from cellctl.plan.when import MAX_POLL_S, parse_poll
 from cellctl.service.access import CellAccess
 from cellctl.service.functions import Progress
 from cellctl.service.offload import in_process
@@ -67,8 +67,20 @@ class PlanParams(BaseModel):
     policy: str = Field(default="default", min_length=1, max_length=200)
     seed: int = Field(default=0, ge=0, le=2**63 - 1)
     #: How often the planned controller looks at idle machines, s (the plan's PLAN_POLL_S
-    #: when not given).
-    poll: float | None = Field(default=None, gt=0, le=MAX_POLL_S, allow_inf_nan=False)
+    #: when not given): refused in the words the console and ``cellctl plan --poll`` use.
+    poll: float | None = None
+
+    @field_validator("poll", mode="before")
+    @classmethod
+    def _poll(cls, value: Any) -> float | None:
+        if value is None:
+            return None
+        if isinstance(value, bool) or not isinstance(value, int | float | str):
+            raise ValueError(f"poll {value!r}: seconds, more than 0 and at most {MAX_POLL_S:g}")
+        try:
+            return parse_poll(value)
+        except UsageError as e:
+            raise ValueError(str(e)) from None
 
 
 _playing = threading.Lock()

@@ -25,20 +25,37 @@ import click
 
 from cellctl.clock import current_clock
 from cellctl.errors import CellctlError, UsageError
-from cellctl.plan.when import MAX_POLL_S, PLAN_POLL_S
+from cellctl.plan.when import MAX_POLL_S, PLAN_POLL_S, parse_poll
 from cellctl.ui.calls import cell_call
 from cellctl.ui.common import cell_dir, console, fail, print_json, print_line
 
 T = TypeVar("T")
 
+
+class PollType(click.ParamType[float, Any]):
+    """Seconds between a plan's looks, refused in the words of the console and the API
+    (:func:`cellctl.plan.when.parse_poll`)."""
+
+    name = "seconds"
+
+    def convert(
+        self, value: Any, param: click.Parameter | None, ctx: click.Context | None
+    ) -> float:
+        try:
+            return parse_poll(value)
+        except UsageError as e:
+            self.fail(str(e), param, ctx)
+
+
 #: ``--poll`` of ``cellctl plan`` and ``cellctl factory plan`` (unset: the plan's own).
 poll_option = click.option(
     "--poll",
-    type=click.FloatRange(0, MAX_POLL_S, min_open=True),
+    type=PollType(),
     metavar="SECONDS",
     help="How often the planned controller looks at idle machines (the cell's own period "
     "if longer). Looks are most of a plan's work and move its schedule by seconds a "
-    f"shift; a fault in the plan is noticed up to this late.  [default: {PLAN_POLL_S:g}]",
+    f"shift; a fault in the plan is noticed up to this late. More than 0, at most "
+    f"{MAX_POLL_S:g}.  [default: {PLAN_POLL_S:g}]",
 )
 
 

@@ -53,20 +53,22 @@ typecheck: $(STAMP)
 	$(BIN)/mypy
 
 # Independent tests run in parallel (each has its own ports and directories). Much of a
-# test's time is emulated machine time or a process starting (waiting, not computing): 6
-# workers keep a 2-core box about 90 % busy over the run (1599 tests, 4.5 to 5.5 min), so what
-# shortens the suite is CPU saved (a `cellctl` that starts with less, one Chromium per worker).
+# test's time is emulated machine time or a process starting (waiting, not computing), yet
+# the suite is CPU-bound on a 2-core box: 4 workers ran its 1769 tests in 405 s with 660 s
+# of CPU, 6 workers in 425 to 480 s with 740 to 800 s (each worker collects the suite and
+# starts its own Chromium, and more processes share the two cores), 3 in 430 s. What
+# shortens it is CPU saved (a `cellctl` that starts with less, plans that look less often).
 # Work stealing keeps the long end-to-end tests from piling up on one worker at the end.
 # Compiled bytecode is used and kept even where the environment turns caching off: pytest's
 # own plug-ins are loaded before tests/conftest.py could turn it on, and every worker and
 # every `cellctl` process compiled again. It stays in __pycache__ beside each module (git
 # ignores it): pip compiled the installed packages there, and a PYTHONPYCACHEPREFIX would
-# hide that and compile them all again on a fresh clone, in six workers at once.
+# hide that and compile them all again on a fresh clone, in every worker at once.
 # The tests marked alone (real-time fidelity) run after, with the box to themselves; only the
 # files that mark one are collected (collecting the whole suite for one test took 5 s).
 PYTEST := env -u PYTHONDONTWRITEBYTECODE $(BIN)/pytest
 pytest: $(STAMP) $(PLUGIN_STAMP)
-	$(PYTEST) -q -n 6 --dist worksteal -m "not alone"
+	$(PYTEST) -q -n 4 --dist worksteal -m "not alone"
 	$(PYTEST) -q -m alone $$(grep -l '^@pytest.mark.alone' tests/*.py)  # real-time fidelity, alone
 
 # `make demo DEMO_ARGS=--dashboard` leaves the dashboard up after the batch (Ctrl-C stops).

@@ -47,8 +47,8 @@ CAM = "%\r\nO1001 (PLATE)\r\nG21 G90 G17\r\nG00 X0 Y0 Z5.\r\nG01 Z-1. F300\r\nX2
             "(options.o_digits = 4): it could never punch O123456",
         ),
         (
-            "options = { o_digits = 3 }\n",  # the default O9999 on a 3-digit control
-            "request.program = 9999 (the default) has 4 digits, but a's control takes 3",
+            "options = { o_digits = 3 }\n[machines.a.request]\nprogram = 9999\n",
+            "request.program = 9999 has 4 digits, but a's control takes 3",
         ),
     ],
 )
@@ -74,6 +74,16 @@ def test_a_request_program_the_control_cannot_number_is_refused_at_load(
 def test_a_request_program_within_the_digits_is_taken(tmp_path: Path, machine: str) -> None:
     (tmp_path / "dnc.toml").write_text(f'[machines.a]\nlink = "loop://"\n{machine}')
     assert load_shop(tmp_path).machines["a"]
+
+
+@pytest.mark.parametrize(("digits", "program"), [(3, 999), (1, 9), (4, 9999), (8, 9999)])
+def test_the_default_request_program_is_one_the_control_can_number(
+    tmp_path: Path, digits: int, program: int
+) -> None:
+    """O9999, the highest 4-digit number, or the control's own highest with fewer digits."""
+    toml = f'[machines.a]\nlink = "loop://"\noptions = {{ o_digits = {digits} }}\n'
+    (tmp_path / "dnc.toml").write_text(toml)
+    assert load_shop(tmp_path).machines["a"].request.program == program
 
 
 async def test_dnc_serve_refuses_it_before_a_link_opens(shop: Shop) -> None:  # noqa: F811

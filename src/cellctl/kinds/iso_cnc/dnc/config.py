@@ -160,21 +160,25 @@ def _machine(name: str, table: MachineTable, path: Path) -> DncMachine:
             said = "unknown option" if item["type"] == "extra_forbidden" else item["msg"]
             problems.append(f"options.{key}: {said}")
         raise UsageError(f"{where}: " + "; ".join(problems)) from None
-    _check_request_digits(name, table.request, options, where)
-    return DncMachine(name, table.link, settings, options, table.request)
+    request = _request_for(name, table.request, options, where)
+    return DncMachine(name, table.link, settings, options, request)
 
 
-def _check_request_digits(
+def _request_for(
     name: str, request: RequestConvention, options: IsoCncOptions, where: str
-) -> None:
-    """Refuse a request program the control cannot number (``program = 123456`` on a
-    4-digit control): it could never write or punch it, so no request would ever come."""
+) -> RequestConvention:
+    """The machine's request convention, its program numbered as the control can: the
+    default O9999 is the highest number of a 4-digit control, and a control with fewer
+    digits gets its own highest (O999 on 3 digits). A request program given that the control
+    cannot number (``program = 123456`` on a 4-digit control) is refused: it could never
+    write or punch it, so no request would ever come."""
     digits = options.o_digits
     if not request.enabled or request.program < 10**digits:
-        return
-    given = "" if "program" in request.model_fields_set else " (the default)"
+        return request
+    if "program" not in request.model_fields_set:
+        return request.model_copy(update={"program": 10**digits - 1})
     raise UsageError(
-        f"{where}: request.program = {request.program}{given} has {len(str(request.program))} "
+        f"{where}: request.program = {request.program} has {len(str(request.program))} "
         f"digits, but {name}'s control takes {digits} (options.o_digits = {digits}): it could "
         f"never punch O{request.program}, so no remote request would ever come; give a "
         f"request program from 1 to {10**digits - 1}"

@@ -42,19 +42,19 @@ class Shop:
 
     async def status(self) -> dict[str, Any]:
         """``cell.status`` of the running ``dnc serve``; reconnects once if it went away."""
-        for attempt in (1, 2):
-            if self.api is None:
-                self.api = await RemoteCell.connect(
-                    token=read_token(self.root), socket_path=self.root / "api.sock"
-                )
-            try:
-                result: dict[str, Any] = await self.api.call("cell.status")
-                return result
-            except LinkError:
-                await self.close()
-                if attempt == 2:
-                    raise
-        raise AssertionError("unreachable")
+        try:
+            return await self._call_status()
+        except LinkError:
+            await self.close()
+            return await self._call_status()
+
+    async def _call_status(self) -> dict[str, Any]:
+        if self.api is None:
+            self.api = await RemoteCell.connect(
+                token=read_token(self.root), socket_path=self.root / "api.sock"
+            )
+        result: dict[str, Any] = await self.api.call("cell.status")
+        return result
 
     async def close(self) -> None:
         if self.api is not None:

@@ -101,8 +101,8 @@ async def test_move_outside_travel_is_an_error_condition(served) -> None:  # typ
 async def test_the_operator_leaves_a_block_running_alone(served) -> None:  # type: ignore[no-untyped-def]
     """No error: nothing to clear, and a block under way goes on (its READY is its end)."""
     emulator, _, link = served
-    # 5 in at 10 in/min: 30 s of machine time, 30 ms here (RTS low 50 ms at least).
-    await link.write(lines("000 FR XYZ = 10.0", "001 GR X 5.000", "002 SKIP TO 900", "900"))
+    # 5 in at 1 in/min: 300 s of machine time, 0.3 s here (still running once CTS is low).
+    await link.write(lines("000 FR XYZ = 1.0", "001 GR X 5.000", "002 SKIP TO 900", "900"))
     await link.wait_cts(False, timeout=5)
     await emulator.operator_clear()
     assert emulator.executing and not await link.cts()

@@ -64,7 +64,7 @@ def link_keys(
     (LinkTimeout past ``timeout``) for a host that does not resolve when ``unresolved`` is
     ``"refuse"``.
     """
-    scheme = url.split("://", 1)[0].lower() if "://" in url else ""
+    scheme = _scheme(url)
     if scheme in ("", "serial"):
         path = url.split("://", 1)[1] if scheme else url
         if not path:
@@ -91,7 +91,7 @@ def needs_lookup(url: str) -> bool:
     """True if :func:`link_keys` of ``url`` asks the name server (a network URL whose host is
     a name, not an address): an event loop calls it from a worker thread, so a slow name
     server stalls the one connection, not every machine the loop serves."""
-    scheme = url.split("://", 1)[0].lower() if "://" in url else ""
+    scheme = _scheme(url)
     if scheme not in TCP_SCHEMES:
         return False
     try:
@@ -116,6 +116,11 @@ def links_overlap(a: str, b: str, *, timeout: float = RESOLVE_TIMEOUT) -> bool:
     name that does not resolve is compared by name, see ``unresolved="name"``)."""
     keys_a = link_keys(a, timeout=timeout, unresolved="name")
     return not set(keys_a).isdisjoint(link_keys(b, timeout=timeout, unresolved="name"))
+
+
+def _scheme(url: str) -> str:
+    """``url``'s scheme in lower case; "" for a device path written bare."""
+    return url.split("://", 1)[0].lower() if "://" in url else ""
 
 
 def _host_port(url: str, scheme: str) -> tuple[str, int]:

@@ -42,7 +42,7 @@ from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.files import read_text
 from cellctl.mailbox import Mailbox
-from cellctl.plan.when import MAX_POLL_S, parse_poll
+from cellctl.plan.when import parse_poll
 from cellctl.service.access import CellAccess
 from cellctl.service.functions import Progress
 from cellctl.service.offload import in_process
@@ -75,10 +75,10 @@ class PlanParams(BaseModel):
     def _poll(cls, value: Any) -> float | None:
         if value is None:
             return None
-        if isinstance(value, bool) or not isinstance(value, int | float | str):
-            raise ValueError(f"poll {value!r}: seconds, more than 0 and at most {MAX_POLL_S:g}")
+        # Anything but a number or its text (a list, true) is refused as its text would be.
+        number = isinstance(value, int | float | str) and not isinstance(value, bool)
         try:
-            return parse_poll(value)
+            return parse_poll(value if number else str(value))
         except UsageError as e:
             raise ValueError(str(e)) from None
 

@@ -99,6 +99,9 @@ def latency_control(latency_ms: float, mode: Mode, **more: object) -> IsoCncEmul
     return control
 
 
+# A real-time margin (the host's buffer model against DC3s 16 ms late): on a box loaded by
+# the other tests, a late loop hands the control bursts no line would; measured alone.
+@pytest.mark.alone
 @pytest.mark.parametrize("latency_ms", [0, 2, 8, 16])
 async def test_read_in_and_drip_feed_never_overflow_at_any_adapter_latency(
     tmp_path: Path, latency_ms: float

@@ -20,6 +20,7 @@ the dashboard in Chromium.
 from __future__ import annotations
 
 import asyncio
+import atexit
 import inspect
 import os
 import re
@@ -28,6 +29,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
 from contextlib import contextmanager
@@ -45,6 +47,7 @@ from cellctl.clock import VirtualLoop
 from cellctl.emulators.serve import Server, serve
 from cellctl.kinds.ibm7545.emulator import Ibm7545Emulator
 from cellctl.link import ROBOT_LINE
+from cellctl.link.lock import RUNTIME_ENV
 
 TRANSPORTS = ["pty", "socket", "rfc2217"]
 
@@ -57,6 +60,7 @@ settings.load_profile("cellctl")
 
 def pytest_configure(config: pytest.Config) -> None:
     cache_bytecode()
+    own_runtime_dir()
     config.addinivalue_line(
         "markers",
         "virtual(**loop_options): run this async test and its async fixtures on cellctl's "
@@ -67,6 +71,17 @@ def pytest_configure(config: pytest.Config) -> None:
         "alone: a real-time run measured against the machines' own times; `make test` runs "
         "these after the others, one at a time, so no other test loads the box meanwhile",
     )
+
+
+def own_runtime_dir() -> None:
+    """Give this test process (each xdist worker) its own lock and socket directory, which
+    the processes its tests start inherit. Link locks are per user: two workers' example cells
+    name one PLC (modbus://192.0.2.20:502), and a console in one worker's test would hold it
+    against ``cellctl run`` in another's. Within a worker tests run one after another, so a
+    lock a test leaves behind still shows."""
+    directory = tempfile.mkdtemp(prefix="cellctl-run-")
+    os.environ[RUNTIME_ENV] = directory
+    atexit.register(shutil.rmtree, directory, True)
 
 
 def cache_bytecode() -> None:

@@ -124,12 +124,14 @@ async def test_another_spelling_of_the_link_is_refused_before_a_byte(
 
 
 async def test_a_link_lock_is_seen_whatever_the_environment(
-    robot_served: Served, tmp_path: Path, label: str
+    robot_served: Served, tmp_path: Path, label: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """A login shell has $XDG_RUNTIME_DIR, the cell's systemd service has none and a private
     /tmp: the link locks live where both see them."""
     if not os.access(SYSTEM_LOCK_DIR, os.W_OK | os.X_OK):
         pytest.skip(f"{SYSTEM_LOCK_DIR} is not writable here: the runtime dir falls back")
+    # This process too, as a user's shell would: without the tests' own runtime dir.
+    monkeypatch.delenv(RUNTIME_ENV)
     clean = {k: v for k, v in os.environ.items() if k not in (RUNTIME_ENV, "XDG_RUNTIME_DIR")}
     own = tmp_path / "xdg"
     own.mkdir(mode=0o700)

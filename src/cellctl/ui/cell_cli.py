@@ -90,10 +90,14 @@ async def _run_owned(
     from cellctl.mailbox import open_mailbox
     from cellctl.service.access import AttachedCell
     from cellctl.service.server import ApiServer, api_limits
+    from cellctl.service.token import ensure_default
     from cellctl.ui.dashboard.routes import dashboard_routes
     from cellctl.ui.live_view import LiveView
 
     config = load_cell(directory)
+    # The cell's own files first (a token replaced by a link, or too short, is the engineer's
+    # to mend, whoever holds a machine); the API server reads the same token again.
+    ensure_default(directory)
     # A link held elsewhere (a console standalone): refused now, before the API is served
     # and the journal opened, not once connecting finds it.
     refuse_if_machines_held(config)

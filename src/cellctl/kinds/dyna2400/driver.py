@@ -37,18 +37,16 @@ that is stuck.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable
 from pathlib import Path
 
 from cellctl.clock import Clock
 from cellctl.drivers.base import CallbackOutput as CallbackOutput
-from cellctl.drivers.base import LinkDriver, StartOutput
+from cellctl.drivers.base import StartOutput
 from cellctl.drivers.state import StateStore
 from cellctl.errors import DeviceError, LinkTimeout, UsageError
 from cellctl.files import read_text
 from cellctl.kinds.dyna2400.dynalan import (
-    Block,
     Kind,
     MachineState,
     Program,
@@ -60,6 +58,7 @@ from cellctl.kinds.dyna2400.dynalan import (
     validate,
 )
 from cellctl.kinds.dyna2400.dynalan.table import AXES, CTRL_Z, DC1, DC3, LINE_END
+from cellctl.kinds.dyna2400.line import MillLine
 from cellctl.kinds.dyna2400.options import MillConfig as MillConfig
 from cellctl.kinds.dyna2400.options import MillState as MillState
 from cellctl.kinds.dyna2400.readiness import Readiness
@@ -90,25 +89,10 @@ END_PROGRAM = "000 END"
 #: How many validated programs a driver keeps (see :meth:`Dyna2400Mill.check`).
 CHECKS_KEPT = 8
 
-#: How far ahead of the wire the driver lets its writes run (seconds of line time).
-_WRITE_AHEAD_S = 0.25
 
-
-@dataclass
-class _Untaken:
-    """A block sent (or being sent) and not yet seen taken: its number, the readiness's lows
-    count before it, how long taking it may take, and how long it may run; ``whole`` once its
-    last line is written."""
-
-    block: int
-    lows: int
-    accept_s: float
-    run_s: float
-    whole: bool = False
-
-
-class Dyna2400Mill(LinkDriver):
-    """Driver for one Dyna 2400 mill over any :class:`Link` (see module docstring)."""
+class Dyna2400Mill(MillLine):
+    """Driver for one Dyna 2400 mill over any :class:`Link` (see module docstring); its writes
+    and readiness waits are :class:`~cellctl.kinds.dyna2400.line.MillLine`'s."""
 
     def __init__(
         self,
@@ -140,8 +124,7 @@ class Dyna2400Mill(LinkDriver):
         self.loaded: str | None = saved.get("loaded")
         self.last_download: list[BlockTiming] = []
         self._checked: dict[tuple[str, str, str], Validation] = {}  # see check()
-        # The block on its way to the controller and not yet seen taken (None: none).
-        self._untaken: _Untaken | None = None
+        self._untaken = None  # no block on its way (MillLine._send_block)
 
     @classmethod
     async def connect(
@@ -259,96 +242,6 @@ class Dyna2400Mill(LinkDriver):
             more = f" (and {len(result.errors) - 1} more)" if len(result.errors) > 1 else ""
             raise MillInputError(invalid, results[invalid], detail + more, result.errors)
         return result
-
-    # -- the link --------------------------------------------------------------------------------
-
-    async def _send(
-        self,
-        data: bytes,
-        *,
-        lines: int = 0,
-        progress: Callable[[int, int], None] | None = None,
-        chunks: Sequence[bytes] | None = None,
-    ) -> None:
-        clock = self.clock
-        start = clock.monotonic()
-        sent = 0
-        char_time = self.link.settings.char_time
-        for n, piece in enumerate(chunks or [data], start=1):
-            await self.link.write(piece)
-            sent += len(piece)
-            if progress:
-                progress(n, sent)
-            if self.config.pace_writes:
-                ahead = start + sent * char_time - clock.monotonic() - _WRITE_AHEAD_S
-                if ahead > 0:
-                    await clock.sleep(ahead)
-
-    def _wire_time(self, nbytes: int) -> float:
-        return self.link.settings.wire_time(nbytes)
-
-    async def _cts(self) -> bool:
-        return await self._ready.level(self.config.ready_wait)
-
-    async def _wait_ready(self, timeout: float) -> bool:
-        try:
-            await self._ready.wait(True, timeout)
-        except LinkTimeout:
-            return False
-        return True
-
-    async def _send_block(
-        self,
-        block: Block,
-        timing: BlockTiming,
-        progress: Callable[[int, int], None] | None,
-        *,
-        run_s: float,
-    ) -> None:
-        """Send ``block`` and wait for the controller to take it (CTS low); ``run_s`` is how
-        long it may run (what :meth:`end` waits out if this is cut short once it went whole)."""
-        lines = [line.render().encode("ascii") + LINE_END for line in block.lines]
-        lines[-1] += bytes([CTRL_Z])
-        timeout = self.config.accept_timeout + self._wire_time(len(lines[-1])) + _WRITE_AHEAD_S
-        untaken = _Untaken(block.index, self._ready.lows, timeout, run_s)
-        self._untaken = untaken
-
-        def sent(n: int, nbytes: int) -> None:
-            untaken.whole = n == len(lines)
-            if progress is not None:
-                progress(n, nbytes)
-
-        await self._send(b"", chunks=lines, progress=sent)
-        try:
-            await self._ready.wait(False, timeout, lows_before=untaken.lows)
-        except LinkTimeout:
-            raise LinkTimeout(
-                f"{self.name}: the controller did not take block {block.index} of "
-                f"{block.count} (CTS stayed high {timeout:.1f} s after its last line)"
-            ) from None
-        self._untaken = None
-        timing.taken = self.clock.monotonic()
-
-    async def _wait_out_untaken(self) -> None:
-        """Before END: wait out a block that went out whole but was not seen taken (a download
-        cut short as its last lines were on the wire). The controller starts it when its
-        ``900`` line arrives; an END arriving while it runs is lost, and the block's own CTS
-        fall would pass for the return to manual. A block cut short before its last line
-        never starts (END takes its line 000)."""
-        untaken, self._untaken = self._untaken, None
-        if untaken is None or not untaken.whole:
-            return
-        try:
-            await self._ready.wait(False, untaken.accept_s, lows_before=untaken.lows)
-        except LinkTimeout:
-            return  # not taken after all: nothing runs
-        if not await self._wait_ready(untaken.run_s):
-            raise DeviceError(
-                2,
-                "Machine executing program",
-                detail=f"{self.name}: block {untaken.block}, sent before the stop, still "
-                f"runs after {untaken.run_s:.0f} s (CTS low)",
-            )
 
     # -- the library functions ---------------------------------------------------------------------
 

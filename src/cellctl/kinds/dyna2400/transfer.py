@@ -9,7 +9,8 @@ host's state, then hand the mill and the program's pieces to these functions::
     await send_lines(mill, lines, print)
 
 They drive the mill through its link helpers (``_send``, ``_send_block``, ``_wait_ready``,
-its readiness) and move its host-kept state as the blocks are taken and finish.
+its readiness: :class:`~cellctl.kinds.dyna2400.line.MillLine`) and move its host-kept state
+as the blocks are taken and finish.
 """
 
 from __future__ import annotations

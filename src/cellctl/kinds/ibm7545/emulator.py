@@ -48,22 +48,20 @@ from typing import NoReturn, TypeVar
 
 from cellctl.clock import Clock, emulator_clock
 from cellctl.emulators.onsets import FaultOnsets
-from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
+from cellctl.emulators.serve import DeviceLine, LineNoise
 from cellctl.emulators.switches import check_switch
 from cellctl.errors import ProtocolError, UsageError
-from cellctl.kinds.ibm7545.aml import PORTS, Instruction, Op, decode_program
-from cellctl.kinds.ibm7545.motion import (
-    SPEED_MM_S,
-    STOP_S,
-    ScaraArm,
-    fixed_seconds,
-    move_seconds,
-    target,
+from cellctl.kinds.ibm7545.aml import PORTS, decode_program
+from cellctl.kinds.ibm7545.execution import (
+    Z_DOWN_OUTPUT,
+    LoadedProgram,
+    ProgramExecution,
+    ProgramRun,
 )
+from cellctl.kinds.ibm7545.motion import SPEED_MM_S, STOP_S, ScaraArm
 from cellctl.kinds.ibm7545.records import (
     ACK,
     CR,
-    DATA_ERROR_FLAG,
     END_GOOD,
     END_RECORD,
     EOT,
@@ -116,31 +114,6 @@ INVALID_APPLICATION = 83
 INVALID_IDENTIFIER = 96
 XOFF_TIME_OUT = 112
 MANIPULATOR_POWER_OFF = 128
-# Data error codes used here (messages in cellctl.kinds.ibm7545.records.DATA_ERRORS).
-POINT_OUT_OF_WORKSPACE = 64
-PROGRAMMING_ERROR = 18
-
-Z_DOWN_OUTPUT = 15  # assumed wiring: output 15 mirrors the Z axis (1 = down)
-GRIPPER_OUTPUT = 16  # assumed wiring: output 16 mirrors the gripper (1 = closed)
-
-
-@dataclass(frozen=True)
-class LoadedProgram:
-    """A program held in a partition."""
-
-    name: str
-    instructions: tuple[Instruction, ...]
-
-
-@dataclass
-class ProgramRun:
-    """One execution of a partition's program; ``end`` is None while it runs."""
-
-    partition: int
-    program: str
-    start: float  # its clock's monotonic time
-    end: float | None = None
-    outcome: str = "running"  # "completed", "stopped", or the error that ended it
 
 
 class _RequestDone(Exception):
@@ -155,8 +128,9 @@ class _Host:
     buf: bytearray = field(default_factory=bytearray)
 
 
-class Ibm7545Emulator(EmulatedDevice):
-    """The controller: state, partitions, I/O, faults. See the module docstring."""
+class Ibm7545Emulator(ProgramExecution):
+    """The controller: state, partitions, I/O, faults. See the module docstring; a program's
+    run is :class:`~cellctl.kinds.ibm7545.execution.ProgramExecution`'s."""
 
     def __init__(
         self,
@@ -355,14 +329,6 @@ class Ibm7545Emulator(EmulatedDevice):
         clock = self.clock
         await clock.sleep(machine_s / clock.time_scale)
 
-    async def _sleep_on(self, due: list[float], machine_s: float) -> None:
-        """Sleep ``machine_s`` of a program's time on its ``due`` (``[when]``, the clock's
-        monotonic time): each instruction ends when the model says, counted from the run's
-        start, so the event loop's lateness on each sleep does not add up over a program."""
-        clock = self.clock
-        due[0] += machine_s / clock.time_scale
-        await clock.sleep(max(0.0, due[0] - clock.monotonic()))
-
     async def _busy(self, host: _Host, machine_s: float) -> None:
         """Wait ``machine_s`` of machine time, repeating Xoff every 25 s (scaled) meanwhile."""
         left = machine_s
@@ -508,105 +474,3 @@ class Ibm7545Emulator(EmulatedDevice):
             await self._reject(host, RECORD_FORMAT_ERROR)
         self.partitions[partition] = LoadedProgram(name, tuple(instructions))
         await self._send(host, bytes([ACK]))
-
-    # -- program execution ---------------------------------------------------------------------
-
-    def _move_time(
-        self, a: tuple[float, float, float, float], b: tuple[float, float, float, float]
-    ) -> float:
-        return move_seconds(a, b, self.speed_mm_s, self.speed_percent)
-
-    def _abort(self, reason: str) -> None:
-        if self._cycle is not None and not self._cycle.done():
-            self._abort_reason = reason
-            self._cycle.cancel()
-
-    def set_output(self, port: int, value: bool) -> None:
-        """Set digital output ``port`` (1..16) as a program's OUTPUT would: the output hooks
-        hear a change (the emulated cell starting with a part clamped in a vise)."""
-        if port not in PORTS:
-            raise UsageError(f"output port must be 1..16, not {port}")
-        bit = 1 << (port - 1)
-        before = self.outputs
-        self.outputs = self.outputs | bit if value else self.outputs & ~bit
-        if self.outputs != before:
-            for hook in list(self.output_hooks):
-                hook(port, value)
-
-    async def _wait_input(self, port: int, value: bool) -> None:
-        told = False
-        try:
-            while DiDo(self.inputs, self.outputs).input(port) != value:
-                # Any input's change wakes the wait: it still waits for this one after.
-                self.waiting_for = (port, value)
-                if not told:
-                    for hook in list(self.wait_hooks):
-                        hook(port, value)
-                    told = True
-                fut: asyncio.Future[None] = asyncio.get_running_loop().create_future()
-                self._input_waiters.append(fut)
-                await fut
-        finally:
-            self.waiting_for = None
-
-    def _data_error(self, code: int) -> None:
-        self.status_flags |= DATA_ERROR_FLAG
-        self.data_error = code
-
-    async def _run(self, program: LoadedProgram, run: ProgramRun) -> None:
-        """Execute ``program`` until END, an error, or a stop; then state 1 (0 on power loss)."""
-        pc = 0
-        clock = self.clock
-        due = [clock.monotonic()]
-        self.speed_percent = 100
-        try:
-            while True:
-                ins = program.instructions[pc]
-                pc += 1
-                if ins.op in (Op.PMOVE, Op.ZMOVE):
-                    point = target(ins, self.position)
-                    if not self.arm.reachable(point):
-                        self._data_error(POINT_OUT_OF_WORKSPACE)
-                        run.outcome = "point out of workspace"
-                        break
-                    await self._sleep_on(due, self._move_time(self.position, point))
-                    self.position = point
-                elif ins.op is Op.DELAY:
-                    await self._sleep_on(due, fixed_seconds(ins))
-                elif ins.op in (Op.GRASP, Op.RELEASE):
-                    self.set_output(GRIPPER_OUTPUT, ins.op is Op.GRASP)
-                    await self._sleep_on(due, fixed_seconds(ins))
-                elif ins.op in (Op.UP, Op.DOWN):
-                    self.set_output(Z_DOWN_OUTPUT, ins.op is Op.DOWN)
-                    await self._sleep_on(due, fixed_seconds(ins))
-                elif ins.op is Op.WRITEO:
-                    self.set_output(ins.operands[0], bool(ins.operands[1]))
-                elif ins.op is Op.WAITI:
-                    await self._wait_input(ins.operands[0], bool(ins.operands[1]))
-                    # An input that came later than the program got here: it goes on from now.
-                    due[0] = max(due[0], clock.monotonic())
-                elif ins.op is Op.SPEED:
-                    self.speed_percent = ins.operands[0]
-                elif ins.op is Op.BRANCH or (
-                    ins.op is Op.TESTI
-                    and DiDo(self.inputs, self.outputs).input(ins.operands[0])
-                    == bool(ins.operands[1])
-                ):
-                    pc = ins.operands[-1]
-                    # A loop of jumps takes no machine time: let the link and the I/O go on.
-                    await clock.sleep(0)
-                    due[0] = max(due[0], clock.monotonic())
-                elif ins.op is Op.END:
-                    run.outcome = "completed"
-                    break
-                if pc >= len(program.instructions):  # a program without END runs off its end
-                    self._data_error(PROGRAMMING_ERROR)
-                    run.outcome = "programming error"
-                    break
-        except asyncio.CancelledError:
-            run.outcome = self._abort_reason
-            raise
-        finally:
-            run.end = self.clock.monotonic()
-            if self.state == 2:
-                self.state = 1

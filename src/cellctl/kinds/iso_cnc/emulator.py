@@ -32,11 +32,11 @@ from collections import deque
 from collections.abc import Callable, Coroutine
 
 from cellctl.clock import Clock, emulator_clock
-from cellctl.emulators.headstart import HeadStart
-from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
+from cellctl.emulators.serve import DeviceLine, LineNoise
 from cellctl.emulators.switches import check_switch
 from cellctl.errors import LinkClosed, LinkError, UsageError
 from cellctl.kinds.iso_cnc import tape
+from cellctl.kinds.iso_cnc.execution import ControlExecution
 from cellctl.kinds.iso_cnc.gcode import PROGRAM_ENDS, Block, parse_block
 from cellctl.kinds.iso_cnc.motion import Machine
 from cellctl.kinds.iso_cnc.panel import (
@@ -74,8 +74,9 @@ _BEFORE_PROGRAM = frozenset(b"\x00\x7f\r\n%")
 _BEFORE_PROGRAM_BYTES = bytes(sorted(_BEFORE_PROGRAM))
 
 
-class IsoCncEmulator(EmulatedDevice, HeadStart):
-    """One emulated control (see module docstring)."""
+class IsoCncEmulator(ControlExecution):
+    """One emulated control (see module docstring); its runs and their blocks are
+    :class:`~cellctl.kinds.iso_cnc.execution.ControlExecution`'s."""
 
     def __init__(
         self,
@@ -299,17 +300,6 @@ class IsoCncEmulator(EmulatedDevice, HeadStart):
             self._signal(DC1, rts=True)
         self._later(_OPERATOR_PATIENCE_S, self._press_again, serial, self.chars_read)
 
-    def _new_run(self, number: int) -> DripRun:
-        """A run about to start (it counts, and its hooks hear of it, at its first block)."""
-        run = DripRun(number)
-        self._run = run
-        return run
-
-    def _started(self, run: DripRun) -> None:
-        self.runs.append(run)
-        for hook in list(self.run_hooks):
-            hook(run)
-
     def _signal(self, code: bytes, *, rts: bool | None = None, at: float = 0.0) -> None:
         """Send DC1/DC3 (and RTS with CS flow) through the adapter's delay, from ``at`` (loop
         time; a character that crossed the line late is answered when it crossed)."""
@@ -445,94 +435,6 @@ class IsoCncEmulator(EmulatedDevice, HeadStart):
         self._stopped = False
         self.activity = Activity.IDLE
         self._later(0.05, self._auto)
-
-    # -- execution -----------------------------------------------------------------------------
-
-    def _advance(self, now: float) -> None:
-        """Start every block whose time has come by ``now`` (loop time): a block starts at
-        ``max(its LF's arrival, the previous block's end)`` and leaves the buffer then."""
-        run, machine = self._run, self._machine
-        while run is not None and machine is not None and not self._tape_done:
-            i = self._buffer.find(b"\n")
-            if i < 0:
-                if self._started_tape and self._buffer.rstrip(b"\x00\r") == b"%":
-                    self._tape_done = True  # the closing % (its trailer still coming)
-                return
-            arrived = self._lf_at[0] if self._lf_at else now
-            start = max(arrived, self._free_at) if run.blocks else arrived
-            if start > now:
-                return
-            raw = bytes(self._buffer[: i + 1])
-            del self._buffer[: i + 1]
-            if self._lf_at:
-                self._lf_at.popleft()
-            if self._stopped and len(self._buffer) <= self.low_water:
-                self._stopped = False
-                self._signal(DC1, rts=True)
-            text = raw.replace(b"\x00", b"").replace(b"\r", b"").decode("latin-1")
-            if "%" in text:
-                if self._started_tape:
-                    self._tape_done = True  # the closing %
-                self._started_tape = True  # label skip: the rest of this line is not read
-                continue
-            if not self._started_tape and not text.strip():
-                continue
-            self._started_tape = True
-            block = parse_block(run.blocks + 1, text.rstrip("\n"), [])
-            if not block.words:
-                continue
-            if not run.blocks:
-                self._started(run)
-            elif arrived > self._free_at:
-                # The axes stopped at the last block's end and waited for this one: a stall.
-                since = (self._free_at - self._read_began) * self.time_scale
-                run.stalls.append(Stall(since, (arrived - self._free_at) * self.time_scale))
-            seconds = machine.step(block).seconds
-            run.blocks += 1
-            run.machine_s += seconds
-            # A cut taken up mid-way skips what was done (headstart.py).
-            self._free_at = start + self.skip_done(seconds) / self.time_scale
-            if PROGRAM_ENDS & set(block.m_codes):
-                self._tape_done = True
-
-    async def _execute(self, run: DripRun) -> None:
-        """Run blocks as they come (the schedule :meth:`_advance` keeps); every wait for one
-        after the first is a stall."""
-        clock = self.clock
-        while self.activity == Activity.READING and self._run is run:
-            self._advance(clock.monotonic())
-            if self._tape_done:
-                if self._free_at > clock.monotonic():
-                    await self.clock.sleep(self._free_at - clock.monotonic())
-                break
-            if self._lf_at:
-                wake = max(self._lf_at[0], self._free_at) if run.blocks else self._lf_at[0]
-                if wake > clock.monotonic():
-                    await self.clock.sleep(wake - clock.monotonic())
-                continue
-            self._block_ready.clear()
-            await self._block_ready.wait()
-        if self.activity == Activity.READING and self._run is run:
-            run.done = True
-            self._finish_read()
-
-    async def _run_memory(self, run: DripRun) -> None:
-        machine = Machine(self.options.motion(), trace=False)
-        self._started(run)
-        for n, line in enumerate(self.memory.get(run.number, "").splitlines(), 1):
-            block = parse_block(n, line, [])
-            seconds = machine.step(block).seconds if block.words else 0.0
-            run.blocks += 1 if block.words else 0
-            run.machine_s += seconds
-            await self.clock.sleep(self.skip_done(seconds) / self.time_scale)
-        run.done = True
-        if self.activity == Activity.RUNNING:
-            self.activity = Activity.IDLE
-
-    @property
-    def stalls(self) -> list[Stall]:
-        """Every stall of every drip-feed run, in order."""
-        return [s for r in self.runs for s in r.stalls]
 
     # -- punching ------------------------------------------------------------------------------
 

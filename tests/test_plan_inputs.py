@@ -29,7 +29,13 @@ from cellctl.plan.spec import (
     plan_inputs,
     policies_of,
 )
-from cellctl.plan.when import MAX_HORIZON_S, parse_duration, parse_start, resolve_when
+from cellctl.plan.when import (
+    MAX_HORIZON_S,
+    parse_duration,
+    parse_poll,
+    parse_start,
+    resolve_when,
+)
 
 FAST = settings(max_examples=150, deadline=2000)
 #: A Wednesday, 06:00 local time: the plans' start in these tests.
@@ -102,6 +108,29 @@ def test_times_the_issue_names() -> None:
         resolve_when("2026-11-24T18:00", START)
     with pytest.raises(UsageError, match="31 days"):
         resolve_when("2027-11-24T18:00", START)
+
+
+@pytest.mark.parametrize(
+    ("given", "shown"),
+    [
+        ("0", "'0'"),
+        (601, "601"),
+        ("x" * 100_000, "'" + "x" * 40 + "'..."),
+        (2**5000, "(a number of more than 38 digits)"),
+        (True, "(true or false)"),
+        ([[5]] * 100_000, "(a list)"),
+        ({"a": 1}, "(an object)"),
+    ],
+)
+def test_a_poll_period_is_refused_in_few_words_whatever_is_sent(given: Any, shown: str) -> None:
+    nested: Any = 1
+    for _ in range(5000):  # deeper than any repr goes
+        nested = [nested]
+    for value in (given, nested) if shown == "(a list)" else (given,):
+        with pytest.raises(UsageError) as refused:
+            parse_poll(value)
+        assert str(refused.value) == f"poll {shown}: seconds, more than 0 and at most 600"
+    assert parse_poll("0.5") == 0.5 and parse_poll(600) == 600.0
 
 
 @FAST

@@ -155,13 +155,26 @@ def span_text(seconds: float) -> str:
     return f"{days} d {clock}" if days else clock
 
 
-def parse_poll(given: str | float) -> float:
+def parse_poll(given: object) -> float:
     """A plan's poll period in seconds, as typed (``"0.5"``) or given (``5.0``): more than 0
-    and at most :data:`MAX_POLL_S` (UsageError in words otherwise)."""
-    try:
-        seconds = float(given)
-    except ValueError:
-        seconds = float("nan")
+    and at most :data:`MAX_POLL_S` (UsageError in words otherwise; anything but a number or
+    its text, a list or ``true`` as an API peer may send, is refused by its type)."""
+    if isinstance(given, int | float | str) and not isinstance(given, bool):
+        try:
+            seconds = float(given)
+        except (ValueError, OverflowError):  # not a number; an integer past any float
+            seconds = float("nan")
+        # The text shown is bounded: what a peer sent may be megabytes long (an integer of
+        # thousands of digits has no text at all).
+        if isinstance(given, int) and given.bit_length() > 128:
+            shown = "(a number of more than 38 digits)"
+        else:
+            text = str(given)
+            shown = repr(given) if len(text) <= 40 else repr(text[:40]) + "..."
+    else:
+        # Never its repr: a list nested thousands deep has none (RecursionError).
+        words = {bool: "true or false", list: "a list", dict: "an object", type(None): "null"}
+        shown, seconds = f"({words.get(type(given), type(given).__name__)})", float("nan")
     if not 0 < seconds <= MAX_POLL_S:  # NaN fails it too
-        raise UsageError(f"poll {given!r}: seconds, more than 0 and at most {MAX_POLL_S:g}")
+        raise UsageError(f"poll {shown}: seconds, more than 0 and at most {MAX_POLL_S:g}")
     return seconds

@@ -75,10 +75,8 @@ class PlanParams(BaseModel):
     def _poll(cls, value: Any) -> float | None:
         if value is None:
             return None
-        # Anything but a number or its text (a list, true) is refused as its text would be.
-        number = isinstance(value, int | float | str) and not isinstance(value, bool)
         try:
-            return parse_poll(value if number else str(value))
+            return parse_poll(value)
         except UsageError as e:
             raise ValueError(str(e)) from None
 

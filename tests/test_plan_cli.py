@@ -201,7 +201,8 @@ def test_a_plan_of_a_week_or_more_says_the_day_of_each_time(cell: Path, tmp_path
     assert re.search(r"Wed 25 06:\d\d:\d\d +Wed 02 06:00:00 +on time", row), row
     short = plan("--dir", str(cell), "--orders", str(orders), "--start", START, "--shift", "6d")
     row = next(line for line in short.output.splitlines() if line.startswith("A "))
-    assert re.match(r"A +wax-robot-base +1/1 +Wed 06:\d\d:\d\d +Wed 06:00:00 ", row), row
+    # A week on, past the plan's 6 days: the due time with its date, not "Wed" of this plan.
+    assert re.match(r"A +wax-robot-base +1/1 +Wed 06:\d\d:\d\d +Wed 2026-12-02 06:00:00 ", row), row
 
 
 def test_an_orders_file_with_a_header_only_or_a_part_not_made_is_said_so(
@@ -215,3 +216,57 @@ def test_an_orders_file_with_a_header_only_or_a_part_not_made_is_said_so(
     gear.write_text("id,part_type,qty\nA,wax-robot-base,1\nB,gear,2\n")
     said = plan("--dir", str(cell), "--orders", str(gear), "--start", START, expect=2).stderr
     assert "line 3: the cell makes no 'gear' (it makes: wax-robot-base" in " ".join(said.split())
+
+
+def test_what_ends_after_the_plans_end_is_not_made_in_it(cell: Path) -> None:
+    whole = plan_json("--dir", str(cell), "--add", "wax-robot-base:1", "--start", START,
+                      "--shift", "2h")["plans"][0]  # fmt: skip
+    [order] = whole["orders"]
+    finish = order["finished"]
+    assert finish is not None and whole["parts_made"] == {"wax-robot-base": 1}
+    # Ends 5 s before the part is done: its last step runs over the end.
+    short = int(finish - T0) - 5
+    cut = plan_json("--dir", str(cell), "--add", "wax-robot-base:1", "--start", START,
+                    "--shift", f"{short}s")["plans"][0]  # fmt: skip
+    [order] = cut["orders"]
+    assert (order["finished"], order["made"], order["verdict"]) == (None, 0, "not finished")
+    assert cut["parts_made"] == {} and not cut["all_finished"]
+    until = cut["until"]
+    assert all(s["started"] < until and s["ended"] <= until for s in cut["steps"])
+    running = [s for s in cut["steps"] if s["state"] == "running"]
+    assert [s["ended"] for s in running] == [until], cut["steps"]
+    # The text: not made, and the summary says what the per-order lines say.
+    text = plan("--dir", str(cell), "--add", "wax-robot-base:1", "--start", START,
+                "--shift", f"{short}s").output  # fmt: skip
+    assert "parts made: none" in text and "1 order(s) not finished by" in text
+    text = plan("--dir", str(cell), "--add", "wax-robot-base:1", "--start", START,
+                "--shift", "2h").output  # fmt: skip
+    at = datetime.fromtimestamp(finish).strftime("%a %H:%M:%S")
+    assert f"{at}  -" in text and f"every order finished by {at} " in text, text
+
+
+def test_an_order_overdue_or_due_after_the_plan_is_planned(cell: Path, tmp_path: Path) -> None:
+    orders = tmp_path / "due.csv"
+    orders.write_text(
+        "id,part_type,qty,due\nOLD,wax-robot-base,1,2020-01-01T00:00\n"
+        "FAR,wax-robot-base,1,2099-01-01T00:00\n"
+    )
+    report = plan_json("--dir", str(cell), "--orders", str(orders), "--start", START,
+                       "--shift", "30m")["plans"][0]  # fmt: skip
+    verdicts = {o["order_id"]: o["verdict"] for o in report["orders"]}
+    assert verdicts["OLD"] == "late" and verdicts["FAR"] in ("not finished", "on time")
+    old = next(o for o in report["orders"] if o["order_id"] == "OLD")
+    assert old["late_s"] > (T0 - datetime(2020, 1, 1).timestamp())
+    # Outside the plan's week a due time is said with its date, not a weekday of this plan.
+    text = plan("--dir", str(cell), "--orders", str(orders), "--start", START,
+                "--shift", "30m").output  # fmt: skip
+    assert "Wed 2020-01-01 00:00:00" in text and "Thu 2099-01-01 00:00:00" in text, text
+
+
+def test_an_out_directory_in_the_way_is_refused_before_the_play(cell: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    (out / "plan.svg").mkdir(parents=True)
+    result = plan("--dir", str(cell), "--add", "wax-robot-base:1", "--start", START,
+                  "--out", str(out), expect=2)  # fmt: skip
+    assert f"{out / 'plan.svg'}: in the way of the plan's file" in " ".join(result.stderr.split())
+    assert "plan of" not in result.stdout and sorted(p.name for p in out.iterdir()) == ["plan.svg"]

@@ -323,3 +323,12 @@ def test_saved_inputs_read_back() -> None:
     # No orders: nothing to play, refused as the command line refuses it.
     with pytest.raises(UsageError, match="orders: nothing to plan"):
         parse_inputs(_saved() | {"orders": []}, Path("/plans"))
+
+
+def test_a_fault_window_that_ends_as_it_opens_is_refused() -> None:
+    start = datetime(2026, 11, 25, 6, 0).timestamp()
+    for text in ("cnc1:down@23:00-23:00", "cnc1:stall@FRI 10:00-fri  10:00"):
+        with pytest.raises(UsageError, match="the window ends as it opens: write when it ends"):
+            parse_fault(text, start)
+    window = parse_fault("cnc1:down@23:00-01:00", start)
+    assert window.end is not None and window.end - window.start == 2 * 3600

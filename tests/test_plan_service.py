@@ -15,7 +15,7 @@ from typing import Any
 
 import pytest
 
-from cellctl.errors import AccessDenied, UsageError
+from cellctl.errors import AccessDenied, MachineInUse, UsageError
 from cellctl.plan.run import report_from_dict
 from cellctl.service.access import AttachedCell
 from cellctl.service.client import RemoteCell, attach
@@ -72,7 +72,7 @@ async def test_a_viewer_plans_the_running_cell_on_a_copy_while_it_runs(
         # The API (and the controller behind it) answers while the plan plays.
         status = await vera.call("cell.status", {})
         assert not asked.done() and set(status["machines"]) >= {"robot", "cnc1", "cnc2"}
-        with pytest.raises(UsageError, match="a plan is being played already"):
+        with pytest.raises(MachineInUse, match="a plan is being played already"):
             await vera.call("plan.run", {})
         answer = await asked
         # A machine out of service now stays out in the plan: nothing passes cnc1.
@@ -243,7 +243,7 @@ async def test_a_plan_whose_client_goes_away_ends_its_play(
     operator = await attach(rig.directory)
     try:
         # Playing: a second plan is refused while it plays.
-        with pytest.raises(UsageError, match="a plan is being played already"):
+        with pytest.raises(MachineInUse, match="a plan is being played already"):
             await operator.call("plan.run", {"shift": "1m", "add": ["wax-robot-base:1"]})
         await vera.close()
         with contextlib.suppress(Exception):
@@ -255,7 +255,7 @@ async def test_a_plan_whose_client_goes_away_ends_its_play(
                     "plan.run", {"shift": "1m", "add": ["wax-robot-base:1"]}
                 )
                 break
-            except UsageError as e:
+            except MachineInUse as e:
                 assert "a plan is being played already" in str(e)
                 await asyncio.sleep(0.5)
         assert answer is not None, "the month's play went on after its client left"

@@ -361,8 +361,10 @@ def test_fault_switches_are_checked() -> None:
     assert set(FAULTS) == {"drop", "silent", "stuck-door", "no-pallet", "estop", "slow"}
     with pytest.raises(UsageError, match="unknown fault"):
         plc.set_fault("flood")
-    with pytest.raises(UsageError, match="stuck-door needs a mill number"):
+    with pytest.raises(UsageError, match="stuck-door needs a mill number 1 or 2, not '3'"):
         plc.set_fault("stuck-door", "3")
+    with pytest.raises(UsageError, match=r"stuck-door needs a mill number 1 or 2: stuck-door=1$"):
+        plc.set_fault("stuck-door")
     for bad in ("fast", "-5", "nan", "1e9"):
         with pytest.raises(UsageError, match="slow takes milliseconds from 0 to 60000"):
             plc.set_fault("slow", bad)

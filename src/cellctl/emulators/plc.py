@@ -172,7 +172,8 @@ class PlcEmulator:
             except ValueError:
                 mill = 0
             if mill not in MILLS:
-                raise UsageError(f"stuck-door needs a mill number 1 or 2, not {arg!r}")
+                given = f", not {arg!r}" if arg is not None else ": stuck-door=1"
+                raise UsageError(f"stuck-door needs a mill number 1 or 2{given}")
             # Several stuck doors at once: keep them all, comma separated.
             stuck = self._stuck_doors() | {mill}
             arg = ",".join(str(n) for n in sorted(stuck))

@@ -11,7 +11,8 @@
 The header names the columns (``id``, ``part_type`` and ``qty`` needed; ``priority`` and
 ``due`` optional, in any order); an empty cell takes the default (priority 0, no due time).
 ``due`` is written as ``--until`` is: ``FRI 18:00``, ``18:00`` (the next such time after the
-plan's start) or a date and time.
+plan's start) or a date and time, which may lie before the plan's start (the order is late
+already) or past its end.
 """
 
 from __future__ import annotations
@@ -123,7 +124,7 @@ def _order(cells: dict[str, str], start: float, where: str) -> PlanOrder:
         raise UsageError(f"{where}: {e}") from None
     due_text = cells.get("due") or ""
     try:
-        due = resolve_when(due_text, start) if due_text else None
+        due = resolve_when(due_text, start, due=True) if due_text else None
     except UsageError as e:
         raise UsageError(f"{where}: due: {e}") from None
     return PlanOrder(order_id, part_type, qty, priority, due)

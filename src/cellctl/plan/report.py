@@ -8,16 +8,18 @@ plan (the engine's journal) and a real run (a cell's)::
     Path("plan.svg").write_text(plan_svg([report], journal_steps, part_types))
 
 An order finishes when the last of its parts is done; it is late when that is after its due
-time, or when its due time passed within the plan and it did not finish. Utilization is a
-machine's time in steps over the plan's span (start to the time the plan stopped: every
-order done, or its end), as the shift report counts availability.
+time, or when its due time passed within the plan and it did not finish. Only what is done by
+the plan's end counts: a step still running then (the controller lets it end, as on Ctrl-C)
+is shown running up to the end (:func:`within`), and its part is not made in the plan.
+Utilization is a machine's time in steps over the plan's span (start to the time the plan
+stopped: every order done, or its end), as the shift report counts availability.
 """
 
 from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Final
 
 from cellctl.cell.config import CellConfig
@@ -95,6 +97,12 @@ class PlanReport:
     def all_finished(self) -> bool:
         return all(o.finished is not None for o in self.orders)
 
+    @property
+    def last_finished(self) -> float | None:
+        """When the last order finished (None: one did not, or there are none)."""
+        ends = [o.finished for o in self.orders if o.finished is not None]
+        return max(ends) if ends and len(ends) == len(self.orders) else None
+
     def as_dict(self) -> dict[str, Any]:
         out = asdict(self)
         out["on_time"], out["late"] = self.on_time, self.late
@@ -114,9 +122,16 @@ class PlanReport:
         long = self.until - self.start >= 7 * 86400
 
         def at(stamp: float) -> str:
-            return when_text(stamp, day=long)
+            # A due time outside the plan (overdue, or a week on) with its date: its weekday
+            # alone would read as a day of this plan.
+            outside = not self.start - 1 <= stamp < max(self.until, self.start + 6 * 86400)
+            return when_text(stamp, day=long, date=outside)
 
-        width = len(at(self.start))
+        # Each column as wide as its widest time (a weekday and time, unless a date is said).
+        width = max(
+            len(at(t)) for t in [self.start, *(o.finished for o in self.orders if o.finished)]
+        )
+        due_width = max(len(at(t)) for t in [self.start, *(o.due for o in self.orders if o.due)])
         for f in self.faults:
             end = at(f.end) if f.end is not None else "the end"
             what = f.fault + (f"={f.arg}" if f.arg else "")
@@ -133,7 +148,7 @@ class PlanReport:
             extra += f" (scrapped {o.scrapped})" if o.scrapped else ""
             out.append(
                 f"{o.order_id[:12]:<12} {o.part_type[:20]:<20} {made:>9}  "
-                f"{finishes:<{width + 1}} {due:<{width + 1}} {verdict}{extra}"
+                f"{finishes:<{width + 1}} {due:<{due_width + 1}} {verdict}{extra}"
             )
         made = ", ".join(f"{n} x {t}" for t, n in sorted(self.parts_made.items())) or "none"
         out += ["", f"parts made: {made}"]
@@ -148,10 +163,11 @@ class PlanReport:
             out.append(f"held for the operator at the start (stay held): {self.held_at_start}")
         if self.alarms_raised or self.steps_failed:
             out.append(f"alarms raised: {self.alarms_raised}; failed steps: {self.steps_failed}")
-        if self.all_finished:
+        last = self.last_finished
+        if last is not None:
             out.append(
-                f"every order finished by {at(self.ended)} "
-                f"({span_text(self.ended - self.start)} after the start)"
+                f"every order finished by {at(last)} "
+                f"({span_text(last - self.start)} after the start)"
             )
         else:
             missing = sum(o.finished is None for o in self.orders)
@@ -163,9 +179,22 @@ class PlanReport:
         return out
 
 
-def _outcome(order: PlanOrder, journal: Journal, ended: float) -> OrderOutcome:
+def within(steps: Sequence[Step], start: float, until: float) -> list[Step]:
+    """The steps of a plan from ``start`` to ``until``: one still running at ``until`` (or
+    ended after it) as running up to ``until``; none begun after it."""
+    out = []
+    for s in steps:
+        if not start <= s.started < until:
+            continue
+        if s.ended is None or s.ended > until:
+            s = replace(s, state="running", ended=until)
+        out.append(s)
+    return out
+
+
+def _outcome(order: PlanOrder, journal: Journal, ended: float, until: float) -> OrderOutcome:
     parts = journal.parts(order_id=order.order_id)
-    done = [p for p in parts if p.status == "done"]
+    done = [p for p in parts if p.status == "done" and p.updated <= until]
     finished = max(p.updated for p in done) if len(done) >= order.qty and done else None
     late_s = 0.0
     if order.due is None:
@@ -217,9 +246,9 @@ def plan_report(
     machines = machines_of(config)
     span = max(ended, start + 1e-9)
     figures = shift_report(journal, machines, {}, start, span)
-    parts = [p for p in journal.parts() if p.status == "done" and p.updated >= start]
-    steps = [s for s in journal.steps() if s.started >= start]
-    alarms = [a for a in journal.alarms() if a.raised >= start]
+    parts = [p for p in journal.parts() if p.status == "done" and start <= p.updated <= until]
+    steps = within(journal.steps(), start, until)
+    alarms = [a for a in journal.alarms() if start <= a.raised <= until]
     types = {p.id: p.part_type for p in journal.parts()}
     return PlanReport(
         cell=config.name,
@@ -230,7 +259,7 @@ def plan_report(
         until=until,
         ended=ended,
         wall_s=wall_s,
-        orders=[_outcome(o, journal, ended) for o in orders],
+        orders=[_outcome(o, journal, ended, until) for o in orders],
         parts_made=dict(Counter(p.part_type for p in parts)),
         utilization={m.machine: m.availability for m in figures.machines},
         busy_s={m.machine: m.production_s for m in figures.machines},
@@ -285,9 +314,7 @@ def plan_svg(
             for f in report.faults
         ]
         title = f"policy {report.policy}: on time {report.on_time}, late {report.late}"
-        runs.append(
-            GanttRun(title, [s for s in found if s.started >= report.start], types, report.start)
-        )
+        runs.append(GanttRun(title, within(found, report.start, report.until), types, report.start))
         runs[-1].windows.extend(windows)
     span = max(r.until - r.start for r in reports)
     return gantt_runs_svg(runs, machines, span=span, tick=_tick(reports[0].start, span))

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,7 +24,7 @@ from cellctl.cell.journalrecords import Step
 from cellctl.errors import UsageError
 from cellctl.plan import engine
 from cellctl.plan.engine import PlanInputs
-from cellctl.plan.inputs import copy_config, inputs_dict, save_inputs
+from cellctl.plan.inputs import CELL_COPY, INPUTS_FILE, copy_config, inputs_dict, save_inputs
 from cellctl.plan.report import PlanReport, machines_of, plan_report, plan_svg
 from cellctl.plan.spec import check_inputs
 from cellctl.plan.when import span_text, when_text
@@ -60,7 +61,8 @@ class PlanResult:
             out += ["", "policies compared:"]
             out.append(f"  {'policy':<16} {'on time':>7} {'late':>5} {'made':>6}  last order done")
             for r in self.reports:
-                last = when_text(r.ended) if r.all_finished else "not all in plan"
+                done = r.last_finished
+                last = when_text(done) if done is not None else "not all in plan"
                 made = sum(r.parts_made.values())
                 out.append(f"  {r.policy:<16} {r.on_time:>7} {r.late:>5} {made:>6}  {last}")
         return out
@@ -127,15 +129,36 @@ def play_in_temp(inputs: PlanInputs, policies: tuple[str, ...], *, workers: int 
         return play(inputs, policies, Path(tmp), workers=workers)
 
 
-def write_plan(result: PlanResult, out: Path) -> list[Path]:
-    """Write ``out/plan.json``, ``out/plan.svg``, ``out/inputs.json`` and ``out/cell/``."""
+def check_out(out: Path) -> None:
+    """Refuse (UsageError) an ``--out`` directory the plan could not be written to, before
+    anything is played: not a directory, not writable, or a directory where one of its
+    files goes. Made if missing."""
     try:
         out.mkdir(parents=True, exist_ok=True)
-        written = [save_inputs(result.inputs, result.policies, out)]
-        (out / PLAN_JSON).write_text(json.dumps(result.as_dict(), indent=1) + "\n", "utf-8")
-        (out / PLAN_SVG).write_text(result.svg, encoding="utf-8")
     except OSError as e:
-        raise UsageError(f"{out}: cannot write the plan: {e.strerror}") from None
+        raise UsageError(f"{out}: cannot write the plan there: {e.strerror or e}") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise UsageError(f"{out}: cannot write the plan there: not writable")
+    for name in (INPUTS_FILE, PLAN_JSON, PLAN_SVG):
+        if (out / name).is_dir() or (out / name).is_symlink():
+            raise UsageError(f"{out / name}: in the way of the plan's file (remove it)")
+    if (out / CELL_COPY).exists() and not (out / CELL_COPY).is_dir():
+        raise UsageError(f"{out / CELL_COPY}: in the way of the plan's cell copy (remove it)")
+
+
+def write_plan(result: PlanResult, out: Path) -> list[Path]:
+    """Write ``out/plan.json``, ``out/plan.svg``, ``out/inputs.json`` and ``out/cell/``
+    (:func:`check_out` says beforehand whether it can)."""
+    check_out(out)
+    path = out
+    try:
+        written = [save_inputs(result.inputs, result.policies, out)]
+        path = out / PLAN_JSON
+        path.write_text(json.dumps(result.as_dict(), indent=1) + "\n", "utf-8")
+        path = out / PLAN_SVG
+        path.write_text(result.svg, encoding="utf-8")
+    except OSError as e:
+        raise UsageError(f"{e.filename or path}: cannot write the plan: {e.strerror}") from None
     return [*written, out / PLAN_JSON, out / PLAN_SVG]
 
 

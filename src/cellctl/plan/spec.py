@@ -77,6 +77,9 @@ def parse_fault(text: str, start: float, until: float | None = None) -> FaultWin
             f"--fault {text!r}: write MACHINE:FAULT@HH:MM-HH:MM (e.g. cnc2:down@10:00-11:00); "
             "FAULT is down or an emulator fault switch, NAME=ARG if it takes an argument"
         )
+    if found["b"] and " ".join(found["a"].lower().split()) == " ".join(found["b"].lower().split()):
+        # Read as written, it would be a window of a whole day (or week): never what was meant.
+        raise UsageError(f"--fault {text!r}: the window ends as it opens: write when it ends")
     opens = resolve_when(found["a"], start, inclusive=True)
     closes = resolve_when(found["b"], opens) if found["b"] else None
     if until is not None and opens >= until:

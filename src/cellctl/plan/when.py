@@ -82,10 +82,11 @@ def _stamp(moment: datetime, text: str) -> float:
         raise UsageError(f"time {text!r} is out of range") from None
 
 
-def resolve_when(text: str, start: float, *, inclusive: bool = False) -> float:
+def resolve_when(text: str, start: float, *, inclusive: bool = False, due: bool = False) -> float:
     """The time ``text`` names, seen from ``start`` (unix s): ``[DAY ]HH:MM`` is the next such
     local time after ``start`` (at or after it with ``inclusive``); a date and time is itself.
-    Refused if it lies before ``start`` or more than :data:`MAX_HORIZON_S` after it."""
+    Refused if it lies before ``start`` or more than :data:`MAX_HORIZON_S` after it, but for
+    an order's ``due`` time: an order may be overdue already, or due past the plan's end."""
     if not isinstance(text, str) or not text.strip():
         raise UsageError(f"time {text!r}: write {WHEN_FORMS}")
     found = _DAY_TIME.match(text)
@@ -111,9 +112,11 @@ def resolve_when(text: str, start: float, *, inclusive: bool = False) -> float:
         if moment.tzinfo is not None:
             moment = moment.astimezone().replace(tzinfo=None)
         stamp = _stamp(moment, text)
+        if due:
+            return stamp
         if stamp < start or (stamp == start and not inclusive):
             raise UsageError(f"time {text!r} is not after the plan's start ({when_text(start)})")
-    if stamp - start > MAX_HORIZON_S:
+    if stamp - start > MAX_HORIZON_S and not due:
         raise UsageError(f"time {text!r}: a plan looks at most 31 days ahead of its start")
     return stamp
 

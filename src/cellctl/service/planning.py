@@ -39,7 +39,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from cellctl.cell.journal import Journal
 from cellctl.cell.shift import time_scale_of
 from cellctl.clock import current_clock
-from cellctl.errors import UsageError
+from cellctl.errors import MachineInUse, UsageError
 from cellctl.files import read_text
 from cellctl.mailbox import Mailbox
 from cellctl.plan.when import parse_poll
@@ -92,7 +92,7 @@ async def plan_run(access: CellAccess, p: PlanParams, progress: Progress | None)
     from cellctl.plan.spec import plan_inputs
 
     if not _playing.acquire(blocking=False):
-        raise UsageError("a plan is being played already: ask again when it has ended")
+        raise MachineInUse("a plan is being played already: ask again when it has ended")
     try:
         # The snapshot here (the journal and mailbox are this loop's).
         journal = access.journal()

@@ -173,7 +173,7 @@ def factory_plan(
 
     from cellctl.cell.owner import controller_holder
     from cellctl.factory.config import load_factory
-    from cellctl.plan.run import result_from_dict, write_plan
+    from cellctl.plan.run import check_out, result_from_dict, write_plan
     from cellctl.tasks import spawned_pool
 
     factory_dir = Path(ctx.obj["factory_dir"])
@@ -182,6 +182,9 @@ def factory_plan(
         cells, away = _cell_dirs(factory_dir, list(config.cells), cell_dirs)
         windows = _faults_by_cell(faults, cells)
         _check(cells, windows, shift, until, policy)
+        if out is not None:  # before any cell's plan is played
+            for name in cells:
+                check_out(out / name)
     except CellctlError as e:
         fail(e)
     params: dict[str, Any] = {k: v for k, v in (("shift", shift), ("until", until)) if v}
@@ -249,5 +252,5 @@ def factory_plan(
         print_line(f"  {name:<10} on time {r.on_time}, late {r.late}, parts made {made}")
     for name, why in refused.items():
         print_line(f"  {name:<10} not planned: {why}")
-    if out is not None:
-        console.print(f"saved {out}/CELL/plan.json, plan.svg, inputs.json", markup=False)
+    for name in plans if out is not None else ():
+        console.print(f"saved {out}/{name}/plan.json, plan.svg, inputs.json", markup=False)

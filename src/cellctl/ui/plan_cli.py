@@ -187,8 +187,10 @@ def plan_command(
 ) -> None:
     """What the cell finishes, and when: per order against its due time, utilizations, and
     the Gantt chart, played ahead by the real controller on virtual time (in seconds)."""
-    from cellctl.plan.run import result_from_dict, write_plan
+    from cellctl.plan.run import check_out, result_from_dict, write_plan
 
+    if out is not None:  # before a plan is played, not after
+        guarded(lambda: check_out(out))
     options: dict[str, Any] = dict(
         shift=shift, until=until, adds=adds, faults=faults, policy=policy, seed=seed
     )

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
 from cellctl.clock import current_clock
-from cellctl.errors import UsageError
+from cellctl.errors import MachineInUse, UsageError
 from cellctl.service.machines import load_cell_file
 from cellctl.service.operator import scrap_question
 from cellctl.ui.console.dialogs import Dialog, FormDialog, LivePickDialog, PickDialog
@@ -290,7 +290,7 @@ class CellActions:
             self.app.say(["planning... (the cell played ahead on a copy; it goes on)"], "yellow")
             try:
                 answer = await self.app.call("plan.run", params)
-            except UsageError as e:
+            except (UsageError, MachineInUse) as e:  # MachineInUse: another plan plays
                 problems = str(e)
                 self.app.say([f"plan refused: {e}"], "red")
                 continue

@@ -24,6 +24,7 @@ from cellctl.cell.model import ControllerOptions
 from cellctl.cell.monitor import ESTOP
 from cellctl.clock import current_clock
 from cellctl.emulators.cell import EXAMPLE_CELL, EmulatedCell, real_cell_toml
+from cellctl.errors import UsageError
 from cellctl.kinds.dyna2400.driver import MillConfig
 from cellctl.testing.rig import CellRig
 
@@ -376,6 +377,33 @@ async def test_an_emergency_stop_during_a_transfer_is_one_alarm_naming_it(tmp_pa
         assert all(p.status == "done" for p in rig.journal.parts()), rig.describe()
         assert rig.cut_twice() == {}, rig.describe()
         assert [(a.machine, a.code) for a in rig.journal.alarms()] == [("plc", "estop")]
+
+
+@pytest.mark.virtual
+async def test_the_plcs_emergency_stop_released_restarts_nothing(tmp_path: Path) -> None:
+    """The PLC's E-stop pressed between two steps, then released: the cell paused with it
+    and stays paused (no step starts, `resume` refused) until the operator cleared the
+    stop's alarm and resumed, as after `cellctl estop`; then the batch finishes."""
+    async with CellRig(tmp_path / "cell") as rig:
+        clock = current_clock()
+        rig.post("wax-robot-base", 2, "A")
+        controller = await rig.start_controller()
+        await rig.wait_for(lambda: rig.finished_steps("machine") >= 1, "a first cut")
+        rig.switch_on("plc:estop")
+        await rig.wait_for(lambda: rig.alarms("plc", "estop"), "the stop's alarm")
+        await rig.wait_for(lambda: controller.paused, "the cell paused")
+        await rig.switch_off("plc:estop")
+        released = clock.now()
+        await rig.wait_for(lambda: controller.inputs.get("estop_ok"), "the release seen")
+        await clock.sleep(120)  # a couple of minutes of a released button
+        assert not [s for s in rig.journal.steps() if s.started > released], rig.describe()
+        assert controller.paused, rig.describe()
+        with pytest.raises(UsageError, match=r"the emergency stop's alarm \d+ is not cleared"):
+            controller.resume()
+        await resolve_until_done(rig)
+        await rig.stop_controller()
+        assert all(p.status == "done" for p in rig.journal.parts()), rig.describe()
+        assert rig.cut_twice() == {}, rig.describe()
 
 
 @pytest.mark.virtual

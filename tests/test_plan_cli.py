@@ -270,3 +270,15 @@ def test_an_out_directory_in_the_way_is_refused_before_the_play(cell: Path, tmp_
                   "--out", str(out), expect=2)  # fmt: skip
     assert f"{out / 'plan.svg'}: in the way of the plan's file" in " ".join(result.stderr.split())
     assert "plan of" not in result.stdout and sorted(p.name for p in out.iterdir()) == ["plan.svg"]
+
+
+def test_a_plan_through_the_plcs_emergency_stop_resumes_after_it(cell: Path) -> None:
+    # The stop pauses the planned cell as it does the real one; the plan's operator clears
+    # its alarm and resumes once it is released, as `cellctl resume` does.
+    report = plan_json("--dir", str(cell), "--add", "wax-robot-base:2", "--start", START,
+                       "--shift", "3h", "--fault", "plc:estop@06:20-06:30")["plans"][0]  # fmt: skip
+    assert report["all_finished"] and report["parts_made"] == {"wax-robot-base": 2}, report
+    assert report["alarms_raised"] >= 1
+    started = sorted(s["started"] for s in report["steps"])
+    window = (T0 + 20 * 60, T0 + 30 * 60)
+    assert not [t for t in started if window[0] + 1 < t < window[1]], started

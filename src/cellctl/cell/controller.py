@@ -399,9 +399,21 @@ class CellController(OperatorCommands):
 
     # -- dispatch ---------------------------------------------------------------------------------
 
+    def _estop_pressed(self) -> None:
+        """The PLC's emergency stop is pressed: the cell pauses, as for ``cellctl estop``.
+        Releasing the button restarts nothing (a reset must never start a machine): the
+        operator clears its alarm, then resumes."""
+        if not self.paused:
+            self.paused = True
+            self.log(
+                "emergency stop pressed: cell paused; once it is released, clear its alarm, "
+                "then resume"
+            )
+
     async def _dispatch(self) -> None:
         if not self.inputs.get("estop_ok", True):
-            return  # the PLC's emergency stop: nothing starts until it is released
+            self._estop_pressed()
+            return
         work = self.workview.current()
         in_service = {n for n, v in self.machines.items() if v.in_service}
         # Mills: a part at a mill not yet machined there is cut now.
@@ -421,6 +433,7 @@ class CellController(OperatorCommands):
         except CellctlError:
             return
         if not self.inputs.get("estop_ok", True):
+            self._estop_pressed()
             return
         pallet = self.inputs.get("pallet_present", False)
         if pallet:

@@ -12,11 +12,13 @@ fault on and off, and afterwards the operator resolves what the cell holds.
 
 from __future__ import annotations
 
+import contextlib
 from collections import Counter
 from collections.abc import Iterable
 from typing import TYPE_CHECKING, Any
 
 from cellctl.clock import current_clock
+from cellctl.errors import UsageError
 
 if TYPE_CHECKING:
     from cellctl.cell.controller import CellController
@@ -105,13 +107,19 @@ class PlanOperator:
             await clock.sleep(RESOLVE_LOOKS * look)
             alarms = self.journal.active_alarms()
             held = self.journal.parts(statuses=["held"])
-            if not alarms and not held:
+            paused = self.controller.paused  # by an emergency stop: nothing else pauses a plan
+            if not alarms and not held and not paused:
                 if not self._under_fault(closed):
                     return
                 continue
             rounds += 1
             for alarm in alarms:
                 self.journal.clear_alarm(alarm.id, by="plan operator")
+            if paused:
+                # Released and its alarm cleared, the stop is resumed; refused while the
+                # controller has not yet seen the release (asked again a few looks later).
+                with contextlib.suppress(UsageError):
+                    self.controller.resume()
             while held and self.cell.robot.moving:
                 if clock.now() >= until:
                     return

@@ -365,8 +365,15 @@ class CellRig:
 
     async def operator_resolves(self) -> None:
         """The operator clears every alarm and releases each held part where it physically
-        is, after looking at it (``cellctl alarm clear``, ``cellctl part release``)."""
+        is, after looking at it (``cellctl alarm clear``, ``cellctl part release``); and
+        resumes a cell an emergency stop paused (``cellctl resume``)."""
+        estop = any(a.code == "estop" for a in self.journal.active_alarms())
         await self.clear_alarms()
+        controller = self.controller
+        if estop and controller is not None:
+            # Refused until the controller has seen the button released: looked at again.
+            await self.wait_for(lambda: controller.inputs.get("estop_ok", True), "the release seen")
+            controller.resume()  # what `cellctl resume` asks the running controller
         for part in self.held_parts():
             step = self.journal.steps(part.id)[-1]
             if step.kind == "transfer":

@@ -13,7 +13,13 @@ from hypothesis import strategies as st
 from cellctl.errors import UsageError
 from cellctl.kinds.iso_cnc.dnc.diff import compare
 from cellctl.kinds.iso_cnc.dnc.request import Request, RequestConvention, parse_request
-from cellctl.kinds.iso_cnc.dnc.store import ShopStore, check_machine_name, write_new
+from cellctl.kinds.iso_cnc.dnc.store import (
+    ShopStore,
+    check_machine_name,
+    check_program_number,
+    write_new,
+)
+from cellctl.kinds.iso_cnc.tape import o_number, split_programs, unframe
 
 CONVENTION = RequestConvention()
 
@@ -128,3 +134,22 @@ def test_store_refuses_a_link_in_place_of_its_log(tmp_path: Path) -> None:
     with pytest.raises(UsageError, match="cannot write the log"):
         store.log("mill1", "x")
     assert target.read_text() == ""
+
+
+def test_a_lowercase_o_block_is_the_programs_number() -> None:
+    data = b"%\no1003 (lower)\ng0 x1. y2.\nm30\n%\n"
+    assert o_number(unframe(data)) == 1003
+    assert [p.number for p in split_programs(unframe(data))] == [1003]
+    check_program_number("O1003.nc", data)  # as named
+    with pytest.raises(UsageError, match="its name says O1004 but its text is O1003"):
+        check_program_number("O1004.nc", data)
+
+
+def test_text_above_a_stray_percent_is_refused_before_a_byte_goes_out() -> None:
+    data = b"O1022\nG0 X1.\n%\nG0 X5.\nM30\n%\n"
+    with pytest.raises(UsageError, match=r"line 1: 'O1022' comes before the tape's opening %"):
+        check_program_number("O1022.nc", data)
+    with pytest.raises(UsageError, match="skips all of it as leader"):
+        check_program_number("surface.nc", data)
+    # A leader of NUL and blank lines, and a label after the %, are a tape's own.
+    check_program_number("O1022.nc", b"\x00\x00\n \n%  label\nO1022\nM30\n%\n")

@@ -79,7 +79,8 @@ def parse_alarm(data: bytes) -> tuple[int, int] | None:
 
 
 #: A program's first block: O (or ``:``) and its number, then maybe a comment as its title.
-_O_LINE = re.compile(r"[ \t]*[O:]([0-9]{1,8})[ \t]*(?:\(([^)\n]*)\)?)?")
+# The control reads an address in either case (as the G-code check does): ``o1234`` too.
+_O_LINE = re.compile(r"[ \t]*[Oo:]([0-9]{1,8})[ \t]*(?:\(([^)\n]*)\)?)?")
 
 
 @dataclass(frozen=True)
@@ -133,6 +134,20 @@ def unframe(data: bytes) -> str:
     if text and not text.endswith("\n"):
         text += "\n"
     return text
+
+
+def skipped_leader(data: bytes) -> tuple[int, str] | None:
+    """Text before a tape's opening ``%`` (line number, the text), which a control skips as
+    leader: a ``%`` in the middle of a file drops everything above it. None when only NUL,
+    blanks and line ends come before it (or there is no ``%``)."""
+    start = data.find(b"%")
+    if start <= 0:
+        return None
+    before = data[:start].replace(b"\x00", b"").decode("latin-1")
+    for number, line in enumerate(before.split("\n"), start=1):
+        if line.strip():
+            return number, line.strip()
+    return None
 
 
 def o_number(text: str) -> int | None:

@@ -39,7 +39,7 @@ from pathlib import Path
 from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.files import read_file
-from cellctl.kinds.iso_cnc.tape import o_number, unframe
+from cellctl.kinds.iso_cnc.tape import o_number, skipped_leader, unframe
 
 PROGRAMS = "programs"
 RECEIVED = "received"
@@ -307,7 +307,16 @@ def program_chars(data: bytes) -> int:
 def check_program_number(name: str, data: bytes) -> None:
     """Refuse (UsageError, before a byte goes out) a program file whose name says one
     O-number and whose text another (``O1234.nc`` holding ``O1001``): the control would
-    store it as O1001, over whatever O1001 it has, while the log and a request say O1234."""
+    store it as O1001, over whatever O1001 it has, while the log and a request say O1234.
+    Refused too: text above the tape's opening ``%`` (a stray ``%`` mid-file), which the
+    control would skip, sending the rest alone."""
+    skipped = skipped_leader(data)
+    if skipped is not None:
+        line, text = skipped
+        raise UsageError(
+            f"{name}: line {line}: {text[:40]!r} comes before the tape's opening %, and the "
+            "control skips all of it as leader: remove that % or what is above it"
+        )
     named = PROGRAM_FILE.match(Path(name).name)
     if named is None:
         return  # a file not named by its number (surface.nc): its text decides

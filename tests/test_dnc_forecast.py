@@ -5,6 +5,7 @@ as in life, in a moment); and the command as a shop's user runs it."""
 
 from __future__ import annotations
 
+import asyncio
 import shutil
 from pathlib import Path
 
@@ -13,6 +14,7 @@ from click.testing import CliRunner
 
 from cellctl.clock import current_clock, run_virtual
 from cellctl.emulators.memserve import serve_mem
+from cellctl.errors import UsageError
 from cellctl.kinds.iso_cnc.buffer import DripForecast, forecast_drip, tape_blocks
 from cellctl.kinds.iso_cnc.driver import IsoCncDriver, IsoCncOptions
 from cellctl.kinds.iso_cnc.emulator import EmulatorOptions, IsoCncEmulator, Mode
@@ -130,3 +132,38 @@ def test_dnc_check_refuses_as_send_would(shop: Path) -> None:
     assert code == 2 and f"{latin}: not an ISO-code program (byte 15 is not ASCII: 0xC9)" in said
     code, said = dnc(shop, "check", "millx", "O1001")
     assert code == 2 and "unknown machine 'millx'" in said
+
+
+def test_a_long_programs_check_leaves_the_loop_free() -> None:
+    """A program of 1.4 MB takes seconds of G-code check: it is checked off the event loop, so
+    a server's other machines are answered meanwhile (here: another task runs, turn after
+    turn, before the check refuses the program's last block). The control hears nothing."""
+    rows = ["O1234", "G21 G90 G0 X0 Y0", *(f"G1 X{i % 100}.0 F500" for i in range(100_000))]
+    data = ("\n".join([*rows, "G1 X#", "M30"]) + "\n").encode()
+    line = LineSettings(9600, 7, "E", 2)
+    order: list[str] = []
+
+    async def session() -> None:
+        control = IsoCncEmulator(EmulatorOptions(auto_operator=True))
+        server = await serve_mem(control, line, name="mill1")
+        driver = await IsoCncDriver.connect(server.url, settings=line, options=IsoCncOptions())
+
+        async def other_machine() -> None:
+            for _ in range(20):
+                await asyncio.sleep(0)
+            order.append("another machine answered")
+
+        async def send() -> None:
+            with pytest.raises(UsageError, match=r":100003:4: X without a number"):
+                await driver.read_in(data, timeout=60)
+            order.append("refused")
+
+        try:
+            await asyncio.gather(send(), other_machine())
+            assert driver.link.bytes_sent == 0
+        finally:
+            await driver.close()
+            await server.close()
+
+    run_virtual(session())
+    assert order == ["another machine answered", "refused"]

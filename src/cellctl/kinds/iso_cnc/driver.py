@@ -60,6 +60,7 @@ import asyncio
 import math
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any, TypeVar
 
 from cellctl.clock import Clock
 from cellctl.drivers.base import StartOutput
@@ -73,6 +74,8 @@ from cellctl.kinds.iso_cnc.sender import TapeSender
 from cellctl.kinds.iso_cnc.status import IsoCncState, IsoCncStatus
 from cellctl.kinds.iso_cnc.transfer import Progress, TransferProgress, TransferReport
 from cellctl.link import LineSettings, Link, TrafficLog
+
+T = TypeVar("T")
 
 
 class ControlAlarm(DeviceError):
@@ -196,7 +199,7 @@ class IsoCncDriver(TapeSender):
     ) -> TransferReport:
         """Send a program file into the control's memory (EDIT mode, READ pressed): wait for
         DC1, send, stop on DC3, go on at DC1; returns at the control's DC3 after ``%``."""
-        framed = prepare(data, self.options, "program")
+        framed = await _off_loop(data, prepare, data, self.options, "program")
         return await self._read(framed, drip=False, progress=progress, timeout=timeout)
 
     async def drip_feed(
@@ -204,7 +207,7 @@ class IsoCncDriver(TapeSender):
     ) -> TransferReport:
         """Run a program as it is sent (RMT mode, CYCLE START): never overflow the control's
         buffer, never let it starve where the line can keep up; returns when it has ended."""
-        framed = prepare(data, self.options, "program")
+        framed = await _off_loop(data, prepare, data, self.options, "program")
         return await self._read(framed, drip=True, progress=progress, timeout=timeout)
 
     async def _read(
@@ -220,7 +223,8 @@ class IsoCncDriver(TapeSender):
             self._sent, self._end_asked = 0, False  # end_tape() says "waiting" until DC1
             model = BufferModel(drip=drip, store_cps=o.store_cps)
             if drip:
-                model.unsent.extend(tape_blocks(framed, o.motion(), o.motion_scale))
+                blocks = await _off_loop(framed, tape_blocks, framed, o.motion(), o.motion_scale)
+                model.unsent.extend(blocks)
             try:
                 if progress is not None:
                     progress(TransferProgress(0, len(framed), 0.0, 0, 0.0, math.inf, "waiting"))
@@ -394,6 +398,19 @@ class IsoCncDriver(TapeSender):
         self.alarm = None
         self._set(IsoCncState.IDLE)
         return "idle"
+
+
+#: A program longer than this is checked and modelled in a thread, off the event loop: a
+#: 5 MB file takes seconds of G-code check, and a server's other machines' drip-feeds must
+#: be answered meanwhile (their buffers run dry in less).
+OFF_LOOP_BYTES = 64 * 1024
+
+
+async def _off_loop(data: bytes, fn: Callable[..., T], *args: Any) -> T:
+    """``fn(*args)``, in a thread when ``data`` is longer than :data:`OFF_LOOP_BYTES`."""
+    if len(data) > OFF_LOOP_BYTES:
+        return await asyncio.to_thread(fn, *args)
+    return fn(*args)
 
 
 __all__ = [

@@ -409,6 +409,10 @@ class ApiServer:
                 self._handle(session, text)
         except WebSocketDisconnect:
             pass
+        except asyncio.CancelledError:
+            # The server is going away under the session (`cellctl run` aborted by a second
+            # Ctrl-C): the session ends here, quietly, not as an ASGI application's error.
+            pass
         finally:
             session.open = False
             self.sessions.discard(session)

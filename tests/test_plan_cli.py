@@ -282,3 +282,18 @@ def test_a_plan_through_the_plcs_emergency_stop_resumes_after_it(cell: Path) -> 
     started = sorted(s["started"] for s in report["steps"])
     window = (T0 + 20 * 60, T0 + 30 * 60)
     assert not [t for t in started if window[0] + 1 < t < window[1]], started
+
+
+@pytest.mark.parametrize("machine", ["robot", "plc"])
+def test_a_silent_machine_is_alarmed_however_seldom_the_plan_looks(
+    cell: Path, machine: str
+) -> None:
+    # The plan looks every 15 s, and a look at a silent machine fails by the driver's own
+    # deadline, sooner: that failure is the alarm (it was dropped as a late read's).
+    silent = f"{machine}:silent@06:20-06:40"
+    report = plan_json("--dir", str(cell), "--add", "wax-robot-base:2", "--start", START,
+                       "--shift", "2h", "--fault", silent)["plans"][0]  # fmt: skip
+    assert report["poll_period"] == 15 and report["alarms_raised"] >= 1, report["alarms_raised"]
+    assert report["all_finished"]
+    if machine == "robot":
+        assert 15 * 60 < report["down_s"]["robot"] <= 20 * 60, report["down_s"]

@@ -67,7 +67,8 @@ class _Late(TimeoutError):
 
 
 def _consume(task: asyncio.Future[Any]) -> None:
-    """Retrieve a late read's outcome (its failure was told as an alarm already)."""
+    """Retrieve a late read's outcome (its failure is told by the next look, or was told
+    as an alarm already when it stayed out a whole poll period)."""
     if not task.cancelled():
         task.exception()
 
@@ -86,6 +87,7 @@ class Monitor:
         self._reads: dict[str, asyncio.Future[Any]] = {}
         self._since: dict[str, float] = {}  # when each key's last read was sent
         self._late_told: set[str] = set()  # keys whose read still out was alarmed
+        self._late: set[str] = set()  # keys whose last read outlasted read_limit
         self._inputs: dict[str, bool] = {}  # the PLC's inputs at the last look
         self._estop_seen: float | None = None  # the last look that found the E-stop pressed
         self._last_seen: tuple[object, ...] = ()
@@ -102,6 +104,13 @@ class Monitor:
         pending = self._reads.get(key)
         if pending is not None and not pending.done():
             raise _StillOut
+        if key in self._late:
+            self._late.discard(key)
+            failed = None if pending is None or pending.cancelled() else pending.exception()
+            if isinstance(failed, TimeoutError | CellctlError) and key not in self._late_told:
+                # A late read that then failed by itself (its driver's deadline came before a
+                # poll period was out): its failure is the fault, told now as any read's.
+                raise failed
         clock = self.world.clock
         # One waiter, woken by the read's own end or by the limit's timer (wait_for around a
         # shield did the same with four more callbacks a read: a plan's busiest path).
@@ -129,6 +138,7 @@ class Monitor:
             if not future.done():
                 future.add_done_callback(_consume)
         if not future.done():
+            self._late.add(key)
             raise _Late
         return future.result()
 

@@ -121,6 +121,26 @@ async def test_a_request_for_a_missing_program_is_refused_and_logged(
     assert "asks for nothing" in "\n".join(store.log_lines("mill1"))
 
 
+async def test_a_request_for_a_program_the_read_would_refuse_is_refused_and_kept(
+    one: tuple[IsoCncEmulator, DncServer, ShopStore],
+) -> None:
+    """An empty program, or one with a block longer than the control takes: refused when
+    requested (the log says why, the request kept as received), not a failed read-in later."""
+    emulator, dnc, store = one
+    programs = store.machine("mill1") / "programs"
+    (programs / "O1006.nc").write_text("")
+    (programs / "O1004.nc").write_text("O1004\nG01 X1. " + "(" + "A" * 5000 + ")\nM30\n")
+    for number, words in ((1006, "O1006:1: no blocks"), (1004, "O1004:2:")):
+        await punch_after_idle(emulator, 9999, f"O9999 (LOAD O{number})\n")
+        await until(lambda n=number: f"O{n}" in dnc.status()["mill1"].last, "the refusal")
+        status = dnc.status()["mill1"]
+        assert "refused" in status.last and words in status.error, status
+        assert status.pending == "" and status.activity is Activity.IDLE
+    assert len(store.received("mill1", 9999)) == 2
+    log = "\n".join(store.log_lines("mill1"))
+    assert "read in FAILED" not in log and log.count("refused:") == 2, log
+
+
 async def punch_after_idle(emulator: IsoCncEmulator, number: int, text: str) -> None:
     await until(lambda: emulator.activity == "idle", "the control idle")
     await punch(emulator, number, text)

@@ -60,7 +60,6 @@ import asyncio
 import math
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TypeVar
 
 from cellctl.clock import Clock
 from cellctl.drivers.base import StartOutput
@@ -69,13 +68,11 @@ from cellctl.errors import DeviceError, LinkTimeout, ProtocolError
 from cellctl.kinds.families import RunProgress
 from cellctl.kinds.iso_cnc import tape
 from cellctl.kinds.iso_cnc.buffer import BufferModel, tape_blocks
-from cellctl.kinds.iso_cnc.options import ISO_LINE, IsoCncOptions, prepare, read_program
+from cellctl.kinds.iso_cnc.options import ISO_LINE, IsoCncOptions, off_loop, prepare, read_program
 from cellctl.kinds.iso_cnc.sender import TapeSender
 from cellctl.kinds.iso_cnc.status import IsoCncState, IsoCncStatus
 from cellctl.kinds.iso_cnc.transfer import Progress, TransferProgress, TransferReport
 from cellctl.link import LineSettings, Link, TrafficLog
-
-T = TypeVar("T")
 
 
 class ControlAlarm(DeviceError):
@@ -195,19 +192,30 @@ class IsoCncDriver(TapeSender):
             await self._listen(deadline, "the control did not end the read (no DC3 after %)")
 
     async def read_in(
-        self, data: bytes, *, progress: Progress | None = None, timeout: float | None = None
+        self,
+        data: bytes,
+        *,
+        progress: Progress | None = None,
+        timeout: float | None = None,
+        name: str = "program",
     ) -> TransferReport:
         """Send a program file into the control's memory (EDIT mode, READ pressed): wait for
-        DC1, send, stop on DC3, go on at DC1; returns at the control's DC3 after ``%``."""
-        framed = await _off_loop(data, prepare, data, self.options, "program")
+        DC1, send, stop on DC3, go on at DC1; returns at the control's DC3 after ``%``.
+        ``name`` (the file's) begins each problem of the G-code check that refuses it."""
+        framed = await off_loop(data, prepare, data, self.options, name)
         return await self._read(framed, drip=False, progress=progress, timeout=timeout)
 
     async def drip_feed(
-        self, data: bytes, *, progress: Progress | None = None, timeout: float | None = None
+        self,
+        data: bytes,
+        *,
+        progress: Progress | None = None,
+        timeout: float | None = None,
+        name: str = "program",
     ) -> TransferReport:
         """Run a program as it is sent (RMT mode, CYCLE START): never overflow the control's
         buffer, never let it starve where the line can keep up; returns when it has ended."""
-        framed = await _off_loop(data, prepare, data, self.options, "program")
+        framed = await off_loop(data, prepare, data, self.options, name)
         return await self._read(framed, drip=True, progress=progress, timeout=timeout)
 
     async def _read(
@@ -223,7 +231,7 @@ class IsoCncDriver(TapeSender):
             self._sent, self._end_asked = 0, False  # end_tape() says "waiting" until DC1
             model = BufferModel(drip=drip, store_cps=o.store_cps)
             if drip:
-                blocks = await _off_loop(framed, tape_blocks, framed, o.motion(), o.motion_scale)
+                blocks = await off_loop(framed, tape_blocks, framed, o.motion(), o.motion_scale)
                 model.unsent.extend(blocks)
             try:
                 if progress is not None:
@@ -398,19 +406,6 @@ class IsoCncDriver(TapeSender):
         self.alarm = None
         self._set(IsoCncState.IDLE)
         return "idle"
-
-
-#: A program longer than this is checked and modelled in a thread, off the event loop: a
-#: 5 MB file takes seconds of G-code check, and a server's other machines' drip-feeds must
-#: be answered meanwhile (their buffers run dry in less).
-OFF_LOOP_BYTES = 64 * 1024
-
-
-async def _off_loop(data: bytes, fn: Callable[..., T], *args: Any) -> T:
-    """``fn(*args)``, in a thread when ``data`` is longer than :data:`OFF_LOOP_BYTES`."""
-    if len(data) > OFF_LOOP_BYTES:
-        return await asyncio.to_thread(fn, *args)
-    return fn(*args)
 
 
 __all__ = [

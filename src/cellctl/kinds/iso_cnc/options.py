@@ -7,9 +7,11 @@ before a byte goes out::
 
 from __future__ import annotations
 
+import asyncio
 import math
+from collections.abc import Callable
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -123,6 +125,25 @@ def prepare(data: bytes, options: IsoCncOptions, name: str = "program") -> bytes
         more = f" (and {len(found) - 5} more)" if len(found) > 5 else ""
         raise UsageError("; ".join(shown) + more)
     return tape.frame(text, leader=options.leader, trailer=options.trailer, percent=options.percent)
+
+
+T = TypeVar("T")
+
+#: A program longer than this is checked and modelled in a thread, off the event loop: a
+#: 5 MB file takes seconds of G-code check, and a server's other machines' drip-feeds must
+#: be answered meanwhile (their buffers run dry in less).
+OFF_LOOP_BYTES = 64 * 1024
+
+
+async def off_loop(data: bytes, fn: Callable[..., T], *args: Any) -> T:
+    """``fn(*args)`` (a check or a model of the program ``data``), in a thread when ``data``
+    is longer than :data:`OFF_LOOP_BYTES`::
+
+        framed = await off_loop(data, prepare, data, options, "O1234.nc")
+    """
+    if len(data) > OFF_LOOP_BYTES:
+        return await asyncio.to_thread(fn, *args)
+    return fn(*args)
 
 
 def read_program(path: Path, options: IsoCncOptions) -> bytes:

@@ -44,6 +44,7 @@ from cellctl.kinds.iso_cnc.dnc.store import (
     read_program_file,
 )
 from cellctl.kinds.iso_cnc.driver import IsoCncDriver
+from cellctl.kinds.iso_cnc.options import off_loop, prepare
 from cellctl.kinds.iso_cnc.tape import DC2, split_programs, unframe
 from cellctl.link import TrafficLog
 
@@ -254,7 +255,12 @@ class DncLine:
         self.stopping, self.ticket, self.tape_out = "", ticket, asyncio.Event()
         # Its own task, so that stop() cancels the transfer and not whoever waits for it.
         self.transfer = asyncio.ensure_future(
-            method(data, progress=self._on_progress(progress), timeout=timeout)
+            method(
+                data,
+                progress=self._on_progress(progress),
+                timeout=timeout,
+                name=program.rsplit(".", 1)[0],
+            )
         )
         try:
             report = await self.transfer
@@ -377,7 +383,7 @@ class DncLine:
         The caller holds :attr:`turn`."""
         self.require_link("nothing can be received from it")
         data: bytes = await self.driver.receive(progress=self._on_progress(None), timeout=timeout)
-        return self.take_punch(data)
+        return await self.take_punch(data)
 
     async def wait_punch(self, timeout: float) -> list[dict[str, Any]]:
         """What the control punches next, once the machine's task has taken it (kept,
@@ -400,7 +406,7 @@ class DncLine:
             if not self.punch_waiters and self.status.activity is Activity.AWAITING_PUNCH:
                 self._set(activity=Activity.IDLE)
 
-    def take_punch(self, data: bytes) -> list[dict[str, Any]]:
+    async def take_punch(self, data: bytes) -> list[dict[str, Any]]:
         """Split a punched tape into programs: answer a request, keep the others."""
         now = current_clock().now()
         done: list[dict[str, Any]] = []
@@ -415,7 +421,7 @@ class DncLine:
                 done.append({"program": program.number, "refused": str(e), "kept": str(kept.path)})
                 continue
             if request is not None:
-                done.append(self._request(request, program.number, raw, now))
+                done.append(await self._request(request, program.number, raw, now))
                 continue
             kept = self.store.keep_received(self.name, program.number, raw, now)
             message = f"received {o_name(program.number)} ({len(raw)} chars) as {kept.path.name}"
@@ -428,10 +434,17 @@ class DncLine:
                 waiter.set_result(done)
         return done
 
-    def _request(self, request: Request, number: int, raw: bytes, now: float) -> dict[str, Any]:
+    async def _request(
+        self, request: Request, number: int, raw: bytes, now: float
+    ) -> dict[str, Any]:
         try:
-            path = self.store.program(self.name, request.program, self.config.options.o_digits)
-            check_program_number(path.name, read_program_file(path))
+            options = self.config.options
+            path = self.store.program(self.name, request.program, options.o_digits)
+            data = read_program_file(path)
+            check_program_number(path.name, data)
+            # The G-code check too: a program the read would refuse (empty, a block too long)
+            # is the request's refusal now, not a failed read-in once the control reads.
+            await off_loop(data, prepare, data, options, path.stem)
         except UsageError as e:  # the punched request is kept as received, as docs/dnc.md says
             kept = self.store.keep_received(self.name, number, raw, now)
             self._note(f"request {request} refused: {e}; kept as {kept.path.name}")

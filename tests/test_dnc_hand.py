@@ -163,3 +163,41 @@ async def test_dnc_stop_refuses_a_hand_command_that_is_no_transfer(shop: Shop) -
         if receiver.returncode is None:
             receiver.send_signal(signal.SIGINT)
             await finished(receiver)
+
+
+async def test_dnc_stop_when_all_of_a_hand_drip_feed_is_out_changes_nothing(
+    shop: Shop,  # noqa: F811
+    tmp_path: Path,
+) -> None:
+    """docs/dnc.md: a stop that came when all of the program was out changes nothing (0).
+    The control holds the whole of a short, slow program in its buffer: `dnc stop` says so at
+    once, and the drip-feed ends by itself, 0, logged as drip-fed."""
+    root = str(shop.root)
+    program = tmp_path / "slow.nc"
+    program.write_text("O5001 (SLOW)\nG21 G90 G17\nG01 X0 Y0 F3000\nG01 X6. F60\nM30\n")
+    control = shop.controls["mill2"]
+    control.set_mode(Mode.RMT)
+    drip = await cellctl("dnc", "drip", "mill2", str(program), "--dir", root)
+    try:
+        store = StateStore(shop.root)
+        await until(
+            lambda: store.load("mill2").get("state") == IsoCncState.DRIP_FEEDING,
+            "the drip-feed waiting for the control",
+            30,
+        )
+        control.cycle_start()
+        await until(lambda: control.runs and control.runs[-1].blocks >= 3, "the slow move", 30)
+        assert not control.runs[-1].done
+        code, said = await finished(await cellctl("dnc", "stop", "mill2", "--dir", root))
+        assert code == 0, said
+        assert "all of the drip-feed of slow.nc is out: the control runs the rest" in said, said
+        code, told = await finished(drip, 60)
+        assert code == 0, told
+        assert "drip-fed" in told, told
+    finally:
+        if drip.returncode is None:
+            drip.kill()
+            await finished(drip)
+    assert control.runs[-1].done and not control.alarms
+    log = "\n".join(ShopStore(shop.root).log_lines("mill2"))
+    assert "is out: the control runs the rest" in log and "slow.nc: drip-fed" in log, log

@@ -325,8 +325,11 @@ def _punched(item: dict[str, Any]) -> str:
 async def _stop(access: CellAccess, p: StopParams, progress: Progress | None) -> Any:
     assert isinstance(access, DncAccess)
     why = "stopped by its sender" if p.ticket else "stopped by hand"
-    message = await access.server.line(p.machine).stop(ticket=p.ticket, why=why)
-    return {"machine": p.machine, "message": message}
+    line = access.server.line(p.machine)
+    message = await line.stop(ticket=p.ticket, why=why)
+    # False when nothing was stopped: no transfer, or all of it was out already (a drip-feed
+    # the control runs to its end): the transfer's own end stands.
+    return {"machine": p.machine, "message": message, "stopped": bool(line.stopping)}
 
 
 async def _functions(access: CellAccess, p: NoParams, progress: Progress | None) -> Any:

@@ -158,9 +158,16 @@ async def _stoppable(
             }
         try:
             ending = stop_by_hand if by_hand and stop_by_hand is not None else stop
-            said = str((await ending())["message"])
+            answer = await ending()
+            said = str(answer["message"])
         except CellctlError as e:
             said = str(e)
+        else:
+            if by_hand and answer.get("stopped") is False:
+                # `dnc stop` when all of it was out already changes nothing: the transfer
+                # ends as it would have (its own deadline), 0 and logged as such.
+                err_console.print(said, markup=False, highlight=False)
+                return await task
         try:  # the transfer's own answer says where it ended
             async with current_clock().timeout(STOPPED_ANSWER_S):
                 return await task

@@ -109,6 +109,7 @@ async def stop_hand_transfer(config: ShopConfig, name: str, found: Holder) -> st
     from cellctl.clock import current_clock
     from cellctl.drivers.state import StateStore
     from cellctl.errors import LinkTimeout
+    from cellctl.kinds.iso_cnc.dnc.status import says_all_out
     from cellctl.kinds.iso_cnc.dnc.store import ShopStore
     from cellctl.link.lock import holder
 
@@ -117,14 +118,21 @@ async def stop_hand_transfer(config: ShopConfig, name: str, found: Holder) -> st
     lock = StateStore(config.root).lock_path(name)
     with contextlib.suppress(ProcessLookupError):  # it ended meanwhile: its log says how
         os.kill(found.pid, HAND_STOP)
+
+    def told() -> list[str]:
+        return [line.split(" ", 1)[-1] for line in store.log_lines(name, 10**9)[before:]]
+
     try:
         async with current_clock().timeout(HAND_STOP_S):
             while holder(lock) == found:
+                said = told()
+                if any(says_all_out(line) for line in said):
+                    # All of it was out: the transfer runs on to its own end, unchanged.
+                    return f"{name}: " + "; ".join(said)
                 await current_clock().sleep(0.1)
     except TimeoutError:
         raise LinkTimeout(
             f"{name}: {found} did not end its transfer within {HAND_STOP_S:g} s of the stop: "
             "press Ctrl-C in its terminal, or reset the control"
         ) from None
-    said = [line.split(" ", 1)[-1] for line in store.log_lines(name, 10**9)[before:]]
-    return "; ".join(said) or f"{name}: {found} has ended (its log says nothing more)"
+    return "; ".join(told()) or f"{name}: {found} has ended (its log says nothing more)"

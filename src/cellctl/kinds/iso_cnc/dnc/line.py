@@ -31,6 +31,7 @@ from cellctl.kinds.iso_cnc.dnc.status import (
     MachineStatus,
     TransferStopped,
     WatchedTraffic,
+    all_out_words,
     ended_words,
     offline_words,
     progress_dict,
@@ -347,8 +348,9 @@ class DncLine:
         what = f"{'drip-feed' if drip else 'read-in'} of {s.program}"
         where = self.driver.end_tape() if self.driver is not None else "waiting"
         if where == "out":
-            rest = "runs the rest: stop it on the control (FEED HOLD, RESET)" if drip else ""
-            return f"{self.name}: all of the {what} is out: the control {rest or 'stores it'}"
+            said = all_out_words(what, drip)
+            self._note(said)  # a stopper waiting on this log learns it changed nothing
+            return f"{self.name}: {said}"
         self.stopping = why
         if where == "waiting":  # no DC1 yet: nothing went out, the read is simply not offered
             self.stopping = f"{why}: the {what} was cancelled before the control began its read"

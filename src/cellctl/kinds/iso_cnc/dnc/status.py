@@ -168,6 +168,23 @@ def ended_words(
     )
 
 
+#: The words of a stop that came when all of a transfer was out: it changes nothing.
+_ALL_OUT = "all of the {what} is out: the control {rest}"
+
+
+def all_out_words(what: str, drip: bool) -> str:
+    """A stop when all of ``what`` (``drip-feed of O5000.nc``) was out already, in words:
+    the control runs (or stores) the rest; :func:`says_all_out` knows these words again."""
+    rest = "runs the rest: stop it on the control (FEED HOLD, RESET)" if drip else "stores it"
+    return _ALL_OUT.format(what=what, rest=rest)
+
+
+def says_all_out(text: str) -> bool:
+    """Whether ``text`` (a log line) is :func:`all_out_words`'."""
+    head, _, tail = _ALL_OUT.partition("{what}")
+    return head in text and tail.split("{rest}")[0] in text
+
+
 def offline_words(name: str, e: Exception, retry_s: float | None) -> str:
     """Why machine ``name`` is offline, naming it: ``a: offline: cannot connect to ...``;
     with ``retry_s`` (a server that tries its link again), how often it is tried."""

@@ -58,7 +58,15 @@ async def test_an_exact_name_wins_and_two_candidates_are_refused(shop: Shop) -> 
         assert code == 2, (command, said)
         assert "O1234 is ambiguous" in said, said
         assert "'O1234 bracket.nc'" in said and "'O1234 copy.nc'" in said, said
+        assert "start with it and none is O1234.nc" in " ".join(said.split()), said
     assert control.chars_read == before  # nothing went out
+    # Two files named by the number alone: the same refusal, in their own words.
+    (programs / "O1234.nc").write_text(BRACKET)
+    (programs / "O1234.tap").write_text(BRACKET)
+    code, said = await run_here("dnc", "check", "mill1", "O1234", "--dir", root)
+    assert code == 2 and "are each named by it alone" in " ".join(said.split()), said
+    (programs / "O1234.nc").unlink()
+    (programs / "O1234.tap").unlink()
     # One file alone, whatever its ending, is the program.
     (programs / "O1234 copy.nc").unlink()
     code, said = await run_here("dnc", "check", "mill1", "O1234", "--dir", root)

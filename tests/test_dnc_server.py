@@ -414,3 +414,11 @@ def test_any_dnc_toml_is_a_shop_or_a_refusal(data: dict[str, object]) -> None:
         assert str(path) in str(e)
     else:
         assert shop.machines
+
+
+def test_a_shop_without_dnc_toml_is_told_both_ways_to_give_one(tmp_path: Path) -> None:
+    with pytest.raises(UsageError) as refused:
+        load_shop(tmp_path)
+    said = str(refused.value)
+    assert f"no {tmp_path / 'dnc.toml'}: write one (docs/dnc.md)" in said
+    assert "--cell DIR --use-cell" in said  # the option that does it, as spelled

@@ -130,7 +130,10 @@ def _load(path: Path) -> dict[str, Any]:
     try:
         return tomllib.loads(read_text(path))
     except FileNotFoundError:
-        raise UsageError(f"no {path}: write one (docs/dnc.md), or give --cell DIR") from None
+        raise UsageError(
+            f"no {path}: write one (docs/dnc.md), or feed a cell's iso-cnc machines with "
+            "--cell DIR --use-cell"
+        ) from None
     except tomllib.TOMLDecodeError as e:
         raise UsageError(f"{path}: not valid TOML: {e}") from None
     except UnicodeDecodeError as e:

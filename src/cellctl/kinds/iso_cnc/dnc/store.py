@@ -194,10 +194,16 @@ class ShopStore:
                 f"no program {o_name(number)} in {where} (a file named {o_name(number)}.nc)"
             )
         names = ", ".join(repr(path.name) for path in chosen)
+        # Several named by the number alone (O1234.nc and O1234.tap), or none and several
+        # that start with it: which one is meant cannot be guessed either way.
+        why = (
+            "are each named by it alone"
+            if exact
+            else f"start with it and none is {o_name(number)}.nc"
+        )
         raise UsageError(
             f"{o_name(number)} is ambiguous in {where}: {len(chosen)} files could be it "
-            f"({names}) and none is named {o_name(number)}.nc alone: rename all but one, "
-            "or give the file itself"
+            f"({names}) and they {why}: rename all but one, or give the file itself"
         )
 
     def resolve(self, name: str, program: str, digits: int | None = None) -> Path:

@@ -3,13 +3,18 @@
 
 from __future__ import annotations
 
+import shutil
+from pathlib import Path
+
 from rich.text import Text
 from textual.widgets import Static
 
 from cellctl.cell.blocked import blocked_reason
 from cellctl.cell.config import load_cell
-from cellctl.cell.journal import Part
+from cellctl.cell.journal import Part, open_journal
 from cellctl.emulators.cell import EXAMPLE_CELL
+from cellctl.mailbox import open_mailbox
+from cellctl.service.operator import list_orders
 from cellctl.service.status import CellStatus
 from cellctl.ui.console.widgets import board_text, shown
 from tests.test_api import Api, api  # noqa: F401 (the fixture)
@@ -102,3 +107,23 @@ def test_a_console_widget_is_drawn_again_only_when_its_text_changed() -> None:
         "cnc1 Idle",
         "cnc1 Busy",
     ]
+
+
+def test_an_order_held_by_a_stuck_doors_alarm_says_which_to_clear(tmp_path: Path) -> None:
+    cell = tmp_path / "cell"
+    shutil.copytree(EXAMPLE_CELL, cell)
+    config = load_cell(cell)
+    with open_journal(cell) as journal, open_mailbox(cell) as mailbox:
+        mailbox.post_order("wax-robot-base", 1, order_id="D1")
+        [listed] = list_orders(mailbox, journal, config=config)
+        assert listed["blocked"] == ""
+        alarm, _ = journal.raise_alarm("plc", "interlock", "door of CNC 1 did not close")
+        [listed] = list_orders(mailbox, journal, config=config)
+        assert listed["blocked"] == (
+            f"blocked: every transfer waits until alarm {alarm.id} is cleared "
+            "(door of CNC 1 did not close)"
+        )
+        assert listed["note"].startswith(listed["blocked"])
+        journal.clear_alarm(alarm.id, by="operator")
+        [listed] = list_orders(mailbox, journal, config=config)
+        assert listed["blocked"] == ""

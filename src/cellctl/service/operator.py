@@ -130,7 +130,8 @@ def list_orders(
 
     With the cell's ``config``, an open order whose parts wait for a machine out of service
     says so: ``blocked`` (also put before its ``note``), e.g. "blocked: its parts need cnc2,
-    out of service (...)"; "" otherwise (:mod:`cellctl.cell.blocked`)."""
+    out of service (...)" (:mod:`cellctl.cell.blocked`), or "blocked: every transfer waits
+    until alarm 3 is cleared (door of CNC 1 ...)" for a stuck door; "" otherwise."""
     progress: dict[str, Counter[str]] = {}
     by_order: dict[str, list[Part]] = {}
     out: dict[str, str] = {}
@@ -139,12 +140,20 @@ def list_orders(
             progress.setdefault(part.order_id, Counter())[part.status] += 1
             by_order.setdefault(part.order_id, []).append(part)
         out = journal.machines_out_of_service() if config is not None else {}
+    # A door or vise the PLC failed to move holds every transfer until its alarm is cleared
+    # (cell.recovery): an order that waits on it says so, or the cell just looks idle.
+    door = journal.open_alarm("plc", "interlock") if journal is not None else None
     found = []
     for o in mailbox.orders(states or None):
         entry = {**as_dict(o), "parts": dict(sorted(progress.get(o.id, Counter()).items()))}
         blocked = ""
         if config is not None and o.state in BLOCKABLE:
-            blocked = blocked_reason(config, o.part_type, by_order.get(o.id, []), out)
+            parts = by_order.get(o.id, [])
+            blocked = blocked_reason(config, o.part_type, parts, out)
+            if not blocked and door is not None and not any(p.status == "active" for p in parts):
+                blocked = (
+                    f"blocked: every transfer waits until alarm {door.id} is cleared ({door.text})"
+                )
         entry["blocked"] = blocked
         if blocked:
             entry["note"] = f"{blocked}; {o.note}" if o.note else blocked

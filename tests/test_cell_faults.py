@@ -265,6 +265,53 @@ async def test_a_mill_put_back_in_service_returns_its_alarm_to_normal(tmp_path: 
         await rig.stop_controller()
 
 
+@pytest.mark.virtual
+async def test_a_robot_that_failed_its_start_up_returns_its_alarm_once_initialized(
+    tmp_path: Path,
+) -> None:
+    """A robot silent as the controller starts: its start-up fails (an alarm). Answering
+    again, it is initialized by the next transfer: the alarm returns to normal (open until
+    the operator clears it), as docs/api.md says a condition gone does."""
+    async with CellRig(tmp_path / "cell") as rig:
+        rig.switch_on("robot:silent")
+        rig.post("wax-robot-base", 1, "A")
+        await rig.start_controller()
+        (failed,) = await rig.wait_for(
+            lambda: rig.alarms("robot", "initialize"), "the start-up's alarm"
+        )
+        await rig.switch_off("robot:silent")
+        await rig.wait_for(lambda: rig.finished_steps("transfer") >= 1, "a transfer", 120)
+
+        def back() -> object:
+            return rig.journal.get_alarm(failed.id).returned
+
+        await rig.wait_for(back, "the start-up's alarm returned to normal")
+        assert rig.journal.get_alarm(failed.id).state != "cleared"
+        await rig.stop_controller()
+
+
+@pytest.mark.virtual
+async def test_a_mill_ready_again_after_its_setup_stop_returns_its_alarm(tmp_path: Path) -> None:
+    """cnc1's operator does not finish its setup (no NEXT): "not ready ... after its setup".
+    Once NEXT is pressed the mill is ready: the alarm returns to normal (open until cleared)."""
+    async with CellRig(tmp_path / "cell") as rig:
+        rig.switch_on("cnc1:no-next")
+        rig.post("wax-robot-base", 1, "A")
+        await rig.start_controller()
+        (waited,) = await rig.wait_for(
+            lambda: rig.alarms("cnc1", "readiness"), "the setup's readiness alarm", 300
+        )
+        assert "after its setup" in waited.text, waited.text
+        await rig.switch_off("cnc1:no-next")
+
+        def back() -> object:
+            return rig.journal.get_alarm(waited.id).returned
+
+        await rig.wait_for(back, "the readiness alarm returned to normal", 120)
+        assert rig.journal.get_alarm(waited.id).state != "cleared"
+        await rig.stop_controller()
+
+
 @pytest.mark.parametrize("time_scale", [1.0, 50.0, 1000.0])
 async def test_the_emulated_cell_writes_the_real_deadlines_scaled(
     tmp_path: Path, time_scale: float

@@ -346,7 +346,9 @@ class Monitor:
             view.show(str(status), Condition.ALARM, LastError(cause.text))
             self.alarms.returned(robot.name, "link")
         else:
-            self.alarms.returned(robot.name, "link", "status")
+            # Well, and initialized again (a transfer does it): a failed start-up is behind it.
+            started = () if robot.cold else ("initialize",)
+            self.alarms.returned(robot.name, "link", "status", *started)
             host = robot.host_status()
             view.show(host.text, host.condition)
 
@@ -368,6 +370,8 @@ class Monitor:
         self.alarms.returned(m.name, "link")
         was_ready = recovery.ready.get(m.name, False)
         ready = status.takes_work
+        if ready and recovery.fit.get(m.name, False):
+            self.alarms.returned(m.name, "readiness")  # ready again: CTS high, its setup kept
         recovery.ready[m.name] = ready and recovery.fit.get(m.name, False)
         if not view.in_service or not recovery.fit.get(m.name, False):
             return

@@ -151,6 +151,7 @@ class Recovery:
         if status.takes_work and mill.initialized:
             self.fit[m.name] = self.ready[m.name] = True
             self.faulted.discard(m.name)
+            self.alarms.returned(m.name, "readiness")
             self.alarms.log(f"{m.name}: ready again, its setup kept (a part is in its vise)")
             return
         if not mill.running:  # a block still running is no failure: it ends
@@ -214,6 +215,7 @@ class Recovery:
             status = robot.host_status()
             view.show(status.text, status.condition)
             self.alarms.succeeded(robot.name)
+            self.alarms.returned(robot.name, "initialize")  # a failed start-up is behind it
         except CellctlError as e:
             view.show(f"error: {e}", Condition.ALARM, LastError.of(e))
             self.alarms.failed(robot.name, "initialize", f"robot initialize failed: {e}")
@@ -247,6 +249,8 @@ class Recovery:
         self.fit[m.name] = True
         self.faulted.discard(m.name)
         self.ready[m.name] = status.takes_work
+        # Set up again: a failed setup is behind it, and a lost readiness if it takes work.
+        self.alarms.returned(m.name, "initialize", *(("readiness",) if status.takes_work else ()))
         # Its operator's time for the reference zero runs from now (also after a setup sent by
         # hand while it was out of automatic service).
         self.setup_at[m.name] = self.world.clock.monotonic()

@@ -70,6 +70,15 @@ def test_bad_orders_are_refused(
     assert mailbox.orders() == []
 
 
+@pytest.mark.parametrize("order_id", ["A\x1b[2J", "B\x1b]0;title\x07", "C\x00", "D\u202e"])
+def test_an_order_id_with_control_characters_is_refused(mailbox: Mailbox, order_id: str) -> None:
+    # Listed by `cellctl orders`, an escape sequence would act on the operator's terminal.
+    with pytest.raises(UsageError, match="must be printable text"):
+        mailbox.post_order("p", qty=1, order_id=order_id)
+    assert mailbox.orders() == []
+    assert mailbox.post_order("p", qty=1, order_id="Ä-1/x")[0].id == "Ä-1/x"
+
+
 def test_orders_highest_priority_first_then_oldest(mailbox: Mailbox) -> None:
     for oid, prio in [("low-old", 0), ("high-old", 5), ("low-new", 0), ("high-new", 5)]:
         mailbox.post_order("p", priority=prio, order_id=oid)

@@ -100,6 +100,9 @@ def check_new_order(part_type: str, qty: int, priority: int, order_id: str | Non
         return uuid.uuid4().hex[:12]
     if not order_id.strip() or order_id != order_id.strip() or any(c.isspace() for c in order_id):
         raise UsageError(f"order id {order_id!r} must be one word")
+    if not order_id.isprintable():
+        # An escape sequence in an id would act on every operator's terminal that lists it.
+        raise UsageError(f"order id {order_id!r} must be printable text (no control characters)")
     return order_id
 
 

@@ -7,9 +7,11 @@ controls over a pty and TCP."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import re
 import shlex
 import signal
+from collections.abc import AsyncIterator
 from pathlib import Path
 
 from cellctl.drivers.state import StateStore
@@ -106,6 +108,29 @@ async def test_the_busy_refusal_suggests_a_stop_that_works_as_printed(served: Sh
     assert served.controls["mill1"].chars_read == 0
 
 
+@contextlib.asynccontextmanager
+async def hand_drip(shop: Shop, program: Path) -> AsyncIterator[asyncio.subprocess.Process]:  # noqa: F811
+    """`cellctl dnc drip mill2 PROGRAM` with no server (the command holds the link itself),
+    begun: the control in RMT and CYCLE START pressed once it waits. Killed if still running
+    on the way out."""
+    control = shop.controls["mill2"]
+    control.set_mode(Mode.RMT)
+    drip = await cellctl("dnc", "drip", "mill2", str(program), "--dir", str(shop.root))
+    try:
+        store = StateStore(shop.root)
+        await until(
+            lambda: store.load("mill2").get("state") == IsoCncState.DRIP_FEEDING,
+            "the drip-feed waiting for the control",
+            30,
+        )
+        control.cycle_start()
+        yield drip
+    finally:
+        if drip.returncode is None:
+            drip.kill()
+            await finished(drip)
+
+
 async def test_dnc_stop_ends_a_drip_feed_run_by_hand_without_a_server(
     shop: Shop,  # noqa: F811
     tmp_path: Path,
@@ -114,16 +139,7 @@ async def test_dnc_stop_ends_a_drip_feed_run_by_hand_without_a_server(
     program = tmp_path / "surface.nc"
     program.write_text(surfacing(MOVES))
     control = shop.controls["mill2"]
-    control.set_mode(Mode.RMT)
-    drip = await cellctl("dnc", "drip", "mill2", str(program), "--dir", root)
-    try:
-        store = StateStore(shop.root)  # no server: the command holds the link itself
-        await until(
-            lambda: store.load("mill2").get("state") == IsoCncState.DRIP_FEEDING,
-            "the drip-feed waiting for the control",
-            30,
-        )
-        control.cycle_start()
+    async with hand_drip(shop, program) as drip:
         await until(lambda: control.chars_read > 200, "the drip-feed under way", 30)
         # A second transfer: busy, and the stop it suggests is one that works
         code, said = await run_here("dnc", "drip", "mill2", str(program), "--dir", root)
@@ -137,10 +153,6 @@ async def test_dnc_stop_ends_a_drip_feed_run_by_hand_without_a_server(
         code, told = await finished(drip, 30)
         assert code == 130, told
         assert "stopped by hand: the drip-feed of surface.nc ended at " in told, told
-    finally:
-        if drip.returncode is None:
-            drip.kill()
-            await finished(drip)
     # ended as the spec ends a tape: the control ran what it held and left the read
     await until(lambda: control.activity == "idle", "the control out of its read")
     assert control.runs[-1].done and not control.alarms
@@ -184,16 +196,7 @@ async def test_dnc_stop_when_all_of_a_hand_drip_feed_is_out_changes_nothing(
     program = tmp_path / "slow.nc"
     program.write_text("O5001 (SLOW)\nG21 G90 G17\nG01 X0 Y0 F3000\nG01 X6. F60\nM30\n")
     control = shop.controls["mill2"]
-    control.set_mode(Mode.RMT)
-    drip = await cellctl("dnc", "drip", "mill2", str(program), "--dir", root)
-    try:
-        store = StateStore(shop.root)
-        await until(
-            lambda: store.load("mill2").get("state") == IsoCncState.DRIP_FEEDING,
-            "the drip-feed waiting for the control",
-            30,
-        )
-        control.cycle_start()
+    async with hand_drip(shop, program) as drip:
         await until(lambda: control.runs and control.runs[-1].blocks >= 3, "the slow move", 30)
         assert not control.runs[-1].done
         code, said = await finished(await cellctl("dnc", "stop", "mill2", "--dir", root))
@@ -202,10 +205,6 @@ async def test_dnc_stop_when_all_of_a_hand_drip_feed_is_out_changes_nothing(
         code, told = await finished(drip, 60)
         assert code == 0, told
         assert "drip-fed" in told, told
-    finally:
-        if drip.returncode is None:
-            drip.kill()
-            await finished(drip)
     assert control.runs[-1].done and not control.alarms
     log = "\n".join(ShopStore(shop.root).log_lines("mill2"))
     assert "is out: the control runs the rest" in log and "slow.nc: drip-fed" in log, log

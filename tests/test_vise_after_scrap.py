@@ -194,3 +194,34 @@ def test_a_part_released_elsewhere_leaves_the_mill_it_may_have_been_in_emptied(
         answer = release_part(journal, mailbox, part.id, location=at)
         assert answer["part"]["location"] == at
         assert sorted(journal.emptied_places()) == emptied
+
+
+@pytest.mark.virtual
+async def test_a_scrap_that_lands_while_dispatch_looks_still_opens_the_vise(tmp_path: Path) -> None:
+    """Dispatch looks at the work, then (after a read of the PLC) at the emptied vises: a
+    scrap that lands in between left that look of the work showing the scrapped part still
+    in cnc2. It is no part there again: the vise is still opened before cnc2 takes a part."""
+    async with CellRig(tmp_path / "cell", template=EXAMPLES / "cell") as rig:
+        rig.post("wax-robot-base", 2, "A")
+        controller = await rig.start_controller()
+        await rig.wait_for(lambda: rig.finished_steps("machine") >= 1, "first cut done")
+        rig.switch_on("cnc2:stall")
+        [held] = await rig.wait_for(rig.held_parts, "a part held")
+        await rig.switch_off("cnc2:stall")
+        assert rig.cell.take_out("cnc2") is not None
+        await rig.clear_alarms()
+        controller.pause()  # no dispatch of its own meanwhile
+        before = controller.workview.current()  # the look from before the scrap
+        assert any(p.id == held.id and p.location == "cnc2" for p in before.parts)
+        scrapped = await rig.cli("part", "scrap", held.id, "--taken-out")
+        assert scrapped.exit_code == 0, scrapped.output
+        await controller.read_inputs()
+        look = controller.vises.look(before, controller.inputs)
+        assert look.to_open == "cnc2" and "cnc2" in rig.journal.emptied_places()
+        controller.resume()
+        await rig.wait_for(rig.all_done, "order A done", timeout=60)
+        assert rig.cut_twice() == {} and rig.journal.emptied_places() == {}
+        assert any(e.text.startswith("robot: open_vise_cnc2:") for e in controller.events)
+        failed = [s for s in rig.journal.steps() if s.state == "failed"]
+        assert [(s.machine, s.part_id) for s in failed] == [("cnc2", held.id)]
+        await rig.stop_controller()

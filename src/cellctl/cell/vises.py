@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from cellctl.cell.config import open_vise_name
+from cellctl.cell.workview import places_of
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
@@ -57,11 +58,16 @@ class EmptiedVises:
         if not emptied:
             return ViseLook()
         mills = {m.name for m in world.config.mills}
-        occupied = set(work.blocked) | {p.location for p in work.parts}
         waiting: set[str] = set()
         for place, part_id in emptied.items():
             is_mill = place in mills
             closed = is_mill and inputs.get(f"clamp_closed_{world.mill_index(place)}", False)
+            # The part taken out is no part there again: ``work`` may be from before the
+            # operator's word (a scrap that landed while dispatch looked) and still show it.
+            others = [p for p in work.parts if p.id != part_id]
+            occupied = {p.location for p in others} | {
+                where for p in others if p.status == "held" for where in places_of(world.journal, p)
+            }
             if not closed or place in occupied:
                 # Open (by the robot, or by hand), a part there again, or no mill: done.
                 world.journal.vise_open(place)

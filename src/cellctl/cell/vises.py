@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from cellctl.cell.config import open_vise_name
-from cellctl.cell.workview import places_of
+from cellctl.cell.workview import held_places
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
@@ -65,9 +65,7 @@ class EmptiedVises:
             # The part taken out is no part there again: ``work`` may be from before the
             # operator's word (a scrap that landed while dispatch looked) and still show it.
             others = [p for p in work.parts if p.id != part_id]
-            occupied = {p.location for p in others} | {
-                where for p in others if p.status == "held" for where in places_of(world.journal, p)
-            }
+            occupied = {p.location for p in others} | held_places(world.journal, others)
             if not closed or place in occupied:
                 # Open (by the robot, or by hand), a part there again, or no mill: done.
                 world.journal.vise_open(place)

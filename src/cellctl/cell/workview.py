@@ -14,7 +14,7 @@ transfer is kept as long as that and the cell's inputs to the scheduler stay the
 
 from __future__ import annotations
 
-from collections.abc import Hashable, Mapping
+from collections.abc import Hashable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -146,11 +146,13 @@ class WorkView:
         )
 
     def _blocked(self, parts: list[Part]) -> set[str]:
-        blocked: set[str] = set()
-        for p in parts:
-            if p.status == "held":
-                blocked |= places_of(self.world.journal, p)
-        return blocked
+        return held_places(self.world.journal, parts)
+
+
+def held_places(journal: Journal, parts: Iterable[Part]) -> set[str]:
+    """The places the held ones of ``parts`` may be in (:func:`places_of`): no part goes
+    there until the operator says where each is."""
+    return {where for p in parts if p.status == "held" for where in places_of(journal, p)}
 
 
 def places_of(journal: Journal, part: Part) -> set[str]:

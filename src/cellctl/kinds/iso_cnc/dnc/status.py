@@ -168,21 +168,21 @@ def ended_words(
     )
 
 
-#: The words of a stop that came when all of a transfer was out: it changes nothing.
-_ALL_OUT = "all of the {what} is out: the control {rest}"
+#: The words of a stop that came when all of a transfer was out (it changes nothing): they
+#: begin so, and name what is out before these.
+_ALL_OUT = ("all of the ", " is out: the control ")
 
 
 def all_out_words(what: str, drip: bool) -> str:
     """A stop when all of ``what`` (``drip-feed of O5000.nc``) was out already, in words:
     the control runs (or stores) the rest; :func:`says_all_out` knows these words again."""
     rest = "runs the rest: stop it on the control (FEED HOLD, RESET)" if drip else "stores it"
-    return _ALL_OUT.format(what=what, rest=rest)
+    return f"{_ALL_OUT[0]}{what}{_ALL_OUT[1]}{rest}"
 
 
 def says_all_out(text: str) -> bool:
-    """Whether ``text`` (a log line) is :func:`all_out_words`'."""
-    head, _, tail = _ALL_OUT.partition("{what}")
-    return head in text and tail.split("{rest}")[0] in text
+    """Whether ``text`` (a log line without its time) is :func:`all_out_words`'."""
+    return text.startswith(_ALL_OUT[0]) and _ALL_OUT[1] in text
 
 
 def offline_words(name: str, e: Exception, retry_s: float | None) -> str:

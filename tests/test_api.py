@@ -335,7 +335,7 @@ async def test_emergency_stop_halts_and_holds(api: Api) -> None:
     # arriving as it starts would be lost).
     assert all("END" in [r.outcome for r in m.runs[before[n] :]] for n, m in mills.items())
     # Not resumed while the stop's alarm is open: nothing moves a mill before it is cleared.
-    with pytest.raises(UsageError, match=r"the emergency stop's alarm \d+ is not cleared"):
+    with pytest.raises(MachineInUse, match=r"the emergency stop's alarm \d+ is not cleared"):
         await api.call("cell.resume")
     assert (await api.call("cell.status"))["cell"]["paused"] is True
     # The operator's way back: ready the mills at their panels (the emulators' operator

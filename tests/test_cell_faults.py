@@ -24,7 +24,7 @@ from cellctl.cell.model import ControllerOptions
 from cellctl.cell.monitor import ESTOP
 from cellctl.clock import current_clock
 from cellctl.emulators.cell import EXAMPLE_CELL, EmulatedCell, real_cell_toml
-from cellctl.errors import UsageError
+from cellctl.errors import MachineInUse
 from cellctl.kinds.dyna2400.driver import MillConfig
 from cellctl.testing.rig import CellRig
 
@@ -269,16 +269,16 @@ async def test_a_mill_put_back_in_service_returns_its_alarm_to_normal(tmp_path: 
 async def test_a_robot_that_failed_its_start_up_returns_its_alarm_once_initialized(
     tmp_path: Path,
 ) -> None:
-    """A robot silent as the controller starts: its start-up fails (an alarm). Answering
-    again, it is initialized by the next transfer: the alarm returns to normal (open until
-    the operator clears it), as docs/api.md says a condition gone does."""
+    """A robot silent as the controller starts: its start-up fails (one alarm, its cause's:
+    "robot not answering"). Answering again, it is initialized by the next transfer: the
+    alarm returns to normal (open until the operator clears it), as docs/api.md says a
+    condition gone does."""
     async with CellRig(tmp_path / "cell") as rig:
         rig.switch_on("robot:silent")
         rig.post("wax-robot-base", 1, "A")
         await rig.start_controller()
-        (failed,) = await rig.wait_for(
-            lambda: rig.alarms("robot", "initialize"), "the start-up's alarm"
-        )
+        (failed,) = await rig.wait_for(lambda: rig.alarms("robot"), "the start-up's alarm")
+        assert failed.text == "robot not answering", failed
         await rig.switch_off("robot:silent")
         await rig.wait_for(lambda: rig.finished_steps("transfer") >= 1, "a transfer", 120)
 
@@ -445,7 +445,7 @@ async def test_the_plcs_emergency_stop_released_restarts_nothing(tmp_path: Path)
         await clock.sleep(120)  # a couple of minutes of a released button
         assert not [s for s in rig.journal.steps() if s.started > released], rig.describe()
         assert controller.paused, rig.describe()
-        with pytest.raises(UsageError, match=r"the emergency stop's alarm \d+ is not cleared"):
+        with pytest.raises(MachineInUse, match=r"the emergency stop's alarm \d+ is not cleared"):
             controller.resume()
         await resolve_until_done(rig)
         await rig.stop_controller()

@@ -27,3 +27,18 @@ async def test_the_shift_panel_shows_the_reports_figures(dash: Dash) -> None:  #
         assert cells[-1] == f"{m['steps_good']} / {m['steps_ended']}"
         assert cells[3] == f"{100 * m['quality']:.1f} %"
     await dash.shot("shift", "#shift")
+
+
+async def test_a_ratio_not_known_yet_reads_as_a_dash(dash: Dash) -> None:  # noqa: F811
+    """Before a step ended, quality (and OEE with it) is not known: the panel shows the
+    report's dash, as `cellctl report shift` does, not 0 %."""
+    await live(dash)
+    found = await dash.api("report.shift")
+    unknown = [m for m in found["machines"] if m["quality"] is None]
+    assert unknown, found  # nothing ordered yet: no step ended
+    for m in unknown:
+        row = dash.page.locator(f'#shift-machines tr[data-machine="{m["machine"]}"]')
+        await row.wait_for(timeout=15_000)
+        cells = await row.locator("td").all_inner_texts()
+        assert cells[3] == "\u2014", cells
+        assert cells[4] == "\u2014", cells

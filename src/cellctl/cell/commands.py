@@ -23,7 +23,7 @@ import contextlib
 from collections.abc import AsyncIterator, Callable
 from typing import TYPE_CHECKING, Any
 
-from cellctl.errors import CellctlError, MachineInUse, UsageError, unknown_machine
+from cellctl.errors import CellctlError, MachineInUse, unknown_machine
 
 if TYPE_CHECKING:
     from cellctl.cell.model import MachineView
@@ -68,15 +68,16 @@ class OperatorCommands:
 
     def resume(self: CommandsHost) -> str:
         """Start dispatching again (the mills an emergency stop halted are initialized anew:
-        their operators ready them at their panels first). Refused (UsageError) while an
-        emergency stop is on: its button pressed, or its alarm not cleared."""
+        their operators ready them at their panels first). Refused while an emergency stop
+        is on, its button pressed or its alarm not cleared (MachineInUse: the stop holds the
+        cell, exit code 6)."""
         if not self.inputs.get("estop_ok", True):
-            raise UsageError(
-                "the emergency stop is pressed: release it, clear its alarm, then resume"
-            )
+            # The cell's state refuses it, not the request: the stop holds the cell until
+            # the button is released and its alarm cleared (a reset must never start it).
+            raise MachineInUse(f"the emergency stop is pressed: release it{_clear_estop(self)}")
         for a in self.journal.active_alarms():
             if a.code == "estop":
-                raise UsageError(
+                raise MachineInUse(
                     f"the emergency stop's alarm {a.id} is not cleared: deal with its cause, "
                     f"clear it (`cellctl alarm clear {a.id}`), then resume"
                 )
@@ -221,6 +222,17 @@ class OperatorCommands:
         # Every mill at once: each waits out its own block (in manual, nothing of ours runs).
         await asyncio.gather(*(halt(n, m) for n, m in self.mills.items() if not m.manual))
         return text + ("; " + "; ".join(problems) if problems else "") + ": cell paused"
+
+
+def _clear_estop(host: CommandsHost) -> str:
+    """The rest of the way out of a pressed emergency stop, naming its open alarm(s):
+    ", clear alarm 4 (`cellctl alarm clear 4`), then resume"."""
+    ids = [a.id for a in host.journal.active_alarms() if a.code == "estop"]
+    if not ids:  # not raised yet (the monitor's look raises it): said without its number
+        return ", clear its alarm, then resume"
+    which = "alarms " + ", ".join(map(str, ids)) if len(ids) > 1 else f"alarm {ids[0]}"
+    commands = ", ".join(f"`cellctl alarm clear {i}`" for i in ids)
+    return f", clear {which} ({commands}), then resume"
 
 
 def _known(machines: dict[str, MachineView], name: str) -> MachineView:

@@ -325,8 +325,9 @@ class CellController(OperatorCommands):
         return task is not None and not task.done()
 
     async def prepare_robot(self) -> None:
-        """Bring the robot to a known state (stopped, initialized), as on connecting."""
-        await self.recovery.prepare_robot()
+        """Bring the robot to a known state (stopped, initialized), as on connecting; a
+        failure is alarmed by its cause (the monitor's), whoever sees it next."""
+        await self.recovery.prepare_robot(self.monitor.cause_of)
 
     async def prepare_mill(self, m: MachineConfig, *, force: bool) -> bool:
         """Bring mill ``m`` to a known state (its setup); True if it may take work."""

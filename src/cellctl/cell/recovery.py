@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING
 
 from cellctl.cell.causes import LINK_CLOSED, Cause
@@ -28,6 +29,10 @@ from cellctl.tasks import cancel_and_wait
 if TYPE_CHECKING:
     from cellctl.cell.config import MachineConfig
     from cellctl.cell.ports import AlarmSink, LinkOpener, WorldModel
+
+#: What names a failure by its cause, from the machine and the error (the monitor's
+#: :meth:`~cellctl.cell.monitor.Monitor.cause_of`); None: only the failure explains it.
+CauseFinder = Callable[[str, BaseException], Awaitable[Cause | None]]
 
 
 class Recovery:
@@ -203,7 +208,16 @@ class Recovery:
 
     # -- bringing machines to a known state -----------------------------------------------------
 
-    async def prepare_robot(self) -> None:
+    async def prepare_robot(self, cause_of: CauseFinder | None = None) -> None:
+        """Bring the robot to a known state (stopped, initialized).
+
+        A start-up that fails is named by its cause when ``cause_of`` (the monitor's) finds
+        one -- the robot's status ("servo error"), its link ("robot not answering"), the
+        emergency stop -- so that the monitor's own sighting of that fault a moment later is
+        the same alarm, not a second one; the robot then takes no transfer until the monitor
+        finds it well (the next transfer initializes it). Only a failure nothing else
+        explains is the start-up's own alarm (``initialize``), and counts as a failure.
+        """
         robot = self.world.robot
         assert robot is not None
         view = self.world.machines[robot.name]
@@ -218,7 +232,14 @@ class Recovery:
             self.alarms.returned(robot.name, "initialize")  # a failed start-up is behind it
         except CellctlError as e:
             view.show(f"error: {e}", Condition.ALARM, LastError.of(e))
-            self.alarms.failed(robot.name, "initialize", f"robot initialize failed: {e}")
+            cause = await cause_of(robot.name, e) if cause_of is not None else None
+            if cause is None:
+                self.alarms.failed(robot.name, "initialize", f"robot initialize failed: {e}")
+                return
+            self.alarms.log(f"{robot.name}: initialize failed: {e}")
+            self.alarms.cause_alarm(cause)
+            if cause.machine == robot.name:
+                self.robot_ok = False
 
     async def prepare_mill(self, m: MachineConfig, *, force: bool) -> bool:
         """Initialize mill ``m`` (with its setup) unless it kept its setup; True on success.

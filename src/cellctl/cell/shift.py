@@ -29,6 +29,10 @@ Every figure is read from the journal over the window ``[start, end]`` (docs/cel
   (two at once each count), so its total may pass the machine's down time.
 - **Parts**: good (done), held (held now) and scrapped, by when they last changed.
 - **Alarms by cause**: the alarms raised in the window by code, with their priority.
+
+A ratio whose denominator is 0 is not known yet: None, not 0 (nothing went wrong). Quality
+while no step ended in the window, performance while the machine spent no time in steps, and
+OEE while either is not known.
 """
 
 from __future__ import annotations
@@ -49,7 +53,8 @@ SHIFT = 8 * 3600.0
 
 @dataclass(frozen=True)
 class MachineFigures:
-    """One machine's figures over the window (times in s, ratios 0 to 1)."""
+    """One machine's figures over the window (times in s, ratios 0 to 1; None: not known
+    yet, its denominator 0)."""
 
     machine: str
     planned_s: float
@@ -59,9 +64,9 @@ class MachineFigures:
     steps_ended: int
     steps_good: int
     availability: float
-    performance: float
-    quality: float
-    oee: float
+    performance: float | None
+    quality: float | None
+    oee: float | None
 
 
 @dataclass
@@ -183,8 +188,10 @@ def _machine(
             good += s.part_id not in held
     down = _union([(t0, t1) for t0, t1, _ in downs], start, end)
     availability = production / planned
-    performance = ideal_s / production if production > 0 else 0.0
-    quality = good / ended if ended else 0.0
+    # Nothing to divide by: not known yet (a 0 would read as a machine that did badly).
+    performance = ideal_s / production if production > 0 else None
+    quality = good / ended if ended else None
+    oee = None if performance is None or quality is None else availability * performance * quality
     return MachineFigures(
         machine=name,
         planned_s=round(planned, 3),
@@ -194,10 +201,14 @@ def _machine(
         steps_ended=ended,
         steps_good=good,
         availability=round(availability, 4),
-        performance=round(performance, 4),
-        quality=round(quality, 4),
-        oee=round(availability * performance * quality, 4),
+        performance=_rounded(performance),
+        quality=_rounded(quality),
+        oee=_rounded(oee),
     )
+
+
+def _rounded(ratio: float | None) -> float | None:
+    return None if ratio is None else round(ratio, 4)
 
 
 def _down_intervals(

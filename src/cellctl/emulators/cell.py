@@ -10,6 +10,7 @@ with other kinds is served the same way.
     cell = EmulatedCell(time_scale=100.0)
     await cell.start(Path("cell"))          # copies the example cell there, writes its cell.toml
     ...                                     # a controller runs the cell from Path("cell")
+    cell.switch_on_at_cut("cnc1", "stall")  # cnc1's next cut stalls (not a setup block)
     cell.runs_per_part()                    # {"P1": {"cnc1": 1, "cnc2": 1}, ...}
     await cell.close()
 
@@ -68,6 +69,7 @@ from cellctl.emulators.serve import (
     scaled_deadline,
     serve,
 )
+from cellctl.emulators.switches import check_switch
 from cellctl.errors import UsageError
 from cellctl.kinds import registry
 from cellctl.kinds.kind import EmulatorSpec
@@ -91,7 +93,18 @@ CELL_DEADLINES = ("transfer_timeout", "interlock_timeout", "pallet_timeout")
 DEADLINE_NOTE = "  # s (the real cell's {real:g} s, scaled)"
 _DEADLINE_NOTE = re.compile(r"#\s*s \(the real cell's ([0-9.eE+-]+) s, scaled\)")
 
-__all__ = ["MIN_DEADLINE_S", "EmulatedCell", "real_cell_toml", "scaled_deadline"]
+__all__ = [
+    "CUT_FAULTS",
+    "MIN_DEADLINE_S",
+    "EmulatedCell",
+    "real_cell_toml",
+    "scaled_deadline",
+]
+
+#: A mill's fault switches that act as the block running ends (the Dyna 2400's ``stall``: its
+#: READY never comes after it). Switched on as the cell starts, one takes the mill's setup
+#: block, the first it runs; :meth:`EmulatedCell.switch_on_at_cut` waits for a cut instead.
+CUT_FAULTS = frozenset({"stall"})
 
 
 #: The example cell's wiring, one table (:data:`cellctl.protocol.plc.EXAMPLE_WIRING`).
@@ -172,6 +185,7 @@ class EmulatedCell:
         self.outfeed: list[str] = []
         self.cuts: list[Cut] = []
         self._head_start: dict[str, tuple[str, float]] = {}  # mill -> (part, machine s done)
+        self._at_cut: dict[str, list[tuple[str, str | None]]] = {}  # mill -> faults to switch on
         self._tasks: set[asyncio.Task[None]] = set()
 
     @property
@@ -238,6 +252,16 @@ class EmulatedCell:
         self.gripper = part
         set_output(port, True)  # the hook moves the part from the gripper into the vise
 
+    def switch_on_at_cut(self, mill: str, name: str, arg: str | None = None) -> None:
+        """Switch fault ``name`` of ``mill`` on as the mill's next cut starts (a run with a
+        part in its vise), as a fault in the middle of a cut comes: for a fault that acts as
+        a block ends (:data:`CUT_FAULTS`), which switched on before the mill's setup block
+        would take that block instead. Refused now if the mill's kind has no such switch."""
+        if mill not in self.mills:
+            raise UsageError(f"{mill!r} is not a mill of this cell ({', '.join(self.mills)})")
+        check_switch(registry.kind(self.kinds[mill]).faults, name, arg)
+        self._at_cut.setdefault(mill, []).append((name, arg))
+
     def take_out(self, mill: str) -> str | None:
         """The operator takes the part out of ``mill``'s vise by hand (before scrapping it):
         the part it was, or None. The vise stays as the arm left it: only its output opens
@@ -261,6 +285,10 @@ class EmulatedCell:
             # A run starting on a mill cut whatever part sits in its vise.
             part = self.vise[index]
             self.cuts.append(Cut(name, part, self.clock.now()))
+            if part is not None:
+                for fault, arg in self._at_cut.pop(name, []):
+                    # In the middle of this cut: it acts as the block ends.
+                    self.mills[name].set_fault(fault, arg)
             head = self._head_start.get(name)
             if head is None:
                 return

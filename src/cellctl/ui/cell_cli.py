@@ -6,14 +6,16 @@ import asyncio
 import contextlib
 import os
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import click
 
+from cellctl.emulators.cellpanel import HAND_COMMANDS
 from cellctl.emulators.serve import CELL_TIME_SCALE, TIME_SCALE_HELP, parse_fault
-from cellctl.errors import UsageError
+from cellctl.errors import CellctlError, UsageError
 from cellctl.ui.common import cell_dir, console, err_console, run, stop_signals, until_stopped
 from cellctl.ui.emulate_cli import TIME_SCALE
 
@@ -300,6 +302,7 @@ def emulate_cell_command() -> click.Command:
         robot_listen: str,
         fault: tuple[str, ...],
         template: str | None,
+        panel: bool,
     ) -> None:
         ctx = click.get_current_context()
         directory = cell_dir(ctx)
@@ -314,16 +317,19 @@ def emulate_cell_command() -> click.Command:
             )
             toml = await cell.start(directory)
             for text in fault:
-                apply_fault(cell, text)
+                apply_fault(cell, text, at_start=True)
             console.print(f"emulated cell (time scale {time_scale:g}) wrote {toml}")
             for name, server in cell.servers.items():
                 console.print(f"  {name:6s} {server.url}")
             console.print(f"  plc    {cell.plc_url}")
             backend = cell.plc.backend_url
             console.print(f"         behind it, pymodbus on {backend} (no fault switch acts there)")
+            hands = asyncio.ensure_future(_hand_commands(cell)) if panel else None
             try:
                 await until_stopped()
             finally:
+                if hands is not None:
+                    hands.cancel()
                 await cell.close()
                 console.print("emulated cell stopped")
 
@@ -355,6 +361,12 @@ def emulate_cell_command() -> click.Command:
                 ["--template"],
                 help="Cell directory to copy (default: the example cell shipped with cellctl).",
             ),
+            click.Option(
+                ["--panel"],
+                is_flag=True,
+                help="Play the machines' operators by hand: hand commands from stdin, one a "
+                f"line: {HAND_COMMANDS}.",
+            ),
         ],
         help="Start the robot, both mills and the PLC, and write cell.toml pointing at them."
         + "\n\nFaults (--fault MACHINE:NAME[=ARG], MACHINE a machine of cell.toml or plc), "
@@ -362,12 +374,49 @@ def emulate_cell_command() -> click.Command:
         + kind_faults
         + "; plc: "
         + ", ".join(PLC_FAULTS)
-        + ". `cellctl emulate robot|mill|plc --help` says what each does.",
+        + ". A mill's stall given here stalls its first cut (its setup block would take it "
+        + "otherwise). `cellctl emulate robot|mill|plc --help` says what each does.",
     )
 
 
-def apply_fault(cell: object, text: str) -> None:
-    """Switch a fault on one machine of an emulated cell: ``cnc1:stall``, ``robot:drop``."""
+def _read_lines(loop: asyncio.AbstractEventLoop, lines: asyncio.Queue[str]) -> None:
+    """stdin's lines into ``lines`` ("" at its end), from a daemon thread: a readline that
+    blocks there never holds the process at exit (Ctrl-C), as one in the loop's executor
+    would until Enter."""
+    try:
+        for text in iter(sys.stdin.readline, ""):
+            loop.call_soon_threadsafe(lines.put_nowait, text)
+        loop.call_soon_threadsafe(lines.put_nowait, "")
+    except RuntimeError:
+        return  # the loop has closed: the emulated cell stopped
+
+
+async def _hand_commands(cell: object) -> None:
+    """``emulate cell --panel``: hand commands from stdin, one a line, each answered on a
+    line (:mod:`cellctl.emulators.cellpanel`), until stdin ends (the cell serves on)."""
+    from cellctl.emulators.cellpanel import hand_command
+
+    loop = asyncio.get_running_loop()
+    lines: asyncio.Queue[str] = asyncio.Queue()
+    threading.Thread(target=_read_lines, args=(loop, lines), daemon=True).start()
+    console.print(f"hand commands (one a line): {HAND_COMMANDS}", markup=False)
+    while text := await lines.get():
+        try:
+            said = await hand_command(cell, text)
+        except CellctlError as e:  # a command refused, or a machine that failed it
+            said = f"panel: {e}"
+        if said:
+            console.print(said, markup=False, soft_wrap=True)
+            console.file.flush()
+
+
+def apply_fault(cell: object, text: str, *, at_start: bool = False) -> None:
+    """Switch a fault on one machine of an emulated cell: ``cnc1:stall``, ``robot:drop``.
+
+    ``at_start``: given as the cell starts (``cellctl emulate cell --fault``). A mill's fault
+    that acts as a block ends (``stall``: :data:`~cellctl.emulators.cell.CUT_FAULTS`) is then
+    switched on as the mill's first cut starts, as a stall in the middle of a cut comes:
+    switched on at once, it would take the setup block, the first block the mill runs."""
     machine, sep, rest = text.partition(":")
     if not sep:
         raise UsageError(f"fault {text!r}: write MACHINE:NAME[=ARG], e.g. cnc1:stall")
@@ -378,4 +427,10 @@ def apply_fault(cell: object, text: str) -> None:
     if target is None:
         known = ", ".join(dict.fromkeys([c.robot_name, *c.mills, "plc"]))
         raise UsageError(f"fault {text!r}: no machine {machine!r} ({known})")
+    if at_start and machine in c.mills:
+        from cellctl.emulators.cell import CUT_FAULTS
+
+        if name in CUT_FAULTS:
+            c.switch_on_at_cut(machine, name, arg)
+            return
     target.set_fault(name, arg)

@@ -44,8 +44,12 @@ def _hms(seconds: float) -> str:
     return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
 
 
-def _pct(x: float) -> str:
-    return f"{100 * x:5.1f} %"
+#: A ratio not known yet (its denominator 0: no step ended, no time in steps).
+NOT_KNOWN = "—"
+
+
+def _pct(x: float | None) -> str:
+    return NOT_KNOWN if x is None else f"{100 * x:5.1f} %"
 
 
 def _clip(text: str, width: int) -> str:
@@ -87,7 +91,8 @@ def shift_lines(report: dict[str, Any], cell: str = "") -> list[str]:
 
 
 def shift_csv(report: dict[str, Any]) -> str:
-    """The report as CSV: one row per figure, ``section,name,field,value``."""
+    """The report as CSV: one row per figure, ``section,name,field,value`` (a ratio not
+    known yet has an empty value)."""
     buffer = io.StringIO()
     out = csv.writer(buffer, lineterminator="\n")
     out.writerow(["section", "name", "field", "value"])
@@ -167,7 +172,8 @@ scrapped {report["parts_scrapped"]}.</p>
 {svg}
 <p><small>Availability: time in steps over the window. Performance: the finished steps'
 ideal time (the machines' own models) over the time in steps. Quality: good steps over
-steps ended. OEE: their product. See docs/cell.md, "The shift report".</small></p>
+steps ended. OEE: their product. {NOT_KNOWN}: not known yet (no step ended, no time in
+steps). See docs/cell.md, "The shift report".</small></p>
 </body></html>
 """
 

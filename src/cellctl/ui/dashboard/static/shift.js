@@ -10,8 +10,9 @@ function byId(id) {
   return document.getElementById(id);
 }
 
+// A ratio not known yet (null: no step ended, no time in steps) reads as the report's dash.
 function pct(x) {
-  return `${(100 * x).toFixed(1)} %`;
+  return x === null || x === undefined ? "\u2014" : `${(100 * x).toFixed(1)} %`;
 }
 
 function span(seconds) {

@@ -133,6 +133,41 @@ def test_piped_listings_keep_whole_ids_on_one_line(cell: Path) -> None:
     assert as_json[0]["order_id"] == long_id and as_json[0]["kind"] == "order-accepted"
 
 
+@pytest.mark.timeout(300)  # the plan plays on a busy box: CPU, not waiting
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["--help"],  # Click's help, before any command runs
+        ["orders"],  # a Rich table
+        ["orders", "--json"],  # click.echo
+        ["plan", "--dir", "{example}", "--add", "wax-robot-base:1", "--shift", "30m"],
+    ],
+    ids=["help", "table", "json", "plan"],
+)
+def test_a_reader_gone_ends_the_command_quietly_as_coreutils_do(
+    cell: Path, args: list[str]
+) -> None:
+    """``cellctl ... | head``: the reader of the output goes before the command writes. The
+    command ends with no message and no traceback, with the status a shell shows for git or
+    ``seq 1 100000 | head -1`` (141: 128 + SIGPIPE), not Click's silent 1."""
+    from cellctl.emulators.cell import EXAMPLE_CELL
+
+    with open_mailbox(cell) as mailbox:
+        mailbox.post_order("wax-robot-base-with-a-long-name", 2, order_id="A1")
+    argv = [a.replace("{example}", str(EXAMPLE_CELL)) for a in args]
+    environment = {k: v for k, v in os.environ.items() if k != "CELLCTL_CELL"}
+    child = subprocess.Popen(
+        [sys.executable, "-c", RUN_CLI, "--cell", str(cell), *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env=environment,
+    )
+    assert child.stdout is not None and child.stderr is not None
+    child.stdout.close()  # the reader is gone: every write to the pipe fails (EPIPE)
+    said = child.stderr.read().decode()
+    assert (child.wait(timeout=280), said) == (141, "")
+
+
 def _commands(group: click.Group, prefix: str = "") -> dict[str, click.Command]:
     found: dict[str, click.Command] = {}
     for name, command in subcommands(group).items():

@@ -15,6 +15,7 @@ from click.testing import CliRunner
 from cellctl.emulators.cell import EXAMPLE_CELL
 from cellctl.mailbox import open_mailbox
 from cellctl.ui.cli import main
+from tests.test_plan_cli import listing
 
 FACTORY = """[factory]
 name = "lab factory"
@@ -55,9 +56,12 @@ def test_every_cell_on_this_host_is_planned_from_its_own_orders(tmp_path: Path) 
     assert result.exit_code == 2 and "opens after the plan ends" in result.output
     result = CliRunner().invoke(main, [*args, "--fault", "cell4/cnc2:down@10:00"])
     assert result.exit_code == 2 and "CELL one of cell1, cell2, cell3" in result.output
+    before = {name: listing(plant / name) for name in ("cell1", "cell2", "cell3")}
     result = CliRunner().invoke(main, [*args, "--json"])
     assert result.exit_code == 0, result.output
     plans = json.loads(result.output)
+    # Each cell is played on a copy: nothing is written into it (cell3 gets no mailbox).
+    assert {name: listing(plant / name) for name in before} == before
     assert sorted(plans) == ["cell1", "cell2", "cell3", "cell4"]
     assert "nothing to plan: no open orders" in plans["cell3"]["refused"]
     assert plans["cell4"]["refused"].startswith("not on this host (no ")

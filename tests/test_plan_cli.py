@@ -6,6 +6,7 @@ same plan again."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 import shutil
@@ -16,7 +17,9 @@ from typing import Any
 import pytest
 from click.testing import CliRunner, Result
 
+from cellctl.cell.journal import open_journal
 from cellctl.emulators.cell import EXAMPLE_CELL
+from cellctl.mailbox import open_mailbox
 from cellctl.ui.cli import main
 
 #: The plans start on a Wednesday at 06:00 local time.
@@ -45,6 +48,19 @@ def plan(*args: str, expect: int = 0) -> Result:
 def plan_json(*args: str) -> dict[str, Any]:
     data: dict[str, Any] = json.loads(plan(*args, "--json").output)
     return data
+
+
+def listing(directory: Path) -> dict[str, tuple[int, int, str]]:
+    """Everything in ``directory`` (itself included): size, time of last change and, for a
+    file, its content's digest. A file made and removed again changes its directory's."""
+    return {
+        str(path.relative_to(directory)): (
+            path.stat().st_size,
+            path.stat().st_mtime_ns,
+            hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else "",
+        )
+        for path in [directory, *sorted(directory.rglob("*"))]
+    }
 
 
 def steps_of(out: Path) -> list[dict[str, Any]]:
@@ -167,6 +183,15 @@ def test_the_policies_compared_and_the_plan_replayed_from_its_inputs(
         (
             ["--add", "wax-robot-base:1", "--policy", "default,downstream-first"],
             "default is downstream-first: name it once",
+        ),
+        (
+            ["--add", "wax-robot-base:1", "--shift", "9999..h"],
+            r"duration '9999\.\.h': write a number and a unit, e\.g\. 8h, 90m, 1h30m, 2d "
+            r"\('9999\.\.' is not a number\)",
+        ),
+        (
+            ["--add", "wax-robot-base:1", "--policy", "default,default"],
+            "--policy 'default,default': default is named twice: name each policy once",
         ),
     ],
 )
@@ -297,3 +322,52 @@ def test_a_silent_machine_is_alarmed_however_seldom_the_plan_looks(
     assert report["all_finished"]
     if machine == "robot":
         assert 15 * 60 < report["down_s"]["robot"] <= 20 * 60, report["down_s"]
+
+
+@pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
+def test_a_plan_writes_nothing_into_the_cell_it_plans(tmp_path: Path) -> None:
+    """A plan plays on a copy: of a cell no controller runs (its orders read from its
+    mailbox and journal), or of a cell directory (--dir). The cell's directory is as it was,
+    and a cell that has no mailbox is not given one."""
+    cell = tmp_path / "cell"
+    shutil.copytree(EXAMPLE_CELL, cell)
+    asked = ["--add", "wax-robot-base:1", "--shift", "30m", "--json"]
+    for where in (["--cell", str(cell), "plan"], ["plan", "--dir", str(cell)]):
+        before = listing(cell)
+        result = CliRunner().invoke(main, [*where, *asked])
+        assert result.exit_code == 0, result.output
+        [report] = json.loads(result.stdout)["plans"]
+        assert [o["order_id"] for o in report["orders"]] == ["plan-add1"], where
+        assert listing(cell) == before, where
+    assert not (cell / "mailbox.sqlite3").exists()
+
+    # A cell with orders: its open order is planned from its mailbox, which stays as it was.
+    with open_mailbox(cell) as mailbox:
+        mailbox.post_order("wax-robot-base", 1, order_id="W1")
+    with open_journal(cell) as journal:
+        journal.set_machine_service("cnc2", False, "a broken spindle")
+    before = listing(cell)
+    result = CliRunner().invoke(main, ["--cell", str(cell), "plan", "--shift", "30m", "--json"])
+    assert result.exit_code == 0, result.output
+    [report] = json.loads(result.stdout)["plans"]
+    assert [o["order_id"] for o in report["orders"]] == ["W1"]
+    assert report["busy_s"]["cnc2"] == 0  # the journal read: cnc2 stays out of service
+    assert listing(cell) == before
+
+
+@pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
+def test_a_mill_taken_out_mid_cut_is_down_not_also_busy(cell: Path) -> None:
+    """cnc1 is taken out of service five minutes into its cut (it finishes the cut): its
+    busy and down shares of the plan add up to at most the whole plan."""
+    report = plan_json(
+        "--dir", str(cell), "--start", START, "--add", "wax-robot-base:1",
+        "--fault", "cnc1:down@06:05-06:30", "--shift", "1h",
+    )["plans"][0]  # fmt: skip
+    span = report["ended"] - report["start"]
+    cut = next(s for s in report["steps"] if s["machine"] == "cnc1")
+    assert cut["started"] < T0 + 300 < cut["ended"]  # cutting when it is taken out
+    assert report["down_s"]["cnc1"] >= span - 300 - 1
+    for machine, busy in report["busy_s"].items():
+        assert busy + report["down_s"][machine] <= span + 1e-3, machine
+        assert abs(report["utilization"][machine] - busy / span) < 1e-4, machine
+    assert abs(report["busy_s"]["cnc1"] - (T0 + 300 - cut["started"])) < 1e-3

@@ -21,6 +21,7 @@ from cellctl.errors import UsageError
 from cellctl.plan.engine import FaultWindow, PartAt, PlanInputs, PlanOrder
 from cellctl.plan.inputs import inputs_dict, parse_inputs
 from cellctl.plan.orders_file import orders_csv, parse_orders
+from cellctl.plan.run import play
 from cellctl.plan.spec import (
     AddSpec,
     check_inputs,
@@ -81,6 +82,31 @@ def test_durations_read_as_written(h: int, m: int, s: int, d: int) -> None:
             parse_duration(text)
     else:
         assert parse_duration(text) == total
+
+
+FORMS = "write a number and a unit, e.g. 8h, 90m, 1h30m, 2d"
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("9999..h", f"duration '9999..h': {FORMS} ('9999..' is not a number)"),
+        ("1..5h", f"duration '1..5h': {FORMS} ('1..5' is not a number)"),
+        ("h", f"duration 'h': {FORMS} (no number before h)"),
+        ("30", f"duration '30': {FORMS} (no unit after 30: d, h, m or s)"),
+        ("8 hours", f"duration '8 hours': {FORMS} ('hours' is no unit: d, h, m or s)"),
+        ("30m 1h", f"duration '30m 1h': {FORMS} (each unit once, the largest first: 1d 4h"),
+        ("", f"duration '': {FORMS}"),
+        # A number and a unit, too far: said so, not "write a number and a unit".
+        ("1234567h", "duration '1234567h': a plan looks at most 31 days ahead"),
+        ("9" * 60 + "h", f"duration '{'9' * 40}'...: {FORMS} ({'9' * 20}: too many digits)"),
+    ],
+)
+def test_a_duration_not_understood_is_echoed_with_how_to_write_one(text: str, message: str) -> None:
+    with pytest.raises(UsageError) as refused:
+        parse_duration(text)
+    assert str(refused.value).startswith(message), str(refused.value)
+    assert parse_duration("1d 4h") == parse_duration("1d4h") == 28 * 3600
 
 
 @FAST
@@ -195,6 +221,35 @@ def test_unknown_part_types_and_policies_are_refused(config: Any) -> None:
     with pytest.raises(UsageError, match="policy 'fastest': unknown"):
         check_inputs(config, [], [], policies_of("fastest"))
     assert len(policies_of("all")) >= 2
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("default,default", "default is named twice: name each policy once"),
+        ("shortest-first, one-at-a-time,shortest-first", "shortest-first is named twice"),
+        ("downstream-first,downstream-first", "downstream-first is named twice"),
+        ("default,downstream-first", "default is downstream-first: name it once"),
+        ("downstream-first,default", "default is downstream-first: name it once"),
+    ],
+)
+def test_a_policy_named_twice_is_refused(
+    config: Any, tmp_path: Path, text: str, message: str
+) -> None:
+    """Each policy is played once: named twice (or as default and downstream-first, the
+    same policy), the command line refuses it in its words, and so does a saved
+    inputs.json's list, before anything is played."""
+    with pytest.raises(UsageError, match=f"--policy '{text}': {message}"):
+        policies_of(text)
+    named = tuple(p.strip() for p in text.split(","))
+    with pytest.raises(UsageError, match=f"policies {', '.join(named)}: {message}"):
+        check_inputs(config, [], [], named)
+    inputs, _ = plan_inputs(EXAMPLE_CELL, start=START, adds=["wax-robot-base:1"])
+    with pytest.raises(UsageError, match=message):
+        play(inputs, named, tmp_path / "play")
+    assert not (tmp_path / "play").exists()
+    # Each once, in the order named.
+    assert policies_of("one-at-a-time,default") == ("one-at-a-time", "default")
 
 
 def test_plan_inputs_take_what_the_planner_typed() -> None:

@@ -80,3 +80,46 @@ def test_the_report_says_per_order_when_it_finishes_against_its_due_time(tmp_pat
     assert abs(float(window[0]) - (90 + 100 / 3600 * 900)) < 1  # 100 s of 3600 at 900 px
     assert abs(float(window[1]) - 100 / 3600 * 900) < 1
     assert "fault window" in svg.split('<g class="legend">', 1)[1]
+
+
+def test_a_machine_down_while_it_cuts_is_down_not_also_busy(tmp_path: Path) -> None:
+    """cnc1 cuts from 06:00:10 to 06:01:50; it is taken out of service at 06:00:50 (it
+    finishes the cut, as an operator's "out of service" lets it) and back at 06:03:20, and
+    cnc2 is alarmed from 06:01:00 to 06:02:00 while it cuts: each machine's busy and down
+    shares add up to at most the plan's span, its down time counting as down only."""
+    now = [T0 + 10.0]
+    with open_journal(tmp_path, clock=_ListClock(now)) as journal:
+        order = Order("A", "wax-robot-base", 1, 0, "accepted", now[0], now[0])
+        [part] = journal.create_parts(order)
+        cut = journal.begin_step(part.id, "machine", "cnc1", "rough")
+        now[0] = T0 + 50
+        journal.set_machine_service("cnc1", False, "plan: down")
+        now[0] = T0 + 110
+        journal.end_step(cut.id, "finished")
+        second = journal.begin_step(part.id, "machine", "cnc2", "finish")  # 06:01:50 on
+        now[0] = T0 + 120
+        journal.raise_alarm("cnc2", "stall", "cnc2 stalled")  # 06:02:00
+        now[0] = T0 + 180
+        journal.return_to_normal("cnc2", ["stall"])
+        now[0] = T0 + 200
+        journal.set_machine_service("cnc1", True)
+        journal.end_step(second.id, "finished")
+        journal.finish_part(part.id)
+        report = plan_report(
+            journal,
+            load_cell(EXAMPLE_CELL),
+            [PlanOrder("A", "wax-robot-base", 1)],
+            start=T0,
+            until=T0 + 3600,
+            ended=T0 + 300,
+        )
+    # cnc1: busy 10 s to 50 s only (the rest of its cut is down), down 50 s to 200 s.
+    assert (report.busy_s["cnc1"], report.down_s["cnc1"]) == (40.0, 150.0)
+    # cnc2: its cut from 110 s to 200 s, less the alarm from 120 s to 180 s.
+    assert (report.busy_s["cnc2"], report.down_s["cnc2"]) == (30.0, 60.0)
+    assert report.utilization["cnc1"] == round(40 / 300, 4)
+    for machine in report.busy_s:
+        assert report.busy_s[machine] + report.down_s[machine] <= 300, machine
+    text = "\n".join(report.lines())
+    assert "utilization: robot 0.0%, cnc1 13.3%, cnc2 10.0%" in text
+    assert "down: cnc1 0:02:30 (50.0%), cnc2 0:01:00 (20.0%)" in text

@@ -12,7 +12,11 @@ time, or when its due time passed within the plan and it did not finish. Only wh
 the plan's end counts: a step still running then (the controller lets it end, as on Ctrl-C)
 is shown running up to the end (:func:`within`), and its part is not made in the plan.
 Utilization is a machine's time in steps over the plan's span (start to the time the plan
-stopped: every order done, or its end), as the shift report counts availability.
+stopped: every order done, or its end), as the shift report counts availability, less its time
+down: a machine's down time (out of service, or alarmed: the shift report's) counts as down,
+not also as busy, so its busy and down shares add up to at most the whole span. A mill taken
+out of service mid-cut finishes the cut, but that time is down time (the window the planner
+gave), not utilization.
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ from typing import Any, Final
 from cellctl.cell.config import CellConfig
 from cellctl.cell.journal import Journal, Step
 from cellctl.cell.report import GanttRun, GanttWindow, gantt_runs_svg
-from cellctl.cell.shift import shift_report
+from cellctl.cell.shift import _down_intervals, _union, shift_report
 from cellctl.plan.engine import FaultWindow, PlanOrder
 from cellctl.plan.when import span_text, when_text
 
@@ -70,8 +74,11 @@ class PlanReport:
     wall_s: float
     orders: list[OrderOutcome]
     parts_made: dict[str, int]
+    #: Each machine's busy time (in steps, not down) over the span: 0 to 1.
     utilization: dict[str, float]
+    #: Time in steps while not down, s (down time counts as down only: see module docstring).
     busy_s: dict[str, float]
+    #: Time out of service or alarmed, s; ``busy_s + down_s`` is at most the span.
     down_s: dict[str, float]
     faults: list[FaultWindow] = field(default_factory=list)
     alarms_raised: int = 0
@@ -154,7 +161,10 @@ class PlanReport:
         out += ["", f"parts made: {made}"]
         util = ", ".join(f"{m} {u:.1%}" for m, u in self.utilization.items())
         out.append(f"utilization: {util}")
-        downs = ", ".join(f"{m} {span_text(s)}" for m, s in self.down_s.items() if s > 0)
+        span = max(self.ended - self.start, 1e-9)
+        downs = ", ".join(
+            f"{m} {span_text(s)} ({s / span:.1%})" for m, s in self.down_s.items() if s > 0
+        )
         if downs:
             out.append(f"down: {downs}")
         if self.under_way_at_start:
@@ -246,6 +256,7 @@ def plan_report(
     machines = machines_of(config)
     span = max(ended, start + 1e-9)
     figures = shift_report(journal, machines, {}, start, span)
+    busy = _busy_while_up(journal, machines, start, span)
     parts = [p for p in journal.parts() if p.status == "done" and start <= p.updated <= until]
     steps = within(journal.steps(), start, until)
     alarms = [a for a in journal.alarms() if start <= a.raised <= until]
@@ -261,8 +272,8 @@ def plan_report(
         wall_s=wall_s,
         orders=[_outcome(o, journal, ended, until) for o in orders],
         parts_made=dict(Counter(p.part_type for p in parts)),
-        utilization={m.machine: m.availability for m in figures.machines},
-        busy_s={m.machine: m.production_s for m in figures.machines},
+        utilization={m: round(b / (span - start), 4) for m, b in busy.items()},
+        busy_s={m: round(b, 3) for m, b in busy.items()},
         down_s={m.machine: m.down_s for m in figures.machines},
         faults=list(faults),
         alarms_raised=len(alarms),
@@ -271,6 +282,27 @@ def plan_report(
         under_way_at_start=under_way_at_start,
         steps=[_step(s, types) for s in steps],
     )
+
+
+def _busy_while_up(
+    journal: Journal, machines: Sequence[str], start: float, end: float
+) -> dict[str, float]:
+    """Each machine's time in steps over ``[start, end]`` while it was not down (out of
+    service, or alarmed: the shift report's down intervals, the cell's alarms counted on
+    every machine), s. A step's time counts as the shift report counts it (an interrupted
+    one none, one in flight up to ``end``). The shift report's own down intervals and their
+    union: one definition of "down" for its ``down_s`` and this."""
+    downs = _down_intervals(journal, journal.alarms(), end)
+    steps = [s for s in journal.steps() if s.state != "interrupted"]
+    out: dict[str, float] = {}
+    for name in machines:
+        down = [(t0, t1) for t0, t1, _ in downs.get(name, []) + downs.get("cell", [])]
+        busy = [
+            (s.started, s.ended if s.ended is not None else end) for s in steps if s.machine == name
+        ]
+        # Busy or down, less down: the time busy and not down.
+        out[name] = max(0.0, _union(busy + down, start, end) - _union(down, start, end))
+    return out
 
 
 def _step(step: Step, types: dict[str, str]) -> dict[str, Any]:

@@ -12,13 +12,30 @@ word on it. A part on its way is taken up where it is (``PlanOrder.under_way``):
 with the cuts it has, the plan goes on with it as the controller would after a restart. A
 cut in flight now is taken up as far as it has gone (``PartAt.done_s``: the time since its
 step began, in machine seconds); a transfer in flight is played again whole (seconds).
+
+A cell no controller runs is read from copies (:class:`CopiedStores`; the control API's
+``LocalCell.work_to_plan``): a plan writes nothing into the cell it plans, not even a
+mailbox where there is none::
+
+    with CopiedStores(cell_dir) as stores:
+        orders, held = open_work(stores.mailbox, stores.journal)
 """
 
 from __future__ import annotations
 
+import contextlib
+import shutil
+import sqlite3
+import tempfile
+from pathlib import Path
+from types import TracebackType
+from typing import Self
+
 from cellctl.cell.config import CONVEYOR
-from cellctl.cell.journal import Journal
-from cellctl.mailbox import Mailbox
+from cellctl.cell.journal import JOURNAL_FILE, Journal, open_journal
+from cellctl.errors import UsageError
+from cellctl.mailbox import MAILBOX_FILE, Mailbox
+from cellctl.mailbox.sqlite import SqliteMailbox
 from cellctl.plan.engine import HeldPart, PartAt, PlanOrder
 
 #: Order states still to be worked on.
@@ -68,3 +85,70 @@ def _done(since: float | None, now: float | None, time_scale: float) -> float:
 def out_of_service(journal: Journal | None) -> tuple[str, ...]:
     """The machines out of automatic service now (the journal's record of it)."""
     return tuple(sorted(journal.machines_out_of_service())) if journal is not None else ()
+
+
+def copy_store(source: Path, target: Path) -> bool:
+    """Copy the SQLite file ``source`` (a cell's mailbox or journal) to ``target``, reading
+    it only: nothing is made beside it. False if there is no such file."""
+    if not source.is_file():
+        return False
+    # A read-only connection to a file in WAL mode makes its -wal and -shm when they are
+    # missing, and leaves them. With no -wal, no writer has the file open and every commit is
+    # in it: it is read as immutable (no locks, no side files). With one (a writer has it
+    # open, or one ended without its last checkpoint), the side files are there already,
+    # and a read-only connection reads the commits in the -wal too.
+    wal = source.with_name(source.name + "-wal")
+    mode = "ro" if wal.exists() else "ro&immutable=1"
+    try:
+        original = sqlite3.connect(f"{source.resolve().as_uri()}?mode={mode}", uri=True)
+        try:
+            copy = sqlite3.connect(target)
+            try:
+                original.backup(copy)
+            finally:
+                copy.close()
+        finally:
+            original.close()
+    except sqlite3.Error as e:
+        raise UsageError(f"{source}: could not read it ({e})") from None
+    return True
+
+
+class CopiedStores:
+    """A cell's mailbox and journal copied (:func:`copy_store`) into a scratch directory of
+    their own and opened there: a plan of a cell no controller runs reads these, so that it
+    writes nothing into the cell it plans. ``journal`` is None if the cell has none (it never
+    ran); a cell with no mailbox reads as one with no orders. Close it (or use it as a
+    context manager) to remove the copies."""
+
+    def __init__(self, cell_dir: Path) -> None:
+        self._scratch = Path(tempfile.mkdtemp(prefix="cellctl-plan-files-"))
+        with contextlib.ExitStack() as undo:  # what is made so far, if a step fails
+            undo.callback(shutil.rmtree, self._scratch, ignore_errors=True)
+            copy_store(cell_dir / MAILBOX_FILE, self._scratch / MAILBOX_FILE)
+            has_journal = copy_store(cell_dir / JOURNAL_FILE, self._scratch / JOURNAL_FILE)
+            self.mailbox: Mailbox = SqliteMailbox(self._scratch / MAILBOX_FILE, durable=False)
+            undo.callback(self.mailbox.close)
+            self.journal: Journal | None = None
+            if has_journal:
+                self.journal = open_journal(self._scratch, durable=False)
+            undo.pop_all()
+
+    def close(self) -> None:
+        try:
+            self.mailbox.close()
+            if self.journal is not None:
+                self.journal.close()
+        finally:
+            shutil.rmtree(self._scratch, ignore_errors=True)
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Final
 
 from cellctl.cell.config import CellConfig, load_cell
+from cellctl.cell.scheduler import DOWNSTREAM_FIRST
 from cellctl.errors import UsageError
 from cellctl.mailbox.base import MAX_QTY
 from cellctl.plan.engine import POLICIES, FaultWindow, HeldPart, PlanInputs, PlanOrder
@@ -134,11 +135,33 @@ def check_inputs(
         if policy not in POLICIES:
             known = ", ".join([*POLICIES, ALL_POLICIES])
             raise UsageError(f"policy {policy!r}: unknown (known: {known})")
+    twice = named_twice(policies)
+    if twice:
+        raise UsageError(f"policies {', '.join(policies)}: {twice}")
+
+
+def named_twice(policies: Sequence[str]) -> str | None:
+    """What is wrong with a list of policies that names one twice (``default`` is
+    ``downstream-first``: the two are one), in words; None if each is named once. A policy
+    is played once: twice, it would be the same plan again in the comparison (and in the
+    same directory)."""
+    seen: dict[str, str] = {}
+    for policy in policies:
+        same = DOWNSTREAM_FIRST if policy == "default" else policy
+        if same not in seen:
+            seen[same] = policy
+        elif seen[same] == policy:
+            return f"{policy} is named twice: name each policy once"
+        else:
+            return f"default is {DOWNSTREAM_FIRST}: name it once, or it is played twice"
+    return None
 
 
 def policies_of(text: str) -> tuple[str, ...]:
     """``--policy NAME``, ``--policy A,B`` or ``--policy all`` (every policy): the policies
-    to play, compared side by side when more than one (checked by :func:`check_inputs`)."""
+    to play, compared side by side when more than one (each named once: ``default,default``
+    is refused as ``default,downstream-first`` is; their names checked by
+    :func:`check_inputs`)."""
     if text == ALL_POLICIES:  # each once: "default" names one of the others
         return tuple(p for p in POLICIES if p != "default")
     named = [p.strip() for p in text.split(",") if p.strip()]
@@ -146,11 +169,10 @@ def policies_of(text: str) -> tuple[str, ...]:
         raise UsageError("--policy: name a policy (or all)")
     if ALL_POLICIES in named:
         raise UsageError(f"--policy {text!r}: all plays every policy: name it alone")
-    if "default" in named and "downstream-first" in named:
-        raise UsageError(
-            f"--policy {text!r}: default is downstream-first: name it once, or it is played twice"
-        )
-    return tuple(dict.fromkeys(named))
+    twice = named_twice(named)
+    if twice:
+        raise UsageError(f"--policy {text!r}: {twice}")
+    return tuple(named)
 
 
 def fresh_ids(taken: Iterable[str], count: int, prefix: str = "plan-add") -> list[str]:

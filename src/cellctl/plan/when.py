@@ -2,7 +2,7 @@
 
 ::
 
-    parse_duration("8h")                     # 28800.0; also "90m", "1h30m", "2d", "45s"
+    parse_duration("8h")                     # 28800.0; also "90m", "1h30m", "2d", "1d 4h"
     resolve_when("FRI 18:00", start)         # the next Friday 18:00 after start (local time)
     resolve_when("18:00", start)             # the next 18:00 after start (today or tomorrow)
     resolve_when("2026-11-27T18:00", start)  # that date and time (local unless it says a zone)
@@ -35,12 +35,18 @@ MAX_POLL_S: Final = 600.0
 DAYS: Final = ("mon", "tue", "wed", "thu", "fri", "sat", "sun")
 _FULL_DAYS: Final = ("monday", "tuesday", "wednesday", "thursday", "friday", "saturday", "sunday")
 
+#: A duration's number: digits, and up to 6 decimals (a number of days or seconds alike).
+_NUMBER = r"\d{1,12}(?:\.\d{1,6})?"
 _DURATION = re.compile(
-    r"^\s*(?:(?P<d>\d{1,6}(?:\.\d{1,6})?)\s*d)?\s*(?:(?P<h>\d{1,6}(?:\.\d{1,6})?)\s*h)?"
-    r"\s*(?:(?P<m>\d{1,6}(?:\.\d{1,6})?)\s*m(?:in)?)?\s*(?:(?P<s>\d{1,6}(?:\.\d{1,6})?)\s*s)?\s*$",
+    rf"^\s*(?:(?P<d>{_NUMBER})\s*d)?\s*(?:(?P<h>{_NUMBER})\s*h)?"
+    rf"\s*(?:(?P<m>{_NUMBER})\s*m(?:in)?)?\s*(?:(?P<s>{_NUMBER})\s*s)?\s*$",
     re.IGNORECASE,
 )
 _UNITS: Final = {"d": 86400.0, "h": 3600.0, "m": 60.0, "s": 1.0}
+#: A duration as typed, piece by piece: what stands before a unit, and the unit's letters.
+_PIECE = re.compile(r"\s*([^\sA-Za-z]*)\s*([A-Za-z]*)")
+#: What to write, for the messages.
+DURATION_FORMS: Final = "write a number and a unit, e.g. 8h, 90m, 1h30m, 2d"
 #: ``[DAY ]HH:MM`` (``FRI 18:00``, ``friday 6:30``, ``18:00``).
 _DAY_TIME = re.compile(r"^\s*(?:(?P<day>[A-Za-z]{3,9})\s+)?(?P<h>\d{1,2}):(?P<m>\d{2})\s*$")
 #: What to write, for the messages.
@@ -48,16 +54,42 @@ WHEN_FORMS: Final = "HH:MM, DAY HH:MM (FRI 18:00) or a date and time (2026-11-27
 
 
 def parse_duration(text: str) -> float:
-    """``8h``, ``90m``, ``1h30m``, ``2d``, ``45s`` -> seconds (more than 0, at most a month)."""
+    """``8h``, ``90m``, ``1h30m``, ``2d``, ``45s``, ``1d 4h`` -> seconds (more than 0, at
+    most a month). Refused with what was typed, how to write one, and what is wrong in it
+    (``duration '9999..h': write a number and a unit, e.g. ... ('9999..' is not a number)``)."""
+    shown = _shown(text)
     found = _DURATION.match(text)
     if found is None or not any(found.groupdict().values()):
-        raise UsageError(f"duration {text!r}: write a number and a unit, e.g. 8h, 90m, 1h30m, 2d")
+        raise UsageError(f"duration {shown}: {DURATION_FORMS}{_wrong_in(text)}")
     seconds = sum(float(v) * _UNITS[k] for k, v in found.groupdict().items() if v)
     if seconds <= 0:
-        raise UsageError(f"duration {text!r}: must be more than 0")
+        raise UsageError(f"duration {shown}: must be more than 0")
     if seconds > MAX_HORIZON_S:
-        raise UsageError(f"duration {text!r}: a plan looks at most 31 days ahead")
+        raise UsageError(f"duration {shown}: a plan looks at most 31 days ahead")
     return seconds
+
+
+def _shown(text: str) -> str:
+    """``text`` quoted for a message, at most 40 characters of it."""
+    return repr(text) if len(text) <= 40 else repr(text[:40]) + "..."
+
+
+def _wrong_in(text: str) -> str:
+    """What is wrong in ``text``, which is no duration, in a few words and parentheses
+    (empty if it is nothing at all)."""
+    pieces = [(n, u) for n, u in _PIECE.findall(text[:200]) if n or u]
+    for number, unit in pieces:
+        if not number:
+            return f" (no number before {unit[:20]})"
+        if not re.fullmatch(_NUMBER, number):
+            if re.fullmatch(r"\d+(?:\.\d+)?", number):
+                return f" ({number[:20]}: too many digits)"
+            return f" ({_shown(number)} is not a number)"
+        if not unit:
+            return f" (no unit after {number}: d, h, m or s)"
+        if unit.lower() not in ("d", "h", "m", "min", "s"):
+            return f" ({_shown(unit)} is no unit: d, h, m or s)"
+    return " (each unit once, the largest first: 1d 4h, 1h30m)" if pieces else ""
 
 
 def _day_index(name: str) -> int:

@@ -17,7 +17,7 @@ import contextlib
 import os
 import tomllib
 from abc import ABC, abstractmethod
-from collections.abc import AsyncIterator, Mapping
+from collections.abc import AsyncIterator, Iterator, Mapping
 from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Self, cast
@@ -65,6 +65,12 @@ class CellAccess(ABC):
     @abstractmethod
     def mailbox(self) -> Mailbox:
         """The cell's mailbox."""
+
+    @contextlib.contextmanager
+    def work_to_plan(self) -> Iterator[tuple[Mailbox, Journal | None]]:
+        """The mailbox and journal a plan reads the cell's work from, while the context
+        lasts: the cell's own (a running controller's)."""
+        yield self.mailbox(), self.journal()
 
     @abstractmethod
     def machines(self) -> dict[str, str]:
@@ -270,6 +276,16 @@ class LocalCell(CellAccess):
         if self._mailbox is None:
             self._mailbox = open_mailbox(self.directory)
         return self._mailbox
+
+    @contextlib.contextmanager
+    def work_to_plan(self) -> Iterator[tuple[Mailbox, Journal | None]]:
+        """Copies of the cell's mailbox and journal, read without a write
+        (:class:`~cellctl.plan.snapshot.CopiedStores`): a plan of a cell no controller runs
+        writes nothing into it, not even a mailbox where there is none."""
+        from cellctl.plan.snapshot import CopiedStores
+
+        with CopiedStores(self.directory) as stores:
+            yield stores.mailbox, stores.journal
 
     def machines(self) -> dict[str, str]:
         return {name: registry.family_of(ref.kind) for name, ref in self.refs.items()}

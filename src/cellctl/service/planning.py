@@ -95,11 +95,11 @@ async def plan_run(access: CellAccess, p: PlanParams, progress: Progress | None)
         raise MachineInUse("a plan is being played already: ask again when it has ended")
     try:
         # The snapshot here (the journal and mailbox are this loop's).
-        journal = access.journal()
         start = current_clock().now()
         scale = _time_scale(access.directory)
-        orders, held = open_work(access.mailbox(), journal, now=start, time_scale=scale)
-        stopped = out_of_service(journal)
+        with access.work_to_plan() as (mailbox, journal):
+            orders, held = open_work(mailbox, journal, now=start, time_scale=scale)
+            stopped = out_of_service(journal)
 
         def inputs() -> tuple[PlanInputs, tuple[str, ...]]:
             return plan_inputs(

@@ -5,10 +5,23 @@ the controller or the API server): each is named here with its summary for the h
 
 from __future__ import annotations
 
+import contextlib
+import os
+import select
+import signal
+import sys
+from collections.abc import Iterator
+from typing import Any, NoReturn
+
 import click
 
 from cellctl import __version__
 from cellctl.ui.common import Lazy, LazyGroup, accept_cell, kind_commands
+
+#: The exit status when the output's reader is gone (``cellctl plan | head``): what a shell
+#: shows for git and coreutils there (128 + SIGPIPE, ``seq 1 100000 | head -1`` is 141), so
+#: ``set -o pipefail`` reads cellctl as it reads them: the output was cut, nothing failed.
+OUTPUT_GONE_EXIT = 128 + signal.SIGPIPE
 
 #: The built-in top-level commands: name -> where it is and its summary in ``cellctl --help``
 #: (tests/test_cli_startup.py checks each summary against the command's own help).
@@ -90,8 +103,75 @@ COMMANDS = {
 }
 
 
+def _reader_gone() -> bool:
+    """True if standard output or error is a pipe (or socket) whose reader has gone: a
+    broken pipe of the command's own (a link, a worker) is an error, not the end of output."""
+    for fd in (1, 2):
+        try:
+            poller = select.poll()
+            poller.register(fd, select.POLLOUT)
+            events = poller.poll(0)
+        except (OSError, ValueError):
+            continue
+        if any(event & select.POLLERR for _, event in events):
+            return True
+    return False
+
+
+def _end_quietly() -> NoReturn:
+    """End as git and coreutils do when their reader is gone: no message, status 141.
+    Standard output and error go to /dev/null first: the flush at exit would fail again
+    (Python's "Exception ignored ... BrokenPipeError", exit status 120)."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        for fd in (1, 2):
+            os.dup2(devnull, fd)
+    finally:
+        os.close(devnull)
+    sys.exit(OUTPUT_GONE_EXIT)
+
+
+@contextlib.contextmanager
+def _output_gone_ends_quietly() -> Iterator[None]:
+    """A command whose reader went away (``cellctl plan | head``) ends quietly with
+    :data:`OUTPUT_GONE_EXIT`, not with Click's silent status 1 or a traceback."""
+    try:
+        yield
+    except BrokenPipeError:
+        if not _reader_gone():
+            raise
+        _end_quietly()
+    except SystemExit as e:
+        # Rich's answer to a broken pipe on its console: SystemExit(1), raised as it handles
+        # the BrokenPipeError (its output already sent to /dev/null).
+        if isinstance(e.__context__, BrokenPipeError):
+            _end_quietly()
+        raise
+
+
+class CellctlCommand(LazyGroup):
+    """``cellctl``: the lazy group of every command, which ends quietly when the reader of
+    its output goes away, for every command (help and version included)."""
+
+    def make_context(
+        self,
+        info_name: str | None,
+        args: list[str],
+        parent: click.Context | None = None,
+        **extra: Any,
+    ) -> click.Context:
+        with _output_gone_ends_quietly():
+            return super().make_context(info_name, args, parent, **extra)
+
+    def invoke(self, ctx: click.Context) -> Any:
+        with _output_gone_ends_quietly():
+            result = super().invoke(ctx)
+            sys.stdout.flush()  # what print() left in the buffer: a broken pipe shows here
+            return result
+
+
 @click.group(
-    cls=LazyGroup,
+    cls=CellctlCommand,
     lazy=COMMANDS,
     # Commands the installed kinds contribute (``cellctl robot``, ``cellctl mill`` ...).
     more=lambda name: kind_commands("", name),

@@ -25,6 +25,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from textual.pilot import Pilot
+from textual.widgets import Static
 
 from cellctl.emulators.serve import Server, serve
 from cellctl.errors import CellctlError
@@ -213,6 +214,118 @@ async def test_the_program_picker_shows_no_private_directory(shop: Shop) -> None
         shown = await wait_text(pilot, "Program file:", "mill1", "mill2")
         assert "tokens" not in shown and "state" not in shown, shown
         await pilot.click("#cancel")
+        await pilot.press("q")
+    await client.close()
+
+
+async def test_the_program_picker_reads_nothing_outside_the_shop(
+    shop: Shop, tmp_path: Path
+) -> None:
+    """A program outside the shop (its path, a ``..``, a symlink to it or to its folder) is
+    refused in the dialog before it is read, nothing sent; a folder leading out is not
+    listed. A symlink within the shop is taken."""
+    outside = tmp_path / "camout"
+    outside.mkdir()
+    (outside / "O1234.nc").write_text(BRACKET)
+    (shop.root / "camout").symlink_to(outside)  # a folder leading out
+    programs = shop.root / "mill1" / "programs"
+    (programs / "O4321.nc").symlink_to(outside / "O1234.nc")  # a file leading out
+    (programs / "O1234 same.nc").symlink_to(programs / "O1234.nc")  # within: taken
+    app, client = await console(shop)
+    async with app.run_test(size=SIZE) as pilot:
+        await wait_text(pilot, "MAIN MENU")
+        await pilot.press("1")
+        await wait_text(pilot, "1. READ IN")
+        await pilot.press("1")
+        shown = await wait_text(pilot, "Program file:", "mill1", "mill2")
+        assert "camout" not in shown, shown
+
+        def refusal() -> str:  # the dialog's words (none once it has gone)
+            found = app.screen.query("#errors")
+            return str(found.first(Static).content) if found else ""
+
+        for given in (
+            str(outside / "O1234.nc"),
+            "../camout/O1234.nc",
+            "camout/O1234.nc",
+            "mill1/programs/O4321.nc",
+        ):
+            await fill(pilot, "#program", given)
+            await pilot.click("#ok")
+            await until(
+                lambda g=given: refusal().startswith(f"{g}: not in the shop"), f"{given} refused"
+            )
+            assert "program picker reads only files under the shop" in refusal()
+        assert shop.controls["mill1"].chars_read == 0
+        assert not any(" by hand" in x for x in ShopStore(shop.root).log_lines("mill1"))
+        await fill(pilot, "#program", "mill1/programs/O1234 same.nc")
+        await pilot.click("#ok")
+        await wait_screen(pilot, r"mill1\s+busy\s+reading O1234 same", "mill1 reading it")
+        await pilot.press("4", "y")  # STOP TRANSFER: nothing went out yet
+        await wait_screen(pilot, r"mill1\s+idle", "mill1 idle after the stop")
+        await pilot.press("q")
+    await client.close()
+
+
+async def test_a_binary_program_is_refused_in_the_words_of_the_command_line(shop: Shop) -> None:
+    """One refusal of a file that is not ISO code, whether the console's picker or
+    ``cellctl dnc send`` reads it: the same words after the file's name."""
+    binary = shop.root / "mill1" / "programs" / "O7777.nc"
+    binary.write_bytes(b"%\nO7777\nG21 (D\xc9BUT)\nM30\n%\n")
+    code, cli = await cellctl_run("dnc", "send", "mill1", "O7777", "--dir", str(shop.root))
+    assert code == 2, cli
+    cli_words = " ".join(cli.split()).split(f"{binary}: ", 1)[-1]
+    assert "byte 15 " in cli_words and "0xC9" in cli_words, cli
+    app, client = await console(shop)
+    async with app.run_test(size=SIZE) as pilot:
+        await wait_text(pilot, "MAIN MENU")
+        await pilot.press("1")
+        await wait_text(pilot, "1. READ IN")
+        await pilot.press("1")
+        await wait_text(pilot, "Program file:")
+        await fill(pilot, "#program", "mill1/programs/O7777.nc")
+        await pilot.click("#ok")
+        errors = app.screen.query_one("#errors", Static)
+        await until(lambda: str(errors.content), "the dialog's refusal")
+        assert str(errors.content) == f"mill1/programs/O7777.nc: {cli_words}", cli
+        assert "not ISO code: byte 15 is 0xC9 (a program is 7-bit ASCII)" in cli_words
+        await pilot.click("#cancel")
+        await pilot.press("q")
+    await client.close()
+    assert shop.controls["mill1"].chars_read == 0
+
+
+async def test_only_the_operator_s_own_transfer_is_marked_in_the_traffic(shop: Shop) -> None:
+    """``>>*`` marks the first bytes of the operator's own command: not those of a
+    ``cellctl dnc send`` started after a command of the console that sent nothing (LOG)."""
+    control = shop.controls["mill1"]
+    own = r"\d\d:\d\d:\d\d\.\d{3} >>\* "
+    app, client = await console(shop)
+    async with app.run_test(size=SIZE) as pilot:
+        await wait_text(pilot, "MAIN MENU")
+        await pilot.press("1")
+        await wait_text(pilot, "5. LOG", "traffic: mill1")
+        await pilot.press("5")  # the console's command: it sends nothing to the control
+        await wait_text(pilot, "mill1: LOG: ")
+        sent = asyncio.create_task(
+            cellctl_run("dnc", "send", "mill1", "O1234", "--dir", str(shop.root))
+        )
+        await wait_screen(pilot, r"mill1\s+busy\s+reading O1234\.nc", "the CLI's read-in")
+        control.read()
+        code, said = await sent
+        assert code == 0, said
+        await wait_screen(pilot, r"\d{3} >>[ *] ", "the CLI's bytes on the traffic pane")
+        await pilot.pause(0.5)  # a few more looks at the traffic
+        assert not re.search(own, screen_text(app)), screen_text(app)
+        # The operator's own READ IN: its first bytes marked as theirs.
+        await pilot.press("1")
+        await wait_text(pilot, "Program file:")
+        await fill(pilot, "#program", "mill1/programs/O1234.nc")
+        await pilot.click("#ok")
+        await wait_screen(pilot, r"mill1\s+busy\s+reading O1234\.nc", "the console's read-in")
+        control.read()
+        await wait_text(pilot, "mill1: READ IN: O1234.nc: read in, ", timeout=30)
+        await wait_screen(pilot, own, "the operator's own bytes marked")
         await pilot.press("q")
     await client.close()
 

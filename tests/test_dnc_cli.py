@@ -7,6 +7,8 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import re
+import socket
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,7 +26,7 @@ from cellctl.link import LineSettings
 from cellctl.link.lock import holder
 from cellctl.service.client import RemoteCell
 from cellctl.service.token import read_token
-from tests.conftest import CELLCTL, until
+from tests.conftest import CELLCTL, refusing_port, until
 
 LINE = LineSettings.parse("9600,7E2")
 BRACKET = "O1234 (BRACKET)\nG21 G90 G17\nG00 X0 Y0 Z5.\nG01 Z-1. F300\nG01 X10. Y5.\nM30\n"
@@ -143,6 +145,19 @@ async def served(shop: Shop) -> AsyncIterator[Shop]:
         assert code in (0, -15), output
 
 
+def started_then_ended(log: list[str], program: str, *, drip: bool) -> None:
+    """The machine's log has a transfer by hand's start, then its end, in one style: the
+    program, what, and the same characters of program."""
+    what, done = ("drip-feed", "drip-fed") if drip else ("read-in", "read in")
+    start = [i for i, line in enumerate(log) if f" {program}: {what} by hand, " in line]
+    end = [i for i, line in enumerate(log) if f" {program}: {done}, " in line]
+    assert start and end and start[-1] < end[-1], log
+    press = "CYCLE START" if drip else "READ"
+    assert f"characters of program: waiting for read: press {press} on the" in log[start[-1]]
+    counts = [re.search(r", (\d+) characters of program", log[i]) for i in (start[-1], end[-1])]
+    assert all(counts) and len({c.group(1) for c in counts if c}) == 1, log
+
+
 async def test_send_by_hand_goes_through_the_running_server(served: Shop) -> None:
     status = await served.status()
     assert {m["kind"] for m in status["machines"].values()} == {"iso-cnc"}
@@ -154,8 +169,7 @@ async def test_send_by_hand_goes_through_the_running_server(served: Shop) -> Non
     assert code == 0, output
     assert "O1234.nc: read in, " in output
     assert served.controls["mill1"].memory[1234] == BRACKET
-    log = ShopStore(served.root).log_lines("mill1")
-    assert any("O1234.nc: read in" in line for line in log)
+    started_then_ended(ShopStore(served.root).log_lines("mill1"), "O1234.nc", drip=False)
     # `dnc status --json`: the server's view of each machine, for scripts.
     code, output = await finished(
         await cellctl("dnc", "status", "--json", "--dir", str(served.root))
@@ -222,6 +236,43 @@ async def test_a_wrong_token_is_refused_and_a_second_server_too(served: Shop) ->
     assert "already run by cellctl dnc serve" in output
 
 
+async def test_a_shop_on_a_link_served_elsewhere_is_refused_before_it_writes_a_file(
+    served: Shop, tmp_path: Path
+) -> None:
+    """Another shop naming a link this server holds: refused, naming the holder, and its
+    directory left as it was (no API token, no lock, no machine directory)."""
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "dnc.toml").write_text(f'[machines.again]\nlink = "{served.servers[1].url}"\n')
+    code, output = await finished(await cellctl("dnc", "serve", "--dir", str(other)))
+    assert code == 6, output
+    assert f"{served.servers[1].url} is in use by cellctl dnc serve (pid " in output, output
+    assert sorted(os.listdir(other)) == ["dnc.toml"]
+
+
+async def test_a_shop_whose_listen_address_is_taken_is_refused_before_it_writes_a_file(
+    tmp_path: Path,
+) -> None:
+    taken = socket.socket()  # another server answers on the address
+    taken.bind(("127.0.0.1", 0))
+    taken.listen()
+    link = refusing_port()  # the machine: never reached
+    port = taken.getsockname()[1]
+    try:
+        (tmp_path / "dnc.toml").write_text(
+            f'[dnc]\nlisten = "127.0.0.1:{port}"\n\n[machines.a]\n'
+            f'link = "socket://127.0.0.1:{link.getsockname()[1]}"\n'
+        )
+        code, output = await finished(await cellctl("dnc", "serve", "--dir", str(tmp_path)))
+    finally:
+        taken.close()
+        link.close()
+    assert code == 2, output
+    said = f'dnc.toml: [dnc] listen = "127.0.0.1:{port}": cannot listen there: address already'
+    assert said in output, output
+    assert sorted(os.listdir(tmp_path)) == ["dnc.toml"]
+
+
 async def test_hand_send_without_a_server_opens_the_link_itself(shop: Shop) -> None:
     proc = await cellctl("dnc", "send", "mill1", "O1234", "--dir", str(shop.root))
     control = shop.controls["mill1"]
@@ -235,6 +286,7 @@ async def test_hand_send_without_a_server_opens_the_link_itself(shop: Shop) -> N
     code, output = await finished(proc)
     assert code == 0, output
     assert control.memory[1234] == BRACKET
+    started_then_ended(ShopStore(shop.root).log_lines("mill1"), "O1234.nc", drip=False)
     # With no server, `dnc status --json` says so and gives each machine's last log line.
     code, output = await finished(await cellctl("dnc", "status", "--json", "--dir", str(shop.root)))
     assert code == 0, output

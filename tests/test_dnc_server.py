@@ -192,6 +192,51 @@ async def test_several_machines_from_one_server(tmp_path: Path) -> None:
             await server.close()
 
 
+async def test_the_api_sends_no_file_from_outside_the_shop(tmp_path: Path) -> None:
+    """``dnc.send`` names a program of the shop (or carries its text): a path of the
+    server's host outside the shop, straight or through ``..``, is refused before a byte goes
+    out, and the file is not read; a file under the shop is sent."""
+    emulator, server = await control()
+    shop = write_shop(tmp_path / "shop", {"mill1": server.url})
+    programs = ShopStore(shop).machine("mill1") / "programs"
+    (programs / "O1234.nc").write_text(BRACKET)
+    secret = tmp_path / "O7777.nc"  # beside the shop, not in it
+    secret.write_text("O7777 (NOT FOR THE SHOP)\nG00 X0\nM30\n")
+    stop = asyncio.Event()
+    task = asyncio.create_task(serve_shop(load_shop(shop), stop=stop))
+    client = None
+    try:
+        await until(lambda: task.done() or (shop / "api.sock").exists(), "the API listening")
+        assert not task.done(), task.exception()
+        client = await attach(shop)
+        for named in (str(secret), str(programs / ".." / ".." / ".." / "O7777.nc")):
+            with pytest.raises(UsageError, match="not in the shop"):
+                await client.call("dnc.send", {"machine": "mill1", "program": named})
+        assert not emulator.memory  # nothing reached the control
+        log = await client.call("dnc.log", {"machine": "mill1"})
+        assert "NOT FOR THE SHOP" not in json.dumps(log)
+        # Under the shop, by its path: sent (the operator presses READ).
+        emulator.set_mode(Mode.EDIT)
+        send = asyncio.create_task(
+            client.call("dnc.send", {"machine": "mill1", "program": str(programs / "O1234.nc")})
+        )
+
+        async def offered() -> bool:
+            status = await client.call("cell.status")
+            return send.done() or status["machines"]["mill1"]["progress"] is not None
+
+        await until(offered, "the read-in offered, waiting for READ")
+        emulator.read()
+        assert (await send)["machine"] == "mill1"
+        assert "(BRACKET)" in emulator.memory[1234]
+    finally:
+        if client is not None:
+            await client.close()
+        stop.set()
+        await task
+        await server.close()
+
+
 async def test_a_second_opener_of_a_served_link_is_refused(tmp_path: Path) -> None:
     _emulator, server = await control()
     shop = write_shop(tmp_path / "shop", {"mill1": server.url})

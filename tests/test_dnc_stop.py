@@ -201,6 +201,11 @@ async def test_serve_starts_with_a_machine_offline_and_takes_it_when_it_comes(
             return str((await b_shop.status())["machines"]["a"]["condition"]) == "idle"
 
         await until(online, "machine a online", 30)
+        # Its log says both, in one style: offline (once), then online again.
+        said = [line.split(" ", 1)[1] for line in ShopStore(root).log_lines("a")]
+        offline = [i for i, x in enumerate(said) if x.startswith("error: a: offline: ")]
+        back = f"a: online: its link socket://127.0.0.1:{port} is open again"
+        assert len(offline) == 1 and back in said[offline[0] + 1 :], said
     finally:
         held.close()
         await b_shop.close()

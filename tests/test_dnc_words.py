@@ -15,6 +15,7 @@ from cellctl.drivers.state import StateStore
 from cellctl.errors import UsageError
 from cellctl.kinds.iso_cnc import gcode
 from cellctl.kinds.iso_cnc.dnc.config import load_shop
+from cellctl.kinds.iso_cnc.dnc.request import Request, parse_request
 from cellctl.kinds.iso_cnc.dnc.store import ShopStore
 from cellctl.kinds.iso_cnc.emulator import Mode
 from cellctl.kinds.iso_cnc.status import IsoCncState
@@ -76,6 +77,37 @@ def test_a_request_program_within_the_digits_is_taken(tmp_path: Path, machine: s
     assert load_shop(tmp_path).machines["a"]
 
 
+@pytest.mark.parametrize(
+    ("request_table", "load", "drip"),
+    [
+        ('load = "DRIP"', "DRIP", "DRIP"),
+        ('load = "drip"', "drip", "DRIP"),  # read in any case, as a request's words are
+        ('load = "Send", drip = "SEND"', "Send", "SEND"),
+    ],
+)
+def test_a_load_word_that_is_the_drip_word_is_refused_at_load(
+    tmp_path: Path, request_table: str, load: str, drip: str
+) -> None:
+    """A request's words are read in any case: a load word equal to the drip word, in any
+    case, would make every request a drip-feed (none a load): refused, naming both."""
+    toml = tmp_path / "dnc.toml"
+    toml.write_text(f'[machines.a]\nlink = "loop://"\nrequest = {{ {request_table} }}\n')
+    with pytest.raises(UsageError) as caught:
+        load_shop(tmp_path)
+    said = str(caught.value)
+    assert f"{toml}: [machines.a]: request.load = {load!r} and request.drip = {drip!r}" in said
+    assert "are the same word" in said and "none for a load" in said, said
+
+
+def test_load_and_drip_words_of_the_shop_s_own_are_read_in_any_case(tmp_path: Path) -> None:
+    (tmp_path / "dnc.toml").write_text(
+        '[machines.a]\nlink = "loop://"\nrequest = { load = "send", drip = "DNC" }\n'
+    )
+    convention = load_shop(tmp_path).machines["a"].request
+    assert parse_request(9999, "(SEND O1234)", convention) == Request(1234, drip=False)
+    assert parse_request(9999, "(dnc o1234)", convention) == Request(1234, drip=True)
+
+
 @pytest.mark.parametrize(("digits", "program"), [(3, 999), (1, 9), (4, 9999), (8, 9999)])
 def test_the_default_request_program_is_one_the_control_can_number(
     tmp_path: Path, digits: int, program: int
@@ -115,9 +147,12 @@ async def test_a_number_out_of_range_is_said_so_before_any_file_is_looked_for(
     root = str(shop.root)
     programs = ShopStore(shop.root).machine("mill1") / "programs"
     (programs / "O0000.nc").write_text("O0000\nG00 X0\nM30\n")
-    code, said = await run_here("dnc", "check", "mill1", "O0", "--dir", root)
-    assert code == 2, said
-    assert "O0000 is out of range for mill1: its control takes programs O1 to O9999" in said
+    # O0 is no program number (O1 to O9999): refused as the user wrote it, never made O0000
+    for command, given in (("check", "O0"), ("send", "O0"), ("drip", "0")):
+        code, said = await run_here("dnc", command, "mill1", given, "--dir", root)
+        assert code == 2, (command, said)
+        assert "O0 is out of range for mill1: its control takes programs O1 to O9999" in said
+        assert "O0000" not in said and "no program" not in said, said
     # the file itself, checked: the G-code check says the same range
     code, said = await run_here("dnc", "check", "mill1", str(programs / "O0000.nc"), "--dir", root)
     assert code == 1, said

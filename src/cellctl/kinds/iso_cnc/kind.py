@@ -92,16 +92,17 @@ def _check(path: Path, role: ProgramRole, options: BaseModel) -> CheckedProgram:
     chosen = _options(options).check_options()
     try:
         # Over what the check takes: refused before it is read into memory.
-        text = read_file(path, limit=chosen.max_bytes).decode("ascii")
+        data = read_file(path, limit=chosen.max_bytes)
     except OSError as e:
         if e.errno == errno.EFBIG:
             with contextlib.suppress(OSError):  # gone since: said as any other failed read
                 size = path.stat().st_size
                 return CheckedProgram((gcode.too_long(size, chosen).format(str(path)),))
         return CheckedProgram((f"{path}: cannot read: {e.strerror or e}",))
-    except UnicodeDecodeError as e:
-        return CheckedProgram((f"{path}: byte {e.start}: not ISO code (7-bit ASCII)",))
-    return check_text(text, str(path), options)
+    refusal = tape.not_iso_code(str(path), data)  # in the words `cellctl dnc send` uses
+    if refusal is not None:
+        return CheckedProgram((refusal,))
+    return check_text(data.decode("ascii"), str(path), options)
 
 
 def _check_text(function: str, name: str, text: str, options: BaseModel) -> list[str]:

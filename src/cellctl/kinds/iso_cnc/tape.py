@@ -180,6 +180,17 @@ def split_programs(text: str) -> list[TapeProgram]:
     return programs
 
 
+def not_iso_code(name: str, data: bytes) -> str | None:
+    """Why program file ``name`` (its bytes ``data``) cannot be a program, when a byte is not
+    7-bit ASCII (a binary, or a word processor's file): the one wording of every surface
+    (``cellctl dnc send``, ``dnc check``, the console's program picker, the API's
+    ``dnc.send``, the kind's check). None when every byte is ASCII."""
+    if data.isascii():
+        return None
+    at = next(i for i, byte in enumerate(data) if byte > 0x7F)
+    return f"{name}: not ISO code: byte {at + 1} is 0x{data[at]:02X} (a program is 7-bit ASCII)"
+
+
 def control_code_name(byte: int) -> str:
     """``DC3`` for 0x13; the byte in hex for anything else (for messages and logs)."""
     try:

@@ -57,7 +57,7 @@ from cellctl.ui.console.session import (
     open_console_cell,
     status_machines,
 )
-from cellctl.ui.console.traffic import traffic_rows
+from cellctl.ui.console.traffic import Commands, traffic_rows
 from cellctl.ui.console.widgets import Board, ResultPane, TrafficPane, header_text, shown, step_text
 
 #: Seconds between two looks at the selected machine's traffic.
@@ -135,9 +135,10 @@ class ConsoleApp(App[None]):
         self.served: dict[str, list[ServedFunction]] = {}
         self.is_cell = is_cell(directory)
         self._traffic_busy = False
-        #: Per machine, the operator's last command: when it was given, then its first row
-        #: sent (the traffic pane shows it first).
-        self.commands: dict[str, float | dict[str, Any]] = {}
+        #: Per machine, the operator's last command: when it was given (then, for a served
+        #: function, the span until its answer), then its first row sent (the traffic pane
+        #: shows it first).
+        self.commands: Commands = {}
         self._closed = False
         self._reattaching = False
         self._reattach_tried = float("-inf")

@@ -187,12 +187,25 @@ class LivePickDialog(PickDialog):
             self._fetching = False
 
 
-class ProgramTree(DirectoryTree):
-    """The cell directory, showing only folders and the family's program files."""
+def within(path: Path, root: Path) -> bool:
+    """Whether ``path``, resolved (``..`` applied, every symlink followed), is under
+    ``root`` (resolved too): a symlink or ``..`` leading out of it is not."""
+    try:
+        return path.resolve().is_relative_to(root.resolve())
+    except (OSError, RuntimeError):  # a symlink loop, an unreadable link: not within
+        return False
 
-    def __init__(self, path: Path, suffixes: tuple[str, ...], **kwargs: Any) -> None:
+
+class ProgramTree(DirectoryTree):
+    """The cell directory, showing only folders and the family's program files; with
+    ``confined``, only what lies within it (no symlink leading out is listed or opened)."""
+
+    def __init__(
+        self, path: Path, suffixes: tuple[str, ...], *, confined: bool = False, **kwargs: Any
+    ) -> None:
         super().__init__(path, **kwargs)
         self.suffixes = suffixes
+        self.confine_to = Path(path) if confined else None
 
     def filter_paths(self, paths: Iterable[Path]) -> Iterable[Path]:
         return [
@@ -201,6 +214,7 @@ class ProgramTree(DirectoryTree):
             if not p.name.startswith(".")
             and (p.is_dir() or p.suffix.lower() in self.suffixes)
             and p.name not in ("state", "tokens")  # private: locks, the API's tokens
+            and (self.confine_to is None or within(p, self.confine_to))
         ]
 
 
@@ -221,7 +235,9 @@ class ParamsDialog(Dialog[dict[str, Any]]):
         directory: Path,
         suffixes: tuple[str, ...] = (),
         program: str = "",
+        confined: bool = False,
     ) -> None:
+        """``confined``: the picker lists only what lies within ``directory`` (a shop's)."""
         super().__init__()
         self.title_text = title
         self.fields = set(fields)
@@ -229,6 +245,7 @@ class ParamsDialog(Dialog[dict[str, Any]]):
         self.directory = directory
         self.suffixes = suffixes
         self.program = program
+        self.confined = confined
 
     def compose(self) -> ComposeResult:
         with Vertical():
@@ -241,7 +258,7 @@ class ParamsDialog(Dialog[dict[str, Any]]):
                 with Horizontal():
                     yield Label("Program file:", classes="field-label")
                     yield Input(self.program, id="program", compact=True)
-                yield ProgramTree(self.directory, self.suffixes, id="tree")
+                yield ProgramTree(self.directory, self.suffixes, confined=self.confined, id="tree")
             if "force" in self.fields:
                 yield Checkbox("Force (initialize again)", id="force", compact=True)
             if "input" in self.fields:

@@ -8,8 +8,15 @@ caller's token and role like every other call::
     menu = ServedMenu(app)
     entries = menu.entries(machine, served["mill1"])   # 1 READ IN ... then EXIT
 
-A program is read here (relative to the directory) and sent as its name and text; the server
-checks it with the machine's own options before a byte goes out.
+A program is read here (relative to the directory, and only within it: a path, a ``..`` or
+a symlink leading out is refused before anything is read) and sent as its name and text; the
+server checks it with the machine's own options before a byte goes out. A file its machine's
+kind cannot take as text (a binary) is refused here in the kind's own words, the words of
+its command line (``cellctl dnc send``).
+
+The traffic pane marks the first bytes of the operator's own command (``>>*``): a function
+that sends a program, its bytes sent between the call and its answer, never those of a
+transfer someone else started (``cellctl dnc send``) after a call that sent nothing.
 """
 
 from __future__ import annotations
@@ -21,12 +28,16 @@ from typing import Any, Protocol, TypeVar
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from cellctl.clock import current_clock
-from cellctl.errors import CellctlError
+from cellctl.errors import CellctlError, UsageError
+from cellctl.files import read_file, reason
+from cellctl.kinds import registry
+from cellctl.kinds.kind import ProgramRole
 from cellctl.service.client import CellClient
 from cellctl.service.functions import describe
-from cellctl.ui.console.dialogs import Dialog, ParamsDialog
+from cellctl.ui.console.dialogs import Dialog, ParamsDialog, within
 from cellctl.ui.console.entry import Action, Entry
-from cellctl.ui.console.session import ConsoleMachine, read_program_file
+from cellctl.ui.console.session import ConsoleMachine
+from cellctl.ui.console.traffic import Commands, command_ended
 
 T = TypeVar("T")
 
@@ -78,11 +89,58 @@ def parse_served(raw: Any) -> dict[str, list[ServedFunction]]:
     return found
 
 
-def program_params(raw: dict[str, Any], directory: Path) -> dict[str, Any]:
-    """A dialog's program file as the call sends it: its name and text (UsageError if it
-    cannot be read)."""
-    _, program = read_program_file(str(raw.get("program", "")), directory)
-    return program
+def shop_file(path_text: str, directory: Path) -> tuple[Path, str]:
+    """The file a dialog names (relative to ``directory``, the shop), resolved (``..``
+    applied, symlinks followed: what is read is what was checked), and the name as the
+    operator gave it; UsageError, before anything is read, when it leads out of the shop
+    (an absolute path elsewhere, ``..``, a symlink to a file or folder outside)."""
+    given = path_text.strip()
+    if not given:
+        raise UsageError("give a program file")
+    path = directory / Path(given).expanduser()
+    if not within(path, directory):
+        raise UsageError(
+            f"{given}: not in the shop {directory} (it leads to {path.resolve()}): the "
+            "program picker reads only files under the shop; copy the program there"
+        )
+    return path.resolve(), given
+
+
+def kind_refusal(kind: str | None, path: Path) -> str | None:
+    """Why the kind ``kind`` cannot take program file ``path`` as a program, as its own check
+    words it (:class:`~cellctl.kinds.kind.ProgramLanguage` ``check``); None when it says
+    nothing, or when the kind is not installed here."""
+    if kind is None:
+        return None
+    try:
+        found = registry.kind(kind)
+        if found.language is None:
+            return None
+        checked = found.language.check(path, ProgramRole.MILLING, found.checked_options({}))
+    except CellctlError:
+        return None
+    return checked.problems[0] if checked.problems else None
+
+
+def program_params(raw: dict[str, Any], directory: Path, kind: str | None = None) -> dict[str, Any]:
+    """A dialog's program file as the call sends it: its name and text. UsageError if it
+    lies outside ``directory`` (before it is read), cannot be read, or is no text: a file
+    that is not ASCII is refused in the words of the machine's kind (``kind``), which its
+    command line uses too (``cellctl dnc send``)."""
+    path, given = shop_file(str(raw.get("program", "")), directory)
+    try:
+        data = read_file(path)
+    except OSError as e:
+        raise UsageError(f"{given}: could not open file: {reason(e)}") from None
+    if not data.isascii():
+        refusal = kind_refusal(kind, path)
+        if refusal is not None:
+            raise UsageError(refusal.replace(str(path), given, 1))
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise UsageError(f"{given}: not a text file (byte {e.start + 1} is not UTF-8)") from None
+    return {"program": Path(given).name, "text": text}  # named as given (a link by its own)
 
 
 def progress_words(data: dict[str, Any]) -> str:
@@ -114,7 +172,7 @@ class ServedHost(Protocol):
     def client(self) -> CellClient | None: ...
 
     @property
-    def commands(self) -> dict[str, float | dict[str, Any]]: ...
+    def commands(self) -> Commands: ...
 
     def action_up(self) -> None: ...
 
@@ -165,9 +223,10 @@ class ServedMenu:
             dialog = ParamsDialog(
                 title,
                 ["program"],
-                lambda raw: program_params(raw, app.directory),
+                lambda raw: program_params(raw, app.directory, machine.kind),
                 directory=app.directory,
                 suffixes=machine.suffixes,
+                confined=True,
             )
             answer = await app.ask(dialog)
             if answer is None:
@@ -178,7 +237,13 @@ class ServedMenu:
             app.say([f"{machine.name}: {fn.label} not done"])
             return
         app.say([f"{machine.name}: {fn.label} ..."])
-        app.commands[machine.name] = current_clock().now()  # traffic rows' wall time
+        # The bytes of a function that sends a program are the operator's own (the traffic
+        # pane's >>*), looked for from now (traffic rows' wall time) until its answer; a
+        # function that sends nothing of its own (LOG, RECEIVE PUNCH) marks nothing.
+        sends = "program" in fn.asks
+        since = current_clock().now()
+        if sends:
+            app.commands[machine.name] = since
 
         def progress(data: dict[str, Any]) -> None:
             done, total = data.get("chars_sent"), data.get("chars_total")
@@ -195,6 +260,8 @@ class ServedMenu:
             return
         finally:
             app.show_progress(None, None)
+            if sends:  # only what went out before its answer was the operator's
+                command_ended(app.commands, machine.name, since, current_clock().now())
         app.say(result_lines(machine.name, fn.label, result), "green")
 
 
@@ -214,6 +281,7 @@ __all__ = [
     "ServedFunction",
     "ServedMenu",
     "parse_served",
+    "program_params",
     "progress_words",
     "result_lines",
     "served_functions",

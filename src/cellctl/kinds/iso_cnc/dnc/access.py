@@ -54,6 +54,7 @@ from cellctl.kinds.iso_cnc.dnc.status import (
     stopped_progress,
 )
 from cellctl.kinds.iso_cnc.dnc.store import check_program_number, read_program_file
+from cellctl.kinds.iso_cnc.tape import not_iso_code
 from cellctl.kinds.menu import MAX_PROGRAM_CHARS, Progress
 from cellctl.mailbox import Mailbox
 from cellctl.service.access import CellAccess, traffic_rows
@@ -279,11 +280,16 @@ async def _send(access: CellAccess, p: SendParams, progress: Progress | None) ->
     assert isinstance(access, DncAccess)
     line = access.server.line(p.machine)
     if p.text is not None:
-        if not p.text.isascii():
-            raise UsageError(f"{p.program}: not an ISO-code program (a character is not ASCII)")
-        name, data = p.program, p.text.encode("ascii")
+        # Its bytes as a file's (UTF-8): a text that is not ASCII is refused in the words of
+        # `cellctl dnc send FILE` for that file (byte and value), whoever sent it.
+        name, data = p.program, p.text.encode("utf-8", "surrogatepass")
+        refusal = not_iso_code(name, data)
+        if refusal is not None:
+            raise UsageError(refusal)
     else:
-        path = line.store.resolve(p.machine, p.program, line.config.options.o_digits)
+        # A path is this host's: a client names a program of the shop, or sends its text.
+        digits = line.config.options.o_digits
+        path = line.store.resolve(p.machine, p.program, digits, shop_only=True)
         name, data = path.name, read_program_file(path)
     check_program_number(name, data)
     what = f"{'drip-feed' if p.drip else 'read-in'} of {name}"
@@ -292,7 +298,13 @@ async def _send(access: CellAccess, p: SendParams, progress: Progress | None) ->
         async with line.turn:
             try:
                 result = await line.send(
-                    name, data, drip=p.drip, progress=progress, timeout=TRANSFER_S, ticket=p.ticket
+                    name,
+                    data,
+                    drip=p.drip,
+                    progress=progress,
+                    timeout=TRANSFER_S,
+                    ticket=p.ticket,
+                    by_hand=True,
                 )
             except TransferStopped as e:
                 if progress is not None:  # a field its caller reads: stopped, not failed

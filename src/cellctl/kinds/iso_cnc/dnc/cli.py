@@ -82,6 +82,9 @@ async def serve_shop(config: ShopConfig, *, stop: asyncio.Event | None = None) -
     from cellctl.service.server import ApiServer
     from cellctl.ui.dashboard.routes import dashboard_routes
 
+    # First: a server refused (its shop served, a link or its listen address someone else's)
+    # writes nothing, in this shop or any other: no token, no lock, no machine directory.
+    refuse_if_served_elsewhere(config)
     config.root.mkdir(mode=0o700, parents=True, exist_ok=True)
     stop = stop or asyncio.Event()
     try:
@@ -118,6 +121,47 @@ async def serve_shop(config: ShopConfig, *, stop: asyncio.Event | None = None) -
                 await _stopping(server)
             await api.close()
             await server.close()
+
+
+def refuse_if_served_elsewhere(config: ShopConfig) -> None:
+    """Refuse ``dnc serve`` on ``config`` now, before it writes a file, when what it would
+    take is taken: the shop served already, a machine's link held by another owner (another
+    shop's server, a ``cellctl dnc send``, a cell), its ``[dnc] listen`` address answered
+    by another server. MachineInUse naming the holder; UsageError for the address."""
+    import socket
+
+    from cellctl.cell.owner import ALREADY_RUN, controller_lock_path
+    from cellctl.drivers.base import refuse_if_link_held
+    from cellctl.drivers.state import StateStore
+    from cellctl.errors import LinkError, MachineInUse, UsageError
+    from cellctl.link.listen import parse_listen
+    from cellctl.link.lock import refuse_if_held
+
+    try:  # as acquire_controller_lock would say it, in a shop's words
+        refuse_if_held(controller_lock_path(config.root), str(config.root), refusal=ALREADY_RUN)
+    except MachineInUse as e:
+        raise MachineInUse(str(e).replace("the cell in", "the shop in", 1)) from None
+    store = StateStore(config.root)  # only looked at: nothing is created by a look
+    for m in config.machines.values():
+        try:
+            refuse_if_link_held(m.url, m.name, store)
+        except LinkError:
+            continue  # a host name that does not resolve now: served offline, as any other
+    if config.listen is None:
+        return
+    host, port = parse_listen(config.listen, config.allow_remote, table="dnc")
+    probe = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET)
+    try:  # bound as the API server binds it, then let go at once
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        probe.bind((host, port))
+    except OSError as e:
+        raise UsageError(
+            f'{config.source}: [dnc] listen = "{config.listen}": cannot listen there: '
+            f"{(e.strerror or str(e)).lower()} (another server answers on {host}:{port}?): "
+            "stop it, or give this shop another port"
+        ) from None
+    finally:
+        probe.close()
 
 
 async def _stopping(server: DncServer) -> None:

@@ -174,7 +174,17 @@ def _request_for(
     default O9999 is the highest number of a 4-digit control, and a control with fewer
     digits gets its own highest (O999 on 3 digits). A request program given that the control
     cannot number (``program = 123456`` on a 4-digit control) is refused: it could never
-    write or punch it, so no request would ever come."""
+    write or punch it, so no request would ever come. So is a load word that is the drip
+    word (``load = "DRIP"``, or ``"drip"``: the words are read in any case): no request
+    could ask for a load."""
+    if request.enabled and request.load.upper() == request.drip.upper():
+        # A request's words are read in any case (LOAD, load, Load): so are these two.
+        raise UsageError(
+            f"{where}: request.load = {request.load!r} and request.drip = {request.drip!r} "
+            "are the same word (a request's words are read in any case): every request "
+            f"would ask for a drip-feed, none for a load into memory; give two different "
+            'words, e.g. load = "LOAD" and drip = "DRIP"'
+        )
     digits = options.o_digits
     if not request.enabled or request.program < 10**digits:
         return request

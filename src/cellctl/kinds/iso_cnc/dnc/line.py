@@ -34,7 +34,9 @@ from cellctl.kinds.iso_cnc.dnc.status import (
     all_out_words,
     ended_words,
     offline_words,
+    online_words,
     progress_dict,
+    started_words,
     state_words,
 )
 from cellctl.kinds.iso_cnc.dnc.store import (
@@ -139,6 +141,9 @@ class DncLine:
             options=self.config.options,
             trace=self.trace,
         )
+        if self.status.activity is Activity.OFFLINE and self.status.error:
+            # back from offline (logged once as such): said beside it, in the same words
+            self._note(online_words(self.name, self.config.url))
         self._set(activity=Activity.IDLE, error="", since=current_clock().now())
 
     async def close(self) -> None:
@@ -229,16 +234,21 @@ class DncLine:
         progress: Progress | None = None,
         timeout: float = TRANSFER_S,
         ticket: str | None = None,
+        by_hand: bool = False,
     ) -> dict[str, Any]:
         """Send ``data`` (a program's text): into memory, or drip-fed; the control starts the
         read (it sends DC1). The caller holds :attr:`turn`. ``ticket``: the caller's own
-        name for it, with which it may stop it (``dnc.stop``) and nothing else."""
+        name for it, with which it may stop it (``dnc.stop``) and nothing else. ``by_hand``:
+        a transfer a user started (``dnc send``, the console, the API), whose start the log
+        says as it says its end (a request's is the request's own line)."""
         if self.cancelled:  # stopped while it waited for the machine's turn
             said, self.cancelled = self.cancelled, ""
             self._note(said)
             self._set(last=said)
             raise TransferStopped(said)
         self.require_link("nothing can be sent to it")
+        if by_hand:  # taken: its end (done, failed, stopped) is logged below
+            self._note(started_words(program, drip, program_chars(data)))
         activity = Activity.DRIP_FEEDING if drip else Activity.READING
         self._set(
             activity=activity,

@@ -193,3 +193,20 @@ def offline_words(name: str, e: Exception, retry_s: float | None) -> str:
     if retry_s is None:  # a one-shot command: nothing tries again
         return f"{name}: offline: {text}"
     return f"{name}: offline: {text} (its link is tried again every {retry_s:g} s)"
+
+
+def online_words(name: str, url: str) -> str:
+    """Machine ``name`` back from offline, in the words of :func:`offline_words` (the log's
+    line beside its ``offline`` one): ``a: online: its link socket://... is open again``."""
+    return f"{name}: online: its link {url} is open again"
+
+
+def started_words(program: str, drip: bool, chars: int) -> str:
+    """A transfer by hand taken, in the words of its end's log line (``O1234.nc: read in,
+    4691 characters of program in 5.3 s ...``): ``O1234.nc: read-in by hand, 4691
+    characters of program: waiting for read: press READ on the control, in EDIT mode``."""
+    what = "drip-feed" if drip else "read-in"
+    return (
+        f"{program}: {what} by hand, {chars} characters of program: waiting for read: "
+        f"{START_READ[drip]}"
+    )

@@ -39,7 +39,7 @@ from pathlib import Path
 from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.files import read_file
-from cellctl.kinds.iso_cnc.tape import o_number, skipped_leader, unframe
+from cellctl.kinds.iso_cnc.tape import not_iso_code, o_number, skipped_leader, unframe
 
 PROGRAMS = "programs"
 RECEIVED = "received"
@@ -76,14 +76,17 @@ def o_name(number: int) -> str:
     return f"O{number:04d}"
 
 
-def check_program_range(machine: str, number: int, digits: int) -> None:
+def check_program_range(machine: str, number: int, digits: int, given: str = "") -> None:
     """Refuse (UsageError) program ``number`` when machine's control, whose O-numbers
-    have ``digits`` digits, cannot hold it: O0, or O99999 on a 4-digit control. Said before
-    the file is looked for: a file of that number would be refused too."""
+    have ``digits`` digits, cannot hold it: O0 (no control numbers a program 0), or O99999
+    on a 4-digit control. Said before the file is looked for: a file of that number would be
+    refused too. ``given``: the number as the user wrote it (``O0``, ``0``), said back so,
+    never padded into a number they did not write (``O0000``)."""
     high = 10**digits - 1
     if not 1 <= number <= high:
+        shown = f"O{given.lstrip('Oo')}" if given else f"O{number}"
         raise UsageError(
-            f"{o_name(number)} is out of range for {machine}: its control takes programs "
+            f"{shown} is out of range for {machine}: its control takes programs "
             f"O1 to O{high} ({digits} digits, options.o_digits)"
         )
 
@@ -173,16 +176,17 @@ class ShopStore:
                 found.setdefault(int(match.group(1)), []).append(path)
         return found
 
-    def program(self, name: str, number: int, digits: int | None = None) -> Path:
+    def program(self, name: str, number: int, digits: int | None = None, given: str = "") -> Path:
         """The file of program ``number`` in the machine's programs/: the one named exactly
         by its number (``O1234.nc``, ``O1234``) if there is one, else the only file whose name
         starts with it (``O1234 bracket.nc``). UsageError naming where it was looked for when
         there is none, and naming the files when more than one could be meant (``O1234
         bracket.nc`` and ``O1234 copy.nc``; ``O1234.nc`` and ``O1234.tap``): which one the
         control should get cannot be guessed. With ``digits`` (the control's ``o_digits``),
-        a number the control cannot hold is refused first (:func:`check_program_range`)."""
+        a number the control cannot hold is refused first (:func:`check_program_range`,
+        ``given`` the number as the user wrote it)."""
         if digits is not None:
-            check_program_range(name, number, digits)
+            check_program_range(name, number, digits, given)
         files = self.programs(name).get(number, [])
         exact = [path for path in files if EXACT_PROGRAM_FILE.fullmatch(path.name)]
         chosen = exact or files
@@ -206,17 +210,26 @@ class ShopStore:
             f"({names}) and they {why}: rename all but one, or give the file itself"
         )
 
-    def resolve(self, name: str, program: str, digits: int | None = None) -> Path:
+    def resolve(
+        self, name: str, program: str, digits: int | None = None, *, shop_only: bool = False
+    ) -> Path:
         """What ``cellctl dnc send MACHINE PROGRAM`` means by PROGRAM: an existing file, else
         an O-number (``O1234`` or ``1234``) in the machine's programs/ (within ``digits``,
-        the control's ``o_digits``, when given)."""
+        the control's ``o_digits``, when given). ``shop_only`` (a program named through the
+        server's API, by a client that may not see this host's files): a file only under the
+        shop's directory (``..`` and symlinks followed), a path leading out refused unread."""
         path = Path(program)
         if path.is_file():
+            if shop_only and not path.resolve().is_relative_to(self.root.resolve()):
+                raise UsageError(
+                    f"{program}: not in the shop {self.root}: name a program of the machine's "
+                    "programs/ (like O1234), or send the file's text"
+                )
             return path
         match = re.fullmatch(r"[Oo]?(\d{1,8})", program)
         if match is None:
             raise UsageError(f"{program}: no such file, and not a program number like O1234")
-        return self.program(name, int(match.group(1)), digits)
+        return self.program(name, int(match.group(1)), digits, program)
 
     # -- kept copies ------------------------------------------------------------------------
 
@@ -293,13 +306,9 @@ def read_program_file(path: Path) -> bytes:
         raise UsageError(f"{path}: no such file") from None
     except OSError as e:
         raise UsageError(f"{path}: cannot read: {e.strerror}") from None
-    try:
-        data.decode("ascii")
-    except UnicodeDecodeError as e:
-        raise UsageError(
-            f"{path}: not an ISO-code program (byte {e.start + 1} is not ASCII: "
-            f"0x{data[e.start]:02X})"
-        ) from None
+    refusal = not_iso_code(str(path), data)
+    if refusal is not None:
+        raise UsageError(refusal)
     return data
 
 
@@ -328,8 +337,8 @@ def check_program_number(name: str, data: bytes) -> None:
         return  # a file not named by its number (surface.nc): its text decides
     said = o_number(unframe(data))
     if said is not None and said != int(named.group(1)):
-        raise UsageError(
-            f"{name}: its name says {o_name(int(named.group(1)))} but its text is "
+        raise UsageError(  # the name's number as written in it (O0, never O0000)
+            f"{name}: its name says O{named.group(1)} but its text is "
             f"{o_name(said)} (the control would store it as {o_name(said)}): rename the file "
             "or correct its O block"
         )

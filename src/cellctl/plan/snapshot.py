@@ -13,12 +13,12 @@ with the cuts it has, the plan goes on with it as the controller would after a r
 cut in flight now is taken up as far as it has gone (``PartAt.done_s``: the time since its
 step began, in machine seconds); a transfer in flight is played again whole (seconds).
 
-A cell no controller runs is read from copies (:class:`CopiedStores`; the control API's
+A cell no controller runs is read from copies (:func:`copied_stores`; the control API's
 ``LocalCell.work_to_plan``): a plan writes nothing into the cell it plans, not even a
 mailbox where there is none::
 
-    with CopiedStores(cell_dir) as stores:
-        orders, held = open_work(stores.mailbox, stores.journal)
+    with copied_stores(cell_dir) as (mailbox, journal):
+        orders, held = open_work(mailbox, journal)
 """
 
 from __future__ import annotations
@@ -27,9 +27,8 @@ import contextlib
 import shutil
 import sqlite3
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
-from types import TracebackType
-from typing import Self
 
 from cellctl.cell.config import CONVEYOR
 from cellctl.cell.journal import JOURNAL_FILE, Journal, open_journal
@@ -114,41 +113,21 @@ def copy_store(source: Path, target: Path) -> bool:
     return True
 
 
-class CopiedStores:
+@contextlib.contextmanager
+def copied_stores(cell_dir: Path) -> Iterator[tuple[Mailbox, Journal | None]]:
     """A cell's mailbox and journal copied (:func:`copy_store`) into a scratch directory of
-    their own and opened there: a plan of a cell no controller runs reads these, so that it
-    writes nothing into the cell it plans. ``journal`` is None if the cell has none (it never
-    ran); a cell with no mailbox reads as one with no orders. Close it (or use it as a
-    context manager) to remove the copies."""
-
-    def __init__(self, cell_dir: Path) -> None:
-        self._scratch = Path(tempfile.mkdtemp(prefix="cellctl-plan-files-"))
-        with contextlib.ExitStack() as undo:  # what is made so far, if a step fails
-            undo.callback(shutil.rmtree, self._scratch, ignore_errors=True)
-            copy_store(cell_dir / MAILBOX_FILE, self._scratch / MAILBOX_FILE)
-            has_journal = copy_store(cell_dir / JOURNAL_FILE, self._scratch / JOURNAL_FILE)
-            self.mailbox: Mailbox = SqliteMailbox(self._scratch / MAILBOX_FILE, durable=False)
-            undo.callback(self.mailbox.close)
-            self.journal: Journal | None = None
-            if has_journal:
-                self.journal = open_journal(self._scratch, durable=False)
-            undo.pop_all()
-
-    def close(self) -> None:
-        try:
-            self.mailbox.close()
-            if self.journal is not None:
-                self.journal.close()
-        finally:
-            shutil.rmtree(self._scratch, ignore_errors=True)
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
+    their own and opened there, removed when the context ends: a plan of a cell no
+    controller runs reads these, so that it writes nothing into the cell it plans. The
+    journal is None if the cell has none (it never ran); a cell with no mailbox reads as one
+    with no orders."""
+    with contextlib.ExitStack() as stack:
+        scratch = Path(tempfile.mkdtemp(prefix="cellctl-plan-files-"))
+        stack.callback(shutil.rmtree, scratch, ignore_errors=True)
+        copy_store(cell_dir / MAILBOX_FILE, scratch / MAILBOX_FILE)
+        has_journal = copy_store(cell_dir / JOURNAL_FILE, scratch / JOURNAL_FILE)
+        mailbox = SqliteMailbox(scratch / MAILBOX_FILE, durable=False)
+        stack.callback(mailbox.close)
+        journal = open_journal(scratch, durable=False) if has_journal else None
+        if journal is not None:
+            stack.callback(journal.close)
+        yield mailbox, journal

@@ -280,12 +280,12 @@ class LocalCell(CellAccess):
     @contextlib.contextmanager
     def work_to_plan(self) -> Iterator[tuple[Mailbox, Journal | None]]:
         """Copies of the cell's mailbox and journal, read without a write
-        (:class:`~cellctl.plan.snapshot.CopiedStores`): a plan of a cell no controller runs
+        (:func:`~cellctl.plan.snapshot.copied_stores`): a plan of a cell no controller runs
         writes nothing into it, not even a mailbox where there is none."""
-        from cellctl.plan.snapshot import CopiedStores
+        from cellctl.plan.snapshot import copied_stores
 
-        with CopiedStores(self.directory) as stores:
-            yield stores.mailbox, stores.journal
+        with copied_stores(self.directory) as stores:
+            yield stores
 
     def machines(self) -> dict[str, str]:
         return {name: registry.family_of(ref.kind) for name, ref in self.refs.items()}

@@ -6,7 +6,6 @@ import asyncio
 import contextlib
 import os
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -16,7 +15,15 @@ import click
 from cellctl.emulators.cellpanel import HAND_COMMANDS
 from cellctl.emulators.serve import CELL_TIME_SCALE, TIME_SCALE_HELP, parse_fault
 from cellctl.errors import CellctlError, UsageError
-from cellctl.ui.common import cell_dir, console, err_console, run, stop_signals, until_stopped
+from cellctl.ui.common import (
+    cell_dir,
+    console,
+    err_console,
+    run,
+    stdin_lines,
+    stop_signals,
+    until_stopped,
+)
 from cellctl.ui.emulate_cli import TIME_SCALE
 
 if TYPE_CHECKING:
@@ -379,26 +386,12 @@ def emulate_cell_command() -> click.Command:
     )
 
 
-def _read_lines(loop: asyncio.AbstractEventLoop, lines: asyncio.Queue[str]) -> None:
-    """stdin's lines into ``lines`` ("" at its end), from a daemon thread: a readline that
-    blocks there never holds the process at exit (Ctrl-C), as one in the loop's executor
-    would until Enter."""
-    try:
-        for text in iter(sys.stdin.readline, ""):
-            loop.call_soon_threadsafe(lines.put_nowait, text)
-        loop.call_soon_threadsafe(lines.put_nowait, "")
-    except RuntimeError:
-        return  # the loop has closed: the emulated cell stopped
-
-
 async def _hand_commands(cell: object) -> None:
     """``emulate cell --panel``: hand commands from stdin, one a line, each answered on a
     line (:mod:`cellctl.emulators.cellpanel`), until stdin ends (the cell serves on)."""
     from cellctl.emulators.cellpanel import hand_command
 
-    loop = asyncio.get_running_loop()
-    lines: asyncio.Queue[str] = asyncio.Queue()
-    threading.Thread(target=_read_lines, args=(loop, lines), daemon=True).start()
+    lines = stdin_lines()
     console.print(f"hand commands (one a line): {HAND_COMMANDS}", markup=False)
     while text := await lines.get():
         try:

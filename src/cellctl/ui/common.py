@@ -10,6 +10,7 @@ import json
 import logging
 import signal
 import sys
+import threading
 from collections.abc import (
     Awaitable,
     Callable,
@@ -417,6 +418,26 @@ def stop_signals(stop: asyncio.Event | Callable[[], object]) -> Iterator[None]:
             if _restorable(handler):
                 signal.signal(sig, handler)
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+
+
+def stdin_lines() -> asyncio.Queue[str]:
+    """stdin's lines as they are typed, on a queue of the running loop ("" at its end): a
+    hand panel's input (``emulate iso-cnc --panel``, ``emulate cell --panel``). Read in a
+    daemon thread: a readline that blocks there never holds the process at exit (Ctrl-C),
+    as one in the loop's executor would until Enter."""
+    loop = asyncio.get_running_loop()
+    lines: asyncio.Queue[str] = asyncio.Queue()
+
+    def read() -> None:
+        try:
+            for text in iter(sys.stdin.readline, ""):
+                loop.call_soon_threadsafe(lines.put_nowait, text)
+            loop.call_soon_threadsafe(lines.put_nowait, "")
+        except RuntimeError:
+            return  # the loop has closed: the command ended
+
+    threading.Thread(target=read, daemon=True).start()
+    return lines
 
 
 async def until_stopped() -> None:

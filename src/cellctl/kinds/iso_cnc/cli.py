@@ -7,8 +7,6 @@ With ``--panel`` the operator's keys are read from stdin, one a line: ``edit``, 
 from __future__ import annotations
 
 import asyncio
-import sys
-import threading
 from pathlib import Path
 
 import click
@@ -19,7 +17,7 @@ from cellctl.kinds.iso_cnc import tape
 from cellctl.kinds.iso_cnc.emulator import FAULTS, EmulatorOptions, IsoCncEmulator, Mode
 from cellctl.kinds.iso_cnc.options import ISO_LINE
 from cellctl.link import LineSettings
-from cellctl.ui.common import console, fault_help, run
+from cellctl.ui.common import console, fault_help, run, stdin_lines
 from cellctl.ui.emulate_cli import listen_options, serve_until_stopped
 
 
@@ -48,22 +46,8 @@ def panel_key(control: IsoCncEmulator, text: str) -> str:
 PANEL_KEYS = "edit, mem, rmt (the mode), read, start (CYCLE START), punch [N], reset, list"
 
 
-def _read_lines(loop: asyncio.AbstractEventLoop, lines: asyncio.Queue[str]) -> None:
-    """stdin's lines into ``lines`` ("" at its end), from a daemon thread: a readline that
-    blocks there never holds the process at exit (Ctrl-C), as one in the loop's executor
-    would until Enter."""
-    try:
-        for text in iter(sys.stdin.readline, ""):
-            loop.call_soon_threadsafe(lines.put_nowait, text)
-        loop.call_soon_threadsafe(lines.put_nowait, "")
-    except RuntimeError:
-        return  # the loop has closed: the emulator stopped
-
-
 async def _panel(control: IsoCncEmulator) -> None:
-    loop = asyncio.get_running_loop()
-    lines: asyncio.Queue[str] = asyncio.Queue()
-    threading.Thread(target=_read_lines, args=(loop, lines), daemon=True).start()
+    lines = stdin_lines()
     while True:
         text = await lines.get()
         if not text:

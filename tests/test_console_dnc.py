@@ -202,16 +202,22 @@ async def test_a_drip_feed_s_progress_and_stall_on_the_board(shop: Shop) -> None
     assert "O5000.nc: drip-fed" in log
 
 
+async def program_dialog(pilot: Pilot[Any], key: str) -> str:
+    """From the main menu, machine 1's function ``key`` (1 READ IN, 2 DRIP FEED) to its
+    program dialog, its picker listing both machines' folders: the screen."""
+    await wait_text(pilot, "MAIN MENU")
+    await pilot.press("1")
+    await wait_text(pilot, "1. READ IN", "2. DRIP FEED")
+    await pilot.press(key)
+    return await wait_text(pilot, "Program file:", "mill1", "mill2")
+
+
 async def test_the_program_picker_shows_no_private_directory(shop: Shop) -> None:
     """The DNC file picker browses the shop for programs, never its tokens or locks."""
     (shop.root / "tokens").mkdir(mode=0o700, exist_ok=True)
     app, client = await console(shop)
     async with app.run_test(size=SIZE) as pilot:
-        await wait_text(pilot, "MAIN MENU")
-        await pilot.press("1")
-        await wait_text(pilot, "2. DRIP FEED")
-        await pilot.press("2")
-        shown = await wait_text(pilot, "Program file:", "mill1", "mill2")
+        shown = await program_dialog(pilot, "2")
         assert "tokens" not in shown and "state" not in shown, shown
         await pilot.click("#cancel")
         await pilot.press("q")
@@ -233,11 +239,7 @@ async def test_the_program_picker_reads_nothing_outside_the_shop(
     (programs / "O1234 same.nc").symlink_to(programs / "O1234.nc")  # within: taken
     app, client = await console(shop)
     async with app.run_test(size=SIZE) as pilot:
-        await wait_text(pilot, "MAIN MENU")
-        await pilot.press("1")
-        await wait_text(pilot, "1. READ IN")
-        await pilot.press("1")
-        shown = await wait_text(pilot, "Program file:", "mill1", "mill2")
+        shown = await program_dialog(pilot, "1")
         assert "camout" not in shown, shown
 
         def refusal() -> str:  # the dialog's words (none once it has gone)
@@ -278,11 +280,7 @@ async def test_a_binary_program_is_refused_in_the_words_of_the_command_line(shop
     assert "byte 15 " in cli_words and "0xC9" in cli_words, cli
     app, client = await console(shop)
     async with app.run_test(size=SIZE) as pilot:
-        await wait_text(pilot, "MAIN MENU")
-        await pilot.press("1")
-        await wait_text(pilot, "1. READ IN")
-        await pilot.press("1")
-        await wait_text(pilot, "Program file:")
+        await program_dialog(pilot, "1")
         await fill(pilot, "#program", "mill1/programs/O7777.nc")
         await pilot.click("#ok")
         errors = app.screen.query_one("#errors", Static)

@@ -157,12 +157,15 @@ def download(ctx: click.Context, program: Path, no_wait: bool, time_scale: float
     """DOWNLOAD: validate, split into blocks, stream them as the controller asks; the bar and
     the time left follow the program's estimate (line time and cut), corrected by the mill."""
     text = read_program(program)
-    sending = {"time": 0.0, "mark": 0.0}
+    # The time since a report belongs to that report's phase: a block's characters are on
+    # the wire after the write that reported them (writes run ahead), up to the next report.
+    sending: dict[str, Any] = {"time": 0.0, "mark": 0.0, "phase": None}
 
     def fields(p: dict[str, Any], elapsed: float) -> dict[str, Any]:
-        if p["phase"] == "sending":
+        if sending["phase"] == "sending":
             sending["time"] += elapsed - sending["mark"]
         sending["mark"] = elapsed
+        sending["phase"] = p["phase"]
         # The bar and the time left follow the run's estimate (line time and the program's
         # cut time), corrected by the mill's reports: it moves through the cut too.
         done = estimated_done(p, current_clock().now())

@@ -457,6 +457,8 @@ async def until_idle_ends_when_nothing_more_can_happen(plant: Plant) -> None:
     plant.procs.pop("factory")
     assert proc.returncode == 0, plant.describe()
     assert store.get("W1").state == "done"
+    # What it keeps of the cell is its state after the last part: none open.
+    assert store.cells()["cell1"].state.get("parts_open") == 0, plant.describe()
     log = (plant.logs / "factory.log").read_text()
     assert f"order U1 failed: no cell makes wax-robot-arm (the cells make: {made})" in log, log
     assert "order W1 waits: waiting for a cell that makes" in log, log

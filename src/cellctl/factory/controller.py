@@ -61,6 +61,9 @@ from cellctl.mailbox.wire import (
 #: offline cell: reports the broker kept for it arrive first (a cell reconnects within the
 #: longest backoff).
 SETTLE_S = BACKOFF_S[1] + 1.0
+#: The longest ``run --until-idle`` waits, once every order ended, for the cells' states
+#: that follow their last reports (a cell's poll period, with room).
+LAST_STATE_S = 10.0
 #: How often the store is looked at for orders submitted by another process.
 SUBMIT_CHECK_S = 0.02
 
@@ -150,6 +153,7 @@ class FactoryController:
                     if receiver.done():
                         receiver.result()  # the connection broke: raises its MqttError
                     if until_idle and self.idle():
+                        await self._hear_the_last_states(stop)
                         return
                     await self._wait()
             finally:
@@ -173,6 +177,21 @@ class FactoryController:
             if self._wake.is_set():
                 self._wake.clear()
                 return
+
+    async def _hear_the_last_states(self, stop: asyncio.Event) -> None:
+        """Every order ended: wait (at most :data:`LAST_STATE_S`) until each online cell's
+        state says it has no part open, so that what the factory keeps of the cells (``factory
+        cells``) is not the state before their last part ended (a cell sends its state at
+        most once its poll period, after the report)."""
+        clock = self.clock
+        deadline = clock.monotonic() + LAST_STATE_S
+        while not stop.is_set() and clock.monotonic() < deadline:
+            cells = self.store.cells().values()
+            if all(c.status != "online" or not c.state.get("parts_open") for c in cells):
+                return
+            with contextlib.suppress(TimeoutError):
+                async with clock.timeout(SUBMIT_CHECK_S * 5):
+                    await stop.wait()
 
     def idle(self) -> bool:
         """No order is open (every one is done, failed or cancelled): an order no cell can

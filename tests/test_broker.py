@@ -131,6 +131,31 @@ async def test_a_cell_cannot_post_another_cells_reports(broker: MosquittoBroker)
         assert (await first_message(cell1)).payload == b'{"v":1,"id":"real"}'
 
 
+async def test_a_message_larger_than_any_reader_takes_never_passes_the_broker(
+    broker: MosquittoBroker,
+) -> None:
+    """One cell's credentials cannot push a message larger than the factory reads into the
+    factory's memory or the broker's store: its sender is disconnected at the door, nothing
+    is delivered or kept retained; one at the limit passes."""
+    from cellctl.mailbox.wire import MAX_PAYLOAD
+
+    async with client(broker, "factory") as factory:
+        await factory.subscribe("cellctl/cell1/state", qos=1)
+        with suppress(aiomqtt.MqttError):  # disconnected: the publish or the exit fails
+            async with client(broker, "cell1") as cell1:
+                big = b"x" * (4 * MAX_PAYLOAD)
+                await cell1.publish("cellctl/cell1/state", big, qos=1, retain=True)
+        async with client(broker, "cell1") as cell1:
+            fits = b"y" * MAX_PAYLOAD
+            await cell1.publish("cellctl/cell1/state", fits, qos=1, retain=True)
+        assert (await first_message(factory)).payload == fits  # the first to arrive
+    # What the broker keeps retained is the one that fitted.
+    async with client(broker, "factory") as late:
+        await late.subscribe("cellctl/cell1/state", qos=1)
+        kept = await first_message(late)
+        assert kept.payload == fits and kept.retain
+
+
 async def test_restart_keeps_a_queued_message_for_a_persistent_session(
     broker: MosquittoBroker,
 ) -> None:

@@ -80,16 +80,24 @@ async def test_a_report_nested_30000_deep_does_not_end_the_factory(tmp_path: Pat
         await plant.wait_for(lambda: all_done(plant, BATCH[:1]), "the first order done")
         credentials = plant.cell_dir("cell1") / "mqtt.toml"
         port = plant.emulated.broker.port
-        # The payload as filed (420 kB), then one under the size limit (42 kB).
-        for levels in (30_000, 3_000):
-            payload = ('{"v":1,"seq":' * levels + "1" + "}" * levels).encode()
-            await publish_as(port, credentials, "cellctl/cell1/reports", payload)
+
+        def nested(levels: int) -> bytes:
+            return ('{"v":1,"seq":' * levels + "1" + "}" * levels).encode()
+
+        # The payload as filed (420 kB): the broker takes no message that large (its
+        # max_packet_size: the sender is disconnected); the factory's own size limit stands
+        # behind it (tests/test_wire.py).
+        with contextlib.suppress(aiomqtt.MqttError):
+            async with logged_in(port, credentials) as client:
+                await client.publish("cellctl/cell1/reports", nested(30_000), qos=1)
+        # One under the size limit (42 kB), nested too deep: the factory logs and drops it.
+        await publish_as(port, credentials, "cellctl/cell1/reports", nested(3_000))
         await plant.wait_for(
-            lambda: len(events(plant, "a reports message ignored (cellctl/cell1/reports)")) == 2,
-            "the factory logs and drops both",
+            lambda: events(plant, "a reports message ignored (cellctl/cell1/reports)"),
+            "the factory logs and drops it",
         )
         refused = events(plant, "a reports message ignored")
-        assert "more than 65536" in refused[0] and "nested deeper than 8" in refused[1], refused
+        assert len(refused) == 1 and "nested deeper than 8" in refused[0], refused
         # wait_for fails at once if a controller exited: the factory goes on, and takes the
         # next real report.
         plant.submit(BATCH[1:2])

@@ -47,12 +47,16 @@ from typing import Self
 
 from cellctl.clock import current_clock
 from cellctl.errors import CellctlError, LinkError, UsageError
+from cellctl.mailbox.wire import MAX_PAYLOAD
 
 #: Where Debian puts the broker and its password tool.
 MOSQUITTO = "/usr/sbin/mosquitto"
 MOSQUITTO_PASSWD = "/usr/bin/mosquitto_passwd"
 #: The factory's user name in the broker.
 FACTORY_USER = "factory"
+#: The largest MQTT packet the broker takes, bytes: the largest payload the factory and the
+#: cells read (:data:`~cellctl.mailbox.wire.MAX_PAYLOAD`) with room for its topic and header.
+MAX_PACKET = MAX_PAYLOAD + 4096
 #: How long start() waits for the broker to accept connections.
 START_TIMEOUT_S = 10.0
 #: How long stop() waits for the broker to exit after SIGTERM before killing it.
@@ -87,6 +91,10 @@ def global_lines(*, etc: Path = ETC, var: Path = VAR) -> list[str]:
         f"acl_file {etc / 'acl'}",
         "persistence true",
         f"persistence_location {var}/",
+        # A message larger than any the factory or a cell reads (their MAX_PAYLOAD, and room
+        # for the topic and header) is refused at the door: its sender is disconnected, and
+        # nothing of it is held in memory, stored retained or replayed to the factory.
+        f"max_packet_size {MAX_PACKET}",
     ]
 
 

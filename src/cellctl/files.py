@@ -11,6 +11,12 @@ What is not a regular file is refused before it is opened (a FIFO's open would b
 again once open (it may have been swapped since); a file over ``limit`` is refused whole.
 Both raise :class:`OSError` (``strerror`` says what the path is, or its size), as ``open``
 does for a missing file, so a caller's ``except OSError`` reports them all alike.
+
+A file a user names for output (a report, a drawing, a compiled program) is written through
+:func:`write_output`: made or replaced, never through a symbolic link or onto what is not a
+regular file (a link planted there would turn the write onto another file)::
+
+    write_output(Path("shift.csv"), text)
 """
 
 from __future__ import annotations
@@ -76,3 +82,26 @@ def read_text(
 ) -> str:
     """:func:`read_file` decoded (``UnicodeDecodeError`` as :meth:`bytes.decode` raises it)."""
     return read_file(path, limit=limit).decode(encoding, errors)
+
+
+def write_output(path: Path | str, data: str | bytes, *, encoding: str = "utf-8") -> None:
+    """Write ``data`` to the output file ``path`` (made, or replaced if it is a regular
+    file). A symbolic link or anything not a regular file there is refused (OSError, its
+    ``strerror`` in the user's words), and the open does not follow a link swapped in since."""
+    path = Path(path)
+    try:
+        mode = path.lstat().st_mode
+    except FileNotFoundError:
+        pass
+    else:
+        if stat.S_ISLNK(mode):
+            raise OSError(
+                errno.ELOOP,
+                "a symbolic link: name the file itself (no output goes through one)",
+                str(path),
+            )
+        _regular(mode, path)
+    raw = data.encode(encoding) if isinstance(data, str) else data
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW | os.O_CLOEXEC, 0o666)
+    with os.fdopen(fd, "wb") as f:
+        f.write(raw)

@@ -26,6 +26,7 @@ import click
 from cellctl.cell.journal import Step
 from cellctl.cell.report import gantt_svg
 from cellctl.errors import UsageError
+from cellctl.files import write_output
 from cellctl.ui.calls import cell_call
 from cellctl.ui.common import console, json_option, print_json, print_line
 
@@ -238,7 +239,7 @@ def report_shift(
 
 def _save(path: Path, text: str) -> None:
     try:
-        path.write_text(text, encoding="utf-8")
+        write_output(path, text)
     except OSError as e:
         raise UsageError(f"{path}: cannot write: {e.strerror}") from None
 

@@ -20,6 +20,7 @@ from rich.table import Table
 
 from cellctl.emulators.serve import parse_fault
 from cellctl.errors import UsageError
+from cellctl.files import write_output
 from cellctl.link import ROBOT_LINE
 from cellctl.ui.calls import LazyBar, machine_call, read_program
 from cellctl.ui.common import MachineGroup, console, fault_help, kind_option, run
@@ -223,7 +224,7 @@ def compile(source: Path, output: Path | None, partition: int, name: str | None)
         program = compile_source(text, app, partition, source=str(source))
         target = output or source.with_suffix(".rec")
         try:
-            target.write_text(program.to_text(), encoding="ascii")
+            write_output(target, program.to_text(), encoding="ascii")
         except OSError as e:
             raise UsageError(f"{target}: cannot write: {e.strerror}") from None
         console.print(f"{source} -> {target}: {len(program.body)} instructions, name {app}")

@@ -20,6 +20,8 @@ Live updates come from the API's WebSocket (``/websocket`` with a one-shot token
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import json
 from importlib import resources
 from typing import TYPE_CHECKING, Any
@@ -33,6 +35,13 @@ from cellctl.service.rpc import APP_ERROR_BASE, INVALID_REQUEST, METHOD_NOT_FOUN
 
 if TYPE_CHECKING:
     from cellctl.service.server import ApiServer
+
+#: Calls that end when their caller goes away (the page closed, a client stopped): a plan
+#: plays for as long as its horizon needs, and holds the one play a cell runs at a time. An
+#: acting call runs to its end whoever left (as over the websocket).
+ENDS_WITH_CALLER = frozenset({"plan.run"})
+#: How often a call that ends with its caller looks whether the caller is still there, s.
+CALLER_LOOK_S = 0.5
 
 #: What the page may call through ``POST /dashboard/call``.
 DASHBOARD_METHODS = frozenset(
@@ -131,7 +140,10 @@ def dashboard_routes(server: ApiServer) -> list[BaseRoute]:
         if not isinstance(method, str) or method not in DASHBOARD_METHODS:
             return _refused(400, f"the dashboard does not call {method!r}", METHOD_NOT_FOUND)
         params = data.get("params") or {}
-        return await server.answer(method, params, entry, wrap=True)  # 403: the role lacked
+        answer = server.answer(method, params, entry, wrap=True)  # 403: the role lacked
+        if method not in ENDS_WITH_CALLER:
+            return await answer
+        return await _while_connected(request, answer)
 
     return [
         Route("/", page),
@@ -153,3 +165,21 @@ def _refused(status: int, message: str, code: int = ACCESS_DENIED) -> Response:
     return JSONResponse(
         {"error": {"code": code, "message": message}}, status_code=status, headers=headers
     )
+
+
+async def _while_connected(request: Request, answer: Any) -> Response:
+    """``answer`` (a coroutine), cancelled if the caller goes away before it is ready (its
+    play stops: the HTTP twin of a websocket's close); the caller hears nothing then."""
+    task = asyncio.ensure_future(answer)
+    try:
+        while True:
+            done, _ = await asyncio.wait({task}, timeout=CALLER_LOOK_S)
+            if done:
+                return task.result()  # type: ignore[no-any-return]
+            if await request.is_disconnected():
+                return Response(status_code=499)  # nobody reads it
+    finally:
+        if not task.done():
+            task.cancel()
+            with contextlib.suppress(BaseException):
+                await task

@@ -14,6 +14,10 @@ with other kinds is served the same way.
     cell.runs_per_part()                    # {"P1": {"cnc1": 1, "cnc2": 1}, ...}
     await cell.close()
 
+The cell directory is the emulation's: a cell.toml there that it did not write (no
+:data:`EMULATED_HEADER` first line: a real cell's) is refused before a file is touched;
+one it wrote before is written anew, as the programs beside it are copied anew.
+
 ``EmulatedCell(time_scale=1.0, links="mem")`` serves every machine on ``mem://`` in the
 running event loop instead (``mem://robot``, ``mem://cnc1``, the PLC's Modbus/TCP on
 ``mem://plc``; ``mem_prefix`` in front of each name), what a run on virtual time takes
@@ -88,6 +92,10 @@ BASE_LINE = LineSettings(4800, 7, "E", 2)
 
 #: ``[cell]`` deadlines for the machines' work, scaled in the emulated cell's cell.toml.
 CELL_DEADLINES = ("transfer_timeout", "interlock_timeout", "pallet_timeout")
+#: The first line of the cell.toml :meth:`EmulatedCell.start` writes: its mark. A cell.toml
+#: without it is a cell's own, which an emulation never overwrites (:func:`check_cell_dir`).
+EMULATED_HEADER = "# Emulated cell (time scale {scale:g}); written by cellctl emulate cell."
+_EMULATED_HEADER = re.compile(r"#\s*Emulated cell \(time scale [0-9.eE+-]+\)")
 #: The note after a scaled deadline: the real cell's value, which :func:`real_cell_toml`
 #: reads back (the scaled one is floored at ``MIN_DEADLINE_S``: it cannot be undone).
 DEADLINE_NOTE = "  # s (the real cell's {real:g} s, scaled)"
@@ -95,10 +103,13 @@ _DEADLINE_NOTE = re.compile(r"#\s*s \(the real cell's ([0-9.eE+-]+) s, scaled\)"
 
 __all__ = [
     "CUT_FAULTS",
+    "EMULATED_HEADER",
     "MIN_DEADLINE_S",
     "EmulatedCell",
+    "check_cell_dir",
     "real_cell_toml",
     "scaled_deadline",
+    "written_by_emulation",
 ]
 
 #: A mill's fault switches that act as the block running ends (the Dyna 2400's ``stall``: its
@@ -309,8 +320,11 @@ class EmulatedCell:
     async def start(self, cell_dir: Path, template: Path | None = None) -> Path:
         """Serve every machine and write ``cell_dir/cell.toml`` pointing at them.
 
-        ``template``: the cell directory to copy (default: the example cell)."""
+        ``template``: the cell directory to copy (default: the example cell). A
+        ``cell_dir/cell.toml`` this did not write (a real cell's) is refused before anything
+        is written (:func:`check_cell_dir`); one it wrote is written anew."""
         template = template or self.template
+        check_cell_dir(cell_dir)
         # A bare pty gets a stable name in the cell directory, as a serial port has: a
         # dropped connection makes a new pty, and the controller reopens the same path. The
         # directory is resolved, never the link: one left there is replaced, not followed.
@@ -398,7 +412,7 @@ class EmulatedCell:
         text = real_cell_toml(template.read_text(encoding="utf-8"))
         raw = tomllib.loads(text)
         lines = [
-            f"# Emulated cell (time scale {self.time_scale:g}); written by cellctl emulate cell.",
+            EMULATED_HEADER.format(scale=self.time_scale),
             "",
         ]
         section = ""
@@ -535,6 +549,32 @@ def _machine_kinds(template: Path) -> dict[str, str]:
         for name, entry in machines.items()
         if isinstance(entry, dict) and entry.get("kind") in registry.names()
     }
+
+
+def written_by_emulation(toml: Path) -> bool:
+    """True if ``toml`` is a cell.toml an emulated cell wrote (its first line
+    :data:`EMULATED_HEADER`), False for any other file, or one that cannot be read."""
+    try:
+        with toml.open(encoding="utf-8", errors="replace") as f:
+            first = f.readline(200)
+    except OSError:
+        return False
+    return _EMULATED_HEADER.match(first.strip()) is not None
+
+
+def check_cell_dir(cell_dir: Path) -> None:
+    """UsageError if ``cell_dir`` holds a cell.toml an emulated cell did not write: a real
+    cell's configuration, which emulating there would overwrite (with its programs). Reads
+    only: called before anything is copied or written."""
+    toml = cell_dir / "cell.toml"
+    if not (toml.exists() or toml.is_symlink()) or written_by_emulation(toml):
+        return
+    raise UsageError(
+        f"{toml} was not written by cellctl emulate cell (its first line is not "
+        "'# Emulated cell (time scale ...)'): emulating here would overwrite it and the "
+        f"programs beside it. Emulate in another directory (--cell DIR), with --template "
+        f"{cell_dir} to serve this cell's machines; or delete {toml} first"
+    )
 
 
 def copy_template(template: Path, cell_dir: Path) -> None:

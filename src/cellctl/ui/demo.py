@@ -135,11 +135,12 @@ async def run_batch(
     from cellctl.cell.config import load_cell
     from cellctl.cell.controller import ControllerOptions
     from cellctl.cell.report import summarize, write_gantt
-    from cellctl.emulators.cell import EmulatedCell
+    from cellctl.emulators.cell import EmulatedCell, check_cell_dir
     from cellctl.mailbox import open_mailbox
     from cellctl.ui.cell_cli import run_controller
     from cellctl.ui.dashboard.command import serve_dashboard_in
 
+    check_cell_dir(directory)  # a real cell there is refused before anything is removed
     shutil.rmtree(directory, ignore_errors=True)
     cell = EmulatedCell(time_scale=time_scale, template=template)
     try:

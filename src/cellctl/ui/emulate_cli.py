@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import math
 import os
 from collections.abc import Callable, Iterator
@@ -23,7 +24,15 @@ from cellctl.emulators.serve import (
 from cellctl.errors import MachineInUse
 from cellctl.link import LineSettings
 from cellctl.link.lock import Holder, holder
-from cellctl.ui.common import Lazy, LazyGroup, accept_cell, console, kind_commands, until_stopped
+from cellctl.ui.common import (
+    Lazy,
+    LazyGroup,
+    accept_cell,
+    console,
+    kind_commands,
+    stop_signals,
+    until_stopped,
+)
 
 if TYPE_CHECKING:
     from cellctl.emulators.fleet import Fleet
@@ -178,18 +187,25 @@ async def serve_until_stopped(
     what: str,
     hint: str = "drive it with: --link {url}",
 ) -> None:
-    """Serve ``device``, print where and ``hint`` (how to drive it, with its ``{url}``), and
-    run until Ctrl-C or SIGTERM."""
+    """Serve ``device``, print where and ``hint`` (how to drive it, with its ``{url}``; plain
+    text, lines after its first indented by the caller), and run until Ctrl-C or SIGTERM,
+    then say "WHAT stopped".
+
+    Ctrl-C and SIGTERM are taken before anything is printed: whoever reads the hint and
+    stops it at once gets the same clean stop as later."""
     settings = LineSettings.parse(line)
-    server = await serve(device, listen, settings, pacing=pacing)
-    paced = "on" if pacing else "off"
-    console.print(f"{what} listening on {server.url}  ({settings}, pacing {paced})")
-    console.print("  " + hint.format(url=server.url), soft_wrap=True)
-    try:
-        await until_stopped()
-    finally:
-        await server.close()
-        console.print(f"{what} stopped")
+    stop = asyncio.Event()
+    with stop_signals(stop):
+        server = await serve(device, listen, settings, pacing=pacing)
+        try:
+            paced = "on" if pacing else "off"
+            console.print(f"{what} listening on {server.url}  ({settings}, pacing {paced})")
+            # The hint is plain text: a TOML table's [name] is not markup.
+            console.print("  " + hint.format(url=server.url), soft_wrap=True, markup=False)
+            await stop.wait()
+        finally:
+            await server.close()
+            console.print(f"{what} stopped")
 
 
 async def serve_fleet_until_stopped(
@@ -225,7 +241,7 @@ async def serve_fleet_until_stopped(
             f"({settings}, pacing {paced})"
         )
         for i, url in enumerate(urls, 1):
-            console.print(f"  {i}: " + hint.format(url=url), soft_wrap=True)
+            console.print(f"  {i}: " + hint.format(url=url), soft_wrap=True, markup=False)
         await until_stopped()
     finally:
         for s in servers:

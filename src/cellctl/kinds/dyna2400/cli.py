@@ -11,12 +11,14 @@ import asyncio
 import sys
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import click
 from rich.progress import BarColumn, TextColumn
 
 from cellctl.clock import current_clock
 from cellctl.errors import UsageError, with_article
+from cellctl.files import write_output
 from cellctl.kinds.dyna2400.dynalan import ProgramRole, Severity, ValidationContext, parse_program
 from cellctl.kinds.dyna2400.dynalan import validate as validate_program
 from cellctl.kinds.dyna2400.emulator import OperatorDelays
@@ -240,7 +242,7 @@ def upload(ctx: click.Context, file: Path | None, timeout: float) -> None:
         sys.stdout.write(text)
     else:
         try:
-            file.write_text(text)
+            write_output(file, text)
         except OSError as e:
             raise UsageError(f"{file}: cannot write: {e.strerror}") from None
         console.print(f"{len(text.splitlines())} lines written to {file}")
@@ -302,9 +304,9 @@ def preview(ctx: click.Context, program: Path, output: Path) -> None:
         sys.exit(1)
     try:
         if suffix == ".svg":
-            output.write_text(render_svg(result.toolpath, title=program.name))
+            write_output(output, render_svg(result.toolpath, title=program.name))
         else:
-            output.write_bytes(render_png(result.toolpath, title=program.name))
+            write_output(output, render_png(result.toolpath, title=program.name))
     except OSError as e:
         raise UsageError(f"{output}: cannot write: {e.strerror}") from None
     path = result.toolpath
@@ -368,6 +370,42 @@ async def _panel(device: Any) -> None:
         console.print(f"display: {device.display}  (RTS {cts}, {len(device.memory)} lines)")
 
 
+def _carries_modem_lines(listen: str) -> bool:
+    """True for an emulator's ``--listen`` whose links carry the modem lines (RTS/CTS):
+    ``rfc2217://`` only; a pty and ``socket://`` carry the data alone."""
+    return urlsplit(listen).scheme == "rfc2217"
+
+
+def _emulator_readiness(listen: str, readiness: str | None) -> str:
+    """The emulator's readiness: the one given, else the one its ``listen`` can carry
+    (``modem`` over RFC 2217, ``inband`` on a pty or raw TCP). ``modem`` where no modem line
+    goes is refused: no driver could see the mill ready."""
+    if readiness is None:
+        return "modem" if _carries_modem_lines(listen) else "inband"
+    if readiness == "modem" and not _carries_modem_lines(listen):
+        raise UsageError(
+            f"--readiness modem: the mill would say it is ready on RTS alone, which --listen "
+            f"{listen} cannot carry (no modem lines: no driver would see it ready); use "
+            "--listen rfc2217://127.0.0.1:0, or --readiness inband"
+        )
+    return readiness
+
+
+def _drive_hint(readiness: str, line: str) -> str:
+    """What ``cellctl emulate mill`` says to drive it with: ``cellctl mill --link {url}``
+    and the options this emulator needs of the driver (in-band readiness, its line when not
+    the mill's usual), so that the command works as printed."""
+    from cellctl.link import MILL_LINE, LineSettings
+
+    command = "cellctl mill --link {url}"
+    if readiness == "inband":
+        command += " --readiness inband"
+    settings = LineSettings.parse(line)
+    if str(settings) != str(MILL_LINE):
+        command += f" --line {settings}"
+    return f"drive it with: {command}"
+
+
 def _emulate_mill_command() -> click.Command:
     from cellctl.emulators.serve import parse_fault
     from cellctl.kinds.dyna2400.emulator import FAULTS, Dyna2400Emulator, LinkMode, OperatorDelays
@@ -379,10 +417,13 @@ def _emulate_mill_command() -> click.Command:
         no_pacing: bool,
         line: str,
         fault: tuple[str, ...],
-        readiness: str,
+        readiness: str | None,
         manual: bool,
         setup_delay: float,
     ) -> None:
+        readiness = _emulator_readiness(listen, readiness)
+        hint = _drive_hint(readiness, line)
+
         async def main() -> None:
             device = Dyna2400Emulator(
                 time_scale=time_scale,
@@ -403,7 +444,7 @@ def _emulate_mill_command() -> click.Command:
                     line,
                     not no_pacing,
                     "Dyna 2400 mill emulator",
-                    "drive it with: cellctl mill --link {url}",
+                    hint,
                 )
             finally:
                 if panel is not None:
@@ -416,9 +457,9 @@ def _emulate_mill_command() -> click.Command:
         click.Option(
             ["--readiness"],
             type=click.Choice(["modem", "inband"]),
-            default="modem",
-            show_default=True,
-            help="inband also sends DC1/DC3 when RTS changes (for pty and raw TCP).",
+            help="Where it says it is ready: modem (RTS, the host's CTS), or inband (also "
+            "DC1/DC3 in the data when RTS changes). Default: modem over rfc2217://, inband on "
+            "a pty or socket://, which carry no modem lines.",
         ),
         click.Option(["--manual"], is_flag=True, help="Play the operator yourself (stdin)."),
         click.Option(

@@ -137,13 +137,35 @@ def _emulate_iso_cnc(
                 line,
                 not no_pacing,
                 "ISO-code CNC control emulator",
-                'feed it with cellctl dnc (docs/dnc.md): in dnc.toml, link = "{url}"',
+                _dnc_hint(time_scale, line),
             )
         finally:
             if keys is not None:
                 keys.cancel()
 
     run(main)
+
+
+def _dnc_hint(time_scale: float, line: str) -> str:
+    """What ``cellctl emulate iso-cnc`` says to feed it with: a machine's table of dnc.toml
+    (its ``link = "{url}"`` last), with what the DNC driver needs of this emulator to work
+    as printed: its line when not the kind's usual, and at a ``time_scale`` other than 1
+    ``options.motion_scale`` the same (a drip-feed waits for the modelled end of the motion:
+    at scale 1 it would wait the real machine's time)."""
+    rows = ["[machines.mill1]"]
+    settings = LineSettings.parse(line)
+    if str(settings) != str(LineSettings.parse(ISO_LINE)):
+        rows.append(f'line = "{settings}"')
+    if time_scale != 1:
+        # {{ }}: the hint is a format string ({url}).
+        rows.append(
+            f"options = {{{{ motion_scale = {time_scale:.15g} }}}}"
+            "  # its --time-scale: a drip-feed ends as its motion does"
+        )
+    rows.append('link = "{url}"')
+    return "feed it with cellctl dnc (docs/dnc.md), a machine of dnc.toml:" + "".join(
+        f"\n      {row}" for row in rows
+    )
 
 
 def _command() -> click.Command:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import asyncio
+
 import click
 
 from cellctl.emulators.serve import MACHINE_TIME_SCALE, TIME_SCALE_HELP, parse_fault
@@ -61,38 +63,50 @@ def emulate_ur(
     fault: tuple[str, ...],
 ) -> None:
     async def main() -> None:
-        from cellctl.ui.common import until_stopped
+        from cellctl.ui.common import stop_signals
 
         emulator = UrEmulator(time_scale=time_scale, model=model, programs=_programs(programs))
         for text in fault:
             emulator.set_fault(*parse_fault(text))
-        ports = await emulator.start(
-            host, dashboard=dashboard_port, secondary=secondary_port, rtde_port=rtde_port
-        )
-        console.print(f"UR emulator ({model}, time scale {time_scale:g}) on {host}")
-        console.print(
-            f"  ports: dashboard {ports['dashboard']}, secondary {ports['secondary']}, "
-            f"RTDE {ports['rtde']}"
-        )
-        # The driver finds RTDE and the secondary interface at its options' ports: the
-        # printed link URL carries those not at the defaults, so the hint works as printed;
-        # a cell.toml gives them as the machine's options.
-        secondary, rtde = ports["secondary"], ports["rtde"]
-        hint = drive_command(emulator.dashboard_url, secondary, rtde)
-        console.print(f"  drive it with: {hint}", soft_wrap=True)
-        usual = UrOptions()
-        if (secondary, rtde) != (usual.secondary_port, usual.rtde_port):
-            console.print(
-                f'  or from a cell.toml: kind = "ur", link = "{emulator.dashboard_url}", '
-                f"options = {{ secondary_port = {secondary}, rtde_port = {rtde} }}",
-                soft_wrap=True,
+        # Ctrl-C and SIGTERM taken before anything is printed: whoever reads the hint and
+        # stops it at once gets the same clean stop as later.
+        stop = asyncio.Event()
+        with stop_signals(stop):
+            ports = await emulator.start(
+                host, dashboard=dashboard_port, secondary=secondary_port, rtde_port=rtde_port
             )
-        try:
-            await until_stopped()
-        finally:
-            await emulator.close()
+            try:
+                _say_where(emulator, model, time_scale, host, ports)
+                await stop.wait()
+            finally:
+                await emulator.close()
+                console.print("UR emulator stopped")  # as every emulator says it
 
     run(main)
+
+
+def _say_where(
+    emulator: UrEmulator, model: str, time_scale: float, host: str, ports: dict[str, int]
+) -> None:
+    """Where ``cellctl emulate ur`` listens, and how to drive it."""
+    console.print(f"UR emulator ({model}, time scale {time_scale:g}) on {host}")
+    console.print(
+        f"  ports: dashboard {ports['dashboard']}, secondary {ports['secondary']}, "
+        f"RTDE {ports['rtde']}"
+    )
+    # The driver finds RTDE and the secondary interface at its options' ports: the printed
+    # link URL carries those not at the defaults, so the hint works as printed; a cell.toml
+    # gives them as the machine's options.
+    secondary, rtde = ports["secondary"], ports["rtde"]
+    hint = drive_command(emulator.dashboard_url, secondary, rtde)
+    console.print(f"  drive it with: {hint}", soft_wrap=True)
+    usual = UrOptions()
+    if (secondary, rtde) != (usual.secondary_port, usual.rtde_port):
+        console.print(
+            f'  or from a cell.toml: kind = "ur", link = "{emulator.dashboard_url}", '
+            f"options = {{ secondary_port = {secondary}, rtde_port = {rtde} }}",
+            soft_wrap=True,
+        )
 
 
 def _robot_command(function: str, doc: str) -> click.Command:

@@ -1,8 +1,10 @@
 """``cellctl dashboard``: open the running cell's dashboard in a browser.
 
-The page is at ``[api] listen`` of cell.toml; the token (``<cell>/api-token``) travels in the
-URL's fragment (``http://127.0.0.1:7125/#token=...``), which a browser never sends to a server
-or writes to a log. ``--print`` prints that URL instead.
+The page is at ``[api] listen`` of cell.toml. The browser is given a code good once
+(``http://127.0.0.1:7125/#code=...``, :mod:`cellctl.ui.dashboard.handover`), which the page
+swaps for the token: a browser keeps its URL in its command line, where every user of the host
+reads it. ``--print`` prints the URL with the token itself in its fragment
+(``#token=...``), which a browser never sends to a server or writes to a log.
 """
 
 from __future__ import annotations
@@ -27,6 +29,30 @@ ANSWER_TIMEOUT = 3.0
 def dashboard_url(directory: Path) -> str:
     """The dashboard's URL with the token in its fragment; refused clearly when the cell has
     no TCP listener, no token, or no controller answering there."""
+    base, token = _dashboard(directory)
+    return f"{base}/#token={token}"
+
+
+def handover_url(directory: Path) -> str:
+    """The dashboard's URL with a code good once in its fragment (the page swaps it for the
+    token); refused as :func:`dashboard_url` is."""
+    base, token = _dashboard(directory)
+    request = urllib.request.Request(
+        f"{base}/dashboard/handover/new", data=b"", headers={"Authorization": f"Bearer {token}"}
+    )
+    try:
+        with urllib.request.urlopen(request, timeout=ANSWER_TIMEOUT) as answer:
+            code = json.loads(answer.read())["code"]
+    except (OSError, ValueError, KeyError, TypeError):
+        raise UsageError(
+            f"the controller on {base} gave no code to open the dashboard with: "
+            "use `cellctl dashboard --print`"
+        ) from None
+    return f"{base}/#code={code}"
+
+
+def _dashboard(directory: Path) -> tuple[str, str]:
+    """The dashboard's base URL and the token to open it with (see :func:`dashboard_url`)."""
     from cellctl.service.server import parse_listen  # the API server: imported when used
 
     if not (directory / "cell.toml").is_file():
@@ -72,21 +98,25 @@ def dashboard_url(directory: Path) -> str:
         ) from None
     if not isinstance(info, dict) or info.get("mode") != "attached":
         raise UsageError(f"no controller runs behind {base}: start `cellctl run` first")
-    return f"{base}/#token={token}"
+    return base, token
 
 
 @click.command("dashboard")
-@click.option("--print", "print_only", is_flag=True, help="Print the URL; open no browser.")
+@click.option(
+    "--print", "print_only", is_flag=True, help="Print the URL (the token in it); open no browser."
+)
 @click.pass_context
 def dashboard_command(ctx: click.Context, print_only: bool) -> None:
-    """Open the running cell's dashboard in a browser (the token goes in the URL's fragment).
+    """Open the running cell's dashboard in a browser (with a code good once for a minute,
+    not the token: a browser's command line is read by every user of the host).
 
-    The controller (`cellctl run`) serves it on [api] listen of cell.toml.
+    The controller (`cellctl run`) serves it on [api] listen of cell.toml. --print prints
+    the URL with the token in its fragment, to paste in a browser.
     """
-    url = dashboard_url(cell_dir(ctx))
     if print_only:
-        console.print(url, markup=False, soft_wrap=True)
+        console.print(dashboard_url(cell_dir(ctx)), markup=False, soft_wrap=True)
         return
+    url = handover_url(cell_dir(ctx))
     if not webbrowser.open(url):
         raise UsageError("no browser could be started here: use `cellctl dashboard --print`")
     console.print(f"dashboard opened in your browser ({url.split('#')[0]})", markup=False)

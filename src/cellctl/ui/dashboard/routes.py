@@ -15,6 +15,11 @@
   token lacks). It needs the token in the header (never a
   cookie), a JSON body, and no page of another origin (403): another site cannot drive the cell.
 
+- ``POST /dashboard/handover/new`` (the token in the header) and ``POST /dashboard/handover``
+  ``{"code": ...}``: a code that stands for the token once, for ``cellctl dashboard`` to open
+  the page with (:mod:`cellctl.ui.dashboard.handover`): the token stays out of the browser's
+  command line.
+
 Live updates come from the API's WebSocket (``/websocket`` with a one-shot token).
 """
 
@@ -32,6 +37,7 @@ from starlette.routing import BaseRoute, Route
 
 from cellctl.errors import AccessDenied, exit_code
 from cellctl.service.rpc import APP_ERROR_BASE, INVALID_REQUEST, METHOD_NOT_FOUND, PARSE_ERROR
+from cellctl.ui.dashboard.handover import HANDOVER_S, Handovers
 
 if TYPE_CHECKING:
     from cellctl.service.server import ApiServer
@@ -145,11 +151,47 @@ def dashboard_routes(server: ApiServer) -> list[BaseRoute]:
             return await answer
         return await _while_connected(request, answer)
 
+    handovers = Handovers()
+
+    def same_origin(request: Request) -> bool:
+        return not server.foreign_origin(request.headers) and request.headers.get(
+            "sec-fetch-site", "same-origin"
+        ) in ("same-origin", "none")
+
+    async def handover_new(request: Request) -> Response:
+        if not same_origin(request):
+            return _refused(403, "refused: a page of another origin may not open the dashboard")
+        if server.caller(request.headers) is None:
+            return _refused(401, "missing or wrong API token")
+        token = request.headers["authorization"].partition(" ")[2].strip()
+        return _json({"code": handovers.new(token), "valid_s": HANDOVER_S}, 200)
+
+    async def handover(request: Request) -> Response:
+        if not same_origin(request):
+            return _refused(403, "refused: a page of another origin may not open the dashboard")
+        body = await request.body()
+        try:
+            data: Any = json.loads(body) if len(body) <= MAX_BODY else None
+        except (ValueError, RecursionError):
+            data = None
+        code = data.get("code") if isinstance(data, dict) else None
+        token = handovers.take(code) if isinstance(code, str) else None
+        # Checked again: a token revoked since the code was made opens nothing.
+        if token is None or server.caller({"authorization": f"Bearer {token}"}) is None:
+            return _refused(
+                401,
+                "the dashboard's code is spent, has lapsed or is wrong: open it again "
+                "(`cellctl dashboard`)",
+            )
+        return _json({"token": token}, 200)
+
     return [
         Route("/", page),
         Route("/static/{name}", asset),
         Route("/favicon.ico", icon),
         Route("/dashboard/call", call, methods=["POST"]),
+        Route("/dashboard/handover/new", handover_new, methods=["POST"]),
+        Route("/dashboard/handover", handover, methods=["POST"]),
     ]
 
 

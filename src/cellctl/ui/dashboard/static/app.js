@@ -35,18 +35,36 @@ export const state = {
 
 // -- the token ------------------------------------------------------------------------------
 
-function takeToken() {
+async function takeToken() {
   const hash = new URLSearchParams(window.location.hash.slice(1));
   const given = hash.get("token");
-  if (given) {
-    sessionStorage.setItem(TOKEN_KEY, given);
+  const code = hash.get("code");
+  if (given || code) {
     // Out of the address bar (and of the history): the fragment has done its work.
     history.replaceState(null, "", window.location.pathname + window.location.search);
+  }
+  if (given) {
+    sessionStorage.setItem(TOKEN_KEY, given);
+  } else if (code) {
+    // `cellctl dashboard` opens the page with a code good once, not the token (a browser's
+    // command line is read by every user of the host): swapped here for the token.
+    try {
+      const answer = await fetch("/dashboard/handover", {
+        method: "POST",
+        headers: { "Content-Type": "application/json" },
+        body: JSON.stringify({ code }),
+      });
+      if (answer.ok) {
+        sessionStorage.setItem(TOKEN_KEY, (await answer.json()).token);
+      }
+    } catch (e) {
+      // No answer: the page says it has no token, below.
+    }
   }
   return sessionStorage.getItem(TOKEN_KEY) || "";
 }
 
-const token = takeToken();
+const token = await takeToken();
 
 // -- the API --------------------------------------------------------------------------------
 

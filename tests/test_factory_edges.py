@@ -486,3 +486,37 @@ def test_a_broken_factory_toml_is_one_line(tmp_path: Path, broken: str) -> None:
         assert len(lines) == 1, (command, lines)
         assert "factory.toml" in lines[0] and "Traceback" not in lines[0], lines
     assert not (tmp_path / "state").exists()
+
+
+def test_a_cell_flooding_bad_messages_is_told_in_a_few_lines() -> None:
+    """Thousands of malformed messages from one cell's credentials: the first few logged in
+    full, the rest counted in one line once the window ends, not a line (and a row of the
+    store's events) each."""
+    from cellctl.clock import current_clock, run_virtual
+    from cellctl.factory.controller import IGNORED_TOLD, IGNORED_WINDOW_S
+
+    async def flood(directory: Path) -> list[str]:
+        config = FactoryConfig(
+            directory, "f", 2.0, 30.0, 0.5, "mqtt://127.0.0.1:1", directory / "c", None,
+            {"cell1": "cellctl/cell1", "cell2": "cellctl/cell2"},
+        )  # fmt: skip
+        with FactoryStore(config.state_path) as store:
+            factory = FactoryController(config, store)
+            for _ in range(3000):
+                factory.take("cellctl/cell1/reports", b"not json")
+            factory.take("cellctl/cell2/reports", b"not json either")  # another cell's own
+            await current_clock().sleep(IGNORED_WINDOW_S)
+            factory.take("cellctl/cell1/reports", b"again")  # a new window: told in full
+            return [e.text for e in store.events(limit=100_000)]
+
+    with tempfile.TemporaryDirectory() as tmp:
+        said = run_virtual(flood(Path(tmp)), start=0.0)
+    cell1 = [t for t in said if t.startswith("cell1:")]
+    ignored = [t for t in cell1 if "a reports message ignored" in t]
+    assert len(ignored) == IGNORED_TOLD + 1, cell1
+    counted = [t for t in cell1 if "more messages ignored" in t]
+    assert counted == [
+        f"cell1: {3000 - IGNORED_TOLD} more messages ignored in {IGNORED_WINDOW_S:.0f} s "
+        f"(the first {IGNORED_TOLD} told above)"
+    ], cell1
+    assert any(t.startswith("cell2: a reports message ignored") for t in said), said

@@ -64,6 +64,10 @@ SETTLE_S = BACKOFF_S[1] + 1.0
 #: The longest ``run --until-idle`` waits, once every order ended, for the cells' states
 #: that follow their last reports (a cell's poll period, with room).
 LAST_STATE_S = 10.0
+#: Of a cell's messages dropped (malformed), how many are logged in full per window, and
+#: the window, s: the rest are counted in one line.
+IGNORED_TOLD = 5
+IGNORED_WINDOW_S = 10.0
 #: How often the store is looked at for orders submitted by another process.
 SUBMIT_CHECK_S = 0.02
 
@@ -91,6 +95,8 @@ class FactoryController:
         #: Per cell: (epoch, seq) after which its reports are missing, and when last asked.
         self._missing: dict[str, tuple[str, int]] = {}
         self._asked: dict[str, tuple[tuple[str, int], float]] = {}
+        #: Per cell: when its window of dropped messages began, and how many it has.
+        self._ignoring: dict[str, tuple[float, int]] = {}
         #: Per queued order, why it waits as last logged (once settled: not the moments
         #: before the cells' retained states come in).
         self._told_waiting: dict[str, str] = {}
@@ -231,7 +237,32 @@ class FactoryController:
             elif kind == "reports":
                 self._take_report(cell, topic, payload)
         except WireError as e:
-            self.log(f"{cell}: a {kind} message ignored ({topic}): {e.reason}", cell)
+            self._ignored(cell, f"{cell}: a {kind} message ignored ({topic}): {e.reason}")
+
+    def _ignored(self, cell: str, text: str) -> None:
+        """Log a message of ``cell``'s that was dropped: the first :data:`IGNORED_TOLD` of
+        each :data:`IGNORED_WINDOW_S` in full, the rest counted and told in one line as the
+        window ends (a cell sending thousands a second fills neither the log nor the store,
+        nor keeps the factory from reading the other cells)."""
+        now = self.clock.monotonic()
+        since, count = self._ignoring.get(cell, (now, 0))
+        if now - since >= IGNORED_WINDOW_S:
+            self._tell_ignored(cell, now)
+            since, count = now, 0
+        self._ignoring[cell] = (since, count + 1)
+        if count < IGNORED_TOLD:
+            self.log(text, cell)
+
+    def _tell_ignored(self, cell: str, now: float) -> None:
+        """The count of ``cell``'s messages dropped untold in its window, if any (the
+        window ends)."""
+        since, count = self._ignoring.pop(cell, (now, 0))
+        if count > IGNORED_TOLD:
+            self.log(
+                f"{cell}: {count - IGNORED_TOLD} more messages ignored in {now - since:.0f} s "
+                f"(the first {IGNORED_TOLD} told above)",
+                cell,
+            )
 
     def _take_report(self, cell: str, topic: str, payload: bytes) -> None:
         report = parse_report(payload)
@@ -259,6 +290,10 @@ class FactoryController:
         """Dispatch queued orders, re-send unanswered ones, move those that cannot stay, ask
         cells for the reports that are missing."""
         now = self.clock.now()
+        moment = self.clock.monotonic()
+        for cell, (since, _) in list(self._ignoring.items()):
+            if moment - since >= IGNORED_WINDOW_S:  # a flood that stopped: its count told
+                self._tell_ignored(cell, moment)
         await self._ask(client, now)
         cells = self.store.cells()
         settled = self.settled(now)

@@ -562,3 +562,43 @@ def test_a_plan_of_a_cell_that_serves_opc_ua_plays(example_cell: Path) -> None:
     assert done.exit_code == 0, done.output
     [order] = json.loads(done.output)["plans"][0]["orders"]
     assert order["order_id"] == "plan-add1" and order["made"] == 1
+
+
+def test_wrong_logins_are_held_back_before_they_cost_the_server(example_cell: Path) -> None:
+    """A name with LOGIN_FAILURES wrong passwords in the window is refused unchecked (its
+    right password too, until the window ends), and its later tries are not logged one by
+    one; another name still logs in. Past LOGIN_FAILURES_ALL wrong logins of any names,
+    every login waits the window out."""
+    from cellctl.clock import run_virtual
+    from cellctl.factory.opcua.users import (
+        LOGIN_FAILURES,
+        LOGIN_FAILURES_ALL,
+        LOGIN_WINDOW_S,
+        FileUserManager,
+    )
+
+    add_user(example_cell, "alice", "correct horse")
+    add_user(example_cell, "bob", "battery staple")
+    refused: list[str] = []
+    users = FileUserManager(
+        example_cell / "opcua-users.toml", anonymous_read=False, refused=refused.append
+    )
+
+    async def logins() -> None:
+        from cellctl.clock import current_clock
+
+        for _ in range(LOGIN_FAILURES):
+            assert users.get_user(None, "alice", "guess") is None
+        assert users.get_user(None, "alice", "correct horse") is None  # held back
+        assert users.get_user(None, "alice", "guess") is None
+        assert refused == ["alice"] * LOGIN_FAILURES  # the held-back tries unlogged
+        assert users.get_user(None, "bob", "battery staple") is not None
+        await current_clock().sleep(LOGIN_WINDOW_S)
+        assert users.get_user(None, "alice", "correct horse") is not None
+        for i in range(LOGIN_FAILURES_ALL):
+            assert users.get_user(None, f"name{i % 20}", "guess") is None
+        assert users.get_user(None, "bob", "battery staple") is None  # everyone waits
+        await current_clock().sleep(LOGIN_WINDOW_S)
+        assert users.get_user(None, "bob", "battery staple") is not None
+
+    run_virtual(logins())

@@ -40,6 +40,7 @@ from asyncua import ua
 from asyncua.crypto.permission_rules import SimpleRoleRuleset, User, UserRole
 from asyncua.ua.object_ids import ObjectIds
 
+from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.service.token import ROLES
 
@@ -50,6 +51,12 @@ DEFAULT_ROLE = "operator"
 #: a login).
 SCRYPT_N, SCRYPT_R, SCRYPT_P = 2**14, 8, 1
 SALT_BYTES = 16
+#: Wrong logins a name may have per :data:`LOGIN_WINDOW_S` before its logins are refused
+#: unchecked until the window ends; and all names together (a password hash costs the
+#: server's loop tens of milliseconds: a flood of guesses would stall it, and guess on).
+LOGIN_FAILURES = 5
+LOGIN_FAILURES_ALL = 30
+LOGIN_WINDOW_S = 60.0
 HASH_BYTES = 32
 #: User names: what a client can type, nothing that needs quoting in TOML.
 NAME = re.compile(r"[A-Za-z0-9_.-]{1,64}")
@@ -184,7 +191,9 @@ def session_user() -> tuple[str, str]:
 class FileUserManager:
     """asyncua's user manager: users from the file (read at each login); anonymous sessions
     only with ``anonymous_read`` (the server also offers the anonymous token only then).
-    ``refused`` is told the name of each login refused."""
+    ``refused`` is told the name of each login refused after its password was checked; a
+    name (or everyone) with too many wrong logins lately is refused unchecked
+    (:data:`LOGIN_FAILURES`)."""
 
     def __init__(
         self,
@@ -197,6 +206,15 @@ class FileUserManager:
         self.anonymous_read = anonymous_read
         self.refused = refused
         self._dummy = hash_password(secrets.token_urlsafe(12))
+        self._failed: list[tuple[float, str]] = []  # (when, name) of wrong logins, in order
+
+    def _held_back(self, username: str) -> bool:
+        """True if ``username`` (or everyone) failed too often in the window: refused
+        without a hash (see :data:`LOGIN_FAILURES`)."""
+        now = current_clock().monotonic()
+        self._failed = [(t, n) for t, n in self._failed if now - t < LOGIN_WINDOW_S]
+        mine = sum(1 for _, n in self._failed if n == username)
+        return mine >= LOGIN_FAILURES or len(self._failed) >= LOGIN_FAILURES_ALL
 
     def get_user(
         self,
@@ -208,6 +226,8 @@ class FileUserManager:
         """The session's user, or None (the login is refused: BadUserAccessDenied)."""
         if username is None:  # ``certificate`` is the client application's, not a user's
             return CellUser(role=UserRole.Anonymous) if self.anonymous_read else None
+        if self._held_back(username):
+            return None  # unchecked and unlogged: the wrong logins before it were logged
         try:
             users = load_entries(self.path) if self.path is not None else {}
         except UsageError:
@@ -216,6 +236,7 @@ class FileUserManager:
         stored, role = users.get(username, (self._dummy, "viewer"))
         if check_password(stored, password or "") and username in users:
             return CellUser(role=UserRole.User, name=username, cell_role=role)
+        self._failed.append((current_clock().monotonic(), username))
         if self.refused is not None:
             self.refused(username)
         return None

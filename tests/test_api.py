@@ -352,7 +352,7 @@ async def test_emergency_stop_halts_and_holds(api: Api) -> None:
             await api.call("parts.scrap", why)
         assert api.rig.journal.get_part(part.id).status == "held"
         scrapped = await api.call("parts.scrap", {**why, "taken_out": True})
-        assert f"taken out of {part.location}, which take parts again" in scrapped["message"]
+        assert f"taken out of {part.location}, which takes parts again" in scrapped["message"]
     assert (await api.call("cell.resume"))["message"] == "resumed"
     controller = api.rig.controller
     assert controller is not None

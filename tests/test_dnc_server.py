@@ -194,8 +194,9 @@ async def test_several_machines_from_one_server(tmp_path: Path) -> None:
 
 async def test_the_api_sends_no_file_from_outside_the_shop(tmp_path: Path) -> None:
     """``dnc.send`` names a program of the shop (or carries its text): a path of the
-    server's host outside the shop, straight or through ``..``, is refused before a byte goes
-    out, and the file is not read; a file under the shop is sent."""
+    server's host outside the shop's program folders (outside the shop, straight or through
+    ``..``, or one of its own files: its token, its dnc.toml) is refused before a byte goes
+    out, and the file is not read; a file of a machine's programs/ is sent."""
     emulator, server = await control()
     shop = write_shop(tmp_path / "shop", {"mill1": server.url})
     programs = ShopStore(shop).machine("mill1") / "programs"
@@ -209,8 +210,14 @@ async def test_the_api_sends_no_file_from_outside_the_shop(tmp_path: Path) -> No
         await until(lambda: task.done() or (shop / "api.sock").exists(), "the API listening")
         assert not task.done(), task.exception()
         client = await attach(shop)
-        for named in (str(secret), str(programs / ".." / ".." / ".." / "O7777.nc")):
-            with pytest.raises(UsageError, match="not in the shop"):
+        secrets = (shop / "api-token", shop / "dnc.toml")  # in the shop, and no program
+        for named in (
+            str(secret),
+            str(programs / ".." / ".." / ".." / "O7777.nc"),
+            *map(str, secrets),
+            str(programs / ".." / ".." / "api-token"),
+        ):
+            with pytest.raises(UsageError, match="not in the shop's programs"):
                 await client.call("dnc.send", {"machine": "mill1", "program": named})
         assert not emulator.memory  # nothing reached the control
         log = await client.call("dnc.log", {"machine": "mill1"})

@@ -197,7 +197,7 @@ def test_scrap_a_held_part(cell: Path) -> None:
     assert result.exit_code == 0, result.output
     # One line however wide the terminal (rich wraps at its width).
     said = " ".join(result.stdout.split())
-    assert "taken out of cnc1, which take parts again once the vise is open" in said
+    assert "taken out of cnc1, which takes parts again once its vise is open" in said
     with open_journal(cell) as journal:
         part = journal.get_part(part_id)
         assert (part.status, part.note) == ("scrapped", "gouged by the cutter")

@@ -179,7 +179,17 @@ def load_inputs(path: Path) -> tuple[PlanInputs, tuple[str, ...]]:
         found = json.loads(data)
     except (ValueError, RecursionError):
         raise UsageError(f"{path}: not JSON") from None
-    return parse_inputs(found, path.parent)
+    inputs, policies = parse_inputs(found, path.parent)
+    cell = inputs.cell_dir
+    if not (cell / "cell.toml").is_file():
+        what = "has no cell.toml" if cell.is_dir() else "is missing"
+        raise UsageError(
+            f"{path}: the cell directory it names, {cell}, {what}: a replay plays the copy "
+            f"of the cell's configuration `cellctl plan --out` saved beside its inputs "
+            f"({CELL_COPY}/): put it back (or name another in its cell_dir), or plan again "
+            "with --out"
+        )
+    return inputs, policies
 
 
 def config_files(cell_dir: Path) -> list[Path]:

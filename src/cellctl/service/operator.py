@@ -392,5 +392,10 @@ def scrap_part(
     )
     message = f"part {p.id} scrapped"
     if places:
-        message += f"; taken out of {in_machines}, which take parts again once the vise is open"
+        again = (
+            "which takes parts again once its vise is open"
+            if len(places) == 1
+            else "which take parts again once their vises are open"
+        )
+        message += f"; taken out of {in_machines}, {again}"
     return {"part": as_dict(p), "message": message}

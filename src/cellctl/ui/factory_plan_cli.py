@@ -245,7 +245,10 @@ def factory_plan(
         for line in result.lines():
             print_line(line)
         print_line("")
-    print_line(f"factory {config.name}: {len(plans)} cells planned")
+    # "factory plant", but "factory" (the default name) or "north factory" as it is
+    named = config.name if "factory" in config.name.lower() else f"factory {config.name}"
+    count = len(plans)
+    print_line(f"{named}: {count} cell{'' if count == 1 else 's'} planned")
     for name, result in plans.items():
         r = result.reports[0]
         made = sum(r.parts_made.values())

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import click
+from rich.markup import escape
 from rich.table import Table
 
 from cellctl.kinds import registry
-from cellctl.ui.common import console, json_option, print_json
+from cellctl.ui.common import console, json_option, print_json, print_table
 
 
 @click.command("kinds")
@@ -39,11 +40,16 @@ def kinds_command(as_json: bool) -> None:
         # wraps at its words, so "from" keeps room for its distribution's name.
         wraps = column in ("model", "from")
         table.add_column(column, no_wrap=not wraps, overflow="fold")
+    # On a terminal, the distribution, then the module on a line of its own: whole at 80
+    # columns. Piped, one line per kind (print_table), as docs/kinds.md shows it.
+    piped = not console.is_terminal
     for kind in registry.kinds():
-        # The distribution, then the module on a line of its own: whole at 80 columns.
         o = kind.origin
-        origin = f"{o.distribution}\n{o.module}" if o is not None else "?"
+        if o is None:
+            origin = "?"
+        else:
+            origin = f"{o.distribution} ({o.module})" if piped else f"{o.distribution}\n{o.module}"
         table.add_row(kind.name, kind.family, kind.maker, kind.model, origin)
     for name, why in registry.broken().items():
-        table.add_row(name, "-", "-", "-", f"[red]broken: {why}[/red]")
-    console.print(table)
+        table.add_row(name, "-", "-", "-", f"[red]broken: {escape(why)}[/red]")
+    print_table(table)

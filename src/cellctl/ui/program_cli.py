@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 import click
 
 from cellctl.errors import UsageError, unknown_machine, with_article
+from cellctl.files import read_file, reason, write_output
 from cellctl.ui.common import cell_dir, console, json_option, print_json
 
 if TYPE_CHECKING:
@@ -95,9 +96,18 @@ def _role(kind: MachineKind, role: str | None) -> ProgramRole:
 
 
 def _existing(path: Path) -> Path:
-    if not path.is_file():
-        raise UsageError(f"{path}: no such file" if not path.exists() else f"{path}: not a file")
-    return path
+    """``path``, a regular file; else refused with what it is, in the words of every reader
+    of a file (``read_file`` refuses a directory or a device by its type, before opening it:
+    "a character device, not a regular file")."""
+    if path.is_file():
+        return path
+    if not path.exists():
+        raise UsageError(f"{path}: no such file")
+    try:
+        read_file(path, limit=0)
+    except OSError as e:
+        raise UsageError(f"{path}: {reason(e)}") from None
+    return path  # a regular file by now: its kind's check reads it
 
 
 def _duration(seconds: float) -> str:
@@ -188,7 +198,7 @@ def preview_command(
         raise UsageError(f"cannot draw {file}: {len(checked.problems)} problem(s)")
     drawn = language.preview(file.read_text(encoding="latin-1"), file.name, options)
     try:
-        output.write_text(drawn.svg)
+        write_output(output, drawn.svg)
     except OSError as e:
         raise UsageError(f"{output}: cannot write: {e.strerror}") from None
     console.print(f"{output}: {file.name} drawn, {drawn.blocks} block(s)", soft_wrap=True)

@@ -25,8 +25,9 @@ line of its own, at the start and end).
 
 Hostile input stays bounded: a text over ``max_bytes`` or ``max_blocks`` is refused whole, a
 block over
-``max_block`` characters is refused and not parsed, at most ``max_findings`` are returned (the
-last says how many more), and :func:`check` keeps one block at a time.
+``max_block`` characters is refused and not parsed, at most ``max_findings`` are returned (then
+checking stops: a last note, no problem itself, says where and how many more were found;
+:func:`counted` counts them), and :func:`check` keeps one block at a time.
 """
 
 from __future__ import annotations
@@ -132,6 +133,9 @@ class Finding:
     column: int
     message: str
     error: bool = True
+    unlisted: int | None = None
+    """Set on the note that ends a check stopped at ``max_findings`` (:func:`check`): how
+    many more problems were found, not listed. The note is none of them (:func:`counted`)."""
 
     def format(self, name: str) -> str:
         where = f"{name}:{self.line}" + (f":{self.column}" if self.column else "")
@@ -251,6 +255,7 @@ def _parsed(text: str, options: CheckOptions, found: list[Finding]) -> Iterator[
             found.append(
                 Finding(number, 0, f"block of {len(line)} characters (at most {options.max_block})")
             )
+            yield Block(number)  # unparsed, as an empty line: check() counts what it found
             continue
         yield parse_block(number, line, found)
 
@@ -489,6 +494,8 @@ def check(text: str, options: CheckOptions | None = None) -> list[Finding]:
     last_block: Block | None = None
     closed_at = 0
     for block in _parsed(text, chosen, found):
+        if len(found) > chosen.max_findings:
+            break
         if block.percent:
             percents.append(block.line)
             if len(percents) == 2:
@@ -510,8 +517,9 @@ def check(text: str, options: CheckOptions | None = None) -> list[Finding]:
         last_block = block
         _check_words(block, chosen, found)
         _check_motion(block, state, chosen, found)
-        if len(found) > chosen.max_findings:
-            break
+    if len(found) > chosen.max_findings:
+        # Stopped before the program's end: its ending and closing % are not checked.
+        return _stopped(found, chosen.max_findings)
     if first_block is None:
         found.append(Finding(1, 0, "no blocks: an empty program"))
     elif not first_block.has("O"):
@@ -530,11 +538,36 @@ def check(text: str, options: CheckOptions | None = None) -> list[Finding]:
                 last_block.line, 0, "the program does not end with M30, M02 or M99", error=False
             )
         )
-    if len(found) > chosen.max_findings:
-        more = len(found) - chosen.max_findings
-        found = found[: chosen.max_findings]
-        found.append(Finding(found[-1].line, 0, f"... and {more} more problems (checking stopped)"))
-    return found
+    return _stopped(found, chosen.max_findings) if len(found) > chosen.max_findings else found
+
+
+def _stopped(found: list[Finding], listed: int) -> list[Finding]:
+    """The first ``listed`` of ``found``, then the note of a check stopped where the last
+    was found: an error itself (a program not checked to its end never goes out), and
+    counted as no problem (:func:`counted`)."""
+    more = sum(1 for f in found[listed:] if f.error)
+    note = f"checking stopped here: {more} more problem{_s(more)} found, not listed"
+    return [*found[:listed], Finding(found[-1].line, 0, note, unlisted=more)]
+
+
+def _s(count: int) -> str:
+    return "" if count == 1 else "s"
+
+
+def counted(findings: list[Finding]) -> str:
+    """How many problems (errors) ``findings`` (from :func:`check` or :func:`errors`) hold,
+    in words: ``"3 problem(s)"`` (as every ``check`` command counts), or for a check that
+    stopped, ``"1318 problems found before checking stopped at line 3 (the first 100
+    listed)"``: its last note is none of them."""
+    listed = sum(1 for f in findings if f.error and f.unlisted is None)
+    note = next((f for f in findings if f.unlisted is not None), None)
+    if note is None or note.unlisted is None:
+        return f"{listed} problem(s)"
+    total = listed + note.unlisted
+    return (
+        f"{total} problem{_s(total)} found before checking stopped at line {note.line} "
+        f"(the first {listed} listed)"
+    )
 
 
 def errors(text: str, options: CheckOptions | None = None) -> list[Finding]:

@@ -135,12 +135,16 @@ def is_cell(directory: Path) -> bool:
     return (directory / "cell.toml").is_file()
 
 
-async def open_console_cell(directory: Path) -> CellClient:
+async def open_console_cell(directory: Path, server: str | None = None) -> CellClient:
     """The running controller's API, or the cell's machines from this process; on a
     directory without a cell.toml, the API of the server running there (its machines are
-    what its status shows)."""
+    what its status shows). ``server``: what configures such a directory and how to start
+    its server (``a dnc.toml (...): start it with `cellctl dnc serve --dir shop```), said
+    when none runs there."""
     if not is_cell(directory):
         if controller_holder(directory) is None:
+            if server is not None:
+                raise UsageError(f"no server runs on {directory}: it has no cell.toml but {server}")
             raise UsageError(
                 f"no cell in {directory}: {directory / 'cell.toml'} is missing, "
                 "and no server runs there"

@@ -66,17 +66,17 @@ def check(ctx: click.Context, name: str, program: str, shop: Path, use_cell: boo
     path = ShopStore(config.root).resolve(name, program, chosen.options.o_digits)
     data = read_program_file(path)
     o = chosen.options
-    problems = [
-        p.format(str(path)) for p in gcode.errors(program_text(data, str(path)), o.check_options())
-    ]
+    found = gcode.errors(program_text(data, str(path)), o.check_options())
+    problems = [p.format(str(path)) for p in found]
     try:  # a problem of the program like the others: said with them, exit 1
         check_program_number(path.name, data)
     except UsageError as e:
         problems.insert(0, str(e))
+        found.insert(0, gcode.Finding(1, 0, str(e)))
     for problem in problems:
         console.print(problem, style="red", markup=False, soft_wrap=True)
     if problems:
-        console.print(f"{path}: {len(problems)} problem(s): {name} would refuse it")
+        console.print(f"{path}: {gcode.counted(found)}: {name} would refuse it", soft_wrap=True)
         sys.exit(1)
     framed = prepare(data, o, path.name)
     blocks = tape_blocks(framed, o.motion(), o.motion_scale)

@@ -26,7 +26,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import click
-from rich.progress import BarColumn, TextColumn, TimeRemainingColumn
+from rich.progress import BarColumn, Task, TextColumn, TimeRemainingColumn
+from rich.text import Text
 
 from cellctl.kinds.iso_cnc.dnc.check_cli import check
 from cellctl.kinds.iso_cnc.dnc.hand_cli import call_shop
@@ -179,6 +180,20 @@ async def _stopping(server: DncServer) -> None:
 # -- by hand -----------------------------------------------------------------------------------
 
 
+#: The phase a transfer's bar shows once it stopped before its end (``dnc stop``, Ctrl-C,
+#: the server stopping): never the driver's ``done`` of the tape it cut short.
+STOPPED = "stopped"
+
+
+class _TimeLeftColumn(TimeRemainingColumn):
+    """The time left, while there is any: none once the transfer stopped."""
+
+    def render(self, task: Task) -> Text:
+        if task.fields.get("phase") == STOPPED:
+            return Text("")
+        return super().render(task)
+
+
 def _bar_columns() -> tuple[Any, ...]:
     return (
         TextColumn("[bold]{task.description}"),
@@ -187,7 +202,7 @@ def _bar_columns() -> tuple[Any, ...]:
         TextColumn("{task.fields[rate]:>6.0f} chars/s"),
         TextColumn("{task.fields[stops]} buffer stops"),
         TextColumn("{task.fields[phase]}"),
-        TimeRemainingColumn(),
+        _TimeLeftColumn(),
     )
 
 
@@ -197,7 +212,8 @@ def _fields(p: dict[str, Any], elapsed: float) -> dict[str, Any]:
         "completed": p["chars_sent"],
         "rate": p["chars_per_s"],
         "stops": p["buffer_stops"],
-        "phase": p["phase"],
+        # A stopped transfer's last progress (stopped_progress) says where it ended.
+        "phase": STOPPED if "stopped" in p else p["phase"],
     }
 
 
@@ -230,6 +246,7 @@ def _transfer(
         "(READ in EDIT, or CYCLE START in RMT/DNC)"
     )
     stopped: list[str] = []  # the `stopped` field of a transfer's last progress
+    shown: list[dict[str, Any]] = []  # the last progress the bar shows
     with LazyBar(_bar_columns(), params["program"], _fields) as bar:
         # said once the server has taken the transfer (its first progress), never before a
         # refusal (the machine busy, its link held elsewhere)
@@ -238,8 +255,12 @@ def _transfer(
         def update(data: dict[str, Any]) -> None:
             if "stopped" in data:
                 stopped.append(str(data["stopped"]))
+                if not shown:
+                    return  # stopped before it began: no bar to end
+                bar.update(data)
             else:
                 going(data)
+            shown[:] = [data]
 
         async def transfer() -> Any:
             from cellctl.errors import CellctlError
@@ -252,6 +273,11 @@ def _transfer(
                 raise
 
         result = run(transfer)
+        ended = isinstance(result, dict) and ("stopped" in result or "interrupted" in result)
+        if ended and shown and "stopped" not in shown[0]:
+            # Ended early with no last progress of its own (its answer timed out): the bar
+            # still says stopped, not the phase it was last seen in.
+            bar.update({**shown[0], "stopped": ""})
     _ended_early(result)
     console.print(result["message"], markup=False)
 

@@ -38,7 +38,7 @@ from pathlib import Path
 
 from cellctl.clock import current_clock
 from cellctl.errors import UsageError
-from cellctl.files import read_file
+from cellctl.files import read_file, reason
 from cellctl.kinds.iso_cnc.tape import not_iso_code, o_number, skipped_leader, unframe
 
 PROGRAMS = "programs"
@@ -216,20 +216,31 @@ class ShopStore:
         """What ``cellctl dnc send MACHINE PROGRAM`` means by PROGRAM: an existing file, else
         an O-number (``O1234`` or ``1234``) in the machine's programs/ (within ``digits``,
         the control's ``o_digits``, when given). ``shop_only`` (a program named through the
-        server's API, by a client that may not see this host's files): a file only under the
-        shop's directory (``..`` and symlinks followed), a path leading out refused unread."""
+        server's API, by a client that may not see this host's files): a file only in a
+        machine's programs/, received/ or sent/ under the shop (``..`` and symlinks
+        followed), anything else refused unread: the shop's tokens and state are no program."""
         path = Path(program)
         if path.is_file():
-            if shop_only and not path.resolve().is_relative_to(self.root.resolve()):
+            if shop_only and not self._a_program_file(path):
                 raise UsageError(
-                    f"{program}: not in the shop {self.root}: name a program of the machine's "
-                    "programs/ (like O1234), or send the file's text"
+                    f"{program}: not in the shop's programs ({self.root}/MACHINE/{PROGRAMS}, "
+                    f"{RECEIVED} or {SENT}): name a program of the machine's {PROGRAMS}/ "
+                    "(like O1234), or send the file's text"
                 )
             return path
         match = re.fullmatch(r"[Oo]?(\d{1,8})", program)
         if match is None:
-            raise UsageError(f"{program}: no such file, and not a program number like O1234")
+            raise UsageError(f"{program}: {_no_program_file(path)}")
         return self.program(name, int(match.group(1)), digits, program)
+
+    def _a_program_file(self, path: Path) -> bool:
+        """True if ``path`` (links followed) lies in a machine's programs/, received/ or
+        sent/ folder of this shop."""
+        try:
+            parts = path.resolve().relative_to(self.root.resolve()).parts
+        except ValueError:
+            return False
+        return len(parts) >= 3 and parts[1] in (PROGRAMS, RECEIVED, SENT)
 
     # -- kept copies ------------------------------------------------------------------------
 
@@ -295,6 +306,19 @@ class ShopStore:
                 f"cannot read the log {self.folder(name, LOG)}: {e.strerror}"
             ) from None
         return text.splitlines()[-last:]
+
+
+def _no_program_file(path: Path) -> str:
+    """Why ``path`` (no regular file, not an O-number) is no program: nothing is there, or
+    what it is (a directory, a device) in the words of every reader of a file (read_file
+    refuses it by its type, before opening it)."""
+    if not path.exists():
+        return "no such file, and not a program number like O1234"
+    try:
+        read_file(path, limit=0)
+    except OSError as e:
+        return reason(e)
+    return "not a regular file"  # it turned into one meanwhile: a race, said as it was
 
 
 def read_program_file(path: Path) -> bytes:

@@ -75,6 +75,20 @@ def test_dnc_check_counts_the_problems_found_not_its_note(shop: Path, tmp_path: 
     assert "101 problem" not in said
 
 
+def test_program_check_counts_the_problems_found_not_its_note(tmp_path: Path) -> None:
+    """`cellctl program check` of the same program counts as `dnc check` does."""
+    flood = tmp_path / "O0001.nc"
+    flood.write_text(FLOOD)
+    result = CliRunner().invoke(main, ["program", "check", "--kind", "iso-cnc", str(flood)])
+    said = " ".join(result.output.split())
+    assert result.exit_code == 1, said
+    assert (
+        f"{flood}: 102 problems found before checking stopped at line 35 (the first 100 "
+        "listed) as an iso-cnc program"
+    ) in said
+    assert "101 problem" not in said
+
+
 def not_regular(path: str) -> str:
     """What every reader of a file says of ``path`` (cellctl.files)."""
     what = "a directory" if Path(path).is_dir() else "a character device"

@@ -80,10 +80,19 @@ class CheckedProgram:
     """The kind's estimate of the program's run time, s (0 when it has none)."""
     compiled: Any = None
     """What the kind sends (a robot's compiled program); None where it sends the file."""
+    tally: str = ""
+    """The problems counted in words where the list stops short of them (the kind's check
+    stopped: "1318 problems found before checking stopped at line 3 (the first 100
+    listed)"); empty where every problem is listed."""
 
     @property
     def ok(self) -> bool:
         return not self.problems
+
+    @property
+    def counted(self) -> str:
+        """How many problems, in words: ``"3 problem(s)"``, or :attr:`tally`."""
+        return self.tally or f"{len(self.problems)} problem(s)"
 
 
 @dataclass(frozen=True)

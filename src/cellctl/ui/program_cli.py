@@ -157,7 +157,7 @@ def check_command(
         for problem in checked.problems:
             console.print(problem, style="red", markup=False, soft_wrap=True)
         if checked.problems:
-            what = f"{len(checked.problems)} problem(s) as {with_article(kind.name)} program"
+            what = f"{checked.counted} as {with_article(kind.name)} program"
             console.print(f"{path}: {what}", soft_wrap=True)
             continue
         seconds = checked.machining_s
@@ -195,7 +195,7 @@ def preview_command(
     if checked.problems:
         for problem in checked.problems:
             console.print(problem, style="red", markup=False, soft_wrap=True)
-        raise UsageError(f"cannot draw {file}: {len(checked.problems)} problem(s)")
+        raise UsageError(f"cannot draw {file}: {checked.counted}")
     drawn = language.preview(file.read_text(encoding="latin-1"), file.name, options)
     try:
         write_output(output, drawn.svg)

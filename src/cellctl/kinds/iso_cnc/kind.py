@@ -82,7 +82,10 @@ def check_text(text: str, name: str, options: BaseModel) -> CheckedProgram:
     found = gcode.check(text, chosen.check_options())
     problems = tuple(f.format(name) for f in found if f.error)
     if problems:
-        return CheckedProgram(problems, lines=text.count("\n"))
+        # A check that stopped ends with its note, no problem itself: counted apart.
+        stopped = any(f.unlisted is not None for f in found)
+        tally = gcode.counted(found) if stopped else ""
+        return CheckedProgram(problems, lines=text.count("\n"), tally=tally)
     times = motion.block_seconds(gcode.iter_blocks(text, chosen.check_options()), chosen.motion())
     return CheckedProgram((), lines=len(times), machining_s=math.fsum(times))
 

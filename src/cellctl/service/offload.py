@@ -8,10 +8,11 @@ thread, a loop's lag was 9.6 ms at the 99th percentile and 27 ms at worst; besid
 plan in a process of its own, 1.0 ms and 2.6 ms (alone: 0.6 ms and 1.7 ms).
 
 The process is spawned (clean of the service's threads and loop), runs at a lower priority
-(:data:`NICE`: the cell's controller comes first) and ignores Ctrl-C (stopping is the
-service's to do). Awaiting it cancelled ends it at once (killed, and reaped before the
-await ends: what it wrote may be removed then): a plan nobody waits for any more burns no
-CPU, and a service that stops waits for none. A :class:`UsageError` raised in it is
+(:data:`NICE`: the cell's controller comes first), ignores Ctrl-C (stopping is the
+service's to do) and ends by itself if the service's process dies, even killed
+(:func:`cellctl.tasks.lifeline`). Awaiting it cancelled ends it at once (killed, and reaped
+before the await ends: what it wrote may be removed then): a plan nobody waits for any more
+burns no CPU, and a service that stops waits for none. A :class:`UsageError` raised in it is
 raised here in its own words; any other failure as a :class:`CellctlError` that names it.
 """
 
@@ -29,6 +30,7 @@ from multiprocessing.process import BaseProcess
 from typing import Any, TypeVar
 
 from cellctl.errors import CellctlError, UsageError
+from cellctl.tasks import end_with_parent, lifeline
 
 __all__ = ["NICE", "in_process"]
 
@@ -40,11 +42,15 @@ NICE = 10
 REAP_S = 10.0
 
 
-def _work(send: Connection, work: Callable[..., Any], args: tuple[Any, ...]) -> None:
-    """The worker process: ``work(*args)``, its outcome sent back as (what, value)."""
+def _work(
+    send: Connection, parent: Connection, work: Callable[..., Any], args: tuple[Any, ...]
+) -> None:
+    """The worker process: ``work(*args)``, its outcome sent back as (what, value); ended
+    at once if the service's process dies (``parent``: a lifeline's end)."""
     with contextlib.suppress(OSError):
         os.nice(NICE)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    end_with_parent(parent)
     try:
         reply: tuple[str, Any] = ("done", work(*args))
     except UsageError as e:
@@ -92,12 +98,23 @@ async def in_process(work: Callable[..., T], *args: Any) -> T:
     module-level function, its arguments and result picklable."""
     context = multiprocessing.get_context("spawn")
     receive, send = context.Pipe(duplex=False)
+    child_end, own_end = lifeline(context)
     process = context.Process(
-        target=_work, args=(send, work, args), name=f"cellctl-{work.__name__}", daemon=True
+        target=_work,
+        args=(send, child_end, work, args),
+        name=f"cellctl-{work.__name__}",
+        daemon=True,
     )
-    with _stderr_with_a_descriptor():
-        process.start()
-    send.close()  # the worker holds its end: its exit is the reader's end of file
+    try:
+        with _stderr_with_a_descriptor():
+            process.start()
+    except BaseException:
+        own_end.close()
+        receive.close()
+        raise
+    finally:
+        send.close()  # the worker holds its end: its exit is the reader's end of file
+        child_end.close()
     reader = asyncio.ensure_future(asyncio.to_thread(_receive, receive, process))
     try:
         what, value = await asyncio.shield(reader)
@@ -105,7 +122,10 @@ async def in_process(work: Callable[..., T], *args: Any) -> T:
         if process.is_alive():  # cancelled, or the worker replied and is ending anyway
             process.kill()
         # Ended before this returns, even cancelled: what it wrote may be removed after.
-        await reader
+        try:
+            await reader
+        finally:
+            own_end.close()  # the worker is reaped (or killed): its lifeline is done
     if what == "done":
         return value  # type: ignore[no-any-return]
     if what == "refused":

@@ -16,7 +16,14 @@ from typing import Any, NoReturn
 import click
 
 from cellctl import __version__
-from cellctl.ui.common import Lazy, LazyGroup, accept_cell, kind_commands
+from cellctl.ui.common import (
+    Lazy,
+    LazyGroup,
+    accept_cell,
+    interrupted,
+    kind_commands,
+    sigterm_interrupts,
+)
 
 #: The exit status when the output's reader is gone (``cellctl plan | head``): what a shell
 #: shows for git and coreutils there (128 + SIGPIPE, ``seq 1 100000 | head -1`` is 141), so
@@ -149,9 +156,30 @@ def _output_gone_ends_quietly() -> Iterator[None]:
         raise
 
 
+@contextlib.contextmanager
+def _interrupt_ends_130() -> Iterator[None]:
+    """Ctrl-C (or SIGTERM, made one by :func:`~cellctl.ui.common.sigterm_interrupts`) ends
+    any command with "interrupted" and 130, as README says: not Click's "Aborted!" and 1.
+    A command that ends otherwise on them (``cellctl run``: 0) handles them itself."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        interrupted()
+    except click.Abort as e:
+        # Click's prompts answer Ctrl-C with Abort (and Ctrl-D too: that one stays Click's).
+        if isinstance(e.__context__, KeyboardInterrupt):
+            interrupted()
+        raise
+
+
 class CellctlCommand(LazyGroup):
     """``cellctl``: the lazy group of every command, which ends quietly when the reader of
-    its output goes away, for every command (help and version included)."""
+    its output goes away, and with "interrupted" and 130 on Ctrl-C or SIGTERM, for every
+    command (help and version included)."""
+
+    def main(self, *args: Any, **kwargs: Any) -> Any:
+        with sigterm_interrupts():
+            return super().main(*args, **kwargs)
 
     def make_context(
         self,
@@ -160,11 +188,11 @@ class CellctlCommand(LazyGroup):
         parent: click.Context | None = None,
         **extra: Any,
     ) -> click.Context:
-        with _output_gone_ends_quietly():
+        with _output_gone_ends_quietly(), _interrupt_ends_130():
             return super().make_context(info_name, args, parent, **extra)
 
     def invoke(self, ctx: click.Context) -> Any:
-        with _output_gone_ends_quietly():
+        with _output_gone_ends_quietly(), _interrupt_ends_130():
             result = super().invoke(ctx)
             sys.stdout.flush()  # what print() left in the buffer: a broken pipe shows here
             return result

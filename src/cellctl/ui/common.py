@@ -62,17 +62,60 @@ err_console = _Console(stderr=True, highlight=False, emoji=False)
 
 
 def run(coro_fn: Callable[[], Coroutine[Any, Any, T]]) -> T:
-    """Run a command's coroutine; a CellctlError becomes one line on stderr and an exit code."""
+    """Run a command's coroutine; a CellctlError becomes one line on stderr and an exit code,
+    Ctrl-C or SIGTERM "interrupted" and 130 (the coroutine cancelled first, as
+    ``asyncio.run`` does on Ctrl-C: its ``finally`` blocks run)."""
     # The PLC driver turns pymodbus failures into typed errors; pymodbus's own error log
     # (with frame dumps) would only repeat them on the operator's screen.
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     try:
-        return asyncio.run(coro_fn())
+        with sigterm_interrupts():
+            return asyncio.run(coro_fn())
     except CellctlError as e:
         fail(e)
     except KeyboardInterrupt:
-        err_console.print("interrupted")
-        sys.exit(130)
+        interrupted()
+
+
+def interrupted() -> NoReturn:
+    """End a command stopped by Ctrl-C or SIGTERM as README says: "interrupted" on stderr,
+    exit status 130 (128 + SIGINT: what a shell shows for a command Ctrl-C ended)."""
+    err_console.print("interrupted")
+    sys.exit(128 + signal.SIGINT)
+
+
+@contextlib.contextmanager
+def sigterm_interrupts() -> Iterator[None]:
+    """SIGTERM stops what runs in the block as Ctrl-C does (a KeyboardInterrupt, or the
+    handler that takes Ctrl-C then: asyncio's cancels the command's coroutine), not the
+    process at once: what the command started (worker processes, a machine's session) is
+    ended, and the command ends with "interrupted" and 130.
+
+    Only from the main thread, and only over the default action: a SIGTERM ignored or handled
+    by whoever started us, or by an enclosing block, stays theirs. A handler set inside the
+    block (:func:`stop_signals`) takes it meanwhile."""
+    if (
+        threading.current_thread() is not threading.main_thread()
+        or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL
+    ):
+        yield
+        return
+    signal.signal(signal.SIGTERM, _sigterm_as_ctrl_c)
+    try:
+        yield
+    finally:
+        if signal.getsignal(signal.SIGTERM) is _sigterm_as_ctrl_c:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def _sigterm_as_ctrl_c(signum: int, frame: object) -> None:
+    """:func:`sigterm_interrupts`'s handler: Ctrl-C sent to this process, to be taken as Ctrl-C
+    is taken now; a KeyboardInterrupt at once where Ctrl-C would be lost (ignored, blocked)."""
+    sigint = signal.getsignal(signal.SIGINT)
+    blocked = signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    if sigint in (signal.SIG_IGN, signal.SIG_DFL, None) or blocked:
+        raise KeyboardInterrupt
+    signal.raise_signal(signal.SIGINT)
 
 
 def json_option(f: Callable[..., Any]) -> Callable[..., Any]:
@@ -257,7 +300,77 @@ def kind_commands(group: str, name: str | None = None) -> list[click.Command]:
                 registry.log.warning("machine kind %s: no command group %r", kind_name, to)
                 continue
             target.add_command(command)
+        for command in groups.values():
+            if isinstance(command, MachineGroup):
+                _check_kinds(command)
     return mine
+
+
+#: The name of the check :func:`_check_kinds` adds to a family group's commands.
+_KIND_CHECK = "kind_has_command"
+
+
+def _check_kinds(group: click.Group) -> None:
+    """Give each command of a family's group (``cellctl mill``; a subgroup's commands, not the
+    subgroup: ``robot io set``) the check that the machine it names has its function
+    (:func:`_refuse_other_kinds`): once, whoever contributed it. A subgroup's own check
+    would come before its --help or subcommand is known."""
+    for command in group.commands.values():
+        subs = command.commands.values() if isinstance(command, click.Group) else (command,)
+        for checked in subs:
+            if not any(p.name == _KIND_CHECK for p in checked.params):
+                checked.params.append(
+                    click.Option(
+                        [f"--{_KIND_CHECK}"],
+                        hidden=True,
+                        expose_value=False,
+                        callback=_refuse_other_kinds,
+                    )
+                )
+
+
+def _command_paths(group: click.Group) -> dict[str, str]:
+    """Each command of a family's group by the function it runs: its name, or for a
+    subgroup's, both words joined by ``_`` (``robot io set`` runs ``io_set``)."""
+    paths = {word: word for word in group.commands}
+    for word, command in group.commands.items():
+        if isinstance(command, click.Group):
+            paths.update({f"{word}_{sub}": f"{word} {sub}" for sub in command.commands})
+    return paths
+
+
+def _refuse_other_kinds(ctx: click.Context, param: click.Parameter, value: object) -> None:
+    """Refuse ``cellctl mill saw go`` when the saw's kind has no ``go``, before anything is read
+    or sent, naming the commands the command line has for it (the family's commands it has a
+    function for: docs/kinds.md) and where its other functions are (the console, the API)."""
+    from cellctl.errors import with_article
+    from cellctl.service.functions import functions, kind_menu
+
+    words = [ctx.command.name or ""]
+    above = ctx.parent
+    while above is not None and not isinstance(above.command, MachineGroup):
+        words.insert(0, above.command.name or "")
+        above = above.parent
+    group, family = (above.command, above.command.name) if above is not None else (None, None)
+    if group is None or family is None or not isinstance(group, click.Group):
+        return
+    function = "_".join(words)
+    if all(f.name != function for f in functions() if f.family == family):
+        return  # a command that calls no machine (`mill check`): nothing to refuse
+    _, ref = machine_ref(ctx, family, function)
+    has = [f.name for f in kind_menu(ref.kind) if f.family == family]
+    if function in has:
+        return
+    paths = _command_paths(group)
+    offered = [said for name, said in sorted(paths.items()) if name in has]
+    others = [name for name in has if name not in paths]
+    said = f"its commands: {', '.join(offered) or 'none'}"
+    if others:
+        said += f"; its functions {', '.join(others)}: in the console or the control API"
+    command = " ".join(words)
+    raise UsageError(
+        f"no {family} command {command!r} for {ref.name}, {with_article(ref.kind)} ({said})"
+    )
 
 
 def _may_give(names: Sequence[tuple[str, str]] | None, group: str, name: str) -> bool:
@@ -422,7 +535,7 @@ def stop_signals(stop: asyncio.Event | Callable[[], object]) -> Iterator[None]:
 
 def stdin_lines() -> asyncio.Queue[str]:
     """stdin's lines as they are typed, on a queue of the running loop ("" at its end): a
-    hand panel's input (``emulate iso-cnc --panel``, ``emulate cell --panel``). Read in a
+    hand panel's input (an emulator's ``--panel``, ``emulate cell --panel``). Read in a
     daemon thread: a readline that blocks there never holds the process at exit (Ctrl-C),
     as one in the loop's executor would until Enter."""
     loop = asyncio.get_running_loop()

@@ -106,6 +106,9 @@ async def test_ctrl_c_ends_a_running_drip_feed_cleanly_and_status_shows_progress
     code, said = await finished(drip)
     assert code == 130, said
     assert "stopped by its sender: the drip-feed of surface.nc ended at " in said
+    # Its progress bar ends "stopped", not "done" (a pipe gets the bar's line as it stops).
+    bar = [x for x in said.splitlines() if x.startswith("surface.nc") and "chars" in x][-1]
+    assert " stopped " in f"{bar} " and " done " not in f"{bar} ", said
     # Ended as the spec ends a tape: the rest of a block, then %: the control ran what it
     # held and left the read, no alarm; the program was not run to its end.
     await until(lambda: control.activity == "idle", "the control out of its read")

@@ -66,6 +66,25 @@ class Dash:
         return await self.server.dispatcher.call(method, params or {})
 
 
+@contextlib.asynccontextmanager
+async def dashboard_served(rig: CellRig) -> AsyncIterator[tuple[ApiServer, str]]:
+    """``rig``'s running controller's API with the dashboard, on a free loopback port: the
+    server and its base URL (closed after)."""
+    assert rig.controller is not None
+    port = free_port()
+    server = ApiServer(
+        AttachedCell(rig.controller),
+        rig.directory,
+        listen=f"127.0.0.1:{port}",
+        extra_routes=dashboard_routes,
+    )
+    await server.start()
+    try:
+        yield server, f"http://127.0.0.1:{port}"
+    finally:
+        await server.close()
+
+
 async def http(
     url: str, *, token: str | None = None, body: Any = None, headers: dict[str, str] | None = None
 ) -> tuple[int, Any]:

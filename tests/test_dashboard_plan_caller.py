@@ -11,13 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from cellctl.service.access import AttachedCell
-from cellctl.service.server import ApiServer
 from cellctl.service.token import read_token
 from cellctl.testing.rig import CellRig
-from cellctl.ui.dashboard import dashboard_routes
-from tests.conftest import free_port, until
-from tests.test_dashboard import http
+from tests.conftest import until
+from tests.test_dashboard import dashboard_served, http
 
 LONG = {"shift": "744h", "add": ["wax-robot-base:2000"], "poll": 0.5}
 SHORT = {"shift": "2m", "add": ["wax-robot-base:1"]}
@@ -27,19 +24,8 @@ SHORT = {"shift": "2m", "add": ["wax-robot-base:1"]}
 async def served(tmp_path: Path) -> AsyncIterator[tuple[str, int, str]]:
     async with CellRig(tmp_path / "cell") as rig:
         await rig.start_controller()
-        assert rig.controller is not None
-        port = free_port()
-        server = ApiServer(
-            AttachedCell(rig.controller),
-            rig.directory,
-            listen=f"127.0.0.1:{port}",
-            extra_routes=dashboard_routes,
-        )
-        await server.start()
-        try:
-            yield f"http://127.0.0.1:{port}", port, read_token(rig.directory)
-        finally:
-            await server.close()
+        async with dashboard_served(rig) as (_, base):
+            yield base, int(base.rsplit(":", 1)[1]), read_token(rig.directory)
 
 
 async def test_a_plan_whose_caller_left_stops_and_frees_the_play(

@@ -20,7 +20,6 @@ from websockets.exceptions import ConnectionClosed
 from cellctl.cell.journal import JOURNAL_FILE, open_journal
 from cellctl.cell.owner import acquire_controller_lock
 from cellctl.errors import AccessDenied, CellctlError, UsageError
-from cellctl.service.access import AttachedCell
 from cellctl.service.audit import AuditLog
 from cellctl.service.client import RemoteCell
 from cellctl.service.server import ApiServer
@@ -37,9 +36,7 @@ from cellctl.service.token import (
 from cellctl.testing.rig import CellRig
 from cellctl.testing.rig import cli as rig_cli
 from cellctl.ui.cli import main as cli_main
-from cellctl.ui.dashboard import dashboard_routes
-from tests.conftest import free_port
-from tests.test_dashboard import http
+from tests.test_dashboard import dashboard_served, http
 
 
 @pytest.fixture
@@ -51,18 +48,8 @@ async def served(tmp_path: Path) -> AsyncIterator[tuple[CellRig, ApiServer, str]
         (rig.directory / "api-token").unlink(missing_ok=True)
         (rig.directory / "api-token").write_text("old-" + "x" * 40 + "\n")
         assert not (rig.directory / "tokens").exists()
-        port = free_port()
-        server = ApiServer(
-            AttachedCell(rig.controller),
-            rig.directory,
-            listen=f"127.0.0.1:{port}",
-            extra_routes=dashboard_routes,
-        )
-        await server.start()
-        try:
-            yield rig, server, f"http://127.0.0.1:{port}"
-        finally:
-            await server.close()
+        async with dashboard_served(rig) as (server, base):
+            yield rig, server, base
 
 
 def cli_sync(cell: Path, *args: str) -> tuple[int, str]:

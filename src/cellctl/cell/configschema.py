@@ -169,7 +169,9 @@ class ApiTable(_Table):
         "(any other Host header gets 421)",
     )
     header_timeout: Annotated[float, Field(gt=0, le=300, allow_inf_nan=False)] = Field(
-        default=10.0, description="s a request's head may take before the connection is closed"
+        default=10.0,
+        description="s a request's head may take, and its body after it, before the "
+        "connection is closed",
     )
     idle_timeout: Annotated[float, Field(ge=1, le=3600, allow_inf_nan=False)] = Field(
         default=60.0, description="s an HTTP connection may sit idle between requests"

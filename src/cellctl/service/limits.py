@@ -9,6 +9,11 @@ for. ``[api]`` of cell.toml sets them::
 - A connection whose request head (request line and headers) is not complete
   ``header_timeout`` s after it began is answered 408 and closed (a slowloris client holds
   nothing for long). The deadline runs for every request of a kept-alive connection.
+- A request's body (its Content-Length) must have come whole ``header_timeout`` s after its
+  head ended; else the connection is closed (answered 408 if nothing was answered yet). A
+  client that trickles a body (answered 401 already, or not) holds its connection no longer.
+- A WebSocket session has at most ``calls_per_session`` calls in flight, and one token at
+  most ``calls_per_token`` over all its sessions; the server refuses more (``server.py``).
 - Between requests, uvicorn closes a connection idle for ``idle_timeout`` s. A WebSocket is
   kept as long as it answers pings.
 - A listener with ``max_connections`` open connections answers the next one 503, with the
@@ -61,6 +66,11 @@ class ApiLimits:
     idle_timeout: float = 60.0
     max_connections: int = 100
     hosts: tuple[str, ...] = ()
+    #: Calls one WebSocket session may have in flight (a batch is one); more are refused.
+    calls_per_session: int = 16
+    #: Calls one token may have in flight over all its sessions (an acting call whose
+    #: client left counts until it ends); more are refused.
+    calls_per_token: int = 32
 
 
 def api_limits(table: ApiTable | None) -> ApiLimits:
@@ -123,6 +133,7 @@ class _Guard(asyncio.Protocol):
         self._mode = _HEAD
         self._head = bytearray()
         self._left = 0
+        self._answered = False  # something was written since the request's head ended
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
@@ -176,12 +187,17 @@ class _Guard(asyncio.Protocol):
         self._mode = _PAST
         self._disarm()
 
-    # -- the request head's deadline -------------------------------------------------------
+    def wrote(self) -> None:
+        """uvicorn wrote to the connection (an answer, maybe before the body has come)."""
+        self._answered = True
 
-    def _arm(self) -> None:
+    # -- the request head's and body's deadlines ---------------------------------------------
+
+    def _arm(self, expired: Callable[[], None] | None = None) -> None:
         self._disarm()
         loop = asyncio.get_running_loop()
-        self._timer = loop.call_later(self.listener.limits.header_timeout, self._too_slow)
+        limit = self.listener.limits.header_timeout
+        self._timer = loop.call_later(limit, expired or self._too_slow)
 
     def _disarm(self) -> None:
         if self._timer is not None:
@@ -204,6 +220,27 @@ class _Guard(asyncio.Protocol):
             )
         self.transport.close()
 
+    def _body_too_slow(self) -> None:
+        self._timer = None
+        if self.transport is None or self.transport.is_closing():
+            return
+        seconds = f"{self.listener.limits.header_timeout:g}"
+        self.listener.timed_out += 1
+        peer = self.transport.get_extra_info("peername") or "the socket"
+        self.listener.note(
+            "timeout",
+            f"closed a connection from {peer}: a request's body not whole within {seconds} s",
+        )
+        if not self._answered:  # else an answer went out already: a second would garble it
+            with contextlib.suppress(Exception):
+                self.transport.write(
+                    _http(
+                        "408 Request Timeout",
+                        f"closed: the request's body did not come within {seconds} s",
+                    )
+                )
+        self.transport.close()
+
     def _watch(self, data: bytes) -> None:
         """Follow the requests' heads and bodies (Content-Length) to know when one begins."""
         i = 0
@@ -214,6 +251,7 @@ class _Guard(asyncio.Protocol):
                 i += take
                 if not self._left:
                     self._mode = _IDLE
+                    self._disarm()
             elif self._mode == _IDLE:
                 self._mode = _HEAD
                 self._head.clear()
@@ -230,7 +268,10 @@ class _Guard(asyncio.Protocol):
                 head = bytes(self._head[:end])
                 self._head.clear()
                 self._disarm()
+                self._answered = False
                 self._mode, self._left = _after(head)
+                if self._mode == _BODY:
+                    self._arm(self._body_too_slow)  # the whole body, from the head's end
 
 
 def _after(head: bytes) -> tuple[int, int]:
@@ -292,9 +333,11 @@ class _Transport(asyncio.Transport):
         return self._real.get_write_buffer_limits()
 
     def write(self, data: bytes | bytearray | memoryview) -> None:
+        self._guard.wrote()
         self._real.write(data)
 
     def writelines(self, list_of_data: Any) -> None:
+        self._guard.wrote()
         self._real.writelines(list_of_data)
 
     def write_eof(self) -> None:

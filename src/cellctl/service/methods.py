@@ -16,6 +16,8 @@ client raises the same error.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import logging
 import threading
 from collections.abc import Iterator, Mapping
 from functools import cached_property
@@ -85,6 +87,11 @@ from cellctl.service.token import role_allows
 
 #: The most requests one JSON-RPC batch may hold.
 MAX_BATCH = 100
+#: What the audit trail says of an acting call cut short (its task cancelled: the server
+#: stopping, aborted by a second Ctrl-C).
+CANCELLED = "cancelled"
+
+log = logging.getLogger(__name__)
 
 
 async def _info(access: CellAccess, p: NoParams, progress: Progress | None) -> Any:
@@ -381,6 +388,12 @@ _TABLE: list[Method] = [
 ]
 
 
+#: Reads that touch no machine (their answer is all they make): a call of one ends when its
+#: client goes away, or when the server stops. ``plc.status`` asks the PLC on its link, and
+#: a machine's own functions talk to it: those run to their end, as acting calls do.
+_ENDS_WITH_CLIENT = frozenset(m.name for m in _TABLE if not m.acts and m.name != "plc.status")
+
+
 def _machine_methods() -> list[Method]:
     """Each machine function of the installed kinds, as FAMILY.NAME."""
     return [
@@ -503,9 +516,20 @@ class Dispatcher:
                 result = await self._run(entry, method, params, progress)
             finally:
                 CALLER.reset(called)
+        except asyncio.CancelledError:
+            # Cut short (the server stopping, a second Ctrl-C): an acting call is audited
+            # so, and said, before the cancellation goes on.
+            if entry is not None and entry.acts:
+                log.warning("%s by %s was cut short before its end (cancelled)", method, caller.who)
+                with contextlib.suppress(asyncio.CancelledError):
+                    # Shielded: cancelled again, the entry is still written (in its thread).
+                    await asyncio.shield(self.record(caller.who, method, params, CANCELLED))
+            raise
         except Exception as e:
             if entry is not None and (entry.acts or isinstance(e, RoleRefused)):
-                await self.record(caller.who, method, params, str(e) or type(e).__name__)
+                text = str(e) or type(e).__name__
+                refused = isinstance(e, RoleRefused)
+                await self.record(caller.who, method, params, text, collapse=refused)
             raise
         if entry.acts:
             await self.record(caller.who, method, params, "ok")
@@ -516,9 +540,11 @@ class Dispatcher:
         return METHODS.get(method) or self.access.methods().get(method)
 
     def abandoned(self, method: str) -> bool:
-        """True if a call of ``method`` ends when its client goes away (:class:`Method`)."""
+        """True if a call of ``method`` ends when its client goes away, or the server stops:
+        one declared so (:class:`Method`), or a read of the cell's that touches no machine.
+        Every other call (acting, or talking to a machine) runs to its end."""
         entry = self._entry(method)
-        return entry is not None and entry.abandoned
+        return entry is not None and (entry.abandoned or method in _ENDS_WITH_CLIENT)
 
     async def _run(self, entry: Method, method: str, params: Any, progress: Progress | None) -> Any:
         if params is None:
@@ -531,21 +557,26 @@ class Dispatcher:
             raise InvalidParams(f"{method}: {describe(e)}") from None
         return await entry.handler(self.access, checked, progress)
 
-    async def record(self, who: str, method: str, params: Any, result: str) -> None:
+    async def record(
+        self, who: str, method: str, params: Any, result: str, *, collapse: bool = False
+    ) -> None:
         """One audit entry, in the cell's journal: made for it if the cell has never run
         but has a cell.toml (an order posted before the first ``cellctl run`` is audited too);
         a directory that is no cell gets none. Written in a worker thread: a commit waits for
         the disk (synchronous=FULL), and the controller's loop must not wait with it (its
-        looks at the machines have deadlines)."""
+        looks at the machines have deadlines). ``collapse``: a refusal that repeats one of the
+        same caller's is counted on it (:meth:`AuditLog.record`)."""
         if not keeps_trail(self.access.directory):
             return
-        await asyncio.to_thread(self._write_entry, who, method, params, result)
+        await asyncio.to_thread(self._write_entry, who, method, params, result, collapse)
 
-    def _write_entry(self, who: str, method: str, params: Any, result: str) -> None:
+    def _write_entry(
+        self, who: str, method: str, params: Any, result: str, collapse: bool = False
+    ) -> None:
         with self._audit_lock:
             if self._audit is None:
                 self._audit = AuditLog(self.access.directory)
-            self._audit.record(who, method, params, result)
+            self._audit.record(who, method, params, result, collapse=collapse)
 
     def close(self) -> None:
         with self._audit_lock:

@@ -27,6 +27,10 @@ INVALID_PARAMS = -32602
 INTERNAL_ERROR = -32603
 #: A typed cellctl error: -32000 minus the CLI's exit code for it (UsageError -32002 ...).
 APP_ERROR_BASE = -32000
+#: A call refused for the server's load, not for what it asks: too many calls in flight on
+#: one connection or for one token, or the server stopping. Send it again once an answer
+#: came (``data.reason`` says which: ``connection``, ``token`` or ``stopping``).
+SERVER_BUSY = -32010
 
 
 def login_name() -> str:

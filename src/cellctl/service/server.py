@@ -24,10 +24,16 @@ with 403 (HTTP) or a JSON-RPC error naming the role it lacks (``data.role``), an
 the audit trail (:mod:`cellctl.service.audit`) with every acting call. A
 browser, which cannot set that header on a WebSocket, fetches ``/access/oneshot_token`` (with
 the header) and opens ``/websocket?token=ONESHOT`` within 10 s. A handshake from a page of
-another origin, or naming a host the server does not answer to, is refused. A call runs to
-its end even if its client goes away, so no machine is left half-commanded; a batch (at most
-:data:`MAX_BATCH` requests, answered as one array) runs its calls one after the other and
-stops when its client leaves. Every HTTP answer carries a Content-Security-Policy that allows
+another origin, or naming a host the server does not answer to, is refused. A call that acts,
+or talks to a machine, runs to its end even if its client goes away, so no machine is left
+half-commanded; a read that touches no machine (a report, a plan) ends with its client. A
+batch (at most :data:`MAX_BATCH` requests, answered as one array) runs its calls one after
+the other and stops when its client leaves. A session has at most
+``ApiLimits.calls_per_session`` calls in flight and a token ``calls_per_token`` over all its
+sessions: a call past them is refused at once (:data:`SERVER_BUSY`), and a session's frames
+are taken one per turn of the loop, so no client can hold the controller's loop. Closing
+(:meth:`ApiServer.close`) waits for the calls that must run to their end, as ``cellctl run``
+waits for its steps in flight. Every HTTP answer carries a Content-Security-Policy that allows
 only the server's own assets. The connections' limits are in :mod:`cellctl.service.limits`.
 """
 
@@ -41,7 +47,7 @@ import logging
 import os
 import secrets
 import socket
-from collections.abc import Callable, Coroutine
+from collections.abc import Callable, Coroutine, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -57,6 +63,16 @@ from cellctl.clock import current_clock
 from cellctl.errors import AccessDenied, UsageError
 from cellctl.link.listen import parse_listen
 from cellctl.service.access import CellAccess
+from cellctl.service.inflight import (
+    CLOSE_GRACE,
+    Flight,
+    InFlight,
+    Session,
+    busy_error,
+    calls_text,
+    rpc_error,
+    stopping_error,
+)
 from cellctl.service.limits import (
     ApiLimits,
     GuardedServer,
@@ -99,8 +115,6 @@ log = logging.getLogger(__name__)
 
 #: The largest WebSocket frame accepted (a program text fits; more closes the connection).
 MAX_FRAME = 8 * 1024 * 1024
-#: Messages waiting for a slow client before it is dropped.
-MAX_QUEUED = 2000
 #: Shortest gap between two pushed updates (bursts of changes are coalesced).
 PUSH_GAP = 0.01
 #: Updates are looked for at least this often, signalled or not.
@@ -123,41 +137,7 @@ def socket_target(directory: Path) -> Path:
     return Path(runtime_dir()) / f"api-{digest}.sock"
 
 
-class _Session:
-    """One WebSocket client: its send queue and whether it subscribed."""
-
-    def __init__(self, ws: WebSocket, entry: TokenEntry) -> None:
-        self.ws = ws
-        self.entry = entry  # whose token opened it (checked again at each call)
-        self.queue: asyncio.Queue[str | None] = asyncio.Queue(MAX_QUEUED)
-        self.subscribed = False
-        self.open = True
-        self.last: CellStatus | None = None  # the status this client holds
-        self.abandoned: set[asyncio.Future[Any]] = set()  # its calls that end when it goes
-
-    def send(self, message: dict[str, Any] | list[Any] | str) -> None:
-        """Queue ``message`` (a dict, a batch's answers, or JSON text made once for all)."""
-        if not self.open:
-            return
-        text = message if isinstance(message, str) else json.dumps(message, default=str)
-        try:
-            self.queue.put_nowait(text)
-        except asyncio.QueueFull:
-            self.open = False  # too slow to keep up: it is dropped, the cell is not slowed
-            self.queue = asyncio.Queue(1)
-            self.queue.put_nowait(None)
-
-    async def writer(self) -> None:
-        while True:
-            text = await self.queue.get()
-            if text is None:
-                with contextlib.suppress(Exception):
-                    await self.ws.close(1013)
-                return
-            await self.ws.send_text(text)
-
-
-class ApiServer:
+class ApiServer(InFlight):
     """Serves one cell's API on its Unix socket and, if configured, on TCP."""
 
     def __init__(
@@ -177,8 +157,11 @@ class ApiServer:
         self.tcp = parse_listen(listen, allow_remote) if listen else None
         self.limits = limits or ApiLimits()
         self.socket_path = self.directory / SOCKET_FILE
-        self.sessions: set[_Session] = set()
+        self.sessions: set[Session] = set()
         self.calls: set[asyncio.Task[None]] = set()
+        self._token_calls: dict[str, int] = {}  # calls in flight by token name
+        self._flights: dict[asyncio.Task[Any], Flight] = {}  # the task that runs each call
+        self._closing = False
         self._changed = asyncio.Event()
         self._server: GuardedServer | None = None
         self._tasks: list[asyncio.Task[None]] = []
@@ -284,17 +267,30 @@ class ApiServer:
         return str(self.socket_path)
 
     async def close(self) -> None:
-        """Stop serving; calls in flight finish first (bounded)."""
+        """Stop serving. From now on a new call is refused (:data:`SERVER_BUSY`, "stopping");
+        a read that touches no machine is cut short; every other call in flight (one that acts,
+        or talks to a machine: a download) runs to its end first, as ``cellctl run`` finishes
+        its steps in flight: waited for without a bound, and said in the log. Ctrl-C or
+        SIGTERM meanwhile (or this close cancelled) cuts them short: each is said in the log
+        and audited ``cancelled``. Then the clients get their answers and a close frame."""
         with contextlib.suppress(UsageError):
             listeners = self.access.controller().listeners
             if self.changed in listeners:
                 listeners.remove(self.changed)
+        self._closing = True
+        for task, flight in list(self._flights.items()):
+            if flight.cut:
+                task.cancel()
+        await self._finish_calls()
         if self.calls:
-            await asyncio.wait(self.calls, timeout=10)
+            await asyncio.wait(self.calls, timeout=CLOSE_GRACE)
         for session in list(self.sessions):
-            session.open = False
-            with contextlib.suppress(Exception):
-                await session.ws.close(1001)
+            session.finish(1001)
+        ended = [asyncio.ensure_future(s.ended.wait()) for s in self.sessions]
+        if ended:
+            await asyncio.wait(ended, timeout=CLOSE_GRACE)
+            for waiter in ended:
+                waiter.cancel()
         if self._server is not None:
             self._server.should_exit = True
         for task in self._tasks[1:]:
@@ -308,6 +304,16 @@ class ApiServer:
             with contextlib.suppress(OSError):
                 path.unlink()
         self.dispatcher.close()
+
+    def _say(self, text: str) -> None:
+        """A line for the controller's events (``cellctl run`` shows them); for the log
+        without one (a DNC shop's server, a standalone one)."""
+        try:
+            controller = self.access.controller()
+        except UsageError:
+            log.warning("API: %s", text)
+        else:
+            controller.log(f"API: {text}")
 
     # -- auth ---------------------------------------------------------------------------------
 
@@ -376,9 +382,18 @@ class ApiServer:
         self, method: str, params: dict[str, Any], entry: TokenEntry, *, wrap: bool = False
     ) -> Response:
         """An HTTP answer to one call by ``entry``'s token: the result (``{"result": ...}``
-        with ``wrap``), 403 with the role it lacks, 400 or 500 with the error."""
+        with ``wrap``), 403 with the role it lacks, 400 or 500 with the error; 503 while
+        the server stops."""
+        if self._closing:
+            return _json({"error": stopping_error()}, 503)
+        caller = as_caller(entry)
         try:
-            result = await self.dispatcher.call(method, params, caller=as_caller(entry))
+            called = self.dispatcher.call(method, params, caller=caller)
+            if self.dispatcher.abandoned(method):
+                result = await called  # uvicorn's own shutdown ends it
+            else:
+                with self._flight(method, caller, params, cut=False):
+                    result = await called
         except Exception as e:
             error = error_object(e)
             status = 403 if isinstance(e, RoleRefused) else 400
@@ -394,7 +409,7 @@ class ApiServer:
             await ws.close(code=1008)  # before accept: the handshake is refused (HTTP 403)
             return
         await ws.accept()
-        session = _Session(ws, entry)
+        session = Session(ws, entry)
         self.sessions.add(session)
         writer = asyncio.create_task(session.writer())
         try:
@@ -404,9 +419,12 @@ class ApiServer:
                     break
                 text = message.get("text")
                 if text is None:
-                    session.send(_error(None, INVALID_REQUEST, "binary frames are not JSON-RPC"))
+                    session.send(rpc_error(None, INVALID_REQUEST, "binary frames are not JSON-RPC"))
                     continue
                 self._handle(session, text)
+                # One frame a turn of the loop: a client sending frames as fast as it can
+                # holds it no longer than any other task (the monitor polls in between).
+                await current_clock().sleep(0)
         except WebSocketDisconnect:
             pass
         except asyncio.CancelledError:
@@ -417,49 +435,112 @@ class ApiServer:
             session.open = False
             self.sessions.discard(session)
             for call in session.abandoned:
-                call.cancel()  # a plan nobody waits for any more burns no CPU
+                call.cancel()  # a read (a plan) nobody waits for any more burns no CPU
             writer.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await writer
             if ws.client_state is not WebSocketState.DISCONNECTED:
                 with contextlib.suppress(Exception):
                     await ws.close()
+            session.ended.set()
 
-    def _handle(self, session: _Session, text: str) -> None:
+    def _handle(self, session: Session, text: str) -> None:
         try:
             request = json.loads(text)
         except (ValueError, RecursionError):
-            session.send(_error(None, PARSE_ERROR, "parse error: not JSON"))
+            session.send(rpc_error(None, PARSE_ERROR, "parse error: not JSON"))
             return
         if not isinstance(request, list):
-            self._spawn(self._single(session, request))
+            if not self._refused(session, [request], batch=False):
+                self._spawn(session, self._single(session, request))
         elif not request:
-            session.send(_error(None, INVALID_REQUEST, "invalid request: an empty batch"))
+            session.send(rpc_error(None, INVALID_REQUEST, "invalid request: an empty batch"))
         elif len(request) > MAX_BATCH:
             session.send(
-                _error(
+                rpc_error(
                     None,
                     INVALID_REQUEST,
                     f"invalid request: a batch of {len(request)} requests; "
                     f"at most {MAX_BATCH} in one batch",
                 )
             )
+        elif not self._refused(session, request, batch=True):
+            self._spawn(session, self._batch(session, request))
+
+    def _refused(self, session: Session, requests: list[Any], *, batch: bool) -> bool:
+        """Refuse ``requests`` (one, or a batch: one call in flight) if the session, or its
+        token over all its sessions, has as many calls in flight as it may, or the server
+        stops: each request with an id gets :data:`SERVER_BUSY`, at once (a batch's in one
+        array)."""
+        name = session.entry.name
+        if self._closing:
+            error = stopping_error()
+        elif session.in_flight >= self.limits.calls_per_session:
+            error = busy_error(
+                "connection",
+                self.limits.calls_per_session,
+                f"refused: this connection has {calls_text(session.in_flight)} in flight, the "
+                "most one connection may have: send more once answers have come",
+            )
+        elif self._token_calls.get(name, 0) >= self.limits.calls_per_token:
+            error = busy_error(
+                "token",
+                self.limits.calls_per_token,
+                f"refused: the token {name!r} has {calls_text(self._token_calls[name])} in "
+                "flight over its connections, the most one token may have: send more once "
+                "answers have come",
+            )
         else:
-            self._spawn(self._batch(session, request))
+            return False
+        answers = [
+            {"jsonrpc": "2.0", "id": r["id"], "error": error}
+            for r in requests
+            if isinstance(r, dict) and isinstance(r.get("id"), str | int | float)
+        ]
+        if answers:
+            session.send(answers if batch else answers[0])
+        return True
 
-    def _spawn(self, work: Coroutine[Any, Any, None]) -> None:
+    def _spawn(self, session: Session, work: Coroutine[Any, Any, None]) -> None:
         # The calls run in a task kept by the server: a client that goes away does not cancel
-        # one halfway through a machine's transaction.
+        # one halfway through a machine's transaction. It counts against the session and its
+        # token until it ends (an acting call whose client left, too).
         task = asyncio.create_task(work)
+        name = session.entry.name
+        session.in_flight += 1
+        self._token_calls[name] = self._token_calls.get(name, 0) + 1
         self.calls.add(task)
-        task.add_done_callback(self.calls.discard)
 
-    async def _single(self, session: _Session, request: Any) -> None:
+        def ended(done: asyncio.Task[None]) -> None:
+            self.calls.discard(done)
+            session.in_flight -= 1
+            left = self._token_calls.get(name, 1) - 1
+            if left > 0:
+                self._token_calls[name] = left
+            else:
+                self._token_calls.pop(name, None)
+
+        task.add_done_callback(ended)
+
+    @contextlib.contextmanager
+    def _flight(self, method: str, caller: Caller, params: Any, *, cut: bool) -> Iterator[None]:
+        """The current task runs ``method`` for ``caller`` while in the block (for closing)."""
+        task = asyncio.current_task()
+        if task is None:
+            yield
+            return
+        self._flights[task] = Flight(method, caller.who, params, cut)
+        try:
+            yield
+        finally:
+            self._flights.pop(task, None)
+
+    async def _single(self, session: Session, request: Any) -> None:
         answer = await self._call(session, request)
         if answer is not None:
             session.send(answer)
 
-    async def _batch(self, session: _Session, requests: list[Any]) -> None:
+    async def _batch(self, session: Session, requests: list[Any]) -> None:
         """A batch's calls one after the other, answered as one array (JSON-RPC 2.0)."""
         answers = []
         for request in requests:
@@ -472,7 +553,7 @@ class ApiServer:
         if answers:
             session.send(answers)
 
-    async def _call(self, session: _Session, request: Any) -> dict[str, Any] | None:
+    async def _call(self, session: Session, request: Any) -> dict[str, Any] | None:
         """The answer to one request (None for a notification: a request without an id)."""
         rid = request.get("id") if isinstance(request, dict) else None
         if (
@@ -482,7 +563,7 @@ class ApiServer:
             or not isinstance(rid, str | int | float | None)
         ):
             rid = rid if isinstance(rid, str | int | float) else None
-            return _error(rid, INVALID_REQUEST, "invalid request: not JSON-RPC 2.0")
+            return rpc_error(rid, INVALID_REQUEST, "invalid request: not JSON-RPC 2.0")
         method = request["method"]
         params = request.get("params")
 
@@ -504,18 +585,26 @@ class ApiServer:
                 session.subscribed = False
                 session.last = None
                 result = {"message": "unsubscribed"}
+            elif self._closing:  # a batch's next call, once closing began
+                return (
+                    None
+                    if rid is None
+                    else {"jsonrpc": "2.0", "id": rid, "error": stopping_error()}
+                )
             else:
                 caller = as_caller(session.entry)
+                cut = self.dispatcher.abandoned(method)
                 called = self.dispatcher.call(method, params, progress, caller=caller)
-                if not self.dispatcher.abandoned(method):
-                    result = await called
-                else:
-                    call = asyncio.ensure_future(called)
-                    session.abandoned.add(call)
-                    try:
-                        result = await call
-                    finally:
-                        session.abandoned.discard(call)
+                with self._flight(method, caller, params, cut=cut):
+                    if not cut:
+                        result = await called
+                    else:
+                        call = asyncio.ensure_future(called)
+                        session.abandoned.add(call)
+                        try:
+                            result = await call
+                        finally:
+                            session.abandoned.discard(call)
         except Exception as e:
             error = error_object(e)
             if error["code"] == INTERNAL_ERROR:
@@ -539,9 +628,7 @@ class ApiServer:
             valid = {e: still_valid(self.directory, e) for e in {s.entry for s in subscribers}}
             for session in subscribers:
                 if not valid[session.entry]:  # revoked: its session ends now
-                    session.open = False
-                    with contextlib.suppress(Exception):
-                        await session.ws.close(1008)
+                    session.finish(1008)
             subscribers = [s for s in subscribers if valid[s.entry]]
             if not subscribers:
                 continue
@@ -553,10 +640,10 @@ class ApiServer:
             self.push(status, subscribers)
             await current_clock().sleep(PUSH_GAP)
 
-    def push(self, status: CellStatus, subscribers: list[_Session]) -> None:
+    def push(self, status: CellStatus, subscribers: list[Session]) -> None:
         """Send each subscriber what changed since the status it holds (most hold the same
         one: the difference is made and encoded once for them all)."""
-        held: dict[int, tuple[CellStatus | None, list[_Session]]] = {}
+        held: dict[int, tuple[CellStatus | None, list[Session]]] = {}
         for session in subscribers:
             held.setdefault(id(session.last), (session.last, []))[1].append(session)
         for last, sessions in held.values():
@@ -581,10 +668,6 @@ def as_caller(entry: TokenEntry) -> Caller:
 def _json(content: Any, status: int) -> Response:
     text = json.dumps(content, default=str, allow_nan=False)
     return Response(text, status_code=status, media_type="application/json")
-
-
-def _error(rid: Any, code: int, message: str) -> dict[str, Any]:
-    return {"jsonrpc": "2.0", "id": rid, "error": {"code": code, "message": message}}
 
 
 def _unauthorized() -> Response:

@@ -205,39 +205,29 @@ class _Guard(asyncio.Protocol):
             self._timer = None
 
     def _too_slow(self) -> None:
-        self._timer = None
-        if self.transport is None or self.transport.is_closing():
-            return
-        seconds = f"{self.listener.limits.header_timeout:g}"
-        self.listener.timed_out += 1
-        peer = self.transport.get_extra_info("peername") or "the socket"
-        self.listener.note(
-            "timeout", f"closed a connection from {peer}: no request head within {seconds} s"
-        )
-        with contextlib.suppress(Exception):
-            self.transport.write(
-                _http("408 Request Timeout", f"closed: no request head within {seconds} s")
-            )
-        self.transport.close()
+        self._close_slow("no request head within {s} s", "no request head within {s} s", head=True)
 
     def _body_too_slow(self) -> None:
+        self._close_slow(
+            "a request's body not whole within {s} s",
+            "the request's body did not come within {s} s",
+        )
+
+    def _close_slow(self, noted: str, told: str, *, head: bool = False) -> None:
+        """Close a connection whose request ``head`` or body came too slowly: ``noted`` for
+        the listener's notes, ``told`` to the client (408), for a body unless an answer went
+        out already (a second would garble it); ``{s}`` in both is the limit."""
         self._timer = None
         if self.transport is None or self.transport.is_closing():
             return
         seconds = f"{self.listener.limits.header_timeout:g}"
         self.listener.timed_out += 1
         peer = self.transport.get_extra_info("peername") or "the socket"
-        self.listener.note(
-            "timeout",
-            f"closed a connection from {peer}: a request's body not whole within {seconds} s",
-        )
-        if not self._answered:  # else an answer went out already: a second would garble it
+        self.listener.note("timeout", f"closed a connection from {peer}: {noted.format(s=seconds)}")
+        if head or not self._answered:
             with contextlib.suppress(Exception):
                 self.transport.write(
-                    _http(
-                        "408 Request Timeout",
-                        f"closed: the request's body did not come within {seconds} s",
-                    )
+                    _http("408 Request Timeout", f"closed: {told.format(s=seconds)}")
                 )
         self.transport.close()
 

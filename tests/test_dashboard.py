@@ -132,33 +132,36 @@ async def dash(
         **({"time_scale": scale} if scale else {}),
     ) as rig:
         await rig.start_controller()
-        assert rig.controller is not None
-        port = free_port()
-        server = ApiServer(
-            AttachedCell(rig.controller),
-            rig.directory,
-            listen=f"127.0.0.1:{port}",
-            extra_routes=dashboard_routes,
-        )
-        await server.start()
-        context = await browser.new_context(viewport={"width": 1400, "height": 1000})
-        page = await context.new_page()
-        errors: list[str] = []
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.on(
-            "console",
-            lambda m: errors.append(m.text) if "Content Security Policy" in m.text else None,
-        )
-        shots = tmp_path / "screenshots"
-        shots.mkdir()
-        dash: Dash | None = None
-        try:
-            dash = Dash(rig, server, f"http://127.0.0.1:{port}", page, shots)
+        async with contextlib.AsyncExitStack() as stack:
+            server, base = await stack.enter_async_context(dashboard_served(rig))
+            dash = await stack.enter_async_context(_dash_page(rig, server, base, browser, tmp_path))
             yield dash
-            assert not errors, f"the page reported errors: {errors}"
-        finally:
-            await context.close()
-            await (dash.server if dash is not None else server).close()
+
+
+@contextlib.asynccontextmanager
+async def _dash_page(
+    rig: CellRig, server: ApiServer, base: str, browser: Browser, tmp_path: Path
+) -> AsyncIterator[Dash]:
+    """A page in Chromium for the dashboard ``server`` serves at ``base``; after the test, no
+    error the page reported, and a server a test started in ``server``'s place closed."""
+    context = await browser.new_context(viewport={"width": 1400, "height": 1000})
+    page = await context.new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.on(
+        "console",
+        lambda m: errors.append(m.text) if "Content Security Policy" in m.text else None,
+    )
+    shots = tmp_path / "screenshots"
+    shots.mkdir()
+    dash = Dash(rig, server, base, page, shots)
+    try:
+        yield dash
+        assert not errors, f"the page reported errors: {errors}"
+    finally:
+        await context.close()
+        if dash.server is not server:  # a test's own, started in its place
+            await dash.server.close()
 
 
 def _shell(base: str) -> tuple[str, str]:

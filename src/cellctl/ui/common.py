@@ -300,77 +300,12 @@ def kind_commands(group: str, name: str | None = None) -> list[click.Command]:
                 registry.log.warning("machine kind %s: no command group %r", kind_name, to)
                 continue
             target.add_command(command)
+        from cellctl.ui.kind_check import check_kinds
+
         for command in groups.values():
             if isinstance(command, MachineGroup):
-                _check_kinds(command)
+                check_kinds(command)
     return mine
-
-
-#: The name of the check :func:`_check_kinds` adds to a family group's commands.
-_KIND_CHECK = "kind_has_command"
-
-
-def _check_kinds(group: click.Group) -> None:
-    """Give each command of a family's group (``cellctl mill``; a subgroup's commands, not the
-    subgroup: ``robot io set``) the check that the machine it names has its function
-    (:func:`_refuse_other_kinds`): once, whoever contributed it. A subgroup's own check
-    would come before its --help or subcommand is known."""
-    for command in group.commands.values():
-        subs = command.commands.values() if isinstance(command, click.Group) else (command,)
-        for checked in subs:
-            if not any(p.name == _KIND_CHECK for p in checked.params):
-                checked.params.append(
-                    click.Option(
-                        [f"--{_KIND_CHECK}"],
-                        hidden=True,
-                        expose_value=False,
-                        callback=_refuse_other_kinds,
-                    )
-                )
-
-
-def _command_paths(group: click.Group) -> dict[str, str]:
-    """Each command of a family's group by the function it runs: its name, or for a
-    subgroup's, both words joined by ``_`` (``robot io set`` runs ``io_set``)."""
-    paths = {word: word for word in group.commands}
-    for word, command in group.commands.items():
-        if isinstance(command, click.Group):
-            paths.update({f"{word}_{sub}": f"{word} {sub}" for sub in command.commands})
-    return paths
-
-
-def _refuse_other_kinds(ctx: click.Context, param: click.Parameter, value: object) -> None:
-    """Refuse ``cellctl mill saw go`` when the saw's kind has no ``go``, before anything is read
-    or sent, naming the commands the command line has for it (the family's commands it has a
-    function for: docs/kinds.md) and where its other functions are (the console, the API)."""
-    from cellctl.errors import with_article
-    from cellctl.service.functions import functions, kind_menu
-
-    words = [ctx.command.name or ""]
-    above = ctx.parent
-    while above is not None and not isinstance(above.command, MachineGroup):
-        words.insert(0, above.command.name or "")
-        above = above.parent
-    group, family = (above.command, above.command.name) if above is not None else (None, None)
-    if group is None or family is None or not isinstance(group, click.Group):
-        return
-    function = "_".join(words)
-    if all(f.name != function for f in functions() if f.family == family):
-        return  # a command that calls no machine (`mill check`): nothing to refuse
-    _, ref = machine_ref(ctx, family, function)
-    has = [f.name for f in kind_menu(ref.kind) if f.family == family]
-    if function in has:
-        return
-    paths = _command_paths(group)
-    offered = [said for name, said in sorted(paths.items()) if name in has]
-    others = [name for name in has if name not in paths]
-    said = f"its commands: {', '.join(offered) or 'none'}"
-    if others:
-        said += f"; its functions {', '.join(others)}: in the console or the control API"
-    command = " ".join(words)
-    raise UsageError(
-        f"no {family} command {command!r} for {ref.name}, {with_article(ref.kind)} ({said})"
-    )
 
 
 def _may_give(names: Sequence[tuple[str, str]] | None, group: str, name: str) -> bool:

@@ -47,7 +47,7 @@ import logging
 import os
 import secrets
 import socket
-from collections.abc import Callable, Coroutine, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -68,8 +68,6 @@ from cellctl.service.inflight import (
     Flight,
     InFlight,
     Session,
-    busy_error,
-    calls_text,
     rpc_error,
     stopping_error,
 )
@@ -466,74 +464,6 @@ class ApiServer(InFlight):
             )
         elif not self._refused(session, request, batch=True):
             self._spawn(session, self._batch(session, request))
-
-    def _refused(self, session: Session, requests: list[Any], *, batch: bool) -> bool:
-        """Refuse ``requests`` (one, or a batch: one call in flight) if the session, or its
-        token over all its sessions, has as many calls in flight as it may, or the server
-        stops: each request with an id gets :data:`SERVER_BUSY`, at once (a batch's in one
-        array)."""
-        name = session.entry.name
-        if self._closing:
-            error = stopping_error()
-        elif session.in_flight >= self.limits.calls_per_session:
-            error = busy_error(
-                "connection",
-                self.limits.calls_per_session,
-                f"refused: this connection has {calls_text(session.in_flight)} in flight, the "
-                "most one connection may have: send more once answers have come",
-            )
-        elif self._token_calls.get(name, 0) >= self.limits.calls_per_token:
-            error = busy_error(
-                "token",
-                self.limits.calls_per_token,
-                f"refused: the token {name!r} has {calls_text(self._token_calls[name])} in "
-                "flight over its connections, the most one token may have: send more once "
-                "answers have come",
-            )
-        else:
-            return False
-        answers = [
-            {"jsonrpc": "2.0", "id": r["id"], "error": error}
-            for r in requests
-            if isinstance(r, dict) and isinstance(r.get("id"), str | int | float)
-        ]
-        if answers:
-            session.send(answers if batch else answers[0])
-        return True
-
-    def _spawn(self, session: Session, work: Coroutine[Any, Any, None]) -> None:
-        # The calls run in a task kept by the server: a client that goes away does not cancel
-        # one halfway through a machine's transaction. It counts against the session and its
-        # token until it ends (an acting call whose client left, too).
-        task = asyncio.create_task(work)
-        name = session.entry.name
-        session.in_flight += 1
-        self._token_calls[name] = self._token_calls.get(name, 0) + 1
-        self.calls.add(task)
-
-        def ended(done: asyncio.Task[None]) -> None:
-            self.calls.discard(done)
-            session.in_flight -= 1
-            left = self._token_calls.get(name, 1) - 1
-            if left > 0:
-                self._token_calls[name] = left
-            else:
-                self._token_calls.pop(name, None)
-
-        task.add_done_callback(ended)
-
-    @contextlib.contextmanager
-    def _flight(self, method: str, caller: Caller, params: Any, *, cut: bool) -> Iterator[None]:
-        """The current task runs ``method`` for ``caller`` while in the block (for closing)."""
-        task = asyncio.current_task()
-        if task is None:
-            yield
-            return
-        self._flights[task] = Flight(method, caller.who, params, cut)
-        try:
-            yield
-        finally:
-            self._flights.pop(task, None)
 
     async def _single(self, session: Session, request: Any) -> None:
         answer = await self._call(session, request)

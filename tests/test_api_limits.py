@@ -331,13 +331,24 @@ def test_the_limits_come_from_the_api_table_of_cell_toml(cell: Path) -> None:
     with (cell / "cell.toml").open("a") as f:
         f.write(
             '\n[api]\nlisten = "127.0.0.1:7125"\nhosts = ["cell7.lab"]\nheader_timeout = 2.5\n'
-            "idle_timeout = 30\nmax_connections = 8\n"
+            "idle_timeout = 30\nmax_connections = 8\ncalls_per_session = 4\n"
+            "calls_per_token = 6\n"
         )
     config, problems = check_cell(cell)
     assert config is not None, problems
     assert api_limits(config.api) == ApiLimits(
-        header_timeout=2.5, idle_timeout=30.0, max_connections=8, hosts=("cell7.lab",)
+        header_timeout=2.5,
+        idle_timeout=30.0,
+        max_connections=8,
+        hosts=("cell7.lab",),
+        calls_per_session=4,
+        calls_per_token=6,
     )
+    text = (cell / "cell.toml").read_text()
+    (cell / "cell.toml").write_text(text.replace("calls_per_token = 6", "calls_per_token = 3"))
+    _, problems = check_cell(cell)
+    assert any("calls_per_token = 3 is less than calls_per_session = 4" in p for p in problems)
+    (cell / "cell.toml").write_text(text)
     text = (cell / "cell.toml").read_text().replace("max_connections = 8", "max_connections = 0")
     (cell / "cell.toml").write_text(text)
     _, problems = check_cell(cell)

@@ -1,6 +1,7 @@
 """The running cell as a service, as a user meets it: ``cellctl run`` cutting an order while a
 second shell asks the robot and a mill for their status, tries a manual function, and starts
-a second controller. Every process is a real ``cellctl``; the API is the cell's Unix socket."""
+a second controller. Every process is a real ``cellctl``; the API is the cell's Unix socket (and
+TCP on loopback, which the run log names beside it)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ import pytest
 from cellctl.cell.journal import open_journal
 from cellctl.mailbox import open_mailbox
 
-from .conftest import CELLCTL, emulated_cell_process, wait_until
+from .conftest import CELLCTL, emulated_cell_process, free_port, wait_until
 
 TIME_SCALE = "400"
 READ_LIMIT = 1.0
@@ -37,7 +38,9 @@ def running_cell(tmp_path: Path) -> Iterator[tuple[Path, subprocess.Popen[str]]]
         toml = cell / "cell.toml"
         text = toml.read_text()
         assert "[cell]\n" in text
-        toml.write_text(text.replace("[cell]\n", f"[cell]\nread_limit = {READ_LIMIT}\n", 1))
+        text = text.replace("[cell]\n", f"[cell]\nread_limit = {READ_LIMIT}\n", 1)
+        # The API on TCP too: the cell's own commands still go through its socket.
+        toml.write_text(text + f'\n[api]\nlisten = "127.0.0.1:{free_port()}"\n')
         with open_mailbox(cell) as mailbox:
             mailbox.post_order("wax-robot-base", 2, order_id="A")
         log = (tmp_path / "run.log").open("w")
@@ -68,7 +71,10 @@ def test_status_from_a_second_shell_does_not_disturb_the_cut(
     cell, run = running_cell
     log = cell.parent / "run.log"
     wait_until(lambda: "order A accepted" in log.read_text(), "the event log, as it happens")
-    assert "control API on" in log.read_text() and run.poll() is None
+    port = (cell / "cell.toml").read_text().split('listen = "127.0.0.1:', 1)[1].split('"')[0]
+    # The run log names both places the API answers: the socket and the TCP address.
+    assert f"control API on {cell / 'api.sock'} and http://127.0.0.1:{port}" in log.read_text()
+    assert run.poll() is None
     wait_until(lambda: "started" in cuts(cell), "a cut in flight")
     for _ in range(3):
         robot = cellctl(cell, "robot", "robot", "status")

@@ -179,6 +179,16 @@ class ApiTable(_Table):
     max_connections: Annotated[int, Field(ge=1, le=10_000)] = Field(
         default=100, description="open connections per listener; the next one gets 503"
     )
+    calls_per_session: Annotated[int, Field(ge=1, le=1000)] = Field(
+        default=16,
+        description="calls one WebSocket connection may have in flight (a batch is one); "
+        "more are refused (-32010)",
+    )
+    calls_per_token: Annotated[int, Field(ge=1, le=10_000)] = Field(
+        default=32,
+        description="calls one token may have in flight over all its connections; more are "
+        "refused (-32010)",
+    )
 
     @model_validator(mode="after")
     def _listen(self) -> ApiTable:
@@ -189,6 +199,11 @@ class ApiTable(_Table):
                     f"listen = {self.listen!r} is not a loopback address: set "
                     "allow_remote = true to answer there"
                 )
+        if self.calls_per_token < self.calls_per_session:
+            raise ValueError(
+                f"calls_per_token = {self.calls_per_token} is less than calls_per_session = "
+                f"{self.calls_per_session}: one connection could never reach its own cap"
+            )
         return self
 
 

@@ -82,6 +82,8 @@ def api_limits(table: ApiTable | None) -> ApiLimits:
         idle_timeout=table.idle_timeout,
         max_connections=table.max_connections,
         hosts=tuple(table.hosts),
+        calls_per_session=table.calls_per_session,
+        calls_per_token=table.calls_per_token,
     )
 
 

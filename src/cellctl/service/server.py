@@ -264,6 +264,14 @@ class ApiServer(InFlight):
             return f"http://{self.tcp[0]}:{self.tcp[1]}"
         return str(self.socket_path)
 
+    @property
+    def where(self) -> str:
+        """Every place it serves, as the run log names them: the socket, and the TCP address
+        with ``[api] listen`` (the cell's own commands use the socket either way)."""
+        if self.tcp is not None:
+            return f"{self.socket_path} and {self.url}"
+        return str(self.socket_path)
+
     async def close(self) -> None:
         """Stop serving. From now on a new call is refused (:data:`SERVER_BUSY`, "stopping");
         a read that touches no machine is cut short; every other call in flight (one that acts,

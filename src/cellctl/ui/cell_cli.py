@@ -151,7 +151,7 @@ async def _run_owned(
             await opcua.start()
             controller.log(opcua.describe())
         await server.start()
-        controller.log(f"control API on {server.url}")
+        controller.log(f"control API on {server.where}")
         await controller.connect()
         if bridge is not None:
             bridge_task = asyncio.create_task(bridge.run())

@@ -31,11 +31,44 @@ from types import TracebackType
 from typing import Self
 
 from cellctl.clock import current_clock
-from cellctl.emulators.cell import EmulatedCell
+from cellctl.emulators.cell import EmulatedCell, check_cell_dir
 from cellctl.emulators.serve import CELL_TIME_SCALE
 from cellctl.errors import UsageError
 from cellctl.factory.broker import FACTORY_USER, MosquittoBroker
 from cellctl.factory.config import FACTORY_FILE
+
+#: The first line of a factory.toml an emulated factory writes: a factory.toml without it is
+#: a real factory's, which an emulation never overwrites (:func:`check_factory_dir`).
+EMULATED_FACTORY_HEADER = (
+    "# Emulated factory of {cells} cells (time scale {scale:g}); written by cellctl emulate "
+    "factory."
+)
+_EMULATED_FACTORY = re.compile(r"#\s*Emulated factory of [0-9]+ cells \(time scale [0-9.eE+-]+\)")
+
+
+def check_factory_dir(directory: Path) -> None:
+    """UsageError if ``directory`` holds a factory.toml an emulated factory did not write, or a
+    cell directory (``directory/NAME/cell.toml``) an emulated cell did not write: a real
+    factory or cell, which emulating there (or the factory demo's clearing) would overwrite.
+    Reads only."""
+    toml = directory / FACTORY_FILE
+    if toml.exists() or toml.is_symlink():
+        try:
+            with toml.open(encoding="utf-8", errors="replace") as f:
+                first = f.readline(200).strip()
+        except OSError:
+            first = ""
+        if _EMULATED_FACTORY.match(first) is None:
+            raise UsageError(
+                f"{toml} was not written by cellctl emulate factory (its first line is not "
+                "'# Emulated factory of N cells (time scale ...)'): emulating here would "
+                f"overwrite it and its cells. Use another directory, or delete {toml} first"
+            )
+    if directory.is_dir():
+        for child in sorted(directory.iterdir()):
+            if child.is_dir() and not child.is_symlink():
+                check_cell_dir(child)
+
 
 #: The topic prefix of cell ``name``.
 PREFIX = "cellctl/{name}"
@@ -109,7 +142,11 @@ class EmulatedFactory:
         return self.directory / FACTORY_FILE
 
     async def start(self) -> Path:
-        """Start the broker and the cells; write the cell directories and factory.toml."""
+        """Start the broker and the cells; write the cell directories and factory.toml.
+
+        A real factory's directory (:func:`check_factory_dir`) is refused before anything
+        starts or is written."""
+        check_factory_dir(self.directory)
         # Each template's machines first: one that cannot be emulated is refused before
         # anything starts or is written.
         self.cells = [
@@ -142,8 +179,7 @@ class EmulatedFactory:
 
     def _factory_toml(self) -> str:
         lines = [
-            f"# Emulated factory of {len(self.names)} cells (time scale {self.time_scale:g});"
-            " written by cellctl emulate factory.",
+            EMULATED_FACTORY_HEADER.format(cells=len(self.names), scale=self.time_scale),
             "[factory]",
             'name = "factory"',
             f"accept_timeout = {self.accept_timeout:g}",

@@ -54,7 +54,7 @@ from cellctl.errors import UsageError
 from cellctl.factory.bound import cell_bound, split_bound
 from cellctl.factory.config import load_factory
 from cellctl.factory.controller import FactoryController
-from cellctl.factory.emulated import EmulatedFactory
+from cellctl.factory.emulated import EmulatedFactory, check_factory_dir
 from cellctl.factory.store import DONE, OPEN_STATES, FactoryOrder, FactoryStore
 from cellctl.ui.common import console, stop_signals
 
@@ -137,6 +137,7 @@ async def run_factory_demo(
     types = list(dict.fromkeys(t for d in chosen for t in load_cell(d).parts))
     batch = mixed_batch(count, types)
     directory = out / "factory"
+    check_factory_dir(directory)  # a real factory there is refused before anything is removed
     shutil.rmtree(directory, ignore_errors=True)
     console.print(
         f"[bold]cellctl demo --factory {cells}[/bold]: a private Mosquitto, {cells} emulated "

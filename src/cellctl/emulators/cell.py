@@ -60,6 +60,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from cellctl.clock import Clock, current_clock, emulator_clock
+from cellctl.emulators.header import EMULATED_HEADER, written_by_emulation
 from cellctl.emulators.memserve import serve_mem
 from cellctl.emulators.plc import PlcEmulator
 from cellctl.emulators.serve import (
@@ -92,10 +93,6 @@ BASE_LINE = LineSettings(4800, 7, "E", 2)
 
 #: ``[cell]`` deadlines for the machines' work, scaled in the emulated cell's cell.toml.
 CELL_DEADLINES = ("transfer_timeout", "interlock_timeout", "pallet_timeout")
-#: The first line of the cell.toml :meth:`EmulatedCell.start` writes: its mark. A cell.toml
-#: without it is a cell's own, which an emulation never overwrites (:func:`check_cell_dir`).
-EMULATED_HEADER = "# Emulated cell (time scale {scale:g}); written by cellctl emulate cell."
-_EMULATED_HEADER = re.compile(r"#\s*Emulated cell \(time scale [0-9.eE+-]+\)")
 #: The note after a scaled deadline: the real cell's value, which :func:`real_cell_toml`
 #: reads back (the scaled one is floored at ``MIN_DEADLINE_S``: it cannot be undone).
 DEADLINE_NOTE = "  # s (the real cell's {real:g} s, scaled)"
@@ -549,17 +546,6 @@ def _machine_kinds(template: Path) -> dict[str, str]:
         for name, entry in machines.items()
         if isinstance(entry, dict) and entry.get("kind") in registry.names()
     }
-
-
-def written_by_emulation(toml: Path) -> bool:
-    """True if ``toml`` is a cell.toml an emulated cell wrote (its first line
-    :data:`EMULATED_HEADER`), False for any other file, or one that cannot be read."""
-    try:
-        with toml.open(encoding="utf-8", errors="replace") as f:
-            first = f.readline(200)
-    except OSError:
-        return False
-    return _EMULATED_HEADER.match(first.strip()) is not None
 
 
 def check_cell_dir(cell_dir: Path) -> None:

@@ -32,6 +32,7 @@ from typing import Self
 
 from cellctl.clock import current_clock
 from cellctl.emulators.cell import EmulatedCell, check_cell_dir
+from cellctl.emulators.header import first_line
 from cellctl.emulators.serve import CELL_TIME_SCALE
 from cellctl.errors import UsageError
 from cellctl.factory.broker import FACTORY_USER, MosquittoBroker
@@ -52,18 +53,13 @@ def check_factory_dir(directory: Path) -> None:
     factory or cell, which emulating there (or the factory demo's clearing) would overwrite.
     Reads only."""
     toml = directory / FACTORY_FILE
-    if toml.exists() or toml.is_symlink():
-        try:
-            with toml.open(encoding="utf-8", errors="replace") as f:
-                first = f.readline(200).strip()
-        except OSError:
-            first = ""
-        if _EMULATED_FACTORY.match(first) is None:
-            raise UsageError(
-                f"{toml} was not written by cellctl emulate factory (its first line is not "
-                "'# Emulated factory of N cells (time scale ...)'): emulating here would "
-                f"overwrite it and its cells. Use another directory, or delete {toml} first"
-            )
+    real = _EMULATED_FACTORY.match(first_line(toml)) is None
+    if (toml.exists() or toml.is_symlink()) and real:
+        raise UsageError(
+            f"{toml} was not written by cellctl emulate factory (its first line is not "
+            "'# Emulated factory of N cells (time scale ...)'): emulating here would "
+            f"overwrite it and its cells. Use another directory, or delete {toml} first"
+        )
     if directory.is_dir():
         for child in sorted(directory.iterdir()):
             if child.is_dir() and not child.is_symlink():

@@ -12,7 +12,6 @@ surface shows) and the controller's event list::
 
 from __future__ import annotations
 
-import re
 import time
 from pathlib import Path
 
@@ -21,11 +20,10 @@ from rich.table import Table
 from rich.text import Text
 
 from cellctl.cell.controller import CellController
+from cellctl.emulators.header import emulated_scale
 from cellctl.service.access import AttachedCell
 from cellctl.service.status import CellMode, CellStatus
 
-#: The first line ``cellctl emulate cell`` writes into the cell.toml it makes.
-_EMULATED = re.compile(r"#\s*Emulated cell \(time scale ([0-9.eE+-]+)\)")
 #: Orders and alarms shown at most (the rest of the height goes to the events).
 ORDER_ROWS = 12
 ALARM_ROWS = 6
@@ -37,13 +35,8 @@ STOP_HINT = "Ctrl-C stops (steps in flight finish first; Ctrl-C again aborts)"
 def time_scale_text(directory: Path) -> str:
     """``time scale 100 (emulated cell)`` for a cell ``cellctl emulate cell`` wrote, else
     ``real time``."""
-    try:
-        with (directory / "cell.toml").open(encoding="utf-8") as f:
-            first = f.readline()
-    except OSError:
-        return "real time"
-    found = _EMULATED.match(first.strip())
-    return f"time scale {found.group(1)} (emulated cell)" if found else "real time"
+    scale = emulated_scale(directory / "cell.toml")
+    return f"time scale {scale} (emulated cell)" if scale is not None else "real time"
 
 
 class LiveView:

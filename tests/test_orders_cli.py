@@ -178,8 +178,28 @@ def test_release_after_interrupted_transfer_asks_where_the_part_is(cell: Path) -
     assert "say where it is now" in refused.stderr
     result = cellctl(cell, "part", "release", part_id, "--at", "cnc1")
     assert result.exit_code == 0, result.output
+    assert "its interrupted step counts as done" in result.stdout  # it got where it went
     with open_journal(cell) as journal:
         assert journal.get_part(part_id).location == "cnc1"
+
+
+def test_a_part_released_where_its_transfer_began_is_said_to_be_carried_again(
+    cell: Path,
+) -> None:
+    part_id = held_after_crash(cell, kind="transfer")
+    result = cellctl(cell, "part", "release", part_id, "--at", "conveyor")
+    assert result.exit_code == 0, result.output
+    said = " ".join(result.stdout.split())
+    assert (
+        f"part {part_id} released at conveyor: the cell takes it up at conveyor, so its "
+        "interrupted transfer will run again" in said
+    ), said
+    with open_journal(cell) as journal:
+        part = journal.get_part(part_id)
+        assert (part.status, part.location, part.route_index) == ("waiting", "conveyor", 0)
+    with open_mailbox(cell) as mailbox:
+        (report,) = mailbox.reports()
+        assert "its interrupted transfer will run again" in report.text
 
 
 def test_scrap_a_held_part(cell: Path) -> None:

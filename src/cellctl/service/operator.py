@@ -16,7 +16,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from cellctl.cell.blocked import blocked_reason
-from cellctl.cell.config import CONVEYOR, CellConfig, mill_names
+from cellctl.cell.config import CONVEYOR, CellConfig, mill_names, transfer_ends
 from cellctl.cell.journal import Alarm, Journal, Part
 from cellctl.cell.orderflow import OUT
 from cellctl.cell.workview import places_of
@@ -328,8 +328,21 @@ def release_part(
     at = location or part.location
     was_in = places_of(journal, part) if part.status == "held" else set()
     emptied = sorted(was_in - {at})
+    steps = journal.steps(part.id) if part.status == "held" else []
+    held = steps[-1] if steps else None
     p = journal.release_part(part_id, redo_step=redo, location=location, emptied=emptied)
     what = "its interrupted step will run again" if redo else "its interrupted step counts as done"
+    carried_again = (
+        not redo
+        and held is not None
+        and held.kind == "transfer"
+        and held.state != "finished"
+        and at != transfer_ends(held.program)[1]
+    )
+    if carried_again:
+        # Accepted, but the part is not where the transfer was taking it: the cell carries
+        # it on from where it is, which is that transfer again.
+        what = f"the cell takes it up at {at}, so its interrupted transfer will run again"
     mailbox.post_report(
         ReportKind.PART_RELEASED,
         f"part {p.id} released by operator at {p.location}: {what}",

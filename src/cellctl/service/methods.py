@@ -95,11 +95,17 @@ log = logging.getLogger(__name__)
 
 
 async def _info(access: CellAccess, p: NoParams, progress: Progress | None) -> Any:
+    methods = [*METHODS.values(), *access.methods().values()]
+    caller = CALLER.get() or local_caller()
     return {
         "version": __version__,
         "mode": access.mode,
         "directory": str(access.directory),
-        "methods": {m.name: m.doc for m in [*METHODS.values(), *access.methods().values()]},
+        "methods": {m.name: m.doc for m in methods},
+        # Who asks, and the role each method needs: a client offers what its caller may do
+        # (the console refuses a function before it takes a machine out of service for it).
+        "caller": {"who": caller.who, "role": caller.role},
+        "roles": {m.name: m.role for m in methods},
     }
 
 
@@ -333,7 +339,13 @@ def _machine_name(access: CellAccess, family: str, name: str | None) -> str:
 
 
 _TABLE: list[Method] = [
-    Method("server.info", NoParams, _info, "Version, mode and the methods served.", False),
+    Method(
+        "server.info",
+        NoParams,
+        _info,
+        "Version, mode, the methods served, the caller's role and each method's.",
+        False,
+    ),
     Method("cell.status", NoParams, _status, "Machines, orders, parts, alarms, events.", False),
     Method("cell.schema", NoParams, _schema, "JSON Schema of the status and its updates.", False),
     Method("cell.pause", NoParams, _pause, "Finish the steps in flight, start no new one.", True),

@@ -13,8 +13,13 @@ table. (A server that is no cell controller declares its machines' methods itsel
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
+from cellctl.errors import with_article
 from cellctl.kinds import registry
 from cellctl.service.functions import kind_menu
+from cellctl.service.token import role_allows
 
 #: The cell's acting API methods and their place: (menu, entry[, choice in its dialog]).
 CELL_ACTIONS: dict[str, tuple[str, ...]] = {
@@ -42,3 +47,18 @@ def console_actions() -> dict[str, tuple[str, ...]]:
         for fn in kind_menu(kind.name):
             found.setdefault(f"{fn.family}.{fn.name}", (fn.family.upper(), fn.label))
     return found
+
+
+def role_refusal(info: Mapping[str, Any], method: str) -> str | None:
+    """Why the caller ``server.info`` names (its answer: ``info``) may not call ``method``, in
+    the server's own words; None if it may, or if the server does not say (an older one:
+    the call itself is refused then)."""
+    caller, roles = info.get("caller"), info.get("roles")
+    if not isinstance(caller, dict) or not isinstance(roles, dict) or method not in roles:
+        return None
+    role, needed = str(caller.get("role", "")), str(roles[method])
+    if role_allows(role, needed):
+        return None
+    who = str(caller.get("who", ""))
+    name = who.partition(":")[2] or who
+    return f"{name} is {with_article(role)}: {method} needs the {needed} role"

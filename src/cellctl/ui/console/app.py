@@ -43,7 +43,7 @@ from cellctl.service.client import CellClient, RemoteCell, attach
 from cellctl.service.functions import MachineFunction, menu
 from cellctl.service.methods import METHODS
 from cellctl.service.status import StepInfo, StepKind, apply_update_json
-from cellctl.ui.console.actions import console_actions
+from cellctl.ui.console.actions import console_actions, role_refusal
 from cellctl.ui.console.cellmenu import CellActions
 from cellctl.ui.console.dialogs import ConfirmDialog, Dialog, FormDialog, ParamsDialog
 from cellctl.ui.console.entry import Action, Entry
@@ -542,6 +542,12 @@ class ConsoleApp(App[None]):
         """Ask for the function's parameters, check them, take the machine out of automatic
         service if it must be (asking first), run it and show its outcome."""
         assert self.client is not None
+        # A function its caller's role may not run is refused first: before a dialog, and
+        # before its machine is taken out of automatic service for nothing.
+        refused = role_refusal(await self.client.call("server.info"), f"{machine.family}.{fn.name}")
+        if refused:
+            self.say([f"{machine.name}: {fn.label}: {refused}; nothing was done"], "red")
+            return
         params: dict[str, Any] = {}
         fields = [f for f in DIALOG_FIELDS if f in fn.params.model_fields]
         if fields:

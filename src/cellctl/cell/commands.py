@@ -218,6 +218,9 @@ class OperatorCommands:
                 said = f"{name} halt failed: {e}"
             problems.append(said)
             self.alarm(name, "estop", said)
+            # Not halted by END, its cut cut short all the same: set up again on resume, as
+            # a halted mill is. The alarm returns to normal once a look finds it idle.
+            self.halted(name)
 
         # Every mill at once: each waits out its own block (in manual, nothing of ours runs).
         await asyncio.gather(*(halt(n, m) for n, m in self.mills.items() if not m.manual))

@@ -368,6 +368,9 @@ class Monitor:
             return
         view.show(status.shown, status.kind_condition)
         self.alarms.returned(m.name, "link")
+        if status.ready:
+            # Idle: a block an emergency stop could not halt has ended (its alarm says so).
+            self.alarms.returned(m.name, "estop")
         was_ready = recovery.ready.get(m.name, False)
         ready = status.takes_work
         if ready and recovery.fit.get(m.name, False):

@@ -34,9 +34,10 @@ is answered from in-memory views (:mod:`cellctl.cell.journalview`) that this jou
 keep current once committed and that are read again from the file after any other
 connection commits: never an answer the file would not give.
 
-The alarms (raise, acknowledge, shelve, return to normal, clear) live in
-:mod:`cellctl.cell.journalalarms`, the base class of :class:`Journal`; the tables and the
-helpers that read their rows in :mod:`cellctl.cell.journalrows`. Import from here as before.
+The alarms (raise, acknowledge, shelve, return to normal, clear, and the spells they were
+active) live in :mod:`cellctl.cell.journalalarms`, the base class of :class:`Journal`; the
+tables and the helpers that read their rows in :mod:`cellctl.cell.journalrows`. Import from
+here as before.
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ from pathlib import Path
 from typing import Any, Final
 
 from cellctl.cell.journalalarms import MAX_SHELVE, AlarmJournal, _alarm
-from cellctl.cell.journalrecords import Alarm, Part, RecoveryReport, Step
+from cellctl.cell.journalrecords import Alarm, Part, RecoveryReport, Spell, Step
 from cellctl.cell.journalrows import (
     SCHEMA,
     _get_part,
@@ -75,6 +76,7 @@ __all__ = [
     "Journal",
     "Part",
     "RecoveryReport",
+    "Spell",
     "Step",
     "open_journal",
 ]

@@ -5,11 +5,17 @@
     journal.ack_alarm(alarm.id, by="ann")        # seen; still open
     journal.return_to_normal("cnc1", ["link"])   # its condition is gone; still open
     journal.clear_alarm(alarm.id, by="ann")      # ended
+    journal.alarm_spells()[alarm.id]             # [Spell(began, ended)]: when it was active
 
 An alarm is raised active and unacknowledged, may be shelved for at most :data:`MAX_SHELVE`,
-and stays open until the operator clears it. The base also holds what these need of the
-journal: the clock its times are read from and its in-memory views
-(:mod:`cellctl.cell.journalview`).
+and stays open until the operator clears it. Its condition may go and come back while it is
+open (returned to normal, then active again: the same alarm); the alarm's row keeps only the
+last return, so each time it was active is kept apart, as a spell (table ``alarm_spells``):
+from raised or active again, to returned to normal, else to cleared. The shift report's down
+time counts these. A journal from before spells has its alarms count as one spell each
+(raised to returned, else cleared); the first change of such an alarm writes that spell
+before its own. The base also holds what these need of the journal: the clock its times are
+read from and its in-memory views (:mod:`cellctl.cell.journalview`).
 """
 
 from __future__ import annotations
@@ -20,7 +26,7 @@ from pathlib import Path
 from typing import Any, Final
 
 from cellctl.cell.causes import PRIORITIES, priority_of
-from cellctl.cell.journalrecords import Alarm
+from cellctl.cell.journalrecords import Alarm, Spell
 from cellctl.cell.journalview import JournalViews
 from cellctl.cell.sqlitedb import SqliteStore
 from cellctl.clock import Clock, current_clock
@@ -104,7 +110,7 @@ class AlarmJournal(SqliteStore):
             if row is not None:
                 if row["returned"] is None:
                     return _alarm(row), False
-                return self._reactivate(db, row["id"]), False
+                return self._reactivate(db, row["id"], now), False
             cur = db.execute(
                 "INSERT INTO alarms (raised, machine, code, text, state, priority)"
                 " VALUES (?, ?, ?, ?, 'active', ?)",
@@ -112,18 +118,23 @@ class AlarmJournal(SqliteStore):
             )
             alarm_id = cur.lastrowid
             assert alarm_id is not None
+            _spell_begins(db, alarm_id, now)
             return self._keep_alarm(_get_alarm(db, alarm_id)), True
 
     def reactivate(self, alarm_id: int) -> Alarm:
         """The condition of open alarm ``alarm_id`` is seen again after it returned to
-        normal: active and unacknowledged again (a cleared or still-active alarm: unchanged)."""
+        normal: active and unacknowledged again, a new spell begun (a cleared or still-active
+        alarm: unchanged)."""
+        now = self._now()
         with self._write() as db:
             alarm = _get_alarm(db, alarm_id)
             if alarm.state != "active" or alarm.returned is None:
                 return alarm
-            return self._reactivate(db, alarm_id)
+            return self._reactivate(db, alarm_id, now)
 
-    def _reactivate(self, db: sqlite3.Connection, alarm_id: int) -> Alarm:
+    def _reactivate(self, db: sqlite3.Connection, alarm_id: int, now: float) -> Alarm:
+        _spells_kept(db, alarm_id)  # first: an older alarm's one spell ends at its return
+        _spell_begins(db, alarm_id, now)
         db.execute(
             "UPDATE alarms SET returned = NULL, acked = NULL, acked_by = '' WHERE id = ?",
             (alarm_id,),
@@ -162,8 +173,8 @@ class AlarmJournal(SqliteStore):
 
     def return_to_normal(self, machine: str, codes: Iterable[str]) -> list[Alarm]:
         """The condition behind ``machine``'s open alarms with these codes is gone: mark them
-        returned to normal (they stay open until cleared). Returns the alarms it marked;
-        a look that finds nothing to mark writes nothing."""
+        returned to normal (they stay open until cleared), their spell ended. Returns the
+        alarms it marked; a look that finds nothing to mark writes nothing."""
         codes = tuple(codes)
         marks = ",".join("?" * len(codes))
         query = (
@@ -175,6 +186,8 @@ class AlarmJournal(SqliteStore):
         with self._write() as db:
             ids = [r["id"] for r in db.execute(query, (machine, *codes))]
             now = self._now()
+            for i in ids:
+                _spell_ends(db, i, now)
             db.executemany("UPDATE alarms SET returned = ? WHERE id = ?", [(now, i) for i in ids])
             return [self._keep_alarm(_get_alarm(db, i)) for i in ids]
 
@@ -186,6 +199,7 @@ class AlarmJournal(SqliteStore):
             if alarm.state == "cleared":
                 return alarm
             now = self._now()
+            _spell_ends(db, alarm_id, now)  # still active: its spell ends here
             db.execute(
                 "UPDATE alarms SET state = 'cleared', cleared = ?, cleared_by = ?,"
                 " acked = coalesce(acked, ?),"
@@ -218,6 +232,28 @@ class AlarmJournal(SqliteStore):
         with self._lock:
             return list(self._viewed().alarms.values())
 
+    def alarm_spells(self, alarms: Iterable[Alarm] | None = None) -> dict[int, list[Spell]]:
+        """When each of ``alarms`` (default: every alarm) was active, by its id: its spells,
+        oldest first. A spell still open when its alarm was cleared ends there; one still
+        open ends None. An alarm from before spells were kept has one: raised to returned to
+        normal, else to cleared (what its own columns say)."""
+        alarms = self.alarms() if alarms is None else list(alarms)
+        kept: dict[int, list[Spell]] = {}
+        for r in self._read(
+            "SELECT alarm_id, began, ended FROM alarm_spells ORDER BY alarm_id, began, rowid"
+        ):
+            kept.setdefault(r["alarm_id"], []).append(Spell(r["began"], r["ended"]))
+        out: dict[int, list[Spell]] = {}
+        for a in alarms:
+            spells = kept.get(a.id)
+            if not spells:
+                out[a.id] = [Spell(a.raised, a.returned if a.returned is not None else a.cleared)]
+            else:
+                out[a.id] = [
+                    Spell(s.began, s.ended if s.ended is not None else a.cleared) for s in spells
+                ]
+        return out
+
     def alarm_history(
         self,
         *,
@@ -246,6 +282,35 @@ class AlarmJournal(SqliteStore):
             (*args, limit),
         )
         return [_alarm(r) for r in reversed(rows)]
+
+
+def _spell_begins(db: sqlite3.Connection, alarm_id: int, now: float) -> None:
+    """Inside a write: alarm ``alarm_id`` is active from ``now`` (raised, or active again:
+    :func:`_spells_kept` first)."""
+    db.execute(
+        "INSERT INTO alarm_spells (alarm_id, began, ended) VALUES (?, ?, NULL)", (alarm_id, now)
+    )
+
+
+def _spell_ends(db: sqlite3.Connection, alarm_id: int, now: float) -> None:
+    """Inside a write: alarm ``alarm_id``'s open spell, if any, ends at ``now`` (returned to
+    normal, or cleared while active)."""
+    _spells_kept(db, alarm_id)
+    db.execute(
+        "UPDATE alarm_spells SET ended = ? WHERE alarm_id = ? AND ended IS NULL", (now, alarm_id)
+    )
+
+
+def _spells_kept(db: sqlite3.Connection, alarm_id: int) -> None:
+    """Inside a write, before the alarm's row changes: an alarm from before spells were kept
+    (it has none) gets the one its columns say (raised to returned, else cleared, else open),
+    so that what the write adds follows it. (A new alarm's first spell is written with it.)"""
+    db.execute(
+        "INSERT INTO alarm_spells (alarm_id, began, ended)"
+        " SELECT id, raised, coalesce(returned, cleared) FROM alarms WHERE id = ?"
+        " AND NOT EXISTS (SELECT 1 FROM alarm_spells WHERE alarm_id = ?)",
+        (alarm_id, alarm_id),
+    )
 
 
 def _get_alarm(db: sqlite3.Connection, alarm_id: int) -> Alarm:

@@ -1,4 +1,5 @@
-"""What the journal records: parts, steps, alarms, and what a recovery did.
+"""What the journal records: parts, steps, alarms and their active spells, and what a
+recovery did.
 
 Kept apart from :mod:`cellctl.cell.journal` so that its in-memory views
 (:mod:`cellctl.cell.journalview`) can hold them without importing the journal; import them
@@ -8,6 +9,7 @@ from :mod:`cellctl.cell.journal` as before.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 
 @dataclass(frozen=True)
@@ -56,8 +58,9 @@ class Alarm:
 
     Apart from that: ``acked`` is when the operator acknowledged it (None: unacknowledged),
     ``returned`` when its condition was last seen to go away (returned to normal; None: still
-    seen, or not a condition the monitor watches), ``shelved_until`` until when it is
-    shelved (hidden from the unacknowledged list; back once that time is past).
+    seen, or not a condition the monitor watches; each time it was active, before and after
+    a return, is one of its :class:`Spell`), ``shelved_until`` until when it is shelved
+    (hidden from the unacknowledged list; back once that time is past).
     ``priority`` comes from its code (:data:`cellctl.cell.causes.ALARM_PRIORITY`).
     """
 
@@ -84,6 +87,14 @@ class Alarm:
         """True if the alarm is open, unacknowledged and not shelved at ``now``: what a
         control room shows flashing."""
         return self.state == "active" and self.acked is None and not self.shelved(now)
+
+
+class Spell(NamedTuple):
+    """One time an alarm was active: from ``began`` (raised, or its condition back after it
+    returned to normal) to ``ended`` (returned to normal, else cleared; None: active still)."""
+
+    began: float
+    ended: float | None
 
 
 @dataclass(frozen=True)

@@ -55,6 +55,17 @@ CREATE TABLE IF NOT EXISTS alarms (
     cleared_by TEXT NOT NULL DEFAULT ''
 );
 CREATE INDEX IF NOT EXISTS alarms_by_state ON alarms (state);
+-- Each alarm's active spells: from raised or active again to returned to normal, else to
+-- cleared (ended NULL: still active). A journal from before spells gets the table empty on
+-- open, and an alarm with no spell counts as one, raised to returned, else cleared (the
+-- alarm's own columns, cellctl.cell.journalalarms). No semicolon in these comments: the
+-- schema is run a statement at a time, split at them.
+CREATE TABLE IF NOT EXISTS alarm_spells (
+    alarm_id INTEGER NOT NULL,
+    began REAL NOT NULL,
+    ended REAL
+);
+CREATE INDEX IF NOT EXISTS alarm_spells_by_alarm ON alarm_spells (alarm_id);
 CREATE TABLE IF NOT EXISTS machines (
     name TEXT PRIMARY KEY,
     in_service INTEGER NOT NULL,

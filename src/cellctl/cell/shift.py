@@ -24,9 +24,13 @@ Every figure is read from the journal over the window ``[start, end]`` (docs/cel
   neither held nor scrapped now.
 - **OEE** = availability x performance x quality.
 - **Down time** (ADOT): the union of the times the machine was out of service (the journal's
-  service log) or had an alarm of its own or the cell's open (raised until it returned to
-  normal, else until it was cleared). **Downtime by reason** sums each reason's time apart
-  (two at once each count), so its total may pass the machine's down time.
+  service log) or had an alarm of its own or the cell's active: each of the alarm's spells
+  (:meth:`~cellctl.cell.journal.Journal.alarm_spells`), from raised or active again until it
+  returned to normal, else until it was cleared. An alarm whose condition went and came
+  back counts the times it was active, not the time between. **Downtime by reason** counts
+  each reason's time apart (the union of its own intervals: two alarms of one code at once
+  count once, two reasons at once each count), so its total may pass the machine's down
+  time.
 - **Parts**: good (done), held (held now) and scrapped, by when they last changed.
 - **Alarms by cause**: the alarms raised in the window by code, with their priority.
 
@@ -139,10 +143,11 @@ def shift_report(
     where: dict[str, set[str]] = defaultdict(set)
     for a in raised:
         where[a.code].add(a.machine)
-    by_reason: dict[tuple[str, str], float] = defaultdict(float)
+    reasons: dict[tuple[str, str], list[tuple[float, float]]] = defaultdict(list)
     for machine, intervals in downs.items():
         for t0, t1, reason in intervals:
-            by_reason[(machine, reason)] += _overlap(t0, t1, start, end)
+            reasons[(machine, reason)].append((t0, t1))
+    by_reason = {key: _union(spans, start, end) for key, spans in reasons.items()}
     return ShiftReport(
         start=start,
         end=end,
@@ -214,12 +219,15 @@ def _rounded(ratio: float | None) -> float | None:
 def _down_intervals(
     journal: Journal, alarms: list[Alarm], end: float
 ) -> dict[str, list[tuple[float, float, str]]]:
-    """Each machine's down intervals with their reason: its alarms and its time out of
-    service."""
+    """Each machine's down intervals with their reason: the spells its alarms were active
+    (one still active: to ``end``) and its time out of service. The one reading of "down"
+    for every figure built on it (this report, a plan's report)."""
     out: dict[str, list[tuple[float, float, str]]] = defaultdict(list)
+    spells = journal.alarm_spells(alarms)
     for a in alarms:
-        stop = min(t for t in (a.returned, a.cleared, end) if t is not None)
-        out[a.machine].append((a.raised, max(a.raised, stop), f"alarm: {a.code}"))
+        for began, ended in spells[a.id]:
+            stop = end if ended is None else min(ended, end)
+            out[a.machine].append((began, max(began, stop), f"alarm: {a.code}"))
     since: dict[str, tuple[float, str]] = {}
     for t, name, in_service, reason in journal.service_log():
         if not in_service and name not in since:

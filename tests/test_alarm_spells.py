@@ -17,6 +17,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from cellctl.cell.causes import ESTOP
 from cellctl.cell.journal import Journal, Spell
 from cellctl.cell.shift import shift_report
 from cellctl.clock import RealClock, current_clock
@@ -230,7 +231,7 @@ CREATE TABLE IF NOT EXISTS service_log (
 def old_journal(path: Path) -> None:
     """A journal as the cellctl before spells wrote it: cnc1's link alarm returned at 1020
     and was cleared at 1030; its status alarm cleared at 1050 with no return; the robot's
-    link alarm returned at 1070 and is open still; the PLC's estop active still."""
+    link alarm returned at 1070 and is open still; the PLC's link alarm active still."""
     db = sqlite3.connect(path)
     db.executescript(OLD_SCHEMA)
     db.executemany(
@@ -240,7 +241,7 @@ def old_journal(path: Path) -> None:
             (1010.0, "cnc1", "link", "mill not answering", "cleared", 1030.0, 1020.0),
             (1040.0, "cnc1", "status", "mill lost readiness", "cleared", 1050.0, None),
             (1060.0, "robot", "link", "robot not answering", "active", None, 1070.0),
-            (1080.0, "plc", "estop", "emergency stop", "active", None, None),
+            (1080.0, "plc", "link", "PLC not answering", "active", None, None),
         ],
     )
     db.commit()
@@ -265,10 +266,10 @@ def test_an_older_journal_reports_as_before(tmp_path: Path) -> None:
             ("cnc1", "alarm: link"): 10.0,
             ("cnc1", "alarm: status"): 10.0,
             ("robot", "alarm: link"): 10.0,
-            ("plc", "alarm: estop"): 20.0,  # open: to the window's end
+            ("plc", "alarm: link"): 20.0,  # open: to the window's end
         }
         # The robot's old alarm comes back and goes again under this cellctl: its first
-        # spell (from its columns) is kept before the new one. The estop is cleared.
+        # spell (from its columns) is kept before the new one. The PLC's is cleared.
         clock.at = 1090.0
         journal.reactivate(3)
         clock.at = 1095.0
@@ -387,3 +388,22 @@ async def test_a_link_lost_twice_is_down_twice_not_between(tmp_path: Path, machi
         if machine == "robot":  # the robot is one of the report's machines
             (robot,) = [m for m in found["machines"] if m["machine"] == "robot"]
             assert robot["down_s"] == pytest.approx(counted, abs=1e-3)
+
+
+def test_the_plcs_emergency_stop_is_down_time_for_every_machine(tmp_path: Path) -> None:
+    """The PLC's E-stop input stops the whole cell: its alarm counts as down for each machine
+    (as the cell's own stop does), and for the PLC; another PLC alarm only for the PLC."""
+    clock = Clock()
+    with Journal(tmp_path / "journal.sqlite3", clock=clock) as journal:
+        journal.raise_alarm(ESTOP.machine, ESTOP.code, ESTOP.text)
+        clock.at = 1030.0
+        journal.return_to_normal(ESTOP.machine, [ESTOP.code])
+        journal.raise_alarm("plc", "link", "PLC not answering")
+        clock.at = 1035.0
+        journal.return_to_normal("plc", ["link"])
+        for machine in ("robot", "cnc1", "cnc2"):
+            assert down(journal, machine, 900.0, 1100.0) == 30.0, machine
+        assert down(journal, "plc", 900.0, 1100.0) == 35.0
+        reasons = by_reason(journal, 900.0, 1100.0)
+        assert reasons[("cell", "alarm: plc estop")] == 30.0
+        assert reasons[("plc", "alarm: estop")] == 30.0

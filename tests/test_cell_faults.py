@@ -18,10 +18,10 @@ from typing import Any
 
 import pytest
 
+from cellctl.cell.causes import ESTOP
 from cellctl.cell.config import load_cell
 from cellctl.cell.controller import CellController
 from cellctl.cell.model import ControllerOptions
-from cellctl.cell.monitor import ESTOP
 from cellctl.clock import current_clock
 from cellctl.emulators.cell import EXAMPLE_CELL, EmulatedCell, real_cell_toml
 from cellctl.errors import MachineInUse

@@ -68,6 +68,10 @@ class Cause:
     not alarmed again)."""
 
 
+#: The PLC's emergency stop input pressed: every machine stops (the monitor raises it).
+ESTOP = Cause("plc", "estop", "emergency stop: the cell is stopped")
+
+
 def link_cause(machine: str, label: str, error: BaseException) -> Cause | None:
     """The link fault behind ``error`` (``label`` names the machine in the text: "robot",
     "PLC"); None when the machine answered and the failure is about what it did."""

@@ -29,7 +29,7 @@ import dataclasses
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from cellctl.cell.causes import Blamed, Cause, link_cause, read_cause, status_cause
+from cellctl.cell.causes import ESTOP, Blamed, Cause, link_cause, read_cause, status_cause
 from cellctl.errors import CellctlError, DeviceError, UsageError
 from cellctl.kinds import Condition, LastError
 from cellctl.kinds.families import CycleAborted
@@ -42,9 +42,6 @@ if TYPE_CHECKING:
 
 
 T = TypeVar("T")
-
-#: The PLC's emergency stop input is low.
-ESTOP = Cause("plc", "estop", "emergency stop: the cell is stopped")
 
 #: Looks per poll period at the PLC and the idle mills (a Modbus request on the network, a
 #: modem line): a fault, or a pallet that came, is seen at most a quarter period after.

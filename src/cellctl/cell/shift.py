@@ -46,6 +46,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
+from cellctl.cell.causes import ESTOP
 from cellctl.cell.config import CellConfig
 from cellctl.cell.journal import Alarm, Journal, Step
 
@@ -216,6 +217,11 @@ def _rounded(ratio: float | None) -> float | None:
     return None if ratio is None else round(ratio, 4)
 
 
+#: Alarms of one machine that stop the whole cell: down for every machine, as the cell's own
+#: alarms are (the PLC's emergency stop input: no machine may move while it is pressed).
+CELL_WIDE = {(ESTOP.machine, ESTOP.code)}
+
+
 def _down_intervals(
     journal: Journal, alarms: list[Alarm], end: float
 ) -> dict[str, list[tuple[float, float, str]]]:
@@ -228,6 +234,8 @@ def _down_intervals(
         for began, ended in spells[a.id]:
             stop = end if ended is None else min(ended, end)
             out[a.machine].append((began, max(began, stop), f"alarm: {a.code}"))
+            if (a.machine, a.code) in CELL_WIDE:
+                out["cell"].append((began, max(began, stop), f"alarm: {a.machine} {a.code}"))
     since: dict[str, tuple[float, str]] = {}
     for t, name, in_service, reason in journal.service_log():
         if not in_service and name not in since:

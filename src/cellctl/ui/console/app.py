@@ -543,8 +543,14 @@ class ConsoleApp(App[None]):
         service if it must be (asking first), run it and show its outcome."""
         assert self.client is not None
         # A function its caller's role may not run is refused first: before a dialog, and
-        # before its machine is taken out of automatic service for nothing.
-        refused = role_refusal(await self.client.call("server.info"), f"{machine.family}.{fn.name}")
+        # before its machine is taken out of automatic service for nothing. (Any role may
+        # observe.)
+        try:
+            info = {} if fn.observes else await self.client.call("server.info")
+        except CellctlError as e:
+            self.say([f"{machine.name}: {fn.label}: {e}"], "red")
+            return
+        refused = role_refusal(info, f"{machine.family}.{fn.name}")
         if refused:
             self.say([f"{machine.name}: {fn.label}: {refused}; nothing was done"], "red")
             return

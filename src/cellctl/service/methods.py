@@ -18,7 +18,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import threading
 from collections.abc import Iterator, Mapping
 from functools import cached_property
 from typing import Any
@@ -38,7 +37,7 @@ from cellctl.errors import (
 from cellctl.kinds import registry
 from cellctl.service import operator
 from cellctl.service.access import CellAccess
-from cellctl.service.audit import AuditLog, keeps_trail
+from cellctl.service.audit import AuditLog
 from cellctl.service.functions import (
     InvalidParams,
     Progress,
@@ -84,6 +83,7 @@ from cellctl.service.rpc import PARSE_ERROR as PARSE_ERROR
 from cellctl.service.rpc import Caller as Caller
 from cellctl.service.rpc import error_from_object as error_from_object
 from cellctl.service.token import role_allows
+from cellctl.service.trail import CallTrail, Started
 
 #: The most requests one JSON-RPC batch may hold.
 MAX_BATCH = 100
@@ -495,12 +495,12 @@ def local_caller() -> Caller:
 class Dispatcher:
     """Calls methods on one cell (see module docstring). Each call is checked against the
     caller's role, and every acting call (and every refused one) goes to the audit trail
-    when the directory is a cell."""
+    when the directory is a cell: an acting call as it begins (``running``), its entry then
+    given its end (:mod:`cellctl.service.trail`)."""
 
     def __init__(self, access: CellAccess) -> None:
         self.access = access
-        self._audit: AuditLog | None = None
-        self._audit_lock = threading.Lock()  # one opening of the log, from worker threads
+        self.trail = CallTrail(access.directory)
 
     async def call(
         self,
@@ -514,6 +514,7 @@ class Dispatcher:
         when None); typed errors on failure (:class:`RoleRefused` for a role too low)."""
         caller = caller or local_caller()
         entry = self._entry(method)
+        started: Started | None = None
         try:
             if entry is None:
                 raise MethodNotFound(f"no method {method!r} (server.info lists them)")
@@ -523,6 +524,8 @@ class Dispatcher:
                     f"{name} is {with_article(caller.role)}: {method} needs the {entry.role} role",
                     entry.role,
                 )
+            if entry.acts:  # on record from now on, a crash meanwhile included
+                started = self.trail.begin(caller.who, method, params)
             called = CALLER.set(caller)
             try:
                 result = await self._run(entry, method, params, progress)
@@ -531,20 +534,21 @@ class Dispatcher:
         except asyncio.CancelledError:
             # Cut short (the server stopping, a second Ctrl-C): an acting call is audited
             # so, and said, before the cancellation goes on.
-            if entry is not None and entry.acts:
+            if started is not None:
                 log.warning("%s by %s was cut short before its end (cancelled)", method, caller.who)
                 with contextlib.suppress(asyncio.CancelledError):
                     # Shielded: cancelled again, the entry is still written (in its thread).
-                    await asyncio.shield(self.record(caller.who, method, params, CANCELLED))
+                    await asyncio.shield(self.trail.end(started, CANCELLED))
             raise
         except Exception as e:
-            if entry is not None and (entry.acts or isinstance(e, RoleRefused)):
-                text = str(e) or type(e).__name__
-                refused = isinstance(e, RoleRefused)
-                await self.record(caller.who, method, params, text, collapse=refused)
+            text = str(e) or type(e).__name__
+            if started is not None:
+                await self.trail.end(started, text)
+            elif isinstance(e, RoleRefused):  # decided at once: one entry, counted if repeated
+                await self.trail.record(caller.who, method, params, text, collapse=True)
             raise
-        if entry.acts:
-            await self.record(caller.who, method, params, "ok")
+        if started is not None:
+            await self.trail.end(started, "ok")
         return result
 
     def _entry(self, method: str) -> Method | None:
@@ -569,32 +573,8 @@ class Dispatcher:
             raise InvalidParams(f"{method}: {describe(e)}") from None
         return await entry.handler(self.access, checked, progress)
 
-    async def record(
-        self, who: str, method: str, params: Any, result: str, *, collapse: bool = False
-    ) -> None:
-        """One audit entry, in the cell's journal: made for it if the cell has never run
-        but has a cell.toml (an order posted before the first ``cellctl run`` is audited too);
-        a directory that is no cell gets none. Written in a worker thread: a commit waits for
-        the disk (synchronous=FULL), and the controller's loop must not wait with it (its
-        looks at the machines have deadlines). ``collapse``: a refusal that repeats one of the
-        same caller's is counted on it (:meth:`AuditLog.record`)."""
-        if not keeps_trail(self.access.directory):
-            return
-        await asyncio.to_thread(self._write_entry, who, method, params, result, collapse)
-
-    def _write_entry(
-        self, who: str, method: str, params: Any, result: str, collapse: bool = False
-    ) -> None:
-        with self._audit_lock:
-            if self._audit is None:
-                self._audit = AuditLog(self.access.directory)
-            self._audit.record(who, method, params, result, collapse=collapse)
-
     def close(self) -> None:
-        with self._audit_lock:
-            if self._audit is not None:
-                self._audit.close()
-                self._audit = None
+        self.trail.close()
 
 
 def error_object(error: BaseException) -> dict[str, Any]:

@@ -98,6 +98,7 @@ async def _run_owned(
     from cellctl.cell.owner import refuse_if_machines_held
     from cellctl.mailbox import open_mailbox
     from cellctl.service.access import AttachedCell
+    from cellctl.service.audit import interrupted_note, mark_interrupted
     from cellctl.service.server import ApiServer, api_limits
     from cellctl.service.token import ensure_default
     from cellctl.ui.dashboard.routes import dashboard_routes
@@ -111,11 +112,16 @@ async def _run_owned(
     # and the journal opened, not once connecting finds it.
     refuse_if_machines_held(config)
     journal = open_journal(directory)
+    # Calls the audit trail says are running were cut by the end of the process serving
+    # them (a crash, a kill): only the cell's owner, as it starts, may say so.
+    cut_short = mark_interrupted(directory)
     mailbox = open_mailbox(directory)
     stop = stop or asyncio.Event()
     console.on_broken_pipe = _output_gone  # type: ignore[method-assign]
     printer = None if live else _print_event
     controller = CellController(config, journal, mailbox, options=options, on_event=printer)
+    for entry in cut_short:
+        controller.log(interrupted_note(entry))
     presses = 0
 
     def on_signal() -> None:

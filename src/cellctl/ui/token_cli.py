@@ -20,7 +20,7 @@ from rich.table import Table
 
 from cellctl.clock import current_clock
 from cellctl.errors import AccessDenied, UsageError, with_article
-from cellctl.service.audit import AuditLog, keeps_trail
+from cellctl.service.audit import RUNNING, AuditLog, keeps_trail
 from cellctl.service.rpc import login_name
 from cellctl.service.token import (
     DEFAULT_NAME,
@@ -196,8 +196,21 @@ def audit_command(
         console.print("no actions recorded")
         return
     table = Table(title="Audit trail")
-    for column in ("When", "Who", "Method", "Parameters", "Result"):
+    for column in ("When", "Took", "Who", "Method", "Parameters", "Result"):
         table.add_column(column, overflow="fold")
+    now = current_clock().now()
     for e in found:
-        table.add_row(_when(e["at"]), e["who"], e["method"], e["params"], e["result"])
+        took = _took(e, now)
+        table.add_row(_when(e["at"]), took, e["who"], e["method"], e["params"], e["result"])
     print_table(table)
+
+
+def _took(entry: dict[str, Any], now: float) -> str:
+    """How long an acting call took ("" for an entry written whole, or one whose end is
+    unknown); one still running, how long so far. A server from before ``ended`` has none."""
+    ended = entry.get("ended")
+    if isinstance(ended, int | float):
+        return f"{max(0.0, ended - entry['at']):.1f} s"
+    if entry["result"] == RUNNING:
+        return f"{max(0.0, now - entry['at']):.0f} s so far"
+    return ""

@@ -2,9 +2,12 @@
 
 A machining step journals its step, closes the mill's door and waits for the door and the vise
 (``interlock_timeout``), then runs the route step's program on the mill, its progress in the
-live view. A failure once the program began to go out, or an emergency stop, holds the part
-("needs inspection"); a failure before the first line went out leaves the part where it is,
-waiting. Either takes the mill out of the plan (recovery sets it up again), its alarm named by
+live view. Once the mill's ``run()`` was called, a failure or an emergency stop holds the part
+("needs inspection"): the cell never runs a program twice on a part that may have been cut.
+Only a failure the kind says positively started nothing (a
+:class:`~cellctl.kinds.families.RunNotStarted` or a UsageError, with no progress but
+"waiting" before it), or one before ``run()`` (the door, the vise), leaves the part where it
+is, waiting. Either takes the mill out of the plan (recovery sets it up again), its alarm named by
 the failure's cause.
 
 The controller owns a :class:`MillSteps` and starts its :meth:`~MillSteps.machine` as a mill's
@@ -30,6 +33,7 @@ from cellctl.cell.orders import ReportKind
 from cellctl.cell.robotsteps import INTERLOCK_POLL_S
 from cellctl.errors import CellctlError
 from cellctl.kinds import Condition
+from cellctl.kinds.families import nothing_started
 from cellctl.protocol.plc import canonical
 
 if TYPE_CHECKING:
@@ -95,7 +99,8 @@ class MillSteps:
         index = self.world.mill_index(mill_name)
         plc = self.world.plc
         assert plc is not None
-        cutting = False  # the first line of the program went out: the part may be cut
+        cutting = False  # run() was called: the part may be cut (unless the kind says not)
+        phases: set[str] = set()  # the progress phases run() reported
         try:
             with blame("plc", "PLC"):
                 # Close the door (a transfer cut short by a restart may have left it open).
@@ -111,8 +116,7 @@ class MillSteps:
                 )
 
             def progress(p: RunProgress) -> None:
-                nonlocal cutting
-                cutting = cutting or p.phase == "sending"
+                phases.add(p.phase)
                 if view.report_progress(
                     p.bytes_sent,
                     p.bytes_total,
@@ -130,8 +134,10 @@ class MillSteps:
                 ):
                     self.alarms.touch()
 
+            cutting = True
             await mill.run(route_step.program, progress=progress)
         except (CellctlError, OSError, asyncio.CancelledError) as e:
+            cutting = cutting and not nothing_started(e, phases)
             view.step = ""
             view.progress = None
             stopped = isinstance(e, asyncio.CancelledError)

@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 from cellctl.cell.causes import ESTOP, Blamed, Cause, link_cause, read_cause, status_cause
 from cellctl.errors import CellctlError, DeviceError, UsageError
 from cellctl.kinds import Condition, LastError
-from cellctl.kinds.families import CycleAborted
+from cellctl.kinds.families import CycleAborted, setup_lost
 
 if TYPE_CHECKING:
     from cellctl.cell.config import MachineConfig
@@ -378,6 +378,15 @@ class Monitor:
         if was_ready and not ready and status.set_up:
             # CTS low on an idle, set-up mill that is not waiting for its operator.
             recovery.fault(m.name, "readiness", "lost readiness (CTS low while idle)", count=False)
+        elif setup_lost(status, running=mill.running):
+            # Not set up, nobody setting it up, doing nothing: power-cycled behind the cell's
+            # back. Recovery sets it up again (what the machine needs), saying so.
+            recovery.fault(
+                m.name,
+                "readiness",
+                f"found not set up ({status.shown}): its setup was lost (power cycled?)",
+                count=False,
+            )
         elif status.awaiting_operator and mill.initialized:
             now = self.world.clock.monotonic()
             since = recovery.setup_at.get(m.name, now)

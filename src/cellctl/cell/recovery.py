@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING
 from cellctl.cell.causes import LINK_CLOSED, Cause
 from cellctl.errors import CellctlError
 from cellctl.kinds import Condition, LastError
+from cellctl.kinds.families import setup_lost
 from cellctl.tasks import cancel_and_wait
 
 if TYPE_CHECKING:
@@ -33,6 +34,10 @@ if TYPE_CHECKING:
 #: What names a failure by its cause, from the machine and the error (the monitor's
 #: :meth:`~cellctl.cell.monitor.Monitor.cause_of`); None: only the failure explains it.
 CauseFinder = Callable[[str, BaseException], Awaitable[Cause | None]]
+
+
+class SetupLost(CellctlError):
+    """A mill found not set up, that the cell cannot set up (it has no setup program)."""
 
 
 class Recovery:
@@ -160,7 +165,7 @@ class Recovery:
             self.alarms.log(f"{m.name}: ready again, its setup kept (a part is in its vise)")
             return
         if not mill.running:  # a block still running is no failure: it ends
-            self.alarms.failed(m.name, "readiness", f"not ready: {status}", alarm=False)
+            self.alarms.failed(m.name, "readiness", f"not ready: {status.shown}", alarm=False)
         await self.world.clock.sleep(mill.ready_wait)
 
     async def close(self) -> None:
@@ -248,21 +253,34 @@ class Recovery:
         """
         mill = self.world.mills[m.name]
         view = self.world.machines[m.name]
+        believed = mill.initialized  # what the host saved: set up, as far as it knows
         try:
-            if mill.running:
-                status = await mill.status()  # a block still running finishes first
-                if not status.ready:
-                    # Left running (by a controller that was killed): no fault, but it is
-                    # not in the plan until recovery sees the block end.
-                    view.show("executing (left running)", Condition.BUSY)
-                    self.fit[m.name] = False
-                    self._start(m.name)
-                    return False
-            if m.setup is not None and (force or not mill.initialized):
+            # Read first: a machine power-cycled while the cell was down lost its setup,
+            # whatever the host saved.
+            status = await mill.status()
+            if mill.running and not status.ready:
+                # Left running (by a controller that was killed): no fault, but it is not
+                # in the plan until recovery sees the block end.
+                view.show("executing (left running)", Condition.BUSY)
+                self.fit[m.name] = False
+                self._start(m.name)
+                return False
+            lost = believed and setup_lost(status, running=mill.running)
+            if lost:
+                self.alarms.log(
+                    f"{m.name}: found not set up ({status.shown}): its setup was lost "
+                    "(power cycled?)" + (": setting it up again" if m.setup is not None else "")
+                )
+            if m.setup is None and lost:
+                raise SetupLost(
+                    f"{m.name} lost its setup ({status.shown}) and has no setup program: "
+                    "set it up at the machine"
+                )
+            if m.setup is not None and (force or not mill.initialized or lost):
                 await mill.setup(m.setup, force=True)
                 self.setup_at[m.name] = self.world.clock.monotonic()
                 self.alarms.log(f"{m.name}: initialized with {m.setup.name}")
-            status = await mill.status()
+                status = await mill.status()
         except CellctlError as e:
             view.show(f"error: {e}", Condition.ALARM, LastError.of(e))
             self.fault(m.name, "initialize", f"setup failed: {e}")

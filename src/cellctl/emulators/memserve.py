@@ -59,7 +59,7 @@ async def serve_mem(
     """
     check_loop_clock(device.clock, f"{type(device).__name__}")
     listen_name = name or _default_name(device)
-    server = Server(url=f"mem://{listen_name}", device=device)
+    server = Server(url=f"mem://{listen_name}", device=device, name=name or "")
 
     def on_connect(port: MemPort) -> None:
         # The wire paces both ways: the DeviceLine on top hands bytes through as they come.

@@ -33,6 +33,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hashlib
+import logging
 import os
 import secrets
 import stat
@@ -54,6 +55,8 @@ from cellctl.errors import LinkClosed, UsageError
 from cellctl.link import LineSettings, parse_host_port
 from cellctl.link.lock import OwnerLock, runtime_dir
 from cellctl.tasks import cancel_and_wait
+
+log = logging.getLogger(__name__)
 
 #: Default time scales, one per use (each command's --help says its own and why):
 #: a single machine's emulator runs in the machine's own time, so a driver, the console or
@@ -180,6 +183,8 @@ class Server:
 
     url: str
     device: EmulatedDevice
+    name: str = ""
+    """The machine it stands for, where the caller named it (its logs say so)."""
     _closers: list[Callable[[], None]] = field(default_factory=list)
     _tasks: set[asyncio.Task[None]] = field(default_factory=set)
     _stopped: asyncio.Event = field(default_factory=asyncio.Event)
@@ -205,6 +210,16 @@ async def _run_session(server: Server, line: DeviceLine, on_end: Callable[[], No
         await server.device.session(line)
     except LinkClosed:
         pass
+    except Exception as e:  # the emulator's own bug: said with what it is, the line closed
+        device = type(server.device)
+        log.error(
+            "emulator %s (%s.%s) failed in its session: %s: %s",
+            server.name or server.url,
+            device.__module__,
+            device.__name__,
+            type(e).__name__,
+            e,
+        )
     finally:
         line.feed_closed()
         on_end()

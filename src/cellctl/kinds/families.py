@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 from cellctl.drivers.base import CallbackOutput, StartOutput
-from cellctl.errors import DeviceError
+from cellctl.errors import CellctlError, DeviceError, UsageError
 from cellctl.kinds.condition import Condition
 from cellctl.link import Link
 
@@ -30,11 +30,16 @@ __all__ = [
     "CycleAborted",
     "Health",
     "HostStatus",
+    "KindContractError",
     "Mill",
     "MillReading",
     "Robot",
+    "RunNotStarted",
     "RunProgress",
     "StartOutput",
+    "checked_driver",
+    "nothing_started",
+    "setup_lost",
 ]
 
 
@@ -62,6 +67,26 @@ class CycleAborted(DeviceError):
         self.status = status
 
 
+class RunNotStarted(CellctlError):
+    """A mill's ``run()`` failed before anything of the program reached the machine: the
+    part is as it was, and the cell may run the program on it again.
+
+    The cell never runs a program twice on a part that may have been cut: once ``run()`` was
+    called, any failure holds the part for inspection unless the kind says positively that
+    nothing started, by raising this (or an error class that also derives from it, such as
+    ``class NotReady(DeviceError, RunNotStarted)``) or a :class:`~cellctl.errors.UsageError`
+    (refused before any byte), and reported no progress but ``"waiting"`` before it."""
+
+
+def nothing_started(error: BaseException, phases: Iterable[str] = ()) -> bool:
+    """True if a mill's ``run()`` that failed with ``error``, having reported progress in
+    ``phases``, says positively that nothing of the program went out (see
+    :class:`RunNotStarted`): any phase but ``"waiting"`` counts as started."""
+    if any(phase != "waiting" for phase in phases):
+        return False
+    return isinstance(error, RunNotStarted | UsageError)
+
+
 @dataclass
 class RunProgress:
     """Where a program run stands; passed to the progress callback as it goes on."""
@@ -72,7 +97,9 @@ class RunProgress:
     lines_total: int
     bytes_sent: int
     bytes_total: int
-    phase: str  # "waiting" (for the machine), "sending", "machining", "done"
+    # "waiting" (for the machine: nothing went out yet), "sending", "machining", "done"; the
+    # cell counts any phase but "waiting" as the part's cut begun (see RunNotStarted).
+    phase: str
     # The run's own estimate (the program's preview: its line time and cut time), corrected
     # by the machine's reports: ``estimate_done_s`` of ``estimate_s`` were done at ``at``
     # (time.time()); while ``running`` the machine works on, so the figure grows with the
@@ -251,6 +278,19 @@ class MillReading(Protocol):
         ...
 
 
+def setup_lost(reading: MillReading, *, running: bool) -> bool:
+    """True if a mill's ``reading`` says it lost its setup: not set up, not waiting for its
+    operator to finish one, doing nothing (not ready or idle, no alarm) and no run of the
+    host's on it. What a machine power-cycled behind the host's back shows: a controller
+    that believed it set up (``initialized``) sets it up again."""
+    return (
+        not running
+        and not reading.set_up
+        and not reading.awaiting_operator
+        and reading.kind_condition in (Condition.NOT_READY, Condition.IDLE)
+    )
+
+
 @runtime_checkable
 class Mill(Protocol):
     """A machine that cuts a part with a program, after a setup."""
@@ -299,3 +339,99 @@ class Mill(Protocol):
         ...
 
     async def close(self) -> None: ...
+
+
+# -- holding a kind's driver to its family -------------------------------------------------------
+
+
+class KindContractError(CellctlError):
+    """A kind's driver does not keep its family's protocol (a member missing, a reading of
+    the wrong type): the message names the machine, its kind and where the kind comes from."""
+
+
+FAMILY_PROTOCOLS: dict[str, type] = {"robot": Robot, "mill": Mill}
+
+
+def protocol_members(protocol: type) -> dict[str, str]:
+    """A protocol's members, each as a message names it: ``status()`` for a method,
+    ``shown`` for an attribute or a property."""
+    members: dict[str, str] = {}
+    for cls in reversed(protocol.__mro__):
+        if cls in (object, Protocol) or cls.__module__ == "typing":
+            continue
+        for name in getattr(cls, "__annotations__", {}):
+            members[name] = name
+        for name, value in vars(cls).items():
+            if not name.startswith("_"):
+                members[name] = f"{name}()" if callable(value) else name
+    return members
+
+
+def missing_members(obj: object, protocol: type) -> list[str]:
+    """The members of ``protocol`` that ``obj`` has not, as a message names them."""
+    return [shown for name, shown in protocol_members(protocol).items() if not hasattr(obj, name)]
+
+
+def checked_reading(reading: object, who: str, what: str) -> MillReading:
+    """``reading`` (what ``what`` gave: ``"status()"``) as a :class:`MillReading` whose
+    ``kind_condition`` is a :class:`Condition` (a condition's value, ``"idle"``, is taken
+    for it); :class:`KindContractError` naming ``who`` otherwise."""
+    missing = missing_members(reading, MillReading)
+    if missing:
+        raise KindContractError(
+            f"{who}: its {what} gave a {type(reading).__name__}, not a reading "
+            f"(no {', '.join(missing)})"
+        )
+    condition = reading.kind_condition  # type: ignore[attr-defined]
+    if not isinstance(condition, Condition):
+        try:
+            condition = Condition(condition)
+        except ValueError:
+            known = ", ".join(c.value for c in Condition)
+            raise KindContractError(
+                f"{who}: its {what} reading's kind_condition is {condition!r}, "
+                f"not a condition ({known})"
+            ) from None
+        return _Coerced(reading, condition)
+    return reading  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class _Coerced:
+    """A reading whose condition was given as its value (``"idle"``): the same reading,
+    its condition the :class:`Condition`."""
+
+    reading: Any
+    kind_condition: Condition
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.reading, name)
+
+    def __str__(self) -> str:
+        return str(self.reading)
+
+
+def checked_driver(driver: Any, family: str, who: str) -> None:
+    """Refuse ``driver`` (:class:`KindContractError` naming ``who``) unless it has every
+    member of ``family``'s protocol; a mill's readings (``status()``, ``host_status()``)
+    are then checked as they come (:func:`checked_reading`)."""
+    protocol = FAMILY_PROTOCOLS[family]
+    missing = missing_members(driver, protocol)
+    if missing:
+        raise KindContractError(f"{who}: its driver has no {', '.join(missing)}")
+    if family != "mill":
+        return
+    status = driver.status
+    host_status = driver.host_status
+
+    async def checked_status() -> MillReading:
+        return checked_reading(await status(), who, "status()")
+
+    def checked_host_status() -> MillReading:
+        return checked_reading(host_status(), who, "host_status()")
+
+    try:  # on the instance: the driver stays itself (its class, its menu's isinstance)
+        setattr(driver, "status", checked_status)  # noqa: B010
+        setattr(driver, "host_status", checked_host_status)  # noqa: B010
+    except (AttributeError, TypeError):
+        pass  # slots, a frozen driver: its readings go unchecked

@@ -28,6 +28,7 @@ and calls these hooks.
 from __future__ import annotations
 
 import ast
+import contextlib
 import enum
 import functools
 import importlib
@@ -272,9 +273,29 @@ class MachineKind:
             rows.append(f"| `{key}` | {default} | {meaning} |")
         return "\n".join(rows) + "\n"
 
+    def machine_words(self, machine: str) -> str:
+        """Machine ``machine`` of this kind as an error names it: ``saw (kind saw1 from
+        cellctl-saw)``."""
+        where = f" from {self.origin.distribution}" if self.origin is not None else ""
+        return f"{machine} (kind {self.name}{where})"
+
     async def open(self, spec: DriverSpec) -> Any:
-        """Open a driver for ``spec`` (its options already checked by :meth:`checked_options`)."""
-        return await self.open_driver(spec)
+        """Open a driver for ``spec`` (its options already checked by :meth:`checked_options`),
+        held to its family's protocol: a driver missing a member is closed and refused, a
+        mill's readings are checked as they come (``KindContractError`` naming the machine,
+        the kind and where it comes from)."""
+        from cellctl.kinds.families import KindContractError, checked_driver
+
+        driver = await self.open_driver(spec)
+        try:
+            checked_driver(driver, self.family, self.machine_words(spec.name or spec.url))
+        except KindContractError:
+            close = getattr(driver, "close", None)
+            if callable(close):
+                with contextlib.suppress(Exception):  # a broken driver's close may fail too
+                    await close()
+            raise
+        return driver
 
 
 @functools.cache

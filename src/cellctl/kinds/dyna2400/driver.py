@@ -73,6 +73,7 @@ from cellctl.kinds.dyna2400.status import REFERENCE_ZERO_NOT_SET as REFERENCE_ZE
 from cellctl.kinds.dyna2400.status import RUNNING as RUNNING
 from cellctl.kinds.dyna2400.status import BlockTiming as BlockTiming
 from cellctl.kinds.dyna2400.status import MillInputError as MillInputError
+from cellctl.kinds.dyna2400.status import MillRefused as MillRefused
 from cellctl.kinds.dyna2400.status import MillStatus as MillStatus
 from cellctl.kinds.dyna2400.status import Progress as Progress
 from cellctl.kinds.dyna2400.status import ProgressCallback as ProgressCallback
@@ -182,7 +183,7 @@ class Dyna2400Mill(MillLine):
             await self.status()  # NEXT pressed (1 -> 2), a block or a GO done (3/4 -> 2)
         refusal = mill_refusal(function, self.state, self.initialized)
         if refusal is not None:
-            raise DeviceError(
+            raise MillRefused(
                 refusal.code,
                 refusal.message,
                 detail=f"{self.name}: {function.value} refused by the host's state "
@@ -343,7 +344,7 @@ class Dyna2400Mill(MillLine):
     async def _ready_for_program(self) -> None:
         await self._guard(MillFunction.DOWNLOAD)
         if not await self._cts():
-            raise DeviceError(2, "Machine executing program", detail=f"{self.name}: CTS low")
+            raise MillRefused(2, "Machine executing program", detail=f"{self.name}: CTS low")
         if self.state != 2:
             self._set_state(2)
 

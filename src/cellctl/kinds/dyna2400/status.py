@@ -15,10 +15,10 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-from cellctl.errors import UsageError
+from cellctl.errors import DeviceError, UsageError
 from cellctl.kinds import Condition
 from cellctl.kinds.dyna2400.options import MillState
-from cellctl.kinds.families import RunProgress
+from cellctl.kinds.families import RunNotStarted, RunProgress
 
 #: Machine states in words.
 MILL_STATES = {int(s): s.text for s in MillState}
@@ -51,6 +51,12 @@ DOWNLOAD_RESULTS = {
 END_RESULTS = {0: "Ending was correct", 1: "Machine code error", 2: "Could not open file"}
 REFERENCE_ZERO_NOT_SET = "reference zero not set"
 EXECUTING = "executing"
+
+
+class MillRefused(DeviceError, RunNotStarted):
+    """A function the host's state or the mill's CTS refuses before a byte goes out (the
+    spec's refusals: not initialized, machine executing): a cell's run that ends so started
+    nothing, its part as it was."""
 
 
 class MillInputError(UsageError):

@@ -20,8 +20,8 @@ from cellctl.ui.cli import main
 
 from .conftest import CELLCTL
 
-#: Three problems a line (words without a number), 200 lines: checking stops at line 35.
-FLOOD = "O1\n" + "U S Q\n" * 200 + "M30\n"
+#: Three problems a line (numbers that must be whole), 200 lines: checking stops at line 35.
+FLOOD = "O1\n" + "D1.5 H1.5 L1.5\n" * 200 + "M30\n"
 
 
 @pytest.fixture
@@ -53,6 +53,8 @@ def test_the_check_stops_at_its_limit_and_counts_what_it_found() -> None:
     with pytest.raises(UsageError):
         prepare(FLOOD.encode(), IsoCncOptions())
     assert gcode.counted(gcode.errors("O1\nU\nM30\n")) == "1 problem(s)"
+    # One problem a block where a block goes wrong: the rest of it is not read as words.
+    assert gcode.counted(gcode.errors("O1\nU S Q\nM30\n")) == "1 problem(s)"
 
 
 def test_lines_too_long_to_check_stop_the_check_too() -> None:
@@ -70,7 +72,7 @@ def test_dnc_check_counts_the_problems_found_not_its_note(shop: Path, tmp_path: 
     assert f"{flood}:35: checking stopped here: 2 more problems found, not listed" in said
     assert (
         f"{flood}: 102 problems found before checking stopped at line 35 (the first 100 "
-        "listed): mill1 would refuse it"
+        "listed): cellctl refuses to send it to mill1"
     ) in said
     assert "101 problem" not in said
 

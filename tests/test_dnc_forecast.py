@@ -120,12 +120,14 @@ def test_dnc_check_refuses_as_send_would(shop: Path) -> None:
     bad.write_text("%\nO1001\nG21 G90\nG00 X0 Y0\nG01 X10 Y10\nM30\n%\n")
     code, said = dnc(shop, "check", "mill1", str(bad))
     assert code == 1
-    assert f"{bad}:5: G01 move with no feed" in said and "mill1 would refuse it" in said
+    assert (
+        f"{bad}:5: G01 move with no feed" in said and "cellctl refuses to send it to mill1" in said
+    )
     renamed = shop / "mill1" / "programs" / "O1002.nc"
     shutil.copy(EXAMPLE / "O1001.nc", renamed)
     code, said = dnc(shop, "check", "mill1", "O1002")  # a problem like the others: exit 1
     assert code == 1 and "its name says O1002 but its text is O1001" in said, said
-    assert "1 problem(s): mill1 would refuse it" in said
+    assert "1 problem(s): cellctl refuses to send it to mill1" in said
     latin = shop / "latin.nc"
     latin.write_bytes(b"%\nO1003\nG21 (D\xc9BUT)\nM30\n%\n")
     code, said = dnc(shop, "check", "mill1", str(latin))

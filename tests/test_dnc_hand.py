@@ -81,7 +81,7 @@ async def test_a_wrong_o_number_is_a_problem_check_exits_1(shop: Shop) -> None: 
     code, said = await run_here("dnc", "check", "mill1", "O1111", "--dir", str(shop.root))
     assert code == 1, said
     assert "its name says O1111 but its text is O1234" in said
-    assert "1 problem(s): mill1 would refuse it" in said
+    assert "1 problem(s): cellctl refuses to send it to mill1" in said
     # `send` refuses it before a byte goes out, as bad input (2)
     code, said = await run_here("dnc", "send", "mill1", "O1111", "--dir", str(shop.root))
     assert code == 2 and "its name says O1111" in said, said

@@ -52,7 +52,7 @@ def test_programs_by_number_and_log(tmp_path: Path) -> None:
     (folder / "notes.txt").write_text("not a program")
     assert store.program("mill1", 1234).name == "O1234 bracket.nc"
     assert store.resolve("mill1", "O1234") == folder / "O1234 bracket.nc"
-    with pytest.raises(UsageError, match="no program O0042 in"):
+    with pytest.raises(UsageError, match="no program O42 in"):
         store.program("mill1", 42)
     with pytest.raises(UsageError, match="not a program number"):
         store.resolve("mill1", "bracket")

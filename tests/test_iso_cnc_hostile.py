@@ -57,7 +57,9 @@ def test_a_million_tiny_arcs_are_refused_at_once(tmp_path: Path) -> None:
     problems = found["problems"]
     assert isinstance(problems, list) and found["count"] == 1
     assert problems[0].startswith(f"{tmp_path / 'hostile.nc'}:1: ")
-    assert problems[0].endswith(" to check")  # too many characters or blocks to check
+    # too many characters or blocks for a read-in: cellctl's cap, said as such
+    assert "the most cellctl checks for a read-in" in problems[0]
+    assert problems[0].endswith("drip-feed it (`cellctl dnc drip`, up to 1 GiB)")
     assert found["drawn"] == "cannot trace hostile: no moves"
 
 
@@ -75,7 +77,7 @@ def test_twenty_thousand_tiny_arcs_are_timed_and_drawn_in_bounded_memory(tmp_pat
         (b"O1\n" + b"G1 X1 (a (b (c (d\n" * 20_000 + b"M30\n", ":2:10: ( inside a comment"),
         (b"O1\n" + b"G1 X1 (never closed\n" * 20_000 + b"M30\n", "comment not closed"),
         (bytes(range(256)) * 4000, "not ISO code"),
-        (b"O1\nG1 X1 F100\n" * 9_000_000, "more than 16777216 to check"),
+        (b"O1\nG1 X1 F100\n" * 9_000_000, "more than 16777216, the most cellctl checks"),
     ],
 )
 def test_hostile_programs_get_a_typed_problem(tmp_path: Path, data: bytes, expected: str) -> None:

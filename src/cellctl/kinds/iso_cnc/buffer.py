@@ -4,6 +4,7 @@ and what the control does at each LF of a tape. No I/O: times are passed in."""
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 
 from cellctl.kinds.iso_cnc import gcode
@@ -16,8 +17,10 @@ class BufferModel:
 
     drip: bool
     store_cps: float = 0.0
-    #: blocks not yet written whole: (offset after its LF, seconds it runs), tape order
+    #: blocks not yet written whole: (offset after its LF, seconds it runs), tape order;
+    #: taken from :attr:`source` as the tape goes (a long program is never held as blocks)
     unsent: deque[tuple[int, float]] = field(default_factory=deque)
+    source: Iterator[tuple[int, float]] | None = None
     #: blocks written whole, not yet started: (when its LF is through, offset, seconds)
     waiting: deque[tuple[float, int, float]] = field(default_factory=deque)
     consumed: int = 0
@@ -29,10 +32,32 @@ class BufferModel:
     #: the longest stall: (seconds, offset after the LF of the block waited for)
     longest: tuple[float, int] = (0.0, 0)
 
+    def feed(self, blocks: Iterable[tuple[int, float]]) -> None:
+        """The tape's blocks (:func:`tape_blocks`), taken one by one as they are written."""
+        self.source = iter(blocks)
+
+    def _take(self, upto: int) -> None:
+        """Blocks from :attr:`source` until one ends past ``upto`` (the block in flight)."""
+        source = self.source
+        while source is not None and (not self.unsent or self.unsent[-1][0] <= upto):
+            block = next(source, None)
+            if block is None:
+                self.source = source = None
+            else:
+                self.unsent.append(block)
+
+    def cut(self, total: int) -> None:
+        """The tape now ends at offset ``total``: blocks past it never go out."""
+        self._take(total)
+        self.source = None
+        while self.unsent and self.unsent[-1][0] > total:
+            self.unsent.pop()
+
     def wrote(self, upto: int, through_at: float) -> None:
         """Characters up to offset ``upto`` are written; they are through by ``through_at``."""
         if not self.started and not self.drip:
             self.started, self.free_at = True, through_at
+        self._take(upto)
         while self.unsent and self.unsent[0][0] <= upto:
             end, seconds = self.unsent.popleft()
             self.waiting.append((through_at, end, seconds))
@@ -77,22 +102,20 @@ class BufferModel:
         return t
 
 
-def tape_blocks(data: bytes, model: MotionModel, scale: float) -> list[tuple[int, float]]:
+def tape_blocks(data: bytes, model: MotionModel, scale: float) -> Iterator[tuple[int, float]]:
     """Each LF of a tape with what the control does on reaching it: (offset after the LF,
-    seconds it executes), by the motion model; label and blank lines take 0 s."""
+    seconds it executes), by the motion model; label and blank lines take 0 s. One at a
+    time: a drip-feed of millions of blocks holds only those in the control's buffer."""
     machine = Machine(model, trace=False)
-    out: list[tuple[int, float]] = []
-    pos = 0
-    for number, raw in enumerate(data.split(b"\n")[:-1], 1):
-        pos += len(raw) + 1
+    pos, number = 0, 0
+    while (eol := data.find(b"\n", pos)) >= 0:
+        raw, pos, number = data[pos:eol], eol + 1, number + 1
         text = raw.replace(b"\x00", b"").replace(b"\r", b"").decode("latin-1")
         if "%" in text:
-            out.append((pos, 0.0))
+            yield pos, 0.0
             continue
         block = gcode.parse_block(number, text, [])
-        seconds = machine.step(block).seconds / scale if block.words else 0.0
-        out.append((pos, seconds))
-    return out
+        yield pos, machine.step(block).seconds / scale if block.words else 0.0
 
 
 @dataclass(frozen=True)
@@ -101,6 +124,8 @@ class DripForecast:
     (the driver's own model): the host writing as fast as the line and the buffer allow."""
 
     chars: int
+    timed: int
+    """Blocks that take time."""
     line_s: float
     """The tape's characters on the line, end to end."""
     run_s: float
@@ -116,7 +141,7 @@ class DripForecast:
 
 def forecast_drip(
     framed: bytes,
-    blocks: list[tuple[int, float]],
+    blocks: Iterable[tuple[int, float]],
     char_time: float,
     sender: tuple[int, int],
 ) -> DripForecast:
@@ -126,7 +151,16 @@ def forecast_drip(
     (``(burst, limit)``). Pure arithmetic: a 200,000-block tape takes a second or two."""
     burst, limit = sender
     buffer = BufferModel(drip=True)
-    buffer.unsent.extend(blocks)
+    run = [0.0, 0]  # the blocks' motion time, and how many take time, as they are taken
+
+    def counted() -> Iterator[tuple[int, float]]:
+        for block in blocks:
+            if block[1] > 0:
+                run[0] += block[1]
+                run[1] += 1
+            yield block
+
+    buffer.feed(counted())
     total, sent, now = len(framed), 0, 0.0
     while sent < total:
         room = limit - buffer.level(sent, now)
@@ -149,10 +183,12 @@ def forecast_drip(
     if buffer.stalls:
         start = framed.rfind(b"\n", 0, offset - 1) + 1
         block = framed[start : offset - 1].decode("latin-1").strip()
+    buffer.cut(total)  # every block taken (and counted)
     return DripForecast(
         chars=total,
+        timed=int(run[1]),
         line_s=total * char_time,
-        run_s=sum(seconds for _, seconds in blocks),
+        run_s=run[0],
         end_s=end,
         stall_s=buffer.idle_s,
         stalls=buffer.stalls,

@@ -65,7 +65,7 @@ from cellctl.clock import Clock
 from cellctl.drivers.base import StartOutput
 from cellctl.drivers.state import StateStore
 from cellctl.errors import DeviceError, LinkTimeout, ProtocolError
-from cellctl.kinds.families import RunProgress
+from cellctl.kinds.families import RunNotStarted, RunProgress
 from cellctl.kinds.iso_cnc import tape
 from cellctl.kinds.iso_cnc.buffer import BufferModel, tape_blocks
 from cellctl.kinds.iso_cnc.options import ISO_LINE, IsoCncOptions, off_loop, prepare, read_program
@@ -77,6 +77,12 @@ from cellctl.link import LineSettings, Link, TrafficLog
 
 class ControlAlarm(DeviceError):
     """The control raised an alarm (085, 086, 087) and aborted the transfer."""
+
+
+class ReadNotStarted(LinkTimeout, RunNotStarted):
+    """The control sent no DC1 in time: nobody pressed READ or CYCLE START (nothing went
+    out; ``options.dc1_timeout`` unless the caller gave its own wait). A cell's run that
+    ends so started nothing: its part stays as it was."""
 
 
 class IsoCncDriver(TapeSender):
@@ -166,10 +172,13 @@ class IsoCncDriver(TapeSender):
         deadline = clock.monotonic() + timeout
         self._handle(self.link.reset_input())
         while self._stopped:
-            await self._listen(
-                deadline,
-                f"no DC1 (tape reader start) from the control in {timeout:g} s: {what}",
-            )
+            try:
+                await self._listen(
+                    deadline,
+                    f"no DC1 (tape reader start) from the control in {timeout:g} s: {what}",
+                )
+            except LinkTimeout as e:
+                raise ReadNotStarted(str(e)) from None
 
     async def _wait_end(self, deadline: float, model: BufferModel, seen_before: int) -> None:
         """Wait for the control's DC3 that ends the read (after the closing ``%``).
@@ -201,7 +210,9 @@ class IsoCncDriver(TapeSender):
     ) -> TransferReport:
         """Send a program file into the control's memory (EDIT mode, READ pressed): wait for
         DC1, send, stop on DC3, go on at DC1; returns at the control's DC3 after ``%``.
-        ``name`` (the file's) begins each problem of the G-code check that refuses it."""
+        ``name`` (the file's) begins each problem of the G-code check that refuses it.
+        ``timeout``: seconds to wait for the DC1 (``options.dc1_timeout`` by default), then
+        :class:`ReadNotStarted`."""
         framed = await off_loop(data, prepare, data, self.options, name)
         return await self._read(framed, drip=False, progress=progress, timeout=timeout)
 
@@ -214,8 +225,9 @@ class IsoCncDriver(TapeSender):
         name: str = "program",
     ) -> TransferReport:
         """Run a program as it is sent (RMT mode, CYCLE START): never overflow the control's
-        buffer, never let it starve where the line can keep up; returns when it has ended."""
-        framed = await off_loop(data, prepare, data, self.options, name)
+        buffer, never let it starve where the line can keep up; returns when it has ended.
+        ``timeout`` as for :meth:`read_in` (the wait for the DC1)."""
+        framed = await off_loop(data, prepare, data, self.options, name, True)
         return await self._read(framed, drip=True, progress=progress, timeout=timeout)
 
     async def _read(
@@ -225,14 +237,15 @@ class IsoCncDriver(TapeSender):
         clock = self.clock
         async with self._lock:
             state = IsoCncState.DRIP_FEEDING if drip else IsoCncState.READING
+            # The model is ready before the state says "waiting": the control's DC1 that
+            # comes from now on is answered at once. Its blocks are modelled as they go.
+            model = BufferModel(drip=drip, store_cps=o.store_cps)
+            if drip:
+                model.feed(tape_blocks(framed, o.motion(), o.motion_scale))
             self.alarm = None
             self._set(state)
             self._progress = IsoCncStatus(state, 0, len(framed))
             self._sent, self._end_asked = 0, False  # end_tape() says "waiting" until DC1
-            model = BufferModel(drip=drip, store_cps=o.store_cps)
-            if drip:
-                blocks = await off_loop(framed, tape_blocks, framed, o.motion(), o.motion_scale)
-                model.unsent.extend(blocks)
             try:
                 if progress is not None:
                     progress(TransferProgress(0, len(framed), 0.0, 0, 0.0, math.inf, "waiting"))
@@ -250,7 +263,7 @@ class IsoCncDriver(TapeSender):
                 allowed = left * o.end_margin + o.end_extra + o.ready_wait
                 await self._wait_end(clock.monotonic() + allowed, model, seen)
                 sent.elapsed_s = clock.monotonic() - began
-                sent.stalls_modelled_s = model.idle_s * o.motion_scale
+                sent.stalls_modelled_s = model.idle_s  # wall seconds, as the user saw them
                 if progress is not None:
                     progress(
                         TransferProgress(
@@ -413,6 +426,7 @@ __all__ = [
     "ControlAlarm",
     "IsoCncDriver",
     "IsoCncOptions",
+    "ReadNotStarted",
     "TransferProgress",
     "TransferReport",
     "prepare",

@@ -21,10 +21,11 @@ twice in a block; two G codes of one modal group (or two M codes of one group) i
 arcs (I/J/K or R, not both; the start and end radii agree within ``arc_tolerance_mm``; R no
 shorter than half the chord); G01/G02/G03 before any F, or at F0 (said with where the F0 is);
 the O-number (present, 1 to the largest of ``o_digits`` digits) and ``%`` framing (only as a
-line of its own, at the start and end).
+line of its own, at the start and end: a ``%`` inside a block, a comment's too, would end the
+program there on the control).
 
-Hostile input stays bounded: a text over ``max_bytes`` or ``max_blocks`` is refused whole, a
-block over
+Hostile input stays bounded: a text over ``max_bytes`` or ``max_blocks`` (cellctl's caps, not
+a control's: a drip-feed's are far wider than a read-in's) is refused whole, a block over
 ``max_block`` characters is refused and not parsed, at most ``max_findings`` are returned (then
 checking stops: a last note, no problem itself, says where and how many more were found;
 :func:`counted` counts them), and :func:`check` keeps one block at a time.
@@ -39,77 +40,17 @@ from dataclasses import dataclass, field
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from cellctl.kinds.iso_cnc.words import (  # the dialect's tables (re-exported here)
+    ARCS,
+    FEED_MOVES,
+    G_GROUPS,
+    M_GROUPS,
+    PROGRAM_ENDS,
+    WORDS,
+    WordRule,
+)
 
-@dataclass(frozen=True)
-class WordRule:
-    """One address letter: what it means, its range, and whether it is a whole number."""
-
-    meaning: str
-    low: float
-    high: float
-    whole: bool = False
-
-
-_AXIS = 99999.999
-#: The address letters a Fanuc M-series control reads (mm; inch programs are smaller).
-WORDS: dict[str, WordRule] = {
-    "A": WordRule("rotary axis about X, deg", -_AXIS, _AXIS),
-    "B": WordRule("rotary axis about Y, deg", -_AXIS, _AXIS),
-    "C": WordRule("rotary axis about Z, deg", -_AXIS, _AXIS),
-    "D": WordRule("cutter radius offset number", 0, 400, True),
-    "E": WordRule("thread lead", 0, _AXIS),
-    "F": WordRule("feed, mm/min (G94) or mm/rev (G95)", 0, 240000),
-    "G": WordRule("preparatory function", 0, 999.9),
-    "H": WordRule("tool length offset number", 0, 400, True),
-    "I": WordRule("arc centre X offset", -_AXIS, _AXIS),
-    "J": WordRule("arc centre Y offset", -_AXIS, _AXIS),
-    "K": WordRule("arc centre Z offset", -_AXIS, _AXIS),
-    "L": WordRule("repeat count", 0, 9999, True),
-    "M": WordRule("miscellaneous function", 0, 999, True),
-    "N": WordRule("sequence number", 0, 99999, True),
-    "O": WordRule("program number", 1, 99999999, True),
-    "P": WordRule("dwell (ms) or subprogram number", 0, 99999999),
-    "Q": WordRule("peck depth", -_AXIS, _AXIS),
-    "R": WordRule("arc radius or R plane", -_AXIS, _AXIS),
-    "S": WordRule("spindle speed, rpm", 0, 99999),
-    "T": WordRule("tool number", 0, 99999999, True),
-    "U": WordRule("additional axis parallel to X", -_AXIS, _AXIS),
-    "V": WordRule("additional axis parallel to Y", -_AXIS, _AXIS),
-    "W": WordRule("additional axis parallel to Z", -_AXIS, _AXIS),
-    "X": WordRule("X axis", -_AXIS, _AXIS),
-    "Y": WordRule("Y axis", -_AXIS, _AXIS),
-    "Z": WordRule("Z axis", -_AXIS, _AXIS),
-}
-
-#: G code -> its group (Fanuc M series; 0 is one-shot). Codes not here are refused.
-G_GROUPS: dict[float, int] = {
-    **dict.fromkeys((4, 9, 10, 11, 27, 28, 29, 30, 31, 52, 53, 92), 0),
-    **dict.fromkeys((0, 1, 2, 3, 33), 1),
-    **dict.fromkeys((17, 18, 19), 2),
-    **dict.fromkeys((90, 91), 3),
-    **dict.fromkeys((94, 95), 5),
-    **dict.fromkeys((20, 21), 6),
-    **dict.fromkeys((40, 41, 42), 7),
-    **dict.fromkeys((43, 44, 49), 8),
-    **dict.fromkeys((73, 74, 76, 80, 81, 82, 83, 84, 85, 86, 87, 88, 89), 9),
-    **dict.fromkeys((98, 99), 10),
-    **dict.fromkeys((66, 67), 12),
-    **dict.fromkeys((54, 55, 56, 57, 58, 59), 14),
-    **dict.fromkeys((61, 62, 63, 64), 15),
-    **dict.fromkeys((68, 69), 16),
-    **dict.fromkeys((15, 16), 17),
-    **dict.fromkeys((50, 51), 11),
-}
-#: M code -> its group: two of one group in a block is an error (others pass unchecked).
-M_GROUPS: dict[int, str] = {
-    **dict.fromkeys((0, 1, 2, 30, 60, 98, 99), "program stop"),
-    **dict.fromkeys((3, 4, 5, 19), "spindle"),
-    **dict.fromkeys((7, 9), "coolant"),
-}
-#: Codes that end a program.
-PROGRAM_ENDS = frozenset({2, 30, 99})
-ARCS = (2.0, 3.0)
-FEED_MOVES = (1.0, 2.0, 3.0)
+__all__ = ["ARCS", "FEED_MOVES", "G_GROUPS", "M_GROUPS", "PROGRAM_ENDS", "WORDS", "WordRule"]
 
 
 class CheckOptions(BaseModel):
@@ -120,7 +61,10 @@ class CheckOptions(BaseModel):
     o_digits: int = Field(default=4, ge=1, le=8)
     arc_tolerance_mm: float = Field(default=0.01, gt=0, le=10)
     max_bytes: int = Field(default=16 * 1024 * 1024, gt=0)
+    """The most characters cellctl checks (and so sends): its own cap, not the control's."""
     max_blocks: int = Field(default=500_000, gt=0)
+    limit_note: str = Field(default="", max_length=300)
+    """Said after a refusal by ``max_bytes`` or ``max_blocks`` (what to do instead)."""
     max_block: int = Field(default=256, gt=0, le=4096)
     max_findings: int = Field(default=100, gt=0)
 
@@ -185,7 +129,11 @@ _WORD = re.compile(r"([A-Za-z])[ \t]*([+-]?(?:\d+\.?\d*|\.\d+))")
 
 
 def parse_block(number: int, line: str, found: list[Finding]) -> Block:
-    """One line as a block; every character that is not part of one is a finding."""
+    """One line as a block; the first thing in it that is not a word or comment is a
+    finding (one a block: the rest of a block gone wrong is not checked). ``:`` at its
+    start is ``O`` (spec: "some write ``:`` for ``O``")."""
+    if line.lstrip(" \t/").startswith(":"):
+        line = line.replace(":", "O", 1)
     if _PLAIN.fullmatch(line):
         return Block(
             number,
@@ -196,9 +144,12 @@ def parse_block(number: int, line: str, found: list[Finding]) -> Block:
         )
     words: list[Word] = []
     comment: list[str] = []
-    i, n = 0, len(line)
     if line.strip() == "%":
         return Block(number, percent=True)
+    if "%" in line:  # one finding for the block; the rest is checked as if it were a blank
+        found.append(Finding(number, line.index("%") + 1, percent_inside(line)))
+        line = line.replace("%", " ")
+    i, n = 0, len(line)
     if line.startswith("/"):  # block delete: the block is still checked
         i = 1
     while i < n:
@@ -211,6 +162,7 @@ def parse_block(number: int, line: str, found: list[Finding]) -> Block:
                 found.append(
                     Finding(number, i + 2 + nested, "( inside a comment (they do not nest)")
                 )
+                break
             if end < 0:
                 found.append(Finding(number, i + 1, "comment not closed in its block"))
                 break
@@ -222,21 +174,32 @@ def parse_block(number: int, line: str, found: list[Finding]) -> Block:
             break
         if c == ")":
             found.append(Finding(number, i + 1, ") without its ("))
-            i += 1
-            continue
+            break
         m = _TOKEN.match(line, i)
         if m is None:
             shown = repr(c) if c.isprintable() and c.isascii() else f"byte 0x{ord(c):02X}"
-            found.append(Finding(number, i + 1, f"{shown} is not part of a word"))
-            i += 1
-            continue
+            macro = " (macro B: # variables, [ ] expressions are not checked)" if c in "#[]" else ""
+            found.append(Finding(number, i + 1, f"{shown} is not part of a word{macro}"))
+            break
         if m.group(3) is not None:
             found.append(Finding(number, i + 1, f"{m.group(3).upper()} without a number"))
+            break
         elif m.group(1) is not None:
             letter, text = m.group(1).upper(), m.group(2)
             words.append(Word(letter, float(text), i + 1, letter + text))
         i = m.end()
     return Block(number, tuple(words), " ".join(comment))
+
+
+def percent_inside(line: str) -> str:
+    """What a ``%`` inside ``line`` does on the control (it ends the program), in words."""
+    at = line.index("%")
+    where = "a comment" if line.rfind("(", 0, at) > line.rfind(")", 0, at) else "a block"
+    keeps = f"only {line[:at].strip()!r} of this block" if line[:at].strip() else "nothing"
+    return (
+        f"% inside {where}: a % starts and ends a transmission, so the control ends the "
+        f"program there and keeps {keeps} and no block after it (write PCT or the like instead)"
+    )
 
 
 def _lines(text: str) -> Iterator[tuple[int, str]]:
@@ -475,19 +438,34 @@ def _check_arc(
 
 
 def too_long(characters: int, options: CheckOptions) -> Finding:
-    """What :func:`check` says of a text over ``options.max_bytes`` (or a file's reader)."""
-    return Finding(1, 0, f"{characters} characters: more than {options.max_bytes} to check")
+    """What :func:`check` says of a text over ``options.max_bytes`` (or a file's reader):
+    cellctl's own cap, said as such (the control never saw the program)."""
+    return Finding(
+        1,
+        0,
+        f"{characters} characters: more than {options.max_bytes}, the most cellctl "
+        f"checks{options.limit_note}",
+    )
+
+
+def unpadded(text: str) -> str:
+    """``text`` without the NUL and SUB (Ctrl-Z: a DOS editor's end of file) padding after
+    its closing ``%``, which the control never reads."""
+    body = text.rstrip("\x00\x1a\r\n \t")
+    return body + "\n" if body.endswith("%") and "\x1a" in text[len(body) :] else text
 
 
 def check(text: str, options: CheckOptions | None = None) -> list[Finding]:
     """Every problem of ``text``, in order (errors and warnings: :attr:`Finding.error`)."""
     chosen = options or CheckOptions()
     found: list[Finding] = []
+    text = unpadded(text)
     if len(text) > chosen.max_bytes:
         return [too_long(len(text), chosen)]
     lines = text.count("\n")
     if lines > chosen.max_blocks:
-        return [Finding(1, 0, f"{lines} blocks: more than {chosen.max_blocks} to check")]
+        said = f"{lines} blocks: more than {chosen.max_blocks}, the most cellctl checks"
+        return [Finding(1, 0, said + chosen.limit_note)]
     state = _State()
     percents: list[int] = []
     first_block: Block | None = None

@@ -15,9 +15,9 @@ from pydantic import BaseModel
 
 from cellctl.emulators.serve import scaled_deadline
 from cellctl.errors import UsageError
-from cellctl.files import read_file, read_text
+from cellctl.files import read_text
 from cellctl.kinds.iso_cnc import gcode, motion, tape
-from cellctl.kinds.iso_cnc.options import ISO_LINE, IsoCncOptions
+from cellctl.kinds.iso_cnc.options import ISO_LINE, IsoCncOptions, read_capped
 from cellctl.kinds.iso_cnc.status import IsoCncState
 from cellctl.kinds.kind import (
     CheckedProgram,
@@ -79,23 +79,25 @@ def _emulator(spec: EmulatorSpec) -> EmulatedDevice:
 def check_text(text: str, name: str, options: BaseModel) -> CheckedProgram:
     """A program's text: its errors (each ``name:line:column: ...``), blocks and run time."""
     chosen = _options(options)
-    found = gcode.check(text, chosen.check_options())
+    found = gcode.check(text, chosen.check_options(drip=False))
     problems = tuple(f.format(name) for f in found if f.error)
     if problems:
         # A check that stopped ends with its note, no problem itself: counted apart.
         stopped = any(f.unlisted is not None for f in found)
         tally = gcode.counted(found) if stopped else ""
         return CheckedProgram(problems, lines=text.count("\n"), tally=tally)
-    times = motion.block_seconds(gcode.iter_blocks(text, chosen.check_options()), chosen.motion())
+    times = motion.block_seconds(
+        gcode.iter_blocks(text, chosen.check_options(drip=False)), chosen.motion()
+    )
     return CheckedProgram((), lines=len(times), machining_s=math.fsum(times))
 
 
 def _check(path: Path, role: ProgramRole, options: BaseModel) -> CheckedProgram:
     del role  # a setup program is a program like any other here
-    chosen = _options(options).check_options()
+    chosen = _options(options).check_options(drip=False)
     try:
         # Over what the check takes: refused before it is read into memory.
-        data = read_file(path, limit=chosen.max_bytes)
+        data = read_capped(path, chosen.max_bytes)
     except OSError as e:
         if e.errno == errno.EFBIG:
             with contextlib.suppress(OSError):  # gone since: said as any other failed read
@@ -122,7 +124,7 @@ def _preview(text: str, name: str, options: BaseModel) -> Preview:
 
     chosen = _options(options)
     machine = motion.Machine(chosen.motion())
-    steps = (machine.step(b) for b in gcode.iter_blocks(text, chosen.check_options()))
+    steps = (machine.step(b) for b in gcode.iter_blocks(text, chosen.check_options(drip=False)))
     svg, drawn, blocks = render_svg(steps, title=name)
     if not drawn:
         raise UsageError(f"cannot trace {Path(name).stem}: no moves")

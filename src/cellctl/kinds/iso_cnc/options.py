@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal, TypeVar
@@ -22,6 +23,13 @@ from cellctl.kinds.iso_cnc.motion import MotionModel
 
 #: The kind's default line: Fanuc's 9600 baud, ISO (7 bits, even parity), 2 stop bits.
 ISO_LINE = "9600,7E2"
+#: The largest program cellctl reads into a control's memory (a read-in), and its blocks:
+#: cellctl's caps, far above any control's memory (Fanuc: 10 m to a few MB of tape).
+READ_IN_MAX_BYTES = 16 * 1024 * 1024
+READ_IN_MAX_BLOCKS = 500_000
+#: The largest program cellctl drip-feeds: a drip-feed streams (the host models the
+#: blocks as they go, never all at once), so only the file's own size is held.
+DRIP_MAX_BYTES = 1024 * 1024 * 1024
 
 
 class IsoCncOptions(BaseModel):
@@ -71,11 +79,15 @@ class IsoCncOptions(BaseModel):
     accel_mm_s2: float | None = Field(default=None, gt=0)
     """The control's acceleration, mm/s² (None: moves at their rate end to end)."""
     motion_scale: float = Field(default=1.0, gt=0)
-    """The machine runs this many times faster than its motion model (an emulated cell)."""
+    """For an emulated control only (its ``--time-scale``, an emulated cell's scale): it runs
+    this many times faster than the motion model, whose block times (a drip-feed's end,
+    ``dnc check``'s run time and forecast) are divided by it. Leave it 1 for a real machine.
+    Stalls are said in wall seconds whatever it is."""
     arc_tolerance_mm: float = Field(default=0.01, gt=0, le=10)
     """Start and end radius of an arc may differ this much (the G-code check)."""
     dc1_timeout: float = Field(default=120.0, gt=0, le=86400)
-    """Seconds to wait for the control's DC1 (the operator presses READ or CYCLE START)."""
+    """Seconds to wait for the control's DC1 (the operator presses READ or CYCLE START), by
+    ``dnc send`` and ``drip`` and a cell's run; a remote request's answer waits 30 minutes."""
     stop_timeout: float = Field(default=600.0, gt=0, le=86400)
     """Seconds a DC3 may hold the host before it gives up (a long block, a feed hold)."""
     end_margin: float = Field(default=2.0, ge=1, le=100)
@@ -99,8 +111,24 @@ class IsoCncOptions(BaseModel):
         burst = max(self.burst, math.ceil(self.pace_s / char_time))
         return burst, max(burst, self.high_water_mark() - self.margin)
 
-    def check_options(self) -> gcode.CheckOptions:
-        return gcode.CheckOptions(o_digits=self.o_digits, arc_tolerance_mm=self.arc_tolerance_mm)
+    def check_options(self, *, drip: bool = True) -> gcode.CheckOptions:
+        """The G-code check's options; cellctl's caps of a drip-feed (``drip``, the widest:
+        1 GiB, any number of blocks) or of a read-in into memory (16 MiB, 500,000 blocks)."""
+        if drip:
+            return gcode.CheckOptions(
+                o_digits=self.o_digits,
+                arc_tolerance_mm=self.arc_tolerance_mm,
+                max_bytes=DRIP_MAX_BYTES,
+                max_blocks=DRIP_MAX_BYTES,
+            )
+        return gcode.CheckOptions(
+            o_digits=self.o_digits,
+            arc_tolerance_mm=self.arc_tolerance_mm,
+            max_bytes=READ_IN_MAX_BYTES,
+            max_blocks=READ_IN_MAX_BLOCKS,
+            limit_note=" for a read-in into a control's memory (cellctl's cap, not the "
+            "control's): drip-feed it (`cellctl dnc drip`, up to 1 GiB)",
+        )
 
     def motion(self) -> MotionModel:
         return MotionModel(rapid_mm_min=self.rapid_mm_min, accel_mm_s2=self.accel_mm_s2)
@@ -115,11 +143,14 @@ def program_text(data: bytes, name: str = "program") -> str:
         raise UsageError(f"{name}:{line}: byte 0x{data[e.start]:02X} is not ISO code") from None
 
 
-def prepare(data: bytes, options: IsoCncOptions, name: str = "program") -> bytes:
+def prepare(
+    data: bytes, options: IsoCncOptions, name: str = "program", drip: bool = False
+) -> bytes:
     """A program file's bytes as the tape that goes on the line; UsageError (every error of
-    the G-code check, with line and column) before a byte goes out."""
+    the G-code check, with line and column) before a byte goes out. ``drip``: checked with
+    a drip-feed's caps (:meth:`IsoCncOptions.check_options`), else a read-in's."""
     text = program_text(data, name)
-    found = gcode.errors(text, options.check_options())
+    found = gcode.errors(text, options.check_options(drip=drip))
     if found:
         shown = [f.format(name) for f in found[:5]]
         more = f" (and {len(found) - 5} more)" if len(found) > 5 else ""
@@ -146,10 +177,21 @@ async def off_loop(data: bytes, fn: Callable[..., T], *args: Any) -> T:
     return fn(*args)
 
 
-def read_program(path: Path, options: IsoCncOptions) -> bytes:
-    """:func:`prepare` for a file (UsageError if it cannot be read)."""
+def read_capped(path: Path, cap: int) -> bytes:
+    """:func:`~cellctl.files.read_file` of a program, at most ``cap`` bytes (OSError EFBIG
+    over it), reading no more than the file holds: a cap of a GiB never asks for a GiB of
+    memory up front (a read asks for its whole limit at once)."""
     try:
-        data = read_file(path)
+        size = os.stat(path).st_size
+    except OSError:
+        size = cap  # read_file says why, in its words
+    return read_file(path, limit=min(cap, size + 65536))
+
+
+def read_program(path: Path, options: IsoCncOptions) -> bytes:
+    """:func:`prepare` for a drip-feed of a file (UsageError if it cannot be read)."""
+    try:
+        data = read_capped(path, DRIP_MAX_BYTES)
     except OSError as e:
         raise UsageError(f"{path}: cannot read: {e.strerror or e}") from None
-    return prepare(data, options, path.name)
+    return prepare(data, options, path.name, drip=True)  # a cell's program is drip-fed

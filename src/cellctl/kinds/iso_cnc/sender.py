@@ -114,7 +114,6 @@ class TapeSender(LinkDriver):
     ) -> TransferReport:
         """Send a tape under flow control (module docstring); returns when the last byte is
         through the line. The caller waits for the control's end of the read."""
-        o = self.options
         clock = self.clock
         total = len(framed)
         began = clock.monotonic()
@@ -146,7 +145,7 @@ class TapeSender(LinkDriver):
             self._sent / elapsed if elapsed > 0 else 0.0,
             self._stops,
             elapsed,
-            stalls_modelled_s=model.idle_s * o.motion_scale,
+            stalls_modelled_s=model.idle_s,
             ended_early=self._cut,
         )
 
@@ -195,8 +194,7 @@ class TapeSender(LinkDriver):
                 if shorter is not None:
                     framed, total, end_at, self._cut = shorter, len(shorter), len(shorter), True
                     last_lf = framed.rfind(b"\n", 0, end_at) + 1 if model.drip else end_at
-                    while model.unsent and model.unsent[-1][0] > total:
-                        model.unsent.pop()  # blocks past the cut never go out
+                    model.cut(total)  # blocks past the cut never go out
                     if model.drip and not o.percent:
                         model.unsent.append((total, 0.0))  # the M30 block
             sent = self._sent
@@ -248,9 +246,7 @@ class TapeSender(LinkDriver):
                 self._seen_at_end = self._dc3_seen
             if now - last_report >= 0.2 or sent >= total:
                 last_report = now
-                self._progress = IsoCncStatus(
-                    self.state, sent, total, stall_s=model.idle_s * o.motion_scale
-                )
+                self._progress = IsoCncStatus(self.state, sent, total, stall_s=model.idle_s)
                 report(phase)
         if wire_free > clock.monotonic():
             await self.clock.sleep(wire_free - clock.monotonic())

@@ -143,6 +143,8 @@ def skipped_leader(data: bytes) -> tuple[int, str] | None:
     start = data.find(b"%")
     if start <= 0:
         return None
+    if data[data.rfind(b"\n", 0, start) + 1 : start].strip(b" \t\r\x00"):
+        return None  # a % inside a block: the G-code check refuses it (it ends the program)
     before = data[:start].replace(b"\x00", b"").decode("latin-1")
     for number, line in enumerate(before.split("\n"), start=1):
         if line.strip():

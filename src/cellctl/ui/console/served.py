@@ -100,7 +100,7 @@ def shop_file(path_text: str, directory: Path) -> tuple[Path, str]:
     path = directory / Path(given).expanduser()
     if not within(path, directory):
         raise UsageError(
-            f"{given}: not in the shop {directory} (it leads to {path.resolve()}): the "
+            f"{given}: not in the shop '{directory}' (it leads to '{path.resolve()}'): the "
             "program picker reads only files under the shop; copy the program there"
         )
     return path.resolve(), given
@@ -130,8 +130,15 @@ def program_params(raw: dict[str, Any], directory: Path, kind: str | None = None
     path, given = shop_file(str(raw.get("program", "")), directory)
     try:
         data = read_file(path)
+    except FileNotFoundError:
+        raise UsageError(
+            f"{given}: no such file in the shop '{directory}' (looked for '{path}'): the "
+            "program picker's paths are relative to the shop, not to where the console runs"
+        ) from None
     except OSError as e:
-        raise UsageError(f"{given}: could not open file: {reason(e)}") from None
+        raise UsageError(
+            f"{given}: could not open file in the shop '{directory}': {reason(e)}"
+        ) from None
     if not data.isascii():
         refusal = kind_refusal(kind, path)
         if refusal is not None:

@@ -302,7 +302,6 @@ async def _send(access: CellAccess, p: SendParams, progress: Progress | None) ->
                     data,
                     drip=p.drip,
                     progress=progress,
-                    timeout=TRANSFER_S,
                     ticket=p.ticket,
                     by_hand=True,
                 )

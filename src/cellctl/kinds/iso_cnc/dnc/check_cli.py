@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+from array import array
 from pathlib import Path
 
 import click
@@ -66,7 +67,8 @@ def check(ctx: click.Context, name: str, program: str, shop: Path, use_cell: boo
     path = ShopStore(config.root).resolve(name, program, chosen.options.o_digits)
     data = read_program_file(path)
     o = chosen.options
-    found = gcode.errors(program_text(data, str(path)), o.check_options())
+    # As a drip-feed takes it (cellctl's widest caps); a read-in's narrower cap is said below.
+    found = gcode.errors(program_text(data, str(path)), o.check_options(drip=True))
     problems = [p.format(str(path)) for p in found]
     try:  # a problem of the program like the others: said with them, exit 1
         check_program_number(path.name, data)
@@ -76,32 +78,41 @@ def check(ctx: click.Context, name: str, program: str, shop: Path, use_cell: boo
     for problem in problems:
         console.print(problem, style="red", markup=False, soft_wrap=True)
     if problems:
-        console.print(f"{path}: {gcode.counted(found)}: {name} would refuse it", soft_wrap=True)
+        said = f"{path}: {gcode.counted(found)}: cellctl refuses to send it to {name}"
+        console.print(said, soft_wrap=True)
         sys.exit(1)
-    framed = prepare(data, o, path.name)
-    blocks = tape_blocks(framed, o.motion(), o.motion_scale)
+    framed = prepare(data, o, path.name, drip=True)
+    # Compact (16 bytes a block), for the forecasts at several rates: never a list of tuples.
+    ends, times = array("q"), array("d")
+    for end, seconds in tape_blocks(framed, o.motion(), o.motion_scale):
+        ends.append(end)
+        times.append(seconds)
     settings = chosen.settings
-    forecast = forecast_drip(framed, blocks, settings.char_time, o.sender(settings.char_time))
-    count = sum(1 for _, seconds in blocks if seconds > 0)
+    forecast = forecast_drip(
+        framed, zip(ends, times, strict=True), settings.char_time, o.sender(settings.char_time)
+    )
+    count = forecast.timed
     lines = [
-        f"{program} ({path.name}) for {name} at {settings}: {count:,} blocks that take time, "
+        f"{program} ({path.name}) for {name} at {settings}: {count:,} "
+        f"block{'' if count == 1 else 's'} that take{'s' if count == 1 else ''} time, "
         f"{program_chars(data):,} characters of program (what the control stores; its tape, "
         f"with leader, % and trailer, is {forecast.chars:,})",
         f"  runs {_hms(forecast.run_s)} (the motion model); the tape is "
         f"{_hms(forecast.line_s)} on the line",
     ]
-    ends = f"it ends {_hms(forecast.end_s)} after the control's first DC1"
+    ending = f"it ends {_hms(forecast.end_s)} after the control's first DC1"
     if not forecast.stalls:
-        lines.append(f"  drip-feed: the axes never wait for data; {ends}")
+        lines.append(f"  drip-feed: the axes never wait for data; {ending}")
     else:
         lines.append(
             f"  drip-feed: the axes wait {_hms(forecast.stall_s)} for data at "
             f"{forecast.stalls:,} blocks (longest {forecast.longest_s:.2f} s, for "
-            f"`{forecast.longest_block}`); {ends}"
+            f"`{forecast.longest_block}`); {ending}"
         )
         faster = [b for b in BAUD_RATES if b > settings.baudrate]
         for baud in faster:
             rate = dataclasses.replace(settings, baudrate=baud)
+            blocks = zip(ends, times, strict=True)
             tried = forecast_drip(framed, blocks, rate.char_time, o.sender(rate.char_time))
             if not tried.stalls:
                 lines.append(f"  no wait from {baud} baud")
@@ -112,5 +123,16 @@ def check(ctx: click.Context, name: str, program: str, shop: Path, use_cell: boo
                 f"  it waits at every rate up to {top} baud: its blocks run faster than a line "
                 "brings them (longer segments, or a slower feed)"
             )
+    if o.motion_scale != 1:  # an emulated control's times, not a real machine's
+        lines.append(
+            f"  times for options.motion_scale = {o.motion_scale:g}: an emulated control "
+            f"{o.motion_scale:g} times faster than the machine (a real machine's is 1)"
+        )
+    caps = o.check_options(drip=False)
+    if len(data) > caps.max_bytes or data.count(b"\n") > caps.max_blocks:
+        lines.append(
+            f"  drip-feed only: more than a read-in takes ({caps.max_bytes:,} characters, "
+            f"{caps.max_blocks:,} blocks: cellctl's cap, not the control's)"
+        )
     for text_line in lines:
         console.print(text_line, markup=False, soft_wrap=True)

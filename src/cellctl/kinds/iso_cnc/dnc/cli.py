@@ -222,9 +222,11 @@ def _transfer(
 ) -> None:
     import uuid
 
+    from cellctl.errors import UsageError
     from cellctl.kinds.iso_cnc.dnc.config import machine
     from cellctl.kinds.iso_cnc.dnc.store import ShopStore, check_program_number, read_program_file
     from cellctl.kinds.iso_cnc.driver import prepare
+    from cellctl.kinds.menu import MAX_PROGRAM_CHARS
     from cellctl.ui.calls import LazyBar
 
     config = shop_config(ctx, shop, use_cell)
@@ -232,14 +234,24 @@ def _transfer(
     # A ticket of its own: Ctrl-C stops this transfer, never another's.
     params: dict[str, Any] = {"program": program, "drip": drip, "ticket": uuid.uuid4().hex}
     path = Path(program)
+    store = ShopStore(config.root)
     if path.is_file():  # a file here: its text travels (the server may not see this path)
-        params.update(program=path.name, text=read_program_file(path).decode())
-        data = params["text"].encode("ascii")
+        data = read_program_file(path)
+        if len(data) <= MAX_PROGRAM_CHARS:
+            params.update(program=path.name, text=data.decode())
+        elif store.a_program_file(path):  # too long for a call: the server reads it
+            params.update(program=str(path.resolve()))
+        else:
+            raise UsageError(
+                f"{program}: {len(data)} characters, more than a call carries "
+                f"({MAX_PROGRAM_CHARS}): put it in {store.folder(name, 'programs')} and "
+                "name it there (O1234, or its path)"
+            )
     else:  # refused here, before a byte goes out
-        data = read_program_file(ShopStore(config.root).resolve(name, program, options.o_digits))
+        data = read_program_file(store.resolve(name, program, options.o_digits))
     # the O-number and the G-code check with the machine's options: before a byte goes out
     check_program_number(program, data)
-    prepare(data, options, params["program"])
+    prepare(data, options, Path(params["program"]).name, drip)
     what = "drip-feed" if drip else "read-in"
     prompt = (
         f"{name}: {what} of {params['program']}: start the read on the control "
@@ -247,7 +259,7 @@ def _transfer(
     )
     stopped: list[str] = []  # the `stopped` field of a transfer's last progress
     shown: list[dict[str, Any]] = []  # the last progress the bar shows
-    with LazyBar(_bar_columns(), params["program"], _fields) as bar:
+    with LazyBar(_bar_columns(), Path(params["program"]).name, _fields) as bar:
         # said once the server has taken the transfer (its first progress), never before a
         # refusal (the machine busy, its link held elsewhere)
         going = _first_then(lambda: err_console.print(prompt, markup=False), bar.update)
@@ -423,7 +435,7 @@ def diff(
     from cellctl.errors import UsageError
     from cellctl.kinds.iso_cnc.dnc.config import machine
     from cellctl.kinds.iso_cnc.dnc.diff import compare
-    from cellctl.kinds.iso_cnc.dnc.store import ShopStore, o_name, read_program_file
+    from cellctl.kinds.iso_cnc.dnc.store import ShopStore, as_given, read_program_file
 
     config = shop_config(ctx, shop, use_cell)
     machine(config, name)  # an unknown machine is named as such; nothing is created
@@ -438,7 +450,7 @@ def diff(
         wanted = None if found is None else int(found.group(1))
         copies = store.received(name, wanted)
         if not copies:
-            which = "nothing" if wanted is None else f"no {o_name(wanted)}"
+            which = "nothing" if wanted is None else f"no {as_given(wanted, received or '')}"
             raise UsageError(
                 f"{which} received from {name} yet (in {store.folder(name, 'received')}): "
                 f"press PUNCH on the control while `cellctl dnc receive {name}` or "
@@ -453,7 +465,7 @@ def diff(
         number = number if number is not None else o_number(unframe(read_program_file(got)))
         sent = store.sent(name, number) if number is not None else []
         if not sent:
-            shown = o_name(number) if number is not None else "its program"
+            shown = as_given(number, received or "") if number is not None else "its program"
             raise UsageError(f"nothing sent to {name} as {shown}: give --against FILE")
         sent_path = sent[-1].path
     result = compare(

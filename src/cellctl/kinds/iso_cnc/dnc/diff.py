@@ -1,9 +1,11 @@
 """``cellctl dnc diff``: a program the control punched against what was sent to it.
 
-Both sides are compared as the control keeps a program: ``%`` framing, leader, trailer, CR
-and NUL gone (:func:`~cellctl.kinds.iso_cnc.tape.unframe`), trailing spaces and empty blocks
-dropped. Controls differ in what else they change when they punch: ``spaces=False`` also
-ignores the spaces inside blocks (a Fanuc punches ``G01X10.Y5.`` for ``G01 X10. Y5.``),
+Both sides are compared block by block as written: ``%`` framing lines, leader, trailer, CR
+and NUL gone, trailing spaces and empty blocks dropped. Not as the control keeps them
+(:func:`~cellctl.kinds.iso_cnc.tape.unframe`): a ``%`` inside a sent block ends the program
+on the control, and the shorter copy it punches must differ from what was sent. Controls
+differ in what else they change when they punch: ``spaces=False`` also ignores the spaces
+inside blocks (a Fanuc punches ``G01X10.Y5.`` for ``G01 X10. Y5.``),
 ``case=False`` the case of letters in comments::
 
     result = compare(sent_bytes, received_bytes, sent_name="sent/O1234_...", received_name=...)
@@ -15,8 +17,6 @@ from __future__ import annotations
 
 import difflib
 from dataclasses import dataclass
-
-from cellctl.kinds.iso_cnc.tape import unframe
 
 #: Lines of a diff shown (a whole program rewritten at the machine makes a long one).
 MAX_DIFF_LINES = 2000
@@ -33,9 +33,16 @@ class Comparison:
 
 
 def blocks(data: bytes, *, spaces: bool = True, case: bool = True) -> list[str]:
-    """The blocks of a tape as the control keeps them (see module docstring)."""
+    """The blocks of a program file as they were written (see module docstring): its ``%``
+    lines (framing, with their label), leader, trailer, CR and NUL gone. A ``%`` inside a
+    block stays: the control ends the program there, so a copy it punched is shorter, and
+    that is a difference (never "the copies match")."""
+    lines = data.replace(b"\x00", b"").replace(b"\r", b"").decode("latin-1").split("\n")
+    marks = [i for i, line in enumerate(lines) if line.strip().startswith("%")]
+    if marks:  # between the opening % and the closing one (or the end)
+        lines = lines[marks[0] + 1 : marks[1] if len(marks) > 1 else len(lines)]
     out = []
-    for line in unframe(data).split("\n"):
+    for line in lines:
         block = line.rstrip()
         if not spaces:
             block = "".join(block.split())

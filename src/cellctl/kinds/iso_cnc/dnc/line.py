@@ -46,7 +46,7 @@ from cellctl.kinds.iso_cnc.dnc.store import (
     program_chars,
     read_program_file,
 )
-from cellctl.kinds.iso_cnc.driver import IsoCncDriver
+from cellctl.kinds.iso_cnc.driver import IsoCncDriver, ReadNotStarted
 from cellctl.kinds.iso_cnc.options import off_loop, prepare
 from cellctl.kinds.iso_cnc.tape import DC2, split_programs, unframe
 from cellctl.link import TrafficLog
@@ -232,15 +232,18 @@ class DncLine:
         *,
         drip: bool,
         progress: Progress | None = None,
-        timeout: float = TRANSFER_S,
+        timeout: float | None = None,
         ticket: str | None = None,
         by_hand: bool = False,
+        lapse: str = "",
     ) -> dict[str, Any]:
         """Send ``data`` (a program's text): into memory, or drip-fed; the control starts the
         read (it sends DC1). The caller holds :attr:`turn`. ``ticket``: the caller's own
         name for it, with which it may stop it (``dnc.stop``) and nothing else. ``by_hand``:
         a transfer a user started (``dnc send``, the console, the API), whose start the log
-        says as it says its end (a request's is the request's own line)."""
+        says as it says its end (a request's is the request's own line). ``timeout``: the
+        wait for the control's DC1 (the machine's ``options.dc1_timeout`` by default);
+        ``lapse``: what a wait that ran out is (a request's lapse), instead of a failure."""
         if self.cancelled:  # stopped while it waited for the machine's turn
             said, self.cancelled = self.cancelled, ""
             self._note(said)
@@ -250,12 +253,12 @@ class DncLine:
         if by_hand:  # taken: its end (done, failed, stopped) is logged below
             self._note(started_words(program, drip, program_chars(data)))
         activity = Activity.DRIP_FEEDING if drip else Activity.READING
-        self._set(
+        self._set(  # "waiting" once the driver has checked and framed it (its tape's size)
             activity=activity,
             program=program,
-            phase="waiting",
+            phase="preparing",
             chars_done=0,
-            chars_total=len(data),
+            chars_total=0,
             buffer_stops=0,
             stall_s=0.0,
             eta_s=None,
@@ -282,6 +285,14 @@ class DncLine:
             self._note(self.stopping)
             self._set(activity=Activity.IDLE, last=self.stopping, error="")
             raise TransferStopped(self.stopping) from None
+        except ReadNotStarted as e:
+            if not lapse:
+                self._note(f"{program}: {what} FAILED: {e}")
+                self._set(activity=Activity.IDLE, error=str(e), failures=self.status.failures + 1)
+                raise
+            self._note(lapse)
+            self._set(activity=Activity.IDLE, last=lapse, error="")
+            raise TransferStopped(lapse) from None
         except CellctlError as e:
             self._note(f"{program}: {what} FAILED: {e}")
             self._set(activity=Activity.IDLE, error=str(e), failures=self.status.failures + 1)
@@ -456,7 +467,7 @@ class DncLine:
             check_program_number(path.name, data)
             # The G-code check too: a program the read would refuse (empty, a block too long)
             # is the request's refusal now, not a failed read-in once the control reads.
-            await off_loop(data, prepare, data, options, path.stem)
+            await off_loop(data, prepare, data, options, path.stem, request.drip)
         except UsageError as e:  # the punched request is kept as received, as docs/dnc.md says
             kept = self.store.keep_received(self.name, number, raw, now)
             self._note(f"request {request} refused: {e}; kept as {kept.path.name}")
@@ -473,10 +484,12 @@ class DncLine:
         :attr:`turn`); a request older than :data:`REQUEST_WAIT_S` lapses."""
         request = self.pending
         assert request is not None
-        if current_clock().now() - self.pending_since > REQUEST_WAIT_S:
+        lapsed = f"request {request} lapsed: the control did not read it within {_wait_words()}"
+        left = REQUEST_WAIT_S - (current_clock().now() - self.pending_since)
+        if left <= 0:
             self.pending = None
-            self._note(f"request {request} lapsed: the control did not read")
-            self._set(activity=Activity.IDLE, pending="")
+            self._note(lapsed)
+            self._set(activity=Activity.IDLE, pending="", last=lapsed)
             return
         try:
             path = self.store.program(self.name, request.program, self.config.options.o_digits)
@@ -489,7 +502,8 @@ class DncLine:
             return
         self.pending = None
         self._set(pending="")
-        await self.send(path.name, data, drip=request.drip, timeout=TRANSFER_S)
+        # The wait for the control's read is what is left of the request's time.
+        await self.send(path.name, data, drip=request.drip, timeout=left, lapse=lapsed)
 
     # -- the machine's task -----------------------------------------------------------------
 
@@ -548,6 +562,12 @@ class DncLine:
                 if not waiter.done():
                     waiter.set_exception(self._down("nothing can be punched to the server"))
             await current_clock().sleep(REOPEN_S)
+
+
+def _wait_words() -> str:
+    """:data:`REQUEST_WAIT_S` in words (``30 minutes``)."""
+    minutes = REQUEST_WAIT_S / 60
+    return f"{minutes:g} minutes" if minutes >= 1 else f"{REQUEST_WAIT_S:g} s"
 
 
 def _number(data: bytes) -> int | None:

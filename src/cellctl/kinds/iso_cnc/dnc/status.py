@@ -73,7 +73,8 @@ class MachineStatus:
     activity: Activity = Activity.OFFLINE
     program: str | None = None
     phase: str = ""
-    """Where a transfer stands: ``waiting`` (for the control's DC1), ``sending``, ``stopped``
+    """Where a transfer stands: ``preparing`` (checked and framed: not offered to the control
+    yet), ``waiting`` (for the control's DC1), ``sending``, ``stopped``
     (a DC3), ``running`` (all sent, the control runs the rest), ``receiving``."""
     chars_done: int = 0
     chars_total: int = 0
@@ -137,6 +138,8 @@ def state_words(s: MachineStatus) -> str:
     words = s.activity.value
     if s.activity in (Activity.READING, Activity.DRIP_FEEDING) and s.program:
         words += f" {s.program}"
+    if s.activity in (Activity.READING, Activity.DRIP_FEEDING) and s.phase == "preparing":
+        return f"{words}: preparing (checking and framing its tape, nothing sent yet)"
     if s.activity in (Activity.READING, Activity.DRIP_FEEDING) and s.phase == "waiting":
         return f"{words}: waiting for read: {START_READ[s.activity is Activity.DRIP_FEEDING]}"
     if s.activity is Activity.WAITING and s.pending:

@@ -30,6 +30,7 @@ existing one is never replaced.
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import re
 import time
@@ -39,6 +40,7 @@ from pathlib import Path
 from cellctl.clock import current_clock
 from cellctl.errors import UsageError
 from cellctl.files import read_file, reason
+from cellctl.kinds.iso_cnc.options import DRIP_MAX_BYTES, read_capped
 from cellctl.kinds.iso_cnc.tape import not_iso_code, o_number, skipped_leader, unframe
 
 PROGRAMS = "programs"
@@ -55,8 +57,8 @@ PROGRAM_FILE = re.compile(r"[Oo](\d{1,8})(?:$|[^0-9])")
 EXACT_PROGRAM_FILE = re.compile(r"[Oo]\d{1,8}(?:\.[^.]*)?")
 #: A kept copy's name: ``O1234_20261125T205811Z`` and ``_2`` ... when that second is taken.
 KEPT_FILE = re.compile(r"O(\d{1,8})_(\d{8}T\d{6}Z)(?:_(\d+))?\.nc")
-#: The largest program file read (a drip-fed surfacing program is megabytes; more is a mistake).
-MAX_PROGRAM_BYTES = 64 * 1024 * 1024
+#: The largest program file read: what cellctl drip-feeds at most (a drip-feed streams).
+MAX_PROGRAM_BYTES = DRIP_MAX_BYTES
 #: Copies of one time stamp tried before giving up (a control punching 1000 programs a second).
 MAX_SAME_SECOND = 1000
 
@@ -76,6 +78,13 @@ def o_name(number: int) -> str:
     return f"O{number:04d}"
 
 
+def as_given(number: int, given: str = "") -> str:
+    """Program ``number`` as the user wrote it (``O1`` for ``O1``, ``1`` or ``:1``), never
+    padded into a number they did not write (``O0001``); without ``given``, ``O1``."""
+    digits = given.strip().lstrip("Oo:")
+    return f"O{digits}" if digits.isdigit() else f"O{number}"
+
+
 def check_program_range(machine: str, number: int, digits: int, given: str = "") -> None:
     """Refuse (UsageError) program ``number`` when machine's control, whose O-numbers
     have ``digits`` digits, cannot hold it: O0 (no control numbers a program 0), or O99999
@@ -84,7 +93,7 @@ def check_program_range(machine: str, number: int, digits: int, given: str = "")
     never padded into a number they did not write (``O0000``)."""
     high = 10**digits - 1
     if not 1 <= number <= high:
-        shown = f"O{given.lstrip('Oo')}" if given else f"O{number}"
+        shown = as_given(number, given)
         raise UsageError(
             f"{shown} is out of range for {machine}: its control takes programs "
             f"O1 to O{high} ({digits} digits, options.o_digits)"
@@ -193,20 +202,15 @@ class ShopStore:
         if len(chosen) == 1:
             return chosen[0]
         where = self.folder(name, PROGRAMS)
+        said = as_given(number, given)
         if not chosen:
-            raise UsageError(
-                f"no program {o_name(number)} in {where} (a file named {o_name(number)}.nc)"
-            )
+            raise UsageError(f"no program {said} in {where} (a file named {said}.nc)")
         names = ", ".join(repr(path.name) for path in chosen)
         # Several named by the number alone (O1234.nc and O1234.tap), or none and several
         # that start with it: which one is meant cannot be guessed either way.
-        why = (
-            "are each named by it alone"
-            if exact
-            else f"start with it and none is {o_name(number)}.nc"
-        )
+        why = "are each named by it alone" if exact else f"start with it and none is {said}.nc"
         raise UsageError(
-            f"{o_name(number)} is ambiguous in {where}: {len(chosen)} files could be it "
+            f"{said} is ambiguous in {where}: {len(chosen)} files could be it "
             f"({names}) and they {why}: rename all but one, or give the file itself"
         )
 
@@ -221,7 +225,7 @@ class ShopStore:
         followed), anything else refused unread: the shop's tokens and state are no program."""
         path = Path(program)
         if path.is_file():
-            if shop_only and not self._a_program_file(path):
+            if shop_only and not self.a_program_file(path):
                 raise UsageError(
                     f"{program}: not in the shop's programs ({self.root}/MACHINE/{PROGRAMS}, "
                     f"{RECEIVED} or {SENT}): name a program of the machine's {PROGRAMS}/ "
@@ -233,7 +237,7 @@ class ShopStore:
             raise UsageError(f"{program}: {_no_program_file(path)}")
         return self.program(name, int(match.group(1)), digits, program)
 
-    def _a_program_file(self, path: Path) -> bool:
+    def a_program_file(self, path: Path) -> bool:
         """True if ``path`` (links followed) lies in a machine's programs/, received/ or
         sent/ folder of this shop."""
         try:
@@ -325,10 +329,15 @@ def read_program_file(path: Path) -> bytes:
     """A program file's bytes; UsageError (before any byte goes out) when it cannot be read,
     is too large or is not text."""
     try:
-        data = read_file(path, limit=MAX_PROGRAM_BYTES)
+        data = read_capped(path, MAX_PROGRAM_BYTES)
     except FileNotFoundError:
         raise UsageError(f"{path}: no such file") from None
     except OSError as e:
+        if e.errno == errno.EFBIG:
+            raise UsageError(
+                f"{path}: more than {MAX_PROGRAM_BYTES} bytes, the most cellctl sends (its "
+                "cap, not the control's)"
+            ) from None
         raise UsageError(f"{path}: cannot read: {e.strerror}") from None
     refusal = not_iso_code(str(path), data)
     if refusal is not None:

@@ -170,6 +170,11 @@ def test_the_policies_compared_and_the_plan_replayed_from_its_inputs(
             r"'melt' on cnc2: unknown \(known: down",
         ),
         (["--add", "wax-robot-base:1", "--fault", "cnc2:down@25:00"], "hours 0-23"),
+        (
+            ["--add", "wax-robot-base:1", "--fault", "cnc1:noise@06:20-06:50"],
+            r"fault cnc1:noise: noise takes RATE\[,SEED\], e\.g\. noise=3e-4,7: its argument "
+            "is missing",
+        ),
         (["--add", "gear:3"], r"makes no 'gear'"),
         (["--add", "wax-robot-base:3", "--policy", "fastest"], "policy 'fastest': unknown"),
         (["--add", "wax-robot-base:3", "--shift", "8h", "--until", "18:00"], "not both"),

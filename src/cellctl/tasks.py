@@ -12,7 +12,7 @@ import contextlib
 import os
 import signal
 import threading
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -61,17 +61,55 @@ def end_with_parent(child_end: Connection) -> None:
     threading.Thread(target=watch, name="cellctl-parent-watch", daemon=True).start()
 
 
-def _pool_worker_start(child_end: Connection) -> None:
+#: A :func:`spawned_pool` worker's way to tell its parent how far its job has gone (None:
+#: not asked for, or not a pool's worker).
+_progress_queue: Any = None
+#: Seconds between the parent's looks for a worker's progress (and to end its reader).
+PROGRESS_LOOK_S = 0.2
+
+
+def _pool_worker_start(child_end: Connection, progress: Any = None) -> None:
     """A :func:`spawned_pool` worker's start: Ctrl-C (sent to the whole process group) is
     its parent's to act on, and the worker ends with its parent."""
+    global _progress_queue
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     end_with_parent(child_end)
+    _progress_queue = progress
+
+
+def report_progress(item: Any) -> None:
+    """In a :func:`spawned_pool` worker: hand ``item`` (picklable) to the pool's
+    ``progress`` in the parent; nothing if it was given none (or outside a pool)."""
+    if _progress_queue is not None:
+        _progress_queue.put(item)
+
+
+def _read_progress(queue: Any, progress: Callable[[Any], None], done: threading.Event) -> None:
+    """The parent's reader of its workers' progress: each item to ``progress``, until
+    ``done`` (then what is left)."""
+    import queue as queues
+
+    while True:
+        try:
+            item = queue.get(timeout=PROGRESS_LOOK_S)
+        except queues.Empty:
+            if done.is_set():
+                return
+            continue
+        except (OSError, EOFError, ValueError):  # the queue closed under it
+            return
+        progress(item)
 
 
 @contextlib.contextmanager
-def spawned_pool(jobs: int) -> Iterator[ProcessPoolExecutor]:
+def spawned_pool(
+    jobs: int, *, progress: Callable[[Any], None] | None = None
+) -> Iterator[ProcessPoolExecutor]:
     """Worker processes for ``jobs`` CPU-bound jobs (a plan each): at most one a core,
     spawned (clean of the caller's threads and event loop), never forked.
+
+    ``progress``: called, in a thread of this process, with each item a job hands
+    :func:`report_progress` (how far a plan has gone).
 
     Left normally, the block waits for the jobs given. Left by an exception (Ctrl-C, SIGTERM
     made an interrupt, an error), the workers are killed and reaped before it goes on: no
@@ -84,9 +122,15 @@ def spawned_pool(jobs: int) -> Iterator[ProcessPoolExecutor]:
     context = multiprocessing.get_context("spawn")
     child_end, own_end = lifeline(context)
     workers = max(1, min(jobs, os.cpu_count() or 1))
+    queue = context.Queue() if progress is not None else None
     pool = ProcessPoolExecutor(
-        workers, mp_context=context, initializer=_pool_worker_start, initargs=(child_end,)
+        workers, mp_context=context, initializer=_pool_worker_start, initargs=(child_end, queue)
     )
+    done = threading.Event()
+    reader = None
+    if queue is not None and progress is not None:
+        reader = threading.Thread(target=_read_progress, args=(queue, progress, done), daemon=True)
+        reader.start()
     try:
         try:
             yield pool
@@ -95,6 +139,11 @@ def spawned_pool(jobs: int) -> Iterator[ProcessPoolExecutor]:
             _kill_workers(pool)
             raise
     finally:
+        done.set()
+        if reader is not None:
+            reader.join(REAP_S)
+        if queue is not None:
+            queue.close()
         own_end.close()
         child_end.close()
 

@@ -49,6 +49,7 @@ against, independent of the controller's journal.
 from __future__ import annotations
 
 import asyncio
+import random
 import re
 import shutil
 import tomllib
@@ -61,6 +62,7 @@ from typing import Any, Literal
 
 from cellctl.clock import Clock, current_clock, emulator_clock
 from cellctl.emulators.header import EMULATED_HEADER, written_by_emulation
+from cellctl.emulators.line import LineNoise
 from cellctl.emulators.memserve import serve_mem
 from cellctl.emulators.plc import PlcEmulator
 from cellctl.emulators.serve import (
@@ -147,6 +149,7 @@ class EmulatedCell:
         template: Path | None = None,
         links: Literal["real", "mem"] = "real",
         mem_prefix: str = "",
+        seed: int | None = None,
     ) -> None:
         # No clock and no scale: the cell's default scale on the real clock.
         if clock is None and time_scale is None:
@@ -166,16 +169,17 @@ class EmulatedCell:
         )
         self.template = template or EXAMPLE_CELL
         self.kinds = _machine_kinds(self.template)
-        spec = EmulatorSpec(clock=self._clock)
+        self.seed = seed  # of everything random in the machines (None: unseeded, as before)
+        spec = self._spec
         robots = [n for n, k in self.kinds.items() if registry.family_of(k) == "robot"]
         if not robots:
             raise UsageError(f"{self.template / 'cell.toml'}: no robot machine to emulate")
         self.robot_name = robots[0]
-        self.robot: Any = registry.kind(self.kinds[self.robot_name]).emulator(spec)
+        self.robot: Any = registry.kind(self.kinds[self.robot_name]).emulator(spec(self.robot_name))
         mills = [n for n, k in self.kinds.items() if registry.family_of(k) == "mill"]
         self.mill_names = tuple(mills) if template is not None else mill_names
         self.mills: dict[str, Any] = {
-            name: registry.kind(self.kinds[name]).emulator(spec) for name in self.mill_names
+            name: registry.kind(self.kinds[name]).emulator(spec(name)) for name in self.mill_names
         }
         #: Each machine's line: its kind's default line, its baud rate times ``time_scale``.
         self.lines = {
@@ -195,6 +199,28 @@ class EmulatedCell:
         self._head_start: dict[str, tuple[str, float]] = {}  # mill -> (part, machine s done)
         self._at_cut: dict[str, list[tuple[str, str | None]]] = {}  # mill -> faults to switch on
         self._tasks: set[asyncio.Task[None]] = set()
+
+    def machine_seed(self, name: str) -> int | None:
+        """Machine ``name``'s seed: from the cell's ``seed`` and its name (None: unseeded)."""
+        return None if self.seed is None else random.Random(f"{self.seed}:{name}").getrandbits(63)
+
+    def _spec(self, name: str) -> EmulatorSpec:
+        """Machine ``name``'s emulator spec: its seed for a kind that draws (``extra``)."""
+        seed = self.machine_seed(name)
+        return EmulatorSpec(clock=self._clock, extra={} if seed is None else {"seed": seed})
+
+    def set_fault(self, machine: str, name: str, arg: str | None = None) -> None:
+        """Switch ``machine``'s (``"plc"``: the PLC's) emulator fault ``name`` on; a line
+        noise with no SEED of its own draws from the machine's seed (:meth:`machine_seed`)."""
+        target = self.machine(machine)
+        target.set_fault(name, arg)
+        noise = getattr(target, "noise", None)
+        if isinstance(noise, LineNoise) and noise.seed is None and self.seed is not None:
+            target.noise = LineNoise(noise.rate, self.machine_seed(machine))
+
+    def machine(self, name: str) -> Any:
+        """The emulator of machine ``name`` (``"plc"``: the PLC)."""
+        return {"plc": self.plc, self.robot_name: self.robot, **self.mills}[name]
 
     @property
     def clock(self) -> Clock:
@@ -296,7 +322,7 @@ class EmulatedCell:
             if part is not None:
                 for fault, arg in self._at_cut.pop(name, []):
                     # In the middle of this cut: it acts as the block ends.
-                    self.mills[name].set_fault(fault, arg)
+                    self.set_fault(name, fault, arg)
             head = self._head_start.get(name)
             if head is None:
                 return

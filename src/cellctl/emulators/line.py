@@ -15,7 +15,9 @@ so timings match the real line. ``pacing=False`` moves bytes as fast as they com
 Line noise (the ``noise=RATE[,SEED]`` fault every serial emulator takes): with a
 :class:`LineNoise` on the device, every byte, each way, is flipped in one bit or dropped with
 probability RATE (half and half), as a noisy cable would; each direction draws from its own
-generator seeded from SEED, so a run can be repeated.
+generator seeded from SEED, so a run can be repeated. Without a SEED the draws are the same
+every run too, unless whoever switches it on gives another (an emulated cell's ``seed``,
+:meth:`cellctl.emulators.cell.EmulatedCell.set_fault`: a plan's ``--seed``).
 """
 
 from __future__ import annotations
@@ -59,7 +61,9 @@ class LineNoise:
     @classmethod
     def parse(cls, arg: str | None) -> LineNoise:
         """``"3e-4"`` or ``"3e-4,7"`` (rate, seed), as ``--fault noise=RATE[,SEED]`` gives it."""
-        rate_text, _, seed_text = (arg or "").partition(",")
+        if arg is None or not arg.strip():
+            raise UsageError("noise takes RATE[,SEED], e.g. noise=3e-4,7: its argument is missing")
+        rate_text, _, seed_text = arg.partition(",")
         try:
             rate = float(rate_text)
             seed = int(seed_text) if seed_text.strip() else None

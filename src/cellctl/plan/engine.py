@@ -27,7 +27,7 @@ import asyncio
 import contextlib
 import dataclasses
 import tomllib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -62,6 +62,13 @@ POWER_ON_S = 10.0
 #: plan ends at most this much after its last order, its finish time the order's own.
 WATCH_S = 30.0
 
+#: Why a machine out of service when the plan began is out in it.
+OUT_AT_START = "out of service when the plan began"
+#: Seconds of plan time the controller has to take up a cut in flight on a machine out of
+#: service (it is taken out after that cut), and how often that is looked at.
+TAKE_UP_S = 120.0
+TAKE_UP_LOOK_S = 0.05
+
 #: Seconds of plan time the steps in flight have to finish when an error ends a play early,
 #: before they are cancelled (a cut's rest, a transfer's; virtual time: it costs little).
 END_S = 3600.0
@@ -75,7 +82,8 @@ class PartAt:
     """Where a part of the running cell is: ``location`` (the conveyor or a mill) with
     ``route_index`` of its route's cuts done; ``done_s``: machine seconds of the cut in
     flight on it at ``location`` already done (the plan's mill starts that cut so far in,
-    if its emulator can: ``head_start_s`` in docs/kinds.md)."""
+    if its emulator can: ``head_start_s`` in docs/kinds.md); more than 0 for a cut in
+    flight (a machine out of service finishes it before it is out)."""
 
     location: str
     route_index: int = 0
@@ -176,7 +184,15 @@ class PlanRun:
     poll_period: float = 0.0
 
 
-def simulate(inputs: PlanInputs, workdir: Path) -> PlanRun:
+#: A play's progress: told the machine seconds played from its start.
+PlayProgress = Callable[[float], None]
+#: Seconds of plan time between two looks at how far a play has gone, and the least real
+#: seconds between two tellings (what a terminal shows; a pipe to another process carries).
+PROGRESS_S = 60.0
+PROGRESS_EVERY_S = 0.25
+
+
+def simulate(inputs: PlanInputs, workdir: Path, *, progress: PlayProgress | None = None) -> PlanRun:
     """Play ``inputs`` on virtual time in ``workdir`` (made if needed; its cell copy, journal
     and mailbox are written there) and return what happened.
 
@@ -184,6 +200,10 @@ def simulate(inputs: PlanInputs, workdir: Path) -> PlanRun:
     so call it from a thread (``asyncio.to_thread``) inside a running loop. Raises
     :class:`~cellctl.errors.UsageError` for inputs the cell cannot take (an unknown part
     type, machine, fault or policy; ``until`` before ``start``) before anything runs.
+
+    ``progress``: told how far the play has gone (machine seconds from ``start``) every
+    :data:`PROGRESS_S` of plan time, at most every :data:`PROGRESS_EVERY_S` real seconds;
+    none of the plan's own timing changes (its own timers are as they were).
     """
     check_inputs(inputs)
     workdir.mkdir(parents=True, exist_ok=True)
@@ -191,7 +211,8 @@ def simulate(inputs: PlanInputs, workdir: Path) -> PlanRun:
     if (cell_dir / JOURNAL_FILE).exists() or (cell_dir / MAILBOX_FILE).exists():
         raise UsageError(f"{cell_dir}: a plan ran there already; give an empty directory")
     started = REAL_CLOCK.monotonic()
-    ended, finished, poll = run_virtual(_play(inputs, cell_dir), start=inputs.start - POWER_ON_S)
+    play = _play(inputs, cell_dir, progress)
+    ended, finished, poll = run_virtual(play, start=inputs.start - POWER_ON_S)
     return PlanRun(
         inputs=inputs,
         workdir=workdir,
@@ -292,11 +313,14 @@ def _check_places(
 # -- the play ---------------------------------------------------------------------------------
 
 
-async def _play(inputs: PlanInputs, cell_dir: Path) -> tuple[float, dict[str, float | None], float]:
+async def _play(
+    inputs: PlanInputs, cell_dir: Path, progress: PlayProgress | None = None
+) -> tuple[float, dict[str, float | None], float]:
     """The play (see :func:`simulate`): when it ended, each order's finish, the poll period
     the controller played."""
     clock = current_clock()
-    cell = EmulatedCell(time_scale=1.0, links="mem", template=inputs.cell_dir)
+    # Every random draw of the machines (a line's noise) from the plan's seed.
+    cell = EmulatedCell(time_scale=1.0, links="mem", template=inputs.cell_dir, seed=inputs.seed)
     await cell.start(cell_dir)
     journal = open_journal(cell_dir, clock=clock, durable=False)
     mailbox = SqliteMailbox(cell_dir / MAILBOX_FILE, clock=clock, durable=False)
@@ -304,6 +328,9 @@ async def _play(inputs: PlanInputs, cell_dir: Path) -> tuple[float, dict[str, fl
     stop = asyncio.Event()
     run: asyncio.Task[None] | None = None
     faults: list[asyncio.Task[None]] = []
+    told: list[asyncio.Task[None]] = []
+    if progress is not None:
+        told.append(asyncio.create_task(_tell(inputs, progress), name="plan-progress"))
     try:
         placed = _post(inputs, journal, mailbox)
         await clock.sleep(max(0.0, inputs.start - clock.now()))
@@ -319,9 +346,16 @@ async def _play(inputs: PlanInputs, cell_dir: Path) -> tuple[float, dict[str, fl
         # running cell's did long before): a cut under way takes up so far in.
         for at, part_id in placed:
             cell.place(at.location, part_id, done_s=at.done_s)
+        # A machine taken out mid-cut finishes that cut first, as it did in the cell: it is
+        # taken out once the controller has taken the cut up again.
+        cutting = {at.location for o in inputs.orders for at in o.under_way if at.done_s > 0}
         for name in inputs.out_of_service:
-            await controller.set_service(name, False, "out of service when the plan began")
+            if name not in cutting:
+                await controller.set_service(name, False, OUT_AT_START)
         run = asyncio.create_task(controller.run(stop), name="plan-controller")
+        for name in inputs.out_of_service:
+            if name in cutting:
+                await _out_after_its_cut(controller, name, run)
         operator = PlanOperator(controller, cell, journal, inputs.out_of_service)
         faults = [
             asyncio.create_task(operator.window(f, inputs.until), name=f"plan-fault-{i}")
@@ -340,7 +374,7 @@ async def _play(inputs: PlanInputs, cell_dir: Path) -> tuple[float, dict[str, fl
         # Whatever ended the play, nothing of it may outlive the journal and mailbox closed
         # below: the fault windows, the controller and its steps end first.
         try:
-            await _end_windows(faults)
+            await _end_windows([*faults, *told])
             if run is not None and controller is not None:
                 await _end_controller(controller, run, stop)
         finally:
@@ -350,6 +384,32 @@ async def _play(inputs: PlanInputs, cell_dir: Path) -> tuple[float, dict[str, fl
             journal.close()
             mailbox.close()
             await cell.close()
+
+
+async def _tell(inputs: PlanInputs, progress: PlayProgress) -> None:
+    """Tell ``progress`` how far the play has gone (see :func:`simulate`), until cancelled."""
+    clock = current_clock()
+    last = float("-inf")
+    while True:
+        await clock.sleep(PROGRESS_S)
+        now = REAL_CLOCK.monotonic()
+        if now - last >= PROGRESS_EVERY_S:
+            last = now
+            progress(max(0.0, min(clock.now(), inputs.until) - inputs.start))
+
+
+async def _out_after_its_cut(
+    controller: CellController, name: str, run: asyncio.Task[None]
+) -> None:
+    """Take machine ``name`` out of service once its cut in flight (taken up where it had
+    gone) has begun again, as ``cellctl machine NAME out`` left it: the cut finishes, and
+    what the cell does after it (the unload) follows. Out at once if the controller has not
+    begun it within :data:`TAKE_UP_S` (a mill it cannot use)."""
+    clock = current_clock()
+    deadline = clock.now() + TAKE_UP_S
+    while controller.step_task(name) is None and clock.now() < deadline and not run.done():
+        await clock.sleep(TAKE_UP_LOOK_S)
+    await controller.set_service(name, False, OUT_AT_START)
 
 
 def _raise_failed(faults: Sequence[asyncio.Task[None]]) -> None:

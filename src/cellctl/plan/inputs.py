@@ -14,6 +14,7 @@ seconds; ``*_text`` fields repeat them as local time for people and are ignored 
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from dataclasses import asdict
 from datetime import datetime
@@ -24,8 +25,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from cellctl.cell.config import load_cell
 from cellctl.emulators.cell import real_cell_toml
-from cellctl.errors import UsageError
-from cellctl.files import read_file
+from cellctl.errors import CellctlError, UsageError
+from cellctl.files import read_file, write_output
 from cellctl.mailbox.base import MAX_QTY
 from cellctl.plan.engine import FaultWindow, HeldPart, PartAt, PlanInputs, PlanOrder
 from cellctl.plan.when import MAX_HORIZON_S, MAX_POLL_S
@@ -210,18 +211,101 @@ def config_files(cell_dir: Path) -> list[Path]:
     return list(dict.fromkeys(named))
 
 
+#: The file a plan writes into its copy of the cell's configuration: what marks the
+#: directory as the plan's own (replaced by the next plan written there).
+COPY_MARK: Final = ".cellctl-plan-copy"
+#: What a cell holds and a plan's copy never does (its journal, mailbox, machine state).
+_CELL_OWN = ("journal.sqlite3", "mailbox.sqlite3", "state")
+
+
+def _beside_inputs(target: Path) -> bool:
+    """True if ``target``'s directory holds a plan's ``inputs.json`` naming ``target`` as
+    its cell copy (a plan written before copies were marked)."""
+    try:
+        data = json.loads(read_file(target.parent / INPUTS_FILE, limit=MAX_BYTES))
+    except (OSError, ValueError, RecursionError):
+        return False
+    return (
+        isinstance(data, dict)
+        and data.get("format") == FORMAT
+        and data.get("cell_dir") == target.name
+    )
+
+
+def _foreign(target: Path) -> list[str]:
+    """What in the directory ``target`` a plan's copy would not hold (relative names, a
+    directory with a slash): links, a cell's own files, files its cell.toml does not name."""
+    try:
+        allowed = {str(p) for p in config_files(target)} | {COPY_MARK}
+    except (CellctlError, OSError, ValueError):
+        allowed = {COPY_MARK, "cell.toml"}  # not a cell a plan wrote: the rest is not its copy
+    found: list[str] = []
+    for root, dirs, files in os.walk(target):  # links to directories are not followed
+        here = Path(root)
+        for name in sorted(dirs):
+            rel = (here / name).relative_to(target)
+            if (here / name).is_symlink():
+                found.append(str(rel))
+            elif str(rel) in _CELL_OWN:
+                found.append(f"{rel}/")
+        dirs[:] = sorted(d for d in dirs if f"{(here / d).relative_to(target)}/" not in found)
+        for name in sorted(files):
+            rel = (here / name).relative_to(target)
+            if str(rel) not in allowed or (here / name).is_symlink():
+                found.append(str(rel))
+    return found
+
+
+def check_copy_target(target: Path) -> None:
+    """Refuse (:class:`UsageError`, saying what is in the way and the way out) ``target`` as
+    the place of a plan's copy of a cell's configuration unless it is missing, an empty
+    directory or a plan's own copy (marked :data:`COPY_MARK`, or beside the plan's
+    ``inputs.json`` that names it) holding only what such a copy holds: a symbolic link,
+    a file, or a directory with a journal, a mailbox, machine state or any other file (a
+    real cell, an operator's notes) is never removed or written through."""
+    way_out = "give --out a directory of its own, or move it away"
+    if target.is_symlink():
+        raise UsageError(
+            f"{target}: a symbolic link (to {os.readlink(target)}): a plan writes its copy of "
+            f"the cell's configuration through no link: {way_out}"
+        )
+    if not target.exists():
+        return
+    if not target.is_dir():
+        raise UsageError(f"{target}: in the way of the plan's cell copy (remove it)")
+    if not any(target.iterdir()):
+        return
+    own = (target / COPY_MARK).is_file() or _beside_inputs(target)
+    foreign = _foreign(target)
+    if own and not foreign:
+        return
+    shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
+    what = f"it holds {shown}" if foreign else f"no {COPY_MARK} in it, no plan's {INPUTS_FILE}"
+    raise UsageError(
+        f"{target}: not a plan's copy of a cell's configuration ({what}), and a plan "
+        f"replaces only its own: {way_out}"
+    )
+
+
 def copy_config(cell_dir: Path, target: Path) -> Path:
-    """Copy the cell's configuration (:func:`config_files`) into ``target`` (replaced; a
-    replay into its own directory keeps the copy it plays from), its cell.toml as the real
-    cell's (:func:`plan_cell_toml`)."""
-    if target.resolve() == cell_dir.resolve():
+    """Copy the cell's configuration (:func:`config_files`) into ``target``, its cell.toml
+    as the real cell's (:func:`plan_cell_toml`), marked as a plan's copy (:data:`COPY_MARK`).
+    A plan's own earlier copy there is replaced; anything else there is refused
+    (:func:`check_copy_target`), and nothing is written through a link. A replay into its
+    own directory keeps the copy it plays from."""
+    if target.resolve() == cell_dir.resolve() and not target.is_symlink():
         return target
-    shutil.rmtree(target, ignore_errors=True)
-    for rel in config_files(cell_dir):
+    check_copy_target(target)
+    files = config_files(cell_dir)
+    if target.exists():
+        shutil.rmtree(target)
+    for rel in files:
         (target / rel).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(cell_dir / rel, target / rel)
-    toml = target / "cell.toml"
-    toml.write_text(plan_cell_toml(toml.read_text(encoding="utf-8")), encoding="utf-8")
+        data = read_file(cell_dir / rel)
+        if rel == Path("cell.toml"):
+            data = plan_cell_toml(data.decode("utf-8")).encode("utf-8")
+        write_output(target / rel, data)
+    write_output(target / COPY_MARK, "a plan's copy of a cell's configuration (cellctl plan)\n")
     return target
 
 
@@ -251,5 +335,5 @@ def save_inputs(inputs: PlanInputs, policies: tuple[str, ...], out: Path) -> Pat
     out.mkdir(parents=True, exist_ok=True)
     copy_config(inputs.cell_dir, out / CELL_COPY)
     path = out / INPUTS_FILE
-    path.write_text(json.dumps(inputs_dict(inputs, policies), indent=1) + "\n", encoding="utf-8")
+    write_output(path, json.dumps(inputs_dict(inputs, policies), indent=1) + "\n")
     return path

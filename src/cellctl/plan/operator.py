@@ -76,17 +76,13 @@ class PlanOperator:
 
     async def _switch_on(self, fault: FaultWindow) -> None:
         if fault.fault != "down":
-            self._target(fault.machine).set_fault(fault.fault, fault.arg)
+            # A line noise with no SEED of its own draws from the plan's seed.
+            self.cell.set_fault(fault.machine, fault.fault, fault.arg)
         elif fault.machine not in self.kept_out:
             await self.controller.set_service(fault.machine, False, "down (plan)")
 
     def _target(self, machine: str) -> Any:
-        cell = self.cell
-        if machine == "plc":
-            return cell.plc
-        if machine == cell.robot_name:
-            return cell.robot
-        return cell.mills[machine]
+        return self.cell.machine(machine)
 
     async def _switch_off(self, machine: str, name: str) -> None:
         """The fault off, and what the panel needs after it (as ``CellRig.switch_off``)."""

@@ -29,9 +29,11 @@ from typing import Any, Final
 from cellctl.cell.config import CellConfig
 from cellctl.cell.journal import Journal, Step
 from cellctl.cell.report import GanttRun, GanttWindow, gantt_runs_svg
+from cellctl.cell.scheduler import DOWNSTREAM_FIRST
 from cellctl.cell.shift import _down_intervals, _union, shift_report
 from cellctl.plan.engine import FaultWindow, PlanOrder
-from cellctl.plan.when import span_text, when_text
+from cellctl.plan.faults import PLC
+from cellctl.plan.when import late_text, span_text, when_text
 
 #: What an order's line says about it.
 ON_TIME: Final = "on time"
@@ -121,7 +123,7 @@ class PlanReport:
         """The report for a terminal (80 columns)."""
         looks = f", poll {self.poll_period:g} s" if self.poll_period else ""
         out = [
-            f"plan of {self.cell} (policy {self.policy}, seed {self.seed}{looks})",
+            f"plan of {self.cell} (policy {policy_name(self.policy)}, seed {self.seed}{looks})",
             f"from {when_text(self.start, date=True)} to {when_text(self.until, date=True)} "
             f"({span_text(self.until - self.start)})",
         ]
@@ -143,19 +145,23 @@ class PlanReport:
             end = at(f.end) if f.end is not None else "the end"
             what = f.fault + (f"={f.arg}" if f.arg else "")
             out.append(f"fault: {f.machine} {what} from {at(f.start)} to {end}")
-        out += ["", f"{'order':<12} {'part type':<20} {'made':>9}  {'finishes':<{width + 1}} due"]
+        # Ids and part types whole, each column as wide as its longest (two ids alike but
+        # for their ends must not read the same).
+        ids = max([12, *(len(o.order_id) for o in self.orders)])
+        types = max([20, *(len(o.part_type) for o in self.orders)])
+        out += [
+            "",
+            f"{'order':<{ids}} {'part type':<{types}} {'made':>9}  {'finishes':<{width + 1}} due",
+        ]
         for o in self.orders:
             finishes = at(o.finished) if o.finished is not None else "not in plan"
             due = at(o.due) if o.due is not None else "-"
-            verdict = o.verdict
-            if o.verdict == LATE:
-                verdict += f" by {'at least ' if o.finished is None else ''}{span_text(o.late_s)}"
             made = f"{o.made}/{o.qty}"
             extra = f" (held {o.held})" if o.held else ""
             extra += f" (scrapped {o.scrapped})" if o.scrapped else ""
             out.append(
-                f"{o.order_id[:12]:<12} {o.part_type[:20]:<20} {made:>9}  "
-                f"{finishes:<{width + 1}} {due:<{due_width + 1}} {verdict}{extra}"
+                f"{o.order_id:<{ids}} {o.part_type:<{types}} {made:>9}  "
+                f"{finishes:<{width + 1}} {due:<{due_width + 1}} {_verdict(o)}{extra}"
             )
         made = ", ".join(f"{n} x {t}" for t, n in sorted(self.parts_made.items())) or "none"
         out += ["", f"parts made: {made}"]
@@ -187,6 +193,25 @@ class PlanReport:
             f"{span_text(self.ended - self.start)} in {self.wall_s:.1f} s"
         )
         return out
+
+
+def policy_name(policy: str) -> str:
+    """A policy as the plan's text names it: ``default`` by the policy it is
+    (``downstream-first``), as ``--policy all`` names it."""
+    return DOWNSTREAM_FIRST if policy == "default" else policy
+
+
+def _verdict(o: OrderOutcome) -> str:
+    """An order's verdict as its line says it: how late in one format (``late by 0:00:42``,
+    ``late by at least 1:00:00``); one due as the plan ends and not finished then is late by
+    an unknown time: "late: not finished when due", never "late by 0"."""
+    if o.verdict != LATE:
+        return o.verdict
+    if o.finished is None:
+        if o.late_s < 0.5:
+            return f"{LATE}: not finished when due"
+        return f"{LATE} by at least {late_text(o.late_s)}"
+    return f"{LATE} by {late_text(o.late_s)}"
 
 
 def within(steps: Sequence[Step], start: float, until: float) -> list[Step]:
@@ -330,6 +355,16 @@ def _tick(start: float, span: float) -> Any:
     return label
 
 
+def _window_rows(fault: FaultWindow, machines: Sequence[str]) -> list[tuple[str, str]]:
+    """The chart's rows a fault window is shaded on, each with its label: its machine's, or
+    every row for the PLC's (it has no row: an emergency stop, a dropped or silent PLC
+    stops the whole cell)."""
+    what = fault.fault + (f"={fault.arg}" if fault.arg else "")
+    if fault.machine == PLC:
+        return [(row, f"{PLC} {what} (the whole cell)") for row in machines]
+    return [(fault.machine, fault.fault)]
+
+
 def plan_svg(
     reports: Sequence[PlanReport],
     steps: Sequence[Sequence[Step]],
@@ -338,14 +373,15 @@ def plan_svg(
 ) -> str:
     """The Gantt chart of one plan, or of several (one per policy) on one time axis: the
     demo's chart, its axis in wall-clock time from the plan's start to its end, each fault
-    window shaded on its machine's row."""
+    window shaded on its machine's row (a PLC's, which stops the whole cell, on every row)."""
     runs = []
     for report, found, types in zip(reports, steps, part_types, strict=True):
         windows = [
-            GanttWindow(f.machine, f.start, f.end if f.end is not None else report.until, f.fault)
+            GanttWindow(row, f.start, f.end if f.end is not None else report.until, label)
             for f in report.faults
+            for row, label in _window_rows(f, machines)
         ]
-        title = f"policy {report.policy}: on time {report.on_time}, late {report.late}"
+        title = f"policy {policy_name(report.policy)}: on time {report.on_time}, late {report.late}"
         runs.append(GanttRun(title, within(found, report.start, report.until), types, report.start))
         runs[-1].windows.extend(windows)
     span = max(r.until - r.start for r in reports)

@@ -37,6 +37,9 @@ from cellctl.mailbox import MAILBOX_FILE, Mailbox
 from cellctl.mailbox.sqlite import SqliteMailbox
 from cellctl.plan.engine import HeldPart, PartAt, PlanOrder
 
+#: The least ``done_s`` of a cut in flight (one just begun): more than 0, as a plan tells
+#: a cut in flight from a part waiting to be cut (a machine out of service finishes the one).
+IN_FLIGHT_S = 0.001
 #: Order states still to be worked on.
 OPEN_STATES = ("posted", "accepted", "in-progress", "held")
 
@@ -75,10 +78,11 @@ def open_work(
 
 
 def _done(since: float | None, now: float | None, time_scale: float) -> float:
-    """Machine seconds of a cut begun at ``since`` done by ``now`` (0: none in flight)."""
+    """Machine seconds of a cut begun at ``since`` done by ``now`` (0: none in flight; a
+    cut in flight has done at least :data:`IN_FLIGHT_S`: ``done_s`` > 0 says it is)."""
     if since is None or now is None:
         return 0.0
-    return round(max(0.0, now - since) * time_scale, 3)
+    return max(IN_FLIGHT_S, round(max(0.0, now - since) * time_scale, 3))
 
 
 def out_of_service(journal: Journal | None) -> tuple[str, ...]:

@@ -25,7 +25,14 @@ from cellctl.errors import UsageError
 from cellctl.mailbox.base import MAX_QTY
 from cellctl.plan.engine import POLICIES, FaultWindow, HeldPart, PlanInputs, PlanOrder
 from cellctl.plan.faults import PLC, check_switch, switches
-from cellctl.plan.when import PLAN_POLL_S, parse_duration, parse_poll, resolve_when, when_text
+from cellctl.plan.when import (
+    PLAN_POLL_S,
+    parse_duration,
+    parse_poll,
+    resolve_when,
+    skipped,
+    when_text,
+)
 
 #: Priorities an order may have (the control API's range).
 PRIORITY_RANGE: Final = range(-1_000_000, 1_000_001)
@@ -36,7 +43,8 @@ _WORD = r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,99}"
 _ADD = re.compile(
     rf"^\s*(?P<part>{_WORD})\s*:\s*(?P<qty>\d{{1,9}})\s*(?:@\s*(?P<prio>[-+]?\d{{1,18}}))?\s*$"
 )
-_WHEN = r"(?:[A-Za-z]{3,9}\s+)?\d{1,2}:\d{2}"
+#: A fault window's time: ``[DAY ]HH:MM`` or a date and time (``2026-11-30T06:30``).
+_WHEN = r"(?:\d{4}-\d{2}-\d{2}[T ]\d{1,2}:\d{2}(?::\d{2})?|(?:[A-Za-z]{3,9}\s+)?\d{1,2}:\d{2})"
 _FAULT = re.compile(
     rf"^\s*(?P<machine>{_WORD})\s*:\s*(?P<name>[a-z][a-z0-9_\-]{{0,40}})(?:=(?P<arg>[^@\s]{{1,40}}))?"
     rf"\s*@\s*(?P<a>{_WHEN})\s*(?:-\s*(?P<b>{_WHEN}))?\s*$"
@@ -69,22 +77,39 @@ def parse_add(text: str) -> AddSpec:
 
 
 def parse_fault(text: str, start: float, until: float | None = None) -> FaultWindow:
-    """``cnc2:down@10:00-11:00``, ``cnc1:stall@FRI 09:30-FRI 10:00``, ``plc:stuck-door=2@10:00``:
-    times are the next such local times at or after the plan's ``start`` (the end after the
-    start of the window). Refused if the window opens after ``until``."""
+    """``cnc2:down@10:00-11:00``, ``cnc1:stall@FRI 09:30-FRI 10:00``, ``plc:stuck-door=2@10:00``,
+    ``cnc1:down@2026-11-30T06:30-2026-11-30T08:00``: ``[DAY ]HH:MM`` is the next such local
+    time at or after the plan's ``start`` (the end at or after the window's start; a wall
+    time the clocks skip, the next that exists), a date and time is itself. Refused if the
+    window ends as it opens, or opens at or after ``until``: saying how each time was read."""
     found = _FAULT.match(text)
     if found is None:
         raise UsageError(
-            f"--fault {text!r}: write MACHINE:FAULT@HH:MM-HH:MM (e.g. cnc2:down@10:00-11:00); "
+            f"--fault {text!r}: write MACHINE:FAULT@FROM-TO, each time HH:MM, DAY HH:MM or "
+            "a date and time (e.g. cnc2:down@10:00-11:00, cnc2:down@2026-11-30T10:00-11:00); "
             "FAULT is down or an emulator fault switch, NAME=ARG if it takes an argument"
         )
     if found["b"] and " ".join(found["a"].lower().split()) == " ".join(found["b"].lower().split()):
         # Read as written, it would be a window of a whole day (or week): never what was meant.
         raise UsageError(f"--fault {text!r}: the window ends as it opens: write when it ends")
     opens = resolve_when(found["a"], start, inclusive=True)
-    closes = resolve_when(found["b"], opens) if found["b"] else None
+    # At or after the start: an end that reads as the very instant (its start was a wall
+    # time the clocks skip) is refused, not read as the next day's.
+    closes = resolve_when(found["b"], opens, inclusive=True) if found["b"] else None
+    read = f"{found['a']} read as {when_text(opens, date=True)}{skipped(found['a'], opens)}"
+    if closes is not None:
+        read += f", {found['b']} as {when_text(closes, date=True)}{skipped(found['b'], closes)}"
+    if closes is not None and closes <= opens:
+        raise UsageError(
+            f"--fault {text!r}: the window ends as it opens ({read}): write when it ends"
+        )
     if until is not None and opens >= until:
-        raise UsageError(f"--fault {text!r}: the window opens after the plan ends")
+        raise UsageError(
+            f"--fault {text!r}: the window opens after the plan ends "
+            f"({when_text(until, date=True)}): {read}, the next such time at or after the "
+            f"plan's start ({when_text(start, date=True)}); give a date for another "
+            "(2026-11-30T06:30)"
+        )
     return FaultWindow(found["machine"], found["name"], opens, closes, found["arg"])
 
 
@@ -129,7 +154,7 @@ def check_inputs(
         if until is not None and window.start >= until:
             raise UsageError(
                 f"fault {window.fault!r} on {window.machine}: the window opens after the plan "
-                f"ends ({when_text(until)})"
+                f"ends ({when_text(until, date=True)}): at {when_text(window.start, date=True)}"
             )
     for policy in policies:
         if policy not in POLICIES:
@@ -236,7 +261,9 @@ def plan_inputs(
     windows = tuple(parse_fault(text, start) for text in faults)
     policies = policies_of(policy)
     config = load_cell(cell_dir)
-    check_inputs(config, every, windows, policies, end)
+    check_inputs(config, every, windows, policies)
+    for text in faults:  # a window after the plan's end, refused saying how it was read
+        parse_fault(text, start, end)
     inputs = PlanInputs(
         cell_dir=cell_dir,
         orders=every,

@@ -13,6 +13,7 @@ times are unix seconds, read and written as local wall time.
 
 from __future__ import annotations
 
+import math
 import re
 from datetime import datetime, timedelta
 from typing import Final
@@ -108,10 +109,48 @@ def _local(stamp: float) -> datetime:
 
 
 def _stamp(moment: datetime, text: str) -> float:
+    """The unix time of the local wall time ``moment``; one the clocks skip (spring
+    forward: 02:30 when they go from 02:00 to 03:00) is the next that exists, the instant
+    they go forward (03:00), never an hour later or a day (:func:`skipped`)."""
     try:
-        return moment.timestamp()
+        stamp = moment.timestamp()
+        if _local(stamp) == moment:
+            return stamp
+        # In the gap: fold=1 reads it with the offset after the change, fold=0 with the one
+        # before; the change lies between. The first second whose wall time is not before
+        # ``moment`` (wall time only grows over a spring forward).
+        low, high = sorted((moment.replace(fold=1).timestamp(), stamp))
+        low, high = math.floor(low), math.ceil(high)
+        while low < high:
+            mid = (low + high) // 2
+            if _local(mid) < moment:
+                low = mid + 1
+            else:
+                high = mid
+        return float(low)
     except (OverflowError, OSError, ValueError):
         raise UsageError(f"time {text!r} is out of range") from None
+
+
+def skipped(text: str, stamp: float) -> str:
+    """What a message adds for ``text`` read as ``stamp``: if the clocks skipped the wall
+    time it names (a spring forward: it was read as the next that exists), ``" (no 02:30
+    that day: the clocks go forward)"``; else ""."""
+    found = _DAY_TIME.match(text)
+    if found is None:
+        try:
+            moment = datetime.fromisoformat(text.strip())
+        except ValueError:
+            return ""
+        if moment.tzinfo is not None:
+            return ""
+        hour, minute = moment.hour, moment.minute
+    else:
+        hour, minute = int(found["h"]), int(found["m"])
+    local = _local(stamp)
+    if (local.hour, local.minute) == (hour, minute):
+        return ""
+    return f" (no {hour:02d}:{minute:02d} that day: the clocks go forward)"
 
 
 def resolve_when(text: str, start: float, *, inclusive: bool = False, due: bool = False) -> float:
@@ -185,6 +224,15 @@ def span_text(seconds: float) -> str:
     if seconds < 60:
         return f"{seconds:.1f} s"
     s = round(seconds)
+    days, s = divmod(s, 86400)
+    clock = f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
+    return f"{days} d {clock}" if days else clock
+
+
+def late_text(seconds: float) -> str:
+    """How late an order is, as the plan's table says it: always ``H:MM:SS`` (``0:00:42``,
+    ``1:00:00``, ``1 d 2:05:09``), whole seconds rounded up: late at all is never "0"."""
+    s = max(1, math.ceil(seconds - 1e-6))
     days, s = divmod(s, 86400)
     clock = f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
     return f"{days} d {clock}" if days else clock

@@ -43,16 +43,26 @@ REAP_S = 10.0
 
 
 def _work(
-    send: Connection, parent: Connection, work: Callable[..., Any], args: tuple[Any, ...]
+    send: Connection,
+    parent: Connection,
+    work: Callable[..., Any],
+    args: tuple[Any, ...],
+    told: bool = False,
 ) -> None:
     """The worker process: ``work(*args)``, its outcome sent back as (what, value); ended
-    at once if the service's process dies (``parent``: a lifeline's end)."""
+    at once if the service's process dies (``parent``: a lifeline's end). ``told``: the
+    work is given ``progress=``, which sends ("progress", item) ahead of the outcome."""
     with contextlib.suppress(OSError):
         os.nice(NICE)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     end_with_parent(parent)
+
+    def progress(item: Any) -> None:
+        send.send(("progress", item))
+
     try:
-        reply: tuple[str, Any] = ("done", work(*args))
+        done = work(*args, progress=progress) if told else work(*args)
+        reply: tuple[str, Any] = ("done", done)
     except UsageError as e:
         reply = ("refused", str(e))
     except BaseException as e:  # told to the service in words: its object may not travel
@@ -82,10 +92,18 @@ def _stderr_with_a_descriptor() -> Iterator[None]:
         sys.stderr = saved
 
 
-def _receive(receive: Connection, process: BaseProcess) -> tuple[str, Any]:
-    """The worker's reply, or ("ended", None) if it ended without one (killed, crashed)."""
+def _receive(
+    receive: Connection, process: BaseProcess, progress: Callable[[Any], None] | None = None
+) -> tuple[str, Any]:
+    """The worker's reply, or ("ended", None) if it ended without one (killed, crashed);
+    its progress on the way to ``progress`` (in this thread)."""
     try:
-        return receive.recv()  # type: ignore[no-any-return]
+        while True:
+            what, value = receive.recv()
+            if what != "progress":
+                return what, value
+            if progress is not None:
+                progress(value)
     except EOFError:
         return "ended", None
     finally:
@@ -93,15 +111,19 @@ def _receive(receive: Connection, process: BaseProcess) -> tuple[str, Any]:
         process.join(REAP_S)
 
 
-async def in_process(work: Callable[..., T], *args: Any) -> T:
+async def in_process(
+    work: Callable[..., T], *args: Any, progress: Callable[[Any], None] | None = None
+) -> T:
     """``work(*args)`` in a spawned worker process (see module docstring): ``work`` a
-    module-level function, its arguments and result picklable."""
+    module-level function, its arguments and result picklable. ``progress``: ``work`` is
+    called with ``progress=`` a function that hands each (picklable) item it is given to
+    this ``progress``, called in a thread of this process (not the event loop's)."""
     context = multiprocessing.get_context("spawn")
     receive, send = context.Pipe(duplex=False)
     child_end, own_end = lifeline(context)
     process = context.Process(
         target=_work,
-        args=(send, child_end, work, args),
+        args=(send, child_end, work, args, progress is not None),
         name=f"cellctl-{work.__name__}",
         daemon=True,
     )
@@ -115,7 +137,7 @@ async def in_process(work: Callable[..., T], *args: Any) -> T:
     finally:
         send.close()  # the worker holds its end: its exit is the reader's end of file
         child_end.close()
-    reader = asyncio.ensure_future(asyncio.to_thread(_receive, receive, process))
+    reader = asyncio.ensure_future(asyncio.to_thread(_receive, receive, process, progress))
     try:
         what, value = await asyncio.shield(reader)
     finally:

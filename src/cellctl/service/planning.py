@@ -26,11 +26,13 @@ or machines change).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import shutil
 import tempfile
 import threading
 import tomllib
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -87,7 +89,8 @@ _playing = threading.Lock()
 async def plan_run(access: CellAccess, p: PlanParams, progress: Progress | None) -> Any:
     """Snapshot the cell, check the inputs (in a thread: the configuration is read, programs
     compiled), then play them in a worker process (:mod:`cellctl.service.offload`); answer
-    the plan (its figures, inputs and chart)."""
+    the plan (its figures, inputs and chart). ``progress``: told how far the play has gone
+    (``{"policy", "played_s", "span_s"}``, a few times a second at most)."""
     from cellctl.plan.snapshot import open_work, out_of_service
     from cellctl.plan.spec import plan_inputs
 
@@ -119,18 +122,41 @@ async def plan_run(access: CellAccess, p: PlanParams, progress: Progress | None)
 
         # Refused here, before a process starts: the inputs' own words, at once.
         played, policies = await asyncio.to_thread(inputs)
+        told = None if progress is None else _progress_to(progress, played)
         # The play's directory is this process's: a play ended midway leaves nothing behind.
         with tempfile.TemporaryDirectory(prefix="cellctl-plan-") as tmp:
-            return await in_process(_play_plan, played, policies, tmp)
+            return await in_process(_play_plan, played, policies, tmp, progress=told)
     finally:
         _playing.release()
 
 
-def _play_plan(inputs: PlanInputs, policies: tuple[str, ...], workdir: str) -> dict[str, Any]:
-    """:func:`plan_run`'s play in ``workdir``, in its worker process: the answer."""
+def _progress_to(progress: Progress, inputs: PlanInputs) -> Callable[[Any], None]:
+    """What the play's worker reports (``(policy, played_s)``, in the reader's thread) as
+    the API's progress (``{"policy", "played_s", "span_s"}``), handed to this loop."""
+    loop = asyncio.get_running_loop()
+    span = inputs.until - inputs.start
+
+    def told(item: Any) -> None:
+        policy, played = item
+        data = {"policy": policy, "played_s": round(played, 3), "span_s": span}
+        with contextlib.suppress(RuntimeError):  # the loop closed: nobody waits any more
+            loop.call_soon_threadsafe(progress, data)
+
+    return told
+
+
+def _play_plan(
+    inputs: PlanInputs,
+    policies: tuple[str, ...],
+    workdir: str,
+    progress: Callable[[Any], None] | None = None,
+) -> dict[str, Any]:
+    """:func:`plan_run`'s play in ``workdir``, in its worker process: the answer; how far
+    it has gone to ``progress`` (``(policy, played_s)``)."""
     from cellctl.plan.run import play
 
-    result = play(inputs, policies, Path(workdir))
+    tell = None if progress is None else (lambda policy, played: progress((policy, played)))
+    result = play(inputs, policies, Path(workdir), progress=tell)
     return {"plan": result.as_dict(), "svg": result.svg}
 
 

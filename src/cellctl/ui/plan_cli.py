@@ -26,8 +26,8 @@ import click
 from cellctl.clock import current_clock
 from cellctl.errors import CellctlError, UsageError
 from cellctl.plan.when import MAX_POLL_S, PLAN_POLL_S, parse_poll
-from cellctl.ui.calls import cell_call
-from cellctl.ui.common import cell_dir, console, fail, print_json, print_line
+from cellctl.ui.common import cell_dir, console, fail, print_json, print_line, run
+from cellctl.ui.plan_progress import ProgressLine, progress_line
 
 T = TypeVar("T")
 
@@ -77,6 +77,7 @@ def _local_plan(
     orders_file: Path | None,
     start_text: str | None,
     options: dict[str, Any],
+    line: ProgressLine | None = None,
 ) -> Any:
     from cellctl.plan.orders_file import read_orders_file
     from cellctl.plan.run import play_in_temp
@@ -99,7 +100,8 @@ def _local_plan(
             )
         raise UsageError("nothing to plan: give --orders FILE or --add PART:QTY")
     inputs, policies = plan_inputs(directory, start=start, orders=orders, **options)
-    return play_in_temp(inputs, policies, workers=os.cpu_count() or 1)
+    told = None if line is None else line.told(inputs.until - inputs.start)
+    return play_in_temp(inputs, policies, workers=os.cpu_count() or 1, progress=told)
 
 
 @click.command("plan")
@@ -136,7 +138,8 @@ def _local_plan(
     multiple=True,
     metavar="MACHINE:FAULT@HH:MM-HH:MM",
     help="A fault window (repeatable): FAULT is down (out of service) or an emulator "
-    "fault switch (cnc1:stall@10:00-10:20); without an end, to the plan's end.",
+    "fault switch (cnc1:stall@10:00-10:20); each time HH:MM, 'DAY HH:MM' or a date and time "
+    "(2026-11-30T06:30); without an end, to the plan's end.",
 )
 @click.option(
     "--policy",
@@ -211,9 +214,11 @@ def plan_command(
         ]
         if given:
             raise click.UsageError(f"--replay plays its own inputs: not with {', '.join(given)}")
-        result = guarded(lambda: _replay(replay))
+        with progress_line(as_json) as line:
+            result = guarded(lambda: _replay(replay, line))
     elif directory is not None:
-        result = guarded(lambda: _local_plan(directory, orders_file, start_text, options))
+        with progress_line(as_json) as line:
+            result = guarded(lambda: _local_plan(directory, orders_file, start_text, options, line))
     else:
         if orders_file is not None or start_text is not None:
             raise click.UsageError(
@@ -227,7 +232,8 @@ def plan_command(
         params.update(seed=seed, add=list(adds), fault=list(faults))
         if poll is not None:
             params["poll"] = poll
-        answer = cell_call(ctx, "plan.run", params)
+        with progress_line(as_json) as line:
+            answer = _call_plan(ctx, params, line)
         here = cell_dir(ctx)
         result = guarded(lambda: result_from_dict(answer["plan"], answer["svg"], here))
         result.inputs = dataclasses.replace(result.inputs, cell_dir=here)
@@ -241,12 +247,27 @@ def plan_command(
         console.print(f"saved {path}", markup=False, highlight=False)
 
 
-def _replay(path: Path) -> Any:
+def _replay(path: Path, line: ProgressLine | None = None) -> Any:
     from cellctl.plan.inputs import load_inputs
     from cellctl.plan.run import play_in_temp
 
     inputs, policies = load_inputs(path)
-    return play_in_temp(inputs, policies, workers=os.cpu_count() or 1)
+    told = None if line is None else line.told(inputs.until - inputs.start)
+    return play_in_temp(inputs, policies, workers=os.cpu_count() or 1, progress=told)
+
+
+def _call_plan(ctx: click.Context, params: dict[str, Any], line: ProgressLine | None) -> Any:
+    """``plan.run`` on the cell (as :func:`~cellctl.ui.calls.cell_call`), its progress on
+    ``line``."""
+    directory = cell_dir(ctx)
+
+    async def main() -> Any:
+        from cellctl.service.client import open_cell
+
+        async with await open_cell(directory, {}) as cell:
+            return await cell.call("plan.run", params, None if line is None else line.from_api)
+
+    return run(main)
 
 
 def guarded(fn: Callable[[], T]) -> T:

@@ -135,6 +135,7 @@ def plan_params(raw: dict[str, str], now: float) -> dict[str, Any]:
 def plan_text(answer: dict[str, Any], directory: Path) -> list[str]:
     """``plan.run``'s answer as the WHAT IF view shows it: ``cellctl plan``'s report, then
     each policy's text Gantt chart."""
+    from cellctl.plan.report import policy_name
     from cellctl.plan.run import result_from_dict
 
     result = result_from_dict(answer["plan"], answer.get("svg", ""), directory)
@@ -148,7 +149,7 @@ def plan_text(answer: dict[str, Any], directory: Path) -> list[str]:
     if len(result.reports) > 1 and "policies compared:" in compared:
         out += ["", *fitted(compared[compared.index("policies compared:") :])]
     for report in result.reports:
-        out += ["", f"Gantt chart, policy {report.policy}:", *gantt_lines(report)]
+        out += ["", f"Gantt chart, policy {policy_name(report.policy)}:", *gantt_lines(report)]
     return out
 
 

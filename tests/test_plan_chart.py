@@ -1,0 +1,46 @@
+"""The plan's chart shades each fault window: a machine's on its row, the PLC's (an
+emergency stop, a dropped or silent PLC: it stops the whole cell, and has no row) across
+every row, in the same style, labelled as the PLC's."""
+
+from __future__ import annotations
+
+import re
+import shutil
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from cellctl.emulators.cell import EXAMPLE_CELL
+from cellctl.ui.cli import main
+
+
+@pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
+def test_a_plc_window_is_shaded_across_every_row(tmp_path: Path) -> None:
+    cell = tmp_path / "cell"
+    shutil.copytree(EXAMPLE_CELL, cell)
+    out = tmp_path / "out"
+    result = CliRunner().invoke(
+        main,
+        ["plan", "--dir", str(cell), "--add", "wax-robot-base:1", "--start", "2026-11-25T06:00",
+         "--shift", "30m", "--fault", "plc:estop@06:05-06:10", "--fault", "cnc2:down@06:20-06:25",
+         "--out", str(out)],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    svg = (out / "plan.svg").read_text()
+    windows = re.findall(
+        r'<rect x="([\d.]+)" y="([\d.]+)" width="([\d.]+)"[^>]*class="window">'
+        r"<title>([^<]*)</title>",
+        svg,
+    )
+    plc = [w for w in windows if w[3].startswith("plc estop (the whole cell)")]
+    down = [w for w in windows if w[3].startswith("down")]
+    # One on each row: the robot's, cnc1's and cnc2's; all over the same span.
+    assert len(plc) == 3 and len({y for _, y, _, _ in plc}) == 3, windows
+    assert len({(x, w) for x, _, w, _ in plc}) == 1
+    assert len(down) == 1 and down[0][1] in {y for _, y, _, _ in plc}
+    # The same style as a machine's window.
+    styles = set(
+        re.findall(r'fill="[^"]+" fill-opacity="[^"]+" stroke="[^"]+"[^>]*class="window"', svg)
+    )
+    assert len(styles) == 1, styles

@@ -149,6 +149,8 @@ def _resolved(name: str) -> tuple[MachineKind | None, str]:
     """Kind ``name`` from the entry points declaring it, and why a declaration is skipped
     ("" when none is): the one rule :func:`found` and :func:`kind` share."""
     eps = _declared().get(name, [])
+    if not eps:
+        return None, ""  # no such kind: unknown, not broken
     chosen = _chosen(name, eps)
     if isinstance(chosen, str):
         log.warning("machine kind %s skipped: %s", name, chosen)

@@ -16,7 +16,6 @@ import threading
 from collections.abc import Callable, Iterator
 from typing import Any, TextIO
 
-from cellctl.plan.report import policy_name
 from cellctl.plan.when import span_text
 
 __all__ = ["ProgressLine", "progress_line"]
@@ -53,6 +52,9 @@ class ProgressLine:
                 f"playing: {span_text(played)} of {span_text(self.span_s)} machine time "
                 f"({min(1.0, played / span):.0%})"
             )
+        # Here, not at the top: `cellctl plan --help` loads none of the plan's engine.
+        from cellctl.plan.report import policy_name
+
         each = ", ".join(
             f"{policy_name(p)} {min(1.0, s / span):.0%}" for p, s in self._played.items()
         )

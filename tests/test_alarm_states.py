@@ -127,7 +127,7 @@ def test_an_older_journal_gets_the_alarm_columns(tmp_path: Path) -> None:
 
 ACTIONS = st.lists(
     st.tuples(
-        st.sampled_from(["raise", "ack", "rtn", "clear", "shelve", "tick"]),
+        st.sampled_from(["raise", "ack", "rtn", "clear", "shelve", "unshelve", "tick"]),
         st.integers(1, 3),  # which alarm (by its raise order)
         st.floats(1, MAX_SHELVE),
     ),
@@ -140,7 +140,7 @@ ACTIONS = st.lists(
 def test_any_sequence_keeps_the_states_consistent(actions: list[tuple[str, int, float]]) -> None:
     """A model of one machine's alarms (code ``link``, texts by number) against the journal:
     acked only by ack or clear, never un-cleared, returned only while open, unacked again
-    only when its condition comes back."""
+    only when its condition comes back, unshelved only while shelved."""
     clock = Clock()
     with tempfile.TemporaryDirectory() as tmp, Journal(Path(tmp) / "j.sqlite3", clock=clock) as j:
         ids: dict[int, int] = {}
@@ -178,6 +178,14 @@ def test_any_sequence_keeps_the_states_consistent(actions: list[tuple[str, int, 
                     continue
                 a = j.shelve_alarm(before.id, seconds)
                 assert not a.unacked(clock.at)
+            elif action == "unshelve":
+                if before.state == "cleared" or not before.shelved(clock.at):
+                    with pytest.raises(UsageError):
+                        j.unshelve_alarm(before.id)
+                    assert j.get_alarm(before.id) == before  # refused: nothing changed
+                    continue
+                a = j.unshelve_alarm(before.id)
+                assert a.shelved_until is None and a.acked == before.acked
             else:
                 clock.at += seconds
                 a = j.get_alarm(before.id)

@@ -42,6 +42,7 @@ CLI_OF_METHOD = {
     "alarms.clear": "alarm clear",
     "alarms.ack": "alarm ack",
     "alarms.shelve": "alarm shelve",
+    "alarms.unshelve": "alarm unshelve",
     "parts.release": "part release",
     "parts.scrap": "part scrap",
     "machines.out_of_service": "machine out",

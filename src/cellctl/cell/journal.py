@@ -34,10 +34,10 @@ is answered from in-memory views (:mod:`cellctl.cell.journalview`) that this jou
 keep current once committed and that are read again from the file after any other
 connection commits: never an answer the file would not give.
 
-The alarms (raise, acknowledge, shelve, return to normal, clear, and the spells they were
-active) live in :mod:`cellctl.cell.journalalarms`, the base class of :class:`Journal`; the
-tables and the helpers that read their rows in :mod:`cellctl.cell.journalrows`. Import from
-here as before.
+The alarms (raise, acknowledge, shelve, unshelve, return to normal, clear, and the spells
+they were active) live in :mod:`cellctl.cell.journalalarms`, the base class of
+:class:`Journal`; the tables and the helpers that read their rows in
+:mod:`cellctl.cell.journalrows`. Import from here as before.
 """
 
 from __future__ import annotations

@@ -3,19 +3,22 @@
 
     alarm, new = journal.raise_alarm("cnc1", "link", "cnc1 does not answer")
     journal.ack_alarm(alarm.id, by="ann")        # seen; still open
+    journal.shelve_alarm(alarm.id, 3600, "ann")  # not shown as unacknowledged for 1 h ...
+    journal.unshelve_alarm(alarm.id, by="ann")   # ... or shown as it is again at once
     journal.return_to_normal("cnc1", ["link"])   # its condition is gone; still open
     journal.clear_alarm(alarm.id, by="ann")      # ended
     journal.alarm_spells()[alarm.id]             # [Spell(began, ended)]: when it was active
 
-An alarm is raised active and unacknowledged, may be shelved for at most :data:`MAX_SHELVE`,
-and stays open until the operator clears it. Its condition may go and come back while it is
-open (returned to normal, then active again: the same alarm); the alarm's row keeps only the
-last return, so each time it was active is kept apart, as a spell (table ``alarm_spells``):
-from raised or active again, to returned to normal, else to cleared. The shift report's down
-time counts these. A journal from before spells has its alarms count as one spell each
-(raised to returned, else cleared); the first change of such an alarm writes that spell
-before its own. The base also holds what these need of the journal: the clock its times are
-read from and its in-memory views (:mod:`cellctl.cell.journalview`).
+An alarm is raised active and unacknowledged, may be shelved for at most :data:`MAX_SHELVE`
+(unshelved sooner by the operator), and stays open until the operator clears it. Its
+condition may go and come back while it is open (returned to normal, then active again: the
+same alarm); the alarm's row keeps only the last return, so each time it was active is kept
+apart, as a spell (table ``alarm_spells``): from raised or active again, to returned to
+normal, else to cleared. The shift report's down time counts these. A journal from before
+spells has its alarms count as one spell each (raised to returned, else cleared); the first
+change of such an alarm writes that spell before its own. The base also holds what these
+need of the journal: the clock its times are read from and its in-memory views
+(:mod:`cellctl.cell.journalview`).
 """
 
 from __future__ import annotations
@@ -168,6 +171,22 @@ class AlarmJournal(SqliteStore):
             db.execute(
                 "UPDATE alarms SET shelved_until = ?, shelved_by = ? WHERE id = ?",
                 (self._now() + seconds, by, alarm_id),
+            )
+            return self._keep_alarm(_get_alarm(db, alarm_id))
+
+    def unshelve_alarm(self, alarm_id: int, by: str = "operator") -> Alarm:
+        """Unshelve an alarm shelved now: shown as it is again at once (unacknowledged, if
+        it was not acknowledged). Refused for a cleared alarm, and for one not shelved now
+        (never, or its time ran out). ``by`` unshelves it: the row keeps no unshelver (its
+        ``shelved_by`` is emptied); the API's audit trail names the caller."""
+        with self._write() as db:
+            alarm = _get_alarm(db, alarm_id)
+            if alarm.state == "cleared":
+                raise UsageError(f"alarm {alarm_id} is cleared: nothing to unshelve")
+            if not alarm.shelved(self._now()):
+                raise UsageError(f"alarm {alarm_id} is not shelved")
+            db.execute(
+                "UPDATE alarms SET shelved_until = NULL, shelved_by = '' WHERE id = ?", (alarm_id,)
             )
             return self._keep_alarm(_get_alarm(db, alarm_id))
 

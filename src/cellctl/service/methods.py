@@ -192,6 +192,12 @@ async def _shelve(access: CellAccess, p: ShelveParams, progress: Progress | None
     return result
 
 
+async def _unshelve(access: CellAccess, p: AlarmParams, progress: Progress | None) -> Any:
+    result = operator.unshelve_alarm(_journal(access), p.id, by=caller_name())
+    access.poke()
+    return result
+
+
 async def _history(access: CellAccess, p: HistoryParams, progress: Progress | None) -> Any:
     journal = access.journal()
     if journal is None:
@@ -358,6 +364,7 @@ _TABLE: list[Method] = [
     Method("alarms.clear", AlarmParams, _clear, "Clear (end) an alarm.", True),
     Method("alarms.ack", AlarmParams, _ack, "Acknowledge an alarm (it stays open).", True),
     Method("alarms.shelve", ShelveParams, _shelve, "Shelve an alarm for seconds (<= 8 h).", True),
+    Method("alarms.unshelve", AlarmParams, _unshelve, "Unshelve an alarm: shown again now.", True),
     Method("alarms.history", HistoryParams, _history, "Alarms by time, machine, priority.", False),
     Method(
         "parts.list", PartsParams, _parts, "Parts, by status or order (held: may_be_in).", False

@@ -230,6 +230,16 @@ def shelve_alarm(
     }
 
 
+def unshelve_alarm(journal: Journal, alarm_id: int, by: str = "operator") -> dict[str, Any]:
+    """Unshelve an alarm shelved now: shown as it is again at once (refused for one that is
+    cleared or not shelved, in words)."""
+    a = journal.unshelve_alarm(alarm_id, by=by)
+    return {
+        "alarm": as_dict(a),
+        "message": f"alarm {a.id} unshelved ({a.machine} {a.code}: {a.text})",
+    }
+
+
 def _duration(seconds: float) -> str:
     whole = round(seconds)
     h, rest = divmod(whole, 3600)

@@ -34,7 +34,8 @@ OUTPUT_GONE_EXIT = 128 + signal.SIGPIPE
 #: (tests/test_cli_startup.py checks each summary against the command's own help).
 COMMANDS = {
     "alarm": Lazy(
-        "cellctl.ui.orders_cli:alarm", "The cell's alarms: list, acknowledge, shelve, clear"
+        "cellctl.ui.orders_cli:alarm",
+        "The cell's alarms: list, acknowledge, shelve, unshelve, clear",
     ),
     "audit": Lazy(
         "cellctl.ui.token_cli:audit_command", "Who did what to the cell, when, and how it ended"

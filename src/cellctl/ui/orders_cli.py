@@ -265,7 +265,7 @@ def reports(ctx: click.Context, since: int, limit: int | None, follow: bool, as_
 
 @click.group()
 def alarm() -> None:
-    """The cell's alarms: list, acknowledge, shelve, clear; their history."""
+    """The cell's alarms: list, acknowledge, shelve, unshelve, clear; their history."""
 
 
 @alarm.command("list")
@@ -329,11 +329,20 @@ def alarm_ack(ctx: click.Context, alarm_id: int) -> None:
 @click.pass_context
 def alarm_shelve(ctx: click.Context, alarm_id: int, duration: str) -> None:
     """Shelve alarm ID for a time: not shown as unacknowledged until it runs out."""
-    seconds = _seconds(duration, "--for")
+    again = f" (to show it again now: cellctl alarm unshelve {alarm_id})"
+    seconds = _seconds(duration, "--for", zero=again)
     if seconds > MAX_SHELVE:
         raise click.BadParameter(f"{duration}: at most 8h", param_hint="--for")
     result = cell_call(ctx, "alarms.shelve", {"id": alarm_id, "seconds": seconds})
     console.print(result["message"])
+
+
+@alarm.command("unshelve")
+@click.argument("alarm_id", metavar="ID", type=int)
+@click.pass_context
+def alarm_unshelve(ctx: click.Context, alarm_id: int) -> None:
+    """Unshelve alarm ID before its time runs out: shown as it is again at once."""
+    console.print(cell_call(ctx, "alarms.unshelve", {"id": alarm_id})["message"])
 
 
 @alarm.command("history")
@@ -391,15 +400,16 @@ def alarm_state(a: dict[str, Any], now: float) -> str:
 _UNITS = {"h": 3600.0, "m": 60.0, "s": 1.0}
 
 
-def _seconds(text: str, option: str) -> float:
-    """``30m``, ``2h``, ``1h30m``, ``90s``, ``45`` (seconds) as seconds; refused otherwise."""
+def _seconds(text: str, option: str, zero: str = "") -> float:
+    """``30m``, ``2h``, ``1h30m``, ``90s``, ``45`` (seconds) as seconds; refused otherwise
+    (no time at all: with ``zero`` said after the refusal, e.g. what to do instead)."""
     parts = re.fullmatch(r"(?:(\d+)h)?(?:(\d+)m)?(?:(\d+)s?)?", text.strip())
     if not text.strip() or parts is None:
         raise click.BadParameter(f"{text!r}: say 30m, 2h, 1h30m or 90s", param_hint=option)
     h, m, s = (int(g) if g else 0 for g in parts.groups())
     seconds = h * 3600.0 + m * 60.0 + s
     if seconds <= 0:
-        raise click.BadParameter(f"{text!r}: more than 0 s", param_hint=option)
+        raise click.BadParameter(f"{text!r}: more than 0 s{zero}", param_hint=option)
     return seconds
 
 

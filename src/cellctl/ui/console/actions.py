@@ -31,6 +31,7 @@ CELL_ACTIONS: dict[str, tuple[str, ...]] = {
     "alarms.ack": ("CELL", "ALARMS", "ACKNOWLEDGE"),
     "alarms.shelve": ("CELL", "ALARMS", "SHELVE FOR 1 HOUR"),
     "alarms.clear": ("CELL", "ALARMS", "CLEAR"),
+    "alarms.unshelve": ("CELL", "ALARMS", "UNSHELVE"),  # offered for a shelved alarm
     "parts.release": ("CELL", "HELD PARTS", "RELEASE"),
     "parts.scrap": ("CELL", "HELD PARTS", "SCRAP"),
     # A machine's own menu, key s (asks for the reason).

@@ -1,6 +1,6 @@
 """The console's CELL menu: orders (list, submit, cancel), alarms (list, acknowledge, shelve,
-clear), held parts (release, release with redo, scrap), pause/resume, the emergency stop and
-WHAT IF (a plan of the cell ahead, :mod:`.whatif`).
+unshelve, clear), held parts (release, release with redo, scrap), pause/resume, the emergency
+stop and WHAT IF (a plan of the cell ahead, :mod:`.whatif`).
 
 Orders, alarms and parts work in both modes (on the cell's files when no controller runs);
 pause, resume and the emergency stop need the controller and are shown as unavailable
@@ -178,25 +178,25 @@ class CellActions:
             return
         now = current_clock().now()
         rows = [(str(a["id"]), f"{a['id']} {alarm_line(a, now)}") for a in found]
-        picked = await self.app.ask(
-            PickDialog("ALARMS", rows, "Enter on an alarm offers to acknowledge, shelve, clear it")
-        )
+        hint = "Enter on an alarm offers to acknowledge, shelve, unshelve, clear it"
+        picked = await self.app.ask(PickDialog("ALARMS", rows, hint))
         if picked is None:
             return
-        what = await self.app.ask(
-            PickDialog(
-                f"ALARM {picked}",
-                [
-                    ("ack", "1. ACKNOWLEDGE (seen; it stays open)"),
-                    ("shelve", "2. SHELVE FOR 1 HOUR"),
-                    ("clear", "3. CLEAR (its cause is dealt with)"),
-                ],
-            )
-        )
+        choices = [
+            ("ack", "1. ACKNOWLEDGE (seen; it stays open)"),
+            ("shelve", "2. SHELVE FOR 1 HOUR"),
+            ("clear", "3. CLEAR (its cause is dealt with)"),
+        ]
+        # Offered for a shelved alarm only (as the dashboard's Unshelve), by its own number.
+        if any(str(a["id"]) == picked and shelved(a, now) for a in found):
+            choices.append(("unshelve", "4. UNSHELVE (show it again now)"))
+        what = await self.app.ask(PickDialog(f"ALARM {picked}", choices))
         if what == "ack":
             result = await self.app.call("alarms.ack", {"id": int(picked)})
         elif what == "shelve":
             result = await self.app.call("alarms.shelve", {"id": int(picked), "seconds": 3600})
+        elif what == "unshelve":
+            result = await self.app.call("alarms.unshelve", {"id": int(picked)})
         elif what == "clear":
             if not await self.app.confirm(f"Clear alarm {picked}? (its cause is dealt with)"):
                 self.app.say([f"alarm {picked} not cleared"])
@@ -327,9 +327,14 @@ def alarm_line(a: dict[str, Any], now: float) -> str:
     marks = ["UNACKED" if a.get("acked") is None else "acked"]
     if a.get("returned") is not None:
         marks.append("RTN")
-    if (a.get("shelved_until") or 0) > now:
+    if shelved(a, now):
         marks.append("SHELVED")
     return f"{a['machine']} {a['code']}: {a['text']} [{a.get('priority', '')} {' '.join(marks)}]"
+
+
+def shelved(a: dict[str, Any], now: float) -> bool:
+    """True while alarm ``a`` (as the API gives it) is shelved at ``now``."""
+    return bool((a.get("shelved_until") or 0) > now)
 
 
 def order_line(order: dict[str, Any]) -> str:

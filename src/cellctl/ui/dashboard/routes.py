@@ -65,6 +65,7 @@ DASHBOARD_METHODS = frozenset(
         "alarms.clear",
         "alarms.ack",
         "alarms.shelve",
+        "alarms.unshelve",
         "alarms.history",
         "parts.list",
         "parts.release",

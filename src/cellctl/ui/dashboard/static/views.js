@@ -261,14 +261,18 @@ export function renderOrders(snap) {
 let lastAlarms = null;
 const heard = new Set();   // unacknowledged alarms the sound already rang for
 
+function shelvedNow(a, now) {
+  return Boolean(a.shelved_until && a.shelved_until > now);
+}
+
 export function unacked(a, now = Date.now() / 1000) {
-  return a.state === "active" && a.acked === null && !(a.shelved_until && a.shelved_until > now);
+  return a.state === "active" && a.acked === null && !shelvedNow(a, now);
 }
 
 function alarmState(a, now) {
   const words = [a.acked === null ? "unacknowledged" : "acknowledged"];
   words.push(a.returned === null ? "active" : "returned to normal");
-  if (a.shelved_until && a.shelved_until > now) {
+  if (shelvedNow(a, now)) {
     words.push(`shelved until ${clock(a.shelved_until)}`);
   }
   return words.join(", ");
@@ -318,6 +322,12 @@ export function renderAlarms(snap) {
         onclick: (e) => actOn(e, `Shelve alarm ${a.id} (${a.machine}: ${a.text}) for 1 h?`,
           { id: a.id, seconds: 3600 }, "alarm-message"),
       }, "Shelve 1 h"),
+      // Shown again at once: nothing stops, so no confirmation (as Ack).
+      shelvedNow(a, now) ? h("button", {
+        class: "small-button",
+        "data-method": "alarms.unshelve",
+        onclick: (e) => actOn(e, null, { id: a.id }, "alarm-message"),
+      }, "Unshelve") : null,
       h("button", {
         class: "small-button",
         "data-method": "alarms.clear",

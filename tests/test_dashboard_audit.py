@@ -3,6 +3,8 @@ is refused with the role it lacks, shown on the page and recorded in the Audit p
 
 from __future__ import annotations
 
+import re
+
 from cellctl.service.token import add_token
 from tests.conftest import IN_BROWSER
 from tests.test_dashboard import Dash, dash, live  # noqa: F401  (the fixture)
@@ -34,4 +36,8 @@ async def test_a_viewer_reads_the_page_is_refused_an_order_and_sees_it_audited(
     # The engineer's pause (the local user, in-process) is there too, as done.
     done = page.locator("#audit-table tbody tr.audit-ok", has_text="cell.pause")
     assert await done.count() == 1
+    # How long it took, as `cellctl audit` says it; a refusal took no time of its own.
+    cells = await done.locator("td").all_inner_texts()
+    assert re.fullmatch(r"\d+\.\d s", cells[1]), cells
+    assert (await row.locator("td").all_inner_texts())[1] == "", text
     await dash.shot("audit", "#audit")

@@ -101,7 +101,7 @@ class ConsoleApp(App[None]):
     #menu { width: 36; height: 100%; border: none; border-top: solid $accent; padding: 0; }
     #board { width: 1fr; height: 100%; border: none; border-top: solid $secondary;
              border-left: solid $secondary; padding: 0 1; }
-    ResultPane { height: auto; max-height: 7; padding: 0 1; }
+    ResultPane { height: auto; max-height: 7; padding: 0 1; }  /* widgets.RESULT_ROWS */
     #result-text { height: auto; }
     TrafficPane { height: 5; border-top: solid $secondary; padding: 0 1; }
     """

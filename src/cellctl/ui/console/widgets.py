@@ -284,6 +284,34 @@ def _look(text: Text) -> tuple[object, ...]:
     return (text.plain, text.spans, text.style, text.justify, text.overflow, text.no_wrap)
 
 
+#: Rows the result pane shows (its height in the console's CSS).
+RESULT_ROWS = 7
+
+
+def fit_rows(lines: list[str], width: int, rows: int) -> list[str]:
+    """``lines`` as they fit ``rows`` rows of ``width`` columns, wrapped: all of them if they
+    fit, else the first (what the message is) and the newest that fit under a line saying
+    how many were left out. A log's last lines are its newest: cut from the top, never the
+    end."""
+    width = max(width, 1)
+
+    def height(line: str) -> int:
+        return max(1, math.ceil(len(line) / width))
+
+    if sum(height(line) for line in lines) <= rows or len(lines) < 2:
+        return lines
+    head, rest = lines[0], lines[1:]
+    room = rows - height(head) - 1  # the note of what was left out takes a row
+    kept: list[str] = []
+    for line in reversed(rest):
+        if height(line) > room:
+            break
+        kept.insert(0, line)
+        room -= height(line)
+    left = len(rest) - len(kept)
+    return [head, f"… {left} earlier line{'s' if left != 1 else ''} not shown", *kept]
+
+
 class ResultPane(Vertical):
     """The message of the last call (the source's words), and a bar while a call runs."""
 
@@ -295,8 +323,8 @@ class ResultPane(Vertical):
         self.query_one(ProgressBar).display = False
 
     def say(self, lines: list[str], style: str = "") -> None:
-        text = Text("\n".join(lines), style=style)
-        self.query_one("#result-text", Static).update(text)
+        shown = fit_rows(lines, self.content_size.width or self.app.size.width - 2, RESULT_ROWS)
+        self.query_one("#result-text", Static).update(Text("\n".join(shown), style=style))
 
     def progress(self, done: float | None, total: float | None) -> None:
         """Show (or, with ``total`` None, hide) the call's progress bar."""

@@ -43,7 +43,7 @@ from hypothesis import settings
 from playwright.async_api import Browser, async_playwright
 from playwright.async_api import Error as PlaywrightError
 
-from cellctl.clock import VirtualLoop
+from cellctl.clock import RealClock, VirtualLoop
 from cellctl.emulators.serve import Server, serve
 from cellctl.kinds.ibm7545.emulator import Ibm7545Emulator
 from cellctl.link import ROBOT_LINE
@@ -451,6 +451,18 @@ def make_ca(directory: Path, name: str = "cellctl test CA") -> CaFiles:
         key.private_bytes(pem, serialization.PrivateFormat.PKCS8, serialization.NoEncryption())
     )
     return out
+
+
+class SetClock(RealClock):
+    """A clock whose wall time the test sets (``clock.at = ...``), so a journal's figures are
+    exact and need no waiting; its monotonic time stays real."""
+
+    def __init__(self, at: float = 1000.0) -> None:
+        super().__init__()
+        self.at = at
+
+    def now(self) -> float:
+        return self.at
 
 
 def wait_until(condition: Callable[[], object], what: str, timeout: float = 60.0) -> None:

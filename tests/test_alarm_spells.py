@@ -20,19 +20,12 @@ from hypothesis import strategies as st
 from cellctl.cell.causes import ESTOP
 from cellctl.cell.journal import Journal, Spell
 from cellctl.cell.shift import shift_report
-from cellctl.clock import RealClock, current_clock
+from cellctl.clock import current_clock
 from cellctl.service.access import LocalCell
 from cellctl.service.methods import Dispatcher
 from cellctl.testing.rig import CellRig
 
-
-class Clock(RealClock):
-    def __init__(self) -> None:
-        super().__init__()
-        self.at = 1000.0  # the wall time the test sets
-
-    def now(self) -> float:
-        return self.at
+from .conftest import SetClock as Clock
 
 
 def down(journal: Journal, machine: str, start: float, end: float) -> float:

@@ -15,18 +15,10 @@ from hypothesis import strategies as st
 
 from cellctl.cell.causes import ALARM_PRIORITY, PRIORITIES, priority_of
 from cellctl.cell.journal import MAX_SHELVE, Alarm, Journal
-from cellctl.clock import RealClock
 from cellctl.errors import UsageError
 from cellctl.ui.orders_cli import _seconds, _since
 
-
-class Clock(RealClock):
-    def __init__(self) -> None:
-        super().__init__()
-        self.at = 1000.0  # the wall time the test sets
-
-    def now(self) -> float:
-        return self.at
+from .conftest import SetClock as Clock
 
 
 def test_priorities_come_from_the_cause(tmp_path: Path) -> None:

@@ -18,7 +18,7 @@ from click.testing import CliRunner
 from cellctl.cell.config import load_cell
 from cellctl.cell.journal import Journal
 from cellctl.cell.shift import ideal_times, shift_report
-from cellctl.clock import RealClock, current_clock
+from cellctl.clock import current_clock
 from cellctl.mailbox import open_mailbox
 from cellctl.service.access import LocalCell
 from cellctl.service.methods import Dispatcher
@@ -26,21 +26,14 @@ from cellctl.testing.rig import CellRig
 from cellctl.ui.cli import main
 from cellctl.ui.report_cli import WIDTH, shift_csv, shift_html, shift_lines
 
+from .conftest import SetClock as Clock
+
 
 @dataclass
 class Order:
     id: str
     part_type: str
     qty: int
-
-
-class Clock(RealClock):
-    def __init__(self) -> None:
-        super().__init__()
-        self.at = 1000.0  # the wall time the test sets
-
-    def now(self) -> float:
-        return self.at
 
 
 def test_figures_of_a_hand_made_journal(tmp_path: Path) -> None:

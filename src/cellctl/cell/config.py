@@ -263,22 +263,28 @@ def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
             ("opcua", "users"), f"no such file: {users} (add a user: cellctl opcua adduser NAME)"
         )
     machines: dict[str, MachineConfig] = {}
+    told: set[str] = set()  # machines whose own table has problems (said): no follow-on ones
     for name, entry in _entries(raw, "machines", problems).items():
         table = _checked(MachineTable, entry, ("machines", name), problems)
         if table is None:
+            told.add(name)
             continue
         kind = registry.kind(table.kind)
-        if _checked(kind.options, table.options, ("machines", name, "options"), problems) is None:
-            continue
+        # A bad option or a missing setup is said here; the machine stays known with its kind,
+        # so that the rest (mills, routes, its programs) is checked on, with the kind's
+        # default options in place of bad ones.
+        options_ok = (
+            _checked(kind.options, table.options, ("machines", name, "options"), problems)
+            is not None
+        )
         if kind.needs_setup and table.setup is None:
             problems.at(("machines", name, "setup"), "a mill needs its setup program")
-            continue
         machines[name] = MachineConfig(
             name=name,
             kind=table.kind,
             link=table.link,
             line=LineSettings.parse(table.line or kind.line),
-            options=dict(table.options),
+            options=dict(table.options) if options_ok else {},
             setup=directory / table.setup if table.setup else None,
             go_output=table.go_output,
         )
@@ -300,12 +306,17 @@ def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
     mills = []
     for n in mill_names(listed, {n: m.kind for n, m in machines.items()}):
         m = machines.get(n)
-        if m is None or m.kind not in mill_kinds_:
-            problems.at(
-                ("cell", "mills"), f"{n!r} is not a mill ({', '.join(mill_kinds_)} machine)"
-            )
-        else:
+        if m is not None and m.kind in mill_kinds_:
             mills.append(m)
+        elif n in told:
+            continue  # its [machines.NAME] table's problems are said above
+        elif m is None:
+            problems.at(("cell", "mills"), f"{n!r}: no such machine in [machines]")
+        else:
+            problems.at(
+                ("cell", "mills"),
+                f"{n!r} (kind {m.kind}) is not a mill (mill kinds: {', '.join(mill_kinds_)})",
+            )
     for m in mills:
         if m.setup is not None:
             _check_program(m, m.setup, ProgramRole.SETUP, problems.items)
@@ -349,7 +360,7 @@ def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
         part_table = _checked(PartTable, entry, ("parts", part_name), problems)
         if part_table is None:
             continue
-        part = _part(directory, part_name, part_table, {m.name: m for m in mills}, problems)
+        part = _part(directory, part_name, part_table, {m.name: m for m in mills}, told, problems)
         if part is None:
             continue
         parts[part_name] = part
@@ -424,7 +435,11 @@ def _check_program(
     kind: MachineKind = registry.kind(machine.kind)
     if kind.language is None:
         return (0, 0.0)
-    checked = kind.language.check(path, role, kind.checked_options(machine.options))
+    try:
+        options = kind.checked_options(machine.options)
+    except UsageError:
+        return None  # options it cannot do without, told with the machine's table
+    checked = kind.language.check(path, role, options)
     problems.extend(checked.problems)
     return None if checked.problems else (checked.lines, checked.machining_s)
 
@@ -452,10 +467,13 @@ def _part(
     name: str,
     table: PartTable,
     mills: dict[str, MachineConfig],
+    told: set[str],
     problems: _Problems,
 ) -> PartType | None:
     route: list[RouteStep] = []
     for i, step in enumerate(table.route):
+        if step.mill in told:
+            continue  # a machine whose own table's problems are said: not a second time here
         if step.mill not in mills:
             problems.at(("parts", name, "route", i, "mill"), f"unknown mill {step.mill!r}")
             continue

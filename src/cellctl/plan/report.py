@@ -62,6 +62,10 @@ class OrderOutcome:
     late_s: float = 0.0
 
 
+#: The alarms a plan's text names one by one; beyond, their count.
+ALARMS_SHOWN = 10
+
+
 @dataclass
 class PlanReport:
     """A plan's figures (see module docstring); :meth:`lines` for people, :meth:`as_dict`
@@ -93,6 +97,8 @@ class PlanReport:
     steps: list[dict[str, Any]] = field(default_factory=list)
     #: How often the planned controller looked at idle machines, s (0: not known).
     poll_period: float = 0.0
+    #: The alarms raised, in order: machine, code, text, raised (s since the epoch).
+    alarms: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def on_time(self) -> int:
@@ -179,6 +185,12 @@ class PlanReport:
             out.append(f"held for the operator at the start (stay held): {self.held_at_start}")
         if self.alarms_raised or self.steps_failed:
             out.append(f"alarms raised: {self.alarms_raised}; failed steps: {self.steps_failed}")
+        for a in self.alarms[:ALARMS_SHOWN]:
+            out.append(f"alarm: {a['machine']} at {at(a['raised'])}: {a['text']}")
+        if len(self.alarms) > ALARMS_SHOWN:
+            out.append(
+                f"... and {len(self.alarms) - ALARMS_SHOWN} more alarm(s) (--json lists them)"
+            )
         last = self.last_finished
         if last is not None:
             out.append(
@@ -302,6 +314,10 @@ def plan_report(
         down_s={m.machine: m.down_s for m in figures.machines},
         faults=list(faults),
         alarms_raised=len(alarms),
+        alarms=[
+            {"machine": a.machine, "code": a.code, "text": a.text, "raised": a.raised}
+            for a in sorted(alarms, key=lambda a: (a.raised, a.id))
+        ],
         steps_failed=sum(s.state in ("failed", "interrupted") for s in steps),
         held_at_start=held_at_start,
         under_way_at_start=under_way_at_start,

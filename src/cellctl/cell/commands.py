@@ -12,6 +12,10 @@ controller, written once, and mypy checks the controller is one::
     await controller.set_service("cnc2", True)       # prepared again, then dispatched to
     await controller.emergency_stop("guard opened")  # robot stopped, mills halted, alarm
 
+A manual function's driver reports its progress (a download's records, a mill's bytes and
+blocks, its phase and estimate) to the machine's view as the controller's own steps do, so
+the status shows it on every surface; :attr:`manual_steps` has each one's program and start.
+
 ``listeners`` are called (synchronously, cheaply) whenever the controller's state changed,
 so a server can push updates instead of polling.
 """
@@ -20,10 +24,15 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
+import inspect
 from collections.abc import AsyncIterator, Callable
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, cast
 
 from cellctl.errors import CellctlError, MachineInUse, unknown_machine
+from cellctl.kinds.families import RunProgress
 
 if TYPE_CHECKING:
     from cellctl.cell.model import MachineView
@@ -38,16 +47,28 @@ OPERATOR_OUT = "taken out by the operator"
 ESTOP_TIMEOUT = 10.0
 
 
+@dataclass
+class ManualStep:
+    """A manual function running on a machine: when it began (s since the epoch) and the
+    program it sends, once its driver was handed one."""
+
+    started: float
+    program: str | None = None
+
+
 class OperatorCommands:
     """Pause, resume, emergency stop, service and manual use of a machine (see module doc)."""
 
     paused: bool
     manual_use: set[str]
+    manual_steps: dict[str, ManualStep]
+    """The manual functions running, by machine: the status' manual step."""
     listeners: list[Callable[[], None]]
 
     def _init_commands(self) -> None:
         self.paused = False
         self.manual_use = set()
+        self.manual_steps = {}
         self.listeners = []
 
     def touch(self) -> None:
@@ -127,7 +148,9 @@ class OperatorCommands:
     @contextlib.asynccontextmanager
     async def manual(self: CommandsHost, name: str) -> AsyncIterator[Any]:
         """The driver of machine ``name`` for a manual function: only while it is out of
-        automatic service and no step runs on it. The monitor leaves it alone meanwhile."""
+        automatic service and no step runs on it. The monitor leaves it alone meanwhile.
+        What the function sends shows in the machine's view (its step and progress) until
+        it ends, however it ends."""
         view = _known(self.machines, name)
         if view.in_service:
             raise MachineInUse(
@@ -141,14 +164,27 @@ class OperatorCommands:
         driver = self.robot if name == self.config.robot.name else self.mills.get(name)
         if driver is None:
             raise MachineInUse(f"{name} is not connected")
+        steps = cast(OperatorCommands, self).manual_steps
+        step = ManualStep(started=self.clock.now())
         self.manual_use.add(name)
+        steps[name] = step
         view.step = "manual"
+        view.progress = None
         self.touch()
+
+        def report(program: str | None, args: tuple[Any, ...]) -> None:
+            if program is not None and step.program is None:
+                step.program = program
+            if _report(view, step, args):
+                self.touch()
+
         try:
-            yield driver
+            yield _ManualDriver(driver, report)
         finally:
             self.manual_use.discard(name)
+            steps.pop(name, None)
             view.step = ""
+            view.progress = None
             self.touch()
 
     @contextlib.asynccontextmanager
@@ -243,6 +279,75 @@ def _known(machines: dict[str, MachineView], name: str) -> MachineView:
     if name not in machines or name == "plc":
         raise unknown_machine(name, [n for n in machines if n != "plc"])
     return machines[name]
+
+
+def _report(view: MachineView, step: ManualStep, args: tuple[Any, ...]) -> bool:
+    """Note a manual function's progress in ``view`` as the controller's own steps do: a
+    mill's run (:class:`RunProgress`) in bytes and blocks, a robot's download (records done,
+    of, bytes sent) in records. True when worth telling."""
+    if len(args) == 1 and isinstance(args[0], RunProgress):
+        p = args[0]
+        return view.report_progress(
+            p.bytes_sent,
+            p.bytes_total,
+            "bytes",
+            p.phase,
+            program=step.program,
+            block=p.block,
+            blocks=p.blocks,
+            since=step.started,
+            estimate_s=p.estimate_s,
+            estimate_done_s=p.estimate_done_s,
+            estimate_cap_s=p.estimate_cap_s,
+            at=p.at,
+            running=p.running,
+        )
+    if len(args) == 3 and all(isinstance(a, int) for a in args):
+        done, total, _sent = args
+        return view.report_progress(
+            done, total, "records", "downloading", program=step.program, since=step.started
+        )
+    return False
+
+
+def _program_name(args: tuple[Any, ...]) -> str | None:
+    """The name of the program a driver's call sends: a path's, or a program's own."""
+    for arg in args:
+        if isinstance(arg, Path):
+            return arg.name
+        name = getattr(arg, "name", None)
+        if isinstance(name, str) and not isinstance(arg, str | bytes):
+            return name
+    return None
+
+
+class _ManualDriver:
+    """A driver lent to a manual function: every call given a ``progress`` callback also
+    reports it (with the program the call sends) to ``report``; the rest is the driver's."""
+
+    def __init__(self, driver: Any, report: Callable[[str | None, tuple[Any, ...]], None]) -> None:
+        self._driver = driver
+        self._report = report
+
+    def __getattr__(self, name: str) -> Any:
+        attr = getattr(self._driver, name)
+        if not inspect.iscoroutinefunction(attr):
+            return attr
+
+        @functools.wraps(attr)
+        async def call(*args: Any, **kwargs: Any) -> Any:
+            given = kwargs.get("progress")
+            if callable(given):
+                program = _program_name(args)
+
+                def progress(*values: Any) -> None:
+                    given(*values)
+                    self._report(program, values)
+
+                kwargs["progress"] = progress
+            return await attr(*args, **kwargs)
+
+        return call
 
 
 class _HostView:

@@ -224,6 +224,7 @@ class AttachedCell(CellAccess):
             families={**self.machines(), "plc": "plc"},
             out_of_service=journal.machines_out_of_service(),
             manual=c.manual_use,
+            manual_steps=c.manual_steps,
             journal=journal,
             orders=list_orders(self.mailbox(), journal, config=c.config),
             events=[(e.time, e.text) for e in c.events[-SNAPSHOT_EVENTS:]],

@@ -31,6 +31,7 @@ from typing import Any
 
 from pydantic import BaseModel
 
+from cellctl.cell.commands import ManualStep
 from cellctl.cell.journal import Alarm, Journal, Part, Step
 from cellctl.cell.model import MachineView
 from cellctl.kinds import Condition
@@ -145,10 +146,12 @@ def build_status(
     orders: list[dict[str, Any]],
     events: Iterable[tuple[float, str]],
     estimates: Mapping[tuple[str, str], float] | None = None,
+    manual_steps: Mapping[str, ManualStep] | None = None,
 ) -> CellStatus:
     """The status from what the controller (or a standalone cell) knows: each machine's view,
     the journal's steps in flight, parts and alarms, the orders, the events. ``estimates``:
-    a program's own machining seconds by (machine, route step name)."""
+    a program's own machining seconds by (machine, route step name); ``manual_steps``: the
+    manual functions running (their program and start), by machine."""
     now = cell.time
     parts = journal.parts(SHOWN_PARTS) if journal is not None else []
     open_steps = {s.machine: s for s in journal.open_steps()} if journal is not None else {}
@@ -164,6 +167,7 @@ def build_status(
             now,
             cell.started_at,
             estimates or {},
+            (manual_steps or {}).get(name),
         )
         for name, view in views.items()
     }
@@ -190,6 +194,7 @@ def _machine(
     now: float,
     started_at: float,
     estimates: Mapping[tuple[str, str], float],
+    manual_step: ManualStep | None = None,
 ) -> MachineStatus:
     step: StepInfo | None = None
     if view.step:
@@ -201,6 +206,10 @@ def _machine(
                 program=journal_step.program,
                 part_id=journal_step.part_id,
                 started=journal_step.started,
+            )
+        elif manual_step is not None:
+            step = StepInfo(
+                what=StepKind.MANUAL, program=manual_step.program, started=manual_step.started
             )
         else:
             step = StepInfo(what=StepKind.MANUAL)
@@ -216,7 +225,8 @@ def _machine(
     # The step in flight counts as it runs: a mill an hour into its first cut is busy, not
     # "0 %" until the cut ends.
     busy = view.busy_s
-    if step is not None and step.started is not None:
+    # (A manual function's time is the operator's, not the cell's: it does not count.)
+    if step is not None and step.started is not None and step.what is not StepKind.MANUAL:
         busy += max(0.0, now - max(step.started, started_at))
     return MachineStatus(
         name=view.name,

@@ -77,15 +77,24 @@ def step_text(step: StepInfo | None) -> str:
     return " ".join(x for x in (step.what.value, step.program, step.part_id) if x)
 
 
-def progress_text(p: ProgressInfo) -> str:
-    """``sending block 2/5 1.2 s left``: the phase, the block, the time left."""
-    words = [p.phase]
-    if p.blocks:
-        words.append(f"block {p.block}/{p.blocks}")
+def progress_text(p: ProgressInfo, width: int | None = None) -> str:
+    """``sending block 2/5 12 s left``: the phase, the block, the time left; in ``width``
+    columns the words shorten (``send b2/5 12s left``, then ``b2/5 12s left``), never the
+    figures."""
     _, left = p.estimated(current_clock().now())  # the run's estimate moves on through a cut
-    if left is not None:
-        words.append(f"{left:.0f} s left")
-    return " ".join(words)
+    shown_left = left is not None and math.isfinite(left)
+    block = f"{p.block}/{p.blocks}" if p.blocks else ""
+    forms = [
+        [p.phase, f"block {block}" if block else "", f"{left:.0f} s left" if shown_left else ""],
+        [p.phase, f"b{block}" if block else "", f"{left:.0f}s left" if shown_left else ""],
+        [p.phase[:4], f"b{block}" if block else "", f"{left:.0f}s left" if shown_left else ""],
+        [f"b{block}" if block else "", f"{left:.0f}s left" if shown_left else ""],
+        [f"b{block}" if block else "", f"{left:.0f}s" if shown_left else ""],
+    ]
+    texts = [" ".join(w for w in words if w) for words in forms]
+    if width is None:
+        return texts[0]
+    return next((t for t in texts if len(t) <= width), texts[-1])
 
 
 def counted_text(p: ProgressInfo) -> str | None:
@@ -135,7 +144,12 @@ def board_text(snapshot: dict[str, Any] | CellStatus, width: int = 48, height: i
                 if figures:
                     out.append(_clip(f"       {figures}", width) + "\n", style="cyan")
             else:
-                line = f"       {bar} {progress_text(m.progress)} {step}"
+                # The figures whole (their words shortened to fit), the step in what is left.
+                line = f"       {bar} "
+                line += progress_text(m.progress, width - len(line))
+                room = width - len(line) - 1
+                if step and room >= 2:
+                    line += " " + _clip(step, room)
                 out.append(_clip(line, width) + "\n", style="cyan")
         elif step:
             out.append(_clip(f"       {step}", width) + "\n")
@@ -176,6 +190,13 @@ def board_text(snapshot: dict[str, Any] | CellStatus, width: int = 48, height: i
     return out
 
 
+#: Columns of a traffic row before its hex: ``14:02:07.123 >>* ``.
+TRAFFIC_HEAD = 17
+#: The most columns of a row's hex, and the fewest its text keeps.
+TRAFFIC_HEX = 35
+TRAFFIC_TEXT_MIN = 6
+
+
 def traffic_text(
     machine: str,
     rows: list[dict[str, Any]],
@@ -190,14 +211,20 @@ def traffic_text(
         return out
     if command is not None:
         rows = [{**command, "dir": ">>*"}, *rows]
+    # The hex column takes what the time, the direction and the least of the text leave.
+    hex_width = max(min(TRAFFIC_HEX, width - TRAFFIC_HEAD - 1 - TRAFFIC_TEXT_MIN), 8)
     for i, row in enumerate(rows):
         stamp = dt.datetime.fromtimestamp(float(row.get("time", 0))).strftime("%H:%M:%S.%f")[:-3]
         direction = str(row.get("dir", ""))
-        hex_text = _clip(str(row.get("hex", "")), 35)
+        hex_text = _clip(str(row.get("hex", "")), hex_width)
         style = {">>": "green", ">>*": "bold green"}.get(direction, "cyan")
-        out.append(f"{stamp} {direction:<3} ", style=style)
-        out.append(f"{hex_text:<35} ")
-        out.append(_clip(f"|{row.get('text', '')}|", max(width - 52, 4)), style="dim")
+        line = Text(no_wrap=True, overflow="ellipsis")
+        line.append(f"{stamp} {direction:<3} ", style=style)
+        line.append(f"{hex_text:<{hex_width}} ")
+        room = width - TRAFFIC_HEAD - hex_width - 1
+        line.append(_clip(f"|{row.get('text', '')}|", max(room, 0)), style="dim")
+        line.truncate(width, overflow="ellipsis")  # one row each, whatever the pane's width
+        out.append_text(line)
         if i < len(rows) - 1:
             out.append("\n")
     return out
@@ -215,7 +242,9 @@ class Board(Static):
         self.snapshot = snapshot
         if snapshot:
             self._drawn = shown(
-                self, board_text(snapshot, max(self.size.width, 30), self.size.height), self._drawn
+                self,
+                board_text(snapshot, max(self.content_size.width, 30), self.content_size.height),
+                self._drawn,
             )
 
     def on_resize(self) -> None:
@@ -238,7 +267,7 @@ class TrafficPane(Static):
         """``command``: the first row sent for the operator's last command (shown first)."""
         self.seen[machine] = (rows, command)
         self._title(f"traffic: {machine} (>> sent, << received, >>* your command)")
-        self.show_text(traffic_text(machine, rows, max(self.size.width, 40), command))
+        self.show_text(traffic_text(machine, rows, max(self.content_size.width, 40), command))
 
     def disconnected(self, machine: str) -> None:
         """No traffic to ask for (the controller's API closed): ``machine``'s last rows seen
@@ -246,7 +275,7 @@ class TrafficPane(Static):
         self._title(f"traffic: {machine} (DISCONNECTED: the last bytes seen before)")
         if machine in self.seen:
             rows, command = self.seen[machine]
-            self.show_text(traffic_text(machine, rows, max(self.size.width, 40), command))
+            self.show_text(traffic_text(machine, rows, max(self.content_size.width, 40), command))
         else:
             self.show_text(Text(f"no traffic seen on {machine} before the API closed", "dim"))
 

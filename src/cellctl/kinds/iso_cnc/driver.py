@@ -67,7 +67,7 @@ from cellctl.drivers.state import StateStore
 from cellctl.errors import DeviceError, LinkTimeout, ProtocolError
 from cellctl.kinds.families import RunNotStarted, RunProgress
 from cellctl.kinds.iso_cnc import tape
-from cellctl.kinds.iso_cnc.buffer import BufferModel, tape_blocks
+from cellctl.kinds.iso_cnc.buffer import BufferModel, modelled_blocks
 from cellctl.kinds.iso_cnc.options import ISO_LINE, IsoCncOptions, off_loop, prepare, read_program
 from cellctl.kinds.iso_cnc.sender import TapeSender
 from cellctl.kinds.iso_cnc.status import IsoCncState, IsoCncStatus
@@ -238,10 +238,13 @@ class IsoCncDriver(TapeSender):
         async with self._lock:
             state = IsoCncState.DRIP_FEEDING if drip else IsoCncState.READING
             # The model is ready before the state says "waiting": the control's DC1 that
-            # comes from now on is answered at once. Its blocks are modelled as they go.
+            # comes from now on is answered at once. Its blocks are modelled whole first
+            # (see ModelledBlocks: never in the send loop).
             model = BufferModel(drip=drip, store_cps=o.store_cps)
             if drip:
-                model.feed(tape_blocks(framed, o.motion(), o.motion_scale))
+                model.feed(
+                    await off_loop(framed, modelled_blocks, framed, o.motion(), o.motion_scale)
+                )
             self.alarm = None
             self._set(state)
             self._progress = IsoCncStatus(state, 0, len(framed))

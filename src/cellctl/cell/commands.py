@@ -286,22 +286,7 @@ def _report(view: MachineView, step: ManualStep, args: tuple[Any, ...]) -> bool:
     mill's run (:class:`RunProgress`) in bytes and blocks, a robot's download (records done,
     of, bytes sent) in records. True when worth telling."""
     if len(args) == 1 and isinstance(args[0], RunProgress):
-        p = args[0]
-        return view.report_progress(
-            p.bytes_sent,
-            p.bytes_total,
-            "bytes",
-            p.phase,
-            program=step.program,
-            block=p.block,
-            blocks=p.blocks,
-            since=step.started,
-            estimate_s=p.estimate_s,
-            estimate_done_s=p.estimate_done_s,
-            estimate_cap_s=p.estimate_cap_s,
-            at=p.at,
-            running=p.running,
-        )
+        return view.report_run(args[0], step.program, step.started)
     if len(args) == 3 and all(isinstance(a, int) for a in args):
         done, total, _sent = args
         return view.report_progress(

@@ -117,21 +117,7 @@ class MillSteps:
 
             def progress(p: RunProgress) -> None:
                 phases.add(p.phase)
-                if view.report_progress(
-                    p.bytes_sent,
-                    p.bytes_total,
-                    "bytes",
-                    p.phase,
-                    program=route_step.name,
-                    block=p.block,
-                    blocks=p.blocks,
-                    since=since,
-                    estimate_s=p.estimate_s,
-                    estimate_done_s=p.estimate_done_s,
-                    estimate_cap_s=p.estimate_cap_s,
-                    at=p.at,
-                    running=p.running,
-                ):
+                if view.report_run(p, route_step.name, since):
                     self.alarms.touch()
 
             cutting = True

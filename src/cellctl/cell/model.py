@@ -16,6 +16,7 @@ from cellctl.cell.config import CellConfig
 from cellctl.cell.orders import OrderBox
 from cellctl.cell.scheduler import DOWNSTREAM_FIRST, ONE_AT_A_TIME, check_policy
 from cellctl.kinds import Condition, LastError
+from cellctl.kinds.families import RunProgress
 
 #: Robot output a cell program raises when its cycle is done (the example cell's wiring).
 DEFAULT_DONE_OUTPUT = 6
@@ -67,6 +68,25 @@ class MachineView:
         if old is None or old["phase"] != phase or old["unit"] != unit:
             return True
         return int(100 * done / max(total, 1)) != int(100 * old["done"] / max(old["total"], 1))
+
+    def report_run(self, p: RunProgress, program: str | None, since: float) -> bool:
+        """:meth:`report_progress` of a mill's run (``program`` begun at ``since``): bytes,
+        block n of m, phase and the run's estimate, for the controller's cuts and the hand's."""
+        return self.report_progress(
+            p.bytes_sent,
+            p.bytes_total,
+            "bytes",
+            p.phase,
+            program=program,
+            block=p.block,
+            blocks=p.blocks,
+            since=since,
+            estimate_s=p.estimate_s,
+            estimate_done_s=p.estimate_done_s,
+            estimate_cap_s=p.estimate_cap_s,
+            at=p.at,
+            running=p.running,
+        )
 
 
 @dataclass

@@ -10,6 +10,8 @@ from pathlib import Path
 from cellctl.cell.config import check_cell
 from cellctl.emulators.cell import EXAMPLE_CELL
 
+from .test_cell_config import edit
+
 ROOT = Path(__file__).resolve().parent.parent
 KERF_CELL = ROOT / "tests" / "plugins" / "kerf_cell"
 
@@ -18,13 +20,6 @@ def copy(template: Path, tmp_path: Path) -> Path:
     directory = tmp_path / "cell"
     shutil.copytree(template, directory)
     return directory
-
-
-def edit(directory: Path, old: str, new: str) -> None:
-    toml = directory / "cell.toml"
-    text = toml.read_text(encoding="utf-8")
-    assert old in text, old
-    toml.write_text(text.replace(old, new, 1), encoding="utf-8")
 
 
 def follow_ons(problems: list[str]) -> list[str]:

@@ -6,7 +6,7 @@ program and start, and its progress (bytes, blocks, phase, the estimate), on eve
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from typing import Any
 
 import pytest
@@ -45,16 +45,6 @@ async def cell(rig: CellRig) -> AsyncIterator[tuple[CellRig, AttachedCell, CellC
         await server.close()
 
 
-async def until(what: str, seen: Callable[[], Any], timeout: float = 60.0) -> Any:
-    """Wait (polling) until ``seen()`` is true, at most ``timeout`` seconds; its value."""
-    loop = asyncio.get_running_loop()
-    deadline = loop.time() + timeout
-    while not (found := seen()):
-        assert loop.time() < deadline, f"not seen in {timeout} s: {what}"
-        await asyncio.sleep(0.01)
-    return found
-
-
 def download(cnc: CellRig, client: CellClient) -> asyncio.Task[Any]:
     text = (cnc.directory / "programs" / PROGRAM).read_text()
     params = {"machine": "cnc2", "program": PROGRAM, "text": text}
@@ -73,7 +63,7 @@ async def test_a_manual_download_shows_its_step_and_progress_on_the_status(
         m = status.machines["cnc2"]
         return status if m.progress is not None and m.progress.done > 0 else None
 
-    status = await until("cnc2's manual download in its progress", sending)
+    status = await cnc.wait_for(sending, "cnc2's manual download in its progress", 60)
     m = status.machines["cnc2"]
     assert m.step is not None and m.step.what.value == "manual"
     assert m.step.program == PROGRAM and m.step.started is not None
@@ -99,9 +89,10 @@ async def test_a_manual_download_that_fails_clears_its_progress(
     cnc, access, client = cell
     cnc.switch_on("cnc2:drop=20")  # the line drops 20 lines into the block
     call = download(cnc, client)
-    seen = await until(
-        "cnc2's progress, or the call's end",
+    seen = await cnc.wait_for(
         lambda: access.status().machines["cnc2"].progress or call.done(),
+        "cnc2's progress, or the call's end",
+        60,
     )
     assert seen is True or seen.unit == "bytes"
     with pytest.raises(CellctlError):
@@ -120,7 +111,7 @@ async def test_another_console_shows_the_manual_cut_on_its_board(
     app = ConsoleApp(cnc.directory, watcher, traffic_period=0.1)
     try:
         async with app.run_test(size=SIZE) as pilot:
-            await until("the console", lambda: "attached to cellctl run" in screen_text(app))
+            await cnc.wait_for(lambda: "attached to cellctl run" in screen_text(app), "the console")
             call = download(cnc, client)
 
             def bar_on_board() -> str | None:

@@ -86,15 +86,20 @@ async def dashboard_served(rig: CellRig) -> AsyncIterator[tuple[ApiServer, str]]
 
 
 async def http(
-    url: str, *, token: str | None = None, body: Any = None, headers: dict[str, str] | None = None
+    url: str,
+    *,
+    token: str | None = None,
+    body: Any = None,
+    headers: dict[str, str] | None = None,
+    timeout: float = 5.0,
 ) -> tuple[int, Any]:
     """One request (GET, or POST with a JSON ``body``) from another thread (the server runs in
-    this one): status and decoded JSON."""
-    return await asyncio.to_thread(_http, url, token, body, headers)
+    this one): status and decoded JSON, within ``timeout`` s."""
+    return await asyncio.to_thread(_http, url, token, body, headers, timeout)
 
 
 def _http(
-    url: str, token: str | None, body: Any, headers: dict[str, str] | None
+    url: str, token: str | None, body: Any, headers: dict[str, str] | None, timeout: float
 ) -> tuple[int, Any]:
     sent = dict(headers or {})
     if token is not None:
@@ -105,7 +110,7 @@ def _http(
         sent.setdefault("Content-Type", "application/json")
     request = urllib.request.Request(url, data=data, headers=sent)
     try:
-        with urllib.request.urlopen(request, timeout=5) as answer:
+        with urllib.request.urlopen(request, timeout=timeout) as answer:
             return answer.status, json.loads(answer.read() or b"null")
     except urllib.error.HTTPError as e:
         return e.code, json.loads(e.read() or b"null")
@@ -472,7 +477,7 @@ async def test_another_origin_cannot_drive_the_cell(dash: Dash) -> None:
             headers={"Authorization": f"Bearer {dash.token}", "Content-Type": "application/json"},
         )
         try:
-            with urllib.request.urlopen(request, timeout=5) as answer:
+            with urllib.request.urlopen(request, timeout=timeout) as answer:
                 return answer.status, json.loads(answer.read())
         except urllib.error.HTTPError as e:
             return e.code, json.loads(e.read())

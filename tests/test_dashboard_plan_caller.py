@@ -53,7 +53,8 @@ async def test_a_plan_whose_caller_left_stops_and_frees_the_play(
     assert not await reader.read()  # nothing was answered to it
 
     async def planned() -> bool:
-        status, answer = await http(base + "/dashboard/call", token=token, body=call)
+        # A plan's play starts a worker process: on a loaded box that alone can take seconds.
+        status, answer = await http(base + "/dashboard/call", token=token, body=call, timeout=45)
         return status == 200 and "plan" in answer["result"]
 
     await until(planned, "a new plan played: the long one ended with its caller", 60)

@@ -477,7 +477,7 @@ async def test_another_origin_cannot_drive_the_cell(dash: Dash) -> None:
             headers={"Authorization": f"Bearer {dash.token}", "Content-Type": "application/json"},
         )
         try:
-            with urllib.request.urlopen(request, timeout=timeout) as answer:
+            with urllib.request.urlopen(request, timeout=5) as answer:
                 return answer.status, json.loads(answer.read())
         except urllib.error.HTTPError as e:
             return e.code, json.loads(e.read())

@@ -363,7 +363,11 @@ class Monitor:
                 cause = read_cause(m.name, "mill", e)
                 recovery.fault(m.name, "link", cause.text, count=False, cause=cause)
             return
-        view.show(status.shown, status.kind_condition)
+        awaited = recovery.word_awaited(m.name)
+        if awaited is None:
+            view.show(status.shown, status.kind_condition)
+        else:  # what keeps it out of the plan, beside what it shows
+            view.show(f"{status.shown}; {awaited}", Condition.ALARM)
         self.alarms.returned(m.name, "link")
         if status.ready:
             # Idle: a block an emergency stop could not halt has ended (its alarm says so).
@@ -376,8 +380,9 @@ class Monitor:
         if not view.in_service or not recovery.fit.get(m.name, False):
             return
         if was_ready and not ready and status.set_up:
-            # CTS low on an idle, set-up mill that is not waiting for its operator.
-            recovery.fault(m.name, "readiness", "lost readiness (CTS low while idle)", count=False)
+            # CTS low on an idle, set-up mill that is not waiting for its operator: it may
+            # have been power-cycled, its setup gone with nothing on the line to show it.
+            recovery.setup_in_doubt(m.name, "lost readiness (CTS low while idle)")
         elif setup_lost(status, running=mill.running):
             # Not set up, nobody setting it up, doing nothing: power-cycled behind the cell's
             # back. Recovery sets it up again (what the machine needs), saying so.

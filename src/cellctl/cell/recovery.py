@@ -9,6 +9,12 @@ with force (the documented way out of a stuck state), every poll period until th
 or the machine is out of service (``fail_limit`` failures in a row). The next poll that sees
 it ready puts it back in the plan.
 
+A mill that left ready while idle (:meth:`Recovery.setup_in_doubt`) may have been power-cycled:
+its setup (a zero only its operator sets) can be gone with nothing on the line to show it. The
+cell trusts that setup no more: it sets the mill up again itself when it can (a setup program,
+no part in the vise), and otherwise waits for the operator's word (the fault's alarm
+acknowledged, or the mill returned to service) before it takes work again.
+
 The controller owns this object and calls it; it needs of the controller only the world model
 (machines, drivers, options), the alarm sink and a way to reopen a link
 (:mod:`cellctl.cell.ports`).
@@ -56,6 +62,9 @@ class Recovery:
         self._tasks: dict[str, asyncio.Task[None]] = {}
         self._halted: set[str] = set()  # mills an emergency stop sent END, until resume
         self._resumed: set[str] = set()  # halted mills the resume sets up, part or no part
+        # Mills whose setup is in doubt: when the doubt began, and the alarm whose
+        # acknowledgement is the operator's word that the setup is kept.
+        self._doubted: dict[str, tuple[float, int | None]] = {}
 
     # -- what the scheduler asks ----------------------------------------------------------------
 
@@ -106,6 +115,43 @@ class Recovery:
             self.alarms.failed(name, code, text, alarm=False)
         self._start(name)
 
+    def setup_in_doubt(self, name: str, what: str) -> None:
+        """Mill ``name`` was seen to leave ready while idle (``what``, in the machine's
+        words): a fault, and its setup trusted no more (see module docstring)."""
+        now = self.world.clock.now()
+        config = self.world.config.machine(name)
+        if config.setup is not None and not self._occupied(name):
+            text = f"{what}: its setup is in doubt (power cycled?): it is set up again once ready"
+        else:
+            why = "a part is in its vise" if config.setup is not None else "it has no setup program"
+            text = (
+                f"{what}: its setup is in doubt (power cycled?) and {why}: check its setup at "
+                "the machine, then acknowledge this alarm"
+            )
+        self.fault(name, "readiness", text, count=False)
+        alarm = next((a for a in self.world.journal.active_alarms() if a.machine == name), None)
+        self._doubted[name] = (now, None if alarm is None else alarm.id)
+
+    def word_awaited(self, name: str) -> str | None:
+        """What mill ``name`` waits for from its operator before it takes work (its setup in
+        doubt, its alarm not acknowledged since), to show beside its status; None: nothing."""
+        awaited = self._word_awaited(name)
+        if awaited is None:
+            return None
+        return f"its setup in doubt: acknowledge alarm {awaited} once checked"
+
+    def _word_awaited(self, name: str) -> int | None:
+        """The alarm whose acknowledgement mill ``name`` waits for (its setup in doubt), or
+        None if it waits for none: no doubt, or the operator has acknowledged or cleared it
+        since the doubt began."""
+        since, alarm_id = self._doubted.get(name, (0.0, None))
+        if alarm_id is None:
+            return None
+        alarm = self.world.journal.get_alarm(alarm_id)
+        if alarm.state == "cleared" or (alarm.acked is not None and alarm.acked >= since):
+            return None
+        return alarm_id
+
     def halted(self, name: str) -> None:
         """Mill ``name`` was sent END by an emergency stop: out of the plan (no alarm of its
         own: the stop has one) until :meth:`resume_halted` initializes it again."""
@@ -138,7 +184,8 @@ class Recovery:
                 continue
             if not await self.reopen_mill(config):
                 continue
-            if self._occupied(name) and name not in self._resumed:
+            doubt_left = name in self._doubted and config.setup is None
+            if (self._occupied(name) or doubt_left) and name not in self._resumed:
                 await self._await_readiness(config)
             else:
                 await self.prepare_mill(config, force=True)
@@ -150,8 +197,9 @@ class Recovery:
         return any(p.location == name for p in parts)
 
     async def _await_readiness(self, m: MachineConfig) -> None:
-        """With a part in the vise: back in the plan once it shows ready with its setup kept
-        (state 2, CTS high); each look that finds it not ready counts as a failure."""
+        """With a part in the vise (or no setup program): back in the plan once it shows
+        ready with its setup kept (state 2, CTS high) and, if its setup is in doubt, on the
+        operator's word; each look that finds it not ready counts as a failure."""
         mill = self.world.mills[m.name]
         try:
             status = await mill.status()
@@ -159,10 +207,19 @@ class Recovery:
             self.alarms.failed(m.name, "readiness", f"not ready: {e}", alarm=False)
             return
         if status.takes_work and mill.initialized:
+            awaited = self.word_awaited(m.name)
+            if awaited is not None:
+                # Ready, but whether its setup survived only its operator can tell.
+                self.world.machines[m.name].show(f"{status.shown}; {awaited}", Condition.ALARM)
+                await self.world.clock.sleep(mill.ready_wait)
+                return
             self.fit[m.name] = self.ready[m.name] = True
             self.faulted.discard(m.name)
             self.alarms.returned(m.name, "readiness")
-            self.alarms.log(f"{m.name}: ready again, its setup kept (a part is in its vise)")
+            if self._doubted.pop(m.name, None) is not None:
+                self.alarms.log(f"{m.name}: ready again, its setup kept on the operator's word")
+            else:
+                self.alarms.log(f"{m.name}: ready again, its setup kept (a part is in its vise)")
             return
         if not mill.running:  # a block still running is no failure: it ends
             self.alarms.failed(m.name, "readiness", f"not ready: {status.shown}", alarm=False)
@@ -287,6 +344,8 @@ class Recovery:
             return False
         self.fit[m.name] = True
         self.faulted.discard(m.name)
+        # Set up again, or returned to service by its operator: no doubt is left.
+        self._doubted.pop(m.name, None)
         self.ready[m.name] = status.takes_work
         # Set up again: a failed setup is behind it, and a lost readiness if it takes work.
         self.alarms.returned(m.name, "initialize", *(("readiness",) if status.takes_work else ()))

@@ -58,10 +58,28 @@ async def test_unknown_url_and_unreachable_host_are_refused() -> None:
         await open_link("ftp://example")
     with pytest.raises(UsageError, match="HOST:PORT"):
         await open_link("socket://localhost")
-    with pytest.raises(LinkError, match="cannot connect"):
+    # In the system's words, once: not asyncio's "Connect call failed", not pyserial's errno
+    # told twice.
+    with pytest.raises(LinkError) as refused:
         await open_link("socket://127.0.0.1:1")
-    with pytest.raises(LinkError, match="cannot open serial port"):
+    assert str(refused.value) == "cannot connect to socket://127.0.0.1:1: connection refused"
+    with pytest.raises(LinkError) as missing:
         await open_link("/dev/does-not-exist")
+    assert str(missing.value) == (
+        "cannot open serial port /dev/does-not-exist: no such file or directory"
+    )
+
+
+async def test_a_machine_whose_link_cannot_be_opened_is_named(tmp_path: Path) -> None:
+    """A cell of several machines says which one it could not reach (``cellctl run``)."""
+    from cellctl.cell.machines import open_machine
+    from cellctl.link import MILL_LINE
+
+    with pytest.raises(LinkError) as refused:
+        await open_machine(
+            "dyna2400", "cnc2", "rfc2217://127.0.0.1:1", MILL_LINE, {}, store=None, trace=None
+        )
+    assert str(refused.value) == "cnc2: cannot connect to rfc2217://127.0.0.1:1: connection refused"
 
 
 @pytest.mark.parametrize("transport", TRANSPORTS)

@@ -103,7 +103,10 @@ class SerialLink(Link):
                 raise MachineInUse(
                     f"{path} is in use: another program holds the device exclusively"
                 ) from None
-            raise LinkError(f"cannot open serial port {path}: {e}") from e
+            # pyserial's own words repeat the path and the errno: the system's words alone.
+            code = getattr(e, "errno", None)
+            why = os.strerror(code).lower() if isinstance(code, int) else str(e)
+            raise LinkError(f"cannot open serial port {path}: {why}") from e
         fd = self._port.fd
         assert fd is not None
         self._fd: int = fd

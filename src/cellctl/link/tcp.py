@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import os
 import socket
 
 from cellctl.clock import Clock
@@ -69,7 +70,9 @@ class TcpLink(Link):
         except TimeoutError as e:
             raise LinkError(f"cannot connect to {self.url}: no answer in {timeout:g} s") from e
         except OSError as e:
-            raise LinkError(f"cannot connect to {self.url}: {e.strerror or e}") from e
+            # asyncio's strerror ("Connect call failed (...)") says less than the system's.
+            why = os.strerror(e.errno) if isinstance(e.errno, int) else (e.strerror or str(e))
+            raise LinkError(f"cannot connect to {self.url}: {why.lower()}") from e
         self._transport = transport
 
     def _on_wire_data(self, data: bytes) -> None:

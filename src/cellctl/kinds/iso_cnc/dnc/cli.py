@@ -525,7 +525,9 @@ def status_text(name: str, m: dict[str, Any]) -> str:
     """A machine of ``cell.status`` in one line, with what the console and dashboard show:
     its state, a transfer's characters of total, rate, buffer stops (in its state), stall
     and time left, and its last refusal or error."""
-    text = f"{name}: {m['condition']}: {m['state']}"
+    condition, state = str(m["condition"]), str(m["state"])
+    # "mill1: idle", not "mill1: idle: idle": the condition once when the state says it.
+    text = f"{name}: {state}" if state == condition else f"{name}: {condition}: {state}"
     p = m.get("progress") or {}
     if p:
         done, total = int(p.get("done") or 0), int(p.get("total") or 0)

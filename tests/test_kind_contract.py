@@ -6,7 +6,8 @@ condition is not one makes that machine an error, the rest of the cell as it was
 
 Each kind here is the Kerf 100 saw (tests/plugins/cellctl_saw) with one thing changed,
 registered in this process (:func:`cellctl.kinds.registry.registered`), in the mill-and-saw
-cell (tests/plugins/kerf_cell) emulated by the rig on real time."""
+cell (tests/plugins/kerf_cell) emulated by the rig: on virtual time where a test plays whole
+orders (docs/clock.md), else on real time."""
 
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ from typing import Any
 
 import pytest
 
+from cellctl.clock import VirtualClock, current_clock
 from cellctl.emulators.memserve import serve_mem
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice
 from cellctl.errors import LinkClosed, UsageError
@@ -53,7 +55,10 @@ async def saw_cell(tmp_path: Path, kind: MachineKind | None = None) -> AsyncIter
         toml = template / "cell.toml"
         toml.write_text(toml.read_text().replace('kind = "kerf100"', f'kind = "{kind.name}"'))
     with registry.registered(*([kind] if kind is not None else [])):
-        async with CellRig(tmp_path / "cell", template=template, time_scale=400.0) as rig:
+        # On virtual time the machines keep their own times; on real time 400 times faster.
+        virtual = isinstance(current_clock(), VirtualClock)
+        scale = {} if virtual else {"time_scale": 400.0}
+        async with CellRig(tmp_path / "cell", template=template, **scale) as rig:
             yield rig
 
 
@@ -77,6 +82,7 @@ class _Quiet:
         await self._inner.run(program, progress=machining_only)
 
 
+@pytest.mark.virtual
 async def test_a_run_that_fails_after_machining_began_holds_its_part(tmp_path: Path) -> None:
     kind = saw_variant("kerf100-quiet", _Quiet)
     async with saw_cell(tmp_path, kind) as rig:
@@ -131,6 +137,7 @@ async def test_a_saw_power_cycled_while_the_cell_was_down_is_set_up_again(
         ), [e.text for e in controller.events]
 
 
+@pytest.mark.virtual
 async def test_a_saw_power_cycled_while_the_cell_runs_is_set_up_again(tmp_path: Path) -> None:
     async with saw_cell(tmp_path) as rig:
         rig.post("bar-end", 1, "A")

@@ -10,7 +10,6 @@ line protocol::
 from __future__ import annotations
 
 import asyncio
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -175,7 +174,8 @@ class KerfSaw(LinkDriver):
         await self.ask("RUN")
         self._set(SawState.CUTTING)
         allowed = cuts.seconds * self.options.cut_margin + self.options.cut_extra
-        deadline = time.monotonic() + allowed
+        clock = self.clock  # the cell's clock: real, or virtual in a plan (docs/clock.md)
+        deadline = clock.monotonic() + allowed
         done = -1
         while True:
             found = await self.status()
@@ -186,11 +186,11 @@ class KerfSaw(LinkDriver):
                 raise DeviceError(5, "ALARM", detail=ALARMS.get(found.alarm, str(found.alarm)))
             if found.state != SawState.CUTTING:
                 break
-            if time.monotonic() > deadline:
+            if clock.monotonic() > deadline:
                 raise DeviceError(
                     2, "BUSY", detail=f"still cutting {self.options.cut_extra:g} s past its time"
                 )
-            await asyncio.sleep(self.options.poll)
+            await clock.sleep(self.options.poll)
         report(total, "done")
 
     async def end(self) -> str:

@@ -1,7 +1,8 @@
 """The Kerf 100, emulated: its line protocol (:mod:`cellctl_saw.protocol`) and a blade that
-takes each cut's time, divided by ``time_scale``::
+takes each cut's time on its clock, divided by its clock's ``time_scale`` (a kind builds it
+with ``clock=spec.emulator_clock()``: real time scaled, or a plan's virtual time)::
 
-    saw = KerfEmulator(time_scale=100.0)
+    saw = KerfEmulator(time_scale=100.0)       # shorthand for clock=RealClock(100.0)
     server = await serve(saw, "rfc2217://127.0.0.1:0", LineSettings.parse("9600,8N1"))
     saw.set_fault("jam")            # the next cut jams halfway: state ALARM
 
@@ -17,6 +18,7 @@ import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from cellctl.clock import Clock, emulator_clock
 from cellctl.emulators.serve import DeviceLine, EmulatedDevice, LineNoise
 from cellctl.emulators.switches import check_switch
 from cellctl.errors import LinkClosed, LinkError
@@ -53,8 +55,8 @@ class SawRun:
 class KerfEmulator(EmulatedDevice):
     """One emulated Kerf 100 (see module docstring)."""
 
-    def __init__(self, *, time_scale: float = 1.0) -> None:
-        self.time_scale = time_scale
+    def __init__(self, *, clock: Clock | None = None, time_scale: float | None = None) -> None:
+        self._clock = emulator_clock(clock, time_scale)
         self.state = SawState.NOT_HOMED
         self.cuts: list[Cut] = []
         self.done = 0
@@ -112,10 +114,10 @@ class KerfEmulator(EmulatedDevice):
     async def _cut_all(self, run: SawRun) -> None:
         for cut in self.cuts:
             if "jam" in self.faults:
-                await asyncio.sleep(cut.seconds / 2 / self.time_scale)
+                await self.clock.sleep(cut.seconds / 2 / self.time_scale)
                 self.state, self.alarm = SawState.ALARM, 1
                 return
-            await asyncio.sleep(cut.seconds / self.time_scale)
+            await self.clock.sleep(cut.seconds / self.time_scale)
             self.done += 1
             run.cuts += 1
         self.state = SawState.IDLE
@@ -131,7 +133,7 @@ class KerfEmulator(EmulatedDevice):
             return b"ERR 2 BUSY"
         if self.state == SawState.ALARM:
             return b"ERR 5 ALARM"
-        await asyncio.sleep(HOME_S / self.time_scale)
+        await self.clock.sleep(HOME_S / self.time_scale)
         if "no-home" in self.faults:
             self.alarm = 2
             return b"ERR 6 HOME SWITCH"

@@ -46,7 +46,7 @@ async def _open(spec: DriverSpec) -> KerfSaw:
 def _emulator(spec: EmulatorSpec) -> EmulatedDevice:
     from cellctl_saw.emulator import KerfEmulator
 
-    return KerfEmulator(time_scale=spec.time_scale)
+    return KerfEmulator(clock=spec.emulator_clock())
 
 
 def _max_length(options: BaseModel) -> float:

@@ -8,7 +8,10 @@ Only a failure the kind says positively started nothing (a
 :class:`~cellctl.kinds.families.RunNotStarted` or a UsageError, with no progress but
 "waiting" before it), or one before ``run()`` (the door, the vise), leaves the part where it
 is, waiting. Either takes the mill out of the plan (recovery sets it up again), its alarm named by
-the failure's cause.
+the failure's cause; a door or vise that did not move keeps the mill from cutting until the
+operator clears its alarm. A program refused before a byte went out (a UsageError: its file
+changed since the cell started) is no fault of the mill's: the part waits there, held, with
+an alarm saying to fix the file and release it.
 
 The controller owns a :class:`MillSteps` and starts its :meth:`~MillSteps.machine` as a mill's
 task; it needs of the controller only the world model and the alarm sink
@@ -28,10 +31,10 @@ import asyncio
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from cellctl.cell.causes import blame
+from cellctl.cell.causes import Cause, blame
 from cellctl.cell.orders import ReportKind
 from cellctl.cell.robotsteps import INTERLOCK_POLL_S
-from cellctl.errors import CellctlError
+from cellctl.errors import CellctlError, UsageError
 from cellctl.kinds import Condition
 from cellctl.kinds.families import nothing_started
 from cellctl.protocol.plc import canonical
@@ -144,6 +147,19 @@ class MillSteps:
                 self.world.mailbox.post_report(
                     ReportKind.PART_HELD, reason, order_id=part.order_id, part_id=part.id
                 )
+            elif isinstance(e, UsageError):
+                # The program itself was refused before a byte went out (a file changed
+                # since the cell started): no fault of the mill's, and trying again would
+                # refuse it again. The part waits, held, for the file to be put right.
+                reason = (
+                    f"program {route_step.program.name} refused for {route_step.name} on "
+                    f"{mill_name}: {e}: fix the file, then `cellctl part release {part.id} "
+                    "--redo`"
+                )
+                self.world.journal.end_step(step.id, "failed", str(e), hold=reason)
+                self.world.mailbox.post_report(
+                    ReportKind.PART_HELD, reason, order_id=part.order_id, part_id=part.id
+                )
             else:
                 # Nothing of the program went out: the part is as it was, and waits there.
                 reason = f"machining {route_step.name} on {mill_name} not started: {what}"
@@ -154,9 +170,19 @@ class MillSteps:
             if stopped:
                 self.alarms.wake()
                 raise
+            if isinstance(e, UsageError) and not cutting:
+                self.alarms.cause_alarm(Cause(mill_name, "program", reason))
+                view.show(mill.state_text, Condition.IDLE)
+                self.alarms.wake()
+                return
             # Out of the plan at once; recovery sets it up again (reopening its link). The
             # alarm names the cause: the PLC, the mill's link, or the step itself.
             cause = await self.monitor.cause_of(mill_name, e)
+            if cause is not None and cause.code == "interlock":
+                # A door or vise that did not move: this mill cuts nothing until the operator
+                # clears the alarm (each try would close the door and wait out its deadline
+                # again, for ever), as transfers wait for it.
+                self.recovery.interlocked(mill_name)
             self.recovery.fault(mill_name, "machining", reason, cause=cause)
             self.alarms.wake()
             return

@@ -65,6 +65,9 @@ class Recovery:
         # Mills whose setup is in doubt: when the doubt began, and the alarm whose
         # acknowledgement is the operator's word that the setup is kept.
         self._doubted: dict[str, tuple[float, int | None]] = {}
+        # Mills whose cut failed on a door or vise the PLC did not move: no cut until the
+        # operator clears the PLC's interlock alarm.
+        self._interlocked: set[str] = set()
 
     # -- what the scheduler asks ----------------------------------------------------------------
 
@@ -72,9 +75,24 @@ class Recovery:
         """True if mill ``name`` may be given work now (a link seen closed is a fault not
         yet handled: no part goes into a mill recovery may have to set up again)."""
         mill = self.world.mills.get(name)
-        if mill is None or mill.link.closed:
+        if mill is None or mill.link.closed or self._interlock_alarm(name) is not None:
             return False
         return self.fit.get(name, False) and self.ready.get(name, False)
+
+    def interlocked(self, name: str) -> None:
+        """Mill ``name``'s cut failed on a door or vise that did not move: it takes no work
+        until the operator clears the PLC's interlock alarm (see :meth:`robot_may_move`)."""
+        self._interlocked.add(name)
+
+    def _interlock_alarm(self, name: str) -> int | None:
+        """The interlock alarm mill ``name`` waits to see cleared, if it waits for one."""
+        if name not in self._interlocked:
+            return None
+        alarm = self.world.journal.open_alarm("plc", "interlock")
+        if alarm is None:
+            self._interlocked.discard(name)  # cleared: its door or vise was seen to
+            return None
+        return alarm.id
 
     def unusable(self) -> set[str]:
         return {name for name in self.fit if not self.usable(name)}
@@ -133,8 +151,12 @@ class Recovery:
         self._doubted[name] = (now, None if alarm is None else alarm.id)
 
     def word_awaited(self, name: str) -> str | None:
-        """What mill ``name`` waits for from its operator before it takes work (its setup in
-        doubt, its alarm not acknowledged since), to show beside its status; None: nothing."""
+        """What mill ``name`` waits for from its operator before it takes work (a door or
+        vise that did not move, its setup in doubt), to show beside its status; None:
+        nothing."""
+        stuck = self._interlock_alarm(name)
+        if stuck is not None:
+            return f"its door or vise did not move: clear alarm {stuck} once freed"
         awaited = self._word_awaited(name)
         if awaited is None:
             return None
@@ -218,6 +240,8 @@ class Recovery:
             self.alarms.returned(m.name, "readiness")
             if self._doubted.pop(m.name, None) is not None:
                 self.alarms.log(f"{m.name}: ready again, its setup kept on the operator's word")
+            elif m.setup is None:  # nothing of the cell's to keep: its operator's setup
+                self.alarms.log(f"{m.name}: ready again (a part is in its vise)")
             else:
                 self.alarms.log(f"{m.name}: ready again, its setup kept (a part is in its vise)")
             return

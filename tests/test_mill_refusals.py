@@ -1,0 +1,91 @@
+"""A cut that cannot start for a reason the mill cannot mend: a vise that did not clamp, a
+program file broken since the cell started. Neither is retried round after round nor
+counted against the mill: the mill waits for the operator (the interlock's alarm cleared;
+the file put right and the part released), saying so.
+
+The example cell on virtual time (docs/clock.md).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from cellctl.clock import current_clock
+from cellctl.testing.rig import CellRig
+
+
+def machining_failures(rig: CellRig) -> list[object]:
+    return [s for s in rig.journal.steps() if s.kind == "machine" and s.state == "failed"]
+
+
+@pytest.mark.virtual
+async def test_a_vise_that_does_not_clamp_stops_that_mill_until_its_alarm_is_cleared(
+    tmp_path: Path,
+) -> None:
+    async with CellRig(tmp_path / "cell") as rig:
+        opened: list[bool] = []
+
+        def unclamp_as_the_cut_begins(name: str, on: bool) -> None:
+            # The part's clamp lets go as the mill's door closes behind the robot (a sensor
+            # failed, a part taken out by hand): the cut finds the vise open.
+            if name == "door_1" and not on and not opened:
+                opened.append(True)
+                rig.cell.plc.set_coil("clamp_1", False)
+
+        rig.cell.plc.hooks.coil.append(unclamp_as_the_cut_begins)
+        rig.post("wax-robot-base", 1, "A")
+        controller = await rig.start_controller()
+        [alarm] = await rig.wait_for(lambda: rig.alarms("plc", "interlock"), "the vise's alarm")
+        assert "vise of CNC 1" in alarm.text, alarm.text
+        view = controller.machines["cnc1"]
+        await rig.wait_for(lambda: f"clear alarm {alarm.id}" in view.state, "cnc1 says why")
+        # Many of the interlock's deadlines later: one failed try, no more, and the mill
+        # still in service (the PLC's fault is not counted against it).
+        await current_clock().sleep(20 * controller.options.interlock_timeout)
+        assert len(machining_failures(rig)) == 1, rig.describe()
+        assert view.in_service and not controller.recovery.usable("cnc1")
+        # The operator clamps the part again and clears the alarm: the cut goes on.
+        rig.cell.plc.set_coil("clamp_1", True)
+        await rig.clear_alarms()
+        await rig.wait_for(rig.all_done, "order A done", timeout=3600)
+        assert len(machining_failures(rig)) == 1 and not rig.cut_twice()
+        await rig.stop_controller()
+
+
+@pytest.mark.virtual
+async def test_a_program_broken_since_the_start_holds_its_part_not_the_mill(
+    tmp_path: Path,
+) -> None:
+    async with CellRig(tmp_path / "cell") as rig:
+        program = rig.directory / "programs" / "robot_base_rough_cnc1.dyn"
+        good = program.read_bytes()
+        broken: list[bool] = []
+
+        def break_the_file(name: str, on: bool) -> None:
+            # Someone saves a half-edited file while the part is carried to the mill.
+            if name == "door_1" and on and not broken:
+                broken.append(True)
+                program.write_text("this is no program\n")
+
+        rig.cell.plc.hooks.coil.append(break_the_file)
+        rig.post("wax-robot-base", 1, "A")
+        controller = await rig.start_controller()
+        [alarm] = await rig.wait_for(lambda: rig.alarms("cnc1", "program"), "the program's alarm")
+        assert "robot_base_rough_cnc1.dyn refused" in alarm.text, alarm.text
+        assert "part release A-1 --redo" in alarm.text, alarm.text
+        [held] = await rig.wait_for(rig.held_parts, "the part held")
+        assert held.location == "cnc1" and "fix the file" in held.note
+        await current_clock().sleep(20 * controller.options.poll_period)
+        # Tried once; the mill neither faulted nor taken out of service.
+        assert len(machining_failures(rig)) == 1, rig.describe()
+        assert controller.machines["cnc1"].in_service and not rig.alarms("cnc1", "machining")
+        # Put right and released: cut, once.
+        program.write_bytes(good)
+        await rig.clear_alarms()
+        result = await rig.cli("part", "release", held.id, "--redo")
+        assert result.exit_code == 0, result.output
+        await rig.wait_for(rig.all_done, "order A done", timeout=3600)
+        assert not rig.cut_twice()
+        await rig.stop_controller()

@@ -1,6 +1,6 @@
 """cellctl installed as users install it: the wheel, in a fresh venv, run from an empty
-directory (``cellctl demo``, ``demo --factory 2``, ``emulate cell``), with nothing of the
-repository on the path.
+directory (``cellctl demo``, ``demo --factory 2``, ``emulate cell``, ``examples copy`` and the
+README's checks on the copied files), with nothing of the repository on the path.
 
 How the venv gets its dependencies: the wheel goes in with ``--no-deps``, and a ``.pth`` file
 adds this test run's site-packages after the venv's own, so the dependencies resolve there
@@ -26,7 +26,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-EXAMPLE = ROOT / "src" / "cellctl" / "examples" / "cell"
+EXAMPLES = ROOT / "src" / "cellctl" / "examples"
+EXAMPLE = EXAMPLES / "cell"
 #: This run's pip, offline: the wheel is built and installed with no download.
 PIP = [sys.executable, "-m", "pip", "-q", "--no-input"]
 
@@ -40,7 +41,7 @@ def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
     shutil.copytree(
         ROOT / "src", source / "src", ignore=shutil.ignore_patterns("__pycache__", "*.egg-info")
     )
-    for name in ("pyproject.toml", "README.md"):
+    for name in ("pyproject.toml", "README.md", "LICENSE"):
         shutil.copy(ROOT / name, source / name)
     out = work / "dist"
     subprocess.run(
@@ -90,18 +91,27 @@ def empty(tmp_path: Path) -> Path:
     return directory
 
 
-def test_the_wheel_carries_the_example_cell(wheel: Path) -> None:
+def test_the_wheel_carries_every_example_and_the_license(wheel: Path) -> None:
     names = set(zipfile.ZipFile(wheel).namelist())
-    shipped = sorted(p.relative_to(EXAMPLE).as_posix() for p in EXAMPLE.rglob("*") if p.is_file())
-    assert "cell.toml" in shipped and any(p.startswith("programs/") for p in shipped)
-    assert any(p.startswith("robot/") for p in shipped)
-    missing = [p for p in shipped if f"cellctl/examples/cell/{p}" not in names]
+    shipped = sorted(p.relative_to(EXAMPLES).as_posix() for p in EXAMPLES.rglob("*") if p.is_file())
+    for part in ("cell/cell.toml", "cell/programs/", "cell/robot/", "robot/", "programs/broken/"):
+        assert any(p.startswith(part) for p in shipped), part
+    for suffix in (".aml", ".dyn", ".nc", ".script", ".toml", ".txt"):
+        assert any(p.endswith(suffix) for p in shipped), suffix
+    missing = [p for p in shipped if f"cellctl/examples/{p}" not in names]
     assert missing == [], f"not in the wheel: {missing}"
+    version = wheel.name.split("-")[1]
+    license_text = zipfile.ZipFile(wheel).read(f"cellctl-{version}.dist-info/licenses/LICENSE")
+    assert license_text == (ROOT / "LICENSE").read_bytes()
+    assert b"MIT License" in license_text
 
 
-def test_the_repository_examples_cell_is_the_packaged_one() -> None:
-    # One copy: examples/cell links to the package's data, so both read the same files.
-    assert (ROOT / "examples" / "cell").resolve() == EXAMPLE.resolve()
+def test_each_repository_example_is_the_packaged_one() -> None:
+    # One copy: each examples/NAME links to the package's data, so both read the same files.
+    linked = sorted(p.name for p in (ROOT / "examples").iterdir() if p.is_symlink())
+    assert linked == sorted(p.name for p in EXAMPLES.iterdir() if p.is_dir())
+    for name in linked:
+        assert (ROOT / "examples" / name).resolve() == (EXAMPLES / name).resolve()
     assert (ROOT / "examples" / "cell" / "cell.toml").is_file()
 
 
@@ -212,3 +222,57 @@ def test_emulate_cell_from_an_empty_directory(venv: Path, empty: Path) -> None:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def cellctl_in(venv: Path, directory: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    """``cellctl ARGS`` of the installed wheel, run in ``directory``."""
+    return subprocess.run(
+        [str(venv / "cellctl"), *args],
+        cwd=directory,
+        env=clean_env(),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+
+
+def test_the_readme_tour_works_on_the_copied_examples(venv: Path, empty: Path) -> None:
+    copied = cellctl_in(venv, empty, "examples", "copy")
+    assert copied.returncode == 0, copied.stdout + copied.stderr
+    here = sorted(p.relative_to(empty / "examples") for p in (empty / "examples").rglob("*"))
+    assert here == sorted(p.relative_to(EXAMPLES) for p in EXAMPLES.rglob("*"))
+    assert (empty / "examples" / "robot" / "conveyor_to_cnc1.aml").read_bytes() == (
+        EXAMPLES / "robot" / "conveyor_to_cnc1.aml"
+    ).read_bytes()
+
+    check = cellctl_in(
+        venv,
+        empty,
+        "program",
+        "check",
+        "examples/robot/conveyor_to_cnc1.aml",
+        "examples/cell-tending/programs/O1001.nc",
+    )
+    assert check.returncode == 0, check.stdout + check.stderr
+    assert "examples/robot/conveyor_to_cnc1.aml: a good ibm7545 program" in check.stdout
+    assert "examples/cell-tending/programs/O1001.nc: a good iso-cnc program" in check.stdout
+
+    broken = cellctl_in(venv, empty, "mill", "check", "examples/programs/broken/feed_too_fast.dyn")
+    assert broken.returncode == 1, broken.stdout + broken.stderr
+    assert "feed_too_fast.dyn:2:14: error [feed-range]" in broken.stdout
+    assert "1 error(s), 0 warning(s)" in broken.stdout
+
+
+def test_examples_copy_from_the_wheel_never_overwrites(venv: Path, empty: Path) -> None:
+    notes = empty / "examples" / "cell-tending" / "cell.toml"
+    notes.parent.mkdir(parents=True)
+    notes.write_text("# my own\n")
+    refused = cellctl_in(venv, empty, "examples", "copy")
+    assert refused.returncode == 2, refused.stdout + refused.stderr
+    assert "examples/cell-tending exists: nothing copied" in refused.stderr
+    assert notes.read_text() == "# my own\n"
+    assert sorted(p.name for p in (empty / "examples").iterdir()) == ["cell-tending"]
+    # The one not there copies beside it.
+    alone = cellctl_in(venv, empty, "examples", "copy", "--only", "robot")
+    assert alone.returncode == 0, alone.stdout + alone.stderr
+    assert sorted(p.name for p in (empty / "examples").iterdir()) == ["cell-tending", "robot"]

@@ -59,6 +59,10 @@ COMMANDS = {
         "cellctl.ui.service_cli:estop",
         "Emergency stop: stop the robot, halt the mills, raise an alarm",
     ),
+    "examples": Lazy(
+        "cellctl.ui.examples_cli:examples_group",
+        "List the examples that ship with cellctl, or copy them",
+    ),
     "factory": Lazy("cellctl.ui.factory_cli:factory", "The system controller"),
     "kinds": Lazy(
         "cellctl.ui.kinds_cli:kinds_command",

@@ -223,3 +223,29 @@ def test_the_chosen_cell_has_the_least_estimated_finish_among_makers(
     # A paused cell only when every one it may go to is paused.
     if cells[chosen].state["paused"]:
         assert all(c.state["paused"] for c in may)
+
+
+def test_a_cell_with_a_machine_of_the_route_out_is_passed_over_by_plan_or_bound() -> None:
+    """An idle cell with a machine the part type needs out of service would have the order
+    stuck: it is no candidate, whatever its plan or bound says; when no cell can, the order
+    waits and the why names each cell."""
+    machines = {"robot": True, "cnc1": True, "cnc2": False}
+    down = cell("c1", plan=(NOW - 1, 0.0))  # idle: its plan says 0
+    down.state["machines"] = {m: {"in_service": up} for m, up in machines.items()}
+    down.state["part_types"] = {
+        "base": {"bound_s": 10.0, "machines": ["robot", "cnc1", "cnc2"]},
+        "table": {"bound_s": 10.0, "machines": ["robot", "cnc1"]},
+    }
+    busy = cell("c2", bound=500.0, plan=(NOW - 1, 500.0), bounds={"base": 10.0, "table": 10.0})
+    cells = {"c1": down, "c2": busy}
+    for how in (PLANS, Estimating(BOUND, NOW)):
+        assert choose(order("A"), cells, [], how)[0] == "c2"
+        assert choose(order("T", "table"), cells, [], how)[0] == "c1"  # cnc2 not on its route
+    alone = {"c1": down}
+    assert candidates(order("A"), alone) == (
+        [],
+        "waiting for a cell that can make base now (c1 has cnc2 out of service)",
+    )
+    # A cell whose state does not say what a part type needs: every machine counts.
+    del down.state["part_types"]["table"]["machines"]
+    assert choose(order("T", "table"), cells, [], PLANS)[0] == "c2"

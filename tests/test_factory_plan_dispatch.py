@@ -6,7 +6,8 @@ work and publishes when it finishes) and ``cellctl factory run`` with ``[dispatc
 cell1 has cnc1 out of service and one robot base to make: its bottleneck bound counts one
 part, but its plan, played with cnc1 out, does not finish it within the plan's horizon. cell2
 holds two robot bases for its operator: its bound counts both, its plan (which does not guess
-the operator's word) has nothing to play. By the bound the next order would go to cell1; by
+the operator's word) has nothing to play. By the bound alone the next order would go to cell1
+were its cnc1 in service (with cnc1 out, on the part's route, no estimate sends it there); by
 the plans it goes to cell2, and the factory says so.
 """
 
@@ -100,10 +101,16 @@ async def test_the_factory_sends_an_order_by_the_cells_plans_not_their_bounds(
             if e.order_id == "N1" and e.text.startswith("order N1: cell")
         ]
         assert any(t.startswith("order N1: cell2 finishes it earliest by its plan") for t in events)
-        # By the bound alone, from the very same states, cell1 would have had it.
+        # By the bound alone, from the very same states, cell1 would have had it had its cnc1
+        # been in service; with cnc1 out (on the robot base's route) the bound passes it over
+        # too.
         queued = dataclasses.replace(plant.store.get("N1"), state=QUEUED, cell=None)
         others = [o for o in plant.store.orders() if o.id != "N1"]
-        assert choose(queued, cells, others, Estimating(BOUND))[0] == "cell1"
+        assert choose(queued, cells, others, Estimating(BOUND))[0] == "cell2"
+        machines = {**one["machines"], "cnc1": {**one["machines"]["cnc1"], "in_service": True}}
+        serviced = dataclasses.replace(cells["cell1"], state={**one, "machines": machines})
+        bound_pick = choose(queued, {**cells, "cell1": serviced}, others, Estimating(BOUND))
+        assert bound_pick[0] == "cell1"
 
         # The factory's plan of its running cells: each asked through its own API, from its
         # state now (cell1 with cnc1 out of service, cell2 with its held parts and N1).

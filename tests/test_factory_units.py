@@ -307,4 +307,43 @@ def test_an_order_is_never_seen_sent_without_why(store: FactoryStore) -> None:
     (sent,) = store.send_many([("W1", "cell1")], time.time() + 60, {"W1": "cell1 is idle"})
     assert sent.state == "sent" and sent.cell == "cell1"
     texts = [e.text for e in store.events() if e.order_id == "W1"]
-    assert texts[-2:] == ["order W1 sent to cell1", "order W1: cell1 is idle"]
+    assert texts[-2:] == ["order W1: cell1 is idle", "order W1 sent to cell1"]  # why first
+
+
+def test_parts_made_and_held_follow_the_cells_reports(store: FactoryStore) -> None:
+    """Done counts each part the cell says is made, as it comes; held is the parts held now
+    by id: a waiting part scrapped was never held, and the order is held while one is."""
+    store.submit("wax-robot-base", 4, order_id="K")
+    store.send("K", "cell1", expires=time.time() + 30)
+    made = {"part_done": True}
+    steps = [
+        (report(1, "order-accepted", "K"), ("accepted", 0, (), 0)),
+        (report(2, "step-started", "K", part_id="K-1"), ("in-progress", 0, (), 0)),
+        (report(3, "step-finished", "K", part_id="K-1"), ("in-progress", 0, (), 0)),
+        (report(4, "step-finished", "K", part_id="K-1", data=made), ("in-progress", 1, (), 0)),
+        (report(5, "part-held", "K", part_id="K-2"), ("held", 1, ("K-2",), 0)),
+        (report(6, "step-started", "K", part_id="K-3"), ("held", 1, ("K-2",), 0)),
+        (report(7, "part-scrapped", "K", part_id="K-4"), ("held", 1, ("K-2",), 1)),
+        (report(8, "step-finished", "K", part_id="K-3", data=made), ("held", 2, ("K-2",), 1)),
+        (report(9, "part-scrapped", "K", part_id="K-2"), ("in-progress", 2, (), 2)),
+        (report(10, "order-done", "K"), ("done", 2, (), 2)),
+    ]
+    for r, expected in steps:
+        store.take_report("cell1", r)
+        k = store.get("K")
+        assert (k.state, k.done, k.held_parts, k.scrapped) == expected, r
+        assert k.held == len(k.held_parts)
+    # A part released on the outfeed (its route machined) is made; one released elsewhere
+    # goes on, and the order with it.
+    store.submit("wax-robot-base", 2, order_id="R")
+    store.send("R", "cell1", expires=time.time() + 30)
+    for seq, kind, part, data in [
+        (11, "order-accepted", None, {}),
+        (12, "part-held", "R-1", {}),
+        (13, "part-held", "R-2", {}),
+        (14, "part-released", "R-1", {"redo": False, "location": "out", "part_done": True}),
+        (15, "part-released", "R-2", {"redo": True, "location": "cnc1", "part_done": False}),
+    ]:
+        store.take_report("cell1", report(seq, kind, "R", part_id=part, data=data))
+    r = store.get("R")
+    assert (r.state, r.done, r.held) == ("in-progress", 1, 0)

@@ -9,8 +9,10 @@ reset, which the library logs as an error when it reads.
 
 from __future__ import annotations
 
+import asyncio
 import os
 import signal
+import socket
 import subprocess
 import sys
 from collections.abc import AsyncIterator
@@ -19,6 +21,7 @@ from pathlib import Path
 import pytest
 
 from cellctl.factory.broker import MosquittoBroker
+from cellctl.mailbox.mqttlink import MqttSettings, Reconnect
 
 from .conftest import CELLCTL, emulated_cell_process, until
 
@@ -93,3 +96,122 @@ async def test_a_broken_link_is_told_in_cellctls_words_only(
     assert f"mailbox: {broker.url}/cellctl/cell1: " in text and "(trying again)" in text, text
     # ... and the library said nothing of its own.
     assert not [line for line in text.splitlines() if line.startswith(LIBRARY_LINES)], text
+
+
+@pytest.mark.timeout(180)
+async def test_a_broker_that_stops_answering_for_a_while_is_told_in_words_only(
+    tmp_path: Path, broker: MosquittoBroker
+) -> None:
+    """The broker frozen (SIGSTOP) while the cell has reports to send, then let go on: the
+    cell's log says it lost the broker and is back, in cellctl's words; none of asyncio's
+    "Future exception was never retrieved" tracebacks of the library's futures, none of the
+    library's bare "[code:N] ..." words."""
+    with emulated_cell_process(tmp_path / "cell", "1000") as cell:
+        (cell / "mqtt.toml").write_bytes(broker.credentials("cell1").read_bytes())
+        os.chmod(cell / "mqtt.toml", 0o600)
+        with (cell / "cell.toml").open("a") as toml:
+            toml.write(
+                f'\n[mailbox]\nurl = "{broker.url}/cellctl/cell1"\ncredentials = "mqtt.toml"\n'
+            )
+        log_path = tmp_path / "run.log"
+        with log_path.open("wb") as log:
+            run = subprocess.Popen(  # noqa: ASYNC220
+                [sys.executable, "-m", "cellctl", "--cell", str(cell), "run", "--no-live"],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+            )
+        try:
+            connected = f"mailbox: {broker.url}/cellctl/cell1"
+            await until(lambda: connected in log_path.read_text(), "the cell on the broker")
+            process = broker._process
+            assert process is not None
+            os.kill(process.pid, signal.SIGSTOP)
+            try:
+                subprocess.run(  # noqa: ASYNC221
+                    [*CELLCTL, "--cell", str(cell), "submit", "wax-robot-base"],
+                    check=True,
+                    capture_output=True,
+                    timeout=60,
+                )
+                # The cell gives up on the frozen broker, and tries again and again.
+                await until(
+                    lambda: "(trying again)" in log_path.read_text(),
+                    "the cell trying the frozen broker again",
+                )
+                # A while frozen: the cell tries it again a few times (0.2 s, 0.4 s ... apart,
+                # each attempt given 2 s), each attempt a connection the broker answers later.
+                await asyncio.sleep(12)
+            finally:
+                os.kill(process.pid, signal.SIGCONT)
+
+            def back() -> bool:
+                lines = log_path.read_text().splitlines()
+                return sum(line.endswith(f" {connected}") for line in lines) >= 2
+
+            await until(back, "the cell back on the broker")
+            # Its reports of the order made while the broker was frozen go out.
+            await until(lambda: unread_bytes_at(broker.port) == 0, "the broker reads them")
+        finally:
+            run.send_signal(signal.SIGINT)
+            try:
+                run.wait(30)
+            except subprocess.TimeoutExpired:
+                run.kill()
+    text = log_path.read_text()
+    assert f"the broker at 127.0.0.1:{broker.port} did not answer within" in text, text
+    for raw in ("never retrieved", "Traceback", "[code:", "aiomqtt.exceptions"):
+        assert raw not in text, text
+
+
+async def test_no_broker_at_the_address_is_said_in_words() -> None:
+    """Nothing listens at the broker's address (the broker not started, a wrong port): the
+    link says so in cellctl's words, not the system's bare "[Errno 111] Connection refused",
+    and keeps trying."""
+    with socket.socket() as s:  # a port nothing listens at: bound, never listened on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+        settings = MqttSettings("127.0.0.1", port, "cellctl/cell1", "cell1", "its-password")
+        stop, told = asyncio.Event(), asyncio.Event()
+        lines: list[str] = []
+
+        def log(line: str) -> None:
+            lines.append(line)
+            told.set()
+
+        async def session() -> None:
+            async with settings.client("cell1"):
+                raise AssertionError("connected where nothing listens")
+
+        link = Reconnect(settings, stop, log=log, what="mailbox")
+        task = asyncio.create_task(link.run(session))
+        try:
+            async with asyncio.timeout(30):
+                await told.wait()
+        finally:
+            stop.set()
+            async with asyncio.timeout(20):
+                await task
+    assert lines[0] == (
+        f"mailbox: mqtt://127.0.0.1:{port}/cellctl/cell1: nothing listens at 127.0.0.1:{port}: "
+        "is the broker running there? (trying again)"
+    ), lines
+    assert "Errno" not in "".join(lines)
+
+
+def test_the_librarys_words_for_a_lost_connection_are_cellctls() -> None:
+    """What the library raises when a connection it had goes away (a publish on it, its
+    socket closed, an unexpected disconnection) is said as a lost connection."""
+    import aiomqtt
+    from paho.mqtt.packettypes import PacketTypes
+    from paho.mqtt.reasoncodes import ReasonCode
+
+    settings = MqttSettings("127.0.0.1", 1883, "cellctl/cell1", "cell1", "x")
+    lost = "the connection to the broker at 127.0.0.1:1883 was lost"
+    unspecified = ReasonCode(PacketTypes.DISCONNECT, identifier=128)
+    for error in (
+        aiomqtt.MqttCodeError(4),  # "The client is not currently connected."
+        aiomqtt.MqttCodeError(7),  # "The connection was lost."
+        aiomqtt.MqttCodeError(unspecified, "Unexpected disconnection"),
+    ):
+        assert str(settings.unanswered(error)) == lost, error
+    assert settings.unanswered(aiomqtt.MqttError("something else")) is None

@@ -249,6 +249,13 @@ async def _scenario(rig: CellRig, url: str, cert: tuple[str, str], run: asyncio.
             [f"{idx}:Orders", f"{idx}:{order_id}", f"{idx}:State"]
         )
         await until(lambda: _equals(order_state, "done"), "the order done, as the Orders node says")
+        # PartCounts counts parts (OPC 40501), written with the order's state: the one part
+        # made, on each machine it went through, not the robot's three transfers.
+        for machine in ("robot", "cnc1", "cnc2"):
+            good = await machines.get_child(
+                [f"{idx}:{machine}", f"{idx}:Production", f"{idx}:PartCounts", f"{idx}:Good"]
+            )
+            assert await good.read_value() == 1, machine
         await _condition_follows_service(alice, idx, cell)
 
         refused = await call_raw(

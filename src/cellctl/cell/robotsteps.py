@@ -414,15 +414,18 @@ class RobotSteps:
         alarms.succeeded(robot.name)
         if t.source == CONVEYOR:
             self.plc.pallet_taken()
-        if t.target == CONVEYOR:
+        made = t.target == CONVEYOR
+        if made:
             world.journal.end_step(step.id, "finished", location=OUT)
             world.journal.finish_part(part.id)
         else:
             world.journal.end_step(step.id, "finished", location=t.target)
+        # ``part_done``: the factory counts the order's parts made as they come out.
         world.mailbox.post_report(
             ReportKind.STEP_FINISHED,
             f"{t.program} {part.id}",
             order_id=part.order_id,
             part_id=part.id,
+            data={"part_done": True} if made else {},
         )
         alarms.wake()

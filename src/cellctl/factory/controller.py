@@ -394,8 +394,8 @@ class FactoryController:
         sent = self.store.send_many(choices, now + self.config.accept_timeout, whys)
         for order in sorted(sent, key=lambda o: (o.submitted, o.id)):  # the cells' FIFO
             await self._publish(client, order)
-            self._log(f"order {order.id} sent to {order.cell}")
             self._log(f"order {order.id}: {whys[order.id]}")
+            self._log(f"order {order.id} sent to {order.cell}")
 
     async def _publish(self, client: aiomqtt.Client, order: FactoryOrder) -> None:
         assert order.cell is not None

@@ -3,9 +3,10 @@
 ::
 
     cell, why = choose(order, store.cells(), store.orders(OPEN_STATES), Estimating("plan", now))
-    # cell: the online cell that makes the part type with the earliest estimated finish, and
-    # why it: "cell2 by its plan: 412 s"; None and why none can take it now
-    # ("no online cell makes wax-robot-base").
+    # cell: the online cell that makes the part type, with every machine its route needs in
+    # service, with the earliest estimated finish, and why it: "cell2 by its plan: 412 s";
+    # None and why none can take it now ("waiting for a cell that can make wax-robot-base
+    # now (cell1 has cnc2 out of service; cell2 is offline)").
 
 A cell's estimated finish is what it holds now, plus what the orders the factory gave it
 since it said so add (``qty`` x the part type's ``bound_s``), plus the order itself. What it
@@ -101,8 +102,9 @@ def estimate_s(
 
 
 def candidates(order: FactoryOrder, cells: Mapping[str, CellSeen]) -> tuple[list[CellSeen], str]:
-    """The cells ``order`` may go to now (those not paused, unless only paused ones can), or
-    none and why."""
+    """The cells ``order`` may go to now, or none and why: online, making its part type, with
+    every machine a part of it needs in service (its state's ``part_types[*].machines`` and
+    ``machines[*].in_service``), and not paused unless only paused ones can."""
     makers = [c for c in cells.values() if order.part_type in c.part_types]
     if not makers:
         return [], f"no cell makes {order.part_type}"
@@ -112,8 +114,25 @@ def candidates(order: FactoryOrder, cells: Mapping[str, CellSeen]) -> tuple[list
     online = [c for c in fresh if c.status == "online"]
     if not online:
         return [], f"waiting for a cell that makes {order.part_type} to come online"
+    # A machine its route needs out of service: an order there would wait, stuck, however
+    # low the cell's bound (an accepted order never moves).
+    able = [c for c in online if not c.out_of_service(order.part_type)]
+    if not able:
+        return [], _unable(order.part_type, fresh)
     # A paused cell takes orders but starts nothing: only when no other can.
-    return [c for c in online if not c.state.get("paused")] or online, ""
+    return [c for c in able if not c.state.get("paused")] or able, ""
+
+
+def _unable(part: str, cells: Iterable[CellSeen]) -> str:
+    """Why none of ``cells`` (each makes ``part``) can take it now: each cell and why."""
+    whys = []
+    for c in cells:
+        out = c.out_of_service(part) if c.status == "online" else []
+        if c.status != "online":
+            whys.append(f"{c.name} is offline")
+        elif out:
+            whys.append(f"{c.name} has {', '.join(out)} out of service")
+    return f"waiting for a cell that can make {part} now ({'; '.join(whys)})"
 
 
 def finish_s(
@@ -161,8 +180,9 @@ def stuck(
     good: True once every cell of ``configured`` (factory.toml's) has said what it makes (its
     state) and none that makes the part type is left that has not refused it.
 
-    A cell that makes it and is offline keeps it waiting (it comes back), and so does a
-    cell never heard (it may make it)::
+    A cell that makes it and is offline, or online with a machine its route needs out of
+    service, keeps it waiting (it comes back), and so does a cell never heard (it may make
+    it)::
 
         why, never = stuck(order, store.cells(), config.cells)
         # ("no cell makes gear (the cells make: wax-robot-base)", True)
@@ -173,6 +193,9 @@ def stuck(
     unheard = [n for n in configured if n not in heard and n not in refused]
     makers = [n for n, c in heard.items() if part in c.part_types]
     waiting = [n for n in makers if n not in refused]
+    if any(heard[n].status == "online" for n in waiting):
+        # Online, but a machine its route needs is out of service: it comes back.
+        return _unable(part, (heard[n] for n in waiting)), False
     if waiting:
         return f"waiting for a cell that makes {part} to come online ({', '.join(waiting)})", False
     if unheard:

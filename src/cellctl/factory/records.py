@@ -19,8 +19,10 @@ AT_CELL_STATES = (ACCEPTED, IN_PROGRESS, HELD)
 FINAL_STATES = (DONE, FAILED, CANCELLED)
 #: How an order at a cell is shown while its cancel is on its way (not a state of its own).
 CANCELLING = "cancelling"
-#: The columns a store from before cancels lacks, with their SQL types.
+#: The columns a store from before cancels (or before held parts by id) lacks, with their
+#: SQL types.
 CANCEL_COLUMNS = {
+    "held_parts": "TEXT NOT NULL DEFAULT '[]'",
     "cancel_asked": "REAL",
     "cancel_by": "TEXT",
     "cancel_reason": "TEXT",
@@ -66,6 +68,7 @@ class FactoryOrder:
     cancel_reason: str | None = None
     cancel_sent: float | None = None  # when the controller last sent it to the cell
     cancel_sends: int = 0
+    held_parts: tuple[str, ...] = ()  # the ids of its parts held now (``held`` counts them)
 
     @property
     def cancelling(self) -> bool:
@@ -99,6 +102,17 @@ class CellSeen:
         types = self.state.get("part_types") or {}
         return {str(k): float((v or {}).get("bound_s", 0.0)) for k, v in types.items()}
 
+    def out_of_service(self, part_type: str) -> list[str]:
+        """The machines a part of ``part_type`` needs that are out of service now, by name
+        (every machine of the cell counts as needed when its state does not say which)."""
+        machines = self.state.get("machines") or {}
+        needs = ((self.state.get("part_types") or {}).get(part_type) or {}).get("machines")
+        return [
+            name
+            for name in (needs or machines)
+            if not (machines.get(name) or {}).get("in_service", True)
+        ]
+
 
 @dataclass(frozen=True)
 class FactoryEvent:
@@ -112,6 +126,7 @@ class FactoryEvent:
 def order_of(row: sqlite3.Row) -> FactoryOrder:
     data = dict(row)
     data["refused"] = tuple(json.loads(data["refused"]))
+    data["held_parts"] = tuple(json.loads(data.get("held_parts") or "[]"))
     return FactoryOrder(**data)
 
 

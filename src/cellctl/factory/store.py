@@ -31,14 +31,14 @@ seq to ask the cell for again.
 from __future__ import annotations
 
 import json
-import sqlite3
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
 from cellctl.cell.sqlitedb import SqliteStore
 from cellctl.clock import Clock, current_clock
 from cellctl.errors import UsageError
+from cellctl.factory.following import apply_report
 from cellctl.factory.records import (
     ACCEPTED,
     ANSWER_KINDS,
@@ -47,7 +47,6 @@ from cellctl.factory.records import (
     CANCELLED,
     CANCELLING,
     DONE,
-    ENDS,
     FAILED,
     FINAL_STATES,
     HELD,
@@ -64,7 +63,7 @@ from cellctl.factory.records import (
     order_of,
 )
 from cellctl.mailbox.base import MAX_QTY, check_new_order
-from cellctl.mailbox.wire import MAX_NAME, MAX_REASON, ReportKind, ReportMessage
+from cellctl.mailbox.wire import MAX_NAME, MAX_REASON, ReportMessage
 
 __all__ = [
     "ACCEPTED",
@@ -112,7 +111,8 @@ CREATE TABLE IF NOT EXISTS orders (
     cancel_by TEXT,
     cancel_reason TEXT,
     cancel_sent REAL,
-    cancel_sends INTEGER NOT NULL DEFAULT 0
+    cancel_sends INTEGER NOT NULL DEFAULT 0,
+    held_parts TEXT NOT NULL DEFAULT '[]'
 );
 CREATE TABLE IF NOT EXISTS cells (
     name TEXT PRIMARY KEY,
@@ -232,9 +232,10 @@ class FactoryStore(SqliteStore):
                     " WHERE id = ?",
                     (SENT, cell, now, now, expires, now, f"sent to {cell}", order_id),
                 )
-                log_event(db, now, cell, order_id, f"order {order_id} sent to {cell}")
+                # Why first: a reader sees the choice, then the order going.
                 if reasons and order_id in reasons:
                     log_event(db, now, cell, order_id, f"order {order_id}: {reasons[order_id]}")
+                log_event(db, now, cell, order_id, f"order {order_id} sent to {cell}")
                 row = db.execute("SELECT * FROM orders WHERE id = ?", (order_id,)).fetchone()
                 out.append(order_of(row))
         return out
@@ -436,7 +437,7 @@ class FactoryStore(SqliteStore):
             found = db.execute("SELECT * FROM orders WHERE id = ?", (oid,)).fetchone()
             if found is None:
                 return Taken()  # an order the cell had from elsewhere (its own mailbox)
-            text = _apply(db, order_of(found), cell, report, now)
+            text = apply_report(db, order_of(found), cell, report, now)
             if text:
                 log_event(db, now, cell, oid, text)
             return Taken(text)
@@ -456,93 +457,3 @@ class FactoryStore(SqliteStore):
             "SELECT * FROM events WHERE id > ? ORDER BY id DESC LIMIT ?", (after, limit)
         )
         return [FactoryEvent(**dict(r)) for r in reversed(rows)]
-
-
-def _apply(
-    db: sqlite3.Connection,
-    order: FactoryOrder,
-    cell: str,
-    report: ReportMessage,
-    now: float,
-) -> str | None:
-    """One report's effect on the order (one transaction with the seq it came with)."""
-    oid = order.id
-    kind = report.kind
-    words = report.text
-
-    def update(sql: str, *args: Any) -> None:
-        db.execute(f"UPDATE orders SET {sql}, updated = ? WHERE id = ?", (*args, now, oid))
-
-    if order.cell != cell:
-        if kind == ReportKind.ORDER_ACCEPTED:
-            # What the accept deadline exists to prevent: said loudly, nothing changed.
-            where = order.cell or "the queue"
-            return f"order {oid} accepted by {cell} too, after it went to {where}"
-        return None
-    if kind == ReportKind.CANCEL_REFUSED:
-        return _cancel_refused(order, cell, report, update)
-    if kind == ReportKind.ORDER_REJECTED and order.state == SENT and order.cancelling:
-        # Refused, so never made there: that is the cancel done.
-        note = f"cancelled: {cell} refused it ({words})"
-        update("state = ?, finished = ?, note = ?", CANCELLED, now, note)
-        return f"order {oid} cancelled: {cell} refused it: {words}"
-    if kind == ReportKind.ORDER_ACCEPTED and order.state == SENT:
-        t = report.time or now
-        update("state = ?, accepted = ?, accepted_seen = ?, note = ?", ACCEPTED, t, now, words)
-        return f"order {oid} accepted by {cell}"
-    if kind == ReportKind.ORDER_REJECTED and order.state == SENT:
-        # Refused for good, unless only too late: that cell may take it when sent again.
-        late = report.data.get("expired") is True
-        refused = list(order.refused) + ([] if late or cell in order.refused else [cell])
-        update(
-            "state = ?, cell = NULL, expires = NULL, refused = ?, note = ?",
-            QUEUED,
-            json.dumps(refused),
-            f"{cell}: {words}",
-        )
-        return f"order {oid} refused by {cell}: {words}"
-    if order.state not in (SENT, *AT_CELL_STATES):
-        return None  # a report after the end, or one sent again
-    if kind == ReportKind.STEP_STARTED and order.state in (SENT, ACCEPTED):
-        update("state = ?", IN_PROGRESS)
-        return None
-    if kind == ReportKind.PART_HELD:
-        update("state = ?, held = held + 1, note = ?", HELD, words)
-        return f"{cell}: {words}"
-    if kind == ReportKind.PART_RELEASED:
-        update("state = ?, held = MAX(held - 1, 0), note = ?", IN_PROGRESS, words)
-        return f"{cell}: {words}"
-    if kind == ReportKind.PART_SCRAPPED:
-        update("scrapped = scrapped + 1, held = MAX(held - 1, 0), note = ?", words)
-        return f"{cell}: {words}"
-    if kind in ENDS:
-        state = ENDS[kind]
-        done = order.qty - order.scrapped if kind == ReportKind.ORDER_DONE else 0
-        note = words
-        if order.cancelling and kind == ReportKind.ORDER_CANCELLED:
-            note += f" (asked by {order.cancel_by}" + (
-                f": {order.cancel_reason})" if order.cancel_reason else ")"
-            )
-        elif order.cancelling:
-            note += " (it ended before the cancel came)"
-        update("state = ?, finished = ?, done = ?, note = ?", state, now, done, note)
-        return f"order {oid} {state} at {cell}: {note}"
-    return None
-
-
-def _cancel_refused(
-    order: FactoryOrder, cell: str, report: ReportMessage, update: Callable[..., None]
-) -> str | None:
-    """The cell's own cancel refused the factory's: the order goes on there."""
-    oid, words = order.id, report.text
-    if order.state == CANCELLED and order.cancel_asked is not None:
-        # Cancelled here once its cell stayed away past the deadline, and yet it has started
-        # there (the one case the deadline cannot cover): said loudly.
-        return f"order {oid} was cancelled here, but {cell} makes it: {words}"
-    asked = report.data.get("asked")
-    if not order.cancelling or (isinstance(asked, int | float) and asked != order.cancel_asked):
-        return None  # an answer to an earlier request, or after the end
-    update(
-        "cancel_asked = NULL, cancel_sent = NULL, note = ?", f"{cell} did not cancel it: {words}"
-    )
-    return f"order {oid}: {cell} did not cancel it: {words}"

@@ -46,6 +46,7 @@ from typing import Any, Protocol
 
 import aiomqtt
 
+from cellctl.cell.config import PartType
 from cellctl.cell.estimate import finish_estimate, measured, part_bounds
 from cellctl.cell.journal import Journal
 from cellctl.cell.shift import cell_time_scale
@@ -490,7 +491,10 @@ class MqttBridge:
         return {
             "cell": self.name,
             "paused": self.cell.paused,
-            "part_types": {name: PartTypeState(bound_s=round(b, 3)) for name, b in bounds.items()},
+            "part_types": {
+                name: PartTypeState(bound_s=round(b, 3), machines=self._needs(types[name]))
+                for name, b in bounds.items()
+            },
             "machines": {
                 name: MachineState(kind=m.kind, state=m.state, in_service=m.in_service)
                 for name, m in self.cell.machines.items()
@@ -505,6 +509,13 @@ class MqttBridge:
             ),
             **self._plan_fields(),
         }
+
+    def _needs(self, part_type: PartType) -> tuple[str, ...]:
+        """The machines a part of ``part_type`` needs in service: the robot, the mills of its
+        route, and the PLC (conveyor and doors) where the cell has one."""
+        config = self.cell.config
+        route = [config.robot.name, *(step.mill for step in part_type.route), "plc"]
+        return tuple(name for name in dict.fromkeys(route) if name in self.cell.machines)
 
     def _plan_fields(self) -> dict[str, float]:
         """``plan_finish_s`` and ``planned_at`` of the last plan (none: no fields)."""

@@ -24,12 +24,13 @@ import tomllib
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Self
 from urllib.parse import urlsplit
 
 import aiomqtt
 
 from cellctl.clock import current_clock
-from cellctl.errors import CellctlError, LinkError, LinkTimeout, UsageError
+from cellctl.errors import CellctlError, LinkClosed, LinkError, LinkTimeout, UsageError
 from cellctl.files import read_text
 
 #: Seconds between attempts to reach a broker that went away: from the first to the last.
@@ -106,7 +107,7 @@ class MqttSettings:
                 context = ssl.create_default_context(cafile=str(self.ca) if self.ca else None)
             except (ssl.SSLError, OSError) as e:
                 raise UsageError(f"{self.ca}: not a CA certificate (PEM): {e}") from None
-        return aiomqtt.Client(
+        return _Client(
             self.host,
             self.port,
             username=self.username,
@@ -119,12 +120,19 @@ class MqttSettings:
             timeout=ANSWER_S,
         )
 
-    def unanswered(self, error: BaseException) -> LinkTimeout | None:
-        """The library's "Operation timed out" in words: the broker did not answer in time."""
-        if isinstance(error, aiomqtt.MqttError) and "timed out" in str(error):
-            return LinkTimeout(
-                f"the broker at {self.host}:{self.port} did not answer within {ANSWER_S:g} s"
-            )
+    def unanswered(self, error: BaseException) -> LinkError | None:
+        """The library's words for a broker that stopped answering or went away, in cellctl's:
+        "Operation timed out" (the broker did not answer in time), "[code:4] The client is
+        not currently connected.", "[code:7] The connection was lost.", "[code:128]
+        Unspecified error" (the connection dropped); None for anything else."""
+        where = f"{self.host}:{self.port}"
+        if not isinstance(error, aiomqtt.MqttError):
+            return None
+        if "timed out" in str(error):
+            return LinkTimeout(f"the broker at {where} did not answer within {ANSWER_S:g} s")
+        code = getattr(error, "rc", None)
+        if isinstance(error, aiomqtt.MqttCodeError) and getattr(code, "value", code) in LOST:
+            return LinkClosed(f"the connection to the broker at {where} was lost")
         return None
 
     async def explain(self, error: BaseException) -> CellctlError | BaseException:
@@ -142,13 +150,57 @@ class MqttSettings:
                 f"TLS: the broker's certificate at {where} is not signed by {trusted}"
                 f" ({cause.verify_message})"
             )
-        if isinstance(cause, ConnectionRefusedError) or "authori" in str(error).lower():
-            return error  # nothing listens there, or a wrong password: said as it is
+        if isinstance(cause, ConnectionRefusedError):
+            return LinkError(f"nothing listens at {where}: is the broker running there?")
+        if "authori" in str(error).lower():
+            return error  # a wrong user name or password: said as the broker says it
         if not self.tls and await _speaks_tls(self.host, self.port):
             return WrongScheme(f"the broker at {where} speaks TLS: use mqtts://{where}/...")
         if self.tls and await _speaks_plain_mqtt(self.host, self.port):
             return WrongScheme(f"the broker at {where} does not speak TLS: use mqtt://{where}/...")
         return self.unanswered(error) or error
+
+
+#: The library's codes for a connection that went away: paho's "not currently connected" (4)
+#: and "connection lost" (7), and MQTT's "unspecified error" (128, what an unexpected
+#: disconnection is given).
+LOST = (4, 7, 128)
+
+
+class _Client(aiomqtt.Client):
+    """aiomqtt's client, whose futures of the connection's end are always looked at.
+
+    The library sets an exception on the future of an unexpected disconnection (a broker
+    that stopped answering) even when nobody waits for it any more (the session ended on a
+    publish's deadline first): asyncio then prints "Future exception was never retrieved"
+    and a traceback into the log. The session's own error says it, in words, once
+    (:class:`Reconnect`)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._look_after()
+
+    def _look_after(self) -> None:
+        for future in (self._connected, self._disconnected):
+            future.add_done_callback(_retrieve)
+
+    async def __aenter__(self) -> Self:
+        try:
+            return await super().__aenter__()
+        finally:
+            self._look_after()  # the futures made anew for this connection
+
+    async def __aexit__(self, *exc: Any) -> None:
+        try:
+            await super().__aexit__(*exc)
+        finally:
+            self._look_after()
+
+
+def _retrieve(future: asyncio.Future[None]) -> None:
+    """Look at ``future``'s exception, so that asyncio does not print it as never retrieved."""
+    if not future.cancelled():
+        future.exception()
 
 
 #: An MQTT 3.1.1 CONNECT without a user or client id: any broker answers it with a CONNACK

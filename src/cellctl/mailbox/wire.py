@@ -166,7 +166,12 @@ class ReportMessage(_Message):
 
 
 class PartTypeState(_Strict):
+    """One part type a cell makes: what one more part adds to its bound, and the machines a
+    part of it needs (the robot, the mills of its route; a cell of an older cellctl sends
+    none: the factory then counts every machine of the cell as needed)."""
+
     bound_s: Seconds
+    machines: Annotated[tuple[Name, ...], Field(max_length=MAX_MACHINES)] = ()
 
 
 class MachineState(_Strict):

@@ -253,6 +253,15 @@ def plan_inputs(
         *orders,
         *(PlanOrder(i, a.part_type, a.qty, a.priority) for i, a in zip(ids, added, strict=True)),
     )
+    if not every and held:
+        # Open orders there are: their parts all wait for the operator's word, which a plan
+        # does not guess (held parts stay held), so nothing of them would play.
+        count = len({h.order_id for h in held})
+        orders_word = "open order" if count == 1 else "open orders"
+        raise UsageError(
+            f"nothing to plan: {count} {orders_word}, every part held: nothing plays until "
+            "the operator releases them (cellctl part release PART)"
+        )
     if not every:
         raise UsageError(
             "nothing to plan: no open orders (submit some, or add some to a cell's plan: "

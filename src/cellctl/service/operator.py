@@ -358,7 +358,9 @@ def release_part(
         f"part {p.id} released by operator at {p.location}: {what}",
         order_id=p.order_id,
         part_id=p.id,
-        data={"redo": redo, "location": p.location},
+        # Released on the outfeed, its route machined: the cell counts it done (the factory
+        # counts it made by ``part_done``, as the step that brings a part out says it).
+        data={"redo": redo, "location": p.location, "part_done": p.location == OUT},
     )
     return {"part": as_dict(p), "message": f"part {p.id} released at {p.location}: {what}"}
 

@@ -30,7 +30,13 @@ from cellctl.errors import UsageError
 from cellctl.factory.cancel import request_cancel
 from cellctl.factory.config import FactoryConfig, factory_lock_path, load_factory
 from cellctl.factory.dispatch import load_s
-from cellctl.factory.store import CANCELLING, OPEN_STATES, CellSeen, FactoryStore
+from cellctl.factory.store import (
+    CANCELLING,
+    OPEN_STATES,
+    CellSeen,
+    FactoryOrder,
+    FactoryStore,
+)
 from cellctl.link.lock import OwnerLock
 from cellctl.ui.common import (
     console,
@@ -136,14 +142,32 @@ def hms(seconds: float) -> str:
     return f"{whole // 3600}:{whole % 3600 // 60:02d}:{whole % 60:02d}"
 
 
-def orders_table(store: FactoryStore, everything: bool = True, limit: int = 200) -> Table:
-    table = Table(title="orders", expand=True)
+#: Orders the live view shows at most (the open ones first, then the latest ended).
+LIVE_ORDERS = 15
+
+
+def live_orders(orders: list[FactoryOrder], limit: int) -> tuple[list[FactoryOrder], int]:
+    """What a view of ``limit`` rows shows of ``orders``: every open one first (as the store
+    gives them: highest priority, then oldest), then the latest ended; and how many it leaves
+    out."""
+    open_ones = [o for o in orders if o.state in OPEN_STATES]
+    ended = sorted(
+        (o for o in orders if o.state not in OPEN_STATES),
+        key=lambda o: (o.finished or o.updated, o.submitted),
+        reverse=True,
+    )
+    shown = [*open_ones, *ended][:limit]
+    return shown, len(orders) - len(shown)
+
+
+def orders_table(rows: list[FactoryOrder], *, more: str = "") -> Table:
+    """One line per order of ``rows``; ``more``: a last line saying what is left out."""
+    table = Table(title="orders", expand=True, caption=more or None, caption_justify="left")
     for col in ("order", "part", "qty", "state", "cell", "done", "held"):
         # The note keeps at least a third of the width: it says why an order waits.
         table.add_column(col, overflow="fold", ratio=1 if col in ("order", "part") else None)
     table.add_column("note", overflow="fold", ratio=2, min_width=20)
-    rows = store.orders(None if everything else OPEN_STATES)
-    for o in rows[:limit]:
+    for o in rows:
         table.add_row(
             o.id,
             o.part_type,
@@ -241,11 +265,14 @@ def orders(ctx: click.Context, only_open: bool, as_json: bool) -> None:
     async def main() -> None:
         config = _config(ctx)
         with FactoryStore(config.state_path) as store:
+            rows = store.orders(None if not only_open else OPEN_STATES)
             if as_json:
-                rows = store.orders(None if not only_open else OPEN_STATES)
                 print_json([{**dataclasses.asdict(o), "cancelling": o.cancelling} for o in rows])
                 return
-            print_table(orders_table(store, everything=not only_open))
+            if not rows:
+                console.print("no open orders" if only_open else "no orders", markup=False)
+                return
+            print_table(orders_table(rows))  # every one: a pipe or a pager takes them all
 
     run(main)
 
@@ -274,7 +301,9 @@ def live_view(store: FactoryStore, config: FactoryConfig) -> Group:
     events.add_column("event")
     for e in store.events(limit=8):
         events.add_row(datetime.fromtimestamp(e.time).strftime("%H:%M:%S"), e.text)
-    return Group(cells_table(store, config), orders_table(store, limit=15), events)
+    shown, left = live_orders(store.orders(), LIVE_ORDERS)
+    more = f"… {left} more: cellctl factory --dir {config.directory} orders" if left else ""
+    return Group(cells_table(store, config), orders_table(shown, more=more), events)
 
 
 async def run_factory(
@@ -342,6 +371,7 @@ def run_command(ctx: click.Context, live: bool | None, until_idle: bool) -> None
     "--cells",
     "count",
     type=click.IntRange(1, 32),
+    metavar="N",
     default=None,
     help="How many emulated cells  [default: 3, or as many as --template given]",
 )
@@ -377,8 +407,8 @@ def emulate_factory(
     accept_timeout: float,
     directory: str,
 ) -> None:
-    """Start a private Mosquitto and COUNT emulated cells; write their cell directories and
-    DIRECTORY/factory.toml. Serves until Ctrl-C."""
+    """Start a private Mosquitto and the emulated cells (--cells N of them); write their cell
+    directories and DIRECTORY/factory.toml. Serves until Ctrl-C."""
     from cellctl.cell.config import load_cell
     from cellctl.factory.emulated import EmulatedFactory
     from cellctl.ui.emulate_cli import refuse_if_running_in

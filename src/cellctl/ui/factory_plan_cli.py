@@ -20,7 +20,7 @@ from typing import Any
 
 import click
 
-from cellctl.errors import CellctlError, UsageError
+from cellctl.errors import EXIT_CODES, CellctlError, UsageError, exit_code
 from cellctl.ui.common import console, fail, print_json, print_line
 from cellctl.ui.plan_cli import poll_option
 
@@ -45,8 +45,31 @@ def _plan_here(directory: str, params: dict[str, Any]) -> tuple[str, Any]:
 
     answer = asyncio.run(_ask(Path(directory), params))
     if isinstance(answer, CellctlError):
-        return "refused", str(answer)
+        return "refused", (exit_code(answer), str(answer))
     return "plan", answer
+
+
+def _refusal(code: int, words: str) -> CellctlError:
+    """A worker process's refusal as an error of its kind again (by its exit code, the one
+    table of them: :data:`cellctl.errors.EXIT_CODES`)."""
+    return _of_kind(next((k for k, c in EXIT_CODES.items() if c == code), CellctlError), words)
+
+
+def _of_kind(kind: type[CellctlError], words: str) -> CellctlError:
+    try:
+        return kind(words)
+    except TypeError:  # a kind made of more than words (a device's code): said as is
+        return CellctlError(words)
+
+
+def _no_plan(refused: dict[str, CellctlError | str]) -> CellctlError:
+    """No cell planned: every cell's refusal in one line, of the kind of the first that is
+    not the caller's input (a refused token, a link down), else a usage error: its exit
+    code is the one a single cell's `cellctl plan` would give."""
+    errors = [e for e in refused.values() if isinstance(e, CellctlError)]
+    first = next((e for e in errors if not isinstance(e, UsageError)), None)
+    words = "; ".join(f"{name}: {why}" for name, why in refused.items())
+    return _of_kind(type(first), words) if first is not None else UsageError(words)
 
 
 def _cell_dirs(
@@ -213,9 +236,9 @@ def factory_plan(
         answers = asyncio.run(ask_running())
         for name, future in planned.items():
             what, answer = future.result()
-            answers[name] = UsageError(answer) if what == "refused" else answer
+            answers[name] = _refusal(*answer) if what == "refused" else answer
     plans: dict[str, Any] = {}
-    refused: dict[str, str] = dict(away)
+    refused: dict[str, CellctlError | str] = dict(away)
     for name, directory in cells.items():
         try:
             answer = answers[name]
@@ -223,7 +246,7 @@ def factory_plan(
                 raise answer
             result = result_from_dict(answer["plan"], answer["svg"], directory)
         except CellctlError as e:  # one cell's refusal (no open orders ...): the others go on
-            refused[name] = str(e)
+            refused[name] = e
             continue
         result.inputs = dataclasses.replace(result.inputs, cell_dir=directory)
         plans[name] = result
@@ -233,11 +256,11 @@ def factory_plan(
             except CellctlError as e:
                 fail(e)
     if not plans:
-        fail(UsageError("; ".join(f"{name}: {why}" for name, why in refused.items())))
+        fail(_no_plan(refused))
     if as_json:
         print_json(
             {name: r.as_dict() for name, r in plans.items()}
-            | {name: {"refused": why} for name, why in refused.items()}
+            | {name: {"refused": str(why)} for name, why in refused.items()}
         )
         return
     for name, result in plans.items():
@@ -252,7 +275,12 @@ def factory_plan(
     for name, result in plans.items():
         r = result.reports[0]
         made = sum(r.parts_made.values())
-        print_line(f"  {name:<10} on time {r.on_time}, late {r.late}, parts made {made}")
+        # Orders the plan does not finish within its span are said, not left to be inferred.
+        open_ones = sum(o.finished is None for o in r.orders)
+        print_line(
+            f"  {name:<10} on time {r.on_time}, late {r.late}, not finished {open_ones}, "
+            f"parts made {made}"
+        )
     for name, why in refused.items():
         print_line(f"  {name:<10} not planned: {why}")
     for name in plans if out is not None else ():

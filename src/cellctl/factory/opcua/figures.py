@@ -52,7 +52,7 @@ class StepSeen:
 
 class StepBook:
     """The journal's steps, read once whole and then from the earliest one still in flight:
-    each machine's last step and its finished count, each part's last step."""
+    each machine's last step, the parts it worked on, each part's last step."""
 
     def __init__(self) -> None:
         self.steps: dict[int, StepSeen] = {}
@@ -81,9 +81,13 @@ class StepBook:
         found = [s for s in self.steps.values() if s.machine == machine]
         return max(found, key=lambda s: s.id) if found else None
 
-    def finished(self) -> Counter[str]:
-        """Steps each machine finished."""
-        return Counter(s.machine for s in self.steps.values() if s.state == "finished")
+    def parts_through(self, part_ids: Iterable[str]) -> Counter[str]:
+        """Of ``part_ids``, how many each machine worked on (a step of the part there, once a
+        part): the parts made good on it, given the parts done (the journal's, as the shift
+        report counts good parts), a step redone or released as done counting once."""
+        wanted = set(part_ids)
+        worked = {(s.machine, s.part_id) for s in self.steps.values() if s.part_id in wanted}
+        return Counter(machine for machine, _ in worked)
 
     def machine_of_parts(self, part_ids: Iterable[str]) -> Counter[str]:
         """Parts counted by the machine of their last step (where it was last worked on)."""

@@ -232,10 +232,13 @@ class OpcuaServer:
         status = self.access.status()
         self._steps.add(await self.dispatcher.call("steps.list", {"since": self._steps.since()}))
         scrapped = await self.dispatcher.call("parts.list", {"statuses": ["scrapped"]})
+        done = await self.dispatcher.call("parts.list", {"statuses": ["done"]})
         held = [p.id for p in status.held()]
         held_at = self._steps.machine_of_parts(held)
         scrapped_at = self._steps.machine_of_parts(p["id"] for p in scrapped)
-        good = self._steps.finished()
+        # OPC 40501 PartCounts counts parts, not steps: the parts done (the journal's word,
+        # as the shift report's good parts) each machine worked on.
+        good = self._steps.parts_through(p["id"] for p in done)
         for name in space.messages:
             view = status.machines.get(name)
             if view is None:

@@ -66,7 +66,6 @@ def test_every_problem_is_printed(tmp_path: Path) -> None:
     assert code != 0
     expected = [
         "[machines.robot] kind: 'puma560'",
-        "[cell] robot: no robot machine 'robot'",
         "[machines.cnc2] setup: a mill needs its setup program",
         "[machines.cnc1] go_output: no PLC coil 'go_9'",
         "[cell] poll_period: Input should be greater than 0, not 0 (line 12)",
@@ -76,6 +75,8 @@ def test_every_problem_is_printed(tmp_path: Path) -> None:
     ]
     for text in expected:
         assert text in out, f"{text!r} missing from:\n{out}"
+    # The robot's kind said once: not again as "[cell] robot: no robot machine 'robot'".
+    assert "[cell] robot:" not in out, out
     with pytest.raises(UsageError, match="puma560"):
         load_cell(directory)
 

@@ -81,10 +81,9 @@ def test_a_file_whose_first_line_is_not_a_record(tmp_path: Path) -> None:
     assert "notes.rec, line 1" in err
 
 
-@pytest.mark.parametrize(
-    "path", [ROOT / "examples" / "robot" / "conveyor_to_cnc1.aml", ROOT / "README.md"]
-)
-def test_downloading_a_source_or_a_text_file(path: Path) -> None:
+def test_downloading_a_text_file() -> None:
+    # (An AML source is compiled on the way: tests/test_newcomer_refusals.py.)
+    path = ROOT / "README.md"
     err = one_line_refusal(cellctl("robot", "--link", "loop://", "download", "1", str(path)))
     assert path.name in err
 

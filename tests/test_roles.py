@@ -190,6 +190,8 @@ async def test_an_older_cell_with_only_api_token_keeps_it_as_the_engineer_defaul
 
 def test_token_files_and_refusals(tmp_path: Path) -> None:
     cell = tmp_path / "cell"
+    cell.mkdir()
+    shutil.copy(Path(__file__).parent.parent / "examples" / "cell" / "cell.toml", cell)
     secret = add_token(cell, "ann", "operator")
     assert len(secret) >= 32
     entry = identify(cell, secret)
@@ -352,6 +354,7 @@ def test_token_changes_are_in_the_audit_trail(tmp_path: Path) -> None:
 def test_revoking_default_says_what_this_computer_acts_with_now(tmp_path: Path) -> None:
     cell = tmp_path / "cell"
     cell.mkdir()
+    shutil.copy(Path(__file__).parent.parent / "examples" / "cell" / "cell.toml", cell)
     ensure_default(cell)  # as `cellctl run` does at its start
     code, out = cli_sync(cell, "token", "revoke", "default")
     said = " ".join(out.split())

@@ -92,9 +92,11 @@ __all__ = [
     "Text",
     "check_cell",
     "load_cell",
+    "machine_problems",
     "mill_kinds",
     "open_vise_name",
     "reference_table",
+    "refuse_machine",
     "robot_kinds",
     "transfer_ends",
     "transfer_name",
@@ -297,7 +299,9 @@ def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
         (n for n, m in machines.items() if m.kind in robot_kinds_), None
     )
     robot = machines.get(robot_name or "")
-    if robot is None or robot.kind not in robot_kinds_:
+    if robot_name in told:
+        pass  # its [machines.NAME] table's problems are said above
+    elif robot is None or robot.kind not in robot_kinds_:
         problems.at(
             ("cell", "robot"),
             f"no robot machine {robot_name!r} of kind {'/'.join(robot_kinds_) or '(none)'}",
@@ -372,7 +376,8 @@ def check_cell(directory: Path | str) -> tuple[CellConfig | None, list[str]]:
         problems.add("[parts]: no part types: the cell has nothing to make")
     for prog_name in sources:
         opened = prog_name.removeprefix(open_vise_name(""))
-        if opened != prog_name and opened not in {m.name for m in mills}:
+        # A machine whose own table has problems (told above) is no mill yet: not again here.
+        if opened != prog_name and opened not in {m.name for m in mills} | told:
             problems.add(
                 f"[robot_programs] {prog_name}: no mill {opened!r} (open_vise_<mill> opens "
                 f"that mill's vise; mills: {', '.join(m.name for m in mills)})"
@@ -415,6 +420,25 @@ def _texts(value: Any) -> list[str] | None:
     if isinstance(value, list) and all(isinstance(v, str) for v in value):
         return value
     return None
+
+
+def machine_problems(directory: Path | str, name: str) -> list[str]:
+    """The problems of ``[machines.NAME]`` alone, in the words (and with the line) of
+    ``cellctl cell check``: a command about that one machine refuses it as the check says it.
+    Empty if its table is sound (or there is none: the caller says so)."""
+    raw, text = _load_toml(Path(directory))
+    problems = _Problems(text)
+    entry = _entries(raw, "machines", problems).get(name)
+    if entry is not None:
+        _checked(MachineTable, entry, ("machines", name), problems)
+    return problems.items
+
+
+def refuse_machine(directory: Path | str, name: str) -> None:
+    """UsageError with :func:`machine_problems` (the file named once), if there are any."""
+    problems = machine_problems(directory, name)
+    if problems:
+        raise UsageError(f"{Path(directory) / 'cell.toml'}: " + "; ".join(problems))
 
 
 def load_cell(directory: Path | str) -> CellConfig:

@@ -113,6 +113,8 @@ def _message(item: Any) -> str:
     message = str(item["msg"])
     if message.startswith("Value error, "):
         message = message[len("Value error, ") :]
+    if kind == "value_error" and shown in message:
+        return message  # our own validator named the value: said once
     return f"{message}, not {shown}"
 
 

@@ -51,6 +51,7 @@ from cellctl.clock import Clock, current_clock, emulator_clock
 # Re-exported: emulators and their transports import the line from here.
 from cellctl.emulators.line import DeviceLine as DeviceLine
 from cellctl.emulators.line import LineNoise as LineNoise
+from cellctl.emulators.switches import parse_fault as parse_fault
 from cellctl.errors import LinkClosed, UsageError
 from cellctl.link import LineSettings, parse_host_port
 from cellctl.link.lock import OwnerLock, runtime_dir
@@ -166,15 +167,6 @@ class SelfServed:
 
     async def close(self) -> None:
         await self.closer()
-
-
-def parse_fault(text: str) -> tuple[str, str | None]:
-    """``"corrupt-checksum=3"`` → ``("corrupt-checksum", "3")``; ``"drop"`` → ``("drop", None)``."""
-    name, sep, arg = text.partition("=")
-    name = name.strip()
-    if not name:
-        raise UsageError(f"fault {text!r}: write NAME or NAME=VALUE")
-    return name, (arg.strip() if sep else None)
 
 
 @dataclass

@@ -5,6 +5,12 @@
 
 A switch takes an argument exactly when its description in the table starts with ``=``
 (``=N: ...``): the table a help text shows is the one fact the check reads.
+
+A cell's switches, ``MACHINE:NAME[=ARG]`` as ``cellctl emulate cell --fault`` takes them, are
+checked against each machine's table before anything is written or started::
+
+    check_fault("cnc1:stal", {"robot": ROBOT_FAULTS, "cnc1": MILL_FAULTS, "plc": PLC_FAULTS})
+    # UsageError: fault 'cnc1:stal': unknown fault 'stal' for cnc1; known: stall, ...
 """
 
 from __future__ import annotations
@@ -28,4 +34,42 @@ def check_switch(faults: Mapping[str, str], name: str, arg: str | None) -> None:
         raise UsageError(f"fault {name} takes no argument, not {arg!r}")
 
 
-__all__ = ["check_switch", "takes_argument"]
+def parse_fault(text: str) -> tuple[str, str | None]:
+    """``"corrupt-checksum=3"`` → ``("corrupt-checksum", "3")``; ``"drop"`` → ``("drop", None)``."""
+    name, sep, arg = text.partition("=")
+    name = name.strip()
+    if not name:
+        raise UsageError(f"fault {text!r}: write NAME or NAME=VALUE")
+    return name, (arg.strip() if sep else None)
+
+
+def split_fault(text: str) -> tuple[str, str, str | None]:
+    """``"cnc1:drop=3"`` → ``("cnc1", "drop", "3")``; UsageError for text without a machine."""
+    machine, sep, rest = text.partition(":")
+    if not sep:
+        raise UsageError(f"fault {text!r}: write MACHINE:NAME[=ARG], e.g. cnc1:stall")
+    name, arg = parse_fault(rest)
+    return machine, name, arg
+
+
+def check_fault(
+    text: str, machines: Mapping[str, Mapping[str, str]]
+) -> tuple[str, str, str | None]:
+    """Check a cell's switch ``MACHINE:NAME[=ARG]`` against ``machines`` (each machine's name
+    and its fault table; ``plc`` for the PLC) without a running cell: the machine, the
+    switch's name and whether it takes an argument. Returns ``(machine, name, arg)``;
+    UsageError naming the machines or the switches there are."""
+    machine, name, arg = split_fault(text)
+    faults = machines.get(machine)
+    if faults is None:
+        raise UsageError(f"fault {text!r}: no machine {machine!r} ({', '.join(machines)})")
+    if name not in faults:
+        raise UsageError(
+            f"fault {text!r}: unknown fault {name!r} for {machine}; known: {', '.join(faults)}"
+        )
+    if arg is not None and not takes_argument(faults, name):
+        raise UsageError(f"fault {text!r}: {name} takes no argument, not {arg!r}")
+    return machine, name, arg
+
+
+__all__ = ["check_fault", "check_switch", "parse_fault", "split_fault", "takes_argument"]

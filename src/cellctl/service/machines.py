@@ -96,6 +96,11 @@ def resolve_machine(
         raise UsageError(f"unknown {what} {name!r} (known: {known})")
     entry = machines[name]
     found = entry.get("kind")
+    if found not in kinds or not entry.get("link"):
+        # A kind not installed (a typo), a missing link: said as `cellctl cell check` says it.
+        from cellctl.cell.config import refuse_machine
+
+        refuse_machine(cell_dir, name)
     if found not in kinds:
         raise UsageError(f"machine {name!r} is {with_article(repr(found))}, not a {family}")
     if kind is not None and found != kind:

@@ -220,7 +220,13 @@ def _read_entry(path: Path) -> TokenEntry:
 
 def _write_entry(directory: Path, name: str, role: str, token: str) -> TokenEntry:
     folder = _tokens_dir(directory)
-    folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+    try:
+        # Never parents: a missing cell directory is a mistyped one, not one to make here.
+        folder.mkdir(mode=0o700, exist_ok=True)
+    except FileNotFoundError:
+        raise UsageError(f"no cell at {os.path.abspath(directory)}: no such directory") from None
+    except OSError as e:
+        raise UsageError(f"{folder}: cannot make the tokens' directory: {e.strerror}") from None
     entry = TokenEntry(name, role, round(current_clock().now(), 3), _digest(token))
     path = folder / name
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC

@@ -7,14 +7,16 @@ import contextlib
 import os
 import sys
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import click
 
 from cellctl.emulators.cellpanel import HAND_COMMANDS
-from cellctl.emulators.serve import CELL_TIME_SCALE, TIME_SCALE_HELP, parse_fault
-from cellctl.errors import CellctlError, UsageError
+from cellctl.emulators.serve import CELL_TIME_SCALE, TIME_SCALE_HELP
+from cellctl.emulators.switches import check_fault
+from cellctl.errors import CellctlError
 from cellctl.ui.common import (
     cell_dir,
     console,
@@ -30,6 +32,7 @@ if TYPE_CHECKING:
     from cellctl.cell.config import CellConfig
     from cellctl.cell.controller import CellController, ControllerOptions, Event
     from cellctl.cell.journal import Journal
+    from cellctl.emulators.cell import EmulatedCell
     from cellctl.factory.opcua import OpcuaServer
     from cellctl.mailbox import Mailbox
     from cellctl.mailbox.mqtt import MqttBridge
@@ -328,6 +331,11 @@ def emulate_cell_command() -> click.Command:
                 robot_listen=robot_listen,
                 template=Path(template) if template else None,
             )
+            # Every switch is checked before a file is written or a machine served: a typo
+            # must not leave a cell.toml pointing at a pty that is gone.
+            tables = fault_tables(cell)
+            for text in fault:
+                check_fault(text, tables)
             toml = await cell.start(directory)
             for text in fault:
                 apply_fault(cell, text, at_start=True)
@@ -409,6 +417,19 @@ async def _hand_commands(cell: object) -> None:
             console.file.flush()
 
 
+def fault_tables(cell: EmulatedCell) -> dict[str, Mapping[str, str]]:
+    """Each machine of an emulated cell (started or not) and its fault switches: the robot
+    (also as ``robot``), the mills, ``plc``; what :func:`check_fault` checks against."""
+    from cellctl.emulators.plc import FAULTS as PLC_FAULTS
+    from cellctl.kinds import registry
+
+    robot = registry.kind(cell.kinds[cell.robot_name]).faults
+    tables = {cell.robot_name: robot, "robot": robot}
+    tables.update({m: registry.kind(cell.kinds[m]).faults for m in cell.mill_names})
+    tables["plc"] = PLC_FAULTS
+    return tables
+
+
 def apply_fault(cell: object, text: str, *, at_start: bool = False) -> None:
     """Switch a fault on one machine of an emulated cell: ``cnc1:stall``, ``robot:drop``.
 
@@ -416,16 +437,10 @@ def apply_fault(cell: object, text: str, *, at_start: bool = False) -> None:
     that acts as a block ends (``stall``: :data:`~cellctl.emulators.cell.CUT_FAULTS`) is then
     switched on as the mill's first cut starts, as a stall in the middle of a cut comes:
     switched on at once, it would take the setup block, the first block the mill runs."""
-    machine, sep, rest = text.partition(":")
-    if not sep:
-        raise UsageError(f"fault {text!r}: write MACHINE:NAME[=ARG], e.g. cnc1:stall")
-    name, arg = parse_fault(rest)
     c: Any = cell
+    machine, name, arg = check_fault(text, fault_tables(c))
     machines = {"robot": c.robot, c.robot_name: c.robot, **c.mills, "plc": c.plc}
-    target = machines.get(machine)
-    if target is None:
-        known = ", ".join(dict.fromkeys([c.robot_name, *c.mills, "plc"]))
-        raise UsageError(f"fault {text!r}: no machine {machine!r} ({known})")
+    target = machines[machine]
     if at_start and machine in c.mills:
         from cellctl.emulators.cell import CUT_FAULTS
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
 import shlex
 import shutil
 from pathlib import Path
@@ -20,6 +21,7 @@ import click
 
 from cellctl.clock import current_clock
 from cellctl.emulators.serve import DEMO_TIME_SCALE, TIME_SCALE_HELP
+from cellctl.errors import UsageError
 from cellctl.mailbox.base import MAX_QTY
 from cellctl.ui.common import cell_dir, cell_given, console, run
 from cellctl.ui.emulate_cli import TIME_SCALE, refuse_if_running_in
@@ -101,9 +103,11 @@ def demo(
         raise click.UsageError("--dashboard is for one cell, not with --factory")
     if templates and cells is None:
         raise click.UsageError("--template is for --factory N (one cell's is --cell DIR)")
+    # A directory that cannot be made or written: refused before the demo runs (making one
+    # that is there touches nothing of a demo running in it).
+    check_out(Path(out))
     # A demo (or an emulated factory) running in --out: refused before its files are replaced.
     refuse_if_running_in(out)
-    Path(out).mkdir(parents=True, exist_ok=True)
     if cells is not None:
         from cellctl.ui.factory_demo import run_factory_demo
 
@@ -111,6 +115,18 @@ def demo(
         raise SystemExit(run(lambda: run_factory_demo(cells, count, time_scale, Path(out), chosen)))
     parts = 6 if count is None else count
     run(lambda: _demo(time_scale, parts, Path(out), compare, dashboard, template))
+
+
+def check_out(out: Path) -> None:
+    """Make the demo's ``--out`` (the factory demo's too), or refuse it in words before the
+    demo runs: a directory that cannot be made there, or one it cannot write in."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        why = e.strerror or e
+        raise UsageError(f"{out}: cannot write the demo's output there: {why}") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise UsageError(f"{out}: cannot write the demo's output there: not writable")
 
 
 #: The two runs of the demo, as their charts and summaries name them.

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from cellctl.errors import UsageError
 from cellctl.service.machines import load_cell_file
 from cellctl.ui.common import cell_dir, console
 
@@ -36,11 +37,19 @@ def adduser(ctx: click.Context, name: str, role: str | None) -> None:
     0600. A running server reads it at the next login: no restart.
     """
     from cellctl.factory.opcua.users import add_user
+    from cellctl.service.client import require_cell
 
     directory = cell_dir(ctx)
+    # Refused before the password is asked: typed twice for nothing, it would be lost.
+    require_cell(directory)
     table = load_cell_file(directory).get("opcua")
     named = table.get("users") if isinstance(table, dict) else None
     path = directory / (named if isinstance(named, str) and named else DEFAULT_USERS)
+    if not path.parent.is_dir():
+        raise UsageError(
+            f"{path}: cannot write the OPC UA users there: no directory {path.parent} "
+            "(make it, or name another file in cell.toml: [opcua] users)"
+        )
     password = click.prompt(
         f"password for {name}", hide_input=True, confirmation_prompt=True, err=True
     )

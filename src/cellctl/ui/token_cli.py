@@ -60,6 +60,18 @@ def token_group() -> None:
     """The control API's tokens: each with a name and a role."""
 
 
+def _cell(ctx: click.Context) -> Path:
+    """The cell directory of ``--cell``, refused as every other command refuses it when it
+    is no cell (a mistyped --cell would get a tokens/ of its own, or "no tokens yet"). A
+    directory a server ran in (its ``api-token``: a DNC shop's too) keeps its tokens."""
+    from cellctl.service.client import require_cell
+
+    directory = cell_dir(ctx)
+    if not (directory / TOKEN_FILE).is_file():
+        require_cell(directory)
+    return directory
+
+
 def _manager(directory: Path, method: str, params: dict[str, Any]) -> str:
     """Who changes the tokens: the token in ``$CELLCTL_TOKEN`` when one is set, which must be
     an engineer's (AccessDenied otherwise, as for every acting call, and the refused call
@@ -100,7 +112,7 @@ def _audit(
 @click.pass_context
 def token_add(ctx: click.Context, name: str, role: str) -> None:
     """Make token NAME with a role and print it once (only its hash is kept)."""
-    directory = cell_dir(ctx)
+    directory = _cell(ctx)
 
     params = {"name": name, "role": role}
 
@@ -119,7 +131,7 @@ def token_add(ctx: click.Context, name: str, role: str) -> None:
 @click.pass_context
 def token_list(ctx: click.Context, as_json: bool) -> None:
     """The tokens: names, roles and when made (never a secret)."""
-    directory = cell_dir(ctx)
+    directory = _cell(ctx)
 
     async def main() -> list[Any]:
         return list_tokens(directory)
@@ -144,7 +156,7 @@ def token_list(ctx: click.Context, as_json: bool) -> None:
 @click.pass_context
 def token_revoke(ctx: click.Context, name: str) -> None:
     """Revoke token NAME: refused from its next request on."""
-    directory = cell_dir(ctx)
+    directory = _cell(ctx)
 
     async def main() -> str:
         who = _manager(directory, "token.revoke", {"name": name})

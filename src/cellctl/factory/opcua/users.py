@@ -24,6 +24,7 @@ file that others may read is refused, as an SSH key would be.
 from __future__ import annotations
 
 import base64
+import contextlib
 import contextvars
 import dataclasses
 import hashlib
@@ -42,6 +43,7 @@ from asyncua.ua.object_ids import ObjectIds
 
 from cellctl.clock import current_clock
 from cellctl.errors import UsageError
+from cellctl.files import reason
 from cellctl.service.token import ROLES
 
 #: A user's role when the file names none (such users could call every method before roles).
@@ -158,12 +160,17 @@ def add_user(path: Path, name: str, password: str, role: str | None = None) -> t
         f'\n[users.{n}]\npassword = "{stored}"\nrole = "{r}"\n' for n, (stored, r) in users.items()
     )
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w", encoding="utf-8") as f:
-        f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)  # a reader sees the old file or the new one, never half of it
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)  # a reader sees the old file or the new one, never half of it
+    except OSError as e:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise UsageError(f"{path}: cannot write the OPC UA users: {reason(e)}") from None
     return new, kept
 
 

@@ -19,7 +19,7 @@ from rich.progress import (
 from rich.table import Table
 
 from cellctl.emulators.serve import parse_fault
-from cellctl.errors import UsageError
+from cellctl.errors import CellctlError, UsageError
 from cellctl.files import write_output
 from cellctl.link import ROBOT_LINE
 from cellctl.ui.calls import LazyBar, machine_call, read_program
@@ -90,10 +90,11 @@ def _download_fields(data: dict[str, Any], elapsed: float) -> dict[str, Any]:
 @click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
 @click.pass_context
 def download(ctx: click.Context, partition: int, file: Path) -> None:
-    """Download a compiled program file (.rec) into PARTITION 1-5."""
+    """Download a compiled program file (.rec) into PARTITION 1-5; an AML source (.aml) is
+    compiled on the way, as the console does."""
     if not 1 <= partition <= 5:
         raise click.BadParameter("partition must be 1 to 5 (partition error)")
-    program = read_program(file)
+    program = _as_sent(file, partition, read_program(file))
     columns = (
         TextColumn("[bold]{task.description}"),
         BarColumn(),
@@ -108,6 +109,52 @@ def download(ctx: click.Context, partition: int, file: Path) -> None:
             ctx, "robot", "download", {"partition": partition, **program}, bar.update
         )
     _print(result)
+
+
+def _application(stem: str) -> str:
+    """The application name a program is compiled with by default: its file's stem, in
+    capitals, without '-' and '_', at most 8 characters."""
+    return stem.upper().replace("-", "").replace("_", "")[:8]
+
+
+def _as_sent(file: Path, partition: int, program: dict[str, str]) -> dict[str, str]:
+    """The program ``download`` sends: a .aml source compiled on the way (the console's
+    picker does so too: the same file is taken the same way everywhere); a file that is no
+    record file but AML source refused with what to do (compile it, or name it .aml)."""
+    from cellctl.kinds.ibm7545.aml import compile_source
+    from cellctl.kinds.ibm7545.records import ProgramFile
+
+    text = program["text"]
+    if file.suffix.lower() == ".aml":
+        compiled = compile_source(text, _application(file.stem), partition, source=str(file))
+        click.echo(
+            f"{file}: AML source, compiled on the way ({len(compiled.body)} instructions, name "
+            f"{_application(file.stem)}); `cellctl robot compile {file}` keeps the .rec",
+            err=True,
+        )
+        return {"program": file.stem + ".rec", "text": compiled.to_text()}
+    try:
+        ProgramFile.parse(text, source=str(file))
+    except UsageError as e:
+        if "not a record" not in str(e) or not _is_aml(text, str(file)):
+            return program  # refused where every download is checked, in its words
+        raise UsageError(
+            f"{e}: {file} looks like AML source: compile it first (cellctl robot compile "
+            f"{file} -o {file.with_suffix('.rec')}), or name it .aml and download compiles it "
+            "on the way"
+        ) from None
+    return program
+
+
+def _is_aml(text: str, source: str) -> bool:
+    """Whether ``text`` compiles as AML/E source."""
+    from cellctl.kinds.ibm7545.aml import compile_program
+
+    try:
+        compile_program(text, source)
+    except CellctlError:
+        return False
+    return True
 
 
 @robot.command()
@@ -220,7 +267,7 @@ def compile(source: Path, output: Path | None, partition: int, name: str | None)
 
     def main() -> None:
         text = read_program(source)["text"]
-        app = (name or source.stem).upper().replace("-", "").replace("_", "")[:8]
+        app = _application(name or source.stem)
         program = compile_source(text, app, partition, source=str(source))
         target = output or source.with_suffix(".rec")
         try:

@@ -486,7 +486,7 @@ class Ibm7545Robot(RobotTransactions):
                 e.code,
                 e.message,
                 detail=f"{self.name}: a real IBM 7545 takes its inputs from its wiring, not "
-                "from the host: drive the PLC output wired to it (`cellctl plc write COIL on`)",
+                "from the host: drive the PLC output wired to it (`cellctl plc set NAME 1`)",
             ) from e
 
     async def reject_status(self) -> tuple[int, str]:

@@ -79,6 +79,11 @@ def cell_machines(directory: Path) -> list[ConsoleMachine]:
     for name, entry in entries.items():
         family = family_of_kind(str(entry.get("kind", ""))) if isinstance(entry, dict) else None
         if family is None:
+            # A kind not installed (a typo): refused as `cellctl cell check` says it, never a
+            # menu without that machine.
+            from cellctl.cell.config import refuse_machine
+
+            refuse_machine(directory, name)
             continue
         setup = entry.get("setup")
         found.append(

@@ -92,6 +92,18 @@ def test_a_token_is_never_made_with_its_cell_directory(tmp_path: Path) -> None:
     assert not (tmp_path / "nodir").exists()
 
 
+def test_run_in_a_directory_that_is_no_cell_makes_nothing_there(tmp_path: Path) -> None:
+    """The defect: `cellctl --cell empty run` made `empty/state/` (its lock) before it
+    refused the missing cell.toml."""
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    said = refused(cellctl("--cell", str(empty), "run", "--no-live"))
+    assert (
+        said == f"error: {empty}/cell.toml: no such file (create it, or run 'cellctl emulate cell')"
+    )
+    assert not any(empty.iterdir())
+
+
 def test_tokens_of_a_cell_and_of_a_directory_a_server_ran_in_are_kept(tmp_path: Path) -> None:
     cell = copy_cell(tmp_path)
     assert cellctl("--cell", str(cell), "token", "add", "ann", "--role", "viewer").exit_code == 0

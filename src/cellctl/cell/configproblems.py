@@ -37,6 +37,12 @@ def _load_toml(directory: Path) -> tuple[dict[str, Any], str]:
         raise UsageError(f"{path}: not valid TOML: {e}") from None
 
 
+def require_cell_file(directory: Path) -> None:
+    """Refuse (UsageError, in :func:`~cellctl.cell.config.load_cell`'s words) a directory
+    with no cell.toml that reads as TOML: before anything is made there."""
+    _load_toml(directory)
+
+
 class _Problems:
     """Problems found so far, each with its TOML path and, where found, its line."""
 

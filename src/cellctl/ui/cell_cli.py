@@ -76,8 +76,10 @@ async def run_controller(
     stop: asyncio.Event | None = None,
 ) -> CellController:
     """Connect and run the controller of ``directory`` until stopped (or idle)."""
+    from cellctl.cell.configproblems import require_cell_file
     from cellctl.cell.owner import acquire_controller_lock
 
+    require_cell_file(directory)  # no cell here: refused before the lock makes state/
     # First: a refused controller reads and writes nothing. Held until every link is closed.
     with acquire_controller_lock(directory):
         return await _run_owned(

@@ -334,7 +334,7 @@ def _contributed(kind_name: str) -> tuple[tuple[str, click.Command], ...]:
 _CELL_KEY = "cellctl.cell"
 
 #: Top-level commands that do not take a cell (the factory has its own ``--dir``).
-NO_CELL_COMMANDS = frozenset({"factory", "kinds"})
+NO_CELL_COMMANDS = frozenset({"examples", "factory", "kinds"})
 
 
 def cell_dir(ctx: click.Context) -> Path:

@@ -167,6 +167,9 @@ async def test_send_by_hand_goes_through_the_running_server(served: Shop) -> Non
     served.controls["mill1"].read()  # the operator presses READ
     code, output = await finished(proc)
     assert code == 0, output
+    # What the operator does for a read-in, in the words `dnc status` and the log use.
+    prompt = "mill1: read-in of O1234: waiting for read: press READ on the control, in EDIT mode"
+    assert prompt in output and "CYCLE START" not in output, output
     assert "O1234.nc: read in, " in output
     assert served.controls["mill1"].memory[1234] == BRACKET
     started_then_ended(ShopStore(served.root).log_lines("mill1"), "O1234.nc", drip=False)
@@ -194,6 +197,12 @@ async def test_drip_a_file_and_receive_by_hand(served: Shop, tmp_path: Path) -> 
         seen = f"control: {control.mode} {control.activity}, alarms {control.alarms}"
         raise AssertionError(f"{e}\n{seen}, chars read {control.chars_read}") from None
     assert code == 0, output
+    # A drip-feed is started by CYCLE START in RMT: READ in EDIT would store it instead.
+    prompt = (
+        "mill2: drip-feed of surface.nc: waiting for read: press CYCLE START on the control, "
+        "in RMT (DNC) mode"
+    )
+    assert prompt in " ".join(output.split()) and "press READ" not in output, output
     assert "surface.nc: drip-fed" in output
     assert control.runs[-1].done and control.runs[-1].blocks == 6
     # receive: the operator punches the program back

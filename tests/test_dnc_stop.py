@@ -63,7 +63,8 @@ async def test_ctrl_c_cancels_a_waiting_send_and_a_second_send_is_refused(served
         code, said = await finished(await cellctl("dnc", command, "mill1", "O1234", "--dir", root))
         assert code == 6, said
         assert "mill1 is busy: reading O1234.nc" in said and "cellctl dnc stop mill1" in said
-        assert "start the read on the control" not in said  # refused before any prompt
+        what = "drip-feed" if command == "drip" else "read-in"
+        assert f"mill1: {what} of O1234" not in said  # refused before any prompt
     first.send_signal(signal.SIGINT)  # the user's Ctrl-C
     code, said = await finished(first)
     assert code == 130, said
@@ -268,7 +269,7 @@ async def test_refusals_come_before_any_prompt(
             await cellctl("dnc", "send", "other", "O1234", "--dir", str(other))
         )
         assert code == 6, said
-        assert "start the read on the control" not in said
+        assert "other: read-in of O1234" not in said  # refused before the prompt
         again = await finished(await cellctl("dnc", "serve", "--dir", root))
         assert "the shop in" in again[1] and "the cell in" not in again[1], again
     finally:

@@ -306,3 +306,31 @@ def test_a_machine_out_of_service_at_the_start_stays_out_past_a_window(tmp_path:
         assert [s for s in journal.steps() if s.machine == "cnc2"] == []
         assert "cnc2" in journal.machines_out_of_service()
     assert run.finished["A"] is None
+
+
+@pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
+def test_a_dr_off_window_on_the_iso_cnc_mill_ends_with_the_operators_reset(
+    tmp_path: Path,
+) -> None:
+    """`vf2:dr-off` over half an hour from the middle of the VF-2's first cut (the
+    integrator's case): the drip-feed fails on alarm 086 and the mill is not ready while DR
+    is off; at the window's end the control still shows its alarm (a real one keeps it)
+    until the plan's operator resets it at the control, which its host hears: the VF-2 cuts
+    again at once, nothing is taken out of service after the window, and its time down is
+    the window's, not the rest of the shift."""
+    out = tmp_path / "out"
+    start = "2026-11-25T13:59:30"  # the VF-2's first cut runs across 14:00
+    args = ["--dir", str(TENDING), "--add", "bracket:2", "--start", start, "--shift", "2h"]
+    plan(*args, "--fault", "vf2:dr-off@14:00-14:30", "--out", str(out))
+    [report] = json.loads((out / "plan.json").read_text())["plans"]
+    opens, closes = T0, T0 + 30 * 60
+    vf2 = [s for s in report["steps"] if s["machine"] == "vf2"]
+    assert vf2[0]["state"] == "failed" and vf2[0]["started"] < opens < vf2[0]["ended"], vf2
+    assert not any(opens < s["started"] < closes for s in vf2), vf2
+    after = [s for s in vf2 if s["started"] >= closes]
+    assert after and all(s["state"] == "finished" for s in after), after
+    alarms = report["alarms"]
+    assert "DR OFF (code 86)" in alarms[0]["text"] and alarms[0]["machine"] == "vf2", alarms
+    assert all(a["raised"] < closes for a in alarms), alarms  # none after the window
+    assert closes - opens <= report["down_s"]["vf2"] <= closes - opens + 120, report["down_s"]
+    assert report["all_finished"], report["orders"]

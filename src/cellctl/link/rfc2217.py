@@ -8,7 +8,9 @@ option codes come from pyserial's ``serial.rfc2217``.
 Open: Telnet BINARY, SGA and COM-PORT-OPTION are negotiated, then baud, data size, parity,
 stop size and flow control are set and each answer awaited (a server that does not answer
 is not an RFC 2217 server: LinkError). The modem state (CTS) arrives in NOTIFY-MODEMSTATE
-messages, pushed by the server on change and polled by :meth:`Rfc2217Link.cts`.
+messages, pushed by the server on change and polled by :meth:`Rfc2217Link.cts`. Bytes
+that came during the negotiation are not read (they may be an earlier session's): they are
+in ``opened_with``, for a driver that can tell.
 """
 
 from __future__ import annotations
@@ -68,6 +70,8 @@ class Rfc2217Link(TcpLink):
         """Last modem state the server reported (MODEMSTATE_MASK_* bits), None before any."""
         self._modem_event = asyncio.Event()
         self.server_settings: dict[str, int] = {}
+        self.opened_with = b""
+        """What the device sent while the link was being opened (not in the read buffer)."""
 
     async def _negotiate(self, timeout: float) -> None:
         s = self.settings
@@ -96,8 +100,12 @@ class Rfc2217Link(TcpLink):
                     f"{self.url} does not answer as an RFC 2217 server "
                     f"(no answer for {', '.join(missing)}); for a raw TCP server use socket://"
                 ) from e
-        # Bytes that arrived during negotiation are leftovers of an earlier session.
-        self.reset_input()
+        # Bytes that arrived during negotiation may be leftovers of an earlier session (a
+        # server buffers what the device sent while nobody listened): out of the read
+        # buffer, so no driver takes them for an answer to what it asks next. Kept aside for
+        # a driver whose protocol can tell what in them still holds (a control's alarm
+        # report as the link opens): the link cannot.
+        self.opened_with = self.reset_input()
 
     def _answered_names(self) -> set[str]:
         return {_SETTING_ANSWERS[c] for c in self._answered}

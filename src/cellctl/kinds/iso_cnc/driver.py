@@ -71,7 +71,7 @@ from cellctl.kinds.iso_cnc.buffer import BufferModel, modelled_blocks
 from cellctl.kinds.iso_cnc.options import ISO_LINE, IsoCncOptions, off_loop, prepare, read_program
 from cellctl.kinds.iso_cnc.sender import TapeSender
 from cellctl.kinds.iso_cnc.status import IsoCncState, IsoCncStatus
-from cellctl.kinds.iso_cnc.transfer import Progress, TransferProgress, TransferReport
+from cellctl.kinds.iso_cnc.transfer import Progress, TapeEnd, TransferProgress, TransferReport
 from cellctl.link import LineSettings, Link, TrafficLog
 
 
@@ -120,6 +120,10 @@ class IsoCncDriver(TapeSender):
         self._end_asked = False  # end_tape(): cut the tape at the next block's end
         self._cut = False  # this transfer's tape was cut short
         self._lock = asyncio.Lock()
+        #: Where the last read's tape stopped going out when it failed part-way (None: it
+        #: did not, or nothing went out): what an operator needs before going on.
+        self.ended_at: TapeEnd | None = None
+        self._opened_with(getattr(link, "opened_with", b""))
 
     @classmethod
     async def connect(
@@ -166,6 +170,40 @@ class IsoCncDriver(TapeSender):
         self._set(IsoCncState.ALARM)
         meaning = tape.ALARM_MEANINGS.get(code, "the control stopped the transfer")
         raise ControlAlarm(code, words, detail=f"{meaning} (raw: {raw!r})")
+
+    def _opened_with(self, data: bytes) -> None:
+        """What the control said while the link opened (a device server's link keeps it
+        out of the read buffer): an alarm it reported then is the host's from the start, a
+        reset after it clears it; its flow control belonged to a read that is over."""
+        said, code, rest = tape.alarm_state(data)
+        self._inbuf += rest  # a report cut in two: its rest is still to come
+        if said and code is not None:
+            self.alarm = code
+            self._set(IsoCncState.ALARM)
+        elif said:
+            self._control_reset()
+
+    def _control_reset(self) -> None:
+        # Only an alarm is undone: a read under way is the read's own to end.
+        if self.state == IsoCncState.ALARM:
+            self.alarm = None
+            self._progress = IsoCncStatus()
+            self._set(IsoCncState.IDLE)
+
+    def _take_reports(self) -> None:
+        """Between transfers: what the control said since (an alarm report, the SYN of a
+        reset, a DC1 of READ pressed again), taken as a read would take it. Left alone
+        while a transfer runs (it reads its own) or a punch is coming (``receive`` wants
+        its DC2 and tape)."""
+        if self._lock.locked() or tape.DC2 in self.link.pending():
+            return
+        data = self.link.reset_input()
+        while data or self._inbuf:
+            try:
+                self._handle(data)
+                return
+            except ControlAlarm:
+                data = b""  # the host holds it now; what came after it is taken too
 
     async def _wait_dc1(self, timeout: float, what: str) -> None:
         clock = self.clock
@@ -249,6 +287,7 @@ class IsoCncDriver(TapeSender):
             self._set(state)
             self._progress = IsoCncStatus(state, 0, len(framed))
             self._sent, self._end_asked = 0, False  # end_tape() says "waiting" until DC1
+            self.ended_at = None
             try:
                 if progress is not None:
                     progress(TransferProgress(0, len(framed), 0.0, 0, 0.0, math.inf, "waiting"))
@@ -283,6 +322,8 @@ class IsoCncDriver(TapeSender):
                 self._progress = IsoCncStatus()
                 return sent
             except BaseException:
+                if self._sent:
+                    self.ended_at = TapeEnd.of(framed, self._sent)
                 self._stopped = True  # what the control does next is not known: wait for DC1
                 if self.state != IsoCncState.ALARM:
                     self._set(IsoCncState.IDLE)
@@ -389,7 +430,9 @@ class IsoCncDriver(TapeSender):
         return self._progress
 
     async def status(self) -> IsoCncStatus:
-        """The host's view: a control on RS-232 answers no status request."""
+        """The host's view: a control on RS-232 answers no status request, but one that
+        reports its alarms says each, and its reset (SYN), as they happen: taken first."""
+        self._take_reports()
         return self.host_status()
 
     async def setup(self, program: Path, *, force: bool) -> None:

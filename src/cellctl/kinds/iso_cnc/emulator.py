@@ -19,8 +19,11 @@ data a random 0 to MS before it crosses (in order), as a device server's packet 
 
 An alarm stops the transfer and is reported the way a remote-buffer interface does: NAK,
 then the alarm number (three digits) and LF (``\\x15087\\n``); the control stays in ALARM until
-``reset()``. The alarms are in :data:`ALARMS`. Machine times (motion, the adapter's delay) are
-divided by ``time_scale``.
+``reset()`` (RESET on its panel), which the interface says with SYN. A fault switched off
+leaves an alarm as it was, as on the real control: the operator's RESET
+(:meth:`~IsoCncEmulator.operator_after`, :meth:`~IsoCncEmulator.operator_clear`) clears it.
+The alarms are in :data:`ALARMS`. Machine times (motion, the adapter's delay) are divided by
+``time_scale``.
 """
 
 from __future__ import annotations
@@ -48,7 +51,7 @@ from cellctl.kinds.iso_cnc.panel import (
     Mode,
     Stall,
 )
-from cellctl.kinds.iso_cnc.tape import ALARMS, DC1, DC2, DC3, DC4, alarm_report
+from cellctl.kinds.iso_cnc.tape import ALARMS, DC1, DC2, DC3, DC4, SYN, alarm_report
 from cellctl.tasks import cancel_and_wait
 
 #: Its panel and records (:mod:`cellctl.kinds.iso_cnc.panel`) are imported from here too.
@@ -187,6 +190,42 @@ class IsoCncEmulator(ControlExecution):
         elif name == "tolerance-2":
             self._tolerance = self.options.tolerance
 
+    async def operator_after(self, fault: str) -> None:
+        """The operator at the control once fault ``fault`` went: RESET for the alarm it
+        left (its cause, a lost DR or a noisy line, is gone now; the control keeps the alarm
+        until RESET all the same); a control that sent no DC1 has its READ or CYCLE START
+        pressed again (it asks for the tape now)."""
+        if self.activity == Activity.ALARM:
+            self.reset()
+        elif (
+            fault == "never-dc1"
+            and self.activity == Activity.READING
+            and not self._program_came
+            and not self._stopped
+        ):
+            self._signal(DC1, rts=True)
+
+    async def operator_clear(self) -> None:
+        """RESET at the control, once its alarm was looked into: the alarm cleared (SYN to
+        the host), the reader ready again. An alarm whose cause is still there (DR still
+        off) comes back as the next read begins. Nothing when no alarm shows."""
+        if self.activity == Activity.ALARM:
+            self.reset()
+
+    @property
+    def alarmed(self) -> bool:
+        """The control shows an alarm: only RESET clears it."""
+        return self.activity == Activity.ALARM
+
+    @property
+    def display(self) -> str:
+        """What its screen shows: ``ALARM 086 DR OFF``, else its mode and what it does
+        (``RMT reading``)."""
+        if self.activity == Activity.ALARM and self.alarms:
+            alarm = self.alarms[-1]
+            return f"ALARM {alarm.code:03d} {alarm.text}"
+        return f"{self.mode} {self.activity}"
+
     # -- the panel -----------------------------------------------------------------------------
 
     def start(self) -> None:
@@ -207,11 +246,16 @@ class IsoCncEmulator(ControlExecution):
             self._auto()
 
     def reset(self) -> None:
-        """RESET: clears an alarm and stops whatever runs."""
+        """RESET: clears an alarm and stops whatever runs; the remote-buffer interface says
+        so with SYN (spec, "Alarms the host must understand"), so a host holding the alarm
+        knows it is gone."""
         self._end_transfer()
         self.activity = Activity.IDLE
-        if self._line is not None:
-            self._line.set_rts(True)
+        line = self._line
+        if line is not None:
+            line.set_rts(True)
+            if not line.closed:
+                self._spawn(line.write(SYN))
         self._auto()
 
     def read(self) -> None:

@@ -53,6 +53,10 @@ class TapeSender(LinkDriver):
         """Raise the control's alarm ``code`` (its report's bytes ``raw``); the driver's."""
         raise NotImplementedError
 
+    def _control_reset(self) -> None:
+        """The control was reset (SYN): an alarm the host holds is gone; the driver's."""
+        raise NotImplementedError
+
     # -- what the control says ---------------------------------------------------------------
 
     @property
@@ -65,7 +69,8 @@ class TapeSender(LinkDriver):
         return o.low_water if o.low_water is not None else o.buffer_size // 2
 
     def _handle(self, data: bytes) -> None:
-        """Bytes from the control while the host sends: DC1, DC3 and alarm reports."""
+        """Bytes from the control while the host sends: DC1, DC3, alarm reports and the
+        SYN of a reset."""
         self._inbuf += data
         now = self.clock.monotonic()
         while self._inbuf:
@@ -79,7 +84,9 @@ class TapeSender(LinkDriver):
                 del self._inbuf[:used]
                 self._raise_alarm(code, raw)
             del self._inbuf[:1]
-            if byte == tape.Code.DC3:
+            if byte == tape.SYN[0]:
+                self._control_reset()
+            elif byte == tape.Code.DC3:
                 self._stopped = True
                 self._dc3_seen += 1
                 self._last_dc3_at = now

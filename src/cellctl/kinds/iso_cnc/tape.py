@@ -42,6 +42,7 @@ DC2 = bytes([Code.DC2])
 DC3 = bytes([Code.DC3])
 DC4 = bytes([Code.DC4])
 NAK = b"\x15"  # a remote-buffer interface's "the control alarmed" (then NNN LF)
+SYN = b"\x16"  # the same interface's "the control was reset" (its alarm cleared)
 NUL = 0x00
 LF = 0x0A  # EOB in ISO code
 CR = 0x0D  # ignored
@@ -76,6 +77,28 @@ def parse_alarm(data: bytes) -> tuple[int, int] | None:
         return None if len(data) < 5 else (0, 1)
     digits = data[1:end]
     return (int(digits), end + 1) if digits.isdigit() and len(digits) <= 3 else (0, 1)
+
+
+def alarm_state(data: bytes) -> tuple[bool, int | None, bytes]:
+    """What a control's own words in ``data`` (its alarm reports, the SYN of a reset) say of
+    its alarm, the last of them winning: (whether they said anything, the alarm it is in or
+    None after a reset, an unfinished report at the end). Other bytes are skipped."""
+    said, code, i = False, None, 0
+    while i < len(data):
+        byte = data[i]
+        if byte == NAK[0]:
+            found = parse_alarm(data[i:])
+            if found is None:
+                return said, code, data[i:]
+            number, used = found
+            if number:
+                said, code = True, number
+            i += used
+            continue
+        if byte == SYN[0]:
+            said, code = True, None
+        i += 1
+    return said, code, b""
 
 
 #: A program's first block: O (or ``:``) and its number, then maybe a comment as its title.

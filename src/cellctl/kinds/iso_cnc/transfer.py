@@ -39,3 +39,56 @@ class TransferReport:
 
 
 Progress = Callable[[TransferProgress], None]
+
+
+@dataclass(frozen=True)
+class TapeEnd:
+    """Where a tape that failed part-way stopped going out (the driver's ``ended_at``):
+    ``TapeEnd.of(framed, sent).words(drip=True)`` says it (``the tape ended at 17808 of
+    124351 characters, after block 1612 (X161.1 Y0.1): ...``)."""
+
+    sent: int
+    total: int
+    block: int
+    """Blocks of the program sent whole (its O block is the first); 0 before the first."""
+    text: str
+    """The last of them, as it went out (shortened)."""
+    all_out: bool
+    """The program's last block and its end were out: only the end of the read was missing."""
+
+    @classmethod
+    def of(cls, framed: bytes, sent: int) -> TapeEnd:
+        """Where ``framed`` (a tape as the driver frames it) stood with ``sent`` bytes out."""
+        first = framed.find(b"%")
+        # The program begins after the opening % and its label (up to LF), or after the leader.
+        body = framed.find(b"\n", first) + 1 if first >= 0 else 0
+        closing = framed.rfind(b"%")
+        end = closing if closing > first >= 0 else len(framed.rstrip(b"\x00"))
+        sent = min(sent, len(framed))
+        block = framed.count(b"\n", body, sent) if sent > body else 0
+        text = ""
+        if block:
+            eol = framed.rfind(b"\n", body, sent)
+            start = framed.rfind(b"\n", body, eol) + 1 or body
+            raw = framed[start:eol].replace(b"\x00", b"").replace(b"\r", b"")
+            text = raw.decode("latin-1").strip()
+            text = text if len(text) <= 40 else text[:37] + "..."
+        return cls(sent, len(framed), block, text, sent > end)
+
+    def words(self, *, drip: bool) -> str:
+        """Where it ended and what the operator needs to know before going on, in words."""
+        if self.all_out:
+            said = f"all {self.total} characters of its tape were out"
+            return said + (": the control may not have run them all" if drip else "")
+        said = f"the tape ended at {self.sent} of {self.total} characters"
+        said += f", after block {self.block} ({self.text})" if self.block else ", before a block"
+        if not drip:
+            return said + ": the control holds at most that first part of it: read it in again"
+        # Why a restart is the operator's: the blocks after it lean on the modal state the
+        # blocks before it set (spec, "Drip-feed"), which a tape begun there would not have.
+        return (
+            f"{said}: the control ran at most that far (its display shows the block it "
+            "stopped at); to go on from a block, set the program's modal state at the "
+            "control first (G-codes, work offset, tool, spindle, feed): a drip-feed sends "
+            "the program from its top"
+        )

@@ -183,13 +183,15 @@ async def _stopping(server: DncServer) -> None:
 #: The phase a transfer's bar shows once it stopped before its end (``dnc stop``, Ctrl-C,
 #: the server stopping): never the driver's ``done`` of the tape it cut short.
 STOPPED = "stopped"
+#: The phase it shows once it failed (the link, the control): the error follows on its line.
+FAILED = "failed"
 
 
 class _TimeLeftColumn(TimeRemainingColumn):
     """The time left, while there is any: none once the transfer stopped."""
 
     def render(self, task: Task) -> Text:
-        if task.fields.get("phase") == STOPPED:
+        if task.fields.get("phase") in (STOPPED, FAILED):
             return Text("")
         return super().render(task)
 
@@ -224,6 +226,7 @@ def _transfer(
 
     from cellctl.errors import UsageError
     from cellctl.kinds.iso_cnc.dnc.config import machine
+    from cellctl.kinds.iso_cnc.dnc.status import START_READ
     from cellctl.kinds.iso_cnc.dnc.store import ShopStore, check_program_number, read_program_file
     from cellctl.kinds.iso_cnc.driver import prepare
     from cellctl.kinds.menu import MAX_PROGRAM_CHARS
@@ -253,10 +256,9 @@ def _transfer(
     check_program_number(program, data)
     prepare(data, options, Path(params["program"]).name, drip)
     what = "drip-feed" if drip else "read-in"
-    prompt = (
-        f"{name}: {what} of {params['program']}: start the read on the control "
-        "(READ in EDIT, or CYCLE START in RMT/DNC)"
-    )
+    # In the words `dnc status` and the log use: READ in EDIT would store a drip-feed in
+    # memory instead of running it.
+    prompt = f"{name}: {what} of {params['program']}: waiting for read: {START_READ[drip]}"
     stopped: list[str] = []  # the `stopped` field of a transfer's last progress
     shown: list[dict[str, Any]] = []  # the last progress the bar shows
     with LazyBar(_bar_columns(), Path(params["program"]).name, _fields) as bar:
@@ -282,6 +284,8 @@ def _transfer(
             except CellctlError as e:
                 if stopped:  # stopped before its end (`dnc stop`, the server stopping)
                     return {"stopped": str(e)}
+                if shown:  # said once the bar has ended its line, never glued to it
+                    return {"failed": e}
                 raise
 
         result = run(transfer)
@@ -290,6 +294,10 @@ def _transfer(
             # Ended early with no last progress of its own (its answer timed out): the bar
             # still says stopped, not the phase it was last seen in.
             bar.update({**shown[0], "stopped": ""})
+        if isinstance(result, dict) and "failed" in result:
+            bar.update({**shown[0], "phase": FAILED})
+    if isinstance(result, dict) and "failed" in result:
+        fail(result["failed"])
     _ended_early(result)
     console.print(result["message"], markup=False)
 

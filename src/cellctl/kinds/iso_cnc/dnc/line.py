@@ -38,6 +38,7 @@ from cellctl.kinds.iso_cnc.dnc.status import (
     progress_dict,
     started_words,
     state_words,
+    with_words,
 )
 from cellctl.kinds.iso_cnc.dnc.store import (
     ShopStore,
@@ -294,9 +295,14 @@ class DncLine:
             self._set(activity=Activity.IDLE, last=lapse, error="")
             raise TransferStopped(lapse) from None
         except CellctlError as e:
-            self._note(f"{program}: {what} FAILED: {e}")
-            self._set(activity=Activity.IDLE, error=str(e), failures=self.status.failures + 1)
-            raise
+            end = self.driver.ended_at
+            # Where the tape ended, as a stop says it: an integrator goes on from there.
+            failed = e if end is None else with_words(e, end.words(drip=drip))
+            self._note(f"{program}: {what} FAILED: {failed}")
+            self._set(activity=Activity.IDLE, error=str(failed), failures=self.status.failures + 1)
+            if failed is e:
+                raise
+            raise failed from e
         finally:
             self.transfer, self.ticket = None, None
         result = progress_dict(report)

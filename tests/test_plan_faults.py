@@ -334,3 +334,24 @@ def test_a_dr_off_window_on_the_iso_cnc_mill_ends_with_the_operators_reset(
     assert all(a["raised"] < closes for a in alarms), alarms  # none after the window
     assert closes - opens <= report["down_s"]["vf2"] <= closes - opens + 120, report["down_s"]
     assert report["all_finished"], report["orders"]
+
+
+def test_a_dr_off_window_while_the_iso_cnc_mill_idles_is_its_alarm_and_down_time(
+    tmp_path: Path,
+) -> None:
+    """The window opens before the VF-2's first part reaches it (the integrator's own
+    command): no cut fails, yet the control shows its alarm the whole window. The cell's
+    look at the idle mill finds it so: one alarm in the control's words, the VF-2 down for
+    the window (not 0, not the rest of the shift), and its cuts after the reset."""
+    out = tmp_path / "out"
+    args = ["--dir", str(TENDING), "--add", "bracket:2", "--start", START, "--shift", "2h"]
+    plan(*args, "--fault", "vf2:dr-off@14:00-14:30", "--out", str(out))
+    [report] = json.loads((out / "plan.json").read_text())["plans"]
+    opens, closes = T0, T0 + 30 * 60
+    vf2 = [s for s in report["steps"] if s["machine"] == "vf2"]
+    assert vf2 and all(s["started"] >= closes for s in vf2), vf2
+    assert all(s["state"] == "finished" for s in vf2), vf2
+    [alarm] = [a for a in report["alarms"] if a["machine"] == "vf2"]
+    assert "086" in alarm["text"] and opens <= alarm["raised"] < opens + 60, alarm
+    assert closes - opens - 60 <= report["down_s"]["vf2"] <= closes - opens + 120, report
+    assert report["all_finished"], report["orders"]

@@ -349,6 +349,15 @@ class Monitor:
             host = robot.host_status()
             view.show(host.text, host.condition)
 
+    def _idle_alarm(self, name: str, shown: str) -> None:
+        """Idle mill ``name`` found in an alarm of its own (``shown``: an ISO control's
+        "alarm 086 DR OFF"): the operator's to see to, and down time. One alarm per fault: none
+        if one of this mill's is active already (the step that met the fault raised it)."""
+        active = self.world.journal.active_alarms()
+        if any(a.machine == name and a.returned is None and a.code != "status" for a in active):
+            return
+        self.alarms.cause_alarm(Cause(name, "status", shown))
+
     async def _mill(self, m: MachineConfig) -> None:
         recovery = self.recovery
         view = self.world.machines[m.name]
@@ -369,6 +378,10 @@ class Monitor:
         else:  # what keeps it out of the plan, beside what it shows
             view.show(f"{status.shown}; {awaited}", Condition.ALARM)
         self.alarms.returned(m.name, "link")
+        if status.kind_condition is Condition.ALARM and not mill.running:
+            self._idle_alarm(m.name, status.shown)
+        else:
+            self.alarms.returned(m.name, "status")
         if status.ready:
             # Idle: a block an emergency stop could not halt has ended (its alarm says so).
             self.alarms.returned(m.name, "estop")

@@ -639,6 +639,15 @@ def test_dialog_answers_give_parameters_or_a_usage_error(
             fn.check(params)  # accepted as it will be sent
 
 
+def test_a_partition_out_of_range_is_refused_in_the_functions_own_result(tmp_path: Path) -> None:
+    """The source's results: DOWNLOAD's 2 is "partition error", GO's 2 "starting function
+    error" (as `cellctl robot go 6` says it); the console said "partition error" for both."""
+    robot = ConsoleMachine("robot", "robot", "ROBOT")
+    with pytest.raises(UsageError) as told:
+        check_params(robot, function("robot", "go"), {"partition": "6"}, tmp_path)
+    assert str(told.value).endswith("partition must be 1 to 5, not 6 (starting function error)")
+
+
 def test_a_dialog_tells_every_wrong_answer_at_once(tmp_path: Path) -> None:
     """A partition out of range is told with a missing file, not only once the file is found
     (the operator would fix one answer, press Enter, and only then hear of the other)."""

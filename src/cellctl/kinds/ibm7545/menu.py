@@ -19,15 +19,33 @@ from cellctl.kinds.menu import (
 )
 
 
+def _in_range(value: int, result: str) -> int:
+    """``value`` if it is a partition; else refused, naming the source's ``result``."""
+    if value not in PARTITIONS:
+        raise ValueError(f"partition must be 1 to 5, not {value} ({result})")
+    return value
+
+
 class PartitionParams(Params):
+    """A partition for DOWNLOAD (the source's result 2: "partition error")."""
+
     partition: int
 
     @field_validator("partition")
     @classmethod
     def _partition(cls, value: int) -> int:
-        if value not in PARTITIONS:
-            raise ValueError(f"partition must be 1 to 5, not {value} (partition error)")
-        return value
+        return _in_range(value, "partition error")
+
+
+class GoParams(Params):
+    """A partition for GO (the source's result 2: "starting function error")."""
+
+    partition: int
+
+    @field_validator("partition")
+    @classmethod
+    def _partition(cls, value: int) -> int:
+        return _in_range(value, "starting function error")
 
 
 class RobotDownloadParams(PartitionParams, ProgramParams):
@@ -161,7 +179,7 @@ MENU: tuple[MachineFunction, ...] = (
                     "Download a compiled program (.rec) into a partition.",
                     RobotDownloadParams, _robot_download, prepare=_parse_records),
     MachineFunction("robot", "go", "GO", 3, "Run the program in a partition.",
-                    PartitionParams, _robot_go),
+                    GoParams, _robot_go),
     MachineFunction("robot", "status", "STATUS", 4,
                     "Robot state, status bytes, partitions Full/Empty.", NoParams, _robot_status,
                     observes=True),

@@ -16,6 +16,7 @@ import socket
 import subprocess
 import sys
 from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
 from pathlib import Path
 
 import pytest
@@ -48,10 +49,12 @@ def unread_bytes_at(port: int) -> int:
     return total
 
 
-@pytest.mark.timeout(180)
-async def test_a_broken_link_is_told_in_cellctls_words_only(
+@asynccontextmanager
+async def cell_on_broker(
     tmp_path: Path, broker: MosquittoBroker
-) -> None:
+) -> AsyncIterator[tuple[Path, Path]]:
+    """An emulated cell whose mailbox is ``broker``, its `cellctl run` in a process of its
+    own logging to a file: the cell's directory and the log's path. Stopped with Ctrl-C."""
     with emulated_cell_process(tmp_path / "cell", "1000") as cell:
         (cell / "mqtt.toml").write_bytes(broker.credentials("cell1").read_bytes())
         os.chmod(cell / "mqtt.toml", 0o600)
@@ -67,30 +70,38 @@ async def test_a_broken_link_is_told_in_cellctls_words_only(
                 stderr=subprocess.STDOUT,
             )
         try:
-            connected = f"mailbox: {broker.url}/cellctl/cell1"
-            await until(lambda: connected in log_path.read_text(), "the cell on the broker")
-            process = broker._process  # frozen and killed from outside, as a hang would
-            assert process is not None
-            os.kill(process.pid, signal.SIGSTOP)
-            # An order from the cell's own operator: its reports go to the frozen broker.
-            subprocess.run(  # noqa: ASYNC221
-                [*CELLCTL, "--cell", str(cell), "submit", "wax-robot-base"],
-                check=True,
-                capture_output=True,
-                timeout=60,
-            )
-            await until(lambda: unread_bytes_at(broker.port) > 0, "a report the broker holds")
-            await broker.kill()  # the unread report: the kernel resets the cell's connection
-            await broker.start()  # same port
-            await until(
-                lambda: log_path.read_text().count(connected) >= 2, "the cell back on the broker"
-            )
+            yield cell, log_path
         finally:
             run.send_signal(signal.SIGINT)
             try:
                 run.wait(30)
             except subprocess.TimeoutExpired:
                 run.kill()
+
+
+@pytest.mark.timeout(180)
+async def test_a_broken_link_is_told_in_cellctls_words_only(
+    tmp_path: Path, broker: MosquittoBroker
+) -> None:
+    async with cell_on_broker(tmp_path, broker) as (cell, log_path):
+        connected = f"mailbox: {broker.url}/cellctl/cell1"
+        await until(lambda: connected in log_path.read_text(), "the cell on the broker")
+        process = broker._process  # frozen and killed from outside, as a hang would
+        assert process is not None
+        os.kill(process.pid, signal.SIGSTOP)
+        # An order from the cell's own operator: its reports go to the frozen broker.
+        subprocess.run(  # noqa: ASYNC221
+            [*CELLCTL, "--cell", str(cell), "submit", "wax-robot-base"],
+            check=True,
+            capture_output=True,
+            timeout=60,
+        )
+        await until(lambda: unread_bytes_at(broker.port) > 0, "a report the broker holds")
+        await broker.kill()  # the unread report: the kernel resets the cell's connection
+        await broker.start()  # same port
+        await until(
+            lambda: log_path.read_text().count(connected) >= 2, "the cell back on the broker"
+        )
     text = log_path.read_text()
     # cellctl said the drop in its own words ...
     assert f"mailbox: {broker.url}/cellctl/cell1: " in text and "(trying again)" in text, text
@@ -106,57 +117,37 @@ async def test_a_broker_that_stops_answering_for_a_while_is_told_in_words_only(
     cell's log says it lost the broker and is back, in cellctl's words; none of asyncio's
     "Future exception was never retrieved" tracebacks of the library's futures, none of the
     library's bare "[code:N] ..." words."""
-    with emulated_cell_process(tmp_path / "cell", "1000") as cell:
-        (cell / "mqtt.toml").write_bytes(broker.credentials("cell1").read_bytes())
-        os.chmod(cell / "mqtt.toml", 0o600)
-        with (cell / "cell.toml").open("a") as toml:
-            toml.write(
-                f'\n[mailbox]\nurl = "{broker.url}/cellctl/cell1"\ncredentials = "mqtt.toml"\n'
-            )
-        log_path = tmp_path / "run.log"
-        with log_path.open("wb") as log:
-            run = subprocess.Popen(  # noqa: ASYNC220
-                [sys.executable, "-m", "cellctl", "--cell", str(cell), "run", "--no-live"],
-                stdout=log,
-                stderr=subprocess.STDOUT,
-            )
+    async with cell_on_broker(tmp_path, broker) as (cell, log_path):
+        connected = f"mailbox: {broker.url}/cellctl/cell1"
+        await until(lambda: connected in log_path.read_text(), "the cell on the broker")
+        process = broker._process
+        assert process is not None
+        os.kill(process.pid, signal.SIGSTOP)
         try:
-            connected = f"mailbox: {broker.url}/cellctl/cell1"
-            await until(lambda: connected in log_path.read_text(), "the cell on the broker")
-            process = broker._process
-            assert process is not None
-            os.kill(process.pid, signal.SIGSTOP)
-            try:
-                subprocess.run(  # noqa: ASYNC221
-                    [*CELLCTL, "--cell", str(cell), "submit", "wax-robot-base"],
-                    check=True,
-                    capture_output=True,
-                    timeout=60,
-                )
-                # The cell gives up on the frozen broker, and tries again and again.
-                await until(
-                    lambda: "(trying again)" in log_path.read_text(),
-                    "the cell trying the frozen broker again",
-                )
-                # A while frozen: the cell tries it again a few times (0.2 s, 0.4 s ... apart,
-                # each attempt given 2 s), each attempt a connection the broker answers later.
-                await asyncio.sleep(12)
-            finally:
-                os.kill(process.pid, signal.SIGCONT)
-
-            def back() -> bool:
-                lines = log_path.read_text().splitlines()
-                return sum(line.endswith(f" {connected}") for line in lines) >= 2
-
-            await until(back, "the cell back on the broker")
-            # Its reports of the order made while the broker was frozen go out.
-            await until(lambda: unread_bytes_at(broker.port) == 0, "the broker reads them")
+            subprocess.run(  # noqa: ASYNC221
+                [*CELLCTL, "--cell", str(cell), "submit", "wax-robot-base"],
+                check=True,
+                capture_output=True,
+                timeout=60,
+            )
+            # The cell gives up on the frozen broker, and tries again and again.
+            await until(
+                lambda: "(trying again)" in log_path.read_text(),
+                "the cell trying the frozen broker again",
+            )
+            # A while frozen: the cell tries it again a few times (0.2 s, 0.4 s ... apart,
+            # each attempt given 2 s), each attempt a connection the broker answers later.
+            await asyncio.sleep(12)
         finally:
-            run.send_signal(signal.SIGINT)
-            try:
-                run.wait(30)
-            except subprocess.TimeoutExpired:
-                run.kill()
+            os.kill(process.pid, signal.SIGCONT)
+
+        def back() -> bool:
+            lines = log_path.read_text().splitlines()
+            return sum(line.endswith(f" {connected}") for line in lines) >= 2
+
+        await until(back, "the cell back on the broker")
+        # Its reports of the order made while the broker was frozen go out.
+        await until(lambda: unread_bytes_at(broker.port) == 0, "the broker reads them")
     text = log_path.read_text()
     assert f"the broker at 127.0.0.1:{broker.port} did not answer within" in text, text
     for raw in ("never retrieved", "Traceback", "[code:", "aiomqtt.exceptions"):

@@ -56,7 +56,7 @@ STATE = {
     "cell": "cell1",
     "time": 1.7e9,
     "paused": False,
-    "part_types": {"wax-robot-base": {"bound_s": 12.5}},
+    "part_types": {"wax-robot-base": {"bound_s": 12.5, "machines": ["robot"]}},
     "machines": {"robot": {"kind": "ibm7545", "state": "idle", "in_service": True}},
     "orders_open": 1,
     "parts_open": 2,
@@ -108,6 +108,10 @@ def test_valid_messages_go_through_both_ends_unchanged() -> None:
                 message
             )
     assert parse_status(b"online") == "online" and parse_status(b"offline") == "offline"
+    # An older cell's state says no machines a part type needs: read as none said.
+    older = {**STATE, "part_types": {"wax-robot-base": {"bound_s": 12.5}}}
+    parsed = PARSERS["state"](json.dumps(older).encode())
+    assert isinstance(parsed, StateMessage) and parsed.part_types["wax-robot-base"].machines == ()
 
 
 def test_a_mailbox_report_becomes_its_message(tmp_path: Any) -> None:

@@ -55,6 +55,8 @@ async def test_a_dropped_line_ends_the_bar_then_says_where_the_tape_ended(
     assert "modal state" in said and "G-codes" in said, said
     log = "\n".join(ShopStore(shop.root).log_lines("mill2"))
     assert "surface.nc: drip-fed FAILED: " in log and f"ended at {sent} of {total}" in log, log
+    # A one-shot command's machine: nothing tries its link again, and nothing says so.
+    assert "tried again" not in told + log, told + log
 
 
 def test_where_a_tape_ended_counts_the_programs_blocks() -> None:

@@ -109,6 +109,9 @@ class DncLine:
     stop_command: str = ""
     """The command that stops this machine's transfer, as a busy refusal suggests it
     (``cellctl dnc stop mill1 --dir /srv/shop5``: see ``ShopConfig.command``)."""
+    retries: bool = True
+    """False for a one-shot command's machine: a link lost is said without "tried again"
+    (the command ends with its transfer; nothing would try)."""
 
     def __post_init__(self) -> None:
         self.status = MachineStatus(self.config.name)
@@ -554,7 +557,8 @@ class DncLine:
             link.reset_input()  # noise on an idle line: nothing waits for it
 
     async def _failed(self, e: CellctlError, *, reopen: bool) -> None:
-        said = offline_words(self.name, e, REOPEN_S) if reopen else str(e)
+        retry_s = REOPEN_S if self.retries else None
+        said = offline_words(self.name, e, retry_s) if reopen else str(e)
         if said != self.status.error:  # a link that stays dead is logged once, not every 5 s
             self._note(f"error: {said}")
             log.warning("%s", said)

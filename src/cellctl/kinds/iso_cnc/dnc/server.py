@@ -84,6 +84,7 @@ class DncServer:
         opened: list[DncLine] = []
         try:
             for line in self.lines.values():
+                line.retries = retry
                 self.store.machine(line.name)
                 try:
                     await line.open()

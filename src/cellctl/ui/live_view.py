@@ -23,6 +23,7 @@ from cellctl.cell.controller import CellController
 from cellctl.emulators.header import emulated_scale
 from cellctl.service.access import AttachedCell
 from cellctl.service.status import CellMode, CellStatus
+from cellctl.ui.alarm_marks import alarm_marks
 
 #: Orders and alarms shown at most (the rest of the height goes to the events).
 ORDER_ROWS = 12
@@ -123,12 +124,17 @@ class LiveView:
 
     def alarms(self, status: CellStatus) -> RenderableType:
         if not status.alarms:
-            return Text("active alarms: none", style="dim", justify="center")
-        table = Table(title="active alarms", expand=True)
-        for col in ("id", "machine", "priority", "alarm"):
+            return Text("open alarms: none", style="dim", justify="center")
+        table = Table(title="open alarms", expand=True)
+        for col in ("id", "machine", "priority", "state", "alarm"):
             table.add_column(col)
+        now = time.time()
         for a in status.alarms[-ALARM_ROWS:]:
-            table.add_row(str(a.id), a.machine, a.priority, a.text)
+            # RTN: its condition is gone, the alarm open until cleared (not a fault now).
+            state = alarm_marks(
+                acked=a.acked, returned=a.returned, shelved_until=a.shelved_until, now=now
+            )
+            table.add_row(str(a.id), a.machine, a.priority, state, a.text)
         return table
 
     def events(self, rows: int) -> Table:

@@ -16,6 +16,7 @@ from cellctl.clock import current_clock
 from cellctl.errors import MachineInUse, UsageError
 from cellctl.service.machines import load_cell_file
 from cellctl.service.operator import scrap_question
+from cellctl.ui.alarm_marks import alarm_marks
 from cellctl.ui.console.dialogs import Dialog, FormDialog, LivePickDialog, PickDialog
 from cellctl.ui.console.entry import Entry
 from cellctl.ui.console.whatif import PlanView, plan_params, plan_text, refusal_field, summary
@@ -324,12 +325,13 @@ class CellActions:
 def alarm_line(a: dict[str, Any], now: float) -> str:
     """An open alarm in one line: priority, machine, code, text, and UNACKED/acked,
     RTN (returned to normal), SHELVED."""
-    marks = ["UNACKED" if a.get("acked") is None else "acked"]
-    if a.get("returned") is not None:
-        marks.append("RTN")
-    if shelved(a, now):
-        marks.append("SHELVED")
-    return f"{a['machine']} {a['code']}: {a['text']} [{a.get('priority', '')} {' '.join(marks)}]"
+    marks = alarm_marks(
+        acked=a.get("acked"),
+        returned=a.get("returned"),
+        shelved_until=a.get("shelved_until"),
+        now=now,
+    )
+    return f"{a['machine']} {a['code']}: {a['text']} [{a.get('priority', '')} {marks}]"
 
 
 def shelved(a: dict[str, Any], now: float) -> bool:

@@ -471,7 +471,12 @@ class EmulatedCell:
             if isinstance(served, SelfServed):
                 options.update(served.options)
             if kind.emulated_options:
-                options.update(kind.emulated_options(scale))
+                emulated = kind.emulated_options(scale)
+                if scale == 1.0:
+                    # The machines' own time (a plan): the cell's options are the real cell's,
+                    # played as they are; the kind's fill only what the cell leaves unset.
+                    emulated = {k: v for k, v in emulated.items() if k not in options}
+                options.update(emulated)
             if options:
                 lines += ["", f"[machines.{name}.options]"]
                 lines += [f"{key} = {_toml(value)}" for key, value in options.items()]

@@ -69,3 +69,27 @@ def test_two_plug_ins_declaring_one_name_are_both_refused(tmp_path: Path) -> Non
     assert "neither is used" in stderr
     # The saw itself, declared once, is untouched.
     assert rows["kerf100"]["distribution"] == "cellctl-saw"
+
+
+def test_a_kind_whose_options_take_unknown_keys_is_broken_saying_why(tmp_path: Path) -> None:
+    """A mistyped option in a cell.toml must be refused by its name (docs/kinds.md): a
+    kind whose options model lets unknown keys through would drop it unsaid."""
+    module = "cellctl_lax"
+    info = tmp_path / f"{module}-0.1.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: cellctl-lax\nVersion: 0.1\n")
+    (tmp_path / f"{module}.py").write_text(
+        "import dataclasses\nfrom pydantic import BaseModel, ConfigDict\n"
+        "from cellctl_saw.kind import KERF100\n"
+        "class LaxOptions(BaseModel):\n"
+        "    model_config = ConfigDict(extra='ignore')\n"
+        "K = dataclasses.replace(KERF100, name='lax1', options=LaxOptions)\n"
+    )
+    (info / "entry_points.txt").write_text(f"[cellctl.machine_kinds]\nlax1 = {module}:K\n")
+    rows, stderr = kinds(tmp_path)
+    assert "family" not in rows["lax1"], rows["lax1"]
+    assert rows["lax1"]["broken"] == (
+        "ValueError: its options model LaxOptions must refuse unknown keys "
+        '(model_config = ConfigDict(extra="forbid"))'
+    ), rows["lax1"]
+    assert "lax1" in stderr

@@ -67,6 +67,12 @@ def _load(ep: EntryPoint) -> MachineKind:
     if obj.family not in FAMILIES:
         raise ValueError(f"family {obj.family!r} is not one of {', '.join(FAMILIES)}")
     obj.line_settings  # noqa: B018 - a bad default line is the plug-in's fault: found here
+    if obj.options.model_config.get("extra") != "forbid":
+        # Else a mistyped option in a cell.toml passes `cell check` and is dropped unsaid.
+        raise ValueError(
+            f"its options model {obj.options.__name__} must refuse unknown keys "
+            '(model_config = ConfigDict(extra="forbid"))'
+        )
     dist = ep.dist.name if ep.dist is not None else "?"
     if dist == BUILT_IN:
         return dataclasses.replace(obj, origin=Origin(dist, ep.module))

@@ -127,6 +127,9 @@ class MillSteps:
             await mill.run(route_step.program, progress=progress)
         except (CellctlError, OSError, asyncio.CancelledError) as e:
             cutting = cutting and not nothing_started(e, phases)
+            # A failed step's time was the machine's too (the shift report's counts it): the
+            # live figure does not drop as the step ends.
+            view.busy_s += self.world.clock.monotonic() - started
             view.step = ""
             view.progress = None
             stopped = isinstance(e, asyncio.CancelledError)

@@ -289,9 +289,9 @@ class RobotSteps:
                 )
             return
         finally:
+            view.busy_s += clock.monotonic() - started  # its time, whether it worked or not
             view.step = ""
             alarms.wake()
-        view.busy_s += clock.monotonic() - started
         alarms.succeeded(robot.name)
 
     async def transfer(self, t: Transfer) -> None:
@@ -362,6 +362,7 @@ class RobotSteps:
             with blame("plc", "PLC"):
                 await self.doors(places, False)
         except (CellctlError, OSError, asyncio.CancelledError) as e:
+            view.busy_s += self.world.clock.monotonic() - started  # a failed step's too
             view.step = ""
             stopped = isinstance(e, asyncio.CancelledError)
             # One alarm, the cause's: the PLC (its E-stop), the robot's link or status, or

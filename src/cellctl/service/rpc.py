@@ -70,6 +70,11 @@ def error_from_object(obj: Any) -> CellctlError:
     found = obj.get("data")
     data: dict[str, Any] = found if isinstance(found, dict) else {}
     kind = getattr(errors_module, str(data.get("type", "")), None)
+    code = obj.get("code")
+    if not (isinstance(kind, type) and issubclass(kind, CellctlError)) and isinstance(code, int):
+        # A kind's own error (a mill's "refused", say): its family by the code's exit code.
+        by_exit = {exit: k for k, exit in errors_module.EXIT_CODES.items()}
+        kind = by_exit.get(APP_ERROR_BASE - code)
     if kind is errors_module.DeviceError:
         return errors_module.DeviceError(
             int(data.get("device_code", 0)),

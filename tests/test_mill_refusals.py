@@ -91,3 +91,42 @@ async def test_a_program_broken_since_the_start_holds_its_part_not_the_mill(
         await rig.wait_for(rig.all_done, "order A done", timeout=3600)
         assert not rig.cut_twice()
         await rig.stop_controller()
+
+
+@pytest.mark.virtual
+async def test_a_block_that_runs_on_after_its_step_failed_is_alarmed_again_once_cleared(
+    tmp_path: Path,
+) -> None:
+    """The defect: a stalled mill (its block ended, READY never came) whose alarm the
+    operator cleared sat "executing (left running)" with no alarm and no end: the cell made
+    nothing and said nothing. Cleared while the block still runs, the fault is alarmed again;
+    stopped at the machine (its panel's clear), the cell goes on."""
+    async with CellRig(tmp_path / "cell") as rig:
+        rig.cell.switch_on_at_cut("cnc2", "stall")
+        rig.post("wax-robot-base", 1, "A")
+        await rig.start_controller()
+        [first] = await rig.wait_for(lambda: rig.alarms("cnc2", "machining"), "the stall")
+        assert "still running" in first.text, first.text
+        await rig.clear_alarms()  # cleared, the machine not seen to
+
+        def again() -> list[object]:
+            return [a for a in rig.journal.active_alarms() if a.machine == "cnc2"]
+
+        [second] = await rig.wait_for(again, "the fault alarmed again")
+        assert "its block still runs after its step failed" in second.text, second.text
+        # The operator stops it at the machine (the panel's clear), mends the fault, and
+        # deals with the part.
+        mill = rig.cell.mills["cnc2"]
+        mill.clear_fault("stall")
+        await mill.operator_clear()
+        for _ in range(5):
+            if rig.all_done():
+                break
+            await rig.operator_resolves()
+            await rig.wait_for(
+                lambda: rig.all_done() or rig.held_parts() or rig.journal.active_alarms(),
+                "the order done or the operator needed",
+                timeout=600,
+            )
+        assert rig.all_done(), rig.describe()
+        await rig.stop_controller()

@@ -213,6 +213,18 @@ class Recovery:
                 await self.prepare_mill(config, force=True)
         self._resumed.discard(name)
 
+    def _still_running(self, name: str) -> None:
+        """Mill ``name``'s block runs on after its step failed (a stall: it never said READY
+        again): the operator's to stop at the machine. Alarmed again once its alarm is
+        cleared while it still runs, as any fault still there is (else the cell would wait
+        on it unsaid)."""
+        active = self.world.journal.active_alarms()
+        if any(a.machine == name and a.returned is None for a in active):
+            return
+        text = "its block still runs after its step failed: stop it at the machine"
+        self.alarms.cause_alarm(Cause(name, "machining", text))
+        self.world.machines[name].show(f"executing (left running): {text}", Condition.ALARM)
+
     def _occupied(self, name: str) -> bool:
         """A part is in the mill's vise: its setup program does not run over it."""
         parts = self.world.journal.parts(statuses=["waiting", "active", "held"])
@@ -247,6 +259,8 @@ class Recovery:
             return
         if not mill.running:  # a block still running is no failure: it ends
             self.alarms.failed(m.name, "readiness", f"not ready: {status.shown}", alarm=False)
+        elif m.name in self.faulted:
+            self._still_running(m.name)
         await self.world.clock.sleep(mill.ready_wait)
 
     async def close(self) -> None:
@@ -344,6 +358,8 @@ class Recovery:
                 # in the plan until recovery sees the block end.
                 view.show("executing (left running)", Condition.BUSY)
                 self.fit[m.name] = False
+                if m.name in self.faulted:
+                    self._still_running(m.name)
                 self._start(m.name)
                 return False
             lost = believed and setup_lost(status, running=mill.running)

@@ -276,11 +276,15 @@ class Dyna2400Emulator(EmulatedDevice, HeadStart):
         """The panel after an error condition (a garbled block, a move outside the travel):
         memory cleared and the link mode selected again, READY. The reference zero and the
         setup's units, tool and feeds stay (the axes did not move): a part left in the vise
-        can be cut again without a new setup over it."""
-        if self.error is None or self.executing:
+        can be cut again without a new setup over it. A block that ended without READY
+        (RUN left on the display: a stall): the link mode selected again, READY."""
+        if self.executing:
             return
-        self.clear_memory()
-        self.select(self.auto_mode)
+        if self.error is not None:
+            self.clear_memory()
+            self.select(self.auto_mode)
+        elif self.display == "RUN" and self.mode is not LinkMode.MANUAL:
+            self.select(self.auto_mode)
 
     # -- automatic operator ---------------------------------------------------------------------
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from cellctl.cell.shift import shift_report
 from cellctl.clock import current_clock
 from cellctl.testing.rig import CellRig
 
@@ -48,6 +49,10 @@ async def test_a_vise_that_does_not_clamp_stops_that_mill_until_its_alarm_is_cle
         assert view.in_service and not controller.recovery.usable("cnc1")
         # The failed try's time was cnc1's (as the shift report counts it), not dropped.
         assert view.busy_s >= controller.options.interlock_timeout, view.busy_s
+        # Every transfer waits on the alarm: the robot is down as long (the shift report).
+        now = current_clock().now()
+        report = shift_report(rig.journal, ["robot"], {}, alarm.raised, now)
+        assert report.machines[0].down_s >= 0.99 * (now - alarm.raised), report.machines[0]
         # The operator clamps the part again and clears the alarm: the cut goes on.
         rig.cell.plc.set_coil("clamp_1", True)
         await rig.clear_alarms()

@@ -220,6 +220,9 @@ def _rounded(ratio: float | None) -> float | None:
 #: Alarms of one machine that stop the whole cell: down for every machine, as the cell's own
 #: alarms are (the PLC's emergency stop input: no machine may move while it is pressed).
 CELL_WIDE = {(ESTOP.machine, ESTOP.code)}
+#: Alarms of one machine that hold every transfer until they are cleared (a door or vise the
+#: PLC did not move: docs/cell.md): down for the robot.
+TRANSFERS_HELD = {("plc", "interlock")}
 
 
 def _down_intervals(
@@ -230,12 +233,18 @@ def _down_intervals(
     for every figure built on it (this report, a plan's report)."""
     out: dict[str, list[tuple[float, float, str]]] = defaultdict(list)
     spells = journal.alarm_spells(alarms)
+    # The robots: the machines that carried parts (an alarm that holds transfers is theirs).
+    robots = {step.machine for step in journal.steps() if step.kind == "transfer"}
     for a in alarms:
         for began, ended in spells[a.id]:
             stop = end if ended is None else min(ended, end)
             out[a.machine].append((began, max(began, stop), f"alarm: {a.code}"))
             if (a.machine, a.code) in CELL_WIDE:
                 out["cell"].append((began, max(began, stop), f"alarm: {a.machine} {a.code}"))
+            if (a.machine, a.code) in TRANSFERS_HELD:
+                for robot in robots:
+                    why = f"alarm: {a.machine} {a.code} (transfers held)"
+                    out[robot].append((began, max(began, stop), why))
     since: dict[str, tuple[float, str]] = {}
     for t, name, in_service, reason in journal.service_log():
         if not in_service and name not in since:

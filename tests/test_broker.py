@@ -14,6 +14,7 @@ import tomllib
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager, suppress
 from pathlib import Path
+from typing import Any
 
 import aiomqtt
 import pytest
@@ -301,6 +302,32 @@ async def test_two_programs_on_one_user_are_told_they_take_turns(broker: Mosquit
         assert "take turns" not in lines[0], lines
 
 
+async def first_words(settings: MqttSettings, what: str, **options: Any) -> list[str]:
+    """What a :class:`Reconnect` to ``settings`` logs (``what`` its label) until its first
+    line, its session never connecting; stopped then."""
+    stop, told = asyncio.Event(), asyncio.Event()
+    lines: list[str] = []
+
+    def log(line: str) -> None:
+        lines.append(line)
+        told.set()
+
+    async def session() -> None:
+        async with settings.client("cell1"):
+            raise AssertionError("connected where no broker answers")
+
+    link = Reconnect(settings, stop, log=log, what=what, **options)
+    task = asyncio.create_task(link.run(session))
+    try:
+        async with asyncio.timeout(30):
+            await told.wait()
+    finally:
+        stop.set()
+        async with asyncio.timeout(20):
+            await task
+    return lines
+
+
 async def test_a_broker_that_never_answers_is_said_so_in_words() -> None:
     """Something listens at the broker's address and never answers (a stuck broker, a port
     forwarded to nothing): the link says the broker did not answer, not the library's bare
@@ -313,26 +340,9 @@ async def test_a_broker_that_never_answers_is_said_so_in_words() -> None:
     server = await asyncio.start_server(silent, "127.0.0.1", 0)
     port = server.sockets[0].getsockname()[1]
     settings = MqttSettings("127.0.0.1", port, "factory", "cell1", "its-password")
-    stop, told = asyncio.Event(), asyncio.Event()
-    lines: list[str] = []
-
-    def log(line: str) -> None:
-        lines.append(line)
-        told.set()
-
-    async def session() -> None:
-        async with settings.client("cell1"):
-            raise AssertionError("connected to a broker that never answers")
-
-    link = Reconnect(settings, stop, log=log, what="cell1", errors=(aiomqtt.MqttError,))
-    task = asyncio.create_task(link.run(session))
     try:
-        async with asyncio.timeout(30):
-            await told.wait()
+        lines = await first_words(settings, "cell1", errors=(aiomqtt.MqttError,))
     finally:
-        stop.set()
-        async with asyncio.timeout(20):
-            await task
         server.close()
     assert lines[0] == (
         f"cell1: mqtt://127.0.0.1:{port}/factory: the broker at 127.0.0.1:{port} "

@@ -22,9 +22,10 @@ from pathlib import Path
 import pytest
 
 from cellctl.factory.broker import MosquittoBroker
-from cellctl.mailbox.mqttlink import MqttSettings, Reconnect
+from cellctl.mailbox.mqttlink import MqttSettings
 
 from .conftest import CELLCTL, emulated_cell_process, until
+from .test_broker import first_words
 
 CELLS = [("cell1", "cellctl/cell1")]
 #: The lines the MQTT library writes on its own (paho's error log), none of cellctl's.
@@ -162,26 +163,7 @@ async def test_no_broker_at_the_address_is_said_in_words() -> None:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
         settings = MqttSettings("127.0.0.1", port, "cellctl/cell1", "cell1", "its-password")
-        stop, told = asyncio.Event(), asyncio.Event()
-        lines: list[str] = []
-
-        def log(line: str) -> None:
-            lines.append(line)
-            told.set()
-
-        async def session() -> None:
-            async with settings.client("cell1"):
-                raise AssertionError("connected where nothing listens")
-
-        link = Reconnect(settings, stop, log=log, what="mailbox")
-        task = asyncio.create_task(link.run(session))
-        try:
-            async with asyncio.timeout(30):
-                await told.wait()
-        finally:
-            stop.set()
-            async with asyncio.timeout(20):
-                await task
+        lines = await first_words(settings, "mailbox")
     assert lines[0] == (
         f"mailbox: mqtt://127.0.0.1:{port}/cellctl/cell1: nothing listens at 127.0.0.1:{port}: "
         "is the broker running there? (trying again)"

@@ -332,7 +332,7 @@ def test_the_limits_come_from_the_api_table_of_cell_toml(cell: Path) -> None:
         f.write(
             '\n[api]\nlisten = "127.0.0.1:7125"\nhosts = ["cell7.lab"]\nheader_timeout = 2.5\n'
             "idle_timeout = 30\nmax_connections = 8\ncalls_per_session = 4\n"
-            "calls_per_token = 6\n"
+            "calls_per_token = 6\nsessions_per_token = 5\n"
         )
     config, problems = check_cell(cell)
     assert config is not None, problems
@@ -343,6 +343,7 @@ def test_the_limits_come_from_the_api_table_of_cell_toml(cell: Path) -> None:
         hosts=("cell7.lab",),
         calls_per_session=4,
         calls_per_token=6,
+        sessions_per_token=5,
     )
     text = (cell / "cell.toml").read_text()
     (cell / "cell.toml").write_text(text.replace("calls_per_token = 6", "calls_per_token = 3"))

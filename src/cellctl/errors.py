@@ -118,6 +118,29 @@ def unknown_machine(name: str, known: Iterable[str], where: str = "") -> UsageEr
     )
 
 
+#: What free text a caller gives (an order id, a reason, a name) must be, in the words a
+#: refusal says: it is logged and shown on operators' terminals, where a control character
+#: (an escape sequence, a NUL, a line break that forges a log line) would act.
+NOT_PRINTABLE = "must be printable text (no control characters)"
+
+
+def printable(text: str) -> str:
+    """``text`` unchanged if it is printable (:meth:`str.isprintable`: no control, format or
+    separator characters but the space), else ValueError(:data:`NOT_PRINTABLE`): the check
+    of a schema's field (pydantic says it after the field's name)."""
+    if not text.isprintable():
+        raise ValueError(NOT_PRINTABLE)
+    return text
+
+
+def check_printable(text: str, what: str) -> str:
+    """:func:`printable`, refused as UsageError "``what`` must be printable text ..."."""
+    try:
+        return printable(text)
+    except ValueError:
+        raise UsageError(f"{what} {NOT_PRINTABLE}") from None
+
+
 def with_article(word: str) -> str:
     """``word`` with its article, as a message says it: "an operator", "a viewer", "an
     'engraver'" (by its first letter's sound in the kinds' and roles' names: a ``u`` is said

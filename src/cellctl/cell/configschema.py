@@ -189,6 +189,11 @@ class ApiTable(_Table):
         description="calls one token may have in flight over all its connections; more are "
         "refused (-32010)",
     )
+    sessions_per_token: Annotated[int, Field(ge=1, le=10_000)] = Field(
+        default=8,
+        description="WebSocket connections one token may hold open at once; the next "
+        "handshake gets 429 (less than max_connections, so a token cannot take them all)",
+    )
 
     @model_validator(mode="after")
     def _listen(self) -> ApiTable:
@@ -203,6 +208,13 @@ class ApiTable(_Table):
             raise ValueError(
                 f"calls_per_token = {self.calls_per_token} is less than calls_per_session = "
                 f"{self.calls_per_session}: one connection could never reach its own cap"
+            )
+        given = "sessions_per_token" in self.model_fields_set
+        if given and self.sessions_per_token >= self.max_connections:
+            raise ValueError(
+                f"sessions_per_token = {self.sessions_per_token} is not less than "
+                f"max_connections = {self.max_connections}: one token could take every "
+                "connection, and nobody else could reach the cell (its emergency stop included)"
             )
         return self
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import os
 import sqlite3
+import stat
 import threading
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
@@ -32,33 +33,76 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, Self
 
+from cellctl.errors import UsageError
+
 #: Seconds a writer waits for another process's write lock before giving up.
 BUSY_TIMEOUT = 30.0
 
 
+#: The files SQLite keeps beside a database, named after it: each is opened by name.
+SIDE_FILES = ("-wal", "-shm", "-journal")
+#: SQLite's result codes for a file that is not a database, or a damaged one.
+_NOT_A_DATABASE = (26, 11)  # SQLITE_NOTADB, SQLITE_CORRUPT
+
+
+def _files(path: Path) -> list[Path]:
+    return [path, *(path.with_name(path.name + side) for side in SIDE_FILES)]
+
+
+def _link(file: Path) -> UsageError:
+    return UsageError(
+        f"{file} is a symbolic link: cellctl never opens its journal or mailbox through "
+        "one; remove the link (and put the file itself there)"
+    )
+
+
+def refuse_links(path: Path) -> None:
+    """UsageError, naming the file, when ``path`` or one of its side files is a symbolic link
+    or not a plain file: SQLite opens them by name, so a link would have the journal (or the
+    mailbox) written into, and made private, whatever file it points to."""
+    for file in _files(path):
+        try:
+            mode = file.lstat().st_mode
+        except FileNotFoundError:
+            continue
+        if stat.S_ISLNK(mode):
+            raise _link(file)
+        if not stat.S_ISREG(mode):
+            raise UsageError(f"{file} is not a plain file; remove it")
+
+
 def make_private(path: Path) -> None:
-    """Create ``path`` mode 0600 if missing, and tighten it (and its -wal/-shm) if looser.
+    """Create ``path`` mode 0600 if missing, and tighten it and its side files (-wal, -shm,
+    -journal) if looser; UsageError for a link in their place (:func:`refuse_links`).
 
-    SQLite gives the -wal and -shm files it creates the database file's permissions, so a
-    private database keeps its journal private too.
+    SQLite gives the side files it creates the database file's permissions, so a private
+    database keeps its journal private too.
 
-    An existing file is never opened here, only chmod-ed by name: closing any descriptor
+    An existing file is never opened for reading or writing here: closing any descriptor
     of a file drops every POSIX lock this process holds on it, so opening and closing the
     database beside a connection already open in this process would take that connection's
     locks away. Another process would then see no reader, checkpoint on close and delete the
     -wal and -shm files, and this process's writes would go on into the deleted WAL, where
-    nobody else ever reads them.
+    nobody else ever reads them. The chmod does not follow links (``fchmodat`` with
+    ``AT_SYMLINK_NOFOLLOW``, which works through an ``O_PATH`` descriptor, whose closing
+    drops no lock).
     """
+    refuse_links(path)
     try:
+        # O_EXCL: a link (even a dangling one) put here since the check is not followed.
         fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o600)
     except FileExistsError:
         pass  # there already: no descriptor of it opened, none closed
     else:
         os.close(fd)  # a new file: nothing of this process holds a lock on it yet
-    for file in (path, path.with_name(path.name + "-wal"), path.with_name(path.name + "-shm")):
+    for file in _files(path):
         with contextlib.suppress(FileNotFoundError, PermissionError):
-            if file.stat().st_mode & 0o077:
-                os.chmod(file, 0o600)
+            if file.lstat().st_mode & 0o077:
+                try:
+                    os.chmod(file, 0o600, follow_symlinks=False)
+                except NotImplementedError:
+                    # Linux says so for a link (swapped in since the check): never followed.
+                    raise _link(file) from None
 
 
 def connect(
@@ -73,6 +117,29 @@ def connect(
     conn = sqlite3.connect(
         path, timeout=busy_timeout, isolation_level=None, check_same_thread=False
     )
+    try:
+        _prepare(conn, schema, busy_timeout, durable)
+    except sqlite3.DatabaseError as e:
+        conn.close()
+        if getattr(e, "sqlite_errorcode", None) in _NOT_A_DATABASE:
+            raise not_a_database(path, e) from None
+        raise
+    except BaseException:
+        conn.close()
+        raise
+    make_private(path)  # the -wal and -shm WAL mode has just made
+    return conn
+
+
+def not_a_database(path: Path, error: sqlite3.DatabaseError) -> UsageError:
+    """The words for a file SQLite cannot read as a database."""
+    return UsageError(
+        f"{path} is not a SQLite database, or a damaged one ({error}): cellctl keeps its "
+        "journal or mailbox there; move that file away (a new one is made) or put back a copy"
+    )
+
+
+def _prepare(conn: sqlite3.Connection, schema: str, busy_timeout: float, durable: bool) -> None:
     conn.row_factory = sqlite3.Row
     conn.execute(f"PRAGMA busy_timeout = {int(busy_timeout * 1000)}")
     conn.execute("PRAGMA journal_mode = WAL")
@@ -86,9 +153,7 @@ def connect(
         conn.execute("COMMIT")
     except BaseException:
         conn.execute("ROLLBACK")
-        conn.close()
         raise
-    return conn
 
 
 class SqliteStore:

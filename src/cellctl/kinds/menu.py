@@ -14,11 +14,11 @@ from __future__ import annotations
 
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError
 
-from cellctl.errors import UsageError
+from cellctl.errors import UsageError, printable
 
 Progress = Callable[[dict[str, Any]], None]
 """Called with a JSON-ready dict as a download goes on."""
@@ -38,6 +38,11 @@ SHOWN_PROBLEMS = 5
 SHOWN_NAME = 60
 
 
+#: A parameter's free text (a reason, a name, an id): printable, as order ids are
+#: (:data:`cellctl.errors.NOT_PRINTABLE`). A program's text is not one: it has lines.
+PrintableText = Annotated[str, AfterValidator(printable)]
+
+
 class Params(BaseModel):
     """Base of the functions' parameters: unknown keys are refused."""
 
@@ -49,7 +54,7 @@ class NoParams(Params):
 
 
 class ProgramParams(Params):
-    program: str = Field(min_length=1, max_length=255, description="The file's name.")
+    program: PrintableText = Field(min_length=1, max_length=255, description="The file's name.")
     text: str = Field(max_length=MAX_PROGRAM_CHARS, description="The file's contents.")
 
 

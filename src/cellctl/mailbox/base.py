@@ -15,7 +15,7 @@ from types import TracebackType
 from typing import Any, Final, Self
 
 from cellctl.cell.orders import ReportKind as ReportKind
-from cellctl.errors import UsageError
+from cellctl.errors import UsageError, check_printable
 
 # Order states. An order moves forward only (see TRANSITIONS); ``held`` is the one state an
 # order may leave and come back from, while the operator inspects one of its parts.
@@ -100,10 +100,8 @@ def check_new_order(part_type: str, qty: int, priority: int, order_id: str | Non
         return uuid.uuid4().hex[:12]
     if not order_id.strip() or order_id != order_id.strip() or any(c.isspace() for c in order_id):
         raise UsageError(f"order id {order_id!r} must be one word")
-    if not order_id.isprintable():
-        # An escape sequence in an id would act on every operator's terminal that lists it.
-        raise UsageError(f"order id {order_id!r} must be printable text (no control characters)")
-    return order_id
+    # An escape sequence in an id would act on every operator's terminal that lists it.
+    return check_printable(order_id, f"order id {order_id!r}")
 
 
 def check_report_kind(kind: str) -> None:

@@ -19,6 +19,7 @@ import re
 from typing import Annotated, Any, Final, Literal, TypeVar
 
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Discriminator,
@@ -34,7 +35,7 @@ from cellctl.cell.config import MAX_MACHINES as CELL_MAX_MACHINES
 from cellctl.cell.config import MAX_NAME as CELL_MAX_NAME
 from cellctl.cell.config import MAX_PART_TYPES as CELL_MAX_PART_TYPES
 from cellctl.cell.orders import ReportKind
-from cellctl.errors import ProtocolError
+from cellctl.errors import ProtocolError, printable
 from cellctl.mailbox.base import MAX_QTY, Report
 
 __all__ = [
@@ -80,7 +81,8 @@ INT64_MAX: Final = 2**63 - 1
 #: Latest Unix time taken (the year 5138): beyond it a time is not a clock's.
 MAX_TIME: Final = 1e11
 
-Name = Annotated[str, Field(min_length=1, max_length=MAX_NAME)]
+# Names and reasons end up in logs and on operators' terminals: printable, as order ids.
+Name = Annotated[str, Field(min_length=1, max_length=MAX_NAME), AfterValidator(printable)]
 Text = Annotated[str, Field(max_length=MAX_TEXT)]
 Count = Annotated[int, Field(ge=0, le=INT64_MAX)]
 Seconds = Annotated[float, Field(ge=0, le=MAX_TIME)]
@@ -143,7 +145,7 @@ class CancelMessage(_Message):
     cancel: Literal["order"]
     id: Name
     by: Name
-    reason: Annotated[str, Field(max_length=MAX_REASON)] = ""
+    reason: Annotated[str, Field(max_length=MAX_REASON), AfterValidator(printable)] = ""
     asked: Seconds
 
 
@@ -238,7 +240,9 @@ def _reason(error: ValidationError) -> str:
     first = error.errors(include_url=False, include_input=False)[0]
     where = ".".join(str(p) for p in first["loc"]) or "payload"
     more = error.error_count() - 1
-    text = f"{where}: {first['msg']}" + (f" (and {more} more)" if more else "")
+    text = f"{where}: {str(first['msg']).removeprefix('Value error, ')}" + (
+        f" (and {more} more)" if more else ""
+    )
     return text
 
 

@@ -32,6 +32,7 @@ from pathlib import Path
 
 from cellctl.cell.config import CONVEYOR
 from cellctl.cell.journal import JOURNAL_FILE, Journal, open_journal
+from cellctl.cell.sqlitedb import refuse_links
 from cellctl.errors import UsageError
 from cellctl.mailbox import MAILBOX_FILE, Mailbox
 from cellctl.mailbox.sqlite import SqliteMailbox
@@ -93,6 +94,7 @@ def out_of_service(journal: Journal | None) -> tuple[str, ...]:
 def copy_store(source: Path, target: Path) -> bool:
     """Copy the SQLite file ``source`` (a cell's mailbox or journal) to ``target``, reading
     it only: nothing is made beside it. False if there is no such file."""
+    refuse_links(source)  # read through a link, it would copy whatever file it names
     if not source.is_file():
         return False
     # A read-only connection to a file in WAL mode makes its -wal and -shm when they are

@@ -16,6 +16,9 @@ import contextlib
 import itertools
 import json
 import os
+import pwd
+import socket
+import struct
 from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
@@ -56,6 +59,68 @@ CONNECT_TIMEOUT = 5.0
 LOCAL_POLL = 0.5
 
 
+#: What a client says when the server refused its token.
+TOKEN_REFUSED = "the control API refused the token"
+
+
+class ImpostorSocket(AccessDenied):
+    """The process on ``api.sock`` is not the cell's controller: no token was sent to it."""
+
+
+async def _connect_unix(path: Path) -> socket.socket:
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    sock.setblocking(False)
+    try:
+        async with asyncio.timeout(CONNECT_TIMEOUT):
+            target = os.path.realpath(path)  # noqa: ASYNC240 - a local lookup, no I/O wait
+            await asyncio.get_running_loop().sock_connect(sock, target)
+    except BaseException:
+        sock.close()
+        raise
+    return sock
+
+
+def _user(uid: int) -> str:
+    try:
+        return f"{pwd.getpwuid(uid).pw_name} (uid {uid})"
+    except KeyError:
+        return f"uid {uid}"
+
+
+def check_peer(sock: socket.socket, socket_path: Path) -> None:
+    """AccessDenied unless the process listening on ``sock`` (``<cell>/api.sock``) is the
+    cell's controller: run by this user or by the cell directory's owner, and the process
+    the controller's lock names when it names one (Linux's SO_PEERCRED). Whoever can write
+    the cell directory could otherwise put a socket of their own in its place and be sent
+    the token."""
+    directory = Path(socket_path).parent
+    creds = getattr(socket, "SO_PEERCRED", None)
+    if creds is None:  # no peer credentials here: the socket file's owner stands for them
+        pid, uid = 0, os.stat(os.path.realpath(socket_path)).st_uid
+    else:
+        pid, uid, _ = struct.unpack("3i", sock.getsockopt(socket.SOL_SOCKET, creds, 12))
+    owners = {os.getuid(), os.stat(directory).st_uid}
+    refused = f"not sent the API token to {socket_path}: "
+    remedy = (
+        f"someone may have put their own socket in its place: see who can write {directory} "
+        f"(`ls -ld {directory}`; `chmod go-w {directory}`) and start `cellctl run` again"
+    )
+    if uid not in owners:
+        raise ImpostorSocket(
+            refused + f"the process listening there (pid {pid}) runs as {_user(uid)}, not as "
+            f"{' or '.join(_user(u) for u in sorted(owners))}; " + remedy
+        )
+    from cellctl.cell.owner import controller_holder
+
+    holder = controller_holder(directory)
+    here = holder is not None and holder.pid and holder.host in ("", socket.gethostname())
+    if pid and here and holder is not None and holder.pid != pid:
+        raise ImpostorSocket(
+            refused + f"the process listening there (pid {pid}) is not the cell's "
+            f"controller ({holder}); " + remedy
+        )
+
+
 def call_timeout(method: str) -> float:
     """The deadline for ``method``."""
     family = method.split(".", 1)[0]
@@ -91,9 +156,17 @@ class RemoteCell:
         headers = {"Authorization": f"Bearer {token}"}
         try:
             if socket_path is not None:
+                # Connected, and its peer checked, before the token goes out on it.
+                sock = await _connect_unix(socket_path)
+                try:
+                    check_peer(sock, socket_path)
+                except BaseException:
+                    sock.close()
+                    raise
                 ws = await unix_connect(
-                    os.path.realpath(socket_path),  # noqa: ASYNC240 - a local lookup, no I/O wait
+                    None,
                     "ws://localhost/websocket",
+                    sock=sock,
                     additional_headers=headers,
                     open_timeout=CONNECT_TIMEOUT,
                     max_size=None,
@@ -110,7 +183,7 @@ class RemoteCell:
                 )
         except InvalidStatus as e:
             if e.response.status_code in (401, 403):
-                raise AccessDenied("the control API refused the token") from None
+                raise AccessDenied(TOKEN_REFUSED) from None
             raise LinkError(f"the control API refused the connection: {e}") from None
         except TimeoutError:
             raise LinkTimeout("the control API did not answer within 5 s") from None
@@ -319,9 +392,9 @@ async def attach(directory: Path) -> RemoteCell:
         return await RemoteCell.connect(
             token=client_token(directory), socket_path=directory / SOCKET_FILE
         )
-    except AccessDenied:
+    except AccessDenied as e:
         # Said as without a controller: the same wrong token, the same words.
-        if os.environ.get(TOKEN_ENV, "").strip():
+        if not isinstance(e, ImpostorSocket) and os.environ.get(TOKEN_ENV, "").strip():
             raise AccessDenied(NOT_A_TOKEN.format(env=TOKEN_ENV, directory=directory)) from None
         raise
 

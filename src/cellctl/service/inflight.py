@@ -22,7 +22,7 @@ from cellctl.service.rpc import SERVER_BUSY
 if TYPE_CHECKING:
     from starlette.websockets import WebSocket
 
-    from cellctl.service.limits import ApiLimits
+    from cellctl.service.limits import ApiLimits, Listener
     from cellctl.service.methods import Caller
     from cellctl.service.status import CellStatus
     from cellctl.service.token import TokenEntry
@@ -105,6 +105,8 @@ class InFlight:
     _flights: dict[asyncio.Task[Any], Flight]
     calls: set[asyncio.Task[None]]  # every call running (closing waits for them)
     _token_calls: dict[str, int]  # calls in flight by token name
+    _token_sessions: dict[str, int]  # WebSockets open by token name
+    _refusals: Listener  # the log of refused handshakes, rate-limited
     _closing: bool
     limits: ApiLimits
 
@@ -144,6 +146,28 @@ class InFlight:
         if answers:
             session.send(answers if batch else answers[0])
         return True
+
+    def _open_session(self, name: str) -> dict[str, Any] | None:
+        """Count a WebSocket of token ``name`` from its handshake on (handshakes at once
+        cannot all pass the cap); the error to refuse it with instead, past
+        ``sessions_per_token``. :meth:`_close_session` once it ends."""
+        held = self._token_sessions.get(name, 0)
+        if held >= self.limits.sessions_per_token:
+            reason = (
+                f"refused: the token {name!r} has {held} WebSocket connections open, the most "
+                "one token may have ([api] sessions_per_token): close one first"
+            )
+            self._refusals.note("sessions", reason)
+            return busy_error("sessions", self.limits.sessions_per_token, reason)
+        self._token_sessions[name] = held + 1
+        return None
+
+    def _close_session(self, name: str) -> None:
+        left = self._token_sessions.get(name, 1) - 1
+        if left > 0:
+            self._token_sessions[name] = left
+        else:
+            self._token_sessions.pop(name, None)
 
     def _spawn(self, session: Session, work: Coroutine[Any, Any, None]) -> None:
         # The calls run in a task kept by the server: a client that goes away does not cancel

@@ -9,11 +9,15 @@ for. ``[api]`` of cell.toml sets them::
 - A connection whose request head (request line and headers) is not complete
   ``header_timeout`` s after it began is answered 408 and closed (a slowloris client holds
   nothing for long). The deadline runs for every request of a kept-alive connection.
-- A request's body (its Content-Length) must have come whole ``header_timeout`` s after its
-  head ended; else the connection is closed (answered 408 if nothing was answered yet). A
-  client that trickles a body (answered 401 already, or not) holds its connection no longer.
+- A request's body (its Content-Length, or chunked to its last chunk) must have come whole
+  ``header_timeout`` s after its head ended; else the connection is closed (answered 408 if
+  nothing was answered yet). A client that trickles a body (answered 401 already, or not)
+  holds its connection no longer. Only a WebSocket handshake answered ``101`` ends the watch
+  on a connection: an ``Upgrade`` header alone changes nothing.
 - A WebSocket session has at most ``calls_per_session`` calls in flight, and one token at
   most ``calls_per_token`` over all its sessions; the server refuses more (``server.py``).
+- One token holds at most ``sessions_per_token`` WebSockets open; the next handshake is
+  answered 429 with the reason (``server.py``), so one token cannot fill the listener.
 - Between requests, uvicorn closes a connection idle for ``idle_timeout`` s. A WebSocket is
   kept as long as it answers pings.
 - A listener with ``max_connections`` open connections answers the next one 503, with the
@@ -30,6 +34,7 @@ import contextlib
 import ipaddress
 import json
 import logging
+import re
 import socket
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -71,6 +76,9 @@ class ApiLimits:
     #: Calls one token may have in flight over all its sessions (an acting call whose
     #: client left counts until it ends); more are refused.
     calls_per_token: int = 32
+    #: WebSockets one token may hold open at once, over every listener (a one-shot token's
+    #: count as its token's): one token cannot take every connection of ``max_connections``.
+    sessions_per_token: int = 8
 
 
 def api_limits(table: ApiTable | None) -> ApiLimits:
@@ -84,6 +92,8 @@ def api_limits(table: ApiTable | None) -> ApiLimits:
         hosts=tuple(table.hosts),
         calls_per_session=table.calls_per_session,
         calls_per_token=table.calls_per_token,
+        # Left at its default under a small max_connections: still below it.
+        sessions_per_token=max(1, min(table.sessions_per_token, table.max_connections - 1)),
     )
 
 
@@ -119,7 +129,7 @@ def _http(status: str, reason: str) -> bytes:
     return head.encode() + body
 
 
-_HEAD, _BODY, _IDLE, _PAST = range(4)
+_HEAD, _BODY, _CHUNKED, _IDLE, _PAST = range(5)
 
 
 class _Guard(asyncio.Protocol):
@@ -136,6 +146,9 @@ class _Guard(asyncio.Protocol):
         self._head = bytearray()
         self._left = 0
         self._answered = False  # something was written since the request's head ended
+        self._upgrading = False  # uvicorn's WebSocket protocol has the connection
+        self._line = bytearray()  # a chunked body's size or trailer line, so far
+        self._trailer = False  # a chunked body's last chunk came: its trailer lines follow
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
@@ -184,14 +197,19 @@ class _Guard(asyncio.Protocol):
             self.inner.resume_writing()
 
     def upgraded(self, protocol: asyncio.BaseProtocol) -> None:
-        """uvicorn swapped in its WebSocket protocol: past HTTP, no head deadline any more."""
+        """uvicorn swapped in its WebSocket protocol for a handshake. The deadlines hold until
+        the handshake is answered 101 (:meth:`wrote`): a request that only says ``Upgrade``
+        gets no pass."""
         self.inner = protocol
-        self._mode = _PAST
-        self._disarm()
+        self._upgrading = True
 
-    def wrote(self) -> None:
-        """uvicorn wrote to the connection (an answer, maybe before the body has come)."""
+    def wrote(self, first: bytes | bytearray | memoryview) -> None:
+        """uvicorn wrote to the connection (an answer, maybe before the body has come); after
+        ``101 Switching Protocols`` it is a WebSocket, no HTTP any more: nothing to watch."""
         self._answered = True
+        if self._upgrading and bytes(first[:13]) == b"HTTP/1.1 101 ":
+            self._mode = _PAST
+            self._disarm()
 
     # -- the request head's and body's deadlines ---------------------------------------------
 
@@ -234,7 +252,8 @@ class _Guard(asyncio.Protocol):
         self.transport.close()
 
     def _watch(self, data: bytes) -> None:
-        """Follow the requests' heads and bodies (Content-Length) to know when one begins."""
+        """Follow the requests' heads and bodies (Content-Length or chunked) to know when one
+        begins and when its body is whole."""
         i = 0
         while i < len(data) and self._mode is not _PAST:
             if self._mode == _BODY:
@@ -244,6 +263,8 @@ class _Guard(asyncio.Protocol):
                 if not self._left:
                     self._mode = _IDLE
                     self._disarm()
+            elif self._mode == _CHUNKED:
+                i = self._chunked(data, i)
             elif self._mode == _IDLE:
                 self._mode = _HEAD
                 self._head.clear()
@@ -262,18 +283,62 @@ class _Guard(asyncio.Protocol):
                 self._disarm()
                 self._answered = False
                 self._mode, self._left = _after(head)
-                if self._mode == _BODY:
-                    self._arm(self._body_too_slow)  # the whole body, from the head's end
+                self._line.clear()
+                self._trailer = False
+                if self._mode != _IDLE:
+                    # The whole body, from the head's end (a head h11 refuses: a backstop).
+                    self._arm(self._body_too_slow)
+
+    def _chunked(self, data: bytes, i: int) -> int:
+        """Follow a chunked body in ``data`` from ``i``: sizes, data, the last chunk's
+        trailer. Where it stopped (the body whole: the next request's head begins there)."""
+        while i < len(data):
+            if self._left:  # a chunk's data and the CRLF after it
+                take = min(self._left, len(data) - i)
+                self._left -= take
+                i += take
+                continue
+            end = data.find(b"\n", i)
+            if end < 0:
+                self._line += data[i:]
+                if len(self._line) > MAX_HEAD:
+                    self._mode = _PAST  # h11 refuses it; the deadline stays armed
+                return len(data)
+            self._line += data[i:end]
+            i = end + 1
+            line = bytes(self._line).strip()
+            self._line.clear()
+            if self._trailer:
+                if not line:  # the blank line after the trailer: the body is whole
+                    self._mode = _IDLE
+                    self._disarm()
+                    return i
+                continue
+            size = _CHUNK_SIZE.fullmatch(line)
+            if size is None:
+                self._mode = _PAST  # h11 refuses it; the deadline stays armed
+                return len(data)
+            length = int(size.group(1), 16)
+            self._trailer = length == 0
+            self._left = length + 2 if length else 0
+        return i
+
+
+#: A chunk's size line: hex digits, maybe extensions after ``;``.
+_CHUNK_SIZE = re.compile(rb"([0-9A-Fa-f]{1,16})[ \t]*(?:;.*)?")
 
 
 def _after(head: bytes) -> tuple[int, int]:
-    """What follows a request head: a body of some length, the next head, or no HTTP."""
+    """What follows a request head: a body of some length, a chunked body, the next head, or
+    something h11 refuses (watched no more; the body's deadline closes it if it lingers).
+    An ``Upgrade`` header changes nothing here: only a 101 answer ends the watch."""
     length = 0
     for line in head.split(b"\r\n")[1:]:
         name, _, value = line.partition(b":")
         name = name.strip().lower()
-        if name in (b"upgrade", b"transfer-encoding"):
-            return _PAST, 0
+        if name == b"transfer-encoding":
+            codings = [c.strip() for c in value.lower().split(b",")]
+            return (_CHUNKED, 0) if codings[-1] == b"chunked" else (_PAST, 0)
         if name == b"content-length":
             try:
                 length = int(value.strip())
@@ -325,12 +390,13 @@ class _Transport(asyncio.Transport):
         return self._real.get_write_buffer_limits()
 
     def write(self, data: bytes | bytearray | memoryview) -> None:
-        self._guard.wrote()
+        self._guard.wrote(data)
         self._real.write(data)
 
     def writelines(self, list_of_data: Any) -> None:
-        self._guard.wrote()
-        self._real.writelines(list_of_data)
+        pieces = list(list_of_data)
+        self._guard.wrote(pieces[0] if pieces else b"")
+        self._real.writelines(pieces)
 
     def write_eof(self) -> None:
         self._real.write_eof()

@@ -22,6 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from cellctl.cell.causes import PRIORITIES
 from cellctl.cell.journal import MAX_SHELVE, PART_STATUSES
+from cellctl.kinds.menu import PrintableText
 from cellctl.mailbox import ORDER_STATES
 from cellctl.mailbox.base import MAX_QTY
 from cellctl.service.access import CellAccess
@@ -46,14 +47,14 @@ class NoParams(P):
 
 
 class EstopParams(P):
-    reason: str = Field(default="", max_length=500)
+    reason: PrintableText = Field(default="", max_length=500)
 
 
 class SubmitParams(P):
-    part_type: str = Field(min_length=1, max_length=100)
+    part_type: PrintableText = Field(min_length=1, max_length=100)
     qty: int = Field(default=1, ge=1, le=MAX_QTY)
     priority: int = Field(default=0, ge=-1_000_000, le=1_000_000)
-    id: str | None = Field(default=None, min_length=1, max_length=100)
+    id: PrintableText | None = Field(default=None, min_length=1, max_length=100)
 
 
 class OrdersParams(P):
@@ -63,7 +64,7 @@ class OrdersParams(P):
 
 
 class IdParams(P):
-    id: str = Field(min_length=1, max_length=100)
+    id: PrintableText = Field(min_length=1, max_length=100)
 
 
 class AlarmsParams(P):
@@ -81,7 +82,7 @@ class ShelveParams(P):
 
 class HistoryParams(P):
     since: float | None = Field(default=None, ge=0, le=1e11, allow_inf_nan=False)
-    machine: str | None = Field(default=None, min_length=1, max_length=100)
+    machine: PrintableText | None = Field(default=None, min_length=1, max_length=100)
     priority: Literal[PRIORITIES] | None = None  # type: ignore[valid-type]
     limit: int = Field(default=1000, ge=1, le=10_000)
 
@@ -90,30 +91,30 @@ class PartsParams(P):
     statuses: list[Literal[PART_STATUSES]] | None = Field(  # type: ignore[valid-type]
         default=None, max_length=MAX_LIST
     )
-    order: str | None = Field(default=None, min_length=1, max_length=100)
+    order: PrintableText | None = Field(default=None, min_length=1, max_length=100)
 
 
 class ReleaseParams(P):
-    id: str = Field(min_length=1, max_length=100)
+    id: PrintableText = Field(min_length=1, max_length=100)
     redo: bool = False
-    at: str | None = Field(default=None, min_length=1, max_length=50)
+    at: PrintableText | None = Field(default=None, min_length=1, max_length=50)
 
 
 class ScrapParams(P):
-    id: str = Field(min_length=1, max_length=100)
-    reason: str = Field(default="scrapped by operator", min_length=1, max_length=500)
+    id: PrintableText = Field(min_length=1, max_length=100)
+    reason: PrintableText = Field(default="scrapped by operator", min_length=1, max_length=500)
     #: The operator says the part is out of every machine it may be in (needed for one that
     #: may be: the cell loads that machine again at once).
     taken_out: bool = False
 
 
 class MachineParams(P):
-    machine: str = Field(min_length=1, max_length=100)
-    reason: str = Field(default="", max_length=500)
+    machine: PrintableText = Field(min_length=1, max_length=100)
+    reason: PrintableText = Field(default="", max_length=500)
 
 
 class TrafficParams(P):
-    machine: str = Field(min_length=1, max_length=100)
+    machine: PrintableText = Field(min_length=1, max_length=100)
     limit: int = Field(default=100, ge=1, le=2000)
 
 
@@ -130,13 +131,13 @@ class ShiftParams(P):
 
 
 class PreviewParams(P):
-    machine: str = Field(min_length=1, max_length=100)
-    program: str = Field(min_length=1, max_length=500)
+    machine: PrintableText = Field(min_length=1, max_length=100)
+    program: PrintableText = Field(min_length=1, max_length=500)
 
 
 class AuditParams(P):
     since: float | None = Field(default=None, allow_inf_nan=False, ge=0, le=1e11)
-    who: str | None = Field(default=None, min_length=1, max_length=100)
+    who: PrintableText | None = Field(default=None, min_length=1, max_length=100)
     limit: int = Field(default=200, ge=1, le=MAX_ENTRIES)
 
 
@@ -145,7 +146,7 @@ class MachineCallParams(BaseModel):
     the function's own parameters beside it."""
 
     model_config = ConfigDict(extra="allow", frozen=True, defer_build=True)
-    machine: str | None = Field(default=None, min_length=1, max_length=100)
+    machine: PrintableText | None = Field(default=None, min_length=1, max_length=100)
 
 
 Handler = Callable[[CellAccess, Any, Progress | None], Awaitable[Any]]

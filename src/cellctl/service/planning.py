@@ -43,6 +43,7 @@ from cellctl.cell.shift import time_scale_of
 from cellctl.clock import current_clock
 from cellctl.errors import MachineInUse, UsageError
 from cellctl.files import read_text
+from cellctl.kinds.menu import PrintableText
 from cellctl.mailbox import Mailbox
 from cellctl.plan.when import parse_poll
 from cellctl.service.access import CellAccess
@@ -55,18 +56,18 @@ if TYPE_CHECKING:
 
 #: The most ``add`` and ``fault`` entries one call may hold.
 MAX_ENTRIES = 20
-_Entry = Annotated[str, Field(min_length=1, max_length=200)]
+_Entry = Annotated[PrintableText, Field(min_length=1, max_length=200)]
 
 
 class PlanParams(BaseModel):
     """``plan.run``'s parameters: the CLI's options, as it types them."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, defer_build=True)
-    shift: str | None = Field(default=None, min_length=1, max_length=40)
-    until: str | None = Field(default=None, min_length=1, max_length=60)
+    shift: PrintableText | None = Field(default=None, min_length=1, max_length=40)
+    until: PrintableText | None = Field(default=None, min_length=1, max_length=60)
     add: list[_Entry] = Field(default_factory=list, max_length=MAX_ENTRIES)
     fault: list[_Entry] = Field(default_factory=list, max_length=MAX_ENTRIES)
-    policy: str = Field(default="default", min_length=1, max_length=200)
+    policy: PrintableText = Field(default="default", min_length=1, max_length=200)
     seed: int = Field(default=0, ge=0, le=2**63 - 1)
     #: How often the planned controller looks at idle machines, s (the plan's PLAN_POLL_S
     #: when not given): refused in the words the console and ``cellctl plan --poll`` use.

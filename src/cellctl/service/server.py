@@ -31,7 +31,8 @@ batch (at most :data:`MAX_BATCH` requests, answered as one array) runs its calls
 the other and stops when its client leaves. A session has at most
 ``ApiLimits.calls_per_session`` calls in flight and a token ``calls_per_token`` over all its
 sessions: a call past them is refused at once (:data:`SERVER_BUSY`), and a session's frames
-are taken one per turn of the loop, so no client can hold the controller's loop. Closing
+are taken one per turn of the loop, so no client can hold the controller's loop. A token
+holds at most ``sessions_per_token`` WebSockets (429 past it). Closing
 (:meth:`ApiServer.close`) waits for the calls that must run to their end, as ``cellctl run``
 waits for its steps in flight. Every HTTP answer carries a Content-Security-Policy that allows
 only the server's own assets. The connections' limits are in :mod:`cellctl.service.limits`.
@@ -75,9 +76,11 @@ from cellctl.service.limits import (
     ApiLimits,
     GuardedServer,
     HostCheck,
+    Listener,
     SecurityHeaders,
     api_limits,
 )
+from cellctl.service.logins import WRONG_TOKEN, LoginRefusals, foreign_origin, peer_of
 from cellctl.service.methods import (
     INTERNAL_ERROR,
     INVALID_REQUEST,
@@ -158,6 +161,8 @@ class ApiServer(InFlight):
         self.sessions: set[Session] = set()
         self.calls: set[asyncio.Task[None]] = set()
         self._token_calls: dict[str, int] = {}  # calls in flight by token name
+        self._token_sessions: dict[str, int] = {}  # WebSockets open by token name
+        self._refusals = Listener("WebSocket", self.limits)  # its rate-limited log
         self._flights: dict[asyncio.Task[Any], Flight] = {}  # the task that runs each call
         self._closing = False
         self._changed = asyncio.Event()
@@ -165,6 +170,8 @@ class ApiServer(InFlight):
         self._tasks: list[asyncio.Task[None]] = []
         self.push_count = 0
         self._oneshot: dict[str, tuple[float, TokenEntry]] = {}
+        # Refused logins: audited (a flood is one growing entry), one run-log line a burst.
+        self.logins = LoginRefusals(self.dispatcher.trail, say=self._say)
         self.app = Starlette(
             middleware=[
                 Middleware(SecurityHeaders),
@@ -342,6 +349,7 @@ class ApiServer(InFlight):
         and hands it over as ``?token=``. It opens a session with the fetching token's role."""
         entry = self.caller(request.headers)
         if entry is None:
+            await self.login_refused(request)
             return _unauthorized()
         now = current_clock().monotonic()
         self._oneshot = {t: v for t, v in self._oneshot.items() if v[0] > now}
@@ -363,10 +371,17 @@ class ApiServer(InFlight):
 
     # -- HTTP ---------------------------------------------------------------------------------
 
+    async def login_refused(self, request: Request | WebSocket, why: str = WRONG_TOKEN) -> None:
+        """Audit and log a request refused for its token or its origin (:mod:`logins`)."""
+        peer = peer_of(request.scope.get("client"), self.socket_path)
+        asked = f"{request.scope.get('method', 'WebSocket')} {request.url.path}"
+        await self.logins.refused(request.headers, peer=peer, asked=asked, why=why)
+
     def _get(self, method: str) -> Any:
         async def endpoint(request: Request) -> Response:
             entry = self.caller(request.headers)
             if entry is None:
+                await self.login_refused(request)
                 return _unauthorized()
             params = {}
             if method == "alarms.list" and "all" in request.query_params:
@@ -379,6 +394,7 @@ class ApiServer(InFlight):
     async def _traffic(self, request: Request) -> Response:
         entry = self.caller(request.headers)
         if entry is None:
+            await self.login_refused(request)
             return _unauthorized()
         limit = request.query_params.get("limit", "100")
         params = {"machine": request.path_params["machine"], "limit": limit}
@@ -412,8 +428,21 @@ class ApiServer(InFlight):
     async def _websocket(self, ws: WebSocket) -> None:
         entry = self.caller(ws.headers) or self._oneshot_entry(ws.query_params.get("token"))
         if entry is None or self.foreign_origin(ws.headers):
+            origin = str(ws.headers.get("origin", ""))
+            why = WRONG_TOKEN if entry is None else foreign_origin(origin)
             await ws.close(code=1008)  # before accept: the handshake is refused (HTTP 403)
+            await self.login_refused(ws, why)
             return
+        refusal = self._open_session(entry.name)
+        if refusal is not None:  # 429 in words: the connection slots stay free for the others
+            await ws.send_denial_response(_json({"error": refusal}, 429))
+            return
+        try:
+            await self._session(ws, entry)
+        finally:
+            self._close_session(entry.name)
+
+    async def _session(self, ws: WebSocket, entry: TokenEntry) -> None:
         await ws.accept()
         session = Session(ws, entry)
         self.sessions.add(session)

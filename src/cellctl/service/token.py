@@ -272,13 +272,61 @@ def revoke_token(directory: Path, name: str) -> None:
     """Remove token ``name`` (refused at once by a running server). Revoking ``default``
     removes ``<cell>/api-token`` too: the next ``cellctl run`` makes a new one."""
     check_name(name)
-    path = _tokens_dir(directory) / name
+    folder = _tokens_dir(directory)
+    path = folder / name
+    try:
+        entry = _read_entry(path)
+    except (OSError, UsageError):
+        entry = None  # a broken entry lets nobody in: nothing to name a refusal by
     try:
         path.unlink()
     except FileNotFoundError:
         raise UsageError(f"no token named {name!r} (cellctl token list shows them)") from None
+    if entry is not None:
+        _keep_revoked(folder, entry)
     if name == DEFAULT_NAME:
         (Path(directory) / TOKEN_FILE).unlink(missing_ok=True)
+
+
+#: Where revoked tokens' entries are kept (hash only), so that a refused login with one is
+#: audited by its name: hidden, so no token is ever named so.
+REVOKED_DIR = ".revoked"
+
+
+def _keep_revoked(folder: Path, entry: TokenEntry) -> None:
+    revoked = folder / REVOKED_DIR
+    if revoked.is_symlink():
+        return  # never written through one; the refusal then says "unknown token"
+    revoked.mkdir(mode=0o700, exist_ok=True)
+    flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW | os.O_CLOEXEC
+    try:
+        fd = os.open(revoked / entry.name, flags, 0o600)
+    except OSError:
+        return  # a link there: only the naming of later refusals is lost
+    with os.fdopen(fd, "w", encoding="utf-8") as f:
+        f.write(
+            f'name = "{entry.name}"\nrole = "{entry.role}"\ncreated = {entry.created}\n'
+            f'sha256 = "{entry.digest}"\n'
+        )
+
+
+def revoked_name(directory: Path, token: str) -> str | None:
+    """The name of the revoked token whose secret ``token`` was (None: it never was one)."""
+    if not token or len(token) > MAX_TOKEN_FILE:
+        return None
+    digest = _digest(token)
+    revoked = _tokens_dir(directory) / REVOKED_DIR
+    if revoked.is_symlink() or not revoked.is_dir():
+        return None
+    for path in sorted(revoked.iterdir()):
+        if TOKEN_NAME.fullmatch(path.name):
+            try:
+                entry = _read_entry(path)
+            except (OSError, UsageError):
+                continue
+            if hmac.compare_digest(entry.digest, digest):
+                return entry.name
+    return None
 
 
 def ensure_default(directory: Path) -> str:

@@ -73,11 +73,13 @@ class CallTrail:
 
     async def record(
         self, who: str, method: str, params: Any, result: str, *, collapse: bool = False
-    ) -> None:
+    ) -> AuditEntry | None:
         """One entry written whole (a refusal: ``collapse``, see :meth:`AuditLog.record`),
-        in the cell's journal: made for it if the cell has never run but has a cell.toml."""
-        if keeps_trail(self.directory):
-            await asyncio.to_thread(self._record, who, method, params, result, collapse)
+        in the cell's journal: made for it if the cell has never run but has a cell.toml.
+        The entry as written (``repeats`` > 1: counted on an earlier one); None: no trail."""
+        if not keeps_trail(self.directory):
+            return None
+        return await asyncio.to_thread(self._record, who, method, params, result, collapse)
 
     def _opened(self) -> AuditLog:
         with self._lock:
@@ -91,8 +93,10 @@ class CallTrail:
     def _end(self, entry: AuditEntry, result: str) -> None:
         self._opened().end(entry, result)
 
-    def _record(self, who: str, method: str, params: Any, result: str, collapse: bool) -> None:
-        self._opened().record(who, method, params, result, collapse=collapse)
+    def _record(
+        self, who: str, method: str, params: Any, result: str, collapse: bool
+    ) -> AuditEntry:
+        return self._opened().record(who, method, params, result, collapse=collapse)
 
     def close(self) -> None:
         with self._lock:

@@ -77,9 +77,11 @@ async def run_controller(
 ) -> CellController:
     """Connect and run the controller of ``directory`` until stopped (or idle)."""
     from cellctl.cell.configproblems import require_cell_file
-    from cellctl.cell.owner import acquire_controller_lock
+    from cellctl.cell.owner import acquire_controller_lock, refuse_shared_directory
 
     require_cell_file(directory)  # no cell here: refused before the lock makes state/
+    # Before anything is made there: a directory others can write gives the token away.
+    refuse_shared_directory(directory)
     # First: a refused controller reads and writes nothing. Held until every link is closed.
     with acquire_controller_lock(directory):
         return await _run_owned(

@@ -36,6 +36,8 @@ from starlette.responses import JSONResponse, Response
 from starlette.routing import BaseRoute, Route
 
 from cellctl.errors import AccessDenied, exit_code
+from cellctl.service.bodies import BodyTooLarge, ClientGone, read_body
+from cellctl.service.logins import foreign_origin
 from cellctl.service.rpc import APP_ERROR_BASE, INVALID_REQUEST, METHOD_NOT_FOUND, PARSE_ERROR
 from cellctl.ui.dashboard.handover import HANDOVER_S, Handovers
 
@@ -82,8 +84,10 @@ DASHBOARD_METHODS = frozenset(
         "plan.run",
     }
 )
-#: The largest request body taken.
+#: The largest request body taken by ``/dashboard/call`` (a call's method and parameters).
 MAX_BODY = 64 * 1024
+#: The largest body ``/dashboard/handover`` takes, before any token: ``{"code": ...}``.
+MAX_HANDOVER_BODY = 1024
 #: AccessDenied as the API codes it (-32000 minus its exit code, -32007).
 ACCESS_DENIED = APP_ERROR_BASE - exit_code(AccessDenied(""))
 _TYPES = {
@@ -128,17 +132,20 @@ def dashboard_routes(server: ApiServer) -> list[BaseRoute]:
         if server.foreign_origin(request.headers) or request.headers.get(
             "sec-fetch-site", "same-origin"
         ) not in ("same-origin", "none"):
+            origin = request.headers.get("origin") or request.headers.get("sec-fetch-site", "")
+            await server.login_refused(request, foreign_origin(str(origin)))
             return _refused(403, "refused: a page of another origin may not drive the cell")
         entry = server.caller(request.headers)
         if entry is None:
+            await server.login_refused(request)
             return _refused(401, "missing or wrong API token")
         if request.headers.get("content-type", "").split(";")[0].strip() != "application/json":
             return _refused(
                 415, "send the call as JSON (Content-Type: application/json)", INVALID_REQUEST
             )
-        body = await request.body()
-        if len(body) > MAX_BODY:
-            return _refused(413, "request too large", INVALID_REQUEST)
+        body = await _body(request, MAX_BODY)  # the token checked first: none, nothing read
+        if isinstance(body, Response):
+            return body
         try:
             data: Any = json.loads(body)
         except (ValueError, RecursionError):
@@ -161,8 +168,10 @@ def dashboard_routes(server: ApiServer) -> list[BaseRoute]:
 
     async def handover_new(request: Request) -> Response:
         if not same_origin(request):
+            await server.login_refused(request, foreign_origin(str(request.headers.get("origin"))))
             return _refused(403, "refused: a page of another origin may not open the dashboard")
         if server.caller(request.headers) is None:
+            await server.login_refused(request)
             return _refused(401, "missing or wrong API token")
         token = request.headers["authorization"].partition(" ")[2].strip()
         return _json({"code": handovers.new(token), "valid_s": HANDOVER_S}, 200)
@@ -170,9 +179,12 @@ def dashboard_routes(server: ApiServer) -> list[BaseRoute]:
     async def handover(request: Request) -> Response:
         if not same_origin(request):
             return _refused(403, "refused: a page of another origin may not open the dashboard")
-        body = await request.body()
+        # No token here (the code stands for one): the body is a code's few bytes, no more.
+        body = await _body(request, MAX_HANDOVER_BODY)
+        if isinstance(body, Response):
+            return body
         try:
-            data: Any = json.loads(body) if len(body) <= MAX_BODY else None
+            data: Any = json.loads(body)
         except (ValueError, RecursionError):
             data = None
         code = data.get("code") if isinstance(data, dict) else None
@@ -199,6 +211,19 @@ def dashboard_routes(server: ApiServer) -> list[BaseRoute]:
 def _json(content: Any, status: int) -> Response:
     text = json.dumps(content, default=str, allow_nan=False)
     return Response(text, status_code=status, media_type="application/json")
+
+
+async def _body(request: Request, cap: int) -> bytes | Response:
+    """The request's body, or the answer instead: 413 in words (the connection closed: the
+    rest of the body is not read) past ``cap``, nothing for a client gone mid-body."""
+    try:
+        return await read_body(request, cap)
+    except BodyTooLarge as e:
+        refusal = _refused(413, e.message, INVALID_REQUEST)
+        refusal.headers["Connection"] = "close"
+        return refusal
+    except ClientGone:
+        return Response(status_code=499)  # nobody reads it; not an error of the server's
 
 
 def _refused(status: int, message: str, code: int = ACCESS_DENIED) -> Response:

@@ -55,7 +55,7 @@ from cellctl.kinds.iso_cnc.dnc.status import (
 )
 from cellctl.kinds.iso_cnc.dnc.store import check_program_number, read_program_file
 from cellctl.kinds.iso_cnc.tape import not_iso_code
-from cellctl.kinds.menu import MAX_PROGRAM_CHARS, Progress
+from cellctl.kinds.menu import MAX_PROGRAM_CHARS, PrintableText, Progress
 from cellctl.mailbox import Mailbox
 from cellctl.service.access import CellAccess, traffic_rows
 from cellctl.service.methods import Method, P
@@ -81,27 +81,27 @@ CONDITIONS = {
 
 
 class SendParams(P):
-    machine: str = Field(min_length=1, max_length=64)
-    program: str = Field(min_length=1, max_length=500)
+    machine: PrintableText = Field(min_length=1, max_length=64)
+    program: PrintableText = Field(min_length=1, max_length=500)
     text: str | None = Field(default=None, max_length=MAX_PROGRAM_CHARS)
     drip: bool = False
-    ticket: str | None = Field(default=None, min_length=1, max_length=64)
+    ticket: PrintableText | None = Field(default=None, min_length=1, max_length=64)
     """The caller's own name for this transfer: ``dnc.stop`` with it stops this one only."""
 
 
 class ReceiveParams(P):
-    machine: str = Field(min_length=1, max_length=64)
+    machine: PrintableText = Field(min_length=1, max_length=64)
     timeout: float = Field(default=600.0, gt=0, le=PUNCH_S)
 
 
 class LogParams(P):
-    machine: str = Field(min_length=1, max_length=64)
+    machine: PrintableText = Field(min_length=1, max_length=64)
     last: int = Field(default=50, ge=1, le=10_000)
 
 
 class StopParams(P):
-    machine: str = Field(min_length=1, max_length=64)
-    ticket: str | None = Field(default=None, min_length=1, max_length=64)
+    machine: PrintableText = Field(min_length=1, max_length=64)
+    ticket: PrintableText | None = Field(default=None, min_length=1, max_length=64)
     """Stop only the transfer sent with this ticket (a client stopping its own)."""
 
 

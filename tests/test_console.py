@@ -25,7 +25,7 @@ from cellctl.cell.owner import acquire_controller_lock, controller_holder
 from cellctl.errors import UsageError
 from cellctl.kinds.dyna2400.emulator import LinkMode
 from cellctl.kinds.ibm7545.aml import compile_source
-from cellctl.service import server as server_module
+from cellctl.service import publish as publish_module
 from cellctl.service.access import AttachedCell, LocalCell
 from cellctl.service.client import CellClient, StandaloneCell, attach
 from cellctl.service.functions import function
@@ -511,7 +511,7 @@ async def test_attached_robot_by_hand_after_its_step_in_flight(
     """A function by hand on the robot waits for its transfer in flight, as the controller
     tells it, even when the console's pushed status does not show that transfer yet (a
     loaded server's updates come late): then it runs, and nothing is refused."""
-    monkeypatch.setattr(server_module, "PUSH_TICK", 3600.0)  # updates only when told
+    monkeypatch.setattr(publish_module, "PUSH_TICK", 3600.0)  # updates only when told
     controller = await rig.start_controller(transfer_timeout=120)
     server = ApiServer(AttachedCell(controller), rig.directory)
     await server.start()

@@ -91,8 +91,8 @@ from cellctl.service.methods import (
     RoleRefused,
     error_object,
 )
+from cellctl.service.publish import Publisher
 from cellctl.service.rpc import SOCKET_FILE
-from cellctl.service.status import CellStatus, difference
 from cellctl.service.token import (
     TOKEN_FILE,
     TokenEntry,
@@ -116,10 +116,6 @@ log = logging.getLogger(__name__)
 
 #: The largest WebSocket frame accepted (a program text fits; more closes the connection).
 MAX_FRAME = 8 * 1024 * 1024
-#: Shortest gap between two pushed updates (bursts of changes are coalesced).
-PUSH_GAP = 0.01
-#: Updates are looked for at least this often, signalled or not.
-PUSH_TICK = 1.0
 #: Seconds a one-shot WebSocket token stays good.
 ONESHOT_TTL = 10.0
 #: Where Unix socket paths must fit (sun_path is 108 bytes on Linux).
@@ -138,7 +134,7 @@ def socket_target(directory: Path) -> Path:
     return Path(runtime_dir()) / f"api-{digest}.sock"
 
 
-class ApiServer(InFlight):
+class ApiServer(InFlight, Publisher):
     """Serves one cell's API on its Unix socket and, if configured, on TCP."""
 
     def __init__(
@@ -578,53 +574,6 @@ class ApiServer(InFlight):
                 log.exception("API method %s failed", method[:100])
             return None if rid is None else {"jsonrpc": "2.0", "id": rid, "error": error}
         return None if rid is None else {"jsonrpc": "2.0", "id": rid, "result": result}
-
-    # -- pushing changes ----------------------------------------------------------------------
-
-    def changed(self) -> None:
-        """The cell's state changed (called by the controller)."""
-        self._changed.set()
-
-    async def _publisher(self) -> None:
-        while True:
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(PUSH_TICK):
-                    await self._changed.wait()
-            self._changed.clear()
-            subscribers = [s for s in self.sessions if s.subscribed and s.open]
-            valid = {e: still_valid(self.directory, e) for e in {s.entry for s in subscribers}}
-            for session in subscribers:
-                if not valid[session.entry]:  # revoked: its session ends now
-                    session.finish(1008)
-            subscribers = [s for s in subscribers if valid[s.entry]]
-            if not subscribers:
-                continue
-            try:
-                status = self.access.status()  # built once for every subscriber
-            except Exception:
-                log.exception("status snapshot failed")
-                continue
-            self.push(status, subscribers)
-            await current_clock().sleep(PUSH_GAP)
-
-    def push(self, status: CellStatus, subscribers: list[Session]) -> None:
-        """Send each subscriber what changed since the status it holds (most hold the same
-        one: the difference is made and encoded once for them all)."""
-        held: dict[int, tuple[CellStatus | None, list[Session]]] = {}
-        for session in subscribers:
-            held.setdefault(id(session.last), (session.last, []))[1].append(session)
-        for last, sessions in held.values():
-            update = difference(last, status)
-            for session in sessions:
-                session.last = status
-            if update.empty():
-                continue
-            message = json.dumps(
-                {"jsonrpc": "2.0", "method": "notify_status_update", "params": update.as_json()}
-            )
-            self.push_count += 1
-            for session in sessions:
-                session.send(message)
 
 
 def as_caller(entry: TokenEntry) -> Caller:

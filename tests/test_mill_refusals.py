@@ -8,6 +8,7 @@ The example cell on virtual time (docs/clock.md).
 
 from __future__ import annotations
 
+import asyncio
 from pathlib import Path
 
 import pytest
@@ -134,4 +135,36 @@ async def test_a_block_that_runs_on_after_its_step_failed_is_alarmed_again_once_
                 timeout=600,
             )
         assert rig.all_done(), rig.describe()
+        await rig.stop_controller()
+
+
+@pytest.mark.virtual
+async def test_a_block_that_runs_on_after_its_link_was_cut_is_no_second_alarm(
+    tmp_path: Path,
+) -> None:
+    """The mill's line cut mid-block (the device server dropped it): the step fails on its
+    link, one alarm; the block runs on and ends by itself, so the cell waits for it without
+    telling the operator to stop it at the machine (fault_reaction's link-cut)."""
+    async with CellRig(tmp_path / "cell") as rig:
+        mill = rig.cell.mills["cnc1"]
+        cuts: list[asyncio.Task[None]] = []
+
+        async def cut_mid_block() -> None:
+            await rig.wait_for(lambda: mill.executing, "cnc1 executing its block", 600)
+            line = rig.cell.servers["cnc1"].current_line
+            assert line is not None
+            line.drop()
+
+        def as_the_door_closes(name: str, on: bool) -> None:
+            if name == "door_1" and not on and not cuts:
+                cuts.append(asyncio.ensure_future(cut_mid_block()))
+
+        rig.cell.plc.hooks.coil.append(as_the_door_closes)
+        rig.post("wax-robot-base", 1, "A")
+        await rig.start_controller()
+        await rig.wait_for(lambda: rig.alarms("cnc1", "link"), "the link's alarm", 600)
+        await cuts[0]
+        await rig.wait_quiet()
+        texts = [a.text for a in rig.journal.alarms() if a.machine == "cnc1"]
+        assert texts and all("block still runs" not in t for t in texts), texts
         await rig.stop_controller()

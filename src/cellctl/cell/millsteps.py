@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any
 from cellctl.cell.causes import Cause, blame
 from cellctl.cell.orders import ReportKind
 from cellctl.cell.robotsteps import INTERLOCK_POLL_S
-from cellctl.errors import CellctlError, UsageError
+from cellctl.errors import CellctlError, DeviceError, UsageError
 from cellctl.kinds import Condition
 from cellctl.kinds.families import nothing_started
 from cellctl.protocol.plc import canonical
@@ -181,6 +181,10 @@ class MillSteps:
             # Out of the plan at once; recovery sets it up again (reopening its link). The
             # alarm names the cause: the PLC, the mill's link, or the step itself.
             cause = await self.monitor.cause_of(mill_name, e)
+            if isinstance(e, DeviceError) and mill.running:
+                # The machine failed the step while its block runs on (past its deadline):
+                # one still running later is the fault, not a block that ends by itself.
+                self.recovery.overran(mill_name)
             if cause is not None and cause.code == "interlock":
                 # A door or vise that did not move: this mill cuts nothing until the operator
                 # clears the alarm (each try would close the door and wait out its deadline

@@ -68,6 +68,9 @@ class Recovery:
         # Mills whose cut failed on a door or vise the PLC did not move: no cut until the
         # operator clears the PLC's interlock alarm.
         self._interlocked: set[str] = set()
+        # Mills whose step failed on the machine's own word while its block ran on (past its
+        # deadline: a stall), until set up again: a block still running then is the fault.
+        self._overran: set[str] = set()
 
     # -- what the scheduler asks ----------------------------------------------------------------
 
@@ -213,6 +216,12 @@ class Recovery:
                 await self.prepare_mill(config, force=True)
         self._resumed.discard(name)
 
+    def overran(self, name: str) -> None:
+        """Mill ``name``'s step failed on the machine's own word while its block ran on (its
+        deadline passed): a block still running after it is a fault (see _still_running),
+        not one that ends by itself (a step cut by its link)."""
+        self._overran.add(name)
+
     def _still_running(self, name: str) -> None:
         """Mill ``name``'s block runs on after its step failed (a stall: it never said READY
         again): the operator's to stop at the machine. Alarmed again once its alarm is
@@ -249,6 +258,7 @@ class Recovery:
                 return
             self.fit[m.name] = self.ready[m.name] = True
             self.faulted.discard(m.name)
+            self._overran.discard(m.name)
             self.alarms.returned(m.name, "readiness")
             if self._doubted.pop(m.name, None) is not None:
                 self.alarms.log(f"{m.name}: ready again, its setup kept on the operator's word")
@@ -259,7 +269,7 @@ class Recovery:
             return
         if not mill.running:  # a block still running is no failure: it ends
             self.alarms.failed(m.name, "readiness", f"not ready: {status.shown}", alarm=False)
-        elif m.name in self.faulted:
+        elif m.name in self._overran:
             self._still_running(m.name)
         await self.world.clock.sleep(mill.ready_wait)
 
@@ -358,7 +368,7 @@ class Recovery:
                 # in the plan until recovery sees the block end.
                 view.show("executing (left running)", Condition.BUSY)
                 self.fit[m.name] = False
-                if m.name in self.faulted:
+                if m.name in self._overran:
                     self._still_running(m.name)
                 self._start(m.name)
                 return False
@@ -386,6 +396,7 @@ class Recovery:
         self.faulted.discard(m.name)
         # Set up again, or returned to service by its operator: no doubt is left.
         self._doubted.pop(m.name, None)
+        self._overran.discard(m.name)
         self.ready[m.name] = status.takes_work
         # Set up again: a failed setup is behind it, and a lost readiness if it takes work.
         self.alarms.returned(m.name, "initialize", *(("readiness",) if status.takes_work else ()))

@@ -20,7 +20,7 @@ from cellctl.emulators.cell import EXAMPLE_CELL
 from cellctl.errors import AccessDenied
 from cellctl.service.client import attach
 from cellctl.service.token import ensure_default
-from tests.conftest import CELLCTL
+from tests.test_sqlite_links import cellctl
 
 NOBODY = 65534
 AS_ROOT = pytest.mark.skipif(os.geteuid() != 0, reason="another user's process needs root")
@@ -76,16 +76,6 @@ def impostor(cell: Path, user: int | None = None) -> Iterator[Path]:
         except subprocess.TimeoutExpired:
             proc.terminate()
             proc.wait(timeout=10)
-
-
-def cellctl(cell: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [*CELLCTL, "--cell", str(cell), *args],
-        capture_output=True,
-        text=True,
-        timeout=90,
-        stdin=subprocess.DEVNULL,
-    )
 
 
 @pytest.mark.parametrize(("mode", "who"), [(0o777, "every user"), (0o757, "every user")])

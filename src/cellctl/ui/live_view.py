@@ -20,6 +20,7 @@ from rich.table import Table
 from rich.text import Text
 
 from cellctl.cell.controller import CellController
+from cellctl.clock import current_clock
 from cellctl.emulators.header import emulated_scale
 from cellctl.service.access import AttachedCell
 from cellctl.service.status import CellMode, CellStatus
@@ -128,7 +129,7 @@ class LiveView:
         table = Table(title="open alarms", expand=True)
         for col in ("id", "machine", "priority", "state", "alarm"):
             table.add_column(col)
-        now = time.time()
+        now = current_clock().now()
         for a in status.alarms[-ALARM_ROWS:]:
             # RTN: its condition is gone, the alarm open until cleared (not a fault now).
             state = alarm_marks(

@@ -9,28 +9,17 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
-import pytest
-
-from cellctl.cell.journal import open_journal
 from cellctl.service.server import ApiLimits
 from tests.conftest import until
-from tests.test_api_hardening import EXAMPLE, drip, serve, until_closed
+from tests.test_api_hardening import cell as cell  # the fixture: a copy of the example cell
+from tests.test_api_hardening import drip, serve, until_closed
 
 #: The body's and the head's deadline here (s): the tests wait for it, bounded, never time it.
 DEADLINE = 1.0
 MIB_300 = 300 * 1024 * 1024
-
-
-@pytest.fixture
-def cell(tmp_path: Path) -> Path:
-    directory = tmp_path / "cell"
-    shutil.copytree(EXAMPLE, directory)
-    open_journal(directory).close()
-    return directory
 
 
 def post(path: str, *extra: str) -> bytes:

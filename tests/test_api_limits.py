@@ -272,18 +272,14 @@ async def test_the_connection_over_the_cap_is_refused_with_a_reason(cell: Path) 
     async with LocalCell(cell, {}) as access:
         server = ApiServer(access, cell, listen=f"127.0.0.1:{port}", limits=limits)
         await server.start()
-        held = []
+        held: list[ClientConnection] = []
         try:
+            # Busy connections (an idle kept-alive one would be closed to make room).
             for _ in range(3):
-                reader, writer = await asyncio.open_connection("127.0.0.1", port)
-                request = get("/server/info", "127.0.0.1", server.token)
-                writer.write(request.replace(b"Connection: close\r\n", b""))
-                async with asyncio.timeout(10):
-                    assert (await reader.readuntil(b"\r\n")).startswith(b"HTTP/1.1 200")
-                held.append(writer)
+                held.append(await Served(server, port, server.token).ws())
             status, body = await http(port, get("/server/info", "127.0.0.1", server.token))
             assert status == 503 and b"3 connections are open on this listener" in body
-            held.pop().close()
+            await held.pop().close()
             # One closed: a new one is served again (once the server saw it go).
             async with asyncio.timeout(10):
                 while True:
@@ -293,8 +289,8 @@ async def test_the_connection_over_the_cap_is_refused_with_a_reason(cell: Path) 
                     await asyncio.sleep(0.02)
             assert json.loads(body)["mode"] == "standalone"
         finally:
-            for writer in held:
-                writer.close()
+            for ws in held:
+                await ws.close()
             await server.close()
 
 

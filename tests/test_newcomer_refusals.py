@@ -144,8 +144,11 @@ def test_opcua_adduser_refuses_a_users_file_it_cannot_write(tmp_path: Path) -> N
     assert "password" not in said
     # A directory there, but no file can be made in it: an OSError, said in words.
     edit(cell, 'users = "secrets/users.toml"', 'users = "/proc/users.toml"')
-    said = refused(cellctl("--cell", str(cell), "opcua", "adduser", "carl", stdin="s\ns\n"))
-    assert said.startswith("password for carl: "), said  # asked: the refusal is the write's
+    said = refused(
+        cellctl("--cell", str(cell), "opcua", "adduser", "carl", stdin="secret12\nsecret12\n")
+    )
+    # Asked: the refusal is the write's.
+    assert said.startswith("password for carl (8 characters or more): "), said
     assert "error: /proc/users.toml: cannot write the OPC UA users: " in said, said
 
 

@@ -126,12 +126,12 @@ async def _a_viewer_cannot_order(
     and the refusal is in the audit trail under the user's name."""
     from cellctl.service.audit import AuditLog
 
-    async with session(url, cell, cert, "vera", "pw") as vera:
+    async with session(url, cell, cert, "vera", "vera-pass") as vera:
         refused = await call_raw(vera, cell_id, submit_id, "wax-robot-base", ua.Variant(1, UINT32))
     assert refused.StatusCode.value == ua.StatusCodes.BadUserAccessDenied
     words = refused.InputArgumentDiagnosticInfos[0].AdditionalInfo
     assert "vera is a viewer: orders.submit needs the operator role" in words
-    async with session(url, cell, cert, "vera", "pw") as vera:
+    async with session(url, cell, cert, "vera", "vera-pass") as vera:
         idx = await vera.get_namespace_index(NAMESPACE)
         ack = vera.get_node(ua.NodeId("Cell/AcknowledgeAlarm", idx))
         refused = await call_raw(vera, cell_id, ack.nodeid, ua.Variant(1, UINT32))
@@ -166,7 +166,7 @@ async def test_a_user_watches_and_orders_an_anonymous_reader_cannot_act(
     async with CellRig(tmp_path / "cell", time_scale=200.0) as rig:
         cell = rig.directory
         add_user(cell, "alice", "correct horse")
-        add_user(cell, "vera", "pw", role="viewer")
+        add_user(cell, "vera", "vera-pass", role="viewer")
         assert (cell / "opcua-users.toml").stat().st_mode & 0o777 == 0o600
         with (cell / "cell.toml").open("a") as f:
             f.write(
@@ -300,7 +300,7 @@ async def _scenario(rig: CellRig, url: str, cert: tuple[str, str], run: asyncio.
         # Acknowledge (Part 9) on the condition marks it seen (an event says so); it stays
         # open until cleared. The cell's own AcknowledgeAlarm then has nothing left to do.
         alarm_node = await cell_node.get_child([f"{idx}:Alarms", f"{idx}:{event.AlarmId}"])
-        async with session(url, cell, cert, "vera", "pw") as vera:  # a viewer may not
+        async with session(url, cell, cert, "vera", "vera-pass") as vera:  # a viewer may not
             with pytest.raises(BadUserAccessDenied):
                 await vera.get_node(alarm_node.nodeid).call_method(
                     ua.NodeId(ua.ObjectIds.AcknowledgeableConditionType_Acknowledge),
@@ -453,7 +453,7 @@ def test_opcua_table_problems(example_cell: Path, table: str, problem: str) -> N
 async def test_anonymous_is_refused_unless_allowed_and_the_users_file_must_be_private(
     example_cell: Path, client_cert: tuple[str, str]
 ) -> None:
-    add_user(example_cell, "bob", "pw")
+    add_user(example_cell, "bob", "bob-pass")
     url = f"opc.tcp://127.0.0.1:{free_port()}"
     table = OpcuaTable(listen=url, users="opcua-users.toml")
     async with LocalCell(example_cell, {}) as access:
@@ -463,7 +463,7 @@ async def test_anonymous_is_refused_unless_allowed_and_the_users_file_must_be_pr
             with pytest.raises(BadIdentityTokenRejected):
                 async with session(url, example_cell, client_cert):
                     pass
-            async with session(url, example_cell, client_cert, "bob", "pw") as bob:
+            async with session(url, example_cell, client_cert, "bob", "bob-pass") as bob:
                 idx = await bob.get_namespace_index(NAMESPACE)
                 cell = bob.get_node(ua.NodeId("Cell/Name", idx))
                 assert await cell.read_value() == "cell"
@@ -544,21 +544,23 @@ def test_the_condition_enumeration_names_every_condition() -> None:
 
 
 def test_a_new_password_keeps_the_users_role(example_cell: Path) -> None:
-    add_user(example_cell, "victor", "first", role="viewer")
+    add_user(example_cell, "victor", "first-pass", role="viewer")
     again = CliRunner().invoke(
-        cli_main, ["--cell", str(example_cell), "opcua", "adduser", "victor"], input="x2\nx2\n"
+        cli_main,
+        ["--cell", str(example_cell), "opcua", "adduser", "victor"],
+        input="second-pass\nsecond-pass\n",
     )
     assert again.exit_code == 0, again.output
     assert "user victor (viewer) has a new password" in again.output
     assert load_entries(example_cell / "opcua-users.toml")["victor"][1] == "viewer"
     # A role is changed only when given.
-    add_user(example_cell, "victor", "x3", role="engineer")
+    add_user(example_cell, "victor", "third-pass", role="engineer")
     assert load_entries(example_cell / "opcua-users.toml")["victor"][1] == "engineer"
 
 
 def test_a_plan_of_a_cell_that_serves_opc_ua_plays(example_cell: Path) -> None:
     """A plan serves no OPC UA: its copy of the cell leaves [opcua] (and its users file) out."""
-    add_user(example_cell, "alice", "pw")
+    add_user(example_cell, "alice", "alice-pass")
     with (example_cell / "cell.toml").open("a", encoding="utf-8") as f:
         f.write('\n[opcua]\nlisten = "opc.tcp://127.0.0.1:4840"\nusers = "opcua-users.toml"\n')
     done = CliRunner().invoke(

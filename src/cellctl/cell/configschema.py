@@ -177,7 +177,9 @@ class ApiTable(_Table):
         default=60.0, description="s an HTTP connection may sit idle between requests"
     )
     max_connections: Annotated[int, Field(ge=1, le=10_000)] = Field(
-        default=100, description="open connections per listener; the next one gets 503"
+        default=100,
+        description="open connections per listener; the next one closes the one idle longest "
+        "(503 only when every one is busy)",
     )
     calls_per_session: Annotated[int, Field(ge=1, le=1000)] = Field(
         default=16,

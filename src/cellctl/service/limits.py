@@ -20,8 +20,12 @@ for. ``[api]`` of cell.toml sets them::
   answered 429 with the reason (``server.py``), so one token cannot fill the listener.
 - Between requests, uvicorn closes a connection idle for ``idle_timeout`` s. A WebSocket is
   kept as long as it answers pings.
-- A listener with ``max_connections`` open connections answers the next one 503, with the
-  reason, and closes it. Refusals and closings are logged (at most one line per 10 s).
+- A listener with ``max_connections`` open connections makes room for the next one by
+  closing the connection that has waited longest for its next request (a kept-alive one
+  whose answer is complete, or one whose request head has not come): a client needs no token
+  to hold a connection, so idle ones must not lock the others out. Only when every one is
+  busy (a request being answered, a WebSocket) is the new one answered 503, with the reason,
+  and closed. Refusals and closings are logged (at most one line per 10 s).
 - :class:`HostCheck` answers 421 to a request whose ``Host`` is not a name the listener
   answers to: its address, ``localhost``, a loopback address, or one of ``hosts``. A page
   that reached a loopback port by rebinding its own DNS name is refused, token or not.
@@ -32,6 +36,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import ipaddress
+import itertools
 import json
 import logging
 import re
@@ -103,11 +108,26 @@ class Listener:
     def __init__(self, name: str, limits: ApiLimits) -> None:
         self.name = name
         self.limits = limits
-        self.open = 0
+        self.guards: set[_Guard] = set()  # its open connections
         self.refused = 0
+        self.evicted = 0
         self.timed_out = 0
         self._logged: dict[str, float] = {}
         self._untold: dict[str, int] = {}
+
+    @property
+    def open(self) -> int:
+        """How many connections are open (one closed to make room counts no more at once)."""
+        return len(self.guards)
+
+    def make_room(self) -> bool:
+        """Close the connection that has waited longest for its next request (one closing
+        already first) to let a new one in; False if every one is busy."""
+        idle = [guard for guard in self.guards if guard.idle()]
+        if not idle:
+            return False
+        min(idle, key=lambda guard: (not guard.closing(), guard.since)).evict()
+        return True
 
     def note(self, kind: str, text: str) -> None:
         """Log ``text`` unless a line of this ``kind`` went out in the last LOG_EVERY s."""
@@ -130,6 +150,10 @@ def _http(status: str, reason: str) -> bytes:
 
 
 _HEAD, _BODY, _CHUNKED, _IDLE, _PAST = range(5)
+#: The order in which connections began to wait for a request (connected, or answered).
+_ticks = itertools.count()
+#: An attribute a protocol does not have.
+_MISSING = object()
 
 
 class _Guard(asyncio.Protocol):
@@ -149,22 +173,23 @@ class _Guard(asyncio.Protocol):
         self._upgrading = False  # uvicorn's WebSocket protocol has the connection
         self._line = bytearray()  # a chunked body's size or trailer line, so far
         self._trailer = False  # a chunked body's last chunk came: its trailer lines follow
+        self.since = next(_ticks)  # when it began to wait for its next request
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
         self.transport = transport
-        limits = self.listener.limits
-        if self.listener.open >= limits.max_connections:
-            self.listener.refused += 1
+        listener = self.listener
+        if listener.open >= listener.limits.max_connections and not listener.make_room():
+            listener.refused += 1
             reason = (
-                f"refused: {self.listener.open} connections are open on this listener, "
-                f"the most [api] max_connections allows"
+                f"refused: {listener.open} connections are open on this listener, "
+                f"the most [api] max_connections allows, and every one is busy"
             )
-            self.listener.note("refused", f"{reason} ({self.listener.refused} so far)")
+            listener.note("refused", f"{reason} ({listener.refused} so far)")
             transport.write(_http("503 Service Unavailable", reason))
             transport.close()
             return
-        self.listener.open += 1
+        listener.guards.add(self)
         self.inner = self.make()
         self._arm()
         self.inner.connection_made(_Transport(transport, self))
@@ -185,7 +210,7 @@ class _Guard(asyncio.Protocol):
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm()
         if self.inner is not None:
-            self.listener.open -= 1
+            self.listener.guards.discard(self)  # gone from the count already if evicted
             self.inner.connection_lost(exc)
 
     def pause_writing(self) -> None:
@@ -195,6 +220,51 @@ class _Guard(asyncio.Protocol):
     def resume_writing(self) -> None:
         if self.inner is not None:
             self.inner.resume_writing()
+
+    def idle(self) -> bool:
+        """Whether it waits for its client, not the server: no request yet, or its answer
+        complete (as uvicorn's shutdown judges it), or a request's body still to come; or it
+        is being closed (it goes anyway). A WebSocket, or a protocol not known here, is busy."""
+        if self.inner is None:
+            return False
+        if self.closing():  # a refused handshake's, say: its connection_lost is yet to come
+            return True
+        if self._mode in (_BODY, _CHUNKED):
+            # Its client still owes the request's body: a client on this host sends one whole
+            # at once, and one that trickles it (a route that reads it before the token is
+            # checked) must not hold the connection from the others.
+            return True
+        if self._upgrading:
+            return False
+        cycle = getattr(self.inner, "cycle", _MISSING)
+        if cycle is _MISSING:
+            return False
+        return cycle is None or getattr(cycle, "response_complete", False) is True
+
+    def closing(self) -> bool:
+        """Whether its socket is being closed already."""
+        return self.transport is None or self.transport.is_closing()
+
+    def evict(self) -> None:
+        """Close it to make room for a new connection, and count it out at once (its
+        ``connection_lost`` may come later)."""
+        listener = self.listener
+        listener.guards.discard(self)
+        if self.transport is None:
+            return
+        if not self.transport.is_closing():  # one closing already is no news
+            listener.evicted += 1
+            peer = self.transport.get_extra_info("peername") or "the socket"
+            listener.note(
+                "evicted",
+                f"closed an idle connection from {peer}: the listener was full "
+                f"([api] max_connections; {listener.evicted} so far)",
+            )
+        if self.transport.get_write_buffer_size():
+            # An answer its client does not read: closing would wait for it without end.
+            self.transport.abort()
+        else:
+            self.transport.close()
 
     def upgraded(self, protocol: asyncio.BaseProtocol) -> None:
         """uvicorn swapped in its WebSocket protocol for a handshake. The deadlines hold until
@@ -207,6 +277,7 @@ class _Guard(asyncio.Protocol):
         """uvicorn wrote to the connection (an answer, maybe before the body has come); after
         ``101 Switching Protocols`` it is a WebSocket, no HTTP any more: nothing to watch."""
         self._answered = True
+        self.since = next(_ticks)
         if self._upgrading and bytes(first[:13]) == b"HTTP/1.1 101 ":
             self._mode = _PAST
             self._disarm()

@@ -524,7 +524,8 @@ class Dispatcher:
         started: Started | None = None
         try:
             if entry is None:
-                raise MethodNotFound(f"no method {method!r} (server.info lists them)")
+                more = f"… (cut from {len(method)} characters)" if len(method) > 64 else ""
+                raise MethodNotFound(f"no method {method[:64]!r}{more} (server.info lists them)")
             if not role_allows(caller.role, entry.role):
                 name = caller.who.partition(":")[2] or caller.who
                 raise RoleRefused(
@@ -570,8 +571,7 @@ class Dispatcher:
         return entry is not None and (entry.abandoned or method in _ENDS_WITH_CLIENT)
 
     async def _run(self, entry: Method, method: str, params: Any, progress: Progress | None) -> Any:
-        if params is None:
-            params = {}
+        params = {} if params is None else params
         if not isinstance(params, dict):
             raise InvalidParams(f"{method}: params: parameters must be an object with names")
         try:

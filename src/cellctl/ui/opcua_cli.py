@@ -12,6 +12,8 @@ from cellctl.ui.common import cell_dir, console
 
 #: The users file when cell.toml names none yet.
 DEFAULT_USERS = "opcua-users.toml"
+#: The fewest characters a password may have: a short one falls to guessing.
+MIN_PASSWORD = 8
 
 
 @click.group("opcua")
@@ -33,8 +35,8 @@ def adduser(ctx: click.Context, name: str, role: str | None) -> None:
     """Add user NAME (or set a new password, and a role with --role) in the file [opcua]
     users names.
 
-    The password is asked twice and stored as a salted scrypt hash; the file is made mode
-    0600. A running server reads it at the next login: no restart.
+    The password (8 characters or more) is asked twice and stored as a salted scrypt hash;
+    the file is made mode 0600. A running server reads it at the next login: no restart.
     """
     from cellctl.factory.opcua.users import add_user
     from cellctl.service.client import require_cell
@@ -51,8 +53,16 @@ def adduser(ctx: click.Context, name: str, role: str | None) -> None:
             "(make it, or name another file in cell.toml: [opcua] users)"
         )
     password = click.prompt(
-        f"password for {name}", hide_input=True, confirmation_prompt=True, err=True
+        f"password for {name} ({MIN_PASSWORD} characters or more)",
+        hide_input=True,
+        confirmation_prompt=True,
+        err=True,
     )
+    if len(password) < MIN_PASSWORD:
+        raise UsageError(
+            f"the password is too short: it needs {MIN_PASSWORD} characters or more, it has "
+            f"{len(password)} (nothing was written)"
+        )
     new, kept = add_user(Path(path), name, password, role)
     done = "added" if new else "has a new password"
     console.print(f"{path}: user {name} ({kept}) {done}", markup=False)

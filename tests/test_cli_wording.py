@@ -84,7 +84,9 @@ def test_a_mill_command_the_saw_has_no_function_for_names_the_commands_it_has(
         assert shown.returncode == 0, shown.stderr
     assert "home, cut: in the console or the control API" in refused.stderr
     home = cellctl("--cell", str(cell), "mill", "saw", "home")
-    assert home.returncode == 2 and "No such command 'home'" in home.stderr
+    assert home.returncode == 2, home.stderr
+    assert "no mill command 'home' for saw, a kerf100" in home.stderr, home.stderr
+    assert "home, cut: in the console or the control API" in home.stderr
     # A command reading no machine is left to its own words.
     check = cellctl("--cell", str(cell), "mill", "saw", "check", str(cell / "cell.toml"))
     assert check.returncode == 2 and "`mill check` reads DYNALAN" in check.stderr

@@ -49,6 +49,7 @@ against, independent of the controller's journal.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import random
 import re
 import shutil
@@ -572,11 +573,15 @@ def _machine_kinds(template: Path) -> dict[str, str]:
     except (OSError, tomllib.TOMLDecodeError) as e:
         raise UsageError(f"{path}: cannot read it: {e}") from None
     machines = raw.get("machines", {})
-    return {
-        name: str(entry.get("kind"))
+    kinds = {
+        name: entry["kind"]
         for name, entry in machines.items()
-        if isinstance(entry, dict) and entry.get("kind") in registry.names()
+        if isinstance(entry, dict) and isinstance(entry.get("kind"), str)
     }
+    for kind in set(kinds.values()) - set(registry.names()):
+        with contextlib.suppress(UsageError):  # unknown: cell check names it (BrokenKind: here)
+            registry.kind(kind)
+    return {name: kind for name, kind in kinds.items() if kind in registry.names()}
 
 
 def check_cell_dir(cell_dir: Path) -> None:

@@ -34,6 +34,7 @@ import functools
 import importlib
 import inspect
 import itertools
+import logging
 import textwrap
 from collections.abc import Awaitable, Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -43,7 +44,7 @@ from typing import TYPE_CHECKING, Any, Literal
 from pydantic import BaseModel, ValidationError
 
 from cellctl.clock import Clock, emulator_clock
-from cellctl.errors import UsageError
+from cellctl.errors import CellctlError, UsageError
 from cellctl.link import LineSettings, TrafficLog
 
 if TYPE_CHECKING:
@@ -53,6 +54,8 @@ if TYPE_CHECKING:
     from cellctl.emulators.serve import EmulatedDevice
     from cellctl.kinds.families import StartOutput
     from cellctl.kinds.menu import MachineFunction
+
+log = logging.getLogger(__name__)
 
 Family = Literal["robot", "mill"]
 #: The families a kind belongs to: what the cell does with it (a PLC stays what it is).
@@ -324,32 +327,87 @@ def attribute_docs(model: type[BaseModel]) -> dict[str, str]:
     return docs
 
 
+class BrokenKind(CellctlError):
+    """An installed kind that cannot be used, said in words that name it, its package, what
+    is wrong and what its author should fix: ``kind 'saw2' (package cellctl-saw2) is
+    installed but broken: ImportError: ...``. A plug-in's mistake, never the user's."""
+
+
 class LazyTable(Mapping[str, str]):
     """A table another module holds, imported when first read: ``faults=LazyTable(
     "mykind.emulator:FAULTS")`` keeps the declaration (read at every start) from importing
-    the emulator."""
+    the emulator.
 
-    def __init__(self, target: str) -> None:
+    One that cannot be read (no such module or name, not a table of str -> str) makes its
+    kind broken: :meth:`read` and a look-up (``name in table``, ``table[name]``) raise
+    :class:`BrokenKind`; a listing (``len``, iteration: a help naming every kind's switches)
+    warns once and lists nothing, so every other kind still shows. The registry gives each
+    kind's table its kind's words (:meth:`owned`)."""
+
+    def __init__(self, target: str, *, owner: str = "", field: str = "faults") -> None:
         self.target = target
+        self._owner = owner
+        self._field = field
         self._table: Mapping[str, str] | None = None
+        self._broken: BrokenKind | None = None
+        self._warned = False
 
-    def _read(self) -> Mapping[str, str]:
+    def owned(self, owner: str, field: str) -> LazyTable:
+        """This table as kind ``owner`` declares it in ``field`` (its errors say both):
+        ``owner`` as ``kind 'saw2' (package cellctl-saw2)``."""
+        return LazyTable(self.target, owner=owner, field=field)
+
+    def read(self) -> Mapping[str, str]:
+        """The table, imported on first use; :class:`BrokenKind` if it cannot be read."""
+        if self._broken is not None:
+            raise self._broken
         if self._table is None:
-            module, _, name = self.target.partition(":")
-            self._table = getattr(importlib.import_module(module), name)
+            try:
+                self._table = self._load()
+            except Exception as e:  # a plug-in's mistake of any kind: said, not a traceback
+                why = str(e) if isinstance(e, _NotATable) else f"{type(e).__name__}: {e}"
+                self._broken = BrokenKind(
+                    f"{self._owner or 'a kind'} is installed but broken: its {self._field} "
+                    f"table {self!r} cannot be read: {why} (fix the target, "
+                    '"module:NAME" of a dict of str -> str, in its MachineKind declaration)'
+                )
+                raise self._broken from None
         return self._table
 
+    def _load(self) -> Mapping[str, str]:
+        module, _, name = self.target.partition(":")
+        table = getattr(importlib.import_module(module), name)
+        if not isinstance(table, Mapping) or not all(
+            isinstance(k, str) and isinstance(v, str) for k, v in table.items()
+        ):
+            raise _NotATable(f"{name} is a {type(table).__name__}, not a dict of str -> str")
+        return table
+
+    def _listed(self) -> Mapping[str, str]:
+        # Listing every kind's tables (a help): a broken one is warned of and lists nothing.
+        try:
+            return self.read()
+        except BrokenKind as e:
+            if not self._warned:
+                self._warned = True
+                log.warning("machine %s", e)
+            return {}
+
     def __getitem__(self, key: str) -> str:
-        return self._read()[key]
+        return self.read()[key]
 
     def __iter__(self) -> Iterator[str]:
-        return iter(self._read())
+        return iter(self._listed())
 
     def __len__(self) -> int:
-        return len(self._read())
+        return len(self._listed())
 
     def __repr__(self) -> str:
         return f"LazyTable({self.target!r})"
+
+
+class _NotATable(TypeError):
+    """A LazyTable's target that is not a table (its words are the message)."""
 
 
 class MachineState(enum.IntEnum):

@@ -4,14 +4,23 @@
 ::
 
     from cellctl.kinds import registry
-    kind = registry.kind("saw1")            # UsageError naming the known kinds otherwise
+    kind = registry.kind("saw1")            # UsageError naming the known kinds otherwise,
+                                            # BrokenKind for one installed but broken
     registry.kinds("mill")                  # every kind of the mill family
     registry.broken()                       # {entry-point name: why it was skipped}
 
 A plug-in declares ``[project.entry-points."cellctl.machine_kinds"]`` ``NAME =
 "package.module:KIND"`` where ``KIND`` is a :class:`~cellctl.kinds.kind.MachineKind` (or a
 function returning one) whose ``name`` is ``NAME``. One that fails to import or declares
-something else is reported by name and skipped, never a crash at start.
+something else is reported by name and skipped, never a crash at start; named (a cell.toml,
+``--kind``), it is :class:`~cellctl.kinds.kind.BrokenKind`: ``kind 'saw2' (package
+cellctl-saw2) is installed but broken: WHY (WHAT TO FIX)``.
+
+A plug-in kind is held to the contract docs/kinds.md gives as its hooks are used: the
+emulator its hook makes must have its family's members (:data:`EMULATOR_MEMBERS`), and its
+``start()`` and ``set_fault()`` failing, or its ``emulated_options`` giving options its own
+model refuses, are said in words naming the kind; a ``LazyTable`` of its that cannot be read
+breaks that kind alone (:class:`~cellctl.kinds.kind.LazyTable`).
 
 A name is one kind. A built-in kind (declared by cellctl itself) always wins: a plug-in
 declaring its name is listed broken ("mill1 is a built-in kind: cellctl-x cannot replace
@@ -29,14 +38,19 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
+import importlib
+import inspect
 import logging
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from functools import cache
 from importlib.metadata import EntryPoint, entry_points
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
+
+from pydantic import ValidationError
 
 from cellctl.errors import CellctlError, UsageError
-from cellctl.kinds.kind import FAMILIES, EmulatorSpec, MachineKind, Origin
+from cellctl.kinds.kind import FAMILIES, BrokenKind, EmulatorSpec, LazyTable, MachineKind, Origin
 
 if TYPE_CHECKING:
     from cellctl.emulators.serve import EmulatedDevice
@@ -56,8 +70,42 @@ class Found:
     broken: dict[str, str]
 
 
+class _Refused(Exception):
+    """Why an entry point gives no kind, in words whole (no exception type put before)."""
+
+
+def _declared_object(ep: EntryPoint) -> object:
+    """What entry point ``ep`` names, its failure said with what its author should fix."""
+    try:
+        module = importlib.import_module(ep.module)
+    except ModuleNotFoundError as e:
+        if e.name is not None and (ep.module == e.name or ep.module.startswith(e.name + ".")):
+            raise _Refused(
+                f"{type(e).__name__}: {e} (its entry point {ep.name} = {ep.value} names a "
+                "module that is not there: fix it in the package's pyproject.toml)"
+            ) from None
+        raise _Refused(
+            f"{type(e).__name__}: {e} (raised importing {ep.module}: install what it "
+            "imports, or fix the import)"
+        ) from None
+    except Exception as e:  # its import raised: the package's own mistake
+        raise _Refused(
+            f"{type(e).__name__}: {e} (raised importing {ep.module}: fix the package's import)"
+        ) from None
+    obj: object = module
+    for name in ep.attr.split(".") if ep.attr else ():
+        try:
+            obj = getattr(obj, name)
+        except AttributeError as e:
+            raise _Refused(
+                f"{type(e).__name__}: {e} (its entry point {ep.name} = {ep.value} names "
+                "nothing there: fix it in the package's pyproject.toml)"
+            ) from None
+    return obj
+
+
 def _load(ep: EntryPoint) -> MachineKind:
-    obj = ep.load()
+    obj = _declared_object(ep)
     if not isinstance(obj, MachineKind) and callable(obj):
         obj = obj()
     if not isinstance(obj, MachineKind):
@@ -73,28 +121,198 @@ def _load(ep: EntryPoint) -> MachineKind:
             f"its options model {obj.options.__name__} must refuse unknown keys "
             '(model_config = ConfigDict(extra="forbid"))'
         )
-    dist = ep.dist.name if ep.dist is not None else "?"
+    dist = _dist(ep)
+    owner = f"kind {obj.name!r} (package {dist})"
+    obj = dataclasses.replace(obj, origin=Origin(dist, ep.module), **_owned_tables(obj, owner))
     if dist == BUILT_IN:
-        return dataclasses.replace(obj, origin=Origin(dist, ep.module))
-    emulator = _guarded_emulator(obj.emulator, f"kind {obj.name} (from {dist})")
-    return dataclasses.replace(obj, origin=Origin(dist, ep.module), emulator=emulator)
+        return obj
+    return _held_to_contract(obj, f"kind {obj.name} (from {dist})", owner)
 
 
-def _guarded_emulator(
-    make: Callable[[EmulatorSpec], EmulatedDevice], who: str
-) -> Callable[[EmulatorSpec], EmulatedDevice]:
+def _owned_tables(kind: MachineKind, owner: str) -> dict[str, Any]:
+    """The kind's LazyTables, each saying ``owner`` and its field when it cannot be read."""
+    return {
+        f.name: value.owned(owner, f.name)
+        for f in dataclasses.fields(kind)
+        if isinstance(value := getattr(kind, f.name), LazyTable)
+    }
+
+
+def _held_to_contract(kind: MachineKind, who: str, owner: str) -> MachineKind:
+    """A plug-in kind whose emulator and emulated options are checked as they are made: a
+    mistake is a typed error naming the kind (``who``: ``kind saw1 (from cellctl-saw)``;
+    ``owner``: ``kind 'saw1' (package cellctl-saw)``), never a traceback."""
+    emulated = kind.emulated_options
+    return dataclasses.replace(
+        kind,
+        emulator=_guarded_emulator(kind, who),
+        emulated_options=None if emulated is None else _checked_emulated(kind, emulated, owner),
+    )
+
+
+#: What the emulated cell uses of an emulator of each family, besides ``session``
+#: (docs/kinds.md, step 5); ``set_fault()`` and ``clear_fault()`` where the kind has faults.
+EMULATOR_MEMBERS = {
+    "mill": ("start()", "cycle_start()", "run_hooks"),
+    "robot": ("set_input()", "output_hooks"),
+}
+
+
+def _emulator_refusal(device: object, kind: MachineKind, faults: Mapping[str, str]) -> str:
+    """What ``device``, made by ``kind``'s emulator hook, lacks of its family's emulator
+    protocol, in words ("" when it has everything)."""
+    from cellctl.emulators.serve import EmulatedDevice
+
+    if not isinstance(device, EmulatedDevice):
+        return (
+            f"its emulator is a {type(device).__name__}, not an EmulatedDevice "
+            "(cellctl.emulators.serve: docs/kinds.md, step 5)"
+        )
+    needed = [*EMULATOR_MEMBERS[kind.family], *(("set_fault()", "clear_fault()") * bool(faults))]
+    missing = []
+    for member in needed:
+        value = getattr(device, member.removesuffix("()"), None)
+        if value is None or (member.endswith("()") and not callable(value)):
+            missing.append(member)
+        elif member.endswith("_hooks") and not callable(getattr(value, "append", None)):
+            missing.append(f"{member} (a list)")
+    if missing:
+        return (
+            f"its emulator ({type(device).__name__}) has no {', '.join(missing)} (a "
+            f"{kind.family}'s emulator needs {', '.join(needed)}: docs/kinds.md, step 5)"
+        )
+    for method in ("start", "cycle_start") if kind.family == "mill" else ():
+        if inspect.iscoroutinefunction(getattr(device, method)):
+            return (
+                f"its emulator's {method}() is async: the emulated cell calls it as a plain "
+                f"function (def {method}(self) -> None, not async def)"
+            )
+    return ""
+
+
+def _guarded_emulator(kind: MachineKind, who: str) -> Callable[[EmulatorSpec], EmulatedDevice]:
     """A plug-in's emulator hook whose failure is a typed error naming the kind (``emulate
-    cell`` then says which, instead of a traceback)."""
+    cell`` then says which, instead of a traceback): the device it makes is held to its
+    family's emulator protocol (:data:`EMULATOR_MEMBERS`), and its ``start()`` and
+    ``set_fault()`` failing are said in words too."""
+    make = kind.emulator
 
     def guarded(spec: EmulatorSpec) -> EmulatedDevice:
+        faults = kind.faults.read() if isinstance(kind.faults, LazyTable) else kind.faults
         try:
-            return make(spec)
+            device = make(spec)
         except CellctlError:
             raise
         except Exception as e:  # a plug-in's failure of any kind: said, not a traceback
             raise UsageError(f"{who}: its emulator failed to start: {type(e).__name__}: {e}") from e
+        from cellctl.kinds.families import KindContractError
+
+        refusal = _emulator_refusal(device, kind, faults)
+        if refusal:
+            raise KindContractError(f"{who}: {refusal}")
+        if kind.family == "mill":
+            _wrap(device, "start", lambda start: _said_start(start, who))
+        if faults:
+            _wrap(device, "set_fault", lambda set_fault: _checked_set_fault(set_fault, faults, who))
+        return device
 
     return guarded
+
+
+def _wrap(device: object, method: str, wrap: Callable[[Any], Any]) -> None:
+    """``device.method`` replaced by ``wrap(it)`` on the instance: the device stays itself
+    (its class, the cell's ``type(device)`` checks)."""
+    with contextlib.suppress(AttributeError, TypeError):  # slots, a frozen device: as it is
+        setattr(device, method, wrap(getattr(device, method)))
+
+
+def _said_start(start: Callable[[], object], who: str) -> Callable[[], object]:
+    """An emulator's ``start()`` whose failure is said naming the kind."""
+
+    @functools.wraps(start)
+    def said() -> object:
+        try:
+            return start()
+        except CellctlError:
+            raise
+        except Exception as e:  # a plug-in's failure: said, not a traceback
+            raise UsageError(f"{who}: its emulator's start() raised {type(e).__name__}: {e}") from e
+
+    return said
+
+
+def _needed_argument(description: str) -> str:
+    """The argument a fault switch must be given, from its description (``"=MS: ..."`` ->
+    ``"MS"``), or "" when it takes none or says its default (``"=N: ... (default 5)"``)."""
+    if not description.startswith("=") or "(default" in description:
+        return ""
+    return description[1:].split(":", 1)[0].strip() or "ARG"
+
+
+def _checked_set_fault(
+    set_fault: Callable[[str, str | None], None], faults: Mapping[str, str], who: str
+) -> Callable[[str, str | None], None]:
+    """A plug-in emulator's ``set_fault`` that refuses a switch given without the argument
+    it needs, and says an error other than a UsageError (its contract) in words."""
+
+    @functools.wraps(set_fault)
+    def checked(name: str, arg: str | None = None) -> None:
+        needed = _needed_argument(faults.get(name, ""))
+        if arg is None and needed:
+            raise UsageError(f"fault {name} needs its argument: {name}={needed}")
+        try:
+            set_fault(name, arg)
+        except CellctlError:
+            raise
+        except Exception as e:  # not a UsageError, as docs/kinds.md asks: said, not raised
+            shown = name if arg is None else f"{name}={arg}"
+            raise UsageError(
+                f"fault {shown}: {who} refused it with {type(e).__name__}: {e} (its set_fault "
+                "should raise UsageError in words: docs/kinds.md, step 5)"
+            ) from e
+
+    return checked
+
+
+def _checked_emulated(
+    kind: MachineKind, emulated: Callable[[float], dict[str, float]], owner: str
+) -> Callable[[float], dict[str, float]]:
+    """A plug-in's ``emulated_options`` whose options are checked against its own options
+    model as they are made: what an emulated cell writes must pass ``cell check``."""
+
+    def checked(scale: float) -> dict[str, float]:
+        broken = f"{owner} is installed but broken: its emulated_options({scale:g})"
+        try:
+            options = emulated(scale)
+        except Exception as e:  # a plug-in's failure of any kind: said, not a traceback
+            raise BrokenKind(f"{broken} raised {type(e).__name__}: {e}") from e
+        refused = _refused_options(kind, options)
+        if refused:
+            raise BrokenKind(
+                f"{broken} gave options its options model {kind.options.__name__} refuses: "
+                f"{refused} (fix emulated_options, or the model)"
+            )
+        return options
+
+    return checked
+
+
+def _refused_options(kind: MachineKind, options: object) -> str:
+    """What ``kind``'s options model refuses of ``options`` (some of its options: one it
+    requires may be missing), in words ("" when nothing)."""
+    if not isinstance(options, dict) or not all(isinstance(k, str) for k in options):
+        return f"a {type(options).__name__}, not a dict of option -> value"
+    try:
+        kind.options.model_validate(options)
+    except ValidationError as e:
+        problems = [
+            f"{'.'.join(str(k) for k in item['loc']) or 'options'}: "
+            + ("unknown option" if item["type"] == "extra_forbidden" else str(item["msg"]))
+            for item in e.errors(include_url=False)
+            if item["type"] != "missing"
+        ]
+        return "; ".join(problems)
+    return ""
 
 
 @cache
@@ -103,7 +321,7 @@ def _try(ep: EntryPoint) -> MachineKind | str:
     try:
         return _load(ep)
     except Exception as e:  # a plug-in's failure of any kind: skip it, say which
-        why = f"{type(e).__name__}: {e}"
+        why = str(e) if isinstance(e, _Refused) else f"{type(e).__name__}: {e}"
         log.warning("machine kind %s skipped: %s", ep.name, why)
         return why
 
@@ -203,10 +421,11 @@ def registered(*added: MachineKind, distribution: str = "tests") -> Iterator[Non
         if k.name in found().kinds or k.name in _testing:
             raise ValueError(f"kind {k.name!r} is installed already")
     for k in added:
-        emulator = _guarded_emulator(k.emulator, f"kind {k.name} (from {distribution})")
-        _testing[k.name] = dataclasses.replace(
-            k, origin=Origin(distribution, "tests"), emulator=emulator
+        owner = f"kind {k.name!r} (package {distribution})"
+        owned = dataclasses.replace(
+            k, origin=Origin(distribution, "tests"), **_owned_tables(k, owner)
         )
+        _testing[k.name] = _held_to_contract(owned, f"kind {k.name} (from {distribution})", owner)
     try:
         yield
     finally:
@@ -226,12 +445,15 @@ def names(family: str | None = None) -> tuple[str, ...]:
 
 
 def kind(name: str) -> MachineKind:
-    """The kind called ``name``; UsageError naming the known ones (and why it is broken)."""
+    """The kind called ``name``; UsageError naming the known ones, or :class:`BrokenKind`
+    naming its package and why, for one installed but broken."""
     k = _one(name)
     if isinstance(k, MachineKind):
         return k
     if k:
-        raise UsageError(f"machine kind {name!r} is installed but broken: {k}")
+        dists = sorted({_dist(ep) for ep in _declared().get(name, [])})
+        package = f"package{'s' * (len(dists) > 1)} {' and '.join(dists)}"
+        raise BrokenKind(f"kind {name!r} ({package}) is installed but broken: {k}")
     raise UsageError(f"unknown machine kind {name!r} (known: {', '.join(names()) or 'none'})")
 
 

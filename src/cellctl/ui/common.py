@@ -32,6 +32,9 @@ from rich.table import Table
 from cellctl.clock import current_clock
 from cellctl.errors import CellctlError, UsageError, exit_code
 
+# Re-exported: the kinds' command lines build their family groups from here.
+from cellctl.ui.machine_group import MachineGroup as MachineGroup
+
 if TYPE_CHECKING:
     from cellctl.service.machines import MachineRef
 
@@ -398,33 +401,6 @@ def accept_cell(command: click.Command, top: str) -> None:
             accept_cell(sub, top)
 
 
-class MachineGroup(click.Group):
-    """A group that takes an optional machine NAME before its command: ``robot r1 status``."""
-
-    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
-        rest = list(args)
-        # Options come first; the first bare word that is not a command is the machine NAME.
-        i = 0
-        while i < len(rest):
-            word = rest[i]
-            if word.startswith("-"):
-                opt = self._option_for(ctx, word)
-                i += 1 if opt is None or opt.is_flag or "=" in word else 2
-                continue
-            if word not in self.commands:
-                ctx.meta["machine_name"] = word
-                del rest[i]
-            break
-        return super().parse_args(ctx, rest)
-
-    def _option_for(self, ctx: click.Context, word: str) -> click.Option | None:
-        name = word.split("=", 1)[0]
-        for param in self.get_params(ctx):
-            if isinstance(param, click.Option) and name in param.opts + param.secondary_opts:
-                return param
-        return None
-
-
 #: The signals that stop a command that serves or follows until told: Ctrl-C and SIGTERM.
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
@@ -553,9 +529,21 @@ def kind_option(family: str) -> Callable[[FC], FC]:
     return click.option(
         "--kind",
         metavar="KIND",
+        callback=_not_broken,
         help=f"The {family}'s kind (`cellctl kinds`): at --link, what it is driven as (default: "
         f"the first {family} kind that has the command); with a NAME, checked against cell.toml.",
     )
+
+
+def _not_broken(ctx: click.Context, param: click.Parameter, kind: str | None) -> str | None:
+    """Refuse ``--kind`` of a kind installed but broken, saying why (BrokenKind); an unknown
+    one is refused naming the family's kinds, as the machine is resolved."""
+    if kind is not None:
+        from cellctl.kinds import registry
+
+        with contextlib.suppress(UsageError):
+            registry.kind(kind)
+    return kind
 
 
 def fault_help(faults: dict[str, str]) -> str:

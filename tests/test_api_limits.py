@@ -25,7 +25,7 @@ from cellctl.errors import UsageError
 from cellctl.mailbox import open_mailbox
 from cellctl.service.access import LocalCell
 from cellctl.service.client import RemoteCell
-from cellctl.service.server import ApiLimits, ApiServer, api_limits, ensure_token
+from cellctl.service.server import ApiLimits, ApiServer, api_limits, ensure_token, parse_listen
 from cellctl.ui.dashboard.routes import dashboard_routes
 from tests.conftest import CELLCTL, free_port, until
 
@@ -291,6 +291,23 @@ async def test_the_connection_over_the_cap_is_refused_with_a_reason(cell: Path) 
         finally:
             for ws in held:
                 await ws.close()
+            await server.close()
+
+
+async def test_localhost_is_bound_as_127_0_0_1_never_looked_up(cell: Path) -> None:
+    # "localhost" passes as loopback by its name: what is bound must be loopback too, not
+    # whatever a hosts file maps the name to (a public address would serve the API there).
+    assert parse_listen("localhost:7125", allow_remote=False) == ("127.0.0.1", 7125)
+    assert parse_listen("localhost:7130", False, table="dnc") == ("127.0.0.1", 7130)
+    port = free_port()
+    async with LocalCell(cell, {}) as access:
+        server = ApiServer(access, cell, listen=f"localhost:{port}")
+        await server.start()
+        try:
+            assert server.tcp == ("127.0.0.1", port)
+            status, body = await http(port, get("/server/info", f"localhost:{port}", server.token))
+            assert status == 200 and json.loads(body)["mode"] == "standalone", body
+        finally:
             await server.close()
 
 

@@ -170,11 +170,12 @@ def dashboard_routes(server: ApiServer) -> list[BaseRoute]:
         if not same_origin(request):
             await server.login_refused(request, foreign_origin(str(request.headers.get("origin"))))
             return _refused(403, "refused: a page of another origin may not open the dashboard")
-        if server.caller(request.headers) is None:
+        caller = server.caller(request.headers)
+        if caller is None:
             await server.login_refused(request)
             return _refused(401, "missing or wrong API token")
         token = request.headers["authorization"].partition(" ")[2].strip()
-        return _json({"code": handovers.new(token), "valid_s": HANDOVER_S}, 200)
+        return _json({"code": handovers.new(token, caller.name), "valid_s": HANDOVER_S}, 200)
 
     async def handover(request: Request) -> Response:
         if not same_origin(request):

@@ -24,7 +24,7 @@ from typing import Annotated, Any, Final
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from cellctl.cell.config import load_cell
-from cellctl.emulators.cell import real_cell_toml
+from cellctl.emulators.celltoml import real_cell_toml
 from cellctl.errors import CellctlError, UsageError
 from cellctl.files import read_file, write_output
 from cellctl.mailbox.base import MAX_QTY
@@ -315,7 +315,7 @@ NOT_PLAYED = ("mailbox", "opcua")
 
 def plan_cell_toml(text: str) -> str:
     """A cell's cell.toml as a plan plays it: the real cell's (an emulated cell's emulation
-    undone, :func:`~cellctl.emulators.cell.real_cell_toml`: a plan plays the machines' real
+    undone, :func:`~cellctl.emulators.celltoml.real_cell_toml`: a plan plays the machines' real
     times, its emulators their own options), without the tables of what a plan does not
     serve: ``[mailbox]`` (a plan's orders are its own: no broker, no credentials to copy) and
     ``[opcua]`` (no server, no users file to copy)."""

@@ -331,6 +331,9 @@ def test_a_dr_off_window_on_the_iso_cnc_mill_ends_with_the_operators_reset(
     assert after and all(s["state"] == "finished" for s in after), after
     alarms = report["alarms"]
     assert "DR OFF (code 86)" in alarms[0]["text"] and alarms[0]["machine"] == "vf2", alarms
+    # Where the tape ended, as the DNC line says it: the operator decides at the control.
+    ended = r"; (all \d+ characters of its tape were out|the tape ended at \d+ of \d+ characters)"
+    assert re.search(ended, alarms[0]["text"]), alarms
     assert all(a["raised"] < closes for a in alarms), alarms  # none after the window
     assert closes - opens <= report["down_s"]["vf2"] <= closes - opens + 120, report["down_s"]
     assert report["all_finished"], report["orders"]

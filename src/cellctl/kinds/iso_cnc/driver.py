@@ -64,14 +64,20 @@ from pathlib import Path
 from cellctl.clock import Clock
 from cellctl.drivers.base import StartOutput
 from cellctl.drivers.state import StateStore
-from cellctl.errors import DeviceError, LinkTimeout, ProtocolError
+from cellctl.errors import CellctlError, DeviceError, LinkTimeout, ProtocolError
 from cellctl.kinds.families import RunNotStarted, RunProgress
 from cellctl.kinds.iso_cnc import tape
 from cellctl.kinds.iso_cnc.buffer import BufferModel, modelled_blocks
 from cellctl.kinds.iso_cnc.options import ISO_LINE, IsoCncOptions, off_loop, prepare, read_program
 from cellctl.kinds.iso_cnc.sender import TapeSender
 from cellctl.kinds.iso_cnc.status import IsoCncState, IsoCncStatus
-from cellctl.kinds.iso_cnc.transfer import Progress, TapeEnd, TransferProgress, TransferReport
+from cellctl.kinds.iso_cnc.transfer import (
+    Progress,
+    TapeEnd,
+    TransferProgress,
+    TransferReport,
+    with_words,
+)
 from cellctl.link import LineSettings, Link, TrafficLog
 
 
@@ -458,7 +464,14 @@ class IsoCncDriver(TapeSender):
             phase = {"stopped": "sending", "running": "machining"}.get(p.phase, p.phase)
             progress(RunProgress(block, lines, block, lines, p.chars_sent, p.chars_total, phase))
 
-        await self._read(framed, drip=True, progress=relay, timeout=self.options.dc1_timeout)
+        try:
+            await self._read(framed, drip=True, progress=relay, timeout=self.options.dc1_timeout)
+        except CellctlError as e:
+            if self.ended_at is None:
+                raise
+            # Where the tape ended, in the cell's alarm as the DNC line says it: the operator
+            # goes on from there (or not) at the control.
+            raise with_words(e, self.ended_at.words(drip=True)) from e
 
     async def end(self) -> str:
         """Back to the operator's hands (the host forgets an alarm the operator resets)."""

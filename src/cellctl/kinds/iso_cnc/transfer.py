@@ -9,6 +9,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from cellctl.errors import EXIT_CODES, CellctlError, DeviceError, ProtocolError
+
 
 @dataclass
 class TransferProgress:
@@ -92,3 +94,18 @@ class TapeEnd:
             "control first (G-codes, work offset, tool, spindle, feed): a drip-feed sends "
             "the program from its top"
         )
+
+
+def with_words(error: CellctlError, words: str) -> CellctlError:
+    """``error`` with ``words`` after its own, of its own type (its exit code, its API
+    error type): ``...: the other end closed the link; the tape ended at ...``."""
+    if isinstance(error, DeviceError):
+        detail = f"{error.detail}; {words}" if error.detail else words
+        return type(error)(error.code, error.message, detail=detail)
+    if isinstance(error, ProtocolError):
+        return type(error)(f"{error.args[0]}; {words}", error.raw)
+    try:
+        return type(error)(f"{error}; {words}")
+    except TypeError:  # a type built otherwise: its family's, same exit code
+        kind = next((k for k in EXIT_CODES if isinstance(error, k)), CellctlError)
+        return kind(f"{error}; {words}")

@@ -38,7 +38,6 @@ from cellctl.kinds.iso_cnc.dnc.status import (
     progress_dict,
     started_words,
     state_words,
-    with_words,
 )
 from cellctl.kinds.iso_cnc.dnc.store import (
     ShopStore,
@@ -50,6 +49,7 @@ from cellctl.kinds.iso_cnc.dnc.store import (
 from cellctl.kinds.iso_cnc.driver import IsoCncDriver, ReadNotStarted
 from cellctl.kinds.iso_cnc.options import off_loop, prepare
 from cellctl.kinds.iso_cnc.tape import DC2, split_programs, unframe
+from cellctl.kinds.iso_cnc.transfer import with_words
 from cellctl.link import TrafficLog
 
 log = logging.getLogger(__name__)

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from cellctl.clock import current_clock
-from cellctl.errors import EXIT_CODES, CellctlError, DeviceError, ProtocolError
+from cellctl.errors import CellctlError
 from cellctl.link import TrafficLog
 
 #: Chunks of traffic each machine keeps for ``traffic.tail`` (the console's traffic pane).
@@ -213,18 +213,3 @@ def started_words(program: str, drip: bool, chars: int) -> str:
         f"{program}: {what} by hand, {chars} characters of program: waiting for read: "
         f"{START_READ[drip]}"
     )
-
-
-def with_words(error: CellctlError, words: str) -> CellctlError:
-    """``error`` with ``words`` after its own, of its own type (its exit code, its API
-    error type): ``...: the other end closed the link; the tape ended at ...``."""
-    if isinstance(error, DeviceError):
-        detail = f"{error.detail}; {words}" if error.detail else words
-        return type(error)(error.code, error.message, detail=detail)
-    if isinstance(error, ProtocolError):
-        return type(error)(f"{error.args[0]}; {words}", error.raw)
-    try:
-        return type(error)(f"{error}; {words}")
-    except TypeError:  # a type built otherwise: its family's, same exit code
-        kind = next((k for k in EXIT_CODES if isinstance(error, k)), CellctlError)
-        return kind(f"{error}; {words}")

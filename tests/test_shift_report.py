@@ -76,13 +76,15 @@ def test_figures_of_a_hand_made_journal(tmp_path: Path) -> None:
     assert m.ideal_s == 48.0  # finished steps only
     assert m.performance == pytest.approx(48 / 60)
     assert (m.steps_ended, m.steps_good) == (3, 2)
-    assert m.quality == round(2 / 3, 4)
-    assert m.oee == pytest.approx(round(0.3 * 0.8 * (2 / 3), 4))
+    # Quality counts parts: A finished, C scrapped (B, cut well, is not finished yet).
+    assert (m.parts_ended, m.parts_good) == (2, 1)
+    assert m.quality == 0.5
+    assert m.oee == pytest.approx(round(0.3 * 0.8 * 0.5, 4))
     assert m.down_s == 30.0
     assert (report.parts_good, report.parts_held, report.parts_scrapped) == (1, 0, 1)
     causes = {x["code"]: x for x in report.alarms_by_cause}
     assert causes["status"] == {"code": "status", "priority": "high", "count": 1,
-                                "machines": ["cnc1"]}  # fmt: skip
+                                "machines": ["cnc1"], "by_machine": {"cnc1": 1}}  # fmt: skip
     assert causes["conveyor"]["priority"] == "low"
     downs = {(d["machine"], d["reason"]): d["seconds"] for d in report.downtime_by_reason}
     assert downs[("cnc1", "alarm: status")] == 10.0
@@ -116,8 +118,9 @@ def test_the_report_fits_80_columns_and_saves_csv_and_html(tmp_path: Path) -> No
     assert max(len(x) for x in lines) <= WIDTH
     assert any(x.startswith("a-mill-wi") and "100.0 %" in x for x in lines)  # performance
     rows = list(csv.reader(io.StringIO(shift_csv(report))))
-    assert rows[0] == ["section", "name", "field", "value"]
-    assert ["machine", "a-mill-with-a-long-name", "availability", str(round(100 / 300, 4))] in rows
+    assert rows[0] == ["section", "name", "field", "value", "machine"]
+    mill = "a-mill-with-a-long-name"
+    assert ["machine", mill, "availability", str(round(100 / 300, 4)), mill] in rows
     page = shift_html(report, [{**_step_dict(step.id, part.id), "part_type": "base"}], "a cell")
     assert page.count("<svg") == 1 and "<rect x=" in page
     assert "OEE" in page and "a cell" in page
@@ -216,7 +219,10 @@ def test_a_good_step_of_a_part_scrapped_later_is_not_good(tmp_path: Path) -> Non
     journal.scrap_part(b.id, "broken")
     report = shift_report(journal, ["cnc1", "cnc2"], {}, 1000.0, 1100.0)
     cnc1, cnc2 = report.machines
-    assert (cnc1.steps_ended, cnc1.steps_good, cnc1.quality) == (2, 1, 0.5)
-    assert (cnc2.steps_ended, cnc2.steps_good, cnc2.quality) == (1, 0, 0.0)
+    assert (cnc1.steps_ended, cnc1.steps_good) == (2, 1)
+    assert (cnc2.steps_ended, cnc2.steps_good) == (1, 0)
+    # Of the parts ended in the window, B (scrapped) is the only one: neither cut it well.
+    assert (cnc1.parts_ended, cnc1.parts_good, cnc1.quality) == (1, 0, 0.0)
+    assert (cnc2.parts_ended, cnc2.parts_good, cnc2.quality) == (1, 0, 0.0)
     assert cnc1.performance == 1.0  # no model: a step counts its own time
     journal.close()

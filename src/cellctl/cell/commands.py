@@ -81,17 +81,19 @@ class OperatorCommands:
         self.wake()
         self.touch()
 
-    def pause(self: CommandsHost) -> None:
-        """Start no new step; the steps in flight finish."""
+    def pause(self: CommandsHost, by: str = "") -> None:
+        """Start no new step; the steps in flight finish. ``by``: who asked, as the journal
+        keeps it (``token:olga (operator)``; "": not known)."""
         if not self.paused:
             self.paused = True
+            self.journal.note_controller("paused", by)
             self.log("paused by the operator: steps in flight finish, no new step starts")
 
-    def resume(self: CommandsHost) -> str:
+    def resume(self: CommandsHost, by: str = "") -> str:
         """Start dispatching again (the mills an emergency stop halted are initialized anew:
         their operators ready them at their panels first). Refused while an emergency stop
         is on, its button pressed or its alarm not cleared (MachineInUse: the stop holds the
-        cell, exit code 6)."""
+        cell, exit code 6). ``by``: who asked, as for :meth:`pause`."""
         if not self.inputs.get("estop_ok", True):
             # The cell's state refuses it, not the request: the stop holds the cell until
             # the button is released and its alarm cleared (a reset must never start it).
@@ -105,7 +107,9 @@ class OperatorCommands:
         if not self.paused:
             return "not paused: the cell runs"
         self.paused = False
-        self.log("resumed by the operator")
+        self.journal.note_controller("resumed", by)
+        # Who it was (an engineer is no operator); "the operator" when nobody is known.
+        self.log(f"resumed by {by or 'the operator'}")
         self.resume_halted()
         self.wake()
         return "resumed"
@@ -205,16 +209,19 @@ class OperatorCommands:
         busy = self.step_task(name) is not None or name in self.manual_use
         yield _HostView(mill) if busy else mill
 
-    async def emergency_stop(self: CommandsHost, reason: str = "") -> str:
-        """Stop the robot, halt the mills, raise an alarm, and pause the cell.
+    async def emergency_stop(self: CommandsHost, reason: str = "", by: str = "") -> str:
+        """Stop the robot, halt the mills, raise an alarm, and pause the cell (``by``: who
+        asked, as for :meth:`pause`).
 
         Steps in flight are cut short: their parts are held for inspection (never lost).
         """
-        self.paused = True
+        was_paused, self.paused = self.paused, True
         text = "emergency stop" + (f": {reason}" if reason else " by the operator")
         # The alarm (and with it the cell's emergency-stop mode) at once: a mill may take the
         # rest of its block to halt, and the stop must show meanwhile.
         self.alarm("cell", "estop", text)
+        if not was_paused:  # after the alarm: the shift report's record can wait a commit
+            self.journal.note_controller("paused", by, text)
         self.log(f"{text}: cell paused; resume once the cause is dealt with")
         # What the held parts' notes say, for the steps this stop cancels (only those).
         previous, self.cancel_reason = self.cancel_reason, "an emergency stop"

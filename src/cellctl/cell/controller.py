@@ -142,6 +142,7 @@ class CellController(OperatorCommands):
         self.cancel_reason = ABORTED
         self._work: dict[str, float] | None = None
         self.started_at = self.clock.now()
+        self._noted_start = False  # "started" journaled: close() journals "stopped"
 
     # -- plumbing ---------------------------------------------------------------------------------
 
@@ -257,6 +258,9 @@ class CellController(OperatorCommands):
     async def connect(self) -> None:
         """Open every machine's link and bring each to a known state; recover the journal."""
         recovery = self.journal.recover()
+        # The controller's life, for the shift report's running, paused and stopped time.
+        self.journal.note_controller("started")
+        self._noted_start = True
         for step in recovery.interrupted:
             self.log(f"restart: {step.kind} {step.program} of part {step.part_id} was in flight")
         for part in recovery.held:
@@ -344,6 +348,9 @@ class CellController(OperatorCommands):
     async def close(self) -> None:
         """Close every link. Steps still in flight (a run cancelled, not stopped) end first,
         cut short as a crash would leave them: their parts are held at the next start."""
+        if self._noted_start:  # once, however often it is closed
+            self._noted_start = False
+            self.journal.note_controller("stopped")
         await cancel_and_wait(self.steps_in_flight())
         if self._pallet_pulse is not None:
             with contextlib.suppress(Exception):
@@ -406,6 +413,7 @@ class CellController(OperatorCommands):
         operator clears its alarm, then resumes."""
         if not self.paused:
             self.paused = True
+            self.journal.note_controller("paused", why="emergency stop pressed")
             self.log(
                 "emergency stop pressed: cell paused; once it is released, clear its alarm, "
                 "then resume"

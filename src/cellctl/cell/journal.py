@@ -65,6 +65,7 @@ from cellctl.clock import Clock
 from cellctl.errors import UsageError
 
 __all__ = [
+    "CONTROLLER_EVENTS",
     "JOURNAL_FILE",
     "LOCATIONS",
     "MAX_SHELVE",
@@ -96,6 +97,9 @@ STEP_KINDS: Final = ("transfer", "machine")
 #: Step states: ``started`` (in flight), ``finished``, ``failed``, ``interrupted`` (was in
 #: flight when the controller stopped; set by :meth:`Journal.recover`).
 STEP_STATES: Final = ("started", "finished", "failed", "interrupted")
+#: What the controller's log records (:meth:`Journal.note_controller`): it ``started``
+#: (connecting), was ``paused`` (by a caller, or an emergency stop) and ``resumed``, ``stopped``.
+CONTROLLER_EVENTS: Final = ("started", "paused", "resumed", "stopped")
 #: What the operator decided about an interrupted or failed step of a held part.
 RESOLUTIONS: Final = ("", "accepted", "redo")
 
@@ -517,6 +521,24 @@ class Journal(AlarmJournal):
         older = self._read("SELECT name, reason, updated FROM machines WHERE in_service = 0")
         found += [(float(r[2]), r[0], False, r[1]) for r in older if r[0] not in logged]
         return sorted(found, key=lambda row: row[0])
+
+    # -- the controller ----------------------------------------------------------------------
+
+    def note_controller(self, event: str, by: str = "", why: str = "") -> None:
+        """Record the controller's ``event`` (one of :data:`CONTROLLER_EVENTS`), by whom
+        (``token:eve (engineer)``; "" for the controller itself) and why."""
+        if event not in CONTROLLER_EVENTS:
+            raise UsageError(f"no controller event {event!r}: {', '.join(CONTROLLER_EVENTS)}")
+        with self._write() as db:
+            db.execute(
+                "INSERT INTO controller_log (time, event, by, why) VALUES (?, ?, ?, ?)",
+                (self._now(), event, by, why),
+            )
+
+    def controller_log(self) -> list[tuple[float, str, str, str]]:
+        """Every controller event, oldest first: ``(time, event, by, why)``."""
+        rows = self._read("SELECT time, event, by, why FROM controller_log ORDER BY id")
+        return [(float(r[0]), str(r[1]), str(r[2]), str(r[3])) for r in rows]
 
     # -- figures -----------------------------------------------------------------------------
 

@@ -86,6 +86,16 @@ CREATE TABLE IF NOT EXISTS service_log (
     in_service INTEGER NOT NULL,
     reason TEXT NOT NULL
 );
+-- The controller's life: started, paused, resumed, stopped (the shift report's running,
+-- paused and stopped time), by whom (a caller and their role) and why. A journal from
+-- before it gets the table empty on open: that time is not known.
+CREATE TABLE IF NOT EXISTS controller_log (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    time REAL NOT NULL,
+    event TEXT NOT NULL,
+    by TEXT NOT NULL DEFAULT '',
+    why TEXT NOT NULL DEFAULT ''
+);
 """
 
 

@@ -19,9 +19,12 @@ Every figure is read from the journal over the window ``[start, end]`` (docs/cel
   takes (:func:`ideal_times`: the robot program's motion and interlocks, the mill program's
   door, download and cut from its toolpath), at the cell's time scale; a step with no ideal
   time counts its own duration.
-- **Quality** = good quantity / produced quantity: the steps that ended on the machine in the
-  window (finished, failed, interrupted), of which the good ones finished and their part is
-  neither held nor scrapped now.
+- **Quality** = good quantity / produced quantity, counted in parts (a part once, however
+  many of its steps the machine ran): the parts the machine worked on (a step of theirs ran
+  on it) that were finished or scrapped in the window, of which the finished ones are good.
+  A part neither finished nor scrapped yet (waiting, held) counts in neither. The steps stay
+  beside it: ``steps_ended`` (finished, failed, interrupted in the window) and ``steps_good``
+  (finished, their part neither held nor scrapped now).
 - **OEE** = availability x performance x quality.
 - **Down time** (ADOT): the union of the times the machine was out of service (the journal's
   service log) or had an alarm of its own or the cell's active: each of the alarm's spells
@@ -32,11 +35,22 @@ Every figure is read from the journal over the window ``[start, end]`` (docs/cel
   count once, two reasons at once each count), so its total may pass the machine's down
   time.
 - **Parts**: good (done), held (held now) and scrapped, by when they last changed.
-- **Alarms by cause**: the alarms raised in the window by code, with their priority.
+- **Alarms by cause**: the alarms raised in the window by code, with their priority and how
+  many on each machine.
+- **The controller**: the window's time split into running, paused, stopped and not known
+  (they add up to the window), from the journal's controller log (started, paused, resumed,
+  stopped, by whom and why). A controller that started again with no "stopped" before (a
+  crash, a kill) ran until it was last heard of (a step of its began or ended, it raised an
+  alarm), then "ended unheard": not known until the next start. So did the last one when no
+  controller runs now (``running_now=False``). Before the log's first event: not known.
+- **At the window's end** (the handover): the parts held then (held now, since at or before
+  the end: the journal keeps a part's present state, so a part held then and released
+  since is not listed) and the alarms open then (raised by the end, not cleared by it), each
+  acknowledged by then or not, its condition still active then or returned to normal.
 
 A ratio whose denominator is 0 is not known yet: None, not 0 (nothing went wrong). Quality
-while no step ended in the window, performance while the machine spent no time in steps, and
-OEE while either is not known.
+while no part the machine worked on was finished or scrapped in the window, performance
+while the machine spent no time in steps, and OEE while either is not known.
 """
 
 from __future__ import annotations
@@ -68,6 +82,8 @@ class MachineFigures:
     down_s: float
     steps_ended: int
     steps_good: int
+    parts_ended: int
+    parts_good: int
     availability: float
     performance: float | None
     quality: float | None
@@ -87,6 +103,24 @@ class ShiftReport:
     parts_scrapped: int
     alarms_by_cause: list[dict[str, Any]] = field(default_factory=list)
     downtime_by_reason: list[dict[str, Any]] = field(default_factory=list)
+    #: The window's time by the controller's state, s (they add up to the window).
+    running_s: float = 0.0
+    paused_s: float = 0.0
+    stopped_s: float = 0.0
+    not_known_s: float = 0.0
+    #: The controller's events in the window: ``time``, ``event``, ``by``, ``why``.
+    controller_events: list[dict[str, Any]] = field(default_factory=list)
+    #: The parts held at the window's end: ``part``, ``order``, ``part_type``, ``location``,
+    #: ``since``, ``why``.
+    held_at_end: list[dict[str, Any]] = field(default_factory=list)
+    #: The alarms open at the window's end: ``id``, ``machine``, ``code``, ``priority``,
+    #: ``text``, ``raised``, ``acknowledged``, ``acked_by``, ``active``.
+    open_alarms_at_end: list[dict[str, Any]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if not (self.running_s or self.paused_s or self.stopped_s or self.not_known_s):
+            # Nothing recorded (no journal yet): the window is not known, not "running".
+            self.not_known_s = round(self.end - self.start, 3)
 
     def as_dict(self) -> dict[str, Any]:
         """The report as JSON-ready data (the API's ``report.shift`` answer)."""
@@ -125,30 +159,48 @@ def shift_report(
     end: float,
     *,
     time_scale: float = 1.0,
+    running_now: bool = True,
 ) -> ShiftReport:
     """The figures of ``machines`` over ``[start, end]`` (module docstring); ``ideal``:
-    :func:`ideal_times`."""
+    :func:`ideal_times`; ``running_now``: whether a controller runs now (the API's own)."""
     if end <= start:
         raise ValueError(f"the window ends ({end}) before it starts ({start})")
     steps = journal.steps()
     alarms = journal.alarms()
     downs = _down_intervals(journal, alarms, end)
-    bad = {p.id for p in journal.parts(["held", "scrapped"])}
+    all_parts = journal.parts()
+    bad = {p.id for p in all_parts if p.status in ("held", "scrapped")}
+    # Finished or scrapped in the window: the parts quality counts (True: good).
+    ended = {
+        p.id: p.status == "done"
+        for p in all_parts
+        if p.status in ("done", "scrapped") and start <= p.updated <= end
+    }
     figures = [
-        _machine(name, steps, ideal, downs.get(name, []) + downs.get("cell", []), bad, start, end)
+        _machine(
+            name,
+            steps,
+            ideal,
+            downs.get(name, []) + downs.get("cell", []),
+            bad,
+            ended,
+            start,
+            end,
+        )
         for name in machines
     ]
-    parts = [p for p in journal.parts() if start <= p.updated <= end]
+    parts = [p for p in all_parts if start <= p.updated <= end]
     raised = [a for a in alarms if start <= a.raised <= end]
     causes = Counter((a.code, a.priority) for a in raised)
-    where: dict[str, set[str]] = defaultdict(set)
+    where: dict[str, Counter[str]] = defaultdict(Counter)
     for a in raised:
-        where[a.code].add(a.machine)
+        where[a.code][a.machine] += 1
     reasons: dict[tuple[str, str], list[tuple[float, float]]] = defaultdict(list)
     for machine, intervals in downs.items():
         for t0, t1, reason in intervals:
             reasons[(machine, reason)].append((t0, t1))
     by_reason = {key: _union(spans, start, end) for key, spans in reasons.items()}
+    split, events = _controller_time(journal, steps, alarms, start, end, running_now)
     return ShiftReport(
         start=start,
         end=end,
@@ -158,7 +210,13 @@ def shift_report(
         parts_held=sum(p.status == "held" for p in parts),
         parts_scrapped=sum(p.status == "scrapped" for p in parts),
         alarms_by_cause=[
-            {"code": code, "priority": pri, "count": n, "machines": sorted(where[code])}
+            {
+                "code": code,
+                "priority": pri,
+                "count": n,
+                "machines": sorted(where[code]),
+                "by_machine": dict(sorted(where[code].items())),
+            }
             for (code, pri), n in sorted(causes.items(), key=lambda kv: (-kv[1], kv[0]))
         ],
         downtime_by_reason=[
@@ -166,6 +224,24 @@ def shift_report(
             for (m, r), s in sorted(by_reason.items(), key=lambda kv: -kv[1])
             if s > 0
         ],
+        running_s=split["running"],
+        paused_s=split["paused"],
+        stopped_s=split["stopped"],
+        not_known_s=split["not_known"],
+        controller_events=events,
+        held_at_end=[
+            {
+                "part": p.id,
+                "order": p.order_id,
+                "part_type": p.part_type,
+                "location": p.location,
+                "since": p.updated,
+                "why": p.note,
+            }
+            for p in all_parts
+            if p.status == "held" and p.updated <= end
+        ],
+        open_alarms_at_end=_open_at(journal, alarms, end),
     )
 
 
@@ -175,15 +251,18 @@ def _machine(
     ideal: Mapping[str, float],
     downs: list[tuple[float, float, str]],
     held: set[str],
+    parts_ended: Mapping[str, bool],
     start: float,
     end: float,
 ) -> MachineFigures:
     planned = end - start
     production = ideal_s = 0.0
     ended = good = 0
+    worked: set[str] = set()  # the parts it ran a step of
     for s in steps:
         if s.machine != name:
             continue
+        worked.add(s.part_id)
         if s.state != "interrupted":  # its end is not known: it counts no time
             production += _overlap(s.started, s.ended if s.ended is not None else end, start, end)
         if s.ended is None or not start <= s.ended <= end:
@@ -194,9 +273,10 @@ def _machine(
             good += s.part_id not in held
     down = _union([(t0, t1) for t0, t1, _ in downs], start, end)
     availability = production / planned
+    produced = [parts_ended[p] for p in worked if p in parts_ended]
     # Nothing to divide by: not known yet (a 0 would read as a machine that did badly).
     performance = ideal_s / production if production > 0 else None
-    quality = good / ended if ended else None
+    quality = sum(produced) / len(produced) if produced else None
     oee = None if performance is None or quality is None else availability * performance * quality
     return MachineFigures(
         machine=name,
@@ -206,6 +286,8 @@ def _machine(
         down_s=round(down, 3),
         steps_ended=ended,
         steps_good=good,
+        parts_ended=len(produced),
+        parts_good=sum(produced),
         availability=round(availability, 4),
         performance=_rounded(performance),
         quality=_rounded(quality),
@@ -254,6 +336,87 @@ def _down_intervals(
             out[name].append((t0, t, f"out of service: {why}"))
     for name, (t0, why) in since.items():
         out[name].append((t0, max(t0, end), f"out of service: {why}"))
+    return out
+
+
+#: The controller's state after each event of its log.
+_AFTER = {"started": "running", "resumed": "running", "paused": "paused", "stopped": "stopped"}
+#: The event a report adds where a controller ended without a word (module docstring).
+ENDED_UNHEARD = "ended unheard"
+
+
+def _controller_time(
+    journal: Journal,
+    steps: list[Step],
+    alarms: list[Alarm],
+    start: float,
+    end: float,
+    running_now: bool,
+) -> tuple[dict[str, float], list[dict[str, Any]]]:
+    """The window's seconds by the controller's state, and its events in the window (with
+    the "ended unheard" the report reads from the journal: module docstring)."""
+    # When the controller was last heard of: what only a running controller journals.
+    heard = sorted(
+        {s.started for s in steps}
+        | {s.ended for s in steps if s.ended is not None}
+        | {a.raised for a in alarms}
+    )
+
+    def gone_after(since: float, before: float) -> float:
+        return max([since, *(t for t in heard if since <= t <= before)])
+
+    spans: list[tuple[float, float, str]] = []
+    events: list[tuple[float, str, str, str]] = []
+    state, since = "not_known", float("-inf")
+    for t, event, by, why in journal.controller_log():
+        if event == "started" and state in ("running", "paused"):
+            gone = gone_after(since, t)
+            spans.append((since, gone, state))
+            events.append((gone, ENDED_UNHEARD, "", ""))
+            state, since = "not_known", gone
+        spans.append((since, t, state))
+        events.append((t, event, by, why))
+        state, since = _AFTER.get(event, state), t
+    if not running_now and state in ("running", "paused"):
+        gone = gone_after(since, float("inf"))
+        spans.append((since, gone, state))
+        events.append((gone, ENDED_UNHEARD, "", ""))
+        state, since = "not_known", gone
+    spans.append((since, max(since, end), state))
+    split = dict.fromkeys(("running", "paused", "stopped", "not_known"), 0.0)
+    for t0, t1, what in spans:
+        split[what] += _overlap(t0, t1, start, end)
+    return (
+        {k: round(v, 3) for k, v in split.items()},
+        [
+            {"time": t, "event": e, "by": by, "why": why}
+            for t, e, by, why in events
+            if start <= t <= end
+        ],
+    )
+
+
+def _open_at(journal: Journal, alarms: list[Alarm], end: float) -> list[dict[str, Any]]:
+    """The alarms open at ``end``: raised by then, not cleared by then."""
+    found = [a for a in alarms if a.raised <= end and (a.cleared is None or a.cleared > end)]
+    spells = journal.alarm_spells(found)
+    out = []
+    for a in found:
+        acked = a.acked is not None and a.acked <= end
+        out.append(
+            {
+                "id": a.id,
+                "machine": a.machine,
+                "code": a.code,
+                "priority": a.priority,
+                "text": a.text,
+                "raised": a.raised,
+                "acknowledged": acked,
+                "acked_by": a.acked_by if acked else "",
+                # Its condition at the end: in one of its spells (active), else returned.
+                "active": any(b <= end and (e is None or e > end) for b, e in spells[a.id]),
+            }
+        )
     return out
 
 

@@ -124,7 +124,11 @@ def shift_figures(access: CellAccess, since: float | None, until: float | None) 
     if key not in _IDEAL:  # the machines' models run every program: once per cell.toml
         _IDEAL.clear()
         _IDEAL[key] = ideal_times(config, scale)
-    return shift_report(journal, machines, _IDEAL[key], start, end, time_scale=scale).as_dict()
+    # Attached: this process runs the controller (else a last run not stopped ended unheard).
+    running = access.mode == "attached"
+    return shift_report(
+        journal, machines, _IDEAL[key], start, end, time_scale=scale, running_now=running
+    ).as_dict()
 
 
 def program_preview(access: CellAccess, machine: str, program: str) -> dict[str, Any]:

@@ -74,7 +74,7 @@ from cellctl.service.params import Method as Method
 from cellctl.service.params import P as P
 from cellctl.service.planning import PlanParams, plan_run
 from cellctl.service.rpc import APP_ERROR_BASE as APP_ERROR_BASE
-from cellctl.service.rpc import CALLER, caller_name, login_name
+from cellctl.service.rpc import CALLER, caller_label, caller_name, login_name
 from cellctl.service.rpc import INTERNAL_ERROR as INTERNAL_ERROR
 from cellctl.service.rpc import INVALID_PARAMS as INVALID_PARAMS
 from cellctl.service.rpc import INVALID_REQUEST as INVALID_REQUEST
@@ -120,16 +120,16 @@ async def _schema(access: CellAccess, p: NoParams, progress: Progress | None) ->
 
 
 async def _pause(access: CellAccess, p: NoParams, progress: Progress | None) -> Any:
-    access.controller().pause()
+    access.controller().pause(by=caller_label())
     return {"message": "paused: steps in flight finish, no new step starts"}
 
 
 async def _resume(access: CellAccess, p: NoParams, progress: Progress | None) -> Any:
-    return {"message": access.controller().resume()}
+    return {"message": access.controller().resume(by=caller_label())}
 
 
 async def _estop(access: CellAccess, p: EstopParams, progress: Progress | None) -> Any:
-    return {"message": await access.controller().emergency_stop(p.reason)}
+    return {"message": await access.controller().emergency_stop(p.reason, by=caller_label())}
 
 
 async def _submit(access: CellAccess, p: SubmitParams, progress: Progress | None) -> Any:

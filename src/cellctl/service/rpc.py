@@ -62,6 +62,13 @@ def caller_name(default: str = "operator") -> str:
     return caller.who if caller is not None else default
 
 
+def caller_label() -> str:
+    """Who makes the call being run and their role, as the journal keeps who paused or
+    resumed the cell (``token:eve (engineer)``); "" outside a call."""
+    caller = CALLER.get()
+    return "" if caller is None else f"{caller.who} ({caller.role})"
+
+
 def error_from_object(obj: Any) -> CellctlError:
     """The typed error a JSON-RPC error object describes (for clients)."""
     if not isinstance(obj, dict):

@@ -5,10 +5,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import getpass
+import json
 import os
 import shutil
 import stat
+import subprocess
 from collections.abc import AsyncIterator
+from datetime import datetime
 from pathlib import Path
 
 import pytest
@@ -36,6 +39,7 @@ from cellctl.service.token import (
 from cellctl.testing.rig import CellRig
 from cellctl.testing.rig import cli as rig_cli
 from cellctl.ui.cli import main as cli_main
+from tests.conftest import CELLCTL
 from tests.test_dashboard import dashboard_served, http
 
 
@@ -349,6 +353,31 @@ def test_token_changes_are_in_the_audit_trail(tmp_path: Path) -> None:
     ]
     code, out = cli_sync(cell, "audit", "--json")
     assert code == 0 and '"token.revoke"' in out and f'"local:{getpass.getuser()}"' in out
+
+
+def test_a_token_made_to_expire_is_audited_with_the_time_it_expires(tmp_path: Path) -> None:
+    """``token add --expires``: the trail keeps the time it came to (with its offset), not a
+    span from an unknown moment; the real CLI, in its own process."""
+    cell = tmp_path / "cell"
+    open_journal(cell).close()
+    shutil.copy(Path(__file__).parent.parent / "examples" / "cell" / "cell.toml", cell)
+    env = {k: v for k, v in os.environ.items() if k != TOKEN_ENV}
+    args = ["token", "add", "shift", "--role", "operator", "--expires", "2099-12-31T18:00"]
+    done = subprocess.run(
+        [*CELLCTL, "--cell", str(cell), *args],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=60,
+    )
+    assert done.returncode == 0, done.stderr
+    assert "expires 2099-12-31 18:00:00" in done.stderr
+    with contextlib.closing(AuditLog(cell)) as log:
+        [(method, params, result)] = [(e.method, e.params, e.result) for e in log.entries()]
+    assert (method, result) == ("token.add", "ok")
+    asked = json.loads(params)
+    assert (asked["name"], asked["role"]) == ("shift", "operator")
+    assert datetime.fromisoformat(asked["expires"]) == datetime(2099, 12, 31, 18, 0).astimezone()
 
 
 def test_revoking_default_says_what_this_computer_acts_with_now(tmp_path: Path) -> None:

@@ -35,7 +35,7 @@ from cellctl.errors import (
 )
 from cellctl.mailbox import MAILBOX_FILE
 from cellctl.service.rpc import SOCKET_FILE, Caller, error_from_object
-from cellctl.service.token import TOKEN_ENV, client_token, identify
+from cellctl.service.token import TOKEN_ENV, check_unexpired, client_token, identify
 
 if TYPE_CHECKING:
     from websockets.asyncio.client import ClientConnection
@@ -379,6 +379,7 @@ def env_caller(directory: Path) -> Caller | None:
     given = os.environ.get(TOKEN_ENV, "").strip()
     if not given:
         return None
+    check_unexpired(directory, given)  # said as expired, as with a controller running
     entry = identify(directory, given)
     if entry is None:
         raise AccessDenied(NOT_A_TOKEN.format(env=TOKEN_ENV, directory=directory))

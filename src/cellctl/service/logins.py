@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from cellctl.service.audit import AuditEntry
-from cellctl.service.token import identify, revoked_name
+from cellctl.service.token import expired_entry, identify, revoked_name
 from cellctl.service.trail import CallTrail
 
 log = logging.getLogger(__name__)
@@ -65,6 +65,9 @@ def who_refused(directory: Path, token: str | None) -> str:
     entry = identify(directory, token)
     if entry is not None:
         return f"token:{entry.name}"
+    expired = expired_entry(directory, token)
+    if expired is not None:
+        return f"token:{expired.name} (expired)"
     name = revoked_name(directory, token)
     return f"token:{name} (revoked)" if name is not None else UNKNOWN_TOKEN
 

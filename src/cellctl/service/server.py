@@ -538,7 +538,8 @@ class ApiServer(InFlight, Publisher):
 
         try:
             if not still_valid(self.directory, session.entry):
-                raise AccessDenied(f"the token {session.entry.name!r} was revoked")
+                gone = "expired" if session.entry.expired() else "was revoked"
+                raise AccessDenied(f"the token {session.entry.name!r} {gone}")
             if method == "cell.subscribe":
                 status = self.access.status()
                 session.subscribed = True

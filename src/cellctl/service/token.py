@@ -16,6 +16,12 @@ the same rules), each holding a SHA-256 of its secret, never the secret::
     entry = identify(Path("cell"), secret)                 # TokenEntry(name="ann", ...)
     revoke_token(Path("cell"), "ann")                      # refused from now on
 
+A named token may expire: ``add_token(..., expires=parse_expiry("8h"))`` (or a date and time,
+``"2026-12-31T18:00"``). Past that time :func:`identify` and :func:`still_valid` refuse it as
+a revoked one (the API answers it as a wrong token); :func:`expired_entry` still names it, so
+a client can say why (:func:`client_token` does, for ``$CELLCTL_TOKEN``). An entry without an
+expiry (every entry made before expiries, and ``default``) never expires.
+
 At its start the server enters ``api-token`` as the engineer token ``default``
 (:func:`ensure_default`), so an older cell and its clients go on as before.
 """
@@ -25,12 +31,14 @@ from __future__ import annotations
 import errno
 import hashlib
 import hmac
+import math
 import os
 import re
 import secrets
 import stat
 import tomllib
 from dataclasses import dataclass
+from datetime import datetime
 from pathlib import Path
 
 from cellctl.clock import current_clock
@@ -117,7 +125,8 @@ def read_token(directory: Path) -> str:
 
 def client_token(directory: Path) -> str:
     """The token a client of the cell sends: ``$CELLCTL_TOKEN`` when set (a named token, so
-    the CLI and the console act with its role), else ``<cell>/api-token``."""
+    the CLI and the console act with its role), else ``<cell>/api-token``. TokenExpired (a
+    UsageError, with when and what to do) for a named token past its expiry: never sent."""
     given = os.environ.get(TOKEN_ENV, "").strip()
     if any(not "!" <= c <= "~" for c in given):
         # Refused here, not sent: a header with it is not HTTP (and would be echoed back).
@@ -125,6 +134,8 @@ def client_token(directory: Path) -> str:
             f"${TOKEN_ENV} is not a token: it holds a space, a line break or a character "
             "a token never has; set it to a token as `cellctl token add` printed it"
         )
+    if given:
+        check_unexpired(directory, given)
     return given or read_token(directory)
 
 
@@ -144,13 +155,73 @@ MAX_ENTRY_FILE = 1024
 
 @dataclass(frozen=True)
 class TokenEntry:
-    """One named token as stored: its name, role, when it was made, and a SHA-256 of the
-    secret (the secret itself is shown once, at :func:`add_token`)."""
+    """One named token as stored: its name, role, when it was made, a SHA-256 of the secret
+    (the secret itself is shown once, at :func:`add_token`), and when it expires (unix
+    seconds; None: never)."""
 
     name: str
     role: str
     created: float
     digest: str
+    expires: float | None = None
+
+    def expired(self, now: float | None = None) -> bool:
+        """Whether its expiry has come (at ``now``, else the clock's now)."""
+        if self.expires is None:
+            return False
+        return (current_clock().now() if now is None else now) >= self.expires
+
+
+class TokenExpired(UsageError):
+    """A client holds a named token past its expiry: said (with when, and how to get a new
+    one) before it is sent. ``entry`` is the expired token's entry."""
+
+    def __init__(self, entry: TokenEntry) -> None:
+        self.entry = entry
+        super().__init__(
+            f"${TOKEN_ENV}: the token {entry.name!r} expired on "
+            f"{format_time(entry.expires or 0.0)} and the cell's API refuses it; an engineer "
+            f"makes you a new one (`cellctl token add NAME --role {entry.role} --expires 8h`, "
+            f"or a date: --expires 2026-12-31T18:00) to set in ${TOKEN_ENV}; "
+            f"`cellctl token revoke {entry.name}` removes this one"
+        )
+
+
+def format_time(t: float) -> str:
+    """``t`` (unix seconds) as the local date and time the CLI shows: 2026-12-31 18:00:00."""
+    return datetime.fromtimestamp(t).strftime("%Y-%m-%d %H:%M:%S")
+
+
+#: ``--expires`` as a span from now: 90s, 30m, 8h, 30d.
+_SPAN = re.compile(r"(\d{1,9})([smhd])")
+_UNITS = {"s": 1, "m": 60, "h": 3600, "d": 86400}
+
+
+def parse_expiry(text: str, now: float | None = None) -> float:
+    """``--expires``: a span from now (``8h``, ``30d``) or a local date and time
+    (``2026-12-31T18:00``; a bare date is its midnight; an offset such as ``+01:00`` is
+    taken), as unix seconds. UsageError for anything else, a time already past, or one
+    past the year 9999."""
+    now = current_clock().now() if now is None else now
+    shown = text.strip()[:40]
+    span = _SPAN.fullmatch(text.strip())
+    try:
+        if span:
+            when = now + int(span.group(1)) * _UNITS[span.group(2)]
+        else:
+            when = datetime.fromisoformat(text.strip()).timestamp()
+    except (ValueError, OverflowError, OSError):
+        raise UsageError(
+            f"--expires {shown!r}: give a span from now (8h, 30d) or a date and time "
+            "(2026-12-31T18:00)"
+        ) from None
+    try:
+        said = format_time(when)
+    except (OverflowError, OSError, ValueError):
+        raise UsageError(f"--expires {shown!r} is too far ahead: name a date up to 9999") from None
+    if when <= now:
+        raise UsageError(f"--expires {shown!r} ({said}) is past: give a time to come")
+    return when
 
 
 def role_allows(role: str, needed: str) -> bool:
@@ -207,18 +278,46 @@ def _read_entry(path: Path) -> TokenEntry:
     except (UnicodeDecodeError, tomllib.TOMLDecodeError):
         data = {}
     name, role, created, digest = (data.get(k) for k in ("name", "role", "created", "sha256"))
+    # No expiry (an entry of a cellctl from before expiries too): it never expires. One that
+    # is no time is a broken entry: it lets nobody in, rather than never expiring.
+    expires = data.get("expires")
     if (
         name != path.name
         or role not in ROLES
         or not isinstance(created, int | float)
         or not isinstance(digest, str)
         or not re.fullmatch(r"[0-9a-f]{64}", digest)
+        or not (expires is None or _is_time(expires))
     ):
         raise UsageError(f"{path} is not a token entry; revoke it (cellctl token revoke)")
-    return TokenEntry(str(name), str(role), float(created), digest)
+    return TokenEntry(
+        str(name), str(role), float(created), digest, None if expires is None else float(expires)
+    )
 
 
-def _write_entry(directory: Path, name: str, role: str, token: str) -> TokenEntry:
+def _is_time(value: object) -> bool:
+    """Whether ``value`` (from TOML) is unix seconds the CLI can show: not a bool, nan, inf."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        return False
+    try:
+        format_time(value)
+    except (OverflowError, OSError, ValueError):
+        return False
+    return True
+
+
+def _entry_text(entry: TokenEntry) -> str:
+    text = (
+        f'name = "{entry.name}"\nrole = "{entry.role}"\ncreated = {entry.created}\n'
+        f'sha256 = "{entry.digest}"\n'
+    )
+    # Written only when there is one: an entry without it is the one older cellctl wrote.
+    return text if entry.expires is None else text + f"expires = {float(entry.expires)}\n"
+
+
+def _write_entry(
+    directory: Path, name: str, role: str, token: str, expires: float | None = None
+) -> TokenEntry:
     folder = _tokens_dir(directory)
     try:
         # Never parents: a missing cell directory is a mistyped one, not one to make here.
@@ -227,7 +326,7 @@ def _write_entry(directory: Path, name: str, role: str, token: str) -> TokenEntr
         raise UsageError(f"no cell at {os.path.abspath(directory)}: no such directory") from None
     except OSError as e:
         raise UsageError(f"{folder}: cannot make the tokens' directory: {e.strerror}") from None
-    entry = TokenEntry(name, role, round(current_clock().now(), 3), _digest(token))
+    entry = TokenEntry(name, role, round(current_clock().now(), 3), _digest(token), expires)
     path = folder / name
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
     try:
@@ -236,20 +335,28 @@ def _write_entry(directory: Path, name: str, role: str, token: str) -> TokenEntr
         raise UsageError(f"a token named {name!r} exists: revoke it first") from None
     with os.fdopen(fd, "w", encoding="utf-8") as f:
         os.fchmod(f.fileno(), 0o600)
-        f.write(
-            f'name = "{name}"\nrole = "{role}"\ncreated = {entry.created}\n'
-            f'sha256 = "{entry.digest}"\n'
-        )
+        f.write(_entry_text(entry))
     return entry
 
 
-def add_token(directory: Path, name: str, role: str) -> str:
-    """Make a token ``name`` with ``role``; the secret is returned once and kept only as a
-    hash. UsageError for a bad name or role, or a name already taken."""
+def add_token(directory: Path, name: str, role: str, expires: float | None = None) -> str:
+    """Make a token ``name`` with ``role``, refused from ``expires`` on (unix seconds, e.g.
+    :func:`parse_expiry`; None: never); the secret is returned once and kept only as a
+    hash. UsageError for a bad name or role, a name already taken, an expiry not to come,
+    or one for ``default`` (api-token's, which never expires)."""
     check_name(name)
     check_role(role)
+    if expires is not None:
+        if name == DEFAULT_NAME:
+            # The local CLI acts with api-token as `default`: it must go on working.
+            raise UsageError(
+                f"the token {DEFAULT_NAME!r} is the cell's api-token, which never expires: "
+                "give an expiring token another name"
+            )
+        if not _is_time(expires) or expires <= current_clock().now():
+            raise UsageError(f"token {name!r}: its expiry must be a time to come")
     token = secrets.token_urlsafe(32)
-    _write_entry(directory, name, role, token)
+    _write_entry(directory, name, role, token, expires)
     return token
 
 
@@ -304,10 +411,7 @@ def _keep_revoked(folder: Path, entry: TokenEntry) -> None:
     except OSError:
         return  # a link there: only the naming of later refusals is lost
     with os.fdopen(fd, "w", encoding="utf-8") as f:
-        f.write(
-            f'name = "{entry.name}"\nrole = "{entry.role}"\ncreated = {entry.created}\n'
-            f'sha256 = "{entry.digest}"\n'
-        )
+        f.write(_entry_text(entry))
 
 
 def revoked_name(directory: Path, token: str) -> str | None:
@@ -341,14 +445,19 @@ def ensure_default(directory: Path) -> str:
     except UsageError:
         path.unlink()  # a broken default entry: made again from api-token
         entry = None
-    if entry is None or not hmac.compare_digest(entry.digest, _digest(token)):
+    # An expiry put in by hand is dropped too: the local CLI acts with api-token.
+    if (
+        entry is None
+        or entry.expires is not None
+        or not hmac.compare_digest(entry.digest, _digest(token))
+    ):
         path.unlink(missing_ok=True)
         _write_entry(directory, DEFAULT_NAME, "engineer", token)
     return token
 
 
-def identify(directory: Path, token: str) -> TokenEntry | None:
-    """The entry whose secret ``token`` is, read now (a revoked token is refused at once)."""
+def _entry_of(directory: Path, token: str) -> TokenEntry | None:
+    """The entry whose secret ``token`` is, expired or not."""
     if not token or len(token) > MAX_TOKEN_FILE:
         return None
     digest = _digest(token)
@@ -359,10 +468,36 @@ def identify(directory: Path, token: str) -> TokenEntry | None:
     return found
 
 
+def identify(directory: Path, token: str) -> TokenEntry | None:
+    """The entry whose secret ``token`` is, read now: None for a token that is none of the
+    cell's, revoked (refused at once) or past its expiry."""
+    entry = _entry_of(directory, token)
+    return None if entry is None or entry.expired() else entry
+
+
+def expired_entry(directory: Path, token: str) -> TokenEntry | None:
+    """The entry of ``token`` when it is one of the cell's past its expiry (None otherwise):
+    for a client to say why it is refused (:class:`TokenExpired`)."""
+    entry = _entry_of(directory, token)
+    return entry if entry is not None and entry.expired() else None
+
+
+def check_unexpired(directory: Path, token: str) -> None:
+    """Raise :class:`TokenExpired` if ``token`` is one of the cell's named tokens past its
+    expiry. A cell whose tokens this user cannot read is left to the server to judge."""
+    try:
+        entry = expired_entry(directory, token)
+    except (OSError, UsageError):
+        return
+    if entry is not None:
+        raise TokenExpired(entry)
+
+
 def still_valid(directory: Path, entry: TokenEntry) -> bool:
-    """Whether ``entry`` is still there, unchanged (not revoked, not made again)."""
+    """Whether ``entry`` is still there, unchanged (not revoked, not made again), and not
+    past its expiry: a session it opened ends at that time."""
     try:
         now = _read_entry(_tokens_dir(directory) / entry.name)
     except (OSError, UsageError):
         return False
-    return now == entry
+    return now == entry and not now.expired()

@@ -3,13 +3,15 @@
 
 ::
 
-    cellctl token add ann --role operator    # prints the token once
+    cellctl token add ann --role operator    # prints the token once; it never expires
+    cellctl token add shift --role operator --expires 8h   # or --expires 2026-12-31T18:00
     cellctl audit --since 1h --who ann --json
 """
 
 from __future__ import annotations
 
 import contextlib
+import os
 import re
 from datetime import datetime
 from pathlib import Path
@@ -25,9 +27,13 @@ from cellctl.service.rpc import login_name
 from cellctl.service.token import (
     DEFAULT_NAME,
     ROLES,
+    TOKEN_ENV,
     TOKEN_FILE,
     add_token,
+    check_unexpired,
+    format_time,
     list_tokens,
+    parse_expiry,
     revoke_token,
 )
 from cellctl.ui.calls import cell_call
@@ -52,7 +58,7 @@ def parse_since(text: str, now: float | None = None) -> float:
 
 
 def _when(t: float) -> str:
-    return datetime.fromtimestamp(t).strftime("%Y-%m-%d %H:%M:%S")
+    return format_time(t)
 
 
 @click.group("token")
@@ -79,6 +85,9 @@ def _manager(directory: Path, method: str, params: dict[str, Any]) -> str:
     files)."""
     from cellctl.service.client import env_caller
 
+    given = os.environ.get(TOKEN_ENV, "").strip()
+    if given:
+        check_unexpired(directory, given)  # said as expired, with when, not as a wrong token
     caller = env_caller(directory)
     if caller is None:
         return f"local:{login_name()}"
@@ -109,46 +118,79 @@ def _audit(
     required=True,
     help="viewer: read; operator: orders, alarms, pause; engineer: machines by hand too.",
 )
+@click.option(
+    "--expires",
+    metavar="SPAN|DATETIME",
+    help="Refused from then on: a span from now (8h, 30d) or a local date and time "
+    "(2026-12-31T18:00). Without it the token never expires (until revoked).",
+)
 @click.pass_context
-def token_add(ctx: click.Context, name: str, role: str) -> None:
+def token_add(ctx: click.Context, name: str, role: str, expires: str | None) -> None:
     """Make token NAME with a role and print it once (only its hash is kept)."""
     directory = _cell(ctx)
 
-    params = {"name": name, "role": role}
+    params: dict[str, Any] = {"name": name, "role": role}
 
-    async def main() -> tuple[str, str]:
+    async def main() -> tuple[str, str, float | None]:
+        # Read before anything else: a bad or past time is refused before a file is made.
+        until = None if expires is None else parse_expiry(expires)
+        if until is not None:
+            # The audit trail keeps the time it came to, not "8h" of an unknown moment.
+            params["expires"] = datetime.fromtimestamp(until).astimezone().isoformat("T", "seconds")
         who = _manager(directory, "token.add", params)
-        return who, add_token(directory, name, role)
+        return who, add_token(directory, name, role, until), until
 
-    who, secret = run(main)
+    who, secret, until = run(main)
     _audit(directory, who, "token.add", params)
     console.print(secret, markup=False, soft_wrap=True)
-    click.echo(f"token {name} ({role}): shown once, keep it; cellctl token revoke {name}", err=True)
+    lasts = "never expires" if until is None else f"expires {_when(until)}"
+    click.echo(
+        f"token {name} ({role}, {lasts}): shown once, keep it; cellctl token revoke {name}",
+        err=True,
+    )
 
 
 @token_group.command("list")
 @json_option
 @click.pass_context
 def token_list(ctx: click.Context, as_json: bool) -> None:
-    """The tokens: names, roles and when made (never a secret)."""
+    """The tokens: names, roles, when made and when they expire (never a secret)."""
     directory = _cell(ctx)
 
-    async def main() -> list[Any]:
-        return list_tokens(directory)
+    async def main() -> tuple[list[Any], float]:
+        return list_tokens(directory), current_clock().now()
 
-    found = run(main)
+    found, now = run(main)
     if as_json:
-        print_json([{"name": e.name, "role": e.role, "created": e.created} for e in found])
+        print_json(
+            [
+                {
+                    "name": e.name,
+                    "role": e.role,
+                    "created": e.created,
+                    "expires": e.expires,  # unix seconds; null: never
+                    "expired": e.expired(now),
+                }
+                for e in found
+            ]
+        )
         return
     if not found:
         console.print("no tokens yet: `cellctl run` enters api-token as `default`")
         return
     table = Table(title="API tokens")
-    for column in ("Name", "Role", "Created"):
+    for column in ("Name", "Role", "Created", "Expires"):
         table.add_column(column)
     for e in found:
-        table.add_row(e.name, e.role, _when(e.created))
+        table.add_row(e.name, e.role, _when(e.created), _expiry(e.expires, now))
     print_table(table)
+
+
+def _expiry(expires: float | None, now: float) -> str:
+    """A token's expiry as listed: "never", its date and time, "(expired)" once past."""
+    if expires is None:
+        return "never"
+    return _when(expires) + (" (expired)" if now >= expires else "")
 
 
 @token_group.command("revoke")

@@ -8,6 +8,7 @@ as tests/test_kind_registry.py makes them) and run through the real ``cellctl``.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -141,6 +142,12 @@ def test_a_fault_table_that_cannot_be_read_breaks_only_its_kind(
     assert error.startswith(broken + " LazyTable("), error
     assert why in error and "fix" in error
     assert not (tmp_path / "cell" / "cell.toml").exists()
+    # `cellctl kinds` lists it broken, with why; the saw beside it is fine.
+    listed = cellctl(site, "kinds", "--json")
+    assert listed.returncode == 0, said(listed)
+    rows = {row["kind"]: row for row in json.loads(listed.stdout)}
+    assert why in rows[kind]["broken"] and "its faults table" in rows[kind]["broken"], rows
+    assert rows["kerf100"]["family"] == "mill" and "broken" not in rows["kerf100"], rows
 
 
 # -- 3. a kind that is installed but broken ------------------------------------------------------

@@ -2,12 +2,31 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import click
 from rich.markup import escape
 from rich.table import Table
 
 from cellctl.kinds import registry
+from cellctl.kinds.kind import BrokenKind, LazyTable, MachineKind
 from cellctl.ui.common import console, json_option, print_json, print_table
+
+
+def _broken_tables(kind: MachineKind) -> str:
+    """Why a plug-in kind's tables cannot be read ("" when they can): read here, as using
+    the kind would, so a kind listed as fine is one that works. A built-in kind's are
+    cellctl's own (reading them would import every emulator)."""
+    if kind.origin is None or kind.origin.distribution == registry.BUILT_IN:
+        return ""
+    for field in dataclasses.fields(kind):
+        table = getattr(kind, field.name)
+        if isinstance(table, LazyTable):
+            try:
+                table.read()
+            except BrokenKind as e:
+                return str(e)
+    return ""
 
 
 @click.command("kinds")
@@ -18,6 +37,11 @@ def kinds_command(as_json: bool) -> None:
     Kinds register under the entry-point group cellctl.machine_kinds (docs/kinds.md); one that
     cannot be loaded is listed as broken, with why, and the rest work.
     """
+    found = registry.kinds()
+    unreadable = {k.name: why for k in found if (why := _broken_tables(k))}
+    found = [k for k in found if k.name not in unreadable]
+    # A plug-in refused for a built-in kind's name is listed beside the built-in one.
+    broken = [*unreadable.items(), *registry.broken().items()]
     if as_json:
         print_json(
             [
@@ -29,9 +53,9 @@ def kinds_command(as_json: bool) -> None:
                     "distribution": k.origin.distribution if k.origin else None,
                     "module": k.origin.module if k.origin else None,
                 }
-                for k in registry.kinds()
+                for k in found
             ]
-            + [{"kind": name, "broken": why} for name, why in registry.broken().items()]
+            + [{"kind": name, "broken": why} for name, why in broken]
         )
         return
     table = Table(box=None, pad_edge=False)
@@ -43,13 +67,13 @@ def kinds_command(as_json: bool) -> None:
     # On a terminal, the distribution, then the module on a line of its own: whole at 80
     # columns. Piped, one line per kind (print_table), as docs/kinds.md shows it.
     piped = not console.is_terminal
-    for kind in registry.kinds():
+    for kind in found:
         o = kind.origin
         if o is None:
             origin = "?"
         else:
             origin = f"{o.distribution} ({o.module})" if piped else f"{o.distribution}\n{o.module}"
         table.add_row(kind.name, kind.family, kind.maker, kind.model, origin)
-    for name, why in registry.broken().items():
+    for name, why in broken:
         table.add_row(name, "-", "-", "-", f"[red]broken: {escape(why)}[/red]")
     print_table(table)

@@ -5,8 +5,8 @@ the command line has for it::
     @click.group(cls=MachineGroup)
     def mill(...): ...
 
-    cellctl mill --kind kerf100 --link URL home
-    # error: no mill command 'home' for URL, a kerf100 (its commands: status; its functions
+    cellctl mill --kind KIND --link URL home
+    # error: no mill command 'home' for URL, a KIND (its commands: status; its functions
     #        home, cut: in the console or the control API)
 """
 
@@ -71,7 +71,7 @@ def _given(args: list[str], option: str) -> bool:
 
 
 def kind_refusal(ctx: click.Context, group: click.Group, command: str) -> str:
-    """``no mill command COMMAND for saw, a kerf100 (its commands: ...)``: the machine the
+    """``no mill command COMMAND for NAME, a KIND (its commands: ...)``: the machine the
     group's options and NAME mean (resolved as its commands resolve it) and what the command
     line has for its kind. ``command``: the word, quoted, or ``given`` when there was none."""
     from cellctl.service.machines import resolve_machine

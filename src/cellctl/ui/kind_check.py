@@ -35,22 +35,13 @@ def check_kinds(group: click.Group) -> None:
                 )
 
 
-def _command_paths(group: click.Group) -> dict[str, str]:
-    """Each command of a family's group by the function it runs: its name, or for a
-    subgroup's, both words joined by ``_`` (``robot io set`` runs ``io_set``)."""
-    paths = {word: word for word in group.commands}
-    for word, command in group.commands.items():
-        if isinstance(command, click.Group):
-            paths.update({f"{word}_{sub}": f"{word} {sub}" for sub in command.commands})
-    return paths
-
-
 def _refuse_other_kinds(ctx: click.Context, param: click.Parameter, value: object) -> None:
     """Refuse ``cellctl mill saw go`` when the saw's kind has no ``go``, before anything is read
     or sent, naming the commands the command line has for it (the family's commands it has a
     function for: docs/kinds.md) and where its other functions are (the console, the API)."""
     from cellctl.service.functions import functions, kind_menu
     from cellctl.ui.common import MachineGroup, machine_ref
+    from cellctl.ui.machine_group import kind_offer
 
     words = [ctx.command.name or ""]
     above = ctx.parent
@@ -64,15 +55,9 @@ def _refuse_other_kinds(ctx: click.Context, param: click.Parameter, value: objec
     if all(f.name != function for f in functions() if f.family == family):
         return  # a command that calls no machine (`mill check`): nothing to refuse
     _, ref = machine_ref(ctx, family, function)
-    has = [f.name for f in kind_menu(ref.kind) if f.family == family]
-    if function in has:
+    if any(f.name == function for f in kind_menu(ref.kind) if f.family == family):
         return
-    paths = _command_paths(group)
-    offered = [said for name, said in sorted(paths.items()) if name in has]
-    others = [name for name in has if name not in paths]
-    said = f"its commands: {', '.join(offered) or 'none'}"
-    if others:
-        said += f"; its functions {', '.join(others)}: in the console or the control API"
+    said = kind_offer(group, family, ref.kind)
     command = " ".join(words)
     raise UsageError(
         f"no {family} command {command!r} for {ref.name}, {with_article(ref.kind)} ({said})"

@@ -92,14 +92,23 @@ def kind_refusal(ctx: click.Context, group: click.Group, command: str) -> str:
     )
 
 
+def command_paths(group: click.Group) -> dict[str, str]:
+    """Each command of a family's group by the function it runs: its name, or for a
+    subgroup's, both words joined by ``_`` (``robot io set`` runs ``io_set``)."""
+    paths = {word: word for word in group.commands}
+    for word, command in group.commands.items():
+        if isinstance(command, click.Group):
+            paths.update({f"{word}_{sub}": f"{word} {sub}" for sub in command.commands})
+    return paths
+
+
 def kind_offer(group: click.Group, family: str, kind: str) -> str:
     """What the command line has for a machine of ``kind`` in ``family``'s ``group``: the
     commands it has a function for, and where its other functions are (docs/kinds.md)."""
     from cellctl.service.functions import kind_menu
-    from cellctl.ui.kind_check import _command_paths
 
     has = [f.name for f in kind_menu(kind) if f.family == family]
-    paths = _command_paths(group)
+    paths = command_paths(group)
     offered = [said for name, said in sorted(paths.items()) if name in has]
     others = [name for name in has if name not in paths]
     said = f"its commands: {', '.join(offered) or 'none'}"

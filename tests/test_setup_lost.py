@@ -44,7 +44,7 @@ async def test_a_dyna2400_restarted_between_two_orders_is_set_up_again(tmp_path:
         rig.post("wax-robot-base", 1, "B")
         await rig.wait_for(rig.all_done, "order B done", timeout=3600)
         (alarm,) = rig.alarms("cnc1", "readiness")
-        assert "CTS low while idle" in alarm.text, alarm.text
+        assert "lost readiness while idle" in alarm.text, alarm.text
         assert "its setup is in doubt" in alarm.text and "set up again" in alarm.text, alarm.text
         # Set up again (the operator's reference zero) before B's cut went out.
         assert cnc1.runs[runs_before:], rig.describe()

@@ -393,9 +393,11 @@ class Monitor:
         if not view.in_service or not recovery.fit.get(m.name, False):
             return
         if was_ready and not ready and status.set_up:
-            # CTS low on an idle, set-up mill that is not waiting for its operator: it may
-            # have been power-cycled, its setup gone with nothing on the line to show it.
-            recovery.setup_in_doubt(m.name, "lost readiness (CTS low while idle)")
+            # Not ready (a Dyna's CTS low) on an idle, set-up mill that is not waiting for its
+            # operator: it may have been power-cycled, its setup gone with nothing on the line
+            # to show it. Said in the family's words: the cell knows no kind's signals.
+            why = f" ({status.waiting_for})" if status.waiting_for else ""
+            recovery.setup_in_doubt(m.name, f"lost readiness while idle{why}")
         elif setup_lost(status, running=mill.running):
             # Not set up, nobody setting it up, doing nothing: power-cycled behind the cell's
             # back. Recovery sets it up again (what the machine needs), saying so.
@@ -412,7 +414,7 @@ class Monitor:
                 recovery.fault(
                     m.name,
                     "readiness",
-                    f"not ready: {status.waiting_for or 'CTS low'} "
-                    f"{mill.setup_timeout:g} s after its setup",
+                    f"not ready {mill.setup_timeout:g} s after its setup"
+                    + (f": {status.waiting_for}" if status.waiting_for else ""),
                     count=False,
                 )

@@ -187,9 +187,11 @@ def test_open_mailbox_default_and_unknown_backend(tmp_path: Path) -> None:
 def test_data_survives_reopening(tmp_path: Path) -> None:
     with open_mailbox(tmp_path) as mb:
         mb.post_order("p", order_id="keep")
+        mb.post_order("p", order_id="due", due=1_800_000_000.5)
         mb.post_report("order-accepted", "ok", order_id="keep")
     with open_mailbox(tmp_path) as mb:
         assert mb.get_order("keep").part_type == "p"
+        assert mb.due_times() == {"due": 1_800_000_000.5}
         assert [r.kind for r in mb.reports()] == ["order-accepted"]
 
 

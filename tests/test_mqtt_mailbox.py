@@ -108,7 +108,9 @@ async def test_orders_in_reports_out_a_repeated_id_and_the_retained_state(
                 await bridge.connected.wait()
             async with client(broker, FACTORY_USER, identifier="f", clean_session=False) as f:
                 await f.subscribe("cellctl/cell1/reports", qos=1)
-                order = {"v": 1, "id": "F1", "part_type": "wax-robot-base", "qty": 1}
+                # Due in a day: the cell's mailbox keeps it (its plans say on time or late).
+                due = time.time() + 86400
+                order = {"v": 1, "id": "F1", "part_type": "wax-robot-base", "qty": 1, "due": due}
                 await f.publish("cellctl/cell1/orders", json.dumps(order), qos=1)
                 seen: list[dict[str, Any]] = []
                 while not any(r["kind"] == "order-done" for r in seen):
@@ -116,6 +118,7 @@ async def test_orders_in_reports_out_a_repeated_id_and_the_retained_state(
                 assert [r["seq"] for r in seen] == list(range(1, len(seen) + 1))
                 accepted = [r for r in seen if r["kind"] == "order-accepted"]
                 assert accepted[0]["order_id"] == "F1"
+                assert mailbox.due_times() == {"F1": due}
                 assert accepted[0]["cell"] == controller.config.name
                 # The same id again: no new order; the answer it had is sent again.
                 await f.publish("cellctl/cell1/orders", json.dumps(order), qos=1)

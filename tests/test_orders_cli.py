@@ -106,11 +106,15 @@ def test_orders_lists_by_priority_with_states(cell: Path) -> None:
     with open_mailbox(cell) as mailbox:
         mailbox.set_order_state("low", "accepted")
 
+    due = "2099-12-04T18:00"
+    assert cellctl(cell, "submit", "toy-mill", "--id", "due", "--due", due).exit_code == 0
+
     result = cellctl(cell, "orders")
     assert result.exit_code == 0, result.output
     rows = [line for line in result.stdout.splitlines() if "toy-mill" in line]
     assert "high" in rows[0] and "posted" in rows[0]
     assert "low" in rows[1] and "accepted" in rows[1]
+    assert "due" in rows[2] and "2099-12-04 18:00:00" in rows[2] and "LATE" not in rows[2]
 
     only = cellctl(cell, "orders", "--state", "accepted")
     assert "low" in only.stdout and "high" not in only.stdout

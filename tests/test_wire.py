@@ -63,8 +63,10 @@ STATE = {
     "finish_estimate_s": 40.0,
 }
 ORDER = {"v": 1, "id": "F1", "part_type": "wax-robot-base", "qty": 2, "priority": 0}
+#: An order with a due time (unix seconds): a field the payload carries only when it has one.
+DUE = {**ORDER, "id": "F2", "due": 1.8e9}
 ASK = {"v": 1, "ask": "reports", "epoch": EPOCH, "after": 7}
-GOOD = {"orders": [ORDER, ASK], "reports": [REPORT], "state": [STATE]}
+GOOD = {"orders": [ORDER, DUE, ASK], "reports": [REPORT], "state": [STATE]}
 
 
 def deep(levels: int, inner: str = "1") -> bytes:
@@ -197,6 +199,8 @@ _PAYLOADS = st.one_of(
 @example("reports", _raw({**REPORT, "seq": 99998}))
 @example("orders", _raw({**ORDER, "qty": "2"}))
 @example("orders", _raw({**ORDER, "priority": 2**70}))
+@example("orders", _raw({**DUE, "due": -1}))
+@example("orders", _raw({**DUE, "due": "FRI 18:00"}))
 @example("orders", _raw({**ASK, "after": -1}))
 @example("state", _raw({**STATE, "finish_estimate_s": 1e308}))
 @example("state", _raw({**STATE, "machines": ["robot"]}))
@@ -211,3 +215,4 @@ def test_any_payload_is_a_model_or_a_wire_error(topic: str, payload: bytes) -> N
         assert 1 <= model.seq < 2**63 and model.kind in REPORT_KINDS
     if isinstance(model, OrderMessage):
         assert 1 <= model.qty <= 10_000 and -(2**63) <= model.priority < 2**63
+        assert model.due is None or 0 <= model.due <= 1e11  # what the cell's mailbox takes

@@ -7,6 +7,7 @@ right after ``post_report`` returns has still posted the report.
 
 from __future__ import annotations
 
+import math
 import uuid
 from abc import ABC, abstractmethod
 from collections.abc import Iterable
@@ -47,7 +48,11 @@ REPORT_KINDS: Final = tuple(kind.value for kind in ReportKind)
 
 @dataclass(frozen=True)
 class Order:
-    """One order: make ``qty`` parts of ``part_type``. Times are seconds since the epoch."""
+    """One order: make ``qty`` parts of ``part_type``. Times are seconds since the epoch.
+
+    Its due time, if it has one, is the mailbox's :meth:`Mailbox.due_times`: kept off these
+    fields, as every record made of them field by field (the status' orders, which take no
+    field they do not know) stays as it was."""
 
     id: str
     part_type: str
@@ -104,6 +109,22 @@ def check_new_order(part_type: str, qty: int, priority: int, order_id: str | Non
     return check_printable(order_id, f"order id {order_id!r}")
 
 
+#: The latest due time taken, unix seconds (the year 5138, as the factory's wire carries).
+MAX_DUE: Final = 1e11
+
+
+def check_due(due: float | None) -> float | None:
+    """``due`` (unix seconds, or None: no due time) as a float; UsageError unless it is a
+    finite time from 1970 to :data:`MAX_DUE`."""
+    if due is None:
+        return None
+    if isinstance(due, bool) or not isinstance(due, int | float):
+        raise UsageError(f"an order's due time is unix seconds, not {type(due).__name__}")
+    if not (math.isfinite(due) and 0 <= due <= MAX_DUE):
+        raise UsageError(f"an order's due time must be unix seconds from 0 to {MAX_DUE:.0f}")
+    return float(due)
+
+
 def check_report_kind(kind: str) -> None:
     """Raise :class:`UsageError` unless ``kind`` is one of :data:`REPORT_KINDS`."""
     if kind not in REPORT_KINDS:
@@ -114,7 +135,8 @@ class Mailbox(ABC):
     """Orders in, reports out. Use as a context manager, or call :meth:`close`.
 
     The poster chooses order ids, so posting the same order twice (after a lost
-    acknowledgement, say) is harmless: the second post returns the first order unchanged.
+    acknowledgement, say) is harmless: the second post returns the first order unchanged
+    (and its due time too).
     """
 
     @property
@@ -125,9 +147,20 @@ class Mailbox(ABC):
 
     @abstractmethod
     def post_order(
-        self, part_type: str, qty: int = 1, priority: int = 0, order_id: str | None = None
+        self,
+        part_type: str,
+        qty: int = 1,
+        priority: int = 0,
+        order_id: str | None = None,
+        *,
+        due: float | None = None,
     ) -> tuple[Order, bool]:
-        """Post an order; return it and whether it is new (False: that id was posted before)."""
+        """Post an order, due at ``due`` (unix seconds, :func:`check_due`; None: no due
+        time); return it and whether it is new (False: that id was posted before)."""
+
+    @abstractmethod
+    def due_times(self) -> dict[str, float]:
+        """The due time of every order that has one, by order id (unix seconds)."""
 
     @abstractmethod
     def get_order(self, order_id: str) -> Order:

@@ -420,7 +420,9 @@ class MqttBridge:
             self.expiring[oid] = float(expires)  # written before the order is committed
             self._save_mark()
         try:
-            taken, new = self.mailbox.post_order(order.part_type, order.qty, order.priority, oid)
+            taken, new = self.mailbox.post_order(
+                order.part_type, order.qty, order.priority, oid, due=order.due
+            )
         except UsageError as e:
             self.mailbox.post_report(ReportKind.ORDER_REJECTED, f"order {oid}: {e}", order_id=oid)
             return

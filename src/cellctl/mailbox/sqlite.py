@@ -7,6 +7,10 @@ IMMEDIATE``) so a read-modify-write cannot interleave with another process, and 
 
 The orders are answered from memory, read again from the file only after another connection
 (the CLI posting an order, say) committed: a controller asking every round costs no query.
+
+An order's due time is its row's ``due`` (NULL: none). A file from before due times gains
+the column when it is opened, its orders with none; a cellctl from before reads and writes
+the file as it did (it names the columns it reads and writes).
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from cellctl.mailbox.base import (
     Mailbox,
     Order,
     Report,
+    check_due,
     check_new_order,
     check_report_kind,
     check_transition,
@@ -40,7 +45,8 @@ CREATE TABLE IF NOT EXISTS orders (
     state TEXT NOT NULL,
     created REAL NOT NULL,
     updated REAL NOT NULL,
-    note TEXT NOT NULL DEFAULT ''
+    note TEXT NOT NULL DEFAULT '',
+    due REAL
 );
 CREATE TABLE IF NOT EXISTS reports (
     seq INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -72,24 +78,33 @@ class SqliteMailbox(SqliteStore, Mailbox):
             db.execute(
                 "INSERT OR IGNORE INTO meta (key, value) VALUES ('epoch', ?)", (uuid.uuid4().hex,)
             )
+            # A file from before due times: checked under the write lock, so two processes
+            # opening it at once add the column once.
+            if "due" not in {r["name"] for r in db.execute("PRAGMA table_info(orders)")}:
+                db.execute("ALTER TABLE orders ADD COLUMN due REAL")
         self._epoch = str(self._read("SELECT value FROM meta WHERE key = 'epoch'")[0][0])
         # The orders by id, each with its sort key (highest priority first, then oldest;
         # rowid breaks ties between orders posted within the clock's resolution).
         self._orders: dict[str, tuple[tuple[int, float, int], Order]] = {}
         self._by_state: dict[str, set[str]] = {}
+        self._dues: dict[str, float] = {}
 
     def _load_views(self, db: sqlite3.Connection) -> None:
-        self._orders, self._by_state = {}, {}
+        self._orders, self._by_state, self._dues = {}, {}, {}
         for row in db.execute("SELECT rowid AS rank, * FROM orders"):
-            self._keep(_order(row), row["rank"])
+            self._keep(_order(row), row["rank"], row["due"])
 
-    def _keep(self, order: Order, rank: int | None = None) -> None:
+    def _keep(self, order: Order, rank: int | None = None, due: float | None = None) -> None:
+        """Put ``order`` in the views: a new one with its ``rank`` and ``due`` (an order's
+        due time never changes), a known one in its new state."""
         old = self._orders.get(order.id)
         if old is None:
             if rank is None:  # made by another connection: read everything again
                 self._views_at = None
                 return
             key = (-order.priority, order.created, rank)
+            if due is not None:
+                self._dues[order.id] = due
         else:
             key = old[0]
             self._by_state[old[1].state].discard(order.id)
@@ -109,22 +124,34 @@ class SqliteMailbox(SqliteStore, Mailbox):
         return self._epoch
 
     def post_order(
-        self, part_type: str, qty: int = 1, priority: int = 0, order_id: str | None = None
+        self,
+        part_type: str,
+        qty: int = 1,
+        priority: int = 0,
+        order_id: str | None = None,
+        *,
+        due: float | None = None,
     ) -> tuple[Order, bool]:
         oid = check_new_order(part_type, qty, priority, order_id)
+        due = check_due(due)
         now = self._now()
         with self._write() as db:
             row = db.execute("SELECT * FROM orders WHERE id = ?", (oid,)).fetchone()
             if row is not None:
                 return _order(row), False
             cur = db.execute(
-                "INSERT INTO orders (id, part_type, qty, priority, state, created, updated)"
-                " VALUES (?, ?, ?, ?, ?, ?, ?)",
-                (oid, part_type, qty, priority, POSTED, now, now),
+                "INSERT INTO orders (id, part_type, qty, priority, state, created, updated, due)"
+                " VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                (oid, part_type, qty, priority, POSTED, now, now, due),
             )
             order, rank = Order(oid, part_type, qty, priority, POSTED, now, now), cur.lastrowid
-            self._after_commit(lambda: self._keep(order, rank))
+            self._after_commit(lambda: self._keep(order, rank, due))
         return order, True
+
+    def due_times(self) -> dict[str, float]:
+        with self._lock:
+            self._views_current()
+            return dict(self._dues)
 
     def get_order(self, order_id: str) -> Order:
         with self._lock:

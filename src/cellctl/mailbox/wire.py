@@ -25,9 +25,11 @@ from pydantic import (
     Discriminator,
     Field,
     JsonValue,
+    SerializerFunctionWrapHandler,
     Tag,
     TypeAdapter,
     ValidationError,
+    model_serializer,
     model_validator,
 )
 
@@ -116,13 +118,26 @@ class _Message(_Strict):
 
 
 class OrderMessage(_Message):
-    """``PREFIX/orders``, factory → cell: make ``qty`` parts of ``part_type``."""
+    """``PREFIX/orders``, factory → cell: make ``qty`` parts of ``part_type``, by ``due``
+    (unix seconds) if given.
+
+    ``due`` is left out of the payload when there is none: a cell of an older cellctl takes
+    no field it does not know (it drops such an order unanswered), so an order without a due
+    time is the payload it always was; one with a due time is for a cell that takes it."""
 
     id: Name
     part_type: Name
     qty: Annotated[int, Field(ge=1, le=MAX_QTY)]
     priority: Annotated[int, Field(ge=-(2**63), le=INT64_MAX)] = 0
     expires: Seconds | None = None
+    due: Seconds | None = None
+
+    @model_serializer(mode="wrap")
+    def _without_no_due(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        data: dict[str, Any] = handler(self)
+        if self.due is None:
+            data.pop("due", None)
+        return data
 
 
 class AskMessage(_Message):

@@ -35,7 +35,7 @@ from cellctl.errors import (
     with_article,
 )
 from cellctl.kinds import registry
-from cellctl.service import operator
+from cellctl.service import operator, orderdue
 from cellctl.service.access import CellAccess
 from cellctl.service.audit import AuditLog
 from cellctl.service.functions import (
@@ -138,7 +138,7 @@ async def _submit(access: CellAccess, p: SubmitParams, progress: Progress | None
     parts = load_cell_file(access.directory).get("parts")
     types = list(parts) if isinstance(parts, dict) else None
     operator.check_part_type(types, p.part_type)  # before the mailbox file is made
-    result = operator.submit_order(access.mailbox(), types, p.part_type, p.qty, p.priority, p.id)
+    result = orderdue.submit_order(access.mailbox(), types, p)  # p.due read with the params
     access.poke()
     return result
 
@@ -150,7 +150,7 @@ async def _orders(access: CellAccess, p: OrdersParams, progress: Progress | None
         config = cell_config(access)  # for what blocks an order
     except UsageError:
         config = None
-    return operator.list_orders(access.mailbox(), access.journal(), p.states, config)
+    return orderdue.list_orders(access.mailbox(), access.journal(), p.states, config)
 
 
 async def _cancel(access: CellAccess, p: IdParams, progress: Progress | None) -> Any:
@@ -357,8 +357,8 @@ _TABLE: list[Method] = [
     Method("cell.pause", NoParams, _pause, "Finish the steps in flight, start no new one.", True),
     Method("cell.resume", NoParams, _resume, "Start dispatching again.", True),
     Method("cell.estop", EstopParams, _estop, "Stop the robot, halt the mills, alarm.", True),
-    Method("orders.submit", SubmitParams, _submit, "Post an order.", True),
-    Method("orders.list", OrdersParams, _orders, "Orders with their parts' statuses.", False),
+    Method("orders.submit", SubmitParams, _submit, "Post an order, due by a time if given.", True),
+    Method("orders.list", OrdersParams, _orders, "Orders: parts' statuses, due, late.", False),
     Method("orders.cancel", IdParams, _cancel, "Cancel an order that has not started.", True),
     Method("alarms.list", AlarmsParams, _alarms, "Active alarms (all with all=true).", False),
     Method("alarms.clear", AlarmParams, _clear, "Clear (end) an alarm.", True),

@@ -93,33 +93,6 @@ def check_part_type(part_types: list[str] | None, part_type: str) -> None:
         raise UsageError(f"unknown part type {part_type!r} (known in cell.toml: {known})")
 
 
-def submit_order(
-    mailbox: Mailbox,
-    part_types: list[str] | None,
-    part_type: str,
-    qty: int,
-    priority: int = 0,
-    order_id: str | None = None,
-) -> dict[str, Any]:
-    """Post an order; ``part_types`` (from cell.toml) refuses unknown types when given."""
-    check_part_type(part_types, part_type)
-    order, new = mailbox.post_order(part_type, qty, priority, order_id)
-    if new:
-        message = (
-            f"order {order.id} posted: {order.qty} × {order.part_type}, priority {order.priority}"
-        )
-    elif (order.part_type, order.qty, order.priority) != (part_type, qty, priority):
-        # The same id for another order: a retry must ask the same, or it is a mistake.
-        raise UsageError(
-            f"order {order.id} was posted before as {order.qty} × {order.part_type}, "
-            f"priority {order.priority} ({order.state}), not {qty} × {part_type}, priority "
-            f"{priority}: nothing changed (give this order another --id)"
-        )
-    else:
-        message = f"order {order.id} was posted before ({order.state}): nothing changed"
-    return {"order": as_dict(order), "new": new, "message": message}
-
-
 def list_orders(
     mailbox: Mailbox,
     journal: Journal | None,

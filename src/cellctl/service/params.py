@@ -18,16 +18,19 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from cellctl.cell.causes import PRIORITIES
 from cellctl.cell.journal import MAX_SHELVE, PART_STATUSES
+from cellctl.clock import current_clock
+from cellctl.errors import UsageError
 from cellctl.kinds.menu import PrintableText
 from cellctl.mailbox import ORDER_STATES
 from cellctl.mailbox.base import MAX_QTY
 from cellctl.service.access import CellAccess
 from cellctl.service.audit import MAX_ENTRIES
 from cellctl.service.functions import Progress
+from cellctl.service.orderdue import resolve_due
 from cellctl.service.token import ROLES
 
 #: Integers a parameter may hold: 64 bits, signed (SQLite's and most clients' limit).
@@ -51,10 +54,23 @@ class EstopParams(P):
 
 
 class SubmitParams(P):
+    """``orders.submit``: ``due`` is unix seconds, or text as ``cellctl plan --until`` takes
+    it (``FRI 18:00``, ``18:00``, ``2026-12-04T18:00``), read on the cell's clock as the call
+    comes (:func:`cellctl.service.orderdue.resolve_due`) and held as unix seconds."""
+
     part_type: PrintableText = Field(min_length=1, max_length=100)
     qty: int = Field(default=1, ge=1, le=MAX_QTY)
     priority: int = Field(default=0, ge=-1_000_000, le=1_000_000)
     id: PrintableText | None = Field(default=None, min_length=1, max_length=100)
+    due: float | None = None
+
+    @field_validator("due", mode="before")
+    @classmethod
+    def _due(cls, value: Any) -> float | None:
+        try:
+            return resolve_due(value, current_clock().now())
+        except UsageError as e:  # said after the field's name: "due: time 'x': write ..."
+            raise ValueError(str(e)) from None
 
 
 class OrdersParams(P):

@@ -5,13 +5,14 @@
     answer["svg"]                             # the Gantt chart
 
 The snapshot is the cell's state now (:mod:`cellctl.plan.snapshot`): its open orders with
-what remains of them, the parts held, the machines out of service. The plan is played by the
-engine on its own virtual-time loop in a worker process at a lower priority
-(:mod:`cellctl.service.offload`), on a copy of the cell's configuration: the controller's loop
-goes on undisturbed (it waits for nothing of the plan's, and shares no interpreter with it),
-and nothing of the running cell is written. A call cancelled (its client gone) ends its play.
-One plan at a time per service: a second call while one plays is refused, not queued (a plan
-may take seconds of the computer's time).
+what remains of them and their due times (``cellctl submit --due``: the plan says on time or
+late per order, as a plan of an orders file does), the parts held, the machines out of
+service. The plan is played by the engine on its own virtual-time loop in a worker process
+at a lower priority (:mod:`cellctl.service.offload`), on a copy of the cell's configuration:
+the controller's loop goes on undisturbed (it waits for nothing of the plan's, and shares no
+interpreter with it), and nothing of the running cell is written. A call cancelled (its
+client gone) ends its play. One plan at a time per service: a second call while one plays is
+refused, not queued (a plan may take seconds of the computer's time).
 
 Role: **viewer**. A plan acts on nothing: it reads what ``cell.status`` shows and plays it on a
 copy, so a planner or an instructor who may not act on the cell may ask "what if". What it
@@ -103,6 +104,7 @@ async def plan_run(access: CellAccess, p: PlanParams, progress: Progress | None)
         scale = _time_scale(access.directory)
         with access.work_to_plan() as (mailbox, journal):
             orders, held = open_work(mailbox, journal, now=start, time_scale=scale)
+            orders = with_due_times(orders, mailbox)
             stopped = out_of_service(journal)
 
         def inputs() -> tuple[PlanInputs, tuple[str, ...]]:
@@ -129,6 +131,12 @@ async def plan_run(access: CellAccess, p: PlanParams, progress: Progress | None)
             return await in_process(_play_plan, played, policies, tmp, progress=told)
     finally:
         _playing.release()
+
+
+def with_due_times(orders: tuple[PlanOrder, ...], mailbox: Mailbox) -> tuple[PlanOrder, ...]:
+    """``orders`` (a snapshot's open orders) each with its due time in ``mailbox``, if any."""
+    due = mailbox.due_times()
+    return tuple(dataclasses.replace(o, due=due.get(o.order_id, o.due)) for o in orders)
 
 
 def _progress_to(progress: Progress, inputs: PlanInputs) -> Callable[[Any], None]:

@@ -1,7 +1,8 @@
 """Orders, reports, alarms and held parts, from the shell: the system level's and the operator's
 side of the cell controller.
 
-``cellctl submit PART [--qty N] [--priority P] [--id ID]`` posts an order; ``cellctl orders``
+``cellctl submit PART [--qty N] [--priority P] [--id ID] [--due WHEN]`` posts an order (due
+by ``WHEN``, as ``cellctl plan --until`` takes it, on the cell's clock); ``cellctl orders``
 and ``cellctl reports [--follow]`` show what the cell did with it. ``cellctl alarm clear ID``,
 ``cellctl part release ID [--redo] [--at LOCATION]`` and ``cellctl part scrap ID`` are the
 operator's answers. While `cellctl run` runs the cell they go through its control API;
@@ -107,11 +108,29 @@ def no_cell_message(directory: Path, named: bool) -> str:
     metavar="ID",
     help="The order's id; posting the same id again changes nothing. Default: a new id.",
 )
+@click.option(
+    "--due",
+    metavar="WHEN",
+    help="When it is due, on the cell's clock: FRI 18:00 or 18:00 (the next such time), or "
+    "a date and time (2026-12-04T18:00; one already past is taken: the order is late).",
+)
 @click.pass_context
 def submit(
-    ctx: click.Context, part_type: str, qty: int, priority: int, order_id: str | None
+    ctx: click.Context,
+    part_type: str,
+    qty: int,
+    priority: int,
+    order_id: str | None,
+    due: str | None,
 ) -> None:
     """Post an order for QTY parts of type PART, as the system level would."""
+    if due is not None:
+        from cellctl.service.orderdue import resolve_due
+
+        try:  # refused here, before a mailbox is opened; the cell reads it on its own clock
+            resolve_due(due, current_clock().now())
+        except UsageError as e:
+            raise UsageError(f"--due: {e}") from None
     directory = cell_dir(ctx)
 
     has_toml = (directory / "cell.toml").exists()
@@ -126,6 +145,8 @@ def submit(
     params: dict[str, object] = {"part_type": part_type, "qty": qty, "priority": priority}
     if order_id is not None:
         params["id"] = order_id
+    if due is not None:
+        params["due"] = due
     console.print(cell_call(ctx, "orders.submit", params)["message"])
 
 
@@ -160,10 +181,12 @@ def orders(ctx: click.Context, states: Sequence[str], as_json: bool) -> None:
         console.print("no orders")
         return
     table = Table(title="Orders")
-    for column in ("Order", "Part", "Qty", "Priority", "State", "Parts", "Posted", "Note"):
+    for column in ("Order", "Part", "Qty", "Priority", "State", "Parts", "Posted", "Due", "Note"):
         table.add_column(column, justify="right" if column in ("Qty", "Priority") else "left")
     for o in found:
         parts = ", ".join(f"{n} {s}" for s, n in o["parts"].items())
+        # .get: a controller of an older cellctl answers without due times.
+        due = _when(o.get("due")) + (" [red]LATE[/red]" if o.get("late") else "")
         table.add_row(
             o["id"],
             o["part_type"],
@@ -172,6 +195,7 @@ def orders(ctx: click.Context, states: Sequence[str], as_json: bool) -> None:
             _styled(o["state"]) + (" [yellow]blocked[/yellow]" if o.get("blocked") else ""),
             parts,
             _when(o["created"]),
+            due,
             o["note"],
         )
     print_table(table)

@@ -262,7 +262,7 @@ def test_run_live_view_in_a_terminal(tmux: Tmux, tmp_path: Path) -> None:
             cellctl(cell, "resume")
             cellctl(cell, "pause")
         # 30 rows: the events pane has the rows the rest leaves.
-        shown = tmux.wait_for("paused by the operator", "cellctl run: cell")
+        shown = tmux.wait_for("paused by token:default (engineer)", "cellctl run: cell")
         small = event_rows(shown)
         assert small >= 1, shown
         # A taller terminal: the events pane takes the room.

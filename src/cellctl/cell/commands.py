@@ -87,7 +87,9 @@ class OperatorCommands:
         if not self.paused:
             self.paused = True
             self.journal.note_controller("paused", by)
-            self.log("paused by the operator: steps in flight finish, no new step starts")
+            # Who it was, as "resumed by" says it; "the operator" when nobody is known.
+            who = by or "the operator"
+            self.log(f"paused by {who}: steps in flight finish, no new step starts")
 
     def resume(self: CommandsHost, by: str = "") -> str:
         """Start dispatching again (the mills an emergency stop halted are initialized anew:

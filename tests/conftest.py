@@ -303,6 +303,35 @@ LIMITED_CPU_S = 40
 LIMITED_WALL_S = 280.0
 
 
+def released_together(
+    script: str, argvs: list[list[str]], timeout: float
+) -> list[tuple[int, str, str]]:
+    """Python ``script`` once per argument list in ``argvs``, in processes of their own: each
+    prints ``ready`` and waits for ``go`` on its stdin, sent to all once all are ready, so
+    they race. Each one's (return code, stdout, stderr), within ``timeout`` s of the go."""
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", script, *argv],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for argv in argvs
+    ]
+    for p in procs:
+        assert p.stdout is not None and p.stdout.readline().strip() == "ready"
+    for p in procs:
+        assert p.stdin is not None
+        p.stdin.write("go\n")
+        p.stdin.flush()
+    done = []
+    for p in procs:
+        out, err = p.communicate(timeout=timeout)
+        done.append((p.returncode, out, err))
+    return done
+
+
 def run_limited(script: str, *args: str) -> str:
     """Run Python ``script`` (``sys.argv[1:]`` = ``args``) in a child whose address space and
     CPU time are limited: its output. A child that grows or computes without bound fails the

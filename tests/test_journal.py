@@ -15,6 +15,7 @@ import pytest
 from cellctl.cell.journal import Journal, open_journal
 from cellctl.clock import RealClock
 from cellctl.errors import UsageError
+from tests.conftest import released_together
 
 
 @dataclass(frozen=True)
@@ -428,26 +429,9 @@ OPERATOR = textwrap.dedent(
 
 def test_two_processes_writing_at_once_lose_nothing(tmp_path: Path) -> None:
     open_journal(tmp_path).close()
-    procs = [
-        subprocess.Popen(
-            [sys.executable, "-c", OPERATOR, name, str(tmp_path)],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        for name in ("a", "b")
-    ]
-    for p in procs:
-        assert p.stdout is not None
-        assert p.stdout.readline().strip() == "ready"
-    for p in procs:
-        assert p.stdin is not None
-        p.stdin.write("go\n")
-        p.stdin.flush()
-    for p in procs:
-        out, err = p.communicate(timeout=100)
-        assert p.returncode == 0, err
+    argvs = [["a", str(tmp_path)], ["b", str(tmp_path)]]
+    for code, out, err in released_together(OPERATOR, argvs, timeout=100):
+        assert code == 0, err
         assert out.strip() == "done"
 
     with open_journal(tmp_path) as j:

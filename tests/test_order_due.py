@@ -12,7 +12,6 @@ import os
 import shutil
 import sqlite3
 import subprocess
-import sys
 import textwrap
 import time
 from datetime import datetime, timedelta
@@ -26,7 +25,7 @@ from cellctl.emulators.cell import EXAMPLE_CELL
 from cellctl.errors import UsageError
 from cellctl.mailbox import MAILBOX_FILE, SqliteMailbox, open_mailbox
 from cellctl.mailbox.wire import OrderMessage, parse_to_cell
-from tests.conftest import CELLCTL
+from tests.conftest import CELLCTL, released_together
 
 #: The orders, reports and meta tables as cellctl made them before due times.
 OLD_SCHEMA = """
@@ -155,25 +154,9 @@ def test_two_processes_opening_an_old_mailbox_at_once_add_the_column_once(
     tmp_path: Path,
 ) -> None:
     path = old_mailbox(tmp_path / MAILBOX_FILE)
-    procs = [
-        subprocess.Popen(
-            [sys.executable, "-c", OPENER, name, str(tmp_path)],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        for name in ("a", "b")
-    ]
-    for p in procs:
-        assert p.stdout is not None and p.stdout.readline().strip() == "ready"
-    for p in procs:
-        assert p.stdin is not None
-        p.stdin.write("go\n")
-        p.stdin.flush()
-    for p in procs:
-        out, err = p.communicate(timeout=60)
-        assert (p.returncode, out.strip()) == (0, "posted"), err
+    argvs = [["a", str(tmp_path)], ["b", str(tmp_path)]]
+    for code, out, err in released_together(OPENER, argvs, timeout=60):
+        assert (code, out.strip()) == (0, "posted"), err
     assert columns(path).count("due") == 1
     with open_mailbox(tmp_path) as mailbox:
         assert len(mailbox.orders()) == 2 + 40  # the old ones, and every one posted, once

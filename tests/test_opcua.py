@@ -182,7 +182,7 @@ async def test_a_user_watches_and_orders_an_anonymous_reader_cannot_act(
                 await run
     out = capfd.readouterr().out
     assert f"OPC UA on {url} (Basic256Sha256 Sign, SignAndEncrypt" in out  # as `cellctl run` says
-    assert "OPC UA: login refused for user 'mallory'" in out
+    assert "OPC UA: login refused for user 'mallory' from 127.0.0.1" in out
 
 
 async def _scenario(rig: CellRig, url: str, cert: tuple[str, str], run: asyncio.Task[Any]) -> None:
@@ -574,40 +574,51 @@ def test_a_plan_of_a_cell_that_serves_opc_ua_plays(example_cell: Path) -> None:
 
 
 def test_wrong_logins_are_held_back_before_they_cost_the_server(example_cell: Path) -> None:
-    """A name with LOGIN_FAILURES wrong passwords in the window is refused unchecked (its
-    right password too, until the window ends), and its later tries are not logged one by
-    one; another name still logs in. Past LOGIN_FAILURES_ALL wrong logins of any names,
-    every login waits the window out."""
+    """A name with LOGIN_FAILURES wrong passwords in the window from one address is refused
+    unchecked from there (its right password too, until the window ends), and its later tries
+    are not logged one by one; another name still logs in. Past LOGIN_FAILURES_ALL wrong
+    logins of any names from one address, every login from it waits the window out; another
+    address is not held back (tests/test_opcua_lockout.py: through real sockets)."""
     from cellctl.clock import run_virtual
     from cellctl.factory.opcua.users import (
         LOGIN_FAILURES,
         LOGIN_FAILURES_ALL,
         LOGIN_WINDOW_S,
         FileUserManager,
+        login_from,
     )
 
     add_user(example_cell, "alice", "correct horse")
     add_user(example_cell, "bob", "battery staple")
-    refused: list[str] = []
+    refused: list[tuple[str, str]] = []
     users = FileUserManager(
-        example_cell / "opcua-users.toml", anonymous_read=False, refused=refused.append
+        example_cell / "opcua-users.toml",
+        anonymous_read=False,
+        refused=lambda name, peer: refused.append((name, peer)),
     )
 
     async def logins() -> None:
         from cellctl.clock import current_clock
 
-        for _ in range(LOGIN_FAILURES):
+        with login_from("10.0.0.5"):
+            for _ in range(LOGIN_FAILURES):
+                assert users.get_user(None, "alice", "guess") is None
+            assert users.get_user(None, "alice", "correct horse") is None  # held back
             assert users.get_user(None, "alice", "guess") is None
-        assert users.get_user(None, "alice", "correct horse") is None  # held back
-        assert users.get_user(None, "alice", "guess") is None
-        assert refused == ["alice"] * LOGIN_FAILURES  # the held-back tries unlogged
-        assert users.get_user(None, "bob", "battery staple") is not None
+            assert refused == [("alice", "10.0.0.5")] * LOGIN_FAILURES  # held-back tries unlogged
+            assert users.get_user(None, "bob", "battery staple") is not None
+        with login_from("10.0.0.7"):
+            assert users.get_user(None, "alice", "correct horse") is not None  # elsewhere: in
         await current_clock().sleep(LOGIN_WINDOW_S)
-        assert users.get_user(None, "alice", "correct horse") is not None
-        for i in range(LOGIN_FAILURES_ALL):
-            assert users.get_user(None, f"name{i % 20}", "guess") is None
-        assert users.get_user(None, "bob", "battery staple") is None  # everyone waits
+        with login_from("10.0.0.5"):
+            assert users.get_user(None, "alice", "correct horse") is not None
+            for i in range(LOGIN_FAILURES_ALL):
+                assert users.get_user(None, f"name{i % 20}", "guess") is None
+            assert users.get_user(None, "bob", "battery staple") is None  # the address waits
+        with login_from("10.0.0.7"):
+            assert users.get_user(None, "bob", "battery staple") is not None
         await current_clock().sleep(LOGIN_WINDOW_S)
-        assert users.get_user(None, "bob", "battery staple") is not None
+        with login_from("10.0.0.5"):
+            assert users.get_user(None, "bob", "battery staple") is not None
 
     run_virtual(logins())

@@ -52,7 +52,13 @@ from cellctl.factory.opcua.space import (
     CellSpace,
     machine_path,
 )
-from cellctl.factory.opcua.users import CellRuleset, FileUserManager, load_users, session_user
+from cellctl.factory.opcua.users import (
+    CellRuleset,
+    FileUserManager,
+    load_users,
+    session_user,
+    track_peers,
+)
 from cellctl.service.access import CellAccess
 from cellctl.service.methods import Caller, Dispatcher, RoleRefused
 from cellctl.service.status import AlarmInfo
@@ -130,7 +136,9 @@ class OpcuaServer:
         manager = FileUserManager(
             self.users,
             anonymous_read=self.anonymous_read,
-            refused=lambda name: self._log(f"OPC UA: login refused for user {name[:64]!r}"),
+            refused=lambda name, peer: self._log(
+                f"OPC UA: login refused for user {name[:64]!r}" + (f" from {peer}" if peer else "")
+            ),
         )
         asyncua_log = logging.getLogger("asyncua")
         if asyncua_log.level == logging.NOTSET:
@@ -138,6 +146,7 @@ class OpcuaServer:
             # host's name) are not the cell's events; refused logins are told above.
             asyncua_log.setLevel(logging.CRITICAL)
         server = Server(user_manager=manager)  # type: ignore[arg-type]
+        track_peers(server)
         bind_condition_methods(server)
         await server.init()
         server.set_endpoint(self.endpoint)

@@ -33,12 +33,13 @@ import os
 import re
 import secrets
 import tomllib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 from asyncua import ua
 from asyncua.crypto.permission_rules import SimpleRoleRuleset, User, UserRole
+from asyncua.server.internal_session import InternalSession
 from asyncua.ua.object_ids import ObjectIds
 
 from cellctl.clock import current_clock
@@ -53,11 +54,15 @@ DEFAULT_ROLE = "operator"
 #: a login).
 SCRYPT_N, SCRYPT_R, SCRYPT_P = 2**14, 8, 1
 SALT_BYTES = 16
-#: Wrong logins a name may have per :data:`LOGIN_WINDOW_S` before its logins are refused
-#: unchecked until the window ends; and all names together (a password hash costs the
-#: server's loop tens of milliseconds: a flood of guesses would stall it, and guess on).
+#: Wrong logins per :data:`LOGIN_WINDOW_S` before logins are refused unchecked until the
+#: window ends (a password hash costs the server's loop tens of milliseconds: a flood of
+#: guesses would stall it, and guess on). Counted per client address, so that a guesser
+#: elsewhere locks nobody out: a name from one address (LOGIN_FAILURES), every name from one
+#: address (LOGIN_FAILURES_ALL); and past LOGIN_FLOOD from all addresses together, every
+#: address with a wrong login in the window (an address with none is still checked).
 LOGIN_FAILURES = 5
 LOGIN_FAILURES_ALL = 30
+LOGIN_FLOOD = 100
 LOGIN_WINDOW_S = 60.0
 HASH_BYTES = 32
 #: User names: what a client can type, nothing that needs quoting in TOML.
@@ -198,30 +203,38 @@ def session_user() -> tuple[str, str]:
 class FileUserManager:
     """asyncua's user manager: users from the file (read at each login); anonymous sessions
     only with ``anonymous_read`` (the server also offers the anonymous token only then).
-    ``refused`` is told the name of each login refused after its password was checked; a
-    name (or everyone) with too many wrong logins lately is refused unchecked
-    (:data:`LOGIN_FAILURES`)."""
+    ``refused`` is told the name and client address of each login refused after its
+    password was checked; an address (or a name from it) with too many wrong logins lately
+    is refused unchecked (:data:`LOGIN_FAILURES`). The address is the one
+    :func:`track_peers` notes for the server's sessions ("" when none is noted)."""
 
     def __init__(
         self,
         path: Path | None,
         *,
         anonymous_read: bool,
-        refused: Callable[[str], None] | None = None,
+        refused: Callable[[str, str], None] | None = None,
     ) -> None:
         self.path = path
         self.anonymous_read = anonymous_read
         self.refused = refused
         self._dummy = hash_password(secrets.token_urlsafe(12))
-        self._failed: list[tuple[float, str]] = []  # (when, name) of wrong logins, in order
+        # (when, address, name) of wrong logins, in order.
+        self._failed: list[tuple[float, str, str]] = []
 
-    def _held_back(self, username: str) -> bool:
-        """True if ``username`` (or everyone) failed too often in the window: refused
-        without a hash (see :data:`LOGIN_FAILURES`)."""
+    def _held_back(self, peer: str, username: str) -> bool:
+        """True if ``username`` from ``peer``, or ``peer`` itself, failed too often in the
+        window, or a flood is on and ``peer`` took part: refused without a hash."""
         now = current_clock().monotonic()
-        self._failed = [(t, n) for t, n in self._failed if now - t < LOGIN_WINDOW_S]
-        mine = sum(1 for _, n in self._failed if n == username)
-        return mine >= LOGIN_FAILURES or len(self._failed) >= LOGIN_FAILURES_ALL
+        self._failed = [f for f in self._failed if now - f[0] < LOGIN_WINDOW_S]
+        from_peer = [name for _, address, name in self._failed if address == peer]
+        if not from_peer:
+            return False
+        return (
+            from_peer.count(username) >= LOGIN_FAILURES
+            or len(from_peer) >= LOGIN_FAILURES_ALL
+            or len(self._failed) >= LOGIN_FLOOD
+        )
 
     def get_user(
         self,
@@ -233,7 +246,8 @@ class FileUserManager:
         """The session's user, or None (the login is refused: BadUserAccessDenied)."""
         if username is None:  # ``certificate`` is the client application's, not a user's
             return CellUser(role=UserRole.Anonymous) if self.anonymous_read else None
-        if self._held_back(username):
+        peer = _PEER.get()
+        if self._held_back(peer, username):
             return None  # unchecked and unlogged: the wrong logins before it were logged
         try:
             users = load_entries(self.path) if self.path is not None else {}
@@ -243,10 +257,58 @@ class FileUserManager:
         stored, role = users.get(username, (self._dummy, "viewer"))
         if check_password(stored, password or "") and username in users:
             return CellUser(role=UserRole.User, name=username, cell_role=role)
-        self._failed.append((current_clock().monotonic(), username))
+        self._failed.append((current_clock().monotonic(), peer, username))
         if self.refused is not None:
-            self.refused(username)
+            self.refused(username, peer)
         return None
+
+
+#: The client address of the session being activated (set by :func:`track_peers`).
+_PEER: contextvars.ContextVar[str] = contextvars.ContextVar("opcua_peer", default="")
+
+
+@contextlib.contextmanager
+def login_from(address: str) -> Iterator[None]:
+    """Logins in the block come from ``address``, as :func:`track_peers` says for a session."""
+    token = _PEER.set(address)
+    try:
+        yield
+    finally:
+        _PEER.reset(token)
+
+
+class _PeerSession(InternalSession):
+    """asyncua's session, whose activation (where the user manager is asked) knows the
+    client's address: asyncua names a session by its connection's peer."""
+
+    def activate_session(
+        self, params: ua.ActivateSessionParameters, peer_certificate: bytes | None
+    ) -> ua.ActivateSessionResult:
+        name: Any = self.name
+        address = str(name[0]) if isinstance(name, tuple) and name else str(name or "")
+        with login_from(address):
+            return super().activate_session(params, peer_certificate)
+
+
+def track_peers(server: Any) -> None:
+    """Make ``server`` (asyncua's Server) tell its user manager each login's client address,
+    so that wrong logins are held back per address (:class:`FileUserManager`)."""
+    iserver = server.iserver
+
+    def create_session(
+        name: str, user: User | None = None, external: bool = False
+    ) -> InternalSession:
+        user = user if user is not None else User(role=UserRole.Anonymous)
+        return _PeerSession(
+            iserver,
+            iserver.aspace,
+            iserver.subscription_service,
+            name,
+            user=user,
+            external=external,
+        )
+
+    iserver.create_session = create_session
 
 
 class CellRuleset(SimpleRoleRuleset):

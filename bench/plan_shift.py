@@ -25,7 +25,7 @@ Figures (last line machine-readable):
 Timing figures on a loaded machine are noisy (the box is shared): say so when you quote them.
 The plan's wall time is CPU-bound (the controller looks at the robot, mills and PLC several
 times a poll period, each a real exchange of bytes), so it grows with the shift's length. The
-plan looks every ``--poll`` s (the plan's default, 5 s); the real run at the cell's own 0.5 s:
+plan looks every ``--poll`` s (the plan's default, 15 s); the real run at the cell's own 0.5 s:
 the delta is the plan a planner gets against the cell it predicts.
 """
 

@@ -10,7 +10,8 @@
 that makes its part type with the earliest estimated finish (:mod:`cellctl.factory.dispatch`:
 by the cells' bounds, or by their own plans with ``[dispatch] estimate = "plan"``), logging
 why, committing the choice before the order goes out; re-sends every order its cell has not
-answered each ``resend`` seconds (orders are idempotent by id at the cell); and puts back in
+answered each ``resend`` seconds (orders are idempotent by id at the cell), with its due time
+if it has one (``cellctl factory submit --due``); and puts back in
 the queue an order its cell refused, or one a cell that went offline did not take before the
 order's ``expires`` (``accept_timeout`` after it was sent: the cell refuses it after that, so it
 is made by one cell). An order no cell can ever make fails, saying why
@@ -405,6 +406,7 @@ class FactoryController:
             qty=order.qty,
             priority=order.priority,
             expires=order.expires,
+            due=order.due,  # left out of the payload when None: the message it always was
         )
         topic = f"{self.config.cells[order.cell]}/orders"
         await client.publish(topic, message.model_dump_json(), qos=1)

@@ -19,8 +19,8 @@ AT_CELL_STATES = (ACCEPTED, IN_PROGRESS, HELD)
 FINAL_STATES = (DONE, FAILED, CANCELLED)
 #: How an order at a cell is shown while its cancel is on its way (not a state of its own).
 CANCELLING = "cancelling"
-#: The columns a store from before cancels (or before held parts by id) lacks, with their
-#: SQL types.
+#: The columns a store from before cancels (or before held parts by id, or before due
+#: times) lacks, with their SQL types.
 CANCEL_COLUMNS = {
     "held_parts": "TEXT NOT NULL DEFAULT '[]'",
     "cancel_asked": "REAL",
@@ -28,6 +28,7 @@ CANCEL_COLUMNS = {
     "cancel_reason": "TEXT",
     "cancel_sent": "REAL",
     "cancel_sends": "INTEGER NOT NULL DEFAULT 0",
+    "due": "REAL",
 }
 #: Reports that answer an order: taken again when a re-sent order is answered again.
 ANSWER_KINDS = (ReportKind.ORDER_ACCEPTED, ReportKind.ORDER_REJECTED)
@@ -69,6 +70,7 @@ class FactoryOrder:
     cancel_sent: float | None = None  # when the controller last sent it to the cell
     cancel_sends: int = 0
     held_parts: tuple[str, ...] = ()  # the ids of its parts held now (``held`` counts them)
+    due: float | None = None  # when it is due (unix s; None: no due time), sent with it
 
     @property
     def cancelling(self) -> bool:

@@ -5,6 +5,7 @@ committed transaction, so a factory killed with -9 and started again loses nothi
 
     store = FactoryStore(config.state_path)
     store.submit("wax-robot-base", 2, priority=0)          # queued
+    store.submit("wax-robot-base", 2, due=resolve_due("FRI 18:00", now))  # due then
     store.send(order_id, "cell1", now, expires)            # sent: before the publish
     store.take_report("cell1", report)                     # accepted, done ... (idempotent)
     store.cancel(order_id, by="ann", reason="wrong stock") # cancelled, or asked of its cell
@@ -14,7 +15,8 @@ An order is ``queued`` (at no cell), ``sent`` (to one cell, not yet answered), t
 cell reports it: ``accepted``, ``in-progress``, ``held`` (a part waits for the cell's
 operator), and at last ``done``, ``failed`` or ``cancelled``. A refusal, or a cell that went
 offline without taking it before its deadline, puts it back to ``queued`` with that cell
-remembered, so it goes elsewhere.
+remembered, so it goes elsewhere. An order's ``due`` time (unix seconds, or none) is kept as
+submitted and goes to its cell with it.
 
 A cancel (:mod:`cellctl.factory.cancel`) ends a queued order at once. For an order at a cell
 it is a request kept beside the state (``cancel_asked``, ``cancel_by``, ``cancel_reason``):
@@ -62,8 +64,9 @@ from cellctl.factory.records import (
     log_event,
     order_of,
 )
-from cellctl.mailbox.base import MAX_QTY, check_new_order
+from cellctl.mailbox.base import MAX_QTY, check_due, check_new_order
 from cellctl.mailbox.wire import MAX_NAME, MAX_REASON, ReportMessage
+from cellctl.plan.when import when_text
 
 __all__ = [
     "ACCEPTED",
@@ -112,7 +115,8 @@ CREATE TABLE IF NOT EXISTS orders (
     cancel_reason TEXT,
     cancel_sent REAL,
     cancel_sends INTEGER NOT NULL DEFAULT 0,
-    held_parts TEXT NOT NULL DEFAULT '[]'
+    held_parts TEXT NOT NULL DEFAULT '[]',
+    due REAL
 );
 CREATE TABLE IF NOT EXISTS cells (
     name TEXT PRIMARY KEY,
@@ -161,10 +165,18 @@ class FactoryStore(SqliteStore):
     # -- orders in ----------------------------------------------------------------------------
 
     def submit(
-        self, part_type: str, qty: int, priority: int = 0, order_id: str | None = None
+        self,
+        part_type: str,
+        qty: int,
+        priority: int = 0,
+        order_id: str | None = None,
+        *,
+        due: float | None = None,
     ) -> tuple[FactoryOrder, bool]:
-        """Queue an order; the same id again returns the first one unchanged (new=False)."""
+        """Queue an order, due at ``due`` (unix seconds; None: no due time); the same id again
+        returns the first one unchanged (new=False)."""
         oid = check_new_order(part_type, qty, priority, order_id)
+        due = check_due(due)
         if len(oid) > MAX_NAME or len(part_type) > MAX_NAME:
             raise UsageError(f"an order id and a part type have at most {MAX_NAME} characters")
         if qty > MAX_QTY:
@@ -175,11 +187,12 @@ class FactoryStore(SqliteStore):
             if row is not None:
                 return order_of(row), False
             db.execute(
-                "INSERT INTO orders (id, part_type, qty, priority, state, submitted, updated)"
-                " VALUES (?, ?, ?, ?, ?, ?, ?)",
-                (oid, part_type, qty, priority, QUEUED, now, now),
+                "INSERT INTO orders (id, part_type, qty, priority, state, submitted, updated, due)"
+                " VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                (oid, part_type, qty, priority, QUEUED, now, now, due),
             )
-            log_event(db, now, None, oid, f"order {oid} submitted: {qty} x {part_type}")
+            shown = "" if due is None else f", due {when_text(due, date=True)}"
+            log_event(db, now, None, oid, f"order {oid} submitted: {qty} x {part_type}{shown}")
             row = db.execute("SELECT * FROM orders WHERE id = ?", (oid,)).fetchone()
         return order_of(row), True
 

@@ -3,12 +3,17 @@
 ::
 
     add = parse_add("wax-robot-base:40@5")              # AddSpec(part, qty 40, priority 5)
+    add = parse_add("wax-robot-base:40 by FRI 18:00", start)   # ... due the next Friday 18:00
     window = parse_fault("cnc2:down@10:00-11:00", start) # FaultWindow(cnc2, down, 10:00, 11:00)
     check_inputs(config, orders, faults, policy)        # UsageError naming what the cell lacks
 
 ``--fault MACHINE:FAULT[=ARG]@WHEN[-WHEN]``: ``down`` takes the machine out of service over
 the window; any other name is one of the machine's emulator fault switches (``cellctl
 emulate cell --help`` lists them). Without an end the fault lasts to the end of the plan.
+
+``--add PART:QTY[@PRIORITY][ by WHEN]``: ``WHEN`` is a due time as ``--until`` and ``cellctl
+submit --due`` write it, seen from the plan's start; the plan says whether the order is done
+by it.
 """
 
 from __future__ import annotations
@@ -21,8 +26,9 @@ from typing import Final
 
 from cellctl.cell.config import CellConfig, load_cell
 from cellctl.cell.scheduler import DOWNSTREAM_FIRST
+from cellctl.clock import current_clock
 from cellctl.errors import UsageError
-from cellctl.mailbox.base import MAX_QTY
+from cellctl.mailbox.base import MAX_QTY, check_due
 from cellctl.plan.engine import POLICIES, FaultWindow, HeldPart, PlanInputs, PlanOrder
 from cellctl.plan.faults import PLC, check_switch, switches
 from cellctl.plan.when import (
@@ -41,7 +47,13 @@ ALL_POLICIES: Final = "all"
 
 _WORD = r"[A-Za-z0-9][A-Za-z0-9_.\-]{0,99}"
 _ADD = re.compile(
-    rf"^\s*(?P<part>{_WORD})\s*:\s*(?P<qty>\d{{1,9}})\s*(?:@\s*(?P<prio>[-+]?\d{{1,18}}))?\s*$"
+    rf"^\s*(?P<part>{_WORD})\s*:\s*(?P<qty>\d{{1,9}})\s*(?:@\s*(?P<prio>[-+]?\d{{1,18}}))?"
+    r"(?:\s+[Bb][Yy]\s+(?P<due>\S.{0,59}?))?\s*$"
+)
+#: How ``--add`` is written, for its refusals.
+ADD_FORMS: Final = (
+    "write PART:QTY[@PRIORITY][ by WHEN], e.g. wax-robot-base:40, wax-robot-base:40@5 or "
+    "wax-robot-base:40@5 by FRI 18:00"
 )
 #: A fault window's time: ``[DAY ]HH:MM`` or a date and time (``2026-11-30T06:30``).
 _WHEN = r"(?:\d{4}-\d{2}-\d{2}[T ]\d{1,2}:\d{2}(?::\d{2})?|(?:[A-Za-z]{3,9}\s+)?\d{1,2}:\d{2})"
@@ -53,27 +65,44 @@ _FAULT = re.compile(
 
 @dataclass(frozen=True)
 class AddSpec:
-    """``--add PART:QTY[@PRIORITY]``: an order added to the plan."""
+    """``--add PART:QTY[@PRIORITY][ by WHEN]``: an order added to the plan, due at ``due``
+    (unix seconds) if given."""
 
     part_type: str
     qty: int
     priority: int = 0
+    due: float | None = None
 
 
-def parse_add(text: str) -> AddSpec:
-    """``wax-robot-base:40`` or ``wax-robot-base:40@5`` (priority: higher goes first)."""
+def parse_add(text: str, start: float | None = None) -> AddSpec:
+    """``wax-robot-base:40``, ``wax-robot-base:40@5`` (priority: higher goes first), either
+    with `` by WHEN`` (``wax-robot-base:40@5 by FRI 18:00``): due at ``WHEN``, read as
+    ``cellctl submit --due`` reads it, from the plan's ``start`` (None: now, to check the
+    form before the plan's start is known). A date and time may be past already: the order
+    is late from the start, as an orders file's is."""
     found = _ADD.match(text)
     if found is None:
-        raise UsageError(
-            f"--add {text!r}: write PART:QTY or PART:QTY@PRIORITY, e.g. wax-robot-base:40@5"
-        )
+        raise UsageError(f"--add {text!r}: {ADD_FORMS}")
     qty = int(found["qty"])
     if not 1 <= qty <= MAX_QTY:
         raise UsageError(f"--add {text!r}: the quantity must be 1 to {MAX_QTY}")
     priority = int(found["prio"] or 0)
     if priority not in PRIORITY_RANGE:
         raise UsageError(f"--add {text!r}: the priority must be -1000000 to 1000000")
-    return AddSpec(found["part"], qty, priority)
+    due = None
+    if found["due"] is not None:
+        seen_from = current_clock().now() if start is None else start
+        try:
+            due = check_due(resolve_when(found["due"], seen_from, due=True))
+        except UsageError as e:
+            # The time's own words (``hours 0-23`` ...), then how the whole is written.
+            why = str(e)
+            why = f"due {why}" if why.startswith("time ") else why
+            raise UsageError(
+                f"--add {text!r}: {why} (an order with a due time: PART:QTY[@PRIORITY] by "
+                "WHEN, e.g. wax-robot-base:40@5 by FRI 18:00)"
+            ) from None
+    return AddSpec(found["part"], qty, priority, due)
 
 
 def parse_fault(text: str, start: float, until: float | None = None) -> FaultWindow:
@@ -247,11 +276,14 @@ def plan_inputs(
         raise UsageError(f"--seed {seed}: a whole number 0 or more")
     poll_period = parse_poll(poll_period)
     end = plan_window(start, shift, until)
-    added = [parse_add(text) for text in adds]
+    added = [parse_add(text, start) for text in adds]
     ids = fresh_ids([o.order_id for o in orders], len(added))
     every = (
         *orders,
-        *(PlanOrder(i, a.part_type, a.qty, a.priority) for i, a in zip(ids, added, strict=True)),
+        *(
+            PlanOrder(i, a.part_type, a.qty, a.priority, a.due)
+            for i, a in zip(ids, added, strict=True)
+        ),
     )
     if not every and held:
         # Open orders there are: their parts all wait for the operator's word, which a plan

@@ -2,7 +2,9 @@
 submit|cancel|orders|cells|run``, the cell's commands one level up, and ``cellctl emulate
 factory --cells N [--template CELL]... DIR``.
 
-``submit``, ``cancel`` and ``orders`` read and write the factory's store
+``submit [--due WHEN]`` queues an order (due then: its cell gets the due time with it, and
+``orders`` shows it, LATE once past); ``submit``, ``cancel`` and ``orders`` read and write the
+factory's store
 (``DIR/state/factory.db``) whether or not ``run`` runs: ``run`` picks a new order or a cancel
 up within 20 ms. ``run`` is the one factory controller of DIR (a second one is refused, naming
 the first).
@@ -89,11 +91,30 @@ def factory(ctx: click.Context, directory: str) -> None:
 )
 @click.option("--priority", type=int, default=0, show_default=True, help="Higher goes first.")
 @click.option("--id", "order_id", metavar="ID", help="The order's id (the same id again: no-op).")
+@click.option(
+    "--due",
+    metavar="WHEN",
+    help="When it is due, on this host's clock: FRI 18:00 or 18:00 (the next such time), or "
+    "a date and time (2026-12-04T18:00; one already past is taken: the order is late). "
+    "Its cell gets it with the order.",
+)
 @click.pass_context
 def submit(
-    ctx: click.Context, part_type: str, qty: int, priority: int, order_id: str | None
+    ctx: click.Context,
+    part_type: str,
+    qty: int,
+    priority: int,
+    order_id: str | None,
+    due: str | None,
 ) -> None:
     """Submit an order for QTY parts of type PART; the factory gives it to a cell."""
+    from cellctl.service.orderdue import due_words, resolve_due
+
+    now = current_clock().now()
+    try:  # refused here, before the store is opened: nothing is recorded or sent
+        due_at = resolve_due(due, now)
+    except UsageError as e:
+        raise UsageError(f"--due: {e}") from None
 
     async def main() -> None:
         config = _config(ctx)
@@ -103,19 +124,33 @@ def submit(
                 raise UsageError(
                     f"no cell makes {part_type!r} (the cells make: {', '.join(sorted(made))})"
                 )
-            order, new = store.submit(part_type, qty, priority, order_id)
-        if not new and (order.part_type, order.qty, order.priority) != (part_type, qty, priority):
+            order, new = store.submit(part_type, qty, priority, order_id, due=due_at)
+        asked = (part_type, qty, priority, due_at)
+        if not new and (order.part_type, order.qty, order.priority, order.due) != asked:
             # The same id for another order: a retry must ask the same, or it is a mistake
             # (as a cell's `cellctl submit` says it).
             raise UsageError(
-                f"order {order.id} was submitted before as {order.qty} × {order.part_type}, "
-                f"priority {order.priority}, not {qty} × {part_type}, priority {priority}: "
-                "nothing changed (give this order another --id)"
+                f"order {order.id} was submitted before as "
+                f"{_what(order.qty, order.part_type, order.priority, order.due)}, not "
+                f"{_what(qty, part_type, priority, due_at)}: nothing changed (give this order "
+                "another --id)"
             )
         what = "submitted" if new else "already submitted (unchanged)"
-        console.print(f"order {order.id} {what}: {order.qty} x {order.part_type}", markup=False)
+        console.print(
+            f"order {order.id} {what}: {order.qty} x {order.part_type}{due_words(order.due, now)}",
+            markup=False,
+            soft_wrap=True,
+        )
 
     run(main)
+
+
+def _what(qty: int, part_type: str, priority: int, due: float | None) -> str:
+    """An order as a refusal names it: ``2 × wax-robot-base, priority 0, due Fri ...``."""
+    from cellctl.plan.when import when_text
+
+    shown = "" if due is None else f", due {when_text(due, date=True)}"
+    return f"{qty} × {part_type}, priority {priority}{shown}"
 
 
 @factory.command("cancel")
@@ -160,13 +195,35 @@ def live_orders(orders: list[FactoryOrder], limit: int) -> tuple[list[FactoryOrd
     return shown, len(orders) - len(shown)
 
 
+def is_late(order: FactoryOrder, now: float) -> bool:
+    """Whether ``order`` is late at ``now``, by the cell's rule (``cellctl orders``' LATE):
+    done after its due time, or not done and past it; never without one, or cancelled."""
+    from cellctl.service.orderdue import is_late as late_by_the_cells_rule
+
+    ended = order.finished if order.finished is not None else order.updated
+    return late_by_the_cells_rule(order.state, ended, order.due, now)
+
+
+def due_text(order: FactoryOrder, now: float) -> str:
+    """The due column's text: ``2026-12-04 18:00:00``, ``LATE`` after it when late; "" for
+    an order without a due time."""
+    if order.due is None:
+        return ""
+    when = datetime.fromtimestamp(order.due).strftime("%Y-%m-%d %H:%M:%S")
+    return when + (" [red]LATE[/red]" if is_late(order, now) else "")
+
+
 def orders_table(rows: list[FactoryOrder], *, more: str = "") -> Table:
-    """One line per order of ``rows``; ``more``: a last line saying what is left out."""
+    """One line per order of ``rows``; ``more``: a last line saying what is left out. A due
+    column when an order of them has a due time (else the table as it always was)."""
     table = Table(title="orders", expand=True, caption=more or None, caption_justify="left")
-    for col in ("order", "part", "qty", "state", "cell", "done", "held"):
+    dues = any(o.due is not None for o in rows)
+    columns = ("order", "part", "qty", "state", "cell", "done", "held", *("due",) * dues)
+    for col in columns:
         # The note keeps at least a third of the width: it says why an order waits.
         table.add_column(col, overflow="fold", ratio=1 if col in ("order", "part") else None)
     table.add_column("note", overflow="fold", ratio=2, min_width=20)
+    now = current_clock().now()
     for o in rows:
         table.add_row(
             o.id,
@@ -176,6 +233,7 @@ def orders_table(rows: list[FactoryOrder], *, more: str = "") -> Table:
             o.cell or "",
             str(o.done),
             str(o.held),
+            *(due_text(o, now),) * dues,
             o.note,
         )
     return table
@@ -267,7 +325,17 @@ def orders(ctx: click.Context, only_open: bool, as_json: bool) -> None:
         with FactoryStore(config.state_path) as store:
             rows = store.orders(None if not only_open else OPEN_STATES)
             if as_json:
-                print_json([{**dataclasses.asdict(o), "cancelling": o.cancelling} for o in rows])
+                now = current_clock().now()
+                print_json(
+                    [
+                        {
+                            **dataclasses.asdict(o),
+                            "cancelling": o.cancelling,
+                            "late": is_late(o, now),
+                        }
+                        for o in rows
+                    ]
+                )
                 return
             if not rows:
                 console.print("no open orders" if only_open else "no orders", markup=False)

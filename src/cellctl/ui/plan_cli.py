@@ -5,6 +5,7 @@
     cellctl plan                                        # the running cell, the next 8 h
     cellctl plan --fault cnc2:down@10:00-11:00          # ... if cnc2 is down 10 to 11
     cellctl plan --add wax-robot-base:40 --until 'FRI 18:00'   # can we take 40 more?
+    cellctl plan --add 'wax-robot-base:40 by FRI 18:00' --until 'FRI 18:00'  # ... by Friday?
     cellctl plan --dir cell --orders week.csv --policy all --out plan-out
     cellctl plan --replay plan-out/inputs.json          # the same plan again
 
@@ -129,8 +130,10 @@ def _local_plan(
     "--add",
     "adds",
     multiple=True,
-    metavar="PART:QTY[@PRIO]",
-    help="Add an order (repeatable): wax-robot-base:40, or :40@5 with a priority.",
+    metavar="PART:QTY[@PRIO][ by WHEN]",
+    help="Add an order (repeatable): wax-robot-base:40, :40@5 with a priority, "
+    "'wax-robot-base:40@5 by FRI 18:00' due then (WHEN as --until takes it): the plan says "
+    "whether it is done by then.",
 )
 @click.option(
     "--fault",

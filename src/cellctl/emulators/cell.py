@@ -54,7 +54,7 @@ import random
 import shutil
 import tomllib
 from collections import defaultdict
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -65,6 +65,7 @@ from cellctl.emulators.celltoml import CELL_DEADLINES, DEADLINE_NOTE, is_options
 from cellctl.emulators.header import EMULATED_HEADER, written_by_emulation
 from cellctl.emulators.line import LineNoise
 from cellctl.emulators.memserve import serve_mem
+from cellctl.emulators.plc import FAULTS as PLC_FAULTS
 from cellctl.emulators.plc import PlcEmulator
 from cellctl.emulators.serve import (
     CELL_TIME_SCALE,
@@ -211,6 +212,16 @@ class EmulatedCell:
         noise = getattr(target, "noise", None)
         if isinstance(noise, LineNoise) and noise.seed is None and self.seed is not None:
             target.noise = LineNoise(noise.rate, self.machine_seed(machine))
+
+    def fault_tables(self) -> dict[str, Mapping[str, str]]:
+        """Each machine's fault switches (its kind's table; ``plc``: the PLC's), the robot's
+        also as ``robot``: what ``--fault MACHINE:NAME[=ARG]`` and the panel's ``fault`` are
+        checked against (:func:`~cellctl.emulators.switches.check_fault`)."""
+        robot = registry.kind(self.kinds[self.robot_name]).faults
+        tables: dict[str, Mapping[str, str]] = {self.robot_name: robot, "robot": robot}
+        tables.update({m: registry.kind(self.kinds[m]).faults for m in self.mill_names})
+        tables["plc"] = PLC_FAULTS
+        return tables
 
     def machine(self, name: str) -> Any:
         """The emulator of machine ``name`` (``"plc"``: the PLC)."""

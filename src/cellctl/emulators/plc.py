@@ -32,8 +32,8 @@ What it models (every time **assumed**, :class:`PlcTiming`, divided by ``time_sc
 ``hooks.coil`` callbacks get ``(name, value)`` on every coil change, ``hooks.input`` on every
 input change, so the cell emulator can tie robot DO/DI lines to PLC signals.
 
-Fault switches, :data:`FAULTS`: ``drop``, ``silent``, ``stuck-door=N``, ``no-pallet``,
-``estop``. ``drop`` and ``silent`` act on the TCP line: clients reach pymodbus through a small
+Fault switches, :data:`FAULTS`: ``drop``, ``silent``, ``stuck-door=N``, ``no-pallet``, ``estop``,
+``slow[=MS]``. ``drop`` and ``silent`` act on the TCP line: clients reach pymodbus through a small
 front door of our own, so a fault can cut or mute the line as a failed PLC or gateway would.
 """
 
@@ -67,6 +67,7 @@ from cellctl.tasks import cancel_and_wait
 
 __all__ = ["FAULTS", "PlcEmulator", "PlcHooks", "PlcTiming"]
 
+SLOW_DEFAULT_MS = 400  #: how late ``slow`` answers without its ``=MS`` (its description says)
 #: Fault switches: name -> what it does (``--fault NAME[=ARG]`` on the command line).
 FAULTS: dict[str, str] = {
     "drop": "close every client connection and refuse new ones until cleared",
@@ -75,7 +76,7 @@ FAULTS: dict[str, str] = {
     "no-pallet": "the conveyor never delivers a pallet",
     "estop": "emergency stop pressed: estop_ok = 0, actuators stop, GO ignored",
     "slow": "=MS: answer every request MS milliseconds late, in the host's seconds (a busy "
-    "PLC or network; default 400)",
+    f"PLC or network) (default {SLOW_DEFAULT_MS} ms)",
 }
 
 #: Inputs at power-up: doors closed, vises open, no pallet, outfeed empty, e-stop released.
@@ -231,8 +232,7 @@ class PlcEmulator:
 
     @property
     def clock(self) -> Clock:
-        """What the PLC times its conveyor, vises and doors on: the clock given (``clock=``,
-        or ``time_scale=`` as RealClock(time_scale)), else the running loop's."""
+        """What the PLC times its conveyor, vises and doors on: the clock given, else the loop's."""
         return self._clock or current_clock()
 
     @property
@@ -291,12 +291,8 @@ class PlcEmulator:
     def _request_pallet(self) -> None:
         if "no-pallet" in self.faults and not self._estop:
             self.onsets.act("no-pallet")  # a request the conveyor ignores
-        if (
-            self._estop
-            or "no-pallet" in self.faults
-            or self.inputs["pallet_present"]
-            or self._pallet_coming
-        ):
+        busy = self.inputs["pallet_present"] or self._pallet_coming
+        if self._estop or "no-pallet" in self.faults or busy:
             return
         self._pallet_coming = True
 
@@ -390,8 +386,7 @@ class PlcEmulator:
         from pymodbus.simulator import DataType, SimData, SimDevice
 
         def bits(addresses: Mapping[str, int]) -> list[Any]:
-            size = _block_size(addresses)
-            return [SimData(0, count=size, values=False, datatype=DataType.BITS)]
+            return [SimData(0, count=_block_size(addresses), values=False, datatype=DataType.BITS)]
 
         regs = [SimData(0, count=1, values=0, datatype=DataType.REGISTERS)]
         # id 0: answer whatever unit id the controller uses, as a PLC on its own port does.
@@ -567,8 +562,7 @@ class PlcEmulator:
         if "slow" not in self.faults:
             return 0.0
         self.onsets.act("slow")
-        arg = self.faults["slow"]
-        return float(arg) / 1000.0 if arg else 0.4  # checked by set_fault
+        return float(self.faults["slow"] or SLOW_DEFAULT_MS) / 1000.0  # checked by set_fault
 
     def _answer(self, adu: modbus.Adu) -> bytes:
         """The answer to one request frame (an exception response for an illegal one)."""
@@ -581,8 +575,7 @@ class PlcEmulator:
         if request.function == modbus.WRITE_SINGLE_COIL:
             if request.address >= _block_size(self.map.coils):
                 return modbus.encode_exception(tid, unit, request.function, _ILLEGAL_ADDRESS)
-            by_address = {a: n for n, a in self.map.coils.items()}
-            name = by_address.get(request.address)
+            name = {a: n for n, a in self.map.coils.items()}.get(request.address)
             if name is not None:
                 self._coil_written(name, request.value)
             return modbus.encode_write_coil_response(tid, unit, request.address, request.value)

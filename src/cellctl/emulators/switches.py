@@ -4,7 +4,12 @@
     check_switch(FAULTS, "stall", "abc")   # UsageError: fault stall takes no argument ...
 
 A switch takes an argument exactly when its description in the table starts with ``=``
-(``=N: ...``): the table a help text shows is the one fact the check reads.
+(``=N: ...``): the table a help text shows is the one fact the check reads. One whose argument
+may be left out says the value it then takes the same way, in its description: ``(default 5
+lines)``; :func:`default_of` reads it, and what a switch switched on says names it::
+
+    default_of(FAULTS, "drop")              # "5 lines"
+    said_on("cnc1", "drop", None, FAULTS)   # "cnc1: drop on (5 lines, its default)"
 
 A cell's switches, ``MACHINE:NAME[=ARG]`` as ``cellctl emulate cell --fault`` takes them, are
 checked against each machine's table before anything is written or started::
@@ -15,6 +20,7 @@ checked against each machine's table before anything is written or started::
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
 
 from cellctl.errors import UsageError
@@ -23,6 +29,39 @@ from cellctl.errors import UsageError
 def takes_argument(faults: Mapping[str, str], name: str) -> bool:
     """True if switch ``name`` of ``faults`` takes an argument (its description: ``=ARG: ...``)."""
     return faults.get(name, "").startswith("=")
+
+
+#: Where a description says the value its switch takes without ``=ARG``: ``(default 16 ms)``.
+_DEFAULT = re.compile(r"\(default ([^)]+)\)")
+
+
+def default_of(faults: Mapping[str, str], name: str) -> str | None:
+    """The value switch ``name`` of ``faults`` takes when ``=ARG`` is left out, as its
+    description says it (``"=MS: ... (default 16 ms)"`` -> ``"16 ms"``); None for a switch
+    that takes no argument, or one that must be given it."""
+    if not takes_argument(faults, name):
+        return None
+    found = _DEFAULT.search(faults[name])
+    return found.group(1).strip() if found else None
+
+
+def shown_switch(faults: Mapping[str, str], name: str, arg: str | None) -> str:
+    """Switch ``name`` as it is on: ``"drop=3"``, ``"drop (5 lines, its default)"`` (its
+    argument left out), ``"stall"``."""
+    if arg is not None:
+        return f"{name}={arg}"
+    default = default_of(faults, name)
+    return name if default is None else f"{name} ({default}, its default)"
+
+
+def said_on(machine: str, name: str, arg: str | None, faults: Mapping[str, str]) -> str:
+    """What switching ``name`` on at ``machine`` did, in a line: ``"cnc1: drop=3 on"``,
+    ``"cnc1: adapter-latency on (16 ms, its default)"``: a default taken is said, never
+    silent."""
+    default = default_of(faults, name) if arg is None else None
+    if default is not None:
+        return f"{machine}: {name} on ({default}, its default)"
+    return f"{machine}: {shown_switch(faults, name, arg)} on"
 
 
 def check_switch(faults: Mapping[str, str], name: str, arg: str | None) -> None:
@@ -72,4 +111,13 @@ def check_fault(
     return machine, name, arg
 
 
-__all__ = ["check_fault", "check_switch", "parse_fault", "split_fault", "takes_argument"]
+__all__ = [
+    "check_fault",
+    "check_switch",
+    "default_of",
+    "parse_fault",
+    "said_on",
+    "shown_switch",
+    "split_fault",
+    "takes_argument",
+]

@@ -9,7 +9,7 @@ import sys
 import time
 from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import click
 
@@ -341,14 +341,15 @@ def emulate_cell_command() -> click.Command:
             for text in fault:
                 check_fault(text, tables)
             toml = await cell.start(directory)
-            for text in fault:
-                apply_fault(cell, text, at_start=True)
+            switched = [apply_fault(cell, text, at_start=True) for text in fault]
             console.print(f"emulated cell (time scale {time_scale:g}) wrote {toml}")
             for name, server in cell.servers.items():
                 console.print(f"  {name:6s} {server.url}")
             console.print(f"  plc    {cell.plc_url}")
             backend = cell.plc.backend_url
             console.print(f"         behind it, pymodbus on {backend} (no fault switch acts there)")
+            for said in switched:  # a default taken is said: "cnc1: drop on (5 lines, its default)"
+                console.print(f"  fault {said}", markup=False)
             hands = asyncio.ensure_future(_hand_commands(cell)) if panel else None
             try:
                 await until_stopped()
@@ -424,31 +425,18 @@ async def _hand_commands(cell: object) -> None:
 def fault_tables(cell: EmulatedCell) -> dict[str, Mapping[str, str]]:
     """Each machine of an emulated cell (started or not) and its fault switches: the robot
     (also as ``robot``), the mills, ``plc``; what :func:`check_fault` checks against."""
-    from cellctl.emulators.plc import FAULTS as PLC_FAULTS
-    from cellctl.kinds import registry
-
-    robot = registry.kind(cell.kinds[cell.robot_name]).faults
-    tables = {cell.robot_name: robot, "robot": robot}
-    tables.update({m: registry.kind(cell.kinds[m]).faults for m in cell.mill_names})
-    tables["plc"] = PLC_FAULTS
-    return tables
+    return cell.fault_tables()
 
 
-def apply_fault(cell: object, text: str, *, at_start: bool = False) -> None:
-    """Switch a fault on one machine of an emulated cell: ``cnc1:stall``, ``robot:drop``.
+def apply_fault(cell: object, text: str, *, at_start: bool = False) -> str:
+    """Switch a fault on one machine of an emulated cell: ``cnc1:stall``, ``robot:drop``;
+    returns what was switched on, a default taken said (the panel's ``fault``, one code:
+    :func:`cellctl.emulators.cellpanel.switch_on`).
 
     ``at_start``: given as the cell starts (``cellctl emulate cell --fault``). A mill's fault
     that acts as a block ends (``stall``: :data:`~cellctl.emulators.cell.CUT_FAULTS`) is then
     switched on as the mill's first cut starts, as a stall in the middle of a cut comes:
     switched on at once, it would take the setup block, the first block the mill runs."""
-    c: Any = cell
-    machine, name, arg = check_fault(text, fault_tables(c))
-    machines = {"robot": c.robot, c.robot_name: c.robot, **c.mills, "plc": c.plc}
-    target = machines[machine]
-    if at_start and machine in c.mills:
-        from cellctl.emulators.cell import CUT_FAULTS
+    from cellctl.emulators.cellpanel import switch_on
 
-        if name in CUT_FAULTS:
-            c.switch_on_at_cut(machine, name, arg)
-            return
-    target.set_fault(name, arg)
+    return switch_on(cell, text, at_start=at_start)

@@ -86,7 +86,7 @@ _YIELD_EVERY = 1000
 FAULTS = {
     "never-ready": "the controller never shows READY: RTS stays low",
     "no-next": "the operator never presses NEXT after SETUP: RTS stays low",
-    "drop": "=N: drop the connection N lines into the next block (default 5)",
+    "drop": "=N: drop the connection N lines into the next block (default 5 lines)",
     "stall": "CTS stuck low: after the next block RTS never rises again",
     "noise": "=RATE[,SEED]: every byte, each way, flipped in one bit or dropped with "
     "probability RATE (e.g. 3e-4,7)",

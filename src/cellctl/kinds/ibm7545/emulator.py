@@ -99,7 +99,7 @@ FAULTS: dict[str, str] = {
     "power-off": "manipulator power off: X and N requests answered EOT, reject 128; "
     "machine status power failure (64)",
     "servo-error": "servo error: status byte 128, motion refused (reject 128), cycle aborted",
-    "corrupt-checksum": "=N: the next N D records sent carry a wrong checksum (default 1)",
+    "corrupt-checksum": "=N: the next N D records sent carry a wrong checksum (default 1 record)",
     "drop": "close the connection at the next request",
     "silent": "stop answering: read every byte, send nothing",
     "noise": "=RATE[,SEED]: every byte, each way, flipped in one bit or dropped with "

@@ -19,11 +19,12 @@ from cellctl.kinds.iso_cnc.motion import MotionModel
 
 #: Fault switches: name -> what it does (``--fault NAME[=ARG]`` on the command line).
 FAULTS = {
-    "adapter-latency": "=MS: its DC3/DC1 reach the host MS milliseconds late (a USB adapter)",
+    "adapter-latency": "=MS: its DC3/DC1 reach the host MS milliseconds late (a USB adapter) "
+    "(default 16 ms)",
     "line-lag": "=MS: each piece of the host's data is held 0 to MS milliseconds before it "
-    "crosses (a device server's packet timer), in order",
+    "crosses (a device server's packet timer), in order (default 16 ms)",
     "parity-noise": "=RATE: each received character has a parity error with probability RATE "
-    "(alarm 085)",
+    "(alarm 085) (default 0.01)",
     "dr-off": "DR (DSR) off: a transfer raises alarm 086",
     "never-dc1": "it never sends DC1 (the host waits for ever)",
     "tolerance-2": "it tolerates 2 characters after DC3 (a CS-only control)",

@@ -246,3 +246,17 @@ def test_emulate_cell_help_names_the_fault_hand_commands() -> None:
     text = " ".join(done.stdout.split())
     for command in ("fault MACHINE:NAME[=ARG]", "fault off MACHINE:NAME", "faults ("):
         assert command in text, (command, text)
+
+
+@pytest.mark.timeout(180)
+async def test_a_cobots_switches_on_are_listed(tmp_path: Path) -> None:
+    """The UR emulator keeps its switches behind its controller: `faults` reads them there
+    (it answered "what is on cannot be read")."""
+    tending = EXAMPLE_CELL.parent / "cell-tending"
+    async with emulated_cell(tmp_path, "--template", str(tending)) as panel:
+        assert await panel.hand("fault robot:local_mode") == "robot: local_mode on"
+        listed = await panel.hand("faults")
+        assert "robot: local_mode on" in listed and "cannot be read" not in listed, listed
+        assert (await panel.hand("fault off robot:local_mode")).startswith("robot: local_mode off")
+        listed = await panel.hand("faults")
+        assert "robot: nothing on" in listed, listed

@@ -241,12 +241,15 @@ def _said_start(start: Callable[[], object], who: str) -> Callable[[], object]:
     return said
 
 
-def _needed_argument(description: str) -> str:
-    """The argument a fault switch must be given, from its description (``"=MS: ..."`` ->
-    ``"MS"``), or "" when it takes none or says its default (``"=N: ... (default 5)"``)."""
-    if not description.startswith("=") or "(default" in description:
+def _needed_argument(faults: Mapping[str, str], name: str) -> str:
+    """The argument fault switch ``name`` must be given, from its description (``"=MS: ..."``
+    -> ``"MS"``), or "" when it takes none or says its default (``"=N: ... (default 5)"``:
+    :func:`~cellctl.emulators.switches.default_of`, the one reader of that convention)."""
+    from cellctl.emulators.switches import default_of, takes_argument
+
+    if not takes_argument(faults, name) or default_of(faults, name) is not None:
         return ""
-    return description[1:].split(":", 1)[0].strip() or "ARG"
+    return faults[name][1:].split(":", 1)[0].strip() or "ARG"
 
 
 def _checked_set_fault(
@@ -257,7 +260,7 @@ def _checked_set_fault(
 
     @functools.wraps(set_fault)
     def checked(name: str, arg: str | None = None) -> None:
-        needed = _needed_argument(faults.get(name, ""))
+        needed = _needed_argument(faults, name)
         if arg is None and needed:
             raise UsageError(f"fault {name} needs its argument: {name}={needed}")
         try:

@@ -105,6 +105,11 @@ class UrEmulator(EmulatedDevice):
     def set_fault(self, name: str, arg: str | None = None) -> None:
         self.controller.set_fault(name, arg)
 
+    @property
+    def faults(self) -> dict[str, str | None]:
+        """The switches on now, each with its argument (None: none given)."""
+        return dict(self.controller.faults)
+
     def clear_fault(self, name: str) -> None:
         self.controller.clear_fault(name)
 

@@ -190,19 +190,24 @@ def test_an_order_chosen_then_cancelled_from_the_command_line_is_not_sent(
     assert [o.id for o in sent] == ["K"] and store.get("C").state == "cancelled"
 
 
+def old_store(path: Path, schema: str) -> None:
+    """A factory store made with an older ``schema``, holding one queued order, OLD."""
+    with sqlite3.connect(path) as db:
+        db.executescript(schema)
+        db.execute(
+            "INSERT INTO orders (id, part_type, qty, priority, state, submitted, updated)"
+            " VALUES ('OLD', 'wax-robot-base', 1, 0, 'queued', 1.0, 1.0)"
+        )
+    db.close()
+
+
 def test_a_store_from_before_cancels_is_opened_and_kept(tmp_path: Path) -> None:
     path = tmp_path / "factory.db"
     old = re.sub(
         r",\s+cancel_asked.*cancel_sends INTEGER NOT NULL DEFAULT 0", "", SCHEMA, flags=re.S
     )
     assert "cancel" not in old
-    with sqlite3.connect(path) as db:
-        db.executescript(old)
-        db.execute(
-            "INSERT INTO orders (id, part_type, qty, priority, state, submitted, updated)"
-            " VALUES ('OLD', 'wax-robot-base', 1, 0, 'queued', 1.0, 1.0)"
-        )
-    db.close()
+    old_store(path, old)
     with FactoryStore(path) as store:
         assert store.get("OLD").cancel_asked is None
         store.cancel("OLD", by="ann")

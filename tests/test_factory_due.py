@@ -12,7 +12,6 @@ from __future__ import annotations
 import asyncio
 import json
 import re
-import sqlite3
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -26,6 +25,7 @@ from cellctl.plan.when import resolve_when
 from cellctl.testing.rig import cli
 from cellctl.ui.cli import main
 from tests.factory_plant import CLI_S, PART_TYPES, Plant
+from tests.test_factory_cancel import old_store
 from tests.test_factory_cli_words import FACTORY_TOML
 
 BASE, TABLE = PART_TYPES
@@ -117,13 +117,7 @@ def test_a_store_from_before_due_times_is_opened_and_kept(tmp_path: Path) -> Non
     path = tmp_path / "factory.db"
     old = SCHEMA.replace(",\n    due REAL\n", "\n")
     assert "due" not in old
-    with sqlite3.connect(path) as db:
-        db.executescript(old)
-        db.execute(
-            "INSERT INTO orders (id, part_type, qty, priority, state, submitted, updated)"
-            " VALUES ('OLD', 'wax-robot-base', 1, 0, 'queued', 1.0, 1.0)"
-        )
-    db.close()
+    old_store(path, old)
     with FactoryStore(path) as store:
         assert store.get("OLD").due is None
         order, new = store.submit(BASE, 1, order_id="NEW", due=1_800_000_000.0)

@@ -19,14 +19,15 @@ from .conftest import CELLCTL
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _switches() -> list[tuple[str | None, str]]:
+def every_switch() -> list[tuple[str | None, str]]:
+    """Each fault switch there is: (its kind, or None for the PLC's; its name)."""
     found: list[tuple[str | None, str]] = [(None, name) for name in PLC_FAULTS]
     for kind in registry.names():
         found += [(kind, name) for name in registry.kind(kind).faults]
     return found
 
 
-@pytest.mark.parametrize(("kind", "name"), _switches())
+@pytest.mark.parametrize(("kind", "name"), every_switch())
 def test_an_argument_only_where_the_table_says(kind: str | None, name: str) -> None:
     machine = kind or "plc"
     if takes_argument(registry.kind(kind).faults if kind else PLC_FAULTS, name):

@@ -30,6 +30,7 @@ from cellctl.link import LineSettings, open_link
 from cellctl.plan.faults import check_switch as switched_on_fresh
 from cellctl.protocol.plc import PlcMap
 from tests.conftest import CELLCTL, until
+from tests.test_fault_switches import every_switch
 
 #: The shipped cell whose cnc2 is an ISO control (its switches take defaults in ms).
 MODERN_CELL = EXAMPLE_CELL.parent / "cell-modern"
@@ -215,14 +216,7 @@ async def test_a_default_taken_is_said_at_start_and_on_the_panel(tmp_path: Path)
         assert off.startswith("cnc2: adapter-latency off"), off
 
 
-def _switches() -> list[tuple[str | None, str]]:
-    found: list[tuple[str | None, str]] = [(None, name) for name in PLC_FAULTS]
-    for kind in registry.names():
-        found += [(kind, name) for name in registry.kind(kind).faults]
-    return found
-
-
-@pytest.mark.parametrize(("kind", "name"), _switches())
+@pytest.mark.parametrize(("kind", "name"), every_switch())
 def test_no_switch_takes_a_default_its_table_does_not_name(kind: str | None, name: str) -> None:
     """Each switch that takes an argument is either refused without it, or its description
     names the value it takes then: what help, refusals and the panel show is that table."""

@@ -51,7 +51,7 @@ from cellctl.ui.common import (
 )
 from cellctl.ui.emulate_cli import TIME_SCALE
 from cellctl.ui.factory_plan_cli import factory_plan
-from cellctl.ui.orders_cli import STATE_STYLE
+from cellctl.ui.orders_cli import STATE_STYLE, checked_due, due_option
 
 if TYPE_CHECKING:
     from cellctl.factory.controller import FactoryController
@@ -91,13 +91,7 @@ def factory(ctx: click.Context, directory: str) -> None:
 )
 @click.option("--priority", type=int, default=0, show_default=True, help="Higher goes first.")
 @click.option("--id", "order_id", metavar="ID", help="The order's id (the same id again: no-op).")
-@click.option(
-    "--due",
-    metavar="WHEN",
-    help="When it is due, on this host's clock: FRI 18:00 or 18:00 (the next such time), or "
-    "a date and time (2026-12-04T18:00; one already past is taken: the order is late). "
-    "Its cell gets it with the order.",
-)
+@due_option("this host's clock", " Its cell gets it with the order.")
 @click.pass_context
 def submit(
     ctx: click.Context,
@@ -108,13 +102,10 @@ def submit(
     due: str | None,
 ) -> None:
     """Submit an order for QTY parts of type PART; the factory gives it to a cell."""
-    from cellctl.service.orderdue import due_words, resolve_due
+    from cellctl.service.orderdue import due_words
 
     now = current_clock().now()
-    try:  # refused here, before the store is opened: nothing is recorded or sent
-        due_at = resolve_due(due, now)
-    except UsageError as e:
-        raise UsageError(f"--due: {e}") from None
+    due_at = checked_due(due, now)  # before the store is opened: nothing recorded or sent
 
     async def main() -> None:
         config = _config(ctx)

@@ -96,6 +96,30 @@ def no_cell_message(directory: Path, named: bool) -> str:
 # -- orders and reports --------------------------------------------------------------------------
 
 
+def due_option(clock: str, then: str = "") -> Callable[[Any], Any]:
+    """``--due WHEN`` of a command that posts an order, read on ``clock`` (its words);
+    ``then`` adds what becomes of it."""
+    return click.option(
+        "--due",
+        metavar="WHEN",
+        help=f"When it is due, on {clock}: FRI 18:00 or 18:00 (the next such time), or a date "
+        f"and time (2026-12-04T18:00; one already past is taken: the order is late).{then}",
+    )
+
+
+def checked_due(due: str | None, now: float) -> float | None:
+    """``--due``'s text as unix seconds (None for none), or UsageError saying why, before
+    anything is written or sent."""
+    if due is None:
+        return None
+    from cellctl.service.orderdue import resolve_due
+
+    try:
+        return resolve_due(due, now)
+    except UsageError as e:
+        raise UsageError(f"--due: {e}") from None
+
+
 @click.command()
 @click.argument("part_type", metavar="PART")
 @click.option(
@@ -108,12 +132,7 @@ def no_cell_message(directory: Path, named: bool) -> str:
     metavar="ID",
     help="The order's id; posting the same id again changes nothing. Default: a new id.",
 )
-@click.option(
-    "--due",
-    metavar="WHEN",
-    help="When it is due, on the cell's clock: FRI 18:00 or 18:00 (the next such time), or "
-    "a date and time (2026-12-04T18:00; one already past is taken: the order is late).",
-)
+@due_option("the cell's clock")
 @click.pass_context
 def submit(
     ctx: click.Context,
@@ -124,13 +143,8 @@ def submit(
     due: str | None,
 ) -> None:
     """Post an order for QTY parts of type PART, as the system level would."""
-    if due is not None:
-        from cellctl.service.orderdue import resolve_due
-
-        try:  # refused here, before a mailbox is opened; the cell reads it on its own clock
-            resolve_due(due, current_clock().now())
-        except UsageError as e:
-            raise UsageError(f"--due: {e}") from None
+    checked_due(due, current_clock().now())  # before a mailbox is opened; the cell reads
+    # it again on its own clock
     directory = cell_dir(ctx)
 
     has_toml = (directory / "cell.toml").exists()

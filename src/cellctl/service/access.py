@@ -34,7 +34,8 @@ from cellctl.link import TrafficLog
 from cellctl.mailbox import MAILBOX_FILE, Mailbox, open_mailbox
 from cellctl.protocol.plc import PlcMap, canonical
 from cellctl.service.machines import MachineRef, load_cell_file
-from cellctl.service.operator import CellPlaces, list_orders
+from cellctl.service.operator import CellPlaces
+from cellctl.service.orderdue import list_orders  # each order with its due time, late
 from cellctl.service.status import (
     STATUS_EVENTS,
     CellInfo,

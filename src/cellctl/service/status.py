@@ -37,6 +37,7 @@ from cellctl.cell.model import MachineView
 from cellctl.kinds import Condition
 from cellctl.kinds.families import estimated_done
 from cellctl.service.operator import may_be_in
+from cellctl.service.orderdue import is_late
 from cellctl.service.status_model import (
     STATUS_EVENTS,
     VOLATILE,
@@ -149,7 +150,9 @@ def build_status(
     manual_steps: Mapping[str, ManualStep] | None = None,
 ) -> CellStatus:
     """The status from what the controller (or a standalone cell) knows: each machine's view,
-    the journal's steps in flight, parts and alarms, the orders, the events. ``estimates``:
+    the journal's steps in flight, parts and alarms, the orders (``orders.list``'s entries,
+    :func:`cellctl.service.orderdue.list_orders`, each with its ``due`` time: one without
+    has none), the events. ``estimates``:
     a program's own machining seconds by (machine, route step name); ``manual_steps``: the
     manual functions running (their program and start), by machine."""
     now = cell.time
@@ -177,7 +180,7 @@ def build_status(
     return CellStatus(
         cell=cell,
         machines=machines,
-        orders=[OrderInfo(**o) for o in shown[: STATUS_ORDERS * 2]],
+        orders=[_order(o, now) for o in shown[: STATUS_ORDERS * 2]],
         parts=[_part(p, may_be_in(journal, p) if journal is not None else []) for p in parts],
         alarms=[_alarm(a) for a in alarms],
         events=[EventInfo(time=t, text=x) for t, x in events][-STATUS_EVENTS:],
@@ -290,6 +293,13 @@ def _progress(
         rate_per_s=None if rate is None else round(rate, 3),
         time_left_s=None if left is None else round(left, 1),
     )
+
+
+def _order(entry: Mapping[str, Any], now: float) -> OrderInfo:
+    """An order as the status carries it: ``late`` at the status' own time (``now``, its
+    ``cell.time``), by orders.list's rule, so that a client comparing the two agrees."""
+    late = is_late(entry["state"], entry["updated"], entry.get("due"), now)
+    return OrderInfo(**{**entry, "late": late})
 
 
 def _part(p: Part, places: list[str]) -> PartInfo:

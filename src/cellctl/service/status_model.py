@@ -191,6 +191,15 @@ class OrderInfo(Model):
         description="Why it cannot go on: its parts need a machine out of service, which and "
         "why (also at the start of note); '' when it can.",
     )
+    # Both with defaults: a status from a cellctl before due times has neither.
+    due: float | None = Field(
+        default=None, description="When it is due, s (orders.submit's due; null: no due time)."
+    )
+    late: bool = Field(
+        default=False,
+        description="Done after its due time, or not done (open, or failed) and past it on the "
+        "cell's clock (orders.list's late); false without a due time, or cancelled.",
+    )
 
 
 class PartInfo(Model):

@@ -75,7 +75,11 @@ ORDER_VARIABLES: list[tuple[str, str, ua.VariantType]] = [
     ("PartsDone", "done", V.UInt32),
     ("PartsHeld", "held", V.UInt32),
     ("PartsScrapped", "scrapped", V.UInt32),
+    ("Due", "due_time", V.DateTime),
+    ("Late", "late", V.Boolean),
 ]
+#: An order's Due when it has no due time: OPC UA's null DateTime (encoded as 0, 1601-01-01).
+NO_DUE = datetime.datetime(1601, 1, 1, tzinfo=datetime.UTC)
 ALARM_VARIABLES: list[tuple[str, str, ua.VariantType]] = [
     ("AlarmId", "id", V.UInt32),
     ("Machine", "machine", V.String),
@@ -281,6 +285,7 @@ class CellSpace:
             base = f"Cell/Orders/{_key(order_id)}"
             parts = order.get("parts") or {}
             row = {**order, **{k: int(parts.get(k, 0)) for k in ("done", "held", "scrapped")}}
+            row["due_time"] = NO_DUE if order["due"] is None else _utc(float(order["due"]))
             if order_id not in self._orders:
                 self._orders[order_id] = await self._record(
                     "Cell/Orders", base, order_id, ORDER_VARIABLES, row

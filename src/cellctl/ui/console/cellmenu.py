@@ -20,6 +20,7 @@ from cellctl.ui.alarm_marks import alarm_marks
 from cellctl.ui.console.dialogs import Dialog, FormDialog, LivePickDialog, PickDialog
 from cellctl.ui.console.entry import Entry
 from cellctl.ui.console.whatif import PlanView, plan_params, plan_text, refusal_field, summary
+from cellctl.ui.console.widgets import due_text
 
 T = TypeVar("T")
 
@@ -340,8 +341,12 @@ def shelved(a: dict[str, Any], now: float) -> bool:
 
 
 def order_line(order: dict[str, Any]) -> str:
+    """An order as ``orders.list`` gives it, on one line: ``L1 wax-robot-base x1 p0 posted
+    waiting 1 due Fri 11-27 18:00 LATE -- blocked: ...``."""
     parts = " ".join(f"{k} {v}" for k, v in sorted(order.get("parts", {}).items()))
+    # .get: a controller of an older cellctl answers without due times.
+    due = due_text(order.get("due"), bool(order.get("late")))
     return (
         f"{order['id']} {order['part_type']} x{order['qty']} p{order['priority']} "
-        f"{order['state']} {parts}".rstrip()
+        f"{order['state']} {parts} {due}".rstrip()
     ) + (f" -- {order['blocked']}" if order.get("blocked") else "")

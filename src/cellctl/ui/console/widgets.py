@@ -55,6 +55,17 @@ def _unacked(a: AlarmInfo, now: float) -> bool:
     return a.state == "active" and a.acked is None and not shelved
 
 
+def due_text(due: float | None, late: bool = False) -> str:
+    """An order's due time as the console shows it, short and local on the 24-hour clock:
+    ``due Fri 11-27 18:00`` (its seconds only when it has some; the dashboard's form),
+    ``LATE`` after it once the order is late; "" for an order without one."""
+    if due is None:
+        return ""
+    moment = dt.datetime.fromtimestamp(due)
+    shown = moment.strftime("%a %m-%d %H:%M" + (":%S" if moment.second else ""))
+    return f"due {shown}" + (" LATE" if late else "")
+
+
 def _clip(text: str, width: int) -> str:
     return text if len(text) <= width else text[: max(width - 1, 0)] + "…"
 
@@ -175,7 +186,14 @@ def board_text(snapshot: dict[str, Any] | CellStatus, width: int = 48, height: i
     for o in (open_orders or orders[:3])[:6]:
         done = o.parts.get("done", 0)
         line = f" {o.id} {o.part_type} x{o.qty} p{o.priority} {o.state} {done}/{o.qty}"
-        out.append(_clip(line, width) + "\n")
+        due = due_text(o.due, o.late)
+        if due and len(line) + 1 + len(due) <= width:  # on its line when it fits, whole
+            out.append(line + " ")
+            out.append(due + "\n", style="bold red" if o.late else "")
+        else:
+            out.append(_clip(line, width) + "\n")
+            if due:  # else on a line of its own, whole: LATE is never cut off
+                out.append(_clip(f"   {due}", width) + "\n", style="bold red" if o.late else "")
         if o.blocked:  # its parts wait for a machine out of service: which, and why
             out.append(_clip(f"   BLOCKED {o.blocked.removeprefix('blocked: ')}", width) + "\n",
                        style="yellow")  # fmt: skip

@@ -11,6 +11,17 @@ export function clockOf(seconds) {
   return seconds ? timeOfDay(new Date(seconds * 1000)) : "";
 }
 
+const DAYS = ["Sun", "Mon", "Tue", "Wed", "Thu", "Fri", "Sat"];
+
+// An order's due time, short, local, on the 24-hour clock: "Fri 11-27 18:00" (its seconds
+// only when it has some). The day and date: a due time is often days ahead, or behind.
+export function dueTime(seconds) {
+  const d = new Date(seconds * 1000);
+  const secs = d.getSeconds() ? `:${two(d.getSeconds())}` : "";
+  return `${DAYS[d.getDay()]} ${two(d.getMonth() + 1)}-${two(d.getDate())} `
+    + `${two(d.getHours())}:${two(d.getMinutes())}${secs}`;
+}
+
 // Call `fn` every `ms` while the page is shown, and once at once when it is shown again: a
 // page in a hidden tab or a locked screen reads nothing (the live subscription still keeps
 // its status current), and is up to date the moment it is looked at.

@@ -1,6 +1,6 @@
 // The dashboard's lists and cards: machines, orders, alarms, held parts, events, traffic.
 import { act, call } from "./app.js";
-import { clockOf } from "./clock.js";
+import { clockOf, dueTime } from "./clock.js";
 import { renderServiceControls } from "./controls.js";
 import { CONDITION_LABELS, machineCondition } from "./floor.js";
 
@@ -249,9 +249,21 @@ export function renderOrders(snap) {
       h("td", {}, o.id), h("td", {}, o.part_type), h("td", {}, o.qty), h("td", {}, o.priority),
       h("td", { class: o.blocked ? "blocked" : "", title: o.blocked || "" },
         o.blocked ? `${o.state} · ${o.blocked}` : o.state),
-      h("td", {}, parts || "—"), h("td", {}, cancel));
+      h("td", {}, parts || "—"), dueCell(o), h("td", {}, cancel));
   });
-  replaceRows("order-table", rows, "no orders", 7);
+  replaceRows("order-table", rows, "no orders", 8);
+}
+
+// When an order is due, and LATE in words (not only in red) once the status says it is.
+function dueCell(o) {
+  if (o.due === null || o.due === undefined) {  // none, or a controller from before due times
+    return h("td", { class: "due" }, "—");
+  }
+  if (!o.late) {
+    return h("td", { class: "due" }, dueTime(o.due));
+  }
+  return h("td", { class: "due late" }, dueTime(o.due), " ",
+    h("span", { class: "late-badge" }, "LATE"));
 }
 
 // -- alarms and held parts ------------------------------------------------------------------

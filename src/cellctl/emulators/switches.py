@@ -10,6 +10,7 @@ lines)``; :func:`default_of` reads it, and what a switch switched on says names 
 
     default_of(FAULTS, "drop")              # "5 lines"
     said_on("cnc1", "drop", None, FAULTS)   # "cnc1: drop on (5 lines, its default)"
+    said_switched_on("drop", "3", FAULTS)   # "drop=3 on" (a single machine's emulator)
 
 A cell's switches, ``MACHINE:NAME[=ARG]`` as ``cellctl emulate cell --fault`` takes them, are
 checked against each machine's table before anything is written or started::
@@ -58,10 +59,17 @@ def said_on(machine: str, name: str, arg: str | None, faults: Mapping[str, str])
     """What switching ``name`` on at ``machine`` did, in a line: ``"cnc1: drop=3 on"``,
     ``"cnc1: adapter-latency on (16 ms, its default)"``: a default taken is said, never
     silent."""
+    return f"{machine}: {said_switched_on(name, arg, faults)}"
+
+
+def said_switched_on(name: str, arg: str | None, faults: Mapping[str, str]) -> str:
+    """What switching ``name`` on did, in the words of :func:`said_on` without a machine's
+    name (a single machine's emulator, where there is one): ``"drop=3 on"``, ``"drop on
+    (5 lines, its default)"``."""
     default = default_of(faults, name) if arg is None else None
     if default is not None:
-        return f"{machine}: {name} on ({default}, its default)"
-    return f"{machine}: {shown_switch(faults, name, arg)} on"
+        return f"{name} on ({default}, its default)"
+    return f"{shown_switch(faults, name, arg)} on"
 
 
 def check_switch(faults: Mapping[str, str], name: str, arg: str | None) -> None:
@@ -117,6 +125,7 @@ __all__ = [
     "default_of",
     "parse_fault",
     "said_on",
+    "said_switched_on",
     "shown_switch",
     "split_fault",
     "takes_argument",

@@ -5,9 +5,9 @@ from __future__ import annotations
 import asyncio
 import math
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import click
 
@@ -21,6 +21,7 @@ from cellctl.emulators.serve import (
     pty_lock_path,
     serve,
 )
+from cellctl.emulators.switches import parse_fault, said_switched_on
 from cellctl.errors import MachineInUse
 from cellctl.link import LineSettings
 from cellctl.link.lock import Holder, holder
@@ -31,7 +32,6 @@ from cellctl.ui.common import (
     console,
     kind_commands,
     stop_signals,
-    until_stopped,
 )
 
 if TYPE_CHECKING:
@@ -125,6 +125,35 @@ def listen_options(
     ]
 
 
+class Switchable(Protocol):
+    """An emulator with fault switches: each kind's, the PLC's."""
+
+    def set_fault(self, name: str, arg: str | None = None) -> None: ...
+
+
+def switch_faults(device: Switchable, faults: Mapping[str, str], texts: Iterable[str]) -> list[str]:
+    """Switch each ``--fault NAME[=ARG]`` of ``texts`` on at ``device`` (``faults`` its table;
+    its ``set_fault`` refuses a switch it does not have, or a bad argument, in words) and
+    return what each switched on says, as :func:`say_faults` prints it::
+
+        said = switch_faults(device, FAULTS, ("drop", "noise=3e-4"))
+        # ["drop on (5 lines, its default)", "noise=3e-4 on"]"""
+    said = []
+    for text in texts:
+        name, arg = parse_fault(text)
+        device.set_fault(name, arg)
+        said.append(said_switched_on(name, arg, faults))
+    return said
+
+
+def say_faults(said: Sequence[str]) -> None:
+    """Print a line a fault switched on (from :func:`switch_faults`), after where an emulator
+    listens, as ``emulate cell`` says them: ``  fault drop on (5 lines, its default)``."""
+    for line in said:
+        # Plain text: a switch's argument is the user's, not markup.
+        console.print(f"  fault {line}", markup=False, highlight=False, soft_wrap=True)
+
+
 #: What a command is told when a running one holds its directory; ``{what}`` is the
 #: directory, ``{holder}`` the holder, ``{held}`` what it holds there.
 DIRECTORY_IN_USE = "{what} is in use by {holder}, which {held}: stop it or choose another directory"
@@ -186,10 +215,12 @@ async def serve_until_stopped(
     pacing: bool,
     what: str,
     hint: str = "drive it with: --link {url}",
+    said: Sequence[str] = (),
 ) -> None:
     """Serve ``device``, print where and ``hint`` (how to drive it, with its ``{url}``; plain
-    text, lines after its first indented by the caller), and run until Ctrl-C or SIGTERM,
-    then say "WHAT stopped".
+    text, lines after its first indented by the caller), then each fault switched on
+    (``said``, from :func:`switch_faults`), and run until Ctrl-C or SIGTERM, then say "WHAT
+    stopped".
 
     Ctrl-C and SIGTERM are taken before anything is printed: whoever reads the hint and
     stops it at once gets the same clean stop as later."""
@@ -202,6 +233,7 @@ async def serve_until_stopped(
             console.print(f"{what} listening on {server.url}  ({settings}, pacing {paced})")
             # The hint is plain text: a TOML table's [name] is not markup.
             console.print("  " + hint.format(url=server.url), soft_wrap=True, markup=False)
+            say_faults(said)
             await stop.wait()
         finally:
             await server.close()
@@ -217,9 +249,11 @@ async def serve_fleet_until_stopped(
     count: int,
     workers: int,
     hint: str = "drive it with: --link {url}",
+    said: Sequence[str] = (),
 ) -> None:
     """Serve ``count`` machines (``make(i)`` each) over ``workers`` processes, print where
-    each listens (``hint`` with its ``{url}``), and run until Ctrl-C or SIGTERM."""
+    each listens (``hint`` with its ``{url}``), then each fault switched on (``said``: the
+    same on every machine), and run until Ctrl-C or SIGTERM."""
     from cellctl.emulators.fleet import Fleet, check_fleet, serve_many
 
     settings = LineSettings.parse(line)
@@ -236,13 +270,19 @@ async def serve_fleet_until_stopped(
             fleet = Fleet.start(make, listen, settings, count=count, workers=workers, pacing=pacing)
             urls = fleet.urls
         paced = "on" if pacing else "off"
-        console.print(
-            f"{count} x {what} in {workers} process{'es' if workers > 1 else ''}  "
-            f"({settings}, pacing {paced})"
-        )
-        for i, url in enumerate(urls, 1):
-            console.print(f"  {i}: " + hint.format(url=url), soft_wrap=True, markup=False)
-        await until_stopped()
+        # Ctrl-C and SIGTERM taken before anything is printed, as serve_until_stopped does
+        # (whoever stops it once it has said all gets a clean stop), but after the workers
+        # are forked: they must not inherit this loop's handlers.
+        stop = asyncio.Event()
+        with stop_signals(stop):
+            console.print(
+                f"{count} x {what} in {workers} process{'es' if workers > 1 else ''}  "
+                f"({settings}, pacing {paced})"
+            )
+            for i, url in enumerate(urls, 1):
+                console.print(f"  {i}: " + hint.format(url=url), soft_wrap=True, markup=False)
+            say_faults(said)
+            await stop.wait()
     finally:
         for s in servers:
             await s.close()

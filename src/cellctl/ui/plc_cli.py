@@ -11,6 +11,7 @@ there is none); ``--url`` overrides where it is::
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from typing import Any
 
@@ -18,11 +19,10 @@ import click
 
 from cellctl.drivers.state import StateStore
 from cellctl.emulators.plc import FAULTS, PlcEmulator
-from cellctl.emulators.serve import MACHINE_TIME_SCALE, TIME_SCALE_HELP, parse_fault
-from cellctl.errors import UsageError
+from cellctl.emulators.serve import MACHINE_TIME_SCALE, TIME_SCALE_HELP
 from cellctl.protocol.plc import SIGNALS, PlcMap
 from cellctl.service.machines import load_cell_file
-from cellctl.ui.common import cell_dir, console, fault_help, run, until_stopped
+from cellctl.ui.common import cell_dir, console, fault_help, run, stop_signals
 
 
 def _quiet_pymodbus() -> None:
@@ -179,20 +179,25 @@ def emulate_plc(
 
     async def main() -> None:
         plc_map = plc_map_for(ctx, listen)
+        # Here, not at the top: `cellctl plc` reads and switches signals, and serves nothing.
+        from cellctl.ui.emulate_cli import say_faults, switch_faults
+
         device = PlcEmulator(plc_map, time_scale=time_scale)
-        for text in fault:
-            name, arg = parse_fault(text)
-            if name not in FAULTS:
-                raise UsageError(f"unknown fault {name!r}; known: {', '.join(FAULTS)}")
-            device.set_fault(name, arg)
-        url = await device.start(plc_map.url)
-        console.print(f"PLC emulator listening on {url}  (unit any, time x{time_scale:g})")
-        console.print(f"  drive it with: cellctl plc --url {url} status")
-        console.print(f"  behind it, pymodbus on {device.backend_url} (no fault switch acts there)")
-        try:
-            await until_stopped()
-        finally:
-            await device.close()
-            console.print("PLC emulator stopped")
+        said = switch_faults(device, FAULTS, fault)
+        # Ctrl-C and SIGTERM taken before anything is printed: whoever reads what it says
+        # and stops it at once gets the same clean stop as later.
+        stop = asyncio.Event()
+        with stop_signals(stop):
+            url = await device.start(plc_map.url)
+            try:
+                console.print(f"PLC emulator listening on {url}  (unit any, time x{time_scale:g})")
+                console.print(f"  drive it with: cellctl plc --url {url} status")
+                backend = device.backend_url
+                console.print(f"  behind it, pymodbus on {backend} (no fault switch acts there)")
+                say_faults(said)
+                await stop.wait()
+            finally:
+                await device.close()
+                console.print("PLC emulator stopped")
 
     run(main)

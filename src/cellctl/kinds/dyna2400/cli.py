@@ -35,7 +35,7 @@ from cellctl.ui.common import (
     kind_option,
     run,
 )
-from cellctl.ui.emulate_cli import listen_options, serve_until_stopped
+from cellctl.ui.emulate_cli import listen_options, serve_until_stopped, switch_faults
 
 
 def _call(ctx: click.Context, function: str, **params: Any) -> dict[str, Any]:
@@ -407,7 +407,6 @@ def _drive_hint(readiness: str, line: str) -> str:
 
 
 def _emulate_mill_command() -> click.Command:
-    from cellctl.emulators.serve import parse_fault
     from cellctl.kinds.dyna2400.emulator import FAULTS, Dyna2400Emulator, LinkMode, OperatorDelays
     from cellctl.link import MILL_LINE
 
@@ -432,9 +431,7 @@ def _emulate_mill_command() -> click.Command:
                 delays=OperatorDelays(setup=setup_delay),
                 mode=LinkMode.PROGRAM_EXECUTE,
             )
-            for text in fault:
-                name, arg = parse_fault(text)
-                device.set_fault(name, arg)
+            said = switch_faults(device, FAULTS, fault)
             device.start()
             panel = asyncio.ensure_future(_panel(device)) if manual else None
             try:
@@ -445,6 +442,7 @@ def _emulate_mill_command() -> click.Command:
                     not no_pacing,
                     "Dyna 2400 mill emulator",
                     hint,
+                    said,
                 )
             finally:
                 if panel is not None:

@@ -18,7 +18,6 @@ from rich.progress import (
 )
 from rich.table import Table
 
-from cellctl.emulators.serve import parse_fault
 from cellctl.errors import CellctlError, UsageError
 from cellctl.files import write_output
 from cellctl.link import ROBOT_LINE
@@ -302,6 +301,7 @@ def _emulate_command() -> click.Command:
         listen_options,
         serve_fleet_until_stopped,
         serve_until_stopped,
+        switch_faults,
     )
 
     def callback(
@@ -313,25 +313,22 @@ def _emulate_command() -> click.Command:
         count: int,
         workers: int,
     ) -> None:
-        faults = [parse_fault(text) for text in fault]
-        for name, _ in faults:
-            if name not in FAULTS:
-                raise UsageError(f"unknown fault {name!r}; known: {', '.join(FAULTS)}")
-
         def make(index: int = 0) -> Ibm7545Emulator:
             device = Ibm7545Emulator(time_scale=time_scale)
-            for name, arg in faults:
-                device.set_fault(name, arg)
+            switch_faults(device, FAULTS, fault)
             device.wait_hooks.append(_tell_wait)
             return device
 
         async def main() -> None:
             what = "IBM 7545 emulator"
+            # Every machine takes the same switches: checked (a bad one refused before any
+            # machine is served, here rather than in a fleet's worker) and said once.
+            said = switch_faults(Ibm7545Emulator(time_scale=time_scale), FAULTS, fault)
             if count == 1 and workers == 1:
-                await serve_until_stopped(make(), listen, line, not no_pacing, what, HINT)
+                await serve_until_stopped(make(), listen, line, not no_pacing, what, HINT, said)
             else:
                 await serve_fleet_until_stopped(
-                    make, listen, line, not no_pacing, what, count, workers, HINT
+                    make, listen, line, not no_pacing, what, count, workers, HINT, said
                 )
 
         run(main)

@@ -18,7 +18,7 @@ from cellctl.kinds.iso_cnc.emulator import FAULTS, EmulatorOptions, IsoCncEmulat
 from cellctl.kinds.iso_cnc.options import ISO_LINE
 from cellctl.link import LineSettings
 from cellctl.ui.common import console, fault_help, run, stdin_lines
-from cellctl.ui.emulate_cli import listen_options, serve_until_stopped
+from cellctl.ui.emulate_cli import listen_options, serve_until_stopped, switch_faults
 
 
 def panel_key(control: IsoCncEmulator, text: str) -> str:
@@ -106,8 +106,6 @@ def _emulate_iso_cnc(
     load: tuple[Path, ...],
     panel: bool,
 ) -> None:
-    from cellctl.emulators.serve import parse_fault
-
     LineSettings.parse(line)
 
     async def main() -> None:
@@ -126,9 +124,7 @@ def _emulate_iso_cnc(
                 raise UsageError(f"--load {path}: cannot read it: {reason(e)}") from None
             for program in tape.split_programs(text):
                 control.memory[program.number] = program.text
-        for text in fault:
-            name, arg = parse_fault(text)
-            control.set_fault(name, arg)
+        said = switch_faults(control, FAULTS, fault)
         keys = asyncio.ensure_future(_panel(control)) if panel else None
         try:
             await serve_until_stopped(
@@ -138,6 +134,7 @@ def _emulate_iso_cnc(
                 not no_pacing,
                 "ISO-code CNC control emulator",
                 _dnc_hint(time_scale, line),
+                said,
             )
         finally:
             if keys is not None:

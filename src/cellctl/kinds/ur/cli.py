@@ -6,7 +6,7 @@ import asyncio
 
 import click
 
-from cellctl.emulators.serve import MACHINE_TIME_SCALE, TIME_SCALE_HELP, parse_fault
+from cellctl.emulators.serve import MACHINE_TIME_SCALE, TIME_SCALE_HELP
 from cellctl.errors import UsageError
 from cellctl.files import read_text, reason
 from cellctl.kinds.ur.emulator import FAULTS, UrEmulator
@@ -65,9 +65,11 @@ def emulate_ur(
     async def main() -> None:
         from cellctl.ui.common import stop_signals
 
+        # Here, not at the top: the UR's `cellctl robot` commands serve nothing.
+        from cellctl.ui.emulate_cli import say_faults, switch_faults
+
         emulator = UrEmulator(time_scale=time_scale, model=model, programs=_programs(programs))
-        for text in fault:
-            emulator.set_fault(*parse_fault(text))
+        said = switch_faults(emulator, FAULTS, fault)
         # Ctrl-C and SIGTERM taken before anything is printed: whoever reads the hint and
         # stops it at once gets the same clean stop as later.
         stop = asyncio.Event()
@@ -77,6 +79,7 @@ def emulate_ur(
             )
             try:
                 _say_where(emulator, model, time_scale, host, ports)
+                say_faults(said)
                 await stop.wait()
             finally:
                 await emulator.close()

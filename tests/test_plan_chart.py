@@ -44,3 +44,27 @@ def test_a_plc_window_is_shaded_across_every_row(tmp_path: Path) -> None:
         re.findall(r'fill="[^"]+" fill-opacity="[^"]+" stroke="[^"]+"[^>]*class="window"', svg)
     )
     assert len(styles) == 1, styles
+
+
+@pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
+def test_a_window_past_the_plan_ends_at_the_axis_end(tmp_path: Path) -> None:
+    """A fault window that closes after the plan's end is shaded up to the axis' end (the
+    plan's end), as the steps are: not past it, off the chart."""
+    cell = tmp_path / "cell"
+    shutil.copytree(EXAMPLE_CELL, cell)
+    out = tmp_path / "out"
+    result = CliRunner().invoke(
+        main,
+        ["plan", "--dir", str(cell), "--add", "wax-robot-base:1", "--start", "2026-11-25T06:00",
+         "--shift", "30m", "--fault", "cnc2:down@06:20-07:00", "--out", str(out)],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    svg = (out / "plan.svg").read_text()
+    axis_end = max(
+        float(x) for x in re.findall(r'<line x1="[\d.]+" y1="[\d.]+" x2="([\d.]+)"', svg)
+    )
+    [(x, width)] = re.findall(
+        r'<rect x="([\d.]+)" y="[\d.]+" width="([\d.]+)"[^>]*class="window">', svg
+    )
+    # 06:20 to the plan's end at 06:30: the last third of the axis, ending where it ends.
+    assert float(x) + float(width) == pytest.approx(axis_end, abs=0.2), (x, width, axis_end)

@@ -20,7 +20,7 @@ from cellctl.emulators.cell import EXAMPLE_CELL
 from cellctl.errors import UsageError
 from cellctl.plan.engine import FaultWindow, PartAt, PlanInputs, PlanOrder
 from cellctl.plan.inputs import inputs_dict, parse_inputs
-from cellctl.plan.orders_file import orders_csv, parse_orders
+from cellctl.plan.orders_file import orders_csv, parse_orders, read_orders_file
 from cellctl.plan.run import play
 from cellctl.plan.spec import (
     AddSpec,
@@ -223,6 +223,33 @@ def test_unknown_part_types_and_policies_are_refused(config: Any) -> None:
     assert len(policies_of("all")) >= 2
 
 
+def test_a_policy_typo_in_a_factory_plan_is_said_once_not_as_one_cells(tmp_path: Path) -> None:
+    """``--policy`` goes to every cell of a factory: a name no policy has is the planner's
+    typo, said as ``cellctl plan`` says it, not blamed on the first cell checked."""
+    import shutil
+
+    from click.testing import CliRunner
+
+    from cellctl.ui.cli import main
+
+    plant = tmp_path / "plant"
+    plant.mkdir()
+    (plant / "factory.toml").write_text(
+        '[broker]\nurl = "mqtt://127.0.0.1:1883"\ncredentials = "factory.credentials"\n\n'
+        '[cells.cell1]\nprefix = "cellctl/cell1"\n\n[cells.cell2]\nprefix = "cellctl/cell2"\n',
+        encoding="utf-8",
+    )
+    for name in ("cell1", "cell2"):
+        shutil.copytree(EXAMPLE_CELL, plant / name)
+    for policy in ("defualt", "default,defualt"):
+        args = ["factory", "--dir", str(plant), "plan", "--shift", "2m", "--policy", policy]
+        result = CliRunner().invoke(main, args)
+        assert result.exit_code == 2, result.output
+        said = " ".join(result.output.split())
+        assert said.startswith("error: policy 'defualt': unknown (known: default,"), said
+        assert "cell1" not in said
+
+
 @pytest.mark.parametrize(
     ("text", "message"),
     [
@@ -300,6 +327,8 @@ def test_an_orders_file_reads_and_writes_back() -> None:
         ("id,part_type,qty\nA,x,many\n", "line 2: qty must be a whole number"),
         ("id,part_type,qty,due\nA,x,1,someday\n", "line 2: due: time 'someday'"),
         ("id,part_type,qty\nA,x,1,2\n", "line 2: 4 fields, the header names 3"),
+        ("id,part_type,qty,due\nA,x\n", r"line 2: 2 fields, the header names 4 \(no qty\)"),
+        ("qty,id,part_type\n3,A\n", r"line 2: 2 fields, the header names 3 \(no part_type\)"),
         ("id,part_type,qty\nA B,x,1\n", "one word"),
         ("id,part_type,qty\nA,x,1\nB,gear,1\n", r"line 3: the cell makes no 'gear' \(it makes: x"),
     ],
@@ -307,6 +336,21 @@ def test_an_orders_file_reads_and_writes_back() -> None:
 def test_orders_file_refusals_name_the_line(text: str, message: str) -> None:
     with pytest.raises(UsageError, match=message):
         parse_orders(text, START, "week.csv", ("x", "y"))
+
+
+def test_an_orders_file_saved_in_a_code_page_is_refused_at_its_line(tmp_path: Path) -> None:
+    """A spreadsheet's plain "CSV" (Windows-1252: an accent in a name): the file and the
+    line, as any refusal of a line, and how to save it; not "not a text file"."""
+    week = tmp_path / "week.csv"
+    week.write_bytes("id,part_type,qty\nA,x,1\nMüller,x,2\n".encode("cp1252"))
+    with pytest.raises(UsageError) as refused:
+        read_orders_file(week, START, ("x",))
+    assert str(refused.value) == (
+        f"{week}, line 3: not UTF-8 text (byte 25): save the file as UTF-8 (a spreadsheet's "
+        '"CSV UTF-8")'
+    )
+    week.write_bytes("id,part_type,qty\nA,x,1\nMüller,x,2\n".encode())
+    assert [o.order_id for o in read_orders_file(week, START, ("x",))] == ["A", "Müller"]
 
 
 @FAST

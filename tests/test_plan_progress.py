@@ -4,6 +4,7 @@ pipe, or with --json, nothing more than the plan. Shown or not, the plan is the 
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import pty
@@ -16,7 +17,9 @@ from pathlib import Path
 
 import pytest
 
+from cellctl.clock import RealClock
 from cellctl.emulators.cell import EXAMPLE_CELL
+from cellctl.ui.plan_progress import ProgressLine
 
 PLAN = ["--add", "wax-robot-base:3", "--start", "2026-11-25T06:00", "--shift", "2h"]
 
@@ -101,3 +104,42 @@ def test_a_plan_through_the_cells_api_says_how_far_it_has_played(cell: Path) -> 
     assert code == 0, shown
     assert "playing: " in shown and "of 2:00:00 machine time (" in shown, shown
     assert "plan of CIM laboratory machining cell" in out
+
+
+class SetClock(RealClock):
+    """The computer's time as the test sets it."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.at = 1000.0
+
+    def monotonic(self) -> float:
+        return self.at
+
+
+def test_a_long_plan_says_how_long_the_rest_takes() -> None:
+    """A month's plan takes minutes: once there is a pace to go by, the line says how long
+    the rest takes at it (at most: the plan ends sooner when every order is done)."""
+    clock, stream = SetClock(), io.StringIO()
+    line = ProgressLine(stream, clock)
+    told = line.told(31 * 86400.0)
+    told("default", 600.0)  # at once: no pace yet
+    assert line.text() == "playing: 0:10:00 of 31 d 0:00:00 machine time (0%)"
+    clock.at += 30.0
+    told("default", 8 * 3600.0)  # 8 h of plan in 30 s: the other 30 d 16 h in 46 min
+    assert line.text() == (
+        "playing: 8:00:00 of 31 d 0:00:00 machine time (1%, up to about 0:46:00 more)"
+    )
+    clock.at += 30.0 * 92 - 10.0
+    told("default", 31 * 86400.0 - 600.0)
+    assert line.text().endswith("(100%, under a minute more)")
+    # Several policies side by side: all that is left of each, at their pace together.
+    line = ProgressLine(io.StringIO(), clock)
+    told = line.told(8 * 3600.0)
+    clock.at += 60.0  # 4 h of plan in a minute: 12 h left in 3 minutes
+    told("one-at-a-time", 2 * 3600.0)
+    told("downstream-first", 2 * 3600.0)
+    assert line.text() == (
+        "playing 8:00:00 of machine time: one-at-a-time 25%, downstream-first 25% "
+        "(up to about 0:03:00 more)"
+    )

@@ -55,7 +55,13 @@ def read_orders_file(
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError as e:
-        raise UsageError(f"{path}: not a text file (byte {e.start + 1} is not UTF-8)") from None
+        # A spreadsheet's plain "CSV" is often its own code page (an accent, a degree sign):
+        # said where, and how to save it, as any refusal of a line is.
+        line = data.count(b"\n", 0, e.start) + 1
+        raise UsageError(
+            f"{path}, line {line}: not UTF-8 text (byte {e.start + 1}): save the file as "
+            'UTF-8 (a spreadsheet\'s "CSV UTF-8")'
+        ) from None
     return parse_orders(text, start, str(path), part_types)
 
 
@@ -92,8 +98,12 @@ def parse_orders(
     seen: set[str] = set()
     for (number, _), row in zip(numbered[1:], rows[1:], strict=False):
         where = f"{name}, line {number}"
-        if len(row) > len(header):
-            raise UsageError(f"{where}: {len(row)} fields, the header names {len(header)}")
+        # Fewer fields are the optional columns left out; not a needed one ("qty must be a
+        # whole number, not ''" would not say the field is missing).
+        short = [c for c in REQUIRED if header.index(c) >= len(row)]
+        if len(row) > len(header) or short:
+            lacking = f" (no {', '.join(short)})" if short else ""
+            raise UsageError(f"{where}: {len(row)} fields, the header names {len(header)}{lacking}")
         cells = dict(zip(header, (c.strip() for c in row), strict=False))
         order = _order(cells, start, where)
         if part_types is not None and order.part_type not in part_types:

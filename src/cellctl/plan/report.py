@@ -389,11 +389,15 @@ def plan_svg(
 ) -> str:
     """The Gantt chart of one plan, or of several (one per policy) on one time axis: the
     demo's chart, its axis in wall-clock time from the plan's start to its end, each fault
-    window shaded on its machine's row (a PLC's, which stops the whole cell, on every row)."""
+    window shaded on its machine's row (a PLC's, which stops the whole cell, on every row)
+    up to the plan's end, as its steps are."""
     runs = []
     for report, found, types in zip(reports, steps, part_types, strict=True):
         windows = [
-            GanttWindow(row, f.start, f.end if f.end is not None else report.until, label)
+            # A window that ends after the plan is drawn to the axis' end, not past it.
+            GanttWindow(
+                row, f.start, report.until if f.end is None else min(f.end, report.until), label
+            )
             for f in report.faults
             for row, label in _window_rows(f, machines)
         ]

@@ -185,10 +185,7 @@ def check_inputs(
                 f"fault {window.fault!r} on {window.machine}: the window opens after the plan "
                 f"ends ({when_text(until, date=True)}): at {when_text(window.start, date=True)}"
             )
-    for policy in policies:
-        if policy not in POLICIES:
-            known = ", ".join([*POLICIES, ALL_POLICIES])
-            raise UsageError(f"policy {policy!r}: unknown (known: {known})")
+    _check_names(policies)
     twice = named_twice(policies)
     if twice:
         raise UsageError(f"policies {', '.join(policies)}: {twice}")
@@ -211,11 +208,19 @@ def named_twice(policies: Sequence[str]) -> str | None:
     return None
 
 
+def _check_names(policies: Iterable[str]) -> None:
+    for policy in policies:
+        if policy not in POLICIES:
+            known = ", ".join([*POLICIES, ALL_POLICIES])
+            raise UsageError(f"policy {policy!r}: unknown (known: {known})")
+
+
 def policies_of(text: str) -> tuple[str, ...]:
     """``--policy NAME``, ``--policy A,B`` or ``--policy all`` (every policy): the policies
     to play, compared side by side when more than one (each named once: ``default,default``
-    is refused as ``default,downstream-first`` is; their names checked by
-    :func:`check_inputs`)."""
+    is refused as ``default,downstream-first`` is), each name known (a typo is refused
+    here, once, not per cell of a factory; :func:`check_inputs` checks them again for a
+    replayed file's)."""
     if text == ALL_POLICIES:  # each once: "default" names one of the others
         return tuple(p for p in POLICIES if p != "default")
     named = [p.strip() for p in text.split(",") if p.strip()]
@@ -223,6 +228,7 @@ def policies_of(text: str) -> tuple[str, ...]:
         raise UsageError("--policy: name a policy (or all)")
     if ALL_POLICIES in named:
         raise UsageError(f"--policy {text!r}: all plays every policy: name it alone")
+    _check_names(named)
     twice = named_twice(named)
     if twice:
         raise UsageError(f"--policy {text!r}: {twice}")

@@ -22,28 +22,28 @@ import click
 
 from cellctl.errors import EXIT_CODES, CellctlError, UsageError, exit_code
 from cellctl.ui.common import console, fail, print_json, print_line
-from cellctl.ui.plan_cli import poll_option
+from cellctl.ui.plan_cli import plan_call, poll_option
 
 
-async def _ask(directory: Path, params: dict[str, Any]) -> Any:
-    """Cell ``directory``'s ``plan.run`` answer, or its refusal (kept: the other cells go
-    on)."""
+async def _ask(directory: Path, params: dict[str, Any], span_s: float) -> Any:
+    """Cell ``directory``'s ``plan.run`` answer (waited for as ``cellctl plan`` waits: while
+    its play goes on), or its refusal (kept: the other cells go on)."""
     from cellctl.service.client import open_cell
 
     try:
         async with await open_cell(directory, {}) as cell:
-            return await cell.call("plan.run", params)
+            return await plan_call(cell, params, span_s)
     except CellctlError as e:
         return e
 
 
-def _plan_here(directory: str, params: dict[str, Any]) -> tuple[str, Any]:
+def _plan_here(directory: str, params: dict[str, Any], span_s: float) -> tuple[str, Any]:
     """A worker process's plan of the cell no controller runs at ``directory``: ("plan",
     answer) or ("refused", why) (an error's words cross the process boundary, not its
     object)."""
     import asyncio
 
-    answer = asyncio.run(_ask(Path(directory), params))
+    answer = asyncio.run(_ask(Path(directory), params, span_s))
     if isinstance(answer, CellctlError):
         return "refused", (exit_code(answer), str(answer))
     return "plan", answer
@@ -120,9 +120,9 @@ def _check(
     shift: str | None,
     until: str | None,
     policy: str,
-) -> None:
+) -> float:
     """The options against each cell's own machines and faults, before any cell is asked
-    (each cell checks them again at its own time)."""
+    (each cell checks them again at its own time); the plan's span, s."""
     from cellctl.cell.config import load_cell
     from cellctl.clock import current_clock
     from cellctl.plan.spec import check_inputs, parse_fault, plan_window, policies_of
@@ -136,6 +136,7 @@ def _check(
             check_inputs(load_cell(cells[name]), [], found, policies, end)
         except UsageError as e:
             raise UsageError(f"{name}: {e}") from None
+    return end - now
 
 
 @click.command("plan")
@@ -204,7 +205,7 @@ def factory_plan(
         config = load_factory(factory_dir)
         cells, away = _cell_dirs(factory_dir, list(config.cells), cell_dirs)
         windows = _faults_by_cell(faults, cells)
-        _check(cells, windows, shift, until, policy)
+        span_s = _check(cells, windows, shift, until, policy)
         if out is not None:  # before any cell's plan is played
             for name in cells:
                 check_out(out / name)
@@ -222,7 +223,9 @@ def factory_plan(
     running = {name: d for name, d in cells.items() if controller_holder(d)}
 
     async def ask_running() -> dict[str, Any]:
-        answers = await asyncio.gather(*(_ask(d, asked[name]) for name, d in running.items()))
+        answers = await asyncio.gather(
+            *(_ask(d, asked[name], span_s) for name, d in running.items())
+        )
         return dict(zip(running, answers, strict=True))
 
     others = {name: d for name, d in cells.items() if name not in running}
@@ -231,7 +234,10 @@ def factory_plan(
         planned = (
             {}
             if pool is None
-            else {name: pool.submit(_plan_here, str(d), asked[name]) for name, d in others.items()}
+            else {
+                name: pool.submit(_plan_here, str(d), asked[name], span_s)
+                for name, d in others.items()
+            }
         )
         answers = asyncio.run(ask_running())
         for name, future in planned.items():

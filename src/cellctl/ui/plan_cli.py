@@ -16,6 +16,8 @@ now. With ``--dir`` it is played here, from a cell directory and an orders file 
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import dataclasses
 import os
 from collections.abc import Callable
@@ -25,8 +27,9 @@ from typing import Any, TypeVar
 import click
 
 from cellctl.clock import current_clock
-from cellctl.errors import CellctlError, UsageError
+from cellctl.errors import CellctlError, LinkTimeout, UsageError
 from cellctl.plan.when import MAX_POLL_S, PLAN_POLL_S, parse_poll
+from cellctl.tasks import cancel_and_wait
 from cellctl.ui.common import cell_dir, console, fail, print_json, print_line, run
 from cellctl.ui.plan_progress import ProgressLine, progress_line
 
@@ -60,17 +63,20 @@ poll_option = click.option(
 )
 
 
-def _check_syntax(shift: str | None, until: str | None, adds: tuple[str, ...], faults: Any) -> None:
+def _check_syntax(
+    shift: str | None, until: str | None, adds: tuple[str, ...], faults: Any
+) -> float:
     """The options' syntax, before the cell is reached (the cell checks them again, against
-    its machines and part types, at its own time)."""
+    its machines and part types, at its own time); the plan's span, s."""
     from cellctl.plan.spec import parse_add, parse_fault, plan_window
 
     now = current_clock().now()
-    plan_window(now, shift, until)
+    end = plan_window(now, shift, until)
     for text in adds:
         parse_add(text)
     for text in faults:
         parse_fault(text, now, None)
+    return end - now
 
 
 def _local_plan(
@@ -228,7 +234,7 @@ def plan_command(
                 "--orders and --start are for --dir: a plan of the running cell starts now, "
                 "from its own orders (add more with --add)"
             )
-        guarded(lambda: _check_syntax(shift, until, adds, faults))
+        span_s = guarded(lambda: _check_syntax(shift, until, adds, faults))
         params: dict[str, Any] = {
             k: v for k, v in dict(shift=shift, until=until, policy=policy).items() if v
         }
@@ -236,7 +242,7 @@ def plan_command(
         if poll is not None:
             params["poll"] = poll
         with progress_line(as_json) as line:
-            answer = _call_plan(ctx, params, line)
+            answer = _call_plan(ctx, params, span_s, line)
         here = cell_dir(ctx)
         result = guarded(lambda: result_from_dict(answer["plan"], answer["svg"], here))
         result.inputs = dataclasses.replace(result.inputs, cell_dir=here)
@@ -259,16 +265,62 @@ def _replay(path: Path, line: ProgressLine | None = None) -> Any:
     return play_in_temp(inputs, policies, workers=os.cpu_count() or 1, progress=told)
 
 
-def _call_plan(ctx: click.Context, params: dict[str, Any], line: ProgressLine | None) -> Any:
-    """``plan.run`` on the cell (as :func:`~cellctl.ui.calls.cell_call`), its progress on
-    ``line``."""
+#: How long a plan of the cell may go unheard: its play tells how far it has gone every
+#: minute of plan time (a few times a second); nothing of it for this long, it is stuck.
+PLAN_SILENCE_S = 600.0
+
+
+async def plan_call(
+    cell: Any,
+    params: dict[str, Any],
+    span_s: float,
+    progress: Callable[[dict[str, Any]], None] | None = None,
+    *,
+    silence_s: float = PLAN_SILENCE_S,
+) -> Any:
+    """``plan.run`` on ``cell`` (a :func:`~cellctl.service.client.open_cell` client), its
+    progress to ``progress``: waited for while its play goes on, not for the API's one
+    deadline of any call (a plan of days on a busy cell plays longer than that). Given up
+    (:class:`LinkTimeout`) when nothing of it is heard for ``silence_s``, or once it has
+    taken ``span_s``, the plan's own span (a plan slower than the cell is no plan)."""
+    clock = current_clock()
+    heard = clock.monotonic()
+
+    def told(data: dict[str, Any]) -> None:
+        nonlocal heard
+        heard = clock.monotonic()
+        if progress is not None:
+            progress(data)
+
+    limit = max(span_s, silence_s)
+    call = asyncio.create_task(cell.call("plan.run", params, told, timeout=limit))
+    try:
+        while True:
+            left = heard + silence_s - clock.monotonic()
+            if left <= 0:
+                raise LinkTimeout(
+                    f"plan.run: nothing heard of the plan for {silence_s:g} s: it is stuck "
+                    "(the cell's log may say why)"
+                )
+            with contextlib.suppress(TimeoutError):
+                async with clock.timeout(left):
+                    return await asyncio.shield(call)
+    finally:
+        await cancel_and_wait([call])  # given up or Ctrl-C: the cell's play ends with it
+
+
+def _call_plan(
+    ctx: click.Context, params: dict[str, Any], span_s: float, line: ProgressLine | None
+) -> Any:
+    """``plan.run`` on the cell (as :func:`~cellctl.ui.calls.cell_call`, waited for as
+    :func:`plan_call` waits), its progress on ``line``."""
     directory = cell_dir(ctx)
 
     async def main() -> Any:
         from cellctl.service.client import open_cell
 
         async with await open_cell(directory, {}) as cell:
-            return await cell.call("plan.run", params, None if line is None else line.from_api)
+            return await plan_call(cell, params, span_s, None if line is None else line.from_api)
 
     return run(main)
 
@@ -282,4 +334,4 @@ def guarded(fn: Callable[[], T]) -> T:
         fail(e)
 
 
-__all__ = ["plan_command"]
+__all__ = ["PLAN_SILENCE_S", "plan_call", "plan_command"]

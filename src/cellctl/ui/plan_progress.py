@@ -4,8 +4,9 @@
         result = play_in_temp(inputs, policies, progress=line and line.told(span_s))
 
 A plan of days takes minutes: on a terminal (stderr a tty) a line says how much of its
-machine time each policy has played, rewritten in place and cleared before the plan is
-printed. In a pipe, or with ``--json``, nothing is written.
+machine time each policy has played and, from the pace so far, how long the rest takes at
+most (a plan ends sooner when every order is done), rewritten in place and cleared before
+the plan is printed. In a pipe, or with ``--json``, nothing is written.
 """
 
 from __future__ import annotations
@@ -16,17 +17,25 @@ import threading
 from collections.abc import Callable, Iterator
 from typing import Any, TextIO
 
+from cellctl.clock import REAL_CLOCK, Clock
 from cellctl.plan.when import span_text
 
 __all__ = ["ProgressLine", "progress_line"]
 
+#: The computer's seconds of play before the line says how long the rest takes: the pace
+#: of the first moments (the cell connecting, processes starting) says little.
+ESTIMATE_AFTER_S = 3.0
+
 
 class ProgressLine:
-    """One line on ``stream`` (a terminal): each policy's machine time played of the span.
-    Thread-safe: a pool's progress comes from a thread of its own."""
+    """One line on ``stream`` (a terminal): each policy's machine time played of the span,
+    and how long the rest takes at most at the pace so far (on ``clock``: the computer's
+    time). Thread-safe: a pool's progress comes from a thread of its own."""
 
-    def __init__(self, stream: TextIO) -> None:
+    def __init__(self, stream: TextIO, clock: Clock = REAL_CLOCK) -> None:
         self.stream = stream
+        self.clock = clock
+        self._began = clock.monotonic()
         self.span_s = 0.0
         self._played: dict[str, float] = {}
         self._lock = threading.Lock()
@@ -43,14 +52,15 @@ class ProgressLine:
             self._shown = True
 
     def text(self) -> str:
-        """``playing: 2:13:00 of 8:00:00 machine time (28%)``; with several policies, each
-        one's share."""
+        """``playing: 2:13:00 of 8:00:00 machine time (28%, up to about 0:00:05 more)``;
+        with several policies, each one's share."""
         span = max(self.span_s, 1e-9)
+        more = self._more()
         if len(self._played) == 1:
             [played] = self._played.values()
             return (
                 f"playing: {span_text(played)} of {span_text(self.span_s)} machine time "
-                f"({min(1.0, played / span):.0%})"
+                f"({min(1.0, played / span):.0%}{f', {more}' if more else ''})"
             )
         # Here, not at the top: `cellctl plan --help` loads none of the plan's engine.
         from cellctl.plan.report import policy_name
@@ -58,7 +68,19 @@ class ProgressLine:
         each = ", ".join(
             f"{policy_name(p)} {min(1.0, s / span):.0%}" for p, s in self._played.items()
         )
-        return f"playing {span_text(self.span_s)} of machine time: {each}"
+        return f"playing {span_text(self.span_s)} of machine time: {each}" + (
+            f" ({more})" if more else ""
+        )
+
+    def _more(self) -> str:
+        """``up to about 0:09:40 more``: how long the machine time left to play (every
+        policy's) takes at the pace played so far; empty until there is a pace to go by."""
+        took = self.clock.monotonic() - self._began
+        played = sum(self._played.values())
+        if took < ESTIMATE_AFTER_S or played <= 0:
+            return ""
+        left = sum(max(0.0, self.span_s - p) for p in self._played.values()) * took / played
+        return "under a minute more" if left < 60 else f"up to about {span_text(left)} more"
 
     def told(self, span_s: float) -> Callable[[str, float], None]:
         """What a play is told its progress with (``(policy, played_s)``), of ``span_s``."""

@@ -38,7 +38,7 @@ def test_what_if_in_a_terminal(tmux: Tmux, tmp_path: Path) -> None:
         tmux.keys("c")
         tmux.wait_for("8. EXIT", "9. WHAT IF (plan ahead)")
         tmux.keys("9")
-        tmux.wait_for("Horizon:", "Add orders:", "PART:QTY[@PRIORITY]")
+        tmux.wait_for("Horizon:", "Add orders:", "PART:QTY[@PRIORITY][ by WHEN]")
         # The first field (8h offered) is focused as the dialog mounts; keys sent before that
         # are lost, so the field is cleared until it is seen empty. Backspace is a binding,
         # taken after the key went up through the dialog, while a letter goes into the field

@@ -101,3 +101,20 @@ async def test_a_poll_out_of_range_is_told_in_the_console_s_words(dash: Dash) ->
         assert await message.inner_text() == console_words(typed)
     assert await page.locator("#plan-orders tr").count() == 0  # nothing was played
     assert await page.locator("#plan-play").is_enabled()
+
+
+def test_the_what_if_form_says_the_plans_own_default_poll() -> None:
+    """The page's poll field shows the plan's default as cellctl plan takes it (it said 5 s
+    when the default was 15 s)."""
+    import re
+    from importlib.resources import files
+
+    from cellctl.plan.when import PLAN_POLL_S
+
+    page = files("cellctl.ui.dashboard").joinpath("static/index.html").read_text()
+    field = re.search(
+        r'<label title="([^"]*)">poll <input id="plan-poll"[^>]*placeholder="([^"]*)"', page
+    )
+    assert field is not None
+    assert field.group(2) == f"{PLAN_POLL_S:g}"
+    assert f"the plan's {PLAN_POLL_S:g} s" in field.group(1)

@@ -1,6 +1,7 @@
 """``cellctl run``'s live view: a header (the cell, its time scale, how to stop), a banner
-while the cell is paused or in an emergency stop, the orders, the machines with the reason
-of one out of service, the open alarms, and the events, as many as the terminal has room for.
+while the cell is paused or in an emergency stop, the orders (each with its due time, and
+LATE once late, as ``cellctl orders`` shows them), the machines with the reason of one out of
+service, the open alarms, and the events, as many as the terminal has room for.
 
 It renders the cell's status (:class:`~cellctl.service.status.CellStatus`, what every other
 surface shows) and the controller's event list::
@@ -25,6 +26,7 @@ from cellctl.emulators.header import emulated_scale
 from cellctl.service.access import AttachedCell
 from cellctl.service.status import CellMode, CellStatus
 from cellctl.ui.alarm_marks import alarm_marks
+from cellctl.ui.orders_cli import due_cell
 
 #: Orders and alarms shown at most (the rest of the height goes to the events).
 ORDER_ROWS = 12
@@ -100,11 +102,13 @@ class LiveView:
 
     def orders(self, status: CellStatus) -> Table:
         table = Table(title="orders", expand=True)
-        for col in ("order", "part", "qty", "state", "done", "held"):
+        for col in ("order", "part", "qty", "state", "done", "held", "due"):
             table.add_column(col)
         for o in status.orders[:ORDER_ROWS]:
             done, held = o.parts.get("done", 0), o.parts.get("held", 0)
-            table.add_row(o.id, o.part_type, str(o.qty), o.state, str(done), str(held))
+            # As `cellctl orders` shows it: the same words on every terminal surface.
+            due = due_cell(o.due, o.late)
+            table.add_row(o.id, o.part_type, str(o.qty), o.state, str(done), str(held), due)
         return table
 
     def machines(self, status: CellStatus) -> Table:

@@ -21,6 +21,7 @@ from typing import Any, TypeVar
 
 import click
 from rich.table import Table
+from rich.text import Text
 
 from cellctl.cell.causes import PRIORITIES
 from cellctl.cell.journal import MAX_SHELVE, PART_STATUSES
@@ -68,6 +69,15 @@ def _run(action: Callable[[], T]) -> T:
 
 def _when(t: float | None) -> str:
     return "" if t is None else datetime.fromtimestamp(t).strftime("%Y-%m-%d %H:%M:%S")
+
+
+def due_cell(due: float | None, late: bool) -> Text:
+    """An order's due time as ``cellctl orders`` shows it (``cellctl run``'s live view too):
+    ``2026-12-04 18:00:00``, then ``LATE`` in red once the order is late; empty for none."""
+    shown = Text(_when(due))
+    if late:
+        shown.append(" LATE", style="red")
+    return shown
 
 
 def _styled(state: str) -> str:
@@ -200,7 +210,7 @@ def orders(ctx: click.Context, states: Sequence[str], as_json: bool) -> None:
     for o in found:
         parts = ", ".join(f"{n} {s}" for s, n in o["parts"].items())
         # .get: a controller of an older cellctl answers without due times.
-        due = _when(o.get("due")) + (" [red]LATE[/red]" if o.get("late") else "")
+        due = due_cell(o.get("due"), bool(o.get("late")))
         table.add_row(
             o["id"],
             o["part_type"],

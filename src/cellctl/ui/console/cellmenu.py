@@ -9,6 +9,7 @@ without one.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
@@ -16,6 +17,7 @@ from cellctl.clock import current_clock
 from cellctl.errors import MachineInUse, UsageError
 from cellctl.service.machines import load_cell_file
 from cellctl.service.operator import scrap_question
+from cellctl.service.orderdue import resolve_due
 from cellctl.ui.alarm_marks import alarm_marks
 from cellctl.ui.console.dialogs import Dialog, FormDialog, LivePickDialog, PickDialog
 from cellctl.ui.console.entry import Entry
@@ -24,6 +26,8 @@ from cellctl.ui.console.widgets import due_text
 
 T = TypeVar("T")
 
+#: SUBMIT ORDER's words for its due time (as ``cellctl submit --due`` takes it).
+DUE_HINT = "due: FRI 18:00 or 18:00 (the next one), 2026-12-04T18:00; empty: none"
 #: Order states an order may still be cancelled in.
 NOT_STARTED = ["posted", "accepted"]
 NO_CONTROLLER = "unavailable"
@@ -113,45 +117,48 @@ class CellActions:
             self.app.say([order_line(order)])
 
     async def submit(self) -> None:
+        """Ask for an order (part type, quantity, priority, id, due time) and post it; a
+        refusal (the form's check or the API's) asks again, the answers kept."""
         parts = load_cell_file(self.app.directory).get("parts")
         types = list(parts) if isinstance(parts, dict) else []
+        values = {
+            "part_type": types[0] if types else "",
+            "qty": "1",
+            "priority": "0",
+            "id": "",
+            "due": "",
+        }
 
         def check(raw: dict[str, str]) -> dict[str, Any]:
-            problems = []
-            part_type = raw["part_type"].strip()
-            if types and part_type not in types:
-                problems.append(f"unknown part type {part_type!r} (known: {', '.join(types)})")
-            for key in ("qty", "priority"):
-                try:
-                    int(raw[key])
-                except ValueError:
-                    problems.append(f"{key} must be a whole number, not {raw[key]!r}")
-            if not problems and int(raw["qty"]) < 1:
-                problems.append("qty must be at least 1")
-            if problems:
-                raise UsageError("\n".join(problems))
-            params: dict[str, Any] = {
-                "part_type": part_type,
-                "qty": int(raw["qty"]),
-                "priority": int(raw["priority"]),
-            }
-            if raw["id"].strip():
-                params["id"] = raw["id"].strip()
-            return params
+            values.update(raw)
+            return order_params(raw, types)
 
-        fields = [
-            ("part_type", "Part type:", types[0] if types else ""),
-            ("qty", "Quantity:", "1"),
-            ("priority", "Priority:", "0"),
-            ("id", "Order id (optional):", ""),
-        ]
         known = f" ({', '.join(types)})" if types else ""
-        answer = await self.app.ask(FormDialog(f"SUBMIT ORDER{known}", fields, check))
-        if answer is None:
-            self.app.say(["order not submitted"])
+        title = f"SUBMIT ORDER{known}\n{DUE_HINT}"
+        problems = ""
+        while True:
+            fields = [
+                ("part_type", "Part type:", values["part_type"]),
+                ("qty", "Quantity:", values["qty"]),
+                ("priority", "Priority:", values["priority"]),
+                ("id", "Order id (optional):", values["id"]),
+                ("due", "Due (optional):", values["due"]),
+            ]
+            form = FormDialog(title, fields, check, problems, field_of=order_field)
+            answer = await self.app.ask(form)
+            if answer is None:
+                self.app.say(["order not submitted"])
+                return
+            try:
+                result = await self.app.call("orders.submit", answer)
+            except UsageError as e:
+                # What only the cell judges (its clock, its part types, an id posted before):
+                # the form again with the answers and the API's words, as WHAT IF does.
+                problems = str(e)
+                self.app.say([f"order refused: {problems}"], "red")
+                continue
+            self.app.say([result["message"]], "green")
             return
-        result = await self.app.call("orders.submit", answer)
-        self.app.say([result["message"]], "green")
 
     async def cancel(self) -> None:
         found: list[dict[str, Any]] = await self.app.call("orders.list", {"states": NOT_STARTED})
@@ -279,7 +286,7 @@ class CellActions:
                 "WHAT IF: the cell played ahead on a copy\n"
                 "horizon: a span (8h, 90m) or a time (FRI 18:00, 18:00)\n"
                 "faults: cnc2:down@10:00-11:00 (several: ; between)\n"
-                "add orders: PART:QTY[@PRIORITY] (several: , between)\n"
+                "add orders: PART:QTY[@PRIORITY][ by WHEN] (several: , between)\n"
                 f"policy: {', '.join(POLICIES)}; A,B or all to compare\n"
                 f"poll: s between looks at idle machines (empty: {PLAN_POLL_S:g})\n"
                 "seed: of anything random in the machines, as a noise fault (empty: 0)"
@@ -321,6 +328,63 @@ class CellActions:
             return
         result = await self.app.call("cell.estop", {"reason": reason})
         self.app.say([result["message"]], "red")
+
+
+#: The SUBMIT ORDER field a refusal names, by its words (the form's and the API's): an id
+#: posted before for another order, the part type, quantity, priority, due time.
+ORDER_FIELDS = (
+    ("id", r"\border \S+ was posted before as\b"),
+    ("part_type", r"\bpart[ _]type\b"),
+    ("qty", r"\bqty\b"),
+    ("priority", r"\bpriority\b"),
+    ("due", r"\bdue\b"),
+)
+
+
+def order_field(words: str) -> str | None:
+    """The SUBMIT ORDER field ``words`` (a refusal) name first; None if none. The dialog
+    selects it: a due time refused selects Due, never a field whose value the words
+    happen to hold (``0`` in ``hours 0-23``)."""
+    found = [
+        (m.start(), field) for field, pattern in ORDER_FIELDS if (m := re.search(pattern, words))
+    ]
+    return min(found)[1] if found else None
+
+
+def order_params(raw: dict[str, str], types: list[str]) -> dict[str, Any]:
+    """SUBMIT ORDER's answers as ``orders.submit``'s parameters, checked before anything is
+    sent (``types``: cell.toml's part types, [] for unknown); UsageError listing every
+    problem, each naming its field. The due time goes as typed: the cell reads it again on
+    its own clock, as for ``cellctl submit --due``."""
+    problems = []
+    part_type = raw["part_type"].strip()
+    if types and part_type not in types:
+        problems.append(f"unknown part type {part_type!r} (known: {', '.join(types)})")
+    for key in ("qty", "priority"):
+        try:
+            int(raw[key])
+        except ValueError:
+            problems.append(f"{key} must be a whole number, not {raw[key]!r}")
+    if not problems and int(raw["qty"]) < 1:
+        problems.append("qty must be at least 1")
+    due = raw.get("due", "").strip()
+    if due:
+        try:
+            resolve_due(due, current_clock().now())
+        except UsageError as e:  # in the API's words for its due parameter
+            problems.append(f"due: {e}")
+    if problems:
+        raise UsageError("\n".join(problems))
+    params: dict[str, Any] = {
+        "part_type": part_type,
+        "qty": int(raw["qty"]),
+        "priority": int(raw["priority"]),
+    }
+    if raw["id"].strip():
+        params["id"] = raw["id"].strip()
+    if due:
+        params["due"] = due
+    return params
 
 
 def alarm_line(a: dict[str, Any], now: float) -> str:

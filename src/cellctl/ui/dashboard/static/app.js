@@ -400,6 +400,12 @@ function wire() {
       qty: Number(byId("order-qty").value),
       priority: Number(byId("order-priority").value || 0),
     };
+    // Optional; sent as typed (FRI 18:00): the cell reads it on its own clock, as for
+    // `cellctl submit --due`.
+    const due = byId("order-due");
+    if (due.value.trim()) {
+      params.due = due.value.trim();
+    }
     try {
       const result = await call(form.dataset.method, params);
       out.textContent = result.message;
@@ -408,6 +414,11 @@ function wire() {
     } catch (e) {
       out.textContent = e.message;
       out.classList.add("error");
+      // A refused due time: its field selected (kept as typed), so the next keys replace it.
+      if (/\bdue: /.test(e.message)) {
+        due.focus();
+        due.select();
+      }
     }
   });
   byId("gantt-window").addEventListener("change", refreshSteps);

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 import urllib.error
 import urllib.request
 from collections.abc import AsyncIterator
@@ -411,6 +412,46 @@ async def test_the_dashboard_shows_a_drip_feeds_stall_in_its_own_field(
     finally:
         if client is not None:
             await client.close()
+        await context.close()
+        stop.set()
+        await task
+        await server.close()
+
+
+@IN_BROWSER
+async def test_the_dashboard_shows_a_punchs_characters_with_no_total(
+    tmp_path: Path,
+    browser: Browser,
+) -> None:
+    """A punch under way, in Chromium: its card counts the characters come so far, never a
+    share of a total no one knows before the DC4 (it showed "N / 0 chars")."""
+    emulator, server = await control("socket://127.0.0.1:0")
+    port = free_port()
+    shop = write_shop(
+        tmp_path / "shop", {"mill1": server.url}, f'\n[dnc]\nlisten = "127.0.0.1:{port}"\n'
+    )
+    stop = asyncio.Event()
+    task = asyncio.create_task(serve_shop(load_shop(shop), stop=stop))
+    context = await browser.new_context(viewport={"width": 1200, "height": 900})
+    try:
+        await until(lambda: task.done() or (shop / "api.sock").exists(), "the API listening")
+        assert not task.done(), task.exception()
+        page = await context.new_page()
+        await page.goto(f"http://127.0.0.1:{port}/#token={read_token(shop)}")
+        card = page.locator('.card[data-machine="mill1"]')
+        await card.locator(".machine-state").wait_for(timeout=SEEN_MS)
+        emulator.memory[5000] = surfacing(4000)  # some 50 s of line: still coming when seen
+        emulator.punch(5000)
+        await page.wait_for_function(
+            """() => {
+              const t = document.querySelector('.card[data-machine="mill1"] .progress-text');
+              return t && /[1-9][0-9]* chars/.test(t.textContent);
+            }""",
+            timeout=30_000,
+        )
+        text = await card.locator(".progress-text").inner_text()
+        assert not re.search(r"/ ?\d+ chars", text) and "%" not in text, text
+    finally:
         await context.close()
         stop.set()
         await task

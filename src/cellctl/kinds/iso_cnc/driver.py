@@ -129,6 +129,8 @@ class IsoCncDriver(TapeSender):
         #: Where the last read's tape stopped going out when it failed part-way (None: it
         #: did not, or nothing went out): what an operator needs before going on.
         self.ended_at: TapeEnd | None = None
+        #: Characters of the last punch received after its DC2 (what a failed one had sent).
+        self.punched = 0
         self._opened_with(getattr(link, "opened_with", b""))
 
     @classmethod
@@ -343,12 +345,17 @@ class IsoCncDriver(TapeSender):
         progress: Progress | None = None,
         timeout: float = 600.0,
         max_bytes: int = 64 * 1024 * 1024,
+        idle: float | None = None,
     ) -> bytes:
-        """What the control punches (PUNCH pressed): the bytes between DC2 and DC4."""
+        """What the control punches (PUNCH pressed): the bytes between DC2 and DC4.
+        ``idle``: seconds the punch may go silent once its DC2 came (a control punches
+        without a pause: silence is a punch stopped at the control or a cable pulled), then
+        LinkTimeout; else only ``timeout`` ends it."""
         clock = self.clock
         deadline = clock.monotonic() + timeout
         async with self._lock:
             self._set(IsoCncState.PUNCHING)
+            self.punched = 0
             try:
                 buf = bytearray(self.link.reset_input())
                 while (start := buf.find(tape.DC2)) < 0:
@@ -357,6 +364,7 @@ class IsoCncDriver(TapeSender):
                 got = buf[start + 1 :]
                 began = clock.monotonic()
                 while (end := got.find(tape.DC4)) < 0:
+                    self.punched = len(got)
                     if len(got) > max_bytes:
                         raise ProtocolError(f"{self.name}: punched more than {max_bytes} bytes")
                     if tape.NAK in got:
@@ -364,13 +372,21 @@ class IsoCncDriver(TapeSender):
                         found = tape.parse_alarm(bytes(got[i:]))
                         if found is not None:
                             self._raise_alarm(found[0], bytes(got[i : i + found[1]]))
-                    got += await self._read_some(deadline, "the punch did not end (no DC4)")
-                    if progress is not None:
+                    if progress is not None:  # what came so far, the first piece too
                         elapsed = clock.monotonic() - began
                         rate = len(got) / elapsed if elapsed > 0 else 0.0
                         progress(
                             TransferProgress(len(got), 0, rate, 0, elapsed, math.inf, "receiving")
                         )
+                    until, wanted = deadline, "the punch did not end (no DC4)"
+                    if idle is not None and clock.monotonic() + idle < deadline:
+                        until = clock.monotonic() + idle
+                        wanted = (
+                            f"the punch stopped: nothing from the control for {idle:g} s and "
+                            "no DC4 (its end): was it stopped at the control (RESET, the mode "
+                            "switch), or its cable pulled?"
+                        )
+                    got += await self._read_some(until, wanted)
                 self._set(IsoCncState.IDLE)
                 return bytes(got[:end])
             except BaseException:

@@ -169,7 +169,9 @@ FUNCTIONS: tuple[dict[str, Any], ...] = (
 def _progress(s: MachineStatus) -> ProgressInfo | None:
     if s.activity not in (Activity.READING, Activity.DRIP_FEEDING, Activity.PUNCHING):
         return None
-    total = max(s.chars_total, s.chars_done)
+    # A punch's size is not known until its DC4: its total stays 0 (unknown), never the
+    # characters so far, which would show a punch under way as done (100%).
+    total = 0 if s.activity is Activity.PUNCHING else max(s.chars_total, s.chars_done)
     return ProgressInfo(
         phase=s.phase or s.activity.value,
         done=s.chars_done,

@@ -539,7 +539,8 @@ def status_text(name: str, m: dict[str, Any]) -> str:
     p = m.get("progress") or {}
     if p:
         done, total = int(p.get("done") or 0), int(p.get("total") or 0)
-        parts = [f"{done}/{total} chars" + (f" ({done / total:.0%})" if total else "")]
+        # no total (a punch, until its end): the characters so far, no share of them
+        parts = [f"{done}/{total} chars ({done / total:.0%})" if total else f"{done} chars"]
         parts.append(str(p.get("phase") or ""))
         if p.get("rate_per_s"):
             parts.append(f"{p['rate_per_s']:.0f} chars/s")

@@ -19,12 +19,14 @@ from cellctl.drivers.state import StateStore
 from cellctl.errors import (
     CellctlError,
     LinkClosed,
+    LinkError,
     LinkTimeout,
     MachineInUse,
     UsageError,
 )
 from cellctl.kinds.iso_cnc.dnc.config import DncMachine
-from cellctl.kinds.iso_cnc.dnc.request import Request, parse_request
+from cellctl.kinds.iso_cnc.dnc.punched import take_punch
+from cellctl.kinds.iso_cnc.dnc.request import Request
 from cellctl.kinds.iso_cnc.dnc.status import (
     UNTHROTTLED,
     Activity,
@@ -42,12 +44,10 @@ from cellctl.kinds.iso_cnc.dnc.status import (
 from cellctl.kinds.iso_cnc.dnc.store import (
     ShopStore,
     check_program_number,
-    o_name,
     program_chars,
     read_program_file,
 )
 from cellctl.kinds.iso_cnc.driver import IsoCncDriver, ReadNotStarted
-from cellctl.kinds.iso_cnc.options import off_loop, prepare
 from cellctl.kinds.iso_cnc.tape import DC2, split_programs, unframe
 from cellctl.kinds.iso_cnc.transfer import with_words
 from cellctl.link import TrafficLog
@@ -64,6 +64,10 @@ REOPEN_S = 5.0
 REQUEST_WAIT_S = 1800.0
 #: Seconds a punch may take once started (DC2 ... DC4).
 PUNCH_S = 3600.0
+#: Seconds a punch under way may go silent before it is taken as ended without its DC4: a
+#: control punches without a pause, so silence is PUNCH stopped at the control or a cable
+#: pulled (the machine would otherwise show "punching" until PUNCH_S).
+PUNCH_IDLE_S = 10.0
 #: Seconds between two progress figures passed on (the driver gives five a second).
 PROGRESS_S = 0.5
 #: Events a machine keeps for the status.
@@ -414,7 +418,9 @@ class DncLine:
         """Take the punch the control has started (its DC2 is in): keep it, answer requests.
         The caller holds :attr:`turn`."""
         self.require_link("nothing can be received from it")
-        data: bytes = await self.driver.receive(progress=self._on_progress(None), timeout=timeout)
+        data: bytes = await self.driver.receive(
+            progress=self._on_progress(None), timeout=timeout, idle=PUNCH_IDLE_S
+        )
         return await self.take_punch(data)
 
     async def wait_punch(self, timeout: float) -> list[dict[str, Any]]:
@@ -438,55 +444,23 @@ class DncLine:
             if not self.punch_waiters and self.status.activity is Activity.AWAITING_PUNCH:
                 self._set(activity=Activity.IDLE)
 
-    async def take_punch(self, data: bytes) -> list[dict[str, Any]]:
-        """Split a punched tape into programs: answer a request, keep the others."""
-        now = current_clock().now()
-        done: list[dict[str, Any]] = []
-        for program in split_programs(unframe(data)):
-            raw = program.text.encode("latin-1", "replace")
-            try:
-                request = parse_request(program.number, program.text, self.config.request)
-            except UsageError as e:
-                kept = self.store.keep_received(self.name, program.number, raw, now)
-                self._note(f"request refused: {e}; kept as {kept.path.name}")
-                self._set(last=f"request refused: {e}", error=str(e))
-                done.append({"program": program.number, "refused": str(e), "kept": str(kept.path)})
-                continue
-            if request is not None:
-                done.append(await self._request(request, program.number, raw, now))
-                continue
-            kept = self.store.keep_received(self.name, program.number, raw, now)
-            message = f"received {o_name(program.number)} ({len(raw)} chars) as {kept.path.name}"
-            self._note(message)
-            self._set(last=message)
-            done.append({"program": program.number, "kept": str(kept.path), "chars": len(raw)})
-        waiters, self.punch_waiters = self.punch_waiters, []
-        for waiter in waiters:
-            if not waiter.done():
-                waiter.set_result(done)
-        return done
+    def end_punch_wait(self, why: str) -> str:
+        """End the waits for a punch that has not begun (``dnc receive``), each told ``why``
+        (a punch under way is taken whole, as ever); what was ended, in words, or ``""``."""
+        waiting = [w for w in self.punch_waiters if not w.done()]
+        if not waiting or self.status.activity is Activity.PUNCHING:
+            return ""
+        said = f"{why}: the wait for {self.name}'s punch ended (nothing was punched)"
+        self.punch_waiters = []
+        for waiter in waiting:
+            waiter.set_exception(TransferStopped(said))
+        self._note(said)
+        return said
 
-    async def _request(
-        self, request: Request, number: int, raw: bytes, now: float
-    ) -> dict[str, Any]:
-        try:
-            options = self.config.options
-            path = self.store.program(self.name, request.program, options.o_digits)
-            data = read_program_file(path)
-            check_program_number(path.name, data)
-            # The G-code check too: a program the read would refuse (empty, a block too long)
-            # is the request's refusal now, not a failed read-in once the control reads.
-            await off_loop(data, prepare, data, options, path.stem, request.drip)
-        except UsageError as e:  # the punched request is kept as received, as docs/dnc.md says
-            kept = self.store.keep_received(self.name, number, raw, now)
-            self._note(f"request {request} refused: {e}; kept as {kept.path.name}")
-            self._set(last=f"request {request} refused", error=f"request {request} refused: {e}")
-            return {"request": str(request), "refused": str(e), "kept": str(kept.path)}
-        self.pending, self.pending_since = request, current_clock().now()
-        message = f"request: {request} ({path.name}) on the control's next read"
-        self._note(message)
-        self._set(activity=Activity.WAITING, pending=str(request), last=message, error="")
-        return {"request": str(request), "file": str(path)}
+    async def take_punch(self, data: bytes) -> list[dict[str, Any]]:
+        """Split a punched tape into programs: answer a request, keep the others
+        (:func:`~cellctl.kinds.iso_cnc.dnc.punched.take_punch`)."""
+        return await take_punch(self, data)
 
     async def answer(self) -> None:
         """Send the pending request's program when the control reads (the caller holds
@@ -550,11 +524,32 @@ class DncLine:
             )
             try:
                 await self.receive(timeout=PUNCH_S)
+            except CellctlError as e:
+                self._punch_failed(e)
+                if isinstance(e, LinkClosed):
+                    raise  # offline, and opened again
             finally:
                 after = Activity.AWAITING_PUNCH if self.punch_waiters else Activity.IDLE
                 self._set(activity=Activity.WAITING if self.pending else after)
         elif len(link.pending()) > MAX_IDLE_BYTES:
             link.reset_input()  # noise on an idle line: nothing waits for it
+
+    def _punch_failed(self, e: CellctlError) -> None:
+        """A punch that ended without its DC4 (silence, the link lost, an alarm): logged
+        with what had come, and a ``dnc receive`` waiting for it is told so, not that
+        nothing came."""
+        came = self.status.chars_done if self.driver is None else self.driver.punched
+        failed = f"punch FAILED after {came} characters"
+        again = "nothing kept: press PUNCH on the control again"
+        said = f"{failed}: {e}; {again}"
+        self._note(said)
+        self._set(error=said, failures=self.status.failures + 1)
+        # Its own type (exit code): a link's error in these words, an alarm with them after.
+        told = type(e)(said) if isinstance(e, LinkError) else with_words(e, f"{failed}; {again}")
+        waiters, self.punch_waiters = self.punch_waiters, []
+        for waiter in waiters:
+            if not waiter.done():
+                waiter.set_exception(told)
 
     async def _failed(self, e: CellctlError, *, reopen: bool) -> None:
         retry_s = REOPEN_S if self.retries else None

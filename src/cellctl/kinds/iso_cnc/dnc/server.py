@@ -134,7 +134,14 @@ class DncServer:
 
         names = list(self.in_flight())
         results = await asyncio.gather(*(end(self.lines[n]) for n in names))
-        return dict(zip(names, results, strict=True))
+        ended = dict(zip(names, results, strict=True))
+        for name, line in self.lines.items():
+            # A `dnc receive` waiting for a punch that has not begun: its call would hold the
+            # server's close (calls in flight are waited for) until its own timeout.
+            said = line.end_punch_wait(why)
+            if said:
+                ended[name] = said
+        return ended
 
     async def close(self) -> None:
         for task in self._tasks:

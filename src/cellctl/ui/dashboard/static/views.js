@@ -67,7 +67,8 @@ function progressText(p) {
   if (p.blocks) {
     parts.push(`block ${p.block} of ${p.blocks}`);
   }
-  parts.push(`${p.done} / ${p.total} ${p.unit}`);
+  // A punch's total is not known before its end (total 0): what came so far, no share.
+  parts.push(p.total ? `${p.done} / ${p.total} ${p.unit}` : `${p.done} ${p.unit}`);
   if (p.rate_per_s) {
     const what = p.unit === "bytes" ? "chars/s" : `${p.unit}/s`;
     parts.push(`${p.rate_per_s.toFixed(p.rate_per_s < 10 ? 1 : 0)} ${what}`);

@@ -5,6 +5,7 @@ refusals, one owner per link."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import re
 import urllib.error
@@ -294,7 +295,12 @@ def test_dnc_toml_refusals(tmp_path: Path, toml: str, said: str) -> None:
     assert said in str(caught.value)
 
 
-async def test_status_and_dashboard_through_the_api_on_dnc_listen(tmp_path: Path) -> None:
+@contextlib.asynccontextmanager
+async def listening_shop(
+    tmp_path: Path,
+) -> AsyncIterator[tuple[IsoCncEmulator, Path, int, asyncio.Task[None]]]:
+    """A shop of one emulated control, mill1, served with ``[dnc] listen`` on a free loopback
+    port: the control, the shop's directory, the port and the serving task (stopped after)."""
     emulator, server = await control("socket://127.0.0.1:0")
     port = free_port()
     shop = write_shop(
@@ -303,6 +309,15 @@ async def test_status_and_dashboard_through_the_api_on_dnc_listen(tmp_path: Path
     stop = asyncio.Event()
     task = asyncio.create_task(serve_shop(load_shop(shop), stop=stop))
     try:
+        yield emulator, shop, port, task
+    finally:
+        stop.set()
+        await task
+        await server.close()
+
+
+async def test_status_and_dashboard_through_the_api_on_dnc_listen(tmp_path: Path) -> None:
+    async with listening_shop(tmp_path) as (emulator, shop, port, task):
         await until(lambda: (shop / "api-token").exists(), "the API's token")
         token = (shop / "api-token").read_text().strip()
 
@@ -339,10 +354,6 @@ async def test_status_and_dashboard_through_the_api_on_dnc_listen(tmp_path: Path
             await until(refused, "the request for O5000 refused, shown as mill1's error", 30)
         except AssertionError as e:
             raise AssertionError(f"{e}; mill1: {seen[0]}") from None
-    finally:
-        stop.set()
-        await task
-        await server.close()
 
 
 def surfacing(moves: int) -> str:
@@ -360,14 +371,14 @@ async def test_the_dashboard_shows_a_drip_feeds_stall_in_its_own_field(
     """A drip-feed that outruns the line, in Chromium: the machine's card shows its stall
     (the status' progress.stall_s) in a field of its own, growing above 0 while it runs,
     and hides it once the machine is idle again."""
-    emulator, server = await control("socket://127.0.0.1:0")
-    port = free_port()
-    shop = write_shop(
-        tmp_path / "shop", {"mill1": server.url}, f'\n[dnc]\nlisten = "127.0.0.1:{port}"\n'
-    )
-    (ShopStore(shop).machine("mill1") / "programs" / "O5000.nc").write_text(surfacing(300))
-    stop = asyncio.Event()
-    task = asyncio.create_task(serve_shop(load_shop(shop), stop=stop))
+    async with listening_shop(tmp_path) as (emulator, shop, port, task):
+        (ShopStore(shop).machine("mill1") / "programs" / "O5000.nc").write_text(surfacing(300))
+        await _stall_shown(emulator, shop, port, task, browser)
+
+
+async def _stall_shown(
+    emulator: IsoCncEmulator, shop: Path, port: int, task: asyncio.Task[None], browser: Browser
+) -> None:
     context = await browser.new_context(viewport={"width": 1200, "height": 900})
     client = None
     try:
@@ -413,9 +424,6 @@ async def test_the_dashboard_shows_a_drip_feeds_stall_in_its_own_field(
         if client is not None:
             await client.close()
         await context.close()
-        stop.set()
-        await task
-        await server.close()
 
 
 @IN_BROWSER
@@ -425,37 +433,28 @@ async def test_the_dashboard_shows_a_punchs_characters_with_no_total(
 ) -> None:
     """A punch under way, in Chromium: its card counts the characters come so far, never a
     share of a total no one knows before the DC4 (it showed "N / 0 chars")."""
-    emulator, server = await control("socket://127.0.0.1:0")
-    port = free_port()
-    shop = write_shop(
-        tmp_path / "shop", {"mill1": server.url}, f'\n[dnc]\nlisten = "127.0.0.1:{port}"\n'
-    )
-    stop = asyncio.Event()
-    task = asyncio.create_task(serve_shop(load_shop(shop), stop=stop))
-    context = await browser.new_context(viewport={"width": 1200, "height": 900})
-    try:
-        await until(lambda: task.done() or (shop / "api.sock").exists(), "the API listening")
-        assert not task.done(), task.exception()
-        page = await context.new_page()
-        await page.goto(f"http://127.0.0.1:{port}/#token={read_token(shop)}")
-        card = page.locator('.card[data-machine="mill1"]')
-        await card.locator(".machine-state").wait_for(timeout=SEEN_MS)
-        emulator.memory[5000] = surfacing(4000)  # some 50 s of line: still coming when seen
-        emulator.punch(5000)
-        await page.wait_for_function(
-            """() => {
-              const t = document.querySelector('.card[data-machine="mill1"] .progress-text');
-              return t && /[1-9][0-9]* chars/.test(t.textContent);
-            }""",
-            timeout=30_000,
-        )
-        text = await card.locator(".progress-text").inner_text()
-        assert not re.search(r"/ ?\d+ chars", text) and "%" not in text, text
-    finally:
-        await context.close()
-        stop.set()
-        await task
-        await server.close()
+    async with listening_shop(tmp_path) as (emulator, shop, port, task):
+        context = await browser.new_context(viewport={"width": 1200, "height": 900})
+        try:
+            await until(lambda: task.done() or (shop / "api.sock").exists(), "the API listening")
+            assert not task.done(), task.exception()
+            page = await context.new_page()
+            await page.goto(f"http://127.0.0.1:{port}/#token={read_token(shop)}")
+            card = page.locator('.card[data-machine="mill1"]')
+            await card.locator(".machine-state").wait_for(timeout=SEEN_MS)
+            emulator.memory[5000] = surfacing(4000)  # some 50 s of line: still coming when seen
+            emulator.punch(5000)
+            await page.wait_for_function(
+                """() => {
+                  const t = document.querySelector('.card[data-machine="mill1"] .progress-text');
+                  return t && /[1-9][0-9]* chars/.test(t.textContent);
+                }""",
+                timeout=30_000,
+            )
+            text = await card.locator(".progress-text").inner_text()
+            assert not re.search(r"/ ?\d+ chars", text) and "%" not in text, text
+        finally:
+            await context.close()
 
 
 def test_machines_from_a_cell(tmp_path: Path) -> None:

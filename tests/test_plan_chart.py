@@ -15,19 +15,25 @@ from cellctl.emulators.cell import EXAMPLE_CELL
 from cellctl.ui.cli import main
 
 
-@pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
-def test_a_plc_window_is_shaded_across_every_row(tmp_path: Path) -> None:
+def chart(tmp_path: Path, *faults: str) -> str:
+    """The Gantt chart (SVG) of a 30-minute plan of one robot base from 06:00 with ``faults``
+    (``--fault`` each)."""
     cell = tmp_path / "cell"
     shutil.copytree(EXAMPLE_CELL, cell)
     out = tmp_path / "out"
+    windows = [arg for text in faults for arg in ("--fault", text)]
     result = CliRunner().invoke(
         main,
         ["plan", "--dir", str(cell), "--add", "wax-robot-base:1", "--start", "2026-11-25T06:00",
-         "--shift", "30m", "--fault", "plc:estop@06:05-06:10", "--fault", "cnc2:down@06:20-06:25",
-         "--out", str(out)],
+         "--shift", "30m", *windows, "--out", str(out)],
     )  # fmt: skip
     assert result.exit_code == 0, result.output
-    svg = (out / "plan.svg").read_text()
+    return (out / "plan.svg").read_text()
+
+
+@pytest.mark.timeout(300)  # plays on a busy box: CPU, not waiting
+def test_a_plc_window_is_shaded_across_every_row(tmp_path: Path) -> None:
+    svg = chart(tmp_path, "plc:estop@06:05-06:10", "cnc2:down@06:20-06:25")
     windows = re.findall(
         r'<rect x="([\d.]+)" y="([\d.]+)" width="([\d.]+)"[^>]*class="window">'
         r"<title>([^<]*)</title>",
@@ -50,16 +56,7 @@ def test_a_plc_window_is_shaded_across_every_row(tmp_path: Path) -> None:
 def test_a_window_past_the_plan_ends_at_the_axis_end(tmp_path: Path) -> None:
     """A fault window that closes after the plan's end is shaded up to the axis' end (the
     plan's end), as the steps are: not past it, off the chart."""
-    cell = tmp_path / "cell"
-    shutil.copytree(EXAMPLE_CELL, cell)
-    out = tmp_path / "out"
-    result = CliRunner().invoke(
-        main,
-        ["plan", "--dir", str(cell), "--add", "wax-robot-base:1", "--start", "2026-11-25T06:00",
-         "--shift", "30m", "--fault", "cnc2:down@06:20-07:00", "--out", str(out)],
-    )  # fmt: skip
-    assert result.exit_code == 0, result.output
-    svg = (out / "plan.svg").read_text()
+    svg = chart(tmp_path, "cnc2:down@06:20-07:00")
     axis_end = max(
         float(x) for x in re.findall(r'<line x1="[\d.]+" y1="[\d.]+" x2="([\d.]+)"', svg)
     )

@@ -231,7 +231,7 @@ async def test_a_mill_out_of_service_returns_when_its_alarm_is_cleared(tmp_path:
         await rig.switch_off("cnc2:never-ready")
         result = await rig.cli("alarm", "clear", str(out.id))
         assert result.exit_code == 0 and f"alarm {out.id} cleared" in result.output
-        # The machine returns to service once none of its alarms is active.
+        # Its out-of-service alarm cleared, it returns (the operator clears the rest too).
         await rig.clear_alarms()
         await rig.wait_for(lambda: controller.machines["cnc2"].in_service, "cnc2 back in service")
         assert rig.journal.machines_out_of_service() == {}

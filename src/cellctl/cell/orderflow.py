@@ -98,8 +98,8 @@ class OrderFlow:
         self._taken = version
 
     def sync_operator(self) -> None:
-        """Alarms the operator cleared put their machine back in service (not one the
-        operator took out: only the operator returns that).
+        """A machine's out-of-service alarm the operator cleared puts it back in service (not
+        one the operator took out: only the operator returns that).
 
         Its answer follows from the journal, the mailbox and the machines' service alone:
         when none of them changed since the last call, there is nothing to do.
@@ -109,11 +109,16 @@ class OrderFlow:
         if version is not None and basis == self._synced:
             return
         out = self.world.journal.machines_out_of_service()
-        active = {a.machine for a in self.world.journal.active_alarms()}
+        # Only its out-of-service alarm holds it out: the fault's own alarm (a readiness it
+        # lost) returns once recovery, which leaves a machine out of service alone, sets it
+        # up again; waiting for that alarm too would hold it out for good.
+        held_out = {
+            a.machine for a in self.world.journal.active_alarms() if a.code == "out-of-service"
+        }
         for name, view in self.world.machines.items():
             if name in out and out[name].startswith(OPERATOR_OUT):
                 view.in_service = False
-            elif name in out and name not in active:
+            elif name in out and name not in held_out:
                 self.world.journal.set_machine_service(name, True, "alarm cleared by the operator")
                 view.in_service = True
                 view.failures = 0

@@ -183,6 +183,15 @@ class Link(ABC):
             start = max(0, len(self._buf) - len(terminator) + 1)
             await self._wait(deadline, f"{terminator!r}")
 
+    def check_open(self) -> None:
+        """Raise the link's LinkClosed (in its cause's words) if it is closed, from either end.
+
+        Call it before answering from what this side keeps (the last CTS a server reported,
+        an in-band readiness level): a line that is gone must not report its last level.
+        """
+        if self._closed_exc is not None:
+            raise self._closed_exc
+
     def pending(self) -> bytes:
         """Bytes received but not read yet (left in place)."""
         return bytes(self._buf)

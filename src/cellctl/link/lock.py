@@ -25,9 +25,11 @@ name.
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import json
 import os
+import pwd
 import socket
 import stat
 import sys
@@ -202,7 +204,27 @@ def _open(path: Path, flags: int) -> int:
     except FileNotFoundError:
         raise
     except OSError as e:
-        raise UsageError(f"cannot open the lock file {path}: {e.strerror}") from None
+        raise UsageError(
+            f"cannot open the lock file {path}: {e.strerror}{_access_advice(path, e)}"
+        ) from None
+
+
+def _access_advice(path: Path, error: OSError) -> str:
+    """For a lock refused for want of rights: whose directory it is, and what to do (run as
+    its owner, as the cell's service does); "" for any other failure."""
+    if error.errno not in (errno.EACCES, errno.EPERM):
+        return ""
+    there = path.parent
+    while not there.exists() and there != there.parent:
+        there = there.parent
+    try:
+        uid = there.stat().st_uid
+        owner = pwd.getpwuid(uid).pw_name
+    except (KeyError, OSError):
+        return ": this user may not write there"
+    if uid == os.geteuid():
+        return f": {there} is read-only: let its owner write there (chmod u+w)"
+    return f": {there} belongs to {owner}: run cellctl as {owner}, or let this user write there"
 
 
 def _same_file(fd: int, path: Path) -> bool:
@@ -288,7 +310,10 @@ class OwnerLock:
             try:
                 path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
             except OSError as e:
-                raise UsageError(f"cannot create {path.parent} for a lock: {e.strerror}") from None
+                raise UsageError(
+                    f"cannot create {path.parent} for a lock: {e.strerror}"
+                    f"{_access_advice(path.parent, e)}"
+                ) from None
         fd = _lock_the_file_at(path, what, refusal)
         try:
             if stat.S_IMODE(os.fstat(fd).st_mode) & 0o077:

@@ -269,7 +269,8 @@ class MemLink(Link):
         self._modem_changed()
 
     async def cts(self) -> bool:
-        """The host's CTS: the device's RTS."""
+        """The host's CTS: the device's RTS (LinkClosed once the line is closed)."""
+        self.check_open()
         return self.wire.device_rts
 
     async def dsr(self) -> bool:

@@ -21,7 +21,7 @@ import struct
 from serial import rfc2217 as r
 
 from cellctl.clock import Clock
-from cellctl.errors import LinkError, LinkTimeout
+from cellctl.errors import LinkClosed, LinkError, LinkTimeout
 from cellctl.link.settings import LineSettings
 from cellctl.link.tcp import TcpLink
 from cellctl.link.trace import TrafficLog
@@ -94,6 +94,8 @@ class Rfc2217Link(TcpLink):
         while len(self._answered) < len(_SETTING_ANSWERS):
             try:
                 await self._wait_event(deadline)
+            except LinkClosed as e:
+                raise LinkClosed(self._closed_at_open()) from e
             except LinkTimeout as e:
                 missing = sorted(set(_SETTING_ANSWERS.values()) - self._answered_names())
                 raise LinkError(
@@ -106,6 +108,27 @@ class Rfc2217Link(TcpLink):
         # a driver whose protocol can tell what in them still holds (a control's alarm
         # report as the link opens): the link cannot.
         self.opened_with = self.reset_input()
+
+    def _closed_at_open(self) -> str:
+        """Why a server closed the connection before the line was set up, in its own words
+        where it gave some (ser2net: "Port already in use", "Device open failure: ..."), and
+        what to do about it."""
+        said = "".join(c for c in self.pending().decode("ascii", "replace") if c.isprintable())
+        said = said.strip()[:80]
+        if not said:
+            advice = (
+                "another client may hold that port (a device server takes one at a time), or "
+                "the server has no device there: check the port number and the server"
+            )
+        elif "in use" in said.lower():
+            advice = (
+                "another client (another host, a terminal program) holds that port, as a "
+                "device server takes one at a time: end that one"
+            )
+        else:
+            advice = "see to it at the server (its serial device, its configuration)"
+        words = f', saying "{said}"' if said else ""
+        return f"{self.url}: the server closed the connection as it opened{words}: {advice}"
 
     def _answered_names(self) -> set[str]:
         return {_SETTING_ANSWERS[c] for c in self._answered}
@@ -217,7 +240,12 @@ class Rfc2217Link(TcpLink):
         self._modem_event.set()
 
     async def cts(self) -> bool:
-        """CTS as the server last reported it (it pushes every change; asked if never told)."""
+        """CTS as the server last reported it (it pushes every change; asked if never told).
+
+        Raises LinkClosed once the server closed the connection: the level it last reported
+        is no longer the machine's (a mill would pass for ready on a dead line).
+        """
+        self.check_open()
         if self.modem_state is None:
             self._raw_write(_sub(r.NOTIFY_MODEMSTATE))
             deadline = self.clock.monotonic() + 2.0

@@ -12,7 +12,9 @@ from __future__ import annotations
 import asyncio
 import errno
 import fcntl
+import grp
 import os
+import pwd
 import resource
 import stat
 import struct
@@ -58,6 +60,60 @@ def is_pty(path: str) -> bool:
     return stat.S_ISCHR(st.st_mode) and 136 <= os.major(st.st_rdev) <= 143
 
 
+def access_advice(path: str) -> str:
+    """What a user refused a serial device can do about it, in the words of its group.
+
+    Serial ports belong to a group (``dialout`` on Debian, ``uucp`` elsewhere) whose members
+    may open them; a user added to it has it only from the next login on.
+    """
+    try:
+        st = os.stat(path)
+    except OSError:
+        return "this user may not open it"
+    try:
+        group = grp.getgrgid(st.st_gid)
+        name, members = group.gr_name, group.gr_mem
+    except KeyError:
+        name, members = str(st.st_gid), []
+    mode = stat.filemode(st.st_mode)
+    if st.st_mode & 0o060 != 0o060 or st.st_gid in (os.getegid(), *os.getgroups()):
+        return f"its mode {mode} (group {name}) gives this user no access"
+    user = _user_name()
+    if user in members:
+        return (
+            f"you are in group {name}, but not in this login yet: log out and in again "
+            f"(or `newgrp {name}`)"
+        )
+    return f"add yourself to its group {name} (`sudo usermod -aG {name} {user}`), then log in again"
+
+
+def _not_a_device(path: str, error: BaseException) -> str | None:
+    """What ``path`` is when it exists and is no serial device ("a regular file", "a
+    directory", a device that is no terminal: ``error`` came of its line settings); None
+    otherwise."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None
+    if stat.S_ISCHR(mode):
+        cause: BaseException | None = error
+        while cause is not None:  # pyserial raises its own error while handling termios's
+            if isinstance(cause, termios.error) and cause.args[:1] == (errno.ENOTTY,):
+                return "a device that takes no line settings"
+            cause = cause.__context__
+        return None
+    if stat.S_ISDIR(mode):
+        return "a directory"
+    return "a regular file" if stat.S_ISREG(mode) else "no character device"
+
+
+def _user_name() -> str:
+    try:
+        return pwd.getpwuid(os.geteuid()).pw_name
+    except KeyError:
+        return str(os.geteuid())
+
+
 def open_pyserial(path: str, settings: LineSettings) -> serial.Serial:
     """Open ``path`` with ``settings`` through pyserial (Xon/Xoff in the OS always off)."""
     return serial.Serial(
@@ -101,11 +157,19 @@ class SerialLink(Link):
             # TIOCEXCL on it (or the driver allows one open).
             if getattr(e, "errno", None) in (errno.EAGAIN, errno.EWOULDBLOCK, errno.EBUSY):
                 raise MachineInUse(
-                    f"{path} is in use: another program holds the device exclusively"
+                    f"{path} is in use: another program holds the device exclusively (a "
+                    f"terminal program, another user's cellctl): end it; `fuser -v {path}` "
+                    "names it"
                 ) from None
             # pyserial's own words repeat the path and the errno: the system's words alone.
             code = getattr(e, "errno", None)
             why = os.strerror(code).lower() if isinstance(code, int) else str(e)
+            if code in (errno.EACCES, errno.EPERM):
+                why += f": {access_advice(path)}"
+            elif (kind := _not_a_device(path, e)) is not None:
+                # pyserial's words for a file are termios's: "Inappropriate ioctl for device".
+                why = f"it is {kind}, not a serial device (a USB adapter is /dev/ttyUSB0 or "
+                why += "/dev/serial/by-id/...)"
             raise LinkError(f"cannot open serial port {path}: {why}") from e
         fd = self._port.fd
         assert fd is not None
@@ -179,6 +243,7 @@ class SerialLink(Link):
         """The CTS input (the machine's RTS), read from the port."""
         if not self.has_modem_lines:
             return await super().cts()
+        self.check_open()  # a device that went away (EIO) must not be read as a level
         try:
             raw = fcntl.ioctl(self._fd, termios.TIOCMGET, struct.pack("I", 0))
         except OSError as e:

@@ -22,7 +22,10 @@ PARITIES = {"N": "none", "E": "even", "O": "odd", "M": "mark", "S": "space"}
 #: custom rate as a signed 32-bit int: 2,147,483,647; above it came an OverflowError).
 MAX_BAUDRATE = 1_000_000_000
 
-_COMPACT = re.compile(r"^\s*(\d+)\s*[,:/ ]\s*([5-8])([NEOMSneoms])(1|1\.5|2)\s*(,\s*rtscts)?\s*$")
+_COMPACT = re.compile(
+    r"^\s*(\d+)\s*[,:/ ]\s*([5-8])([NEOMSneoms])(1|1\.5|2)\s*(,\s*(?i:rtscts))?\s*$"
+)
+_XONXOFF = re.compile(r",\s*(xon|xoff|software)", re.IGNORECASE)
 
 
 @dataclass(frozen=True)
@@ -80,6 +83,12 @@ class LineSettings:
     def parse(cls, text: str) -> LineSettings:
         """Read ``"4800,7E2"``, ``"2400,8N1"`` or ``"9600,8N1,rtscts"``."""
         m = _COMPACT.match(text)
+        if not m and _XONXOFF.search(text):
+            raise UsageError(
+                f"line settings {text!r}: Xon/Xoff flow control stays off, as the bytes are "
+                "protocol (the robot's Xon, Xoff and Ack): write baud,bits parity stop like "
+                "4800,7E2 (optionally ,rtscts)"
+            )
         if not m:
             raise UsageError(
                 f"line settings {text!r} not understood: write baud,bits parity stop "

@@ -57,9 +57,20 @@ def _target(ctx: click.Context) -> tuple[PlcMap, float | None]:
 
 def _store(ctx: click.Context) -> StateStore | None:
     """The cell's state store (its PLC lock), if the cell directory exists: a running
-    controller holds the PLC, and these commands are refused rather than act beside it."""
+    controller holds the PLC, and these commands are refused rather than act beside it.
+
+    None for a ``--url`` that is not the cell's PLC (another PLC, one being tried before
+    cell.toml names it): the cell's lock is not its own, and its URL lock still excludes
+    every other opener of that PLC."""
+    from cellctl.link.keys import links_overlap
+
     directory = cell_dir(ctx)
-    return StateStore(directory) if directory.is_dir() else None
+    if not directory.is_dir():
+        return None
+    url = (ctx.find_object(dict) or {}).get("plc_url")
+    if url and not links_overlap(url, plc_map_for(ctx, None).url):
+        return None
+    return StateStore(directory)
 
 
 @plc.command()

@@ -325,8 +325,11 @@ class Dyna2400Mill(MillLine):
         """STATUS: the state (0-4) with "reference zero not set" / "executing" and CTS.
 
         Reading CTS also moves the host's view on: the operator pressed NEXT (1 -> 2), a block
-        or a started program finished (3/4 -> 2).
+        or a started program finished (3/4 -> 2). Raises LinkClosed once the link closed.
         """
+        # In-band readiness is the last DC1/DC3 seen: on a closed link it would still say
+        # READY, and the cell would take a mill whose line is gone for well.
+        self.link.check_open()
         ready = await self._cts()
         if ready and self.state in (1, 3, 4) and self.initialized:
             self._set_state(2)

@@ -103,7 +103,7 @@ async def test_a_poll_out_of_range_is_told_in_the_console_s_words(dash: Dash) ->
     assert await page.locator("#plan-play").is_enabled()
 
 
-def test_the_what_if_form_says_the_plans_own_default_poll() -> None:
+async def test_the_what_if_form_says_the_plans_own_default_poll() -> None:
     """The page's poll field shows the plan's default as cellctl plan takes it (it said 5 s
     when the default was 15 s)."""
     import re

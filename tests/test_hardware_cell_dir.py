@@ -76,3 +76,27 @@ def test_a_cell_of_another_user_says_whose_it_is(
     assert done.returncode == 2, done.stderr
     assert "Permission denied" in done.stderr
     assert f"{refused} belongs to root: run cellctl as root" in done.stderr
+
+
+def test_an_order_posted_to_a_cell_of_another_user_says_whose_it_is(
+    bench: tuple[pwd.struct_passwd, Path],
+) -> None:
+    """``cellctl submit`` opens the cell's journal and mailbox: it ended in a traceback
+    (PermissionError) where the cell is another user's."""
+    user, top = bench
+    cell = top / "cell"
+    shutil.copytree(Path(__file__).resolve().parent.parent / "examples" / "cell", cell)
+    for path in [cell, *cell.rglob("*")]:
+        path.chmod(0o755 if path.is_dir() else 0o644)
+    home = top / "home"
+    home.mkdir()
+    os.chown(home, user.pw_uid, user.pw_gid)
+    env = {**os.environ, "HOME": str(home), "CELLCTL_RUNTIME_DIR": str(home / "run")}
+    done = subprocess.run(
+        [*CELLCTL, "--cell", str(cell), "submit", "wax-robot-base"],
+        user=user.pw_uid, group=user.pw_gid, extra_groups=[], cwd=home, env=env,
+        capture_output=True, text=True, timeout=REFUSED_S,
+    )  # fmt: skip
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    assert f"{cell} belongs to root: run cellctl as root" in done.stderr, done.stderr
+    assert not list(cell.glob("*.sqlite3"))  # nothing made

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import errno
 import os
+import pwd
 import stat
 from pathlib import Path
 
@@ -105,3 +106,22 @@ def write_output(path: Path | str, data: str | bytes, *, encoding: str = "utf-8"
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW | os.O_CLOEXEC, 0o666)
     with os.fdopen(fd, "wb") as f:
         f.write(raw)
+
+
+def rights_advice(path: Path, error: OSError) -> str:
+    """For a file of the cell's refused for want of rights (a lock, a database): whose
+    directory it is, and what to do (run as its owner, as the cell's service does), as
+    ``": /cell belongs to root: run cellctl as root, ..."``; "" for any other failure."""
+    if error.errno not in (errno.EACCES, errno.EPERM):
+        return ""
+    there = path.parent
+    while not there.exists() and there != there.parent:
+        there = there.parent
+    try:
+        uid = there.stat().st_uid
+        owner = pwd.getpwuid(uid).pw_name
+    except (KeyError, OSError):
+        return ": this user may not write there"
+    if uid == os.geteuid():
+        return f": {there} is read-only: let its owner write there (chmod u+w)"
+    return f": {there} belongs to {owner}: run cellctl as {owner}, or let this user write there"

@@ -34,6 +34,7 @@ from types import TracebackType
 from typing import Any, Self
 
 from cellctl.errors import UsageError
+from cellctl.files import rights_advice
 
 #: Seconds a writer waits for another process's write lock before giving up.
 BUSY_TIMEOUT = 30.0
@@ -111,8 +112,12 @@ def connect(
     """Open ``path`` (private: 0600) in WAL mode, autocommit, ``synchronous=FULL``, and create
     ``schema``. ``durable=False``: ``synchronous=OFF``, no commit waits for the disk, for a
     throwaway copy (a plan's) that nothing reads after a crash."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    make_private(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        make_private(path)
+    except PermissionError as e:
+        # The cell's directory is another user's (or read-only): said, with what to do.
+        raise UsageError(f"cannot open {path}: {e.strerror}{rights_advice(path, e)}") from None
     # isolation_level=None: no implicit transactions; each method says BEGIN itself.
     conn = sqlite3.connect(
         path, timeout=busy_timeout, isolation_level=None, check_same_thread=False

@@ -25,11 +25,9 @@ name.
 from __future__ import annotations
 
 import contextlib
-import errno
 import fcntl
 import json
 import os
-import pwd
 import socket
 import stat
 import sys
@@ -41,6 +39,7 @@ from typing import Self
 
 from cellctl.clock import REAL_CLOCK
 from cellctl.errors import MachineInUse, UsageError
+from cellctl.files import rights_advice
 
 #: What a refusal says; ``{what}`` is the machine, ``{holder}`` the holder (see Holder.__str__),
 #: ``{advice}`` what to do about it (:func:`advice`).
@@ -205,26 +204,8 @@ def _open(path: Path, flags: int) -> int:
         raise
     except OSError as e:
         raise UsageError(
-            f"cannot open the lock file {path}: {e.strerror}{_access_advice(path, e)}"
+            f"cannot open the lock file {path}: {e.strerror}{rights_advice(path, e)}"
         ) from None
-
-
-def _access_advice(path: Path, error: OSError) -> str:
-    """For a lock refused for want of rights: whose directory it is, and what to do (run as
-    its owner, as the cell's service does); "" for any other failure."""
-    if error.errno not in (errno.EACCES, errno.EPERM):
-        return ""
-    there = path.parent
-    while not there.exists() and there != there.parent:
-        there = there.parent
-    try:
-        uid = there.stat().st_uid
-        owner = pwd.getpwuid(uid).pw_name
-    except (KeyError, OSError):
-        return ": this user may not write there"
-    if uid == os.geteuid():
-        return f": {there} is read-only: let its owner write there (chmod u+w)"
-    return f": {there} belongs to {owner}: run cellctl as {owner}, or let this user write there"
 
 
 def _same_file(fd: int, path: Path) -> bool:
@@ -312,7 +293,7 @@ class OwnerLock:
             except OSError as e:
                 raise UsageError(
                     f"cannot create {path.parent} for a lock: {e.strerror}"
-                    f"{_access_advice(path.parent, e)}"
+                    f"{rights_advice(path.parent, e)}"
                 ) from None
         fd = _lock_the_file_at(path, what, refusal)
         try:

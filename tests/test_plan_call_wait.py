@@ -13,8 +13,7 @@ import pytest
 
 from cellctl.clock import current_clock, run_virtual
 from cellctl.errors import LinkTimeout
-from cellctl.service.client import call_timeout
-from cellctl.ui.plan_cli import PLAN_SILENCE_S, plan_call
+from cellctl.service.client import PLAN_SILENCE_S, call_timeout, plan_call
 
 WEEK_S = 6 * 86400.0
 

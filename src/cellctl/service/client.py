@@ -6,7 +6,11 @@ or, when none runs, straight to the machines (standalone). Both answer the same 
         status = await cell.call("robot.status", {"machine": "robot"})
         snapshot = await cell.subscribe(on_update)             # on_update(changes)
 
-Every call has a deadline; a refused call raises the same typed error the CLI would.
+Every call has a deadline; a refused call raises the same typed error the CLI would. A plan
+(``plan.run``) is waited for while it plays, not for one deadline (:func:`plan_call`)::
+
+    async with own_session(cell) as apart:                     # given up: its play ends
+        answer = await plan_call(apart, {"shift": "8h"}, 8 * 3600.0, on_progress)
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ import os
 import pwd
 import socket
 import struct
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Self
@@ -36,6 +40,7 @@ from cellctl.errors import (
 from cellctl.mailbox import MAILBOX_FILE
 from cellctl.service.rpc import SOCKET_FILE, Caller, error_from_object
 from cellctl.service.token import TOKEN_ENV, check_unexpired, client_token, identify
+from cellctl.tasks import cancel_and_wait
 
 if TYPE_CHECKING:
     from websockets.asyncio.client import ClientConnection
@@ -52,8 +57,12 @@ Progress = Callable[[dict[str, Any]], None]
 #: Seconds a call may take: reads, and manual functions (a mill download waits for the cut).
 CALL_TIMEOUT = 30.0
 MACHINE_CALL_TIMEOUT = 3600.0
-#: A plan plays up to 31 days of the cell: seconds to minutes of the computer's time.
+#: A plan plays up to 31 days of the cell: seconds to minutes of the computer's time (a
+#: plan is waited for while it plays, past this: :func:`plan_call`).
 PLAN_CALL_TIMEOUT = 600.0
+#: How long a plan of the cell may go unheard: its play tells how far it has gone every
+#: minute of plan time (a few times a second); nothing of it for this long, it is stuck.
+PLAN_SILENCE_S = 600.0
 CONNECT_TIMEOUT = 5.0
 #: How often a standalone cell's status is looked at for subscribers.
 LOCAL_POLL = 0.5
@@ -134,8 +143,11 @@ class RemoteCell:
 
     mode = "attached"
 
-    def __init__(self, ws: ClientConnection) -> None:
+    def __init__(
+        self, ws: ClientConnection, again: Callable[[], Awaitable[RemoteCell]] | None = None
+    ) -> None:
         self._ws = ws
+        self._again = again  # another connection as this one was made (another())
         self._ids = itertools.count(1)
         self._pending: dict[int, asyncio.Future[Any]] = {}
         self._progress: dict[int, Progress] = {}
@@ -189,7 +201,19 @@ class RemoteCell:
             raise LinkTimeout("the control API did not answer within 5 s") from None
         except (OSError, WebSocketException) as e:
             raise LinkError(f"cannot reach the control API: {e}") from None
-        return cls(ws)
+
+        async def again() -> RemoteCell:
+            return await cls.connect(token=token, socket_path=socket_path, url=url)
+
+        return cls(ws, again)
+
+    async def another(self) -> RemoteCell:
+        """A second connection to the same API, as the same caller (its token): a read
+        called on it ends when it is closed (the API ends a plan's play whose session
+        closed), whatever this one goes on with. LinkError if it cannot be made."""
+        if self._again is None:
+            raise LinkError("this connection to the control API cannot be opened again")
+        return await self._again()
 
     async def _read(self) -> None:
         from websockets.exceptions import ConnectionClosed
@@ -366,6 +390,63 @@ class StandaloneCell:
 
 
 CellClient = RemoteCell | StandaloneCell
+
+
+@contextlib.asynccontextmanager
+async def own_session(cell: Any) -> AsyncIterator[Any]:
+    """``cell`` for a call that must end when its caller gives it up: a :class:`RemoteCell`'s
+    on a connection of its own, closed after (the API ends a plan whose session closed, not
+    only when ``cell`` closes); any other cell as it is (a standalone cell's call runs in
+    this process and ends with its task). Used as ``async with own_session(cell) as c:``."""
+    if not isinstance(cell, RemoteCell) or cell._again is None:
+        yield cell
+        return
+    apart = await cell.another()
+    try:
+        yield apart
+    finally:
+        await apart.close()
+
+
+async def plan_call(
+    cell: Any,
+    params: dict[str, Any],
+    span_s: float,
+    progress: Progress | None = None,
+    *,
+    silence_s: float = PLAN_SILENCE_S,
+) -> Any:
+    """``plan.run`` on ``cell`` (a :func:`open_cell` client), its progress to ``progress``:
+    waited for while its play goes on, not for the API's one deadline of any call (a plan
+    of days on a busy cell plays longer than that). Given up (:class:`LinkTimeout`) when
+    nothing of it is heard for ``silence_s``, or once it has taken ``span_s``, the plan's
+    own span (a plan slower than the cell is no plan); the call is cancelled then (its play
+    ends when its session closes: :func:`own_session`). The CLI, the factory's plan and the
+    console's WHAT IF all wait so."""
+    clock = current_clock()
+    heard = clock.monotonic()
+
+    def told(data: dict[str, Any]) -> None:
+        nonlocal heard
+        heard = clock.monotonic()
+        if progress is not None:
+            progress(data)
+
+    limit = max(span_s, silence_s)
+    call = asyncio.create_task(cell.call("plan.run", params, told, timeout=limit))
+    try:
+        while True:
+            left = heard + silence_s - clock.monotonic()
+            if left <= 0:
+                raise LinkTimeout(
+                    f"plan.run: nothing heard of the plan for {silence_s:g} s: it is stuck "
+                    "(the cell's log may say why)"
+                )
+            with contextlib.suppress(TimeoutError):
+                async with clock.timeout(left):
+                    return await asyncio.shield(call)
+    finally:
+        await cancel_and_wait([call])  # given up or Ctrl-C: the cell's play ends with it
 
 
 #: A ``$CELLCTL_TOKEN`` the cell does not know, whether or not its controller runs.

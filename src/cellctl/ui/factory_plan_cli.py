@@ -22,13 +22,13 @@ import click
 
 from cellctl.errors import EXIT_CODES, CellctlError, UsageError, exit_code
 from cellctl.ui.common import console, fail, print_json, print_line
-from cellctl.ui.plan_cli import plan_call, poll_option
+from cellctl.ui.plan_cli import poll_option
 
 
 async def _ask(directory: Path, params: dict[str, Any], span_s: float) -> Any:
     """Cell ``directory``'s ``plan.run`` answer (waited for as ``cellctl plan`` waits: while
     its play goes on), or its refusal (kept: the other cells go on)."""
-    from cellctl.service.client import open_cell
+    from cellctl.service.client import open_cell, plan_call
 
     try:
         async with await open_cell(directory, {}) as cell:

@@ -16,8 +16,6 @@ now. With ``--dir`` it is played here, from a cell directory and an orders file 
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 import dataclasses
 import os
 from collections.abc import Callable
@@ -27,9 +25,8 @@ from typing import Any, TypeVar
 import click
 
 from cellctl.clock import current_clock
-from cellctl.errors import CellctlError, LinkTimeout, UsageError
+from cellctl.errors import CellctlError, UsageError
 from cellctl.plan.when import MAX_POLL_S, PLAN_POLL_S, parse_poll
-from cellctl.tasks import cancel_and_wait
 from cellctl.ui.common import cell_dir, console, fail, print_json, print_line, run
 from cellctl.ui.plan_progress import ProgressLine, progress_line
 
@@ -265,59 +262,16 @@ def _replay(path: Path, line: ProgressLine | None = None) -> Any:
     return play_in_temp(inputs, policies, workers=os.cpu_count() or 1, progress=told)
 
 
-#: How long a plan of the cell may go unheard: its play tells how far it has gone every
-#: minute of plan time (a few times a second); nothing of it for this long, it is stuck.
-PLAN_SILENCE_S = 600.0
-
-
-async def plan_call(
-    cell: Any,
-    params: dict[str, Any],
-    span_s: float,
-    progress: Callable[[dict[str, Any]], None] | None = None,
-    *,
-    silence_s: float = PLAN_SILENCE_S,
-) -> Any:
-    """``plan.run`` on ``cell`` (a :func:`~cellctl.service.client.open_cell` client), its
-    progress to ``progress``: waited for while its play goes on, not for the API's one
-    deadline of any call (a plan of days on a busy cell plays longer than that). Given up
-    (:class:`LinkTimeout`) when nothing of it is heard for ``silence_s``, or once it has
-    taken ``span_s``, the plan's own span (a plan slower than the cell is no plan)."""
-    clock = current_clock()
-    heard = clock.monotonic()
-
-    def told(data: dict[str, Any]) -> None:
-        nonlocal heard
-        heard = clock.monotonic()
-        if progress is not None:
-            progress(data)
-
-    limit = max(span_s, silence_s)
-    call = asyncio.create_task(cell.call("plan.run", params, told, timeout=limit))
-    try:
-        while True:
-            left = heard + silence_s - clock.monotonic()
-            if left <= 0:
-                raise LinkTimeout(
-                    f"plan.run: nothing heard of the plan for {silence_s:g} s: it is stuck "
-                    "(the cell's log may say why)"
-                )
-            with contextlib.suppress(TimeoutError):
-                async with clock.timeout(left):
-                    return await asyncio.shield(call)
-    finally:
-        await cancel_and_wait([call])  # given up or Ctrl-C: the cell's play ends with it
-
-
 def _call_plan(
     ctx: click.Context, params: dict[str, Any], span_s: float, line: ProgressLine | None
 ) -> Any:
     """``plan.run`` on the cell (as :func:`~cellctl.ui.calls.cell_call`, waited for as
-    :func:`plan_call` waits), its progress on ``line``."""
+    :func:`~cellctl.service.client.plan_call` waits), its progress on ``line``."""
     directory = cell_dir(ctx)
 
     async def main() -> Any:
-        from cellctl.service.client import open_cell
+        # Here, not at the top: `cellctl plan --help` loads no API client.
+        from cellctl.service.client import open_cell, plan_call
 
         async with await open_cell(directory, {}) as cell:
             return await plan_call(cell, params, span_s, None if line is None else line.from_api)
@@ -334,4 +288,4 @@ def guarded(fn: Callable[[], T]) -> T:
         fail(e)
 
 
-__all__ = ["PLAN_SILENCE_S", "plan_call", "plan_command"]
+__all__ = ["plan_command", "poll_option"]

@@ -39,7 +39,7 @@ from textual.worker import Worker
 from cellctl.cell.owner import controller_holder
 from cellctl.clock import current_clock
 from cellctl.errors import CellctlError, UsageError
-from cellctl.service.client import CellClient, RemoteCell, attach
+from cellctl.service.client import PLAN_SILENCE_S, CellClient, RemoteCell, attach
 from cellctl.service.functions import MachineFunction, menu
 from cellctl.service.methods import METHODS
 from cellctl.service.status import StepInfo, StepKind, apply_update_json
@@ -118,6 +118,7 @@ class ConsoleApp(App[None]):
         client: CellClient | None = None,
         *,
         traffic_period: float = TRAFFIC_PERIOD,
+        plan_silence_s: float = PLAN_SILENCE_S,  # WHAT IF's (service.client.plan_call)
     ) -> None:
         super().__init__()
         self.directory = directory
@@ -129,7 +130,7 @@ class ConsoleApp(App[None]):
         self.level: str = "main"  # "main", "cell" or a machine's name
         self.selected: str = ""  # whose traffic is shown
         self.entries: list[Entry] = []
-        self.cell_actions = CellActions(self)
+        self.cell_actions = CellActions(self, plan_silence_s)
         self.served_menu = ServedMenu(self)
         #: Each machine's functions as its server declares them (none for a cell's).
         self.served: dict[str, list[ServedFunction]] = {}
@@ -258,8 +259,7 @@ class ConsoleApp(App[None]):
         if self._traffic_busy or self._closed or self.client is None or not self.selected:
             return
         self._traffic_busy = True
-        # The method, not a coroutine: none is made (and left unawaited) if the app exits
-        # first. (The annotation tells mypy the worker's result type.)
+        # The method, not a coroutine (none left unawaited if the app exits); typed for mypy.
         _worker: Worker[None] = self.run_worker(
             self._traffic_of_selected, group="traffic", exit_on_error=False
         )

@@ -9,19 +9,29 @@ without one.
 
 from __future__ import annotations
 
+import asyncio
 import re
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
 from cellctl.clock import current_clock
 from cellctl.errors import MachineInUse, UsageError
+from cellctl.service.client import PLAN_SILENCE_S, CellClient, own_session, plan_call
 from cellctl.service.machines import load_cell_file
 from cellctl.service.operator import scrap_question
 from cellctl.service.orderdue import resolve_due
 from cellctl.ui.alarm_marks import alarm_marks
 from cellctl.ui.console.dialogs import Dialog, FormDialog, LivePickDialog, PickDialog
 from cellctl.ui.console.entry import Entry
-from cellctl.ui.console.whatif import PlanView, plan_params, plan_text, refusal_field, summary
+from cellctl.ui.console.whatif import (
+    PlanProgress,
+    PlanView,
+    plan_params,
+    plan_span,
+    plan_text,
+    refusal_field,
+    summary,
+)
 from cellctl.ui.console.widgets import due_text
 
 T = TypeVar("T")
@@ -46,9 +56,14 @@ class ConsoleHost(Protocol):
     @property
     def snapshot(self) -> dict[str, Any]: ...
 
+    @property
+    def client(self) -> CellClient | None: ...
+
     def action_up(self) -> None: ...
 
     def say(self, lines: list[str], style: str = "") -> None: ...
+
+    def show_progress(self, done: float | None, total: float | None) -> None: ...
 
     async def call(self, method: str, params: dict[str, Any]) -> Any: ...
 
@@ -60,10 +75,13 @@ class ConsoleHost(Protocol):
 
 
 class CellActions:
-    """The CELL menu's entries and what they do, on a console app (:class:`ConsoleHost`)."""
+    """The CELL menu's entries and what they do, on a console app (:class:`ConsoleHost`).
+    ``plan_silence_s``: how long WHAT IF's plan may go unheard before it is given up."""
 
-    def __init__(self, app: ConsoleHost) -> None:
+    def __init__(self, app: ConsoleHost, plan_silence_s: float = PLAN_SILENCE_S) -> None:
         self.app = app
+        self.plan_silence_s = plan_silence_s
+        self._playing: asyncio.Task[Any] | None = None  # WHAT IF's plan, while it plays
 
     def entries(self) -> list[Entry]:
         attached = self.app.mode == "attached"
@@ -255,10 +273,16 @@ class CellActions:
 
     async def what_if(self) -> None:
         """Ask for a plan's inputs, play it through ``plan.run`` (the menu's worker waits;
-        the board stays live) and show it; a refusal (the parsers' or the API's) asks again."""
+        the board stays live) and show it; a refusal (the parsers' or the API's) asks again.
+        Chosen while its plan plays: offers to stop it."""
         from cellctl.plan.engine import POLICIES
         from cellctl.plan.when import PLAN_POLL_S
 
+        if self._playing is not None:
+            question = "WHAT IF: a plan is playing. Stop it? (y stops it, n lets it play on)"
+            if await self.app.confirm(question) and self._playing is not None:
+                self._playing.cancel()
+            return
         values = {
             "horizon": "8h",
             "fault": "",
@@ -298,14 +322,49 @@ class CellActions:
                 return
             self.app.say(["planning... (the cell played ahead on a copy; it goes on)"], "yellow")
             try:
-                answer = await self.app.call("plan.run", params)
+                answer = await self._played(params)
             except (UsageError, MachineInUse) as e:  # MachineInUse: another plan plays
                 problems = str(e)
                 self.app.say([f"plan refused: {e}"], "red")
                 continue
             break
+        if answer is None:
+            self.app.say(["plan stopped: its play ended (9 again plans anew)"], "yellow")
+            return
         self.app.say([summary(answer, self.app.directory)], "green")
         await self.app.ask(PlanView("WHAT IF", plan_text(answer, self.app.directory)))
+
+    async def _played(self, params: dict[str, Any]) -> Any:
+        """``params``' plan, waited for as ``cellctl plan`` waits (while its play tells how
+        far it has gone: :func:`~cellctl.service.client.plan_call`), on a session of its own
+        (given up or stopped, its play ends); how far on the result line. None: stopped."""
+        from cellctl.plan.spec import policies_of
+
+        assert self.app.client is not None
+        client = self.app.client
+        shown = PlanProgress(len(policies_of(str(params.get("policy", "default")))))
+        span_s = plan_span(params, current_clock().now())
+
+        def told(data: dict[str, Any]) -> None:
+            shown.told(data)
+            self.app.say([f"planning... {shown.text()}"], "yellow")
+            self.app.show_progress(100 * shown.fraction(), 100)
+
+        async def play() -> Any:
+            async with own_session(client) as cell:
+                return await plan_call(cell, params, span_s, told, silence_s=self.plan_silence_s)
+
+        self._playing = asyncio.create_task(play())
+        try:
+            return await self._playing
+        except asyncio.CancelledError:
+            this = asyncio.current_task()
+            if this is not None and this.cancelling():
+                raise  # the console quits: the plan's task was cancelled with this one
+            return None  # stopped from the menu
+        finally:
+            self._playing = None
+            self.app.show_progress(None, None)
 
     # -- the controller ---------------------------------------------------------------------
 

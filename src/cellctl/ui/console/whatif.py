@@ -10,12 +10,18 @@ SVG)::
 
     params = plan_params({"horizon": "8h", "fault": "cnc2:down@10:00-11:00",
                           "add": "wax-robot-base:40", "policy": "default"}, now)
-    lines = plan_text(await client.call("plan.run", params), Path("cell"))
+    answer = await plan_call(client, params, plan_span(params, now), shown.from_api)
+    lines = plan_text(answer, Path("cell"))
+
+It is waited for as ``cellctl plan`` waits (:func:`~cellctl.service.client.plan_call`: while
+its play tells how far it has gone), how far on the result line in ``cellctl plan``'s words
+(:class:`PlanProgress`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import io
 import re
 import textwrap
 from collections.abc import Iterator
@@ -31,6 +37,7 @@ from textual.widgets import Static
 
 from cellctl.errors import UsageError
 from cellctl.ui.console.dialogs import Dialog, FieldRefused
+from cellctl.ui.plan_progress import ProgressLine
 
 if TYPE_CHECKING:
     from cellctl.plan.report import PlanReport
@@ -130,6 +137,47 @@ def plan_params(raw: dict[str, str], now: float) -> dict[str, Any]:
         with refused_as("seed"):
             params["seed"] = parse_seed(seed)
     return params
+
+
+def plan_span(params: dict[str, Any], now: float) -> float:
+    """The span of the plan ``params`` (:func:`plan_params`' answer) asks for, s: how long
+    it may take at most (:func:`~cellctl.service.client.plan_call`)."""
+    from cellctl.plan.spec import plan_window
+
+    return plan_window(now, params.get("shift"), params.get("until")) - now
+
+
+class _Nowhere(io.StringIO):
+    """A stream that keeps nothing: the progress line's words are read, never written."""
+
+    def write(self, text: str) -> int:
+        return len(text)
+
+
+class PlanProgress:
+    """How far a plan has played, in ``cellctl plan``'s words (``playing: 2:13:00 of
+    8:00:00 machine time (28%, ...)``), from ``plan.run``'s progress: ``told(data)``, then
+    ``text()`` and ``fraction()`` (of every policy's span, for a bar)."""
+
+    def __init__(self, policies: int) -> None:
+        self.line = ProgressLine(_Nowhere())
+        self.policies = max(policies, 1)
+        self.played: dict[str, float] = {}
+
+    def told(self, data: dict[str, Any]) -> None:
+        try:
+            self.played[str(data["policy"])] = float(data["played_s"])
+        except (KeyError, TypeError, ValueError):
+            return  # not a plan's progress
+        self.line.from_api(data)
+
+    def text(self) -> str:
+        return self.line.text() if self.played else "starting"
+
+    def fraction(self) -> float:
+        """The share of the plan played: every policy's machine time of its span."""
+        span = max(self.line.span_s, 1e-9)
+        return sum(min(s, span) for s in self.played.values()) / (span * self.policies)
 
 
 def plan_text(answer: dict[str, Any], directory: Path) -> list[str]:

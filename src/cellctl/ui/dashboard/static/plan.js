@@ -1,7 +1,9 @@
 // The "What if" panel: a plan of the running cell (the API's plan.run, as `cellctl plan`),
 // with a fault window and orders added from its form. The plan plays the cell's state now on
 // a copy, on virtual time: the figures and the Gantt chart of what it would finish, and when.
-import { call } from "./app.js";
+// A plan of weeks plays for many minutes: it is waited for while it tells how far it has
+// gone, as `cellctl plan` waits (docs/plan.md), and the panel says how far.
+import { ApiError, get } from "./app.js";
 
 function byId(id) {
   return document.getElementById(id);
@@ -91,6 +93,75 @@ function pollSeconds(text, max) {
   return seconds;
 }
 
+// How far a plan has played, in `cellctl plan`'s words: "playing: 2:13:00 of 8:00:00 machine
+// time (28%)"; with several policies, each one's share.
+function progressText(played, spanS) {
+  const share = (s) => `${Math.floor(100 * Math.min(1, s / Math.max(spanS, 1e-9)))}%`;
+  const name = (p) => (p === "default" ? "downstream-first" : p);
+  const each = Object.entries(played);
+  if (each.length === 1) {
+    return `playing: ${span(each[0][1])} of ${span(spanS)} machine time (${share(each[0][1])})`;
+  }
+  return `playing ${span(spanS)} of machine time: ` +
+    each.map(([p, s]) => `${name(p)} ${share(s)}`).join(", ");
+}
+
+// plan.run on a WebSocket of its own (POST /dashboard/call says nothing until it answers):
+// its progress to told(data) as it plays, waited for while it comes, as `cellctl plan` waits
+// (cellctl.service.client.plan_call): given up, in its words, when nothing is heard of it
+// for silenceS seconds or once it has taken longer than the plan's own span. Closing the
+// socket ends the play (the API ends a plan whose session closed): given up, or the page
+// gone, the cell's one play is free again.
+async function planWhileHeard(params, silenceS, told) {
+  const oneshot = await get("/access/oneshot_token");
+  const scheme = window.location.protocol === "https:" ? "wss" : "ws";
+  const ws = new WebSocket(`${scheme}://${window.location.host}/websocket?token=${oneshot.token}`);
+  return new Promise((resolve, reject) => {
+    const started = performance.now();
+    let silence = null;
+    let ended = false;
+    const end = (settle, value) => {
+      if (!ended) {
+        ended = true;
+        clearTimeout(silence);
+        ws.close();
+        settle(value);
+      }
+    };
+    const giveUp = (words) => end(reject, new ApiError(`plan.run: ${words}`, 0));
+    const heard = () => {
+      clearTimeout(silence);
+      silence = setTimeout(() => giveUp(`nothing heard of the plan for ${silenceS} s: it is ` +
+        "stuck (the cell's log may say why)"), silenceS * 1000);
+    };
+    ws.addEventListener("open", () => {
+      ws.send(JSON.stringify({ jsonrpc: "2.0", id: 1, method: "plan.run", params }));
+      heard();
+    });
+    ws.addEventListener("message", (event) => {
+      const message = JSON.parse(event.data);
+      if (message.method === "notify_progress" && message.params.id === 1) {
+        // Heard from, but slower than the cell: past its span (or the silence allowed, if
+        // longer) since the call began, as the command line's deadline, it is no plan. (A
+        // plan that goes silent is caught by the silence's timer.)
+        const limitS = Math.max(Number(message.params.span_s) || 0, silenceS);
+        if (performance.now() - started > limitS * 1000) {
+          giveUp(`no answer from the control API within ${limitS} s`);
+          return;
+        }
+        heard();
+        told(message.params);
+      } else if (message.id === 1 && message.error) {
+        end(reject, new ApiError(message.error.message, 400));
+      } else if (message.id === 1) {
+        end(resolve, message.result);
+      }
+    });
+    ws.addEventListener("close", () => giveUp("the controller closed the connection before " +
+      "the plan was answered"));
+  });
+}
+
 async function play(event) {
   event.preventDefault();
   const message = byId("plan-message");
@@ -116,8 +187,15 @@ async function play(event) {
   const button = byId("plan-play");
   button.disabled = true;
   message.textContent = "playing the cell ahead …";
+  // How long the plan may go unheard, s: the form's data-silence (the command line's 600).
+  const silenceS = Number(byId("plan-form").dataset.silence) || 600;
+  const played = {};
+  const told = (data) => {
+    played[data.policy] = data.played_s;
+    message.textContent = progressText(played, data.span_s);
+  };
   try {
-    renderPlan(await call("plan.run", params));
+    renderPlan(await planWhileHeard(params, silenceS, told));
     message.textContent = "";
   } catch (e) {
     message.textContent = e.message;

@@ -77,7 +77,11 @@ def test_raised_again_after_its_return_is_a_spell_too(tmp_path: Path) -> None:
         clock.at = 1031.0
         journal.raise_alarm("plc", "link", "PLC not answering")  # seen again: nothing new
         journal.return_to_normal("plc", ["link"])
-        assert by_reason(journal, 900.0, 1100.0) == {("plc", "alarm: link"): 7.0}
+        # The PLC not answering stops the whole cell: down for every machine too.
+        assert by_reason(journal, 900.0, 1100.0) == {
+            ("plc", "alarm: link"): 7.0,
+            ("cell", "alarm: plc link"): 7.0,
+        }
 
 
 def test_a_chattering_alarm_counts_only_its_active_spells(tmp_path: Path) -> None:
@@ -254,12 +258,14 @@ def test_an_older_journal_reports_as_before(tmp_path: Path) -> None:
             [Spell(1080.0, None)],
         ]
         report = shift_report(journal, ["cnc1", "robot"], {}, 1000.0, 1100.0)
-        assert [m.down_s for m in report.machines] == [10.0 + 10.0, 10.0]
+        # The PLC's link alarm, open to the window's end, is down for every machine too.
+        assert [m.down_s for m in report.machines] == [10.0 + 10.0 + 20.0, 10.0 + 20.0]
         assert by_reason(journal, 1000.0, 1100.0) == {
             ("cnc1", "alarm: link"): 10.0,
             ("cnc1", "alarm: status"): 10.0,
             ("robot", "alarm: link"): 10.0,
             ("plc", "alarm: link"): 20.0,  # open: to the window's end
+            ("cell", "alarm: plc link"): 20.0,
         }
         # The robot's old alarm comes back and goes again under this cellctl: its first
         # spell (from its columns) is kept before the new one. The PLC's is cleared.
@@ -270,7 +276,8 @@ def test_an_older_journal_reports_as_before(tmp_path: Path) -> None:
         journal.clear_alarm(4)
         assert journal.alarm_spells()[3] == [Spell(1060.0, 1070.0), Spell(1090.0, 1095.0)]
         assert journal.alarm_spells()[4] == [Spell(1080.0, 1095.0)]
-        assert down(journal, "robot", 1000.0, 1100.0) == 10.0 + 5.0
+        # Its own spells, and the PLC's link alarm (1080-1095: its own 1090-1095 inside it).
+        assert down(journal, "robot", 1000.0, 1100.0) == 10.0 + 15.0
     # The table was made on open; the alarms left alone have no rows (their columns say it).
     db = sqlite3.connect(path)
     rows = db.execute("SELECT alarm_id, began, ended FROM alarm_spells ORDER BY rowid").fetchall()
@@ -385,15 +392,16 @@ async def test_a_link_lost_twice_is_down_twice_not_between(tmp_path: Path, machi
 
 def test_the_plcs_emergency_stop_is_down_time_for_every_machine(tmp_path: Path) -> None:
     """The PLC's E-stop input stops the whole cell: its alarm counts as down for each machine
-    (as the cell's own stop does), and for the PLC; another PLC alarm only for the PLC."""
+    (as the cell's own stop does), and for the PLC; another PLC alarm (an interlock not made)
+    only for the PLC."""
     clock = Clock()
     with Journal(tmp_path / "journal.sqlite3", clock=clock) as journal:
         journal.raise_alarm(ESTOP.machine, ESTOP.code, ESTOP.text)
         clock.at = 1030.0
         journal.return_to_normal(ESTOP.machine, [ESTOP.code])
-        journal.raise_alarm("plc", "link", "PLC not answering")
+        journal.raise_alarm("plc", "interlock", "vise of CNC 1 not closed within 5 s")
         clock.at = 1035.0
-        journal.return_to_normal("plc", ["link"])
+        journal.return_to_normal("plc", ["interlock"])
         for machine in ("robot", "cnc1", "cnc2"):
             assert down(journal, machine, 900.0, 1100.0) == 30.0, machine
         assert down(journal, "plc", 900.0, 1100.0) == 35.0

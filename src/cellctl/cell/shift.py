@@ -11,8 +11,13 @@ Every figure is read from the journal over the window ``[start, end]`` (docs/cel
 
 - **Planned busy time** (PBT, ISO 22400-2): the window. No planned stop is journaled, so the
   whole window counts as planned.
-- **Actual production time** (APT): the time the machine spent in steps (a transfer, a cut),
-  clipped to the window; a step still in flight counts up to the window's end.
+- **Actual production time** (APT, OEE's run time: producing or trying to): the time the
+  machine spent in steps (a transfer, a cut), clipped to the window; a step still in flight
+  counts up to the window's end. A failed step counts only its time while the machine was
+  not down: tried while the cell was stopped (the PLC not answering, an E-stop) or the
+  machine alarmed, it is down time (an availability loss), never both. Its time up stays in
+  APT and earns no ideal time: a performance loss, shown apart as ``failed_s`` (and
+  ``steps_failed``, the failed steps that ended in the window).
 - **Availability** = APT / PBT.
 - **Performance** (ISO 22400's effectiveness, PRI x PQ / APT): the ideal time of the steps
   the machine finished, over APT. A step's ideal time is what the machine's own model says it
@@ -27,7 +32,9 @@ Every figure is read from the journal over the window ``[start, end]`` (docs/cel
   (finished, their part neither held nor scrapped now).
 - **OEE** = availability x performance x quality.
 - **Down time** (ADOT): the union of the times the machine was out of service (the journal's
-  service log) or had an alarm of its own or the cell's active: each of the alarm's spells
+  service log) or had an alarm of its own or the cell's active (:data:`CELL_WIDE`: the PLC's
+  emergency stop, the PLC not answering; counted once where the machine's own alarm
+  overlaps them): each of the alarm's spells
   (:meth:`~cellctl.cell.journal.Journal.alarm_spells`), from raised or active again until it
   returned to normal, else until it was cleared. An alarm whose condition went and came
   back counts the times it was active, not the time between. **Downtime by reason** counts
@@ -80,8 +87,12 @@ class MachineFigures:
     production_s: float
     ideal_s: float
     down_s: float
+    #: Of ``production_s``, the failed steps' (outside down time): run time that made nothing.
+    failed_s: float
     steps_ended: int
     steps_good: int
+    #: Of ``steps_ended``, the failed ones.
+    steps_failed: int
     parts_ended: int
     parts_good: int
     availability: float
@@ -256,22 +267,33 @@ def _machine(
     end: float,
 ) -> MachineFigures:
     planned = end - start
-    production = ideal_s = 0.0
-    ended = good = 0
+    production = ideal_s = failed_s = 0.0
+    ended = good = failed = 0
     worked: set[str] = set()  # the parts it ran a step of
+    down_spans = [(t0, t1) for t0, t1, _ in downs]
     for s in steps:
         if s.machine != name:
             continue
         worked.add(s.part_id)
         if s.state != "interrupted":  # its end is not known: it counts no time
-            production += _overlap(s.started, s.ended if s.ended is not None else end, start, end)
+            stop = s.ended if s.ended is not None else end
+            run = _overlap(s.started, stop, start, end)
+            if s.state == "failed":
+                # A step tried while the machine was down (the cell stopped, its alarm
+                # active) made nothing because of that stop: the stop's loss, counted in
+                # down time, not run time too. A finished step keeps all its time: it made
+                # its part, and its ideal time is earned against it.
+                run -= _union(down_spans, max(s.started, start), min(stop, end))
+                failed_s += run
+            production += run
         if s.ended is None or not start <= s.ended <= end:
             continue
         ended += 1
+        failed += s.state == "failed"
         if s.state == "finished":
             ideal_s += ideal.get(f"{name}/{s.program}", s.ended - s.started)
             good += s.part_id not in held
-    down = _union([(t0, t1) for t0, t1, _ in downs], start, end)
+    down = _union(down_spans, start, end)
     availability = production / planned
     produced = [parts_ended[p] for p in worked if p in parts_ended]
     # Nothing to divide by: not known yet (a 0 would read as a machine that did badly).
@@ -284,8 +306,10 @@ def _machine(
         production_s=round(production, 3),
         ideal_s=round(ideal_s, 3),
         down_s=round(down, 3),
+        failed_s=round(failed_s, 3),
         steps_ended=ended,
         steps_good=good,
+        steps_failed=failed,
         parts_ended=len(produced),
         parts_good=sum(produced),
         availability=round(availability, 4),
@@ -300,8 +324,10 @@ def _rounded(ratio: float | None) -> float | None:
 
 
 #: Alarms of one machine that stop the whole cell: down for every machine, as the cell's own
-#: alarms are (the PLC's emergency stop input: no machine may move while it is pressed).
-CELL_WIDE = {(ESTOP.machine, ESTOP.code)}
+#: alarms are. The PLC's emergency stop input: no machine may move while it is pressed. The
+#: PLC not answering (its link alarm: silent, late past its deadline, closed): no door or
+#: vise moves and the stop cannot be read, so no transfer or cut can start meanwhile.
+CELL_WIDE = {(ESTOP.machine, ESTOP.code), (ESTOP.machine, "link")}
 #: Alarms of one machine that hold every transfer until they are cleared (a door or vise the
 #: PLC did not move: docs/cell.md): down for the robot.
 TRANSFERS_HELD = {("plc", "interlock")}

@@ -81,6 +81,12 @@ def shift_lines(report: dict[str, Any], cell: str = "") -> list[str]:
             f"{_hms(m['production_s']):>10} {_hms(m['down_s']):>9} "
             f"{m['steps_good']:>3}/{m['steps_ended']:<2} {m['parts_good']:>3}/{m['parts_ended']:<2}"
         )
+    failed = [m for m in report["machines"] if m["steps_failed"] or m["failed_s"] > 0]
+    if failed:
+        # Their time while the machine was down is in its down time, not here too.
+        out.append("failed steps, their run time (a performance loss):")
+    for m in failed:
+        out.append(_clip(f"  {_clip(m['machine'], 10):<10} {_failed(m)}", WIDTH))
     out += [
         "",
         f"parts good {report['parts_good']}, held {report['parts_held']}, "
@@ -95,6 +101,11 @@ def shift_lines(report: dict[str, Any], cell: str = "") -> list[str]:
     for d in report["downtime_by_reason"]:
         out.append(_clip(f"  {_hms(d['seconds']):>9}  {d['machine']:<8} {d['reason']}", WIDTH))
     return [*out, "", *_controller_lines(report), "", *_handover_lines(report)]
+
+
+def _failed(machine: dict[str, Any]) -> str:
+    """A machine's failed steps and their run time: ``8 steps, 15.0 s``."""
+    return f"{_count(machine['steps_failed'], 'step')}, {_hms(machine['failed_s'])}"
 
 
 #: The controller's states, as the table names them, and their keys in the report.
@@ -240,6 +251,7 @@ def shift_html(report: dict[str, Any], steps: list[dict[str, Any]], cell: str = 
         f"<td>{_pct(m['performance'])}</td><td>{_pct(m['quality'])}</td>"
         f"<td><b>{_pct(m['oee'])}</b></td><td>{_hms(m['production_s'])}</td>"
         f"<td>{_hms(m['down_s'])}</td><td>{m['steps_good']} / {m['steps_ended']}</td>"
+        f"<td>{_failed(m)}</td>"
         f"<td>{m['parts_good']} / {m['parts_ended']}</td></tr>"
         for m in report["machines"]
     )
@@ -282,7 +294,8 @@ svg {{ max-width: 100%; height: auto; }}
 ({_hms(report["end"] - report["start"])}; time scale {report["time_scale"]:g})</p>
 <h2>Machines (OEE after ISO 22400)</h2>
 <table><tr><th>machine</th><th>availability</th><th>performance</th><th>quality</th>
-<th>OEE</th><th>producing</th><th>down</th><th>good / steps</th><th>good / parts</th></tr>
+<th>OEE</th><th>producing</th><th>down</th><th>good / steps</th><th>failed, run time</th>
+<th>good / parts</th></tr>
 {rows}</table>
 <p>Parts good {report["parts_good"]}, held {report["parts_held"]},
 scrapped {report["parts_scrapped"]}.</p>
@@ -296,8 +309,10 @@ scrapped {report["parts_scrapped"]}.</p>
 <table><tr><th>machine</th><th>reason</th><th>time</th></tr>{downs}</table>
 <h2>Gantt chart</h2>
 {svg}
-<p><small>Availability: time in steps over the window. Performance: the finished steps'
-ideal time (the machines' own models) over the time in steps. Quality: good parts over the
+<p><small>Availability: time in steps over the window (a failed step's time while its
+machine was down, the cell stopped included, is down time, not time in steps). Performance:
+the finished steps' ideal time (the machines' own models) over the time in steps, so a
+failed step's time in steps is a performance loss. Quality: good parts over the
 parts the machine worked on that were finished or scrapped in the window. OEE: their
 product. {NOT_KNOWN}: not known yet (no part ended, no time in steps). See docs/cell.md,
 "The shift report".</small></p>

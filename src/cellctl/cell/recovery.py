@@ -7,13 +7,17 @@ the machine's words (:meth:`Recovery.fault`); the scheduler then plans without i
 recovery task per machine brings it back: reopen its link if it closed, initialize it again
 with force (the documented way out of a stuck state), every poll period until that succeeds
 or the machine is out of service (``fail_limit`` failures in a row). The next poll that sees
-it ready puts it back in the plan.
+it ready puts it back in the plan. A link is reopened by one caller at a time (the dispatch
+loop's round or the mill's recovery), at once when it is found closed, then after a pause that
+doubles from one poll period up to :data:`REOPEN_WAIT_MAX` until the machine is well again: a
+device server that refuses for a moment after a drop (ser2net's "Port already in use", or a
+connection it takes and closes at once) is not asked again every round.
 
 A mill that left ready while idle (:meth:`Recovery.setup_in_doubt`) may have been power-cycled:
 its setup (a zero only its operator sets) can be gone with nothing on the line to show it. The
 cell trusts that setup no more: it sets the mill up again itself when it can (a setup program,
-no part in the vise), and otherwise waits for the operator's word (the fault's alarm
-acknowledged, or the mill returned to service) before it takes work again.
+no part in the vise, none on its way there), and otherwise waits for the operator's word (the
+fault's alarm acknowledged, or the mill returned to service) before it takes work again.
 
 The controller owns this object and calls it; it needs of the controller only the world model
 (machines, drivers, options), the alarm sink and a way to reopen a link
@@ -28,6 +32,7 @@ from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING
 
 from cellctl.cell.causes import LINK_CLOSED, Cause
+from cellctl.cell.config import transfer_ends
 from cellctl.errors import CellctlError
 from cellctl.kinds import Condition, LastError
 from cellctl.kinds.families import setup_lost
@@ -40,6 +45,10 @@ if TYPE_CHECKING:
 #: What names a failure by its cause, from the machine and the error (the monitor's
 #: :meth:`~cellctl.cell.monitor.Monitor.cause_of`); None: only the failure explains it.
 CauseFinder = Callable[[str, BaseException], Awaitable[Cause | None]]
+
+#: The longest pause between two attempts to reopen a machine's link, s (the pause doubles
+#: from one poll period up to this).
+REOPEN_WAIT_MAX = 5.0
 
 
 class SetupLost(CellctlError):
@@ -71,6 +80,13 @@ class Recovery:
         # Mills whose step failed on the machine's own word while its block ran on (past its
         # deadline: a stall), until set up again: a block still running then is the fault.
         self._overran: set[str] = set()
+        # Reopens of a link, one at a time per machine: the dispatch loop's round and the
+        # mill's recovery both reopen, and a second open while the first is under way would
+        # be refused by the machine's owner lock (a failure the backoff would then count).
+        self._reopening: dict[str, asyncio.Lock] = {}
+        # Machines whose link was found closed since they were last well: when the next
+        # attempt to reopen it may be made, and the pause after that one.
+        self._reopen_at: dict[str, tuple[float, float]] = {}
 
     # -- what the scheduler asks ----------------------------------------------------------------
 
@@ -144,7 +160,14 @@ class Recovery:
         if config.setup is not None and not self._occupied(name):
             text = f"{what}: its setup is in doubt (power cycled?): it is set up again once ready"
         else:
-            why = "a part is in its vise" if config.setup is not None else "it has no setup program"
+            # A part on its way in is the vise's state by the time the mill is ready again:
+            # decided now, the alarm must not promise a setup that cannot run over it.
+            if config.setup is None:
+                why = "it has no setup program"
+            elif self._loading(name):
+                why = "a part is being loaded into its vise"
+            else:
+                why = "a part is in its vise"
             text = (
                 f"{what}: its setup is in doubt (power cycled?) and {why}: check its setup at "
                 "the machine, then acknowledge this alarm"
@@ -235,9 +258,17 @@ class Recovery:
         self.world.machines[name].show(f"executing (left running): {text}", Condition.ALARM)
 
     def _occupied(self, name: str) -> bool:
-        """A part is in the mill's vise: its setup program does not run over it."""
+        """A part is in the mill's vise, or on its way there: its setup program does not run
+        over it (nor while the arm puts a part into the vise)."""
         parts = self.world.journal.parts(statuses=["waiting", "active", "held"])
-        return any(p.location == name for p in parts)
+        return any(p.location == name for p in parts) or self._loading(name)
+
+    def _loading(self, name: str) -> bool:
+        """A transfer into mill ``name`` is under way (its part is in the vise once it ends)."""
+        return any(
+            s.kind == "transfer" and transfer_ends(s.program)[1] == name
+            for s in self.world.journal.open_steps()
+        )
 
     async def _await_readiness(self, m: MachineConfig) -> None:
         """With a part in the vise (or no setup program): back in the plan once it shows
@@ -289,31 +320,52 @@ class Recovery:
                 await robot.close()
             # Once: a failed step may have said so already.
             self.alarms.alarm(robot.name, "link", LINK_CLOSED)
-            try:
-                world.robot = await self.links.open_robot()
-                self.alarms.log(f"{robot.name}: link reopened")
-            except (CellctlError, OSError) as e:
-                self.alarms.alarm(robot.name, "link", f"cannot reopen the link: {e}")
+            if self._reopen_due(robot.name):
+                try:
+                    world.robot = await self.links.open_robot()
+                    self.alarms.log(f"{robot.name}: link reopened")
+                except (CellctlError, OSError) as e:
+                    self.alarms.alarm(robot.name, "link", f"cannot reopen the link: {e}")
+        elif robot is not None and not robot.link.closed and self.robot_ok:
+            self._reopen_at.pop(robot.name, None)  # well again: a new drop is tried at once
         for m in world.config.mills:
             if not world.mill_busy(m.name) and not await self.reopen_mill(m):
                 self.fit[m.name] = False
 
     async def reopen_mill(self, m: MachineConfig) -> bool:
-        """Reopen ``m``'s link if it closed; False if it is closed and could not be reopened."""
-        mills = self.world.mills
-        mill = mills.get(m.name)
-        if mill is None or not mill.link.closed:
+        """Reopen ``m``'s link if it closed; False if it is closed and was not reopened (it
+        could not be, or its next attempt is not due yet: see module docstring)."""
+        async with self._reopening.setdefault(m.name, asyncio.Lock()):
+            mills = self.world.mills
+            mill = mills.get(m.name)
+            if mill is None or not mill.link.closed:
+                if self.fit.get(m.name, False):
+                    self._reopen_at.pop(m.name, None)  # well again: a new drop is tried at once
+                return True
+            with contextlib.suppress(CellctlError, OSError):
+                await mill.close()
+            if m.name not in self.faulted:  # a cut line is a fault of its own: one alarm
+                self.fault(m.name, "link", LINK_CLOSED, count=False)
+            if not self._reopen_due(m.name):
+                return False
+            try:
+                mills[m.name] = await self.links.open_mill(m)
+            except (CellctlError, OSError) as e:
+                self.alarms.alarm(m.name, "link", f"cannot reopen the link: {e}")
+                return False
+            self.alarms.log(f"{m.name}: link reopened")
             return True
-        with contextlib.suppress(CellctlError, OSError):
-            await mill.close()
-        if m.name not in self.faulted:  # a cut line is a fault of its own: one alarm
-            self.fault(m.name, "link", LINK_CLOSED, count=False)
-        try:
-            mills[m.name] = await self.links.open_mill(m)
-        except (CellctlError, OSError) as e:
-            self.alarms.alarm(m.name, "link", f"cannot reopen the link: {e}")
+
+    def _reopen_due(self, name: str) -> bool:
+        """True if an attempt to reopen ``name``'s link is due now, the next one then put
+        off: the first at once, the next a poll period later, each pause twice the last up
+        to :data:`REOPEN_WAIT_MAX`, until the machine is well again (a reopen that worked
+        counts too: a server can take a connection and close it at once)."""
+        now = self.world.clock.monotonic()
+        due, wait = self._reopen_at.get(name, (now, self.world.options.poll_period))
+        if now < due:
             return False
-        self.alarms.log(f"{m.name}: link reopened")
+        self._reopen_at[name] = (now + wait, min(2 * wait, max(REOPEN_WAIT_MAX, wait)))
         return True
 
     # -- bringing machines to a known state -----------------------------------------------------

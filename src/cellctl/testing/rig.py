@@ -43,7 +43,7 @@ import asyncio
 import contextlib
 import re
 import threading
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal
@@ -55,8 +55,10 @@ from cellctl.cell.controller import CellController, ControllerOptions
 from cellctl.cell.journal import Journal, Step, open_journal
 from cellctl.clock import VIRTUAL_ORIGIN, VirtualClock, VirtualLoop, current_clock
 from cellctl.emulators.cell import EmulatedCell
+from cellctl.emulators.memserve import serve_mem
 from cellctl.errors import UsageError
 from cellctl.kinds import registry
+from cellctl.link.mem import MemPort, listen_mem
 from cellctl.mailbox import Mailbox, open_mailbox
 from cellctl.ui.cell_cli import apply_fault
 from cellctl.ui.cli import main as cli_main
@@ -358,6 +360,34 @@ class CellRig:
             target = self.cell.mills[machine]
         target.clear_fault(name)
         await target.operator_after(name)
+
+    @contextlib.asynccontextmanager
+    async def connections_dropped(self, mill: str) -> AsyncIterator[list[float]]:
+        """While inside, ``mill``'s line (``mem://`` links only) is a device server that
+        takes each connection and closes it at once, as ser2net does for a moment after a
+        drop ("Port already in use"); the mill's emulator is off the line (its connection
+        cut on entering) and serves it again on leaving. Yields the times
+        (``monotonic()`` of the running clock) of the connections taken, as they come."""
+        if self.cell.links != "mem":
+            raise UsageError("connections_dropped takes a cell on mem:// links")
+        clock = current_clock()
+        name = f"{self.cell.mem_prefix}{mill}"
+        line = self.cell.line_of(mill)
+        taken: list[float] = []
+
+        def drop(port: MemPort) -> None:
+            taken.append(clock.monotonic())
+            port.drop()
+
+        await self.cell.servers[mill].close()
+        listener = listen_mem(name, line, drop)
+        try:
+            yield taken
+        finally:
+            listener.close()
+            self.cell.servers[mill] = await serve_mem(
+                self.cell.mills[mill], line, name=name, pacing=self.cell.pacing
+            )
 
     def physical_part(self, mill: str) -> str | None:
         """The physical part in ``mill``'s vise (the emulated cell's record)."""

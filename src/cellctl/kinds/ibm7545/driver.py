@@ -403,8 +403,8 @@ class Ibm7545Robot(RobotTransactions):
             try:
                 await self._expect_ack(piece, what)
             except LinkTimeout as e:
-                if i == 0:
-                    raise  # no answer at all: a silent controller, not a garbled line
+                if i == 0:  # no answer at all: a silent controller, not a garbled line
+                    raise LinkTimeout(f"{e}: {self._no_answer()}") from e
                 raise _AckLost(str(e)) from e
             if i >= 1:
                 self.counters.records_downloaded += 1

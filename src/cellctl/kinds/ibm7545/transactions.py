@@ -66,6 +66,7 @@ from cellctl.kinds.ibm7545.records import (
     resync,
 )
 from cellctl.kinds.ibm7545.status import RobotCounters
+from cellctl.link import ROBOT_LINE
 
 #: Rejects that say the line garbled a download, not that the controller cannot take it:
 #: 16 record format error (bad checksum, hex, count or terminator), 96 invalid identifier
@@ -131,6 +132,20 @@ class RobotTransactions(LinkDriver):
         """Deadline for a reply: controller latency plus wire time both ways."""
         return self.config.reply_timeout + self.link.settings.wire_time(sent + expect)
 
+    def _no_answer(self) -> str:
+        """What a silent line says, and what to check, with the line settings in use (a
+        wrong baud or parity is silence too: the controller takes no request from it)."""
+        line = self.link.settings
+        used = (
+            f"{line}, the controller's default"
+            if line == ROBOT_LINE
+            else f"{line} here; the controller's default is {ROBOT_LINE}"
+        )
+        return (
+            "no answer from the robot controller: check its power, the cable and the line "
+            f"settings ({used}: cell.toml's line, or --line)"
+        )
+
     async def _byte(self, timeout: float) -> int:
         return (await self.link.read(1, timeout=timeout))[0]
 
@@ -169,7 +184,7 @@ class RobotTransactions(LinkDriver):
         try:
             first = await self._byte(self._timeout(1))
         except LinkTimeout as e:
-            raise LinkTimeout(f"{self.name}: {what}: no answer from the robot controller") from e
+            raise LinkTimeout(f"{self.name}: {what}: {self._no_answer()}") from e
         if first not in (XOFF, EOT):
             raise UnexpectedReply(
                 f"{self.name}: {what}: expected Xoff after {ident.decode()}, got {first:02X}",

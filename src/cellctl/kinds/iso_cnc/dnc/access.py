@@ -16,7 +16,8 @@ Methods of its own (:meth:`DncAccess.methods`):
   stopped before its end (``dnc.stop``, the server stopping) is an error saying where it
   ended, after a last progress whose ``stopped`` field has the same words (``phase``
   ``ended``): a client tells a stop from a failure by that field.
-- ``dnc.receive`` ``{machine, timeout?}``: take what the control punches; kept as received.
+- ``dnc.receive`` ``{machine, timeout?}``: take what the control punches; kept as received
+  (the wait ends when its WebSocket client goes).
 - ``dnc.stop`` ``{machine, ticket?}``: end the read-in or drip-feed in flight the clean way
   (whoever started it; with ``ticket``, only the one sent with it), or drop the request
   waiting for the control's read.
@@ -362,7 +363,16 @@ METHODS: dict[str, Method] = {
     m.name: m
     for m in [
         Method("dnc.send", SendParams, _send, "Send (or drip-feed) a program by hand.", True),
-        Method("dnc.receive", ReceiveParams, _receive, "Take what the control punches.", True),
+        # Its wait ends with its client (the machine's task takes the punch, whoever waits):
+        # a `dnc receive` killed leaves no "waiting for punch" behind until its timeout.
+        Method(
+            "dnc.receive",
+            ReceiveParams,
+            _receive,
+            "Take what the control punches.",
+            True,
+            abandoned=True,
+        ),
         Method("dnc.stop", StopParams, _stop, "Stop the transfer in flight.", True),
         Method("dnc.log", LogParams, _log, "The last lines of a machine's log.", False),
         Method(

@@ -35,6 +35,14 @@ BAUD_RATES = (4800, 9600, 19200, 38400, 57600, 115200)
 
 
 def _hms(seconds: float) -> str:
+    """Seconds as a user reads them: ``6.4 s``, ``0.015 s`` (two figures under a second:
+    a short wait is never ``0.0 s``), ``0:20:05`` from a minute."""
+    if seconds <= 0:
+        return "0 s"
+    if seconds < 0.001:
+        return "under 0.001 s"
+    if seconds < 0.995:  # 0.995 and more read 1.0 s, as tenths
+        return f"{seconds:.2g} s"
     if seconds < 60:
         return f"{seconds:.1f} s"
     whole = round(seconds)
@@ -106,7 +114,8 @@ def check(ctx: click.Context, name: str, program: str, shop: Path, use_cell: boo
     else:
         lines.append(
             f"  drip-feed: the axes wait {_hms(forecast.stall_s)} for data at "
-            f"{forecast.stalls:,} blocks (longest {forecast.longest_s:.2f} s, for "
+            f"{forecast.stalls:,} block{'' if forecast.stalls == 1 else 's'} (longest "
+            f"{_hms(forecast.longest_s)}, for "
             f"`{forecast.longest_block}`); {ending}"
         )
         faster = [b for b in BAUD_RATES if b > settings.baudrate]

@@ -438,6 +438,13 @@ class DncLine:
             raise LinkTimeout(
                 f"{self.name}: nothing punched in {timeout:g} s (select the program, press PUNCH)"
             ) from None
+        except asyncio.CancelledError:
+            # The API cancels the wait when its client goes (the finally frees the machine),
+            # and as it closes: one told its end first (the server stopping) says that.
+            if not waiter.done() or waiter.cancelled() or (task := asyncio.current_task()) is None:
+                raise
+            task.uncancel()
+            return waiter.result()
         finally:
             if waiter in self.punch_waiters:
                 self.punch_waiters.remove(waiter)

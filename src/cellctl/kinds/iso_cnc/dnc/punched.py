@@ -23,6 +23,7 @@ async def take_punch(line: DncLine, data: bytes) -> list[dict[str, Any]]:
     its program), keep the others in the shop's received folder; what became of each."""
     now = current_clock().now()
     done: list[dict[str, Any]] = []
+    refused = False  # an error of this punch stays, whatever it brought after it
     for program in split_programs(unframe(data)):
         raw = program.text.encode("latin-1", "replace")
         try:
@@ -31,15 +32,19 @@ async def take_punch(line: DncLine, data: bytes) -> list[dict[str, Any]]:
             kept = line.store.keep_received(line.name, program.number, raw, now)
             line._note(f"request refused: {e}; kept as {kept.path.name}")
             line._set(last=f"request refused: {e}", error=str(e))
+            refused = True
             done.append({"program": program.number, "refused": str(e), "kept": str(kept.path)})
             continue
         if request is not None:
-            done.append(await _request(line, request, program.number, raw, now))
+            answer = await _request(line, request, program.number, raw, now)
+            refused = refused or "refused" in answer
+            done.append(answer)
             continue
         kept = line.store.keep_received(line.name, program.number, raw, now)
         message = f"received {o_name(program.number)} ({len(raw)} chars) as {kept.path.name}"
         line._note(message)
-        line._set(last=message)
+        # Kept: an earlier error is behind, as after a program sent (dnc status's last error).
+        line._set(last=message, error=line.status.error if refused else "")
         done.append({"program": program.number, "kept": str(kept.path), "chars": len(raw)})
     waiters, line.punch_waiters = line.punch_waiters, []
     for waiter in waiters:

@@ -235,12 +235,7 @@ async def test_a_mill_out_of_service_returns_when_its_alarm_is_cleared(tmp_path:
         await rig.clear_alarms()
         await rig.wait_for(lambda: controller.machines["cnc2"].in_service, "cnc2 back in service")
         assert rig.journal.machines_out_of_service() == {}
-        while not rig.all_done():
-            await rig.operator_resolves()
-            await rig.wait_for(
-                lambda: rig.all_done() or rig.held_parts() or rig.journal.active_alarms(),
-                "the run to complete or to need the operator again",
-            )
+        await resolve_until_done(rig)
         await rig.stop_controller()
         assert rig.journal.machines_out_of_service() == {}
         assert rig.cut_twice() == {}

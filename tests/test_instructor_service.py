@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from cellctl.testing.rig import CellRig
+from tests.test_cell_faults import resolve_until_done
 
 
 @pytest.mark.virtual
@@ -36,12 +37,7 @@ async def test_clearing_the_out_of_service_alarm_puts_the_mill_back(tmp_path: Pa
             "cnc1's alarms returned to normal",
         )
         rig.post("wax-robot-base", 1, "B")  # and it cuts again
-        while not rig.all_done():
-            await rig.operator_resolves()
-            await rig.wait_for(
-                lambda: rig.all_done() or rig.held_parts() or rig.journal.active_alarms(),
-                "the run to complete or to need the operator again",
-            )
+        await resolve_until_done(rig)
         await rig.stop_controller()
         assert rig.journal.machines_out_of_service() == {}
         assert rig.cut_twice() == {}

@@ -4,13 +4,13 @@ used. Two processes, the emulator's ``silent`` fault over TCP."""
 
 from __future__ import annotations
 
-import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from .conftest import CELLCTL, emulator_process
+from .conftest import emulator_process
+from .test_robot_cli import robot
 
 CHECK = "check its power, the cable and the line settings"
 
@@ -20,15 +20,6 @@ def silent() -> Iterator[str]:
     """A robot controller that reads every byte and answers none; yields its URL."""
     with emulator_process("robot", "--listen", "socket://127.0.0.1:0", "--fault", "silent") as url:
         yield url
-
-
-def robot(cell: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [*CELLCTL, "--cell", str(cell), "robot", *args],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
 
 
 def test_a_silent_controller_says_what_to_check_at_the_default_line(

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import re
 import signal
+from pathlib import Path
 
 from cellctl.kinds.iso_cnc.dnc.line import PUNCH_IDLE_S
 from cellctl.kinds.iso_cnc.dnc.store import ShopStore
@@ -37,6 +38,13 @@ async def punch_under_way(where: Shop, name: str) -> dict[str, object]:
 
     found: dict[str, object] = await until(coming, f"{name}'s punch under way", 30)
     return found
+
+
+async def status_row(root: Path, name: str) -> str:
+    """Machine ``name``'s line of ``cellctl dnc status`` (exit 0)."""
+    code, said = await finished(await cellctl("dnc", "status", "--dir", str(root)))
+    assert code == 0, said
+    return next(x for x in said.splitlines() if x.startswith(f"{name}:"))
 
 
 async def test_a_punch_stopped_at_the_control_ends_said_and_the_machine_is_idle_again(
@@ -79,9 +87,7 @@ async def test_a_punch_under_way_shows_its_characters_never_a_share_of_them(
     progress = await punch_under_way(served, "mill2")
     # How far a punch is cannot be known before its DC4: no total, never "done" (100%).
     assert progress["total"] == 0 and progress["fraction"] == 0, progress
-    code, said = await finished(await cellctl("dnc", "status", "--dir", str(served.root)))
-    assert code == 0, said
-    row = next(x for x in said.splitlines() if x.startswith("mill2:"))
+    row = await status_row(served.root, "mill2")
     assert row.startswith("mill2: busy: punching | ") and " chars, receiving" in row, row
     assert "%" not in row and not re.search(r"\d+/\d+ chars", row), row
     control.set_mode(Mode.MEM)  # the test is done with it: the punch stops

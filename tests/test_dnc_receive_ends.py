@@ -16,6 +16,7 @@ from tests.test_dnc_cli import (  # noqa: F401  (shop and served are fixtures)
     shop,
     wait_state,
 )
+from tests.test_dnc_punch import status_row
 
 
 async def test_a_receive_killed_while_it_waits_ends_its_wait_at_the_server(
@@ -57,8 +58,7 @@ async def test_a_punch_kept_after_a_refused_request_clears_the_last_error(
     control.punch(9999)
     code, said = await finished(receive)
     assert code == 0 and "refused" in said, said
-    code, said = await finished(await cellctl("dnc", "status", "--dir", root))
-    row = next(x for x in said.splitlines() if x.startswith("mill1:"))
+    row = await status_row(served.root, "mill1")
     assert "last error: request load O7777 refused" in row, row
     # A program punched and kept: the error is behind, as after a program sent.
     control.memory[1001] = "O1001 (SHORT)\nG00 X0 Y0\nM30\n"
@@ -67,8 +67,7 @@ async def test_a_punch_kept_after_a_refused_request_clears_the_last_error(
     control.punch(1001)
     code, said = await finished(receive)
     assert code == 0 and "received O1001" in said, said
-    code, said = await finished(await cellctl("dnc", "status", "--dir", root))
-    row = next(x for x in said.splitlines() if x.startswith("mill1:"))
+    row = await status_row(served.root, "mill1")
     assert row.startswith("mill1: idle") and "last error" not in row, row
     status = await served.status()
     assert status["machines"]["mill1"]["error"] is None, status["machines"]["mill1"]
